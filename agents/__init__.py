@@ -1,0 +1,1 @@
+"""Agents: FIPA-ACL speech acts, asyncio agents, protocols, Directory Facilitator, transports."""

@@ -1,0 +1,125 @@
+"""A location's per-stream cache and the fluent generator queries over it."""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterable
+from typing import Any
+
+from ._policy import Approximation, CacheSpec
+from ._sample import Sample
+from ._time import seconds_to_ns
+
+
+class Cache:
+    """The last N samples and/or last T seconds (by available time) of one stream.
+
+    Samples are kept in arrival order, which is available-time order, so eviction is a
+    ``popleft``. Superseded estimates (same valid time, later available time) are kept:
+    that is what answers "what did we believe at tq about tv".
+    """
+
+    __slots__ = ("_buf", "_max_age", "evicted")
+
+    def __init__(self, spec: CacheSpec) -> None:
+        self._buf: deque[Sample] = deque(maxlen=spec.max_samples)
+        self._max_age = None if spec.max_age is None else seconds_to_ns(spec.max_age)
+        self.evicted = 0
+
+    def __len__(self) -> int:
+        return len(self._buf)
+
+    def extend(self, batch: list[Sample]) -> None:
+        """Add newly available samples (available times increasing) and evict what is too old."""
+        buf = self._buf
+        maxlen = buf.maxlen
+        if maxlen is not None:
+            over = len(buf) + len(batch) - maxlen
+            if over > 0:
+                self.evicted += min(over, len(buf) + len(batch))
+        buf.extend(batch)
+        if self._max_age is not None and buf:
+            cutoff = buf[-1][2] - self._max_age
+            n = 0
+            while buf and buf[0][2] < cutoff:
+                buf.popleft()
+                n += 1
+            self.evicted += n
+
+    def samples(self, as_of: int | None = None) -> list[Sample]:
+        """All cached samples in arrival order, only those available by ``as_of`` if given."""
+        if as_of is None:
+            return list(self._buf)
+        return [s for s in self._buf if s[2] <= as_of]
+
+    def _believed(self, as_of: int | None) -> Iterable[Sample]:
+        """Samples visible at ``as_of``, newest arrival first."""
+        if as_of is None:
+            return reversed(self._buf)
+        return (s for s in reversed(self._buf) if s[2] <= as_of)
+
+    def latest(self, as_of: int | None = None) -> Sample | None:
+        """The sample with the greatest valid time (newest estimate on ties) seen by ``as_of``."""
+        best: Sample | None = None
+        for s in self._believed(as_of):
+            if best is None or s[1] > best[1]:
+                best = s
+        return best
+
+    def between(self, t1: int, t2: int, as_of: int | None = None) -> list[Sample]:
+        """Samples with valid time in [t1, t2] seen by ``as_of``: current estimates, tv order.
+
+        Where several estimates share a valid time, the newest one (by ``as_of``) is kept.
+        """
+        best: dict[int, Sample] = {}
+        for s in self._believed(as_of):
+            tv = s[1]
+            if t1 <= tv <= t2 and tv not in best:
+                best[tv] = s
+        return [best[t] for t in sorted(best)]
+
+    def history(self, t1: int, t2: int, as_of: int | None = None) -> list[Sample]:
+        """Every sample (superseded estimates too) with valid time in [t1, t2], arrival order."""
+        return [s for s in self._buf if t1 <= s[1] <= t2 and (as_of is None or s[2] <= as_of)]
+
+    def at(self, t: int, approximation: Approximation, as_of: int | None = None) -> Sample | None:
+        """The value at valid time ``t`` through a fluent generator; None if it has no answer.
+
+        The answer's valid time is ``t``; its available time is that of the newest sample
+        it was computed from.
+        """
+        before: Sample | None = None
+        after: Sample | None = None
+        seen: set[int] = set()
+        for s in self._believed(as_of):
+            tv = s[1]
+            if tv in seen:
+                continue  # an older estimate of a valid time already answered
+            seen.add(tv)
+            if tv == t:
+                return s
+            if tv < t:
+                if before is None or tv > before[1]:
+                    before = s
+            elif after is None or tv < after[1]:
+                after = s
+        return _approximate(t, before, after, approximation)
+
+
+def _approximate(t: int, b: Sample | None, a: Sample | None, how: Approximation) -> Sample | None:
+    """Fill valid time ``t`` from the samples around it, per ``how``."""
+    if how is Approximation.NONE:
+        return None
+    if how is Approximation.MOST_RECENT:
+        return None if b is None else Sample(b[0], t, b[2])
+    if how is Approximation.CLOSEST:
+        if b is None and a is None:
+            return None
+        if a is None or (b is not None and t - b[1] <= a[1] - t):
+            assert b is not None
+            return Sample(b[0], t, b[2])
+        return Sample(a[0], t, a[2])
+    if b is None or a is None:
+        return None
+    value: Any = b[0] + (a[0] - b[0]) * ((t - b[1]) / (a[1] - b[1]))
+    return Sample(value, t, max(b[2], a[2]))

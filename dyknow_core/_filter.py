@@ -1,0 +1,299 @@
+"""A policy compiled into a per-subscription filter: the per-sample hot path.
+
+A policy is checked once (pydantic) and then turned into a small Python function that
+contains only the tests that policy needs, run over whole batches with local variables.
+Generating the loop is what lets a chain of policies keep up with per-item libraries:
+every ``if policy.x is not None`` that a generic loop would test per sample is decided
+here, once.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from ._policy import Approximation, ChangeKind, LateAction, Order, Policy
+from ._sample import Sample
+from ._time import seconds_to_ns
+
+MISSING: Any = object()
+_NEG_INF = -(2**63)
+
+
+class FilterStats:
+    """Counts of what a subscription's policy dropped, by reason, and what it emitted."""
+
+    __slots__ = ("approximated", "bounds", "change", "emitted", "late", "order", "type", "window")
+
+    def __init__(self) -> None:
+        self.window = self.late = self.order = self.bounds = 0
+        self.change = self.type = self.approximated = self.emitted = 0
+
+    @property
+    def dropped(self) -> int:
+        """Samples the policy held back, whatever the reason."""
+        return self.window + self.late + self.order + self.bounds + self.change + self.type
+
+    def as_dict(self) -> dict[str, int]:
+        """A plain snapshot for metrics and reports."""
+        return {k: getattr(self, k) for k in self.__slots__}
+
+
+def _compile(policy: Policy, *, stages: tuple[str, ...]) -> Any:
+    """Write and compile ``run(self, batch, out)`` applying the named stages of ``policy``."""
+    body: list[str] = []
+    consts: dict[str, Any] = {"Sample": Sample, "MISSING": MISSING}
+    if "window" in stages and policy.start is not None:
+        consts["START"] = policy.start
+        body.append("if tv < START:\n    n_window += 1\n    continue")
+    if "window" in stages and policy.end is not None:
+        consts["END"] = policy.end
+        body.append("if tv > END:\n    n_window += 1\n    self.ended = True\n    continue")
+    if "late" in stages and policy.max_delay is not None:
+        consts["MAXD"] = seconds_to_ns(policy.max_delay)
+        body.append("if ta - tv > MAXD:\n    n_late += 1\n    continue")
+    if "order" in stages and policy.order is Order.MONOTONE:
+        body.append("if tv < last_tv:\n    n_order += 1\n    continue")
+    elif "order" in stages and policy.order is Order.STRICT:
+        body.append("if tv <= last_tv:\n    n_order += 1\n    continue")
+    if "bounds" in stages and (policy.lower is not None or policy.upper is not None):
+        tests = []
+        if policy.lower is not None:
+            consts["LO"] = policy.lower
+            tests.append("v < LO")
+        if policy.upper is not None:
+            consts["HI"] = policy.upper
+            tests.append("v > HI")
+        body.append(
+            "try:\n"
+            f"    if {' or '.join(tests)}:\n"
+            "        n_bounds += 1\n"
+            "        continue\n"
+            "except TypeError:\n"
+            "    n_type += 1\n"
+            "    continue"
+        )
+    kind = policy.change.kind
+    if "change" in stages and kind is ChangeKind.ANY_CHANGE:
+        body.append("if v == last_v:\n    n_change += 1\n    continue")
+    elif "change" in stages and kind is not ChangeKind.ANY_UPDATE:
+        consts["DELTA"] = policy.change.delta
+        if kind is ChangeKind.ABSOLUTE:
+            test = "abs(v - last_v) <= DELTA"
+        else:
+            # relative to the last emitted value; from zero any non-zero value is a change
+            test = "(abs(v - last_v) / abs(last_v) <= DELTA) if last_v else v == last_v"
+        body.append(
+            "if last_v is not MISSING:\n"
+            "    try:\n"
+            f"        if {test}:\n"
+            "            n_change += 1\n"
+            "            continue\n"
+            "    except TypeError:\n"
+            "        n_type += 1\n"
+            "        continue"
+        )
+    emits = "emit" in stages
+    if emits:
+        body.append("append(s)\nlast_tv = tv\nlast_v = v")
+    else:
+        body.append("append(s)")
+    loop = "\n".join(body)
+    inner = "\n".join("        " + line for line in loop.splitlines())
+    src = (
+        "def run(self, batch, out):\n"
+        "    append = out.append\n"
+        "    last_tv = self.last_tv\n"
+        "    last_v = self.last_value\n"
+        "    n_window = n_late = n_order = n_bounds = n_change = n_type = 0\n"
+        "    for s in batch:\n"
+        "        v, tv, ta = s\n"
+        f"{inner}\n"
+        "    st = self.stats\n"
+        "    if n_window: st.window += n_window\n"
+        "    if n_late: st.late += n_late\n"
+        "    if n_order: st.order += n_order\n"
+        "    if n_bounds: st.bounds += n_bounds\n"
+        "    if n_change: st.change += n_change\n"
+        "    if n_type: st.type += n_type\n"
+        "    self.last_tv = last_tv\n"
+        "    self.last_value = last_v\n"
+    )
+    namespace: dict[str, Any] = dict(consts)
+    exec(compile(src, f"<policy-filter {'/'.join(stages)}>", "exec"), namespace)
+    return namespace["run"]
+
+
+class _Sampler:
+    """Turns accepted samples into one sample per period on a grid of valid times."""
+
+    __slots__ = (
+        "after_ok",
+        "approx",
+        "before",
+        "end",
+        "g",
+        "late_approx",
+        "maxd",
+        "period",
+        "stats",
+    )
+
+    def __init__(self, policy: Policy, stats: FilterStats) -> None:
+        assert policy.sample_period is not None
+        self.period = seconds_to_ns(policy.sample_period)
+        self.approx = policy.approximation
+        self.maxd = None if policy.max_delay is None else seconds_to_ns(policy.max_delay)
+        self.late_approx = policy.late is LateAction.APPROXIMATE
+        self.end = policy.end
+        self.g: int | None = None  # the next grid point not yet decided
+        self.before: Sample | None = None  # the newest sample with valid time < g
+        self.stats = stats
+
+    def _first_grid(self, tv: int) -> int:
+        p = self.period
+        return -((-tv) // p) * p  # ceil to the grid anchored at time 0
+
+    def _value(self, g: int, after: Sample | None) -> tuple[bool, Any]:
+        """The value at grid point ``g`` per the approximation; ``after`` is None at a deadline."""
+        b = self.before
+        a = self.approx
+        if a is Approximation.NONE:
+            if b is not None and b[1] > g - self.period:
+                return True, b[0]
+            return False, None
+        if a is Approximation.MOST_RECENT:
+            return (True, b[0]) if b is not None else (False, None)
+        if after is None:  # deadline passed: closest/linear have only the past to go on
+            if self.late_approx and b is not None:
+                self.stats.approximated += 1
+                return True, b[0]
+            return False, None
+        if b is None:
+            if a is Approximation.CLOSEST:
+                return True, after[0]
+            return False, None
+        if a is Approximation.CLOSEST:
+            return True, (b[0] if g - b[1] <= after[1] - g else after[0])
+        try:
+            t0, t1 = b[1], after[1]
+            return True, b[0] + (after[0] - b[0]) * ((g - t0) / (t1 - t0))
+        except TypeError:
+            self.stats.type += 1
+            return True, b[0]
+
+    def deadline(self) -> int | None:
+        """The time after which the next grid point is decided without waiting for data."""
+        if self.maxd is None or self.g is None:
+            return None
+        return self.g + self.maxd
+
+    def _done(self, g: int) -> bool:
+        return self.end is not None and g > self.end
+
+    def tick(self, now: int, out: list[Sample]) -> None:
+        """Decide every grid point whose max delay has passed by ``now``."""
+        maxd = self.maxd
+        g = self.g
+        if maxd is None or g is None:
+            return
+        p = self.period
+        while g + maxd < now and not self._done(g):
+            if self.approx is Approximation.NONE and (
+                self.before is None or self.before[1] <= g - p
+            ):
+                # nothing in this or later empty periods: jump to the first period that can emit
+                g = max(g + p, self._first_grid(now - maxd))
+                continue
+            ok, v = self._value(g, None)
+            if ok:
+                out.append(Sample(v, g, g + maxd))
+            g += p
+        self.g = g
+
+    def feed(self, batch: list[Sample], out: list[Sample]) -> None:
+        """Advance the grid with accepted samples (in arrival order)."""
+        p = self.period
+        for s in batch:
+            tv = s[1]
+            if self.g is None:
+                self.g = self._first_grid(tv)
+            if self.maxd is not None and self.g + self.maxd < s[2]:
+                self.tick(s[2], out)
+            g = self.g
+            if self._done(g):
+                return
+            if tv < g:
+                b = self.before
+                if b is None or tv > b[1] or (tv == b[1] and s[2] > b[2]):
+                    self.before = s
+                continue
+            while g < tv and not self._done(g):
+                ok, v = self._value(g, s)
+                if ok:
+                    out.append(Sample(v, g, s[2]))
+                g += p
+            if tv == g and not self._done(g):
+                out.append(s)
+                g += p
+            self.g = g
+            self.before = s
+
+
+class PolicyFilter:
+    """The state of one subscription's policy: what it emitted last and what it dropped."""
+
+    __slots__ = ("_post", "_pre", "ended", "last_tv", "last_value", "policy", "sampler", "stats")
+    _pre: Any
+    _post: Any
+
+    def __init__(self, policy: Policy, previous: PolicyFilter | None = None) -> None:
+        self.policy = policy
+        self.stats: FilterStats = previous.stats if previous is not None else FilterStats()
+        # a replaced policy continues the emitted stream: order and change stay honoured
+        self.last_tv: int = previous.last_tv if previous is not None else _NEG_INF
+        self.last_value: Any = previous.last_value if previous is not None else MISSING
+        self.ended = False
+        if policy.sample_period is None:
+            self.sampler: _Sampler | None = None
+            self._pre = _compile(
+                policy, stages=("window", "late", "order", "bounds", "change", "emit")
+            )
+            self._post = None
+        else:
+            self.sampler = _Sampler(policy, self.stats)
+            if previous is not None and previous.last_tv != _NEG_INF:
+                self.sampler.g = self.sampler._first_grid(previous.last_tv + 1)
+            self._pre = _compile(policy, stages=("window", "late", "bounds"))
+            self._post = _compile(policy, stages=("order", "change", "emit"))
+
+    def process(self, batch: list[Sample]) -> list[Sample]:
+        """Apply the policy to a batch of newly available samples; return what to emit."""
+        out: list[Sample] = []
+        if self.sampler is None:
+            self._pre(self, batch, out)
+        else:
+            accepted: list[Sample] = []
+            self._pre(self, batch, accepted)
+            grid: list[Sample] = []
+            self.sampler.feed(accepted, grid)
+            if self.sampler.end is not None and self.sampler.g is not None:
+                self.ended = self.ended or self.sampler._done(self.sampler.g)
+            if grid:
+                self._post(self, grid, out)
+        self.stats.emitted += len(out)
+        return out
+
+    def tick(self, now: int) -> list[Sample]:
+        """Emit grid points whose max delay passed by ``now`` (periodic policies only)."""
+        out: list[Sample] = []
+        if self.sampler is not None:
+            grid: list[Sample] = []
+            self.sampler.tick(now, grid)
+            if grid:
+                self._post(self, grid, out)
+            self.stats.emitted += len(out)
+        return out
+
+    def deadline(self) -> int | None:
+        """When this filter next needs a tick, or None."""
+        return self.sampler.deadline() if self.sampler is not None else None

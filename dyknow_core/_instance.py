@@ -1,0 +1,328 @@
+"""The DyKnow instance: labels to stream generators, processes, subscriptions, queries."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import fnmatch
+from collections import deque
+from collections.abc import AsyncIterable, Callable, Sequence
+from typing import Any
+
+from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
+from ._location import Location
+from ._policy import Approximation, CacheSpec, Policy
+from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
+from ._sample import Answer
+from ._stream import BatchCallback, StreamGenerator, Subscription
+from ._time import Clock, RealClock
+
+DEFAULT_LOCATION = "local"
+
+
+class DyKnowInstance:
+    """One platform's DyKnow: the facade over locations, streams and knowledge processes.
+
+    Use it as an async context manager: entering starts the tasks it owns (async
+    processes, the timer that emits periodic samples once their max delay passes);
+    leaving stops them and ends every subscription. Synchronous parts (publishing,
+    subscribing, queries) work without entering it.
+    """
+
+    def __init__(
+        self,
+        name: str = "local",
+        *,
+        clock: Clock | None = None,
+        cache: CacheSpec | None = None,
+        max_failures: int = 1000,
+    ) -> None:
+        self.name = name
+        self.clock: Clock = clock or RealClock()
+        self.locations: dict[str, Location] = {}
+        self._labels: dict[str, Location] = {}
+        self.processes: dict[str, Process] = {}
+        self.failures: deque[ProcessFailure] = deque(maxlen=max_failures)
+        self.failure_count = 0
+        self._failure_listeners: list[Callable[[ProcessFailure], None]] = []
+        self._periodic: set[Subscription] = set()
+        self._tick_wake = asyncio.Event()
+        self._tg: asyncio.TaskGroup | None = None
+        self._pending_tasks: list[tuple[str, Any]] = []
+        self._state = "unopened"
+        self.add_location(DEFAULT_LOCATION, cache=cache)
+
+    # -- lifecycle ---------------------------------------------------------------
+    async def __aenter__(self) -> DyKnowInstance:
+        if self._state != "unopened":
+            raise ClosedError(f"instance {self.name!r} is {self._state}; it cannot be opened again")
+        self._state = "opened"
+        self._tg = asyncio.TaskGroup()
+        await self._tg.__aenter__()
+        self._tg.create_task(self._ticker(), name=f"dyknow[{self.name}].ticker")
+        for name, coro in self._pending_tasks:
+            self._tg.create_task(coro, name=name)
+        self._pending_tasks.clear()
+        return self
+
+    async def __aexit__(self, *exc: Any) -> None:
+        self._state = "closed"
+        for proc in list(self.processes.values()):
+            proc._stop()
+        for loc in self.locations.values():
+            for gen in loc.generators.values():
+                gen.close()
+        tg, self._tg = self._tg, None
+        if tg is not None:
+            for task in asyncio.all_tasks():
+                if task.get_name().startswith(f"dyknow[{self.name}]."):
+                    task.cancel()
+            await tg.__aexit__(None, None, None)
+
+    def _spawn(self, name: str, coro: Any) -> None:
+        if self._state == "closed":
+            coro.close()
+            raise ClosedError(f"instance {self.name!r} is closed")
+        full = f"dyknow[{self.name}].{name}"
+        if self._tg is None:
+            self._pending_tasks.append((full, coro))
+        else:
+            self._tg.create_task(coro, name=full)
+
+    # -- locations and labels ------------------------------------------------------
+    def add_location(self, name: str, *, cache: CacheSpec | None = None) -> Location:
+        """Add a location (a sensor interface, the DOR, an import location)."""
+        if name in self.locations:
+            raise DuplicateLabelError(f"location {name!r} exists already")
+        loc = Location(name, cache=cache)
+        self.locations[name] = loc
+        return loc
+
+    def create_stream(
+        self,
+        label: str,
+        *,
+        location: str = DEFAULT_LOCATION,
+        cache: CacheSpec | None = None,
+        value_type: type | None = None,
+    ) -> StreamGenerator:
+        """Publish a new stream generator under ``label`` at ``location``."""
+        if label in self._labels:
+            raise DuplicateLabelError(f"label {label!r} is already published")
+        try:
+            loc = self.locations[location]
+        except KeyError:
+            raise UnknownLabelError(location, list(self.locations)) from None
+        gen = loc.add(label, cache=cache, value_type=value_type)
+        self._labels[label] = loc
+        return gen
+
+    def stream(self, label: str) -> StreamGenerator:
+        """The stream generator published under ``label``."""
+        try:
+            return self._labels[label].generators[label]
+        except KeyError:
+            raise UnknownLabelError(label, list(self._labels)) from None
+
+    def has_label(self, label: str) -> bool:
+        """Whether a stream is published under ``label``."""
+        return label in self._labels
+
+    def labels(self, pattern: str | None = None) -> list[str]:
+        """Published labels, optionally filtered by a glob pattern (``car/*/position``)."""
+        names = sorted(self._labels)
+        return names if pattern is None else [n for n in names if fnmatch.fnmatchcase(n, pattern)]
+
+    def _location_of(self, label: str) -> Location:
+        try:
+            return self._labels[label]
+        except KeyError:
+            raise UnknownLabelError(label, list(self._labels)) from None
+
+    def remove_stream(self, label: str) -> None:
+        """Close the stream under ``label`` and forget it."""
+        self._location_of(label).remove(label)
+        del self._labels[label]
+
+    # -- subscriptions -------------------------------------------------------------
+    def subscribe(
+        self, label: str, policy: Policy | None = None, *, callback: BatchCallback | None = None
+    ) -> Subscription:
+        """Subscribe to ``label`` with ``policy``: an async iterator, or batches to ``callback``."""
+        policy = policy or Policy()
+        gen = self.stream(label)
+        timed = policy.sample_period is not None and policy.max_delay is not None
+        sub = gen.subscribe(policy, callback, self._arm if timed else None)
+        if timed or sub.deadline() is not None:
+            self._arm(sub)
+        return sub
+
+    def _arm(self, sub: Subscription) -> None:
+        """Have the ticker emit ``sub``'s grid points once their max delay passes."""
+        self._periodic.add(sub)
+        self._tick_wake.set()
+
+    async def _ticker(self) -> None:
+        """Emit periodic samples whose max delay passed (approximated or dropped per policy)."""
+        clock = self.clock
+        while True:
+            self._tick_wake.clear()
+            now = clock.now()
+            soonest: int | None = None
+            for sub in list(self._periodic):
+                if sub.closed:
+                    self._periodic.discard(sub)
+                    continue
+                d = sub.deadline()
+                if d is not None and d < now:
+                    try:
+                        sub.tick(now)
+                    except Exception as exc:  # a failing callback (a CU) is isolated
+                        self._report_error(f"tick[{sub.label}]", exc)
+                    d = sub.deadline()
+                if d is not None and (soonest is None or d < soonest):
+                    soonest = d
+            waker = asyncio.ensure_future(self._tick_wake.wait())
+            waits: set[asyncio.Future[Any]] = {waker}
+            if soonest is not None:
+                waits.add(asyncio.ensure_future(clock.sleep_until(soonest + 1)))
+            try:
+                await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                for w in waits:
+                    w.cancel()
+
+    # -- processes -------------------------------------------------------------------
+    def _add_process(self, proc: Process) -> None:
+        if proc.name in self.processes:
+            raise ProcessError(f"a process named {proc.name!r} exists already")
+        self.processes[proc.name] = proc
+
+    def add_source(
+        self,
+        label: str,
+        *,
+        name: str | None = None,
+        iterator: AsyncIterable[Any] | None = None,
+        location: str = DEFAULT_LOCATION,
+        cache: CacheSpec | None = None,
+        value_type: type | None = None,
+    ) -> Source:
+        """Add a source publishing under ``label``: push to it, or give an async iterator."""
+        name = name or f"source:{label}"
+        if name in self.processes:
+            raise ProcessError(f"a process named {name!r} exists already")
+        gen = self.create_stream(label, location=location, cache=cache, value_type=value_type)
+        src = Source(name, self, gen)
+        self._add_process(src)
+        if iterator is not None:
+            self._spawn(f"source[{name}]", src._pump(iterator))
+        return src
+
+    def add_cu(
+        self,
+        name: str,
+        fn: Callable[..., Any],
+        inputs: Sequence[Input | str | tuple[str, Policy]],
+        output: str,
+        *,
+        pass_samples: bool = False,
+        location: str = DEFAULT_LOCATION,
+        cache: CacheSpec | None = None,
+        value_type: type | None = None,
+    ) -> ComputationalUnit:
+        """Add a computational unit computing ``output`` from ``inputs`` (each with a policy)."""
+        if name in self.processes:
+            raise ProcessError(f"a process named {name!r} exists already")
+        if not inputs:
+            raise ProcessError(f"computational unit {name!r} needs at least one input")
+        norm = [
+            i if isinstance(i, Input) else Input(i) if isinstance(i, str) else Input(*i)
+            for i in inputs
+        ]
+        for i in norm:
+            self.stream(i.label)  # unknown input labels fail before anything is created
+        gen = self.create_stream(output, location=location, cache=cache, value_type=value_type)
+        cu = ComputationalUnit(name, self, fn, norm, gen, pass_samples=pass_samples)
+        try:
+            for idx, inp in enumerate(norm):
+                cu.subscriptions.append(
+                    self.subscribe(inp.label, inp.policy, callback=cu._callback(idx))
+                )
+        except Exception:
+            for sub in cu.subscriptions:
+                sub.close()
+            self.remove_stream(output)
+            raise
+        self._add_process(cu)
+        if cu.is_async:
+            self._spawn(f"cu[{name}]", cu._run_async())
+        return cu
+
+    def remove_process(self, name: str) -> None:
+        """Stop a process and close the stream it published."""
+        try:
+            proc = self.processes.pop(name)
+        except KeyError:
+            raise ProcessError(f"no process named {name!r}") from None
+        proc._stop()
+        label = getattr(proc, "label", None) or getattr(
+            getattr(proc, "output", None), "label", None
+        )
+        if label is not None and label in self._labels:
+            self.remove_stream(label)
+
+    # -- failures -------------------------------------------------------------------------
+    def _report(self, proc: Process, error: str) -> None:
+        self._record(ProcessFailure(proc.name, error, self.clock.now()))
+
+    def _report_error(self, where: str, exc: BaseException) -> None:
+        self._record(ProcessFailure(where, f"{type(exc).__name__}: {exc}", self.clock.now()))
+
+    def _record(self, failure: ProcessFailure) -> None:
+        self.failures.append(failure)
+        self.failure_count += 1
+        for listener in list(self._failure_listeners):
+            with contextlib.suppress(Exception):
+                listener(failure)
+
+    def on_failure(self, listener: Callable[[ProcessFailure], None]) -> Callable[[], None]:
+        """Be told of every process failure; returns a function that stops telling."""
+        self._failure_listeners.append(listener)
+        return lambda: self._failure_listeners.remove(listener)
+
+    # -- queries ------------------------------------------------------------------------------
+    def latest(self, label: str, *, as_of: int | None = None) -> Answer:
+        """The newest value of ``label``, as believed at ``as_of`` (default: now)."""
+        now = self.clock.now()
+        return self._location_of(label).latest(label, query_time=now, as_of=as_of)
+
+    def at(
+        self,
+        label: str,
+        t: int,
+        *,
+        approximation: Approximation = Approximation.MOST_RECENT,
+        as_of: int | None = None,
+    ) -> Answer:
+        """The value of ``label`` at valid time ``t`` through a fluent generator."""
+        now = self.clock.now()
+        return self._location_of(label).at(
+            label, t, query_time=now, approximation=approximation, as_of=as_of
+        )
+
+    def between(
+        self, label: str, t1: int, t2: int, *, as_of: int | None = None, all_estimates: bool = False
+    ) -> Answer:
+        """All samples of ``label`` with valid time in [t1, t2]."""
+        now = self.clock.now()
+        return self._location_of(label).between(
+            label, t1, t2, query_time=now, as_of=as_of, all_estimates=all_estimates
+        )
+
+    # -- metrics ------------------------------------------------------------------------------
+    def metrics(self, label: str | None = None) -> dict[str, Any]:
+        """Per-stream metrics (one label, or all of them keyed by label)."""
+        if label is not None:
+            return self.stream(label).stats()
+        return {lab: loc.generators[lab].stats() for lab, loc in sorted(self._labels.items())}

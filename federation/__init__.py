@@ -1,0 +1,1 @@
+"""DyKnow Federation: the federation service, export and import proxies, platform assembly."""

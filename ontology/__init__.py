@@ -1,0 +1,1 @@
+"""Ontology: semantic labels, their translation to local labels, and label search."""
