@@ -28,7 +28,7 @@ from ._policy import (
     Policy,
 )
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
-from ._sample import Answer, Sample
+from ._sample import Answer, RawSample, Sample, as_sample
 from ._stream import StreamGenerator, StreamMetrics, Subscription
 from ._time import NS_PER_S, Clock, ManualClock, RealClock, ns_to_seconds, seconds_to_ns
 
@@ -62,6 +62,7 @@ __all__ = [
     "Process",
     "ProcessError",
     "ProcessFailure",
+    "RawSample",
     "RealClock",
     "Sample",
     "Source",
@@ -69,6 +70,7 @@ __all__ = [
     "StreamMetrics",
     "Subscription",
     "UnknownLabelError",
+    "as_sample",
     "ns_to_seconds",
     "seconds_to_ns",
 ]

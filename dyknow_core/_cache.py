@@ -7,7 +7,7 @@ from collections.abc import Iterable
 from typing import Any
 
 from ._policy import Approximation, CacheSpec
-from ._sample import Sample
+from ._sample import RawSample, Sample
 from ._time import seconds_to_ns
 
 
@@ -22,14 +22,14 @@ class Cache:
     __slots__ = ("_buf", "_max_age", "evicted")
 
     def __init__(self, spec: CacheSpec) -> None:
-        self._buf: deque[Sample] = deque(maxlen=spec.max_samples)
+        self._buf: deque[RawSample] = deque(maxlen=spec.max_samples)
         self._max_age = None if spec.max_age is None else seconds_to_ns(spec.max_age)
         self.evicted = 0
 
     def __len__(self) -> int:
         return len(self._buf)
 
-    def extend(self, batch: list[Sample]) -> None:
+    def extend(self, batch: list[RawSample]) -> None:
         """Add newly available samples (available times increasing) and evict what is too old."""
         buf = self._buf
         maxlen = buf.maxlen
@@ -46,50 +46,52 @@ class Cache:
                 n += 1
             self.evicted += n
 
-    def samples(self, as_of: int | None = None) -> list[Sample]:
+    def samples(self, as_of: int | None = None) -> list[RawSample]:
         """All cached samples in arrival order, only those available by ``as_of`` if given."""
         if as_of is None:
             return list(self._buf)
         return [s for s in self._buf if s[2] <= as_of]
 
-    def _believed(self, as_of: int | None) -> Iterable[Sample]:
+    def _believed(self, as_of: int | None) -> Iterable[RawSample]:
         """Samples visible at ``as_of``, newest arrival first."""
         if as_of is None:
             return reversed(self._buf)
         return (s for s in reversed(self._buf) if s[2] <= as_of)
 
-    def latest(self, as_of: int | None = None) -> Sample | None:
+    def latest(self, as_of: int | None = None) -> RawSample | None:
         """The sample with the greatest valid time (newest estimate on ties) seen by ``as_of``."""
-        best: Sample | None = None
+        best: RawSample | None = None
         for s in self._believed(as_of):
             if best is None or s[1] > best[1]:
                 best = s
         return best
 
-    def between(self, t1: int, t2: int, as_of: int | None = None) -> list[Sample]:
+    def between(self, t1: int, t2: int, as_of: int | None = None) -> list[RawSample]:
         """Samples with valid time in [t1, t2] seen by ``as_of``: current estimates, tv order.
 
         Where several estimates share a valid time, the newest one (by ``as_of``) is kept.
         """
-        best: dict[int, Sample] = {}
+        best: dict[int, RawSample] = {}
         for s in self._believed(as_of):
             tv = s[1]
             if t1 <= tv <= t2 and tv not in best:
                 best[tv] = s
         return [best[t] for t in sorted(best)]
 
-    def history(self, t1: int, t2: int, as_of: int | None = None) -> list[Sample]:
+    def history(self, t1: int, t2: int, as_of: int | None = None) -> list[RawSample]:
         """Every sample (superseded estimates too) with valid time in [t1, t2], arrival order."""
         return [s for s in self._buf if t1 <= s[1] <= t2 and (as_of is None or s[2] <= as_of)]
 
-    def at(self, t: int, approximation: Approximation, as_of: int | None = None) -> Sample | None:
+    def at(
+        self, t: int, approximation: Approximation, as_of: int | None = None
+    ) -> RawSample | None:
         """The value at valid time ``t`` through a fluent generator; None if it has no answer.
 
         The answer's valid time is ``t``; its available time is that of the newest sample
         it was computed from.
         """
-        before: Sample | None = None
-        after: Sample | None = None
+        before: RawSample | None = None
+        after: RawSample | None = None
         seen: set[int] = set()
         for s in self._believed(as_of):
             tv = s[1]
@@ -106,7 +108,9 @@ class Cache:
         return _approximate(t, before, after, approximation)
 
 
-def _approximate(t: int, b: Sample | None, a: Sample | None, how: Approximation) -> Sample | None:
+def _approximate(
+    t: int, b: RawSample | None, a: RawSample | None, how: Approximation
+) -> RawSample | None:
     """Fill valid time ``t`` from the samples around it, per ``how``."""
     if how is Approximation.NONE:
         return None

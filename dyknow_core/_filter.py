@@ -9,10 +9,11 @@ here, once.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 from ._policy import Approximation, ChangeKind, LateAction, Order, Policy
-from ._sample import Sample
+from ._sample import RawSample
 from ._time import seconds_to_ns
 
 MISSING: Any = object()
@@ -38,10 +39,31 @@ class FilterStats:
         return {k: getattr(self, k) for k in self.__slots__}
 
 
-def _compile(policy: Policy, *, stages: tuple[str, ...]) -> Any:
+class Mapper:
+    """A single-input computational unit fused into its input's filter loop.
+
+    ``fn`` maps a value (None: emit nothing); ``fail`` is told of each exception;
+    ``next_ta`` gives the first available time for a batch's outputs, which then count up
+    by 1 ns so they stay unique.
+    """
+
+    __slots__ = ("fail", "fn", "next_ta")
+
+    def __init__(
+        self,
+        fn: Callable[[Any], Any],
+        fail: Callable[[Exception], None],
+        next_ta: Callable[[list[RawSample]], int],
+    ) -> None:
+        self.fn = fn
+        self.fail = fail
+        self.next_ta = next_ta
+
+
+def _compile(policy: Policy, *, stages: tuple[str, ...], mapper: Mapper | None = None) -> Any:
     """Write and compile ``run(self, batch, out)`` applying the named stages of ``policy``."""
     body: list[str] = []
-    consts: dict[str, Any] = {"Sample": Sample, "MISSING": MISSING}
+    consts: dict[str, Any] = {"MISSING": MISSING}
     if "window" in stages and policy.start is not None:
         consts["START"] = policy.start
         body.append("if tv < START:\n    n_window += 1\n    continue")
@@ -93,7 +115,25 @@ def _compile(policy: Policy, *, stages: tuple[str, ...]) -> Any:
             "        continue"
         )
     emits = "emit" in stages
-    if emits:
+    prologue = ""
+    if mapper is not None and emits:
+        consts["FN"] = mapper.fn
+        consts["FAIL"] = mapper.fail
+        consts["NEXT_TA"] = mapper.next_ta
+        prologue = "    out_ta = NEXT_TA(batch)\n"
+        body.append(
+            "last_tv = tv\n"
+            "last_v = v\n"
+            "try:\n"
+            "    r = FN(v)\n"
+            "except Exception as exc:\n"
+            "    FAIL(exc)\n"
+            "    continue\n"
+            "if r is not None:\n"
+            "    append((r, tv, out_ta))\n"
+            "    out_ta += 1"
+        )
+    elif emits:
         body.append("append(s)\nlast_tv = tv\nlast_v = v")
     else:
         body.append("append(s)")
@@ -105,6 +145,7 @@ def _compile(policy: Policy, *, stages: tuple[str, ...]) -> Any:
         "    last_tv = self.last_tv\n"
         "    last_v = self.last_value\n"
         "    n_window = n_late = n_order = n_bounds = n_change = n_type = 0\n"
+        f"{prologue}"
         "    for s in batch:\n"
         "        v, tv, ta = s\n"
         f"{inner}\n"
@@ -121,6 +162,20 @@ def _compile(policy: Policy, *, stages: tuple[str, ...]) -> Any:
     namespace: dict[str, Any] = dict(consts)
     exec(compile(src, f"<policy-filter {'/'.join(stages)}>", "exec"), namespace)
     return namespace["run"]
+
+
+def _is_identity(policy: Policy) -> bool:
+    """Whether the policy lets every sample through unchanged."""
+    return (
+        policy.start is None
+        and policy.end is None
+        and policy.sample_period is None
+        and policy.max_delay is None
+        and policy.order is Order.ANY
+        and policy.change.kind is ChangeKind.ANY_UPDATE
+        and policy.lower is None
+        and policy.upper is None
+    )
 
 
 class _Sampler:
@@ -146,14 +201,14 @@ class _Sampler:
         self.late_approx = policy.late is LateAction.APPROXIMATE
         self.end = policy.end
         self.g: int | None = None  # the next grid point not yet decided
-        self.before: Sample | None = None  # the newest sample with valid time < g
+        self.before: RawSample | None = None  # the newest sample with valid time < g
         self.stats = stats
 
     def _first_grid(self, tv: int) -> int:
         p = self.period
         return -((-tv) // p) * p  # ceil to the grid anchored at time 0
 
-    def _value(self, g: int, after: Sample | None) -> tuple[bool, Any]:
+    def _value(self, g: int, after: RawSample | None) -> tuple[bool, Any]:
         """The value at grid point ``g`` per the approximation; ``after`` is None at a deadline."""
         b = self.before
         a = self.approx
@@ -190,7 +245,7 @@ class _Sampler:
     def _done(self, g: int) -> bool:
         return self.end is not None and g > self.end
 
-    def tick(self, now: int, out: list[Sample]) -> None:
+    def tick(self, now: int, out: list[RawSample]) -> None:
         """Decide every grid point whose max delay has passed by ``now``."""
         maxd = self.maxd
         g = self.g
@@ -206,11 +261,11 @@ class _Sampler:
                 continue
             ok, v = self._value(g, None)
             if ok:
-                out.append(Sample(v, g, g + maxd))
+                out.append((v, g, g + maxd))
             g += p
         self.g = g
 
-    def feed(self, batch: list[Sample], out: list[Sample]) -> None:
+    def feed(self, batch: list[RawSample], out: list[RawSample]) -> None:
         """Advance the grid with accepted samples (in arrival order)."""
         p = self.period
         for s in batch:
@@ -230,7 +285,7 @@ class _Sampler:
             while g < tv and not self._done(g):
                 ok, v = self._value(g, s)
                 if ok:
-                    out.append(Sample(v, g, s[2]))
+                    out.append((v, g, s[2]))
                 g += p
             if tv == g and not self._done(g):
                 out.append(s)
@@ -242,12 +297,27 @@ class _Sampler:
 class PolicyFilter:
     """The state of one subscription's policy: what it emitted last and what it dropped."""
 
-    __slots__ = ("_post", "_pre", "ended", "last_tv", "last_value", "policy", "sampler", "stats")
+    __slots__ = (
+        "_post",
+        "_pre",
+        "ended",
+        "last_tv",
+        "last_value",
+        "mapper",
+        "policy",
+        "sampler",
+        "stats",
+    )
     _pre: Any
     _post: Any
 
-    def __init__(self, policy: Policy, previous: PolicyFilter | None = None) -> None:
+    def __init__(
+        self, policy: Policy, previous: PolicyFilter | None = None, mapper: Mapper | None = None
+    ) -> None:
         self.policy = policy
+        if mapper is None and previous is not None:
+            mapper = previous.mapper
+        self.mapper: Mapper | None = mapper
         self.stats: FilterStats = previous.stats if previous is not None else FilterStats()
         # a replaced policy continues the emitted stream: order and change stay honoured
         self.last_tv: int = previous.last_tv if previous is not None else _NEG_INF
@@ -255,8 +325,14 @@ class PolicyFilter:
         self.ended = False
         if policy.sample_period is None:
             self.sampler: _Sampler | None = None
-            self._pre = _compile(
-                policy, stages=("window", "late", "order", "bounds", "change", "emit")
+            self._pre = (
+                None
+                if _is_identity(policy) and mapper is None
+                else _compile(
+                    policy,
+                    stages=("window", "late", "order", "bounds", "change", "emit"),
+                    mapper=mapper,
+                )
             )
             self._post = None
         else:
@@ -264,17 +340,24 @@ class PolicyFilter:
             if previous is not None and previous.last_tv != _NEG_INF:
                 self.sampler.g = self.sampler._first_grid(previous.last_tv + 1)
             self._pre = _compile(policy, stages=("window", "late", "bounds"))
-            self._post = _compile(policy, stages=("order", "change", "emit"))
+            self._post = _compile(policy, stages=("order", "change", "emit"), mapper=mapper)
 
-    def process(self, batch: list[Sample]) -> list[Sample]:
+    def process(self, batch: list[RawSample]) -> list[RawSample]:
         """Apply the policy to a batch of newly available samples; return what to emit."""
-        out: list[Sample] = []
+        out: list[RawSample] = []
+        if self._pre is None:
+            # the identity policy: nothing to test, only remember where the stream is
+            last = batch[-1]
+            self.last_tv = last[1]
+            self.last_value = last[0]
+            self.stats.emitted += len(batch)
+            return batch
         if self.sampler is None:
             self._pre(self, batch, out)
         else:
-            accepted: list[Sample] = []
+            accepted: list[RawSample] = []
             self._pre(self, batch, accepted)
-            grid: list[Sample] = []
+            grid: list[RawSample] = []
             self.sampler.feed(accepted, grid)
             if self.sampler.end is not None and self.sampler.g is not None:
                 self.ended = self.ended or self.sampler._done(self.sampler.g)
@@ -283,11 +366,11 @@ class PolicyFilter:
         self.stats.emitted += len(out)
         return out
 
-    def tick(self, now: int) -> list[Sample]:
+    def tick(self, now: int) -> list[RawSample]:
         """Emit grid points whose max delay passed by ``now`` (periodic policies only)."""
-        out: list[Sample] = []
+        out: list[RawSample] = []
         if self.sampler is not None:
-            grid: list[Sample] = []
+            grid: list[RawSample] = []
             self.sampler.tick(now, grid)
             if grid:
                 self._post(self, grid, out)

@@ -10,6 +10,7 @@ from collections.abc import AsyncIterable, Callable, Sequence
 from typing import Any
 
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
+from ._filter import Mapper
 from ._location import Location
 from ._policy import Approximation, CacheSpec, Policy
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
@@ -146,13 +147,18 @@ class DyKnowInstance:
 
     # -- subscriptions -------------------------------------------------------------
     def subscribe(
-        self, label: str, policy: Policy | None = None, *, callback: BatchCallback | None = None
+        self,
+        label: str,
+        policy: Policy | None = None,
+        *,
+        callback: BatchCallback | None = None,
+        mapper: Mapper | None = None,
     ) -> Subscription:
         """Subscribe to ``label`` with ``policy``: an async iterator, or batches to ``callback``."""
         policy = policy or Policy()
         gen = self.stream(label)
         timed = policy.sample_period is not None and policy.max_delay is not None
-        sub = gen.subscribe(policy, callback, self._arm if timed else None)
+        sub = gen.subscribe(policy, callback, self._arm if timed else None, mapper)
         if timed or sub.deadline() is not None:
             self._arm(sub)
         return sub
@@ -247,7 +253,9 @@ class DyKnowInstance:
         try:
             for idx, inp in enumerate(norm):
                 cu.subscriptions.append(
-                    self.subscribe(inp.label, inp.policy, callback=cu._callback(idx))
+                    self.subscribe(
+                        inp.label, inp.policy, callback=cu._callback(idx), mapper=cu._mapper()
+                    )
                 )
         except Exception:
             for sub in cu.subscriptions:

@@ -7,7 +7,7 @@ from typing import Any
 
 from ._exceptions import DuplicateLabelError, PolicyError, UnknownLabelError
 from ._policy import Approximation, CacheSpec
-from ._sample import Answer, Sample
+from ._sample import Answer, as_sample
 from ._stream import StreamGenerator
 
 
@@ -67,7 +67,7 @@ class Location:
     def latest(self, label: str, *, query_time: int, as_of: int | None = None) -> Answer:
         """The newest value (greatest valid time) as believed at ``as_of``."""
         s = self.generator(label).cache.latest(as_of)
-        return Answer(label, query_time, [] if s is None else [s])
+        return Answer(label, query_time, [] if s is None else [as_sample(s)])
 
     def at(
         self,
@@ -80,12 +80,12 @@ class Location:
     ) -> Answer:
         """The value at valid time ``t`` through a fluent generator with ``approximation``."""
         try:
-            s: Sample | None = self.generator(label).cache.at(t, approximation, as_of)
+            s = self.generator(label).cache.at(t, approximation, as_of)
         except TypeError as exc:
             raise PolicyError(
                 "approximation", f"{approximation.value} needs numeric values in {label!r}: {exc}"
             ) from exc
-        return Answer(label, query_time, [] if s is None else [s])
+        return Answer(label, query_time, [] if s is None else [as_sample(s)])
 
     def between(
         self,
@@ -102,7 +102,7 @@ class Location:
             raise PolicyError("t1", f"interval start {t1} is after its end {t2}")
         cache = self.generator(label).cache
         samples = cache.history(t1, t2, as_of) if all_estimates else cache.between(t1, t2, as_of)
-        return Answer(label, query_time, samples)
+        return Answer(label, query_time, [as_sample(s) for s in samples])
 
     def describe(self) -> dict[str, Any]:
         """What this location is and holds, for listings."""

@@ -8,8 +8,9 @@ from collections import deque
 from collections.abc import AsyncIterable, Callable, Sequence
 from typing import TYPE_CHECKING, Any, NamedTuple
 
+from ._filter import Mapper
 from ._policy import Policy
-from ._sample import Sample
+from ._sample import RawSample, Sample
 from ._stream import StreamGenerator, Subscription
 from ._time import Clock
 
@@ -81,7 +82,7 @@ class Source(Process):
         now = self._clock.now()
         self.generator.publish_batch(
             [
-                Sample(
+                (
                     value,
                     now if valid_time is None else valid_time,
                     now if available_time is None else available_time,
@@ -89,7 +90,7 @@ class Source(Process):
             ]
         )
 
-    def push_batch(self, samples: list[Sample]) -> None:
+    def push_batch(self, samples: Sequence[RawSample]) -> None:
         """Make many samples available at once (the fast path)."""
         self.generator.publish_batch(samples)
 
@@ -141,46 +142,36 @@ class ComputationalUnit(Process):
         self.is_async = inspect.iscoroutinefunction(fn)
         self.subscriptions: list[Subscription] = []
         self._latest: list[Any] = [_NONE] * len(self.inputs)
-        self._pending: deque[tuple[int, list[Sample]]] = deque()
+        self._pending: deque[tuple[int, list[RawSample]]] = deque()
         self._wake: asyncio.Event | None = None
         self._clock = instance.clock
 
-    def _callback(self, index: int) -> Callable[[list[Sample]], None]:
+    def _callback(self, index: int) -> Callable[[list[RawSample]], None]:
         if self.is_async:
 
-            def enqueue(batch: list[Sample]) -> None:
+            def enqueue(batch: list[RawSample]) -> None:
                 self._pending.append((index, batch))
                 if self._wake is not None:
                     self._wake.set()
 
             return enqueue
-        if len(self.inputs) == 1 and not self.pass_samples:
-            return self._map_batch
+        if self._fused:
+            return self._publish
         return lambda batch: self._join_batch(index, batch)
 
-    def _next_ta(self, batch: list[Sample]) -> int:
+    @property
+    def _fused(self) -> bool:
+        return len(self.inputs) == 1 and not self.pass_samples and not self.is_async
+
+    def _mapper(self) -> Mapper | None:
+        """Fuse a one-input unit into its input's filter loop: one pass per sample."""
+        return Mapper(self.fn, self._fail, self._next_ta) if self._fused else None
+
+    def _next_ta(self, batch: list[RawSample]) -> int:
         return max(self._clock.now(), batch[-1][2], self.output._last_ta + 1)
 
-    def _map_batch(self, batch: list[Sample]) -> None:
-        """One input, plain values: the hot path."""
-        fn = self.fn
-        out: list[Sample] = []
-        append = out.append
-        ta = self._next_ta(batch)
-        for s in batch:
-            try:
-                r = fn(s[0])
-            except Exception as exc:
-                self._fail(exc)
-                continue
-            if r is not None:
-                append(Sample(r, s[1], ta))
-                ta += 1
-        if out:
-            self._publish(out)
-
-    def _join_batch(self, index: int, batch: list[Sample]) -> None:
-        out: list[Sample] = []
+    def _join_batch(self, index: int, batch: list[RawSample]) -> None:
+        out: list[RawSample] = []
         ta = self._next_ta(batch)
         latest = self._latest
         for s in batch:
@@ -194,14 +185,14 @@ class ComputationalUnit(Process):
                 self._fail(exc)
                 continue
             if r is not None:
-                out.append(Sample(r, s[1], ta))
+                out.append((r, s[1], ta))
                 ta += 1
         if out:
             self._publish(out)
 
-    def _publish(self, out: list[Sample]) -> None:
+    def _publish(self, out: list[RawSample]) -> None:
         try:
-            self.output.publish_batch(out)
+            self.output.publish_batch(out, ordered=True)
         except Exception as exc:
             self._fail(exc)
 
@@ -229,7 +220,7 @@ class ComputationalUnit(Process):
                     continue
                 if r is not None and self.running:
                     ta = max(self._clock.now(), s[2], self.output._last_ta + 1)
-                    self._publish([Sample(r, s[1], ta)])
+                    self._publish([(r, s[1], ta)])
 
     def _stop(self) -> None:
         super()._stop()

@@ -17,6 +17,20 @@ class Sample(NamedTuple):
     available_time: int
 
 
+# Per-sample paths carry plain ``(value, valid_time, available_time)`` tuples: a tuple of
+# scalars is untracked by the cyclic GC after its first collection, a NamedTuple never is,
+# and with millions of live samples the GC then costs more than the processing. A Sample
+# is made only where a user reads one (iterator items, query answers).
+RawSample = tuple[Any, int, int]
+
+_tuple_new: Any = tuple.__new__
+
+
+def as_sample(raw: RawSample) -> Sample:
+    """View a raw ``(value, valid_time, available_time)`` tuple as a Sample."""
+    return raw if type(raw) is Sample else _tuple_new(Sample, raw)
+
+
 class Answer(NamedTuple):
     """The answer to a query at a location: the samples and the query time they were read at."""
 

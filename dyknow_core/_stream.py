@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import asyncio
+import operator
 from collections import deque
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Sequence
+from itertools import islice
 from typing import Any
 
 from ._cache import Cache
 from ._exceptions import ClosedError, PolicyError, ProcessError
-from ._filter import PolicyFilter
+from ._filter import Mapper, PolicyFilter
 from ._policy import CacheSpec, Overflow, Policy
-from ._sample import Sample
+from ._sample import RawSample, Sample, as_sample
 
-BatchCallback = Callable[[list[Sample]], None]
+BatchCallback = Callable[[list[RawSample]], None]
 
 _DELAY_BUCKETS = 64
 
@@ -64,13 +66,14 @@ class Subscription:
         policy: Policy,
         callback: BatchCallback | None = None,
         on_ticks: Callable[[Subscription], None] | None = None,
+        mapper: Mapper | None = None,
     ) -> None:
         self.generator = generator
         self.label = generator.label
         self.policy = policy
-        self.filter = PolicyFilter(policy)
+        self.filter = PolicyFilter(policy, mapper=mapper)
         self.callback = callback
-        self.buffer: deque[Sample] = deque()
+        self.buffer: deque[RawSample] = deque()
         self.overflowed = 0
         self.delivered = 0
         self.closed = False
@@ -78,14 +81,14 @@ class Subscription:
         self._on_ticks = on_ticks  # tells the owner a periodic deadline may have moved
 
     # -- fed by the generator -------------------------------------------------
-    def _deliver(self, batch: list[Sample]) -> None:
+    def _deliver(self, batch: list[RawSample]) -> None:
         out = self.filter.process(batch)
         if out:
             self._emit(out)
         if self.filter.ended:
             self.close()
 
-    def _emit(self, out: list[Sample]) -> None:
+    def _emit(self, out: list[RawSample]) -> None:
         self.delivered += len(out)
         if self.callback is not None:
             self.callback(out)
@@ -177,10 +180,14 @@ class Subscription:
             if self.closed:
                 raise StopAsyncIteration
             await self._wait()
-        return self.buffer.popleft()
+        return as_sample(self.buffer.popleft())
 
-    async def batches(self) -> AsyncIterator[list[Sample]]:
-        """Yield everything buffered at once, waiting when empty; ends when closed."""
+    async def batches(self) -> AsyncIterator[list[RawSample]]:
+        """Yield everything buffered at once, waiting when empty; ends when closed.
+
+        The bulk path: items are plain ``(value, valid_time, available_time)`` tuples
+        (unpack them, or view one with ``Sample._make``), saving a Sample per item.
+        """
         while True:
             while not self.buffer:
                 if self.closed:
@@ -239,40 +246,25 @@ class StreamGenerator:
                 f"{self.value_type.__name__}",
             )
 
-    def publish_batch(self, batch: list[Sample]) -> None:
-        """Make samples available: cache them and hand each subscriber its policy's share."""
+    def publish_batch(self, batch: Sequence[RawSample], *, ordered: bool = False) -> None:
+        """Make samples available: cache them and hand each subscriber its policy's share.
+
+        ``ordered`` promises the available times are already unique and increasing past
+        the last one published (computational units guarantee it), skipping the check.
+        """
         if self.closed:
             raise ClosedError(f"stream {self.label!r} is closed")
         if not batch:
             return
+        if type(batch) is not list:
+            batch = list(batch)
         if self._publishing:
             # a CU whose output feeds back into its own input would recurse for ever
             raise ProcessError(f"cycle: stream {self.label!r} published while publishing")
-        last = self._last_ta
-        buckets = self.metrics.delay_buckets
-        neg = 0
-        fixed: list[Sample] | None = None
-        for i, s in enumerate(batch):
-            ta = s[2]
-            if ta <= last:
-                # available times are unique per stream at a location
-                ta = last + 1
-                if fixed is None:
-                    fixed = batch[:i]
-                s = Sample(s[0], s[1], ta)
-            if fixed is not None:
-                fixed.append(s)
-            last = ta
-            d = ta - s[1]
-            if d < 0:
-                neg += 1
-            else:
-                buckets[d.bit_length()] += 1
-        if fixed is not None:
-            batch = fixed
-        self._last_ta = last
-        self.metrics.samples_in += len(batch)
-        self.metrics.negative_delays += neg
+        if not ordered:
+            batch = self._unique_available_times(batch)
+        self._last_ta = batch[-1][2]
+        self._record_delays(batch)
         self.cache.extend(batch)
         self._publishing = True
         try:
@@ -281,21 +273,57 @@ class StreamGenerator:
         finally:
             self._publishing = False
 
+    def _unique_available_times(self, batch: list[RawSample]) -> list[RawSample]:
+        """Available times at one location are unique per stream: bump repeats by 1 ns."""
+        tas = [s[2] for s in batch]
+        if tas[0] > self._last_ta and all(map(operator.lt, tas, islice(tas, 1, None))):
+            return batch
+        last = self._last_ta
+        fixed: list[RawSample] = []
+        for s in batch:
+            ta = s[2]
+            if ta <= last:
+                ta = last + 1
+                s = (s[0], s[1], ta)
+            fixed.append(s)
+            last = ta
+        return fixed
+
+    def _record_delays(self, batch: list[RawSample]) -> None:
+        # Large batches are sampled (every 16th): the distribution stays representative
+        # and the hot path stays cheap.
+        m = self.metrics
+        m.samples_in += len(batch)
+        view = batch if len(batch) <= 64 else batch[::16]
+        weight = 1 if view is batch else 16
+        buckets = m.delay_buckets
+        for s in view:
+            d = s[2] - s[1]
+            if d < 0:
+                m.negative_delays += weight
+            else:
+                buckets[d.bit_length()] += weight
+
     def publish(self, value: Any, valid_time: int, available_time: int) -> None:
         """Make one sample available (prefer ``publish_batch`` on hot paths)."""
-        self.publish_batch([Sample(value, valid_time, available_time)])
+        self.publish_batch([(value, valid_time, available_time)])
 
     def subscribe(
         self,
         policy: Policy,
         callback: BatchCallback | None = None,
         on_ticks: Callable[[Subscription], None] | None = None,
+        mapper: Mapper | None = None,
     ) -> Subscription:
-        """Add a subscriber; a ``start`` in the past replays history from the cache first."""
+        """Add a subscriber; a ``start`` in the past replays history from the cache first.
+
+        With a ``mapper`` (a fused single-input computational unit) the callback receives
+        the mapped output samples instead of the input's.
+        """
         if self.closed:
             raise ClosedError(f"stream {self.label!r} is closed")
         self._check_policy(policy)
-        sub = Subscription(self, policy, callback, on_ticks)
+        sub = Subscription(self, policy, callback, on_ticks, mapper)
         if policy.start is not None:
             history = [s for s in self.cache.samples() if s[1] >= policy.start]
             if history:
