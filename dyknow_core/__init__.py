@@ -17,6 +17,15 @@ from ._exceptions import (
 from ._filter import FilterStats, PolicyFilter
 from ._instance import DEFAULT_LOCATION, DyKnowInstance
 from ._location import Capability, Location
+from ._objects import (
+    DOM,
+    Domain,
+    DomainChange,
+    DomainSubscription,
+    MembershipChange,
+    ObjectManager,
+    SetSubscription,
+)
 from ._policy import (
     Approximation,
     CacheSpec,
@@ -34,6 +43,7 @@ from ._time import NS_PER_S, Clock, ManualClock, RealClock, ns_to_seconds, secon
 
 __all__ = [
     "DEFAULT_LOCATION",
+    "DOM",
     "NS_PER_S",
     "Answer",
     "Approximation",
@@ -45,6 +55,9 @@ __all__ = [
     "Clock",
     "ClosedError",
     "ComputationalUnit",
+    "Domain",
+    "DomainChange",
+    "DomainSubscription",
     "DuplicateLabelError",
     "DyKnowError",
     "DyKnowInstance",
@@ -53,7 +66,9 @@ __all__ = [
     "LateAction",
     "Location",
     "ManualClock",
+    "MembershipChange",
     "ObjectError",
+    "ObjectManager",
     "Order",
     "Overflow",
     "Policy",
@@ -65,6 +80,7 @@ __all__ = [
     "RawSample",
     "RealClock",
     "Sample",
+    "SetSubscription",
     "Source",
     "StreamGenerator",
     "StreamMetrics",

@@ -41,7 +41,7 @@ class Cache:
         if self._max_age is not None and buf:
             cutoff = buf[-1][2] - self._max_age
             n = 0
-            while buf and buf[0][2] < cutoff:
+            while buf and buf[0][2] <= cutoff:
                 buf.popleft()
                 n += 1
             self.evicted += n

@@ -182,7 +182,6 @@ class _Sampler:
     """Turns accepted samples into one sample per period on a grid of valid times."""
 
     __slots__ = (
-        "after_ok",
         "approx",
         "before",
         "end",
@@ -190,6 +189,7 @@ class _Sampler:
         "late_approx",
         "maxd",
         "period",
+        "start",
         "stats",
     )
 
@@ -200,6 +200,7 @@ class _Sampler:
         self.maxd = None if policy.max_delay is None else seconds_to_ns(policy.max_delay)
         self.late_approx = policy.late is LateAction.APPROXIMATE
         self.end = policy.end
+        self.start = policy.start
         self.g: int | None = None  # the next grid point not yet decided
         self.before: RawSample | None = None  # the newest sample with valid time < g
         self.stats = stats
@@ -271,7 +272,7 @@ class _Sampler:
         for s in batch:
             tv = s[1]
             if self.g is None:
-                self.g = self._first_grid(tv)
+                self.g = self._first_grid(tv if self.start is None else max(tv, self.start))
             if self.maxd is not None and self.g + self.maxd < s[2]:
                 self.tick(s[2], out)
             g = self.g
@@ -338,8 +339,16 @@ class PolicyFilter:
         else:
             self.sampler = _Sampler(policy, self.stats)
             if previous is not None and previous.last_tv != _NEG_INF:
-                self.sampler.g = self.sampler._first_grid(previous.last_tv + 1)
-            self._pre = _compile(policy, stages=("window", "late", "bounds"))
+                # continue the emitted stream: the next grid point after the last emitted
+                # sample, which also serves as the most recent value before it
+                first = previous.last_tv + 1
+                if policy.start is not None:
+                    first = max(first, policy.start)
+                self.sampler.g = self.sampler._first_grid(first)
+                self.sampler.before = (previous.last_value, previous.last_tv, previous.last_tv)
+            # the window applies to grid times (in the sampler), not to the inputs: the
+            # sample just before `start` or just after `end` decides the edge grid points
+            self._pre = _compile(policy, stages=("late", "bounds"))
             self._post = _compile(policy, stages=("order", "change", "emit"), mapper=mapper)
 
     def process(self, batch: list[RawSample]) -> list[RawSample]:
@@ -347,6 +356,8 @@ class PolicyFilter:
         out: list[RawSample] = []
         if self._pre is None:
             # the identity policy: nothing to test, only remember where the stream is
+            if not batch:
+                return []
             last = batch[-1]
             self.last_tv = last[1]
             self.last_value = last[0]

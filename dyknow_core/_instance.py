@@ -12,6 +12,7 @@ from typing import Any
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
 from ._filter import Mapper
 from ._location import Location
+from ._objects import ObjectManager
 from ._policy import Approximation, CacheSpec, Policy
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
 from ._sample import Answer
@@ -50,8 +51,10 @@ class DyKnowInstance:
         self._tick_wake = asyncio.Event()
         self._tg: asyncio.TaskGroup | None = None
         self._pending_tasks: list[tuple[str, Any]] = []
+        self._tasks: set[asyncio.Task[Any]] = set()
         self._state = "unopened"
         self.add_location(DEFAULT_LOCATION, cache=cache)
+        self.objects = ObjectManager(self)
 
     # -- lifecycle ---------------------------------------------------------------
     async def __aenter__(self) -> DyKnowInstance:
@@ -60,9 +63,9 @@ class DyKnowInstance:
         self._state = "opened"
         self._tg = asyncio.TaskGroup()
         await self._tg.__aenter__()
-        self._tg.create_task(self._ticker(), name=f"dyknow[{self.name}].ticker")
+        self._own(self._tg.create_task(self._ticker(), name=f"dyknow[{self.name}].ticker"))
         for name, coro in self._pending_tasks:
-            self._tg.create_task(coro, name=name)
+            self._own(self._tg.create_task(coro, name=name))
         self._pending_tasks.clear()
         return self
 
@@ -73,11 +76,11 @@ class DyKnowInstance:
         for loc in self.locations.values():
             for gen in loc.generators.values():
                 gen.close()
+        self.objects.close()
         tg, self._tg = self._tg, None
         if tg is not None:
-            for task in asyncio.all_tasks():
-                if task.get_name().startswith(f"dyknow[{self.name}]."):
-                    task.cancel()
+            for task in list(self._tasks):
+                task.cancel()
             await tg.__aexit__(None, None, None)
 
     def _spawn(self, name: str, coro: Any) -> None:
@@ -88,7 +91,12 @@ class DyKnowInstance:
         if self._tg is None:
             self._pending_tasks.append((full, coro))
         else:
-            self._tg.create_task(coro, name=full)
+            self._own(self._tg.create_task(coro, name=full))
+
+    def _own(self, task: asyncio.Task[Any]) -> None:
+        # only this instance's tasks are cancelled on exit, never another instance's
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     # -- locations and labels ------------------------------------------------------
     def add_location(self, name: str, *, cache: CacheSpec | None = None) -> Location:
@@ -116,6 +124,7 @@ class DyKnowInstance:
             raise UnknownLabelError(location, list(self.locations)) from None
         gen = loc.add(label, cache=cache, value_type=value_type)
         self._labels[label] = loc
+        self.objects.label_created(label)  # set subscriptions waiting for this member's stream
         return gen
 
     def stream(self, label: str) -> StreamGenerator:
@@ -157,14 +166,16 @@ class DyKnowInstance:
         """Subscribe to ``label`` with ``policy``: an async iterator, or batches to ``callback``."""
         policy = policy or Policy()
         gen = self.stream(label)
-        timed = policy.sample_period is not None and policy.max_delay is not None
-        sub = gen.subscribe(policy, callback, self._arm if timed else None, mapper)
-        if timed or sub.deadline() is not None:
-            self._arm(sub)
+        sub = gen.subscribe(policy, callback, self._arm, mapper)
+        self._arm(sub)
         return sub
 
     def _arm(self, sub: Subscription) -> None:
         """Have the ticker emit ``sub``'s grid points once their max delay passes."""
+        p = sub.policy
+        if p.sample_period is None or p.max_delay is None:
+            self._periodic.discard(sub)
+            return
         self._periodic.add(sub)
         self._tick_wake.set()
 
@@ -300,10 +311,18 @@ class DyKnowInstance:
         return lambda: self._failure_listeners.remove(listener)
 
     # -- queries ------------------------------------------------------------------------------
+    def _as_of(self, label: str, now: int, as_of: int | None) -> int:
+        """Default query time: now, and what the location itself stamped later than now."""
+        if as_of is not None:
+            return as_of
+        return max(now, self.stream(label).made_ta)
+
     def latest(self, label: str, *, as_of: int | None = None) -> Answer:
         """The newest value of ``label``, as believed at ``as_of`` (default: now)."""
         now = self.clock.now()
-        return self._location_of(label).latest(label, query_time=now, as_of=as_of)
+        return self._location_of(label).latest(
+            label, query_time=now, as_of=self._as_of(label, now, as_of)
+        )
 
     def at(
         self,
@@ -313,19 +332,28 @@ class DyKnowInstance:
         approximation: Approximation = Approximation.MOST_RECENT,
         as_of: int | None = None,
     ) -> Answer:
-        """The value of ``label`` at valid time ``t`` through a fluent generator."""
+        """The value of ``label`` at valid time ``t`` (fluent generator), as believed now."""
         now = self.clock.now()
         return self._location_of(label).at(
-            label, t, query_time=now, approximation=approximation, as_of=as_of
+            label,
+            t,
+            query_time=now,
+            approximation=approximation,
+            as_of=self._as_of(label, now, as_of),
         )
 
     def between(
         self, label: str, t1: int, t2: int, *, as_of: int | None = None, all_estimates: bool = False
     ) -> Answer:
-        """All samples of ``label`` with valid time in [t1, t2]."""
+        """All samples of ``label`` with valid time in [t1, t2], as believed at ``as_of`` (now)."""
         now = self.clock.now()
         return self._location_of(label).between(
-            label, t1, t2, query_time=now, as_of=as_of, all_estimates=all_estimates
+            label,
+            t1,
+            t2,
+            query_time=now,
+            as_of=self._as_of(label, now, as_of),
+            all_estimates=all_estimates,
         )
 
     # -- metrics ------------------------------------------------------------------------------

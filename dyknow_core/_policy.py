@@ -6,6 +6,7 @@ nanoseconds on the instance's time line, like every other time point.
 
 from __future__ import annotations
 
+import math
 import re
 from enum import StrEnum
 from typing import Any, Self
@@ -114,8 +115,10 @@ class Change(_EdgeModel):
         if self.kind in (ChangeKind.ABSOLUTE, ChangeKind.RELATIVE):
             if self.delta is None:
                 raise PolicyError("delta", f"change {self.kind.value!r} needs a delta")
-            if self.delta < 0:
-                raise PolicyError("delta", f"change delta must be >= 0, got {self.delta}")
+            if not self.delta >= 0 or math.isinf(self.delta):
+                raise PolicyError(
+                    "delta", f"change delta must be finite and >= 0, got {self.delta}"
+                )
         elif self.delta is not None:
             raise PolicyError("delta", f"change {self.kind.value!r} takes no delta")
         return self
@@ -158,15 +161,23 @@ class Policy(_EdgeModel):
     @field_validator("sample_period")
     @classmethod
     def _positive_period(cls, v: float | None) -> float | None:
-        if v is not None and not v > 0:
-            raise ValueError(f"sample_period must be > 0 seconds, got {v}")
+        # a period must land on the integer-nanosecond time line: at least 1 ns, finite
+        if v is not None and not (v >= 1e-9 and math.isfinite(v)):
+            raise ValueError(f"sample_period must be finite and >= 1 ns (1e-9 s), got {v}")
         return v
 
     @field_validator("max_delay")
     @classmethod
     def _non_negative_delay(cls, v: float | None) -> float | None:
-        if v is not None and not v >= 0:
-            raise ValueError(f"max_delay must be >= 0 seconds, got {v}")
+        if v is not None and not (v >= 0 and math.isfinite(v)):
+            raise ValueError(f"max_delay must be finite and >= 0 seconds (or unset), got {v}")
+        return v
+
+    @field_validator("lower", "upper")
+    @classmethod
+    def _not_nan(cls, v: float | None) -> float | None:
+        if v is not None and math.isnan(v):
+            raise ValueError("a bound cannot be NaN (it would compare false with every value)")
         return v
 
     @field_validator("buffer_size")

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 from ._filter import Mapper
 from ._policy import Policy
-from ._sample import RawSample, Sample
+from ._sample import RawSample, Sample, as_sample
 from ._stream import StreamGenerator, Subscription
 from ._time import Clock
 
@@ -90,9 +90,13 @@ class Source(Process):
             ]
         )
 
-    def push_batch(self, samples: Sequence[RawSample]) -> None:
-        """Make many samples available at once (the fast path)."""
-        self.generator.publish_batch(samples)
+    def push_batch(self, samples: Sequence[RawSample], *, ordered: bool = False) -> None:
+        """Make many samples available at once (the fast path).
+
+        ``ordered`` promises available times already unique, increasing and later than
+        anything pushed before, which skips their check.
+        """
+        self.generator.publish_batch(samples, ordered=ordered)
 
     async def _pump(self, items: AsyncIterable[Any]) -> None:
         """Push everything an async iterator yields: values, (value, valid_time) or Samples."""
@@ -178,7 +182,7 @@ class ComputationalUnit(Process):
             latest[index] = s
             if _NONE in latest:
                 continue
-            args = latest if self.pass_samples else [x[0] for x in latest]
+            args = [as_sample(x) for x in latest] if self.pass_samples else [x[0] for x in latest]
             try:
                 r = self.fn(*args)
             except Exception as exc:
@@ -210,7 +214,9 @@ class ComputationalUnit(Process):
                 latest[index] = s
                 if _NONE in latest:
                     continue
-                args = latest if self.pass_samples else [x[0] for x in latest]
+                args = (
+                    [as_sample(x) for x in latest] if self.pass_samples else [x[0] for x in latest]
+                )
                 try:
                     r = await self.fn(*args)
                 except asyncio.CancelledError:

@@ -7,6 +7,7 @@ import operator
 from collections import deque
 from collections.abc import AsyncIterator, Callable, Sequence
 from itertools import islice
+from numbers import Real
 from typing import Any
 
 from ._cache import Cache
@@ -79,6 +80,7 @@ class Subscription:
         self.closed = False
         self._waiter: asyncio.Future[None] | None = None
         self._on_ticks = on_ticks  # tells the owner a periodic deadline may have moved
+        self._armed = False
 
     # -- fed by the generator -------------------------------------------------
     def _deliver(self, batch: list[RawSample]) -> None:
@@ -87,27 +89,33 @@ class Subscription:
             self._emit(out)
         if self.filter.ended:
             self.close()
+        elif not self._armed and self._on_ticks is not None and self.filter.deadline() is not None:
+            # the first sample set the grid: the owner's timer must now watch its deadline
+            self._armed = True
+            self._on_ticks(self)
 
     def _emit(self, out: list[RawSample]) -> None:
-        self.delivered += len(out)
         if self.callback is not None:
+            self.delivered += len(out)
             self.callback(out)
             return
         buf = self.buffer
-        room = self.policy.buffer_size - len(buf)
+        size = self.policy.buffer_size
+        room = size - len(buf)
         if len(out) > room:
+            lost = len(out) - room
+            self.overflowed += lost
             if self.policy.overflow is Overflow.DROP_NEWEST:
-                self.overflowed += len(out) - max(room, 0)
-                out = out[: max(room, 0)]
+                out = out[:room]
             else:
-                lost = len(out) - room
-                self.overflowed += lost
-                if lost >= len(buf):
-                    buf.clear()
-                    out = out[len(out) - self.policy.buffer_size :]
-                else:
-                    for _ in range(lost):
-                        buf.popleft()
+                # the evicted ones were counted as delivered when they were buffered
+                evicted = min(lost, len(buf))
+                self.delivered -= evicted
+                for _ in range(evicted):
+                    buf.popleft()
+                if len(out) > size:
+                    out = out[len(out) - size :]
+        self.delivered += len(out)
         buf.extend(out)
         w = self._waiter
         if w is not None and not w.done():
@@ -135,6 +143,7 @@ class Subscription:
         self.generator._check_policy(policy)
         self.filter = PolicyFilter(policy, previous=self.filter)
         self.policy = policy
+        self._armed = False
         if self._on_ticks is not None:
             self._on_ticks(self)
 
@@ -160,7 +169,12 @@ class Subscription:
             "delivered": self.delivered,
             "overflowed": self.overflowed,
             "buffered": len(self.buffer),
-            **{f"dropped_{k}": v for k, v in self.filter.stats.as_dict().items() if k != "emitted"},
+            "approximated": self.filter.stats.approximated,
+            **{
+                f"dropped_{k}": v
+                for k, v in self.filter.stats.as_dict().items()
+                if k not in ("emitted", "approximated")
+            },
         }
 
     # -- consuming ---------------------------------------------------------------
@@ -229,7 +243,12 @@ class StreamGenerator:
         self.metrics = StreamMetrics()
         self._subs: list[Subscription] = []
         self._last_ta = -(2**63)
+        # The latest available time this location assigned itself (a 1 ns uniqueness bump,
+        # a CU's output): it is known now even if the clock has not reached it.
+        self.made_ta = -(2**63)
         self._publishing = False
+        self._closed_delivered = 0  # what subscriptions that have ended got and lost
+        self._closed_dropped = 0
         self.closed = False
 
     @property
@@ -239,7 +258,7 @@ class StreamGenerator:
 
     def _check_policy(self, policy: Policy) -> None:
         field = policy.numeric_field()
-        if field and self.value_type is not None and not issubclass(self.value_type, int | float):
+        if field and self.value_type is not None and not issubclass(self.value_type, Real):
             raise PolicyError(
                 field,
                 f"needs numeric values, but stream {self.label!r} carries "
@@ -261,7 +280,9 @@ class StreamGenerator:
         if self._publishing:
             # a CU whose output feeds back into its own input would recurse for ever
             raise ProcessError(f"cycle: stream {self.label!r} published while publishing")
-        if not ordered:
+        if ordered:
+            self.made_ta = batch[-1][2]  # a computational unit stamped these itself
+        else:
             batch = self._unique_available_times(batch)
         self._last_ta = batch[-1][2]
         self._record_delays(batch)
@@ -285,6 +306,7 @@ class StreamGenerator:
             if ta <= last:
                 ta = last + 1
                 s = (s[0], s[1], ta)
+                self.made_ta = ta
             fixed.append(s)
             last = ta
         return fixed
@@ -325,7 +347,13 @@ class StreamGenerator:
         self._check_policy(policy)
         sub = Subscription(self, policy, callback, on_ticks, mapper)
         if policy.start is not None:
-            history = [s for s in self.cache.samples() if s[1] >= policy.start]
+            cached = self.cache.samples()
+            history = [s for s in cached if s[1] >= policy.start]
+            if policy.sample_period is not None:
+                # the grid point at start may be filled from the last sample before it
+                before = [s for s in cached if s[1] < policy.start]
+                if before:
+                    history.insert(0, max(before, key=lambda s: (s[1], s[2])))
             if history:
                 sub._deliver(history)
         if not sub.closed:
@@ -336,6 +364,8 @@ class StreamGenerator:
         # copy-on-write: publish may be iterating the list
         if sub in self._subs:
             self._subs = [s for s in self._subs if s is not sub]
+            self._closed_delivered += sub.delivered
+            self._closed_dropped += sub.dropped
 
     def close(self) -> None:
         """End the stream: every subscription ends after draining its buffer."""
@@ -350,8 +380,8 @@ class StreamGenerator:
             "label": self.label,
             "location": self.location,
             "samples_in": m.samples_in,
-            "samples_out": sum(s.delivered for s in self._subs),
-            "dropped": sum(s.dropped for s in self._subs),
+            "samples_out": self._closed_delivered + sum(s.delivered for s in self._subs),
+            "dropped": self._closed_dropped + sum(s.dropped for s in self._subs),
             "subscribers": len(self._subs),
             "cached": len(self.cache),
             "delay_p50": m.delay_quantile(0.5),

@@ -1,0 +1,50 @@
+"""Benchmarks: ours against a peer measured in the same run, reported as ``BENCH`` lines.
+
+Each benchmark is a module of this package with a ``run()`` function; ``python -m bench``
+runs them all, ``python -m bench <name>`` one of them. The machines we run on are noisy
+(2x drift between runs), so a benchmark never reports an absolute figure alone: it runs
+the peer in the same process, on the same data, interleaved with ours, and prints the
+ratio in the form ``../shared/ANCHORS.md`` fixes::
+
+    BENCH <name> ours=<number> <peer>=<number> ratio=<ours/peer> unit=<unit> better=<higher|lower>
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+
+def fmt(x: float) -> str:
+    """A number as BENCH lines print it: three significant digits, ``1.94e6`` when big."""
+    if x != 0 and (abs(x) >= 1e4 or abs(x) < 1e-3):
+        mantissa, exp = f"{x:.2e}".split("e")
+        return f"{mantissa}e{int(exp)}"
+    return f"{x:.3g}"
+
+
+def report(name: str, ours: float, peer_name: str, peer: float, unit: str, *, better: str) -> str:
+    """Print (and return) one summary line in the exact form the issues and CI grep for."""
+    if better not in ("higher", "lower"):
+        raise ValueError(f"better must be 'higher' or 'lower', got {better!r}")
+    ratio = ours / peer if peer else float("inf")
+    line = (
+        f"BENCH {name} ours={fmt(ours)} {peer_name}={fmt(peer)} "
+        f"ratio={ratio:.2f} unit={unit} better={better}"
+    )
+    print(line, flush=True)
+    return line
+
+
+def progress(message: str) -> None:
+    """Say what a long run is doing, on stderr so stdout stays the report."""
+    print(f"  … {message}", file=sys.stderr, flush=True)
+
+
+def timed(fn: Callable[[], Any]) -> tuple[float, Any]:
+    """Seconds one call of ``fn`` took (perf_counter), and what it returned."""
+    t0 = time.perf_counter()
+    result = fn()
+    return time.perf_counter() - t0, result

@@ -1,0 +1,1 @@
+"""Runnable examples: one small script per capability, each a module with ``main()``."""
