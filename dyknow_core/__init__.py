@@ -5,6 +5,7 @@ are the implementation.
 """
 
 from ._cache import Cache
+from ._events import ChangeEvent, EventProcess, add_arrival_events, add_change_events
 from ._exceptions import (
     ClosedError,
     DuplicateLabelError,
@@ -38,6 +39,7 @@ from ._policy import (
 )
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
 from ._sample import Answer, RawSample, Sample, as_sample
+from ._state import Missing, StatePolicy, StateProcess, StateStats, StateStrategy, add_state
 from ._stream import StreamGenerator, StreamMetrics, Subscription
 from ._time import NS_PER_S, Clock, ManualClock, RealClock, ns_to_seconds, seconds_to_ns
 
@@ -51,6 +53,7 @@ __all__ = [
     "CacheSpec",
     "Capability",
     "Change",
+    "ChangeEvent",
     "ChangeKind",
     "Clock",
     "ClosedError",
@@ -61,12 +64,14 @@ __all__ = [
     "DuplicateLabelError",
     "DyKnowError",
     "DyKnowInstance",
+    "EventProcess",
     "FilterStats",
     "Input",
     "LateAction",
     "Location",
     "ManualClock",
     "MembershipChange",
+    "Missing",
     "ObjectError",
     "ObjectManager",
     "Order",
@@ -82,10 +87,17 @@ __all__ = [
     "Sample",
     "SetSubscription",
     "Source",
+    "StatePolicy",
+    "StateProcess",
+    "StateStats",
+    "StateStrategy",
     "StreamGenerator",
     "StreamMetrics",
     "Subscription",
     "UnknownLabelError",
+    "add_arrival_events",
+    "add_change_events",
+    "add_state",
     "as_sample",
     "ns_to_seconds",
     "seconds_to_ns",

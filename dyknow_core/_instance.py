@@ -6,16 +6,19 @@ import asyncio
 import contextlib
 import fnmatch
 from collections import deque
-from collections.abc import AsyncIterable, Callable, Sequence
+from collections.abc import AsyncIterable, Callable, Mapping, Sequence
 from typing import Any
 
+from . import _events, _state
+from ._events import EventProcess
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
 from ._filter import Mapper
 from ._location import Location
 from ._objects import ObjectManager
-from ._policy import Approximation, CacheSpec, Policy
+from ._policy import Approximation, CacheSpec, Change, Policy
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
 from ._sample import Answer
+from ._state import StatePolicy, StateProcess
 from ._stream import BatchCallback, StreamGenerator, Subscription
 from ._time import Clock, RealClock
 
@@ -277,6 +280,52 @@ class DyKnowInstance:
         if cu.is_async:
             self._spawn(f"cu[{name}]", cu._run_async())
         return cu
+
+    def add_state(
+        self,
+        label: str,
+        components: Mapping[str, str],
+        policy: StatePolicy | Mapping[str, Any],
+        *,
+        name: str | None = None,
+        location: str | None = None,
+        cache: CacheSpec | None = None,
+    ) -> StateProcess:
+        """Synchronize component streams (name -> label) into one state stream under ``label``."""
+        return _state.add_state(
+            self, label, components, policy, name, location=location, cache=cache
+        )
+
+    def add_change_events(
+        self,
+        label: str,
+        change: Change | str | Mapping[str, Any],
+        *,
+        output: str | None = None,
+        name: str | None = None,
+        policy: Policy | None = None,
+        location: str | None = None,
+        cache: CacheSpec | None = None,
+    ) -> EventProcess:
+        """Publish the changes of ``label`` per ``change`` (default ``events/changed/<label>``)."""
+        return _events.add_change_events(
+            self, label, change, output, name, policy=policy, location=location, cache=cache
+        )
+
+    def add_arrival_events(
+        self,
+        label: str,
+        *,
+        output: str | None = None,
+        name: str | None = None,
+        policy: Policy | None = None,
+        location: str | None = None,
+        cache: CacheSpec | None = None,
+    ) -> EventProcess:
+        """Publish an event per sample of ``label`` (default ``events/arrived/<label>``)."""
+        return _events.add_arrival_events(
+            self, label, output, name, policy=policy, location=location, cache=cache
+        )
 
     def remove_process(self, name: str) -> None:
         """Stop a process and close the stream it published."""

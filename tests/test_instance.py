@@ -732,3 +732,29 @@ async def test_closing_one_instance_leaves_another_running() -> None:
             first.add_source("x")
         src.push(21)
         assert (await out.get(timeout=WAIT)).value == 42
+
+
+async def test_instance_facade_builds_states_and_change_events() -> None:
+    clock = ManualClock()
+    async with DyKnowInstance(clock=clock) as dk:
+        speed = dk.add_source("speed")
+        on_road = dk.add_source("on_road")
+        state = dk.add_state(
+            "car5/state",
+            {"speed": "speed", "on_road": "on_road"},
+            {"period": 1, "strategy": "latest", "max_delay": 0.5, "missing": "last"},
+        )
+        changes = dk.add_change_events("speed", "absolute(5)")
+        states = dk.subscribe("car5/state")
+        events = dk.subscribe(changes.label)
+        for i, v in enumerate([0.0, 2.0, 10.0, 12.0]):
+            clock.set(i * NS_PER_S + 10)
+            speed.push(v, i * NS_PER_S)
+            on_road.push(i % 2 == 0, i * NS_PER_S)
+        first = await states.get(timeout=2)
+        assert first.value == {"speed": 0.0, "on_road": True} and first.valid_time == 0
+        got = [(await events.get(timeout=2)).value for _ in range(2)]
+        assert [(e.old, e.new) for e in got] == [(None, 0.0), (0.0, 10.0)]
+        assert state.name in dk.processes
+        dk.remove_process(state.name)
+        assert not dk.has_label("car5/state")
