@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 BENCH ?=
 
-.PHONY: test demo bench lint typecheck pytest clean
+.PHONY: test demo bench lint typecheck pytest mosquitto clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -24,7 +24,17 @@ typecheck: $(STAMP)
 	@echo "==> mypy"
 	$(VENV)/bin/mypy
 
-pytest: $(STAMP)
+# The MQTT transport's tests start their own mosquitto broker; install it from Debian's
+# packages when it is missing (idempotent: nothing happens when it is already there).
+mosquitto:
+	@if command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto; then :; else \
+		echo "==> installing mosquitto (the MQTT transport's tests need a broker)"; \
+		SUDO=; if [ "$$(id -u)" -ne 0 ]; then SUDO=sudo; fi; \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq mosquitto >/dev/null; \
+	fi
+
+pytest: $(STAMP) mosquitto
 	@echo "==> pytest"
 	$(PY) -m pytest -q
 

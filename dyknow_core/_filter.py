@@ -164,6 +164,16 @@ def _compile(policy: Policy, *, stages: tuple[str, ...], mapper: Mapper | None =
     return namespace["run"]
 
 
+def _within_bounds(policy: Policy, value: Any) -> bool:
+    """Whether ``value`` passes the policy's bounds (a value that cannot compare does not)."""
+    try:
+        if policy.lower is not None and value < policy.lower:
+            return False
+        return not (policy.upper is not None and value > policy.upper)
+    except TypeError:
+        return False
+
+
 def _is_identity(policy: Policy) -> bool:
     """Whether the policy lets every sample through unchanged."""
     return (
@@ -345,7 +355,12 @@ class PolicyFilter:
                 if policy.start is not None:
                     first = max(first, policy.start)
                 self.sampler.g = self.sampler._first_grid(first)
-                self.sampler.before = (previous.last_value, previous.last_tv, previous.last_tv)
+                if _within_bounds(policy, previous.last_value):
+                    self.sampler.before = (
+                        previous.last_value,
+                        previous.last_tv,
+                        previous.last_tv,
+                    )
             # the window applies to grid times (in the sampler), not to the inputs: the
             # sample just before `start` or just after `end` decides the edge grid points
             self._pre = _compile(policy, stages=("late", "bounds"))

@@ -11,3 +11,74 @@ settings.register_profile(
     "ci", deadline=None, derandomize=True, suppress_health_check=[HealthCheck.too_slow]
 )
 settings.load_profile("ci" if os.environ.get("CI") else "dev")
+
+
+# --- mosquitto, for the MQTT transport's tests ----------------------------------------------
+
+import shutil  # noqa: E402
+import socket  # noqa: E402
+import subprocess  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Iterator  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+from agents.transports import free_tcp_port  # noqa: E402
+
+
+def _mosquitto_executable() -> str:
+    found = shutil.which("mosquitto")
+    if found:
+        return found
+    # Debian installs it in /usr/sbin, which is not on every user's PATH.
+    if Path("/usr/sbin/mosquitto").is_file():
+        return "/usr/sbin/mosquitto"
+    pytest.fail(
+        "mosquitto is not installed, and the MQTT transport's tests need a real broker: "
+        "run `make test` (it installs mosquitto from Debian's packages when missing) or "
+        "`apt-get install -y mosquitto`",
+        pytrace=False,
+    )
+
+
+@pytest.fixture(scope="session")
+def mosquitto(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, int]]:
+    """A mosquitto broker of our own on a free loopback port: (host, port)."""
+    exe = _mosquitto_executable()
+    host, port = "127.0.0.1", free_tcp_port()
+    workdir = tmp_path_factory.mktemp("mosquitto")
+    conf = workdir / "mosquitto.conf"
+    conf.write_text(
+        f"listener {port} {host}\n"
+        "allow_anonymous true\n"
+        "persistence false\n"
+        "set_tcp_nodelay true\n"
+        "log_dest stdout\n"
+    )
+    log_path = workdir / "mosquitto.log"
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen([exe, "-c", str(conf)], stdout=log, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 10.0
+        while True:
+            if proc.poll() is not None:
+                pytest.fail(
+                    f"mosquitto exited with {proc.returncode} at start:\n{log_path.read_text()}",
+                    pytrace=False,
+                )
+            try:
+                socket.create_connection((host, port), timeout=0.2).close()
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    pytest.fail(
+                        f"mosquitto did not accept connections on {host}:{port} within 10 s:\n"
+                        f"{log_path.read_text()}",
+                        pytrace=False,
+                    )
+                time.sleep(0.02)  # nothing to await: the port either accepts or not yet
+        yield host, port
+    finally:
+        proc.kill()
+        proc.wait(timeout=10)

@@ -1,0 +1,158 @@
+"""FIPA ACL speech acts as JSON: the message model, agent identifiers, parsing with limits."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import re
+from enum import StrEnum
+from typing import Annotated, Any
+
+import orjson
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, JsonValue, ValidationError
+
+from ._exceptions import MessageError
+
+WIRE_VERSION = 1
+MAX_MESSAGE_BYTES = 256 * 1024
+
+_MAX_WHERE = 120
+
+_AID = re.compile(r"^[A-Za-z0-9_.\-]+@[A-Za-z0-9_.\-]+$")
+
+
+class Performative(StrEnum):
+    """The FIPA communicative acts."""
+
+    ACCEPT_PROPOSAL = "accept-proposal"
+    AGREE = "agree"
+    CANCEL = "cancel"
+    CFP = "cfp"
+    CONFIRM = "confirm"
+    DISCONFIRM = "disconfirm"
+    FAILURE = "failure"
+    INFORM = "inform"
+    INFORM_IF = "inform-if"
+    INFORM_REF = "inform-ref"
+    NOT_UNDERSTOOD = "not-understood"
+    PROPAGATE = "propagate"
+    PROPOSE = "propose"
+    PROXY = "proxy"
+    QUERY_IF = "query-if"
+    QUERY_REF = "query-ref"
+    REFUSE = "refuse"
+    REJECT_PROPOSAL = "reject-proposal"
+    REQUEST = "request"
+    REQUEST_WHEN = "request-when"
+    REQUEST_WHENEVER = "request-whenever"
+    SUBSCRIBE = "subscribe"
+
+
+def _check_aid(value: str) -> str:
+    if not _AID.match(value):
+        raise ValueError(f"agent identifier {value!r} is not of the form name@platform")
+    return value
+
+
+AgentIdStr = Annotated[str, AfterValidator(_check_aid)]
+"""An agent identifier on the wire: ``name@platform`` (``federation@uav-a``)."""
+
+
+def agent_id(name: str, platform: str) -> str:
+    """Build and check the identifier of agent ``name`` on ``platform``."""
+    return _check_aid(f"{name}@{platform}")
+
+
+def platform_of(aid: str) -> str:
+    """The platform part of an agent identifier."""
+    return aid.rpartition("@")[2]
+
+
+def name_of(aid: str) -> str:
+    """The agent-name part of an agent identifier."""
+    return aid.rpartition("@")[0]
+
+
+_ids = itertools.count(1)
+_prefix = os.urandom(4).hex()
+
+
+def new_id(kind: str = "c") -> str:
+    """A fresh conversation or reply-with identifier, unique in this process and beyond."""
+    return f"{kind}-{_prefix}-{next(_ids)}"
+
+
+class ACLMessage(BaseModel):
+    """One speech act. ``content`` is any JSON value; ``reply_by`` is Unix time in seconds."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    v: int = WIRE_VERSION
+    performative: Performative
+    sender: AgentIdStr
+    receivers: Annotated[list[AgentIdStr], Field(min_length=1)]
+    reply_to: list[AgentIdStr] | None = None
+    content: JsonValue = None
+    language: str | None = None
+    encoding: str | None = None
+    ontology: str | None = None
+    protocol: str | None = None
+    conversation_id: str | None = None
+    reply_with: str | None = None
+    in_reply_to: str | None = None
+    reply_by: float | None = None
+
+    def reply(
+        self, performative: Performative, content: Any = None, *, sender: str | None = None
+    ) -> ACLMessage:
+        """The reply to this message: same conversation, addressed to its reply_to or sender."""
+        return ACLMessage(
+            performative=performative,
+            sender=sender or self.receivers[0],
+            receivers=list(self.reply_to or [self.sender]),
+            content=content,
+            language=self.language,
+            ontology=self.ontology,
+            protocol=self.protocol,
+            conversation_id=self.conversation_id,
+            in_reply_to=self.reply_with,
+        )
+
+    def to_json(self) -> bytes:
+        """The message as compact JSON bytes, leaving out unset fields."""
+        try:
+            return orjson.dumps(self.model_dump(mode="json", exclude_none=True))
+        except orjson.JSONEncodeError as exc:  # e.g. an int beyond 64 bits: valid here, not JSON
+            raise MessageError(f"content cannot be sent as JSON: {exc}") from exc
+
+    @classmethod
+    def from_json(cls, data: bytes | str, *, max_bytes: int = MAX_MESSAGE_BYTES) -> ACLMessage:
+        """Parse and validate a message; MessageError says what is wrong."""
+        size = len(data) if isinstance(data, bytes) else len(data.encode("utf-8", "surrogatepass"))
+        if size > max_bytes:
+            raise MessageError(f"message of {size} bytes exceeds the limit of {max_bytes}")
+        try:
+            obj = orjson.loads(data)
+        except orjson.JSONDecodeError as exc:
+            raise MessageError(f"not JSON: {exc}") from exc
+        return cls.from_obj(obj)
+
+    @classmethod
+    def from_obj(cls, obj: Any) -> ACLMessage:
+        """Validate an already-decoded JSON object as a message."""
+        if not isinstance(obj, dict):
+            raise MessageError(f"a message is a JSON object, not {type(obj).__name__}")
+        version = obj.get("v", WIRE_VERSION)
+        # `type(...) is int`: True and 1.0 compare equal to 1 but are not version 1
+        if type(version) is not int or version != WIRE_VERSION:
+            raise MessageError(f"unsupported wire version {version!r} (this side speaks 1)")
+        try:
+            return cls.model_validate(obj)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            where = ".".join(str(p) for p in err.get("loc", ())) or "message"
+            if len(where) > _MAX_WHERE:  # deep content: the path alone could outgrow a reply
+                where = where[:_MAX_WHERE] + "…"
+            raise MessageError(f"field {where!r}: {err.get('msg', 'invalid')}") from exc
+        except RecursionError as exc:
+            raise MessageError("content nested too deeply") from exc

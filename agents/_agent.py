@@ -1,0 +1,816 @@
+"""The asyncio agent: a bounded mailbox, handlers chosen by templates, conversations.
+
+An agent lives on an `AgentPlatform` (``await platform.add(agent)``), which owns its task.
+Inside, the agent owns its own ``asyncio.TaskGroup``: the receive loop
+(``agent[name@platform].receive``), handlers declared ``concurrent`` and whatever it
+``spawn``s. Stopping cancels them all; nothing outlives the agent.
+
+How an incoming message is routed, in order:
+
+1. to the open `Conversation` waiting for it: by ``in_reply_to`` (the ``reply_with`` of
+   what the conversation sent), else by ``conversation_id``; only from the conversation's
+   peers. This happens on delivery, so an initiator waiting inside a handler is not
+   blocked by its own mailbox;
+2. else into the mailbox, then to the first handler whose `MessageTemplate` matches;
+3. else a late reply to a conversation that just ended is dropped (counted), a stray
+   ``not-understood`` or ``failure`` is logged, and anything else gets a
+   ``not-understood`` saying why.
+
+A handler that raises does not stop the agent: the error is logged and, when the message
+expects a reply, the sender gets a ``failure`` with the reason.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextvars
+import logging
+import time
+from collections import OrderedDict, deque
+from collections.abc import Awaitable, Callable, Coroutine, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, NamedTuple, Self
+
+from ._acl import ACLMessage, Performative, agent_id, new_id
+from ._exceptions import AgentError, ConversationError, ReplyTimeout
+
+if TYPE_CHECKING:
+    from ._platform import AgentPlatform
+
+log = logging.getLogger(__name__)
+
+Handler = Callable[[ACLMessage], Awaitable[None]]
+"""Handles one message; replies, if any, are sent by the handler itself."""
+
+_P = Performative
+
+# Performatives whose sender waits for an answer: a handler that raises answers `failure`.
+EXPECTS_REPLY = frozenset(
+    {
+        _P.REQUEST,
+        _P.REQUEST_WHEN,
+        _P.REQUEST_WHENEVER,
+        _P.QUERY_IF,
+        _P.QUERY_REF,
+        _P.SUBSCRIBE,
+        _P.CFP,
+        _P.ACCEPT_PROPOSAL,
+        _P.PROPAGATE,
+        _P.PROXY,
+        _P.CANCEL,
+    }
+)
+# Never answered automatically: answering them could start an endless exchange.
+NEVER_ANSWERED = frozenset({_P.NOT_UNDERSTOOD, _P.FAILURE})
+
+_MAX_REASON = 1000
+_current_agent: contextvars.ContextVar[Agent | None] = contextvars.ContextVar(
+    "dyknow_current_agent", default=None
+)
+
+
+def expects_reply(message: ACLMessage) -> bool:
+    """Whether the sender of ``message`` waits for an answer (its act asks, or reply_with)."""
+    if message.performative in NEVER_ANSWERED:
+        return False
+    return message.performative in EXPECTS_REPLY or message.reply_with is not None
+
+
+def reason_of(exc: BaseException) -> str:
+    """A short, one-line reason for an error, as a failure or not-understood carries it."""
+    text = str(exc)
+    reason = f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    return reason if len(reason) <= _MAX_REASON else reason[:_MAX_REASON] + "…"
+
+
+class MessageTemplate:
+    """Matches messages on any subset of performative(s), protocol, ontology, conversation id.
+
+    ``where`` is an extra predicate for what the fields cannot say. A template with
+    nothing set matches every message.
+    """
+
+    __slots__ = ("conversation_id", "ontology", "performatives", "protocol", "where")
+
+    def __init__(
+        self,
+        performative: Performative | str | Iterable[Performative | str] | None = None,
+        *,
+        protocol: str | None = None,
+        ontology: str | None = None,
+        conversation_id: str | None = None,
+        where: Callable[[ACLMessage], bool] | None = None,
+    ) -> None:
+        if performative is None:
+            self.performatives: frozenset[Performative] | None = None
+        elif isinstance(performative, str):
+            self.performatives = frozenset({Performative(performative)})
+        else:
+            self.performatives = frozenset(Performative(p) for p in performative)
+        self.protocol = protocol
+        self.ontology = ontology
+        self.conversation_id = conversation_id
+        self.where = where
+
+    def matches(self, message: ACLMessage) -> bool:
+        """Whether ``message`` has every field this template sets."""
+        return (
+            (self.performatives is None or message.performative in self.performatives)
+            and (self.protocol is None or message.protocol == self.protocol)
+            and (self.ontology is None or message.ontology == self.ontology)
+            and (self.conversation_id is None or message.conversation_id == self.conversation_id)
+            and (self.where is None or self.where(message))
+        )
+
+    def __repr__(self) -> str:
+        parts = []
+        if self.performatives is not None:
+            parts.append("|".join(sorted(self.performatives)))
+        for field in ("protocol", "ontology", "conversation_id"):
+            if (value := getattr(self, field)) is not None:
+                parts.append(f"{field}={value!r}")
+        if self.where is not None:
+            parts.append("where=…")
+        return f"MessageTemplate({', '.join(parts)})"
+
+
+class _Route(NamedTuple):
+    template: MessageTemplate
+    handler: Handler
+    concurrent: bool
+
+
+@dataclass(frozen=True, slots=True)
+class RouteSpec:
+    """A handler declared on a function by a decorator (`on`, `on_request` …).
+
+    ``make`` turns the agent and the bound function into the handler (the protocol
+    decorators wrap it); ``fallback`` routes are tried after all the others.
+    """
+
+    template: MessageTemplate
+    concurrent: bool = False
+    fallback: bool = False
+    make: Callable[[Agent, Callable[..., Any]], Handler] | None = None
+
+
+_SPECS = "__agent_routes__"
+
+
+def mark(fn: Any, spec: RouteSpec) -> None:
+    """Attach a route declaration to ``fn`` (what handler decorators do)."""
+    specs = getattr(fn, _SPECS, None)
+    if specs is None:
+        specs = []
+        setattr(fn, _SPECS, specs)
+    specs.append(spec)
+
+
+def on(template: MessageTemplate, *, concurrent: bool = False) -> Callable[[Any], Any]:
+    """Declare an agent method ``async def h(self, message)`` as the handler for ``template``.
+
+    ``concurrent=True`` runs each message in its own task (owned by the agent), for
+    handlers that wait (on another agent, a timer) and must not hold up the mailbox.
+    """
+
+    def decorate(fn: Any) -> Any:
+        mark(fn, RouteSpec(template, concurrent))
+        return fn
+
+    return decorate
+
+
+def _class_specs(cls: type) -> list[tuple[str, RouteSpec]]:
+    """The route declarations of ``cls``: subclasses' before their bases', in definition order.
+
+    A method overridden in a subclass keeps only the subclass's declarations (or none).
+    """
+    cached: list[tuple[str, RouteSpec]] | None = cls.__dict__.get("_route_specs_cache")
+    if cached is not None:
+        return cached
+    seen: set[str] = set()
+    specs: list[tuple[str, RouteSpec]] = []
+    for klass in cls.__mro__:
+        for attr, value in vars(klass).items():
+            if attr in seen or attr.startswith("__"):
+                continue
+            seen.add(attr)
+            fn = value.__func__ if isinstance(value, staticmethod | classmethod) else value
+            specs.extend((attr, spec) for spec in getattr(fn, _SPECS, ()))
+    cls._route_specs_cache = specs  # type: ignore[attr-defined]
+    return specs
+
+
+class _Mailbox:
+    """A bounded FIFO with one consumer; ``put`` refuses (returns False) when full."""
+
+    __slots__ = ("_items", "_waiter", "maxlen")
+
+    def __init__(self, maxlen: int) -> None:
+        self._items: deque[ACLMessage] = deque()
+        self._waiter: asyncio.Future[None] | None = None
+        self.maxlen = maxlen
+
+    def put(self, message: ACLMessage) -> bool:
+        if len(self._items) >= self.maxlen:
+            return False
+        self._items.append(message)
+        w = self._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+        return True
+
+    async def get(self) -> ACLMessage:
+        items = self._items
+        while not items:
+            self._waiter = w = asyncio.get_running_loop().create_future()
+            try:
+                await w
+            finally:
+                self._waiter = None
+        return items.popleft()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+@dataclass(slots=True)
+class AgentStats:
+    """What an agent has seen: messages handled, answered not-understood, dropped …"""
+
+    received: int = 0
+    handled: int = 0
+    handler_errors: int = 0
+    not_understood: int = 0
+    late: int = 0
+    dropped: int = 0
+    conversation_overflow: int = 0
+
+
+class _Ended:
+    """Put in a conversation's queue when it is closed: `receive` raises after the rest."""
+
+    __slots__ = ("error",)
+
+    def __init__(self, error: BaseException | None) -> None:
+        self.error = error
+
+
+class Conversation:
+    """The initiator's end of one conversation: the replies matched to it, in order.
+
+    Open with `Agent.conversation` (a context manager: closing unregisters it, in
+    ``finally``). Messages sent with `send` register their ``reply_with`` so answers are
+    matched by ``in_reply_to``; answers carrying the ``conversation_id`` match too. Only
+    messages from ``peers`` (when given) are taken. `receive` waits until the
+    conversation's deadline and raises `ReplyTimeout` after it, never hangs past it.
+    """
+
+    __slots__ = (
+        "_agent",
+        "_items",
+        "_keys",
+        "_waiter",
+        "closed",
+        "deadline",
+        "id",
+        "last_sent",
+        "maxlen",
+        "peers",
+    )
+
+    def __init__(
+        self,
+        agent: Agent,
+        conversation_id: str | None,
+        *,
+        peers: Iterable[str] | None = None,
+        deadline: float | None = None,
+        maxlen: int = 4096,
+    ) -> None:
+        self._agent = agent
+        self.id = conversation_id
+        self.peers = frozenset(peers) if peers is not None else None
+        self.deadline = deadline  # loop time
+        self.maxlen = maxlen
+        self._items: deque[ACLMessage | _Ended] = deque()
+        self._keys: list[str] = []
+        self._waiter: asyncio.Future[None] | None = None
+        self.closed = False
+        self.last_sent: ACLMessage | None = None
+        if conversation_id is not None:
+            agent._by_conv[conversation_id] = self
+
+    def expect(self, reply_with: str) -> None:
+        """Take the answers to a message sent with ``reply_with`` (``in_reply_to`` match)."""
+        self._keys.append(reply_with)
+        self._agent._by_reply[reply_with] = self
+
+    def accepts(self, message: ACLMessage) -> bool:
+        """Whether ``message`` belongs here (from a peer, and not one of our own messages)."""
+        if self.closed or (self.peers is not None and message.sender not in self.peers):
+            return False
+        rw = message.reply_with
+        return rw is None or rw not in self._keys  # an agent asking itself sees its request
+
+    async def send(self, message: ACLMessage) -> None:
+        """Send ``message`` within this conversation, expecting answers to its reply_with."""
+        if message.reply_with is not None:
+            self.expect(message.reply_with)
+        self.last_sent = message
+        await self._agent.send(message)
+
+    def _put(self, message: ACLMessage) -> None:
+        if len(self._items) >= self.maxlen:
+            self._items.popleft()
+            self._agent.stats.conversation_overflow += 1
+            log.warning(
+                "%s: conversation %s overflowed; oldest reply dropped", self._agent, self.id
+            )
+        self._items.append(message)
+        w = self._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+
+    def unread(self, message: ACLMessage) -> None:
+        """Put ``message`` back in front, to be received again."""
+        self._items.appendleft(message)
+
+    def pending(self) -> int:
+        """How many received messages wait to be read."""
+        n = len(self._items)
+        return n - 1 if n and isinstance(self._items[-1], _Ended) else n
+
+    async def receive(
+        self, *, deadline: float | None = None, timeout: float | None = None
+    ) -> ACLMessage:
+        """The next message; ReplyTimeout at ``deadline`` (loop time) or after ``timeout`` s.
+
+        Without either, the conversation's deadline applies (none: wait as long as it takes).
+        """
+        if timeout is not None:
+            deadline = asyncio.get_running_loop().time() + timeout
+        elif deadline is None:
+            deadline = self.deadline
+        items = self._items
+        while not items:
+            if self.closed:
+                raise ConversationError(f"conversation {self.id} is closed", self.last_sent)
+            loop = asyncio.get_running_loop()
+            self._waiter = w = loop.create_future()
+            # A timer setting the future is cheaper than asyncio.timeout on this hot path.
+            timer = None if deadline is None else loop.call_at(deadline, _expire, w)
+            try:
+                await w
+            finally:
+                self._waiter = None
+                if timer is not None:
+                    timer.cancel()
+            if w.result() is _TIMED_OUT and not items:
+                raise ReplyTimeout(
+                    f"no reply from {self._peers_text()} in conversation {self.id}", self.last_sent
+                )
+        item = items.popleft()
+        if isinstance(item, _Ended):
+            items.appendleft(item)  # stays ended for later calls
+            raise item.error or ConversationError(
+                f"conversation {self.id} is closed", self.last_sent
+            )
+        return item
+
+    def _peers_text(self) -> str:
+        return ", ".join(sorted(self.peers)) if self.peers else "anyone"
+
+    def close(self, error: BaseException | None = None) -> None:
+        """Unregister; a waiting `receive` raises ``error`` (or ConversationError)."""
+        if self.closed:
+            return
+        self.closed = True
+        agent = self._agent
+        if self.id is not None and agent._by_conv.get(self.id) is self:
+            del agent._by_conv[self.id]
+            agent._remember_closed(self.id)
+        for key in self._keys:
+            if agent._by_reply.get(key) is self:
+                del agent._by_reply[key]
+                agent._remember_closed(key)
+        self._items.append(_Ended(error))
+        w = self._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+_TIMED_OUT: Any = object()
+
+
+def _expire(w: asyncio.Future[Any]) -> None:
+    if not w.done():
+        w.set_result(_TIMED_OUT)
+
+
+_UNATTACHED, _STARTING, _RUNNING, _STOPPING, _STOPPED = (
+    "unattached",
+    "starting",
+    "running",
+    "stopping",
+    "stopped",
+)
+
+
+class Agent:
+    """An agent: identifier ``name@platform``, a bounded mailbox, handlers chosen by templates.
+
+    Subclass it and declare handlers with `on` (or the protocol decorators in
+    `agents.on_request` …), or add them with `add_handler`. Start it with
+    ``await platform.add(agent)``; stop it with `stop` or by leaving
+    ``async with await platform.add(agent):``. `setup` and `teardown` are hooks run as
+    the agent starts (before it is ready) and stops (while it can still send).
+    """
+
+    mailbox_size = 16384
+
+    def __init__(self, name: str, *, mailbox_size: int | None = None) -> None:
+        agent_id(name, "platform")  # check the name's characters now, not on start
+        self.name = name
+        self.aid = name  # becomes name@platform when added to a platform
+        self.stats = AgentStats()
+        self._platform: AgentPlatform | None = None
+        self._mailbox = _Mailbox(mailbox_size or self.mailbox_size)
+        self._routes: list[_Route] = []
+        self._fallbacks: list[_Route] = []
+        self._by_reply: dict[str, Conversation] = {}
+        self._by_conv: dict[str, Conversation] = {}
+        self._closed_keys: OrderedDict[str, None] = OrderedDict()
+        self._state = _UNATTACHED
+        self._task: asyncio.Task[None] | None = None
+        self._tg: asyncio.TaskGroup | None = None
+        self._children: set[asyncio.Task[Any]] = set()
+        self._stop_requested: asyncio.Future[None] | None = None
+        for attr, spec in _class_specs(type(self)):
+            bound = getattr(self, attr)
+            handler = spec.make(self, bound) if spec.make is not None else bound
+            route = _Route(spec.template, handler, spec.concurrent)
+            (self._fallbacks if spec.fallback else self._routes).append(route)
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.aid} {self._state}>"
+
+    def __str__(self) -> str:
+        return f"agent[{self.aid}]"
+
+    # -- handlers ---------------------------------------------------------------------
+
+    def add_handler(
+        self, template: MessageTemplate, handler: Handler, *, concurrent: bool = False
+    ) -> Callable[[], None]:
+        """Handle messages matching ``template`` (after the class's handlers); returns a remover."""
+        route = _Route(template, handler, concurrent)
+        self._routes.append(route)
+
+        def remove() -> None:
+            if route in self._routes:
+                self._routes.remove(route)
+
+        return remove
+
+    def add_responder(self, fn: Callable[..., Any]) -> Callable[[], None]:
+        """Add the handlers a decorator (`on`, `on_request` …) declared on a plain function."""
+        removers = []
+        for spec in getattr(fn, _SPECS, ()):
+            handler = spec.make(self, fn) if spec.make is not None else fn
+            route = _Route(spec.template, handler, spec.concurrent)
+            (self._fallbacks if spec.fallback else self._routes).append(route)
+            removers.append(route)
+        if not removers:
+            raise AgentError(f"{fn!r} declares no handler (decorate it with on/on_request …)")
+
+        def remove() -> None:
+            for route in removers:
+                for routes in (self._routes, self._fallbacks):
+                    if route in routes:
+                        routes.remove(route)
+
+        return remove
+
+    # -- lifecycle --------------------------------------------------------------------
+
+    @property
+    def platform(self) -> AgentPlatform:
+        """The platform hosting this agent (AgentError before it is added to one)."""
+        if self._platform is None:
+            raise AgentError(f"agent {self.name!r} is not on a platform")
+        return self._platform
+
+    @property
+    def running(self) -> bool:
+        """Whether the agent is started and not stopping."""
+        return self._state == _RUNNING
+
+    async def setup(self) -> None:
+        """Hook: run as the agent starts, before it is ready (it can already send)."""
+
+    async def teardown(self) -> None:
+        """Hook: run as the agent stops, while it can still send."""
+
+    async def _start(self, platform: AgentPlatform, tg: asyncio.TaskGroup) -> None:
+        """Start on ``platform``, the agent's task owned by ``tg``; returns once it is ready."""
+        if self._state != _UNATTACHED:
+            raise AgentError(f"{self} is {self._state}; an agent starts once")
+        self._platform = platform
+        self.aid = agent_id(self.name, platform.name)
+        self._state = _STARTING
+        loop = asyncio.get_running_loop()
+        ready: asyncio.Future[None] = loop.create_future()
+        self._stop_requested = loop.create_future()
+        self._task = tg.create_task(self._run(ready), name=f"agent[{self.aid}]")
+        await ready
+
+    async def _run(self, ready: asyncio.Future[None]) -> None:
+        _current_agent.set(self)
+        assert self._stop_requested is not None
+        try:
+            async with asyncio.TaskGroup() as tg:
+                self._tg = tg
+                await self.setup()
+                self._spawn(self._receive_loop(), "receive")
+                self._state = _RUNNING
+                ready.set_result(None)
+                await self._stop_requested
+                try:
+                    await self.teardown()
+                except Exception:
+                    log.exception("%s: teardown failed", self)
+                self._state = _STOPPING
+                for task in list(self._children):
+                    task.cancel()
+            await self._refuse_queued()
+        except Exception as exc:
+            # The platform's task group must survive one bad agent: report, do not raise.
+            err = _unwrap(exc)
+            if not ready.done():
+                ready.set_exception(err)
+            else:
+                log.error("%s crashed", self, exc_info=err)
+        except BaseException:
+            if not ready.done():
+                ready.set_exception(AgentError(f"{self} was cancelled while starting"))
+            raise
+        finally:
+            self._state = _STOPPED
+            self._tg = None
+            err = ConversationError(f"{self} stopped")
+            for conv in {*self._by_conv.values(), *self._by_reply.values()}:
+                conv.close(err)
+            if self._platform is not None:
+                self._platform._forget(self)
+
+    async def _refuse_queued(self) -> None:
+        """Answer what is still in the mailbox and waits for an answer: we will not."""
+        mailbox = self._mailbox
+        while len(mailbox):
+            message = mailbox._items.popleft()
+            if expects_reply(message):
+                await self._answer(message, Performative.FAILURE, f"{self.aid} stopped")
+
+    async def stop(self) -> None:
+        """Stop: run `teardown`, cancel every task of the agent, wait until it is done.
+
+        Called from the agent's own tasks, it only asks (it cannot wait for itself).
+        """
+        task = self._task
+        if task is None or task.done():
+            return
+        if self._stop_requested is not None and not self._stop_requested.done():
+            self._stop_requested.set_result(None)
+        if _current_agent.get() is self:
+            return
+        await asyncio.wait([task])  # not `await task`: our cancellation must not cancel it
+
+    async def __aenter__(self) -> Self:
+        if self._state not in (_RUNNING, _STARTING):
+            raise AgentError(f"{self} is {self._state}: add it to a platform first")
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.stop()
+
+    def spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task[Any]:
+        """Run ``coro`` as a task owned by the agent (``agent[aid].name``); errors are logged."""
+        return self._spawn(self._guard(coro, name), name)
+
+    def _spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task[Any]:
+        if self._tg is None or self._state in (_STOPPING, _STOPPED):
+            coro.close()
+            raise AgentError(f"{self} is {self._state}: it cannot start tasks")
+        task = self._tg.create_task(coro, name=f"agent[{self.aid}].{name}")
+        self._children.add(task)
+        task.add_done_callback(self._children.discard)
+        return task
+
+    async def _guard(self, coro: Coroutine[Any, Any, Any], name: str) -> None:
+        try:
+            await coro
+        except Exception:
+            log.exception("%s: task %s failed", self, name)
+
+    # -- sending ----------------------------------------------------------------------
+
+    def message(
+        self,
+        performative: Performative | str,
+        receivers: str | Iterable[str],
+        content: Any = None,
+        **fields: Any,
+    ) -> ACLMessage:
+        """A new message from this agent (other ACL fields as keywords)."""
+        return ACLMessage(
+            performative=performative,
+            sender=self.aid,
+            receivers=[receivers] if isinstance(receivers, str) else list(receivers),
+            content=content,
+            **fields,
+        )
+
+    async def send(self, message: ACLMessage) -> None:
+        """Send ``message`` (its sender must be this agent) to its receivers."""
+        if message.sender != self.aid:
+            raise AgentError(f"{self} cannot send as {message.sender}")
+        if self._platform is None:
+            raise AgentError(f"{self} is not on a platform")
+        await self._platform.send(message)
+
+    async def reply(
+        self,
+        message: ACLMessage,
+        performative: Performative,
+        content: Any = None,
+        *,
+        reply_with: str | None = None,
+    ) -> ACLMessage:
+        """Answer ``message`` (same conversation, in_reply_to its reply_with); return the answer."""
+        answer = message.reply(performative, content, sender=self.aid)
+        if reply_with is not None:
+            answer = answer.model_copy(update={"reply_with": reply_with})
+        await self.send(answer)
+        return answer
+
+    def conversation(
+        self,
+        conversation_id: str | None = None,
+        *,
+        peers: Iterable[str] | None = None,
+        timeout: float | None = None,
+        maxlen: int = 4096,
+    ) -> Conversation:
+        """Open a conversation that collects the replies for us (use it in ``with``).
+
+        ``timeout`` (s) sets the deadline of every `Conversation.receive` that gives none.
+        """
+        if conversation_id is not None and conversation_id in self._by_conv:
+            raise AgentError(f"{self} already has conversation {conversation_id} open")
+        deadline = None
+        if timeout is not None:
+            deadline = asyncio.get_running_loop().time() + timeout
+        return Conversation(self, conversation_id, peers=peers, deadline=deadline, maxlen=maxlen)
+
+    async def ask(self, message: ACLMessage, *, timeout: float) -> ACLMessage:
+        """Send ``message`` and return the first answer; ReplyTimeout after ``timeout`` s.
+
+        Sets conversation_id, reply_with and reply_by when the message has none.
+        """
+        update: dict[str, Any] = {}
+        if message.conversation_id is None:
+            update["conversation_id"] = new_id("c")
+        if message.reply_with is None:
+            update["reply_with"] = new_id("r")
+        if message.reply_by is None:
+            update["reply_by"] = time.time() + timeout
+        if update:
+            message = message.model_copy(update=update)
+        with self.conversation(
+            message.conversation_id, peers=message.receivers, timeout=timeout
+        ) as conv:
+            await conv.send(message)
+            return await conv.receive()
+
+    # -- receiving --------------------------------------------------------------------
+
+    def _deliver(self, message: ACLMessage) -> bool:
+        """Route an incoming message (sync); False when the mailbox is full."""
+        conv = None
+        if message.in_reply_to is not None:
+            conv = self._by_reply.get(message.in_reply_to)
+        if conv is None and message.conversation_id is not None:
+            conv = self._by_conv.get(message.conversation_id)
+        if conv is not None and conv.accepts(message):
+            self.stats.received += 1
+            conv._put(message)
+            return True
+        if self._state in (_STOPPING, _STOPPED) or not self._mailbox.put(message):
+            self.stats.dropped += 1
+            return False
+        self.stats.received += 1
+        return True
+
+    async def _receive_loop(self) -> None:
+        get = self._mailbox.get
+        while True:
+            message = await get()
+            try:
+                route = self._route_for(message)
+            except Exception as exc:  # a template's `where` raised: the agent lives on
+                await self._failed(message, exc, "choosing a handler")
+                continue
+            if route is None:
+                await self._unhandled(message)
+            elif route.concurrent:
+                self._spawn(self._handle(route.handler, message), "handle")
+            else:
+                await self._handle(route.handler, message)
+
+    def _route_for(self, message: ACLMessage) -> _Route | None:
+        for route in self._routes:
+            if route.template.matches(message):
+                return route
+        for route in self._fallbacks:
+            if route.template.matches(message):
+                return route
+        return None
+
+    async def _handle(self, handler: Handler, message: ACLMessage) -> None:
+        try:
+            await handler(message)
+            self.stats.handled += 1
+        except Exception as exc:
+            await self._failed(message, exc, "handler")
+        except asyncio.CancelledError:
+            if self._state == _STOPPING and expects_reply(message):
+                # Stopped mid-way: say so now rather than let the initiator time out.
+                await self._answer(message, Performative.FAILURE, f"{self.aid} stopped")
+            raise
+
+    async def _failed(self, message: ACLMessage, exc: Exception, where: str) -> None:
+        self.stats.handler_errors += 1
+        log.error(
+            "%s: %s failed on %s from %s",
+            self,
+            where,
+            message.performative,
+            message.sender,
+            exc_info=exc,
+        )
+        if expects_reply(message):
+            await self._answer(message, Performative.FAILURE, reason_of(exc))
+
+    async def _unhandled(self, message: ACLMessage) -> None:
+        closed = self._closed_keys
+        if (message.in_reply_to is not None and message.in_reply_to in closed) or (
+            message.conversation_id is not None and message.conversation_id in closed
+        ):
+            self.stats.late += 1
+            log.debug("%s: late %s from %s dropped", self, message.performative, message.sender)
+            return
+        if message.performative in NEVER_ANSWERED:
+            log.warning(
+                "%s: unsolicited %s from %s: %r",
+                self,
+                message.performative,
+                message.sender,
+                message.content,
+            )
+            return
+        self.stats.not_understood += 1
+        what = f"{message.performative}"
+        if message.protocol:
+            what += f" (protocol {message.protocol})"
+        if message.ontology:
+            what += f" (ontology {message.ontology})"
+        await self._answer(
+            message, Performative.NOT_UNDERSTOOD, f"{self.aid} has no handler for {what}"
+        )
+
+    async def _answer(self, message: ACLMessage, performative: Performative, reason: str) -> None:
+        """Send an automatic answer; a failure to send is logged, never raised."""
+        try:
+            await self.send(message.reply(performative, reason, sender=self.aid))
+        except Exception:
+            log.exception("%s: could not send %s to %s", self, performative, message.sender)
+
+    def _remember_closed(self, key: str) -> None:
+        closed = self._closed_keys
+        closed[key] = None
+        if len(closed) > 4096:
+            closed.popitem(last=False)
+
+
+def _unwrap(exc: BaseException) -> BaseException:
+    """The single error inside (nested) exception groups, else the group itself."""
+    while isinstance(exc, BaseExceptionGroup) and len(exc.exceptions) == 1:
+        exc = exc.exceptions[0]
+    return exc

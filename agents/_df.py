@@ -1,0 +1,746 @@
+"""The Directory Facilitator: who provides which service, local and federation-wide.
+
+Each platform runs a `DirectoryFacilitator` agent (``df@<platform>``) holding the
+services of its agents. It answers FIPA-Request ``register`` / ``deregister`` /
+``modify`` / ``search`` and FIPA-Subscribe (ontology ``fipa-agent-management``), and
+has the same operations as Python methods for local code.
+
+Visibility: *public* services are visible to every platform; *protected* ones to this
+platform's agents directly and to other platforms only through the Interface Agent;
+*private* ones never leave the platform. `visibility_allows` is the one rule, used by
+searches and by the Interface Agent's access control (with `DirectoryFacilitator.reachable`).
+
+The global directory is distributed (``docs/wire.md``): each DF serves its public
+services on ``dyknow/<fed>/v1/df/<platform>`` and publishes their changes on
+``…/df-events/<platform>``; a `GlobalDirectory` on every platform builds its view from a
+query of ``…/df/*``, follows the events, and watches presence ``…/alive/*``: the entries
+of a platform whose token goes (it crashed, was killed, left) disappear, and watchers
+get a ``platform-gone`` event naming it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable, Iterable
+from enum import StrEnum
+from typing import TYPE_CHECKING, Annotated, Any, NamedTuple
+
+import orjson
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
+
+from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_of
+from ._agent import Agent
+from ._exceptions import ServiceError, TransportError
+from ._protocols import (
+    DEFAULT_TIMEOUT,
+    Publisher,
+    Refuse,
+    SubscriptionStream,
+    on_request,
+    request,
+    subscribe,
+)
+from .transports import Handle, Inbox, Message, Presence, Subscription
+
+if TYPE_CHECKING:
+    from ._platform import AgentPlatform
+
+log = logging.getLogger(__name__)
+
+FIPA_AGENT_MANAGEMENT = "fipa-agent-management"
+
+_Name = Annotated[str, Field(min_length=1, max_length=200)]
+
+
+class Visibility(StrEnum):
+    """Who may see and use a service."""
+
+    PUBLIC = "public"
+    PROTECTED = "protected"
+    PRIVATE = "private"
+
+
+class ServiceDescription(BaseModel):
+    """A service: its name and type, the agent providing it, properties, visibility.
+
+    A provider's services are told apart by name: (provider, name) is the key.
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: _Name
+    type: _Name
+    provider: AgentIdStr
+    properties: dict[str, JsonValue] = Field(default_factory=dict)
+    ontology: str | None = None
+    protocols: list[str] = Field(default_factory=list)
+    visibility: Visibility = Visibility.PRIVATE
+
+    @property
+    def platform(self) -> str:
+        """The platform of the provider."""
+        return platform_of(self.provider)
+
+    @property
+    def key(self) -> tuple[str, str]:
+        """(provider, name): what identifies the service."""
+        return (self.provider, self.name)
+
+    def to_obj(self) -> dict[str, Any]:
+        """The service as a JSON object."""
+        return self.model_dump(mode="json", exclude_none=True)
+
+
+class ServiceQuery(BaseModel):
+    """A search: every field set must match; ``properties`` must be a subset of the service's."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    name: str | None = None
+    type: str | None = None
+    provider: str | None = None
+    ontology: str | None = None
+    protocol: str | None = None
+    properties: dict[str, JsonValue] = Field(default_factory=dict)
+
+    def matches(self, service: ServiceDescription) -> bool:
+        """Whether ``service`` answers this query."""
+        if self.name is not None and service.name != self.name:
+            return False
+        if self.type is not None and service.type != self.type:
+            return False
+        if self.provider is not None and service.provider != self.provider:
+            return False
+        if self.ontology is not None and service.ontology != self.ontology:
+            return False
+        if self.protocol is not None and self.protocol not in service.protocols:
+            return False
+        props = service.properties
+        return all(k in props and props[k] == v for k, v in self.properties.items())
+
+
+def _query(query: object, fields: dict[str, Any]) -> ServiceQuery:
+    """A query from a ServiceQuery, a JSON object or None, plus keyword fields (validated)."""
+    if isinstance(query, ServiceQuery):
+        query = query.model_dump(exclude_defaults=True)
+    if query is None:
+        query = {}
+    if isinstance(query, dict):
+        query = {**query, **fields}
+    return ServiceQuery.model_validate(query)
+
+
+def visibility_allows(
+    service: ServiceDescription, asker_platform: str, via_interface: bool
+) -> bool:
+    """Whether an agent of ``asker_platform`` may see/use ``service``.
+
+    Agents of the provider's platform may use everything; other platforms public
+    services, and protected ones only when the message came through the Interface Agent
+    (``via_interface``); private services never.
+    """
+    if asker_platform == platform_of(service.provider):
+        return True
+    if service.visibility is Visibility.PUBLIC:
+        return True
+    return service.visibility is Visibility.PROTECTED and via_interface
+
+
+class DirectoryEvent(NamedTuple):
+    """A change in a directory, as its watchers see it.
+
+    ``op`` is ``register``, ``deregister`` or ``modify`` (of ``service``), or, in the
+    global view only, ``platform-up`` / ``platform-gone`` (``service`` is None).
+    """
+
+    op: str
+    platform: str
+    service: ServiceDescription | None
+
+
+_OPS = frozenset({"register", "deregister", "modify"})
+
+
+def _seen_as(
+    op: str,
+    old: ServiceDescription | None,
+    new: ServiceDescription | None,
+    visible: Callable[[ServiceDescription], bool],
+) -> tuple[str, ServiceDescription] | None:
+    """How a change looks to someone who sees only ``visible`` services (or None: not at all)."""
+    was = old is not None and visible(old)
+    now = new is not None and visible(new)
+    if was and now:
+        assert new is not None
+        return (op if op != "register" else "modify", new)
+    if now:
+        assert new is not None
+        return ("register", new)
+    if was:
+        assert old is not None
+        return ("deregister", old)
+    return None
+
+
+def _is_public(service: ServiceDescription) -> bool:
+    return service.visibility is Visibility.PUBLIC
+
+
+def _watch(watchers: list[Inbox[DirectoryEvent]], maxlen: int) -> Subscription[DirectoryEvent]:
+    inbox: Inbox[DirectoryEvent] = Inbox(asyncio.get_running_loop(), maxlen)
+    watchers.append(inbox)
+
+    def remove() -> None:
+        if inbox in watchers:
+            watchers.remove(inbox)
+
+    return Subscription(inbox, remove)
+
+
+class DirectoryFacilitator(Agent):
+    """The local DF: services of this platform's agents, searchable and watchable.
+
+    Python API (local, trusted code): `register`, `deregister`, `modify`, `search`,
+    `watch`; the Interface Agent uses `services_of_agent`, `service_of_agent` and
+    `reachable`. ACL API: FIPA-Request with ontology ``fipa-agent-management`` and
+    content ``{"action": "register"|"modify", "service": {…}}``,
+    ``{"action": "deregister", "name": …}`` (``name`` left out: all the sender's),
+    ``{"action": "search", "query": {…}, "scope": "local"|"global"}`` (answers a list of
+    services); an agent registers, modifies and deregisters only its own services.
+    FIPA-Subscribe with a query as content: informs ``{"op": …, "service": {…}}``.
+    """
+
+    def __init__(self, name: str = "df") -> None:
+        super().__init__(name)
+        self._services: dict[str, dict[str, ServiceDescription]] = {}
+        self._watchers: list[Inbox[DirectoryEvent]] = []
+        self._subscriptions = Publisher(
+            self, ontology=FIPA_AGENT_MANAGEMENT, accept=self._accept_subscriber
+        )
+        self._queryable: Handle | None = None
+
+    async def setup(self) -> None:
+        """Serve this platform's public services to the global directory."""
+        self._queryable = await self.platform.transport.serve(
+            self.platform.key("df"), self._serve_public
+        )
+
+    async def teardown(self) -> None:
+        """End subscriptions and watches, stop serving."""
+        await self._subscriptions.end()
+        for inbox in self._watchers:
+            inbox.close()
+        self._watchers.clear()
+        if self._queryable is not None:
+            try:
+                await self._queryable.aclose()
+            except Exception as exc:  # the transport may be gone already
+                log.debug("%s: undeclaring the queryable: %s", self, exc)
+
+    # -- Python API -------------------------------------------------------------------
+
+    def _get(self, provider: str, name: str) -> ServiceDescription | None:
+        return self._services.get(provider, {}).get(name)
+
+    def _check_local(self, service: ServiceDescription) -> None:
+        if service.platform != self.platform.name:
+            raise ServiceError(
+                f"{service.provider} is not an agent of platform {self.platform.name}"
+            )
+
+    async def register(self, service: ServiceDescription) -> ServiceDescription:
+        """Add ``service``; ServiceError when its provider is not local or it exists."""
+        self._check_local(service)
+        if self._get(*service.key) is not None:
+            raise ServiceError(f"{service.provider} already registered {service.name!r}")
+        self._services.setdefault(service.provider, {})[service.name] = service
+        await self._changed("register", None, service)
+        return service
+
+    async def modify(self, service: ServiceDescription) -> ServiceDescription:
+        """Replace the registered service with the same (provider, name)."""
+        self._check_local(service)
+        old = self._get(*service.key)
+        if old is None:
+            raise ServiceError(f"{service.provider} has no service {service.name!r}")
+        self._services[service.provider][service.name] = service
+        await self._changed("modify", old, service)
+        return service
+
+    async def deregister(self, provider: str, name: str | None = None) -> list[ServiceDescription]:
+        """Remove ``provider``'s service ``name`` (all of them when None); what was removed."""
+        removed = self._remove(provider, name)
+        for service in removed:
+            await self._changed("deregister", service, None)
+        return removed
+
+    def _remove(self, provider: str, name: str | None) -> list[ServiceDescription]:
+        mine = self._services.get(provider)
+        if not mine:
+            return []
+        if name is None:
+            removed = list(mine.values())
+            mine.clear()
+        else:
+            one = mine.pop(name, None)
+            removed = [] if one is None else [one]
+        if not mine:
+            self._services.pop(provider, None)
+        return removed
+
+    def forget_agent(self, agent: str) -> None:
+        """Deregister every service of an agent that stopped (called by the platform)."""
+        removed = self._remove(agent, None)
+        if removed and self.running:
+            self.spawn(self._announce_removed(removed), "forget")
+        else:
+            for service in removed:
+                self._tell_watchers("deregister", service)
+
+    async def _announce_removed(self, removed: list[ServiceDescription]) -> None:
+        for service in removed:
+            await self._changed("deregister", service, None)
+
+    def search(
+        self,
+        query: ServiceQuery | dict[str, Any] | None = None,
+        *,
+        asker_platform: str | None = None,
+        via_interface: bool = False,
+        **fields: Any,
+    ) -> list[ServiceDescription]:
+        """The services matching ``query`` (or keyword fields) that the asker may see.
+
+        ``asker_platform`` None means a local asker: every service is visible.
+        """
+        q = _query(query, fields)
+        found = []
+        for services in self._services.values():
+            for service in services.values():
+                if q.matches(service) and (
+                    asker_platform is None
+                    or visibility_allows(service, asker_platform, via_interface)
+                ):
+                    found.append(service)
+        return found
+
+    def services(self) -> list[ServiceDescription]:
+        """Every service registered here."""
+        return [s for services in self._services.values() for s in services.values()]
+
+    def services_of_agent(self, agent: str) -> list[ServiceDescription]:
+        """The services ``agent`` (``name@platform``) provides here (O(1): per-message use)."""
+        return list(self._services.get(agent, {}).values())
+
+    def service_of_agent(self, agent: str, name: str) -> ServiceDescription | None:
+        """``agent``'s service called ``name``, if registered."""
+        return self._get(agent, name)
+
+    def reachable(self, receiver: str, asker_platform: str, *, via_interface: bool = True) -> bool:
+        """Whether an agent of ``asker_platform`` may send to local agent ``receiver``.
+
+        True when ``receiver`` provides at least one service the asker may use
+        (`visibility_allows`); the DF itself is always reachable, for searches.
+        """
+        if receiver == self.aid or asker_platform == self.platform.name:
+            return True
+        return any(
+            visibility_allows(s, asker_platform, via_interface)
+            for s in self._services.get(receiver, {}).values()
+        )
+
+    def watch(self, maxlen: int = 1024) -> Subscription[DirectoryEvent]:
+        """An async iterator of this DF's changes (all services: local code sees everything)."""
+        return _watch(self._watchers, maxlen)
+
+    # -- change propagation -------------------------------------------------------------
+
+    def _tell_watchers(self, op: str, service: ServiceDescription) -> None:
+        event = DirectoryEvent(op, self.platform.name, service)
+        for inbox in list(self._watchers):
+            inbox.put(event)
+
+    async def _changed(
+        self, op: str, old: ServiceDescription | None, new: ServiceDescription | None
+    ) -> None:
+        service = new if new is not None else old
+        assert service is not None
+        self._tell_watchers(op, service)
+        for sub in list(self._subscriptions.subscribers.values()):
+            query, platform, via_interface = sub.data
+
+            def visible(s: ServiceDescription) -> bool:
+                return query.matches(s) and visibility_allows(s, platform, via_interface)  # noqa: B023
+
+            seen = _seen_as(op, old, new, visible)
+            if seen is not None:
+                try:
+                    await self.reply(
+                        sub.message,
+                        Performative.INFORM,
+                        {"op": seen[0], "service": seen[1].to_obj()},
+                    )
+                except Exception:
+                    log.exception("%s: telling subscriber %s", self, sub.agent)
+        wire = _seen_as(op, old, new, _is_public)
+        if wire is not None:
+            payload = orjson.dumps({"v": WIRE_VERSION, "op": wire[0], "service": wire[1].to_obj()})
+            try:
+                await self.platform.transport.publish(self.platform.key("df-events"), payload)
+            except TransportError as exc:
+                # While the platform closes over a dead transport this is expected.
+                level = logging.WARNING if self.platform.running else logging.DEBUG
+                log.log(level, "%s: could not publish a directory event: %s", self, exc)
+
+    async def _serve_public(self, key: str, payload: bytes) -> bytes:
+        return orjson.dumps(
+            [
+                s.to_obj()
+                for services in self._services.values()
+                for s in services.values()
+                if _is_public(s)
+            ]
+        )
+
+    # -- ACL API ------------------------------------------------------------------------
+
+    def _accept_subscriber(self, message: ACLMessage) -> tuple[ServiceQuery, str, bool]:
+        try:
+            content = message.content
+            query = _query(content if isinstance(content, dict) else None, {})
+        except ValidationError as exc:
+            raise Refuse(f"invalid query: {exc.errors()[0].get('msg')}") from exc
+        if message.content is not None and not isinstance(message.content, dict):
+            raise Refuse("the content of a subscribe is a query object")
+        asker = platform_of(message.sender)
+        return (query, asker, asker != self.platform.name)
+
+    @on_request(FIPA_AGENT_MANAGEMENT)
+    async def _on_request(self, message: ACLMessage) -> JsonValue:
+        content = message.content
+        if not isinstance(content, dict) or not isinstance(content.get("action"), str):
+            raise Refuse('the content must be {"action": …}')
+        action = content["action"]
+        asker = message.sender
+        try:
+            if action in ("register", "modify"):
+                service = ServiceDescription.model_validate(content.get("service"))
+                if service.provider != asker:
+                    raise Refuse(f"{asker} may only {action} its own services")
+                done = await (self.register if action == "register" else self.modify)(service)
+                return done.to_obj()
+            if action == "deregister":
+                name = content.get("name")
+                if name is not None and not isinstance(name, str):
+                    raise Refuse("name must be a string")
+                removed = await self.deregister(asker, name)
+                if name is not None and not removed:
+                    raise Refuse(f"{asker} has no service {name!r}")
+                return len(removed)
+            if action == "search":
+                query = _query(content.get("query"), {})
+                scope = content.get("scope", "local")
+                if scope == "global":
+                    if self.platform.global_df is None:
+                        raise Refuse("this platform keeps no global directory")
+                    found = self.platform.global_df.search(query)
+                elif scope == "local":
+                    platform = platform_of(asker)
+                    local = platform == self.platform.name
+                    found = self.search(
+                        query, asker_platform=None if local else platform, via_interface=not local
+                    )
+                else:
+                    raise Refuse(f"unknown scope {scope!r}")
+                return [s.to_obj() for s in found]
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            where = ".".join(str(p) for p in err.get("loc", ()))
+            raise Refuse(f"invalid {where or 'value'}: {err.get('msg')}") from exc
+        except ServiceError as exc:
+            raise Refuse(str(exc)) from exc
+        raise Refuse(f"unsupported function {action!r}")
+
+
+class GlobalDirectory:
+    """The federation's public services as seen from one platform (kept up to date).
+
+    Built from a query of ``dyknow/<fed>/v1/df/*``, then follows ``…/df-events/*`` and the
+    presence tokens ``…/alive/*``. Only platforms that are alive count: the entries of a
+    platform whose token goes are dropped at once and watchers get ``platform-gone``.
+    """
+
+    def __init__(self, platform: AgentPlatform, *, query_timeout: float = 1.0) -> None:
+        self._platform = platform
+        self.query_timeout = query_timeout
+        self._entries: dict[str, dict[tuple[str, str], ServiceDescription]] = {}
+        self._alive: set[str] = set()
+        self._event_counts: dict[str, int] = {}
+        self._watchers: list[Inbox[DirectoryEvent]] = []
+        self._subs: list[Subscription[Message] | Subscription[Presence]] = []
+        self.invalid = 0
+
+    async def start(self) -> None:
+        """Subscribe, take the snapshot, and follow changes (tasks owned by the platform)."""
+        p = self._platform
+        # Subscribe before the snapshot: what changes meanwhile is queued, not lost.
+        events = await p.transport.subscribe(p.key("df-events", "*"))
+        presence = await p.transport.watch_presence(p.key("alive", "*"))
+        self._subs = [events, presence]
+        for platform, services in (await self._query("*")).items():
+            self._alive.add(platform)
+            self._replace(platform, services)
+        p.spawn(self._follow_events(events), "global-df.events")
+        p.spawn(self._follow_presence(presence), "global-df.presence")
+
+    def close(self) -> None:
+        """Stop following; watchers' iterators end."""
+        for sub in self._subs:
+            try:
+                sub.close()
+            except TransportError:
+                pass
+        for inbox in self._watchers:
+            inbox.close()
+        self._watchers.clear()
+
+    @property
+    def platforms(self) -> list[str]:
+        """The platforms known alive."""
+        return sorted(self._alive)
+
+    def services(self, platform: str | None = None) -> list[ServiceDescription]:
+        """Every public service known (of ``platform`` only, when given)."""
+        if platform is not None:
+            return list(self._entries.get(platform, {}).values())
+        return [s for entries in self._entries.values() for s in entries.values()]
+
+    def search(
+        self, query: ServiceQuery | dict[str, Any] | None = None, **fields: Any
+    ) -> list[ServiceDescription]:
+        """The public services of the federation matching ``query`` (or keyword fields)."""
+        q = _query(query, fields)
+        return [s for s in self.services() if q.matches(s)]
+
+    def watch(self, maxlen: int = 1024) -> Subscription[DirectoryEvent]:
+        """An async iterator of changes: services, and platforms coming and going."""
+        return _watch(self._watchers, maxlen)
+
+    def _tell(self, event: DirectoryEvent) -> None:
+        for inbox in list(self._watchers):
+            inbox.put(event)
+
+    async def _query(self, platform: str) -> dict[str, list[ServiceDescription]]:
+        """Ask the DF(s) for their public services: {platform: services} of those that answered."""
+        try:
+            replies = await self._platform.transport.query(
+                self._platform.key("df", platform), timeout=self.query_timeout
+            )
+        except TransportError as exc:
+            log.warning("global-df[%s]: query failed: %s", self._platform.name, exc)
+            return {}
+        found: dict[str, list[ServiceDescription]] = {}
+        for reply in replies:
+            if not reply.ok:
+                continue
+            try:
+                items = orjson.loads(reply.payload)
+                if not isinstance(items, list):
+                    raise ValueError("not a list")
+                services = [ServiceDescription.model_validate(i) for i in items]
+            except (ValueError, ValidationError) as exc:
+                self.invalid += 1
+                log.warning("global-df: bad answer from %s: %s", reply.key, exc)
+                continue
+            name = reply.key.rpartition("/")[2]
+            if "*" in name:  # the replier kept the query's key: name it by its services
+                name = services[0].platform if services else ""
+            if not name:
+                continue
+            found[name] = [s for s in services if s.platform == name]
+        return found
+
+    def _replace(self, platform: str, services: Iterable[ServiceDescription]) -> None:
+        old = self._entries.get(platform, {})
+        new = {s.key: s for s in services}
+        self._entries[platform] = new
+        for key, service in new.items():
+            before = old.get(key)
+            if before is None:
+                self._tell(DirectoryEvent("register", platform, service))
+            elif before != service:
+                self._tell(DirectoryEvent("modify", platform, service))
+        for key, service in old.items():
+            if key not in new:
+                self._tell(DirectoryEvent("deregister", platform, service))
+
+    def _apply(self, platform: str, op: str, service: ServiceDescription) -> None:
+        entries = self._entries.setdefault(platform, {})
+        before = entries.get(service.key)
+        if op == "deregister":
+            if before is not None:
+                del entries[service.key]
+                self._tell(DirectoryEvent("deregister", platform, before))
+            return
+        entries[service.key] = service
+        if before is None:
+            self._tell(DirectoryEvent("register", platform, service))
+        elif before != service:
+            self._tell(DirectoryEvent("modify", platform, service))
+
+    async def _follow_events(self, sub: Subscription[Message]) -> None:
+        async for item in sub:
+            platform = item.key.rpartition("/")[2]
+            self._event_counts[platform] = self._event_counts.get(platform, 0) + 1
+            if platform not in self._alive:
+                continue  # its snapshot will be taken when its token appears
+            try:
+                obj = orjson.loads(item.payload)
+                if not isinstance(obj, dict) or obj.get("v") != WIRE_VERSION:
+                    raise ValueError("not a version-1 directory event")
+                op = obj.get("op")
+                if op not in _OPS:
+                    raise ValueError(f"unknown op {op!r}")
+                service = ServiceDescription.model_validate(obj.get("service"))
+                if service.platform != platform:
+                    raise ValueError(f"{platform} spoke for {service.provider}")
+            except (ValueError, ValidationError) as exc:
+                self.invalid += 1
+                log.warning(
+                    "global-df[%s]: bad event on %s: %s", self._platform.name, item.key, exc
+                )
+                continue
+            self._apply(platform, op, service)
+
+    async def _follow_presence(self, sub: Subscription[Presence]) -> None:
+        async for change in sub:
+            platform = change.key.rpartition("/")[2]
+            if change.alive:
+                if platform in self._alive:
+                    continue
+                self._alive.add(platform)
+                await self._fetch(platform)
+                if platform in self._alive:
+                    self._tell(DirectoryEvent("platform-up", platform, None))
+            elif platform in self._alive:
+                self._alive.discard(platform)
+                self._entries.pop(platform, None)
+                self._tell(DirectoryEvent("platform-gone", platform, None))
+
+    async def _fetch(self, platform: str) -> None:
+        """Take ``platform``'s snapshot; again if events came meanwhile (they may be newer)."""
+        for attempt in range(3):
+            seen = self._event_counts.get(platform, 0)
+            services = (await self._query(platform)).get(platform)
+            if platform not in self._alive:
+                return  # gone while we asked
+            if services is None:
+                return  # no answer: keep what the events say
+            if self._event_counts.get(platform, 0) == seen or attempt == 2:
+                self._replace(platform, services)
+                return
+
+
+# -- client helpers (ACL) ----------------------------------------------------------------
+
+
+def _df_of(agent: Agent, df: str | None) -> str:
+    return df or f"df@{agent.platform.name}"
+
+
+async def register_service(
+    agent: Agent,
+    service: ServiceDescription,
+    *,
+    df: str | None = None,
+    timeout: float = DEFAULT_TIMEOUT,
+) -> None:
+    """Register ``agent``'s ``service`` with its platform's DF (or ``df``) over ACL."""
+    await request(
+        agent,
+        _df_of(agent, df),
+        {"action": "register", "service": service.to_obj()},
+        ontology=FIPA_AGENT_MANAGEMENT,
+        timeout=timeout,
+    )
+
+
+async def modify_service(
+    agent: Agent,
+    service: ServiceDescription,
+    *,
+    df: str | None = None,
+    timeout: float = DEFAULT_TIMEOUT,
+) -> None:
+    """Replace ``agent``'s registered service of the same name over ACL."""
+    await request(
+        agent,
+        _df_of(agent, df),
+        {"action": "modify", "service": service.to_obj()},
+        ontology=FIPA_AGENT_MANAGEMENT,
+        timeout=timeout,
+    )
+
+
+async def deregister_service(
+    agent: Agent,
+    name: str | None = None,
+    *,
+    df: str | None = None,
+    timeout: float = DEFAULT_TIMEOUT,
+) -> int:
+    """Deregister ``agent``'s service ``name`` (all of them when None); how many went."""
+    content: dict[str, Any] = {"action": "deregister"}
+    if name is not None:
+        content["name"] = name
+    n = await request(
+        agent, _df_of(agent, df), content, ontology=FIPA_AGENT_MANAGEMENT, timeout=timeout
+    )
+    return n if isinstance(n, int) else 0
+
+
+async def search_services(
+    agent: Agent,
+    query: ServiceQuery | dict[str, Any] | None = None,
+    *,
+    df: str | None = None,
+    scope: str = "local",
+    timeout: float = DEFAULT_TIMEOUT,
+    **fields: Any,
+) -> list[ServiceDescription]:
+    """Search a DF over ACL (``scope="global"``: its global view); the services it lets us see."""
+    q = _query(query, fields)
+    found = await request(
+        agent,
+        _df_of(agent, df),
+        {
+            "action": "search",
+            "query": q.model_dump(mode="json", exclude_defaults=True),
+            "scope": scope,
+        },
+        ontology=FIPA_AGENT_MANAGEMENT,
+        timeout=timeout,
+    )
+    if not isinstance(found, list):
+        raise ServiceError(f"the DF answered a search with {found!r}")
+    return [ServiceDescription.model_validate(s) for s in found]
+
+
+async def subscribe_services(
+    agent: Agent,
+    query: ServiceQuery | dict[str, Any] | None = None,
+    *,
+    df: str | None = None,
+    timeout: float = DEFAULT_TIMEOUT,
+    **fields: Any,
+) -> SubscriptionStream:
+    """FIPA-Subscribe to a DF's changes matching ``query``: informs ``{"op", "service"}``."""
+    q = _query(query, fields)
+    return await subscribe(
+        agent,
+        _df_of(agent, df),
+        q.model_dump(mode="json", exclude_defaults=True),
+        ontology=FIPA_AGENT_MANAGEMENT,
+        timeout=timeout,
+    )

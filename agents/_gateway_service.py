@@ -1,0 +1,244 @@
+"""What the Gateway Agent does with a request's content: the ACL face of a DyKnow instance.
+
+Kept apart from the agent so the mapping (JSON content ↔ core calls) is plain functions:
+the only module of `agents` that knows `dyknow_core`, with the Gateway Agent itself.
+
+Content is JSON (language ``json``, ontology ``dyknow``). Times are seconds at this
+edge: absolute on the instance's time line, or relative to the provider's now when the
+request says ``"relative": true`` (``from: -120`` = the last two minutes).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from dyknow_core import (
+    Answer,
+    Approximation,
+    DyKnowError,
+    DyKnowInstance,
+    Policy,
+    PolicyError,
+    UnknownLabelError,
+    ns_to_seconds,
+    seconds_to_ns,
+)
+
+ONTOLOGY = "dyknow"
+
+
+class GatewayRefusal(Exception):
+    """A request the gateway will not perform; ``reason`` goes into the refuse."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(reason)
+
+
+class _Content(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ListLabels(_Content):
+    """``{"action": "list-labels", "pattern": "car/*"}`` → ``{"labels": [...]}``."""
+
+    action: Literal["list-labels"]
+    pattern: str | None = None
+
+
+class PolicySpec(_Content):
+    """A policy as it travels in ACL content: seconds everywhere, start/end maybe relative."""
+
+    start: float | None = Field(default=None, alias="from")
+    end: float | None = Field(default=None, alias="to")
+    relative: bool = False
+    sample_period: float | None = None
+    approximation: str = "none"
+    max_delay: float | None = None
+    late: str = "drop"
+    order: str = "any"
+    change: Any = "any_update"
+    lower: float | None = None
+    upper: float | None = None
+    buffer_size: int = 4096
+    overflow: str = "drop_oldest"
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+    def to_policy(self, now: int) -> Policy:
+        """The core policy, with start/end on the instance's nanosecond time line."""
+        base = now if self.relative else 0
+
+        def at(t: float | None) -> int | None:
+            return None if t is None else base + seconds_to_ns(t)
+
+        return Policy(
+            start=at(self.start),
+            end=at(self.end),
+            sample_period=self.sample_period,
+            approximation=self.approximation,
+            max_delay=self.max_delay,
+            late=self.late,
+            order=self.order,
+            change=self.change,
+            lower=self.lower,
+            upper=self.upper,
+            buffer_size=self.buffer_size,
+            overflow=self.overflow,
+        )
+
+
+class Query(_Content):
+    """A query for one label: ``latest``, value ``at`` t, or all ``between`` from and to."""
+
+    action: Literal["query"]
+    label: str
+    kind: Literal["latest", "at", "between"] = "latest"
+    t: float | None = None
+    start: float | None = Field(default=None, alias="from")
+    end: float | None = Field(default=None, alias="to")
+    relative: bool = False
+    as_of: float | None = None
+    approximation: Literal["most_recent", "closest", "linear"] = "most_recent"
+
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+
+class CreateStream(_Content):
+    """Publish ``output``: the stream ``label`` seen through ``policy`` (a new stream generator)."""
+
+    action: Literal["create-stream"]
+    label: str
+    output: str
+    policy: PolicySpec = PolicySpec()
+
+
+class Subscribe(_Content):
+    """Content of a FIPA-Subscribe: the label and the policy its informs follow."""
+
+    label: str
+    policy: PolicySpec = PolicySpec()
+
+
+def answer_to_json(answer: Answer) -> dict[str, Any]:
+    """A query answer as content: samples as [value, valid s, available s]."""
+    return {
+        "label": answer.label,
+        "query_time": ns_to_seconds(answer.query_time),
+        "samples": [
+            [s.value, ns_to_seconds(s.valid_time), ns_to_seconds(s.available_time)]
+            for s in answer.samples
+        ],
+    }
+
+
+def samples_to_json(batch: list[tuple[Any, int, int]]) -> list[list[Any]]:
+    """Raw samples as content rows: [value, valid s, available s]."""
+    return [[v, ns_to_seconds(tv), ns_to_seconds(ta)] for v, tv, ta in batch]
+
+
+class GatewayService:
+    """Performs gateway requests on one DyKnow instance; refusals carry a reason."""
+
+    def __init__(self, instance: DyKnowInstance, *, max_streams: int = 256) -> None:
+        self.instance = instance
+        self.max_streams = max_streams
+        self.created: dict[str, str] = {}  # output label -> process name
+
+    def parse(self, content: Any) -> ListLabels | Query | CreateStream:
+        """Validate request content; GatewayRefusal names what is wrong."""
+        if not isinstance(content, dict) or "action" not in content:
+            raise GatewayRefusal("content must be a JSON object with an 'action'")
+        kinds: dict[str, type[ListLabels | Query | CreateStream]] = {
+            "list-labels": ListLabels,
+            "query": Query,
+            "create-stream": CreateStream,
+        }
+        model = kinds.get(content["action"])
+        if model is None:
+            raise GatewayRefusal(
+                f"unknown action {content['action']!r} (known: {', '.join(sorted(kinds))})"
+            )
+        try:
+            return model.model_validate(content)
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            where = ".".join(str(p) for p in err.get("loc", ())) or "content"
+            raise GatewayRefusal(f"field {where!r}: {err.get('msg', 'invalid')}") from exc
+        except PolicyError as exc:
+            raise GatewayRefusal(str(exc)) from exc
+
+    def perform(self, content: Any) -> dict[str, Any]:
+        """Do what the content asks; the inform's content, or GatewayRefusal."""
+        req = self.parse(content)
+        try:
+            if isinstance(req, ListLabels):
+                return {"labels": self.instance.labels(req.pattern)}
+            if isinstance(req, Query):
+                return answer_to_json(self.query(req))
+            return self.create_stream(req)
+        except UnknownLabelError as exc:
+            raise GatewayRefusal(str(exc)) from exc
+        except DyKnowError as exc:
+            raise GatewayRefusal(str(exc)) from exc
+
+    def _time(self, t: float | None, relative: bool, now: int) -> int | None:
+        if t is None:
+            return None
+        return (now if relative else 0) + seconds_to_ns(t)
+
+    def query(self, q: Query) -> Answer:
+        """Run a latest / at / between query on the instance."""
+        dk = self.instance
+        now = dk.clock.now()
+        as_of = self._time(q.as_of, q.relative, now)
+        if q.kind == "latest":
+            return dk.latest(q.label, as_of=as_of)
+        if q.kind == "at":
+            t = self._time(q.t, q.relative, now)
+            if t is None:
+                raise GatewayRefusal("a query 'at' needs 't'")
+            return dk.at(q.label, t, approximation=Approximation(q.approximation), as_of=as_of)
+        t1 = self._time(q.start, q.relative, now)
+        t2 = self._time(q.end, q.relative, now)
+        return dk.between(
+            q.label,
+            -(2**62) if t1 is None else t1,
+            now if t2 is None else t2,
+            as_of=as_of,
+        )
+
+    def create_stream(self, req: CreateStream) -> dict[str, Any]:
+        """Publish ``req.output`` as ``req.label`` filtered by the policy."""
+        dk = self.instance
+        if len(self.created) >= self.max_streams:
+            raise GatewayRefusal(f"too many created streams (limit {self.max_streams})")
+        if dk.has_label(req.output):
+            raise GatewayRefusal(f"label {req.output!r} is already published")
+        policy = req.policy.to_policy(dk.clock.now())
+        name = f"gateway:{req.output}"
+        dk.add_cu(name, _identity, [(req.label, policy)], req.output)
+        self.created[req.output] = name
+        return {"label": req.output, "source": req.label}
+
+    def subscription_policy(self, content: Any) -> tuple[str, Policy]:
+        """Validate FIPA-Subscribe content into (label, policy)."""
+        try:
+            sub = Subscribe.model_validate(content)
+            policy = sub.policy.to_policy(self.instance.clock.now())
+        except ValidationError as exc:
+            err = exc.errors()[0]
+            where = ".".join(str(p) for p in err.get("loc", ())) or "content"
+            raise GatewayRefusal(f"field {where!r}: {err.get('msg', 'invalid')}") from exc
+        except PolicyError as exc:
+            raise GatewayRefusal(str(exc)) from exc
+        if not self.instance.has_label(sub.label):
+            raise GatewayRefusal(str(UnknownLabelError(sub.label, self.instance.labels())))
+        return sub.label, policy
+
+
+def _identity(v: Any) -> Any:
+    """The function of a created stream: its policy does the work."""
+    return v

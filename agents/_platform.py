@@ -1,0 +1,478 @@
+"""The agent platform: hosts agents, delivers between them, and reaches other platforms.
+
+Messages between agents of one platform are handed over as the validated `ACLMessage`
+objects themselves (no JSON), through the same conversation and handler path as remote
+ones. So treat a message, content included, as immutable: the receiver holds the very
+object the sender built. (The 256 KiB limit is checked only where JSON is parsed.)
+
+Messages for agents of other platforms go through a `RemoteChannel`, the one seam
+between the platform and the network: `PlainChannel` (JSON, no authentication) for tests
+and trusted single-host setups; the Interface Agent (signed sessions) is the other one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+from collections.abc import Coroutine
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol, Self, TypeVar, runtime_checkable
+
+import orjson
+
+from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, name_of, platform_of
+from ._agent import NEVER_ANSWERED, Agent
+from ._exceptions import AgentError, MessageError
+from .transports import Handle, Subscription, Transport
+from .transports._base import Message
+
+if TYPE_CHECKING:
+    from ._df import DirectoryFacilitator, GlobalDirectory
+
+log = logging.getLogger(__name__)
+
+A = TypeVar("A", bound=Agent)
+
+_NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
+
+
+def wire_key(federation: str, kind: str, platform: str) -> str:
+    """The key ``dyknow/<federation>/v1/<kind>/<platform>`` (``platform`` may be ``*``)."""
+    return f"dyknow/{federation}/v{WIRE_VERSION}/{kind}/{platform}"
+
+
+@runtime_checkable
+class RemoteChannel(Protocol):
+    """The seam between a platform and other platforms: how ACL messages leave and arrive.
+
+    The platform calls, in this order:
+
+    * ``await start(platform)`` once, while the platform opens (its task group is up,
+      its agents are not started yet). The channel subscribes the platform's inbox
+      ``platform.key("acl")`` (``dyknow/<fed>/v1/acl/<platform>``), runs its receive
+      loop(s) as tasks owned by the platform (`AgentPlatform.spawn`) and returns once it
+      receives. For each message that arrives and passes the channel's checks it calls
+      ``await platform.deliver(message)``; for bytes that do not decode it calls
+      ``await platform.reject(payload, reason)`` (logged, counted, and answered with
+      not-understood when a sender can be told) or, when the sender cannot be trusted,
+      drops them itself. Its receive loop never raises.
+    * ``await send(platform_name, message)`` for each other platform that a message's
+      receivers live on (one call per platform, whatever the number of receivers
+      there). The channel serializes (and protects) the message and publishes it on
+      ``platform.key("acl", platform_name)``; failures raise `TransportError`.
+    * ``await aclose()`` once, as the platform closes: stop receiving. Idempotent.
+
+    A channel never changes a message; what it refuses never reaches an agent.
+    """
+
+    async def start(self, platform: AgentPlatform) -> None:
+        """Begin receiving for ``platform`` (see the class docstring)."""
+        ...
+
+    async def send(self, platform: str, message: ACLMessage) -> None:
+        """Deliver ``message`` to the agents of the other platform ``platform``."""
+        ...
+
+    async def aclose(self) -> None:
+        """Stop receiving."""
+        ...
+
+
+class PlainChannel:
+    """ACL messages as plain JSON over the transport. NO AUTHENTICATION.
+
+    Anyone who can publish on the transport can send as any agent of any platform. For
+    tests and trusted single-host setups only; across hosts use the Interface Agent.
+    """
+
+    def __init__(self, *, max_bytes: int = MAX_MESSAGE_BYTES) -> None:
+        self.max_bytes = max_bytes
+        self._platform: AgentPlatform | None = None
+        self._sub: Subscription[Message] | None = None
+
+    async def start(self, platform: AgentPlatform) -> None:
+        """Subscribe the platform's inbox and start the receive loop."""
+        self._platform = platform
+        log.info(
+            "platform[%s]: plain channel: messages between platforms are NOT authenticated",
+            platform.name,
+        )
+        self._sub = await platform.transport.subscribe(platform.key("acl"))
+        platform.spawn(self._receive(self._sub), "acl-inbox")
+
+    async def send(self, platform: str, message: ACLMessage) -> None:
+        """Publish ``message`` as JSON on ``platform``'s inbox."""
+        if self._platform is None:
+            raise AgentError("channel not started")
+        await self._platform.transport.publish(
+            self._platform.key("acl", platform), message.to_json()
+        )
+
+    async def aclose(self) -> None:
+        """Close the inbox subscription."""
+        if self._sub is not None:
+            self._sub.close()
+
+    async def _receive(self, sub: Subscription[Message]) -> None:
+        platform = self._platform
+        assert platform is not None
+        from_json = ACLMessage.from_json
+        async for item in sub:
+            try:
+                message = from_json(item.payload, max_bytes=self.max_bytes)
+            except MessageError as exc:
+                await platform.reject(item.payload, exc.reason)
+                continue
+            try:
+                await platform.deliver(message)
+            except Exception:
+                log.exception(
+                    "platform[%s]: delivering %s failed", platform.name, message.performative
+                )
+        log.debug("platform[%s]: ACL inbox closed", platform.name)
+
+
+@dataclass(slots=True)
+class PlatformStats:
+    """What a platform has moved: local and remote deliveries, malformed input, drops."""
+
+    local: int = 0
+    sent_remote: int = 0
+    received_remote: int = 0
+    malformed: int = 0
+    forged: int = 0
+    unknown_receiver: int = 0
+    mailbox_full: int = 0
+    misrouted: int = 0
+
+
+_UNOPENED, _OPENED, _CLOSING, _CLOSED = "unopened", "opened", "closing", "closed"
+
+
+class AgentPlatform:
+    """Hosts agents under one platform name; an async context manager that cannot reopen.
+
+    Entering starts the remote channel, the Directory Facilitator (``df@<name>``) and the
+    global directory view, then declares the liveliness token
+    ``dyknow/<federation>/v1/alive/<name>``; leaving undoes all of it and stops every
+    agent. The transport is the caller's: open it before, close it after.
+    """
+
+    def __init__(
+        self,
+        name: str,
+        transport: Transport,
+        *,
+        federation: str = "default",
+        channel: RemoteChannel | None = None,
+        directory: bool = True,
+        global_directory: bool = True,
+        query_timeout: float = 1.0,
+    ) -> None:
+        for what, value in (("platform", name), ("federation", federation)):
+            if not _NAME.match(value):
+                raise ValueError(f"{what} name {value!r}: use letters, digits, '-', '_', '.'")
+        self.name = name
+        self.federation = federation
+        self.transport = transport
+        self.channel: RemoteChannel = channel if channel is not None else PlainChannel()
+        self.query_timeout = query_timeout
+        self.stats = PlatformStats()
+        self.df: DirectoryFacilitator | None = None
+        self.global_df: GlobalDirectory | None = None
+        self._want_df = directory
+        self._want_global = global_directory and directory
+        self._agents: dict[str, Agent] = {}
+        self._state = _UNOPENED
+        self._tg: asyncio.TaskGroup | None = None
+        self._tasks: set[asyncio.Task[Any]] = set()
+        self._token: Handle | None = None
+        self._lock = asyncio.Lock()
+
+    def __repr__(self) -> str:
+        return f"<AgentPlatform {self.name} ({self.federation}) {self._state}>"
+
+    def key(self, kind: str, platform: str | None = None) -> str:
+        """This federation's key of ``kind`` for ``platform`` (default: this one)."""
+        return wire_key(self.federation, kind, platform or self.name)
+
+    # -- lifecycle --------------------------------------------------------------------
+
+    async def __aenter__(self) -> Self:
+        if self._lock.locked() or self._state != _UNOPENED:
+            raise AgentError(f"platform {self.name} is {self._state}; it cannot reopen")
+        async with self._lock:
+            tg = asyncio.TaskGroup()
+            await tg.__aenter__()
+            self._tg = tg
+            self._state = _OPENED
+            try:
+                await self._open()
+            except BaseException:
+                try:
+                    await self._shutdown()
+                finally:
+                    self._cancel_everything()
+                    await tg.__aexit__(None, None, None)
+                raise
+        return self
+
+    async def _open(self) -> None:
+        from ._df import DirectoryFacilitator, GlobalDirectory
+
+        await self.channel.start(self)
+        if self._want_df:
+            self.df = await self.add(DirectoryFacilitator())
+        if self._want_global:
+            self.global_df = GlobalDirectory(self, query_timeout=self.query_timeout)
+            await self.global_df.start()
+        # Last: when others see us alive, our inbox and directory already answer.
+        self._token = await self.transport.declare_token(self.key("alive"))
+
+    async def __aexit__(self, et: Any, ev: Any, tb: Any) -> None:
+        if self._state != _OPENED:
+            return
+        tg = self._tg
+        assert tg is not None
+        try:
+            await self._shutdown()
+        finally:
+            # Normally every task is stopped by now; if the shutdown itself was cut short
+            # (cancelled), this ends the rest so the group does not wait forever. Not
+            # passing the body's error on keeps it as it is: the group would wrap it.
+            self._cancel_everything()
+            await tg.__aexit__(None, None, None)
+
+    async def _shutdown(self) -> None:
+        self._state = _CLOSING
+        if self._token is not None:
+            try:
+                await self._token.aclose()
+            except Exception as exc:  # the transport may be gone already
+                log.debug("platform[%s]: undeclaring the token: %s", self.name, exc)
+        # Users' agents first, newest first; the directory last: they deregister from it.
+        agents = [a for a in reversed(self._agents.values()) if a is not self.df]
+        for agent in [*agents, *([self.df] if self.df is not None else [])]:
+            await agent.stop()
+        if self.global_df is not None:
+            self.global_df.close()
+        try:
+            await self.channel.aclose()
+        except Exception:
+            log.exception("platform[%s]: closing the channel failed", self.name)
+        for task in list(self._tasks):
+            task.cancel()
+        self._state = _CLOSED
+
+    def _cancel_everything(self) -> None:
+        for agent in list(self._agents.values()):
+            if agent._task is not None:
+                agent._task.cancel()
+        for task in list(self._tasks):
+            task.cancel()
+        if self.global_df is not None:
+            self.global_df.close()
+        self._state = _CLOSED
+
+    @property
+    def running(self) -> bool:
+        """Whether the platform is open."""
+        return self._state == _OPENED
+
+    def spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task[Any]:
+        """Run ``coro`` as a task owned by the platform (``platform[p].<name>``); errors logged."""
+        if self._tg is None or self._state not in (_OPENED,):
+            coro.close()
+            raise AgentError(f"platform {self.name} is {self._state}")
+        task = self._tg.create_task(self._guard(coro, name), name=f"platform[{self.name}].{name}")
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    async def _guard(self, coro: Coroutine[Any, Any, Any], name: str) -> None:
+        try:
+            await coro
+        except Exception:
+            log.exception("platform[%s]: task %s failed", self.name, name)
+
+    # -- agents -----------------------------------------------------------------------
+
+    async def add(self, agent: A) -> A:
+        """Start ``agent`` on this platform; returns it once it is ready (its setup ran)."""
+        if self._state != _OPENED or self._tg is None:
+            raise AgentError(f"platform {self.name} is {self._state}")
+        if agent.name in self._agents:
+            raise AgentError(f"platform {self.name} already has an agent named {agent.name!r}")
+        self._agents[agent.name] = agent
+        try:
+            await agent._start(self, self._tg)
+        except BaseException:
+            self._agents.pop(agent.name, None)
+            raise
+        return agent
+
+    async def remove(self, agent: Agent | str) -> None:
+        """Stop an agent (by object or name) and deregister its services."""
+        found = self._agents.get(agent if isinstance(agent, str) else agent.name)
+        if found is not None:
+            await found.stop()
+
+    def _forget(self, agent: Agent) -> None:
+        """Called by an agent as it stops."""
+        if self._agents.get(agent.name) is agent:
+            del self._agents[agent.name]
+        if self.df is not None and agent is not self.df and self.df.running:
+            self.df.forget_agent(agent.aid)
+
+    def agent(self, name: str) -> Agent | None:
+        """The running agent called ``name`` (without ``@platform``), if any."""
+        return self._agents.get(name)
+
+    @property
+    def agents(self) -> list[Agent]:
+        """The agents running here."""
+        return list(self._agents.values())
+
+    # -- messages ---------------------------------------------------------------------
+
+    async def send(self, message: ACLMessage) -> None:
+        """Deliver to local receivers directly, and once per other platform through the channel."""
+        if self._state not in (_OPENED, _CLOSING):
+            raise AgentError(f"platform {self.name} is {self._state}")
+        receivers = message.receivers
+        if len(receivers) == 1:  # the common case, without building sets
+            target = platform_of(receivers[0])
+            if target == self.name:
+                await self._local(receivers[0], message)
+            else:
+                await self._remote(target, message)
+            return
+        remote: dict[str, None] = {}
+        for receiver in receivers:
+            target = platform_of(receiver)
+            if target == self.name:
+                await self._local(receiver, message)
+            else:
+                remote[target] = None
+        for target in remote:
+            await self._remote(target, message)
+
+    async def _remote(self, target: str, message: ACLMessage) -> None:
+        await self.channel.send(target, message)
+        self.stats.sent_remote += 1
+        if not self.stats.sent_remote & 63:
+            # Publishing rarely suspends: a sender in a tight loop would starve this
+            # process's receive loops (and fill the receiver's inbox) without this.
+            await asyncio.sleep(0)
+
+    async def deliver(self, message: ACLMessage) -> None:
+        """Hand a message that came from another platform to its receivers on this one.
+
+        A message claiming a sender of this platform is dropped: local messages never
+        travel through a channel, so it is forged.
+        """
+        self.stats.received_remote += 1
+        if platform_of(message.sender) == self.name:
+            self.stats.forged += 1
+            log.warning(
+                "platform[%s]: dropped a message from outside claiming to be from %s",
+                self.name,
+                message.sender,
+            )
+            return
+        local = False
+        for receiver in message.receivers:
+            if platform_of(receiver) == self.name:
+                local = True
+                await self._local(receiver, message)
+        if not local:
+            self.stats.misrouted += 1
+            log.warning("platform[%s]: message for %s arrived here", self.name, message.receivers)
+
+    async def _local(self, receiver: str, message: ACLMessage) -> None:
+        agent = self._agents.get(name_of(receiver))
+        if agent is not None and agent._deliver(message):
+            self.stats.local += 1
+            mailbox = agent._mailbox
+            if len(mailbox) > mailbox.maxlen >> 1:
+                # A sender in a tight loop (or a channel draining a burst) never yields:
+                # give the receiver its turn before its mailbox overflows.
+                await asyncio.sleep(0)
+            return
+        if agent is None:
+            self.stats.unknown_receiver += 1
+            reason = f"no agent {receiver}"
+        elif not agent.running:
+            reason = f"{receiver} is stopping"
+        else:
+            self.stats.mailbox_full += 1
+            reason = f"the mailbox of {receiver} is full"
+            if self.stats.mailbox_full == 1 or self.stats.mailbox_full % 1000 == 0:
+                log.warning(
+                    "platform[%s]: %s (%d dropped)", self.name, reason, self.stats.mailbox_full
+                )
+        if message.performative not in NEVER_ANSWERED:
+            # The platform answers for the receiver: it is authoritative for its names.
+            try:
+                await self.send(message.reply(Performative.FAILURE, reason, sender=receiver))
+            except Exception:
+                log.exception("platform[%s]: could not tell %s", self.name, message.sender)
+
+    async def reject(self, payload: bytes, reason: str) -> None:
+        """Account for bytes that arrived but are not a valid message (never raises).
+
+        Logged and counted; when the sender can be read from them, it gets a
+        ``not-understood`` saying why.
+        """
+        self.stats.malformed += 1
+        n = self.stats.malformed
+        level = logging.WARNING if n <= 10 or n % 1000 == 0 else logging.DEBUG
+        log.log(level, "platform[%s]: malformed message #%d: %s", self.name, n, reason)
+        try:
+            answer = self._not_understood(payload, reason)
+            if answer is not None:
+                await self.send(answer)
+        except Exception:
+            log.exception("platform[%s]: could not answer a malformed message", self.name)
+
+    def _not_understood(self, payload: bytes, reason: str) -> ACLMessage | None:
+        if len(payload) > 4 * MAX_MESSAGE_BYTES:
+            return None  # not worth parsing to find whom to tell
+        try:
+            obj = orjson.loads(payload)
+        except orjson.JSONDecodeError:
+            return None
+        if not isinstance(obj, dict):
+            return None
+        sender = obj.get("sender")
+        if not isinstance(sender, str) or platform_of(sender) == self.name:
+            return None  # no one to tell, or a local sender forged from outside
+        if obj.get("performative") in NEVER_ANSWERED:
+            return None
+        me = f"ams@{self.name}"
+        receivers = obj.get("receivers")
+        if isinstance(receivers, list):
+            for r in receivers:
+                if (
+                    isinstance(r, str)
+                    and platform_of(r) == self.name
+                    and name_of(r) in self._agents
+                ):
+                    me = r
+                    break
+        fields: dict[str, Any] = {}
+        for src, dst in (("conversation_id", "conversation_id"), ("reply_with", "in_reply_to")):
+            value = obj.get(src)
+            if isinstance(value, str) and len(value) <= 200:
+                fields[dst] = value
+        try:
+            return ACLMessage(
+                performative=Performative.NOT_UNDERSTOOD,
+                sender=me,
+                receivers=[sender],
+                content=reason,
+                **fields,
+            )
+        except Exception:
+            return None  # the claimed sender is not a valid identifier

@@ -1,0 +1,1222 @@
+"""Platform identity, the trust file, the authenticated key exchange and sealed envelopes.
+
+Pure and transport-free: every operation takes and returns bytes, time comes from an
+injectable clock, so the Interface Agent can run it over zenoh, MQTT or memory alike.
+The scheme and its reasons are in ``docs/security.md``; the bytes on the wire in
+``docs/wire.md``.
+
+Nothing here is thread-safe: one platform's ``Handshake`` and ``SessionTable`` belong to
+its Interface Agent's event loop.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import contextlib
+import hashlib
+import heapq
+import hmac
+import os
+import re
+import stat
+import struct
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import orjson
+from nacl import bindings as _sodium
+from nacl.exceptions import CryptoError
+from nacl.signing import SigningKey, VerifyKey
+
+from ._acl import MAX_MESSAGE_BYTES
+from ._exceptions import (
+    Expired,
+    Forged,
+    KeyFileError,
+    Malformed,
+    MessageError,
+    Misdirected,
+    Replayed,
+    UnknownPlatform,
+    UnknownSession,
+)
+
+__all__ = [
+    "Clock",
+    "Handshake",
+    "KeyPair",
+    "SecurityPolicy",
+    "Session",
+    "SessionTable",
+    "TrustStore",
+    "check_name",
+    "fingerprint",
+    "key_paths",
+    "read_public_key",
+]
+
+WIRE_VERSION = 1
+MAX_HANDSHAKE_BYTES = 4096
+
+Clock = Callable[[], float]
+"""Unix time in seconds (``time.time``); tests inject their own."""
+
+_NAME = re.compile(r"^[A-Za-z0-9_.\-]{1,128}$")
+_PRIVATE_KIND = "dyknow-ed25519-private"
+_PUBLIC_KIND = "dyknow-ed25519-public"
+_U64 = struct.Struct(">Q")
+_U64X2 = struct.Struct(">QQ")
+_MAX_COUNTER = (1 << 63) - 1
+_NONCE_BYTES = 16
+
+# Domain-separation labels: a signature or MAC made for one purpose never verifies for another.
+_KX_INIT = b"dyknow-kx-v1 init\x00"
+_KX_REPLY = b"dyknow-kx-v1 reply\x00"
+_ENV_MAC = b"dyknow-env-v1 mac\x00"
+_ENV_BOX = b"dyknow-env-v1 box\x00"
+
+_PLAIN_FIELDS = frozenset(("v", "from", "to", "sid", "ts_ms", "n", "body", "mac"))
+_BOX_FIELDS = frozenset(("v", "from", "to", "sid", "ts_ms", "n", "box"))
+_INIT_FIELDS = frozenset(("v", "kx", "fed", "from", "to", "ts_ms", "nonce", "epk", "sig"))
+_REPLY_FIELDS = _INIT_FIELDS | {"re"}
+
+_loads = orjson.loads
+_dumps = orjson.dumps
+_JSONDecodeError = orjson.JSONDecodeError
+_b2a = binascii.b2a_base64
+_a2b = binascii.a2b_base64
+_compare = hmac.compare_digest
+
+
+def check_name(value: str, what: str = "platform") -> str:
+    """Check a platform or federation name (letters, digits, ``-``, ``_``, ``.``) and return it."""
+    if not isinstance(value, str) or not _NAME.match(value) or value in {".", ".."}:
+        raise ValueError(f"{what} name {value!r} must be 1-128 letters, digits, '-', '_' or '.'")
+    return value
+
+
+def fingerprint(public_key: bytes) -> str:
+    """A short human-comparable fingerprint of an Ed25519 public key (SHA-256, 8 bytes)."""
+    return hashlib.sha256(public_key).hexdigest()[:16]
+
+
+def _b64(data: bytes) -> str:
+    return _b2a(data, newline=False).decode("ascii")
+
+
+def _unb64(value: Any, size: int | None = None) -> bytes:
+    """Strict base64: raises ValueError on anything but canonical standard base64."""
+    if not isinstance(value, str):
+        raise ValueError("not a base64 string")
+    try:
+        raw = base64.b64decode(value, validate=True)
+    except (binascii.Error, ValueError) as exc:
+        raise ValueError(f"not base64 ({exc})") from None
+    if size is not None and len(raw) != size:
+        raise ValueError(f"{len(raw)} bytes where {size} are expected")
+    if _b64(raw) != value:
+        raise ValueError("not canonical base64")
+    return raw
+
+
+def _lp(text: str) -> bytes:
+    """Length-prefixed UTF-8, so concatenated fields can never be re-split differently."""
+    raw = text.encode()
+    return len(raw).to_bytes(2, "big") + raw
+
+
+# --------------------------------------------------------------------------- files
+
+
+def key_paths(directory: str | os.PathLike[str], platform: str) -> tuple[Path, Path]:
+    """The private and public key file of ``platform`` in ``directory`` (``.key``, ``.pub``)."""
+    check_name(platform)
+    base = Path(directory)
+    return base / f"{platform}.key", base / f"{platform}.pub"
+
+
+def _read_json(path: Path, what: str) -> dict[str, Any]:
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise KeyFileError(path, f"no such {what}") from None
+    except OSError as exc:
+        raise KeyFileError(path, f"cannot read the {what}: {exc.strerror or exc}") from None
+    try:
+        obj = _loads(raw)
+    except _JSONDecodeError as exc:
+        raise KeyFileError(path, f"the {what} is not JSON ({exc})") from None
+    if not isinstance(obj, dict):
+        raise KeyFileError(path, f"the {what} must be a JSON object")
+    if obj.get("v") != WIRE_VERSION:
+        raise KeyFileError(path, f"key 'v': version {obj.get('v')!r} (this side reads 1)")
+    return obj
+
+
+def _field_name(path: Path, obj: Mapping[str, Any], key: str, what: str) -> str:
+    value = obj.get(key)
+    if not isinstance(value, str):
+        raise KeyFileError(path, f"key {key!r}: missing, or not a string")
+    try:
+        return check_name(value, what)
+    except ValueError as exc:
+        raise KeyFileError(path, f"key {key!r}: {exc}") from None
+
+
+def _write_atomic(path: Path, data: bytes, mode: int, *, overwrite: bool) -> None:
+    """Write via a same-directory temporary file so a crash never leaves half a key behind."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, mode)
+    try:
+        try:
+            os.fchmod(fd, mode)  # the umask may only remove bits; make the mode exact
+            os.write(fd, data)
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        if overwrite:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)  # fails if path exists: no check-then-write race
+            os.unlink(tmp)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+class KeyPair:
+    """A platform's Ed25519 identity: its name and private signing key."""
+
+    __slots__ = ("_signing_key", "platform")
+
+    def __init__(self, platform: str, signing_key: SigningKey) -> None:
+        self.platform = check_name(platform)
+        self._signing_key = signing_key
+
+    def __repr__(self) -> str:
+        return f"KeyPair({self.platform!r}, fingerprint={self.fingerprint!r})"
+
+    @classmethod
+    def generate(cls, platform: str) -> KeyPair:
+        """A fresh random key pair for ``platform``."""
+        return cls(platform, SigningKey.generate())
+
+    @property
+    def public_key(self) -> bytes:
+        """The raw 32-byte Ed25519 public key."""
+        return bytes(self._signing_key.verify_key)
+
+    @property
+    def fingerprint(self) -> str:
+        """The public key's fingerprint, for people to compare."""
+        return fingerprint(self.public_key)
+
+    def sign(self, data: bytes) -> bytes:
+        """The 64-byte Ed25519 signature of ``data``."""
+        return self._signing_key.sign(data).signature
+
+    def public_json(self) -> bytes:
+        """The public key file's content."""
+        return _dumps(
+            {
+                "v": WIRE_VERSION,
+                "kind": _PUBLIC_KIND,
+                "platform": self.platform,
+                "ed25519": _b64(self.public_key),
+            },
+            option=orjson.OPT_INDENT_2 | orjson.OPT_APPEND_NEWLINE,
+        )
+
+    def save(self, directory: str | os.PathLike[str], *, force: bool = False) -> tuple[Path, Path]:
+        """Write ``<platform>.key`` (mode 0600) and ``<platform>.pub`` into ``directory``.
+
+        An existing private key is never replaced unless ``force``: a replaced key locks the
+        platform out of every federation that trusts the old one.
+        """
+        key_path, pub_path = key_paths(directory, self.platform)
+        key_path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        if key_path.exists() and not force:
+            raise KeyFileError(
+                key_path, "a private key is already there; not overwriting it (use --force)"
+            )
+        private = _dumps(
+            {
+                "v": WIRE_VERSION,
+                "kind": _PRIVATE_KIND,
+                "platform": self.platform,
+                "ed25519_seed": _b64(bytes(self._signing_key)),
+            },
+            option=orjson.OPT_INDENT_2 | orjson.OPT_APPEND_NEWLINE,
+        )
+        try:
+            _write_atomic(key_path, private, 0o600, overwrite=force)
+        except FileExistsError:
+            raise KeyFileError(
+                key_path, "a private key is already there; not overwriting it (use --force)"
+            ) from None
+        _write_atomic(pub_path, self.public_json(), 0o644, overwrite=True)
+        return key_path, pub_path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> KeyPair:
+        """Read a private key file; refuse one that group or others can read."""
+        path = Path(path)
+        try:
+            mode = path.stat().st_mode
+        except FileNotFoundError:
+            raise KeyFileError(path, "no such private key file") from None
+        if os.name == "posix" and mode & (stat.S_IRWXG | stat.S_IRWXO):
+            raise KeyFileError(
+                path,
+                f"the private key is accessible to group or others (mode {mode & 0o777:04o}); "
+                f"run: chmod 600 {path}",
+            )
+        obj = _read_json(path, "private key file")
+        if obj.get("kind") != _PRIVATE_KIND:
+            raise KeyFileError(path, f"key 'kind': expected {_PRIVATE_KIND!r}")
+        platform = _field_name(path, obj, "platform", "platform")
+        try:
+            seed = _unb64(obj.get("ed25519_seed"), 32)
+        except ValueError as exc:
+            raise KeyFileError(path, f"key 'ed25519_seed': {exc}") from None
+        return cls(platform, SigningKey(seed))
+
+
+def read_public_key(path: str | os.PathLike[str]) -> tuple[str, bytes]:
+    """Read a public key file: ``(platform, raw 32-byte Ed25519 public key)``."""
+    path = Path(path)
+    obj = _read_json(path, "public key file")
+    if obj.get("kind") != _PUBLIC_KIND:
+        raise KeyFileError(path, f"key 'kind': expected {_PUBLIC_KIND!r}")
+    platform = _field_name(path, obj, "platform", "platform")
+    try:
+        public = _unb64(obj.get("ed25519"), 32)
+        VerifyKey(public)
+    except (ValueError, CryptoError) as exc:
+        raise KeyFileError(path, f"key 'ed25519': {exc}") from None
+    return platform, public
+
+
+class TrustStore:
+    """The federation's trust file: its name and the platforms (Ed25519 keys) it accepts."""
+
+    __slots__ = ("_keys", "_raw", "federation")
+
+    def __init__(self, federation: str, platforms: Mapping[str, bytes] | None = None) -> None:
+        self.federation = check_name(federation, "federation")
+        self._raw: dict[str, bytes] = {}
+        self._keys: dict[str, VerifyKey] = {}
+        for platform, public in (platforms or {}).items():
+            self.add(platform, public)
+
+    def __repr__(self) -> str:
+        return f"TrustStore({self.federation!r}, platforms={sorted(self._raw)})"
+
+    def __contains__(self, platform: object) -> bool:
+        return platform in self._keys
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(sorted(self._raw))
+
+    def __len__(self) -> int:
+        return len(self._raw)
+
+    def public_key(self, platform: str) -> bytes:
+        """The raw public key trusted for ``platform``; UnknownPlatform when there is none."""
+        try:
+            return self._raw[platform]
+        except KeyError:
+            raise UnknownPlatform(
+                f"platform {platform!r} is not in the trust file", platform
+            ) from None
+
+    def verify_key(self, platform: str) -> VerifyKey:
+        """The verifier for ``platform``'s signatures; UnknownPlatform when it is not trusted."""
+        try:
+            return self._keys[platform]
+        except KeyError:
+            raise UnknownPlatform(
+                f"platform {platform!r} is not in the trust file", platform
+            ) from None
+
+    def add(self, platform: str, public_key: bytes, *, replace: bool = False) -> bool:
+        """Trust ``public_key`` for ``platform``; True when something changed.
+
+        A different key for an already trusted platform is refused unless ``replace``
+        (key rotation), so a typo cannot silently swap a platform's identity.
+        """
+        check_name(platform)
+        public_key = bytes(public_key)
+        if len(public_key) != 32:
+            raise ValueError(f"platform {platform!r}: an Ed25519 public key is 32 bytes")
+        old = self._raw.get(platform)
+        if old == public_key:
+            return False
+        if old is not None and not replace:
+            raise ValueError(
+                f"platform {platform!r} is already trusted with another key "
+                f"(fingerprint {fingerprint(old)}); replace it explicitly to rotate"
+            )
+        self._keys[platform] = VerifyKey(public_key)
+        self._raw[platform] = public_key
+        return True
+
+    def remove(self, platform: str) -> bool:
+        """Stop trusting ``platform``; True when it was trusted."""
+        self._keys.pop(platform, None)
+        return self._raw.pop(platform, None) is not None
+
+    def to_json(self) -> bytes:
+        """The trust file's content."""
+        return _dumps(
+            {
+                "v": WIRE_VERSION,
+                "federation": self.federation,
+                "platforms": {p: _b64(k) for p, k in sorted(self._raw.items())},
+            },
+            option=orjson.OPT_INDENT_2 | orjson.OPT_APPEND_NEWLINE,
+        )
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the trust file atomically (mode 0644: public keys are not secret)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _write_atomic(path, self.to_json(), 0o644, overwrite=True)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> TrustStore:
+        """Read a trust file; KeyFileError names the file and the key that is wrong."""
+        path = Path(path)
+        try:
+            mode = path.stat().st_mode
+        except FileNotFoundError:
+            raise KeyFileError(path, "no such trust file") from None
+        if os.name == "posix" and mode & stat.S_IWOTH:
+            # whoever can write the trust file decides whom this platform believes
+            raise KeyFileError(
+                path, f"the trust file is writable by others (mode {mode & 0o777:04o})"
+            )
+        obj = _read_json(path, "trust file")
+        unknown = set(obj) - {"v", "federation", "platforms"}
+        if unknown:
+            raise KeyFileError(path, f"unexpected key {sorted(unknown)[0]!r}")
+        federation = _field_name(path, obj, "federation", "federation")
+        platforms = obj.get("platforms")
+        if not isinstance(platforms, dict):
+            raise KeyFileError(path, "key 'platforms': must be an object of platform: key")
+        store = cls(federation)
+        for platform, value in platforms.items():
+            where = f"key 'platforms.{platform}'"
+            try:
+                check_name(platform)
+            except ValueError as exc:
+                raise KeyFileError(path, f"{where}: {exc}") from None
+            try:
+                public = _unb64(value, 32)
+                store.add(platform, public)
+            except (ValueError, CryptoError) as exc:
+                raise KeyFileError(
+                    path, f"{where}: not a base64 Ed25519 public key ({exc})"
+                ) from None
+        return store
+
+
+# --------------------------------------------------------------------------- policy
+
+
+@dataclass(frozen=True, slots=True)
+class SecurityPolicy:
+    """The tunables of a platform's handshakes and sessions (a federation should agree on them).
+
+    ``skew``: how far (s) a timestamp may be from this platform's clock, either way.
+    ``window``: how many counters back a reordered envelope is still accepted.
+    ``renew_after_messages`` / ``renew_after_seconds``: when a session asks to be renewed;
+    it is then accepted ``grace`` seconds beyond that, and an old session ``grace`` seconds
+    after its peer started using a newer one. ``encrypt``: seal with ChaCha20-Poly1305
+    instead of only a MAC; ``require_encryption``: refuse envelopes that are not encrypted.
+    """
+
+    skew: float = 30.0
+    window: int = 1024
+    renew_after_messages: int = 1_000_000
+    renew_after_seconds: float = 3600.0
+    grace: float = 30.0
+    encrypt: bool = False
+    require_encryption: bool = False
+    max_sessions_per_peer: int = 4
+    max_body_bytes: int = MAX_MESSAGE_BYTES
+
+    def __post_init__(self) -> None:
+        if self.skew <= 0 or self.grace < 0 or self.renew_after_seconds <= 0:
+            raise ValueError("skew and renew_after_seconds must be > 0, grace >= 0")
+        if self.window < 1 or self.renew_after_messages < 1 or self.max_sessions_per_peer < 1:
+            raise ValueError("window, renew_after_messages, max_sessions_per_peer must be >= 1")
+
+    @property
+    def lifetime(self) -> float:
+        """How long (s) a session is usable at all: renewal time plus grace."""
+        return self.renew_after_seconds + self.grace
+
+    @property
+    def max_envelope_bytes(self) -> int:
+        """Largest envelope read: a maximal body escaped as a JSON string, plus the header."""
+        return 2 * self.max_body_bytes + 1024
+
+
+_DEFAULT_POLICY = SecurityPolicy()
+
+
+# --------------------------------------------------------------------------- sessions
+
+
+class Session:
+    """One authenticated session with a peer platform: direction keys, counter, replay window.
+
+    Made by a ``Handshake``; the sending side calls ``seal``, the receiving side opens
+    through its ``SessionTable``.
+    """
+
+    __slots__ = (
+        "_box_ad_rx",
+        "_box_ad_tx",
+        "_box_rx",
+        "_box_tx",
+        "_clock",
+        "_confirmed",
+        "_encrypt",
+        "_full",
+        "_hi",
+        "_lifetime",
+        "_mac_rx",
+        "_mac_tx",
+        "_mask",
+        "_max_body",
+        "_n",
+        "_policy",
+        "_received",
+        "_retire_at",
+        "_skew_ms",
+        "_window",
+        "established",
+        "federation",
+        "initiator",
+        "me",
+        "order",
+        "peer",
+        "sid",
+    )
+
+    def __init__(
+        self,
+        *,
+        me: str,
+        peer: str,
+        federation: str,
+        sid: str,
+        initiator: bool,
+        keys: Mapping[str, bytes],
+        order: tuple[int, str],
+        policy: SecurityPolicy,
+        clock: Clock,
+    ) -> None:
+        self.me = me
+        self.peer = peer
+        self.federation = federation
+        self.sid = sid
+        self.initiator = initiator
+        self.order = order
+        self.established = clock()
+        self._policy = policy
+        self._clock = clock
+        self._lifetime = policy.lifetime
+        self._encrypt = policy.encrypt
+        self._max_body = policy.max_body_bytes
+        self._skew_ms = policy.skew * 1000.0
+        tx, rx = ("i2r", "r2i") if initiator else ("r2i", "i2r")
+        tx_head = _lp(federation) + _lp(me) + _lp(peer) + _lp(sid)
+        rx_head = _lp(federation) + _lp(peer) + _lp(me) + _lp(sid)
+        # the per-session part of every MAC is hashed once; each message copies the state
+        self._mac_tx = hmac.new(keys[f"{tx} mac"], _ENV_MAC + tx_head, hashlib.sha256)
+        self._mac_rx = hmac.new(keys[f"{rx} mac"], _ENV_MAC + rx_head, hashlib.sha256)
+        self._box_tx = keys[f"{tx} box"]
+        self._box_rx = keys[f"{rx} box"]
+        self._box_ad_tx = _ENV_BOX + tx_head
+        self._box_ad_rx = _ENV_BOX + rx_head
+        self._n = 0
+        self._hi = 0
+        self._mask = 0
+        self._window = policy.window
+        self._full = (1 << policy.window) - 1
+        self._received = 0
+        # an initiator knows the responder holds the keys (it answered); a responder only
+        # learns that the initiator finished when a message arrives on the session
+        self._confirmed = initiator
+        self._retire_at: float | None = None
+
+    def __repr__(self) -> str:
+        role = "initiator" if self.initiator else "responder"
+        return (
+            f"Session({self.me}->{self.peer}, sid={self.sid}, {role}, "
+            f"sent={self._n}, received={self._received})"
+        )
+
+    @property
+    def sent(self) -> int:
+        """Envelopes sealed on this session so far (the last counter used)."""
+        return self._n
+
+    @property
+    def received(self) -> int:
+        """Envelopes accepted on this session so far."""
+        return self._received
+
+    @property
+    def confirmed(self) -> bool:
+        """True once the peer is known to hold the session (initiator, or a message came)."""
+        return self._confirmed
+
+    def age(self) -> float:
+        """Seconds since the session was established here."""
+        return self._clock() - self.established
+
+    def needs_renewal(self) -> bool:
+        """True when a new handshake should start (N messages sent or T seconds old)."""
+        if self._n >= self._policy.renew_after_messages:
+            return True
+        limit = self._policy.renew_after_seconds
+        if not self.initiator:
+            # let the initiator renew first, so both sides rarely renew at once
+            limit += self._policy.grace / 2
+        return self._clock() - self.established >= limit
+
+    def expired(self, now: float | None = None) -> bool:
+        """True when the session may no longer be used (past its lifetime or retired past grace)."""
+        if now is None:
+            now = self._clock()
+        if now - self.established > self._lifetime:
+            return True
+        return self._retire_at is not None and now > self._retire_at
+
+    def seal(self, body: bytes | str) -> bytes:
+        """Seal one ACL message (JSON) into an envelope for the peer."""
+        if isinstance(body, bytes):
+            raw = body
+            text = body.decode()
+        else:
+            text = body
+            raw = body.encode()
+        if len(raw) > self._max_body:
+            raise MessageError(f"message of {len(raw)} bytes exceeds the limit of {self._max_body}")
+        now = self._clock()
+        if now - self.established > self._lifetime:
+            raise Expired(f"session {self.sid} with {self.peer} is past its lifetime; renew")
+        n = self._n + 1
+        if n > _MAX_COUNTER:
+            raise Expired(f"session {self.sid} with {self.peer} used up its counters; renew")
+        self._n = n
+        ts = int(now * 1000)
+        if self._encrypt:
+            box = _sodium.crypto_aead_chacha20poly1305_ietf_encrypt(
+                raw, self._box_ad_tx + _U64X2.pack(ts, n), _aead_nonce(n), self._box_tx
+            )
+            env: dict[str, Any] = {
+                "v": 1,
+                "from": self.me,
+                "to": self.peer,
+                "sid": self.sid,
+                "ts_ms": ts,
+                "n": n,
+                "box": _b2a(box, newline=False).decode("ascii"),
+            }
+            return _dumps(env)
+        h = self._mac_tx.copy()
+        h.update(_U64X2.pack(ts, n))
+        h.update(raw)
+        return _dumps(
+            {
+                "v": 1,
+                "from": self.me,
+                "to": self.peer,
+                "sid": self.sid,
+                "ts_ms": ts,
+                "n": n,
+                "body": text,
+                "mac": _b2a(h.digest(), newline=False).decode("ascii"),
+            }
+        )
+
+    def _accept(self, ts: int, n: int, payload: str, mac: bytes | None, now: float) -> bytes:
+        """Verify one parsed envelope of this session (``mac`` None: boxed); the body."""
+        peer = self.peer
+        if mac is None:
+            try:
+                raw = _a2b(payload)
+            except ValueError:  # binascii.Error is a ValueError
+                raw = b""
+            # canonical base64 only: two spellings of one ciphertext would defeat byte checks
+            if not raw or _b2a(raw, newline=False) != payload.encode():
+                raise Malformed("field 'box' is not canonical base64", peer)
+            try:
+                body: bytes = _sodium.crypto_aead_chacha20poly1305_ietf_decrypt(
+                    raw, self._box_ad_rx + _U64X2.pack(ts, n), _aead_nonce(n), self._box_rx
+                )
+            except CryptoError:
+                raise Forged(
+                    f"bad authentication tag on session {self.sid} from {peer!r}: "
+                    "forged or tampered",
+                    peer,
+                ) from None
+        else:
+            body = payload.encode()
+            h = self._mac_rx.copy()
+            h.update(_U64X2.pack(ts, n))
+            h.update(body)
+            if not _compare(_b2a(h.digest(), newline=False), mac):
+                raise Forged(
+                    f"bad MAC on session {self.sid} from {peer!r}: forged or tampered", peer
+                )
+        if self._retire_at is not None and now > self._retire_at:
+            raise Expired(
+                f"session {self.sid} with {peer!r} was renewed and its grace period is over",
+                peer,
+            )
+        if now - self.established > self._lifetime:
+            raise Expired(f"session {self.sid} with {peer!r} is past its lifetime", peer)
+        skew_ms = self._skew_ms
+        delta = now * 1000.0 - ts
+        if delta > skew_ms or -delta > skew_ms:
+            raise Expired(
+                f"timestamp {ts / 1000:.3f} is {delta / 1000:+.3f} s from this clock "
+                f"(allowed ±{self._policy.skew:g} s)",
+                peer,
+            )
+        hi = self._hi
+        if n > hi:
+            d = n - hi
+            self._mask = ((self._mask << d) | 1) & self._full if d < self._window else 1
+            self._hi = n
+        else:
+            d = hi - n
+            if d >= self._window:
+                raise Replayed(
+                    f"counter {n} on session {self.sid} is older than the replay window "
+                    f"(newest {hi}, window {self._window})",
+                    peer,
+                )
+            bit = 1 << d
+            if self._mask & bit:
+                raise Replayed(f"counter {n} on session {self.sid} was already seen", peer)
+            self._mask |= bit
+        self._received += 1
+        return body
+
+
+def _aead_nonce(n: int) -> bytes:
+    """The 96-bit AEAD nonce: the session counter, unique per direction key by construction."""
+    return b"\x00\x00\x00\x00" + _U64.pack(n)
+
+
+class SessionTable:
+    """All sessions of one platform: opens sealed envelopes and picks the session to seal with."""
+
+    def __init__(
+        self,
+        me: str,
+        trust: TrustStore,
+        *,
+        policy: SecurityPolicy = _DEFAULT_POLICY,
+        clock: Clock = time.time,
+    ) -> None:
+        self.me = check_name(me)
+        self.trust = trust
+        self.policy = policy
+        self._clock = clock
+        self._by_sid: dict[str, Session] = {}
+        self._by_peer: dict[str, list[Session]] = {}
+        self._tx: dict[str, Session] = {}
+        self._rx_latest: dict[str, Session] = {}
+        self._max_envelope = policy.max_envelope_bytes
+
+    def __len__(self) -> int:
+        return len(self._by_sid)
+
+    def __repr__(self) -> str:
+        return f"SessionTable({self.me!r}, sessions={len(self._by_sid)})"
+
+    def peers(self) -> list[str]:
+        """The platforms this table holds sessions with."""
+        return sorted(self._by_peer)
+
+    def sessions(self, peer: str | None = None) -> list[Session]:
+        """The sessions with ``peer`` (all when None), oldest first."""
+        if peer is None:
+            return sorted(self._by_sid.values(), key=lambda s: s.order)
+        return sorted(self._by_peer.get(peer, ()), key=lambda s: s.order)
+
+    def add(self, session: Session) -> None:
+        """Hold a session made by ``Handshake.respond`` or ``Handshake.finish``."""
+        if session.me != self.me:
+            raise ValueError(f"session of {session.me!r} added to the table of {self.me!r}")
+        if session.sid in self._by_sid:
+            raise ValueError(f"session {session.sid} is already in the table")
+        mine = self._by_peer.setdefault(session.peer, [])
+        mine.append(session)
+        self._by_sid[session.sid] = session
+        mine.sort(key=lambda s: s.order)
+        while len(mine) > self.policy.max_sessions_per_peer:
+            # sessions nobody used go first (a replayed request makes such sessions), and
+            # never the one just added: it is a renewal
+            others = [s for s in mine if s is not session]
+            self._drop(min(others, key=lambda s: (s._confirmed, s.order)))
+        self._tx.pop(session.peer, None)
+        self.prune()
+
+    def _drop(self, session: Session) -> None:
+        self._by_sid.pop(session.sid, None)
+        mine = self._by_peer.get(session.peer)
+        if mine is not None:
+            if session in mine:
+                mine.remove(session)
+            if not mine:
+                del self._by_peer[session.peer]
+        if self._tx.get(session.peer) is session:
+            del self._tx[session.peer]
+        if self._rx_latest.get(session.peer) is session:
+            del self._rx_latest[session.peer]
+
+    def forget(self, peer: str) -> int:
+        """Drop every session with ``peer`` (it left the federation); how many were dropped."""
+        dropped = list(self._by_peer.get(peer, ()))
+        for session in dropped:
+            self._drop(session)
+        self._tx.pop(peer, None)
+        self._rx_latest.pop(peer, None)
+        return len(dropped)
+
+    def prune(self) -> int:
+        """Drop sessions past their lifetime or their grace period; how many were dropped."""
+        now = self._clock()
+        dead = [s for s in self._by_sid.values() if s.expired(now)]
+        for session in dead:
+            self._drop(session)
+        return len(dead)
+
+    def session_for(self, peer: str) -> Session | None:
+        """The session to seal with for ``peer``, or None when a handshake is needed first.
+
+        The newest session the peer is known to hold: one this platform initiated, or one
+        the peer has sent on. A responder never sends first on a fresh session, because a
+        replayed request can make sessions the peer does not hold.
+        """
+        now = self._clock()
+        cached = self._tx.get(peer)
+        if cached is not None and not cached.expired(now):
+            return cached
+        best: Session | None = None
+        for s in self._by_peer.get(peer, ()):
+            if s._confirmed and not s.expired(now) and (best is None or s.order > best.order):
+                best = s
+        if best is None:
+            self._tx.pop(peer, None)
+        else:
+            self._tx[peer] = best
+        return best
+
+    def seal(self, peer: str, body: bytes | str) -> bytes:
+        """Seal ``body`` for ``peer`` on its current session; UnknownSession when there is none."""
+        session = self.session_for(peer)
+        if session is None:
+            raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
+        return session.seal(body)
+
+    def needs_renewal(self, peer: str) -> bool:
+        """True when there is no session to seal with for ``peer``, or it asks for renewal.
+
+        The caller then starts a handshake unless ``Handshake.pending(peer)`` says one is
+        already under way; it may keep sealing on the old session until the new one is made.
+        """
+        now = self._clock()
+        newest: Session | None = None
+        for s in self._by_peer.get(peer, ()):
+            # local time, not the agreed order: "did I make a session lately?" is local
+            if (
+                s._confirmed
+                and not s.expired(now)
+                and (newest is None or s.established > newest.established)
+            ):
+                newest = s
+        return newest is None or newest.needs_renewal()
+
+    def open(self, envelope: bytes | str) -> tuple[str, bytes]:
+        """Verify a sealed envelope: ``(sender platform, ACL message JSON bytes)`` or a refusal.
+
+        Raises Malformed, Misdirected, UnknownPlatform, UnknownSession, Forged, Expired or
+        Replayed (all AuthenticationError); nothing of a refused envelope can be trusted.
+        """
+        if len(envelope) > self._max_envelope:
+            raise Malformed(
+                f"envelope of {len(envelope)} bytes exceeds the limit of {self._max_envelope}"
+            )
+        try:
+            env = _loads(envelope)
+        except _JSONDecodeError as exc:
+            raise Malformed(f"not JSON: {exc}") from None
+        if type(env) is not dict:
+            raise Malformed(f"an envelope is a JSON object, not {type(env).__name__}")
+        keys = env.keys()
+        if keys == _PLAIN_FIELDS:
+            boxed = False
+            payload = env["body"]
+        elif keys == _BOX_FIELDS:
+            boxed = True
+            payload = env["box"]
+        else:
+            raise Malformed(_field_problem(env), _str_or_none(env.get("from")))
+        frm = env["from"]
+        if type(frm) is not str:
+            raise Malformed("field 'from' must be a string")
+        v = env["v"]
+        if type(v) is not int or v != WIRE_VERSION:
+            raise Malformed(f"unsupported envelope version {v!r} (this side speaks 1)", frm)
+        to = env["to"]
+        sid = env["sid"]
+        ts = env["ts_ms"]
+        n = env["n"]
+        if type(to) is not str or type(sid) is not str or type(payload) is not str:
+            raise Malformed("fields 'to', 'sid', 'body'/'box' must be strings", frm)
+        if type(ts) is not int or not 0 <= ts <= _MAX_COUNTER:
+            raise Malformed("field 'ts_ms' must be a non-negative integer (Unix ms)", frm)
+        if type(n) is not int or not 1 <= n <= _MAX_COUNTER:
+            raise Malformed("field 'n' must be a positive integer", frm)
+        if to != self.me:
+            raise Misdirected(f"envelope for {to!r} reached {self.me!r}", frm)
+        if frm not in self.trust._keys:  # checked per message: removing a platform revokes it
+            raise UnknownPlatform(f"platform {frm!r} is not in the trust file", frm)
+        session = self._by_sid.get(sid)
+        if session is None:
+            raise UnknownSession(
+                f"no session {sid!r} with {frm!r} (never made, renewed away or forgotten)", frm
+            )
+        if session.peer != frm:
+            # the MAC binds the session's peer: a different 'from' is a tampered header
+            raise Forged(f"session {sid} belongs to {session.peer!r}, not to {frm!r}", frm)
+        tag: bytes | None = None
+        if not boxed:
+            if self.policy.require_encryption:
+                raise Malformed("this platform requires encrypted envelopes ('box')", frm)
+            mac = env["mac"]
+            if type(mac) is not str:
+                raise Malformed("field 'mac' must be a string", frm)
+            tag = mac.encode()
+        now = self._clock()
+        body = session._accept(ts, n, payload, tag, now)
+        if self._rx_latest.get(frm) is not session:
+            self._on_rx_switch(session, now)
+        return frm, body
+
+    def _on_rx_switch(self, session: Session, now: float) -> None:
+        """The peer sent on another session than last time: confirm it, retire older ones."""
+        session._confirmed = True
+        self._tx.pop(session.peer, None)  # the choice of sending session may change
+        latest = self._rx_latest.get(session.peer)
+        if latest is None or session.order > latest.order:
+            self._rx_latest[session.peer] = session
+            # the peer has moved on: its older sessions only carry messages still in flight
+            retire_at = now + self.policy.grace
+            for s in self._by_peer.get(session.peer, ()):
+                if s.order < session.order and s._retire_at is None:
+                    s._retire_at = retire_at
+
+
+def _str_or_none(value: object) -> str | None:
+    return value if isinstance(value, str) else None
+
+
+def _field_problem(env: Mapping[str, Any]) -> str:
+    """Name the first missing or unexpected envelope field (the slow path of a refusal)."""
+    fields = _BOX_FIELDS if "box" in env else _PLAIN_FIELDS
+    missing = sorted(fields - env.keys())
+    extra = sorted(env.keys() - fields)
+    if missing:
+        return f"envelope field {missing[0]!r} is missing"
+    return f"unexpected envelope field {extra[0]!r}"
+
+
+# --------------------------------------------------------------------------- handshake
+
+
+@dataclass(slots=True)
+class _Pending:
+    peer: str
+    transcript: bytes  # the signed part of our request
+    secret: bytes  # our ephemeral X25519 private key
+    started: float
+    ts_ms: int
+
+
+def _hkdf(transcript: bytes, shared: bytes) -> dict[str, bytes]:
+    """HKDF-SHA256 (RFC 5869): the transcript hash salts the extract; one label per output."""
+    prk = hmac.digest(hashlib.sha256(transcript).digest(), shared, "sha256")
+    labels = ("i2r mac", "r2i mac", "i2r box", "r2i box", "sid")
+    return {
+        label: hmac.digest(prk, b"dyknow-session-v1 " + label.encode() + b"\x01", "sha256")
+        for label in labels
+    }
+
+
+class Handshake:
+    """One platform's side of the authenticated key exchange, as a state machine over bytes.
+
+    Initiator: ``request = hs.initiate(peer)``, send it on ``kx/<peer>``, then
+    ``session = hs.finish(reply)``. Responder: ``reply, session = hs.respond(request)``.
+    Both add the session to their ``SessionTable``.
+    """
+
+    def __init__(
+        self,
+        me: KeyPair,
+        trust: TrustStore,
+        federation: str | None = None,
+        *,
+        policy: SecurityPolicy = _DEFAULT_POLICY,
+        clock: Clock = time.time,
+    ) -> None:
+        if federation is not None and federation != trust.federation:
+            raise ValueError(
+                f"federation {federation!r} differs from the trust file's {trust.federation!r}"
+            )
+        self.me = me
+        self.trust = trust
+        self.federation = trust.federation
+        self.policy = policy
+        self._clock = clock
+        self._pending: dict[bytes, _Pending] = {}
+        self._finished: dict[bytes, float] = {}
+        # (initiator, nonce) of requests answered, kept until their timestamp goes stale
+        self._seen: set[tuple[str, bytes]] = set()
+        self._seen_heap: list[tuple[float, str, bytes]] = []
+
+    def _now_ms(self) -> tuple[float, int]:
+        now = self._clock()
+        return now, int(now * 1000)
+
+    def _prune(self, now: float) -> None:
+        horizon = 2 * self.policy.skew
+        for key in [k for k, p in self._pending.items() if now - p.started > horizon]:
+            del self._pending[key]
+        for key in [k for k, t in self._finished.items() if now - t > horizon]:
+            del self._finished[key]
+        heap = self._seen_heap
+        while heap and heap[0][0] < now:
+            _, platform, nonce = heapq.heappop(heap)
+            self._seen.discard((platform, nonce))
+
+    def initiate(self, peer: str) -> bytes:
+        """The request that opens a session with ``peer`` (kept pending until ``finish``)."""
+        check_name(peer)
+        if peer == self.me.platform:
+            raise ValueError("a platform does not open a session with itself")
+        self.trust.verify_key(peer)  # fail early: a reply from an untrusted peer is refused
+        now, ts = self._now_ms()
+        self._prune(now)
+        nonce = os.urandom(_NONCE_BYTES)
+        epk, esk = _sodium.crypto_box_keypair()
+        transcript = _init_transcript(self.federation, self.me.platform, peer, ts, nonce, epk)
+        self._pending[nonce] = _Pending(peer, transcript, esk, now, ts)
+        return _dumps(
+            {
+                "v": WIRE_VERSION,
+                "kx": "init",
+                "fed": self.federation,
+                "from": self.me.platform,
+                "to": peer,
+                "ts_ms": ts,
+                "nonce": _b64(nonce),
+                "epk": _b64(epk),
+                "sig": _b64(self.me.sign(transcript)),
+            }
+        )
+
+    def respond(self, request: bytes | str) -> tuple[bytes, Session]:
+        """Check a request and answer it: ``(reply bytes, new Session)`` or a refusal."""
+        msg = _parse_kx(request, "init", _INIT_FIELDS)
+        frm, ts, nonce, epk, sig = self._check_kx(msg)
+        transcript = _init_transcript(self.federation, frm, self.me.platform, ts, nonce, epk)
+        self._verify(frm, transcript, sig)
+        now, my_ts = self._now_ms()
+        self._prune(now)
+        if (frm, nonce) in self._seen:
+            raise Replayed(f"handshake request from {frm!r} was already answered", frm)
+        self._seen.add((frm, nonce))
+        heapq.heappush(self._seen_heap, (ts / 1000 + self.policy.skew + 1, frm, nonce))
+        my_nonce = os.urandom(_NONCE_BYTES)
+        my_epk, my_esk = _sodium.crypto_box_keypair()
+        full = transcript + _reply_part(
+            self.federation, self.me.platform, frm, my_ts, my_nonce, my_epk
+        )
+        shared = _x25519(my_esk, epk, frm)
+        reply = _dumps(
+            {
+                "v": WIRE_VERSION,
+                "kx": "reply",
+                "fed": self.federation,
+                "from": self.me.platform,
+                "to": frm,
+                "ts_ms": my_ts,
+                "nonce": _b64(my_nonce),
+                "epk": _b64(my_epk),
+                "re": _b64(nonce),
+                "sig": _b64(self.me.sign(full)),
+            }
+        )
+        return reply, self._session(frm, full, shared, initiator=False, order_ts=max(ts, my_ts))
+
+    def finish(self, reply: bytes | str) -> Session:
+        """Check the reply to one of our requests and make the session, or refuse it."""
+        msg = _parse_kx(reply, "reply", _REPLY_FIELDS)
+        frm, ts, nonce, epk, sig = self._check_kx(msg)
+        try:
+            re_nonce = _unb64(msg["re"], _NONCE_BYTES)
+        except ValueError as exc:
+            raise Malformed(f"handshake field 're': {exc}", frm) from None
+        now = self._clock()
+        pending = self._pending.get(re_nonce)
+        if pending is None:
+            if re_nonce in self._finished:
+                raise Replayed(f"handshake reply from {frm!r} was already used", frm)
+            raise UnknownSession(
+                f"handshake reply from {frm!r} answers no request of ours pending", frm
+            )
+        if pending.peer != frm:
+            raise Forged(f"reply from {frm!r} to a handshake with {pending.peer!r}", frm)
+        full = pending.transcript + _reply_part(
+            self.federation, frm, self.me.platform, ts, nonce, epk
+        )
+        self._verify(frm, full, sig)
+        if now - pending.started > self.policy.skew:
+            del self._pending[re_nonce]
+            raise Expired(f"handshake reply from {frm!r} came too late", frm)
+        shared = _x25519(pending.secret, epk, frm)
+        del self._pending[re_nonce]
+        self._finished[re_nonce] = now
+        return self._session(frm, full, shared, initiator=True, order_ts=max(pending.ts_ms, ts))
+
+    def pending(self, peer: str) -> bool:
+        """True while a request of ours to ``peer`` awaits its reply (do not start another)."""
+        now = self._clock()
+        return any(
+            p.peer == peer and now - p.started <= self.policy.skew for p in self._pending.values()
+        )
+
+    def cancel(self, peer: str) -> int:
+        """Drop our pending requests to ``peer`` (it left); how many were dropped."""
+        keys = [k for k, p in self._pending.items() if p.peer == peer]
+        for key in keys:
+            del self._pending[key]
+        return len(keys)
+
+    def _check_kx(self, msg: dict[str, Any]) -> tuple[str, int, bytes, bytes, bytes]:
+        """The checks common to request and reply, cheapest first; the decoded fields."""
+        frm = msg["from"]
+        if msg["fed"] != self.federation:
+            raise Misdirected(
+                f"handshake for federation {msg['fed']!r}, this is {self.federation!r}", frm
+            )
+        if msg["to"] != self.me.platform:
+            raise Misdirected(f"handshake for {msg['to']!r} reached {self.me.platform!r}", frm)
+        if frm == self.me.platform:
+            raise Misdirected("handshake claims to come from this platform itself", frm)
+        if frm not in self.trust:
+            raise UnknownPlatform(f"platform {frm!r} is not in the trust file", frm)
+        ts = msg["ts_ms"]
+        delta = self._clock() - ts / 1000
+        if abs(delta) > self.policy.skew:
+            raise Expired(
+                f"handshake timestamp is {delta:+.3f} s from this clock "
+                f"(allowed ±{self.policy.skew:g} s)",
+                frm,
+            )
+        try:
+            nonce = _unb64(msg["nonce"], _NONCE_BYTES)
+            epk = _unb64(msg["epk"], 32)
+            sig = _unb64(msg["sig"], 64)
+        except ValueError as exc:
+            raise Malformed(f"handshake field: {exc}", frm) from None
+        return frm, ts, nonce, epk, sig
+
+    def _verify(self, platform: str, transcript: bytes, sig: bytes) -> None:
+        try:
+            self.trust.verify_key(platform).verify(transcript, sig)
+        except CryptoError:
+            raise Forged(
+                f"handshake signature does not verify with {platform!r}'s trusted key", platform
+            ) from None
+
+    def _session(
+        self, peer: str, transcript: bytes, shared: bytes, *, initiator: bool, order_ts: int
+    ) -> Session:
+        keys = _hkdf(transcript, shared)
+        sid = base64.urlsafe_b64encode(keys["sid"][:16]).rstrip(b"=").decode("ascii")
+        return Session(
+            me=self.me.platform,
+            peer=peer,
+            federation=self.federation,
+            sid=sid,
+            initiator=initiator,
+            keys=keys,
+            order=(order_ts, sid),
+            policy=self.policy,
+            clock=self._clock,
+        )
+
+
+def _init_transcript(fed: str, frm: str, to: str, ts: int, nonce: bytes, epk: bytes) -> bytes:
+    return _KX_INIT + _lp(fed) + _lp(frm) + _lp(to) + _U64.pack(ts) + nonce + epk
+
+
+def _reply_part(fed: str, frm: str, to: str, ts: int, nonce: bytes, epk: bytes) -> bytes:
+    return _KX_REPLY + _lp(fed) + _lp(frm) + _lp(to) + _U64.pack(ts) + nonce + epk
+
+
+def _x25519(secret: bytes, public: bytes, peer: str) -> bytes:
+    try:
+        shared: bytes = _sodium.crypto_scalarmult(secret, public)
+    except CryptoError:
+        # libsodium refuses low-order points (an all-zero shared secret)
+        raise Forged(f"{peer!r} sent an invalid ephemeral key", peer) from None
+    return shared
+
+
+def _parse_kx(data: bytes | str, kind: str, fields: frozenset[str]) -> dict[str, Any]:
+    if len(data) > MAX_HANDSHAKE_BYTES:
+        raise Malformed(f"handshake message of {len(data)} bytes exceeds {MAX_HANDSHAKE_BYTES}")
+    try:
+        msg = _loads(data)
+    except _JSONDecodeError as exc:
+        raise Malformed(f"handshake message is not JSON: {exc}") from None
+    if type(msg) is not dict:
+        raise Malformed("a handshake message is a JSON object")
+    frm = _str_or_none(msg.get("from"))
+    if msg.keys() != fields:
+        missing = sorted(fields - msg.keys())
+        extra = sorted(msg.keys() - fields)
+        what = f"field {missing[0]!r} is missing" if missing else f"unexpected field {extra[0]!r}"
+        raise Malformed(f"handshake {what}", frm)
+    v = msg["v"]
+    if type(v) is not int or v != WIRE_VERSION:
+        raise Malformed(f"unsupported handshake version {v!r} (this side speaks 1)", frm)
+    if msg["kx"] != kind:
+        raise Malformed(f"expected a handshake {kind!r}, got {msg['kx']!r}", frm)
+    for key in ("fed", "from", "to"):
+        value = msg[key]
+        if type(value) is not str or not _NAME.match(value):
+            raise Malformed(f"handshake field {key!r} is not a valid name", frm)
+    ts = msg["ts_ms"]
+    if type(ts) is not int or not 0 <= ts <= _MAX_COUNTER:
+        raise Malformed("handshake field 'ts_ms' must be a non-negative integer", frm)
+    return msg

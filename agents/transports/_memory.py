@@ -1,0 +1,171 @@
+"""The in-memory transport: several platforms in one process, and the tests' double."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from typing import Self
+
+from .._exceptions import TransportError
+from ._base import (
+    Handle,
+    Inbox,
+    Message,
+    Presence,
+    QueryHandler,
+    Reply,
+    Subscription,
+    Transport,
+    key_matches,
+)
+
+
+class MemoryHub:
+    """What connects in-memory transports: the same hub is the same network."""
+
+    def __init__(self) -> None:
+        self.subscribers: list[tuple[str, Inbox[Message]]] = []
+        self.queryables: list[tuple[str, QueryHandler]] = []
+        self.tokens: dict[str, int] = {}
+        self.watchers: list[tuple[str, Inbox[Presence]]] = []
+
+    def transport(self) -> MemoryTransport:
+        """A new transport attached to this hub."""
+        return MemoryTransport(self)
+
+    def _presence(self, key: str, alive: bool) -> None:
+        for expr, inbox in list(self.watchers):
+            if key_matches(expr, key):
+                inbox.put(Presence(key, alive))
+
+
+class MemoryTransport(Transport):
+    """Delivers within one process through a MemoryHub; same semantics as the others."""
+
+    name = "memory"
+
+    def __init__(self, hub: MemoryHub | None = None) -> None:
+        super().__init__()
+        self.hub = hub or MemoryHub()
+        self._handles: list[Handle] = []
+        self._subs: list[Subscription[Message] | Subscription[Presence]] = []
+
+    async def open(self) -> None:
+        """Nothing to connect."""
+
+    async def aclose(self) -> None:
+        """Undeclare everything this transport declared."""
+        if self._state == "closed":
+            return
+        self._state = "closed"
+        for h in list(self._handles):
+            h.close()
+        for s in list(self._subs):
+            s.close()
+
+    async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
+        """Deliver to every matching subscriber in the hub."""
+        self._check_open()
+        msg = Message(key, payload, attachment)
+        for expr, inbox in self.hub.subscribers:
+            if key_matches(expr, key):
+                inbox.put(msg)
+
+    async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
+        """Receive what is published on matching keys."""
+        self._check_open()
+        inbox: Inbox[Message] = Inbox(asyncio.get_running_loop(), buffer_size)
+        entry = (key_expr, inbox)
+        self.hub.subscribers.append(entry)
+
+        def remove() -> None:
+            with contextlib.suppress(ValueError):
+                self.hub.subscribers.remove(entry)
+
+        sub = Subscription(inbox, remove)
+        self._subs.append(sub)
+        return sub
+
+    async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
+        """Ask every matching queryable (concurrently); collect replies until ``timeout``."""
+        self._check_open()
+        targets = [
+            (e, h)
+            for e, h in self.hub.queryables
+            if key_matches(e, key_expr) or key_matches(key_expr, e)
+        ]
+        if not targets:
+            return []
+        tasks = [asyncio.ensure_future(h(key_expr, payload)) for _, h in targets]
+        done, pending = await asyncio.wait(tasks, timeout=timeout)
+        for t in pending:
+            t.cancel()
+        replies = []
+        for (expr, _), t in zip(targets, tasks, strict=True):
+            if t not in done:
+                continue
+            if t.exception() is not None:
+                replies.append(Reply(expr, str(t.exception()).encode(), ok=False))
+            elif (r := t.result()) is not None:
+                replies.append(Reply(expr, r))
+        return replies
+
+    async def serve(self, key_expr: str, handler: QueryHandler) -> Handle:
+        """Answer queries on ``key_expr``."""
+        self._check_open()
+        entry = (key_expr, handler)
+        self.hub.queryables.append(entry)
+
+        def remove() -> None:
+            with contextlib.suppress(ValueError):
+                self.hub.queryables.remove(entry)
+
+        h = Handle(remove)
+        self._handles.append(h)
+        return h
+
+    async def declare_token(self, key: str) -> Handle:
+        """Announce presence under ``key`` until closed."""
+        self._check_open()
+        if "*" in key:
+            raise TransportError(f"a liveliness token needs a concrete key, not {key!r}")
+        first = self.hub.tokens.get(key, 0) == 0
+        self.hub.tokens[key] = self.hub.tokens.get(key, 0) + 1
+        if first:
+            self.hub._presence(key, True)
+
+        def remove() -> None:
+            n = self.hub.tokens.get(key, 0) - 1
+            if n <= 0:
+                self.hub.tokens.pop(key, None)
+                self.hub._presence(key, False)
+            else:
+                self.hub.tokens[key] = n
+
+        h = Handle(remove)
+        self._handles.append(h)
+        return h
+
+    async def watch_presence(
+        self, key_expr: str, *, history: bool = True, buffer_size: int = 4096
+    ) -> Subscription[Presence]:
+        """Be told of tokens matching ``key_expr`` appearing and going."""
+        self._check_open()
+        inbox: Inbox[Presence] = Inbox(asyncio.get_running_loop(), buffer_size)
+        if history:
+            for key in sorted(self.hub.tokens):
+                if key_matches(key_expr, key):
+                    inbox.put(Presence(key, True))
+        entry = (key_expr, inbox)
+        self.hub.watchers.append(entry)
+
+        def remove() -> None:
+            with contextlib.suppress(ValueError):
+                self.hub.watchers.remove(entry)
+
+        sub = Subscription(inbox, remove)
+        self._subs.append(sub)
+        return sub
+
+    async def __aenter__(self) -> Self:
+        return await super().__aenter__()

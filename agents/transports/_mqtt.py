@@ -1,0 +1,669 @@
+"""The MQTT transport: the same interface over an MQTT v5 broker (mosquitto), with aiomqtt.
+
+Keys and topics
+    A concrete key is the topic itself. In subscriptions ``*`` becomes ``+`` and ``**``
+    becomes ``#``; MQTT has ``#`` only as the last level, so a key expression with ``**``
+    elsewhere cannot be subscribed to (TransportError). Chunks with a partial wildcard
+    (``a*``, zenoh's ``$*``) and keys containing ``+`` or ``#`` are refused too.
+
+Subscriptions
+    One connection per transport, one broker subscription per distinct topic filter, each
+    with its own MQTT v5 subscription identifier. One task (``mqtt[<client id>].receive``,
+    owned by the transport, cancelled on close) reads every incoming message and hands it,
+    by subscription identifier, to the matching subscriptions' ``Inbox``es. Subscriptions
+    deliver live messages only: retained messages a broker replays on subscribing are
+    presence history, not publications.
+
+Query / serve (a topic convention on MQTT v5 request/response)
+    A query on key expression ``Q`` is published on ``@query/<P>``, where ``<P>`` is ``Q``
+    up to its first wildcard chunk, with the whole ``Q`` in the user property ``key``,
+    the response topic ``@reply/<client id>`` and a fresh correlation data. A queryable on
+    ``S`` subscribes to ``@query`` followed by every prefix of ``S`` (``*`` as ``+``, a
+    ``**`` ending it as ``#``), so it hears every query that could intersect ``S``, and
+    answers those that do on the response topic, with the correlation data and user
+    properties ``key`` = ``S`` and ``ok`` = ``1`` or ``0`` (an error reply: a handler
+    that raised or ran past ``serve_timeout``).
+
+Presence
+    ``declare_token`` opens one more connection per token, whose last will is an empty
+    retained message on the key; it then publishes ``{"v":1,"alive":true}`` retained on the
+    key. Closing the token publishes the empty retained message (which clears it); a
+    process that dies loses its connection and the broker publishes the will.
+    ``watch_presence`` subscribes to the key expression: retained messages are the
+    history, live ones the changes; a watcher reports only changes.
+
+What MQTT cannot guarantee, compared to zenoh
+    - Everything goes through the broker: it is a single point of failure and one more
+      hop (about twice zenoh's peer-to-peer latency on loopback).
+    - A query cannot know how many queryables there are, so it always waits until its
+      timeout (zenoh returns once every matching queryable has answered).
+    - A dead process is seen gone when the broker notices: at once when its TCP connection
+      closes (a killed process), but only after 1.5 x keepalive for a frozen one or a lost
+      network; and a broker that restarts without persistence forgets every token.
+    - Presence is one retained message per key: two tokens on the same key are not
+      counted, the first to go clears the key.
+    - QoS 0 (the default) is at most once; nothing is redelivered after a reconnection,
+      and this transport does not reconnect: a lost connection ends every subscription
+      and later calls raise TransportClosed.
+    - Attachments travel base64-encoded in a user property.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import itertools
+import json
+import logging
+import uuid
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, TypeVar
+
+import aiomqtt
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
+from paho.mqtt.subscribeoptions import SubscribeOptions
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
+
+from .._exceptions import TransportClosed, TransportError
+from ._base import (
+    Handle,
+    Inbox,
+    Message,
+    Presence,
+    QueryHandler,
+    Reply,
+    Subscription,
+    Transport,
+    key_intersects,
+)
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+QUERY_PREFIX = "@query"
+REPLY_PREFIX = "@reply"
+ALIVE = b'{"v":1,"alive":true}'
+_REPLY_SID = 1  # the subscription identifier of this client's reply topic
+
+
+def _new_client_id() -> str:
+    return f"dyknow-{uuid.uuid4().hex[:16]}"
+
+
+class MqttConfig(BaseModel):
+    """Where the MQTT broker is and how to talk to it; validated once, errors name the field."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    host: str = Field(default="127.0.0.1", min_length=1)
+    port: int = Field(default=1883, ge=1, le=65535)
+    client_id: str = Field(
+        default_factory=_new_client_id,
+        pattern=r"^[A-Za-z0-9_.-]{1,64}$",
+        description="Unique per broker: a second connection with the same id evicts the first.",
+    )
+    username: str | None = None
+    password: SecretStr | None = None
+    keepalive: int = Field(
+        default=60,
+        ge=1,
+        le=65535,
+        description="Seconds; the broker declares a silent client dead after 1.5 x this.",
+    )
+    qos: Literal[0, 1, 2] = Field(default=0, description="QoS of publications and queries.")
+    connect_timeout: float = Field(default=10.0, gt=0)
+    serve_timeout: float = Field(
+        default=10.0,
+        gt=0,
+        description="Seconds a query handler may run before the query gets an error reply.",
+    )
+
+    @model_validator(mode="after")
+    def _credentials(self) -> MqttConfig:
+        if self.password is not None and self.username is None:
+            raise ValueError("password: given without a username")
+        return self
+
+
+def _chunks(key_expr: str) -> list[str]:
+    """The chunks of a key expression MQTT can carry; TransportError otherwise."""
+    if not key_expr or key_expr.startswith("$"):
+        raise TransportError(f"{key_expr!r} cannot be an MQTT topic")
+    chunks = key_expr.split("/")
+    for chunk in chunks:
+        if not chunk:
+            raise TransportError(f"{key_expr!r} has an empty chunk")
+        if "+" in chunk or "#" in chunk or "\0" in chunk:
+            raise TransportError(f"{key_expr!r}: '+', '#' and NUL are not allowed in keys")
+        if "*" in chunk and chunk not in ("*", "**"):
+            raise TransportError(f"{key_expr!r}: MQTT has no wildcard inside a chunk")
+    return chunks
+
+
+def topic_filter(key_expr: str) -> str:
+    """The MQTT topic filter for a key expression (``*`` → ``+``, a final ``**`` → ``#``)."""
+    chunks = _chunks(key_expr)
+    out = []
+    for i, chunk in enumerate(chunks):
+        if chunk == "**":
+            if i != len(chunks) - 1:
+                raise TransportError(
+                    f"{key_expr!r}: MQTT has a multi-level wildcard ('#') only at the end, "
+                    "so '**' can only be the last chunk"
+                )
+            out.append("#")
+        else:
+            out.append("+" if chunk == "*" else chunk)
+    return "/".join(out)
+
+
+def query_topic(key_expr: str) -> str:
+    """The topic a query on ``key_expr`` is published on: its chunks up to the first wildcard."""
+    prefix = list(itertools.takewhile(lambda c: c not in ("*", "**"), _chunks(key_expr)))
+    return "/".join([QUERY_PREFIX, *prefix])
+
+
+def queryable_filters(key_expr: str) -> list[str]:
+    """The filters a queryable on ``key_expr`` listens on: one per prefix (see the module doc)."""
+    chunks = _chunks(key_expr)
+    filters = [QUERY_PREFIX]
+    for i, chunk in enumerate(chunks):
+        if chunk == "**":
+            # '#' also matches its parent level: it replaces the previous filter.
+            filters[-1] = "/".join([QUERY_PREFIX, *_plus(chunks[:i]), "#"])
+            break
+        filters.append("/".join([QUERY_PREFIX, *_plus(chunks[: i + 1])]))
+    return filters
+
+
+def _plus(chunks: list[str]) -> list[str]:
+    return ["+" if c == "*" else c for c in chunks]
+
+
+def _user_properties(props: Properties | None) -> dict[str, str]:
+    pairs = getattr(props, "UserProperty", None) if props is not None else None
+    return dict(pairs) if pairs else {}
+
+
+class _Watcher:
+    """A presence watcher: turns retained presence messages into changes."""
+
+    def __init__(self, inbox: Inbox[Presence], history: bool) -> None:
+        self.inbox = inbox
+        self.history = history
+        self.known: dict[str, bool] = {}
+
+    def feed(self, key: str, payload: bytes, retained: bool) -> None:
+        """Take one message on a presence key; report it if it changes what is known."""
+        if retained and not self.history:
+            return
+        if payload:
+            try:
+                alive = bool(json.loads(payload)["alive"])
+            except (ValueError, TypeError, KeyError):
+                log.warning("mqtt: ignoring a malformed presence message on %r", key)
+                return
+        else:
+            alive = False
+        if self.known.get(key) == alive:
+            return
+        self.known[key] = alive
+        self.inbox.put(Presence(key, alive))
+
+
+@dataclass(eq=False)
+class _Server:
+    key_expr: str
+    handler: QueryHandler
+
+
+@dataclass(eq=False)
+class _Filter:
+    """One broker subscription and everything in this transport that listens through it."""
+
+    topic: str
+    sid: int
+    ready: asyncio.Future[bool]
+    inboxes: list[Inbox[Message]] = field(default_factory=list)
+    watchers: list[_Watcher] = field(default_factory=list)
+    servers: list[_Server] = field(default_factory=list)
+
+    def empty(self) -> bool:
+        return not (self.inboxes or self.watchers or self.servers)
+
+
+class MqttTransport(Transport):
+    """The Transport over one MQTT v5 broker connection (plus one per liveliness token)."""
+
+    name = "mqtt"
+
+    def __init__(self, config: MqttConfig | Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        self.config = (
+            config if isinstance(config, MqttConfig) else MqttConfig.model_validate(config or {})
+        )
+        self._client: aiomqtt.Client | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._reply_topic = f"{REPLY_PREFIX}/{self.config.client_id}"
+        self._filters: dict[str, _Filter] = {}
+        self._by_sid: dict[int, _Filter] = {}
+        self._sids = itertools.count(_REPLY_SID + 1)
+        self._unsubscribing: dict[str, asyncio.Task[None]] = {}
+        self._pending: dict[bytes, Inbox[Reply]] = {}
+        self._correlation = itertools.count(1)
+        self._token_ids = itertools.count(1)
+        self._subs: set[Subscription[Any]] = set()
+        self._handles: set[Handle] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._receiver: asyncio.Task[None] | None = None
+        self._lost: BaseException | None = None
+
+    def _new_client(self, identifier: str, will: aiomqtt.Will | None = None) -> aiomqtt.Client:
+        c = self.config
+        return aiomqtt.Client(
+            c.host,
+            c.port,
+            identifier=identifier,
+            username=c.username,
+            password=None if c.password is None else c.password.get_secret_value(),
+            protocol=aiomqtt.ProtocolVersion.V5,
+            keepalive=c.keepalive,
+            timeout=c.connect_timeout,
+            will=will,
+        )
+
+    async def open(self) -> None:
+        """Connect to the broker, subscribe to this client's reply topic, start receiving."""
+        loop = asyncio.get_running_loop()
+        client = self._new_client(self.config.client_id)
+        where = f"{self.config.host}:{self.config.port}"
+        try:
+            await client.__aenter__()
+        except aiomqtt.MqttError as exc:
+            raise TransportError(f"mqtt: cannot connect to {where}: {exc}") from exc
+        try:
+            await client.subscribe(
+                self._reply_topic, options=self._options(), properties=_sid(_REPLY_SID)
+            )
+        except aiomqtt.MqttError as exc:
+            with contextlib.suppress(aiomqtt.MqttError):
+                await client.__aexit__(None, None, None)
+            raise TransportError(f"mqtt: cannot subscribe to replies on {where}: {exc}") from exc
+        self._client = client
+        self._loop = loop
+        self._receiver = loop.create_task(
+            self._receive(client), name=f"mqtt[{self.config.client_id}].receive"
+        )
+
+    async def aclose(self) -> None:
+        """Clear this transport's tokens, end every subscription and query, and disconnect."""
+        if self._state == "closed":
+            return
+        self._state = "closed"
+        for sub in list(self._subs):
+            sub.close()
+        handles = list(self._handles)
+        if handles:  # clearing tokens needs the broker: bounded, in case it is gone
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(self.config.connect_timeout):
+                    await asyncio.gather(*(h.aclose() for h in handles), return_exceptions=True)
+        for inbox in self._pending.values():
+            inbox.close()
+        tasks = [*self._tasks, *([self._receiver] if self._receiver else [])]
+        for task in tasks:
+            task.cancel()
+        if tasks:
+            await asyncio.gather(*tasks, return_exceptions=True)
+        client, self._client = self._client, None
+        if client is not None:
+            with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+                async with asyncio.timeout(self.config.connect_timeout):
+                    await client.__aexit__(None, None, None)
+
+    def _check_open(self) -> None:
+        super()._check_open()
+        if self._lost is not None:
+            raise TransportClosed(f"mqtt: the connection to the broker was lost: {self._lost}")
+
+    def _connected(self) -> tuple[aiomqtt.Client, asyncio.AbstractEventLoop]:
+        self._check_open()
+        assert self._client is not None and self._loop is not None
+        return self._client, self._loop
+
+    def _error(self, what: str, exc: BaseException) -> TransportError:
+        if self._state != "opened" or self._lost is not None:
+            return TransportClosed(f"mqtt: {what}: the transport is closed ({exc})")
+        return TransportError(f"mqtt: {what}: {exc}")
+
+    def _options(self) -> SubscribeOptions:
+        return SubscribeOptions(qos=self.config.qos)
+
+    async def _receive(self, client: aiomqtt.Client) -> None:
+        """Hand every incoming message to whatever listens through its subscription."""
+        try:
+            async for message in client.messages:
+                self._dispatch(message)
+        except aiomqtt.MqttError as exc:
+            if self._state == "opened":
+                log.warning("mqtt: connection to the broker lost: %s", exc)
+                self._lost = exc
+                for sub in list(self._subs):
+                    sub.inbox.close()
+                for inbox in self._pending.values():
+                    inbox.close()
+
+    def _dispatch(self, m: aiomqtt.Message) -> None:
+        props = m.properties
+        sids = getattr(props, "SubscriptionIdentifier", None) if props is not None else None
+        if not sids:
+            return
+        topic = m.topic.value
+        payload = m.payload
+        for sid in sids:
+            if sid == _REPLY_SID:
+                self._on_reply(payload, props)
+                continue
+            f = self._by_sid.get(sid)
+            if f is None:  # unsubscribed meanwhile
+                continue
+            if f.inboxes and not m.retain:
+                attachment = None
+                if getattr(props, "UserProperty", None):
+                    att = _user_properties(props).get("att")
+                    attachment = None if att is None else base64.b64decode(att)
+                msg = Message(topic, payload, attachment)
+                for inbox in f.inboxes:
+                    inbox.put(msg)
+            for watcher in f.watchers:
+                watcher.feed(topic, payload, m.retain)
+            for server in f.servers:
+                self._offer(server, payload, props)
+
+    def _on_reply(self, payload: bytes, props: Properties | None) -> None:
+        correlation = getattr(props, "CorrelationData", None)
+        inbox = self._pending.get(correlation) if correlation else None
+        if inbox is None:  # late: its query is over
+            return
+        up = _user_properties(props)
+        inbox.put(Reply(up.get("key", ""), payload, up.get("ok", "1") == "1"))
+
+    # --- subscriptions shared per topic filter -------------------------------------------
+
+    async def _attach(
+        self, topic: str, add: Callable[[_Filter], None], *, resubscribe: bool = False
+    ) -> None:
+        """Listen through the broker subscription on ``topic``, subscribing if it is new."""
+        client, loop = self._connected()
+        # An unsubscribe still on its way would cancel a subscribe sent now: wait for it.
+        while (pending := self._unsubscribing.get(topic)) is not None:
+            await asyncio.wait([pending])
+        f = self._filters.get(topic)
+        if f is None:
+            f = _Filter(topic, next(self._sids), loop.create_future())
+            self._filters[topic] = f
+            self._by_sid[f.sid] = f
+            add(f)
+            try:
+                await client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
+            except aiomqtt.MqttError as exc:
+                f.ready.set_result(False)
+                self._forget(f)
+                raise self._error(f"subscribe to {topic!r}", exc) from exc
+            f.ready.set_result(True)
+            return
+        add(f)
+        if not await asyncio.shield(f.ready):
+            raise self._error(f"subscribe to {topic!r}", RuntimeError("subscribe failed"))
+        if resubscribe:  # makes the broker send the retained messages again
+            try:
+                await client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
+            except aiomqtt.MqttError as exc:
+                raise self._error(f"subscribe to {topic!r}", exc) from exc
+
+    def _detach(self, topic: str, remove: Callable[[_Filter], None]) -> None:
+        """Stop listening through ``topic``; unsubscribe (in the background) when nobody does."""
+        f = self._filters.get(topic)
+        if f is None:
+            return
+        with contextlib.suppress(ValueError):
+            remove(f)
+        if f.empty():
+            self._forget(f)
+
+    def _forget(self, f: _Filter) -> None:
+        if self._filters.get(f.topic) is f:
+            del self._filters[f.topic]
+        self._by_sid.pop(f.sid, None)
+        if self._state != "opened" or self._lost is not None or self._loop is None:
+            return
+        task = self._loop.create_task(
+            self._unsubscribe(f.topic), name=f"mqtt[{self.config.client_id}].unsubscribe"
+        )
+        self._unsubscribing[f.topic] = task
+        self._own(task)
+        task.add_done_callback(lambda t: self._unsubscribing.pop(f.topic, None))
+
+    async def _unsubscribe(self, topic: str) -> None:
+        if self._client is None:
+            return
+        try:
+            await self._client.unsubscribe(topic)
+        except aiomqtt.MqttError as exc:
+            log.debug("mqtt: unsubscribing from %r failed: %s", topic, exc)
+
+    def _own(self, task: asyncio.Task[None]) -> None:
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _subscription(self, inbox: Inbox[T], undeclare: Callable[[], None]) -> Subscription[T]:
+        """A subscription that this transport ends when it closes."""
+        sub: Subscription[T]
+
+        def on_close() -> None:
+            self._subs.discard(sub)
+            undeclare()
+
+        sub = Subscription(inbox, on_close)
+        self._subs.add(sub)
+        return sub
+
+    def _handle(
+        self, undeclare: Callable[[], None], aundeclare: Callable[[], Awaitable[None]] | None = None
+    ) -> Handle:
+        """A handle that this transport closes when it closes."""
+        handle: Handle
+
+        def on_close() -> None:
+            self._handles.discard(handle)
+            undeclare()
+
+        async def on_aclose() -> None:
+            self._handles.discard(handle)
+            assert aundeclare is not None
+            await aundeclare()
+
+        handle = Handle(on_close, on_aclose if aundeclare is not None else None)
+        self._handles.add(handle)
+        return handle
+
+    # --- the Transport interface ---------------------------------------------------------
+
+    async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
+        """Publish ``payload`` on the topic ``key`` (QoS from the config, not retained)."""
+        client, _ = self._connected()
+        if not key or "*" in key or "+" in key or "#" in key:
+            raise TransportError(f"mqtt: cannot publish on {key!r}: not a concrete key")
+        props = None
+        if attachment is not None:
+            props = Properties(PacketTypes.PUBLISH)
+            props.UserProperty = [("att", base64.b64encode(attachment).decode())]
+        try:
+            await client.publish(key, payload, qos=self.config.qos, properties=props)
+        except aiomqtt.MqttError as exc:
+            raise self._error(f"publish on {key!r}", exc) from exc
+
+    async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
+        """Receive what is published on topics matching ``key_expr``."""
+        _, loop = self._connected()
+        topic = topic_filter(key_expr)
+        inbox: Inbox[Message] = Inbox(loop, buffer_size)
+        await self._attach(topic, lambda f: f.inboxes.append(inbox))
+        return self._subscription(
+            inbox, lambda: self._detach(topic, lambda f: f.inboxes.remove(inbox))
+        )
+
+    async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
+        """Ask every queryable intersecting ``key_expr``; the replies that came by ``timeout``."""
+        client, loop = self._connected()
+        topic = query_topic(key_expr)
+        correlation = next(self._correlation).to_bytes(8, "big")
+        props = Properties(PacketTypes.PUBLISH)
+        props.ResponseTopic = self._reply_topic
+        props.CorrelationData = correlation
+        props.UserProperty = [("key", key_expr)]
+        inbox: Inbox[Reply] = Inbox(loop)
+        self._pending[correlation] = inbox
+        replies: list[Reply] = []
+        try:
+            try:
+                await client.publish(topic, payload, qos=self.config.qos, properties=props)
+            except aiomqtt.MqttError as exc:
+                raise self._error(f"query {key_expr!r}", exc) from exc
+            # MQTT cannot tell how many queryables heard the query: wait until the timeout.
+            with contextlib.suppress(TimeoutError, TransportClosed):
+                async with asyncio.timeout(timeout):
+                    while True:
+                        replies.append(await inbox.get())
+        finally:
+            del self._pending[correlation]
+        return replies
+
+    async def serve(self, key_expr: str, handler: QueryHandler) -> Handle:
+        """Answer queries intersecting ``key_expr``; a failing or slow handler → error reply."""
+        self._connected()
+        filters = queryable_filters(key_expr)
+        server = _Server(key_expr, handler)
+
+        def remove(f: _Filter) -> None:
+            f.servers.remove(server)
+
+        attached: list[str] = []
+        try:
+            for topic in filters:
+                await self._attach(topic, lambda f: f.servers.append(server))
+                attached.append(topic)
+        except BaseException:
+            for topic in attached:
+                self._detach(topic, remove)
+            raise
+
+        def undeclare() -> None:
+            for topic in filters:
+                self._detach(topic, remove)
+
+        return self._handle(undeclare)
+
+    def _offer(self, server: _Server, payload: bytes, props: Properties | None) -> None:
+        """A query heard through one of ``server``'s filters: answer it if it intersects."""
+        key = _user_properties(props).get("key")
+        response_topic = getattr(props, "ResponseTopic", None)
+        correlation = getattr(props, "CorrelationData", None)
+        if not key or not response_topic or not key_intersects(server.key_expr, key):
+            return
+        assert self._loop is not None
+        self._own(
+            self._loop.create_task(
+                self._answer(server, key, payload, response_topic, correlation),
+                name=f"mqtt[{self.config.client_id}].serve[{server.key_expr}]",
+            )
+        )
+
+    async def _answer(
+        self,
+        server: _Server,
+        key: str,
+        payload: bytes,
+        response_topic: str,
+        correlation: bytes | None,
+    ) -> None:
+        """Run the handler for one query and publish its reply; never raises but on cancel."""
+        ok = True
+        try:
+            async with asyncio.timeout(self.config.serve_timeout):
+                result = await server.handler(key, payload)
+        except TimeoutError:
+            ok, result = False, f"handler timed out after {self.config.serve_timeout} s".encode()
+        except Exception as exc:
+            log.warning("query handler for %r failed", server.key_expr, exc_info=True)
+            ok, result = False, str(exc).encode()
+        if result is None or self._client is None:
+            return
+        props = Properties(PacketTypes.PUBLISH)
+        if correlation is not None:
+            props.CorrelationData = correlation
+        props.UserProperty = [("key", server.key_expr), ("ok", "1" if ok else "0")]
+        try:
+            await self._client.publish(
+                response_topic, result, qos=self.config.qos, properties=props
+            )
+        except aiomqtt.MqttError as exc:
+            log.debug("mqtt: could not reply to a query on %r: %s", server.key_expr, exc)
+
+    async def declare_token(self, key: str) -> Handle:
+        """Announce ``key`` (retained), cleared on close or, through a last will, on death."""
+        self._connected()
+        if "*" in key:
+            raise TransportError(f"a liveliness token needs a concrete key, not {key!r}")
+        _chunks(key)
+        n = next(self._token_ids)
+        client = self._new_client(
+            f"{self.config.client_id}.t{n}", will=aiomqtt.Will(key, b"", qos=1, retain=True)
+        )
+        try:
+            await client.__aenter__()
+        except aiomqtt.MqttError as exc:
+            raise self._error(f"connect for the token on {key!r}", exc) from exc
+        try:
+            await client.publish(key, ALIVE, qos=1, retain=True)
+        except aiomqtt.MqttError as exc:
+            with contextlib.suppress(aiomqtt.MqttError):
+                await client.__aexit__(None, None, None)
+            raise self._error(f"declare the token on {key!r}", exc) from exc
+
+        async def clear() -> None:
+            try:
+                await client.publish(key, b"", qos=1, retain=True)
+            except aiomqtt.MqttError as exc:
+                log.warning("mqtt: could not clear the token on %r: %s", key, exc)
+            finally:
+                with contextlib.suppress(aiomqtt.MqttError):
+                    await client.__aexit__(None, None, None)
+
+        def start_clearing() -> None:
+            if self._loop is not None:
+                self._own(self._loop.create_task(clear(), name=f"mqtt.token[{key}].clear"))
+
+        return self._handle(start_clearing, clear)
+
+    async def watch_presence(
+        self, key_expr: str, *, history: bool = True, buffer_size: int = 4096
+    ) -> Subscription[Presence]:
+        """Presence changes on ``key_expr`` (the retained ones first, if ``history``)."""
+        _, loop = self._connected()
+        topic = topic_filter(key_expr)
+        inbox: Inbox[Presence] = Inbox(loop, buffer_size)
+        watcher = _Watcher(inbox, history)
+        await self._attach(topic, lambda f: f.watchers.append(watcher), resubscribe=history)
+        return self._subscription(
+            inbox, lambda: self._detach(topic, lambda f: f.watchers.remove(watcher))
+        )
+
+
+def _sid(sid: int) -> Properties:
+    props = Properties(PacketTypes.SUBSCRIBE)
+    props.SubscriptionIdentifier = sid
+    return props

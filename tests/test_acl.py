@@ -1,0 +1,306 @@
+"""ACL messages: parsing, validation, limits, versions, and the not-understood a bad one gets."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator
+from typing import Any
+
+import orjson
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from agents import (
+    MAX_MESSAGE_BYTES,
+    ACLMessage,
+    Agent,
+    AgentPlatform,
+    MemoryHub,
+    MessageError,
+    MessageTemplate,
+    Performative,
+    agent_id,
+    name_of,
+    new_id,
+    on,
+    platform_of,
+)
+
+P = Performative
+BASE: dict[str, Any] = {"performative": "inform", "sender": "a@uav-a", "receivers": ["b@uav-b"]}
+
+
+def parse(obj: Any) -> ACLMessage:
+    return ACLMessage.from_json(orjson.dumps(obj))
+
+
+def reason(obj: Any) -> str:
+    with pytest.raises(MessageError) as err:
+        ACLMessage.from_json(obj if isinstance(obj, bytes | str) else orjson.dumps(obj))
+    return err.value.reason
+
+
+# -- the model ---------------------------------------------------------------------------
+
+
+def test_round_trip_keeps_every_field_and_leaves_unset_ones_out() -> None:
+    m = ACLMessage(
+        performative=P.REQUEST,
+        sender="federation@uav-b",
+        receivers=["federation@uav-a"],
+        reply_to=["other@uav-b"],
+        content={"action": "create-stream", "n": [1, 2.5, None, True]},
+        language="json",
+        encoding="utf-8",
+        ontology="dyknow-federation",
+        protocol="fipa-request",
+        conversation_id="c-1",
+        reply_with="r-1",
+        in_reply_to="r-0",
+        reply_by=1795000000.5,
+    )
+    assert ACLMessage.from_json(m.to_json()) == m
+    sparse = orjson.loads(ACLMessage(**BASE).to_json())
+    assert sparse == {"v": 1, **BASE}
+
+
+def test_reply_keeps_the_conversation_and_answers_reply_to() -> None:
+    m = ACLMessage(
+        performative=P.QUERY_REF,
+        sender="a@p",
+        receivers=["b@q"],
+        reply_to=["c@p"],
+        ontology="o",
+        protocol="fipa-query",
+        conversation_id="c-9",
+        reply_with="r-9",
+    )
+    r = m.reply(P.INFORM, 42)
+    assert (r.sender, r.receivers, r.in_reply_to) == ("b@q", ["c@p"], "r-9")
+    assert (r.conversation_id, r.ontology, r.protocol, r.content) == ("c-9", "o", "fipa-query", 42)
+    assert r.reply_with is None
+
+
+def test_agent_identifiers() -> None:
+    assert agent_id("federation", "uav-a") == "federation@uav-a"
+    assert platform_of("federation@uav-a") == "uav-a"
+    assert name_of("federation@uav-a") == "federation"
+    for bad in ("no-at", "a@", "@p", "a b@p", "a@p/q", "a@p@q"):
+        with pytest.raises(MessageError):
+            ACLMessage.from_obj({**BASE, "sender": bad})
+
+
+def test_new_ids_are_unique() -> None:
+    ids = {new_id("c") for _ in range(1000)}
+    assert len(ids) == 1000
+    assert all(i.startswith("c-") for i in ids)
+
+
+# -- what is refused, and why -----------------------------------------------------------
+
+
+def test_unknown_performative_is_refused_naming_the_field() -> None:
+    r = reason({**BASE, "performative": "shout"})
+    assert "performative" in r
+
+
+@pytest.mark.parametrize(
+    ("change", "field"),
+    [
+        ({"receivers": []}, "receivers"),
+        ({"receivers": "b@uav-b"}, "receivers"),
+        ({"sender": None}, "sender"),
+        ({"reply_by": "soon"}, "reply_by"),
+        ({"surprise": 1}, "surprise"),
+    ],
+)
+def test_invalid_fields_are_named(change: dict[str, Any], field: str) -> None:
+    assert field in reason({**BASE, **change})
+
+
+def test_missing_fields_are_named() -> None:
+    obj = dict(BASE)
+    del obj["sender"]
+    assert "sender" in reason(obj)
+
+
+@pytest.mark.parametrize("payload", [b"not json", b"\xff\xfe", b"[1, 2]", b"42", b'"inform"'])
+def test_what_is_not_a_json_object_is_refused(payload: bytes) -> None:
+    assert reason(payload)
+
+
+@pytest.mark.parametrize("version", [2, 0, "1", True, 1.0, None, [1]])
+def test_only_wire_version_1_is_spoken(version: Any) -> None:
+    assert "version" in reason({**BASE, "v": version})
+
+
+def test_a_message_without_version_is_version_1() -> None:
+    assert parse(BASE).v == 1
+
+
+def test_size_limit_counts_bytes_whether_given_bytes_or_str() -> None:
+    filler = MAX_MESSAGE_BYTES // 2 + 10
+    big = orjson.dumps({**BASE, "content": "é" * filler})  # 2 bytes per character
+    assert len(big) > MAX_MESSAGE_BYTES
+    assert "exceeds" in reason(big)
+    assert "exceeds" in reason(big.decode())
+    ok = orjson.dumps({**BASE, "content": "x" * (MAX_MESSAGE_BYTES - 200)})
+    assert len(ACLMessage.from_json(ok).content) == MAX_MESSAGE_BYTES - 200  # type: ignore[arg-type]
+    with pytest.raises(MessageError):
+        ACLMessage.from_json(ok, max_bytes=1000)
+
+
+def test_deep_nesting_is_refused_with_a_short_reason() -> None:
+    deep_json = b'{"performative":"inform","sender":"a@b","receivers":["c@d"],"content":'
+    deep_json += b"[" * 5000 + b"]" * 5000 + b"}"
+    assert len(reason(deep_json)) < 300
+    nested: list[Any] = []
+    inner = nested
+    for _ in range(3000):
+        inner.append([])
+        inner = inner[0]
+    with pytest.raises(MessageError) as err:
+        ACLMessage.from_obj({**BASE, "content": nested})
+    assert len(err.value.reason) < 400  # a not-understood carrying it stays small
+
+
+def test_content_that_is_not_json_cannot_be_built_or_sent() -> None:
+    with pytest.raises(ValueError):
+        ACLMessage(**BASE, content=b"bytes")
+    with pytest.raises(ValueError):
+        ACLMessage(**BASE, content={1: "int key"})
+    huge = ACLMessage(**BASE, content=2**70)  # a Python int, valid here but not in JSON
+    with pytest.raises(MessageError):
+        huge.to_json()
+
+
+json_values = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(min_value=-(2**53), max_value=2**53)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(max_size=20),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4)
+    ),
+    max_leaves=20,
+)
+
+
+@settings(max_examples=60)
+@given(content=json_values, perf=st.sampled_from(list(Performative)))
+def test_any_json_content_round_trips(content: Any, perf: Performative) -> None:
+    m = ACLMessage(performative=perf, sender="a@p", receivers=["b@q"], content=content)
+    assert ACLMessage.from_json(m.to_json()) == m
+
+
+# -- not-understood for what arrives malformed on a platform's inbox -----------------------
+
+
+class Sink(Agent):
+    """Keeps what it gets."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.got: asyncio.Queue[ACLMessage] = asyncio.Queue()
+
+    @on(MessageTemplate())
+    async def keep(self, message: ACLMessage) -> None:
+        self.got.put_nowait(message)
+
+
+@contextlib.asynccontextmanager
+async def two_platforms() -> AsyncIterator[tuple[AgentPlatform, AgentPlatform, Sink]]:
+    hub = MemoryHub()
+    async with (
+        hub.transport() as ta,
+        hub.transport() as tb,
+        AgentPlatform("uav-a", ta, federation="t") as pa,
+        AgentPlatform("uav-b", tb, federation="t") as pb,
+    ):
+        sink = await pb.add(Sink("sink"))
+        yield pa, pb, sink
+
+
+@pytest.mark.parametrize(
+    ("payload", "says"),
+    [
+        (
+            {**BASE, "sender": "sink@uav-b", "receivers": ["x@uav-a"], "performative": "shout"},
+            "performative",
+        ),
+        ({**BASE, "sender": "sink@uav-b", "receivers": ["x@uav-a"], "v": 7}, "version"),
+        ({"sender": "sink@uav-b", "receivers": ["x@uav-a"], "reply_with": "r-7"}, "performative"),
+    ],
+)
+async def test_malformed_message_gets_not_understood_saying_why(
+    payload: dict[str, Any], says: str
+) -> None:
+    async with asyncio.timeout(5), two_platforms() as (pa, pb, sink):
+        await pb.transport.publish(pa.key("acl"), orjson.dumps(payload))
+        answer = await sink.got.get()
+        assert answer.performative is P.NOT_UNDERSTOOD
+        assert says in str(answer.content)
+        assert answer.sender == "ams@uav-a"  # no agent x on uav-a: the platform answers
+        assert answer.in_reply_to == payload.get("reply_with")
+        assert pa.stats.malformed == 1
+        assert pa.running
+
+
+async def test_not_understood_comes_from_the_addressed_agent_when_it_exists() -> None:
+    async with asyncio.timeout(5), two_platforms() as (pa, pb, sink):
+        await pa.add(Agent("x"))
+        bad = {**BASE, "performative": "shout", "sender": "sink@uav-b", "receivers": ["x@uav-a"]}
+        await pb.transport.publish(pa.key("acl"), orjson.dumps(bad))
+        answer = await sink.got.get()
+        assert (answer.sender, answer.performative) == ("x@uav-a", P.NOT_UNDERSTOOD)
+
+
+async def test_garbage_without_a_sender_is_counted_and_the_platform_keeps_running() -> None:
+    async with asyncio.timeout(5), two_platforms() as (pa, pb, sink):
+        probe = await pa.add(Sink("probe"))
+        for junk in (b"\x00\x01", b"[]", b'{"sender": 5}', b'{"sender": "no-at-sign"}'):
+            await pb.transport.publish(pa.key("acl"), junk)
+        # A forged local sender is never answered: the answer would stay inside uav-a.
+        forged = {**BASE, "performative": "shout", "sender": "x@uav-a", "receivers": ["y@uav-a"]}
+        await pb.transport.publish(pa.key("acl"), orjson.dumps(forged))
+        # The inbox is in order: once this arrives, all the junk before it was dealt with.
+        good = ACLMessage(performative=P.INFORM, sender="sink@uav-b", receivers=["probe@uav-a"])
+        await pb.transport.publish(pa.key("acl"), good.to_json())
+        assert (await probe.got.get()) == good
+        assert pa.stats.malformed == 5
+        assert sink.got.empty() and probe.got.empty()
+        assert pa.running
+
+
+async def test_a_malformed_not_understood_is_not_answered() -> None:
+    async with asyncio.timeout(5), two_platforms() as (pa, pb, sink):
+        probe = await pa.add(Sink("probe"))
+        bad = {**BASE, "performative": "not-understood", "sender": "sink@uav-b", "v": 9}
+        await pb.transport.publish(pa.key("acl"), orjson.dumps({**bad, "receivers": ["x@uav-a"]}))
+        # Once uav-a has seen the probe it has dealt with the bad message; then once sink
+        # sees its own probe, whatever uav-a answered would have arrived before it.
+        for target, inbox in ((probe, pa.key("acl")), (sink, pb.key("acl"))):
+            mark = ACLMessage(
+                performative=P.INFORM, sender="tester@elsewhere", receivers=[target.aid]
+            )
+            await pb.transport.publish(inbox, mark.to_json())
+            assert (await target.got.get()) == mark
+        assert sink.got.empty()
+        assert pa.stats.malformed == 1
+
+
+async def test_oversized_message_on_the_inbox_is_refused() -> None:
+    async with asyncio.timeout(5), two_platforms() as (pa, pb, sink):
+        huge = {
+            **BASE,
+            "sender": "sink@uav-b",
+            "receivers": ["x@uav-a"],
+            "content": "x" * MAX_MESSAGE_BYTES,
+        }
+        await pb.transport.publish(pa.key("acl"), orjson.dumps(huge))
+        answer = await sink.got.get()
+        assert answer.performative is P.NOT_UNDERSTOOD
+        assert "exceeds" in str(answer.content)

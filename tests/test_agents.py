@@ -1,0 +1,785 @@
+"""The agent runtime: templates, conversations, deadlines, failures, delivery, shutdown."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+import pytest
+
+from agents import (
+    ACLMessage,
+    Agent,
+    AgentError,
+    AgentPlatform,
+    ConversationError,
+    MemoryHub,
+    MessageTemplate,
+    Performative,
+    ReplyTimeout,
+    TransportClosed,
+    new_id,
+    on,
+    request,
+)
+
+P = Performative
+
+
+@contextlib.asynccontextmanager
+async def platforms(*names: str, **kw: Any) -> AsyncIterator[list[AgentPlatform]]:
+    """Platforms on one in-memory hub; on exit, checks that no task is left behind."""
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack:
+        out = []
+        for name in names:
+            transport = await stack.enter_async_context(hub.transport())
+            out.append(
+                await stack.enter_async_context(
+                    AgentPlatform(name, transport, federation="t", **kw)
+                )
+            )
+        yield out
+    assert asyncio.all_tasks() == {asyncio.current_task()}
+    assert not hub.subscribers and not hub.queryables and not hub.tokens and not hub.watchers
+
+
+class Recorder(Agent):
+    """Keeps every message its handlers saw, by handler."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.seen: asyncio.Queue[tuple[str, ACLMessage]] = asyncio.Queue()
+
+    async def next(self) -> tuple[str, ACLMessage]:
+        return await self.seen.get()
+
+
+class Templated(Recorder):
+    @on(MessageTemplate(P.REQUEST, ontology="weather"))
+    async def weather(self, m: ACLMessage) -> None:
+        self.seen.put_nowait(("weather", m))
+
+    @on(MessageTemplate((P.INFORM, P.CONFIRM), protocol="p1"))
+    async def informs(self, m: ACLMessage) -> None:
+        self.seen.put_nowait(("informs", m))
+
+    @on(MessageTemplate(conversation_id="special"))
+    async def special(self, m: ACLMessage) -> None:
+        self.seen.put_nowait(("special", m))
+
+    @on(MessageTemplate(P.REQUEST))
+    async def any_request(self, m: ACLMessage) -> None:
+        self.seen.put_nowait(("any_request", m))
+
+
+class Echo(Agent):
+    """Answers every request with an inform of its content."""
+
+    @on(MessageTemplate(P.REQUEST))
+    async def echo(self, m: ACLMessage) -> None:
+        await self.reply(m, P.INFORM, m.content)
+
+
+def msg(sender: Agent, to: str, perf: P = P.INFORM, **fields: Any) -> ACLMessage:
+    return sender.message(perf, to, **fields)
+
+
+# -- templates ---------------------------------------------------------------------------
+
+
+def test_template_matches_any_subset_of_fields() -> None:
+    m = ACLMessage(
+        performative=P.REQUEST,
+        sender="a@p",
+        receivers=["b@p"],
+        protocol="fipa-request",
+        ontology="o",
+        conversation_id="c",
+    )
+    assert MessageTemplate().matches(m)
+    assert MessageTemplate(P.REQUEST).matches(m)
+    assert MessageTemplate("request").matches(m)
+    assert MessageTemplate([P.INFORM, P.REQUEST]).matches(m)
+    assert not MessageTemplate(P.INFORM).matches(m)
+    assert MessageTemplate(
+        P.REQUEST, protocol="fipa-request", ontology="o", conversation_id="c"
+    ).matches(m)
+    assert not MessageTemplate(ontology="other").matches(m)
+    assert not MessageTemplate(protocol="fipa-query").matches(m)
+    assert not MessageTemplate(conversation_id="d").matches(m)
+    assert MessageTemplate(where=lambda x: x.sender == "a@p").matches(m)
+    assert not MessageTemplate(P.REQUEST, where=lambda x: False).matches(m)
+    assert "request" in repr(MessageTemplate(P.REQUEST, ontology="o"))
+    with pytest.raises(ValueError):
+        MessageTemplate("shout")
+
+
+async def test_handlers_are_chosen_by_template_in_declaration_order() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        t = await p.add(Templated("t"))
+        a = await p.add(Agent("a"))
+        await a.send(msg(a, t.aid, P.REQUEST, ontology="weather"))
+        await a.send(msg(a, t.aid, P.REQUEST, ontology="traffic"))
+        await a.send(msg(a, t.aid, P.CONFIRM, protocol="p1"))
+        await a.send(msg(a, t.aid, P.INFORM, conversation_id="special"))
+        got = [(await t.next())[0] for _ in range(4)]
+        assert got == ["weather", "any_request", "informs", "special"]
+
+
+async def test_subclass_override_replaces_the_base_handler() -> None:
+    class Sub(Templated):
+        @on(MessageTemplate(P.REQUEST, ontology="weather"))
+        async def weather(self, m: ACLMessage) -> None:
+            self.seen.put_nowait(("sub-weather", m))
+
+        async def any_request(self, m: ACLMessage) -> None:  # no decorator: no handler
+            self.seen.put_nowait(("never", m))
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        t = await p.add(Sub("t"))
+        a = await p.add(Recorder("a"))
+        a.add_handler(MessageTemplate(P.NOT_UNDERSTOOD), _keep(a, "nu"))
+        await a.send(msg(a, t.aid, P.REQUEST, ontology="weather"))
+        await a.send(msg(a, t.aid, P.REQUEST, ontology="traffic"))
+        assert (await t.next())[0] == "sub-weather"
+        assert (await a.next())[0] == "nu"
+
+
+def _keep(agent: Recorder, label: str) -> Any:
+    async def handler(m: ACLMessage) -> None:
+        agent.seen.put_nowait((label, m))
+
+    return handler
+
+
+async def test_added_handlers_can_be_removed() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        r = await p.add(Recorder("r"))
+        a = await p.add(Recorder("a"))
+        a.add_handler(MessageTemplate(P.NOT_UNDERSTOOD), _keep(a, "nu"))
+        remove = r.add_handler(MessageTemplate(P.INFORM), _keep(r, "inform"))
+        await a.send(msg(a, r.aid))
+        assert (await r.next())[0] == "inform"
+        remove()
+        await a.send(msg(a, r.aid))
+        label, answer = await a.next()
+        assert label == "nu" and "no handler for inform" in str(answer.content)
+
+
+async def test_add_responder_needs_a_declared_handler() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        a = await p.add(Agent("a"))
+
+        async def plain(m: ACLMessage) -> None:
+            pass
+
+        with pytest.raises(AgentError):
+            a.add_responder(plain)
+        seen: list[ACLMessage] = []
+
+        @on(MessageTemplate(P.INFORM))
+        async def declared(m: ACLMessage) -> None:
+            seen.append(m)
+
+        remove = a.add_responder(declared)
+        remove()
+
+
+# -- unmatched messages --------------------------------------------------------------------
+
+
+async def test_unmatched_message_gets_not_understood_saying_why() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        silent = await p.add(Agent("silent"))
+        a = await p.add(Agent("a"))
+        m = msg(a, silent.aid, P.REQUEST, ontology="weather", protocol="fipa-request")
+        answer = await a.ask(m, timeout=2)
+        assert answer.performative is P.NOT_UNDERSTOOD
+        assert answer.sender == silent.aid
+        assert "no handler for request" in str(answer.content)
+        assert "weather" in str(answer.content)
+        assert silent.stats.not_understood == 1
+
+
+async def test_stray_not_understood_and_failure_are_logged_not_answered(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        silent = await p.add(Agent("silent"))
+        a = await p.add(Recorder("a"))
+        a.add_handler(MessageTemplate(), _keep(a, "any"))
+        with caplog.at_level(logging.WARNING, logger="agents"):
+            await a.send(msg(a, silent.aid, P.NOT_UNDERSTOOD, content="huh"))
+            await a.send(msg(a, silent.aid, P.FAILURE, content="oops"))
+            # a request after them: its answer comes after anything they would cause
+            await a.send(msg(a, silent.aid, P.REQUEST, reply_with="r-x"))
+            _, answer = await a.next()
+        assert answer.in_reply_to == "r-x"
+        assert a.seen.empty()
+        assert silent.stats.not_understood == 1
+        assert "unsolicited not-understood" in caplog.text
+        assert "unsolicited failure" in caplog.text
+
+
+async def test_message_to_an_unknown_agent_fails_for_it() -> None:
+    async with asyncio.timeout(5), platforms("p", "q") as [p, _q]:
+        a = await p.add(Agent("a"))
+        for to in ("ghost@p", "ghost@q"):
+            answer = await a.ask(msg(a, to, P.REQUEST), timeout=2)
+            assert (answer.performative, answer.sender) == (P.FAILURE, to)
+            assert "no agent" in str(answer.content)
+
+
+# -- conversations -----------------------------------------------------------------------
+
+
+async def test_ask_matches_the_reply_by_in_reply_to() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        await p.add(Echo("echo"))
+        a = await p.add(Agent("a"))
+        answers = await asyncio.gather(
+            *(a.ask(msg(a, "echo@p", P.REQUEST, content=i), timeout=2) for i in range(20))
+        )
+        assert [x.content for x in answers] == list(range(20))
+        assert not a._by_reply and not a._by_conv  # cleaned up
+
+
+async def test_a_reply_carrying_only_the_conversation_id_is_matched() -> None:
+    class Terse(Agent):
+        @on(MessageTemplate(P.REQUEST))
+        async def answer(self, m: ACLMessage) -> None:
+            await self.send(
+                self.message(P.INFORM, m.sender, "ok", conversation_id=m.conversation_id)
+            )
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        await p.add(Terse("terse"))
+        a = await p.add(Agent("a"))
+        with a.conversation(new_id(), peers=["terse@p"], timeout=2) as conv:
+            await conv.send(msg(a, "terse@p", P.REQUEST, conversation_id=conv.id))
+            assert (await conv.receive()).content == "ok"
+
+
+async def test_only_peers_are_heard_in_a_conversation() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        a = await p.add(Recorder("a"))
+        a.add_handler(MessageTemplate(), _keep(a, "mailbox"))
+        intruder = await p.add(Agent("intruder"))
+        peer = await p.add(Agent("peer"))
+        with a.conversation("c-shared", peers=[peer.aid], timeout=2) as conv:
+            await intruder.send(msg(intruder, a.aid, conversation_id="c-shared", content="fake"))
+            await peer.send(msg(peer, a.aid, conversation_id="c-shared", content="real"))
+            assert (await conv.receive()).content == "real"
+            label, other = await a.next()
+            assert (label, other.content) == ("mailbox", "fake")
+
+
+async def test_an_agent_can_ask_itself() -> None:
+    class Self_(Agent):
+        @on(MessageTemplate(P.REQUEST))
+        async def answer(self, m: ACLMessage) -> None:
+            await self.reply(m, P.INFORM, "me")
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        s = await p.add(Self_("s"))
+        assert (await s.ask(msg(s, s.aid, P.REQUEST), timeout=2)).content == "me"
+
+
+async def test_no_reply_by_the_deadline_is_a_reply_timeout_not_a_hang() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        sleeper = await p.add(Recorder("sleeper"))
+        sleeper.add_handler(MessageTemplate(P.REQUEST), _keep(sleeper, "req"))  # never answers
+        a = await p.add(Agent("a"))
+        m = msg(a, sleeper.aid, P.REQUEST)
+        t0 = time.monotonic()
+        with pytest.raises(ReplyTimeout) as err:
+            await a.ask(m, timeout=0.1)
+        assert 0.09 < time.monotonic() - t0 < 1.0
+        assert isinstance(err.value, TimeoutError)
+        sent = err.value.message
+        assert sent is not None and sent.content == m.content
+        assert sent.reply_by is not None and sent.reply_by <= time.time()
+        _, received = await sleeper.next()
+        assert received.reply_by == sent.reply_by  # the deadline travelled with the request
+        assert not a._by_reply and not a._by_conv
+
+
+async def test_late_reply_is_dropped_and_counted() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        slow = await p.add(Recorder("slow"))
+        slow.add_handler(MessageTemplate(P.REQUEST), _keep(slow, "req"))
+        slow.add_handler(MessageTemplate(P.NOT_UNDERSTOOD), _keep(slow, "nu"))
+        a = await p.add(Echo("a"))
+        with pytest.raises(ReplyTimeout):
+            await a.ask(msg(a, slow.aid, P.REQUEST), timeout=0.05)
+        _, received = await slow.next()
+        await slow.reply(received, P.INFORM, "late")
+        # Echo answers this request only after the late inform (same mailbox, in order).
+        assert (await slow.ask(msg(slow, a.aid, P.REQUEST, content=1), timeout=2)).content == 1
+        assert a.stats.late == 1
+        assert slow.seen.empty()  # no not-understood came back
+
+
+async def test_conversation_timeout_bounds_every_receive() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        a = await p.add(Agent("a"))
+        with a.conversation(new_id(), timeout=0.05) as conv:
+            with pytest.raises(ReplyTimeout):
+                await conv.receive()
+            with pytest.raises(ReplyTimeout):
+                await conv.receive(timeout=0.01)
+        with pytest.raises(ConversationError):
+            await conv.receive()  # closed
+
+
+async def test_a_handler_can_wait_for_a_reply_inline() -> None:
+    """Replies go straight to their conversation, so an inline handler does not deadlock."""
+
+    class Relay(Agent):
+        @on(MessageTemplate(P.REQUEST))
+        async def relay(self, m: ACLMessage) -> None:
+            inner = await self.ask(self.message(P.REQUEST, "echo@p", m.content), timeout=2)
+            await self.reply(m, P.INFORM, ["relayed", inner.content])
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        await p.add(Echo("echo"))
+        await p.add(Relay("relay"))
+        a = await p.add(Agent("a"))
+        assert (await a.ask(msg(a, "relay@p", P.REQUEST, content=7), timeout=2)).content == [
+            "relayed",
+            7,
+        ]
+
+
+async def test_concurrent_handlers_do_not_hold_up_the_mailbox() -> None:
+    gate = asyncio.Event()
+
+    class Waiter(Agent):
+        @on(MessageTemplate(P.REQUEST, ontology="slow"), concurrent=True)
+        async def slow(self, m: ACLMessage) -> None:
+            await gate.wait()
+            await self.reply(m, P.INFORM, "slow")
+
+        @on(MessageTemplate(P.REQUEST, ontology="fast"))
+        async def fast(self, m: ACLMessage) -> None:
+            await self.reply(m, P.INFORM, "fast")
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        await p.add(Waiter("w"))
+        a = await p.add(Agent("a"))
+        slow = asyncio.ensure_future(a.ask(msg(a, "w@p", P.REQUEST, ontology="slow"), timeout=2))
+        assert (await a.ask(msg(a, "w@p", P.REQUEST, ontology="fast"), timeout=2)).content == "fast"
+        assert not slow.done()
+        gate.set()
+        assert (await slow).content == "slow"
+
+
+# -- failures in handlers ------------------------------------------------------------------
+
+
+class Fragile(Agent):
+    @on(MessageTemplate(P.REQUEST))
+    async def boom(self, m: ACLMessage) -> None:
+        if m.content == "boom":
+            raise RuntimeError("the sensor is unplugged")
+        await self.reply(m, P.INFORM, "fine")
+
+    @on(MessageTemplate(P.INFORM))
+    async def boom_quietly(self, m: ACLMessage) -> None:
+        raise RuntimeError("nobody waits for this")
+
+
+async def test_handler_error_becomes_a_failure_and_the_agent_survives(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        f = await p.add(Fragile("f"))
+        a = await p.add(Recorder("a"))
+        with caplog.at_level(logging.ERROR, logger="agents"):
+            answer = await a.ask(msg(a, f.aid, P.REQUEST, content="boom"), timeout=2)
+            assert answer.performative is P.FAILURE
+            assert answer.content == "RuntimeError: the sensor is unplugged"
+            a.add_handler(MessageTemplate(), _keep(a, "any"))
+            await a.send(msg(a, f.aid, P.INFORM))  # raises too, but nobody is told
+            assert (await a.ask(msg(a, f.aid, P.REQUEST), timeout=2)).content == "fine"
+        assert a.seen.empty()
+        assert f.running and f.stats.handler_errors == 2
+        assert "the sensor is unplugged" in caplog.text
+
+
+async def test_a_failing_spawned_task_is_logged_and_the_agent_lives_on(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        e = await p.add(Echo("e"))
+
+        async def bad() -> None:
+            raise ValueError("background trouble")
+
+        with caplog.at_level(logging.ERROR, logger="agents"):
+            await e.spawn(bad(), "bad")
+        assert "background trouble" in caplog.text
+        a = await p.add(Agent("a"))
+        assert (await a.ask(msg(a, e.aid, P.REQUEST, content=1), timeout=2)).content == 1
+
+
+async def test_setup_failure_is_raised_by_add_and_the_platform_lives_on() -> None:
+    class Broken(Agent):
+        async def setup(self) -> None:
+            raise OSError("no camera")
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        with pytest.raises(OSError, match="no camera"):
+            await p.add(Broken("b"))
+        assert p.agent("b") is None
+        await p.add(Echo("b"))  # the name is free again
+
+
+# -- local delivery ------------------------------------------------------------------------
+
+
+async def test_local_delivery_hands_over_the_object_without_json(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    def no_json(self: ACLMessage) -> bytes:
+        raise AssertionError("local delivery must not serialize")
+
+    monkeypatch.setattr(ACLMessage, "to_json", no_json)
+    monkeypatch.setattr(ACLMessage, "from_json", no_json)
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        r = await p.add(Recorder("r"))
+        r.add_handler(MessageTemplate(), _keep(r, "any"))
+        await p.add(Echo("echo"))
+        a = await p.add(Agent("a"))
+        m = msg(a, r.aid, content={"x": [1, 2]})
+        await a.send(m)
+        assert (await r.next())[1] is m
+        assert (await request(a, "echo@p", {"y": 1})) == {"y": 1}
+        assert p.stats.local >= 3 and p.stats.sent_remote == 0
+
+
+async def test_local_and_remote_delivery_behave_the_same() -> None:
+    async with asyncio.timeout(5), platforms("p", "q") as [p, q]:
+        for platform in (p, q):
+            await platform.add(Fragile("f"))
+            await platform.add(Echo("echo"))
+        for client_platform in (p, q):  # p: local to the agents on p; q: remote
+            a = await client_platform.add(Agent("client"))
+            ok = await a.ask(msg(a, "f@p", P.REQUEST, content="x"), timeout=2)
+            bad = await a.ask(msg(a, "f@p", P.REQUEST, content="boom"), timeout=2)
+            nu = await a.ask(msg(a, "echo@p", P.QUERY_IF, ontology="o"), timeout=2)
+            ghost = await a.ask(msg(a, "ghost@p", P.REQUEST), timeout=2)
+            assert [x.performative for x in (ok, bad, nu, ghost)] == [
+                P.INFORM,
+                P.FAILURE,
+                P.NOT_UNDERSTOOD,
+                P.FAILURE,
+            ]
+            assert bad.content == "RuntimeError: the sensor is unplugged"
+            await a.stop()
+        assert q.stats.sent_remote == 4 and p.stats.received_remote == 4
+
+
+async def test_one_message_to_receivers_on_several_platforms() -> None:
+    async with asyncio.timeout(5), platforms("p", "q") as [p, q]:
+        rs = []
+        for platform, name in ((p, "r1"), (p, "r2"), (q, "r3")):
+            r = await platform.add(Recorder(name))
+            r.add_handler(MessageTemplate(), _keep(r, "any"))
+            rs.append(r)
+        a = await p.add(Agent("a"))
+        m = a.message(P.INFORM, [r.aid for r in rs], "all")
+        await a.send(m)
+        got = [(await r.next())[1] for r in rs]
+        assert got[0] is m and got[1] is m and got[2] == m
+        assert p.stats.sent_remote == 1  # one copy to q, for r3
+
+
+async def test_a_full_mailbox_answers_failure() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        gate = asyncio.Event()
+
+        class Busy(Agent):
+            @on(MessageTemplate(P.INFORM))
+            async def hold(self, m: ACLMessage) -> None:
+                await gate.wait()
+
+        busy = await p.add(Busy("busy", mailbox_size=2))
+        a = await p.add(Agent("a"))
+        for _ in range(3):  # one taken by the held handler, two wait: the mailbox is full
+            await a.send(msg(a, busy.aid))
+        answer = await a.ask(msg(a, busy.aid, P.REQUEST), timeout=2)
+        assert (answer.performative, answer.sender) == (P.FAILURE, busy.aid)
+        assert "mailbox" in str(answer.content)
+        assert busy.stats.dropped == 1 and p.stats.mailbox_full == 1
+        gate.set()
+
+
+async def test_an_agent_sends_only_as_itself() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        a = await p.add(Agent("a"))
+        with pytest.raises(AgentError):
+            await a.send(ACLMessage(performative=P.INFORM, sender="b@p", receivers=["a@p"]))
+        with pytest.raises(AgentError):
+            await Agent("loose").send(
+                ACLMessage(performative=P.INFORM, sender="loose@p", receivers=["a@p"])
+            )  # not on a platform
+
+
+# -- lifecycle -----------------------------------------------------------------------------
+
+
+async def test_tasks_are_named_owned_and_gone_after_shutdown() -> None:
+    async with asyncio.timeout(5):
+        async with platforms("uav-a") as [p]:
+            await p.add(Echo("federation"))
+            names = {t.get_name() for t in asyncio.all_tasks()}
+            assert "agent[federation@uav-a]" in names
+            assert "agent[federation@uav-a].receive" in names
+            assert "platform[uav-a].acl-inbox" in names
+            assert "agent[df@uav-a].receive" in names
+        assert asyncio.all_tasks() == {asyncio.current_task()}
+
+
+async def test_shutdown_with_conversations_open_leaves_nothing() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        hold = asyncio.Event()
+        sleeper = await p.add(Recorder("sleeper"))
+        sleeper.add_handler(MessageTemplate(P.REQUEST), _keep(sleeper, "req"))
+        a = await p.add(Agent("a"))
+
+        class Stuck(Agent):
+            @on(MessageTemplate(P.INFORM), concurrent=True)
+            async def wait(self, m: ACLMessage) -> None:
+                await hold.wait()
+
+        s = await p.add(Stuck("stuck"))
+        await a.send(msg(a, s.aid))
+        waiting = asyncio.ensure_future(a.ask(msg(a, sleeper.aid, P.REQUEST), timeout=60))
+        await sleeper.next()
+        await a.stop()
+        with pytest.raises(ConversationError, match="stopped"):
+            await waiting
+        assert not a.running and p.agent("a") is None
+    # platforms() checks that no task is left
+
+
+async def test_async_with_stops_the_agent() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        async with await p.add(Echo("e")) as e:
+            assert e.running and p.agent("e") is e
+        assert not e.running and p.agent("e") is None
+        with pytest.raises(AgentError):
+            async with Echo("never-added"):
+                pass
+
+
+async def test_an_agent_can_stop_itself_from_a_handler() -> None:
+    class Quitter(Agent):
+        @on(MessageTemplate(P.REQUEST))
+        async def quit(self, m: ACLMessage) -> None:
+            await self.reply(m, P.AGREE)
+            await self.stop()
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        q = await p.add(Quitter("q"))
+        a = await p.add(Agent("a"))
+        assert (await a.ask(msg(a, q.aid, P.REQUEST), timeout=2)).performative is P.AGREE
+        await q.stop()  # waits until it is done
+        assert p.agent("q") is None
+
+
+async def test_setup_and_teardown_hooks_run_while_the_agent_can_send() -> None:
+    log: list[str] = []
+
+    class Hooked(Agent):
+        async def setup(self) -> None:
+            log.append("setup")
+            await self.send(self.message(P.INFORM, "r@p", "hello"))
+
+        async def teardown(self) -> None:
+            log.append("teardown")
+            await self.send(self.message(P.INFORM, "r@p", "bye"))
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        r = await p.add(Recorder("r"))
+        r.add_handler(MessageTemplate(), _keep(r, "any"))
+        h = await p.add(Hooked("h"))
+        assert (await r.next())[1].content == "hello"
+        await h.stop()
+        assert (await r.next())[1].content == "bye"
+        assert log == ["setup", "teardown"]
+
+
+async def test_platform_lifecycle_rules() -> None:
+    hub = MemoryHub()
+    async with asyncio.timeout(5), hub.transport() as t:
+        p = AgentPlatform("p", t, federation="t")
+        with pytest.raises(AgentError):
+            await p.add(Agent("early"))
+        async with p:
+            assert hub.tokens == {"dyknow/t/v1/alive/p": 1}  # declared while running
+            await p.add(Agent("a"))
+            with pytest.raises(AgentError):
+                await p.add(Agent("a"))
+            with pytest.raises(AgentError):
+                async with p:
+                    pass
+            a2 = Agent("a2")
+            await p.add(a2)
+            with pytest.raises(AgentError):
+                await p.add(a2)  # an agent starts once
+        assert hub.tokens == {}
+        assert not p.running
+        with pytest.raises(AgentError):
+            async with p:
+                pass
+        with pytest.raises(ValueError):
+            AgentPlatform("bad name", t)
+        with pytest.raises(ValueError):
+            Agent("bad name")
+
+
+async def test_an_error_in_the_platform_body_propagates_unwrapped() -> None:
+    hub = MemoryHub()
+    async with asyncio.timeout(5), hub.transport() as t:
+        with pytest.raises(KeyError):
+            async with AgentPlatform("p", t) as p:
+                await p.add(Echo("e"))
+                raise KeyError("user code")
+        assert asyncio.all_tasks() == {asyncio.current_task()}
+
+
+async def test_removing_an_agent_by_name() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        await p.add(Echo("e"))
+        assert [a.name for a in p.agents] == ["df", "e"]
+        await p.remove("e")
+        assert p.agent("e") is None
+        await p.remove("e")  # nothing left to do
+
+
+async def test_a_tight_send_loop_does_not_overflow_an_idle_receiver() -> None:
+    async with asyncio.timeout(5), platforms("p", "q") as [p, q]:
+        got = asyncio.Event()
+
+        class Counter(Agent):
+            n = 0
+
+            @on(MessageTemplate(P.INFORM))
+            async def count(self, m: ACLMessage) -> None:
+                self.n += 1
+                if self.n == 5000:
+                    got.set()
+
+        c = await p.add(Counter("c", mailbox_size=100))
+        for sender_platform in (p, q):  # local, then through the channel's receive loop
+            c.n = 0
+            got.clear()
+            a = await sender_platform.add(Agent("a"))
+            m = msg(a, c.aid)
+            for _ in range(5000):
+                await a.send(m)
+            await got.wait()
+            await a.stop()
+        assert c.stats.dropped == 0 and p.stats.mailbox_full == 0
+
+
+async def test_requests_queued_when_an_agent_stops_get_a_failure() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        gate = asyncio.Event()
+        busy = asyncio.Event()
+
+        class Slow(Agent):
+            @on(MessageTemplate(P.REQUEST))
+            async def hold(self, m: ACLMessage) -> None:
+                busy.set()
+                await gate.wait()
+
+        s = await p.add(Slow("s"))
+        a = await p.add(Agent("a"))
+        first = asyncio.ensure_future(a.ask(msg(a, s.aid, P.REQUEST, content=1), timeout=60))
+        queued = asyncio.ensure_future(a.ask(msg(a, s.aid, P.REQUEST, content=2), timeout=60))
+        await busy.wait()  # the first is being handled; the second was sent before it began
+        assert len(s._mailbox) == 1
+        await s.stop()
+        answer = await queued
+        assert (answer.performative, answer.content) == (P.FAILURE, "s@p stopped")
+        after = await a.ask(msg(a, s.aid, P.REQUEST), timeout=2)
+        assert "no agent" in str(after.content)
+        cut_short = await first  # its handler was cancelled mid-way
+        assert (cut_short.performative, cut_short.content) == (P.FAILURE, "s@p stopped")
+
+
+async def test_a_remote_message_claiming_a_local_sender_is_dropped() -> None:
+    async with asyncio.timeout(5), platforms("p", "q") as [p, q]:
+        r = await p.add(Recorder("r"))
+        r.add_handler(MessageTemplate(), _keep(r, "any"))
+        forged = ACLMessage(performative=P.INFORM, sender="boss@p", receivers=["r@p"], content="x")
+        await q.transport.publish(p.key("acl"), forged.to_json())
+        real = ACLMessage(performative=P.INFORM, sender="someone@q", receivers=["r@p"])
+        await q.transport.publish(p.key("acl"), real.to_json())
+        assert (await r.next())[1] == real  # the forged one, sent first, never arrived
+        assert p.stats.forged == 1
+
+
+async def test_a_platform_that_cannot_open_leaves_nothing_behind() -> None:
+    hub = MemoryHub()
+    async with asyncio.timeout(5):
+        with pytest.raises(TransportClosed):
+            async with AgentPlatform("p", hub.transport()):  # the transport was never opened
+                pass
+        assert asyncio.all_tasks() == {asyncio.current_task()}
+
+
+async def test_a_template_predicate_that_raises_does_not_kill_the_agent() -> None:
+    def picky(m: ACLMessage) -> bool:
+        if m.content == "bad":
+            raise ValueError("cannot judge this")
+        return True
+
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        e = await p.add(Echo("e"))
+        e.add_handler(MessageTemplate(P.QUERY_REF, where=picky), _answer_ok(e))
+        a = await p.add(Agent("a"))
+        bad = await a.ask(msg(a, e.aid, P.QUERY_REF, content="bad"), timeout=2)
+        assert (bad.performative, bad.content) == (P.FAILURE, "ValueError: cannot judge this")
+        good = await a.ask(msg(a, e.aid, P.QUERY_REF, content="good"), timeout=2)
+        assert good.content == "ok" and e.running
+
+
+def _answer_ok(agent: Agent) -> Any:
+    async def handler(m: ACLMessage) -> None:
+        await agent.reply(m, P.INFORM, "ok")
+
+    return handler
+
+
+async def test_a_shutdown_cut_short_by_cancellation_still_ends_every_task() -> None:
+    entered = asyncio.Event()
+
+    class SlowToStop(Agent):
+        async def teardown(self) -> None:
+            entered.set()
+            await asyncio.Event().wait()  # would never finish on its own
+
+    hub = MemoryHub()
+    async with asyncio.timeout(5), hub.transport() as t:
+
+        async def run() -> None:
+            async with AgentPlatform("p", t) as p:
+                await p.add(SlowToStop("slow"))
+                await p.add(Echo("e"))
+
+        task = asyncio.ensure_future(run())
+        await entered.wait()  # the platform is closing, stuck in the agent's teardown
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert asyncio.all_tasks() == {asyncio.current_task()}
+        assert not hub.tokens

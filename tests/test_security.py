@@ -1,0 +1,815 @@
+"""Platform keys, trust file, authenticated key exchange and sealed envelopes (agents._security)."""
+
+from __future__ import annotations
+
+import base64
+import os
+import stat
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import orjson
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from agents._exceptions import (
+    AuthenticationError,
+    Expired,
+    Forged,
+    KeyFileError,
+    Malformed,
+    MessageError,
+    Misdirected,
+    Replayed,
+    SecurityError,
+    UnknownPlatform,
+    UnknownSession,
+)
+from agents._security import (
+    Handshake,
+    KeyPair,
+    SecurityPolicy,
+    Session,
+    SessionTable,
+    TrustStore,
+    key_paths,
+    read_public_key,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+T0 = 1_795_000_000.0
+ACL = orjson.dumps(
+    {
+        "v": 1,
+        "performative": "request",
+        "sender": "federation@uav-a",
+        "receivers": ["federation@uav-b"],
+        "content": {"action": "create-stream", "labels": ["heli-position"], "note": 'q"\\'},
+        "protocol": "fipa-request",
+        "conversation_id": "c-1-2",
+    }
+)
+
+
+class Clock:
+    """A settable clock shared by both platforms of a test."""
+
+    def __init__(self, t: float = T0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+    def advance(self, seconds: float) -> None:
+        self.t += seconds
+
+
+@dataclass
+class Platform:
+    keys: KeyPair
+    trust: TrustStore
+    hs: Handshake
+    table: SessionTable
+
+
+KEYS = {name: KeyPair.generate(name) for name in ("uav-a", "uav-b", "uav-c")}
+
+
+def make_platform(
+    name: str,
+    clock: Clock,
+    policy: SecurityPolicy | None = None,
+    trusted: tuple[str, ...] = ("uav-a", "uav-b"),
+    federation: str = "demo",
+) -> Platform:
+    policy = policy or SecurityPolicy()
+    trust = TrustStore(federation, {p: KEYS[p].public_key for p in trusted})
+    return Platform(
+        KEYS[name],
+        trust,
+        Handshake(KEYS[name], trust, policy=policy, clock=clock),
+        SessionTable(name, trust, policy=policy, clock=clock),
+    )
+
+
+def connect(a: Platform, b: Platform) -> tuple[Session, Session]:
+    """a initiates a handshake with b; both tables hold the session."""
+    reply, sb = b.hs.respond(a.hs.initiate(b.keys.platform))
+    sa = a.hs.finish(reply)
+    a.table.add(sa)
+    b.table.add(sb)
+    return sa, sb
+
+
+@pytest.fixture
+def clock() -> Clock:
+    return Clock()
+
+
+@pytest.fixture
+def pair(clock: Clock) -> tuple[Platform, Platform]:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    connect(a, b)
+    return a, b
+
+
+def edit(envelope: bytes, **changes: object) -> bytes:
+    obj = orjson.loads(envelope)
+    obj.update(changes)
+    return orjson.dumps(obj)
+
+
+# --------------------------------------------------------------------------- round trip
+
+
+@pytest.mark.parametrize("encrypt", [False, True])
+def test_round_trip_both_directions(clock: Clock, encrypt: bool) -> None:
+    policy = SecurityPolicy(encrypt=encrypt)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    sa, sb = connect(a, b)
+    assert sa.sid == sb.sid and sa.initiator and not sb.initiator
+    for i in range(3):
+        assert b.table.open(a.table.seal("uav-b", ACL)) == ("uav-a", ACL)
+        assert a.table.open(b.table.seal("uav-a", ACL + b" " * i)) == ("uav-b", ACL + b" " * i)
+    env = orjson.loads(a.table.seal("uav-b", ACL))
+    assert env["from"] == "uav-a" and env["to"] == "uav-b" and env["n"] == 4
+    assert ("box" in env) is encrypt and ("body" in env) is not encrypt
+    if not encrypt:
+        assert env["body"] == ACL.decode()  # readable by plain tools
+    assert sa.sent == 4 and sb.received == 3
+
+
+def test_seal_accepts_str_and_refuses_oversize(pair: tuple[Platform, Platform]) -> None:
+    a, b = pair
+    assert b.table.open(a.table.seal("uav-b", ACL.decode())) == ("uav-a", ACL)
+    with pytest.raises(MessageError, match="exceeds"):
+        a.table.seal("uav-b", b'"' + b"x" * 300_000 + b'"')
+
+
+def test_direction_keys_differ_and_reflection_is_refused(pair: tuple[Platform, Platform]) -> None:
+    a, _ = pair
+    env = a.table.seal("uav-b", ACL)
+    with pytest.raises(Misdirected):
+        a.table.open(env)  # reflected back to its sender
+    with pytest.raises(Forged):
+        # even relabelled as coming from b, a's own sending key is not b's
+        a.table.open(edit(env, **{"from": "uav-b", "to": "uav-a"}))
+
+
+# --------------------------------------------------------------------------- refusals
+
+
+def test_forged_mac(pair: tuple[Platform, Platform]) -> None:
+    a, b = pair
+    env = a.table.seal("uav-b", ACL)
+    fake = base64.b64encode(os.urandom(32)).decode()
+    with pytest.raises(Forged) as info:
+        b.table.open(edit(env, mac=fake))
+    assert info.value.code == "forged" and info.value.platform == "uav-a"
+
+
+def test_tampered_body(pair: tuple[Platform, Platform]) -> None:
+    a, b = pair
+    env = a.table.seal("uav-b", ACL)
+    body = orjson.loads(env)["body"].replace("heli-position", "heli-positioN")
+    with pytest.raises(Forged):
+        b.table.open(edit(env, body=body))
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "error"),
+    [
+        ("ts_ms", int(T0 * 1000) + 1, Forged),
+        ("n", 7, Forged),
+        ("sid", "AAAAAAAAAAAAAAAAAAAAAA", UnknownSession),
+        ("to", "uav-c", Misdirected),
+        ("from", "uav-c", UnknownPlatform),
+        ("v", 2, Malformed),
+    ],
+)
+def test_tampered_header_field(
+    pair: tuple[Platform, Platform], field: str, value: object, error: type[Exception]
+) -> None:
+    a, b = pair
+    env = a.table.seal("uav-b", ACL)
+    with pytest.raises(error):
+        b.table.open(edit(env, **{field: value}))
+    assert b.table.open(env) == ("uav-a", ACL)
+
+
+def test_from_of_another_trusted_platform_is_forged(clock: Clock) -> None:
+    trusted = ("uav-a", "uav-b", "uav-c")
+    a, b, c = (make_platform(p, clock, trusted=trusted) for p in ("uav-a", "uav-b", "uav-c"))
+    connect(a, b)
+    connect(c, b)
+    env = a.table.seal("uav-b", ACL)
+    with pytest.raises(Forged, match="belongs to 'uav-a'"):
+        b.table.open(edit(env, **{"from": "uav-c"}))
+
+
+def test_replay(pair: tuple[Platform, Platform]) -> None:
+    a, b = pair
+    env = a.table.seal("uav-b", ACL)
+    b.table.open(env)
+    with pytest.raises(Replayed, match="already seen"):
+        b.table.open(env)
+
+
+def test_reorder_within_window_accepted_outside_refused(clock: Clock) -> None:
+    policy = SecurityPolicy(window=64)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    connect(a, b)
+    envs = [a.table.seal("uav-b", ACL) for _ in range(200)]
+    order = [*range(10, 0, -1), 0, *range(11, 70)]  # the first eleven arrive backwards
+    for i in order:
+        assert b.table.open(envs[i])[0] == "uav-a"
+    for i in order:
+        with pytest.raises(Replayed):
+            b.table.open(envs[i])
+    b.table.open(envs[150])  # a jump forward: 70..85 are now older than the window
+    with pytest.raises(Replayed, match="older than the replay window"):
+        b.table.open(envs[85])
+    b.table.open(envs[87])  # 150 - 86 < 64: still inside
+    b.table.open(envs[149])
+
+
+@pytest.mark.parametrize("offset", [-31.0, 31.0])
+def test_expired_timestamp(pair: tuple[Platform, Platform], clock: Clock, offset: float) -> None:
+    a, b = pair
+    env = a.table.seal("uav-b", ACL)
+    clock.advance(-offset)  # the receiver's clock is 31 s ahead of / behind the sender's
+    with pytest.raises(Expired, match="allowed ±30 s"):
+        b.table.open(env)
+
+
+def test_skew_is_configurable(clock: Clock) -> None:
+    policy = SecurityPolicy(skew=5.0)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    connect(a, b)
+    env = a.table.seal("uav-b", ACL)
+    clock.advance(4.9)
+    b.table.open(env)
+    env = a.table.seal("uav-b", ACL)
+    clock.advance(5.1)
+    with pytest.raises(Expired):
+        b.table.open(env)
+
+
+def test_unknown_session(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    sa, _ = connect(a, b)
+    b2 = make_platform("uav-b", clock)  # b restarted: its sessions are gone
+    with pytest.raises(UnknownSession) as info:
+        b2.table.open(sa.seal(ACL))
+    assert info.value.platform == "uav-a"
+    with pytest.raises(UnknownSession, match="run a handshake first"):
+        b2.table.seal("uav-a", ACL)
+
+
+def test_untrusted_platform_and_revocation(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    connect(a, b)
+    env = a.table.seal("uav-b", ACL)
+    b.trust.remove("uav-a")  # removal from the trust store revokes live sessions at once
+    with pytest.raises(UnknownPlatform):
+        b.table.open(env)
+
+
+@pytest.mark.parametrize(
+    ("data", "match"),
+    [
+        (b"not json", "not JSON"),
+        (b"[1, 2]", "JSON object"),
+        (b'{"v": 1}', "missing"),
+        (b"x" * 600_000, "exceeds"),
+    ],
+)
+def test_malformed(pair: tuple[Platform, Platform], data: bytes, match: str) -> None:
+    _, b = pair
+    with pytest.raises(Malformed, match=match):
+        b.table.open(data)
+
+
+@pytest.mark.parametrize(
+    "changes",
+    [{"n": 0}, {"n": True}, {"n": -1}, {"ts_ms": 1.5}, {"body": 5}, {"mac": None}, {"x": 1}],
+)
+def test_malformed_fields(pair: tuple[Platform, Platform], changes: dict[str, object]) -> None:
+    a, b = pair
+    with pytest.raises(Malformed):
+        b.table.open(edit(a.table.seal("uav-b", ACL), **changes))
+
+
+def test_require_encryption_refuses_plain(clock: Clock) -> None:
+    a = make_platform("uav-a", clock)
+    b = make_platform("uav-b", clock, SecurityPolicy(require_encryption=True))
+    connect(a, b)
+    with pytest.raises(Malformed, match="requires encrypted"):
+        b.table.open(a.table.seal("uav-b", ACL))
+
+
+@pytest.mark.parametrize("encrypt", [False, True])
+def test_any_flipped_byte_is_refused(encrypt: bool) -> None:
+    clock = Clock()
+    policy = SecurityPolicy(encrypt=encrypt)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    connect(a, b)
+    env = a.table.seal("uav-b", ACL)
+
+    @given(index=st.integers(0, len(env) - 1), mask=st.integers(1, 255))
+    def flipped(index: int, mask: int) -> None:
+        bad = bytearray(env)
+        bad[index] ^= mask
+        with pytest.raises(AuthenticationError):
+            b.table.open(bytes(bad))
+
+    flipped()
+    assert b.table.open(env) == ("uav-a", ACL)  # the refusals left the session intact
+
+
+# --------------------------------------------------------------------------- handshake
+
+
+def test_handshake_from_unknown_platform(clock: Clock) -> None:
+    c = make_platform("uav-c", clock, trusted=("uav-b", "uav-c"))
+    b = make_platform("uav-b", clock)  # does not trust uav-c
+    with pytest.raises(UnknownPlatform, match="uav-c"):
+        b.hs.respond(c.hs.initiate("uav-b"))
+    a = make_platform("uav-a", clock)
+    with pytest.raises(UnknownPlatform):
+        a.hs.initiate("uav-c")
+
+
+def test_handshake_signed_by_key_not_in_trust_file(clock: Clock) -> None:
+    # an impostor with its own key claims to be uav-a
+    impostor_keys = KeyPair.generate("uav-a")
+    trust = TrustStore(
+        "demo", {"uav-a": impostor_keys.public_key, "uav-b": KEYS["uav-b"].public_key}
+    )
+    impostor = Handshake(impostor_keys, trust, clock=clock)
+    b = make_platform("uav-b", clock)
+    with pytest.raises(Forged, match="signature"):
+        b.hs.respond(impostor.initiate("uav-b"))
+    # and a reply signed by an impostor of uav-b is refused by a real initiator
+    a = make_platform("uav-a", clock)
+    fake_b = Handshake(
+        KeyPair.generate("uav-b"),
+        TrustStore("demo", {"uav-a": KEYS["uav-a"].public_key}),
+        clock=clock,
+    )
+    reply, _ = fake_b.respond(a.hs.initiate("uav-b"))
+    with pytest.raises(Forged):
+        a.hs.finish(reply)
+
+
+@pytest.mark.parametrize("field", ["epk", "nonce", "ts_ms", "sig"])
+def test_handshake_tampered_request(clock: Clock, field: str) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    req = orjson.loads(a.hs.initiate("uav-b"))
+    if field == "ts_ms":
+        req[field] += 1
+    else:
+        raw = bytearray(base64.b64decode(req[field]))
+        raw[0] ^= 1
+        req[field] = base64.b64encode(bytes(raw)).decode()
+    with pytest.raises(Forged):
+        b.hs.respond(orjson.dumps(req))
+
+
+def test_handshake_tampered_reply(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    reply, _ = b.hs.respond(a.hs.initiate("uav-b"))
+    obj = orjson.loads(reply)
+    obj["epk"] = base64.b64encode(os.urandom(32)).decode()
+    with pytest.raises(Forged):
+        a.hs.finish(orjson.dumps(obj))
+    assert a.hs.finish(reply).peer == "uav-b"  # the genuine reply still works
+
+
+def test_handshake_stale_timestamp(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    req = a.hs.initiate("uav-b")
+    clock.advance(31)
+    with pytest.raises(Expired):
+        b.hs.respond(req)
+    req = a.hs.initiate("uav-b")
+    reply, _ = b.hs.respond(req)
+    clock.advance(31)
+    with pytest.raises(Expired):
+        a.hs.finish(reply)
+
+
+def test_handshake_wrong_federation(clock: Clock) -> None:
+    a = make_platform("uav-a", clock, federation="other")
+    b = make_platform("uav-b", clock)
+    with pytest.raises(Misdirected, match="federation 'other'"):
+        b.hs.respond(a.hs.initiate("uav-b"))
+
+
+def test_handshake_wrong_addressee(clock: Clock) -> None:
+    trusted = ("uav-a", "uav-b", "uav-c")
+    a = make_platform("uav-a", clock, trusted=trusted)
+    c = make_platform("uav-c", clock, trusted=trusted)
+    with pytest.raises(Misdirected, match="for 'uav-b' reached 'uav-c'"):
+        c.hs.respond(a.hs.initiate("uav-b"))
+    # a genuine reply of c, to a request for c, does not finish a handshake with b
+    req_b = orjson.loads(a.hs.initiate("uav-b"))
+    req_c = orjson.loads(a.hs.initiate("uav-c"))
+    reply_c = orjson.loads(c.hs.respond(orjson.dumps(req_c))[0])
+    reply_c["re"] = req_b["nonce"]
+    with pytest.raises(Forged, match="handshake with 'uav-b'"):
+        a.hs.finish(orjson.dumps(reply_c))
+
+
+def test_handshake_replayed(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    req = a.hs.initiate("uav-b")
+    reply, _ = b.hs.respond(req)
+    with pytest.raises(Replayed, match="already answered"):
+        b.hs.respond(req)
+    a.hs.finish(reply)
+    with pytest.raises(Replayed, match="already used"):
+        a.hs.finish(reply)
+    with pytest.raises(UnknownSession, match="no request of ours"):
+        make_platform("uav-a", clock).hs.finish(reply)
+
+
+@pytest.mark.parametrize(
+    "data",
+    [b"{", b"[]", b'{"v":1,"kx":"init"}', b'{"v":2}', b"x" * 5000],
+)
+def test_handshake_malformed(clock: Clock, data: bytes) -> None:
+    b = make_platform("uav-b", clock)
+    with pytest.raises(Malformed):
+        b.hs.respond(data)
+    with pytest.raises(Malformed):
+        b.hs.finish(data)
+
+
+def test_handshake_request_is_not_a_reply(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    with pytest.raises(Malformed):
+        a.hs.finish(a.hs.initiate("uav-b"))
+    with pytest.raises(Malformed):
+        a.hs.respond(b.hs.respond(a.hs.initiate("uav-b"))[0])
+
+
+def test_handshake_federation_argument_must_match_trust_file() -> None:
+    trust = TrustStore("demo")
+    assert Handshake(KEYS["uav-a"], trust, "demo").federation == "demo"
+    with pytest.raises(ValueError, match="differs"):
+        Handshake(KEYS["uav-a"], trust, "other")
+
+
+def test_simultaneous_handshakes_converge(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    req_a, req_b = a.hs.initiate("uav-b"), b.hs.initiate("uav-a")
+    clock.advance(0.001)
+    reply_b, s1_b = b.hs.respond(req_a)
+    reply_a, s2_a = a.hs.respond(req_b)
+    b.table.add(s1_b)
+    a.table.add(s2_a)
+    a.table.add(a.hs.finish(reply_b))
+    b.table.add(b.hs.finish(reply_a))
+    for _ in range(3):
+        assert b.table.open(a.table.seal("uav-b", ACL))[0] == "uav-a"
+        assert a.table.open(b.table.seal("uav-a", ACL))[0] == "uav-b"
+    clock.advance(31)  # past any grace: whatever they settled on still works
+    assert b.table.open(a.table.seal("uav-b", ACL))[0] == "uav-a"
+    assert a.table.open(b.table.seal("uav-a", ACL))[0] == "uav-b"
+
+
+# --------------------------------------------------------------------------- renewal
+
+
+def test_renewal_after_messages(clock: Clock) -> None:
+    policy = SecurityPolicy(renew_after_messages=5)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    sa, _ = connect(a, b)
+    for _ in range(4):
+        a.table.seal("uav-b", ACL)
+    assert not sa.needs_renewal() and not a.table.needs_renewal("uav-b")
+    a.table.seal("uav-b", ACL)
+    assert sa.needs_renewal() and a.table.needs_renewal("uav-b")
+    clock.advance(0.01)
+    sa2, _ = connect(a, b)
+    assert not a.table.needs_renewal("uav-b")
+    assert a.table.session_for("uav-b") is sa2
+
+
+def test_renewal_after_time_and_grace(clock: Clock) -> None:
+    policy = SecurityPolicy(renew_after_seconds=100, grace=10)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    sa1, sb1 = connect(a, b)
+    assert not sb1.confirmed
+    b.table.open(a.table.seal("uav-b", ACL))  # a has used the session: b may use it too
+    assert sb1.confirmed and not a.table.needs_renewal("uav-b")
+    clock.advance(100)
+    assert sa1.needs_renewal() and a.table.needs_renewal("uav-b")
+    assert not sb1.needs_renewal()  # the responder leaves the first move to the initiator
+    late = sa1.seal(ACL)  # sealed on the old session, still in flight
+    sa2, sb2 = connect(a, b)
+    assert a.table.session_for("uav-b") is sa2
+    # b has not heard from a on the new session yet: it keeps sending on the old one
+    assert b.table.session_for("uav-a") is sb1
+    assert b.table.open(a.table.seal("uav-b", ACL))[0] == "uav-a"
+    assert b.table.session_for("uav-a") is sb2  # now b knows a holds the new session
+    clock.advance(5)
+    assert b.table.open(late)[0] == "uav-a"  # old session within grace
+    late = sa1.seal(ACL)
+    clock.advance(6)
+    with pytest.raises(Expired, match="grace period is over"):
+        b.table.open(late)
+    assert a.table.open(b.table.seal("uav-a", ACL))[0] == "uav-b"
+    assert b.table.prune() == 1 and b.table.sessions("uav-a") == [sb2]
+
+
+def test_session_lifetime(clock: Clock) -> None:
+    policy = SecurityPolicy(renew_after_seconds=100, grace=10)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    sa, _ = connect(a, b)
+    clock.advance(105)
+    env = sa.seal(ACL)  # 105 s old: renewal is due, but the session is still usable
+    clock.advance(6)
+    with pytest.raises(Expired, match="lifetime"):
+        sa.seal(ACL)
+    assert a.table.session_for("uav-b") is None and a.table.needs_renewal("uav-b")
+    with pytest.raises(Expired, match="lifetime"):
+        b.table.open(env)
+
+
+def test_sessions_per_peer_are_capped(clock: Clock) -> None:
+    policy = SecurityPolicy(max_sessions_per_peer=2)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    first, _ = connect(a, b)
+    for _ in range(3):
+        clock.advance(0.01)
+        connect(a, b)
+    assert len(a.table.sessions("uav-b")) == 2 and len(b.table) == 2
+    with pytest.raises(UnknownSession):
+        b.table.open(first.seal(ACL))
+
+
+def test_forget(pair: tuple[Platform, Platform]) -> None:
+    a, b = pair
+    env = a.table.seal("uav-b", ACL)
+    assert b.table.forget("uav-a") == 1
+    assert b.table.forget("uav-a") == 0
+    assert b.table.peers() == [] and b.table.session_for("uav-a") is None
+    with pytest.raises(UnknownSession):
+        b.table.open(env)
+    a.hs.initiate("uav-b")
+    assert a.hs.cancel("uav-b") == 1
+
+
+def test_table_refuses_foreign_or_duplicate_session(pair: tuple[Platform, Platform]) -> None:
+    a, b = pair
+    (sa,) = a.table.sessions("uav-b")
+    with pytest.raises(ValueError, match="already"):
+        a.table.add(sa)
+    with pytest.raises(ValueError, match="table of 'uav-b'"):
+        b.table.add(sa)
+
+
+# --------------------------------------------------------------------------- key files
+
+
+def test_key_files(tmp_path: Path) -> None:
+    pair = KeyPair.generate("uav-a")
+    key_path, pub_path = pair.save(tmp_path / "keys")
+    assert (key_path, pub_path) == key_paths(tmp_path / "keys", "uav-a")
+    assert stat.S_IMODE(key_path.stat().st_mode) == 0o600
+    assert stat.S_IMODE(pub_path.stat().st_mode) == 0o644
+    loaded = KeyPair.load(key_path)
+    assert loaded.platform == "uav-a" and loaded.public_key == pair.public_key
+    assert read_public_key(pub_path) == ("uav-a", pair.public_key)
+    with pytest.raises(KeyFileError, match="not overwriting"):
+        KeyPair.generate("uav-a").save(tmp_path / "keys")
+    assert KeyPair.load(key_path).public_key == pair.public_key
+    other = KeyPair.generate("uav-a")
+    other.save(tmp_path / "keys", force=True)
+    assert KeyPair.load(key_path).public_key == other.public_key
+    assert stat.S_IMODE(key_path.stat().st_mode) == 0o600
+    assert sorted(p.name for p in (tmp_path / "keys").iterdir()) == ["uav-a.key", "uav-a.pub"]
+
+
+def test_private_key_readable_by_others_is_refused(tmp_path: Path) -> None:
+    key_path, _ = KeyPair.generate("uav-a").save(tmp_path)
+    key_path.chmod(0o644)
+    with pytest.raises(KeyFileError, match="chmod 600"):
+        KeyPair.load(key_path)
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        ("{", "not JSON"),
+        (
+            '{"v":1,"kind":"dyknow-ed25519-private","platform":"uav-a","ed25519_seed":"AAAA"}',
+            "key 'ed25519_seed'",
+        ),
+        (
+            '{"v":1,"kind":"dyknow-ed25519-private","platform":"a b","ed25519_seed":""}',
+            "key 'platform'",
+        ),
+        ('{"v":1,"kind":"dyknow-ed25519-public"}', "key 'kind'"),
+        ('{"v":9}', "key 'v'"),
+    ],
+)
+def test_private_key_file_errors(tmp_path: Path, content: str, match: str) -> None:
+    path = tmp_path / "x.key"
+    path.write_text(content)
+    path.chmod(0o600)
+    with pytest.raises(KeyFileError, match=match) as info:
+        KeyPair.load(path)
+    assert str(path) in str(info.value)
+
+
+def test_trust_store_round_trip(tmp_path: Path) -> None:
+    store = TrustStore("demo")
+    assert store.add("uav-a", KEYS["uav-a"].public_key)
+    assert not store.add("uav-a", KEYS["uav-a"].public_key)
+    with pytest.raises(ValueError, match="already trusted with another key"):
+        store.add("uav-a", KEYS["uav-b"].public_key)
+    assert store.add("uav-b", KEYS["uav-b"].public_key)
+    store.save(tmp_path / "trust.json")
+    loaded = TrustStore.load(tmp_path / "trust.json")
+    assert loaded.federation == "demo" and list(loaded) == ["uav-a", "uav-b"]
+    assert loaded.public_key("uav-b") == KEYS["uav-b"].public_key
+    assert store.add("uav-a", KEYS["uav-c"].public_key, replace=True)
+    assert store.remove("uav-a") and not store.remove("uav-a") and "uav-a" not in store
+    with pytest.raises(UnknownPlatform):
+        store.verify_key("uav-a")
+
+
+GOOD_KEY = base64.b64encode(KEYS["uav-a"].public_key).decode()
+
+
+@pytest.mark.parametrize(
+    ("content", "match"),
+    [
+        ("", "not JSON"),
+        ("[]", "JSON object"),
+        ('{"v":2,"federation":"demo","platforms":{}}', "key 'v'"),
+        ('{"v":1,"platforms":{}}', "key 'federation'"),
+        ('{"v":1,"federation":"de mo","platforms":{}}', "key 'federation'"),
+        ('{"v":1,"federation":"demo"}', "key 'platforms'"),
+        ('{"v":1,"federation":"demo","platforms":[]}', "key 'platforms'"),
+        ('{"v":1,"federation":"demo","platforms":{},"extra":1}', "unexpected key 'extra'"),
+        ('{"v":1,"federation":"demo","platforms":{"uav-b":"abc"}}', "key 'platforms.uav-b'"),
+        ('{"v":1,"federation":"demo","platforms":{"uav-b":"AAAA"}}', "key 'platforms.uav-b'"),
+        ('{"v":1,"federation":"demo","platforms":{"uav-b":5}}', "key 'platforms.uav-b'"),
+        (
+            f'{{"v":1,"federation":"demo","platforms":{{"u/x":"{GOOD_KEY}"}}}}',
+            "key 'platforms.u/x'",
+        ),
+    ],
+)
+def test_trust_file_errors_name_file_and_key(tmp_path: Path, content: str, match: str) -> None:
+    path = tmp_path / "trust.json"
+    path.write_text(content)
+    with pytest.raises(KeyFileError, match=match) as info:
+        TrustStore.load(path)
+    assert info.value.path == str(path) and str(path) in str(info.value)
+    assert isinstance(info.value, SecurityError)
+
+
+def test_trust_file_missing_or_world_writable(tmp_path: Path) -> None:
+    with pytest.raises(KeyFileError, match="no such trust file"):
+        TrustStore.load(tmp_path / "nope.json")
+    path = tmp_path / "trust.json"
+    TrustStore("demo", {"uav-a": KEYS["uav-a"].public_key}).save(path)
+    path.chmod(0o666)
+    with pytest.raises(KeyFileError, match="writable by others"):
+        TrustStore.load(path)
+
+
+def test_keys_cli(tmp_path: Path) -> None:
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        return subprocess.run(
+            [sys.executable, "-m", "agents.keys", *args],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=False,
+        )
+
+    for platform in ("uav-a", "uav-b"):
+        done = cli("gen", "--platform", platform, "--dir", "keys/")
+        assert done.returncode == 0, done.stderr
+        assert f"keys/{platform}.key" in done.stdout
+    assert stat.S_IMODE((tmp_path / "keys/uav-a.key").stat().st_mode) == 0o600
+    before = (tmp_path / "keys/uav-a.key").read_bytes()
+    again = cli("gen", "--platform", "uav-a", "--dir", "keys/")
+    assert again.returncode == 1 and "--force" in again.stderr
+    assert (tmp_path / "keys/uav-a.key").read_bytes() == before
+
+    missing = cli("trust", "--trust-file", "trust.json", "keys/uav-a.pub", "keys/uav-b.pub")
+    assert missing.returncode == 1 and "--federation" in missing.stderr
+    done = cli(
+        "trust",
+        "--trust-file",
+        "trust.json",
+        "--federation",
+        "demo",
+        "keys/uav-a.pub",
+        "keys/uav-b.pub",
+    )
+    assert done.returncode == 0, done.stderr
+    store = TrustStore.load(tmp_path / "trust.json")
+    assert list(store) == ["uav-a", "uav-b"]
+    assert store.public_key("uav-a") == KeyPair.load(tmp_path / "keys/uav-a.key").public_key
+
+    assert cli("gen", "--platform", "uav-a", "--dir", "keys/", "--force").returncode == 0
+    clash = cli("trust", "--trust-file", "trust.json", "keys/uav-a.pub")
+    assert clash.returncode == 1 and "--replace" in clash.stderr
+    assert cli("trust", "--trust-file", "trust.json", "--replace", "keys/uav-a.pub").returncode == 0
+    assert cli("untrust", "--trust-file", "trust.json", "uav-b").returncode == 0
+    shown = cli("show", "--trust-file", "trust.json")
+    assert shown.returncode == 0 and "uav-a" in shown.stdout and "uav-b" not in shown.stdout
+
+
+def test_keys_and_trust_file_drive_a_handshake(tmp_path: Path) -> None:
+    from agents.keys import gen_keys, trust_keys
+
+    gen_keys("uav-a", tmp_path)
+    gen_keys("uav-b", tmp_path)
+    trust_keys(
+        tmp_path / "t.json", [tmp_path / "uav-a.pub", tmp_path / "uav-b.pub"], federation="demo"
+    )
+    trust = TrustStore.load(tmp_path / "t.json")
+    clock = Clock()
+    ha = Handshake(KeyPair.load(tmp_path / "uav-a.key"), trust, clock=clock)
+    hb = Handshake(KeyPair.load(tmp_path / "uav-b.key"), trust, clock=clock)
+    reply, sb = hb.respond(ha.initiate("uav-b"))
+    table = SessionTable("uav-b", trust, clock=clock)
+    table.add(sb)
+    assert table.open(ha.finish(reply).seal(ACL)) == ("uav-a", ACL)
+
+
+class Skewed(Clock):
+    """Another platform's clock: the shared clock plus a fixed offset."""
+
+    def __init__(self, base: Clock, offset: float) -> None:
+        self.base, self.offset = base, offset
+
+    def __call__(self) -> float:
+        return self.base() + self.offset
+
+
+def test_renewal_order_survives_clock_skew(clock: Clock) -> None:
+    # b's clock runs 10 s ahead: a session b starts 5 s after a's must still count as newer
+    a = make_platform("uav-a", clock)
+    b = make_platform("uav-b", Skewed(clock, 10.0))
+    s1_a, s1_b = connect(a, b)
+    b.table.open(a.table.seal("uav-b", ACL))
+    clock.advance(5)
+    s2_b, s2_a = connect(b, a)
+    assert s2_a.order > s1_a.order and s2_b.order > s1_b.order
+    assert a.table.open(b.table.seal("uav-a", ACL))[0] == "uav-b"
+    assert a.table.session_for("uav-b") is s2_a and b.table.session_for("uav-a") is s2_b
+    assert not a.table.needs_renewal("uav-b") and not b.table.needs_renewal("uav-a")
+
+
+def test_pending_handshake(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    assert not a.hs.pending("uav-b")
+    request = a.hs.initiate("uav-b")
+    assert a.hs.pending("uav-b") and not b.hs.pending("uav-a")
+    a.hs.finish(b.hs.respond(request)[0])
+    assert not a.hs.pending("uav-b")
+    a.hs.initiate("uav-b")
+    clock.advance(31)
+    assert not a.hs.pending("uav-b")  # a lost request stops blocking a new one
+
+
+def test_responder_does_not_send_first(clock: Clock) -> None:
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    connect(a, b)
+    assert b.table.session_for("uav-a") is None and b.table.needs_renewal("uav-a")
+    with pytest.raises(UnknownSession):
+        b.table.seal("uav-a", ACL)
+    b.table.open(a.table.seal("uav-b", ACL))
+    assert a.table.open(b.table.seal("uav-a", ACL))[0] == "uav-b"
+    assert not b.table.needs_renewal("uav-a")
+
+
+def test_replayed_requests_after_restart_cannot_evict_the_live_session(clock: Clock) -> None:
+    policy = SecurityPolicy(max_sessions_per_peer=2)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    captured = [a.hs.initiate("uav-b") for _ in range(3)]
+    live, _ = connect(a, b)
+    b.table.open(live.seal(ACL))
+    for request in captured:
+        # each replay reaches a freshly restarted handshake state (its replay cache is empty)
+        fresh = Handshake(KEYS["uav-b"], b.trust, policy=policy, clock=clock)
+        b.table.add(fresh.respond(request)[1])
+    assert live.sid in {s.sid for s in b.table.sessions("uav-a")}
+    assert b.table.open(live.seal(ACL))[0] == "uav-a"
+    assert b.table.session_for("uav-a") is not None

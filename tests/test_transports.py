@@ -1,0 +1,501 @@
+"""The same conformance tests over every transport: memory, zenoh and MQTT (own mosquitto)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import uuid
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+import pytest
+from pydantic import ValidationError
+
+from agents._exceptions import TransportClosed, TransportError
+from agents.transports import (
+    MemoryHub,
+    Message,
+    MqttConfig,
+    MqttTransport,
+    Presence,
+    Reply,
+    Subscription,
+    Transport,
+    ZenohConfig,
+    ZenohTransport,
+    free_tcp_port,
+    key_intersects,
+)
+from agents.transports._mqtt import query_topic, queryable_filters, topic_filter
+
+T = TypeVar("T")
+
+WAIT = 10.0  # the bound on any single wait: generous for a loaded 2-core machine
+
+
+@dataclass
+class Net:
+    """One network of transports of one kind, and a key prefix of this test's own."""
+
+    kind: str
+    prefix: str
+    query_timeout: float
+    make: Callable[..., Transport]
+    opened: list[Transport] = field(default_factory=list)
+
+    async def open(self, **options: Any) -> Transport:
+        t = self.make(**options)
+        await t.__aenter__()
+        self.opened.append(t)
+        return t
+
+    def key(self, rest: str) -> str:
+        return f"{self.prefix}/{rest}"
+
+
+def _zenoh_factory() -> Callable[..., Transport]:
+    seed = free_tcp_port()
+    made = 0
+
+    def make(**options: Any) -> Transport:
+        nonlocal made
+        made += 1
+        if made == 1:
+            return ZenohTransport(ZenohConfig.loopback(seed, **options))
+        return ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed], **options))
+
+    return make
+
+
+def _mqtt_factory(host: str, port: int) -> Callable[..., Transport]:
+    def make(**options: Any) -> Transport:
+        return MqttTransport(MqttConfig(host=host, port=port, keepalive=5, **options))
+
+    return make
+
+
+@pytest.fixture(params=["memory", "zenoh", "mqtt"])
+async def net(request: pytest.FixtureRequest) -> AsyncIterator[Net]:
+    kind = request.param
+    prefix = f"test/{uuid.uuid4().hex[:10]}"
+    make: Callable[..., Transport]
+    if kind == "memory":
+        hub = MemoryHub()
+        make = lambda **_: hub.transport()  # noqa: E731
+        query_timeout = 5.0
+    elif kind == "zenoh":
+        make = _zenoh_factory()
+        query_timeout = 5.0  # zenoh returns as soon as every queryable has answered
+    else:
+        host, port = request.getfixturevalue("mosquitto")
+        make = _mqtt_factory(host, port)
+        query_timeout = 0.5  # MQTT always waits until the timeout
+    n = Net(kind, prefix, query_timeout, make)
+    try:
+        yield n
+    finally:
+        for t in reversed(n.opened):
+            await t.aclose()
+
+
+@pytest.fixture(params=["zenoh", "mqtt"])
+async def remote_net(request: pytest.FixtureRequest) -> AsyncIterator[Net]:
+    """Only the transports that talk through the network (settings such as serve_timeout)."""
+    prefix = f"test/{uuid.uuid4().hex[:10]}"
+    if request.param == "zenoh":
+        n = Net("zenoh", prefix, 5.0, _zenoh_factory())
+    else:
+        host, port = request.getfixturevalue("mosquitto")
+        n = Net("mqtt", prefix, 0.5, _mqtt_factory(host, port))
+    try:
+        yield n
+    finally:
+        for t in reversed(n.opened):
+            await t.aclose()
+
+
+async def ready(net: Net, observer: Transport, *others: Transport) -> None:
+    """Wait until ``observer`` knows everything the ``others`` declared so far.
+
+    Each of the others declares a liveliness token after its subscribers and queryables;
+    zenoh propagates declarations in order, so once the observer sees the tokens it routes
+    to what was declared before them. (MQTT and memory need no wait; it costs them little.)
+    """
+    tag = uuid.uuid4().hex[:8]
+    watch = await observer.watch_presence(net.key(f"ready-{tag}/*"))
+    tokens = [await t.declare_token(net.key(f"ready-{tag}/{i}")) for i, t in enumerate(others)]
+    try:
+        seen: set[str] = set()
+        async with asyncio.timeout(WAIT):
+            while len(seen) < len(others):
+                p = await watch.get()
+                if p.alive:
+                    seen.add(p.key)
+    finally:
+        watch.close()
+        for tok in tokens:
+            await tok.aclose()
+
+
+async def take(sub: Subscription[T], n: int) -> list[T]:
+    async with asyncio.timeout(WAIT):
+        return [await sub.get() for _ in range(n)]
+
+
+async def drain_until_end(sub: Subscription[T]) -> list[T]:
+    async with asyncio.timeout(WAIT):
+        return [m async for m in sub]
+
+
+# --- publish / subscribe ---------------------------------------------------------------------
+
+
+async def test_pubsub_wildcards(net: Net) -> None:
+    a, b = await net.open(), await net.open()
+    one = await a.subscribe(net.key("p/*/x"))
+    many = await a.subscribe(net.key("p/**"))
+    await ready(net, b, a)
+    for k in ("p/a/x", "p/a/y", "p/a/b/x", "q/a/x"):
+        await b.publish(net.key(k), k.encode())
+    await b.publish(net.key("p/end/x"), b"end", attachment=b"att")
+
+    got_one = await take(one, 2)
+    assert [m.key for m in got_one] == [net.key("p/a/x"), net.key("p/end/x")]
+    got_many = await take(many, 4)
+    assert [m.payload for m in got_many] == [b"p/a/x", b"p/a/y", b"p/a/b/x", b"end"]
+    assert got_many[0] == Message(net.key("p/a/x"), b"p/a/x", None)
+    assert got_many[-1].attachment == b"att"
+
+
+async def test_two_subscribers(net: Net) -> None:
+    a, b, c = await net.open(), await net.open(), await net.open()
+    key = net.key("s/k")
+    sub_a = await a.subscribe(key)
+    sub_a2 = await a.subscribe(key)  # the same key twice in one transport
+    sub_c = await c.subscribe(net.key("s/*"))
+    await ready(net, b, a, c)
+    payloads = [str(i).encode() for i in range(50)]
+    for p in payloads:
+        await b.publish(key, p)
+    for sub in (sub_a, sub_a2, sub_c):
+        assert [m.payload for m in await take(sub, len(payloads))] == payloads
+
+
+async def test_unsubscribe(net: Net) -> None:
+    a, b = await net.open(), await net.open()
+    key = net.key("u/k")
+    gone = await a.subscribe(key)
+    stays = await a.subscribe(key)
+    await ready(net, b, a)
+    await b.publish(key, b"1")
+    assert [m.payload for m in await take(gone, 1)] == [b"1"]
+    gone.close()
+    await b.publish(key, b"2")
+    assert [m.payload for m in await take(stays, 2)] == [b"1", b"2"]
+    assert await drain_until_end(gone) == []
+    # The last subscriber of a key goes, and a new one comes at once: it must not miss out.
+    stays.close()
+    again = await a.subscribe(key)
+    await ready(net, b, a)
+    await b.publish(key, b"3")
+    assert [m.payload for m in await take(again, 1)] == [b"3"]
+    assert [m.payload for m in await drain_until_end(stays)] == []
+
+
+async def test_iterator_ends_when_subscription_closes(net: Net) -> None:
+    a, b = await net.open(), await net.open()
+    sub = await a.subscribe(net.key("i/k"))
+    await ready(net, b, a)
+    received: list[Message] = []
+    first = asyncio.Event()
+
+    async def consume() -> None:
+        async for m in sub:
+            received.append(m)
+            first.set()
+
+    async with asyncio.TaskGroup() as tg:
+        consumer = tg.create_task(consume())
+        await b.publish(net.key("i/k"), b"x")
+        async with asyncio.timeout(WAIT):
+            await first.wait()
+        sub.close()
+        async with asyncio.timeout(WAIT):
+            await consumer
+    assert [m.payload for m in received] == [b"x"]
+
+
+async def test_transport_close_ends_subscriptions(net: Net) -> None:
+    a = await net.open()
+    sub = await a.subscribe(net.key("c/**"))
+    watch = await a.watch_presence(net.key("c/alive/*"))
+
+    async def consume(s: Subscription[Any]) -> int:
+        return len([m async for m in s])
+
+    async with asyncio.TaskGroup() as tg:
+        tasks = [tg.create_task(consume(sub)), tg.create_task(consume(watch))]
+        await a.aclose()
+        async with asyncio.timeout(WAIT):
+            counts = [await t for t in tasks]
+    assert counts == [0, 0]
+
+
+# --- query / serve ---------------------------------------------------------------------------
+
+
+async def test_query_replies_from_two_servers(net: Net) -> None:
+    s1, s2, q = await net.open(), await net.open(), await net.open()
+
+    def echo(name: bytes) -> Callable[[str, bytes], Any]:
+        async def handler(key: str, payload: bytes) -> bytes:
+            return name + b":" + payload
+
+        return handler
+
+    await s1.serve(net.key("svc/a"), echo(b"a"))
+    await s2.serve(net.key("svc/b"), echo(b"b"))
+    await ready(net, q, s1, s2)
+
+    replies = await q.query(net.key("svc/*"), b"hi", timeout=net.query_timeout)
+    assert sorted(replies) == [
+        Reply(net.key("svc/a"), b"a:hi"),
+        Reply(net.key("svc/b"), b"b:hi"),
+    ]
+    only_a = await q.query(net.key("svc/a"), b"x", timeout=net.query_timeout)
+    assert only_a == [Reply(net.key("svc/a"), b"a:x")]
+
+
+async def test_query_without_server_returns_nothing_in_bounded_time(net: Net) -> None:
+    q = await net.open()
+    start = time.monotonic()
+    assert await q.query(net.key("nobody/*"), b"?", timeout=0.5) == []
+    assert time.monotonic() - start < 3.0
+
+
+async def test_handler_error_becomes_error_reply(net: Net) -> None:
+    s, q = await net.open(), await net.open()
+
+    async def failing(key: str, payload: bytes) -> bytes:
+        raise ValueError("boom: cannot answer")
+
+    await s.serve(net.key("err/x"), failing)
+    await ready(net, q, s)
+    replies = await q.query(net.key("err/x"), b"", timeout=net.query_timeout)
+    assert len(replies) == 1
+    assert not replies[0].ok
+    assert b"boom: cannot answer" in replies[0].payload
+
+
+async def test_handler_may_not_reply(net: Net) -> None:
+    s, q = await net.open(), await net.open()
+
+    async def silent(key: str, payload: bytes) -> None:
+        return None
+
+    await s.serve(net.key("quiet"), silent)
+    await ready(net, q, s)
+    assert await q.query(net.key("quiet"), timeout=net.query_timeout) == []
+
+
+async def test_closed_queryable_no_longer_answers(net: Net) -> None:
+    s, q = await net.open(), await net.open()
+
+    async def answer(key: str, payload: bytes) -> bytes:
+        return b"here"
+
+    handle = await s.serve(net.key("once"), answer)
+    await ready(net, q, s)
+    assert len(await q.query(net.key("once"), timeout=net.query_timeout)) == 1
+    await handle.aclose()
+    await ready(net, q, s)
+    assert await q.query(net.key("once"), timeout=0.3) == []
+
+
+# --- presence --------------------------------------------------------------------------------
+
+
+async def test_presence_appears_and_goes_with_history(net: Net) -> None:
+    a, b, c = await net.open(), await net.open(), await net.open()
+    key_a, key_c = net.key("alive/a"), net.key("alive/c")
+    token_a = await a.declare_token(key_a)
+
+    watch = await b.watch_presence(net.key("alive/*"))
+    assert await take(watch, 1) == [Presence(key_a, True)]  # the history
+
+    fresh = await b.watch_presence(net.key("alive/*"), history=False)
+    token_c = await c.declare_token(key_c)
+    assert await take(watch, 1) == [Presence(key_c, True)]
+    assert await take(fresh, 1) == [Presence(key_c, True)]  # no history: only the new one
+
+    await token_a.aclose()
+    assert await take(watch, 1) == [Presence(key_a, False)]
+    assert await take(fresh, 1) == [Presence(key_a, False)]
+    await token_c.aclose()
+    assert await take(watch, 1) == [Presence(key_c, False)]
+
+
+async def test_a_second_watcher_gets_the_history_too(net: Net) -> None:
+    a, b = await net.open(), await net.open()
+    key = net.key("alive/a")
+    token = await a.declare_token(key)
+    first = await b.watch_presence(net.key("alive/*"))
+    assert await take(first, 1) == [Presence(key, True)]
+    second = await b.watch_presence(net.key("alive/*"))  # the same key expression again
+    assert await take(second, 1) == [Presence(key, True)]
+    await token.aclose()
+    # Nothing repeated in between: the first watcher's next event is the token going.
+    assert await take(first, 1) == [Presence(key, False)]
+    assert await take(second, 1) == [Presence(key, False)]
+
+
+async def test_token_needs_a_concrete_key(net: Net) -> None:
+    a = await net.open()
+    with pytest.raises(TransportError):
+        await a.declare_token(net.key("alive/*"))
+
+
+# --- lifecycle -------------------------------------------------------------------------------
+
+
+async def test_transport_cannot_reopen(net: Net) -> None:
+    t = net.make()
+    async with t:
+        pass
+    with pytest.raises(TransportClosed):
+        async with t:
+            pass
+
+
+async def test_closed_transport_raises_transport_closed(net: Net) -> None:
+    unopened = net.make()
+    with pytest.raises(TransportClosed):
+        await unopened.publish(net.key("x"), b"")
+    t = await net.open()
+    await t.publish(net.key("x"), b"")
+    await t.aclose()
+    await t.aclose()  # closing twice is fine
+
+    async def handler(key: str, payload: bytes) -> bytes:
+        return b""
+
+    calls = [
+        t.publish(net.key("x"), b""),
+        t.subscribe(net.key("x")),
+        t.query(net.key("x"), timeout=0.1),
+        t.serve(net.key("x"), handler),
+        t.declare_token(net.key("x")),
+        t.watch_presence(net.key("x")),
+    ]
+    for call in calls:
+        with pytest.raises(TransportClosed):
+            await call
+
+
+# --- only the networked transports -----------------------------------------------------------
+
+
+async def test_slow_handler_becomes_error_reply(remote_net: Net) -> None:
+    s = await remote_net.open(serve_timeout=0.2)
+    q = await remote_net.open()
+    never = asyncio.Event()
+
+    async def stuck(key: str, payload: bytes) -> bytes:
+        await never.wait()
+        return b"too late"
+
+    await s.serve(remote_net.key("slow"), stuck)
+    await ready(remote_net, q, s)
+    replies = await q.query(remote_net.key("slow"), timeout=1.0)
+    assert len(replies) == 1 and not replies[0].ok
+    assert b"timed out" in replies[0].payload
+
+
+async def test_library_errors_become_transport_errors(remote_net: Net) -> None:
+    t = await remote_net.open()
+    with pytest.raises(TransportError):
+        await t.subscribe("a//b")
+    with pytest.raises(TransportError):
+        await t.serve("", lambda k, p: asyncio.sleep(0, b""))
+
+
+async def test_a_subscriber_that_never_reads_does_not_stall_the_publisher(
+    remote_net: Net,
+) -> None:
+    a, b = await remote_net.open(), await remote_net.open()
+    await a.subscribe(remote_net.key("flood"), buffer_size=16)  # never read
+    await ready(remote_net, b, a)
+    start = time.monotonic()
+    for _ in range(2000):
+        await b.publish(remote_net.key("flood"), b"x" * 64)
+    assert time.monotonic() - start < 5.0
+
+
+# --- configuration and key mapping -----------------------------------------------------------
+
+
+def test_zenoh_config_errors_name_the_field() -> None:
+    with pytest.raises(ValidationError, match="listen"):
+        ZenohConfig(listen=("garbage",))
+    with pytest.raises(ValidationError, match="connect"):
+        ZenohConfig(mode="client")
+    with pytest.raises(ValidationError, match="mode"):
+        ZenohConfig(mode="bogus")
+    with pytest.raises(ValidationError, match="overrides"):
+        ZenohConfig(overrides={"no/such/setting": 1})
+    with pytest.raises(ValidationError, match="json5"):
+        ZenohConfig(json5="{mode: 'nope'}")
+    cfg = ZenohConfig(overrides={"transport/link/tx/lease": 1000})
+    assert cfg.to_zenoh().get_json("transport/link/tx/lease") == "1000"
+    assert ZenohTransport({"mode": "peer"}).config.gossip is True
+
+
+def test_mqtt_config_errors_name_the_field() -> None:
+    with pytest.raises(ValidationError, match="port"):
+        MqttConfig(port=0)
+    with pytest.raises(ValidationError, match="client_id"):
+        MqttConfig(client_id="a/b")
+    with pytest.raises(ValidationError, match="password"):
+        MqttConfig(password="secret")
+    assert MqttConfig().client_id != MqttConfig().client_id
+
+
+def test_mqtt_key_mapping() -> None:
+    assert topic_filter("a/*/b") == "a/+/b"
+    assert topic_filter("a/**") == "a/#"
+    assert topic_filter("**") == "#"
+    with pytest.raises(TransportError, match="last chunk"):
+        topic_filter("a/**/b")
+    for bad in ("a/b*", "a/+/b", "a/#", "a//b", "$SYS/x", ""):
+        with pytest.raises(TransportError):
+            topic_filter(bad)
+    assert query_topic("a/b/*/c") == "@query/a/b"
+    assert query_topic("*/b") == "@query"
+    assert queryable_filters("a/*") == ["@query", "@query/a", "@query/a/+"]
+    assert queryable_filters("a/**") == ["@query", "@query/a/#"]
+    assert queryable_filters("**") == ["@query/#"]
+
+
+def test_key_intersects() -> None:
+    assert key_intersects("a/*", "a/b")
+    assert key_intersects("a/*/c", "a/b/*")
+    assert key_intersects("a/**", "a")
+    assert key_intersects("**", "x/y/z")
+    assert key_intersects("a/**/z", "a/b/c/*")
+    assert not key_intersects("a/*", "a/b/c")
+    assert not key_intersects("a/b", "a/c")
+    assert not key_intersects("a/**/z", "a/b/y")
+
+
+async def test_mqtt_subscription_to_an_unmappable_key_fails_clearly(mosquitto: Any) -> None:
+    host, port = mosquitto
+    async with MqttTransport(MqttConfig(host=host, port=port)) as t:
+        with pytest.raises(TransportError, match="last chunk"):
+            await t.subscribe("a/**/b")
+
+
+async def test_mqtt_unreachable_broker_is_a_transport_error() -> None:
+    t = MqttTransport(MqttConfig(port=free_tcp_port(), connect_timeout=2))
+    with pytest.raises(TransportError, match="cannot connect"):
+        await t.__aenter__()
