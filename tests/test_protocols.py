@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import AsyncIterator
+import contextvars
+import uuid
+from collections.abc import AsyncIterator, Iterator
 from typing import Any
 
 import pytest
@@ -39,23 +41,87 @@ from agents import (
     request,
     subscribe,
 )
+from agents.transports import (
+    MqttConfig,
+    MqttTransport,
+    Transport,
+    ZenohConfig,
+    ZenohTransport,
+    free_tcp_port,
+)
 
 P = Performative
 
 
+_KIND: contextvars.ContextVar[tuple[str, Any]] = contextvars.ContextVar(
+    "transport_kind", default=("memory", None)
+)
+
+
+@pytest.fixture(params=["memory", "zenoh", "mqtt"], autouse=True)
+def transport_kind(request: pytest.FixtureRequest) -> Iterator[str]:
+    """Run every protocol test over each transport: the same semantics on all three."""
+    broker = request.getfixturevalue("mosquitto") if request.param == "mqtt" else None
+    token = _KIND.set((request.param, broker))
+    try:
+        yield request.param
+    finally:
+        _KIND.reset(token)
+
+
+def _transports(n: int) -> list[Transport]:
+    kind, broker = _KIND.get()
+    if kind == "memory":
+        hub = MemoryHub()
+        return [hub.transport() for _ in range(n)]
+    if kind == "zenoh":
+        seed = free_tcp_port()
+        return [ZenohTransport(ZenohConfig.loopback(seed))] + [
+            ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed]))
+            for _ in range(n - 1)
+        ]
+    host, port = broker
+    return [MqttTransport(MqttConfig(host=host, port=port, keepalive=5)) for _ in range(n)]
+
+
 @contextlib.asynccontextmanager
 async def platforms(*names: str) -> AsyncIterator[list[AgentPlatform]]:
-    """Platforms on one in-memory hub; on exit, checks that no task is left behind."""
-    hub = MemoryHub()
+    """Platforms on the test's transport; on exit, checks that no task is left behind."""
+    kind, _ = _KIND.get()
+    federation = f"t{uuid.uuid4().hex[:8]}"  # tests sharing a broker never see each other
     async with contextlib.AsyncExitStack() as stack:
         out = []
-        for name in names:
-            transport = await stack.enter_async_context(hub.transport())
+        for name, transport in zip(names, _transports(len(names)), strict=True):
+            await stack.enter_async_context(transport)
             out.append(
-                await stack.enter_async_context(AgentPlatform(name, transport, federation="t"))
+                await stack.enter_async_context(
+                    AgentPlatform(name, transport, federation=federation, query_timeout=0.3)
+                )
             )
+        if kind != "memory":
+            await _all_see_each_other(out)
         yield out
     assert asyncio.all_tasks() == {asyncio.current_task()}
+
+
+async def _all_see_each_other(ps: list[AgentPlatform]) -> None:
+    """Wait until every platform sees every other's liveliness token.
+
+    A platform declares its token after its inbox; zenoh routes declarations in order, so
+    once the token is seen, messages to that inbox are routed too.
+    """
+    names = {p.name for p in ps}
+    async with asyncio.timeout(10):
+        for p in ps:
+            watch = await p.transport.watch_presence(p.key("alive", "*"))
+            seen: set[str] = set()
+            try:
+                while not names <= seen:
+                    change = await watch.get()
+                    if change.alive:
+                        seen.add(change.key.rpartition("/")[2])
+            finally:
+                watch.close()
 
 
 # -- FIPA-Request --------------------------------------------------------------------------

@@ -291,7 +291,7 @@ class MqttTransport(Transport):
             )
         except aiomqtt.MqttError as exc:
             with contextlib.suppress(aiomqtt.MqttError):
-                await client.__aexit__(None, None, None)
+                await _disconnect(client)
             raise TransportError(f"mqtt: cannot subscribe to replies on {where}: {exc}") from exc
         self._client = client
         self._loop = loop
@@ -322,7 +322,7 @@ class MqttTransport(Transport):
         if client is not None:
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
                 async with asyncio.timeout(self.config.connect_timeout):
-                    await client.__aexit__(None, None, None)
+                    await _disconnect(client)
 
     def _check_open(self) -> None:
         super()._check_open()
@@ -631,7 +631,7 @@ class MqttTransport(Transport):
             await client.publish(key, ALIVE, qos=1, retain=True)
         except aiomqtt.MqttError as exc:
             with contextlib.suppress(aiomqtt.MqttError):
-                await client.__aexit__(None, None, None)
+                await _disconnect(client)
             raise self._error(f"declare the token on {key!r}", exc) from exc
 
         async def clear() -> None:
@@ -641,7 +641,7 @@ class MqttTransport(Transport):
                 log.warning("mqtt: could not clear the token on %r: %s", key, exc)
             finally:
                 with contextlib.suppress(aiomqtt.MqttError):
-                    await client.__aexit__(None, None, None)
+                    await _disconnect(client)
 
         def start_clearing() -> None:
             if self._loop is not None:
@@ -667,3 +667,16 @@ def _sid(sid: int) -> Properties:
     props = Properties(PacketTypes.SUBSCRIBE)
     props.SubscriptionIdentifier = sid
     return props
+
+
+async def _disconnect(client: aiomqtt.Client) -> None:
+    """Leave the client and wait for its socket task, so nothing outlives the transport."""
+    try:
+        await client.__aexit__(None, None, None)
+    finally:
+        # aiomqtt cancels its misc-loop task through call_soon_threadsafe and returns
+        # before the task has ended; a caller checking for leaked tasks would see it.
+        misc = getattr(client, "_misc_task", None)
+        if isinstance(misc, asyncio.Task) and not misc.done():
+            misc.cancel()
+            await asyncio.wait([misc], timeout=1.0)
