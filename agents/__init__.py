@@ -39,6 +39,8 @@ from ._exceptions import (
     TransportClosed,
     TransportError,
 )
+from ._gateway import GatewayAgent
+from ._interface import AuditLog, InterfaceAgent
 from ._platform import AgentPlatform, PlainChannel, PlatformStats, RemoteChannel, wire_key
 from ._protocols import (
     FIPA_CONTRACT_NET,
@@ -64,6 +66,7 @@ from ._protocols import (
     request,
     subscribe,
 )
+from ._security import KeyPair, SecurityPolicy, TrustStore
 from .transports import MemoryHub, MemoryTransport, Transport
 
 __all__ = [
@@ -79,6 +82,7 @@ __all__ = [
     "AgentError",
     "AgentPlatform",
     "AgentStats",
+    "AuditLog",
     "ContractNetResult",
     "Conversation",
     "ConversationError",
@@ -86,7 +90,10 @@ __all__ = [
     "DirectoryFacilitator",
     "Failed",
     "Failure",
+    "GatewayAgent",
     "GlobalDirectory",
+    "InterfaceAgent",
+    "KeyPair",
     "MemoryHub",
     "MemoryTransport",
     "MessageError",
@@ -102,6 +109,7 @@ __all__ = [
     "RemoteChannel",
     "ReplyTimeout",
     "SecurityError",
+    "SecurityPolicy",
     "ServiceDescription",
     "ServiceError",
     "ServiceQuery",
@@ -111,6 +119,7 @@ __all__ = [
     "Transport",
     "TransportClosed",
     "TransportError",
+    "TrustStore",
     "Visibility",
     "agent_id",
     "contract_net",

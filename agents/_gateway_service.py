@@ -10,7 +10,8 @@ request says ``"relative": true`` (``from: -120`` = the last two minutes).
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from enum import Enum
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
@@ -27,6 +28,10 @@ from dyknow_core import (
 )
 
 ONTOLOGY = "dyknow"
+
+# Seconds at the edge, finite and bounded: seconds_to_ns(1e300) overflows (the bound is
+# ±31 700 years, far beyond any time line).
+Seconds = Annotated[float, Field(allow_inf_nan=False, ge=-1e12, le=1e12)]
 
 
 class GatewayRefusal(Exception):
@@ -51,12 +56,12 @@ class ListLabels(_Content):
 class PolicySpec(_Content):
     """A policy as it travels in ACL content: seconds everywhere, start/end maybe relative."""
 
-    start: float | None = Field(default=None, alias="from")
-    end: float | None = Field(default=None, alias="to")
+    start: Seconds | None = Field(default=None, alias="from")
+    end: Seconds | None = Field(default=None, alias="to")
     relative: bool = False
-    sample_period: float | None = None
+    sample_period: Seconds | None = None
     approximation: str = "none"
-    max_delay: float | None = None
+    max_delay: Seconds | None = None
     late: str = "drop"
     order: str = "any"
     change: Any = "any_update"
@@ -96,11 +101,11 @@ class Query(_Content):
     action: Literal["query"]
     label: str
     kind: Literal["latest", "at", "between"] = "latest"
-    t: float | None = None
-    start: float | None = Field(default=None, alias="from")
-    end: float | None = Field(default=None, alias="to")
+    t: Seconds | None = None
+    start: Seconds | None = Field(default=None, alias="from")
+    end: Seconds | None = Field(default=None, alias="to")
     relative: bool = False
-    as_of: float | None = None
+    as_of: Seconds | None = None
     approximation: Literal["most_recent", "closest", "linear"] = "most_recent"
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
@@ -122,13 +127,37 @@ class Subscribe(_Content):
     policy: PolicySpec = PolicySpec()
 
 
+_SCALARS = (str, int, float, bool, type(None))
+
+
+def jsonable(value: Any) -> Any:
+    """A sample value as a JSON value: tuples (positions) and named tuples (events) included.
+
+    ACL content is JSON, which has no tuples; a value that is no JSON at all becomes its
+    text rather than failing the whole answer.
+    """
+    if isinstance(value, _SCALARS):
+        return value
+    if isinstance(value, Enum):
+        return jsonable(value.value)
+    if isinstance(value, tuple) and hasattr(value, "_asdict"):
+        return {k: jsonable(v) for k, v in value._asdict().items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [jsonable(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, BaseModel):
+        return value.model_dump(mode="json")
+    return str(value)
+
+
 def answer_to_json(answer: Answer) -> dict[str, Any]:
     """A query answer as content: samples as [value, valid s, available s]."""
     return {
         "label": answer.label,
         "query_time": ns_to_seconds(answer.query_time),
         "samples": [
-            [s.value, ns_to_seconds(s.valid_time), ns_to_seconds(s.available_time)]
+            [jsonable(s.value), ns_to_seconds(s.valid_time), ns_to_seconds(s.available_time)]
             for s in answer.samples
         ],
     }
@@ -136,7 +165,7 @@ def answer_to_json(answer: Answer) -> dict[str, Any]:
 
 def samples_to_json(batch: list[tuple[Any, int, int]]) -> list[list[Any]]:
     """Raw samples as content rows: [value, valid s, available s]."""
-    return [[v, ns_to_seconds(tv), ns_to_seconds(ta)] for v, tv, ta in batch]
+    return [[jsonable(v), ns_to_seconds(tv), ns_to_seconds(ta)] for v, tv, ta in batch]
 
 
 class GatewayService:
@@ -149,7 +178,7 @@ class GatewayService:
 
     def parse(self, content: Any) -> ListLabels | Query | CreateStream:
         """Validate request content; GatewayRefusal names what is wrong."""
-        if not isinstance(content, dict) or "action" not in content:
+        if not isinstance(content, dict) or not isinstance(content.get("action"), str):
             raise GatewayRefusal("content must be a JSON object with an 'action'")
         kinds: dict[str, type[ListLabels | Query | CreateStream]] = {
             "list-labels": ListLabels,

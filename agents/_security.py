@@ -769,10 +769,20 @@ class SessionTable:
         self._by_sid[session.sid] = session
         mine.sort(key=lambda s: s.order)
         while len(mine) > self.policy.max_sessions_per_peer:
-            # sessions nobody used go first (a replayed request makes such sessions), and
-            # never the one just added: it is a renewal
+            # Retired sessions go first. Then unconfirmed ones that are no newer than the
+            # newest confirmed one: a replayed request makes those, and they cannot be a
+            # renewal. A newer unconfirmed session stays: the peer may have just made it
+            # and be about to send on it (both sides can renew at once). Then the oldest.
+            # Never the one just added: it is a renewal.
             others = [s for s in mine if s is not session]
-            self._drop(min(others, key=lambda s: (s._confirmed, s.order)))
+            newest = max((s.order[0] for s in others if s._confirmed), default=None)
+
+            def rank(s: Session, newest: Any = newest) -> tuple[bool, bool, Any]:
+                # the order's timestamp, strictly: its second part is a random tie-break
+                plausible = s._confirmed or newest is None or s.order[0] > newest
+                return (s._retire_at is None, plausible, s.order)
+
+            self._drop(min(others, key=rank))
         self._tx.pop(session.peer, None)
         self.prune()
 

@@ -56,6 +56,21 @@ class Overflow(StrEnum):
     DROP_NEWEST = "drop_newest"
 
 
+# Durations must land on the integer-nanosecond time line without overflowing a float:
+# a billion seconds (~31 years) is far beyond any sample period or delay a platform needs.
+MAX_DURATION_S = 1e9
+
+
+def check_duration(name: str, value: float, *, minimum: float) -> float:
+    """Refuse a duration (s) that cannot land on the nanosecond time line; names the field."""
+    # NaN fails every comparison, so it is refused here too
+    if not (minimum <= value <= MAX_DURATION_S):
+        raise ValueError(
+            f"{name} must be between {minimum:g} and {MAX_DURATION_S:g} s, got {value}"
+        )
+    return value
+
+
 _CHANGE_TEXT = re.compile(r"^\s*(absolute|relative)\s*\(\s*([-+0-9.eE]+)\s*\)\s*$")
 
 
@@ -161,17 +176,12 @@ class Policy(_EdgeModel):
     @field_validator("sample_period")
     @classmethod
     def _positive_period(cls, v: float | None) -> float | None:
-        # a period must land on the integer-nanosecond time line: at least 1 ns, finite
-        if v is not None and not (v >= 1e-9 and math.isfinite(v)):
-            raise ValueError(f"sample_period must be finite and >= 1 ns (1e-9 s), got {v}")
-        return v
+        return None if v is None else check_duration("sample_period", v, minimum=1e-9)
 
     @field_validator("max_delay")
     @classmethod
     def _non_negative_delay(cls, v: float | None) -> float | None:
-        if v is not None and not (v >= 0 and math.isfinite(v)):
-            raise ValueError(f"max_delay must be finite and >= 0 seconds (or unset), got {v}")
-        return v
+        return None if v is None else check_duration("max_delay", v, minimum=0.0)
 
     @field_validator("lower", "upper")
     @classmethod
@@ -248,8 +258,10 @@ class CacheSpec(_EdgeModel):
     def _bounded(self) -> Self:
         if self.max_samples is not None and self.max_samples < 1:
             raise PolicyError("max_samples", f"must be >= 1, got {self.max_samples}")
-        if self.max_age is not None and not self.max_age > 0:
-            raise PolicyError("max_age", f"must be > 0 seconds, got {self.max_age}")
+        if self.max_age is not None and not 0 < self.max_age <= MAX_DURATION_S:
+            raise PolicyError(
+                "max_age", f"must be > 0 and <= {MAX_DURATION_S:g} seconds, got {self.max_age}"
+            )
         if self.max_samples is None and self.max_age is None:
             raise PolicyError(
                 "max_samples", "a cache needs max_samples or max_age (it must be bounded)"

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import math
 from collections.abc import Callable, Mapping
 from enum import StrEnum
 from typing import TYPE_CHECKING, Any, Self
@@ -26,7 +25,7 @@ from typing import TYPE_CHECKING, Any, Self
 from pydantic import field_validator, model_validator
 
 from ._exceptions import PolicyError, ProcessError
-from ._policy import Approximation, CacheSpec, LateAction, Policy, _EdgeModel
+from ._policy import Approximation, CacheSpec, LateAction, Policy, _EdgeModel, check_duration
 from ._process import Process
 from ._sample import RawSample
 from ._stream import StreamGenerator, Subscription
@@ -89,17 +88,12 @@ class StatePolicy(_EdgeModel):
     @field_validator("period")
     @classmethod
     def _positive_period(cls, v: float) -> float:
-        # a period must land on the integer-nanosecond time line: at least 1 ns, finite
-        if not (v >= 1e-9 and math.isfinite(v)):
-            raise ValueError(f"period must be finite and >= 1 ns (1e-9 s), got {v}")
-        return v
+        return check_duration("period", v, minimum=1e-9)
 
     @field_validator("max_delay")
     @classmethod
     def _non_negative_delay(cls, v: float | None) -> float | None:
-        if v is not None and not (v >= 0 and math.isfinite(v)):
-            raise ValueError(f"max_delay must be finite and >= 0 seconds (or unset), got {v}")
-        return v
+        return None if v is None else check_duration("max_delay", v, minimum=0.0)
 
     @model_validator(mode="after")
     def _coherent(self) -> Self:

@@ -16,12 +16,13 @@ from agents import (
     ACLMessage,
     Agent,
     AgentPlatform,
+    InterfaceAgent,
+    KeyPair,
     ServiceDescription,
+    TrustStore,
     on_request,
     request,
 )
-from agents._interface import InterfaceAgent
-from agents._security import KeyPair, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 
 

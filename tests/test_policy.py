@@ -396,3 +396,17 @@ def test_cu_with_numeric_input_policy_on_non_numeric_stream_is_refused_cleanly()
     assert not dk.has_label("color/brightness")
     assert dk.stream("color").subscriptions == []
     dk.add_cu("brightness", len, ["color"], "color/brightness")
+
+
+@pytest.mark.parametrize(
+    ("field", "kwargs"),
+    [
+        ("sample_period", {"sample_period": 1e300}),
+        ("max_delay", {"sample_period": 1.0, "max_delay": 1e300}),
+    ],
+)
+def test_durations_too_large_for_the_time_line_are_refused(field: str, kwargs: dict) -> None:  # type: ignore[type-arg]
+    # seconds_to_ns would overflow a float: refuse at the edge, naming the field
+    with pytest.raises(PolicyError) as info:
+        Policy(**kwargs)
+    assert info.value.field == field

@@ -813,3 +813,22 @@ def test_replayed_requests_after_restart_cannot_evict_the_live_session(clock: Cl
     assert live.sid in {s.sid for s in b.table.sessions("uav-a")}
     assert b.table.open(live.seal(ACL))[0] == "uav-a"
     assert b.table.session_for("uav-a") is not None
+
+
+def test_simultaneous_renewals_keep_the_session_the_peer_is_about_to_use(clock: Clock) -> None:
+    # both sides renew at once with room for two sessions: neither may evict the fresh
+    # session the other just made and is about to seal on
+    policy = SecurityPolicy(max_sessions_per_peer=2)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    connect(a, b)
+    b.table.open(a.table.seal("uav-b", ACL))
+    a.table.open(b.table.seal("uav-a", ACL))
+    clock.advance(1)
+    request_a = a.hs.initiate("uav-b")  # A starts a renewal ...
+    clock.advance(1)
+    connect(b, a)  # ... while B completes its own
+    reply, s3 = b.hs.respond(request_a)
+    b.table.add(s3)
+    a.table.add(a.hs.finish(reply))
+    assert a.table.open(b.table.seal("uav-a", ACL))[0] == "uav-b"
+    assert b.table.open(a.table.seal("uav-b", ACL))[0] == "uav-a"

@@ -1,0 +1,300 @@
+"""The Gateway Agent: the ACL face of the local DyKnow instance.
+
+One agent (``gateway@<platform>`` by default) answers, in ontology ``dyknow`` with JSON
+content (the mapping is `GatewayService`, ``agents/_gateway_service.py``):
+
+* FIPA-Request ``{"action": "list-labels" | "create-stream" | "query", …}`` → ``inform``
+  with the result, or ``refuse`` with the reason;
+* FIPA-Query (query-ref) for ``query`` and ``list-labels``;
+* FIPA-Subscribe ``{"label": …, "policy": {…}}`` → ``agree``, then one ``inform``
+  ``{"label": …, "samples": [[value, valid s, available s], …]}`` per batch the core
+  subscription (with that policy) emits, until the initiator cancels or the stream ends
+  (then the initiator gets ``cancel``: a clean end).
+
+It registers its service (type ``dyknow-gateway``) with the platform's Directory
+Facilitator; protected by default, so other platforms reach it through the Interface
+Agent only.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any
+
+import orjson
+
+from dyknow_core import DyKnowError, DyKnowInstance, Subscription
+
+from ._acl import MAX_MESSAGE_BYTES, ACLMessage, Performative
+from ._agent import Agent, MessageTemplate, on
+from ._df import DirectoryEvent, ServiceDescription, Visibility
+from ._gateway_service import ONTOLOGY, GatewayRefusal, GatewayService, samples_to_json
+from ._protocols import FIPA_QUERY, FIPA_REQUEST, FIPA_SUBSCRIBE, Refuse, on_query, on_request
+from .transports import Subscription as TransportSubscription
+
+log = logging.getLogger(__name__)
+
+P = Performative
+
+GATEWAY_SERVICE_TYPE = "dyknow-gateway"
+"""The Directory Facilitator service type every Gateway Agent registers."""
+
+# What an inform's content may take: the message limit less room for the ACL fields
+# (identifiers, conversation id, ontology) around it.
+_INFORM_BUDGET = MAX_MESSAGE_BYTES - 4096
+
+
+@dataclass(slots=True)
+class GatewayStats:
+    """What a Gateway Agent has sent to its subscribers."""
+
+    informs: int = 0
+    samples: int = 0
+    too_large: int = 0
+    subscriptions: int = 0
+
+
+@dataclass(slots=True)
+class _Feed:
+    """One FIPA-Subscribe being served: the subscribe message and its core subscription."""
+
+    message: ACLMessage
+    label: str
+    sub: Subscription
+    cancelled: bool = False
+
+    @property
+    def key(self) -> tuple[str, str]:
+        return (self.message.sender, self.message.conversation_id or "")
+
+    def stop(self) -> None:
+        """No inform goes out after this (the pump checks the flag before each one)."""
+        self.cancelled = True
+        self.sub.close()
+
+
+class GatewayAgent(Agent):
+    """The ACL face of a DyKnow instance: list labels, create streams, query, subscribe.
+
+    ``visibility`` is that of the ``dyknow-gateway`` service it registers (protected:
+    other platforms through the Interface Agent only; public: listed in the global
+    directory too). ``register=False`` leaves the Directory Facilitator alone. The
+    subscriptions of a platform that leaves the federation (its presence token goes) are
+    dropped with it.
+    """
+
+    def __init__(
+        self,
+        instance: DyKnowInstance,
+        *,
+        name: str = "gateway",
+        service_name: str = "dyknow",
+        visibility: Visibility | str = Visibility.PROTECTED,
+        register: bool = True,
+        max_subscriptions: int = 1024,
+        max_streams: int = 256,
+    ) -> None:
+        super().__init__(name)
+        self.instance = instance
+        self.service = GatewayService(instance, max_streams=max_streams)
+        self.service_name = service_name
+        self.visibility = Visibility(visibility)
+        self._register = register
+        self.max_subscriptions = max_subscriptions
+        self.gateway_stats = GatewayStats()
+        self._feeds: dict[tuple[str, str], _Feed] = {}
+        self._presence: TransportSubscription[DirectoryEvent] | None = None
+
+    # -- lifecycle ----------------------------------------------------------------------
+
+    def description(self) -> ServiceDescription:
+        """The service this agent registers with its platform's Directory Facilitator."""
+        return ServiceDescription(
+            name=self.service_name,
+            type=GATEWAY_SERVICE_TYPE,
+            provider=self.aid,
+            ontology=ONTOLOGY,
+            protocols=[FIPA_REQUEST, FIPA_QUERY, FIPA_SUBSCRIBE],
+            properties={"instance": self.instance.name},
+            visibility=self.visibility,
+        )
+
+    async def setup(self) -> None:
+        """Register the gateway service; follow platforms leaving to drop their feeds."""
+        platform = self.platform
+        if self._register and platform.df is not None:
+            await platform.df.register(self.description())
+        if platform.global_df is not None:
+            self._presence = platform.global_df.watch()
+            self.spawn(self._follow_platforms(self._presence), "platforms")
+
+    async def teardown(self) -> None:
+        """End every subscription: the initiators get ``failure`` (we stop, not the stream)."""
+        if self._presence is not None:
+            self._presence.close()
+        for feed in list(self._feeds.values()):
+            self._drop(feed)
+            try:
+                await self.reply(feed.message, P.FAILURE, f"{self.aid} stopped")
+            except Exception as exc:
+                log.debug("%s: telling %s we stop: %s", self, feed.message.sender, exc)
+
+    @property
+    def subscriptions(self) -> dict[tuple[str, str], str]:
+        """The subscriptions served now: (subscriber, conversation id) → label."""
+        return {key: feed.label for key, feed in self._feeds.items()}
+
+    # -- FIPA-Request and FIPA-Query ----------------------------------------------------
+
+    def _perform(self, content: Any) -> dict[str, Any]:
+        try:
+            return self.service.perform(content)
+        except GatewayRefusal as exc:
+            raise Refuse(exc.reason) from exc
+
+    @on_request(ONTOLOGY)
+    async def _on_request(self, message: ACLMessage) -> Any:
+        """list-labels, create-stream, query: the result, or refuse with the reason."""
+        return self._perform(message.content)
+
+    @on_query(ONTOLOGY)
+    async def _on_query(self, message: ACLMessage) -> Any:
+        """query-ref for ``query`` (the default action) and ``list-labels``."""
+        if message.performative is P.QUERY_IF:
+            raise Refuse("the gateway answers query-ref, not query-if")
+        content = message.content
+        if isinstance(content, dict):
+            content = {"action": "query", **content}
+            if content["action"] == "create-stream":
+                raise Refuse("create-stream is an action: ask for it with FIPA-Request")
+        return self._perform(content)
+
+    # -- FIPA-Subscribe -----------------------------------------------------------------
+
+    @on(MessageTemplate(P.SUBSCRIBE, ontology=ONTOLOGY))
+    async def _on_subscribe(self, message: ACLMessage) -> None:
+        """Agree and start informing, or refuse (unknown label, bad policy) with the reason."""
+        reason = self._subscribe_problem(message)
+        if reason is not None:
+            await self.reply(message, P.REFUSE, reason)
+            return
+        try:
+            label, policy = self.service.subscription_policy(message.content)
+            sub = self.instance.subscribe(label, policy)
+        except GatewayRefusal as exc:
+            await self.reply(message, P.REFUSE, exc.reason)
+            return
+        except (DyKnowError, OverflowError) as exc:
+            await self.reply(message, P.REFUSE, str(exc))
+            return
+        feed = _Feed(message, label, sub)
+        self._feeds[feed.key] = feed
+        self.gateway_stats.subscriptions += 1
+        try:
+            await self.reply(message, P.AGREE)
+        except BaseException:
+            self._drop(feed)
+            raise
+        # Started only now: no inform may overtake the agree.
+        self.spawn(self._pump(feed), f"feed[{label}]")
+
+    def _subscribe_problem(self, message: ACLMessage) -> str | None:
+        if message.conversation_id is None:
+            return "a subscribe needs a conversation_id"
+        if (message.sender, message.conversation_id) in self._feeds:
+            return f"conversation {message.conversation_id} already has a subscription"
+        if len(self._feeds) >= self.max_subscriptions:
+            return f"too many subscriptions (limit {self.max_subscriptions})"
+        return None
+
+    @on(MessageTemplate(P.CANCEL, ontology=ONTOLOGY))
+    async def _on_cancel(self, message: ACLMessage) -> None:
+        """The initiator ends its subscription: close the core subscription, confirm."""
+        feed = self._feeds.get((message.sender, message.conversation_id or ""))
+        if feed is None:
+            await self.reply(
+                message, P.FAILURE, f"no subscription in conversation {message.conversation_id}"
+            )
+            return
+        self._drop(feed)
+        await self.reply(message, P.INFORM, "cancelled")
+
+    @on(MessageTemplate((P.FAILURE, P.NOT_UNDERSTOOD), ontology=ONTOLOGY))
+    async def _on_trouble(self, message: ACLMessage) -> None:
+        """An inform bounced (the subscriber is gone, or refused it): stop feeding it."""
+        feed = self._feeds.get((message.sender, message.conversation_id or ""))
+        if feed is not None:
+            log.info(
+                "%s: subscription of %s to %r dropped: %s",
+                self,
+                message.sender,
+                feed.label,
+                message.content,
+            )
+            self._drop(feed)
+        else:
+            log.debug("%s: %s from %s ignored", self, message.performative, message.sender)
+
+    def _drop(self, feed: _Feed) -> None:
+        feed.stop()
+        if self._feeds.get(feed.key) is feed:
+            del self._feeds[feed.key]
+
+    async def _pump(self, feed: _Feed) -> None:
+        """Inform the subscriber of each batch until cancelled or the stream ends."""
+        try:
+            async for batch in feed.sub.batches():
+                if feed.cancelled:
+                    return
+                await self._inform(feed, samples_to_json(batch))
+        except Exception:
+            log.exception("%s: informing %s failed; subscription dropped", self, feed.key[0])
+            self._drop(feed)
+            return
+        if feed.cancelled:
+            return
+        # The stream ended (its process was removed, or the policy's end passed).
+        self._drop(feed)
+        await self.reply(feed.message, P.CANCEL, f"stream {feed.label!r} ended")
+
+    async def _inform(self, feed: _Feed, rows: list[list[Any]]) -> None:
+        """Send ``rows`` in as few informs as the message size limit allows."""
+        stats = self.gateway_stats
+        pending = [rows]
+        while pending:
+            part = pending.pop()
+            content = {"label": feed.label, "samples": part}
+            try:
+                size = len(orjson.dumps(content))
+            except orjson.JSONEncodeError:
+                size = -1  # e.g. an integer beyond 64 bits: only this row may be lost
+            if 0 <= size <= _INFORM_BUDGET:
+                if feed.cancelled:
+                    return
+                await self.reply(feed.message, P.INFORM, content)
+                stats.informs += 1
+                stats.samples += len(part)
+            elif len(part) > 1:
+                mid = len(part) // 2
+                pending.append(part[mid:])
+                pending.append(part[:mid])
+            else:
+                stats.too_large += 1
+                log.warning(
+                    "%s: a sample of %r cannot be sent as JSON within %d bytes; skipped",
+                    self,
+                    feed.label,
+                    _INFORM_BUDGET,
+                )
+
+    async def _follow_platforms(self, events: TransportSubscription[DirectoryEvent]) -> None:
+        """A platform that leaves takes its subscriptions with it."""
+        async for event in events:
+            if event.op != "platform-gone":
+                continue
+            suffix = f"@{event.platform}"
+            for feed in list(self._feeds.values()):
+                if feed.key[0].endswith(suffix):
+                    log.info("%s: %s left; its subscription ended", self, event.platform)
+                    self._drop(feed)

@@ -1,0 +1,490 @@
+"""The Gateway Agent: DyKnow over ACL between two platforms with authenticated channels."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+
+from agents import (
+    MAX_MESSAGE_BYTES,
+    Agent,
+    AgentPlatform,
+    Failed,
+    GatewayAgent,
+    MemoryHub,
+    Refused,
+    ServiceDescription,
+    SubscriptionEnded,
+    query_if,
+    query_ref,
+    request,
+    subscribe,
+)
+from agents._gateway import GATEWAY_SERVICE_TYPE
+from agents._interface import InterfaceAgent
+from agents._security import KeyPair, TrustStore
+from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Source
+
+FED = "t"
+T0 = 1000 * NS_PER_S  # the instance's now when a test starts
+GW = "gateway@uav-a"
+
+
+@dataclass
+class World:
+    """uav-a runs DyKnow and its gateway; operator asks it, through Interface Agents."""
+
+    clock: ManualClock
+    dk: DyKnowInstance
+    uav: AgentPlatform
+    operator: AgentPlatform
+    gateway: GatewayAgent
+    asker: Agent
+    speed: Source
+    state: Source
+
+    async def ask(self, content: Any) -> Any:
+        return await request(self.asker, GW, content, ontology="dyknow", timeout=5)
+
+
+@contextlib.asynccontextmanager
+async def world(**gateway_options: Any) -> AsyncIterator[World]:
+    """Two platforms on one in-memory hub; on exit, checks that no task is left behind."""
+    ka, ko = KeyPair.generate("uav-a"), KeyPair.generate("operator")
+    trust = TrustStore(FED, {"uav-a": ka.public_key, "operator": ko.public_key})
+    hub = MemoryHub()
+    clock = ManualClock(T0)
+    async with contextlib.AsyncExitStack() as stack:
+        dk = await stack.enter_async_context(DyKnowInstance("uav-a", clock=clock))
+        speed = dk.add_source("car/car5/speed")
+        state = dk.add_source("car5-state")
+        ta = await stack.enter_async_context(hub.transport())
+        to = await stack.enter_async_context(hub.transport())
+        uav = await stack.enter_async_context(
+            AgentPlatform("uav-a", ta, federation=FED, channel=InterfaceAgent(ka, trust))
+        )
+        operator = await stack.enter_async_context(
+            AgentPlatform("operator", to, federation=FED, channel=InterfaceAgent(ko, trust))
+        )
+        gateway = await uav.add(GatewayAgent(dk, **gateway_options))
+        asker = await operator.add(Agent("asker"))
+        yield World(clock, dk, uav, operator, gateway, asker, speed, state)
+    assert asyncio.all_tasks() == {asyncio.current_task()}
+
+
+def push_trajectory(w: World, n: int = 30, every: float = 10.0) -> None:
+    """car5's state every ``every`` s, valid from 300 s ago up to now; positions as tuples."""
+    for i in range(n):
+        tv = T0 - 300 * NS_PER_S + round(i * every * NS_PER_S)
+        w.state.push({"pos": (float(i), 2.0 * i), "speed": 10.0 + i}, valid_time=tv)
+
+
+async def eventually(check: Callable[[], bool], timeout: float = 2.0) -> None:
+    """Wait (bounded) until ``check()`` holds."""
+    # What is checked is changed by the gateway's own tasks, which offer nothing to await.
+    async with asyncio.timeout(timeout):
+        while not check():  # noqa: ASYNC110
+            await asyncio.sleep(0.005)
+
+
+async def refusal(call: Awaitable[Any]) -> str:
+    """The reason a refused call carries."""
+    with pytest.raises(Refused) as info:
+        await call
+    assert info.value.message is not None
+    reason = info.value.message.content
+    assert isinstance(reason, str)
+    return reason
+
+
+# -- FIPA-Request and FIPA-Query ----------------------------------------------------------
+
+
+async def test_list_labels_by_request_and_query_ref() -> None:
+    async with world() as w:
+        assert await w.ask({"action": "list-labels"}) == {
+            "labels": ["car/car5/speed", "car5-state"]
+        }
+        assert await w.ask({"action": "list-labels", "pattern": "car/*"}) == {
+            "labels": ["car/car5/speed"]
+        }
+        found = await query_ref(
+            w.asker, GW, {"action": "list-labels", "pattern": "car5*"}, ontology="dyknow"
+        )
+        assert found == {"labels": ["car5-state"]}
+        # it went through uav-a's Interface Agent, authenticated
+        audit = w.uav.channel
+        assert isinstance(audit, InterfaceAgent)
+        assert audit.audit.counts["accepted"] >= 3
+        assert audit.audit.counts["dropped"] == 0
+
+
+async def test_query_latest_at_between() -> None:
+    async with world() as w:
+        for i in range(5):
+            w.speed.push(float(i), valid_time=T0 + i * NS_PER_S)
+        w.clock.advance_seconds(10)
+        latest = await w.ask({"action": "query", "label": "car/car5/speed"})
+        assert latest["label"] == "car/car5/speed"
+        assert latest["query_time"] == 1010.0
+        assert [row[:2] for row in latest["samples"]] == [[4.0, 1004.0]]
+
+        at = await query_ref(
+            w.asker,
+            GW,
+            {"label": "car/car5/speed", "kind": "at", "t": 1002.5, "approximation": "linear"},
+            ontology="dyknow",
+        )
+        assert at["samples"][0][:2] == [2.5, 1002.5]
+
+        between = await w.ask(
+            {
+                "action": "query",
+                "label": "car/car5/speed",
+                "kind": "between",
+                "from": 1001,
+                "to": 1003,
+            }
+        )
+        assert [row[:2] for row in between["samples"]] == [
+            [1.0, 1001.0],
+            [2.0, 1002.0],
+            [3.0, 1003.0],
+        ]
+        # available times are seconds on the instance's time line too
+        assert all(1000.0 <= row[2] < 1000.001 for row in between["samples"])
+
+        # "as believed at": the samples were available at 1000 s; before that, nothing
+        before = await w.ask(
+            {"action": "query", "label": "car/car5/speed", "kind": "between", "as_of": 999}
+        )
+        assert before["samples"] == []
+
+
+async def test_relative_trajectory_query() -> None:
+    async with world() as w:
+        push_trajectory(w)  # 30 states, valid from now - 300 s to now - 10 s
+        answer = await w.ask(
+            {
+                "action": "query",
+                "label": "car5-state",
+                "kind": "between",
+                "from": -120,
+                "relative": True,
+            }
+        )
+        rows = answer["samples"]
+        # the last two minutes: valid times now - 120 … now - 10, every 10 s
+        assert [row[1] for row in rows] == [1000.0 - 120 + 10 * k for k in range(12)]
+        # tuples (positions) travel as JSON arrays
+        assert rows[0][0] == {"pos": [18.0, 36.0], "speed": 28.0}
+        assert rows[-1][0]["pos"] == [29.0, 58.0]
+
+        # relative times follow the provider's clock, not the asker's
+        w.clock.advance_seconds(60)
+        later = await w.ask(
+            {
+                "action": "query",
+                "label": "car5-state",
+                "kind": "between",
+                "from": -120,
+                "relative": True,
+            }
+        )
+        assert len(later["samples"]) == 6
+
+
+async def test_create_stream_with_a_policy() -> None:
+    async with world() as w:
+        created = await w.ask(
+            {
+                "action": "create-stream",
+                "label": "car/car5/speed",
+                "output": "car/car5/speed-1hz",
+                "policy": {"sample_period": 1.0, "lower": 0, "upper": 50},
+            }
+        )
+        assert created == {"label": "car/car5/speed-1hz", "source": "car/car5/speed"}
+        assert "car/car5/speed-1hz" in (await w.ask({"action": "list-labels"}))["labels"]
+        for i in range(41):  # every 0.1 s for 4 s; one value out of bounds
+            w.speed.push(99.0 if i == 20 else float(i), valid_time=T0 + i * NS_PER_S // 10)
+        w.clock.advance_seconds(5)
+        answer = await w.ask(
+            {"action": "query", "label": "car/car5/speed-1hz", "kind": "between", "from": 0}
+        )
+        # one sample per second on the grid; the out-of-bounds one at 1002 s is filtered,
+        # so that grid point takes the last sample of its period
+        assert [row[:2] for row in answer["samples"]] == [
+            [0.0, 1000.0],
+            [10.0, 1001.0],
+            [19.0, 1002.0],
+            [30.0, 1003.0],
+            [40.0, 1004.0],
+        ]
+        assert w.gateway.service.created == {"car/car5/speed-1hz": "gateway:car/car5/speed-1hz"}
+
+
+# -- refusals ------------------------------------------------------------------------------
+
+
+async def test_refusals_carry_the_reason() -> None:
+    async with world() as w:
+        reason = await refusal(w.ask({"action": "query", "label": "car/car9/speed"}))
+        assert reason.startswith("unknown label 'car/car9/speed'")
+        assert "car/car5/speed" in reason  # the known labels are named
+
+        reason = await refusal(w.ask({"action": "fly", "to": "home"}))
+        assert reason == "unknown action 'fly' (known: create-stream, list-labels, query)"
+
+        reason = await refusal(w.ask("list-labels"))
+        assert reason == "content must be a JSON object with an 'action'"
+
+        bad_policy = {
+            "action": "create-stream",
+            "label": "car/car5/speed",
+            "output": "x",
+            "policy": {"sample_period": -1},
+        }
+        reason = await refusal(w.ask(bad_policy))
+        assert reason.startswith("policy field 'sample_period'")
+        assert not w.dk.has_label("x")
+
+        reason = await refusal(w.ask({**bad_policy, "policy": {"sample_period": 1, "every": 2}}))
+        assert reason == "field 'policy.every': Extra inputs are not permitted"
+
+        reason = await refusal(
+            w.ask({"action": "create-stream", "label": "car/car9/speed", "output": "y"})
+        )
+        assert reason.startswith("unknown label 'car/car9/speed'")
+
+        reason = await refusal(
+            w.ask({"action": "create-stream", "label": "car/car5/speed", "output": "car5-state"})
+        )
+        assert reason == "label 'car5-state' is already published"
+
+        reason = await refusal(w.ask({"action": "query", "label": "car5-state", "kind": "at"}))
+        assert reason == "a query 'at' needs 't'"
+
+        reason = await refusal(
+            w.ask({"action": "query", "label": "car5-state", "kind": "between", "from": 1e300})
+        )
+        assert reason.startswith("field 'from'")
+
+        reason = await refusal(
+            query_ref(
+                w.asker,
+                GW,
+                {"action": "create-stream", "label": "car/car5/speed", "output": "z"},
+                ontology="dyknow",
+            )
+        )
+        assert "FIPA-Request" in reason
+        reason = await refusal(query_if(w.asker, GW, {"label": "car5-state"}, ontology="dyknow"))
+        assert "query-ref" in reason
+
+
+async def test_subscribe_refusals_carry_the_reason() -> None:
+    async with world() as w:
+        reason = await refusal(
+            subscribe(w.asker, GW, {"label": "car/car9/speed"}, ontology="dyknow")
+        )
+        assert reason.startswith("unknown label 'car/car9/speed'")
+
+        reason = await refusal(
+            subscribe(
+                w.asker,
+                GW,
+                {"label": "car/car5/speed", "policy": {"sample_period": 0}},
+                ontology="dyknow",
+            )
+        )
+        assert reason.startswith("policy field 'sample_period'")
+
+        reason = await refusal(
+            subscribe(
+                w.asker,
+                GW,
+                {"label": "car/car5/speed", "policy": {"change": "sometimes"}},
+                ontology="dyknow",
+            )
+        )
+        assert reason.startswith("policy field 'change")
+
+        reason = await refusal(subscribe(w.asker, GW, ["car/car5/speed"], ontology="dyknow"))
+        assert reason.startswith("field 'content'")
+        assert w.gateway.subscriptions == {}
+
+
+# -- FIPA-Subscribe ------------------------------------------------------------------------
+
+
+async def test_subscribe_informs_follow_the_policy_and_cancel_stops_them() -> None:
+    async with world() as w:
+        stream = await subscribe(
+            w.asker,
+            GW,
+            {"label": "car/car5/speed", "policy": {"sample_period": 0.5}},
+            ontology="dyknow",
+        )
+        assert stream.agree.performative == "agree"
+        assert w.gateway.subscriptions == {
+            ("asker@operator", stream.message.conversation_id): "car/car5/speed"
+        }
+
+        for i in range(21):  # every 0.1 s for 2 s
+            w.speed.push(float(i), valid_time=T0 + i * NS_PER_S // 10)
+        rows: list[list[Any]] = []
+        while len(rows) < 5:
+            content = await stream.get(timeout=5)
+            assert content["label"] == "car/car5/speed"
+            rows.extend(content["samples"])
+        # one sample per 0.5 s of valid time, on the grid
+        assert [row[:2] for row in rows] == [
+            [0.0, 1000.0],
+            [5.0, 1000.5],
+            [10.0, 1001.0],
+            [15.0, 1001.5],
+            [20.0, 1002.0],
+        ]
+
+        await stream.cancel()
+        assert stream.ended
+        assert w.gateway.subscriptions == {}
+        assert w.dk.stream("car/car5/speed").subscriptions == []  # the core one is closed
+        informs = w.gateway.gateway_stats.informs
+        received = w.asker.stats.received
+
+        for i in range(21, 41):
+            w.speed.push(float(i), valid_time=T0 + i * NS_PER_S // 10)
+        # a round trip through the gateway: an inform sent meanwhile would arrive first
+        await w.ask({"action": "query", "label": "car/car5/speed"})
+        assert w.gateway.gateway_stats.informs == informs
+        assert w.asker.stats.received == received + 1  # the query's answer only
+        assert w.asker.stats.late == 0
+        with pytest.raises(SubscriptionEnded):
+            await stream.get(timeout=1)
+
+
+async def test_subscribe_replays_history_and_splits_large_batches() -> None:
+    async with world() as w:
+        n = 3000
+        blob = "x" * 200  # 3000 x ~250 bytes: more than one message may carry
+        for i in range(n):
+            w.state.push({"i": i, "blob": blob}, valid_time=T0 - (n - i) * NS_PER_S // 100)
+        stream = await subscribe(
+            w.asker,
+            GW,
+            {"label": "car5-state", "policy": {"from": -60, "relative": True}},
+            ontology="dyknow",
+        )
+        seen: list[int] = []
+        informs = 0
+        while len(seen) < n:
+            content = await stream.get(timeout=5)
+            informs += 1
+            assert stream.last is not None
+            assert len(stream.last.to_json()) <= MAX_MESSAGE_BYTES
+            seen.extend(row[0]["i"] for row in content["samples"])
+        assert seen == list(range(n))
+        assert informs >= 3
+        assert w.gateway.gateway_stats.too_large == 0
+        await stream.cancel()
+
+
+async def test_subscription_ends_cleanly_when_the_stream_ends() -> None:
+    async with world() as w:
+        stream = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        w.speed.push(1.0)
+        assert (await stream.get(timeout=5))["samples"][0][0] == 1.0
+        w.dk.remove_process("source:car/car5/speed")
+        with pytest.raises(SubscriptionEnded):
+            await stream.get(timeout=5)
+        assert stream.ended
+        assert w.gateway.subscriptions == {}
+
+
+async def test_subscription_ends_at_the_policy_end() -> None:
+    async with world() as w:
+        stream = await subscribe(
+            w.asker,
+            GW,
+            {"label": "car/car5/speed", "policy": {"to": 1001}},
+            ontology="dyknow",
+        )
+        for i in range(4):
+            w.speed.push(float(i), valid_time=T0 + i * NS_PER_S // 2)
+        got = [row[0] async for content in stream for row in content["samples"]]
+        assert got == [0.0, 1.0, 2.0]
+        assert w.gateway.subscriptions == {}
+
+
+async def test_gateway_stopping_fails_its_subscriptions() -> None:
+    async with world() as w:
+        stream = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        await w.gateway.stop()
+        with pytest.raises(Failed, match="gateway@uav-a stopped"):
+            await stream.get(timeout=5)
+        assert w.dk.stream("car/car5/speed").subscriptions == []
+
+
+async def test_subscriptions_of_a_platform_that_leaves_are_dropped() -> None:
+    async with world() as w:
+        await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        await subscribe(w.asker, GW, {"label": "car5-state"}, ontology="dyknow")
+        assert len(w.gateway.subscriptions) == 2
+        await w.operator.__aexit__(None, None, None)
+        await eventually(lambda: w.gateway.subscriptions == {})
+        assert w.dk.stream("car/car5/speed").subscriptions == []
+
+
+async def test_informs_to_an_agent_that_left_end_its_subscription() -> None:
+    async with world() as w:
+        await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        await w.asker.stop()
+        w.speed.push(1.0)  # the inform bounces: no such agent on operator
+        await eventually(lambda: w.gateway.subscriptions == {})
+
+
+# -- the directory -------------------------------------------------------------------------
+
+
+async def test_registers_a_protected_service_by_default() -> None:
+    async with world() as w:
+        assert w.uav.df is not None
+        [service] = w.uav.df.search(type=GATEWAY_SERVICE_TYPE)
+        assert service == ServiceDescription(
+            name="dyknow",
+            type="dyknow-gateway",
+            provider=GW,
+            ontology="dyknow",
+            protocols=["fipa-request", "fipa-query", "fipa-subscribe"],
+            properties={"instance": "uav-a"},
+            visibility="protected",
+        )
+        assert w.operator.global_df is not None
+        assert w.operator.global_df.search(type=GATEWAY_SERVICE_TYPE) == []
+        await w.gateway.stop()
+        assert w.uav.df.search(type=GATEWAY_SERVICE_TYPE) == []
+
+
+async def test_public_gateway_is_in_the_global_directory() -> None:
+    async with world(visibility="public", service_name="uav-a-dyknow") as w:
+        gdf = w.operator.global_df
+        assert gdf is not None
+        await eventually(lambda: len(gdf.search(type=GATEWAY_SERVICE_TYPE)) == 1)
+        [service] = gdf.search(type=GATEWAY_SERVICE_TYPE)
+        assert (service.name, service.provider) == ("uav-a-dyknow", GW)
+
+
+async def test_without_a_service_other_platforms_are_denied() -> None:
+    async with world(register=False) as w:
+        reason = await refusal(w.ask({"action": "list-labels"}))
+        assert reason.startswith("access denied")
+        # its own platform still may
+        local = await w.uav.add(Agent("local"))
+        assert await request(local, GW, {"action": "list-labels"}, ontology="dyknow", timeout=5)

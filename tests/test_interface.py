@@ -1,0 +1,936 @@
+"""The Interface Agent: authenticated sessions, access control and audit between platforms.
+
+Several platforms share one MemoryHub (one process); one test runs over zenoh on loopback.
+Hostile envelopes are built from real ones captured on the wire, or sealed with the
+sender's own session table, so each check of the receiving side is hit on purpose.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import os
+import time
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, TypeVar
+
+import orjson
+import pytest
+
+from agents import (
+    ACLMessage,
+    Agent,
+    AgentPlatform,
+    MessageTemplate,
+    Performative,
+    Refused,
+    ReplyTimeout,
+    SecurityError,
+    ServiceDescription,
+    TransportError,
+    on,
+    on_request,
+    query_ref,
+    request,
+    search_services,
+    wire_key,
+)
+from agents._interface import InterfaceAgent
+from agents._security import Handshake, KeyPair, SecurityPolicy, TrustStore
+from agents.transports import (
+    MemoryHub,
+    MemoryTransport,
+    Message,
+    Presence,
+    Reply,
+    Subscription,
+    Transport,
+    ZenohConfig,
+    ZenohTransport,
+    free_tcp_port,
+)
+
+FED = "demo"
+WAIT = 5.0  # the bound on any single wait; every test finishes far below it
+
+T = TypeVar("T")
+
+
+# -- helpers ---------------------------------------------------------------------------------
+
+
+class Echo(Agent):
+    """Answers ``demo`` requests and remembers every message that reached its handlers."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.calls: list[ACLMessage] = []
+        self.informs: list[ACLMessage] = []
+
+    @on_request("demo")
+    async def _echo(self, message: ACLMessage) -> Any:
+        self.calls.append(message)
+        return {"echo": message.content, "by": self.aid}
+
+    @on(MessageTemplate(Performative.INFORM, ontology="demo"))
+    async def _inform(self, message: ACLMessage) -> None:
+        self.informs.append(message)
+
+
+class Listener(Agent):
+    """Keeps every not-understood it gets, and wakes whoever waits for one."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.not_understood: list[ACLMessage] = []
+        self.got = asyncio.Event()
+        self.add_handler(MessageTemplate(Performative.NOT_UNDERSTOOD), self._keep)
+
+    async def _keep(self, message: ACLMessage) -> None:
+        self.not_understood.append(message)
+        self.got.set()
+
+
+class CountingTransport(MemoryTransport):
+    """A memory transport that counts key-exchange queries and makes them a little slow."""
+
+    def __init__(self, hub: MemoryHub, delay: float = 0.0) -> None:
+        super().__init__(hub)
+        self.kx_queries = 0
+        self.delay = delay
+
+    async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
+        """Count (and delay) key exchanges, then query as usual."""
+        if "/kx/" in key_expr:
+            self.kx_queries += 1
+            if self.delay:
+                # long enough for concurrent senders to pile up behind one exchange
+                await asyncio.sleep(self.delay)
+        return await super().query(key_expr, payload, timeout=timeout)
+
+
+class DeafTransport(MemoryTransport):
+    """A memory transport that never hears liveliness changes (as when events are lost)."""
+
+    async def watch_presence(
+        self, key_expr: str, *, history: bool = True, buffer_size: int = 4096
+    ) -> Subscription[Presence]:
+        """A watch on a key nobody declares: it never yields."""
+        return await super().watch_presence(
+            "nothing/matches/this", history=history, buffer_size=buffer_size
+        )
+
+
+class Fed:
+    """A federation on one MemoryHub: keys, one trust file, platforms opened and closed."""
+
+    def __init__(self, *names: str) -> None:
+        self.hub = MemoryHub()
+        self.keys = {n: KeyPair.generate(n) for n in names}
+        self.trust = TrustStore(FED, {n: k.public_key for n, k in self.keys.items()})
+        self._stacks: dict[str, contextlib.AsyncExitStack] = {}
+        self._extra: list[contextlib.AsyncExitStack] = []
+
+    def trust_copy(self) -> TrustStore:
+        """Each platform reads its own copy of the trust file."""
+        return TrustStore(FED, {p: self.trust.public_key(p) for p in self.trust})
+
+    async def start(
+        self, name: str, *, transport: MemoryTransport | None = None, **options: Any
+    ) -> AgentPlatform:
+        """Open transport and platform ``name`` with an Interface Agent as its channel."""
+        stack = contextlib.AsyncExitStack()
+        try:
+            t = await stack.enter_async_context(transport or self.hub.transport())
+            options.setdefault("audit_interval", 0.02)
+            channel = InterfaceAgent(self.keys[name], self.trust_copy(), **options)
+            p = await stack.enter_async_context(
+                AgentPlatform(name, t, federation=FED, channel=channel)
+            )
+        except BaseException:
+            await stack.aclose()
+            raise
+        self._stacks[name] = stack
+        return p
+
+    async def stop(self, name: str) -> None:
+        """Close platform ``name`` and its transport (as a process exit would)."""
+        await self._stacks.pop(name).aclose()
+
+    async def raw(self) -> MemoryTransport:
+        """A plain transport on the hub: what anyone on the network can do."""
+        stack = contextlib.AsyncExitStack()
+        self._extra.append(stack)
+        return await stack.enter_async_context(self.hub.transport())
+
+    async def aclose(self) -> None:
+        """Close everything, newest first."""
+        for name in reversed(list(self._stacks)):
+            await self.stop(name)
+        for stack in reversed(self._extra):
+            await stack.aclose()
+
+
+@contextlib.asynccontextmanager
+async def federation(*names: str) -> AsyncIterator[Fed]:
+    """A federation of ``names`` (not started), closed on exit, every wait bounded."""
+    fed = Fed(*names)
+    try:
+        async with asyncio.timeout(WAIT * 2):
+            yield fed
+    finally:
+        await fed.aclose()
+
+
+def ia(platform: AgentPlatform) -> InterfaceAgent:
+    """The platform's Interface Agent."""
+    assert isinstance(platform.channel, InterfaceAgent)
+    return platform.channel
+
+
+async def until(predicate: Callable[[], T], what: str, timeout: float = WAIT) -> T:
+    """Poll ``predicate`` (cheap, in memory) until it is truthy; fail after ``timeout`` s."""
+    try:
+        async with asyncio.timeout(timeout):
+            # the audit and session tables have no events to await: poll them, briefly
+            while not (value := predicate()):  # noqa: ASYNC110
+                await asyncio.sleep(0.005)
+            return value
+    except TimeoutError:
+        raise AssertionError(f"timed out waiting for {what}") from None
+
+
+def records(platform: AgentPlatform, **match: Any) -> list[dict[str, Any]]:
+    """The audit records of ``platform`` whose fields equal ``match``."""
+    return [r for r in ia(platform).audit.records if all(r.get(k) == v for k, v in match.items())]
+
+
+async def audited(platform: AgentPlatform, code: str | None = None, **match: Any) -> dict[str, Any]:
+    """Wait for the audit record matching ``match`` (and whose reason starts with ``code``)."""
+
+    def find() -> dict[str, Any] | None:
+        for r in records(platform, **match):
+            if code is None or str(r.get("reason")).startswith(f"{code}:"):
+                return r
+        return None
+
+    found = await until(find, f"an audit record {match} {code or ''} on {platform.name}")
+    return found
+
+
+async def serve(platform: AgentPlatform, name: str, visibility: str | None = "protected") -> Echo:
+    """Start an Echo agent; register a service of ``visibility`` (None: no service)."""
+    agent = await platform.add(Echo(name))
+    if visibility is not None:
+        assert platform.df is not None
+        await platform.df.register(
+            ServiceDescription(
+                name=f"{name}-svc", type="demo", provider=agent.aid, visibility=visibility
+            )
+        )
+    return agent
+
+
+def untouched(agent: Echo, calls: int, received: int) -> None:
+    """Nothing more reached ``agent``: no handler call, nothing queued, nothing counted."""
+    assert len(agent.calls) == calls
+    assert agent.informs == []
+    assert len(agent._mailbox) == 0
+    assert agent.stats.received == received
+
+
+def acl(sender: str, receiver: str, content: Any = None, **fields: Any) -> ACLMessage:
+    """A request as a sender's platform would put it in an envelope."""
+    fields.setdefault("ontology", "demo")
+    fields.setdefault("protocol", "fipa-request")
+    return ACLMessage(
+        performative=fields.pop("performative", Performative.REQUEST),
+        sender=sender,
+        receivers=[receiver],
+        content=content,
+        conversation_id=fields.pop("conversation_id", f"c-test-{os.urandom(4).hex()}"),
+        **fields,
+    )
+
+
+# -- request and inform, audit ------------------------------------------------------------
+
+
+async def test_request_inform_both_ways_audited_and_published() -> None:
+    """Requests are answered both ways; each accepted message is audited and published."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b")
+        raw = await fed.raw()
+        feed = await raw.subscribe(wire_key(FED, "audit", "uav-b"))
+        echo_a = await serve(pa, "echo")
+        echo_b = await serve(pb, "echo")
+
+        assert await request(echo_a, "echo@uav-b", {"x": 1}, ontology="demo") == {
+            "echo": {"x": 1},
+            "by": "echo@uav-b",
+        }
+        assert await request(echo_b, "echo@uav-a", [2], ontology="demo") == {
+            "echo": [2],
+            "by": "echo@uav-a",
+        }
+        assert [m.sender for m in echo_b.calls] == ["echo@uav-a"]
+        assert [m.sender for m in echo_a.calls] == ["echo@uav-b"]
+
+        # each side accepted one request and one inform, refused and dropped nothing
+        for p, peer in ((pa, "uav-b"), (pb, "uav-a")):
+            audit = ia(p).audit
+            assert audit.counts == {"accepted": 2, "refused": 0, "dropped": 0}
+            assert [r["performative"] for r in audit.records] == (
+                ["request", "inform"] if p is pb else ["inform", "request"]
+            )
+            for r in audit.records:
+                assert r["verdict"] == "accepted"
+                assert r["from"] == peer
+                assert r["platform"] == p.name
+                assert r["reason"] is None
+                assert r["v"] == 1
+                assert isinstance(r["ts"], float)
+        req = records(pb, performative="request")[0]
+        assert req["sender"] == "echo@uav-a"
+        assert req["receivers"] == ["echo@uav-b"]
+        assert req["conversation_id"] == echo_b.calls[0].conversation_id
+
+        # the same records go out on dyknow/<fed>/v1/audit/<platform>, as JSON lines
+        seen: list[dict[str, Any]] = []
+        async with asyncio.timeout(WAIT):
+            while not any(r["performative"] == "request" for r in seen):
+                msg = await feed.get()
+                assert msg.payload.endswith(b"\n")
+                seen += [orjson.loads(line) for line in msg.payload.splitlines()]
+        published = next(r for r in seen if r["performative"] == "request")
+        assert published == req
+
+
+# -- hostile envelopes ----------------------------------------------------------------------
+
+
+@dataclass
+class Pair:
+    """uav-a (its clock can be moved) and uav-b, with a session and a captured envelope."""
+
+    pa: AgentPlatform
+    pb: AgentPlatform
+    asker: Echo
+    echo: Echo
+    envelope: bytes
+    offset: list[float]
+
+
+async def _captured_session(fed: Fed) -> Pair:
+    """uav-a and uav-b with a session, and the envelope of a real request captured on the wire."""
+    offset = [0.0]
+    pa = await fed.start("uav-a", clock=lambda: time.time() + offset[0])
+    pb = await fed.start("uav-b")
+    raw = await fed.raw()
+    wire = await raw.subscribe(wire_key(FED, "acl", "uav-b"))
+    asker = await serve(pa, "asker", None)
+    echo = await serve(pb, "echo")
+    assert await request(asker, "echo@uav-b", {"x": 1}, ontology="demo") is not None
+    envelope = (await wire.get(WAIT)).payload
+    wire.close()
+    assert orjson.loads(envelope)["from"] == "uav-a"
+    return Pair(pa, pb, asker, echo, envelope, offset)
+
+
+async def test_forged_tampered_replayed_expired_and_untrusted_envelopes_are_dropped() -> None:
+    """Hostile envelopes never reach an agent and are audited as dropped, with their code."""
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pb, asker, echo, envelope = pair.pb, pair.asker, pair.echo, pair.envelope
+        raw = await fed.raw()
+        inbox = wire_key(FED, "acl", "uav-b")
+        env = orjson.loads(envelope)
+        calls, received = len(echo.calls), echo.stats.received
+
+        forged = {**env, "n": env["n"] + 100, "mac": base64.b64encode(os.urandom(32)).decode()}
+        await raw.publish(inbox, orjson.dumps(forged))
+        rec = await audited(pb, "forged", verdict="dropped")
+        assert rec["from"] == "uav-a"
+
+        body = orjson.loads(env["body"])
+        body["content"] = {"x": 666}
+        tampered = {**env, "n": env["n"] + 101, "body": orjson.dumps(body).decode()}
+        await raw.publish(inbox, orjson.dumps(tampered))
+        await until(lambda: len(records(pb, verdict="dropped")) == 2, "the tampered envelope")
+        assert str(records(pb, verdict="dropped")[1]["reason"]).startswith("forged:")
+
+        await raw.publish(inbox, envelope)  # the very bytes, again
+        rec = await audited(pb, "replayed", verdict="dropped")
+        assert rec["from"] == "uav-a"
+
+        untrusted = {**env, "from": "evil"}
+        await raw.publish(inbox, orjson.dumps(untrusted))
+        rec = await audited(pb, "untrusted", verdict="dropped")
+        assert rec["from"] == "evil"
+
+        # a sealed envelope held back (here: a sender clock two minutes late) is too old
+        pair.offset[0] = -120.0
+        await asker.send(acl("asker@uav-a", "echo@uav-b", {"x": 2}))
+        rec = await audited(pb, "expired", verdict="dropped")
+        assert rec["from"] == "uav-a"
+        pair.offset[0] = 0.0
+
+        # revoking a platform in the trust file refuses its live session at once
+        ia(pb).trust.remove("uav-a")
+        await asker.send(acl("asker@uav-a", "echo@uav-b", {"x": 3}))
+        await until(lambda: len(records(pb, verdict="dropped")) == 6, "the revoked sender")
+        assert str(records(pb, verdict="dropped")[-1]["reason"]).startswith("untrusted:")
+
+        untouched(echo, calls, received)
+        assert ia(pb).audit.counts == {"accepted": 1, "refused": 0, "dropped": 6}
+
+
+async def test_garbage_on_the_inbox_is_dropped_and_the_inbox_keeps_working() -> None:
+    """Bytes that are no envelope are dropped and audited; the inbox lives on."""
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pb, envelope = pair.pb, pair.envelope
+        raw = await fed.raw()
+        inbox = wire_key(FED, "acl", "uav-b")
+        for payload in (b"", b"not json", b"[1, 2]", b'{"v": 1}', b"\xff" * 10, envelope[:-5]):
+            await raw.publish(inbox, payload)
+        await until(lambda: ia(pb).audit.counts["dropped"] == 6, "six dropped envelopes")
+        assert all(
+            str(r["reason"]).startswith("malformed:") for r in records(pb, verdict="dropped")
+        )
+        assert await request(pair.asker, "echo@uav-b", 5, ontology="demo") == {
+            "echo": 5,
+            "by": "echo@uav-b",
+        }
+
+
+async def test_key_exchanges_from_untrusted_or_forged_keys_are_dropped() -> None:
+    """Key exchanges not signed by the trusted key make no session, on either side."""
+    async with federation("uav-a", "uav-b", "uav-c") as fed:
+        pb = await fed.start("uav-b")
+        echo = await serve(pb, "echo")
+        raw = await fed.raw()
+        kx = wire_key(FED, "kx", "uav-b")
+
+        # a platform missing from the trust file
+        evil = KeyPair.generate("evil")
+        evil_trust = TrustStore(
+            FED, {"evil": evil.public_key, "uav-b": fed.keys["uav-b"].public_key}
+        )
+        replies = await raw.query(kx, Handshake(evil, evil_trust).initiate("uav-b"), timeout=1.0)
+        assert not [r for r in replies if r.ok]
+        rec = await audited(pb, "untrusted", verdict="dropped", stage="kx")
+        assert rec["from"] == "evil"
+
+        # a trusted name, signed with a key the trust file does not hold for it
+        impostor = KeyPair.generate("uav-a")
+        imp_trust = TrustStore(
+            FED, {"uav-a": impostor.public_key, "uav-b": fed.keys["uav-b"].public_key}
+        )
+        replies = await raw.query(kx, Handshake(impostor, imp_trust).initiate("uav-b"), timeout=1.0)
+        assert not [r for r in replies if r.ok]
+        rec = await audited(pb, "forged", verdict="dropped", stage="kx")
+        assert rec["from"] == "uav-a"
+        assert ia(pb).sessions.peers() == []
+
+        # the initiator's side: uav-c answered by an impostor holding another key
+        pa = await fed.start("uav-a")
+        fake_c = KeyPair.generate("uav-c")
+        fake_trust = TrustStore(
+            FED, {"uav-c": fake_c.public_key, "uav-a": fed.keys["uav-a"].public_key}
+        )
+        fake_hs = Handshake(fake_c, fake_trust)
+
+        async def answer(key: str, payload: bytes) -> bytes | None:
+            reply, _ = fake_hs.respond(payload)
+            return reply
+
+        await raw.serve(wire_key(FED, "kx", "uav-c"), answer)
+        asker = await pa.add(Agent("asker"))
+        with pytest.raises(SecurityError, match="key exchange with 'uav-c' refused"):
+            await request(asker, "echo@uav-c", 1, ontology="demo", timeout=2)
+        rec = await audited(pa, "forged", verdict="dropped", stage="kx")
+        assert rec["from"] == "uav-c"
+        assert ia(pa).sessions.peers() == []
+        untouched(echo, 0, 0)
+
+
+async def test_an_authenticated_platform_cannot_speak_for_another_ones_agents() -> None:
+    """A platform's envelope cannot carry a message from another platform's agent."""
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pa, pb, echo = pair.pa, pair.pb, pair.echo
+        raw = await fed.raw()
+        calls, received = len(echo.calls), echo.stats.received
+        for sender in ("spy@uav-c", "df@uav-b"):
+            payload = ia(pa).sessions.seal("uav-b", acl(sender, "echo@uav-b", 9).to_json())
+            await raw.publish(wire_key(FED, "acl", "uav-b"), payload)
+            rec = await audited(pb, verdict="dropped", sender=sender)
+            assert rec["from"] == "uav-a"
+            assert "not an agent of 'uav-a'" in str(rec["reason"])
+        untouched(echo, calls, received)
+        assert pb.stats.forged == 0  # stopped by the Interface Agent, before the platform
+
+
+async def test_a_message_for_no_agent_of_the_platform_is_not_accepted() -> None:
+    """A message with no receiver here is dropped, not audited as accepted."""
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pa, pb = pair.pa, pair.pb
+        payload = ia(pa).sessions.seal(
+            "uav-b", acl("asker@uav-a", "x@uav-c", performative=Performative.INFORM).to_json()
+        )
+        raw = await fed.raw()
+        await raw.publish(wire_key(FED, "acl", "uav-b"), payload)
+        rec = await audited(pb, verdict="dropped", receivers=["x@uav-c"])
+        assert "no receiver" in str(rec["reason"])
+
+
+# -- access control ---------------------------------------------------------------------------
+
+
+async def test_access_follows_service_visibility() -> None:
+    """Outside askers reach public and protected services only; refusals are audited."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b")
+        asker = await serve(pa, "asker", None)
+        private = await serve(pb, "private", "private")
+        protected = await serve(pb, "protected", "protected")
+        await serve(pb, "public", "public")
+        bare = await serve(pb, "bare", None)
+
+        with pytest.raises(Refused, match="access denied") as refused:
+            await request(asker, "private@uav-b", 1, ontology="demo", timeout=2)
+        assert refused.value.message is not None
+        assert refused.value.message.sender == "private@uav-b"
+        assert private.calls == []
+        rec = await audited(pb, verdict="refused", receivers=["private@uav-b"])
+        assert rec["performative"] == "request"
+        assert rec["sender"] == "asker@uav-a"
+
+        assert await request(asker, "protected@uav-b", 2, ontology="demo") == {
+            "echo": 2,
+            "by": "protected@uav-b",
+        }
+        assert await request(asker, "public@uav-b", 3, ontology="demo") == {
+            "echo": 3,
+            "by": "public@uav-b",
+        }
+
+        # an agent without a service gets replies (continuing acts), never requests
+        with pytest.raises(Refused, match="access denied"):
+            await request(asker, "bare@uav-b", 4, ontology="demo", timeout=2)
+        assert bare.calls == []
+        await asker.send(asker.message(Performative.INFORM, "bare@uav-b", 5, ontology="demo"))
+        await until(lambda: bare.informs, "the inform to bare@uav-b")
+
+        # replies may not be steered to local agents: that would reach the private one
+        steered = asker.message(
+            Performative.REQUEST,
+            "protected@uav-b",
+            6,
+            ontology="demo",
+            protocol="fipa-request",
+            reply_to=["private@uav-b"],
+        )
+        answer = await asker.ask(steered, timeout=2)
+        assert answer.performative is Performative.REFUSE
+        assert "reply_to" in str(answer.content)
+        assert len(protected.calls) == 1
+        assert private.stats.received == 0
+
+        # the DF answers searches from outside: what the asker may see, not the private one
+        found = await search_services(asker, df="df@uav-b")
+        assert sorted(s.name for s in found) == ["protected-svc", "public-svc"]
+
+        assert ia(pb).audit.counts["refused"] == 3
+
+
+async def test_a_platform_without_a_directory_admits_no_requests_from_outside() -> None:
+    """No directory means no service offered: access control fails closed."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        stack = contextlib.AsyncExitStack()
+        async with stack:
+            tb = await stack.enter_async_context(fed.hub.transport())
+            pb = await stack.enter_async_context(
+                AgentPlatform(
+                    "uav-b",
+                    tb,
+                    federation=FED,
+                    directory=False,
+                    channel=InterfaceAgent(fed.keys["uav-b"], fed.trust_copy()),
+                )
+            )
+            echo = await pb.add(Echo("echo"))
+            asker = await pa.add(Agent("asker"))
+            with pytest.raises(Refused, match="access denied"):
+                await request(asker, "echo@uav-b", 1, ontology="demo", timeout=2)
+            assert echo.calls == []
+
+
+async def test_malformed_acl_in_a_valid_envelope_is_answered_not_understood() -> None:
+    """An authenticated sender of a bad message is told why; nobody else is."""
+    async with federation("uav-a", "uav-b", "uav-c") as fed:
+        pair = await _captured_session(fed)
+        pa, pb, asker, echo = pair.pa, pair.pb, pair.asker, pair.echo
+        pc = await fed.start("uav-c")
+        listener = await pa.add(Listener("listener"))
+        victim = await pc.add(Listener("victim"))
+        echo_c = await serve(pc, "echo")
+        raw = await fed.raw()
+        bad = orjson.dumps(
+            {
+                "performative": "shout",
+                "sender": "listener@uav-a",
+                "receivers": ["echo@uav-b"],
+                "conversation_id": "c-bad",
+                "reply_with": "r-bad",
+            }
+        )
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", bad))
+        async with asyncio.timeout(WAIT):
+            await listener.got.wait()
+        answer = listener.not_understood[0]
+        assert answer.sender == "echo@uav-b"
+        assert answer.conversation_id == "c-bad"
+        assert answer.in_reply_to == "r-bad"
+        assert "performative" in str(answer.content)
+        rec = await audited(pb, verdict="refused", **{"from": "uav-a"})
+        assert "performative" in str(rec["reason"])
+        assert echo.calls[-1].content == {"x": 1}  # only the request of the setup
+
+        # a malformed body naming a sender of another platform: nobody is told
+        spoofed = bad.replace(b"listener@uav-a", b"victim@uav-c")
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", spoofed))
+        rec = await audited(pb, verdict="dropped", sender="victim@uav-c")
+        assert "not an agent of 'uav-a'" in str(rec["reason"])
+        # uav-b's inbox is in order, and so is uav-c's: round trips after it flush both
+        assert await request(asker, "echo@uav-b", 1, ontology="demo")
+        assert await request(echo, "echo@uav-c", 1, ontology="demo")
+        assert echo_c.calls
+        assert victim.not_understood == []
+
+
+# -- sessions --------------------------------------------------------------------------------
+
+
+async def test_concurrent_first_sends_share_one_key_exchange() -> None:
+    """Many first sends to a peer wait for one key exchange."""
+    async with federation("uav-a", "uav-b") as fed:
+        ta = CountingTransport(fed.hub, delay=0.05)
+        tb = CountingTransport(fed.hub)
+        pa = await fed.start("uav-a", transport=ta)
+        pb = await fed.start("uav-b", transport=tb)
+        asker = await serve(pa, "asker", None)
+        await serve(pb, "echo")
+        results = await asyncio.gather(
+            *(request(asker, "echo@uav-b", i, ontology="demo") for i in range(20))
+        )
+        assert [r["echo"] for r in results] == list(range(20))  # type: ignore[index]
+        assert ta.kx_queries == 1
+        assert tb.kx_queries == 0  # uav-b answers on the session uav-a made
+        assert len(ia(pa).sessions.sessions("uav-b")) == 1
+        assert len(ia(pb).sessions.sessions("uav-a")) == 1
+
+
+async def test_sessions_renew_while_messages_keep_flowing() -> None:
+    """Renewing sessions loses no message."""
+    async with federation("uav-a", "uav-b") as fed:
+        policy = SecurityPolicy(renew_after_messages=5)
+        ta, tb = CountingTransport(fed.hub), CountingTransport(fed.hub)
+        pa = await fed.start("uav-a", transport=ta, policy=policy)
+        pb = await fed.start("uav-b", transport=tb, policy=policy)
+        asker = await serve(pa, "asker", None)
+        await serve(pb, "echo")
+        for i in range(30):
+            assert await request(asker, "echo@uav-b", i, ontology="demo", timeout=2) == {
+                "echo": i,
+                "by": "echo@uav-b",
+            }
+        assert 2 <= ta.kx_queries + tb.kx_queries <= 2 * (30 // 5 + 1)
+        for p in (pa, pb):
+            assert ia(p).audit.counts == {"accepted": 30, "refused": 0, "dropped": 0}
+            assert len(ia(p).sessions) <= policy.max_sessions_per_peer
+
+
+async def test_encrypted_sessions_carry_no_readable_body() -> None:
+    """With encryption on, plain tools see headers but no body."""
+    async with federation("uav-a", "uav-b") as fed:
+        policy = SecurityPolicy(encrypt=True, require_encryption=True)
+        pa = await fed.start("uav-a", policy=policy)
+        pb = await fed.start("uav-b", policy=policy)
+        raw = await fed.raw()
+        wire = await raw.subscribe(wire_key(FED, "acl", "*"))
+        asker = await serve(pa, "asker", "protected")
+        echo = await serve(pb, "echo")
+        secret = {"secret": "do not print"}
+        assert await request(asker, "echo@uav-b", secret, ontology="demo") == {
+            "echo": secret,
+            "by": "echo@uav-b",
+        }
+        assert await request(echo, "asker@uav-a", 1, ontology="demo") == {
+            "echo": 1,
+            "by": "asker@uav-a",
+        }
+        for _ in range(4):
+            env = orjson.loads((await wire.get(WAIT)).payload)
+            assert "box" in env
+            assert "body" not in env
+            assert "do not print" not in str(env)
+
+
+async def test_a_cancelled_first_sender_does_not_fail_the_others() -> None:
+    """Cancelling the sender that runs the key exchange does not fail the others."""
+    async with federation("uav-a", "uav-b") as fed:
+        ta = CountingTransport(fed.hub, delay=0.1)
+        pa = await fed.start("uav-a", transport=ta)
+        pb = await fed.start("uav-b")
+        asker = await serve(pa, "asker", None)
+        await serve(pb, "echo")
+        first = asyncio.create_task(request(asker, "echo@uav-b", 1, ontology="demo"))
+        await until(lambda: ta.kx_queries == 1, "the first key exchange")
+        second = asyncio.create_task(request(asker, "echo@uav-b", 2, ontology="demo"))
+        await asyncio.sleep(0.01)  # let the second sender join the exchange under way
+        first.cancel()
+        assert await second == {"echo": 2, "by": "echo@uav-b"}
+        with pytest.raises(asyncio.CancelledError):
+            await first
+
+
+async def test_concurrent_sends_to_a_peer_that_is_not_running_all_fail_fast() -> None:
+    """Sending to a platform that does not run fails at once, with a clear error."""
+    async with federation("uav-a", "uav-b") as fed:
+        ta = CountingTransport(fed.hub, delay=0.05)
+        pa = await fed.start("uav-a", transport=ta, handshake_timeout=0.5)
+        asker = await pa.add(Agent("asker"))
+        started = time.monotonic()
+        results = await asyncio.gather(
+            *(request(asker, "echo@uav-b", i, ontology="demo") for i in range(5)),
+            return_exceptions=True,
+        )
+        assert time.monotonic() - started < 2.0
+        for r in results:
+            assert isinstance(r, TransportError)
+            assert "did not answer the key exchange" in str(r)
+        assert ta.kx_queries == 1
+        # a platform outside the trust file is refused before anything goes out
+        with pytest.raises(SecurityError, match="not in the trust file"):
+            await request(asker, "x@nowhere", 1, ontology="demo")
+        assert ta.kx_queries == 1
+
+
+async def test_a_restarted_platform_is_reachable_again() -> None:
+    """A platform restarted under the same name and keys is reachable again."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b")
+        asker = await serve(pa, "asker", "protected")
+        await serve(pb, "echo")
+        assert await request(asker, "echo@uav-b", 1, ontology="demo")
+        assert ia(pa).sessions.peers() == ["uav-b"]
+
+        await fed.stop("uav-b")
+        await until(lambda: ia(pa).sessions.peers() == [], "uav-a forgetting uav-b")
+
+        pb = await fed.start("uav-b")  # same keys, same name, a new process
+        echo = await serve(pb, "echo")
+        async with asyncio.timeout(WAIT):
+            assert await request(asker, "echo@uav-b", 2, ontology="demo") == {
+                "echo": 2,
+                "by": "echo@uav-b",
+            }
+            assert await request(echo, "asker@uav-a", 3, ontology="demo") == {
+                "echo": 3,
+                "by": "asker@uav-a",
+            }
+
+
+async def _eventually(call: Callable[[], Any], what: str) -> Any:
+    """Retry ``call`` (short timeouts) until it answers: messages flow again, in bounded time."""
+    async with asyncio.timeout(WAIT):
+        while True:
+            try:
+                return await call()
+            except ReplyTimeout:
+                continue
+
+
+@pytest.mark.parametrize("direction", ["to-restarted", "from-restarted"])
+async def test_a_restart_nobody_noticed_heals_itself(direction: str) -> None:
+    """Lost liveliness events delay, but do not stop, messages after a restart."""
+    async with federation("uav-a", "uav-b") as fed:
+        # uav-a hears no liveliness changes: it keeps its sessions with the old uav-b
+        pa = await fed.start("uav-a", transport=DeafTransport(fed.hub))
+        pb = await fed.start("uav-b")
+        asker = await serve(pa, "asker", "protected")
+        await serve(pb, "echo")
+        assert await request(asker, "echo@uav-b", 1, ontology="demo")
+        await fed.stop("uav-b")
+        pb = await fed.start("uav-b")
+        echo = await serve(pb, "echo")
+        assert ia(pa).sessions.peers() == ["uav-b"]  # stale, and uav-a does not know
+
+        if direction == "to-restarted":
+            answer = await _eventually(
+                lambda: request(asker, "echo@uav-b", 2, ontology="demo", timeout=0.3),
+                "a request to the restarted platform",
+            )
+            assert answer == {"echo": 2, "by": "echo@uav-b"}
+        else:
+            answer = await _eventually(
+                lambda: request(echo, "asker@uav-a", 3, ontology="demo", timeout=0.3),
+                "a request from the restarted platform",
+            )
+            assert answer == {"echo": 3, "by": "asker@uav-a"}
+        # and from then on both ways work at once
+        assert await request(asker, "echo@uav-b", 4, ontology="demo", timeout=2)
+        assert await request(echo, "asker@uav-a", 5, ontology="demo", timeout=2)
+
+
+# -- configuration ---------------------------------------------------------------------------
+
+
+async def test_keys_of_another_platform_or_another_federation_fail_at_start() -> None:
+    """Mismatched keys or trust file fail at start, naming both sides."""
+    async with federation("uav-a", "uav-b") as fed:
+        t = await fed.raw()
+        wrong_keys = InterfaceAgent(fed.keys["uav-b"], fed.trust_copy())
+        with pytest.raises(SecurityError) as err:
+            async with AgentPlatform("uav-a", t, federation=FED, channel=wrong_keys):
+                pass
+        assert "'uav-b'" in str(err.value)
+        assert "'uav-a'" in str(err.value)
+
+        other_fed = TrustStore("other", {"uav-a": fed.keys["uav-a"].public_key})
+        wrong_trust = InterfaceAgent(fed.keys["uav-a"], other_fed)
+        with pytest.raises(SecurityError) as err:
+            async with AgentPlatform("uav-a", t, federation=FED, channel=wrong_trust):
+                pass
+        assert "'other'" in str(err.value)
+        assert f"'{FED}'" in str(err.value)
+
+        # the trust file holds another key for this platform: its peers would refuse it
+        stale = TrustStore(FED, {"uav-a": KeyPair.generate("uav-a").public_key})
+        with pytest.raises(SecurityError, match="another key"):
+            async with AgentPlatform(
+                "uav-a", t, federation=FED, channel=InterfaceAgent(fed.keys["uav-a"], stale)
+            ):
+                pass
+        # nothing of the failed starts is left on the network
+        assert fed.hub.queryables == []
+        assert fed.hub.tokens == {}
+        assert fed.hub.subscribers == []
+
+
+async def test_local_agents_read_the_audit_and_remote_ones_cannot() -> None:
+    """Local agents query the audit; other platforms are refused."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b")
+        asker = await serve(pa, "asker", None)
+        await serve(pb, "echo")
+        for i in range(3):
+            await request(asker, "echo@uav-b", i, ontology="demo")
+        local = await pb.add(Agent("local"))
+
+        answer = await query_ref(local, "interface@uav-b", {"audit": 2}, ontology="interface")
+        assert isinstance(answer, dict)
+        assert len(answer["audit"]) == 2
+        assert answer["audit"] == list(ia(pb).audit.records)[-2:]
+        assert answer["counts"] == {"accepted": 3, "refused": 0, "dropped": 0}
+        before = dict(answer["counts"])
+        await request(asker, "echo@uav-b", 9, ontology="demo")
+        assert answer["counts"] == before  # a snapshot, not the live counters
+
+        for n in (0, -3):
+            nothing = await query_ref(local, "interface@uav-b", {"audit": n}, ontology="interface")
+            assert isinstance(nothing, dict)
+            assert nothing["audit"] == []
+        peers = await query_ref(local, "interface@uav-b", {"sessions": True}, ontology="interface")
+        assert peers == {"peers": ["uav-a"]}
+
+        with pytest.raises(Refused):
+            await query_ref(asker, "interface@uav-b", {"audit": 5}, ontology="interface")
+        rec = await audited(pb, verdict="refused", receivers=["interface@uav-b"])
+        assert rec["sender"] == "asker@uav-a"
+
+
+async def test_the_audit_file_is_written_even_when_not_published(tmp_path: Path) -> None:
+    """The audit file is written even when nothing is published."""
+    async with federation("uav-a", "uav-b") as fed:
+        path = tmp_path / "audit.jsonl"
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b", publish_audit=False, audit_path=path)
+        raw = await fed.raw()
+        feed = await raw.subscribe(wire_key(FED, "audit", "uav-b"))
+        asker = await serve(pa, "asker", None)
+        await serve(pb, "echo")
+        await request(asker, "echo@uav-b", 1, ontology="demo")
+        await until(lambda: path.exists() and path.read_bytes().count(b"\n") == 1, "the file")
+        (line,) = path.read_bytes().splitlines()
+        assert orjson.loads(line)["sender"] == "asker@uav-a"
+        assert len(feed.inbox) == 0
+        assert len(ia(pb).audit._pending) == 0
+
+
+# -- over zenoh --------------------------------------------------------------------------------
+
+
+async def _sees(t: Transport, platform: str) -> None:
+    """Wait until ``t`` sees ``platform``'s liveliness token (declared once it serves)."""
+    watch = await t.watch_presence(wire_key(FED, "alive", platform))
+    try:
+        async with asyncio.timeout(WAIT):
+            while not (await watch.get()).alive:
+                pass
+    finally:
+        watch.close()
+
+
+async def test_request_inform_over_zenoh_between_two_sessions() -> None:
+    """The same round trips over zenoh, between two sessions on loopback."""
+    keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b", "uav-c")}
+    trust = {n: k.public_key for n, k in keys.items()}
+    seed = free_tcp_port()
+    ta = ZenohTransport(ZenohConfig.loopback(seed))
+    tb = ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed]))
+    async with asyncio.timeout(WAIT * 2), ta, tb:
+        feed = await ta.subscribe(wire_key(FED, "audit", "uav-b"))
+        ia_a = InterfaceAgent(
+            keys["uav-a"], TrustStore(FED, trust), audit_interval=0.02, handshake_timeout=0.5
+        )
+        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(FED, trust), audit_interval=0.02)
+        async with (
+            AgentPlatform("uav-a", ta, federation=FED, channel=ia_a) as pa,
+            AgentPlatform("uav-b", tb, federation=FED, channel=ia_b) as pb,
+        ):
+            await _sees(ta, "uav-b")
+            await _sees(tb, "uav-a")
+            echo_a = await serve(pa, "echo")
+            echo_b = await serve(pb, "echo")
+            assert await request(echo_a, "echo@uav-b", {"z": 1}, ontology="demo") == {
+                "echo": {"z": 1},
+                "by": "echo@uav-b",
+            }
+            assert await request(echo_b, "echo@uav-a", {"z": 2}, ontology="demo") == {
+                "echo": {"z": 2},
+                "by": "echo@uav-a",
+            }
+            assert ia_b.audit.counts == {"accepted": 2, "refused": 0, "dropped": 0}
+            async with asyncio.timeout(WAIT):
+                while True:
+                    msg: Message = await feed.get()
+                    lines = [orjson.loads(x) for x in msg.payload.splitlines()]
+                    if any(r["performative"] == "request" for r in lines):
+                        break
+            # a trusted platform that is not running: a clear error in bounded time
+            started = time.monotonic()
+            with pytest.raises(TransportError, match="did not answer the key exchange"):
+                await request(echo_a, "echo@uav-c", 1, ontology="demo")
+            assert time.monotonic() - started < 3.0
