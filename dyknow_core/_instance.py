@@ -86,6 +86,14 @@ class DyKnowInstance:
                 task.cancel()
             await tg.__aexit__(None, None, None)
 
+    def spawn(self, name: str, coro: Any) -> None:
+        """Run ``coro`` as a task this instance owns (named ``dyknow[<instance>].<name>``).
+
+        For knowledge processes written outside the core: the task starts when the
+        instance is entered (at once if it is running) and is cancelled when it closes.
+        """
+        self._spawn(name, coro)
+
     def _spawn(self, name: str, coro: Any) -> None:
         if self._state == "closed":
             coro.close()
@@ -213,6 +221,10 @@ class DyKnowInstance:
                     w.cancel()
 
     # -- processes -------------------------------------------------------------------
+    def add_process(self, process: Process) -> None:
+        """Register a knowledge process written outside the core (listed, removable)."""
+        self._add_process(process)
+
     def _add_process(self, proc: Process) -> None:
         if proc.name in self.processes:
             raise ProcessError(f"a process named {proc.name!r} exists already")

@@ -252,6 +252,11 @@ class StreamGenerator:
         self.closed = False
 
     @property
+    def last_available_time(self) -> int:
+        """The newest available time published on this stream (new samples must be later)."""
+        return self._last_ta
+
+    @property
     def subscriptions(self) -> list[Subscription]:
         """The live subscriptions to this stream."""
         return list(self._subs)
