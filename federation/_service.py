@@ -1,0 +1,878 @@
+"""The DyKnow Federation Agent: the DyKnow Federation service of one platform.
+
+An agent (``federation@<platform>`` by default) on every platform of a federation lets
+other platforms find and share what its local DyKnow instance knows, in *semantic*
+labels only: each label is translated to a local one here (`LabelTranslator`) and local
+labels never leave the platform, not even in a refusal.
+
+Messages are FIPA ACL with ontology ``dyknow-federation`` and JSON content. Times are
+seconds on the provider's time line, or relative to its now when the content says
+``"relative": true`` (``"from": -120`` = the last two minutes). ``labels`` may also be
+spelled ``semantic-labels`` (as in the paper).
+
+FIPA-Request actions (answered ``inform``, or ``refuse`` with the reason):
+
+* ``{"action": "create-stream", "labels": [s…], "from": t, "to": t, "sample-period": p,
+  "max-delay": d, "relative": bool, "to-units": [platform…], "policy": {…}}`` → every
+  label is translated (an unknown one is refused, naming it), the export limit checked
+  (``too many exports``), a policy built (``policy`` may add the gateway's other policy
+  fields: ``approximation``, ``change``, ``order``, ``late``, ``lower``, ``upper``), and
+  the `Exporter` starts exporting each label to each receiving platform (default: the
+  requester's). Inform: ``{"id": "x-…", "labels": [s…], "to-units": [platform…]}``.
+  An exporter that fails answers ``failure`` (what was started is stopped again).
+* ``{"action": "cancel-stream", "id": "x-…"}`` → the export stops; inform
+  ``{"cancelled": id}``. Allowed to agents of the requester's platform, of a receiving
+  platform, and of this one. A FIPA ``cancel`` in the create-stream's conversation, from
+  its requester, does the same.
+* ``{"action": "get-latest", "labels": [s…]}``,
+  ``{"action": "get-value-at", "labels": [s…], "t": t, "approximation":
+  "most_recent"|"closest"|"linear"}``,
+  ``{"action": "get-trajectory", "labels": [s…], "from": t, "to": t}`` (each with
+  ``relative``; ``from``/``to`` left out: unbounded / now) → inform
+  ``{s: {"query_time": t, "samples": [[value, valid s, available s], …]}, …}``. One
+  unknown label refuses the whole query. ``to-units`` (as the paper writes it) may only
+  name the asker's platform: answers go to the asker.
+* ``{"action": "search-labels", "formula": "(all ?x (and (Car ?x) (Color ?x blue)))"}`` →
+  inform ``{"labels": [s…]}`` (`LabelSearch`); a malformed formula is refused with the
+  parser's message (it names the position).
+* ``{"action": "list-labels"}`` → inform ``{"labels": [s…]}``: what this platform provides.
+* ``{"action": "global-request", "request": {…}, "deadline": s, "select":
+  "first"|"newest", "include-self": bool}`` → a `FederationAgent.global_request` on the
+  asker's behalf; inform `GlobalResult.to_content`. Agents of this platform only.
+
+FIPA-Query (query-ref) answers the reading actions (``get-*``, ``search-labels``,
+``list-labels``) the same way.
+
+FIPA-Subscribe with content ``{"membership": true}`` → ``agree``, then one inform
+``{"event": "joined"|"left"|"gone", "platform": p}`` per membership change (Python code
+uses `FederationAgent.membership`).
+
+Membership. The paper makes the service *protected*: other platforms use it only
+through the Interface Agent, which authenticates, checks access and audits every
+message. But only *public* services appear in the global directory, and the global
+directory is how platforms find each other. So the agent registers two entries of type
+``dyknow-federation``: the service itself, protected, in the local DF (what local agents
+find), and a public *discovery* entry (name ``<service>-discovery``) so the platform is
+listed federation-wide. The public entry grants no path around the Interface Agent:
+every message from another platform arrives through it whatever the visibility.
+`FederationAgent.join` registers both, `FederationAgent.leave` deregisters both (the
+Interface Agent then refuses requests from other platforms); exports already agreed
+keep flowing after a leave, since the proxies talk directly. A platform whose presence
+goes (crash, kill) is reported ``gone`` at once (the global directory follows liveliness
+tokens); exports to it are stopped and its subscriptions dropped.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import inspect
+import logging
+import time
+from collections.abc import Awaitable, Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any, Literal, NamedTuple, Protocol
+
+from pydantic import JsonValue
+
+from agents import (
+    FIPA_QUERY,
+    FIPA_REQUEST,
+    FIPA_SUBSCRIBE,
+    ACLMessage,
+    Agent,
+    DirectoryEvent,
+    DirectoryFacilitator,
+    Failure,
+    MessageTemplate,
+    Performative,
+    Publisher,
+    Refuse,
+    ReplyTimeout,
+    ServiceDescription,
+    ServiceError,
+    Visibility,
+    agent_id,
+    new_id,
+    on_query,
+    on_request,
+    platform_of,
+    request,
+)
+from agents._agent import reason_of
+from agents._gateway_service import GatewayRefusal, GatewayService, answer_to_json, jsonable
+from agents._gateway_service import Query as GatewayQuery
+from agents._protocols import DEFAULT_TIMEOUT
+from agents.transports import Inbox, Subscription
+from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, UnknownLabelError
+
+from ._service_content import (
+    ONTOLOGY,
+    QUERY_ACTIONS,
+    CancelStream,
+    ContentError,
+    CreateStream,
+    GetLatest,
+    GetTrajectory,
+    GetValueAt,
+    GlobalRequest,
+    ListLabels,
+    Query,
+    Request,
+    SearchLabels,
+    newest_valid_time,
+    parse_request,
+)
+
+log = logging.getLogger(__name__)
+
+P = Performative
+
+FEDERATION_AGENT = "federation"
+"""The name of the DyKnow Federation Agent on every platform."""
+
+FEDERATION_SERVICE_TYPE = "dyknow-federation"
+"""The Directory Facilitator service type of the DyKnow Federation service."""
+
+__all__ = [
+    "FEDERATION_AGENT",
+    "FEDERATION_SERVICE_TYPE",
+    "ONTOLOGY",
+    "Exporter",
+    "FederationAgent",
+    "GlobalResult",
+    "LabelSearch",
+    "LabelTranslator",
+    "MembershipEvent",
+    "StreamExport",
+]
+
+
+# -- what the service needs from the ontology and the proxies ---------------------------
+
+
+class LabelTranslator(Protocol):
+    """Semantic ↔ local labels of this platform (the ontology's label mapping)."""
+
+    def to_local(self, semantic: str, /) -> str:
+        """The local label of ``semantic``; raises when unknown (its text is the reason)."""
+        ...
+
+    def to_semantic(self, local: str, /) -> str:
+        """The semantic label of local label ``local``; raises when it has none."""
+        ...
+
+    def provides(self) -> Iterable[str]:
+        """The semantic labels this platform can provide now."""
+        ...
+
+
+class LabelSearch(Protocol):
+    """Finds semantic labels by an FIPA-SL formula (the ontology's label search)."""
+
+    def find(self, formula: str, /) -> list[str]:
+        """The labels ``formula`` describes; raises on a malformed one (text: the position)."""
+        ...
+
+
+class Exporter(Protocol):
+    """Starts and stops exports (the export proxy); either method may be async."""
+
+    def start_exporting(
+        self, local_label: str, semantic_label: str, receiver: str, policy: Policy, /
+    ) -> object:
+        """Export ``local_label`` as ``semantic_label`` to platform ``receiver``: a handle."""
+        ...
+
+    def stop(self, export: Any, /) -> object:
+        """Stop an export that `start_exporting` returned."""
+        ...
+
+
+async def _resolved(value: Any) -> Any:
+    """``value``, awaited when it is awaitable (the protocols allow sync and async)."""
+    if inspect.isawaitable(value):
+        return await value
+    return value
+
+
+def _reason(exc: BaseException) -> str:
+    """The text of an error from a collaborator, as a refusal carries it."""
+    # Not ``exc.reason``: the ontology's errors keep a short code there, the text in str().
+    if isinstance(exc, KeyError) and len(exc.args) == 1 and type(exc).__str__ is KeyError.__str__:
+        return str(exc.args[0])  # KeyError's own str() quotes the message
+    return str(exc) or type(exc).__name__
+
+
+def _about(label: str, reason: str) -> str:
+    """``reason``, naming ``label`` if it does not already."""
+    return reason if label in reason else f"label {label!r}: {reason}"
+
+
+# -- results and records ------------------------------------------------------------------
+
+
+class MembershipEvent(NamedTuple):
+    """A membership change: ``kind`` is ``joined``, ``left`` or ``gone``."""
+
+    kind: Literal["joined", "left", "gone"]
+    platform: str
+
+
+@dataclass(slots=True)
+class StreamExport:
+    """One agreed create-stream: who asked, which labels go to which platforms."""
+
+    id: str
+    requester: str
+    conversation_id: str | None
+    labels: list[str]
+    receivers: list[str]
+    policy: Policy
+    handles: dict[tuple[str, str], Any] = field(default_factory=dict)
+    """(semantic label, receiver) → the exporter's handle."""
+
+
+Fuse = Callable[[dict[str, JsonValue]], Any]
+"""Fuses the answers of a global request: {platform: inform content} → one value."""
+
+Select = Literal["first", "newest"] | Fuse
+
+
+@dataclass(slots=True)
+class GlobalResult:
+    """How a global request went: every answer, the selected (or fused) value, who failed.
+
+    ``answers`` keeps arrival order. ``chosen`` names the platform whose answer is
+    ``value`` (None when fused, or when nobody answered). ``refused`` holds the reasons
+    of those that refused, failed or could not be reached; ``no_answer`` the platforms
+    silent until the deadline.
+    """
+
+    asked: list[str] = field(default_factory=list)
+    answers: dict[str, JsonValue] = field(default_factory=dict)
+    refused: dict[str, str] = field(default_factory=dict)
+    no_answer: list[str] = field(default_factory=list)
+    value: Any = None
+    chosen: str | None = None
+
+    def to_content(self) -> dict[str, Any]:
+        """The result as ACL content (keys as the service's other content: hyphenated)."""
+        return {
+            "value": jsonable(self.value),
+            "chosen": self.chosen,
+            "answers": self.answers,
+            "refused": self.refused,
+            "no-answer": self.no_answer,
+            "asked": self.asked,
+        }
+
+
+# -- the agent ----------------------------------------------------------------------------
+
+
+class FederationAgent(Agent):
+    """The DyKnow Federation Agent: streams, queries, label search, global requests, membership.
+
+    ``instance`` is the local DyKnow instance, ``translator`` maps semantic labels to
+    local ones, ``exporter`` starts exports (without one, create-stream is refused) and
+    ``search`` finds labels by formula (without one, search-labels is refused). At most
+    ``max_exports`` exports (a label to a receiver) run at once. ``join=False`` leaves
+    the platform out of the federation until `join`.
+    """
+
+    def __init__(
+        self,
+        instance: DyKnowInstance,
+        translator: LabelTranslator,
+        *,
+        exporter: Exporter | None = None,
+        search: LabelSearch | None = None,
+        name: str = FEDERATION_AGENT,
+        service_name: str = "dyknow-federation",
+        max_exports: int = 64,
+        join: bool = True,
+        stop_exports_to_gone: bool = True,
+    ) -> None:
+        super().__init__(name)
+        self.instance = instance
+        self.translator = translator
+        self.exporter = exporter
+        self.label_search = search
+        self.gateway = GatewayService(instance)
+        self.service_name = service_name
+        self.max_exports = max_exports
+        self.stop_exports_to_gone = stop_exports_to_gone
+        self._join_on_setup = join
+        self._exports: dict[str, StreamExport] = {}
+        self._by_conversation: dict[tuple[str, str], str] = {}
+        self._reserved = 0
+        self._members: set[str] = set()
+        self._watchers: list[Inbox[MembershipEvent]] = []
+        self._directory: Subscription[DirectoryEvent] | None = None
+        self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
+        self.add_handler(
+            MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_conversation),
+            self._on_cancel,
+        )
+
+    # -- lifecycle and membership -------------------------------------------------------
+
+    def descriptions(self) -> list[ServiceDescription]:
+        """The two entries this agent registers: the protected service, the public discovery."""
+        protocols = [FIPA_REQUEST, FIPA_QUERY, FIPA_SUBSCRIBE]
+        return [
+            ServiceDescription(
+                name=self.service_name,
+                type=FEDERATION_SERVICE_TYPE,
+                provider=self.aid,
+                ontology=ONTOLOGY,
+                protocols=protocols,
+                properties={"entry": "service"},
+                visibility=Visibility.PROTECTED,
+            ),
+            ServiceDescription(
+                name=f"{self.service_name}-discovery",
+                type=FEDERATION_SERVICE_TYPE,
+                provider=self.aid,
+                ontology=ONTOLOGY,
+                protocols=protocols,
+                properties={"entry": "discovery"},
+                visibility=Visibility.PUBLIC,
+            ),
+        ]
+
+    async def setup(self) -> None:
+        """Follow the global directory, then join (unless told not to)."""
+        gdf = self.platform.global_df
+        if gdf is not None:
+            # Watch before reading the members: a change in between is queued, not lost.
+            self._directory = gdf.watch()
+            self._members = {s.platform for s in gdf.search(type=FEDERATION_SERVICE_TYPE)}
+            self.spawn(self._follow_directory(self._directory), "membership")
+        if self._join_on_setup:
+            await self.join()
+
+    async def teardown(self) -> None:
+        """End subscriptions and membership streams; stop the exports this agent agreed."""
+        if self._directory is not None:
+            self._directory.close()
+        for inbox in self._watchers:
+            inbox.close()
+        self._watchers.clear()
+        await self._subscribers.end()
+        for record in list(self._exports.values()):
+            await self._end(record)
+
+    def _df(self) -> DirectoryFacilitator:
+        df = self.platform.df
+        if df is None:
+            raise ServiceError(f"platform {self.platform.name} has no Directory Facilitator")
+        return df
+
+    @property
+    def joined(self) -> bool:
+        """Whether this platform's service is registered (it is a federation member)."""
+        df = self.platform.df
+        name = f"{self.service_name}-discovery"
+        return df is not None and df.service_of_agent(self.aid, name) is not None
+
+    async def join(self) -> None:
+        """Register the service (protected) and its discovery entry (public)."""
+        df = self._df()
+        for service in self.descriptions():
+            if df.service_of_agent(self.aid, service.name) is None:
+                await df.register(service)
+
+    async def leave(self) -> None:
+        """Deregister both entries; exports already agreed keep flowing."""
+        df = self._df()
+        for service in self.descriptions():
+            await df.deregister(self.aid, service.name)
+
+    @property
+    def members(self) -> list[str]:
+        """The platforms whose federation service is in the global directory now."""
+        return sorted(self._members)
+
+    def membership(self, maxlen: int = 1024) -> Subscription[MembershipEvent]:
+        """An async iterator of membership changes (joined, left, gone) from now on."""
+        inbox: Inbox[MembershipEvent] = Inbox(asyncio.get_running_loop(), maxlen)
+        self._watchers.append(inbox)
+
+        def remove() -> None:
+            if inbox in self._watchers:
+                self._watchers.remove(inbox)
+
+        return Subscription(inbox, remove)
+
+    def _accept_subscriber(self, message: ACLMessage) -> None:
+        if message.content != {"membership": True}:
+            raise Refuse('subscribe with {"membership": true}')
+
+    async def _follow_directory(self, events: Subscription[DirectoryEvent]) -> None:
+        async for event in events:
+            try:
+                await self._on_directory_event(event)
+            except Exception:
+                log.exception("%s: handling %s of %s failed", self, event.op, event.platform)
+
+    async def _on_directory_event(self, event: DirectoryEvent) -> None:
+        platform = event.platform
+        if event.op == "platform-gone":
+            self._members.discard(platform)
+            await self._platform_gone(platform)
+            return
+        service = event.service
+        if service is None or service.type != FEDERATION_SERVICE_TYPE:
+            return
+        if event.op in ("register", "modify") and platform not in self._members:
+            self._members.add(platform)
+            await self._announce("joined", platform)
+        elif event.op == "deregister" and platform in self._members:
+            gdf = self.platform.global_df
+            still = gdf is not None and any(
+                s.type == FEDERATION_SERVICE_TYPE for s in gdf.services(platform)
+            )
+            if not still:
+                self._members.discard(platform)
+                await self._announce("left", platform)
+
+    async def _platform_gone(self, platform: str) -> None:
+        # Its subscribers cannot be told any more: drop them before announcing.
+        subscribers = self._subscribers.subscribers
+        for key in [k for k in subscribers if platform_of(k[0]) == platform]:
+            del subscribers[key]
+        await self._announce("gone", platform)
+        if self.stop_exports_to_gone:
+            await self._stop_exports_to(platform)
+
+    async def _announce(self, kind: Literal["joined", "left", "gone"], platform: str) -> None:
+        event = MembershipEvent(kind, platform)
+        for inbox in list(self._watchers):
+            inbox.put(event)
+        await self._subscribers.publish({"event": kind, "platform": platform})
+
+    # -- requests -----------------------------------------------------------------------
+
+    @on_request(ONTOLOGY, concurrent=True)
+    async def _on_request(self, message: ACLMessage) -> Any:
+        """Every action of the service: its result, or refuse with the reason."""
+        try:
+            return await self._perform(parse_request(message.content), message)
+        except ContentError as exc:
+            raise Refuse(exc.reason) from exc
+
+    @on_query(ONTOLOGY)
+    async def _on_query(self, message: ACLMessage) -> Any:
+        """query-ref for the reading actions (get-*, search-labels, list-labels)."""
+        if message.performative is P.QUERY_IF:
+            raise Refuse("the federation service answers query-ref, not query-if")
+        try:
+            req = parse_request(message.content)
+            if req.action not in QUERY_ACTIONS and req.action != "list-labels":
+                raise ContentError(f"{req.action} is an action: ask for it with FIPA-Request")
+            return await self._perform(req, message)
+        except ContentError as exc:
+            raise Refuse(exc.reason) from exc
+
+    async def _perform(self, req: Request, message: ACLMessage) -> Any:
+        if isinstance(req, CreateStream):
+            return await self._create_stream(req, message)
+        if isinstance(req, CancelStream):
+            return await self._cancel_stream(req.id, message.sender)
+        if isinstance(req, GetLatest | GetValueAt | GetTrajectory):
+            return self._query(req, message.sender)
+        if isinstance(req, SearchLabels):
+            return self._search(req.formula)
+        if isinstance(req, ListLabels):
+            return {"labels": sorted(set(self.translator.provides()))}
+        return await self._global_on_behalf(req, message)
+
+    def _translate(self, semantic: str) -> str:
+        try:
+            return self.translator.to_local(semantic)
+        except Exception as exc:
+            raise ContentError(_about(semantic, _reason(exc))) from exc
+
+    # -- create-stream and cancel ---------------------------------------------------------
+
+    @property
+    def exports(self) -> dict[str, StreamExport]:
+        """The exports agreed and running, by id."""
+        return dict(self._exports)
+
+    @property
+    def export_count(self) -> int:
+        """How many (label, receiver) exports run now."""
+        return sum(len(r.handles) for r in self._exports.values())
+
+    def _check_receivers(self, receivers: list[str], requester: str) -> None:
+        gdf = self.platform.global_df
+        if gdf is None:
+            return
+        alive = set(gdf.platforms)
+        unknown = [w for w in receivers if w not in alive and w != requester]
+        if unknown:
+            raise ContentError(f"unknown receiver {', '.join(unknown)}: not in the federation")
+
+    def _check_new(self, pairs: list[tuple[str, str]], receivers: list[str]) -> None:
+        if self.platform.name in receivers:
+            raise ContentError("a platform does not export to itself")
+        running = {key: r.id for r in self._exports.values() for key in r.handles}
+        for semantic, _ in pairs:
+            for receiver in receivers:
+                if (semantic, receiver) in running:
+                    raise ContentError(
+                        f"{semantic!r} already goes to {receiver} "
+                        f"(export {running[(semantic, receiver)]}): cancel it first"
+                    )
+
+    async def _create_stream(self, req: CreateStream, message: ACLMessage) -> dict[str, Any]:
+        exporter = self.exporter
+        if exporter is None:
+            raise ContentError("this platform exports no streams")
+        pairs = [(s, self._translate(s)) for s in dict.fromkeys(req.labels)]
+        requester = platform_of(message.sender)
+        receivers = list(dict.fromkeys(req.to_units or [requester]))
+        self._check_receivers(receivers, requester)
+        self._check_new(pairs, receivers)
+        try:
+            policy = req.policy_spec().to_policy(self.instance.clock.now())
+        except (PolicyError, ValueError, OverflowError) as exc:
+            # Named as the content names them, not as the core does.
+            reason = str(exc).replace("sample_period", "sample-period")
+            raise ContentError(reason.replace("max_delay", "max-delay")) from exc
+        needed = len(pairs) * len(receivers)
+        active = self.export_count + self._reserved
+        if active + needed > self.max_exports:
+            raise ContentError(
+                f"too many exports (limit {self.max_exports}: {active} running, {needed} asked)"
+            )
+        record = StreamExport(
+            id=new_id("x"),
+            requester=message.sender,
+            conversation_id=message.conversation_id,
+            labels=[s for s, _ in pairs],
+            receivers=receivers,
+            policy=policy,
+        )
+        # Reserved while the exporter starts (it may await): a concurrent request must
+        # not slip under the limit meanwhile.
+        self._reserved += needed
+        try:
+            for semantic, local in pairs:
+                for receiver in receivers:
+                    try:
+                        handle = await _resolved(
+                            exporter.start_exporting(local, semantic, receiver, policy)
+                        )
+                    except UnknownLabelError as exc:
+                        # Nothing to export (yet); its message lists local labels.
+                        raise Refuse(f"label {semantic!r}: no stream for it here") from exc
+                    except Exception as exc:
+                        log.warning("%s: exporting %r to %s: %s", self, semantic, receiver, exc)
+                        reason = _reason(exc).replace(local, semantic)
+                        raise Failure(
+                            f"exporting {semantic!r} to {receiver} failed: {reason}"
+                        ) from exc
+                    record.handles[(semantic, receiver)] = handle
+        except BaseException:
+            await self._stop_handles(record)
+            raise
+        finally:
+            self._reserved -= needed
+        self._exports[record.id] = record
+        if message.conversation_id is not None:
+            self._by_conversation[(message.sender, message.conversation_id)] = record.id
+        log.info("%s: export %s of %s to %s", self, record.id, record.labels, receivers)
+        return {"id": record.id, "labels": record.labels, "to-units": receivers}
+
+    async def _cancel_stream(self, export_id: str, sender: str) -> dict[str, Any]:
+        record = self._exports.get(export_id)
+        if record is None:
+            raise ContentError(f"no export {export_id!r} here")
+        who = platform_of(sender)
+        allowed = {platform_of(record.requester), self.platform.name, *record.receivers}
+        if who not in allowed:
+            raise ContentError(
+                f"{sender} may not cancel export {export_id}: it neither asked for it nor gets it"
+            )
+        await self._end(record)
+        return {"cancelled": export_id}
+
+    def _is_export_conversation(self, message: ACLMessage) -> bool:
+        return (message.sender, message.conversation_id or "") in self._by_conversation
+
+    async def _on_cancel(self, message: ACLMessage) -> None:
+        """FIPA cancel of a create-stream by its requester: stop the export, confirm."""
+        export_id = self._by_conversation.get((message.sender, message.conversation_id or ""))
+        record = self._exports.get(export_id or "")
+        if record is not None:
+            await self._end(record)
+        await self.reply(message, P.INFORM, {"cancelled": export_id})
+
+    async def _end(self, record: StreamExport) -> None:
+        self._exports.pop(record.id, None)
+        if record.conversation_id is not None:
+            self._by_conversation.pop((record.requester, record.conversation_id), None)
+        await self._stop_handles(record)
+        log.info("%s: export %s stopped", self, record.id)
+
+    async def _stop_handles(self, record: StreamExport, receiver: str | None = None) -> None:
+        exporter = self.exporter
+        for key, handle in list(record.handles.items()):
+            if receiver is not None and key[1] != receiver:
+                continue
+            del record.handles[key]
+            if exporter is None:
+                continue
+            try:
+                await _resolved(exporter.stop(handle))
+            except Exception:
+                log.exception("%s: stopping the export of %r to %s", self, *key)
+
+    async def _stop_exports_to(self, platform: str) -> None:
+        for record in list(self._exports.values()):
+            if platform not in record.receivers:
+                continue
+            await self._stop_handles(record, platform)
+            record.receivers = [w for w in record.receivers if w != platform]
+            if not record.handles:
+                await self._end(record)
+            log.info("%s: %s is gone; export %s to it stopped", self, platform, record.id)
+
+    # -- queries and search ---------------------------------------------------------------
+
+    def _query(self, req: Query, sender: str) -> dict[str, Any]:
+        asker = platform_of(sender)
+        if req.to_units is not None and any(u != asker for u in req.to_units):
+            raise ContentError(
+                "the answer to a query goes to the asker: 'to-units' may only name its platform"
+            )
+        pairs = [(s, self._translate(s)) for s in dict.fromkeys(req.labels)]
+        out: dict[str, Any] = {}
+        for semantic, local in pairs:
+            try:
+                answer = self.gateway.query(_gateway_query(req, local))
+            except UnknownLabelError as exc:
+                # The core's message lists local labels: it must not leave the platform.
+                raise ContentError(f"label {semantic!r}: no stream for it here") from exc
+            except GatewayRefusal as exc:
+                raise ContentError(exc.reason.replace(local, semantic)) from exc
+            except (DyKnowError, OverflowError) as exc:
+                raise ContentError(_about(semantic, str(exc).replace(local, semantic))) from exc
+            body = answer_to_json(answer)
+            del body["label"]  # the local label
+            out[semantic] = body
+        return out
+
+    def _search(self, formula: str) -> dict[str, Any]:
+        search = self.label_search
+        if search is None:
+            raise ContentError("this platform has no label search")
+        try:
+            found = search.find(formula)
+        except Exception as exc:
+            raise ContentError(_reason(exc)) from exc
+        return {"labels": list(dict.fromkeys(found))}
+
+    # -- asking others ------------------------------------------------------------------
+
+    def provider_of(self, platform: str) -> str:
+        """The federation agent of ``platform`` (from the global directory, else the default)."""
+        if platform == self.platform.name:
+            return self.aid
+        gdf = self.platform.global_df
+        if gdf is not None:
+            for s in gdf.services(platform):
+                if s.type == FEDERATION_SERVICE_TYPE:
+                    return s.provider
+        return agent_id(FEDERATION_AGENT, platform)
+
+    async def request_from(
+        self, platform: str, content: Any, *, timeout: float = DEFAULT_TIMEOUT
+    ) -> Any:
+        """FIPA-Request to the federation service of ``platform``: the inform's content."""
+        return await request(
+            self, self.provider_of(platform), content, ontology=ONTOLOGY, timeout=timeout
+        )
+
+    async def create_stream(
+        self,
+        provider: str,
+        labels: Iterable[str],
+        *,
+        to_units: Iterable[str] | None = None,
+        sample_period: float | None = None,
+        max_delay: float | None = None,
+        start: float | None = None,
+        end: float | None = None,
+        relative: bool = False,
+        timeout: float = DEFAULT_TIMEOUT,
+    ) -> str:
+        """Ask platform ``provider`` to export ``labels`` (to us by default); the export id."""
+        content: dict[str, Any] = {"action": "create-stream", "labels": list(labels)}
+        for key, value in (
+            ("to-units", None if to_units is None else list(to_units)),
+            ("sample-period", sample_period),
+            ("max-delay", max_delay),
+            ("from", start),
+            ("to", end),
+        ):
+            if value is not None:
+                content[key] = value
+        if relative:
+            content["relative"] = True
+        answer = await self.request_from(provider, content, timeout=timeout)
+        return str(answer["id"])
+
+    async def cancel_stream(
+        self, provider: str, export_id: str, *, timeout: float = DEFAULT_TIMEOUT
+    ) -> None:
+        """Ask platform ``provider`` to stop export ``export_id``."""
+        await self.request_from(
+            provider, {"action": "cancel-stream", "id": export_id}, timeout=timeout
+        )
+
+    def providers(self, *, include_self: bool = False) -> dict[str, str]:
+        """Platform → federation agent, for every member in the global directory."""
+        gdf = self.platform.global_df
+        if gdf is None:
+            raise ServiceError(f"platform {self.platform.name} keeps no global directory")
+        found: dict[str, str] = {}
+        for s in gdf.search(type=FEDERATION_SERVICE_TYPE):
+            if s.platform != self.platform.name:
+                found.setdefault(s.platform, s.provider)
+        if include_self:
+            found[self.platform.name] = self.aid
+        return dict(sorted(found.items()))
+
+    async def global_request(
+        self,
+        content: Any,
+        *,
+        deadline: float,
+        select: Select = "first",
+        include_self: bool = False,
+    ) -> GlobalResult:
+        """Ask every member's federation service at once; answers until ``deadline`` s.
+
+        Returns as soon as everyone answered, else at the deadline. ``select``: the
+        ``"first"`` answer to arrive, the ``"newest"`` by valid time (its newest sample),
+        or a function fusing ``{platform: answer}`` (may be async). Do not call it from a
+        handler of this agent with ``include_self``: our own request would wait behind it.
+        """
+        if deadline <= 0:
+            raise ValueError(f"deadline must be positive, got {deadline}")
+        if select not in ("first", "newest") and not callable(select):
+            raise ValueError(f"select must be 'first', 'newest' or a function, not {select!r}")
+        providers = self.providers(include_self=include_self)
+        result = GlobalResult(asked=list(providers))
+        if not providers:
+            return result
+        loop = asyncio.get_running_loop()
+        end = loop.time() + deadline
+        conversation_id = new_id("c")
+        pending = set(providers)
+        with self.conversation(conversation_id, peers=providers.values()) as conv:
+            sends = {
+                platform: asyncio.ensure_future(
+                    conv.send(
+                        self.message(
+                            P.REQUEST,
+                            aid,
+                            content,
+                            protocol=FIPA_REQUEST,
+                            ontology=ONTOLOGY,
+                            language="json",
+                            conversation_id=conversation_id,
+                            reply_with=new_id("r"),
+                            reply_by=time.time() + deadline,
+                        )
+                    )
+                )
+                for platform, aid in providers.items()
+            }
+            # Concurrently: a platform slow to reach (a key exchange) holds up no other.
+            try:
+                _, late = await asyncio.wait(sends.values(), timeout=deadline)
+            finally:
+                for task in sends.values():
+                    task.cancel()  # no-op for those done; none outlives this call
+            if late:
+                await asyncio.wait(late)
+            for platform, task in sends.items():
+                if task.cancelled():
+                    reason = "unreachable: sending did not finish before the deadline"
+                elif (exc := task.exception()) is not None:
+                    reason = f"unreachable: {reason_of(exc)}"
+                else:
+                    continue
+                result.refused[platform] = reason
+                pending.discard(platform)
+            while pending:
+                try:
+                    m = await conv.receive(deadline=end)
+                except ReplyTimeout:
+                    break
+                platform = platform_of(m.sender)
+                if platform not in pending or m.performative is P.AGREE:
+                    continue
+                pending.discard(platform)
+                if m.performative in (P.INFORM, P.INFORM_REF):
+                    result.answers[platform] = m.content
+                else:
+                    content_text = m.content if isinstance(m.content, str) else str(m.content)
+                    result.refused[platform] = f"{m.performative}: {content_text}"
+        result.no_answer = [p for p in providers if p in pending]
+        await _select(result, select)
+        return result
+
+    async def _global_on_behalf(self, req: GlobalRequest, message: ACLMessage) -> Any:
+        if platform_of(message.sender) != self.platform.name:
+            raise ContentError("global requests are made for agents of this platform only")
+        if req.request.get("action") == "global-request":
+            raise ContentError("a global request cannot ask for another global request")
+        result = await self.global_request(
+            req.request, deadline=req.deadline, select=req.select, include_self=req.include_self
+        )
+        return result.to_content()
+
+
+async def _select(result: GlobalResult, select: Select) -> None:
+    answers = result.answers
+    if not answers:
+        return
+    if select == "first":
+        result.chosen = next(iter(answers))
+    elif select == "newest":
+        order = list(answers)
+
+        def key(platform: str) -> tuple[bool, float, int]:
+            tv = newest_valid_time(answers[platform])
+            # Answers with a sample beat those without; ties go to the earlier answer.
+            return (tv is not None, tv if tv is not None else 0.0, -order.index(platform))
+
+        result.chosen = max(order, key=key)
+    else:
+        fuse: Callable[[dict[str, JsonValue]], Any | Awaitable[Any]] = select
+        result.value = await _resolved(fuse(dict(answers)))
+        return
+    result.value = answers[result.chosen]
+
+
+def _gateway_query(req: Query, local: str) -> GatewayQuery:
+    """The gateway's query for one local label."""
+    data: dict[str, Any] = {"action": "query", "label": local, "relative": req.relative}
+    if isinstance(req, GetLatest):
+        data["kind"] = "latest"
+    elif isinstance(req, GetValueAt):
+        data.update(kind="at", t=req.t, approximation=req.approximation)
+    else:
+        data["kind"] = "between"
+        if req.start is not None:
+            data["from"] = req.start
+        if req.end is not None:
+            data["to"] = req.end
+    query: GatewayQuery = GatewayQuery.model_validate(data)
+    return query

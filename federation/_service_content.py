@@ -1,0 +1,200 @@
+"""The content of DyKnow Federation requests: JSON objects, validated into models.
+
+Kept apart from the agent (``federation/_service.py``, whose docstring lists every action
+with its content) so the wire format is in one place and testable without agents.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, JsonValue, ValidationError
+
+from agents._gateway_service import PolicySpec, Seconds
+from dyknow_core import PolicyError
+
+ONTOLOGY = "dyknow-federation"
+"""The ontology of every message to and from a DyKnow Federation Agent."""
+
+Label = Annotated[str, Field(min_length=1, max_length=200)]
+# A request names a handful of labels; the bound keeps one request from asking for the
+# whole instance.
+Labels = Annotated[list[Label], Field(min_length=1, max_length=64)]
+Platform = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=200)]
+Units = Annotated[list[Platform], Field(min_length=1, max_length=64)]
+
+
+def _labels() -> Any:
+    # The paper writes ``semantic-labels: (seq car5-state)``; ``labels`` is the short form.
+    return Field(validation_alias=AliasChoices("labels", "semantic-labels"))
+
+
+class ContentError(Exception):
+    """Request content that cannot be performed; ``reason`` goes into the refuse."""
+
+    def __init__(self, reason: str) -> None:
+        self.reason = reason
+        super().__init__(reason)
+
+
+class _Content(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+
+class CreateStream(_Content):
+    """``create-stream``: export the streams of ``labels`` to each of ``to-units``."""
+
+    action: Literal["create-stream"]
+    labels: Labels = _labels()
+    start: Seconds | None = Field(default=None, alias="from")
+    end: Seconds | None = Field(default=None, alias="to")
+    relative: bool = False
+    sample_period: Seconds | None = Field(default=None, alias="sample-period")
+    max_delay: Seconds | None = Field(default=None, alias="max-delay")
+    to_units: Units | None = Field(default=None, alias="to-units")
+    policy: dict[str, JsonValue] = Field(default_factory=dict)
+
+    def policy_spec(self) -> PolicySpec:
+        """The policy as the gateway reads it: the named fields over ``policy``'s extras."""
+        named = {
+            "from": self.start,
+            "to": self.end,
+            "sample_period": self.sample_period,
+            "max_delay": self.max_delay,
+        }
+        clash = sorted(k for k, v in named.items() if v is not None and k in self.policy)
+        if clash or "relative" in self.policy:
+            raise ContentError(
+                f"'policy' repeats {', '.join(clash) or 'relative'}: give it once, at the top"
+            )
+        data: dict[str, Any] = {**self.policy, "relative": self.relative}
+        data.update({k: v for k, v in named.items() if v is not None})
+        return _validated(PolicySpec, data, where="policy")
+
+
+class CancelStream(_Content):
+    """``cancel-stream``: stop the export ``id`` agreed earlier."""
+
+    action: Literal["cancel-stream"]
+    id: Annotated[str, Field(min_length=1, max_length=200)]
+
+
+class _Query(_Content):
+    labels: Labels = _labels()
+    relative: bool = False
+    to_units: Units | None = Field(default=None, alias="to-units")
+
+
+class GetLatest(_Query):
+    """``get-latest``: the newest sample of each label."""
+
+    action: Literal["get-latest"]
+
+
+class GetValueAt(_Query):
+    """``get-value-at``: each label's value at valid time ``t`` (its fluent generator)."""
+
+    action: Literal["get-value-at"]
+    t: Seconds
+    approximation: Literal["most_recent", "closest", "linear"] = "most_recent"
+
+
+class GetTrajectory(_Query):
+    """``get-trajectory``: every sample of each label with valid time in [from, to]."""
+
+    action: Literal["get-trajectory"]
+    start: Seconds | None = Field(default=None, alias="from")
+    end: Seconds | None = Field(default=None, alias="to")
+
+
+class SearchLabels(_Content):
+    """``search-labels``: the semantic labels an FIPA-SL formula describes."""
+
+    action: Literal["search-labels"]
+    formula: Annotated[str, Field(min_length=1, max_length=10_000)]
+
+
+class ListLabels(_Content):
+    """``list-labels``: the semantic labels this platform provides."""
+
+    action: Literal["list-labels"]
+
+
+class GlobalRequest(_Content):
+    """``global-request``: ask every federation member (local askers only)."""
+
+    action: Literal["global-request"]
+    request: dict[str, JsonValue]
+    deadline: Annotated[float, Field(gt=0, le=60)]
+    select: Literal["first", "newest"] = "first"
+    include_self: bool = Field(default=False, alias="include-self")
+
+
+Query = GetLatest | GetValueAt | GetTrajectory
+Request = (
+    CreateStream
+    | CancelStream
+    | GetLatest
+    | GetValueAt
+    | GetTrajectory
+    | SearchLabels
+    | ListLabels
+    | GlobalRequest
+)
+
+ACTIONS: dict[str, type[_Content]] = {
+    "create-stream": CreateStream,
+    "cancel-stream": CancelStream,
+    "get-latest": GetLatest,
+    "get-value-at": GetValueAt,
+    "get-trajectory": GetTrajectory,
+    "search-labels": SearchLabels,
+    "list-labels": ListLabels,
+    "global-request": GlobalRequest,
+}
+"""Every action of the DyKnow Federation service, by name."""
+
+QUERY_ACTIONS = frozenset({"get-latest", "get-value-at", "get-trajectory", "search-labels"})
+"""The actions that only read, also answered to FIPA-Query (query-ref)."""
+
+
+def _validated(model: type[Any], data: Any, *, where: str | None = None) -> Any:
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err.get("loc", ()))
+        loc = ".".join(p for p in (where, loc) if p) or "content"
+        raise ContentError(f"field {loc!r}: {err.get('msg', 'invalid')}") from exc
+    except PolicyError as exc:
+        raise ContentError(str(exc)) from exc
+
+
+def parse_request(content: Any) -> Request:
+    """Validate request content into its action's model; ContentError says what is wrong."""
+    if not isinstance(content, dict) or not isinstance(content.get("action"), str):
+        raise ContentError('the content must be a JSON object with an "action"')
+    model = ACTIONS.get(content["action"])
+    if model is None:
+        raise ContentError(
+            f"unknown action {content['action']!r} (known: {', '.join(sorted(ACTIONS))})"
+        )
+    parsed: Request = _validated(model, content)
+    return parsed
+
+
+def newest_valid_time(content: Any) -> float | None:
+    """The newest valid time (s) in a query answer ``{label: {"samples": [...]}}``, if any."""
+    newest: float | None = None
+    if not isinstance(content, dict):
+        return None
+    for answer in content.values():
+        samples = answer.get("samples") if isinstance(answer, dict) else None
+        if not isinstance(samples, list):
+            continue
+        for row in samples:
+            if isinstance(row, list) and len(row) >= 2:
+                tv = row[1]
+                if isinstance(tv, int | float) and not isinstance(tv, bool):
+                    newest = tv if newest is None else max(newest, tv)
+    return newest

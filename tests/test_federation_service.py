@@ -1,0 +1,659 @@
+"""The DyKnow Federation service: streams, queries, global requests, label search, membership.
+
+Three platforms (uav-a, uav-b, operator) on one MemoryHub, each with its Interface Agent,
+DyKnow instance and Federation Agent; the ontology and the export proxy are fakes (the
+service only needs the small protocols it declares).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import AsyncIterator, Awaitable
+from dataclasses import dataclass, field
+from typing import Any
+
+import orjson
+import pytest
+
+from agents import (
+    FIPA_REQUEST,
+    Agent,
+    AgentPlatform,
+    Failed,
+    MessageTemplate,
+    Performative,
+    Refused,
+    ServiceDescription,
+    Visibility,
+    new_id,
+    on,
+    query_ref,
+    request,
+    subscribe,
+)
+from agents._interface import InterfaceAgent
+from agents._security import KeyPair, TrustStore
+from agents.transports import MemoryHub, MemoryTransport
+from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Policy, Source, UnknownLabelError
+from federation._service import (
+    FEDERATION_SERVICE_TYPE,
+    ONTOLOGY,
+    FederationAgent,
+    MembershipEvent,
+)
+
+FED = "t"
+T0 = 1000 * NS_PER_S  # every instance's now when a test starts
+WAIT = 2.0  # the bound on any single wait; every test finishes far below it
+P = Performative
+
+# Each platform's own local labels for the semantic labels it provides.
+TABLES = {
+    "uav-a": {
+        "heli-max-speed": "a/limits/max_speed",
+        "heli-altitude": "a/state/altitude",
+        "car5-state": "a/cars/car5/state",
+    },
+    "uav-b": {
+        "heli-max-speed": "b.max-speed",
+        "heli-altitude": "b.alt",
+        "car5-state": "b.car5",
+    },
+    "operator": {"picture": "op/picture"},
+}
+
+
+# -- fakes for the ontology and the export proxy ---------------------------------------------
+
+
+class UnknownSemantic(KeyError):
+    """Like the ontology's UnknownSemanticLabel: a KeyError, a short code in ``reason``."""
+
+    def __init__(self, label: str) -> None:
+        self.reason = "not-mapped"
+        super().__init__(f"semantic label {label!r} has no mapping on this platform")
+
+    def __str__(self) -> str:
+        return str(self.args[0])
+
+
+class FakeTranslator:
+    def __init__(self, table: dict[str, str]) -> None:
+        self.table = table
+
+    def to_local(self, semantic: str) -> str:
+        try:
+            return self.table[semantic]
+        except KeyError:
+            raise UnknownSemantic(semantic) from None
+
+    def to_semantic(self, local: str) -> str:
+        return {v: k for k, v in self.table.items()}[local]
+
+    def provides(self) -> list[str]:
+        return list(self.table)
+
+
+class FakeSearch:
+    """Blue car5 is known; an unmatched parenthesis is an error naming its position."""
+
+    def find(self, formula: str) -> list[str]:
+        opened: list[int] = []
+        for i, c in enumerate(formula):
+            if c == "(":
+                opened.append(i)
+            elif c == ")":
+                if not opened:
+                    raise ValueError(f"unexpected ')' at position {i}")
+                opened.pop()
+        if opened:
+            raise ValueError(f"'(' at position {opened[-1]} is never closed")
+        return ["car5-state"] if "blue" in formula else []
+
+
+@dataclass
+class FakeExport:
+    local: str
+    semantic: str
+    receiver: str
+    policy: Policy
+    stopped: bool = False
+
+
+@dataclass
+class FakeExporter:
+    """Records exports; async to start (as the proxy is), sync to stop."""
+
+    started: list[FakeExport] = field(default_factory=list)
+    fail_for: str | None = None
+    missing: set[str] = field(default_factory=set)  # local labels with no stream behind
+
+    async def start_exporting(
+        self, local: str, semantic: str, receiver: str, policy: Policy
+    ) -> FakeExport:
+        if receiver == self.fail_for:
+            raise RuntimeError(f"no route to {receiver} for {local}")
+        if local in self.missing:  # as the proxy's subscription would: naming local labels
+            raise UnknownLabelError(local, sorted(self.missing))
+        export = FakeExport(local, semantic, receiver, policy)
+        self.started.append(export)
+        return export
+
+    def stop(self, export: FakeExport) -> None:
+        export.stopped = True
+
+    @property
+    def running(self) -> list[FakeExport]:
+        return [e for e in self.started if not e.stopped]
+
+
+class Silent(Agent):
+    """Lists a federation service but never answers: a platform too busy to reply."""
+
+    def __init__(self) -> None:
+        super().__init__("federation")
+        self.got = asyncio.Event()
+
+    async def setup(self) -> None:
+        assert self.platform.df is not None
+        await self.platform.df.register(
+            ServiceDescription(
+                name="dyknow-federation-discovery",
+                type=FEDERATION_SERVICE_TYPE,
+                provider=self.aid,
+                visibility=Visibility.PUBLIC,
+            )
+        )
+
+    @on(MessageTemplate(P.REQUEST, ontology=ONTOLOGY))
+    async def _swallow(self, message: Any) -> None:
+        self.got.set()
+
+
+# -- the world ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Node:
+    platform: AgentPlatform
+    transport: MemoryTransport
+    dk: DyKnowInstance
+    fed: FederationAgent
+    exporter: FakeExporter
+    sources: dict[str, Source]  # by semantic label
+
+    def push(self, semantic: str, value: Any, seconds_ago: float) -> None:
+        self.sources[semantic].push(value, valid_time=T0 - round(seconds_ago * NS_PER_S))
+
+
+@dataclass
+class World:
+    nodes: dict[str, Node]
+    clock: ManualClock
+    silent: dict[str, Silent]
+
+    def __getitem__(self, name: str) -> Node:
+        return self.nodes[name]
+
+
+@contextlib.asynccontextmanager
+async def world(*, silent: tuple[str, ...] = (), **options: Any) -> AsyncIterator[World]:
+    """uav-a, uav-b and operator (plus ``silent`` ones), all members before the test runs."""
+    names = list(TABLES)
+    keys = {n: KeyPair.generate(n) for n in [*names, *silent]}
+    hub = MemoryHub()
+    clock = ManualClock(T0)
+    async with asyncio.timeout(10), contextlib.AsyncExitStack() as stack:
+
+        async def open_platform(name: str) -> tuple[AgentPlatform, MemoryTransport]:
+            trust = TrustStore(FED, {n: k.public_key for n, k in keys.items()})
+            t = await stack.enter_async_context(hub.transport())
+            channel = InterfaceAgent(keys[name], trust, audit_interval=0.02)
+            p = await stack.enter_async_context(
+                AgentPlatform(name, t, federation=FED, channel=channel)
+            )
+            return p, t
+
+        nodes: dict[str, Node] = {}
+        streams = {}
+        for name in names:
+            dk = await stack.enter_async_context(DyKnowInstance(name, clock=clock))
+            sources = {s: dk.add_source(local) for s, local in TABLES[name].items()}
+            p, t = await open_platform(name)
+            exporter = FakeExporter()
+            fed = await p.add(
+                FederationAgent(
+                    dk,
+                    FakeTranslator(TABLES[name]),
+                    exporter=exporter,
+                    search=FakeSearch(),
+                    **options,
+                )
+            )
+            streams[name] = fed.membership()
+            nodes[name] = Node(p, t, dk, fed, exporter, sources)
+        quiet = {}
+        for name in silent:
+            p, _ = await open_platform(name)
+            quiet[name] = await p.add(Silent())
+        members = sorted([*names, *silent])
+        for name, stream in streams.items():  # each learns of the later ones by events
+            async with stream:
+                while nodes[name].fed.members != members:
+                    await stream.get(timeout=WAIT)
+        yield World(nodes, clock, quiet)
+    assert asyncio.all_tasks() == {asyncio.current_task()}
+
+
+async def refusal(call: Awaitable[Any]) -> str:
+    """The reason a refused call carries."""
+    with pytest.raises(Refused) as info:
+        await call
+    assert info.value.message is not None
+    reason = info.value.message.content
+    assert isinstance(reason, str)
+    return reason
+
+
+def no_local_labels(content: Any, platform: str) -> bool:
+    """Whether none of ``platform``'s local labels appears anywhere in ``content``."""
+    text = orjson.dumps(content).decode()
+    return not any(local in text for local in TABLES[platform].values())
+
+
+async def next_event(stream: Any, want: Any) -> Any:
+    """Read ``stream`` (bounded) until an item equal to ``want``."""
+    async with asyncio.timeout(WAIT):
+        while (item := await stream.get()) != want:
+            pass
+    return item
+
+
+# -- create-stream and cancel -------------------------------------------------------------------
+
+
+async def test_create_stream_is_agreed_and_exported_to_each_receiver() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        answer = await request(
+            b.fed,
+            "federation@uav-a",
+            {
+                "action": "create-stream",
+                "semantic-labels": ["car5-state"],  # the paper's spelling
+                "sample-period": 0.5,
+                "max-delay": 1,
+                "from": -10,
+                "relative": True,
+                "to-units": ["uav-b", "operator"],
+            },
+            ontology=ONTOLOGY,
+            timeout=WAIT,
+        )
+        assert answer == {
+            "id": answer["id"],
+            "labels": ["car5-state"],
+            "to-units": ["uav-b", "operator"],
+        }
+        assert no_local_labels(answer, "uav-a")
+        started = a.exporter.started
+        assert [(e.local, e.semantic, e.receiver) for e in started] == [
+            ("a/cars/car5/state", "car5-state", "uav-b"),
+            ("a/cars/car5/state", "car5-state", "operator"),
+        ]
+        policy = started[0].policy
+        assert (policy.sample_period, policy.max_delay) == (0.5, 1.0)
+        assert policy.start == T0 - 10 * NS_PER_S and policy.end is None
+        record = a.fed.exports[answer["id"]]
+        assert record.requester == "federation@uav-b"
+        assert a.fed.export_count == 2
+        # It came through uav-a's Interface Agent, authenticated and audited.
+        assert isinstance(a.platform.channel, InterfaceAgent)
+        assert any(
+            r["sender"] == "federation@uav-b" and r["verdict"] == "accepted"
+            for r in a.platform.channel.audit.records
+        )
+        # The Python helper asks the same, to the requester by default.
+        export_id = await b.fed.create_stream("uav-a", ["heli-altitude"], sample_period=2)
+        assert started[-1].receiver == "uav-b" and started[-1].policy.sample_period == 2
+        assert export_id in a.fed.exports
+
+
+async def test_create_stream_refusals_name_the_reason() -> None:
+    async with world(max_exports=2) as w:
+        a, b = w["uav-a"], w["uav-b"]
+
+        def ask(**content: Any) -> Awaitable[Any]:
+            return b.fed.request_from("uav-a", {"action": "create-stream", **content}, timeout=WAIT)
+
+        reason = await refusal(ask(labels=["car5-state", "car9-state"]))
+        assert reason == "semantic label 'car9-state' has no mapping on this platform"
+        assert "to itself" in await refusal(ask(labels=["car5-state"], **{"to-units": ["uav-a"]}))
+        assert "unknown receiver nowhere" in await refusal(
+            ask(labels=["car5-state"], **{"to-units": ["nowhere"]})
+        )
+        assert "sample-period" in await refusal(ask(labels=["car5-state"], **{"sample-period": -1}))
+        assert "start" in await refusal(ask(labels=["car5-state"], **{"from": 20, "to": 10}))
+        assert "unknown action" in await refusal(b.fed.request_from("uav-a", {"action": "fly"}))
+        assert a.exporter.started == []
+
+        # The limit counts a label to a receiver: 2 fit, the third does not.
+        first = await ask(labels=["car5-state", "heli-altitude"])
+        reason = await refusal(ask(labels=["heli-max-speed"]))
+        assert reason.startswith("too many exports (limit 2")
+        assert len(a.exporter.running) == 2
+        # The same label to the same receiver twice: the first export stays the only one.
+        await b.fed.cancel_stream("uav-a", first["id"])
+        await ask(labels=["car5-state"])
+        assert "already goes to uav-b" in await refusal(ask(labels=["car5-state"]))
+
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        # Mapped, but no stream behind it (the exporter cannot subscribe): refused, and
+        # the core's message, which lists local labels, stays here.
+        a.exporter.missing = {"a/cars/car5/state"}
+        reason = await refusal(b.fed.create_stream("uav-a", ["car5-state"]))
+        assert reason == "label 'car5-state': no stream for it here"
+
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        a.exporter.fail_for = "operator"
+        with pytest.raises(Failed) as failed:
+            await b.fed.create_stream("uav-a", ["car5-state"], to_units=["uav-b", "operator"])
+        assert failed.value.message is not None
+        reason = str(failed.value.message.content)
+        assert "car5-state" in reason and "operator" in reason
+        assert no_local_labels(reason, "uav-a")
+        # What had started (to uav-b) was stopped again: nothing half-done is left.
+        assert len(a.exporter.started) == 1 and a.exporter.running == []
+        assert a.fed.exports == {}
+
+
+async def test_cancel_stream_by_action_and_by_fipa_cancel() -> None:
+    async with world() as w:
+        a, b, op = w["uav-a"], w["uav-b"], w["operator"]
+        export_id = await b.fed.create_stream("uav-a", ["car5-state"])
+        # Neither its requester's platform nor a receiver: may not cancel.
+        reason = await refusal(op.fed.cancel_stream("uav-a", export_id))
+        assert "may not cancel" in reason
+        await b.fed.cancel_stream("uav-a", export_id)
+        assert a.exporter.running == [] and a.fed.exports == {}
+        assert "no export" in await refusal(b.fed.cancel_stream("uav-a", export_id))
+
+        # FIPA cancel in the create-stream's conversation stops it too.
+        conversation_id = new_id("c")
+        create = b.fed.message(
+            P.REQUEST,
+            "federation@uav-a",
+            {"action": "create-stream", "labels": ["heli-altitude"]},
+            protocol=FIPA_REQUEST,
+            ontology=ONTOLOGY,
+            conversation_id=conversation_id,
+        )
+        agreed = await b.fed.ask(create, timeout=WAIT)
+        assert agreed.performative is P.INFORM
+        assert len(a.exporter.running) == 1
+        cancel = b.fed.message(
+            P.CANCEL,
+            "federation@uav-a",
+            None,
+            protocol=FIPA_REQUEST,
+            ontology=ONTOLOGY,
+            conversation_id=conversation_id,
+        )
+        done = await b.fed.ask(cancel, timeout=WAIT)
+        assert done.performative is P.INFORM
+        assert done.content == {"cancelled": agreed.content["id"]}  # type: ignore[index]
+        assert a.exporter.running == [] and a.fed.exports == {}
+
+
+# -- queries ----------------------------------------------------------------------------------
+
+
+async def test_get_trajectory_relative_and_value_at_answer_in_semantic_labels() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        for i in range(30):  # car5's state every 10 s, from 300 s ago to 10 s ago
+            a.push("car5-state", {"pos": (float(i), 2.0 * i)}, seconds_ago=300 - 10 * i)
+        trajectory = await b.fed.request_from(
+            "uav-a",
+            {"action": "get-trajectory", "labels": ["car5-state"], "from": -120, "relative": True},
+        )
+        assert list(trajectory) == ["car5-state"]
+        samples = trajectory["car5-state"]["samples"]
+        assert [row[1] for row in samples] == [880.0 + 10 * i for i in range(12)]
+        assert samples[0][0] == {"pos": [18.0, 36.0]}
+        assert trajectory["car5-state"]["query_time"] == 1000.0
+        assert no_local_labels(trajectory, "uav-a")
+
+        at = await b.fed.request_from(
+            "uav-a",
+            {"action": "get-value-at", "labels": ["car5-state"], "t": -15, "relative": True},
+        )
+        # The fluent generator's value at 985 s: the most recent sample (valid at 980 s).
+        assert [row[:2] for row in at["car5-state"]["samples"]] == [[{"pos": [28.0, 56.0]}, 985.0]]
+        latest = await query_ref(
+            b.fed,
+            "federation@uav-a",
+            {"action": "get-latest", "labels": ["car5-state"], "to-units": ["uav-b"]},
+            ontology=ONTOLOGY,
+        )
+        assert latest["car5-state"]["samples"][0][0] == {"pos": [29.0, 58.0]}  # type: ignore[index]
+
+        # Answers go to the asker; an unknown label refuses the whole query.
+        reason = await refusal(
+            b.fed.request_from(
+                "uav-a",
+                {"action": "get-latest", "labels": ["car5-state"], "to-units": ["operator"]},
+            )
+        )
+        assert "to-units" in reason
+        reason = await refusal(
+            b.fed.request_from("uav-a", {"action": "get-latest", "labels": ["car5-state", "x9"]})
+        )
+        assert "'x9'" in reason
+        # Known here but no stream behind it: refused without the local label.
+        a.dk.remove_stream("a/state/altitude")
+        reason = await refusal(
+            b.fed.request_from("uav-a", {"action": "get-latest", "labels": ["heli-altitude"]})
+        )
+        assert "heli-altitude" in reason and no_local_labels(reason, "uav-a")
+        # Actions are asked for with FIPA-Request, not FIPA-Query.
+        reason = await refusal(
+            query_ref(
+                b.fed,
+                "federation@uav-a",
+                {"action": "create-stream", "labels": ["car5-state"]},
+                ontology=ONTOLOGY,
+            )
+        )
+        assert "FIPA-Request" in reason
+
+
+async def test_get_latest_across_platforms() -> None:
+    async with world() as w:
+        w["uav-a"].push("heli-altitude", 120.0, seconds_ago=2)
+        w["uav-b"].push("heli-altitude", 80.0, seconds_ago=1)
+        op = w["operator"].fed
+        content = {"action": "get-latest", "labels": ["heli-altitude"]}
+        from_a, from_b = await asyncio.gather(
+            op.request_from("uav-a", content), op.request_from("uav-b", content)
+        )
+        assert from_a["heli-altitude"]["samples"][0][:2] == [120.0, 998.0]
+        assert from_b["heli-altitude"]["samples"][0][:2] == [80.0, 999.0]
+        assert await op.request_from("operator", {"action": "list-labels"}) == {
+            "labels": ["picture"]
+        }
+
+
+# -- global requests ------------------------------------------------------------------------------
+
+
+async def test_global_request_names_the_silent_platform() -> None:
+    async with world(silent=("uav-c",)) as w:
+        b = w["uav-b"]
+        b.push("heli-max-speed", 25.0, seconds_ago=30)
+        b.push("heli-altitude", 60.0, seconds_ago=1)
+        a = w["uav-a"].fed
+        result = await a.global_request(
+            {"action": "get-latest", "labels": ["heli-max-speed", "heli-altitude"]},
+            deadline=0.3,
+        )
+        assert result.asked == ["operator", "uav-b", "uav-c"]
+        assert list(result.answers) == ["uav-b"]
+        assert result.chosen == "uav-b" and result.value == result.answers["uav-b"]
+        assert result.value["heli-max-speed"]["samples"][0][0] == 25.0  # type: ignore[index]
+        assert result.value["heli-altitude"]["samples"][0][0] == 60.0  # type: ignore[index]
+        assert list(result.refused) == ["operator"]
+        assert "heli-max-speed" in result.refused["operator"]
+        assert result.no_answer == ["uav-c"]
+        assert w.silent["uav-c"].got.is_set()  # it was asked; it did not answer
+
+
+async def test_global_request_selects_newest_or_fuses() -> None:
+    async with world() as w:
+        w["uav-a"].push("heli-altitude", 120.0, seconds_ago=5)
+        w["uav-b"].push("heli-altitude", 80.0, seconds_ago=1)
+        op = w["operator"].fed
+        content = {"action": "get-latest", "labels": ["heli-altitude"]}
+        loop = asyncio.get_running_loop()
+        started = loop.time()
+        newest = await op.global_request(content, deadline=WAIT, select="newest")
+        assert loop.time() - started < WAIT / 2  # everyone answered: no wait for the deadline
+        assert sorted(newest.answers) == ["uav-a", "uav-b"]
+        assert newest.chosen == "uav-b"
+        assert newest.value["heli-altitude"]["samples"][0][0] == 80.0  # type: ignore[index]
+        assert newest.no_answer == [] and newest.refused == {}
+
+        def highest(answers: dict[str, Any]) -> float:
+            return max(a["heli-altitude"]["samples"][-1][0] for a in answers.values())
+
+        fused = await op.global_request(content, deadline=WAIT, select=highest)
+        assert fused.value == 120.0 and fused.chosen is None
+
+        # Asking ourselves too: the operator has no altitude and says so.
+        first = await op.global_request(content, deadline=WAIT, include_self=True)
+        assert first.asked == ["operator", "uav-a", "uav-b"]
+        assert first.chosen in ("uav-a", "uav-b")
+        assert "heli-altitude" in first.refused["operator"]
+
+        # Local agents may ask the service for a global request; other platforms may not.
+        asker = await w["operator"].platform.add(Agent("asker"))
+        on_behalf = await request(
+            asker,
+            "federation@operator",
+            {"action": "global-request", "request": content, "deadline": 1, "select": "newest"},
+            ontology=ONTOLOGY,
+        )
+        assert on_behalf["chosen"] == "uav-b"  # type: ignore[index]
+        assert on_behalf["no-answer"] == []  # type: ignore[index]
+        reason = await refusal(
+            w["uav-b"].fed.request_from(
+                "operator", {"action": "global-request", "request": content, "deadline": 1}
+            )
+        )
+        assert "this platform only" in reason
+
+
+# -- label search --------------------------------------------------------------------------------
+
+
+async def test_search_labels_and_a_malformed_formula() -> None:
+    async with world() as w:
+        b = w["uav-b"].fed
+        found = await b.request_from(
+            "uav-a",
+            {
+                "action": "search-labels",
+                "formula": "(all ?x (and (Car ?x) (Color ?x blue) (OnRoad ?x road7)))",
+            },
+        )
+        assert found == {"labels": ["car5-state"]}
+        reason = await refusal(
+            b.request_from(
+                "uav-a", {"action": "search-labels", "formula": "(all ?x (and (Car ?x) (Color"}
+            )
+        )
+        assert reason == "'(' at position 22 is never closed"
+        # Asked of everyone, the answers fused into one set of labels.
+        everywhere = await b.global_request(
+            {"action": "search-labels", "formula": "(all ?x (and (Car ?x) (Color ?x blue)))"},
+            deadline=WAIT,
+            select=lambda answers: sorted({s for a in answers.values() for s in a["labels"]}),
+        )
+        assert sorted(everywhere.answers) == ["operator", "uav-a"]
+        assert everywhere.value == ["car5-state"]
+
+
+# -- membership ---------------------------------------------------------------------------------
+
+
+async def test_leave_and_join_are_seen_in_the_others_global_directory() -> None:
+    async with world() as w:
+        a, b, op = w["uav-a"], w["uav-b"], w["operator"]
+        await b.fed.create_stream("uav-a", ["car5-state"])  # a stream from A to B
+        watcher = await op.platform.add(Agent("watcher"))
+        async with (
+            b.fed.membership() as seen_by_b,
+            await subscribe(
+                watcher, "federation@uav-b", {"membership": True}, ontology=ONTOLOGY, timeout=WAIT
+            ) as remote,
+        ):
+            await a.fed.leave()
+            assert not a.fed.joined
+            assert await next_event(seen_by_b, MembershipEvent("left", "uav-a"))
+            assert await next_event(remote, {"event": "left", "platform": "uav-a"})
+            assert b.platform.global_df is not None
+            listed = b.platform.global_df.search(type=FEDERATION_SERVICE_TYPE)
+            assert sorted(s.platform for s in listed) == ["operator", "uav-b"]
+            assert b.fed.members == ["operator", "uav-b"]
+            # The stream set up before keeps flowing; new requests from outside are refused.
+            assert len(a.exporter.running) == 1
+            assert "access denied" in await refusal(
+                b.fed.request_from("uav-a", {"action": "list-labels"}, timeout=WAIT)
+            )
+
+            await a.fed.join()
+            assert a.fed.joined
+            assert await next_event(seen_by_b, MembershipEvent("joined", "uav-a"))
+            assert await next_event(remote, {"event": "joined", "platform": "uav-a"})
+            assert b.fed.members == ["operator", "uav-a", "uav-b"]
+            assert await b.fed.request_from("uav-a", {"action": "list-labels"}) == {
+                "labels": sorted(TABLES["uav-a"])
+            }
+
+
+async def test_a_vanished_platform_is_reported_gone_within_a_second() -> None:
+    async with world() as w:
+        a, b, op = w["uav-a"], w["uav-b"], w["operator"]
+        await a.fed.create_stream("uav-b", ["car5-state"], to_units=["uav-a", "operator"])
+        assert len(b.exporter.running) == 2
+        watcher = await op.platform.add(Agent("watcher"))
+        async with (
+            b.fed.membership() as seen_by_b,
+            await subscribe(
+                watcher, "federation@uav-b", {"membership": True}, ontology=ONTOLOGY, timeout=WAIT
+            ) as remote,
+        ):
+            loop = asyncio.get_running_loop()
+            started = loop.time()
+            # uav-a's connection goes at once, as when its process is killed.
+            await a.transport.aclose()
+            async with asyncio.timeout(1.0):
+                assert await next_event(seen_by_b, MembershipEvent("gone", "uav-a"))
+                assert await next_event(remote, {"event": "gone", "platform": "uav-a"})
+            assert loop.time() - started < 1.0
+            assert "uav-a" not in b.fed.members
+            # The export to uav-a stopped; the one to the operator goes on.
+            assert [e.receiver for e in b.exporter.running] == ["operator"]
+            (record,) = b.fed.exports.values()
+            assert record.receivers == ["operator"]
+
+
+async def test_membership_subscription_needs_its_content() -> None:
+    async with world() as w:
+        reason = await refusal(
+            subscribe(w["uav-b"].fed, "federation@uav-a", {"members": 1}, ontology=ONTOLOGY)
+        )
+        assert "membership" in reason
