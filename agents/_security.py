@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import orjson
 from nacl import bindings as _sodium
 from nacl.exceptions import CryptoError
@@ -78,6 +79,10 @@ _KX_INIT = b"dyknow-kx-v1 init\x00"
 _KX_REPLY = b"dyknow-kx-v1 reply\x00"
 _ENV_MAC = b"dyknow-env-v1 mac\x00"
 _ENV_BOX = b"dyknow-env-v1 box\x00"
+# Binary envelopes (sample batches) have labels of their own: a binary envelope never
+# verifies as a JSON one, so the two may keep separate counters and replay windows.
+_BIN_MAC = b"dyknow-bin-v1 mac\x00"
+_BIN_BOX = b"dyknow-bin-v1 box\x00"
 
 _PLAIN_FIELDS = frozenset(("v", "from", "to", "sid", "ts_ms", "n", "body", "mac"))
 _BOX_FIELDS = frozenset(("v", "from", "to", "sid", "ts_ms", "n", "box"))
@@ -90,6 +95,9 @@ _JSONDecodeError = orjson.JSONDecodeError
 _b2a = binascii.b2a_base64
 _a2b = binascii.a2b_base64
 _compare = hmac.compare_digest
+_packb = msgpack.packb  # a fresh packer per call: a shared one would not be thread-safe
+_unpackb = msgpack.unpackb
+_MAC_BYTES = 32
 
 
 def check_name(value: str, what: str = "platform") -> str:
@@ -482,6 +490,13 @@ class Session:
     """
 
     __slots__ = (
+        "_bhi",
+        "_bin_ad_rx",
+        "_bin_ad_tx",
+        "_bin_rx",
+        "_bin_tx",
+        "_bmask",
+        "_bn",
         "_box_ad_rx",
         "_box_ad_tx",
         "_box_rx",
@@ -547,9 +562,18 @@ class Session:
         self._box_rx = keys[f"{rx} box"]
         self._box_ad_tx = _ENV_BOX + tx_head
         self._box_ad_rx = _ENV_BOX + rx_head
+        self._bin_tx = hmac.new(keys[f"{tx} mac"], _BIN_MAC + tx_head, hashlib.sha256)
+        self._bin_rx = hmac.new(keys[f"{rx} mac"], _BIN_MAC + rx_head, hashlib.sha256)
+        self._bin_ad_tx = _BIN_BOX + tx_head
+        self._bin_ad_rx = _BIN_BOX + rx_head
         self._n = 0
         self._hi = 0
         self._mask = 0
+        # Binary envelopes count apart: batches and ACL messages travel on different keys
+        # and are read by different tasks, so one must not push the other out of the window.
+        self._bn = 0
+        self._bhi = 0
+        self._bmask = 0
         self._window = policy.window
         self._full = (1 << policy.window) - 1
         self._received = 0
@@ -571,8 +595,13 @@ class Session:
         return self._n
 
     @property
+    def sent_binary(self) -> int:
+        """Binary envelopes (sample batches) sealed on this session so far."""
+        return self._bn
+
+    @property
     def received(self) -> int:
-        """Envelopes accepted on this session so far."""
+        """Envelopes accepted on this session so far (JSON and binary)."""
         return self._received
 
     @property
@@ -586,7 +615,7 @@ class Session:
 
     def needs_renewal(self) -> bool:
         """True when a new handshake should start (N messages sent or T seconds old)."""
-        if self._n >= self._policy.renew_after_messages:
+        if self._n + self._bn >= self._policy.renew_after_messages:
             return True
         limit = self._policy.renew_after_seconds
         if not self.initiator:
@@ -680,6 +709,14 @@ class Session:
                 raise Forged(
                     f"bad MAC on session {self.sid} from {peer!r}: forged or tampered", peer
                 )
+        self._check_live(ts, now)
+        self._hi, self._mask = self._check_window(n, self._hi, self._mask)
+        self._received += 1
+        return body
+
+    def _check_live(self, ts: int, now: float) -> None:
+        """Refuse an authentic envelope of a session that is over, or stamped too far off."""
+        peer = self.peer
         if self._retire_at is not None and now > self._retire_at:
             raise Expired(
                 f"session {self.sid} with {peer!r} was renewed and its grace period is over",
@@ -695,23 +732,79 @@ class Session:
                 f"(allowed ±{self._policy.skew:g} s)",
                 peer,
             )
-        hi = self._hi
+
+    def _check_window(self, n: int, hi: int, mask: int) -> tuple[int, int]:
+        """Refuse a counter already seen or too old; the window's new ``(highest, mask)``."""
         if n > hi:
             d = n - hi
-            self._mask = ((self._mask << d) | 1) & self._full if d < self._window else 1
-            self._hi = n
-        else:
-            d = hi - n
-            if d >= self._window:
-                raise Replayed(
-                    f"counter {n} on session {self.sid} is older than the replay window "
-                    f"(newest {hi}, window {self._window})",
-                    peer,
+            return n, ((mask << d) | 1) & self._full if d < self._window else 1
+        d = hi - n
+        if d >= self._window:
+            raise Replayed(
+                f"counter {n} on session {self.sid} is older than the replay window "
+                f"(newest {hi}, window {self._window})",
+                self.peer,
+            )
+        bit = 1 << d
+        if mask & bit:
+            raise Replayed(f"counter {n} on session {self.sid} was already seen", self.peer)
+        return hi, mask | bit
+
+    def seal_bytes(self, body: bytes) -> bytes:
+        """Seal binary ``body`` (a sample batch) into a msgpack envelope for the peer.
+
+        ``[v, from, to, sid, ts_ms, n, body, mac]``, or ``[v, from, to, sid, ts_ms, n, box]``
+        when the policy encrypts; ``n`` counts binary envelopes only (``docs/wire.md``).
+        """
+        if len(body) > self._max_body:
+            raise MessageError(
+                f"binary body of {len(body)} bytes exceeds the limit of {self._max_body}"
+            )
+        now = self._clock()
+        if now - self.established > self._lifetime:
+            raise Expired(f"session {self.sid} with {self.peer} is past its lifetime; renew")
+        n = self._bn + 1
+        if n > _MAX_COUNTER:
+            raise Expired(f"session {self.sid} with {self.peer} used up its counters; renew")
+        self._bn = n
+        ts = int(now * 1000)
+        if self._encrypt:
+            box = _sodium.crypto_aead_chacha20poly1305_ietf_encrypt(
+                body, self._bin_ad_tx + _U64X2.pack(ts, n), _bin_nonce(n), self._box_tx
+            )
+            return _packb([WIRE_VERSION, self.me, self.peer, self.sid, ts, n, box])
+        h = self._bin_tx.copy()
+        h.update(_U64X2.pack(ts, n))
+        h.update(body)
+        return _packb([WIRE_VERSION, self.me, self.peer, self.sid, ts, n, body, h.digest()])
+
+    def _accept_bytes(
+        self, ts: int, n: int, payload: bytes, mac: bytes | None, now: float
+    ) -> bytes:
+        """Verify one parsed binary envelope of this session (``mac`` None: boxed); the body."""
+        peer = self.peer
+        if mac is None:
+            try:
+                body: bytes = _sodium.crypto_aead_chacha20poly1305_ietf_decrypt(
+                    payload, self._bin_ad_rx + _U64X2.pack(ts, n), _bin_nonce(n), self._box_rx
                 )
-            bit = 1 << d
-            if self._mask & bit:
-                raise Replayed(f"counter {n} on session {self.sid} was already seen", peer)
-            self._mask |= bit
+            except CryptoError:
+                raise Forged(
+                    f"bad authentication tag on session {self.sid} from {peer!r}: "
+                    "forged or tampered",
+                    peer,
+                ) from None
+        else:
+            body = payload
+            h = self._bin_rx.copy()
+            h.update(_U64X2.pack(ts, n))
+            h.update(body)
+            if not _compare(h.digest(), mac):
+                raise Forged(
+                    f"bad MAC on session {self.sid} from {peer!r}: forged or tampered", peer
+                )
+        self._check_live(ts, now)
+        self._bhi, self._bmask = self._check_window(n, self._bhi, self._bmask)
         self._received += 1
         return body
 
@@ -719,6 +812,11 @@ class Session:
 def _aead_nonce(n: int) -> bytes:
     """The 96-bit AEAD nonce: the session counter, unique per direction key by construction."""
     return b"\x00\x00\x00\x00" + _U64.pack(n)
+
+
+def _bin_nonce(n: int) -> bytes:
+    """The AEAD nonce of binary envelopes: their own counter, in a nonce space of their own."""
+    return b"\x00\x00\x00\x01" + _U64.pack(n)
 
 
 class SessionTable:
@@ -741,6 +839,8 @@ class SessionTable:
         self._tx: dict[str, Session] = {}
         self._rx_latest: dict[str, Session] = {}
         self._max_envelope = policy.max_envelope_bytes
+        # a binary body is carried as is: the body plus a header of names, integers and a MAC
+        self._max_bin_envelope = policy.max_body_bytes + 1024
 
     def __len__(self) -> int:
         return len(self._by_sid)
@@ -844,6 +944,13 @@ class SessionTable:
             raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
         return session.seal(body)
 
+    def seal_bytes(self, peer: str, body: bytes) -> bytes:
+        """Seal binary ``body`` for ``peer`` on its current session; UnknownSession when none."""
+        session = self.session_for(peer)
+        if session is None:
+            raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
+        return session.seal_bytes(body)
+
     def needs_renewal(self, peer: str) -> bool:
         """True when there is no session to seal with for ``peer``, or it asks for renewal.
 
@@ -925,6 +1032,61 @@ class SessionTable:
             tag = mac.encode()
         now = self._clock()
         body = session._accept(ts, n, payload, tag, now)
+        if self._rx_latest.get(frm) is not session:
+            self._on_rx_switch(session, now)
+        return frm, body
+
+    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
+        """Verify a binary envelope: ``(sender platform, body bytes)`` or a refusal.
+
+        The msgpack counterpart of ``open``, with the same checks, in the same order, and
+        the same errors (all AuthenticationError).
+        """
+        if len(envelope) > self._max_bin_envelope:
+            raise Malformed(
+                f"envelope of {len(envelope)} bytes exceeds the limit of {self._max_bin_envelope}"
+            )
+        try:
+            env = _unpackb(envelope, raw=False, use_list=True)
+        except Exception as exc:  # msgpack raises several kinds on bad input
+            raise Malformed(f"not msgpack: {type(exc).__name__}: {exc}") from None
+        if type(env) is not list or len(env) not in (7, 8):
+            raise Malformed("a binary envelope is a msgpack array of 8 items (7 when encrypted)")
+        if len(env) == 8:
+            v, frm, to, sid, ts, n, payload, mac = env
+            boxed = False
+        else:
+            v, frm, to, sid, ts, n, payload = env
+            mac = None
+            boxed = True
+        if type(frm) is not str:
+            raise Malformed("field 'from' must be a string")
+        if type(v) is not int or v != WIRE_VERSION:
+            raise Malformed(f"unsupported envelope version {v!r} (this side speaks 1)", frm)
+        if type(to) is not str or type(sid) is not str or type(payload) is not bytes:
+            raise Malformed("fields 'to', 'sid' must be strings, 'body'/'box' binary", frm)
+        if type(ts) is not int or not 0 <= ts <= _MAX_COUNTER:
+            raise Malformed("field 'ts_ms' must be a non-negative integer (Unix ms)", frm)
+        if type(n) is not int or not 1 <= n <= _MAX_COUNTER:
+            raise Malformed("field 'n' must be a positive integer", frm)
+        if to != self.me:
+            raise Misdirected(f"envelope for {to!r} reached {self.me!r}", frm)
+        if frm not in self.trust._keys:  # checked per message: removing a platform revokes it
+            raise UnknownPlatform(f"platform {frm!r} is not in the trust file", frm)
+        session = self._by_sid.get(sid)
+        if session is None:
+            raise UnknownSession(
+                f"no session {sid!r} with {frm!r} (never made, renewed away or forgotten)", frm
+            )
+        if session.peer != frm:
+            raise Forged(f"session {sid} belongs to {session.peer!r}, not to {frm!r}", frm)
+        if not boxed:
+            if self.policy.require_encryption:
+                raise Malformed("this platform requires encrypted envelopes ('box')", frm)
+            if type(mac) is not bytes or len(mac) != _MAC_BYTES:
+                raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
+        now = self._clock()
+        body = session._accept_bytes(ts, n, payload, mac, now)
         if self._rx_latest.get(frm) is not session:
             self._on_rx_switch(session, now)
         return frm, body

@@ -1,0 +1,1046 @@
+"""Export and import proxies: agreed streams flow platform to platform, bypassing the agents.
+
+Once the Federation Agents agreed a stream, the provider's `ExportProxy` subscribes to the
+local label with the agreed policy and pushes what it emits to the receiver as sealed
+msgpack batches on ``dyknow/<fed>/v1/stream/<receiver>/<sender>/<semantic-label>``; the
+receiver's `ImportProxy` opens them, translates the semantic label to a local one and
+adds the samples to that local stream, which is to its instance just another source.
+The bytes are in ``docs/wire.md`` ("Sample batches").
+
+Isolation: every export has its own bounded queue and its own task. The local instance
+hands samples to the queue and returns at once; the task packs, seals and publishes.
+A receiver that is slow, frozen or gone costs its own queue's oldest samples (counted
+and reported), never the instance's time or another receiver's.
+
+Sessions: batches are sealed per receiver with the session the Interface Agents agreed
+(`InterfaceSessions`); anything implementing `SessionsProvider` may stand in for it
+(`TableSessions` over a bare `SessionTable`; `PlainSessions`, unauthenticated, for tests).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import inspect
+import logging
+import re
+import time
+from collections import deque
+from collections.abc import Awaitable, Callable
+from enum import Enum
+from typing import TYPE_CHECKING, Any, Protocol, Self, runtime_checkable
+
+import msgpack
+
+from agents._exceptions import (
+    AuthenticationError,
+    Expired,
+    Malformed,
+    Misdirected,
+    TransportClosed,
+    UnknownPlatform,
+    UnknownSession,
+)
+from agents._platform import wire_key
+from agents._security import SessionTable, check_name
+from agents.transports import Message, Presence, Transport
+from agents.transports import Subscription as TransportSubscription
+from dyknow_core import (
+    CacheSpec,
+    DuplicateLabelError,
+    DyKnowInstance,
+    Policy,
+    ProcessError,
+    RawSample,
+    Source,
+)
+from dyknow_core import Subscription as StreamSubscription
+
+if TYPE_CHECKING:
+    from agents._interface import InterfaceAgent
+
+__all__ = [
+    "BATCH_VERSION",
+    "Export",
+    "ExportProxy",
+    "Import",
+    "ImportProxy",
+    "InterfaceSessions",
+    "PlainSessions",
+    "SessionsProvider",
+    "TableSessions",
+    "pack_batch",
+    "unpack_batch",
+]
+
+log = logging.getLogger(__name__)
+
+BATCH_VERSION = 1
+
+Translate = Callable[[str, str], str | None]
+"""``translate(sender, semantic_label)``: the local label to import into, None if never agreed."""
+
+OnDrop = Callable[["Export", str, int], None]
+"""``on_drop(export, reason, count)``: told in the publisher's call; keep it short."""
+
+OnSenderGone = Callable[[str, list[str]], Awaitable[None] | None]
+"""``on_sender_gone(sender, semantic_labels)``: told when a sender's streams were ended."""
+
+# A semantic label becomes key chunks: no wildcard or MQTT-special characters, no spaces.
+_LABEL = re.compile(r"^[^\s/*$?#+\x00-\x1f\x7f]+(?:/[^\s/*$?#+\x00-\x1f\x7f]+)*$")
+_MAX_LABEL = 256
+_packb = msgpack.packb
+_unpackb = msgpack.unpackb
+_BACKOFF_MIN = 0.05
+_BACKOFF_MAX = 2.0
+# How often an idle export looks whether its local stream ended (no event tells it).
+_IDLE_CHECK = 1.0
+# How many payloads the import loop handles before letting other tasks run.
+_YIELD_EVERY = 64
+
+
+def check_semantic_label(label: str) -> str:
+    """Check that a semantic label can travel as key chunks, and return it."""
+    if not isinstance(label, str) or len(label) > _MAX_LABEL or not _LABEL.match(label):
+        raise ValueError(
+            f"semantic label {label!r} must be 1-{_MAX_LABEL} characters, '/'-separated "
+            "non-empty chunks without spaces or any of * $ ? # +"
+        )
+    return label
+
+
+# --------------------------------------------------------------------------- batches
+
+
+def _encode_value(obj: Any) -> Any:
+    """What msgpack cannot carry itself, as something it can (else TypeError)."""
+    if isinstance(obj, Enum):
+        return obj.value
+    if isinstance(obj, set | frozenset):
+        return list(obj)
+    dump = getattr(obj, "model_dump", None)
+    if callable(dump):  # a pydantic model
+        return dump(mode="json")
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return dataclasses.asdict(obj)
+    raise TypeError(f"a {type(obj).__name__} value cannot travel in a sample batch")
+
+
+def pack_batch(semantic_label: str, samples: list[RawSample], seq: int = 0) -> bytes:
+    """The msgpack body of one batch: ``{"v": 1, "s": label, "q": seq, "b": [[v, tv, ta]…]}``."""
+    body: bytes = _packb(
+        {"v": BATCH_VERSION, "s": semantic_label, "q": seq, "b": samples},
+        default=_encode_value,
+    )
+    return body
+
+
+def unpack_batch(body: bytes) -> tuple[str, int | None, list[Any]]:
+    """Read a batch body: ``(semantic label, first sequence number or None, samples)``.
+
+    Raises ValueError when it is not a batch of version 1; the samples themselves are
+    checked by whoever uses them (each should be ``[value, valid_ns, available_ns]``).
+    """
+    try:
+        obj = _unpackb(body, raw=False, strict_map_key=False)
+    except Exception as exc:  # msgpack raises several kinds on bad input
+        raise ValueError(f"not msgpack: {type(exc).__name__}: {exc}") from None
+    if type(obj) is not dict:
+        raise ValueError("a batch is a msgpack map")
+    v = obj.get("v")
+    if type(v) is not int or v != BATCH_VERSION:
+        raise ValueError(f"unsupported batch version {v!r} (this side reads {BATCH_VERSION})")
+    label = obj.get("s")
+    samples = obj.get("b")
+    seq = obj.get("q")
+    if type(label) is not str or type(samples) is not list:
+        raise ValueError("a batch needs 's' (a string) and 'b' (an array)")
+    if seq is not None and (type(seq) is not int or seq < 0):
+        raise ValueError("'q' must be a non-negative integer")
+    return label, seq, samples
+
+
+# --------------------------------------------------------------------------- sessions
+
+
+@runtime_checkable
+class SessionsProvider(Protocol):
+    """How the proxies seal and open batches: this platform's sessions with its peers."""
+
+    async def ensure(self, peer: str) -> None:
+        """Make sure there is a session to seal for ``peer`` (agree one if need be)."""
+        ...
+
+    def seal_bytes(self, peer: str, body: bytes) -> bytes:
+        """Seal ``body`` for ``peer``; UnknownSession or Expired when one must be agreed."""
+        ...
+
+    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
+        """``(authenticated sender platform, body)``, or an AuthenticationError."""
+        ...
+
+
+class TableSessions:
+    """Seals and opens with a `SessionTable`; ``agree(peer)``, if given, makes a session."""
+
+    def __init__(
+        self, table: SessionTable, agree: Callable[[str], Awaitable[None]] | None = None
+    ) -> None:
+        self.table = table
+        self.agree = agree
+
+    async def ensure(self, peer: str) -> None:
+        """Agree a session with ``peer`` unless one can seal already."""
+        if self.table.session_for(peer) is not None:
+            return
+        if self.agree is None:
+            raise UnknownSession(f"no session with {peer!r}, and no way to agree one", peer)
+        await self.agree(peer)
+
+    def seal_bytes(self, peer: str, body: bytes) -> bytes:
+        """Seal with the table's current session for ``peer``."""
+        return self.table.seal_bytes(peer, body)
+
+    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
+        """Open with the table."""
+        return self.table.open_bytes(envelope)
+
+
+class InterfaceSessions(TableSessions):
+    """The sessions of a platform's Interface Agent: agreed, renewed and recovered by it."""
+
+    def __init__(self, agent: InterfaceAgent, *, renew_check: float = 1.0) -> None:
+        super().__init__(agent.sessions, agent._agree)
+        self.agent = agent
+        self.renew_check = renew_check
+        self._checked: dict[str, float] = {}
+
+    def seal_bytes(self, peer: str, body: bytes) -> bytes:
+        """Seal for ``peer``; now and then, have the agent renew a session that asks for it."""
+        envelope = self.table.seal_bytes(peer, body)
+        now = time.monotonic()
+        if now - self._checked.get(peer, -1e9) >= self.renew_check:
+            # what the agent's own send does per message, here once a second: batches
+            # come by the thousand and the session's age changes slowly
+            self._checked[peer] = now
+            self._renew_if_needed(peer)
+        return envelope
+
+    def _renew_if_needed(self, peer: str) -> None:
+        agent = self.agent
+        host = agent._host
+        if (
+            host is not None
+            and host.running
+            and peer not in agent._handshakes
+            and agent.sessions.needs_renewal(peer)
+            and not agent._peer_renewing(peer)
+        ):
+            host.spawn(agent._renew(peer), f"interface.renew[{peer}]")
+
+    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
+        """Open; a trusted peer sealing on a session we lost gets a new one agreed."""
+        try:
+            return self.table.open_bytes(envelope)
+        except UnknownSession as exc:
+            if exc.platform is not None:
+                self.agent._rehandshake(exc.platform)  # rate-limited by the agent
+            raise
+
+
+class PlainSessions:
+    """No authentication at all: ``[1, from, to, body]``. For tests and local benchmarks only.
+
+    ``trusted``, when given, is the set of senders accepted (others: UnknownPlatform).
+    """
+
+    def __init__(self, me: str, trusted: set[str] | None = None) -> None:
+        self.me = check_name(me)
+        self.trusted = trusted
+
+    async def ensure(self, peer: str) -> None:
+        """Nothing to agree."""
+
+    def seal_bytes(self, peer: str, body: bytes) -> bytes:
+        """Wrap ``body`` with sender and receiver."""
+        envelope: bytes = _packb([1, self.me, peer, body])
+        return envelope
+
+    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
+        """Unwrap, checking the receiver and (when set) the trusted senders."""
+        try:
+            env = _unpackb(envelope, raw=False)
+        except Exception as exc:
+            raise Malformed(f"not msgpack: {exc}") from None
+        if type(env) is not list or len(env) != 4 or env[0] != 1:
+            raise Malformed("a plain envelope is [1, from, to, body]")
+        _, frm, to, body = env
+        if type(frm) is not str or type(to) is not str or type(body) is not bytes:
+            raise Malformed("a plain envelope is [1, from, to, body]")
+        if to != self.me:
+            raise Misdirected(f"envelope for {to!r} reached {self.me!r}", frm)
+        if self.trusted is not None and frm not in self.trusted:
+            raise UnknownPlatform(f"platform {frm!r} is not trusted", frm)
+        return frm, body
+
+
+# --------------------------------------------------------------------------- export
+
+
+class Export:
+    """One agreed stream to one receiver: its queue, its task and its counters.
+
+    Counters: ``sent`` samples in ``batches`` published; ``dropped`` by reason
+    (``queue-full``: the receiver's queue overflowed, oldest first; ``no-session``: no
+    session could be agreed; ``send-failed``: the transport refused; ``unencodable``:
+    a value msgpack cannot carry; ``too-large``: one sample over the batch size limit).
+    """
+
+    def __init__(
+        self,
+        proxy: ExportProxy,
+        local_label: str,
+        semantic_label: str,
+        receiver: str,
+        policy: Policy,
+        queue_size: int,
+    ) -> None:
+        self.local_label = local_label
+        self.semantic_label = semantic_label
+        self.receiver = receiver
+        self.policy = policy
+        self.key = (
+            f"{wire_key(proxy.federation, 'stream', receiver)}/{proxy.platform}/{semantic_label}"
+        )
+        self.name = f"export[{proxy.platform}→{receiver}:{semantic_label}]"
+        self.queue: deque[RawSample] = deque(maxlen=queue_size)
+        self.sent = 0
+        self.batches = 0
+        self.dropped: dict[str, int] = {}
+        self.last_error: str | None = None
+        self.ended: str | None = None
+        self.started = time.time()
+        self.subscription: StreamSubscription | None = None
+        self.task: asyncio.Task[None] | None = None
+        self._proxy = proxy
+        self._cap = queue_size
+        self._seq = 0
+        self._waiter: asyncio.Future[None] | None = None
+        self._backoff = 0.0
+
+    def __repr__(self) -> str:
+        state = f"ended: {self.ended}" if self.ended else "active"
+        return f"<{self.name} sent={self.sent} dropped={self.dropped_total} {state}>"
+
+    @property
+    def active(self) -> bool:
+        """True until stopped, or until its local stream or the transport ended."""
+        return self.ended is None
+
+    @property
+    def dropped_total(self) -> int:
+        """Samples this export lost, all reasons."""
+        return sum(self.dropped.values())
+
+    def stats(self) -> dict[str, Any]:
+        """A snapshot of the counters."""
+        return {
+            "name": self.name,
+            "receiver": self.receiver,
+            "semantic_label": self.semantic_label,
+            "local_label": self.local_label,
+            "sent": self.sent,
+            "batches": self.batches,
+            "queued": len(self.queue),
+            "dropped": self.dropped_total,
+            "dropped_by_reason": dict(self.dropped),
+            "last_error": self.last_error,
+            "active": self.active,
+            "ended": self.ended,
+        }
+
+    # -- the publisher's side: never waits -------------------------------------------------
+
+    def _on_batch(self, batch: list[RawSample]) -> None:
+        q = self.queue
+        over = len(q) + len(batch) - self._cap
+        q.extend(batch)  # a full deque drops from its left: the oldest go first
+        if over > 0:
+            self._drop("queue-full", over)
+        w = self._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+
+    def _drop(self, reason: str, count: int, error: str | None = None) -> None:
+        if reason not in self.dropped:
+            log.warning(
+                "%s: dropping samples (%s)%s", self.name, reason, f": {error}" if error else ""
+            )
+        self.dropped[reason] = self.dropped.get(reason, 0) + count
+        if error is not None:
+            self.last_error = error
+        on_drop = self._proxy.on_drop
+        if on_drop is not None:
+            try:
+                on_drop(self, reason, count)
+            except Exception:
+                log.exception("%s: on_drop failed", self.name)
+
+    # -- the export's own task -------------------------------------------------------------
+
+    async def _run(self) -> None:
+        q = self.queue
+        sub = self.subscription
+        batch_size = self._proxy.batch_size
+        try:
+            while True:
+                if not q:
+                    if sub is None or sub.closed:
+                        self._end("the local stream ended")
+                        return
+                    await self._wait(_IDLE_CHECK)
+                    continue
+                n = min(len(q), batch_size)
+                await self._send([q.popleft() for _ in range(n)])
+                # a transport that never suspends (memory) would otherwise hold the loop
+                await asyncio.sleep(0)
+        except TransportClosed as exc:
+            self._end(f"the transport closed: {exc}")
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:
+            log.exception("%s: failed", self.name)
+            self._end(f"failed: {type(exc).__name__}: {exc}")
+
+    async def _wait(self, timeout: float) -> None:
+        fut = asyncio.get_running_loop().create_future()
+        self._waiter = fut
+        try:
+            async with asyncio.timeout(timeout):
+                await fut
+        except TimeoutError:
+            pass
+        finally:
+            self._waiter = None
+
+    async def _send(self, samples: list[RawSample]) -> None:
+        proxy = self._proxy
+        for body, count in self._pack(samples):
+            try:
+                envelope = await self._seal(body)
+            except (asyncio.CancelledError, TransportClosed):
+                raise
+            except Exception as exc:  # no session: the receiver is gone, or refuses us
+                self._drop("no-session", count, f"{type(exc).__name__}: {exc}")
+                self._backoff = min(max(2 * self._backoff, _BACKOFF_MIN), _BACKOFF_MAX)
+                # meanwhile the queue keeps the newest samples, the oldest are dropped
+                await asyncio.sleep(self._backoff)
+                continue
+            try:
+                await proxy.transport.publish(self.key, envelope)
+            except TransportClosed:
+                raise
+            except Exception as exc:
+                self._drop("send-failed", count, f"{type(exc).__name__}: {exc}")
+                continue
+            self._backoff = 0.0
+            self.sent += count
+            self.batches += 1
+
+    async def _seal(self, body: bytes) -> bytes:
+        sessions = self._proxy.sessions
+        try:
+            return sessions.seal_bytes(self.receiver, body)
+        except (UnknownSession, Expired):
+            async with asyncio.timeout(self._proxy.agree_timeout):
+                await sessions.ensure(self.receiver)
+            return sessions.seal_bytes(self.receiver, body)
+
+    def _pack(self, samples: list[RawSample]) -> list[tuple[bytes, int]]:
+        """Bodies of at most ``max_batch_bytes``: ``(body, sample count)``; bad samples dropped."""
+        label = self.semantic_label
+        try:
+            body = pack_batch(label, samples, self._seq)
+        except (TypeError, ValueError, OverflowError):
+            good = []
+            for s in samples:
+                try:
+                    _packb(s, default=_encode_value)
+                except (TypeError, ValueError, OverflowError) as exc:
+                    self._drop("unencodable", 1, f"{type(exc).__name__}: {exc}")
+                else:
+                    good.append(s)
+            if not good:
+                return []
+            samples = good
+            body = pack_batch(label, samples, self._seq)
+        if len(body) > self._proxy.max_batch_bytes:
+            if len(samples) == 1:
+                self._drop("too-large", 1, f"one sample of {len(body)} bytes")
+                return []
+            half = len(samples) // 2
+            return self._pack(samples[:half]) + self._pack(samples[half:])
+        self._seq += len(samples)
+        return [(body, len(samples))]
+
+    def _end(self, why: str) -> None:
+        if self.ended is None:
+            self.ended = why
+        if self.subscription is not None:
+            self.subscription.close()
+        self._proxy._forget(self)
+
+
+class ExportProxy:
+    """Pushes agreed local streams to receiving platforms, each receiver independently.
+
+    ``sessions`` seals each batch for its receiver (`InterfaceSessions` on a platform).
+    Per export: a queue of ``queue_size`` samples, batches of at most ``batch_size``
+    samples and ``max_batch_bytes`` bytes; a session is awaited at most
+    ``agree_timeout`` s. ``on_drop(export, reason, count)`` is told of every loss.
+    Use as an async context manager, or call ``aclose``: it stops every export.
+    """
+
+    def __init__(
+        self,
+        platform_name: str,
+        federation: str,
+        transport: Transport,
+        instance: DyKnowInstance,
+        sessions_provider: SessionsProvider,
+        *,
+        queue_size: int = 8192,
+        batch_size: int = 256,
+        max_batch_bytes: int = 64 * 1024,
+        agree_timeout: float = 5.0,
+        on_drop: OnDrop | None = None,
+    ) -> None:
+        if queue_size < 1 or batch_size < 1 or max_batch_bytes < 256:
+            raise ValueError("queue_size and batch_size must be >= 1, max_batch_bytes >= 256")
+        self.platform = check_name(platform_name)
+        self.federation = check_name(federation, "federation")
+        self.transport = transport
+        self.instance = instance
+        self.sessions = sessions_provider
+        self.queue_size = queue_size
+        self.batch_size = batch_size
+        self.max_batch_bytes = max_batch_bytes
+        self.agree_timeout = agree_timeout
+        self.on_drop = on_drop
+        self._exports: dict[tuple[str, str], Export] = {}
+
+    async def __aenter__(self) -> Self:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    def start_exporting(
+        self,
+        local_label: str,
+        semantic_label: str,
+        receiver: str,
+        policy: Policy | None = None,
+    ) -> Export:
+        """Subscribe to ``local_label`` with ``policy``, push it to ``receiver`` as semantic label.
+
+        Call on the event loop. Raises UnknownLabelError or PolicyError from the
+        instance, ValueError for a bad name or when this label already goes to that
+        receiver (stop that export first).
+        """
+        check_name(receiver)
+        check_semantic_label(semantic_label)
+        if receiver == self.platform:
+            raise ValueError("a platform does not export to itself")
+        if (receiver, semantic_label) in self._exports:
+            raise ValueError(f"{semantic_label!r} is already exported to {receiver!r}")
+        loop = asyncio.get_running_loop()
+        policy = policy or Policy()
+        export = Export(self, local_label, semantic_label, receiver, policy, self.queue_size)
+        # subscribed before the task exists: history a past 'start' replays is queued too
+        export.subscription = self.instance.subscribe(
+            local_label, policy, callback=export._on_batch
+        )
+        export.task = loop.create_task(export._run(), name=export.name)
+        self._exports[(receiver, semantic_label)] = export
+        return export
+
+    async def stop(self, export: Export) -> None:
+        """End ``export``: unsubscribe, drop what is queued, wait for its task to finish."""
+        export._end("stopped")
+        task = export.task
+        if task is not None and task is not asyncio.current_task():
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+    async def stop_all(self, receiver: str | None = None) -> list[Export]:
+        """Stop every export to ``receiver`` (every export when None); the stopped ones."""
+        stopped = self.exports(receiver)
+        for export in stopped:
+            await self.stop(export)
+        return stopped
+
+    def exports(self, receiver: str | None = None) -> list[Export]:
+        """The active exports (to ``receiver`` only, when given)."""
+        return [e for (r, _), e in self._exports.items() if receiver is None or r == receiver]
+
+    def find(self, receiver: str, semantic_label: str) -> Export | None:
+        """The active export of ``semantic_label`` to ``receiver``, if any."""
+        return self._exports.get((receiver, semantic_label))
+
+    def stats(self) -> list[dict[str, Any]]:
+        """Every active export's counters."""
+        return [e.stats() for e in self._exports.values()]
+
+    async def aclose(self) -> None:
+        """Stop every export."""
+        await self.stop_all()
+
+    def _forget(self, export: Export) -> None:
+        key = (export.receiver, export.semantic_label)
+        if self._exports.get(key) is export:
+            del self._exports[key]
+
+
+# --------------------------------------------------------------------------- import
+
+
+class Import:
+    """What arrives for one (sender, semantic label): where it lands, and its counters.
+
+    ``batches`` payloads arrived; ``received`` samples were read from authentic batches,
+    ``injected`` added to the local stream; ``lost`` samples never arrived (gaps in the
+    sender's numbering: dropped on the way); ``dropped_batches`` / ``dropped_samples`` by
+    reason. ``local_label`` is None for a stream that was never agreed.
+    """
+
+    def __init__(self, sender: str, semantic_label: str, local_label: str | None) -> None:
+        self.sender = sender
+        self.semantic_label = semantic_label
+        self.local_label = local_label
+        self.source: Source | None = None
+        self.batches = 0
+        self.received = 0
+        self.injected = 0
+        self.lost = 0
+        self.dropped_batches: dict[str, int] = {}
+        self.dropped_samples: dict[str, int] = {}
+        self.ended = False
+        self.first_arrival: int | None = None
+        self.last_arrival: int | None = None
+        self._last_ta = -(2**63)
+        self._next_seq: int | None = None
+
+    def __repr__(self) -> str:
+        return (
+            f"<Import {self.sender}:{self.semantic_label} -> {self.local_label} "
+            f"injected={self.injected}{' ended' if self.ended else ''}>"
+        )
+
+    @property
+    def location(self) -> str:
+        """The instance location its stream lives at (one per sender platform)."""
+        return f"import/{self.sender}"
+
+    def stats(self) -> dict[str, Any]:
+        """A snapshot of the counters."""
+        return {
+            "sender": self.sender,
+            "semantic_label": self.semantic_label,
+            "local_label": self.local_label,
+            "batches": self.batches,
+            "received": self.received,
+            "injected": self.injected,
+            "lost": self.lost,
+            "dropped_batches": dict(self.dropped_batches),
+            "dropped_samples": dict(self.dropped_samples),
+            "ended": self.ended,
+            "first_arrival": self.first_arrival,
+            "last_arrival": self.last_arrival,
+        }
+
+    def _drop_batch(self, reason: str) -> None:
+        if reason not in self.dropped_batches:
+            log.warning(
+                "import %s:%s: dropping batches (%s)", self.sender, self.semantic_label, reason
+            )
+        self.dropped_batches[reason] = self.dropped_batches.get(reason, 0) + 1
+
+    def _drop_samples(self, reason: str, count: int) -> None:
+        if reason not in self.dropped_samples:
+            log.warning(
+                "import %s:%s: dropping samples (%s)", self.sender, self.semantic_label, reason
+            )
+        self.dropped_samples[reason] = self.dropped_samples.get(reason, 0) + count
+
+
+class ImportProxy:
+    """Receives the streams other platforms export to this one and adds them locally.
+
+    ``translate(sender, semantic_label)`` names the local label (None: never agreed, the
+    batch is dropped); `expect` agrees one in advance. Each sender's streams live at
+    location ``import/<sender>``, made with ``cache``; the first sample creates the source.
+    When a sender's liveliness token goes, its streams are ended (their subscribers'
+    iterators end; with ``keep_ended`` the label and its cache stay queryable) and
+    ``on_sender_gone(sender, semantic_labels)`` is told. Use as an async context manager
+    (or ``start`` / ``aclose``).
+    """
+
+    def __init__(
+        self,
+        platform_name: str,
+        federation: str,
+        transport: Transport,
+        instance: DyKnowInstance,
+        sessions_provider: SessionsProvider,
+        translate: Translate,
+        *,
+        on_sender_gone: OnSenderGone | None = None,
+        cache: CacheSpec | None = None,
+        keep_ended: bool = True,
+        buffer_size: int = 65536,
+        max_strays: int = 1024,
+    ) -> None:
+        self.platform = check_name(platform_name)
+        self.federation = check_name(federation, "federation")
+        self.transport = transport
+        self.instance = instance
+        self.sessions = sessions_provider
+        self.translate = translate
+        self.on_sender_gone = on_sender_gone
+        self.cache = cache
+        self.keep_ended = keep_ended
+        self.buffer_size = buffer_size
+        self.max_strays = max_strays
+        self._prefix = wire_key(self.federation, "stream", self.platform) + "/"
+        self._imports: dict[tuple[str, str], Import] = {}
+        # counters of what matches no agreed import (unauthenticated claims included):
+        # bounded, since anyone on the network can invent keys
+        self._strays: dict[tuple[str, str], Import] = {}
+        self._gone: set[str] = set()
+        self._subs: list[TransportSubscription[Message] | TransportSubscription[Presence]] = []
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._state = "unopened"
+
+    async def __aenter__(self) -> Self:
+        await self.start()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def start(self) -> None:
+        """Watch senders' presence and receive this platform's streams (tasks owned here)."""
+        if self._state != "unopened":
+            raise RuntimeError(f"the import proxy is {self._state}; it cannot start again")
+        self._state = "started"
+        presence = await self.transport.watch_presence(
+            wire_key(self.federation, "alive", "*"), history=False
+        )
+        self._subs.append(presence)
+        streams = await self.transport.subscribe(
+            self._prefix + "*/**", buffer_size=self.buffer_size
+        )
+        self._subs.append(streams)
+        self._spawn(self._watch(presence), f"import[{self.platform}].presence")
+        self._spawn(self._receive(streams), f"import[{self.platform}].receive")
+
+    def _spawn(self, coro: Any, name: str) -> None:
+        task = asyncio.get_running_loop().create_task(coro, name=name)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    async def aclose(self) -> None:
+        """Stop receiving and end every imported stream."""
+        if self._state == "closed":
+            return
+        self._state = "closed"
+        for sub in self._subs:
+            sub.close()
+        tasks = list(self._tasks)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        for rec in self._imports.values():
+            self._end(rec)
+
+    # -- agreements ---------------------------------------------------------------------
+
+    def expect(self, sender: str, semantic_label: str, local_label: str) -> Import:
+        """Agree in advance that ``sender``'s ``semantic_label`` lands in ``local_label``.
+
+        DuplicateLabelError when ``local_label`` is published by something else here;
+        ValueError when this stream already lands in another live label.
+        """
+        check_name(sender)
+        check_semantic_label(semantic_label)
+        key = (sender, semantic_label)
+        rec = self._imports.get(key)
+        if rec is not None and rec.local_label == local_label:
+            return rec
+        if rec is not None and rec.source is not None and not rec.ended:
+            raise ValueError(
+                f"{semantic_label!r} from {sender!r} already lands in {rec.local_label!r}"
+            )
+        if self.instance.has_label(local_label) and not self._owns(local_label):
+            raise DuplicateLabelError(f"label {local_label!r} is already published here")
+        if rec is None:
+            rec = self._new_import(sender, semantic_label, local_label)
+        else:
+            rec.local_label = local_label
+        return rec
+
+    def forget(self, sender: str, semantic_label: str) -> Import | None:
+        """Undo an agreement: end the stream; later batches count as never agreed."""
+        rec = self._imports.pop((sender, semantic_label), None)
+        if rec is not None:
+            self._end(rec)
+        return rec
+
+    def get(self, sender: str, semantic_label: str) -> Import | None:
+        """The import of ``sender``'s ``semantic_label``, if agreed."""
+        return self._imports.get((sender, semantic_label))
+
+    def imports(self, sender: str | None = None) -> list[Import]:
+        """The agreed imports (from ``sender`` only, when given)."""
+        return [r for r in self._imports.values() if sender is None or r.sender == sender]
+
+    def stats(self) -> dict[str, Any]:
+        """Every import's counters, those of unagreed traffic, and the totals."""
+        imports = [r.stats() for r in self._imports.values()]
+        strays = [r.stats() for r in self._strays.values()]
+        totals: dict[str, Any] = {
+            "batches": 0,
+            "received": 0,
+            "injected": 0,
+            "lost": 0,
+            "dropped_batches": {},
+            "dropped_samples": {},
+        }
+        for s in imports + strays:
+            for k in ("batches", "received", "injected", "lost"):
+                totals[k] += s[k]
+            for k in ("dropped_batches", "dropped_samples"):
+                for reason, n in s[k].items():
+                    totals[k][reason] = totals[k].get(reason, 0) + n
+        return {"imports": imports, "strays": strays, "totals": totals}
+
+    def _owns(self, local_label: str) -> bool:
+        """Whether ``local_label`` is one of our imports, live or ended."""
+        if any(
+            r.local_label == local_label and r.source is not None for r in self._imports.values()
+        ):
+            return True
+        return bool(self._ended_sources(local_label, None))
+
+    def _ended_sources(self, local_label: str, name: str | None) -> list[str]:
+        """Our ended import sources named ``name`` or publishing ``local_label``."""
+        return [
+            p.name
+            for p in self.instance.processes.values()
+            if isinstance(p, Source)
+            and not p.running
+            and p.name.startswith("import[")
+            and (p.name == name or p.label == local_label)
+        ]
+
+    def _new_import(self, sender: str, semantic_label: str, local_label: str) -> Import:
+        rec = Import(sender, semantic_label, local_label)
+        stray = self._strays.pop((sender, semantic_label), None)
+        if stray is not None:  # what arrived before the agreement stays counted
+            rec.batches = stray.batches
+            rec.received = stray.received
+            rec.dropped_batches = stray.dropped_batches
+            rec.dropped_samples = stray.dropped_samples
+        self._imports[(sender, semantic_label)] = rec
+        return rec
+
+    def _counts(self, sender: str, label: str) -> Import:
+        """Where to count a payload for (sender, label): its import, or a bounded stray."""
+        key = (sender, label)
+        rec = self._imports.get(key)
+        if rec is not None:
+            return rec
+        rec = self._strays.get(key)
+        if rec is None:
+            if len(self._strays) >= self.max_strays:
+                key = ("*", "*")
+                rec = self._strays.get(key)
+            if rec is None:
+                rec = self._strays[key] = Import(key[0], key[1], None)
+        return rec
+
+    # -- receiving ----------------------------------------------------------------------
+
+    async def _receive(self, sub: TransportSubscription[Message]) -> None:
+        handle = self._handle
+        n = 0
+        async for msg in sub:
+            try:
+                handle(msg.key, msg.payload)
+            except Exception:  # never let one payload end the loop
+                log.exception("import[%s]: handling a payload on %s failed", self.platform, msg.key)
+            n += 1
+            if n % _YIELD_EVERY == 0:
+                # the inbox hands out what is queued without suspending: let others run
+                await asyncio.sleep(0)
+
+    def _handle(self, key: str, payload: bytes) -> None:
+        """One payload: open, check, decode, translate, inject; or drop and count why."""
+        sender, _, label = key[len(self._prefix) :].partition("/")
+        if not sender or not label:
+            self._counts(sender or "?", label or "?")._drop_batch("malformed")
+            return
+        try:
+            frm, body = self.sessions.open_bytes(payload)
+        except AuthenticationError as exc:
+            counts = self._counts(sender, label)
+            counts.batches += 1
+            counts._drop_batch(exc.code)
+            return
+        except Exception:
+            counts = self._counts(sender, label)
+            counts.batches += 1
+            counts._drop_batch("malformed")
+            return
+        if frm != sender:
+            # authentic, but published under another platform's name: trust neither
+            counts = self._counts(sender, label)
+            counts.batches += 1
+            counts._drop_batch("wrong-sender")
+            return
+        try:
+            semantic, seq, samples = unpack_batch(body)
+        except ValueError:
+            counts = self._counts(frm, label)
+            counts.batches += 1
+            counts._drop_batch("malformed")
+            return
+        if semantic != label:
+            counts = self._counts(frm, label)
+            counts.batches += 1
+            counts._drop_batch("wrong-label")
+            return
+        rec = self._imports.get((frm, semantic))
+        if rec is None:
+            local = self._translate(frm, semantic)
+            if local is None:
+                counts = self._counts(frm, semantic)
+                counts.batches += 1
+                counts.received += len(samples)
+                counts._drop_samples("unagreed", len(samples))
+                return
+            rec = self._new_import(frm, semantic, local)
+        rec.batches += 1
+        rec.received += len(samples)
+        if frm in self._gone:
+            # still in flight when the sender's token went: its streams are ended
+            rec._drop_samples("sender-gone", len(samples))
+            return
+        self._inject(rec, seq, samples)
+
+    def _translate(self, sender: str, semantic: str) -> str | None:
+        try:
+            return self.translate(sender, semantic)
+        except Exception:
+            log.exception("import[%s]: translate(%r, %r) failed", self.platform, sender, semantic)
+            return None
+
+    def _inject(self, rec: Import, seq: int | None, samples: list[Any]) -> None:
+        """Add the samples: valid time kept, available time = arrival here (unique, rising)."""
+        n = len(samples)
+        if seq is not None:
+            expected = rec._next_seq
+            if expected is not None and seq > expected:
+                rec.lost += seq - expected
+            rec._next_seq = seq + n  # a lower seq: the sender restarted the export
+        now = self.instance.clock.now()
+        if rec.first_arrival is None:
+            rec.first_arrival = now
+        rec.last_arrival = now
+        ta = now if now > rec._last_ta else rec._last_ta + 1
+        out: list[RawSample] = []
+        append = out.append
+        for s in samples:
+            if type(s) is list and len(s) == 3 and type(s[1]) is int:
+                append((s[0], s[1], ta))
+                ta += 1
+        if len(out) != n:
+            rec._drop_samples("malformed", n - len(out))
+        if not out:
+            return
+        source = rec.source
+        if source is None or not source.running or source.generator.closed:
+            source = self._open_source(rec)
+            if source is None:
+                rec._drop_samples("label-taken", len(out))
+                return
+        try:
+            source.push_batch(out, ordered=True)
+        except Exception as exc:
+            log.warning("import %s:%s: not injected: %s", rec.sender, rec.semantic_label, exc)
+            rec._drop_samples("rejected", len(out))
+            return
+        rec._last_ta = ta - 1
+        rec.injected += len(out)
+
+    def _open_source(self, rec: Import) -> Source | None:
+        """The first sample's source (again after an end), at location ``import/<sender>``."""
+        instance = self.instance
+        assert rec.local_label is not None
+        if rec.location not in instance.locations:
+            instance.add_location(rec.location, cache=self.cache)
+        name = f"import[{rec.sender}:{rec.semantic_label}]"
+        for stale in self._ended_sources(rec.local_label, name):
+            instance.remove_process(stale)  # an ended stream of ours: make room for a new one
+        try:
+            source = instance.add_source(rec.local_label, name=name, location=rec.location)
+        except (DuplicateLabelError, ProcessError) as exc:
+            log.warning("import %s:%s: %s", rec.sender, rec.semantic_label, exc)
+            return None
+        rec.source = source
+        rec.ended = False
+        return source
+
+    # -- membership ---------------------------------------------------------------------
+
+    async def _watch(self, presence: TransportSubscription[Presence]) -> None:
+        async for change in presence:
+            sender = change.key.rpartition("/")[2]
+            if sender == self.platform:
+                continue
+            if change.alive:
+                self._gone.discard(sender)
+                continue
+            recs = [r for r in self._imports.values() if r.sender == sender]
+            if not recs:
+                continue
+            self._gone.add(sender)
+            labels = []
+            for rec in recs:
+                if not rec.ended:
+                    self._end(rec)
+                    labels.append(rec.semantic_label)
+            if labels and self.on_sender_gone is not None:
+                try:
+                    result = self.on_sender_gone(sender, labels)
+                    if inspect.isawaitable(result):
+                        await result
+                except Exception:
+                    log.exception("import[%s]: on_sender_gone(%r) failed", self.platform, sender)
+
+    def _end(self, rec: Import) -> None:
+        """Mark a stream ended: its subscribers' iterators end; the cache stays if kept."""
+        rec.ended = True
+        source = rec.source
+        if source is None:
+            return
+        source.running = False
+        if self.keep_ended:
+            source.generator.close()
+        else:
+            with contextlib.suppress(ProcessError):
+                self.instance.remove_process(source.name)
+            rec.source = None
