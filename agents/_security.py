@@ -969,6 +969,26 @@ class SessionTable:
                 newest = s
         return newest is None or newest.needs_renewal()
 
+    def _session_of(self, frm: str, to: str, sid: str, ts: Any, n: Any) -> Session:
+        """The header checks both envelope kinds share, in order; the session they name."""
+        if type(ts) is not int or not 0 <= ts <= _MAX_COUNTER:
+            raise Malformed("field 'ts_ms' must be a non-negative integer (Unix ms)", frm)
+        if type(n) is not int or not 1 <= n <= _MAX_COUNTER:
+            raise Malformed("field 'n' must be a positive integer", frm)
+        if to != self.me:
+            raise Misdirected(f"envelope for {to!r} reached {self.me!r}", frm)
+        if frm not in self.trust._keys:  # checked per message: removing a platform revokes it
+            raise UnknownPlatform(f"platform {frm!r} is not in the trust file", frm)
+        session = self._by_sid.get(sid)
+        if session is None:
+            raise UnknownSession(
+                f"no session {sid!r} with {frm!r} (never made, renewed away or forgotten)", frm
+            )
+        if session.peer != frm:
+            # the MAC binds the session's peer: a different 'from' is a tampered header
+            raise Forged(f"session {sid} belongs to {session.peer!r}, not to {frm!r}", frm)
+        return session
+
     def open(self, envelope: bytes | str) -> tuple[str, bytes]:
         """Verify a sealed envelope: ``(sender platform, ACL message JSON bytes)`` or a refusal.
 
@@ -1006,22 +1026,7 @@ class SessionTable:
         n = env["n"]
         if type(to) is not str or type(sid) is not str or type(payload) is not str:
             raise Malformed("fields 'to', 'sid', 'body'/'box' must be strings", frm)
-        if type(ts) is not int or not 0 <= ts <= _MAX_COUNTER:
-            raise Malformed("field 'ts_ms' must be a non-negative integer (Unix ms)", frm)
-        if type(n) is not int or not 1 <= n <= _MAX_COUNTER:
-            raise Malformed("field 'n' must be a positive integer", frm)
-        if to != self.me:
-            raise Misdirected(f"envelope for {to!r} reached {self.me!r}", frm)
-        if frm not in self.trust._keys:  # checked per message: removing a platform revokes it
-            raise UnknownPlatform(f"platform {frm!r} is not in the trust file", frm)
-        session = self._by_sid.get(sid)
-        if session is None:
-            raise UnknownSession(
-                f"no session {sid!r} with {frm!r} (never made, renewed away or forgotten)", frm
-            )
-        if session.peer != frm:
-            # the MAC binds the session's peer: a different 'from' is a tampered header
-            raise Forged(f"session {sid} belongs to {session.peer!r}, not to {frm!r}", frm)
+        session = self._session_of(frm, to, sid, ts, n)
         tag: bytes | None = None
         if not boxed:
             if self.policy.require_encryption:
@@ -1065,21 +1070,7 @@ class SessionTable:
             raise Malformed(f"unsupported envelope version {v!r} (this side speaks 1)", frm)
         if type(to) is not str or type(sid) is not str or type(payload) is not bytes:
             raise Malformed("fields 'to', 'sid' must be strings, 'body'/'box' binary", frm)
-        if type(ts) is not int or not 0 <= ts <= _MAX_COUNTER:
-            raise Malformed("field 'ts_ms' must be a non-negative integer (Unix ms)", frm)
-        if type(n) is not int or not 1 <= n <= _MAX_COUNTER:
-            raise Malformed("field 'n' must be a positive integer", frm)
-        if to != self.me:
-            raise Misdirected(f"envelope for {to!r} reached {self.me!r}", frm)
-        if frm not in self.trust._keys:  # checked per message: removing a platform revokes it
-            raise UnknownPlatform(f"platform {frm!r} is not in the trust file", frm)
-        session = self._by_sid.get(sid)
-        if session is None:
-            raise UnknownSession(
-                f"no session {sid!r} with {frm!r} (never made, renewed away or forgotten)", frm
-            )
-        if session.peer != frm:
-            raise Forged(f"session {sid} belongs to {session.peer!r}, not to {frm!r}", frm)
+        session = self._session_of(frm, to, sid, ts, n)
         if not boxed:
             if self.policy.require_encryption:
                 raise Malformed("this platform requires encrypted envelopes ('box')", frm)
