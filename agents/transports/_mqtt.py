@@ -56,6 +56,7 @@ import contextlib
 import itertools
 import json
 import logging
+import socket
 import uuid
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
@@ -283,6 +284,7 @@ class MqttTransport(Transport):
         where = f"{self.config.host}:{self.config.port}"
         try:
             await client.__aenter__()
+            _no_delay(client)
         except aiomqtt.MqttError as exc:
             raise TransportError(f"mqtt: cannot connect to {where}: {exc}") from exc
         try:
@@ -625,6 +627,7 @@ class MqttTransport(Transport):
         )
         try:
             await client.__aenter__()
+            _no_delay(client)
         except aiomqtt.MqttError as exc:
             raise self._error(f"connect for the token on {key!r}", exc) from exc
         try:
@@ -680,3 +683,15 @@ async def _disconnect(client: aiomqtt.Client) -> None:
         if isinstance(misc, asyncio.Task) and not misc.done():
             misc.cancel()
             await asyncio.wait([misc], timeout=1.0)
+
+
+def _no_delay(client: aiomqtt.Client) -> None:
+    """Turn off Nagle's algorithm on the client's socket (paho leaves it on).
+
+    Small request/reply messages otherwise meet the peer's delayed ACK: 40 ms stalls that
+    took the p99 round trip from ~2 ms to ~43 ms.
+    """
+    setsockopt = getattr(client._client.socket(), "setsockopt", None)  # None: not TCP
+    if setsockopt is not None:
+        with contextlib.suppress(OSError):
+            setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
