@@ -210,6 +210,16 @@ async def control(asker: Agent, op: str, timeout: float = 10.0, **fields: Any) -
     )
 
 
+async def control_retrying(asker: Agent, op: str, *, attempts: int, timeout: float) -> Any:
+    """``control`` asked again after a lost request or answer (bounded: attempts x timeout)."""
+    for attempt in range(1, attempts + 1):
+        try:
+            return await control(asker, op, timeout=timeout)
+        except ReplyTimeout:
+            progress(f"control {op!r}: no answer in {timeout:g} s (try {attempt}/{attempts})")
+    raise RuntimeError(f"control {op!r} unanswered after {attempts} tries of {timeout:g} s")
+
+
 def flood_content(asker: Agent) -> Callable[[int], Any]:
     """The flood's content for message ``i``, padded so the ACL JSON is about ACL_BYTES."""
 
@@ -241,8 +251,10 @@ async def flood(asker: Agent, n: int) -> dict[str, float]:
     sent_s = time.monotonic() - t0
     sender_cpu, sender_main = time.process_time() - cpu0, time.thread_time() - main0
     # The count request queues behind the flood on the node's inbox: its answer comes once
-    # the node has worked through what reached it (what was dropped never will).
-    counted = await control(asker, "count", timeout=120.0)
+    # the node has worked through what reached it (what was dropped never will). zenoh
+    # drops under congestion (DROP: a frozen peer must not stall us), and the request
+    # itself can be the message dropped: ask again rather than wait for ever.
+    counted = await control_retrying(asker, "count", attempts=12, timeout=10.0)
     got = counted["n"]
     if not got:
         raise RuntimeError(f"none of the {n:,} informs reached {SINK}")

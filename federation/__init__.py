@@ -1,5 +1,19 @@
-"""DyKnow Federation: the federation service, export and import proxies, platform assembly."""
+"""DyKnow Federation: the federation service, export and import proxies, fusion, platform assembly.
 
+`FederationPlatform` (configured by a `PlatformConfig`, usually a TOML file) is one
+member of a federation; `FederationAgent` is its DyKnow Federation service, the proxies
+carry agreed streams, and `add_fusion` merges an imported stream with a local one.
+"""
+
+from ._fusion import Fusion, add_fusion
+from ._platform import (
+    DEFAULT_IMPORT_LABEL,
+    FederationPlatform,
+    MqttSettings,
+    PlatformConfig,
+    PlatformConfigError,
+    ZenohSettings,
+)
 from ._proxies import (
     Export,
     ExportProxy,
@@ -9,13 +23,43 @@ from ._proxies import (
     SessionsProvider,
     TableSessions,
 )
+from ._service import (
+    FEDERATION_AGENT,
+    FEDERATION_SERVICE_TYPE,
+    ONTOLOGY,
+    Exporter,
+    FederationAgent,
+    GlobalResult,
+    LabelSearch,
+    LabelTranslator,
+    MembershipEvent,
+    StreamExport,
+)
 
 __all__ = [
+    "DEFAULT_IMPORT_LABEL",
+    "FEDERATION_AGENT",
+    "FEDERATION_SERVICE_TYPE",
+    "ONTOLOGY",
     "Export",
     "ExportProxy",
+    "Exporter",
+    "FederationAgent",
+    "FederationPlatform",
+    "Fusion",
+    "GlobalResult",
     "Import",
     "ImportProxy",
     "InterfaceSessions",
+    "LabelSearch",
+    "LabelTranslator",
+    "MembershipEvent",
+    "MqttSettings",
+    "PlatformConfig",
+    "PlatformConfigError",
     "SessionsProvider",
+    "StreamExport",
     "TableSessions",
+    "ZenohSettings",
+    "add_fusion",
 ]

@@ -1,0 +1,526 @@
+"""One platform of a DyKnow Federation, assembled from a config file.
+
+`FederationPlatform` builds, from a `PlatformConfig`: the DyKnow instance (or takes one),
+the transport (zenoh or MQTT), the agent platform with its Interface Agent (keys and the
+federation's trust file), the Gateway Agent, the export and import proxies, and the
+DyKnow Federation Agent (which translates with the platform's label mapping, searches
+labels by formula, and starts exports through the export proxy). Leaving the context
+tears everything down in reverse.
+
+Imported streams land in local labels named by the config's ``import_label`` scheme
+(default ``import/{sender}/{semantic}``); only labels of the federation's vocabulary are
+accepted, anything else is dropped and counted by the import proxy.
+
+A config file (TOML; relative paths are relative to the file)::
+
+    name = "uav-b"
+    federation = "traffic"
+    key = "keys/uav-b.key"
+    trust = "trust.json"
+    vocabulary = "traffic.toml"
+    mapping = "uav-b.toml"
+    export_limit = 64
+    import_label = "import/{sender}/{semantic}"
+
+    [transport]
+    kind = "zenoh"
+    mode = "peer"
+    listen = ["tcp/127.0.0.1:7448"]
+    connect = ["tcp/127.0.0.1:7447"]
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import inspect
+import logging
+import string
+import tomllib
+from collections.abc import Awaitable, Callable, Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal, Self
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from agents import AgentPlatform, GatewayAgent, InterfaceAgent, KeyPair, TrustStore, Visibility
+from agents._exceptions import SecurityError
+from agents.transports import (
+    MqttConfig,
+    MqttTransport,
+    Subscription,
+    Transport,
+    ZenohConfig,
+    ZenohTransport,
+)
+from dyknow_core import DyKnowInstance, Source
+from ontology import (
+    FactBase,
+    FactFeed,
+    LabelMapping,
+    OntologyError,
+    PlatformLabels,
+    Rule,
+    Vocabulary,
+)
+
+from ._fusion import Fusion, add_fusion
+from ._proxies import ExportProxy, Import, ImportProxy, InterfaceSessions
+from ._service import FederationAgent, MembershipEvent
+
+__all__ = [
+    "DEFAULT_IMPORT_LABEL",
+    "FederationPlatform",
+    "MqttSettings",
+    "PlatformConfig",
+    "PlatformConfigError",
+    "ZenohSettings",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_IMPORT_LABEL = "import/{sender}/{semantic}"
+"""Where a stream imported from ``sender`` lands, by default."""
+
+_NAME = r"^[A-Za-z0-9_.-]+$"
+_IMPORT_FIELDS = frozenset({"sender", "semantic"})
+
+OnImportEnded = Callable[[str, list[str]], Awaitable[None] | None]
+"""``on_import_ended(sender, semantic_labels)``: the streams imported from a gone sender ended."""
+
+
+class PlatformConfigError(ValueError):
+    """A platform's configuration is wrong: names the source (file) and the key."""
+
+    def __init__(self, source: str, key: str | None, message: str) -> None:
+        self.source = source
+        self.key = key
+        self.message = message
+        super().__init__(f"{source}: {key}: {message}" if key else f"{source}: {message}")
+
+
+# -- the config ------------------------------------------------------------------------------
+
+
+class ZenohSettings(ZenohConfig):
+    """The ``[transport]`` table for zenoh (``kind = "zenoh"``): mode, listen, connect, …."""
+
+    kind: Literal["zenoh"] = "zenoh"
+
+
+class MqttSettings(MqttConfig):
+    """The ``[transport]`` table for MQTT (``kind = "mqtt"``): host, port, keepalive, …."""
+
+    kind: Literal["mqtt"] = "mqtt"
+
+
+TransportSettings = Annotated[ZenohSettings | MqttSettings, Field(discriminator="kind")]
+
+
+class PlatformConfig(BaseModel):
+    """One platform's settings, validated at the edge (`load`, `from_dict` name the bad key).
+
+    ``vocabulary`` and ``mapping`` are paths to the TOML files of `docs/ontology.md`, or
+    the same content inline. ``export_limit`` bounds the exports (a label to a receiver)
+    running at once; ``import_label`` names the local label of an imported stream, with
+    ``{sender}`` and ``{semantic}``. ``audit``, when set, is the Interface Agent's
+    JSON-lines audit file.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = Field(pattern=_NAME, description="This platform's name (uav-a, operator).")
+    federation: str = Field(pattern=_NAME, description="The federation's name.")
+    transport: TransportSettings = Field(default_factory=ZenohSettings)
+    key: Path = Field(description="This platform's private key file (agents.keys gen).")
+    trust: Path = Field(description="The federation's trust file.")
+    vocabulary: Path | dict[str, Any] = Field(description="The federation's vocabulary.")
+    mapping: Path | dict[str, Any] = Field(description="This platform's label mapping.")
+    export_limit: int = Field(default=64, ge=0)
+    import_label: str = DEFAULT_IMPORT_LABEL
+    audit: Path | None = None
+
+    @field_validator("transport", mode="before")
+    @classmethod
+    def _default_kind(cls, value: Any) -> Any:
+        if isinstance(value, Mapping) and "kind" not in value:
+            return {"kind": "zenoh", **value}
+        return value
+
+    @field_validator("import_label")
+    @classmethod
+    def _import_scheme(cls, value: str) -> str:
+        try:
+            fields = {f for _, f, _, _ in string.Formatter().parse(value) if f is not None}
+        except ValueError as exc:
+            raise ValueError(f"{value!r} is not a label scheme: {exc}") from None
+        unknown = fields - _IMPORT_FIELDS
+        if unknown:
+            raise ValueError(
+                f"{value!r}: unknown placeholder {{{sorted(unknown)[0]}}} "
+                "(use {sender} and {semantic})"
+            )
+        if fields != _IMPORT_FIELDS:
+            # without both, two senders (or two labels) would land in one stream
+            raise ValueError(f"{value!r} must contain both {{sender}} and {{semantic}}")
+        return value
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], *, source: str = "<config>") -> PlatformConfig:
+        """Validate ``data`` (shaped like the file); PlatformConfigError names the bad key."""
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:
+            raise _config_error(exc, source) from None
+
+    @classmethod
+    def load(cls, path: str | Path) -> PlatformConfig:
+        """Read a TOML config file; relative paths in it are relative to the file."""
+        path = Path(path)
+        try:
+            with path.open("rb") as f:
+                data = tomllib.load(f)
+        except OSError as exc:
+            raise PlatformConfigError(str(path), None, f"cannot be read: {exc.strerror}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise PlatformConfigError(str(path), None, f"not valid TOML: {exc}") from None
+        return cls.from_dict(data, source=str(path)).relative_to(path.parent)
+
+    def relative_to(self, base: str | Path) -> PlatformConfig:
+        """A copy whose relative paths are resolved against ``base``."""
+        base = Path(base)
+        update: dict[str, Any] = {}
+        for name in ("key", "trust", "vocabulary", "mapping", "audit"):
+            value = getattr(self, name)
+            if isinstance(value, Path) and not value.is_absolute():
+                update[name] = base / value
+        return self.model_copy(update=update)
+
+    def import_label_of(self, sender: str, semantic: str) -> str:
+        """The local label a stream of ``sender``'s ``semantic`` label is imported into."""
+        return self.import_label.format(sender=sender, semantic=semantic)
+
+    def make_transport(self) -> Transport:
+        """A transport (not yet opened) as ``[transport]`` describes it."""
+        if isinstance(self.transport, ZenohSettings):
+            return ZenohTransport(self.transport)
+        return MqttTransport(self.transport)
+
+
+def _key_path(loc: tuple[int | str, ...]) -> str:
+    """A pydantic location as a key path: ``transport.listen[0]`` (union tags left out)."""
+    parts = list(loc)
+    if len(parts) >= 2 and parts[0] == "transport" and parts[1] in ("zenoh", "mqtt"):
+        del parts[1]
+    out = ""
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
+def _config_error(exc: ValidationError, source: str) -> PlatformConfigError:
+    errors = exc.errors(include_url=False)
+    first = errors[0]
+    key = _key_path(first["loc"])
+    message = str(first["msg"]).removeprefix("Value error, ")
+    if first["type"] == "union_tag_invalid":
+        key, message = f"{key}.kind", "expected 'zenoh' or 'mqtt'"
+    elif first["type"] == "missing":
+        message = "missing"
+    elif first["type"] == "extra_forbidden":
+        message = "unknown key"
+    elif first["type"] == "string_pattern_mismatch":
+        message = f"{first['input']!r}: use letters, digits, '-', '_', '.'"
+    if len(errors) > 1:
+        more = ", ".join(_key_path(e["loc"]) or "<top>" for e in errors[1:])
+        message += f" (also wrong: {more})"
+    return PlatformConfigError(source, key or None, message)
+
+
+@dataclass(frozen=True, slots=True)
+class _Files:
+    keys: KeyPair
+    trust: TrustStore
+    vocabulary: Vocabulary
+    mapping: LabelMapping
+
+
+def _read_files(config: PlatformConfig, source: str) -> _Files:
+    """Keys, trust, vocabulary and mapping; PlatformConfigError naming the key and why."""
+    try:
+        keys = KeyPair.load(config.key)
+    except (OSError, ValueError, SecurityError) as exc:
+        raise PlatformConfigError(source, "key", str(exc)) from None
+    if keys.platform != config.name:
+        raise PlatformConfigError(
+            source, "key", f"{config.key} is the key of {keys.platform!r}, not of {config.name!r}"
+        )
+    try:
+        trust = TrustStore.load(config.trust)
+    except (OSError, ValueError, SecurityError) as exc:
+        raise PlatformConfigError(source, "trust", str(exc)) from None
+    if trust.federation != config.federation:
+        raise PlatformConfigError(
+            source,
+            "trust",
+            f"{config.trust} is the trust file of federation {trust.federation!r}, "
+            f"not of {config.federation!r}",
+        )
+    try:
+        if isinstance(config.vocabulary, Path):
+            vocabulary = Vocabulary.load(config.vocabulary)
+        else:
+            vocabulary = Vocabulary.from_dict(config.vocabulary, source=f"{source}: vocabulary")
+    except OntologyError as exc:
+        raise PlatformConfigError(source, "vocabulary", str(exc)) from None
+    try:
+        if isinstance(config.mapping, Path):
+            mapping = LabelMapping.load(config.mapping, vocabulary)
+        else:
+            mapping = LabelMapping.from_dict(
+                config.mapping, vocabulary, source=f"{source}: mapping"
+            )
+    except OntologyError as exc:
+        raise PlatformConfigError(source, "mapping", str(exc)) from None
+    return _Files(keys, trust, vocabulary, mapping)
+
+
+# -- the platform ----------------------------------------------------------------------------
+
+
+class _Imports(ImportProxy):
+    """The import proxy, telling the platform when an imported stream (re)appears."""
+
+    def __init__(self, *args: Any, on_open: Callable[[Import], None], **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._on_open = on_open
+
+    def _open_source(self, rec: Import) -> Source | None:
+        source = super()._open_source(rec)
+        if source is not None:
+            self._on_open(rec)
+        return source
+
+
+class FederationPlatform:
+    """One platform's assembly, as an async context manager: everything a member needs.
+
+    Built from ``config`` (files are read here: a bad one raises PlatformConfigError).
+    ``instance`` and ``transport``, when given, are used instead of new ones and left
+    open on exit (their owner closes them). ``join=False`` keeps the platform out of the
+    federation until `join` (set up local streams and agents first). ``rules`` keep
+    `facts` current from the instance's streams, for label search by formula.
+    ``on_import_ended(sender, labels)`` is told when a sender whose streams we import is
+    gone (its imported streams are then ended).
+    """
+
+    def __init__(
+        self,
+        config: PlatformConfig,
+        *,
+        instance: DyKnowInstance | None = None,
+        transport: Transport | None = None,
+        join: bool = True,
+        rules: Iterable[Rule] = (),
+        gateway_visibility: Visibility | str = Visibility.PROTECTED,
+        on_import_ended: OnImportEnded | None = None,
+        source: str | None = None,
+    ) -> None:
+        self.config = config
+        self.name = config.name
+        files = _read_files(config, source or f"platform {config.name}")
+        self.vocabulary = files.vocabulary
+        self.mapping = files.mapping
+        self._own_instance = instance is None
+        self.instance = instance if instance is not None else DyKnowInstance(config.name)
+        self._own_transport = transport is None
+        self.transport = transport if transport is not None else config.make_transport()
+        self.interface = InterfaceAgent(files.keys, files.trust, audit_path=config.audit)
+        self.agents = AgentPlatform(
+            config.name, self.transport, federation=config.federation, channel=self.interface
+        )
+        self.gateway = GatewayAgent(self.instance, visibility=gateway_visibility)
+        self.facts = FactBase()
+        self._rules = list(rules)
+        self.labels = PlatformLabels(self.mapping, self.instance, self.facts)
+        self.exporter = ExportProxy(
+            config.name,
+            config.federation,
+            self.transport,
+            self.instance,
+            InterfaceSessions(self.interface),
+        )
+        self.importer = _Imports(
+            config.name,
+            config.federation,
+            self.transport,
+            self.instance,
+            InterfaceSessions(self.interface),
+            self._import_translate,
+            on_sender_gone=self._sender_gone,
+            on_open=self._import_opened,
+        )
+        self.federation_agent = FederationAgent(
+            self.instance,
+            self.labels,
+            exporter=self.exporter,
+            search=self.labels,
+            max_exports=config.export_limit,
+            join=join,
+        )
+        self._on_import_ended = on_import_ended
+        self._waiters: dict[tuple[str, str], list[asyncio.Future[str]]] = {}
+        self._stack: contextlib.AsyncExitStack | None = None
+
+    def __repr__(self) -> str:
+        return f"<FederationPlatform {self.name} ({self.config.federation})>"
+
+    @classmethod
+    def from_file(cls, path: str | Path, **options: Any) -> FederationPlatform:
+        """A platform from a TOML config file (see `PlatformConfig.load`)."""
+        return cls(PlatformConfig.load(path), source=str(path), **options)
+
+    # -- lifecycle ------------------------------------------------------------------------
+
+    async def __aenter__(self) -> Self:
+        if self._stack is not None:
+            raise RuntimeError(f"{self!r} was opened already; a platform cannot reopen")
+        stack = self._stack = contextlib.AsyncExitStack()
+        try:
+            if self._own_instance:
+                await stack.enter_async_context(self.instance)
+            if self._own_transport:
+                await stack.enter_async_context(self.transport)
+            await stack.enter_async_context(self.agents)
+            await self.agents.add(self.gateway)
+            await stack.enter_async_context(self.exporter)
+            # Receiving before joining: a stream agreed the moment we are listed must land.
+            await stack.enter_async_context(self.importer)
+            if self._rules:
+                await stack.enter_async_context(FactFeed(self.instance, self.facts, self._rules))
+            # Stopped before the proxies close: its teardown stops exports through them.
+            stack.push_async_callback(self.agents.remove, self.federation_agent)
+            await self.agents.add(self.federation_agent)
+        except BaseException:
+            await stack.aclose()
+            raise
+        log.info("platform %s: running in federation %s", self.name, self.config.federation)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def aclose(self) -> None:
+        """Leave and tear everything down, in the reverse order of building it."""
+        stack = self._stack
+        if stack is None:
+            return
+        try:
+            await stack.aclose()
+        finally:
+            for waiters in self._waiters.values():
+                for fut in waiters:
+                    fut.cancel()
+            self._waiters.clear()
+
+    # -- membership -----------------------------------------------------------------------
+
+    async def join(self) -> None:
+        """Register the federation service: the platform becomes a member."""
+        await self.federation_agent.join()
+
+    async def leave(self) -> None:
+        """Deregister the federation service; streams already agreed keep flowing."""
+        await self.federation_agent.leave()
+
+    @property
+    def members(self) -> list[str]:
+        """The platforms whose federation service is listed now (this one included if joined)."""
+        return self.federation_agent.members
+
+    def membership(self, maxlen: int = 1024) -> Subscription[MembershipEvent]:
+        """Membership changes (joined, left, gone) from now on, as an async iterator."""
+        return self.federation_agent.membership(maxlen)
+
+    # -- imports --------------------------------------------------------------------------
+
+    def import_label(self, sender: str, semantic: str) -> str:
+        """The local label ``sender``'s stream of ``semantic`` lands in here.
+
+        UnknownSemanticLabel when ``semantic`` is not in the federation's vocabulary.
+        """
+        self.vocabulary.entry(semantic)
+        rec = self.importer.get(sender, semantic)
+        if rec is not None and rec.local_label is not None:
+            return rec.local_label
+        return self.config.import_label_of(sender, semantic)
+
+    async def imported(self, sender: str, semantic: str, *, timeout: float = 10.0) -> str:
+        """Wait until ``sender``'s ``semantic`` stream has arrived here; its local label."""
+        label = self.import_label(sender, semantic)
+        rec = self.importer.get(sender, semantic)
+        if rec is not None and rec.source is not None and not rec.ended:
+            return label
+        fut: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        key = (sender, semantic)
+        self._waiters.setdefault(key, []).append(fut)
+        try:
+            async with asyncio.timeout(timeout):
+                return await fut
+        except TimeoutError:
+            raise TimeoutError(
+                f"no sample of {semantic!r} from {sender} arrived within {timeout} s"
+            ) from None
+        finally:
+            waiters = self._waiters.get(key)
+            if waiters is not None and fut in waiters:
+                waiters.remove(fut)
+                if not waiters:
+                    del self._waiters[key]
+
+    def _import_translate(self, sender: str, semantic: str) -> str | None:
+        if semantic not in self.vocabulary:
+            return None  # not agreed in this federation: the proxy drops and counts it
+        return self.config.import_label_of(sender, semantic)
+
+    def _import_opened(self, rec: Import) -> None:
+        for fut in self._waiters.pop((rec.sender, rec.semantic_label), []):
+            if not fut.done() and rec.local_label is not None:
+                fut.set_result(rec.local_label)
+
+    async def _sender_gone(self, sender: str, labels: list[str]) -> None:
+        # Membership subscribers hear "gone" from the Federation Agent (the global
+        # directory follows the same liveliness token); here the imports are what ended.
+        log.warning(
+            "platform %s: %s is gone; its streams imported here ended: %s",
+            self.name,
+            sender,
+            ", ".join(labels),
+        )
+        hook = self._on_import_ended
+        if hook is not None:
+            result = hook(sender, labels)
+            if inspect.isawaitable(result):
+                await result
+
+    # -- fusion ---------------------------------------------------------------------------
+
+    async def fuse(
+        self,
+        semantic: str,
+        sender: str,
+        output: str,
+        *,
+        window: float = 0.5,
+        combine: Callable[[Any, Any], Any] | None = None,
+        timeout: float = 10.0,
+    ) -> Fusion:
+        """Fuse our own ``semantic`` stream with ``sender``'s import, preferring ours.
+
+        Waits (at most ``timeout`` s) for the imported stream's first sample; ``output``
+        is a local label (see `add_fusion` for ``window`` and ``combine``).
+        """
+        local = self.labels.to_local(semantic)
+        imported = await self.imported(sender, semantic, timeout=timeout)
+        return add_fusion(self.instance, local, imported, output, window=window, combine=combine)

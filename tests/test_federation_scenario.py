@@ -1,0 +1,753 @@
+"""The reference scenario's federation steps: three platforms, three OS processes.
+
+UAV A and the operator station run in their own (spawned) processes; the test process
+hosts UAV B, which drives the scenario and checks it, and ``uav-c``, a platform that
+lists a federation service but never answers. Every platform is a `FederationPlatform`
+built from a TOML config (keys and one trust file generated into a temporary directory,
+one vocabulary, a label mapping per platform with different local labels). Over zenoh
+(peers on loopback, explicit endpoints) and over MQTT (the conftest's mosquitto):
+
+a. B's global request for the latest ``heli-max-speed`` and ``heli-altitude``: answers
+   from the UAVs, the operator's refusal, ``uav-c`` named as silent;
+b. B asks A ``create-stream car5-state sample-period 0.5 to-units uav-b``: B's imported
+   stream gets A's samples on the 0.5 s grid of A's valid times;
+c. ``get-trajectory car5-state from -120``: the last two minutes of A's samples;
+d. B fuses its own car5 state (it sees car5 for a while) with A's, preferring its own;
+e. A is SIGKILLed: the operator is told ``gone`` (within 1 s on zenoh), B's imported
+   stream ends.
+
+Readiness is by events (membership, the operator's watcher answering when it sees the
+others), never fixed sleeps; every wait is bounded; children are killed in ``finally``.
+The last tests build platforms in one process (MemoryHub): config errors, imports of
+labels never agreed, exports to a platform that is gone.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import multiprocessing
+import os
+import signal
+import time
+import uuid
+from collections.abc import AsyncIterator, Iterator
+from dataclasses import dataclass, field
+from itertools import pairwise
+from multiprocessing.process import BaseProcess
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from agents import (
+    ACLMessage,
+    Agent,
+    AgentPlatform,
+    InterfaceAgent,
+    KeyPair,
+    MessageTemplate,
+    Performative,
+    ServiceDescription,
+    TrustStore,
+    Visibility,
+    on,
+    on_request,
+    request,
+)
+from agents.keys import gen_keys, trust_keys
+from agents.transports import (
+    MemoryHub,
+    MqttConfig,
+    MqttTransport,
+    Subscription,
+    Transport,
+    ZenohConfig,
+    ZenohTransport,
+    free_tcp_port,
+)
+from dyknow_core import NS_PER_S, DyKnowInstance, Sample, Source
+from dyknow_core import Subscription as StreamSubscription
+from federation import (
+    FEDERATION_SERVICE_TYPE,
+    ONTOLOGY,
+    FederationPlatform,
+    MembershipEvent,
+    PlatformConfig,
+    PlatformConfigError,
+)
+from ontology import UnknownSemanticLabel
+
+START = 30.0  # spawned interpreters import zenoh, pydantic and DyKnow: seconds when loaded
+WAIT = 10.0  # the bound on any other single wait
+TOTAL = 50.0  # the bound on one transport's whole scenario
+PERIOD = 0.5  # the sample period B asks for
+WINDOW = 0.25  # the fusion's window: an imported sample this close to a local one yields
+HISTORY = 180  # seconds of car5 history A holds when it starts (1 Hz)
+A_RATE = 0.1  # A's tracker period, s
+B_SEEN = 12  # samples of car5 B's own camera gets (at 10 Hz): then car5 leaves its view
+A_MAX_SPEED, A_ALTITUDE = 22.0, 120.0
+B_MAX_SPEED, B_ALTITUDE = 18.0, 95.0
+P = Performative
+
+VOCABULARY = {
+    "name": "traffic",
+    "labels": {
+        "heli-max-speed": "this platform's top speed, m/s",
+        "heli-altitude": "this platform's altitude, m",
+        "{object}-state": "the state of a tracked object, e.g. car5-state",
+    },
+}
+# The same semantic labels, different local labels on each platform.
+MAPPINGS: dict[str, dict[str, str]] = {
+    "uav-a": {
+        "heli-max-speed": "heli/max_speed",
+        "heli-altitude": "heli/altitude",
+        "{object}-state": "cars/{object}/state",
+    },
+    "uav-b": {
+        "heli-max-speed": "platform/limits/speed",
+        "heli-altitude": "platform/nav/alt",
+        "{object}-state": "tracks/{object}/state",
+    },
+    "operator": {"{object}-state": "picture/{object}"},
+}
+PLATFORMS = ["uav-a", "uav-b", "operator"]
+SILENT = "uav-c"
+
+
+# -- files -------------------------------------------------------------------------------------
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)  # a TOML basic string for what these tests write
+    if isinstance(value, list | tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"no TOML for {value!r}")
+
+
+def write_toml(path: Path, data: dict[str, Any]) -> Path:
+    """``data`` as TOML: top-level values, then one table per dict value."""
+    lines = [
+        f"{json.dumps(k)} = {_toml_value(v)}" for k, v in data.items() if not isinstance(v, dict)
+    ]
+    for table, content in data.items():
+        if isinstance(content, dict):
+            lines.append(f"\n[{table}]")
+            lines += [f"{json.dumps(k)} = {_toml_value(v)}" for k, v in content.items()]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def write_federation(
+    tmp_path: Path, federation: str, transports: dict[str, dict[str, Any]]
+) -> dict[str, Path]:
+    """Keys, one trust file, the vocabulary, mappings and a config file per platform."""
+    keys = tmp_path / "keys"
+    pubs = [gen_keys(name, keys)[2] for name in [*PLATFORMS, SILENT]]
+    trust_keys(tmp_path / "trust.json", pubs, federation=federation)
+    write_toml(tmp_path / "traffic.toml", VOCABULARY)
+    configs = {}
+    for name in PLATFORMS:
+        write_toml(
+            tmp_path / f"{name}-labels.toml", {"vocabulary": "traffic", "labels": MAPPINGS[name]}
+        )
+        configs[name] = write_toml(
+            tmp_path / f"{name}.toml",
+            {
+                "name": name,
+                "federation": federation,
+                "key": f"keys/{name}.key",  # relative to the config file
+                "trust": "trust.json",
+                "vocabulary": "traffic.toml",
+                "mapping": f"{name}-labels.toml",
+                "export_limit": 8,
+                "transport": transports[name],
+            },
+        )
+    return configs
+
+
+# -- the child processes -----------------------------------------------------------------------
+
+
+def child_main(role: str, config_path: str) -> None:
+    """A child platform (``uav-a`` or ``operator``) until it is killed."""
+    main = _uav_a if role == "uav-a" else _operator
+    asyncio.run(main(PlatformConfig.load(config_path)))
+
+
+def car_state(k: int, t: int, by: str) -> dict[str, Any]:
+    """A tracked car's state as a UAV's tracker publishes it (``t``: its valid time, ns)."""
+    return {"k": k, "t": t, "by": by, "x": 100.0 + k, "y": 5.0}
+
+
+async def _uav_a(config: PlatformConfig) -> None:
+    async with FederationPlatform(config, join=False) as p:
+        dk = p.instance
+        dk.add_source("heli/max_speed").push(A_MAX_SPEED)
+        dk.add_source("heli/altitude").push(A_ALTITUDE)
+        car5 = dk.add_source("cars/car5/state")
+        now = dk.clock.now()
+        # A has tracked car5 for a while already: one state a second
+        car5.push_batch(
+            [
+                (car_state(k, tv, "uav-a"), tv, now + k)
+                for k in range(HISTORY)
+                for tv in [now - (HISTORY - k) * NS_PER_S]
+            ]
+        )
+        await p.join()
+        k = HISTORY
+        while True:  # the tracker, until the parent kills us
+            await asyncio.sleep(A_RATE)
+            t = dk.clock.now()
+            car5.push(car_state(k, t, "uav-a"), t)
+            k += 1
+
+
+class Watcher(Agent):
+    """The operator's view of membership, recorded with monotonic times (instrumentation).
+
+    ``{"members": [p…]}`` is answered once this platform sees them all as members,
+    ``{"gone": p}`` once it was told p is gone; both with the members and every event.
+    """
+
+    def __init__(self, platform: FederationPlatform) -> None:
+        super().__init__("watcher")
+        self.fp = platform
+        self.events: list[tuple[str, str, float]] = []
+        self.changed = asyncio.Event()
+
+    async def setup(self) -> None:
+        """Protected: the driver on uav-b reaches it through the Interface Agent."""
+        assert self.platform.df is not None
+        await self.platform.df.register(
+            ServiceDescription(
+                name="watcher", type="scenario-watcher", provider=self.aid, visibility="protected"
+            )
+        )
+        self.spawn(self._follow(self.fp.membership()), "follow")
+
+    async def _follow(self, events: Subscription[MembershipEvent]) -> None:
+        async with events:
+            async for e in events:
+                self.events.append((e.kind, e.platform, time.monotonic()))
+                self.changed.set()
+
+    def _reached(self, want: dict[str, Any]) -> bool:
+        if "members" in want:
+            return set(want["members"]) <= set(self.fp.members)
+        return any(k == "gone" and p == want["gone"] for k, p, _ in self.events)
+
+    @on_request("watcher", concurrent=True)
+    async def _until(self, message: ACLMessage) -> Any:
+        """Answer when what the content asks for has happened (at most ``timeout`` s)."""
+        want = message.content
+        assert isinstance(want, dict)
+        async with asyncio.timeout(float(want.get("timeout", WAIT))):
+            while not self._reached(want):
+                self.changed.clear()
+                await self.changed.wait()
+        return {"members": self.fp.members, "events": [list(e) for e in self.events]}
+
+
+async def _operator(config: PlatformConfig) -> None:
+    async with FederationPlatform(config, join=False) as p:
+        await p.agents.add(Watcher(p))
+        await p.join()
+        await asyncio.Event().wait()  # until the parent kills us
+
+
+# -- the parent: uav-b and the silent uav-c ------------------------------------------------------
+
+
+class Silent(Agent):
+    """Lists a federation service but never answers: a platform too busy to reply."""
+
+    def __init__(self) -> None:
+        super().__init__("federation")
+
+    async def setup(self) -> None:
+        """Only the public discovery entry: enough to be asked by global requests."""
+        assert self.platform.df is not None
+        await self.platform.df.register(
+            ServiceDescription(
+                name="dyknow-federation-discovery",
+                type=FEDERATION_SERVICE_TYPE,
+                provider=self.aid,
+                visibility=Visibility.PUBLIC,
+            )
+        )
+
+    @on(MessageTemplate(P.REQUEST, ontology=ONTOLOGY))
+    async def _swallow(self, message: ACLMessage) -> None:
+        """Say nothing."""
+
+
+@contextlib.contextmanager
+def children_watched(procs: dict[str, BaseProcess]) -> Iterator[asyncio.Future[str]]:
+    """A future done (with the child's name) as soon as any child process exits."""
+    loop = asyncio.get_running_loop()
+    died: asyncio.Future[str] = loop.create_future()
+
+    def exited(name: str) -> None:
+        if not died.done():
+            died.set_result(name)
+
+    sentinels = []
+    for name, proc in procs.items():
+        loop.add_reader(proc.sentinel, exited, name)
+        sentinels.append(proc.sentinel)
+    try:
+        yield died
+    finally:
+        for s in sentinels:
+            loop.remove_reader(s)
+
+
+async def until_members(
+    b: FederationPlatform,
+    events: Subscription[MembershipEvent],
+    want: set[str],
+    died: asyncio.Future[str],
+) -> None:
+    """Wait (by membership events) until B sees ``want``; fail at once if a child died."""
+    async with asyncio.timeout(START):
+        while not want <= set(b.members):
+            get = asyncio.ensure_future(events.get())
+            try:
+                await asyncio.wait([get, died], return_when=asyncio.FIRST_COMPLETED)
+                if died.done():
+                    raise AssertionError(f"{died.result()} exited before the federation was up")
+            finally:
+                get.cancel()
+
+
+async def next_event(events: Subscription[MembershipEvent], want: MembershipEvent) -> None:
+    """Read ``events`` until ``want`` (the caller bounds the wait)."""
+    while await events.get() != want:
+        pass
+
+
+async def ask_watcher(driver: Agent, content: dict[str, Any]) -> dict[str, Any]:
+    """What the operator's watcher answers (it waits for what ``content`` asks)."""
+    timeout = float(content.get("timeout", WAIT))
+    answer = await request(
+        driver, "watcher@operator", content, ontology="watcher", timeout=timeout + 2
+    )
+    assert isinstance(answer, dict)
+    return answer
+
+
+@dataclass
+class Scene:
+    """UAV B (this process) and what the steps share."""
+
+    b: FederationPlatform
+    driver: Agent
+    events: Subscription[MembershipEvent]
+    procs: dict[str, BaseProcess]
+    ended: asyncio.Future[tuple[str, list[str]]]
+    deadline: float  # of the global request: the silent platform holds it this long
+    sources: dict[str, Source]  # B's own, by local label
+    timings: dict[str, float] = field(default_factory=dict)
+    imports: StreamSubscription | None = None  # B's subscription to A's car5 states
+
+    @property
+    def dk(self) -> DyKnowInstance:
+        return self.b.instance
+
+
+async def step_global_request(scene: Scene) -> None:
+    """(a) The latest heli-max-speed and heli-altitude of every member."""
+    b = scene.b
+    scene.sources["platform/limits/speed"].push(B_MAX_SPEED)
+    scene.sources["platform/nav/alt"].push(B_ALTITUDE)
+    result = await b.federation_agent.global_request(
+        {"action": "get-latest", "labels": ["heli-max-speed", "heli-altitude"]},
+        deadline=scene.deadline,
+        select="newest",
+        include_self=True,
+    )
+    assert sorted(result.asked) == sorted([*PLATFORMS, SILENT])
+    assert sorted(result.answers) == ["uav-a", "uav-b"]  # the UAVs
+    answers: Any = result.answers
+    for platform, values in (
+        ("uav-a", [A_MAX_SPEED, A_ALTITUDE]),
+        ("uav-b", [B_MAX_SPEED, B_ALTITUDE]),
+    ):
+        latest = [
+            answers[platform][s]["samples"][0][0] for s in ("heli-max-speed", "heli-altitude")
+        ]
+        assert latest == values, platform
+    assert list(result.refused) == ["operator"]  # it maps no heli-* label
+    assert "heli-max-speed" in result.refused["operator"]
+    assert "heli/" not in json.dumps(answers)  # local labels stay home
+    assert result.no_answer == [SILENT]
+    assert result.chosen == "uav-b"  # its values were pushed last: the newest
+    assert result.value == answers["uav-b"]
+
+
+async def step_trajectory(scene: Scene) -> None:
+    """(c) get-trajectory car5-state from -120: the last two minutes of A's samples."""
+    answer = await scene.b.federation_agent.request_from(
+        "uav-a",
+        {"action": "get-trajectory", "labels": ["car5-state"], "from": -120, "relative": True},
+        timeout=WAIT,
+    )
+    query_time = answer["car5-state"]["query_time"]
+    rows = answer["car5-state"]["samples"]
+    ks = [value["k"] for value, _, _ in rows]
+    assert ks == list(range(ks[0], ks[0] + len(ks))), "A's samples, none missing"
+    assert 0 < ks[0] < HISTORY < ks[-1]  # older history left out, the live ones in
+    first_tv, last_tv = rows[0][1], rows[-1][1]
+    assert query_time - 120 <= first_tv < query_time - 119  # the one before it: out
+    assert query_time - 1 < last_tv <= query_time
+    assert all(abs(tv - value["t"] / NS_PER_S) < 1e-6 for value, tv, _ in rows)
+    assert all(value["by"] == "uav-a" for value, _, _ in rows)
+
+
+async def step_stream_and_fusion(scene: Scene) -> None:
+    """(b) create-stream to B, (c) meanwhile, (d) fusion preferring B's own car5 states."""
+    b, dk = scene.b, scene.dk
+    t = time.monotonic()
+    export_id = await b.federation_agent.create_stream(
+        "uav-a", ["car5-state"], sample_period=PERIOD, to_units=["uav-b"], timeout=WAIT
+    )
+    assert export_id.startswith("x-")
+    label = b.import_label("uav-a", "car5-state")
+    assert label == "import/uav-a/car5-state"
+    assert await b.imported("uav-a", "car5-state", timeout=WAIT) == label
+    scene.timings["first-import"] = time.monotonic() - t
+    # Nothing suspends between these three lines: the fusion and the subscription see
+    # the same imported samples.
+    imports = dk.subscribe(label)
+    fusion = await b.fuse("car5-state", "uav-a", "fused/car5/state", window=WINDOW)
+    fused = dk.subscribe("fused/car5/state")
+
+    await step_trajectory(scene)
+
+    # A's samples come; then B's camera sees car5 for a while; then only A does again.
+    async with asyncio.timeout(WAIT):
+        got: list[Sample] = [await imports.get() for _ in range(2)]
+    camera = scene.sources["tracks/car5/state"]
+    local: list[Sample] = []
+    for i in range(B_SEEN):
+        tv = dk.clock.now()
+        camera.push(car_state(i, tv, "uav-b"), tv)
+        local.append(dk.latest("tracks/car5/state").samples[0])
+        await asyncio.sleep(0.1)  # the camera's rate: the scenario, not a wait for readiness
+    after = local[-1].valid_time + round((WINDOW + PERIOD) * NS_PER_S)
+    out: list[Sample] = []
+    async with asyncio.timeout(WAIT):
+        # until the fusion emitted one of A's samples well after B's last
+        while not out or out[-1].value["by"] != "uav-a" or out[-1].valid_time <= after:
+            out.append(await fused.get())
+        while got[-1].valid_time < out[-1].valid_time:
+            got.append(await imports.get())
+    scene.timings["stream-and-fusion"] = time.monotonic() - t
+
+    # (b) A's samples on the 0.5 s grid, with A's valid times, nothing lost
+    period = round(PERIOD * NS_PER_S)
+    assert all(s.valid_time % period == 0 for s in got), "on the grid"
+    # one per period (a period in which A's tracker published nothing would have none)
+    assert all(y.valid_time > x.valid_time for x, y in pairwise(got)), "one per period"
+    for s in got:
+        assert s.value["by"] == "uav-a"
+        assert s.valid_time - period < s.value["t"] <= s.valid_time  # A's sample of that period
+        assert s.available_time >= s.valid_time  # available here after the fact
+    rec = b.importer.get("uav-a", "car5-state")
+    assert rec is not None and rec.local_label == label and rec.lost == 0
+
+    # (d) B's samples where it has them, A's elsewhere
+    w = WINDOW * NS_PER_S
+    near = [s for s in got if any(abs(s.valid_time - x.valid_time) <= w for x in local)]
+    expected_a = [s.valid_time for s in got if s not in near]
+    fused_b = [s.valid_time for s in out if s.value["by"] == "uav-b"]
+    fused_a = sorted(s.valid_time for s in out if s.value["by"] == "uav-a")
+    assert fused_b == [x.valid_time for x in local]
+    assert fused_a == expected_a
+    assert near and fusion.suppressed == len(near), "B's own samples won where it had some"
+    assert expected_a[0] < local[0].valid_time and expected_a[-1] > local[-1].valid_time
+
+    scene.imports = imports
+
+
+async def step_kill_a(scene: Scene, gone_within: float) -> None:
+    """(e) A is SIGKILLed: B and the operator are told, B's imported stream ends."""
+    b, imports = scene.b, scene.imports
+    pid = scene.procs["uav-a"].pid
+    assert pid is not None and imports is not None
+    killed = time.monotonic()
+    os.kill(pid, signal.SIGKILL)
+    async with asyncio.timeout(gone_within):
+        await next_event(scene.events, MembershipEvent("gone", "uav-a"))
+        assert await scene.ended == ("uav-a", ["car5-state"])
+        async for _ in imports:  # the subscription to the import ends
+            pass
+    scene.timings["b-told"] = time.monotonic() - killed
+    rec = b.importer.get("uav-a", "car5-state")
+    assert rec is not None and rec.ended
+    report = await ask_watcher(scene.driver, {"gone": "uav-a"})
+    told = [at for k, p, at in report["events"] if (k, p) == ("gone", "uav-a")]
+    scene.timings["operator-told"] = told[0] - killed
+    assert 0 <= told[0] - killed < gone_within, scene.timings
+    assert "uav-a" not in report["members"] and "uav-a" not in b.members
+
+
+async def _scenario(
+    kind: str,
+    tmp_path: Path,
+    transports: dict[str, dict[str, Any]],
+    silent_transport: Transport,
+    gone_within: float,
+    deadline: float,
+) -> dict[str, float]:
+    """Run the scenario; how long its steps took (s)."""
+    federation = f"scn-{uuid.uuid4().hex[:8]}"
+    configs = write_federation(tmp_path, federation, transports)
+    ctx = multiprocessing.get_context("spawn")
+    procs: dict[str, BaseProcess] = {
+        role: ctx.Process(
+            target=child_main, args=(role, str(configs[role])), name=f"scenario-{kind}-{role}"
+        )
+        for role in ("uav-a", "operator")
+    }
+    ended: asyncio.Future[tuple[str, list[str]]] = asyncio.get_running_loop().create_future()
+
+    def import_ended(sender: str, labels: list[str]) -> None:
+        if not ended.done():
+            ended.set_result((sender, labels))
+
+    silent_channel = InterfaceAgent(
+        KeyPair.load(tmp_path / "keys" / f"{SILENT}.key"),
+        TrustStore.load(tmp_path / "trust.json"),
+        publish_audit=False,
+    )
+    try:
+        async with (
+            asyncio.timeout(TOTAL),
+            FederationPlatform.from_file(
+                configs["uav-b"], join=False, on_import_ended=import_ended
+            ) as b,
+            silent_transport,
+            AgentPlatform(
+                SILENT, silent_transport, federation=federation, channel=silent_channel
+            ) as silent,
+        ):
+            sources = {
+                local: b.instance.add_source(local)
+                for local in ("platform/limits/speed", "platform/nav/alt", "tracks/car5/state")
+            }
+            driver = await b.agents.add(Agent("driver"))
+            await b.join()
+            await silent.add(Silent())
+            async with b.membership() as events:
+                scene = Scene(b, driver, events, procs, ended, deadline, sources)
+                started = time.monotonic()
+                for proc in procs.values():
+                    proc.start()
+                with children_watched(procs) as died:
+                    await until_members(b, events, {*PLATFORMS, SILENT}, died)
+                    # The operator must see A itself: it is to be told when A goes.
+                    seen, provided = await asyncio.gather(
+                        ask_watcher(driver, {"members": PLATFORMS, "timeout": START}),
+                        b.federation_agent.request_from(
+                            "uav-a", {"action": "list-labels"}, timeout=WAIT
+                        ),
+                    )
+                    assert set(PLATFORMS) <= set(seen["members"])
+                    assert provided == {"labels": ["car5-state", "heli-altitude", "heli-max-speed"]}
+                    scene.timings["ready"] = time.monotonic() - started
+                t = time.monotonic()
+                await step_global_request(scene)
+                scene.timings["global-request"] = time.monotonic() - t
+                await step_stream_and_fusion(scene)
+                await step_kill_a(scene, gone_within)
+    finally:
+        for proc in procs.values():
+            if proc.pid is None:
+                continue  # never started
+            if proc.is_alive():
+                proc.kill()
+            proc.join(timeout=10)
+    print(f"{kind}: " + ", ".join(f"{k} {v:.2f} s" for k, v in scene.timings.items()))
+    return scene.timings
+
+
+async def test_scenario_over_zenoh(tmp_path: Path) -> None:
+    ports = {name: free_tcp_port() for name in [*PLATFORMS, SILENT]}
+    seed = f"tcp/127.0.0.1:{ports['uav-b']}"
+
+    def peer(name: str) -> dict[str, Any]:
+        connect = [] if name == "uav-b" else [seed]  # the others find each other by gossip
+        return {
+            "kind": "zenoh",
+            "mode": "peer",
+            "listen": [f"tcp/127.0.0.1:{ports[name]}"],
+            "connect": connect,
+        }
+
+    silent = ZenohTransport(ZenohConfig.loopback(ports[SILENT], connect=[ports["uav-b"]]))
+    await _scenario(
+        "zenoh", tmp_path, {n: peer(n) for n in PLATFORMS}, silent, gone_within=1.0, deadline=1.5
+    )
+
+
+async def test_scenario_over_mqtt(mosquitto: tuple[str, int], tmp_path: Path) -> None:
+    host, port = mosquitto
+    broker = {"kind": "mqtt", "host": host, "port": port, "keepalive": 2}
+    silent = MqttTransport(MqttConfig(host=host, port=port, keepalive=2))
+    # A killed client's connection closes at once; the keepalive (1.5 x 2 s) bounds the rest.
+    # A first contact over MQTT costs a whole key-exchange timeout (2 s: a query waits for
+    # every reply until its timeout): the global request's deadline must cover uav-c's.
+    await _scenario(
+        "mqtt", tmp_path, {n: broker for n in PLATFORMS}, silent, gone_within=4.0, deadline=3.5
+    )
+
+
+@pytest.fixture(autouse=True)
+def _no_leftover_children() -> Iterator[None]:
+    yield
+    for proc in multiprocessing.active_children():
+        proc.kill()
+        proc.join(timeout=5)
+
+
+# -- one process: the assembly itself --------------------------------------------------------------
+
+
+def _config(tmp_path: Path, name: str, federation: str = "demo", **more: Any) -> dict[str, Any]:
+    return {
+        "name": name,
+        "federation": federation,
+        "key": str(tmp_path / "keys" / f"{name}.key"),
+        "trust": str(tmp_path / "trust.json"),
+        "vocabulary": VOCABULARY,
+        "mapping": {"labels": MAPPINGS[name]},
+        **more,
+    }
+
+
+@pytest.fixture
+def demo_keys(tmp_path: Path) -> Path:
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in PLATFORMS]
+    trust_keys(tmp_path / "trust.json", pubs, federation="demo")
+    return tmp_path
+
+
+def test_config_errors_name_the_key(demo_keys: Path) -> None:
+    tmp_path = demo_keys
+    good = _config(tmp_path, "uav-a")
+    cases = {
+        "name": {**good, "name": "uav a"},
+        "transport.listen": {**good, "transport": {"listen": ["nowhere"]}},
+        "transport.kind": {**good, "transport": {"kind": "carrier-pigeon"}},
+        "transport.port": {**good, "transport": {"kind": "mqtt", "port": 0}},
+        "import_label": {**good, "import_label": "import/{semantic}"},
+        "export_limit": {**good, "export_limit": -1},
+        "colour": {**good, "colour": "blue"},
+    }
+    for key, data in cases.items():
+        with pytest.raises(PlatformConfigError) as info:
+            PlatformConfig.from_dict(data, source="uav-a.toml")
+        assert info.value.key == key, str(info.value)
+        assert str(info.value).startswith(f"uav-a.toml: {key}: ")
+    with pytest.raises(PlatformConfigError, match=r"^uav-a.toml: key: missing"):
+        PlatformConfig.from_dict({k: v for k, v in good.items() if k != "key"}, source="uav-a.toml")
+
+    # Files are read when the platform is built: the error names the key that is wrong.
+    wrong_key = PlatformConfig.from_dict({**good, "key": str(tmp_path / "keys" / "uav-b.key")})
+    with pytest.raises(PlatformConfigError, match=r"key: .* is the key of 'uav-b', not of 'uav-a'"):
+        FederationPlatform(wrong_key)
+    other_fed = PlatformConfig.from_dict({**good, "federation": "other"})
+    with pytest.raises(PlatformConfigError, match=r"trust: .* federation 'demo', not of 'other'"):
+        FederationPlatform(other_fed)
+    bad_mapping = PlatformConfig.from_dict({**good, "mapping": {"labels": {"weather": "w"}}})
+    with pytest.raises(PlatformConfigError, match=r"mapping: .*weather.*not in the vocabulary"):
+        FederationPlatform(bad_mapping)
+
+    # A TOML file: paths relative to it; errors name the file.
+    write_toml(tmp_path / "traffic.toml", VOCABULARY)
+    write_toml(tmp_path / "uav-a-labels.toml", {"labels": MAPPINGS["uav-a"]})
+    path = write_toml(
+        tmp_path / "uav-a.toml",
+        {**good, "key": "keys/uav-a.key", "trust": "trust.json", "vocabulary": "traffic.toml",
+         "mapping": "uav-a-labels.toml", "transport": {"kind": "mqtt", "port": 1884}},
+    )  # fmt: skip
+    config = PlatformConfig.load(path)
+    assert (
+        config.key == tmp_path / "keys" / "uav-a.key"
+        and config.mapping == tmp_path / "uav-a-labels.toml"
+    )
+    assert config.transport.kind == "mqtt" and config.import_label == "import/{sender}/{semantic}"
+    platform = FederationPlatform(config)
+    assert platform.labels.to_local("car5-state") == "cars/car5/state"
+    assert platform.import_label("uav-b", "car5-state") == "import/uav-b/car5-state"
+    with pytest.raises(UnknownSemanticLabel):
+        platform.import_label("uav-b", "weather")
+    (tmp_path / "broken.toml").write_text("name = \n")
+    with pytest.raises(PlatformConfigError, match=r"broken.toml: not valid TOML"):
+        PlatformConfig.load(tmp_path / "broken.toml")
+
+
+@contextlib.asynccontextmanager
+async def memory_federation(
+    tmp_path: Path, **options: Any
+) -> AsyncIterator[tuple[dict[str, FederationPlatform], contextlib.AsyncExitStack]]:
+    """The three platforms on one MemoryHub, members of each other; uav-b on its own stack."""
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack, contextlib.AsyncExitStack() as b_stack:
+        async with asyncio.timeout(WAIT):
+            platforms = {}
+            for name in PLATFORMS:
+                owner = b_stack if name == "uav-b" else stack
+                t = await owner.enter_async_context(hub.transport())
+                config = PlatformConfig.from_dict(_config(tmp_path, name, **options))
+                platforms[name] = await owner.enter_async_context(
+                    FederationPlatform(config, transport=t)
+                )
+            for p in platforms.values():
+                async with p.membership() as events:
+                    while sorted(p.members) != sorted(PLATFORMS):
+                        await events.get()
+            yield platforms, b_stack
+
+
+async def test_in_one_process_imports_and_exports_to_a_gone_platform_stop(demo_keys: Path) -> None:
+    async with memory_federation(demo_keys, import_label="from/{sender}/{semantic}") as (
+        ps,
+        b_stack,
+    ):
+        a, b = ps["uav-a"], ps["uav-b"]
+        car5 = a.instance.add_source("cars/car5/state")
+        export_id = await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        car5.push(car_state(0, 1, "uav-a"), 1)
+        label = await b.imported("uav-a", "car5-state", timeout=WAIT)
+        assert label == "from/uav-a/car5-state" == b.import_label("uav-a", "car5-state")
+        assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
+        assert b.instance.stream(label).location == "import/uav-a"
+        # what the vocabulary does not have is never injected
+        wind = a.instance.add_source("weather/wind")
+        stray = a.exporter.start_exporting("weather/wind", "wind", "uav-b")
+        wind.push(4.2)
+        async with asyncio.timeout(WAIT):
+            while not b.importer.stats()["totals"]["dropped_samples"].get("unagreed"):  # noqa: ASYNC110
+                await asyncio.sleep(0.005)  # the proxy's counters have no event to await
+        assert not b.instance.has_label("from/uav-a/wind")
+        await a.exporter.stop(stray)
+
+        # uav-b goes: A stops exporting to it, through the export proxy
+        assert [e.receiver for e in a.exporter.exports()] == ["uav-b"]
+        async with a.membership() as events:
+            await b_stack.aclose()
+            async with asyncio.timeout(WAIT):
+                await next_event(events, MembershipEvent("gone", "uav-b"))
+        assert a.exporter.exports() == [] and export_id not in a.federation_agent.exports
