@@ -38,6 +38,16 @@ from ._policy import (
     Policy,
 )
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
+from ._refinement import (
+    FocusOfAttention,
+    RateChange,
+    Refinement,
+    RefinementProcess,
+    add_refinement,
+    is_suspended,
+    resume_unit,
+    suspend_unit,
+)
 from ._sample import Answer, RawSample, Sample, as_sample
 from ._state import Missing, StatePolicy, StateProcess, StateStats, StateStrategy, add_state
 from ._stream import StreamGenerator, StreamMetrics, Subscription
@@ -66,6 +76,7 @@ __all__ = [
     "DyKnowInstance",
     "EventProcess",
     "FilterStats",
+    "FocusOfAttention",
     "Input",
     "LateAction",
     "Location",
@@ -82,8 +93,11 @@ __all__ = [
     "Process",
     "ProcessError",
     "ProcessFailure",
+    "RateChange",
     "RawSample",
     "RealClock",
+    "Refinement",
+    "RefinementProcess",
     "Sample",
     "SetSubscription",
     "Source",
@@ -97,8 +111,12 @@ __all__ = [
     "UnknownLabelError",
     "add_arrival_events",
     "add_change_events",
+    "add_refinement",
     "add_state",
     "as_sample",
+    "is_suspended",
     "ns_to_seconds",
+    "resume_unit",
     "seconds_to_ns",
+    "suspend_unit",
 ]

@@ -9,7 +9,7 @@ from collections import deque
 from collections.abc import AsyncIterable, Callable, Mapping, Sequence
 from typing import Any
 
-from . import _events, _state
+from . import _events, _refinement, _state
 from ._events import EventProcess
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
 from ._filter import Mapper
@@ -17,6 +17,7 @@ from ._location import Location
 from ._objects import ObjectManager
 from ._policy import Approximation, CacheSpec, Change, Policy
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
+from ._refinement import Refinement, RefinementProcess
 from ._sample import Answer
 from ._state import StatePolicy, StateProcess
 from ._stream import BatchCallback, StreamGenerator, Subscription
@@ -337,6 +338,20 @@ class DyKnowInstance:
         """Publish an event per sample of ``label`` (default ``events/arrived/<label>``)."""
         return _events.add_arrival_events(
             self, label, output, name, policy=policy, location=location, cache=cache
+        )
+
+    def add_refinement(
+        self,
+        refinement: Refinement | Mapping[str, Any],
+        *,
+        output: str | None = None,
+        name: str | None = None,
+        subscriptions: Mapping[Subscription, Policy | Mapping[str, Any]] | None = None,
+        cache: CacheSpec | None = None,
+    ) -> RefinementProcess:
+        """Degrade chosen subscriptions or suspend CUs while a delay or backlog is too high."""
+        return _refinement.add_refinement(
+            self, refinement, output=output, name=name, subscriptions=subscriptions, cache=cache
         )
 
     def remove_process(self, name: str) -> None:
