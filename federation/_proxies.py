@@ -294,7 +294,8 @@ class Export:
     Counters: ``sent`` samples in ``batches`` published; ``dropped`` by reason
     (``queue-full``: the receiver's queue overflowed, oldest first; ``no-session``: no
     session could be agreed; ``send-failed``: the transport refused; ``unencodable``:
-    a value msgpack cannot carry; ``too-large``: one sample over the batch size limit).
+    a value msgpack cannot carry; ``too-large``: one sample over the batch size limit;
+    ``lost-in-transit``: published, but reported missing by the receiver).
     """
 
     def __init__(
@@ -318,6 +319,7 @@ class Export:
         self.sent = 0
         self.batches = 0
         self.dropped: dict[str, int] = {}
+        self.lost_in_transit = 0  # the receiver's latest report of samples missing on the way
         self.last_error: str | None = None
         self.ended: str | None = None
         self.started = time.time()
@@ -529,6 +531,8 @@ class ExportProxy:
         self.agree_timeout = agree_timeout
         self.on_drop = on_drop
         self._exports: dict[tuple[str, str], Export] = {}
+        self._reports: asyncio.Task[None] | None = None
+        self.reports_refused = 0  # loss reports that did not open or parse
 
     async def __aenter__(self) -> Self:
         return self
@@ -564,7 +568,46 @@ class ExportProxy:
         )
         export.task = loop.create_task(export._run(), name=export.name)
         self._exports[(receiver, semantic_label)] = export
+        if self._reports is None:
+            self._reports = loop.create_task(
+                self._receive_reports(), name=f"export[{self.platform}].loss-reports"
+            )
         return export
+
+    async def _receive_reports(self) -> None:
+        """Count what receivers report lost on the way: zenoh drops where we cannot see.
+
+        Each report carries a receiver's running total of samples missing from its
+        numbering per stream; the increase is counted on the export as ``lost-in-transit``
+        (and ``on_drop`` is told), so the provider learns of losses only receivers see.
+        """
+        key = wire_key(self.federation, "stream-report", self.platform) + "/*"
+        sub = await self.transport.subscribe(key, buffer_size=1024)
+        try:
+            async for item in sub:
+                try:
+                    sender, body = self.sessions.open_bytes(item.payload)
+                    report = msgpack.unpackb(body, raw=False)
+                    lost = report["lost"]
+                    if (
+                        item.key.rpartition("/")[2] != sender
+                        or report.get("v") != BATCH_VERSION
+                        or type(lost) is not dict
+                    ):
+                        raise ValueError("not a loss report from its sender")
+                except Exception:
+                    self.reports_refused += 1
+                    continue
+                for label, total in lost.items():
+                    export = self._exports.get((sender, label))
+                    if export is None or type(total) is not int:
+                        continue
+                    delta = total - export.lost_in_transit
+                    if delta > 0:
+                        export.lost_in_transit = total
+                        export._drop("lost-in-transit", delta)
+        finally:
+            sub.close()
 
     async def stop(self, export: Export) -> None:
         """End ``export``: unsubscribe, drop what is queued, wait for its task to finish."""
@@ -595,8 +638,13 @@ class ExportProxy:
         return [e.stats() for e in self._exports.values()]
 
     async def aclose(self) -> None:
-        """Stop every export."""
+        """Stop every export and stop listening to loss reports."""
         await self.stop_all()
+        task, self._reports = self._reports, None
+        if task is not None:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
 
     def _forget(self, export: Export) -> None:
         key = (export.receiver, export.semantic_label)
@@ -700,8 +748,9 @@ class ImportProxy:
         on_sender_gone: OnSenderGone | None = None,
         cache: CacheSpec | None = None,
         keep_ended: bool = True,
-        buffer_size: int = 65536,
+        buffer_size: int = 1024,
         max_strays: int = 1024,
+        report_interval: float = 0.5,
     ) -> None:
         self.platform = check_name(platform_name)
         self.federation = check_name(federation, "federation")
@@ -712,8 +761,9 @@ class ImportProxy:
         self.on_sender_gone = on_sender_gone
         self.cache = cache
         self.keep_ended = keep_ended
-        self.buffer_size = buffer_size
+        self.buffer_size = buffer_size  # batches, not samples: ~256 k samples by default
         self.max_strays = max_strays
+        self.report_interval = report_interval
         self._prefix = wire_key(self.federation, "stream", self.platform) + "/"
         self._imports: dict[tuple[str, str], Import] = {}
         # counters of what matches no agreed import (unauthenticated claims included):
@@ -746,6 +796,7 @@ class ImportProxy:
         self._subs.append(streams)
         self._spawn(self._watch(presence), f"import[{self.platform}].presence")
         self._spawn(self._receive(streams), f"import[{self.platform}].receive")
+        self._spawn(self._report_losses(), f"import[{self.platform}].loss-reports")
 
     def _spawn(self, coro: Any, name: str) -> None:
         task = asyncio.get_running_loop().create_task(coro, name=name)
@@ -765,6 +816,24 @@ class ImportProxy:
         await asyncio.gather(*tasks, return_exceptions=True)
         for rec in self._imports.values():
             self._end(rec)
+
+    async def _report_losses(self) -> None:
+        """Tell each sender, now and then, how many of its samples never arrived here."""
+        reported: dict[tuple[str, str], int] = {}
+        while True:
+            await asyncio.sleep(self.report_interval)
+            by_sender: dict[str, dict[str, int]] = {}
+            for key, rec in self._imports.items():
+                if rec.lost and reported.get(key) != rec.lost and rec.sender not in self._gone:
+                    by_sender.setdefault(rec.sender, {})[rec.semantic_label] = rec.lost
+                    reported[key] = rec.lost
+            for sender, lost in by_sender.items():
+                body = msgpack.packb({"v": BATCH_VERSION, "lost": lost})
+                key = f"{wire_key(self.federation, 'stream-report', sender)}/{self.platform}"
+                try:
+                    await self.transport.publish(key, self.sessions.seal_bytes(sender, body))
+                except Exception as exc:  # the sender is going: its report can wait or go
+                    log.debug("import[%s]: loss report to %s: %s", self.platform, sender, exc)
 
     # -- agreements ---------------------------------------------------------------------
 

@@ -362,6 +362,11 @@ async def test_samples_lost_on_the_way_are_counted_by_the_receiver() -> None:
         src.push(1000, valid_time=1000)
         await until(lambda: rec.injected == 51, "one more")
         assert rec.lost == 50
+        # the receiver reports the gap back: the provider counts what it could not see
+        await until(
+            lambda: export.dropped.get("lost-in-transit") == 50, "the loss reported to uav-a"
+        )
+        assert export.lost_in_transit == 50
 
 
 # -- what is refused --------------------------------------------------------------------------
