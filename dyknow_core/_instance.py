@@ -9,11 +9,13 @@ from collections import deque
 from collections.abc import AsyncIterable, Callable, Mapping, Sequence
 from typing import Any
 
-from . import _events, _refinement, _state
+from . import _chronicles, _events, _mtl, _refinement, _state
+from ._chronicles import ChronicleProcess, ChronicleSpec, CompiledChronicle
 from ._events import EventProcess
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
 from ._filter import Mapper
 from ._location import Location
+from ._mtl import Formula, MonitorProcess
 from ._objects import ObjectManager
 from ._policy import Approximation, CacheSpec, Change, Policy
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
@@ -353,6 +355,40 @@ class DyKnowInstance:
         return _refinement.add_refinement(
             self, refinement, output=output, name=name, subscriptions=subscriptions, cache=cache
         )
+
+    def add_monitor(
+        self,
+        formula: Formula | str,
+        *,
+        label: str | None = None,
+        state_label: str | None = None,
+        components: Mapping[str, str] | None = None,
+        period: float = 1.0,
+        max_delay: float | None = None,
+        name: str | None = None,
+    ) -> MonitorProcess:
+        """Monitor a metric temporal logic formula by progression; verdicts as a stream."""
+        return _mtl.add_monitor(
+            self,
+            formula,
+            label=label,
+            state_label=state_label,
+            components=components,
+            period=period,
+            max_delay=max_delay,
+            name=name,
+        )
+
+    def add_chronicle(
+        self,
+        definition: ChronicleSpec | CompiledChronicle | Mapping[str, Any],
+        inputs: Mapping[str, str],
+        *,
+        output: str | None = None,
+        name: str | None = None,
+    ) -> ChronicleProcess:
+        """Recognize a chronicle online over event streams (event name -> label)."""
+        return _chronicles.add_chronicle(self, definition, inputs, output=output, name=name)
 
     def remove_process(self, name: str) -> None:
         """Stop a process and close the stream it published."""

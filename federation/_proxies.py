@@ -829,9 +829,9 @@ class ImportProxy:
                     reported[key] = rec.lost
             for sender, lost in by_sender.items():
                 body = msgpack.packb({"v": BATCH_VERSION, "lost": lost})
-                key = f"{wire_key(self.federation, 'stream-report', sender)}/{self.platform}"
+                topic = f"{wire_key(self.federation, 'stream-report', sender)}/{self.platform}"
                 try:
-                    await self.transport.publish(key, self.sessions.seal_bytes(sender, body))
+                    await self.transport.publish(topic, self.sessions.seal_bytes(sender, body))
                 except Exception as exc:  # the sender is going: its report can wait or go
                     log.debug("import[%s]: loss report to %s: %s", self.platform, sender, exc)
 

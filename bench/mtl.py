@@ -1,0 +1,226 @@
+"""MTL progression: ``always[0,10](speed < 30 -> eventually[0,5] on_road)`` over 100 k states.
+
+Same generated trace (non-uniform steps of 0.05-0.95 s, speed a random walk in [0, 40],
+on_road in bursts), same process, runs interleaved, best of ``REPEAT``:
+
+- ours: :class:`dyknow_core._mtl.Monitor` — progression, one verdict as soon as it is
+  certain, then a restart at the next state (the execution-monitoring mode);
+- mstlo-python (Rust core, ``EagerQualitative``): ``G[0, 10](speed < 30 -> F[0, 5](on_road >
+  0.5))`` fed with ``update_batch`` (prepared outside the timing), one verdict per
+  timestamp. Its signals are dense, piecewise constant, which for this formula (windows
+  starting at 0) gives the same value at each sample time as our pointwise semantics;
+- reelay (C++, dense timed monitor) on the hand-written past-time rewrite
+  ``historically[0:10]((once[5:5]{speed < 30}) -> (once[0:5]{on_road}))``: the verdict for
+  start t is its value at t + 15 (so never eager: 15 s late by construction).
+
+Each tool's verdicts are checked against the brute-force evaluator (:func:`evaluate` on
+the whole trace; a verdict the brute force leaves unknown counts as wrong): all of ours,
+a random sample of mstlo's verdicts at state times (its dense semantics also gives
+verdicts at times between states; they are counted, not checked) and of reelay's. The
+detail lines also give our every-step mode (:class:`StepMonitor`, a verdict per state
+like mstlo).
+"""
+
+from __future__ import annotations
+
+import bisect
+import gc
+import random
+import statistics
+from typing import Any
+
+from bench import fmt, progress, report, timed
+from dyknow_core._mtl import Monitor, StepMonitor, Verdict, evaluate, parse
+
+FORMULA = "always[0,10](speed < 30 -> eventually[0,5] on_road)"
+MSTLO_FORMULA = "G[0, 10](speed < 30 -> F[0, 5](on_road > 0.5))"
+# past time, read DELAY s later: at s + 5, speed as it was 5 s before and on_road within 5 s
+REELAY_FORMULA = "historically[0:10]((once[5:5]{speed < 30}) -> (once[0:5]{on_road}))"
+DELAY = 15.0
+N = 100_000
+REPEAT = 5
+CHECK = 2000  # mstlo verdicts checked against the brute force (it is O(window²) each)
+
+
+def make_trace(n: int = N, seed: int = 7) -> list[tuple[float, dict[str, Any]]]:
+    """States at non-uniform times: speed a bounded random walk, on_road in bursts."""
+    rnd = random.Random(seed)
+    t, speed, on_road = 0.0, 25.0, False
+    out: list[tuple[float, dict[str, Any]]] = []
+    for _ in range(n):
+        out.append((t, {"speed": speed, "on_road": on_road}))
+        t = round(t + rnd.uniform(0.05, 0.95), 6)
+        speed = min(40.0, max(0.0, speed + rnd.gauss(0, 3)))
+        if rnd.random() < 0.08:
+            on_road = not on_road
+    return out
+
+
+def run_ours(trace: list[tuple[float, dict[str, Any]]]) -> list[Verdict]:
+    """Our monitor over the whole trace: the certain verdicts, restarting after each."""
+    return Monitor(FORMULA).run(trace)
+
+
+def run_ours_every_step(trace: list[tuple[float, dict[str, Any]]]) -> list[Verdict]:
+    """One evaluation per state (what mstlo computes), each reported once certain."""
+    sm = StepMonitor(FORMULA)
+    out: list[Verdict] = []
+    step = sm.step
+    for t, s in trace:
+        out += step(t, s)
+    return out
+
+
+def mstlo_input(trace: list[tuple[float, dict[str, Any]]]) -> list[tuple[str, float, float]]:
+    """mstlo's flat batch: (signal, value, timestamp), booleans as 0/1."""
+    flat: list[tuple[str, float, float]] = []
+    for t, s in trace:
+        flat.append(("speed", float(s["speed"]), t))
+        flat.append(("on_road", 1.0 if s["on_road"] else 0.0, t))
+    return flat
+
+
+def run_mstlo(mstlo: Any, flat: list[tuple[str, float, float]]) -> list[tuple[float, bool]]:
+    """mstlo's eager monitor over the batch: (timestamp, verdict) pairs."""
+    mon = mstlo.Monitor(mstlo.parse_formula(MSTLO_FORMULA), semantics="EagerQualitative")
+    return list(mon.update_batch(flat).verdicts())
+
+
+def reelay_input(trace: list[tuple[float, dict[str, Any]]]) -> list[dict[str, Any]]:
+    """reelay's records: one dict per state with its time."""
+    return [{"time": t, "speed": s["speed"], "on_road": s["on_road"]} for t, s in trace]
+
+
+def run_reelay(reelay: Any, records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """reelay's dense monitor of the past-time rewrite: the change points of its value."""
+    m = reelay.dense_timed_monitor(pattern=REELAY_FORMULA)
+    out: list[dict[str, Any]] = []
+    update = m.update
+    for r in records:
+        out += update(r)
+    return out
+
+
+def wrong_reelay(
+    trace: list[tuple[float, dict[str, Any]]], changes: list[dict[str, Any]]
+) -> tuple[int, int]:
+    """Wrong verdicts in a random sample of starts t (read from the rewrite at t + 15)."""
+    f = parse(FORMULA)
+    cp_t = [c["time"] for c in changes]
+    last = trace[-1][0]
+    starts = [i for i, (t, _) in enumerate(trace) if t + DELAY <= last]
+    sample = random.Random(2).sample(starts, min(CHECK, len(starts)))
+    wrong = 0
+    for i in sample:
+        k = bisect.bisect_right(cp_t, trace[i][0] + DELAY) - 1
+        if k < 0 or evaluate(f, trace, i) is not bool(changes[k]["value"]):
+            wrong += 1
+    return wrong, len(sample)
+
+
+def wrong_ours(trace: list[tuple[float, dict[str, Any]]], verdicts: list[Verdict]) -> int:
+    """Our verdicts the brute force disagrees with (or leaves unknown)."""
+    f = parse(FORMULA)
+    index = {t: i for i, (t, _) in enumerate(trace)}
+    return sum(1 for v in verdicts if evaluate(f, trace, index[v.start]) is not v.verdict)
+
+
+def wrong_mstlo(
+    trace: list[tuple[float, dict[str, Any]]], verdicts: list[tuple[float, bool]]
+) -> tuple[int, int, int, int]:
+    """Wrong verdicts in a random sample of mstlo's at state times; sample size, off-state
+    verdicts (its dense semantics also decides times between states) and states without one.
+    """
+    f = parse(FORMULA)
+    times = [t for t, _ in trace]
+    at_state: dict[int, bool] = {}
+    off = 0
+    for ts, v in verdicts:
+        i = bisect.bisect_left(times, ts - 1e-6)
+        if i < len(times) and abs(times[i] - ts) <= 1e-6:
+            at_state.setdefault(i, bool(v))
+        else:
+            off += 1
+    items = sorted(at_state.items())
+    sample = random.Random(1).sample(items, min(CHECK, len(items)))
+    wrong = sum(1 for i, v in sample if evaluate(f, trace, i) is not v)
+    return wrong, len(sample), off, len(trace) - len(at_state)
+
+
+def run() -> None:
+    """Measure and print the detail and the BENCH line."""
+    trace = make_trace()
+    try:
+        import mstlo_python as mstlo
+    except ImportError as exc:  # pragma: no cover - a dev install has it
+        mstlo = None
+        print(f"mstlo-python: not available ({exc}); no comparison")
+    try:
+        import reelay
+    except ImportError as exc:  # pragma: no cover - a dev install has it
+        reelay = None
+        print(f"reelay: not available ({exc}); no comparison")
+    flat = mstlo_input(trace) if mstlo is not None else []
+    ours_t: list[float] = []
+    mstlo_t: list[float] = []
+    ours_v: list[Verdict] = []
+    mstlo_v: list[tuple[float, bool]] = []
+    records = reelay_input(trace) if reelay is not None else []
+    reelay_t: list[float] = []
+    reelay_v: list[dict[str, Any]] = []
+    for k in range(REPEAT):
+        progress(f"mtl run {k + 1}/{REPEAT}")
+        gc.collect()
+        d, ours_v = timed(lambda: run_ours(trace))
+        ours_t.append(d)
+        if mstlo is not None:
+            gc.collect()
+            d, mstlo_v = timed(lambda: run_mstlo(mstlo, flat))
+            mstlo_t.append(d)
+        if reelay is not None:
+            gc.collect()
+            d, reelay_v = timed(lambda: run_reelay(reelay, records))
+            reelay_t.append(d)
+    d_step, step_v = timed(lambda: run_ours_every_step(trace[: N // 5]))
+    progress("checking verdicts against brute force")
+    w_ours = wrong_ours(trace, ours_v)
+    w_step = wrong_ours(trace, step_v[:: max(1, len(step_v) // CHECK)])
+    ours_rate = N / min(ours_t)
+    print(
+        f"ours (monitor, restart after each verdict): {fmt(ours_rate)} states/s "
+        f"(median {fmt(N / statistics.median(ours_t))}), {len(ours_v)} verdicts, "
+        f"{w_ours} wrong vs brute force"
+    )
+    step_rate = N // 5 / d_step
+    print(
+        f"ours (every step, a verdict per state): {fmt(step_rate)} states/s over "
+        f"{N // 5} states, {len(step_v)} verdicts, {w_step} wrong in a sample"
+    )
+    if reelay is not None:
+        w_r, checked_r = wrong_reelay(trace, reelay_v)
+        reelay_rate = N / min(reelay_t)
+        print(
+            f"reelay (dense, past-time rewrite read {DELAY:g} s later): {fmt(reelay_rate)} "
+            f"states/s (median {fmt(N / statistics.median(reelay_t))}), {len(reelay_v)} "
+            f"change points, {w_r} wrong of {checked_r} starts checked vs brute force"
+        )
+    if mstlo is not None:
+        w_m, checked, off, undecided = wrong_mstlo(trace, mstlo_v)
+        mstlo_rate = N / min(mstlo_t)
+        print(
+            f"mstlo-python {mstlo.__version__} (EagerQualitative, batch): {fmt(mstlo_rate)} "
+            f"states/s (median {fmt(N / statistics.median(mstlo_t))}), {len(mstlo_v)} verdicts "
+            f"({off} at times between states, {undecided} states without one), "
+            f"{w_m} wrong of {checked} checked at state times vs brute force"
+        )
+        print(
+            f"the same work as mstlo (a verdict per state): ours every-step / mstlo = "
+            f"{step_rate / mstlo_rate:.2f}; the BENCH line is our monitor mode"
+        )
+        report("mtl-progression", ours_rate, "mstlo", mstlo_rate, "states/s", better="higher")
+    if reelay is not None:
+        report("mtl-progression", ours_rate, "reelay", reelay_rate, "states/s", better="higher")
+
+
+if __name__ == "__main__":
+    run()
