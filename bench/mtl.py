@@ -17,8 +17,9 @@ Each tool's verdicts are checked against the brute-force evaluator (:func:`evalu
 the whole trace; a verdict the brute force leaves unknown counts as wrong): all of ours,
 a random sample of mstlo's verdicts at state times (its dense semantics also gives
 verdicts at times between states; they are counted, not checked) and of reelay's. The
-detail lines also give our every-step mode (:class:`StepMonitor`, a verdict per state
-like mstlo).
+``BENCH mtl-progression`` compares the same work as mstlo: our every-step mode
+(:class:`StepMonitor`, a verdict per state); ``BENCH mtl-progression-monitor`` gives our
+execution-monitoring mode beside both peers.
 """
 
 from __future__ import annotations
@@ -213,13 +214,22 @@ def run() -> None:
             f"({off} at times between states, {undecided} states without one), "
             f"{w_m} wrong of {checked} checked at state times vs brute force"
         )
-        print(
-            f"the same work as mstlo (a verdict per state): ours every-step / mstlo = "
-            f"{step_rate / mstlo_rate:.2f}; the BENCH line is our monitor mode"
+        # The headline compares the same work: a verdict for every state, as mstlo gives.
+        # Our restart monitor (one verdict per evaluation) is reported apart, so a ratio
+        # between different jobs is never the one quoted.
+        report("mtl-progression", step_rate, "mstlo", mstlo_rate, "states/s", better="higher")
+        report(
+            "mtl-progression-monitor",
+            ours_rate,
+            "mstlo",
+            mstlo_rate,
+            "states/s",
+            better="higher",
         )
-        report("mtl-progression", ours_rate, "mstlo", mstlo_rate, "states/s", better="higher")
     if reelay is not None:
-        report("mtl-progression", ours_rate, "reelay", reelay_rate, "states/s", better="higher")
+        report(
+            "mtl-progression-monitor", ours_rate, "reelay", reelay_rate, "states/s", better="higher"
+        )
 
 
 if __name__ == "__main__":
