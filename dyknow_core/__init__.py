@@ -4,6 +4,7 @@ A local DyKnow instance. Everything public is re-exported here; the underscored 
 are the implementation.
 """
 
+from ._anchoring import Anchoring, Codesignation, LinkType, ObjectClass, add_anchoring
 from ._cache import Cache
 from ._chronicles import (
     ChronicleError,
@@ -88,6 +89,7 @@ __all__ = [
     "DEFAULT_LOCATION",
     "DOM",
     "NS_PER_S",
+    "Anchoring",
     "Answer",
     "Approximation",
     "Cache",
@@ -102,6 +104,7 @@ __all__ = [
     "ChronicleSpec",
     "Clock",
     "ClosedError",
+    "Codesignation",
     "CompiledChronicle",
     "ComputationalUnit",
     "ConstraintSpec",
@@ -118,6 +121,7 @@ __all__ = [
     "ForbiddenSpec",
     "Input",
     "LateAction",
+    "LinkType",
     "Location",
     "MTLSyntaxError",
     "ManualClock",
@@ -125,6 +129,7 @@ __all__ = [
     "Missing",
     "Monitor",
     "MonitorProcess",
+    "ObjectClass",
     "ObjectError",
     "ObjectManager",
     "Order",
@@ -156,6 +161,7 @@ __all__ = [
     "Subscription",
     "UnknownLabelError",
     "Verdict",
+    "add_anchoring",
     "add_arrival_events",
     "add_change_events",
     "add_chronicle",

@@ -9,7 +9,8 @@ from collections import deque
 from collections.abc import AsyncIterable, Callable, Mapping, Sequence
 from typing import Any
 
-from . import _chronicles, _events, _mtl, _refinement, _state
+from . import _anchoring, _chronicles, _events, _mtl, _refinement, _state
+from ._anchoring import Anchoring, LinkType, ObjectClass
 from ._chronicles import ChronicleProcess, ChronicleSpec, CompiledChronicle
 from ._events import EventProcess
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
@@ -389,6 +390,21 @@ class DyKnowInstance:
     ) -> ChronicleProcess:
         """Recognize a chronicle online over event streams (event name -> label)."""
         return _chronicles.add_chronicle(self, definition, inputs, output=output, name=name)
+
+    def add_anchoring(
+        self,
+        classes: Sequence[ObjectClass | Mapping[str, Any]],
+        links: Sequence[LinkType | Mapping[str, Any]] = (),
+        *,
+        period: float = 1.0,
+        output: str = "events/anchoring",
+        name: str = "anchoring",
+        cache: CacheSpec | None = None,
+    ) -> Anchoring:
+        """Keep object classes and links current as their constraints hold or break."""
+        return _anchoring.add_anchoring(
+            self, classes, links, period=period, output=output, name=name, cache=cache
+        )
 
     def remove_process(self, name: str) -> None:
         """Stop a process and close the stream it published."""
