@@ -33,6 +33,10 @@ from ._exceptions import (
 )
 from ._filter import FilterStats, PolicyFilter
 from ._instance import DEFAULT_LOCATION, DyKnowInstance
+from ._kpl import KPLApplication, KPLCheckError, KPLError, KPLSetupError
+from ._kpl import check as kpl_check
+from ._kpl import parse as kpl_parse
+from ._kpl import setup as kpl_setup
 from ._location import Capability, Location
 from ._mtl import (
     Monitor,
@@ -120,6 +124,10 @@ __all__ = [
     "FocusOfAttention",
     "ForbiddenSpec",
     "Input",
+    "KPLApplication",
+    "KPLCheckError",
+    "KPLError",
+    "KPLSetupError",
     "LateAction",
     "LinkType",
     "Location",
@@ -175,6 +183,9 @@ __all__ = [
     "evaluate",
     "features",
     "is_suspended",
+    "kpl_check",
+    "kpl_parse",
+    "kpl_setup",
     "ns_to_seconds",
     "parse_formula",
     "progress",

@@ -1,0 +1,344 @@
+"""KPL: parsing every construct, errors with line/column, setup on an instance, the CLI."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock
+from dyknow_core._kpl import (
+    ChangesDecl,
+    ChronicleDecl,
+    CUDecl,
+    KPLCheckError,
+    KPLSetupError,
+    MonitorDecl,
+    SourceDecl,
+    StateDecl,
+    StreamDecl,
+    UnsupportedDecl,
+    check,
+    parse,
+    setup,
+)
+from federation.cli import main as dyknow_main
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLE = ROOT / "examples" / "traffic.kpl"
+
+FULL = """\
+# every construct
+source car5/speed cache {max_samples: 100, max_age: 10}
+source car5/offset
+cu smoother = examples.kpl_functions:make_smoother(alpha=0.3)
+    inputs car5/speed with {lower: 0, upper: 250, max_delay: 0.3, change: absolute(0.5)},
+           car5/offset
+    output car5/speed_smooth
+cu road = examples.kpl_functions:on_road inputs car5/offset output car5/on_road
+stream car5/slow = car5/speed with {sample_period: 1, approximation: linear}
+state car5/state = {speed: car5/speed, on_road: car5/on_road}
+    every 0.5 latest max_delay 0.2 missing last
+changes car5/on_road
+changes car5/speed by absolute(5)
+monitor speeding = "always[0,10](speed < 30 -> eventually[0,5] on_road)" every 1
+    max_delay 0.5 with {speed: car5/speed, on_road: car5/on_road} output alerts/speeding
+chronicle left_road {
+    input on_road = events/changed/car5/on_road
+    event leave = on_road(car) from true to false
+    event back = on_road(car) from false to true
+    constraint leave -> back in [0, 30]
+    forbidden on_road(car) between leave and back
+    forbidden on_road after back in [0, 5]
+    output chronicles/left
+}
+class Car { features: [speed, on_road], create: "speed > 0" }
+link Follows
+"""
+
+
+def errors(text: str, known: tuple[str, ...] = ()) -> list[tuple[int, int, str]]:
+    return [(e.line, e.column, e.message) for e in check(text, known)]
+
+
+# -- parsing ----------------------------------------------------------------------------------
+
+
+def test_parse_every_construct() -> None:
+    prog = parse(FULL)
+    kinds = [type(d) for d in prog.decls]
+    assert kinds == [
+        SourceDecl, SourceDecl, CUDecl, CUDecl, StreamDecl, StateDecl, ChangesDecl,
+        ChangesDecl, MonitorDecl, ChronicleDecl, UnsupportedDecl, UnsupportedDecl,
+    ]  # fmt: skip
+    src = prog.decls[0]
+    assert isinstance(src, SourceDecl) and src.label == "car5/speed" and src.pos == (2, 1)
+    assert src.cache is not None and src.cache.as_dict() == {"max_samples": 100, "max_age": 10}
+    cu = prog.decls[2]
+    assert isinstance(cu, CUDecl)
+    assert (cu.name, cu.module, cu.attr) == ("smoother", "examples.kpl_functions", "make_smoother")
+    assert cu.args is not None and cu.args.as_dict() == {"alpha": 0.3}
+    assert [i.ref.label for i in cu.inputs] == ["car5/speed", "car5/offset"]
+    pol = cu.inputs[0].policy
+    assert pol is not None
+    assert pol.as_dict() == {"lower": 0, "upper": 250, "max_delay": 0.3, "change": "absolute(0.5)"}
+    assert cu.inputs[1].policy is None and cu.output.label == "car5/speed_smooth"
+    road = prog.decls[3]
+    assert isinstance(road, CUDecl) and road.args is None
+    st = prog.decls[4]
+    assert isinstance(st, StreamDecl) and st.source.label == "car5/speed"
+    assert st.policy is not None
+    assert st.policy.as_dict() == {"sample_period": 1, "approximation": "linear"}
+    state = prog.decls[5]
+    assert isinstance(state, StateDecl)
+    assert state.components.as_dict() == {"speed": "car5/speed", "on_road": "car5/on_road"}
+    assert state.policy.as_dict() == {
+        "period": 0.5, "strategy": "latest", "max_delay": 0.2, "missing": "last",
+    }  # fmt: skip
+    ch = prog.decls[7]
+    assert isinstance(ch, ChangesDecl) and ch.change == "absolute(5)"
+    assert ch.label == "events/changed/car5/speed"
+    mon = prog.decls[8]
+    assert isinstance(mon, MonitorDecl)
+    assert mon.formula == "always[0,10](speed < 30 -> eventually[0,5] on_road)"
+    assert (mon.period, mon.max_delay, mon.label) == (1, 0.5, "alerts/speeding")
+    chron = prog.decls[9]
+    assert isinstance(chron, ChronicleDecl) and chron.label == "chronicles/left"
+    assert chron.events[0] == {
+        "name": "leave", "event": "on_road", "args": ["car"], "from": True, "to": False,
+    }  # fmt: skip
+    assert chron.constraints == [{"start": "leave", "end": "back", "lo": 0, "hi": 30}]
+    assert chron.forbidden[0]["end"] == "back"
+    assert (chron.forbidden[1]["lo"], chron.forbidden[1]["hi"]) == (0, 5)
+    assert {k: r.label for k, r in chron.inputs.items()} == {
+        "on_road": "events/changed/car5/on_road"
+    }
+    assert [(d.kind, d.name) for d in prog.decls[10:] if isinstance(d, UnsupportedDecl)] == [
+        ("class", "Car"),
+        ("link", "Follows"),
+    ]
+    assert check(FULL) == []
+
+
+def test_quoted_labels_comments_and_unbounded_intervals() -> None:
+    text = 'source "odd label" # a comment\nstream x = "odd label"\n'
+    prog = parse(text)
+    assert isinstance(prog.decls[1], StreamDecl) and prog.decls[1].source.label == "odd label"
+    assert check(text) == []
+    chron = parse(
+        "chronicle c { event a = e\n event b = e\n constraint a -> b in [-inf, inf] }"
+    ).decls[0]
+    assert isinstance(chron, ChronicleDecl)
+    assert chron.constraints == [{"start": "a", "end": "b", "lo": None, "hi": None}]
+
+
+async def test_the_example_file_and_the_docs_example_check_and_set_up() -> None:
+    assert check(EXAMPLE.read_text()) == []
+    doc = (ROOT / "docs" / "kpl.md").read_text()
+    block = doc.split("```kpl\n", 1)[1].split("```", 1)[0]
+    assert check(block) == []
+    # opened: the state's max_delay needs the instance's task group for its timer
+    async with DyKnowInstance(clock=ManualClock()) as inst:
+        app = setup(inst, EXAMPLE.read_text())
+        assert len(app.processes) == 9 and inst.has_label("monitors/speeding")
+        app.remove()
+        assert inst.processes == {}
+
+
+# -- errors ------------------------------------------------------------------------------------
+
+
+def test_syntax_errors_have_line_and_column_and_recover() -> None:
+    text = "source a\ncu x = m:f inputs a outptu b\nsource\nstream c = a\nbogus 3\n"
+    got = errors(text)
+    assert got[0][:2] == (2, 21) and "expected ',' or 'output'" in got[0][2]
+    assert got[1][:2] == (4, 1) and "expected a label" in got[1][2]  # 'source' at end of line 3
+    assert got[2][:2] == (5, 1) and "expected a declaration" in got[2][2]
+    assert len(got) == 3  # parsing resumed at each declaration: 'stream c = a' is fine
+    err = check(text)[0]
+    assert err.excerpt.splitlines()[1].index("^") == 2 + 20
+    assert str(err).startswith("line 2, column 21: ")
+    assert err.format("f.kpl").startswith("f.kpl:2:21: ")
+
+
+def test_lexical_errors() -> None:
+    assert errors('source a\nsource "open\n') [0][:2] == (2, 8)  # fmt: skip
+    assert errors("source a\n  source @b\n")[0] == (2, 10, "unexpected character '@'")
+
+
+def test_unknown_policy_fields_and_impossible_policies() -> None:
+    text = (
+        "source a\n"
+        "stream b = a with {sample_perod: 1}\n"
+        "stream c = a with {lower: 5, upper: 1}\n"
+        "stream d = a with {approximation: linear}\n"
+        "stream e = a with {max_delay: -1}\n"
+        "source f cache {max_samples: 0}\n"
+        "state s = {x: a} every 0 missing maybe\n"
+        "stream g = a with {change: absolute(1), change: any_change}\n"
+        "changes a by relative\n"
+    )
+    got = errors(text)
+    assert got[0][:2] == (2, 20) and "unknown policy field 'sample_perod'" in got[0][2]
+    assert got[1][:2] == (3, 20) and "lower bound 5.0 is above upper 1.0" in got[1][2]
+    assert got[2][:2] == (4, 20) and "needs a sample_period" in got[2][2]
+    assert got[3][:2] == (5, 20) and "max_delay" in got[3][2]
+    assert got[4][:2] == (6, 17) and "max_samples" in got[4][2]
+    assert got[5][:2] == (7, 18) and "state policy field 'period'" in got[5][2]
+    assert got[6][:2] == (8, 41) and "duplicate key 'change'" in got[6][2]
+    assert got[7][:2] == (9, 14) and "needs a delta" in got[7][2]
+    assert len(got) == 8
+    assert errors("source a\nstate s = {x: a} every 1 missing maybe\n")[0][:2] == (2, 26)
+
+
+def test_unknown_labels_and_known_instance_labels() -> None:
+    text = "cu x = m:f inputs car/speed, car/pos output y\nstate s = {v: y, w: nope} every 1\n"
+    got = errors(text)
+    assert got == [
+        (1, 19, "unknown label 'car/speed': no declaration provides it"),
+        (1, 30, "unknown label 'car/pos': no declaration provides it"),
+        (2, 21, "unknown label 'nope': no declaration provides it"),
+    ]
+    assert errors(text, known=("car/speed", "car/pos", "nope")) == []
+    # a feature without a label in 'with' is read from the label of its own name
+    assert (
+        errors('monitor m = "always p" every 1')[0][2]
+        == "unknown label 'p': no declaration provides it"
+    )
+    assert errors('source a\nchronicle c { input e = "x/{id}/a"\n event a = e }')[0][2] == (
+        "no declared or existing label matches 'x/{id}/a'"
+    )
+    assert errors("source a", known=("a",)) == [(1, 1, "label 'a' exists already on the instance")]
+
+
+def test_bad_formulas_are_positioned_in_the_file() -> None:
+    text = 'source s\nmonitor m = "always[0,10] (s << 3)" every 1 with {s: s}\n'
+    got = errors(text)
+    # the quote is at column 13, the formula's second '<' is its column 18
+    assert got == [(2, 31, "formula: expected a constant, found '<'")]
+    assert errors('source s\nmonitor m = "s > 1" every 1 with {s: s, t: s}')[0] == (
+        2, 41, "formula reads no feature 't'",
+    )  # fmt: skip
+    assert "period" in errors('source s\nmonitor m = "s > 1" every 0 with {s: s}')[0][2]
+
+
+def test_duplicates_cycles_and_chronicle_errors() -> None:
+    text = (
+        "source a\n"
+        "source a\n"
+        "cu f = m:f inputs a output b\n"
+        "cu f = m:f inputs a output c\n"
+        "cu g = m:f inputs h output h\n"
+        "chronicle k { input e = a\n event x = e\n event y = e\n constraint x -> y in [5, 1] }\n"
+        "chronicle n { event x = e }\n"
+    )
+    got = errors(text)
+    assert (2, 1, "label 'a' is declared twice (first at line 1)") in got
+    assert (4, 1, "duplicate cu 'f' (first declared at line 3)") in got
+    assert (5, 1, "cu 'g' depends on itself") in got
+    assert any(e[:2] == (9, 13) and "lo 5.0 is greater than hi 1.0" in e[2] for e in got)
+    assert (10, 1, "chronicle 'n': no 'input e = LABEL' for event 'e'") in got
+
+
+# -- setup -------------------------------------------------------------------------------------
+
+APP = """\
+source car/speed
+source car/offset
+cu smooth = examples.kpl_functions:make_smoother(alpha=1.0)
+    inputs car/speed with {lower: 0} output car/smooth
+cu road = examples.kpl_functions:on_road inputs car/offset output car/on_road
+stream car/sampled = car/smooth with {sample_period: 1, approximation: most_recent}
+state car/state = {speed: car/smooth, on_road: car/on_road} every 1 latest
+monitor slow = "always[0,2] (speed < 30 -> on_road)" every 1
+    with {speed: car/smooth, on_road: car/on_road}
+changes car/on_road
+chronicle back_on_road {
+    input on_road = events/changed/car/on_road
+    event leave = on_road from true to false
+    event back = on_road from false to true
+    constraint leave -> back in [0, 5]
+}
+class Car { }
+"""
+
+
+def test_setup_flows_and_remove() -> None:
+    inst = DyKnowInstance(clock=ManualClock())
+    app = setup(inst, APP)
+    assert app.processes[:2] == ["source:car/speed", "source:car/offset"]
+    assert len(app.processes) == 9 and len(app.unsupported) == 1
+    assert "class 'Car' is not yet supported" in app.unsupported[0]
+    got: dict[str, list[Any]] = {}
+    for label in ("car/smooth", "car/sampled", "car/state", "monitors/slow"):
+        got[label] = []
+        inst.subscribe(label, callback=got[label].extend)
+    got["chronicles/back_on_road"] = []
+    inst.subscribe("chronicles/back_on_road", callback=got["chronicles/back_on_road"].extend)
+    speed = inst.processes["source:car/speed"]
+    offset = inst.processes["source:car/offset"]
+    for k, (v, off) in enumerate([(10, 0), (40, 10), (10, 0), (10, 10), (10, 0)]):
+        t = k * NS_PER_S
+        speed.push(v, valid_time=t, available_time=t)  # type: ignore[attr-defined]
+        offset.push(off, valid_time=t, available_time=t)  # type: ignore[attr-defined]
+    speed.push(-5, valid_time=5 * NS_PER_S, available_time=5 * NS_PER_S)  # type: ignore[attr-defined]
+    assert [v for v, _, _ in got["car/smooth"]] == [10, 40, 10, 10, 10]  # -5 is out of bounds
+    assert [(v, tv // NS_PER_S) for v, tv, _ in got["car/sampled"]][:3] == [
+        (10, 0), (40, 1), (10, 2),
+    ]  # fmt: skip
+    assert got["car/state"][0][0] == {"speed": 10, "on_road": True}
+    verdicts = [(v["verdict"], tv // NS_PER_S) for v, tv, _ in got["monitors/slow"]]
+    assert verdicts == [(True, 2), (False, 3)]
+    assert len(got["chronicles/back_on_road"]) >= 1
+    app.remove()
+    assert app.processes == [] and inst.processes == {}
+    assert not any(inst.has_label(x) for x in ("car/speed", "car/smooth", "monitors/slow"))
+
+
+def test_setup_refuses_what_does_not_check_and_rolls_back_failures() -> None:
+    inst = DyKnowInstance(clock=ManualClock())
+    inst.add_source("existing")
+    with pytest.raises(KPLCheckError) as info:
+        setup(inst, "stream a = existing with {upper: nan_value}\nstream b = nowhere")
+    assert [(e.line, e.column) for e in info.value.errors] == [(1, 27), (2, 12)]
+    assert set(inst.processes) == {"source:existing"}
+    bad = "stream a = existing\ncu f = examples.kpl_functions:no_such_fn inputs a output b\n"
+    with pytest.raises(KPLSetupError) as info2:
+        setup(inst, bad)
+    assert (info2.value.line, info2.value.column) == (2, 1)
+    assert "no_such_fn" in str(info2.value)
+    assert set(inst.processes) == {"source:existing"} and not inst.has_label("a")
+    app = setup(inst, parse("stream a = existing with {sample_period: 1}"))
+    assert app.processes == ["stream:a"]
+
+
+# -- the command --------------------------------------------------------------------------------
+
+
+def test_cli_check_in_process(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert dyknow_main(["kpl", "check", str(EXAMPLE)]) == 0
+    assert capsys.readouterr().out.startswith("ok: ")
+    bad = tmp_path / "bad.kpl"
+    bad.write_text("source a\nstream b = c\n")
+    assert dyknow_main(["kpl", "check", str(bad)]) == 2
+    assert capsys.readouterr().err == f"{bad}:2:12: unknown label 'c': no declaration provides it\n"
+    assert dyknow_main(["kpl", "check", str(tmp_path / "missing.kpl")]) == 2
+    assert "cannot read" in capsys.readouterr().err
+
+
+def test_cli_check_subprocess(tmp_path: Path) -> None:
+    exe = Path(sys.executable).parent / "dyknow"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "federation.cli"]
+    ok = subprocess.run([*cmd, "kpl", "check", str(EXAMPLE)], capture_output=True, text=True)
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stdout.strip() == f"ok: {len(parse(EXAMPLE.read_text()).decls)} declarations"
+    bad = tmp_path / "bad.kpl"
+    bad.write_text('source s\nmonitor m = "s <" every 1 with {s: s}\n')
+    res = subprocess.run([*cmd, "kpl", "check", str(bad)], capture_output=True, text=True)
+    assert res.returncode == 2
+    assert res.stderr.splitlines() == [
+        f"{bad}:2:17: formula: expected a constant, found end of formula"
+    ]
