@@ -32,6 +32,9 @@ ONTOLOGY = "dyknow"
 # Seconds at the edge, finite and bounded: seconds_to_ns(1e300) overflows (the bound is
 # ±31 700 years, far beyond any time line).
 Seconds = Annotated[float, Field(allow_inf_nan=False, ge=-1e12, le=1e12)]
+# Another platform may not ask for a grid finer than 1 ms: a gap in the data would make
+# each sample fill (up to a buffer of) grid points in the provider's publishing call.
+RemotePeriod = Annotated[float, Field(allow_inf_nan=False, ge=1e-3, le=1e9)]
 
 
 class GatewayRefusal(Exception):
@@ -59,7 +62,7 @@ class PolicySpec(_Content):
     start: Seconds | None = Field(default=None, alias="from")
     end: Seconds | None = Field(default=None, alias="to")
     relative: bool = False
-    sample_period: Seconds | None = None
+    sample_period: RemotePeriod | None = None
     approximation: str = "none"
     max_delay: Seconds | None = None
     late: str = "drop"

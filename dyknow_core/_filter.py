@@ -23,11 +23,23 @@ _NEG_INF = -(2**63)
 class FilterStats:
     """Counts of what a subscription's policy dropped, by reason, and what it emitted."""
 
-    __slots__ = ("approximated", "bounds", "change", "emitted", "late", "order", "type", "window")
+    __slots__ = (
+        "approximated",
+        "bounds",
+        "change",
+        "emitted",
+        "late",
+        "order",
+        "skipped",
+        "type",
+        "window",
+    )
 
     def __init__(self) -> None:
         self.window = self.late = self.order = self.bounds = 0
         self.change = self.type = self.approximated = self.emitted = 0
+        # grid points never produced: a gap longer than a buffer-full of periods
+        self.skipped = 0
 
     @property
     def dropped(self) -> int:
@@ -194,6 +206,7 @@ class _Sampler:
     __slots__ = (
         "approx",
         "before",
+        "cap",
         "end",
         "g",
         "late_approx",
@@ -209,6 +222,7 @@ class _Sampler:
         self.approx = policy.approximation
         self.maxd = None if policy.max_delay is None else seconds_to_ns(policy.max_delay)
         self.late_approx = policy.late is LateAction.APPROXIMATE
+        self.cap = policy.buffer_size
         self.end = policy.end
         self.start = policy.start
         self.g: int | None = None  # the next grid point not yet decided
@@ -249,12 +263,21 @@ class _Sampler:
 
     def deadline(self) -> int | None:
         """The time after which the next grid point is decided without waiting for data."""
-        if self.maxd is None or self.g is None:
+        if self.maxd is None or self.g is None or self._done(self.g):
             return None
         return self.g + self.maxd
 
     def _done(self, g: int) -> bool:
         return self.end is not None and g > self.end
+
+    def _skip(self, g: int, upto: int) -> int:
+        """Jump over grid points below ``upto`` beyond the last ``cap``: a gap must not
+        make one publish produce millions of samples (nobody could buffer them anyway)."""
+        count = -((g - upto) // self.period)  # grid points g, g+p, … below upto
+        if count > self.cap:
+            self.stats.skipped += count - self.cap
+            g += (count - self.cap) * self.period
+        return g
 
     def tick(self, now: int, out: list[RawSample]) -> None:
         """Decide every grid point whose max delay has passed by ``now``."""
@@ -263,6 +286,7 @@ class _Sampler:
         if maxd is None or g is None:
             return
         p = self.period
+        g = self._skip(g, now - maxd)
         while g + maxd < now and not self._done(g):
             if self.approx is Approximation.NONE and (
                 self.before is None or self.before[1] <= g - p
@@ -293,6 +317,7 @@ class _Sampler:
                 if b is None or tv > b[1] or (tv == b[1] and s[2] > b[2]):
                     self.before = s
                 continue
+            g = self._skip(g, tv)
             while g < tv and not self._done(g):
                 ok, v = self._value(g, s)
                 if ok:
@@ -355,12 +380,13 @@ class PolicyFilter:
                 if policy.start is not None:
                     first = max(first, policy.start)
                 self.sampler.g = self.sampler._first_grid(first)
-                if _within_bounds(policy, previous.last_value):
-                    self.sampler.before = (
-                        previous.last_value,
-                        previous.last_tv,
-                        previous.last_tv,
-                    )
+                before = (previous.last_value, previous.last_tv, previous.last_tv)
+                pending = previous.sampler.before if previous.sampler is not None else None
+                if pending is not None and pending[1] > previous.last_tv:
+                    # a newer sample was waiting for the next grid point: it still decides it
+                    before = pending
+                if _within_bounds(policy, before[0]):
+                    self.sampler.before = before
             # the window applies to grid times (in the sampler), not to the inputs: the
             # sample just before `start` or just after `end` decides the edge grid points
             self._pre = _compile(policy, stages=("late", "bounds"))
@@ -398,6 +424,9 @@ class PolicyFilter:
         if self.sampler is not None:
             grid: list[RawSample] = []
             self.sampler.tick(now, grid)
+            g = self.sampler.g
+            if g is not None and self.sampler._done(g):
+                self.ended = True  # time passed `end`: the subscription is over
             if grid:
                 self._post(self, grid, out)
             self.stats.emitted += len(out)

@@ -138,6 +138,7 @@ class DyKnowInstance:
         except KeyError:
             raise UnknownLabelError(location, list(self.locations)) from None
         gen = loc.add(label, cache=cache, value_type=value_type)
+        gen.on_subscriber_error = self._subscriber_failed
         self._labels[label] = loc
         self.objects.label_created(label)  # set subscriptions waiting for this member's stream
         return gen
@@ -422,6 +423,9 @@ class DyKnowInstance:
     # -- failures -------------------------------------------------------------------------
     def _report(self, proc: Process, error: str) -> None:
         self._record(ProcessFailure(proc.name, error, self.clock.now()))
+
+    def _subscriber_failed(self, label: str, exc: BaseException) -> None:
+        self._report_error(f"subscriber[{label}]", exc)
 
     def _report_error(self, where: str, exc: BaseException) -> None:
         self._record(ProcessFailure(where, f"{type(exc).__name__}: {exc}", self.clock.now()))

@@ -247,6 +247,8 @@ class StreamGenerator:
         # a CU's output): it is known now even if the clock has not reached it.
         self.made_ta = -(2**63)
         self._publishing = False
+        self.subscriber_errors = 0
+        self.on_subscriber_error: Callable[[str, BaseException], None] | None = None
         self._closed_delivered = 0  # what subscriptions that have ended got and lost
         self._closed_dropped = 0
         self.closed = False
@@ -295,7 +297,14 @@ class StreamGenerator:
         self._publishing = True
         try:
             for sub in self._subs:
-                sub._deliver(batch)
+                try:
+                    sub._deliver(batch)
+                except Exception as exc:
+                    # one failing subscriber (a CU's callback) must not starve the others
+                    # of a sample that is already accepted and cached
+                    self.subscriber_errors += 1
+                    if self.on_subscriber_error is not None:
+                        self.on_subscriber_error(self.label, exc)
         finally:
             self._publishing = False
 
@@ -329,7 +338,8 @@ class StreamGenerator:
             if d < 0:
                 m.negative_delays += weight
             else:
-                buckets[d.bit_length()] += weight
+                # a sentinel valid time (e.g. -2**63 from another language) must not crash
+                buckets[min(d.bit_length(), _DELAY_BUCKETS - 1)] += weight
 
     def publish(self, value: Any, valid_time: int, available_time: int) -> None:
         """Make one sample available (prefer ``publish_batch`` on hot paths)."""

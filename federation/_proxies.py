@@ -328,6 +328,9 @@ class Export:
         self._proxy = proxy
         self._cap = queue_size
         self._seq = 0
+        # samples numbered and then dropped here: the receiver sees them as a gap too, and
+        # they must not be counted again when it reports its losses
+        self._numbered_drops = 0
         self._waiter: asyncio.Future[None] | None = None
         self._backoff = 0.0
 
@@ -435,6 +438,7 @@ class Export:
                 raise
             except Exception as exc:  # no session: the receiver is gone, or refuses us
                 self._drop("no-session", count, f"{type(exc).__name__}: {exc}")
+                self._numbered_drops += count
                 self._backoff = min(max(2 * self._backoff, _BACKOFF_MIN), _BACKOFF_MAX)
                 # meanwhile the queue keeps the newest samples, the oldest are dropped
                 await asyncio.sleep(self._backoff)
@@ -445,6 +449,7 @@ class Export:
                 raise
             except Exception as exc:
                 self._drop("send-failed", count, f"{type(exc).__name__}: {exc}")
+                self._numbered_drops += count
                 continue
             self._backoff = 0.0
             self.sent += count
@@ -602,9 +607,10 @@ class ExportProxy:
                     export = self._exports.get((sender, label))
                     if export is None or type(total) is not int:
                         continue
-                    delta = total - export.lost_in_transit
+                    transit = total - export._numbered_drops
+                    delta = transit - export.lost_in_transit
                     if delta > 0:
-                        export.lost_in_transit = total
+                        export.lost_in_transit = transit
                         export._drop("lost-in-transit", delta)
         finally:
             sub.close()

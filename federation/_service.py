@@ -499,12 +499,24 @@ class FederationAgent(Agent):
     @property
     def exports(self) -> dict[str, StreamExport]:
         """The exports agreed and running, by id."""
+        self._prune_ended()
         return dict(self._exports)
 
     @property
     def export_count(self) -> int:
         """How many (label, receiver) exports run now."""
+        self._prune_ended()
         return sum(len(r.handles) for r in self._exports.values())
+
+    def _prune_ended(self) -> None:
+        """Forget exports that ended by themselves (their `to` passed, their stream ended,
+        the transport closed): they no longer hold a slot or block the same request."""
+        for export_id, record in list(self._exports.items()):
+            for key, handle in list(record.handles.items()):
+                if getattr(handle, "active", True) is False:
+                    del record.handles[key]
+            if not record.handles:
+                del self._exports[export_id]
 
     def _check_receivers(self, receivers: list[str], requester: str) -> None:
         gdf = self.platform.global_df
@@ -518,6 +530,7 @@ class FederationAgent(Agent):
     def _check_new(self, pairs: list[tuple[str, str]], receivers: list[str]) -> None:
         if self.platform.name in receivers:
             raise ContentError("a platform does not export to itself")
+        self._prune_ended()
         running = {key: r.id for r in self._exports.values() for key in r.handles}
         for semantic, _ in pairs:
             for receiver in receivers:

@@ -10,7 +10,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, JsonValue, ValidationError
 
-from agents._gateway_service import PolicySpec, Seconds
+from agents._gateway_service import PolicySpec, RemotePeriod, Seconds
 from dyknow_core import PolicyError
 
 ONTOLOGY = "dyknow-federation"
@@ -49,7 +49,7 @@ class CreateStream(_Content):
     start: Seconds | None = Field(default=None, alias="from")
     end: Seconds | None = Field(default=None, alias="to")
     relative: bool = False
-    sample_period: Seconds | None = Field(default=None, alias="sample-period")
+    sample_period: RemotePeriod | None = Field(default=None, alias="sample-period")
     max_delay: Seconds | None = Field(default=None, alias="max-delay")
     to_units: Units | None = Field(default=None, alias="to-units")
     policy: dict[str, JsonValue] = Field(default_factory=dict)

@@ -751,3 +751,70 @@ async def test_in_one_process_imports_and_exports_to_a_gone_platform_stop(demo_k
             async with asyncio.timeout(WAIT):
                 await next_event(events, MembershipEvent("gone", "uav-b"))
         assert a.exporter.exports() == [] and export_id not in a.federation_agent.exports
+
+
+async def test_an_export_that_ended_by_itself_frees_its_slot(demo_keys: Path) -> None:
+    # regression: the agent kept the record of an export whose `to` had passed, so the same
+    # request was refused for ever and the export limit filled up
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        car5 = a.instance.add_source("cars/car5/state")
+        await b.federation_agent.create_stream(
+            "uav-a", ["car5-state"], end=0.2, relative=True, timeout=WAIT
+        )
+        car5.push(car_state(0, 1, "uav-a"))
+        async with asyncio.timeout(WAIT):
+            while a.exporter.exports():
+                car5.push(car_state(0, 2, "uav-a"))  # a sample past `to` ends the export
+                await asyncio.sleep(0.05)
+        assert a.federation_agent.export_count == 0
+        await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+
+
+async def test_samples_dropped_before_sending_are_not_counted_again_as_lost_in_transit() -> None:
+    # regression: numbered, then dropped for want of a session, a batch showed up twice:
+    # as no-session at the provider and again when the receiver reported the gap
+    from agents._exceptions import UnknownSession
+    from federation._proxies import ExportProxy, ImportProxy, PlainSessions
+
+    class Flaky(PlainSessions):
+        fail = 0
+
+        def seal_bytes(self, peer: str, body: bytes) -> bytes:
+            if self.fail:
+                self.fail -= 1
+                raise UnknownSession("no session yet", peer)
+            return super().seal_bytes(peer, body)
+
+        async def ensure(self, peer: str) -> None:
+            raise UnknownSession("cannot agree now", peer)
+
+    hub = MemoryHub()
+    async with (
+        hub.transport() as ta,
+        hub.transport() as tb,
+        DyKnowInstance("a") as ia,
+        DyKnowInstance("b") as ib,
+    ):
+        src = ia.add_source("x")
+        sessions = Flaky("a")
+        exporter = ExportProxy("a", "demo", ta, ia, sessions, agree_timeout=0.1)
+        importer = ImportProxy(
+            "b", "demo", tb, ib, PlainSessions("b"), lambda s, lab: "in/x", report_interval=0.05
+        )
+        async with exporter, importer:
+            export = exporter.start_exporting("x", "x", "b")
+            async with asyncio.timeout(WAIT):
+                src.push(1.0)
+                while export.sent < 1:  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)
+                sessions.fail = 1
+                src.push(2.0)
+                while not export.dropped.get("no-session"):  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)
+                src.push(3.0)
+                while (rec := importer.get("a", "x")) is None or rec.injected < 2:  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)
+                assert rec.lost == 1  # the receiver sees the gap …
+                await asyncio.sleep(0.3)  # … and reports it (several report intervals)
+        assert export.dropped == {"no-session": 1}  # … but it is not counted twice

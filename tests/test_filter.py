@@ -228,6 +228,7 @@ def test_window_order_bounds_change_together() -> None:
         "change": 1,
         "type": 0,
         "approximated": 0,
+        "skipped": 0,
         "emitted": 0,
     }
     assert f.stats.emitted == 2

@@ -251,7 +251,7 @@ async def test_refusals_carry_the_reason() -> None:
             "policy": {"sample_period": -1},
         }
         reason = await refusal(w.ask(bad_policy))
-        assert reason.startswith("policy field 'sample_period'")
+        assert "sample_period" in reason and "0.001" in reason  # the edge's minimum
         assert not w.dk.has_label("x")
 
         reason = await refusal(w.ask({**bad_policy, "policy": {"sample_period": 1, "every": 2}}))
@@ -303,7 +303,7 @@ async def test_subscribe_refusals_carry_the_reason() -> None:
                 ontology="dyknow",
             )
         )
-        assert reason.startswith("policy field 'sample_period'")
+        assert "sample_period" in reason and "0.001" in reason  # the edge's minimum
 
         reason = await refusal(
             subscribe(
