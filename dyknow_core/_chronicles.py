@@ -173,15 +173,17 @@ class CompiledChronicle:
             self.kind_forbids.setdefault(f.kind, []).append(f)
         self.kinds = frozenset(self.kind_nodes) | frozenset(self.kind_forbids)
         self.full = (1 << len(nodes)) - 1
-        # what starting a partial instance at each event needs, computed once: its
-        # windows are t + row (upper) and t + negcol (lower); it is dead at birth when
-        # another event must come strictly before it
+        # what starting a partial instance at each event needs, computed once: relative to
+        # its time its windows are row (upper) and negcol (lower), lists every instance
+        # started there shares; it is dead at birth when another event must come first
         self.starts: list[tuple[bool, list[int], list[int], int]] = []
         for nd in nodes:
             i = nd.pos
             others = [dist[i][j] for j in range(len(nodes)) if j != i]
             mind = min(others) if others else _INF
-            self.starts.append((mind >= 0, dist[i], [-dist[j][i] for j in range(len(nodes))], mind))
+            self.starts.append(
+                (mind >= 0, dist[i][:], [-dist[j][i] for j in range(len(nodes))], mind)
+            )
 
     def window(self, a: str, b: str) -> tuple[float | None, float | None]:
         """The implied bounds (seconds) of ``t(b) - t(a)`` in the minimal network."""
@@ -365,12 +367,16 @@ class Recognition(NamedTuple):
 # A partial instance is a list, not an object: it is made and dropped once per matching
 # event, and list literals and indexing are the cheapest Python has. Its slots:
 # [seq, mask of assigned events, times, bindings, window lows, window highs, deadline,
-#  where it is indexed, alive]; ``times`` is the window-lows list itself (an assigned
-# event's window is its time), never copied separately.
+#  where it is indexed, alive, origin]; ``times`` is the window-lows list itself (an
+# assigned event's window is its time), never copied separately. Times and windows are
+# relative to ``origin`` (the first assigned event's time), so a new instance shares the
+# compiled start windows instead of building two lists per event: they are copied before
+# any change. The deadline is absolute (the expiry heap orders by it).
 _Partial = list
 
 
 _UNBOUND: Any = object()
+_new_tuple = tuple.__new__
 _NO_ARGS: Mapping[str, Any] = {}
 _NO_VALS: dict[int, Any] = {}  # never written: events without parameters share it
 
@@ -404,12 +410,15 @@ class ChronicleRecognizer:
         self._fidx: list[dict[Any, dict[int, _Partial]]] = [{} for _ in c.forbids]
         self._expiry: list[tuple[int, int, _Partial]] = []
         self._pending: list[tuple[int, int, _Partial]] = []
-        self._missing: dict[tuple[int, int], list[tuple[int, int]]] = {}
+        self._missing: dict[tuple[int, int], list[tuple[int, int, int]]] = {}
         self._nparams = len(c.params)
         self._cap = c.max_partial
         self._names = [nd.name for nd in c.nodes]
+        self._cname = c.name
+        self._pnames = c.params
         self._no_binds: list[Any] = [_UNBOUND] * len(c.params)
         self._after = any(f.end < 0 for f in c.forbids)
+        self._direct = -1 if self._after else c.full
         self._full = c.full
         # per input kind: its forbidden events, and per chronicle event what matching needs
         self._kinds: dict[str, tuple[list[_Forbid] | None, list[tuple[Any, ...]]]] = {}
@@ -481,6 +490,7 @@ class ChronicleRecognizer:
                 # event lets some deadline pass)
                 alive = self._alive
                 pop = heapq.heappop
+                gone = 0
                 while heap and heap[0][0] < time:
                     deadline, seq, inst = pop(heap)
                     if inst[8] and inst[6] == deadline:
@@ -489,10 +499,12 @@ class ChronicleRecognizer:
                         for parent, key in inst[7]:
                             bucket = parent[key]
                             del bucket[seq]
-                            if not bucket:
+                            # an unkeyed table has one bucket: kept, as it soon refills
+                            if not bucket and key:
                                 del parent[key]
                         inst[7] = None
-                        self.expired += 1
+                        gone += 1
+                self.expired += gone
             if self._pending:
                 self._release(time, out)
         plan = self._kinds.get(kind)
@@ -508,6 +520,8 @@ class ChronicleRecognizer:
         if forbids is not None:
             self._forbidden(forbids, time, args, old, new)
         created: list[_Partial] = []
+        # the full mask when a completion is reported at once, else no mask at all
+        direct = self._direct
         for (
             i,
             bit,
@@ -547,30 +561,60 @@ class ChronicleRecognizer:
                     continue
                 fresh = len(sig) != len(vals)
                 for inst in bucket.values():
+                    origin = inst[9]
+                    rt = time - origin
                     ilo = inst[4]
-                    if not (ilo[i] <= time <= inst[5][i]):
+                    if not (ilo[i] <= rt <= inst[5][i]):
                         continue
                     mask = inst[1] | bit
-                    # assigned events keep their windows: the minimal network implies them
-                    # (map over builtins: no comprehension frame on the hot path)
-                    hi = list(map(min, inst[5], map(time.__add__, di)))
+                    if mask == direct:
+                        # the last missing event, and no 'after' window to wait for: report
+                        # it now (as _recognition, inlined), without building an instance
+                        times = ilo[:]
+                        times[i] = rt
+                        binds = inst[3]
+                        if fresh:
+                            binds = binds[:]
+                            for p, v in vals.items():
+                                binds[p] = v
+                        self.recognized += 1
+                        out.append(
+                            _new_tuple(
+                                Recognition,
+                                (
+                                    self._cname,
+                                    dict(zip(self._pnames, binds, strict=True)),
+                                    dict(zip(self._names, map(origin.__add__, times), strict=True)),
+                                ),
+                            )
+                        )
+                        continue
+                    # assigned events keep their windows: ``time`` lies in this event's
+                    # window, so the minimal network already implies ``t_k <= time + di[k]``
+                    # for each of them; only the missing ones narrow
+                    hi = inst[5][:]
+                    hi[i] = rt
                     lo = ilo[:]
-                    lo[i] = time
+                    lo[i] = rt
                     deadline = _INF
                     todo = missing.get(mask)
                     if todo is None:
                         todo = self._unassigned(mask, i)
-                    for j, dji in todo:
-                        x = time - dji
+                    for j, dji, dij in todo:
+                        x = rt - dji
                         if x > lo[j]:
                             lo[j] = x
-                        h = hi[j]
+                        h = rt + dij
+                        if h < hi[j]:
+                            hi[j] = h
+                        else:
+                            h = hi[j]
                         if lo[j] > h:
                             deadline = _NEG_INF
                             break
                         if h < deadline:
                             deadline = h
-                    if deadline < time:
+                    if deadline < rt:
                         continue
                     binds = inst[3]
                     if fresh:
@@ -578,7 +622,9 @@ class ChronicleRecognizer:
                         for p, v in vals.items():
                             binds[p] = v
                     # an assigned event's window is its time: ``lo`` doubles as the times
-                    created.append([0, mask, lo, binds, lo, hi, deadline, [], True])
+                    created.append(
+                        [0, mask, lo, binds, lo, hi, origin + deadline, [], True, origin]
+                    )
             # and start a new one, unless another event must come strictly before this one
             if startable:
                 binds = self._no_binds
@@ -586,26 +632,15 @@ class ChronicleRecognizer:
                     binds = binds[:]
                     for p, v in vals.items():
                         binds[p] = v
-                lo = list(map(time.__add__, negcol))
-                created.append(
-                    [
-                        0,
-                        bit,
-                        lo,
-                        binds,
-                        lo,
-                        list(map(time.__add__, di)),
-                        time + mind,
-                        [],
-                        True,
-                    ]
-                )
+                created.append([0, bit, negcol, binds, negcol, di, time + mind, [], True, time])
         if not created:
             return out
         full = self._full
         alive = self._alive
         plans = self._plans
         expiry = self._expiry
+        fidx = self._fidx
+        cap = self._cap
         for inst in created:
             mask = inst[1]
             if mask == full:
@@ -630,12 +665,14 @@ class ChronicleRecognizer:
                     bucket = table[key] = {}
                 bucket[seq] = inst
                 regs.append((table, key))
-            if self._fidx:
+            if fidx:
                 self._register_forbidden(inst)
             if inst[6] < _INF:
                 heapq.heappush(expiry, (inst[6], seq, inst))
-            if len(alive) > self._cap:
+            if len(alive) > cap:
                 self._evict()
+                # eviction may rebuild the heap: later instances go to the new one
+                expiry = self._expiry
         return out
 
     def partial_instances(self) -> int:
@@ -643,13 +680,13 @@ class ChronicleRecognizer:
         return len(self._alive)
 
     # -- internals ---------------------------------------------------------------------
-    def _unassigned(self, mask: int, i: int = 0) -> list[tuple[int, int]]:
-        """The events ``mask`` leaves unassigned, each with ``dist[j][i]`` (cached per node)."""
+    def _unassigned(self, mask: int, i: int = 0) -> list[tuple[int, int, int]]:
+        """The events ``mask`` leaves unassigned, with ``dist[j][i]``, ``dist[i][j]`` (cached)."""
         got = self._missing.get((mask, i))
         if got is None:
             dist = self.chronicle.dist
             got = self._missing[(mask, i)] = [
-                (j, dist[j][i]) for j in range(len(dist)) if not mask >> j & 1
+                (j, dist[j][i], dist[i][j]) for j in range(len(dist)) if not mask >> j & 1
             ]
             for plan in self._kinds.values():
                 for node in plan[1]:
@@ -663,7 +700,7 @@ class ChronicleRecognizer:
         if got is None:
             got = []
             dist = self.chronicle.dist
-            todo = [i for i, _ in self._unassigned(mask)]
+            todo = [i for i, _, _ in self._unassigned(mask)]
             for i in todo:
                 if any(dist[i][k] < 0 for k in todo):
                     # another missing event must come strictly before this one, so it
@@ -724,7 +761,7 @@ class ChronicleRecognizer:
             if f.end >= 0:
                 if mask >> f.end & 1:
                     continue
-            elif inst[2][f.start] + f.hi <= self.clock:
+            elif inst[9] + inst[2][f.start] + f.hi <= self.clock:
                 continue
             parent = self._fidx[f.pos]
             key = tuple([inst[3][p] for _, p in f.params])
@@ -796,7 +833,8 @@ class ChronicleRecognizer:
             if not bucket:
                 continue
             for inst in list(bucket.values()):
-                ta = inst[2][f.start]
+                origin = inst[9]
+                ta = origin + inst[2][f.start]
                 if f.end < 0:
                     if ta + f.lo < time < ta + f.hi:
                         self._remove(inst)
@@ -807,20 +845,23 @@ class ChronicleRecognizer:
                 # the end event must now come no later than this one: bound it and
                 # narrow what depends on it
                 b = f.end
-                if time >= inst[5][b]:
+                rt = time - origin
+                if rt >= inst[5][b]:
                     continue
-                lo, hi = inst[4], inst[5]
+                lo = inst[4]
+                hi = inst[5] = inst[5][:]  # it may be the compiled start windows, shared
                 db = dist[b]
                 mask = inst[1]
                 deadline = _INF
                 dead = False
+                past = self.clock - origin
                 for j in range(len(hi)):
                     if mask >> j & 1:
                         continue
-                    h = time + db[j] if j != b else time
+                    h = rt + db[j] if j != b else rt
                     if h < hi[j]:
                         hi[j] = h
-                    if lo[j] > hi[j] or hi[j] < self.clock:
+                    if lo[j] > hi[j] or hi[j] < past:
                         dead = True
                         break
                     if hi[j] < deadline:
@@ -828,8 +869,8 @@ class ChronicleRecognizer:
                 if dead:
                     self._remove(inst)
                     self.killed += 1
-                elif deadline < inst[6]:
-                    inst[6] = deadline
+                elif origin + deadline < inst[6]:
+                    inst[6] = deadline = origin + deadline
                     heapq.heappush(self._expiry, (deadline, inst[0], inst))
         if len(self._expiry) > 2 * len(self._alive) + 64:
             self._compact()  # killed instances and moved deadlines leave stale entries
@@ -838,7 +879,7 @@ class ChronicleRecognizer:
         release = _NEG_INF
         for f in self.chronicle.forbids:
             if f.end < 0:
-                end = inst[2][f.start] + f.hi
+                end = inst[9] + inst[2][f.start] + f.hi
                 if end > release:
                     release = end
         if release > self.clock:
@@ -864,10 +905,14 @@ class ChronicleRecognizer:
     def _recognition(self, inst: _Partial) -> Recognition:
         self.recognized += 1
         c = self.chronicle
-        return Recognition(
-            c.name,
-            dict(zip(c.params, inst[3], strict=True)),
-            dict(zip(self._names, inst[2], strict=True)),
+        # tuple.__new__ builds the same NamedTuple without its generated __new__'s frame
+        return _new_tuple(
+            Recognition,
+            (
+                c.name,
+                dict(zip(c.params, inst[3], strict=True)),
+                dict(zip(self._names, map(inst[9].__add__, inst[2]), strict=True)),
+            ),
         )
 
 
