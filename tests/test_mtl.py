@@ -414,3 +414,48 @@ def test_dyknow_command(tmp_path: Path) -> None:
         env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])},
     )
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
+
+
+def _fast_formulas() -> st.SearchStrategy[str]:
+    bounds = st.tuples(st.sampled_from([0, 0.5, 1, 2]), st.sampled_from([0, 0.5, 1, 1.5, 2.5]))
+
+    def extend(children: st.SearchStrategy[str]) -> st.SearchStrategy[str]:
+        return st.one_of(
+            st.builds(lambda a: f"not ({a})", children),
+            st.builds(lambda a, b: f"({a}) and ({b})", children, children),
+            st.builds(lambda a, b: f"({a}) or ({b})", children, children),
+            st.builds(lambda a, b: f"({a}) -> ({b})", children, children),
+            st.builds(lambda i, a: f"always{_iv(i)} ({a})", bounds, children),
+            st.builds(lambda i, a: f"eventually{_iv(i)} ({a})", bounds, children),
+        )
+
+    base = st.one_of(_atoms, st.sampled_from(["true", "false"]))
+    return st.recursive(base, extend, max_leaves=7)
+
+
+_long_traces = st.lists(
+    st.tuples(st.sampled_from([0.25, 0.5, 0.75, 1.0, 1.5, 3.0]), _states), min_size=1, max_size=14
+).map(lambda steps: [(sum(d for d, _ in steps[: k + 1]), s) for k, (_, s) in enumerate(steps)])
+
+
+@settings(max_examples=800, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_fast_formulas(), _long_traces)
+def test_every_step_fast_path_matches_progression_exactly(text: str, trace: list[Any]) -> None:
+    f = parse(text)
+    fast = StepMonitor(f)
+    assert fast._fast is not None
+    slow = StepMonitor(f)
+    slow._fast = None  # the progression path, as for formulas outside the fragment
+    compacting = StepMonitor(f)  # forgets decided positions at every step
+    for k, (t, s) in enumerate(trace):
+        compacting._compact_at = 0
+        got, want = fast.step(t, s), slow.step(t, s)
+        assert got == want, (text, k)
+        assert compacting.step(t, s) == want, (text, k)
+        for v in got:
+            start = next(j for j, (tj, _) in enumerate(trace) if tj == v.start)
+            assert evaluate(f, trace[: k + 1], start) is v.verdict, (text, start, k)
+    assert fast.undecided() == slow.undecided() == compacting.undecided()
+    for start in fast.undecided():
+        i = next(j for j, (tj, _) in enumerate(trace) if tj == start)
+        assert evaluate(f, trace, i) is None
