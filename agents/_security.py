@@ -631,6 +631,16 @@ class Session:
             return True
         return self._retire_at is not None and now > self._retire_at
 
+    def _stamp(self, last: int) -> tuple[int, int]:
+        """The timestamp (ms) and next counter for an envelope; Expired when renewal is due."""
+        now = self._clock()
+        if now - self.established > self._lifetime:
+            raise Expired(f"session {self.sid} with {self.peer} is past its lifetime; renew")
+        n = last + 1
+        if n > _MAX_COUNTER:
+            raise Expired(f"session {self.sid} with {self.peer} used up its counters; renew")
+        return int(now * 1000), n
+
     def seal(self, body: bytes | str) -> bytes:
         """Seal one ACL message (JSON) into an envelope for the peer."""
         if isinstance(body, bytes):
@@ -641,14 +651,8 @@ class Session:
             raw = body.encode()
         if len(raw) > self._max_body:
             raise MessageError(f"message of {len(raw)} bytes exceeds the limit of {self._max_body}")
-        now = self._clock()
-        if now - self.established > self._lifetime:
-            raise Expired(f"session {self.sid} with {self.peer} is past its lifetime; renew")
-        n = self._n + 1
-        if n > _MAX_COUNTER:
-            raise Expired(f"session {self.sid} with {self.peer} used up its counters; renew")
+        ts, n = self._stamp(self._n)
         self._n = n
-        ts = int(now * 1000)
         if self._encrypt:
             box = _sodium.crypto_aead_chacha20poly1305_ietf_encrypt(
                 raw, self._box_ad_tx + _U64X2.pack(ts, n), _aead_nonce(n), self._box_tx
@@ -760,14 +764,8 @@ class Session:
             raise MessageError(
                 f"binary body of {len(body)} bytes exceeds the limit of {self._max_body}"
             )
-        now = self._clock()
-        if now - self.established > self._lifetime:
-            raise Expired(f"session {self.sid} with {self.peer} is past its lifetime; renew")
-        n = self._bn + 1
-        if n > _MAX_COUNTER:
-            raise Expired(f"session {self.sid} with {self.peer} used up its counters; renew")
+        ts, n = self._stamp(self._bn)
         self._bn = n
-        ts = int(now * 1000)
         if self._encrypt:
             box = _sodium.crypto_aead_chacha20poly1305_ietf_encrypt(
                 body, self._bin_ad_tx + _U64X2.pack(ts, n), _bin_nonce(n), self._box_tx
