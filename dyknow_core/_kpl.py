@@ -1,7 +1,7 @@
 """KPL: a small declarative language describing a DyKnow application, and its setup service.
 
 A KPL text declares sources, computational units, derived streams, states, monitors,
-chronicles (and, as placeholders, classes and links). ``parse`` gives a plain AST,
+chronicles, object classes and link types (anchoring). ``parse`` gives a plain AST,
 ``check`` every error with its line and column (policies validated by their pydantic
 models, labels resolved, formulas parsed, chronicles compiled), ``setup`` creates the
 declarations on an instance in dependency order and ``KPLApplication.remove`` undoes it.
@@ -18,11 +18,12 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
+from ._anchoring import LinkType, ObjectClass, add_anchoring
 from ._chronicles import ChronicleError, compile_chronicle
 from ._exceptions import DyKnowError, PolicyError
 from ._mtl import MTLSyntaxError, state_keys
 from ._mtl import parse as parse_formula
-from ._policy import CacheSpec, Change, Policy
+from ._policy import CacheSpec, Change, Policy, check_duration
 from ._process import Input
 from ._state import StatePolicy
 
@@ -299,11 +300,55 @@ class ChangesDecl:
 
 @dataclass
 class UnsupportedDecl:
-    """``class NAME {…}`` or ``link NAME {…}``: parsed, not yet set up."""
+    """A declaration parsed but not set up (kept for compatibility; none is produced now)."""
 
     kind: str
     name: str
     pos: Pos
+
+
+@dataclass
+class FuncRef:
+    """A ``module:callable`` reference, resolved at setup only."""
+
+    module: str
+    attr: str
+    pos: Pos
+
+
+@dataclass
+class ClassDecl:
+    """``class NAME { base B; prefix P; feature F = "PATTERN"; create/add/maintain … }``."""
+
+    name: str
+    fields: MappingNode  # ObjectClass fields written as clauses (key_pos: the clause keyword)
+    features: MappingNode  # feature -> label pattern with {id}
+    relations: dict[str, FuncRef]
+    pos: Pos
+    kind: str = "class"
+
+
+@dataclass
+class LinkDecl:
+    """``link NAME { from A to B; establish/reestablish/maintain "F"; compute M:C }``."""
+
+    name: str
+    fields: MappingNode  # LinkType fields written as clauses
+    compute: FuncRef | None
+    pos: Pos
+    kind: str = "link"
+
+
+@dataclass
+class AnchoringDecl:
+    """``anchoring every PERIOD [output LABEL]``: how the classes and links are run."""
+
+    period: float
+    period_pos: Pos
+    output: str
+    pos: Pos
+    kind: str = "anchoring"
+    name: str = "anchoring"
 
 
 Decl = (
@@ -314,8 +359,14 @@ Decl = (
     | ChangesDecl
     | MonitorDecl
     | ChronicleDecl
+    | ClassDecl
+    | LinkDecl
+    | AnchoringDecl
     | UnsupportedDecl
 )
+
+_CLASS_FORMULAS = ("create", "add", "maintain", "codesignate")
+_LINK_FORMULAS = ("establish", "reestablish", "maintain")
 
 
 @dataclass
@@ -336,6 +387,7 @@ _DECL_KEYWORDS = (
     "chronicle",
     "class",
     "link",
+    "anchoring",
 )
 _STATE_STRATEGIES = ("latest", "closest", "interpolate")
 
@@ -665,28 +717,109 @@ class _Parser:
         self.expect("]")
         return (None if lo == -math.inf else lo), (None if hi == math.inf else hi)
 
-    def _placeholder(self, kind: str) -> UnsupportedDecl:
+    def formula(self) -> tuple[str, Pos]:
+        f = self.tok
+        if f.kind != "str":
+            raise self.fail('expected the formula as a "quoted string"')
+        self.i += 1
+        return _unquote(f.text), f.pos
+
+    def funcref(self) -> FuncRef:
+        mod = self.name("a module (module:callable)")
+        self.expect(":", "':' between module and callable")
+        attr = self.name("a callable name")
+        return FuncRef(mod.text, attr.text, mod.pos)
+
+    def _body_entry(self, entries: list[Entry], key: str, value: Any, kpos: Pos, vpos: Pos) -> None:
+        if any(e.key == key for e in entries):
+            self.errors.append((kpos, f"duplicate clause {key!r}"))
+        entries.append(Entry(key, value, kpos, vpos))
+
+    def decl_class(self) -> ClassDecl:
         pos = self.take().pos
-        name = self.name(f"a {kind} name").text
-        if self.at("{"):
-            depth = 0
-            while self.tok.kind != "end":
-                t = self.take()
-                if t.kind == "op" and t.text == "{":
-                    depth += 1
-                elif t.kind == "op" and t.text == "}":
-                    depth -= 1
-                    if depth == 0:
-                        break
+        n = self.name("a class name")
+        fields: list[Entry] = []
+        feats: list[Entry] = []
+        rels: dict[str, FuncRef] = {}
+        self.expect("{")
+        while not self.accept("}"):
+            t = self.name(
+                "base, prefix, feature, create, add, maintain, codesignate, relation or '}'"
+            )
+            if t.text in ("base", "prefix"):
+                v = self.name(f"a name after {t.text!r}")
+                self._body_entry(fields, t.text, v.text, t.pos, v.pos)
+            elif t.text == "feature":
+                f = self.name("a feature name")
+                self.expect("=")
+                pat = self.label("a label pattern")
+                if any(e.key == f.text for e in feats):
+                    self.errors.append((f.pos, f"duplicate feature {f.text!r}"))
+                feats.append(Entry(f.text, pat.label, f.pos, pat.pos))
+            elif t.text in _CLASS_FORMULAS:
+                text, fpos = self.formula()
+                self._body_entry(fields, t.text, text, t.pos, fpos)
+                if t.text == "create" and self.at("from"):
+                    fr = self.take()
+                    src = self.label("the label percepts are read from")
+                    self._body_entry(fields, "create_from", src.label, fr.pos, src.pos)
+                if (
+                    t.text == "codesignate"
+                    and self.tok.kind == "name"
+                    and self.tok.text
+                    in (
+                        "once",
+                        "continuous",
+                    )
+                ):
+                    m = self.take()
+                    self._body_entry(fields, "codesignation", m.text, m.pos, m.pos)
+            elif t.text == "relation":
+                r = self.name("a relation name")
+                self.expect("=")
+                if r.text in rels:
+                    self.errors.append((r.pos, f"duplicate relation {r.text!r}"))
+                rels[r.text] = self.funcref()
             else:
-                raise self.fail("expected '}'")
-        return UnsupportedDecl(kind, name, pos)
+                raise _Fail(
+                    t.pos,
+                    f"unknown class clause {t.text!r} (expected base, prefix, feature, create, "
+                    "add, maintain, codesignate, relation)",
+                )
+        return ClassDecl(n.text, MappingNode(fields, pos), MappingNode(feats, pos), rels, pos)
 
-    def decl_class(self) -> UnsupportedDecl:
-        return self._placeholder("class")
+    def decl_link(self) -> LinkDecl:
+        pos = self.take().pos
+        n = self.name("a link name")
+        fields: list[Entry] = []
+        compute: FuncRef | None = None
+        self.expect("{")
+        while not self.accept("}"):
+            t = self.name("from, to, establish, reestablish, maintain, compute or '}'")
+            if t.text in ("from", "to"):
+                c = self.name(f"a class name after {t.text!r}")
+                self._body_entry(fields, f"{t.text}_class", c.text, t.pos, c.pos)
+            elif t.text in _LINK_FORMULAS:
+                text, fpos = self.formula()
+                self._body_entry(fields, t.text, text, t.pos, fpos)
+            elif t.text == "compute":
+                if compute is not None:
+                    self.errors.append((t.pos, "duplicate clause 'compute'"))
+                compute = self.funcref()
+            else:
+                raise _Fail(
+                    t.pos,
+                    f"unknown link clause {t.text!r} (expected from, to, establish, "
+                    "reestablish, maintain, compute)",
+                )
+        return LinkDecl(n.text, MappingNode(fields, pos), compute, pos)
 
-    def decl_link(self) -> UnsupportedDecl:
-        return self._placeholder("link")
+    def decl_anchoring(self) -> AnchoringDecl:
+        pos = self.take().pos
+        self.expect("every", "'every PERIOD'")
+        period, ppos = self.number("a period in seconds")
+        output = self.label().label if self.accept("output") else "events/anchoring"
+        return AnchoringDecl(period, ppos, output, pos)
 
 
 def _parse(text: str) -> tuple[Program, list[KPLError]]:
@@ -722,6 +855,8 @@ def _provides(d: Decl) -> list[str]:
         return [d.label, f"{d.label}/state"]
     if isinstance(d, ChronicleDecl):
         return [d.label]
+    if isinstance(d, AnchoringDecl):
+        return [d.output]
     return []
 
 
@@ -746,6 +881,8 @@ def _needs(d: Decl) -> list[Ref]:
         return _monitor_refs(d)
     if isinstance(d, ChronicleDecl):
         return list(d.inputs.values())
+    if isinstance(d, ClassDecl):
+        return [Ref(e.value, e.value_pos) for e in d.fields.entries if e.key == "create_from"]
     return []
 
 
@@ -760,7 +897,16 @@ def _pattern(label: str) -> re.Pattern[str] | None:
 def _decl_name(d: Decl) -> str:
     return (
         d.name
-        if isinstance(d, CUDecl | MonitorDecl | ChronicleDecl | UnsupportedDecl)
+        if isinstance(
+            d,
+            CUDecl
+            | MonitorDecl
+            | ChronicleDecl
+            | ClassDecl
+            | LinkDecl
+            | AnchoringDecl
+            | UnsupportedDecl,
+        )
         else (d.label)
     )
 
@@ -814,6 +960,7 @@ class _Checker:
                     self.err(d.pos, f"label {lab!r} exists already on the instance")
                 providers.setdefault(lab, d.pos)
             self.decl(d)
+        self.anchoring()
         if not self.resolve:
             return
         avail = set(providers) | self.known
@@ -850,15 +997,91 @@ class _Checker:
             self.monitor(d)
         elif isinstance(d, ChronicleDecl):
             self.chronicle(d)
+        elif isinstance(d, ClassDecl):
+            self.model(d, ObjectClass, _CLASS_FORMULAS)
+        elif isinstance(d, LinkDecl):
+            self.model(d, LinkType, _LINK_FORMULAS)
 
-    def monitor(self, d: MonitorDecl) -> None:
+    def formula(self, text: str, where: Pos, what: str = "formula") -> set[str] | None:
         try:
-            keys = state_keys(parse_formula(d.formula))
+            return set(state_keys(parse_formula(text)))
         except MTLSyntaxError as exc:
             # The formula sits in a one-line string: its column 1 is just after the quote.
-            line, col = d.formula_pos
+            line, col = where
             pos = (line, col + exc.column) if exc.line == 1 else (line + exc.line - 1, exc.column)
-            self.err(pos, f"formula: {exc.message}")
+            self.err(pos, f"{what}: {exc.message}")
+            return None
+
+    def model(self, d: ClassDecl | LinkDecl, model: type[Any], formulas: tuple[str, ...]) -> None:
+        ok = True
+        for e in d.fields.entries:
+            if e.key in formulas and self.formula(e.value, e.value_pos, e.key) is None:
+                ok = False
+        if not ok:
+            return
+        data: dict[str, Any] = {"name": d.name, **d.fields.as_dict()}
+        if isinstance(d, ClassDecl):
+            data["features"] = d.features.as_dict()
+            data["relations"] = {k: _identity for k in d.relations}
+        elif d.compute is not None:
+            data["compute"] = _identity
+        try:
+            model(**data)
+        except PolicyError as exc:
+            top, _, rest = exc.field.partition(".")
+            if top == "features" and rest and isinstance(d, ClassDecl):
+                pos = d.features.where(rest)
+            elif top in ("relations", "compute"):
+                ref = d.relations.get(rest) if isinstance(d, ClassDecl) else d.compute
+                pos = ref.pos if ref is not None else d.pos
+            else:
+                # create_from is written in the create clause; a missing one points there too
+                written = {e.key for e in d.fields.entries}
+                pos = d.fields.where(
+                    top if top in written else {"create_from": "create"}.get(top, top)
+                )
+            self.err(pos, f"{d.kind} {d.name!r}: {exc.field}: {exc.reason}")
+
+    def anchoring(self) -> None:
+        classes: dict[str, ClassDecl] = {}
+        for d in self.prog.decls:
+            if isinstance(d, ClassDecl):
+                base = next((e for e in d.fields.entries if e.key == "base"), None)
+                if base is not None and base.value != d.name and base.value not in classes:
+                    later = any(
+                        isinstance(o, ClassDecl) and o.name == base.value for o in self.prog.decls
+                    )
+                    why = "must be declared before it" if later else "is not declared"
+                    self.err(base.value_pos, f"base class {base.value!r} {why}")
+                classes.setdefault(d.name, d)
+            elif isinstance(d, LinkDecl):
+                for e in d.fields.entries:
+                    if e.key in ("from_class", "to_class") and not any(
+                        isinstance(o, ClassDecl) and o.name == e.value for o in self.prog.decls
+                    ):
+                        self.err(e.value_pos, f"unknown class {e.value!r}")
+            elif isinstance(d, AnchoringDecl):
+                try:
+                    check_duration("period", d.period, minimum=1e-6)
+                except ValueError as exc:
+                    self.err(d.period_pos, f"anchoring period: {exc}")
+        if not classes:
+            for d in self.prog.decls:
+                if isinstance(d, LinkDecl | AnchoringDecl):
+                    what = "anchoring" if isinstance(d, AnchoringDecl) else f"link {d.name!r}"
+                    self.err(d.pos, f"{what} needs at least one class declaration")
+        elif "events/anchoring" in self.known and not any(
+            isinstance(d, AnchoringDecl) for d in self.prog.decls
+        ):
+            self.err(
+                next(iter(classes.values())).pos,
+                "label 'events/anchoring' exists already on the instance "
+                "(give another with 'anchoring every P output LABEL')",
+            )
+
+    def monitor(self, d: MonitorDecl) -> None:
+        keys = self.formula(d.formula, d.formula_pos)
+        if keys is None:
             return
         if not keys:
             self.err(d.formula_pos, "formula reads no feature")
@@ -995,15 +1218,60 @@ def setup(instance: DyKnowInstance, source: str | Program) -> KPLApplication:
     if errors:
         raise KPLCheckError(_sorted(errors))
     app = KPLApplication(instance, prog)
+    anchoring = [d for d in prog.decls if isinstance(d, ClassDecl | LinkDecl | AnchoringDecl)]
+    d: Decl | None = None
     try:
         for d in _order(prog.decls, set(instance.labels())):
-            _create(app, d)
+            if not isinstance(d, ClassDecl | LinkDecl | AnchoringDecl):
+                _create(app, d)
+        if anchoring:
+            d = anchoring[0]
+            _create_anchoring(app, anchoring)
     except Exception as exc:
         app.remove()
         if isinstance(exc, KPLSetupError):
             raise
-        raise KPLSetupError(d.pos, f"{d.kind} {_decl_name(d)!r}: {exc}") from exc
+        pos = d.pos if d is not None else (1, 1)
+        what = f"{d.kind} {_decl_name(d)!r}" if d is not None else "setup"
+        raise KPLSetupError(pos, f"{what}: {exc}") from exc
     return app
+
+
+def _resolve(ref: FuncRef, what: str) -> Callable[..., Any]:
+    try:
+        return resolve_callable(ref.module, ref.attr)
+    except Exception as exc:
+        raise KPLSetupError(
+            ref.pos, f"{what}: {ref.module}:{ref.attr}: {type(exc).__name__}: {exc}"
+        ) from exc
+
+
+def _create_anchoring(
+    app: KPLApplication, decls: list[ClassDecl | LinkDecl | AnchoringDecl]
+) -> None:
+    classes: list[ObjectClass] = []
+    links: list[LinkType] = []
+    period, output = 1.0, "events/anchoring"
+    for d in decls:
+        if isinstance(d, ClassDecl):
+            rels = {
+                k: _resolve(r, f"class {d.name!r} relation {k!r}") for k, r in d.relations.items()
+            }
+            classes.append(
+                ObjectClass(
+                    name=d.name,
+                    features=d.features.as_dict(),
+                    relations=rels,
+                    **d.fields.as_dict(),
+                )
+            )
+        elif isinstance(d, LinkDecl):
+            compute = _resolve(d.compute, f"link {d.name!r} compute") if d.compute else None
+            links.append(LinkType(name=d.name, compute=compute, **d.fields.as_dict()))
+        else:
+            period, output = d.period, d.output
+    proc = add_anchoring(app.instance, classes, links, period=period, output=output)
+    app.processes.append(proc.name)
 
 
 def _create(app: KPLApplication, d: Decl) -> None:
@@ -1062,13 +1330,17 @@ def _create(app: KPLApplication, d: Decl) -> None:
 
 
 __all__ = [
+    "AnchoringDecl",
     "CUDecl",
     "ChangesDecl",
     "ChronicleDecl",
+    "ClassDecl",
+    "FuncRef",
     "KPLApplication",
     "KPLCheckError",
     "KPLError",
     "KPLSetupError",
+    "LinkDecl",
     "MonitorDecl",
     "Program",
     "SourceDecl",

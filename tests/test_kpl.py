@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import subprocess
 import sys
 from pathlib import Path
@@ -10,17 +11,20 @@ from typing import Any
 import pytest
 
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock
+from dyknow_core._anchoring import Anchoring
 from dyknow_core._kpl import (
+    AnchoringDecl,
     ChangesDecl,
     ChronicleDecl,
+    ClassDecl,
     CUDecl,
     KPLCheckError,
     KPLSetupError,
+    LinkDecl,
     MonitorDecl,
     SourceDecl,
     StateDecl,
     StreamDecl,
-    UnsupportedDecl,
     check,
     parse,
     setup,
@@ -55,8 +59,23 @@ chronicle left_road {
     forbidden on_road after back in [0, 5]
     output chronicles/left
 }
-class Car { features: [speed, on_road], create: "speed > 0" }
-link Follows
+class Car {
+    feature speed = "car/{id}/speed"
+    prefix car
+    create "speed > 0" from car5/speed
+    maintain "eventually[0,5] speed > 0"
+    codesignate "a_speed == b_speed" continuous
+    relation near = examples.kpl_functions:on_road
+}
+class FastCar { base Car  add "always[0,3] speed > 30" }
+link Follows {
+    from Car to FastCar
+    establish "speed > 50"
+    reestablish "a_speed < b_speed"
+    maintain "eventually[0,10] a_speed < b_speed"
+    compute examples.kpl_functions:on_road
+}
+anchoring every 0.5 output events/cars
 """
 
 
@@ -72,7 +91,7 @@ def test_parse_every_construct() -> None:
     kinds = [type(d) for d in prog.decls]
     assert kinds == [
         SourceDecl, SourceDecl, CUDecl, CUDecl, StreamDecl, StateDecl, ChangesDecl,
-        ChangesDecl, MonitorDecl, ChronicleDecl, UnsupportedDecl, UnsupportedDecl,
+        ChangesDecl, MonitorDecl, ChronicleDecl, ClassDecl, ClassDecl, LinkDecl, AnchoringDecl,
     ]  # fmt: skip
     src = prog.decls[0]
     assert isinstance(src, SourceDecl) and src.label == "car5/speed" and src.pos == (2, 1)
@@ -116,10 +135,26 @@ def test_parse_every_construct() -> None:
     assert {k: r.label for k, r in chron.inputs.items()} == {
         "on_road": "events/changed/car5/on_road"
     }
-    assert [(d.kind, d.name) for d in prog.decls[10:] if isinstance(d, UnsupportedDecl)] == [
-        ("class", "Car"),
-        ("link", "Follows"),
-    ]
+    car, fast, follows, anch = prog.decls[10:]
+    assert isinstance(car, ClassDecl) and car.name == "Car" and car.pos == (25, 1)
+    assert car.features.as_dict() == {"speed": "car/{id}/speed"}
+    assert car.fields.as_dict() == {
+        "prefix": "car", "create": "speed > 0", "create_from": "car5/speed",
+        "maintain": "eventually[0,5] speed > 0", "codesignate": "a_speed == b_speed",
+        "codesignation": "continuous",
+    }  # fmt: skip
+    near = car.relations["near"]
+    assert (near.module, near.attr, near.pos) == ("examples.kpl_functions", "on_road", (31, 21))
+    assert isinstance(fast, ClassDecl)
+    assert fast.fields.as_dict() == {"base": "Car", "add": "always[0,3] speed > 30"}
+    assert isinstance(follows, LinkDecl) and follows.compute is not None
+    assert follows.fields.as_dict() == {
+        "from_class": "Car", "to_class": "FastCar", "establish": "speed > 50",
+        "reestablish": "a_speed < b_speed", "maintain": "eventually[0,10] a_speed < b_speed",
+    }  # fmt: skip
+    assert follows.fields.where("establish") == (36, 5)
+    assert isinstance(anch, AnchoringDecl)
+    assert (anch.period, anch.output) == (0.5, "events/cars")
     assert check(FULL) == []
 
 
@@ -143,9 +178,11 @@ async def test_the_example_file_and_the_docs_example_check_and_set_up() -> None:
     # opened: the state's max_delay needs the instance's task group for its timer
     async with DyKnowInstance(clock=ManualClock()) as inst:
         app = setup(inst, EXAMPLE.read_text())
-        assert len(app.processes) == 9 and inst.has_label("monitors/speeding")
+        assert len(app.processes) == 10 and inst.has_label("monitors/speeding")
+        assert app.processes[-1] == "anchoring" and app.unsupported == []
+        assert inst.has_label("events/anchoring")
         app.remove()
-        assert inst.processes == {}
+        assert inst.processes == {} and not inst.has_label("events/anchoring")
 
 
 # -- errors ------------------------------------------------------------------------------------
@@ -262,7 +299,6 @@ chronicle back_on_road {
     event back = on_road from false to true
     constraint leave -> back in [0, 5]
 }
-class Car { }
 """
 
 
@@ -270,8 +306,7 @@ def test_setup_flows_and_remove() -> None:
     inst = DyKnowInstance(clock=ManualClock())
     app = setup(inst, APP)
     assert app.processes[:2] == ["source:car/speed", "source:car/offset"]
-    assert len(app.processes) == 9 and len(app.unsupported) == 1
-    assert "class 'Car' is not yet supported" in app.unsupported[0]
+    assert len(app.processes) == 9 and app.unsupported == []
     got: dict[str, list[Any]] = {}
     for label in ("car/smooth", "car/sampled", "car/state", "monitors/slow"):
         got[label] = []
@@ -342,3 +377,134 @@ def test_cli_check_subprocess(tmp_path: Path) -> None:
     assert res.stderr.splitlines() == [
         f"{bad}:2:17: formula: expected a constant, found end of formula"
     ]
+
+
+# -- classes and links ---------------------------------------------------------------------------
+
+
+def test_class_and_link_errors_have_positions() -> None:
+    assert errors("class A { base B }") == [(1, 16, "base class 'B' is not declared")]
+    assert errors("class B { base A }\nclass A { }") == [
+        (1, 16, "base class 'A' must be declared before it")
+    ]
+    assert errors('class A {\n  feature x = "a/x"\n}') == [
+        (2, 11, "class 'A': features.x: label pattern 'a/x' has no {id}")
+    ]
+    # the formula's error position, mapped into the file (column 1 just after the quote)
+    assert errors('class A { base B\n  add "on_road &&" }') == [
+        (1, 16, "base class 'B' is not declared"),
+        (2, 16, "add: unexpected character '&'"),
+    ]
+    assert errors('class A { add "x" }') == [
+        (1, 11, "class 'A': add: an add constraint needs a base class to draw candidates from")
+    ]
+    assert errors('class A { create "x" }') == [
+        (1, 11, "class 'A': create_from: give both create and create_from, or neither")
+    ]
+    assert errors('class A { create "x" from nowhere }') == [
+        (1, 27, "unknown label 'nowhere': no declaration provides it")
+    ]
+    assert errors("class A { base A }") == [
+        (1, 11, "class 'A': base: a class cannot be its own base")
+    ]
+    assert errors("class A { prefix p prefix q }") == [(1, 20, "duplicate clause 'prefix'")]
+    assert errors("class A { }\nclass A { }") == [
+        (2, 1, "duplicate class 'A' (first declared at line 1)")
+    ]
+    got = errors("class A { frob x }")
+    assert got[0][:2] == (1, 11) and "unknown class clause 'frob'" in got[0][2]
+    assert errors("class A { }\nlink L { from A to A }") == [
+        (2, 17, "link 'L': to_class: a link joins two different classes")
+    ]
+    assert errors("class A { }\nlink L { from A }") == [
+        (2, 1, "link 'L': to_class: Field required")
+    ]
+    assert errors('class A { }\nlink L { from A to B\n establish "x <" }') == [
+        (2, 20, "unknown class 'B'"),
+        (3, 16, "establish: expected a constant, found end of formula"),
+    ]
+    assert errors("class A { }\nclass B { }\nlink L { from A to B }\nlink L { from B to A }") == [
+        (4, 1, "duplicate link 'L' (first declared at line 3)")
+    ]
+    got = errors("class A { }\nlink L { via A }")
+    assert got[0][:2] == (2, 10) and "unknown link clause 'via'" in got[0][2]
+    assert errors("link L { from A to B }")[0] == (
+        1, 1, "link 'L' needs at least one class declaration",
+    )  # fmt: skip
+    assert errors("class A { }\nanchoring every 0") == [
+        (2, 17, "anchoring period: period must be between 1e-06 and 1e+09 s, got 0")
+    ]
+    assert errors("class A { }\nanchoring every 1\nanchoring every 2") == [
+        (3, 1, "duplicate anchoring 'anchoring' (first declared at line 2)")
+    ]
+    assert errors("anchoring every 1") == [(1, 1, "anchoring needs at least one class declaration")]
+    assert errors("class A { }", ("events/anchoring",))[0][:2] == (1, 1)
+    assert errors("class A { }\nanchoring every 1 output x", ("x",)) == [
+        (2, 1, "label 'x' exists already on the instance")
+    ]
+
+
+def test_class_functions_resolve_at_setup_only() -> None:
+    text = "class A { relation r = examples.kpl_functions:no_such_fn }"
+    assert check(text) == []  # not imported at check time
+    inst = DyKnowInstance(clock=ManualClock())
+    inst.add_source("existing")
+    with pytest.raises(KPLSetupError) as info:
+        setup(inst, "stream s = existing\n" + text)
+    assert (info.value.line, info.value.column) == (2, 24) and "no_such_fn" in str(info.value)
+    assert set(inst.processes) == {"source:existing"} and not inst.has_label("s")
+
+
+ON_ROAD_APP = """\
+source wo/wo1/on_road
+class WorldObject {
+    feature on_road = "wo/{id}/on_road"
+}
+class OnRoadObject {
+    base WorldObject
+    add "always[0,3] on_road"
+    maintain "eventually[0,2] on_road"
+}
+anchoring every 1 output events/kpl_anchoring
+"""
+
+
+async def test_setup_anchoring_membership_follows_the_clock() -> None:
+    clock = ManualClock()
+    async with DyKnowInstance(clock=clock) as inst:
+        app = setup(inst, ON_ROAD_APP)
+        assert app.processes == ["source:wo/wo1/on_road", "anchoring"] and app.unsupported == []
+        anch = inst.processes["anchoring"]
+        assert isinstance(anch, Anchoring)
+        road = inst.processes["source:wo/wo1/on_road"]
+        inst.objects.reserve("wo1")
+        inst.objects.domain("WorldObject").add("wo1")
+
+        async def settle(t: int) -> None:
+            for _ in range(200):
+                if anch.last_step is not None and anch.last_step >= t:
+                    return
+                await asyncio.sleep(0)
+            raise AssertionError(f"anchoring did not step at {t}")
+
+        async def step(on: bool) -> None:
+            t = clock.now() + NS_PER_S
+            road.push(on, valid_time=t)  # type: ignore[attr-defined]
+            clock.set(t)
+            await settle(t)
+
+        road.push(True, valid_time=0)  # type: ignore[attr-defined]
+        await settle(0)
+        for _ in range(2):
+            await step(True)
+        assert "wo1" not in anch.members("OnRoadObject")  # on the road for 2 s only
+        await step(True)
+        assert "wo1" in anch.members("OnRoadObject")  # t = 3: on the road over [0, 3]
+        for _ in range(3):
+            await step(False)
+        assert "wo1" not in anch.members("OnRoadObject")  # off over a whole 2 s window
+        assert "wo1" in anch.members("WorldObject")
+        kinds = [s.value["event"] for s in inst.between("events/kpl_anchoring", 0, 10**15).samples]
+        assert kinds.count("joined") >= 1 and "left" in kinds
+        app.remove()
+        assert set(inst.processes) == set() and not inst.has_label("events/kpl_anchoring")
