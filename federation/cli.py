@@ -1,16 +1,74 @@
-"""The ``dyknow`` command: a dispatcher over subcommands (``monitor``, ``kpl``)."""
+"""The ``dyknow`` command (typer + rich).
+
+``monitor`` and ``kpl`` are the argparse commands of ``dyknow_core`` (unchanged); ``keys``,
+``node``, ``router``, ``platforms``, ``labels`` and ``ask`` are typer commands.
+"""
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Annotated, Any
 
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from agents import TransportError
 from dyknow_core import _kpl_cli, _monitor_cli
 
+from ._platform import PlatformConfig, PlatformConfigError
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Parse the command line and run the chosen subcommand; the exit code."""
+_LEGACY = {"monitor", "kpl"}
+
+app = typer.Typer(
+    name="dyknow",
+    help="DyKnow Federation tools.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+keys_app = typer.Typer(help="A platform's key pair and the federation's trust file.")
+app.add_typer(keys_app, name="keys")
+
+_out = Console(highlight=False, soft_wrap=True)
+_err = Console(stderr=True, highlight=False, soft_wrap=True)
+
+ConfigOpt = Annotated[Path, typer.Option("--config", "-c", help="the platform's TOML config")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="print JSON instead of a table")]
+WaitOpt = Annotated[
+    float, typer.Option("--wait", help="seconds to wait for the federation to be seen")
+]
+
+
+def _say(text: str) -> None:
+    """Print one line to stdout, flushed (a supervisor may be reading)."""
+    print(text, flush=True)
+
+
+def _fail(message: str, code: int = 2) -> typer.Exit:
+    """Print ``message`` on stderr; the Exit to raise."""
+    print(message, file=sys.stderr, flush=True)
+    return typer.Exit(code)
+
+
+def _load(config: Path) -> PlatformConfig:
+    """Load a config or exit 2 naming the file and the key."""
+    try:
+        return PlatformConfig.load(config)
+    except PlatformConfigError as exc:
+        raise _fail(str(exc)) from None
+
+
+# -- the argparse commands, unchanged -----------------------------------------------------------
+
+
+def _legacy(argv: Sequence[str]) -> int:
+    """``dyknow monitor …`` / ``dyknow kpl …`` exactly as before (argparse)."""
     parser = argparse.ArgumentParser(prog="dyknow", description="DyKnow Federation tools")
     sub = parser.add_subparsers(dest="command", required=True)
     mon = sub.add_parser("monitor", help="run an MTL formula over a recorded JSON-lines trace")
@@ -20,10 +78,305 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.command == "monitor":
         return _monitor_cli.run(args)
-    if args.command == "kpl":
-        return _kpl_cli.run(args)
-    parser.error(f"unknown command {args.command!r}")  # pragma: no cover - argparse refuses
-    return 2  # pragma: no cover
+    return _kpl_cli.run(args)
+
+
+@app.command(
+    "monitor",
+    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+    add_help_option=False,
+)
+def monitor(ctx: typer.Context) -> None:
+    """Run an MTL formula over a recorded JSON-lines trace (see dyknow monitor --help)."""
+    raise typer.Exit(_legacy(["monitor", *ctx.args]))
+
+
+@app.command(
+    "kpl",
+    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
+    add_help_option=False,
+)
+def kpl(ctx: typer.Context) -> None:
+    """KPL files: 'dyknow kpl check FILE'."""
+    raise typer.Exit(_legacy(["kpl", *ctx.args]))
+
+
+# -- keys ---------------------------------------------------------------------------------------
+
+
+@keys_app.command("gen")
+def keys_gen(
+    platform: Annotated[str, typer.Option("--platform", "-p", help="the platform's name")],
+    directory: Annotated[Path, typer.Option("--dir", "-d", help="where the key files go")],
+    trust_file: Annotated[
+        Path | None, typer.Option("--trust-file", help="also trust the new public key here")
+    ] = None,
+    federation: Annotated[
+        str | None, typer.Option("--federation", help="the federation of a new trust file")
+    ] = None,
+    force: Annotated[bool, typer.Option("--force", help="overwrite existing key files")] = False,
+) -> None:
+    """Generate a platform's key pair (private key 0600), optionally trusting it."""
+    from agents.keys import KeysError, gen_keys, trust_keys
+
+    try:
+        _, key_path, pub_path = gen_keys(platform, directory, force=force)
+        _say(f"{key_path}: private key of {platform!r} (keep it secret)")
+        _say(f"{pub_path}: public key of {platform!r}")
+        if trust_file is not None:
+            for line in trust_keys(trust_file, [pub_path], federation=federation):
+                _say(line)
+    except KeysError as exc:
+        raise _fail(f"dyknow keys gen: {exc}", 1) from None
+
+
+@keys_app.command("trust")
+def keys_trust(
+    trust_file: Annotated[Path, typer.Option("--trust-file", help="the federation's trust file")],
+    pubs: Annotated[list[Path], typer.Argument(help="public key files (.pub)")],
+    federation: Annotated[
+        str | None, typer.Option("--federation", help="the federation of a new trust file")
+    ] = None,
+    replace: Annotated[bool, typer.Option("--replace", help="rotate a trusted key")] = False,
+) -> None:
+    """Add public key files to the federation's trust file."""
+    from agents.keys import KeysError, trust_keys
+
+    try:
+        for line in trust_keys(trust_file, pubs, federation=federation, replace=replace):
+            _say(line)
+    except KeysError as exc:
+        raise _fail(f"dyknow keys trust: {exc}", 1) from None
+
+
+# -- node, router -------------------------------------------------------------------------------
+
+
+@app.command("node")
+def node(config: ConfigOpt) -> None:
+    """Run one platform from its TOML config until SIGINT/SIGTERM."""
+    from ._cli_net import run_node
+
+    cfg = _load(config)
+    try:
+        asyncio.run(run_node(cfg, str(config), _say))
+    except PlatformConfigError as exc:
+        raise _fail(str(exc)) from None
+    except TransportError as exc:
+        raise _fail(f"dyknow node: {config}: {exc}", 1) from None
+
+
+@app.command("router")
+def router(
+    config: Annotated[
+        Path | None,
+        typer.Option("--config", "-c", help="a zenoh JSON5 config (TLS, access control, …)"),
+    ] = None,
+    listen: Annotated[
+        list[str] | None, typer.Option("--listen", help="endpoint, e.g. tcp/0.0.0.0:7447")
+    ] = None,
+) -> None:
+    """A zenoh router (zenoh's router mode) until SIGINT/SIGTERM."""
+    from pydantic import ValidationError
+
+    from ._cli_net import read_json5, run_router
+
+    if config is None and not listen:
+        listen = ["tcp/0.0.0.0:7447"]
+    try:
+        json5 = read_json5(None if config is None else str(config))
+    except OSError as exc:
+        raise _fail(f"{config}: cannot be read: {exc.strerror}") from None
+    try:
+        asyncio.run(run_router(list(listen or []), json5, _say))
+    except ValidationError as exc:
+        msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise _fail(f"{config or 'dyknow router'}: {msgs}") from None
+    except Exception as exc:  # zenoh.ZError (e.g. the port is taken): no traceback
+        raise _fail(f"dyknow router: {exc}", 1) from None
+
+
+# -- one-shot queries ---------------------------------------------------------------------------
+
+
+def _run_query(coro: Any) -> Any:
+    """Run a query coroutine; config and request errors exit 2 / 1 with a message."""
+    try:
+        return asyncio.run(coro)
+    except PlatformConfigError as exc:
+        raise _fail(str(exc)) from None
+    except Exception as exc:  # the user gets the reason, not a traceback
+        raise _fail(f"dyknow: {type(exc).__name__}: {exc}", 1) from None
+
+
+@app.command("platforms")
+def platforms(config: ConfigOpt, as_json: JsonOpt = False, wait: WaitOpt = 3.0) -> None:
+    """List the platforms alive in the federation and their public services."""
+    from ._cli_net import dumps, list_platforms
+
+    _load(config)
+    found = _run_query(list_platforms(str(config), wait))
+    if as_json:
+        _say(dumps(found))
+        return
+    table = Table(title="platforms alive")
+    table.add_column("platform")
+    table.add_column("service")
+    table.add_column("type")
+    table.add_column("provider")
+    for name, services in found.items():
+        if not services:
+            table.add_row(name, "-", "-", "-")
+        for s in services:
+            table.add_row(name, s["name"], s["type"], s["provider"])
+    _out.print(table)
+
+
+@app.command("labels")
+def labels(
+    platform: Annotated[str, typer.Argument(help="the platform to ask")],
+    config: ConfigOpt,
+    formula: Annotated[
+        str | None, typer.Option("--formula", help="FIPA-SL formula to search labels by")
+    ] = None,
+    as_json: JsonOpt = False,
+    wait: WaitOpt = 3.0,
+    timeout: Annotated[float, typer.Option(help="seconds to wait for the answer")] = 10.0,
+) -> None:
+    """The semantic labels a platform provides (or those matching an SL formula)."""
+    from ._cli_net import ask_platform, dumps
+
+    _load(config)
+    content: dict[str, Any] = (
+        {"action": "list-labels"}
+        if formula is None
+        else {"action": "search-labels", "formula": formula}
+    )
+    answer = _run_query(ask_platform(str(config), platform, content, wait, timeout))
+    if as_json:
+        _say(dumps(answer))
+        return
+    table = Table(title=f"labels of {platform}")
+    table.add_column("semantic label")
+    for label in answer.get("labels", []):
+        table.add_row(label)
+    _out.print(table)
+
+
+@app.command("ask")
+def ask(
+    platform: Annotated[str, typer.Argument(help="the platform to ask")],
+    label_names: Annotated[list[str], typer.Argument(metavar="LABELS", help="semantic labels")],
+    config: ConfigOpt,
+    at: Annotated[str | None, typer.Option("--at", help="value at T (s, now, -10s)")] = None,
+    since: Annotated[
+        str | None, typer.Option("--from", help="trajectory from T (s, now, -2m)")
+    ] = None,
+    until: Annotated[str | None, typer.Option("--to", help="trajectory until T")] = None,
+    as_json: JsonOpt = False,
+    wait: WaitOpt = 3.0,
+    timeout: Annotated[float, typer.Option(help="seconds to wait for the answer")] = 10.0,
+) -> None:
+    """Latest value (default), value --at T, or samples --from T [--to T] of labels."""
+    from ._cli_net import ask_platform, dumps, parse_time
+
+    _load(config)
+    if at is not None and (since is not None or until is not None):
+        raise _fail("dyknow ask: --at cannot be combined with --from/--to")
+    content: dict[str, Any] = {"labels": label_names}
+    try:
+        if at is not None:
+            t, rel = parse_time(at)
+            content.update({"action": "get-value-at", "t": t, "relative": rel})
+        elif since is not None or until is not None:
+            content["action"] = "get-trajectory"
+            rels = []
+            for key, text in (("from", since), ("to", until)):
+                if text is not None:
+                    value, rel = parse_time(text)
+                    content[key] = value
+                    rels.append(rel)
+            if len(set(rels)) > 1:
+                raise ValueError("--from and --to must both be relative or both absolute")
+            content["relative"] = rels[0]
+        else:
+            content["action"] = "get-latest"
+    except ValueError as exc:
+        raise _fail(f"dyknow ask: {exc}") from None
+    answer = _run_query(ask_platform(str(config), platform, content, wait, timeout))
+    if as_json:
+        _say(dumps(answer))
+        return
+    table = Table(title=f"{content['action']} from {platform}")
+    for col in ("label", "query time", "value", "valid", "available"):
+        table.add_column(col)
+    for label, result in answer.items():
+        samples = result.get("samples", []) if isinstance(result, dict) else []
+        qt = str(result.get("query_time", "")) if isinstance(result, dict) else ""
+        if not samples:
+            table.add_row(label, qt, "-", "-", "-")
+        for value, valid, available in samples:
+            table.add_row(label, qt, repr(value), str(valid), str(available))
+    _out.print(table)
+
+
+@app.command("stream")
+def stream(
+    platform: Annotated[str, typer.Argument(help="the platform providing the labels")],
+    label_names: Annotated[list[str], typer.Argument(metavar="LABELS", help="semantic labels")],
+    config: ConfigOpt,
+    sample_period: Annotated[
+        float | None, typer.Option("--sample-period", help="seconds between samples")
+    ] = None,
+    count: Annotated[
+        int | None, typer.Option("--count", "-n", min=1, help="stop after N samples")
+    ] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="one JSON object a line")] = False,
+    wait: WaitOpt = 3.0,
+    timeout: Annotated[float, typer.Option(help="seconds to wait for the stream")] = 10.0,
+) -> None:
+    """Create a stream from a platform to this one and print its samples (Ctrl-C stops)."""
+    from ._cli_net import follow_stream
+
+    _load(config)
+
+    def emit(label: str, value: Any, valid: int, available: int) -> None:
+        if as_json:
+            row = {"label": label, "value": value, "valid": valid, "available": available}
+            _say(json.dumps(row, default=str))
+        else:
+            _say(f"{label}  valid={valid}  available={available}  {value!r}")
+
+    _run_query(
+        follow_stream(
+            str(config),
+            platform,
+            label_names,
+            sample_period=sample_period,
+            count=count,
+            wait=wait,
+            timeout=timeout,
+            emit=emit,
+        )
+    )
+
+
+# -- entry point --------------------------------------------------------------------------------
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Parse the command line and run the chosen subcommand; the exit code."""
+    args = list(sys.argv[1:] if argv is None else argv)
+    if args and args[0] in _LEGACY:
+        return _legacy(args)
+    try:
+        app(args=args, prog_name="dyknow")
+    except SystemExit as exc:
+        if exc.code is None or isinstance(exc.code, int):
+            return int(exc.code or 0)
+        print(exc.code, file=sys.stderr)
+        return 1
+    return 0  # pragma: no cover - typer always exits in standalone mode
 
 
 if __name__ == "__main__":

@@ -1,0 +1,186 @@
+"""The networked ``dyknow`` commands (node, router, platforms, labels, ask) as async code."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import re
+import signal
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from agents.transports import ZenohConfig
+
+from ._platform import FederationPlatform, PlatformConfig
+
+_RELATIVE = re.compile(r"^-(\d+(?:\.\d+)?)(ms|s|m|h)?$")
+_UNITS = {"ms": 0.001, "s": 1.0, "m": 60.0, "h": 3600.0, None: 1.0}
+
+
+def parse_time(text: str) -> tuple[float, bool]:
+    """``now``, ``-90s``/``-2m``/``-1h``/``-500ms`` (relative) or seconds: ``(value, relative)``."""
+    text = text.strip()
+    if text == "now":
+        return 0.0, True
+    m = _RELATIVE.match(text)
+    if m:
+        return -float(m.group(1)) * _UNITS[m.group(2)], True
+    try:
+        return float(text), False
+    except ValueError:
+        raise ValueError(f"{text!r} is not a time (seconds, 'now' or e.g. -90s, -2m)") from None
+
+
+def _stop_event() -> asyncio.Event:
+    """An event set on SIGINT or SIGTERM."""
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    return stop
+
+
+def endpoints(config: PlatformConfig) -> str:
+    """The transport endpoints of a config, for the ready message."""
+    t = config.transport
+    if isinstance(t, ZenohConfig):
+        listen = ",".join(t.listen) if t.listen else "ephemeral"
+        connect = ",".join(t.connect) or "-"
+        return f"zenoh {t.mode} listen={listen} connect={connect}"
+    return f"mqtt {getattr(t, 'host', '?')}:{getattr(t, 'port', '?')}"
+
+
+async def run_node(config: PlatformConfig, source: str, say: Callable[[str], None]) -> None:
+    """Run one platform until SIGINT/SIGTERM, then shut it down cleanly."""
+    async with FederationPlatform(config, source=source) as p:
+        stop = _stop_event()  # after opening: zenoh installs handlers of its own
+        say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
+        await stop.wait()
+    say(f"dyknow node: {config.name} stopped")
+
+
+async def run_router(listen: list[str], json5: str | None, say: Callable[[str], None]) -> None:
+    """A zenoh session in router mode until SIGINT/SIGTERM."""
+    import zenoh
+
+    cfg = ZenohConfig(mode="router", listen=tuple(listen) or None, json5=json5).to_zenoh()
+    session = await asyncio.to_thread(zenoh.open, cfg)
+    stop = _stop_event()
+    try:
+        say(f"dyknow router: zid {session.info.zid()} listening on {', '.join(listen) or 'json5'}")
+        await stop.wait()
+    finally:
+        await asyncio.to_thread(session.close)
+    say("dyknow router: stopped")
+
+
+async def _wait_for(p: FederationPlatform, want: str | None, wait: float) -> None:
+    """Wait (at most ``wait`` s) until ``want`` (or any other platform) is seen, then settle."""
+    gdf = p.agents.global_df
+    deadline = time.monotonic() + wait
+    while time.monotonic() < deadline:
+        alive = [x for x in (gdf.platforms if gdf else []) if x != p.name]
+        if (want in alive) if want else alive:
+            await asyncio.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
+            return
+        await asyncio.sleep(0.1)
+
+
+def _opened(path: str) -> FederationPlatform:
+    """A platform from a config file, kept out of the federation (an asking console)."""
+    return FederationPlatform(PlatformConfig.load(path), source=path, join=False)
+
+
+async def list_platforms(config_path: str, wait: float) -> dict[str, list[dict[str, Any]]]:
+    """Join as the config's platform: ``{platform: [service, …]}`` of those alive."""
+    async with _opened(config_path) as p:
+        await _wait_for(p, None, wait)
+        gdf = p.agents.global_df
+        if gdf is None:
+            return {}
+        return {
+            name: [
+                {"name": s.name, "type": s.type, "provider": s.provider} for s in gdf.services(name)
+            ]
+            for name in gdf.platforms
+            if name != p.name
+        }
+
+
+async def ask_platform(
+    config_path: str, platform: str, content: dict[str, Any], wait: float, timeout: float
+) -> Any:
+    """Send one federation request to ``platform``; the inform's content."""
+    async with _opened(config_path) as p:
+        await _wait_for(p, platform, wait)
+        return await p.federation_agent.request_from(platform, content, timeout=timeout)
+
+
+def read_json5(path: str | None) -> str | None:
+    """The text of a JSON5 zenoh config file (or None)."""
+    return None if path is None else Path(path).read_text(encoding="utf-8")
+
+
+def dumps(value: Any) -> str:
+    """JSON for the ``--json`` outputs."""
+    return json.dumps(value, indent=2, sort_keys=True, default=str)
+
+
+async def follow_stream(
+    config_path: str,
+    platform: str,
+    semantic_labels: list[str],
+    *,
+    sample_period: float | None,
+    count: int | None,
+    wait: float,
+    timeout: float,
+    emit: Callable[[str, Any, int, int], None],
+) -> int:
+    """Create-stream from ``platform`` to us and emit its samples until SIGINT or ``count``."""
+    stop = _stop_event()
+    async with _opened(config_path) as p:
+        await _wait_for(p, platform, wait)
+        fed = p.federation_agent
+        export_id = await fed.create_stream(
+            platform, semantic_labels, sample_period=sample_period, timeout=timeout
+        )
+        queue: asyncio.Queue[tuple[str, Any, int, int]] = asyncio.Queue()
+
+        async def pump(semantic: str) -> None:
+            label = await p.imported(platform, semantic, timeout=timeout)
+            sub = p.instance.subscribe(label)
+            try:
+                async for s in sub:
+                    await queue.put((semantic, s.value, s.valid_time, s.available_time))
+            finally:
+                sub.close()
+
+        tasks = [asyncio.create_task(pump(s)) for s in semantic_labels]
+        stopping = asyncio.create_task(stop.wait())
+        seen = 0
+        try:
+            while count is None or seen < count:
+                getting = asyncio.create_task(queue.get())
+                done, _ = await asyncio.wait(
+                    [getting, stopping, *tasks], return_when=asyncio.FIRST_COMPLETED
+                )
+                if getting not in done:
+                    getting.cancel()
+                    for t in tasks:
+                        if t in done and t.exception() is not None:
+                            raise t.exception()  # type: ignore[misc]
+                    break
+                emit(*getting.result())
+                seen += 1
+        finally:
+            stopping.cancel()
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            with contextlib.suppress(Exception):
+                await fed.cancel_stream(platform, export_id, timeout=2.0)
+        return seen

@@ -1,0 +1,221 @@
+"""The ``dyknow`` CLI: keys, config errors, the unchanged monitor/kpl, node + platforms."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import stat
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from agents.keys import gen_keys, trust_keys
+from federation.cli import app, main
+
+runner = CliRunner()
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _write_federation(tmp_path: Path, port: int) -> dict[str, Path]:
+    """Keys, trust file, vocabulary, mappings and configs for uav-a and operator."""
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in ("uav-a", "operator")]
+    trust_keys(tmp_path / "trust.json", pubs, federation="traffic")
+    (tmp_path / "traffic.toml").write_text(
+        'name = "traffic"\n[labels]\n"heli-altitude" = "altitude, m"\n'
+    )
+    configs = {}
+    for name, transport in (
+        ("uav-a", f'listen = ["tcp/127.0.0.1:{port}"]'),
+        ("operator", f'connect = ["tcp/127.0.0.1:{port}"]'),
+    ):
+        (tmp_path / f"{name}-labels.toml").write_text(
+            f'vocabulary = "traffic"\n[labels]\n"heli-altitude" = "{name}/alt"\n'
+        )
+        configs[name] = tmp_path / f"{name}.toml"
+        configs[name].write_text(
+            f'name = "{name}"\nfederation = "traffic"\nkey = "keys/{name}.key"\n'
+            f'trust = "trust.json"\nvocabulary = "traffic.toml"\n'
+            f'mapping = "{name}-labels.toml"\n\n[transport]\nmode = "peer"\n{transport}\n'
+        )
+    return configs
+
+
+def test_keys_gen_and_trust(tmp_path: Path) -> None:
+    keys, trust = tmp_path / "keys", tmp_path / "trust.json"
+    r = runner.invoke(
+        app,
+        [
+            *("keys", "gen", "--platform", "uav-a", "--dir", str(keys)),
+            *("--trust-file", str(trust), "--federation", "traffic"),
+        ],
+    )
+    assert r.exit_code == 0, r.output
+    assert stat.S_IMODE((keys / "uav-a.key").stat().st_mode) == 0o600
+    assert (keys / "uav-a.pub").exists()
+    assert json.loads(trust.read_text())  # created, for federation traffic
+    assert "traffic" in trust.read_text()
+    # no overwrite without --force; with it, fine
+    r = runner.invoke(app, ["keys", "gen", "--platform", "uav-a", "--dir", str(keys)])
+    assert r.exit_code == 1
+    r = runner.invoke(app, ["keys", "gen", "--platform", "uav-a", "--dir", str(keys), "--force"])
+    assert r.exit_code == 0, r.output
+    assert runner.invoke(app, ["keys", "gen", "-p", "uav-b", "-d", str(keys)]).exit_code == 0
+    r = runner.invoke(app, ["keys", "trust", "--trust-file", str(trust), str(keys / "uav-b.pub")])
+    assert r.exit_code == 0, r.output
+    assert "uav-b" in r.output and "trusted" in r.output
+    assert "uav-b" in trust.read_text()
+    # a missing trust file without --federation: refused, exit 1
+    r = runner.invoke(
+        app, ["keys", "trust", "--trust-file", str(tmp_path / "no.json"), str(keys / "uav-b.pub")]
+    )
+    assert r.exit_code == 1
+
+
+def test_config_errors_name_file_and_key(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "uav-a"\nfederation = "traffic"\n[transport]\nlisten = ["nowhere"]\n')
+    for command in ("node", "platforms"):
+        assert main([command, "--config", str(bad)]) == 2
+        err = capsys.readouterr().err
+        assert f"{bad}: transport.listen:" in err and "Traceback" not in err
+    assert main(["node", "--config", str(tmp_path / "missing.toml")]) == 2
+    assert "cannot be read" in capsys.readouterr().err
+    assert main(["ask", "uav-a", "x", "--config", str(bad)]) == 2
+
+
+def test_monitor_and_kpl_unchanged(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    trace = tmp_path / "t.jsonl"
+    trace.write_text('{"t": 0, "p": true}\n{"t": 1, "p": false}\n{"t": 2, "p": true}\n')
+    assert main(["monitor", "always[0,1] p", "--trace", str(trace)]) == 0
+    assert '"verdict": false' in capsys.readouterr().out
+    assert main(["monitor", "speed <", "--trace", str(trace)]) == 2
+    assert "dyknow monitor: formula:" in capsys.readouterr().err
+    assert main(["kpl", "check", str(tmp_path / "missing.kpl")]) == 2
+    assert "cannot read" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as info:
+        main(["monitor"])
+    assert info.value.code == 2
+
+
+def test_parse_time() -> None:
+    from federation._cli_net import parse_time
+
+    assert parse_time("now") == (0.0, True)
+    assert parse_time("-2m") == (-120.0, True)
+    assert parse_time("-500ms") == (-0.5, True)
+    assert parse_time("12.5") == (12.5, False)
+    with pytest.raises(ValueError):
+        parse_time("yesterday")
+
+
+def _kill(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(5)
+
+
+@pytest.mark.timeout(40)
+def test_node_listed_by_platforms(tmp_path: Path) -> None:
+    configs = _write_federation(tmp_path, _free_port())
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cmd = [sys.executable, "-m", "federation.cli"]
+    node = subprocess.Popen(
+        [*cmd, "node", "--config", str(configs["uav-a"])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env=env,
+    )
+    try:
+        assert node.stdout is not None
+        ready = node.stdout.readline()  # bounded by the test's timeout
+        assert "uav-a ready in federation traffic" in ready, (
+            node.stderr.read() if node.stderr else ""
+        )
+        listed = subprocess.run(
+            [*cmd, "platforms", "--config", str(configs["operator"]), "--json", "--wait", "5"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env=env,
+            timeout=20,
+        )
+        assert listed.returncode == 0, listed.stderr
+        found = json.loads(listed.stdout)
+        assert "uav-a" in found
+        assert any(s["type"] == "dyknow-federation" for s in found["uav-a"]), found
+        node.send_signal(signal.SIGINT)
+        out, err = node.communicate(timeout=10)
+        assert node.returncode == 0, err
+        assert "uav-a stopped" in out and "Traceback" not in err
+    finally:
+        _kill(node)
+
+
+PRODUCER = """
+import asyncio, sys
+from federation import FederationPlatform, PlatformConfig
+async def run():
+    async with FederationPlatform(PlatformConfig.load(sys.argv[1])) as p:
+        src = p.instance.add_source("uav-a/alt")
+        src.push(100.0)
+        print("ready", flush=True)
+        k = 1
+        while True:
+            await asyncio.sleep(0.1)
+            src.push(100.0 + k)
+            k += 1
+asyncio.run(run())
+"""
+
+
+@pytest.mark.timeout(60)
+def test_labels_ask_stream_against_a_producer(tmp_path: Path) -> None:
+    configs = _write_federation(tmp_path, _free_port())
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    producer = subprocess.Popen(
+        [sys.executable, "-c", PRODUCER, str(configs["uav-a"])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        cwd=ROOT,
+        env=env,
+    )
+    cli = [sys.executable, "-m", "federation.cli"]
+    op = ["--config", str(configs["operator"]), "--json"]
+
+    def dyknow(*args: str) -> object:
+        done = subprocess.run(
+            [*cli, *args, *op], capture_output=True, text=True, cwd=ROOT, env=env, timeout=20
+        )
+        assert done.returncode == 0, done.stderr
+        return json.loads(done.stdout) if "stream" not in args else done.stdout
+
+    try:
+        assert producer.stdout is not None
+        assert producer.stdout.readline().strip() == "ready"
+        assert dyknow("labels", "uav-a") == {"labels": ["heli-altitude"]}
+        latest = dyknow("ask", "uav-a", "heli-altitude")
+        assert isinstance(latest, dict) and latest["heli-altitude"]["samples"][0][0] >= 100.0
+        history = dyknow("ask", "uav-a", "heli-altitude", "--from", "-1m")
+        assert isinstance(history, dict) and len(history["heli-altitude"]["samples"]) >= 2
+        out = dyknow("stream", "uav-a", "heli-altitude", "--count", "2")
+        rows = [json.loads(line) for line in str(out).splitlines()]
+        assert len(rows) == 2 and all(r["label"] == "heli-altitude" for r in rows)
+        assert rows[1]["value"] > rows[0]["value"]
+    finally:
+        _kill(producer)

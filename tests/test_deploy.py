@@ -1,0 +1,237 @@
+"""The deploy files (deploy/): compose topology, platform configs, keys step, router config.
+
+No Docker engine runs where these tests run. When the ``docker compose`` CLI plugin is
+installed, ``docker compose config -q`` validates both compose files (it needs no
+engine). When it is not installed (the case on this project's CI machine: ``docker``
+exists but has no compose plugin), nothing is installed: the compose files are checked
+structurally with PyYAML instead (services, fixed addresses in the subnet, mounts,
+commands, depends_on), which is what ``docker compose config`` would catch for these
+files plus the topology it would not. Both paths always run; nothing is skipped.
+
+The platform configs are loaded with ``PlatformConfig.load`` and their key, trust,
+vocabulary and mapping files read, after generating keys into a temporary copy of
+deploy/config with the same commands deploy/make-keys.sh runs (``agents.keys``).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import shutil
+import subprocess
+import tomllib
+from pathlib import Path, PurePosixPath
+from typing import Any
+
+import pytest
+import yaml
+import zenoh
+
+from agents.keys import gen_keys, trust_keys
+from federation import PlatformConfig
+from federation._platform import MqttSettings, ZenohSettings, _read_files
+
+DEPLOY = Path(__file__).resolve().parent.parent / "deploy"
+CONFIG = DEPLOY / "config"
+PLATFORMS = ("uav-a", "uav-b", "uav-c", "operator")
+FEDERATION = "traffic"
+MOUNT = PurePosixPath("/etc/dyknow")
+
+# compose file -> (the hub service, its port, the config subdirectory, transport kind)
+TOPOLOGIES = {
+    "docker-compose.yml": ("router", 7447, "", "zenoh"),
+    "docker-compose.mqtt.yml": ("mosquitto", 1883, "mqtt/", "mqtt"),
+}
+
+
+def _compose(name: str) -> dict[str, Any]:
+    data = yaml.safe_load((DEPLOY / name).read_text())
+    assert isinstance(data, dict), name
+    return data
+
+
+def _address(service: dict[str, Any]) -> tuple[str, ipaddress.IPv4Address]:
+    networks = service["networks"]
+    assert isinstance(networks, dict) and len(networks) == 1, networks
+    (net, settings), *_ = networks.items()
+    return net, ipaddress.IPv4Address(settings["ipv4_address"])
+
+
+def _mounts(service: dict[str, Any]) -> dict[PurePosixPath, Path]:
+    """Container path -> host path, for the read-only bind mounts of a service."""
+    out: dict[PurePosixPath, Path] = {}
+    for volume in service.get("volumes", []):
+        host, container, mode = volume.split(":")
+        assert mode == "ro", f"{volume}: mount read-only"
+        out[PurePosixPath(container)] = (DEPLOY / host).resolve()
+    return out
+
+
+@pytest.fixture(scope="module")
+def keyed_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A copy of deploy/config with keys and trust file, made as make-keys.sh makes them."""
+    config = tmp_path_factory.mktemp("deploy") / "config"
+    shutil.copytree(CONFIG, config, ignore=shutil.ignore_patterns("keys"))
+    keys = config / "keys"
+    pubs = [gen_keys(p, keys)[2] for p in PLATFORMS]
+    trust_keys(keys / "trust.json", pubs, federation=FEDERATION)
+    return config
+
+
+def test_make_keys_script_runs_the_same_commands() -> None:
+    script = (DEPLOY / "make-keys.sh").read_text()
+    assert script.startswith("#!/usr/bin/env bash\n")
+    assert "set -euo pipefail" in script
+    assert "platforms=(uav-a uav-b uav-c operator)" in script
+    assert f'federation="{FEDERATION}"' in script
+    assert 'gen --platform "${platform}" --dir "${keys_dir}"' in script
+    assert 'trust --trust-file "${trust_file}" --federation "${federation}"' in script
+    assert "/deploy/config/keys/" in (DEPLOY.parent / ".gitignore").read_text().splitlines()
+
+
+@pytest.mark.parametrize("subdir", ["", "mqtt/"])
+@pytest.mark.parametrize("platform", PLATFORMS)
+def test_platform_config_is_valid(keyed_config: Path, platform: str, subdir: str) -> None:
+    path = keyed_config / subdir / f"{platform}.toml"
+    config = PlatformConfig.load(path)
+    assert config.name == platform
+    assert config.federation == FEDERATION
+    files = _read_files(config, str(path))  # key, trust, vocabulary, mapping: all readable
+    assert files.keys.platform == platform
+    assert set(files.trust) == set(PLATFORMS)
+    if subdir:
+        assert isinstance(config.transport, MqttSettings)
+        assert config.transport.host == "172.29.0.10"
+        assert config.transport.client_id == f"dyknow-{platform}"
+    else:
+        assert isinstance(config.transport, ZenohSettings)
+        assert config.transport.mode == "client"
+        assert config.transport.connect == ("tcp/172.28.0.10:7447",)
+    if platform != "operator":  # the UAVs track cars; the operator maps no car labels
+        assert files.mapping.to_local("car5-state") == "car/car5/state"
+
+
+def test_router_config_is_zenoh_json5() -> None:
+    text = (CONFIG / "router.json5").read_text()
+    zenoh.Config.from_json5(text)
+    for hint in ("tls", "enable_mtls", "usrpwd", "access_control"):
+        assert hint in text, f"router.json5 should say where {hint} goes"
+    assert '"tcp/0.0.0.0:7447"' in text
+
+
+@pytest.mark.parametrize("file", sorted(TOPOLOGIES))
+def test_compose_topology(file: str) -> None:
+    hub, port, subdir, kind = TOPOLOGIES[file]
+    compose = _compose(file)
+    services = compose["services"]
+    assert set(services) == {hub, *PLATFORMS}
+    ((net_name, net),) = compose["networks"].items()
+    subnet = ipaddress.IPv4Network(net["ipam"]["config"][0]["subnet"])
+    addresses = {}
+    for name, service in services.items():
+        net_of, address = _address(service)
+        assert net_of == net_name, f"{file}: {name} is not on {net_name}"
+        assert address in subnet, f"{file}: {name} {address} not in {subnet}"
+        assert address not in (subnet.network_address, subnet.broadcast_address)
+        assert address != next(subnet.hosts()), f"{file}: {name} takes the gateway address"
+        addresses[name] = address
+    assert len(set(addresses.values())) == len(addresses), f"{file}: addresses repeat"
+
+    for name in PLATFORMS:
+        service = services[name]
+        assert service["build"] == {"context": "..", "dockerfile": "deploy/Dockerfile"}
+        assert service["depends_on"] == [hub]
+        command = service["command"]
+        assert command[:2] == ["node", "--config"]
+        mounts = _mounts(service)
+        container_config = PurePosixPath(command[2])
+        assert container_config == MOUNT / f"{subdir}{name}.toml"
+        assert mounts[container_config] == CONFIG / f"{subdir}{name}.toml"
+        # every file the config names is mounted where the config's relative path points
+        config = tomllib.loads(mounts[container_config].read_text())
+        for key in ("key", "trust", "vocabulary", "mapping"):
+            target = PurePosixPath(*_normalize(container_config.parent / config[key]).parts)
+            assert target in mounts, f"{file}: {name}: {key} {target} is not mounted"
+        # its own private key only
+        keys = [m for m in mounts if m.suffix == ".key"]
+        assert keys == [MOUNT / "keys" / f"{name}.key"], f"{file}: {name} mounts {keys}"
+        # the transport points at the hub's fixed address
+        transport = config["transport"]
+        assert transport["kind"] == kind
+        if kind == "zenoh":
+            assert transport["connect"] == [f"tcp/{addresses[hub]}:{port}"]
+        else:
+            assert (transport["host"], transport["port"]) == (str(addresses[hub]), port)
+
+    if kind == "zenoh":
+        router = services[hub]
+        assert router["command"] == ["router", "--config", str(MOUNT / "router.json5")]
+        assert _mounts(router) == {MOUNT / "router.json5": CONFIG / "router.json5"}
+    else:
+        broker = services[hub]
+        assert broker["image"].startswith("eclipse-mosquitto:")
+        conf = _mounts(broker)[PurePosixPath("/mosquitto/config/mosquitto.conf")]
+        assert f"listener {port}" in conf.read_text()
+
+
+def _normalize(path: PurePosixPath) -> PurePosixPath:
+    parts: list[str] = []
+    for part in path.parts:
+        if part == "..":
+            parts.pop()
+        else:
+            parts.append(part)
+    return PurePosixPath(*parts)
+
+
+def test_dockerfile() -> None:
+    text = (DEPLOY / "Dockerfile").read_text()
+    lines = [line.strip() for line in text.splitlines() if line.strip() and line[0] != "#"]
+    assert lines[0] == "FROM python:3.11-slim"
+    assert any(line.startswith("RUN pip install .") for line in lines)
+    user = [line for line in lines if line.startswith("USER ")]
+    assert user and user[-1] not in ("USER root", "USER 0"), "run as a non-root user"
+    assert 'ENTRYPOINT ["dyknow"]' in lines
+    assert "deploy/config/keys" in (DEPLOY / "Dockerfile.dockerignore").read_text()
+
+
+def _docker_compose() -> bool:
+    docker = shutil.which("docker")
+    if docker is None:
+        return False
+    probe = subprocess.run(
+        [docker, "compose", "version"], capture_output=True, text=True, timeout=20, check=False
+    )
+    return probe.returncode == 0
+
+
+@pytest.mark.parametrize("file", sorted(TOPOLOGIES))
+def test_compose_config_validates(file: str, keyed_config: Path) -> None:
+    """``docker compose config -q`` when the plugin is installed, else a structural check.
+
+    Without the compose plugin (nothing is installed for it), the YAML is checked for
+    what ``config`` rejects in these files: a top-level mapping of known keys, services
+    with an image or a build, list-form commands, and anchors/merge keys that resolve.
+    """
+    if _docker_compose():
+        # config resolves bind-mount sources: run it on a copy that has the keys
+        tmp = keyed_config.parent
+        shutil.copy(DEPLOY / file, tmp / file)
+        result = subprocess.run(
+            ["docker", "compose", "-f", str(tmp / file), "config", "-q"],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=False,
+        )
+        assert result.returncode == 0, result.stderr
+        return
+    compose = _compose(file)
+    allowed = {"name", "services", "networks", "volumes", "configs", "secrets"}
+    extra = {k for k in compose if not k.startswith("x-")} - allowed
+    assert not extra, f"{file}: unknown top-level keys {extra}"
+    for name, service in compose["services"].items():
+        assert "image" in service or "build" in service, f"{file}: {name}"
+        assert "<<" not in service, f"{file}: {name}: merge key did not resolve"
+        if "command" in service:
+            assert isinstance(service["command"], list), f"{file}: {name}"
+            assert all(isinstance(x, str) for x in service["command"])
