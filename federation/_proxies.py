@@ -932,6 +932,12 @@ class ImportProxy:
         self._imports[(sender, semantic_label)] = rec
         return rec
 
+    def _refuse(self, sender: str, label: str, reason: str) -> None:
+        """Count one whole batch dropped, and why, against what it claimed to be."""
+        counts = self._counts(sender, label)
+        counts.batches += 1
+        counts._drop_batch(reason)
+
     def _counts(self, sender: str, label: str) -> Import:
         """Where to count a payload for (sender, label): its import, or a bounded stray."""
         key = (sender, label)
@@ -971,32 +977,22 @@ class ImportProxy:
         try:
             frm, body = self.sessions.open_bytes(payload)
         except AuthenticationError as exc:
-            counts = self._counts(sender, label)
-            counts.batches += 1
-            counts._drop_batch(exc.code)
+            self._refuse(sender, label, exc.code)
             return
         except Exception:
-            counts = self._counts(sender, label)
-            counts.batches += 1
-            counts._drop_batch("malformed")
+            self._refuse(sender, label, "malformed")
             return
         if frm != sender:
             # authentic, but published under another platform's name: trust neither
-            counts = self._counts(sender, label)
-            counts.batches += 1
-            counts._drop_batch("wrong-sender")
+            self._refuse(sender, label, "wrong-sender")
             return
         try:
             semantic, seq, samples = unpack_batch(body)
         except ValueError:
-            counts = self._counts(frm, label)
-            counts.batches += 1
-            counts._drop_batch("malformed")
+            self._refuse(frm, label, "malformed")
             return
         if semantic != label:
-            counts = self._counts(frm, label)
-            counts.batches += 1
-            counts._drop_batch("wrong-label")
+            self._refuse(frm, label, "wrong-label")
             return
         rec = self._imports.get((frm, semantic))
         if rec is None:
