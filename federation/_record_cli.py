@@ -1,0 +1,338 @@
+"""``dyknow record`` and ``dyknow replay``: flights to a file, and back through a local instance.
+
+``record`` joins the federation like ``dyknow stream`` (a create-stream from a platform to
+this one) and writes what arrives to a recording (``dyknow_core.Recorder``). ``replay``
+pushes a recording through a fresh local instance on a manual clock, optionally with a
+KPL application set up on it, and prints what its processes produce.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import sys
+import time
+from collections.abc import Callable
+from enum import Enum
+from pathlib import Path
+from typing import Any
+
+from dyknow_core import (
+    DyKnowInstance,
+    KPLCheckError,
+    KPLSetupError,
+    ManualClock,
+    Recorder,
+    RecordError,
+    Recording,
+    _kpl,
+    ns_to_seconds,
+    replay,
+)
+
+from ._cli_net import _opened, _stop_event, _wait_for
+
+Say = Callable[[str], None]
+
+
+class ReplayUsageError(Exception):
+    """A replay that cannot start: a bad file, spec or label (exit code 2)."""
+
+
+def jsonable(value: Any) -> Any:
+    """A value as JSON can carry it: named tuples and dataclasses become objects."""
+    if isinstance(value, tuple) and hasattr(value, "_asdict"):
+        return {k: jsonable(v) for k, v in value._asdict().items()}
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: jsonable(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, Enum):
+        return jsonable(value.value)
+    if isinstance(value, dict):
+        return {str(k): jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple | set | frozenset):
+        return [jsonable(v) for v in value]
+    if isinstance(value, bytes):
+        return value.hex()
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    return repr(value)
+
+
+def _seconds(ns: int) -> str:
+    return f"{ns_to_seconds(ns):.3f}"
+
+
+# -- record -------------------------------------------------------------------------------------
+
+
+async def record_federation(
+    config_path: str,
+    platform: str,
+    semantic_labels: list[str],
+    out: Path,
+    *,
+    duration: float | None,
+    count: int | None,
+    sample_period: float | None,
+    wait: float,
+    timeout: float,
+    progress: Say,
+) -> Recorder:
+    """Create-stream ``semantic_labels`` from ``platform`` and record them until a stop.
+
+    Stops on SIGINT/SIGTERM, after ``duration`` seconds or ``count`` samples; the file is
+    complete in every case. ``progress`` gets a line with the counts at most every second.
+    """
+    async with _opened(config_path) as p:
+        stop = _stop_event()  # after opening: zenoh installs handlers of its own
+        await _wait_for(p, platform, wait)
+        fed = p.federation_agent
+        since = p.instance.clock.now()
+        export_id = await fed.create_stream(
+            platform, semantic_labels, sample_period=sample_period, timeout=timeout
+        )
+        try:
+            local = {
+                await p.imported(platform, semantic, timeout=timeout): semantic
+                for semantic in semantic_labels
+            }
+            meta = {
+                "platform": platform,
+                "recorded_by": p.name,
+                "federation": p.config.federation,
+                "sample_period": sample_period,
+            }
+            # ``since``: what arrived while the imports were being looked up is kept too
+            rec = Recorder(
+                p.instance, list(local), out, rename=local, meta=meta, since=since, limit=count
+            )
+            async with rec:
+                await _until_stopped(rec, stop, duration, progress)
+        finally:
+            with contextlib.suppress(Exception):
+                await fed.cancel_stream(platform, export_id, timeout=2.0)
+    return rec
+
+
+async def _until_stopped(
+    rec: Recorder, stop: asyncio.Event, duration: float | None, progress: Say
+) -> None:
+    """Wait for a signal, the duration or the count; a progress line each second it changed."""
+    started = time.monotonic()
+    deadline = None if duration is None else started + duration
+    shown = -1
+    waits = {asyncio.ensure_future(stop.wait()), asyncio.ensure_future(rec.done.wait())}
+    try:
+        while not (stop.is_set() or rec.done.is_set()):
+            step = 1.0 if deadline is None else min(1.0, deadline - time.monotonic())
+            if step <= 0:
+                break
+            await asyncio.wait(waits, timeout=step, return_when=asyncio.FIRST_COMPLETED)
+            if rec.recorded != shown:
+                shown = rec.recorded
+                counts = ", ".join(f"{k}={n}" for k, n in sorted(rec.counts.items()))
+                elapsed = time.monotonic() - started
+                progress(f"recording {rec.path}: {shown} samples ({counts or '-'}) {elapsed:.0f} s")
+    finally:
+        for w in waits:
+            w.cancel()
+
+
+# -- replay -------------------------------------------------------------------------------------
+
+
+def open_recording(path: Path) -> Recording:
+    """Open a recording or raise ReplayUsageError naming the file and what is wrong."""
+    try:
+        return Recording(path)
+    except RecordError as exc:
+        raise ReplayUsageError(str(exc)) from None
+
+
+def info(path: Path) -> dict[str, Any]:
+    """The header and per-label counts of a recording."""
+    try:
+        return open_recording(path).info()
+    except RecordError as exc:
+        raise ReplayUsageError(str(exc)) from None
+
+
+def info_lines(data: dict[str, Any]) -> list[str]:
+    """``dyknow replay --info`` as text."""
+    lines = [
+        f"file:       {data['file']}",
+        f"format:     dyknow-record version {data['version']}",
+        f"instance:   {data['instance']!r} ({data['clock']}, start {_seconds(data['start'])} s)",
+        f"created:    {data['created']}",
+        f"labels:     {'every stream' if data['labels'] is None else ', '.join(data['labels'])}",
+    ]
+    for k, v in sorted(data["meta"].items()):
+        lines.append(f"meta.{k}: {v}")
+    lines.append(f"samples:    {data['samples']} in {data['batches']} batches")
+    for label, n in data["counts"].items():
+        lines.append(f"  {label}: {n}")
+    if data["valid_span"] is not None:
+        lo, hi = data["valid_span"]
+        lines.append(f"valid time: {_seconds(lo)} .. {_seconds(hi)} s ({_seconds(hi - lo)} s)")
+    if data["truncated"]:
+        lines.append("truncated:  yes (the writer stopped mid-batch; read up to the last batch)")
+    return lines
+
+
+def _read_spec(kpl: Path) -> _kpl.Program:
+    try:
+        text = kpl.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ReplayUsageError(f"{kpl}: cannot read: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ReplayUsageError(f"{kpl}: not UTF-8 text: {exc.reason}") from None
+    try:
+        return _kpl.parse(text)
+    except KPLCheckError as exc:
+        raise ReplayUsageError("\n".join(e.format(str(kpl)) for e in exc.errors)) from None
+
+
+async def run_replay(
+    path: Path,
+    *,
+    kpl: Path | None,
+    prints: list[str] | None,
+    speed: float | None,
+    tail: float,
+    emit: Callable[[str, Any, int, int], None],
+    warn: Say,
+) -> dict[str, Any]:
+    """Replay ``path`` into a fresh manual-clock instance; the summary (JSON-ready).
+
+    With ``kpl`` the spec is set up first: recorded labels it declares as sources are fed
+    by the recording, recorded labels it does not declare become sources, and recorded
+    labels it computes are not fed (it recomputes them). ``emit`` gets every sample of
+    the printed labels (default: with a spec every stream not fed by the recording,
+    without one the recorded labels) as it is produced.
+    """
+    rec = open_recording(path)
+    data = rec.info()  # one pass for the labels and the first available time
+    recorded = list(data["counts"])
+    start = rec.header.start
+    if data["available_span"] is not None:
+        start = min(start, data["available_span"][0])
+    program = _read_spec(kpl) if kpl is not None else None
+    computed: set[str] = set()
+    spec_sources: set[str] = set()
+    if program is not None:
+        for d in program.decls:
+            provided = set(_kpl._provides(d))
+            (spec_sources if isinstance(d, _kpl.SourceDecl) else computed).update(provided)
+            if isinstance(d, _kpl.ClassDecl):
+                computed.add(f"domain/{d.name}")  # anchoring publishes each class's domain
+        if any(isinstance(d, _kpl.ClassDecl) for d in program.decls) and not any(
+            isinstance(d, _kpl.AnchoringDecl) for d in program.decls
+        ):
+            computed.add("events/anchoring")
+    feed = [label for label in recorded if label not in computed]
+    inst = DyKnowInstance("replay", clock=ManualClock(start))
+    async with inst:
+        for label in feed:
+            if label not in spec_sources:
+                inst.add_source(label)
+        if program is not None:
+            if kpl is not None and str(Path.cwd()) not in sys.path:
+                # a spec's CUs name modules as ``python -m`` would find them from here
+                sys.path.insert(0, str(Path.cwd()))
+            try:
+                _kpl.setup(inst, program)
+            except KPLCheckError as exc:
+                raise ReplayUsageError("\n".join(e.format(str(kpl)) for e in exc.errors)) from None
+            except KPLSetupError as exc:
+                raise ReplayUsageError(f"{kpl}:{exc}") from None
+        for label in sorted(spec_sources - set(recorded)):
+            warn(f"dyknow replay: spec source {label!r} is not in the recording: nothing feeds it")
+        if prints is None:
+            shown = [x for x in inst.labels() if x not in feed] if program else recorded
+        else:
+            unknown = [x for x in prints if not inst.has_label(x)]
+            if unknown:
+                raise ReplayUsageError(
+                    f"dyknow replay: --print {unknown[0]!r}: no such stream "
+                    f"(streams: {', '.join(inst.labels())})"
+                )
+            shown = list(dict.fromkeys(prints))
+        produced = dict.fromkeys(shown, 0)
+        for label in shown:
+            inst.subscribe(label, callback=_printer(label, produced, emit))
+        summary = await replay(rec, inst, speed=speed, labels=feed, tail=tail)
+        failures = [f"{f.process}: {f.error}" for f in inst.failures]
+    result = summary.as_dict()
+    result.update(
+        file=str(path),
+        produced=produced,
+        not_fed={k: v for k, v in summary.skipped.items() if k in computed},
+        failures=failures,
+    )
+    return result
+
+
+def _printer(
+    label: str, produced: dict[str, int], emit: Callable[[str, Any, int, int], None]
+) -> Callable[[list[Any]], None]:
+    def on_batch(batch: list[Any]) -> None:
+        for value, tv, ta in batch:
+            produced[label] += 1
+            emit(label, value, tv, ta)
+
+    return on_batch
+
+
+def summary_lines(result: dict[str, Any]) -> list[str]:
+    """The end-of-replay summary as text."""
+    lines = [f"replayed {result['samples']} samples from {result['file']}"]
+    for label, n in result["counts"].items():
+        lines.append(f"  {label}: {n}")
+    for label, n in result["not_fed"].items():
+        lines.append(f"  {label}: {n} recorded, not fed (the spec computes it)")
+    if result["valid_span"] is not None:
+        lo, hi = result["valid_span"]
+        lines.append(f"valid time {_seconds(lo)} .. {_seconds(hi)} s ({_seconds(hi - lo)} s)")
+    produced = ", ".join(f"{k}={n}" for k, n in result["produced"].items())
+    lines.append(f"printed: {produced or '-'}")
+    if result["truncated"]:
+        lines.append("the recording is truncated: replayed up to its last complete batch")
+    for f in result["failures"]:
+        lines.append(f"process failure: {f}")
+    return lines
+
+
+def print_sample(as_json: bool, say: Say) -> Callable[[str, Any, int, int], None]:
+    """The ``emit`` of ``run_replay`` for the CLI: a line per produced sample."""
+
+    def emit(label: str, value: Any, valid: int, available: int) -> None:
+        if as_json:
+            row = {"label": label, "value": jsonable(value), "valid": valid, "available": available}
+            say(json.dumps(row, sort_keys=True))
+        else:
+            say(f"{label}  valid={_seconds(valid)}  available={_seconds(available)}  {value!r}")
+
+    return emit
+
+
+def check_speed(speed: float | None) -> float | None:
+    """Check ``--speed`` (None: as fast as possible)."""
+    if speed is not None and not (speed > 0 and speed < float("inf")):
+        raise ReplayUsageError(f"dyknow replay: --speed must be > 0, got {speed}")
+    return speed
+
+
+__all__ = [
+    "ReplayUsageError",
+    "check_speed",
+    "info",
+    "info_lines",
+    "jsonable",
+    "open_recording",
+    "print_sample",
+    "record_federation",
+    "run_replay",
+    "summary_lines",
+]
