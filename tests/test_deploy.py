@@ -141,7 +141,11 @@ def test_compose_topology(file: str) -> None:
         assert service["build"] == {"context": "..", "dockerfile": "deploy/Dockerfile"}
         assert service["depends_on"] == [hub]
         command = service["command"]
-        assert command[:2] == ["node", "--config"]
+        # the operator's process serves the web console on the published port
+        verb = "console" if name == "operator" else "node"
+        assert command[:2] == [verb, "--config"], f"{file}: {name}: {command}"
+        if name == "operator":
+            assert command[3:] == ["--host", "0.0.0.0", "--port", "8080"]
         mounts = _mounts(service)
         container_config = PurePosixPath(command[2])
         assert container_config == MOUNT / f"{subdir}{name}.toml"
@@ -171,6 +175,15 @@ def test_compose_topology(file: str) -> None:
         assert broker["image"].startswith("eclipse-mosquitto:")
         conf = _mounts(broker)[PurePosixPath("/mosquitto/config/mosquitto.conf")]
         assert f"listener {port}" in conf.read_text()
+
+
+@pytest.mark.parametrize("file", sorted(TOPOLOGIES))
+def test_only_the_operator_console_port_is_published(file: str) -> None:
+    services = _compose(file)["services"]
+    # The console's port inside the container on the same host port, and nothing else:
+    # hub and platforms are reachable on the private network only.
+    published = {name: s["ports"] for name, s in services.items() if "ports" in s}
+    assert published == {"operator": ["8080:8080"]}, f"{file}: {published}"
 
 
 def _normalize(path: PurePosixPath) -> PurePosixPath:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 import uuid
 from collections.abc import AsyncIterator, Callable
@@ -499,3 +500,15 @@ async def test_mqtt_unreachable_broker_is_a_transport_error() -> None:
     t = MqttTransport(MqttConfig(port=free_tcp_port(), connect_timeout=2))
     with pytest.raises(TransportError, match="cannot connect"):
         await t.__aenter__()
+
+
+def test_zenoh_config_keeps_the_listen_endpoints_of_its_json5_file() -> None:
+    # a router started from a JSON5 file (deploy/config/router.json5) listens where the
+    # file says, not on the library's loopback default
+    json5 = '{ listen: { endpoints: ["tcp/127.0.0.1:17999"] } }'
+    cfg = ZenohConfig(mode="router", json5=json5).to_zenoh()
+    assert json.loads(cfg.get_json("listen/endpoints")) == ["tcp/127.0.0.1:17999"]
+    flags = ZenohConfig(mode="router", json5=json5, listen=("tcp/127.0.0.1:18000",)).to_zenoh()
+    assert json.loads(flags.get_json("listen/endpoints")) == ["tcp/127.0.0.1:18000"]
+    default = ZenohConfig(mode="peer").to_zenoh()
+    assert json.loads(default.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]

@@ -182,10 +182,11 @@ class ZenohConfig(BaseModel):
         try:
             cfg = zenoh.Config.from_json5(self.json5) if self.json5 else zenoh.Config()
             listen = self.listen
-            if listen is None:
+            if listen is None and not _listens(self.json5, cfg):
                 listen = () if self.mode == "client" else ("tcp/127.0.0.1:0",)
             cfg.insert_json5("mode", json.dumps(self.mode))
-            cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
+            if listen is not None:  # else the JSON5 file's own listen endpoints stand
+                cfg.insert_json5("listen/endpoints", json.dumps(list(listen)))
             cfg.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
             cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
             cfg.insert_json5("scouting/gossip/enabled", json.dumps(self.gossip))
@@ -197,6 +198,18 @@ class ZenohConfig(BaseModel):
         except zenoh.ZError as exc:
             raise TransportError(f"invalid zenoh configuration: {exc}") from exc
         return cfg
+
+
+def _listens(json5: str | None, cfg: zenoh.Config) -> bool:
+    """Whether the user's JSON5 config names listen endpoints of its own."""
+    if not json5:
+        return False
+    try:
+        endpoints = json.loads(cfg.get_json("listen/endpoints"))
+    except (zenoh.ZError, ValueError):
+        return False
+    # zenoh's default is a per-mode table; a user's list replaces it
+    return isinstance(endpoints, list) and bool(endpoints)
 
 
 @contextlib.contextmanager
