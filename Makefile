@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 BENCH ?=
 
-.PHONY: test demo bench lint typecheck pytest mosquitto clean
+.PHONY: test demo bench lint typecheck pytest mosquitto chromium clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -34,14 +34,24 @@ mosquitto:
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq mosquitto >/dev/null; \
 	fi
 
-pytest: $(STAMP) mosquitto
+# The operator console's browser test drives Debian's chromium through Playwright (never a
+# browser Playwright downloads); install it when it is missing (idempotent).
+chromium:
+	@if test -x /usr/bin/chromium; then :; else \
+		echo "==> installing chromium (the operator console's browser test needs it)"; \
+		SUDO=; if [ "$$(id -u)" -ne 0 ]; then SUDO=sudo; fi; \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null; \
+	fi
+
+pytest: $(STAMP) mosquitto chromium
 	@echo "==> pytest"
 	$(PY) -m pytest -q
 
 test: lint typecheck pytest
 
 demo: $(STAMP)
-	$(PY) -m examples.local_pipeline
+	$(VENV)/bin/dyknow demo traffic
 
 bench: $(STAMP)
 	$(PY) -m bench $(BENCH)

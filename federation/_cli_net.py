@@ -62,6 +62,22 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
     say(f"dyknow node: {config.name} stopped")
 
 
+async def run_console(
+    config: PlatformConfig, source: str, host: str, port: int, say: Callable[[str], None]
+) -> None:
+    """Run one platform with the operator web console until SIGINT/SIGTERM."""
+    from .demo._console import OperatorConsole
+
+    async with (
+        FederationPlatform(config, source=source) as p,
+        OperatorConsole(p, host=host, port=port) as console,
+    ):
+        stop = _stop_event()
+        say(f"dyknow console: {p.name} ready in federation {config.federation}: {console.url}")
+        await stop.wait()
+    say(f"dyknow console: {config.name} stopped")
+
+
 async def run_router(listen: list[str], json5: str | None, say: Callable[[str], None]) -> None:
     """A zenoh session in router mode until SIGINT/SIGTERM."""
     import zenoh
@@ -70,11 +86,22 @@ async def run_router(listen: list[str], json5: str | None, say: Callable[[str], 
     session = await asyncio.to_thread(zenoh.open, cfg)
     stop = _stop_event()
     try:
-        say(f"dyknow router: zid {session.info.zid()} listening on {', '.join(listen) or 'json5'}")
+        say(f"dyknow router: zid {session.info.zid()} listening on {_endpoints(cfg)}")
         await stop.wait()
     finally:
         await asyncio.to_thread(session.close)
     say("dyknow router: stopped")
+
+
+def _endpoints(cfg: Any) -> str:
+    """The listen endpoints a zenoh config gives the router (the flags' or the file's)."""
+    try:
+        endpoints = json.loads(cfg.get_json("listen/endpoints"))
+    except Exception:
+        return "(see the config)"
+    if isinstance(endpoints, dict):
+        endpoints = endpoints.get("router", [])
+    return ", ".join(map(str, endpoints)) or "(nothing)"
 
 
 async def _wait_for(p: FederationPlatform, want: str | None, wait: float) -> None:

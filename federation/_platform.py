@@ -67,7 +67,7 @@ from ontology import (
 
 from ._fusion import Fusion, add_fusion
 from ._proxies import ExportProxy, Import, ImportProxy, InterfaceSessions
-from ._service import FederationAgent, MembershipEvent
+from ._service import Anchor, FederationAgent, MembershipEvent
 
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
@@ -312,7 +312,8 @@ class FederationPlatform:
     federation until `join` (set up local streams and agents first). ``rules`` keep
     `facts` current from the instance's streams, for label search by formula.
     ``on_import_ended(sender, labels)`` is told when a sender whose streams we import is
-    gone (its imported streams are then ended).
+    gone (its imported streams are then ended). ``anchor`` is asked when another platform
+    wants a stream of an object not known here yet (see `FederationAgent`).
     """
 
     def __init__(
@@ -326,6 +327,7 @@ class FederationPlatform:
         gateway_visibility: Visibility | str = Visibility.PROTECTED,
         on_import_ended: OnImportEnded | None = None,
         source: str | None = None,
+        anchor: Anchor | None = None,
     ) -> None:
         self.config = config
         self.name = config.name
@@ -368,6 +370,7 @@ class FederationPlatform:
             search=self.labels,
             max_exports=config.export_limit,
             join=join,
+            anchor=anchor,
         )
         self._on_import_ended = on_import_ended
         self._waiters: dict[tuple[str, str], list[asyncio.Future[str]]] = {}

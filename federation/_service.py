@@ -137,6 +137,7 @@ __all__ = [
     "FEDERATION_AGENT",
     "FEDERATION_SERVICE_TYPE",
     "ONTOLOGY",
+    "Anchor",
     "Exporter",
     "FederationAgent",
     "GlobalResult",
@@ -164,6 +165,14 @@ class LabelTranslator(Protocol):
     def provides(self) -> Iterable[str]:
         """The semantic labels this platform can provide now."""
         ...
+
+
+Anchor = Callable[[str, str, str], Awaitable[bool]]
+"""``anchor(semantic, local, requester)``: asked to export a label with no stream here yet.
+
+The application may anchor the object (e.g. get its trajectory from ``requester`` and
+look for it), create the local stream ``local`` and return True; False refuses.
+"""
 
 
 class LabelSearch(Protocol):
@@ -292,9 +301,11 @@ class FederationAgent(Agent):
         max_exports: int = 64,
         join: bool = True,
         stop_exports_to_gone: bool = True,
+        anchor: Anchor | None = None,
     ) -> None:
         super().__init__(name)
         self.instance = instance
+        self.anchor = anchor
         self.translator = translator
         self.exporter = exporter
         self.label_search = search
@@ -576,8 +587,8 @@ class FederationAgent(Agent):
             for semantic, local in pairs:
                 for receiver in receivers:
                     try:
-                        handle = await _resolved(
-                            exporter.start_exporting(local, semantic, receiver, policy)
+                        handle = await self._start_export(
+                            exporter, local, semantic, receiver, policy, requester
                         )
                     except UnknownLabelError as exc:
                         # Nothing to export (yet); its message lists local labels.
@@ -599,6 +610,26 @@ class FederationAgent(Agent):
             self._by_conversation[(message.sender, message.conversation_id)] = record.id
         log.info("%s: export %s of %s to %s", self, record.id, record.labels, receivers)
         return {"id": record.id, "labels": record.labels, "to-units": receivers}
+
+    async def _start_export(
+        self,
+        exporter: Exporter,
+        local: str,
+        semantic: str,
+        receiver: str,
+        policy: Policy,
+        requester: str,
+    ) -> Any:
+        try:
+            return await _resolved(exporter.start_exporting(local, semantic, receiver, policy))
+        except UnknownLabelError:
+            # An object this platform has not anchored yet (the paper's car5): the
+            # application may anchor it now and create its stream; then export it.
+            if self.anchor is None or self.instance.has_label(local):
+                raise
+            if not await self.anchor(semantic, local, requester):
+                raise
+            return await _resolved(exporter.start_exporting(local, semantic, receiver, policy))
 
     async def _cancel_stream(self, export_id: str, sender: str) -> dict[str, Any]:
         record = self._exports.get(export_id)

@@ -25,6 +25,13 @@ from ._platform import PlatformConfig, PlatformConfigError
 
 _LEGACY = {"monitor", "kpl"}
 
+
+def _demo_app() -> typer.Typer:
+    from .demo._cli import demo_app
+
+    return demo_app
+
+
 app = typer.Typer(
     name="dyknow",
     help="DyKnow Federation tools.",
@@ -34,6 +41,7 @@ app = typer.Typer(
 )
 keys_app = typer.Typer(help="A platform's key pair and the federation's trust file.")
 app.add_typer(keys_app, name="keys")
+app.add_typer(_demo_app(), name="demo")
 
 _out = Console(highlight=False, soft_wrap=True)
 _err = Console(stderr=True, highlight=False, soft_wrap=True)
@@ -164,6 +172,24 @@ def node(config: ConfigOpt) -> None:
         raise _fail(str(exc)) from None
     except TransportError as exc:
         raise _fail(f"dyknow node: {config}: {exc}", 1) from None
+
+
+@app.command("console")
+def console(
+    config: ConfigOpt,
+    host: Annotated[str, typer.Option("--host", help="the address to serve on")] = "127.0.0.1",
+    port: Annotated[int, typer.Option("--port", help="the HTTP port (0: any free one)")] = 8080,
+) -> None:
+    """Run a platform with the operator web console (docs/console.md) until SIGINT/SIGTERM."""
+    from ._cli_net import run_console
+
+    cfg = _load(config)
+    try:
+        asyncio.run(run_console(cfg, str(config), host, port, _say))
+    except PlatformConfigError as exc:
+        raise _fail(str(exc)) from None
+    except (TransportError, OSError) as exc:
+        raise _fail(f"dyknow console: {config}: {exc}", 1) from None
 
 
 @app.command("router")
@@ -359,6 +385,134 @@ def stream(
             emit=emit,
         )
     )
+
+
+# -- record and replay --------------------------------------------------------------------------
+
+
+@app.command("record")
+def record(
+    label_names: Annotated[
+        list[str], typer.Argument(metavar="LABELS", help="semantic labels to record")
+    ],
+    config: ConfigOpt,
+    platform: Annotated[
+        str, typer.Option("--platform", "-p", help="the platform providing the labels")
+    ],
+    out: Annotated[Path, typer.Option("--out", "-o", help="the recording to write (.dkr)")],
+    duration: Annotated[
+        float | None, typer.Option("--duration", min=0.0, help="stop after S seconds")
+    ] = None,
+    count: Annotated[
+        int | None, typer.Option("--count", "-n", min=1, help="stop after N samples in all")
+    ] = None,
+    sample_period: Annotated[
+        float | None, typer.Option("--sample-period", help="seconds between samples")
+    ] = None,
+    wait: WaitOpt = 3.0,
+    timeout: Annotated[float, typer.Option(help="seconds to wait for the stream")] = 10.0,
+) -> None:
+    """Record streams of a platform to a file (Ctrl-C or SIGTERM stops, the file complete).
+
+    Creates the streams like 'dyknow stream' does and writes every sample that arrives
+    (value, valid and available time, semantic label) to OUT in batches flushed every
+    second, with a progress line on stderr. 'dyknow replay OUT' plays it back.
+    """
+    from ._record_cli import record_federation
+
+    _load(config)
+    if not out.parent.is_dir():
+        raise _fail(f"dyknow record: --out {out}: directory {out.parent} does not exist")
+    rec = _run_query(
+        record_federation(
+            str(config),
+            platform,
+            label_names,
+            out,
+            duration=duration,
+            count=count,
+            sample_period=sample_period,
+            wait=wait,
+            timeout=timeout,
+            progress=lambda line: print(line, file=sys.stderr, flush=True),
+        )
+    )
+    counts = ", ".join(f"{k}={n}" for k, n in sorted(rec.counts.items()))
+    _say(f"dyknow record: {rec.recorded} samples ({counts or '-'}) written to {out}")
+
+
+@app.command("replay")
+def replay_recording(
+    file: Annotated[Path, typer.Argument(help="the recording (.dkr)")],
+    kpl_spec: Annotated[
+        Path | None, typer.Option("--kpl", help="a KPL application to set up and feed")
+    ] = None,
+    print_labels: Annotated[
+        list[str] | None,
+        typer.Option("--print", help="a stream to print as it is produced (repeatable)"),
+    ] = None,
+    speed: Annotated[
+        float | None, typer.Option("--speed", help="1 = real time, 2 = twice as fast")
+    ] = None,
+    tail: Annotated[
+        float, typer.Option("--tail", min=0.0, help="seconds the clock runs on at the end")
+    ] = 0.0,
+    as_json: Annotated[bool, typer.Option("--json", help="one JSON object a line")] = False,
+    show_info: Annotated[
+        bool, typer.Option("--info", help="only show the header and per-label counts")
+    ] = False,
+) -> None:
+    """Replay a recording through a local instance on a manual clock (deterministic).
+
+    The clock is advanced to each sample's available time before it is pushed into a
+    source of its label, so the same recording always gives the same outputs; it runs
+    as fast as possible unless --speed is given. With --kpl the application is set up
+    first: recorded labels it declares as sources (or does not mention) are fed by the
+    recording, recorded labels it computes are recomputed, not fed. --print picks the
+    streams printed as they are produced (default: with --kpl every stream the recording
+    does not feed, without it the recorded samples). A summary ends the output.
+    """
+    from dyknow_core import RecordError
+
+    from ._record_cli import (
+        ReplayUsageError,
+        check_speed,
+        info,
+        info_lines,
+        print_sample,
+        run_replay,
+        summary_lines,
+    )
+
+    try:
+        if show_info:
+            data = info(file)
+            if as_json:
+                _say(json.dumps(data, indent=2, sort_keys=True, default=str))
+            else:
+                for line in info_lines(data):
+                    _say(line)
+            return
+        result = asyncio.run(
+            run_replay(
+                file,
+                kpl=kpl_spec,
+                prints=print_labels or None,
+                speed=check_speed(speed),
+                tail=tail,
+                emit=print_sample(as_json, _say),
+                warn=lambda line: print(line, file=sys.stderr, flush=True),
+            )
+        )
+    except (ReplayUsageError, RecordError) as exc:
+        raise _fail(str(exc)) from None
+    except Exception as exc:  # the user gets the reason, not a traceback
+        raise _fail(f"dyknow replay: {type(exc).__name__}: {exc}", 1) from None
+    if as_json:
+        _say(json.dumps({"summary": result}, sort_keys=True, default=str))
+    else:
+        for line in summary_lines(result):
+            _say(line)
 
 
 # -- entry point --------------------------------------------------------------------------------

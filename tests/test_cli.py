@@ -9,6 +9,7 @@ import socket
 import stat
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -219,3 +220,55 @@ def test_labels_ask_stream_against_a_producer(tmp_path: Path) -> None:
         assert rows[1]["value"] > rows[0]["value"]
     finally:
         _kill(producer)
+
+
+@pytest.mark.timeout(40)
+def test_console_serves_the_federation_it_sees(tmp_path: Path) -> None:
+    # `dyknow console`: the operator's platform with its web console (the compose files'
+    # operator runs it); the console lists the node it sees as a platform
+    import urllib.request
+
+    configs = _write_federation(tmp_path, _free_port())
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cmd = [sys.executable, "-m", "federation.cli"]
+    procs = [
+        subprocess.Popen(
+            [*cmd, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            env=env,
+        )
+        for args in (
+            ["node", "--config", str(configs["uav-a"])],
+            ["console", "--config", str(configs["operator"]), "--port", "0"],
+        )
+    ]
+    node, console = procs
+    try:
+        assert node.stdout is not None and console.stdout is not None
+        assert "ready" in node.stdout.readline()
+        ready = console.stdout.readline()  # bounded by the test's timeout
+        assert "operator ready in federation traffic: http://127.0.0.1:" in ready, (
+            console.stderr.read() if console.stderr else ""
+        )
+        url = ready.rsplit(": ", 1)[1].strip()
+        with urllib.request.urlopen(url, timeout=5) as page:
+            assert "operator console" in page.read().decode()
+        names: list[str] = []
+        for _ in range(100):  # the console learns members as they are seen
+            with urllib.request.urlopen(url + "api/state", timeout=5) as answer:
+                state = json.loads(answer.read())
+            names = [p["name"] for p in state["platforms"]]
+            if "uav-a" in names:
+                break
+            time.sleep(0.1)  # polling: the console has no event to await from here
+        assert "uav-a" in names
+        console.send_signal(signal.SIGINT)
+        out, err = console.communicate(timeout=10)
+        assert console.returncode == 0, err
+        assert "operator stopped" in out and "Traceback" not in err
+    finally:
+        for p in procs:
+            _kill(p)

@@ -1,0 +1,935 @@
+"""One UAV of the traffic demo: its own DyKnow instance and federation platform, one process.
+
+The local DyKnow application (never changed for the federation's sake):
+
+* the camera (`Camera` of the simulated world) gives vision percepts, relative to the UAV;
+* anchoring (`dyknow_core` classes and links): VisionObject → WorldObject (co-located with
+  the UAV's own position at capture time) → OnRoadObject (on a road for 10 s; kept while
+  not off-road for more than 5 s) → Car;
+* a tracker publishes each world object's state (``car/<object>/state``), the cars it
+  tracks (``tracker/cars``) and the qualitative relations between cars (behind, beside,
+  beside-fast, in-front) and crossing events as event streams;
+* chronicles recognize overtakes, reckless overtakes and turns in crossings; recognitions
+  become ``violation`` samples.
+
+The federation part: the `TrafficMonitor` agent takes part in the leader's delegation
+(global request for capabilities, Contract-Net per area). When a possible violation is
+about to leave this UAV's area, it asks the neighbour for the cars' states
+(``create-stream <object>-state sample-period 0.5``) and fuses them with its own; the
+neighbour anchors the object through `anchor_object` (get-trajectory from the asker, then
+match it among its own world objects) and exports its states as soon as it sees it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import re
+import signal
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Any
+
+from agents import (
+    ACLMessage,
+    Agent,
+    MessageTemplate,
+    Performative,
+    Refuse,
+    ServiceDescription,
+    Visibility,
+    contract_net,
+    on,
+    on_accept_proposal,
+    on_cfp,
+    on_request,
+    platform_of,
+)
+from agents._protocols import Proposal
+from dyknow_core import NS_PER_S, DyKnowInstance, Source
+from dyknow_core._anchoring import Anchoring, LinkType, ObjectClass, add_anchoring
+
+from .._platform import FederationPlatform, PlatformConfig
+from ._world import Camera, World
+
+__all__ = [
+    "BASE_S",
+    "SERVICE_TYPE",
+    "SimClock",
+    "TrafficMonitor",
+    "UavSettings",
+    "run_uav",
+]
+
+log = logging.getLogger(__name__)
+
+BASE_S = 1000.0
+"""Instance clock seconds at the demo's launch: sim times stay positive before it."""
+BASE_NS = int(BASE_S * NS_PER_S)
+SERVICE_TYPE = "traffic-monitoring"
+ONTOLOGY = "traffic-demo"
+PERIOD = 0.2  # s (sim): camera, anchoring and tracker period
+FRESH = 1.5  # s: a state older than this is no longer tracked
+FUSED_FRESH = 2.5  # s: imported states come on a 0.5 s grid, later
+HANDOVER_RANGE = 150.0  # m before the east border: ask the neighbour for the cars
+FAST = 1.2  # beside at more than FAST x the speed limit: reckless
+SAME_LANE, OTHER_LANE = 1.5, (2.0, 6.0)  # lateral offsets, m
+NEAR = (6.0, 40.0)  # longitudinal gap for behind / in front, m
+BESIDE = 10.0  # |dx| below which two cars in different lanes are beside
+MISSES = 3  # detections missed in a row before a percept is retired
+MATCH = 15.0  # m: an anchored object's predicted position vs a local world object
+OBJECT_STATE = re.compile(r"([A-Za-z0-9_]+)-state")
+RELATIONS = ("behind", "beside", "beside-fast", "in-front")
+CROSSING_EVENTS = ("enter", "turn", "pass")
+
+
+class SimClock:
+    """Simulated time shared by the demo's processes: ``speed`` x wall time since ``t0``.
+
+    Every process computes it from the same wall-clock origin, so their instances agree
+    (up to the hosts' clock skew, nil on one host).
+    """
+
+    __slots__ = ("_speed", "_t0")
+
+    def __init__(self, t0_wall_ns: int, speed: float = 1.0) -> None:
+        if speed <= 0 or not math.isfinite(speed):
+            raise ValueError(f"speed must be a positive number, got {speed}")
+        self._t0 = t0_wall_ns
+        self._speed = speed
+
+    def now(self) -> int:
+        """Instance time, ns: ``BASE_S`` at the launch."""
+        return BASE_NS + int((time.time_ns() - self._t0) * self._speed)
+
+    async def sleep_until(self, t: int) -> None:
+        """Sleep until instance time ``t``."""
+        wall = self._t0 + (t - BASE_NS) / self._speed
+        delay = (wall - time.time_ns()) / NS_PER_S
+        if delay > 0:
+            await asyncio.sleep(delay)
+
+
+@dataclass(frozen=True, slots=True)
+class UavSettings:
+    """What the demo's launcher tells one UAV process."""
+
+    config: dict[str, Any]  # the platform's config, as `PlatformConfig.from_dict` takes it
+    index: int
+    n_uavs: int
+    seed: int
+    duration: float
+    speed: float
+    t0_wall_ns: int
+    leader: str
+
+    @property
+    def name(self) -> str:
+        """The platform's name."""
+        return str(self.config["name"])
+
+
+# -- the tracker's small state, per object ----------------------------------------------------
+
+
+@dataclass(slots=True)
+class _Track:
+    """Recent positions of one world object (least squares over the last second)."""
+
+    points: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=6))
+    crossing: str | None = None
+    entry_road: str | None = None
+    last_road: str | None = None
+
+    def add(self, t: float, x: float, y: float) -> None:
+        if self.points and self.points[-1][0] >= t:
+            return
+        self.points.append((t, x, y))
+
+    def state(self, t: float) -> tuple[float, float, float, float] | None:
+        """Smoothed position at ``t`` and velocity: (x, y, vx, vy)."""
+        pts = self.points
+        n = len(pts)
+        if n < 2:
+            return None
+        mt = sum(p[0] for p in pts) / n
+        mx = sum(p[1] for p in pts) / n
+        my = sum(p[2] for p in pts) / n
+        var = sum((p[0] - mt) ** 2 for p in pts)
+        if var <= 0:
+            return None
+        vx = sum((p[0] - mt) * (p[1] - mx) for p in pts) / var
+        vy = sum((p[0] - mt) * (p[2] - my) for p in pts) / var
+        return mx + vx * (t - mt), my + vy * (t - mt), vx, vy
+
+
+def _state_dict(
+    x: float, y: float, vx: float, vy: float, colour: str | None, road: str | None
+) -> dict[str, Any]:
+    return {
+        "x": round(x, 2),
+        "y": round(y, 2),
+        "vx": round(vx, 2),
+        "vy": round(vy, 2),
+        "speed": round(math.hypot(vx, vy), 2),
+        "colour": colour,
+        "road": road,
+    }
+
+
+_OVERTAKE = {
+    "events": [
+        {"name": "behind", "event": "behind", "args": ["a", "b"]},
+        {"name": "beside", "event": "beside", "args": ["a", "b"]},
+        {"name": "ahead", "event": "ahead", "args": ["a", "b"]},
+    ],
+    "constraints": [
+        {"start": "behind", "end": "beside", "lo": 0, "hi": 20},
+        {"start": "beside", "end": "ahead", "lo": 0, "hi": 15},
+    ],
+}
+CHRONICLES: dict[str, tuple[dict[str, Any], dict[str, str]]] = {
+    "overtake": (
+        {"name": "overtake", **_OVERTAKE},
+        {"behind": "relations/behind", "beside": "relations/beside", "ahead": "relations/in-front"},
+    ),
+    "reckless-overtake": (
+        {"name": "reckless-overtake", **_OVERTAKE},
+        {
+            "behind": "relations/behind",
+            "beside": "relations/beside-fast",
+            "ahead": "relations/in-front",
+        },
+    ),
+    "turn": (
+        {
+            "name": "turn",
+            "events": [
+                {"name": "enter", "event": "enter", "args": ["car", "crossing"]},
+                {"name": "turn", "event": "turn", "args": ["car", "crossing"]},
+            ],
+            "constraints": [{"start": "enter", "end": "turn", "lo": 0, "hi": 30}],
+        },
+        {"enter": "crossing/enter", "turn": "crossing/turn"},
+    ),
+}
+"""The chronicles each UAV recognizes: definition and inputs (event name → label)."""
+
+
+def anchoring_model(world: World) -> tuple[list[ObjectClass], list[LinkType]]:
+    """The classes and links of the scenario: vision → world → on-road → car."""
+
+    def colocate(vo: dict[str, Any]) -> dict[str, Any]:
+        # the percept is relative to the UAV; its position at capture time anchors it
+        pixel, heli = vo.get("pixel"), vo.get("heli")
+        if pixel is None or heli is None:
+            return {}
+        x, y = heli[0] + pixel[0], heli[1] + pixel[1]
+        return {
+            "pos": (x, y, pixel[2]),  # with the capture time (world seconds)
+            "on_road": world.road_at(x, y) is not None,
+            "colour": vo["colour"],
+        }
+
+    classes = [
+        ObjectClass(
+            name="VisionObject",
+            prefix="vo",
+            features={
+                "pixel": "vo/{id}/pixel",
+                "heli": "vo/{id}/heli",
+                "colour": "vo/{id}/colour",
+                "confidence": "vo/{id}/confidence",
+            },
+            create="confidence > 0.5",
+            create_from="camera/objects",
+            maintain="confidence > 0.2",
+        ),
+        ObjectClass(
+            name="WorldObject",
+            prefix="car",
+            features={
+                "pos": "wo/{id}/pos",
+                "on_road": "wo/{id}/on_road",
+                "colour": "wo/{id}/colour",
+            },
+        ),
+        ObjectClass(
+            name="OnRoadObject",
+            base="WorldObject",
+            add="always[0,10] on_road",
+            maintain="eventually[0,5] on_road",
+        ),
+        ObjectClass(name="Car", base="OnRoadObject", add="on_road"),
+    ]
+    links = [
+        LinkType(
+            name="vo2wo",
+            from_class="VisionObject",
+            to_class="WorldObject",
+            establish="confidence > 0.5",
+            maintain="a_confidence > 0.2",
+            compute=colocate,
+        )
+    ]
+    return classes, links
+
+
+# -- the UAV's application ---------------------------------------------------------------------
+
+
+class UavApplication:
+    """The local DyKnow application of one UAV plus its handover logic (see the module)."""
+
+    def __init__(self, platform: FederationPlatform, settings: UavSettings, world: World) -> None:
+        self.platform = platform
+        self.settings = settings
+        self.world = world
+        self.name = platform.name
+        self.prefix = platform.name.replace("-", "_")
+        self.dk: DyKnowInstance = platform.instance
+        self.area: int | None = None
+        self.delegated_by: str | None = None
+        self.world_start: float | None = None  # instance seconds when world time is 0
+        self.camera: Camera | None = None
+        self.assigned = asyncio.Event()
+        self.sources: dict[str, Source] = {}
+        self.tracks: dict[str, _Track] = {}
+        self.relations: dict[tuple[str, str], str | None] = {}
+        self.last_states: dict[str, dict[str, Any]] = {}
+        self.handovers: dict[str, dict[str, Any]] = {}  # object -> {to, label, state}
+        self.anchored: dict[str, dict[str, Any]] = {}  # asked object -> {local, last, match}
+        self.recognitions: list[Any] = []
+        self.violations: list[dict[str, Any]] = []
+        self.missed: dict[str, int] = {}  # percept -> detections missed in a row
+        self.anchoring: Anchoring | None = None
+        self.tasks: set[asyncio.Task[Any]] = set()
+        self.assignments: dict[int, str] = {}
+        self.last_cars: list[str] = []
+        self.started = time.monotonic()
+
+    # -- set-up ----------------------------------------------------------------------------
+    def setup(self) -> None:
+        """Sources, anchoring, chronicles: before joining the federation."""
+        dk = self.dk
+        for label in (
+            "uav/self/position",
+            "uav/self/max-speed",
+            "uav/self/altitude",
+            "uav/self/area",
+            "camera/objects",
+            "tracker/cars",
+            "chronicle/violations",
+            *(f"relations/{r}" for r in RELATIONS),
+            *(f"crossing/{e}" for e in CROSSING_EVENTS),
+        ):
+            self.sources[label] = dk.add_source(label)
+        x, y, z = self.world.uav_position(self.settings.index, 0.0)
+        self.sources["uav/self/max-speed"].push(self.max_speed)
+        self.sources["uav/self/altitude"].push(z)
+        self.sources["uav/self/position"].push({"x": x, "y": y, "z": z})
+        classes, links = anchoring_model(self.world)
+        self.anchoring = add_anchoring(dk, classes, links, period=PERIOD)
+        for definition, inputs in CHRONICLES.values():
+            proc = dk.add_chronicle(definition, inputs)
+            dk.subscribe(proc.label, callback=self._on_recognitions)
+
+    @property
+    def max_speed(self) -> float:
+        """This UAV's top speed (m/s): differs per UAV so the leader has something to weigh."""
+        return 18.0 + 2.0 * self.settings.index
+
+    def _on_recognitions(self, batch: list[tuple[Any, int, int]]) -> None:
+        self.recognitions.extend(v for v, _, _ in batch)
+
+    def spawn(self, coro: Any, name: str) -> None:
+        """Run ``coro`` as an owned task (cancelled at shutdown, failures logged)."""
+        task = asyncio.get_running_loop().create_task(coro, name=f"{self.name}:{name}")
+        self.tasks.add(task)
+        task.add_done_callback(self._done)
+
+    def _done(self, task: asyncio.Task[Any]) -> None:
+        self.tasks.discard(task)
+        if not task.cancelled() and (exc := task.exception()) is not None:
+            log.error("%s: task %s failed: %r", self.name, task.get_name(), exc)
+
+    async def aclose(self) -> None:
+        """Cancel every task this application started."""
+        for task in list(self.tasks):
+            task.cancel()
+        await asyncio.gather(*self.tasks, return_exceptions=True)
+
+    # -- delegation ------------------------------------------------------------------------
+    def cost_of(self, area: int) -> float:
+        """Seconds to fly from here to ``area``'s centre at top speed."""
+        a = self.world.areas[area]
+        x, y, _ = self.world.uav_position(self.settings.index, 0.0)
+        return math.hypot((a.x0 + a.x1) / 2 - x, (a.y0 + a.y1) / 2 - y) / self.max_speed
+
+    def assign(self, area: int, world_start: float, delegated_by: str) -> None:
+        """Monitor ``area`` from instance time ``world_start`` (world time 0)."""
+        self.area = area
+        self.world_start = world_start
+        self.delegated_by = delegated_by
+        self.camera = Camera(self.world, area, seed=self.settings.seed)
+        self.assigned.set()
+        self._publish_area()
+
+    def _publish_area(self) -> None:
+        if self.area is None:
+            return
+        a = self.world.areas[self.area]
+        self.sources["uav/self/area"].push(
+            {"index": self.area, "polygon": a.polygon(), "delegated-by": self.delegated_by}
+        )
+
+    def world_time(self, t_ns: int) -> float:
+        """World (simulator) seconds at instance time ``t_ns``."""
+        assert self.world_start is not None
+        return t_ns / NS_PER_S - self.world_start
+
+    # -- the running application ---------------------------------------------------------
+    async def run(self) -> None:
+        """Heli state always; camera and tracker once an area is assigned."""
+        self.spawn(self._heli(), "heli")
+        await self.assigned.wait()
+        self.spawn(self._camera(), "camera")
+        self.spawn(self._tracker(), "tracker")
+
+    async def _heli(self) -> None:
+        clock = self.dk.clock
+        p = int(0.5 * NS_PER_S)
+        due = -(-clock.now() // p) * p
+        k = 0
+        while True:
+            await clock.sleep_until(due)
+            wt = self.world_time(due) if self.world_start is not None else 0.0
+            x, y, z = self.world.uav_position(self.settings.index, max(wt, 0.0))
+            self.sources["uav/self/position"].push(
+                {"x": round(x, 2), "y": round(y, 2), "z": round(z, 2)}, due
+            )
+            k += 1
+            if k % 4 == 0:
+                self._publish_area()
+            due += p
+
+    async def _camera(self) -> None:
+        clock = self.dk.clock
+        p = int(PERIOD * NS_PER_S)
+        due = -(-clock.now() // p) * p
+        camera = self.camera
+        assert camera is not None
+        while True:
+            await clock.sleep_until(due)
+            wt = self.world_time(due)
+            if wt > self.settings.duration + 5:
+                return
+            if wt >= 0:
+                self.sources["camera/objects"].push(self._percepts(camera, wt), due)
+            due += p
+
+    def _percepts(self, camera: Camera, wt: float) -> dict[str, Any]:
+        ux, uy, _ = self.world.uav_position(self.settings.index, wt)
+        heli = (round(ux, 3), round(uy, 3))
+        out: dict[str, Any] = {}
+        for vo in camera.observe(wt):
+            # the capture time travels with the pixel: a world position is only as new
+            # as the percept it was computed from
+            pixel = (round(vo.x - ux, 3), round(vo.y - uy, 3), round(wt, 3))
+            out[vo.vid] = {"pixel": pixel, "heli": heli, "colour": vo.colour, "confidence": 0.9}
+            self.missed[vo.vid] = 0
+        for vid in [v for v in self.missed if v not in out]:
+            # a missed detection lowers the confidence; three in a row retire the percept
+            n = self.missed[vid] = self.missed[vid] + 1
+            out[vid] = {"confidence": 0.0 if n >= MISSES else 0.9 - 0.25 * n}
+            if n >= MISSES:
+                del self.missed[vid]
+        return out
+
+    async def _tracker(self) -> None:
+        clock = self.dk.clock
+        p = int(PERIOD * NS_PER_S)
+        # half a period after the anchoring's grid point: its features are published
+        due = -(-clock.now() // p) * p + p // 2
+        k = 0
+        while True:
+            await clock.sleep_until(due)
+            try:
+                self.step(due, publish_cars=k % round(0.5 / PERIOD) == 0)
+            except Exception:
+                log.exception("%s: tracker step failed", self.name)
+            k += 1
+            due += p
+
+    # -- one tracker step --------------------------------------------------------------------
+    def step(self, t: int, *, publish_cars: bool) -> None:
+        """States, relations, crossing events, handovers and violations at instance time t."""
+        anch = self.anchoring
+        assert anch is not None
+        ts = t / NS_PER_S
+        wt = self.world_time(t)
+        states: dict[str, dict[str, Any]] = {}
+        for wid in anch.members("WorldObject"):
+            pos = self.dk.latest(f"wo/{wid}/pos").latest
+            if pos is None:
+                continue
+            x, y, captured = pos.value
+            if wt - captured > FRESH:
+                continue
+            track = self.tracks.setdefault(wid, _Track())
+            track.add(captured, x, y)
+            est = track.state(wt)
+            if est is None:
+                continue
+            colour = self.dk.latest(f"wo/{wid}/colour").latest
+            road = self.world.road_at(est[0], est[1])
+            state = _state_dict(*est, None if colour is None else colour.value, road)
+            obj = f"{self.prefix}_{wid}"
+            states[obj] = state
+            self._push(f"car/{obj}/state", state, t)
+        self._feed_anchored(states, t, ts)
+        cars = {f"{self.prefix}_{c}" for c in anch.members("Car")}
+        tracked = {o: s for o, s in states.items() if o in cars}
+        self.last_cars = sorted(tracked)
+        if publish_cars:
+            self.sources["tracker/cars"].push(
+                {
+                    "cars": [
+                        {"id": f"{self.name}/{o}", **{k: s[k] for k in _CAR_KEYS}}
+                        for o, s in sorted(tracked.items())
+                    ]
+                },
+                t,
+            )
+        for obj, h in self.handovers.items():
+            fused = h.get("label")
+            if obj in tracked or fused is None:
+                continue
+            s = self.dk.latest(fused).latest
+            if s is not None and ts - s.valid_time / NS_PER_S <= FUSED_FRESH:
+                tracked[obj] = s.value
+        self.last_states.update(tracked)
+        self._relations(tracked, t)
+        self._crossings(tracked, t)
+        self._violations()
+
+    def _push(self, label: str, value: Any, t: int) -> None:
+        src = self.sources.get(label)
+        if src is None:
+            src = self.sources[label] = self.dk.add_source(label)
+        src.push(value, t)
+
+    def _relations(self, cars: dict[str, dict[str, Any]], t: int) -> None:
+        names = sorted(cars)
+        for a in names:
+            sa = cars[a]
+            if sa["vx"] <= 0:
+                continue
+            for b in names:
+                if a == b:
+                    continue
+                sb = cars[b]
+                rel = self._relation(sa, sb)
+                key = (a, b)
+                if rel == self.relations.get(key) or rel is None:
+                    if rel is None and key in self.relations and self._far(sa, sb):
+                        del self.relations[key]
+                    continue
+                self.relations[key] = rel
+                self.sources[f"relations/{rel}"].push({"a": a, "b": b}, t)
+                if rel in ("beside", "beside-fast"):
+                    self._maybe_hand_over(a, b, sa, sb)
+
+    def _relation(self, a: dict[str, Any], b: dict[str, Any]) -> str | None:
+        dx, lat = a["x"] - b["x"], abs(a["y"] - b["y"])
+        if lat < SAME_LANE:
+            if -NEAR[1] < dx < -NEAR[0]:
+                return "behind"
+            if NEAR[0] < dx < NEAR[1]:
+                return "in-front"
+            return None
+        if OTHER_LANE[0] < lat < OTHER_LANE[1] and abs(dx) < BESIDE:
+            limit = self.world.speed_limit(a["road"]) if a.get("road") else None
+            if limit is not None and a["speed"] > FAST * limit:
+                return "beside-fast"
+            return "beside"
+        return None
+
+    @staticmethod
+    def _far(a: dict[str, Any], b: dict[str, Any]) -> bool:
+        return abs(a["x"] - b["x"]) > 2 * NEAR[1] or abs(a["y"] - b["y"]) > 2 * OTHER_LANE[1]
+
+    def _crossings(self, cars: dict[str, dict[str, Any]], t: int) -> None:
+        for obj, s in cars.items():
+            wid = obj.removeprefix(f"{self.prefix}_")
+            track = self.tracks.get(wid)
+            if track is None:
+                continue  # an imported (handed over) car: its crossings are its owner's
+            here = self.world.crossing_at(s["x"], s["y"])
+            if here is not None and track.crossing is None:
+                track.crossing, track.entry_road = here, track.last_road
+                self.sources["crossing/enter"].push({"car": obj, "crossing": here}, t)
+            elif here is None and track.crossing is not None:
+                # first seen inside the crossing: where it came from is unknown
+                if track.entry_road is not None and s["road"] is not None:
+                    kind = "turn" if s["road"] != track.entry_road else "pass"
+                    event = {"car": obj, "crossing": track.crossing}
+                    self.sources[f"crossing/{kind}"].push(event, t)
+                track.crossing = None
+            if here is None and s["road"] is not None:
+                track.last_road = s["road"]
+
+    # -- violations --------------------------------------------------------------------------
+    def _violations(self) -> None:
+        if not self.recognitions:
+            return
+        found, self.recognitions = self.recognitions, []
+        # a reckless overtake is also seen as beside (slow) by noise: report it once
+        found.sort(key=lambda r: r.chronicle != "reckless-overtake")
+        for rec in found:
+            b = rec.bindings
+            car, other = b.get("a", b.get("car")), b.get("b")
+            end = max(rec.times.values()) / NS_PER_S
+            start = min(rec.times.values()) / NS_PER_S
+            if rec.chronicle != "turn":
+                start = rec.times["beside"] / NS_PER_S
+            if any(
+                v["car"] == car and v["other"] == other and abs(v["end-instance"] - end) < 20
+                for v in self.violations
+                if v["kind"] in (rec.chronicle, "reckless-overtake")
+            ):
+                continue
+            where = self.last_states.get(str(car), {})
+            value = {
+                "kind": rec.chronicle,
+                "car": car,
+                "other": other,
+                "start": round(start - (self.world_start or 0.0), 2),
+                "end": round(end - (self.world_start or 0.0), 2),
+                "x": where.get("x"),
+                "y": where.get("y"),
+                "platform": self.name,
+                "fused": car in self.handovers or other in self.handovers,
+            }
+            self.violations.append({**value, "end-instance": end})
+            self.sources["chronicle/violations"].push(value, int(end * NS_PER_S))
+            log.info("%s: %s", self.name, value)
+
+    # -- handover: asking the neighbour -------------------------------------------------------
+    def _neighbour(self) -> str | None:
+        if self.area is None or self.area + 1 >= len(self.world.areas):
+            return None
+        return self.assignments.get(self.area + 1)
+
+    def _maybe_hand_over(self, a: str, b: str, sa: dict[str, Any], sb: dict[str, Any]) -> None:
+        if self.area is None:
+            return
+        border = self.world.areas[self.area].x1
+        neighbour = self._neighbour()
+        if neighbour is None or sa["vx"] <= 0 or border - sa["x"] > HANDOVER_RANGE:
+            return
+        for obj in (a, b):
+            if obj not in self.handovers and obj.startswith(self.prefix + "_"):
+                self.handovers[obj] = {"to": neighbour, "asked": time.monotonic()}
+                self.spawn(self._hand_over(obj, neighbour), f"handover:{obj}")
+
+    async def _hand_over(self, obj: str, neighbour: str) -> None:
+        semantic = f"{obj}-state"
+        fed = self.platform.federation_agent
+        h = self.handovers[obj]
+        try:
+            h["export"] = await fed.create_stream(
+                neighbour, [semantic], sample_period=0.5, timeout=10.0
+            )
+            h["agreed"] = time.monotonic()
+            fusion = await self.platform.fuse(
+                semantic, neighbour, f"fused/{obj}/state", window=0.3, timeout=60.0
+            )
+            h["label"] = fusion.label
+            h["first-import"] = time.monotonic()
+            log.info("%s: %s handed over to %s", self.name, obj, neighbour)
+        except Exception as exc:
+            h["error"] = str(exc)
+            log.warning("%s: handover of %s to %s failed: %s", self.name, obj, neighbour, exc)
+
+    # -- handover: asked by the neighbour ------------------------------------------------------
+    async def anchor_object(self, semantic: str, local: str, requester: str) -> bool:
+        """Anchor another UAV's object: its trajectory, then look for it among ours."""
+        m = OBJECT_STATE.fullmatch(semantic)
+        if m is None or self.anchoring is None:
+            return False
+        fed = self.platform.federation_agent
+        answer = await fed.request_from(
+            requester,
+            {"action": "get-trajectory", "labels": [semantic], "from": -120, "relative": True},
+            timeout=5.0,
+        )
+        samples = answer.get(semantic, {}).get("samples", [])
+        if not samples:
+            return False
+        value, valid = samples[-1][0], samples[-1][1]
+        if local not in self.sources:
+            self.sources[local] = self.dk.add_source(local)
+        self.anchored[m.group(1)] = {
+            "local": local,
+            "last": value,
+            "valid": float(valid),
+            "trajectory": len(samples),
+            "from": requester,
+            "match": None,
+            "asked": time.monotonic(),
+        }
+        log.info(
+            "%s: anchoring %s from %s (%d samples)", self.name, semantic, requester, len(samples)
+        )
+        return True
+
+    def _feed_anchored(self, states: dict[str, dict[str, Any]], t: int, ts: float) -> None:
+        for a in self.anchored.values():
+            match = a["match"]
+            if match is None or match not in states:
+                match = a["match"] = self._find(a, states, ts)
+                if match is not None:
+                    a.setdefault("matched", time.monotonic())
+                    log.info("%s: anchored %s as our %s", self.name, a["local"], match)
+            if match is not None:
+                self.sources[a["local"]].push(states[match], t)
+
+    @staticmethod
+    def _find(a: dict[str, Any], states: dict[str, dict[str, Any]], ts: float) -> str | None:
+        last, dt = a["last"], ts - a["valid"]
+        px, py = last["x"] + last["vx"] * dt, last["y"] + last["vy"] * dt
+        best, best_d = None, MATCH
+        for obj, s in states.items():
+            if last.get("colour") is not None and s.get("colour") != last["colour"]:
+                continue
+            d = math.hypot(s["x"] - px, s["y"] - py)
+            if d < best_d:
+                best, best_d = obj, d
+        return best
+
+    # -- the report ----------------------------------------------------------------------------
+    def status(self) -> dict[str, Any]:
+        """A short progress line's worth: area, cars now, violations so far."""
+        return {
+            "area": self.area,
+            "world-time": None
+            if self.world_start is None
+            else round(self.world_time(self.dk.clock.now()), 1),
+            "cars": len(self.last_cars),
+            "violations": len(self.violations),
+            "handovers": len(self.handovers),
+            "anchored": sum(1 for a in self.anchored.values() if a["match"] is not None),
+        }
+
+    def report(self) -> dict[str, Any]:
+        """What this UAV did, for the demo's final report."""
+        stats = self.platform.agents.stats
+        metrics = self.dk.metrics()
+        delays = [
+            [m.get("delay_p50"), m.get("delay_p99")]
+            for label, m in metrics.items()
+            if label.startswith("import/")
+        ]
+        return {
+            "name": self.name,
+            "area": self.area,
+            "delegated-by": self.delegated_by,
+            "violations": [
+                {k: v for k, v in x.items() if k != "end-instance"} for x in self.violations
+            ],
+            "cars-tracked": len({c for c in self.tracks}),
+            "handovers": {
+                o: {k: v for k, v in h.items() if k in ("to", "export", "error")}
+                | {
+                    "agreed-after": _since(h, "agreed"),
+                    "first-import-after": _since(h, "first-import"),
+                }
+                for o, h in self.handovers.items()
+            },
+            "anchored": {
+                o: {
+                    "from": a["from"],
+                    "trajectory": a["trajectory"],
+                    "match": a["match"],
+                    "matched-after": _since(a, "matched"),
+                }
+                for o, a in self.anchored.items()
+            },
+            "exports": len(self.platform.federation_agent.exports),
+            "imports": sum(1 for label in metrics if label.startswith("import/")),
+            "acl": {"sent": stats.sent_remote, "received": stats.received_remote},
+            "import-delay": delays,
+        }
+
+
+_CAR_KEYS = ("x", "y", "speed", "colour", "road")
+
+
+def _since(d: dict[str, Any], key: str) -> float | None:
+    if key not in d:
+        return None
+    return round(float(d[key]) - float(d["asked"]), 3)
+
+
+# -- the agent -----------------------------------------------------------------------------
+
+
+class TrafficMonitor(Agent):
+    """The UAV's monitoring service: leads the delegation, or bids for an area."""
+
+    def __init__(self, app: UavApplication) -> None:
+        super().__init__("traffic")
+        self.app = app
+
+    async def setup(self) -> None:
+        """Listed in the global directory: the leader finds the UAVs through it."""
+        assert self.platform.df is not None
+        await self.platform.df.register(
+            ServiceDescription(
+                name="traffic-monitoring",
+                type=SERVICE_TYPE,
+                provider=self.aid,
+                visibility=Visibility.PUBLIC,
+            )
+        )
+
+    @on_request(ONTOLOGY, concurrent=True)
+    async def _monitor(self, message: ACLMessage) -> Any:
+        """``monitor`` (the leader's job: delegation), ``status`` or ``report``."""
+        content = message.content
+        action = content.get("action") if isinstance(content, dict) else None
+        if action == "monitor":
+            return await self.delegate()
+        if action == "status":
+            return self.app.status()
+        if action == "report":
+            return self.app.report()
+        raise Refuse(f"unknown action {action!r} (monitor, status or report)")
+
+    async def delegate(self) -> dict[str, Any]:
+        """Global request for capabilities, then one Contract-Net per area."""
+        app = self.app
+        fed = app.platform.federation_agent
+        caps = await fed.global_request(
+            {"action": "get-latest", "labels": ["heli-max-speed", "heli-altitude"]},
+            deadline=3.0,
+        )
+        gdf = self.platform.global_df
+        assert gdf is not None
+        participants = sorted(
+            {s.provider for s in gdf.search(type=SERVICE_TYPE)} | {self.aid},
+        )
+        world_start = app.dk.clock.now() / NS_PER_S + max(2.0, 2.0 * app.settings.speed)
+        assignments: dict[int, str] = {}
+        for area in range(len(app.world.areas)):
+            result = await contract_net(
+                self,
+                participants,
+                {"task": "monitor-area", "area": area, "start": world_start},
+                deadline=2.0,
+                select=_cheapest,
+                ontology=ONTOLOGY,
+            )
+            for p in result.accepted:
+                assignments[area] = p.participant.split("@", 1)[1]
+                participants.remove(p.participant)
+        # everyone learns who watches which area (the handover needs its neighbour)
+        for aid in {f"traffic@{p}" for p in assignments.values()}:
+            with contextlib.suppress(Exception):
+                await self.send(
+                    self.message(
+                        Performative.INFORM,
+                        aid,
+                        {"assignments": {str(k): v for k, v in assignments.items()}},
+                        ontology=ONTOLOGY,
+                    )
+                )
+        return {
+            "assignments": {str(k): v for k, v in assignments.items()},
+            "start": world_start,
+            "capabilities": {p: a for p, a in caps.answers.items()},
+            "silent": caps.no_answer,
+            "refused": caps.refused,
+        }
+
+    @on_cfp(ONTOLOGY)
+    async def _bid(self, cfp: ACLMessage) -> Any:
+        """Bid the flying time to the area; refuse when already monitoring one."""
+        c: Any = cfp.content
+        if not isinstance(c, dict) or not isinstance(c.get("area"), int):
+            raise Refuse("expected {'task': 'monitor-area', 'area': int}")
+        if self.app.area is not None:
+            raise Refuse(f"monitoring area {self.app.area} already")
+        if not 0 <= c["area"] < len(self.app.world.areas):
+            raise Refuse(f"no area {c['area']}")
+        start = c.get("start")
+        if not isinstance(start, (int, float)):
+            raise Refuse("expected the world's start time ('start')")
+        return {"area": c["area"], "cost": round(self.app.cost_of(c["area"]), 3), "start": start}
+
+    @on_accept_proposal(ONTOLOGY)
+    async def _accepted(self, message: ACLMessage) -> Any:
+        """Monitor the area from the leader's world start."""
+        c: Any = message.content  # our own proposal, accepted
+        assert isinstance(c, dict)
+        self.app.assign(int(c["area"]), float(c["start"]), platform_of(message.sender))
+        return {"monitoring": c["area"]}
+
+    @on(MessageTemplate(Performative.INFORM, ontology=ONTOLOGY))
+    async def _assignments(self, message: ACLMessage) -> None:
+        """Who watches which area: the leader tells everyone once all are delegated."""
+        c: Any = message.content
+        if isinstance(c, dict) and isinstance(c.get("assignments"), dict):
+            self.app.assignments = {int(k): str(v) for k, v in c["assignments"].items()}
+
+
+def _cheapest(proposals: list[Proposal]) -> list[Proposal]:
+    if not proposals:
+        return []
+    return [min(proposals, key=lambda p: (_cost(p), p.participant))]
+
+
+def _cost(p: Proposal) -> float:
+    c: Any = p.content
+    return float(c["cost"]) if isinstance(c, dict) and "cost" in c else math.inf
+
+
+# -- the process -----------------------------------------------------------------------------
+
+
+def run_uav(settings: UavSettings) -> None:
+    """A UAV process's main: run until SIGTERM/SIGINT, then write its report."""
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(name)s %(message)s")
+    asyncio.run(_main(settings))
+
+
+async def _main(settings: UavSettings) -> None:
+    config = PlatformConfig.from_dict(settings.config, source=settings.name)
+    world = World.generate(settings.seed, settings.n_uavs, settings.duration)
+    clock = SimClock(settings.t0_wall_ns, settings.speed)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    app_box: list[UavApplication] = []
+
+    async def anchor(semantic: str, local: str, requester: str) -> bool:
+        return await app_box[0].anchor_object(semantic, local, requester)
+
+    instance = DyKnowInstance(config.name, clock=clock)
+    async with (
+        instance,
+        FederationPlatform(config, instance=instance, join=False, anchor=anchor) as platform,
+    ):
+        app = UavApplication(platform, settings, world)
+        app_box.append(app)
+        app.setup()
+        await platform.agents.add(TrafficMonitor(app))
+        await platform.join()
+        app.spawn(app.run(), "run")
+        await stop.wait()
+        await app.aclose()

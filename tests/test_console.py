@@ -1,0 +1,457 @@
+"""The operator console's backend, over HTTP, against a small federation in one process.
+
+The operator (with its `OperatorConsole`) and two fake UAVs share a `MemoryHub`; each UAV
+publishes the demo's local labels (`federation.demo._vocabulary`) from a pusher task.
+The tests read the model as the page does (Server-Sent Events from ``/api/events``) and
+drive the query, search, policy and observation endpoints, good input and bad.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import aiohttp
+import pytest
+
+from agents.keys import gen_keys, trust_keys
+from agents.transports import MemoryHub
+from dyknow_core import Source
+from federation import FederationPlatform, PlatformConfig
+from federation.demo._console import STREAM_LABELS, OperatorConsole
+from federation.demo._vocabulary import local_mapping, vocabulary
+
+WAIT = 10.0  # the bound on any single wait
+PUSH = 0.05  # s between two samples of a fake UAV (20 Hz)
+UAVS = ["uav-a", "uav-b"]
+WORLD = {
+    "width": 1000,
+    "height": 600,
+    "roads": [{"id": "r1", "a": [0, 300], "b": [1000, 300], "speed_limit": 14, "lanes": 2}],
+    "crossings": [{"id": "c1", "x": 500, "y": 300, "radius": 12, "roads": ["r1"]}],
+    "areas": [{"index": 0, "polygon": [[0, 0], [500, 0], [500, 600], [0, 600]]}],
+}
+
+
+def config(tmp_path: Path, name: str) -> PlatformConfig:
+    """A platform of the federation ``demo`` with the traffic demo's labels."""
+    return PlatformConfig.from_dict(
+        {
+            "name": name,
+            "federation": "demo",
+            "key": str(tmp_path / "keys" / f"{name}.key"),
+            "trust": str(tmp_path / "trust.json"),
+            "vocabulary": vocabulary(),
+            "mapping": local_mapping(),
+        }
+    )
+
+
+@pytest.fixture
+def demo_keys(tmp_path: Path) -> Path:
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in ["operator", *UAVS, "uav-c"]]
+    trust_keys(tmp_path / "trust.json", pubs, federation="demo")
+    return tmp_path
+
+
+@dataclass
+class FakeUav:
+    """A UAV's demo streams, pushed at 20 Hz: it flies east, tracks two cars."""
+
+    platform: FederationPlatform
+    index: int
+    sources: dict[str, Source] = field(default_factory=dict)
+    violations: list[dict[str, Any]] = field(default_factory=list)
+    k: int = 0
+
+    def __post_init__(self) -> None:
+        labels = self.platform.labels
+        for semantic in STREAM_LABELS:
+            local = labels.to_local(semantic)
+            self.sources[semantic] = self.platform.instance.add_source(local)
+
+    @property
+    def name(self) -> str:
+        return self.platform.name
+
+    def push(self) -> None:
+        self.k += 1
+        x0 = 500.0 * self.index
+        s = self.sources
+        s["heli-position"].push({"x": x0 + 250 + self.k % 50, "y": 300.0, "z": 60.0})
+        s["area"].push(
+            {
+                "index": self.index,
+                "polygon": [[x0, 0], [x0 + 500, 0], [x0 + 500, 600], [x0, 600]],
+                "delegated-by": None,
+            }
+        )
+        cars = [
+            {"id": f"{self.name}/car{i}", "x": x0 + 10 * i + self.k % 400, "y": 300.0,
+             "speed": 12.5, "colour": "red", "road": "r1"}
+            for i in (1, 2)
+        ]  # fmt: skip
+        s["tracked-cars"].push({"cars": cars})
+        for v in self.violations:
+            s["violation"].push(v)
+        self.violations.clear()
+
+    async def run(self) -> None:
+        while True:
+            self.push()
+            await asyncio.sleep(PUSH)
+
+
+@dataclass
+class Federation:
+    """The operator with its console, the fake UAVs, a way to start and to stop one."""
+
+    hub: MemoryHub
+    keys: Path
+    operator: FederationPlatform
+    uavs: dict[str, FakeUav] = field(default_factory=dict)
+    stacks: dict[str, contextlib.AsyncExitStack] = field(default_factory=dict)
+    console: OperatorConsole | None = None
+
+    @property
+    def url(self) -> str:
+        assert self.console is not None
+        return self.console.url
+
+    async def start(self, name: str, index: int, *, streams: bool = True) -> FederationPlatform:
+        """A UAV joins (``streams=False``: one without the demo's streams, for now)."""
+        async with contextlib.AsyncExitStack() as own:
+            t = await own.enter_async_context(self.hub.transport())
+            p = await own.enter_async_context(
+                FederationPlatform(config(self.keys, name), transport=t, join=False)
+            )
+            if streams:
+                uav = self.uavs[name] = FakeUav(p, index)
+                pusher = asyncio.create_task(uav.run(), name=f"test.push[{name}]")
+                own.push_async_callback(_cancelled, pusher)
+            await p.join()
+            self.stacks[name] = own.pop_all()
+        return p
+
+    async def stop(self, name: str) -> None:
+        """The UAV goes (its transport closes: its liveliness token goes)."""
+        await self.stacks.pop(name).aclose()
+
+    async def aclose(self) -> None:
+        for name in list(self.stacks):
+            await self.stop(name)
+
+
+@contextlib.asynccontextmanager
+async def console_federation(tmp_path: Path, **options: Any) -> AsyncIterator[Federation]:
+    """Operator + console + fake UAVs on one MemoryHub, every UAV listed by the operator."""
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack:
+        async with asyncio.timeout(WAIT):
+            t = await stack.enter_async_context(hub.transport())
+            operator = await stack.enter_async_context(
+                FederationPlatform(config(tmp_path, "operator"), transport=t)
+            )
+            fed = Federation(hub, tmp_path, operator)
+            stack.push_async_callback(fed.aclose)
+            async with operator.membership() as events:
+                for i, name in enumerate(UAVS):
+                    await fed.start(name, i)
+                while not set(UAVS) <= set(operator.members):
+                    await events.get()
+            fed.console = await stack.enter_async_context(
+                OperatorConsole(operator, world_map=WORLD, **options)
+            )
+        yield fed
+
+
+async def _cancelled(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+
+
+async def until_state(
+    http: aiohttp.ClientSession,
+    url: str,
+    want: Callable[[dict[str, Any]], bool],
+    timeout: float = WAIT,
+) -> dict[str, Any]:
+    """The first model pushed on ``/api/events`` that ``want`` accepts."""
+    last: dict[str, Any] = {}
+    try:
+        async with asyncio.timeout(timeout), http.get(url + "api/events") as r:
+            assert r.headers["Content-Type"].startswith("text/event-stream")
+            async for line in r.content:
+                if line.startswith(b"data: "):
+                    last = json.loads(line[6:])
+                    if want(last):
+                        return last
+    except TimeoutError:
+        pass
+    raise AssertionError(f"the console never showed it; last state: {json.dumps(last)[:2000]}")
+
+
+def platform(state: dict[str, Any], name: str) -> dict[str, Any]:
+    return next(p for p in state["platforms"] if p["name"] == name)
+
+
+def stream(state: dict[str, Any], name: str, label: str) -> dict[str, Any]:
+    return next(s for s in platform(state, name)["streams"] if s["label"] == label)
+
+
+def filled(state: dict[str, Any], name: str) -> bool:
+    """Every stream of ``name`` active, its position, area and cars known."""
+    p = next((p for p in state["platforms"] if p["name"] == name), None)
+    return (
+        p is not None
+        and p["state"] == "alive"
+        and all(s["state"] == "active" for s in p["streams"])
+        and p["position"] is not None
+        and p["area"] is not None
+        and len(p["cars"]) == 2
+    )
+
+
+async def post(http: aiohttp.ClientSession, url: str, body: Any) -> tuple[int, Any]:
+    data = body if isinstance(body, str) else json.dumps(body)
+    async with http.post(url, data=data, headers={"Content-Type": "application/json"}) as r:
+        return r.status, await r.json()
+
+
+# -- the model -------------------------------------------------------------------------------
+
+
+async def test_state_fills_in_and_a_uav_that_goes_is_shown_gone(demo_keys: Path) -> None:
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        url = fed.url
+        assert url.startswith("http://127.0.0.1:")
+        async with http.get(url) as r:
+            assert r.status == 200 and "<canvas" in await r.text()
+        for name in ("app.js", "style.css"):
+            async with http.get(url + f"static/{name}") as r:
+                assert r.status == 200, name
+
+        state = await until_state(http, url, lambda s: all(filled(s, n) for n in UAVS))
+        assert state["operator"] == "operator" and state["world"] == WORLD
+        assert [p["name"] for p in state["platforms"]] == UAVS  # not the operator itself
+        a = platform(state, "uav-a")
+        assert {c["id"] for c in a["cars"]} == {"uav-a/car1", "uav-a/car2"}
+        assert a["area"]["polygon"][1] == [500.0, 0.0] and a["position"]["z"] == 60.0
+        assert a["samples"] > 0 and a["last"] is not None
+        assert [s["label"] for s in a["streams"]] == list(STREAM_LABELS)
+        assert all(s["export_id"] and s["sample_period"] is None for s in a["streams"])
+        exports = fed.uavs["uav-a"].platform.federation_agent.exports
+        assert {s["export_id"] for s in a["streams"]} == set(exports)
+
+        # a violation is listed, newest first, with who reported it
+        v = {"kind": "reckless-overtake", "car": "uav-a/car1", "other": "uav-a/car2",
+             "start": 1.0, "end": 2.0, "x": 120.0, "y": 300.0, "platform": "uav-a",
+             "fused": False}  # fmt: skip
+        fed.uavs["uav-a"].violations.append(v)
+        state = await until_state(http, url, lambda s: len(s["violations"]) == 1)
+        assert state["violations"][0]["kind"] == "reckless-overtake"
+        assert state["violations"][0]["reported-by"] == "uav-a"
+        fed.uavs["uav-a"].violations.append({**v, "kind": "overtake"})
+        state = await until_state(http, url, lambda s: len(s["violations"]) == 2)
+        assert [x["kind"] for x in state["violations"]] == ["overtake", "reckless-overtake"]
+
+        # uav-b goes: kept on the list as gone, its cars off the map; uav-a carries on
+        await fed.stop("uav-b")
+        state = await until_state(http, url, lambda s: platform(s, "uav-b")["state"] == "gone")
+        b = platform(state, "uav-b")
+        assert b["cars"] == [] and all(s["state"] == "ended" for s in b["streams"])
+        assert platform(state, "uav-a")["state"] == "alive"
+        async with http.get(url + "api/state") as r:
+            assert r.status == 200 and platform(await r.json(), "uav-b")["state"] == "gone"
+
+
+async def test_a_uav_that_comes_back_is_alive_and_streams_again(demo_keys: Path) -> None:
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        url = fed.url
+        state = await until_state(http, url, lambda s: filled(s, "uav-b"))
+        samples = platform(state, "uav-b")["samples"]
+        await fed.stop("uav-b")
+        await until_state(http, url, lambda s: platform(s, "uav-b")["state"] == "gone")
+        await fed.start("uav-b", 1)  # the same name again: a restarted process
+        state = await until_state(
+            http, url, lambda s: filled(s, "uav-b") and platform(s, "uav-b")["samples"] > samples
+        )
+        exports = fed.uavs["uav-b"].platform.federation_agent.exports
+        assert {s["export_id"] for s in platform(state, "uav-b")["streams"]} == set(exports)
+
+
+# -- the requests ----------------------------------------------------------------------------
+
+
+async def test_query_returns_samples_and_bad_queries_name_the_field(demo_keys: Path) -> None:
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        url = fed.url
+        await until_state(http, url, lambda s: filled(s, "uav-a"))
+        q = url + "api/query"
+        status, latest = await post(http, q, {"platform": "uav-a", "label": "tracked-cars"})
+        assert status == 200, latest
+        assert latest["kind"] == "latest" and len(latest["samples"]) == 1
+        sample = latest["samples"][0]
+        assert {c["id"] for c in sample["value"]["cars"]} == {"uav-a/car1", "uav-a/car2"}
+        assert math.isclose(sample["valid"], latest["query_time"], abs_tol=2.0)
+
+        status, at = await post(
+            http, q, {"platform": "uav-a", "label": "heli-position", "kind": "at", "at": -0.1}
+        )
+        assert status == 200 and len(at["samples"]) == 1
+        assert at["samples"][0]["valid"] <= at["query_time"] - 0.1
+        status, between = await post(
+            http,
+            q,
+            {"platform": "uav-a", "label": "area", "kind": "between", "from": -1, "to": 0},
+        )
+        assert status == 200 and len(between["samples"]) >= 2  # 20 Hz for a second
+        assert all(
+            between["query_time"] - 1 <= s["valid"] <= between["query_time"]
+            for s in between["samples"]
+        )
+
+        bad = {
+            "platform": {"label": "area"},
+            "label": {"platform": "uav-a", "label": "weather"},
+            "kind": {"platform": "uav-a", "label": "area", "kind": "soon"},
+            "at": {"platform": "uav-a", "label": "area", "kind": "at", "at": "yesterday"},
+            "from": {"platform": "uav-a", "label": "area", "kind": "between", "from": True},
+        }
+        for key, body in bad.items():
+            status, answer = await post(http, q, body)
+            assert status == 400 and answer["error"].startswith(f"{key}: "), (key, answer)
+        status, answer = await post(http, q, {"platform": "uav-z", "label": "area"})
+        assert status == 400 and "uav-z" in answer["error"]
+        for body in ("{not json", "[1, 2]"):
+            status, answer = await post(http, q, body)
+            assert status == 400 and answer["error"].startswith("body: "), answer
+
+        # the platform refuses: it has no stream for that label
+        status, answer = await post(http, q, {"platform": "uav-a", "label": "heli-altitude"})
+        assert status == 502 and "heli-altitude" in answer["error"], answer
+
+
+async def test_label_search_asks_every_platform(demo_keys: Path) -> None:
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        url = fed.url + "api/search"
+        status, answer = await post(http, url, {"formula": "(all ?x (Car ?x))"})
+        assert status == 200, answer
+        assert sorted(answer["answers"]) == ["operator", *UAVS]
+        assert answer["refused"] == {} and answer["no_answer"] == []
+        for body in ({"formula": "(all ?x (Car ?x)"}, {"formula": ""}, {"formula": 3}, {}):
+            status, answer = await post(http, url, body)
+            assert status == 400 and answer["error"].startswith("formula: "), (body, answer)
+
+
+async def test_policy_change_recreates_the_export_and_the_rate_follows(demo_keys: Path) -> None:
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        url = fed.url
+        state = await until_state(http, url, lambda s: filled(s, "uav-a"))
+        old_id = stream(state, "uav-a", "tracked-cars")["export_id"]
+        body = {"platform": "uav-a", "label": "tracked-cars", "sample_period": 0.5}
+        status, answer = await post(http, url + "api/policy", body)
+        assert status == 200, answer
+        assert answer["stream"]["sample_period"] == 0.5
+        new_id = answer["stream"]["export_id"]
+        assert new_id != old_id
+        exports = fed.uavs["uav-a"].platform.federation_agent.exports
+        assert old_id not in exports and exports[new_id].policy.sample_period is not None
+
+        # the rate follows: 20 Hz pushed, about 2 samples a second arrive now
+        state = await until_state(
+            http, url, lambda s: stream(s, "uav-a", "tracked-cars")["samples"] > 0
+        )
+        before = stream(state, "uav-a", "tracked-cars")["samples"]
+        await asyncio.sleep(2.0)  # a measurement window, not a wait for an event
+        async with http.get(url + "api/state") as r:
+            after = stream(await r.json(), "uav-a", "tracked-cars")
+        assert after["sample_period"] == 0.5
+        assert 1 <= after["samples"] - before <= 7, after  # 20 Hz would be ~40
+
+        bad = {
+            "platform": {"platform": "uav-z", "label": "area", "sample_period": 1},
+            "label": {"platform": "uav-a", "label": "weather", "sample_period": 1},
+            "sample_period": {"platform": "uav-a", "label": "area", "sample_period": -1},
+        }
+        for key, body in bad.items():
+            status, answer = await post(http, url + "api/policy", body)
+            assert status == 400 and answer["error"].startswith(f"{key}: "), (key, answer)
+        status, answer = await post(
+            http, url + "api/policy", {"platform": "uav-a", "label": "area"}
+        )
+        assert status == 400 and answer["error"].startswith("sample_period: missing")
+        # back to every sample
+        body = {"platform": "uav-a", "label": "tracked-cars", "sample_period": None}
+        status, answer = await post(http, url + "api/policy", body)
+        assert status == 200 and answer["stream"]["sample_period"] is None
+
+
+async def test_an_observation_enters_the_instance_and_the_map(demo_keys: Path) -> None:
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        url = fed.url
+        body = {"x": 120.5, "y": 300, "text": "a car stopped on the bridge"}
+        status, answer = await post(http, url + "api/observation", body)
+        assert status == 200, answer
+        state = await until_state(http, url, lambda s: len(s["observations"]) == 1)
+        assert state["observations"][0]["text"] == "a car stopped on the bridge"
+        assert state["observations"][0]["x"] == 120.5
+        # in the instance like any other sample: the operator's own stream, queryable
+        latest = fed.operator.instance.latest("operator/observations").samples[0]
+        assert latest.value == {"x": 120.5, "y": 300.0, "text": "a car stopped on the bridge"}
+        status, answer = await post(
+            http, url + "api/query", {"platform": "operator", "label": "observation"}
+        )
+        assert status == 200, answer
+        assert answer["samples"][0]["value"]["text"] == "a car stopped on the bridge"
+        # and the UAVs can ask for it too
+        seen = await fed.uavs["uav-a"].platform.federation_agent.request_from(
+            "operator", {"action": "get-latest", "labels": ["observation"]}, timeout=WAIT
+        )
+        assert seen["observation"]["samples"][0][0]["x"] == 120.5
+
+        bad = {
+            "x": {"x": "left", "y": 1, "text": "t"},
+            "y": {"x": 1, "text": "t"},
+            "text": {"x": 1, "y": 1, "text": "   "},
+        }
+        for key, b in bad.items():
+            status, answer = await post(http, url + "api/observation", b)
+            assert status == 400 and answer["error"].startswith(f"{key}: "), (key, answer)
+
+
+async def test_a_refused_stream_is_shown_and_asked_again(demo_keys: Path) -> None:
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        url = fed.url
+        # a platform without the demo's streams joins: refused, shown, not fatal
+        bare = await fed.start("uav-c", 2, streams=False)
+        state = await until_state(
+            http,
+            url,
+            lambda s: (
+                any(p["name"] == "uav-c" for p in s["platforms"])
+                and all(x["state"] == "refused" for x in platform(s, "uav-c")["streams"])
+            ),
+        )
+        refused = stream(state, "uav-c", "tracked-cars")
+        assert "tracked-cars" in refused["error"] and "no stream" in refused["error"]
+        assert filled(state, "uav-a")  # the others stream on
+        # once it has them, the console's next attempt gets them
+        uav = fed.uavs["uav-c"] = FakeUav(bare, 2)
+        pusher = asyncio.create_task(uav.run(), name="test.push[uav-c]")
+        try:
+            await until_state(http, url, lambda s: filled(s, "uav-c"))
+        finally:
+            await _cancelled(pusher)
+
+
+def test_console_refuses_a_nonsense_sample_period(demo_keys: Path) -> None:
+    with pytest.raises(ValueError, match="sample_period"):
+        OperatorConsole(FederationPlatform(config(demo_keys, "operator")), sample_period=0)

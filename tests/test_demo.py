@@ -1,0 +1,210 @@
+"""The traffic monitoring demo: one UAV's application offline, the handover hook, the whole run.
+
+The offline tests drive one UAV's local DyKnow application on a ManualClock through the
+simulated world (no federation): what it recognizes must be the simulator's scripted
+events of its area, and the same twice. The federation tests run platforms in one process
+(MemoryHub) for the anchoring hook, and the real demo (UAV processes over zenoh) for the
+paper's exchange: the reckless overtake that crosses from one area into the next is found
+by the UAV that never saw its end, from states fused with the neighbour's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import types
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from agents import Refused
+from agents.transports import MemoryHub
+from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Source
+from federation import FederationPlatform, PlatformConfig
+from federation.cli import main as cli_main
+from federation.demo._run import (
+    DemoOptions,
+    _federation_files,
+    match_violations,
+    run_traffic_demo,
+    uav_names,
+)
+from federation.demo._uav import BASE_NS, PERIOD, SimClock, UavApplication, UavSettings, _Track
+from federation.demo._world import World
+
+WAIT = 10.0
+
+
+async def run_offline(area: int, *, n_uavs: int = 3, seed: int = 1) -> list[dict[str, Any]]:
+    """One UAV's local application over ``duration`` s of world time, on a ManualClock."""
+    world = World.generate(seed, n_uavs, 60.0)
+    clock = ManualClock(BASE_NS)
+    async with DyKnowInstance(uav_names(n_uavs)[area], clock=clock) as dk:
+        platform = types.SimpleNamespace(instance=dk, name=dk.name)
+        settings = UavSettings(
+            config={"name": dk.name},
+            index=area,
+            n_uavs=n_uavs,
+            seed=seed,
+            duration=60.0,
+            speed=1.0,
+            t0_wall_ns=0,
+            leader="uav-a",
+        )
+        app = UavApplication(platform, settings, world)  # type: ignore[arg-type]
+        app.setup()
+        app.assign(area, BASE_NS / NS_PER_S, "uav-a")
+        assert app.camera is not None and app.anchoring is not None
+        p = int(PERIOD * NS_PER_S)
+        for k in range(int(60.0 / PERIOD)):
+            t = BASE_NS + k * p
+            clock.set(t)
+            app.sources["camera/objects"].push(app._percepts(app.camera, k * PERIOD), t)
+            app.anchoring.step(t)
+            clock.set(t + p // 2)
+            app.step(t + p // 2, publish_cars=k % 3 == 0)
+            await asyncio.sleep(0)  # callbacks of the chronicles' subscriptions
+        return [{k: v for k, v in x.items() if k != "end-instance"} for x in app.violations]
+
+
+def truth_of(world: World, area: int) -> list[dict[str, Any]]:
+    return [
+        {"kind": v.kind, "start": v.start, "end": v.end, "start_area": v.start_area}
+        for v in world.ground_truth()
+        if v.start_area == area and v.end_area == area
+    ]
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+async def test_each_uav_recognizes_exactly_the_events_of_its_own_area(seed: int) -> None:
+    world = World.generate(seed, 3, 60.0)
+    for area in range(3):
+        found = await run_offline(area, seed=seed)
+        whole = [f for f in found if not f["fused"]]
+        pairs, extra = match_violations(truth_of(world, area), whole)
+        assert [f for _, f in pairs if f is None] == [], (area, pairs)
+        # the start of the border-crossing overtake is seen, its end is not: nothing extra
+        assert extra == [], (area, extra)
+
+
+async def test_an_offline_run_is_deterministic() -> None:
+    assert await run_offline(0, seed=3) == await run_offline(0, seed=3)
+
+
+def test_a_track_estimates_position_and_speed_from_noisy_points() -> None:
+    track = _Track()
+    for k in range(6):
+        t = k * 0.2
+        track.add(t, 10.0 + 20.0 * t + (0.3 if k % 2 else -0.3), 5.0)
+    est = track.state(1.0)
+    assert est is not None
+    x, y, vx, vy = est
+    assert abs(x - 30.0) < 0.5 and abs(vx - 20.0) < 1.5 and abs(vy) < 0.1 and y == 5.0
+    track.add(0.5, 0.0, 0.0)  # older than the newest point: ignored
+    assert len(track.points) == 6
+
+
+async def test_sim_clock_runs_at_its_speed() -> None:
+    import time
+
+    clock = SimClock(time.time_ns(), speed=4.0)
+    t0 = clock.now()
+    await clock.sleep_until(t0 + NS_PER_S)  # one simulated second: a quarter of a real one
+    assert clock.now() - t0 >= NS_PER_S
+    with pytest.raises(ValueError, match="speed"):
+        SimClock(0, speed=0)
+
+
+def test_matching_counts_misses_and_false_positives() -> None:
+    truth = [{"kind": "overtake", "end": 10.0}, {"kind": "turn", "end": 20.0}]
+    found = [
+        {"kind": "overtake", "end": 11.0, "fused": False},
+        {"kind": "overtake", "end": 30.0, "fused": False},
+    ]
+    pairs, extra = match_violations(truth, found)
+    assert pairs == [(truth[0], found[0]), (truth[1], None)]
+    assert extra == [found[1]]
+    with pytest.raises(ValueError, match="uavs"):
+        uav_names(0)
+
+
+# -- the anchoring hook of the federation service --------------------------------------------
+
+
+async def test_a_platform_asked_for_an_unknown_object_anchors_it_then_exports(
+    tmp_path: Path,
+) -> None:
+    configs = _federation_files(tmp_path, ["uav-a", "uav-b"])
+    hub = MemoryHub()
+    asked: list[tuple[str, str, str]] = []
+    platforms: dict[str, FederationPlatform] = {}
+    sources: dict[str, Source] = {}
+
+    async def anchor(semantic: str, local: str, requester: str) -> bool:
+        asked.append((semantic, local, requester))
+        if semantic.startswith("ghost"):
+            return False  # not found: the request is refused
+        sources[local] = platforms["uav-b"].instance.add_source(local)
+        return True
+
+    async with contextlib.AsyncExitStack() as stack, asyncio.timeout(WAIT):
+        for name in ("uav-a", "uav-b"):
+            transport = await stack.enter_async_context(hub.transport())
+            platforms[name] = await stack.enter_async_context(
+                FederationPlatform(
+                    PlatformConfig.from_dict(configs[name]),
+                    transport=transport,
+                    anchor=anchor if name == "uav-b" else None,
+                )
+            )
+        a, b = platforms["uav-a"], platforms["uav-b"]
+        async with a.membership() as events:
+            while "uav-b" not in a.members:
+                await events.get()
+        await a.federation_agent.create_stream("uav-b", ["uav_a_car1-state"])
+        assert asked == [("uav_a_car1-state", "car/uav_a_car1/state", "uav-a")]
+        sources["car/uav_a_car1/state"].push({"x": 1.0})
+        label = await a.imported("uav-b", "uav_a_car1-state")
+        assert a.instance.latest(label).samples[0].value == {"x": 1.0}
+        with pytest.raises(Refused, match="no stream for it here"):
+            await a.federation_agent.create_stream("uav-b", ["ghost1-state"])
+        assert asked[-1][0] == "ghost1-state" and not b.instance.has_label("car/ghost1/state")
+
+
+# -- the whole demo, UAVs as OS processes over zenoh -----------------------------------------
+
+
+@pytest.mark.timeout(150)
+@pytest.mark.parametrize(("uavs", "seed"), [(3, 1), (2, 2)])
+async def test_the_demo_finds_the_violation_across_the_border_from_fused_states(
+    uavs: int, seed: int
+) -> None:
+    lines: list[str] = []
+    options = DemoOptions(uavs=uavs, duration=60.0, seed=seed, speed=4.0, console=False)
+    report = await asyncio.wait_for(run_traffic_demo(options, lines.append), 120)
+    names = uav_names(uavs)
+    # the leader's Contract-Net gives each area to the UAV hovering over it (cheapest)
+    assert report.delegation["assignments"] == {str(i): n for i, n in enumerate(names)}
+    assert sorted(report.delegation["capabilities"]) == [n for n in names if n != names[0]]
+    missed = [gt for gt, f in report.matched if f is None]
+    assert missed == [] and report.false_positives == [], "\n".join(lines)
+    assert report.handover_detected, "\n".join(lines)
+    # the paper's exchange: B asked A for the states, A anchored them from B's trajectory
+    b, a = names[-2], names[-1]
+    handovers = report.uavs[b]["handovers"]
+    assert len(handovers) == 2 and all(
+        h["to"] == a and "error" not in h for h in handovers.values()
+    )
+    anchored = report.uavs[a]["anchored"]
+    assert set(anchored) == set(handovers)
+    assert all(x["from"] == b and x["trajectory"] > 0 and x["match"] for x in anchored.values())
+    fused = [f for _, f in report.matched if f is not None and f["fused"]]
+    assert [f["platform"] for f in fused] == [b]
+    assert any(line.startswith("t=") for line in lines)  # progress while it ran
+    assert any("from fused states" in line for line in lines)
+
+
+def test_the_demo_command_refuses_bad_options(capsys: pytest.CaptureFixture[str]) -> None:
+    assert cli_main(["demo", "traffic", "--uavs", "0"]) == 2
+    assert "--uavs" in capsys.readouterr().err
