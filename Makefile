@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 BENCH ?=
 
-.PHONY: test demo bench lint typecheck pytest mosquitto chromium clean
+.PHONY: test demo bench lint typecheck pytest mosquitto chromium compose clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -44,7 +44,17 @@ chromium:
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq chromium >/dev/null; \
 	fi
 
-pytest: $(STAMP) mosquitto chromium
+# The deploy tests validate the compose files with `docker-compose config` (no engine
+# needed); Debian's docker-compose when neither it nor the compose plugin is there.
+compose:
+	@if command -v docker-compose >/dev/null 2>&1 || docker compose version >/dev/null 2>&1; then :; else \
+		echo "==> installing docker-compose (the deploy tests validate the compose files)"; \
+		SUDO=; if [ "$$(id -u)" -ne 0 ]; then SUDO=sudo; fi; \
+		$$SUDO apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq docker-compose >/dev/null; \
+	fi
+
+pytest: $(STAMP) mosquitto chromium compose
 	@echo "==> pytest"
 	$(PY) -m pytest -q
 

@@ -37,7 +37,10 @@ WAIT = 10.0
 
 
 async def run_offline(area: int, *, n_uavs: int = 3, seed: int = 1) -> list[dict[str, Any]]:
-    """One UAV's local application over ``duration`` s of world time, on a ManualClock."""
+    """One UAV's local application over 60 s of world time, on a ManualClock.
+
+    Its recognized events, then the speed monitor's violations (kind ``speeding``).
+    """
     world = World.generate(seed, n_uavs, 60.0)
     clock = ManualClock(BASE_NS)
     async with DyKnowInstance(uav_names(n_uavs)[area], clock=clock) as dk:
@@ -65,7 +68,8 @@ async def run_offline(area: int, *, n_uavs: int = 3, seed: int = 1) -> list[dict
             clock.set(t + p // 2)
             app.step(t + p // 2, publish_cars=k % 3 == 0)
             await asyncio.sleep(0)  # callbacks of the chronicles' subscriptions
-        return [{k: v for k, v in x.items() if k != "end-instance"} for x in app.violations]
+        found = [{k: v for k, v in x.items() if k != "end-instance"} for x in app.violations]
+        return found + [{"kind": "speeding", **x} for x in app.speeding]
 
 
 def truth_of(world: World, area: int) -> list[dict[str, Any]]:
@@ -81,7 +85,7 @@ async def test_each_uav_recognizes_exactly_the_events_of_its_own_area(seed: int)
     world = World.generate(seed, 3, 60.0)
     for area in range(3):
         found = await run_offline(area, seed=seed)
-        whole = [f for f in found if not f["fused"]]
+        whole = [f for f in found if f["kind"] != "speeding" and not f["fused"]]
         pairs, extra = match_violations(truth_of(world, area), whole)
         assert [f for _, f in pairs if f is None] == [], (area, pairs)
         # the start of the border-crossing overtake is seen, its end is not: nothing extra
@@ -208,3 +212,15 @@ async def test_the_demo_finds_the_violation_across_the_border_from_fused_states(
 def test_the_demo_command_refuses_bad_options(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli_main(["demo", "traffic", "--uavs", "0"]) == 2
     assert "--uavs" in capsys.readouterr().err
+
+
+async def test_the_speed_monitor_flags_the_reckless_driver_once() -> None:
+    # seed 1: in area 1 the reckless overtaker drives > 1.3 x the limit; area 0's cars
+    # keep to it. The monitor restarts after each verdict: a car is reported once.
+    world = World.generate(1, 3, 60.0)
+    reckless = [v for v in world.ground_truth() if v.kind == "reckless-overtake"]
+    assert [v.start_area for v in reckless] == [1]
+    area1 = [f for f in await run_offline(1, seed=1) if f["kind"] == "speeding"]
+    assert len(area1) == 1 and len(area1[0]["cars"]) == 1
+    assert area1[0]["cars"][0].startswith("uav_b_car")
+    assert not [f for f in await run_offline(0, seed=1) if f["kind"] == "speeding"]

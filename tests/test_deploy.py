@@ -1,12 +1,10 @@
 """The deploy files (deploy/): compose topology, platform configs, keys step, router config.
 
-No Docker engine runs where these tests run. When the ``docker compose`` CLI plugin is
-installed, ``docker compose config -q`` validates both compose files (it needs no
-engine). When it is not installed (the case on this project's CI machine: ``docker``
-exists but has no compose plugin), nothing is installed: the compose files are checked
-structurally with PyYAML instead (services, fixed addresses in the subnet, mounts,
-commands, depends_on), which is what ``docker compose config`` would catch for these
-files plus the topology it would not. Both paths always run; nothing is skipped.
+No Docker engine runs where these tests run. ``docker compose config -q`` (the CLI
+plugin) or Debian's ``docker-compose config -q`` (which `make test` installs when neither
+is there) validates both compose files: it needs no engine. The files are also checked
+structurally with PyYAML (services, fixed addresses in the subnet, mounts, commands,
+depends_on): the topology that ``config`` would not catch.
 
 The platform configs are loaded with ``PlatformConfig.load`` and their key, trust,
 vocabulary and mapping files read, after generating keys into a temporary copy of
@@ -16,6 +14,7 @@ deploy/config with the same commands deploy/make-keys.sh runs (``agents.keys``).
 from __future__ import annotations
 
 import ipaddress
+import os
 import shutil
 import subprocess
 import tomllib
@@ -207,39 +206,48 @@ def test_dockerfile() -> None:
     assert "deploy/config/keys" in (DEPLOY / "Dockerfile.dockerignore").read_text()
 
 
-def _docker_compose() -> bool:
+def _compose_command() -> list[str] | None:
+    """``docker compose`` (the plugin) or Debian's ``docker-compose``; None without both."""
     docker = shutil.which("docker")
-    if docker is None:
-        return False
-    probe = subprocess.run(
-        [docker, "compose", "version"], capture_output=True, text=True, timeout=20, check=False
-    )
-    return probe.returncode == 0
+    if docker is not None:
+        probe = subprocess.run(
+            [docker, "compose", "version"], capture_output=True, text=True, timeout=20, check=False
+        )
+        if probe.returncode == 0:
+            return [docker, "compose"]
+    legacy = shutil.which("docker-compose")
+    return [legacy] if legacy is not None else None
 
 
 @pytest.mark.parametrize("file", sorted(TOPOLOGIES))
 def test_compose_config_validates(file: str, keyed_config: Path) -> None:
-    """``docker compose config -q`` when the plugin is installed, else a structural check.
+    """``docker compose config -q`` (or Debian's ``docker-compose``), plus a structural check.
 
-    Without the compose plugin (nothing is installed for it), the YAML is checked for
-    what ``config`` rejects in these files: a top-level mapping of known keys, services
-    with an image or a build, list-form commands, and anchors/merge keys that resolve.
+    `make test` installs Debian's docker-compose when neither is there; in CI a missing
+    one fails. Validation needs no Docker engine. The structural check covers what
+    ``config`` rejects in these files: a top-level mapping of known keys, services with an
+    image or a build, list-form commands, and anchors/merge keys that resolve.
     """
-    if _docker_compose():
+    command = _compose_command()
+    if command is None:
+        message = "neither 'docker compose' nor 'docker-compose' (make test installs it)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+    else:
         # config resolves bind-mount sources: run it on a copy that has the keys
         tmp = keyed_config.parent
         shutil.copy(DEPLOY / file, tmp / file)
         result = subprocess.run(
-            ["docker", "compose", "-f", str(tmp / file), "config", "-q"],
+            [*command, "-f", str(tmp / file), "config", "-q"],
             capture_output=True,
             text=True,
             timeout=60,
             check=False,
         )
         assert result.returncode == 0, result.stderr
-        return
     compose = _compose(file)
-    allowed = {"name", "services", "networks", "volumes", "configs", "secrets"}
+    # no top-level "name": docker-compose 1.29 (Debian's) refuses it; `-p` names the project
+    allowed = {"services", "networks", "volumes", "configs", "secrets"}
     extra = {k for k in compose if not k.startswith("x-")} - allowed
     assert not extra, f"{file}: unknown top-level keys {extra}"
     for name, service in compose["services"].items():

@@ -29,7 +29,7 @@ from agents.transports import free_tcp_port
 from dyknow_core import NS_PER_S, DyKnowInstance
 
 from .._platform import FederationPlatform, PlatformConfig
-from ._uav import ONTOLOGY, SimClock, UavSettings, run_uav
+from ._uav import ONTOLOGY, SPEEDING, SimClock, UavSettings, run_uav
 from ._vocabulary import local_mapping, vocabulary
 from ._world import Violation, World
 
@@ -405,6 +405,8 @@ async def _progress(
                 extra += f" handovers {s['handovers']}"
             if s.get("anchored"):
                 extra += f" anchored {s['anchored']}"
+            if s.get("speeding"):
+                extra += f" speeding {s['speeding']}"
             parts.append(f"{n}: {s['cars']} cars, {s['violations']} events{extra}")
         say(f"t={max(now, 0.0):5.1f}/{duration:g} s  " + " | ".join(parts))
         await asyncio.sleep(1.0)
@@ -438,6 +440,9 @@ def _report(
             if p99 is not None
         ),
         "missing-reports": sorted(set(uav_names(options.uavs)) - set(reports)),
+        "speeding": [
+            {"platform": name, **x} for name, r in reports.items() for x in r.get("speeding", [])
+        ],
     }
     return DemoReport(truth, found, matched, false_pos, reports, delegation, figures)
 
@@ -463,6 +468,11 @@ def _print_report(report: DemoReport, say: Say) -> None:
     for f in report.false_positives:
         say(f"  false positive: {f['kind']} by {f['platform']} at t={f['end']:.1f}")
     fig = report.figures
+    for x in fig["speeding"]:
+        say(
+            f"  speeding (monitor '{SPEEDING}'): {', '.join(x['cars'])} "
+            f"by {x['platform']} at t={x['t']:.1f}"
+        )
     say(
         f"federation: {fig['acl-messages-sent']} ACL messages sent, "
         f"{fig['streams-exported']} streams exported, {fig['streams-imported']} imported"

@@ -79,9 +79,12 @@ FAST = 1.2  # beside at more than FAST x the speed limit: reckless
 SAME_LANE, OTHER_LANE = 1.5, (2.0, 6.0)  # lateral offsets, m
 NEAR = (6.0, 40.0)  # longitudinal gap for behind / in front, m
 BESIDE = 10.0  # |dx| below which two cars in different lanes are beside
+MIN_POINTS = 4  # positions before a track has a state: two give a noisy speed
 MISSES = 3  # detections missed in a row before a percept is retired
 MATCH = 15.0  # m: an anchored object's predicted position vs a local world object
 OBJECT_STATE = re.compile(r"([A-Za-z0-9_]+)-state")
+SPEEDING = "always not (exists c in Cars: always[0,2] fast(c))"
+"""The UAV's temporal-logic monitor: no car over FAST x its road's limit for 2 s."""
 RELATIONS = ("behind", "beside", "beside-fast", "in-front")
 CROSSING_EVENTS = ("enter", "turn", "pass")
 
@@ -153,7 +156,7 @@ class _Track:
         """Smoothed position at ``t`` and velocity: (x, y, vx, vy)."""
         pts = self.points
         n = len(pts)
-        if n < 2:
+        if n < MIN_POINTS:
             return None
         mt = sum(p[0] for p in pts) / n
         mx = sum(p[1] for p in pts) / n
@@ -309,6 +312,9 @@ class UavApplication:
         self.tasks: set[asyncio.Task[Any]] = set()
         self.assignments: dict[int, str] = {}
         self.last_cars: list[str] = []
+        self.fast_now: dict[str, bool] = {}
+        self.speeding: list[dict[str, Any]] = []  # the speed monitor's violations
+        self.flagged: set[str] = set()
         self.started = time.monotonic()
 
     # -- set-up ----------------------------------------------------------------------------
@@ -322,6 +328,8 @@ class UavApplication:
             "uav/self/area",
             "camera/objects",
             "tracker/cars",
+            "tracker/car-names",
+            "tracker/fast",
             "chronicle/violations",
             *(f"relations/{r}" for r in RELATIONS),
             *(f"crossing/{e}" for e in CROSSING_EVENTS),
@@ -336,6 +344,13 @@ class UavApplication:
         for definition, inputs in CHRONICLES.values():
             proc = dk.add_chronicle(definition, inputs)
             dk.subscribe(proc.label, callback=self._on_recognitions)
+        monitor = dk.add_monitor(
+            SPEEDING,
+            components={"Cars": "tracker/car-names", "fast": "tracker/fast"},
+            period=PERIOD,
+            name="monitor:speeding",
+        )
+        dk.subscribe(monitor.label, callback=self._on_verdicts)
 
     @property
     def max_speed(self) -> float:
@@ -344,6 +359,15 @@ class UavApplication:
 
     def _on_recognitions(self, batch: list[tuple[Any, int, int]]) -> None:
         self.recognitions.extend(v for v, _, _ in batch)
+
+    def _on_verdicts(self, batch: list[tuple[Any, int, int]]) -> None:
+        for verdict, tv, _ in batch:
+            if verdict.get("verdict") is False and self.world_start is not None:
+                # the monitor restarts after a verdict: one report per car is enough
+                fast = sorted(c for c, f in self.fast_now.items() if f and c not in self.flagged)
+                self.flagged.update(fast)
+                if fast:
+                    self.speeding.append({"t": round(self.world_time(tv), 2), "cars": fast})
 
     def spawn(self, coro: Any, name: str) -> None:
         """Run ``coro`` as an owned task (cancelled at shutdown, failures logged)."""
@@ -494,6 +518,9 @@ class UavApplication:
         cars = {f"{self.prefix}_{c}" for c in anch.members("Car")}
         tracked = {o: s for o, s in states.items() if o in cars}
         self.last_cars = sorted(tracked)
+        self.fast_now = {o: self._fast(s) for o, s in tracked.items()}
+        self.sources["tracker/car-names"].push(self.last_cars, t)
+        self.sources["tracker/fast"].push(self.fast_now, t)
         if publish_cars:
             self.sources["tracker/cars"].push(
                 {
@@ -552,11 +579,12 @@ class UavApplication:
                 return "in-front"
             return None
         if OTHER_LANE[0] < lat < OTHER_LANE[1] and abs(dx) < BESIDE:
-            limit = self.world.speed_limit(a["road"]) if a.get("road") else None
-            if limit is not None and a["speed"] > FAST * limit:
-                return "beside-fast"
-            return "beside"
+            return "beside-fast" if self._fast(a) else "beside"
         return None
+
+    def _fast(self, state: dict[str, Any]) -> bool:
+        road = state.get("road")
+        return road is not None and state["speed"] > FAST * self.world.speed_limit(road)
 
     @staticmethod
     def _far(a: dict[str, Any], b: dict[str, Any]) -> bool:
@@ -721,6 +749,7 @@ class UavApplication:
             else round(self.world_time(self.dk.clock.now()), 1),
             "cars": len(self.last_cars),
             "violations": len(self.violations),
+            "speeding": len(self.speeding),
             "handovers": len(self.handovers),
             "anchored": sum(1 for a in self.anchored.values() if a["match"] is not None),
         }
@@ -741,7 +770,8 @@ class UavApplication:
             "violations": [
                 {k: v for k, v in x.items() if k != "end-instance"} for x in self.violations
             ],
-            "cars-tracked": len({c for c in self.tracks}),
+            "cars-tracked": len(self.tracks),
+            "speeding": self.speeding,
             "handovers": {
                 o: {k: v for k, v in h.items() if k in ("to", "export", "error")}
                 | {
