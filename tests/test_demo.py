@@ -53,7 +53,6 @@ async def run_offline(area: int, *, n_uavs: int = 3, seed: int = 1) -> list[dict
             duration=60.0,
             speed=1.0,
             t0_wall_ns=0,
-            leader="uav-a",
         )
         app = UavApplication(platform, settings, world)  # type: ignore[arg-type]
         app.setup()

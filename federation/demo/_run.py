@@ -258,7 +258,6 @@ async def run_traffic_demo(
                 duration=options.duration,
                 speed=options.speed,
                 t0_wall_ns=t0,
-                leader=names[0],
             )
             for i, name in enumerate(names)
         ]
@@ -332,12 +331,9 @@ async def _operate(
             await _progress(agent, names, procs, clock, start, options.duration, say)
             reports = {}
             for name in names:
-                if not procs[name].is_alive():
-                    continue
-                with contextlib.suppress(Exception):
-                    reports[name] = await request(
-                        agent, f"traffic@{name}", {"action": "report"}, ontology=ONTOLOGY
-                    )
+                if procs[name].is_alive():
+                    with contextlib.suppress(Exception):
+                        reports[name] = await _ask_report(agent, name)
             report = _report(world, reports, delegation, options)
             report.console_url = console.url if console is not None else None
             _print_report(report, say)
@@ -345,6 +341,19 @@ async def _operate(
                 say(f"holding for {options.hold:g} s (console: {report.console_url})")
                 await asyncio.sleep(options.hold)
             return report
+
+
+async def _ask_report(agent: Agent, name: str) -> Any:
+    """A UAV's final report: asked twice with a generous bound (a loaded host is slow)."""
+    for attempt in (1, 2):
+        try:
+            return await request(
+                agent, f"traffic@{name}", {"action": "report"}, ontology=ONTOLOGY, timeout=15.0
+            )
+        except Exception:
+            if attempt == 2:
+                raise
+    raise AssertionError("unreachable")
 
 
 async def _wait_members(

@@ -127,7 +127,6 @@ class UavSettings:
     duration: float
     speed: float
     t0_wall_ns: int
-    leader: str
 
     @property
     def name(self) -> str:
@@ -312,10 +311,10 @@ class UavApplication:
         self.tasks: set[asyncio.Task[Any]] = set()
         self.assignments: dict[int, str] = {}
         self.last_cars: list[str] = []
+        self.local_now: set[str] = set()  # the cars our own camera tracks now
         self.fast_now: dict[str, bool] = {}
         self.speeding: list[dict[str, Any]] = []  # the speed monitor's violations
         self.flagged: set[str] = set()
-        self.started = time.monotonic()
 
     # -- set-up ----------------------------------------------------------------------------
     def setup(self) -> None:
@@ -518,6 +517,7 @@ class UavApplication:
         cars = {f"{self.prefix}_{c}" for c in anch.members("Car")}
         tracked = {o: s for o, s in states.items() if o in cars}
         self.last_cars = sorted(tracked)
+        self.local_now = set(tracked)
         self.fast_now = {o: self._fast(s) for o, s in tracked.items()}
         self.sources["tracker/car-names"].push(self.last_cars, t)
         self.sources["tracker/fast"].push(self.fast_now, t)
@@ -640,7 +640,8 @@ class UavApplication:
                 "x": where.get("x"),
                 "y": where.get("y"),
                 "platform": self.name,
-                "fused": car in self.handovers or other in self.handovers,
+                # states from the neighbour made it: a car out of our own view by now
+                "fused": any(c in self.handovers and c not in self.local_now for c in (car, other)),
             }
             self.violations.append({**value, "end-instance": end})
             self.sources["chronicle/violations"].push(value, int(end * NS_PER_S))
