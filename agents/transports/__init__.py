@@ -20,7 +20,7 @@ from ._base import (
 )
 from ._memory import MemoryHub, MemoryTransport
 from ._mqtt import MqttConfig, MqttTransport
-from ._zenoh import ZenohConfig, ZenohTransport
+from ._zenoh import ZenohConfig, ZenohTls, ZenohTransport, ZenohUser
 
 __all__ = [
     "Handle",
@@ -36,7 +36,9 @@ __all__ = [
     "Subscription",
     "Transport",
     "ZenohConfig",
+    "ZenohTls",
     "ZenohTransport",
+    "ZenohUser",
     "free_tcp_port",
     "key_intersects",
     "key_matches",

@@ -31,6 +31,7 @@ import logging
 import re
 from collections import OrderedDict
 from collections.abc import Callable, Iterable, Iterator, Mapping
+from pathlib import Path
 from typing import Any, Literal, TypeVar, cast
 
 import zenoh
@@ -82,6 +83,89 @@ def _message(raw: _RawSample) -> Message:
     return _new_tuple(Message, (str(raw[0]), raw[1], raw[2]))
 
 
+class ZenohTls(BaseModel):
+    """TLS for ``tls/`` endpoints: the CA that vouches for the other side, and our certificate.
+
+    With a certificate (and its key) the session shows it both when connecting and when
+    listening, and mutual TLS is on: a listener refuses a client without a certificate
+    from the CA. The certificate's common name is what the router's access control
+    matches (``cert_common_names``). Files are PEM; ``deploy/make_certs.py`` makes them.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    root_ca_certificate: Path = Field(
+        description="The CA certificate the other side must chain to."
+    )
+    certificate: Path | None = Field(default=None, description="This side's certificate.")
+    private_key: Path | None = Field(default=None, description="The certificate's private key.")
+    verify_name_on_connect: bool = Field(
+        default=True,
+        description="Check that the router's certificate names the address connected to.",
+    )
+
+    @model_validator(mode="after")
+    def _pair(self) -> ZenohTls:
+        if (self.certificate is None) != (self.private_key is None):
+            raise ValueError("certificate and private_key go together (give both or neither)")
+        return self
+
+    def files(self) -> dict[str, Path]:
+        """The files this needs, by field name."""
+        named = {
+            "root_ca_certificate": self.root_ca_certificate,
+            "certificate": self.certificate,
+            "private_key": self.private_key,
+        }
+        return {name: path for name, path in named.items() if path is not None}
+
+    def settings(self) -> dict[str, Any]:
+        """The zenoh ``transport/link/tls`` settings this describes."""
+        out: dict[str, Any] = {
+            "root_ca_certificate": str(self.root_ca_certificate),
+            "verify_name_on_connect": self.verify_name_on_connect,
+        }
+        if self.certificate is not None and self.private_key is not None:
+            cert, key = str(self.certificate), str(self.private_key)
+            out |= {
+                "connect_certificate": cert,
+                "connect_private_key": key,
+                "listen_certificate": cert,
+                "listen_private_key": key,
+                "enable_mtls": True,
+            }
+        return out
+
+
+class ZenohUser(BaseModel):
+    """User/password authentication to a router (zenoh's ``transport/auth/usrpwd``).
+
+    The password is read from a file when the session opens, so it never sits in the
+    platform's config file; ``deploy/make_certs.py`` writes one per platform.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    user: str = Field(min_length=1, description="The user name the router knows.")
+    password_file: Path = Field(description="A file holding the password (one line).")
+
+    def password(self) -> str:
+        """The password from ``password_file``; TransportError says what is wrong with it."""
+        try:
+            text = self.password_file.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as exc:
+            reason = exc.strerror if isinstance(exc, OSError) else "not UTF-8 text"
+            raise TransportError(
+                f"usrpwd.password_file: {self.password_file}: cannot be read: {reason}"
+            ) from None
+        password = text.strip("\r\n")
+        if not password or "\n" in password:
+            raise TransportError(
+                f"usrpwd.password_file: {self.password_file}: must hold one non-empty line"
+            )
+        return password
+
+
 class ZenohConfig(BaseModel):
     """How a zenoh session joins the network; validated once, errors name the field."""
 
@@ -123,6 +207,12 @@ class ZenohConfig(BaseModel):
         default=10.0,
         gt=0,
         description="Seconds a query handler may run before the query gets an error reply.",
+    )
+    tls: ZenohTls | None = Field(
+        default=None, description="Certificates for tls/ endpoints (mutual TLS with a cert)."
+    )
+    usrpwd: ZenohUser | None = Field(
+        default=None, description="User and password file to authenticate to a router."
     )
 
     @field_validator("listen", "connect")
@@ -177,8 +267,26 @@ class ZenohConfig(BaseModel):
             **fields,
         )
 
+    def relative_to(self, base: str | Path) -> ZenohConfig:
+        """A copy whose relative TLS and password file paths are resolved against ``base``."""
+        base = Path(base)
+        update: dict[str, Any] = {}
+        if self.tls is not None:
+            paths = {k: base / p for k, p in self.tls.files().items() if not p.is_absolute()}
+            update["tls"] = self.tls.model_copy(update=paths)
+        if self.usrpwd is not None and not self.usrpwd.password_file.is_absolute():
+            update["usrpwd"] = self.usrpwd.model_copy(
+                update={"password_file": base / self.usrpwd.password_file}
+            )
+        return self.model_copy(update=update)
+
     def to_zenoh(self) -> zenoh.Config:
         """The zenoh.Config these settings describe."""
+        if self.tls is not None:
+            for name, file in self.tls.files().items():
+                if not file.is_file():
+                    raise TransportError(f"tls.{name}: {file}: no such file")
+        password = None if self.usrpwd is None else self.usrpwd.password()
         try:
             cfg = zenoh.Config.from_json5(self.json5) if self.json5 else zenoh.Config()
             listen = self.listen
@@ -193,6 +301,12 @@ class ZenohConfig(BaseModel):
             cfg.insert_json5(
                 "open/return_conditions/connect_scouted", json.dumps(self.wait_for_scouted)
             )
+            if self.tls is not None:
+                for name, value in self.tls.settings().items():
+                    cfg.insert_json5(f"transport/link/tls/{name}", json.dumps(value))
+            if self.usrpwd is not None:
+                cfg.insert_json5("transport/auth/usrpwd/user", json.dumps(self.usrpwd.user))
+                cfg.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
             for path, setting in self.overrides.items():
                 cfg.insert_json5(path, json.dumps(setting))
         except zenoh.ZError as exc:
