@@ -1,5 +1,8 @@
 """Run benchmarks: ``python -m bench`` runs all, ``python -m bench <name> …`` some.
 
+Arguments starting with ``-`` are options for the benchmarks, not names: they stay in
+``sys.argv`` for a benchmark to read (``python -m bench scale --quick``).
+
 A benchmark is any public module of this package with a ``run()`` function, so adding one
 is adding a file; nothing here needs to know its name.
 """
@@ -26,7 +29,7 @@ def available() -> list[str]:
 def main(argv: list[str]) -> int:
     """Run the named benchmarks (all when none are named); 2 on an unknown name."""
     names = available()
-    wanted = argv or names
+    wanted = [a for a in argv if not a.startswith("-")] or names
     unknown = [n for n in wanted if n not in names]
     if unknown:
         print(

@@ -1,0 +1,177 @@
+"""The worker processes of ``bench.scale``: UAV platforms, or bare zenoh sessions beside them.
+
+Module-level imports are light on purpose: this module is what a spawned interpreter
+imports to find its target, and the bare worker must not pay for the federation's imports.
+Both targets follow `bench._child.Child`: ``target(spec, …, reports, stop)``, reporting
+``(kind, pid, data)`` tuples and returning once ``stop`` is set or the parent is gone.
+
+- ``uav_main``: hosts ``spec["configs"]`` UAV platforms, each a whole `FederationPlatform`
+  (its own zenoh session, Interface Agent, proxies, Federation Agent), opened at once;
+  each provides ``spec["streams"]`` local streams and pushes a sequence number into every
+  one at ``spec["hz"]`` until ``quiet`` is set, then reports the last number pushed. Each
+  also answers raw zenoh gets on ``scale/raw/<name>`` with its latest numbers, on its own
+  session: the raw peer of the operator's global query.
+- ``bare_main``: opens the same number of zenoh sessions with the same settings, each
+  declaring a liveliness token: the least a member of a zenoh network costs to appear.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+import traceback
+from typing import Any
+
+_T_MODULE = time.time()
+
+RAW_KEY = "scale/raw"  # RAW_KEY/<platform>: that platform's latest numbers, raw zenoh
+BARE_KEY = "scale/bare"  # BARE_KEY/<name>: a bare session's liveliness token
+
+
+def local_label(j: int) -> str:
+    """The UAV's local label of its stream ``j``."""
+    return f"uav/stream/{j}"
+
+
+def semantic_label(j: int) -> str:
+    """The federation's semantic label of stream ``j``."""
+    return f"stream-{j}"
+
+
+def uav_main(spec: dict[str, Any], quiet: Any, reports: Any, stop: Any) -> None:
+    """A worker's entry point: run its UAV platforms until ``stop``; errors are reported."""
+    t_main = time.time()
+    try:
+        import asyncio
+
+        asyncio.run(_uavs(spec, t_main, quiet, reports, stop))
+    except BaseException:
+        reports.put(("error", os.getpid(), traceback.format_exc()))
+        raise SystemExit(1) from None
+
+
+async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, stop: Any) -> None:
+    import asyncio
+    import contextlib
+
+    from agents.transports import ZenohTransport
+    from federation import FederationPlatform, PlatformConfig
+
+    streams = int(spec["streams"])
+    parent = os.getppid()
+    t_imported = time.time()
+
+    class Uav:
+        """One platform and what the bench keeps beside it."""
+
+        def __init__(self, config: dict[str, Any]) -> None:
+            self.name = str(config["name"])
+            self.config = PlatformConfig.from_dict(config, source=f"bench uav {self.name}")
+            self.last = [-1] * streams  # read by zenoh's callback thread: ints, no lock needed
+            self.sources: list[Any] = []
+            self.opened = self.ready = 0.0
+
+        def answer(self, query: Any) -> None:
+            """The raw peer of the global query: this platform's latest numbers, as JSON."""
+            query.reply(query.key_expr, json.dumps(self.last))
+
+        async def open(self, stack: contextlib.AsyncExitStack) -> None:
+            """Open the platform (left on ``stack``), add its sources and queryable, join."""
+            self.opened = time.time()
+            platform = FederationPlatform(self.config, join=False)
+            await stack.enter_async_context(platform)
+            self.sources = [platform.instance.add_source(local_label(j)) for j in range(streams)]
+            transport = platform.transport
+            assert isinstance(transport, ZenohTransport)
+            queryable = transport.session.declare_queryable(f"{RAW_KEY}/{self.name}", self.answer)
+            stack.callback(queryable.undeclare)  # before the platform closes its session
+            await platform.join()
+            self.ready = time.time()
+
+    async with contextlib.AsyncExitStack() as stack:
+        uavs = [Uav(c) for c in spec["configs"]]
+        await asyncio.gather(*(u.open(stack) for u in uavs))
+        reports.put(
+            (
+                "ready",
+                os.getpid(),
+                {
+                    "module": _T_MODULE,
+                    "main": t_main,
+                    "imported": t_imported,
+                    "platforms": {u.name: (u.opened, u.ready) for u in uavs},
+                },
+            )
+        )
+        loop = asyncio.get_running_loop()
+        period = 1.0 / float(spec["hz"])
+        seq = 0
+        late = 0  # ticks that started more than a period behind schedule
+        tick = loop.time()
+        # A multiprocessing Event cannot be awaited: poll it (and the parent's life) per tick.
+        while not quiet.is_set() and not stop.is_set() and os.getppid() == parent:
+            for u in uavs:
+                for j, source in enumerate(u.sources):
+                    source.push(seq)
+                    u.last[j] = seq
+            seq += 1
+            tick += period
+            delay = tick - loop.time()
+            if delay < -period:
+                late += 1
+            await asyncio.sleep(max(delay, 0.0))
+        reports.put(("quiet", os.getpid(), {"last": seq - 1, "late": late}))
+        while not stop.is_set() and os.getppid() == parent:  # noqa: ASYNC110
+            await asyncio.sleep(0.1)
+
+
+def zenoh_settings(config: Any) -> list[tuple[str, str]]:
+    """The JSON5 settings (path, value) a `ZenohConfig` applies, for a bare session."""
+    return [
+        ("mode", json.dumps(config.mode)),
+        ("listen/endpoints", json.dumps(list(config.listen or ()))),
+        ("connect/endpoints", json.dumps(list(config.connect))),
+        ("scouting/multicast/enabled", json.dumps(config.multicast_scouting)),
+        ("scouting/gossip/enabled", json.dumps(config.gossip)),
+        ("open/return_conditions/connect_scouted", json.dumps(config.wait_for_scouted)),
+    ]
+
+
+def bare_main(spec: dict[str, Any], reports: Any, stop: Any) -> None:
+    """Open ``spec["sessions"]`` bare zenoh sessions at once, each with a token; idle."""
+    t_main = time.time()
+    try:
+        from concurrent.futures import ThreadPoolExecutor
+
+        import zenoh
+
+        imported = time.time()
+
+        def open_one(item: tuple[str, list[tuple[str, str]]]) -> tuple[Any, Any]:
+            name, settings = item
+            config = zenoh.Config()
+            for path, value in settings:
+                config.insert_json5(path, value)
+            session = zenoh.open(config)
+            return session, session.liveliness().declare_token(f"{BARE_KEY}/{name}")
+
+        items = [(n, s) for n, s in spec["sessions"]]
+        with ThreadPoolExecutor(max(len(items), 1)) as pool:
+            opened = list(pool.map(open_one, items))
+        reports.put(
+            (
+                "ready",
+                os.getpid(),
+                {"module": _T_MODULE, "main": t_main, "imported": imported, "ready": time.time()},
+            )
+        )
+        parent = os.getppid()
+        while not stop.wait(0.1) and os.getppid() == parent:
+            pass
+        for session, token in opened:
+            token.undeclare()
+            session.close()
+    except BaseException:
+        reports.put(("error", os.getpid(), traceback.format_exc()))
+        raise SystemExit(1) from None

@@ -1,0 +1,84 @@
+"""The scale benchmark (``python -m bench scale``) run small, so it cannot rot unnoticed.
+
+Three UAV platforms in two spawned worker processes plus the operator here, two streams
+each at 10 Hz for 3 s: every UAV joins, every global query is answered by all of them,
+every sample pushed arrives, and the BENCH lines come out in the form CI greps for.
+"""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from bench import __main__ as bench_main
+from bench.scale import ScaleResult, measure, print_result
+
+BENCH_LINE = re.compile(
+    r"^BENCH [a-z0-9-]+ ours=\S+ [a-z0-9-]+=\S+ ratio=\d+\.\d\d unit=\S+ better=(higher|lower)$"
+)
+
+
+@pytest.fixture(scope="module")
+def small() -> ScaleResult:
+    """One small run shared by the tests below (spawning platforms is the slow part)."""
+    return measure(platforms=3, streams=2, hz=10.0, seconds=3.0, workers=2, queries=10)
+
+
+@pytest.mark.timeout(60)
+def test_small_run_joins_answers_and_loses_nothing(small: ScaleResult) -> None:
+    r = small
+    assert r.workers == 2
+    assert 0 < r.join < 30 and 0 < r.bare_join < 30
+    assert len(r.open_to_joined) == 3 and len(r.spawn_to_imported) == 2
+    assert len(r.query_ms) == 10 and r.query_failures == []
+    assert len(r.idle_ms) == 10  # the same query before the exports flow
+    assert len(r.raw_ms) == 10 and r.raw_failures == 0
+    # 3 UAVs x 2 streams x 10 Hz over at least the 3 s window
+    assert r.counted >= 3 * 2 * 10 * 3 * 0.8
+    assert r.counted == r.expected and r.lost == 0
+    assert r.never_arrived == 0 and r.duplicates == 0 and r.import_lost == 0
+    assert 0 < len(r.e2e_ms) <= r.counted and min(r.e2e_ms) >= 0
+    assert r.cpu_operator > 0 and r.cpu_workers > 0
+    assert r.rss_operator > 0 and len(r.rss_workers) == 2 and len(r.rss_bare_workers) == 2
+
+
+@pytest.mark.timeout(60)
+def test_bench_lines_have_the_anchored_form(
+    small: ScaleResult, capsys: pytest.CaptureFixture[str]
+) -> None:
+    lines = print_result(small, "scale-3")
+    out = capsys.readouterr().out
+    names = [line.split()[1] for line in lines]
+    assert names == [
+        "scale-3",
+        "scale-3-query-p50",
+        "scale-3-join",
+        "scale-3-rss",
+        "scale-3-delivered",
+    ]
+    for line in lines:
+        assert BENCH_LINE.match(line), line
+        assert line in out
+    assert "ratio=1.00 unit=samples" in lines[-1]  # delivered = pushed
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "named"),
+    [
+        ({"platforms": 0}, "platforms"),
+        ({"streams": 0}, "streams"),
+        ({"queries": 0}, "queries"),
+        ({"platforms": 2, "workers": 3}, "workers"),
+        ({"hz": 0.0}, "hz"),
+        ({"seconds": -1.0}, "seconds"),
+    ],
+)
+def test_bad_sizes_are_refused_by_name(kwargs: dict[str, float], named: str) -> None:
+    with pytest.raises(ValueError, match=named):
+        measure(**kwargs)  # type: ignore[arg-type]
+
+
+def test_the_runner_knows_scale_and_leaves_options_to_it() -> None:
+    assert "scale" in bench_main.available()
+    assert bench_main.main(["--quick", "no-such-bench"]) == 2
