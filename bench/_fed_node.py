@@ -218,8 +218,9 @@ class Exporter(_Node):
         super().__init__(name, spec, transport)
         self.source = self.instance.add_source(LOCAL)
         self.sessions = TableSessions(self.table, self._agree)
+        # no lease: a frozen phase must not end the export the bench measures after it
         self.proxy = ExportProxy(
-            name, FED, transport, self.instance, self.sessions, batch_size=BATCH
+            name, FED, transport, self.instance, self.sessions, batch_size=BATCH, lease=None
         )
         self.values = _values(BATCH)
 

@@ -20,6 +20,7 @@ A config file (TOML; relative paths are relative to the file)::
     vocabulary = "traffic.toml"
     mapping = "uav-b.toml"
     export_limit = 64
+    export_lease = 10.0
     import_label = "import/{sender}/{semantic}"
 
     [transport]
@@ -138,6 +139,8 @@ class PlatformConfig(BaseModel):
     vocabulary: Path | dict[str, Any] = Field(description="The federation's vocabulary.")
     mapping: Path | dict[str, Any] = Field(description="This platform's label mapping.")
     export_limit: int = Field(default=64, ge=0)
+    # an export whose receiver has not reported for this long ends ("lease-expired")
+    export_lease: float | None = Field(default=10.0, gt=0, le=86400)
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
 
@@ -354,6 +357,7 @@ class FederationPlatform:
             self.transport,
             self.instance,
             InterfaceSessions(self.interface),
+            lease=config.export_lease,
         )
         self.importer = _Imports(
             config.name,

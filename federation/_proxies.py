@@ -12,6 +12,11 @@ hands samples to the queue and returns at once; the task packs, seals and publis
 A receiver that is slow, frozen or gone costs its own queue's oldest samples (counted
 and reported), never the instance's time or another receiver's.
 
+Faults: a receiver reports on every stream it gets every 0.5 s, with what never arrived
+(gaps in the sender's numbering). The reports are the export's lease (an export not
+reported on for ``lease`` s ends, ``lease-expired``); an export made with ``history``
+resends, after a gap, the samples before its end the receiver asks for.
+
 Sessions: batches are sealed per receiver with the session the Interface Agents agreed
 (`InterfaceSessions`); anything implementing `SessionsProvider` may stand in for it
 (`TableSessions` over a bare `SessionTable`; `PlainSessions`, unauthenticated, for tests).
@@ -29,7 +34,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable
 from enum import Enum
-from typing import TYPE_CHECKING, Any, Protocol, Self, runtime_checkable
+from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, Self, runtime_checkable
 
 import msgpack
 
@@ -62,6 +67,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "BATCH_VERSION",
+    "Batch",
     "Export",
     "ExportProxy",
     "Import",
@@ -71,6 +77,7 @@ __all__ = [
     "SessionsProvider",
     "TableSessions",
     "pack_batch",
+    "read_batch",
     "unpack_batch",
 ]
 
@@ -98,6 +105,15 @@ _BACKOFF_MAX = 2.0
 _IDLE_CHECK = 1.0
 # How many payloads the import loop handles before letting other tasks run.
 _YIELD_EVERY = 64
+# An idle export not acknowledged for this long sends an empty batch (receivers report
+# every 0.5 s by default): a live receiver learns of the stream and answers.
+_KEEPALIVE_AFTER = 1.0
+# Pending resend requests kept per export, and missing ranges tracked per import.
+_MAX_RECOVER = 16
+_MAX_HISTORY = 1_000_000
+_HISTORY_SLACK = 256
+_MAX_MISSING = 64
+_MAX_ASKS = 6  # the import proxy's reports that ask again for what is still missing
 
 
 def check_semantic_label(label: str) -> str:
@@ -127,20 +143,43 @@ def _encode_value(obj: Any) -> Any:
     raise TypeError(f"a {type(obj).__name__} value cannot travel in a sample batch")
 
 
-def pack_batch(semantic_label: str, samples: list[RawSample], seq: int = 0) -> bytes:
-    """The msgpack body of one batch: ``{"v": 1, "s": label, "q": seq, "b": [[v, tv, ta]…]}``."""
-    body: bytes = _packb(
-        {"v": BATCH_VERSION, "s": semantic_label, "q": seq, "b": samples},
-        default=_encode_value,
-    )
+def pack_batch(
+    semantic_label: str,
+    samples: list[RawSample],
+    seq: int = 0,
+    *,
+    history: int = 0,
+    recovered: bool = False,
+) -> bytes:
+    """The msgpack body of one batch: ``{"v": 1, "s": label, "q": seq, "b": [[v, tv, ta]…]}``.
+
+    ``history`` (the sender keeps that many samples to resend) adds ``"h"``; a batch
+    resent from that history is marked ``"r": true``.
+    """
+    obj: dict[str, Any] = {"v": BATCH_VERSION, "s": semantic_label, "q": seq, "b": samples}
+    if history:
+        obj["h"] = history
+    if recovered:
+        obj["r"] = True
+    body: bytes = _packb(obj, default=_encode_value)
     return body
 
 
-def unpack_batch(body: bytes) -> tuple[str, int | None, list[Any]]:
-    """Read a batch body: ``(semantic label, first sequence number or None, samples)``.
+class Batch(NamedTuple):
+    """A batch as read: label, first sequence number, samples, sender's history, resent."""
 
-    Raises ValueError when it is not a batch of version 1; the samples themselves are
-    checked by whoever uses them (each should be ``[value, valid_ns, available_ns]``).
+    label: str
+    seq: int | None
+    samples: list[Any]
+    history: int = 0
+    recovered: bool = False
+
+
+def read_batch(body: bytes) -> Batch:
+    """Read a batch body with all its fields; ValueError when it is not a batch of version 1.
+
+    The samples themselves are checked by whoever uses them (each should be
+    ``[value, valid_ns, available_ns]``).
     """
     try:
         obj = _unpackb(body, raw=False, strict_map_key=False)
@@ -158,7 +197,22 @@ def unpack_batch(body: bytes) -> tuple[str, int | None, list[Any]]:
         raise ValueError("a batch needs 's' (a string) and 'b' (an array)")
     if seq is not None and (type(seq) is not int or seq < 0):
         raise ValueError("'q' must be a non-negative integer")
-    return label, seq, samples
+    history = obj.get("h", 0)
+    if type(history) is not int or history < 0:
+        raise ValueError("'h' must be a non-negative integer")
+    recovered = obj.get("r", False)
+    if type(recovered) is not bool or (recovered and seq is None):
+        raise ValueError("'r' must be a boolean, and a resent batch needs 'q'")
+    return Batch(label, seq, samples, history, recovered)
+
+
+def unpack_batch(body: bytes) -> tuple[str, int | None, list[Any]]:
+    """Read a batch body: ``(semantic label, first sequence number or None, samples)``.
+
+    Raises ValueError when it is not a batch of version 1 (see `read_batch`).
+    """
+    batch = read_batch(body)
+    return batch.label, batch.seq, batch.samples
 
 
 # --------------------------------------------------------------------------- sessions
@@ -295,7 +349,12 @@ class Export:
     (``queue-full``: the receiver's queue overflowed, oldest first; ``no-session``: no
     session could be agreed; ``send-failed``: the transport refused; ``unencodable``:
     a value msgpack cannot carry; ``too-large``: one sample over the batch size limit;
-    ``lost-in-transit``: published, but reported missing by the receiver).
+    ``lost-in-transit``: published, but reported missing by the receiver, less what was
+    recovered; ``lease-expired``: what was still queued when the receiver's lease
+    expired). With ``history`` N the receiver asks, after each gap, for the N samples
+    before its end: they are resent from the last 2N + 256 kept here (``recovered``
+    counts the samples resent). ``last_heard``: the monotonic time of the receiver's
+    latest report (or the export's start).
     """
 
     def __init__(
@@ -306,6 +365,7 @@ class Export:
         receiver: str,
         policy: Policy,
         queue_size: int,
+        history: int = 0,
     ) -> None:
         self.local_label = local_label
         self.semantic_label = semantic_label
@@ -320,6 +380,9 @@ class Export:
         self.batches = 0
         self.dropped: dict[str, int] = {}
         self.lost_in_transit = 0  # the receiver's latest report of samples missing on the way
+        self.history = history
+        self.recovered = 0  # samples resent from the history because the receiver missed them
+        self.last_heard = time.monotonic()
         self.last_error: str | None = None
         self.ended: str | None = None
         self.started = time.time()
@@ -333,6 +396,11 @@ class Export:
         self._numbered_drops = 0
         self._waiter: asyncio.Future[None] | None = None
         self._backoff = 0.0
+        # the last numbered samples: more than the receiver asks for, since the sender goes
+        # on numbering while its request travels
+        self._kept: deque[RawSample] = deque(maxlen=2 * history + _HISTORY_SLACK if history else 0)
+        self._recover: list[tuple[int, int]] = []  # ranges the receiver asked to be resent
+        self._keepalive_at = 0.0
 
     def __repr__(self) -> str:
         state = f"ended: {self.ended}" if self.ended else "active"
@@ -360,6 +428,9 @@ class Export:
             "queued": len(self.queue),
             "dropped": self.dropped_total,
             "dropped_by_reason": dict(self.dropped),
+            "history": self.history,
+            "recovered": self.recovered,
+            "last_heard": self.last_heard,
             "last_error": self.last_error,
             "active": self.active,
             "ended": self.ended,
@@ -398,13 +469,22 @@ class Export:
         q = self.queue
         sub = self.subscription
         batch_size = self._proxy.batch_size
+        lease = self._proxy.lease
+        # idle, look often enough to send keepalives and expire the lease in time
+        idle = _IDLE_CHECK if lease is None else min(_IDLE_CHECK, lease / 3)
         try:
             while True:
+                if lease is not None and self._lease_expired(lease):
+                    return
+                if self._recover:
+                    await self._resend()
                 if not q:
                     if sub is None or sub.closed:
                         self._end("the local stream ended")
                         return
-                    await self._wait(_IDLE_CHECK)
+                    if lease is not None:
+                        await self._keepalive(idle)
+                    await self._wait(idle)
                     continue
                 n = min(len(q), batch_size)
                 await self._send([q.popleft() for _ in range(n)])
@@ -417,6 +497,74 @@ class Export:
         except Exception as exc:
             log.exception("%s: failed", self.name)
             self._end(f"failed: {type(exc).__name__}: {exc}")
+
+    def _lease_expired(self, lease: float) -> bool:
+        """End the export when its receiver has not reported for ``lease`` s (frozen, gone)."""
+        silent = time.monotonic() - self.last_heard
+        if silent <= lease:
+            return False
+        log.warning(
+            "%s: lease expired: no report from %s for %.1f s; export stopped",
+            self.name,
+            self.receiver,
+            silent,
+        )
+        self._drop("lease-expired", len(self.queue), f"no report for {silent:.1f} s")
+        self.queue.clear()
+        self._end(f"lease-expired: no report from {self.receiver} for {silent:.1f} s")
+        return True
+
+    async def _keepalive(self, every: float) -> None:
+        """An idle stream not acknowledged lately sends an empty batch: the receiver answers.
+
+        It carries the next sequence number, so the receiver also learns of a lost tail.
+        """
+        now = time.monotonic()
+        if now - self.last_heard < min(_KEEPALIVE_AFTER, every) or now - self._keepalive_at < every:
+            return
+        self._keepalive_at = now
+        await self._send([])
+
+    def _want_resent(self, first: int, end: int) -> None:
+        """The receiver reports [first, end) missing: resend what the history still holds."""
+        if not self.history or end <= first or end > self._seq:
+            return
+        self._recover.append((first, end))
+        del self._recover[:-_MAX_RECOVER]  # a flood of requests costs a bounded list
+        w = self._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+
+    async def _resend(self) -> None:
+        """Publish, as batches marked resent, the asked ranges the history still holds."""
+        ranges, self._recover = self._recover, []
+        kept = list(self._kept)
+        oldest = self._seq - len(kept)  # the sequence number of kept[0]
+        for first, end in ranges:
+            first = max(first, oldest)
+            if first >= end:
+                continue
+            samples = kept[first - oldest : end - oldest]
+            for body, count in self._pack_resent(first, samples):
+                try:
+                    envelope = await self._seal(body)
+                    await self._proxy.transport.publish(self.key, envelope)
+                except (asyncio.CancelledError, TransportClosed):
+                    raise
+                except Exception as exc:  # the receiver may ask again
+                    log.debug("%s: resending failed: %s", self.name, exc)
+                    break
+                self.recovered += count
+
+    def _pack_resent(self, first: int, samples: list[RawSample]) -> list[tuple[bytes, int]]:
+        """Resent bodies of at most ``max_batch_bytes``, numbered from ``first``."""
+        body = pack_batch(self.semantic_label, samples, first, history=self.history, recovered=True)
+        if len(body) <= self._proxy.max_batch_bytes or len(samples) == 1:
+            return [(body, len(samples))]
+        half = len(samples) // 2
+        return self._pack_resent(first, samples[:half]) + self._pack_resent(
+            first + half, samples[half:]
+        )
 
     async def _wait(self, timeout: float) -> None:
         fut = asyncio.get_running_loop().create_future()
@@ -437,8 +585,9 @@ class Export:
             except (asyncio.CancelledError, TransportClosed):
                 raise
             except Exception as exc:  # no session: the receiver is gone, or refuses us
-                self._drop("no-session", count, f"{type(exc).__name__}: {exc}")
-                self._numbered_drops += count
+                if count:
+                    self._drop("no-session", count, f"{type(exc).__name__}: {exc}")
+                    self._numbered_drops += count
                 self._backoff = min(max(2 * self._backoff, _BACKOFF_MIN), _BACKOFF_MAX)
                 # meanwhile the queue keeps the newest samples, the oldest are dropped
                 await asyncio.sleep(self._backoff)
@@ -448,12 +597,14 @@ class Export:
             except TransportClosed:
                 raise
             except Exception as exc:
-                self._drop("send-failed", count, f"{type(exc).__name__}: {exc}")
-                self._numbered_drops += count
+                if count:
+                    self._drop("send-failed", count, f"{type(exc).__name__}: {exc}")
+                    self._numbered_drops += count
                 continue
             self._backoff = 0.0
-            self.sent += count
-            self.batches += 1
+            if count:
+                self.sent += count
+                self.batches += 1
 
     async def _seal(self, body: bytes) -> bytes:
         sessions = self._proxy.sessions
@@ -467,8 +618,11 @@ class Export:
     def _pack(self, samples: list[RawSample]) -> list[tuple[bytes, int]]:
         """Bodies of at most ``max_batch_bytes``: ``(body, sample count)``; bad samples dropped."""
         label = self.semantic_label
+        history = self.history
+        if not samples:  # a keepalive
+            return [(pack_batch(label, [], self._seq, history=history), 0)]
         try:
-            body = pack_batch(label, samples, self._seq)
+            body = pack_batch(label, samples, self._seq, history=history)
         except (TypeError, ValueError, OverflowError):
             good = []
             for s in samples:
@@ -481,7 +635,7 @@ class Export:
             if not good:
                 return []
             samples = good
-            body = pack_batch(label, samples, self._seq)
+            body = pack_batch(label, samples, self._seq, history=history)
         if len(body) > self._proxy.max_batch_bytes:
             if len(samples) == 1:
                 self._drop("too-large", 1, f"one sample of {len(body)} bytes")
@@ -489,11 +643,15 @@ class Export:
             half = len(samples) // 2
             return self._pack(samples[:half]) + self._pack(samples[half:])
         self._seq += len(samples)
+        if history:
+            self._kept.extend(samples)
         return [(body, len(samples))]
 
     def _end(self, why: str) -> None:
         if self.ended is None:
             self.ended = why
+            if why != "stopped":
+                self._proxy.ended.append(self)
         if self.subscription is not None:
             self.subscription.close()
         self._proxy._forget(self)
@@ -506,6 +664,12 @@ class ExportProxy:
     Per export: a queue of ``queue_size`` samples, batches of at most ``batch_size``
     samples and ``max_batch_bytes`` bytes; a session is awaited at most
     ``agree_timeout`` s. ``on_drop(export, reason, count)`` is told of every loss.
+
+    Lease: receivers' import proxies report on every stream they receive every 0.5 s;
+    an export whose receiver has not reported for ``lease`` s (frozen, cut off, gone
+    without a word) is ended (``ended`` ``"lease-expired: …"``, its queue counted as
+    dropped for ``lease-expired``, ``on_drop`` told, a warning logged) and listed in
+    ``ended`` (the latest exports that ended by themselves). None: no lease.
     Use as an async context manager, or call ``aclose``: it stops every export.
     """
 
@@ -522,9 +686,12 @@ class ExportProxy:
         max_batch_bytes: int = 64 * 1024,
         agree_timeout: float = 5.0,
         on_drop: OnDrop | None = None,
+        lease: float | None = 10.0,
     ) -> None:
         if queue_size < 1 or batch_size < 1 or max_batch_bytes < 256:
             raise ValueError("queue_size and batch_size must be >= 1, max_batch_bytes >= 256")
+        if lease is not None and not lease > 0:
+            raise ValueError(f"lease must be a positive number of seconds or None, not {lease!r}")
         self.platform = check_name(platform_name)
         self.federation = check_name(federation, "federation")
         self.transport = transport
@@ -535,6 +702,8 @@ class ExportProxy:
         self.max_batch_bytes = max_batch_bytes
         self.agree_timeout = agree_timeout
         self.on_drop = on_drop
+        self.lease = lease
+        self.ended: deque[Export] = deque(maxlen=256)
         self._exports: dict[tuple[str, str], Export] = {}
         self._reports: asyncio.Task[None] | None = None
         self.reports_refused = 0  # loss reports that did not open or parse
@@ -551,22 +720,29 @@ class ExportProxy:
         semantic_label: str,
         receiver: str,
         policy: Policy | None = None,
+        *,
+        history: int = 0,
     ) -> Export:
         """Subscribe to ``local_label`` with ``policy``, push it to ``receiver`` as semantic label.
 
-        Call on the event loop. Raises UnknownLabelError or PolicyError from the
-        instance, ValueError for a bad name or when this label already goes to that
-        receiver (stop that export first).
+        ``history`` N keeps the last N samples sent, to resend those the receiver reports
+        missing (a partition, a congested link). Call on the event loop. Raises
+        UnknownLabelError or PolicyError from the instance, ValueError for a bad name, a
+        bad history or when this label already goes to that receiver (stop that first).
         """
         check_name(receiver)
         check_semantic_label(semantic_label)
+        if type(history) is not int or not 0 <= history <= _MAX_HISTORY:
+            raise ValueError(f"history must be an integer 0-{_MAX_HISTORY}, not {history!r}")
         if receiver == self.platform:
             raise ValueError("a platform does not export to itself")
         if (receiver, semantic_label) in self._exports:
             raise ValueError(f"{semantic_label!r} is already exported to {receiver!r}")
         loop = asyncio.get_running_loop()
         policy = policy or Policy()
-        export = Export(self, local_label, semantic_label, receiver, policy, self.queue_size)
+        export = Export(
+            self, local_label, semantic_label, receiver, policy, self.queue_size, history
+        )
         # subscribed before the task exists: history a past 'start' replays is queued too
         export.subscription = self.instance.subscribe(
             local_label, policy, callback=export._on_batch
@@ -580,11 +756,13 @@ class ExportProxy:
         return export
 
     async def _receive_reports(self) -> None:
-        """Count what receivers report lost on the way: zenoh drops where we cannot see.
+        """Read receivers' reports: their lease, what they lost, what they want resent.
 
-        Each report carries a receiver's running total of samples missing from its
-        numbering per stream; the increase is counted on the export as ``lost-in-transit``
-        (and ``on_drop`` is told), so the provider learns of losses only receivers see.
+        Each report is ``{"v": 1, "lost": {label: total}, "resend": {label: [first, end]}}``
+        (``resend`` optional). Every label named renews that export's lease. ``lost`` is
+        the receiver's running total of samples missing from its numbering and not
+        recovered: the change is counted on the export as ``lost-in-transit`` (and
+        ``on_drop`` told), so the provider learns of losses only receivers see.
         """
         key = wire_key(self.federation, "stream-report", self.platform) + "/*"
         sub = await self.transport.subscribe(key, buffer_size=1024)
@@ -594,26 +772,51 @@ class ExportProxy:
                     sender, body = self.sessions.open_bytes(item.payload)
                     report = msgpack.unpackb(body, raw=False)
                     lost = report["lost"]
+                    resend = report.get("resend", {})
                     if (
                         item.key.rpartition("/")[2] != sender
                         or report.get("v") != BATCH_VERSION
                         or type(lost) is not dict
+                        or type(resend) is not dict
                     ):
                         raise ValueError("not a loss report from its sender")
                 except Exception:
                     self.reports_refused += 1
                     continue
+                now = time.monotonic()
                 for label, total in lost.items():
                     export = self._exports.get((sender, label))
                     if export is None or type(total) is not int:
                         continue
-                    transit = total - export._numbered_drops
-                    delta = transit - export.lost_in_transit
-                    if delta > 0:
-                        export.lost_in_transit = transit
-                        export._drop("lost-in-transit", delta)
+                    export.last_heard = now
+                    self._count_lost(export, total)
+                for label, wanted in resend.items():
+                    export = self._exports.get((sender, label))
+                    if (
+                        export is not None
+                        and type(wanted) is list
+                        and len(wanted) == 2
+                        and all(type(x) is int for x in wanted)
+                    ):
+                        export._want_resent(wanted[0], wanted[1])
         finally:
             sub.close()
+
+    @staticmethod
+    def _count_lost(export: Export, total: int) -> None:
+        transit = total - export._numbered_drops
+        delta = transit - export.lost_in_transit
+        if delta > 0:
+            export.lost_in_transit = transit
+            export._drop("lost-in-transit", delta)
+        elif delta < 0 and export.dropped.get("lost-in-transit"):
+            # reported lost, then recovered from the history: no longer a loss
+            export.lost_in_transit = max(transit, 0)
+            left = export.dropped["lost-in-transit"] + delta
+            if left > 0:
+                export.dropped["lost-in-transit"] = left
+            else:
+                del export.dropped["lost-in-transit"]
 
     async def stop(self, export: Export) -> None:
         """End ``export``: unsubscribe, drop what is queued, wait for its task to finish."""
@@ -666,8 +869,10 @@ class Import:
 
     ``batches`` payloads arrived; ``received`` samples were read from authentic batches,
     ``injected`` added to the local stream; ``lost`` samples never arrived (gaps in the
-    sender's numbering: dropped on the way); ``dropped_batches`` / ``dropped_samples`` by
-    reason. ``local_label`` is None for a stream that was never agreed.
+    sender's numbering: dropped on the way, or cut off) and were not recovered;
+    ``recovered`` arrived late, resent from the sender's history; ``gaps`` counts the
+    gaps seen; ``dropped_batches`` / ``dropped_samples`` by reason. ``local_label`` is
+    None for a stream that was never agreed.
     """
 
     def __init__(self, sender: str, semantic_label: str, local_label: str | None) -> None:
@@ -679,6 +884,9 @@ class Import:
         self.received = 0
         self.injected = 0
         self.lost = 0
+        self.recovered = 0
+        self.gaps = 0
+        self.history = 0  # what the sender says it keeps to resend
         self.dropped_batches: dict[str, int] = {}
         self.dropped_samples: dict[str, int] = {}
         self.ended = False
@@ -686,6 +894,8 @@ class Import:
         self.last_arrival: int | None = None
         self._last_ta = -(2**63)
         self._next_seq: int | None = None
+        self._missing: list[tuple[int, int]] = []  # [first, end) not arrived, may be resent
+        self._asks = 0  # resend requests for them so far
 
     def __repr__(self) -> str:
         return (
@@ -708,6 +918,8 @@ class Import:
             "received": self.received,
             "injected": self.injected,
             "lost": self.lost,
+            "recovered": self.recovered,
+            "gaps": self.gaps,
             "dropped_batches": dict(self.dropped_batches),
             "dropped_samples": dict(self.dropped_samples),
             "ended": self.ended,
@@ -824,22 +1036,43 @@ class ImportProxy:
             self._end(rec)
 
     async def _report_losses(self) -> None:
-        """Tell each sender, now and then, how many of its samples never arrived here."""
-        reported: dict[tuple[str, str], int] = {}
+        """Report to each sender, every ``report_interval``, on every stream it sends here.
+
+        The report is the sender's lease (an export not reported on is ended there) and
+        carries this side's running total of its samples that never arrived.
+        """
         while True:
             await asyncio.sleep(self.report_interval)
-            by_sender: dict[str, dict[str, int]] = {}
-            for key, rec in self._imports.items():
-                if rec.lost and reported.get(key) != rec.lost and rec.sender not in self._gone:
-                    by_sender.setdefault(rec.sender, {})[rec.semantic_label] = rec.lost
-                    reported[key] = rec.lost
-            for sender, lost in by_sender.items():
-                body = msgpack.packb({"v": BATCH_VERSION, "lost": lost})
-                topic = f"{wire_key(self.federation, 'stream-report', sender)}/{self.platform}"
-                try:
-                    await self.transport.publish(topic, self.sessions.seal_bytes(sender, body))
-                except Exception as exc:  # the sender is going: its report can wait or go
-                    log.debug("import[%s]: loss report to %s: %s", self.platform, sender, exc)
+            reports: dict[str, dict[str, Any]] = {}
+            for rec in self._imports.values():
+                if rec.ended or not rec.batches or rec.sender in self._gone:
+                    continue
+                report = reports.setdefault(rec.sender, {"v": BATCH_VERSION, "lost": {}})
+                report["lost"][rec.semantic_label] = rec.lost
+                if rec._missing and rec._asks < _MAX_ASKS:
+                    # the resent batches may have been dropped on the way too: ask again
+                    rec._asks += 1
+                    span = [rec._missing[0][0], rec._missing[-1][1]]
+                    report.setdefault("resend", {})[rec.semantic_label] = span
+            for sender, report in reports.items():
+                await self._report(sender, report)
+
+    async def _report(self, sender: str, report: dict[str, Any]) -> None:
+        body = msgpack.packb(report)
+        topic = f"{wire_key(self.federation, 'stream-report', sender)}/{self.platform}"
+        try:
+            await self.transport.publish(topic, self.sessions.seal_bytes(sender, body))
+        except Exception as exc:  # the sender is going: its report can wait or go
+            log.debug("import[%s]: report to %s: %s", self.platform, sender, exc)
+
+    def _ask_resend(self, rec: Import, first: int, end: int) -> None:
+        """Ask the sender now for the samples [first, end) that did not arrive."""
+        report = {
+            "v": BATCH_VERSION,
+            "lost": {rec.semantic_label: rec.lost},
+            "resend": {rec.semantic_label: [first, end]},
+        }
+        self._spawn(self._report(rec.sender, report), f"import[{self.platform}].resend")
 
     # -- agreements ---------------------------------------------------------------------
 
@@ -987,10 +1220,11 @@ class ImportProxy:
             self._refuse(sender, label, "wrong-sender")
             return
         try:
-            semantic, seq, samples = unpack_batch(body)
+            batch = read_batch(body)
         except ValueError:
             self._refuse(frm, label, "malformed")
             return
+        semantic, samples = batch.label, batch.samples
         if semantic != label:
             self._refuse(frm, label, "wrong-label")
             return
@@ -1010,7 +1244,12 @@ class ImportProxy:
             # still in flight when the sender's token went: its streams are ended
             rec._drop_samples("sender-gone", len(samples))
             return
-        self._inject(rec, seq, samples)
+        if batch.recovered:
+            assert batch.seq is not None  # read_batch checks it
+            self._inject_resent(rec, batch.seq, samples)
+            return
+        rec.history = batch.history
+        self._inject(rec, batch.seq, samples)
 
     def _translate(self, sender: str, semantic: str) -> str | None:
         try:
@@ -1020,13 +1259,56 @@ class ImportProxy:
             return None
 
     def _inject(self, rec: Import, seq: int | None, samples: list[Any]) -> None:
-        """Add the samples: valid time kept, available time = arrival here (unique, rising)."""
+        """Count gaps (asking for a resend when the sender keeps history), then add."""
         n = len(samples)
         if seq is not None:
             expected = rec._next_seq
             if expected is not None and seq > expected:
                 rec.lost += seq - expected
-            rec._next_seq = seq + n  # a lower seq: the sender restarted the export
+                rec.gaps += 1
+                if rec.history:
+                    first = max(expected, seq - rec.history)  # older ones are not kept
+                    rec._missing.append((first, seq))
+                    del rec._missing[:-_MAX_MISSING]
+                    rec._asks = 0
+                    self._ask_resend(rec, first, seq)
+            elif expected is not None and seq < expected:
+                rec._missing.clear()  # the sender restarted the export: a new numbering
+            rec._next_seq = seq + n
+        if not n:  # a keepalive
+            return
+        self._add(rec, samples)
+
+    def _inject_resent(self, rec: Import, first: int, samples: list[Any]) -> None:
+        """Add resent samples that are still missing here; count them recovered."""
+        wanted: list[Any] = []
+        missing: list[tuple[int, int]] = []
+        end = first + len(samples)
+        for a, b in rec._missing:
+            lo, hi = max(a, first), min(b, end)
+            if lo >= hi:
+                missing.append((a, b))
+                continue
+            wanted += samples[lo - first : hi - first]
+            if a < lo:
+                missing.append((a, lo))
+            if hi < b:
+                missing.append((hi, b))
+        rec._missing = missing
+        if not wanted:
+            rec._drop_samples("duplicate", len(samples))
+            return
+        if len(wanted) < len(samples):
+            rec._drop_samples("duplicate", len(samples) - len(wanted))
+        injected = rec.injected
+        self._add(rec, wanted)
+        got = rec.injected - injected
+        rec.recovered += got
+        rec.lost -= got
+
+    def _add(self, rec: Import, samples: list[Any]) -> None:
+        """Add the samples: valid time kept, available time = arrival here (unique, rising)."""
+        n = len(samples)
         now = self.instance.clock.now()
         if rec.first_arrival is None:
             rec.first_arrival = now

@@ -167,6 +167,9 @@ class LabelTranslator(Protocol):
         ...
 
 
+DURABLE_TRIES = 6
+"""How often a durable stream is asked for again when its provider comes back."""
+
 Anchor = Callable[[str, str, str], Awaitable[bool]]
 """``anchor(semantic, local, requester)``: asked to export a label with no stream here yet.
 
@@ -187,9 +190,16 @@ class Exporter(Protocol):
     """Starts and stops exports (the export proxy); either method may be async."""
 
     def start_exporting(
-        self, local_label: str, semantic_label: str, receiver: str, policy: Policy, /
+        self,
+        local_label: str,
+        semantic_label: str,
+        receiver: str,
+        policy: Policy,
+        /,
+        *,
+        history: int = 0,
     ) -> object:
-        """Export ``local_label`` as ``semantic_label`` to platform ``receiver``: a handle."""
+        """Export ``local_label`` as ``semantic_label`` to ``receiver`` (keeping ``history``)."""
         ...
 
     def stop(self, export: Any, /) -> object:
@@ -317,6 +327,7 @@ class FederationAgent(Agent):
         self._exports: dict[str, StreamExport] = {}
         self._by_conversation: dict[tuple[str, str], str] = {}
         self._reserved = 0
+        self._durable: dict[str, dict[str, dict[str, Any]]] = {}  # provider -> id -> content
         self._members: set[str] = set()
         self._watchers: list[Inbox[MembershipEvent]] = []
         self._directory: Subscription[DirectoryEvent] | None = None
@@ -458,10 +469,31 @@ class FederationAgent(Agent):
             await self._stop_exports_to(platform)
 
     async def _announce(self, kind: Literal["joined", "left", "gone"], platform: str) -> None:
+        if kind == "joined" and self._durable.get(platform):
+            self.spawn(self._ask_again(platform), f"durable:{platform}")
         event = MembershipEvent(kind, platform)
         for inbox in list(self._watchers):
             inbox.put(event)
         await self._subscribers.publish({"event": kind, "platform": platform})
+
+    async def _ask_again(self, provider: str) -> None:
+        """Create the durable streams from ``provider`` anew (it came back)."""
+        asked = self._durable.get(provider, {})
+        for old_id, content in list(asked.items()):
+            for attempt in range(DURABLE_TRIES):
+                if provider not in self._members:
+                    return  # gone again: its next return asks again
+                try:
+                    answer = await self.request_from(provider, content)
+                except Exception as exc:
+                    # its agents may still be starting (key exchange, directory)
+                    log.info("%s: asking %s again for %s: %s", self, provider, content, exc)
+                    await asyncio.sleep(min(2.0, 0.25 * 2**attempt))
+                    continue
+                asked.pop(old_id, None)
+                asked[str(answer["id"])] = content
+                log.info("%s: %s is back: %s created again", self, provider, content["labels"])
+                break
 
     # -- requests -----------------------------------------------------------------------
 
@@ -588,7 +620,7 @@ class FederationAgent(Agent):
                 for receiver in receivers:
                     try:
                         handle = await self._start_export(
-                            exporter, local, semantic, receiver, policy, requester
+                            exporter, local, semantic, receiver, policy, requester, req.history
                         )
                     except UnknownLabelError as exc:
                         # Nothing to export (yet); its message lists local labels.
@@ -619,9 +651,11 @@ class FederationAgent(Agent):
         receiver: str,
         policy: Policy,
         requester: str,
+        history: int,
     ) -> Any:
+        start = exporter.start_exporting
         try:
-            return await _resolved(exporter.start_exporting(local, semantic, receiver, policy))
+            return await _resolved(start(local, semantic, receiver, policy, history=history))
         except UnknownLabelError:
             # An object this platform has not anchored yet (the paper's car5): the
             # application may anchor it now and create its stream; then export it.
@@ -629,7 +663,7 @@ class FederationAgent(Agent):
                 raise
             if not await self.anchor(semantic, local, requester):
                 raise
-            return await _resolved(exporter.start_exporting(local, semantic, receiver, policy))
+            return await _resolved(start(local, semantic, receiver, policy, history=history))
 
     async def _cancel_stream(self, export_id: str, sender: str) -> dict[str, Any]:
         record = self._exports.get(export_id)
@@ -752,9 +786,17 @@ class FederationAgent(Agent):
         start: float | None = None,
         end: float | None = None,
         relative: bool = False,
+        history: int = 0,
+        durable: bool = False,
         timeout: float = DEFAULT_TIMEOUT,
     ) -> str:
-        """Ask platform ``provider`` to export ``labels`` (to us by default); the export id."""
+        """Ask platform ``provider`` to export ``labels`` (to us by default); the export id.
+
+        ``history`` N asks the exporter to keep its last N samples and resend those a
+        partition made us miss. ``durable`` asks again by itself whenever ``provider``
+        comes back after it was gone (a restart, a router restart, a long partition):
+        exports to a platform gone are stopped at the provider.
+        """
         content: dict[str, Any] = {"action": "create-stream", "labels": list(labels)}
         for key, value in (
             ("to-units", None if to_units is None else list(to_units)),
@@ -767,13 +809,19 @@ class FederationAgent(Agent):
                 content[key] = value
         if relative:
             content["relative"] = True
+        if history:
+            content["history"] = history
         answer = await self.request_from(provider, content, timeout=timeout)
-        return str(answer["id"])
+        export_id = str(answer["id"])
+        if durable:
+            self._durable.setdefault(provider, {})[export_id] = content
+        return export_id
 
     async def cancel_stream(
         self, provider: str, export_id: str, *, timeout: float = DEFAULT_TIMEOUT
     ) -> None:
         """Ask platform ``provider`` to stop export ``export_id``."""
+        self._durable.get(provider, {}).pop(export_id, None)
         await self.request_from(
             provider, {"action": "cancel-stream", "id": export_id}, timeout=timeout
         )

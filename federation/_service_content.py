@@ -37,6 +37,10 @@ class ContentError(Exception):
         super().__init__(reason)
 
 
+MAX_HISTORY = 100_000
+"""The most samples a create-stream may ask an exporter to keep for resending."""
+
+
 class _Content(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
@@ -53,6 +57,8 @@ class CreateStream(_Content):
     max_delay: Seconds | None = Field(default=None, alias="max-delay")
     to_units: Units | None = Field(default=None, alias="to-units")
     policy: dict[str, JsonValue] = Field(default_factory=dict)
+    # samples kept by the exporter to resend what a partition lost (docs/federation.md)
+    history: int = Field(default=0, ge=0, le=MAX_HISTORY)
 
     def policy_spec(self) -> PolicySpec:
         """The policy as the gateway reads it: the named fields over ``policy``'s extras."""

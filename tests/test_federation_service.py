@@ -118,6 +118,7 @@ class FakeExport:
     semantic: str
     receiver: str
     policy: Policy
+    history: int = 0
     stopped: bool = False
 
 
@@ -130,13 +131,13 @@ class FakeExporter:
     missing: set[str] = field(default_factory=set)  # local labels with no stream behind
 
     async def start_exporting(
-        self, local: str, semantic: str, receiver: str, policy: Policy
+        self, local: str, semantic: str, receiver: str, policy: Policy, *, history: int = 0
     ) -> FakeExport:
         if receiver == self.fail_for:
             raise RuntimeError(f"no route to {receiver} for {local}")
         if local in self.missing:  # as the proxy's subscription would: naming local labels
             raise UnknownLabelError(local, sorted(self.missing))
-        export = FakeExport(local, semantic, receiver, policy)
+        export = FakeExport(local, semantic, receiver, policy, history)
         self.started.append(export)
         return export
 
@@ -318,6 +319,10 @@ async def test_create_stream_is_agreed_and_exported_to_each_receiver() -> None:
         export_id = await b.fed.create_stream("uav-a", ["heli-altitude"], sample_period=2)
         assert started[-1].receiver == "uav-b" and started[-1].policy.sample_period == 2
         assert export_id in a.fed.exports
+        assert [e.history for e in started] == [0, 0, 0]
+        # history: the exporter keeps the last N samples to resend what a partition lost
+        await b.fed.create_stream("uav-a", ["heli-max-speed"], history=50)
+        assert (started[-1].semantic, started[-1].history) == ("heli-max-speed", 50)
 
 
 async def test_create_stream_refusals_name_the_reason() -> None:
@@ -335,6 +340,7 @@ async def test_create_stream_refusals_name_the_reason() -> None:
         )
         assert "sample-period" in await refusal(ask(labels=["car5-state"], **{"sample-period": -1}))
         assert "start" in await refusal(ask(labels=["car5-state"], **{"from": 20, "to": 10}))
+        assert "history" in await refusal(ask(labels=["car5-state"], history=-1))
         assert "unknown action" in await refusal(b.fed.request_from("uav-a", {"action": "fly"}))
         assert a.exporter.started == []
 
