@@ -57,6 +57,7 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
 
     from agents.transports import ZenohTransport
     from federation import FederationPlatform, PlatformConfig
+    from federation._cli_net import settle_gc
 
     streams = int(spec["streams"])
     parent = os.getppid()
@@ -92,6 +93,7 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
     async with contextlib.AsyncExitStack() as stack:
         uavs = [Uav(c) for c in spec["configs"]]
         await asyncio.gather(*(u.open(stack) for u in uavs))
+        settle_gc()  # as `dyknow node` does once its platform is up
         reports.put(
             (
                 "ready",

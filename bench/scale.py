@@ -67,6 +67,7 @@ from bench._scale_node import (
     zenoh_settings,
 )
 from federation import FederationPlatform, PlatformConfig
+from federation._cli_net import settle_gc
 
 PLATFORMS = 32
 STREAMS = 10
@@ -408,6 +409,7 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             await _wait_members(op, plan.names, children, joined)
             result.join = max(joined.get(p, time.time()) for p in plan.names) - launched
             progress(f"all {n} UAVs are members {result.join:.2f} s after launch")
+            settle_gc()  # the operator is a long-running node too (`dyknow console`)
             readies = await asyncio.gather(
                 *(asyncio.to_thread(c.wait_report, "ready", START_TIMEOUT) for c in children)
             )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import re
 import signal
@@ -57,9 +58,21 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
     """Run one platform until SIGINT/SIGTERM, then shut it down cleanly."""
     async with FederationPlatform(config, source=source) as p:
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
+        settle_gc()
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
         await stop.wait()
     say(f"dyknow node: {config.name} stopped")
+
+
+def settle_gc() -> None:
+    """Move what start-up allocated out of the cyclic GC's sight (a long-running node).
+
+    The modules, agents and caches built at start-up live as long as the process; without
+    this, every full collection walks them again (measured: 16-24% of a node's loop time
+    in the GC, a 70 ms pause inside a global query at scale).
+    """
+    gc.collect()
+    gc.freeze()
 
 
 async def run_console(
@@ -73,6 +86,7 @@ async def run_console(
         OperatorConsole(p, host=host, port=port) as console,
     ):
         stop = _stop_event()
+        settle_gc()
         say(f"dyknow console: {p.name} ready in federation {config.federation}: {console.url}")
         await stop.wait()
     say(f"dyknow console: {config.name} stopped")

@@ -52,6 +52,7 @@ from agents._protocols import Proposal
 from dyknow_core import NS_PER_S, DyKnowInstance, Source
 from dyknow_core._anchoring import Anchoring, LinkType, ObjectClass, add_anchoring
 
+from .._cli_net import settle_gc
 from .._platform import FederationPlatform, PlatformConfig
 from ._world import Camera, World
 
@@ -961,6 +962,7 @@ async def _main(settings: UavSettings) -> None:
         app.setup()
         await platform.agents.add(TrafficMonitor(app))
         await platform.join()
+        settle_gc()
         app.spawn(app.run(), "run")
         await stop.wait()
         await app.aclose()
