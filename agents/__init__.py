@@ -40,8 +40,15 @@ from ._exceptions import (
     TransportError,
 )
 from ._gateway import GatewayAgent
-from ._interface import AuditLog, InterfaceAgent
-from ._platform import AgentPlatform, PlainChannel, PlatformStats, RemoteChannel, wire_key
+from ._interface import AuditLog, InterfaceAgent, RateLimit
+from ._platform import (
+    AgentPlatform,
+    PlainChannel,
+    PlatformStats,
+    RemoteChannel,
+    SenderStats,
+    wire_key,
+)
 from ._protocols import (
     FIPA_CONTRACT_NET,
     FIPA_QUERY,
@@ -104,12 +111,14 @@ __all__ = [
     "PlatformStats",
     "Proposal",
     "Publisher",
+    "RateLimit",
     "Refuse",
     "Refused",
     "RemoteChannel",
     "ReplyTimeout",
     "SecurityError",
     "SecurityPolicy",
+    "SenderStats",
     "ServiceDescription",
     "ServiceError",
     "ServiceQuery",

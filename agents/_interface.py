@@ -13,8 +13,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -43,7 +46,7 @@ from ._security import (
 from .transports import Handle, Message, Presence, Subscription
 
 if TYPE_CHECKING:
-    from ._platform import AgentPlatform
+    from ._platform import AgentPlatform, SenderStats
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +68,115 @@ INITIATING = frozenset(
         Performative.PROXY,
     }
 )
+
+
+RATE_LIMIT_REASON = "rate limit exceeded"
+
+
+@dataclass(frozen=True, slots=True)
+class RateLimit:
+    """How much each other platform may send here, enforced after authentication.
+
+    Token buckets per authenticated platform: ``rate`` initiating messages (requests,
+    queries, subscribes, calls for proposals: each makes this platform work and answer)
+    per second with bursts of ``burst``, and ``total_rate``/``total_burst`` for all of its
+    messages (replies and informs included; checked before the body is parsed, so
+    over-limit input costs little more than its MAC). Of what is dropped, at most
+    ``refusals`` requests per second per platform are answered with ``refuse``
+    (reason ``"rate limit exceeded"``); the rest are only counted. A platform's limiting
+    is audited once per ``report_interval`` seconds (with the count), not per message.
+    ``unauthenticated`` bounds the audit records per second for envelopes that do not
+    open (all sources together: their claimed sender is not proven); the rest are counted
+    and summed up once per ``report_interval``. See ``docs/security.md``.
+    """
+
+    rate: float = 5_000.0
+    burst: float = 200.0
+    total_rate: float = 50_000.0
+    total_burst: float = 50_000.0
+    refusals: float = 10.0
+    report_interval: float = 1.0
+    unauthenticated: float = 200.0
+
+    def __post_init__(self) -> None:
+        for name in (
+            "rate",
+            "burst",
+            "total_rate",
+            "total_burst",
+            "refusals",
+            "report_interval",
+            "unauthenticated",
+        ):
+            value = getattr(self, name)
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | float)
+                or not math.isfinite(value)
+                or value < 0
+            ):
+                raise ValueError(f"RateLimit.{name}: {value!r} is not a finite number >= 0")
+        for name in ("burst", "total_burst"):
+            if getattr(self, name) < 1:
+                raise ValueError(
+                    f"RateLimit.{name}: {getattr(self, name)!r} < 1 would refuse every message"
+                )
+        if self.report_interval <= 0:
+            raise ValueError(f"RateLimit.report_interval: {self.report_interval!r} is not > 0")
+
+
+class TokenBucket:
+    """``rate`` tokens per second, at most ``burst`` saved up: one message takes one token."""
+
+    __slots__ = ("burst", "rate", "stamp", "tokens")
+
+    def __init__(self, rate: float, burst: float, now: float) -> None:
+        self.rate = rate
+        self.burst = burst
+        self.tokens = burst  # a newcomer may send its burst at once
+        self.stamp = now
+
+    def take(self, now: float, n: float = 1.0) -> bool:
+        """Take ``n`` tokens at time ``now`` (seconds, monotonic) if there are; else False."""
+        tokens = self.tokens
+        if now > self.stamp:
+            tokens = min(self.burst, tokens + (now - self.stamp) * self.rate)
+            self.stamp = now
+        if tokens >= n:
+            self.tokens = tokens - n
+            return True
+        self.tokens = tokens
+        return False
+
+
+def _burst_of(rate: float) -> float:
+    """A second's worth, and at least one when any: a rate of 0.5/s still allows one."""
+    return max(1.0, rate) if rate > 0 else 0.0
+
+
+class _Sender:
+    """The rate-limit state of one authenticated platform."""
+
+    __slots__ = (
+        "last_report",
+        "pending",
+        "pending_refused",
+        "refusals",
+        "requests",
+        "stats",
+        "total",
+    )
+
+    def __init__(self, limit: RateLimit | None, stats: SenderStats, now: float) -> None:
+        self.stats = stats
+        self.requests = TokenBucket(limit.rate, limit.burst, now) if limit else None
+        self.total = TokenBucket(limit.total_rate, limit.total_burst, now) if limit else None
+        self.refusals = (
+            TokenBucket(limit.refusals, _burst_of(limit.refusals), now) if limit else None
+        )
+        self.pending = 0  # limited since the last audit record
+        self.pending_refused = 0
+        self.last_report = -math.inf
 
 
 class AuditLog:
@@ -134,7 +246,13 @@ class InterfaceAgent:
     ``AgentPlatform("uav-a", transport, federation="demo", channel=InterfaceAgent(keys, trust))``.
     It joins the platform as agent ``interface@<platform>``, which local agents can ask
     (FIPA-Query, ontology ``interface``) for ``{"audit": n}`` (the last n records) or
-    ``{"sessions": true}``.
+    ``{"sessions": true}`` or ``{"senders": true}`` (per platform: accepted, limited,
+    refused by the rate limit).
+
+    ``rate_limit`` (default `RateLimit()`; None: no limit) bounds what each other
+    platform may send here, after authentication, so one platform's flood is dropped
+    before it reaches the agents' mailboxes and others are still served. ``monotonic`` is
+    its clock (injectable, as ``clock`` is for the envelopes' timestamps).
     """
 
     def __init__(
@@ -150,6 +268,8 @@ class InterfaceAgent:
         rehandshake_interval: float = 1.0,
         max_bytes: int = MAX_MESSAGE_BYTES,
         clock: Clock = time.time,
+        rate_limit: RateLimit | None = RateLimit(),  # frozen: one instance serves all
+        monotonic: Callable[[], float] = time.monotonic,
     ) -> None:
         self.keys = keys
         self.trust = trust
@@ -168,6 +288,19 @@ class InterfaceAgent:
         self._kx: Handle | None = None
         self._host: AgentPlatform | None = None
         self.agent: Agent | None = None
+        if rate_limit is not None and not isinstance(rate_limit, RateLimit):
+            raise TypeError(f"rate_limit: expected a RateLimit or None, got {rate_limit!r}")
+        self.rate_limit = rate_limit
+        self._monotonic = monotonic
+        self._senders: dict[str, _Sender] = {}
+        # envelopes that do not open: their audit records share one budget (any source)
+        self._unauth = (
+            TokenBucket(rate_limit.unauthenticated, _burst_of(rate_limit.unauthenticated), 0.0)
+            if rate_limit is not None
+            else None
+        )
+        self._unauth_pending = 0
+        self._unauth_last_report = -math.inf
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -207,7 +340,7 @@ class InterfaceAgent:
         self._subs.append(inbox)
         platform.spawn(self._receive(inbox), "interface.inbox")
         platform.spawn(self._watch(presence), "interface.presence")
-        if self.publish_audit or self.audit.path is not None:
+        if self.publish_audit or self.audit.path is not None or self.rate_limit is not None:
             platform.spawn(self._flush_audit(), "interface.audit")
         self.agent = await platform.add(_InterfaceQueries(self))
 
@@ -376,12 +509,7 @@ class InterfaceAgent:
         try:
             reply, session = self.handshake.respond(payload)
         except AuthenticationError as exc:
-            self.audit.record(
-                verdict="dropped",
-                stage="kx",
-                **{"from": exc.platform},
-                reason=f"{exc.code}: {exc.reason}",
-            )
+            self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}", stage="kx")
             return None
         self.sessions.add(session)
         return reply
@@ -409,21 +537,38 @@ class InterfaceAgent:
         host = self._require_host()
         open_envelope = self.sessions.open
         from_json = ACLMessage.from_json
+        monotonic = self._monotonic
+        stats = host.stats
+        limited = self.rate_limit is not None
+        now = 0.0
+        n = 0
         async for item in inbox:
+            n += 1
+            if not n & 63:
+                # Getting a queued item never suspends, and dropping one is cheap: without
+                # this a flood would hold the loop, and no agent would run to answer others.
+                await asyncio.sleep(0)
             try:
                 peer, body = open_envelope(item.payload)
             except AuthenticationError as exc:
-                self.audit.record(
-                    verdict="dropped",
-                    **{"from": exc.platform},
-                    reason=f"{exc.code}: {exc.reason}",
-                )
+                stats.unauthenticated += 1
+                self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}")
                 if isinstance(exc, UnknownSession) and exc.platform is not None:
                     self._rehandshake(exc.platform)
                 continue
             except Exception as exc:  # never let one envelope end the loop
-                self.audit.record(verdict="dropped", reason=f"malformed: {exc}")
+                stats.unauthenticated += 1
+                self._drop_unauthenticated(None, f"malformed: {exc}")
                 continue
+            state = self._senders.get(peer)
+            if state is None:
+                state = self._sender(host, peer)
+            if limited:
+                now = monotonic()
+                assert state.total is not None
+                if not state.total.take(now):
+                    await self._limited(host, peer, state, body, None, now)
+                    continue
             try:
                 message = from_json(body, max_bytes=self.max_bytes)
             except MessageError as exc:
@@ -447,10 +592,125 @@ class InterfaceAgent:
                 )
                 await host.reject(body, exc.reason)
                 continue
+            if limited and message.performative in INITIATING:
+                assert state.requests is not None
+                if not state.requests.take(now):
+                    await self._limited(host, peer, state, body, message, now)
+                    continue
+            state.stats.accepted += 1
             try:
                 await self._admit(host, peer, message)
             except Exception:
                 log.exception("interface[%s]: delivering from %s failed", self._me, peer)
+
+    def _sender(self, host: AgentPlatform, peer: str) -> _Sender:
+        """The rate-limit state of ``peer`` (authenticated, so one per trusted platform)."""
+        from ._platform import SenderStats
+
+        stats = host.stats.senders.setdefault(peer, SenderStats())
+        sender = _Sender(self.rate_limit, stats, self._monotonic())
+        self._senders[peer] = sender
+        return sender
+
+    async def _limited(
+        self,
+        host: AgentPlatform,
+        peer: str,
+        sender: _Sender,
+        body: bytes,
+        message: ACLMessage | None,
+        now: float,
+    ) -> None:
+        """Drop a message over ``peer``'s rate; refuse a few requests; audit now and then."""
+        sender.stats.limited += 1
+        host.stats.rate_limited += 1
+        sender.pending += 1
+        refusals = sender.refusals
+        if refusals is not None and refusals.take(now):
+            if message is None:
+                try:
+                    message = ACLMessage.from_json(body, max_bytes=self.max_bytes)
+                except MessageError:
+                    message = None  # not worth a not-understood: it was over the limit
+            if message is not None and self._refuse_limited(host, peer, message):
+                sender.stats.refused += 1
+                sender.pending_refused += 1
+                answer = message.reply(
+                    Performative.REFUSE,
+                    RATE_LIMIT_REASON,
+                    sender=next(r for r in message.receivers if platform_of(r) == host.name),
+                )
+                answer = answer.model_copy(update={"receivers": [message.sender]})
+                try:
+                    await host.send(answer)
+                except Exception as exc:
+                    log.debug("interface[%s]: could not refuse %s: %s", self._me, peer, exc)
+        self._report_limited(peer, sender, now)
+
+    def _refuse_limited(self, host: AgentPlatform, peer: str, message: ACLMessage) -> bool:
+        """Whether a dropped message is a request its sender can be told about."""
+        return (
+            message.performative in INITIATING
+            and platform_of(message.sender) == peer
+            and any(platform_of(r) == host.name for r in message.receivers)
+        )
+
+    def _report_limited(self, peer: str, sender: _Sender, now: float) -> None:
+        """Audit ``peer``'s limiting at most once per interval (its first drop at once)."""
+        limit = self.rate_limit
+        if limit is None or not sender.pending:
+            return
+        if now - sender.last_report < limit.report_interval:
+            return
+        since = "" if math.isinf(sender.last_report) else f" in {now - sender.last_report:.1f} s"
+        self.audit.record(
+            verdict="dropped",
+            stage="rate-limit",
+            count=sender.pending,
+            **{"from": peer},
+            reason=(
+                f"{RATE_LIMIT_REASON}: {sender.pending} message(s) from {peer!r} dropped{since} "
+                f"({sender.pending_refused} answered with refuse; limit {limit.rate:g} "
+                f"requests/s, burst {limit.burst:g}; {limit.total_rate:g} messages/s, "
+                f"burst {limit.total_burst:g})"
+            ),
+        )
+        sender.pending = 0
+        sender.pending_refused = 0
+        sender.last_report = now
+
+    def _drop_unauthenticated(
+        self, claimed: str | None, reason: str, *, stage: str | None = None
+    ) -> None:
+        """Audit an envelope or handshake that did not authenticate, within a global budget."""
+        extra = {} if stage is None else {"stage": stage}
+        bucket = self._unauth
+        if bucket is None or bucket.take(self._monotonic()):
+            self.audit.record(verdict="dropped", **{"from": claimed}, reason=reason, **extra)
+            return
+        # a flood of garbage must not become a flood of audit records: count, sum up later
+        self._unauth_pending += 1
+        self._report_unauthenticated(self._monotonic())
+
+    def _report_unauthenticated(self, now: float) -> None:
+        """Audit the unauthenticated input dropped without a record, once per interval."""
+        limit = self.rate_limit
+        if limit is None or not self._unauth_pending:
+            return
+        if now - self._unauth_last_report < limit.report_interval:
+            return
+        self.audit.record(
+            verdict="dropped",
+            stage="unauthenticated",
+            count=self._unauth_pending,
+            reason=(
+                f"{self._unauth_pending} more envelope(s) or handshake(s) that did not "
+                f"authenticate dropped without a record each (over {limit.unauthenticated:g} "
+                "records/s)"
+            ),
+        )
+        self._unauth_pending = 0
+        self._unauth_last_report = now
 
     async def _admit(self, host: AgentPlatform, peer: str, message: ACLMessage) -> None:
         """Check the sender and access, audit, and deliver."""
@@ -534,6 +794,14 @@ class InterfaceAgent:
         host = self._require_host()
         while True:
             await asyncio.sleep(self.audit_interval)
+            if self.rate_limit is not None:
+                # what a flood that stopped left uncounted in the audit
+                now = self._monotonic()
+                for peer, sender in self._senders.items():
+                    self._report_limited(peer, sender, now)
+                self._report_unauthenticated(now)
+            if not self.publish_audit and self.audit.path is None:
+                continue
             data = self.audit.take()
             if data and self.publish_audit:
                 try:
@@ -550,8 +818,11 @@ class _InterfaceQueries(Agent):
         self.interface = interface
 
     @on_query(INTERFACE_ONTOLOGY)
-    async def _answer(self, message: ACLMessage) -> Any:
-        """Local agents may read the audit and the sessions; other platforms may not."""
+    async def _answer_query(self, message: ACLMessage) -> Any:
+        """Local agents may read the audit, sessions and senders; other platforms may not.
+
+        (Not ``_answer``: that is `Agent`'s own, which answers unhandled messages.)
+        """
         if platform_of(message.sender) != self.platform.name:
             raise Refuse("the interface agent answers local agents only")
         content = message.content if isinstance(message.content, dict) else {}
@@ -564,7 +835,15 @@ class _InterfaceQueries(Agent):
             return {"audit": [dict(r) for r in last], "counts": dict(audit.counts)}
         if content.get("sessions"):
             return {"peers": sorted(self.interface.sessions.peers())}
-        raise Refuse("ask for {'audit': n} or {'sessions': true}")
+        if content.get("senders"):
+            senders = self.platform.stats.senders
+            return {
+                "senders": {
+                    p: {"accepted": s.accepted, "limited": s.limited, "refused": s.refused}
+                    for p, s in senders.items()
+                }
+            }
+        raise Refuse("ask for {'audit': n}, {'sessions': true} or {'senders': true}")
 
     @on(MessageTemplate(Performative.INFORM, ontology=INTERFACE_ONTOLOGY))
     async def _new_session(self, message: ACLMessage) -> None:

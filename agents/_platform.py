@@ -16,7 +16,7 @@ import asyncio
 import logging
 import re
 from collections.abc import Coroutine
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol, Self, TypeVar, runtime_checkable
 
 import orjson
@@ -134,8 +134,28 @@ class PlainChannel:
 
 
 @dataclass(slots=True)
+class SenderStats:
+    """What one other (authenticated) platform sent here, as its channel's rate limit saw it.
+
+    ``accepted``: messages that passed the rate limit (they then go through access control);
+    ``limited``: messages dropped by it, of which ``refused`` were answered with ``refuse``.
+    """
+
+    accepted: int = 0
+    limited: int = 0
+    refused: int = 0
+
+
+@dataclass(slots=True)
 class PlatformStats:
-    """What a platform has moved: local and remote deliveries, malformed input, drops."""
+    """What a platform has moved: local and remote deliveries, malformed input, drops.
+
+    ``answers_dropped`` counts failure/not-understood answers to other platforms not sent
+    because too many were on their way; ``unauthenticated`` envelopes that did not open
+    (the Interface Agent drops them); ``rate_limited`` messages dropped by a sender's rate
+    limit; ``senders`` holds per-platform figures (keyed by authenticated platform name, so
+    bounded by the trust file).
+    """
 
     local: int = 0
     sent_remote: int = 0
@@ -145,9 +165,16 @@ class PlatformStats:
     unknown_receiver: int = 0
     mailbox_full: int = 0
     misrouted: int = 0
+    answers_dropped: int = 0
+    unauthenticated: int = 0
+    rate_limited: int = 0
+    senders: dict[str, SenderStats] = field(default_factory=dict)
 
 
 _UNOPENED, _OPENED, _CLOSING, _CLOSED = "unopened", "opened", "closing", "closed"
+
+# remote answers (failure, not-understood) the platform sends in the background at once
+MAX_ANSWERING = 256
 
 
 class AgentPlatform:
@@ -189,6 +216,7 @@ class AgentPlatform:
         self._tasks: set[asyncio.Task[Any]] = set()
         self._token: Handle | None = None
         self._lock = asyncio.Lock()
+        self._answering = 0  # answers of the platform's own being sent in the background
 
     def __repr__(self) -> str:
         return f"<AgentPlatform {self.name} ({self.federation}) {self._state}>"
@@ -415,9 +443,11 @@ class AgentPlatform:
         if message.performative not in NEVER_ANSWERED:
             # The platform answers for the receiver: it is authoritative for its names.
             try:
-                await self.send(message.reply(Performative.FAILURE, reason, sender=receiver))
+                answer = message.reply(Performative.FAILURE, reason, sender=receiver)
             except Exception:
                 log.exception("platform[%s]: could not tell %s", self.name, message.sender)
+            else:
+                await self._answer(answer)
 
     async def reject(self, payload: bytes, reason: str) -> None:
         """Account for bytes that arrived but are not a valid message (never raises).
@@ -431,10 +461,62 @@ class AgentPlatform:
         log.log(level, "platform[%s]: malformed message #%d: %s", self.name, n, reason)
         try:
             answer = self._not_understood(payload, reason)
-            if answer is not None:
-                await self.send(answer)
         except Exception:
             log.exception("platform[%s]: could not answer a malformed message", self.name)
+            return
+        if answer is not None:
+            await self._answer(answer)
+
+    async def _answer(self, answer: ACLMessage) -> None:
+        """Send an answer the platform gives itself (failure, not-understood); never raises.
+
+        The caller is often a channel's receive loop. Sending to another platform may wait
+        for a key exchange (seconds, when that platform does not answer, and a message's
+        ``reply_to`` chooses it), so remote answers go out in the background, at most
+        ``MAX_ANSWERING`` at a time; beyond that they are dropped and counted
+        (``stats.answers_dropped``): a flood of such messages cannot pile up tasks.
+        """
+        name = self.name
+        if self._state != _OPENED or all(platform_of(r) == name for r in answer.receivers):
+            # local (no network wait), or closing (no more tasks): as before, in line
+            try:
+                await self.send(answer)
+            except Exception:
+                log.exception("platform[%s]: could not send %s", name, answer.performative)
+            return
+        if self._answering >= MAX_ANSWERING:
+            self.stats.answers_dropped += 1
+            n = self.stats.answers_dropped
+            level = logging.WARNING if n <= 10 or n % 1000 == 0 else logging.DEBUG
+            log.log(
+                level,
+                "platform[%s]: %s to %s dropped (#%d)",
+                name,
+                answer.performative,
+                answer.receivers,
+                n,
+            )
+            return
+        self._answering += 1
+        try:
+            self.spawn(self._send_answer(answer), "answer")
+        except BaseException:
+            self._answering -= 1
+            raise
+
+    async def _send_answer(self, answer: ACLMessage) -> None:
+        try:
+            await self.send(answer)
+        except Exception as exc:
+            log.warning(
+                "platform[%s]: could not send %s to %s: %s",
+                self.name,
+                answer.performative,
+                answer.receivers,
+                exc,
+            )
+        finally:
+            self._answering -= 1
 
     def _not_understood(self, payload: bytes, reason: str) -> ACLMessage | None:
         if len(payload) > 4 * MAX_MESSAGE_BYTES:
@@ -448,7 +530,8 @@ class AgentPlatform:
         sender = obj.get("sender")
         if not isinstance(sender, str) or platform_of(sender) == self.name:
             return None  # no one to tell, or a local sender forged from outside
-        if obj.get("performative") in NEVER_ANSWERED:
+        performative = obj.get("performative")
+        if isinstance(performative, str) and performative in NEVER_ANSWERED:
             return None
         me = f"ams@{self.name}"
         receivers = obj.get("receivers")

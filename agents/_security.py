@@ -98,6 +98,7 @@ _compare = hmac.compare_digest
 _packb = msgpack.packb  # a fresh packer per call: a shared one would not be thread-safe
 _unpackb = msgpack.unpackb
 _MAC_BYTES = 32
+_TAG_BYTES = 16  # the ChaCha20-Poly1305 tag a box adds to its body
 
 
 def check_name(value: str, what: str = "platform") -> str:
@@ -643,12 +644,15 @@ class Session:
 
     def seal(self, body: bytes | str) -> bytes:
         """Seal one ACL message (JSON) into an envelope for the peer."""
-        if isinstance(body, bytes):
-            raw = body
-            text = body.decode()
-        else:
-            text = body
-            raw = body.encode()
+        try:
+            if isinstance(body, bytes):
+                raw = body
+                text = body.decode()
+            else:
+                text = body
+                raw = body.encode()
+        except UnicodeError as exc:  # the envelope carries the body as a JSON string
+            raise MessageError(f"message body is not UTF-8 text: {exc}") from None
         if len(raw) > self._max_body:
             raise MessageError(f"message of {len(raw)} bytes exceeds the limit of {self._max_body}")
         ts, n = self._stamp(self._n)
@@ -1068,6 +1072,15 @@ class SessionTable:
             raise Malformed(f"unsupported envelope version {v!r} (this side speaks 1)", frm)
         if type(to) is not str or type(sid) is not str or type(payload) is not bytes:
             raise Malformed("fields 'to', 'sid' must be strings, 'body'/'box' binary", frm)
+        # the envelope's limit leaves room for the header: the body has its own (a box adds
+        # its tag), so a receiver never decodes a body larger than a sender may seal
+        limit = self.policy.max_body_bytes + (_TAG_BYTES if boxed else 0)
+        if len(payload) > limit:
+            raise Malformed(
+                f"binary body of {len(payload)} bytes exceeds the limit of "
+                f"{self.policy.max_body_bytes}",
+                frm,
+            )
         session = self._session_of(frm, to, sid, ts, n)
         if not boxed:
             if self.policy.require_encryption:

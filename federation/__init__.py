@@ -12,6 +12,7 @@ from ._platform import (
     MqttSettings,
     PlatformConfig,
     PlatformConfigError,
+    RateLimitSettings,
     ZenohSettings,
 )
 from ._proxies import (
@@ -59,6 +60,7 @@ __all__ = [
     "MqttSettings",
     "PlatformConfig",
     "PlatformConfigError",
+    "RateLimitSettings",
     "SessionsProvider",
     "StreamExport",
     "TableSessions",

@@ -23,6 +23,10 @@ A config file (TOML; relative paths are relative to the file)::
     export_lease = 10.0
     import_label = "import/{sender}/{semantic}"
 
+    [rate_limit]                 # per other platform, after authentication (docs/security.md)
+    rate = 5000.0                # requests/queries/cfps per second, bursts of `burst`
+    burst = 200.0
+
     [transport]
     kind = "zenoh"
     mode = "peer"
@@ -45,7 +49,15 @@ from typing import Annotated, Any, Literal, Self
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from agents import AgentPlatform, GatewayAgent, InterfaceAgent, KeyPair, TrustStore, Visibility
+from agents import (
+    AgentPlatform,
+    GatewayAgent,
+    InterfaceAgent,
+    KeyPair,
+    RateLimit,
+    TrustStore,
+    Visibility,
+)
 from agents._exceptions import SecurityError
 from agents.transports import (
     MqttConfig,
@@ -76,6 +88,7 @@ __all__ = [
     "MqttSettings",
     "PlatformConfig",
     "PlatformConfigError",
+    "RateLimitSettings",
     "ZenohSettings",
 ]
 
@@ -119,6 +132,30 @@ class MqttSettings(MqttConfig):
 TransportSettings = Annotated[ZenohSettings | MqttSettings, Field(discriminator="kind")]
 
 
+_LIMIT = RateLimit()  # the defaults
+
+
+class RateLimitSettings(BaseModel):
+    """The ``[rate_limit]`` table: what each other platform may send here (`RateLimit`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = True
+    rate: float = Field(default=_LIMIT.rate, gt=0)
+    burst: float = Field(default=_LIMIT.burst, ge=1)
+    total_rate: float = Field(default=_LIMIT.total_rate, gt=0)
+    total_burst: float = Field(default=_LIMIT.total_burst, ge=1)
+    refusals: float = Field(default=_LIMIT.refusals, ge=0)
+    report_interval: float = Field(default=_LIMIT.report_interval, gt=0)
+    unauthenticated: float = Field(default=_LIMIT.unauthenticated, ge=0)
+
+    def to_rate_limit(self) -> RateLimit | None:
+        """The Interface Agent's limit, or None when disabled."""
+        if not self.enabled:
+            return None
+        return RateLimit(**self.model_dump(exclude={"enabled"}))
+
+
 class PlatformConfig(BaseModel):
     """One platform's settings, validated at the edge (`load`, `from_dict` name the bad key).
 
@@ -141,6 +178,7 @@ class PlatformConfig(BaseModel):
     export_limit: int = Field(default=64, ge=0)
     # an export whose receiver has not reported for this long ends ("lease-expired")
     export_lease: float | None = Field(default=10.0, gt=0, le=86400)
+    rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings)
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
 
@@ -343,7 +381,12 @@ class FederationPlatform:
         self.instance = instance if instance is not None else DyKnowInstance(config.name)
         self._own_transport = transport is None
         self.transport = transport if transport is not None else config.make_transport()
-        self.interface = InterfaceAgent(files.keys, files.trust, audit_path=config.audit)
+        self.interface = InterfaceAgent(
+            files.keys,
+            files.trust,
+            audit_path=config.audit,
+            rate_limit=config.rate_limit.to_rate_limit(),
+        )
         self.agents = AgentPlatform(
             config.name, self.transport, federation=config.federation, channel=self.interface
         )

@@ -1,0 +1,93 @@
+"""Atheris harness: raw envelopes into the Interface Agent's receive loop (``fuzz/README.md``).
+
+Run: ``.venv/bin/python fuzz/fuzz_interface.py -runs=20000 [corpus_dir]`` (libFuzzer
+options apply). The first byte of each input picks what the rest becomes: the envelope
+itself, the body of a correctly sealed envelope, the content of a sealed ACL message,
+or a one-byte change to a real envelope. A `Crash` (an escaped exception, a dead receive
+task, a decision not recorded within 5 s) ends the run with the input saved.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import atheris
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+with atheris.instrument_imports(include=["agents"]):
+    from fuzz.targets import InterfaceTarget
+
+PERFORMATIVES = [b"request", b"inform", b"query-ref", b"failure", b"shout", b"", b"cfp"]
+REPORT_EVERY = 1000
+# where a campaign starts when its corpus is empty: one input of each mode
+SEEDS = [b"\x00{}", b"\x01not json", b'\x02\x00{"x": [1, 2]}', b"\x03\x00\x10\x01"]
+
+target: InterfaceTarget | None = None
+
+
+def acl(performative: bytes, content: bytes) -> bytes:
+    """A message from asker@uav-a to echo@uav-b with the raw JSON ``content``."""
+    return (
+        b'{"performative":"' + performative + b'","sender":"asker@uav-a",'
+        b'"receivers":["echo@uav-b"],"ontology":"demo","reply_with":"r-1","content":'
+        + content
+        + b"}"
+    )
+
+
+def utf8(data: bytes) -> bytes:
+    """``data`` as UTF-8 text: a JSON envelope carries its body as a string."""
+    return data.decode("utf-8", "replace").encode()
+
+
+def payload_of(t: InterfaceTarget, data: bytes) -> bytes:
+    """What one fuzzer input stands for (see the module docstring)."""
+    if not data:
+        return b""
+    mode, rest = data[0] % 4, data[1:]
+    if mode == 0:
+        return rest
+    if mode == 1:
+        return t.seal(utf8(rest))
+    if mode == 2:
+        choice = PERFORMATIVES[rest[0] % len(PERFORMATIVES)] if rest else b"request"
+        return t.seal(acl(choice, utf8(rest[1:])))
+    good = t.seal(acl(b"inform", b'"x"'))
+    if len(rest) < 3:
+        return good[: len(rest) * 7]
+    i = int.from_bytes(rest[:2], "big") % len(good)
+    return good[:i] + bytes([good[i] ^ (rest[2] or 1)]) + good[i + 1 :]
+
+
+def test_one_input(data: bytes) -> None:
+    """Feed one input; raise (a crash for libFuzzer) when it was not handled."""
+    global target
+    if target is None:
+        target = InterfaceTarget()
+    target.feed(payload_of(target, data))
+    if target.inputs % REPORT_EVERY == 0:
+        print(target.summary("interface (atheris)"), flush=True)
+
+
+def write_seeds(args: list[str]) -> None:
+    """Put `SEEDS` in the corpus directory given (the first non-option argument) if empty."""
+    dirs = [Path(a) for a in args if not a.startswith("-")]
+    if dirs and dirs[0].is_dir() and not any(dirs[0].iterdir()):
+        for i, seed in enumerate(SEEDS):
+            (dirs[0] / f"seed-{i}").write_bytes(seed)
+
+
+def main() -> None:
+    """Run libFuzzer over `test_one_input`."""
+    # what the platform logs below an error is not a finding: keep the fuzzer's output short
+    logging.getLogger().addHandler(logging.NullHandler())
+    write_seeds(sys.argv[1:])
+    atheris.Setup(sys.argv, test_one_input)
+    atheris.Fuzz()
+
+
+if __name__ == "__main__":
+    main()
