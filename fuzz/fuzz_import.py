@@ -8,7 +8,6 @@ a one-byte change to a real envelope. A `Crash` ends the run with the input save
 
 from __future__ import annotations
 
-import logging
 import sys
 from pathlib import Path
 
@@ -20,9 +19,9 @@ with atheris.instrument_imports(include=["federation._proxies", "agents._securit
     import msgpack
 
     from federation._proxies import pack_batch
+    from fuzz._harness import run
     from fuzz.targets import SEM, ImportTarget
 
-REPORT_EVERY = 1000
 # where a campaign starts when its corpus is empty: one input of each mode
 SEEDS = [
     b"\x00\x93\x01\x02\x03",
@@ -32,8 +31,6 @@ SEEDS = [
 ]
 # a batch map of the agreed label whose "b" (the samples) the fuzzer writes
 BATCH_HEAD = b"\x83" + msgpack.packb("v") + b"\x01" + msgpack.packb("s") + msgpack.packb(SEM)
-
-target: ImportTarget | None = None
 
 
 def payload_of(t: ImportTarget, data: bytes) -> bytes:
@@ -54,31 +51,9 @@ def payload_of(t: ImportTarget, data: bytes) -> bytes:
     return good[:i] + bytes([good[i] ^ (rest[2] or 1)]) + good[i + 1 :]
 
 
-def test_one_input(data: bytes) -> None:
-    """Feed one input; raise (a crash for libFuzzer) when it was not handled."""
-    global target
-    if target is None:
-        target = ImportTarget()
-    target.feed(payload_of(target, data))
-    if target.inputs % REPORT_EVERY == 0:
-        print(target.summary("import (atheris)"), flush=True)
-
-
-def write_seeds(args: list[str]) -> None:
-    """Put `SEEDS` in the corpus directory given (the first non-option argument) if empty."""
-    dirs = [Path(a) for a in args if not a.startswith("-")]
-    if dirs and dirs[0].is_dir() and not any(dirs[0].iterdir()):
-        for i, seed in enumerate(SEEDS):
-            (dirs[0] / f"seed-{i}").write_bytes(seed)
-
-
 def main() -> None:
-    """Run libFuzzer over `test_one_input`."""
-    # what the platform logs below an error is not a finding: keep the fuzzer's output short
-    logging.getLogger().addHandler(logging.NullHandler())
-    write_seeds(sys.argv[1:])
-    atheris.Setup(sys.argv, test_one_input)
-    atheris.Fuzz()
+    """Run libFuzzer over payloads fed to the import target."""
+    run(atheris, "import", ImportTarget, payload_of, SEEDS)
 
 
 if __name__ == "__main__":

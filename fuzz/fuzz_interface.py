@@ -9,7 +9,6 @@ task, a decision not recorded within 5 s) ends the run with the input saved.
 
 from __future__ import annotations
 
-import logging
 import sys
 from pathlib import Path
 
@@ -18,14 +17,12 @@ import atheris
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 with atheris.instrument_imports(include=["agents"]):
+    from fuzz._harness import run
     from fuzz.targets import InterfaceTarget
 
 PERFORMATIVES = [b"request", b"inform", b"query-ref", b"failure", b"shout", b"", b"cfp"]
-REPORT_EVERY = 1000
 # where a campaign starts when its corpus is empty: one input of each mode
 SEEDS = [b"\x00{}", b"\x01not json", b'\x02\x00{"x": [1, 2]}', b"\x03\x00\x10\x01"]
-
-target: InterfaceTarget | None = None
 
 
 def acl(performative: bytes, content: bytes) -> bytes:
@@ -62,31 +59,9 @@ def payload_of(t: InterfaceTarget, data: bytes) -> bytes:
     return good[:i] + bytes([good[i] ^ (rest[2] or 1)]) + good[i + 1 :]
 
 
-def test_one_input(data: bytes) -> None:
-    """Feed one input; raise (a crash for libFuzzer) when it was not handled."""
-    global target
-    if target is None:
-        target = InterfaceTarget()
-    target.feed(payload_of(target, data))
-    if target.inputs % REPORT_EVERY == 0:
-        print(target.summary("interface (atheris)"), flush=True)
-
-
-def write_seeds(args: list[str]) -> None:
-    """Put `SEEDS` in the corpus directory given (the first non-option argument) if empty."""
-    dirs = [Path(a) for a in args if not a.startswith("-")]
-    if dirs and dirs[0].is_dir() and not any(dirs[0].iterdir()):
-        for i, seed in enumerate(SEEDS):
-            (dirs[0] / f"seed-{i}").write_bytes(seed)
-
-
 def main() -> None:
-    """Run libFuzzer over `test_one_input`."""
-    # what the platform logs below an error is not a finding: keep the fuzzer's output short
-    logging.getLogger().addHandler(logging.NullHandler())
-    write_seeds(sys.argv[1:])
-    atheris.Setup(sys.argv, test_one_input)
-    atheris.Fuzz()
+    """Run libFuzzer over payloads fed to the interface target."""
+    run(atheris, "interface", InterfaceTarget, payload_of, SEEDS)
 
 
 if __name__ == "__main__":
