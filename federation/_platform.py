@@ -177,7 +177,8 @@ class PlatformConfig(BaseModel):
     mapping: Path | dict[str, Any] = Field(description="This platform's label mapping.")
     export_limit: int = Field(default=64, ge=0)
     # an export whose receiver has not reported for this long ends ("lease-expired")
-    export_lease: float | None = Field(default=10.0, gt=0, le=86400)
+    # at least 4 of the receivers' report intervals (0.5 s): a shorter one ends live exports
+    export_lease: float | None = Field(default=10.0, ge=2.0, le=86400)
     rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings)
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
@@ -411,6 +412,7 @@ class FederationPlatform:
             self._import_translate,
             on_sender_gone=self._sender_gone,
             on_open=self._import_opened,
+            on_export_ended=self._export_ended,
         )
         self.federation_agent = FederationAgent(
             self.instance,
@@ -540,6 +542,10 @@ class FederationPlatform:
         for fut in self._waiters.pop((rec.sender, rec.semantic_label), []):
             if not fut.done() and rec.local_label is not None:
                 fut.set_result(rec.local_label)
+
+    def _export_ended(self, sender: str, semantic: str) -> None:
+        # the sender stopped it (its lease for us expired): a durable stream is asked again
+        self.federation_agent.export_ended(sender, semantic)
 
     async def _sender_gone(self, sender: str, labels: list[str]) -> None:
         # Membership subscribers hear "gone" from the Federation Agent (the global

@@ -94,6 +94,9 @@ OnDrop = Callable[["Export", str, int], None]
 OnSenderGone = Callable[[str, list[str]], Awaitable[None] | None]
 """``on_sender_gone(sender, semantic_labels)``: told when a sender's streams were ended."""
 
+OnExportEnded = Callable[[str, str], Awaitable[None] | None]
+"""``on_export_ended(sender, semantic_label)``: the sender ended that export by itself."""
+
 # A semantic label becomes key chunks: no wildcard or MQTT-special characters, no spaces.
 _LABEL = re.compile(r"^[^\s/*$?#+\x00-\x1f\x7f]+(?:/[^\s/*$?#+\x00-\x1f\x7f]+)*$")
 _MAX_LABEL = 256
@@ -150,29 +153,34 @@ def pack_batch(
     *,
     history: int = 0,
     recovered: bool = False,
+    ended: str | None = None,
 ) -> bytes:
     """The msgpack body of one batch: ``{"v": 1, "s": label, "q": seq, "b": [[v, tv, ta]…]}``.
 
     ``history`` (the sender keeps that many samples to resend) adds ``"h"``; a batch
-    resent from that history is marked ``"r": true``.
+    resent from that history is marked ``"r": true``; the last batch of an export the
+    sender ended by itself (its lease expired) carries the reason as ``"e"``.
     """
     obj: dict[str, Any] = {"v": BATCH_VERSION, "s": semantic_label, "q": seq, "b": samples}
     if history:
         obj["h"] = history
     if recovered:
         obj["r"] = True
+    if ended is not None:
+        obj["e"] = ended
     body: bytes = _packb(obj, default=_encode_value)
     return body
 
 
 class Batch(NamedTuple):
-    """A batch as read: label, first sequence number, samples, sender's history, resent."""
+    """A batch as read: label, first sequence number, samples, history, resent, end reason."""
 
     label: str
     seq: int | None
     samples: list[Any]
     history: int = 0
     recovered: bool = False
+    ended: str | None = None
 
 
 def read_batch(body: bytes) -> Batch:
@@ -203,7 +211,10 @@ def read_batch(body: bytes) -> Batch:
     recovered = obj.get("r", False)
     if type(recovered) is not bool or (recovered and seq is None):
         raise ValueError("'r' must be a boolean, and a resent batch needs 'q'")
-    return Batch(label, seq, samples, history, recovered)
+    ended = obj.get("e")
+    if ended is not None and (type(ended) is not str or len(ended) > 1024):
+        raise ValueError("'e' must be a string (why the sender ended the export)")
+    return Batch(label, seq, samples, history, recovered, ended)
 
 
 def unpack_batch(body: bytes) -> tuple[str, int | None, list[Any]]:
@@ -475,6 +486,7 @@ class Export:
         try:
             while True:
                 if lease is not None and self._lease_expired(lease):
+                    await self._tell_ended()
                     return
                 if self._recover:
                     await self._resend()
@@ -513,6 +525,16 @@ class Export:
         self.queue.clear()
         self._end(f"lease-expired: no report from {self.receiver} for {silent:.1f} s")
         return True
+
+    async def _tell_ended(self) -> None:
+        """Best effort: the receiver, if it comes back, learns the export ended and why."""
+        body = pack_batch(self.semantic_label, [], self._seq, ended=self.ended or "ended")
+        try:
+            async with asyncio.timeout(1.0):
+                envelope = await self._seal(body)
+                await self._proxy.transport.publish(self.key, envelope)
+        except (Exception, TimeoutError) as exc:
+            log.debug("%s: telling %s the export ended: %s", self.name, self.receiver, exc)
 
     async def _keepalive(self, every: float) -> None:
         """An idle stream not acknowledged lately sends an empty batch: the receiver answers.
@@ -896,6 +918,12 @@ class Import:
         self._next_seq: int | None = None
         self._missing: list[tuple[int, int]] = []  # [first, end) not arrived, may be resent
         self._asks = 0  # resend requests for them so far
+        self._lost_base = 0  # `lost` when the sender's current numbering began
+
+    @property
+    def lost_now(self) -> int:
+        """Samples lost (and not recovered) from the sender's current numbering: reported."""
+        return max(self.lost - self._lost_base, 0)
 
     def __repr__(self) -> str:
         return (
@@ -950,8 +978,10 @@ class ImportProxy:
     location ``import/<sender>``, made with ``cache``; the first sample creates the source.
     When a sender's liveliness token goes, its streams are ended (their subscribers'
     iterators end; with ``keep_ended`` the label and its cache stay queryable) and
-    ``on_sender_gone(sender, semantic_labels)`` is told. Use as an async context manager
-    (or ``start`` / ``aclose``).
+    ``on_sender_gone(sender, semantic_labels)`` is told. When a sender ends an export by
+    itself (its lease expired: we did not report in time) and says so, the stream ends
+    and ``on_export_ended(sender, semantic_label)`` is told. Use as an async context
+    manager (or ``start`` / ``aclose``).
     """
 
     def __init__(
@@ -964,6 +994,7 @@ class ImportProxy:
         translate: Translate,
         *,
         on_sender_gone: OnSenderGone | None = None,
+        on_export_ended: OnExportEnded | None = None,
         cache: CacheSpec | None = None,
         keep_ended: bool = True,
         buffer_size: int = 1024,
@@ -977,6 +1008,7 @@ class ImportProxy:
         self.sessions = sessions_provider
         self.translate = translate
         self.on_sender_gone = on_sender_gone
+        self.on_export_ended = on_export_ended
         self.cache = cache
         self.keep_ended = keep_ended
         self.buffer_size = buffer_size  # batches, not samples: ~256 k samples by default
@@ -1045,10 +1077,12 @@ class ImportProxy:
             await asyncio.sleep(self.report_interval)
             reports: dict[str, dict[str, Any]] = {}
             for rec in self._imports.values():
-                if rec.ended or not rec.batches or rec.sender in self._gone:
+                # an ended import whose sender is back is reported on too: a stream created
+                # again must not lose its lease while it is idle
+                if not rec.batches or rec.sender in self._gone:
                     continue
                 report = reports.setdefault(rec.sender, {"v": BATCH_VERSION, "lost": {}})
-                report["lost"][rec.semantic_label] = rec.lost
+                report["lost"][rec.semantic_label] = rec.lost_now
                 if rec._missing and rec._asks < _MAX_ASKS:
                     # the resent batches may have been dropped on the way too: ask again
                     rec._asks += 1
@@ -1069,7 +1103,7 @@ class ImportProxy:
         """Ask the sender now for the samples [first, end) that did not arrive."""
         report = {
             "v": BATCH_VERSION,
-            "lost": {rec.semantic_label: rec.lost},
+            "lost": {rec.semantic_label: rec.lost_now},
             "resend": {rec.semantic_label: [first, end]},
         }
         self._spawn(self._report(rec.sender, report), f"import[{self.platform}].resend")
@@ -1250,6 +1284,12 @@ class ImportProxy:
             return
         rec.history = batch.history
         self._inject(rec, batch.seq, samples)
+        if batch.ended is not None and not rec.ended:
+            # the sender ended the export by itself (we did not report in time)
+            log.warning("import[%s]: %s ended %s: %s", self.platform, frm, semantic, batch.ended)
+            self._end(rec)
+            if self.on_export_ended is not None:
+                self._spawn(self._told_ended(frm, semantic), f"import[{self.platform}].ended")
 
     def _translate(self, sender: str, semantic: str) -> str | None:
         try:
@@ -1273,7 +1313,10 @@ class ImportProxy:
                     rec._asks = 0
                     self._ask_resend(rec, first, seq)
             elif expected is not None and seq < expected:
-                rec._missing.clear()  # the sender restarted the export: a new numbering
+                # the sender restarted the export: a new numbering, whose losses alone
+                # its reports count (the new export's own counters start at 0)
+                rec._missing.clear()
+                rec._lost_base = rec.lost
             rec._next_seq = seq + n
         if not n:  # a keepalive
             return
@@ -1383,6 +1426,19 @@ class ImportProxy:
                         await result
                 except Exception:
                     log.exception("import[%s]: on_sender_gone(%r) failed", self.platform, sender)
+
+    async def _told_ended(self, sender: str, semantic: str) -> None:
+        hook = self.on_export_ended
+        if hook is None:
+            return
+        try:
+            result = hook(sender, semantic)
+            if inspect.isawaitable(result):
+                await result
+        except Exception:
+            log.exception(
+                "import[%s]: on_export_ended(%r, %r) failed", self.platform, sender, semantic
+            )
 
     def _end(self, rec: Import) -> None:
         """Mark a stream ended: its subscribers' iterators end; the cache stays if kept."""

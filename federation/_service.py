@@ -65,6 +65,7 @@ tokens); exports to it are stopped and its subscriptions dropped.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import inspect
 import logging
 import time
@@ -87,6 +88,7 @@ from agents import (
     Performative,
     Publisher,
     Refuse,
+    Refused,
     ReplyTimeout,
     ServiceDescription,
     ServiceError,
@@ -165,6 +167,14 @@ class LabelTranslator(Protocol):
     def provides(self) -> Iterable[str]:
         """The semantic labels this platform can provide now."""
         ...
+
+
+@dataclass(slots=True)
+class _Durable:
+    """A durable stream: what was asked, and the provider's export id for it now."""
+
+    content: dict[str, Any]
+    current: str
 
 
 DURABLE_TRIES = 6
@@ -327,7 +337,9 @@ class FederationAgent(Agent):
         self._exports: dict[str, StreamExport] = {}
         self._by_conversation: dict[tuple[str, str], str] = {}
         self._reserved = 0
-        self._durable: dict[str, dict[str, dict[str, Any]]] = {}  # provider -> id -> content
+        # provider -> the id create_stream returned -> what was asked, the export id now
+        self._durable: dict[str, dict[str, _Durable]] = {}
+        self._asking: dict[str, asyncio.Lock] = {}  # one re-ask at a time per provider
         self._members: set[str] = set()
         self._watchers: list[Inbox[MembershipEvent]] = []
         self._directory: Subscription[DirectoryEvent] | None = None
@@ -476,24 +488,44 @@ class FederationAgent(Agent):
             inbox.put(event)
         await self._subscribers.publish({"event": kind, "platform": platform})
 
-    async def _ask_again(self, provider: str) -> None:
-        """Create the durable streams from ``provider`` anew (it came back)."""
-        asked = self._durable.get(provider, {})
-        for old_id, content in list(asked.items()):
-            for attempt in range(DURABLE_TRIES):
-                if provider not in self._members:
-                    return  # gone again: its next return asks again
-                try:
-                    answer = await self.request_from(provider, content)
-                except Exception as exc:
-                    # its agents may still be starting (key exchange, directory)
-                    log.info("%s: asking %s again for %s: %s", self, provider, content, exc)
-                    await asyncio.sleep(min(2.0, 0.25 * 2**attempt))
-                    continue
-                asked.pop(old_id, None)
-                asked[str(answer["id"])] = content
-                log.info("%s: %s is back: %s created again", self, provider, content["labels"])
-                break
+    def export_ended(self, provider: str, semantic: str) -> None:
+        """``provider`` ended its export of ``semantic`` by itself: ask durable ones again."""
+        if any(semantic in d.content["labels"] for d in self._durable.get(provider, {}).values()):
+            self.spawn(self._ask_again(provider, semantic), f"durable:{provider}:{semantic}")
+
+    async def _ask_again(self, provider: str, semantic: str | None = None) -> None:
+        """Create the durable streams from ``provider`` anew (it came back, or ended them)."""
+        lock = self._asking.setdefault(provider, asyncio.Lock())
+        async with lock:  # two quick returns must not ask twice for the same stream
+            asked = self._durable.get(provider, {})
+            for first_id, entry in list(asked.items()):
+                if semantic is None or semantic in entry.content["labels"]:
+                    await self._ask_one(provider, first_id, entry)
+
+    async def _ask_one(self, provider: str, first_id: str, entry: _Durable) -> None:
+        for attempt in range(DURABLE_TRIES):
+            if provider not in self._members:
+                return  # gone again: its next return asks again
+            try:
+                answer = await self.request_from(provider, entry.content)
+            except Refused as exc:
+                if "cancel it first" in str(exc):
+                    return  # it still runs there (the provider only left and came back)
+                log.info("%s: asking %s again for %s: %s", self, provider, entry.content, exc)
+            except Exception as exc:
+                # its agents may still be starting (key exchange, directory)
+                log.info("%s: asking %s again for %s: %s", self, provider, entry.content, exc)
+            else:
+                new_id = str(answer["id"])
+                if self._durable.get(provider, {}).get(first_id) is not entry:
+                    # cancelled while we asked: the new export must not outlive it
+                    with contextlib.suppress(Exception):
+                        await self.request_from(provider, {"action": "cancel-stream", "id": new_id})
+                    return
+                entry.current = new_id
+                log.info("%s: %s created again by %s", self, entry.content["labels"], provider)
+                return
+            await asyncio.sleep(min(2.0, 0.25 * 2**attempt))
 
     # -- requests -----------------------------------------------------------------------
 
@@ -814,16 +846,17 @@ class FederationAgent(Agent):
         answer = await self.request_from(provider, content, timeout=timeout)
         export_id = str(answer["id"])
         if durable:
-            self._durable.setdefault(provider, {})[export_id] = content
+            self._durable.setdefault(provider, {})[export_id] = _Durable(content, export_id)
         return export_id
 
     async def cancel_stream(
         self, provider: str, export_id: str, *, timeout: float = DEFAULT_TIMEOUT
     ) -> None:
-        """Ask platform ``provider`` to stop export ``export_id``."""
-        self._durable.get(provider, {}).pop(export_id, None)
+        """Ask platform ``provider`` to stop export ``export_id`` (the id create_stream gave)."""
+        entry = self._durable.get(provider, {}).pop(export_id, None)
+        current = export_id if entry is None else entry.current  # created again since?
         await self.request_from(
-            provider, {"action": "cancel-stream", "id": export_id}, timeout=timeout
+            provider, {"action": "cancel-stream", "id": current}, timeout=timeout
         )
 
     def providers(self, *, include_self: bool = False) -> dict[str, str]:
