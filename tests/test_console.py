@@ -455,3 +455,59 @@ async def test_a_refused_stream_is_shown_and_asked_again(demo_keys: Path) -> Non
 def test_console_refuses_a_nonsense_sample_period(demo_keys: Path) -> None:
     with pytest.raises(ValueError, match="sample_period"):
         OperatorConsole(FederationPlatform(config(demo_keys, "operator")), sample_period=0)
+
+
+# -- found in review ----------------------------------------------------------------------
+
+
+async def test_a_page_of_another_site_cannot_post_to_the_console(demo_keys: Path) -> None:
+    # text/plain needs no CORS preflight: a page the operator opens could otherwise
+    # change policies or inject observations
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        body = json.dumps({"x": 1.0, "y": 2.0, "text": "fake"})
+        async with http.post(
+            fed.url + "api/observation", data=body, headers={"Content-Type": "text/plain"}
+        ) as r:
+            assert r.status == 400 and "Content-Type" in (await r.json())["error"]
+        async with http.post(
+            fed.url + "api/policy",
+            data=json.dumps({"platform": "uav-a", "label": "area", "sample_period": 86400}),
+            headers={"Content-Type": "application/json", "Origin": "http://evil.example"},
+        ) as r:
+            assert r.status == 400 and "Origin" in (await r.json())["error"]
+        status, _ = await post(http, fed.url + "api/observation", {"x": 1, "y": 2, "text": "ok"})
+        assert status == 200  # the console's own page (same origin, or none) still may
+
+
+async def test_a_non_finite_number_from_a_platform_does_not_break_the_page(demo_keys: Path) -> None:
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        fed.uavs["uav-a"].violations.append(
+            {"kind": "turn", "car": "c", "other": None, "x": float("nan"), "y": float("inf")}
+        )
+        state = await until_state(http, fed.url, lambda s: bool(s["violations"]))
+        assert state["violations"][0]["x"] is None and state["violations"][0]["y"] is None
+        async with http.get(fed.url + "api/state") as r:
+            text = await r.text()
+        assert "NaN" not in text and "Infinity" not in text
+        json.loads(text)  # what the page's JSON.parse reads
+
+
+async def test_a_stream_its_live_platform_stops_is_asked_for_again(demo_keys: Path) -> None:
+    # the export's lease runs out (the operator froze longer than it) while both stay up
+    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+        await until_state(http, fed.url, lambda s: filled(s, "uav-a"))
+        first = stream(await until_state(http, fed.url, lambda s: True), "uav-a", "tracked-cars")
+        uav = fed.uavs["uav-a"].platform
+        old = next(e for e in uav.exporter.exports() if e.semantic_label == "tracked-cars")
+        old.last_heard -= 3600  # the proxy's own lease path: no report for an hour
+        state = await until_state(
+            http,
+            fed.url,
+            lambda s: (
+                stream(s, "uav-a", "tracked-cars")["state"] == "active"
+                and stream(s, "uav-a", "tracked-cars")["export_id"] != first["export_id"]
+            ),
+        )
+        assert old.ended is not None and old.ended.startswith("lease-expired")
+        assert platform(state, "uav-a")["state"] == "alive"
+        assert any(e.semantic_label == "tracked-cars" for e in uav.exporter.exports())

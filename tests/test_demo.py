@@ -128,6 +128,14 @@ def test_matching_counts_misses_and_false_positives() -> None:
     pairs, extra = match_violations(truth, found)
     assert pairs == [(truth[0], found[0]), (truth[1], None)]
     assert extra == [found[1]]
+    # one recognition cannot stand for two true events; a second one of the same event
+    # (seen from another area) is neither a match nor a false positive
+    turns = [{"kind": "turn", "end": 20.0}, {"kind": "turn", "end": 22.0}]
+    pairs, extra = match_violations(turns, [{"kind": "turn", "end": 21.0, "fused": False}])
+    assert [f is not None for _, f in pairs] == [True, False] and extra == []
+    twice = [{"kind": "turn", "end": 20.5, "fused": False}, {"kind": "turn", "end": 20.7}]
+    pairs, extra = match_violations(turns[:1], twice)
+    assert pairs == [(turns[0], twice[0])] and extra == []
     with pytest.raises(ValueError, match="uavs"):
         uav_names(0)
 
@@ -223,3 +231,55 @@ async def test_the_speed_monitor_flags_the_reckless_driver_once() -> None:
     assert len(area1) == 1 and len(area1[0]["cars"]) == 1
     assert area1[0]["cars"][0].startswith("uav_b_car")
     assert not [f for f in await run_offline(0, seed=1) if f["kind"] == "speeding"]
+
+
+@pytest.mark.timeout(90)
+def test_sigterm_stops_the_demo_and_every_uav_process() -> None:
+    # `timeout`, `docker stop`, a cancelled CI job: the UAVs must not outlive the launcher
+    import os
+    import re
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    demo = subprocess.Popen(
+        [sys.executable, "-m", "federation.cli", "demo", "traffic", "--no-console"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    pids: list[int] = []
+    try:
+        assert demo.stdout is not None
+        for line in demo.stdout:  # bounded by the test's timeout
+            pids += [int(p) for p in re.findall(r"started uav-\w \(pid (\d+)\)", line)]
+            if line.startswith("t="):  # delegated, running
+                break
+        assert len(pids) == 3
+        demo.send_signal(signal.SIGTERM)
+        demo.wait(30)
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and any(_alive(p) for p in pids):
+            time.sleep(0.1)
+        assert not [p for p in pids if _alive(p)], "UAV processes outlived the demo"
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+            demo.wait(10)
+        for p in pids:
+            if _alive(p):
+                os.kill(p, signal.SIGKILL)
+
+
+def _alive(pid: int) -> bool:
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    # a zombie (exited, not yet reaped by init) counts as gone
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().split(") ", 1)[1][0] != "Z"

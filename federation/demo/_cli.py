@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import signal
 from pathlib import Path
 from typing import Annotated
 
@@ -54,6 +55,9 @@ def traffic(
         hold=hold,
     )
     say = (lambda _: None) if as_json else (lambda text: _out.print(text, markup=False))
+    # SIGTERM (timeout, docker stop, a closed CI job) takes Ctrl-C's way out, so the UAV
+    # processes are stopped too; asyncio.run would otherwise die without cleaning up
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         report = asyncio.run(run_traffic_demo(options, say))
     except KeyboardInterrupt:

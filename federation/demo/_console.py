@@ -83,6 +83,7 @@ class _Stream:
     last: float | None = None  # wall-clock time of the last arrival
     arrivals: deque[float] = field(default_factory=lambda: deque(maxlen=256))
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    last_valid: int | None = None  # the newest valid time taken in (ns)
 
     def to_json(self, now: float) -> dict[str, Any]:
         """The stream as the page shows it."""
@@ -236,7 +237,7 @@ class OperatorConsole:
         cancels = [
             self._cancel_export(p.name, s)
             for p in self._platforms.values()
-            if p.state == "alive"
+            if p.state != "gone"  # one that left still streams to us
             for s in p.streams.values()
             if s.export_id is not None
         ]
@@ -335,6 +336,8 @@ class OperatorConsole:
         p.cars = []
         for task in list(p.tasks):
             task.cancel()
+        # forgotten now, not when they finish: a return right after asks anew
+        p.tasks.clear()
         for stream in p.streams.values():
             stream.state, stream.export_id = "ended", None
         self._changed()
@@ -342,13 +345,29 @@ class OperatorConsole:
     # -- streams --------------------------------------------------------------------------
 
     async def _follow_stream(self, p: _Platform, stream: _Stream) -> None:
-        """Ask ``p`` for the stream (again while refused), then take in its samples."""
+        """Ask ``p`` for the stream (again while refused or ended), take in its samples."""
+        while True:
+            await self._ask_for(p, stream)
+            await self._take_in(p, stream)
+            if p.state != "alive":
+                if p.state != "gone":
+                    stream.state = "ended"
+                    self._changed()
+                return
+            # ended while its platform is alive (it stopped exporting to us: its lease
+            # for us expired): ask for it again
+            async with stream.lock:
+                stream.export_id, stream.state = None, "requesting"
+            self._changed()
+            await asyncio.sleep(RETRY)
+
+    async def _ask_for(self, p: _Platform, stream: _Stream) -> None:
         fed = self.platform.federation_agent
         while True:
             if p.state == "alive":
                 async with stream.lock:
                     if stream.export_id is not None:
-                        break  # a policy change got it meanwhile
+                        return  # a policy change got it meanwhile
                     try:
                         stream.export_id = await fed.create_stream(
                             p.name,
@@ -362,23 +381,24 @@ class OperatorConsole:
                     else:
                         stream.state, stream.error = "active", None
                         self._changed()
-                        break
+                        return
             await asyncio.sleep(RETRY)
+
+    async def _take_in(self, p: _Platform, stream: _Stream) -> None:
         while True:
             try:
                 local = await self.platform.imported(p.name, stream.label, timeout=WAIT_IMPORT)
                 break
             except TimeoutError:
                 continue  # a platform may have nothing to say yet (no violation so far)
-        # From the start of time: the cache replays what arrived before we subscribed
-        # (at least the sample that opened the stream, perhaps its only one).
-        sub = self.platform.instance.subscribe(local, Policy(start=0))
+        # From the start of time the first time: the cache replays what arrived before we
+        # subscribed (at least the sample that opened the stream, perhaps its only one);
+        # after that, from where we were (nothing taken in twice).
+        start = 0 if stream.last_valid is None else stream.last_valid + 1
+        sub = self.platform.instance.subscribe(local, Policy(start=start))
         with sub:
             async for batch in sub.batches():
                 self._take(p, stream, batch)
-        if p.state != "gone":
-            stream.state = "ended"
-            self._changed()
 
     def _take(self, p: _Platform, stream: _Stream, batch: list[Any]) -> None:
         now = time.time()
@@ -386,6 +406,8 @@ class OperatorConsole:
         stream.last = now
         stream.arrivals.extend(now for _ in range(min(len(batch), 64)))
         for value, valid, _ in batch:
+            if stream.last_valid is None or valid > stream.last_valid:
+                stream.last_valid = valid
             try:
                 self._apply(p, stream.label, value, valid)
             except Exception as exc:
@@ -395,22 +417,27 @@ class OperatorConsole:
 
     def _apply(self, p: _Platform, label: str, value: Any, valid: int) -> None:
         if label == "heli-position":
-            p.position = {k: float(value[k]) for k in ("x", "y", "z") if k in value}
+            p.position = {k: _finite(value[k]) for k in ("x", "y", "z") if k in value}
         elif label == "area":
             p.area = {
                 "index": value.get("index"),
-                "polygon": [[float(x), float(y)] for x, y in value["polygon"]],
+                "polygon": [[_finite(x), _finite(y)] for x, y in value["polygon"]],
                 "delegated-by": value.get("delegated-by"),
             }
         elif label == "tracked-cars":
             cars = value["cars"]
             if not isinstance(cars, list):
                 raise TypeError("'cars' is not a list")
-            p.cars = [c for c in cars if isinstance(c, dict) and "x" in c and "y" in c]
+            p.cars = [
+                _clean({**c, "x": _finite(c["x"]), "y": _finite(c["y"])})
+                for c in cars
+                if isinstance(c, dict) and _is_finite(c.get("x")) and _is_finite(c.get("y"))
+            ]
         elif label == "violation":
             if not isinstance(value, dict):
                 raise TypeError("not an object")
-            self._violations.appendleft({**value, "reported-by": p.name, "valid": valid / NS_PER_S})
+            entry = {**value, "reported-by": p.name, "valid": valid / NS_PER_S}
+            self._violations.appendleft(_clean(entry))
 
     # -- observations ---------------------------------------------------------------------
 
@@ -473,7 +500,7 @@ class OperatorConsole:
                     await _first(changed.wait(), self._closing.wait(), timeout=KEEPALIVE - idle)
                     continue
                 sent, last_push = self._version, loop.time()
-                data = json.dumps(self.state(), default=str, separators=(",", ":"))
+                data = _dumps(self.state(), separators=(",", ":"))
                 await response.write(f"event: state\ndata: {data}\n\n".encode())
                 await asyncio.sleep(PUSH_INTERVAL)  # coalesce a burst of changes into one push
         return response
@@ -643,9 +670,7 @@ def _reason(exc: BaseException) -> str:
 
 
 def _json(data: Any, status: int = 200) -> web.Response:
-    return web.Response(
-        text=json.dumps(data, default=str), status=status, content_type="application/json"
-    )
+    return web.Response(text=_dumps(data), status=status, content_type="application/json")
 
 
 @web.middleware
@@ -666,6 +691,13 @@ async def _errors_as_json(
 
 
 async def _body(request: web.Request) -> dict[str, Any]:
+    # A page on another site can POST text/plain without asking (no CORS preflight);
+    # application/json it cannot, and a browser names the page's origin
+    if request.content_type != "application/json":
+        raise BadRequest(f"body: Content-Type must be application/json, not {request.content_type}")
+    origin = request.headers.get("Origin")
+    if origin is not None and origin != f"{request.scheme}://{request.host}":
+        raise BadRequest(f"Origin: {origin} is not this console's")
     try:
         body = await request.json()
     except (ValueError, UnicodeDecodeError) as exc:
@@ -682,6 +714,39 @@ def _number(body: dict[str, Any], key: str, default: float | None = None) -> flo
     if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
         raise BadRequest(f"{key}: expected a finite number, got {json.dumps(value)}")
     return float(value)
+
+
+def _finite(value: Any) -> float:
+    """A finite float, or ValueError (NaN and infinities are not JSON: the page would stop)."""
+    f = float(value)
+    if not math.isfinite(f):
+        raise ValueError(f"{value!r} is not a finite number")
+    return f
+
+
+def _is_finite(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _clean(value: Any, depth: int = 0) -> Any:
+    """``value`` with non-finite floats as None (and nesting cut at 32): valid JSON."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if depth >= 32:
+        return None
+    if isinstance(value, dict):
+        return {str(k): _clean(v, depth + 1) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_clean(v, depth + 1) for v in value]
+    return value
+
+
+def _dumps(data: Any, **options: Any) -> str:
+    """JSON for the page: never NaN or Infinity (a browser's JSON.parse refuses them)."""
+    try:
+        return json.dumps(data, default=str, allow_nan=False, **options)
+    except ValueError:
+        return json.dumps(_clean(data), default=str, allow_nan=False, **options)
 
 
 async def _first(*aws: Coroutine[Any, Any, Any], timeout: float) -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import errno
 import multiprocessing
 import string
 import tempfile
@@ -177,14 +178,26 @@ def match_violations(
             for i, f in enumerate(found)
             if f["kind"] == gt["kind"] and abs(f["end"] - gt["end"]) <= MATCH_TIME
         ]
-        if not candidates:
+        # one recognition counts for one true event
+        fresh = [c for c in candidates if c[1] not in used]
+        if not fresh:
             pairs.append((gt, None))
             continue
         # prefer the fused recognition of a border crossing: that is what the demo shows
-        best = min(candidates, key=lambda c: (not found[c[1]].get("fused"), c[0]))[1]
+        best = min(fresh, key=lambda c: (not found[c[1]].get("fused"), c[0]))[1]
         pairs.append((gt, found[best]))
-        used.update(i for _, i in candidates)
-    return pairs, [f for i, f in enumerate(found) if i not in used]
+        used.add(best)
+    # the others near a true event of their kind are the same event seen from another
+    # area: duplicates, not false positives
+    extra = [
+        f
+        for i, f in enumerate(found)
+        if i not in used
+        and not any(
+            f["kind"] == gt["kind"] and abs(f["end"] - gt["end"]) <= MATCH_TIME for gt in truth
+        )
+    ]
+    return pairs, extra
 
 
 # -- children --------------------------------------------------------------------------------
@@ -306,7 +319,7 @@ async def _operate(
                 try:
                     console = await stack.enter_async_context(make(options.port))
                 except OSError as exc:
-                    if options.port == 0:
+                    if options.port == 0 or exc.errno != errno.EADDRINUSE:
                         raise
                     # another demo (or anything) has the port: any free one will do
                     say(f"port {options.port} is taken ({exc.strerror}); using a free one")

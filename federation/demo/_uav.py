@@ -26,6 +26,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import multiprocessing
 import re
 import signal
 import time
@@ -947,6 +948,9 @@ async def _main(settings: UavSettings) -> None:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    parent = multiprocessing.parent_process()
+    if parent is not None:  # the launcher killed without a word: do not outlive it
+        loop.add_reader(parent.sentinel, stop.set)
     app_box: list[UavApplication] = []
 
     async def anchor(semantic: str, local: str, requester: str) -> bool:
