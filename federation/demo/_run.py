@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import errno
 import multiprocessing
+import secrets
 import string
 import tempfile
 import time
@@ -113,7 +114,9 @@ class DemoReport:
 # -- files ----------------------------------------------------------------------------------
 
 
-def _federation_files(run_dir: Path, names: list[str]) -> dict[str, dict[str, Any]]:
+def _federation_files(
+    run_dir: Path, names: list[str], federation: str = FEDERATION
+) -> dict[str, dict[str, Any]]:
     """Keys, trust file and one config dict per platform (zenoh peers on loopback)."""
     keys = run_dir / "keys"
     keys.mkdir(parents=True, exist_ok=True)
@@ -123,18 +126,18 @@ def _federation_files(run_dir: Path, names: list[str]) -> dict[str, dict[str, An
         pubs.append(pub)
     trust = keys / "trust.json"
     trust.unlink(missing_ok=True)
-    trust_keys(trust, pubs, federation=FEDERATION)
+    trust_keys(trust, pubs, federation=federation)
     ports = {name: free_tcp_port() for name in [*names, OPERATOR]}
     seed = f"tcp/127.0.0.1:{ports[OPERATOR]}"
     configs = {}
     for name in [*names, OPERATOR]:
         configs[name] = {
             "name": name,
-            "federation": FEDERATION,
+            "federation": federation,
             "key": str(keys / f"{name}.key"),
             "trust": str(trust),
-            "vocabulary": vocabulary(FEDERATION),
-            "mapping": local_mapping(FEDERATION),
+            "vocabulary": vocabulary(federation),
+            "mapping": local_mapping(federation),
             "transport": {
                 "kind": "zenoh",
                 "mode": "peer",
@@ -260,7 +263,9 @@ async def run_traffic_demo(
         else:
             run_dir = Path(options.run_dir)
             run_dir.mkdir(parents=True, exist_ok=True)
-        configs = _federation_files(run_dir, names)
+        # a name of its own per run: a process of an earlier run still going (or reaching
+        # a port reused since) shares no key expression with this one
+        configs = _federation_files(run_dir, names, f"{FEDERATION}-{secrets.token_hex(3)}")
         t0 = time.time_ns()
         settings = [
             UavSettings(
