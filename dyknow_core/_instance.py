@@ -7,24 +7,28 @@ import contextlib
 import fnmatch
 from collections import deque
 from collections.abc import AsyncIterable, Callable, Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from . import _anchoring, _chronicles, _events, _mtl, _refinement, _state
-from ._anchoring import Anchoring, LinkType, ObjectClass
-from ._chronicles import ChronicleProcess, ChronicleSpec, CompiledChronicle
+from . import _events, _state
 from ._events import EventProcess
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
 from ._filter import Mapper
 from ._location import Location
-from ._mtl import Formula, MonitorProcess
 from ._objects import ObjectManager
 from ._policy import Approximation, CacheSpec, Change, Policy
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
-from ._refinement import Refinement, RefinementProcess
 from ._sample import Answer
 from ._state import StatePolicy, StateProcess
 from ._stream import BatchCallback, StreamGenerator, Subscription
 from ._time import Clock, RealClock
+
+if TYPE_CHECKING:
+    # reasoning modules load on first use (MTL, chronicles, anchoring, refinement): a
+    # platform that never monitors does not pay for importing them
+    from ._anchoring import Anchoring, LinkType, ObjectClass
+    from ._chronicles import ChronicleProcess, ChronicleSpec, CompiledChronicle
+    from ._mtl import Formula, MonitorProcess
+    from ._refinement import Refinement, RefinementProcess
 
 DEFAULT_LOCATION = "local"
 
@@ -354,6 +358,8 @@ class DyKnowInstance:
         cache: CacheSpec | None = None,
     ) -> RefinementProcess:
         """Degrade chosen subscriptions or suspend CUs while a delay or backlog is too high."""
+        from . import _refinement
+
         return _refinement.add_refinement(
             self, refinement, output=output, name=name, subscriptions=subscriptions, cache=cache
         )
@@ -370,6 +376,8 @@ class DyKnowInstance:
         name: str | None = None,
     ) -> MonitorProcess:
         """Monitor a metric temporal logic formula by progression; verdicts as a stream."""
+        from . import _mtl
+
         return _mtl.add_monitor(
             self,
             formula,
@@ -390,6 +398,8 @@ class DyKnowInstance:
         name: str | None = None,
     ) -> ChronicleProcess:
         """Recognize a chronicle online over event streams (event name -> label)."""
+        from . import _chronicles
+
         return _chronicles.add_chronicle(self, definition, inputs, output=output, name=name)
 
     def add_anchoring(
@@ -403,6 +413,8 @@ class DyKnowInstance:
         cache: CacheSpec | None = None,
     ) -> Anchoring:
         """Keep object classes and links current as their constraints hold or break."""
+        from . import _anchoring
+
         return _anchoring.add_anchoring(
             self, classes, links, period=period, output=output, name=name, cache=cache
         )

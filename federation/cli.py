@@ -19,7 +19,6 @@ from rich.console import Console
 from rich.table import Table
 
 from agents import TransportError
-from dyknow_core import _kpl_cli, _monitor_cli
 
 from ._platform import PlatformConfig, PlatformConfigError
 
@@ -77,6 +76,8 @@ def _load(config: Path) -> PlatformConfig:
 
 def _legacy(argv: Sequence[str]) -> int:
     """``dyknow monitor …`` / ``dyknow kpl …`` exactly as before (argparse)."""
+    from dyknow_core import _kpl_cli, _monitor_cli
+
     parser = argparse.ArgumentParser(prog="dyknow", description="DyKnow Federation tools")
     sub = parser.add_subparsers(dest="command", required=True)
     mon = sub.add_parser("monitor", help="run an MTL formula over a recorded JSON-lines trace")
