@@ -114,6 +114,7 @@ _KEEPALIVE_AFTER = 1.0
 # Pending resend requests kept per export, and missing ranges tracked per import.
 _MAX_RECOVER = 16
 _MAX_HISTORY = 1_000_000
+_MAX_FAILED = 256  # failed ranges remembered per export (older ones stay counted)
 _HISTORY_SLACK = 256
 _MAX_MISSING = 64
 _MAX_ASKS = 6  # the import proxy's reports that ask again for what is still missing
@@ -405,6 +406,8 @@ class Export:
         # samples numbered and then dropped here: the receiver sees them as a gap too, and
         # they must not be counted again when it reports its losses
         self._numbered_drops = 0
+        # numbered ranges that failed to go out, while the history may still resend them
+        self._failed: deque[tuple[int, int, str]] = deque(maxlen=_MAX_FAILED)
         self._waiter: asyncio.Future[None] | None = None
         self._backoff = 0.0
         # the last numbered samples: more than the receiver asks for, since the sender goes
@@ -567,6 +570,7 @@ class Export:
             if first >= end:
                 continue
             samples = kept[first - oldest : end - oldest]
+            start = first
             for body, count in self._pack_resent(first, samples):
                 try:
                     envelope = await self._seal(body)
@@ -577,6 +581,37 @@ class Export:
                     log.debug("%s: resending failed: %s", self.name, exc)
                     break
                 self.recovered += count
+                if self._failed:
+                    self._resent(start, start + count)
+                start += count
+
+    def _numbered_drop(self, reason: str, first: int, count: int, exc: Exception) -> None:
+        """Numbered samples that never left: counted here, not as lost in transit."""
+        self._drop(reason, count, f"{type(exc).__name__}: {exc}")
+        self._numbered_drops += count
+        if self.history:  # they may be resent from the history: remember which
+            self._failed.append((first, first + count, reason))
+
+    def _resent(self, first: int, end: int) -> None:
+        """Samples [first, end) went out from the history: no longer dropped here."""
+        kept: list[tuple[int, int, str]] = []
+        for a, b, reason in self._failed:
+            lo, hi = max(a, first), min(b, end)
+            if lo >= hi:
+                kept.append((a, b, reason))
+                continue
+            n = hi - lo
+            self._numbered_drops -= n
+            left = self.dropped.get(reason, 0) - n
+            if left > 0:
+                self.dropped[reason] = left
+            else:
+                self.dropped.pop(reason, None)
+            if a < lo:
+                kept.append((a, lo, reason))
+            if hi < b:
+                kept.append((hi, b, reason))
+        self._failed = deque(kept, maxlen=_MAX_FAILED)
 
     def _pack_resent(self, first: int, samples: list[RawSample]) -> list[tuple[bytes, int]]:
         """Resent bodies of at most ``max_batch_bytes``, numbered from ``first``."""
@@ -601,15 +636,17 @@ class Export:
 
     async def _send(self, samples: list[RawSample]) -> None:
         proxy = self._proxy
-        for body, count in self._pack(samples):
+        packed = self._pack(samples)
+        first = self._seq - sum(count for _, count in packed)  # numbered as packed
+        for body, count in packed:
+            start, first = first, first + count
             try:
                 envelope = await self._seal(body)
             except (asyncio.CancelledError, TransportClosed):
                 raise
             except Exception as exc:  # no session: the receiver is gone, or refuses us
                 if count:
-                    self._drop("no-session", count, f"{type(exc).__name__}: {exc}")
-                    self._numbered_drops += count
+                    self._numbered_drop("no-session", start, count, exc)
                 self._backoff = min(max(2 * self._backoff, _BACKOFF_MIN), _BACKOFF_MAX)
                 # meanwhile the queue keeps the newest samples, the oldest are dropped
                 await asyncio.sleep(self._backoff)
@@ -620,8 +657,7 @@ class Export:
                 raise
             except Exception as exc:
                 if count:
-                    self._drop("send-failed", count, f"{type(exc).__name__}: {exc}")
-                    self._numbered_drops += count
+                    self._numbered_drop("send-failed", start, count, exc)
                 continue
             self._backoff = 0.0
             if count:

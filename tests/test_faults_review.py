@@ -142,3 +142,51 @@ def test_an_export_lease_shorter_than_four_report_intervals_is_refused() -> None
     with pytest.raises(PlatformConfigError, match="export_lease"):
         PlatformConfig.from_dict({**base, "export_lease": 0.3})
     assert PlatformConfig.from_dict({**base, "export_lease": 2.0}).export_lease == 2.0
+
+
+async def test_send_failures_recovered_from_history_are_no_longer_counted_dropped() -> None:
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        ta, a = await net.platform("uav-a")
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exp = await net.exporter("uav-a")
+        imp = await net.importer("uav-b", translate=agreed(SEM), report_interval=0.05)
+        mode = "ok"
+        publish = ta.publish
+
+        async def flaky(key: str, payload: bytes, *args: Any, **kwargs: Any) -> Any:
+            if "/stream/" in key and mode == "raise":
+                raise RuntimeError("congested")  # a send failure: counted at the sender
+            if "/stream/" in key and mode == "drop":
+                return None  # lost on the way, silently: the receiver counts it
+            return await publish(key, payload, *args, **kwargs)
+
+        ta.publish = flaky  # type: ignore[method-assign]
+        export = exp.start_exporting(LOCAL, SEM, "uav-b", history=10)
+
+        def rec() -> Any:
+            return imp.get("uav-a", SEM)
+
+        async def push(n: int) -> None:
+            for i in range(n):
+                src.push(i)
+                await asyncio.sleep(0.005)
+            await asyncio.sleep(0.05)
+
+        await push(5)
+        mode = "raise"
+        await push(10)
+        mode = "ok"
+        await push(5)
+        await until(lambda: rec().recovered == 10 and rec().lost == 0, "the 10 failed resent")
+        assert "send-failed" not in export.dropped  # they arrived after all
+        mode = "drop"
+        await push(30)
+        mode = "ok"
+        await push(5)
+        await until(lambda: rec().recovered == 20, "10 of the 30 resent (history 10)")
+        await until(
+            lambda: export.dropped.get("lost-in-transit", 0) == rec().lost == 20,
+            "the sender counts what the receiver lost",
+        )
