@@ -1325,7 +1325,9 @@ class ImportProxy:
             log.warning("import[%s]: %s ended %s: %s", self.platform, frm, semantic, batch.ended)
             self._end(rec)
             if self.on_export_ended is not None:
-                self._spawn(self._told_ended(frm, semantic), f"import[{self.platform}].ended")
+                self._spawn(
+                    self._tell("on_export_ended", frm, semantic), f"import[{self.platform}].ended"
+                )
 
     def _translate(self, sender: str, semantic: str) -> str | None:
         try:
@@ -1455,26 +1457,20 @@ class ImportProxy:
                 if not rec.ended:
                     self._end(rec)
                     labels.append(rec.semantic_label)
-            if labels and self.on_sender_gone is not None:
-                try:
-                    result = self.on_sender_gone(sender, labels)
-                    if inspect.isawaitable(result):
-                        await result
-                except Exception:
-                    log.exception("import[%s]: on_sender_gone(%r) failed", self.platform, sender)
+            if labels:
+                await self._tell("on_sender_gone", sender, labels)
 
-    async def _told_ended(self, sender: str, semantic: str) -> None:
-        hook = self.on_export_ended
+    async def _tell(self, hook_name: str, *args: Any) -> None:
+        """Call the user's hook (sync or async); its failure is logged, never ours."""
+        hook = getattr(self, hook_name)
         if hook is None:
             return
         try:
-            result = hook(sender, semantic)
+            result = hook(*args)
             if inspect.isawaitable(result):
                 await result
         except Exception:
-            log.exception(
-                "import[%s]: on_export_ended(%r, %r) failed", self.platform, sender, semantic
-            )
+            log.exception("import[%s]: %s%r failed", self.platform, hook_name, args)
 
     def _end(self, rec: Import) -> None:
         """Mark a stream ended: its subscribers' iterators end; the cache stays if kept."""
