@@ -138,6 +138,11 @@ def _lp(text: str) -> bytes:
     return len(raw).to_bytes(2, "big") + raw
 
 
+def _env_head(label: bytes, fed: str, frm: str, to: str, sid: str) -> bytes:
+    """The session-constant start of an envelope's MAC input or associated data."""
+    return label + _lp(fed) + _lp(frm) + _lp(to) + _lp(sid)
+
+
 # --------------------------------------------------------------------------- files
 
 
@@ -554,19 +559,19 @@ class Session:
         self._max_body = policy.max_body_bytes
         self._skew_ms = policy.skew * 1000.0
         tx, rx = ("i2r", "r2i") if initiator else ("r2i", "i2r")
-        tx_head = _lp(federation) + _lp(me) + _lp(peer) + _lp(sid)
-        rx_head = _lp(federation) + _lp(peer) + _lp(me) + _lp(sid)
+        tx_head = (federation, me, peer, sid)
+        rx_head = (federation, peer, me, sid)
         # the per-session part of every MAC is hashed once; each message copies the state
-        self._mac_tx = hmac.new(keys[f"{tx} mac"], _ENV_MAC + tx_head, hashlib.sha256)
-        self._mac_rx = hmac.new(keys[f"{rx} mac"], _ENV_MAC + rx_head, hashlib.sha256)
+        self._mac_tx = hmac.new(keys[f"{tx} mac"], _env_head(_ENV_MAC, *tx_head), hashlib.sha256)
+        self._mac_rx = hmac.new(keys[f"{rx} mac"], _env_head(_ENV_MAC, *rx_head), hashlib.sha256)
         self._box_tx = keys[f"{tx} box"]
         self._box_rx = keys[f"{rx} box"]
-        self._box_ad_tx = _ENV_BOX + tx_head
-        self._box_ad_rx = _ENV_BOX + rx_head
-        self._bin_tx = hmac.new(keys[f"{tx} mac"], _BIN_MAC + tx_head, hashlib.sha256)
-        self._bin_rx = hmac.new(keys[f"{rx} mac"], _BIN_MAC + rx_head, hashlib.sha256)
-        self._bin_ad_tx = _BIN_BOX + tx_head
-        self._bin_ad_rx = _BIN_BOX + rx_head
+        self._box_ad_tx = _env_head(_ENV_BOX, *tx_head)
+        self._box_ad_rx = _env_head(_ENV_BOX, *rx_head)
+        self._bin_tx = hmac.new(keys[f"{tx} mac"], _env_head(_BIN_MAC, *tx_head), hashlib.sha256)
+        self._bin_rx = hmac.new(keys[f"{rx} mac"], _env_head(_BIN_MAC, *rx_head), hashlib.sha256)
+        self._bin_ad_tx = _env_head(_BIN_BOX, *tx_head)
+        self._bin_ad_rx = _env_head(_BIN_BOX, *rx_head)
         self._n = 0
         self._hi = 0
         self._mask = 0
@@ -1133,14 +1138,27 @@ class _Pending:
     ts_ms: int
 
 
+_SESSION_KEYS = ("i2r mac", "r2i mac", "i2r box", "r2i box", "sid")
+
+
 def _hkdf(transcript: bytes, shared: bytes) -> dict[str, bytes]:
     """HKDF-SHA256 (RFC 5869): the transcript hash salts the extract; one label per output."""
     prk = hmac.digest(hashlib.sha256(transcript).digest(), shared, "sha256")
-    labels = ("i2r mac", "r2i mac", "i2r box", "r2i box", "sid")
     return {
         label: hmac.digest(prk, b"dyknow-session-v1 " + label.encode() + b"\x01", "sha256")
-        for label in labels
+        for label in _SESSION_KEYS
     }
+
+
+def _session_id(sid_key: bytes) -> str:
+    """The session id: the first 16 bytes of the ``sid`` output, base64url without padding."""
+    return base64.urlsafe_b64encode(sid_key[:16]).rstrip(b"=").decode("ascii")
+
+
+def _fresh_ephemeral() -> tuple[bytes, bytes, bytes]:
+    """A fresh nonce and X25519 key pair for one handshake message: ``(nonce, public, secret)``."""
+    public, secret = _sodium.crypto_box_keypair()
+    return os.urandom(_NONCE_BYTES), public, secret
 
 
 class Handshake:
@@ -1174,6 +1192,8 @@ class Handshake:
         # (initiator, nonce) of requests answered, kept until their timestamp goes stale
         self._seen: set[tuple[str, bytes]] = set()
         self._seen_heap: list[tuple[float, str, bytes]] = []
+        # where nonces and ephemeral keys come from; only the test vectors replace it
+        self._ephemeral: Callable[[], tuple[bytes, bytes, bytes]] = _fresh_ephemeral
 
     def _now_ms(self) -> tuple[float, int]:
         now = self._clock()
@@ -1198,8 +1218,7 @@ class Handshake:
         self.trust.verify_key(peer)  # fail early: a reply from an untrusted peer is refused
         now, ts = self._now_ms()
         self._prune(now)
-        nonce = os.urandom(_NONCE_BYTES)
-        epk, esk = _sodium.crypto_box_keypair()
+        nonce, epk, esk = self._ephemeral()
         transcript = _init_transcript(self.federation, self.me.platform, peer, ts, nonce, epk)
         self._pending[nonce] = _Pending(peer, transcript, esk, now, ts)
         return _dumps(
@@ -1228,8 +1247,7 @@ class Handshake:
             raise Replayed(f"handshake request from {frm!r} was already answered", frm)
         self._seen.add((frm, nonce))
         heapq.heappush(self._seen_heap, (ts / 1000 + self.policy.skew + 1, frm, nonce))
-        my_nonce = os.urandom(_NONCE_BYTES)
-        my_epk, my_esk = _sodium.crypto_box_keypair()
+        my_nonce, my_epk, my_esk = self._ephemeral()
         full = transcript + _reply_part(
             self.federation, self.me.platform, frm, my_ts, my_nonce, my_epk
         )
@@ -1335,7 +1353,7 @@ class Handshake:
         self, peer: str, transcript: bytes, shared: bytes, *, initiator: bool, order_ts: int
     ) -> Session:
         keys = _hkdf(transcript, shared)
-        sid = base64.urlsafe_b64encode(keys["sid"][:16]).rstrip(b"=").decode("ascii")
+        sid = _session_id(keys["sid"])
         return Session(
             me=self.me.platform,
             peer=peer,

@@ -1,0 +1,337 @@
+"""docs/test-vectors.json: what another implementation checks itself against.
+
+Each vector is checked twice: recomputed from ``docs/test-vectors.md`` and
+``docs/security.md`` alone, with plain PyNaCl, hmac, hashlib and msgpack (nothing of
+``agents``), and reproduced by the project's own code (a handshake with the vectors'
+ephemeral keys, sessions sealing and opening). The file itself must be what
+``python -m tools.gen_vectors`` writes, so the document, the code and the file cannot
+drift apart.
+"""
+
+from __future__ import annotations
+
+import base64
+import functools
+import hashlib
+import hmac
+import json
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import pytest
+from nacl import bindings as sodium
+from nacl.exceptions import BadSignatureError
+from nacl.signing import SigningKey, VerifyKey
+
+PATH = Path(__file__).resolve().parent.parent / "docs" / "test-vectors.json"
+VECTORS: dict[str, Any] = json.loads(PATH.read_text(encoding="utf-8"))
+KX = VECTORS["key_exchange"]
+FED = VECTORS["federation"]
+
+
+# -- an implementation written from the documents alone -------------------------------------
+
+
+def lp(text: str) -> bytes:
+    """A name in a transcript or MAC input: 2-byte big-endian length, then its UTF-8."""
+    raw = text.encode("utf-8")
+    return len(raw).to_bytes(2, "big") + raw
+
+
+def u64(value: int) -> bytes:
+    return value.to_bytes(8, "big")
+
+
+def transcript_part(
+    label: str, fed: str, frm: str, to: str, ts: int, nonce: bytes, epk: bytes
+) -> bytes:
+    """One half of a key-exchange transcript: the label, a zero byte, then the fields."""
+    return label.encode() + b"\x00" + lp(fed) + lp(frm) + lp(to) + u64(ts) + nonce + epk
+
+
+def session_keys(t2: bytes, shared: bytes) -> dict[str, bytes]:
+    salt = hashlib.sha256(t2).digest()
+    prk = hmac.digest(salt, shared, "sha256")
+    labels = ("i2r mac", "r2i mac", "i2r box", "r2i box", "sid")
+    return {
+        label: hmac.digest(prk, b"dyknow-session-v1 " + label.encode() + b"\x01", "sha256")
+        for label in labels
+    }
+
+
+def session_id(sid_key: bytes) -> str:
+    return base64.urlsafe_b64encode(sid_key[:16]).decode().rstrip("=")
+
+
+def header(label: str, fed: str, frm: str, to: str, sid: str, ts: int, n: int) -> bytes:
+    """The MAC input's (or the associated data's) part before the body."""
+    return label.encode() + b"\x00" + lp(fed) + lp(frm) + lp(to) + lp(sid) + u64(ts) + u64(n)
+
+
+def aead_nonce(binary: bool, n: int) -> bytes:
+    return (b"\x00\x00\x00\x01" if binary else b"\x00\x00\x00\x00") + u64(n)
+
+
+def b64(value: str) -> bytes:
+    return base64.b64decode(value, validate=True)
+
+
+def h(value: str) -> bytes:
+    return bytes.fromhex(value)
+
+
+def derived() -> dict[str, bytes]:
+    """The session keys, derived from the vectors' inputs only (both sides' view)."""
+    init, reply = KX["init"], KX["reply"]
+    t2 = h(reply["t2_hex"])
+    za = sodium.crypto_scalarmult(h(init["x25519_secret_hex"]), h(reply["x25519_public_hex"]))
+    zb = sodium.crypto_scalarmult(h(reply["x25519_secret_hex"]), h(init["x25519_public_hex"]))
+    assert za == zb == h(KX["shared_secret_hex"])
+    return session_keys(t2, za)
+
+
+# -- the file --------------------------------------------------------------------------------
+
+
+def test_the_file_is_what_the_generator_writes() -> None:
+    from tools.gen_vectors import generate, render
+
+    assert PATH.read_text(encoding="utf-8") == render(generate()), (
+        "docs/test-vectors.json is out of date: run python -m tools.gen_vectors"
+    )
+
+
+# -- from the description ----------------------------------------------------------------------
+
+
+def test_keys_and_signatures_from_the_description() -> None:
+    for platform, p in VECTORS["platforms"].items():
+        public = bytes(SigningKey(h(p["ed25519_seed_hex"])).verify_key)
+        assert public.hex() == p["ed25519_public_hex"], platform
+    for side in ("init", "reply"):
+        v = KX[side]
+        assert (
+            sodium.crypto_scalarmult_base(h(v["x25519_secret_hex"])).hex()
+            == (v["x25519_public_hex"])
+        )
+
+
+def test_key_exchange_transcripts_from_the_description() -> None:
+    init, reply = KX["init"], KX["reply"]
+    msg_i, msg_r = json.loads(init["json"]), json.loads(reply["json"])
+    assert set(msg_i) == {"v", "kx", "fed", "from", "to", "ts_ms", "nonce", "epk", "sig"}
+    assert set(msg_r) == set(msg_i) | {"re"}
+    assert (msg_i["v"], msg_i["kx"], msg_r["kx"], msg_i["fed"]) == (1, "init", "reply", FED)
+    assert b64(msg_r["re"]) == b64(msg_i["nonce"])
+
+    t1 = transcript_part(
+        "dyknow-kx-v1 init",
+        msg_i["fed"],
+        msg_i["from"],
+        msg_i["to"],
+        msg_i["ts_ms"],
+        b64(msg_i["nonce"]),
+        b64(msg_i["epk"]),
+    )
+    assert t1.hex() == init["t1_hex"]
+    part = transcript_part(
+        "dyknow-kx-v1 reply",
+        msg_r["fed"],
+        msg_r["from"],
+        msg_r["to"],
+        msg_r["ts_ms"],
+        b64(msg_r["nonce"]),
+        b64(msg_r["epk"]),
+    )
+    assert part.hex() == reply["reply_part_hex"]
+    assert (t1 + part).hex() == reply["t2_hex"]
+    # the nonces and keys in the JSON are the vectors' raw bytes
+    assert b64(msg_i["nonce"]).hex() == init["nonce_hex"]
+    assert b64(msg_r["epk"]).hex() == reply["x25519_public_hex"]
+
+    keys = VECTORS["platforms"]
+    for msg, signed, v in ((msg_i, t1, init), (msg_r, t1 + part, reply)):
+        seed = h(keys[msg["from"]]["ed25519_seed_hex"])
+        # Ed25519 is deterministic: signing the transcript gives the very signature sent
+        assert SigningKey(seed).sign(signed).signature == b64(msg["sig"])
+        assert b64(msg["sig"]).hex() == v["sig_hex"]
+        VerifyKey(h(keys[msg["from"]]["ed25519_public_hex"])).verify(signed, b64(msg["sig"]))
+
+
+def test_session_keys_and_id_from_the_description() -> None:
+    keys = derived()
+    salt = hashlib.sha256(h(KX["reply"]["t2_hex"])).digest()
+    assert salt.hex() == KX["salt_hex"]
+    assert hmac.digest(salt, h(KX["shared_secret_hex"]), "sha256").hex() == KX["prk_hex"]
+    assert {k: v.hex() for k, v in keys.items()} == KX["keys_hex"]
+    sid = session_id(keys["sid"])
+    assert sid == KX["sid"] and len(sid) == 22
+
+
+@pytest.mark.parametrize("entry", VECTORS["envelopes"], ids=lambda e: e["name"])
+def test_envelopes_from_the_description(entry: dict[str, Any]) -> None:
+    keys = derived()
+    binary = entry["kind"] == "binary"
+    if binary:
+        env = msgpack.unpackb(h(entry["envelope_hex"]), raw=False)
+        assert type(env) is list and len(env) == (7 if entry["encrypted"] else 8)
+        v, frm, to, sid, ts, n, payload = env[:7]
+        body = h(entry["body_hex"])
+        assert msgpack.unpackb(body, raw=False) == entry["body_decoded"]
+    else:
+        env = json.loads(entry["envelope"])
+        assert set(env) == {"v", "from", "to", "sid", "ts_ms", "n"} | (
+            {"box"} if entry["encrypted"] else {"body", "mac"}
+        )
+        v, frm, to, sid, ts, n = (env[k] for k in ("v", "from", "to", "sid", "ts_ms", "n"))
+        body = entry["body"].encode("utf-8")
+    assert (v, frm, to, sid, ts, n) == (
+        1,
+        entry["from"],
+        entry["to"],
+        KX["sid"],
+        entry["ts_ms"],
+        entry["n"],
+    )
+    # the initiator (uav-a) sends on the i2r keys, the responder on the r2i keys
+    direction = "i2r" if frm == KX["init"]["from"] else "r2i"
+    assert entry["direction"] == direction
+    kind = "bin" if binary else "env"
+    if entry["encrypted"]:
+        ad = header(f"dyknow-{kind}-v1 box", FED, frm, to, sid, ts, n)
+        nonce = aead_nonce(binary, n)
+        assert (ad.hex(), nonce.hex()) == (entry["ad_hex"], entry["nonce_hex"])
+        box = payload if binary else b64(env["box"])
+        assert box.hex() == entry["ciphertext_hex"]
+        key = keys[f"{direction} box"]
+        assert sodium.crypto_aead_chacha20poly1305_ietf_decrypt(box, ad, nonce, key) == body
+        assert sodium.crypto_aead_chacha20poly1305_ietf_encrypt(body, ad, nonce, key) == box
+    else:
+        mac_input = header(f"dyknow-{kind}-v1 mac", FED, frm, to, sid, ts, n) + body
+        assert mac_input.hex() == entry["mac_input_hex"]
+        mac = hmac.digest(keys[f"{direction} mac"], mac_input, "sha256")
+        sent = env[7] if binary else b64(env["mac"])
+        assert mac == sent and mac.hex() == entry["mac_hex"]
+        if binary:
+            assert payload == body
+        else:
+            assert env["body"] == entry["body"]
+
+
+@pytest.mark.parametrize("entry", VECTORS["must_refuse"], ids=lambda e: e["name"])
+def test_refusals_fail_to_verify_from_the_description(entry: dict[str, Any]) -> None:
+    keys = derived()
+    if entry["kind"] == "kx-init":
+        msg = json.loads(entry["json"])
+        verify = VerifyKey(h(VECTORS["platforms"][msg["from"]]["ed25519_public_hex"]))
+        verify.verify(h(entry["signed_hex"]), b64(msg["sig"]))  # it signs the wrong bytes
+        with pytest.raises(BadSignatureError):
+            verify.verify(h(KX["init"]["t1_hex"]), b64(msg["sig"]))
+        return
+    if entry["kind"] == "binary":
+        env = msgpack.unpackb(h(entry["envelope_hex"]), raw=False)
+        frm, to, sid, ts, n, body, mac = env[1:]
+        kind = "bin"
+    else:
+        env = json.loads(entry["envelope"])
+        frm, to, sid, ts, n = (env[k] for k in ("from", "to", "sid", "ts_ms", "n"))
+        body, mac, kind = env["body"].encode(), b64(env["mac"]), "env"
+    right = header(f"dyknow-{kind}-v1 mac", FED, frm, to, sid, ts, n) + body
+    assert hmac.digest(keys["i2r mac"], h(entry["mac_input_hex"]), "sha256") == mac
+    assert hmac.digest(keys["i2r mac"], right, "sha256") != mac
+
+
+# -- the project's code ------------------------------------------------------------------------
+
+
+class FixedClock:
+    """A clock reading a set number of milliseconds."""
+
+    def __init__(self, ms: int) -> None:
+        self.ms = ms
+
+    def __call__(self) -> float:
+        return (self.ms + 0.5) / 1000
+
+
+def _ephemeral_of(side: dict[str, str]) -> tuple[bytes, bytes, bytes]:
+    """The nonce and X25519 key pair a handshake message of the vectors used."""
+    return h(side["nonce_hex"]), h(side["x25519_public_hex"]), h(side["x25519_secret_hex"])
+
+
+def _ours() -> tuple[Any, ...]:
+    from agents._security import Handshake, KeyPair, SecurityPolicy, TrustStore
+
+    pairs = {
+        p: KeyPair(p, SigningKey(h(v["ed25519_seed_hex"]))) for p, v in VECTORS["platforms"].items()
+    }
+    trust = TrustStore(FED, {p: k.public_key for p, k in pairs.items()})
+    policy = SecurityPolicy(encrypt=False)
+    a, b = KX["init"]["from"], KX["reply"]["from"]
+    clocks = {a: FixedClock(KX["init"]["ts_ms"]), b: FixedClock(KX["reply"]["ts_ms"])}
+    hs = {p: Handshake(pairs[p], trust, policy=policy, clock=clocks[p]) for p in (a, b)}
+    for p, side in ((a, KX["init"]), (b, KX["reply"])):
+        hs[p]._ephemeral = functools.partial(_ephemeral_of, side)
+    return a, b, trust, policy, clocks, hs
+
+
+def test_our_code_makes_the_same_key_exchange_and_accepts_it() -> None:
+    a, b, _trust, _policy, _clocks, hs = _ours()
+    assert hs[a].initiate(b).decode() == KX["init"]["json"]
+    reply, s_b = hs[b].respond(KX["init"]["json"].encode())
+    assert reply.decode() == KX["reply"]["json"]
+    s_a = hs[a].finish(KX["reply"]["json"].encode())
+    assert s_a.sid == s_b.sid == KX["sid"]
+
+
+def test_our_code_seals_the_same_envelopes_and_opens_them() -> None:
+    from agents._security import SessionTable
+
+    a, b, trust, policy, clocks, hs = _ours()
+    hs[a].initiate(b)
+    _, s_b = hs[b].respond(KX["init"]["json"].encode())
+    s_a = hs[a].finish(KX["reply"]["json"].encode())
+    sessions = {a: s_a, b: s_b}
+    tables = {p: SessionTable(p, trust, policy=policy, clock=clocks[p]) for p in (a, b)}
+    tables[a].add(s_a)
+    tables[b].add(s_b)
+    for entry in VECTORS["envelopes"]:
+        session = sessions[entry["from"]]
+        session._encrypt = entry["encrypted"]
+        session._clock = FixedClock(entry["ts_ms"])
+        clocks[entry["to"]].ms = entry["ts_ms"]
+        if entry["kind"] == "binary":
+            body = h(entry["body_hex"])
+            assert session.seal_bytes(body).hex() == entry["envelope_hex"], entry["name"]
+            opened = tables[entry["to"]].open_bytes(h(entry["envelope_hex"]))
+            assert opened == (entry["from"], body)
+        else:
+            sealed = session.seal(entry["body"])
+            assert sealed.decode() == entry["envelope"], entry["name"]
+            opened = tables[entry["to"]].open(entry["envelope"].encode())
+            assert opened == (entry["from"], entry["body"].encode())
+
+
+def test_our_code_refuses_the_usual_mistakes() -> None:
+    from agents._exceptions import Forged
+    from agents._security import SessionTable
+
+    a, b, trust, policy, clocks, hs = _ours()
+    for entry in VECTORS["must_refuse"]:
+        if entry["kind"] == "kx-init":
+            with pytest.raises(Forged, match="signature"):
+                hs[b].respond(entry["json"].encode())
+    hs[a].initiate(b)
+    _, s_b = hs[b].respond(KX["init"]["json"].encode())
+    table = SessionTable(b, trust, policy=policy, clock=clocks[b])
+    table.add(s_b)
+    for entry in VECTORS["must_refuse"]:
+        if entry["kind"] == "json":
+            clocks[b].ms = json.loads(entry["envelope"])["ts_ms"]
+            with pytest.raises(Forged, match="bad MAC"):
+                table.open(entry["envelope"].encode())
+        elif entry["kind"] == "binary":
+            clocks[b].ms = msgpack.unpackb(h(entry["envelope_hex"]))[4]
+            with pytest.raises(Forged, match="bad MAC"):
+                table.open_bytes(h(entry["envelope_hex"]))
