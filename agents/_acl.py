@@ -102,7 +102,8 @@ class ACLMessage(BaseModel):
     conversation_id: str | None = None
     reply_with: str | None = None
     in_reply_to: str | None = None
-    reply_by: float | None = None
+    # a JSON number only: no numeric strings, booleans, NaN or infinities
+    reply_by: Annotated[float, Field(strict=True, allow_inf_nan=False)] | None = None
 
     def reply(
         self, performative: Performative, content: Any = None, *, sender: str | None = None

@@ -583,14 +583,15 @@ class InterfaceAgent:
                         reason=f"{exc.reason}; and the sender is not an agent of {peer!r}",
                     )
                     continue
-                # refused: answered with not-understood, when there is someone to tell
+                # refused when answered with not-understood (there is someone to tell and
+                # the body is no not-understood or failure itself), else dropped
+                answered = await host.reject(body, exc.reason)
                 self.audit.record(
-                    verdict="refused" if sender is not None else "dropped",
+                    verdict="refused" if answered else "dropped",
                     **{"from": peer},
                     sender=sender,
                     reason=exc.reason,
                 )
-                await host.reject(body, exc.reason)
                 continue
             if limited and message.performative in INITIATING:
                 assert state.requests is not None

@@ -449,11 +449,11 @@ class AgentPlatform:
             else:
                 await self._answer(answer)
 
-    async def reject(self, payload: bytes, reason: str) -> None:
+    async def reject(self, payload: bytes, reason: str) -> bool:
         """Account for bytes that arrived but are not a valid message (never raises).
 
         Logged and counted; when the sender can be read from them, it gets a
-        ``not-understood`` saying why.
+        ``not-understood`` saying why. True when such an answer was made.
         """
         self.stats.malformed += 1
         n = self.stats.malformed
@@ -463,9 +463,11 @@ class AgentPlatform:
             answer = self._not_understood(payload, reason)
         except Exception:
             log.exception("platform[%s]: could not answer a malformed message", self.name)
-            return
-        if answer is not None:
-            await self._answer(answer)
+            return False
+        if answer is None:
+            return False
+        await self._answer(answer)
+        return True
 
     async def _answer(self, answer: ACLMessage) -> None:
         """Send an answer the platform gives itself (failure, not-understood); never raises.

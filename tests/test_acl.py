@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Any
 
 import orjson
@@ -113,11 +115,31 @@ def test_unknown_performative_is_refused_naming_the_field() -> None:
         ({"receivers": "b@uav-b"}, "receivers"),
         ({"sender": None}, "sender"),
         ({"reply_by": "soon"}, "reply_by"),
+        # the contract says a number: what a lenient parser would coerce is refused too
+        ({"reply_by": "1795000000.5"}, "reply_by"),
+        ({"reply_by": True}, "reply_by"),
+        ({"reply_by": "nan"}, "reply_by"),
+        ({"reply_by": "inf"}, "reply_by"),
+        ({"ontology": 5}, "ontology"),
+        ({"in_reply_to": ["r-1"]}, "in_reply_to"),
+        ({"reply_to": "a@uav-a"}, "reply_to"),
+        ({"reply_to": ["nobody"]}, "reply_to"),
         ({"surprise": 1}, "surprise"),
     ],
 )
 def test_invalid_fields_are_named(change: dict[str, Any], field: str) -> None:
     assert field in reason({**BASE, **change})
+
+
+def test_reply_by_is_any_finite_json_number() -> None:
+    assert ACLMessage.from_obj({**BASE, "reply_by": 1795000000}).reply_by == 1795000000.0
+    assert ACLMessage.from_obj({**BASE, "reply_by": 0.5}).reply_by == 0.5
+    assert (
+        ACLMessage.from_json(
+            b'{"performative":"inform","sender":"a@p","receivers":["b@q"],"reply_by":1e3}'
+        ).reply_by
+        == 1000.0
+    )
 
 
 def test_missing_fields_are_named() -> None:
@@ -304,3 +326,19 @@ async def test_oversized_message_on_the_inbox_is_refused() -> None:
         answer = await sink.got.get()
         assert answer.performative is P.NOT_UNDERSTOOD
         assert "exceeds" in str(answer.content)
+
+
+# -- the contract (docs/wire.md) names exactly what the code reads -------------------------
+
+
+def _wire_section(title: str) -> str:
+    text = (Path(__file__).resolve().parent.parent / "docs" / "wire.md").read_text()
+    return text.split(f"\n## {title}\n", 1)[1].split("\n## ", 1)[0]
+
+
+def test_the_wire_document_lists_every_field_and_performative() -> None:
+    section = _wire_section("ACL message schema")
+    fields = re.findall(r"^\| `([a-z_]+)` \|", section, re.MULTILINE)
+    assert fields == list(ACLMessage.model_fields)
+    listed = section.split("Performatives (FIPA):", 1)[1].split("\n\n", 1)[0]
+    assert re.findall(r"`([a-z-]+)`", listed) == sorted(p.value for p in Performative)

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import re
 from collections.abc import AsyncIterator, Callable
+from pathlib import Path
 from typing import Any
 
 import orjson
@@ -457,3 +459,15 @@ async def test_events_from_a_platform_not_alive_are_ignored() -> None:
             e = await wait_for(w, lambda e: e.op == "register")
         assert e.platform == "uav-b"
         assert [s.provider for s in view.services()] == ["cam@uav-b"]
+
+
+def test_the_wire_document_lists_every_field_of_a_service_and_a_query() -> None:
+    text = (Path(__file__).resolve().parent.parent / "docs" / "wire.md").read_text()
+    section = text.split("\n## Directory service descriptions\n", 1)[1].split("\n## ", 1)[0]
+    fields = re.findall(r"^\| `([a-z_]+)` \|", section, re.MULTILINE)
+    assert fields == list(ServiceDescription.model_fields)
+    query = section.split("A query has the optional fields", 1)[1].split("no other field", 1)[0]
+    assert set(re.findall(r"`([a-z_]+)`", query)) == set(ServiceQuery.model_fields)
+    visibility = re.search(r"^\| `visibility` \| (.*?) \|", section, re.MULTILINE)
+    assert visibility is not None
+    assert re.findall(r'`"([a-z]+)"`', visibility.group(1)) == [v.value for v in Visibility]

@@ -610,11 +610,27 @@ async def test_malformed_acl_in_a_valid_envelope_is_answered_not_understood() ->
         await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", spoofed))
         rec = await audited(pb, verdict="dropped", sender="victim@uav-c")
         assert "not an agent of 'uav-a'" in str(rec["reason"])
+
+        # a malformed failure is never answered (no not-understood to a not-understood or a
+        # failure): audited dropped, since "refused" means its sender was told
+        stray = orjson.dumps(
+            {
+                "performative": "failure",
+                "sender": "listener@uav-a",
+                "receivers": ["echo@uav-b"],
+                "surprise": 1,
+            }
+        )
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", stray))
+        rec = await audited(pb, verdict="dropped", sender="listener@uav-a")
+        assert "surprise" in str(rec["reason"])
+        assert ia(pb).audit.counts["refused"] == 1  # the shout above only
         # uav-b's inbox is in order, and so is uav-c's: round trips after it flush both
         assert await request(asker, "echo@uav-b", 1, ontology="demo")
         assert await request(echo, "echo@uav-c", 1, ontology="demo")
         assert echo_c.calls
         assert victim.not_understood == []
+        assert len(listener.not_understood) == 1
 
 
 # -- sessions --------------------------------------------------------------------------------
