@@ -8,7 +8,7 @@
     python -m agents.keys show --trust-file trust.json
 
 The product CLI (``dyknow keys …``) reuses ``configure_parser`` and ``run``, or calls
-``gen_keys`` / ``trust_keys`` / ``untrust`` directly. See ``docs/security.md``.
+``gen_keys`` / ``trust_keys`` / ``untrust`` / ``show`` directly. See ``docs/security.md``.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pathlib import Path
 from ._exceptions import KeyFileError
 from ._security import KeyPair, TrustStore, check_name, fingerprint, read_public_key
 
-__all__ = ["configure_parser", "gen_keys", "main", "run", "trust_keys", "untrust"]
+__all__ = ["configure_parser", "gen_keys", "main", "run", "show", "trust_keys", "untrust"]
 
 
 class KeysError(Exception):
@@ -63,6 +63,13 @@ def _open_trust(trust_file: Path, federation: str | None) -> tuple[TrustStore, b
         return TrustStore(federation), True
     except ValueError as exc:
         raise KeysError(str(exc)) from None
+
+
+def _existing_trust(trust_file: Path) -> TrustStore:
+    """The trust store in ``trust_file``, which must exist (nothing to create here)."""
+    if not trust_file.exists():
+        raise KeysError(f"{trust_file}: no such trust file")
+    return _open_trust(trust_file, None)[0]
 
 
 def trust_keys(
@@ -109,17 +116,35 @@ def trust_keys(
 
 
 def untrust(trust_file: str | os.PathLike[str], platforms: Sequence[str]) -> list[str]:
-    """Remove platforms from the trust file (their sessions are refused from then on)."""
+    """Remove platforms from the trust file (their sessions are refused from then on).
+
+    All or nothing: a name the file does not trust (a typo would otherwise look like a
+    revocation that happened) changes nothing and is an error naming it.
+    """
     path = Path(trust_file)
-    store, _ = _open_trust(path, None)
+    store = _existing_trust(path)
+    unknown = [p for p in platforms if p not in store]
+    if unknown:
+        raise KeysError(
+            f"{path} does not trust {', '.join(map(repr, unknown))} "
+            f"(it trusts: {', '.join(store) or 'nobody'}); nothing removed"
+        )
     lines = [f"{path}: federation {store.federation!r}"]
-    changed = False
     for platform in platforms:
-        removed = store.remove(platform)
-        changed |= removed
-        lines.append(f"  {platform:<20} {'removed' if removed else 'was not trusted'}")
-    if changed:
+        if store.remove(platform):
+            lines.append(f"  {platform:<20} removed")
+    if platforms:
         store.save(path)
+    return lines
+
+
+def show(trust_file: str | os.PathLike[str]) -> list[str]:
+    """The platforms ``trust_file`` accepts, one line each with its key's fingerprint."""
+    path = Path(trust_file)
+    store = _existing_trust(path)
+    lines = [f"{path}: federation {store.federation!r}, {len(store)} platform(s)"]
+    for platform in store:
+        lines.append(f"  {platform:<20} {fingerprint(store.public_key(platform))}")
     return lines
 
 
@@ -173,10 +198,7 @@ def run(args: argparse.Namespace) -> int:
         elif args.command == "untrust":
             print("\n".join(untrust(args.trust_file, args.platforms)))
         elif args.command == "show":
-            store, _ = _open_trust(args.trust_file, None)
-            print(f"{args.trust_file}: federation {store.federation!r}, {len(store)} platform(s)")
-            for platform in store:
-                print(f"  {platform:<20} {fingerprint(store.public_key(platform))}")
+            print("\n".join(show(args.trust_file)))
     except KeysError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1

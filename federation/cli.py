@@ -158,6 +158,35 @@ def keys_trust(
         raise _fail(f"dyknow keys trust: {exc}", 1) from None
 
 
+@keys_app.command("untrust")
+def keys_untrust(
+    trust_file: Annotated[Path, typer.Option("--trust-file", help="the federation's trust file")],
+    platforms: Annotated[list[str], typer.Argument(help="platform names to stop trusting")],
+) -> None:
+    """Remove platforms from the trust file (revoke them; running nodes: restart them)."""
+    from agents.keys import KeysError, untrust
+
+    try:
+        for line in untrust(trust_file, platforms):
+            _say(line)
+    except KeysError as exc:
+        raise _fail(f"dyknow keys untrust: {exc}", 1) from None
+
+
+@keys_app.command("show")
+def keys_show(
+    trust_file: Annotated[Path, typer.Option("--trust-file", help="the federation's trust file")],
+) -> None:
+    """List the platforms a trust file accepts, with their key fingerprints."""
+    from agents.keys import KeysError, show
+
+    try:
+        for line in show(trust_file):
+            _say(line)
+    except KeysError as exc:
+        raise _fail(f"dyknow keys show: {exc}", 1) from None
+
+
 # -- node, router -------------------------------------------------------------------------------
 
 

@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from agents._exceptions import UnknownPlatform
+from agents._security import Handshake, KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
 from federation.cli import app, main
 
@@ -81,6 +83,45 @@ def test_keys_gen_and_trust(tmp_path: Path) -> None:
         app, ["keys", "trust", "--trust-file", str(tmp_path / "no.json"), str(keys / "uav-b.pub")]
     )
     assert r.exit_code == 1
+
+
+def test_keys_untrust_revokes_and_show_lists(tmp_path: Path) -> None:
+    keys, trust = tmp_path / "keys", tmp_path / "trust.json"
+    for name in ("uav-a", "uav-b", "uav-c"):
+        gen_keys(name, keys)
+    trust_keys(trust, [keys / f"uav-{x}.pub" for x in "abc"], federation="traffic")
+    pair_a, pair_b = KeyPair.load(keys / "uav-a.key"), KeyPair.load(keys / "uav-b.key")
+
+    r = runner.invoke(app, ["keys", "show", "--trust-file", str(trust)])
+    assert r.exit_code == 0, r.output
+    assert "3 platform(s)" in r.output and pair_b.fingerprint in r.output
+
+    # a typo is not a revocation: refused, naming it, and the file is unchanged
+    before = trust.read_bytes()
+    r = runner.invoke(app, ["keys", "untrust", "--trust-file", str(trust), "uav-b", "uav-bb"])
+    assert r.exit_code == 1
+    assert "'uav-bb'" in r.output and "nothing removed" in r.output
+    assert trust.read_bytes() == before
+
+    r = runner.invoke(app, ["keys", "untrust", "--trust-file", str(trust), "uav-b"])
+    assert r.exit_code == 0, r.output
+    assert "uav-b" in r.output and "removed" in r.output
+    assert list(TrustStore.load(trust)) == ["uav-a", "uav-c"]
+    r = runner.invoke(app, ["keys", "show", "--trust-file", str(trust)])
+    assert "2 platform(s)" in r.output and "uav-b" not in r.output
+
+    # a platform loading the new trust file refuses uav-b's key exchange (uav-b, still
+    # trusting itself and uav-a, initiates as before)
+    init = Handshake(pair_b, _trust_with(pair_a, pair_b)).initiate("uav-a")
+    with pytest.raises(UnknownPlatform, match="uav-b"):
+        Handshake(pair_a, TrustStore.load(trust)).respond(init)
+
+    r = runner.invoke(app, ["keys", "untrust", "--trust-file", str(tmp_path / "no.json"), "x"])
+    assert r.exit_code == 1 and "no such trust file" in r.output
+
+
+def _trust_with(*pairs: KeyPair) -> TrustStore:
+    return TrustStore("traffic", {p.platform: p.public_key for p in pairs})
 
 
 def test_config_errors_name_file_and_key(
