@@ -15,6 +15,7 @@ import functools
 import hashlib
 import hmac
 import json
+import re
 from pathlib import Path
 from typing import Any
 
@@ -157,6 +158,15 @@ def test_key_exchange_transcripts_from_the_description() -> None:
         assert SigningKey(seed).sign(signed).signature == b64(msg["sig"])
         assert b64(msg["sig"]).hex() == v["sig_hex"]
         VerifyKey(h(keys[msg["from"]]["ed25519_public_hex"])).verify(signed, b64(msg["sig"]))
+
+
+def test_the_documents_examples_are_the_vectors() -> None:
+    text = (PATH.parent / "security.md").read_text(encoding="utf-8")
+    example = text.split("at `tsA` = 1795000000123 (hex):", 1)[1].split("then `nA`", 1)[0]
+    start = "".join(re.findall(r"`([0-9a-f ]+)`", example)).replace(" ", "")
+    assert len(start) == 2 * (18 + 6 + 7 + 7 + 8)
+    assert KX["init"]["t1_hex"].startswith(start)
+    assert KX["init"]["ts_ms"] == 1795000000123
 
 
 def test_session_keys_and_id_from_the_description() -> None:
