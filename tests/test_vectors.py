@@ -277,7 +277,8 @@ def _ours() -> tuple[Any, ...]:
         p: KeyPair(p, SigningKey(h(v["ed25519_seed_hex"]))) for p, v in VECTORS["platforms"].items()
     }
     trust = TrustStore(FED, {p: k.public_key for p, k in pairs.items()})
-    policy = SecurityPolicy(encrypt=False)
+    # explicit, whatever the defaults: the vectors seal both kinds and read both
+    policy = SecurityPolicy(encrypt=False, require_encryption=False)
     a, b = KX["init"]["from"], KX["reply"]["from"]
     clocks = {a: FixedClock(KX["init"]["ts_ms"]), b: FixedClock(KX["reply"]["ts_ms"])}
     hs = {p: Handshake(pairs[p], trust, policy=policy, clock=clocks[p]) for p in (a, b)}

@@ -225,7 +225,8 @@ def generate() -> dict[str, Any]:
     pairs = {p: KeyPair(p, SigningKey(seed)) for p, seed in SEEDS.items()}
     trust = TrustStore(FEDERATION, {p: k.public_key for p, k in pairs.items()})
     clocks = {INITIATOR: _Clock(TS_INIT), RESPONDER: _Clock(TS_REPLY)}
-    policy = SecurityPolicy(encrypt=False)
+    # explicit, whatever the defaults: the vectors seal both kinds and read both
+    policy = SecurityPolicy(encrypt=False, require_encryption=False)
     hs = {
         p: Handshake(pairs[p], trust, policy=policy, clock=clocks[p])
         for p in (INITIATOR, RESPONDER)
