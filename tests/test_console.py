@@ -3,7 +3,10 @@
 The operator (with its `OperatorConsole`) and two fake UAVs share a `MemoryHub`; each UAV
 publishes the demo's local labels (`federation.demo._vocabulary`) from a pusher task.
 The tests read the model as the page does (Server-Sent Events from ``/api/events``) and
-drive the query, search, policy and observation endpoints, good input and bad.
+drive the query, search, policy and observation endpoints, good input and bad, holding
+the console's token (`client`: ``Authorization: Bearer``). The attacks on who may use
+the console are in tests/test_console_access.py (a spawned ``dyknow console``); here, the
+one that needs a live export: a rebinding page must not re-create uav-a's.
 """
 
 from __future__ import annotations
