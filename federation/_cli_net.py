@@ -9,7 +9,7 @@ import json
 import re
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -76,18 +76,30 @@ def settle_gc() -> None:
 
 
 async def run_console(
-    config: PlatformConfig, source: str, host: str, port: int, say: Callable[[str], None]
+    config: PlatformConfig,
+    source: str,
+    host: str,
+    port: int,
+    say: Callable[[str], None],
+    *,
+    token: str | None = None,
+    allow_hosts: Sequence[str] = (),
 ) -> None:
-    """Run one platform with the operator web console until SIGINT/SIGTERM."""
+    """Run one platform with the operator web console until SIGINT/SIGTERM.
+
+    The ready line ends with the URL to open, token included (``…/?token=…``).
+    """
     from .demo._console import OperatorConsole
 
     async with (
         FederationPlatform(config, source=source) as p,
-        OperatorConsole(p, host=host, port=port) as console,
+        OperatorConsole(p, host=host, port=port, token=token, allow_hosts=allow_hosts) as console,
     ):
         stop = _stop_event()
         settle_gc()
-        say(f"dyknow console: {p.name} ready in federation {config.federation}: {console.url}")
+        say(
+            f"dyknow console: {p.name} ready in federation {config.federation}: {console.login_url}"
+        )
         await stop.wait()
     say(f"dyknow console: {config.name} stopped")
 

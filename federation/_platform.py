@@ -27,6 +27,10 @@ A config file (TOML; relative paths are relative to the file)::
     rate = 5000.0                # requests/queries/cfps per second, bursts of `burst`
     burst = 200.0
 
+    [console]                    # `dyknow console` only (docs/console.md)
+    allow_hosts = ["operator.example.org"]
+    token_file = "console.token"
+
     [transport]
     kind = "zenoh"
     mode = "peer"
@@ -156,6 +160,20 @@ class RateLimitSettings(BaseModel):
         return RateLimit(**self.model_dump(exclude={"enabled"}))
 
 
+class ConsoleSettings(BaseModel):
+    """``[console]``: who may use the operator console (`dyknow console`, docs/console.md).
+
+    ``allow_hosts`` are host names a request's ``Host`` may name besides localhost and IP
+    addresses; ``token_file`` holds the console's token (else ``DYKNOW_CONSOLE_TOKEN``,
+    else a random one, printed at start).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    allow_hosts: tuple[str, ...] = ()
+    token_file: Path | None = None
+
+
 class PlatformConfig(BaseModel):
     """One platform's settings, validated at the edge (`load`, `from_dict` name the bad key).
 
@@ -182,6 +200,7 @@ class PlatformConfig(BaseModel):
     rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings)
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
+    console: ConsoleSettings = Field(default_factory=ConsoleSettings)
 
     @field_validator("transport", mode="before")
     @classmethod
@@ -239,6 +258,9 @@ class PlatformConfig(BaseModel):
                 update[name] = base / value
         if isinstance(self.transport, ZenohSettings):  # its TLS and password files
             update["transport"] = self.transport.relative_to(base)
+        token_file = self.console.token_file
+        if token_file is not None and not token_file.is_absolute():
+            update["console"] = self.console.model_copy(update={"token_file": base / token_file})
         return self.model_copy(update=update)
 
     def import_label_of(self, sender: str, semantic: str) -> str:

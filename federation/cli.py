@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -209,13 +210,36 @@ def console(
     config: ConfigOpt,
     host: Annotated[str, typer.Option("--host", help="the address to serve on")] = "127.0.0.1",
     port: Annotated[int, typer.Option("--port", help="the HTTP port (0: any free one)")] = 8080,
+    allow_host: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--allow-host",
+            help="a host name the console may be reached by, besides localhost and IP "
+            "addresses (repeatable; adds to console.allow_hosts and "
+            "$DYKNOW_CONSOLE_ALLOW_HOSTS)",
+        ),
+    ] = None,
+    token_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--token-file",
+            help="a file holding the console's token (else $DYKNOW_CONSOLE_TOKEN, else "
+            "console.token_file, else a random one, printed with the URL)",
+        ),
+    ] = None,
 ) -> None:
     """Run a platform with the operator web console (docs/console.md) until SIGINT/SIGTERM."""
     from ._cli_net import run_console
+    from .demo._console_access import allowed_names, configured_token
 
     cfg = _load(config)
     try:
-        asyncio.run(run_console(cfg, str(config), host, port, _say))
+        token = configured_token(token_file, cfg.console.token_file)
+        hosts = allowed_names([*cfg.console.allow_hosts, *(allow_host or [])], os.environ)
+    except ValueError as exc:
+        raise _fail(f"dyknow console: {config}: {exc}") from None
+    try:
+        asyncio.run(run_console(cfg, str(config), host, port, _say, token=token, allow_hosts=hosts))
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
     except (TransportError, OSError) as exc:

@@ -294,12 +294,15 @@ def test_console_serves_the_federation_it_sees(tmp_path: Path) -> None:
         assert "operator ready in federation traffic: http://127.0.0.1:" in ready, (
             console.stderr.read() if console.stderr else ""
         )
-        url = ready.rsplit(": ", 1)[1].strip()
-        with urllib.request.urlopen(url, timeout=5) as page:
+        login = ready.rsplit(": ", 1)[1].strip()  # http://127.0.0.1:<port>/?token=<token>
+        url, token = login.split("?token=")
+        with urllib.request.urlopen(login, timeout=5) as page:
             assert "operator console" in page.read().decode()
         names: list[str] = []
+        bearer = {"Authorization": f"Bearer {token}"}
         for _ in range(100):  # the console learns members as they are seen
-            with urllib.request.urlopen(url + "api/state", timeout=5) as answer:
+            asked = urllib.request.Request(url + "api/state", headers=bearer)
+            with urllib.request.urlopen(asked, timeout=5) as answer:
                 state = json.loads(answer.read())
             names = [p["name"] for p in state["platforms"]]
             if "uav-a" in names:

@@ -3,7 +3,10 @@
 The operator (with its `OperatorConsole`) and two fake UAVs share a `MemoryHub`; each UAV
 publishes the demo's local labels (`federation.demo._vocabulary`) from a pusher task.
 The tests read the model as the page does (Server-Sent Events from ``/api/events``) and
-drive the query, search, policy and observation endpoints, good input and bad.
+drive the query, search, policy and observation endpoints, good input and bad, holding
+the console's token (`client`: ``Authorization: Bearer``). The attacks on who may use
+the console are in tests/test_console_access.py (a spawned ``dyknow console``); here, the
+one that needs a live export: a rebinding page must not re-create uav-a's.
 """
 
 from __future__ import annotations
@@ -171,6 +174,14 @@ async def console_federation(tmp_path: Path, **options: Any) -> AsyncIterator[Fe
         yield fed
 
 
+def client(fed: Federation, **options: Any) -> aiohttp.ClientSession:
+    """An HTTP client of the console holding its token (as a script would: a Bearer)."""
+    assert fed.console is not None
+    return aiohttp.ClientSession(
+        headers={"Authorization": f"Bearer {fed.console.token}"}, **options
+    )
+
+
 async def _cancelled(task: asyncio.Task[None]) -> None:
     task.cancel()
     with contextlib.suppress(asyncio.CancelledError):
@@ -229,7 +240,7 @@ async def post(http: aiohttp.ClientSession, url: str, body: Any) -> tuple[int, A
 
 
 async def test_state_fills_in_and_a_uav_that_goes_is_shown_gone(demo_keys: Path) -> None:
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         url = fed.url
         assert url.startswith("http://127.0.0.1:")
         async with http.get(url) as r:
@@ -273,7 +284,7 @@ async def test_state_fills_in_and_a_uav_that_goes_is_shown_gone(demo_keys: Path)
 
 
 async def test_a_uav_that_comes_back_is_alive_and_streams_again(demo_keys: Path) -> None:
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         url = fed.url
         state = await until_state(http, url, lambda s: filled(s, "uav-b"))
         samples = platform(state, "uav-b")["samples"]
@@ -291,7 +302,7 @@ async def test_a_uav_that_comes_back_is_alive_and_streams_again(demo_keys: Path)
 
 
 async def test_query_returns_samples_and_bad_queries_name_the_field(demo_keys: Path) -> None:
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         url = fed.url
         await until_state(http, url, lambda s: filled(s, "uav-a"))
         q = url + "api/query"
@@ -340,7 +351,7 @@ async def test_query_returns_samples_and_bad_queries_name_the_field(demo_keys: P
 
 
 async def test_label_search_asks_every_platform(demo_keys: Path) -> None:
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         url = fed.url + "api/search"
         status, answer = await post(http, url, {"formula": "(all ?x (Car ?x))"})
         assert status == 200, answer
@@ -352,7 +363,7 @@ async def test_label_search_asks_every_platform(demo_keys: Path) -> None:
 
 
 async def test_policy_change_recreates_the_export_and_the_rate_follows(demo_keys: Path) -> None:
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         url = fed.url
         state = await until_state(http, url, lambda s: filled(s, "uav-a"))
         old_id = stream(state, "uav-a", "tracked-cars")["export_id"]
@@ -395,7 +406,7 @@ async def test_policy_change_recreates_the_export_and_the_rate_follows(demo_keys
 
 
 async def test_an_observation_enters_the_instance_and_the_map(demo_keys: Path) -> None:
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         url = fed.url
         body = {"x": 120.5, "y": 300, "text": "a car stopped on the bridge"}
         status, answer = await post(http, url + "api/observation", body)
@@ -428,7 +439,7 @@ async def test_an_observation_enters_the_instance_and_the_map(demo_keys: Path) -
 
 
 async def test_a_refused_stream_is_shown_and_asked_again(demo_keys: Path) -> None:
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         url = fed.url
         # a platform without the demo's streams joins: refused, shown, not fatal
         bare = await fed.start("uav-c", 2, streams=False)
@@ -463,7 +474,7 @@ def test_console_refuses_a_nonsense_sample_period(demo_keys: Path) -> None:
 async def test_a_page_of_another_site_cannot_post_to_the_console(demo_keys: Path) -> None:
     # text/plain needs no CORS preflight: a page the operator opens could otherwise
     # change policies or inject observations
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         body = json.dumps({"x": 1.0, "y": 2.0, "text": "fake"})
         async with http.post(
             fed.url + "api/observation", data=body, headers={"Content-Type": "text/plain"}
@@ -474,13 +485,56 @@ async def test_a_page_of_another_site_cannot_post_to_the_console(demo_keys: Path
             data=json.dumps({"platform": "uav-a", "label": "area", "sample_period": 86400}),
             headers={"Content-Type": "application/json", "Origin": "http://evil.example"},
         ) as r:
-            assert r.status == 400 and "Origin" in (await r.json())["error"]
+            assert r.status == 403 and "Origin" in (await r.json())["error"]
         status, _ = await post(http, fed.url + "api/observation", {"x": 1, "y": 2, "text": "ok"})
         assert status == 200  # the console's own page (same origin, or none) still may
 
 
+async def test_a_rebinding_page_or_a_local_process_cannot_change_a_policy(
+    demo_keys: Path,
+) -> None:
+    # issue 11's attack: Host and Origin evil.example (a name rebound to 127.0.0.1), or
+    # a local process without the token, cancelled and re-created uav-a's export
+    async with console_federation(demo_keys) as fed, client(fed) as http:
+        state = await until_state(http, fed.url, lambda s: filled(s, "uav-a"))
+        before = stream(state, "uav-a", "tracked-cars")["export_id"]
+        exports = fed.uavs["uav-a"].platform.federation_agent.exports
+        body = json.dumps({"platform": "uav-a", "label": "tracked-cars", "sample_period": 60})
+        port = fed.url.rsplit(":", 1)[1].strip("/")
+        evil = {"Host": f"evil.example:{port}", "Origin": f"http://evil.example:{port}"}
+        assert fed.console is not None
+        attempts = [
+            ({**evil, "Authorization": f"Bearer {fed.console.token}"}, 403, "Host"),
+            (evil, 403, "Host"),
+            ({}, 401, "token"),
+            ({"Authorization": "Bearer " + "x" * 32}, 403, "token"),
+        ]
+        async with aiohttp.ClientSession() as bare:  # no token of its own
+            for headers, status, word in attempts:
+                for path, data in (("api/policy", body), ("api/state", None)):
+                    method = bare.post if data else bare.get
+                    async with method(
+                        fed.url + path,
+                        data=data,
+                        headers={"Content-Type": "application/json", **headers},
+                    ) as r:
+                        answer = await r.json()
+                        assert r.status == status and word in answer["error"], (headers, answer)
+                        assert "platforms" not in answer  # nothing of the state leaked
+        assert set(exports) >= {before}  # the export was never cancelled nor re-created
+        async with http.get(fed.url + "api/state") as r:
+            assert stream(await r.json(), "uav-a", "tracked-cars")["export_id"] == before
+        async with http.get(fed.url + "api/stats") as r:
+            stats = await r.json()
+        assert stats["refused"] == {"host": 4, "origin": 0, "no-token": 2, "bad-token": 2}
+        audit = [r for r in fed.operator.interface.audit.records if r.get("stage") == "console"]
+        assert [r["refusal"] for r in audit] == ["host"] * 4 + ["no-token"] * 2 + ["bad-token"] * 2
+        assert all(r["verdict"] == "refused" and r["platform"] == "operator" for r in audit)
+        assert audit[0]["host"] == f"evil.example:{port}" and audit[0]["path"] == "/api/policy"
+
+
 async def test_a_non_finite_number_from_a_platform_does_not_break_the_page(demo_keys: Path) -> None:
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         fed.uavs["uav-a"].violations.append(
             {"kind": "turn", "car": "c", "other": None, "x": float("nan"), "y": float("inf")}
         )
@@ -494,7 +548,7 @@ async def test_a_non_finite_number_from_a_platform_does_not_break_the_page(demo_
 
 async def test_a_stream_its_live_platform_stops_is_asked_for_again(demo_keys: Path) -> None:
     # the export's lease runs out (the operator froze longer than it) while both stay up
-    async with console_federation(demo_keys) as fed, aiohttp.ClientSession() as http:
+    async with console_federation(demo_keys) as fed, client(fed) as http:
         await until_state(http, fed.url, lambda s: filled(s, "uav-a"))
         first = stream(await until_state(http, fed.url, lambda s: True), "uav-a", "tracked-cars")
         uav = fed.uavs["uav-a"].platform

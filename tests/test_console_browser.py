@@ -2,8 +2,11 @@
 
 `running_federation` is the one fixture that knows what runs: the real traffic demo
 (`run_traffic_demo`, what `dyknow demo traffic` runs), three UAV processes over zenoh and
-the operator with its console in the test process. It yields the console's URL, the UAVs'
-names and a way to kill one (SIGKILL).
+the operator with its console in the test process. It yields the console's URL with its
+token (what the demo prints), the UAVs' names and a way to kill one (SIGKILL).
+
+Chromium resolves ``evil.example`` to 127.0.0.1 (``--host-resolver-rules``): a page of
+that site reaching the console is what a DNS-rebinding attack looks like to it.
 
 Chromium is Debian's (``/usr/bin/chromium``; `make test` installs it), never a
 Playwright download. Without it the test fails in CI and is skipped, saying why, elsewhere.
@@ -19,12 +22,15 @@ import signal
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
+import aiohttp
 import pytest
 
 from federation.demo._run import DemoOptions, DemoStarted, run_traffic_demo
 
 CHROMIUM = "/usr/bin/chromium"
+EVIL = "evil.example"  # a name the attacker rebinds to the operator's loopback address
 CHROMIUM_ARGS = [
     "--headless",
     "--no-sandbox",
@@ -34,6 +40,7 @@ CHROMIUM_ARGS = [
     "--disable-background-networking",
     "--disable-component-update",
     "--disable-sync",
+    f"--host-resolver-rules=MAP {EVIL} 127.0.0.1",
 ]
 WAIT = 15_000  # ms: the bound on one thing to appear on the page
 SPEED = 2.0  # simulated seconds per second: the policy check below counts on it
@@ -58,7 +65,7 @@ def _require_chromium() -> None:
 
 @dataclass
 class RunningFederation:
-    """What the browser test drives: the console's URL, the UAVs, how to kill one."""
+    """What the browser test drives: the console's URL (with its token), the UAVs, a kill."""
 
     url: str
     uavs: list[str]
@@ -72,7 +79,8 @@ async def _real_demo(tmp_path: Path) -> AsyncIterator[RunningFederation]:
         uavs=3, duration=60.0, seed=1, speed=SPEED, port=0, hold=600.0, run_dir=str(tmp_path)
     )
     started: asyncio.Future[DemoStarted] = asyncio.get_running_loop().create_future()
-    demo = asyncio.create_task(run_traffic_demo(options, lambda _: None, started=started))
+    said: list[str] = []
+    demo = asyncio.create_task(run_traffic_demo(options, said.append, started=started))
     try:
         async with asyncio.timeout(60):
             await asyncio.wait({demo, started}, return_when=asyncio.FIRST_COMPLETED)
@@ -80,6 +88,9 @@ async def _real_demo(tmp_path: Path) -> AsyncIterator[RunningFederation]:
             demo.result()  # the demo failed before it started: say why
         info = started.result()
         assert info.console_url is not None
+        # what `dyknow demo traffic` prints: the URL to open, with the token
+        assert re.fullmatch(r"http://127\.0\.0\.1:\d+/\?token=[\w-]{32}", info.console_url)
+        assert f"operator console: {info.console_url}" in said, said
 
         async def kill(name: str) -> None:
             os.kill(info.pids[name], signal.SIGKILL)
@@ -102,6 +113,36 @@ async def running_federation(tmp_path: Path) -> AsyncIterator[RunningFederation]
 # -- the test --------------------------------------------------------------------------------
 
 
+async def _rebinding_page_is_refused(browser: Any, base: str, token: str) -> None:
+    """A page of evil.example, its name now 127.0.0.1, reads nothing and changes nothing."""
+    port = base.rstrip("/").rsplit(":", 1)[1]
+    evil = f"http://{EVIL}:{port}"
+    page = await browser.new_page()
+    try:
+        # the page of evil.example:<port> (now served from 127.0.0.1: the console refuses
+        # it, but the browser keeps the document, whose origin is evil.example's)
+        first = await page.goto(f"{evil}/")
+        assert first is not None and first.status == 403
+        got = await page.evaluate(
+            """async () => {
+              const state = await fetch('/api/state');
+              const policy = await fetch('/api/policy', {method: 'POST',
+                headers: {'Content-Type': 'application/json'},
+                body: JSON.stringify({platform: 'uav-a', label: 'tracked-cars',
+                                      sample_period: 60})});
+              return [state.status, await state.text(), policy.status];
+            }"""
+        )
+        assert got[0] == 403 and "Host" in got[1] and "platforms" not in got[1], got
+        assert got[2] == 403, got
+    finally:
+        await page.close()
+    bearer = {"Authorization": f"Bearer {token}"}
+    async with aiohttp.ClientSession(headers=bearer) as http, http.get(base + "api/stats") as r:
+        stats = await r.json()
+    assert stats["refused"]["host"] >= 3 and stats["refused"]["no-token"] >= 1, stats
+
+
 @pytest.mark.timeout(120)
 async def test_what_the_operator_sees(
     running_federation: RunningFederation, tmp_path: Path
@@ -120,8 +161,13 @@ async def test_what_the_operator_sees(
         )
         try:
             page = browser.pages[0] if browser.pages else await browser.new_page()
+            base, token = url.split("?token=")
+            refused = await page.goto(base)  # without the token: refused, nothing shown
+            assert refused is not None and refused.status == 401
             await page.goto(url)
             await expect(page).to_have_title("DyKnow Federation — operator console")
+            assert "token" not in page.url  # traded for a cookie, out of the address bar
+            await _rebinding_page_is_refused(browser, base, token)
 
             # platforms listed, alive, their streams active
             for name in (a, b):

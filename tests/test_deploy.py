@@ -185,6 +185,19 @@ def test_only_the_operator_console_port_is_published(file: str) -> None:
     assert published == {"operator": ["8080:8080"]}, f"{file}: {published}"
 
 
+@pytest.mark.parametrize("file", sorted(TOPOLOGIES))
+def test_the_operator_console_token_comes_from_the_environment(file: str) -> None:
+    services = _compose(file)["services"]
+    # `DYKNOW_CONSOLE_TOKEN=… docker compose up` chooses it; unset, the console makes one
+    # and prints the URL with it in the operator's log (docs/console.md)
+    env = services["operator"]["environment"]
+    assert env == {
+        "DYKNOW_CONSOLE_TOKEN": "${DYKNOW_CONSOLE_TOKEN:-}",
+        "DYKNOW_CONSOLE_ALLOW_HOSTS": "${DYKNOW_CONSOLE_ALLOW_HOSTS:-}",
+    }, f"{file}: {env}"
+    assert not [n for n, s in services.items() if n != "operator" and "environment" in s]
+
+
 def _normalize(path: PurePosixPath) -> PurePosixPath:
     parts: list[str] = []
     for part in path.parts:

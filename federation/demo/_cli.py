@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import signal
 from pathlib import Path
 from typing import Annotated
@@ -32,6 +33,14 @@ def traffic(
     ] = 8080,
     host: Annotated[str, typer.Option("--host", help="the console's address")] = "127.0.0.1",
     no_console: Annotated[bool, typer.Option("--no-console", help="no web console")] = False,
+    allow_host: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--allow-host",
+            help="a host name the console may be reached by, besides localhost and IP "
+            "addresses (repeatable)",
+        ),
+    ] = None,
     hold: Annotated[
         float, typer.Option("--hold", min=0.0, help="keep the console open S s after the report")
     ] = 0.0,
@@ -41,8 +50,16 @@ def traffic(
     as_json: Annotated[bool, typer.Option("--json", help="print the report as JSON")] = False,
 ) -> None:
     """Several UAV processes monitor simulated traffic; the operator gets the global picture."""
+    from ._console_access import allowed_names, configured_token
     from ._run import DemoOptions, run_traffic_demo
 
+    try:
+        # $DYKNOW_CONSOLE_TOKEN, else a random one: the URL printed carries it
+        token = configured_token(None)
+        hosts = tuple(allowed_names(allow_host or [], os.environ))
+    except ValueError as exc:
+        Console(stderr=True).print(f"dyknow demo traffic: {exc}", markup=False)
+        raise typer.Exit(2) from None
     options = DemoOptions(
         uavs=uavs,
         duration=duration,
@@ -53,6 +70,8 @@ def traffic(
         port=port,
         run_dir=None if run_dir is None else str(run_dir),
         hold=hold,
+        console_token=token,
+        allow_hosts=hosts,
     )
     say = (lambda _: None) if as_json else (lambda text: _out.print(text, markup=False))
     # SIGTERM (timeout, docker stop, a closed CI job) takes Ctrl-C's way out, so the UAV

@@ -7,10 +7,15 @@ keeps a model of what they send, and serves it over HTTP (aiohttp, in the node's
 event loop) to a plain HTML/JS page with no build step: a map, the platforms and their
 streams, the violations, a query box, a policy editor and an observation form.
 
+Only who holds the console's token may use it (`ConsoleAccess`: a random token printed
+with the URL at start, ``GET /?token=…`` trades it for a cookie; the ``Host`` must be one of
+the console's names; a foreign ``Origin`` is refused).
+
 HTTP API (see docs/console.md): ``GET /`` the page, ``GET /static/…`` its files,
 ``GET /api/state`` the model as JSON, ``GET /api/events`` the model as Server-Sent Events
 (one ``state`` event per change, at most every `PUSH_INTERVAL` s), ``POST /api/query``,
-``POST /api/search``, ``POST /api/policy``, ``POST /api/observation``. A bad request body
+``POST /api/search``, ``POST /api/policy``, ``POST /api/observation``, ``GET /api/stats``
+(the refusals counted). A bad request body
 is answered 400 ``{"error": "<field>: …"}``; a federation error (refusal, timeout) 502
 with the reason. Nothing a client sends or a platform streams can stop the node.
 """
@@ -24,7 +29,7 @@ import logging
 import math
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Self
@@ -37,6 +42,7 @@ from ontology import OntologyError
 
 from .._platform import FederationPlatform
 from .._service import MembershipEvent
+from ._console_access import ConsoleAccess
 
 __all__ = ["STREAM_LABELS", "OperatorConsole"]
 
@@ -134,6 +140,9 @@ class OperatorConsole:
     is drawn under everything; without it the map scales to what it has seen. The
     server listens on ``host``:``port`` (0: a free port; `url` says which).
     ``sample_period`` is the period asked for every new stream (None: every sample).
+    ``token`` is the secret a client must present (None: a random one; `login_url` carries
+    it); ``allow_hosts`` are host names, besides localhost and IP addresses, that a
+    request's ``Host`` may name (the name the console is reached by, behind a proxy).
     """
 
     def __init__(
@@ -144,9 +153,17 @@ class OperatorConsole:
         host: str = "127.0.0.1",
         port: int = 0,
         sample_period: float | None = None,
+        token: str | None = None,
+        allow_hosts: Iterable[str] = (),
     ) -> None:
         if sample_period is not None and not sample_period > 0:
             raise ValueError(f"sample_period must be > 0 seconds, got {sample_period}")
+        interface = getattr(platform, "interface", None)
+        self.access = ConsoleAccess(
+            token=token,
+            allow_hosts=[*allow_hosts, *([] if _is_wildcard(host) else [host])],
+            audit=interface.audit if interface is not None else None,
+        )
         self.platform = platform
         self.name = platform.name
         self.world_map = world_map
@@ -164,6 +181,16 @@ class OperatorConsole:
         self._observation_label: str | None = None
         self._stack: contextlib.AsyncExitStack | None = None
         self.url: str = ""
+
+    @property
+    def token(self) -> str:
+        """The secret a client presents (``?token=`` once, then the cookie; or a Bearer)."""
+        return self.access.token
+
+    @property
+    def login_url(self) -> str:
+        """`url` with the token: what the operator opens (printed at start)."""
+        return f"{self.url}?token={self.token}" if self.url else ""
 
     def __repr__(self) -> str:
         return f"<OperatorConsole of {self.name} at {self.url or 'not started'}>"
@@ -200,7 +227,7 @@ class OperatorConsole:
         await stack.aclose()
 
     async def _start_server(self, stack: contextlib.AsyncExitStack) -> None:
-        app = web.Application(middlewares=[_errors_as_json])
+        app = web.Application(middlewares=[self.access.middleware, _errors_as_json])
         app.router.add_get("/", self._index)
         app.router.add_static("/static/", STATIC_DIR, name="static")
         app.router.add_get("/api/state", self._get_state)
@@ -209,6 +236,7 @@ class OperatorConsole:
         app.router.add_post("/api/search", self._post_search)
         app.router.add_post("/api/policy", self._post_policy)
         app.router.add_post("/api/observation", self._post_observation)
+        app.router.add_get("/api/stats", self._get_stats)
         # Event streams end as soon as we close (they watch `_closing`): no long wait.
         runner = web.AppRunner(app, shutdown_timeout=2.0, access_log=None)
         await runner.setup()
@@ -218,8 +246,13 @@ class OperatorConsole:
         addresses = runner.addresses  # the port bound, when we asked for any (0)
         if addresses:
             self.port = int(addresses[0][1])
-        host = f"[{self.host}]" if ":" in self.host else self.host
+            # one cookie per console port: two consoles on one machine keep theirs apart
+            self.access.cookie = f"dyknow_console_{self.port}"
+        # a wildcard address is no place to open: the same server on loopback is
+        host = "127.0.0.1" if _is_wildcard(self.host) else self.host
+        host = f"[{host}]" if ":" in host else host
         self.url = f"http://{host}:{self.port}/"
+        self._spawn(self.access.run_reports(self._closing), f"console[{self.name}].refusals")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
         task = asyncio.get_running_loop().create_task(coro, name=name)
@@ -480,6 +513,9 @@ class OperatorConsole:
     async def _get_state(self, request: web.Request) -> web.Response:
         return _json(self.state())
 
+    async def _get_stats(self, request: web.Request) -> web.Response:
+        return _json(self.access.stats())
+
     async def _get_events(self, request: web.Request) -> web.StreamResponse:
         response = web.StreamResponse(
             headers={
@@ -695,9 +731,7 @@ async def _body(request: web.Request) -> dict[str, Any]:
     # application/json it cannot, and a browser names the page's origin
     if request.content_type != "application/json":
         raise BadRequest(f"body: Content-Type must be application/json, not {request.content_type}")
-    origin = request.headers.get("Origin")
-    if origin is not None and origin != f"{request.scheme}://{request.host}":
-        raise BadRequest(f"Origin: {origin} is not this console's")
+    # (a foreign Origin was refused before: `ConsoleAccess.middleware`)
     try:
         body = await request.json()
     except (ValueError, UnicodeDecodeError) as exc:
@@ -705,6 +739,10 @@ async def _body(request: web.Request) -> dict[str, Any]:
     if not isinstance(body, dict):
         raise BadRequest("body: expected a JSON object")
     return body
+
+
+def _is_wildcard(host: str) -> bool:
+    return host in ("", "0.0.0.0", "::")
 
 
 def _number(body: dict[str, Any], key: str, default: float | None = None) -> float:

@@ -63,11 +63,16 @@ class DemoOptions:
     port: int = 8080
     run_dir: str | None = None
     hold: float = 0.0  # s to keep running (console open) after the report
+    console_token: str | None = None  # None: a random one (the URL printed carries it)
+    allow_hosts: tuple[str, ...] = ()  # host names the console may be reached by
 
 
 @dataclass(frozen=True, slots=True)
 class DemoStarted:
-    """Handed to ``run_traffic_demo(started=…)`` once every UAV joined (tests, embedding)."""
+    """Handed to ``run_traffic_demo(started=…)`` once every UAV joined (tests, embedding).
+
+    ``console_url`` is the console's URL with its token (``…/?token=…``).
+    """
 
     console_url: str | None
     pids: dict[str, int]
@@ -318,7 +323,12 @@ async def _operate(
 
                 def make(port: int) -> OperatorConsole:
                     return OperatorConsole(
-                        platform, world_map=world.to_dict(), host=options.host, port=port
+                        platform,
+                        world_map=world.to_dict(),
+                        host=options.host,
+                        port=port,
+                        token=options.console_token,
+                        allow_hosts=options.allow_hosts,
                     )
 
                 try:
@@ -329,11 +339,11 @@ async def _operate(
                     # another demo (or anything) has the port: any free one will do
                     say(f"port {options.port} is taken ({exc.strerror}); using a free one")
                     console = await stack.enter_async_context(make(0))
-                say(f"operator console: {console.url}")
+                say(f"operator console: {console.login_url}")
             agent = await platform.agents.add(_Operator())
             await _wait_members(platform, names, procs, say)
             if started is not None and not started.done():
-                url = console.url if console is not None else None
+                url = console.login_url if console is not None else None
                 started.set_result(
                     DemoStarted(url, {n: p.pid for n, p in procs.items() if p.pid is not None})
                 )
@@ -353,7 +363,7 @@ async def _operate(
                     with contextlib.suppress(Exception):
                         reports[name] = await _ask_report(agent, name)
             report = _report(world, reports, delegation, options)
-            report.console_url = console.url if console is not None else None
+            report.console_url = console.login_url if console is not None else None
             _print_report(report, say)
             if options.hold > 0:
                 say(f"holding for {options.hold:g} s (console: {report.console_url})")

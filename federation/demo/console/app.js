@@ -67,9 +67,21 @@ function connect() {
     try { render(JSON.parse(ev.data)); } catch (e) { console.error(e); }
   });
   source.onerror = () => {
+    if (source.readyState === EventSource.CLOSED) {
+      // refused (401/403: no token, a wrong one): retrying would not help
+      conn.dataset.state = "refused";
+      conn.textContent = "refused: open the URL the console printed (…/?token=…)";
+      return;
+    }
     conn.dataset.state = "lost";
     conn.textContent = "reconnecting…";  // EventSource retries by itself
   };
+}
+
+// The token came once in the address (…/?token=…); the server answered with a cookie, so
+// it leaves the address bar (and the history, and what a screenshot shows).
+if (new URLSearchParams(location.search).has("token")) {
+  history.replaceState(null, "", location.pathname);
 }
 
 function render(s) {

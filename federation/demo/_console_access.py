@@ -1,0 +1,300 @@
+"""Who may use the operator console: a secret token, an allowed Host, a same-site Origin.
+
+Every HTTP request passes `ConsoleAccess.middleware` before it reaches a handler. In order:
+
+1. ``Host`` must name this console: ``localhost``, any IP address (``127.0.0.1``,
+   ``[::1]``, the machine's own), or a name the operator allowed (``--allow-host``,
+   ``console.allow_hosts``). A page of ``evil.example`` whose name now resolves to
+   127.0.0.1 (DNS rebinding) sends ``Host: evil.example``: refused (403).
+2. ``Origin``, when a browser sends one, must be this console's own
+   (``http://<Host>``): a page of another site is refused (403), GET or POST.
+3. The token: ``GET /?token=T`` with the right T answers the page and sets an HttpOnly,
+   SameSite=Strict cookie; every other request needs that cookie or
+   ``Authorization: Bearer T``. None: 401; a wrong one: 403.
+
+Every refusal is counted (`refusals`, ``GET /api/stats``) and recorded in the platform's
+audit (the Interface Agent's `AuditLog`, ``stage: "console"``) and the log, within a
+budget: past it, refusals are counted and summed up in one record per `REPORT_INTERVAL`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import ipaddress
+import json
+import logging
+import os
+import re
+import secrets
+import time
+from collections.abc import Awaitable, Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+from aiohttp import web
+
+from agents._interface import AuditLog, TokenBucket
+
+__all__ = [
+    "ALLOW_HOSTS_ENV",
+    "TOKEN_ENV",
+    "ConsoleAccess",
+    "allowed_names",
+    "check_token",
+    "configured_token",
+    "new_token",
+]
+
+log = logging.getLogger("federation.demo._console")
+
+TOKEN_ENV = "DYKNOW_CONSOLE_TOKEN"
+"""The environment variable the ``dyknow`` commands read a console token from."""
+ALLOW_HOSTS_ENV = "DYKNOW_CONSOLE_ALLOW_HOSTS"
+"""The environment variable of more allowed host names, comma-separated (compose)."""
+
+MIN_TOKEN = 16  # characters: shorter ones could be guessed over the network
+LOOPBACK_NAMES = frozenset({"localhost"})  # IP addresses are allowed as such (below)
+AUDIT_RATE = 2.0  # refusal records per second in the audit and the log, past the burst
+AUDIT_BURST = 20.0
+REPORT_INTERVAL = 5.0  # s: refusals past the budget are summed up this often
+FIELD_MAX = 200  # characters of a header or path kept in a record (they are the client's)
+
+_TOKEN_CHARS = re.compile(r"[A-Za-z0-9._~-]+")  # unreserved URL characters: no escaping
+_HOST_NAME = re.compile(r"[a-z0-9]([a-z0-9-]*[a-z0-9])?(\.[a-z0-9]([a-z0-9-]*[a-z0-9])?)*")
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+def new_token() -> str:
+    """A fresh random token (192 bits, URL-safe)."""
+    return secrets.token_urlsafe(24)
+
+
+def check_token(token: str, source: str = "token") -> str:
+    """``token`` if usable in a URL and long enough, else ValueError naming ``source``."""
+    if not isinstance(token, str) or len(token) < MIN_TOKEN:
+        raise ValueError(f"{source}: a console token has at least {MIN_TOKEN} characters")
+    if not _TOKEN_CHARS.fullmatch(token):
+        raise ValueError(f"{source}: a console token uses only letters, digits and . _ ~ -")
+    return token
+
+
+def configured_token(
+    token_file: Path | None,
+    config_token_file: Path | None = None,
+    environ: Mapping[str, str] = os.environ,
+) -> str | None:
+    """The token the operator chose, or None (then a random one is made).
+
+    First ``--token-file``, then the environment's `TOKEN_ENV` (when not empty), then the
+    config's ``console.token_file``. Never a command-line argument: every local user can
+    read a process's arguments. ValueError names where an unusable token came from.
+    """
+    if token_file is None and environ.get(TOKEN_ENV, "").strip():
+        return check_token(environ[TOKEN_ENV].strip(), TOKEN_ENV)
+    path = token_file if token_file is not None else config_token_file
+    if path is None:
+        return None
+    try:
+        text = Path(path).read_text().strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"console token file {path}: cannot be read: {exc}") from None
+    return check_token(text, f"console token file {path}")
+
+
+def host_name(host: str) -> str | None:
+    """The name in a ``Host`` header (``name``, ``name:port``, ``[v6]:port``), lower case."""
+    h = host.strip().lower()
+    if h.startswith("["):
+        end = h.find("]")
+        name, rest = h[1:end], h[end + 1 :]
+        if end < 0 or (rest and not re.fullmatch(r":[0-9]{1,5}", rest)):
+            return None
+        return name
+    name, colon, port = h.partition(":")
+    if colon and not re.fullmatch(r"[0-9]{1,5}", port):
+        return None
+    return name.removesuffix(".")
+
+
+def _is_ip(name: str) -> bool:
+    try:
+        ipaddress.ip_address(name)
+    except ValueError:
+        return False
+    return True
+
+
+def _allowed_name(entry: str) -> str:
+    """An allow-list entry as a host name, or ValueError (a port or a scheme is not one)."""
+    name = entry.strip().lower().removesuffix(".")
+    if name.startswith("[") and name.endswith("]"):
+        name = name[1:-1]
+    if not (_is_ip(name) or _HOST_NAME.fullmatch(name)):
+        raise ValueError(f"allow_hosts: {entry!r} is not a host name (no scheme, no port)")
+    return name
+
+
+def allowed_names(entries: Iterable[str], environ: Mapping[str, str] | None = None) -> list[str]:
+    """The allow-list entries as host names; ValueError names the first that is not one.
+
+    With ``environ``, the names of its `ALLOW_HOSTS_ENV` (comma-separated) are added.
+    """
+    extra = (environ or {}).get(ALLOW_HOSTS_ENV, "")
+    return [_allowed_name(e) for e in [*entries, *extra.split(",")] if e.strip()]
+
+
+def _clip(value: str | None) -> str | None:
+    return value if value is None or len(value) <= FIELD_MAX else value[: FIELD_MAX - 1] + "…"
+
+
+class ConsoleAccess:
+    """The console's guard: the token, the allowed host names, the refusals counted."""
+
+    def __init__(
+        self,
+        *,
+        token: str | None = None,
+        allow_hosts: Iterable[str] = (),
+        audit: AuditLog | None = None,
+        cookie: str = "dyknow_console",
+    ) -> None:
+        self.token = new_token() if token is None else check_token(token)
+        self.allow_hosts = frozenset(LOOPBACK_NAMES | {_allowed_name(h) for h in allow_hosts})
+        self.audit = audit
+        self.cookie = cookie
+        # The cookie holds a value derived from the token, not the token itself.
+        self._cookie_value = hmac.new(self.token.encode(), b"console-cookie", "sha256").hexdigest()
+        self.refusals: dict[str, int] = {"host": 0, "origin": 0, "no-token": 0, "bad-token": 0}
+        self.audited = 0  # refusals with a record of their own
+        self._budget = TokenBucket(AUDIT_RATE, AUDIT_BURST, time.monotonic())
+        self._unaudited = 0  # refusals since the last summary, past the budget
+
+    def allowed_host(self, host: str) -> bool:
+        """Whether a ``Host`` header names this console."""
+        name = host_name(host)
+        return name is not None and (name in self.allow_hosts or _is_ip(name))
+
+    def _token_is(self, given: str) -> bool:
+        return hmac.compare_digest(given.encode(), self.token.encode())
+
+    def stats(self) -> dict[str, Any]:
+        """What ``GET /api/stats`` answers: the refusals by kind, how many were audited."""
+        return {
+            "refused": dict(self.refusals),
+            "refused_total": sum(self.refusals.values()),
+            "audited": self.audited,
+            "allow_hosts": sorted(self.allow_hosts),
+        }
+
+    @web.middleware
+    async def middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """Refuse a request of a foreign host or origin, or without the token; else serve it."""
+        host = request.headers.get("Host", "")
+        if not self.allowed_host(host):
+            return self._refuse(
+                request,
+                "host",
+                403,
+                f"Host: {_clip(host)!r} is not a name of this console (use 127.0.0.1 or "
+                "localhost, or allow the name: --allow-host / console.allow_hosts)",
+            )
+        origin = request.headers.get("Origin")
+        if origin is not None and origin != f"{request.scheme}://{host}":
+            return self._refuse(
+                request, "origin", 403, f"Origin: {_clip(origin)} is not this console's"
+            )
+        if request.method == "GET" and request.path == "/" and "token" in request.query:
+            if not self._token_is(request.query["token"]):
+                return self._refuse(request, "bad-token", 403, "token: not this console's")
+            response = await handler(request)
+            response.set_cookie(
+                self.cookie, self._cookie_value, httponly=True, samesite="Strict", path="/"
+            )
+            return response
+        auth = request.headers.get("Authorization")
+        if auth is not None:
+            scheme, _, value = auth.strip().partition(" ")
+            if scheme.lower() != "bearer" or not self._token_is(value.strip()):
+                return self._refuse(
+                    request, "bad-token", 403, "Authorization: not this console's token"
+                )
+            return await handler(request)
+        cookie = request.cookies.get(self.cookie)
+        if cookie is None:
+            return self._refuse(
+                request,
+                "no-token",
+                401,
+                "token: missing (open the URL the console printed, with ?token=…, or send "
+                "Authorization: Bearer <token>)",
+            )
+        if not hmac.compare_digest(cookie.encode(), self._cookie_value.encode()):
+            return self._refuse(
+                request,
+                "bad-token",
+                403,
+                "cookie: not this console's (open the URL the console printed, with ?token=…)",
+            )
+        return await handler(request)
+
+    def _refuse(self, request: web.Request, kind: str, status: int, reason: str) -> web.Response:
+        """Count, audit within the budget, and answer ``status`` with the reason."""
+        self.refusals[kind] += 1
+        if self._budget.take(time.monotonic()):
+            self.audited += 1
+            client = request.remote
+            self._record(
+                reason=reason,
+                client=client,
+                method=request.method,
+                path=_clip(request.path),
+                host=_clip(request.headers.get("Host")),
+                origin=_clip(request.headers.get("Origin")),
+                refusal=kind,
+            )
+            log.warning(
+                "console: refused %s %s from %s: %s",
+                request.method,
+                _clip(request.path),
+                client,
+                reason,
+            )
+        else:
+            # a flood of bad requests must not become a flood of audit records
+            self._unaudited += 1
+        headers = {"WWW-Authenticate": 'Bearer realm="dyknow-console"'} if status == 401 else {}
+        return web.Response(
+            text=json.dumps({"error": reason}),
+            status=status,
+            content_type="application/json",
+            headers=headers,
+        )
+
+    def _record(self, **fields: Any) -> None:
+        if self.audit is not None:
+            self.audit.record(verdict="refused", stage="console", **fields)
+
+    def report(self) -> None:
+        """Sum up the refusals past the budget in one record (and one log line), if any."""
+        n, self._unaudited = self._unaudited, 0
+        if not n:
+            return
+        reason = (
+            f"{n} more console request(s) refused without a record each "
+            f"(over {AUDIT_RATE:g} records/s)"
+        )
+        self._record(reason=reason, count=n)
+        log.warning("console: %s; refusals so far %s", reason, self.refusals)
+
+    async def run_reports(self, closing: asyncio.Event) -> None:
+        """`report` every `REPORT_INTERVAL` s until ``closing``, then a last time."""
+        try:
+            while not closing.is_set():
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(closing.wait(), REPORT_INTERVAL)
+                self.report()
+        finally:
+            self.report()

@@ -1,0 +1,352 @@
+"""Who may use the operator console: attacks on a real `dyknow console` process.
+
+The console runs as the compose files' operator does (`dyknow console --config F`), in a
+process of its own; the attacker is a plain HTTP client (`http.client`, every header
+its own: a DNS-rebinding page sends ``Host`` and ``Origin`` of ``evil.example``, a local
+process has no token). Each refusal is asserted with its status, its count in
+``GET /api/stats`` and its record in the platform's audit file (``stage: "console"``).
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+from typer.testing import CliRunner
+
+from agents.keys import gen_keys, trust_keys
+from agents.transports import free_tcp_port
+from federation.cli import app
+from federation.demo._console_access import (
+    ALLOW_HOSTS_ENV,
+    AUDIT_BURST,
+    REPORT_INTERVAL,
+    TOKEN_ENV,
+    allowed_names,
+    configured_token,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+WAIT = 20.0  # s: the bound on any single wait
+ALLOWED = "operator.test"  # the config's console.allow_hosts
+
+
+def write_operator(tmp_path: Path) -> Path:
+    """A federation of its own with one platform, the operator, auditing to a file."""
+    fed = f"console{os.getpid()}x{time.monotonic_ns() % 10**6}"
+    pub = gen_keys("operator", tmp_path / "keys")[2]
+    trust_keys(tmp_path / "trust.json", [pub], federation=fed)
+    (tmp_path / "vocabulary.toml").write_text(
+        f'name = "{fed}"\n[labels]\n"heli-altitude" = "altitude, m"\n'
+    )
+    (tmp_path / "labels.toml").write_text(
+        f'vocabulary = "{fed}"\n[labels]\n"heli-altitude" = "operator/alt"\n'
+    )
+    config = tmp_path / "operator.toml"
+    config.write_text(
+        f'name = "operator"\nfederation = "{fed}"\nkey = "keys/operator.key"\n'
+        'trust = "trust.json"\nvocabulary = "vocabulary.toml"\nmapping = "labels.toml"\n'
+        'audit = "audit.jsonl"\n\n'
+        f'[console]\nallow_hosts = ["{ALLOWED}"]\n\n'
+        f'[transport]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:{free_tcp_port()}"]\n'
+    )
+    return config
+
+
+@dataclass
+class Console:
+    """A running `dyknow console`: its port, token, login URL and audit file."""
+
+    proc: subprocess.Popen[str]
+    port: int
+    token: str
+    login_url: str
+    audit: Path
+
+    def request(
+        self,
+        method: str,
+        path: str,
+        headers: dict[str, str] | None = None,
+        body: Any = None,
+        *,
+        host: str | None = None,
+    ) -> tuple[int, http.client.HTTPMessage, Any]:
+        """One request with exactly these headers (``host``: the Host header; default ours)."""
+        conn = http.client.HTTPConnection("127.0.0.1", self.port, timeout=WAIT)
+        try:
+            conn.putrequest(method, path, skip_host=True, skip_accept_encoding=True)
+            conn.putheader("Host", host if host is not None else f"127.0.0.1:{self.port}")
+            data = b"" if body is None else json.dumps(body).encode()
+            if body is not None:
+                conn.putheader("Content-Type", "application/json")
+            for k, v in (headers or {}).items():
+                conn.putheader(k, v)
+            conn.putheader("Content-Length", str(len(data)))
+            conn.endheaders(data)
+            r = conn.getresponse()
+            raw = r.read()
+            try:
+                answer: Any = json.loads(raw)
+            except ValueError:
+                answer = raw.decode(errors="replace")
+            return r.status, r.headers, answer
+        finally:
+            conn.close()
+
+    def bearer(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"}
+
+    def stats(self) -> dict[str, Any]:
+        status, _, answer = self.request("GET", "/api/stats", self.bearer())
+        assert status == 200, answer
+        return dict(answer)
+
+    def audit_records(self) -> list[dict[str, Any]]:
+        if not self.audit.exists():
+            return []
+        lines = self.audit.read_text().splitlines()
+        return [r for r in map(json.loads, lines) if r.get("stage") == "console"]
+
+    def wait_audit(self, want: int) -> list[dict[str, Any]]:
+        """The console's audit records once at least ``want`` are in the file."""
+        deadline = time.monotonic() + WAIT
+        while len(records := self.audit_records()) < want:
+            if time.monotonic() > deadline:
+                raise AssertionError(f"{len(records)} console audit records, wanted {want}")
+            time.sleep(0.1)  # the audit file is written in batches: poll it
+        return records
+
+
+@pytest.fixture
+def console(tmp_path: Path) -> Iterator[Console]:
+    """`dyknow console --config operator.toml --port 0`, its token made at random."""
+    config = write_operator(tmp_path)
+    env = {k: v for k, v in os.environ.items() if k != TOKEN_ENV}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "federation.cli", "console", "--config", str(config), "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**env, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert proc.stdout is not None
+        ready = proc.stdout.readline()  # bounded by the test's timeout
+        m = re.search(r"ready in federation \S+: (http://127\.0\.0\.1:(\d+)/\?token=(\S+))", ready)
+        assert m, (ready, proc.stderr.read() if proc.stderr else "")
+        yield Console(proc, int(m[2]), m[3], m[1], tmp_path / "audit.jsonl")
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=WAIT)
+        assert proc.returncode == 0 and "Traceback" not in err, err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(WAIT)
+
+
+@pytest.mark.timeout(90)
+def test_a_rebinding_page_a_local_process_and_a_foreign_page_are_refused(
+    console: Console,
+) -> None:
+    c = console
+    evil_host = f"evil.example:{c.port}"
+    evil = {"Origin": f"http://evil.example:{c.port}"}
+    policy = {"platform": "uav-a", "label": "tracked-cars", "sample_period": 60}
+    seen = {"host": 0, "origin": 0, "no-token": 0, "bad-token": 0}
+
+    def refused(kind: str, status: int, answer: Any, want: int) -> None:
+        assert status == want and isinstance(answer, dict), (kind, status, answer)
+        assert "platforms" not in answer and "error" in answer  # nothing of the state
+        seen[kind] += 1
+
+    # DNS rebinding: Host and Origin evil.example, reading the state, changing a policy
+    # (with the token too: a name not ours is refused whoever asks)
+    for path, body in (("/api/state", None), ("/api/policy", policy), ("/", None)):
+        status, _, answer = c.request("POST" if body else "GET", path, evil, body, host=evil_host)
+        refused("host", status, answer, 403)
+        assert "Host" in answer["error"] and "--allow-host" in answer["error"]
+    status, _, answer = c.request("GET", "/api/state", {**evil, **c.bearer()}, host=evil_host)
+    refused("host", status, answer, 403)
+
+    # a local process without the token
+    for method, path, body in (
+        ("GET", "/", None),
+        ("GET", "/api/state", None),
+        ("GET", "/api/events", None),
+        ("GET", "/static/app.js", None),
+        ("POST", "/api/observation", {"x": 1, "y": 2, "text": "fake"}),
+        ("POST", "/api/policy", policy),
+    ):
+        status, headers, answer = c.request(method, path, body=body)
+        refused("no-token", status, answer, 401)
+        assert headers["WWW-Authenticate"].startswith("Bearer")
+
+    # a wrong token: in the URL, as a Bearer, as a cookie
+    wrong = "w" * len(c.token)
+    for path, headers in (
+        (f"/?token={wrong}", {}),
+        ("/api/state", {"Authorization": f"Bearer {wrong}"}),
+        ("/api/state", {"Authorization": f"Basic {c.token}"}),
+        ("/api/state", {"Cookie": f"dyknow_console_{c.port}={wrong}"}),
+    ):
+        status, _, answer = c.request("GET", path, headers)
+        refused("bad-token", status, answer, 403)
+
+    # the token with a foreign Origin (a page of another site that has it somehow)
+    fake = {"x": 1, "y": 2, "text": "fake"}
+    for path, body in (("/api/observation", fake), ("/api/state", None)):
+        status, _, answer = c.request(
+            "POST" if body else "GET", path, {**c.bearer(), "Origin": "http://evil.example"}, body
+        )
+        refused("origin", status, answer, 403)
+        assert "Origin" in answer["error"]
+
+    # the operator: the printed URL gives the page and a cookie, HttpOnly, SameSite=Strict
+    assert c.login_url == f"http://127.0.0.1:{c.port}/?token={c.token}"
+    status, headers, page = c.request("GET", f"/?token={c.token}")
+    assert status == 200 and "operator console" in page
+    cookie = headers["Set-Cookie"]
+    assert cookie.startswith(f"dyknow_console_{c.port}=") and c.token not in cookie
+    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Path=/" in cookie
+    jar = {"Cookie": cookie.split(";", 1)[0]}
+    own = {"Origin": f"http://127.0.0.1:{c.port}"}
+    for host in (f"127.0.0.1:{c.port}", f"localhost:{c.port}", f"[::1]:{c.port}", ALLOWED):
+        status, _, state = c.request("GET", "/api/state", jar, host=host)
+        assert status == 200 and state["operator"] == "operator", (host, state)
+    status, _, js = c.request("GET", "/static/app.js", jar)
+    assert status == 200 and "EventSource" in js
+    status, _, answer = c.request(
+        "POST", "/api/observation", {**jar, **own}, {"x": 1.0, "y": 2.0, "text": "mine"}
+    )
+    assert status == 200, answer
+    status, _, state = c.request("GET", "/api/state", c.bearer())
+    assert status == 200 and [o["text"] for o in state["observations"]] == ["mine"]
+
+    # every refusal counted, and in the platform's audit with why
+    stats = c.stats()
+    assert stats["refused"] == seen and stats["refused_total"] == sum(seen.values()) == 16
+    records = c.wait_audit(16)
+    assert len(records) == 16 and stats["audited"] == 16
+    assert [r["refusal"] for r in records] == (
+        ["host"] * 4 + ["no-token"] * 6 + ["bad-token"] * 4 + ["origin"] * 2
+    )
+    for r in records:
+        assert r["verdict"] == "refused" and r["platform"] == "operator"
+        assert r["client"] == "127.0.0.1" and r["reason"] and r["ts"] > 0
+        assert c.token not in json.dumps(r) and wrong not in json.dumps(r)  # no secret
+    assert records[0]["host"] == evil_host and records[0]["origin"] == evil["Origin"]
+    assert records[0]["path"] == "/api/state" and records[1]["method"] == "POST"
+
+
+@pytest.mark.timeout(90)
+def test_a_flood_of_bad_requests_is_counted_not_audited_one_by_one(console: Console) -> None:
+    c = console
+    flood = 300
+    start = time.monotonic()
+    conn = http.client.HTTPConnection("127.0.0.1", c.port, timeout=WAIT)
+    try:
+        for i in range(flood):  # one connection, kept alive: as fast as the console answers
+            conn.request("GET", "/api/state", headers={"Authorization": f"Bearer guess{i:012d}"})
+            r = conn.getresponse()
+            r.read()
+            assert r.status == 403
+    finally:
+        conn.close()
+    elapsed = time.monotonic() - start
+    stats = c.stats()
+    assert stats["refused"]["bad-token"] == flood
+    # a record each within the budget (a burst, then a few a second), the rest summed up
+    budget = AUDIT_BURST + 2.0 * (elapsed + 1)
+    assert AUDIT_BURST <= stats["audited"] <= budget, (stats, elapsed)
+    deadline = time.monotonic() + REPORT_INTERVAL + WAIT
+    while True:
+        records = c.audit_records()
+        summed = sum(r.get("count", 0) for r in records if "count" in r)
+        single = sum(1 for r in records if "count" not in r)
+        if single + summed == flood:
+            break
+        assert time.monotonic() < deadline, (single, summed, records[-1:])
+        time.sleep(0.2)  # the summary comes within REPORT_INTERVAL s: poll the file
+    assert single == stats["audited"] and len(records) <= budget + 2
+    summary = next(r for r in records if "count" in r)
+    assert summary["verdict"] == "refused" and "without a record each" in summary["reason"]
+
+
+# -- choosing the token ----------------------------------------------------------------------
+
+runner = CliRunner()
+
+
+def test_a_token_chosen_by_the_operator_is_checked(tmp_path: Path) -> None:
+    config = write_operator(tmp_path)
+    r = runner.invoke(app, ["console", "--config", str(config)], env={TOKEN_ENV: "short"})
+    assert r.exit_code == 2 and f"{TOKEN_ENV}: a console token has at least 16" in r.output
+    bad = tmp_path / "bad.token"
+    bad.write_text("has spaces in it, and is long\n")
+    r = runner.invoke(app, ["console", "--config", str(config), "--token-file", str(bad)])
+    assert r.exit_code == 2 and f"{bad}: a console token uses only" in r.output
+    r = runner.invoke(
+        app, ["console", "--config", str(config), "--token-file", str(tmp_path / "none")]
+    )
+    assert r.exit_code == 2 and "cannot be read" in r.output
+    r = runner.invoke(app, ["console", "--config", str(config), "--allow-host", "http://x:80"])
+    assert r.exit_code == 2 and "'http://x:80' is not a host name" in r.output
+
+
+def test_where_the_token_and_the_allowed_names_come_from(tmp_path: Path) -> None:
+    assert configured_token(None, None, {}) is None  # a random one, then
+    assert configured_token(None, None, {TOKEN_ENV: ""}) is None  # compose's default
+    chosen = tmp_path / "console.token"
+    chosen.write_text("from-a-file-0123456789\n")
+    env = {TOKEN_ENV: "from-the-env-0123456789"}
+    assert configured_token(chosen, None, env) == "from-a-file-0123456789"  # --token-file
+    assert configured_token(None, chosen, env) == "from-the-env-0123456789"  # env, config
+    assert configured_token(None, chosen, {}) == "from-a-file-0123456789"
+    names = allowed_names(["Operator.Example.org.", "[::1]"], {ALLOW_HOSTS_ENV: "a.test, b"})
+    assert names == ["operator.example.org", "::1", "a.test", "b"]
+
+
+@pytest.mark.timeout(60)
+def test_the_token_from_the_environment_is_the_one_printed_and_accepted(tmp_path: Path) -> None:
+    # as compose passes it: DYKNOW_CONSOLE_TOKEN, bound to every address
+    config = write_operator(tmp_path)
+    token = "compose-token-0123456789"
+    args = ["console", "--config", str(config), "--host", "0.0.0.0", "--port", "0"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "federation.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, TOKEN_ENV: token, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert proc.stdout is not None
+        ready = proc.stdout.readline()
+        m = re.search(r"(http://127\.0\.0\.1:(\d+)/)\?token=(\S+)", ready)
+        assert m and m[3] == token, ready
+        c = Console(proc, int(m[2]), token, m[0], tmp_path / "audit.jsonl")
+        status, _, state = c.request("GET", "/api/state", c.bearer())
+        assert status == 200 and state["operator"] == "operator"
+        status, _, answer = c.request("GET", "/api/state", host=f"evil.example:{c.port}")
+        assert status == 403 and "Host" in answer["error"]
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=WAIT)
+        assert proc.returncode == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(WAIT)
