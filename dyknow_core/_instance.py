@@ -456,13 +456,15 @@ class DyKnowInstance:
 
     # -- queries ------------------------------------------------------------------------------
     def _as_of(self, label: str, now: int, as_of: int | None) -> int:
-        """Default query time: now, and what the location itself stamped later than now."""
+        """The query time: ``as_of``, else now — extended to the newest available time
+        this location stamped itself on ``label`` (a 1 ns uniqueness bump, a computational
+        unit's output), which it knows even before the clock gets there."""
         if as_of is not None:
             return as_of
         return max(now, self.stream(label).made_ta)
 
     def latest(self, label: str, *, as_of: int | None = None) -> Answer:
-        """The newest value of ``label``, as believed at ``as_of`` (default: now)."""
+        """The newest value of ``label``, as believed at ``as_of`` (default: now; `_as_of`)."""
         now = self.clock.now()
         return self._location_of(label).latest(
             label, query_time=now, as_of=self._as_of(label, now, as_of)
@@ -476,7 +478,7 @@ class DyKnowInstance:
         approximation: Approximation = Approximation.MOST_RECENT,
         as_of: int | None = None,
     ) -> Answer:
-        """The value of ``label`` at valid time ``t`` (fluent generator), as believed now."""
+        """The value of ``label`` at valid time ``t`` (fluent generator), believed at ``as_of``."""
         now = self.clock.now()
         return self._location_of(label).at(
             label,
@@ -489,7 +491,7 @@ class DyKnowInstance:
     def between(
         self, label: str, t1: int, t2: int, *, as_of: int | None = None, all_estimates: bool = False
     ) -> Answer:
-        """All samples of ``label`` with valid time in [t1, t2], as believed at ``as_of`` (now)."""
+        """All samples of ``label`` with valid time in [t1, t2], as believed at ``as_of``."""
         now = self.clock.now()
         return self._location_of(label).between(
             label,
