@@ -388,6 +388,23 @@ async def test_processes_added_while_running(dk: DyKnowInstance) -> None:
     assert (await out.get(timeout=WAIT)).value == -6
 
 
+async def test_label_listeners_hear_streams_come_and_go(dk: DyKnowInstance) -> None:
+    heard: list[tuple[str, bool]] = []
+    stop = dk.on_label_change(lambda label, published: heard.append((label, published)))
+
+    def broken(label: str, published: bool) -> None:
+        raise RuntimeError("listener bug")
+
+    dk.on_label_change(broken)
+    dk.add_source("x").push(1)  # a failing listener is reported, never in the way
+    dk.remove_process("source:x")
+    assert heard == [("x", True), ("x", False)]
+    assert [f.process for f in dk.failures] == ["label listener[x]", "label listener[x]"]
+    stop()
+    dk.add_source("y")
+    assert heard == [("x", True), ("x", False)]
+
+
 async def test_removing_a_source_ends_its_subscribers(dk: DyKnowInstance) -> None:
     src = dk.add_source("x")
     sub = dk.subscribe("x")
