@@ -14,9 +14,10 @@ from ._time import seconds_to_ns
 class Cache:
     """The last N samples and/or last T seconds (by available time) of one stream.
 
-    Samples are kept in arrival order, which is available-time order, so eviction is a
-    ``popleft``. Superseded estimates (same valid time, later available time) are kept:
-    that is what answers "what did we believe at tq about tv".
+    T is counted back from the newest arrival, not from the clock: a stream that went quiet
+    keeps its last T seconds. Samples are kept in arrival order, which is available-time
+    order, so eviction is a ``popleft``. Superseded estimates (same valid time, later
+    available time) are kept: that is what answers "what did we believe at tq about tv".
     """
 
     __slots__ = ("_buf", "_max_age", "evicted")

@@ -18,6 +18,10 @@ from ._time import seconds_to_ns
 
 MISSING: Any = object()
 _NEG_INF = -(2**63)
+# The most grid points one publish or tick decides: a gap of a million periods must not
+# make one call build a million samples. It is a property of the grid, never of a
+# subscription's buffer, so every subscriber with the same policy gets the same samples.
+MAX_GRID_BURST = 1 << 16
 
 
 class FilterStats:
@@ -38,7 +42,7 @@ class FilterStats:
     def __init__(self) -> None:
         self.window = self.late = self.order = self.bounds = 0
         self.change = self.type = self.approximated = self.emitted = 0
-        # grid points never produced: a gap longer than a buffer-full of periods
+        # grid points never produced: a gap longer than MAX_GRID_BURST periods
         self.skipped = 0
 
     @property
@@ -72,8 +76,18 @@ class Mapper:
         self.next_ta = next_ta
 
 
-def _compile(policy: Policy, *, stages: tuple[str, ...], mapper: Mapper | None = None) -> Any:
-    """Write and compile ``run(self, batch, out)`` applying the named stages of ``policy``."""
+def _compile(
+    policy: Policy,
+    *,
+    stages: tuple[str, ...],
+    mapper: Mapper | None = None,
+    order_attr: str = "last_tv",
+) -> Any:
+    """Write and compile ``run(self, batch, out)`` applying the named stages of ``policy``.
+
+    ``order_attr`` is the attribute holding the valid time the order test compares with:
+    the last emitted sample's, or (before a sample-period grid) the last admitted input's.
+    """
     body: list[str] = []
     consts: dict[str, Any] = {"MISSING": MISSING}
     if "window" in stages and policy.start is not None:
@@ -81,7 +95,9 @@ def _compile(policy: Policy, *, stages: tuple[str, ...], mapper: Mapper | None =
         body.append("if tv < START:\n    n_window += 1\n    continue")
     if "window" in stages and policy.end is not None:
         consts["END"] = policy.end
-        body.append("if tv > END:\n    n_window += 1\n    self.ended = True\n    continue")
+        # the subscription ends at the first sample past `end`: what follows in the same
+        # batch is never looked at, exactly as if each sample had been pushed alone
+        body.append("if tv > END:\n    n_window += 1\n    self.ended = True\n    break")
     if "late" in stages and policy.max_delay is not None:
         consts["MAXD"] = seconds_to_ns(policy.max_delay)
         body.append("if ta - tv > MAXD:\n    n_late += 1\n    continue")
@@ -147,6 +163,8 @@ def _compile(policy: Policy, *, stages: tuple[str, ...], mapper: Mapper | None =
         )
     elif emits:
         body.append("append(s)\nlast_tv = tv\nlast_v = v")
+    elif "order" in stages and policy.order is not Order.ANY:
+        body.append("append(s)\nlast_tv = tv")
     else:
         body.append("append(s)")
     loop = "\n".join(body)
@@ -154,7 +172,7 @@ def _compile(policy: Policy, *, stages: tuple[str, ...], mapper: Mapper | None =
     src = (
         "def run(self, batch, out):\n"
         "    append = out.append\n"
-        "    last_tv = self.last_tv\n"
+        f"    last_tv = self.{order_attr}\n"
         "    last_v = self.last_value\n"
         "    n_window = n_late = n_order = n_bounds = n_change = n_type = 0\n"
         f"{prologue}"
@@ -168,7 +186,7 @@ def _compile(policy: Policy, *, stages: tuple[str, ...], mapper: Mapper | None =
         "    if n_bounds: st.bounds += n_bounds\n"
         "    if n_change: st.change += n_change\n"
         "    if n_type: st.type += n_type\n"
-        "    self.last_tv = last_tv\n"
+        f"    self.{order_attr} = last_tv\n"
         "    self.last_value = last_v\n"
     )
     namespace: dict[str, Any] = dict(consts)
@@ -206,7 +224,6 @@ class _Sampler:
     __slots__ = (
         "approx",
         "before",
-        "cap",
         "end",
         "g",
         "late_approx",
@@ -222,7 +239,6 @@ class _Sampler:
         self.approx = policy.approximation
         self.maxd = None if policy.max_delay is None else seconds_to_ns(policy.max_delay)
         self.late_approx = policy.late is LateAction.APPROXIMATE
-        self.cap = policy.buffer_size
         self.end = policy.end
         self.start = policy.start
         self.g: int | None = None  # the next grid point not yet decided
@@ -271,12 +287,12 @@ class _Sampler:
         return self.end is not None and g > self.end
 
     def _skip(self, g: int, upto: int) -> int:
-        """Jump over grid points below ``upto`` beyond the last ``cap``: a gap must not
-        make one publish produce millions of samples (nobody could buffer them anyway)."""
+        """Jump over grid points below ``upto`` beyond the last ``MAX_GRID_BURST``: a gap
+        must not make one publish produce millions of samples."""
         count = -((g - upto) // self.period)  # grid points g, g+p, … below upto
-        if count > self.cap:
-            self.stats.skipped += count - self.cap
-            g += (count - self.cap) * self.period
+        if count > MAX_GRID_BURST:
+            self.stats.skipped += count - MAX_GRID_BURST
+            g += (count - MAX_GRID_BURST) * self.period
         return g
 
     def tick(self, now: int, out: list[RawSample]) -> None:
@@ -286,7 +302,8 @@ class _Sampler:
         if maxd is None or g is None:
             return
         p = self.period
-        g = self._skip(g, now - maxd)
+        if self.approx is not Approximation.NONE:
+            g = self._skip(g, now - maxd)  # `none` jumps over its empty periods below
         while g + maxd < now and not self._done(g):
             if self.approx is Approximation.NONE and (
                 self.before is None or self.before[1] <= g - p
@@ -317,12 +334,21 @@ class _Sampler:
                 if b is None or tv > b[1] or (tv == b[1] and s[2] > b[2]):
                     self.before = s
                 continue
-            g = self._skip(g, tv)
-            while g < tv and not self._done(g):
-                ok, v = self._value(g, s)
-                if ok:
-                    out.append((v, g, s[2]))
-                g += p
+            if self.approx is Approximation.NONE:
+                # only the grid point whose period holds `before` has a value; the others
+                # before tv have none: jump over them (no gap is too long for this)
+                b = self.before
+                if b is not None and b[1] > g - p and g < tv and not self._done(g):
+                    out.append((b[0], g, s[2]))
+                    g += p
+                g = max(g, self._first_grid(tv))
+            else:
+                g = self._skip(g, tv)
+                while g < tv and not self._done(g):
+                    ok, v = self._value(g, s)
+                    if ok:
+                        out.append((v, g, s[2]))
+                    g += p
             if tv == g and not self._done(g):
                 out.append(s)
                 g += p
@@ -337,6 +363,7 @@ class PolicyFilter:
         "_post",
         "_pre",
         "ended",
+        "in_tv",
         "last_tv",
         "last_value",
         "mapper",
@@ -358,6 +385,15 @@ class PolicyFilter:
         # a replaced policy continues the emitted stream: order and change stay honoured
         self.last_tv: int = previous.last_tv if previous is not None else _NEG_INF
         self.last_value: Any = previous.last_value if previous is not None else MISSING
+        # with a sample period, order applies to the inputs before the grid: the valid time
+        # of the last input admitted to it (the grid's own output always increases)
+        self.in_tv: int = (
+            _NEG_INF
+            if previous is None
+            else previous.in_tv
+            if previous.sampler is not None
+            else previous.last_tv
+        )
         self.ended = False
         if policy.sample_period is None:
             self.sampler: _Sampler | None = None
@@ -388,13 +424,19 @@ class PolicyFilter:
                 if _within_bounds(policy, before[0]):
                     self.sampler.before = before
             # the window applies to grid times (in the sampler), not to the inputs: the
-            # sample just before `start` or just after `end` decides the edge grid points
-            self._pre = _compile(policy, stages=("late", "bounds"))
-            self._post = _compile(policy, stages=("order", "change", "emit"), mapper=mapper)
+            # sample just before `start` or just after `end` decides the edge grid points.
+            # Order is the contract's: applied to the inputs, before the grid.
+            self._pre = _compile(policy, stages=("late", "order", "bounds"), order_attr="in_tv")
+            self._post = _compile(policy, stages=("change", "emit"), mapper=mapper)
 
     def process(self, batch: list[RawSample]) -> list[RawSample]:
-        """Apply the policy to a batch of newly available samples; return what to emit."""
+        """Apply the policy to a batch of newly available samples; return what to emit.
+
+        Once the policy has ended (past ``end``) nothing more is emitted, whatever comes.
+        """
         out: list[RawSample] = []
+        if self.ended:
+            return out
         if self._pre is None:
             # the identity policy: nothing to test, only remember where the stream is
             if not batch:
@@ -421,7 +463,7 @@ class PolicyFilter:
     def tick(self, now: int) -> list[RawSample]:
         """Emit grid points whose max delay passed by ``now`` (periodic policies only)."""
         out: list[RawSample] = []
-        if self.sampler is not None:
+        if self.sampler is not None and not self.ended:
             grid: list[RawSample] = []
             self.sampler.tick(now, grid)
             g = self.sampler.g

@@ -58,6 +58,7 @@ class DyKnowInstance:
         self.failures: deque[ProcessFailure] = deque(maxlen=max_failures)
         self.failure_count = 0
         self._failure_listeners: list[Callable[[ProcessFailure], None]] = []
+        self._label_listeners: list[Callable[[str, bool], None]] = []
         self._periodic: set[Subscription] = set()
         self._tick_wake = asyncio.Event()
         self._tg: asyncio.TaskGroup | None = None
@@ -145,6 +146,7 @@ class DyKnowInstance:
         gen.on_subscriber_error = self._subscriber_failed
         self._labels[label] = loc
         self.objects.label_created(label)  # set subscriptions waiting for this member's stream
+        self._label_changed(label, True)
         return gen
 
     def stream(self, label: str) -> StreamGenerator:
@@ -173,6 +175,25 @@ class DyKnowInstance:
         """Close the stream under ``label`` and forget it."""
         self._location_of(label).remove(label)
         del self._labels[label]
+        self._label_changed(label, False)
+
+    def on_label_change(self, listener: Callable[[str, bool], None]) -> Callable[[], None]:
+        """Be told ``(label, True)`` when a stream is published, ``(label, False)`` when it
+        is removed; returns a function that stops telling."""
+        # copy-on-write: a listener may stop listening while being told
+        self._label_listeners = [*self._label_listeners, listener]
+
+        def stop() -> None:
+            self._label_listeners = [x for x in self._label_listeners if x is not listener]
+
+        return stop
+
+    def _label_changed(self, label: str, published: bool) -> None:
+        for listener in self._label_listeners:
+            try:
+                listener(label, published)
+            except Exception as exc:  # the stream exists either way: never fail its creator
+                self._report_error(f"label listener[{label}]", exc)
 
     # -- subscriptions -------------------------------------------------------------
     def subscribe(
@@ -456,13 +477,15 @@ class DyKnowInstance:
 
     # -- queries ------------------------------------------------------------------------------
     def _as_of(self, label: str, now: int, as_of: int | None) -> int:
-        """Default query time: now, and what the location itself stamped later than now."""
+        """The query time: ``as_of``, else now — extended to the newest available time
+        this location stamped itself on ``label`` (a 1 ns uniqueness bump, a computational
+        unit's output), which it knows even before the clock gets there."""
         if as_of is not None:
             return as_of
         return max(now, self.stream(label).made_ta)
 
     def latest(self, label: str, *, as_of: int | None = None) -> Answer:
-        """The newest value of ``label``, as believed at ``as_of`` (default: now)."""
+        """The newest value of ``label``, as believed at ``as_of`` (default: now; `_as_of`)."""
         now = self.clock.now()
         return self._location_of(label).latest(
             label, query_time=now, as_of=self._as_of(label, now, as_of)
@@ -476,7 +499,7 @@ class DyKnowInstance:
         approximation: Approximation = Approximation.MOST_RECENT,
         as_of: int | None = None,
     ) -> Answer:
-        """The value of ``label`` at valid time ``t`` (fluent generator), as believed now."""
+        """The value of ``label`` at valid time ``t`` (fluent generator), believed at ``as_of``."""
         now = self.clock.now()
         return self._location_of(label).at(
             label,
@@ -489,7 +512,7 @@ class DyKnowInstance:
     def between(
         self, label: str, t1: int, t2: int, *, as_of: int | None = None, all_estimates: bool = False
     ) -> Answer:
-        """All samples of ``label`` with valid time in [t1, t2], as believed at ``as_of`` (now)."""
+        """All samples of ``label`` with valid time in [t1, t2], as believed at ``as_of``."""
         now = self.clock.now()
         return self._location_of(label).between(
             label,

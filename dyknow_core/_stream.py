@@ -86,6 +86,10 @@ class Subscription:
     def _deliver(self, batch: list[RawSample]) -> None:
         out = self.filter.process(batch)
         if out:
+            if out is batch and self.callback is not None:
+                # a policy that lets everything through hands back the publisher's list: a
+                # callback gets its own, so what it does to it reaches no other subscriber
+                out = batch.copy()
             self._emit(out)
         if self.filter.ended:
             self.close()

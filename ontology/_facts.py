@@ -249,10 +249,12 @@ class FactFeed:
     """Keeps a `FactBase` current from an instance's streams and domains by rules.
 
     An async context manager: entering subscribes and asserts the current facts,
-    leaving unsubscribes (the facts stay). Stream values arrive by subscription
-    callbacks and apply at once; domain changes are applied by a task the feed owns
-    (``await feed.sync()`` waits until those pending are applied). A value that cannot
-    be a fact is skipped and counted in ``errors``; it never reaches the publisher.
+    leaving unsubscribes (the facts stay). A stream published later is followed from
+    the moment it is published, and a removed one's facts are retracted. Stream values
+    arrive by subscription callbacks and apply at once; domain changes are applied by a
+    task the feed owns (``await feed.sync()`` waits until those pending are applied). A
+    value that cannot be a fact is skipped and counted in ``errors``; it never reaches
+    the publisher.
     """
 
     def __init__(self, instance: DyKnowInstance, facts: FactBase, rules: Iterable[Rule]) -> None:
@@ -279,6 +281,7 @@ class FactFeed:
         self._sets: list[SetSubscription] = []
         self._domains: list[tuple[DomainSubscription, asyncio.Task[None]]] = []
         self._tg: asyncio.TaskGroup | None = None
+        self._stop_listening: Callable[[], None] | None = None
         self._state = "unopened"
 
     # -- lifecycle -------------------------------------------------------------------------
@@ -296,6 +299,7 @@ class FactFeed:
                 elif rule.domain is not None:
                     self._start_set(rule)
             self.refresh()
+            self._stop_listening = self.instance.on_label_change(self._label_changed)
         except BaseException:
             self.close()  # ends the tasks started so far, so the group exits at once
             await tg.__aexit__(None, None, None)
@@ -312,6 +316,9 @@ class FactFeed:
     def close(self) -> None:
         """Unsubscribe from everything; the domain tasks end. The facts stay."""
         self._state = "closed"
+        if self._stop_listening is not None:
+            self._stop_listening()
+            self._stop_listening = None
         for sub in self._streams.values():
             sub.close()
         self._streams.clear()
@@ -371,29 +378,45 @@ class FactFeed:
         )
 
     def refresh(self) -> int:
-        """Follow streams published since the start; forget removed ones. How many are new."""
+        """Follow every published stream a rule matches and forget removed ones; how many
+        are new. The feed does this itself as streams come and go: this is a check."""
         if self._state != "opened":
             raise OntologyError(f"the fact feed is {self._state}")
         for (rule, label), sub in list(self._streams.items()):
             if sub.closed and not self.instance.has_label(label):
-                del self._streams[(rule, label)]
-                identifier = self._patterns[rule].match(label)
-                assert identifier is not None
-                self._retract(rule, identifier[OBJECT])
+                self._forget(rule, label)
+        return sum(self._follow_label(label) for label in self.instance.labels())
+
+    def _label_changed(self, label: str, published: bool) -> None:
+        if self._state != "opened":
+            return
+        if published:
+            self._follow_label(label)
+            return
+        for rule, followed in list(self._streams):
+            if followed == label:
+                self._forget(rule, label)
+
+    def _follow_label(self, label: str) -> int:
+        """Subscribe the domain-less stream rules ``label`` matches; how many were new."""
         added = 0
-        rules = [r for r in self.rules if isinstance(r, StreamRule) and r.domain is None]
-        if not rules:
-            return 0
-        for label in self.instance.labels():
-            for rule in rules:
-                values = self._patterns[rule].match(label)
-                if values is None or (rule, label) in self._streams:
-                    continue
-                self._streams[(rule, label)] = self.instance.subscribe(
-                    label, _REPLAY, callback=self._deliverer(rule, values[OBJECT])
-                )
-                added += 1
+        for rule, pattern in self._patterns.items():
+            if rule.domain is not None or (rule, label) in self._streams:
+                continue
+            values = pattern.match(label)
+            if values is None:
+                continue
+            self._streams[(rule, label)] = self.instance.subscribe(
+                label, _REPLAY, callback=self._deliverer(rule, values[OBJECT])
+            )
+            added += 1
         return added
+
+    def _forget(self, rule: StreamRule, label: str) -> None:
+        self._streams.pop((rule, label)).close()
+        identifier = self._patterns[rule].match(label)
+        assert identifier is not None
+        self._retract(rule, identifier[OBJECT])
 
     def _deliverer(
         self, rule: StreamRule, identifier: str

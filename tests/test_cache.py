@@ -212,6 +212,40 @@ def test_queries_without_as_of_are_as_believed_now(dk: DyKnowInstance, clock: Ma
     assert dk.latest("x").latest.value == "not yet"  # type: ignore[union-attr]
 
 
+def test_the_default_query_time_includes_what_this_location_stamped_past_the_clock(
+    dk: DyKnowInstance, clock: ManualClock
+) -> None:
+    """Two pushes at one clock reading: the second is stamped 1 ns past now. Without
+    ``as_of`` it is known (this location stamped it); ``as_of=now`` is strictly the clock."""
+    src = dk.add_source("x")
+    now = clock.now()
+    src.push("first", now - S)
+    src.push("second", now)
+    assert [s.available_time for s in dk.between("x", 0, now).samples] == [now, now + 1]
+    ans = dk.latest("x")
+    assert ans.latest == Sample("second", now, now + 1) and ans.query_time == now
+    assert dk.latest("x", as_of=now).latest == Sample("first", now - S, now)
+    # a sample pushed with a future available time of its own is not known before then
+    src.push("future", now + S, available_time=now + 5 * S)
+    assert dk.latest("x").latest.value == "second"  # type: ignore[union-attr]
+
+
+def test_max_age_is_counted_back_from_the_newest_arrival_not_from_the_query(
+    dk: DyKnowInstance, clock: ManualClock
+) -> None:
+    """A cache is the stream's history: a stream that went quiet keeps its last T seconds,
+    however long ago they came; queries judge staleness by the answer's times."""
+    src = dk.add_source("x", cache=CacheSpec(max_samples=None, max_age=1.0))
+    now = clock.now()
+    src.push_batch([(i, now - (3 - i) * 400 * MS, now - (3 - i) * 400 * MS) for i in range(4)])
+    assert [s.value for s in dk.between("x", 0, now).samples] == [1, 2, 3]  # the last second
+    clock.set(now + 3600 * S)
+    assert [s.value for s in dk.between("x", 0, now).samples] == [1, 2, 3]
+    assert dk.latest("x").latest == Sample(3, now, now)
+    src.push(9, now + 3600 * S)  # a new arrival moves the window
+    assert [s.value for s in dk.between("x", 0, now + 3600 * S).samples] == [9]
+
+
 @pytest.fixture
 def ramp(dk: DyKnowInstance) -> DyKnowInstance:
     """A stream with 0.0 at 1 s, 10.0 at 2 s, 20.0 at 4 s."""

@@ -257,6 +257,60 @@ def test_forbidden_after_an_event_holds_the_recognition_until_the_window_closes(
     assert r.advance(100 * S) == []
 
 
+def test_a_held_recognition_is_released_when_the_clock_reaches_the_window_end() -> None:
+    """Held until the recognizer's clock (the newest input valid time, or advance/flush)
+    reaches t(start) + hi; an event exactly at that time is outside the open window."""
+    spec = dict(PASSED)
+    spec["forbidden"] = [{"event": "alarm", "start": "enter", "lo": 0, "hi": 10}]
+    r = ChronicleRecognizer(spec)
+    r.feed(*cross("car1", False, True, 0))
+    assert r.feed(*cross("car1", True, False, 2)) == []
+    assert r.feed(*cross("car7", True, False, 2)) == []  # the clock did not move
+    assert r.advance(10 * S - 1) == []
+    recognized = Recognition("passed", {"car": "car1"}, {"enter": 0, "leave": 2 * S})
+    assert r.feed("alarm", 10 * S) == [recognized]  # at 10 s: released, not killed
+    assert r.stats().killed == 0
+    # the same through advance (what ChronicleProcess.flush calls)
+    r = ChronicleRecognizer(spec)
+    r.feed(*cross("car1", False, True, 0))
+    r.feed(*cross("car1", True, False, 2))
+    assert r.advance(10 * S) == [recognized]
+
+
+def test_forbidden_parameters_are_bound_by_the_start_event_or_free() -> None:
+    spec = dict(PASSED)
+    spec["forbidden"] = [
+        # car is bound by "enter": only an alarm about that car kills
+        {"event": "alarm", "args": ["car"], "start": "enter", "lo": 0, "hi": 10},
+        # zone appears in no event: free, a siren about any zone kills
+        {"event": "siren", "args": ["zone"], "start": "enter", "lo": 0, "hi": 10},
+    ]
+    recognized = Recognition("passed", {"car": "car1"}, {"enter": 0, "leave": 2 * S})
+
+    def run(*forbidden: tuple[str, int, dict[str, str]]) -> list[Recognition]:
+        r = ChronicleRecognizer(spec)
+        r.feed(*cross("car1", False, True, 0))
+        r.feed(*cross("car1", True, False, 2))
+        for kind, t, args in forbidden:
+            assert r.feed(kind, t, args) == []
+        return r.advance(20 * S)
+
+    # another car's alarm, or one that does not say which car, kills nothing
+    assert run(("alarm", 3 * S, {"car": "car2"}), ("alarm", 4 * S, {})) == [recognized]
+    assert run(("alarm", 3 * S, {"car": "car1"})) == []
+    assert run(("siren", 3 * S, {"zone": "z9"})) == []
+    assert run(("siren", 3 * S, {})) == []
+    # a parameter bound only by another event than the start one is refused
+    bad = dict(PASSED)
+    bad["events"] = [
+        {"name": "enter", "event": "incross", "from": False, "to": True},
+        {"name": "leave", "event": "incross", "args": ["car"], "from": True, "to": False},
+    ]
+    bad["forbidden"] = [{"event": "alarm", "args": ["car"], "start": "enter", "end": "leave"}]
+    with pytest.raises(ChronicleError, match="must be bound by the start event 'enter'"):
+        compile_chronicle(bad)
+
+
 def test_chronicle_over_a_chronicle() -> None:
     passed = compile_chronicle(PASSED)
     twice = {

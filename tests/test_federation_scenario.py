@@ -77,7 +77,7 @@ from federation import (
     PlatformConfig,
     PlatformConfigError,
 )
-from ontology import UnknownSemanticLabel
+from ontology import StreamRule, UnknownSemanticLabel
 
 START = 30.0  # spawned interpreters import zenoh, pydantic and DyKnow: seconds when loaded
 WAIT = 10.0  # the bound on any other single wait
@@ -751,6 +751,48 @@ async def test_in_one_process_imports_and_exports_to_a_gone_platform_stop(demo_k
             async with asyncio.timeout(WAIT):
                 await next_event(events, MembershipEvent("gone", "uav-b"))
         assert a.exporter.exports() == [] and export_id not in a.federation_agent.exports
+
+
+async def test_rules_see_the_streams_added_after_the_platform_is_entered(demo_keys: Path) -> None:
+    """docs/federation.md's pattern: enter with join=False, add the application's streams,
+    join. Label search by formula finds them, and a stream added later still."""
+    hub = MemoryHub()
+    rules = [StreamRule("cars/{object}/color", "Color")]
+    async with contextlib.AsyncExitStack() as stack, asyncio.timeout(WAIT):
+        a = await stack.enter_async_context(
+            FederationPlatform(
+                PlatformConfig.from_dict(_config(demo_keys, "uav-a")),
+                transport=await stack.enter_async_context(hub.transport()),
+                join=False,
+                rules=rules,
+            )
+        )
+        b = await stack.enter_async_context(
+            FederationPlatform(
+                PlatformConfig.from_dict(_config(demo_keys, "uav-b")),
+                transport=await stack.enter_async_context(hub.transport()),
+            )
+        )
+        a.instance.add_source("cars/car5/state").push(car_state(0, 1, "uav-a"))
+        a.instance.add_source("cars/car5/color").push("blue")
+        async with b.membership() as events:
+            await a.join()
+            while "uav-a" not in b.members:
+                await events.get()
+
+        async def search(formula: str) -> Any:
+            return await b.federation_agent.request_from(
+                "uav-a", {"action": "search-labels", "formula": formula}, timeout=WAIT
+            )
+
+        assert await search("(all ?x (Color ?x blue))") == {"labels": ["car5-state"]}
+        a.instance.add_source("cars/car7/state").push(car_state(0, 1, "uav-a"))
+        car7 = a.instance.add_source("cars/car7/color")
+        assert await search("(all ?x (Color ?x red))") == {"labels": []}
+        car7.push("red")
+        assert await search("(all ?x (Color ?x red))") == {"labels": ["car7-state"]}
+        a.instance.remove_process("source:cars/car7/color")  # its facts go with it
+        assert await search("(all ?x (Color ?x red))") == {"labels": []}
 
 
 async def test_an_export_that_ended_by_itself_frees_its_slot(demo_keys: Path) -> None:

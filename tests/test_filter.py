@@ -8,10 +8,12 @@ from itertools import pairwise
 from typing import Any
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from dyknow_core import NS_PER_S, Policy, PolicyFilter, Sample, seconds_to_ns
+from dyknow_core import NS_PER_S, CacheSpec, Policy, PolicyFilter, Sample, seconds_to_ns
+from dyknow_core._filter import MAX_GRID_BURST
+from dyknow_core._stream import StreamGenerator
 
 S = NS_PER_S
 MS = NS_PER_S // 1000
@@ -349,6 +351,79 @@ def test_periodic_window_keeps_the_grid_point_at_its_start() -> None:
     assert list(zip(valid_s(out), values(out), strict=True)) == [(1.0, 0), (2.0, 1)]
 
 
+def test_order_applies_to_the_inputs_before_the_grid() -> None:
+    """A second sample at the same valid time is out of strict order: it never reaches the
+    grid, so it cannot become the most recent value of the grid points after it."""
+    p = Policy(
+        sample_period=0.1,
+        approximation="most_recent",
+        max_delay=0.3,
+        order="strict",
+        change="absolute(2.5)",
+    )
+    f = PolicyFilter(p)
+    out = [tuple(s) for s in f.process([Sample(9.0, 0, 291666), Sample(16.0, 0, 78870027)])]
+    out += [tuple(s) for s in f.tick(seconds_to_ns(3.18))]
+    assert out == [(9.0, 0, 291666)]
+    assert f.stats.order == 1
+    # monotone keeps the equal valid time: 16.0 is the most recent value from 0.1 s on
+    f = PolicyFilter(p.replace(order="monotone"))
+    out = [tuple(s) for s in f.process([Sample(9.0, 0, 291666), Sample(16.0, 0, 78870027)])]
+    out += [tuple(s) for s in f.tick(seconds_to_ns(3.18))]
+    assert out == [(9.0, 0, 291666), (16.0, seconds_to_ns(0.1), seconds_to_ns(0.4))]
+
+
+def test_order_before_the_grid_compares_with_the_last_admitted_input() -> None:
+    """An input the bounds refuse, or a late one, does not move the order forward."""
+    p = Policy(sample_period=1.0, approximation="most_recent", order="strict", upper=10)
+    out, f = run(p, [smp(1, 0.0), smp(50, 2.5), smp(2, 1.5), smp(3, 1.2), smp(4, 3.0)])
+    # 50 is out of bounds (2.5 s is not admitted), so 2 at 1.5 s is in order; 3 at 1.2 s is not
+    assert list(zip(valid_s(out), values(out), strict=True)) == [
+        (0.0, 1),
+        (1.0, 1),
+        (2.0, 2),
+        (3.0, 4),
+    ]
+    assert f.stats.order == 1 and f.stats.bounds == 1
+
+
+def test_end_within_one_batch_ends_the_stream_as_single_pushes_do() -> None:
+    p = Policy(end=10)
+    samples = [(1.0, 5, 1), (2.0, 11, 2), (3.0, 9, 3)]
+    out, f = run(p, samples)
+    assert out == [(1.0, 5, 1)]
+    assert f.ended and f.stats.window == 1
+    out, f = run(p, *[[s] for s in samples])
+    assert out == [(1.0, 5, 1)]
+    assert f.stats.window == 1
+
+
+def test_a_past_start_replays_history_and_ends_at_the_first_sample_past_end() -> None:
+    gen = StreamGenerator("x", CacheSpec())
+    gen.publish_batch([(1.0, 5, 1), (2.0, 11, 2), (3.0, 9, 3)])
+    got: list[tuple[Any, int, int]] = []
+    sub = gen.subscribe(Policy(start=0, end=10), callback=got.extend)
+    assert got == [(1.0, 5, 1)]
+    assert sub.closed and gen.subscriptions == []
+
+
+def test_a_long_gap_is_decided_in_one_bounded_burst_the_same_for_every_buffer() -> None:
+    """A gap of more grid points than MAX_GRID_BURST yields the last MAX_GRID_BURST of them;
+    the earlier ones are counted as skipped. The buffer plays no part in it."""
+    period = 0.001
+    gap = MAX_GRID_BURST + 10
+    p = Policy(sample_period=period, approximation="most_recent")
+    out, f = run(p, [smp("a", 0.0)], [smp("b", (gap + 1) * period)])
+    assert len(out) == 1 + MAX_GRID_BURST + 1
+    assert f.stats.skipped == gap - MAX_GRID_BURST
+    assert out[1][1] == seconds_to_ns((gap - MAX_GRID_BURST + 1) * period)
+    assert out[-1][:2] == ("b", seconds_to_ns((gap + 1) * period))
+    # `none` has a value at one grid point of a gap at most: nothing to skip, however long
+    out, f = run(Policy(sample_period=period), [smp("a", 0.0005)], [smp("b", 10_000.0)])
+    assert [(v, t / S) for v, t, _ in out] == [("a", 0.001), ("b", 10_000.0)]
+    assert f.stats.skipped == 0
+
+
 # -- replacing the policy of a live filter -----------------------------------------------------
 
 
@@ -384,12 +459,12 @@ PERIODS = [0.1, 0.25, 0.5, 1.0]
 
 
 @st.composite
-def arrivals(draw: st.DrawFn, max_size: int = 40) -> list[Sample]:
+def arrivals(draw: st.DrawFn, max_size: int = 40, span: int = 60) -> list[Sample]:
     """Samples in arrival order: small int values, valid times on a 0.1 s step, any delay
     (predictions included), unique increasing available times as a location guarantees."""
     raw = draw(
         st.lists(
-            st.tuples(st.integers(-5, 5), st.integers(0, 60), st.integers(-3, 15)),
+            st.tuples(st.integers(-5, 5), st.integers(0, span), st.integers(-3, 15)),
             max_size=max_size,
         )
     )
@@ -481,7 +556,7 @@ def reference(policy: Policy, samples: list[Sample]) -> list[tuple[Any, int, int
         if policy.start is not None and tv < policy.start:
             continue
         if policy.end is not None and tv > policy.end:
-            continue
+            break  # the first sample past `end` ends the stream
         if maxd is not None and ta - tv > maxd:
             continue
         if last_tv is not None and policy.order.value == "monotone" and tv < last_tv:
@@ -753,3 +828,146 @@ def test_replacing_the_policy_keeps_order_and_change_guarantees(data: st.DataObj
         if second.order.value == "strict":
             assert b[1] > a[1]
         assert is_change(second, a[0], b[0]), (a, b)
+
+
+def admitted(policy: Policy, samples: list[Sample]) -> list[Sample]:
+    """The inputs a periodic policy lets onto its grid, written plainly: on time, in order
+    with the last admitted input, within the bounds."""
+    out: list[Sample] = []
+    last: int | None = None
+    maxd = None if policy.max_delay is None else seconds_to_ns(policy.max_delay)
+    for s in samples:
+        v, tv, ta = s
+        if maxd is not None and ta - tv > maxd:
+            continue
+        if last is not None and policy.order.value == "monotone" and tv < last:
+            continue
+        if last is not None and policy.order.value == "strict" and tv <= last:
+            continue
+        if policy.lower is not None and v < policy.lower:
+            continue
+        if policy.upper is not None and v > policy.upper:
+            continue
+        out.append(s)
+        last = tv
+    return out
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    policy=policies(periodic=True),
+    order=st.sampled_from(["monotone", "strict"]),
+    # few valid times: many samples share one, and many arrive out of order
+    samples=arrivals(span=12),
+)
+@example(
+    policy=Policy(sample_period=0.1, approximation="most_recent"),
+    order="strict",
+    samples=[Sample(0, STEP, STEP), Sample(1, STEP, STEP + 2), Sample(0, 3 * STEP, 3 * STEP + 1)],
+)
+def test_order_is_applied_before_the_sample_period_grid(
+    policy: Policy, order: str, samples: list[Sample]
+) -> None:
+    policy = policy.replace(order=order)
+    out, _ = run(policy, samples)
+    unordered, _ = run(policy.replace(order="any"), admitted(policy, samples))
+    assert out == unordered
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.data())
+def test_any_batch_split_gives_the_same_output_as_single_pushes(data: st.DataObject) -> None:
+    policy = data.draw(policies())
+    samples = data.draw(arrivals())
+    batches = data.draw(splits(samples))
+    ticks = data.draw(st.lists(st.integers(-1, 20), max_size=len(batches)))
+    # a tick after a batch happens, for single pushes, after that batch's last sample
+    singles: list[list[Sample]] = []
+    single_ticks: list[int] = []
+    for i, b in enumerate(batches):
+        singles += [[s] for s in b]
+        single_ticks += [-1] * (len(b) - 1) + [ticks[i] if i < len(ticks) else -1]
+    f, g = PolicyFilter(policy), PolicyFilter(policy)
+    assert drive(f, batches, ticks) == drive(g, singles, single_ticks)
+    assert f.ended == g.ended
+
+
+def publish(gen: StreamGenerator, batches: list[list[Sample]], ticks: list[int]) -> None:
+    """Publish the batches; after each, tick every subscription as the instance's ticker would."""
+    for i, b in enumerate(batches):
+        gen.publish_batch([tuple(s) for s in b])
+        if i < len(ticks) and ticks[i] >= 0:
+            for sub in gen.subscriptions:
+                sub.tick(b[-1][2] + ticks[i] * STEP)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    data=st.data(),
+    size=st.integers(1, 12),
+    overflow=st.sampled_from(["drop_oldest", "drop_newest"]),
+)
+def test_the_buffer_only_decides_what_is_lost_when_it_is_full(
+    data: st.DataObject, size: int, overflow: str
+) -> None:
+    """Whatever its size, a buffer holds a part of exactly what the policy emits (the first
+    ones with drop_newest, the last ones with drop_oldest) and counts every other one; a
+    buffer large enough holds all of it."""
+    policy = data.draw(policies())
+    samples = data.draw(arrivals())
+    batches = data.draw(splits(samples))
+    ticks = data.draw(st.lists(st.integers(-1, 20), max_size=len(batches)))
+    gen = StreamGenerator("x", CacheSpec())
+    emitted: list[tuple[Any, int, int]] = []
+    gen.subscribe(policy, callback=emitted.extend)
+    small = gen.subscribe(policy.replace(buffer_size=size, overflow=overflow))
+    large = gen.subscribe(policy.replace(buffer_size=len(samples) * 70 + 1, overflow=overflow))
+    publish(gen, batches, ticks)
+    assert list(large.buffer) == emitted and large.overflowed == 0
+    kept = emitted[:size] if overflow == "drop_newest" else emitted[-size:]
+    assert list(small.buffer) == kept
+    assert small.overflowed == len(emitted) - len(kept)
+    assert small.delivered == len(kept)
+    assert small.filter.stats.as_dict() == large.filter.stats.as_dict()
+
+
+@settings(max_examples=100, deadline=None)
+@given(data=st.data())
+def test_subscribers_are_independent_of_what_a_callback_does_to_its_batch(
+    data: st.DataObject,
+) -> None:
+    policy = data.draw(policies())
+    samples = data.draw(arrivals())
+    batches = data.draw(splits(samples))
+    gen = StreamGenerator("x", CacheSpec())
+    vandal_saw: list[tuple[Any, int, int]] = []
+
+    def vandal(batch: list[tuple[Any, int, int]]) -> None:
+        vandal_saw.extend(batch)
+        batch.clear()
+
+    first: list[tuple[Any, int, int]] = []
+    second: list[tuple[Any, int, int]] = []
+    gen.subscribe(policy, callback=first.extend)
+    gen.subscribe(policy, callback=vandal)
+    gen.subscribe(policy, callback=second.extend)
+    buffered = gen.subscribe(policy.replace(buffer_size=10_000))
+    published = [[tuple(s) for s in b] for b in batches]
+    for b in published:
+        gen.publish_batch(b)
+    expected, _ = run(policy, *batches)
+    assert first == second == vandal_saw == list(buffered.buffer) == expected
+    # the publisher's own lists are untouched, and so is the cache
+    assert [s for b in published for s in b] == [tuple(s) for s in samples]
+    assert gen.cache.samples() == [tuple(s) for s in samples]
+
+
+def test_a_callback_clearing_its_batch_leaves_the_next_subscriber_its_samples() -> None:
+    gen = StreamGenerator("x", CacheSpec())
+    got: list[tuple[Any, int, int]] = []
+    gen.subscribe(Policy(), callback=lambda batch: batch.clear())
+    gen.subscribe(Policy(), callback=got.extend)
+    mine = [(1, 1, 1), (2, 2, 2)]
+    gen.publish_batch(mine)
+    assert got == [(1, 1, 1), (2, 2, 2)]
+    assert mine == [(1, 1, 1), (2, 2, 2)]

@@ -388,6 +388,23 @@ async def test_processes_added_while_running(dk: DyKnowInstance) -> None:
     assert (await out.get(timeout=WAIT)).value == -6
 
 
+async def test_label_listeners_hear_streams_come_and_go(dk: DyKnowInstance) -> None:
+    heard: list[tuple[str, bool]] = []
+    stop = dk.on_label_change(lambda label, published: heard.append((label, published)))
+
+    def broken(label: str, published: bool) -> None:
+        raise RuntimeError("listener bug")
+
+    dk.on_label_change(broken)
+    dk.add_source("x").push(1)  # a failing listener is reported, never in the way
+    dk.remove_process("source:x")
+    assert heard == [("x", True), ("x", False)]
+    assert [f.process for f in dk.failures] == ["label listener[x]", "label listener[x]"]
+    stop()
+    dk.add_source("y")
+    assert heard == [("x", True), ("x", False)]
+
+
 async def test_removing_a_source_ends_its_subscribers(dk: DyKnowInstance) -> None:
     src = dk.add_source("x")
     sub = dk.subscribe("x")
@@ -538,6 +555,42 @@ async def test_overflow_of_one_subscriber_does_not_touch_another(dk: DyKnowInsta
     src.push_batch([(i, BASE + i, BASE + i) for i in range(5)])
     assert [s.value for s in await take(large, 5)] == [0, 1, 2, 3, 4]
     assert large.overflowed == 0 and small.overflowed == 4
+
+
+async def test_a_small_buffer_never_changes_which_samples_the_policy_emits(
+    dk: DyKnowInstance,
+) -> None:
+    """The buffer decides only what is lost when it is full; the policy's output is the same
+    for every subscriber with that policy, whatever its buffer."""
+    src = dk.add_source("x")
+    policy = Policy(sample_period=0.5, approximation="none", change="any_change", lower=2, upper=15)
+    got: list[tuple[Any, int, int]] = []
+    dk.subscribe("x", policy, callback=got.extend)
+    small = dk.subscribe("x", policy.replace(buffer_size=2, overflow="drop_newest"))
+    for v, tv, ta in [(5.0, 0, 339145), (4.5, 44436733, 166113133), (4.5, 1879286806, 2073381743)]:
+        src.push(v, valid_time=tv, available_time=ta)
+    assert got == [(5.0, 0, 339145), (4.5, 500_000_000, 2073381743)]
+    assert [tuple(s) for s in await take(small, 2)] == got
+    assert small.overflowed == 0 and small.stats()["dropped_skipped"] == 0
+    # a third emitted sample does not fit in two places: lost, and counted
+    tiny = dk.subscribe("x", Policy(buffer_size=2, overflow="drop_newest"))
+    src.push_batch([(float(i), BASE + i * S, BASE + i * S) for i in range(5)])
+    assert tiny.overflowed == 3 and [s.value for s in await take(tiny, 2)] == [0.0, 1.0]
+
+
+async def test_end_is_one_behaviour_for_a_batch_and_for_single_pushes(dk: DyKnowInstance) -> None:
+    samples = [(1.0, 5, 1), (2.0, 11, 2), (3.0, 9, 3)]
+    batched, single = dk.add_source("batched"), dk.add_source("single")
+    subs = [dk.subscribe(label, Policy(end=10)) for label in ("batched", "single")]
+    batched.push_batch(samples)
+    for v, tv, ta in samples:
+        single.push(v, valid_time=tv, available_time=ta)
+    for sub in subs:
+        assert [tuple(s) for s in await drain(sub)] == [(1.0, 5, 1)]
+        assert sub.stats()["dropped_window"] == 1
+    # a late subscriber replaying the cache from a past start: the same
+    late = dk.subscribe("batched", Policy(start=0, end=10))
+    assert [tuple(s) for s in await drain(late)] == [(1.0, 5, 1)]
 
 
 # -- metrics -----------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -175,13 +176,24 @@ def test_bad_arguments_are_named_and_exit_2(tmp_path: Path, args: list[str], mes
 
 
 def test_without_root_it_says_so_and_exits_2(tmp_path: Path) -> None:
-    command = [sys.executable, str(SCRIPT), "up", "--dir", str(tmp_path / "run")]
-    if os.geteuid() == 0:
-        setpriv = shutil.which("setpriv")
-        if setpriv is None:
-            _unavailable("setpriv (util-linux) is needed to drop root for this test")
-        command = [str(setpriv), "--reuid=65534", "--regid=65534", "--clear-groups", *command]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=30, check=False)
+    # The unprivileged user must be able to read the script wherever this checkout lives
+    # (a clone in a 0700 directory is not readable by it): it runs a copy from a directory
+    # of its own that everyone may read.
+    with tempfile.TemporaryDirectory(prefix="netns-test-") as readable:
+        os.chmod(readable, 0o755)
+        script = Path(readable) / "netns.py"
+        shutil.copyfile(SCRIPT, script)
+        script.chmod(0o644)
+        command = [sys.executable, str(script), "up", "--dir", str(tmp_path / "run")]
+        if os.geteuid() == 0:
+            setpriv = shutil.which("setpriv")
+            if setpriv is None:
+                _unavailable("setpriv (util-linux) is needed to drop root for this test")
+            command = [str(setpriv), "--reuid=65534", "--regid=65534", "--clear-groups", *command]
+        result = subprocess.run(
+            command, capture_output=True, text=True, timeout=30, check=False, cwd=readable
+        )
     assert result.returncode == 2, result
     assert "need root" in result.stderr or "`ip` command" in result.stderr
+    assert "Traceback" not in result.stderr
     assert not (tmp_path / "run").exists()  # nothing was made

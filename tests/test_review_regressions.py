@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Policy
+from dyknow_core._filter import MAX_GRID_BURST
 
 S = NS_PER_S
 
@@ -34,10 +35,11 @@ def test_a_gap_in_the_data_never_floods_a_fine_grid() -> None:
         callback=out.extend,
     )
     src.push(1.0, 0, 0)
-    src.push(2.0, 10_000_000, 10_000_000)  # 10 ms later: 10 000 grid points in between
-    # at most a buffer's worth of grid points (plus the exact hit), the rest counted
-    assert len(out) <= 102
-    assert sub.filter.stats.skipped >= 10_000 - 102
+    src.push(2.0, S, S)  # 1 s later: 999 999 grid points in between
+    # at most MAX_GRID_BURST of them (whatever the buffer), plus the two exact hits;
+    # the rest counted
+    assert len(out) == 1 + MAX_GRID_BURST + 1
+    assert sub.filter.stats.skipped == 999_999 - MAX_GRID_BURST
     assert out[-1][0] == 2.0
 
 

@@ -337,6 +337,43 @@ async def test_missing_component_per_policy_when_max_delay_passes() -> None:
     ]
 
 
+async def test_missing_last_skips_the_state_while_a_component_was_never_known() -> None:
+    """``last`` takes the newest value at or before the grid point that was available by
+    the state's available time; a component never known by then (or known only by a later
+    valid time) leaves nothing to take: that state is skipped, as with ``skip``, and
+    counted in ``stats.skipped``."""
+    clock = ManualClock()
+    async with DyKnowInstance(clock=clock) as inst:
+        a, b = two_sources(inst)
+        proc = add_state(
+            inst, "s", {"a": "a", "b": "b"}, StatePolicy(period=1, max_delay=0.25, missing="last")
+        )
+        out = inst.subscribe("s")
+        a.push(1, 0, 0)
+        a.push(2, S, S)
+        clock.set(S + S // 2)  # 0 s and 1 s decided by time; b was never known: skipped
+        proc.tick(clock.now())  # what the instance's timer does (at once, deterministically)
+        assert states(inst) == []
+        assert proc.stats.skipped == 2 and proc.stats.filled == 0
+        # b known from 2.5 s on (valid time): still nothing at or before 2 s for the state at 2
+        a.push(3, 2 * S, 2 * S)
+        b.push("late start", 2 * S + S // 2, 2 * S + S // 2)
+        clock.set(2 * S + S // 2)
+        proc.tick(clock.now())
+        assert states(inst) == []
+        assert proc.stats.skipped == 3
+        # at 3 s b has a value of its own (its latest sample before the grid point)
+        a.push(4, 3 * S, 3 * S)
+        clock.set(3 * S + S // 2)
+        proc.tick(clock.now())
+        assert tuple(await out.get(timeout=1)) == (
+            {"a": 4, "b": "late start"},
+            3 * S,
+            3 * S + S // 4,
+        )
+        assert proc.stats.skipped == 3
+
+
 async def test_state_decided_by_later_data_is_still_available_within_max_delay() -> None:
     clock = ManualClock()
     async with DyKnowInstance(clock=clock) as inst:
