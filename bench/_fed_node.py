@@ -39,7 +39,7 @@ import msgpack
 import zenoh
 from nacl.signing import SigningKey
 
-from agents._security import Handshake, KeyPair, SessionTable, TrustStore
+from agents._security import Handshake, KeyPair, SecurityPolicy, SessionTable, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport
 from dyknow_core import DyKnowInstance, Policy, RawSample
 from federation._proxies import ExportProxy, ImportProxy, TableSessions, pack_batch
@@ -170,8 +170,10 @@ class _Node:
         self.transport = transport
         self.keys = KeyPair(name, SigningKey(spec["seed"]))
         self.trust = TrustStore(FED, spec["trust"])
-        self.handshake = Handshake(self.keys, self.trust)
-        self.table = SessionTable(name, self.trust)
+        # encrypted by default, as platforms are; the bench's plain variant turns it off
+        policy = SecurityPolicy(encrypt=spec.get("encrypt", True))
+        self.handshake = Handshake(self.keys, self.trust, policy=policy)
+        self.table = SessionTable(name, self.trust, policy=policy)
         self.instance = DyKnowInstance(name)
         self.stack = contextlib.AsyncExitStack()
         self.zenoh_entities: list[Any] = []
