@@ -399,3 +399,121 @@ async def _attack_in_plain(tmp: Path, fed: str, seed: int, owner: KeyPair) -> li
                 break
             records += [json.loads(x) for x in owner.open_sealed(item.payload).splitlines()]
     return records
+
+
+# -- the peer mesh over mutual TLS --------------------------------------------------------------
+
+PROBE = """
+import json, sys, time, zenoh
+settings = json.loads(sys.argv[1])
+cfg = zenoh.Config()
+cfg.insert_json5("mode", json.dumps("peer"))
+cfg.insert_json5("listen/endpoints", json.dumps([]))
+cfg.insert_json5("connect/endpoints", json.dumps([settings["connect"]]))
+cfg.insert_json5("scouting/multicast/enabled", "false")
+for path, value in settings.get("tls", {}).items():
+    cfg.insert_json5("transport/link/tls/" + path, json.dumps(value))
+got = []
+with zenoh.open(cfg) as session:
+    session.declare_subscriber(settings["key"], lambda s: got.append(str(s.key_expr)))
+    peers = []
+    deadline = time.monotonic() + settings["seconds"]
+    while time.monotonic() < deadline:
+        peers = [str(z) for z in session.info.peers_zid()]
+        time.sleep(0.2)
+    print(json.dumps({"peers": peers, "samples": len(got)}), flush=True)
+"""
+
+
+def _make_certs(directory: Path, *platforms: str) -> Path:
+    """deploy/make_certs.py, as a user runs it: the federation's CA and platform certificates."""
+    args = [sys.executable, str(DEPLOY / "make_certs.py"), "--dir", str(directory)]
+    args += [f"--platform={p}" for p in platforms]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
+    return directory
+
+
+def _tls_table(pki: Path, name: str) -> str:
+    return (
+        f'\n[transport.tls]\nroot_ca_certificate = "{pki / "ca.crt"}"\n'
+        f'certificate = "{pki / f"{name}.crt"}"\nprivate_key = "{pki / f"{name}.key"}"\n'
+        "verify_name_on_connect = false\n"
+    )
+
+
+def _probe(connect: str, key: str, seconds: float, tls: dict[str, Any] | None = None) -> Any:
+    settings = {"connect": connect, "key": key, "seconds": seconds, "tls": tls or {}}
+    done = subprocess.run(
+        [sys.executable, "-c", PROBE, json.dumps(settings)],
+        capture_output=True,
+        text=True,
+        timeout=seconds + START,
+        cwd=ROOT,
+        env=_env(),
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.timeout(180)
+def test_peers_over_mutual_tls_federate_and_a_client_without_the_federations_certificate_sees_nothing(  # noqa: E501
+    tmp_path: Path,
+) -> None:
+    """Two platforms on tls/ endpoints (certificates from the federation's CA) federate;
+    plain TCP, TLS without a certificate, and a certificate of another CA reach nobody."""
+    pki = _make_certs(tmp_path / "tls", "uav-a", "operator")
+    rogue = _make_certs(tmp_path / "rogue", "uav-a")
+    fed = f"tls-{uuid.uuid4().hex[:8]}"
+    seed, op_port = _free_port(), _free_port()
+    configs = _write(
+        tmp_path,
+        fed,
+        ("uav-a", "operator"),
+        {
+            "uav-a": f'mode = "peer"\nlisten = ["tls/127.0.0.1:{seed}"]' + _tls_table(pki, "uav-a"),
+            "operator": (
+                f'mode = "peer"\nlisten = ["tls/127.0.0.1:{op_port}"]\n'
+                f'connect = ["tls/127.0.0.1:{seed}"]' + _tls_table(pki, "operator")
+            ),
+        },
+    )
+    with _processes() as procs:
+        provider = _spawn("-c", NODE, str(configs["uav-a"]), "provider", str(BASE), SECRET_LABEL)
+        procs.append(provider)
+        _line(provider, "ready")
+        consumer = _spawn("-c", NODE, str(configs["operator"]), "consumer", str(BASE), "-")
+        procs.append(consumer)
+        _line(consumer, "streaming")  # the stream flows between the two, over mutual TLS
+        # the owner's watch goes over the same TLS links, with the platform's certificate
+        cmd = ("-m", "federation.cli", "watch", "--config", str(configs["operator"]), "--json")
+        watch = _spawn(*cmd, "--timeout", str(START))
+        procs.append(watch)
+        _line(watch, '{"kind": "watching"')
+        _line(watch, '{"kind": "stream"')
+        _stop(watch)
+
+        key = f"dyknow/{fed}/**"
+        # plain TCP to a TLS listener: no session at all
+        plain = _probe(f"tcp/127.0.0.1:{seed}", key, 3.0)
+        assert plain == {"peers": [], "samples": 0}, plain
+        # TLS, trusting the right CA, but without a client certificate: mTLS refuses it
+        anonymous = {"root_ca_certificate": str(pki / "ca.crt"), "verify_name_on_connect": False}
+        assert _probe(f"tls/127.0.0.1:{seed}", key, 3.0, anonymous)["peers"] == []
+        # a certificate from another CA
+        other = {
+            **anonymous,
+            "connect_certificate": str(rogue / "uav-a.crt"),
+            "connect_private_key": str(rogue / "uav-a.key"),
+            "enable_mtls": True,
+        }
+        assert _probe(f"tls/127.0.0.1:{seed}", key, 3.0, other)["peers"] == []
+        # the control: the federation's CA and a certificate of it get in (and see traffic)
+        member = {
+            **anonymous,
+            "connect_certificate": str(pki / "operator.crt"),
+            "connect_private_key": str(pki / "operator.key"),
+            "enable_mtls": True,
+        }
+        inside = _probe(f"tls/127.0.0.1:{seed}", key, 3.0, member)
+        assert inside["peers"] and inside["samples"] > 0, inside
