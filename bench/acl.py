@@ -565,15 +565,17 @@ def print_mqtt(m: dict[str, Any]) -> None:
     )
 
 
-ENC_ROUNDS = 3
+ENC_ROUNDS = 4
 N_RTT_ENC = 1000
 
 
 async def encryption_phase(keydir: Path) -> dict[str, list[dict[str, float]]]:
     """Round trips with encrypted and with MAC-only sessions, both sides new each time."""
     res: dict[str, list[dict[str, float]]] = {"encrypted": [], "plain": []}
+    kinds = [("encrypted", True), ("plain", False)]
     for r in range(ENC_ROUNDS):
-        for kind, encrypt in (("encrypted", True), ("plain", False)):
+        # each kind goes first every other round: neither gets the fresher machine
+        for kind, encrypt in kinds if r % 2 == 0 else kinds[::-1]:
             progress(f"encryption round {r + 1}/{ENC_ROUNDS}: {kind} sessions, {N_RTT_ENC} trips")
             port = free_tcp_port()
             child_config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
