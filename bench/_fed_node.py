@@ -187,6 +187,17 @@ class _Node:
                 entity.undeclare()
         await self.stack.aclose()
 
+    async def op_encrypt(self, on: bool) -> str:
+        """Make new sessions encrypted (``on``) or MAC-only; accept both forms from now on.
+
+        The exporter also agrees a new session with each receiver, which its export then
+        seals on (the newest session it made); the sid of the last one.
+        """
+        policy = SecurityPolicy(encrypt=on, require_encryption=False)
+        self.handshake.policy = policy
+        self.table.policy = policy
+        return ""
+
     async def op_gc(self) -> dict[str, Any]:
         """Seconds spent in the garbage collector so far, runs per generation, objects tracked."""
         return {
@@ -277,6 +288,17 @@ class Exporter(_Node):
             sids[peer] = session.sid
             self.proxy.start_exporting(LOCAL, SEM, peer, Policy())
         return sids
+
+    async def op_encrypt(self, on: bool) -> str:
+        """As `_Node.op_encrypt`, then a new session with each receiver under that policy."""
+        await super().op_encrypt(on)
+        sid = ""
+        for peer in sorted({receiver for receiver, _ in self.proxy._exports}):
+            await self._agree(peer)
+            session = self.table.session_for(peer)
+            assert session is not None and session._encrypt == on
+            sid = session.sid
+        return sid
 
     async def op_acked(self) -> list[str]:
         """The receivers whose acknowledgements reached this exporter so far."""

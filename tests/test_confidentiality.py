@@ -34,7 +34,14 @@ import msgpack
 import pytest
 
 from agents import ACLMessage, Performative, wire_key
-from agents._security import Handshake, KeyPair, SecurityPolicy, SessionTable, TrustStore
+from agents._security import (
+    Handshake,
+    KeyPair,
+    SecurityPolicy,
+    SessionTable,
+    TrustStore,
+    watch_request,
+)
 from agents.keys import gen_keys, trust_keys
 from agents.transports import ZenohConfig, ZenohTransport
 
@@ -301,7 +308,10 @@ def test_an_outsider_in_the_peer_mesh_reads_nothing_the_owner_watches_everything
 def test_a_plain_envelope_to_a_platform_requiring_encryption_is_refused_counted_audited(
     tmp_path: Path,
 ) -> None:
-    """A member whose sessions do not encrypt: its ACL messages and batches are dropped."""
+    """A member whose sessions do not encrypt: its ACL messages and batches are dropped.
+
+    And an outsider's watch request (signed with a key that is not uav-a's) is refused.
+    """
     fed = f"plain-{uuid.uuid4().hex[:8]}"
     seed = _free_port()
     configs = _write(
@@ -327,6 +337,9 @@ def test_a_plain_envelope_to_a_platform_requiring_encryption_is_refused_counted_
     # none of the plain requests was opened and admitted; the encrypted one was
     opened = [r for r in records if r["from"] == "uav-m" and r["performative"] == "request"]
     assert [r["conversation_id"] for r in opened] == ["c-encrypted"], opened
+    # the watch request signed with another key than uav-a's: refused and audited
+    (watch,) = [r for r in records if r.get("stage") == "watch"]
+    assert watch["verdict"] == "dropped" and str(watch["reason"]).startswith("forged:")
 
 
 @asynccontextmanager
@@ -380,12 +393,21 @@ async def _attack_in_plain(tmp: Path, fed: str, seed: int, owner: KeyPair) -> li
                 f"dyknow/{fed}/v1/stream/uav-a/uav-m/heli-altitude",
                 plain.seal_bytes("uav-a", batch),
             )
+        # an outsider asks to watch uav-a, signing with a key of its own: no answer
+        watched = await t.subscribe(wire_key(fed, "watch", "uav-a"))
+        impostor = KeyPair.generate("uav-a")
+        replies = await t.query(
+            wire_key(fed, "watch", "uav-a"), watch_request(impostor, fed), timeout=2.0
+        )
+        assert not [r for r in replies if r.ok], replies
         encrypted = await session(encrypt=True)
         await t.publish(wire_key(fed, "acl", "uav-a"), encrypted.seal("uav-a", ask("c-encrypted")))
 
         async with _failing_with(records), asyncio.timeout(30):
-            while not any(r["conversation_id"] == "c-encrypted" for r in records) or (
-                sum(str(r["reason"]).startswith("unencrypted:") for r in records) < 5
+            while (
+                not any(r["conversation_id"] == "c-encrypted" for r in records)
+                or sum(str(r["reason"]).startswith("unencrypted:") for r in records) < 5
+                or not any(r.get("stage") == "watch" for r in records)
             ):
                 item = await audit.get()
                 # the published audit is sealed to uav-a's owner: the test holds its key
@@ -398,6 +420,7 @@ async def _attack_in_plain(tmp: Path, fed: str, seed: int, owner: KeyPair) -> li
             except TimeoutError:
                 break
             records += [json.loads(x) for x in owner.open_sealed(item.payload).splitlines()]
+        assert len(watched.inbox) == 0  # nothing shown to a watcher that did not check out
     return records
 
 
