@@ -540,3 +540,33 @@ def test_peers_over_mutual_tls_federate_and_a_client_without_the_federations_cer
         }
         inside = _probe(f"tls/127.0.0.1:{seed}", key, 3.0, member)
         assert inside["peers"] and inside["samples"] > 0, inside
+
+
+def test_watch_prints_one_readable_line_per_event() -> None:
+    """``dyknow watch`` without --json: a line per message, batch, report and record."""
+    from federation._cli_net import decode_watched
+    from federation.cli import _watch_line
+
+    acl = ACLMessage(
+        performative=Performative.REQUEST,
+        sender="federation@operator",
+        receivers=["federation@uav-a"],
+        content={"action": "get-latest", "labels": ["heli-altitude"]},
+        ontology="dyknow-federation",
+    ).to_json()
+    batch = msgpack.packb({"v": 1, "s": "heli-altitude", "b": [[BASE, 1, 2], [BASE + 1, 3, 4]]})
+    report = msgpack.packb({"v": 1, "lost": {"heli-altitude": 0}})
+    lines = [
+        _watch_line(decode_watched("acl", "operator", 1.0, acl)),
+        _watch_line(decode_watched("bin", "uav-b", 1.0, batch)),
+        _watch_line(decode_watched("bin", "operator", 1.0, report)),
+        _watch_line(
+            {"kind": "audit", "record": {"verdict": "dropped", "from": "x", "reason": "r"}}
+        ),
+    ]
+    assert "request federation@operator -> federation@uav-a [dyknow-federation]" in lines[0]
+    assert "get-latest" in lines[0]
+    assert f"stream from uav-b heli-altitude: 2 sample(s) {BASE!r}, {BASE + 1!r}" in lines[1]
+    assert "report from operator" in lines[2] and "lost" in lines[2]
+    assert "audit  dropped from x" in lines[3] and lines[3].endswith(": r")
+    assert decode_watched("bin", "uav-b", 1.0, b"\xc1")["kind"] == "binary"  # not msgpack
