@@ -295,7 +295,7 @@ class InterfaceAgent:
         self.watchable = watchable
         self.watch_lease = watch_lease
         # what the owner watches: (kind, peer, time, body) while a lease runs; bounded, as
-        # nothing drains it faster than the flush interval (what overflows is counted)
+        # nothing drains it faster than the flush interval (an overflow loses the oldest)
         self.mirroring = False
         self._mirror: deque[tuple[str, str, float, bytes]] = deque(maxlen=16_384)
         self._mirror_until = -math.inf
