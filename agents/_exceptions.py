@@ -14,6 +14,7 @@ The tree::
     │   ├── KeyFileError        (a key file or the trust file is missing, malformed or too open)
     │   └── AuthenticationError (a handshake or envelope was refused; .code .reason .platform)
     │       ├── Malformed       (not a handshake message / sealed envelope we can read)
+    │       │   └── Unencrypted (a plain envelope where encryption is required)
     │       ├── Misdirected     (wrong federation, or addressed to another platform)
     │       ├── UnknownPlatform (the sender is not in the trust file)
     │       ├── UnknownSession  (no such session, or no handshake of ours pending)
@@ -105,6 +106,12 @@ class Malformed(AuthenticationError):
     """Not a handshake message or sealed envelope of a version this side speaks."""
 
     code = "malformed"
+
+
+class Unencrypted(Malformed):
+    """A plain (MAC-only) envelope sent to a platform that requires encryption."""
+
+    code = "unencrypted"
 
 
 class Misdirected(AuthenticationError):

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import msgpack
 import orjson
 
 from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, platform_of
@@ -41,7 +42,9 @@ from ._security import (
     SecurityPolicy,
     SessionTable,
     TrustStore,
+    WatchGate,
     fingerprint,
+    seal_for_owner,
 )
 from .transports import Handle, Message, Presence, Subscription
 
@@ -71,6 +74,8 @@ INITIATING = frozenset(
 
 
 RATE_LIMIT_REASON = "rate limit exceeded"
+
+_MIRROR_CHUNK = 512 * 1024
 
 
 @dataclass(frozen=True, slots=True)
@@ -249,6 +254,13 @@ class InterfaceAgent:
     ``{"sessions": true}`` or ``{"senders": true}`` (per platform: accepted, limited,
     refused by the rate limit).
 
+    The published audit is sealed to this platform's owner (``seal_audit``; see
+    ``docs/wire.md``, "Audit records"): outsiders and other members do not read it. The
+    owner may also ask (``dyknow watch``: a request signed with the platform's key on
+    ``watch/<platform>``) to see, for ``watch_lease`` seconds, every ACL message, sample
+    batch and stream report this platform receives, opened, sealed to the owner too;
+    ``watchable=False`` turns that off.
+
     ``rate_limit`` (default `RateLimit()`; None: no limit) bounds what each other
     platform may send here, after authentication, so one platform's flood is dropped
     before it reaches the agents' mailboxes and others are still served. ``monotonic`` is
@@ -263,6 +275,9 @@ class InterfaceAgent:
         policy: SecurityPolicy | None = None,
         audit_path: str | Path | None = None,
         publish_audit: bool = True,
+        seal_audit: bool = True,
+        watchable: bool = True,
+        watch_lease: float = 10.0,
         audit_interval: float = 0.25,
         handshake_timeout: float = 2.0,
         rehandshake_interval: float = 1.0,
@@ -276,6 +291,16 @@ class InterfaceAgent:
         self.policy = policy or SecurityPolicy()
         self.audit = AuditLog(path=audit_path, platform=keys.platform)
         self.publish_audit = publish_audit
+        self.seal_audit = seal_audit
+        self.watchable = watchable
+        self.watch_lease = watch_lease
+        # what the owner watches: (kind, peer, time, body) while a lease runs; bounded, as
+        # nothing drains it faster than the flush interval (an overflow loses the oldest)
+        self.mirroring = False
+        self._mirror: deque[tuple[str, str, float, bytes]] = deque(maxlen=16_384)
+        self._mirror_until = -math.inf
+        self._watch_handle: Handle | None = None
+        self._watch_gate = WatchGate(keys, trust.federation, policy=self.policy, clock=clock)
         self.audit_interval = audit_interval
         self.handshake_timeout = handshake_timeout
         self.rehandshake_interval = rehandshake_interval
@@ -334,13 +359,20 @@ class InterfaceAgent:
         self._host = platform
         transport = platform.transport
         self._kx = await transport.serve(platform.key("kx"), self._on_key_exchange)
+        if self.watchable:
+            self._watch_handle = await transport.serve(platform.key("watch"), self._on_watch)
         presence = await transport.watch_presence(platform.key("alive", "*"), history=False)
         self._subs.append(presence)
         inbox = await transport.subscribe(platform.key("acl"))
         self._subs.append(inbox)
         platform.spawn(self._receive(inbox), "interface.inbox")
         platform.spawn(self._watch(presence), "interface.presence")
-        if self.publish_audit or self.audit.path is not None or self.rate_limit is not None:
+        if (
+            self.publish_audit
+            or self.watchable
+            or self.audit.path is not None
+            or self.rate_limit is not None
+        ):
             platform.spawn(self._flush_audit(), "interface.audit")
         self.agent = await platform.add(_InterfaceQueries(self))
 
@@ -369,6 +401,8 @@ class InterfaceAgent:
             sub.close()
         if self._kx is not None:
             self._kx.close()
+        if self._watch_handle is not None:
+            self._watch_handle.close()
         for fut in self._handshakes.values():
             if not fut.done():
                 # not cancel(): waiters take a cancelled exchange as a cue to run their own
@@ -378,7 +412,7 @@ class InterfaceAgent:
         data = self.audit.take()
         if data and host is not None and self.publish_audit:
             with contextlib.suppress(Exception):
-                await host.transport.publish(host.key("audit"), data)
+                await host.transport.publish(host.key("audit"), self._audit_payload(data))
 
     # -- sessions ---------------------------------------------------------------------------
 
@@ -560,6 +594,8 @@ class InterfaceAgent:
                 stats.unauthenticated += 1
                 self._drop_unauthenticated(None, f"malformed: {exc}")
                 continue
+            if self.mirroring:
+                self._mirror.append(("acl", peer, time.time(), body))
             state = self._senders.get(peer)
             if state is None:
                 state = self._sender(host, peer)
@@ -801,14 +837,65 @@ class InterfaceAgent:
                 for peer, sender in self._senders.items():
                     self._report_limited(peer, sender, now)
                 self._report_unauthenticated(now)
+            if self._mirror or self.mirroring:
+                await self._flush_mirror(host)
             if not self.publish_audit and self.audit.path is None:
                 continue
             data = self.audit.take()
             if data and self.publish_audit:
                 try:
-                    await host.transport.publish(host.key("audit"), data)
+                    await host.transport.publish(host.key("audit"), self._audit_payload(data))
                 except TransportError as exc:
                     log.debug("interface[%s]: audit not published: %s", self._me, exc)
+
+    # -- the owner's view -------------------------------------------------------------------
+
+    def _audit_payload(self, data: bytes) -> bytes:
+        """The published audit batch: sealed to this platform's owner unless configured plain."""
+        if not self.seal_audit:
+            return data
+        return seal_for_owner(self.keys.public_key, data)
+
+    def mirror_bytes(self, peer: str, body: bytes) -> None:
+        """Show the owner an opened binary envelope (a sample batch or stream report)."""
+        if self.mirroring:
+            self._mirror.append(("bin", peer, time.time(), body))
+
+    async def _on_watch(self, key: str, payload: bytes) -> bytes | None:
+        """The owner asks to watch: a request signed with this platform's key renews a lease."""
+        try:
+            self._watch_gate.check(payload)
+        except AuthenticationError as exc:
+            self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}", stage="watch")
+            return None
+        if not self.mirroring:
+            self.audit.record(verdict="accepted", stage="watch", reason="the owner watches")
+        self._mirror_until = self._monotonic() + self.watch_lease
+        self.mirroring = True
+        return orjson.dumps({"v": WIRE_VERSION, "watching": True, "lease_s": self.watch_lease})
+
+    async def _flush_mirror(self, host: AgentPlatform) -> None:
+        """Publish what the owner watches, sealed to the owner; end the lease when it runs out."""
+        if self.mirroring and self._monotonic() > self._mirror_until:
+            self.mirroring = False
+        items = list(self._mirror)
+        self._mirror.clear()
+        chunk: list[list[Any]] = []
+        size = 0
+        for i, item in enumerate(items):
+            chunk.append(list(item))
+            size += len(item[3]) + 64
+            if size < _MIRROR_CHUNK and i + 1 < len(items):
+                continue
+            # one sealed publish per ~half a MiB: a busy platform's lease stays a few puts
+            data = msgpack.packb(chunk, use_bin_type=True)
+            chunk, size = [], 0
+            try:
+                await host.transport.publish(
+                    host.key("watch"), seal_for_owner(self.keys.public_key, data)
+                )
+            except TransportError as exc:
+                log.debug("interface[%s]: watch not published: %s", self._me, exc)
 
 
 class _InterfaceQueries(Agent):

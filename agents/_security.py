@@ -42,6 +42,7 @@ from ._exceptions import (
     MessageError,
     Misdirected,
     Replayed,
+    Unencrypted,
     UnknownPlatform,
     UnknownSession,
 )
@@ -54,10 +55,14 @@ __all__ = [
     "Session",
     "SessionTable",
     "TrustStore",
+    "WatchGate",
     "check_name",
     "fingerprint",
     "key_paths",
+    "open_for_owner",
     "read_public_key",
+    "seal_for_owner",
+    "watch_request",
 ]
 
 WIRE_VERSION = 1
@@ -233,6 +238,19 @@ class KeyPair:
     def sign(self, data: bytes) -> bytes:
         """The 64-byte Ed25519 signature of ``data``."""
         return self._signing_key.sign(data).signature
+
+    def open_sealed(self, data: bytes) -> bytes:
+        """Open a sealed box addressed to this platform's owner (`seal_for_owner`).
+
+        Raises Forged when ``data`` was not sealed to this key or was changed.
+        """
+        secret = bytes(self._signing_key.to_curve25519_private_key())
+        public = _sodium.crypto_sign_ed25519_pk_to_curve25519(self.public_key)
+        try:
+            opened: bytes = _sodium.crypto_box_seal_open(data, public, secret)
+        except (CryptoError, ValueError, TypeError):
+            raise Forged(f"not sealed to {self.platform!r}'s key, or changed", None) from None
+        return opened
 
     def public_json(self) -> bytes:
         """The public key file's content."""
@@ -451,8 +469,10 @@ class SecurityPolicy:
     ``window``: how many counters back a reordered envelope is still accepted.
     ``renew_after_messages`` / ``renew_after_seconds``: when a session asks to be renewed;
     it is then accepted ``grace`` seconds beyond that, and an old session ``grace`` seconds
-    after its peer started using a newer one. ``encrypt``: seal with ChaCha20-Poly1305
-    instead of only a MAC; ``require_encryption``: refuse envelopes that are not encrypted.
+    after its peer started using a newer one. ``encrypt`` (default on): seal with
+    ChaCha20-Poly1305, so bodies are confidential; off, only a MAC (bodies readable by
+    anyone on the path: for debugging). ``require_encryption``: refuse envelopes that are
+    not encrypted (`Unencrypted`); None (the default) means the same as ``encrypt``.
     """
 
     skew: float = 30.0
@@ -460,12 +480,15 @@ class SecurityPolicy:
     renew_after_messages: int = 1_000_000
     renew_after_seconds: float = 3600.0
     grace: float = 30.0
-    encrypt: bool = False
-    require_encryption: bool = False
+    encrypt: bool = True
+    require_encryption: bool | None = None
     max_sessions_per_peer: int = 4
     max_body_bytes: int = MAX_MESSAGE_BYTES
 
     def __post_init__(self) -> None:
+        if self.require_encryption is None:
+            # frozen: the resolved value is set once, here
+            object.__setattr__(self, "require_encryption", self.encrypt)
         if self.skew <= 0 or self.grace < 0 or self.renew_after_seconds <= 0:
             raise ValueError("skew and renew_after_seconds must be > 0, grace >= 0")
         if self.window < 1 or self.renew_after_messages < 1 or self.max_sessions_per_peer < 1:
@@ -1037,7 +1060,7 @@ class SessionTable:
         tag: bytes | None = None
         if not boxed:
             if self.policy.require_encryption:
-                raise Malformed("this platform requires encrypted envelopes ('box')", frm)
+                raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
             mac = env["mac"]
             if type(mac) is not str:
                 raise Malformed("field 'mac' must be a string", frm)
@@ -1089,7 +1112,7 @@ class SessionTable:
         session = self._session_of(frm, to, sid, ts, n)
         if not boxed:
             if self.policy.require_encryption:
-                raise Malformed("this platform requires encrypted envelopes ('box')", frm)
+                raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
             if type(mac) is not bytes or len(mac) != _MAC_BYTES:
                 raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
         now = self._clock()
@@ -1412,3 +1435,128 @@ def _parse_kx(data: bytes | str, kind: str, fields: frozenset[str]) -> dict[str,
     if type(ts) is not int or not 0 <= ts <= _MAX_COUNTER:
         raise Malformed("handshake field 'ts_ms' must be a non-negative integer", frm)
     return msg
+
+
+# --------------------------------------------------------------------------- the owner
+
+
+SEALED_OVERHEAD = 48
+"""What a sealed box adds: the sender's ephemeral X25519 key (32 B) and the tag (16 B)."""
+
+
+def seal_for_owner(public_key: bytes, data: bytes) -> bytes:
+    """``data`` sealed to the owner of the Ed25519 ``public_key`` (libsodium sealed box).
+
+    The Ed25519 key is converted to its X25519 form (``crypto_sign_ed25519_pk_to_curve25519``);
+    only the private key's holder opens it (`KeyPair.open_sealed`). Anonymous: the box does
+    not say who sealed it, so what a platform seals for its owner is authenticated by the
+    key it was published under only (``docs/wire.md``, "Audit records").
+    """
+    owner = _sodium.crypto_sign_ed25519_pk_to_curve25519(public_key)
+    box: bytes = _sodium.crypto_box_seal(data, owner)
+    return box
+
+
+def open_for_owner(keys: KeyPair, data: bytes) -> bytes:
+    """`KeyPair.open_sealed`, as a function (the counterpart of `seal_for_owner`)."""
+    return keys.open_sealed(data)
+
+
+_WATCH = b"dyknow-watch-v1\x00"
+_WATCH_FIELDS = frozenset(("v", "watch", "fed", "platform", "ts_ms", "nonce", "sig"))
+
+
+def watch_request(keys: KeyPair, federation: str, *, clock: Clock = time.time) -> bytes:
+    """A signed request from a platform's owner to see what is addressed to it (a lease).
+
+    Signed with the platform's own key: only who holds the private key can ask.
+    """
+    ts = int(clock() * 1000)
+    nonce = os.urandom(_NONCE_BYTES)
+    sig = keys.sign(_watch_transcript(federation, keys.platform, ts, nonce))
+    return _dumps(
+        {
+            "v": WIRE_VERSION,
+            "watch": "lease",
+            "fed": federation,
+            "platform": keys.platform,
+            "ts_ms": ts,
+            "nonce": _b64(nonce),
+            "sig": _b64(sig),
+        }
+    )
+
+
+class WatchGate:
+    """The platform's side of watch requests: checks them, cheapest first, then the signature.
+
+    A request is accepted when it names this federation and platform, is fresh (``skew``),
+    was not seen before, and is signed with this platform's own key. At most ``verify_rate``
+    signatures are checked per second (a flood of forged requests costs a counter each).
+    """
+
+    def __init__(
+        self,
+        keys: KeyPair,
+        federation: str,
+        *,
+        policy: SecurityPolicy = _DEFAULT_POLICY,
+        clock: Clock = time.time,
+        verify_rate: float = 10.0,
+    ) -> None:
+        self.keys = keys
+        self.federation = federation
+        self.policy = policy
+        self._clock = clock
+        self._verify = VerifyKey(keys.public_key)
+        self._seen: dict[bytes, int] = {}
+        self._rate = verify_rate
+        self._tokens = verify_rate
+        self._stamp = clock()
+
+    def check(self, data: bytes | str) -> None:
+        """Accept a watch request, or raise an AuthenticationError saying why not."""
+        if len(data) > MAX_HANDSHAKE_BYTES:
+            raise Malformed(f"watch request of {len(data)} bytes exceeds {MAX_HANDSHAKE_BYTES}")
+        try:
+            msg = _loads(data)
+        except _JSONDecodeError as exc:
+            raise Malformed(f"watch request is not JSON: {exc}") from None
+        if type(msg) is not dict or msg.keys() != _WATCH_FIELDS:
+            raise Malformed("a watch request is a JSON object with exactly the fields of wire.md")
+        if msg["v"] != WIRE_VERSION or msg["watch"] != "lease":
+            raise Malformed("unsupported watch request (this side speaks v 1, 'lease')")
+        if msg["fed"] != self.federation or msg["platform"] != self.keys.platform:
+            raise Misdirected("watch request for another federation or platform")
+        ts = msg["ts_ms"]
+        if type(ts) is not int:
+            raise Malformed("watch field 'ts_ms' must be an integer")
+        now = self._clock()
+        if abs(now * 1000 - ts) > self.policy.skew * 1000:
+            raise Expired("watch request outside the allowed clock skew")
+        try:
+            nonce = _unb64(msg["nonce"], _NONCE_BYTES)
+            sig = _unb64(msg["sig"], 64)
+        except ValueError as exc:
+            raise Malformed(f"watch request: {exc}") from None
+        if nonce in self._seen:
+            raise Replayed("watch request seen before")
+        tokens = min(self._rate, self._tokens + (now - self._stamp) * self._rate)
+        self._stamp = now
+        if tokens < 1:
+            self._tokens = tokens
+            raise Expired("too many watch requests: not checked")
+        self._tokens = tokens - 1
+        transcript = _watch_transcript(self.federation, self.keys.platform, ts, nonce)
+        try:
+            self._verify.verify(transcript, sig)
+        except CryptoError:
+            raise Forged("watch request not signed with this platform's key") from None
+        stale = int((now - 2 * self.policy.skew) * 1000)
+        for old in [n for n, t in self._seen.items() if t < stale]:
+            del self._seen[old]
+        self._seen[nonce] = ts
+
+
+def _watch_transcript(fed: str, platform: str, ts: int, nonce: bytes) -> bytes:
+    return _WATCH + _lp(fed) + _lp(platform) + _U64.pack(ts) + nonce

@@ -46,7 +46,7 @@ from agents import (  # noqa: E402
 from agents._gateway_service import GatewayRefusal, GatewayService  # noqa: E402
 from agents._interface import InterfaceAgent  # noqa: E402
 from agents._protocols import Refuse  # noqa: E402
-from agents._security import KeyPair, TrustStore  # noqa: E402
+from agents._security import KeyPair, SecurityPolicy, TrustStore  # noqa: E402
 from agents.transports import (  # noqa: E402
     MqttConfig,
     MqttTransport,
@@ -225,6 +225,7 @@ async def _serve(
     federation: str,
     reports: Any,
     stop: Any,
+    encrypt: bool = True,
 ) -> None:
     parent = os.getppid()
     marks = {"module": _T_MODULE, "imported": _T_IMPORTED}
@@ -237,7 +238,7 @@ async def _serve(
     marks["keys"] = time.time()
     async with _transport(kind, config) as transport:
         marks["transport"] = time.time()
-        channel = InterfaceAgent(keys, trust)
+        channel = InterfaceAgent(keys, trust, policy=SecurityPolicy(encrypt=encrypt))
         async with AgentPlatform(
             platform, transport, federation=federation, channel=channel
         ) as host:
@@ -271,11 +272,15 @@ def node_main(
     federation: str,
     reports: Any,
     stop: Any,
+    encrypt: bool = True,
 ) -> None:
-    """The child process: serve as ``platform`` until ``stop`` is set (errors go to ``reports``)."""
+    """The child process: serve as ``platform`` until ``stop`` is set (errors go to ``reports``).
+
+    ``encrypt``: its sessions' policy (the default, as platforms; False: MAC only).
+    """
     gc.callbacks.append(GC)
     try:
-        asyncio.run(_serve(kind, config, keydir, platform, federation, reports, stop))
+        asyncio.run(_serve(kind, config, keydir, platform, federation, reports, stop, encrypt))
     except Exception:
         # the parent raises it with this traceback; exiting quietly avoids printing it twice
         reports.put(("error", os.getpid(), traceback.format_exc()))

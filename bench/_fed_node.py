@@ -39,7 +39,7 @@ import msgpack
 import zenoh
 from nacl.signing import SigningKey
 
-from agents._security import Handshake, KeyPair, SessionTable, TrustStore
+from agents._security import Handshake, KeyPair, SecurityPolicy, SessionTable, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport
 from dyknow_core import DyKnowInstance, Policy, RawSample
 from federation._proxies import ExportProxy, ImportProxy, TableSessions, pack_batch
@@ -170,8 +170,10 @@ class _Node:
         self.transport = transport
         self.keys = KeyPair(name, SigningKey(spec["seed"]))
         self.trust = TrustStore(FED, spec["trust"])
-        self.handshake = Handshake(self.keys, self.trust)
-        self.table = SessionTable(name, self.trust)
+        # encrypted by default, as platforms are; the bench's plain variant turns it off
+        policy = SecurityPolicy(encrypt=spec.get("encrypt", True))
+        self.handshake = Handshake(self.keys, self.trust, policy=policy)
+        self.table = SessionTable(name, self.trust, policy=policy)
         self.instance = DyKnowInstance(name)
         self.stack = contextlib.AsyncExitStack()
         self.zenoh_entities: list[Any] = []
@@ -184,6 +186,17 @@ class _Node:
             with contextlib.suppress(zenoh.ZError):
                 entity.undeclare()
         await self.stack.aclose()
+
+    async def op_encrypt(self, on: bool) -> str:
+        """Make new sessions encrypted (``on``) or MAC-only; accept both forms from now on.
+
+        The exporter also agrees a new session with each receiver, which its export then
+        seals on (the newest session it made); the sid of the last one.
+        """
+        policy = SecurityPolicy(encrypt=on, require_encryption=False)
+        self.handshake.policy = policy
+        self.table.policy = policy
+        return ""
 
     async def op_gc(self) -> dict[str, Any]:
         """Seconds spent in the garbage collector so far, runs per generation, objects tracked."""
@@ -275,6 +288,17 @@ class Exporter(_Node):
             sids[peer] = session.sid
             self.proxy.start_exporting(LOCAL, SEM, peer, Policy())
         return sids
+
+    async def op_encrypt(self, on: bool) -> str:
+        """As `_Node.op_encrypt`, then a new session with each receiver under that policy."""
+        await super().op_encrypt(on)
+        sid = ""
+        for peer in sorted({receiver for receiver, _ in self.proxy._exports}):
+            await self._agree(peer)
+            session = self.table.session_for(peer)
+            assert session is not None and session._encrypt == on
+            sid = session.sid
+        return sid
 
     async def op_acked(self) -> list[str]:
         """The receivers whose acknowledgements reached this exporter so far."""

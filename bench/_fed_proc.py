@@ -146,14 +146,22 @@ def _stop_all(nodes: list[Node], grace: float = 15.0) -> None:
 
 
 @contextlib.contextmanager
-def cluster(n_receivers: int, *, start_timeout: float = 60.0) -> Iterator[tuple[Node, list[Node]]]:
-    """An exporter and ``n_receivers`` receivers over zenoh (peer, loopback), exports flowing."""
+def cluster(
+    n_receivers: int, *, start_timeout: float = 60.0, encrypt: bool = True
+) -> Iterator[tuple[Node, list[Node]]]:
+    """An exporter and ``n_receivers`` receivers over zenoh (peer, loopback), exports flowing.
+
+    ``encrypt``: the sessions' policy (ChaCha20-Poly1305 batches, the platforms' default;
+    False: MAC only).
+    """
     names = ["exporter"] + [f"receiver-{i}" for i in range(n_receivers)]
     seeds = {n: os.urandom(32) for n in names}
     trust = {n: bytes(SigningKey(s).verify_key) for n, s in seeds.items()}
     port = free_tcp_port()
     exporter = Node(
-        "exporter", "exporter", {"seed": seeds["exporter"], "trust": trust, "port": port}
+        "exporter",
+        "exporter",
+        {"seed": seeds["exporter"], "trust": trust, "port": port, "encrypt": encrypt},
     )
     receivers = [
         Node(
@@ -165,6 +173,7 @@ def cluster(n_receivers: int, *, start_timeout: float = 60.0) -> Iterator[tuple[
                 "port": free_tcp_port(),
                 "connect": [port],
                 "exporter": "exporter",
+                "encrypt": encrypt,
             },
         )
         for n in names[1:]

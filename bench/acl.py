@@ -24,7 +24,10 @@ measured, each beside a peer measured in the same run:
   median of ``READY_REPEAT`` spawns each, interleaved;
 - idle RSS of that node (VmRSS of the child, ready and idle), against the bare zenoh one;
 - the same round trip over MQTT through a mosquitto of our own (free loopback port),
-  against a raw aiomqtt ping-pong through the same broker.
+  against a raw aiomqtt ping-pong through the same broker;
+- encryption's cost: the zenoh round trip with encrypted sessions (ChaCha20-Poly1305, the
+  default everywhere above) against MAC-only sessions, both sides restarted for each,
+  alternating (``acl-rtt-median-encrypted``).
 
 ``python -m bench.acl --profile`` profiles the zenoh round trip and the throughput path
 instead (cProfile on both sides, plus the per-stage costs measured one by one).
@@ -33,6 +36,7 @@ instead (cProfile on both sides, plus the per-stage costs measured one by one).
 from __future__ import annotations
 
 import asyncio
+import functools
 import statistics
 import sys
 import tempfile
@@ -59,7 +63,7 @@ from agents import (
     request,
 )
 from agents._interface import InterfaceAgent
-from agents._security import KeyPair, TrustStore
+from agents._security import KeyPair, SecurityPolicy, TrustStore
 from agents.transports import (
     MqttConfig,
     MqttTransport,
@@ -134,17 +138,19 @@ def make_keys(directory: Path) -> None:
     trust.save(directory / "trust.json")
 
 
-def interface(keydir: Path) -> InterfaceAgent:
-    """This platform's Interface Agent (authentication and audit on, the defaults)."""
+def interface(keydir: Path, *, encrypt: bool = True) -> InterfaceAgent:
+    """This platform's Interface Agent (authentication, encryption and audit on: the defaults)."""
     return InterfaceAgent(
-        KeyPair.load(keydir / f"{HERE}.key"), TrustStore.load(keydir / "trust.json")
+        KeyPair.load(keydir / f"{HERE}.key"),
+        TrustStore.load(keydir / "trust.json"),
+        policy=SecurityPolicy(encrypt=encrypt),
     )
 
 
-def node(kind: str, config: dict[str, Any], keydir: Path) -> Child:
+def node(kind: str, config: dict[str, Any], keydir: Path, *, encrypt: bool = True) -> Child:
     """The remote platform's process (not started)."""
     args = (kind, config, str(keydir), THERE, FEDERATION)
-    return Child(node_main, args, f"acl-node-{kind}")
+    return Child(functools.partial(node_main, encrypt=encrypt), args, f"acl-node-{kind}")
 
 
 async def wait_alive(presence: Subscription[Presence], child: Child, alive: bool) -> None:
@@ -559,6 +565,53 @@ def print_mqtt(m: dict[str, Any]) -> None:
     )
 
 
+ENC_ROUNDS = 4
+N_RTT_ENC = 1000
+
+
+async def encryption_phase(keydir: Path) -> dict[str, list[dict[str, float]]]:
+    """Round trips with encrypted and with MAC-only sessions, both sides new each time."""
+    res: dict[str, list[dict[str, float]]] = {"encrypted": [], "plain": []}
+    kinds = [("encrypted", True), ("plain", False)]
+    for r in range(ENC_ROUNDS):
+        # each kind goes first every other round: neither gets the fresher machine
+        for kind, encrypt in kinds if r % 2 == 0 else kinds[::-1]:
+            progress(f"encryption round {r + 1}/{ENC_ROUNDS}: {kind} sessions, {N_RTT_ENC} trips")
+            port = free_tcp_port()
+            child_config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
+            async with (
+                ZenohTransport(ZenohConfig.loopback(port)) as transport,
+                AgentPlatform(
+                    HERE,
+                    transport,
+                    federation=FEDERATION,
+                    channel=interface(keydir, encrypt=encrypt),
+                ) as host,
+            ):
+                asker = await host.add(Agent("asker"))
+                presence = await transport.watch_presence(host.key("alive", THERE))
+                child = node("zenoh", child_config, keydir, encrypt=encrypt).start()
+                try:
+                    await wait_alive(presence, child, True)
+                    await first_reply(asker, child)
+                    await round_trips(asker, WARMUP, "warm-up")
+                    res[kind].append(summary(await round_trips(asker, N_RTT_ENC, kind)))
+                finally:
+                    await asyncio.to_thread(child.close)
+    return res
+
+
+def print_encryption(e: dict[str, list[dict[str, float]]]) -> None:
+    """The encrypted/plain round trips and their BENCH line."""
+    print(f"round trips over zenoh, encrypted vs MAC-only sessions, {N_RTT_ENC} per round, ms:")
+    for r in range(ENC_ROUNDS):
+        print(_line(f"round {r + 1} encrypted", e["encrypted"][r]))
+        print(_line(f"round {r + 1} plain", e["plain"][r]))
+    enc = statistics.median(s["median"] for s in e["encrypted"])
+    plain = statistics.median(s["median"] for s in e["plain"])
+    report("acl-rtt-median-encrypted", enc, "plain", plain, "ms", better="lower")
+
+
 def run() -> None:
     """Measure the zenoh figures, then the MQTT ones; print the detail and the BENCH lines."""
     mosquitto_executable()  # fail now, not after a minute of zenoh, when it is missing
@@ -567,6 +620,8 @@ def run() -> None:
         make_keys(keydir)
         z = _run_async(zenoh_phase(keydir))
         print_zenoh(z)
+        e = _run_async(encryption_phase(keydir))
+        print_encryption(e)
         progress("starting mosquitto")
         with mosquitto() as (host, port):
             m = _run_async(mqtt_phase(keydir, host, port))

@@ -2,10 +2,10 @@
 
 Every platform is its own process (``spawn``), on zenoh in peer mode over loopback
 (``bench/_fed_node.py``, ``bench/_fed_proc.py``). The exporter's `ExportProxy` seals each
-batch with a real session (HMAC-SHA256, agreed by an Ed25519-signed key exchange run
-over a zenoh query); the receiver's `ImportProxy` opens it, decodes it, adds the samples
-to its local stream, and a subscriber with bounds (``Policy(lower, upper)``) on that
-stream counts what it gets: that count is "ours".
+batch with a real session (ChaCha20-Poly1305, the platforms' default, under keys agreed
+by an Ed25519-signed key exchange run over a zenoh query); the receiver's `ImportProxy`
+opens it, decodes it, adds the samples to its local stream, and a subscriber with bounds
+(``Policy(lower, upper)``) on that stream counts what it gets: that count is "ours".
 
 - ``export-throughput``: the exporter pushes batches of 256 samples into its source as
   fast as the flow control below lets it; ours = samples/s reaching the receiving
@@ -17,6 +17,8 @@ stream counts what it gets: that count is "ours".
 - ``export-latency-p99``: samples pushed at 1 kHz, publish → arrival in the receiving
   subscriber, ``time.time_ns()`` at both ends (one host); raw zenoh put → callback at
   1 kHz in the same run, in alternating blocks.
+- ``export-throughput-encrypted``: the cost of encryption: ours (encrypted sessions)
+  against the same flood over MAC-only sessions, two process pairs, windows alternating.
 - ``frozen-receiver``: one exporter, four receivers; the three healthy receivers' summed
   throughput with all four running, then with the fourth SIGSTOPped, alternating; with
   the exporter's counters for the frozen one and, once thawed, what its import counted
@@ -140,7 +142,7 @@ def throughput_and_latency() -> None:
             f"median {statistics.median(paired):.2f}"
         )
         print(
-            f"  ours: samples/s decoded, opened (HMAC session), injected into the receiving "
+            f"  ours: samples/s decoded, opened (encrypted session), injected into the receiving "
             f"stream and delivered to a subscriber with bounds; batches of {BATCH}"
         )
         print(
@@ -271,7 +273,41 @@ def frozen_receiver() -> None:
         report("frozen-receiver", ours, "baseline", baseline, "samples/s", better="higher")
 
 
+def encryption_cost() -> None:
+    """``export-throughput-encrypted``: encrypted against MAC-only sessions, alternating.
+
+    One exporter/receiver pair: before each window both switch their policy and the
+    exporter agrees a new session under it, so the same two processes carry both kinds
+    (two pairs differed by more than encryption costs); which kind goes first alternates.
+    """
+    progress("starting an exporter and a receiver: encrypted and MAC-only sessions in turn")
+    with cluster(1) as (exporter, (receiver,)):
+        rates: dict[str, list[float]] = {"encrypted": [], "plain": []}
+        kinds = [("encrypted", True), ("plain", False)]
+        for i in range(ROUNDS):
+            for kind, on in kinds if i % 2 == 0 else kinds[::-1]:
+                receiver.call("encrypt", on)
+                sid = exporter.call("encrypt", on, timeout=15)
+                _settle([receiver])
+                progress(f"round {i + 1}/{ROUNDS}: {kind} session {sid}, {WINDOW:g} s window")
+                w = _window(exporter, [receiver], "ours", [receiver.name])
+                rates[kind].append(w["rates"][0])
+                print(
+                    f"  round {i + 1} {kind:>9}: {fmt(w['rates'][0])}/s at the receiver; "
+                    f"CPU exporter {w['tx_us_per_got']:.2f} µs/item, "
+                    f"receiver {w['rx_us'][0]:.2f} µs/item",
+                    flush=True,
+                )
+        enc = statistics.median(rates["encrypted"])
+        plain = statistics.median(rates["plain"])
+        paired = [e / p for e, p in zip(rates["encrypted"], rates["plain"], strict=True)]
+        print(f"  per-round encrypted/plain: {', '.join(f'{x:.2f}' for x in paired)}")
+        print("  encrypted: ChaCha20-Poly1305 batches (default); plain: HMAC-SHA256 only")
+        report("export-throughput-encrypted", enc, "plain", plain, "samples/s", better="higher")
+
+
 def run() -> None:
-    """Run the three federation benchmarks and print their BENCH lines."""
+    """Run the federation benchmarks and print their BENCH lines."""
     throughput_and_latency()
+    encryption_cost()
     frozen_receiver()

@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Generate every platform's key pair and the federation's trust file into
-# deploy/config/keys/ (never committed: .gitignore). Run once, before `docker compose up`:
+# deploy/config/keys/, and the TLS certificates and passwords into deploy/config/keys/tls/
+# (make_certs.py; openssl needed), never committed (.gitignore). Run once, before
+# `docker compose up`:
 #   deploy/make-keys.sh            # or: deploy/make-keys.sh /some/other/config/dir
 # Uses `dyknow keys …` when the CLI is installed, else `python -m agents.keys …`
 # (the same commands; PYTHON picks the interpreter, e.g. PYTHON=.venv/bin/python).
@@ -34,8 +36,15 @@ for platform in "${platforms[@]}"; do
 done
 "${keys[@]}" trust --trust-file "${trust_file}" --federation "${federation}" "${pubs[@]}"
 
+# the zenoh links: the federation's CA, the router's and each platform's certificate
+certs=()
+for platform in "${platforms[@]}"; do
+    certs+=(--platform "${platform}")
+done
+"${PYTHON:-python3}" "${here}/make_certs.py" --dir "${keys_dir}/tls" "${certs[@]}"
+
 cat <<MSG
-Keys and trust file are in ${keys_dir}.
+Keys and trust file are in ${keys_dir}, certificates and passwords in ${keys_dir}/tls.
 The containers run as uid 10001 and private keys must be mode 0600, so either run
   DYKNOW_UID=\$(id -u) DYKNOW_GID=\$(id -g) docker compose -f deploy/docker-compose.yml up
 or give the keys to that user: sudo chown -R 10001:10001 ${keys_dir}

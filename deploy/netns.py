@@ -5,7 +5,9 @@ One namespace per service (router, uav-a, uav-b, uav-c, operator), each with its
 address on a private /24, all joined by a bridge that lives in a namespace of its own
 (``<prefix>-net``). Nothing is added to the machine's own namespace: no link, no address,
 no route, so several runs (even with the same subnet) cannot see each other or the
-machine's network. Every platform is a zenoh client of the router, exactly as in compose.
+machine's network. Every platform is a zenoh client of the router, exactly as in compose:
+the authenticated router (mutual TLS with a CA made for the run, passwords, access control)
+and the platforms' ``config/secure/*.toml``, their addresses and paths rewritten.
 
     sudo .venv/bin/python deploy/netns.py up --dir /tmp/dk       # namespaces, keys, processes
     sudo .venv/bin/python deploy/netns.py check --dir /tmp/dk    # the operator sees the UAVs
@@ -34,7 +36,8 @@ from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parent.parent
-CONFIG = ROOT / "deploy" / "config"
+HERE = ROOT / "deploy"
+CONFIG = HERE / "config"
 PLATFORMS = ("uav-a", "uav-b", "uav-c", "operator")
 SERVICES = ("router", *PLATFORMS)
 HOSTS = {"router": 10, "uav-a": 11, "uav-b": 12, "uav-c": 13, "operator": 20}
@@ -42,9 +45,11 @@ PORT = 7447
 FEDERATION = "traffic"
 SWITCH = "net"  # the namespace holding the bridge: <prefix>-net
 STATE = "netns.json"
-# What deploy/config/*.toml and router.json5 say for the compose network; replaced here.
-COMPOSE_CONNECT = "tcp/172.28.0.10:7447"
-COMPOSE_LISTEN = '"tcp/0.0.0.0:7447"'
+# What deploy/config/secure/*.toml and router-secure.json5 say for the compose network
+# (the authenticated router: mutual TLS, passwords, access control); replaced here.
+COMPOSE_CONNECT = "tls/172.28.0.10:7447"
+COMPOSE_LISTEN = '"tls/0.0.0.0:7447"'
+COMPOSE_TLS = "/etc/dyknow/tls/"
 _PREFIX = re.compile(r"^[a-z][a-z0-9]{0,11}$")
 
 
@@ -176,21 +181,31 @@ def write_configs(rundir: Path, subnet: str) -> None:
     except KeysError as exc:
         raise Failure(f"keys: {exc}") from None
     shutil.copy(CONFIG / "traffic.toml", rundir / "traffic.toml")
-    router = f"tcp/{address(subnet, 'router')}:{PORT}"
+    # the zenoh links' certificates, from a CA of this run: the router's names its address
+    tls = rundir / "tls"
+    certs = [sys.executable, str(HERE / "make_certs.py"), "--dir", str(tls)]
+    certs += [f"--platform={p}" for p in PLATFORMS]
+    certs += [f"--router-name={address(subnet, 'router')}"]
+    made = subprocess.run(certs, capture_output=True, text=True, timeout=60, check=False)
+    if made.returncode != 0:
+        raise Failure(f"make_certs.py: {made.stderr.strip() or made.stdout.strip()}")
+    router = f"tls/{address(subnet, 'router')}:{PORT}"
     for platform in PLATFORMS:
         shutil.copy(CONFIG / f"{platform}-labels.toml", rundir / f"{platform}-labels.toml")
-        source = CONFIG / f"{platform}.toml"
+        source = CONFIG / "secure" / f"{platform}.toml"
         path = rundir / f"{platform}.toml"
-        path.write_text(_replaced(source.read_text(), COMPOSE_CONNECT, router, source))
+        text = _replaced(source.read_text(), COMPOSE_CONNECT, router, source)
+        text = _replaced(text, COMPOSE_TLS, f"{tls}/", source)
+        # the secure configs sit one directory below their files; these next to them
+        path.write_text(_replaced(text, '"../', '"', source))
         try:
             PlatformConfig.load(path)
         except PlatformConfigError as exc:
             raise Failure(str(exc)) from None
-    source = CONFIG / "router.json5"
-    (rundir / "router.json5").write_text(
-        _replaced(source.read_text(), COMPOSE_LISTEN, f'"{router}"', source)
-    )
-    say(f"keys, trust file and configs for {subnet}.0/24 written to {rundir}")
+    source = CONFIG / "router-secure.json5"
+    text = _replaced(source.read_text(), COMPOSE_LISTEN, f'"{router}"', source)
+    (rundir / "router.json5").write_text(_replaced(text, COMPOSE_TLS, f"{tls}/", source))
+    say(f"keys, trust file, certificates and configs for {subnet}.0/24 written to {rundir}")
 
 
 # -- processes ----------------------------------------------------------------------------------
@@ -201,7 +216,7 @@ def command(service: str, rundir: Path, subnet: str) -> list[str]:
     if service == "router":
         # --listen as well: `dyknow router --config` alone listens on an ephemeral loopback
         # port, not on the config's endpoints (ZenohConfig.to_zenoh overrides them).
-        listen = f"tcp/{address(subnet, 'router')}:{PORT}"
+        listen = f"tls/{address(subnet, 'router')}:{PORT}"
         return ["router", "--config", str(rundir / "router.json5"), "--listen", listen]
     return ["node", "--config", str(rundir / f"{service}.toml")]
 

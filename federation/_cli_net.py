@@ -1,4 +1,4 @@
-"""The networked ``dyknow`` commands (node, router, platforms, labels, ask) as async code."""
+"""The networked ``dyknow`` commands (node, router, platforms, labels, ask, watch) as async code."""
 
 from __future__ import annotations
 
@@ -9,13 +9,19 @@ import json
 import re
 import signal
 import time
+import uuid
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
-from agents.transports import ZenohConfig
+import msgpack
 
-from ._platform import FederationPlatform, PlatformConfig
+from agents import KeyPair, SecurityError, TransportError, wire_key
+from agents._exceptions import AuthenticationError
+from agents._security import watch_request
+from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
+
+from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
 
 _RELATIVE = re.compile(r"^-(\d+(?:\.\d+)?)(ms|s|m|h)?$")
 _UNITS = {"ms": 0.001, "s": 1.0, "m": 60.0, "h": 3600.0, None: 1.0}
@@ -237,3 +243,149 @@ async def follow_stream(
             with contextlib.suppress(Exception):
                 await fed.cancel_stream(platform, export_id, timeout=2.0)
         return seen
+
+
+# -- the owner's watch ---------------------------------------------------------------------------
+
+WatchEvent = dict[str, Any]
+
+
+def watcher_transport(config: PlatformConfig) -> Transport:
+    """A transport for the platform's owner next to the running platform, not as it.
+
+    It takes no part in the federation (no presence, no key exchange, no DF): it only
+    subscribes and asks. Over zenoh it listens nowhere (the platform holds its ports) and
+    connects to the platform's own endpoints as well as its peers or router, with the
+    same TLS and password; over MQTT it gets a client id of its own (the platform's would
+    evict the running platform from the broker).
+    """
+    t = config.transport
+    if isinstance(t, ZenohConfig):
+        local = tuple(_reachable(e) for e in (t.listen or ()))
+        connect = tuple(dict.fromkeys((*t.connect, *local)))
+        mode = "client" if t.mode == "client" else "peer"
+        return ZenohTransport(t.model_copy(update={"listen": (), "connect": connect, "mode": mode}))
+    assert isinstance(t, MqttConfig)
+    return MqttTransport(
+        t.model_copy(update={"client_id": f"dyknow-watch-{uuid.uuid4().hex[:12]}"})
+    )
+
+
+def _reachable(endpoint: str) -> str:
+    """A listen endpoint as something to connect to on this host (0.0.0.0 is not)."""
+    return endpoint.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:")
+
+
+def decode_watched(kind: str, peer: str, ts: float, body: bytes) -> WatchEvent:
+    """One opened envelope the platform showed its owner, as an event."""
+    if kind == "acl":
+        try:
+            message: Any = json.loads(body)
+        except ValueError:
+            message = body.decode(errors="replace")
+        return {"kind": "acl", "from": peer, "ts": ts, "message": message}
+    try:
+        obj = msgpack.unpackb(body, raw=False)
+    except Exception as exc:  # what opened need not be a batch a peer should send
+        return {"kind": "binary", "from": peer, "ts": ts, "error": str(exc), "bytes": len(body)}
+    if isinstance(obj, dict) and "lost" in obj:
+        return {"kind": "stream-report", "from": peer, "ts": ts, "report": obj}
+    return {"kind": "stream", "from": peer, "ts": ts, "batch": obj}
+
+
+async def watch_platform(
+    config_path: str,
+    emit: Callable[[WatchEvent], None],
+    *,
+    duration: float | None = None,
+    renew: float = 3.0,
+    timeout: float = 10.0,
+) -> int:
+    """As the platform's owner: show, opened, what reaches the running platform.
+
+    Asks the platform (a request signed with its key, renewed every ``renew`` s) to show
+    its owner every ACL message, sample batch and stream report it opens; those come
+    sealed to the owner's key, as does the audit, which is shown too. Runs until SIGINT
+    or ``duration`` s; how many events were emitted. TransportError when the platform
+    does not answer within ``timeout`` s.
+    """
+    config = PlatformConfig.load(config_path)
+    try:
+        keys = KeyPair.load(config.key)
+    except (OSError, ValueError, SecurityError) as exc:
+        raise PlatformConfigError(config_path, "key", str(exc)) from None
+    fed, me = config.federation, config.name
+    stop = _stop_event()
+    queue: asyncio.Queue[WatchEvent] = asyncio.Queue()
+    async with watcher_transport(config) as transport:
+        watched = await transport.subscribe(wire_key(fed, "watch", me))
+        audit = await transport.subscribe(wire_key(fed, "audit", me))
+
+        async def pump_watch() -> None:
+            async for item in watched:
+                try:
+                    entries = msgpack.unpackb(keys.open_sealed(item.payload), raw=False)
+                except (AuthenticationError, ValueError) as exc:
+                    await queue.put({"kind": "unreadable", "key": item.key, "error": str(exc)})
+                    continue
+                for kind, peer, ts, body in entries:
+                    await queue.put(decode_watched(kind, peer, ts, body))
+
+        async def pump_audit() -> None:
+            async for item in audit:
+                try:
+                    data = keys.open_sealed(item.payload)
+                except AuthenticationError:
+                    if not item.payload.startswith(b"{"):
+                        await queue.put({"kind": "unreadable", "key": item.key})
+                        continue
+                    data = item.payload  # published plain ([security] audit = "plain")
+                for line in data.splitlines():
+                    await queue.put({"kind": "audit", "record": json.loads(line)})
+
+        async def lease() -> None:
+            deadline = time.monotonic() + timeout
+            answered = False
+            while True:
+                replies = await transport.query(
+                    wire_key(fed, "watch", me), watch_request(keys, fed), timeout=2.0
+                )
+                if any(r.ok for r in replies):
+                    if not answered:
+                        await queue.put({"kind": "watching", "platform": me})
+                    answered = True
+                elif not answered and time.monotonic() > deadline:
+                    raise TransportError(
+                        f"platform {me!r} did not answer the watch request in {timeout:g} s "
+                        "(is it running, reachable, with [security] watch = true?)"
+                    )
+                await asyncio.sleep(renew if answered else 0.5)
+
+        tasks = [asyncio.create_task(t()) for t in (pump_watch, pump_audit, lease)]
+        stopping = asyncio.create_task(stop.wait())
+        ending = asyncio.create_task(asyncio.sleep(duration if duration is not None else 1e9))
+        seen = 0
+        try:
+            while True:
+                getting = asyncio.create_task(queue.get())
+                done, _ = await asyncio.wait(
+                    [getting, stopping, ending, *tasks], return_when=asyncio.FIRST_COMPLETED
+                )
+                if getting not in done:
+                    getting.cancel()
+                    for t in tasks:
+                        if t in done and t.exception() is not None:
+                            raise t.exception()  # type: ignore[misc]
+                    break
+                event = getting.result()
+                emit(event)
+                seen += 1
+        finally:
+            stopping.cancel()
+            ending.cancel()
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+            watched.close()
+            audit.close()
+    return seen

@@ -23,6 +23,12 @@ A config file (TOML; relative paths are relative to the file)::
     export_lease = 10.0
     import_label = "import/{sender}/{semantic}"
 
+    [security]                   # docs/security.md; these are the defaults
+    encrypt = true               # ChaCha20-Poly1305 bodies; false: MAC only (debugging)
+    require_encryption = true    # refuse plain envelopes (default: the same as encrypt)
+    audit = "sealed"             # published audit sealed to the owner; "plain" or "off"
+    watch = true                 # the owner may watch what arrives (dyknow watch)
+
     [rate_limit]                 # per other platform, after authentication (docs/security.md)
     rate = 5000.0                # requests/queries/cfps per second, bursts of `burst`
     burst = 200.0
@@ -59,6 +65,7 @@ from agents import (
     InterfaceAgent,
     KeyPair,
     RateLimit,
+    SecurityPolicy,
     TrustStore,
     Visibility,
 )
@@ -93,6 +100,7 @@ __all__ = [
     "PlatformConfig",
     "PlatformConfigError",
     "RateLimitSettings",
+    "SecuritySettings",
     "ZenohSettings",
 ]
 
@@ -174,6 +182,29 @@ class ConsoleSettings(BaseModel):
     token_file: Path | None = None
 
 
+class SecuritySettings(BaseModel):
+    """The ``[security]`` table: confidentiality of what this platform sends and publishes.
+
+    ``encrypt`` (default true): envelopes (ACL messages, sample batches, stream reports)
+    are sealed with ChaCha20-Poly1305; false sends them MAC-only, readable on the path
+    (for debugging with plain tools). ``require_encryption`` (default: as ``encrypt``)
+    refuses, counts and audits plain envelopes. ``audit``: the published audit is
+    ``"sealed"`` to the platform's owner, ``"plain"`` JSON lines, or ``"off"`` (not
+    published). ``watch``: the owner may watch what arrives (``dyknow watch``).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    encrypt: bool = True
+    require_encryption: bool | None = None
+    audit: Literal["sealed", "plain", "off"] = "sealed"
+    watch: bool = True
+
+    def to_policy(self) -> SecurityPolicy:
+        """The sessions' policy these settings describe."""
+        return SecurityPolicy(encrypt=self.encrypt, require_encryption=self.require_encryption)
+
+
 class PlatformConfig(BaseModel):
     """One platform's settings, validated at the edge (`load`, `from_dict` name the bad key).
 
@@ -198,6 +229,7 @@ class PlatformConfig(BaseModel):
     # at least 4 of the receivers' report intervals (0.5 s): a shorter one ends live exports
     export_lease: float | None = Field(default=10.0, ge=2.0, le=86400)
     rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings)
+    security: SecuritySettings = Field(default_factory=SecuritySettings)
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
     console: ConsoleSettings = Field(default_factory=ConsoleSettings)
@@ -409,6 +441,10 @@ class FederationPlatform:
             files.trust,
             audit_path=config.audit,
             rate_limit=config.rate_limit.to_rate_limit(),
+            policy=config.security.to_policy(),
+            publish_audit=config.security.audit != "off",
+            seal_audit=config.security.audit == "sealed",
+            watchable=config.security.watch,
         )
         self.agents = AgentPlatform(
             config.name, self.transport, federation=config.federation, channel=self.interface

@@ -44,6 +44,7 @@ from agents._exceptions import (
     Malformed,
     Misdirected,
     TransportClosed,
+    Unencrypted,
     UnknownPlatform,
     UnknownSession,
 )
@@ -306,13 +307,25 @@ class InterfaceSessions(TableSessions):
             host.spawn(agent._renew(peer), f"interface.renew[{peer}]")
 
     def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
-        """Open; a trusted peer sealing on a session we lost gets a new one agreed."""
+        """Open; a trusted peer sealing on a session we lost gets a new one agreed.
+
+        What opens is shown to the owner while it watches; a plain envelope where
+        encryption is required is audited (a misconfigured or downgrading peer).
+        """
         try:
-            return self.table.open_bytes(envelope)
+            frm, body = self.table.open_bytes(envelope)
         except UnknownSession as exc:
             if exc.platform is not None:
                 self.agent._rehandshake(exc.platform)  # rate-limited by the agent
             raise
+        except Unencrypted as exc:
+            self.agent._drop_unauthenticated(
+                exc.platform, f"{exc.code}: {exc.reason}", stage="stream"
+            )
+            raise
+        if self.agent.mirroring:
+            self.agent.mirror_bytes(frm, body)
+        return frm, body
 
 
 class PlainSessions:

@@ -1,7 +1,7 @@
 """The ``dyknow`` command (typer + rich).
 
 ``monitor`` and ``kpl`` are the argparse commands of ``dyknow_core`` (unchanged); ``keys``,
-``node``, ``router``, ``platforms``, ``labels`` and ``ask`` are typer commands.
+``node``, ``router``, ``platforms``, ``labels``, ``ask`` and ``watch`` are typer commands.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import asyncio
 import json
 import os
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Annotated, Any
@@ -439,6 +440,65 @@ def stream(
             emit=emit,
         )
     )
+
+
+# -- the owner's watch ----------------------------------------------------------------------------
+
+
+def _watch_line(event: dict[str, Any]) -> str:
+    """One watched event as a line of text."""
+    kind = event["kind"]
+    when = time.strftime("%H:%M:%S", time.localtime(event.get("ts") or time.time()))
+    if kind == "acl":
+        m = event["message"]
+        if not isinstance(m, dict):
+            return f"{when} acl    from {event['from']}: {m!r}"
+        receivers = ",".join(m.get("receivers", []))
+        content = json.dumps(m.get("content"), default=str)
+        return (
+            f"{when} acl    {m.get('performative')} {m.get('sender')} -> {receivers} "
+            f"[{m.get('ontology')}] {content}"
+        )
+    if kind == "stream":
+        b = event["batch"]
+        samples = b.get("b", []) if isinstance(b, dict) else []
+        label = b.get("s") if isinstance(b, dict) else None
+        shown = ", ".join(repr(s[0]) for s in samples[:4]) + (" …" if len(samples) > 4 else "")
+        return f"{when} stream from {event['from']} {label}: {len(samples)} sample(s) {shown}"
+    if kind == "stream-report":
+        return f"{when} report from {event['from']}: {json.dumps(event['report'], default=str)}"
+    if kind == "audit":
+        r = event["record"]
+        stage = f" ({r['stage']})" if r.get("stage") else ""
+        return (
+            f"{when} audit  {r.get('verdict')}{stage} from {r.get('from')} "
+            f"{r.get('performative') or ''} {r.get('sender') or ''}: {r.get('reason') or ''}"
+        )
+    if kind == "watching":
+        return f"watching {event['platform']}: messages, batches and audit addressed to it"
+    return f"{when} {kind} {json.dumps(event, default=str)}"
+
+
+@app.command("watch")
+def watch(
+    config: ConfigOpt,
+    as_json: Annotated[bool, typer.Option("--json", help="one JSON object a line")] = False,
+    duration: Annotated[
+        float | None, typer.Option("--duration", help="stop after this many seconds")
+    ] = None,
+    timeout: Annotated[
+        float, typer.Option(help="seconds to wait for the platform to answer")
+    ] = 10.0,
+) -> None:
+    """As the platform's owner (its key): watch, decrypted, what reaches the running platform."""
+    from ._cli_net import watch_platform
+
+    _load(config)
+
+    def emit(event: dict[str, Any]) -> None:
+        _say(json.dumps(event, default=repr) if as_json else _watch_line(event))
+
+    _run_query(watch_platform(str(config), emit, duration=duration, timeout=timeout))
 
 
 # -- record and replay --------------------------------------------------------------------------

@@ -191,6 +191,7 @@ class InterfaceTarget(_Target):
         super().__init__(timeout)
         self.answers: Counter[str] = Counter()  # performatives uav-a received from uav-b
         self.unauthentic = 0  # inputs dropped because their envelope did not open
+        self._sealed: dict[bytes, bytes] = {}  # envelopes sealed here, and their bodies
         self.loop.run_until_complete(self._open())
 
     async def _open(self) -> None:
@@ -245,8 +246,13 @@ class InterfaceTarget(_Target):
         )
 
     def seal(self, body: bytes) -> bytes:
-        """``body`` sealed by uav-a for uav-b, as a JSON envelope (its MAC is right)."""
-        return self.table.seal(ME, body)
+        """``body`` sealed by uav-a for uav-b, as a JSON envelope (encrypted, its tag right)."""
+        envelope = self.table.seal(ME, body)
+        if len(self._sealed) > 4096:
+            self._sealed.clear()
+        # an envelope that opens is one of these, unchanged: the body, without the key
+        self._sealed[envelope] = body
+        return envelope
 
     def _alive(self) -> bool:
         agent = self.ia.agent
@@ -289,7 +295,8 @@ class InterfaceTarget(_Target):
         if verdict == "refused" and rec["performative"] is None:
             # no message was read: its bytes were refused, and its sender is told why,
             # unless what it sent was itself a failure or not-understood (never answered)
-            return "dropped+counted" if _never_answered(payload) else "not-understood"
+            body = self._sealed.get(payload, b"{}")
+            return "dropped+counted" if _never_answered(body) else "not-understood"
         return "dropped+counted" if verdict == "dropped" else str(verdict)
 
     def request(self, content: Any) -> Any:
@@ -334,10 +341,13 @@ class InterfaceTarget(_Target):
         self.loop.run_until_complete(wait())
 
 
-def _never_answered(envelope: bytes) -> bool:
-    """Whether the (opened) envelope's body claims a performative nobody answers."""
-    body = orjson.loads(envelope)["body"]
-    performative = orjson.loads(body).get("performative")
+def _never_answered(body: bytes) -> bool:
+    """Whether an (opened) envelope's body claims a performative nobody answers."""
+    try:
+        obj = orjson.loads(body)
+    except orjson.JSONDecodeError:
+        return False
+    performative = obj.get("performative") if isinstance(obj, dict) else None
     return isinstance(performative, str) and performative in ("failure", "not-understood")
 
 

@@ -114,7 +114,8 @@ async def logged(w: Watched, code: str, **match: Any) -> dict[str, Any]:
     async with asyncio.timeout(WAIT):
         while rec not in w.published:
             msg = await w.feed.get()
-            w.published += [orjson.loads(line) for line in msg.payload.splitlines()]
+            opened = ia(w.pb).keys.open_sealed(msg.payload)  # sealed to uav-b's owner
+            w.published += [orjson.loads(line) for line in opened.splitlines()]
     return rec
 
 
@@ -143,20 +144,20 @@ async def test_forged_handshake_signature(tmp_path: Path) -> None:
 
 
 async def test_tampered_mac(tmp_path: Path) -> None:
-    """An envelope whose body was changed, or whose MAC is made up, is dropped and audited."""
+    """An envelope whose ciphertext was changed, or whose box is made up, is dropped and audited."""
     # in-memory records: test_interface.py::test_forged_tampered_replayed_expired_and_…
     async with watched(tmp_path) as w:
         raw = await w.fed.raw()
         env = envelope_fields(w)
         calls, received = len(w.echo.calls), w.echo.stats.received
-        body = orjson.loads(env["body"])
-        body["content"] = {"x": 666}
-        tampered = {**env, "n": env["n"] + 1, "body": orjson.dumps(body).decode()}
+        box = base64.b64decode(env["box"])  # encrypted: the default
+        flipped = box[:-1] + bytes([box[-1] ^ 0x80])
+        tampered = {**env, "n": env["n"] + 1, "box": base64.b64encode(flipped).decode()}
         await raw.publish(w.inbox, orjson.dumps(tampered))
         rec = await logged(w, "forged:", verdict="dropped")
         assert rec["from"] == "uav-a"
-        assert "MAC" in rec["reason"]
-        made_up = {**env, "n": env["n"] + 2, "mac": base64.b64encode(os.urandom(32)).decode()}
+        assert "authentication tag" in rec["reason"]
+        made_up = {**env, "n": env["n"] + 2, "box": base64.b64encode(os.urandom(len(box))).decode()}
         await raw.publish(w.inbox, orjson.dumps(made_up))
         await until(lambda: len(records(w.pb, verdict="dropped")) == 2, "the made-up MAC")
         assert str(records(w.pb, verdict="dropped")[1]["reason"]).startswith("forged:")

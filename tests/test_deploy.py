@@ -17,6 +17,7 @@ import ipaddress
 import os
 import shutil
 import subprocess
+import sys
 import tomllib
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -37,7 +38,8 @@ MOUNT = PurePosixPath("/etc/dyknow")
 
 # compose file -> (the hub service, its port, the config subdirectory, transport kind)
 TOPOLOGIES = {
-    "docker-compose.yml": ("router", 7447, "", "zenoh"),
+    # the authenticated router: mutual TLS, passwords, access control (router-secure.json5)
+    "docker-compose.yml": ("router", 7447, "secure/", "zenoh"),
     "docker-compose.mqtt.yml": ("mosquitto", 1883, "mqtt/", "mqtt"),
 }
 
@@ -73,6 +75,11 @@ def keyed_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
     keys = config / "keys"
     pubs = [gen_keys(p, keys)[2] for p in PLATFORMS]
     trust_keys(keys / "trust.json", pubs, federation=FEDERATION)
+    # and the certificates and passwords, as make-keys.sh makes them (make_certs.py)
+    certs = [sys.executable, str(DEPLOY / "make_certs.py"), "--dir", str(keys / "tls")]
+    certs += [f"--platform={p}" for p in PLATFORMS]
+    done = subprocess.run(certs, capture_output=True, text=True, timeout=60, check=False)
+    assert done.returncode == 0, done.stderr
     return config
 
 
@@ -84,10 +91,11 @@ def test_make_keys_script_runs_the_same_commands() -> None:
     assert f'federation="{FEDERATION}"' in script
     assert 'gen --platform "${platform}" --dir "${keys_dir}"' in script
     assert 'trust --trust-file "${trust_file}" --federation "${federation}"' in script
+    assert '"${here}/make_certs.py" --dir "${keys_dir}/tls"' in script
     assert "/deploy/config/keys/" in (DEPLOY.parent / ".gitignore").read_text().splitlines()
 
 
-@pytest.mark.parametrize("subdir", ["", "mqtt/"])
+@pytest.mark.parametrize("subdir", ["", "mqtt/", "secure/"])
 @pytest.mark.parametrize("platform", PLATFORMS)
 def test_platform_config_is_valid(keyed_config: Path, platform: str, subdir: str) -> None:
     path = keyed_config / subdir / f"{platform}.toml"
@@ -97,7 +105,16 @@ def test_platform_config_is_valid(keyed_config: Path, platform: str, subdir: str
     files = _read_files(config, str(path))  # key, trust, vocabulary, mapping: all readable
     assert files.keys.platform == platform
     assert set(files.trust) == set(PLATFORMS)
-    if subdir:
+    if subdir == "secure/":
+        assert isinstance(config.transport, ZenohSettings)
+        assert config.transport.mode == "client"
+        assert config.transport.connect == ("tls/172.28.0.10:7447",)
+        tls, user = config.transport.tls, config.transport.usrpwd
+        assert tls is not None and user is not None and user.user == platform
+        assert tls.certificate == Path(f"/etc/dyknow/tls/{platform}.crt")
+        # encrypted end to end and the audit sealed: the defaults, not switched off
+        assert config.security.encrypt and config.security.audit == "sealed"
+    elif subdir:
         assert isinstance(config.transport, MqttSettings)
         assert config.transport.host == "172.29.0.10"
         assert config.transport.client_id == f"dyknow-{platform}"
@@ -154,21 +171,36 @@ def test_compose_topology(file: str) -> None:
         for key in ("key", "trust", "vocabulary", "mapping"):
             target = PurePosixPath(*_normalize(container_config.parent / config[key]).parts)
             assert target in mounts, f"{file}: {name}: {key} {target} is not mounted"
-        # its own private key only
-        keys = [m for m in mounts if m.suffix == ".key"]
-        assert keys == [MOUNT / "keys" / f"{name}.key"], f"{file}: {name} mounts {keys}"
+        # its own private keys only (its platform key; over TLS its certificate's key)
+        keys = sorted(m for m in mounts if m.suffix in (".key", ".password"))
+        own = [MOUNT / "keys" / f"{name}.key"]
+        if kind == "zenoh":
+            own += [MOUNT / "tls" / f"{name}.key", MOUNT / "tls" / f"{name}.password"]
+        assert keys == sorted(own), f"{file}: {name} mounts {keys}"
         # the transport points at the hub's fixed address
         transport = config["transport"]
         assert transport["kind"] == kind
         if kind == "zenoh":
-            assert transport["connect"] == [f"tcp/{addresses[hub]}:{port}"]
+            assert transport["connect"] == [f"tls/{addresses[hub]}:{port}"]
+            # every TLS file and the password file mounted where the config says
+            files = [*transport["tls"].values(), transport["usrpwd"]["password_file"]]
+            for path in (f for f in files if isinstance(f, str)):
+                assert PurePosixPath(path) in mounts, f"{file}: {name}: {path} is not mounted"
         else:
             assert (transport["host"], transport["port"]) == (str(addresses[hub]), port)
 
     if kind == "zenoh":
         router = services[hub]
-        assert router["command"] == ["router", "--config", str(MOUNT / "router.json5")]
-        assert _mounts(router) == {MOUNT / "router.json5": CONFIG / "router.json5"}
+        assert router["command"] == ["router", "--config", str(MOUNT / "router-secure.json5")]
+        tls_dir = CONFIG / "keys" / "tls"
+        # the CA's certificate but never its key: certificates are made elsewhere
+        assert _mounts(router) == {
+            MOUNT / "router-secure.json5": CONFIG / "router-secure.json5",
+            **{
+                MOUNT / "tls" / f: (tls_dir / f).resolve()
+                for f in ("ca.crt", "router.crt", "router.key", "router-users.txt")
+            },
+        }
     else:
         broker = services[hub]
         assert broker["image"].startswith("eclipse-mosquitto:")

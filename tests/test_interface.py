@@ -38,6 +38,7 @@ from agents import (
     search_services,
     wire_key,
 )
+from agents._exceptions import Forged
 from agents._interface import InterfaceAgent
 from agents._security import Handshake, KeyPair, SecurityPolicy, TrustStore
 from agents.transports import (
@@ -299,13 +300,17 @@ async def test_request_inform_both_ways_audited_and_published() -> None:
         assert req["receivers"] == ["echo@uav-b"]
         assert req["conversation_id"] == echo_b.calls[0].conversation_id
 
-        # the same records go out on dyknow/<fed>/v1/audit/<platform>, as JSON lines
+        # the same records go out on dyknow/<fed>/v1/audit/<platform>, as JSON lines sealed
+        # to the platform's owner: only its key opens them
         seen: list[dict[str, Any]] = []
         async with asyncio.timeout(WAIT):
             while not any(r["performative"] == "request" for r in seen):
                 msg = await feed.get()
-                assert msg.payload.endswith(b"\n")
-                seen += [orjson.loads(line) for line in msg.payload.splitlines()]
+                with pytest.raises(Forged):
+                    ia(pa).keys.open_sealed(msg.payload)
+                lines = ia(pb).keys.open_sealed(msg.payload)
+                assert lines.endswith(b"\n")
+                seen += [orjson.loads(line) for line in lines.splitlines()]
         published = next(r for r in seen if r["performative"] == "request")
         assert published == req
 
@@ -351,14 +356,19 @@ async def test_forged_tampered_replayed_expired_and_untrusted_envelopes_are_drop
         env = orjson.loads(envelope)
         calls, received = len(echo.calls), echo.stats.received
 
-        forged = {**env, "n": env["n"] + 100, "mac": base64.b64encode(os.urandom(32)).decode()}
+        # encrypted by default: a made-up box, and one with a flipped ciphertext byte
+        box = base64.b64decode(env["box"])
+        forged = {
+            **env,
+            "n": env["n"] + 100,
+            "box": base64.b64encode(os.urandom(len(box))).decode(),
+        }
         await raw.publish(inbox, orjson.dumps(forged))
         rec = await audited(pb, "forged", verdict="dropped")
         assert rec["from"] == "uav-a"
 
-        body = orjson.loads(env["body"])
-        body["content"] = {"x": 666}
-        tampered = {**env, "n": env["n"] + 101, "body": orjson.dumps(body).decode()}
+        flipped = bytes([box[0] ^ 1]) + box[1:]
+        tampered = {**env, "n": env["n"] + 101, "box": base64.b64encode(flipped).decode()}
         await raw.publish(inbox, orjson.dumps(tampered))
         await until(lambda: len(records(pb, verdict="dropped")) == 2, "the tampered envelope")
         assert str(records(pb, verdict="dropped")[1]["reason"]).startswith("forged:")
@@ -942,7 +952,8 @@ async def test_request_inform_over_zenoh_between_two_sessions() -> None:
             async with asyncio.timeout(WAIT):
                 while True:
                     msg: Message = await feed.get()
-                    lines = [orjson.loads(x) for x in msg.payload.splitlines()]
+                    opened = keys["uav-b"].open_sealed(msg.payload)
+                    lines = [orjson.loads(x) for x in opened.splitlines()]
                     if any(r["performative"] == "request" for r in lines):
                         break
             # a trusted platform that is not running: a clear error in bounded time

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import functools
 import os
 import stat
 import subprocess
@@ -25,18 +26,23 @@ from agents._exceptions import (
     Misdirected,
     Replayed,
     SecurityError,
+    Unencrypted,
     UnknownPlatform,
     UnknownSession,
 )
 from agents._security import (
+    SEALED_OVERHEAD,
     Handshake,
     KeyPair,
     SecurityPolicy,
     Session,
     SessionTable,
     TrustStore,
+    WatchGate,
     key_paths,
     read_public_key,
+    seal_for_owner,
+    watch_request,
 )
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -75,6 +81,10 @@ class Platform:
     table: SessionTable
 
 
+# These tests read the MAC-only envelope format; platforms encrypt by default, and the
+# tests of the encrypted form say encrypt=True.
+MacPolicy = functools.partial(SecurityPolicy, encrypt=False)
+
 KEYS = {name: KeyPair.generate(name) for name in ("uav-a", "uav-b", "uav-c")}
 
 
@@ -85,7 +95,7 @@ def make_platform(
     trusted: tuple[str, ...] = ("uav-a", "uav-b"),
     federation: str = "demo",
 ) -> Platform:
-    policy = policy or SecurityPolicy()
+    policy = policy or MacPolicy()
     trust = TrustStore(federation, {p: KEYS[p].public_key for p in trusted})
     return Platform(
         KEYS[name],
@@ -127,7 +137,7 @@ def edit(envelope: bytes, **changes: object) -> bytes:
 
 @pytest.mark.parametrize("encrypt", [False, True])
 def test_round_trip_both_directions(clock: Clock, encrypt: bool) -> None:
-    policy = SecurityPolicy(encrypt=encrypt)
+    policy = MacPolicy(encrypt=encrypt)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     sa, sb = connect(a, b)
     assert sa.sid == sb.sid and sa.initiator and not sb.initiator
@@ -219,7 +229,7 @@ def test_replay(pair: tuple[Platform, Platform]) -> None:
 
 
 def test_reorder_within_window_accepted_outside_refused(clock: Clock) -> None:
-    policy = SecurityPolicy(window=64)
+    policy = MacPolicy(window=64)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     envs = [a.table.seal("uav-b", ACL) for _ in range(200)]
@@ -246,7 +256,7 @@ def test_expired_timestamp(pair: tuple[Platform, Platform], clock: Clock, offset
 
 
 def test_skew_is_configurable(clock: Clock) -> None:
-    policy = SecurityPolicy(skew=5.0)
+    policy = MacPolicy(skew=5.0)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     env = a.table.seal("uav-b", ACL)
@@ -305,16 +315,72 @@ def test_malformed_fields(pair: tuple[Platform, Platform], changes: dict[str, ob
 
 def test_require_encryption_refuses_plain(clock: Clock) -> None:
     a = make_platform("uav-a", clock)
-    b = make_platform("uav-b", clock, SecurityPolicy(require_encryption=True))
+    b = make_platform("uav-b", clock, MacPolicy(require_encryption=True))
     connect(a, b)
     with pytest.raises(Malformed, match="requires encrypted"):
         b.table.open(a.table.seal("uav-b", ACL))
 
 
+def test_the_default_policy_encrypts_and_refuses_plain_envelopes(clock: Clock) -> None:
+    """Platforms encrypt by default; a plain envelope is refused as 'unencrypted'."""
+    assert SecurityPolicy().encrypt and SecurityPolicy().require_encryption
+    assert not SecurityPolicy(encrypt=False).require_encryption  # debugging: both forms
+    assert SecurityPolicy(encrypt=False, require_encryption=True).require_encryption
+    plain = make_platform("uav-a", clock)  # MAC-only
+    b = make_platform("uav-b", clock, SecurityPolicy())
+    connect(plain, b)
+    with pytest.raises(Unencrypted, match="requires encrypted") as info:
+        b.table.open(plain.table.seal("uav-b", ACL))
+    assert info.value.code == "unencrypted" and info.value.platform == "uav-a"
+    with pytest.raises(Unencrypted):
+        b.table.open_bytes(plain.table.seal_bytes("uav-b", b"batch"))
+    a = make_platform("uav-a", clock, SecurityPolicy())
+    b = make_platform("uav-b", clock, SecurityPolicy())
+    connect(a, b)
+    env = a.table.seal("uav-b", ACL)
+    assert b"box" in env and ACL not in env and b"performative" not in env
+    assert b.table.open(env) == ("uav-a", ACL)
+
+
+def test_sealed_for_the_owner_opens_with_the_owners_key_only() -> None:
+    """What a platform seals for its owner (the audit, the watch) opens with its key only."""
+    owner, other = KeyPair.generate("uav-a"), KeyPair.generate("uav-a")
+    box = seal_for_owner(owner.public_key, b'{"verdict":"accepted"}\n')
+    assert b"verdict" not in box and len(box) == len(b'{"verdict":"accepted"}\n') + SEALED_OVERHEAD
+    assert owner.open_sealed(box) == b'{"verdict":"accepted"}\n'
+    for bad in (box[:-1] + bytes([box[-1] ^ 1]), box[:20], b""):
+        with pytest.raises(Forged):
+            owner.open_sealed(bad)
+    with pytest.raises(Forged):
+        other.open_sealed(box)
+
+
+def test_watch_requests_are_signed_fresh_and_used_once(clock: Clock) -> None:
+    """Only the platform's own key asks to watch it; a replayed or stale request is refused."""
+    owner = KeyPair.generate("uav-a")
+    gate = WatchGate(owner, "demo", clock=clock)
+    req = watch_request(owner, "demo", clock=clock)
+    gate.check(req)
+    with pytest.raises(Replayed):
+        gate.check(req)
+    with pytest.raises(Forged):  # the right name, another key: a member, or an outsider
+        gate.check(watch_request(KeyPair.generate("uav-a"), "demo", clock=clock))
+    with pytest.raises(Misdirected):
+        gate.check(watch_request(owner, "other", clock=clock))
+    with pytest.raises(Misdirected):
+        gate.check(watch_request(KEYS["uav-b"], "demo", clock=clock))
+    stale = watch_request(owner, "demo", clock=lambda: clock() - 31)
+    with pytest.raises(Expired):
+        gate.check(stale)
+    for junk in (b"", b"[]", b'{"v": 1}', b"x" * 5000):
+        with pytest.raises(Malformed):
+            gate.check(junk)
+
+
 @pytest.mark.parametrize("encrypt", [False, True])
 def test_any_flipped_byte_is_refused(encrypt: bool) -> None:
     clock = Clock()
-    policy = SecurityPolicy(encrypt=encrypt)
+    policy = MacPolicy(encrypt=encrypt)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     env = a.table.seal("uav-b", ACL)
@@ -486,7 +552,7 @@ def test_simultaneous_handshakes_converge(clock: Clock) -> None:
 
 
 def test_renewal_after_messages(clock: Clock) -> None:
-    policy = SecurityPolicy(renew_after_messages=5)
+    policy = MacPolicy(renew_after_messages=5)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     sa, _ = connect(a, b)
     for _ in range(4):
@@ -501,7 +567,7 @@ def test_renewal_after_messages(clock: Clock) -> None:
 
 
 def test_renewal_after_time_and_grace(clock: Clock) -> None:
-    policy = SecurityPolicy(renew_after_seconds=100, grace=10)
+    policy = MacPolicy(renew_after_seconds=100, grace=10)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     sa1, sb1 = connect(a, b)
     assert not sb1.confirmed
@@ -528,7 +594,7 @@ def test_renewal_after_time_and_grace(clock: Clock) -> None:
 
 
 def test_session_lifetime(clock: Clock) -> None:
-    policy = SecurityPolicy(renew_after_seconds=100, grace=10)
+    policy = MacPolicy(renew_after_seconds=100, grace=10)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     sa, _ = connect(a, b)
     clock.advance(105)
@@ -542,7 +608,7 @@ def test_session_lifetime(clock: Clock) -> None:
 
 
 def test_sessions_per_peer_are_capped(clock: Clock) -> None:
-    policy = SecurityPolicy(max_sessions_per_peer=2)
+    policy = MacPolicy(max_sessions_per_peer=2)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     first, _ = connect(a, b)
     for _ in range(3):
@@ -801,7 +867,7 @@ def test_responder_does_not_send_first(clock: Clock) -> None:
 
 
 def test_replayed_requests_after_restart_cannot_evict_the_live_session(clock: Clock) -> None:
-    policy = SecurityPolicy(max_sessions_per_peer=2)
+    policy = MacPolicy(max_sessions_per_peer=2)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     captured = [a.hs.initiate("uav-b") for _ in range(3)]
     live, _ = connect(a, b)
@@ -818,7 +884,7 @@ def test_replayed_requests_after_restart_cannot_evict_the_live_session(clock: Cl
 def test_simultaneous_renewals_keep_the_session_the_peer_is_about_to_use(clock: Clock) -> None:
     # both sides renew at once with room for two sessions: neither may evict the fresh
     # session the other just made and is about to seal on
-    policy = SecurityPolicy(max_sessions_per_peer=2)
+    policy = MacPolicy(max_sessions_per_peer=2)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     b.table.open(a.table.seal("uav-b", ACL))

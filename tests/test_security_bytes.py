@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import functools
 import hashlib
 import hmac
 import os
@@ -32,6 +33,10 @@ BODY = msgpack.packb({"v": 1, "s": "car5-state", "b": [[1.5, 10, 11], ["x", 12, 
 ACL = orjson.dumps(
     {"v": 1, "performative": "inform", "sender": "a@uav-a", "receivers": ["b@uav-b"]}
 )
+# These tests read the MAC-only envelope format; platforms encrypt by default, and the
+# tests of the encrypted form say encrypt=True.
+MacPolicy = functools.partial(SecurityPolicy, encrypt=False)
+
 KEYS = {name: KeyPair.generate(name) for name in ("uav-a", "uav-b", "uav-c")}
 
 
@@ -52,7 +57,7 @@ class Platform:
 
 
 def make_platform(name: str, clock: Clock, policy: SecurityPolicy | None = None) -> Platform:
-    policy = policy or SecurityPolicy()
+    policy = policy or MacPolicy()
     trust = TrustStore("demo", {p: KEYS[p].public_key for p in ("uav-a", "uav-b")})
     return Platform(
         Handshake(KEYS[name], trust, policy=policy, clock=clock),
@@ -96,7 +101,7 @@ def edit(envelope: bytes, index: int, value: object) -> bytes:
 
 @pytest.mark.parametrize("encrypt", [False, True])
 def test_round_trip_both_directions(clock: Clock, encrypt: bool) -> None:
-    policy = SecurityPolicy(encrypt=encrypt)
+    policy = MacPolicy(encrypt=encrypt)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     sa, sb = connect(a, b)
     for i in range(3):
@@ -125,7 +130,7 @@ def test_mac_is_hmac_sha256_over_the_documented_input(clock: Clock) -> None:
         initiator=True,
         keys=keys,
         order=(0, "S1d"),
-        policy=SecurityPolicy(),
+        policy=MacPolicy(),
         clock=clock,
     )
     v, frm, to, sid, ts, n, body, mac = fields(session.seal_bytes(BODY))
@@ -192,7 +197,7 @@ def test_binary_and_json_envelopes_never_stand_for_each_other(
 
 
 def test_encrypted_binary_uses_its_own_nonces(clock: Clock) -> None:
-    policy = SecurityPolicy(encrypt=True)
+    policy = MacPolicy(encrypt=True)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     body = b"x" * 64
@@ -212,7 +217,7 @@ def test_responder_session_is_confirmed_by_a_binary_envelope(clock: Clock) -> No
 
 
 def test_binary_envelopes_count_towards_renewal(clock: Clock) -> None:
-    policy = SecurityPolicy(renew_after_messages=3)
+    policy = MacPolicy(renew_after_messages=3)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     a.table.seal("uav-b", ACL)
@@ -273,7 +278,7 @@ def test_reflected_envelope_is_refused(pair: tuple[Platform, Platform]) -> None:
 
 
 def test_replay_and_reordering(clock: Clock) -> None:
-    policy = SecurityPolicy(window=8)
+    policy = MacPolicy(window=8)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     envs = [a.table.seal_bytes("uav-b", BODY) for _ in range(12)]
@@ -288,7 +293,7 @@ def test_replay_and_reordering(clock: Clock) -> None:
 
 
 def test_expired_timestamp_and_session(clock: Clock) -> None:
-    policy = SecurityPolicy(skew=5, renew_after_seconds=60, grace=10)
+    policy = MacPolicy(skew=5, renew_after_seconds=60, grace=10)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     env = a.table.seal_bytes("uav-b", BODY)
@@ -306,14 +311,14 @@ def test_expired_timestamp_and_session(clock: Clock) -> None:
 
 def test_require_encryption_refuses_plain_binary(clock: Clock) -> None:
     a = make_platform("uav-a", clock)
-    b = make_platform("uav-b", clock, SecurityPolicy(require_encryption=True))
+    b = make_platform("uav-b", clock, MacPolicy(require_encryption=True))
     connect(a, b)
     with pytest.raises(Malformed, match="encrypted"):
         b.table.open_bytes(a.table.seal_bytes("uav-b", BODY))
 
 
 def test_forged_box(clock: Clock) -> None:
-    policy = SecurityPolicy(encrypt=True)
+    policy = MacPolicy(encrypt=True)
     a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
     connect(a, b)
     env = a.table.seal_bytes("uav-b", BODY)
