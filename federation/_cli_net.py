@@ -55,12 +55,22 @@ def endpoints(config: PlatformConfig) -> str:
 
 
 async def run_node(config: PlatformConfig, source: str, say: Callable[[str], None]) -> None:
-    """Run one platform until SIGINT/SIGTERM, then shut it down cleanly."""
-    async with FederationPlatform(config, source=source) as p:
+    """Run one platform and its application until SIGINT/SIGTERM, then shut it down cleanly."""
+    from ._application import NodeApplication, check_application
+
+    check_application(config, source)  # before anything opens: exit 2, nothing touched
+    # Out of the federation until the application is set up: a query must find its streams.
+    async with (
+        FederationPlatform(config, source=source, join=False) as p,
+        NodeApplication(p, source) as application,
+    ):
+        await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
         settle_gc()
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
         await stop.wait()
+        for row in application.stats():
+            say(f"dyknow node: {json.dumps(row, sort_keys=True)}")
     say(f"dyknow node: {config.name} stopped")
 
 
@@ -79,12 +89,16 @@ async def run_console(
     config: PlatformConfig, source: str, host: str, port: int, say: Callable[[str], None]
 ) -> None:
     """Run one platform with the operator web console until SIGINT/SIGTERM."""
+    from ._application import NodeApplication, check_application
     from .demo._console import OperatorConsole
 
+    check_application(config, source)
     async with (
-        FederationPlatform(config, source=source) as p,
+        FederationPlatform(config, source=source, join=False) as p,
+        NodeApplication(p, source),
         OperatorConsole(p, host=host, port=port) as console,
     ):
+        await p.join()
         stop = _stop_event()
         settle_gc()
         say(f"dyknow console: {p.name} ready in federation {config.federation}: {console.url}")
