@@ -36,6 +36,8 @@ __all__ = [
     "InputStats",
     "MqttInput",
     "PythonInput",
+    "Ros2Input",
+    "RosbagInput",
     "ZenohInput",
     "input_runner",
 ]
@@ -182,8 +184,50 @@ class PythonInput(_InputBase):
         return f"python {self.entry}"
 
 
+class Ros2Input(_InputBase):
+    """``kind = "ros2"``: a ROS 2 topic through rmw_zenoh, CDR decoded (federation/_ros.py).
+
+    Subscribes to ``<domain>/<topic>/<type>/<type hash>`` as rmw_zenoh puts it (any type
+    and hash unless ``type`` is given); a message's ``header.stamp`` is its valid time.
+    """
+
+    kind: Literal["ros2"]
+    topic: str = Field(pattern=r"^/?[A-Za-z_~][A-Za-z0-9_/~]*$")
+    domain: int = Field(default=0, ge=0, le=232)
+    type: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+$")
+    distro: str = "humble"
+    connect: tuple[str, ...] | None = None
+
+    def default_title(self) -> str:
+        """``ros2 TOPIC``."""
+        return f"ros2 {self.topic}"
+
+
+class RosbagInput(_InputBase):
+    """``kind = "rosbag"``: one topic of a rosbag2 directory or an MCAP file, replayed."""
+
+    kind: Literal["rosbag"]
+    path: Path
+    topic: str = Field(min_length=1)
+    pace: Literal["recorded", "fast"] = "recorded"
+    speed: float = Field(default=1.0, gt=0)
+    shift: Literal["none", "now"] = "none"
+    distro: str = "humble"
+
+    def default_title(self) -> str:
+        """``rosbag PATH TOPIC``."""
+        return f"rosbag {self.path} {self.topic}"
+
+    def relative_to(self, base: Path) -> RosbagInput:
+        """The bag resolved against ``base``."""
+        if not self.path.is_absolute():
+            return self.model_copy(update={"path": base / self.path})
+        return self
+
+
 InputSettings = Annotated[
-    ZenohInput | MqttInput | FileInput | PythonInput, Field(discriminator="kind")
+    ZenohInput | MqttInput | FileInput | PythonInput | Ros2Input | RosbagInput,
+    Field(discriminator="kind"),
 ]
 
 
@@ -589,6 +633,10 @@ class _PythonRunner(InputRunner):
 
 def input_runner(settings: _InputBase, instance: DyKnowInstance) -> InputRunner:
     """The runner of one ``[[inputs]]`` table."""
+    if isinstance(settings, Ros2Input | RosbagInput):
+        from ._ros import ros_runner  # rosbags and mcap are imported only when used
+
+        return ros_runner(settings, instance)
     kinds: dict[type[_InputBase], Callable[..., InputRunner]] = {
         ZenohInput: _ZenohRunner,
         MqttInput: _MqttRunner,

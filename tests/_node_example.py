@@ -76,9 +76,9 @@ class Station:
         return json.loads(done.stdout)
 
     def latest(self, *labels: str, until: Callable[[dict[str, Any]], bool]) -> dict[str, Any]:
-        """``dyknow ask station LABELS`` until the answer satisfies ``until`` (10 tries)."""
+        """``dyknow ask station LABELS`` until the answer satisfies ``until`` (20 tries)."""
         answer: dict[str, Any] = {}
-        for _ in range(10):
+        for _ in range(20):
             answer = self.dyknow("ask", "station", *labels)
             if until(answer):
                 return answer

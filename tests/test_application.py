@@ -72,7 +72,8 @@ def test_config_keys_of_inputs_are_named(station: Path, capsys: pytest.CaptureFi
     text = station.read_text()
     station.write_text(text.replace('kind = "file"', 'kind = "ftp"', 1))
     code, err = _node(station, capsys)
-    assert code == 2 and "inputs[0].kind: expected 'zenoh', 'mqtt', 'file', 'python'" in err
+    kinds = "'zenoh', 'mqtt', 'file', 'python', 'ros2', 'rosbag'"
+    assert code == 2 and f"inputs[0].kind: expected {kinds}" in err
     station.write_text(text.replace('pace = "fast"', 'pace = "fast"\nspeeed = 2'))
     code, err = _node(station, capsys)
     assert code == 2 and "inputs[1].speeed: unknown key" in err

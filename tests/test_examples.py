@@ -182,3 +182,60 @@ def test_node_example_mqtt_input_from_mosquitto_pub(
         assert "none of the fields temperature, wind" in err
     finally:
         station.stop()
+
+
+@pytest.mark.timeout(90)
+def test_node_example_ros2_topics_published_as_rmw_zenoh_does(station: Station) -> None:
+    station.start("ros2")
+    # encoded by rosbags, put on rmw_zenoh's keys by a plain zenoh client (not our code)
+    stamp = 1764000000.5
+    publish = subprocess.run(
+        [sys.executable, "publish_ros2.py", f"tcp/127.0.0.1:{station.port}", "3", str(stamp)],
+        cwd=station.dir,
+        env=station.env,
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert publish.returncode == 0, publish.stderr
+    labels = ("position", "fix", "temperature", "status")
+    answer = station.latest(*labels, until=lambda a: all(_samples(a, x) for x in labels))
+    [(position, valid, _)] = _samples(answer, "position")
+    assert position == {"x": 12.0, "y": 20.0, "z": 1.5}  # geometry_msgs/PoseStamped
+    assert valid == stamp + 2  # its header.stamp
+    [(fix, valid, _)] = _samples(answer, "fix")  # sensor_msgs/NavSatFix, whole
+    assert fix["latitude"] == pytest.approx(58.39002) and fix["altitude"] == 80.0
+    assert fix["status"] == {"status": 0, "service": 1} and valid == stamp + 2
+    [(temperature, valid, available)] = _samples(answer, "temperature")  # std_msgs/Float64
+    assert temperature == 23.0 and valid == available  # no header: its arrival
+    assert _samples(answer, "status")[0][0] == "ok 2"  # std_msgs/String
+    out, err = station.stop()
+    [status] = [r for r in _stats(out) if r.get("input") == "ros2 /station/status"]
+    assert status["received"] == 4 and status["samples"] == 3
+    assert list(status["bad"]) == ["not-cdr"] and "std_msgs/msg/String" in err
+
+
+@pytest.mark.timeout(90)
+def test_node_example_rosbag2_and_mcap_files_replayed(station: Station) -> None:
+    # the recordings are written by rosbags (rosbag2) and mcap, not by our code
+    made = subprocess.run(
+        [sys.executable, "make_bag.py"],
+        cwd=station.dir,
+        env=station.env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert made.returncode == 0, made.stderr
+    station.start("rosbag")
+    answer = station.latest("position", until=lambda a: _samples(a, "position")[0][0]["x"] == 19.0)
+    history = station.dyknow("ask", "station", "position", "temperature", "--from", "0")
+    positions = _samples(history, "position")
+    assert [p[0]["x"] for p in positions] == [10.0 + n for n in range(10)]
+    # recorded pace: 0.9 s between the first and the last arrival, valid times as stamped
+    assert positions[-1][2] - positions[0][2] >= 0.8
+    assert [p[1] for p in positions] == [pytest.approx(1764000000 + 0.1 * n) for n in range(10)]
+    temperatures = _samples(history, "temperature")  # from the MCAP file, as fast as possible
+    assert [t[0] for t in temperatures] == [21.0 + n for n in range(10)]
+    assert temperatures[0][1] == 1764000000.0  # no header: the recorded log time
+    assert answer
