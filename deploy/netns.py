@@ -176,6 +176,7 @@ def write_configs(rundir: Path, subnet: str) -> None:
     except KeysError as exc:
         raise Failure(f"keys: {exc}") from None
     shutil.copy(CONFIG / "traffic.toml", rundir / "traffic.toml")
+    shutil.copy(CONFIG / "traffic-app.kpl", rundir / "traffic-app.kpl")  # the UAVs' application
     router = f"tcp/{address(subnet, 'router')}:{PORT}"
     for platform in PLATFORMS:
         shutil.copy(CONFIG / f"{platform}-labels.toml", rundir / f"{platform}-labels.toml")

@@ -125,6 +125,18 @@ class NodeApplication:
                 if problems:
                     raise PlatformConfigError(self.source, f"outputs[{n}].labels", problems[0])
         session = self._zenoh_session()
+        if session is None:  # zenoh inputs/outputs need the node's session or their own
+            for kind, specs in (("inputs", self.config.inputs), ("outputs", self.config.outputs)):
+                for n, spec in enumerate(specs):
+                    if getattr(spec, "kind", None) in ("zenoh", "ros2") and not getattr(
+                        spec, "connect", None
+                    ):
+                        raise PlatformConfigError(
+                            self.source,
+                            f"{kind}[{n}].connect",
+                            "missing: the node's transport is not zenoh, so this "
+                            f"{spec.kind} {kind[:-1]} needs connect = [...] of its own",
+                        )
         for runner in self.inputs:
             self._start(runner.stats.title, runner.run(session))
         for out in self.outputs:

@@ -112,3 +112,17 @@ async def test_messages_map_to_samples_and_bad_ones_are_counted() -> None:
         assert stats["received"] == 7 and stats["samples"] == 2
         assert stats["bad"] == {"bad-time": 1, "no-label-field": 2, "no-field": 2}
         assert runner.mapper.decode(b"\x81\xa1a\x01", "msgpack") == {"a": 1}
+
+
+def test_a_zenoh_input_on_an_mqtt_node_needs_its_own_connect(
+    station: Path, capsys: pytest.CaptureFixture[str], mosquitto: tuple[str, int]
+) -> None:
+    host, port = mosquitto
+    text = (station.parent / "station-zenoh.toml").read_text()
+    text = text.replace(
+        'mode = "peer"\nlisten = ["tcp/127.0.0.1:7450"]',
+        f'kind = "mqtt"\nhost = "{host}"\nport = {port}',
+    )
+    station.write_text(text)
+    code, err = _node(station, capsys)
+    assert code == 2 and "inputs[0].connect: missing: the node's transport is not zenoh" in err
