@@ -76,7 +76,10 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         await stop.wait()
         for row in application.stats():
             say(f"dyknow node: {json.dumps(row, sort_keys=True)}")
-        say(f"dyknow node: local channel: {channel.served} commands served")
+        say(
+            f"dyknow node: local channel: {channel.served} commands served, "
+            f"{channel.refused} refused"
+        )
     say(f"dyknow node: {config.name} stopped")
 
 
@@ -121,7 +124,10 @@ async def run_console(
         settle_gc()
         say(f"dyknow console: {p.name} ready in federation {config.federation}: {console.url}")
         await stop.wait()
-        say(f"dyknow console: local channel: {channel.served} commands served")
+        say(
+            f"dyknow console: local channel: {channel.served} commands served, "
+            f"{channel.refused} refused"
+        )
     say(f"dyknow console: {config.name} stopped")
 
 

@@ -209,6 +209,7 @@ class LocalChannel:
         self._server: asyncio.base_events.Server | None = None
         self._handle: Any = None
         self.served = 0
+        self.refused = 0
         self._lock = asyncio.Lock()
         self._exports: dict[tuple[str, str], list[Any]] = {}  # export id, commands following
 
@@ -252,8 +253,10 @@ class LocalChannel:
 
         try:
             uid = _peer_uid(writer)
-            if uid is not None and uid not in (os.getuid(), 0):
-                log.warning("local channel: refused a client of uid %d", uid)
+            if uid is None or uid not in (os.getuid(), 0):
+                # the socket's mode keeps others out; this holds if it was loosened
+                self.refused += 1
+                log.warning("local channel: refused a client of uid %s", uid)
                 await send({"error": "this node serves its own user only"})
                 return
             line = await reader.readline()

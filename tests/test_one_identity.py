@@ -4,6 +4,7 @@ commands run with a running node's config go through it and break none of its se
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -123,7 +124,7 @@ def test_one_shot_commands_run_beside_the_console_with_its_config(tmp_path: Path
         console.send_signal(signal.SIGINT)
         out, err = console.communicate(timeout=20)
         assert console.returncode == 0, err
-        assert "local channel: 5 commands served" in out  # each went through the console
+        assert "local channel: 5 commands served, 0 refused" in out  # each went through the console
         for text in (err, station.stop()[1]):
             assert "unknown-session" not in text and "renewing" not in text, text
             assert "Traceback" not in text
@@ -132,3 +133,84 @@ def test_one_shot_commands_run_beside_the_console_with_its_config(tmp_path: Path
             console.kill()
             console.communicate(timeout=10)
         station.stop()
+
+
+ATTACKER = """
+import json, socket, sys
+s = socket.socket(socket.AF_UNIX)
+try:
+    s.connect(sys.argv[1])
+except OSError as exc:
+    print("connect:", type(exc).__name__, flush=True)
+    sys.exit(0)
+ask = {"action": "get-latest", "labels": ["temperature"]}
+request = {"op": "request", "platform": "station", "content": ask}
+s.sendall(json.dumps(request).encode() + b"\\n")
+print("answer:", s.makefile().readline().strip(), flush=True)
+"""
+
+
+@pytest.mark.timeout(120)
+def test_another_user_cannot_use_a_nodes_local_channel(tmp_path: Path) -> None:
+    import shutil
+    import tempfile
+
+    from federation._platform import PlatformConfig
+
+    runtime = Path(tempfile.mkdtemp(prefix="dyknow-xdg-", dir="/tmp"))
+    try:
+        runtime.chmod(0o755)  # a runtime directory others may traverse
+        station = Station(tmp_path)
+        station.env["XDG_RUNTIME_DIR"] = str(runtime)
+        try:
+            station.start("python")
+            config = PlatformConfig.load(station.dir / "station-python.toml")
+            sock = _channel(config, runtime)
+
+            def attack() -> str:
+                done = subprocess.run(
+                    # the system's python (the attacker's own; stdlib only)
+                    ["/usr/bin/python3", "-c", ATTACKER, str(sock)],
+                    cwd="/",
+                    user=65534,  # nobody: another OS user on the node's host
+                    group=65534,
+                    capture_output=True,
+                    text=True,
+                    timeout=30,
+                )
+                assert done.returncode == 0, done.stderr
+                return done.stdout.strip()
+
+            # the socket's directory is the node's user's only
+            assert attack() == "connect: PermissionError"
+            # loosened by mistake: the node still refuses, by the peer's uid
+            for d in (sock.parent.parent, sock.parent):
+                d.chmod(0o755)
+            sock.chmod(0o777)
+            answer = attack()
+            assert answer.startswith("answer: ")
+            assert json.loads(answer.removeprefix("answer: ")) == {
+                "error": "this node serves its own user only"
+            }
+            out, err = station.stop()
+            assert "local channel: 0 commands served, 1 refused" in out
+            assert "local channel: refused a client of uid 65534" in err
+        finally:
+            station.stop()
+    finally:
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
+def _channel(config: object, runtime: Path) -> Path:
+    """The node's socket, as the node computes it under ``runtime``."""
+    from federation._local import channel_path
+
+    saved = os.environ.get("XDG_RUNTIME_DIR")
+    os.environ["XDG_RUNTIME_DIR"] = str(runtime)
+    try:
+        return channel_path(config)  # type: ignore[arg-type]
+    finally:
+        if saved is None:
+            del os.environ["XDG_RUNTIME_DIR"]
+        else:
+            os.environ["XDG_RUNTIME_DIR"] = saved
