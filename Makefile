@@ -24,14 +24,17 @@ typecheck: $(STAMP)
 	@echo "==> mypy"
 	$(VENV)/bin/mypy
 
-# The MQTT transport's tests start their own mosquitto broker; install it from Debian's
-# packages when it is missing (idempotent: nothing happens when it is already there).
+# The MQTT transport's tests start their own mosquitto broker, and the MQTT input's tests
+# publish with mosquitto_pub (a real MQTT client); install both from Debian's packages
+# when missing (idempotent: nothing happens when they are already there).
 mosquitto:
-	@if command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto; then :; else \
-		echo "==> installing mosquitto (the MQTT transport's tests need a broker)"; \
+	@if (command -v mosquitto >/dev/null 2>&1 || test -x /usr/sbin/mosquitto) && \
+		command -v mosquitto_pub >/dev/null 2>&1; then :; else \
+		echo "==> installing mosquitto and its clients (the MQTT tests need a broker)"; \
 		SUDO=; if [ "$$(id -u)" -ne 0 ]; then SUDO=sudo; fi; \
 		$$SUDO apt-get update -qq && \
-		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq mosquitto >/dev/null; \
+		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq \
+			mosquitto mosquitto-clients >/dev/null; \
 	fi
 
 # The operator console's browser test drives Debian's chromium through Playwright (never a

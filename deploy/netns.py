@@ -181,6 +181,7 @@ def write_configs(rundir: Path, subnet: str) -> None:
     except KeysError as exc:
         raise Failure(f"keys: {exc}") from None
     shutil.copy(CONFIG / "traffic.toml", rundir / "traffic.toml")
+    shutil.copy(CONFIG / "traffic-app.kpl", rundir / "traffic-app.kpl")  # the UAVs' application
     # the zenoh links' certificates, from a CA of this run: the router's names its address
     tls = rundir / "tls"
     certs = [sys.executable, str(HERE / "make_certs.py"), "--dir", str(tls)]

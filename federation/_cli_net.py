@@ -10,7 +10,7 @@ import re
 import signal
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -61,13 +61,39 @@ def endpoints(config: PlatformConfig) -> str:
 
 
 async def run_node(config: PlatformConfig, source: str, say: Callable[[str], None]) -> None:
-    """Run one platform until SIGINT/SIGTERM, then shut it down cleanly."""
-    async with FederationPlatform(config, source=source) as p:
+    """Run one platform and its application until SIGINT/SIGTERM, then shut it down cleanly."""
+    from ._application import NodeApplication, check_application
+    from ._local import LocalChannel, refuse_duplicate
+
+    check_application(config, source)  # before anything opens: exit 2, nothing touched
+    transport = config.make_transport()
+    # Out of the federation until the application is set up: a query must find its streams.
+    async with (
+        transport,
+        _checked(refuse_duplicate(transport, config)),
+        FederationPlatform(config, source=source, join=False, transport=transport) as p,
+        NodeApplication(p, source) as application,
+        LocalChannel(p) as channel,
+    ):
+        await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
         settle_gc()
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
         await stop.wait()
+        for row in application.stats():
+            say(f"dyknow node: {json.dumps(row, sort_keys=True)}")
+        say(
+            f"dyknow node: local channel: {channel.served} commands served, "
+            f"{channel.refused} refused"
+        )
     say(f"dyknow node: {config.name} stopped")
+
+
+@contextlib.asynccontextmanager
+async def _checked(check: Any) -> Any:
+    """Await ``check`` on entering (a step of an ``async with`` chain)."""
+    await check
+    yield
 
 
 def settle_gc() -> None:
@@ -95,18 +121,31 @@ async def run_console(
 
     The ready line ends with the URL to open, token included (``…/?token=…``).
     """
+    from ._application import NodeApplication, check_application
+    from ._local import LocalChannel, refuse_duplicate
     from .demo._console import OperatorConsole
 
+    check_application(config, source)
+    transport = config.make_transport()
     async with (
-        FederationPlatform(config, source=source) as p,
+        transport,
+        _checked(refuse_duplicate(transport, config)),
+        FederationPlatform(config, source=source, join=False, transport=transport) as p,
+        NodeApplication(p, source),
+        LocalChannel(p) as channel,
         OperatorConsole(p, host=host, port=port, token=token, allow_hosts=allow_hosts) as console,
     ):
+        await p.join()
         stop = _stop_event()
         settle_gc()
         say(
             f"dyknow console: {p.name} ready in federation {config.federation}: {console.login_url}"
         )
         await stop.wait()
+        say(
+            f"dyknow console: local channel: {channel.served} commands served, "
+            f"{channel.refused} refused"
+        )
     say(f"dyknow console: {config.name} stopped")
 
 
@@ -148,34 +187,137 @@ async def _wait_for(p: FederationPlatform, want: str | None, wait: float) -> Non
         await asyncio.sleep(0.1)
 
 
-def _opened(path: str) -> FederationPlatform:
-    """A platform from a config file, kept out of the federation (an asking console)."""
-    return FederationPlatform(PlatformConfig.load(path), source=path, join=False)
+@contextlib.asynccontextmanager
+async def _opened(path: str) -> AsyncIterator[FederationPlatform]:
+    """A platform from a config file, kept out of the federation (an asking console).
+
+    Refused (PlatformAliveError) when a platform of that name is alive elsewhere: acting
+    as it would break its sessions. On its own host the commands go through it instead.
+    """
+    from ._local import refuse_duplicate
+
+    config = PlatformConfig.load(path)
+    transport = config.make_transport()
+    async with transport:
+        await refuse_duplicate(transport, config, command=True)
+        async with FederationPlatform(
+            config, source=path, join=False, transport=transport
+        ) as platform:
+            yield platform
+
+
+def platforms_of(p: FederationPlatform) -> dict[str, list[dict[str, Any]]]:
+    """``{platform: [service, …]}`` of those alive, as ``p`` sees them (``p`` left out)."""
+    gdf = p.agents.global_df
+    if gdf is None:
+        return {}
+    return {
+        name: [{"name": s.name, "type": s.type, "provider": s.provider} for s in gdf.services(name)]
+        for name in gdf.platforms
+        if name != p.name
+    }
+
+
+async def _through_node(config_path: str, request: dict[str, Any]) -> tuple[bool, Any]:
+    """``(True, result)`` from the running node of this config, or ``(False, None)`` if none.
+
+    The one-shot commands go through a running node of their config (docs/application.md,
+    "One platform, one process"): its sessions stay its own.
+    """
+    from ._local import NodeUnreachable, via_node
+
+    try:
+        async for line in via_node(PlatformConfig.load(config_path), request):
+            if "error" in line:
+                raise RuntimeError(line["error"])
+            if "ok" in line:
+                return True, line["ok"]
+    except NodeUnreachable:
+        return False, None
+    raise RuntimeError("the running node closed the local channel without an answer")
 
 
 async def list_platforms(config_path: str, wait: float) -> dict[str, list[dict[str, Any]]]:
-    """Join as the config's platform: ``{platform: [service, …]}`` of those alive."""
+    """As the config's platform: ``{platform: [service, …]}`` of those alive."""
+    done, found = await _through_node(config_path, {"op": "platforms", "wait": wait})
+    if done:
+        return dict(found)
     async with _opened(config_path) as p:
         await _wait_for(p, None, wait)
-        gdf = p.agents.global_df
-        if gdf is None:
-            return {}
-        return {
-            name: [
-                {"name": s.name, "type": s.type, "provider": s.provider} for s in gdf.services(name)
-            ]
-            for name in gdf.platforms
-            if name != p.name
-        }
+        return platforms_of(p)
 
 
 async def ask_platform(
     config_path: str, platform: str, content: dict[str, Any], wait: float, timeout: float
 ) -> Any:
     """Send one federation request to ``platform``; the inform's content."""
+    request = {
+        "op": "request",
+        "platform": platform,
+        "content": content,
+        "wait": wait,
+        "timeout": timeout,
+    }
+    done, answer = await _through_node(config_path, request)
+    if done:
+        return answer
     async with _opened(config_path) as p:
         await _wait_for(p, platform, wait)
         return await p.federation_agent.request_from(platform, content, timeout=timeout)
+
+
+async def stream_through_node(
+    config_path: str,
+    platform: str,
+    semantic_labels: list[str],
+    *,
+    sample_period: float | None,
+    count: int | None,
+    wait: float,
+    timeout: float,
+    emit: Callable[[str, Any, int, int], None],
+    stop: asyncio.Event,
+) -> int | None:
+    """Samples relayed by the running node of this config; None when none runs."""
+    from ._local import NodeUnreachable, via_node
+
+    request = {
+        "op": "stream",
+        "platform": platform,
+        "labels": semantic_labels,
+        "sample_period": sample_period,
+        "count": count,
+        "wait": wait,
+        "timeout": timeout,
+    }
+    seen = 0
+    lines = via_node(PlatformConfig.load(config_path), request)
+    stopping = asyncio.ensure_future(stop.wait())
+    try:
+        while True:
+            nxt = asyncio.ensure_future(anext(lines))
+            done, _ = await asyncio.wait([nxt, stopping], return_when=asyncio.FIRST_COMPLETED)
+            if nxt not in done:
+                nxt.cancel()
+                with contextlib.suppress(BaseException):
+                    await nxt
+                return seen
+            try:
+                line = nxt.result()
+            except StopAsyncIteration:
+                return seen
+            except NodeUnreachable:
+                return None
+            if "error" in line:
+                raise RuntimeError(line["error"])
+            if "end" in line:
+                return seen
+            label, value, valid, available = line["sample"]
+            emit(label, value, valid, available)
+            seen += 1
+    finally:
+        stopping.cancel()
+        await lines.aclose()
 
 
 def read_json5(path: str | None) -> str | None:
@@ -201,6 +343,19 @@ async def follow_stream(
 ) -> int:
     """Create-stream from ``platform`` to us and emit its samples until SIGINT or ``count``."""
     stop = _stop_event()
+    relayed = await stream_through_node(
+        config_path,
+        platform,
+        semantic_labels,
+        sample_period=sample_period,
+        count=count,
+        wait=wait,
+        timeout=timeout,
+        emit=emit,
+        stop=stop,
+    )
+    if relayed is not None:
+        return relayed
     async with _opened(config_path) as p:
         await _wait_for(p, platform, wait)
         fed = p.federation_agent

@@ -90,6 +90,8 @@ from ontology import (
 )
 
 from ._fusion import Fusion, add_fusion
+from ._inputs import InputSettings
+from ._outputs import OutputSettings
 from ._proxies import ExportProxy, Import, ImportProxy, InterfaceSessions
 from ._service import Anchor, FederationAgent, MembershipEvent
 
@@ -111,6 +113,7 @@ DEFAULT_IMPORT_LABEL = "import/{sender}/{semantic}"
 
 _NAME = r"^[A-Za-z0-9_.-]+$"
 _IMPORT_FIELDS = frozenset({"sender", "semantic"})
+_KINDS = frozenset({"zenoh", "mqtt", "file", "python", "ros2", "rosbag"})  # of inputs/outputs
 
 OnImportEnded = Callable[[str, list[str]], Awaitable[None] | None]
 """``on_import_ended(sender, semantic_labels)``: the streams imported from a gone sender ended."""
@@ -234,6 +237,11 @@ class PlatformConfig(BaseModel):
     audit: Path | None = None
     console: ConsoleSettings = Field(default_factory=ConsoleSettings)
 
+    # -- the application on this node (docs/application.md): run by `dyknow node` --------
+    application: Path | None = Field(default=None, description="The node's KPL file.")
+    inputs: list[InputSettings] = Field(default_factory=list)
+    outputs: list[OutputSettings] = Field(default_factory=list)
+
     @field_validator("transport", mode="before")
     @classmethod
     def _default_kind(cls, value: Any) -> Any:
@@ -293,6 +301,10 @@ class PlatformConfig(BaseModel):
         token_file = self.console.token_file
         if token_file is not None and not token_file.is_absolute():
             update["console"] = self.console.model_copy(update={"token_file": base / token_file})
+        if self.application is not None and not self.application.is_absolute():
+            update["application"] = base / self.application
+        if self.inputs:
+            update["inputs"] = [i.relative_to(base) for i in self.inputs]
         return self.model_copy(update=update)
 
     def import_label_of(self, sender: str, semantic: str) -> str:
@@ -311,6 +323,8 @@ def _key_path(loc: tuple[int | str, ...]) -> str:
     parts = list(loc)
     if len(parts) >= 2 and parts[0] == "transport" and parts[1] in ("zenoh", "mqtt"):
         del parts[1]
+    if len(parts) >= 3 and parts[0] in ("inputs", "outputs") and parts[2] in _KINDS:
+        del parts[2]  # the kind's tag
     out = ""
     for p in parts:
         out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
@@ -322,7 +336,12 @@ def _config_error(exc: ValidationError, source: str) -> PlatformConfigError:
     first = errors[0]
     key = _key_path(first["loc"])
     message = str(first["msg"]).removeprefix("Value error, ")
-    if first["type"] == "union_tag_invalid":
+    if first["type"] in ("union_tag_invalid", "union_tag_not_found") and key != "transport":
+        # an [[inputs]] / [[outputs]] table of an unknown kind, or none
+        expected = first.get("ctx", {}).get("expected_tags", "")
+        found = first["type"] == "union_tag_invalid"
+        key, message = f"{key}.kind", ("expected " + expected if found else "missing")
+    elif first["type"] == "union_tag_invalid":
         key, message = f"{key}.kind", "expected 'zenoh' or 'mqtt'"
     elif first["type"] == "missing":
         message = "missing"

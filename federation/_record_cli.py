@@ -84,7 +84,22 @@ async def record_federation(
 
     Stops on SIGINT/SIGTERM, after ``duration`` seconds or ``count`` samples; the file is
     complete in every case. ``progress`` gets a line with the counts at most every second.
+    When a node of this config runs here, its samples come through it (`_record_relayed`).
     """
+    relayed = await _record_relayed(
+        config_path,
+        platform,
+        semantic_labels,
+        out,
+        duration=duration,
+        count=count,
+        sample_period=sample_period,
+        wait=wait,
+        timeout=timeout,
+        progress=progress,
+    )
+    if relayed is not None:
+        return relayed
     async with _opened(config_path) as p:
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
         await _wait_for(p, platform, wait)
@@ -116,16 +131,91 @@ async def record_federation(
     return rec
 
 
+async def _record_relayed(
+    config_path: str,
+    platform: str,
+    semantic_labels: list[str],
+    out: Path,
+    *,
+    duration: float | None,
+    count: int | None,
+    sample_period: float | None,
+    wait: float,
+    timeout: float,
+    progress: Say,
+) -> Recorder | None:
+    """Record what the running node of this config relays (None when none runs).
+
+    The relayed samples are pushed, with their own valid and available times, into a
+    local instance of this command's, which the recorder follows as it would the node's.
+    """
+    from dyknow_core import DyKnowInstance
+
+    from ._cli_net import stream_through_node
+    from ._local import channel_path
+    from ._platform import PlatformConfig
+
+    config = PlatformConfig.load(config_path)
+    if not channel_path(config).exists():
+        return None
+    stop = _stop_event()
+    async with DyKnowInstance(f"{config.name}.record") as inst:
+        sources = {s: inst.add_source(s) for s in semantic_labels}
+        meta = {
+            "platform": platform,
+            "recorded_by": config.name,
+            "federation": config.federation,
+            "sample_period": sample_period,
+            "through": "the running node",
+        }
+        rec = Recorder(inst, semantic_labels, out, meta=meta, since=0, limit=count)
+
+        def emit(label: str, value: Any, valid: int, available: int) -> None:
+            sources[label].push(value, valid, available)
+
+        async with rec:
+            relay = asyncio.create_task(
+                stream_through_node(
+                    config_path,
+                    platform,
+                    semantic_labels,
+                    sample_period=sample_period,
+                    count=count,
+                    wait=wait,
+                    timeout=timeout,
+                    emit=emit,
+                    stop=stop,
+                )
+            )
+            ended = asyncio.Event()
+            relay.add_done_callback(lambda _: ended.set())
+            try:
+                await _until_stopped(rec, stop, duration, progress, also=ended)
+            finally:
+                relay.cancel()
+                [result] = await asyncio.gather(relay, return_exceptions=True)
+    if isinstance(result, Exception):
+        raise result
+    if result is None:
+        return None  # a stale socket, nobody listening: record as the platform itself
+    return rec
+
+
 async def _until_stopped(
-    rec: Recorder, stop: asyncio.Event, duration: float | None, progress: Say
+    rec: Recorder,
+    stop: asyncio.Event,
+    duration: float | None,
+    progress: Say,
+    also: asyncio.Event | None = None,
 ) -> None:
     """Wait for a signal, the duration or the count; a progress line each second it changed."""
     started = time.monotonic()
     deadline = None if duration is None else started + duration
     shown = -1
-    waits = {asyncio.ensure_future(stop.wait()), asyncio.ensure_future(rec.done.wait())}
+    also = also or asyncio.Event()
+    waits = {asyncio.ensure_future(e.wait()) for e in (stop, rec.done, also)}
     try:
-        while not (stop.is_set() or rec.done.is_set()):
+        while not (stop.is_set() or rec.done.is_set() or also.is_set()):
             step = 1.0 if deadline is None else min(1.0, deadline - time.monotonic())
             if step <= 0:
                 break

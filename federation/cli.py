@@ -196,12 +196,15 @@ def keys_show(
 def node(config: ConfigOpt) -> None:
     """Run one platform from its TOML config until SIGINT/SIGTERM."""
     from ._cli_net import run_node
+    from ._local import PlatformAliveError
 
     cfg = _load(config)
     try:
         asyncio.run(run_node(cfg, str(config), _say))
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
+    except PlatformAliveError as exc:
+        raise _fail(f"dyknow node: {config}: {exc}") from None
     except TransportError as exc:
         raise _fail(f"dyknow node: {config}: {exc}", 1) from None
 
@@ -231,6 +234,7 @@ def console(
 ) -> None:
     """Run a platform with the operator web console (docs/console.md) until SIGINT/SIGTERM."""
     from ._cli_net import run_console
+    from ._local import PlatformAliveError
     from .demo._console_access import allowed_names, configured_token
 
     cfg = _load(config)
@@ -243,6 +247,8 @@ def console(
         asyncio.run(run_console(cfg, str(config), host, port, _say, token=token, allow_hosts=hosts))
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
+    except PlatformAliveError as exc:
+        raise _fail(f"dyknow console: {config}: {exc}") from None
     except (TransportError, OSError) as exc:
         raise _fail(f"dyknow console: {config}: {exc}", 1) from None
 
@@ -280,12 +286,20 @@ def router(
 # -- one-shot queries ---------------------------------------------------------------------------
 
 
+def _alive_error() -> type[Exception]:
+    from ._local import PlatformAliveError
+
+    return PlatformAliveError
+
+
 def _run_query(coro: Any) -> Any:
     """Run a query coroutine; config and request errors exit 2 / 1 with a message."""
     try:
         return asyncio.run(coro)
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
+    except _alive_error() as exc:
+        raise _fail(f"dyknow: {exc}") from None
     except Exception as exc:  # the user gets the reason, not a traceback
         raise _fail(f"dyknow: {type(exc).__name__}: {exc}", 1) from None
 

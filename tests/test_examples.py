@@ -1,6 +1,19 @@
 """The examples run as the README says, and show what they claim to show."""
 
+import json
+import shutil
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from _node_example import Station, _samples, _stats
+
 from examples import local_pipeline
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 async def test_local_pipeline_demo_runs_and_fills_the_gps_tunnel(capsys) -> None:  # type: ignore[no-untyped-def]
@@ -25,3 +38,204 @@ async def test_two_platforms_example_answers_through_the_interface_agents(capsys
     assert result["audit"]["accepted"] >= 1
     assert result["audit"]["dropped"] == 0
     assert "wind" in capsys.readouterr().out
+
+
+# -- examples/node: a node running weather.kpl, fed by each kind of input ----------------------
+
+
+@pytest.fixture
+def station(tmp_path: Path) -> Iterator[Station]:
+    s = Station(tmp_path)
+    try:
+        yield s
+    finally:
+        s.stop()
+
+
+@pytest.mark.timeout(90)
+def test_node_example_file_inputs_replay_jsonl_and_csv(station: Station) -> None:
+    station.start("file")
+    # the JSON-lines file at its recorded pace (2 s), shifted to now; the CSV at once
+    answer = station.latest(
+        "temperature", "wind-speed-kmh", until=lambda a: _samples(a, "temperature")[0][0] == 19.5
+    )
+    assert _samples(answer, "wind-speed-kmh")[0][0] == 46.8  # 13 m/s through the KPL's CU
+    history = station.dyknow("ask", "station", "temperature", "--from", "0")
+    values = [s[0] for s in _samples(history, "temperature")]
+    assert sorted(v for v in values if v < 15) == [10, 11, 12, 13, 14]  # the CSV rows
+    # the CSV kept its recorded valid times (60 s before the JSON lines' first)
+    csv_valid = sorted(s[1] for s in _samples(history, "temperature") if s[0] < 15)
+    assert csv_valid == [1763999940.0, 1763999950.0, 1763999960.0, 1763999970.0, 1763999980.0]
+    out, err = station.stop()
+    stats = {row.get("input"): row for row in _stats(out)}
+    jsonl = next(v for k, v in stats.items() if k and k.endswith("observations.jsonl"))
+    assert jsonl["received"] == 11 and jsonl["samples"] == 20
+    assert jsonl["bad"] == {"bad-time": 1}  # the "yesterday" line: counted and logged
+    assert "bad-time" in err and "'yesterday' is not a number" in err and "Traceback" not in err
+
+
+@pytest.mark.timeout(90)
+def test_node_example_python_input(station: Station) -> None:
+    station.start("python")
+    answer = station.latest("temperature", "weather", until=lambda a: bool(_samples(a, "weather")))
+    [(value, valid, available)] = _samples(answer, "temperature")
+    assert 19.0 <= value <= 21.0 and valid <= available
+    state = _samples(answer, "weather")[0][0]
+    assert set(state) == {"temperature", "wind"} and state["wind"] >= 3.0 * 3.6
+    rows = station.dyknow("stream", "station", "wind-speed-kmh", "--count", "2")
+    assert len(rows) == 2 and all(r["label"] == "wind-speed-kmh" for r in rows)
+
+
+@pytest.mark.timeout(90)
+def test_node_example_zenoh_input_and_output(station: Station) -> None:
+    station.start("zenoh")
+    endpoint = f"tcp/127.0.0.1:{station.port}"
+    # a plain zenoh subscriber (not our library) reads the state the node puts out
+    listener = subprocess.Popen(
+        [sys.executable, "-c", ZENOH_LISTENER, endpoint, "dyknow/station/**"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=station.env,
+    )
+    try:
+        publish = subprocess.run(
+            [sys.executable, "publish_zenoh.py", endpoint, "10"],
+            cwd=station.dir,
+            env=station.env,
+            capture_output=True,
+            text=True,
+            timeout=30,
+        )
+        assert publish.returncode == 0, publish.stderr
+        answer = station.latest(
+            "temperature", "wind-speed", until=lambda a: _samples(a, "temperature")[0][0] == 27.0
+        )
+        assert _samples(answer, "wind-speed")[0][0] == 11.0
+        out, _ = listener.communicate(timeout=30)
+    finally:
+        if listener.poll() is None:
+            listener.kill()
+    key, payload = out.splitlines()[0].split(" ", 1)
+    assert key == "dyknow/station/wx/state"
+    sample = json.loads(payload)
+    assert sample["label"] == "wx/state" and set(sample["value"]) == {"temperature", "wind"}
+    out, _ = station.stop()
+    [zin] = [r for r in _stats(out) if r.get("input") == "zenoh weather/*"]
+    assert zin["received"] == 11 and zin["samples"] == 20 and zin["bad"] == {"not-json": 1}
+
+
+ZENOH_LISTENER = """
+import json, sys, zenoh
+c = zenoh.Config()
+c.insert_json5("mode", '"client"')
+c.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
+c.insert_json5("scouting/multicast/enabled", "false")
+with zenoh.open(c) as s, s.declare_subscriber(sys.argv[2]) as sub:
+    sample = sub.recv()
+    print(sample.key_expr, sample.payload.to_bytes().decode(), flush=True)
+"""
+
+
+@pytest.mark.timeout(90)
+def test_node_example_mqtt_input_from_mosquitto_pub(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    host, port = mosquitto
+    station = Station(tmp_path, mqtt_port=port)
+    pub = shutil.which("mosquitto_pub")
+    sub = shutil.which("mosquitto_sub")
+    assert pub and sub, "mosquitto-clients is needed (make mosquitto installs it)"
+    try:
+        station.start("mqtt")
+        # the node's output, read by a real MQTT client
+        listener = subprocess.Popen(
+            [sub, "-h", host, "-p", str(port), "-t", "dyknow/station/#", "-C", "1", "-v"],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        time.sleep(0.5)  # mosquitto_sub gives no sign that it subscribed
+        t = 1764000000.25
+        for message in (
+            json.dumps({"time": t, "temperature": 21.5, "wind": 3.2}),
+            "{not json",
+            json.dumps({"humidity": 40}),
+        ):
+            subprocess.run(
+                [pub, "-h", host, "-p", str(port), "-t", "weather/station1", "-m", message],
+                check=True,
+                timeout=10,
+            )
+        answer = station.latest(
+            "temperature", "wind-speed-kmh", until=lambda a: bool(_samples(a, "wind-speed-kmh"))
+        )
+        assert _samples(answer, "temperature")[0][:2] == [21.5, t]  # the message's own time
+        assert _samples(answer, "wind-speed-kmh")[0][:2] == [11.52, t]
+        out, _ = listener.communicate(timeout=20)
+        topic, payload = out.strip().split(" ", 1)
+        assert topic == "dyknow/station/wx/wind_kmh"
+        assert json.loads(payload)["value"] == 11.52 and json.loads(payload)["valid"] == t
+        out, err = station.stop()
+        [row] = [r for r in _stats(out) if r.get("input") == "mqtt weather/+"]
+        assert row["received"] == 3 and row["samples"] == 2
+        assert row["bad"] == {"not-json": 1, "no-field": 1}
+        assert "none of the fields temperature, wind" in err
+    finally:
+        station.stop()
+
+
+@pytest.mark.timeout(90)
+def test_node_example_ros2_topics_published_as_rmw_zenoh_does(station: Station) -> None:
+    station.start("ros2")
+    # encoded by rosbags, put on rmw_zenoh's keys by a plain zenoh client (not our code)
+    stamp = 1764000000.5
+    publish = subprocess.run(
+        [sys.executable, "publish_ros2.py", f"tcp/127.0.0.1:{station.port}", "3", str(stamp)],
+        cwd=station.dir,
+        env=station.env,
+        capture_output=True,
+        text=True,
+        timeout=30,
+    )
+    assert publish.returncode == 0, publish.stderr
+    labels = ("position", "fix", "temperature", "status")
+    answer = station.latest(*labels, until=lambda a: all(_samples(a, x) for x in labels))
+    [(position, valid, _)] = _samples(answer, "position")
+    assert position == {"x": 12.0, "y": 20.0, "z": 1.5}  # geometry_msgs/PoseStamped
+    assert valid == stamp + 2  # its header.stamp
+    [(fix, valid, _)] = _samples(answer, "fix")  # sensor_msgs/NavSatFix, whole
+    assert fix["latitude"] == pytest.approx(58.39002) and fix["altitude"] == 80.0
+    assert fix["status"] == {"status": 0, "service": 1} and valid == stamp + 2
+    [(temperature, valid, available)] = _samples(answer, "temperature")  # std_msgs/Float64
+    assert temperature == 23.0 and valid == available  # no header: its arrival
+    assert _samples(answer, "status")[0][0] == "ok 2"  # std_msgs/String
+    out, err = station.stop()
+    [status] = [r for r in _stats(out) if r.get("input") == "ros2 /station/status"]
+    assert status["received"] == 4 and status["samples"] == 3
+    assert list(status["bad"]) == ["not-cdr"] and "std_msgs/msg/String" in err
+
+
+@pytest.mark.timeout(90)
+def test_node_example_rosbag2_and_mcap_files_replayed(station: Station) -> None:
+    # the recordings are written by rosbags (rosbag2) and mcap, not by our code
+    made = subprocess.run(
+        [sys.executable, "make_bag.py"],
+        cwd=station.dir,
+        env=station.env,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert made.returncode == 0, made.stderr
+    station.start("rosbag")
+    answer = station.latest("position", until=lambda a: _samples(a, "position")[0][0]["x"] == 19.0)
+    history = station.dyknow("ask", "station", "position", "temperature", "--from", "0")
+    positions = _samples(history, "position")
+    assert [p[0]["x"] for p in positions] == [10.0 + n for n in range(10)]
+    # recorded pace: 0.9 s between the first and the last arrival, valid times as stamped
+    assert positions[-1][2] - positions[0][2] >= 0.8
+    assert [p[1] for p in positions] == [pytest.approx(1764000000 + 0.1 * n) for n in range(10)]
+    temperatures = _samples(history, "temperature")  # from the MCAP file, as fast as possible
+    assert [t[0] for t in temperatures] == [21.0 + n for n in range(10)]
+    assert temperatures[0][1] == 1764000000.0  # no header: the recorded log time
+    assert answer

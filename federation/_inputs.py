@@ -1,0 +1,646 @@
+"""Inputs of a node's application: outside messages pushed into the application's sources.
+
+Each ``[[inputs]]`` table of a node's config (docs/application.md) names where messages
+come from (a zenoh key expression, an MQTT topic, a recorded file, a Python async
+generator) and how their fields map to source labels. A message's valid time is its own
+time stamp where it has one (the ``time`` field, else the transport's stamp), else its
+arrival. A message that cannot be used is counted by reason and logged, never raised:
+a bad sensor must not stop the node.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import csv
+import inspect
+import json
+import logging
+import re
+import time
+from collections import Counter
+from collections.abc import AsyncIterator, Callable, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+import msgpack
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+if TYPE_CHECKING:
+    from dyknow_core import DyKnowInstance, Source
+
+__all__ = [
+    "FileInput",
+    "InputRunner",
+    "InputSettings",
+    "InputStats",
+    "MqttInput",
+    "PythonInput",
+    "Ros2Input",
+    "RosbagInput",
+    "ZenohInput",
+    "input_runner",
+]
+
+log = logging.getLogger(__name__)
+
+_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
+_PLACEHOLDER = re.compile(r"\{([^{}]+)\}")
+_WHOLE = "."  # the field path meaning the whole message
+_LOGGED_PER_REASON = 5  # then one log line every _LOG_EVERY messages of that reason
+_LOG_EVERY = 1000
+_QUEUE = 10_000  # messages waiting between a transport's thread and the loop
+
+
+# -- the config ------------------------------------------------------------------------------
+
+
+class _InputBase(BaseModel):
+    """What every input has: the field→label map and where the valid time comes from."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str | None = Field(default=None, description="A name for logs and counts.")
+    fields: dict[str, str] = Field(
+        min_length=1,
+        description="message field (dotted path, '.' = whole message) -> source label",
+    )
+    time: str | None = Field(default=None, description="The message field holding valid time.")
+    time_unit: Literal["s", "ms", "us", "ns"] = "s"
+    create: bool = Field(
+        default=False, description="Labels not declared as sources are created on first use."
+    )
+
+    @field_validator("fields")
+    @classmethod
+    def _labels(cls, value: dict[str, str]) -> dict[str, str]:
+        for path, label in value.items():
+            if not path or not label:
+                raise ValueError("field paths and labels must not be empty")
+            for name in _PLACEHOLDER.findall(label):
+                if not name.strip():
+                    raise ValueError(f"label {label!r}: empty placeholder {{}}")
+        return value
+
+    def title(self) -> str:
+        """How logs and counts name this input."""
+        return self.name or self.default_title()
+
+    def default_title(self) -> str:
+        """The name when none is given."""
+        raise NotImplementedError
+
+    def relative_to(self, base: Path) -> _InputBase:
+        """A copy whose relative paths are resolved against ``base`` (files only have some)."""
+        return self
+
+
+class ZenohInput(_InputBase):
+    """``kind = "zenoh"``: what zenoh publishers put on ``key`` (JSON or msgpack payloads).
+
+    Without ``connect`` the node's own zenoh session subscribes (its transport must then
+    be zenoh); with it, a session of the input's own (client mode) connects there.
+    """
+
+    kind: Literal["zenoh"]
+    key: str = Field(min_length=1)
+    format: Literal["json", "msgpack"] = "json"
+    connect: tuple[str, ...] | None = None
+
+    def default_title(self) -> str:
+        """``zenoh KEY``."""
+        return f"zenoh {self.key}"
+
+
+class MqttInput(_InputBase):
+    """``kind = "mqtt"``: JSON messages on an MQTT topic (``+``/``#`` wildcards)."""
+
+    kind: Literal["mqtt"]
+    topic: str = Field(min_length=1)
+    host: str = "127.0.0.1"
+    port: int = Field(default=1883, gt=0, lt=65536)
+    qos: Literal[0, 1, 2] = 0
+    username: str | None = None
+    password_file: Path | None = None
+
+    def default_title(self) -> str:
+        """``mqtt TOPIC``."""
+        return f"mqtt {self.topic}"
+
+    def relative_to(self, base: Path) -> MqttInput:
+        """The password file resolved against ``base``."""
+        if self.password_file is not None and not self.password_file.is_absolute():
+            return self.model_copy(update={"password_file": base / self.password_file})
+        return self
+
+
+class FileInput(_InputBase):
+    """``kind = "file"``: a recorded JSON-lines or CSV file, replayed once (or looped).
+
+    ``pace = "recorded"`` keeps the recorded gaps between messages (by the ``time``
+    field, which it then needs); ``"fast"`` pushes everything at once. Valid times are
+    the recorded ones, shifted by ``shift`` seconds (``"now"``: the first message's time
+    becomes the start of the replay).
+    """
+
+    kind: Literal["file"]
+    path: Path
+    format: Literal["jsonl", "csv"] | None = None
+    pace: Literal["recorded", "fast"] = "recorded"
+    speed: float = Field(default=1.0, gt=0)
+    loop: bool = False
+    shift: Literal["none", "now"] = "none"
+
+    def default_title(self) -> str:
+        """``file PATH``."""
+        return f"file {self.path}"
+
+    def file_format(self) -> str:
+        """``jsonl`` or ``csv``: the given format, or the file's suffix."""
+        if self.format is not None:
+            return self.format
+        return "csv" if self.path.suffix.lower() == ".csv" else "jsonl"
+
+    def relative_to(self, base: Path) -> FileInput:
+        """The file resolved against ``base``."""
+        if not self.path.is_absolute():
+            return self.model_copy(update={"path": base / self.path})
+        return self
+
+
+class PythonInput(_InputBase):
+    """``kind = "python"``: ``entry = "module:callable"`` returning an async iterator of messages.
+
+    The callable is called with ``args`` as keyword arguments; each item it yields is a
+    message (a mapping, or any value with ``fields = {"." = label}``).
+    """
+
+    kind: Literal["python"]
+    entry: str = Field(pattern=r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
+    args: dict[str, Any] = Field(default_factory=dict)
+
+    def default_title(self) -> str:
+        """``python ENTRY``."""
+        return f"python {self.entry}"
+
+
+class Ros2Input(_InputBase):
+    """``kind = "ros2"``: a ROS 2 topic through rmw_zenoh, CDR decoded (federation/_ros.py).
+
+    Subscribes to ``<domain>/<topic>/<type>/<type hash>`` as rmw_zenoh puts it (any type
+    and hash unless ``type`` is given); a message's ``header.stamp`` is its valid time.
+    """
+
+    kind: Literal["ros2"]
+    topic: str = Field(pattern=r"^/?[A-Za-z_~][A-Za-z0-9_/~]*$")
+    domain: int = Field(default=0, ge=0, le=232)
+    type: str | None = Field(default=None, pattern=r"^[A-Za-z0-9_]+/msg/[A-Za-z0-9_]+$")
+    distro: str = "humble"
+    connect: tuple[str, ...] | None = None
+
+    def default_title(self) -> str:
+        """``ros2 TOPIC``."""
+        return f"ros2 {self.topic}"
+
+
+class RosbagInput(_InputBase):
+    """``kind = "rosbag"``: one topic of a rosbag2 directory or an MCAP file, replayed."""
+
+    kind: Literal["rosbag"]
+    path: Path
+    topic: str = Field(min_length=1)
+    pace: Literal["recorded", "fast"] = "recorded"
+    speed: float = Field(default=1.0, gt=0)
+    shift: Literal["none", "now"] = "none"
+    distro: str = "humble"
+
+    def default_title(self) -> str:
+        """``rosbag PATH TOPIC``."""
+        return f"rosbag {self.path} {self.topic}"
+
+    def relative_to(self, base: Path) -> RosbagInput:
+        """The bag resolved against ``base``."""
+        if not self.path.is_absolute():
+            return self.model_copy(update={"path": base / self.path})
+        return self
+
+
+InputSettings = Annotated[
+    ZenohInput | MqttInput | FileInput | PythonInput | Ros2Input | RosbagInput,
+    Field(discriminator="kind"),
+]
+
+
+# -- mapping messages to samples (the hot path: plain code) ----------------------------------
+
+
+class BadMessage(Exception):
+    """A message that cannot be used; the reason is counted and logged."""
+
+    def __init__(self, reason: str, detail: str = "") -> None:
+        super().__init__(reason)
+        self.reason = reason
+        self.detail = detail
+
+
+_MISSING = object()
+
+
+def _get(message: Any, path: str) -> Any:
+    """The field at a dotted path (``pose.position.x``, ``items.0``), or _MISSING."""
+    if path == _WHOLE:
+        return message
+    value = message
+    for part in path.split("."):
+        if isinstance(value, Mapping):
+            value = value.get(part, _MISSING)
+        elif isinstance(value, list | tuple) and part.isdigit() and int(part) < len(value):
+            value = value[int(part)]
+        else:
+            value = getattr(value, part, _MISSING)
+        if value is _MISSING:
+            return _MISSING
+    return value
+
+
+class InputStats:
+    """What an input received: messages, samples pushed, bad messages by reason."""
+
+    def __init__(self, title: str) -> None:
+        self.title = title
+        self.received = 0
+        self.samples = 0
+        self.bad: Counter[str] = Counter()
+
+    def as_dict(self) -> dict[str, Any]:
+        """The counts, as JSON-able data."""
+        return {
+            "input": self.title,
+            "received": self.received,
+            "samples": self.samples,
+            "bad": dict(self.bad),
+        }
+
+
+class _Mapper:
+    """Turns one message into samples pushed to the instance's sources."""
+
+    def __init__(self, settings: _InputBase, instance: DyKnowInstance, stats: InputStats) -> None:
+        self.instance = instance
+        self.stats = stats
+        self.title = settings.title()
+        self.fields = [
+            (path, label, _PLACEHOLDER.findall(label)) for path, label in settings.fields.items()
+        ]
+        self.time = settings.time
+        self.unit = _UNITS[settings.time_unit]
+        self.create = settings.create
+        self.sources: dict[str, Source] = {}
+
+    def source(self, label: str) -> Source:
+        """The source publishing ``label`` (created when the input may create it)."""
+        src = self.sources.get(label)
+        if src is not None:
+            return src
+        proc = self.instance.processes.get(f"source:{label}")
+        from dyknow_core import Source
+
+        if isinstance(proc, Source):
+            src = proc
+        elif self.instance.has_label(label):
+            raise BadMessage("not-a-source", f"{label!r} is computed here, not a source")
+        elif self.create:
+            src = self.instance.add_source(label)
+        else:
+            why = f"no source {label!r} (declare it in the application, or create = true)"
+            raise BadMessage("no-source", why)
+        self.sources[label] = src
+        return src
+
+    def valid_time(self, message: Any, stamp: int | None) -> int | None:
+        """The message's own time (its ``time`` field, else ``stamp``); None: its arrival."""
+        if self.time is not None:
+            t = _get(message, self.time)
+            if t is not _MISSING and t is not None:
+                if isinstance(t, bool) or not isinstance(t, int | float):
+                    try:
+                        t = float(t)
+                    except (TypeError, ValueError):
+                        why = f"{self.time} = {t!r} is not a number"
+                        raise BadMessage("bad-time", why) from None
+                if t != t or t in (float("inf"), float("-inf")):
+                    raise BadMessage("bad-time", f"{self.time} = {t!r}")
+                if isinstance(t, int):
+                    return t * self.unit
+                whole = int(t)  # apart: epoch seconds times 1e9 lose the fraction in a float
+                return whole * self.unit + round((t - whole) * self.unit)
+        return stamp
+
+    def push(
+        self,
+        message: Any,
+        *,
+        stamp: int | None = None,
+        topic: str | None = None,
+        valid: int | None = None,
+    ) -> None:
+        """Map one message to samples and push them; BadMessage when nothing can be used."""
+        if valid is None:  # still None after this: the source stamps the arrival
+            valid = self.valid_time(message, stamp)
+        pushed = 0
+        for path, label, holes in self.fields:
+            value = _get(message, path)
+            if value is _MISSING:
+                continue
+            if holes:
+                label = self._fill(label, holes, message, topic)
+            self.source(label).push(value, valid)
+            pushed += 1
+        if not pushed:
+            names = ", ".join(p for p, _, _ in self.fields)
+            raise BadMessage("no-field", f"none of the fields {names} in the message")
+        self.stats.samples += pushed
+
+    @staticmethod
+    def _fill(label: str, holes: list[str], message: Any, topic: str | None) -> str:
+        out = label
+        for hole in holes:
+            if hole == "topic" and topic is not None:
+                part: Any = topic
+            else:
+                part = _get(message, hole)
+            if part is _MISSING or isinstance(part, Mapping | list):
+                raise BadMessage("no-label-field", f"label {label!r} needs field {hole!r}")
+            out = out.replace("{" + hole + "}", str(part))
+        return out
+
+    def handle(
+        self,
+        message: Any,
+        *,
+        stamp: int | None = None,
+        topic: str | None = None,
+        valid: int | None = None,
+    ) -> None:
+        """`push`, counting (and logging) a bad message instead of raising."""
+        self.stats.received += 1
+        try:
+            self.push(message, stamp=stamp, topic=topic, valid=valid)
+        except BadMessage as exc:
+            self.bad(exc.reason, exc.detail)
+        except Exception as exc:  # a value the stream refuses (closed, wrong type, …)
+            self.bad("refused", f"{type(exc).__name__}: {exc}")
+
+    def bad(self, reason: str, detail: str) -> None:
+        """Count a bad message; log the first few of each reason, then one in _LOG_EVERY."""
+        n = self.stats.bad[reason] = self.stats.bad[reason] + 1
+        if n <= _LOGGED_PER_REASON or n % _LOG_EVERY == 0:
+            log.warning("input %s: bad message #%d (%s): %s", self.title, n, reason, detail)
+
+    def decode(self, payload: bytes, fmt: str) -> Any:
+        """A JSON or msgpack payload as data; BadMessage naming why not."""
+        try:
+            if fmt == "msgpack":
+                return msgpack.unpackb(payload, raw=False, strict_map_key=False)
+            return json.loads(payload)
+        except Exception as exc:
+            raise BadMessage(f"not-{fmt}", f"{type(exc).__name__}: {exc}") from None
+
+
+# -- running the inputs ----------------------------------------------------------------------
+
+
+class InputRunner:
+    """One input, running as a task of the node; `stats` tells what it received."""
+
+    def __init__(self, settings: _InputBase, instance: DyKnowInstance) -> None:
+        self.settings = settings
+        self.stats = InputStats(settings.title())
+        self.mapper = _Mapper(settings, instance, self.stats)
+        self.done = asyncio.Event()
+
+    def check(self) -> list[str]:
+        """Problems found before starting: fixed labels that are not sources here."""
+        problems = []
+        for _, label, holes in self.mapper.fields:
+            if holes:
+                continue
+            try:
+                self.mapper.source(label)
+            except BadMessage as exc:
+                problems.append(exc.detail)
+        return problems
+
+    async def run(self, zenoh_session: Any | None) -> None:
+        """Receive until cancelled (or the end of a file / generator)."""
+        try:
+            await self._run(zenoh_session)
+        finally:
+            self.done.set()
+
+    async def _run(self, zenoh_session: Any | None) -> None:
+        raise NotImplementedError
+
+
+class _Queue:
+    """Messages handed over from a transport's thread to the loop, bounded."""
+
+    def __init__(self, mapper: _Mapper) -> None:
+        self.loop = asyncio.get_running_loop()
+        self.queue: asyncio.Queue[tuple[Any, int | None, str | None]] = asyncio.Queue(_QUEUE)
+        self.mapper = mapper
+
+    def put_threadsafe(self, item: tuple[Any, int | None, str | None]) -> None:
+        """From a transport's thread."""
+        self.loop.call_soon_threadsafe(self._put, item)
+
+    def _put(self, item: tuple[Any, int | None, str | None]) -> None:
+        try:
+            self.queue.put_nowait(item)
+        except asyncio.QueueFull:
+            self.mapper.stats.received += 1
+            self.mapper.bad("overflow", f"more than {_QUEUE} messages waiting")
+
+
+class _ZenohRunner(InputRunner):
+    settings: ZenohInput
+
+    async def _run(self, zenoh_session: Any | None) -> None:
+        import zenoh
+
+        from agents.transports import ZenohConfig
+
+        s = self.settings
+        own = None
+        if s.connect is not None or zenoh_session is None:
+            if not s.connect:
+                raise ValueError(
+                    f"input {s.title()}: the node's transport is not zenoh: give connect = [...]"
+                )
+            cfg = ZenohConfig(mode="client", connect=s.connect).to_zenoh()
+            own = zenoh_session = await asyncio.to_thread(zenoh.open, cfg)
+        assert zenoh_session is not None
+        q = _Queue(self.mapper)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            ts = sample.timestamp
+            stamp = None
+            if ts is not None:
+                stamp = int(ts.get_time().timestamp() * 1e9)
+            q.put_threadsafe((sample.payload.to_bytes(), stamp, str(sample.key_expr)))
+
+        sub = zenoh_session.declare_subscriber(s.key, on_sample)
+        try:
+            mapper, fmt = self.mapper, s.format
+            while True:
+                payload, stamp, key = await q.queue.get()
+                try:
+                    message = mapper.decode(payload, fmt)
+                except BadMessage as exc:
+                    mapper.stats.received += 1
+                    mapper.bad(exc.reason, exc.detail)
+                    continue
+                mapper.handle(message, stamp=stamp, topic=key)
+        finally:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+            if own is not None:
+                await asyncio.to_thread(own.close)
+
+
+class _MqttRunner(InputRunner):
+    settings: MqttInput
+
+    async def _run(self, zenoh_session: Any | None) -> None:
+        import aiomqtt
+
+        s = self.settings
+        password = None
+        if s.password_file is not None:
+            password = s.password_file.read_text(encoding="utf-8").strip()
+        mapper = self.mapper
+        delay = 0.5
+        while True:  # reconnects: a broker restart must not end the input
+            try:
+                async with aiomqtt.Client(
+                    s.host, s.port, username=s.username, password=password
+                ) as client:
+                    await client.subscribe(s.topic, qos=s.qos)
+                    log.info("input %s: subscribed on %s:%d", s.title(), s.host, s.port)
+                    delay = 0.5
+                    async for msg in client.messages:
+                        payload = msg.payload
+                        if not isinstance(payload, bytes | bytearray):
+                            payload = str(payload).encode()
+                        try:
+                            message = mapper.decode(bytes(payload), "json")
+                        except BadMessage as exc:
+                            mapper.stats.received += 1
+                            mapper.bad(exc.reason, exc.detail)
+                            continue
+                        mapper.handle(message, topic=str(msg.topic))
+            except aiomqtt.MqttError as exc:
+                log.warning("input %s: %s; reconnecting in %.1f s", s.title(), exc, delay)
+                await asyncio.sleep(delay)
+                delay = min(delay * 2, 10.0)
+
+
+def _rows(path: Path, fmt: str) -> list[Any]:
+    """Every message of a recorded file (JSON lines or CSV with a header row)."""
+    with path.open(encoding="utf-8", newline="") as f:
+        if fmt == "csv":
+            return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+        rows: list[Any] = []
+        for n, line in enumerate(f, 1):
+            if line.strip():
+                try:
+                    rows.append(json.loads(line))
+                except ValueError as exc:
+                    rows.append(BadMessage("not-json", f"line {n}: {exc}"))
+        return rows
+
+
+def _number(text: str | None) -> Any:
+    """A CSV cell as int, float, bool or the text."""
+    if text is None or text == "":
+        return None
+    for conv in (int, float):
+        try:
+            return conv(text)
+        except ValueError:
+            pass
+    return {"true": True, "false": False}.get(text.lower(), text)
+
+
+class _FileRunner(InputRunner):
+    settings: FileInput
+
+    async def _run(self, zenoh_session: Any | None) -> None:
+        s = self.settings
+        rows = await asyncio.to_thread(_rows, s.path, s.file_format())
+        mapper = self.mapper
+        while True:
+            await self._replay(rows, mapper, s)
+            if not s.loop:
+                break
+        log.info("input %s: replayed %d messages", s.title(), len(rows))
+
+    async def _replay(self, rows: list[Any], mapper: _Mapper, s: FileInput) -> None:
+        start_wall = time.time_ns()
+        first: int | None = None
+        for row in rows:
+            if isinstance(row, BadMessage):
+                mapper.stats.received += 1
+                mapper.bad(row.reason, row.detail)
+                continue
+            try:
+                t = mapper.valid_time(row, None)
+            except BadMessage:
+                t = None
+            t = -1 if t is None else t
+            if t >= 0 and first is None:
+                first = t
+            if s.pace == "recorded" and t >= 0 and first is not None:
+                due = start_wall + int((t - first) / s.speed)
+                delay = (due - time.time_ns()) / 1e9
+                if delay > 0:
+                    await asyncio.sleep(delay)
+            elif s.pace == "fast" and mapper.stats.received % 1000 == 999:
+                await asyncio.sleep(0)  # let the node answer queries meanwhile
+            if s.shift == "now" and t >= 0 and first is not None:
+                mapper.handle(row, valid=start_wall + (t - first))
+            else:
+                mapper.handle(row)
+
+
+class _PythonRunner(InputRunner):
+    settings: PythonInput
+
+    async def _run(self, zenoh_session: Any | None) -> None:
+        from dyknow_core._kpl import resolve_callable
+
+        s = self.settings
+        module, attr = s.entry.split(":", 1)
+        made = resolve_callable(module, attr)(**s.args)
+        if inspect.isawaitable(made) and not hasattr(made, "__aiter__"):
+            made = await made
+        if not hasattr(made, "__aiter__"):
+            raise TypeError(f"input {s.title()}: {s.entry} did not give an async iterator")
+        items: AsyncIterator[Any] = made.__aiter__()
+        async for message in items:
+            self.mapper.handle(message)
+
+
+def input_runner(settings: _InputBase, instance: DyKnowInstance) -> InputRunner:
+    """The runner of one ``[[inputs]]`` table."""
+    if isinstance(settings, Ros2Input | RosbagInput):
+        from ._ros import ros_runner  # rosbags and mcap are imported only when used
+
+        return ros_runner(settings, instance)
+    kinds: dict[type[_InputBase], Callable[..., InputRunner]] = {
+        ZenohInput: _ZenohRunner,
+        MqttInput: _MqttRunner,
+        FileInput: _FileRunner,
+        PythonInput: _PythonRunner,
+    }
+    return kinds[type(settings)](settings, instance)

@@ -1,0 +1,446 @@
+"""One platform, one process: the local channel of a running node, and the duplicate check.
+
+A platform's name is its identity in the federation (its key, its sessions with the
+others, its liveliness token). Two processes under one name break each other's
+sessions, so:
+
+* a node (``dyknow node`` / ``dyknow console``) refuses to start when its name is alive
+  in the federation already (`refuse_duplicate`), before it subscribes or announces
+  anything: the running one is not touched;
+* a running node listens on a **local channel**, a Unix socket only its own OS user can
+  open (a 0700 directory, the socket 0600, and the peer's uid checked), and the one-shot
+  commands (``platforms``, ``labels``, ``ask``, ``stream``, ``record``) run with the same
+  config go through it: the node asks, under its own sessions, and relays the answers.
+  Whoever can open the socket could read the platform's private key file as well (same
+  user), so the channel gives nothing the key would not. Without a running node the
+  commands act as the platform themselves, as before.
+
+The channel's protocol: the client sends one JSON object on a line (``op``: ``platforms``,
+``request`` or ``stream``, with their arguments); the node answers with JSON lines:
+``{"ok": result}``, or ``{"sample": [label, value, valid, available]}`` lines then
+``{"end": n}``, or ``{"error": "message"}``. See docs/application.md.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import datetime as dt
+import hashlib
+import json
+import logging
+import os
+import socket
+import struct
+import tempfile
+import time
+from collections.abc import AsyncGenerator, Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ._platform import PlatformConfig
+
+if TYPE_CHECKING:
+    from agents.transports import Transport
+
+    from ._platform import FederationPlatform
+
+__all__ = [
+    "LocalChannel",
+    "NodeUnreachable",
+    "PlatformAliveError",
+    "channel_path",
+    "refuse_duplicate",
+    "via_node",
+]
+
+log = logging.getLogger(__name__)
+
+_SUN_PATH = 100  # bytes of a Unix socket's path, with a margin (108 on Linux, 104 on BSDs)
+_LINE = 1 << 20  # longest request line accepted (1 MiB)
+ALIVE_WAIT = 1.0
+"""Seconds a starting node listens for its own name's liveliness token before going on."""
+
+
+# -- the duplicate check ---------------------------------------------------------------------
+
+
+class PlatformAliveError(RuntimeError):
+    """A platform of this name is alive in the federation already; this one must not start."""
+
+
+def _identity(config: PlatformConfig, started: float) -> dict[str, Any]:
+    """What a running node tells a second one of its name: where it runs, since when."""
+    return {
+        "platform": config.name,
+        "federation": config.federation,
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        "since": started,
+    }
+
+
+def identity_key(config: PlatformConfig) -> str:
+    """The key a running node answers ``who are you`` queries on."""
+    from agents._platform import wire_key
+
+    return wire_key(config.federation, "identity", config.name)
+
+
+def alive_key(config: PlatformConfig) -> str:
+    """The liveliness token of a platform of this config's name."""
+    from agents._platform import wire_key
+
+    return wire_key(config.federation, "alive", config.name)
+
+
+async def refuse_duplicate(
+    transport: Transport, config: PlatformConfig, wait: float = ALIVE_WAIT, *, command: bool = False
+) -> None:
+    """PlatformAliveError when ``config``'s name is alive already (on an open ``transport``).
+
+    ``command``: the refused one is a one-shot command (the message says where to run it).
+    """
+    presence = await transport.watch_presence(alive_key(config), history=True)
+    alive = False
+    try:
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(wait):
+                async for change in presence:
+                    if change.alive:
+                        alive = True
+                        break
+    finally:
+        presence.close()
+    if not alive:
+        return
+    where = "where and since when unknown (it did not say)"
+    with contextlib.suppress(Exception):
+        replies = await transport.query(identity_key(config), timeout=2.0)
+        for reply in replies:
+            info = json.loads(reply.payload)
+            if isinstance(info, dict) and info.get("platform") == config.name:
+                where = _where(info)
+                break
+    who = f"platform {config.name!r} is alive in federation {config.federation!r} already"
+    if command:
+        raise PlatformAliveError(
+            f"{who}: {where}. Acting as it from here would break its sessions: run this command on "
+            "its host (it goes through the running node there), or with a config of a "
+            "platform of its own"
+        )
+    raise PlatformAliveError(
+        f"{who}: {where}. A platform runs in one process: stop that one first, or give this one "
+        "a name of its own (the one-shot commands go through the running node)"
+    )
+
+
+def _where(info: dict[str, Any]) -> str:
+    """``pid 123 on host h, since 2026-…Z (5 min ago)`` from a running node's answer."""
+    since = info.get("since")
+    when = "since an unknown time"
+    if isinstance(since, int | float):
+        stamp = dt.datetime.fromtimestamp(since, dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
+        ago = max(0.0, time.time() - since)
+        when = f"since {stamp} ({_ago(ago)} ago)"
+    return f"pid {info.get('pid')} on host {info.get('host')!r}, {when}"
+
+
+def _ago(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+# -- the local channel -----------------------------------------------------------------------
+
+
+def channel_path(config: PlatformConfig) -> Path:
+    """Where the node of ``config`` listens: ``$XDG_RUNTIME_DIR/dyknow/<federation>/<name>.sock``.
+
+    Without ``XDG_RUNTIME_DIR``, ``<tmp>/dyknow-<uid>/…``; the directories are made 0700.
+    A path too long for a socket becomes ``<tmp>/dyknow-<uid>/<its hash>.sock``.
+    """
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    short = Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"
+    base = Path(runtime) / "dyknow" if runtime else short
+    path = base / config.federation / f"{config.name}.sock"
+    if len(os.fsencode(path)) > _SUN_PATH:
+        # a socket's path has ~107 bytes at most: a short one named by the long one's hash
+        digest = hashlib.sha256(os.fsencode(path)).hexdigest()[:24]
+        path = short / f"{digest}.sock"
+    return path
+
+
+def _private_dir(path: Path) -> None:
+    """Make the socket's own directory ``path`` 0700 and check it is ours.
+
+    Only that directory (always one of ours: ``<federation>/`` or ``dyknow-<uid>/``) is
+    changed, never the runtime or temporary directory above it.
+    """
+    for d in reversed([path, *path.parents]):
+        if not d.exists():
+            d.mkdir(mode=0o700)
+    st = path.stat()
+    if st.st_uid != os.getuid():
+        raise PermissionError(f"{path} belongs to uid {st.st_uid}, not to us")
+    if st.st_mode & 0o077:
+        os.chmod(path, 0o700)
+
+
+def _peer_uid(writer: asyncio.StreamWriter) -> int | None:
+    sock = writer.get_extra_info("socket")
+    if sock is None:
+        return None
+    creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    _pid, uid, _gid = struct.unpack("3i", creds)
+    return int(uid)
+
+
+class LocalChannel:
+    """A running node's local channel and its ``who are you`` answer (async context manager)."""
+
+    def __init__(self, platform: FederationPlatform) -> None:
+        self.platform = platform
+        self.path = channel_path(platform.config)
+        self.started = time.time()
+        self._server: asyncio.base_events.Server | None = None
+        self._handle: Any = None
+        self.served = 0
+        self.refused = 0
+        self._lock = asyncio.Lock()
+        self._exports: dict[tuple[str, str], list[Any]] = {}  # export id, commands following
+
+    async def __aenter__(self) -> LocalChannel:
+        config = self.platform.config
+        info = json.dumps(_identity(config, self.started)).encode()
+
+        async def who(_key: str, _payload: bytes) -> bytes:
+            return info
+
+        self._handle = await self.platform.transport.serve(identity_key(config), who)
+        _private_dir(self.path.parent)
+        # Our name was not alive (refuse_duplicate): a socket left here is a dead node's.
+        with contextlib.suppress(FileNotFoundError):
+            self.path.unlink()
+        old = os.umask(0o177)
+        try:
+            self._server = await asyncio.start_unix_server(
+                self._serve, path=str(self.path), limit=_LINE
+            )
+        finally:
+            os.umask(old)
+        os.chmod(self.path, 0o600)
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        if self._server is not None:
+            self._server.close()
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(self._server.wait_closed(), 2.0)
+        with contextlib.suppress(FileNotFoundError):
+            self.path.unlink()
+        if self._handle is not None:
+            with contextlib.suppress(Exception):
+                self._handle.close()
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        async def send(obj: Any) -> None:
+            writer.write(json.dumps(obj, default=str).encode() + b"\n")
+            await writer.drain()
+
+        try:
+            uid = _peer_uid(writer)
+            if uid is None or uid not in (os.getuid(), 0):
+                # the socket's mode keeps others out; this holds if it was loosened
+                self.refused += 1
+                log.warning("local channel: refused a client of uid %s", uid)
+                await send({"error": "this node serves its own user only"})
+                return
+            line = await reader.readline()
+            try:
+                request = json.loads(line)
+                if not isinstance(request, dict):
+                    raise ValueError("not a JSON object")
+            except ValueError as exc:
+                await send({"error": f"bad request: {exc}"})
+                return
+            self.served += 1
+            try:
+                await self._answer(request, send, reader)
+            except (ConnectionError, asyncio.IncompleteReadError):
+                raise
+            except Exception as exc:
+                await send({"error": f"{type(exc).__name__}: {exc}"})
+        except (ConnectionError, asyncio.IncompleteReadError):
+            pass  # the command went away (Ctrl-C): its stream is cancelled below
+        finally:
+            writer.close()
+            with contextlib.suppress(Exception):
+                await writer.wait_closed()
+
+    async def _answer(
+        self,
+        request: dict[str, Any],
+        send: Callable[[Any], Any],
+        reader: asyncio.StreamReader,
+    ) -> None:
+        from ._cli_net import _wait_for, platforms_of
+
+        p = self.platform
+        op = request.get("op")
+        wait = float(request.get("wait", 3.0))
+        timeout = float(request.get("timeout", 10.0))
+        if op == "platforms":
+            await _wait_for(p, None, wait)
+            await send({"ok": platforms_of(p)})
+        elif op == "request":
+            target = str(request["platform"])
+            await _wait_for(p, target, wait)
+            answer = await p.federation_agent.request_from(
+                target, request["content"], timeout=timeout
+            )
+            await send({"ok": answer})
+        elif op == "stream":
+            await self._stream(request, send, reader, wait, timeout)
+        else:
+            await send({"error": f"unknown op {op!r}"})
+
+    async def _stream(
+        self,
+        request: dict[str, Any],
+        send: Callable[[Any], Any],
+        reader: asyncio.StreamReader,
+        wait: float,
+        timeout: float,
+    ) -> None:
+        p = self.platform
+        target = str(request["platform"])
+        labels = [str(x) for x in request["labels"]]
+        await _wait_for_platform(p, target, wait)
+        acquired: list[str] = []
+        try:
+            for semantic in labels:
+                await self._acquire(target, semantic, request.get("sample_period"), timeout)
+                acquired.append(semantic)
+            await self._relay(p, target, labels, request, send, reader, timeout)
+        finally:
+            for semantic in acquired:
+                await self._release(target, semantic)
+
+    async def _acquire(
+        self, target: str, semantic: str, sample_period: Any, timeout: float
+    ) -> None:
+        """Have ``target``'s ``semantic`` stream imported here, shared by the commands.
+
+        A stream the node imports for its own use (the console's) is followed, never
+        created or cancelled from here; one the channel created is shared by the commands
+        following it at once (the first one's sample period) and cancelled after the last.
+        """
+        p = self.platform
+        async with self._lock:
+            entry = self._exports.get((target, semantic))
+            if entry is not None:
+                entry[1] += 1
+                return
+            rec = p.importer.get(target, semantic)
+            if rec is not None and rec.source is not None and not rec.ended:
+                return  # the node's own
+            export_id = await p.federation_agent.create_stream(
+                target, [semantic], sample_period=sample_period, timeout=timeout
+            )
+            self._exports[(target, semantic)] = [export_id, 1]
+
+    async def _release(self, target: str, semantic: str) -> None:
+        async with self._lock:
+            entry = self._exports.get((target, semantic))
+            if entry is None:
+                return
+            entry[1] -= 1
+            if entry[1] > 0:
+                return
+            del self._exports[(target, semantic)]
+        with contextlib.suppress(Exception):
+            await self.platform.federation_agent.cancel_stream(target, entry[0], timeout=2.0)
+
+    async def _relay(
+        self,
+        p: FederationPlatform,
+        target: str,
+        labels: list[str],
+        request: dict[str, Any],
+        send: Callable[[Any], Any],
+        reader: asyncio.StreamReader,
+        timeout: float,
+    ) -> None:
+        queue: asyncio.Queue[list[Any]] = asyncio.Queue(10_000)
+
+        async def pump(semantic: str) -> None:
+            label = await p.imported(target, semantic, timeout=timeout)
+            sub = p.instance.subscribe(label)
+            try:
+                async for s in sub:
+                    await queue.put([semantic, s.value, s.valid_time, s.available_time])
+            finally:
+                sub.close()
+
+        tasks = [asyncio.create_task(pump(s)) for s in labels]
+        gone = asyncio.create_task(reader.read())  # EOF: the command stopped
+        count = request.get("count")
+        seen = 0
+        try:
+            while count is None or seen < int(count):
+                getting = asyncio.create_task(queue.get())
+                done, _ = await asyncio.wait(
+                    [getting, gone, *tasks], return_when=asyncio.FIRST_COMPLETED
+                )
+                if getting not in done:
+                    getting.cancel()
+                    for t in tasks:
+                        if t in done and t.exception() is not None:
+                            raise t.exception()  # type: ignore[misc]
+                    return
+                await send({"sample": getting.result()})
+                seen += 1
+            await send({"end": seen})
+        finally:
+            gone.cancel()
+            for t in tasks:
+                t.cancel()
+            await asyncio.gather(*tasks, gone, return_exceptions=True)
+
+
+async def _wait_for_platform(p: FederationPlatform, target: str, wait: float) -> None:
+    from ._cli_net import _wait_for
+
+    await _wait_for(p, target, wait)
+
+
+class NodeUnreachable(Exception):
+    """No node of this config runs here (no socket, or nobody listening on it)."""
+
+
+async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGenerator[Any, None]:
+    """Send ``request`` to the running node of ``config``; its answer lines, decoded.
+
+    NodeUnreachable (before any line) when no node of this config runs on this host.
+    """
+    path = channel_path(config)
+    try:
+        reader, writer = await asyncio.open_unix_connection(str(path), limit=64 << 20)
+    except (FileNotFoundError, ConnectionRefusedError) as exc:
+        raise NodeUnreachable(str(exc)) from None
+    try:
+        writer.write(json.dumps(request).encode() + b"\n")
+        await writer.drain()
+        while True:
+            line = await reader.readline()
+            if not line:
+                return
+            yield json.loads(line)
+    finally:
+        writer.close()
+        with contextlib.suppress(Exception):
+            await writer.wait_closed()

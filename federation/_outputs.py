@@ -1,0 +1,198 @@
+"""Outputs of a node's application: chosen streams published as JSON for outside consumers.
+
+Each ``[[outputs]]`` table of a node's config (docs/application.md) names local labels
+(glob patterns allowed: streams appearing later are picked up) and where their samples
+go: an MQTT topic or a zenoh key, ``{label}`` in either replaced by the sample's label.
+Each sample is one JSON object ``{"label", "value", "valid", "available"}`` (times in
+seconds since the epoch), so a dashboard needs no DyKnow library to read it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import fnmatch
+import json
+import logging
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from dyknow_core import Policy
+
+if TYPE_CHECKING:
+    from dyknow_core import DyKnowInstance
+
+__all__ = ["MqttOutput", "OutputRunner", "OutputSettings", "ZenohOutput", "output_runner"]
+
+log = logging.getLogger(__name__)
+
+_RESCAN = 1.0  # s between looks for new streams matching a pattern
+_NS = 1_000_000_000  # an int: int / int is correctly rounded, epoch times keep their fraction
+_QUEUE = 10_000  # samples waiting to be published; beyond, the oldest are dropped
+
+
+class _OutputBase(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    labels: list[str] = Field(min_length=1, description="Local labels or glob patterns.")
+    sample_period: float | None = Field(default=None, gt=0)
+
+
+class MqttOutput(_OutputBase):
+    """``kind = "mqtt"``: samples as JSON on ``topic`` (``{label}`` allowed) at a broker."""
+
+    kind: Literal["mqtt"]
+    topic: str = Field(min_length=1)
+    host: str = "127.0.0.1"
+    port: int = Field(default=1883, gt=0, lt=65536)
+    qos: Literal[0, 1, 2] = 0
+    retain: bool = False
+
+    def title(self) -> str:
+        """``mqtt TOPIC``."""
+        return f"mqtt {self.topic}"
+
+
+class ZenohOutput(_OutputBase):
+    """``kind = "zenoh"``: samples as JSON put on ``key`` (``{label}`` allowed)."""
+
+    kind: Literal["zenoh"]
+    key: str = Field(min_length=1)
+    connect: tuple[str, ...] | None = None
+
+    def title(self) -> str:
+        """``zenoh KEY``."""
+        return f"zenoh {self.key}"
+
+
+OutputSettings = Annotated[MqttOutput | ZenohOutput, Field(discriminator="kind")]
+
+
+def sample_json(label: str, value: Any, valid: int, available: int) -> bytes:
+    """One sample as the outputs publish it."""
+    row = {"label": label, "value": value, "valid": valid / _NS, "available": available / _NS}
+    try:
+        return json.dumps(row, default=str, allow_nan=False).encode()
+    except ValueError:  # NaN or infinity somewhere in the value: not JSON, sent as text
+        row["value"] = str(value)
+        return json.dumps(row, default=str).encode()
+
+
+class OutputRunner:
+    """One output: follows the matching streams and publishes their samples."""
+
+    def __init__(self, settings: MqttOutput | ZenohOutput, instance: DyKnowInstance) -> None:
+        self.settings = settings
+        self.instance = instance
+        self.published = 0
+        self.dropped = 0
+        self._queue: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue(_QUEUE)
+        self._followed: set[str] = set()
+        self._subs: list[Any] = []
+
+    def matching(self) -> list[str]:
+        """The local labels this output publishes now."""
+        found = []
+        for pattern in self.settings.labels:
+            if any(c in pattern for c in "*?["):
+                found += fnmatch.filter(self.instance.labels(), pattern)
+            elif self.instance.has_label(pattern):
+                found.append(pattern)
+        return found
+
+    def check(self) -> list[str]:
+        """Fixed labels (not patterns) that are no stream here."""
+        return [
+            f"no stream {label!r} here"
+            for label in self.settings.labels
+            if not any(c in label for c in "*?[") and not self.instance.has_label(label)
+        ]
+
+    def _follow(self) -> None:
+        policy = Policy(sample_period=self.settings.sample_period)
+        for label in self.matching():
+            if label in self._followed:
+                continue
+            self._followed.add(label)
+
+            def deliver(batch: list[Any], label: str = label) -> None:
+                for value, valid, available in batch:
+                    self._enqueue(label, sample_json(label, value, valid, available))
+
+            self._subs.append(self.instance.subscribe(label, policy, callback=deliver))
+
+    def _enqueue(self, label: str, payload: bytes) -> None:
+        if self._queue.full():  # a slow broker: the newest samples matter most
+            self._queue.get_nowait()
+            self.dropped += 1
+        self._queue.put_nowait((label, payload))
+
+    async def run(self, zenoh_session: Any | None) -> None:
+        """Publish until cancelled."""
+        try:
+            if isinstance(self.settings, MqttOutput):
+                await self._run_mqtt(self.settings)
+            else:
+                await self._run_zenoh(self.settings, zenoh_session)
+        finally:
+            for sub in self._subs:
+                sub.close()
+
+    async def _scan(self) -> None:
+        while True:
+            self._follow()
+            await asyncio.sleep(_RESCAN)
+
+    async def _run_mqtt(self, s: MqttOutput) -> None:
+        import aiomqtt
+
+        scan = asyncio.create_task(self._scan())
+        try:
+            while True:  # reconnects: the broker may restart
+                try:
+                    async with aiomqtt.Client(s.host, s.port) as client:
+                        while True:
+                            label, payload = await self._queue.get()
+                            topic = s.topic.replace("{label}", label)
+                            await client.publish(topic, payload, qos=s.qos, retain=s.retain)
+                            self.published += 1
+                except aiomqtt.MqttError as exc:
+                    log.warning("output %s: %s; reconnecting in 1 s", s.title(), exc)
+                    await asyncio.sleep(1.0)
+        finally:
+            scan.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await scan
+
+    async def _run_zenoh(self, s: ZenohOutput, session: Any | None) -> None:
+        import zenoh
+
+        from agents.transports import ZenohConfig
+
+        own = None
+        if s.connect is not None or session is None:
+            if not s.connect:
+                raise ValueError(
+                    f"output {s.title()}: the node's transport is not zenoh: give connect = [...]"
+                )
+            cfg = ZenohConfig(mode="client", connect=s.connect).to_zenoh()
+            own = session = await asyncio.to_thread(zenoh.open, cfg)
+        assert session is not None
+        scan = asyncio.create_task(self._scan())
+        try:
+            while True:
+                label, payload = await self._queue.get()
+                session.put(s.key.replace("{label}", label), payload)
+                self.published += 1
+        finally:
+            scan.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await scan
+            if own is not None:
+                await asyncio.to_thread(own.close)
+
+
+def output_runner(settings: MqttOutput | ZenohOutput, instance: DyKnowInstance) -> OutputRunner:
+    """The runner of one ``[[outputs]]`` table."""
+    return OutputRunner(settings, instance)

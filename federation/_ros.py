@@ -1,0 +1,221 @@
+"""ROS 2 inputs: topics published through rmw_zenoh, and recorded rosbag2 / MCAP files.
+
+rmw_zenoh (ROS 2's middleware on zenoh) puts each message of a topic on the key
+
+    <domain id>/<topic without its leading '/'>/<type>/<type hash>
+
+with ``<type>`` the DDS-style name (``geometry_msgs::msg::dds_::PoseStamped_``) and
+``<type hash>`` the type's RIHS01 hash (``RIHS01_<64 hex digits>``); the payload is the
+message in CDR with its 4-byte encapsulation header. We subscribe to
+``<domain>/<topic>/*/*`` (or the one type asked for) and take the type from the key. The
+sample's attachment (sequence number, source time stamp, publisher GID) is not used.
+Messages are decoded with ``rosbags`` (standard message types without a ROS install)
+into plain dicts and lists; ``header.stamp`` is the valid time when the message has one.
+docs/application.md, "ROS 2".
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import logging
+import time
+from functools import cache
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from ._inputs import BadMessage, InputRunner, Ros2Input, RosbagInput, _Queue
+
+if TYPE_CHECKING:
+    from dyknow_core import DyKnowInstance
+
+__all__ = ["dds_type", "ros_runner", "ros_type", "to_plain"]
+
+log = logging.getLogger(__name__)
+
+
+@cache
+def _typestore(distro: str) -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        store = Stores[f"ROS2_{distro.upper()}"]
+    except KeyError:
+        raise ValueError(f"distro {distro!r}: not one rosbags knows") from None
+    return get_typestore(store)
+
+
+def ros_type(dds: str) -> str:
+    """``geometry_msgs::msg::dds_::PoseStamped_`` → ``geometry_msgs/msg/PoseStamped``."""
+    parts = dds.split("::")
+    if len(parts) == 4 and parts[2] == "dds_" and parts[3].endswith("_"):
+        return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+    raise ValueError(f"{dds!r} is not a DDS type name like pkg::msg::dds_::Name_")
+
+
+def dds_type(ros: str) -> str:
+    """``geometry_msgs/msg/PoseStamped`` → ``geometry_msgs::msg::dds_::PoseStamped_``."""
+    pkg, kind, name = ros.split("/")
+    return f"{pkg}::{kind}::dds_::{name}_"
+
+
+def to_plain(msg: Any) -> Any:
+    """A decoded ROS message as dicts, lists and numbers (what streams and queries carry)."""
+    if dataclasses.is_dataclass(msg) and not isinstance(msg, type):
+        # ROS field names are lower case, a type's constants upper case: constants left out
+        return {
+            f.name: to_plain(getattr(msg, f.name))
+            for f in dataclasses.fields(msg)
+            if not f.name.isupper() and f.name != "__msgtype__"
+        }
+    if isinstance(msg, list | tuple):
+        return [to_plain(x) for x in msg]
+    tolist = getattr(msg, "tolist", None)  # numpy arrays (uint8[] data, covariances)
+    if tolist is not None:
+        return tolist()
+    return msg
+
+
+def header_stamp(plain: Any) -> int | None:
+    """``header.stamp`` in nanoseconds, when the message has a header."""
+    if not isinstance(plain, dict):
+        return None
+    header = plain.get("header")
+    stamp = header.get("stamp") if isinstance(header, dict) else None
+    if not isinstance(stamp, dict):
+        return None
+    return int(stamp.get("sec", 0)) * 1_000_000_000 + int(stamp.get("nanosec", 0))
+
+
+class _Decoder:
+    def __init__(self, distro: str) -> None:
+        self.store = _typestore(distro)
+
+    def decode(self, data: bytes, rostype: str) -> Any:
+        if rostype not in self.store.types:
+            raise BadMessage("unknown-type", f"{rostype}: not a type rosbags knows")
+        try:
+            return to_plain(self.store.deserialize_cdr(data, rostype))
+        except Exception as exc:
+            raise BadMessage("not-cdr", f"{rostype}: {type(exc).__name__}: {exc}") from None
+
+
+class _Ros2Runner(InputRunner):
+    settings: Ros2Input
+
+    def key(self) -> str:
+        """The key expression rmw_zenoh publishes this topic on."""
+        s = self.settings
+        topic = s.topic.strip("/")
+        kind = dds_type(s.type) if s.type else "*"
+        return f"{s.domain}/{topic}/{kind}/*"
+
+    async def _run(self, zenoh_session: Any | None) -> None:
+        import zenoh
+
+        from agents.transports import ZenohConfig
+
+        s = self.settings
+        decoder = _Decoder(s.distro)
+        own = None
+        if s.connect is not None or zenoh_session is None:
+            if not s.connect:
+                raise ValueError(
+                    f"input {s.title()}: the node's transport is not zenoh: give connect = [...]"
+                )
+            cfg = ZenohConfig(mode="client", connect=s.connect).to_zenoh()
+            own = zenoh_session = await asyncio.to_thread(zenoh.open, cfg)
+        assert zenoh_session is not None
+        q = _Queue(self.mapper)
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            q.put_threadsafe((sample.payload.to_bytes(), None, str(sample.key_expr)))
+
+        sub = zenoh_session.declare_subscriber(self.key(), on_sample)
+        log.info("input %s: subscribed to %s", s.title(), self.key())
+        mapper = self.mapper
+        try:
+            while True:
+                payload, _, key = await q.queue.get()
+                try:
+                    dds = str(key).split("/")[-2]
+                    rostype = s.type or ros_type(dds)
+                    message = decoder.decode(payload, rostype)
+                except (BadMessage, ValueError, IndexError) as exc:
+                    mapper.stats.received += 1
+                    if isinstance(exc, BadMessage):
+                        mapper.bad(exc.reason, exc.detail)
+                    else:
+                        mapper.bad("bad-key", f"{key}: {exc}")
+                    continue
+                mapper.handle(message, stamp=header_stamp(message), topic=s.topic)
+        finally:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+            if own is not None:
+                await asyncio.to_thread(own.close)
+
+
+def _read_bag(path: Path, topic: str) -> list[tuple[int, str, bytes]]:
+    """``(log time ns, ROS type, CDR)`` of every message of ``topic``, in log-time order."""
+    out: list[tuple[int, str, bytes]] = []
+    if path.is_dir():
+        from rosbags.rosbag2 import Reader
+
+        with Reader(path) as bag:
+            conns = [c for c in bag.connections if c.topic == topic]
+            if not conns:
+                topics = sorted({c.topic for c in bag.connections})
+                raise ValueError(f"{path}: no topic {topic!r} (it has {', '.join(topics)})")
+            for conn, t, data in bag.messages(connections=conns):
+                out.append((t, conn.msgtype, bytes(data)))
+        return out
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages(topics=[topic]):
+            if channel.message_encoding != "cdr" or schema is None:
+                continue
+            out.append((message.log_time, schema.name, bytes(message.data)))
+    if not out:
+        raise ValueError(f"{path}: no CDR message on topic {topic!r}")
+    return sorted(out, key=lambda m: m[0])
+
+
+class _RosbagRunner(InputRunner):
+    settings: RosbagInput
+
+    async def _run(self, zenoh_session: Any | None) -> None:
+        s = self.settings
+        decoder = _Decoder(s.distro)
+        messages = await asyncio.to_thread(_read_bag, s.path, s.topic)
+        mapper = self.mapper
+        start = time.time_ns()
+        first = messages[0][0]
+        for n, (logged, rostype, data) in enumerate(messages):
+            if s.pace == "recorded":
+                delay = (start + (logged - first) / s.speed - time.time_ns()) / 1e9
+                if delay > 0:
+                    await asyncio.sleep(delay)
+            elif n % 1000 == 999:
+                await asyncio.sleep(0)  # let the node answer queries meanwhile
+            try:
+                message = decoder.decode(data, rostype)
+            except BadMessage as exc:
+                mapper.stats.received += 1
+                mapper.bad(exc.reason, exc.detail)
+                continue
+            stamp = header_stamp(message)
+            own = logged if stamp is None else stamp
+            valid = start + (own - first) if s.shift == "now" else None
+            mapper.handle(message, stamp=own, topic=s.topic, valid=valid)
+        log.info("input %s: replayed %d messages", s.title(), len(messages))
+
+
+def ros_runner(settings: Ros2Input | RosbagInput, instance: DyKnowInstance) -> InputRunner:
+    """The runner of a ``ros2`` or ``rosbag`` input."""
+    if isinstance(settings, Ros2Input):
+        return _Ros2Runner(settings, instance)
+    return _RosbagRunner(settings, instance)

@@ -1,0 +1,93 @@
+"""The traffic world as a node's input: what one UAV's camera sees, as messages.
+
+``world_feed`` is a ``kind = "python"`` input (docs/application.md) for the deployments
+(``deploy/config/uav-*.toml``, ``deploy/local``): it runs the demo's simulated world
+(`World`) in real time, looping every ``duration`` seconds, and every ``period`` yields
+
+* ``{"time", "position"}``: the UAV's own position (x, y, z), metres;
+* ``{"time", "id", "state", "speed"}`` for each car inside this UAV's area: its state
+  (``x``, ``y``, ``vx``, ``vy``, ``speed``, ``colour``, ``road``, as the demo's tracker
+  publishes it) and speed, observed with the camera's noise;
+* ``{"time", "violation"}`` when a scripted violation ends in this UAV's area (the
+  world's ground truth: the deployment shows them without the demo's recognition
+  chain, which ``dyknow demo traffic`` runs).
+
+``time`` is seconds since the epoch, the feed's start plus the simulated time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import random
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+from ._world import World
+
+__all__ = ["world_feed"]
+
+
+def _index(uav: str) -> int:
+    """``uav-a`` → 0, ``uav-b`` → 1, …"""
+    suffix = uav.rsplit("-", 1)[-1]
+    if len(suffix) != 1 or not suffix.isalpha():
+        raise ValueError(f"uav {uav!r}: expected a name like uav-a, uav-b")
+    return ord(suffix.lower()) - ord("a")
+
+
+async def world_feed(
+    uav: str,
+    *,
+    seed: int = 7,
+    uavs: int = 3,
+    duration: float = 120.0,
+    period: float = 0.2,
+    noise: float = 0.5,
+) -> AsyncIterator[dict[str, Any]]:
+    """What ``uav``'s camera sees of the simulated world, every ``period`` s, for ever."""
+    index = _index(uav)
+    if not 0 <= index < uavs:
+        raise ValueError(f"uav {uav!r} is not one of the {uavs} UAVs of the world")
+    world = await asyncio.to_thread(World.generate, seed, uavs, duration)
+    rng = random.Random(seed * 31 + index)
+    violations = [v for v in world.ground_truth() if v.end_area == index]
+    start = time.time()
+    lap = -1
+    told: set[int] = set()
+    while True:
+        now = time.time()
+        elapsed = now - start
+        t = elapsed % duration
+        if int(elapsed // duration) != lap:
+            lap, told = int(elapsed // duration), set()
+        x, y, z = world.uav_position(index, t)
+        yield {"time": now, "position": [round(x, 2), round(y, 2), round(z, 2)]}
+        for car in world.cars_at(t):
+            if world.area_of(car.x, car.y) != index:
+                continue
+            state = {
+                "x": round(car.x + rng.gauss(0.0, noise), 2),
+                "y": round(car.y + rng.gauss(0.0, noise), 2),
+                "vx": round(car.vx, 2),
+                "vy": round(car.vy, 2),
+                "speed": round(math.hypot(car.vx, car.vy), 2),
+                "colour": car.colour,
+                "road": car.road,
+            }
+            yield {"time": now, "id": car.id, "state": state, "speed": state["speed"]}
+        for n, v in enumerate(violations):
+            if n not in told and v.end <= t:
+                told.add(n)
+                yield {
+                    "time": now,
+                    "violation": {
+                        "kind": v.kind,
+                        "car": v.car,
+                        "other": v.other,
+                        "x": round(v.x, 2),
+                        "y": round(v.y, 2),
+                    },
+                }
+        await asyncio.sleep(max(0.0, period - (time.time() - now)))

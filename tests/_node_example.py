@@ -1,0 +1,115 @@
+"""examples/node run as a user would: a helper of the tests that start its station."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from agents.keys import gen_keys, trust_keys
+from agents.transports import free_tcp_port
+
+ROOT = Path(__file__).resolve().parent.parent
+NODE_EXAMPLE = ROOT / "examples" / "node"
+CLI = [sys.executable, "-m", "federation.cli"]
+
+
+class Station:
+    """examples/node copied to a temporary directory, on free ports, with its keys."""
+
+    def __init__(self, tmp: Path, mqtt_port: int | None = None) -> None:
+        self.dir = tmp / "node"
+        shutil.copytree(NODE_EXAMPLE, self.dir)
+        self.port = free_tcp_port()
+        self.federation = f"weather-{uuid.uuid4().hex[:8]}"  # one of its own per test
+        for conf in self.dir.glob("*.toml"):
+            text = conf.read_text().replace("127.0.0.1:7450", f"127.0.0.1:{self.port}")
+            text = text.replace('federation = "weather"', f'federation = "{self.federation}"')
+            if mqtt_port is not None:
+                text = text.replace("port = 1883", f"port = {mqtt_port}")
+            conf.write_text(text)
+        keys = self.dir / "keys"
+        pubs = [gen_keys(name, keys)[2] for name in ("station", "operator")]
+        trust_keys(keys / "trust.json", pubs, federation=self.federation)
+        self.node: subprocess.Popen[str] | None = None
+        # a runtime directory of its own: the local channels of this test's nodes
+        runtime = tmp / "run"
+        runtime.mkdir(mode=0o700)
+        self.env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_RUNTIME_DIR": str(runtime)}
+
+    def start(self, kind: str) -> str:
+        """``dyknow node --config station-KIND.toml``; its ready line."""
+        self.node = subprocess.Popen(
+            [*CLI, "node", "--config", f"station-{kind}.toml"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=self.dir,
+            env=self.env,
+        )
+        assert self.node.stdout is not None
+        ready = self.node.stdout.readline()  # bounded by the test's timeout
+        assert f"station ready in federation {self.federation}" in ready, self.stop()[1]
+        return ready
+
+    def dyknow(self, *args: str) -> Any:
+        """A one-shot command as the operator; its JSON answer."""
+        done = subprocess.run(
+            [*CLI, *args, "--config", "operator.toml", "--json", "--wait", "10"],
+            capture_output=True,
+            text=True,
+            cwd=self.dir,
+            env=self.env,
+            timeout=40,
+        )
+        assert done.returncode == 0, done.stderr
+        if args[0] == "stream":
+            return [json.loads(line) for line in done.stdout.splitlines()]
+        return json.loads(done.stdout)
+
+    def latest(self, *labels: str, until: Callable[[dict[str, Any]], bool]) -> dict[str, Any]:
+        """``dyknow ask station LABELS`` until the answer satisfies ``until`` (20 tries)."""
+        answer: dict[str, Any] = {}
+        for _ in range(20):
+            answer = self.dyknow("ask", "station", *labels)
+            if until(answer):
+                return answer
+            time.sleep(0.5)  # the inputs are paced by the outside world, not by an event here
+        raise AssertionError(f"no such answer: {answer}")
+
+    def stop(self) -> tuple[str, str]:
+        """SIGINT the node; its stdout and stderr."""
+        node = self.node
+        if node is None:
+            return "", ""
+        if node.poll() is None:
+            node.send_signal(signal.SIGINT)
+        try:
+            out, err = node.communicate(timeout=15)
+        except subprocess.TimeoutExpired:
+            node.kill()
+            out, err = node.communicate(timeout=5)
+        self.node = None
+        return out, err
+
+
+def _samples(answer: dict[str, Any], label: str) -> list[Any]:
+    result = answer.get(label)
+    return result["samples"] if isinstance(result, dict) else []
+
+
+def _stats(out: str) -> list[dict[str, Any]]:
+    """The per-input / per-output counts a node prints when it stops."""
+    rows = []
+    for line in out.splitlines():
+        if line.startswith("dyknow node: {"):
+            rows.append(json.loads(line.removeprefix("dyknow node: ")))
+    return rows

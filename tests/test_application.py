@@ -1,0 +1,128 @@
+"""A node's own application (docs/application.md): the config checked at start, messages mapped."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from dyknow_core import DyKnowInstance
+from federation._inputs import ZenohInput, input_runner
+from federation.cli import main
+
+ROOT = Path(__file__).resolve().parent.parent
+EXAMPLE = ROOT / "examples" / "node"
+
+
+@pytest.fixture
+def station(tmp_path: Path) -> Path:
+    """examples/node copied, with keys; the file-input station's config."""
+    from agents.keys import gen_keys, trust_keys
+
+    d = tmp_path / "node"
+    shutil.copytree(EXAMPLE, d)
+    pub = gen_keys("station", d / "keys")[2]
+    trust_keys(d / "keys" / "trust.json", [pub], federation="weather")
+    return d / "station-file.toml"
+
+
+def _node(config: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code = main(["node", "--config", str(config)])
+    return code, capsys.readouterr().err
+
+
+def test_kpl_errors_stop_the_node_with_file_line_col(
+    station: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    kpl = station.parent / "weather.kpl"
+    kpl.write_text(kpl.read_text().replace("inputs wx/wind", "inputs wx/gust"))
+    code, err = _node(station, capsys)
+    assert code == 2
+    assert f"{station}: application: the KPL file does not check:" in err
+    assert f"{kpl}:7:12: unknown label 'wx/gust'" in err and "Traceback" not in err
+
+
+def test_a_cu_that_does_not_import_is_named_with_its_line(
+    station: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    kpl = station.parent / "weather.kpl"
+    kpl.write_text(kpl.read_text().replace("weather_units:to_kmh", "weather_units:to_mph"))
+    code, err = _node(station, capsys)
+    assert code == 2
+    assert f"{kpl}:6:1: cu 'kmh': weather_units:to_mph: AttributeError" in err
+
+
+def test_input_and_output_labels_are_checked_at_start(
+    station: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    text = station.read_text()
+    station.write_text(text.replace('temperature = "wx/temperature"', 'temperature = "wx/state"'))
+    code, err = _node(station, capsys)
+    assert code == 2 and "inputs[0].fields: 'wx/state' is computed here, not a source" in err
+    station.write_text(text.replace('temperature = "wx/temperature"', 'temperature = "wx/t"'))
+    code, err = _node(station, capsys)
+    assert code == 2 and "inputs[0].fields: no source 'wx/t'" in err
+    station.write_text(text + '\n[[outputs]]\nkind = "zenoh"\nkey = "x"\nlabels = ["wx/nope"]\n')
+    code, err = _node(station, capsys)
+    assert code == 2 and "outputs[0].labels: no stream 'wx/nope' here" in err
+
+
+def test_config_keys_of_inputs_are_named(station: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    text = station.read_text()
+    station.write_text(text.replace('kind = "file"', 'kind = "ftp"', 1))
+    code, err = _node(station, capsys)
+    kinds = "'zenoh', 'mqtt', 'file', 'python', 'ros2', 'rosbag'"
+    assert code == 2 and f"inputs[0].kind: expected {kinds}" in err
+    station.write_text(text.replace('pace = "fast"', 'pace = "fast"\nspeeed = 2'))
+    code, err = _node(station, capsys)
+    assert code == 2 and "inputs[1].speeed: unknown key" in err
+    station.write_text(
+        text + '\n[[inputs]]\nkind = "python"\nentry = "nowhere:gen"\nfields = {"." = "wx/wind"}\n'
+    )
+    code, err = _node(station, capsys)
+    assert code == 2 and "inputs[2].entry: nowhere:gen: ModuleNotFoundError" in err
+
+
+async def test_messages_map_to_samples_and_bad_ones_are_counted() -> None:
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("car/car1/speed")
+        settings = ZenohInput(
+            kind="zenoh",
+            key="cars/*",
+            fields={"speed": "car/{id}/speed", "pose.x": "car/{id}/x"},
+            time="stamp",
+            time_unit="ms",
+            create=True,
+        )
+        runner = input_runner(settings, inst)
+        handle = runner.mapper.handle
+        handle({"id": "car1", "speed": 12.5, "stamp": 1_700_000_000_123})
+        handle({"id": "car2", "pose": {"x": 3.0}})  # no stamp: valid at arrival
+        handle({"id": "car3", "speed": 1.0, "stamp": "noon"})
+        handle({"speed": 2.0})  # no id for the label
+        handle({"id": "car1"})  # none of the fields
+        handle({"id": {"nested": 1}, "speed": 3.0})
+        handle(["not", "a", "mapping"])
+        assert inst.latest("car/car1/speed").samples[0].valid_time == 1_700_000_000_123_000_000
+        assert inst.latest("car/car1/speed").samples[0].value == 12.5
+        x = inst.latest("car/car2/x").samples[0]  # created on first use (create = true)
+        assert x.value == 3.0 and x.valid_time == x.available_time
+        stats = runner.stats.as_dict()
+        assert stats["received"] == 7 and stats["samples"] == 2
+        assert stats["bad"] == {"bad-time": 1, "no-label-field": 2, "no-field": 2}
+        assert runner.mapper.decode(b"\x81\xa1a\x01", "msgpack") == {"a": 1}
+
+
+def test_a_zenoh_input_on_an_mqtt_node_needs_its_own_connect(
+    station: Path, capsys: pytest.CaptureFixture[str], mosquitto: tuple[str, int]
+) -> None:
+    host, port = mosquitto
+    text = (station.parent / "station-zenoh.toml").read_text()
+    text = text.replace(
+        'mode = "peer"\nlisten = ["tcp/127.0.0.1:7450"]',
+        f'kind = "mqtt"\nhost = "{host}"\nport = {port}',
+    )
+    station.write_text(text)
+    code, err = _node(station, capsys)
+    assert code == 2 and "inputs[0].connect: missing: the node's transport is not zenoh" in err

@@ -1,0 +1,141 @@
+"""deploy/local: the compose topology on loopback, started by `up`, stopped by `down`."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import socket
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import pytest
+
+from agents.transports import free_tcp_port
+
+ROOT = Path(__file__).resolve().parent.parent
+LOCAL = ROOT / "deploy" / "local"
+CLI = [sys.executable, "-m", "federation.cli"]
+
+
+def _env(run: Path, router: int, console: int) -> dict[str, str]:
+    return {
+        **os.environ,
+        "PYTHON": sys.executable,
+        "DYKNOW_LOCAL_RUN": str(run),
+        "DYKNOW_LOCAL_ROUTER_PORT": str(router),
+        "DYKNOW_LOCAL_CONSOLE_PORT": str(console),
+        "DYKNOW_LOCAL_TIMEOUT": "120",
+        "XDG_RUNTIME_DIR": str(run.parent / "xdg"),
+    }
+
+
+def _script(name: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([str(LOCAL / name)], env=env, capture_output=True, text=True, timeout=180)
+
+
+def _pids(run: Path) -> list[int]:
+    log = (run / "honcho.log").read_text()
+    return [int(p) for p in re.findall(r"started \(pid=(\d+)\)", log)]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    return True
+
+
+def _listening(port: int) -> bool:
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+    except OSError:
+        return False
+    return True
+
+
+@pytest.mark.timeout(400)
+def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    (tmp_path / "xdg").mkdir(mode=0o700)
+    router, console = free_tcp_port(), free_tcp_port()
+    env = _env(run, router, console)
+    try:
+        up = _script("up", env)
+        assert up.returncode == 0, up.stdout + up.stderr
+        url = f"http://127.0.0.1:{console}/"
+        assert f"the console: {url}" in up.stdout
+        # every platform ready, keys made on first use, the configs on loopback
+        assert (run / "config" / "keys" / "trust.json").exists()
+        assert f"tcp/127.0.0.1:{router}" in (run / "config" / "uav-a.toml").read_text()
+        with urllib.request.urlopen(url, timeout=10) as page:
+            assert "operator console" in page.read().decode()
+        # idempotent: a second up finds it running
+        again = _script("up", env)
+        assert again.returncode == 0 and "already up" in again.stdout, again.stderr
+        operator = str(run / "config" / "operator.toml")
+
+        def dyknow(*args: str) -> subprocess.CompletedProcess[str]:
+            return subprocess.run(
+                [*CLI, *args, "--config", operator, "--json", "--wait", "10"],
+                env=env,
+                capture_output=True,
+                text=True,
+                timeout=60,
+            )
+
+        # uav-a's application, fed by the traffic world: cars appear as it sees them
+        cars: list[str] = []
+        for _ in range(30):
+            done = dyknow("labels", "uav-a")
+            assert done.returncode == 0, done.stderr
+            labels = json.loads(done.stdout)["labels"]
+            cars = [x for x in labels if re.fullmatch(r"car\d+-state", x)]
+            if cars:
+                break
+        assert cars, labels
+        done = dyknow("ask", "uav-a", cars[0])
+        assert done.returncode == 0, done.stderr
+        [(state, valid, available)] = json.loads(done.stdout)[cars[0]]["samples"]
+        assert {"x", "y", "vx", "vy", "speed", "colour", "road"} <= set(state)
+        assert valid <= available
+        # a stream while the console runs as the operator: it goes through the console
+        done = dyknow("stream", "uav-a", "heli-position", "--count", "3")
+        assert done.returncode == 0, done.stderr
+        rows = [json.loads(line) for line in done.stdout.splitlines()]
+        assert len(rows) == 3 and all(len(r["value"]) == 3 for r in rows)
+        pids = _pids(run)
+        assert len(pids) == 5 and all(_alive(p) for p in pids)
+    finally:
+        down = _script("down", env)
+    assert down.returncode == 0 and "deploy/local: down" in down.stdout, down.stderr
+    # nothing left: no process honcho started, no port, the console's "stopped" line
+    assert not any(_alive(p) for p in pids)
+    assert not _listening(router) and not _listening(console)
+    served = re.search(
+        r"dyknow console: local channel: (\d+) commands", (run / "honcho.log").read_text()
+    )
+    assert served and int(served.group(1)) >= 3  # labels, ask, stream: through the console
+    again = _script("down", env)
+    assert again.returncode == 0 and "nothing running" in again.stdout
+
+
+@pytest.mark.timeout(300)
+def test_up_fails_loudly_naming_the_service(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    (tmp_path / "xdg").mkdir(mode=0o700)
+    router, console = free_tcp_port(), free_tcp_port()
+    env = _env(run, router, console)
+    with socket.socket() as taken:  # the console's port is taken: the operator cannot start
+        taken.bind(("127.0.0.1", console))
+        taken.listen()
+        up = _script("up", env)
+    assert up.returncode == 1, up.stdout
+    assert "deploy/local: up failed: operator stopped" in up.stderr
+    assert "operator | " in up.stderr  # its last lines, with the reason
+    pids = _pids(run)
+    assert pids and not any(_alive(p) for p in pids)  # everything it started is stopped
+    assert not (run / "honcho.pid").exists()

@@ -1,0 +1,216 @@
+"""One platform, one process: a second node of a live name is refused; the one-shot
+commands run with a running node's config go through it and break none of its sessions."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import urllib.request
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+from _node_example import Station, _samples
+
+CLI = [sys.executable, "-m", "federation.cli"]
+
+
+@pytest.mark.timeout(120)
+def test_a_second_node_of_a_live_name_is_refused_and_the_first_goes_on(tmp_path: Path) -> None:
+    station = Station(tmp_path)
+    try:
+        station.start("python")
+        node = station.node
+        assert node is not None
+        # the same name, joining through the first one's endpoint (no port of its own)
+        twin = station.dir / "twin.toml"
+        text = (station.dir / "station-python.toml").read_text()
+        twin.write_text(text.replace("listen = [", "connect = ["))
+        done = subprocess.run(
+            [*CLI, "node", "--config", str(twin)],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+            timeout=60,
+        )
+        assert done.returncode == 2, done.stderr
+        err = done.stderr
+        assert f"platform 'station' is alive in federation {station.federation!r} already" in err
+        assert f"pid {node.pid} on host" in err  # where …
+        assert re.search(r"since \d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ \(\d+ s ago\)", err), err
+        assert "ready" not in done.stdout and "Traceback" not in err
+        # a one-shot command as 'station' where the node's channel is not (another host):
+        # refused too, rather than acting as the live platform
+        elsewhere = {**station.env, "XDG_RUNTIME_DIR": str(tmp_path / "elsewhere")}
+        done = subprocess.run(
+            [*CLI, "ask", "station", "temperature", "--config", str(twin)],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=elsewhere,
+            timeout=60,
+        )
+        assert done.returncode == 2, done.stderr
+        assert "is alive in federation" in done.stderr
+        assert "run this command on its host" in done.stderr
+        # the running one was not touched: it answers, with data, and has its channel
+        answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
+        assert node.poll() is None
+    finally:
+        out, err = station.stop()
+    assert "station stopped" in out and "Traceback" not in err
+
+
+@pytest.mark.timeout(150)
+def test_one_shot_commands_run_beside_the_console_with_its_config(tmp_path: Path) -> None:
+    station = Station(tmp_path)
+    console = None
+    try:
+        station.start("python")
+        console = subprocess.Popen(
+            [*CLI, "console", "--config", "operator.toml", "--port", "0"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        assert console.stdout is not None
+        ready = console.stdout.readline()  # bounded by the test's timeout
+        assert "operator ready" in ready, console.stderr.read() if console.stderr else ""
+        url = ready.rsplit(": ", 1)[1].strip()
+        record = station.dir / "t.dkr"
+        commands = [
+            ("platforms",),
+            ("labels", "station"),
+            ("ask", "station", "temperature", "wind-speed"),
+            ("stream", "station", "temperature", "--count", "3"),
+            ("record", "temperature", "-p", "station", "-o", str(record), "-n", "3"),
+        ]
+
+        def run(args: tuple[str, ...]) -> subprocess.CompletedProcess[str]:
+            extra = [] if args[0] == "record" else ["--json"]
+            return subprocess.run(
+                [*CLI, *args, "--config", "operator.toml", *extra, "--wait", "10"],
+                capture_output=True,
+                text=True,
+                cwd=station.dir,
+                env=station.env,
+                timeout=60,
+            )
+
+        # all at once, while the console runs as the same platform
+        with ThreadPoolExecutor(len(commands)) as pool:
+            results = list(pool.map(run, commands))
+        for args, done in zip(commands, results, strict=True):
+            assert done.returncode == 0, (args, done.stderr)
+        platforms, labels, ask, stream, rec = results
+        assert "station" in json.loads(platforms.stdout)
+        assert "temperature" in json.loads(labels.stdout)["labels"]
+        assert _samples(json.loads(ask.stdout), "wind-speed")[0][0] >= 3.0
+        rows = [json.loads(line) for line in stream.stdout.splitlines()]
+        assert len(rows) == 3 and {r["label"] for r in rows} == {"temperature"}
+        assert "3 samples (temperature=3)" in rec.stdout and record.stat().st_size > 0
+        # the console still sees the station, and nothing was broken on either side
+        with urllib.request.urlopen(url + "api/state", timeout=10) as page:
+            state = json.loads(page.read())
+        assert "station" in [p["name"] for p in state["platforms"]]
+        console.send_signal(signal.SIGINT)
+        out, err = console.communicate(timeout=20)
+        assert console.returncode == 0, err
+        assert "local channel: 5 commands served, 0 refused" in out  # each went through the console
+        for text in (err, station.stop()[1]):
+            assert "unknown-session" not in text and "renewing" not in text, text
+            assert "Traceback" not in text
+    finally:
+        if console is not None and console.poll() is None:
+            console.kill()
+            console.communicate(timeout=10)
+        station.stop()
+
+
+ATTACKER = """
+import json, socket, sys
+s = socket.socket(socket.AF_UNIX)
+try:
+    s.connect(sys.argv[1])
+except OSError as exc:
+    print("connect:", type(exc).__name__, flush=True)
+    sys.exit(0)
+ask = {"action": "get-latest", "labels": ["temperature"]}
+request = {"op": "request", "platform": "station", "content": ask}
+s.sendall(json.dumps(request).encode() + b"\\n")
+print("answer:", s.makefile().readline().strip(), flush=True)
+"""
+
+
+@pytest.mark.timeout(120)
+def test_another_user_cannot_use_a_nodes_local_channel(tmp_path: Path) -> None:
+    import shutil
+    import tempfile
+
+    from federation._platform import PlatformConfig
+
+    runtime = Path(tempfile.mkdtemp(prefix="dyknow-xdg-", dir="/tmp"))
+    try:
+        runtime.chmod(0o755)  # a runtime directory others may traverse
+        station = Station(tmp_path)
+        station.env["XDG_RUNTIME_DIR"] = str(runtime)
+        try:
+            station.start("python")
+            config = PlatformConfig.load(station.dir / "station-python.toml")
+            sock = _channel(config, runtime)
+
+            def attack() -> str:
+                done = subprocess.run(
+                    # the system's python (the attacker's own; stdlib only)
+                    ["/usr/bin/python3", "-c", ATTACKER, str(sock)],
+                    cwd="/",
+                    user=65534,  # nobody: another OS user on the node's host
+                    group=65534,
+                    capture_output=True,
+                    text=True,
+                    timeout=30,
+                )
+                assert done.returncode == 0, done.stderr
+                return done.stdout.strip()
+
+            # the socket's directory is the node's user's only
+            assert attack() == "connect: PermissionError"
+            # loosened by mistake: the node still refuses, by the peer's uid
+            for d in (sock.parent.parent, sock.parent):
+                d.chmod(0o755)
+            sock.chmod(0o777)
+            answer = attack()
+            assert answer.startswith("answer: ")
+            assert json.loads(answer.removeprefix("answer: ")) == {
+                "error": "this node serves its own user only"
+            }
+            out, err = station.stop()
+            assert "local channel: 0 commands served, 1 refused" in out
+            assert "local channel: refused a client of uid 65534" in err
+        finally:
+            station.stop()
+    finally:
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
+def _channel(config: object, runtime: Path) -> Path:
+    """The node's socket, as the node computes it under ``runtime``."""
+    from federation._local import channel_path
+
+    saved = os.environ.get("XDG_RUNTIME_DIR")
+    os.environ["XDG_RUNTIME_DIR"] = str(runtime)
+    try:
+        return channel_path(config)  # type: ignore[arg-type]
+    finally:
+        if saved is None:
+            del os.environ["XDG_RUNTIME_DIR"]
+        else:
+            os.environ["XDG_RUNTIME_DIR"] = saved
