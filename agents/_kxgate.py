@@ -35,15 +35,12 @@ class _Bucket:
         self.tokens = burst
         self.stamp = now
 
-    def take(self, now: float) -> bool:
-        """One token at ``now`` if there is one."""
+    def ready(self, now: float) -> bool:
+        """Whether a token is there at ``now`` (taken with ``tokens -= 1``)."""
         if now > self.stamp:
             self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
             self.stamp = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
+        return self.tokens >= 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,10 +153,14 @@ class KxGate:
                 bucket = self._peers[frm] = _Bucket(
                     self.limit.per_peer, self.limit.per_peer_burst, now
                 )
-            if not bucket.take(now):
+            if not bucket.ready(now):
                 return self._drop_locked(PEER_BUDGET, frm, None)
-            if frm not in self.priority and not self._total.take(now):
-                return self._drop_locked(TOTAL_BUDGET, frm, None)
+            if frm not in self.priority:
+                # both or neither: a request shed by one budget spends nothing of the other
+                if not self._total.ready(now):
+                    return self._drop_locked(TOTAL_BUDGET, frm, None)
+                self._total.tokens -= 1.0
+            bucket.tokens -= 1.0
             seen[(frm, nonce)] = ts / 1000 + 2 * hs.policy.skew
             while len(seen) > _SEEN_MAX:
                 seen.popitem(last=False)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import math
 import multiprocessing
 import os
 import statistics
@@ -38,9 +39,10 @@ from agents import (
     wire_key,
 )
 from agents._interface import InterfaceAgent
+from agents._kxgate import KxGate, KxLimit
 from agents._security import Handshake, KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
-from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+from agents.transports import MemoryHub, ZenohConfig, ZenohTransport, free_tcp_port
 
 VICTIM, MEMBER, ABSENT = "uav-v", "uav-m", "uav-q"  # uav-q: trusted, never runs
 ECHO = f"echo@{VICTIM}"
@@ -316,9 +318,10 @@ def test_kx_flood_is_shed_and_a_member_is_still_served(tmp_path: Path) -> None:
     try:
         victim = f.node(VICTIM, f.port, [])
         pipes.append(victim)
+        assert recv(victim, "the victim", START) == "ready"
+        # a zenoh client: it needs the victim listening
         attacker = f.attacker("kx", kx_payloads(f.keydir, f.fed, f.trust))
         pipes.append(attacker)
-        assert recv(victim, "the victim", START) == "ready"
         member = f.node(MEMBER, free_tcp_port(), [f.port])
         pipes.append(member)
         assert recv(member, "the member", START) == "ready"
@@ -391,9 +394,9 @@ def test_junk_envelopes_claiming_a_member_rekey_at_most_once_per_interval(
     try:
         victim = f.node(VICTIM, f.port, [])
         pipes.append(victim)
+        assert recv(victim, "the victim", START) == "ready"
         attacker = f.attacker("acl", acl_payloads(f.fed))
         pipes.append(attacker)
-        assert recv(victim, "the victim", START) == "ready"
         member = f.node(MEMBER, free_tcp_port(), [f.port])
         pipes.append(member)
         assert recv(member, "the member", START) == "ready"
@@ -430,3 +433,132 @@ def test_junk_envelopes_claiming_a_member_rekey_at_most_once_per_interval(
         assert unknown, after["records"]
     finally:
         f.close(pipes)
+
+
+# -- the gate on its own, with an explicit clock ------------------------------------------------
+
+
+class Clock:
+    """A monotonic clock the test moves."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def gate_for(limit: KxLimit) -> tuple[KxGate, Clock, dict[str, Handshake]]:
+    """A gate for ``uav-v`` trusting uav-m, uav-q and uav-r; forgers' handshakes by name."""
+    keys = {n: KeyPair.generate(n) for n in (VICTIM, MEMBER, ABSENT, "uav-r")}
+    trust = TrustStore("f", {n: k.public_key for n, k in keys.items()})
+    clock = Clock()
+    gate = KxGate(Handshake(keys[VICTIM], trust), limit, monotonic=clock)
+    forgers = {}
+    for name in (MEMBER, ABSENT, "uav-r", "uav-x"):
+        mine = KeyPair.generate(name)
+        own = TrustStore("f", {name: mine.public_key, VICTIM: keys[VICTIM].public_key})
+        forgers[name] = Handshake(mine, own)
+    return gate, clock, forgers
+
+
+def test_gate_budgets_per_claimed_platform_and_shared() -> None:
+    """Per-name buckets; names without a session share one; the priority ones do not."""
+    limit = KxLimit(per_peer=1, per_peer_burst=3, total=1, total_burst=4, detailed=2)
+    gate, clock, forgers = gate_for(limit)
+
+    def admitted(name: str, n: int) -> int:
+        return sum(gate.admit(forgers[name].initiate(VICTIM)) for _ in range(n))
+
+    assert admitted(ABSENT, 10) == 3  # its own burst
+    assert admitted("uav-r", 10) == 1  # the shared bucket had 4: 3 went to uav-q
+    assert gate.shed["over-peer-budget"] == 7 and gate.shed["over-total-budget"] == 9
+    gate.priority = frozenset({MEMBER})
+    assert admitted(MEMBER, 10) == 3  # exempt from the spent shared bucket
+    clock.now += 1.0  # one second: one more each, and one shared
+    assert admitted(ABSENT, 5) == 1 and admitted("uav-r", 5) == 0 and admitted(MEMBER, 5) == 1
+    assert gate.admitted == 3 + 1 + 3 + 2
+    assert sum(gate.shed.values()) == 45 - gate.admitted
+
+
+def test_gate_drops_junk_replays_and_strangers_without_budget_and_explains_a_few() -> None:
+    """Cheap refusals spend no budget; the first few are explained, the rest counted."""
+    gate, clock, forgers = gate_for(KxLimit(per_peer=0, per_peer_burst=5, detailed=3))
+    request = forgers[MEMBER].initiate(VICTIM)
+    assert gate.admit(request)
+    assert not gate.admit(request)  # the same request again: before any signature check
+    for junk in (b"", b"{", b"[]", os.urandom(64), b"x" * 5000, b'{"v":1,"kx":"init"}'):
+        assert not gate.admit(junk)
+    stale = orjson.loads(forgers[MEMBER].initiate(VICTIM))
+    stale["ts_ms"] -= 120_000
+    assert not gate.admit(orjson.dumps(stale))
+    assert not gate.admit(forgers["uav-x"].initiate(VICTIM))
+    other = orjson.loads(forgers[MEMBER].initiate(VICTIM))
+    other["to"] = "uav-r"  # for another platform
+    assert not gate.admit(orjson.dumps(other))
+    assert gate.admitted == 1
+    assert gate.shed == {"replayed": 1, "malformed": 6, "expired": 1, "untrusted": 1,
+                         "misdirected": 1}  # fmt: skip
+    details, summary = gate.take_report(clock.now)
+    assert [d[1].split(":")[0] for d in details] == ["replayed", "malformed", "malformed"]
+    assert details[0][0] == MEMBER
+    assert summary is not None and summary["count"] == 10 and summary["seconds"] is None
+    assert summary["by_reason"] == dict(gate.shed)
+    # the next interval's details at once, its summary once the interval is over
+    assert not gate.admit(b"{")
+    details, summary = gate.take_report(clock.now + 0.5)
+    assert [d[1].split(":")[0] for d in details] == ["malformed"] and summary is None
+    clock.now += 1.0
+    details, summary = gate.take_report(clock.now)
+    assert details == [] and summary is not None and summary["count"] == 1
+    assert summary["seconds"] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "words"),
+    [
+        ("per_peer", -1.0, "KxLimit.per_peer: -1.0 is not a finite number >= 0"),
+        ("total", math.nan, "KxLimit.total: nan"),
+        ("per_peer_burst", 0.5, "KxLimit.per_peer_burst: 0.5 < 1 would refuse every request"),
+        ("report_interval", 0, "KxLimit.report_interval: 0 is not > 0"),
+        ("detailed", 1.5, "KxLimit.detailed: 1.5 is not an integer"),
+    ],
+)
+def test_bad_kx_limits_are_refused_by_name(field: str, value: Any, words: str) -> None:
+    """A wrong setting names the field and the value."""
+    with pytest.raises(ValueError, match=words.replace(".", r"\.")):
+        KxLimit(**{field: value})
+
+
+async def test_a_member_agrees_a_session_while_a_forger_floods_in_other_names() -> None:
+    """The reserve: forged requests under other trusted names leave a member's exchange be.
+
+    Over a MemoryHub: an outsider floods the victim with forged requests claiming uav-q
+    (trusted, not running), far beyond the shared budget; meanwhile the member, alive,
+    agrees a new session with the victim, and the victim answers it.
+    """
+    hub = MemoryHub()
+    keys = {n: KeyPair.generate(n) for n in (VICTIM, MEMBER, ABSENT)}
+    trust = {n: k.public_key for n, k in keys.items()}
+    forger = KeyPair.generate(ABSENT)
+    forged = Handshake(forger, TrustStore("f", {ABSENT: forger.public_key, VICTIM: trust[VICTIM]}))
+    async with contextlib.AsyncExitStack() as stack, asyncio.timeout(WAIT):
+        platforms = {}
+        for name in (VICTIM, MEMBER):
+            t = await stack.enter_async_context(hub.transport())
+            channel = InterfaceAgent(keys[name], TrustStore("f", dict(trust)))
+            platforms[name] = await stack.enter_async_context(
+                AgentPlatform(name, t, federation="f", channel=channel)
+            )
+        raw = await stack.enter_async_context(hub.transport())
+        victim = platforms[VICTIM].channel
+        member = platforms[MEMBER].channel
+        assert isinstance(victim, InterfaceAgent) and isinstance(member, InterfaceAgent)
+        assert victim.kx_gate is not None
+        key = wire_key("f", "kx", VICTIM)
+        for _ in range(200):
+            assert await raw.query(key, forged.initiate(VICTIM), timeout=1.0) == []
+        assert victim.kx_gate.shed["over-peer-budget"] > 150
+        await member._agree(VICTIM)  # a fresh exchange, through the gate
+        assert MEMBER in victim.sessions.peers()
+        assert platforms[VICTIM].stats.kx_shed == sum(victim.kx_gate.shed.values())
