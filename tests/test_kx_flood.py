@@ -273,3 +273,20 @@ async def test_a_member_agrees_a_session_while_a_forger_floods_in_other_names() 
         await member._agree(VICTIM)  # a fresh exchange, through the gate
         assert MEMBER in victim.sessions.peers()
         assert platforms[VICTIM].stats.kx_shed == sum(victim.kx_gate.shed.values())
+
+
+def test_a_platforms_config_sets_or_disables_the_kx_limit() -> None:
+    """``[kx_limit]`` in a platform's config: the fields of KxLimit, or enabled = false."""
+    from federation import PlatformConfig, PlatformConfigError
+
+    base = {"name": "a", "federation": "f", "key": "k", "trust": "t"}
+    base |= {"vocabulary": {}, "mapping": {}}
+    assert PlatformConfig.from_dict(base).kx_limit.to_kx_limit() == KxLimit()
+    tight = PlatformConfig.from_dict({**base, "kx_limit": {"per_peer": 1, "total": 5}})
+    assert tight.kx_limit.to_kx_limit() == KxLimit(per_peer=1, total=5)
+    off = PlatformConfig.from_dict({**base, "kx_limit": {"enabled": False}})
+    assert off.kx_limit.to_kx_limit() is None
+    with pytest.raises(PlatformConfigError, match=r"kx_limit\.total_burst"):
+        PlatformConfig.from_dict({**base, "kx_limit": {"total_burst": 0.5}})
+    with pytest.raises(PlatformConfigError, match=r"kx_limit\.rate"):
+        PlatformConfig.from_dict({**base, "kx_limit": {"rate": 1}})
