@@ -220,9 +220,14 @@ class KxGate:
     def forget_seen(self, wall: float) -> None:
         """Drop remembered requests whose timestamps are now past the skew (``wall``: time.time)."""
         with self._lock:
-            stale = [k for k, until in self._seen.items() if until < wall]
-            for key in stale:
-                del self._seen[key]
+            seen = self._seen
+            # in about the order of their timestamps: stop at the first still fresh (one
+            # out of order waits for the next call, or for the size bound)
+            while seen:
+                key, until = next(iter(seen.items()))
+                if until >= wall:
+                    break
+                del seen[key]
 
     def take_report(self, now: float) -> tuple[list[tuple[str | None, str]], dict[str, Any] | None]:
         """The shed requests to audit one by one, and a summary once per interval (else None).
