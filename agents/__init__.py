@@ -41,6 +41,7 @@ from ._exceptions import (
 )
 from ._gateway import GatewayAgent
 from ._interface import AuditLog, InterfaceAgent, RateLimit
+from ._kxgate import KxLimit
 from ._platform import (
     AgentPlatform,
     PlainChannel,
@@ -101,6 +102,7 @@ __all__ = [
     "GlobalDirectory",
     "InterfaceAgent",
     "KeyPair",
+    "KxLimit",
     "MemoryHub",
     "MemoryTransport",
     "MessageError",

@@ -34,6 +34,7 @@ from ._exceptions import (
     TransportError,
     UnknownSession,
 )
+from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
 from ._protocols import Refuse, on_query
 from ._security import (
     Clock,
@@ -264,7 +265,11 @@ class InterfaceAgent:
     ``rate_limit`` (default `RateLimit()`; None: no limit) bounds what each other
     platform may send here, after authentication, so one platform's flood is dropped
     before it reaches the agents' mailboxes and others are still served. ``monotonic`` is
-    its clock (injectable, as ``clock`` is for the envelopes' timestamps).
+    its clock (injectable, as ``clock`` is for the envelopes' timestamps). ``kx_limit``
+    (default `KxLimit()`; None: none) sheds key-exchange requests on the transport's
+    thread before their signature check (``agents._kxgate``). A trusted peer sealing on a
+    session this platform lost makes it agree a new one at most once per
+    ``rehandshake_interval`` seconds.
     """
 
     def __init__(
@@ -280,11 +285,12 @@ class InterfaceAgent:
         watch_lease: float = 10.0,
         audit_interval: float = 0.25,
         handshake_timeout: float = 2.0,
-        rehandshake_interval: float = 1.0,
+        rehandshake_interval: float = 5.0,
         max_bytes: int = MAX_MESSAGE_BYTES,
         clock: Clock = time.time,
         rate_limit: RateLimit | None = RateLimit(),  # frozen: one instance serves all
         monotonic: Callable[[], float] = time.monotonic,
+        kx_limit: KxLimit | None = DEFAULT_KX_LIMIT,
     ) -> None:
         self.keys = keys
         self.trust = trust
@@ -326,6 +332,15 @@ class InterfaceAgent:
         )
         self._unauth_pending = 0
         self._unauth_last_report = -math.inf
+        if kx_limit is not None and not isinstance(kx_limit, KxLimit):
+            raise TypeError(f"kx_limit: expected a KxLimit or None, got {kx_limit!r}")
+        # key-exchange requests are screened on the transport's thread (see _kxgate)
+        self.kx_gate = (
+            KxGate(self.handshake, kx_limit, monotonic=monotonic, on_shed=self._count_shed)
+            if kx_limit is not None
+            else None
+        )
+        self._alive: set[str] = set()
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -358,7 +373,10 @@ class InterfaceAgent:
             )
         self._host = platform
         transport = platform.transport
-        self._kx = await transport.serve(platform.key("kx"), self._on_key_exchange)
+        gate = self.kx_gate
+        self._kx = await transport.serve(
+            platform.key("kx"), self._on_key_exchange, admit=None if gate is None else gate.admit
+        )
         if self.watchable:
             self._watch_handle = await transport.serve(platform.key("watch"), self._on_watch)
         presence = await transport.watch_presence(platform.key("alive", "*"), history=False)
@@ -372,6 +390,7 @@ class InterfaceAgent:
             or self.watchable
             or self.audit.path is not None
             or self.rate_limit is not None
+            or self.kx_gate is not None
         ):
             platform.spawn(self._flush_audit(), "interface.audit")
         self.agent = await platform.add(_InterfaceQueries(self))
@@ -502,6 +521,7 @@ class InterfaceAgent:
                 refusals.append(exc)
                 continue
             self.sessions.add(session)
+            self._kx_priority()
             return
         self.handshake.cancel(peer)
         first = refusals[0]
@@ -546,7 +566,48 @@ class InterfaceAgent:
             self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}", stage="kx")
             return None
         self.sessions.add(session)
+        self._kx_priority()
         return reply
+
+    def _kx_priority(self) -> None:
+        """Tell the key-exchange gate which platforms are exempt from its shared budget."""
+        gate = self.kx_gate
+        if gate is not None:
+            # replaced whole: the transport's thread reads it without a lock
+            gate.priority = frozenset(self._alive) | frozenset(self.sessions.peers())
+
+    def _count_shed(self, n: int) -> None:
+        """Count key-exchange requests the gate dropped (called on the transport's thread)."""
+        host = self._host
+        if host is not None:
+            host.stats.kx_shed += n
+
+    def _report_kx_shed(self, now: float) -> None:
+        """Audit what the key-exchange gate dropped: a few one by one, the rest summed up."""
+        gate = self.kx_gate
+        if gate is None:
+            return
+        details, summary = gate.take_report(now)
+        for claimed, reason in details:
+            self._drop_unauthenticated(claimed, reason, stage="kx")
+        if summary is None:
+            return
+        limit = gate.limit
+        seconds = summary["seconds"]
+        since = "" if seconds is None else f" in {seconds:.1f} s"
+        reasons = ", ".join(f"{k} {v}" for k, v in summary["by_reason"].items())
+        self.audit.record(
+            verdict="dropped",
+            stage="kx-shed",
+            count=summary["count"],
+            by_reason=summary["by_reason"],
+            reason=(
+                f"key-exchange requests shed: {summary['count']} dropped before any "
+                f"signature check{since} ({reasons}; budget {limit.per_peer:g}/s per "
+                f"platform, burst {limit.per_peer_burst:g}; {limit.total:g}/s for "
+                f"platforms without a session, burst {limit.total_burst:g})"
+            ),
+        )
 
     def _rehandshake(self, peer: str) -> None:
         """A trusted peer sends on a session we lost (we restarted): agree a new one, rarely."""
@@ -561,8 +622,10 @@ class InterfaceAgent:
             return
         now = time.monotonic()
         if now - self._last_rehandshake.get(peer, -1e9) < self.rehandshake_interval:
+            host.stats.rehandshakes_suppressed += 1
             return
         self._last_rehandshake[peer] = now
+        host.stats.rehandshakes += 1
         host.spawn(self._renew(peer, announce=True), f"interface.rehandshake[{peer}]")
 
     # -- receiving ----------------------------------------------------------------------------
@@ -821,6 +884,11 @@ class InterfaceAgent:
                 continue
             self.sessions.forget(peer)
             self._last_rehandshake.pop(peer, None)
+            if change.alive:
+                self._alive.add(peer)
+            else:
+                self._alive.discard(peer)
+            self._kx_priority()
             if not change.alive:
                 # a request still pending when a platform reappears may be answered by the
                 # new process (it serves kx before its token shows): keep it then
@@ -839,6 +907,9 @@ class InterfaceAgent:
                 self._report_unauthenticated(now)
             if self._mirror or self.mirroring:
                 await self._flush_mirror(host)
+            if self.kx_gate is not None:
+                self._report_kx_shed(self._monotonic())
+                self.kx_gate.forget_seen(time.time())
             if not self.publish_audit and self.audit.path is None:
                 continue
             data = self.audit.take()

@@ -153,8 +153,12 @@ class PlatformStats:
     ``answers_dropped`` counts failure/not-understood answers to other platforms not sent
     because too many were on their way; ``unauthenticated`` envelopes that did not open
     (the Interface Agent drops them); ``rate_limited`` messages dropped by a sender's rate
-    limit; ``senders`` holds per-platform figures (keyed by authenticated platform name, so
-    bounded by the trust file).
+    limit; ``kx_shed`` key-exchange requests dropped before their signature check (the
+    Interface Agent's gate); ``rehandshakes`` new sessions started because a trusted peer
+    sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
+    ignored (at most one per peer per ``rehandshake_interval``); ``senders`` holds
+    per-platform figures (keyed by authenticated platform name, so bounded by the trust
+    file).
     """
 
     local: int = 0
@@ -168,6 +172,9 @@ class PlatformStats:
     answers_dropped: int = 0
     unauthenticated: int = 0
     rate_limited: int = 0
+    kx_shed: int = 0
+    rehandshakes: int = 0
+    rehandshakes_suppressed: int = 0
     senders: dict[str, SenderStats] = field(default_factory=dict)
 
 

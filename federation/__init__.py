@@ -9,6 +9,7 @@ from ._fusion import Fusion, add_fusion
 from ._platform import (
     DEFAULT_IMPORT_LABEL,
     FederationPlatform,
+    KxLimitSettings,
     MqttSettings,
     PlatformConfig,
     PlatformConfigError,
@@ -54,6 +55,7 @@ __all__ = [
     "Import",
     "ImportProxy",
     "InterfaceSessions",
+    "KxLimitSettings",
     "LabelSearch",
     "LabelTranslator",
     "MembershipEvent",

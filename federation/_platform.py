@@ -70,6 +70,7 @@ from agents import (
     Visibility,
 )
 from agents._exceptions import SecurityError
+from agents._kxgate import KxLimit
 from agents.transports import (
     MqttConfig,
     MqttTransport,
@@ -98,6 +99,7 @@ from ._service import Anchor, FederationAgent, MembershipEvent
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
     "FederationPlatform",
+    "KxLimitSettings",
     "MqttSettings",
     "PlatformConfig",
     "PlatformConfigError",
@@ -208,6 +210,29 @@ class SecuritySettings(BaseModel):
         return SecurityPolicy(encrypt=self.encrypt, require_encryption=self.require_encryption)
 
 
+_KX = KxLimit()  # the defaults
+
+
+class KxLimitSettings(BaseModel):
+    """The ``[kx_limit]`` table: key-exchange requests checked per second (`KxLimit`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = True
+    per_peer: float = Field(default=_KX.per_peer, ge=0)
+    per_peer_burst: float = Field(default=_KX.per_peer_burst, ge=1)
+    total: float = Field(default=_KX.total, ge=0)
+    total_burst: float = Field(default=_KX.total_burst, ge=1)
+    detailed: int = Field(default=_KX.detailed, ge=0)
+    report_interval: float = Field(default=_KX.report_interval, gt=0)
+
+    def to_kx_limit(self) -> KxLimit | None:
+        """The Interface Agent's key-exchange load shedding, or None when disabled."""
+        if not self.enabled:
+            return None
+        return KxLimit(**self.model_dump(exclude={"enabled"}))
+
+
 class PlatformConfig(BaseModel):
     """One platform's settings, validated at the edge (`load`, `from_dict` name the bad key).
 
@@ -233,6 +258,7 @@ class PlatformConfig(BaseModel):
     export_lease: float | None = Field(default=10.0, ge=2.0, le=86400)
     rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings)
     security: SecuritySettings = Field(default_factory=SecuritySettings)
+    kx_limit: KxLimitSettings = Field(default_factory=KxLimitSettings)
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
     console: ConsoleSettings = Field(default_factory=ConsoleSettings)
@@ -464,6 +490,7 @@ class FederationPlatform:
             publish_audit=config.security.audit != "off",
             seal_audit=config.security.audit == "sealed",
             watchable=config.security.watch,
+            kx_limit=config.kx_limit.to_kx_limit(),
         )
         self.agents = AgentPlatform(
             config.name, self.transport, federation=config.federation, channel=self.interface

@@ -48,6 +48,7 @@ from agents._exceptions import (
     UnknownPlatform,
     UnknownSession,
 )
+from agents._interface import TokenBucket
 from agents._platform import wire_key
 from agents._security import SessionTable, check_name
 from agents.transports import Message, Presence, Transport
@@ -119,6 +120,43 @@ _MAX_FAILED = 256  # failed ranges remembered per export (older ones stay counte
 _HISTORY_SLACK = 256
 _MAX_MISSING = 64
 _MAX_ASKS = 6  # the import proxy's reports that ask again for what is still missing
+# Resend requests a receiver may make per second (all its exports), and at once: one per
+# gap plus the re-asks of its reports (2/s per stream) fit; a flood of them does not.
+RESEND_RATE = 20.0
+RESEND_BURST = 40.0
+# A receiver's refused resend requests are audited at most once per this many seconds.
+RESEND_REPORT_INTERVAL = 1.0
+
+
+def _uncovered(ranges: list[tuple[int, int]], first: int, end: int) -> list[tuple[int, int]]:
+    """The parts of [first, end) that no range of ``ranges`` (sorted, disjoint) covers."""
+    out: list[tuple[int, int]] = []
+    for a, b in ranges:
+        if b <= first:
+            continue
+        if a >= end:
+            break
+        if a > first:
+            out.append((first, a))
+        first = max(first, b)
+        if first >= end:
+            return out
+    if first < end:
+        out.append((first, end))
+    return out
+
+
+def _cover(ranges: list[tuple[int, int]], first: int, end: int) -> list[tuple[int, int]]:
+    """``ranges`` (sorted, disjoint) with [first, end) added, touching ranges merged."""
+    out: list[tuple[int, int]] = []
+    for a, b in ranges:
+        if b < first or a > end:
+            out.append((a, b))
+        else:
+            first, end = min(a, first), max(b, end)
+    out.append((first, end))
+    out.sort()
+    return out
 
 
 def check_semantic_label(label: str) -> str:
@@ -377,9 +415,12 @@ class Export:
     ``lost-in-transit``: published, but reported missing by the receiver, less what was
     recovered; ``lease-expired``: what was still queued when the receiver's lease
     expired). With ``history`` N the receiver asks, after each gap, for the N samples
-    before its end: they are resent from the last 2N + 256 kept here (``recovered``
-    counts the samples resent). ``last_heard``: the monotonic time of the receiver's
-    latest report (or the export's start).
+    before its end: they are resent from the last 2N + 256 kept here, each sequence
+    number at most once, and no more than the receiver reports lost (``recovered``
+    counts the samples resent; ``resend_refused`` the requests refused in whole or in
+    part, by reason: ``not-a-gap``, ``over-loss``, ``already-resent``, ``rate``).
+    ``last_heard``: the monotonic time of the receiver's latest report (or the export's
+    start).
     """
 
     def __init__(
@@ -427,6 +468,12 @@ class Export:
         # on numbering while its request travels
         self._kept: deque[RawSample] = deque(maxlen=2 * history + _HISTORY_SLACK if history else 0)
         self._recover: list[tuple[int, int]] = []  # ranges the receiver asked to be resent
+        self._resent_ranges: list[tuple[int, int]] = []  # numbers resent: never again
+        # the receiver's latest loss report, as far as it can be true: what it may ask back
+        self._claimed = 0
+        self.resend_refused: dict[str, int] = {}
+        self._refusals_pending: dict[str, int] = {}
+        self._refusals_reported = -1e9
         self._keepalive_at = 0.0
 
     def __repr__(self) -> str:
@@ -457,6 +504,7 @@ class Export:
             "dropped_by_reason": dict(self.dropped),
             "history": self.history,
             "recovered": self.recovered,
+            "resend_refused": dict(self.resend_refused),
             "last_heard": self.last_heard,
             "last_error": self.last_error,
             "active": self.active,
@@ -564,39 +612,72 @@ class Export:
         await self._send([])
 
     def _want_resent(self, first: int, end: int) -> None:
-        """The receiver reports [first, end) missing: resend what the history still holds."""
-        if not self.history or end <= first or end > self._seq:
+        """The receiver reports [first, end) missing: resend what a gap can have lost.
+
+        That is: numbers this export gave out (``end`` at most the next one), at most
+        ``history`` before the gap's end (what the receiver asks for), at most what the
+        receiver reports lost, and only those not resent before. What is cut is counted
+        in ``resend_refused``.
+        """
+        if not self.history:
             return
-        self._recover.append((first, end))
+        if end <= first or first < 0 or end > self._seq:
+            self._refuse_resend("not-a-gap")
+            return
+        lo = max(first, end - self.history)
+        if lo > first:
+            self._refuse_resend("not-a-gap")
+        if end - lo > self._claimed:
+            lo = end - self._claimed
+            self._refuse_resend("over-loss")
+            if lo >= end:
+                return
+        # the oldest number still kept: older ones are gone, not refused
+        lo = max(lo, self._seq - len(self._kept))
+        if lo >= end:
+            return
+        wanted = _uncovered(self._resent_ranges, lo, end)
+        if sum(b - a for a, b in wanted) < end - lo:
+            self._refuse_resend("already-resent")
+        if not wanted:
+            return
+        self._recover += wanted
         del self._recover[:-_MAX_RECOVER]  # a flood of requests costs a bounded list
         w = self._waiter
         if w is not None and not w.done():
             w.set_result(None)
+
+    def _refuse_resend(self, reason: str) -> None:
+        """Count a resend request refused (in whole or in part) for ``reason``."""
+        self.resend_refused[reason] = self.resend_refused.get(reason, 0) + 1
+        self._refusals_pending[reason] = self._refusals_pending.get(reason, 0) + 1
 
     async def _resend(self) -> None:
         """Publish, as batches marked resent, the asked ranges the history still holds."""
         ranges, self._recover = self._recover, []
         kept = list(self._kept)
         oldest = self._seq - len(kept)  # the sequence number of kept[0]
-        for first, end in ranges:
-            first = max(first, oldest)
-            if first >= end:
-                continue
-            samples = kept[first - oldest : end - oldest]
-            start = first
-            for body, count in self._pack_resent(first, samples):
-                try:
-                    envelope = await self._seal(body)
-                    await self._proxy.transport.publish(self.key, envelope)
-                except (asyncio.CancelledError, TransportClosed):
-                    raise
-                except Exception as exc:  # the receiver may ask again
-                    log.debug("%s: resending failed: %s", self.name, exc)
-                    break
-                self.recovered += count
-                if self._failed:
-                    self._resent(start, start + count)
-                start += count
+        # forget what is no longer kept: it cannot be asked back anyway
+        self._resent_ranges = [(a, b) for a, b in self._resent_ranges if b > oldest]
+        for asked_first, asked_end in ranges:
+            # asked twice before this ran: resent once
+            for first, end in _uncovered(self._resent_ranges, max(asked_first, oldest), asked_end):
+                samples = kept[first - oldest : end - oldest]
+                start = first
+                for body, count in self._pack_resent(first, samples):
+                    try:
+                        envelope = await self._seal(body)
+                        await self._proxy.transport.publish(self.key, envelope)
+                    except (asyncio.CancelledError, TransportClosed):
+                        raise
+                    except Exception as exc:  # the receiver may ask again
+                        log.debug("%s: resending failed: %s", self.name, exc)
+                        break
+                    self.recovered += count
+                    self._resent_ranges = _cover(self._resent_ranges, start, start + count)
+                    if self._failed:
+                        self._resent(start, start + count)
+                    start += count
 
     def _numbered_drop(self, reason: str, first: int, count: int, exc: Exception) -> None:
         """Numbered samples that never left: counted here, not as lost in transit."""
@@ -778,6 +859,7 @@ class ExportProxy:
         self._exports: dict[tuple[str, str], Export] = {}
         self._reports: asyncio.Task[None] | None = None
         self.reports_refused = 0  # loss reports that did not open or parse
+        self._resend_buckets: dict[str, TokenBucket] = {}  # per receiver (authenticated)
 
     async def __aenter__(self) -> Self:
         return self
@@ -863,18 +945,60 @@ class ExportProxy:
                     self._count_lost(export, total)
                 for label, wanted in resend.items():
                     export = self._exports.get((sender, label))
-                    if (
-                        export is not None
-                        and type(wanted) is list
+                    if export is None or not export.history:
+                        continue
+                    if not self._resend_bucket(sender, now).take(now):
+                        export._refuse_resend("rate")
+                    elif (
+                        type(wanted) is list
                         and len(wanted) == 2
                         and all(type(x) is int for x in wanted)
                     ):
                         export._want_resent(wanted[0], wanted[1])
+                    else:
+                        export._refuse_resend("not-a-gap")
+                    self._audit_resend_refusals(export, now)
         finally:
             sub.close()
 
+    def _resend_bucket(self, receiver: str, now: float) -> TokenBucket:
+        """The resend requests ``receiver`` may still make (one bucket per trusted platform)."""
+        bucket = self._resend_buckets.get(receiver)
+        if bucket is None:
+            bucket = self._resend_buckets[receiver] = TokenBucket(RESEND_RATE, RESEND_BURST, now)
+        return bucket
+
+    def _audit_resend_refusals(self, export: Export, now: float) -> None:
+        """Audit an export's refused resend requests, at most once per interval, with counts."""
+        pending = export._refusals_pending
+        if not pending or now - export._refusals_reported < RESEND_REPORT_INTERVAL:
+            return
+        export._refusals_pending = {}
+        export._refusals_reported = now
+        count = sum(pending.values())
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(pending.items()))
+        log.info("%s: %d resend request(s) refused (%s)", export.name, count, reasons)
+        sessions = self.sessions
+        if isinstance(sessions, InterfaceSessions):
+            sessions.agent.audit.record(
+                verdict="refused",
+                stage="resend",
+                count=count,
+                by_reason=pending,
+                **{"from": export.receiver},
+                reason=(
+                    f"resend requests for {export.semantic_label!r} refused in whole or in "
+                    f"part: {count} ({reasons}); each sample is resent once, within history "
+                    f"{export.history} and the receiver's reported losses, at most "
+                    f"{RESEND_RATE:g} requests/s"
+                ),
+            )
+
     @staticmethod
     def _count_lost(export: Export, total: int) -> None:
+        # a receiver cannot have missed more than this export numbered
+        total = min(max(total, 0), export._seq)
+        export._claimed = total
         transit = total - export._numbered_drops
         delta = transit - export.lost_in_transit
         if delta > 0:

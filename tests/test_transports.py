@@ -300,6 +300,29 @@ async def test_handler_may_not_reply(net: Net) -> None:
     assert await q.query(net.key("quiet"), timeout=net.query_timeout) == []
 
 
+async def test_admit_screens_queries_before_the_handler_runs(net: Net) -> None:
+    """A query ``admit`` refuses gets no reply and never reaches the handler."""
+    s, q = await net.open(), await net.open()
+    handled: list[bytes] = []
+    screened: list[bytes] = []
+
+    async def answer(key: str, payload: bytes) -> bytes:
+        handled.append(payload)
+        return b"ok:" + payload
+
+    def admit(payload: bytes) -> bool:
+        screened.append(payload)
+        return not payload.startswith(b"junk")
+
+    await s.serve(net.key("gated"), answer, admit=admit)
+    await ready(net, q, s)
+    assert await q.query(net.key("gated"), b"junk-1", timeout=net.query_timeout) == []
+    replies = await q.query(net.key("gated"), b"fine", timeout=net.query_timeout)
+    assert replies == [Reply(net.key("gated"), b"ok:fine")]
+    assert handled == [b"fine"]
+    assert b"junk-1" in screened and b"fine" in screened
+
+
 async def test_closed_queryable_no_longer_answers(net: Net) -> None:
     s, q = await net.open(), await net.open()
 

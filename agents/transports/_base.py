@@ -45,6 +45,11 @@ class Presence(NamedTuple):
 QueryHandler = Callable[[str, bytes], Awaitable[bytes | None]]
 """Answers a query: gets the query's key and payload, returns the reply (None: no reply)."""
 
+QueryFilter = Callable[[bytes], bool]
+"""Screens a query's payload where it arrives (the library's receiving thread, any thread),
+before it is queued for the event loop: False drops it unanswered. Thread-safe, cheap,
+never raises."""
+
 
 class Inbox(Generic[T]):
     """A bounded queue filled from any thread and drained by one asyncio consumer.
@@ -281,8 +286,10 @@ class Transport(ABC):
         """Ask every queryable matching ``key_expr``; the replies that came by ``timeout`` s."""
 
     @abstractmethod
-    async def serve(self, key_expr: str, handler: QueryHandler) -> Handle:
-        """Answer queries on ``key_expr`` with ``handler`` (a queryable)."""
+    async def serve(
+        self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None
+    ) -> Handle:
+        """Answer queries on ``key_expr`` with ``handler``; ``admit`` screens them first."""
 
     @abstractmethod
     async def declare_token(self, key: str) -> Handle:

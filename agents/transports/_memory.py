@@ -12,6 +12,7 @@ from ._base import (
     Inbox,
     Message,
     Presence,
+    QueryFilter,
     QueryHandler,
     Reply,
     Subscription,
@@ -110,9 +111,17 @@ class MemoryTransport(Transport):
                 replies.append(Reply(expr, r))
         return replies
 
-    async def serve(self, key_expr: str, handler: QueryHandler) -> Handle:
-        """Answer queries on ``key_expr``."""
+    async def serve(
+        self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None
+    ) -> Handle:
+        """Answer queries on ``key_expr``; those ``admit`` refuses get no reply."""
         self._check_open()
+        if admit is not None:
+            answer = handler
+
+            async def handler(key: str, payload: bytes) -> bytes | None:
+                return await answer(key, payload) if admit(payload) else None
+
         entry = (key_expr, handler)
         self.hub.queryables.append(entry)
 

@@ -74,6 +74,7 @@ from ._base import (
     Inbox,
     Message,
     Presence,
+    QueryFilter,
     QueryHandler,
     Reply,
     Subscription,
@@ -220,6 +221,7 @@ class _Watcher:
 class _Server:
     key_expr: str
     handler: QueryHandler
+    admit: QueryFilter | None = None
 
 
 @dataclass(eq=False)
@@ -544,11 +546,17 @@ class MqttTransport(Transport):
             del self._pending[correlation]
         return replies
 
-    async def serve(self, key_expr: str, handler: QueryHandler) -> Handle:
-        """Answer queries intersecting ``key_expr``; a failing or slow handler → error reply."""
+    async def serve(
+        self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None
+    ) -> Handle:
+        """Answer queries intersecting ``key_expr``; a failing or slow handler → error reply.
+
+        ``admit`` screens each query as it is read off the connection, before a task is
+        made for it: one it refuses is dropped unanswered.
+        """
         self._connected()
         filters = queryable_filters(key_expr)
-        server = _Server(key_expr, handler)
+        server = _Server(key_expr, handler, admit)
 
         def remove(f: _Filter) -> None:
             f.servers.remove(server)
@@ -575,6 +583,8 @@ class MqttTransport(Transport):
         response_topic = getattr(props, "ResponseTopic", None)
         correlation = getattr(props, "CorrelationData", None)
         if not key or not response_topic or not key_intersects(server.key_expr, key):
+            return
+        if server.admit is not None and not server.admit(payload):
             return
         assert self._loop is not None
         self._own(

@@ -43,6 +43,7 @@ from ._base import (
     Inbox,
     Message,
     Presence,
+    QueryFilter,
     QueryHandler,
     Reply,
     Subscription,
@@ -500,13 +501,31 @@ class ZenohTransport(Transport):
                     cancel.cancel()
         return replies
 
-    async def serve(self, key_expr: str, handler: QueryHandler) -> Handle:
-        """Answer queries on ``key_expr``; a failing or slow handler becomes an error reply."""
+    async def serve(
+        self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None
+    ) -> Handle:
+        """Answer queries on ``key_expr``; a failing or slow handler becomes an error reply.
+
+        ``admit`` runs on zenoh's thread for each query: one it refuses is dropped there
+        (the querier gets no reply), never queued for the event loop.
+        """
         session, loop = self._open_session()
         queries: Inbox[zenoh.Query] = Inbox(loop, 4096)
+        on_query: Callable[[zenoh.Query], None] = queries.put
+        if admit is not None:
+            put = queries.put
+
+            def on_query(query: zenoh.Query) -> None:
+                body = query.payload
+                if admit(b"" if body is None else body.to_bytes()):
+                    put(query)
+                else:
+                    with contextlib.suppress(zenoh.ZError):
+                        query.drop()
+
         with _converted(f"declare a queryable on {key_expr!r}"):
             queryable = session.declare_queryable(
-                key_expr, zenoh.handlers.Callback(queries.put, queries.close)
+                key_expr, zenoh.handlers.Callback(on_query, queries.close)
             )
         task = loop.create_task(
             self._serve(key_expr, handler, queries), name=f"zenoh.serve[{key_expr}]"
