@@ -66,8 +66,9 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
     try:
         up = _script("up", env)
         assert up.returncode == 0, up.stdout + up.stderr
-        url = f"http://127.0.0.1:{console}/"
-        assert f"the console: {url}" in up.stdout
+        url = f"http://127.0.0.1:{console}/?token="
+        assert f"the console: {url}" in up.stdout  # the URL with the console's token
+        url = up.stdout.split("the console: ", 1)[1].split()[0]
         # every platform ready, keys made on first use, the configs on loopback
         assert (run / "config" / "keys" / "trust.json").exists()
         assert f"tcp/127.0.0.1:{router}" in (run / "config" / "uav-a.toml").read_text()

@@ -118,7 +118,11 @@ def test_one_shot_commands_run_beside_the_console_with_its_config(tmp_path: Path
         assert len(rows) == 3 and {r["label"] for r in rows} == {"temperature"}
         assert "3 samples (temperature=3)" in rec.stdout and record.stat().st_size > 0
         # the console still sees the station, and nothing was broken on either side
-        with urllib.request.urlopen(url + "api/state", timeout=10) as page:
+        base, token = url.split("?token=")
+        asked = urllib.request.Request(
+            base + "api/state", headers={"Authorization": f"Bearer {token}"}
+        )
+        with urllib.request.urlopen(asked, timeout=10) as page:
             state = json.loads(page.read())
         assert "station" in [p["name"] for p in state["platforms"]]
         console.send_signal(signal.SIGINT)
