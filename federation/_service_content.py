@@ -85,6 +85,19 @@ class CancelStream(_Content):
     id: Annotated[str, Field(min_length=1, max_length=200)]
 
 
+class AcceptStream(_Content):
+    """``accept-stream``: a provider asks a receiver to agree to streams a third platform asked.
+
+    Sent by the provider's Federation Agent to each receiver of a create-stream that is
+    not the requester; the receiver agrees (inform ``{"accepted": [s…]}``, and then
+    expects those streams) only if its own config allows ``requester`` to send it streams.
+    """
+
+    action: Literal["accept-stream"]
+    requester: Platform
+    labels: Labels = _labels()
+
+
 class _Query(_Content):
     labels: Labels = _labels()
     relative: bool = False
@@ -139,6 +152,7 @@ class GlobalRequest(_Content):
 Query = GetLatest | GetValueAt | GetTrajectory
 Request = (
     CreateStream
+    | AcceptStream
     | CancelStream
     | GetLatest
     | GetValueAt
@@ -150,6 +164,7 @@ Request = (
 
 ACTIONS: dict[str, type[_Content]] = {
     "create-stream": CreateStream,
+    "accept-stream": AcceptStream,
     "cancel-stream": CancelStream,
     "get-latest": GetLatest,
     "get-value-at": GetValueAt,

@@ -200,7 +200,13 @@ class World:
 
 @contextlib.asynccontextmanager
 async def world(*, silent: tuple[str, ...] = (), **options: Any) -> AsyncIterator[World]:
-    """uav-a, uav-b and operator (plus ``silent`` ones), all members before the test runs."""
+    """uav-a, uav-b and operator (plus ``silent`` ones), all members before the test runs.
+
+    Each agrees to receive the streams another platform asks for it (``to-units`` naming
+    a third platform), unless ``consent`` says otherwise: the consent itself is tested on
+    spawned platforms in tests/test_member_authz.py.
+    """
+    options.setdefault("consent", lambda requester, provider, labels: None)
     names = list(TABLES)
     keys = {n: KeyPair.generate(n) for n in [*names, *silent]}
     hub = MemoryHub()
