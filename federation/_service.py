@@ -1023,18 +1023,32 @@ class FederationAgent(Agent):
             content["relative"] = True
         if history:
             content["history"] = history
-        to_us = to_units is None or self.platform.name in content["to-units"]
-        if self.imports is not None and to_us:
-            # agreed before asking: the first batch may overtake the provider's inform
-            # it stays agreed after a cancel: the same stream asked again (a new policy)
-            # lands in the same label, and its subscribers go on
-            for semantic in dict.fromkeys(content["labels"]):
-                self.imports.expect(provider, semantic)
+        self._expect_from(provider, content)
         answer = await self.request_from(provider, content, timeout=timeout)
         export_id = str(answer["id"])
         if durable:
             self._durable.setdefault(provider, {})[export_id] = _Durable(content, export_id)
         return export_id
+
+    def _expect_from(self, provider: str, content: Any) -> None:
+        """Agree to receive what a create-stream ``content`` asks ``provider`` to send us.
+
+        Before asking: the first batch may overtake the provider's inform. It stays agreed
+        after a cancel: the same stream asked again (a new policy) lands in the same label
+        and its subscribers go on.
+        """
+        imports = self.imports
+        if imports is None or provider == self.platform.name:
+            return
+        if not isinstance(content, dict) or content.get("action") != "create-stream":
+            return
+        units = content.get("to-units")
+        if units is not None and self.platform.name not in units:
+            return  # for others only: they agree themselves when the provider asks them
+        labels = content.get("labels", content.get("semantic-labels"))
+        for semantic in dict.fromkeys(labels if isinstance(labels, list) else []):
+            if isinstance(semantic, str):
+                imports.expect(provider, semantic)
 
     async def cancel_stream(
         self, provider: str, export_id: str, *, timeout: float = DEFAULT_TIMEOUT
@@ -1082,6 +1096,8 @@ class FederationAgent(Agent):
         result = GlobalResult(asked=list(providers))
         if not providers:
             return result
+        for platform in providers:
+            self._expect_from(platform, content)  # a global create-stream: to us, agreed
         loop = asyncio.get_running_loop()
         end = loop.time() + deadline
         conversation_id = new_id("c")

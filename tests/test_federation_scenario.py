@@ -807,6 +807,23 @@ async def test_a_durable_stream_for_a_consenting_third_platform_is_asked_again(
         assert b.federation_agent.refusals == {} and a.federation_agent.refusals == {}
 
 
+async def test_a_global_create_stream_is_received_from_every_provider_that_agreed(
+    demo_keys: Path,
+) -> None:
+    # asked of every member at once: each stream that comes back was asked for, so imported
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        car5 = a.instance.add_source("cars/car5/state")
+        result = await b.federation_agent.global_request(
+            {"action": "create-stream", "labels": ["car5-state"]}, deadline=WAIT
+        )
+        assert list(result.answers) == ["uav-a"] and "operator" in result.refused
+        car5.push(car_state(0, 1, "uav-a"))
+        label = await b.imported("uav-a", "car5-state", timeout=WAIT)
+        assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
+        assert not b.importer.stats()["totals"]["dropped_samples"]
+
+
 async def test_samples_dropped_before_sending_are_not_counted_again_as_lost_in_transit() -> None:
     # regression: numbered, then dropped for want of a session, a batch showed up twice:
     # as no-session at the provider and again when the receiver reported the gap
