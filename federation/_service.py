@@ -26,7 +26,11 @@ FIPA-Request actions (answered ``inform``, or ``refuse`` with the reason):
 * ``{"action": "accept-stream", "requester": platform, "labels": [s…]}`` → from a
   provider, before it streams to this platform what ``requester`` asked for it: agreed
   (inform ``{"accepted": [s…]}``, and the streams are then expected here) only if
-  ``consent`` allows it; refused otherwise (the provider then refuses the create-stream).
+  ``consent`` allows it and, when the requester is not the provider, the requester
+  confirms it asked; refused otherwise (the provider then refuses the create-stream).
+* ``{"action": "confirm-stream", "provider": platform, "labels": [s…]}`` → from a
+  receiver asked to accept streams this platform asked ``provider`` for it: inform
+  ``{"confirmed": [s…]}`` if this platform's Federation Agent did ask so, else refuse.
 * ``{"action": "cancel-stream", "id": "x-…"}`` → the export stops; inform
   ``{"cancelled": id}``. Allowed to agents of the requester's platform, of a receiving
   platform, and of this one. A FIPA ``cancel`` in the create-stream's conversation, from
@@ -121,6 +125,7 @@ from ._service_content import (
     QUERY_ACTIONS,
     AcceptStream,
     CancelStream,
+    ConfirmStream,
     ContentError,
     CreateStream,
     GetLatest,
@@ -375,6 +380,9 @@ class FederationAgent(Agent):
         self.consent = consent
         self.refusals: dict[str, int] = {}
         self._reserved_by: dict[str, int] = {}
+        # (provider, receiver, label) -> how many of our create-streams asked it for others
+        self._for_others: dict[tuple[str, str, str], int] = {}
+        self._for_others_by: dict[tuple[str, str], list[tuple[str, str, str]]] = {}
         self.instance = instance
         self.anchor = anchor
         self.translator = translator
@@ -637,7 +645,9 @@ class FederationAgent(Agent):
             provided = sorted(set(self.translator.provides()))
             return {"labels": self._visible(provided, message.sender)}
         if isinstance(req, AcceptStream):
-            return self._accept_stream(req, message.sender)
+            return await self._accept_stream(req, message.sender)
+        if isinstance(req, ConfirmStream):
+            return self._confirm_stream(req, message.sender)
         return await self._global_on_behalf(req, message)
 
     def _visible(self, labels: list[str], sender: str) -> list[str]:
@@ -657,7 +667,7 @@ class FederationAgent(Agent):
 
     # -- consent: streams another platform asked to be sent here -------------------------
 
-    def _accept_stream(self, req: AcceptStream, sender: str) -> dict[str, Any]:
+    async def _accept_stream(self, req: AcceptStream, sender: str) -> dict[str, Any]:
         """A provider asks whether we receive the streams ``req.requester`` asked it for."""
         provider = platform_of(sender)
         if provider == self.platform.name:
@@ -676,8 +686,11 @@ class FederationAgent(Agent):
         )
         if reason is not None:
             raise Denied("consent", reason)
-        imports = self.imports
         labels = list(dict.fromkeys(req.labels))
+        if req.requester != provider:
+            # the provider only says who asked: the requester confirms it did
+            await self._confirm_with(req.requester, provider, labels)
+        imports = self.imports
         if imports is not None:
             for semantic in labels:
                 try:
@@ -686,6 +699,34 @@ class FederationAgent(Agent):
                     raise ContentError(_about(semantic, _reason(exc))) from exc
         log.info("%s: agreed to receive %s from %s for %s", self, labels, provider, req.requester)
         return {"accepted": labels}
+
+    async def _confirm_with(self, requester: str, provider: str, labels: list[str]) -> None:
+        """Ask ``requester`` whether it asked ``provider`` for ``labels`` to this platform."""
+        content = {"action": "confirm-stream", "provider": provider, "labels": labels}
+        try:
+            await self.request_from(requester, content)
+        except Refused as exc:
+            raise Denied(
+                "consent", f"{requester} did not confirm it asked {provider} for {labels}: {exc}"
+            ) from exc
+        except Exception as exc:
+            raise ContentError(
+                f"{requester} did not answer whether it asked {provider} for {labels}: "
+                f"{reason_of(exc)}"
+            ) from exc
+
+    def _confirm_stream(self, req: ConfirmStream, sender: str) -> dict[str, Any]:
+        """A receiver asks whether we asked ``req.provider`` to stream ``req.labels`` to it."""
+        receiver = platform_of(sender)
+        labels = list(dict.fromkeys(req.labels))
+        missing = [s for s in labels if (req.provider, receiver, s) not in self._for_others]
+        if missing:
+            raise Denied(
+                "consent",
+                f"{self.platform.name} asked {req.provider} for no stream of {missing} "
+                f"to {receiver}",
+            )
+        return {"confirmed": labels}
 
     async def _ask_consent(self, receiver: str, requester: str, labels: list[str]) -> None:
         """Ask ``receiver``'s Federation Agent to agree to the streams; Denied if it does not."""
@@ -1024,11 +1065,33 @@ class FederationAgent(Agent):
         if history:
             content["history"] = history
         self._expect_from(provider, content)
-        answer = await self.request_from(provider, content, timeout=timeout)
+        others = [
+            (provider, w, s)
+            for w in dict.fromkeys(content.get("to-units", []))
+            if w != self.platform.name
+            for s in dict.fromkeys(content["labels"])
+        ]
+        self._count_for_others(others, +1)  # the receivers ask us to confirm it meanwhile
+        try:
+            answer = await self.request_from(provider, content, timeout=timeout)
+        except BaseException:
+            self._count_for_others(others, -1)
+            raise
         export_id = str(answer["id"])
+        if others:
+            self._for_others_by[(provider, export_id)] = others
         if durable:
             self._durable.setdefault(provider, {})[export_id] = _Durable(content, export_id)
         return export_id
+
+    def _count_for_others(self, keys: list[tuple[str, str, str]], delta: int) -> None:
+        table = self._for_others
+        for key in keys:
+            n = table.get(key, 0) + delta
+            if n > 0:
+                table[key] = n
+            else:
+                table.pop(key, None)
 
     def _expect_from(self, provider: str, content: Any) -> None:
         """Agree to receive what a create-stream ``content`` asks ``provider`` to send us.
@@ -1056,6 +1119,7 @@ class FederationAgent(Agent):
         """Ask platform ``provider`` to stop export ``export_id`` (the id create_stream gave)."""
         entry = self._durable.get(provider, {}).pop(export_id, None)
         current = export_id if entry is None else entry.current  # created again since?
+        self._count_for_others(self._for_others_by.pop((provider, export_id), []), -1)
         await self.request_from(
             provider, {"action": "cancel-stream", "id": current}, timeout=timeout
         )

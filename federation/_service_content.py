@@ -98,6 +98,17 @@ class AcceptStream(_Content):
     labels: Labels = _labels()
 
 
+class ConfirmStream(_Content):
+    """``confirm-stream``: a receiver asks a requester whether it asked for the streams.
+
+    The receiver's check of an ``accept-stream``: the provider only says who asked.
+    """
+
+    action: Literal["confirm-stream"]
+    provider: Platform
+    labels: Labels = _labels()
+
+
 class _Query(_Content):
     labels: Labels = _labels()
     relative: bool = False
@@ -153,6 +164,7 @@ Query = GetLatest | GetValueAt | GetTrajectory
 Request = (
     CreateStream
     | AcceptStream
+    | ConfirmStream
     | CancelStream
     | GetLatest
     | GetValueAt
@@ -165,6 +177,7 @@ Request = (
 ACTIONS: dict[str, type[_Content]] = {
     "create-stream": CreateStream,
     "accept-stream": AcceptStream,
+    "confirm-stream": ConfirmStream,
     "cancel-stream": CancelStream,
     "get-latest": GetLatest,
     "get-value-at": GetValueAt,

@@ -293,17 +293,23 @@ async def test_create_stream_is_agreed_and_exported_to_each_receiver() -> None:
                 "max-delay": 1,
                 "from": -10,
                 "relative": True,
-                "to-units": ["uav-b", "operator"],
+                "to-units": ["uav-b"],
             },
             ontology=ONTOLOGY,
             timeout=WAIT,
         )
-        assert answer == {
-            "id": answer["id"],
-            "labels": ["car5-state"],
-            "to-units": ["uav-b", "operator"],
-        }
+        assert answer == {"id": answer["id"], "labels": ["car5-state"], "to-units": ["uav-b"]}
         assert no_local_labels(answer, "uav-a")
+        # to a third platform: it agrees (world's consent), after uav-b confirms it asked
+        await b.fed.create_stream(
+            "uav-a",
+            ["car5-state"],
+            to_units=["operator"],
+            sample_period=0.5,
+            max_delay=1,
+            start=-10,
+            relative=True,
+        )
         started = a.exporter.started
         assert [(e.local, e.semantic, e.receiver) for e in started] == [
             ("a/cars/car5/state", "car5-state", "uav-b"),

@@ -404,15 +404,17 @@ async def test_replies_go_to_the_requesting_platform_only(tmp_path: Path) -> Non
 
 
 async def test_a_stream_goes_to_a_third_platform_only_if_it_agrees(tmp_path: Path) -> None:
-    async with asyncio.timeout(150), world(tmp_path, ["uav-a", "uav-b"]) as w:
-        m = w.here["uav-m"]
+    consent = {"sharing": {"accept_for": ["operator"]}}  # uav-b: the operator may direct
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a", "uav-b"], ["operator", "uav-m"], uav_b=consent) as w,
+    ):
+        m, op = w.here["uav-m"].federation_agent, w.here["operator"].federation_agent
         reason = await refusal(
-            m.federation_agent.create_stream(
-                "uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT
-            )
+            m.create_stream("uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT)
         )
         assert reason.startswith("receiver uav-b did not agree to receive ['car5-state']")
-        assert "sharing.accept_for" in reason
+        assert "operator asks for it (sharing.accept_for); not for uav-m" in reason
         sa, sb = await w.stats("uav-a"), await w.stats("uav-b")
         assert sa["refusals"] == {"consent": 1} and sb["refusals"] == {"consent": 1}
         (ra,) = audited(sa, verdict="refused", code="consent", sender="federation@uav-m")
@@ -421,18 +423,32 @@ async def test_a_stream_goes_to_a_third_platform_only_if_it_agrees(tmp_path: Pat
         await until(lambda: in_file(tmp_path, "uav-a", ra), "uav-a's record in its file")
         await until(lambda: in_file(tmp_path, "uav-b", rb), "uav-b's record in its file")
         assert sa["exports"] == [] and sa["agreed"] == {}
-        # a platform cannot be made to agree in another's name either
+        # as a provider, uav-m claims the operator asked it to stream to uav-b: uav-b asks
+        # the operator, which did not
+        spoof = {"action": "accept-stream", "requester": "operator", "labels": ["car5-state"]}
+        reason = await refusal(m.request_from("uav-b", spoof))
+        assert reason == (
+            "operator did not confirm it asked uav-m for ['car5-state']: federation@operator "
+            "refused: operator asked uav-m for no stream of ['car5-state'] to uav-b"
+        )
+        assert op.refusals == {"consent": 1}
+        # nor can uav-b be made to agree in its own name
         direct = {"action": "accept-stream", "requester": "uav-b", "labels": ["car5-state"]}
-        reason = await refusal(m.federation_agent.request_from("uav-b", direct))
+        reason = await refusal(m.request_from("uav-b", direct))
         assert "asked uav-m for nothing" in reason
-        # the paper's flow is unchanged: B asks A for car5-state to B itself
-        assert (await w.ask("uav-b", "uav-a", ["car5-state"])).startswith("x-")
+        sb = await w.stats("uav-b")
+        assert sb["refusals"] == {"consent": 3}
+        assert len(audited(sb, verdict="refused", code="consent", sender="federation@uav-m")) == 2
+        # the operator may direct uav-a's stream to uav-b: uav-b agrees, and imports it
+        await op.create_stream("uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT)
+        # the paper's flow is unchanged: B asks A for a stream to B itself
+        assert (await w.ask("uav-b", "uav-a", ["car6-state"])).startswith("x-")
         sb = await w.until_stats(
             "uav-b",
-            lambda s: "import/uav-a/car5-state" in s["labels"],
-            "uav-a's stream imported by uav-b",
+            lambda s: {"import/uav-a/car5-state", "import/uav-a/car6-state"} <= set(s["labels"]),
+            "uav-a's streams imported by uav-b",
         )
-        assert sb["refusals"] == {"consent": 2}
+        assert sb["refusals"] == {"consent": 3}
         assert not [i for i in sb["imports"]["imports"] if i["sender"] == "uav-m"]
 
 
