@@ -379,7 +379,8 @@ class FederationAgent(Agent):
         self.imports = imports
         self.consent = consent
         self.refusals: dict[str, int] = {}
-        self._reserved_by: dict[str, int] = {}
+        self._reserved_by: dict[str, int] = {}  # exports being started, per requester
+        self._history_reserved_by: dict[str, int] = {}  # and the history they will keep
         # (provider, receiver, label) -> how many of our create-streams asked it for others
         self._for_others: dict[tuple[str, str, str], int] = {}
         self._for_others_by: dict[tuple[str, str], list[tuple[str, str, str]]] = {}
@@ -827,6 +828,8 @@ class FederationAgent(Agent):
         # concurrent request must not slip under the limits meanwhile.
         self._reserved += needed
         self._reserved_by[requester] = self._reserved_by.get(requester, 0) + needed
+        kept = req.history * needed
+        self._history_reserved_by[requester] = self._history_reserved_by.get(requester, 0) + kept
         try:
             for receiver in receivers:
                 if receiver != requester:
@@ -853,11 +856,12 @@ class FederationAgent(Agent):
             raise
         finally:
             self._reserved -= needed
-            left = self._reserved_by[requester] - needed
-            if left:
-                self._reserved_by[requester] = left
-            else:
-                del self._reserved_by[requester]
+            for table, n in ((self._reserved_by, needed), (self._history_reserved_by, kept)):
+                left = table[requester] - n
+                if left:
+                    table[requester] = left
+                else:
+                    del table[requester]
         self._exports[record.id] = record
         if message.conversation_id is not None:
             self._by_conversation[(message.sender, message.conversation_id)] = record.id
@@ -887,6 +891,7 @@ class FederationAgent(Agent):
         hlimit = self.max_history_per_platform
         if hlimit is not None and history:
             kept = sum(r.history * len(r.handles) for r in mine)
+            kept += self._history_reserved_by.get(requester, 0)
             if kept + history * needed > hlimit:
                 raise Denied(
                     "history-limit",
