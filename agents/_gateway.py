@@ -188,12 +188,13 @@ class GatewayAgent(Agent):
                 self.platform.audit(
                     verdict="refused",
                     stage="gateway",
+                    code="reserved-label",
                     **{"from": platform_of(message.sender)},
                     sender=message.sender,
                     receivers=message.receivers,
                     performative=message.performative.value,
                     conversation_id=message.conversation_id,
-                    reason=reason,
+                    reason=f"reserved-label: {reason}",
                 )
                 raise Refuse(reason)
 

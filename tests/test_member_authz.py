@@ -351,7 +351,8 @@ async def test_an_opened_gateway_keeps_import_labels_and_creates_none(tmp_path: 
         s = await w.stats("uav-a")
         assert s["gateway"]["reserved_refused"] == 2
         recs = audited(s, verdict="refused", stage="gateway", sender="mallory@uav-m")
-        assert len(recs) == 2 and all("reserved" in r["reason"] for r in recs)
+        assert [r["code"] for r in recs] == ["reserved-label", "reserved-label"]
+        assert all(r["reason"].startswith("reserved-label: label 'import/") for r in recs)
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
         rec = next(i for i in s["imports"]["imports"] if i["sender"] == "uav-c")
         assert rec["injected"] >= 1 and "label-taken" not in rec["dropped_samples"]
