@@ -121,7 +121,8 @@ _MAX_FAILED = 256  # failed ranges remembered per export (older ones stay counte
 _HISTORY_SLACK = 256
 _MAX_MISSING = 64
 _MAX_ASKS = 6  # the import proxy's reports that ask again for what is still missing
-_MAX_REFUSED_KEYS = 256  # (sender, reason) pairs summed up between two on_refused calls
+_MAX_REFUSED_KEYS = 32  # (sender, reason) pairs summed up between two on_refused calls: the
+# rest (invented sender names of an outsider's flood) share one "*" entry per reason
 
 
 def check_semantic_label(label: str) -> str:

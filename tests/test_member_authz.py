@@ -14,6 +14,8 @@ it possible, and asserts the refusal (or the drop), its count and its audit reco
 5. export slots and history are limited per requesting platform
 7. per-label sharing rules of the config: who may query / stream which labels
 
+and, in one process, that drops under invented sender names are audited boundedly too.
+
 Every wait is bounded, every process killed on the way out; federations are unique.
 """
 
@@ -34,13 +36,14 @@ from typing import Any
 
 import pytest
 from test_faults import Pipe, killed_at_exit, until
+from test_proxies import Net, stream_key
 
 from agents import Agent, Performative, Refused, new_id, request, wire_key
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
 from dyknow_core import seconds_to_ns
 from federation import FederationPlatform, PlatformConfig, PlatformConfigError
-from federation._proxies import InterfaceSessions, pack_batch
+from federation._proxies import InterfaceSessions, PlainSessions, pack_batch
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -609,3 +612,28 @@ def test_sharing_settings_are_validated_with_file_and_key(tmp_path: Path) -> Non
         with pytest.raises(PlatformConfigError, match=message) as info:
             PlatformConfig.from_dict({**base, **more}, source=str(path))
         assert str(info.value).startswith(f"{path}: ")
+
+
+async def test_drops_under_invented_sender_names_are_audited_in_bounded_records() -> None:
+    # an outsider need not authenticate to invent senders: one record each would be a flood
+    told: list[tuple[str, str, int, int]] = []
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        await net.platform("uav-b")
+        raw = await stack.enter_async_context(net.hub.transport())
+        imp = await net.importer(
+            "uav-b",
+            PlainSessions("uav-b", trusted={"uav-a"}),
+            translate=lambda sender, semantic: None,
+            on_refused=lambda *args: told.append(args),
+            report_interval=0.2,
+        )
+        n = 1000
+        for i in range(n):
+            envelope = PlainSessions(f"x{i}").seal_bytes("uav-b", pack_batch("car5-state", []))
+            await raw.publish(stream_key("uav-b", f"x{i}", "car5-state"), envelope)
+        await until(lambda: sum(t[2] for t in told) == n, "every batch summed up")
+        assert len(told) <= 33, len(told)  # 32 senders by name, then one "*" for the rest
+        assert {t[1] for t in told} == {"untrusted"}
+        assert ("*", "untrusted") in {(t[0], t[1]) for t in told}
+        assert imp.stats()["totals"]["dropped_batches"] == {"untrusted": n}
