@@ -29,14 +29,17 @@ from ._service import (
     FEDERATION_SERVICE_TYPE,
     ONTOLOGY,
     Anchor,
+    Consent,
     Exporter,
     FederationAgent,
     GlobalResult,
+    ImportAgreements,
     LabelSearch,
     LabelTranslator,
     MembershipEvent,
     StreamExport,
 )
+from ._sharing import Sharing, SharingRule, SharingSettings
 
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
@@ -44,6 +47,7 @@ __all__ = [
     "FEDERATION_SERVICE_TYPE",
     "ONTOLOGY",
     "Anchor",
+    "Consent",
     "Export",
     "ExportProxy",
     "Exporter",
@@ -52,6 +56,7 @@ __all__ = [
     "Fusion",
     "GlobalResult",
     "Import",
+    "ImportAgreements",
     "ImportProxy",
     "InterfaceSessions",
     "LabelSearch",
@@ -62,6 +67,9 @@ __all__ = [
     "PlatformConfigError",
     "RateLimitSettings",
     "SessionsProvider",
+    "Sharing",
+    "SharingRule",
+    "SharingSettings",
     "StreamExport",
     "TableSessions",
     "ZenohSettings",
