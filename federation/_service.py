@@ -859,11 +859,11 @@ class FederationAgent(Agent):
         finally:
             self._reserved -= needed
             for table, n in ((self._reserved_by, needed), (self._history_reserved_by, kept)):
-                left = table[requester] - n
-                if left:
+                left = table.get(requester, 0) - n
+                if left > 0:
                     table[requester] = left
                 else:
-                    del table[requester]
+                    table.pop(requester, None)
         self._exports[record.id] = record
         if message.conversation_id is not None:
             self._by_conversation[(message.sender, message.conversation_id)] = record.id

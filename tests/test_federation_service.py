@@ -129,10 +129,13 @@ class FakeExporter:
     started: list[FakeExport] = field(default_factory=list)
     fail_for: str | None = None
     missing: set[str] = field(default_factory=set)  # local labels with no stream behind
+    delay: float = 0.0  # s a start takes (the proxy's awaits a session): requests overlap
 
     async def start_exporting(
         self, local: str, semantic: str, receiver: str, policy: Policy, *, history: int = 0
     ) -> FakeExport:
+        if self.delay:
+            await asyncio.sleep(self.delay)
         if receiver == self.fail_for:
             raise RuntimeError(f"no route to {receiver} for {local}")
         if local in self.missing:  # as the proxy's subscription would: naming local labels
@@ -335,6 +338,18 @@ async def test_create_stream_is_agreed_and_exported_to_each_receiver() -> None:
         # history: the exporter keeps the last N samples to resend what a partition lost
         await b.fed.create_stream("uav-a", ["heli-max-speed"], history=50)
         assert (started[-1].semantic, started[-1].history) == ("heli-max-speed", 50)
+
+
+async def test_concurrent_create_streams_of_one_requester_are_all_agreed() -> None:
+    # regression: the per-requester reservations of two requests in flight at once were
+    # released twice, and the second request failed
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        labels = ["car5-state", "heli-altitude", "heli-max-speed"]
+        a.exporter.delay = 0.05
+        ids = await asyncio.gather(*(b.fed.create_stream("uav-a", [s]) for s in labels))
+        assert len(set(ids)) == 3 and sorted(e.semantic for e in a.exporter.running) == labels
+        assert a.fed._reserved_by == {} and a.fed._history_reserved_by == {}
 
 
 async def test_create_stream_refusals_name_the_reason() -> None:
