@@ -13,12 +13,17 @@ content (the mapping is `GatewayService`, ``agents/_gateway_service.py``):
 
 It registers its service (type ``dyknow-gateway``) with the platform's Directory
 Facilitator; protected by default, so other platforms reach it through the Interface
-Agent only.
+Agent only (a `FederationPlatform` makes it private unless its config opens it: local
+labels never leave a platform). Labels under a ``reserved`` prefix (``import/``: what
+other platforms stream here) are for this platform's agents only: a request from another
+platform that would read, create or write one is refused, counted
+(``gateway_stats.reserved_refused``) and audited.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -26,7 +31,7 @@ import orjson
 
 from dyknow_core import DyKnowError, DyKnowInstance, Subscription
 
-from ._acl import MAX_MESSAGE_BYTES, ACLMessage, Performative
+from ._acl import MAX_MESSAGE_BYTES, ACLMessage, Performative, platform_of
 from ._agent import Agent, MessageTemplate, on
 from ._df import DirectoryEvent, ServiceDescription, Visibility
 from ._gateway_service import ONTOLOGY, GatewayRefusal, GatewayService, samples_to_json
@@ -53,6 +58,7 @@ class GatewayStats:
     samples: int = 0
     too_large: int = 0
     subscriptions: int = 0
+    reserved_refused: int = 0
 
 
 @dataclass(slots=True)
@@ -81,7 +87,8 @@ class GatewayAgent(Agent):
     other platforms through the Interface Agent only; public: listed in the global
     directory too). ``register=False`` leaves the Directory Facilitator alone. The
     subscriptions of a platform that leaves the federation (its presence token goes) are
-    dropped with it.
+    dropped with it. Labels starting with one of ``reserved`` may be read, created or
+    written by agents of this platform only.
     """
 
     def __init__(
@@ -94,8 +101,10 @@ class GatewayAgent(Agent):
         register: bool = True,
         max_subscriptions: int = 1024,
         max_streams: int = 256,
+        reserved: Sequence[str] = ("import/",),
     ) -> None:
         super().__init__(name)
+        self.reserved = tuple(p for p in reserved if p)
         self.instance = instance
         self.service = GatewayService(instance, max_streams=max_streams)
         self.service_name = service_name
@@ -147,16 +156,52 @@ class GatewayAgent(Agent):
 
     # -- FIPA-Request and FIPA-Query ----------------------------------------------------
 
-    def _perform(self, content: Any) -> dict[str, Any]:
+    def _perform(self, content: Any, message: ACLMessage) -> dict[str, Any]:
+        remote = platform_of(message.sender) != self.platform.name
+        if remote:
+            self._check_reserved(message, content)
         try:
-            return self.service.perform(content)
+            result = self.service.perform(content)
         except GatewayRefusal as exc:
             raise Refuse(exc.reason) from exc
+        if remote and isinstance(content, dict) and content.get("action") == "list-labels":
+            result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
+        return result
+
+    def _is_reserved(self, label: Any) -> bool:
+        return isinstance(label, str) and label.startswith(self.reserved)
+
+    def _check_reserved(self, message: ACLMessage, content: Any) -> None:
+        """Refuse (count, audit) another platform's request naming a reserved label."""
+        if not isinstance(content, dict):
+            return
+        for key in ("label", "output"):
+            label = content.get(key)
+            if isinstance(label, str) and self._is_reserved(label):
+                prefix = next(p for p in self.reserved if label.startswith(p))
+                reason = (
+                    f"label {label!r} is reserved (prefix {prefix!r}: streams other "
+                    "platforms send here): only agents of this platform may read, create "
+                    "or write it"
+                )
+                self.gateway_stats.reserved_refused += 1
+                self.platform.audit(
+                    verdict="refused",
+                    stage="gateway",
+                    code="reserved-label",
+                    **{"from": platform_of(message.sender)},
+                    sender=message.sender,
+                    receivers=message.receivers,
+                    performative=message.performative.value,
+                    conversation_id=message.conversation_id,
+                    reason=f"reserved-label: {reason}",
+                )
+                raise Refuse(reason)
 
     @on_request(ONTOLOGY)
     async def _on_request(self, message: ACLMessage) -> Any:
         """list-labels, create-stream, query: the result, or refuse with the reason."""
-        return self._perform(message.content)
+        return self._perform(message.content, message)
 
     @on_query(ONTOLOGY)
     async def _on_query(self, message: ACLMessage) -> Any:
@@ -168,7 +213,7 @@ class GatewayAgent(Agent):
             content = {"action": "query", **content}
             if content["action"] == "create-stream":
                 raise Refuse("create-stream is an action: ask for it with FIPA-Request")
-        return self._perform(content)
+        return self._perform(content, message)
 
     # -- FIPA-Subscribe -----------------------------------------------------------------
 
@@ -176,6 +221,11 @@ class GatewayAgent(Agent):
     async def _on_subscribe(self, message: ACLMessage) -> None:
         """Agree and start informing, or refuse (unknown label, bad policy) with the reason."""
         reason = self._subscribe_problem(message)
+        if reason is None and platform_of(message.sender) != self.platform.name:
+            try:
+                self._check_reserved(message, message.content)
+            except Refuse as exc:
+                reason = str(exc.content)
         if reason is not None:
             await self.reply(message, P.REFUSE, reason)
             return

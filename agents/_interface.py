@@ -73,6 +73,8 @@ INITIATING = frozenset(
     }
 )
 
+# What local agents answer to: the opening performatives and a cancel (answered inform).
+ANSWERED = INITIATING | {Performative.CANCEL}
 
 RATE_LIMIT_REASON = "rate limit exceeded"
 
@@ -341,6 +343,7 @@ class InterfaceAgent:
             else None
         )
         self._alive: set[str] = set()
+        self.reply_to_refused = 0  # requests whose reply_to named a third platform
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -838,6 +841,22 @@ class InterfaceAgent:
             # word, reaching agents whose services that platform may not use
             await self._refuse(
                 host, message, base, local[0], "reply_to may not name agents of this platform"
+            )
+            return
+        if (
+            message.reply_to
+            and message.performative in ANSWERED
+            and any(platform_of(r) != peer for r in message.reply_to)
+        ):
+            # answers go to the platform that asked: otherwise small requests would make
+            # this platform send large answers to a third one (a reflection)
+            self.reply_to_refused += 1
+            await self._refuse(
+                host,
+                message,
+                base,
+                local[0],
+                f"reply_to may name agents of the requesting platform {peer!r} only",
             )
             return
         if message.performative in INITIATING:

@@ -232,6 +232,17 @@ class AgentPlatform:
         """This federation's key of ``kind`` for ``platform`` (default: this one)."""
         return wire_key(self.federation, kind, platform or self.name)
 
+    def audit(self, **fields: Any) -> None:
+        """Add a record to the channel's audit log (an agent's refusal of another platform).
+
+        The Interface Agent audits what it admits or refuses; an agent that then refuses an
+        admitted request for what it asks (a sharing rule, a limit) records it here, so
+        the audit shows the refusal too. A channel without an audit log ignores it.
+        """
+        log_ = getattr(self.channel, "audit", None)
+        if log_ is not None:
+            log_.record(**fields)
+
     # -- lifecycle --------------------------------------------------------------------
 
     async def __aenter__(self) -> Self:

@@ -30,14 +30,17 @@ from ._service import (
     FEDERATION_SERVICE_TYPE,
     ONTOLOGY,
     Anchor,
+    Consent,
     Exporter,
     FederationAgent,
     GlobalResult,
+    ImportAgreements,
     LabelSearch,
     LabelTranslator,
     MembershipEvent,
     StreamExport,
 )
+from ._sharing import Sharing, SharingRule, SharingSettings
 
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
@@ -45,6 +48,7 @@ __all__ = [
     "FEDERATION_SERVICE_TYPE",
     "ONTOLOGY",
     "Anchor",
+    "Consent",
     "Export",
     "ExportProxy",
     "Exporter",
@@ -53,6 +57,7 @@ __all__ = [
     "Fusion",
     "GlobalResult",
     "Import",
+    "ImportAgreements",
     "ImportProxy",
     "InterfaceSessions",
     "KxLimitSettings",
@@ -64,6 +69,9 @@ __all__ = [
     "PlatformConfigError",
     "RateLimitSettings",
     "SessionsProvider",
+    "Sharing",
+    "SharingRule",
+    "SharingSettings",
     "StreamExport",
     "TableSessions",
     "ZenohSettings",

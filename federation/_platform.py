@@ -20,6 +20,8 @@ A config file (TOML; relative paths are relative to the file)::
     vocabulary = "traffic.toml"
     mapping = "uav-b.toml"
     export_limit = 64
+    export_limit_per_platform = 32   # exports one other platform may hold here
+    history_limit_per_platform = 200000  # samples of history kept for one other platform
     export_lease = 10.0
     import_label = "import/{sender}/{semantic}"
 
@@ -28,6 +30,17 @@ A config file (TOML; relative paths are relative to the file)::
     require_encryption = true    # refuse plain envelopes (default: the same as encrypt)
     audit = "sealed"             # published audit sealed to the owner; "plain" or "off"
     watch = true                 # the owner may watch what arrives (dyknow watch)
+
+    [sharing]                    # what is shared with whom (federation/_sharing.py)
+    gateway = "private"          # "protected": other members may use the Gateway Agent
+    default = "members"          # labels no rule names: every member, or "none"
+    accept_for = ["operator"]    # whose create-stream may direct streams here
+
+    [[sharing.rules]]
+    name = "neighbours"
+    labels = ["car*-state"]
+    query = ["uav-*"]
+    stream = ["uav-a", "uav-c"]
 
     [rate_limit]                 # per other platform, after authentication (docs/security.md)
     rate = 5000.0                # requests/queries/cfps per second, bursts of `burst`
@@ -95,6 +108,7 @@ from ._inputs import InputSettings
 from ._outputs import OutputSettings
 from ._proxies import ExportProxy, Import, ImportProxy, InterfaceSessions
 from ._service import Anchor, FederationAgent, MembershipEvent
+from ._sharing import SharingSettings
 
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
@@ -105,6 +119,7 @@ __all__ = [
     "PlatformConfigError",
     "RateLimitSettings",
     "SecuritySettings",
+    "SharingSettings",
     "ZenohSettings",
 ]
 
@@ -238,9 +253,11 @@ class PlatformConfig(BaseModel):
 
     ``vocabulary`` and ``mapping`` are paths to the TOML files of `docs/ontology.md`, or
     the same content inline. ``export_limit`` bounds the exports (a label to a receiver)
-    running at once; ``import_label`` names the local label of an imported stream, with
-    ``{sender}`` and ``{semantic}``. ``audit``, when set, is the Interface Agent's
-    JSON-lines audit file.
+    running at once, ``export_limit_per_platform`` those one other platform asked for,
+    ``history_limit_per_platform`` the samples of history kept for one other platform;
+    ``import_label`` names the local label of an imported stream, with ``{sender}`` and
+    ``{semantic}``. ``sharing`` says what is shared with whom (`SharingSettings`).
+    ``audit``, when set, is the Interface Agent's JSON-lines audit file.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -253,6 +270,10 @@ class PlatformConfig(BaseModel):
     vocabulary: Path | dict[str, Any] = Field(description="The federation's vocabulary.")
     mapping: Path | dict[str, Any] = Field(description="This platform's label mapping.")
     export_limit: int = Field(default=64, ge=0)
+    # one member must not take every slot (or all the memory history keeps) from the others
+    export_limit_per_platform: int = Field(default=32, ge=0)
+    history_limit_per_platform: int = Field(default=200_000, ge=0)
+    sharing: SharingSettings = Field(default_factory=SharingSettings)
     # an export whose receiver has not reported for this long ends ("lease-expired")
     # at least 4 of the receivers' report intervals (0.5 s): a shorter one ends live exports
     export_lease: float | None = Field(default=10.0, ge=2.0, le=86400)
@@ -333,6 +354,11 @@ class PlatformConfig(BaseModel):
             update["inputs"] = [i.relative_to(base) for i in self.inputs]
         return self.model_copy(update=update)
 
+    @property
+    def import_prefix(self) -> str:
+        """What every imported stream's local label starts with (``import/`` by default)."""
+        return self.import_label.split("{", 1)[0]
+
     def import_label_of(self, sender: str, semantic: str) -> str:
         """The local label a stream of ``sender``'s ``semantic`` label is imported into."""
         return self.import_label.format(sender=sender, semantic=semantic)
@@ -373,6 +399,8 @@ def _config_error(exc: ValidationError, source: str) -> PlatformConfigError:
         message = "missing"
     elif first["type"] == "extra_forbidden":
         message = "unknown key"
+    elif first["type"] == "string_pattern_mismatch" and key.startswith("sharing"):
+        message = f"{first['input']!r}: use letters, digits, '-', '_', '.', '/', * ? [ ] !"
     elif first["type"] == "string_pattern_mismatch":
         message = f"{first['input']!r}: use letters, digits, '-', '_', '.'"
     if len(errors) > 1:
@@ -431,6 +459,12 @@ def _read_files(config: PlatformConfig, source: str) -> _Files:
 
 # -- the platform ----------------------------------------------------------------------------
 
+_WHY = {
+    "unagreed": "streams this platform did not agree to receive",
+    "wrong-sender": "published under another platform's name",
+    "wrong-label": "the batch names another label than its key",
+}
+
 
 class _Imports(ImportProxy):
     """The import proxy, telling the platform when an imported stream (re)appears."""
@@ -467,7 +501,7 @@ class FederationPlatform:
         transport: Transport | None = None,
         join: bool = True,
         rules: Iterable[Rule] = (),
-        gateway_visibility: Visibility | str = Visibility.PROTECTED,
+        gateway_visibility: Visibility | str | None = None,
         on_import_ended: OnImportEnded | None = None,
         source: str | None = None,
         anchor: Anchor | None = None,
@@ -495,7 +529,12 @@ class FederationPlatform:
         self.agents = AgentPlatform(
             config.name, self.transport, federation=config.federation, channel=self.interface
         )
-        self.gateway = GatewayAgent(self.instance, visibility=gateway_visibility)
+        if gateway_visibility is None:
+            # private unless the config opens it: local labels never leave the platform
+            gateway_visibility = config.sharing.gateway
+        self.gateway = GatewayAgent(
+            self.instance, visibility=gateway_visibility, reserved=(config.import_prefix,)
+        )
         self.facts = FactBase()
         self._rules = list(rules)
         self.labels = PlatformLabels(self.mapping, self.instance, self.facts)
@@ -517,13 +556,22 @@ class FederationPlatform:
             on_sender_gone=self._sender_gone,
             on_open=self._import_opened,
             on_export_ended=self._export_ended,
+            on_refused=self._import_refused,
+            # counters of what nobody agreed: a few labels for reading, then one bucket
+            max_strays=64,
         )
+        sharing = config.sharing.sharing()
         self.federation_agent = FederationAgent(
             self.instance,
             self.labels,
             exporter=self.exporter,
             search=self.labels,
             max_exports=config.export_limit,
+            max_exports_per_platform=config.export_limit_per_platform,
+            max_history_per_platform=config.history_limit_per_platform,
+            sharing=sharing,
+            imports=self,
+            consent=lambda requester, provider, labels: sharing.accepts_for(requester),
             join=join,
             anchor=anchor,
         )
@@ -637,10 +685,39 @@ class FederationPlatform:
                 if not waiters:
                     del self._waiters[key]
 
-    def _import_translate(self, sender: str, semantic: str) -> str | None:
-        if semantic not in self.vocabulary:
-            return None  # not agreed in this federation: the proxy drops and counts it
-        return self.config.import_label_of(sender, semantic)
+    def expect(self, sender: str, semantic: str) -> str:
+        """Agree to receive ``sender``'s stream of ``semantic``: the local label it lands in.
+
+        The import proxy accepts only agreed streams; the Federation Agent agrees to what
+        it asks for (and what ``sharing.accept_for`` lets others ask for here). Call this
+        when an agent asks a provider for a stream other than through the Federation Agent.
+        UnknownSemanticLabel when ``semantic`` is not in the federation's vocabulary.
+        """
+        self.vocabulary.entry(semantic)
+        label = self.config.import_label_of(sender, semantic)
+        rec = self.importer.get(sender, semantic)
+        if rec is not None and rec.local_label is not None:
+            return rec.local_label
+        self.importer.expect(sender, semantic, label)
+        return label
+
+    def _import_translate(self, sender: str, semantic: str) -> None:
+        # what this platform did not agree (`expect`) is dropped and counted: "unagreed"
+        return None
+
+    def _import_refused(self, sender: str, reason: str, batches: int, samples: int) -> None:
+        # one record per sender and reason per report interval: a flood is summed up
+        self.interface.audit.record(
+            verdict="dropped",
+            stage="import",
+            code=reason,
+            count=batches,
+            **{"from": sender},
+            reason=(
+                f"{reason}: {batches} batch(es), {samples} sample(s) from {sender!r} dropped "
+                f"by the import proxy ({_WHY.get(reason, 'not accepted')})"
+            ),
+        )
 
     def _import_opened(self, rec: Import) -> None:
         for fut in self._waiters.pop((rec.sender, rec.semantic_label), []):

@@ -99,6 +99,9 @@ OnSenderGone = Callable[[str, list[str]], Awaitable[None] | None]
 OnExportEnded = Callable[[str, str], Awaitable[None] | None]
 """``on_export_ended(sender, semantic_label)``: the sender ended that export by itself."""
 
+OnRefused = Callable[[str, str, int, int], None]
+"""``on_refused(sender, reason, batches, samples)``: whole batches dropped since last told."""
+
 # A semantic label becomes key chunks: no wildcard or MQTT-special characters, no spaces.
 _LABEL = re.compile(r"^[^\s/*$?#+\x00-\x1f\x7f]+(?:/[^\s/*$?#+\x00-\x1f\x7f]+)*$")
 _MAX_LABEL = 256
@@ -157,6 +160,10 @@ def _cover(ranges: list[tuple[int, int]], first: int, end: int) -> list[tuple[in
     out.append((first, end))
     out.sort()
     return out
+
+
+_MAX_REFUSED_KEYS = 32  # (sender, reason) pairs summed up between two on_refused calls: the
+# rest (invented sender names of an outsider's flood) share one "*" entry per reason
 
 
 def check_semantic_label(label: str) -> str:
@@ -1153,7 +1160,10 @@ class ImportProxy:
     iterators end; with ``keep_ended`` the label and its cache stay queryable) and
     ``on_sender_gone(sender, semantic_labels)`` is told. When a sender ends an export by
     itself (its lease expired: we did not report in time) and says so, the stream ends
-    and ``on_export_ended(sender, semantic_label)`` is told. Use as an async context
+    and ``on_export_ended(sender, semantic_label)`` is told. Batches dropped whole
+    (never agreed, not authentic, under another sender's name) are summed up per sender
+    and reason and told to ``on_refused(sender, reason, batches, samples)`` once per
+    ``report_interval`` (an audit, bounded whatever the flood). Use as an async context
     manager (or ``start`` / ``aclose``).
     """
 
@@ -1168,6 +1178,7 @@ class ImportProxy:
         *,
         on_sender_gone: OnSenderGone | None = None,
         on_export_ended: OnExportEnded | None = None,
+        on_refused: OnRefused | None = None,
         cache: CacheSpec | None = None,
         keep_ended: bool = True,
         buffer_size: int = 1024,
@@ -1182,6 +1193,9 @@ class ImportProxy:
         self.translate = translate
         self.on_sender_gone = on_sender_gone
         self.on_export_ended = on_export_ended
+        self.on_refused = on_refused
+        # (sender, reason) -> [batches, samples] not yet told to on_refused (bounded keys)
+        self._refused: dict[tuple[str, str], list[int]] = {}
         self.cache = cache
         self.keep_ended = keep_ended
         self.buffer_size = buffer_size  # batches, not samples: ~256 k samples by default
@@ -1248,6 +1262,7 @@ class ImportProxy:
         """
         while True:
             await asyncio.sleep(self.report_interval)
+            self._tell_refused()
             reports: dict[str, dict[str, Any]] = {}
             for rec in self._imports.values():
                 # an ended import whose sender is back is reported on too: a stream created
@@ -1377,6 +1392,34 @@ class ImportProxy:
         counts = self._counts(sender, label)
         counts.batches += 1
         counts._drop_batch(reason)
+        self._note_refused(sender, reason, 0)
+
+    def _note_refused(self, sender: str, reason: str, samples: int) -> None:
+        """Sum up a dropped batch for the next `on_refused` (bounded: a flood costs nothing)."""
+        if self.on_refused is None:
+            return
+        key = (sender, reason)
+        entry = self._refused.get(key)
+        if entry is None:
+            if len(self._refused) >= _MAX_REFUSED_KEYS:
+                key = ("*", reason)
+                entry = self._refused.get(key)
+            if entry is None:
+                entry = self._refused[key] = [0, 0]
+        entry[0] += 1
+        entry[1] += samples
+
+    def _tell_refused(self) -> None:
+        """Tell ``on_refused`` what was dropped since last time, one call per sender and reason."""
+        hook, refused = self.on_refused, self._refused
+        if hook is None or not refused:
+            return
+        self._refused = {}
+        for (sender, reason), (batches, samples) in refused.items():
+            try:
+                hook(sender, reason, batches, samples)
+            except Exception:
+                log.exception("import[%s]: on_refused failed", self.platform)
 
     def _counts(self, sender: str, label: str) -> Import:
         """Where to count a payload for (sender, label): its import, or a bounded stray."""
@@ -1443,6 +1486,7 @@ class ImportProxy:
                 counts.batches += 1
                 counts.received += len(samples)
                 counts._drop_samples("unagreed", len(samples))
+                self._note_refused(frm, "unagreed", len(samples))
                 return
             rec = self._new_import(frm, semantic, local)
         rec.batches += 1

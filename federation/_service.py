@@ -13,13 +13,24 @@ spelled ``semantic-labels`` (as in the paper).
 FIPA-Request actions (answered ``inform``, or ``refuse`` with the reason):
 
 * ``{"action": "create-stream", "labels": [s…], "from": t, "to": t, "sample-period": p,
-  "max-delay": d, "relative": bool, "to-units": [platform…], "policy": {…}}`` → every
-  label is translated (an unknown one is refused, naming it), the export limit checked
-  (``too many exports``), a policy built (``policy`` may add the gateway's other policy
-  fields: ``approximation``, ``change``, ``order``, ``late``, ``lower``, ``upper``), and
-  the `Exporter` starts exporting each label to each receiving platform (default: the
-  requester's). Inform: ``{"id": "x-…", "labels": [s…], "to-units": [platform…]}``.
-  An exporter that fails answers ``failure`` (what was started is stopped again).
+  "max-delay": d, "relative": bool, "to-units": [platform…], "policy": {…}}`` → the
+  sharing rules checked for the requester and each receiver (`Sharing`), every label
+  translated (an unknown one is refused, naming it), the export limits checked (global
+  and per requesting platform: ``too many exports``, ``too much history``), each
+  receiver other than the requester asked to agree (``accept-stream``, below), a policy
+  built (``policy`` may add the gateway's other policy fields: ``approximation``,
+  ``change``, ``order``, ``late``, ``lower``, ``upper``), and the `Exporter` starts
+  exporting each label to each receiving platform (default: the requester's). Inform:
+  ``{"id": "x-…", "labels": [s…], "to-units": [platform…]}``. An exporter that fails
+  answers ``failure`` (what was started is stopped again).
+* ``{"action": "accept-stream", "requester": platform, "labels": [s…]}`` → from a
+  provider, before it streams to this platform what ``requester`` asked for it: agreed
+  (inform ``{"accepted": [s…]}``, and the streams are then expected here) only if
+  ``consent`` allows it and, when the requester is not the provider, the requester
+  confirms it asked; refused otherwise (the provider then refuses the create-stream).
+* ``{"action": "confirm-stream", "provider": platform, "labels": [s…]}`` → from a
+  receiver asked to accept streams this platform asked ``provider`` for it: inform
+  ``{"confirmed": [s…]}`` if this platform's Federation Agent did ask so, else refuse.
 * ``{"action": "cancel-stream", "id": "x-…"}`` → the export stops; inform
   ``{"cancelled": id}``. Allowed to agents of the requester's platform, of a receiving
   platform, and of this one. A FIPA ``cancel`` in the create-stream's conversation, from
@@ -35,7 +46,9 @@ FIPA-Request actions (answered ``inform``, or ``refuse`` with the reason):
 * ``{"action": "search-labels", "formula": "(all ?x (and (Car ?x) (Color ?x blue)))"}`` →
   inform ``{"labels": [s…]}`` (`LabelSearch`); a malformed formula is refused with the
   parser's message (it names the position).
-* ``{"action": "list-labels"}`` → inform ``{"labels": [s…]}``: what this platform provides.
+* ``{"action": "list-labels"}`` → inform ``{"labels": [s…]}``: what this platform provides
+  (to another platform: what it may query or stream). Refusals by a sharing rule, consent
+  or limit are counted in ``refusals`` and audited (``docs/federation.md``).
 * ``{"action": "global-request", "request": {…}, "deadline": s, "select":
   "first"|"newest", "include-self": bool}`` → a `FederationAgent.global_request` on the
   asker's behalf; inform `GlobalResult.to_content`. Agents of this platform only.
@@ -110,7 +123,9 @@ from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, Unknow
 from ._service_content import (
     ONTOLOGY,
     QUERY_ACTIONS,
+    AcceptStream,
     CancelStream,
+    ConfirmStream,
     ContentError,
     CreateStream,
     GetLatest,
@@ -124,6 +139,7 @@ from ._service_content import (
     newest_valid_time,
     parse_request,
 )
+from ._sharing import Sharing
 
 log = logging.getLogger(__name__)
 
@@ -140,9 +156,11 @@ __all__ = [
     "FEDERATION_SERVICE_TYPE",
     "ONTOLOGY",
     "Anchor",
+    "Consent",
     "Exporter",
     "FederationAgent",
     "GlobalResult",
+    "ImportAgreements",
     "LabelSearch",
     "LabelTranslator",
     "MembershipEvent",
@@ -194,6 +212,26 @@ class LabelSearch(Protocol):
     def find(self, formula: str, /) -> list[str]:
         """The labels ``formula`` describes; raises on a malformed one (text: the position)."""
         ...
+
+
+class ImportAgreements(Protocol):
+    """The streams this platform agreed to receive (the import proxy accepts only these)."""
+
+    def expect(self, sender: str, semantic: str, /) -> object:
+        """Agree to receive ``sender``'s stream of ``semantic``; raises if it cannot land here."""
+        ...
+
+
+Consent = Callable[[str, str, list[str]], str | None]
+"""``consent(requester, provider, labels)``: None to receive the streams, else why not."""
+
+
+class Denied(ContentError):
+    """A request refused by a rule or a limit: counted by ``code`` and audited."""
+
+    def __init__(self, code: str, reason: str) -> None:
+        super().__init__(reason)
+        self.code = code
 
 
 class Exporter(Protocol):
@@ -257,6 +295,7 @@ class StreamExport:
     labels: list[str]
     receivers: list[str]
     policy: Policy
+    history: int = 0
     handles: dict[tuple[str, str], Any] = field(default_factory=dict)
     """(semantic label, receiver) → the exporter's handle."""
 
@@ -305,8 +344,15 @@ class FederationAgent(Agent):
     ``instance`` is the local DyKnow instance, ``translator`` maps semantic labels to
     local ones, ``exporter`` starts exports (without one, create-stream is refused) and
     ``search`` finds labels by formula (without one, search-labels is refused). At most
-    ``max_exports`` exports (a label to a receiver) run at once. ``join=False`` leaves
-    the platform out of the federation until `join`.
+    ``max_exports`` exports (a label to a receiver) run at once, at most
+    ``max_exports_per_platform`` of them asked by one platform, keeping at most
+    ``max_history_per_platform`` samples of history for it. ``sharing`` says who may
+    query or stream which label (default: every member, every label). ``imports`` records
+    the streams this platform agreed to receive: those it asks for itself, and those
+    ``consent(requester, provider, labels)`` accepts when another platform asks a provider
+    to stream here (without ``consent``: none). ``join=False`` leaves the platform out of
+    the federation until `join`. Refusals by rule or limit are counted in ``refusals``
+    (by code) and audited.
     """
 
     def __init__(
@@ -319,11 +365,27 @@ class FederationAgent(Agent):
         name: str = FEDERATION_AGENT,
         service_name: str = "dyknow-federation",
         max_exports: int = 64,
+        max_exports_per_platform: int | None = None,
+        max_history_per_platform: int | None = None,
+        sharing: Sharing | None = None,
+        imports: ImportAgreements | None = None,
+        consent: Consent | None = None,
         join: bool = True,
         stop_exports_to_gone: bool = True,
         anchor: Anchor | None = None,
     ) -> None:
         super().__init__(name)
+        self.max_exports_per_platform = max_exports_per_platform
+        self.max_history_per_platform = max_history_per_platform
+        self.sharing = sharing if sharing is not None else Sharing()
+        self.imports = imports
+        self.consent = consent
+        self.refusals: dict[str, int] = {}
+        self._reserved_by: dict[str, int] = {}  # exports being started, per requester
+        self._history_reserved_by: dict[str, int] = {}  # and the history they will keep
+        # (provider, receiver, label) -> how many of our create-streams asked it for others
+        self._for_others: dict[tuple[str, str, str], int] = {}
+        self._for_others_by: dict[tuple[str, str], list[tuple[str, str, str]]] = {}
         self.instance = instance
         self.anchor = anchor
         self.translator = translator
@@ -534,6 +596,9 @@ class FederationAgent(Agent):
         """Every action of the service: its result, or refuse with the reason."""
         try:
             return await self._perform(parse_request(message.content), message)
+        except Denied as exc:
+            self._denied(message, exc)
+            raise Refuse(exc.reason) from exc
         except ContentError as exc:
             raise Refuse(exc.reason) from exc
 
@@ -547,8 +612,27 @@ class FederationAgent(Agent):
             if req.action not in QUERY_ACTIONS and req.action != "list-labels":
                 raise ContentError(f"{req.action} is an action: ask for it with FIPA-Request")
             return await self._perform(req, message)
+        except Denied as exc:
+            self._denied(message, exc)
+            raise Refuse(exc.reason) from exc
         except ContentError as exc:
             raise Refuse(exc.reason) from exc
+
+    def _denied(self, message: ACLMessage, exc: Denied) -> None:
+        """Count and audit a refusal by rule or limit (the Interface Agent admitted it)."""
+        self.refusals[exc.code] = self.refusals.get(exc.code, 0) + 1
+        log.info("%s: refused %s: %s", self, message.sender, exc.reason)
+        self.platform.audit(
+            verdict="refused",
+            stage="federation",
+            code=exc.code,
+            **{"from": platform_of(message.sender)},
+            sender=message.sender,
+            receivers=message.receivers,
+            performative=message.performative.value,
+            conversation_id=message.conversation_id,
+            reason=f"{exc.code}: {exc.reason}",
+        )
 
     async def _perform(self, req: Request, message: ACLMessage) -> Any:
         if isinstance(req, CreateStream):
@@ -558,10 +642,108 @@ class FederationAgent(Agent):
         if isinstance(req, GetLatest | GetValueAt | GetTrajectory):
             return self._query(req, message.sender)
         if isinstance(req, SearchLabels):
-            return self._search(req.formula)
+            found = self._search(req.formula)
+            return {"labels": self._visible(found["labels"], message.sender)}
         if isinstance(req, ListLabels):
-            return {"labels": sorted(set(self.translator.provides()))}
+            provided = sorted(set(self.translator.provides()))
+            return {"labels": self._visible(provided, message.sender)}
+        if isinstance(req, AcceptStream):
+            return await self._accept_stream(req, message.sender)
+        if isinstance(req, ConfirmStream):
+            return self._confirm_stream(req, message.sender)
         return await self._global_on_behalf(req, message)
+
+    def _visible(self, labels: list[str], sender: str) -> list[str]:
+        """The labels ``sender``'s platform may query or stream (all, for our own agents)."""
+        asker = platform_of(sender)
+        if asker == self.platform.name:
+            return labels
+        check = self.sharing.check
+        return [s for s in labels if not check("query", s, asker) or not check("stream", s, asker)]
+
+    def _check_sharing(self, action: Literal["query", "stream"], label: str, platform: str) -> None:
+        if platform == self.platform.name:
+            return
+        reason = self.sharing.check(action, label, platform)
+        if reason is not None:
+            raise Denied("sharing-rule", reason)
+
+    # -- consent: streams another platform asked to be sent here -------------------------
+
+    async def _accept_stream(self, req: AcceptStream, sender: str) -> dict[str, Any]:
+        """A provider asks whether we receive the streams ``req.requester`` asked it for."""
+        provider = platform_of(sender)
+        if provider == self.platform.name:
+            raise ContentError("a platform does not export to itself")
+        if req.requester == self.platform.name:
+            # we asked: then our own Federation Agent expects it already, if we asked it
+            raise Denied(
+                "consent",
+                f"{self.platform.name} asked {provider} for nothing of the kind: "
+                "its streams are expected when it asks for them itself",
+            )
+        reason = (
+            "this platform accepts no stream asked for it by another (no consent)"
+            if self.consent is None
+            else self.consent(req.requester, provider, list(req.labels))
+        )
+        if reason is not None:
+            raise Denied("consent", reason)
+        labels = list(dict.fromkeys(req.labels))
+        if req.requester != provider:
+            # the provider only says who asked: the requester confirms it did
+            await self._confirm_with(req.requester, provider, labels)
+        imports = self.imports
+        if imports is not None:
+            for semantic in labels:
+                try:
+                    imports.expect(provider, semantic)
+                except Exception as exc:
+                    raise ContentError(_about(semantic, _reason(exc))) from exc
+        log.info("%s: agreed to receive %s from %s for %s", self, labels, provider, req.requester)
+        return {"accepted": labels}
+
+    async def _confirm_with(self, requester: str, provider: str, labels: list[str]) -> None:
+        """Ask ``requester`` whether it asked ``provider`` for ``labels`` to this platform."""
+        content = {"action": "confirm-stream", "provider": provider, "labels": labels}
+        try:
+            await self.request_from(requester, content)
+        except Refused as exc:
+            raise Denied(
+                "consent", f"{requester} did not confirm it asked {provider} for {labels}: {exc}"
+            ) from exc
+        except Exception as exc:
+            raise ContentError(
+                f"{requester} did not answer whether it asked {provider} for {labels}: "
+                f"{reason_of(exc)}"
+            ) from exc
+
+    def _confirm_stream(self, req: ConfirmStream, sender: str) -> dict[str, Any]:
+        """A receiver asks whether we asked ``req.provider`` to stream ``req.labels`` to it."""
+        receiver = platform_of(sender)
+        labels = list(dict.fromkeys(req.labels))
+        missing = [s for s in labels if (req.provider, receiver, s) not in self._for_others]
+        if missing:
+            raise Denied(
+                "consent",
+                f"{self.platform.name} asked {req.provider} for no stream of {missing} "
+                f"to {receiver}",
+            )
+        return {"confirmed": labels}
+
+    async def _ask_consent(self, receiver: str, requester: str, labels: list[str]) -> None:
+        """Ask ``receiver``'s Federation Agent to agree to the streams; Denied if it does not."""
+        content = {"action": "accept-stream", "requester": requester, "labels": labels}
+        try:
+            await self.request_from(receiver, content)
+        except Refused as exc:
+            raise Denied(
+                "consent", f"receiver {receiver} did not agree to receive {labels}: {exc}"
+            ) from exc
+        except Exception as exc:
+            raise ContentError(
+                f"receiver {receiver} did not answer whether it receives {labels}: {reason_of(exc)}"
+            ) from exc
 
     def _translate(self, semantic: str) -> str:
         try:
@@ -619,9 +801,12 @@ class FederationAgent(Agent):
         exporter = self.exporter
         if exporter is None:
             raise ContentError("this platform exports no streams")
-        pairs = [(s, self._translate(s)) for s in dict.fromkeys(req.labels)]
         requester = platform_of(message.sender)
         receivers = list(dict.fromkeys(req.to_units or [requester]))
+        for semantic in dict.fromkeys(req.labels):
+            for who in dict.fromkeys([requester, *receivers]):
+                self._check_sharing("stream", semantic, who)
+        pairs = [(s, self._translate(s)) for s in dict.fromkeys(req.labels)]
         self._check_receivers(receivers, requester)
         self._check_new(pairs, receivers)
         try:
@@ -631,11 +816,7 @@ class FederationAgent(Agent):
             reason = str(exc).replace("sample_period", "sample-period")
             raise ContentError(reason.replace("max_delay", "max-delay")) from exc
         needed = len(pairs) * len(receivers)
-        active = self.export_count + self._reserved
-        if active + needed > self.max_exports:
-            raise ContentError(
-                f"too many exports (limit {self.max_exports}: {active} running, {needed} asked)"
-            )
+        self._check_limits(requester, needed, req.history)
         record = StreamExport(
             id=new_id("x"),
             requester=message.sender,
@@ -643,11 +824,19 @@ class FederationAgent(Agent):
             labels=[s for s, _ in pairs],
             receivers=receivers,
             policy=policy,
+            history=req.history,
         )
-        # Reserved while the exporter starts (it may await): a concurrent request must
-        # not slip under the limit meanwhile.
+        # Reserved while the receivers agree and the exporter starts (both await): a
+        # concurrent request must not slip under the limits meanwhile.
         self._reserved += needed
+        self._reserved_by[requester] = self._reserved_by.get(requester, 0) + needed
+        kept = req.history * needed
+        self._history_reserved_by[requester] = self._history_reserved_by.get(requester, 0) + kept
         try:
+            for receiver in receivers:
+                if receiver != requester:
+                    # a stream goes to a platform that did not ask only if it agrees
+                    await self._ask_consent(receiver, requester, record.labels)
             for semantic, local in pairs:
                 for receiver in receivers:
                     try:
@@ -669,11 +858,48 @@ class FederationAgent(Agent):
             raise
         finally:
             self._reserved -= needed
+            for table, n in ((self._reserved_by, needed), (self._history_reserved_by, kept)):
+                left = table.get(requester, 0) - n
+                if left > 0:
+                    table[requester] = left
+                else:
+                    table.pop(requester, None)
         self._exports[record.id] = record
         if message.conversation_id is not None:
             self._by_conversation[(message.sender, message.conversation_id)] = record.id
         log.info("%s: export %s of %s to %s", self, record.id, record.labels, receivers)
         return {"id": record.id, "labels": record.labels, "to-units": receivers}
+
+    def _check_limits(self, requester: str, needed: int, history: int) -> None:
+        """The export limits, global and per requesting platform; Denied names the one hit."""
+        active = self.export_count + self._reserved
+        if active + needed > self.max_exports:
+            raise Denied(
+                "export-limit",
+                f"too many exports (limit {self.max_exports}: {active} running, {needed} asked)",
+            )
+        if requester == self.platform.name:
+            return  # this platform's own agents share only the global pool
+        mine = [r for r in self._exports.values() if platform_of(r.requester) == requester]
+        limit = self.max_exports_per_platform
+        if limit is not None:
+            held = sum(len(r.handles) for r in mine) + self._reserved_by.get(requester, 0)
+            if held + needed > limit:
+                raise Denied(
+                    "export-limit",
+                    f"too many exports for {requester} (export_limit_per_platform {limit}: "
+                    f"{held} running, {needed} asked)",
+                )
+        hlimit = self.max_history_per_platform
+        if hlimit is not None and history:
+            kept = sum(r.history * len(r.handles) for r in mine)
+            kept += self._history_reserved_by.get(requester, 0)
+            if kept + history * needed > hlimit:
+                raise Denied(
+                    "history-limit",
+                    f"too much history for {requester} (history_limit_per_platform {hlimit} "
+                    f"samples: {kept} kept, {history * needed} asked)",
+                )
 
     async def _start_export(
         self,
@@ -759,6 +985,8 @@ class FederationAgent(Agent):
             raise ContentError(
                 "the answer to a query goes to the asker: 'to-units' may only name its platform"
             )
+        for semantic in dict.fromkeys(req.labels):
+            self._check_sharing("query", semantic, asker)
         pairs = [(s, self._translate(s)) for s in dict.fromkeys(req.labels)]
         out: dict[str, Any] = {}
         for semantic, local in pairs:
@@ -843,11 +1071,54 @@ class FederationAgent(Agent):
             content["relative"] = True
         if history:
             content["history"] = history
-        answer = await self.request_from(provider, content, timeout=timeout)
+        self._expect_from(provider, content)
+        others = [
+            (provider, w, s)
+            for w in dict.fromkeys(content.get("to-units", []))
+            if w != self.platform.name
+            for s in dict.fromkeys(content["labels"])
+        ]
+        self._count_for_others(others, +1)  # the receivers ask us to confirm it meanwhile
+        try:
+            answer = await self.request_from(provider, content, timeout=timeout)
+        except BaseException:
+            self._count_for_others(others, -1)
+            raise
         export_id = str(answer["id"])
+        if others:
+            self._for_others_by[(provider, export_id)] = others
         if durable:
             self._durable.setdefault(provider, {})[export_id] = _Durable(content, export_id)
         return export_id
+
+    def _count_for_others(self, keys: list[tuple[str, str, str]], delta: int) -> None:
+        table = self._for_others
+        for key in keys:
+            n = table.get(key, 0) + delta
+            if n > 0:
+                table[key] = n
+            else:
+                table.pop(key, None)
+
+    def _expect_from(self, provider: str, content: Any) -> None:
+        """Agree to receive what a create-stream ``content`` asks ``provider`` to send us.
+
+        Before asking: the first batch may overtake the provider's inform. It stays agreed
+        after a cancel: the same stream asked again (a new policy) lands in the same label
+        and its subscribers go on.
+        """
+        imports = self.imports
+        if imports is None or provider == self.platform.name:
+            return
+        if not isinstance(content, dict) or content.get("action") != "create-stream":
+            return
+        units = content.get("to-units")
+        if units is not None and self.platform.name not in units:
+            return  # for others only: they agree themselves when the provider asks them
+        labels = content.get("labels", content.get("semantic-labels"))
+        for semantic in dict.fromkeys(labels if isinstance(labels, list) else []):
+            if isinstance(semantic, str):
+                imports.expect(provider, semantic)
 
     async def cancel_stream(
         self, provider: str, export_id: str, *, timeout: float = DEFAULT_TIMEOUT
@@ -855,6 +1126,7 @@ class FederationAgent(Agent):
         """Ask platform ``provider`` to stop export ``export_id`` (the id create_stream gave)."""
         entry = self._durable.get(provider, {}).pop(export_id, None)
         current = export_id if entry is None else entry.current  # created again since?
+        self._count_for_others(self._for_others_by.pop((provider, export_id), []), -1)
         await self.request_from(
             provider, {"action": "cancel-stream", "id": current}, timeout=timeout
         )
@@ -895,6 +1167,8 @@ class FederationAgent(Agent):
         result = GlobalResult(asked=list(providers))
         if not providers:
             return result
+        for platform in providers:
+            self._expect_from(platform, content)  # a global create-stream: to us, agreed
         loop = asyncio.get_running_loop()
         end = loop.time() + deadline
         conversation_id = new_id("c")

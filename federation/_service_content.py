@@ -85,6 +85,30 @@ class CancelStream(_Content):
     id: Annotated[str, Field(min_length=1, max_length=200)]
 
 
+class AcceptStream(_Content):
+    """``accept-stream``: a provider asks a receiver to agree to streams a third platform asked.
+
+    Sent by the provider's Federation Agent to each receiver of a create-stream that is
+    not the requester; the receiver agrees (inform ``{"accepted": [s…]}``, and then
+    expects those streams) only if its own config allows ``requester`` to send it streams.
+    """
+
+    action: Literal["accept-stream"]
+    requester: Platform
+    labels: Labels = _labels()
+
+
+class ConfirmStream(_Content):
+    """``confirm-stream``: a receiver asks a requester whether it asked for the streams.
+
+    The receiver's check of an ``accept-stream``: the provider only says who asked.
+    """
+
+    action: Literal["confirm-stream"]
+    provider: Platform
+    labels: Labels = _labels()
+
+
 class _Query(_Content):
     labels: Labels = _labels()
     relative: bool = False
@@ -139,6 +163,8 @@ class GlobalRequest(_Content):
 Query = GetLatest | GetValueAt | GetTrajectory
 Request = (
     CreateStream
+    | AcceptStream
+    | ConfirmStream
     | CancelStream
     | GetLatest
     | GetValueAt
@@ -150,6 +176,8 @@ Request = (
 
 ACTIONS: dict[str, type[_Content]] = {
     "create-stream": CreateStream,
+    "accept-stream": AcceptStream,
+    "confirm-stream": ConfirmStream,
     "cancel-stream": CancelStream,
     "get-latest": GetLatest,
     "get-value-at": GetValueAt,

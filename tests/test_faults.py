@@ -82,6 +82,8 @@ def write_federation(
             "vocabulary": VOCABULARY,
             "mapping": {"vocabulary": "fleet", "labels": labels},
             "export_limit": 8,
+            # the operator may have a UAV's stream sent to another UAV (the receiver agrees)
+            "sharing": {"accept_for": ["operator"]},
             "transport": transport,
         }
         configs[name] = tmp / f"{name}.json"

@@ -813,6 +813,59 @@ async def test_an_export_that_ended_by_itself_frees_its_slot(demo_keys: Path) ->
         await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
 
 
+async def test_a_durable_stream_for_a_consenting_third_platform_is_asked_again(
+    demo_keys: Path,
+) -> None:
+    # the operator asks uav-a for car5-state to uav-b, which lets the operator do so; when
+    # uav-a comes back without the export, the operator asks again, uav-a asks uav-b again
+    # and uav-b's import, still agreed, goes on
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        car5 = a.instance.add_source("cars/car5/state")
+        first = await op.federation_agent.create_stream(
+            "uav-a", ["car5-state"], to_units=["uav-b"], durable=True, timeout=WAIT
+        )
+        assert op.importer.get("uav-a", "car5-state") is None  # not for the operator
+        car5.push(car_state(0, 1, "uav-a"))
+        label = await b.imported("uav-a", "car5-state", timeout=WAIT)
+        async with op.membership() as seen:
+            await a.leave()
+            await next_event(seen, MembershipEvent("left", "uav-a"))
+            fed = a.federation_agent
+            await fed._end(fed.exports[first])  # as after a restart: its export is gone
+            await a.join()
+            await next_event(seen, MembershipEvent("joined", "uav-a"))
+        async with asyncio.timeout(WAIT):
+            while not a.exporter.exports("uav-b"):  # noqa: ASYNC110
+                await asyncio.sleep(0.01)  # asked again by itself: no event here
+        (again,) = a.federation_agent.exports.values()
+        assert again.id != first and again.receivers == ["uav-b"]
+        car5.push(car_state(0, 2, "uav-a"))
+        async with asyncio.timeout(WAIT):
+            while len(b.instance.between(label, 0, 2**62).samples) < 2:
+                car5.push(car_state(0, 3, "uav-a"))
+                await asyncio.sleep(0.05)
+        assert b.federation_agent.refusals == {} and a.federation_agent.refusals == {}
+
+
+async def test_a_global_create_stream_is_received_from_every_provider_that_agreed(
+    demo_keys: Path,
+) -> None:
+    # asked of every member at once: each stream that comes back was asked for, so imported
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        car5 = a.instance.add_source("cars/car5/state")
+        result = await b.federation_agent.global_request(
+            {"action": "create-stream", "labels": ["car5-state"]}, deadline=WAIT
+        )
+        assert list(result.answers) == ["uav-a"] and "operator" in result.refused
+        car5.push(car_state(0, 1, "uav-a"))
+        label = await b.imported("uav-a", "car5-state", timeout=WAIT)
+        assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
+        assert not b.importer.stats()["totals"]["dropped_samples"]
+
+
 async def test_samples_dropped_before_sending_are_not_counted_again_as_lost_in_transit() -> None:
     # regression: numbered, then dropped for want of a session, a batch showed up twice:
     # as no-session at the provider and again when the receiver reported the gap

@@ -129,10 +129,13 @@ class FakeExporter:
     started: list[FakeExport] = field(default_factory=list)
     fail_for: str | None = None
     missing: set[str] = field(default_factory=set)  # local labels with no stream behind
+    delay: float = 0.0  # s a start takes (the proxy's awaits a session): requests overlap
 
     async def start_exporting(
         self, local: str, semantic: str, receiver: str, policy: Policy, *, history: int = 0
     ) -> FakeExport:
+        if self.delay:
+            await asyncio.sleep(self.delay)
         if receiver == self.fail_for:
             raise RuntimeError(f"no route to {receiver} for {local}")
         if local in self.missing:  # as the proxy's subscription would: naming local labels
@@ -200,7 +203,13 @@ class World:
 
 @contextlib.asynccontextmanager
 async def world(*, silent: tuple[str, ...] = (), **options: Any) -> AsyncIterator[World]:
-    """uav-a, uav-b and operator (plus ``silent`` ones), all members before the test runs."""
+    """uav-a, uav-b and operator (plus ``silent`` ones), all members before the test runs.
+
+    Each agrees to receive the streams another platform asks for it (``to-units`` naming
+    a third platform), unless ``consent`` says otherwise: the consent itself is tested on
+    spawned platforms in tests/test_member_authz.py.
+    """
+    options.setdefault("consent", lambda requester, provider, labels: None)
     names = list(TABLES)
     keys = {n: KeyPair.generate(n) for n in [*names, *silent]}
     hub = MemoryHub()
@@ -287,17 +296,23 @@ async def test_create_stream_is_agreed_and_exported_to_each_receiver() -> None:
                 "max-delay": 1,
                 "from": -10,
                 "relative": True,
-                "to-units": ["uav-b", "operator"],
+                "to-units": ["uav-b"],
             },
             ontology=ONTOLOGY,
             timeout=WAIT,
         )
-        assert answer == {
-            "id": answer["id"],
-            "labels": ["car5-state"],
-            "to-units": ["uav-b", "operator"],
-        }
+        assert answer == {"id": answer["id"], "labels": ["car5-state"], "to-units": ["uav-b"]}
         assert no_local_labels(answer, "uav-a")
+        # to a third platform: it agrees (world's consent), after uav-b confirms it asked
+        await b.fed.create_stream(
+            "uav-a",
+            ["car5-state"],
+            to_units=["operator"],
+            sample_period=0.5,
+            max_delay=1,
+            start=-10,
+            relative=True,
+        )
         started = a.exporter.started
         assert [(e.local, e.semantic, e.receiver) for e in started] == [
             ("a/cars/car5/state", "car5-state", "uav-b"),
@@ -323,6 +338,18 @@ async def test_create_stream_is_agreed_and_exported_to_each_receiver() -> None:
         # history: the exporter keeps the last N samples to resend what a partition lost
         await b.fed.create_stream("uav-a", ["heli-max-speed"], history=50)
         assert (started[-1].semantic, started[-1].history) == ("heli-max-speed", 50)
+
+
+async def test_concurrent_create_streams_of_one_requester_are_all_agreed() -> None:
+    # regression: the per-requester reservations of two requests in flight at once were
+    # released twice, and the second request failed
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        labels = ["car5-state", "heli-altitude", "heli-max-speed"]
+        a.exporter.delay = 0.05
+        ids = await asyncio.gather(*(b.fed.create_stream("uav-a", [s]) for s in labels))
+        assert len(set(ids)) == 3 and sorted(e.semantic for e in a.exporter.running) == labels
+        assert a.fed._reserved_by == {} and a.fed._history_reserved_by == {}
 
 
 async def test_create_stream_refusals_name_the_reason() -> None:

@@ -1,0 +1,108 @@
+"""What a platform shares, and with whom: the ``[sharing]`` table of its config.
+
+A platform's operator decides which other platforms may *query* which semantic labels
+and have them *streamed* (rules: semantic-label patterns → platform patterns), whether
+other platforms may use its Gateway Agent at all (``gateway``; private by default: local
+labels never leave the platform), and which platforms may direct a stream *to* it when
+they ask a third platform for one (``accept_for``, the receiver's consent). The Federation
+Agent enforces it; every refusal names the rule (``docs/federation.md``, "Sharing")::
+
+    [sharing]
+    gateway = "private"        # or "protected": other members may use the Gateway Agent
+    default = "members"        # labels no rule names: every member ("members") or nobody
+    accept_for = ["operator"]  # whose create-stream may send streams to this platform
+
+    [[sharing.rules]]
+    name = "neighbours"
+    labels = ["car*-state"]    # semantic-label patterns (shell-style: * ? [...])
+    query = ["uav-b", "uav-c"] # platform patterns; "*" = every member, [] = nobody
+    stream = ["uav-b"]
+
+Rules are read in order; the first whose ``labels`` match a label decides for it. Agents
+of the platform itself are never restricted by these rules.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+__all__ = ["Sharing", "SharingRule", "SharingSettings"]
+
+# a pattern names labels or platforms: the characters they use, and shell wildcards
+_PATTERN = r"^[A-Za-z0-9_.\-/*?\[\]!]+$"
+Pattern = Annotated[str, Field(min_length=1, max_length=200, pattern=_PATTERN)]
+
+Action = Literal["query", "stream"]
+
+
+class SharingRule(BaseModel):
+    """One rule: the labels it covers, and the platforms that may query / stream them."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: Annotated[str, Field(min_length=1, max_length=100)] | None = None
+    labels: Annotated[list[Pattern], Field(min_length=1)]
+    query: list[Pattern] = Field(default_factory=list)
+    stream: list[Pattern] = Field(default_factory=list)
+
+
+class SharingSettings(BaseModel):
+    """The ``[sharing]`` table: gateway access, the rules, their default, consent to receive."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    gateway: Literal["private", "protected"] = "private"
+    default: Literal["members", "none"] = "members"
+    accept_for: list[Pattern] = Field(default_factory=list)
+    rules: list[SharingRule] = Field(default_factory=list)
+
+    def sharing(self) -> Sharing:
+        """The rules as the Federation Agent applies them."""
+        return Sharing(self)
+
+
+def _matches(name: str, patterns: list[str]) -> bool:
+    return any(fnmatch.fnmatchcase(name, p) for p in patterns)
+
+
+class Sharing:
+    """Decides who may query or stream a semantic label, and whose streams to accept."""
+
+    def __init__(self, settings: SharingSettings | None = None) -> None:
+        self.settings = settings if settings is not None else SharingSettings()
+
+    def check(self, action: Action, label: str, platform: str) -> str | None:
+        """None if ``platform`` may ``action`` ``label``; else the refusal, naming the rule."""
+        verb = "queried by" if action == "query" else "streamed to"
+        for i, rule in enumerate(self.settings.rules):
+            if not _matches(label, rule.labels):
+                continue
+            allowed = rule.query if action == "query" else rule.stream
+            if _matches(platform, allowed):
+                return None
+            name = f"{rule.name!r} (sharing.rules[{i}])" if rule.name else f"sharing.rules[{i}]"
+            who = ", ".join(allowed) if allowed else "no platform"
+            return (
+                f"label {label!r} may not be {verb} {platform}: sharing rule {name} "
+                f"({', '.join(rule.labels)}) lets {who} {action} it"
+            )
+        if self.settings.default == "members":
+            return None
+        return (
+            f"label {label!r} may not be {verb} {platform}: no sharing rule names it "
+            'and sharing.default is "none"'
+        )
+
+    def accepts_for(self, requester: str) -> str | None:
+        """None if streams ``requester`` asks for this platform are accepted; else why not."""
+        patterns = self.settings.accept_for
+        if _matches(requester, patterns):
+            return None
+        allowed = ", ".join(patterns) if patterns else "no platform"
+        return (
+            f"this platform receives streams only when it asks for them, or when "
+            f"{allowed} asks for it (sharing.accept_for); not for {requester}"
+        )

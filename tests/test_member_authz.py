@@ -1,0 +1,639 @@
+"""A member shares only what it agreed to share, with whom it agreed (issue 11, items 1-5, 7).
+
+The attacker here is a *member*: ``uav-m`` holds a key in the federation's trust file and
+runs our own library (a whole `FederationPlatform`), so everything it sends is
+authenticated. The victims are real spawned processes (``uav-a``, ``uav-b``: each a
+`FederationPlatform` from its config file, on zenoh in peer mode over loopback), asked
+over a pipe for their counters and audit records. Each test attacks as the issue found
+it possible, and asserts the refusal (or the drop), its count and its audit record:
+
+1. the Gateway Agent is private by default; opened, it still keeps ``import/`` labels
+2. ``reply_to`` naming a third platform is refused: no answers are reflected to it
+3. ``to-units`` naming a third platform needs that platform's consent
+4. batches nobody asked for are dropped, counted and audited (summed up), boundedly
+5. export slots and history are limited per requesting platform
+7. per-label sharing rules of the config: who may query / stream which labels
+
+and, in one process, that drops under invented sender names are audited boundedly too.
+
+Every wait is bounded, every process killed on the way out; federations are unique.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import json
+import multiprocessing
+import uuid
+from collections.abc import AsyncIterator, Iterable
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from pathlib import Path
+from typing import Any
+
+import pytest
+from test_faults import Pipe, killed_at_exit, until
+from test_proxies import Net, stream_key
+
+from agents import Agent, Performative, Refused, new_id, request, wire_key
+from agents.keys import gen_keys, trust_keys
+from agents.transports import free_tcp_port
+from dyknow_core import seconds_to_ns
+from federation import FederationPlatform, PlatformConfig, PlatformConfigError
+from federation._proxies import InterfaceSessions, PlainSessions, pack_batch
+
+pytestmark = pytest.mark.timeout(180)
+
+START = 40.0  # a spawned interpreter imports zenoh, pydantic and DyKnow: generous on a busy box
+WAIT = 15.0
+P = Performative
+
+VOCABULARY = {
+    "name": "traffic",
+    "labels": {
+        "heli-altitude": "this platform's altitude, m",
+        "{object}-state": "the state of a tracked object, e.g. car5-state",
+    },
+}
+MAPPING = {"heli-altitude": "nav/alt", "{object}-state": "cars/{object}/state"}
+CARS = 40  # car0 … car39: what each UAV tracks (local labels cars/carN/state)
+SECRET = "mission/plan"  # a local label with no semantic label: it never leaves
+
+
+# -- the victim: a spawned platform answering questions over a pipe ------------------------------
+
+
+def victim_main(config_path: str, conn: Connection) -> None:
+    """A UAV platform until told to exit: sources flowing, counters on request."""
+    config = PlatformConfig.from_dict(json.loads(Path(config_path).read_text()), source=config_path)
+    asyncio.run(_victim(config, conn))
+
+
+def _rss_kb() -> int:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1])
+    return 0
+
+
+def _stats(p: FederationPlatform) -> dict[str, Any]:
+    fed = p.federation_agent
+    return {
+        "audit": [dict(r) for r in p.interface.audit.records],
+        "refusals": dict(fed.refusals),
+        "gateway": dataclasses.asdict(p.gateway.gateway_stats),
+        "reply_to_refused": p.interface.reply_to_refused,
+        "imports": p.importer.stats(),
+        "labels": p.instance.labels(),
+        "locations": sorted(p.instance.locations),
+        "exports": [(e.receiver, e.semantic_label, e.sent) for e in p.exporter.exports()],
+        "agreed": {
+            i: {"requester": r.requester, "receivers": r.receivers, "labels": r.labels}
+            for i, r in fed.exports.items()
+        },
+        "senders": {k: s.accepted for k, s in p.agents.stats.senders.items()},
+        "rss_kb": _rss_kb(),
+    }
+
+
+async def _feed(p: FederationPlatform) -> None:
+    """A UAV's own streams: every car it tracks and its altitude, 20 times a second."""
+    sources = [p.instance.add_source(f"cars/car{i}/state") for i in range(CARS)]
+    sources.append(p.instance.add_source("nav/alt"))
+    sources.append(p.instance.add_source(SECRET))
+    k = 0
+    while True:
+        now = p.instance.clock.now()
+        for s in sources:
+            s.push({"k": k, "from": p.name}, now)
+        k += 1
+        await asyncio.sleep(0.05)
+
+
+async def _victim(config: PlatformConfig, conn: Connection) -> None:
+    pipe = Pipe(conn)
+    async with FederationPlatform(config) as p:
+
+        async def serve() -> None:
+            while True:
+                msg = await next_command(pipe)
+                if msg[0] == "stats":
+                    pipe.send("stats", _stats(p))
+                elif msg[0] == "ask":
+                    _, provider, labels = msg
+                    try:
+                        got = await p.federation_agent.create_stream(provider, labels, timeout=WAIT)
+                        pipe.send("asked", got)
+                    except Exception as exc:
+                        pipe.send("asked", f"error: {exc}")
+                elif msg[0] == "exit":
+                    return
+
+        feed = asyncio.ensure_future(_feed(p))
+        pipe.send("ready", config.name)
+        await serve()
+        feed.cancel()
+
+
+async def next_command(pipe: Pipe) -> tuple[Any, ...]:
+    """The next message from the test, whatever its kind (the test gone: exit)."""
+    msg = await pipe.inbox.get()
+    return ("exit",) if msg[0] == "eof" else tuple(msg)
+
+
+# -- the federation: victims spawned, the attacker and honest peers here -----------------------
+
+
+@dataclass
+class World:
+    """Spawned victims (by name, with their pipes) and in-process platforms (by name)."""
+
+    federation: str
+    pipes: dict[str, Pipe] = field(default_factory=dict)
+    here: dict[str, FederationPlatform] = field(default_factory=dict)
+
+    async def stats(self, name: str) -> dict[str, Any]:
+        """The victim's counters and audit records, now."""
+        self.pipes[name].send("stats")
+        return (await self.pipes[name].expect("stats", WAIT))[1]
+
+    async def ask(self, name: str, provider: str, labels: list[str]) -> str:
+        """Have the victim's Federation Agent ask ``provider`` for ``labels`` (to itself)."""
+        self.pipes[name].send("ask", provider, labels)
+        return str((await self.pipes[name].expect("asked", WAIT + 5))[1])
+
+    async def until_stats(self, name: str, check: Any, what: str) -> dict[str, Any]:
+        """Poll the victim's stats until ``check(stats)`` holds (counters have no event)."""
+        try:
+            async with asyncio.timeout(WAIT):
+                while True:
+                    s = await self.stats(name)
+                    if check(s):
+                        return s
+                    await asyncio.sleep(0.1)
+        except TimeoutError:
+            raise AssertionError(f"{name}: {what}: not within {WAIT} s") from None
+
+
+def _config(
+    tmp: Path, federation: str, name: str, port: int, seed: int | None, **more: Any
+) -> Path:
+    data = {
+        "name": name,
+        "federation": federation,
+        "key": str(tmp / "keys" / f"{name}.key"),
+        "trust": str(tmp / "trust.json"),
+        "vocabulary": VOCABULARY,
+        "mapping": {"vocabulary": "traffic", "labels": MAPPING},
+        "audit": str(tmp / f"audit-{name}.jsonl"),
+        "transport": {
+            "kind": "zenoh",
+            "mode": "peer",
+            "listen": [f"tcp/127.0.0.1:{port}"],
+            "connect": [] if seed is None else [f"tcp/127.0.0.1:{seed}"],
+        },
+        **more,
+    }
+    path = tmp / f"{name}.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+@contextlib.asynccontextmanager
+async def world(
+    tmp: Path,
+    spawned: Iterable[str],
+    here: Iterable[str] = ("uav-m",),
+    **configs: dict[str, Any],
+) -> AsyncIterator[World]:
+    """Victims ``spawned`` (children), ``here`` in this process; ``configs`` by name (``_``)."""
+    spawned, here = list(spawned), list(here)
+    names = spawned + here
+    federation = f"authz-{uuid.uuid4().hex[:8]}"
+    pubs = [gen_keys(n, tmp / "keys")[2] for n in names]
+    trust_keys(tmp / "trust.json", pubs, federation=federation)
+    ports = {n: free_tcp_port() for n in names}
+    seed = ports[names[0]]
+    paths = {
+        n: _config(
+            tmp,
+            federation,
+            n,
+            ports[n],
+            None if n == names[0] else seed,
+            **configs.get(n.replace("-", "_"), {}),
+        )
+        for n in names
+    }
+    ctx = multiprocessing.get_context("spawn")
+    procs: list[BaseProcess] = []
+    w = World(federation)
+    with killed_at_exit(procs):
+        async with contextlib.AsyncExitStack() as stack:
+            for n in spawned:
+                parent, child = ctx.Pipe()
+                proc = ctx.Process(target=victim_main, args=(str(paths[n]), child), name=n)
+                procs.append(proc)
+                proc.start()
+                child.close()
+                w.pipes[n] = Pipe(parent)
+                stack.callback(w.pipes[n].close)
+            for n in here:
+                cfg = PlatformConfig.from_dict(json.loads(paths[n].read_text()), source=str(n))
+                w.here[n] = p = await stack.enter_async_context(FederationPlatform(cfg))
+                task = asyncio.ensure_future(_feed(p))
+                stack.callback(task.cancel)
+            for n in spawned:
+                await w.pipes[n].expect("ready", START)
+            for p in w.here.values():
+                await until(lambda p=p: set(names) <= set(p.members), "every member", START)
+            yield w
+            for n in spawned:
+                w.pipes[n].send("exit")
+
+
+async def mallory(w: World) -> Agent:
+    """The attacker's agent on uav-m."""
+    m = w.here["uav-m"]
+    return m.agents.agent("mallory") or await m.agents.add(Agent("mallory"))
+
+
+def audited(stats: dict[str, Any], **match: Any) -> list[dict[str, Any]]:
+    """The victim's audit records whose fields equal ``match`` (``reason`` a prefix)."""
+    prefix = match.pop("reason", "")
+    return [
+        r
+        for r in stats["audit"]
+        if str(r.get("reason")).startswith(prefix) and all(r.get(k) == v for k, v in match.items())
+    ]
+
+
+def in_file(tmp: Path, name: str, record: dict[str, Any]) -> bool:
+    """Whether ``record`` is in the victim's JSON-lines audit file too."""
+    path = tmp / f"audit-{name}.jsonl"
+    return path.exists() and record in [json.loads(x) for x in path.read_text().splitlines()]
+
+
+async def refusal(coro: Any) -> str:
+    """The reason of the refuse ``coro`` ends with."""
+    with pytest.raises(Refused) as info:
+        await coro
+    assert info.value.message is not None
+    return str(info.value.message.content)
+
+
+# -- 1. the Gateway Agent ------------------------------------------------------------------------
+
+
+async def test_the_gateway_agent_is_private_by_default(tmp_path: Path) -> None:
+    async with asyncio.timeout(120), world(tmp_path, ["uav-a"], ["uav-c", "uav-m"]) as w:
+        # uav-a imports uav-c's car7-state, as the issue's attack found it
+        assert (await w.ask("uav-a", "uav-c", ["car7-state"])).startswith("x-")
+        await w.until_stats(
+            "uav-a",
+            lambda s: "import/uav-c/car7-state" in s["labels"],
+            "uav-c's stream imported",
+        )
+        m = await mallory(w)
+        attacks = [
+            {"action": "list-labels"},
+            {"action": "query", "label": "import/uav-c/car7-state"},
+            {"action": "query", "label": SECRET},
+            {
+                "action": "create-stream",
+                "label": "cars/car5/state",
+                "output": "import/uav-c/car7-state",
+            },
+        ]
+        for content in attacks:
+            reason = await refusal(request(m, "gateway@uav-a", content, ontology="dyknow"))
+            assert reason.startswith("access denied: gateway@uav-a offers no service")
+        s = await w.stats("uav-a")
+        recs = audited(s, verdict="refused", sender="mallory@uav-m", reason="access denied")
+        assert len(recs) == len(attacks)
+        assert all(r["receivers"] == ["gateway@uav-a"] for r in recs)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        # nothing was created; uav-c's import still lands where it should
+        assert s["gateway"]["reserved_refused"] == 0  # never reached the gateway
+        rec = next(i for i in s["imports"]["imports"] if i["sender"] == "uav-c")
+        assert rec["local_label"] == "import/uav-c/car7-state"
+        assert "label-taken" not in rec["dropped_samples"]
+
+
+async def test_an_opened_gateway_keeps_import_labels_and_creates_none(tmp_path: Path) -> None:
+    opened = {"sharing": {"gateway": "protected"}}
+    async with (
+        asyncio.timeout(120),
+        world(tmp_path, ["uav-a"], ["uav-c", "uav-m"], uav_a=opened) as w,
+    ):
+        m = await mallory(w)
+        # before uav-a asks uav-c: the attacker tries to take the label first
+        create = {
+            "action": "create-stream",
+            "label": "cars/car5/state",
+            "output": "import/uav-c/car7-state",
+        }
+        reason = await refusal(request(m, "gateway@uav-a", create, ontology="dyknow"))
+        assert "'import/uav-c/car7-state' is reserved" in reason
+        assert (await w.ask("uav-a", "uav-c", ["car7-state"])).startswith("x-")
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: any(i["injected"] for i in s["imports"]["imports"] if i["sender"] == "uav-c"),
+            "uav-c's samples injected",
+        )
+        read = {"action": "query", "label": "import/uav-c/car7-state"}
+        reason = await refusal(request(m, "gateway@uav-a", read, ontology="dyknow"))
+        assert "reserved" in reason and "only agents of this platform" in reason
+        listed = await request(m, "gateway@uav-a", {"action": "list-labels"}, ontology="dyknow")
+        assert isinstance(listed, dict)
+        assert SECRET in listed["labels"]  # opened by its operator: local labels are visible
+        assert not [lb for lb in listed["labels"] if lb.startswith("import/")]
+        s = await w.stats("uav-a")
+        assert s["gateway"]["reserved_refused"] == 2
+        recs = audited(s, verdict="refused", stage="gateway", sender="mallory@uav-m")
+        assert [r["code"] for r in recs] == ["reserved-label", "reserved-label"]
+        assert all(r["reason"].startswith("reserved-label: label 'import/") for r in recs)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        rec = next(i for i in s["imports"]["imports"] if i["sender"] == "uav-c")
+        assert rec["injected"] >= 1 and "label-taken" not in rec["dropped_samples"]
+
+
+# -- 2. reply_to -----------------------------------------------------------------------------------
+
+
+async def test_replies_go_to_the_requesting_platform_only(tmp_path: Path) -> None:
+    async with asyncio.timeout(120), world(tmp_path, ["uav-a"], ["uav-b", "uav-m"]) as w:
+        b = w.here["uav-b"]
+        m = await mallory(w)
+        before = b.agents.stats.senders.get("uav-a")
+        from_a = 0 if before is None else before.accepted
+        n = 20
+        conv = new_id("c")
+        with m.conversation(conv, peers=["federation@uav-a"]) as c:
+            for i in range(n):
+                await c.send(
+                    m.message(
+                        P.REQUEST,
+                        "federation@uav-a",
+                        {"action": "get-trajectory", "labels": ["car5-state"], "from": -1e9},
+                        ontology="dyknow-federation",
+                        protocol="fipa-request",
+                        language="json",
+                        conversation_id=conv,
+                        reply_with=f"r-{i}",
+                        reply_to=["federation@uav-b"],
+                    )
+                )
+            answers = [await c.receive(timeout=WAIT) for _ in range(n)]
+        assert {a.performative for a in answers} == {P.REFUSE}
+        assert all(
+            "reply_to may name agents of the requesting platform" in str(a.content) for a in answers
+        )
+        s = await w.stats("uav-a")
+        assert s["reply_to_refused"] == n
+        recs = audited(
+            s, verdict="refused", sender="mallory@uav-m", reason="reply_to may name agents"
+        )
+        assert len(recs) == n
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        await asyncio.sleep(1.0)  # what would have been reflected has had time to arrive
+        after = b.agents.stats.senders.get("uav-a")
+        assert (0 if after is None else after.accepted) == from_a  # uav-b got nothing
+
+
+# -- 3. to-units: the receiver's consent ---------------------------------------------------------
+
+
+async def test_a_stream_goes_to_a_third_platform_only_if_it_agrees(tmp_path: Path) -> None:
+    consent = {"sharing": {"accept_for": ["operator"]}}  # uav-b: the operator may direct
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a", "uav-b"], ["operator", "uav-m"], uav_b=consent) as w,
+    ):
+        m, op = w.here["uav-m"].federation_agent, w.here["operator"].federation_agent
+        reason = await refusal(
+            m.create_stream("uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT)
+        )
+        assert reason.startswith("receiver uav-b did not agree to receive ['car5-state']")
+        assert "operator asks for it (sharing.accept_for); not for uav-m" in reason
+        sa, sb = await w.stats("uav-a"), await w.stats("uav-b")
+        assert sa["refusals"] == {"consent": 1} and sb["refusals"] == {"consent": 1}
+        (ra,) = audited(sa, verdict="refused", code="consent", sender="federation@uav-m")
+        (rb,) = audited(sb, verdict="refused", code="consent", sender="federation@uav-a")
+        assert "mallory" not in rb["reason"] and "uav-m" in rb["reason"]
+        await until(lambda: in_file(tmp_path, "uav-a", ra), "uav-a's record in its file")
+        await until(lambda: in_file(tmp_path, "uav-b", rb), "uav-b's record in its file")
+        assert sa["exports"] == [] and sa["agreed"] == {}
+        # as a provider, uav-m claims the operator asked it to stream to uav-b: uav-b asks
+        # the operator, which did not
+        spoof = {"action": "accept-stream", "requester": "operator", "labels": ["car5-state"]}
+        reason = await refusal(m.request_from("uav-b", spoof))
+        assert reason == (
+            "operator did not confirm it asked uav-m for ['car5-state']: federation@operator "
+            "refused: operator asked uav-m for no stream of ['car5-state'] to uav-b"
+        )
+        assert op.refusals == {"consent": 1}
+        # nor can uav-b be made to agree in its own name
+        direct = {"action": "accept-stream", "requester": "uav-b", "labels": ["car5-state"]}
+        reason = await refusal(m.request_from("uav-b", direct))
+        assert "asked uav-m for nothing" in reason
+        sb = await w.stats("uav-b")
+        assert sb["refusals"] == {"consent": 3}
+        assert len(audited(sb, verdict="refused", code="consent", sender="federation@uav-m")) == 2
+        # the operator may direct uav-a's stream to uav-b: uav-b agrees, and imports it
+        await op.create_stream("uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT)
+        # the paper's flow is unchanged: B asks A for a stream to B itself
+        assert (await w.ask("uav-b", "uav-a", ["car6-state"])).startswith("x-")
+        sb = await w.until_stats(
+            "uav-b",
+            lambda s: {"import/uav-a/car5-state", "import/uav-a/car6-state"} <= set(s["labels"]),
+            "uav-a's streams imported by uav-b",
+        )
+        assert sb["refusals"] == {"consent": 3}
+        assert not [i for i in sb["imports"]["imports"] if i["sender"] == "uav-m"]
+
+
+# -- 4. unsolicited batches ----------------------------------------------------------------------
+
+
+async def test_unsolicited_batches_are_dropped_counted_and_audited_boundedly(
+    tmp_path: Path,
+) -> None:
+    n = 2000
+    async with asyncio.timeout(150), world(tmp_path, ["uav-b"]) as w:
+        m = w.here["uav-m"]
+        sessions = InterfaceSessions(m.interface)
+        await sessions.ensure("uav-b")
+        year_2116 = seconds_to_ns(4_608_000_000)
+        prefix = wire_key(w.federation, "stream", "uav-b") + "/uav-m/"
+
+        async def push(first: int) -> dict[str, Any]:
+            """n batches of n labels nobody asked for (a sample dated 2116 each); uav-b's stats."""
+            for i in range(first, first + n):
+                label = f"car{i}-state"
+                body = pack_batch(label, [({"forged": i}, year_2116, 0)], 0)
+                await m.transport.publish(prefix + label, sessions.seal_bytes("uav-b", body))
+                if i % 100 == 0:
+                    await asyncio.sleep(0.01)
+            return await w.until_stats(
+                "uav-b",
+                lambda s: (
+                    s["imports"]["totals"]["dropped_samples"].get("unagreed", 0) >= first + n
+                    and sum(r.get("count", 0) for r in audited(s, stage="import")) >= first + n
+                ),
+                "every batch counted and summed up in the audit",
+            )
+
+        # the first flood warms up what any traffic grows (transport buffers, allocator)
+        s = await push(0)
+        assert s["imports"]["totals"]["dropped_samples"]["unagreed"] == n
+        assert s["imports"]["totals"]["injected"] == 0
+        assert not [lb for lb in s["labels"] if lb.startswith("import/uav-m")]
+        assert "import/uav-m" not in s["locations"]
+        assert s["imports"]["imports"] == []  # no import agreed, none made by the flood
+        # their counters are bounded too: 64 by label, then one bucket for the rest
+        assert len(s["imports"]["strays"]) <= 65
+        recs = audited(s, verdict="dropped", stage="import", code="unagreed", **{"from": "uav-m"})
+        assert sum(r["count"] for r in recs) == n
+        assert len(recs) <= 20, len(recs)  # summed up, not one record per batch
+        assert recs[0]["reason"].startswith("unagreed: ")
+        await until(lambda: in_file(tmp_path, "uav-b", recs[-1]), "the record in the audit file")
+        # a second flood of as many new labels costs (next to) nothing more
+        s2 = await push(n)
+        assert s2["imports"]["totals"]["dropped_samples"]["unagreed"] == 2 * n
+        assert len(s2["imports"]["strays"]) <= 65 and s2["imports"]["imports"] == []
+        grew = s2["rss_kb"] - s["rss_kb"]
+        print(f"AUTHZ unsolicited: {n} more labels pushed, RSS of uav-b grew {grew} kB")
+        assert grew < 2 * 1024, grew
+
+
+# -- 5. export slots per requesting platform ----------------------------------------------------
+
+
+async def test_one_member_cannot_take_every_export_slot(tmp_path: Path) -> None:
+    limits = {"export_limit": 12, "export_limit_per_platform": 8, "history_limit_per_platform": 500}
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a"], ["uav-c", "uav-m"], uav_a=limits) as w,
+    ):
+        fed = w.here["uav-m"].federation_agent
+        for i in range(8):
+            await fed.create_stream("uav-a", [f"car{i}-state"], timeout=WAIT)
+        reason = await refusal(fed.create_stream("uav-a", ["car8-state"], timeout=WAIT))
+        assert reason == (
+            "too many exports for uav-m (export_limit_per_platform 8: 8 running, 1 asked)"
+        )
+        # the others are still served
+        await w.here["uav-c"].federation_agent.create_stream("uav-a", ["car8-state"], timeout=WAIT)
+        # history: bounded per requesting platform too (here 500 samples)
+        other = w.here["uav-c"].federation_agent
+        reason = await refusal(other.create_stream("uav-a", ["car9-state"], history=501))
+        assert reason == (
+            "too much history for uav-c (history_limit_per_platform 500 samples: 0 kept, 501 asked)"
+        )
+        s = await w.stats("uav-a")
+        assert s["refusals"] == {"export-limit": 1, "history-limit": 1}
+        (rm,) = audited(s, code="export-limit", sender="federation@uav-m")
+        (rc,) = audited(s, code="history-limit", sender="federation@uav-c")
+        assert rm["verdict"] == rc["verdict"] == "refused"
+        await until(lambda: in_file(tmp_path, "uav-a", rc), "the record in the audit file")
+        by = {}
+        for e in s["agreed"].values():
+            by[e["requester"]] = by.get(e["requester"], 0) + len(e["labels"])
+        assert by == {"federation@uav-m": 8, "federation@uav-c": 1}
+
+
+# -- 7. sharing rules ------------------------------------------------------------------------------
+
+
+RULES = {
+    "sharing": {
+        "default": "none",
+        "rules": [
+            {
+                "name": "neighbours",
+                "labels": ["car*-state"],
+                "query": ["uav-c", "uav-b"],
+                "stream": ["uav-b"],
+            }
+        ],
+    }
+}
+
+
+async def test_sharing_rules_say_who_may_query_or_stream_which_label(tmp_path: Path) -> None:
+    async with (
+        asyncio.timeout(120),
+        world(tmp_path, ["uav-a"], ["uav-c", "uav-m"], uav_a=RULES) as w,
+    ):
+        m, c = w.here["uav-m"].federation_agent, w.here["uav-c"].federation_agent
+        latest = {"action": "get-latest", "labels": ["car5-state"]}
+        reason = await refusal(m.request_from("uav-a", latest))
+        assert reason == (
+            "label 'car5-state' may not be queried by uav-m: sharing rule 'neighbours' "
+            "(sharing.rules[0]) (car*-state) lets uav-c, uav-b query it"
+        )
+        reason = await refusal(m.create_stream("uav-a", ["car5-state"], timeout=WAIT))
+        assert "may not be streamed to uav-m: sharing rule 'neighbours'" in reason
+        altitude = {"action": "get-latest", "labels": ["heli-altitude"]}
+        reason = await refusal(m.request_from("uav-a", altitude))
+        assert reason.endswith('no sharing rule names it and sharing.default is "none"')
+        assert await m.request_from("uav-a", {"action": "list-labels"}) == {"labels": []}
+        # a neighbour may query, but not stream
+        answer = await c.request_from("uav-a", latest)
+        assert isinstance(answer, dict) and answer["car5-state"]["samples"]
+        reason = await refusal(c.create_stream("uav-a", ["car5-state"], timeout=WAIT))
+        assert "lets uav-b stream it" in reason
+        s = await w.stats("uav-a")
+        assert s["refusals"] == {"sharing-rule": 4}
+        recs = audited(s, verdict="refused", code="sharing-rule")
+        assert [r["from"] for r in recs] == ["uav-m", "uav-m", "uav-m", "uav-c"]
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+
+
+def test_sharing_settings_are_validated_with_file_and_key(tmp_path: Path) -> None:
+    base = {"name": "a", "federation": "f", "key": "k", "trust": "t"}
+    base |= {"vocabulary": {}, "mapping": {}}
+    ok = PlatformConfig.from_dict({**base, **RULES})
+    assert ok.sharing.rules[0].name == "neighbours" and ok.sharing.gateway == "private"
+    assert PlatformConfig.from_dict(base).sharing.default == "members"
+    bad = [
+        ({"sharing": {"rules": [{"lables": ["x"]}]}}, r"sharing\.rules\[0\]\.labels: missing"),
+        ({"sharing": {"gateway": "public"}}, r"sharing\.gateway: Input should be 'private'"),
+        ({"sharing": {"accept_for": ["uav b"]}}, r"sharing\.accept_for\[0\]: 'uav b': use"),
+        ({"sharing": {"rules": [{"labels": []}]}}, r"sharing\.rules\[0\]\.labels"),
+        ({"export_limit_per_platform": -1}, r"export_limit_per_platform"),
+    ]
+    for more, message in bad:
+        path = tmp_path / "p.toml"
+        with pytest.raises(PlatformConfigError, match=message) as info:
+            PlatformConfig.from_dict({**base, **more}, source=str(path))
+        assert str(info.value).startswith(f"{path}: ")
+
+
+async def test_drops_under_invented_sender_names_are_audited_in_bounded_records() -> None:
+    # an outsider need not authenticate to invent senders: one record each would be a flood
+    told: list[tuple[str, str, int, int]] = []
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        await net.platform("uav-b")
+        raw = await stack.enter_async_context(net.hub.transport())
+        imp = await net.importer(
+            "uav-b",
+            PlainSessions("uav-b", trusted={"uav-a"}),
+            translate=lambda sender, semantic: None,
+            on_refused=lambda *args: told.append(args),
+            report_interval=0.2,
+        )
+        n = 1000
+        for i in range(n):
+            envelope = PlainSessions(f"x{i}").seal_bytes("uav-b", pack_batch("car5-state", []))
+            await raw.publish(stream_key("uav-b", f"x{i}", "car5-state"), envelope)
+        await until(lambda: sum(t[2] for t in told) == n, "every batch summed up")
+        assert len(told) <= 33, len(told)  # 32 senders by name, then one "*" for the rest
+        assert {t[1] for t in told} == {"untrusted"}
+        assert ("*", "untrusted") in {(t[0], t[1]) for t in told}
+        assert imp.stats()["totals"]["dropped_batches"] == {"untrusted": n}
