@@ -62,6 +62,7 @@ from agents._exceptions import SecurityError
 from agents.transports import (
     MqttConfig,
     MqttTransport,
+    Presence,
     Subscription,
     Transport,
     ZenohConfig,
@@ -413,6 +414,7 @@ class FederationPlatform:
             on_sender_gone=self._sender_gone,
             on_open=self._import_opened,
             on_export_ended=self._export_ended,
+            presence=self._members_presence,
         )
         self.federation_agent = FederationAgent(
             self.instance,
@@ -429,6 +431,13 @@ class FederationPlatform:
 
     def __repr__(self) -> str:
         return f"<FederationPlatform {self.name} ({self.config.federation})>"
+
+    def _members_presence(self) -> Subscription[Presence]:
+        """Senders coming and going as the global directory authenticated them."""
+        gdf = self.agents.global_df
+        if gdf is None:
+            raise RuntimeError("the platform keeps no global directory")
+        return gdf.watch_presence()
 
     @classmethod
     def from_file(cls, path: str | Path, **options: Any) -> FederationPlatform:

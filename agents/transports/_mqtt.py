@@ -241,6 +241,7 @@ class MqttTransport(Transport):
     """The Transport over one MQTT v5 broker connection (plus one per liveliness token)."""
 
     name = "mqtt"
+    forgeable_presence = True
 
     def __init__(self, config: MqttConfig | Mapping[str, Any] | None = None) -> None:
         super().__init__()

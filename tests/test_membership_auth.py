@@ -1,0 +1,284 @@
+"""Membership and the directory come only from authenticated sources (issue 11, item 9).
+
+Real platforms: uav-a runs here (a `FederationPlatform` over real zenoh or MQTT), uav-b or
+uav-c is a ``dyknow node`` process of its own. The attacker is an outsider with plain zenoh
+or paho-mqtt and no key of the federation (or a key of its own that nobody trusts). Each
+attack is refused or ignored, counted (``GlobalDirectory.refused``) and audited, in uav-a's
+audit and, where it applies, in the victim's own audit file.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import orjson
+import paho.mqtt.client as paho
+import pytest
+import zenoh
+from nacl.signing import SigningKey
+
+from agents.keys import gen_keys, trust_keys
+from agents.transports import free_tcp_port
+from federation import FederationPlatform, PlatformConfig
+
+ROOT = Path(__file__).resolve().parent.parent
+WAIT = 15.0
+pytestmark = pytest.mark.timeout(90)
+
+
+def _federation(tmp: Path, fed: str, names: list[str], transport: dict[str, str]) -> None:
+    """Keys of ``names`` (all trusted), vocabulary, mappings and one config per platform."""
+    pubs = [gen_keys(n, tmp / "keys")[2] for n in names]
+    trust_keys(tmp / "trust.json", pubs, federation=fed)
+    (tmp / "vocab.toml").write_text(f'name = "{fed}"\n[labels]\n"heli-altitude" = "m"\n')
+    for n in names:
+        (tmp / f"{n}-labels.toml").write_text(
+            f'vocabulary = "{fed}"\n[labels]\n"heli-altitude" = "{n}/alt"\n'
+        )
+        (tmp / f"{n}.toml").write_text(
+            f'name = "{n}"\nfederation = "{fed}"\nkey = "keys/{n}.key"\ntrust = "trust.json"\n'
+            f'vocabulary = "vocab.toml"\nmapping = "{n}-labels.toml"\n'
+            f'audit = "{n}-audit.jsonl"\n\n[transport]\n{transport[n]}\n'
+        )
+
+
+@pytest.fixture
+def node(tmp_path: Path) -> Iterator[Callable[[str], subprocess.Popen[str]]]:
+    """Start ``dyknow node`` for a platform of tmp_path; killed at the end."""
+    procs: list[subprocess.Popen[str]] = []
+
+    def start(name: str) -> subprocess.Popen[str]:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "federation.cli",
+                "node",
+                "--config",
+                str(tmp_path / f"{name}.toml"),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=(tmp_path / f"{name}.err").open("w"),
+            text=True,
+            cwd=ROOT,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        procs.append(proc)
+        assert proc.stdout is not None
+        line = proc.stdout.readline()  # bounded by the test's timeout
+        assert "ready" in line, (tmp_path / f"{name}.err").read_text()
+        return proc
+
+    yield start
+    for proc in procs:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(10)
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+
+async def _until(what: str, check: Callable[[], Any]) -> Any:
+    deadline = time.monotonic() + WAIT
+    while True:
+        value = check()
+        if value:
+            return value
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {WAIT} s: {what}")
+        await asyncio.sleep(0.05)
+
+
+def _audit(platform: FederationPlatform, stage: str, claimed: str) -> list[dict[str, Any]]:
+    return [
+        r
+        for r in platform.interface.audit.records
+        if r.get("stage") == stage and r.get("from") == claimed
+    ]
+
+
+def _file_audit(path: Path, stage: str, claimed: str) -> list[dict[str, Any]]:
+    if not path.exists():
+        return []
+    records = [json.loads(line) for line in path.read_text().splitlines() if line]
+    return [r for r in records if r.get("stage") == stage and r.get("from") == claimed]
+
+
+def _zenoh_outsider(port: int) -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    return zenoh.open(conf)
+
+
+def _statement(fed: str, frm: str, kind: str, body: Any, key: SigningKey | None) -> bytes:
+    """A directory statement as docs/wire.md spells it, signed with ``key`` (not trusted)."""
+    obj: dict[str, Any] = {
+        "v": 1,
+        "fed": fed,
+        "from": frm,
+        "kind": kind,
+        "boot": int(time.time() * 1000) + 10_000_000,  # "newer" than anything
+        "seq": 1,
+        "ts_ms": int(time.time() * 1000),
+        "nonce": "",
+        "body": orjson.dumps(body).decode(),
+    }
+    if key is not None:
+        obj["sig"] = base64.b64encode(key.sign(b"anything").signature).decode()
+    return orjson.dumps(obj)
+
+
+async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
+    tmp_path: Path, node: Callable[[str], subprocess.Popen[str]]
+) -> None:
+    fed = f"member{os.getpid()}z"
+    port = free_tcp_port()
+    _federation(
+        tmp_path,
+        fed,
+        ["uav-a", "uav-b", "uav-c"],
+        {
+            "uav-a": f'mode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]',
+            "uav-b": f'mode = "peer"\nconnect = ["tcp/127.0.0.1:{port}"]',
+            "uav-c": f'mode = "peer"\nconnect = ["tcp/127.0.0.1:{port}"]',
+        },
+    )
+    prefix = f"dyknow/{fed}/v1"
+    async with (
+        asyncio.timeout(4 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        node("uav-b")
+        await _until("uav-a sees uav-b", lambda: "uav-b" in a.members)
+        gdf = a.agents.global_df
+        assert gdf is not None
+        before = len(gdf.services("uav-b"))
+        assert before >= 1
+        outsider = _zenoh_outsider(port)
+        try:
+            membership = a.membership()
+            # 1. a deregister of uav-b's federation service, as the issue's attacker sent it,
+            #    then the same in today's format, unsigned and signed with a key nobody trusts
+            service = gdf.services("uav-b")[0].to_obj()
+            body = {"op": "deregister", "service": service}
+            rogue = SigningKey.generate()
+            forged = [
+                orjson.dumps({"v": 1, **body}),
+                _statement(fed, "uav-b", "df-event", body, None),
+                _statement(fed, "uav-b", "df-event", body, rogue),
+                _statement(fed, "uav-b", "df-event", {"op": "leave"}, rogue),
+            ]
+            refused = gdf.refused
+            for payload in forged:
+                outsider.put(f"{prefix}/df-events/uav-b", payload)
+            await _until("uav-a refused 4 forged events", lambda: gdf.refused >= refused + 4)
+            records = await _until(
+                "uav-a's audit of the forgeries", lambda: _audit(a, "df-events", "uav-b")
+            )
+            assert all(r["verdict"] == "dropped" for r in records)
+            assert any("unsigned" in r["reason"] for r in records), records
+            assert any("signature does not verify" in r["reason"] for r in records), records
+            # uav-b's own view refused them too (its audit file)
+            await _until(
+                "uav-b's own audit of the forgeries",
+                lambda: _file_audit(tmp_path / "uav-b-audit.jsonl", "df-events", "uav-b"),
+            )
+            assert "uav-b" in a.members and "uav-b" in gdf.platforms
+            assert len(gdf.services("uav-b")) == before
+
+            # 2. uav-x (not in the trust file) as token, DF answer and event; uav-c (trusted,
+            #    not running) as a forged token: neither is listed
+            token_x = outsider.liveliness().declare_token(f"{prefix}/alive/uav-x")
+            fake = _statement(fed, "uav-x", "df", [dict(service, provider="fed@uav-x")], rogue)
+            queryable = outsider.declare_queryable(
+                f"{prefix}/df/uav-x", lambda q: q.reply(f"{prefix}/df/uav-x", fake)
+            )
+            outsider.put(
+                f"{prefix}/df-events/uav-x", _statement(fed, "uav-x", "df-event", body, rogue)
+            )
+            token_c = outsider.liveliness().declare_token(f"{prefix}/alive/uav-c")
+            await _until("uav-x's presence audited", lambda: _audit(a, "presence", "uav-x"))
+            await _until("uav-c's forged presence audited", lambda: _audit(a, "presence", "uav-c"))
+            assert (
+                "presence without a signed directory answer"
+                in _audit(a, "presence", "uav-c")[0]["reason"]
+            )
+            assert _audit(a, "df-events", "uav-x")
+            assert "uav-x" not in gdf.platforms and "uav-c" not in gdf.platforms
+            assert "uav-x" not in a.members and "uav-c" not in a.members
+            assert not [s for s in gdf.services() if s.platform in ("uav-x", "uav-c")]
+            # the forged token's end does not take uav-b's (nor anyone's) presence away
+            token_b = outsider.liveliness().declare_token(f"{prefix}/alive/uav-b")
+            token_b.undeclare()
+            token_c.undeclare()
+            token_x.undeclare()
+            queryable.undeclare()
+            # a marker through the same peer: once uav-b's next event arrived, the tokens'
+            # ends (sent before) were seen
+            b_events = gdf.watch()
+            await a.federation_agent.request_from("uav-b", {"action": "list-labels"}, timeout=WAIT)
+            await asyncio.sleep(0.5)
+            b_events.close()
+            assert [e for e in membership.inbox.drain() if e.platform == "uav-b"] == []
+            assert "uav-b" in a.members and "uav-b" in gdf.platforms
+            membership.close()
+        finally:
+            outsider.close()
+
+
+async def test_an_empty_retained_presence_does_not_drop_a_running_platform_on_mqtt(
+    tmp_path: Path,
+    node: Callable[[str], subprocess.Popen[str]],
+    mosquitto: tuple[str, int],
+) -> None:
+    host, port = mosquitto
+    fed = f"member{os.getpid()}m"
+    mqtt = f'kind = "mqtt"\nhost = "{host}"\nport = {port}'
+    _federation(tmp_path, fed, ["uav-a", "uav-c"], {"uav-a": mqtt, "uav-c": mqtt})
+    prefix = f"dyknow/{fed}/v1"
+    async with (
+        asyncio.timeout(4 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        proc = node("uav-c")
+        await _until("uav-a sees uav-c", lambda: "uav-c" in a.members)
+        gdf = a.agents.global_df
+        assert gdf is not None
+        events = a.membership()
+        attacker = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id="", protocol=paho.MQTTv5)
+        attacker.connect(host, port)
+        attacker.loop_start()
+        try:
+            refused = gdf.refused
+            attacker.publish(f"{prefix}/alive/uav-c", b"", qos=1, retain=True).wait_for_publish(5)
+            record = (
+                await _until(
+                    "uav-a audits the forged leave", lambda: _audit(a, "presence", "uav-c")
+                )
+            )[0]
+            assert "without a signed leave" in record["reason"]
+            assert gdf.refused == refused + 1
+            assert "uav-c" in a.members and "uav-c" in gdf.platforms
+            assert events.inbox.drain() == []  # no "gone": its exports were not stopped
+            answer = await a.federation_agent.request_from(
+                "uav-c", {"action": "list-labels"}, timeout=WAIT
+            )
+            assert answer is not None
+            # a real leave (the node stops) is still seen, signed
+            proc.terminate()
+            await _until("uav-c seen leaving", lambda: "uav-c" not in gdf.platforms)
+        finally:
+            attacker.loop_stop()
+            attacker.disconnect()
+            events.close()
