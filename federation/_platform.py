@@ -238,7 +238,7 @@ class PlatformConfig(BaseModel):
             value = getattr(self, name)
             if isinstance(value, Path) and not value.is_absolute():
                 update[name] = base / value
-        if isinstance(self.transport, ZenohSettings):  # its TLS and password files
+        if isinstance(self.transport, ZenohSettings | MqttSettings):  # its TLS (and password) files
             update["transport"] = self.transport.relative_to(base)
         return self.model_copy(update=update)
 

@@ -38,7 +38,7 @@ MOUNT = PurePosixPath("/etc/dyknow")
 # compose file -> (the hub service, its port, the config subdirectory, transport kind)
 TOPOLOGIES = {
     "docker-compose.yml": ("router", 7447, "", "zenoh"),
-    "docker-compose.mqtt.yml": ("mosquitto", 1883, "mqtt/", "mqtt"),
+    "docker-compose.mqtt.yml": ("mosquitto", 8883, "mqtt/", "mqtt"),
 }
 
 
@@ -154,9 +154,14 @@ def test_compose_topology(file: str) -> None:
         for key in ("key", "trust", "vocabulary", "mapping"):
             target = PurePosixPath(*_normalize(container_config.parent / config[key]).parts)
             assert target in mounts, f"{file}: {name}: {key} {target} is not mounted"
-        # its own private key only
-        keys = [m for m in mounts if m.suffix == ".key"]
-        assert keys == [MOUNT / "keys" / f"{name}.key"], f"{file}: {name} mounts {keys}"
+        # its own private keys only (its identity; its TLS key when the hub wants one)
+        keys = sorted(m for m in mounts if m.suffix == ".key")
+        own = [MOUNT / "keys" / f"{name}.key", MOUNT / "tls" / f"{name}.key"]
+        assert keys == own[: len(keys)] and keys, f"{file}: {name} mounts {keys}"
+        if kind == "mqtt":  # the broker admits TLS clients only: every file is mounted
+            assert len(keys) == 2 and MOUNT / "tls" / "ca.crt" in mounts
+            for field, path in config["transport"]["tls"].items():
+                assert PurePosixPath(path) in mounts, f"{file}: {name}: tls.{field}"
         # the transport points at the hub's fixed address
         transport = config["transport"]
         assert transport["kind"] == kind
@@ -172,8 +177,16 @@ def test_compose_topology(file: str) -> None:
     else:
         broker = services[hub]
         assert broker["image"].startswith("eclipse-mosquitto:")
-        conf = _mounts(broker)[PurePosixPath("/mosquitto/config/mosquitto.conf")]
-        assert f"listener {port}" in conf.read_text()
+        mounts = _mounts(broker)
+        conf = mounts[PurePosixPath("/mosquitto/config/mosquitto.conf")]
+        assert conf == CONFIG / "mosquitto-secure.conf"
+        text = conf.read_text()
+        assert f"listener {port}" in text and "require_certificate true" in text
+        # every file the broker's config names is mounted there
+        for line in text.splitlines():
+            word, _, value = line.partition(" ")
+            if word in ("cafile", "certfile", "keyfile", "acl_file"):
+                assert PurePosixPath(value) in mounts, f"{file}: broker {word} {value}"
 
 
 @pytest.mark.parametrize("file", sorted(TOPOLOGIES))

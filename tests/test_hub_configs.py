@@ -239,3 +239,34 @@ async def test_a_taken_over_client_id_is_recovered(
                 t.disconnect()
     finally:
         gen.close()
+
+
+async def test_platforms_federate_through_the_generated_tls_broker(
+    tls_broker: tuple[int, Path], tmp_path: Path
+) -> None:
+    """The ACL lets the protocol through: membership, key exchange, a request and its answer."""
+    port, _ = tls_broker
+    tls = tmp_path / "tls"
+    names = ["uav-a", "uav-b"]
+    transport = {
+        n: (
+            f'kind = "mqtt"\nhost = "127.0.0.1"\nport = {port}\nclient_id = "dyknow-{n}"\n'
+            f'[transport.tls]\nroot_ca_certificate = "{tls}/ca.crt"\n'
+            f'certificate = "tls/{n}.crt"\nprivate_key = "tls/{n}.key"'
+        )
+        for n in names
+    }
+    _federation(tmp_path, "traffic", names, transport)
+    async with (
+        asyncio.timeout(4 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-b.toml")) as b,
+    ):
+        await _until(
+            "uav-a and uav-b see each other", lambda: "uav-b" in a.members and "uav-a" in b.members
+        )
+        answer = await b.federation_agent.request_from(
+            "uav-a", {"action": "list-labels"}, timeout=WAIT
+        )
+        assert answer == {"labels": []}, answer  # answered (nothing streams there yet)
+        assert a.agents.global_df is not None and a.agents.global_df.refused == 0

@@ -66,9 +66,11 @@ import json
 import logging
 import secrets
 import socket
+import ssl
 import uuid
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import aiomqtt
@@ -113,6 +115,52 @@ def _connection_id(prefix: str) -> str:
     return f"{prefix}-{secrets.token_hex(8)}"
 
 
+class MqttTls(BaseModel):
+    """TLS to the broker: the CA that signed it, and this client's certificate (mutual TLS).
+
+    With the generated broker config (``deploy/make_hub_configs.py``) the certificate's CN
+    is the platform's name and becomes its MQTT user name.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    root_ca_certificate: Path
+    certificate: Path | None = None
+    private_key: Path | None = None
+
+    @model_validator(mode="after")
+    def _pair(self) -> MqttTls:
+        if (self.certificate is None) != (self.private_key is None):
+            raise ValueError("give both certificate and private_key, or neither")
+        return self
+
+    def relative_to(self, base: Path) -> MqttTls:
+        """A copy with relative paths resolved against ``base``."""
+        update = {
+            name: base / value
+            for name in ("root_ca_certificate", "certificate", "private_key")
+            if isinstance(value := getattr(self, name), Path) and not value.is_absolute()
+        }
+        return self.model_copy(update=update)
+
+    def context(self) -> ssl.SSLContext:
+        """The client's SSL context; TransportError naming the file that cannot be read."""
+        try:
+            ctx = ssl.create_default_context(cafile=str(self.root_ca_certificate))
+        except (OSError, ssl.SSLError) as exc:
+            raise TransportError(
+                f"tls.root_ca_certificate: {self.root_ca_certificate}: {exc}"
+            ) from exc
+        if self.certificate is not None and self.private_key is not None:
+            try:
+                ctx.load_cert_chain(str(self.certificate), str(self.private_key))
+            except (OSError, ssl.SSLError) as exc:
+                raise TransportError(
+                    f"tls.certificate/private_key: {self.certificate}: {exc}"
+                ) from exc
+        return ctx
+
+
 class MqttConfig(BaseModel):
     """Where the MQTT broker is and how to talk to it; validated once, errors name the field."""
 
@@ -138,11 +186,18 @@ class MqttConfig(BaseModel):
     )
     qos: Literal[0, 1, 2] = Field(default=0, description="QoS of publications and queries.")
     connect_timeout: float = Field(default=10.0, gt=0)
+    tls: MqttTls | None = None
     serve_timeout: float = Field(
         default=10.0,
         gt=0,
         description="Seconds a query handler may run before the query gets an error reply.",
     )
+
+    def relative_to(self, base: str | Path) -> MqttConfig:
+        """A copy whose TLS files are resolved against ``base`` (a config file's directory)."""
+        if self.tls is None:
+            return self
+        return self.model_copy(update={"tls": self.tls.relative_to(Path(base))})
 
     @model_validator(mode="after")
     def _credentials(self) -> MqttConfig:
@@ -298,6 +353,7 @@ class MqttTransport(Transport):
             keepalive=c.keepalive,
             timeout=c.connect_timeout,
             will=will,
+            tls_context=None if c.tls is None else c.tls.context(),
         )
 
     async def open(self) -> None:
