@@ -163,7 +163,7 @@ async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
         await _until("uav-a sees uav-b", lambda: "uav-b" in a.members)
         gdf = a.agents.global_df
         assert gdf is not None
-        before = len(gdf.services("uav-b"))
+        before = before_services = len(gdf.services("uav-b"))
         assert before >= 1
         outsider = _zenoh_outsider(port)
         try:
@@ -199,6 +199,7 @@ async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
 
             # 2. uav-x (not in the trust file) as token, DF answer and event; uav-c (trusted,
             #    not running) as a forged token: neither is listed
+            refused = gdf.refused
             token_x = outsider.liveliness().declare_token(f"{prefix}/alive/uav-x")
             fake = _statement(fed, "uav-x", "df", [dict(service, provider="fed@uav-x")], rogue)
             queryable = outsider.declare_queryable(
@@ -224,14 +225,32 @@ async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
             token_c.undeclare()
             token_x.undeclare()
             queryable.undeclare()
-            # a marker through the same peer: once uav-b's next event arrived, the tokens'
-            # ends (sent before) were seen
-            b_events = gdf.watch()
-            await a.federation_agent.request_from("uav-b", {"action": "list-labels"}, timeout=WAIT)
-            await asyncio.sleep(0.5)
-            b_events.close()
+            # a marker on the same link, in order: once uav-x's new token is audited, the
+            # ends of the tokens before it were seen (uav-x's end is audited too)
+            marker = outsider.liveliness().declare_token(f"{prefix}/alive/uav-x")
+            await _until("the marker", lambda: len(_audit(a, "presence", "uav-x")) == 3)
+            marker.undeclare()
             assert [e for e in membership.inbox.drain() if e.platform == "uav-b"] == []
             assert "uav-b" in a.members and "uav-b" in gdf.platforms
+            # uav-x up, its event, uav-c's token, uav-x gone, uav-x up again: each counted once
+            assert gdf.refused == refused + 5
+
+            # 3. a flood of forgeries is counted one by one, audited within a budget
+            refused, before = gdf.refused, len(_audit(a, "df-events", "uav-b"))
+            for _ in range(2000):
+                outsider.put(f"{prefix}/df-events/uav-b", forged[1])
+            await _until("2000 more refused", lambda: gdf.refused >= refused + 2000)
+            assert len(_audit(a, "df-events", "uav-b")) - before < 1000
+            summary = await _until(
+                "a summary record of what was not audited one by one",
+                lambda: [
+                    r
+                    for r in a.interface.audit.records
+                    if r.get("stage") == "unauthenticated" and r.get("count")
+                ],
+            )
+            assert summary[-1]["verdict"] == "dropped"
+            assert "uav-b" in a.members and len(gdf.services("uav-b")) == before_services
             membership.close()
         finally:
             outsider.close()
@@ -275,6 +294,19 @@ async def test_an_empty_retained_presence_does_not_drop_a_running_platform_on_mq
                 "uav-c", {"action": "list-labels"}, timeout=WAIT
             )
             assert answer is not None
+            # uav-c announced itself again: a newcomer reads it alive (retained)
+            seen: list[bytes] = []
+            reader = paho.Client(paho.CallbackAPIVersion.VERSION2, protocol=paho.MQTTv5)
+            reader.on_message = lambda c, u, m: seen.append(m.payload)
+            reader.connect(host, port)
+            reader.subscribe(f"{prefix}/alive/uav-c", qos=1)
+            reader.loop_start()
+            try:
+                await _until("uav-c's presence retained again", lambda: seen)
+            finally:
+                reader.loop_stop()
+                reader.disconnect()
+            assert orjson.loads(seen[0]) == {"v": 1, "alive": True}
             # a real leave (the node stops) is still seen, signed
             proc.terminate()
             await _until("uav-c seen leaving", lambda: "uav-c" not in gdf.platforms)
