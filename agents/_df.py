@@ -24,6 +24,7 @@ import asyncio
 import base64
 import binascii
 import logging
+import time
 from collections.abc import Callable, Iterable
 from enum import StrEnum
 from typing import TYPE_CHECKING, Annotated, Any, NamedTuple
@@ -510,9 +511,17 @@ class GlobalDirectory:
     audited through the channel, within its budget.
     """
 
-    def __init__(self, platform: AgentPlatform, *, query_timeout: float = 1.0) -> None:
+    def __init__(
+        self,
+        platform: AgentPlatform,
+        *,
+        query_timeout: float = 1.0,
+        recheck_interval: float | None = 30.0,
+    ) -> None:
         self._platform = platform
         self.query_timeout = query_timeout
+        # with a trust file: how often every member is asked again (None: never)
+        self.recheck_interval = recheck_interval
         self._auth: DirectoryAuth = platform.directory_auth
         self._entries: dict[str, dict[tuple[str, str], ServiceDescription]] = {}
         self._alive: set[str] = set()
@@ -536,6 +545,8 @@ class GlobalDirectory:
             self._replace(platform, services)
         p.spawn(self._follow_events(events), "global-df.events")
         p.spawn(self._follow_presence(presence), "global-df.presence")
+        if self._auth.authenticates:
+            p.spawn(self._recheck(), "global-df.recheck")
 
     def close(self) -> None:
         """Stop following; watchers' iterators end."""
@@ -753,6 +764,43 @@ class GlobalDirectory:
                     )
                     continue
                 self._gone(platform)
+
+    async def _recheck(self) -> None:
+        """Ask every member again now and then: the liveness presence alone cannot prove.
+
+        On zenoh a token stays while *any* session holds one on the key, so a token forged
+        under a running platform's name would keep it listed after it dies. A member that
+        answers no signed query twice in a row is gone; one that answers while not listed
+        (it was taken for gone while it hung) is up again.
+        """
+        misses: dict[str, int] = {}
+        last = time.monotonic()
+        while True:
+            await asyncio.sleep(0.25)  # the interval may be changed while running
+            interval = self.recheck_interval
+            if interval is None or time.monotonic() - last < interval:
+                continue
+            last = time.monotonic()
+            answered = await self._query("*")
+            for platform in sorted(self._alive):
+                if platform == self._platform.name or platform in answered:
+                    misses.pop(platform, None)
+                    continue
+                misses[platform] = misses.get(platform, 0) + 1
+                if misses[platform] >= 2:
+                    del misses[platform]
+                    self._refuse(
+                        platform,
+                        "presence still held, but the platform answered no signed directory "
+                        "query twice in a row: taken for gone",
+                        "presence",
+                    )
+                    self._gone(platform)
+            for platform, services in answered.items():
+                if platform not in self._alive and platform != self._platform.name:
+                    self._alive.add(platform)
+                    self._replace(platform, services)
+                    self._tell(DirectoryEvent("platform-up", platform, None))
 
     async def _answers(self, platform: str) -> bool:
         """Whether ``platform`` answers a fresh signed query now."""

@@ -314,3 +314,47 @@ async def test_an_empty_retained_presence_does_not_drop_a_running_platform_on_mq
             attacker.loop_stop()
             attacker.disconnect()
             events.close()
+
+
+async def test_a_forged_token_does_not_keep_a_dead_platform_listed_on_zenoh(
+    tmp_path: Path, node: Callable[[str], subprocess.Popen[str]]
+) -> None:
+    """zenoh keeps a key alive while any token holds it: the members are asked again."""
+    fed = f"member{os.getpid()}k"
+    port = free_tcp_port()
+    _federation(
+        tmp_path,
+        fed,
+        ["uav-a", "uav-b"],
+        {
+            "uav-a": f'mode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]',
+            "uav-b": f'mode = "peer"\nconnect = ["tcp/127.0.0.1:{port}"]',
+        },
+    )
+    async with (
+        asyncio.timeout(4 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        gdf.recheck_interval = 1.0  # 30 s by default
+        proc = node("uav-b")
+        await _until("uav-a sees uav-b", lambda: "uav-b" in a.members)
+        outsider = _zenoh_outsider(port)
+        try:
+            token = outsider.liveliness().declare_token(f"dyknow/{fed}/v1/alive/uav-b")
+            await asyncio.sleep(0.5)  # the token reached uav-a before uav-b dies
+            refused = gdf.refused
+            proc.kill()
+            killed = time.monotonic()
+            await _until("uav-b taken for gone", lambda: "uav-b" not in gdf.platforms)
+            print(f"uav-b gone {time.monotonic() - killed:.2f} s after SIGKILL (forged token held)")
+            assert "uav-b" not in a.members
+            assert gdf.refused == refused + 1
+            assert (
+                "answered no signed directory query twice"
+                in (_audit(a, "presence", "uav-b")[-1]["reason"])
+            )
+            token.undeclare()
+        finally:
+            outsider.close()
