@@ -80,19 +80,21 @@ def _mosquitto(workdir: Path, conf: str) -> Iterator[tuple[int, Path]]:
     # who cannot read the test's private keys)
     me = pwd.getpwuid(os.getuid()).pw_name
     conf = conf.replace("listener 8883 0.0.0.0", f"user {me}\nlistener {port} 127.0.0.1")
-    path.write_text(conf)
+    # the broker's own record of what it denied: a log file, written as it goes
     log = workdir / "mosquitto.log"
-    with log.open("wb") as out:
+    conf = conf.replace("log_dest stdout", f"log_dest file {log}\nlog_type all")
+    path.write_text(conf)
+    with (workdir / "mosquitto.out").open("wb") as out:
         proc = subprocess.Popen([exe, "-c", str(path)], stdout=out, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 10
         while True:
-            assert proc.poll() is None, log.read_text()
+            assert proc.poll() is None, (workdir / "mosquitto.out").read_text()
             try:
                 socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
                 break
             except OSError:
-                assert time.monotonic() < deadline, log.read_text()
+                assert time.monotonic() < deadline, (workdir / "mosquitto.out").read_text()
                 time.sleep(0.05)
         yield port, log
     finally:
@@ -153,7 +155,10 @@ def test_the_generated_broker_config_refuses_no_cert_and_fences_identities(
     port, log = tls_broker
     tls = tmp_path / "tls"
     anonymous = _Client(port, tls, None)
-    time.sleep(1.0)
+    deadline = time.monotonic() + WAIT
+    while "peer did not return a certificate" not in log.read_text():  # the broker's record
+        assert time.monotonic() < deadline, log.read_text()
+        time.sleep(0.05)
     assert anonymous.refused is not None or not anonymous.connected.is_set()
     if anonymous.refused is None:
         anonymous.close()
@@ -179,6 +184,9 @@ def test_the_generated_broker_config_refuses_no_cert_and_fences_identities(
         time.sleep(0.3)
         assert [t for t, _ in watcher.got] == [f"{f}/alive/uav-a"], watcher.got
         assert (f"{f}/acl/uav-b", b"for uav-b only") not in a.got, a.got
+        # the broker's record of the refusals: both of uav-a's writes of uav-b's presence
+        denied = re.findall(r"Denied PUBLISH from \S+ \([^'\n]*'([^'\n]+)'", log.read_text())
+        assert denied == [f"{f}/alive/uav-b"] * 2, denied
     finally:
         for c in (a, b, watcher):
             c.close()
@@ -192,8 +200,7 @@ async def test_a_taken_over_client_id_is_recovered(
     workdir.mkdir()
     gen = _mosquitto(
         workdir,
-        "listener 8883 0.0.0.0\nallow_anonymous true\npersistence false\n"
-        "log_dest stdout\nlog_type all\n",
+        "listener 8883 0.0.0.0\nallow_anonymous true\npersistence false\nlog_dest stdout\n",
     )
     port, log = next(gen)
     try:

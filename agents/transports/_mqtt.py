@@ -329,6 +329,7 @@ class MqttTransport(Transport):
         # not derived from the client id: queries show it to every queryable
         self._reply_topic = f"{REPLY_PREFIX}/{self.config.client_id}/{secrets.token_hex(12)}"
         self.reconnects = 0
+        self._up: asyncio.Event | None = None  # set while the main connection serves
         self._filters: dict[str, _Filter] = {}
         self._by_sid: dict[int, _Filter] = {}
         self._sids = itertools.count(_REPLY_SID + 1)
@@ -362,6 +363,8 @@ class MqttTransport(Transport):
         client = await self._connect_main()
         self._client = client
         self._loop = loop
+        self._up = asyncio.Event()
+        self._up.set()
         self._receiver = loop.create_task(
             self._receive(client), name=f"mqtt[{self.config.client_id}].receive"
         )
@@ -444,6 +447,8 @@ class MqttTransport(Transport):
                 if self._state != "opened":
                     return
                 log.warning("mqtt: connection to the broker lost (%s); reconnecting", exc)
+                if self._up is not None:
+                    self._up.clear()
                 try:
                     client = await self._reconnect(client)
                 except (TransportError, aiomqtt.MqttError) as again:
@@ -464,6 +469,8 @@ class MqttTransport(Transport):
         for f in list(self._filters.values()):
             await client.subscribe(f.topic, options=self._options(), properties=_sid(f.sid))
         self.reconnects += 1
+        if self._up is not None:
+            self._up.set()
         log.warning("mqtt: reconnected to the broker (%d time(s))", self.reconnects)
         return client
 
@@ -812,6 +819,13 @@ class _Token:
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
                 async with asyncio.timeout(1.0):
                     await _disconnect(client)
+            # announced again only once this platform answers again (queries, DF)
+            up = self.transport._up
+            if up is not None:
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(self.transport.config.connect_timeout):
+                        await asyncio.sleep(0.1)  # the main connection's loss may come next
+                        await up.wait()
             try:
                 await self.connect()
             except TransportError as exc:
