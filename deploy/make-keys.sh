@@ -33,6 +33,8 @@ for platform in "${platforms[@]}"; do
     pubs+=("${keys_dir}/${platform}.pub")
 done
 "${keys[@]}" trust --trust-file "${trust_file}" --federation "${federation}" "${pubs[@]}"
+# the hubs' access control, from the trust file (the same as shipped for these platforms)
+"${PYTHON:-python3}" "${here}/make_hub_configs.py" --trust-file "${trust_file}" --out "${config_dir}"
 
 cat <<MSG
 Keys and trust file are in ${keys_dir}.
