@@ -12,10 +12,12 @@ searches and by the Interface Agent's access control (with `DirectoryFacilitator
 
 The global directory is distributed (``docs/wire.md``): each DF serves its public
 services on ``dyknow/<fed>/v1/df/<platform>`` and publishes their changes on
-``…/df-events/<platform>``; a `GlobalDirectory` on every platform builds its view from a
-query of ``…/df/*``, follows the events, and watches presence ``…/alive/*``: the entries
-of a platform whose token goes (it crashed, was killed, left) disappear, and watchers
-get a ``platform-gone`` event naming it.
+``…/df-events/<platform>``, both as directory statements signed with the platform's key
+(`DirectoryAuth`); a `GlobalDirectory` on every platform builds its view from a query of
+``…/df/*``, follows the events, and watches presence ``…/alive/*``: the entries of a
+platform whose token goes (it crashed, was killed, left) disappear, and watchers get a
+``platform-gone`` event naming it. With a trust file only what trusted platforms signed
+counts (``docs/security.md``, "Membership and the directory").
 """
 
 from __future__ import annotations
