@@ -509,8 +509,10 @@ class GlobalDirectory:
     ignored; a platform is ``platform-up`` only once its signed answer came; where
     presence can be forged (``Transport.forgeable_presence``: MQTT's retained messages),
     a presence that goes without a signed leave is believed only when the platform no
-    longer answers a fresh signed query. What is refused is counted (``refused``) and
-    audited through the channel, within its budget.
+    longer answers a fresh signed query; and every ``recheck_interval`` seconds the
+    members are asked again (a member that answers none twice in a row is gone: on zenoh
+    a forged token would otherwise keep a dead platform listed). What is refused is
+    counted (``refused``) and audited through the channel, within its budget.
     """
 
     def __init__(

@@ -208,10 +208,12 @@ class AgentPlatform:
         self.query_timeout = query_timeout
         # Signs this platform's directory statements and checks others' (with the
         # channel's key pair and trust file, when it has them: docs/security.md).
+        policy = getattr(self.channel, "policy", None)
         self.directory_auth = DirectoryAuth(
             federation,
             getattr(self.channel, "keys", None),
             getattr(self.channel, "trust", None),
+            skew=getattr(policy, "skew", 30.0),  # the channel's, as for its envelopes
         )
         self.stats = PlatformStats()
         self.df: DirectoryFacilitator | None = None
