@@ -277,3 +277,20 @@ async def test_platforms_federate_through_the_generated_tls_broker(
         )
         assert answer == {"labels": []}, answer  # answered (nothing streams there yet)
         assert a.agents.global_df is not None and a.agents.global_df.refused == 0
+
+
+def test_mqtt_tls_settings_name_what_is_wrong(tmp_path: Path) -> None:
+    from pydantic import ValidationError
+
+    from agents import TransportError
+    from agents.transports import MqttConfig
+
+    with pytest.raises(ValidationError, match="certificate and private_key"):
+        MqttConfig.model_validate(
+            {"tls": {"root_ca_certificate": "ca.crt", "certificate": "uav-a.crt"}}
+        )
+    config = MqttConfig.model_validate({"tls": {"root_ca_certificate": "ca.crt"}})
+    assert config.relative_to(tmp_path).tls is not None
+    assert config.relative_to(tmp_path).tls.root_ca_certificate == tmp_path / "ca.crt"
+    with pytest.raises(TransportError, match=r"tls.root_ca_certificate: .*ca.crt"):
+        config.relative_to(tmp_path).tls.context()

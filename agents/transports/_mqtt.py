@@ -26,9 +26,15 @@ Query / serve (a topic convention on MQTT v5 request/response)
 
 Client ids
     Every connection's id is the configured ``client_id`` followed by ``-`` and 64 random
-    bits, drawn again on each reconnection; the reply topic is random too (not the id).
-    A broker evicts a client when another connects with its id: an id nobody knows
-    cannot be taken over.
+    bits, drawn again on each reconnection; the reply topic is ``@reply/<client_id>/``
+    and 96 random bits: it names the configured prefix (a broker ACL can give each
+    platform its own replies), never a connection's id. A broker evicts a client when
+    another connects with its id: an id nobody knows cannot be taken over.
+
+TLS
+    ``tls`` (`MqttTls`): the CA that signed the broker's certificate and, for mutual TLS,
+    this client's certificate and key (with the generated broker config its CN is the
+    platform's name and the broker's user name for it).
 
 Presence
     ``declare_token`` opens one more connection per token, whose last will is an empty
