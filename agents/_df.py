@@ -623,14 +623,16 @@ class GlobalDirectory:
         if audit is not None:
             audit(claimed, reason, stage)
 
-    async def _query(self, platform: str) -> dict[str, list[ServiceDescription]]:
+    async def _query(
+        self, platform: str, timeout: float | None = None
+    ) -> dict[str, list[ServiceDescription]]:
         """Ask the DF(s) for their public services: {platform: services} of those that answered."""
         nonce = make_nonce()
         try:
             replies = await self._platform.transport.query(
                 self._platform.key("df", platform),
                 orjson.dumps({"v": WIRE_VERSION, "nonce": base64.b64encode(nonce).decode()}),
-                timeout=self.query_timeout,
+                timeout=self.query_timeout if timeout is None else timeout,
             )
         except TransportError as exc:
             log.warning("global-df[%s]: query failed: %s", self._platform.name, exc)
@@ -785,7 +787,8 @@ class GlobalDirectory:
             if interval is None or time.monotonic() - last < interval:
                 continue
             last = time.monotonic()
-            answered = await self._query("*")
+            # generous: a busy member must not be taken for gone (nothing waits on this)
+            answered = await self._query("*", max(self.query_timeout, 5.0))
             for platform in sorted(self._alive):
                 if platform == self._platform.name or platform in answered:
                     misses.pop(platform, None)
