@@ -377,3 +377,55 @@ async def test_a_forged_token_does_not_keep_a_dead_platform_listed_on_zenoh(
             token.undeclare()
         finally:
             outsider.close()
+
+
+async def test_a_forged_leave_on_mqtt_stops_no_stream(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    """The issue's attack: uav-b's presence cleared while uav-a streams to it."""
+    host, port = mosquitto
+    fed = f"member{os.getpid()}s"
+    mqtt = f'kind = "mqtt"\nhost = "{host}"\nport = {port}'
+    _federation(tmp_path, fed, ["uav-a", "uav-b"], {"uav-a": mqtt, "uav-b": mqtt})
+    ended: list[tuple[str, list[str]]] = []  # what uav-b was told of ended imports
+    async with (
+        asyncio.timeout(4 * WAIT),
+        # uav-a (the exporter) leaves first: the import proxy's shutdown while it still
+        # reports to a live sender over MQTT can hang (seen before these changes too)
+        FederationPlatform(
+            PlatformConfig.load(tmp_path / "uav-b.toml"),
+            on_import_ended=lambda sender, labels: ended.append((sender, labels)),
+        ) as b,
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        await _until("both see each other", lambda: "uav-b" in a.members and "uav-a" in b.members)
+        altitude = a.instance.add_source("uav-a/alt")
+        await b.federation_agent.create_stream("uav-a", ["heli-altitude"], timeout=WAIT)
+        altitude.push(100.0)
+        label = await b.imported("uav-a", "heli-altitude", timeout=WAIT)
+        assert a.exporter.exports("uav-b")
+        attacker = paho.Client(paho.CallbackAPIVersion.VERSION2, protocol=paho.MQTTv5)
+        attacker.connect(host, port)
+        attacker.loop_start()
+        try:
+            prefix = f"dyknow/{fed}/v1"
+            for victim in ("uav-b", "uav-a"):  # the receiver's and the sender's presence
+                attacker.publish(
+                    f"{prefix}/alive/{victim}", b"", qos=1, retain=True
+                ).wait_for_publish(5)
+            await _until("uav-a audits the forged leave", lambda: _audit(a, "presence", "uav-b"))
+            await _until("uav-b audits the forged leave", lambda: _audit(b, "presence", "uav-a"))
+            # the export goes on, and samples keep arriving
+            assert a.exporter.exports("uav-b"), "uav-a stopped its export to uav-b"
+            altitude.push(200.0)
+            await _until(
+                "the next sample at uav-b",
+                lambda: b.instance.latest(label).samples[0].value == 200.0,
+            )
+            rec = b.importer.get("uav-a", "heli-altitude")
+            assert rec is not None and not rec.ended, "uav-b ended its import from uav-a"
+            assert ended == [], "uav-b was told its import from uav-a ended"
+            assert "uav-b" in a.members and "uav-a" in b.members
+        finally:
+            attacker.loop_stop()
+            attacker.disconnect()
