@@ -12,16 +12,21 @@ searches and by the Interface Agent's access control (with `DirectoryFacilitator
 
 The global directory is distributed (``docs/wire.md``): each DF serves its public
 services on ``dyknow/<fed>/v1/df/<platform>`` and publishes their changes on
-``…/df-events/<platform>``; a `GlobalDirectory` on every platform builds its view from a
-query of ``…/df/*``, follows the events, and watches presence ``…/alive/*``: the entries
-of a platform whose token goes (it crashed, was killed, left) disappear, and watchers
-get a ``platform-gone`` event naming it.
+``…/df-events/<platform>``, both as directory statements signed with the platform's key
+(`DirectoryAuth`); a `GlobalDirectory` on every platform builds its view from a query of
+``…/df/*``, follows the events, and watches presence ``…/alive/*``: the entries of a
+platform whose token goes (it crashed, was killed, left) disappear, and watchers get a
+``platform-gone`` event naming it. With a trust file only what trusted platforms signed
+counts (``docs/security.md``, "Membership and the directory").
 """
 
 from __future__ import annotations
 
 import asyncio
+import base64
+import binascii
 import logging
+import time
 from collections.abc import Callable, Iterable
 from enum import StrEnum
 from typing import TYPE_CHECKING, Annotated, Any, NamedTuple
@@ -31,6 +36,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
 
 from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_of
 from ._agent import Agent
+from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
 from ._exceptions import ServiceError, TransportError
 from ._protocols import (
     DEFAULT_TIMEOUT,
@@ -219,6 +225,7 @@ class DirectoryFacilitator(Agent):
             self, ontology=FIPA_AGENT_MANAGEMENT, accept=self._accept_subscriber
         )
         self._queryable: Handle | None = None
+        self._left = False
 
     async def setup(self) -> None:
         """Serve this platform's public services to the global directory."""
@@ -385,23 +392,48 @@ class DirectoryFacilitator(Agent):
                     log.exception("%s: telling subscriber %s", self, sub.agent)
         wire = _seen_as(op, old, new, _is_public)
         if wire is not None:
-            payload = orjson.dumps({"v": WIRE_VERSION, "op": wire[0], "service": wire[1].to_obj()})
-            try:
-                await self.platform.transport.publish(self.platform.key("df-events"), payload)
-            except TransportError as exc:
-                # While the platform closes over a dead transport this is expected.
-                level = logging.WARNING if self.platform.running else logging.DEBUG
-                log.log(level, "%s: could not publish a directory event: %s", self, exc)
+            await self._publish_event({"op": wire[0], "service": wire[1].to_obj()})
 
-    async def _serve_public(self, key: str, payload: bytes) -> bytes:
-        return orjson.dumps(
-            [
-                s.to_obj()
-                for services in self._services.values()
-                for s in services.values()
-                if _is_public(s)
-            ]
-        )
+    async def _publish_event(self, body: dict[str, Any]) -> None:
+        p = self.platform
+        payload = p.directory_auth.seal(p.name, "df-event", body)
+        try:
+            await p.transport.publish(p.key("df-events"), payload)
+        except TransportError as exc:
+            # While the platform closes over a dead transport this is expected.
+            level = logging.WARNING if p.running else logging.DEBUG
+            log.log(level, "%s: could not publish a directory event: %s", self, exc)
+
+    async def announce_leave(self) -> None:
+        """Say, signed, that this platform leaves; then stop answering directory queries.
+
+        Others take a signed leave as the platform gone at once, on any transport; a
+        presence that goes without one is checked first where presence can be forged
+        (MQTT, ``docs/security.md``), and a DF that no longer answers confirms it.
+        """
+        self._left = True
+        await self._publish_event({"op": "leave"})
+
+    async def _serve_public(self, key: str, payload: bytes) -> bytes | None:
+        if self._left:
+            return None  # a platform that said it leaves confirms it by its silence
+        nonce = b""
+        if payload:
+            try:
+                obj = orjson.loads(payload)
+                nonce = base64.b64decode(obj["nonce"], validate=True)
+            except (ValueError, TypeError, KeyError, binascii.Error):
+                return None  # a query we cannot answer fresh gets no answer
+            if len(nonce) > 64:
+                return None
+        services = [
+            s.to_obj()
+            for services in self._services.values()
+            for s in services.values()
+            if _is_public(s)
+        ]
+        p = self.platform
+        return p.directory_auth.seal(p.name, "df", services, nonce=nonce)
 
     # -- ACL API ------------------------------------------------------------------------
 
@@ -468,18 +500,42 @@ class GlobalDirectory:
 
     Built from a query of ``dyknow/<fed>/v1/df/*``, then follows ``…/df-events/*`` and the
     presence tokens ``…/alive/*``. Only platforms that are alive count: the entries of a
-    platform whose token goes are dropped at once and watchers get ``platform-gone``.
+    platform whose token goes (or that says, signed, that it leaves) are dropped at once
+    and watchers get ``platform-gone``.
+
+    With a trust file (the platform's channel has one) only authenticated statements
+    count (`DirectoryAuth`): a DF answer must sign this view's fresh nonce, an event must
+    be signed and newer than the last; a presence under a name not in the trust file is
+    ignored; a platform is ``platform-up`` only once its signed answer came; where
+    presence can be forged (``Transport.forgeable_presence``: MQTT's retained messages),
+    a presence that goes without a signed leave is believed only when the platform no
+    longer answers a fresh signed query; and every ``recheck_interval`` seconds the
+    members are asked again (a member that answers none twice in a row is gone: on zenoh
+    a forged token would otherwise keep a dead platform listed). What is refused is
+    counted (``refused``) and audited through the channel, within its budget.
     """
 
-    def __init__(self, platform: AgentPlatform, *, query_timeout: float = 1.0) -> None:
+    def __init__(
+        self,
+        platform: AgentPlatform,
+        *,
+        query_timeout: float = 1.0,
+        recheck_interval: float | None = 30.0,
+    ) -> None:
         self._platform = platform
         self.query_timeout = query_timeout
+        # with a trust file: how often every member is asked again (None: never)
+        self.recheck_interval = recheck_interval
+        self._auth: DirectoryAuth = platform.directory_auth
         self._entries: dict[str, dict[tuple[str, str], ServiceDescription]] = {}
         self._alive: set[str] = set()
         self._event_counts: dict[str, int] = {}
         self._watchers: list[Inbox[DirectoryEvent]] = []
+        self._presence_watchers: list[Inbox[Presence]] = []
         self._subs: list[Subscription[Message] | Subscription[Presence]] = []
         self.invalid = 0
+        self.refused = 0
+        self.stale = 0
 
     async def start(self) -> None:
         """Subscribe, take the snapshot, and follow changes (tasks owned by the platform)."""
@@ -493,6 +549,8 @@ class GlobalDirectory:
             self._replace(platform, services)
         p.spawn(self._follow_events(events), "global-df.events")
         p.spawn(self._follow_presence(presence), "global-df.presence")
+        if self._auth.authenticates:
+            p.spawn(self._recheck(), "global-df.recheck")
 
     def close(self) -> None:
         """Stop following; watchers' iterators end."""
@@ -503,7 +561,10 @@ class GlobalDirectory:
                 pass
         for inbox in self._watchers:
             inbox.close()
+        for pinbox in self._presence_watchers:
+            pinbox.close()
         self._watchers.clear()
+        self._presence_watchers.clear()
 
     @property
     def platforms(self) -> list[str]:
@@ -527,15 +588,51 @@ class GlobalDirectory:
         """An async iterator of changes: services, and platforms coming and going."""
         return _watch(self._watchers, maxlen)
 
+    def watch_presence(self, maxlen: int = 1024) -> Subscription[Presence]:
+        """Platforms coming (``alive``) and going, as this view believes them: authenticated.
+
+        The keys are the presence keys (``dyknow/<fed>/v1/alive/<platform>``), so a
+        consumer of a transport's ``watch_presence`` can take this one instead.
+        """
+        inbox: Inbox[Presence] = Inbox(asyncio.get_running_loop(), maxlen)
+        self._presence_watchers.append(inbox)
+
+        def remove() -> None:
+            if inbox in self._presence_watchers:
+                self._presence_watchers.remove(inbox)
+
+        return Subscription(inbox, remove)
+
     def _tell(self, event: DirectoryEvent) -> None:
         for inbox in list(self._watchers):
             inbox.put(event)
+        if event.op in ("platform-up", "platform-gone"):
+            change = Presence(
+                self._platform.key("alive", event.platform), event.op == "platform-up"
+            )
+            for pinbox in list(self._presence_watchers):
+                pinbox.put(change)
 
-    async def _query(self, platform: str) -> dict[str, list[ServiceDescription]]:
+    def _refuse(self, claimed: str | None, reason: str, stage: str) -> None:
+        """Count and audit what did not authenticate (the channel bounds the records)."""
+        self.refused += 1
+        log.info(
+            "global-df[%s]: %s from %r refused: %s", self._platform.name, stage, claimed, reason
+        )
+        audit = getattr(self._platform.channel, "audit_unauthenticated", None)
+        if audit is not None:
+            audit(claimed, reason, stage)
+
+    async def _query(
+        self, platform: str, timeout: float | None = None
+    ) -> dict[str, list[ServiceDescription]]:
         """Ask the DF(s) for their public services: {platform: services} of those that answered."""
+        nonce = make_nonce()
         try:
             replies = await self._platform.transport.query(
-                self._platform.key("df", platform), timeout=self.query_timeout
+                self._platform.key("df", platform),
+                orjson.dumps({"v": WIRE_VERSION, "nonce": base64.b64encode(nonce).decode()}),
+                timeout=self.query_timeout if timeout is None else timeout,
             )
         except TransportError as exc:
             log.warning("global-df[%s]: query failed: %s", self._platform.name, exc)
@@ -544,8 +641,15 @@ class GlobalDirectory:
         for reply in replies:
             if not reply.ok:
                 continue
+            name = reply.key.rpartition("/")[2]
+            where = None if "*" in name else name
             try:
-                items = orjson.loads(reply.payload)
+                statement = self._auth.open(reply.payload, "df", platform=where, nonce=nonce)
+            except DirectoryStatementError as exc:
+                self._refuse(exc.platform or where, f"directory answer: {exc.reason}", "df")
+                continue
+            try:
+                items = statement.body
                 if not isinstance(items, list):
                     raise ValueError("not a list")
                 services = [ServiceDescription.model_validate(i) for i in items]
@@ -553,10 +657,9 @@ class GlobalDirectory:
                 self.invalid += 1
                 log.warning("global-df: bad answer from %s: %s", reply.key, exc)
                 continue
-            name = reply.key.rpartition("/")[2]
-            if "*" in name:  # the replier kept the query's key: name it by its services
-                name = services[0].platform if services else ""
-            if not name:
+            name = statement.platform
+            if not self._auth.trusted(name):
+                self._refuse(name, "directory answer from a platform not in the trust file", "df")
                 continue
             found[name] = [s for s in services if s.platform == name]
         return found
@@ -592,14 +695,31 @@ class GlobalDirectory:
     async def _follow_events(self, sub: Subscription[Message]) -> None:
         async for item in sub:
             platform = item.key.rpartition("/")[2]
+            try:
+                statement = self._auth.open(item.payload, "df-event", platform=platform)
+            except DirectoryStatementError as exc:
+                if exc.reason.startswith("stale"):
+                    self.stale += 1  # already reflected, or replayed: changes nothing
+                    continue
+                if self._auth.authenticates:
+                    self._refuse(platform, f"directory event: {exc.reason}", "df-events")
+                else:
+                    self.invalid += 1
+                    log.warning(
+                        "global-df[%s]: bad event on %s: %s", self._platform.name, item.key, exc
+                    )
+                continue
             self._event_counts[platform] = self._event_counts.get(platform, 0) + 1
             if platform not in self._alive:
                 continue  # its snapshot will be taken when its token appears
             try:
-                obj = orjson.loads(item.payload)
-                if not isinstance(obj, dict) or obj.get("v") != WIRE_VERSION:
-                    raise ValueError("not a version-1 directory event")
+                obj = statement.body
+                if not isinstance(obj, dict):
+                    raise ValueError("the body of a directory event is an object")
                 op = obj.get("op")
+                if op == "leave":
+                    self._gone(platform)
+                    continue
                 if op not in _OPS:
                     raise ValueError(f"unknown op {op!r}")
                 service = ServiceDescription.model_validate(obj.get("service"))
@@ -613,33 +733,104 @@ class GlobalDirectory:
                 continue
             self._apply(platform, op, service)
 
+    def _gone(self, platform: str) -> None:
+        if platform in self._alive:
+            self._alive.discard(platform)
+            self._entries.pop(platform, None)
+            self._tell(DirectoryEvent("platform-gone", platform, None))
+
     async def _follow_presence(self, sub: Subscription[Presence]) -> None:
+        forgeable = getattr(self._platform.transport, "forgeable_presence", False)
         async for change in sub:
             platform = change.key.rpartition("/")[2]
+            if not self._auth.trusted(platform):
+                self._refuse(platform, "presence of a platform not in the trust file", "presence")
+                continue
             if change.alive:
                 if platform in self._alive:
                     continue
                 self._alive.add(platform)
-                await self._fetch(platform)
-                if platform in self._alive:
-                    self._tell(DirectoryEvent("platform-up", platform, None))
+                confirmed = await self._fetch(platform)
+                if platform not in self._alive:
+                    continue
+                if not confirmed and self._auth.authenticates:
+                    # a token anyone could declare; the platform itself did not answer
+                    self._alive.discard(platform)
+                    self._entries.pop(platform, None)
+                    self._refuse(platform, "presence without a signed directory answer", "presence")
+                    continue
+                self._tell(DirectoryEvent("platform-up", platform, None))
             elif platform in self._alive:
-                self._alive.discard(platform)
-                self._entries.pop(platform, None)
-                self._tell(DirectoryEvent("platform-gone", platform, None))
+                if forgeable and self._auth.authenticates and await self._answers(platform):
+                    self._refuse(
+                        platform,
+                        "presence cleared without a signed leave while the platform "
+                        "still answers: ignored",
+                        "presence",
+                    )
+                    continue
+                self._gone(platform)
 
-    async def _fetch(self, platform: str) -> None:
-        """Take ``platform``'s snapshot; again if events came meanwhile (they may be newer)."""
+    async def _recheck(self) -> None:
+        """Ask every member again now and then: the liveness presence alone cannot prove.
+
+        On zenoh a token stays while *any* session holds one on the key, so a token forged
+        under a running platform's name would keep it listed after it dies. A member that
+        answers no signed query twice in a row is gone; one that answers while not listed
+        (it was taken for gone while it hung) is up again.
+        """
+        misses: dict[str, int] = {}
+        last = time.monotonic()
+        while True:
+            await asyncio.sleep(0.25)  # the interval may be changed while running
+            interval = self.recheck_interval
+            if interval is None or time.monotonic() - last < interval:
+                continue
+            last = time.monotonic()
+            # generous: a busy member must not be taken for gone (nothing waits on this)
+            answered = await self._query("*", max(self.query_timeout, 5.0))
+            for platform in sorted(self._alive):
+                if platform == self._platform.name or platform in answered:
+                    misses.pop(platform, None)
+                    continue
+                misses[platform] = misses.get(platform, 0) + 1
+                if misses[platform] >= 2:
+                    del misses[platform]
+                    self._refuse(
+                        platform,
+                        "presence still held, but the platform answered no signed directory "
+                        "query twice in a row: taken for gone",
+                        "presence",
+                    )
+                    self._gone(platform)
+            for platform, services in answered.items():
+                if platform not in self._alive and platform != self._platform.name:
+                    self._alive.add(platform)
+                    self._replace(platform, services)
+                    self._tell(DirectoryEvent("platform-up", platform, None))
+
+    async def _answers(self, platform: str) -> bool:
+        """Whether ``platform`` answers a fresh signed query now."""
+        return platform in await self._query(platform)
+
+    async def _fetch(self, platform: str) -> bool:
+        """Take ``platform``'s snapshot; again if events came meanwhile (they may be newer).
+
+        True when the platform answered (authenticated, with a trust file).
+        """
         for attempt in range(3):
             seen = self._event_counts.get(platform, 0)
             services = (await self._query(platform)).get(platform)
             if platform not in self._alive:
-                return  # gone while we asked
+                return False  # gone while we asked
             if services is None:
-                return  # no answer: keep what the events say
+                if self._auth.authenticates and attempt < 2:
+                    continue  # it may still be starting: ask again before refusing
+                return False  # no answer: keep what the events say (without a trust file)
             if self._event_counts.get(platform, 0) == seen or attempt == 2:
                 self._replace(platform, services)
-                return
+                return True
+        return False
 
 
 # -- client helpers (ACL) ----------------------------------------------------------------

@@ -782,6 +782,10 @@ class InterfaceAgent:
         sender.pending_refused = 0
         sender.last_report = now
 
+    def audit_unauthenticated(self, claimed: str | None, reason: str, stage: str) -> None:
+        """Audit input that did not authenticate (directory, presence), within the budget."""
+        self._drop_unauthenticated(claimed, reason, stage=stage)
+
     def _drop_unauthenticated(
         self, claimed: str | None, reason: str, *, stage: str | None = None
     ) -> None:
@@ -899,8 +903,8 @@ class InterfaceAgent:
         host = self._require_host()
         async for change in presence:
             peer = change.key.rpartition("/")[2]
-            if peer == host.name:
-                continue
+            if peer == host.name or peer not in self.trust:
+                continue  # no session with an untrusted name to forget (the directory audits it)
             self.sessions.forget(peer)
             self._last_rehandshake.pop(peer, None)
             if change.alive:

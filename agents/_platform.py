@@ -23,6 +23,7 @@ import orjson
 
 from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, name_of, platform_of
 from ._agent import NEVER_ANSWERED, Agent
+from ._directory_auth import DirectoryAuth
 from ._exceptions import AgentError, MessageError
 from .transports import Handle, Subscription, Transport
 from .transports._base import Message
@@ -212,6 +213,15 @@ class AgentPlatform:
         self.transport = transport
         self.channel: RemoteChannel = channel if channel is not None else PlainChannel()
         self.query_timeout = query_timeout
+        # Signs this platform's directory statements and checks others' (with the
+        # channel's key pair and trust file, when it has them: docs/security.md).
+        policy = getattr(self.channel, "policy", None)
+        self.directory_auth = DirectoryAuth(
+            federation,
+            getattr(self.channel, "keys", None),
+            getattr(self.channel, "trust", None),
+            skew=getattr(policy, "skew", 30.0),  # the channel's, as for its envelopes
+        )
         self.stats = PlatformStats()
         self.df: DirectoryFacilitator | None = None
         self.global_df: GlobalDirectory | None = None
@@ -292,6 +302,12 @@ class AgentPlatform:
 
     async def _shutdown(self) -> None:
         self._state = _CLOSING
+        if self.df is not None and self._token is not None:
+            try:  # signed, so others believe it at once (a cleared presence alone may be forged)
+                async with asyncio.timeout(self.query_timeout):
+                    await self.df.announce_leave()
+            except Exception as exc:  # the transport may be gone already
+                log.debug("platform[%s]: announcing the leave: %s", self.name, exc)
         if self._token is not None:
             try:
                 await self._token.aclose()

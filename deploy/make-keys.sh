@@ -40,6 +40,8 @@ for platform in "${platforms[@]}"; do
     pubs+=("${keys_dir}/${platform}.pub")
 done
 "${keys[@]}" trust --trust-file "${trust_file}" --federation "${federation}" "${pubs[@]}"
+# the hubs' access control, from the trust file (the same as shipped for these platforms)
+"${PYTHON:-python3}" "${here}/make_hub_configs.py" --trust-file "${trust_file}" --out "${config_dir}"
 
 # the zenoh links: the federation's CA, the router's and each platform's certificate
 certs=()

@@ -39,7 +39,14 @@ HERE = Path(__file__).resolve().parent
 DEFAULT_DIR = HERE / "config" / "keys" / "tls"
 DEFAULT_PLATFORMS = ("uav-a", "uav-b", "uav-c", "operator")
 # the router's address on the compose network (docker-compose.yml) and the usual local names
-DEFAULT_ROUTER_NAMES = ("router", "localhost", "127.0.0.1", "172.28.0.10")
+DEFAULT_ROUTER_NAMES = (
+    "router",
+    "mosquitto",
+    "localhost",
+    "127.0.0.1",
+    "172.28.0.10",
+    "172.29.0.10",
+)
 DAYS = 825
 _NAME = re.compile(r"^[A-Za-z0-9_.-]{1,128}$")
 _HOST = re.compile(r"^[A-Za-z0-9]([A-Za-z0-9-]{0,62})(\.[A-Za-z0-9]([A-Za-z0-9-]{0,62}))*$")

@@ -87,6 +87,7 @@ from agents._kxgate import KxLimit
 from agents.transports import (
     MqttConfig,
     MqttTransport,
+    Presence,
     Subscription,
     Transport,
     ZenohConfig,
@@ -343,7 +344,7 @@ class PlatformConfig(BaseModel):
             value = getattr(self, name)
             if isinstance(value, Path) and not value.is_absolute():
                 update[name] = base / value
-        if isinstance(self.transport, ZenohSettings):  # its TLS and password files
+        if isinstance(self.transport, ZenohSettings | MqttSettings):  # its TLS (and password) files
             update["transport"] = self.transport.relative_to(base)
         token_file = self.console.token_file
         if token_file is not None and not token_file.is_absolute():
@@ -559,6 +560,7 @@ class FederationPlatform:
             on_refused=self._import_refused,
             # counters of what nobody agreed: a few labels for reading, then one bucket
             max_strays=64,
+            presence=self._members_presence,
         )
         sharing = config.sharing.sharing()
         self.federation_agent = FederationAgent(
@@ -581,6 +583,13 @@ class FederationPlatform:
 
     def __repr__(self) -> str:
         return f"<FederationPlatform {self.name} ({self.config.federation})>"
+
+    def _members_presence(self) -> Subscription[Presence]:
+        """Senders coming and going as the global directory authenticated them."""
+        gdf = self.agents.global_df
+        if gdf is None:
+            raise RuntimeError("the platform keeps no global directory")
+        return gdf.watch_presence()
 
     @classmethod
     def from_file(cls, path: str | Path, **options: Any) -> FederationPlatform:

@@ -1184,6 +1184,7 @@ class ImportProxy:
         buffer_size: int = 1024,
         max_strays: int = 1024,
         report_interval: float = 0.5,
+        presence: Callable[[], TransportSubscription[Presence]] | None = None,
     ) -> None:
         self.platform = check_name(platform_name)
         self.federation = check_name(federation, "federation")
@@ -1201,6 +1202,10 @@ class ImportProxy:
         self.buffer_size = buffer_size  # batches, not samples: ~256 k samples by default
         self.max_strays = max_strays
         self.report_interval = report_interval
+        # where senders' comings and goings are learnt: an authenticated source (the
+        # global directory's `watch_presence`) rather than raw presence, which on MQTT
+        # anyone can clear
+        self._presence = presence
         self._prefix = wire_key(self.federation, "stream", self.platform) + "/"
         self._imports: dict[tuple[str, str], Import] = {}
         # counters of what matches no agreed import (unauthenticated claims included):
@@ -1223,9 +1228,12 @@ class ImportProxy:
         if self._state != "unopened":
             raise RuntimeError(f"the import proxy is {self._state}; it cannot start again")
         self._state = "started"
-        presence = await self.transport.watch_presence(
-            wire_key(self.federation, "alive", "*"), history=False
-        )
+        if self._presence is not None:
+            presence = self._presence()
+        else:
+            presence = await self.transport.watch_presence(
+                wire_key(self.federation, "alive", "*"), history=False
+            )
         self._subs.append(presence)
         streams = await self.transport.subscribe(
             self._prefix + "*/**", buffer_size=self.buffer_size

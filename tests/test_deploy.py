@@ -40,7 +40,7 @@ MOUNT = PurePosixPath("/etc/dyknow")
 TOPOLOGIES = {
     # the authenticated router: mutual TLS, passwords, access control (router-secure.json5)
     "docker-compose.yml": ("router", 7447, "secure/", "zenoh"),
-    "docker-compose.mqtt.yml": ("mosquitto", 1883, "mqtt/", "mqtt"),
+    "docker-compose.mqtt.yml": ("mosquitto", 8883, "mqtt/", "mqtt"),
 }
 
 
@@ -173,12 +173,16 @@ def test_compose_topology(file: str) -> None:
                 continue  # the operator runs no application of its own
             target = PurePosixPath(*_normalize(container_config.parent / config[key]).parts)
             assert target in mounts, f"{file}: {name}: {key} {target} is not mounted"
-        # its own private keys only (its platform key; over TLS its certificate's key)
+        # its own private keys only (its identity, its TLS key; over zenoh its password)
         keys = sorted(m for m in mounts if m.suffix in (".key", ".password"))
-        own = [MOUNT / "keys" / f"{name}.key"]
+        own = [MOUNT / "keys" / f"{name}.key", MOUNT / "tls" / f"{name}.key"]
         if kind == "zenoh":
-            own += [MOUNT / "tls" / f"{name}.key", MOUNT / "tls" / f"{name}.password"]
+            own += [MOUNT / "tls" / f"{name}.password"]
         assert keys == sorted(own), f"{file}: {name} mounts {keys}"
+        if kind == "mqtt":  # the broker admits TLS clients only: every file is mounted
+            assert MOUNT / "tls" / "ca.crt" in mounts
+            for field, path in config["transport"]["tls"].items():
+                assert PurePosixPath(path) in mounts, f"{file}: {name}: tls.{field}"
         # the transport points at the hub's fixed address
         transport = config["transport"]
         assert transport["kind"] == kind
@@ -206,8 +210,16 @@ def test_compose_topology(file: str) -> None:
     else:
         broker = services[hub]
         assert broker["image"].startswith("eclipse-mosquitto:")
-        conf = _mounts(broker)[PurePosixPath("/mosquitto/config/mosquitto.conf")]
-        assert f"listener {port}" in conf.read_text()
+        mounts = _mounts(broker)
+        conf = mounts[PurePosixPath("/mosquitto/config/mosquitto.conf")]
+        assert conf == CONFIG / "mosquitto-secure.conf"
+        text = conf.read_text()
+        assert f"listener {port}" in text and "require_certificate true" in text
+        # every file the broker's config names is mounted there
+        for line in text.splitlines():
+            word, _, value = line.partition(" ")
+            if word in ("cafile", "certfile", "keyfile", "acl_file"):
+                assert PurePosixPath(value) in mounts, f"{file}: broker {word} {value}"
 
 
 @pytest.mark.parametrize("file", sorted(TOPOLOGIES))

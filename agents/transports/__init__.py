@@ -20,7 +20,7 @@ from ._base import (
     key_matches,
 )
 from ._memory import MemoryHub, MemoryTransport
-from ._mqtt import MqttConfig, MqttTransport
+from ._mqtt import MqttConfig, MqttTls, MqttTransport
 from ._zenoh import ZenohConfig, ZenohTls, ZenohTransport, ZenohUser
 
 __all__ = [
@@ -30,6 +30,7 @@ __all__ = [
     "MemoryTransport",
     "Message",
     "MqttConfig",
+    "MqttTls",
     "MqttTransport",
     "Presence",
     "QueryFilter",

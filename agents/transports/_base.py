@@ -247,6 +247,12 @@ class Transport(ABC):
     """
 
     name = "transport"
+    forgeable_presence = False
+    """True when any client may make a presence look gone (MQTT: an empty retained message).
+
+    On zenoh (and in memory) a presence is gone only when every token on the key is: a
+    client may add a token, never remove another's.
+    """
 
     def __init__(self) -> None:
         self._state = "unopened"

@@ -24,11 +24,24 @@ Query / serve (a topic convention on MQTT v5 request/response)
     properties ``key`` = ``S`` and ``ok`` = ``1`` or ``0`` (an error reply: a handler
     that raised or ran past ``serve_timeout``).
 
+Client ids
+    Every connection's id is the configured ``client_id`` followed by ``-`` and 64 random
+    bits, drawn again on each reconnection; the reply topic is ``@reply/<client_id>/``
+    and 96 random bits: it names the configured prefix (a broker ACL can give each
+    platform its own replies), never a connection's id. A broker evicts a client when
+    another connects with its id: an id nobody knows cannot be taken over.
+
+TLS
+    ``tls`` (`MqttTls`): the CA that signed the broker's certificate and, for mutual TLS,
+    this client's certificate and key (with the generated broker config its CN is the
+    platform's name and the broker's user name for it).
+
 Presence
     ``declare_token`` opens one more connection per token, whose last will is an empty
     retained message on the key; it then publishes ``{"v":1,"alive":true}`` retained on the
-    key. Closing the token publishes the empty retained message (which clears it); a
-    process that dies loses its connection and the broker publishes the will.
+    key, and announces again when someone else clears the key or its connection drops.
+    Closing the token publishes the empty retained message (which clears it); a process
+    that dies loses its connection and the broker publishes the will.
     ``watch_presence`` subscribes to the key expression: retained messages are the
     history, live ones the changes; a watcher reports only changes.
 
@@ -42,8 +55,9 @@ What MQTT cannot guarantee, compared to zenoh
       network; and a broker that restarts without persistence forgets every token.
     - Presence is one retained message per key: two tokens on the same key are not
       counted, the first to go clears the key.
-    - QoS 0 (the default) is at most once; nothing is redelivered after a reconnection,
-      and this transport does not reconnect: a lost connection ends every subscription
+    - QoS 0 (the default) is at most once; nothing is redelivered after a reconnection.
+      A lost connection is reconnected once at once (a new client id, every subscription
+      again; a token announces itself again); when that fails, every subscription ends
       and later calls raise TransportClosed.
     - Attachments travel base64-encoded in a user property.
 """
@@ -56,10 +70,13 @@ import contextlib
 import itertools
 import json
 import logging
+import secrets
 import socket
+import ssl
 import uuid
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 import aiomqtt
@@ -96,6 +113,61 @@ def _new_client_id() -> str:
     return f"dyknow-{uuid.uuid4().hex[:16]}"
 
 
+def _connection_id(prefix: str) -> str:
+    """A client id for one connection: the configured prefix and 64 random bits.
+
+    A broker drops a client when another connects with its id (MQTT's session takeover):
+    an id nobody can guess cannot be taken, and a new one is drawn on every reconnection.
+    """
+    return f"{prefix}-{secrets.token_hex(8)}"
+
+
+class MqttTls(BaseModel):
+    """TLS to the broker: the CA that signed it, and this client's certificate (mutual TLS).
+
+    With the generated broker config (``deploy/make_hub_configs.py``) the certificate's CN
+    is the platform's name and becomes its MQTT user name.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    root_ca_certificate: Path
+    certificate: Path | None = None
+    private_key: Path | None = None
+
+    @model_validator(mode="after")
+    def _pair(self) -> MqttTls:
+        if (self.certificate is None) != (self.private_key is None):
+            raise ValueError("give both certificate and private_key, or neither")
+        return self
+
+    def relative_to(self, base: Path) -> MqttTls:
+        """A copy with relative paths resolved against ``base``."""
+        update = {
+            name: base / value
+            for name in ("root_ca_certificate", "certificate", "private_key")
+            if isinstance(value := getattr(self, name), Path) and not value.is_absolute()
+        }
+        return self.model_copy(update=update)
+
+    def context(self) -> ssl.SSLContext:
+        """The client's SSL context; TransportError naming the file that cannot be read."""
+        try:
+            ctx = ssl.create_default_context(cafile=str(self.root_ca_certificate))
+        except (OSError, ssl.SSLError) as exc:
+            raise TransportError(
+                f"tls.root_ca_certificate: {self.root_ca_certificate}: {exc}"
+            ) from exc
+        if self.certificate is not None and self.private_key is not None:
+            try:
+                ctx.load_cert_chain(str(self.certificate), str(self.private_key))
+            except (OSError, ssl.SSLError) as exc:
+                raise TransportError(
+                    f"tls.certificate/private_key: {self.certificate}: {exc}"
+                ) from exc
+        return ctx
+
+
 class MqttConfig(BaseModel):
     """Where the MQTT broker is and how to talk to it; validated once, errors name the field."""
 
@@ -105,8 +177,11 @@ class MqttConfig(BaseModel):
     port: int = Field(default=1883, ge=1, le=65535)
     client_id: str = Field(
         default_factory=_new_client_id,
-        pattern=r"^[A-Za-z0-9_.-]{1,64}$",
-        description="Unique per broker: a second connection with the same id evicts the first.",
+        pattern=r"^[A-Za-z0-9_.-]{1,40}$",
+        description=(
+            "The prefix of every connection's client id; each connection adds 64 random "
+            "bits, so no other client can take its id over (and evict it)."
+        ),
     )
     username: str | None = None
     password: SecretStr | None = None
@@ -118,11 +193,18 @@ class MqttConfig(BaseModel):
     )
     qos: Literal[0, 1, 2] = Field(default=0, description="QoS of publications and queries.")
     connect_timeout: float = Field(default=10.0, gt=0)
+    tls: MqttTls | None = None
     serve_timeout: float = Field(
         default=10.0,
         gt=0,
         description="Seconds a query handler may run before the query gets an error reply.",
     )
+
+    def relative_to(self, base: str | Path) -> MqttConfig:
+        """A copy whose TLS files are resolved against ``base`` (a config file's directory)."""
+        if self.tls is None:
+            return self
+        return self.model_copy(update={"tls": self.tls.relative_to(Path(base))})
 
     @model_validator(mode="after")
     def _credentials(self) -> MqttConfig:
@@ -243,6 +325,7 @@ class MqttTransport(Transport):
     """The Transport over one MQTT v5 broker connection (plus one per liveliness token)."""
 
     name = "mqtt"
+    forgeable_presence = True
 
     def __init__(self, config: MqttConfig | Mapping[str, Any] | None = None) -> None:
         super().__init__()
@@ -251,14 +334,16 @@ class MqttTransport(Transport):
         )
         self._client: aiomqtt.Client | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._reply_topic = f"{REPLY_PREFIX}/{self.config.client_id}"
+        # not derived from the client id: queries show it to every queryable
+        self._reply_topic = f"{REPLY_PREFIX}/{self.config.client_id}/{secrets.token_hex(12)}"
+        self.reconnects = 0
+        self._up: asyncio.Event | None = None  # set while the main connection serves
         self._filters: dict[str, _Filter] = {}
         self._by_sid: dict[int, _Filter] = {}
         self._sids = itertools.count(_REPLY_SID + 1)
         self._unsubscribing: dict[str, asyncio.Task[None]] = {}
         self._pending: dict[bytes, Inbox[Reply]] = {}
         self._correlation = itertools.count(1)
-        self._token_ids = itertools.count(1)
         self._subs: set[Subscription[Any]] = set()
         self._handles: set[Handle] = set()
         self._tasks: set[asyncio.Task[None]] = set()
@@ -277,12 +362,24 @@ class MqttTransport(Transport):
             keepalive=c.keepalive,
             timeout=c.connect_timeout,
             will=will,
+            tls_context=None if c.tls is None else c.tls.context(),
         )
 
     async def open(self) -> None:
         """Connect to the broker, subscribe to this client's reply topic, start receiving."""
         loop = asyncio.get_running_loop()
-        client = self._new_client(self.config.client_id)
+        client = await self._connect_main()
+        self._client = client
+        self._loop = loop
+        self._up = asyncio.Event()
+        self._up.set()
+        self._receiver = loop.create_task(
+            self._receive(client), name=f"mqtt[{self.config.client_id}].receive"
+        )
+
+    async def _connect_main(self) -> aiomqtt.Client:
+        """Connect with a fresh client id and subscribe to this transport's reply topic."""
+        client = self._new_client(_connection_id(self.config.client_id))
         where = f"{self.config.host}:{self.config.port}"
         try:
             await client.__aenter__()
@@ -297,11 +394,7 @@ class MqttTransport(Transport):
             with contextlib.suppress(aiomqtt.MqttError):
                 await _disconnect(client)
             raise TransportError(f"mqtt: cannot subscribe to replies on {where}: {exc}") from exc
-        self._client = client
-        self._loop = loop
-        self._receiver = loop.create_task(
-            self._receive(client), name=f"mqtt[{self.config.client_id}].receive"
-        )
+        return client
 
     async def aclose(self) -> None:
         """Clear this transport's tokens, end every subscription and query, and disconnect."""
@@ -347,18 +440,47 @@ class MqttTransport(Transport):
         return SubscribeOptions(qos=self.config.qos)
 
     async def _receive(self, client: aiomqtt.Client) -> None:
-        """Hand every incoming message to whatever listens through its subscription."""
-        try:
-            async for message in client.messages:
-                self._dispatch(message)
-        except aiomqtt.MqttError as exc:
-            if self._state == "opened":
-                log.warning("mqtt: connection to the broker lost: %s", exc)
-                self._lost = exc
-                for sub in list(self._subs):
-                    sub.inbox.close()
-                for inbox in self._pending.values():
-                    inbox.close()
+        """Hand every incoming message to whatever listens through its subscription.
+
+        A lost connection (the broker went, or dropped us for another client) is
+        reconnected once, with a new client id and every subscription again; only when
+        that fails are the subscriptions ended.
+        """
+        while True:
+            try:
+                async for message in client.messages:
+                    self._dispatch(message)
+                return
+            except aiomqtt.MqttError as exc:
+                if self._state != "opened":
+                    return
+                log.warning("mqtt: connection to the broker lost (%s); reconnecting", exc)
+                if self._up is not None:
+                    self._up.clear()
+                try:
+                    client = await self._reconnect(client)
+                except (TransportError, aiomqtt.MqttError) as again:
+                    log.warning("mqtt: could not reconnect: %s", again)
+                    self._lost = exc
+                    for sub in list(self._subs):
+                        sub.inbox.close()
+                    for inbox in self._pending.values():
+                        inbox.close()
+                    return
+
+    async def _reconnect(self, old: aiomqtt.Client) -> aiomqtt.Client:
+        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+            async with asyncio.timeout(1.0):
+                await _disconnect(old)
+        client = await self._connect_main()
+        self._client = client
+        for f in list(self._filters.values()):
+            await client.subscribe(f.topic, options=self._options(), properties=_sid(f.sid))
+        self.reconnects += 1
+        if self._up is not None:
+            self._up.set()
+        log.warning("mqtt: reconnected to the broker (%d time(s))", self.reconnects)
+        return client
 
     def _dispatch(self, m: aiomqtt.Message) -> None:
         props = m.properties
@@ -626,41 +748,29 @@ class MqttTransport(Transport):
             log.debug("mqtt: could not reply to a query on %r: %s", server.key_expr, exc)
 
     async def declare_token(self, key: str) -> Handle:
-        """Announce ``key`` (retained), cleared on close or, through a last will, on death."""
+        """Announce ``key`` (retained), cleared on close or, through a last will, on death.
+
+        The token's connection is watched: dropped (another client took its id, or the
+        broker restarted) it reconnects with a new id and announces again; a presence
+        message on its key that is not its own (someone cleared it) is answered by
+        announcing again.
+        """
         self._connected()
         if "*" in key:
             raise TransportError(f"a liveliness token needs a concrete key, not {key!r}")
         _chunks(key)
-        n = next(self._token_ids)
-        client = self._new_client(
-            f"{self.config.client_id}.t{n}", will=aiomqtt.Will(key, b"", qos=1, retain=True)
-        )
-        try:
-            await client.__aenter__()
-            _no_delay(client)
-        except aiomqtt.MqttError as exc:
-            raise self._error(f"connect for the token on {key!r}", exc) from exc
-        try:
-            await client.publish(key, ALIVE, qos=1, retain=True)
-        except aiomqtt.MqttError as exc:
-            with contextlib.suppress(aiomqtt.MqttError):
-                await _disconnect(client)
-            raise self._error(f"declare the token on {key!r}", exc) from exc
-
-        async def clear() -> None:
-            try:
-                await client.publish(key, b"", qos=1, retain=True)
-            except aiomqtt.MqttError as exc:
-                log.warning("mqtt: could not clear the token on %r: %s", key, exc)
-            finally:
-                with contextlib.suppress(aiomqtt.MqttError):
-                    await _disconnect(client)
+        token = _Token(self, key)
+        await token.connect()
+        assert self._loop is not None
+        task = self._loop.create_task(token.keep(), name=f"mqtt.token[{key}].keep")
+        self._own(task)
+        token.task = task
 
         def start_clearing() -> None:
             if self._loop is not None:
-                self._own(self._loop.create_task(clear(), name=f"mqtt.token[{key}].clear"))
+                self._own(self._loop.create_task(token.clear(), name=f"mqtt.token[{key}].clear"))
 
-        return self._handle(start_clearing, clear)
+        return self._handle(start_clearing, token.clear)
 
     async def watch_presence(
         self, key_expr: str, *, history: bool = True, buffer_size: int = 4096
@@ -674,6 +784,86 @@ class MqttTransport(Transport):
         return self._subscription(
             inbox, lambda: self._detach(topic, lambda f: f.watchers.remove(watcher))
         )
+
+
+class _Token:
+    """One presence token: its own connection, whose last will clears the key."""
+
+    def __init__(self, transport: MqttTransport, key: str) -> None:
+        self.transport = transport
+        self.key = key
+        self.client: aiomqtt.Client | None = None
+        self.task: asyncio.Task[None] | None = None
+        self.closing = False
+        self.reconnects = 0
+
+    async def connect(self) -> None:
+        t = self.transport
+        client = t._new_client(
+            _connection_id(t.config.client_id),
+            will=aiomqtt.Will(self.key, b"", qos=1, retain=True),
+        )
+        try:
+            await client.__aenter__()
+            _no_delay(client)
+        except aiomqtt.MqttError as exc:
+            raise t._error(f"connect for the token on {self.key!r}", exc) from exc
+        try:
+            await client.subscribe(self.key, qos=1)
+            await client.publish(self.key, ALIVE, qos=1, retain=True)
+        except aiomqtt.MqttError as exc:
+            with contextlib.suppress(aiomqtt.MqttError):
+                await _disconnect(client)
+            raise t._error(f"declare the token on {self.key!r}", exc) from exc
+        self.client = client
+
+    async def keep(self) -> None:
+        """Announce again when the key is cleared by another; reconnect when dropped."""
+        while not self.closing:
+            client = self.client
+            assert client is not None
+            try:
+                async for message in client.messages:
+                    if not message.payload and not self.closing:
+                        log.warning("mqtt: presence %r cleared by another client", self.key)
+                        await client.publish(self.key, ALIVE, qos=1, retain=True)
+                return
+            except aiomqtt.MqttError as exc:
+                if self.closing or self.transport._state != "opened":
+                    return
+                log.warning("mqtt: the token's connection on %r was lost: %s", self.key, exc)
+            with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+                async with asyncio.timeout(1.0):
+                    await _disconnect(client)
+            # announced again only once this platform answers again (queries, DF)
+            up = self.transport._up
+            if up is not None:
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(self.transport.config.connect_timeout):
+                        await asyncio.sleep(0.1)  # the main connection's loss may come next
+                        await up.wait()
+            try:
+                await self.connect()
+            except TransportError as exc:
+                log.warning("mqtt: could not announce %r again: %s", self.key, exc)
+                return
+            self.reconnects += 1
+
+    async def clear(self) -> None:
+        self.closing = True
+        client = self.client
+        if client is None:
+            return
+        try:
+            await client.publish(self.key, b"", qos=1, retain=True)
+        except aiomqtt.MqttError as exc:
+            log.warning("mqtt: could not clear the token on %r: %s", self.key, exc)
+        finally:
+            with contextlib.suppress(aiomqtt.MqttError):
+                await _disconnect(client)
+            task = self.task
+            if task is not None and task is not asyncio.current_task() and not task.done():
+                task.cancel()
 
 
 def _sid(sid: int) -> Properties:
