@@ -103,7 +103,8 @@ def router_json5(federation: str, platforms: Sequence[str]) -> str:
     )
     everyone = ", ".join(f'"{p}"' for p in names)
     policies = "\n".join(
-        f'      {{ id: "{p}", rules: ["{p}-sends", "{p}-receives", "{p}-itself"], subjects: ["{p}"] }},'
+        f'      {{ id: "{p}", rules: ["{p}-sends", "{p}-receives", "{p}-itself"], '
+        f'subjects: ["{p}"] }},'
         for p in names
     )
     rules_text = "\n".join(rules)
