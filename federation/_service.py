@@ -151,6 +151,9 @@ FEDERATION_AGENT = "federation"
 FEDERATION_SERVICE_TYPE = "dyknow-federation"
 """The Directory Facilitator service type of the DyKnow Federation service."""
 
+MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
+"""Membership subscriptions one other platform may hold here (each event informs each)."""
+
 __all__ = [
     "FEDERATION_AGENT",
     "FEDERATION_SERVICE_TYPE",
@@ -504,6 +507,23 @@ class FederationAgent(Agent):
     def _accept_subscriber(self, message: ACLMessage) -> None:
         if message.content != {"membership": True}:
             raise Refuse('subscribe with {"membership": true}')
+        asker = platform_of(message.sender)
+        if asker == self.platform.name:
+            return
+        # bounded per platform: every membership event informs every subscriber, so
+        # unbounded subscriptions would cost memory and make each event a flood
+        key = (message.sender, message.conversation_id or "")
+        held = sum(
+            1 for k in self._subscribers.subscribers if k != key and platform_of(k[0]) == asker
+        )
+        if held >= MAX_MEMBERSHIP_SUBSCRIPTIONS:
+            exc = Denied(
+                "subscription-limit",
+                f"too many membership subscriptions for {asker} (limit "
+                f"{MAX_MEMBERSHIP_SUBSCRIPTIONS}: {held} held)",
+            )
+            self._denied(message, exc)
+            raise Refuse(exc.reason)
 
     async def _follow_directory(self, events: Subscription[DirectoryEvent]) -> None:
         async for event in events:
