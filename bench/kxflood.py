@@ -151,6 +151,7 @@ async def _node(
                     {
                         "cpu": time.process_time(),
                         "kx_shed": pf.stats.kx_shed,
+                        "watch_shed": channel.watch_shed,
                         "shed": dict(gate.shed),
                         "admitted": gate.admitted,
                         "rehandshakes": pf.stats.rehandshakes,

@@ -10,14 +10,38 @@ audit record.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import multiprocessing
+import os
+import time
+from collections.abc import Iterator
+from multiprocessing.connection import Connection
 from pathlib import Path
 
+import orjson
 import pytest
 from test_faults import until
 from test_member_authz import audited, in_file, mallory, refusal, world
 
-from agents import Refused
+from agents import Refused, wire_key
+from agents._interface import WATCH_RATE
 from agents._protocols import SubscriptionStream, subscribe
+from agents._security import KeyPair, watch_request
+from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+from bench.kxflood import (
+    FLOOD_SECONDS,
+    MEMBER,
+    PACE_N,
+    PACE_PERIOD,
+    START,
+    VICTIM,
+    WAIT,
+    Federation,
+    figures,
+    latency_bound,
+    p99,
+    recv,
+)
 from federation._service import MAX_MEMBERSHIP_SUBSCRIPTIONS
 
 pytestmark = pytest.mark.timeout(180)
@@ -67,3 +91,86 @@ async def test_membership_subscriptions_are_bounded_per_platform(tmp_path: Path)
         assert s["refusals"].get("subscription-limit") == extra + 1
         for stream in held:
             await stream.cancel()
+
+
+# -- an outsider's flood of watch requests ---------------------------------------------------
+
+
+@pytest.fixture
+def _no_leftover_children() -> Iterator[None]:
+    yield
+    for proc in multiprocessing.active_children():
+        proc.kill()
+        proc.join(timeout=5)
+
+
+def _forged_watch_requests(fed: str) -> list[bytes]:
+    """Well-formed watch requests in the victim's name, signed with the attacker's keys."""
+    out = [watch_request(KeyPair.generate(VICTIM), fed) for _ in range(2000)]
+    return out + [os.urandom(200) for _ in range(200)]
+
+
+async def _watch_as_owner(port: int, fed: str, keys: KeyPair) -> list[bytes]:
+    """The owner's own watch request (as `dyknow watch` sends it): the replies."""
+    config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+    async with ZenohTransport(config) as t:
+        for _ in range(20):  # the first query may go out before the route is known
+            replies = await t.query(
+                wire_key(fed, "watch", VICTIM), watch_request(keys, fed), timeout=2.0
+            )
+            if replies:
+                return [r.payload for r in replies]
+            await asyncio.sleep(0.2)
+    return []
+
+
+@pytest.mark.usefixtures("_no_leftover_children")
+def test_a_watch_request_flood_is_shed_before_the_event_loop(tmp_path: Path) -> None:
+    """10 000 forged watch requests/s (the watch key, not kx): shed, counted, audited.
+
+    Each request reached the event loop as a task before: the victim's CPU doubled
+    against a key-exchange flood and a member's p99 neared 20 ms. Now at most
+    WATCH_RATE/s go on; the owner can watch once the flood is over.
+    """
+    f = Federation(tmp_path)
+    pipes: list[Connection] = []
+    try:
+        victim = f.node(VICTIM, f.port, [])
+        pipes.append(victim)
+        assert recv(victim, "the victim", START) == "ready"
+        attacker = f.attacker("watch", _forged_watch_requests(f.fed))
+        pipes.append(attacker)
+        member = f.node(MEMBER, free_tcp_port(), [f.port])
+        pipes.append(member)
+        assert recv(member, "the member", START) == "ready"
+        assert recv(attacker, "the attacker", START) == "ready"
+        member.send("pace")
+        recv(member, "the member's first requests", WAIT + PACE_N * PACE_PERIOD)
+        member.send("pace")
+        calm = recv(member, "the member's calm requests", WAIT + PACE_N * PACE_PERIOD)
+        attacker.send("go")
+        time.sleep(0.5)
+        member.send("pace")
+        during = recv(member, "the member's requests during the flood", 3 * FLOOD_SECONDS)
+        with contextlib.suppress(OSError):
+            attacker.send("stop")
+        sent, seconds = recv(attacker, "the attacker's count")
+        time.sleep(1.0)  # the last summary
+        victim.send("report")
+        report = recv(victim, "the victim's report")
+        bound = max(latency_bound(), 3 * p99(calm))
+        assert sent / seconds > 5000, "the attacker did not flood"
+        assert p99(during) <= bound, figures(during)
+        # all but WATCH_RATE/s (and its burst) is shed; most of the flood reached it
+        assert report["watch_shed"] >= 0.5 * sent
+        assert sent - report["watch_shed"] <= WATCH_RATE * (seconds + 3) + WATCH_RATE
+        summaries = [r for r in report["records"] if r.get("stage") == "watch-shed"]
+        assert summaries and sum(r["count"] for r in summaries) == report["watch_shed"]
+        assert summaries[0]["reason"].startswith("watch requests shed: ")
+        assert summaries[0]["verdict"] == "dropped"
+        # the owner still watches, once the flood is over
+        owner = KeyPair.load(f.keydir / f"{VICTIM}.key")
+        replies = asyncio.run(_watch_as_owner(f.port, f.fed, owner))
+        assert replies and orjson.loads(replies[0])["watching"] is True
+    finally:
+        f.close(pipes)
