@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import threading
+import time
 from collections.abc import Callable, Iterable
 from enum import StrEnum
 from typing import TYPE_CHECKING, Annotated, Any, NamedTuple
@@ -32,6 +34,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
 from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_of
 from ._agent import Agent
 from ._exceptions import ServiceError, TransportError
+from ._kxgate import _Bucket
 from ._protocols import (
     DEFAULT_TIMEOUT,
     Publisher,
@@ -49,6 +52,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 FIPA_AGENT_MANAGEMENT = "fipa-agent-management"
+
+DF_QUERY_RATE = 50.0
+"""Global-directory queries per second (bursts as many) answered; the rest are shed."""
 
 _Name = Annotated[str, Field(min_length=1, max_length=200)]
 
@@ -219,12 +225,47 @@ class DirectoryFacilitator(Agent):
             self, ontology=FIPA_AGENT_MANAGEMENT, accept=self._accept_subscriber
         )
         self._queryable: Handle | None = None
+        # directory queries are screened on the transport's thread: anyone on the network
+        # may ask, and a flood would otherwise cost the event loop a task each
+        self._query_lock = threading.Lock()
+        self._query_bucket = _Bucket(DF_QUERY_RATE, DF_QUERY_RATE, time.monotonic())
+        self.queries_shed = 0  # directory queries dropped unanswered, since start
+        self._shed_pending = 0  # since the last audit record
 
     async def setup(self) -> None:
         """Serve this platform's public services to the global directory."""
         self._queryable = await self.platform.transport.serve(
-            self.platform.key("df"), self._serve_public
+            self.platform.key("df"), self._serve_public, admit=self._admit_query
         )
+        self.spawn(self._report_shed(), "df.shed-report")
+
+    def _admit_query(self, payload: bytes) -> bool:
+        """Whether a directory query is answered (called on the transport's thread)."""
+        with self._query_lock:
+            bucket = self._query_bucket
+            if bucket.ready(time.monotonic()):
+                bucket.tokens -= 1.0
+                return True
+            self.queries_shed += 1
+            self._shed_pending += 1
+            return False
+
+    async def _report_shed(self) -> None:
+        """Audit the directory queries shed, summed up, at most once per second."""
+        while True:
+            await asyncio.sleep(1.0)
+            with self._query_lock:
+                n, self._shed_pending = self._shed_pending, 0
+            if n:
+                self.platform.audit(
+                    verdict="dropped",
+                    stage="df-shed",
+                    count=n,
+                    reason=(
+                        f"directory queries shed: {n} dropped unanswered before the event "
+                        f"loop (over {DF_QUERY_RATE:g}/s, bursts of {DF_QUERY_RATE:g})"
+                    ),
+                )
 
     async def teardown(self) -> None:
         """End subscriptions and watches, stop serving."""
