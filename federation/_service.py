@@ -116,6 +116,7 @@ from agents import (
 from agents._agent import reason_of
 from agents._gateway_service import GatewayRefusal, GatewayService, answer_to_json, jsonable
 from agents._gateway_service import Query as GatewayQuery
+from agents._interface import TokenBucket
 from agents._protocols import DEFAULT_TIMEOUT
 from agents.transports import Inbox, Subscription
 from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, UnknownLabelError
@@ -150,6 +151,10 @@ FEDERATION_AGENT = "federation"
 
 FEDERATION_SERVICE_TYPE = "dyknow-federation"
 """The Directory Facilitator service type of the DyKnow Federation service."""
+
+ACCEPT_RATE, ACCEPT_BURST = 2.0, 10.0
+"""accept-stream requests per providing platform per second (bursts) this platform checks
+with their requester; past it they are refused unasked (else a reflection)."""
 
 MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
 """Membership subscriptions one other platform may hold here (each event informs each)."""
@@ -389,6 +394,8 @@ class FederationAgent(Agent):
         # (provider, receiver, label) -> how many of our create-streams asked it for others
         self._for_others: dict[tuple[str, str, str], int] = {}
         self._for_others_by: dict[tuple[str, str], list[tuple[str, str, str]]] = {}
+        # provider -> its accept-stream budget (one per authenticated platform)
+        self._accept_buckets: dict[str, TokenBucket] = {}
         self.instance = instance
         self.anchor = anchor
         self.translator = translator
@@ -711,6 +718,21 @@ class FederationAgent(Agent):
             raise Denied("consent", reason)
         labels = list(dict.fromkeys(req.labels))
         if req.requester != provider:
+            # each check is a request of ours to the requester: bounded per provider, or a
+            # member could make this platform flood a third one in its name
+            now = time.monotonic()
+            bucket = self._accept_buckets.get(provider)
+            if bucket is None:
+                bucket = self._accept_buckets[provider] = TokenBucket(
+                    ACCEPT_RATE, ACCEPT_BURST, now
+                )
+            if not bucket.take(now):
+                raise Denied(
+                    "consent-rate",
+                    f"too many accept-stream requests from {provider} (at most "
+                    f"{ACCEPT_RATE:g}/s, bursts of {ACCEPT_BURST:g}): not checked with "
+                    f"{req.requester}",
+                )
             # the provider only says who asked: the requester confirms it did
             await self._confirm_with(req.requester, provider, labels)
         imports = self.imports

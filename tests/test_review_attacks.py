@@ -29,7 +29,7 @@ from _node_example import Station
 from test_faults import until
 from test_member_authz import audited, in_file, mallory, refusal, world
 
-from agents import Refused, wire_key
+from agents import Refused, request, wire_key
 from agents._protocols import SubscriptionStream, subscribe
 from agents._security import KeyPair, watch_request
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
@@ -48,7 +48,7 @@ from bench.kxflood import (
     p99,
     recv,
 )
-from federation._service import MAX_MEMBERSHIP_SUBSCRIPTIONS
+from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
 
 CLI = [sys.executable, "-m", "federation.cli"]
 
@@ -99,6 +99,57 @@ async def test_membership_subscriptions_are_bounded_per_platform(tmp_path: Path)
         assert s["refusals"].get("subscription-limit") == extra + 1
         for stream in held:
             await stream.cancel()
+
+
+async def test_a_member_cannot_make_a_platform_ask_a_third_one_at_will(tmp_path: Path) -> None:
+    # accept-stream names a requester; the receiver checks with it (confirm-stream). Each
+    # such check was a request of the victim's to the requester: 500 accept-streams from
+    # uav-m made uav-a send 409 confirm-streams (64 labels each) to the operator, whose
+    # audit then showed uav-a asking. Now bounded per provider, refused past it.
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a"], ["operator", "uav-m"], uav_a=consent) as w,
+    ):
+        m = await mallory(w)
+        operator = w.here["operator"].federation_agent
+        content = {
+            "action": "accept-stream",
+            "requester": "operator",
+            "labels": [f"car{i}-state" for i in range(64)],
+        }
+        n = 100
+        t0 = time.monotonic()
+        reasons = await asyncio.gather(
+            *[
+                refusal(request(m, "federation@uav-a", content, ontology=FEDERATION_ONTOLOGY))
+                for _ in range(n)
+            ]
+        )
+        elapsed = time.monotonic() - t0
+        checked = [r for r in reasons if "did not confirm" in r]
+        limited = [r for r in reasons if r.startswith("too many accept-stream requests")]
+        assert len(checked) + len(limited) == n, reasons
+        allowed = ACCEPT_BURST + ACCEPT_RATE * elapsed + 1
+        assert 1 <= len(checked) <= allowed, (len(checked), elapsed)
+        assert limited[0] == (
+            f"too many accept-stream requests from uav-m (at most {ACCEPT_RATE:g}/s, bursts "
+            f"of {ACCEPT_BURST:g}): not checked with operator"
+        )
+        # the operator was asked only for those checked
+        assert operator.refusals.get("consent") == len(checked)
+        s = await w.stats("uav-a")
+        assert s["refusals"].get("consent-rate") == len(limited)
+        recs = audited(
+            s,
+            verdict="refused",
+            stage="federation",
+            code="consent-rate",
+            sender="mallory@uav-m",
+            reason="consent-rate: too many accept-stream requests from uav-m",
+        )
+        assert len(recs) == len(limited)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
 
 
 # -- an outsider's floods of queries on keys other than kx -----------------------------------
