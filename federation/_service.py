@@ -154,7 +154,9 @@ FEDERATION_SERVICE_TYPE = "dyknow-federation"
 
 ACCEPT_RATE, ACCEPT_BURST = 2.0, 10.0
 """accept-stream requests per providing platform per second (bursts) this platform checks
-with their requester; past it they are refused unasked (else a reflection)."""
+with their requester; past it they are refused unasked (else a reflection). The same
+budget bounds, per requesting platform, the create-streams for third platforms whose
+receivers a provider asks (accept-stream)."""
 
 MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
 """Membership subscriptions one other platform may hold here (each event informs each)."""
@@ -396,6 +398,8 @@ class FederationAgent(Agent):
         self._for_others_by: dict[tuple[str, str], list[tuple[str, str, str]]] = {}
         # provider -> its accept-stream budget (one per authenticated platform)
         self._accept_buckets: dict[str, TokenBucket] = {}
+        # requester -> its budget of create-streams that make us ask third platforms
+        self._consent_buckets: dict[str, TokenBucket] = {}
         self.instance = instance
         self.anchor = anchor
         self.translator = translator
@@ -720,13 +724,7 @@ class FederationAgent(Agent):
         if req.requester != provider:
             # each check is a request of ours to the requester: bounded per provider, or a
             # member could make this platform flood a third one in its name
-            now = time.monotonic()
-            bucket = self._accept_buckets.get(provider)
-            if bucket is None:
-                bucket = self._accept_buckets[provider] = TokenBucket(
-                    ACCEPT_RATE, ACCEPT_BURST, now
-                )
-            if not bucket.take(now):
+            if not _take(self._accept_buckets, provider):
                 raise Denied(
                     "consent-rate",
                     f"too many accept-stream requests from {provider} (at most "
@@ -859,6 +857,20 @@ class FederationAgent(Agent):
             raise ContentError(reason.replace("max_delay", "max-delay")) from exc
         needed = len(pairs) * len(receivers)
         self._check_limits(requester, needed, req.history)
+        others = [w for w in receivers if w != requester]
+        # each asks every other receiver (accept-stream): bounded, or a member could make
+        # this platform send requests to third ones at will
+        if (
+            others
+            and requester != self.platform.name
+            and not _take(self._consent_buckets, requester)
+        ):
+            raise Denied(
+                "consent-rate",
+                f"too many create-streams for other platforms from {requester} (at "
+                f"most {ACCEPT_RATE:g}/s, bursts of {ACCEPT_BURST:g}): "
+                f"{', '.join(others)} not asked",
+            )
         record = StreamExport(
             id=new_id("x"),
             requester=message.sender,
@@ -1278,6 +1290,15 @@ class FederationAgent(Agent):
             req.request, deadline=req.deadline, select=req.select, include_self=req.include_self
         )
         return result.to_content()
+
+
+def _take(buckets: dict[str, TokenBucket], platform: str) -> bool:
+    """Take a token of ``platform``'s accept/consent budget (made on first use)."""
+    now = time.monotonic()
+    bucket = buckets.get(platform)
+    if bucket is None:
+        bucket = buckets[platform] = TokenBucket(ACCEPT_RATE, ACCEPT_BURST, now)
+    return bucket.take(now)
 
 
 async def _select(result: GlobalResult, select: Select) -> None:

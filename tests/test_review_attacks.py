@@ -152,6 +152,50 @@ async def test_a_member_cannot_make_a_platform_ask_a_third_one_at_will(tmp_path:
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
 
 
+async def test_a_member_cannot_make_a_provider_ask_third_platforms_at_will(
+    tmp_path: Path,
+) -> None:
+    # create-stream with to-units naming uav-b makes the provider ask uav-b
+    # (accept-stream) before anything else: a member repeating it made uav-a send uav-b
+    # as many requests, refused there in uav-a's name. Now bounded per requester.
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"], ["uav-b", "uav-m"]) as w:
+        m = await mallory(w)
+        receiver = w.here["uav-b"].federation_agent
+        content = {"action": "create-stream", "labels": ["car1-state"], "to-units": ["uav-b"]}
+        n = 60
+        t0 = time.monotonic()
+        reasons = await asyncio.gather(
+            *[
+                refusal(request(m, "federation@uav-a", content, ontology=FEDERATION_ONTOLOGY))
+                for _ in range(n)
+            ]
+        )
+        elapsed = time.monotonic() - t0
+        asked = [r for r in reasons if r.startswith("receiver uav-b did not agree")]
+        limited = [r for r in reasons if r.startswith("too many create-streams")]
+        assert len(asked) + len(limited) == n, reasons
+        assert 1 <= len(asked) <= ACCEPT_BURST + ACCEPT_RATE * elapsed + 1, (asked, elapsed)
+        assert limited[0] == (
+            f"too many create-streams for other platforms from uav-m (at most "
+            f"{ACCEPT_RATE:g}/s, bursts of {ACCEPT_BURST:g}): uav-b not asked"
+        )
+        # uav-b was asked only for those
+        assert receiver.refusals.get("consent") == len(asked)
+        s = await w.stats("uav-a")
+        assert s["refusals"].get("consent-rate") == len(limited)
+        recs = audited(
+            s,
+            verdict="refused",
+            stage="federation",
+            code="consent-rate",
+            sender="mallory@uav-m",
+            reason="consent-rate: too many create-streams for other platforms from uav-m",
+        )
+        assert len(recs) == len(limited)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        assert not s["agreed"]  # nothing was exported
+
+
 # -- an outsider's floods of queries on keys other than kx -----------------------------------
 
 
