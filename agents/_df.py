@@ -26,6 +26,7 @@ import asyncio
 import base64
 import binascii
 import logging
+import threading
 import time
 from collections.abc import Callable, Iterable
 from enum import StrEnum
@@ -38,6 +39,7 @@ from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_o
 from ._agent import Agent
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
 from ._exceptions import ServiceError, TransportError
+from ._kxgate import _Bucket
 from ._protocols import (
     DEFAULT_TIMEOUT,
     Publisher,
@@ -55,6 +57,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 FIPA_AGENT_MANAGEMENT = "fipa-agent-management"
+
+DF_QUERY_RATE = 50.0
+"""Global-directory queries per second (bursts as many) answered; the rest are shed."""
 
 _Name = Annotated[str, Field(min_length=1, max_length=200)]
 
@@ -226,12 +231,47 @@ class DirectoryFacilitator(Agent):
         )
         self._queryable: Handle | None = None
         self._left = False
+        # directory queries are screened on the transport's thread: anyone on the network
+        # may ask, and a flood would otherwise cost the event loop a task each
+        self._query_lock = threading.Lock()
+        self._query_bucket = _Bucket(DF_QUERY_RATE, DF_QUERY_RATE, time.monotonic())
+        self.queries_shed = 0  # directory queries dropped unanswered, since start
+        self._shed_pending = 0  # since the last audit record
 
     async def setup(self) -> None:
         """Serve this platform's public services to the global directory."""
         self._queryable = await self.platform.transport.serve(
-            self.platform.key("df"), self._serve_public
+            self.platform.key("df"), self._serve_public, admit=self._admit_query
         )
+        self.spawn(self._report_shed(), "df.shed-report")
+
+    def _admit_query(self, payload: bytes) -> bool:
+        """Whether a directory query is answered (called on the transport's thread)."""
+        with self._query_lock:
+            bucket = self._query_bucket
+            if bucket.ready(time.monotonic()):
+                bucket.tokens -= 1.0
+                return True
+            self.queries_shed += 1
+            self._shed_pending += 1
+            return False
+
+    async def _report_shed(self) -> None:
+        """Audit the directory queries shed, summed up, at most once per second."""
+        while True:
+            await asyncio.sleep(1.0)
+            with self._query_lock:
+                n, self._shed_pending = self._shed_pending, 0
+            if n:
+                self.platform.audit(
+                    verdict="dropped",
+                    stage="df-shed",
+                    count=n,
+                    reason=(
+                        f"directory queries shed: {n} dropped unanswered before the event "
+                        f"loop (over {DF_QUERY_RATE:g}/s, bursts of {DF_QUERY_RATE:g})"
+                    ),
+                )
 
     async def teardown(self) -> None:
         """End subscriptions and watches, stop serving."""
@@ -790,7 +830,11 @@ class GlobalDirectory:
             # generous: a busy member must not be taken for gone (nothing waits on this)
             answered = await self._query("*", max(self.query_timeout, 5.0))
             for platform in sorted(self._alive):
-                if platform == self._platform.name or platform in answered:
+                if (
+                    platform == self._platform.name
+                    or platform in answered
+                    or self._heard_lately(platform, 2 * interval)
+                ):
                     misses.pop(platform, None)
                     continue
                 misses[platform] = misses.get(platform, 0) + 1
@@ -808,6 +852,20 @@ class GlobalDirectory:
                     self._alive.add(platform)
                     self._replace(platform, services)
                     self._tell(DirectoryEvent("platform-up", platform, None))
+
+    def _heard_lately(self, platform: str, within: float) -> bool:
+        """Whether an authenticated envelope of ``platform`` opened here within ``within`` s.
+
+        Authenticated traffic proves the platform runs as well as a signed answer does, and
+        its directory queryable may be shedding a flood of anyone's queries meanwhile: a
+        member that talks to this platform is never taken for gone for that.
+        """
+        sessions = getattr(self._platform.channel, "sessions", None)
+        heard = getattr(sessions, "heard_since", None)
+        if heard is None:
+            return False
+        since = heard(platform)
+        return since is not None and since <= within
 
     async def _answers(self, platform: str) -> bool:
         """Whether ``platform`` answers a fresh signed query now."""

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -34,7 +35,7 @@ from ._exceptions import (
     TransportError,
     UnknownSession,
 )
-from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
+from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit, _Bucket
 from ._protocols import Refuse, on_query
 from ._security import (
     Clock,
@@ -77,6 +78,9 @@ INITIATING = frozenset(
 ANSWERED = INITIATING | {Performative.CANCEL}
 
 RATE_LIMIT_REASON = "rate limit exceeded"
+
+WATCH_RATE = 20.0
+"""Watch requests per second (bursts as many) handed to the event loop; the rest are shed."""
 
 _MIRROR_CHUNK = 512 * 1024
 
@@ -309,6 +313,12 @@ class InterfaceAgent:
         self._mirror_until = -math.inf
         self._watch_handle: Handle | None = None
         self._watch_gate = WatchGate(keys, trust.federation, policy=self.policy, clock=clock)
+        # watch requests are screened on the transport's thread, as key exchanges are: a
+        # flood of them would cost the event loop a task each (the owner asks once a lease)
+        self._watch_lock = threading.Lock()
+        self._watch_bucket = _Bucket(WATCH_RATE, WATCH_RATE, monotonic())
+        self.watch_shed = 0  # watch requests dropped before the event loop, since start
+        self._watch_shed_pending = 0  # since the last audit record
         self.audit_interval = audit_interval
         self.handshake_timeout = handshake_timeout
         self.rehandshake_interval = rehandshake_interval
@@ -381,7 +391,9 @@ class InterfaceAgent:
             platform.key("kx"), self._on_key_exchange, admit=None if gate is None else gate.admit
         )
         if self.watchable:
-            self._watch_handle = await transport.serve(platform.key("watch"), self._on_watch)
+            self._watch_handle = await transport.serve(
+                platform.key("watch"), self._on_watch, admit=self._admit_watch
+            )
         presence = await transport.watch_presence(platform.key("alive", "*"), history=False)
         self._subs.append(presence)
         inbox = await transport.subscribe(platform.key("acl"))
@@ -933,6 +945,7 @@ class InterfaceAgent:
             if self.kx_gate is not None:
                 self._report_kx_shed(self._monotonic())
                 self.kx_gate.forget_seen(time.time())
+            self._report_watch_shed()
             if not self.publish_audit and self.audit.path is None:
                 continue
             data = self.audit.take()
@@ -954,6 +967,32 @@ class InterfaceAgent:
         """Show the owner an opened binary envelope (a sample batch or stream report)."""
         if self.mirroring:
             self._mirror.append(("bin", peer, time.time(), body))
+
+    def _admit_watch(self, payload: bytes) -> bool:
+        """Whether a watch request goes on to the event loop (the transport's thread)."""
+        with self._watch_lock:
+            bucket = self._watch_bucket
+            if bucket.ready(self._monotonic()):
+                bucket.tokens -= 1.0
+                return True
+            self.watch_shed += 1
+            self._watch_shed_pending += 1
+            return False
+
+    def _report_watch_shed(self) -> None:
+        """Audit the watch requests shed since the last record, summed up in one."""
+        with self._watch_lock:
+            n, self._watch_shed_pending = self._watch_shed_pending, 0
+        if n:
+            self.audit.record(
+                verdict="dropped",
+                stage="watch-shed",
+                count=n,
+                reason=(
+                    f"watch requests shed: {n} dropped before the event loop "
+                    f"(over {WATCH_RATE:g}/s, bursts of {WATCH_RATE:g})"
+                ),
+            )
 
     async def _on_watch(self, key: str, payload: bytes) -> bytes | None:
         """The owner asks to watch: a request signed with this platform's key renews a lease."""

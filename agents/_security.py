@@ -868,6 +868,8 @@ class SessionTable:
         self._by_peer: dict[str, list[Session]] = {}
         self._tx: dict[str, Session] = {}
         self._rx_latest: dict[str, Session] = {}
+        # when each peer's last envelope opened: authenticated proof that it runs
+        self._heard: dict[str, float] = {}
         self._max_envelope = policy.max_envelope_bytes
         # a binary body is carried as is: the body plus a header of names, integers and a MAC
         self._max_bin_envelope = policy.max_body_bytes + 1024
@@ -881,6 +883,11 @@ class SessionTable:
     def peers(self) -> list[str]:
         """The platforms this table holds sessions with."""
         return sorted(self._by_peer)
+
+    def heard_since(self, peer: str) -> float | None:
+        """Seconds since an envelope from ``peer`` last opened here (None: never)."""
+        at = self._heard.get(peer)
+        return None if at is None else max(0.0, self._clock() - at)
 
     def sessions(self, peer: str | None = None) -> list[Session]:
         """The sessions with ``peer`` (all when None), oldest first."""
@@ -1067,6 +1074,7 @@ class SessionTable:
             tag = mac.encode()
         now = self._clock()
         body = session._accept(ts, n, payload, tag, now)
+        self._heard[frm] = now
         if self._rx_latest.get(frm) is not session:
             self._on_rx_switch(session, now)
         return frm, body
@@ -1117,6 +1125,7 @@ class SessionTable:
                 raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
         now = self._clock()
         body = session._accept_bytes(ts, n, payload, mac, now)
+        self._heard[frm] = now
         if self._rx_latest.get(frm) is not session:
             self._on_rx_switch(session, now)
         return frm, body

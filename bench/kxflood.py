@@ -151,6 +151,8 @@ async def _node(
                     {
                         "cpu": time.process_time(),
                         "kx_shed": pf.stats.kx_shed,
+                        "watch_shed": channel.watch_shed,
+                        "df_shed": pf.df.queries_shed if pf.df is not None else 0,
                         "shed": dict(gate.shed),
                         "admitted": gate.admitted,
                         "rehandshakes": pf.stats.rehandshakes,

@@ -33,10 +33,13 @@ import os
 import socket
 import struct
 import tempfile
+import threading
 import time
 from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from agents._kxgate import _Bucket
 
 from ._platform import PlatformConfig
 
@@ -59,6 +62,8 @@ log = logging.getLogger(__name__)
 _SUN_PATH = 100  # bytes of a Unix socket's path, with a margin (108 on Linux, 104 on BSDs)
 _LINE = 1 << 20  # longest request line accepted (1 MiB)
 ALIVE_WAIT = 1.0
+IDENTITY_RATE = 10.0
+"""``identity`` queries a node answers per second (bursts as many); the rest are shed."""
 """Seconds a starting node listens for its own name's liveliness token before going on."""
 
 
@@ -212,6 +217,39 @@ class LocalChannel:
         self.refused = 0
         self._lock = asyncio.Lock()
         self._exports: dict[tuple[str, str], list[Any]] = {}  # export id, commands following
+        # anyone on the network may ask who we are: screened on the transport's thread, so
+        # a flood costs no task each on the event loop (a second node asks once)
+        self._who_lock = threading.Lock()
+        self._who_bucket = _Bucket(IDENTITY_RATE, IDENTITY_RATE, time.monotonic())
+        self.identity_shed = 0  # identity queries dropped unanswered, since start
+        self._shed_pending = 0
+        self._reports: asyncio.Task[None] | None = None
+
+    def _admit_who(self, payload: bytes) -> bool:
+        with self._who_lock:
+            if self._who_bucket.ready(time.monotonic()):
+                self._who_bucket.tokens -= 1.0
+                return True
+            self.identity_shed += 1
+            self._shed_pending += 1
+            return False
+
+    async def _report_shed(self) -> None:
+        """Audit the identity queries shed, summed up, at most once per second."""
+        while True:
+            await asyncio.sleep(1.0)
+            with self._who_lock:
+                n, self._shed_pending = self._shed_pending, 0
+            if n:
+                self.platform.interface.audit.record(
+                    verdict="dropped",
+                    stage="identity-shed",
+                    count=n,
+                    reason=(
+                        f"identity queries shed: {n} dropped unanswered before the event loop "
+                        f"(over {IDENTITY_RATE:g}/s, bursts of {IDENTITY_RATE:g})"
+                    ),
+                )
 
     async def __aenter__(self) -> LocalChannel:
         config = self.platform.config
@@ -220,7 +258,10 @@ class LocalChannel:
         async def who(_key: str, _payload: bytes) -> bytes:
             return info
 
-        self._handle = await self.platform.transport.serve(identity_key(config), who)
+        self._handle = await self.platform.transport.serve(
+            identity_key(config), who, admit=self._admit_who
+        )
+        self._reports = asyncio.ensure_future(self._report_shed())
         _private_dir(self.path.parent)
         # Our name was not alive (refuse_duplicate): a socket left here is a dead node's.
         with contextlib.suppress(FileNotFoundError):
@@ -236,6 +277,8 @@ class LocalChannel:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
+        if self._reports is not None:
+            self._reports.cancel()
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(Exception):

@@ -116,6 +116,7 @@ from agents import (
 from agents._agent import reason_of
 from agents._gateway_service import GatewayRefusal, GatewayService, answer_to_json, jsonable
 from agents._gateway_service import Query as GatewayQuery
+from agents._interface import TokenBucket
 from agents._protocols import DEFAULT_TIMEOUT
 from agents.transports import Inbox, Subscription
 from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, UnknownLabelError
@@ -150,6 +151,15 @@ FEDERATION_AGENT = "federation"
 
 FEDERATION_SERVICE_TYPE = "dyknow-federation"
 """The Directory Facilitator service type of the DyKnow Federation service."""
+
+ACCEPT_RATE, ACCEPT_BURST = 2.0, 10.0
+"""accept-stream requests per providing platform per second (bursts) this platform checks
+with their requester; past it they are refused unasked (else a reflection). The same
+budget bounds, per requesting platform, the create-streams for third platforms whose
+receivers a provider asks (accept-stream)."""
+
+MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
+"""Membership subscriptions one other platform may hold here (each event informs each)."""
 
 __all__ = [
     "FEDERATION_AGENT",
@@ -386,6 +396,10 @@ class FederationAgent(Agent):
         # (provider, receiver, label) -> how many of our create-streams asked it for others
         self._for_others: dict[tuple[str, str, str], int] = {}
         self._for_others_by: dict[tuple[str, str], list[tuple[str, str, str]]] = {}
+        # provider -> its accept-stream budget (one per authenticated platform)
+        self._accept_buckets: dict[str, TokenBucket] = {}
+        # requester -> its budget of create-streams that make us ask third platforms
+        self._consent_buckets: dict[str, TokenBucket] = {}
         self.instance = instance
         self.anchor = anchor
         self.translator = translator
@@ -504,6 +518,23 @@ class FederationAgent(Agent):
     def _accept_subscriber(self, message: ACLMessage) -> None:
         if message.content != {"membership": True}:
             raise Refuse('subscribe with {"membership": true}')
+        asker = platform_of(message.sender)
+        if asker == self.platform.name:
+            return
+        # bounded per platform: every membership event informs every subscriber, so
+        # unbounded subscriptions would cost memory and make each event a flood
+        key = (message.sender, message.conversation_id or "")
+        held = sum(
+            1 for k in self._subscribers.subscribers if k != key and platform_of(k[0]) == asker
+        )
+        if held >= MAX_MEMBERSHIP_SUBSCRIPTIONS:
+            exc = Denied(
+                "subscription-limit",
+                f"too many membership subscriptions for {asker} (limit "
+                f"{MAX_MEMBERSHIP_SUBSCRIPTIONS}: {held} held)",
+            )
+            self._denied(message, exc)
+            raise Refuse(exc.reason)
 
     async def _follow_directory(self, events: Subscription[DirectoryEvent]) -> None:
         async for event in events:
@@ -691,6 +722,15 @@ class FederationAgent(Agent):
             raise Denied("consent", reason)
         labels = list(dict.fromkeys(req.labels))
         if req.requester != provider:
+            # each check is a request of ours to the requester: bounded per provider, or a
+            # member could make this platform flood a third one in its name
+            if not _take(self._accept_buckets, provider):
+                raise Denied(
+                    "consent-rate",
+                    f"too many accept-stream requests from {provider} (at most "
+                    f"{ACCEPT_RATE:g}/s, bursts of {ACCEPT_BURST:g}): not checked with "
+                    f"{req.requester}",
+                )
             # the provider only says who asked: the requester confirms it did
             await self._confirm_with(req.requester, provider, labels)
         imports = self.imports
@@ -817,6 +857,20 @@ class FederationAgent(Agent):
             raise ContentError(reason.replace("max_delay", "max-delay")) from exc
         needed = len(pairs) * len(receivers)
         self._check_limits(requester, needed, req.history)
+        others = [w for w in receivers if w != requester]
+        # each asks every other receiver (accept-stream): bounded, or a member could make
+        # this platform send requests to third ones at will
+        if (
+            others
+            and requester != self.platform.name
+            and not _take(self._consent_buckets, requester)
+        ):
+            raise Denied(
+                "consent-rate",
+                f"too many create-streams for other platforms from {requester} (at "
+                f"most {ACCEPT_RATE:g}/s, bursts of {ACCEPT_BURST:g}): "
+                f"{', '.join(others)} not asked",
+            )
         record = StreamExport(
             id=new_id("x"),
             requester=message.sender,
@@ -1236,6 +1290,15 @@ class FederationAgent(Agent):
             req.request, deadline=req.deadline, select=req.select, include_self=req.include_self
         )
         return result.to_content()
+
+
+def _take(buckets: dict[str, TokenBucket], platform: str) -> bool:
+    """Take a token of ``platform``'s accept/consent budget (made on first use)."""
+    now = time.monotonic()
+    bucket = buckets.get(platform)
+    if bucket is None:
+        bucket = buckets[platform] = TokenBucket(ACCEPT_RATE, ACCEPT_BURST, now)
+    return bucket.take(now)
 
 
 async def _select(result: GlobalResult, select: Select) -> None:

@@ -96,6 +96,7 @@ def _stats(p: FederationPlatform) -> dict[str, Any]:
         },
         "senders": {k: s.accepted for k, s in p.agents.stats.senders.items()},
         "rss_kb": _rss_kb(),
+        "membership_subscribers": len(fed._subscribers),
     }
 
 

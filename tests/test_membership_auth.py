@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
+import multiprocessing
 import os
 import subprocess
 import sys
@@ -26,6 +28,7 @@ import pytest
 import zenoh
 from nacl.signing import SigningKey
 
+from agents import ReplyTimeout
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
 from federation import FederationPlatform, PlatformConfig
@@ -429,3 +432,74 @@ async def test_a_forged_leave_on_mqtt_stops_no_stream(
         finally:
             attacker.loop_stop()
             attacker.disconnect()
+
+
+async def test_a_member_that_talks_is_not_taken_for_gone_while_its_directory_sheds_a_flood(
+    tmp_path: Path,
+) -> None:
+    """An outsider floods uav-b's ``df/uav-b`` so it sheds most directory queries.
+
+    uav-a's rechecks then go unanswered; uav-b's authenticated requests to uav-a prove it
+    runs as well, so uav-a keeps it listed (without them it would be taken for gone after
+    two intervals, and its streams stopped).
+    """
+    from bench.kxflood import FLOOD_SECONDS, START, attacker_main, recv
+
+    fed = f"member{os.getpid()}f"
+    port = free_tcp_port()
+    _federation(
+        tmp_path,
+        fed,
+        ["uav-a", "uav-b"],
+        {
+            "uav-a": f'mode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]',
+            "uav-b": f'mode = "peer"\nconnect = ["tcp/127.0.0.1:{port}"]',
+        },
+    )
+    ctx = multiprocessing.get_context("spawn")
+    here, there = ctx.Pipe()
+    key = f"dyknow/{fed}/v1/df/uav-b"
+    attacker = ctx.Process(target=attacker_main, args=(f"tcp/127.0.0.1:{port}", key, [b""], there))
+    attacker.start()
+    try:
+        async with (
+            asyncio.timeout(4 * WAIT + FLOOD_SECONDS),
+            FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+            FederationPlatform(PlatformConfig.load(tmp_path / "uav-b.toml")) as b,
+        ):
+            gdf = a.agents.global_df
+            assert gdf is not None and b.agents.df is not None
+            await _until("uav-a sees uav-b", lambda: "uav-b" in a.members)
+            gdf.recheck_interval = 1.0  # 30 s by default
+
+            async def talk() -> None:  # what a member streaming or asking does anyway
+                while True:
+                    try:
+                        await b.federation_agent.request_from(
+                            "uav-a", {"action": "list-labels"}, timeout=2.0
+                        )
+                    except ReplyTimeout:
+                        pass  # the request itself reached uav-a, authenticated: enough
+                    await asyncio.sleep(0.3)
+
+            talker = asyncio.create_task(talk(), name="uav-b talks to uav-a")
+            try:
+                assert await asyncio.to_thread(recv, here, "the attacker", START) == "ready"
+                here.send("go")
+                flooded = time.monotonic()
+                while time.monotonic() - flooded < 5.0:  # five recheck intervals
+                    assert "uav-b" in gdf.platforms, "uav-b taken for gone during the flood"
+                    await asyncio.sleep(0.1)
+                shed = b.agents.df.queries_shed
+                assert shed > 1000, shed  # the flood was real: uav-a's rechecks went unanswered
+                assert "uav-b" in a.members
+            finally:
+                here.send("stop")
+                talker.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await talker
+    finally:
+        attacker.join(WAIT)
+        if attacker.is_alive():
+            attacker.kill()
+            attacker.join(WAIT)

@@ -1,0 +1,385 @@
+"""Attacks a member could still make after issue 11's first fixes, now refused.
+
+The attacker is a member: ``uav-m`` runs our own library with a key in the federation's
+trust file, so everything it sends is authenticated. The victim is a spawned
+`FederationPlatform` process (the harness of ``test_member_authz``), asked over a pipe
+for its counters and audit records. Each test asserts the refusal, its count and its
+audit record.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import multiprocessing
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import orjson
+import pytest
+from _node_example import Station
+from test_faults import until
+from test_member_authz import audited, in_file, mallory, refusal, world
+
+from agents import Refused, request, wire_key
+from agents._protocols import SubscriptionStream, subscribe
+from agents._security import KeyPair, watch_request
+from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+from bench.kxflood import (
+    FLOOD_SECONDS,
+    MEMBER,
+    PACE_N,
+    PACE_PERIOD,
+    START,
+    VICTIM,
+    WAIT,
+    Federation,
+    attacker_main,
+    figures,
+    latency_bound,
+    p99,
+    recv,
+)
+from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
+
+CLI = [sys.executable, "-m", "federation.cli"]
+
+pytestmark = pytest.mark.timeout(180)
+
+FEDERATION_ONTOLOGY = "dyknow-federation"
+
+
+async def test_membership_subscriptions_are_bounded_per_platform(tmp_path: Path) -> None:
+    # Every membership event informs every subscriber: unbounded, one member's thousands
+    # of subscriptions cost the victim memory (~3 kB each) and turn each event into a flood.
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"], ["uav-m"]) as w:
+        m = await mallory(w)
+        ask = {"membership": True}
+        held: list[SubscriptionStream] = []
+        for _ in range(MAX_MEMBERSHIP_SUBSCRIPTIONS):
+            held.append(await subscribe(m, "federation@uav-a", ask, ontology=FEDERATION_ONTOLOGY))
+        extra = 5
+        for _ in range(extra):
+            reason = await refusal(
+                subscribe(m, "federation@uav-a", ask, ontology=FEDERATION_ONTOLOGY)
+            )
+            assert reason == (
+                "too many membership subscriptions for uav-m "
+                f"(limit {MAX_MEMBERSHIP_SUBSCRIPTIONS}: {MAX_MEMBERSHIP_SUBSCRIPTIONS} held)"
+            )
+        s = await w.stats("uav-a")
+        assert s["membership_subscribers"] == MAX_MEMBERSHIP_SUBSCRIPTIONS
+        assert s["refusals"].get("subscription-limit") == extra
+        recs = audited(
+            s,
+            verdict="refused",
+            stage="federation",
+            code="subscription-limit",
+            sender="mallory@uav-m",
+            performative="subscribe",
+            reason="subscription-limit: too many membership subscriptions for uav-m",
+        )
+        assert len(recs) == extra
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        # a cancelled subscription frees its place
+        await held.pop().cancel()
+        held.append(await subscribe(m, "federation@uav-a", ask, ontology=FEDERATION_ONTOLOGY))
+        with pytest.raises(Refused):
+            await subscribe(m, "federation@uav-a", ask, ontology=FEDERATION_ONTOLOGY)
+        s = await w.stats("uav-a")
+        assert s["membership_subscribers"] == MAX_MEMBERSHIP_SUBSCRIPTIONS
+        assert s["refusals"].get("subscription-limit") == extra + 1
+        for stream in held:
+            await stream.cancel()
+
+
+async def test_a_member_cannot_make_a_platform_ask_a_third_one_at_will(tmp_path: Path) -> None:
+    # accept-stream names a requester; the receiver checks with it (confirm-stream). Each
+    # such check was a request of the victim's to the requester: 500 accept-streams from
+    # uav-m made uav-a send 409 confirm-streams (64 labels each) to the operator, whose
+    # audit then showed uav-a asking. Now bounded per provider, refused past it.
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a"], ["operator", "uav-m"], uav_a=consent) as w,
+    ):
+        m = await mallory(w)
+        operator = w.here["operator"].federation_agent
+        content = {
+            "action": "accept-stream",
+            "requester": "operator",
+            "labels": [f"car{i}-state" for i in range(64)],
+        }
+        n = 100
+        t0 = time.monotonic()
+        reasons = await asyncio.gather(
+            *[
+                refusal(request(m, "federation@uav-a", content, ontology=FEDERATION_ONTOLOGY))
+                for _ in range(n)
+            ]
+        )
+        elapsed = time.monotonic() - t0
+        checked = [r for r in reasons if "did not confirm" in r]
+        limited = [r for r in reasons if r.startswith("too many accept-stream requests")]
+        assert len(checked) + len(limited) == n, reasons
+        allowed = ACCEPT_BURST + ACCEPT_RATE * elapsed + 1
+        assert 1 <= len(checked) <= allowed, (len(checked), elapsed)
+        assert limited[0] == (
+            f"too many accept-stream requests from uav-m (at most {ACCEPT_RATE:g}/s, bursts "
+            f"of {ACCEPT_BURST:g}): not checked with operator"
+        )
+        # the operator was asked only for those checked
+        assert operator.refusals.get("consent") == len(checked)
+        s = await w.stats("uav-a")
+        assert s["refusals"].get("consent-rate") == len(limited)
+        recs = audited(
+            s,
+            verdict="refused",
+            stage="federation",
+            code="consent-rate",
+            sender="mallory@uav-m",
+            reason="consent-rate: too many accept-stream requests from uav-m",
+        )
+        assert len(recs) == len(limited)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+
+
+async def test_a_member_cannot_make_a_provider_ask_third_platforms_at_will(
+    tmp_path: Path,
+) -> None:
+    # create-stream with to-units naming uav-b makes the provider ask uav-b
+    # (accept-stream) before anything else: a member repeating it made uav-a send uav-b
+    # as many requests, refused there in uav-a's name. Now bounded per requester.
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"], ["uav-b", "uav-m"]) as w:
+        m = await mallory(w)
+        receiver = w.here["uav-b"].federation_agent
+        content = {"action": "create-stream", "labels": ["car1-state"], "to-units": ["uav-b"]}
+        n = 60
+        t0 = time.monotonic()
+        reasons = await asyncio.gather(
+            *[
+                refusal(request(m, "federation@uav-a", content, ontology=FEDERATION_ONTOLOGY))
+                for _ in range(n)
+            ]
+        )
+        elapsed = time.monotonic() - t0
+        asked = [r for r in reasons if r.startswith("receiver uav-b did not agree")]
+        limited = [r for r in reasons if r.startswith("too many create-streams")]
+        assert len(asked) + len(limited) == n, reasons
+        assert 1 <= len(asked) <= ACCEPT_BURST + ACCEPT_RATE * elapsed + 1, (asked, elapsed)
+        assert limited[0] == (
+            f"too many create-streams for other platforms from uav-m (at most "
+            f"{ACCEPT_RATE:g}/s, bursts of {ACCEPT_BURST:g}): uav-b not asked"
+        )
+        # uav-b was asked only for those
+        assert receiver.refusals.get("consent") == len(asked)
+        s = await w.stats("uav-a")
+        assert s["refusals"].get("consent-rate") == len(limited)
+        recs = audited(
+            s,
+            verdict="refused",
+            stage="federation",
+            code="consent-rate",
+            sender="mallory@uav-m",
+            reason="consent-rate: too many create-streams for other platforms from uav-m",
+        )
+        assert len(recs) == len(limited)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        assert not s["agreed"]  # nothing was exported
+
+
+# -- an outsider's floods of queries on keys other than kx -----------------------------------
+
+
+@pytest.fixture
+def _no_leftover_children() -> Iterator[None]:
+    yield
+    for proc in multiprocessing.active_children():
+        proc.kill()
+        proc.join(timeout=5)
+
+
+def _forged_watch_requests(fed: str) -> list[bytes]:
+    """Well-formed watch requests in the victim's name, signed with the attacker's keys."""
+    out = [watch_request(KeyPair.generate(VICTIM), fed) for _ in range(2000)]
+    return out + [os.urandom(200) for _ in range(200)]
+
+
+async def _ask(port: int, key: str, payload: bytes) -> list[bytes]:
+    """A plain query of ``key`` from a transport of our own: the replies' payloads."""
+    config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+    async with ZenohTransport(config) as t:
+        for _ in range(20):  # the first query may go out before the route is known
+            replies = await t.query(key, payload, timeout=2.0)
+            if replies:
+                return [r.payload for r in replies]
+            await asyncio.sleep(0.2)
+    return []
+
+
+@dataclass
+class _Flooded:
+    """A flood of queries on one key of the victim, and what it did."""
+
+    f: Federation
+    calm: list[float]
+    during: list[float]
+    sent: int
+    seconds: float
+    report: dict[str, Any]
+
+    def check(self, shed: int, stage: str) -> None:
+        """The member's p99 within bound; most of the flood shed, counted, summed up."""
+        bound = max(latency_bound(), 3 * p99(self.calm))
+        assert self.sent / self.seconds > 5000, "the attacker did not flood"
+        assert p99(self.during) <= bound, figures(self.during)
+        assert shed >= 0.5 * self.sent, (shed, self.sent)
+        summaries = [r for r in self.report["records"] if r.get("stage") == stage]
+        assert summaries and sum(r["count"] for r in summaries) == shed
+        assert all(r["verdict"] == "dropped" for r in summaries)
+        # summed up: a flood of queries is not a flood of records
+        assert len(summaries) <= 10 * (self.seconds + 3)
+
+
+@contextlib.contextmanager
+def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) -> Iterator[_Flooded]:
+    """Victim and member spawned; a plain zenoh attacker floods ``what`` of the victim."""
+    f = Federation(tmp_path)
+    pipes: list[Connection] = []
+    try:
+        victim = f.node(VICTIM, f.port, [])
+        pipes.append(victim)
+        assert recv(victim, "the victim", START) == "ready"
+        attacker = f.attacker(what, payloads(f.fed))
+        pipes.append(attacker)
+        member = f.node(MEMBER, free_tcp_port(), [f.port])
+        pipes.append(member)
+        assert recv(member, "the member", START) == "ready"
+        assert recv(attacker, "the attacker", START) == "ready"
+        member.send("pace")
+        recv(member, "the member's first requests", WAIT + PACE_N * PACE_PERIOD)
+        member.send("pace")
+        calm = recv(member, "the member's calm requests", WAIT + PACE_N * PACE_PERIOD)
+        attacker.send("go")
+        time.sleep(0.5)
+        member.send("pace")
+        during = recv(member, "the member's requests during the flood", 3 * FLOOD_SECONDS)
+        with contextlib.suppress(OSError):
+            attacker.send("stop")
+        sent, seconds = recv(attacker, "the attacker's count")
+        time.sleep(1.5)  # the last summaries
+        victim.send("report")
+        yield _Flooded(f, calm, during, sent, seconds, recv(victim, "the victim's report"))
+    finally:
+        f.close(pipes)
+
+
+@pytest.mark.usefixtures("_no_leftover_children")
+def test_a_watch_request_flood_is_shed_before_the_event_loop(tmp_path: Path) -> None:
+    """10 000 forged watch requests/s (the watch key, not kx): shed, counted, audited.
+
+    Each request reached the event loop as a task before: the victim's CPU doubled
+    against a key-exchange flood and a member's p99 neared 20 ms. Now at most
+    WATCH_RATE/s go on; the owner can watch once the flood is over.
+    """
+    with _flood(tmp_path, "watch", _forged_watch_requests) as run:
+        run.check(run.report["watch_shed"], "watch-shed")
+        first = next(r for r in run.report["records"] if r.get("stage") == "watch-shed")
+        assert first["reason"].startswith("watch requests shed: ")
+        owner = KeyPair.load(run.f.keydir / f"{VICTIM}.key")
+        key = wire_key(run.f.fed, "watch", VICTIM)
+        replies = asyncio.run(_ask(run.f.port, key, watch_request(owner, run.f.fed)))
+        assert replies and orjson.loads(replies[0])["watching"] is True
+
+
+@pytest.mark.usefixtures("_no_leftover_children")
+def test_a_directory_query_flood_is_shed_before_the_event_loop(tmp_path: Path) -> None:
+    """10 000 queries/s of the victim's ``df/<platform>`` by an outsider: shed, counted.
+
+    Each was answered (a task and the public directory's JSON): the victim took ~76% of
+    a core and a member's p99 went from ~3 ms to ~250 ms. Now at most DF_QUERY_RATE/s
+    are answered; the directory is answered again once the flood is over.
+    """
+    with _flood(tmp_path, "df", lambda fed: [b""] * 100) as run:
+        run.check(run.report["df_shed"], "df-shed")
+        first = next(r for r in run.report["records"] if r.get("stage") == "df-shed")
+        assert first["reason"].startswith("directory queries shed: ")
+        replies = asyncio.run(_ask(run.f.port, wire_key(run.f.fed, "df", VICTIM), b""))
+        assert replies and isinstance(orjson.loads(replies[0]), list)
+
+
+@pytest.mark.timeout(150)
+def test_an_identity_query_flood_on_a_node_is_shed_before_the_event_loop(
+    tmp_path: Path,
+) -> None:
+    """10 000 queries/s of a `dyknow node`'s ``identity/<platform>`` by an outsider.
+
+    Each was answered on the event loop (the node's host name and pid): ~54% of a core.
+    Now at most IDENTITY_RATE/s are answered; the rest are counted and summed up in the
+    node's audit; a second node of the same name is still told who runs it.
+    """
+    station = Station(tmp_path)
+    conf = station.dir / "station-python.toml"
+    text = conf.read_text()
+    conf.write_text(text.replace("\n[transport]", '\naudit = "audit.jsonl"\n\n[transport]', 1))
+    ctx = multiprocessing.get_context("spawn")
+    here, there = ctx.Pipe()
+    key = wire_key(station.federation, "identity", "station")
+    attacker = ctx.Process(
+        target=attacker_main, args=(f"tcp/127.0.0.1:{station.port}", key, [b""] * 10, there)
+    )
+    try:
+        station.start("python")
+        attacker.start()
+        assert recv(here, "the attacker", START) == "ready"
+        here.send("go")
+        time.sleep(3.0)
+        here.send("stop")
+        sent, seconds = recv(here, "the attacker's count")
+        assert sent / seconds > 5000, "the attacker did not flood"
+        audit = station.dir / "audit.jsonl"
+
+        def shed() -> list[dict[str, Any]]:
+            lines = audit.read_text().splitlines() if audit.exists() else []
+            return [r for r in map(json.loads, lines) if r.get("stage") == "identity-shed"]
+
+        deadline = time.monotonic() + WAIT
+        while sum(r["count"] for r in shed()) < 0.5 * sent and time.monotonic() < deadline:
+            time.sleep(0.2)
+        records = shed()
+        total = sum(r["count"] for r in records)
+        assert total >= 0.5 * sent, (total, sent)
+        assert all(r["verdict"] == "dropped" for r in records)
+        assert records[0]["reason"].startswith("identity queries shed: ")
+        assert len(records) <= seconds + 5  # summed up, once a second
+        # the query still answers once the flood is over: a twin is told who runs it
+        twin = station.dir / "twin.toml"
+        twin.write_text(conf.read_text().replace("listen = [", "connect = ["))
+        node = station.node
+        assert node is not None
+        done = subprocess.run(
+            [*CLI, "node", "--config", str(twin)],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+            timeout=60,
+        )
+        assert done.returncode == 2, done.stderr
+        assert f"pid {node.pid} on host" in done.stderr
+    finally:
+        with contextlib.suppress(OSError):
+            here.send("stop")
+        attacker.join(timeout=10)
+        if attacker.is_alive():
+            attacker.kill()
+        _, err = station.stop()
+    assert "Traceback" not in err
