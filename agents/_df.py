@@ -60,6 +60,8 @@ FIPA_AGENT_MANAGEMENT = "fipa-agent-management"
 
 DF_QUERY_RATE = 50.0
 """Global-directory queries per second (bursts as many) answered; the rest are shed."""
+MAX_DF_SUBSCRIPTIONS = 16
+"""Directory subscriptions one other platform may hold here (each is told of every change)."""
 
 _Name = Annotated[str, Field(min_length=1, max_length=200)]
 
@@ -236,6 +238,7 @@ class DirectoryFacilitator(Agent):
         self._query_lock = threading.Lock()
         self._query_bucket = _Bucket(DF_QUERY_RATE, DF_QUERY_RATE, time.monotonic())
         self.queries_shed = 0  # directory queries dropped unanswered, since start
+        self.subscriptions_refused = 0  # subscribes of other platforms over their limit
         self._shed_pending = 0  # since the last audit record
 
     async def setup(self) -> None:
@@ -486,6 +489,32 @@ class DirectoryFacilitator(Agent):
         if message.content is not None and not isinstance(message.content, dict):
             raise Refuse("the content of a subscribe is a query object")
         asker = platform_of(message.sender)
+        if asker != self.platform.name:
+            # bounded per platform: each subscription is kept and told of every change
+            key = (message.sender, message.conversation_id or "")
+            held = sum(
+                1
+                for k in self._subscriptions.subscribers
+                if k != key and platform_of(k[0]) == asker
+            )
+            if held >= MAX_DF_SUBSCRIPTIONS:
+                self.subscriptions_refused += 1
+                reason = (
+                    f"subscription-limit: too many directory subscriptions for {asker} "
+                    f"(limit {MAX_DF_SUBSCRIPTIONS}: {held} held)"
+                )
+                self.platform.audit(
+                    verdict="refused",
+                    stage="df",
+                    code="subscription-limit",
+                    **{"from": asker},
+                    sender=message.sender,
+                    receivers=message.receivers,
+                    performative=message.performative.value,
+                    conversation_id=message.conversation_id,
+                    reason=reason,
+                )
+                raise Refuse(reason)
         return (query, asker, asker != self.platform.name)
 
     @on_request(FIPA_AGENT_MANAGEMENT)

@@ -97,6 +97,10 @@ def _stats(p: FederationPlatform) -> dict[str, Any]:
         "senders": {k: s.accepted for k, s in p.agents.stats.senders.items()},
         "rss_kb": _rss_kb(),
         "membership_subscribers": len(fed._subscribers),
+        "df_subscribers": len(p.agents.df._subscriptions) if p.agents.df is not None else 0,
+        "df_subscriptions_refused": (
+            p.agents.df.subscriptions_refused if p.agents.df is not None else 0
+        ),
     }
 
 

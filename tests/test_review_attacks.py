@@ -29,7 +29,8 @@ from _node_example import Station
 from test_faults import until
 from test_member_authz import audited, in_file, mallory, refusal, world
 
-from agents import Refused, request, wire_key
+from agents import FIPA_AGENT_MANAGEMENT, Refused, request, wire_key
+from agents._df import MAX_DF_SUBSCRIPTIONS
 from agents._protocols import SubscriptionStream, subscribe
 from agents._security import KeyPair, watch_request
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
@@ -97,6 +98,41 @@ async def test_membership_subscriptions_are_bounded_per_platform(tmp_path: Path)
         s = await w.stats("uav-a")
         assert s["membership_subscribers"] == MAX_MEMBERSHIP_SUBSCRIPTIONS
         assert s["refusals"].get("subscription-limit") == extra + 1
+        for stream in held:
+            await stream.cancel()
+
+
+async def test_directory_subscriptions_are_bounded_per_platform(tmp_path: Path) -> None:
+    # Each directory subscription is kept and told of every change: 2,000 FIPA-Subscribes
+    # from uav-m to df@uav-a were all agreed (~7 MB). Now bounded per platform as well.
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"], ["uav-m"]) as w:
+        m = await mallory(w)
+        held: list[SubscriptionStream] = []
+        for _ in range(MAX_DF_SUBSCRIPTIONS):
+            held.append(await subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
+        extra = 3
+        for _ in range(extra):
+            reason = await refusal(subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
+            assert reason == (
+                "subscription-limit: too many directory subscriptions for uav-m "
+                f"(limit {MAX_DF_SUBSCRIPTIONS}: {MAX_DF_SUBSCRIPTIONS} held)"
+            )
+        s = await w.stats("uav-a")
+        assert s["df_subscribers"] == MAX_DF_SUBSCRIPTIONS
+        assert s["df_subscriptions_refused"] == extra
+        recs = audited(
+            s,
+            verdict="refused",
+            stage="df",
+            code="subscription-limit",
+            sender="mallory@uav-m",
+            performative="subscribe",
+            reason="subscription-limit: too many directory subscriptions for uav-m",
+        )
+        assert len(recs) == extra
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        await held.pop().cancel()  # a cancelled subscription frees its place
+        held.append(await subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
         for stream in held:
             await stream.cancel()
 
