@@ -349,7 +349,9 @@ def test_a_directory_query_flood_is_shed_before_the_event_loop(tmp_path: Path) -
         first = next(r for r in run.report["records"] if r.get("stage") == "df-shed")
         assert first["reason"].startswith("directory queries shed: ")
         replies = asyncio.run(_ask(run.f.port, wire_key(run.f.fed, "df", VICTIM), b""))
-        assert replies and isinstance(orjson.loads(replies[0]), list)
+        assert replies  # a signed directory statement whose body is the public services
+        statement = orjson.loads(replies[0])
+        assert statement["kind"] == "df" and isinstance(orjson.loads(statement["body"]), list)
 
 
 @pytest.mark.timeout(150)
