@@ -32,7 +32,7 @@ ASK = ["--config", "operator.toml", "--json", "--wait", "10"]
 
 
 class Deployment:
-    """deploy/config on loopback: a router, uav-a's node, and the operator's one-shot commands."""
+    """deploy/config on loopback: a router, UAV nodes, and the operator's one-shot commands."""
 
     def __init__(self, tmp: Path) -> None:
         self.dir = tmp / "config"
@@ -44,7 +44,7 @@ class Deployment:
             text = text.replace('federation = "traffic"', f'federation = "{self.federation}"')
             (self.dir / f.name).write_text(text)
         keys = self.dir / "keys"
-        pubs = [gen_keys(name, keys)[2] for name in ("uav-a", "operator")]
+        pubs = [gen_keys(name, keys)[2] for name in ("uav-a", "uav-c", "operator")]
         trust_keys(keys / "trust.json", pubs, federation=self.federation)
         runtime = tmp / "run"
         runtime.mkdir(mode=0o700)  # the local channels of this test's nodes
@@ -64,18 +64,19 @@ class Deployment:
         self.procs.append(proc)
         return proc
 
-    def start(self) -> None:
-        """The router, then uav-a's node, ready."""
+    def start(self, *uavs: str) -> None:
+        """The router, then each UAV's node, ready."""
         self.spawn("router", "--listen", self.router)
-        node = self.spawn("node", "--config", "uav-a.toml")
-        assert node.stdout is not None
-        ready = node.stdout.readline()  # bounded by the test's timeout
-        assert "uav-a ready" in ready, ready + self.stop()
+        nodes = {uav: self.spawn("node", "--config", f"{uav}.toml") for uav in uavs}
+        for uav, node in nodes.items():
+            assert node.stdout is not None
+            ready = node.stdout.readline()  # bounded by the test's timeout
+            assert f"{uav} ready" in ready, ready + self.stop()
 
-    def ask(self, *labels: str) -> dict[str, Any]:
-        """``dyknow ask uav-a LABELS --from 0 --json`` as the operator."""
+    def ask(self, uav: str, *labels: str) -> dict[str, Any]:
+        """``dyknow ask UAV LABELS --from 0 --json`` as the operator."""
         done = subprocess.run(
-            [*CLI, "ask", "uav-a", *labels, "--from", "0", *ASK],
+            [*CLI, "ask", uav, *labels, "--from", "0", *ASK],
             capture_output=True,
             text=True,
             cwd=self.dir,
@@ -87,13 +88,17 @@ class Deployment:
         return answer
 
     def until(
-        self, labels: tuple[str, ...], done: Callable[[dict[str, Any]], bool], within: float
+        self,
+        uav: str,
+        labels: tuple[str, ...],
+        done: Callable[[dict[str, Any]], bool],
+        within: float,
     ) -> dict[str, Any]:
         """Ask until the answer satisfies ``done``, for at most ``within`` seconds."""
         deadline = time.monotonic() + within
         answer: dict[str, Any] = {}
         while time.monotonic() < deadline:
-            answer = self.ask(*labels)
+            answer = self.ask(uav, *labels)
             if done(answer):
                 return answer
             time.sleep(2.0)  # the world runs in real time: nothing here to await
@@ -129,29 +134,35 @@ def _values(answer: dict[str, Any], label: str) -> list[Any]:
     return [s[0] for s in result["samples"]] if isinstance(result, dict) else []
 
 
-@pytest.mark.timeout(240)
-def test_uav_a_recognizes_the_speeding_and_the_overtake_of_the_seeded_world(
+@pytest.mark.timeout(300)
+def test_the_uavs_recognize_the_speeding_the_overtake_and_the_turn_of_the_seeded_world(
     deployment: Deployment,
 ) -> None:
-    # seed 7, uav-a's area: car9 drives over 1.2 x the limit from the start; car4
-    # overtakes car2 (the simulator's script ends it at t = 33.8 s)
-    deployment.start()
+    # seed 7: in uav-a's area car9 drives over 1.2 x the limit from the start and car4
+    # overtakes car2 (the simulator's script ends it at t = 33.8 s); in uav-c's, car6
+    # turns in crossing c3 (t = 30.2 s)
+    deployment.start("uav-a", "uav-c")
     started = time.monotonic()
     labels = ("speeding", "violation", "true-violation")
-    answer = deployment.until(labels, lambda a: bool(_values(a, "speeding")), within=60)
+    answer = deployment.until("uav-a", labels, lambda a: bool(_values(a, "speeding")), 60)
     assert _values(answer, "speeding")[0] == {"kind": "speeding", "cars": ["car9"]}
-    answer = deployment.until(labels, lambda a: bool(_values(a, "violation")), within=90)
+    answer = deployment.until("uav-a", labels, lambda a: bool(_values(a, "violation")), 90)
     assert time.monotonic() - started < 90
     (found,) = _values(answer, "violation")
     assert (found["kind"], found["car"], found["other"]) == ("overtake", "car4", "car2")
     assert set(found) == {"kind", "car", "other", "start", "end", "x", "y"}
     # recognized from the camera's view, not copied: the truth has a label of its own,
     # and the recognition ends close to when and where the script ended it
-    truth = deployment.until(labels, lambda a: bool(_values(a, "true-violation")), within=30)
+    truth = deployment.until("uav-a", labels, lambda a: bool(_values(a, "true-violation")), 30)
     ((true, true_valid, _),) = truth["true-violation"]["samples"]
     assert (true["kind"], true["car"], true["other"]) == ("overtake", "car4", "car2")
     assert abs(found["end"] - true_valid) < 5
     assert abs(found["x"] - true["x"]) < 80
+    # the other chronicle, in the other UAV, by then
+    answer = deployment.until("uav-c", labels, lambda a: bool(_values(a, "violation")), 30)
+    (turn,) = _values(answer, "violation")
+    assert (turn["kind"], turn["car"], turn["other"]) == ("turn", "car6", None)
+    assert turn["start"] < turn["end"]
 
 
 # -- the application's definitions and units, without processes -------------------------------
