@@ -73,10 +73,10 @@ class Deployment:
             ready = node.stdout.readline()  # bounded by the test's timeout
             assert f"{uav} ready" in ready, ready + self.stop()
 
-    def ask(self, uav: str, *labels: str) -> dict[str, Any]:
-        """``dyknow ask UAV LABELS --from 0 --json`` as the operator."""
+    def ask(self, uav: str, *labels: str, history: bool = True) -> dict[str, Any]:
+        """``dyknow ask UAV LABELS [--from 0] --json`` as the operator."""
         done = subprocess.run(
-            [*CLI, "ask", uav, *labels, "--from", "0", *ASK],
+            [*CLI, "ask", uav, *labels, *(["--from", "0"] if history else []), *ASK],
             capture_output=True,
             text=True,
             cwd=self.dir,
@@ -158,6 +158,14 @@ def test_the_uavs_recognize_the_speeding_the_overtake_and_the_turn_of_the_seeded
     assert (true["kind"], true["car"], true["other"]) == ("overtake", "car4", "car2")
     assert abs(found["end"] - true_valid) < 5
     assert abs(found["x"] - true["x"]) < 80
+    # what the console shows of a UAV, in the demo's shapes
+    now = deployment.ask("uav-a", "heli-position", "area", "tracked-cars", history=False)
+    (position,) = _values(now, "heli-position")
+    assert set(position) == {"x", "y", "z"}
+    (area,) = _values(now, "area")
+    assert area["index"] == 0 and len(area["polygon"]) >= 4
+    (cars,) = _values(now, "tracked-cars")
+    assert {"id", "x", "y", "speed", "colour", "road"} <= set(cars["cars"][0])
     # the other chronicle, in the other UAV, by then
     answer = deployment.until("uav-c", labels, lambda a: bool(_values(a, "violation")), 30)
     (turn,) = _values(answer, "violation")

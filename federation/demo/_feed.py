@@ -4,7 +4,11 @@
 (``deploy/config/uav-*.toml``, ``deploy/local``): it runs the demo's simulated world
 (`World`) in real time, looping every ``duration`` seconds, and every ``period`` yields
 
-* ``{"time", "position"}``: the UAV's own position (x, y, z), metres;
+* ``{"time", "position"}``: the UAV's own position ``{"x", "y", "z"}``, metres (the
+  ``heli-position`` shape of `federation.demo._vocabulary`, which the console reads);
+* ``{"time", "area"}``: the area it watches, ``{"index", "polygon", "delegated-by"}``
+  (``delegated-by`` None: the deployment assigns areas by name), at the start and every
+  2 s;
 * ``{"time", "id", "state", "speed"}`` for each car inside this UAV's area: its state
   (``x``, ``y``, ``vx``, ``vy``, ``speed``, ``colour``, ``road``, as the demo's tracker
   publishes it: the road is the map's at the seen position) and speed, observed with
@@ -32,6 +36,8 @@ from ._world import World
 
 __all__ = ["world_feed"]
 
+AREA_PERIOD = 2.0  # s between two messages of the area (as the demo republishes it)
+
 
 def _index(uav: str) -> int:
     """``uav-a`` → 0, ``uav-b`` → 1, …"""
@@ -57,6 +63,8 @@ async def world_feed(
     world = await asyncio.to_thread(World.generate, seed, uavs, duration)
     rng = random.Random(seed * 31 + index)
     violations = [v for v in world.ground_truth() if v.end_area == index]
+    area = {"index": index, "polygon": world.areas[index].polygon(), "delegated-by": None}
+    area_due = 0.0
     start = time.time()
     lap = -1
     told: set[int] = set()
@@ -67,7 +75,10 @@ async def world_feed(
         if int(elapsed // duration) != lap:
             lap, told = int(elapsed // duration), set()
         x, y, z = world.uav_position(index, t)
-        yield {"time": now, "position": [round(x, 2), round(y, 2), round(z, 2)]}
+        yield {"time": now, "position": {"x": round(x, 2), "y": round(y, 2), "z": round(z, 2)}}
+        if now >= area_due:
+            area_due = now + AREA_PERIOD
+            yield {"time": now, "area": area}
         seen: dict[str, dict[str, Any]] = {}
         for car in world.cars_at(t):
             if world.area_of(car.x, car.y) != index:

@@ -7,6 +7,7 @@ in the UAV's area at one instant (``{car: state}``, fed by
 (`federation.demo._traffic`), so the deployment recognizes what ``dyknow demo traffic``
 recognizes:
 
+* `tracked_cars`: the cars in sight as the console shows them (``tracked-cars``);
 * `car_names` and `fast`: the speed monitor's domain and predicate;
 * `relations`: one relation kind (behind, beside, beside-fast, in-front) as events
   ``{"a", "b"}`` when a pair of cars comes into it;
@@ -32,7 +33,7 @@ from dyknow_core import NS_PER_S
 from ._traffic import CROSSING_EVENTS, RELATIONS, RelationChanges, crossing_step, is_fast, is_repeat
 from ._world import World
 
-__all__ = ["car_names", "crossings", "fast", "relations", "speeding", "violations"]
+__all__ = ["car_names", "crossings", "fast", "relations", "speeding", "tracked_cars", "violations"]
 
 Cars = Mapping[str, dict[str, Any]]
 MAX_QUEUED = 256  # events waiting for their sample: beyond, the oldest go
@@ -47,6 +48,18 @@ def _cars(value: Any) -> Cars:
     if not isinstance(value, Mapping):
         raise TypeError(f"expected camera/cars as {{car: state}}, got {type(value).__name__}")
     return value
+
+
+_CAR_KEYS = ("x", "y", "speed", "colour", "road")
+
+
+def tracked_cars(cars: Any) -> dict[str, list[dict[str, Any]]]:
+    """The cars in sight, ``{"cars": [{"id", "x", "y", "speed", "colour", "road"}]}``."""
+    return {
+        "cars": [
+            {"id": c, **{k: s.get(k) for k in _CAR_KEYS}} for c, s in sorted(_cars(cars).items())
+        ]
+    }
 
 
 def car_names(cars: Any) -> list[str]:
