@@ -15,6 +15,7 @@ violations with the same definitions, kept here once:
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, Protocol
 
 from ._world import World
@@ -119,7 +120,7 @@ class RelationChanges:
         self.world = world
         self.current: dict[tuple[str, str], str] = {}
 
-    def update(self, cars: dict[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
+    def update(self, cars: Mapping[str, dict[str, Any]]) -> list[tuple[str, str, str]]:
         """The (relation, a, b) that hold now and did not before, in a stable order."""
         out: list[tuple[str, str, str]] = []
         names = sorted(cars)

@@ -87,7 +87,7 @@ def relations(
     queue: deque[dict[str, str]] = deque(maxlen=MAX_QUEUED)
 
     def unit(cars: Any) -> dict[str, str] | None:
-        for rel, a, b in changes.update(dict(_cars(cars))):
+        for rel, a, b in changes.update(_cars(cars)):
             if rel == kind:
                 queue.append({"a": a, "b": b})
         return queue.popleft() if queue else None
