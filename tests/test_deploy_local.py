@@ -8,8 +8,10 @@ import re
 import socket
 import subprocess
 import sys
+import time
 import urllib.request
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -108,6 +110,29 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         assert done.returncode == 0, done.stderr
         rows = [json.loads(line) for line in done.stdout.splitlines()]
         assert len(rows) == 3 and all(len(r["value"]) == 3 for r in rows)
+        # the console draws what the UAVs' applications see and recognize: positions,
+        # areas, cars, and the overtake uav-a recognizes about 33 s into the world
+        token = url.split("token=", 1)[1]
+        state: dict[str, Any] = {}
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            request = urllib.request.Request(
+                url.split("/?", 1)[0] + "/api/state", headers={"Authorization": f"Bearer {token}"}
+            )
+            with urllib.request.urlopen(request, timeout=10) as answer:
+                state = json.loads(answer.read())
+            uav_a = next((p for p in state["platforms"] if p["name"] == "uav-a"), {})
+            overtakes = [
+                v
+                for v in state["violations"]
+                if (v["kind"], v["reported-by"]) == ("overtake", "uav-a")
+            ]
+            if uav_a.get("position") and uav_a.get("area") and uav_a.get("cars") and overtakes:
+                break
+            time.sleep(1.0)  # the world runs in real time: nothing here to await
+        assert uav_a["area"]["index"] == 0 and set(uav_a["position"]) == {"x", "y", "z"}, state
+        assert {c["id"] for c in uav_a["cars"]} >= {"car2", "car4"}, state  # the overtakers
+        assert [(v["car"], v["other"]) for v in overtakes] == [("car4", "car2")], state
         pids = _pids(run)
         assert len(pids) == 5 and all(_alive(p) for p in pids)
     finally:

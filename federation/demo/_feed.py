@@ -4,13 +4,21 @@
 (``deploy/config/uav-*.toml``, ``deploy/local``): it runs the demo's simulated world
 (`World`) in real time, looping every ``duration`` seconds, and every ``period`` yields
 
-* ``{"time", "position"}``: the UAV's own position (x, y, z), metres;
+* ``{"time", "position"}``: the UAV's own position ``{"x", "y", "z"}``, metres (the
+  ``heli-position`` shape of `federation.demo._vocabulary`, which the console reads);
+* ``{"time", "area"}``: the area it watches, ``{"index", "polygon", "delegated-by"}``
+  (``delegated-by`` None: the deployment assigns areas by name), at the start and every
+  2 s;
 * ``{"time", "id", "state", "speed"}`` for each car inside this UAV's area: its state
   (``x``, ``y``, ``vx``, ``vy``, ``speed``, ``colour``, ``road``, as the demo's tracker
-  publishes it) and speed, observed with the camera's noise;
-* ``{"time", "violation"}`` when a scripted violation ends in this UAV's area (the
-  world's ground truth: the deployment shows them without the demo's recognition
-  chain, which ``dyknow demo traffic`` runs).
+  publishes it: the road is the map's at the seen position) and speed, observed with
+  the camera's noise;
+* ``{"time", "cars"}``: the same cars at that instant, ``{id: state}`` (empty when none
+  is in sight): what the application's units reason over (``camera/cars``,
+  `federation.demo._units`) to recognize violations;
+* ``{"time", "truth"}`` when a scripted violation ends in this UAV's area: the world's
+  ground truth (``kind``, ``car``, ``other``, ``x``, ``y``), to compare what the
+  application recognizes with, never an input of the recognition.
 
 ``time`` is seconds since the epoch, the feed's start plus the simulated time.
 """
@@ -27,6 +35,8 @@ from typing import Any
 from ._world import World
 
 __all__ = ["world_feed"]
+
+AREA_PERIOD = 2.0  # s between two messages of the area (as the demo republishes it)
 
 
 def _index(uav: str) -> int:
@@ -53,6 +63,8 @@ async def world_feed(
     world = await asyncio.to_thread(World.generate, seed, uavs, duration)
     rng = random.Random(seed * 31 + index)
     violations = [v for v in world.ground_truth() if v.end_area == index]
+    area = {"index": index, "polygon": world.areas[index].polygon(), "delegated-by": None}
+    area_due = 0.0
     start = time.time()
     lap = -1
     told: set[int] = set()
@@ -63,26 +75,33 @@ async def world_feed(
         if int(elapsed // duration) != lap:
             lap, told = int(elapsed // duration), set()
         x, y, z = world.uav_position(index, t)
-        yield {"time": now, "position": [round(x, 2), round(y, 2), round(z, 2)]}
+        yield {"time": now, "position": {"x": round(x, 2), "y": round(y, 2), "z": round(z, 2)}}
+        if now >= area_due:
+            area_due = now + AREA_PERIOD
+            yield {"time": now, "area": area}
+        seen: dict[str, dict[str, Any]] = {}
         for car in world.cars_at(t):
             if world.area_of(car.x, car.y) != index:
                 continue
+            x, y = car.x + rng.gauss(0.0, noise), car.y + rng.gauss(0.0, noise)
             state = {
-                "x": round(car.x + rng.gauss(0.0, noise), 2),
-                "y": round(car.y + rng.gauss(0.0, noise), 2),
+                "x": round(x, 2),
+                "y": round(y, 2),
                 "vx": round(car.vx, 2),
                 "vy": round(car.vy, 2),
                 "speed": round(math.hypot(car.vx, car.vy), 2),
                 "colour": car.colour,
-                "road": car.road,
+                "road": world.road_at(x, y),  # the map at the seen position, as the demo's tracker
             }
+            seen[car.id] = state
             yield {"time": now, "id": car.id, "state": state, "speed": state["speed"]}
+        yield {"time": now, "cars": seen}
         for n, v in enumerate(violations):
             if n not in told and v.end <= t:
                 told.add(n)
                 yield {
                     "time": now,
-                    "violation": {
+                    "truth": {
                         "kind": v.kind,
                         "car": v.car,
                         "other": v.other,

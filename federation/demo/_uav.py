@@ -55,6 +55,16 @@ from dyknow_core._anchoring import Anchoring, LinkType, ObjectClass, add_anchori
 
 from .._cli_net import settle_gc
 from .._platform import FederationPlatform, PlatformConfig
+from ._traffic import (
+    CHRONICLES,
+    CROSSING_EVENTS,
+    RELATIONS,
+    SPEEDING,
+    RelationChanges,
+    crossing_step,
+    is_fast,
+    is_repeat,
+)
 from ._world import Camera, World
 
 __all__ = [
@@ -77,18 +87,10 @@ PERIOD = 0.2  # s (sim): camera, anchoring and tracker period
 FRESH = 1.5  # s: a state older than this is no longer tracked
 FUSED_FRESH = 2.5  # s: imported states come on a 0.5 s grid, later
 HANDOVER_RANGE = 150.0  # m before the east border: ask the neighbour for the cars
-FAST = 1.2  # beside at more than FAST x the speed limit: reckless
-SAME_LANE, OTHER_LANE = 1.5, (2.0, 6.0)  # lateral offsets, m
-NEAR = (6.0, 40.0)  # longitudinal gap for behind / in front, m
-BESIDE = 10.0  # |dx| below which two cars in different lanes are beside
 MIN_POINTS = 4  # positions before a track has a state: two give a noisy speed
 MISSES = 3  # detections missed in a row before a percept is retired
 MATCH = 15.0  # m: an anchored object's predicted position vs a local world object
 OBJECT_STATE = re.compile(r"([A-Za-z0-9_]+)-state")
-SPEEDING = "always not (exists c in Cars: always[0,2] fast(c))"
-"""The UAV's temporal-logic monitor: no car over FAST x its road's limit for 2 s."""
-RELATIONS = ("behind", "beside", "beside-fast", "in-front")
-CROSSING_EVENTS = ("enter", "turn", "pass")
 
 
 class SimClock:
@@ -184,45 +186,6 @@ def _state_dict(
     }
 
 
-_OVERTAKE = {
-    "events": [
-        {"name": "behind", "event": "behind", "args": ["a", "b"]},
-        {"name": "beside", "event": "beside", "args": ["a", "b"]},
-        {"name": "ahead", "event": "ahead", "args": ["a", "b"]},
-    ],
-    "constraints": [
-        {"start": "behind", "end": "beside", "lo": 0, "hi": 20},
-        {"start": "beside", "end": "ahead", "lo": 0, "hi": 15},
-    ],
-}
-CHRONICLES: dict[str, tuple[dict[str, Any], dict[str, str]]] = {
-    "overtake": (
-        {"name": "overtake", **_OVERTAKE},
-        {"behind": "relations/behind", "beside": "relations/beside", "ahead": "relations/in-front"},
-    ),
-    "reckless-overtake": (
-        {"name": "reckless-overtake", **_OVERTAKE},
-        {
-            "behind": "relations/behind",
-            "beside": "relations/beside-fast",
-            "ahead": "relations/in-front",
-        },
-    ),
-    "turn": (
-        {
-            "name": "turn",
-            "events": [
-                {"name": "enter", "event": "enter", "args": ["car", "crossing"]},
-                {"name": "turn", "event": "turn", "args": ["car", "crossing"]},
-            ],
-            "constraints": [{"start": "enter", "end": "turn", "lo": 0, "hi": 30}],
-        },
-        {"enter": "crossing/enter", "turn": "crossing/turn"},
-    ),
-}
-"""The chronicles each UAV recognizes: definition and inputs (event name → label)."""
-
-
 def anchoring_model(world: World) -> tuple[list[ObjectClass], list[LinkType]]:
     """The classes and links of the scenario: vision → world → on-road → car."""
 
@@ -302,7 +265,7 @@ class UavApplication:
         self.assigned = asyncio.Event()
         self.sources: dict[str, Source] = {}
         self.tracks: dict[str, _Track] = {}
-        self.relations: dict[tuple[str, str], str | None] = {}
+        self.relations = RelationChanges(world)
         self.last_states: dict[str, dict[str, Any]] = {}
         self.handovers: dict[str, dict[str, Any]] = {}  # object -> {to, label, state}
         self.anchored: dict[str, dict[str, Any]] = {}  # asked object -> {local, last, match}
@@ -552,45 +515,13 @@ class UavApplication:
         src.push(value, t)
 
     def _relations(self, cars: dict[str, dict[str, Any]], t: int) -> None:
-        names = sorted(cars)
-        for a in names:
-            sa = cars[a]
-            if sa["vx"] <= 0:
-                continue
-            for b in names:
-                if a == b:
-                    continue
-                sb = cars[b]
-                rel = self._relation(sa, sb)
-                key = (a, b)
-                if rel == self.relations.get(key) or rel is None:
-                    if rel is None and key in self.relations and self._far(sa, sb):
-                        del self.relations[key]
-                    continue
-                self.relations[key] = rel
-                self.sources[f"relations/{rel}"].push({"a": a, "b": b}, t)
-                if rel in ("beside", "beside-fast"):
-                    self._maybe_hand_over(a, b, sa, sb)
-
-    def _relation(self, a: dict[str, Any], b: dict[str, Any]) -> str | None:
-        dx, lat = a["x"] - b["x"], abs(a["y"] - b["y"])
-        if lat < SAME_LANE:
-            if -NEAR[1] < dx < -NEAR[0]:
-                return "behind"
-            if NEAR[0] < dx < NEAR[1]:
-                return "in-front"
-            return None
-        if OTHER_LANE[0] < lat < OTHER_LANE[1] and abs(dx) < BESIDE:
-            return "beside-fast" if self._fast(a) else "beside"
-        return None
+        for rel, a, b in self.relations.update(cars):
+            self.sources[f"relations/{rel}"].push({"a": a, "b": b}, t)
+            if rel in ("beside", "beside-fast"):
+                self._maybe_hand_over(a, b, cars[a], cars[b])
 
     def _fast(self, state: dict[str, Any]) -> bool:
-        road = state.get("road")
-        return road is not None and state["speed"] > FAST * self.world.speed_limit(road)
-
-    @staticmethod
-    def _far(a: dict[str, Any], b: dict[str, Any]) -> bool:
-        return abs(a["x"] - b["x"]) > 2 * NEAR[1] or abs(a["y"] - b["y"]) > 2 * OTHER_LANE[1]
+        return is_fast(state, self.world)
 
     def _crossings(self, cars: dict[str, dict[str, Any]], t: int) -> None:
         for obj, s in cars.items():
@@ -598,19 +529,10 @@ class UavApplication:
             track = self.tracks.get(wid)
             if track is None:
                 continue  # an imported (handed over) car: its crossings are its owner's
-            here = self.world.crossing_at(s["x"], s["y"])
-            if here is not None and track.crossing is None:
-                track.crossing, track.entry_road = here, track.last_road
-                self.sources["crossing/enter"].push({"car": obj, "crossing": here}, t)
-            elif here is None and track.crossing is not None:
-                # first seen inside the crossing: where it came from is unknown
-                if track.entry_road is not None and s["road"] is not None:
-                    kind = "turn" if s["road"] != track.entry_road else "pass"
-                    event = {"car": obj, "crossing": track.crossing}
-                    self.sources[f"crossing/{kind}"].push(event, t)
-                track.crossing = None
-            if here is None and s["road"] is not None:
-                track.last_road = s["road"]
+            event = crossing_step(track, s, self.world)
+            if event is not None:
+                kind, crossing = event
+                self.sources[f"crossing/{kind}"].push({"car": obj, "crossing": crossing}, t)
 
     # -- violations --------------------------------------------------------------------------
     def _violations(self) -> None:
@@ -626,11 +548,7 @@ class UavApplication:
             start = min(rec.times.values()) / NS_PER_S
             if rec.chronicle != "turn":
                 start = rec.times["beside"] / NS_PER_S
-            if any(
-                v["car"] == car and v["other"] == other and abs(v["end-instance"] - end) < 20
-                for v in self.violations
-                if v["kind"] in (rec.chronicle, "reckless-overtake")
-            ):
+            if is_repeat(self.violations, rec.chronicle, car, other, end, end_key="end-instance"):
                 continue
             where = self.last_states.get(str(car), {})
             value = {
