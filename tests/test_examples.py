@@ -4,9 +4,11 @@ import json
 import shutil
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from _node_example import Station, _samples, _stats
@@ -99,6 +101,10 @@ def test_node_example_zenoh_input_and_output(station: Station) -> None:
         env=station.env,
     )
     try:
+        # the node puts its state out as inputs arrive: subscribe before anything is sent
+        assert listener.stdout is not None
+        ready = _readline(listener.stdout, 30.0)
+        assert ready.strip() == "ready", listener.stderr.read() if listener.stderr else ready
         publish = subprocess.run(
             [sys.executable, "publish_zenoh.py", endpoint, "10"],
             cwd=station.dir,
@@ -125,6 +131,15 @@ def test_node_example_zenoh_input_and_output(station: Station) -> None:
     assert zin["received"] == 11 and zin["samples"] == 20 and zin["bad"] == {"not-json": 1}
 
 
+def _readline(stream: Any, timeout: float) -> str:
+    """One line of a child's output, or "" when none came within ``timeout`` s."""
+    lines: list[str] = []
+    reader = threading.Thread(target=lambda: lines.append(stream.readline()), daemon=True)
+    reader.start()
+    reader.join(timeout)
+    return lines[0] if lines else ""
+
+
 ZENOH_LISTENER = """
 import json, sys, zenoh
 c = zenoh.Config()
@@ -132,6 +147,7 @@ c.insert_json5("mode", '"client"')
 c.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
 c.insert_json5("scouting/multicast/enabled", "false")
 with zenoh.open(c) as s, s.declare_subscriber(sys.argv[2]) as sub:
+    print("ready", flush=True)
     sample = sub.recv()
     print(sample.key_expr, sample.payload.to_bytes().decode(), flush=True)
 """
