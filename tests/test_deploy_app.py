@@ -66,7 +66,10 @@ class Deployment:
 
     def start(self, *uavs: str) -> None:
         """The router, then each UAV's node, ready."""
-        self.spawn("router", "--listen", self.router)
+        router = self.spawn("router", "--listen", self.router)
+        assert router.stdout is not None
+        listening = router.stdout.readline()  # the nodes connect to it: it listens first
+        assert "listening on" in listening, listening + self.stop()
         nodes = {uav: self.spawn("node", "--config", f"{uav}.toml") for uav in uavs}
         for uav, node in nodes.items():
             assert node.stdout is not None
