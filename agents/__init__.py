@@ -11,6 +11,7 @@ from ._acl import (
     platform_of,
 )
 from ._agent import Agent, AgentStats, Conversation, MessageTemplate, on
+from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
     DirectoryEvent,
@@ -127,6 +128,7 @@ __all__ = [
     "Subscriber",
     "SubscriptionEnded",
     "SubscriptionStream",
+    "TokenBucket",
     "Transport",
     "TransportClosed",
     "TransportError",

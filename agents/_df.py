@@ -37,9 +37,9 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
 
 from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_of
 from ._agent import Agent
+from ._bucket import TokenBucket
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
 from ._exceptions import ServiceError, TransportError
-from ._kxgate import _Bucket
 from ._protocols import (
     DEFAULT_TIMEOUT,
     Publisher,
@@ -236,7 +236,7 @@ class DirectoryFacilitator(Agent):
         # directory queries are screened on the transport's thread: anyone on the network
         # may ask, and a flood would otherwise cost the event loop a task each
         self._query_lock = threading.Lock()
-        self._query_bucket = _Bucket(DF_QUERY_RATE, DF_QUERY_RATE, time.monotonic())
+        self._query_bucket = TokenBucket(DF_QUERY_RATE, DF_QUERY_RATE, time.monotonic())
         self.queries_shed = 0  # directory queries dropped unanswered, since start
         self.subscriptions_refused = 0  # subscribes of other platforms over their limit
         self._shed_pending = 0  # since the last audit record
@@ -251,9 +251,7 @@ class DirectoryFacilitator(Agent):
     def _admit_query(self, payload: bytes) -> bool:
         """Whether a directory query is answered (called on the transport's thread)."""
         with self._query_lock:
-            bucket = self._query_bucket
-            if bucket.ready(time.monotonic()):
-                bucket.tokens -= 1.0
+            if self._query_bucket.take(time.monotonic()):
                 return True
             self.queries_shed += 1
             self._shed_pending += 1

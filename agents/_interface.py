@@ -27,6 +27,7 @@ import orjson
 
 from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, platform_of
 from ._agent import Agent, MessageTemplate, on
+from ._bucket import TokenBucket
 from ._exceptions import (
     AuthenticationError,
     MessageError,
@@ -35,7 +36,7 @@ from ._exceptions import (
     TransportError,
     UnknownSession,
 )
-from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit, _Bucket
+from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
 from ._protocols import Refuse, on_query
 from ._security import (
     Clock,
@@ -135,30 +136,6 @@ class RateLimit:
                 )
         if self.report_interval <= 0:
             raise ValueError(f"RateLimit.report_interval: {self.report_interval!r} is not > 0")
-
-
-class TokenBucket:
-    """``rate`` tokens per second, at most ``burst`` saved up: one message takes one token."""
-
-    __slots__ = ("burst", "rate", "stamp", "tokens")
-
-    def __init__(self, rate: float, burst: float, now: float) -> None:
-        self.rate = rate
-        self.burst = burst
-        self.tokens = burst  # a newcomer may send its burst at once
-        self.stamp = now
-
-    def take(self, now: float, n: float = 1.0) -> bool:
-        """Take ``n`` tokens at time ``now`` (seconds, monotonic) if there are; else False."""
-        tokens = self.tokens
-        if now > self.stamp:
-            tokens = min(self.burst, tokens + (now - self.stamp) * self.rate)
-            self.stamp = now
-        if tokens >= n:
-            self.tokens = tokens - n
-            return True
-        self.tokens = tokens
-        return False
 
 
 def _burst_of(rate: float) -> float:
@@ -316,7 +293,7 @@ class InterfaceAgent:
         # watch requests are screened on the transport's thread, as key exchanges are: a
         # flood of them would cost the event loop a task each (the owner asks once a lease)
         self._watch_lock = threading.Lock()
-        self._watch_bucket = _Bucket(WATCH_RATE, WATCH_RATE, monotonic())
+        self._watch_bucket = TokenBucket(WATCH_RATE, WATCH_RATE, monotonic())
         self.watch_shed = 0  # watch requests dropped before the event loop, since start
         self._watch_shed_pending = 0  # since the last audit record
         self.audit_interval = audit_interval
@@ -971,9 +948,7 @@ class InterfaceAgent:
     def _admit_watch(self, payload: bytes) -> bool:
         """Whether a watch request goes on to the event loop (the transport's thread)."""
         with self._watch_lock:
-            bucket = self._watch_bucket
-            if bucket.ready(self._monotonic()):
-                bucket.tokens -= 1.0
+            if self._watch_bucket.take(self._monotonic()):
                 return True
             self.watch_shed += 1
             self._watch_shed_pending += 1

@@ -20,27 +20,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from ._acl import WIRE_VERSION
+from ._bucket import TokenBucket
 from ._exceptions import AuthenticationError, Replayed
 from ._security import _INIT_FIELDS, MAX_HANDSHAKE_BYTES, Handshake, _loads, _parse_kx
-
-
-class _Bucket:
-    """``rate`` tokens per second, at most ``burst`` saved up (the caller holds the lock)."""
-
-    __slots__ = ("burst", "rate", "stamp", "tokens")
-
-    def __init__(self, rate: float, burst: float, now: float) -> None:
-        self.rate = rate
-        self.burst = burst
-        self.tokens = burst
-        self.stamp = now
-
-    def ready(self, now: float) -> bool:
-        """Whether a token is there at ``now`` (taken with ``tokens -= 1``)."""
-        if now > self.stamp:
-            self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
-            self.stamp = now
-        return self.tokens >= 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,8 +102,8 @@ class KxGate:
         self._on_shed = on_shed
         self._lock = threading.Lock()
         now = monotonic()
-        self._total = _Bucket(limit.total, limit.total_burst, now)
-        self._peers: dict[str, _Bucket] = {}
+        self._total = TokenBucket(limit.total, limit.total_burst, now)
+        self._peers: dict[str, TokenBucket] = {}
         self._seen: OrderedDict[tuple[str, str], float] = OrderedDict()
         self.shed: Counter[str] = Counter()  # every request shed, by reason, since start
         self.admitted = 0
@@ -150,7 +132,7 @@ class KxGate:
                 return self._drop_locked(Replayed.code, frm, f"{Replayed.code}: {why}")
             bucket = self._peers.get(frm)
             if bucket is None:  # one per trusted name: bounded by the trust file
-                bucket = self._peers[frm] = _Bucket(
+                bucket = self._peers[frm] = TokenBucket(
                     self.limit.per_peer, self.limit.per_peer_burst, now
                 )
             if not bucket.ready(now):

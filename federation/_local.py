@@ -39,7 +39,7 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents._kxgate import _Bucket
+from agents import TokenBucket
 
 from ._platform import PlatformConfig
 
@@ -220,15 +220,14 @@ class LocalChannel:
         # anyone on the network may ask who we are: screened on the transport's thread, so
         # a flood costs no task each on the event loop (a second node asks once)
         self._who_lock = threading.Lock()
-        self._who_bucket = _Bucket(IDENTITY_RATE, IDENTITY_RATE, time.monotonic())
+        self._who_bucket = TokenBucket(IDENTITY_RATE, IDENTITY_RATE, time.monotonic())
         self.identity_shed = 0  # identity queries dropped unanswered, since start
         self._shed_pending = 0
         self._reports: asyncio.Task[None] | None = None
 
     def _admit_who(self, payload: bytes) -> bool:
         with self._who_lock:
-            if self._who_bucket.ready(time.monotonic()):
-                self._who_bucket.tokens -= 1.0
+            if self._who_bucket.take(time.monotonic()):
                 return True
             self.identity_shed += 1
             self._shed_pending += 1

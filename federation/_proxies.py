@@ -38,6 +38,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, Self, runtime_check
 
 import msgpack
 
+from agents import TokenBucket
 from agents._exceptions import (
     AuthenticationError,
     Expired,
@@ -48,7 +49,6 @@ from agents._exceptions import (
     UnknownPlatform,
     UnknownSession,
 )
-from agents._interface import TokenBucket
 from agents._platform import wire_key
 from agents._security import SessionTable, check_name
 from agents.transports import Message, Presence, Transport

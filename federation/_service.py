@@ -105,6 +105,7 @@ from agents import (
     ReplyTimeout,
     ServiceDescription,
     ServiceError,
+    TokenBucket,
     Visibility,
     agent_id,
     new_id,
@@ -116,7 +117,6 @@ from agents import (
 from agents._agent import reason_of
 from agents._gateway_service import GatewayRefusal, GatewayService, answer_to_json, jsonable
 from agents._gateway_service import Query as GatewayQuery
-from agents._interface import TokenBucket
 from agents._protocols import DEFAULT_TIMEOUT
 from agents.transports import Inbox, Subscription
 from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, UnknownLabelError

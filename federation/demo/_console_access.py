@@ -35,7 +35,8 @@ from typing import Any
 
 from aiohttp import web
 
-from agents._interface import AuditLog, TokenBucket
+from agents import TokenBucket
+from agents._interface import AuditLog
 
 __all__ = [
     "ALLOW_HOSTS_ENV",
