@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-__all__ = ["TokenBucket"]
+import math
+from typing import Any
+
+__all__ = ["TokenBucket", "check_rates"]
 
 
 class TokenBucket:
@@ -35,3 +38,28 @@ class TokenBucket:
             self.tokens -= n
             return True
         return False
+
+
+def check_rates(
+    owner: Any, kind: str, numbers: tuple[str, ...], bursts: tuple[str, ...], what: str
+) -> None:
+    """Refuse a limit whose ``numbers`` are not finite ≥ 0 or whose ``bursts`` are < 1.
+
+    ``kind`` names the class in the error; ``what`` is what a burst below one would refuse.
+    Also checks ``report_interval`` > 0 (every limit reports at some interval).
+    """
+    for name in numbers:
+        value = getattr(owner, name)
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not math.isfinite(value)
+            or value < 0
+        ):
+            raise ValueError(f"{kind}.{name}: {value!r} is not a finite number >= 0")
+    for name in bursts:
+        if getattr(owner, name) < 1:
+            raise ValueError(f"{kind}.{name}: {getattr(owner, name)!r} < 1 would refuse {what}")
+    interval = owner.report_interval
+    if interval <= 0:
+        raise ValueError(f"{kind}.report_interval: {interval!r} is not > 0")

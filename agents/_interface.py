@@ -27,7 +27,7 @@ import orjson
 
 from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, platform_of
 from ._agent import Agent, MessageTemplate, on
-from ._bucket import TokenBucket
+from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
     AuthenticationError,
     MessageError,
@@ -112,30 +112,21 @@ class RateLimit:
     unauthenticated: float = 200.0
 
     def __post_init__(self) -> None:
-        for name in (
-            "rate",
-            "burst",
-            "total_rate",
-            "total_burst",
-            "refusals",
-            "report_interval",
-            "unauthenticated",
-        ):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, int | float)
-                or not math.isfinite(value)
-                or value < 0
-            ):
-                raise ValueError(f"RateLimit.{name}: {value!r} is not a finite number >= 0")
-        for name in ("burst", "total_burst"):
-            if getattr(self, name) < 1:
-                raise ValueError(
-                    f"RateLimit.{name}: {getattr(self, name)!r} < 1 would refuse every message"
-                )
-        if self.report_interval <= 0:
-            raise ValueError(f"RateLimit.report_interval: {self.report_interval!r} is not > 0")
+        check_rates(
+            self,
+            "RateLimit",
+            (
+                "rate",
+                "burst",
+                "total_rate",
+                "total_burst",
+                "refusals",
+                "report_interval",
+                "unauthenticated",
+            ),
+            ("burst", "total_burst"),
+            "every message",
+        )
 
 
 def _burst_of(rate: float) -> float:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ._acl import WIRE_VERSION
-from ._bucket import TokenBucket
+from ._bucket import TokenBucket, check_rates
 from ._exceptions import AuthenticationError, Replayed
 from ._security import _INIT_FIELDS, MAX_HANDSHAKE_BYTES, Handshake, _loads, _parse_kx
 
@@ -48,22 +48,13 @@ class KxLimit:
     report_interval: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("per_peer", "per_peer_burst", "total", "total_burst", "report_interval"):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, int | float)
-                or not math.isfinite(value)
-                or value < 0
-            ):
-                raise ValueError(f"KxLimit.{name}: {value!r} is not a finite number >= 0")
-        for name in ("per_peer_burst", "total_burst"):
-            if getattr(self, name) < 1:
-                raise ValueError(
-                    f"KxLimit.{name}: {getattr(self, name)!r} < 1 would refuse every request"
-                )
-        if self.report_interval <= 0:
-            raise ValueError(f"KxLimit.report_interval: {self.report_interval!r} is not > 0")
+        check_rates(
+            self,
+            "KxLimit",
+            ("per_peer", "per_peer_burst", "total", "total_burst", "report_interval"),
+            ("per_peer_burst", "total_burst"),
+            "every request",
+        )
         if isinstance(self.detailed, bool) or not isinstance(self.detailed, int):
             raise ValueError(f"KxLimit.detailed: {self.detailed!r} is not an integer")
         if self.detailed < 0:
