@@ -462,24 +462,41 @@ class _Queue:
             self.mapper.bad("overflow", f"more than {_QUEUE} messages waiting")
 
 
+@contextlib.asynccontextmanager
+async def zenoh_subscriber(
+    settings: Any, zenoh_session: Any | None, key: str, on_sample: Callable[[Any], None]
+) -> AsyncIterator[None]:
+    """A subscriber for a zenoh-based input: on the node's session, or its own (``connect``)."""
+    import zenoh
+
+    from agents.transports import ZenohConfig
+
+    own = None
+    if settings.connect is not None or zenoh_session is None:
+        if not settings.connect:
+            raise ValueError(
+                f"input {settings.title()}: the node's transport is not zenoh: give connect = [...]"
+            )
+        cfg = ZenohConfig(mode="client", connect=settings.connect).to_zenoh()
+        own = zenoh_session = await asyncio.to_thread(zenoh.open, cfg)
+    assert zenoh_session is not None
+    sub = zenoh_session.declare_subscriber(key, on_sample)
+    try:
+        yield
+    finally:
+        with contextlib.suppress(Exception):  # the session may be closing already
+            sub.undeclare()
+        if own is not None:
+            await asyncio.to_thread(own.close)
+
+
 class _ZenohRunner(InputRunner):
     settings: ZenohInput
 
     async def _run(self, zenoh_session: Any | None) -> None:
         import zenoh
 
-        from agents.transports import ZenohConfig
-
         s = self.settings
-        own = None
-        if s.connect is not None or zenoh_session is None:
-            if not s.connect:
-                raise ValueError(
-                    f"input {s.title()}: the node's transport is not zenoh: give connect = [...]"
-                )
-            cfg = ZenohConfig(mode="client", connect=s.connect).to_zenoh()
-            own = zenoh_session = await asyncio.to_thread(zenoh.open, cfg)
-        assert zenoh_session is not None
         q = _Queue(self.mapper)
 
         def on_sample(sample: zenoh.Sample) -> None:
@@ -489,8 +506,7 @@ class _ZenohRunner(InputRunner):
                 stamp = int(ts.get_time().timestamp() * 1e9)
             q.put_threadsafe((sample.payload.to_bytes(), stamp, str(sample.key_expr)))
 
-        sub = zenoh_session.declare_subscriber(s.key, on_sample)
-        try:
+        async with zenoh_subscriber(s, zenoh_session, s.key, on_sample):
             mapper, fmt = self.mapper, s.format
             while True:
                 payload, stamp, key = await q.queue.get()
@@ -501,11 +517,6 @@ class _ZenohRunner(InputRunner):
                     mapper.bad(exc.reason, exc.detail)
                     continue
                 mapper.handle(message, stamp=stamp, topic=key)
-        finally:
-            with contextlib.suppress(Exception):
-                sub.undeclare()
-            if own is not None:
-                await asyncio.to_thread(own.close)
 
 
 class _MqttRunner(InputRunner):

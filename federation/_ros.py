@@ -17,7 +17,6 @@ docs/application.md, "ROS 2".
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import logging
 import time
@@ -25,7 +24,7 @@ from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from ._inputs import BadMessage, InputRunner, Ros2Input, RosbagInput, _Queue
+from ._inputs import BadMessage, InputRunner, Ros2Input, RosbagInput, _Queue, zenoh_subscriber
 
 if TYPE_CHECKING:
     from dyknow_core import DyKnowInstance
@@ -112,30 +111,16 @@ class _Ros2Runner(InputRunner):
         return f"{s.domain}/{topic}/{kind}/*"
 
     async def _run(self, zenoh_session: Any | None) -> None:
-        import zenoh
-
-        from agents.transports import ZenohConfig
-
         s = self.settings
         decoder = _Decoder(s.distro)
-        own = None
-        if s.connect is not None or zenoh_session is None:
-            if not s.connect:
-                raise ValueError(
-                    f"input {s.title()}: the node's transport is not zenoh: give connect = [...]"
-                )
-            cfg = ZenohConfig(mode="client", connect=s.connect).to_zenoh()
-            own = zenoh_session = await asyncio.to_thread(zenoh.open, cfg)
-        assert zenoh_session is not None
         q = _Queue(self.mapper)
 
-        def on_sample(sample: zenoh.Sample) -> None:
+        def on_sample(sample: Any) -> None:
             q.put_threadsafe((sample.payload.to_bytes(), None, str(sample.key_expr)))
 
-        sub = zenoh_session.declare_subscriber(self.key(), on_sample)
-        log.info("input %s: subscribed to %s", s.title(), self.key())
-        mapper = self.mapper
-        try:
+        async with zenoh_subscriber(s, zenoh_session, self.key(), on_sample):
+            log.info("input %s: subscribed to %s", s.title(), self.key())
+            mapper = self.mapper
             while True:
                 payload, _, key = await q.queue.get()
                 try:
@@ -150,11 +135,6 @@ class _Ros2Runner(InputRunner):
                         mapper.bad("bad-key", f"{key}: {exc}")
                     continue
                 mapper.handle(message, stamp=header_stamp(message), topic=s.topic)
-        finally:
-            with contextlib.suppress(Exception):
-                sub.undeclare()
-            if own is not None:
-                await asyncio.to_thread(own.close)
 
 
 def _read_bag(path: Path, topic: str) -> list[tuple[int, str, bytes]]:
