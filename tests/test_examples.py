@@ -13,7 +13,18 @@ from typing import Any
 import pytest
 from _node_example import Station, _samples, _stats
 
-from examples import local_pipeline
+from dyknow_core import NS_PER_S
+from examples import (
+    anchoring,
+    chronicle,
+    cu,
+    federation_query,
+    local_pipeline,
+    monitor,
+    policy,
+    state,
+    stream_between_platforms,
+)
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -40,6 +51,101 @@ async def test_two_platforms_example_answers_through_the_interface_agents(capsys
     assert result["audit"]["accepted"] >= 1
     assert result["audit"]["dropped"] == 0
     assert "wind" in capsys.readouterr().out
+
+
+# -- one capability per script: examples/<name>.py ------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "script",
+    [
+        "policy.py",
+        "cu.py",
+        "state.py",
+        "monitor.py",
+        "chronicle.py",
+        "anchoring.py",
+        "federation_query.py",
+        "stream_between_platforms.py",
+    ],
+)
+def test_each_example_runs_as_a_script(script: str) -> None:
+    # as examples/README.md says: python examples/<name>.py, from anywhere
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "examples" / script)],
+        capture_output=True,
+        text=True,
+        timeout=50,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() and "Traceback" not in done.stderr
+
+
+async def test_policy_example_drops_late_and_out_of_order_and_fills_the_silence() -> None:
+    result = await policy.run()
+    assert result["published"] == 18
+    grid = [(valid // NS_PER_S, value) for value, valid, _ in result["display"]]
+    assert grid == [(0, 20.0), (1, 21.0), (2, 22.0), (3, 22.25), (4, 24.25), (5, 25.0), (6, 26.0)]
+    # 3 s: nothing came within the max delay; decided by time, at 3.5 s, from 2.25 s
+    assert result["display"][3][2] == int(3.5 * NS_PER_S)
+    stats = result["stats"]
+    assert (stats["dropped_late"], stats["dropped_order"], stats["approximated"]) == (2, 1, 1)
+
+
+async def test_cu_example_computes_filters_and_survives_a_failure() -> None:
+    result = await cu.run()
+    # the error code -1 at 3 s never reaches the unit: its input policy's bounds
+    assert result["wx/wind_kmh"] == [(18.0, 0), (18.0, 1), (21.6, 2), (36.0, 4)]
+    # too warm at 1 s: None, nothing emitted; 2 s: raised twice; both inputs fire it at 4 s
+    assert [t for _, t in result["wx/wind_chill"]] == [0, 3, 4, 4]
+    assert result["wx/wind_chill"][0] == (1.3, 0)
+    assert result["failures"] == ["chill", "chill"]
+
+
+async def test_state_example_synchronizes_waits_and_skips() -> None:
+    result = await state.run()
+    valid = [tv for _, tv, _ in result["states"]]
+    assert valid == [1.0 + 0.5 * k for k in range(9)]  # before 1 s: no on-road flag, skipped
+    assert result["skipped"] == 2 and result["emitted"] == 9
+    lost = [(v["pos"], ta - tv) for v, tv, ta in result["states"] if 2.0 <= tv <= 3.0]
+    # the GPS is lost: each waits its max delay, then takes the position of 1.5 s
+    assert [p for p, _ in lost] == [(16.6, 0.0)] * 3
+    assert all(abs(wait - 0.4) < 1e-9 for _, wait in lost)
+
+
+async def test_monitor_example_reports_the_violation_when_it_is_certain() -> None:
+    assert await monitor.run() == [(True, 10, 0), (True, 21, 11), (False, 33, 22)]
+
+
+async def test_chronicle_example_recognizes_each_pass_per_car() -> None:
+    # car2 stayed 25 s in the crossing: over the 20 s constraint, never recognized
+    assert await chronicle.run() == [("car1", 2, 8), ("car3", 10, 14), ("car3", 41, 50)]
+
+
+async def test_anchoring_example_joins_and_leaves_on_road() -> None:
+    events = await anchoring.run()
+    assert (0, "linked", "vo2wo", "visionobject1 -> worldobject1") in events
+    on_road = [(t, e) for t, e, cls, _ in events if cls == "OnRoadObject"]
+    assert on_road == [(10, "joined"), (35, "left")]
+    # b2's faint blob never became an object
+    assert [who for _, e, _, who in events if e == "created"] == ["visionobject1", "worldobject1"]
+
+
+@pytest.mark.timeout(30)
+async def test_federation_query_example_asks_every_platform() -> None:
+    result = await federation_query.run()
+    assert result["altitude"] == {"uav-a": 120.0, "uav-b": 85.5}
+    assert result["newest"] == "uav-b"
+    assert result["car5"] == ["uav-a"]
+    assert list(result["refused"]) == ["uav-b"] and "no stream" in result["refused"]["uav-b"]
+
+
+@pytest.mark.timeout(30)
+async def test_stream_between_platforms_example_exports_with_the_policy() -> None:
+    got = await stream_between_platforms.run()
+    assert [valid for _, valid in got] == [2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    # the states of 4.8 s to 5.2 s were late at uav-a: 5 s took the state of 4.7 s
+    assert [state["x"] for state, _ in got] == [25.0, 37.5, 50.0, 58.75, 75.0, 87.5, 100.0]
 
 
 # -- examples/node: a node running weather.kpl, fed by each kind of input ----------------------
