@@ -46,7 +46,6 @@ async def run() -> list[tuple[str, int, int]]:
         for t, car, inside in TRACKS:
             clock.set(t * NS_PER_S)
             flags[car].push(inside)
-        await asyncio.sleep(0)
         found = []
         for s in dk.between(chronicle.label, 0, clock.now(), all_estimates=True).samples:
             r = s.value  # a Recognition

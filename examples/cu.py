@@ -55,7 +55,6 @@ async def run() -> dict[str, Any]:
             clock.set(second * NS_PER_S)
             temperature.push(t)
             wind.push(w)
-        await asyncio.sleep(0)
 
         for label, got in outputs.items():
             shown = ", ".join(f"{v} at {tv // NS_PER_S} s" for v, tv, _ in got)

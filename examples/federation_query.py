@@ -60,6 +60,11 @@ async def open_federation() -> AsyncIterator[dict[str, FederationPlatform]]:
             yield platforms
 
 
+def latest(answer: Any, label: str) -> list[list[Any]]:
+    """A get-latest answer's samples of ``label``: [value, valid s, available s] each."""
+    return answer[label]["samples"]
+
+
 async def run() -> dict[str, Any]:
     """Ask both questions; return who answered what, and who refused."""
     async with open_federation() as platforms:
@@ -74,18 +79,17 @@ async def run() -> dict[str, Any]:
             {"action": "get-latest", "labels": ["heli-altitude"]}, deadline=5.0, select="newest"
         )
         for name, answer in altitude.answers.items():
-            [[value, valid, _]] = answer["heli-altitude"]["samples"]  # times in s
+            [[value, valid, _]] = latest(answer, "heli-altitude")
             print(f"{name}: heli-altitude {value} m, valid at now {valid - now / NS_PER_S:+.1f} s")
         print(f"the newest answer is {altitude.chosen}'s\n")
 
         car5 = await ask({"action": "get-latest", "labels": ["car5-state"]}, deadline=5.0)
         for name, answer in car5.answers.items():
-            print(f"{name}: car5-state = {answer['car5-state']['samples'][0][0]}")
+            print(f"{name}: car5-state = {latest(answer, 'car5-state')[0][0]}")
         for name, reason in car5.refused.items():
             print(f"{name} refused: {reason}")
-        answers = altitude.answers.items()
         return {
-            "altitude": {n: x["heli-altitude"]["samples"][0][0] for n, x in answers},
+            "altitude": {n: latest(x, "heli-altitude")[0][0] for n, x in altitude.answers.items()},
             "newest": altitude.chosen,
             "car5": list(car5.answers),
             "refused": car5.refused,

@@ -1,6 +1,6 @@
 """A local DyKnow pipeline to watch: a simulated car's sensors, policies, CUs, a live table.
 
-Run it with ``make demo`` (or ``python -m examples.local_pipeline [--fast]``). It drives a
+Run it with ``python examples/local_pipeline.py [--fast]``. It drives a
 car for 40 s of simulated time in about 10 s of real time, then queries what the
 instance knows and prints its per-stream metrics::
 

@@ -40,7 +40,6 @@ async def run() -> list[tuple[bool, int, int]]:
             clock.set(t * NS_PER_S)
             speed.push(20.0 if any(t in r for r in SLOW) else 50.0)
             on_road.push(not any(t in r for r in OFF_ROAD))
-        await asyncio.sleep(0)
         out = []
         for value, valid, _ in verdicts:
             decided, start = valid // NS_PER_S, value["start"] // NS_PER_S

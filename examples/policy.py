@@ -55,7 +55,7 @@ async def run() -> dict[str, Any]:
             clock.set(now)
             while pending and pending[0][2] <= now:
                 thermometer.push_batch([pending.pop(0)])
-            await asyncio.sleep(0)  # the instance's ticker decides grid points time passed
+            await asyncio.sleep(0)  # the ticker decides grid points whose max delay passed
         print(f"{len(everything)} readings published; the display got one a second:")
         for value, valid, available in display:
             print(

@@ -30,7 +30,8 @@ MS = NS_PER_S // 1000
 
 def sensors() -> list[tuple[int, str, Any, int]]:
     """Every sample of the drive: (available ms, label, value, valid ms)."""
-    out = [(t + 50, "car5/speed", 40 + t / 1000, t) for t in range(0, 5001, 100)]
+    out: list[tuple[int, str, Any, int]] = []
+    out += [(t + 50, "car5/speed", 40 + t / 1000, t) for t in range(0, 5001, 100)]
     out += [
         (t + 200, "car5/pos", (round(11.1 * t / 1000, 1), 0.0), t)
         for t in range(0, 5001, 500)

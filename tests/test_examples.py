@@ -67,12 +67,15 @@ async def test_two_platforms_example_answers_through_the_interface_agents(capsys
         "anchoring.py",
         "federation_query.py",
         "stream_between_platforms.py",
+        "local_pipeline.py --fast",
+        "two_platforms.py",
     ],
 )
 def test_each_example_runs_as_a_script(script: str) -> None:
     # as examples/README.md says: python examples/<name>.py, from anywhere
+    name, *args = script.split()
     done = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / script)],
+        [sys.executable, str(ROOT / "examples" / name), *args],
         capture_output=True,
         text=True,
         timeout=50,
