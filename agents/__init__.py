@@ -10,7 +10,19 @@ from ._acl import (
     new_id,
     platform_of,
 )
-from ._agent import Agent, AgentStats, Conversation, MessageTemplate, on, reason_of
+from ._agent import (
+    Agent,
+    AgentStats,
+    Conversation,
+    ConversationError,
+    Failed,
+    MessageTemplate,
+    NotUnderstood,
+    Refused,
+    ReplyTimeout,
+    on,
+    reason_of,
+)
 from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
@@ -30,18 +42,13 @@ from ._df import (
 from ._exceptions import (
     AgentError,
     AuthenticationError,
-    ConversationError,
     Expired,
-    Failed,
     Forged,
     KeyFileError,
     Malformed,
     MessageError,
     Misdirected,
-    NotUnderstood,
-    Refused,
     Replayed,
-    ReplyTimeout,
     SecurityError,
     ServiceError,
     TransportClosed,
