@@ -19,6 +19,8 @@ lint: $(STAMP)
 	@echo "==> ruff"
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	@echo "==> import-linter (the layering: [tool.importlinter] in pyproject.toml)"
+	$(VENV)/bin/lint-imports
 
 typecheck: $(STAMP)
 	@echo "==> mypy"
@@ -70,4 +72,4 @@ bench: $(STAMP)
 	$(PY) -m bench $(BENCH)
 
 clean:
-	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache .hypothesis
+	rm -rf $(VENV) .mypy_cache .ruff_cache .pytest_cache .hypothesis .import_linter_cache .grimp_cache

@@ -10,7 +10,19 @@ from ._acl import (
     new_id,
     platform_of,
 )
-from ._agent import Agent, AgentStats, Conversation, MessageTemplate, on
+from ._agent import (
+    Agent,
+    AgentStats,
+    Conversation,
+    ConversationError,
+    Failed,
+    MessageTemplate,
+    NotUnderstood,
+    Refused,
+    ReplyTimeout,
+    on,
+    reason_of,
+)
 from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
@@ -29,18 +41,22 @@ from ._df import (
 )
 from ._exceptions import (
     AgentError,
-    ConversationError,
-    Failed,
+    AuthenticationError,
+    Expired,
+    Forged,
+    KeyFileError,
+    Malformed,
     MessageError,
-    NotUnderstood,
-    Refused,
-    ReplyTimeout,
+    Misdirected,
+    Replayed,
     SecurityError,
     ServiceError,
     TransportClosed,
     TransportError,
+    Unencrypted,
+    UnknownPlatform,
+    UnknownSession,
 )
-from ._gateway import GatewayAgent
 from ._interface import AuditLog, InterfaceAgent, RateLimit
 from ._kxgate import KxLimit
 from ._platform import (
@@ -52,6 +68,7 @@ from ._platform import (
     wire_key,
 )
 from ._protocols import (
+    DEFAULT_TIMEOUT,
     FIPA_CONTRACT_NET,
     FIPA_QUERY,
     FIPA_REQUEST,
@@ -75,10 +92,11 @@ from ._protocols import (
     request,
     subscribe,
 )
-from ._security import KeyPair, SecurityPolicy, TrustStore
+from ._security import KeyPair, SecurityPolicy, SessionTable, TrustStore, check_name, watch_request
 from .transports import MemoryHub, MemoryTransport, Transport
 
 __all__ = [
+    "DEFAULT_TIMEOUT",
     "FIPA_AGENT_MANAGEMENT",
     "FIPA_CONTRACT_NET",
     "FIPA_QUERY",
@@ -92,22 +110,27 @@ __all__ = [
     "AgentPlatform",
     "AgentStats",
     "AuditLog",
+    "AuthenticationError",
     "ContractNetResult",
     "Conversation",
     "ConversationError",
     "DirectoryEvent",
     "DirectoryFacilitator",
+    "Expired",
     "Failed",
     "Failure",
-    "GatewayAgent",
+    "Forged",
     "GlobalDirectory",
     "InterfaceAgent",
+    "KeyFileError",
     "KeyPair",
     "KxLimit",
+    "Malformed",
     "MemoryHub",
     "MemoryTransport",
     "MessageError",
     "MessageTemplate",
+    "Misdirected",
     "NotUnderstood",
     "Performative",
     "PlainChannel",
@@ -118,6 +141,7 @@ __all__ = [
     "Refuse",
     "Refused",
     "RemoteChannel",
+    "Replayed",
     "ReplyTimeout",
     "SecurityError",
     "SecurityPolicy",
@@ -125,6 +149,7 @@ __all__ = [
     "ServiceDescription",
     "ServiceError",
     "ServiceQuery",
+    "SessionTable",
     "Subscriber",
     "SubscriptionEnded",
     "SubscriptionStream",
@@ -133,8 +158,12 @@ __all__ = [
     "TransportClosed",
     "TransportError",
     "TrustStore",
+    "Unencrypted",
+    "UnknownPlatform",
+    "UnknownSession",
     "Visibility",
     "agent_id",
+    "check_name",
     "contract_net",
     "deregister_service",
     "modify_service",
@@ -149,11 +178,13 @@ __all__ = [
     "platform_of",
     "query_if",
     "query_ref",
+    "reason_of",
     "register_service",
     "request",
     "search_services",
     "subscribe",
     "subscribe_services",
     "visibility_allows",
+    "watch_request",
     "wire_key",
 ]

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 from ._acl import ACLMessage, Performative, agent_id, new_id
-from ._exceptions import AgentError, ConversationError, ReplyTimeout
+from ._exceptions import AgentError
 
 if TYPE_CHECKING:
     from ._platform import AgentPlatform
@@ -64,6 +64,32 @@ EXPECTS_REPLY = frozenset(
 NEVER_ANSWERED = frozenset({_P.NOT_UNDERSTOOD, _P.FAILURE})
 
 _MAX_REASON = 1000
+
+
+class ConversationError(AgentError):
+    """A step of an interaction protocol did not go as the initiator needed."""
+
+    def __init__(self, text: str, message: ACLMessage | None = None) -> None:
+        self.message = message
+        super().__init__(text)
+
+
+class ReplyTimeout(ConversationError, TimeoutError):
+    """No reply came before the deadline (``reply_by`` or the caller's timeout)."""
+
+
+class Refused(ConversationError):
+    """The responder refused the request; ``message`` is the refuse."""
+
+
+class Failed(ConversationError):
+    """The responder could not perform what it agreed to; ``message`` is the failure."""
+
+
+class NotUnderstood(ConversationError):
+    """The responder did not understand the message; ``message`` says why."""
+
+
 _current_agent: contextvars.ContextVar[Agent | None] = contextvars.ContextVar(
     "dyknow_current_agent", default=None
 )

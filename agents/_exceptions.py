@@ -1,6 +1,8 @@
 """Errors raised by the agent layer.
 
-The tree::
+The tree (all exported from `agents`); the `ConversationError` branch is defined beside
+`Conversation` in ``_agent``, as it carries an ACL message, so that this module imports
+nothing::
 
     AgentError
     ├── MessageError            (a message that does not parse or validate; .reason says why)
@@ -27,11 +29,6 @@ The tree::
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
-if TYPE_CHECKING:
-    from ._acl import ACLMessage
-
 
 class AgentError(Exception):
     """Base class of every error raised by `agents`."""
@@ -43,30 +40,6 @@ class MessageError(AgentError, ValueError):
     def __init__(self, reason: str) -> None:
         self.reason = reason
         super().__init__(reason)
-
-
-class ConversationError(AgentError):
-    """A step of an interaction protocol did not go as the initiator needed."""
-
-    def __init__(self, text: str, message: ACLMessage | None = None) -> None:
-        self.message = message
-        super().__init__(text)
-
-
-class ReplyTimeout(ConversationError, TimeoutError):
-    """No reply came before the deadline (``reply_by`` or the caller's timeout)."""
-
-
-class Refused(ConversationError):
-    """The responder refused the request; ``message`` is the refuse."""
-
-
-class Failed(ConversationError):
-    """The responder could not perform what it agreed to; ``message`` is the failure."""
-
-
-class NotUnderstood(ConversationError):
-    """The responder did not understand the message; ``message`` says why."""
 
 
 class ServiceError(AgentError):

@@ -385,17 +385,27 @@ class InterfaceAgent:
         try:
             payload = self.sessions.seal(platform, body)
         except UnknownSession:
-            await self._agree(platform)
+            await self.agree(platform)
             payload = self.sessions.seal(platform, body)
         await host.transport.publish(host.key("acl", platform), payload)
+        self.renew_if_needed(platform)
+
+    def renew_if_needed(self, peer: str) -> None:
+        """Start agreeing a new session with ``peer`` in the background if the current one is old.
+
+        Sending goes on over the current session meanwhile. Nothing is started while the
+        platform is stopping, while an exchange with ``peer`` runs, or while ``peer`` has
+        just made a session with us that it has not used yet.
+        """
+        host = self._host
         if (
-            host.running  # agents stopping with the platform still send; nothing renews then
-            and platform not in self._handshakes
-            and self.sessions.needs_renewal(platform)
-            and not self._peer_renewing(platform)
+            host is not None
+            and host.running  # agents stopping with the platform still send; nothing renews then
+            and peer not in self._handshakes
+            and self.sessions.needs_renewal(peer)
+            and not self._peer_renewing(peer)
         ):
-            # keep sending on the current session while the new one is agreed
-            host.spawn(self._renew(platform), f"interface.renew[{platform}]")
+            host.spawn(self._renew(peer), f"interface.renew[{peer}]")
 
     async def aclose(self) -> None:
         """Stop receiving, stop serving key exchanges, flush the audit."""
@@ -441,8 +451,8 @@ class InterfaceAgent:
             raise SecurityError("the Interface Agent is not started")
         return self._host
 
-    async def _agree(self, peer: str) -> None:
-        """Run one key exchange with ``peer``; concurrent senders wait for the same one."""
+    async def agree(self, peer: str) -> None:
+        """Agree a session with ``peer`` (one key exchange; concurrent callers share it)."""
         while (fut := self._handshakes.get(peer)) is not None and not fut.done():
             try:
                 await asyncio.shield(fut)
@@ -514,7 +524,7 @@ class InterfaceAgent:
         if not announce and (not self.sessions.needs_renewal(peer) or self._peer_renewing(peer)):
             return  # the peer renewed between our decision and now
         try:
-            await self._agree(peer)
+            await self.agree(peer)
         except Exception as exc:
             log.warning(
                 "interface[%s]: renewing the session with %s failed: %s", self._me, peer, exc
@@ -592,8 +602,12 @@ class InterfaceAgent:
             ),
         )
 
-    def _rehandshake(self, peer: str) -> None:
-        """A trusted peer sends on a session we lost (we restarted): agree a new one, rarely."""
+    def rehandshake(self, peer: str) -> None:
+        """A trusted peer seals on a session we lost (we restarted): agree a new one, rarely.
+
+        Runs in the background, at most once per ``rehandshake_interval`` seconds per peer;
+        an untrusted or unknown ``peer`` is ignored.
+        """
         host = self._host
         if (
             host is None
@@ -634,7 +648,7 @@ class InterfaceAgent:
                 stats.unauthenticated += 1
                 self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}")
                 if isinstance(exc, UnknownSession) and exc.platform is not None:
-                    self._rehandshake(exc.platform)
+                    self.rehandshake(exc.platform)
                 continue
             except Exception as exc:  # never let one envelope end the loop
                 stats.unauthenticated += 1
@@ -763,7 +777,7 @@ class InterfaceAgent:
         sender.last_report = now
 
     def audit_unauthenticated(self, claimed: str | None, reason: str, stage: str) -> None:
-        """Audit input that did not authenticate (directory, presence), within the budget."""
+        """Audit input that did not authenticate (directory, presence, streams), within budget."""
         self._drop_unauthenticated(claimed, reason, stage=stage)
 
     def _drop_unauthenticated(

@@ -25,8 +25,7 @@ from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, nam
 from ._agent import NEVER_ANSWERED, Agent
 from ._directory_auth import DirectoryAuth
 from ._exceptions import AgentError, MessageError
-from .transports import Handle, Subscription, Transport
-from .transports._base import Message
+from .transports import Handle, Message, Subscription, Transport
 
 if TYPE_CHECKING:
     from ._df import DirectoryFacilitator, GlobalDirectory

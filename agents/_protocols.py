@@ -25,8 +25,18 @@ from typing import Any, Self
 from pydantic import JsonValue
 
 from ._acl import ACLMessage, Performative, new_id
-from ._agent import Agent, Handler, MessageTemplate, RouteSpec, mark
-from ._exceptions import ConversationError, Failed, NotUnderstood, Refused, ReplyTimeout
+from ._agent import (
+    Agent,
+    ConversationError,
+    Failed,
+    Handler,
+    MessageTemplate,
+    NotUnderstood,
+    Refused,
+    ReplyTimeout,
+    RouteSpec,
+    mark,
+)
 
 log = logging.getLogger(__name__)
 

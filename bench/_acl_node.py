@@ -6,7 +6,7 @@ Interface Agent as its channel (authentication on, audit on: the defaults) and t
 agents:
 
 - ``gateway``: answers FIPA-Request ``{"action": "query", ...}`` on a DyKnow instance
-  holding a few samples of one label: the `GatewayAgent` (``agents/_gateway.py``) when
+  holding a few samples of one label: the `GatewayAgent` (``federation/_gateway.py``) when
   it is importable, else a stand-in doing the same through `GatewayService`; its
   service is protected, so the Interface Agent lets other platforms of the federation
   use it;
@@ -37,16 +37,17 @@ from agents import (  # noqa: E402
     ACLMessage,
     Agent,
     AgentPlatform,
+    InterfaceAgent,
+    KeyPair,
     MessageTemplate,
     Performative,
+    Refuse,
+    SecurityPolicy,
     ServiceDescription,
+    TrustStore,
     on,
     on_request,
 )
-from agents._gateway_service import GatewayRefusal, GatewayService  # noqa: E402
-from agents._interface import InterfaceAgent  # noqa: E402
-from agents._protocols import Refuse  # noqa: E402
-from agents._security import KeyPair, SecurityPolicy, TrustStore  # noqa: E402
 from agents.transports import (  # noqa: E402
     MqttConfig,
     MqttTransport,
@@ -55,9 +56,10 @@ from agents.transports import (  # noqa: E402
     ZenohTransport,
 )
 from dyknow_core import DyKnowInstance  # noqa: E402
+from federation import GatewayRefusal, GatewayService  # noqa: E402
 
 try:  # the Gateway Agent proper, once it is there; else the stand-in below
-    from agents._gateway import GatewayAgent
+    from federation import GatewayAgent
 except ImportError:  # pragma: no cover - depends on the state of agents/
     GatewayAgent = None  # type: ignore[assignment,misc]
 
@@ -198,7 +200,7 @@ async def add_gateway(host: AgentPlatform, instance: DyKnowInstance) -> str:
     """Add ``gateway@<host>`` with its protected ``dyknow`` service; says which one it is."""
     if GatewayAgent is not None:  # registers its service itself (protected by default)
         await host.add(GatewayAgent(instance, name="gateway"))
-        return "GatewayAgent (agents/_gateway.py)"
+        return "GatewayAgent (federation/_gateway.py)"
     assert host.df is not None
     gateway = await host.add(Gateway("gateway", instance))
     await host.df.register(

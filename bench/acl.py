@@ -9,7 +9,7 @@ measured, each beside a peer measured in the same run:
 
 - round trip: ``request(asker@bench-a, gateway@bench-b, {"action": "query", ...})``, a
   FIPA-Request answered with an ``inform`` by the Gateway Agent (a stand-in doing the
-  same through `GatewayService` while ``agents/_gateway.py`` is missing) querying the
+  same through `GatewayService` while ``federation/_gateway.py`` is missing) querying the
   latest sample of a label on a DyKnow instance, over zenoh (peer mode, loopback):
   median, p90, p99 of ``N_RTT`` round trips after a warm-up, best of ``ROUNDS`` rounds
   interleaved with raw zenoh ``get`` on a queryable and put/sub ping-pong

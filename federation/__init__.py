@@ -3,9 +3,13 @@
 `FederationPlatform` (configured by a `PlatformConfig`, usually a TOML file) is one
 member of a federation; `FederationAgent` is its DyKnow Federation service, the proxies
 carry agreed streams, and `add_fusion` merges an imported stream with a local one.
+`GatewayAgent` is the ACL face of the local DyKnow instance (its content mapping is
+`GatewayService`); it lives here, not in `agents`, which knows nothing of DyKnow.
 """
 
 from ._fusion import Fusion, add_fusion
+from ._gateway import GATEWAY_SERVICE_TYPE, GatewayAgent, GatewayStats
+from ._gateway_service import GatewayRefusal, GatewayService
 from ._platform import (
     DEFAULT_IMPORT_LABEL,
     FederationPlatform,
@@ -46,6 +50,7 @@ __all__ = [
     "DEFAULT_IMPORT_LABEL",
     "FEDERATION_AGENT",
     "FEDERATION_SERVICE_TYPE",
+    "GATEWAY_SERVICE_TYPE",
     "ONTOLOGY",
     "Anchor",
     "Consent",
@@ -55,6 +60,10 @@ __all__ = [
     "FederationAgent",
     "FederationPlatform",
     "Fusion",
+    "GatewayAgent",
+    "GatewayRefusal",
+    "GatewayService",
+    "GatewayStats",
     "GlobalResult",
     "Import",
     "ImportAgreements",

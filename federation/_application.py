@@ -16,7 +16,16 @@ import logging
 import sys
 from typing import TYPE_CHECKING, Any
 
-from ._inputs import InputRunner, PythonInput, input_runner
+from dyknow_core import DyKnowInstance
+
+from ._inputs import (
+    InputRunner,
+    InputSettings,
+    PythonInput,
+    Ros2Input,
+    RosbagInput,
+    input_runner,
+)
 from ._outputs import OutputRunner, output_runner
 from ._platform import PlatformConfig, PlatformConfigError
 
@@ -28,6 +37,15 @@ if TYPE_CHECKING:
 __all__ = ["NodeApplication", "check_application"]
 
 log = logging.getLogger(__name__)
+
+
+def _input_runner(settings: InputSettings, instance: DyKnowInstance) -> InputRunner:
+    """The runner of one ``[[inputs]]`` table: a ROS 2 one from ``_ros``, else ``_inputs``."""
+    if isinstance(settings, Ros2Input | RosbagInput):
+        from ._ros import ros_runner  # rosbags and mcap are imported only when used
+
+        return ros_runner(settings, instance)
+    return input_runner(settings, instance)
 
 
 def _kpl_text(config: PlatformConfig, source: str) -> str | None:
@@ -114,7 +132,7 @@ class NodeApplication:
                         "application",
                         f"{where}:{exc.line}:{exc.column}: {exc.message}",
                     ) from None
-            self.inputs = [input_runner(s, instance) for s in self.config.inputs]
+            self.inputs = [_input_runner(s, instance) for s in self.config.inputs]
             self.outputs = [output_runner(s, instance) for s in self.config.outputs]
             for n, runner in enumerate(self.inputs):
                 problems = runner.check()

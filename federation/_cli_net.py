@@ -16,9 +16,14 @@ from typing import Any
 
 import msgpack
 
-from agents import KeyPair, SecurityError, TransportError, wire_key
-from agents._exceptions import AuthenticationError
-from agents._security import watch_request
+from agents import (
+    AuthenticationError,
+    KeyPair,
+    SecurityError,
+    TransportError,
+    watch_request,
+    wire_key,
+)
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
 
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError

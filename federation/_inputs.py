@@ -643,11 +643,13 @@ class _PythonRunner(InputRunner):
 
 
 def input_runner(settings: _InputBase, instance: DyKnowInstance) -> InputRunner:
-    """The runner of one ``[[inputs]]`` table."""
-    if isinstance(settings, Ros2Input | RosbagInput):
-        from ._ros import ros_runner  # rosbags and mcap are imported only when used
+    """The runner of one ``[[inputs]]`` table of a kind other than ROS 2 (``ros2``, ``rosbag``).
 
-        return ros_runner(settings, instance)
+    Those are `federation._ros.ros_runner`'s: that module builds on this one, so this one
+    does not import it (a node picks between the two, ``federation/_application.py``).
+    """
+    if isinstance(settings, Ros2Input | RosbagInput):
+        raise TypeError(f"input {settings.title()}: a ROS 2 input's runner is ros_runner's")
     kinds: dict[type[_InputBase], Callable[..., InputRunner]] = {
         ZenohInput: _ZenohRunner,
         MqttInput: _MqttRunner,

@@ -87,14 +87,14 @@ def _identity(config: PlatformConfig, started: float) -> dict[str, Any]:
 
 def identity_key(config: PlatformConfig) -> str:
     """The key a running node answers ``who are you`` queries on."""
-    from agents._platform import wire_key
+    from agents import wire_key
 
     return wire_key(config.federation, "identity", config.name)
 
 
 def alive_key(config: PlatformConfig) -> str:
     """The liveliness token of a platform of this config's name."""
-    from agents._platform import wire_key
+    from agents import wire_key
 
     return wire_key(config.federation, "alive", config.name)
 

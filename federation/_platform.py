@@ -74,16 +74,15 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from agents import (
     AgentPlatform,
-    GatewayAgent,
     InterfaceAgent,
     KeyPair,
+    KxLimit,
     RateLimit,
+    SecurityError,
     SecurityPolicy,
     TrustStore,
     Visibility,
 )
-from agents._exceptions import SecurityError
-from agents._kxgate import KxLimit
 from agents.transports import (
     MqttConfig,
     MqttTransport,
@@ -105,6 +104,7 @@ from ontology import (
 )
 
 from ._fusion import Fusion, add_fusion
+from ._gateway import GatewayAgent
 from ._inputs import InputSettings
 from ._outputs import OutputSettings
 from ._proxies import ExportProxy, Import, ImportProxy, InterfaceSessions

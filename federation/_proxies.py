@@ -38,19 +38,20 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Protocol, Self, runtime_check
 
 import msgpack
 
-from agents import TokenBucket
-from agents._exceptions import (
+from agents import (
     AuthenticationError,
     Expired,
     Malformed,
     Misdirected,
+    SessionTable,
+    TokenBucket,
     TransportClosed,
     Unencrypted,
     UnknownPlatform,
     UnknownSession,
+    check_name,
+    wire_key,
 )
-from agents._platform import wire_key
-from agents._security import SessionTable, check_name
 from agents.transports import Message, Presence, Transport
 from agents.transports import Subscription as TransportSubscription
 from dyknow_core import (
@@ -65,7 +66,7 @@ from dyknow_core import (
 from dyknow_core import Subscription as StreamSubscription
 
 if TYPE_CHECKING:
-    from agents._interface import InterfaceAgent
+    from agents import InterfaceAgent
 
 __all__ = [
     "BATCH_VERSION",
@@ -323,7 +324,7 @@ class InterfaceSessions(TableSessions):
     """The sessions of a platform's Interface Agent: agreed, renewed and recovered by it."""
 
     def __init__(self, agent: InterfaceAgent, *, renew_check: float = 1.0) -> None:
-        super().__init__(agent.sessions, agent._agree)
+        super().__init__(agent.sessions, agent.agree)
         self.agent = agent
         self.renew_check = renew_check
         self._checked: dict[str, float] = {}
@@ -336,20 +337,8 @@ class InterfaceSessions(TableSessions):
             # what the agent's own send does per message, here once a second: batches
             # come by the thousand and the session's age changes slowly
             self._checked[peer] = now
-            self._renew_if_needed(peer)
+            self.agent.renew_if_needed(peer)
         return envelope
-
-    def _renew_if_needed(self, peer: str) -> None:
-        agent = self.agent
-        host = agent._host
-        if (
-            host is not None
-            and host.running
-            and peer not in agent._handshakes
-            and agent.sessions.needs_renewal(peer)
-            and not agent._peer_renewing(peer)
-        ):
-            host.spawn(agent._renew(peer), f"interface.renew[{peer}]")
 
     def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
         """Open; a trusted peer sealing on a session we lost gets a new one agreed.
@@ -361,10 +350,10 @@ class InterfaceSessions(TableSessions):
             frm, body = self.table.open_bytes(envelope)
         except UnknownSession as exc:
             if exc.platform is not None:
-                self.agent._rehandshake(exc.platform)  # rate-limited by the agent
+                self.agent.rehandshake(exc.platform)  # rate-limited by the agent
             raise
         except Unencrypted as exc:
-            self.agent._drop_unauthenticated(
+            self.agent.audit_unauthenticated(
                 exc.platform, f"{exc.code}: {exc.reason}", stage="stream"
             )
             raise

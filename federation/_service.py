@@ -89,6 +89,7 @@ from typing import Any, Literal, NamedTuple, Protocol
 from pydantic import JsonValue
 
 from agents import (
+    DEFAULT_TIMEOUT,
     FIPA_QUERY,
     FIPA_REQUEST,
     FIPA_SUBSCRIBE,
@@ -112,15 +113,14 @@ from agents import (
     on_query,
     on_request,
     platform_of,
+    reason_of,
     request,
 )
-from agents._agent import reason_of
-from agents._gateway_service import GatewayRefusal, GatewayService, answer_to_json, jsonable
-from agents._gateway_service import Query as GatewayQuery
-from agents._protocols import DEFAULT_TIMEOUT
 from agents.transports import Inbox, Subscription
 from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, UnknownLabelError
 
+from ._gateway_service import GatewayRefusal, GatewayService, answer_to_json, jsonable
+from ._gateway_service import Query as GatewayQuery
 from ._service_content import (
     ONTOLOGY,
     QUERY_ACTIONS,

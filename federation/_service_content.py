@@ -10,8 +10,9 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, JsonValue, ValidationError
 
-from agents._gateway_service import PolicySpec, RemotePeriod, Seconds
 from dyknow_core import PolicyError
+
+from ._gateway_service import PolicySpec, RemotePeriod, Seconds
 
 ONTOLOGY = "dyknow-federation"
 """The ontology of every message to and from a DyKnow Federation Agent."""

@@ -38,15 +38,40 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from enum import StrEnum
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from ._exceptions import SLEvaluationError, SLSyntaxError
 
-if TYPE_CHECKING:
-    from ._facts import FactBase
-
 Value = str | int | float
 """What a constant denotes: an object identifier, a word, a string or a number."""
+
+
+class GroundAtom(Protocol):
+    """A fact as the evaluator reads it: its arguments (`ontology.Fact` is one)."""
+
+    @property
+    def args(self) -> tuple[Value, ...]:
+        """The constants the predicate is applied to."""
+        ...
+
+
+class Facts(Protocol):
+    """What the evaluator asks of a fact base (`ontology.FactBase` is one).
+
+    Declared here, not imported, as the fact base is built on this module's terms.
+    """
+
+    @property
+    def objects(self) -> frozenset[Value]:
+        """Every constant some fact mentions: what variables range over."""
+        ...
+
+    def candidates(
+        self, predicate: str, arity: int, first: Value | None = None
+    ) -> Iterator[GroundAtom]:
+        """The facts of ``predicate`` with ``arity`` arguments (and first argument ``first``)."""
+        ...
+
 
 Binding = dict[str, Value]
 """One answer: variable name (without the ``?``) → value."""
@@ -462,7 +487,7 @@ def _sort_key(values: tuple[Value, ...]) -> tuple[tuple[int, Value], ...]:
     return tuple((1, v) if isinstance(v, str) else (0, v) for v in values)
 
 
-def evaluate(expr: Expression, facts: FactBase) -> list[Binding]:
+def evaluate(expr: Expression, facts: Facts) -> list[Binding]:
     """Answer ``expr`` over ``facts``: the bindings of its variables, sorted by value."""
     if isinstance(expr, Query):
         kind, wanted, formula = expr.kind, [v.name for v in expr.variables], expr.formula
@@ -509,7 +534,7 @@ class _Context:
     bind itself (the query's, and those also used outside it) range over the domain.
     """
 
-    def __init__(self, facts: FactBase, formula: Formula, wanted: frozenset[str]) -> None:
+    def __init__(self, facts: Facts, formula: Formula, wanted: frozenset[str]) -> None:
         self.facts = facts
         self.domain = sorted(facts.objects, key=lambda v: _sort_key((v,)))
         total = _occurrences(formula)
@@ -556,7 +581,7 @@ def _negations(f: Formula) -> Iterator[Not]:
                 yield from _negations(op)
 
 
-def _match(atom: Atom, env: Binding, facts: FactBase) -> Iterator[Binding]:
+def _match(atom: Atom, env: Binding, facts: Facts) -> Iterator[Binding]:
     pattern: list[Value | Variable] = []
     for a in atom.args:
         if isinstance(a, Constant):

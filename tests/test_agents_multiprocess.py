@@ -28,16 +28,16 @@ from agents import (
     Agent,
     AgentPlatform,
     DirectoryEvent,
-    GatewayAgent,
     GlobalDirectory,
+    InterfaceAgent,
+    KeyPair,
     ServiceDescription,
     SubscriptionEnded,
+    TrustStore,
     on_request,
     request,
     subscribe,
 )
-from agents._interface import InterfaceAgent
-from agents._security import KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
 from agents.transports import (
     MqttConfig,
@@ -49,6 +49,7 @@ from agents.transports import (
     free_tcp_port,
 )
 from dyknow_core import DyKnowInstance
+from federation import GatewayAgent
 
 START = 20.0  # a spawned interpreter imports zenoh, pydantic and DyKnow: seconds when loaded
 LABEL = "car/car5/speed"

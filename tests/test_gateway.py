@@ -15,20 +15,20 @@ from agents import (
     Agent,
     AgentPlatform,
     Failed,
-    GatewayAgent,
+    InterfaceAgent,
+    KeyPair,
     MemoryHub,
     Refused,
     ServiceDescription,
     SubscriptionEnded,
+    TrustStore,
     query_if,
     query_ref,
     request,
     subscribe,
 )
-from agents._gateway import GATEWAY_SERVICE_TYPE
-from agents._interface import InterfaceAgent
-from agents._security import KeyPair, TrustStore
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Source
+from federation import GATEWAY_SERVICE_TYPE, GatewayAgent
 
 FED = "t"
 T0 = 1000 * NS_PER_S  # the instance's now when a test starts

@@ -270,7 +270,7 @@ async def test_a_member_agrees_a_session_while_a_forger_floods_in_other_names() 
         for _ in range(200):
             assert await raw.query(key, forged.initiate(VICTIM), timeout=1.0) == []
         assert victim.kx_gate.shed["over-peer-budget"] > 150
-        await member._agree(VICTIM)  # a fresh exchange, through the gate
+        await member.agree(VICTIM)  # a fresh exchange, through the gate
         assert MEMBER in victim.sessions.peers()
         assert platforms[VICTIM].stats.kx_shed == sum(victim.kx_gate.shed.values())
 

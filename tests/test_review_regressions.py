@@ -94,7 +94,7 @@ def test_another_platform_cannot_ask_for_a_grid_finer_than_a_millisecond() -> No
     import pytest
     from pydantic import ValidationError
 
-    from agents._gateway_service import PolicySpec
+    from federation._gateway_service import PolicySpec
     from federation._service_content import CreateStream
 
     with pytest.raises(ValidationError, match="sample-period"):

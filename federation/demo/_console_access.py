@@ -35,8 +35,7 @@ from typing import Any
 
 from aiohttp import web
 
-from agents import TokenBucket
-from agents._interface import AuditLog
+from agents import AuditLog, TokenBucket
 
 __all__ = [
     "ALLOW_HOSTS_ENV",

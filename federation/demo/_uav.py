@@ -39,6 +39,7 @@ from agents import (
     Agent,
     MessageTemplate,
     Performative,
+    Proposal,
     Refuse,
     ServiceDescription,
     Visibility,
@@ -49,7 +50,6 @@ from agents import (
     on_request,
     platform_of,
 )
-from agents._protocols import Proposal
 from dyknow_core import NS_PER_S, DyKnowInstance, Source
 from dyknow_core._anchoring import Anchoring, LinkType, ObjectClass, add_anchoring
 

@@ -1,7 +1,7 @@
 """The Gateway Agent: the ACL face of the local DyKnow instance.
 
 One agent (``gateway@<platform>`` by default) answers, in ontology ``dyknow`` with JSON
-content (the mapping is `GatewayService`, ``agents/_gateway_service.py``):
+content (the mapping is `GatewayService`, ``federation/_gateway_service.py``):
 
 * FIPA-Request ``{"action": "list-labels" | "create-stream" | "query", …}`` → ``inform``
   with the result, or ``refuse`` with the reason;
@@ -29,14 +29,28 @@ from typing import Any
 
 import orjson
 
+from agents import (
+    FIPA_QUERY,
+    FIPA_REQUEST,
+    FIPA_SUBSCRIBE,
+    MAX_MESSAGE_BYTES,
+    ACLMessage,
+    Agent,
+    DirectoryEvent,
+    MessageTemplate,
+    Performative,
+    Refuse,
+    ServiceDescription,
+    Visibility,
+    on,
+    on_query,
+    on_request,
+    platform_of,
+)
+from agents.transports import Subscription as TransportSubscription
 from dyknow_core import DyKnowError, DyKnowInstance, Subscription
 
-from ._acl import MAX_MESSAGE_BYTES, ACLMessage, Performative, platform_of
-from ._agent import Agent, MessageTemplate, on
-from ._df import DirectoryEvent, ServiceDescription, Visibility
 from ._gateway_service import ONTOLOGY, GatewayRefusal, GatewayService, samples_to_json
-from ._protocols import FIPA_QUERY, FIPA_REQUEST, FIPA_SUBSCRIBE, Refuse, on_query, on_request
-from .transports import Subscription as TransportSubscription
 
 log = logging.getLogger(__name__)
 

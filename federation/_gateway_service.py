@@ -1,7 +1,8 @@
 """What the Gateway Agent does with a request's content: the ACL face of a DyKnow instance.
 
-Kept apart from the agent so the mapping (JSON content ↔ core calls) is plain functions:
-the only module of `agents` that knows `dyknow_core`, with the Gateway Agent itself.
+Kept apart from the agent so the mapping (JSON content ↔ core calls) is plain functions,
+which the Federation Agent uses too. It lives in `federation`, not `agents`: `agents`
+knows nothing of DyKnow.
 
 Content is JSON (language ``json``, ontology ``dyknow``). Times are seconds at this
 edge: absolute on the instance's time line, or relative to the provider's now when the

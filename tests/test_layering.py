@@ -1,0 +1,43 @@
+"""The packages' layering as the interpreter sees it: what importing one package loads.
+
+`lint-imports` (``make lint``) checks the import graph statically; this checks what an
+import actually runs, in a fresh interpreter (this one has imported everything already).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[1]
+
+# package imported -> our packages it must not load
+_MUST_NOT_LOAD = {
+    "agents": ("dyknow_core", "ontology", "federation"),
+    "dyknow_core": ("agents", "ontology", "federation"),
+    "ontology": ("agents", "federation"),
+}
+
+
+@pytest.mark.parametrize("package", sorted(_MUST_NOT_LOAD))
+def test_importing_a_package_loads_none_of_the_layers_it_must_not_know(package: str) -> None:
+    forbidden = _MUST_NOT_LOAD[package]
+    code = (
+        f"import sys, {package}\n"
+        f"loaded = sorted(m for m in sys.modules if m.split('.')[0] in {forbidden!r})\n"
+        "print('\\n'.join(loaded))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        check=True,
+    )
+    assert done.stdout.split() == [], f"importing {package} loaded: {done.stdout.split()}"
