@@ -5,7 +5,9 @@ member of a federation; `FederationAgent` is its DyKnow Federation service, the 
 carry agreed streams, and `add_fusion` merges an imported stream with a local one.
 """
 
+from ._export import Export, ExportProxy
 from ._fusion import Fusion, add_fusion
+from ._import import Import, ImportProxy
 from ._platform import (
     DEFAULT_IMPORT_LABEL,
     FederationPlatform,
@@ -15,15 +17,6 @@ from ._platform import (
     PlatformConfigError,
     RateLimitSettings,
     ZenohSettings,
-)
-from ._proxies import (
-    Export,
-    ExportProxy,
-    Import,
-    ImportProxy,
-    InterfaceSessions,
-    SessionsProvider,
-    TableSessions,
 )
 from ._service import (
     FEDERATION_AGENT,
@@ -40,6 +33,7 @@ from ._service import (
     MembershipEvent,
     StreamExport,
 )
+from ._sessions import InterfaceSessions, SessionsProvider, TableSessions
 from ._sharing import Sharing, SharingRule, SharingSettings
 
 __all__ = [
