@@ -72,7 +72,7 @@ RESEND_REPORT_INTERVAL = 1.0
 class Export:
     """One agreed stream to one receiver: its queue, its task and its counters.
 
-    Counters: ``sent`` samples in ``batches`` published; ``dropped`` by reason
+    Counters: ``sent`` samples in ``batches`` published; ``dropped`` by `DropReason`
     (``queue-full``: the receiver's queue overflowed, oldest first; ``no-session``: no
     session could be agreed; ``send-failed``: the transport refused; ``unencodable``:
     a value msgpack cannot carry; ``too-large``: one sample over the batch size limit;
@@ -82,7 +82,7 @@ class Export:
     before its end: they are resent from the last 2N + 256 kept here, each sequence
     number at most once, and no more than the receiver reports lost (``recovered``
     counts the samples resent; ``resend_refused`` the requests refused in whole or in
-    part, by reason: ``not-a-gap``, ``over-loss``, ``already-resent``, ``rate``).
+    part, by `ResendRefusal`: ``not-a-gap``, ``over-loss``, ``already-resent``, ``rate``).
     ``last_heard``: the monotonic time of the receiver's latest report (or the export's
     start).
     """
@@ -263,8 +263,7 @@ class Export:
         body = pack_batch(self.semantic_label, [], self._seq, ended=self.ended or "ended")
         try:
             async with asyncio.timeout(1.0):
-                envelope = await self._seal(body)
-                await self._proxy.transport.publish(self.key, envelope)
+                await self._publish(body)
         except (Exception, TimeoutError) as exc:
             log.debug("%s: telling %s the export ended: %s", self.name, self.receiver, exc)
 
@@ -318,6 +317,30 @@ class Export:
         tally(self.resend_refused, reason, 1)
         tally(self._refusals_pending, reason, 1)
 
+    def _take_refusals(self, now: float) -> dict[str, int] | None:
+        """The resend refusals to audit now (once per interval), forgotten here; else None."""
+        pending = self._refusals_pending
+        if not pending or now - self._refusals_reported < RESEND_REPORT_INTERVAL:
+            return None
+        self._refusals_pending = {}
+        self._refusals_reported = now
+        return pending
+
+    def _reported_lost(self, total: int) -> None:
+        """The receiver reports ``total`` samples missing: count the change as lost in transit."""
+        # a receiver cannot have missed more than this export numbered
+        total = min(max(total, 0), self._seq)
+        self._claimed = total
+        transit = total - self._numbered_drops
+        delta = transit - self.lost_in_transit
+        if delta > 0:
+            self.lost_in_transit = transit
+            self._drop(DropReason.LOST_IN_TRANSIT, delta)
+        elif delta < 0 and self.dropped.get(DropReason.LOST_IN_TRANSIT):
+            # reported lost, then recovered from the history: no longer a loss
+            self.lost_in_transit = max(transit, 0)
+            untally(self.dropped, DropReason.LOST_IN_TRANSIT, -delta)
+
     async def _resend(self) -> None:
         """Publish, as batches marked resent, the asked ranges the history still holds."""
         ranges, self._recover = self._recover, []
@@ -332,8 +355,7 @@ class Export:
                 start = first
                 for body, count in self._pack_resent(first, samples):
                     try:
-                        envelope = await self._seal(body)
-                        await self._proxy.transport.publish(self.key, envelope)
+                        await self._publish(body)
                     except (asyncio.CancelledError, TransportClosed):
                         raise
                     except Exception as exc:  # the receiver may ask again
@@ -419,6 +441,10 @@ class Export:
             if count:
                 self.sent += count
                 self.batches += 1
+
+    async def _publish(self, body: bytes) -> None:
+        """Seal ``body`` for the receiver and publish it on the export's key."""
+        await self._proxy.transport.publish(self.key, await self._seal(body))
 
     async def _seal(self, body: bytes) -> bytes:
         sessions = self._proxy.sessions
@@ -601,7 +627,7 @@ class ExportProxy(ProxyBase):
                     if export is None or type(total) is not int:
                         continue
                     export.last_heard = now
-                    self._count_lost(export, total)
+                    export._reported_lost(total)
                 for label, wanted in resend.items():
                     export = self._exports.get((sender, label))
                     if export is None or not export.history:
@@ -629,11 +655,9 @@ class ExportProxy(ProxyBase):
 
     def _audit_resend_refusals(self, export: Export, now: float) -> None:
         """Audit an export's refused resend requests, at most once per interval, with counts."""
-        pending = export._refusals_pending
-        if not pending or now - export._refusals_reported < RESEND_REPORT_INTERVAL:
+        pending = export._take_refusals(now)
+        if not pending:
             return
-        export._refusals_pending = {}
-        export._refusals_reported = now
         count = sum(pending.values())
         reasons = ", ".join(f"{k} {v}" for k, v in sorted(pending.items()))
         log.info("%s: %d resend request(s) refused (%s)", export.name, count, reasons)
@@ -652,21 +676,6 @@ class ExportProxy(ProxyBase):
                     f"{RESEND_RATE:g} requests/s"
                 ),
             )
-
-    @staticmethod
-    def _count_lost(export: Export, total: int) -> None:
-        # a receiver cannot have missed more than this export numbered
-        total = min(max(total, 0), export._seq)
-        export._claimed = total
-        transit = total - export._numbered_drops
-        delta = transit - export.lost_in_transit
-        if delta > 0:
-            export.lost_in_transit = transit
-            export._drop(DropReason.LOST_IN_TRANSIT, delta)
-        elif delta < 0 and export.dropped.get(DropReason.LOST_IN_TRANSIT):
-            # reported lost, then recovered from the history: no longer a loss
-            export.lost_in_transit = max(transit, 0)
-            untally(export.dropped, DropReason.LOST_IN_TRANSIT, -delta)
 
     async def stop(self, export: Export) -> None:
         """End ``export``: unsubscribe, drop what is queued, wait for its task to finish."""

@@ -403,6 +403,7 @@ class ImportProxy(ProxyBase):
         """Sum up a dropped batch for the next `on_refused` (bounded: a flood costs nothing)."""
         if self.on_refused is None:
             return
+        reason = str(reason)  # told as the plain string it always was (audit records keep it)
         key = (sender, reason)
         entry = self._refused.get(key)
         if entry is None:
