@@ -28,9 +28,8 @@ from typing import Self
 
 import msgpack
 
-from agents import TokenBucket
-from agents._exceptions import Expired, TransportClosed, UnknownSession
-from agents._platform import wire_key
+from agents import TokenBucket, TransportClosed, wire_key
+from agents._exceptions import Expired, UnknownSession
 from agents._security import check_name
 from agents.transports import Transport
 from dyknow_core import DyKnowInstance, Policy, RawSample

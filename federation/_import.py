@@ -19,8 +19,8 @@ from typing import Any, Self
 
 import msgpack
 
+from agents import wire_key
 from agents._exceptions import AuthenticationError
-from agents._platform import wire_key
 from agents._security import check_name
 from agents.transports import Message, Presence, Transport
 from agents.transports import Subscription as TransportSubscription

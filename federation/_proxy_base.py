@@ -81,3 +81,8 @@ class ProxyBase:
         self.instance = instance
         self.sessions = sessions_provider
         self._tasks = OwnedTasks(f"{kind}[{self.platform}]")
+
+    @property
+    def task_failures(self) -> int:
+        """How many of the proxy's tasks ended with an exception (each was logged)."""
+        return self._tasks.failures
