@@ -42,7 +42,10 @@ from nacl.signing import SigningKey
 from agents._security import Handshake, KeyPair, SecurityPolicy, SessionTable, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport
 from dyknow_core import DyKnowInstance, Policy, RawSample
-from federation._proxies import ExportProxy, ImportProxy, TableSessions, pack_batch
+from federation._batch import pack_batch
+from federation._export import ExportProxy
+from federation._import import ImportProxy
+from federation._sessions import TableSessions
 
 FED = "bench"
 LOCAL = "bench/speed"  # the exporter's local label

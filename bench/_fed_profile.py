@@ -39,7 +39,9 @@ from bench._fed_node import BATCH, FED, SEM, _values, imported_label
 from bench._fed_proc import Node, cluster
 from bench.federation import WARM, _settle
 from dyknow_core import DyKnowInstance, Policy
-from federation._proxies import ImportProxy, TableSessions, pack_batch, unpack_batch
+from federation._batch import pack_batch, unpack_batch
+from federation._import import ImportProxy
+from federation._sessions import TableSessions
 
 WINDOW = 3.0
 
@@ -48,25 +50,25 @@ STAGES = {
     "exporter": [
         ("_fed_node.py", "op_flood"),
         ("_stream.py", "publish_batch"),
-        ("_proxies.py", "_on_batch"),
-        ("_proxies.py", "_run"),
-        ("_proxies.py", "_send"),
-        ("_proxies.py", "_pack"),
-        ("_proxies.py", "pack_batch"),
-        ("_proxies.py", "_seal"),
+        ("_export.py", "_on_batch"),
+        ("_export.py", "_run"),
+        ("_export.py", "_send"),
+        ("_export.py", "_pack"),
+        ("_batch.py", "pack_batch"),
+        ("_export.py", "_seal"),
         ("_security.py", "seal_bytes"),
         ("_zenoh.py", "publish"),
         ("~", "'put' of"),
     ],
     "receiver": [
-        ("_proxies.py", "_receive"),
+        ("_import.py", "_receive"),
         ("_base.py", "__anext__"),
         ("_zenoh.py", "_message"),
-        ("_proxies.py", "_handle"),
+        ("_import.py", "_handle"),
         ("_security.py", "open_bytes"),
         ("_security.py", "_accept_bytes"),
-        ("_proxies.py", "unpack_batch"),
-        ("_proxies.py", "_inject"),
+        ("_batch.py", "unpack_batch"),
+        ("_import.py", "_inject"),
         ("_process.py", "push_batch"),
         ("_stream.py", "publish_batch"),
         ("_filter.py", "__call__"),

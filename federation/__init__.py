@@ -7,9 +7,11 @@ carry agreed streams, and `add_fusion` merges an imported stream with a local on
 `GatewayService`); it lives here, not in `agents`, which knows nothing of DyKnow.
 """
 
+from ._export import Export, ExportProxy
 from ._fusion import Fusion, add_fusion
 from ._gateway import GATEWAY_SERVICE_TYPE, GatewayAgent, GatewayStats
 from ._gateway_service import GatewayRefusal, GatewayService
+from ._import import Import, ImportProxy
 from ._platform import (
     DEFAULT_IMPORT_LABEL,
     FederationPlatform,
@@ -19,15 +21,6 @@ from ._platform import (
     PlatformConfigError,
     RateLimitSettings,
     ZenohSettings,
-)
-from ._proxies import (
-    Export,
-    ExportProxy,
-    Import,
-    ImportProxy,
-    InterfaceSessions,
-    SessionsProvider,
-    TableSessions,
 )
 from ._service import (
     FEDERATION_AGENT,
@@ -44,6 +37,7 @@ from ._service import (
     MembershipEvent,
     StreamExport,
 )
+from ._sessions import InterfaceSessions, SessionsProvider, TableSessions
 from ._sharing import Sharing, SharingRule, SharingSettings
 
 __all__ = [

@@ -103,12 +103,14 @@ from ontology import (
     Vocabulary,
 )
 
+from ._export import ExportProxy
 from ._fusion import Fusion, add_fusion
 from ._gateway import GatewayAgent
+from ._import import Import, ImportProxy
 from ._inputs import InputSettings
 from ._outputs import OutputSettings
-from ._proxies import ExportProxy, Import, ImportProxy, InterfaceSessions
 from ._service import Anchor, FederationAgent, MembershipEvent
+from ._sessions import InterfaceSessions
 from ._sharing import SharingSettings
 
 __all__ = [

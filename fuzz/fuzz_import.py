@@ -15,10 +15,17 @@ import atheris
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-with atheris.instrument_imports(include=["federation._proxies", "agents._security"]):
+with atheris.instrument_imports(
+    include=[
+        "federation._batch",
+        "federation._import",
+        "federation._sequence",
+        "agents._security",
+    ]
+):
     import msgpack
 
-    from federation._proxies import pack_batch
+    from federation._batch import pack_batch
     from fuzz._harness import run
     from fuzz.targets import SEM, ImportTarget
 

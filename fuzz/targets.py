@@ -40,7 +40,7 @@ from agents._security import Handshake, KeyPair, SecurityPolicy, SessionTable, T
 from agents.transports import MemoryHub, MemoryTransport, Message, Subscription
 from dyknow_core import DyKnowInstance
 from federation import ImportProxy, TableSessions
-from federation._proxies import pack_batch
+from federation._batch import pack_batch
 
 FED = "demo"
 ME = "uav-b"
@@ -362,7 +362,7 @@ class ImportTarget(_Target):
     counted, the rest kept), ``unagreed`` (a label never agreed: counted).
     """
 
-    loggers = ("federation._proxies",)
+    loggers = ("federation._import", "federation._proxy_base")
 
     def __init__(self, timeout: float = 5.0) -> None:
         super().__init__(timeout)

@@ -49,7 +49,10 @@ from agents.transports import (
 )
 from dyknow_core import DyKnowInstance, Policy, RawSample
 from federation import FederationPlatform, MembershipEvent, PlatformConfig
-from federation._proxies import Export, ExportProxy, ImportProxy, PlainSessions, read_batch
+from federation._batch import read_batch
+from federation._export import Export, ExportProxy
+from federation._import import ImportProxy
+from federation._sessions import PlainSessions
 
 ROOT = Path(__file__).resolve().parent.parent
 START = 30.0  # spawned interpreters import zenoh, pydantic and DyKnow: seconds when loaded

@@ -870,7 +870,9 @@ async def test_samples_dropped_before_sending_are_not_counted_again_as_lost_in_t
     # regression: numbered, then dropped for want of a session, a batch showed up twice:
     # as no-session at the provider and again when the receiver reported the gap
     from agents._exceptions import UnknownSession
-    from federation._proxies import ExportProxy, ImportProxy, PlainSessions
+    from federation._export import ExportProxy
+    from federation._import import ImportProxy
+    from federation._sessions import PlainSessions
 
     class Flaky(PlainSessions):
         fail = 0

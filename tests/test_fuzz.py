@@ -37,7 +37,7 @@ from agents import wire_key
 from agents._acl import MAX_MESSAGE_BYTES, Performative
 from agents._exceptions import Malformed, MessageError
 from agents._security import Handshake, SecurityPolicy, SessionTable
-from federation._proxies import pack_batch
+from federation._batch import pack_batch
 from fuzz.targets import BIG_POLICY, OTHER_SEM, SEM, ImportTarget, InterfaceTarget, keys, trust
 
 ROOT = Path(__file__).resolve().parent.parent

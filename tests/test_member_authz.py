@@ -43,7 +43,8 @@ from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
 from dyknow_core import seconds_to_ns
 from federation import FederationPlatform, PlatformConfig, PlatformConfigError
-from federation._proxies import InterfaceSessions, PlainSessions, pack_batch
+from federation._batch import pack_batch
+from federation._sessions import InterfaceSessions, PlainSessions
 
 pytestmark = pytest.mark.timeout(180)
 

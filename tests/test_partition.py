@@ -276,7 +276,8 @@ def _say(**answer: Any) -> None:
 
 async def _exporter(addr: str) -> None:
     from dyknow_core import DyKnowInstance
-    from federation._proxies import ExportProxy, PlainSessions
+    from federation._export import ExportProxy
+    from federation._sessions import PlainSessions
 
     commands = _lines()
     t = _zenoh(addr, None)
@@ -310,7 +311,8 @@ async def _exporter(addr: str) -> None:
 
 async def _importer(addr: str, peer: str) -> None:
     from dyknow_core import DyKnowInstance
-    from federation._proxies import ImportProxy, PlainSessions
+    from federation._import import ImportProxy
+    from federation._sessions import PlainSessions
 
     commands = _lines()
     t = _zenoh(addr, peer)

@@ -45,9 +45,10 @@ from federation import (
     InterfaceSessions,
     SessionsProvider,
     TableSessions,
-    _proxies,
+    _export,
 )
-from federation._proxies import PlainSessions, pack_batch, unpack_batch
+from federation._batch import pack_batch, unpack_batch
+from federation._sessions import PlainSessions
 
 FED = "demo"
 WAIT = 5.0  # the bound on any single wait; every test finishes far below it
@@ -593,7 +594,7 @@ async def test_stop_ends_the_export() -> None:
 
 
 async def test_an_export_ends_with_its_local_stream(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(_proxies, "_IDLE_CHECK", 0.01)
+    monkeypatch.setattr(_export, "_IDLE_CHECK", 0.01)
     async with network() as net:
         _, a = await net.platform("uav-a")
         await net.platform("uav-b")

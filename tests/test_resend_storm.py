@@ -31,7 +31,8 @@ from agents.keys import gen_keys, trust_keys
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 from dyknow_core import DyKnowInstance
 from federation import ExportProxy, InterfaceSessions
-from federation._proxies import RESEND_RATE, read_batch
+from federation._batch import read_batch
+from federation._export import RESEND_RATE
 
 PROVIDER, MEMBER = "uav-p", "uav-m"
 LABEL, HISTORY = "car1-state", 50

@@ -51,7 +51,7 @@ from agents._security import (
     _reply_part,
     _session_id,
 )
-from federation._proxies import pack_batch
+from federation._batch import pack_batch
 
 PATH = Path(__file__).resolve().parent.parent / "docs" / "test-vectors.json"
 
