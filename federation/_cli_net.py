@@ -128,7 +128,7 @@ async def run_console(
     """
     from ._application import NodeApplication, check_application
     from ._local import LocalChannel, refuse_duplicate
-    from .demo._console import OperatorConsole
+    from .console import OperatorConsole
 
     check_application(config, source)
     transport = config.make_transport()

@@ -47,8 +47,13 @@ A config file (TOML; relative paths are relative to the file)::
     burst = 200.0
 
     [console]                    # `dyknow console` only (docs/console.md)
+    streams = ["heli-position", "violation"]   # asked of every other member
     allow_hosts = ["operator.example.org"]
     token_file = "console.token"
+
+    [console.roles]              # how the console's page draws them
+    positions = "heli-position"
+    violations = "violation"
 
     [transport]
     kind = "zenoh"
@@ -70,7 +75,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, Self
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+)
 
 from agents import (
     AgentPlatform,
@@ -115,6 +127,8 @@ from ._sharing import SharingSettings
 
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
+    "ConsoleRoles",
+    "ConsoleSettings",
     "FederationPlatform",
     "KxLimitSettings",
     "MqttSettings",
@@ -191,18 +205,60 @@ class RateLimitSettings(BaseModel):
         return RateLimit(**self.model_dump(exclude={"enabled"}))
 
 
-class ConsoleSettings(BaseModel):
-    """``[console]``: who may use the operator console (`dyknow console`, docs/console.md).
+class ConsoleRoles(BaseModel):
+    """``[console.roles]``: which streamed label the console's page draws as what.
 
-    ``allow_hosts`` are host names a request's ``Host`` may name besides localhost and IP
-    addresses; ``token_file`` holds the console's token (else ``DYKNOW_CONSOLE_TOKEN``,
-    else a random one, printed at start).
+    Each is one of ``streams`` or unset (nothing drawn so): ``positions`` a member's
+    position ``{"x", "y", "z"}``, ``areas`` the area it covers ``{"polygon", "index",
+    "delegated-by"}``, ``tracks`` what it tracks ``{"cars": [{"id", "x", "y", …}]}``,
+    ``violations`` one event per sample (listed, and drawn at its ``x``, ``y``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+    positions: str | None = None
+    areas: str | None = None
+    tracks: str | None = None
+    violations: str | None = None
+
+
+class ConsoleSettings(BaseModel):
+    """``[console]``: what the operator console streams and who may use it (docs/console.md).
+
+    ``streams`` are the semantic labels the console asks every other member for, ``roles``
+    how its page draws them (`ConsoleRoles`); a stream with no role is listed with its
+    latest value. ``allow_hosts`` are host names a request's ``Host`` may name besides
+    localhost and IP addresses; ``token_file`` holds the console's token (else
+    ``DYKNOW_CONSOLE_TOKEN``, else a random one, printed at start).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    streams: tuple[Annotated[str, Field(min_length=1)], ...] = ()
+    roles: ConsoleRoles = Field(default_factory=ConsoleRoles)
     allow_hosts: tuple[str, ...] = ()
     token_file: Path | None = None
+
+    @field_validator("streams")
+    @classmethod
+    def _distinct(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        twice = sorted({label for label in value if value.count(label) > 1})
+        if twice:
+            raise ValueError(f"{twice[0]!r} is listed twice")
+        return value
+
+    @field_validator("roles")
+    @classmethod
+    def _roles_are_streams(cls, value: ConsoleRoles, info: ValidationInfo) -> ConsoleRoles:
+        streams = info.data.get("streams")
+        if streams is None:  # streams was wrong itself: that is the error to name
+            return value
+        for role, label in value.model_dump().items():
+            if label is not None and label not in streams:
+                raise ValueError(
+                    f"{role} = {label!r} is not one of streams ({', '.join(streams) or 'none'})"
+                )
+        return value
 
 
 class SecuritySettings(BaseModel):
@@ -457,6 +513,14 @@ def _read_files(config: PlatformConfig, source: str) -> _Files:
             )
     except OntologyError as exc:
         raise PlatformConfigError(source, "mapping", str(exc)) from None
+    unknown = [label for label in config.console.streams if label not in vocabulary]
+    if unknown:
+        # asked of every member, refused by every one: a wrong config, said at start
+        raise PlatformConfigError(
+            source,
+            "console.streams",
+            f"{unknown[0]!r} is not a label of the vocabulary {vocabulary.name or ''}".rstrip(),
+        )
     return _Files(keys, trust, vocabulary, mapping)
 
 

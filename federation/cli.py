@@ -235,7 +235,7 @@ def console(
     """Run a platform with the operator web console (docs/console.md) until SIGINT/SIGTERM."""
     from ._cli_net import run_console
     from ._local import PlatformAliveError
-    from .demo._console_access import allowed_names, configured_token
+    from .console import allowed_names, configured_token
 
     cfg = _load(config)
     try:

@@ -26,13 +26,14 @@ import pytest
 from agents.keys import gen_keys, trust_keys
 from agents.transports import MemoryHub
 from dyknow_core import Source
-from federation import FederationPlatform, PlatformConfig
-from federation.demo._console import STREAM_LABELS, OperatorConsole
-from federation.demo._vocabulary import local_mapping, vocabulary
+from federation import FederationPlatform, PlatformConfig, PlatformConfigError
+from federation.console import ConsoleSettings, OperatorConsole
+from federation.demo._vocabulary import console_config, local_mapping, vocabulary
 
 WAIT = 10.0  # the bound on any single wait
 PUSH = 0.05  # s between two samples of a fake UAV (20 Hz)
 UAVS = ["uav-a", "uav-b"]
+STREAM_LABELS = console_config()["streams"]  # what the demo's operator config streams
 WORLD = {
     "width": 1000,
     "height": 600,
@@ -43,7 +44,7 @@ WORLD = {
 
 
 def config(tmp_path: Path, name: str) -> PlatformConfig:
-    """A platform of the federation ``demo`` with the traffic demo's labels."""
+    """A platform of the federation ``demo`` with the traffic demo's labels (and console)."""
     return PlatformConfig.from_dict(
         {
             "name": name,
@@ -52,6 +53,7 @@ def config(tmp_path: Path, name: str) -> PlatformConfig:
             "trust": str(tmp_path / "trust.json"),
             "vocabulary": vocabulary(),
             "mapping": local_mapping(),
+            "console": console_config(),
         }
     )
 
@@ -258,6 +260,10 @@ async def test_state_fills_in_and_a_uav_that_goes_is_shown_gone(demo_keys: Path)
         assert a["samples"] > 0 and a["last"] is not None
         assert [s["label"] for s in a["streams"]] == list(STREAM_LABELS)
         assert all(s["export_id"] and s["sample_period"] is None for s in a["streams"])
+        # the config's streams and roles, for the page (drawn by role: no value of their own)
+        assert state["streams"] == STREAM_LABELS and state["roles"]["tracks"] == "tracked-cars"
+        assert state["observation_label"] == "observation"
+        assert all(s["value"] is None for s in a["streams"])
         exports = fed.uavs["uav-a"].platform.federation_agent.exports
         assert {s["export_id"] for s in a["streams"]} == set(exports)
 
@@ -466,6 +472,144 @@ async def test_a_refused_stream_is_shown_and_asked_again(demo_keys: Path) -> Non
 def test_console_refuses_a_nonsense_sample_period(demo_keys: Path) -> None:
     with pytest.raises(ValueError, match="sample_period"):
         OperatorConsole(FederationPlatform(config(demo_keys, "operator")), sample_period=0)
+
+
+# -- any federation's labels --------------------------------------------------------------
+
+WEATHER = {
+    "name": "weather",
+    "labels": {
+        "temperature": "air temperature, degrees C",
+        "wind": "wind speed (m/s) and direction (degrees)",
+        "station-position": "where the station stands (x, y), metres",
+    },
+}
+WEATHER_MAPPING = {
+    "vocabulary": "weather",
+    "labels": {"temperature": "sensor/t", "wind": "sensor/wind", "station-position": "self/pos"},
+}
+
+
+def weather_config(keys: Path, name: str, console: dict[str, Any] | None = None) -> PlatformConfig:
+    """A platform of a weather federation: nothing of the traffic demo."""
+    data: dict[str, Any] = {
+        "name": name,
+        "federation": "weather",
+        "key": str(keys / "keys" / f"{name}.key"),
+        "trust": str(keys / "trust.json"),
+        "vocabulary": WEATHER,
+        "mapping": WEATHER_MAPPING,
+    }
+    if console is not None:
+        data["console"] = console
+    return PlatformConfig.from_dict(data)
+
+
+async def test_a_console_streams_and_serves_the_labels_its_config_names(tmp_path: Path) -> None:
+    # a weather federation: its console streams what its [console] says, shows the
+    # temperature and wind as they come, and draws the stations by their position
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in ("operator", "station-1")]
+    trust_keys(tmp_path / "trust.json", pubs, federation="weather")
+    streams = ["temperature", "wind", "station-position"]
+    console = {"streams": streams, "roles": {"positions": "station-position"}}
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack:
+        async with asyncio.timeout(WAIT):
+            operator = await stack.enter_async_context(
+                FederationPlatform(
+                    weather_config(tmp_path, "operator", console),
+                    transport=await stack.enter_async_context(hub.transport()),
+                )
+            )
+            station = await stack.enter_async_context(
+                FederationPlatform(
+                    weather_config(tmp_path, "station-1"),
+                    transport=await stack.enter_async_context(hub.transport()),
+                )
+            )
+            sources = {
+                label: station.instance.add_source(station.labels.to_local(label))
+                for label in streams
+            }
+            fed = Federation(hub, tmp_path, operator)
+            fed.console = await stack.enter_async_context(OperatorConsole(operator))
+
+        async def weather() -> None:
+            k = 0
+            while True:
+                k += 1
+                sources["temperature"].push(20.0 + k % 3)
+                sources["wind"].push({"speed": 4.5, "direction": 270})
+                sources["station-position"].push({"x": 10.0, "y": 20.0})
+                await asyncio.sleep(PUSH)
+
+        pusher = asyncio.create_task(weather(), name="test.push[station-1]")
+        stack.push_async_callback(_cancelled, pusher)
+        http = await stack.enter_async_context(client(fed))
+
+        def streaming(s: dict[str, Any]) -> bool:
+            p = next((p for p in s["platforms"] if p["name"] == "station-1"), None)
+            return p is not None and all(x["samples"] > 0 for x in p["streams"])
+
+        await until_state(http, fed.url, streaming)
+        async with http.get(fed.url + "api/state") as r:
+            assert r.status == 200
+            state = await r.json()
+        assert state["streams"] == streams and state["roles"]["positions"] == "station-position"
+        assert state["roles"]["tracks"] is None and state["observation_label"] is None
+        s1 = platform(state, "station-1")
+        assert [x["label"] for x in s1["streams"]] == streams
+        assert all(x["state"] == "active" and x["export_id"] for x in s1["streams"])
+        assert set(station.federation_agent.exports) == {x["export_id"] for x in s1["streams"]}
+        by_label = {x["label"]: x for x in s1["streams"]}
+        assert by_label["temperature"]["value"] in (20.0, 21.0, 22.0)
+        assert by_label["wind"]["value"] == {"speed": 4.5, "direction": 270}
+        assert by_label["station-position"]["value"] is None  # drawn: its position
+        assert s1["position"] == {"x": 10.0, "y": 20.0}
+        assert s1["area"] is None and s1["cars"] == [] and state["violations"] == []
+        # a query names a weather label; a policy change takes one of the console's streams
+        status, answer = await post(
+            http, fed.url + "api/query", {"platform": "station-1", "label": "wind"}
+        )
+        assert status == 200 and answer["samples"][0]["value"]["speed"] == 4.5, answer
+        body = {"platform": "station-1", "label": "tracked-cars", "sample_period": 1}
+        status, answer = await post(http, fed.url + "api/policy", body)
+        assert status == 400 and "temperature, wind, station-position" in answer["error"]
+
+
+async def test_a_console_of_no_streams_follows_the_members_only(demo_keys: Path) -> None:
+    # no [console] streams: nothing is asked of anyone (no label is built in)
+    cfg = config(demo_keys, "operator").model_copy(
+        update={"console": ConsoleSettings(allow_hosts=("operator.test",))}
+    )
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack:
+        async with asyncio.timeout(WAIT):
+            t = await stack.enter_async_context(hub.transport())
+            operator = await stack.enter_async_context(FederationPlatform(cfg, transport=t))
+            fed = Federation(hub, demo_keys, operator)
+            stack.push_async_callback(fed.aclose)
+            uav = await fed.start("uav-a", 0)
+            fed.console = await stack.enter_async_context(OperatorConsole(operator))
+        http = await stack.enter_async_context(client(fed))
+        state = await until_state(
+            http, fed.url, lambda s: any(p["name"] == "uav-a" for p in s["platforms"])
+        )
+        assert state["streams"] == [] and platform(state, "uav-a")["streams"] == []
+        assert uav.federation_agent.exports == {}
+
+
+def test_a_console_section_is_checked_against_the_vocabulary(demo_keys: Path) -> None:
+    # [console] names the federation's labels: one of another federation is named at start
+    bad = {**console_config(), "streams": [*STREAM_LABELS, "temperature"]}
+    data = {**config(demo_keys, "operator").model_dump(), "console": bad}
+    with pytest.raises(PlatformConfigError, match=r"console\.streams: 'temperature' is not"):
+        FederationPlatform(PlatformConfig.from_dict(data, source="operator.toml"))
+    with pytest.raises(ValueError, match=r"console\.streams: 'temperature' is not"):
+        OperatorConsole(
+            FederationPlatform(config(demo_keys, "operator")),
+            settings=ConsoleSettings(streams=("temperature",)),
+        )
 
 
 # -- found in review ----------------------------------------------------------------------

@@ -28,14 +28,8 @@ from typer.testing import CliRunner
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
 from federation.cli import app
-from federation.demo._console_access import (
-    ALLOW_HOSTS_ENV,
-    AUDIT_BURST,
-    REPORT_INTERVAL,
-    TOKEN_ENV,
-    allowed_names,
-    configured_token,
-)
+from federation.console import ALLOW_HOSTS_ENV, TOKEN_ENV, allowed_names, configured_token
+from federation.console._access import AUDIT_BURST, REPORT_INTERVAL
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT = 20.0  # s: the bound on any single wait
@@ -304,6 +298,23 @@ def test_a_token_chosen_by_the_operator_is_checked(tmp_path: Path) -> None:
     assert r.exit_code == 2 and "cannot be read" in r.output
     r = runner.invoke(app, ["console", "--config", str(config), "--allow-host", "http://x:80"])
     assert r.exit_code == 2 and "'http://x:80' is not a host name" in r.output
+
+
+def test_a_bad_console_section_is_named(tmp_path: Path) -> None:
+    # what the console streams comes from [console]: a wrong one stops it at start, named
+    config = write_operator(tmp_path)
+    text = config.read_text()
+    for section, key, words in [
+        ('streams = ["heli-altitude"]\nroles = {tracks = "x"}', "console.roles", "tracks = 'x'"),
+        ('roles = {weather = "heli-altitude"}', "console.roles.weather", "unknown key"),
+        ('streams = "heli-altitude"', "console.streams", "tuple"),
+        ('streams = ["heli-altitude", "heli-altitude"]', "console.streams", "twice"),
+        ('streams = ["tracked-cars"]', "console.streams", "'tracked-cars' is not a label"),
+    ]:  # fmt: skip
+        config.write_text(text.replace("[console]\n", f"[console]\n{section}\n"))
+        r = runner.invoke(app, ["console", "--config", str(config), "--port", "0"])
+        assert r.exit_code == 2, (section, r.output)
+        assert f"{config}: {key}: " in r.output and words in r.output, (section, r.output)
 
 
 def test_where_the_token_and_the_allowed_names_come_from(tmp_path: Path) -> None:

@@ -50,7 +50,7 @@ def traffic(
     as_json: Annotated[bool, typer.Option("--json", help="print the report as JSON")] = False,
 ) -> None:
     """Several UAV processes monitor simulated traffic; the operator gets the global picture."""
-    from ._console_access import allowed_names, configured_token
+    from ..console import allowed_names, configured_token
     from ._run import DemoOptions, run_traffic_demo
 
     try:

@@ -32,7 +32,7 @@ from dyknow_core import NS_PER_S, DyKnowInstance
 
 from .._platform import FederationPlatform, PlatformConfig
 from ._uav import ONTOLOGY, SPEEDING, SimClock, UavSettings, run_uav
-from ._vocabulary import local_mapping, vocabulary
+from ._vocabulary import console_config, local_mapping, vocabulary
 from ._world import Violation, World
 
 __all__ = ["DemoOptions", "DemoReport", "DemoStarted", "run_traffic_demo", "uav_names"]
@@ -150,6 +150,7 @@ def _federation_files(
                 "connect": [] if name == OPERATOR else [seed],
             },
         }
+    configs[OPERATOR]["console"] = console_config()
     return configs
 
 
@@ -319,7 +320,7 @@ async def _operate(
         console = None
         async with contextlib.AsyncExitStack() as stack:
             if options.console:
-                from ._console import OperatorConsole
+                from ..console import OperatorConsole
 
                 def make(port: int) -> OperatorConsole:
                     return OperatorConsole(

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["LABELS", "local_mapping", "vocabulary"]
+__all__ = ["LABELS", "console_config", "local_mapping", "vocabulary"]
 
 LABELS: dict[str, str] = {
     "heli-position": "the platform's own position (x, y, z), metres",
@@ -56,3 +56,16 @@ def vocabulary(name: str = "traffic") -> dict[str, Any]:
 def local_mapping(vocabulary_name: str = "traffic") -> dict[str, Any]:
     """A platform's label mapping: semantic label → local label."""
     return {"vocabulary": vocabulary_name, "labels": dict(_LOCAL)}
+
+
+def console_config() -> dict[str, Any]:
+    """The operator's ``[console]`` section: what its console streams and draws as what."""
+    return {
+        "streams": ["heli-position", "area", "tracked-cars", "violation"],
+        "roles": {
+            "positions": "heli-position",
+            "areas": "area",
+            "tracks": "tracked-cars",
+            "violations": "violation",
+        },
+    }

@@ -1,11 +1,12 @@
 """The operator's web console: a live picture of the federation, served by the operator.
 
 `OperatorConsole` is the operator platform's application. It follows the federation's
-membership, asks every UAV for the demo's streams (``heli-position``, ``area``,
-``tracked-cars``, ``violation``: the semantic labels of `federation.demo._vocabulary`),
-keeps a model of what they send, and serves it over HTTP (aiohttp, in the node's own
-event loop) to a plain HTML/JS page with no build step: a map, the platforms and their
-streams, the violations, a query box, a policy editor and an observation form.
+membership, asks every other member for the streams of the config's ``[console]``
+section (`ConsoleSettings`: ``streams``, and the ``roles`` the page draws them as:
+positions, areas, tracks, violations), keeps a model of what they send, and serves it
+over HTTP (aiohttp, in the node's own event loop) to a plain HTML/JS page with no build
+step: a map, the platforms and their streams, the violations, a query box, a policy
+editor and an observation form.
 
 Only who holds the console's token may use it (`ConsoleAccess`: a random token printed
 with the URL at start, ``GET /?token=…`` trades it for a cookie; the ``Host`` must be one of
@@ -40,23 +41,20 @@ from agents.transports import Subscription
 from dyknow_core import NS_PER_S, Policy, Source
 from ontology import OntologyError
 
-from .._platform import FederationPlatform
+from .._platform import ConsoleSettings, FederationPlatform
 from .._service import MembershipEvent
-from ._console_access import ConsoleAccess
+from ._access import ConsoleAccess
 
-__all__ = ["STREAM_LABELS", "OperatorConsole"]
+__all__ = ["OperatorConsole"]
 
-log = logging.getLogger(__name__)
-
-STREAM_LABELS: tuple[str, ...] = ("heli-position", "area", "tracked-cars", "violation")
-"""The semantic labels the console asks every UAV to stream to it."""
+log = logging.getLogger("federation.console")
 
 OBSERVATION = "observation"
 """The semantic label of the operator's own observations."""
 LOCAL_OBSERVATIONS = "operator/observations"
 """Their local label when the federation's vocabulary has no ``observation``."""
 
-STATIC_DIR = Path(__file__).parent / "console"
+STATIC_DIR = Path(__file__).parent / "static"
 PUSH_INTERVAL = 0.25  # s: the fastest the page is sent a new state (bounds its redraws)
 KEEPALIVE = 1.0  # s: a state is sent at least this often (ages and rates move on)
 RETRY = 2.0  # s: between attempts at a stream a platform refused
@@ -70,6 +68,7 @@ MAX_TEXT = 500
 
 StreamState = Literal["requesting", "active", "refused", "ended"]
 PlatformState = Literal["alive", "gone", "left"]
+Role = Literal["positions", "areas", "tracks", "violations"]
 
 
 class BadRequest(ValueError):
@@ -82,6 +81,7 @@ class _Stream:
 
     label: str
     sample_period: float | None
+    role: Role | None = None  # how the page draws it; None: its latest value is shown
     state: StreamState = "requesting"
     export_id: str | None = None
     error: str | None = None
@@ -90,6 +90,7 @@ class _Stream:
     arrivals: deque[float] = field(default_factory=lambda: deque(maxlen=256))
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     last_valid: int | None = None  # the newest valid time taken in (ns)
+    value: Any = None  # the latest value, kept for a stream with no role only
 
     def to_json(self, now: float) -> dict[str, Any]:
         """The stream as the page shows it."""
@@ -103,6 +104,7 @@ class _Stream:
             "samples": self.samples,
             "last": self.last,
             "rate": round(recent / RATE_WINDOW, 2),
+            "value": self.value,
         }
 
 
@@ -136,6 +138,8 @@ class _Platform:
 class OperatorConsole:
     """The operator's web console over ``platform``, as an async context manager.
 
+    ``settings`` say which labels it streams from every other member and how the page
+    draws them (None: the platform config's ``[console]``, ``platform.config.console``).
     ``world_map`` (the simulator's ``to_dict``: width, height, roads, crossings, areas)
     is drawn under everything; without it the map scales to what it has seen. The
     server listens on ``host``:``port`` (0: a free port; `url` says which).
@@ -149,6 +153,7 @@ class OperatorConsole:
         self,
         platform: FederationPlatform,
         *,
+        settings: ConsoleSettings | None = None,
         world_map: dict[str, Any] | None = None,
         host: str = "127.0.0.1",
         port: int = 0,
@@ -166,6 +171,20 @@ class OperatorConsole:
         )
         self.platform = platform
         self.name = platform.name
+        self.settings = platform.config.console if settings is None else settings
+        unknown = [label for label in self.settings.streams if label not in platform.vocabulary]
+        if unknown:
+            raise ValueError(
+                f"console.streams: {unknown[0]!r} is not in the federation's vocabulary"
+            )
+        r = self.settings.roles
+        roles: dict[Role, str | None] = {
+            "positions": r.positions,
+            "areas": r.areas,
+            "tracks": r.tracks,
+            "violations": r.violations,
+        }
+        self._roles = {label: role for role, label in roles.items() if label is not None}
         self.world_map = world_map
         self.host = host
         self.port = port
@@ -179,6 +198,7 @@ class OperatorConsole:
         self._tasks: set[asyncio.Task[None]] = set()
         self._observation_source: Source | None = None
         self._observation_label: str | None = None
+        self._observation_semantic: str | None = None  # None: the vocabulary has none
         self._stack: contextlib.AsyncExitStack | None = None
         self.url: str = ""
 
@@ -310,6 +330,9 @@ class OperatorConsole:
             "operator": self.name,
             "version": self._version,
             "now": now,
+            "streams": list(self.settings.streams),
+            "roles": self.settings.roles.model_dump(),
+            "observation_label": self._observation_semantic,
             "world": self.world_map,
             "platforms": [
                 p.to_json(now) for _, p in sorted(self._platforms.items()) if p.name != self.name
@@ -341,10 +364,12 @@ class OperatorConsole:
         elif p.state == "alive":
             return
         p.state = "alive"
-        for label in STREAM_LABELS:
+        for label in self.settings.streams:
             stream = p.streams.get(label)
             if stream is None:
-                stream = p.streams[label] = _Stream(label, self.sample_period)
+                stream = p.streams[label] = _Stream(
+                    label, self.sample_period, self._roles.get(label)
+                )
             if any(t.get_name().endswith(f":{label}]") for t in p.tasks):
                 continue  # after a leave it kept flowing: nothing to ask again
             stream.state, stream.export_id, stream.error = "requesting", None, None
@@ -441,23 +466,28 @@ class OperatorConsole:
         for value, valid, _ in batch:
             if stream.last_valid is None or valid > stream.last_valid:
                 stream.last_valid = valid
+            if stream.role is None:
+                continue  # only the latest is shown: taken once, below
             try:
-                self._apply(p, stream.label, value, valid)
+                self._apply(p, stream.role, value, valid)
             except Exception as exc:
                 # A malformed value from a platform is its problem, never the console's.
                 log.warning("console: %s %s: bad value %r: %s", p.name, stream.label, value, exc)
+        if stream.role is None and batch:
+            stream.value = _clean(batch[-1][0])
         self._changed()
 
-    def _apply(self, p: _Platform, label: str, value: Any, valid: int) -> None:
-        if label == "heli-position":
+    def _apply(self, p: _Platform, role: Role, value: Any, valid: int) -> None:
+        """Take one sample into the model as what ``role`` says it is."""
+        if role == "positions":
             p.position = {k: _finite(value[k]) for k in ("x", "y", "z") if k in value}
-        elif label == "area":
+        elif role == "areas":
             p.area = {
                 "index": value.get("index"),
                 "polygon": [[_finite(x), _finite(y)] for x, y in value["polygon"]],
                 "delegated-by": value.get("delegated-by"),
             }
-        elif label == "tracked-cars":
+        elif role == "tracks":
             cars = value["cars"]
             if not isinstance(cars, list):
                 raise TypeError("'cars' is not a list")
@@ -466,7 +496,7 @@ class OperatorConsole:
                 for c in cars
                 if isinstance(c, dict) and _is_finite(c.get("x")) and _is_finite(c.get("y"))
             ]
-        elif label == "violation":
+        else:  # violations
             if not isinstance(value, dict):
                 raise TypeError("not an object")
             entry = {**value, "reported-by": p.name, "valid": valid / NS_PER_S}
@@ -478,6 +508,7 @@ class OperatorConsole:
         """The operator's own stream of observations, watched like any other."""
         try:
             label = self.platform.labels.to_local(OBSERVATION)
+            self._observation_semantic = OBSERVATION
         except OntologyError as exc:
             # a federation whose vocabulary has no 'observation': kept local, still queryable
             label = LOCAL_OBSERVATIONS
@@ -619,7 +650,8 @@ class OperatorConsole:
         label = body.get("label")
         stream = p.streams.get(label) if isinstance(label, str) else None
         if stream is None:
-            raise BadRequest(f"label: {label!r} is not one of {', '.join(STREAM_LABELS)}")
+            streams = ", ".join(self.settings.streams) or "none"
+            raise BadRequest(f"label: {label!r} is not one of the console's streams ({streams})")
         if "sample_period" not in body:
             raise BadRequest("sample_period: missing (seconds, or null for every sample)")
         period = body["sample_period"]
@@ -678,7 +710,7 @@ class OperatorConsole:
     def _label(self, body: dict[str, Any]) -> str:
         label = body.get("label")
         if not isinstance(label, str) or not label:
-            raise BadRequest("label: expected a semantic label, e.g. tracked-cars")
+            raise BadRequest("label: expected a semantic label of the federation's vocabulary")
         if label not in self.platform.vocabulary:
             raise BadRequest(f"label: {label!r} is not in the federation's vocabulary")
         return label

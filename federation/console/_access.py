@@ -47,7 +47,7 @@ __all__ = [
     "new_token",
 ]
 
-log = logging.getLogger("federation.demo._console")
+log = logging.getLogger("federation.console")
 
 TOKEN_ENV = "DYKNOW_CONSOLE_TOKEN"
 """The environment variable the ``dyknow`` commands read a console token from."""

@@ -93,6 +93,7 @@ function render(s) {
     renderViolations(s);
     renderObservations(s);
     renderQueryPlatforms(s);
+    renderQueryLabels(s);
     lastVersion = s.version;
   }
   drawMap();
@@ -417,6 +418,20 @@ async function post(url, body) {
     return { ok: r.ok, status: r.status, body: data };
   } catch (e) {
     return { ok: false, status: 0, body: { error: `the console cannot be reached: ${e}` } };
+  }
+}
+
+// the labels offered for a query: the console's streams (its config's), and its observations
+function renderQueryLabels(s) {
+  const labels = [...s.streams, ...(s.observation_label ? [s.observation_label] : [])];
+  const list = $("#label-options");
+  if (list.dataset.labels === labels.join("\n")) return;
+  list.dataset.labels = labels.join("\n");
+  list.replaceChildren(...labels.map((label) => el("option", { value: label })));
+  const input = $("#query-label");
+  if (!input.dataset.offered) {
+    input.dataset.offered = "1";  // once: what the operator typed since stays
+    if (!input.value) input.value = s.roles.tracks ?? s.streams[0] ?? "";
   }
 }
 
