@@ -1,28 +1,26 @@
-"""Platform keys and the federation trust file, one command each.
+"""Platform keys and the federation trust file: what each ``dyknow keys`` command does.
 
 ::
 
-    python -m agents.keys gen --platform uav-a --dir keys/
-    python -m agents.keys trust --trust-file trust.json --federation demo keys/*.pub
-    python -m agents.keys untrust --trust-file trust.json uav-c
-    python -m agents.keys show --trust-file trust.json
+    dyknow keys gen --platform uav-a --dir keys/
+    dyknow keys trust --trust-file trust.json --federation demo keys/*.pub
+    dyknow keys untrust --trust-file trust.json uav-c
+    dyknow keys show --trust-file trust.json
 
-The product CLI (``dyknow keys …``) reuses ``configure_parser`` and ``run``, or calls
-``gen_keys`` / ``trust_keys`` / ``untrust`` / ``show`` directly. See ``docs/security.md``.
+The CLI (``federation.cli``) calls ``gen_keys`` / ``trust_keys`` / ``untrust`` / ``show``;
+programs (tests, the demo, deploy scripts) call them directly. See ``docs/security.md``.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from ._exceptions import KeyFileError
 from ._security import KeyPair, TrustStore, check_name, fingerprint, read_public_key
 
-__all__ = ["configure_parser", "gen_keys", "main", "run", "show", "trust_keys", "untrust"]
+__all__ = ["KeysError", "gen_keys", "show", "trust_keys", "untrust"]
 
 
 class KeysError(Exception):
@@ -146,74 +144,3 @@ def show(trust_file: str | os.PathLike[str]) -> list[str]:
     for platform in store:
         lines.append(f"  {platform:<20} {fingerprint(store.public_key(platform))}")
     return lines
-
-
-def configure_parser(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    """Add the ``gen``, ``trust``, ``untrust`` and ``show`` subcommands to ``parser``."""
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    gen = sub.add_parser("gen", help="generate a platform's Ed25519 key pair")
-    gen.add_argument("--platform", required=True, help="platform name, e.g. uav-a")
-    gen.add_argument("--dir", default="keys", type=Path, help="where to write (default: keys)")
-    gen.add_argument(
-        "--force", action="store_true", help="replace an existing private key (lock-out risk)"
-    )
-    gen.add_argument("--trust-file", type=Path, help="also trust the new key in this file")
-    gen.add_argument("--federation", help="federation name when the trust file is created")
-
-    trust = sub.add_parser("trust", help="add public key files to the federation trust file")
-    trust.add_argument("--trust-file", required=True, type=Path)
-    trust.add_argument("--federation", help="federation name (required to create the file)")
-    trust.add_argument(
-        "--replace", action="store_true", help="rotate: accept a new key for a known platform"
-    )
-    trust.add_argument("public_keys", nargs="+", type=Path, metavar="PUB", help="*.pub files")
-
-    untrust_p = sub.add_parser("untrust", help="remove platforms from the trust file")
-    untrust_p.add_argument("--trust-file", required=True, type=Path)
-    untrust_p.add_argument("platforms", nargs="+", metavar="PLATFORM")
-
-    show = sub.add_parser("show", help="list the platforms a trust file accepts")
-    show.add_argument("--trust-file", required=True, type=Path)
-    return parser
-
-
-def run(args: argparse.Namespace) -> int:
-    """Run a parsed key command; print what happened; 0 on success, 1 on a refusal."""
-    try:
-        if args.command == "gen":
-            pair, key_path, pub_path = gen_keys(args.platform, args.dir, force=args.force)
-            print(f"created {key_path} (private, mode 0600: keep it on {pair.platform} only)")
-            print(f"created {pub_path} (public: add it to the federation's trust file)")
-            print(f"fingerprint {pair.platform} {pair.fingerprint}")
-            if args.trust_file is not None:
-                lines = trust_keys(args.trust_file, [pub_path], federation=args.federation)
-                print("\n".join(lines))
-            else:
-                print(f"next: python -m agents.keys trust --trust-file trust.json {pub_path}")
-        elif args.command == "trust":
-            lines = trust_keys(
-                args.trust_file, args.public_keys, federation=args.federation, replace=args.replace
-            )
-            print("\n".join(lines))
-        elif args.command == "untrust":
-            print("\n".join(untrust(args.trust_file, args.platforms)))
-        elif args.command == "show":
-            print("\n".join(show(args.trust_file)))
-    except KeysError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    return 0
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """The ``python -m agents.keys`` entry point."""
-    parser = argparse.ArgumentParser(
-        prog="python -m agents.keys",
-        description="DyKnow Federation platform keys and the federation trust file.",
-    )
-    configure_parser(parser)
-    return run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -4,8 +4,8 @@
 # (make_certs.py; openssl needed), never committed (.gitignore). Run once, before
 # `docker compose up`:
 #   deploy/make-keys.sh            # or: deploy/make-keys.sh /some/other/config/dir
-# Uses `python -m agents.keys …` with PYTHON when it is set, else `dyknow keys …` when
-# the CLI is on the PATH, else the project's .venv (made by `make`), else python3.
+# Uses `python -m federation.cli keys …` with PYTHON when it is set, else `dyknow keys …`
+# when the CLI is on the PATH, else the project's .venv (made by `make`), else python3.
 set -euo pipefail
 
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -17,13 +17,13 @@ platforms=(uav-a uav-b uav-c operator)
 
 root="$(cd "${here}/.." && pwd)"
 if [[ -n "${PYTHON:-}" ]]; then
-    keys=("${PYTHON}" -m agents.keys)
+    keys=("${PYTHON}" -m federation.cli keys)
 elif command -v dyknow >/dev/null 2>&1 && dyknow keys --help >/dev/null 2>&1; then
     keys=(dyknow keys)
 elif [[ -x "${root}/.venv/bin/python" ]]; then
-    keys=("${root}/.venv/bin/python" -m agents.keys)    # what `make` installed
+    keys=("${root}/.venv/bin/python" -m federation.cli keys)    # what `make` installed
 else
-    keys=(python3 -m agents.keys)
+    keys=(python3 -m federation.cli keys)
 fi
 
 mkdir -p "${keys_dir}"

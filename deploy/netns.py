@@ -215,10 +215,10 @@ def write_configs(rundir: Path, subnet: str) -> None:
 def command(service: str, rundir: Path, subnet: str) -> list[str]:
     """The ``dyknow`` command line of one service (run inside its namespace)."""
     if service == "router":
-        # --listen as well: `dyknow router --config` alone listens on an ephemeral loopback
+        # --listen as well: `dyknow router --zenoh-config` alone listens on an ephemeral loopback
         # port, not on the config's endpoints (ZenohConfig.to_zenoh overrides them).
         listen = f"tls/{address(subnet, 'router')}:{PORT}"
-        return ["router", "--config", str(rundir / "router.json5"), "--listen", listen]
+        return ["router", "--zenoh-config", str(rundir / "router.json5"), "--listen", listen]
     return ["node", "--config", str(rundir / f"{service}.toml")]
 
 
@@ -474,10 +474,12 @@ def check(state: dict[str, Any], timeout: float) -> dict[str, Any]:
         if time.monotonic() > deadline:
             raise Failure(f"the operator did not see {sorted(want - set(seen))} in {timeout:g} s")
     say(f"operator sees {', '.join(sorted(seen))} alive, across namespaces through the router")
-    say(f"in {ns}: dyknow labels uav-a --config {config} --json")
-    proc = dyknow_in(ns, ["labels", "uav-a", "--config", config, "--json"], 30.0)
+    say(f"in {ns}: dyknow labels --platform uav-a --config {config} --json")
+    proc = dyknow_in(ns, ["labels", "--platform", "uav-a", "--config", config, "--json"], 30.0)
     if proc.returncode != 0:
-        raise Failure(f"dyknow labels uav-a exited {proc.returncode}: {proc.stderr.strip()}")
+        raise Failure(
+            f"dyknow labels --platform uav-a exited {proc.returncode}: {proc.stderr.strip()}"
+        )
     labels = json.loads(proc.stdout)
     say(f"uav-a answered the operator's request: {labels}")
     return {"platforms": seen, "labels": {"uav-a": labels}}

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import datetime as dt
 import hashlib
 import json
 import logging
@@ -41,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 from agents import TokenBucket
 
+from ._cli_time import seconds, when
 from ._platform import PlatformConfig
 
 if TYPE_CHECKING:
@@ -141,22 +141,13 @@ async def refuse_duplicate(
 
 
 def _where(info: dict[str, Any]) -> str:
-    """``pid 123 on host h, since 2026-…Z (5 min ago)`` from a running node's answer."""
+    """``pid 123 on host h, since 2026-…+01:00 (300 s ago)`` from a running node's answer."""
     since = info.get("since")
-    when = "since an unknown time"
+    started = "since an unknown time"
     if isinstance(since, int | float):
-        stamp = dt.datetime.fromtimestamp(since, dt.UTC).strftime("%Y-%m-%dT%H:%M:%SZ")
-        ago = max(0.0, time.time() - since)
-        when = f"since {stamp} ({_ago(ago)} ago)"
-    return f"pid {info.get('pid')} on host {info.get('host')!r}, {when}"
-
-
-def _ago(seconds: float) -> str:
-    if seconds < 120:
-        return f"{seconds:.0f} s"
-    if seconds < 7200:
-        return f"{seconds / 60:.0f} min"
-    return f"{seconds / 3600:.1f} h"
+        ago = round(max(0.0, time.time() - since))
+        started = f"since {when(since)} ({seconds(ago)} ago)"
+    return f"pid {info.get('pid')} on host {info.get('host')!r}, {started}"
 
 
 # -- the local channel -----------------------------------------------------------------------

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import datetime as dt
 import json
 import sys
 import time
@@ -33,6 +34,7 @@ from dyknow_core import (
 )
 
 from ._cli_net import _opened, _stop_event, _wait_for
+from ._cli_time import seconds, when, when_ns
 
 Say = Callable[[str], None]
 
@@ -60,8 +62,17 @@ def jsonable(value: Any) -> Any:
     return repr(value)
 
 
-def _seconds(ns: int) -> str:
-    return f"{ns_to_seconds(ns):.3f}"
+def _span(lo: int, hi: int) -> str:
+    """A span of sample times (ns) as text: ``from .. to (duration)``."""
+    return f"{when_ns(lo)} .. {when_ns(hi)} ({seconds(ns_to_seconds(hi - lo))})"
+
+
+def _created(text: str) -> str:
+    """A recording's creation stamp (ISO 8601, UTC) as the CLI shows times."""
+    try:
+        return when(dt.datetime.fromisoformat(text).timestamp())
+    except ValueError:
+        return text
 
 
 # -- record -------------------------------------------------------------------------------------
@@ -224,7 +235,10 @@ async def _until_stopped(
                 shown = rec.recorded
                 counts = ", ".join(f"{k}={n}" for k, n in sorted(rec.counts.items()))
                 elapsed = time.monotonic() - started
-                progress(f"recording {rec.path}: {shown} samples ({counts or '-'}) {elapsed:.0f} s")
+                progress(
+                    f"recording {rec.path}: {shown} samples ({counts or '-'}) "
+                    f"{seconds(round(elapsed))}"
+                )
     finally:
         for w in waits:
             w.cancel()
@@ -254,8 +268,8 @@ def info_lines(data: dict[str, Any]) -> list[str]:
     lines = [
         f"file:       {data['file']}",
         f"format:     dyknow-record version {data['version']}",
-        f"instance:   {data['instance']!r} ({data['clock']}, start {_seconds(data['start'])} s)",
-        f"created:    {data['created']}",
+        f"instance:   {data['instance']!r} ({data['clock']}, start {when_ns(data['start'])})",
+        f"created:    {_created(data['created'])}",
         f"labels:     {'every stream' if data['labels'] is None else ', '.join(data['labels'])}",
     ]
     for k, v in sorted(data["meta"].items()):
@@ -265,7 +279,7 @@ def info_lines(data: dict[str, Any]) -> list[str]:
         lines.append(f"  {label}: {n}")
     if data["valid_span"] is not None:
         lo, hi = data["valid_span"]
-        lines.append(f"valid time: {_seconds(lo)} .. {_seconds(hi)} s ({_seconds(hi - lo)} s)")
+        lines.append(f"valid time: {_span(lo, hi)}")
     if data["truncated"]:
         lines.append("truncated:  yes (the writer stopped mid-batch; read up to the last batch)")
     return lines
@@ -384,7 +398,7 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
         lines.append(f"  {label}: {n} recorded, not fed (the spec computes it)")
     if result["valid_span"] is not None:
         lo, hi = result["valid_span"]
-        lines.append(f"valid time {_seconds(lo)} .. {_seconds(hi)} s ({_seconds(hi - lo)} s)")
+        lines.append(f"valid time {_span(lo, hi)}")
     produced = ", ".join(f"{k}={n}" for k, n in result["produced"].items())
     lines.append(f"printed: {produced or '-'}")
     if result["truncated"]:
@@ -402,7 +416,7 @@ def print_sample(as_json: bool, say: Say) -> Callable[[str, Any, int, int], None
             row = {"label": label, "value": jsonable(value), "valid": valid, "available": available}
             say(json.dumps(row, sort_keys=True))
         else:
-            say(f"{label}  valid={_seconds(valid)}  available={_seconds(available)}  {value!r}")
+            say(f"{label}  valid={when_ns(valid)}  available={when_ns(available)}  {value!r}")
 
     return emit
 

@@ -1,12 +1,15 @@
-"""The ``dyknow`` command (typer + rich).
+"""The ``dyknow`` command (typer + rich): every subcommand, one style of flags.
 
-``monitor`` and ``kpl`` are the argparse commands of ``dyknow_core`` (unchanged); ``keys``,
-``node``, ``router``, ``platforms``, ``labels``, ``ask`` and ``watch`` are typer commands.
+The same flag means the same thing in every command: ``--config/-c`` is this platform's
+TOML config, ``--platform/-p`` the platform asked (or whose key it is), ``--json``
+machine-readable output instead of text, ``--wait`` seconds to wait for the federation
+to be seen, ``--timeout`` seconds to wait for the asked platform's answer. Semantic
+labels are arguments. Times in text output are ISO 8601 with the local offset, durations
+seconds (``_cli_time``).
 """
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import json
 import os
@@ -22,9 +25,9 @@ from rich.table import Table
 
 from agents import TransportError
 
+from ._cli_reasoning import kpl_app, monitor
+from ._cli_time import when, when_ns
 from ._platform import PlatformConfig, PlatformConfigError
-
-_LEGACY = {"monitor", "kpl"}
 
 
 def _demo_app() -> typer.Typer:
@@ -40,7 +43,11 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-keys_app = typer.Typer(help="A platform's key pair and the federation's trust file.")
+app.command("monitor")(monitor)
+app.add_typer(kpl_app, name="kpl")
+keys_app = typer.Typer(
+    help="A platform's key pair and the federation's trust file.", no_args_is_help=True
+)
 app.add_typer(keys_app, name="keys")
 app.add_typer(_demo_app(), name="demo")
 
@@ -48,9 +55,20 @@ _out = Console(highlight=False, soft_wrap=True)
 _err = Console(stderr=True, highlight=False, soft_wrap=True)
 
 ConfigOpt = Annotated[Path, typer.Option("--config", "-c", help="the platform's TOML config")]
-JsonOpt = Annotated[bool, typer.Option("--json", help="print JSON instead of a table")]
+PlatformOpt = Annotated[str, typer.Option("--platform", "-p", help="the platform to ask")]
+LabelsArg = Annotated[list[str], typer.Argument(metavar="LABELS", help="semantic labels")]
+JsonOpt = Annotated[
+    bool, typer.Option("--json", help="print JSON instead of text (a stream: one object a line)")
+]
 WaitOpt = Annotated[
     float, typer.Option("--wait", help="seconds to wait for the federation to be seen")
+]
+TimeoutOpt = Annotated[
+    float, typer.Option("--timeout", help="seconds to wait for the asked platform's answer")
+]
+TrustFileOpt = Annotated[Path, typer.Option("--trust-file", help="the federation's trust file")]
+FederationOpt = Annotated[
+    str | None, typer.Option("--federation", help="the federation of a new trust file")
 ]
 
 
@@ -73,45 +91,6 @@ def _load(config: Path) -> PlatformConfig:
         raise _fail(str(exc)) from None
 
 
-# -- the argparse commands, unchanged -----------------------------------------------------------
-
-
-def _legacy(argv: Sequence[str]) -> int:
-    """``dyknow monitor …`` / ``dyknow kpl …`` exactly as before (argparse)."""
-    from dyknow_core import _kpl_cli, _monitor_cli
-
-    parser = argparse.ArgumentParser(prog="dyknow", description="DyKnow Federation tools")
-    sub = parser.add_subparsers(dest="command", required=True)
-    mon = sub.add_parser("monitor", help="run an MTL formula over a recorded JSON-lines trace")
-    _monitor_cli.add_arguments(mon)
-    kpl = sub.add_parser("kpl", help="KPL files: 'dyknow kpl check FILE'")
-    _kpl_cli.add_arguments(kpl)
-    args = parser.parse_args(argv)
-    if args.command == "monitor":
-        return _monitor_cli.run(args)
-    return _kpl_cli.run(args)
-
-
-@app.command(
-    "monitor",
-    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
-    add_help_option=False,
-)
-def monitor(ctx: typer.Context) -> None:
-    """Run an MTL formula over a recorded JSON-lines trace (see dyknow monitor --help)."""
-    raise typer.Exit(_legacy(["monitor", *ctx.args]))
-
-
-@app.command(
-    "kpl",
-    context_settings={"allow_extra_args": True, "ignore_unknown_options": True},
-    add_help_option=False,
-)
-def kpl(ctx: typer.Context) -> None:
-    """KPL files: 'dyknow kpl check FILE'."""
-    raise typer.Exit(_legacy(["kpl", *ctx.args]))
-
-
 # -- keys ---------------------------------------------------------------------------------------
 
 
@@ -122,18 +101,19 @@ def keys_gen(
     trust_file: Annotated[
         Path | None, typer.Option("--trust-file", help="also trust the new public key here")
     ] = None,
-    federation: Annotated[
-        str | None, typer.Option("--federation", help="the federation of a new trust file")
-    ] = None,
-    force: Annotated[bool, typer.Option("--force", help="overwrite existing key files")] = False,
+    federation: FederationOpt = None,
+    force: Annotated[
+        bool, typer.Option("--force", help="overwrite existing key files (lock-out risk)")
+    ] = False,
 ) -> None:
     """Generate a platform's key pair (private key 0600), optionally trusting it."""
     from agents.keys import KeysError, gen_keys, trust_keys
 
     try:
-        _, key_path, pub_path = gen_keys(platform, directory, force=force)
-        _say(f"{key_path}: private key of {platform!r} (keep it secret)")
-        _say(f"{pub_path}: public key of {platform!r}")
+        pair, key_path, pub_path = gen_keys(platform, directory, force=force)
+        _say(f"created {key_path} (private, mode 0600: keep it on {platform} only)")
+        _say(f"created {pub_path} (public: add it to the federation's trust file)")
+        _say(f"fingerprint {platform} {pair.fingerprint}")
         if trust_file is not None:
             for line in trust_keys(trust_file, [pub_path], federation=federation):
                 _say(line)
@@ -143,14 +123,14 @@ def keys_gen(
 
 @keys_app.command("trust")
 def keys_trust(
-    trust_file: Annotated[Path, typer.Option("--trust-file", help="the federation's trust file")],
-    pubs: Annotated[list[Path], typer.Argument(help="public key files (.pub)")],
-    federation: Annotated[
-        str | None, typer.Option("--federation", help="the federation of a new trust file")
-    ] = None,
-    replace: Annotated[bool, typer.Option("--replace", help="rotate a trusted key")] = False,
+    trust_file: TrustFileOpt,
+    pubs: Annotated[list[Path], typer.Argument(metavar="PUBS", help="public key files")],
+    federation: FederationOpt = None,
+    replace: Annotated[
+        bool, typer.Option("--replace", help="rotate: accept a new key for a known platform")
+    ] = False,
 ) -> None:
-    """Add public key files to the federation's trust file."""
+    """Add public key files (.pub) to the federation's trust file."""
     from agents.keys import KeysError, trust_keys
 
     try:
@@ -162,8 +142,10 @@ def keys_trust(
 
 @keys_app.command("untrust")
 def keys_untrust(
-    trust_file: Annotated[Path, typer.Option("--trust-file", help="the federation's trust file")],
-    platforms: Annotated[list[str], typer.Argument(help="platform names to stop trusting")],
+    trust_file: TrustFileOpt,
+    platforms: Annotated[
+        list[str], typer.Argument(metavar="PLATFORMS", help="platform names to stop trusting")
+    ],
 ) -> None:
     """Remove platforms from the trust file (revoke them; running nodes: restart them)."""
     from agents.keys import KeysError, untrust
@@ -176,9 +158,7 @@ def keys_untrust(
 
 
 @keys_app.command("show")
-def keys_show(
-    trust_file: Annotated[Path, typer.Option("--trust-file", help="the federation's trust file")],
-) -> None:
+def keys_show(trust_file: TrustFileOpt) -> None:
     """List the platforms a trust file accepts, with their key fingerprints."""
     from agents.keys import KeysError, show
 
@@ -255,12 +235,13 @@ def console(
 
 @app.command("router")
 def router(
-    config: Annotated[
+    zenoh_config: Annotated[
         Path | None,
-        typer.Option("--config", "-c", help="a zenoh JSON5 config (TLS, access control, …)"),
+        typer.Option("--zenoh-config", help="a zenoh JSON5 config (TLS, access control, …)"),
     ] = None,
     listen: Annotated[
-        list[str] | None, typer.Option("--listen", help="endpoint, e.g. tcp/0.0.0.0:7447")
+        list[str] | None,
+        typer.Option("--listen", help="an endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)"),
     ] = None,
 ) -> None:
     """A zenoh router (zenoh's router mode) until SIGINT/SIGTERM."""
@@ -268,17 +249,17 @@ def router(
 
     from ._cli_net import read_json5, run_router
 
-    if config is None and not listen:
+    if zenoh_config is None and not listen:
         listen = ["tcp/0.0.0.0:7447"]
     try:
-        json5 = read_json5(None if config is None else str(config))
+        json5 = read_json5(None if zenoh_config is None else str(zenoh_config))
     except OSError as exc:
-        raise _fail(f"{config}: cannot be read: {exc.strerror}") from None
+        raise _fail(f"{zenoh_config}: cannot be read: {exc.strerror}") from None
     try:
         asyncio.run(run_router(list(listen or []), json5, _say))
     except ValidationError as exc:
         msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise _fail(f"{config or 'dyknow router'}: {msgs}") from None
+        raise _fail(f"{zenoh_config or 'dyknow router'}: {msgs}") from None
     except Exception as exc:  # zenoh.ZError (e.g. the port is taken): no traceback
         raise _fail(f"dyknow router: {exc}", 1) from None
 
@@ -329,14 +310,14 @@ def platforms(config: ConfigOpt, as_json: JsonOpt = False, wait: WaitOpt = 3.0) 
 
 @app.command("labels")
 def labels(
-    platform: Annotated[str, typer.Argument(help="the platform to ask")],
     config: ConfigOpt,
+    platform: PlatformOpt,
     formula: Annotated[
         str | None, typer.Option("--formula", help="FIPA-SL formula to search labels by")
     ] = None,
     as_json: JsonOpt = False,
     wait: WaitOpt = 3.0,
-    timeout: Annotated[float, typer.Option(help="seconds to wait for the answer")] = 10.0,
+    timeout: TimeoutOpt = 10.0,
 ) -> None:
     """The semantic labels a platform provides (or those matching an SL formula)."""
     from ._cli_net import ask_platform, dumps
@@ -360,17 +341,17 @@ def labels(
 
 @app.command("ask")
 def ask(
-    platform: Annotated[str, typer.Argument(help="the platform to ask")],
-    label_names: Annotated[list[str], typer.Argument(metavar="LABELS", help="semantic labels")],
+    label_names: LabelsArg,
     config: ConfigOpt,
-    at: Annotated[str | None, typer.Option("--at", help="value at T (s, now, -10s)")] = None,
+    platform: PlatformOpt,
+    at: Annotated[str | None, typer.Option("--at", help="value at T (POSIX s, now, -10s)")] = None,
     since: Annotated[
-        str | None, typer.Option("--from", help="trajectory from T (s, now, -2m)")
+        str | None, typer.Option("--from", help="trajectory from T (POSIX s, now, -2m)")
     ] = None,
     until: Annotated[str | None, typer.Option("--to", help="trajectory until T")] = None,
     as_json: JsonOpt = False,
     wait: WaitOpt = 3.0,
-    timeout: Annotated[float, typer.Option(help="seconds to wait for the answer")] = 10.0,
+    timeout: TimeoutOpt = 10.0,
 ) -> None:
     """Latest value (default), value --at T, or samples --from T [--to T] of labels."""
     from ._cli_net import ask_platform, dumps, parse_time
@@ -407,28 +388,29 @@ def ask(
         table.add_column(col)
     for label, result in answer.items():
         samples = result.get("samples", []) if isinstance(result, dict) else []
-        qt = str(result.get("query_time", "")) if isinstance(result, dict) else ""
+        qt = result.get("query_time") if isinstance(result, dict) else None
+        shown = when(qt) if isinstance(qt, int | float) else "-"
         if not samples:
-            table.add_row(label, qt, "-", "-", "-")
+            table.add_row(label, shown, "-", "-", "-")
         for value, valid, available in samples:
-            table.add_row(label, qt, repr(value), str(valid), str(available))
+            table.add_row(label, shown, repr(value), when(valid), when(available))
     _out.print(table)
 
 
 @app.command("stream")
 def stream(
-    platform: Annotated[str, typer.Argument(help="the platform providing the labels")],
-    label_names: Annotated[list[str], typer.Argument(metavar="LABELS", help="semantic labels")],
+    label_names: LabelsArg,
     config: ConfigOpt,
+    platform: PlatformOpt,
     sample_period: Annotated[
         float | None, typer.Option("--sample-period", help="seconds between samples")
     ] = None,
     count: Annotated[
-        int | None, typer.Option("--count", "-n", min=1, help="stop after N samples")
+        int | None, typer.Option("--count", "-n", min=1, help="stop after N samples in all")
     ] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="one JSON object a line")] = False,
+    as_json: JsonOpt = False,
     wait: WaitOpt = 3.0,
-    timeout: Annotated[float, typer.Option(help="seconds to wait for the stream")] = 10.0,
+    timeout: TimeoutOpt = 10.0,
 ) -> None:
     """Create a stream from a platform to this one and print its samples (Ctrl-C stops)."""
     from ._cli_net import follow_stream
@@ -440,7 +422,7 @@ def stream(
             row = {"label": label, "value": value, "valid": valid, "available": available}
             _say(json.dumps(row, default=str))
         else:
-            _say(f"{label}  valid={valid}  available={available}  {value!r}")
+            _say(f"{label}  valid={when_ns(valid)}  available={when_ns(available)}  {value!r}")
 
     _run_query(
         follow_stream(
@@ -462,15 +444,15 @@ def stream(
 def _watch_line(event: dict[str, Any]) -> str:
     """One watched event as a line of text."""
     kind = event["kind"]
-    when = time.strftime("%H:%M:%S", time.localtime(event.get("ts") or time.time()))
+    stamp = when(event.get("ts") or time.time())
     if kind == "acl":
         m = event["message"]
         if not isinstance(m, dict):
-            return f"{when} acl    from {event['from']}: {m!r}"
+            return f"{stamp} acl    from {event['from']}: {m!r}"
         receivers = ",".join(m.get("receivers", []))
         content = json.dumps(m.get("content"), default=str)
         return (
-            f"{when} acl    {m.get('performative')} {m.get('sender')} -> {receivers} "
+            f"{stamp} acl    {m.get('performative')} {m.get('sender')} -> {receivers} "
             f"[{m.get('ontology')}] {content}"
         )
     if kind == "stream":
@@ -478,31 +460,29 @@ def _watch_line(event: dict[str, Any]) -> str:
         samples = b.get("b", []) if isinstance(b, dict) else []
         label = b.get("s") if isinstance(b, dict) else None
         shown = ", ".join(repr(s[0]) for s in samples[:4]) + (" …" if len(samples) > 4 else "")
-        return f"{when} stream from {event['from']} {label}: {len(samples)} sample(s) {shown}"
+        return f"{stamp} stream from {event['from']} {label}: {len(samples)} sample(s) {shown}"
     if kind == "stream-report":
-        return f"{when} report from {event['from']}: {json.dumps(event['report'], default=str)}"
+        return f"{stamp} report from {event['from']}: {json.dumps(event['report'], default=str)}"
     if kind == "audit":
         r = event["record"]
         stage = f" ({r['stage']})" if r.get("stage") else ""
         return (
-            f"{when} audit  {r.get('verdict')}{stage} from {r.get('from')} "
+            f"{stamp} audit  {r.get('verdict')}{stage} from {r.get('from')} "
             f"{r.get('performative') or ''} {r.get('sender') or ''}: {r.get('reason') or ''}"
         )
     if kind == "watching":
         return f"watching {event['platform']}: messages, batches and audit addressed to it"
-    return f"{when} {kind} {json.dumps(event, default=str)}"
+    return f"{stamp} {kind} {json.dumps(event, default=str)}"
 
 
 @app.command("watch")
 def watch(
     config: ConfigOpt,
-    as_json: Annotated[bool, typer.Option("--json", help="one JSON object a line")] = False,
+    as_json: JsonOpt = False,
     duration: Annotated[
-        float | None, typer.Option("--duration", help="stop after this many seconds")
+        float | None, typer.Option("--duration", min=0.0, help="stop after S seconds")
     ] = None,
-    timeout: Annotated[
-        float, typer.Option(help="seconds to wait for the platform to answer")
-    ] = 10.0,
+    timeout: TimeoutOpt = 10.0,
 ) -> None:
     """As the platform's owner (its key): watch, decrypted, what reaches the running platform."""
     from ._cli_net import watch_platform
@@ -520,13 +500,9 @@ def watch(
 
 @app.command("record")
 def record(
-    label_names: Annotated[
-        list[str], typer.Argument(metavar="LABELS", help="semantic labels to record")
-    ],
+    label_names: LabelsArg,
     config: ConfigOpt,
-    platform: Annotated[
-        str, typer.Option("--platform", "-p", help="the platform providing the labels")
-    ],
+    platform: PlatformOpt,
     out: Annotated[Path, typer.Option("--out", "-o", help="the recording to write (.dkr)")],
     duration: Annotated[
         float | None, typer.Option("--duration", min=0.0, help="stop after S seconds")
@@ -538,7 +514,7 @@ def record(
         float | None, typer.Option("--sample-period", help="seconds between samples")
     ] = None,
     wait: WaitOpt = 3.0,
-    timeout: Annotated[float, typer.Option(help="seconds to wait for the stream")] = 10.0,
+    timeout: TimeoutOpt = 10.0,
 ) -> None:
     """Record streams of a platform to a file (Ctrl-C or SIGTERM stops, the file complete).
 
@@ -571,7 +547,7 @@ def record(
 
 @app.command("replay")
 def replay_recording(
-    file: Annotated[Path, typer.Argument(help="the recording (.dkr)")],
+    file: Annotated[Path, typer.Argument(metavar="FILE", help="the recording (.dkr)")],
     kpl_spec: Annotated[
         Path | None, typer.Option("--kpl", help="a KPL application to set up and feed")
     ] = None,
@@ -585,7 +561,7 @@ def replay_recording(
     tail: Annotated[
         float, typer.Option("--tail", min=0.0, help="seconds the clock runs on at the end")
     ] = 0.0,
-    as_json: Annotated[bool, typer.Option("--json", help="one JSON object a line")] = False,
+    as_json: JsonOpt = False,
     show_info: Annotated[
         bool, typer.Option("--info", help="only show the header and per-label counts")
     ] = False,
@@ -649,8 +625,6 @@ def replay_recording(
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse the command line and run the chosen subcommand; the exit code."""
     args = list(sys.argv[1:] if argv is None else argv)
-    if args and args[0] in _LEGACY:
-        return _legacy(args)
     try:
         app(args=args, prog_name="dyknow")
     except SystemExit as exc:

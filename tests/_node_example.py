@@ -76,10 +76,10 @@ class Station:
         return json.loads(done.stdout)
 
     def latest(self, *labels: str, until: Callable[[dict[str, Any]], bool]) -> dict[str, Any]:
-        """``dyknow ask station LABELS`` until the answer satisfies ``until`` (20 tries)."""
+        """``dyknow ask LABELS -p station`` until the answer satisfies ``until`` (20 tries)."""
         answer: dict[str, Any] = {}
         for _ in range(20):
-            answer = self.dyknow("ask", "station", *labels)
+            answer = self.dyknow("ask", *labels, "--platform", "station")
             if until(answer):
                 return answer
             time.sleep(0.5)  # the inputs are paced by the outside world, not by an event here

@@ -8,7 +8,7 @@ depends_on): the topology that ``config`` would not catch.
 
 The platform configs are loaded with ``PlatformConfig.load`` and their key, trust,
 vocabulary and mapping files read, after generating keys into a temporary copy of
-deploy/config with the same commands deploy/make-keys.sh runs (``agents.keys``).
+deploy/config with what deploy/make-keys.sh runs (``dyknow keys``' functions).
 """
 
 from __future__ import annotations
@@ -197,7 +197,11 @@ def test_compose_topology(file: str) -> None:
 
     if kind == "zenoh":
         router = services[hub]
-        assert router["command"] == ["router", "--config", str(MOUNT / "router-secure.json5")]
+        assert router["command"] == [
+            "router",
+            "--zenoh-config",
+            str(MOUNT / "router-secure.json5"),
+        ]
         tls_dir = CONFIG / "keys" / "tls"
         # the CA's certificate but never its key: certificates are made elsewhere
         assert _mounts(router) == {

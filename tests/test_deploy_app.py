@@ -77,9 +77,9 @@ class Deployment:
             assert f"{uav} ready" in ready, ready + self.stop()
 
     def ask(self, uav: str, *labels: str, history: bool = True) -> dict[str, Any]:
-        """``dyknow ask UAV LABELS [--from 0] --json`` as the operator."""
+        """``dyknow ask LABELS --platform UAV [--from 0] --json`` as the operator."""
         done = subprocess.run(
-            [*CLI, "ask", uav, *labels, *(["--from", "0"] if history else []), *ASK],
+            [*CLI, "ask", *labels, "--platform", uav, *(["--from", "0"] if history else []), *ASK],
             capture_output=True,
             text=True,
             cwd=self.dir,

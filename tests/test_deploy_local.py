@@ -93,20 +93,20 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         # uav-a's application, fed by the traffic world: cars appear as it sees them
         cars: list[str] = []
         for _ in range(30):
-            done = dyknow("labels", "uav-a")
+            done = dyknow("labels", "--platform", "uav-a")
             assert done.returncode == 0, done.stderr
             labels = json.loads(done.stdout)["labels"]
             cars = [x for x in labels if re.fullmatch(r"car\d+-state", x)]
             if cars:
                 break
         assert cars, labels
-        done = dyknow("ask", "uav-a", cars[0])
+        done = dyknow("ask", cars[0], "--platform", "uav-a")
         assert done.returncode == 0, done.stderr
         [(state, valid, available)] = json.loads(done.stdout)[cars[0]]["samples"]
         assert {"x", "y", "vx", "vy", "speed", "colour", "road"} <= set(state)
         assert valid <= available
         # a stream while the console runs as the operator: it goes through the console
-        done = dyknow("stream", "uav-a", "heli-position", "--count", "3")
+        done = dyknow("stream", "heli-position", "--platform", "uav-a", "--count", "3")
         assert done.returncode == 0, done.stderr
         rows = [json.loads(line) for line in done.stdout.splitlines()]
         assert len(rows) == 3 and all(len(r["value"]) == 3 for r in rows)

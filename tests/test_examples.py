@@ -171,7 +171,7 @@ def test_node_example_file_inputs_replay_jsonl_and_csv(station: Station) -> None
         "temperature", "wind-speed-kmh", until=lambda a: _samples(a, "temperature")[0][0] == 19.5
     )
     assert _samples(answer, "wind-speed-kmh")[0][0] == 46.8  # 13 m/s through the KPL's CU
-    history = station.dyknow("ask", "station", "temperature", "--from", "0")
+    history = station.dyknow("ask", "temperature", "-p", "station", "--from", "0")
     values = [s[0] for s in _samples(history, "temperature")]
     assert sorted(v for v in values if v < 15) == [10, 11, 12, 13, 14]  # the CSV rows
     # the CSV kept its recorded valid times (60 s before the JSON lines' first)
@@ -193,7 +193,7 @@ def test_node_example_python_input(station: Station) -> None:
     assert 19.0 <= value <= 21.0 and valid <= available
     state = _samples(answer, "weather")[0][0]
     assert set(state) == {"temperature", "wind"} and state["wind"] >= 3.0 * 3.6
-    rows = station.dyknow("stream", "station", "wind-speed-kmh", "--count", "2")
+    rows = station.dyknow("stream", "wind-speed-kmh", "-p", "station", "--count", "2")
     assert len(rows) == 2 and all(r["label"] == "wind-speed-kmh" for r in rows)
 
 
@@ -354,7 +354,7 @@ def test_node_example_rosbag2_and_mcap_files_replayed(station: Station) -> None:
     assert made.returncode == 0, made.stderr
     station.start("rosbag")
     answer = station.latest("position", until=lambda a: _samples(a, "position")[0][0]["x"] == 19.0)
-    history = station.dyknow("ask", "station", "position", "temperature", "--from", "0")
+    history = station.dyknow("ask", "position", "temperature", "-p", "station", "--from", "0")
     positions = _samples(history, "position")
     assert [p[0]["x"] for p in positions] == [10.0 + n for n in range(10)]
     # recorded pace: 0.9 s between the first and the last arrival, valid times as stamped

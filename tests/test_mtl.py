@@ -14,7 +14,6 @@ from hypothesis import strategies as st
 
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock
 from dyknow_core._exceptions import ProcessError
-from dyknow_core._monitor_cli import main as monitor_main
 from dyknow_core._mtl import (
     Always,
     And,
@@ -349,6 +348,13 @@ def _write(tmp_path: Path, lines: list[str]) -> str:
     path = tmp_path / "trace.jsonl"
     path.write_text("\n".join(lines) + "\n")
     return str(path)
+
+
+def monitor_main(args: list[str]) -> int:
+    """``dyknow monitor ARGS`` in this process; the exit code."""
+    from federation.cli import main
+
+    return main(["monitor", *args])
 
 
 def test_cli_prints_verdicts(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

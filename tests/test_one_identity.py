@@ -42,13 +42,14 @@ def test_a_second_node_of_a_live_name_is_refused_and_the_first_goes_on(tmp_path:
         err = done.stderr
         assert f"platform 'station' is alive in federation {station.federation!r} already" in err
         assert f"pid {node.pid} on host" in err  # where …
-        assert re.search(r"since \d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ \(\d+ s ago\)", err), err
+        iso = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}[+-]\d\d:\d\d"  # local time and offset
+        assert re.search(rf"since {iso} \(\d+ s ago\)", err), err
         assert "ready" not in done.stdout and "Traceback" not in err
         # a one-shot command as 'station' where the node's channel is not (another host):
         # refused too, rather than acting as the live platform
         elsewhere = {**station.env, "XDG_RUNTIME_DIR": str(tmp_path / "elsewhere")}
         done = subprocess.run(
-            [*CLI, "ask", "station", "temperature", "--config", str(twin)],
+            [*CLI, "ask", "temperature", "-p", "station", "--config", str(twin)],
             capture_output=True,
             text=True,
             cwd=station.dir,
@@ -88,9 +89,9 @@ def test_one_shot_commands_run_beside_the_console_with_its_config(tmp_path: Path
         record = station.dir / "t.dkr"
         commands = [
             ("platforms",),
-            ("labels", "station"),
-            ("ask", "station", "temperature", "wind-speed"),
-            ("stream", "station", "temperature", "--count", "3"),
+            ("labels", "-p", "station"),
+            ("ask", "temperature", "wind-speed", "-p", "station"),
+            ("stream", "temperature", "-p", "station", "--count", "3"),
             ("record", "temperature", "-p", "station", "-o", str(record), "-n", "3"),
         ]
 

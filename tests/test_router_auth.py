@@ -100,7 +100,7 @@ def router(pki: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) -> It
     endpoint = f"tls/127.0.0.1:{_free_port()}"
     stderr = (tmp / "router.err").open("w")
     proc = subprocess.Popen(
-        [*DYKNOW, "router", "--config", str(config), "--listen", endpoint],
+        [*DYKNOW, "router", "--zenoh-config", str(config), "--listen", endpoint],
         stdout=subprocess.PIPE,
         stderr=stderr,
         text=True,

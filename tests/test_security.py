@@ -757,7 +757,7 @@ def test_keys_cli(tmp_path: Path) -> None:
     def cli(*args: str) -> subprocess.CompletedProcess[str]:
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
         return subprocess.run(
-            [sys.executable, "-m", "agents.keys", *args],
+            [sys.executable, "-m", "federation.cli", "keys", *args],
             cwd=tmp_path,
             env=env,
             capture_output=True,

@@ -1,0 +1,170 @@
+"""``dyknow monitor`` and ``dyknow kpl check``: the reasoning layer offline, on files.
+
+``dyknow monitor FORMULA --trace FILE`` runs an MTL formula over a recorded JSON-lines
+trace. Each line of the trace is one state, a JSON object with ``t`` (seconds, strictly
+increasing) and a value for every feature (and quantified domain) the formula reads;
+other keys are ignored and blank lines skipped. The verdicts are printed as JSON lines:
+
+* by default, each verdict as soon as it is certain, as ``{"t": time it became certain,
+  "from": start time of the evaluation, "verdict": true|false}``; the monitor then
+  restarts at the next state, so every violation of an ``always`` is reported;
+* with ``--every-step``, after the whole trace, one line per state ``{"t": t, "verdict":
+  true|false|null, "at": time it became certain or null}`` with the formula evaluated
+  from ``t`` (``null``: the trace ends before it is certain).
+
+A bad formula, an unreadable file, a line that is not a JSON object, a missing or
+non-increasing ``t`` or a missing feature is reported on stderr with its line number
+(and column for the formula) and the exit code is 2.
+
+``dyknow kpl check FILE`` checks a KPL file and prints its errors as ``FILE:LINE:COL: msg``:
+exit code 0 with ``ok: N declarations`` when the file checks, 2 otherwise. CU callables
+are not imported: they are resolved when an instance is set up from the file.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Any, TextIO
+
+import typer
+
+# the reasoning layer loads on first use (``dyknow_core``'s lazy names): each command
+# imports what it runs, so the other commands do not pay for the MTL and KPL modules
+if TYPE_CHECKING:
+    from dyknow_core import Verdict
+
+__all__ = ["kpl_app", "monitor"]
+
+kpl_app = typer.Typer(help="KPL files: 'dyknow kpl check FILE'.", no_args_is_help=True)
+
+
+class _BadInput(Exception):
+    pass
+
+
+def _json_num(x: float) -> float | int:
+    return int(x) if x == int(x) and abs(x) < 2**53 else x
+
+
+def _say(text: str) -> None:
+    print(text, flush=True)
+
+
+def _complain(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def _states(f: TextIO, keys: list[str]) -> Iterator[tuple[float, dict[str, Any]]]:
+    last = -math.inf
+    for n, line in enumerate(f, start=1):
+        if not line.strip():
+            continue
+        try:
+            obj = json.loads(line)
+        except ValueError as exc:
+            raise _BadInput(f"line {n}: not JSON: {exc}") from None
+        if not isinstance(obj, dict):
+            raise _BadInput(f"line {n}: expected a JSON object, got {type(obj).__name__}")
+        t = obj.get("t")
+        if isinstance(t, bool) or not isinstance(t, int | float) or not math.isfinite(t):
+            raise _BadInput(f"line {n}: 't' must be a finite number of seconds, got {t!r}")
+        if t <= last:
+            raise _BadInput(f"line {n}: t={t} is not after the previous state's t={last}")
+        last = t
+        missing = [k for k in keys if k not in obj]
+        if missing:
+            raise _BadInput(f"line {n}: unknown feature(s) {', '.join(map(repr, missing))}")
+        yield float(t), obj
+
+
+def monitor(
+    formula: Annotated[
+        str,
+        typer.Argument(
+            metavar="FORMULA",
+            help="the formula, e.g. 'always[0,10](speed < 30 -> on_road)'",
+        ),
+    ],
+    trace: Annotated[Path, typer.Option("--trace", help="JSON-lines file, one state per line")],
+    every_step: Annotated[
+        bool,
+        typer.Option(
+            "--every-step",
+            help="print, for every state t, the verdict of the formula evaluated from t",
+        ),
+    ] = False,
+) -> None:
+    """Run an MTL formula over a recorded JSON-lines trace; the verdicts as JSON lines."""
+    from dyknow_core import Monitor, MTLSyntaxError, StepMonitor, parse_formula, state_keys
+
+    try:
+        parsed = parse_formula(formula)
+    except MTLSyntaxError as exc:
+        _complain(f"dyknow monitor: formula: {exc}")
+        raise typer.Exit(2) from None
+    keys = state_keys(parsed)
+    try:
+        f = open(trace, encoding="utf-8")  # noqa: SIM115 - closed below
+    except OSError as exc:
+        _complain(f"dyknow monitor: cannot read {trace}: {exc.strerror}")
+        raise typer.Exit(2) from None
+    every: StepMonitor | None = StepMonitor(parsed) if every_step else None
+    mon = Monitor(parsed)
+    starts: list[float] = []
+    decided: dict[float, Verdict] = {}
+    code = 0
+    try:
+        with f:
+            for t, state in _states(f, keys):
+                if every is not None:
+                    starts.append(t)
+                    for v in every.step(t, state):
+                        decided[v.start] = v
+                    continue
+                v1 = mon.step(t, state)
+                if v1 is not None:
+                    line = {"t": _json_num(v1.time), "from": _json_num(v1.start)}
+                    line["verdict"] = v1.verdict
+                    _say(json.dumps(line))
+    except _BadInput as exc:
+        _complain(f"dyknow monitor: {trace}: {exc}")
+        code = 2
+    except UnicodeDecodeError as exc:
+        _complain(f"dyknow monitor: {trace}: not UTF-8 text: {exc.reason}")
+        code = 2
+    for s in starts:
+        d = decided.get(s)
+        rec = {
+            "t": _json_num(s),
+            "verdict": None if d is None else d.verdict,
+            "at": None if d is None else _json_num(d.time),
+        }
+        _say(json.dumps(rec))
+    raise typer.Exit(code)
+
+
+@kpl_app.command("check")
+def kpl_check_file(
+    file: Annotated[Path, typer.Argument(metavar="FILE", help="the KPL file")],
+) -> None:
+    """Check a KPL file; errors as FILE:LINE:COL: message (exit code 2), else 'ok: N'."""
+    from dyknow_core import kpl_check, kpl_parse
+
+    try:
+        text = file.read_text(encoding="utf-8")
+    except OSError as exc:
+        _complain(f"{file}: cannot read: {exc.strerror}")
+        raise typer.Exit(2) from None
+    except UnicodeDecodeError as exc:
+        _complain(f"{file}: not UTF-8 text: {exc.reason}")
+        raise typer.Exit(2) from None
+    errors = kpl_check(text)
+    if errors:
+        for e in errors:
+            _complain(e.format(str(file)))
+        raise typer.Exit(2)
+    _say(f"ok: {len(kpl_parse(text).decls)} declarations")
