@@ -11,7 +11,6 @@ agent. A refused message never reaches an agent. See ``docs/security.md``.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import threading
@@ -413,8 +412,10 @@ class InterfaceAgent:
         host = self._host
         data = self.audit.take()
         if data and host is not None and self.publish_audit:
-            with contextlib.suppress(Exception):
+            try:
                 await host.transport.publish(host.key("audit"), self._audit_payload(data))
+            except Exception as exc:  # closing: the transport may be gone already
+                log.warning("interface: the last audit records were not published: %s", exc)
 
     # -- sessions ---------------------------------------------------------------------------
 

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any, Self
 
 from pydantic import field_validator, model_validator
 
-from ._exceptions import PolicyError, ProcessError
+from ._exceptions import PolicyError, ProcessError, UnknownLabelError
 from ._policy import Approximation, CacheSpec, LateAction, Policy, _EdgeModel, check_duration
 from ._process import Process
 from ._sample import RawSample
@@ -442,7 +442,7 @@ def add_state(
             instance._spawn(f"state[{name}]", proc._run())
     except Exception:
         proc._stop()
-        with contextlib.suppress(Exception):
+        with contextlib.suppress(UnknownLabelError):  # nobody else may remove it meanwhile
             instance.remove_stream(label)
         raise
     instance._add_process(proc)

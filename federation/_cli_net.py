@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import gc
 import json
+import logging
 import re
 import signal
 import time
@@ -22,6 +23,8 @@ from agents._security import watch_request
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
 
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
+
+log = logging.getLogger(__name__)
 
 _RELATIVE = re.compile(r"^-(\d+(?:\.\d+)?)(ms|s|m|h)?$")
 _UNITS = {"ms": 0.001, "s": 1.0, "m": 60.0, "h": 3600.0, None: 1.0}
@@ -395,8 +398,10 @@ async def follow_stream(
             for t in tasks:
                 t.cancel()
             await asyncio.gather(*tasks, return_exceptions=True)
-            with contextlib.suppress(Exception):
+            try:
                 await fed.cancel_stream(platform, export_id, timeout=2.0)
+            except Exception as exc:  # the export ends with its lease there anyway
+                log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
         return seen
 
 

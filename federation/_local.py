@@ -39,7 +39,7 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents import TokenBucket
+from agents import TokenBucket, TransportError
 
 from ._platform import PlatformConfig
 
@@ -120,13 +120,15 @@ async def refuse_duplicate(
     if not alive:
         return
     where = "where and since when unknown (it did not say)"
-    with contextlib.suppress(Exception):
+    try:
         replies = await transport.query(identity_key(config), timeout=2.0)
         for reply in replies:
             info = json.loads(reply.payload)
             if isinstance(info, dict) and info.get("platform") == config.name:
                 where = _where(info)
                 break
+    except Exception as exc:  # the error says it is alive either way, only less precisely
+        log.debug("asking the running platform where it runs: %s", exc)
     who = f"platform {config.name!r} is alive in federation {config.federation!r} already"
     if command:
         raise PlatformAliveError(
@@ -280,12 +282,12 @@ class LocalChannel:
             self._reports.cancel()
         if self._server is not None:
             self._server.close()
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(TimeoutError):  # a client still connected: do not wait
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
         if self._handle is not None:
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(TransportError):  # the transport may be closed already
                 self._handle.close()
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -320,7 +322,7 @@ class LocalChannel:
             pass  # the command went away (Ctrl-C): its stream is cancelled below
         finally:
             writer.close()
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(OSError):  # the peer went: its socket is gone already
                 await writer.wait_closed()
 
     async def _answer(
@@ -404,8 +406,10 @@ class LocalChannel:
             if entry[1] > 0:
                 return
             del self._exports[(target, semantic)]
-        with contextlib.suppress(Exception):
+        try:
             await self.platform.federation_agent.cancel_stream(target, entry[0], timeout=2.0)
+        except Exception as exc:  # the export ends with its lease there anyway
+            log.info("local: cancelling the export %s at %s: %s", entry[0], target, exc)
 
     async def _relay(
         self,
@@ -484,5 +488,5 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
             yield json.loads(line)
     finally:
         writer.close()
-        with contextlib.suppress(Exception):
+        with contextlib.suppress(OSError):  # the node went: its socket is gone already
             await writer.wait_closed()

@@ -9,9 +9,9 @@ KPL application set up on it, and prints what its processes produce.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import json
+import logging
 import sys
 import time
 from collections.abc import Callable
@@ -33,6 +33,8 @@ from dyknow_core import (
 )
 
 from ._cli_net import _opened, _stop_event, _wait_for
+
+log = logging.getLogger(__name__)
 
 Say = Callable[[str], None]
 
@@ -126,8 +128,10 @@ async def record_federation(
             async with rec:
                 await _until_stopped(rec, stop, duration, progress)
         finally:
-            with contextlib.suppress(Exception):
+            try:
                 await fed.cancel_stream(platform, export_id, timeout=2.0)
+            except Exception as exc:  # the export ends with its lease there anyway
+                log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
     return rec
 
 

@@ -75,6 +75,9 @@ class Inbox(Generic[T]):
         self._maxlen = maxlen
         self._lock = threading.Lock()
         self._waiter: asyncio.Future[None] | None = None
+        # The loop's thread, recorded by the consumer (which runs in it): a producer in
+        # that thread wakes the consumer directly, others through call_soon_threadsafe.
+        self._loop_thread: int | None = None
         self._wake_pending = False
         self.dropped = 0
         self.received = 0
@@ -97,15 +100,12 @@ class Inbox(Generic[T]):
 
     def _wake_threadsafe(self) -> None:
         try:
-            if threading.get_ident() == self._thread_id():
+            if threading.get_ident() == self._loop_thread:
                 self._wake()
             else:
                 self._loop.call_soon_threadsafe(self._wake)
         except RuntimeError:  # the loop is closed: nobody is waiting any more
             pass
-
-    def _thread_id(self) -> int | None:
-        return getattr(self._loop, "_thread_id", None)
 
     def _wake(self) -> None:
         with self._lock:
@@ -135,6 +135,8 @@ class Inbox(Generic[T]):
                     raise TransportClosed("subscription closed")
                 self._waiter = self._loop.create_future()
                 waiter = self._waiter
+                if self._loop_thread is None:
+                    self._loop_thread = threading.get_ident()
             try:
                 await waiter
             finally:

@@ -333,6 +333,7 @@ class MqttTransport(Transport):
             config if isinstance(config, MqttConfig) else MqttConfig.model_validate(config or {})
         )
         self._client: aiomqtt.Client | None = None
+        self._connection: contextlib.AsyncExitStack | None = None  # disconnects _client
         self._loop: asyncio.AbstractEventLoop | None = None
         # not derived from the client id: queries show it to every queryable
         self._reply_topic = f"{REPLY_PREFIX}/{self.config.client_id}/{secrets.token_hex(12)}"
@@ -368,7 +369,7 @@ class MqttTransport(Transport):
     async def open(self) -> None:
         """Connect to the broker, subscribe to this client's reply topic, start receiving."""
         loop = asyncio.get_running_loop()
-        client = await self._connect_main()
+        client, self._connection = await self._connect_main()
         self._client = client
         self._loop = loop
         self._up = asyncio.Event()
@@ -377,13 +378,15 @@ class MqttTransport(Transport):
             self._receive(client), name=f"mqtt[{self.config.client_id}].receive"
         )
 
-    async def _connect_main(self) -> aiomqtt.Client:
-        """Connect with a fresh client id and subscribe to this transport's reply topic."""
+    async def _connect_main(self) -> tuple[aiomqtt.Client, contextlib.AsyncExitStack]:
+        """Connect with a fresh client id and subscribe to this transport's reply topic.
+
+        Returns the client and the exit stack that disconnects it.
+        """
         client = self._new_client(_connection_id(self.config.client_id))
         where = f"{self.config.host}:{self.config.port}"
         try:
-            await client.__aenter__()
-            _no_delay(client)
+            connection = await _connect(client)
         except aiomqtt.MqttError as exc:
             raise TransportError(f"mqtt: cannot connect to {where}: {exc}") from exc
         try:
@@ -392,9 +395,9 @@ class MqttTransport(Transport):
             )
         except aiomqtt.MqttError as exc:
             with contextlib.suppress(aiomqtt.MqttError):
-                await _disconnect(client)
+                await connection.aclose()
             raise TransportError(f"mqtt: cannot subscribe to replies on {where}: {exc}") from exc
-        return client
+        return client, connection
 
     async def aclose(self) -> None:
         """Clear this transport's tokens, end every subscription and query, and disconnect."""
@@ -415,11 +418,11 @@ class MqttTransport(Transport):
             task.cancel()
         if tasks:
             await asyncio.gather(*tasks, return_exceptions=True)
-        client, self._client = self._client, None
-        if client is not None:
+        connection, self._connection, self._client = self._connection, None, None
+        if connection is not None:
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
                 async with asyncio.timeout(self.config.connect_timeout):
-                    await _disconnect(client)
+                    await connection.aclose()
 
     def _check_open(self) -> None:
         super()._check_open()
@@ -458,7 +461,7 @@ class MqttTransport(Transport):
                 if self._up is not None:
                     self._up.clear()
                 try:
-                    client = await self._reconnect(client)
+                    client = await self._reconnect()
                 except (TransportError, aiomqtt.MqttError) as again:
                     log.warning("mqtt: could not reconnect: %s", again)
                     self._lost = exc
@@ -468,11 +471,13 @@ class MqttTransport(Transport):
                         inbox.close()
                     return
 
-    async def _reconnect(self, old: aiomqtt.Client) -> aiomqtt.Client:
-        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
-            async with asyncio.timeout(1.0):
-                await _disconnect(old)
-        client = await self._connect_main()
+    async def _reconnect(self) -> aiomqtt.Client:
+        old, self._connection = self._connection, None
+        if old is not None:
+            with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+                async with asyncio.timeout(1.0):
+                    await old.aclose()
+        client, self._connection = await self._connect_main()
         self._client = client
         for f in list(self._filters.values()):
             await client.subscribe(f.topic, options=self._options(), properties=_sid(f.sid))
@@ -793,6 +798,7 @@ class _Token:
         self.transport = transport
         self.key = key
         self.client: aiomqtt.Client | None = None
+        self.connection: contextlib.AsyncExitStack | None = None  # disconnects client
         self.task: asyncio.Task[None] | None = None
         self.closing = False
         self.reconnects = 0
@@ -804,8 +810,7 @@ class _Token:
             will=aiomqtt.Will(self.key, b"", qos=1, retain=True),
         )
         try:
-            await client.__aenter__()
-            _no_delay(client)
+            connection = await _connect(client)
         except aiomqtt.MqttError as exc:
             raise t._error(f"connect for the token on {self.key!r}", exc) from exc
         try:
@@ -813,15 +818,15 @@ class _Token:
             await client.publish(self.key, ALIVE, qos=1, retain=True)
         except aiomqtt.MqttError as exc:
             with contextlib.suppress(aiomqtt.MqttError):
-                await _disconnect(client)
+                await connection.aclose()
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
-        self.client = client
+        self.client, self.connection = client, connection
 
     async def keep(self) -> None:
         """Announce again when the key is cleared by another; reconnect when dropped."""
         while not self.closing:
-            client = self.client
-            assert client is not None
+            client, connection = self.client, self.connection
+            assert client is not None and connection is not None
             try:
                 async for message in client.messages:
                     if not message.payload and not self.closing:
@@ -834,7 +839,7 @@ class _Token:
                 log.warning("mqtt: the token's connection on %r was lost: %s", self.key, exc)
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
                 async with asyncio.timeout(1.0):
-                    await _disconnect(client)
+                    await connection.aclose()
             # announced again only once this platform answers again (queries, DF)
             up = self.transport._up
             if up is not None:
@@ -851,8 +856,8 @@ class _Token:
 
     async def clear(self) -> None:
         self.closing = True
-        client = self.client
-        if client is None:
+        client, connection = self.client, self.connection
+        if client is None or connection is None:
             return
         try:
             await client.publish(self.key, b"", qos=1, retain=True)
@@ -860,7 +865,7 @@ class _Token:
             log.warning("mqtt: could not clear the token on %r: %s", self.key, exc)
         finally:
             with contextlib.suppress(aiomqtt.MqttError):
-                await _disconnect(client)
+                await connection.aclose()
             task = self.task
             if task is not None and task is not asyncio.current_task() and not task.done():
                 task.cancel()
@@ -872,17 +877,26 @@ def _sid(sid: int) -> Properties:
     return props
 
 
-async def _disconnect(client: aiomqtt.Client) -> None:
-    """Leave the client and wait for its socket task, so nothing outlives the transport."""
-    try:
-        await client.__aexit__(None, None, None)
-    finally:
-        # aiomqtt cancels its misc-loop task through call_soon_threadsafe and returns
-        # before the task has ended; a caller checking for leaked tasks would see it.
-        misc = getattr(client, "_misc_task", None)
-        if isinstance(misc, asyncio.Task) and not misc.done():
-            misc.cancel()
-            await asyncio.wait([misc], timeout=1.0)
+async def _connect(client: aiomqtt.Client) -> contextlib.AsyncExitStack:
+    """Connect ``client``; closing the returned stack disconnects it.
+
+    Disconnecting also waits for the client's socket task, so nothing outlives the
+    transport; the stack outlives this call because a connection outlives any one task.
+    """
+    async with contextlib.AsyncExitStack() as stack:
+        stack.push_async_callback(_reap_misc_task, client)  # runs after the client's exit
+        await stack.enter_async_context(client)
+        _no_delay(client)
+        return stack.pop_all()
+
+
+async def _reap_misc_task(client: aiomqtt.Client) -> None:
+    # aiomqtt cancels its misc-loop task through call_soon_threadsafe and returns
+    # before the task has ended; a caller checking for leaked tasks would see it.
+    misc = getattr(client, "_misc_task", None)
+    if isinstance(misc, asyncio.Task) and not misc.done():
+        misc.cancel()
+        await asyncio.wait([misc], timeout=1.0)
 
 
 def _no_delay(client: aiomqtt.Client) -> None:

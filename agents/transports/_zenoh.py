@@ -67,8 +67,10 @@ _OPEN_SESSIONS: dict[int, zenoh.Session] = {}
 
 def _close_leftover_sessions() -> None:
     for session in list(_OPEN_SESSIONS.values()):
-        with contextlib.suppress(Exception):
+        try:
             session.close()
+        except Exception as exc:  # the interpreter is exiting: tell, and close the rest
+            log.debug("zenoh: closing a leftover session at exit: %s", exc)
     _OPEN_SESSIONS.clear()
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import logging
 import multiprocessing
 import secrets
 import string
@@ -39,6 +40,8 @@ __all__ = ["DemoOptions", "DemoReport", "DemoStarted", "run_traffic_demo", "uav_
 
 FEDERATION = "traffic"
 OPERATOR = "operator"
+log = logging.getLogger(__name__)
+
 START_TIMEOUT = 60.0  # s: spawned interpreters import zenoh and pydantic on 2 cores
 MATCH_TIME = 3.0  # s: a recognized event matches the ground truth within this
 
@@ -360,8 +363,10 @@ async def _operate(
             reports = {}
             for name in names:
                 if procs[name].is_alive():
-                    with contextlib.suppress(Exception):
+                    try:
                         reports[name] = await _ask_report(agent, name)
+                    except Exception as exc:  # the report then says it did not answer
+                        log.warning("the report of %s could not be had: %s", name, exc)
             report = _report(world, reports, delegation, options)
             report.console_url = console.login_url if console is not None else None
             _print_report(report, say)

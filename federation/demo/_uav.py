@@ -23,7 +23,6 @@ match it among its own world objects) and exports its states as soon as it sees 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import multiprocessing
@@ -790,7 +789,7 @@ class TrafficMonitor(Agent):
                 participants.remove(p.participant)
         # everyone learns who watches which area (the handover needs its neighbour)
         for aid in {f"traffic@{p}" for p in assignments.values()}:
-            with contextlib.suppress(Exception):
+            try:
                 await self.send(
                     self.message(
                         Performative.INFORM,
@@ -799,6 +798,8 @@ class TrafficMonitor(Agent):
                         ontology=ONTOLOGY,
                     )
                 )
+            except Exception as exc:  # one traffic agent gone must not stop the delegation
+                log.warning("%s: telling %s the assignments failed: %s", self, aid, exc)
         return {
             "assignments": {str(k): v for k, v in assignments.items()},
             "start": world_start,
