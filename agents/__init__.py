@@ -11,6 +11,7 @@ from ._acl import (
     platform_of,
 )
 from ._agent import Agent, AgentStats, Conversation, MessageTemplate, on
+from ._aio import Mailbox, Ticker
 from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
@@ -104,6 +105,7 @@ __all__ = [
     "InterfaceAgent",
     "KeyPair",
     "KxLimit",
+    "Mailbox",
     "MemoryHub",
     "MemoryTransport",
     "MessageError",
@@ -128,6 +130,7 @@ __all__ = [
     "Subscriber",
     "SubscriptionEnded",
     "SubscriptionStream",
+    "Ticker",
     "TokenBucket",
     "Transport",
     "TransportClosed",

@@ -26,6 +26,7 @@ import orjson
 
 from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, platform_of
 from ._agent import Agent, MessageTemplate, on
+from ._aio import Ticker
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
     AuthenticationError,
@@ -901,8 +902,9 @@ class InterfaceAgent:
     async def _flush_audit(self) -> None:
         """Write and publish the audit now and then (batched: one publish, many records)."""
         host = self._require_host()
-        while True:
-            await asyncio.sleep(self.audit_interval)
+        ticker = Ticker(self.audit_interval)
+        async for _ in ticker:
+            ticker.period = self.audit_interval  # it may be changed while running
             if self.rate_limit is not None:
                 # what a flood that stopped left uncounted in the audit
                 now = self._monotonic()

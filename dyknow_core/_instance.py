@@ -11,6 +11,7 @@ from collections.abc import AsyncIterable, Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from . import _events, _state
+from ._aio import sleep_until_woken
 from ._events import EventProcess
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
 from ._filter import Mapper
@@ -246,15 +247,9 @@ class DyKnowInstance:
                     d = sub.deadline()
                 if d is not None and (soonest is None or d < soonest):
                     soonest = d
-            waker = asyncio.ensure_future(self._tick_wake.wait())
-            waits: set[asyncio.Future[Any]] = {waker}
-            if soonest is not None:
-                waits.add(asyncio.ensure_future(clock.sleep_until(soonest + 1)))
-            try:
-                await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
-            finally:
-                for w in waits:
-                    w.cancel()
+            # strictly after the deadline: data available exactly at it is on time
+            wake_at = None if soonest is None else soonest + 1
+            await sleep_until_woken(clock, wake_at, self._tick_wake)
 
     # -- processes -------------------------------------------------------------------
     def add_process(self, process: Process) -> None:

@@ -39,7 +39,7 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents import TokenBucket, TransportError
+from agents import Ticker, TokenBucket, TransportError
 
 from ._platform import PlatformConfig
 
@@ -237,8 +237,7 @@ class LocalChannel:
 
     async def _report_shed(self) -> None:
         """Audit the identity queries shed, summed up, at most once per second."""
-        while True:
-            await asyncio.sleep(1.0)
+        async for _ in Ticker(1.0):
             with self._who_lock:
                 n, self._shed_pending = self._shed_pending, 0
             if n:
@@ -432,30 +431,37 @@ class LocalChannel:
             finally:
                 sub.close()
 
-        tasks = [asyncio.create_task(pump(s)) for s in labels]
-        gone = asyncio.create_task(reader.read())  # EOF: the command stopped
+        from ._cli_net import _failure_of
+
         count = request.get("count")
         seen = 0
-        try:
-            while count is None or seen < int(count):
-                getting = asyncio.create_task(queue.get())
-                done, _ = await asyncio.wait(
-                    [getting, gone, *tasks], return_when=asyncio.FIRST_COMPLETED
-                )
-                if getting not in done:
-                    getting.cancel()
-                    for t in tasks:
-                        if t in done and t.exception() is not None:
-                            raise t.exception()  # type: ignore[misc]
-                    return
-                await send({"sample": getting.result()})
-                seen += 1
-            await send({"end": seen})
-        finally:
-            gone.cancel()
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, gone, return_exceptions=True)
+        error: Exception | None = None
+        async with asyncio.TaskGroup() as tg:
+            pumps = [tg.create_task(_failure_of(pump, s), name=f"relay[{s}]") for s in labels]
+            # EOF: the command stopped
+            gone = tg.create_task(_failure_of(reader.read), name="relay.gone")
+            try:
+                while count is None or seen < int(count):
+                    getting = tg.create_task(queue.get(), name="relay.next")
+                    done, _ = await asyncio.wait(
+                        [getting, gone, *pumps], return_when=asyncio.FIRST_COMPLETED
+                    )
+                    if getting not in done:
+                        getting.cancel()
+                        failed = [t.result() for t in pumps if t in done]
+                        error = next((e for e in failed if e is not None), None)
+                        break
+                    await send({"sample": getting.result()})
+                    seen += 1
+                else:
+                    await send({"end": seen})
+            except Exception as exc:  # raised below: the group would wrap it
+                error = exc
+            finally:
+                for t in (gone, *pumps):
+                    t.cancel()
+        if error is not None:
+            raise error
 
 
 async def _wait_for_platform(p: FederationPlatform, target: str, wait: float) -> None:

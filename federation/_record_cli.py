@@ -177,9 +177,10 @@ async def _record_relayed(
         def emit(label: str, value: Any, valid: int, available: int) -> None:
             sources[label].push(value, valid, available)
 
-        async with rec:
-            relay = asyncio.create_task(
-                stream_through_node(
+        async def relayed() -> int | Exception | None:
+            # its failure is returned, to be raised as itself (a group would wrap it)
+            try:
+                return await stream_through_node(
                     config_path,
                     platform,
                     semantic_labels,
@@ -190,14 +191,25 @@ async def _record_relayed(
                     emit=emit,
                     stop=stop,
                 )
-            )
+            except Exception as exc:
+                return exc
+
+        error: Exception | None = None
+        async with rec, asyncio.TaskGroup() as tg:
+            relay = tg.create_task(relayed(), name=f"record.relay[{platform}]")
             ended = asyncio.Event()
             relay.add_done_callback(lambda _: ended.set())
             try:
                 await _until_stopped(rec, stop, duration, progress, also=ended)
+            except Exception as exc:  # raised below: the group would wrap it
+                error = exc
             finally:
                 relay.cancel()
-                [result] = await asyncio.gather(relay, return_exceptions=True)
+    if error is not None:
+        raise error
+    if relay.cancelled():
+        return rec  # stopped (a signal, the duration, the count) while relaying
+    result = relay.result()
     if isinstance(result, Exception):
         raise result
     if result is None:

@@ -347,8 +347,6 @@ class MqttTransport(Transport):
         self._correlation = itertools.count(1)
         self._subs: set[Subscription[Any]] = set()
         self._handles: set[Handle] = set()
-        self._tasks: set[asyncio.Task[None]] = set()
-        self._receiver: asyncio.Task[None] | None = None
         self._lost: BaseException | None = None
 
     def _new_client(self, identifier: str, will: aiomqtt.Will | None = None) -> aiomqtt.Client:
@@ -374,9 +372,8 @@ class MqttTransport(Transport):
         self._loop = loop
         self._up = asyncio.Event()
         self._up.set()
-        self._receiver = loop.create_task(
-            self._receive(client), name=f"mqtt[{self.config.client_id}].receive"
-        )
+        await self._start_tasks()
+        self._spawn(self._receive(client), f"mqtt[{self.config.client_id}].receive")
 
     async def _connect_main(self) -> tuple[aiomqtt.Client, contextlib.AsyncExitStack]:
         """Connect with a fresh client id and subscribe to this transport's reply topic.
@@ -409,15 +406,13 @@ class MqttTransport(Transport):
         handles = list(self._handles)
         if handles:  # clearing tokens needs the broker: bounded, in case it is gone
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.config.connect_timeout):
-                    await asyncio.gather(*(h.aclose() for h in handles), return_exceptions=True)
+                async with asyncio.timeout(self.config.connect_timeout), asyncio.TaskGroup() as tg:
+                    for n, h in enumerate(handles):
+                        name = f"mqtt[{self.config.client_id}].close[{n}]"
+                        tg.create_task(_closing(h), name=name)
         for inbox in self._pending.values():
             inbox.close()
-        tasks = [*self._tasks, *([self._receiver] if self._receiver else [])]
-        for task in tasks:
-            task.cancel()
-        if tasks:
-            await asyncio.gather(*tasks, return_exceptions=True)
+        await self._end_tasks()
         connection, self._connection, self._client = self._connection, None, None
         if connection is not None:
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
@@ -571,11 +566,8 @@ class MqttTransport(Transport):
         self._by_sid.pop(f.sid, None)
         if self._state != "opened" or self._lost is not None or self._loop is None:
             return
-        task = self._loop.create_task(
-            self._unsubscribe(f.topic), name=f"mqtt[{self.config.client_id}].unsubscribe"
-        )
+        task = self._spawn(self._unsubscribe(f.topic), f"mqtt[{self.config.client_id}].unsubscribe")
         self._unsubscribing[f.topic] = task
-        self._own(task)
         task.add_done_callback(lambda t: self._unsubscribing.pop(f.topic, None))
 
     async def _unsubscribe(self, topic: str) -> None:
@@ -585,10 +577,6 @@ class MqttTransport(Transport):
             await self._client.unsubscribe(topic)
         except aiomqtt.MqttError as exc:
             log.debug("mqtt: unsubscribing from %r failed: %s", topic, exc)
-
-    def _own(self, task: asyncio.Task[None]) -> None:
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
 
     def _subscription(self, inbox: Inbox[T], undeclare: Callable[[], None]) -> Subscription[T]:
         """A subscription that this transport ends when it closes."""
@@ -713,12 +701,9 @@ class MqttTransport(Transport):
             return
         if server.admit is not None and not server.admit(payload):
             return
-        assert self._loop is not None
-        self._own(
-            self._loop.create_task(
-                self._answer(server, key, payload, response_topic, correlation),
-                name=f"mqtt[{self.config.client_id}].serve[{server.key_expr}]",
-            )
+        self._spawn(
+            self._answer(server, key, payload, response_topic, correlation),
+            f"mqtt[{self.config.client_id}].serve[{server.key_expr}]",
         )
 
     async def _answer(
@@ -766,14 +751,11 @@ class MqttTransport(Transport):
         _chunks(key)
         token = _Token(self, key)
         await token.connect()
-        assert self._loop is not None
-        task = self._loop.create_task(token.keep(), name=f"mqtt.token[{key}].keep")
-        self._own(task)
-        token.task = task
+        token.task = self._spawn(token.keep(), f"mqtt.token[{key}].keep")
 
         def start_clearing() -> None:
-            if self._loop is not None:
-                self._own(self._loop.create_task(token.clear(), name=f"mqtt.token[{key}].clear"))
+            if self._tg is not None:
+                self._spawn(token.clear(), f"mqtt.token[{key}].clear")
 
         return self._handle(start_clearing, token.clear)
 
@@ -869,6 +851,14 @@ class _Token:
             task = self.task
             if task is not None and task is not asyncio.current_task() and not task.done():
                 task.cancel()
+
+
+async def _closing(handle: Handle) -> None:
+    """Close ``handle`` on the transport's way out; a failure (the broker gone) is no error."""
+    try:
+        await handle.aclose()
+    except Exception as exc:
+        log.debug("mqtt: closing a token on the way out: %s", exc)
 
 
 def _sid(sid: int) -> Properties:

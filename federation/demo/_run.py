@@ -408,6 +408,16 @@ async def _wait_members(
         await asyncio.sleep(0.1)
 
 
+async def _status(agent: Agent, name: str) -> Any:
+    """``name``'s status, or the error that came instead (one silent UAV is not fatal)."""
+    try:
+        return await request(
+            agent, f"traffic@{name}", {"action": "status"}, ontology=ONTOLOGY, timeout=2.0
+        )
+    except Exception as exc:
+        return exc
+
+
 async def _progress(
     agent: Agent,
     names: list[str],
@@ -430,13 +440,9 @@ async def _progress(
         now = clock.now() / NS_PER_S - start
         if now > duration:
             return
-        statuses = await asyncio.gather(
-            *(
-                request(agent, f"traffic@{n}", {"action": "status"}, ontology=ONTOLOGY, timeout=2.0)
-                for n in alive
-            ),
-            return_exceptions=True,
-        )
+        async with asyncio.TaskGroup() as tg:
+            asking = [tg.create_task(_status(agent, n), name=f"status[{n}]") for n in alive]
+        statuses = [t.result() for t in asking]
         parts = []
         for n, s in zip(alive, statuses, strict=True):
             if isinstance(s, BaseException) or not isinstance(s, dict):
