@@ -23,6 +23,7 @@ from ._agent import (
     on,
     reason_of,
 )
+from ._aio import Mailbox, Ticker
 from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
@@ -125,6 +126,7 @@ __all__ = [
     "KeyFileError",
     "KeyPair",
     "KxLimit",
+    "Mailbox",
     "Malformed",
     "MemoryHub",
     "MemoryTransport",
@@ -153,6 +155,7 @@ __all__ = [
     "Subscriber",
     "SubscriptionEnded",
     "SubscriptionStream",
+    "Ticker",
     "TokenBucket",
     "Transport",
     "TransportClosed",

@@ -26,12 +26,13 @@ import asyncio
 import contextvars
 import logging
 import time
-from collections import OrderedDict, deque
+from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 from ._acl import ACLMessage, Performative, agent_id, new_id
+from ._aio import Mailbox
 from ._exceptions import AgentError
 
 if TYPE_CHECKING:
@@ -227,39 +228,6 @@ def _class_specs(cls: type) -> list[tuple[str, RouteSpec]]:
     return specs
 
 
-class _Mailbox:
-    """A bounded FIFO with one consumer; ``put`` refuses (returns False) when full."""
-
-    __slots__ = ("_items", "_waiter", "maxlen")
-
-    def __init__(self, maxlen: int) -> None:
-        self._items: deque[ACLMessage] = deque()
-        self._waiter: asyncio.Future[None] | None = None
-        self.maxlen = maxlen
-
-    def put(self, message: ACLMessage) -> bool:
-        if len(self._items) >= self.maxlen:
-            return False
-        self._items.append(message)
-        w = self._waiter
-        if w is not None and not w.done():
-            w.set_result(None)
-        return True
-
-    async def get(self) -> ACLMessage:
-        items = self._items
-        while not items:
-            self._waiter = w = asyncio.get_running_loop().create_future()
-            try:
-                await w
-            finally:
-                self._waiter = None
-        return items.popleft()
-
-    def __len__(self) -> int:
-        return len(self._items)
-
-
 @dataclass(slots=True)
 class AgentStats:
     """What an agent has seen: messages handled, answered not-understood, dropped …"""
@@ -296,7 +264,6 @@ class Conversation:
         "_agent",
         "_items",
         "_keys",
-        "_waiter",
         "closed",
         "deadline",
         "id",
@@ -319,9 +286,9 @@ class Conversation:
         self.peers = frozenset(peers) if peers is not None else None
         self.deadline = deadline  # loop time
         self.maxlen = maxlen
-        self._items: deque[ACLMessage | _Ended] = deque()
+        # overflow drops the oldest reply (counted and logged in _put)
+        self._items: Mailbox[ACLMessage | _Ended] = Mailbox(maxlen, drop_oldest=True)
         self._keys: list[str] = []
-        self._waiter: asyncio.Future[None] | None = None
         self.closed = False
         self.last_sent: ACLMessage | None = None
         if conversation_id is not None:
@@ -347,25 +314,21 @@ class Conversation:
         await self._agent.send(message)
 
     def _put(self, message: ACLMessage) -> None:
-        if len(self._items) >= self.maxlen:
-            self._items.popleft()
+        if not self._items.put(message):
             self._agent.stats.conversation_overflow += 1
             log.warning(
                 "%s: conversation %s overflowed; oldest reply dropped", self._agent, self.id
             )
-        self._items.append(message)
-        w = self._waiter
-        if w is not None and not w.done():
-            w.set_result(None)
 
     def unread(self, message: ACLMessage) -> None:
         """Put ``message`` back in front, to be received again."""
-        self._items.appendleft(message)
+        self._items.put_front(message)
 
     def pending(self) -> int:
         """How many received messages wait to be read."""
         n = len(self._items)
-        return n - 1 if n and isinstance(self._items[-1], _Ended) else n
+        # once closed, the end marker is the last item, and nothing comes after it
+        return n - 1 if n and self.closed else n
 
     async def receive(
         self, *, deadline: float | None = None, timeout: float | None = None
@@ -379,26 +342,16 @@ class Conversation:
         elif deadline is None:
             deadline = self.deadline
         items = self._items
-        while not items:
-            if self.closed:
-                raise ConversationError(f"conversation {self.id} is closed", self.last_sent)
-            loop = asyncio.get_running_loop()
-            self._waiter = w = loop.create_future()
-            # A timer setting the future is cheaper than asyncio.timeout on this hot path.
-            timer = None if deadline is None else loop.call_at(deadline, _expire, w)
-            try:
-                await w
-            finally:
-                self._waiter = None
-                if timer is not None:
-                    timer.cancel()
-            if w.result() is _TIMED_OUT and not items:
-                raise ReplyTimeout(
-                    f"no reply from {self._peers_text()} in conversation {self.id}", self.last_sent
-                )
-        item = items.popleft()
+        if not items and self.closed:
+            raise ConversationError(f"conversation {self.id} is closed", self.last_sent)
+        try:
+            item = await items.get(deadline)
+        except TimeoutError:
+            raise ReplyTimeout(
+                f"no reply from {self._peers_text()} in conversation {self.id}", self.last_sent
+            ) from None
         if isinstance(item, _Ended):
-            items.appendleft(item)  # stays ended for later calls
+            items.put_front(item)  # stays ended for later calls
             raise item.error or ConversationError(
                 f"conversation {self.id} is closed", self.last_sent
             )
@@ -420,24 +373,13 @@ class Conversation:
             if agent._by_reply.get(key) is self:
                 del agent._by_reply[key]
                 agent._remember_closed(key)
-        self._items.append(_Ended(error))
-        w = self._waiter
-        if w is not None and not w.done():
-            w.set_result(None)
+        self._items.put(_Ended(error), force=True)
 
     def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-_TIMED_OUT: Any = object()
-
-
-def _expire(w: asyncio.Future[Any]) -> None:
-    if not w.done():
-        w.set_result(_TIMED_OUT)
 
 
 _UNATTACHED, _STARTING, _RUNNING, _STOPPING, _STOPPED = (
@@ -467,7 +409,7 @@ class Agent:
         self.aid = name  # becomes name@platform when added to a platform
         self.stats = AgentStats()
         self._platform: AgentPlatform | None = None
-        self._mailbox = _Mailbox(mailbox_size or self.mailbox_size)
+        self._mailbox: Mailbox[ACLMessage] = Mailbox(mailbox_size or self.mailbox_size)
         self._routes: list[_Route] = []
         self._fallbacks: list[_Route] = []
         self._by_reply: dict[str, Conversation] = {}
@@ -600,7 +542,7 @@ class Agent:
         """Answer what is still in the mailbox and waits for an answer: we will not."""
         mailbox = self._mailbox
         while len(mailbox):
-            message = mailbox._items.popleft()
+            message = mailbox.get_nowait()
             if expects_reply(message):
                 await self._answer(message, Performative.FAILURE, f"{self.aid} stopped")
 

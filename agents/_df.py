@@ -37,6 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
 
 from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_of
 from ._agent import Agent
+from ._aio import Ticker
 from ._bucket import TokenBucket
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
 from ._exceptions import ServiceError, TransportError
@@ -259,8 +260,7 @@ class DirectoryFacilitator(Agent):
 
     async def _report_shed(self) -> None:
         """Audit the directory queries shed, summed up, at most once per second."""
-        while True:
-            await asyncio.sleep(1.0)
+        async for _ in Ticker(1.0):
             with self._query_lock:
                 n, self._shed_pending = self._shed_pending, 0
             if n:
@@ -848,8 +848,7 @@ class GlobalDirectory:
         """
         misses: dict[str, int] = {}
         last = time.monotonic()
-        while True:
-            await asyncio.sleep(0.25)  # the interval may be changed while running
+        async for _ in Ticker(0.25):  # the interval may be changed while running
             interval = self.recheck_interval
             if interval is None or time.monotonic() - last < interval:
                 continue

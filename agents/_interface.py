@@ -11,7 +11,6 @@ agent. A refused message never reaches an agent. See ``docs/security.md``.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import math
 import threading
@@ -27,6 +26,7 @@ import orjson
 
 from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, platform_of
 from ._agent import Agent, MessageTemplate, on
+from ._aio import Ticker
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
     AuthenticationError,
@@ -423,8 +423,10 @@ class InterfaceAgent:
         host = self._host
         data = self.audit.take()
         if data and host is not None and self.publish_audit:
-            with contextlib.suppress(Exception):
+            try:
                 await host.transport.publish(host.key("audit"), self._audit_payload(data))
+            except Exception as exc:  # closing: the transport may be gone already
+                log.warning("interface: the last audit records were not published: %s", exc)
 
     # -- sessions ---------------------------------------------------------------------------
 
@@ -914,8 +916,9 @@ class InterfaceAgent:
     async def _flush_audit(self) -> None:
         """Write and publish the audit now and then (batched: one publish, many records)."""
         host = self._require_host()
-        while True:
-            await asyncio.sleep(self.audit_interval)
+        ticker = Ticker(self.audit_interval)
+        async for _ in ticker:
+            ticker.period = self.audit_interval  # it may be changed while running
             if self.rate_limit is not None:
                 # what a flood that stopped left uncounted in the audit
                 now = self._monotonic()

@@ -13,6 +13,7 @@ and trusted single-host setups; the Interface Agent (signed sessions) is the oth
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import re
 from collections.abc import Coroutine
@@ -229,6 +230,7 @@ class AgentPlatform:
         self._agents: dict[str, Agent] = {}
         self._state = _UNOPENED
         self._tg: asyncio.TaskGroup | None = None
+        self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
         self._tasks: set[asyncio.Task[Any]] = set()
         self._token: Handle | None = None
         self._lock = asyncio.Lock()
@@ -258,9 +260,8 @@ class AgentPlatform:
         if self._lock.locked() or self._state != _UNOPENED:
             raise AgentError(f"platform {self.name} is {self._state}; it cannot reopen")
         async with self._lock:
-            tg = asyncio.TaskGroup()
-            await tg.__aenter__()
-            self._tg = tg
+            stack = self._stack = contextlib.AsyncExitStack()
+            self._tg = await stack.enter_async_context(asyncio.TaskGroup())
             self._state = _OPENED
             try:
                 await self._open()
@@ -269,7 +270,7 @@ class AgentPlatform:
                     await self._shutdown()
                 finally:
                     self._cancel_everything()
-                    await tg.__aexit__(None, None, None)
+                    await stack.aclose()
                 raise
         return self
 
@@ -288,16 +289,17 @@ class AgentPlatform:
     async def __aexit__(self, et: Any, ev: Any, tb: Any) -> None:
         if self._state != _OPENED:
             return
-        tg = self._tg
-        assert tg is not None
+        stack = self._stack
+        assert stack is not None
         try:
             await self._shutdown()
         finally:
             # Normally every task is stopped by now; if the shutdown itself was cut short
             # (cancelled), this ends the rest so the group does not wait forever. Not
-            # passing the body's error on keeps it as it is: the group would wrap it.
+            # passing the body's error on (aclose passes none) keeps it as it is: the
+            # group would wrap it.
             self._cancel_everything()
-            await tg.__aexit__(None, None, None)
+            await stack.aclose()
 
     async def _shutdown(self) -> None:
         self._state = _CLOSING

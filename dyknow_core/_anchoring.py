@@ -47,7 +47,7 @@ from typing import TYPE_CHECKING, Any, Self
 
 from pydantic import ConfigDict, field_validator, model_validator
 
-from ._exceptions import ObjectError, PolicyError, ProcessError
+from ._exceptions import ObjectError, PolicyError, ProcessError, UnknownLabelError
 from ._mtl import MTLSyntaxError, Residual, compile_formula, progress
 from ._mtl import parse as parse_formula
 from ._objects import ID_PLACEHOLDER, _check_identifier
@@ -541,7 +541,7 @@ class Anchoring(Process):
             sub.close()
         for label in list(self._owned):
             if self.instance.has_label(label):
-                with contextlib.suppress(Exception):
+                with contextlib.suppress(UnknownLabelError):  # removed by its user meanwhile
                     self.instance.remove_stream(label)
         self._owned.clear()
 

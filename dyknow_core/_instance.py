@@ -5,11 +5,13 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import fnmatch
+import logging
 from collections import deque
 from collections.abc import AsyncIterable, Callable, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from . import _events, _state
+from ._aio import sleep_until_woken
 from ._events import EventProcess
 from ._exceptions import ClosedError, DuplicateLabelError, ProcessError, UnknownLabelError
 from ._filter import Mapper
@@ -31,6 +33,8 @@ if TYPE_CHECKING:
     from ._refinement import Refinement, RefinementProcess
 
 DEFAULT_LOCATION = "local"
+
+log = logging.getLogger(__name__)
 
 
 class DyKnowInstance:
@@ -62,6 +66,7 @@ class DyKnowInstance:
         self._periodic: set[Subscription] = set()
         self._tick_wake = asyncio.Event()
         self._tg: asyncio.TaskGroup | None = None
+        self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
         self._pending_tasks: list[tuple[str, Any]] = []
         self._tasks: set[asyncio.Task[Any]] = set()
         self._state = "unopened"
@@ -73,8 +78,9 @@ class DyKnowInstance:
         if self._state != "unopened":
             raise ClosedError(f"instance {self.name!r} is {self._state}; it cannot be opened again")
         self._state = "opened"
-        self._tg = asyncio.TaskGroup()
-        await self._tg.__aenter__()
+        stack = contextlib.AsyncExitStack()
+        self._tg = await stack.enter_async_context(asyncio.TaskGroup())
+        self._stack = stack
         self._own(self._tg.create_task(self._ticker(), name=f"dyknow[{self.name}].ticker"))
         for name, coro in self._pending_tasks:
             self._own(self._tg.create_task(coro, name=name))
@@ -89,11 +95,12 @@ class DyKnowInstance:
             for gen in loc.generators.values():
                 gen.close()
         self.objects.close()
-        tg, self._tg = self._tg, None
-        if tg is not None:
+        stack, self._stack, self._tg = self._stack, None, None
+        if stack is not None:
             for task in list(self._tasks):
                 task.cancel()
-            await tg.__aexit__(None, None, None)
+            # the body's own error is not handed to the group: it would come back wrapped
+            await stack.aclose()
 
     def spawn(self, name: str, coro: Any) -> None:
         """Run ``coro`` as a task this instance owns (named ``dyknow[<instance>].<name>``).
@@ -240,15 +247,9 @@ class DyKnowInstance:
                     d = sub.deadline()
                 if d is not None and (soonest is None or d < soonest):
                     soonest = d
-            waker = asyncio.ensure_future(self._tick_wake.wait())
-            waits: set[asyncio.Future[Any]] = {waker}
-            if soonest is not None:
-                waits.add(asyncio.ensure_future(clock.sleep_until(soonest + 1)))
-            try:
-                await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
-            finally:
-                for w in waits:
-                    w.cancel()
+            # strictly after the deadline: data available exactly at it is on time
+            wake_at = None if soonest is None else soonest + 1
+            await sleep_until_woken(clock, wake_at, self._tick_wake)
 
     # -- processes -------------------------------------------------------------------
     def add_process(self, process: Process) -> None:
@@ -467,8 +468,10 @@ class DyKnowInstance:
         self.failures.append(failure)
         self.failure_count += 1
         for listener in list(self._failure_listeners):
-            with contextlib.suppress(Exception):
+            try:
                 listener(failure)
+            except Exception:  # not a failure of its own: that would tell the listener again
+                log.exception("dyknow[%s]: a failure listener failed", self.name)
 
     def on_failure(self, listener: Callable[[ProcessFailure], None]) -> Callable[[], None]:
         """Be told of every process failure; returns a function that stops telling."""

@@ -27,6 +27,7 @@ from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
 import msgpack
 
+from ._aio import Ticker
 from ._exceptions import DyKnowError
 from ._policy import Policy
 from ._process import Source
@@ -311,6 +312,7 @@ class Recorder:
         self.done = asyncio.Event()
         self._known = 0
         self._tasks: list[asyncio.Task[None]] = []
+        self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
 
     # -- lifecycle ---------------------------------------------------------------------------
     def start(self) -> Recorder:
@@ -339,17 +341,25 @@ class Recorder:
 
     async def __aenter__(self) -> Recorder:
         self.start()
-        self._tasks.append(asyncio.create_task(self._flusher(), name=f"recorder[{self.path}]"))
-        if self.all_labels:
-            self._tasks.append(asyncio.create_task(self._discoverer()))
+        async with contextlib.AsyncExitStack() as stack:
+            tg = await stack.enter_async_context(asyncio.TaskGroup())
+            name = f"recorder[{self.path}]"
+            self._tasks.append(tg.create_task(self._flusher(), name=name))
+            if self.all_labels:
+                self._tasks.append(tg.create_task(self._discoverer(), name=f"{name}.discover"))
+            self._stack = stack.pop_all()
         return self
 
     async def __aexit__(self, *exc: object) -> None:
         for task in self._tasks:
             task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
-        self._tasks.clear()
-        self.close()
+        stack, self._stack = self._stack, None
+        try:
+            if stack is not None:
+                await stack.aclose()  # the body's error is not the group's to wrap
+        finally:
+            self._tasks.clear()
+            self.close()
 
     def close(self) -> None:
         """Stop recording: unsubscribe, write what is buffered, close the file."""
@@ -365,15 +375,21 @@ class Recorder:
                 self._discover()
             self.writer.flush()
 
+    # A failing timer stops that timer only, as before: it must not end the recording (nor
+    # the task that entered the recorder, as a failure in a task group would).
     async def _flusher(self) -> None:
-        while True:
-            await asyncio.sleep(self.flush_interval)
-            self.flush()
+        try:
+            async for _ in Ticker(self.flush_interval):
+                self.flush()
+        except Exception:
+            log.exception("recorder[%s]: the flush timer failed", self.path)
 
     async def _discoverer(self) -> None:
-        while True:
-            await asyncio.sleep(self.discover_interval)
-            self._discover()
+        try:
+            async for _ in Ticker(self.discover_interval):
+                self._discover()
+        except Exception:
+            log.exception("recorder[%s]: the discovery timer failed", self.path)
 
     # -- what is recorded --------------------------------------------------------------------
     @property

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any, Literal, Self
 
 from pydantic import field_validator, model_validator
 
+from ._aio import sleep_until_woken
 from ._exceptions import PolicyError, ProcessError
 from ._policy import CacheSpec, Policy, _EdgeModel, check_duration
 from ._process import ComputationalUnit, Process
@@ -489,15 +490,7 @@ class RefinementProcess(Process):
             due = now + self._period
             if self._below_since is not None:
                 due = min(due, max(now + 1, self._below_since + self._hold))
-            waits: set[asyncio.Future[Any]] = {
-                asyncio.ensure_future(self._wake.wait()),
-                asyncio.ensure_future(clock.sleep_until(due)),
-            }
-            try:
-                await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
-            finally:
-                for w in waits:
-                    w.cancel()
+            await sleep_until_woken(clock, due, self._wake)
             if self.running and clock.now() >= due:
                 self.evaluate()
 

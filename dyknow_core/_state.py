@@ -24,7 +24,8 @@ from typing import TYPE_CHECKING, Any, Self
 
 from pydantic import field_validator, model_validator
 
-from ._exceptions import PolicyError, ProcessError
+from ._aio import sleep_until_woken
+from ._exceptions import PolicyError, ProcessError, UnknownLabelError
 from ._policy import Approximation, CacheSpec, LateAction, Policy, _EdgeModel, check_duration
 from ._process import Process
 from ._sample import RawSample
@@ -361,16 +362,8 @@ class StateProcess(Process):
         while self.running:
             wake.clear()
             d = self.deadline()
-            waker = asyncio.ensure_future(wake.wait())
-            waits: set[asyncio.Future[Any]] = {waker}
-            if d is not None:
-                # strictly after the deadline: data available exactly at it is on time
-                waits.add(asyncio.ensure_future(clock.sleep_until(d + 1)))
-            try:
-                await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
-            finally:
-                for w in waits:
-                    w.cancel()
+            # strictly after the deadline: data available exactly at it is on time
+            await sleep_until_woken(clock, None if d is None else d + 1, wake)
             if self.running:
                 self.tick(clock.now())
 
@@ -442,7 +435,7 @@ def add_state(
             instance._spawn(f"state[{name}]", proc._run())
     except Exception:
         proc._stop()
-        with contextlib.suppress(Exception):
+        with contextlib.suppress(UnknownLabelError):  # gone already: nothing to undo
             instance.remove_stream(label)
         raise
     instance._add_process(proc)

@@ -106,6 +106,8 @@ class NodeApplication:
         self.inputs: list[InputRunner] = []
         self.outputs: list[OutputRunner] = []
         self._tasks: list[asyncio.Task[None]] = []
+        self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
+        self._tg: asyncio.TaskGroup | None = None
 
     @property
     def empty(self) -> bool:
@@ -155,10 +157,13 @@ class NodeApplication:
                             "missing: the node's transport is not zenoh, so this "
                             f"{spec.kind} {kind[:-1]} needs connect = [...] of its own",
                         )
-        for runner in self.inputs:
-            self._start(runner.stats.title, runner.run(session))
-        for out in self.outputs:
-            self._start(f"output {out.settings.title()}", out.run(session))
+        async with contextlib.AsyncExitStack() as stack:
+            self._tg = await stack.enter_async_context(asyncio.TaskGroup())
+            for runner in self.inputs:
+                self._start(runner.stats.title, runner.run(session))
+            for out in self.outputs:
+                self._start(f"output {out.settings.title()}", out.run(session))
+            self._stack = stack.pop_all()
         return self
 
     def _zenoh_session(self) -> Any | None:
@@ -168,16 +173,18 @@ class NodeApplication:
         return transport.session if isinstance(transport, ZenohTransport) else None
 
     def _start(self, title: str, coro: Any) -> None:
-        task = asyncio.create_task(coro, name=title)
-        task.add_done_callback(lambda t: self._ended(title, t))
+        assert self._tg is not None
+        task = self._tg.create_task(self._logged(title, coro), name=title)
+        # cancelled before it ran, the wrapper never awaits ``coro``: close it then
+        task.add_done_callback(lambda _: coro.close())
         self._tasks.append(task)
 
     @staticmethod
-    def _ended(title: str, task: asyncio.Task[None]) -> None:
-        if task.cancelled():
-            return
-        exc = task.exception()
-        if exc is not None:
+    async def _logged(title: str, coro: Any) -> None:
+        # one input or output that stops leaves the others running: told, never raised
+        try:
+            await coro
+        except Exception as exc:
             log.error("%s stopped: %s: %s", title, type(exc).__name__, exc)
         else:
             log.info("%s ended", title)
@@ -185,8 +192,12 @@ class NodeApplication:
     async def __aexit__(self, *exc: object) -> None:
         for task in self._tasks:
             task.cancel()
-        await asyncio.gather(*self._tasks, return_exceptions=True)
-        self._tasks.clear()
+        stack, self._stack, self._tg = self._stack, None, None
+        try:
+            if stack is not None:
+                await stack.aclose()  # the body's error is not the group's to wrap
+        finally:
+            self._tasks.clear()
 
     def stats(self) -> list[dict[str, Any]]:
         """What each input received and each output published."""

@@ -6,11 +6,12 @@ import asyncio
 import contextlib
 import gc
 import json
+import logging
 import re
 import signal
 import time
 import uuid
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +28,8 @@ from agents import (
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
 
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
+
+log = logging.getLogger(__name__)
 
 _RELATIVE = re.compile(r"^-(\d+(?:\.\d+)?)(ms|s|m|h)?$")
 _UNITS = {"ms": 0.001, "s": 1.0, "m": 60.0, "h": 3600.0, None: 1.0}
@@ -180,6 +183,19 @@ def _endpoints(cfg: Any) -> str:
     return ", ".join(map(str, endpoints)) or "(nothing)"
 
 
+async def _failure_of(job: Callable[..., Awaitable[Any]], *args: Any) -> Exception | None:
+    """Run ``job(*args)``; its failure is returned, not raised.
+
+    For the tasks of a task group whose failure the caller raises itself: a group would
+    raise it wrapped in an ExceptionGroup, and cancel its siblings and its caller first.
+    """
+    try:
+        await job(*args)
+    except Exception as exc:
+        return exc
+    return None
+
+
 async def _wait_for(p: FederationPlatform, want: str | None, wait: float) -> None:
     """Wait (at most ``wait`` s) until ``want`` (or any other platform) is seen, then settle."""
     gdf = p.agents.global_df
@@ -298,6 +314,7 @@ async def stream_through_node(
     seen = 0
     lines = via_node(PlatformConfig.load(config_path), request)
     stopping = asyncio.ensure_future(stop.wait())
+    nxt: asyncio.Future[dict[str, Any]] | None = None
     try:
         while True:
             nxt = asyncio.ensure_future(anext(lines))
@@ -322,6 +339,10 @@ async def stream_through_node(
             seen += 1
     finally:
         stopping.cancel()
+        if nxt is not None and not nxt.done():
+            # cancelled while reading: the generator cannot be closed while it still runs
+            nxt.cancel()
+            await asyncio.wait([nxt])
         await lines.aclose()
 
 
@@ -378,30 +399,40 @@ async def follow_stream(
             finally:
                 sub.close()
 
-        tasks = [asyncio.create_task(pump(s)) for s in semantic_labels]
-        stopping = asyncio.create_task(stop.wait())
         seen = 0
+        error: Exception | None = None
         try:
-            while count is None or seen < count:
-                getting = asyncio.create_task(queue.get())
-                done, _ = await asyncio.wait(
-                    [getting, stopping, *tasks], return_when=asyncio.FIRST_COMPLETED
-                )
-                if getting not in done:
-                    getting.cancel()
-                    for t in tasks:
-                        if t in done and t.exception() is not None:
-                            raise t.exception()  # type: ignore[misc]
-                    break
-                emit(*getting.result())
-                seen += 1
+            async with asyncio.TaskGroup() as tg:
+                pumps = [
+                    tg.create_task(_failure_of(pump, s), name=f"stream[{s}]")
+                    for s in semantic_labels
+                ]
+                stopping = tg.create_task(stop.wait(), name="stream.stop")
+                try:
+                    while count is None or seen < count:
+                        getting = tg.create_task(queue.get(), name="stream.next")
+                        done, _ = await asyncio.wait(
+                            [getting, stopping, *pumps], return_when=asyncio.FIRST_COMPLETED
+                        )
+                        if getting not in done:
+                            getting.cancel()
+                            failed = [t.result() for t in pumps if t in done]
+                            error = next((e for e in failed if e is not None), None)
+                            break
+                        emit(*getting.result())
+                        seen += 1
+                except Exception as exc:  # raised below: the group would wrap it
+                    error = exc
+                finally:
+                    for t in (stopping, *pumps):
+                        t.cancel()
+            if error is not None:
+                raise error
         finally:
-            stopping.cancel()
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
-            with contextlib.suppress(Exception):
+            try:
                 await fed.cancel_stream(platform, export_id, timeout=2.0)
+            except Exception as exc:  # the export ends with its lease there anyway
+                log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
         return seen
 
 
@@ -521,31 +552,40 @@ async def watch_platform(
                     )
                 await asyncio.sleep(renew if answered else 0.5)
 
-        tasks = [asyncio.create_task(t()) for t in (pump_watch, pump_audit, lease)]
-        stopping = asyncio.create_task(stop.wait())
-        ending = asyncio.create_task(asyncio.sleep(duration if duration is not None else 1e9))
         seen = 0
+        error: Exception | None = None
         try:
-            while True:
-                getting = asyncio.create_task(queue.get())
-                done, _ = await asyncio.wait(
-                    [getting, stopping, ending, *tasks], return_when=asyncio.FIRST_COMPLETED
+            async with asyncio.TaskGroup() as tg:
+                jobs = [
+                    tg.create_task(_failure_of(t), name=f"watch.{t.__name__}")
+                    for t in (pump_watch, pump_audit, lease)
+                ]
+                stopping = tg.create_task(stop.wait(), name="watch.stop")
+                ending = tg.create_task(
+                    asyncio.sleep(duration if duration is not None else 1e9), name="watch.end"
                 )
-                if getting not in done:
-                    getting.cancel()
-                    for t in tasks:
-                        if t in done and t.exception() is not None:
-                            raise t.exception()  # type: ignore[misc]
-                    break
-                event = getting.result()
-                emit(event)
-                seen += 1
+                try:
+                    while True:
+                        getting = tg.create_task(queue.get(), name="watch.next")
+                        done, _ = await asyncio.wait(
+                            [getting, stopping, ending, *jobs], return_when=asyncio.FIRST_COMPLETED
+                        )
+                        if getting not in done:
+                            getting.cancel()
+                            failed = [t.result() for t in jobs if t in done]
+                            error = next((e for e in failed if e is not None), None)
+                            break
+                        event = getting.result()
+                        emit(event)
+                        seen += 1
+                except Exception as exc:  # raised below: the group would wrap it
+                    error = exc
+                finally:
+                    for t in (stopping, ending, *jobs):
+                        t.cancel()
+            if error is not None:
+                raise error
         finally:
-            stopping.cancel()
-            ending.cancel()
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
             watched.close()
             audit.close()
     return seen

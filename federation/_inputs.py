@@ -484,7 +484,7 @@ async def zenoh_subscriber(
     try:
         yield
     finally:
-        with contextlib.suppress(Exception):  # the session may be closing already
+        with contextlib.suppress(zenoh.ZError):  # the session may be closing already
             sub.undeclare()
         if own is not None:
             await asyncio.to_thread(own.close)

@@ -38,7 +38,7 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents import TokenBucket
+from agents import Ticker, TokenBucket, TransportError
 
 from ._cli_time import seconds, when
 from ._platform import PlatformConfig
@@ -120,13 +120,15 @@ async def refuse_duplicate(
     if not alive:
         return
     where = "where and since when unknown (it did not say)"
-    with contextlib.suppress(Exception):
+    try:
         replies = await transport.query(identity_key(config), timeout=2.0)
         for reply in replies:
             info = json.loads(reply.payload)
             if isinstance(info, dict) and info.get("platform") == config.name:
                 where = _where(info)
                 break
+    except Exception as exc:  # the error says it is alive either way, only less precisely
+        log.debug("asking the running platform where it runs: %s", exc)
     who = f"platform {config.name!r} is alive in federation {config.federation!r} already"
     if command:
         raise PlatformAliveError(
@@ -226,8 +228,7 @@ class LocalChannel:
 
     async def _report_shed(self) -> None:
         """Audit the identity queries shed, summed up, at most once per second."""
-        while True:
-            await asyncio.sleep(1.0)
+        async for _ in Ticker(1.0):
             with self._who_lock:
                 n, self._shed_pending = self._shed_pending, 0
             if n:
@@ -271,12 +272,12 @@ class LocalChannel:
             self._reports.cancel()
         if self._server is not None:
             self._server.close()
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(TimeoutError):  # a client still connected: do not wait
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
         if self._handle is not None:
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(TransportError):  # the transport may be closed already
                 self._handle.close()
 
     async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -311,7 +312,7 @@ class LocalChannel:
             pass  # the command went away (Ctrl-C): its stream is cancelled below
         finally:
             writer.close()
-            with contextlib.suppress(Exception):
+            with contextlib.suppress(OSError):  # the peer went: its socket is gone already
                 await writer.wait_closed()
 
     async def _answer(
@@ -395,8 +396,10 @@ class LocalChannel:
             if entry[1] > 0:
                 return
             del self._exports[(target, semantic)]
-        with contextlib.suppress(Exception):
+        try:
             await self.platform.federation_agent.cancel_stream(target, entry[0], timeout=2.0)
+        except Exception as exc:  # the export ends with its lease there anyway
+            log.info("local: cancelling the export %s at %s: %s", entry[0], target, exc)
 
     async def _relay(
         self,
@@ -419,30 +422,37 @@ class LocalChannel:
             finally:
                 sub.close()
 
-        tasks = [asyncio.create_task(pump(s)) for s in labels]
-        gone = asyncio.create_task(reader.read())  # EOF: the command stopped
+        from ._cli_net import _failure_of
+
         count = request.get("count")
         seen = 0
-        try:
-            while count is None or seen < int(count):
-                getting = asyncio.create_task(queue.get())
-                done, _ = await asyncio.wait(
-                    [getting, gone, *tasks], return_when=asyncio.FIRST_COMPLETED
-                )
-                if getting not in done:
-                    getting.cancel()
-                    for t in tasks:
-                        if t in done and t.exception() is not None:
-                            raise t.exception()  # type: ignore[misc]
-                    return
-                await send({"sample": getting.result()})
-                seen += 1
-            await send({"end": seen})
-        finally:
-            gone.cancel()
-            for t in tasks:
-                t.cancel()
-            await asyncio.gather(*tasks, gone, return_exceptions=True)
+        error: Exception | None = None
+        async with asyncio.TaskGroup() as tg:
+            pumps = [tg.create_task(_failure_of(pump, s), name=f"relay[{s}]") for s in labels]
+            # EOF: the command stopped
+            gone = tg.create_task(_failure_of(reader.read), name="relay.gone")
+            try:
+                while count is None or seen < int(count):
+                    getting = tg.create_task(queue.get(), name="relay.next")
+                    done, _ = await asyncio.wait(
+                        [getting, gone, *pumps], return_when=asyncio.FIRST_COMPLETED
+                    )
+                    if getting not in done:
+                        getting.cancel()
+                        failed = [t.result() for t in pumps if t in done]
+                        error = next((e for e in failed if e is not None), None)
+                        break
+                    await send({"sample": getting.result()})
+                    seen += 1
+                else:
+                    await send({"end": seen})
+            except Exception as exc:  # raised below: the group would wrap it
+                error = exc
+            finally:
+                for t in (gone, *pumps):
+                    t.cancel()
+        if error is not None:
+            raise error
 
 
 async def _wait_for_platform(p: FederationPlatform, target: str, wait: float) -> None:
@@ -475,5 +485,5 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
             yield json.loads(line)
     finally:
         writer.close()
-        with contextlib.suppress(Exception):
+        with contextlib.suppress(OSError):  # the node went: its socket is gone already
             await writer.wait_closed()

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from agents import Ticker
 from dyknow_core import Policy
 
 if TYPE_CHECKING:
@@ -140,9 +141,9 @@ class OutputRunner:
                 sub.close()
 
     async def _scan(self) -> None:
-        while True:
+        self._follow()
+        async for _ in Ticker(_RESCAN):
             self._follow()
-            await asyncio.sleep(_RESCAN)
 
     async def _run_mqtt(self, s: MqttOutput) -> None:
         import aiomqtt

@@ -9,10 +9,10 @@ KPL application set up on it, and prints what its processes produce.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import dataclasses
 import datetime as dt
 import json
+import logging
 import sys
 import time
 from collections.abc import Callable
@@ -35,6 +35,8 @@ from dyknow_core import (
 
 from ._cli_net import _opened, _stop_event, _wait_for
 from ._cli_time import seconds, when, when_ns
+
+log = logging.getLogger(__name__)
 
 Say = Callable[[str], None]
 
@@ -137,8 +139,10 @@ async def record_federation(
             async with rec:
                 await _until_stopped(rec, stop, duration, progress)
         finally:
-            with contextlib.suppress(Exception):
+            try:
                 await fed.cancel_stream(platform, export_id, timeout=2.0)
+            except Exception as exc:  # the export ends with its lease there anyway
+                log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
     return rec
 
 
@@ -184,9 +188,10 @@ async def _record_relayed(
         def emit(label: str, value: Any, valid: int, available: int) -> None:
             sources[label].push(value, valid, available)
 
-        async with rec:
-            relay = asyncio.create_task(
-                stream_through_node(
+        async def relayed() -> int | Exception | None:
+            # its failure is returned, to be raised as itself (a group would wrap it)
+            try:
+                return await stream_through_node(
                     config_path,
                     platform,
                     semantic_labels,
@@ -197,14 +202,25 @@ async def _record_relayed(
                     emit=emit,
                     stop=stop,
                 )
-            )
+            except Exception as exc:
+                return exc
+
+        error: Exception | None = None
+        async with rec, asyncio.TaskGroup() as tg:
+            relay = tg.create_task(relayed(), name=f"record.relay[{platform}]")
             ended = asyncio.Event()
             relay.add_done_callback(lambda _: ended.set())
             try:
                 await _until_stopped(rec, stop, duration, progress, also=ended)
+            except Exception as exc:  # raised below: the group would wrap it
+                error = exc
             finally:
                 relay.cancel()
-                [result] = await asyncio.gather(relay, return_exceptions=True)
+    if error is not None:
+        raise error
+    if relay.cancelled():
+        return rec  # stopped (a signal, the duration, the count) while relaying
+    result = relay.result()
     if isinstance(result, Exception):
         raise result
     if result is None:

@@ -78,7 +78,6 @@ tokens); exports to it are stopped and its subscriptions dropped.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import inspect
 import logging
 import time
@@ -612,8 +611,10 @@ class FederationAgent(Agent):
                 new_id = str(answer["id"])
                 if self._durable.get(provider, {}).get(first_id) is not entry:
                     # cancelled while we asked: the new export must not outlive it
-                    with contextlib.suppress(Exception):
+                    try:
                         await self.request_from(provider, {"action": "cancel-stream", "id": new_id})
+                    except Exception as exc:  # it ends with its lease there
+                        log.info("%s: cancelling %s at %s: %s", self, new_id, provider, exc)
                     return
                 entry.current = new_id
                 log.info("%s: %s created again by %s", self, entry.content["labels"], provider)

@@ -20,6 +20,7 @@ starts; `FactFeed.refresh` picks up later ones and drops removed ones.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 from collections import Counter
@@ -280,7 +281,7 @@ class FactFeed:
         self._streams: dict[tuple[StreamRule, str], Subscription] = {}  # by (rule, label)
         self._sets: list[SetSubscription] = []
         self._domains: list[tuple[DomainSubscription, asyncio.Task[None]]] = []
-        self._tg: asyncio.TaskGroup | None = None
+        self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
         self._stop_listening: Callable[[], None] | None = None
         self._state = "unopened"
 
@@ -289,9 +290,8 @@ class FactFeed:
         if self._state != "unopened":
             raise OntologyError(f"a fact feed is entered once; this one is {self._state}")
         self._state = "opened"
-        tg = asyncio.TaskGroup()
-        await tg.__aenter__()
-        self._tg = tg
+        stack = self._stack = contextlib.AsyncExitStack()
+        tg = await stack.enter_async_context(asyncio.TaskGroup())
         try:
             for rule in self.rules:
                 if isinstance(rule, DomainRule):
@@ -302,16 +302,18 @@ class FactFeed:
             self._stop_listening = self.instance.on_label_change(self._label_changed)
         except BaseException:
             self.close()  # ends the tasks started so far, so the group exits at once
-            await tg.__aexit__(None, None, None)
+            self._stack = None
+            await stack.aclose()
             raise
         return self
 
     async def __aexit__(self, *exc: Any) -> None:
         self.close()
-        if self._tg is not None:
+        stack, self._stack = self._stack, None
+        if stack is not None:
             # closing ended the tasks; the body's own error must not come back wrapped in a
-            # group, so the group is told nothing of it
-            await self._tg.__aexit__(None, None, None)
+            # group, so the group is told nothing of it (aclose passes no exception)
+            await stack.aclose()
 
     def close(self) -> None:
         """Unsubscribe from everything; the domain tasks end. The facts stay."""

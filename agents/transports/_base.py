@@ -7,14 +7,18 @@ chunk, ``**`` any number); the MQTT transport maps them to ``+`` and ``#``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import logging
 import socket
 import threading
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, Generic, NamedTuple, Self, TypeVar
 
 from .._exceptions import TransportClosed
+
+log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
@@ -75,6 +79,9 @@ class Inbox(Generic[T]):
         self._maxlen = maxlen
         self._lock = threading.Lock()
         self._waiter: asyncio.Future[None] | None = None
+        # The loop's thread, recorded by the consumer (which runs in it): a producer in
+        # that thread wakes the consumer directly, others through call_soon_threadsafe.
+        self._loop_thread: int | None = None
         self._wake_pending = False
         self.dropped = 0
         self.received = 0
@@ -97,15 +104,12 @@ class Inbox(Generic[T]):
 
     def _wake_threadsafe(self) -> None:
         try:
-            if threading.get_ident() == self._thread_id():
+            if threading.get_ident() == self._loop_thread:
                 self._wake()
             else:
                 self._loop.call_soon_threadsafe(self._wake)
         except RuntimeError:  # the loop is closed: nobody is waiting any more
             pass
-
-    def _thread_id(self) -> int | None:
-        return getattr(self._loop, "_thread_id", None)
 
     def _wake(self) -> None:
         with self._lock:
@@ -135,6 +139,8 @@ class Inbox(Generic[T]):
                     raise TransportClosed("subscription closed")
                 self._waiter = self._loop.create_future()
                 waiter = self._waiter
+                if self._loop_thread is None:
+                    self._loop_thread = threading.get_ident()
             try:
                 await waiter
             finally:
@@ -256,6 +262,9 @@ class Transport(ABC):
 
     def __init__(self) -> None:
         self._state = "unopened"
+        self._tg: asyncio.TaskGroup | None = None
+        self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
+        self._tasks: set[asyncio.Task[Any]] = set()
 
     async def __aenter__(self) -> Self:
         if self._state != "unopened":
@@ -270,6 +279,37 @@ class Transport(ABC):
     def _check_open(self) -> None:
         if self._state != "opened":
             raise TransportClosed(f"{self.name} transport is {self._state}")
+
+    # -- the transport's own tasks (for implementations that need some) ------------------
+
+    async def _start_tasks(self) -> None:
+        """Enter the task group that owns this transport's tasks (from ``open``)."""
+        async with contextlib.AsyncExitStack() as stack:
+            self._tg = await stack.enter_async_context(asyncio.TaskGroup())
+            self._stack = stack.pop_all()
+
+    def _spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task[Any]:
+        """Run ``coro`` as a task of this transport, named ``name``; failures are logged.
+
+        The task is cancelled when the transport closes. A failure is logged and ends that
+        task only: the others, and whoever opened the transport, go on.
+        """
+        if self._tg is None:
+            raise TransportClosed(f"{self.name} transport is {self._state}")
+        task = self._tg.create_task(_logged(coro, name), name=name)
+        # cancelled before it ran, the wrapper never awaits ``coro``: close it then
+        task.add_done_callback(lambda _: coro.close())
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+        return task
+
+    async def _end_tasks(self) -> None:
+        """Cancel this transport's tasks and wait until they are done (from ``aclose``)."""
+        for task in list(self._tasks):
+            task.cancel()
+        stack, self._stack, self._tg = self._stack, None, None
+        if stack is not None:
+            await stack.aclose()
 
     @abstractmethod
     async def open(self) -> None:
@@ -354,3 +394,10 @@ def _match(pat: list[str], key: list[str]) -> bool:
 
 def _ignore(*_: Any) -> None:
     """A no-op close callback."""
+
+
+async def _logged(coro: Awaitable[Any], name: str) -> None:
+    try:
+        await coro
+    except Exception:
+        log.exception("transport task %s failed", name)

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-from typing import Self
 
 from .._exceptions import TransportError
 from ._base import (
@@ -175,6 +174,3 @@ class MemoryTransport(Transport):
         sub = Subscription(inbox, remove)
         self._subs.append(sub)
         return sub
-
-    async def __aenter__(self) -> Self:
-        return await super().__aenter__()

@@ -333,6 +333,7 @@ class MqttTransport(Transport):
             config if isinstance(config, MqttConfig) else MqttConfig.model_validate(config or {})
         )
         self._client: aiomqtt.Client | None = None
+        self._connection: contextlib.AsyncExitStack | None = None  # disconnects _client
         self._loop: asyncio.AbstractEventLoop | None = None
         # not derived from the client id: queries show it to every queryable
         self._reply_topic = f"{REPLY_PREFIX}/{self.config.client_id}/{secrets.token_hex(12)}"
@@ -346,8 +347,6 @@ class MqttTransport(Transport):
         self._correlation = itertools.count(1)
         self._subs: set[Subscription[Any]] = set()
         self._handles: set[Handle] = set()
-        self._tasks: set[asyncio.Task[None]] = set()
-        self._receiver: asyncio.Task[None] | None = None
         self._lost: BaseException | None = None
 
     def _new_client(self, identifier: str, will: aiomqtt.Will | None = None) -> aiomqtt.Client:
@@ -368,22 +367,23 @@ class MqttTransport(Transport):
     async def open(self) -> None:
         """Connect to the broker, subscribe to this client's reply topic, start receiving."""
         loop = asyncio.get_running_loop()
-        client = await self._connect_main()
+        client, self._connection = await self._connect_main()
         self._client = client
         self._loop = loop
         self._up = asyncio.Event()
         self._up.set()
-        self._receiver = loop.create_task(
-            self._receive(client), name=f"mqtt[{self.config.client_id}].receive"
-        )
+        await self._start_tasks()
+        self._spawn(self._receive(client), f"mqtt[{self.config.client_id}].receive")
 
-    async def _connect_main(self) -> aiomqtt.Client:
-        """Connect with a fresh client id and subscribe to this transport's reply topic."""
+    async def _connect_main(self) -> tuple[aiomqtt.Client, contextlib.AsyncExitStack]:
+        """Connect with a fresh client id and subscribe to this transport's reply topic.
+
+        Returns the client and the exit stack that disconnects it.
+        """
         client = self._new_client(_connection_id(self.config.client_id))
         where = f"{self.config.host}:{self.config.port}"
         try:
-            await client.__aenter__()
-            _no_delay(client)
+            connection = await _connect(client)
         except aiomqtt.MqttError as exc:
             raise TransportError(f"mqtt: cannot connect to {where}: {exc}") from exc
         try:
@@ -392,9 +392,9 @@ class MqttTransport(Transport):
             )
         except aiomqtt.MqttError as exc:
             with contextlib.suppress(aiomqtt.MqttError):
-                await _disconnect(client)
+                await connection.aclose()
             raise TransportError(f"mqtt: cannot subscribe to replies on {where}: {exc}") from exc
-        return client
+        return client, connection
 
     async def aclose(self) -> None:
         """Clear this transport's tokens, end every subscription and query, and disconnect."""
@@ -406,20 +406,18 @@ class MqttTransport(Transport):
         handles = list(self._handles)
         if handles:  # clearing tokens needs the broker: bounded, in case it is gone
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(self.config.connect_timeout):
-                    await asyncio.gather(*(h.aclose() for h in handles), return_exceptions=True)
+                async with asyncio.timeout(self.config.connect_timeout), asyncio.TaskGroup() as tg:
+                    for n, h in enumerate(handles):
+                        name = f"mqtt[{self.config.client_id}].close[{n}]"
+                        tg.create_task(_closing(h), name=name)
         for inbox in self._pending.values():
             inbox.close()
-        tasks = [*self._tasks, *([self._receiver] if self._receiver else [])]
-        for task in tasks:
-            task.cancel()
-        if tasks:
-            await asyncio.gather(*tasks, return_exceptions=True)
-        client, self._client = self._client, None
-        if client is not None:
+        await self._end_tasks()
+        connection, self._connection, self._client = self._connection, None, None
+        if connection is not None:
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
                 async with asyncio.timeout(self.config.connect_timeout):
-                    await _disconnect(client)
+                    await connection.aclose()
 
     def _check_open(self) -> None:
         super()._check_open()
@@ -458,7 +456,7 @@ class MqttTransport(Transport):
                 if self._up is not None:
                     self._up.clear()
                 try:
-                    client = await self._reconnect(client)
+                    client = await self._reconnect()
                 except (TransportError, aiomqtt.MqttError) as again:
                     log.warning("mqtt: could not reconnect: %s", again)
                     self._lost = exc
@@ -468,11 +466,13 @@ class MqttTransport(Transport):
                         inbox.close()
                     return
 
-    async def _reconnect(self, old: aiomqtt.Client) -> aiomqtt.Client:
-        with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
-            async with asyncio.timeout(1.0):
-                await _disconnect(old)
-        client = await self._connect_main()
+    async def _reconnect(self) -> aiomqtt.Client:
+        old, self._connection = self._connection, None
+        if old is not None:
+            with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
+                async with asyncio.timeout(1.0):
+                    await old.aclose()
+        client, self._connection = await self._connect_main()
         self._client = client
         for f in list(self._filters.values()):
             await client.subscribe(f.topic, options=self._options(), properties=_sid(f.sid))
@@ -566,11 +566,8 @@ class MqttTransport(Transport):
         self._by_sid.pop(f.sid, None)
         if self._state != "opened" or self._lost is not None or self._loop is None:
             return
-        task = self._loop.create_task(
-            self._unsubscribe(f.topic), name=f"mqtt[{self.config.client_id}].unsubscribe"
-        )
+        task = self._spawn(self._unsubscribe(f.topic), f"mqtt[{self.config.client_id}].unsubscribe")
         self._unsubscribing[f.topic] = task
-        self._own(task)
         task.add_done_callback(lambda t: self._unsubscribing.pop(f.topic, None))
 
     async def _unsubscribe(self, topic: str) -> None:
@@ -580,10 +577,6 @@ class MqttTransport(Transport):
             await self._client.unsubscribe(topic)
         except aiomqtt.MqttError as exc:
             log.debug("mqtt: unsubscribing from %r failed: %s", topic, exc)
-
-    def _own(self, task: asyncio.Task[None]) -> None:
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
 
     def _subscription(self, inbox: Inbox[T], undeclare: Callable[[], None]) -> Subscription[T]:
         """A subscription that this transport ends when it closes."""
@@ -708,12 +701,9 @@ class MqttTransport(Transport):
             return
         if server.admit is not None and not server.admit(payload):
             return
-        assert self._loop is not None
-        self._own(
-            self._loop.create_task(
-                self._answer(server, key, payload, response_topic, correlation),
-                name=f"mqtt[{self.config.client_id}].serve[{server.key_expr}]",
-            )
+        self._spawn(
+            self._answer(server, key, payload, response_topic, correlation),
+            f"mqtt[{self.config.client_id}].serve[{server.key_expr}]",
         )
 
     async def _answer(
@@ -761,14 +751,11 @@ class MqttTransport(Transport):
         _chunks(key)
         token = _Token(self, key)
         await token.connect()
-        assert self._loop is not None
-        task = self._loop.create_task(token.keep(), name=f"mqtt.token[{key}].keep")
-        self._own(task)
-        token.task = task
+        token.task = self._spawn(token.keep(), f"mqtt.token[{key}].keep")
 
         def start_clearing() -> None:
-            if self._loop is not None:
-                self._own(self._loop.create_task(token.clear(), name=f"mqtt.token[{key}].clear"))
+            if self._tg is not None:
+                self._spawn(token.clear(), f"mqtt.token[{key}].clear")
 
         return self._handle(start_clearing, token.clear)
 
@@ -793,6 +780,7 @@ class _Token:
         self.transport = transport
         self.key = key
         self.client: aiomqtt.Client | None = None
+        self.connection: contextlib.AsyncExitStack | None = None  # disconnects client
         self.task: asyncio.Task[None] | None = None
         self.closing = False
         self.reconnects = 0
@@ -804,8 +792,7 @@ class _Token:
             will=aiomqtt.Will(self.key, b"", qos=1, retain=True),
         )
         try:
-            await client.__aenter__()
-            _no_delay(client)
+            connection = await _connect(client)
         except aiomqtt.MqttError as exc:
             raise t._error(f"connect for the token on {self.key!r}", exc) from exc
         try:
@@ -813,15 +800,15 @@ class _Token:
             await client.publish(self.key, ALIVE, qos=1, retain=True)
         except aiomqtt.MqttError as exc:
             with contextlib.suppress(aiomqtt.MqttError):
-                await _disconnect(client)
+                await connection.aclose()
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
-        self.client = client
+        self.client, self.connection = client, connection
 
     async def keep(self) -> None:
         """Announce again when the key is cleared by another; reconnect when dropped."""
         while not self.closing:
-            client = self.client
-            assert client is not None
+            client, connection = self.client, self.connection
+            assert client is not None and connection is not None
             try:
                 async for message in client.messages:
                     if not message.payload and not self.closing:
@@ -834,7 +821,7 @@ class _Token:
                 log.warning("mqtt: the token's connection on %r was lost: %s", self.key, exc)
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
                 async with asyncio.timeout(1.0):
-                    await _disconnect(client)
+                    await connection.aclose()
             # announced again only once this platform answers again (queries, DF)
             up = self.transport._up
             if up is not None:
@@ -851,8 +838,8 @@ class _Token:
 
     async def clear(self) -> None:
         self.closing = True
-        client = self.client
-        if client is None:
+        client, connection = self.client, self.connection
+        if client is None or connection is None:
             return
         try:
             await client.publish(self.key, b"", qos=1, retain=True)
@@ -860,10 +847,18 @@ class _Token:
             log.warning("mqtt: could not clear the token on %r: %s", self.key, exc)
         finally:
             with contextlib.suppress(aiomqtt.MqttError):
-                await _disconnect(client)
+                await connection.aclose()
             task = self.task
             if task is not None and task is not asyncio.current_task() and not task.done():
                 task.cancel()
+
+
+async def _closing(handle: Handle) -> None:
+    """Close ``handle`` on the transport's way out; a failure (the broker gone) is no error."""
+    try:
+        await handle.aclose()
+    except Exception as exc:
+        log.debug("mqtt: closing a token on the way out: %s", exc)
 
 
 def _sid(sid: int) -> Properties:
@@ -872,17 +867,26 @@ def _sid(sid: int) -> Properties:
     return props
 
 
-async def _disconnect(client: aiomqtt.Client) -> None:
-    """Leave the client and wait for its socket task, so nothing outlives the transport."""
-    try:
-        await client.__aexit__(None, None, None)
-    finally:
-        # aiomqtt cancels its misc-loop task through call_soon_threadsafe and returns
-        # before the task has ended; a caller checking for leaked tasks would see it.
-        misc = getattr(client, "_misc_task", None)
-        if isinstance(misc, asyncio.Task) and not misc.done():
-            misc.cancel()
-            await asyncio.wait([misc], timeout=1.0)
+async def _connect(client: aiomqtt.Client) -> contextlib.AsyncExitStack:
+    """Connect ``client``; closing the returned stack disconnects it.
+
+    Disconnecting also waits for the client's socket task, so nothing outlives the
+    transport; the stack outlives this call because a connection outlives any one task.
+    """
+    async with contextlib.AsyncExitStack() as stack:
+        stack.push_async_callback(_reap_misc_task, client)  # runs after the client's exit
+        await stack.enter_async_context(client)
+        _no_delay(client)
+        return stack.pop_all()
+
+
+async def _reap_misc_task(client: aiomqtt.Client) -> None:
+    # aiomqtt cancels its misc-loop task through call_soon_threadsafe and returns
+    # before the task has ended; a caller checking for leaked tasks would see it.
+    misc = getattr(client, "_misc_task", None)
+    if isinstance(misc, asyncio.Task) and not misc.done():
+        misc.cancel()
+        await asyncio.wait([misc], timeout=1.0)
 
 
 def _no_delay(client: aiomqtt.Client) -> None:

@@ -67,8 +67,10 @@ _OPEN_SESSIONS: dict[int, zenoh.Session] = {}
 
 def _close_leftover_sessions() -> None:
     for session in list(_OPEN_SESSIONS.values()):
-        with contextlib.suppress(Exception):
+        try:
             session.close()
+        except Exception as exc:  # the interpreter is exiting: tell, and close the rest
+            log.debug("zenoh: closing a leftover session at exit: %s", exc)
     _OPEN_SESSIONS.clear()
 
 
@@ -351,7 +353,6 @@ class ZenohTransport(Transport):
         self._publishers: OrderedDict[str, zenoh.Publisher] = OrderedDict()
         self._subs: set[Subscription[Any]] = set()
         self._handles: set[Handle] = set()
-        self._tasks: set[asyncio.Task[None]] = set()
 
     @property
     def session(self) -> zenoh.Session:
@@ -376,6 +377,7 @@ class ZenohTransport(Transport):
         self._loop = loop
         self._session = session
         _OPEN_SESSIONS[id(session)] = session
+        await self._start_tasks()
 
     async def aclose(self) -> None:
         """Undeclare everything, end every subscription, and close the session."""
@@ -386,10 +388,7 @@ class ZenohTransport(Transport):
             sub.close()
         for handle in list(self._handles):
             handle.close()
-        for task in list(self._tasks):
-            task.cancel()
-        if self._tasks:
-            await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self._end_tasks()
         for pub in self._publishers.values():
             with contextlib.suppress(zenoh.ZError):
                 pub.undeclare()
@@ -527,11 +526,7 @@ class ZenohTransport(Transport):
             queryable = session.declare_queryable(
                 key_expr, zenoh.handlers.Callback(on_query, queries.close)
             )
-        task = loop.create_task(
-            self._serve(key_expr, handler, queries), name=f"zenoh.serve[{key_expr}]"
-        )
-        self._tasks.add(task)
-        task.add_done_callback(self._tasks.discard)
+        self._spawn(self._serve(key_expr, handler, queries), f"zenoh.serve[{key_expr}]")
 
         def undeclare() -> None:
             self._undeclare(queryable)

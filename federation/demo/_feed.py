@@ -32,6 +32,8 @@ import time
 from collections.abc import AsyncIterator
 from typing import Any
 
+from agents import Ticker
+
 from ._world import World
 
 __all__ = ["world_feed"]
@@ -68,6 +70,7 @@ async def world_feed(
     start = time.time()
     lap = -1
     told: set[int] = set()
+    ticker = Ticker(period, first=asyncio.get_running_loop().time() + period)
     while True:
         now = time.time()
         elapsed = now - start
@@ -109,4 +112,4 @@ async def world_feed(
                         "y": round(v.y, 2),
                     },
                 }
-        await asyncio.sleep(max(0.0, period - (time.time() - now)))
+        await ticker.tick()

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
+import logging
 import multiprocessing
 import secrets
 import string
@@ -39,6 +40,8 @@ __all__ = ["DemoOptions", "DemoReport", "DemoStarted", "run_traffic_demo", "uav_
 
 FEDERATION = "traffic"
 OPERATOR = "operator"
+log = logging.getLogger(__name__)
+
 START_TIMEOUT = 60.0  # s: spawned interpreters import zenoh and pydantic on 2 cores
 MATCH_TIME = 3.0  # s: a recognized event matches the ground truth within this
 
@@ -361,8 +364,10 @@ async def _operate(
             reports = {}
             for name in names:
                 if procs[name].is_alive():
-                    with contextlib.suppress(Exception):
+                    try:
                         reports[name] = await _ask_report(agent, name)
+                    except Exception as exc:  # the report then says it did not answer
+                        log.warning("the report of %s could not be had: %s", name, exc)
             report = _report(world, reports, delegation, options)
             report.console_url = console.login_url if console is not None else None
             _print_report(report, say)
@@ -404,6 +409,16 @@ async def _wait_members(
         await asyncio.sleep(0.1)
 
 
+async def _status(agent: Agent, name: str) -> Any:
+    """``name``'s status, or the error that came instead (one silent UAV is not fatal)."""
+    try:
+        return await request(
+            agent, f"traffic@{name}", {"action": "status"}, ontology=ONTOLOGY, timeout=2.0
+        )
+    except Exception as exc:
+        return exc
+
+
 async def _progress(
     agent: Agent,
     names: list[str],
@@ -426,13 +441,9 @@ async def _progress(
         now = clock.now() / NS_PER_S - start
         if now > duration:
             return
-        statuses = await asyncio.gather(
-            *(
-                request(agent, f"traffic@{n}", {"action": "status"}, ontology=ONTOLOGY, timeout=2.0)
-                for n in alive
-            ),
-            return_exceptions=True,
-        )
+        async with asyncio.TaskGroup() as tg:
+            asking = [tg.create_task(_status(agent, n), name=f"status[{n}]") for n in alive]
+        statuses = [t.result() for t in asking]
         parts = []
         for n, s in zip(alive, statuses, strict=True):
             if isinstance(s, BaseException) or not isinstance(s, dict):

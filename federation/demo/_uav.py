@@ -32,7 +32,7 @@ import signal
 import time
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Self
 
 from agents import (
     ACLMessage,
@@ -274,6 +274,8 @@ class UavApplication:
         self.missed: dict[str, int] = {}  # percept -> detections missed in a row
         self.anchoring: Anchoring | None = None
         self.tasks: set[asyncio.Task[Any]] = set()
+        self._tg: asyncio.TaskGroup | None = None
+        self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
         self.assignments: dict[int, str] = {}
         self.last_cars: list[str] = []
         self.local_now: set[str] = set()  # the cars our own camera tracks now
@@ -333,22 +335,40 @@ class UavApplication:
                 if fast:
                     self.speeding.append({"t": round(self.world_time(tv), 2), "cars": fast})
 
+    async def __aenter__(self) -> Self:
+        async with contextlib.AsyncExitStack() as stack:
+            self._tg = await stack.enter_async_context(asyncio.TaskGroup())
+            self._stack = stack.pop_all()
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
     def spawn(self, coro: Any, name: str) -> None:
         """Run ``coro`` as an owned task (cancelled at shutdown, failures logged)."""
-        task = asyncio.get_running_loop().create_task(coro, name=f"{self.name}:{name}")
+        if self._tg is None:
+            coro.close()
+            raise RuntimeError(f"{self.name}: the application is not running (async with it)")
+        task = self._tg.create_task(self._logged(coro, name), name=f"{self.name}:{name}")
+        # cancelled before it ran, the wrapper never awaits ``coro``: close it then
+        task.add_done_callback(lambda _: coro.close())
         self.tasks.add(task)
-        task.add_done_callback(self._done)
+        task.add_done_callback(self.tasks.discard)
 
-    def _done(self, task: asyncio.Task[Any]) -> None:
-        self.tasks.discard(task)
-        if not task.cancelled() and (exc := task.exception()) is not None:
-            log.error("%s: task %s failed: %r", self.name, task.get_name(), exc)
+    async def _logged(self, coro: Any, name: str) -> None:
+        # one failing task (a handover) leaves the others running: logged, never raised
+        try:
+            await coro
+        except Exception as exc:
+            log.error("%s: task %s:%s failed: %r", self.name, self.name, name, exc)
 
     async def aclose(self) -> None:
         """Cancel every task this application started."""
         for task in list(self.tasks):
             task.cancel()
-        await asyncio.gather(*self.tasks, return_exceptions=True)
+        stack, self._stack, self._tg = self._stack, None, None
+        if stack is not None:
+            await stack.aclose()
 
     # -- delegation ------------------------------------------------------------------------
     def cost_of(self, area: int) -> float:
@@ -790,7 +810,7 @@ class TrafficMonitor(Agent):
                 participants.remove(p.participant)
         # everyone learns who watches which area (the handover needs its neighbour)
         for aid in {f"traffic@{p}" for p in assignments.values()}:
-            with contextlib.suppress(Exception):
+            try:
                 await self.send(
                     self.message(
                         Performative.INFORM,
@@ -799,6 +819,8 @@ class TrafficMonitor(Agent):
                         ontology=ONTOLOGY,
                     )
                 )
+            except Exception as exc:  # one traffic agent gone must not stop the delegation
+                log.warning("%s: telling %s the assignments failed: %s", self, aid, exc)
         return {
             "assignments": {str(k): v for k, v in assignments.items()},
             "start": world_start,
@@ -885,6 +907,6 @@ async def _main(settings: UavSettings) -> None:
         await platform.agents.add(TrafficMonitor(app))
         await platform.join()
         settle_gc()
-        app.spawn(app.run(), "run")
-        await stop.wait()
-        await app.aclose()
+        async with app:
+            app.spawn(app.run(), "run")
+            await stop.wait()

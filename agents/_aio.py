@@ -1,0 +1,143 @@
+"""Small asyncio building blocks the agents and their users share.
+
+`Mailbox`: a bounded queue whose one consumer waits for the next item up to a deadline.
+`Ticker`: the ticks of a periodic loop, on a fixed grid of loop time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from collections import deque
+from typing import Any, Generic, Self, TypeVar
+
+T = TypeVar("T")
+
+_TIMED_OUT: Any = object()
+
+
+def _expire(waiter: asyncio.Future[Any]) -> None:
+    if not waiter.done():
+        waiter.set_result(_TIMED_OUT)
+
+
+class Mailbox(Generic[T]):
+    """A bounded FIFO with one asyncio consumer, who waits for the next item up to a deadline.
+
+    `put` never blocks: when the box is full it refuses the item, or with ``drop_oldest``
+    drops the oldest to make room; either way it returns False and counts the loss in
+    ``dropped``. Every call is made on the loop's thread (a transport's ``Inbox`` is the
+    one filled from other threads).
+    """
+
+    __slots__ = ("_items", "_waiter", "drop_oldest", "dropped", "maxlen")
+
+    def __init__(self, maxlen: int, *, drop_oldest: bool = False) -> None:
+        if maxlen < 1:
+            raise ValueError(f"maxlen must be at least 1, got {maxlen}")
+        self._items: deque[T] = deque()
+        self._waiter: asyncio.Future[Any] | None = None
+        self.maxlen = maxlen
+        self.drop_oldest = drop_oldest
+        self.dropped = 0
+
+    def put(self, item: T, *, force: bool = False) -> bool:
+        """Add ``item`` at the end; False when full (refused, or the oldest dropped).
+
+        ``force`` adds it even to a full box (an end marker must not be refused).
+        """
+        items = self._items
+        added = True
+        if len(items) >= self.maxlen and not force:
+            self.dropped += 1
+            if not self.drop_oldest:
+                return False
+            items.popleft()
+            added = False
+        items.append(item)
+        self._wake()
+        return added
+
+    def put_front(self, item: T) -> None:
+        """Put ``item`` back in front, to be taken next (even when full)."""
+        self._items.appendleft(item)
+        self._wake()
+
+    def _wake(self) -> None:
+        w = self._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+
+    async def get(self, deadline: float | None = None) -> T:
+        """The next item; TimeoutError if none came by ``deadline`` (loop time; None: never)."""
+        items = self._items
+        if not items:
+            loop = asyncio.get_running_loop()
+            while not items:
+                self._waiter = w = loop.create_future()
+                # a timer setting the future is cheaper than asyncio.timeout on a hot path
+                timer = None if deadline is None else loop.call_at(deadline, _expire, w)
+                try:
+                    await w
+                finally:
+                    self._waiter = None
+                    if timer is not None:
+                        timer.cancel()
+                if w.result() is _TIMED_OUT and not items:
+                    raise TimeoutError("nothing came by the deadline")
+        return items.popleft()
+
+    def get_nowait(self) -> T:
+        """The next item if there is one; asyncio.QueueEmpty otherwise."""
+        if not self._items:
+            raise asyncio.QueueEmpty
+        return self._items.popleft()
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+
+class Ticker:
+    """The ticks of a periodic loop: every ``period`` s of loop time, on a fixed grid.
+
+    ``async for due in Ticker(1.0): ...`` runs the body once per period. The time the
+    body takes does not push later ticks back (no drift); a body that overruns whole
+    periods skips the ticks it missed (counted in ``skipped``) instead of running them
+    back to back. ``period`` may be changed between ticks: it applies from the next one.
+    Each tick is the loop time it was due at; the first comes one period after the
+    first wait (or at ``first``, a loop time).
+    """
+
+    __slots__ = ("_due", "period", "skipped")
+
+    def __init__(self, period: float, *, first: float | None = None) -> None:
+        self.period = _check_period(period)
+        self._due = first
+        self.skipped = 0
+
+    def __aiter__(self) -> Self:
+        return self
+
+    async def __anext__(self) -> float:
+        return await self.tick()
+
+    async def tick(self) -> float:
+        """Wait for the next tick; returns the loop time it was due at."""
+        period = _check_period(self.period)
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        due = now + period if self._due is None else self._due
+        if now - due >= period:  # overran: the ticks already past are skipped
+            missed = math.floor((now - due) / period)
+            due += missed * period
+            self.skipped += missed
+        if due > now:
+            await asyncio.sleep(due - now)
+        self._due = due + period
+        return due
+
+
+def _check_period(period: float) -> float:
+    if not (period > 0 and math.isfinite(period)):
+        raise ValueError(f"a period must be a positive number of seconds, got {period}")
+    return period

@@ -1,0 +1,77 @@
+"""Small asyncio building blocks of the core's timers.
+
+`Ticker`: the ticks of a periodic loop, on a fixed grid of loop time (the same as
+``agents.Ticker``: the two packages do not import each other).
+`sleep_until_woken`: a timer's wait for its next deadline on an instance clock, cut short
+when the deadline moves.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from typing import Any, Self
+
+from ._time import Clock
+
+
+class Ticker:
+    """The ticks of a periodic loop: every ``period`` s of loop time, on a fixed grid.
+
+    ``async for due in Ticker(1.0): ...`` runs the body once per period. The time the
+    body takes does not push later ticks back (no drift); a body that overruns whole
+    periods skips the ticks it missed (counted in ``skipped``) instead of running them
+    back to back. ``period`` may be changed between ticks: it applies from the next one.
+    Each tick is the loop time it was due at; the first comes one period after the
+    first wait (or at ``first``, a loop time).
+    """
+
+    __slots__ = ("_due", "period", "skipped")
+
+    def __init__(self, period: float, *, first: float | None = None) -> None:
+        self.period = _check_period(period)
+        self._due = first
+        self.skipped = 0
+
+    def __aiter__(self) -> Self:
+        return self
+
+    async def __anext__(self) -> float:
+        return await self.tick()
+
+    async def tick(self) -> float:
+        """Wait for the next tick; returns the loop time it was due at."""
+        period = _check_period(self.period)
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        due = now + period if self._due is None else self._due
+        if now - due >= period:  # overran: the ticks already past are skipped
+            missed = math.floor((now - due) / period)
+            due += missed * period
+            self.skipped += missed
+        if due > now:
+            await asyncio.sleep(due - now)
+        self._due = due + period
+        return due
+
+
+def _check_period(period: float) -> float:
+    if not (period > 0 and math.isfinite(period)):
+        raise ValueError(f"a period must be a positive number of seconds, got {period}")
+    return period
+
+
+async def sleep_until_woken(clock: Clock, deadline: int | None, wake: asyncio.Event) -> None:
+    """Sleep until ``deadline`` on ``clock`` (ns; None: no deadline) or until ``wake`` is set.
+
+    For timers whose next deadline may move earlier while they sleep: whoever moves it
+    sets ``wake`` (the timer clears it before reading its deadline).
+    """
+    waits: set[asyncio.Future[Any]] = {asyncio.ensure_future(wake.wait())}
+    if deadline is not None:
+        waits.add(asyncio.ensure_future(clock.sleep_until(deadline)))
+    try:
+        await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        for w in waits:
+            w.cancel()

@@ -1,0 +1,218 @@
+"""The asyncio helpers: Mailbox (deadline, cancellation, order, overflow), Ticker (drift),
+sleep_until_woken, and the Inbox's own record of its loop's thread."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import pytest
+
+from agents import Mailbox, Ticker
+from agents.transports import Inbox
+from dyknow_core import ManualClock
+from dyknow_core._aio import Ticker as CoreTicker
+from dyknow_core._aio import sleep_until_woken
+
+# -- Mailbox ------------------------------------------------------------------------------------
+
+
+async def test_items_come_out_in_order() -> None:
+    box: Mailbox[int] = Mailbox(10)
+    for n in range(5):
+        assert box.put(n)
+    assert [await box.get() for _ in range(5)] == [0, 1, 2, 3, 4]
+    assert len(box) == 0
+
+
+async def test_a_waiting_consumer_gets_the_next_item() -> None:
+    box: Mailbox[str] = Mailbox(10)
+    getting = asyncio.create_task(box.get())
+    await asyncio.sleep(0)
+    assert not getting.done()
+    box.put("a")
+    assert await getting == "a"
+
+
+async def test_get_raises_timeout_at_the_deadline() -> None:
+    box: Mailbox[int] = Mailbox(10)
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    with pytest.raises(TimeoutError):
+        await box.get(deadline=start + 0.05)
+    assert loop.time() - start >= 0.04
+    assert box._waiter is None  # nothing left behind for a later put to wake
+
+
+async def test_a_deadline_already_past_still_returns_what_is_queued() -> None:
+    box: Mailbox[int] = Mailbox(10)
+    box.put(7)
+    assert await box.get(deadline=asyncio.get_running_loop().time() - 1.0) == 7
+    with pytest.raises(TimeoutError):
+        await box.get(deadline=asyncio.get_running_loop().time() - 1.0)
+
+
+async def test_an_item_before_the_deadline_wins() -> None:
+    box: Mailbox[int] = Mailbox(10)
+    loop = asyncio.get_running_loop()
+    loop.call_later(0.01, box.put, 1)
+    assert await box.get(deadline=loop.time() + 5.0) == 1
+
+
+async def test_a_cancelled_get_leaves_the_items_for_the_next() -> None:
+    box: Mailbox[int] = Mailbox(10)
+    getting = asyncio.create_task(box.get(deadline=asyncio.get_running_loop().time() + 5.0))
+    await asyncio.sleep(0)
+    getting.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await getting
+    box.put(3)
+    assert await box.get() == 3
+
+
+async def test_a_full_box_refuses_or_drops_the_oldest() -> None:
+    refusing: Mailbox[int] = Mailbox(2)
+    assert refusing.put(1) and refusing.put(2)
+    assert not refusing.put(3)
+    assert refusing.dropped == 1
+    assert [refusing.get_nowait(), refusing.get_nowait()] == [1, 2]
+
+    dropping: Mailbox[int] = Mailbox(2, drop_oldest=True)
+    dropping.put(1)
+    dropping.put(2)
+    assert not dropping.put(3)
+    assert dropping.dropped == 1
+    assert [dropping.get_nowait(), dropping.get_nowait()] == [2, 3]
+    with pytest.raises(asyncio.QueueEmpty):
+        dropping.get_nowait()
+
+
+async def test_forced_and_front_items_pass_a_full_box() -> None:
+    box: Mailbox[int] = Mailbox(1)
+    box.put(1)
+    assert box.put(2, force=True)
+    box.put_front(0)
+    assert [box.get_nowait() for _ in range(3)] == [0, 1, 2]
+    assert box.dropped == 0
+
+
+def test_a_mailbox_needs_room() -> None:
+    with pytest.raises(ValueError, match="maxlen"):
+        Mailbox(0)
+
+
+# -- Ticker -------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ticker_class", [Ticker, CoreTicker])
+async def test_ticks_stay_on_the_grid_whatever_the_body_takes(ticker_class: type[Ticker]) -> None:
+    loop = asyncio.get_running_loop()
+    period = 0.05
+    start = loop.time()
+    ticker = ticker_class(period, first=start + period)
+    ticks = []
+    for _ in range(5):
+        due = await ticker.tick()
+        assert loop.time() >= due  # never early
+        ticks.append(round((due - start) / period, 6))
+        await asyncio.sleep(period / 2)  # a body taking half a period does not add up
+    # every tick on the grid k * period (no drift); under load one may be skipped, not shifted
+    assert ticks == sorted(set(ticks))
+    assert all(k == int(k) for k in ticks)
+    assert ticks[-1] - ticks[0] == 4 + ticker.skipped
+
+
+@pytest.mark.parametrize("ticker_class", [Ticker, CoreTicker])
+async def test_an_overrun_skips_the_missed_ticks(ticker_class: type[Ticker]) -> None:
+    loop = asyncio.get_running_loop()
+    period = 0.02
+    ticker = ticker_class(period)
+    first = await ticker.tick()
+    await asyncio.sleep(period * 3.5)  # the body overruns: three more ticks are past
+    second = await ticker.tick()
+    now = loop.time()
+    # the latest one past runs at once, on the grid; the ones before it are skipped
+    assert ticker.skipped >= 2
+    assert second == pytest.approx(first + (ticker.skipped + 1) * period)
+    assert second <= now < second + period
+
+
+async def test_the_period_may_change_between_ticks() -> None:
+    loop = asyncio.get_running_loop()
+    ticker = Ticker(0.01)
+    first = await ticker.tick()
+    ticker.period = 0.03
+    second = await ticker.tick()
+    third = await ticker.tick()
+    assert second == pytest.approx(first + 0.01)  # already due at the old period
+    assert third == pytest.approx(second + 0.03)
+    assert loop.time() >= third
+
+
+async def test_a_ticker_is_an_async_iterator() -> None:
+    seen = 0
+    async for _ in Ticker(0.001):
+        seen += 1
+        if seen == 3:
+            break
+    assert seen == 3
+
+
+@pytest.mark.parametrize("period", [0.0, -1.0, float("inf"), float("nan")])
+def test_a_period_must_be_positive(period: float) -> None:
+    with pytest.raises(ValueError, match="period"):
+        Ticker(period)
+    with pytest.raises(ValueError, match="period"):
+        CoreTicker(period)
+
+
+async def test_a_cancelled_tick_leaves_the_loop_clean() -> None:
+    ticking = asyncio.create_task(Ticker(10.0).tick())
+    await asyncio.sleep(0)
+    ticking.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await ticking
+
+
+# -- sleep_until_woken ---------------------------------------------------------------------------
+
+
+async def test_sleep_until_woken_ends_at_the_deadline_or_when_woken() -> None:
+    clock = ManualClock(0)
+    wake = asyncio.Event()
+    sleeping = asyncio.create_task(sleep_until_woken(clock, 100, wake))
+    await asyncio.sleep(0)
+    clock.advance(50)
+    await asyncio.sleep(0)
+    assert not sleeping.done()
+    clock.advance(50)
+    await asyncio.wait_for(sleeping, 1.0)
+
+    sleeping = asyncio.create_task(sleep_until_woken(clock, None, wake))  # no deadline
+    await asyncio.sleep(0)
+    assert not sleeping.done()
+    wake.set()
+    await asyncio.wait_for(sleeping, 1.0)
+    pending = {t for t in asyncio.all_tasks() if t is not asyncio.current_task()}
+    await asyncio.sleep(0)
+    assert all(t.done() for t in pending)  # the waits it started are ended
+
+
+# -- Inbox: the loop's thread is its own, not asyncio's private attribute ------------------------
+
+
+async def test_an_inbox_wakes_its_consumer_from_the_loop_thread_and_from_others() -> None:
+    loop = asyncio.get_running_loop()
+    inbox: Inbox[int] = Inbox(loop)
+    getting = asyncio.create_task(inbox.get())
+    await asyncio.sleep(0)
+    assert inbox._loop_thread == threading.get_ident()  # recorded by the waiting consumer
+    inbox.put(1)  # on the loop's thread: woken directly
+    assert await asyncio.wait_for(getting, 1.0) == 1
+
+    getting = asyncio.create_task(inbox.get())
+    await asyncio.sleep(0)
+    producer = threading.Thread(target=inbox.put, args=(2,))
+    producer.start()
+    assert await asyncio.wait_for(getting, 1.0) == 2
+    producer.join()
