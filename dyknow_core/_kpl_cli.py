@@ -10,7 +10,7 @@ import argparse
 import sys
 from typing import TextIO
 
-from ._kpl import _parse, check
+from .kpl import check, parse
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -38,5 +38,5 @@ def run(args: argparse.Namespace, out: TextIO | None = None, err: TextIO | None 
         for e in errors:
             print(e.format(args.file), file=err)
         return 2
-    print(f"ok: {len(_parse(text)[0].decls)} declarations", file=out)
+    print(f"ok: {len(parse(text).decls)} declarations", file=out)
     return 0

@@ -25,7 +25,7 @@ import sys
 from collections.abc import Sequence
 from typing import Any, TextIO
 
-from ._mtl import Monitor, MTLSyntaxError, StepMonitor, Verdict, parse, state_keys
+from .reasoning.mtl import Monitor, MTLSyntaxError, StepMonitor, Verdict, parse, state_keys
 
 
 class _BadInput(Exception):
