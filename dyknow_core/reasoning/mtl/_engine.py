@@ -188,41 +188,19 @@ class _FBinAtom(_FNode):
         return out
 
 
-class _FWinAtom(_FNode):
-    """A bounded always/eventually of an operand decided at each state, in order."""
+class _FWindow(_FNode):
+    """What the bounded always/eventually nodes share: window bounds per position."""
 
-    __slots__ = (
-        "a",
-        "b",
-        "close",
-        "dom",
-        "fn",
-        "hi_hint",
-        "lo_hint",
-        "marked",
-        "ta",
-        "tb",
-        "times",
-    )
+    __slots__ = ("a", "b", "close", "dom", "ta", "tb", "times")
 
-    def __init__(
-        self,
-        a: float,
-        b: float,
-        fn: Callable[[Mapping[str, Any], float], bool],
-        always: bool,
-        times: list[float],
-    ):
+    def __init__(self, a: float, b: float, always: bool, times: list[float]) -> None:
         super().__init__()
-        self.a, self.b, self.fn, self.times = a, b, fn, times
-        self.dom = not always
+        self.a, self.b, self.times = a, b, times
+        self.dom = not always  # the operand value that decides a window at once
         # window starts t + a; with a == 0 they are the times themselves (t + 0.0 == t)
         self.ta: list[float] = times if a == 0 else []
         self.tb: list[float] = []
-        self.close = 0
-        self.marked = -1  # every position up to here whose window holds a dominant value is marked
-        self.lo_hint = 0
-        self.hi_hint = 0
+        self.close = 0  # the first position whose window is still open
 
     def base(self) -> int:
         b = super().base()
@@ -234,6 +212,29 @@ class _FWinAtom(_FNode):
         if self.ta is not self.times:
             del self.ta[:k]
         self.close -= k
+
+
+class _FWinAtom(_FWindow):
+    """A bounded always/eventually of an operand decided at each state, in order."""
+
+    __slots__ = ("fn", "hi_hint", "lo_hint", "marked")
+
+    def __init__(
+        self,
+        a: float,
+        b: float,
+        fn: Callable[[Mapping[str, Any], float], bool],
+        always: bool,
+        times: list[float],
+    ):
+        super().__init__(a, b, always, times)
+        self.fn = fn
+        self.marked = -1  # every position up to here whose window holds a dominant value is marked
+        self.lo_hint = 0
+        self.hi_hint = 0
+
+    def rebase(self, k: int) -> None:
+        super().rebase(k)
         self.marked = max(self.marked - k, -1)
         self.lo_hint = max(self.lo_hint - k, 0)
         self.hi_hint = max(self.hi_hint - k, 0)
@@ -283,29 +284,14 @@ class _FWinAtom(_FNode):
         return out
 
 
-class _FWin(_FNode):
-    __slots__ = (
-        "a",
-        "b",
-        "child",
-        "close",
-        "cover_hi",
-        "cover_lo",
-        "cu",
-        "dom",
-        "ta",
-        "tb",
-        "times",
-        "waiters",
-    )
+class _FWin(_FWindow):
+    """A bounded always/eventually of any operand: decided once its window's values are."""
+
+    __slots__ = ("child", "cover_hi", "cover_lo", "cu", "waiters")
 
     def __init__(self, a: float, b: float, child: _FNode, always: bool, times: list[float]):
-        super().__init__()
-        self.a, self.b, self.child, self.times = a, b, child, times
-        self.dom = not always  # the child value that decides a window at once
-        self.ta: list[float] = times if a == 0 else []  # as in _FWinAtom
-        self.tb: list[float] = []
-        self.close = 0  # the first position whose window is still open
+        super().__init__(a, b, always, times)
+        self.child = child
         self.cu = 0  # the child's first undecided position
         self.cover_lo, self.cover_hi = 0, -1  # a range of positions all decided
         self.waiters: dict[int, list[tuple[int, int]]] = {}  # blocker -> (position, start)
@@ -314,18 +300,11 @@ class _FWin(_FNode):
         return (self.child,)
 
     def base(self) -> int:
-        b = super().base()
-        for x in (self.close, self.cu):
-            if x < b:
-                b = x
-        return b
+        b = super().base()  # the window's own (and close) already counted
+        return b if b < self.cu else self.cu
 
     def rebase(self, k: int) -> None:
         super().rebase(k)
-        del self.tb[:k]
-        if self.ta is not self.times:
-            del self.ta[:k]
-        self.close -= k
         self.cu -= k
         self.cover_lo = max(self.cover_lo - k, 0)
         self.cover_hi = max(self.cover_hi - k, -1)

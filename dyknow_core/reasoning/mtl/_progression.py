@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any, TypeAlias
+from typing import Any, ClassVar, TypeAlias
 
 from ._semantics import _OPS, _atom_value, _members
 from ._syntax import (
@@ -32,7 +32,7 @@ from ._syntax import (
 # strictly after t. Residual temporal nodes carry absolute windows [lo, hi] so that
 # boundaries are decided by the same float expressions as in the brute force; once a
 # window has started its lo becomes -inf (only later states matter), which lets the
-# obligations of one operand merge into a single node (see _conj_into).
+# obligations of one operand merge into a single node (see _into).
 
 Node: TypeAlias = "_Node | bool"
 
@@ -88,216 +88,97 @@ def _neg(r: Node) -> Node:
     return _NotN(r)
 
 
-class _AndN(_Node):
+class _Junction(_Node):
+    """An n-ary ``and`` (``dom`` False: a false operand decides it) or ``or`` (``dom`` True)."""
+
     __slots__ = ("xs",)
+    dom: ClassVar[bool]
+    word: ClassVar[str]
 
     def __init__(self, xs: tuple[_Node, ...]) -> None:
         self.xs = xs
 
-    def prog(self, state: Mapping[str, Any], t: float) -> Node:
-        out: list[_Node] = []
-        for x in self.xs:
-            r = x.prog(state, t)
-            if r is False:
-                return False
-            if r is not True:
-                _conj_into(out, r)
-        return _mk_and(out)
-
     def close(self, t_next: float) -> Node:
+        dom = self.dom
+        junction = type(self)
         out: list[_Node] = []
         for x in self.xs:
             r = x.close(t_next)
-            if r is False:
-                return False
-            if r is not True:
-                _conj_into(out, r)
-        return _mk_and(out)
+            if r is dom:
+                return dom
+            if not isinstance(r, bool):
+                _into(out, r, junction)
+        return _make(out, junction)
 
     def __str__(self) -> str:
-        return " and ".join(f"({x})" for x in self.xs)
+        return f" {self.word} ".join(f"({x})" for x in self.xs)
 
 
-class _OrN(_Node):
-    __slots__ = ("xs",)
+class _Window(_Node):
+    """A bounded ``always`` (``dom`` False) or ``eventually`` (True) at absolute times.
 
-    def __init__(self, xs: tuple[_Node, ...]) -> None:
-        self.xs = xs
-
-    def prog(self, state: Mapping[str, Any], t: float) -> Node:
-        out: list[_Node] = []
-        for x in self.xs:
-            r = x.prog(state, t)
-            if r is True:
-                return True
-            if r is not False:
-                _disj_into(out, r)
-        return _mk_or(out)
-
-    def close(self, t_next: float) -> Node:
-        out: list[_Node] = []
-        for x in self.xs:
-            r = x.close(t_next)
-            if r is True:
-                return True
-            if r is not False:
-                _disj_into(out, r)
-        return _mk_or(out)
-
-    def __str__(self) -> str:
-        return " or ".join(f"({x})" for x in self.xs)
-
-
-def _mk_and(out: list[_Node]) -> Node:
-    if not out:
-        return True
-    if len(out) == 1:
-        return out[0]
-    return _AndN(tuple(out))
-
-
-def _mk_or(out: list[_Node]) -> Node:
-    if not out:
-        return False
-    if len(out) == 1:
-        return out[0]
-    return _OrN(tuple(out))
-
-
-def _conj_into(out: list[_Node], r: _Node) -> None:
-    """Add a conjunct, flattening and merging windows of the same operand.
-
-    ``eventually`` windows with one inside the other keep the inner one (it implies the
-    outer); overlapping ``always`` windows become their union. Both are exact under the
-    three-valued semantics, and they keep the residual of ``always(p -> eventually q)``
-    at two nodes however many obligations are pending.
+    ``dom`` is the operand value that decides the window at once; a window that passes
+    without one has the other value.
     """
-    if type(r) is _AndN:
-        for x in r.xs:
-            _conj_into(out, x)
-        return
-    tr = type(r)
-    if tr is _EvA or tr is _AlwA:
-        body = r.body  # type: ignore[attr-defined]
-        for k, o in enumerate(out):
-            if type(o) is tr and o.body is body:
-                m = _merge_and(o, r)  # type: ignore[arg-type]
-                if m is not None:
-                    out[k] = m
-                    return
-    out.append(r)
 
-
-def _disj_into(out: list[_Node], r: _Node) -> None:
-    """Add a disjunct; the dual of :func:`_conj_into`."""
-    if type(r) is _OrN:
-        for x in r.xs:
-            _disj_into(out, x)
-        return
-    tr = type(r)
-    if tr is _EvA or tr is _AlwA:
-        body = r.body  # type: ignore[attr-defined]
-        for k, o in enumerate(out):
-            if type(o) is tr and o.body is body:
-                m = _merge_or(o, r)  # type: ignore[arg-type]
-                if m is not None:
-                    out[k] = m
-                    return
-    out.append(r)
-
-
-def _merge_and(a: _EvA | _AlwA, b: _EvA | _AlwA) -> _Node | None:
-    if type(a) is _EvA:
-        if a.lo >= b.lo and a.hi <= b.hi:
-            return a
-        if b.lo >= a.lo and b.hi <= a.hi:
-            return b
-        return None
-    if a.lo <= b.hi and b.lo <= a.hi:
-        return _AlwA(min(a.lo, b.lo), max(a.hi, b.hi), a.body)
-    return None
-
-
-def _merge_or(a: _EvA | _AlwA, b: _EvA | _AlwA) -> _Node | None:
-    if type(a) is _AlwA:
-        if a.lo >= b.lo and a.hi <= b.hi:
-            return a
-        if b.lo >= a.lo and b.hi <= a.hi:
-            return b
-        return None
-    if a.lo <= b.hi and b.lo <= a.hi:
-        return _EvA(min(a.lo, b.lo), max(a.hi, b.hi), a.body)
-    return None
-
-
-class _EvF(_Node):
-    """``eventually[a,b]`` not yet anchored: anchored at the time it is first progressed."""
-
-    __slots__ = ("a", "b", "body")
-
-    def __init__(self, a: float, b: float, body: _Node) -> None:
-        self.a = a
-        self.b = b
-        self.body = body
-
-    def prog(self, state: Mapping[str, Any], t: float) -> Node:
-        return _EvA(t + self.a if self.a else -INF, t + self.b, self.body).prog(state, t)
-
-
-class _EvA(_Node):
     __slots__ = ("body", "hi", "lo")
+    dom: ClassVar[bool]
+    word: ClassVar[str]
 
     def __init__(self, lo: float, hi: float, body: _Node) -> None:
         self.lo = lo
         self.hi = hi
         self.body = body
-
-    def prog(self, state: Mapping[str, Any], t: float) -> Node:
-        hi = self.hi
-        if t > hi:
-            return False
-        if t >= self.lo:
-            r = self.body.prog(state, t)
-            if r is True or t == hi:
-                return r
-            rest = self if self.lo == -INF else _EvA(-INF, hi, self.body)
-            if r is False:
-                return rest
-            tr = type(r)
-            if tr is not _OrN and not (tr is _EvA and r.body is self.body):  # type: ignore[attr-defined]
-                return _OrN((r, rest))
-            out: list[_Node] = []
-            _disj_into(out, r)
-            _disj_into(out, rest)
-            return _mk_or(out)
-        return self
 
     def close(self, t_next: float) -> Node:
-        return False if t_next > self.hi else self
+        return (not self.dom) if t_next > self.hi else self
 
     def __str__(self) -> str:
-        return f"eventually@[{_fmt_num(self.lo)},{_fmt_num(self.hi)}] ({self.body})"
+        return f"{self.word}@[{_fmt_num(self.lo)},{_fmt_num(self.hi)}] ({self.body})"
 
 
-class _AlwF(_Node):
-    __slots__ = ("a", "b", "body")
+# The per-state ``prog`` of the and/or junctions and the always/eventually windows are
+# written out once per operator, with the deciding value as a constant. Parameterizing
+# them (by closure or class attribute) costs 10-15% of ``bench mtl``'s monitor mode, as
+# they run for every node at every state; everything else is shared.
 
-    def __init__(self, a: float, b: float, body: _Node) -> None:
-        self.a = a
-        self.b = b
-        self.body = body
+
+class _AndN(_Junction):
+    __slots__ = ()
+    dom = False
+    word = "and"
 
     def prog(self, state: Mapping[str, Any], t: float) -> Node:
-        return _AlwA(t + self.a if self.a else -INF, t + self.b, self.body).prog(state, t)
+        out: list[_Node] = []
+        for x in self.xs:
+            r = x.prog(state, t)
+            if r is False:
+                return False
+            if r is not True:
+                _into(out, r, _AndN)
+        return _make(out, _AndN)
 
 
-class _AlwA(_Node):
-    __slots__ = ("body", "hi", "lo")
+class _OrN(_Junction):
+    __slots__ = ()
+    dom = True
+    word = "or"
 
-    def __init__(self, lo: float, hi: float, body: _Node) -> None:
-        self.lo = lo
-        self.hi = hi
-        self.body = body
+    def prog(self, state: Mapping[str, Any], t: float) -> Node:
+        out: list[_Node] = []
+        for x in self.xs:
+            r = x.prog(state, t)
+            if r is True:
+                return True
+            if r is not False:
+                _into(out, r, _OrN)
+        return _make(out, _OrN)
+
+
+class _AlwA(_Window):
+    __slots__ = ()
+    dom = False
+    word = "always"
 
     def prog(self, state: Mapping[str, Any], t: float) -> Node:
         hi = self.hi
@@ -314,16 +195,100 @@ class _AlwA(_Node):
             if tr is not _AndN and not (tr is _AlwA and r.body is self.body):  # type: ignore[attr-defined]
                 return _AndN((r, rest))
             out: list[_Node] = []
-            _conj_into(out, r)
-            _conj_into(out, rest)
-            return _mk_and(out)
+            _into(out, r, _AndN)
+            _into(out, rest, _AndN)
+            return _make(out, _AndN)
         return self
 
-    def close(self, t_next: float) -> Node:
-        return True if t_next > self.hi else self
 
-    def __str__(self) -> str:
-        return f"always@[{_fmt_num(self.lo)},{_fmt_num(self.hi)}] ({self.body})"
+class _EvA(_Window):
+    __slots__ = ()
+    dom = True
+    word = "eventually"
+
+    def prog(self, state: Mapping[str, Any], t: float) -> Node:
+        hi = self.hi
+        if t > hi:
+            return False
+        if t >= self.lo:
+            r = self.body.prog(state, t)
+            if r is True or t == hi:
+                return r
+            rest = self if self.lo == -INF else _EvA(-INF, hi, self.body)
+            if r is False:
+                return rest
+            tr = type(r)
+            if tr is not _OrN and not (tr is _EvA and r.body is self.body):  # type: ignore[attr-defined]
+                return _OrN((r, rest))
+            out: list[_Node] = []
+            _into(out, r, _OrN)
+            _into(out, rest, _OrN)
+            return _make(out, _OrN)
+        return self
+
+
+def _make(out: list[_Node], junction: type[_Junction]) -> Node:
+    """The junction of ``out``: its unit when empty, the one operand, or the node."""
+    if len(out) == 1:
+        return out[0]
+    if out:
+        return junction(tuple(out))
+    return junction is _AndN  # the empty and is true, the empty or false
+
+
+def _into(out: list[_Node], r: _Node, junction: type[_Junction]) -> None:
+    """Add an operand to a junction's list, flattening and merging windows of one operand.
+
+    A window of the junction's own kind (``always`` in an ``and``, ``eventually`` in an
+    ``or``) overlapping another becomes their union; of the other kind, one inside the
+    other keeps the inner one (it implies the outer in an ``and``, is implied in an
+    ``or``). Both are exact under the three-valued semantics, and they keep the residual
+    of ``always(p -> eventually q)`` at two nodes however many obligations are pending.
+    """
+    tr = type(r)
+    if tr is junction:
+        for x in r.xs:  # type: ignore[attr-defined]
+            _into(out, x, junction)
+        return
+    if tr is _AlwA or tr is _EvA:
+        body = r.body  # type: ignore[attr-defined]
+        for k, o in enumerate(out):
+            if type(o) is tr and o.body is body:
+                own = (tr is _AlwA) is (junction is _AndN)
+                m = _union(o, r) if own else _inner(o, r)  # type: ignore[arg-type]
+                if m is not None:
+                    out[k] = m
+                    return
+    out.append(r)
+
+
+def _union(a: _Window, b: _Window) -> _Window | None:
+    if a.lo <= b.hi and b.lo <= a.hi:
+        return type(a)(min(a.lo, b.lo), max(a.hi, b.hi), a.body)
+    return None
+
+
+def _inner(a: _Window, b: _Window) -> _Window | None:
+    if a.lo >= b.lo and a.hi <= b.hi:
+        return a
+    if b.lo >= a.lo and b.hi <= a.hi:
+        return b
+    return None
+
+
+class _Unanchored(_Node):
+    """A bounded window not yet anchored: anchored at the time it is first progressed."""
+
+    __slots__ = ("a", "b", "body", "window")
+
+    def __init__(self, window: type[_Window], a: float, b: float, body: _Node) -> None:
+        self.window = window
+        self.a = a
+        self.b = b
+        self.body = body
+
+    def prog(self, state: Mapping[str, Any], t: float) -> Node:
+        return self.window(t + self.a if self.a else -INF, t + self.b, self.body).prog(state, t)
 
 
 class _UntF(_Node):
@@ -364,14 +329,14 @@ class _UntA(_Node):
             return r
         rest: list[_Node] = []
         if lft is not True:
-            _conj_into(rest, lft)
+            _into(rest, lft, _AndN)
         unchanged = self.lo == -INF or t < self.lo
         rest.append(self if unchanged else _UntA(-INF, hi, self.left, self.right))
         out: list[_Node] = []
         if r is not False:
-            _disj_into(out, r)  # type: ignore[arg-type]
-        out.append(_mk_and(rest))  # type: ignore[arg-type]
-        return _mk_or(out)
+            _into(out, r, _OrN)  # type: ignore[arg-type]
+        out.append(_make(rest, _AndN))  # type: ignore[arg-type]
+        return _make(out, _OrN)
 
     def close(self, t_next: float) -> Node:
         return False if t_next > self.hi else self
@@ -393,6 +358,8 @@ class _Quant(_Node):
 
     def prog(self, state: Mapping[str, Any], t: float) -> Node:
         q = self.q
+        junction = _AndN if q.universal else _OrN  # forall is an and over the members
+        dom = not q.universal
         out: list[_Node] = []
         for m in _members(state, q.domain):
             try:
@@ -406,17 +373,11 @@ class _Quant(_Node):
                 except TypeError:
                     pass  # an unhashable member is compiled each time
             r = node if isinstance(node, bool) else node.prog(state, t)
-            if q.universal:
-                if r is False:
-                    return False
-                if r is not True:
-                    _conj_into(out, r)
-            else:
-                if r is True:
-                    return True
-                if r is not False:
-                    _disj_into(out, r)
-        return _mk_and(out) if q.universal else _mk_or(out)
+            if r is dom:
+                return dom
+            if not isinstance(r, bool):
+                _into(out, r, junction)
+        return _make(out, junction)
 
     def __str__(self) -> str:
         return str(self.q)
@@ -458,11 +419,11 @@ def _compile(f: Formula, env: Mapping[str, Any]) -> Node:
             return _compile_atom(f.operand, env, True)
         return _neg(_compile(f.operand, env))
     if isinstance(f, And):
-        return _static_and(_compile(f.left, env), _compile(f.right, env))
+        return _static(_compile(f.left, env), _compile(f.right, env), _AndN)
     if isinstance(f, Or):
-        return _static_or(_compile(f.left, env), _compile(f.right, env))
+        return _static(_compile(f.left, env), _compile(f.right, env), _OrN)
     if isinstance(f, Implies):
-        return _static_or(_neg(_compile(f.left, env)), _compile(f.right, env))
+        return _static(_neg(_compile(f.left, env)), _compile(f.right, env), _OrN)
     if isinstance(f, Always | Eventually):
         body = _compile(f.operand, env)
         always = isinstance(f, Always)
@@ -471,7 +432,7 @@ def _compile(f: Formula, env: Mapping[str, Any]) -> Node:
         if isinstance(body, bool) and f.lo == 0:
             return body  # the window holds the current state, so it decides
         # otherwise the window may be empty (vacuous), so it must be watched
-        return (_AlwF if always else _EvF)(f.lo, f.hi, _shared(body))
+        return _Unanchored(_AlwA if always else _EvA, f.lo, f.hi, _shared(body))
     if isinstance(f, Until):
         left, right = _compile(f.left, env), _compile(f.right, env)
         if right is False or (right is True and f.lo == 0):
@@ -541,24 +502,16 @@ def _as_node(n: Node) -> _Node:
     return _Const(n) if isinstance(n, bool) else n
 
 
-def _static_and(a: Node, b: Node) -> Node:
-    if a is False or b is False:
-        return False
-    if a is True:
+def _static(a: Node, b: Node, junction: type[_Junction]) -> Node:
+    """``a and b`` (``a or b``), simplified when either is constant."""
+    dom = junction.dom
+    if a is dom or b is dom:
+        return dom
+    if isinstance(a, bool):  # the unit: the other operand decides
         return b
-    if b is True:
+    if isinstance(b, bool):
         return a
-    return _AndN((a, b))
-
-
-def _static_or(a: Node, b: Node) -> Node:
-    if a is True or b is True:
-        return True
-    if a is False:
-        return b
-    if b is False:
-        return a
-    return _OrN((a, b))
+    return junction((a, b))
 
 
 class Residual:

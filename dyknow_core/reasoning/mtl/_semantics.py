@@ -64,20 +64,21 @@ def _atom_value(f: Feature | Compare, state: Mapping[str, Any], env: Mapping[str
 Trace: TypeAlias = Sequence[tuple[float, Mapping[str, Any]]]
 
 
-def _and3(a: bool | None, b: bool | None) -> bool | None:
-    if a is False or b is False:
-        return False
+def _join3(a: bool | None, b: bool | None, dom: bool) -> bool | None:
+    """Kleene's ``a and b`` (``dom`` False: false decides) or ``a or b`` (``dom`` True)."""
+    if a is dom or b is dom:
+        return dom
     if a is None or b is None:
         return None
-    return True
+    return not dom
+
+
+def _and3(a: bool | None, b: bool | None) -> bool | None:
+    return _join3(a, b, False)
 
 
 def _or3(a: bool | None, b: bool | None) -> bool | None:
-    if a is True or b is True:
-        return True
-    if a is None or b is None:
-        return None
-    return False
+    return _join3(a, b, True)
 
 
 def _not3(a: bool | None) -> bool | None:
@@ -103,26 +104,25 @@ def _eval(f: Formula, trace: Trace, i: int, env: Mapping[str, Any]) -> bool | No
     if isinstance(f, Implies):
         return _or3(_not3(_eval(f.left, trace, i, env)), _eval(f.right, trace, i, env))
     if isinstance(f, Quantifier):
+        dom = not f.universal  # forall is an and over the members
         res: bool | None = f.universal
         for m in _members(trace[i][1], f.domain):
-            v = _eval(f.body, trace, i, {**env, f.var: m})
-            res = _and3(res, v) if f.universal else _or3(res, v)
+            res = _join3(res, _eval(f.body, trace, i, {**env, f.var: m}), dom)
         return res
     t0 = trace[i][0]
     lo, hi = t0 + f.lo, t0 + f.hi
     beyond = hi > trace[-1][0]
     if isinstance(f, Eventually | Always):
-        res = isinstance(f, Always)
+        dom = isinstance(f, Eventually)  # always is an and over the window, eventually an or
+        res = not dom
         for j in range(i, len(trace)):
             tj = trace[j][0]
             if tj > hi:
                 break
             if tj >= lo:
-                v = _eval(f.operand, trace, j, env)
-                res = _and3(res, v) if isinstance(f, Always) else _or3(res, v)
+                res = _join3(res, _eval(f.operand, trace, j, env), dom)
         if beyond:
-            b = _beyond(f)
-            res = _and3(res, b) if isinstance(f, Always) else _or3(res, b)
+            res = _join3(res, _beyond(f), dom)
         return res
     # until: every earlier position must satisfy the left side
     res = False

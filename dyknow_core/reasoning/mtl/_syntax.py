@@ -6,7 +6,7 @@ import math
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import NamedTuple, TypeAlias
+from typing import ClassVar, NamedTuple, TypeAlias
 
 from ..._exceptions import DyKnowError
 
@@ -73,60 +73,63 @@ class Not:
 
 
 @dataclass(frozen=True, slots=True)
-class And:
+class _Binary:
+    """A binary connective; the subclass names its ``word``."""
+
+    word: ClassVar[str]
+    left: Formula
+    right: Formula
+
+    def __str__(self) -> str:
+        return f"{_paren(self.left)} {self.word} {_paren(self.right)}"
+
+
+@dataclass(frozen=True, slots=True)
+class And(_Binary):
     """Conjunction."""
 
-    left: Formula
-    right: Formula
-
-    def __str__(self) -> str:
-        return f"{_paren(self.left)} and {_paren(self.right)}"
+    word = "and"
 
 
 @dataclass(frozen=True, slots=True)
-class Or:
+class Or(_Binary):
     """Disjunction."""
 
-    left: Formula
-    right: Formula
-
-    def __str__(self) -> str:
-        return f"{_paren(self.left)} or {_paren(self.right)}"
+    word = "or"
 
 
 @dataclass(frozen=True, slots=True)
-class Implies:
+class Implies(_Binary):
     """Implication ``left -> right``."""
 
-    left: Formula
-    right: Formula
-
-    def __str__(self) -> str:
-        return f"{_paren(self.left)} -> {_paren(self.right)}"
+    word = "->"
 
 
 @dataclass(frozen=True, slots=True)
-class Always:
+class _Bounded:
+    """A unary temporal operator over ``[lo, hi]`` (seconds); the subclass names its ``word``."""
+
+    word: ClassVar[str]
+    lo: float
+    hi: float
+    operand: Formula
+
+    def __str__(self) -> str:
+        return f"{self.word}{_fmt_iv(self.lo, self.hi)} {_paren(self.operand)}"
+
+
+@dataclass(frozen=True, slots=True)
+class Always(_Bounded):
     """``always[lo,hi] operand``."""
 
-    lo: float
-    hi: float
-    operand: Formula
-
-    def __str__(self) -> str:
-        return f"always{_fmt_iv(self.lo, self.hi)} {_paren(self.operand)}"
+    word = "always"
 
 
 @dataclass(frozen=True, slots=True)
-class Eventually:
+class Eventually(_Bounded):
     """``eventually[lo,hi] operand``."""
 
-    lo: float
-    hi: float
-    operand: Formula
-
-    def __str__(self) -> str:
-        return f"eventually{_fmt_iv(self.lo, self.hi)} {_paren(self.operand)}"
+    word = "eventually"
 
 
 @dataclass(frozen=True, slots=True)
