@@ -9,7 +9,7 @@ from pydantic import ValidationError
 
 from ..._time import seconds_to_ns
 from ._spec import ChronicleError, ChronicleSpec
-from ._stn import _INF, _floyd_warshall
+from ._stn import _INF, TemporalNetwork
 
 # -- compiled form ------------------------------------------------------------------------
 
@@ -147,10 +147,7 @@ def compile_chronicle(definition: ChronicleSpec | Mapping[str, Any]) -> Compiled
                 field, f"unknown event {name!r} (events: {', '.join(names)})"
             ) from None
 
-    dist = [[_INF] * n for _ in range(n)]
-    why: list[list[str | None]] = [[None] * n for _ in range(n)]
-    for i in range(n):
-        dist[i][i] = 0
+    stn = TemporalNetwork(n)
     for k, c in enumerate(spec.constraints):
         a = node(c.start, f"constraints.{k}.start")
         b = node(c.end, f"constraints.{k}.end")
@@ -158,14 +155,14 @@ def compile_chronicle(definition: ChronicleSpec | Mapping[str, Any]) -> Compiled
             raise ChronicleError(f"constraints.{k}", "a constraint needs two different events")
         if c.lo is not None and c.hi is not None and c.lo > c.hi:
             raise ChronicleError(f"constraints.{k}", f"lo {c.lo} is greater than hi {c.hi}")
-        text = f"{c.start} -> {c.end} [{c.lo}, {c.hi}]"
-        if c.hi is not None and seconds_to_ns(c.hi) < dist[a][b]:
-            dist[a][b] = seconds_to_ns(c.hi)
-            why[a][b] = text
-        if c.lo is not None and -seconds_to_ns(c.lo) < dist[b][a]:
-            dist[b][a] = -seconds_to_ns(c.lo)
-            why[b][a] = text
-    _floyd_warshall(dist, why)
+        stn.constrain(
+            a,
+            b,
+            None if c.lo is None else seconds_to_ns(c.lo),
+            None if c.hi is None else seconds_to_ns(c.hi),
+            f"{c.start} -> {c.end} [{c.lo}, {c.hi}]",
+        )
+    dist = stn.minimal()
 
     forbids: list[_Forbid] = []
     for k, f in enumerate(spec.forbidden):

@@ -27,14 +27,23 @@ register_record_type(Recognition)  # a replay gives recognitions back as themsel
 
 
 # A partial instance is a list, not an object: it is made and dropped once per matching
-# event, and list literals and indexing are the cheapest Python has. Its slots:
-# [seq, mask of assigned events, times, bindings, window lows, window highs, deadline,
-#  where it is indexed, alive, origin]; ``times`` is the window-lows list itself (an
-# assigned event's window is its time), never copied separately. Times and windows are
-# relative to ``origin`` (the first assigned event's time), so a new instance shares the
-# compiled start windows instead of building two lists per event: they are copied before
-# any change. The deadline is absolute (the expiry heap orders by it).
+# event, and list literals and indexing are the cheapest Python has. Its slots, by the
+# index constants below: ``times`` is the window-lows list itself (an assigned event's
+# window is its time), never copied separately. Times and windows are relative to
+# ``origin`` (the first assigned event's time), so a new instance shares the compiled
+# start windows instead of building two lists per event: they are copied before any
+# change. The deadline is absolute (the expiry heap orders by it).
 _Partial = list
+_SEQ = 0  # its number: the key in the alive table and the index buckets
+_MASK = 1  # bit i set when chronicle event i is assigned
+_TIMES = 2  # per event, relative to origin: the assigned ones' times (the _LO list)
+_BINDS = 3  # per chronicle parameter, its value or _UNBOUND
+_LO = 4  # per event, the lower end of its window (relative)
+_HI = 5  # per event, the upper end of its window (relative)
+_DEADLINE = 6  # absolute: after it a missing event can no longer come in time
+_REGS = 7  # (table, key) of every index bucket holding it; None once removed
+_ALIVE = 8  # False once expired, killed, completed or dropped
+_ORIGIN = 9  # the first assigned event's time (ns)
 
 
 _UNBOUND: Any = object()
@@ -155,16 +164,16 @@ class ChronicleRecognizer:
                 gone = 0
                 while heap and heap[0][0] < time:
                     deadline, seq, inst = pop(heap)
-                    if inst[8] and inst[6] == deadline:
+                    if inst[_ALIVE] and inst[_DEADLINE] == deadline:
                         del alive[seq]
-                        inst[8] = False
-                        for parent, key in inst[7]:
+                        inst[_ALIVE] = False
+                        for parent, key in inst[_REGS]:
                             bucket = parent[key]
                             del bucket[seq]
                             # an unkeyed table has one bucket: kept, as it soon refills
                             if not bucket and key:
                                 del parent[key]
-                        inst[7] = None
+                        inst[_REGS] = None
                         gone += 1
                 self.expired += gone
             if self._pending:
@@ -223,18 +232,18 @@ class ChronicleRecognizer:
                     continue
                 fresh = len(sig) != len(vals)
                 for inst in bucket.values():
-                    origin = inst[9]
+                    origin = inst[_ORIGIN]
                     rt = time - origin
-                    ilo = inst[4]
-                    if not (ilo[i] <= rt <= inst[5][i]):
+                    ilo = inst[_LO]
+                    if not (ilo[i] <= rt <= inst[_HI][i]):
                         continue
-                    mask = inst[1] | bit
+                    mask = inst[_MASK] | bit
                     if mask == direct:
                         # the last missing event, and no 'after' window to wait for: report
                         # it now (as _recognition, inlined), without building an instance
                         times = ilo[:]
                         times[i] = rt
-                        binds = inst[3]
+                        binds = inst[_BINDS]
                         if fresh:
                             binds = binds[:]
                             for p, v in vals.items():
@@ -254,7 +263,7 @@ class ChronicleRecognizer:
                     # assigned events keep their windows: ``time`` lies in this event's
                     # window, so the minimal network already implies ``t_k <= time + di[k]``
                     # for each of them; only the missing ones narrow
-                    hi = inst[5][:]
+                    hi = inst[_HI][:]
                     hi[i] = rt
                     lo = ilo[:]
                     lo[i] = rt
@@ -278,16 +287,18 @@ class ChronicleRecognizer:
                             deadline = h
                     if deadline < rt:
                         continue
-                    binds = inst[3]
+                    binds = inst[_BINDS]
                     if fresh:
                         binds = binds[:]
                         for p, v in vals.items():
                             binds[p] = v
-                    # an assigned event's window is its time: ``lo`` doubles as the times
+                    # slots in the order of _SEQ.._ORIGIN; an assigned event's window is its
+                    # time: ``lo`` doubles as the times
                     created.append(
                         [0, mask, lo, binds, lo, hi, origin + deadline, [], True, origin]
                     )
-            # and start a new one, unless another event must come strictly before this one
+            # and start a new one (slots as above), unless another event must come strictly
+            # before this one
             if startable:
                 binds = self._no_binds
                 if vals:
@@ -304,7 +315,7 @@ class ChronicleRecognizer:
         fidx = self._fidx
         cap = self._cap
         for inst in created:
-            mask = inst[1]
+            mask = inst[_MASK]
             if mask == full:
                 if self._after:
                     self._complete(inst, out)
@@ -313,10 +324,10 @@ class ChronicleRecognizer:
                 continue
             # index it under every event it still waits for (as _add, inlined)
             self._seq = seq = self._seq + 1
-            inst[0] = seq
+            inst[_SEQ] = seq
             alive[seq] = inst
-            binds = inst[3]
-            regs = inst[7]
+            binds = inst[_BINDS]
+            regs = inst[_REGS]
             where = plans.get(mask)
             if where is None:
                 where = self._plan(mask)
@@ -329,8 +340,8 @@ class ChronicleRecognizer:
                 regs.append((table, key))
             if fidx:
                 self._register_forbidden(inst)
-            if inst[6] < _INF:
-                heapq.heappush(expiry, (inst[6], seq, inst))
+            if inst[_DEADLINE] < _INF:
+                heapq.heappush(expiry, (inst[_DEADLINE], seq, inst))
             if len(alive) > cap:
                 self._evict()
                 # eviction may rebuild the heap: later instances go to the new one
@@ -387,12 +398,12 @@ class ChronicleRecognizer:
     def _add(self, inst: _Partial) -> None:
         """Index a new partial instance under every event it still waits for."""
         self._seq += 1
-        seq = inst[0] = self._seq
+        seq = inst[_SEQ] = self._seq
         alive = self._alive
         alive[seq] = inst
-        binds = inst[3]
-        regs = inst[7]
-        for sig, table in self._plan(inst[1]):
+        binds = inst[_BINDS]
+        regs = inst[_REGS]
+        for sig, table in self._plan(inst[_MASK]):
             key = tuple([binds[p] for p in sig]) if sig else ()
             bucket = table.get(key)
             if bucket is None:
@@ -401,8 +412,8 @@ class ChronicleRecognizer:
             regs.append((table, key))
         if self._fidx:
             self._register_forbidden(inst)
-        if inst[6] < _INF:
-            heapq.heappush(self._expiry, (inst[6], seq, inst))
+        if inst[_DEADLINE] < _INF:
+            heapq.heappush(self._expiry, (inst[_DEADLINE], seq, inst))
         if len(alive) > self._cap:
             self._evict()
 
@@ -416,37 +427,37 @@ class ChronicleRecognizer:
         self._compact()
 
     def _register_forbidden(self, inst: _Partial) -> None:
-        mask = inst[1]
+        mask = inst[_MASK]
         for f in self.chronicle.forbids:
             if not (mask >> f.start & 1):
                 continue
             if f.end >= 0:
                 if mask >> f.end & 1:
                     continue
-            elif inst[9] + inst[2][f.start] + f.hi <= self.clock:
+            elif inst[_ORIGIN] + inst[_TIMES][f.start] + f.hi <= self.clock:
                 continue
             parent = self._fidx[f.pos]
-            key = tuple([inst[3][p] for _, p in f.params])
+            key = tuple([inst[_BINDS][p] for _, p in f.params])
             bucket = parent.get(key)
             if bucket is None:
                 bucket = parent[key] = {}
-            bucket[inst[0]] = inst
-            inst[7].append((parent, key))
+            bucket[inst[_SEQ]] = inst
+            inst[_REGS].append((parent, key))
 
     def _drop(self, inst: _Partial) -> None:
         """Forget ``inst`` everywhere it is indexed (the heaps clean up lazily)."""
-        inst[8] = False
-        seq = inst[0]
-        for parent, key in inst[7]:
+        inst[_ALIVE] = False
+        seq = inst[_SEQ]
+        for parent, key in inst[_REGS]:
             bucket = parent.get(key)
             if bucket is not None:
                 bucket.pop(seq, None)
                 if not bucket:
                     del parent[key]
-        inst[7] = []
+        inst[_REGS] = []
 
     def _remove(self, inst: _Partial) -> None:
-        if self._alive.pop(inst[0], None) is not None:
+        if self._alive.pop(inst[_SEQ], None) is not None:
             self._drop(inst)
 
     def _compact(self) -> None:
@@ -454,10 +465,10 @@ class ChronicleRecognizer:
         # when they outnumber the live ones, so memory follows the cap
         limit = 2 * len(self._alive) + 64
         if len(self._expiry) > limit:
-            self._expiry = [e for e in self._expiry if e[2][8] and e[2][6] == e[0]]
+            self._expiry = [e for e in self._expiry if e[2][_ALIVE] and e[2][_DEADLINE] == e[0]]
             heapq.heapify(self._expiry)
         if len(self._pending) > limit:
-            self._pending = [e for e in self._pending if e[2][8]]
+            self._pending = [e for e in self._pending if e[2][_ALIVE]]
             heapq.heapify(self._pending)
 
     def _expire(self, now: int) -> None:
@@ -467,15 +478,15 @@ class ChronicleRecognizer:
         n = 0
         while heap and heap[0][0] < now:
             deadline, seq, inst = pop(heap)
-            if inst[8] and inst[6] == deadline:
+            if inst[_ALIVE] and inst[_DEADLINE] == deadline:
                 del alive[seq]
-                inst[8] = False
-                for parent, key in inst[7]:
+                inst[_ALIVE] = False
+                for parent, key in inst[_REGS]:
                     bucket = parent[key]
                     del bucket[seq]
                     if not bucket:
                         del parent[key]
-                inst[7] = []
+                inst[_REGS] = []
                 n += 1
         self.expired += n
 
@@ -495,8 +506,8 @@ class ChronicleRecognizer:
             if not bucket:
                 continue
             for inst in list(bucket.values()):
-                origin = inst[9]
-                ta = origin + inst[2][f.start]
+                origin = inst[_ORIGIN]
+                ta = origin + inst[_TIMES][f.start]
                 if f.end < 0:
                     if ta + f.lo < time < ta + f.hi:
                         self._remove(inst)
@@ -508,12 +519,12 @@ class ChronicleRecognizer:
                 # narrow what depends on it
                 b = f.end
                 rt = time - origin
-                if rt >= inst[5][b]:
+                if rt >= inst[_HI][b]:
                     continue
-                lo = inst[4]
-                hi = inst[5] = inst[5][:]  # it may be the compiled start windows, shared
+                lo = inst[_LO]
+                hi = inst[_HI] = inst[_HI][:]  # it may be the compiled start windows, shared
                 db = dist[b]
-                mask = inst[1]
+                mask = inst[_MASK]
                 deadline = _INF
                 dead = False
                 past = self.clock - origin
@@ -531,9 +542,9 @@ class ChronicleRecognizer:
                 if dead:
                     self._remove(inst)
                     self.killed += 1
-                elif origin + deadline < inst[6]:
-                    inst[6] = deadline = origin + deadline
-                    heapq.heappush(self._expiry, (deadline, inst[0], inst))
+                elif origin + deadline < inst[_DEADLINE]:
+                    inst[_DEADLINE] = deadline = origin + deadline
+                    heapq.heappush(self._expiry, (deadline, inst[_SEQ], inst))
         if len(self._expiry) > 2 * len(self._alive) + 64:
             self._compact()  # killed instances and moved deadlines leave stale entries
 
@@ -541,16 +552,16 @@ class ChronicleRecognizer:
         release = _NEG_INF
         for f in self.chronicle.forbids:
             if f.end < 0:
-                end = inst[9] + inst[2][f.start] + f.hi
+                end = inst[_ORIGIN] + inst[_TIMES][f.start] + f.hi
                 if end > release:
                     release = end
         if release > self.clock:
             # an 'after' window is still open: hold the recognition until it closes
             self._seq += 1
-            inst[0] = self._seq
-            self._alive[inst[0]] = inst
+            inst[_SEQ] = self._seq
+            self._alive[inst[_SEQ]] = inst
             self._register_forbidden(inst)
-            heapq.heappush(self._pending, (release, inst[0], inst))
+            heapq.heappush(self._pending, (release, inst[_SEQ], inst))
             if len(self._alive) > self._cap:
                 self._evict()
             return
@@ -560,7 +571,7 @@ class ChronicleRecognizer:
         heap = self._pending
         while heap and heap[0][0] <= now:
             _, _, inst = heapq.heappop(heap)
-            if inst[8]:
+            if inst[_ALIVE]:
                 self._remove(inst)
                 out.append(self._recognition(inst))
 
@@ -572,7 +583,7 @@ class ChronicleRecognizer:
             Recognition,
             (
                 c.name,
-                dict(zip(c.params, inst[3], strict=True)),
-                dict(zip(self._names, map(inst[9].__add__, inst[2]), strict=True)),
+                dict(zip(c.params, inst[_BINDS], strict=True)),
+                dict(zip(self._names, map(inst[_ORIGIN].__add__, inst[_TIMES]), strict=True)),
             ),
         )

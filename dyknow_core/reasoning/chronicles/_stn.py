@@ -14,6 +14,32 @@ _INF = 1 << 62
 _NEG_INF = -(1 << 62)
 
 
+class TemporalNetwork:
+    """A simple temporal network over ``n`` time points, as its distance graph (ns)."""
+
+    def __init__(self, n: int) -> None:
+        # dist[i][j]: upper bound of t_j - t_i; why[i][j]: the constraint that set it
+        self.dist = [[_INF] * n for _ in range(n)]
+        self.why: list[list[str | None]] = [[None] * n for _ in range(n)]
+        for i in range(n):
+            self.dist[i][i] = 0
+
+    def constrain(self, a: int, b: int, lo: int | None, hi: int | None, text: str) -> None:
+        """Add ``lo <= t_b - t_a <= hi`` (None: unbounded), ``text`` naming it in errors."""
+        dist, why = self.dist, self.why
+        if hi is not None and hi < dist[a][b]:
+            dist[a][b] = hi
+            why[a][b] = text
+        if lo is not None and -lo < dist[b][a]:
+            dist[b][a] = -lo
+            why[b][a] = text
+
+    def minimal(self) -> list[list[int]]:
+        """The minimal network's distances; ``ChronicleError`` naming a negative cycle."""
+        _floyd_warshall(self.dist, self.why)
+        return self.dist
+
+
 def _floyd_warshall(dist: list[list[int]], why: list[list[str | None]]) -> None:
     """Tighten ``dist`` to all-pairs shortest paths; a negative cycle raises, naming it."""
     n = len(dist)
