@@ -29,7 +29,7 @@ import numpy as np
 from pychronicles import Chronicle, TimedSequence
 
 from bench import fmt, progress, report, timed
-from dyknow_core._chronicles import ChronicleRecognizer, Recognition, compile_chronicle
+from dyknow_core.reasoning.chronicles import ChronicleRecognizer, Recognition, compile_chronicle
 
 N = 20_000
 REPEAT = 5

@@ -3,7 +3,7 @@
 Same generated trace (non-uniform steps of 0.05-0.95 s, speed a random walk in [0, 40],
 on_road in bursts), same process, runs interleaved, best of ``REPEAT``:
 
-- ours: :class:`dyknow_core._mtl.Monitor` — progression, one verdict as soon as it is
+- ours: :class:`dyknow_core.reasoning.mtl.Monitor` — progression, one verdict as soon as it is
   certain, then a restart at the next state (the execution-monitoring mode);
 - mstlo-python (Rust core, ``EagerQualitative``): ``G[0, 10](speed < 30 -> F[0, 5](on_road >
   0.5))`` fed with ``update_batch`` (prepared outside the timing), one verdict per
@@ -31,7 +31,7 @@ import statistics
 from typing import Any
 
 from bench import fmt, progress, report, timed
-from dyknow_core._mtl import Monitor, StepMonitor, Verdict, evaluate, parse
+from dyknow_core.reasoning.mtl import Monitor, StepMonitor, Verdict, evaluate, parse
 
 FORMULA = "always[0,10](speed < 30 -> eventually[0,5] on_road)"
 MSTLO_FORMULA = "G[0, 10](speed < 30 -> F[0, 5](on_road > 0.5))"

@@ -8,7 +8,7 @@ import fnmatch
 import logging
 from collections import deque
 from collections.abc import AsyncIterable, Callable, Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from . import _events, _state
 from ._aio import sleep_until_woken
@@ -23,14 +23,6 @@ from ._sample import Answer
 from ._state import StatePolicy, StateProcess
 from ._stream import BatchCallback, StreamGenerator, Subscription
 from ._time import Clock, RealClock
-
-if TYPE_CHECKING:
-    # reasoning modules load on first use (MTL, chronicles, anchoring, refinement): a
-    # platform that never monitors does not pay for importing them
-    from ._anchoring import Anchoring, LinkType, ObjectClass
-    from ._chronicles import ChronicleProcess, ChronicleSpec, CompiledChronicle
-    from ._mtl import Formula, MonitorProcess
-    from ._refinement import Refinement, RefinementProcess
 
 DEFAULT_LOCATION = "local"
 
@@ -368,77 +360,6 @@ class DyKnowInstance:
         """Publish an event per sample of ``label`` (default ``events/arrived/<label>``)."""
         return _events.add_arrival_events(
             self, label, output, name, policy=policy, location=location, cache=cache
-        )
-
-    def add_refinement(
-        self,
-        refinement: Refinement | Mapping[str, Any],
-        *,
-        output: str | None = None,
-        name: str | None = None,
-        subscriptions: Mapping[Subscription, Policy | Mapping[str, Any]] | None = None,
-        cache: CacheSpec | None = None,
-    ) -> RefinementProcess:
-        """Degrade chosen subscriptions or suspend CUs while a delay or backlog is too high."""
-        from . import _refinement
-
-        return _refinement.add_refinement(
-            self, refinement, output=output, name=name, subscriptions=subscriptions, cache=cache
-        )
-
-    def add_monitor(
-        self,
-        formula: Formula | str,
-        *,
-        label: str | None = None,
-        state_label: str | None = None,
-        components: Mapping[str, str] | None = None,
-        period: float = 1.0,
-        max_delay: float | None = None,
-        name: str | None = None,
-    ) -> MonitorProcess:
-        """Monitor a metric temporal logic formula by progression; verdicts as a stream."""
-        from . import _mtl
-
-        return _mtl.add_monitor(
-            self,
-            formula,
-            label=label,
-            state_label=state_label,
-            components=components,
-            period=period,
-            max_delay=max_delay,
-            name=name,
-        )
-
-    def add_chronicle(
-        self,
-        definition: ChronicleSpec | CompiledChronicle | Mapping[str, Any],
-        inputs: Mapping[str, str],
-        *,
-        output: str | None = None,
-        name: str | None = None,
-    ) -> ChronicleProcess:
-        """Recognize a chronicle online over event streams (event name -> label)."""
-        from . import _chronicles
-
-        return _chronicles.add_chronicle(self, definition, inputs, output=output, name=name)
-
-    def add_anchoring(
-        self,
-        classes: Sequence[ObjectClass | Mapping[str, Any]],
-        links: Sequence[LinkType | Mapping[str, Any]] = (),
-        *,
-        period: float = 1.0,
-        output: str = "events/anchoring",
-        name: str = "anchoring",
-        cache: CacheSpec | None = None,
-    ) -> Anchoring:
-        """Keep object classes and links current as their constraints hold or break."""
-        from . import _anchoring
-
-        return _anchoring.add_anchoring(
-            self, classes, links, period=period, output=output, name=name, cache=cache
         )
 
     def remove_process(self, name: str) -> None:

@@ -28,9 +28,12 @@ from typing import IO, TYPE_CHECKING, Any, NamedTuple
 import msgpack
 
 from ._aio import Ticker
+from ._events import ChangeEvent
 from ._exceptions import DyKnowError
+from ._objects import DomainChange
 from ._policy import Policy
 from ._process import Source
+from ._sample import Sample
 from ._stream import Subscription
 from ._time import NS_PER_S, ManualClock
 
@@ -77,20 +80,21 @@ class RecordHeader:
 # -- values ------------------------------------------------------------------------------------
 
 
-def _typed_registry() -> dict[str, type]:
-    """The core's value types a replay gives back as themselves (others come back as dicts)."""
-    from . import _chronicles, _events, _mtl, _objects, _sample
+# The value types a replay gives back as themselves (others come back as dicts), by name.
+# The core registers its own below; a layer above registers its types when it is imported
+# (a recording can only hold such values if that layer was loaded to make them).
+_RECORD_TYPES: dict[str, type] = {}
 
-    return {
-        t.__name__: t
-        for t in (
-            _events.ChangeEvent,
-            _mtl.Verdict,
-            _chronicles.Recognition,
-            _objects.DomainChange,
-            _sample.Sample,
-        )
-    }
+
+def register_record_type(cls: type) -> None:
+    """Let replays rebuild ``cls`` (a named tuple or dataclass) from its recorded fields."""
+    if not (dataclasses.is_dataclass(cls) or hasattr(cls, "_fields")):
+        raise TypeError(f"{cls.__name__} is neither a named tuple nor a dataclass")
+    _RECORD_TYPES[cls.__name__] = cls
+
+
+for _cls in (ChangeEvent, DomainChange, Sample):
+    register_record_type(_cls)
 
 
 class _Encoder:
@@ -144,7 +148,7 @@ class _Encoder:
 
 
 def _decoder() -> Callable[[int, bytes], Any]:
-    registry = _typed_registry()
+    registry = _RECORD_TYPES  # read at decode time: a type registered later counts too
 
     def ext_hook(code: int, data: bytes) -> Any:
         if code != _EXT_TYPED:

@@ -22,7 +22,8 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-from dyknow_core import NS_PER_S, DyKnowInstance, LinkType, ManualClock, ObjectClass, add_anchoring
+from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock
+from dyknow_core.reasoning import LinkType, ObjectClass, add_anchoring
 
 VISION = ObjectClass(
     name="VisionObject",

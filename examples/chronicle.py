@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import asyncio
 
-from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, add_chronicle
+from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock
+from dyknow_core.reasoning import add_chronicle
 
 PASSED_CROSSING = {
     "name": "passed-crossing",

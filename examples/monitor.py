@@ -19,7 +19,8 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, add_monitor
+from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock
+from dyknow_core.reasoning import add_monitor
 
 FORMULA = "always[0,10](speed < 30 -> eventually[0,5] on_road)"
 SLOW = range(12, 21), range(26, 36)  # s

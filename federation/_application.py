@@ -30,7 +30,7 @@ from ._outputs import OutputRunner, output_runner
 from ._platform import PlatformConfig, PlatformConfigError
 
 if TYPE_CHECKING:
-    from dyknow_core._kpl import KPLApplication
+    from dyknow_core.kpl import KPLApplication
 
     from ._platform import FederationPlatform
 
@@ -48,7 +48,7 @@ def _input_runner(settings: InputSettings, instance: DyKnowInstance) -> InputRun
     return input_runner(settings, instance)
 
 
-def _kpl_text(config: PlatformConfig, source: str) -> str | None:
+def _application_text(config: PlatformConfig, source: str) -> str | None:
     path = config.application
     if path is None:
         return None
@@ -65,9 +65,9 @@ def check_application(config: PlatformConfig, source: str) -> None:
 
     KPL errors come as ``FILE:LINE:COL: message`` lines (the form `dyknow kpl check` prints).
     """
-    from dyknow_core._kpl import check, resolve_callable
+    from dyknow_core.kpl import check, resolve_callable
 
-    text = _kpl_text(config, source)
+    text = _application_text(config, source)
     if text is not None:
         errors = check(text)
         if errors:
@@ -116,10 +116,10 @@ class NodeApplication:
         return c.application is None and not c.inputs and not c.outputs
 
     async def __aenter__(self) -> NodeApplication:
-        from dyknow_core._kpl import KPLCheckError, KPLSetupError, setup
+        from dyknow_core.kpl import KPLCheckError, KPLSetupError, setup
 
         instance = self.platform.instance
-        text = _kpl_text(self.config, self.source)
+        text = _application_text(self.config, self.source)
         with _importable(self.config):
             if text is not None:
                 where = str(self.config.application)

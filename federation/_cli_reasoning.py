@@ -35,7 +35,7 @@ import typer
 # the reasoning layer loads on first use (``dyknow_core``'s lazy names): each command
 # imports what it runs, so the other commands do not pay for the MTL and KPL modules
 if TYPE_CHECKING:
-    from dyknow_core import Verdict
+    from dyknow_core.reasoning import Verdict
 
 __all__ = ["kpl_app", "monitor"]
 
@@ -99,7 +99,13 @@ def monitor(
     ] = False,
 ) -> None:
     """Run an MTL formula over a recorded JSON-lines trace; the verdicts as JSON lines."""
-    from dyknow_core import Monitor, MTLSyntaxError, StepMonitor, parse_formula, state_keys
+    from dyknow_core.reasoning import (
+        Monitor,
+        MTLSyntaxError,
+        StepMonitor,
+        parse_formula,
+        state_keys,
+    )
 
     try:
         parsed = parse_formula(formula)
@@ -152,7 +158,8 @@ def kpl_check_file(
     file: Annotated[Path, typer.Argument(metavar="FILE", help="the KPL file")],
 ) -> None:
     """Check a KPL file; errors as FILE:LINE:COL: message (exit code 2), else 'ok: N'."""
-    from dyknow_core import kpl_check, kpl_parse
+    from dyknow_core.kpl import check as kpl_check
+    from dyknow_core.kpl import parse as kpl_parse
 
     try:
         text = file.read_text(encoding="utf-8")

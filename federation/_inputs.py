@@ -628,7 +628,7 @@ class _PythonRunner(InputRunner):
     settings: PythonInput
 
     async def _run(self, zenoh_session: Any | None) -> None:
-        from dyknow_core._kpl import resolve_callable
+        from dyknow_core.kpl import resolve_callable
 
         s = self.settings
         module, attr = s.entry.split(":", 1)

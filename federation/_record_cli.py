@@ -22,16 +22,24 @@ from typing import Any
 
 from dyknow_core import (
     DyKnowInstance,
-    KPLCheckError,
-    KPLSetupError,
     ManualClock,
     Recorder,
     RecordError,
     Recording,
-    _kpl,
     ns_to_seconds,
     replay,
 )
+from dyknow_core.kpl import (
+    AnchoringDecl,
+    ClassDecl,
+    KPLCheckError,
+    KPLSetupError,
+    Program,
+    SourceDecl,
+    provides,
+)
+from dyknow_core.kpl import parse as parse_kpl
+from dyknow_core.kpl import setup as setup_kpl
 
 from ._cli_net import _opened, _stop_event, _wait_for
 from ._cli_time import seconds, when, when_ns
@@ -301,7 +309,7 @@ def info_lines(data: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _read_spec(kpl: Path) -> _kpl.Program:
+def _read_spec(kpl: Path) -> Program:
     try:
         text = kpl.read_text(encoding="utf-8")
     except OSError as exc:
@@ -309,7 +317,7 @@ def _read_spec(kpl: Path) -> _kpl.Program:
     except UnicodeDecodeError as exc:
         raise ReplayUsageError(f"{kpl}: not UTF-8 text: {exc.reason}") from None
     try:
-        return _kpl.parse(text)
+        return parse_kpl(text)
     except KPLCheckError as exc:
         raise ReplayUsageError("\n".join(e.format(str(kpl)) for e in exc.errors)) from None
 
@@ -343,12 +351,12 @@ async def run_replay(
     spec_sources: set[str] = set()
     if program is not None:
         for d in program.decls:
-            provided = set(_kpl._provides(d))
-            (spec_sources if isinstance(d, _kpl.SourceDecl) else computed).update(provided)
-            if isinstance(d, _kpl.ClassDecl):
+            provided = set(provides(d))
+            (spec_sources if isinstance(d, SourceDecl) else computed).update(provided)
+            if isinstance(d, ClassDecl):
                 computed.add(f"domain/{d.name}")  # anchoring publishes each class's domain
-        if any(isinstance(d, _kpl.ClassDecl) for d in program.decls) and not any(
-            isinstance(d, _kpl.AnchoringDecl) for d in program.decls
+        if any(isinstance(d, ClassDecl) for d in program.decls) and not any(
+            isinstance(d, AnchoringDecl) for d in program.decls
         ):
             computed.add("events/anchoring")
     feed = [label for label in recorded if label not in computed]
@@ -362,7 +370,7 @@ async def run_replay(
                 # a spec's CUs name modules as ``python -m`` would find them from here
                 sys.path.insert(0, str(Path.cwd()))
             try:
-                _kpl.setup(inst, program)
+                setup_kpl(inst, program)
             except KPLCheckError as exc:
                 raise ReplayUsageError("\n".join(e.format(str(kpl)) for e in exc.errors)) from None
             except KPLSetupError as exc:

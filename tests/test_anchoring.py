@@ -9,8 +9,8 @@ from typing import Any
 import pytest
 
 from dyknow_core import DyKnowInstance, ManualClock, PolicyError, Source
-from dyknow_core._anchoring import Anchoring, LinkType, ObjectClass, add_anchoring
 from dyknow_core._time import NS_PER_S
+from dyknow_core.reasoning import Anchoring, LinkType, ObjectClass, add_anchoring
 
 Feed = Callable[[int], None]
 

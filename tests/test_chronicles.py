@@ -10,7 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dyknow_core._chronicles import (
+from dyknow_core._instance import DyKnowInstance
+from dyknow_core._time import NS_PER_S, ManualClock
+from dyknow_core.reasoning.chronicles import (
     ChronicleError,
     ChronicleProcess,
     ChronicleRecognizer,
@@ -20,8 +22,6 @@ from dyknow_core._chronicles import (
     compile_chronicle,
     recognize_all,
 )
-from dyknow_core._instance import DyKnowInstance
-from dyknow_core._time import NS_PER_S, ManualClock
 
 S = NS_PER_S
 

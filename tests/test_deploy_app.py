@@ -19,8 +19,8 @@ import pytest
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
 from dyknow_core import NS_PER_S
-from dyknow_core._chronicles import Recognition
-from dyknow_core._kpl import ChronicleDecl, MonitorDecl, check, parse
+from dyknow_core.kpl import ChronicleDecl, MonitorDecl, check, parse
+from dyknow_core.reasoning.chronicles import Recognition
 from federation.demo._traffic import CHRONICLES, SPEEDING
 from federation.demo._units import crossings, relations, speeding, violations
 from federation.demo._world import World

@@ -7,11 +7,14 @@ Every wait is bounded: a sample is awaited with ``sub.get(timeout=WAIT)``, an ev
 from __future__ import annotations
 
 import asyncio
+import subprocess
+import sys
 from collections.abc import AsyncIterator
 from typing import Any
 
 import pytest
 
+import dyknow_core
 from dyknow_core import (
     NS_PER_S,
     ClosedError,
@@ -811,3 +814,18 @@ async def test_instance_facade_builds_states_and_change_events() -> None:
         assert state.name in dk.processes
         dk.remove_process(state.name)
         assert not dk.has_label("car5/state")
+
+
+def test_importing_the_core_loads_no_reasoning_and_no_kpl() -> None:
+    # a fresh interpreter: this one has imported everything the other tests use
+    code = (
+        "import sys, dyknow_core; "
+        "print(sorted(m for m in sys.modules if m.startswith(('dyknow_core.reasoning', "
+        "'dyknow_core.kpl'))))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60
+    )
+    assert out.stdout.strip() == "[]"
+    assert not hasattr(dyknow_core, "add_monitor")
+    assert not hasattr(DyKnowInstance, "add_monitor")

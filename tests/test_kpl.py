@@ -11,8 +11,7 @@ from typing import Any
 import pytest
 
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock
-from dyknow_core._anchoring import Anchoring
-from dyknow_core._kpl import (
+from dyknow_core.kpl import (
     AnchoringDecl,
     ChangesDecl,
     ChronicleDecl,
@@ -29,6 +28,7 @@ from dyknow_core._kpl import (
     parse,
     setup,
 )
+from dyknow_core.reasoning import Anchoring
 from federation.cli import main as dyknow_main
 
 ROOT = Path(__file__).resolve().parent.parent

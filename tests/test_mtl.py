@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock
 from dyknow_core._exceptions import ProcessError
-from dyknow_core._mtl import (
+from dyknow_core.reasoning.mtl import (
     Always,
     And,
     BoolConst,

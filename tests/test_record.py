@@ -29,7 +29,7 @@ from dyknow_core import (
     RecordWriter,
     UnknownLabelError,
     advance_to,
-    kpl_setup,
+    kpl,
     read_recording,
     replay,
 )
@@ -221,7 +221,7 @@ async def _live_run(path: Path) -> dict[str, list[tuple[Any, int, int]]]:
     """A live run on a manual clock with the spec, every stream recorded; its outputs."""
     clock = ManualClock()
     async with DyKnowInstance("live", clock=clock) as inst:
-        kpl_setup(inst, SPEC)
+        kpl.setup(inst, SPEC)
         speed, offset = inst.processes["source:car/speed"], inst.processes["source:car/offset"]
         async with Recorder(inst, None, path):
             for k in range(40):
@@ -240,7 +240,7 @@ async def _replay(path: Path) -> dict[str, list[tuple[Any, int, int]]]:
     """The recording's sources replayed through the same spec; its outputs."""
     rec = read_recording(path)
     async with DyKnowInstance("replay", clock=ManualClock(rec.header.start)) as inst:
-        kpl_setup(inst, SPEC)
+        kpl.setup(inst, SPEC)
         summary = await replay(path, inst, labels=SOURCES, tail=1.25)
         assert summary.counts == {"car/speed": 40, "car/offset": 40}
         assert set(summary.skipped) == {

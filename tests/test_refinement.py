@@ -12,14 +12,14 @@ from dyknow_core._exceptions import PolicyError, UnknownLabelError
 from dyknow_core._instance import DyKnowInstance
 from dyknow_core._policy import Policy
 from dyknow_core._process import ComputationalUnit, Source
-from dyknow_core._refinement import (
+from dyknow_core._time import NS_PER_S, ManualClock, seconds_to_ns
+from dyknow_core.reasoning import (
     FocusOfAttention,
     Refinement,
     RefinementProcess,
     add_refinement,
     is_suspended,
 )
-from dyknow_core._time import NS_PER_S, ManualClock, seconds_to_ns
 
 S = NS_PER_S
 BASE = 1000 * S

@@ -51,7 +51,14 @@ from agents import (
     platform_of,
 )
 from dyknow_core import NS_PER_S, DyKnowInstance, Source
-from dyknow_core._anchoring import Anchoring, LinkType, ObjectClass, add_anchoring
+from dyknow_core.reasoning import (
+    Anchoring,
+    LinkType,
+    ObjectClass,
+    add_anchoring,
+    add_chronicle,
+    add_monitor,
+)
 
 from .._cli_net import settle_gc
 from .._platform import FederationPlatform, PlatformConfig
@@ -308,9 +315,10 @@ class UavApplication:
         classes, links = anchoring_model(self.world)
         self.anchoring = add_anchoring(dk, classes, links, period=PERIOD)
         for definition, inputs in CHRONICLES.values():
-            proc = dk.add_chronicle(definition, inputs)
+            proc = add_chronicle(dk, definition, inputs)
             dk.subscribe(proc.label, callback=self._on_recognitions)
-        monitor = dk.add_monitor(
+        monitor = add_monitor(
+            dk,
             SPEEDING,
             components={"Cars": "tracker/car-names", "fast": "tracker/fast"},
             period=PERIOD,

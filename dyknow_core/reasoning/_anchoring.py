@@ -47,18 +47,18 @@ from typing import TYPE_CHECKING, Any, Self
 
 from pydantic import ConfigDict, field_validator, model_validator
 
-from ._exceptions import ObjectError, PolicyError, ProcessError, UnknownLabelError
-from ._mtl import MTLSyntaxError, Residual, compile_formula, progress
-from ._mtl import parse as parse_formula
-from ._objects import ID_PLACEHOLDER, _check_identifier
-from ._policy import CacheSpec, _EdgeModel, check_duration
-from ._process import Process
-from ._sample import RawSample
-from ._stream import StreamGenerator, Subscription
-from ._time import NS_PER_S, seconds_to_ns
+from .._exceptions import ObjectError, PolicyError, ProcessError, UnknownLabelError
+from .._objects import ID_PLACEHOLDER, _check_identifier
+from .._policy import CacheSpec, _EdgeModel, check_duration
+from .._process import Process
+from .._sample import RawSample
+from .._stream import StreamGenerator, Subscription
+from .._time import NS_PER_S, seconds_to_ns
+from .mtl import MTLSyntaxError, Residual, compile_formula, progress
+from .mtl import parse as parse_formula
 
 if TYPE_CHECKING:
-    from ._instance import DyKnowInstance
+    from .._instance import DyKnowInstance
 
 Features = dict[str, Any]
 Compute = Callable[[Features], Mapping[str, Any] | None]

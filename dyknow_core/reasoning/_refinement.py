@@ -21,16 +21,16 @@ from typing import TYPE_CHECKING, Any, Literal, Self
 
 from pydantic import field_validator, model_validator
 
-from ._aio import sleep_until_woken
-from ._exceptions import PolicyError, ProcessError
-from ._policy import CacheSpec, Policy, _EdgeModel, check_duration
-from ._process import ComputationalUnit, Process
-from ._sample import RawSample
-from ._stream import StreamGenerator, Subscription
-from ._time import NS_PER_S, seconds_to_ns
+from .._aio import sleep_until_woken
+from .._exceptions import PolicyError, ProcessError
+from .._policy import CacheSpec, Policy, _EdgeModel, check_duration
+from .._process import ComputationalUnit, Process
+from .._sample import RawSample
+from .._stream import StreamGenerator, Subscription
+from .._time import NS_PER_S, seconds_to_ns
 
 if TYPE_CHECKING:
-    from ._instance import DyKnowInstance
+    from .._instance import DyKnowInstance
 
 Statistic = Literal["mean", "max", "p50", "p90", "p95", "p99"]
 _QUANTILES = {"p50": 0.5, "p90": 0.9, "p95": 0.95, "p99": 0.99}

@@ -1,0 +1,536 @@
+"""The every-step MTL engine: bottom-up windowed evaluation, one verdict per start."""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Callable, Mapping
+from typing import Any, TypeAlias, cast
+
+from ._monitor import Verdict
+from ._progression import Node, _compile, _compile_atom
+from ._semantics import _fut
+from ._syntax import (
+    INF,
+    Always,
+    And,
+    BoolConst,
+    Compare,
+    Eventually,
+    Feature,
+    Formula,
+    Implies,
+    Not,
+    Or,
+    _as_formula,
+)
+
+# -- every-step fast path --------------------------------------------------------------------
+#
+# For the fragment without quantifiers, unbounded windows or until, StepMonitor evaluates
+# bottom-up: each node keeps one value per position (None until certain) and its step
+# returns the positions it decided at this state. A bounded always/eventually marks, for a
+# child position j holding its dominant value (False/True), every position whose window
+# holds j (a contiguous range, found by bisection on the exact window bounds); a position
+# whose window has closed is decided the other way once its window holds no undecided child
+# position (scanned from the child's first undecided position, then waiting on the blocker).
+
+
+class _FNode:
+    __slots__ = ("val",)
+
+    def __init__(self) -> None:
+        self.val: list[bool | None] = []
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        raise NotImplementedError
+
+    def children(self) -> tuple[_FNode, ...]:
+        return ()
+
+    def base(self) -> int:
+        # the first position this node (or one below) still needs
+        val = self.val
+        try:
+            b = val.index(None)
+        except ValueError:
+            b = len(val)
+        for c in self.children():
+            cb = c.base()
+            if cb < b:
+                b = cb
+        return b
+
+    def rebase(self, k: int) -> None:
+        # forget positions before k (all decided and out of every open window)
+        del self.val[:k]
+        for c in self.children():
+            c.rebase(k)
+
+
+class _FAtom(_FNode):
+    __slots__ = ("fn",)
+
+    def __init__(self, fn: Callable[[Mapping[str, Any], float], bool]) -> None:
+        super().__init__()
+        self.fn = fn
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        self.val.append(self.fn(s, t))
+        return [n]
+
+
+class _FConst(_FNode):
+    __slots__ = ("value",)
+
+    def __init__(self, value: bool) -> None:
+        super().__init__()
+        self.value = value
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        self.val.append(self.value)
+        return [n]
+
+
+class _FNot(_FNode):
+    __slots__ = ("child",)
+
+    def __init__(self, child: _FNode) -> None:
+        super().__init__()
+        self.child = child
+
+    def children(self) -> tuple[_FNode, ...]:
+        return (self.child,)
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        ev = self.child.step(n, t, s)
+        val, cv = self.val, self.child.val
+        val.append(None)
+        for j in ev:
+            val[j] = not cv[j]
+        return ev
+
+
+class _FBin(_FNode):
+    __slots__ = ("dom", "left", "right")
+
+    def __init__(self, left: _FNode, right: _FNode, dom: bool) -> None:
+        super().__init__()
+        self.left, self.right, self.dom = left, right, dom
+
+    def children(self) -> tuple[_FNode, ...]:
+        return (self.left, self.right)
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        el = self.left.step(n, t, s)
+        er = self.right.step(n, t, s)
+        val, lv, rv, dom = self.val, self.left.val, self.right.val, self.dom
+        val.append(None)
+        out: list[int] = []
+        for j in el:
+            if val[j] is None:
+                x = lv[j]
+                if x is dom:
+                    val[j] = dom
+                    out.append(j)
+                else:
+                    y = rv[j]
+                    if y is not None:
+                        val[j] = y
+                        out.append(j)
+        for j in er:
+            if val[j] is None:
+                x = rv[j]
+                if x is dom:
+                    val[j] = dom
+                    out.append(j)
+                else:
+                    y = lv[j]
+                    if y is not None:
+                        val[j] = y
+                        out.append(j)
+        return out
+
+
+class _FBinAtom(_FNode):
+    """``and``/``or`` whose left operand is decided at each state (a fused atom)."""
+
+    __slots__ = ("dom", "fn", "lv", "right")
+
+    def __init__(self, fn: Callable[[Mapping[str, Any], float], bool], right: _FNode, dom: bool):
+        super().__init__()
+        self.fn, self.right, self.dom = fn, right, dom
+        self.lv: list[bool] = []
+
+    def children(self) -> tuple[_FNode, ...]:
+        return (self.right,)
+
+    def rebase(self, k: int) -> None:
+        del self.lv[:k]
+        super().rebase(k)
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        x = self.fn(s, t)
+        self.lv.append(x)
+        er = self.right.step(n, t, s)
+        val, dom = self.val, self.dom
+        if x is dom:
+            val.append(dom)
+            out = [n]
+        else:
+            val.append(None)
+            out = []
+        if er:
+            lv, rv = self.lv, self.right.val
+            for j in er:
+                if val[j] is None:
+                    val[j] = rv[j] if lv[j] is not dom else dom
+                    out.append(j)
+        return out
+
+
+class _FWindow(_FNode):
+    """What the bounded always/eventually nodes share: window bounds per position."""
+
+    __slots__ = ("a", "b", "close", "dom", "ta", "tb", "times")
+
+    def __init__(self, a: float, b: float, always: bool, times: list[float]) -> None:
+        super().__init__()
+        self.a, self.b, self.times = a, b, times
+        self.dom = not always  # the operand value that decides a window at once
+        # window starts t + a; with a == 0 they are the times themselves (t + 0.0 == t)
+        self.ta: list[float] = times if a == 0 else []
+        self.tb: list[float] = []
+        self.close = 0  # the first position whose window is still open
+
+    def base(self) -> int:
+        b = super().base()
+        return b if b < self.close else self.close
+
+    def rebase(self, k: int) -> None:
+        super().rebase(k)
+        del self.tb[:k]
+        if self.ta is not self.times:
+            del self.ta[:k]
+        self.close -= k
+
+
+class _FWinAtom(_FWindow):
+    """A bounded always/eventually of an operand decided at each state, in order."""
+
+    __slots__ = ("fn", "hi_hint", "lo_hint", "marked")
+
+    def __init__(
+        self,
+        a: float,
+        b: float,
+        fn: Callable[[Mapping[str, Any], float], bool],
+        always: bool,
+        times: list[float],
+    ):
+        super().__init__(a, b, always, times)
+        self.fn = fn
+        self.marked = -1  # every position up to here whose window holds a dominant value is marked
+        self.lo_hint = 0
+        self.hi_hint = 0
+
+    def rebase(self, k: int) -> None:
+        super().rebase(k)
+        self.marked = max(self.marked - k, -1)
+        self.lo_hint = max(self.lo_hint - k, 0)
+        self.hi_hint = max(self.hi_hint - k, 0)
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        x = self.fn(s, t)
+        val, ta, tb, dom = self.val, self.ta, self.tb, self.dom
+        tb.append(t + self.b)
+        if x is not dom:
+            val.append(None)
+            out: list[int] = []
+            if len(ta) <= n:
+                ta.append(t + self.a)
+        elif ta is self.times and self.marked == n - 1:
+            # the window starts here and every earlier window holding t is already marked
+            val.append(dom)
+            out = [n]
+            self.marked = n
+        else:
+            val.append(None)
+            out = []
+            if len(ta) <= n:
+                ta.append(t + self.a)
+            # the positions whose window holds t: a range moving forward with t
+            lo = bisect.bisect_left(tb, t, self.lo_hint, n + 1)
+            hi = n if ta is self.times else bisect.bisect_right(ta, t, self.hi_hint, n + 1) - 1
+            self.lo_hint = lo
+            if hi >= 0:
+                self.hi_hint = hi
+            m = self.marked
+            if m >= lo:
+                lo = m + 1
+            if hi >= lo:
+                for i in range(lo, hi + 1):
+                    val[i] = dom
+                out.extend(range(lo, hi + 1))
+                self.marked = hi
+        cl = self.close
+        if tb[cl] <= t:
+            nd = not dom
+            while cl <= n and tb[cl] <= t:
+                if val[cl] is None:
+                    val[cl] = nd
+                    out.append(cl)
+                cl += 1
+            self.close = cl
+        return out
+
+
+class _FWin(_FWindow):
+    """A bounded always/eventually of any operand: decided once its window's values are."""
+
+    __slots__ = ("child", "cover_hi", "cover_lo", "cu", "waiters")
+
+    def __init__(self, a: float, b: float, child: _FNode, always: bool, times: list[float]):
+        super().__init__(a, b, always, times)
+        self.child = child
+        self.cu = 0  # the child's first undecided position
+        self.cover_lo, self.cover_hi = 0, -1  # a range of positions all decided
+        self.waiters: dict[int, list[tuple[int, int]]] = {}  # blocker -> (position, start)
+
+    def children(self) -> tuple[_FNode, ...]:
+        return (self.child,)
+
+    def base(self) -> int:
+        b = super().base()  # the window's own (and close) already counted
+        return b if b < self.cu else self.cu
+
+    def rebase(self, k: int) -> None:
+        super().rebase(k)
+        self.cu -= k
+        self.cover_lo = max(self.cover_lo - k, 0)
+        self.cover_hi = max(self.cover_hi - k, -1)
+        # entries of positions already decided (by a dominant value) are stale: drop them
+        waiters: dict[int, list[tuple[int, int]]] = {}
+        for p, w in self.waiters.items():
+            kept = [(i - k, s_i - k) for i, s_i in w if i >= k]
+            if kept:
+                waiters[p - k] = kept
+        self.waiters = waiters
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        ev = self.child.step(n, t, s)
+        val, ta, tb, times = self.val, self.ta, self.tb, self.times
+        val.append(None)
+        if ta is not times:
+            ta.append(t + self.a)
+        tb.append(t + self.b)
+        out: list[int] = []
+        if ev:  # only the child's new values can mark positions or unblock windows
+            cv, dom = self.child.val, self.dom
+            for j in ev:
+                if cv[j] is dom:
+                    self._mark(j, out)
+            cu = self.cu
+            while cu <= n and cv[cu] is not None:
+                cu += 1
+            self.cu = cu
+            waiters = self.waiters
+            if waiters:
+                for j in ev:
+                    w = waiters.pop(j, None)
+                    if w:
+                        for i, s_i in w:
+                            if val[i] is None:
+                                self._scan(i, s_i, j - 1, out)
+        cl = self.close
+        if tb[cl] <= t:
+            cu = self.cu
+            nd = not self.dom
+            while cl <= n and tb[cl] <= t:
+                if val[cl] is None:
+                    # closed, and no dominant value in the window: decided once all are
+                    if cu > n:
+                        val[cl] = nd
+                        out.append(cl)
+                    else:
+                        e_i = bisect.bisect_right(times, tb[cl], cl) - 1
+                        if cu > e_i:
+                            val[cl] = nd
+                            out.append(cl)
+                        else:
+                            s_i = cl if ta is times else bisect.bisect_left(times, ta[cl], cl)
+                            self._scan(cl, s_i, e_i, out)
+                cl += 1
+            self.close = cl
+        return out
+
+    def _mark(self, j: int, out: list[int]) -> None:
+        # every position whose window holds j takes the dominant value
+        val, dom, ta, times = self.val, self.dom, self.ta, self.times
+        tj = times[j]
+        lo = bisect.bisect_left(self.tb, tj, 0, j + 1)
+        hi = j if ta is times else bisect.bisect_right(ta, tj, 0, j + 1) - 1
+        if lo > hi:
+            return
+        if self.cover_lo <= lo <= self.cover_hi + 1:
+            start = self.cover_hi + 1 if self.cover_hi + 1 > lo else lo
+            if hi > self.cover_hi:
+                self.cover_hi = hi
+        else:
+            start = lo
+            self.cover_lo, self.cover_hi = lo, hi
+        for i in range(start, hi + 1):
+            if val[i] is None:
+                val[i] = dom
+                out.append(i)
+
+    def _scan(self, i: int, s_i: int, p: int, out: list[int]) -> None:
+        # backwards from the window's end (or the last blocker) to its start: the child
+        # decides mostly in order, so the last undecided position is mostly the last to go
+        cv = self.child.val
+        cu = self.cu
+        lo = s_i if s_i > cu else cu
+        while p >= lo and cv[p] is not None:
+            p -= 1
+        if p < lo:
+            self.val[i] = not self.dom
+            out.append(i)
+        else:
+            self.waiters.setdefault(p, []).append((i, s_i))
+
+
+def _fast_supported(f: Formula) -> bool:
+    if isinstance(f, BoolConst | Feature | Compare):
+        return True
+    if isinstance(f, Not):
+        return _fast_supported(f.operand)
+    if isinstance(f, And | Or | Implies):
+        return _fast_supported(f.left) and _fast_supported(f.right)
+    if isinstance(f, Always | Eventually):
+        return f.hi != INF and _fast_supported(f.operand)
+    return False
+
+
+_AtomFn: TypeAlias = Callable[[Mapping[str, Any], float], bool]
+
+
+def _pure(f: Formula) -> bool:
+    if isinstance(f, BoolConst | Feature | Compare):
+        return True
+    if isinstance(f, Not):
+        return _pure(f.operand)
+    if isinstance(f, And | Or | Implies):
+        return _pure(f.left) and _pure(f.right)
+    return False
+
+
+def _pure_fn(f: Formula) -> Callable[[Mapping[str, Any], float], bool]:
+    """One test for a formula without temporal operators (two-valued at every state)."""
+    if isinstance(f, BoolConst):
+        v = f.value
+        return lambda s, t: v
+    if isinstance(f, Feature | Compare):
+        return cast(_AtomFn, _compile_atom(f, {}, False).prog)
+    if isinstance(f, Not):
+        if isinstance(f.operand, Feature | Compare):
+            return cast(_AtomFn, _compile_atom(f.operand, {}, True).prog)
+        g = _pure_fn(f.operand)
+        return lambda s, t: not g(s, t)
+    assert isinstance(f, And | Or | Implies)
+    left = _pure_fn(Not(f.left) if isinstance(f, Implies) else f.left)
+    right = _pure_fn(f.right)
+    if isinstance(f, And):
+        return lambda s, t: left(s, t) and right(s, t)
+    return lambda s, t: left(s, t) or right(s, t)
+
+
+def _fast_compile(f: Formula, times: list[float]) -> _FNode:
+    c = _fut(f)
+    if c is not None:
+        return _FConst(c)
+    if _pure(f):
+        return _FAtom(_pure_fn(f))
+    if isinstance(f, And | Or | Implies):
+        left = _fast_compile(Not(f.left) if isinstance(f, Implies) else f.left, times)
+        right = _fast_compile(f.right, times)
+        dom = not isinstance(f, And)
+        if isinstance(right, _FAtom):
+            left, right = right, left
+        if isinstance(left, _FAtom):
+            return _FBinAtom(left.fn, right, dom)
+        return _FBin(left, right, dom)
+    if isinstance(f, Not):
+        return _FNot(_fast_compile(f.operand, times))
+    assert isinstance(f, Always | Eventually)
+    body = _fast_compile(f.operand, times)
+    if isinstance(body, _FAtom):
+        return _FWinAtom(f.lo, f.hi, body.fn, isinstance(f, Always), times)
+    return _FWin(f.lo, f.hi, body, isinstance(f, Always), times)
+
+
+_COMPACT = 4096  # every-step fast path: steps between forgetting decided positions
+
+
+class StepMonitor:
+    """Evaluates the formula from every state: one verdict per start time, once certain."""
+
+    __slots__ = ("_compact_at", "_fast", "_fresh", "_times", "formula", "pending")
+
+    def __init__(self, formula: Formula | str) -> None:
+        self.formula = _as_formula(formula)
+        self._fresh = _compile(self.formula, {})
+        self.pending: list[tuple[float, Node]] = []
+        self._times: list[float] = []
+        self._fast: _FNode | None = None
+        self._compact_at = _COMPACT
+        # the bottom-up windowed evaluation where the fragment allows it, else progression
+        if _fast_supported(self.formula):
+            self._fast = _fast_compile(self.formula, self._times)
+
+    def step(self, t: float, state: Mapping[str, Any]) -> list[Verdict]:
+        """Start an evaluation at ``t``, progress all pending ones; the verdicts decided now."""
+        root = self._fast
+        if root is None:
+            return self._step_progress(t, state)
+        times = self._times
+        n = len(times)
+        if n >= self._compact_at:
+            # drop the positions no window needs any more, so memory follows the windows
+            k = root.base()
+            if k > 0:
+                root.rebase(k)
+                del times[:k]
+                n -= k
+            self._compact_at = n + _COMPACT
+        times.append(t)
+        ev = root.step(n, t, state)
+        if not ev:
+            return []
+        val = root.val
+        new = tuple.__new__  # skips the named tuple's Python-level __new__
+        if len(ev) == 1:
+            j = ev[0]
+            return [new(Verdict, (times[j], t, val[j]))]
+        ev.sort()
+        return [new(Verdict, (times[j], t, val[j])) for j in ev]
+
+    def _step_progress(self, t: float, state: Mapping[str, Any]) -> list[Verdict]:
+        out: list[Verdict] = []
+        keep: list[tuple[float, Node]] = []
+        self.pending.append((t, self._fresh))
+        for start, n in self.pending:
+            r = n if isinstance(n, bool) else n.prog(state, t)
+            if r is True or r is False:
+                out.append(Verdict(start, t, r))
+            else:
+                keep.append((start, r))
+        self.pending = keep
+        return out
+
+    def undecided(self) -> list[float]:
+        """Start times whose verdict the states so far leave unknown."""
+        if self._fast is not None:
+            return [t for t, v in zip(self._times, self._fast.val, strict=True) if v is None]
+        return [s for s, _ in self.pending]
+
+
+# -- in an instance ------------------------------------------------------------------------
