@@ -57,7 +57,7 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
 
     from agents.transports import ZenohTransport
     from federation import FederationPlatform, PlatformConfig
-    from federation._cli_net import settle_gc
+    from federation._cli_common import settle_gc
 
     streams = int(spec["streams"])
     parent = os.getppid()

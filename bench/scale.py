@@ -67,7 +67,7 @@ from bench._scale_node import (
     zenoh_settings,
 )
 from federation import FederationPlatform, PlatformConfig
-from federation._cli_net import settle_gc
+from federation._cli_common import settle_gc
 
 PLATFORMS = 32
 STREAMS = 10

@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import gc
 import json
 import logging
 import re
 import signal
 import time
 import uuid
-from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +26,7 @@ from agents import (
 )
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
 
+from ._cli_common import failure_of, platforms_of, settle_gc, wait_for_members
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
 
 log = logging.getLogger(__name__)
@@ -104,17 +104,6 @@ async def _checked(check: Any) -> Any:
     yield
 
 
-def settle_gc() -> None:
-    """Move what start-up allocated out of the cyclic GC's sight (a long-running node).
-
-    The modules, agents and caches built at start-up live as long as the process; without
-    this, every full collection walks them again (measured: 16-24% of a node's loop time
-    in the GC, a 70 ms pause inside a global query at scale).
-    """
-    gc.collect()
-    gc.freeze()
-
-
 async def run_console(
     config: PlatformConfig,
     source: str,
@@ -183,31 +172,6 @@ def _endpoints(cfg: Any) -> str:
     return ", ".join(map(str, endpoints)) or "(nothing)"
 
 
-async def _failure_of(job: Callable[..., Awaitable[Any]], *args: Any) -> Exception | None:
-    """Run ``job(*args)``; its failure is returned, not raised.
-
-    For the tasks of a task group whose failure the caller raises itself: a group would
-    raise it wrapped in an ExceptionGroup, and cancel its siblings and its caller first.
-    """
-    try:
-        await job(*args)
-    except Exception as exc:
-        return exc
-    return None
-
-
-async def _wait_for(p: FederationPlatform, want: str | None, wait: float) -> None:
-    """Wait (at most ``wait`` s) until ``want`` (or any other platform) is seen, then settle."""
-    gdf = p.agents.global_df
-    deadline = time.monotonic() + wait
-    while time.monotonic() < deadline:
-        alive = [x for x in (gdf.platforms if gdf else []) if x != p.name]
-        if (want in alive) if want else alive:
-            await asyncio.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
-            return
-        await asyncio.sleep(0.1)
-
-
 @contextlib.asynccontextmanager
 async def _opened(path: str) -> AsyncIterator[FederationPlatform]:
     """A platform from a config file, kept out of the federation (an asking console).
@@ -225,18 +189,6 @@ async def _opened(path: str) -> AsyncIterator[FederationPlatform]:
             config, source=path, join=False, transport=transport
         ) as platform:
             yield platform
-
-
-def platforms_of(p: FederationPlatform) -> dict[str, list[dict[str, Any]]]:
-    """``{platform: [service, …]}`` of those alive, as ``p`` sees them (``p`` left out)."""
-    gdf = p.agents.global_df
-    if gdf is None:
-        return {}
-    return {
-        name: [{"name": s.name, "type": s.type, "provider": s.provider} for s in gdf.services(name)]
-        for name in gdf.platforms
-        if name != p.name
-    }
 
 
 async def _through_node(config_path: str, request: dict[str, Any]) -> tuple[bool, Any]:
@@ -264,7 +216,7 @@ async def list_platforms(config_path: str, wait: float) -> dict[str, list[dict[s
     if done:
         return dict(found)
     async with _opened(config_path) as p:
-        await _wait_for(p, None, wait)
+        await wait_for_members(p, None, wait)
         return platforms_of(p)
 
 
@@ -283,7 +235,7 @@ async def ask_platform(
     if done:
         return answer
     async with _opened(config_path) as p:
-        await _wait_for(p, platform, wait)
+        await wait_for_members(p, platform, wait)
         return await p.federation_agent.request_from(platform, content, timeout=timeout)
 
 
@@ -383,7 +335,7 @@ async def follow_stream(
     if relayed is not None:
         return relayed
     async with _opened(config_path) as p:
-        await _wait_for(p, platform, wait)
+        await wait_for_members(p, platform, wait)
         fed = p.federation_agent
         export_id = await fed.create_stream(
             platform, semantic_labels, sample_period=sample_period, timeout=timeout
@@ -404,7 +356,7 @@ async def follow_stream(
         try:
             async with asyncio.TaskGroup() as tg:
                 pumps = [
-                    tg.create_task(_failure_of(pump, s), name=f"stream[{s}]")
+                    tg.create_task(failure_of(pump, s), name=f"stream[{s}]")
                     for s in semantic_labels
                 ]
                 stopping = tg.create_task(stop.wait(), name="stream.stop")
@@ -557,7 +509,7 @@ async def watch_platform(
         try:
             async with asyncio.TaskGroup() as tg:
                 jobs = [
-                    tg.create_task(_failure_of(t), name=f"watch.{t.__name__}")
+                    tg.create_task(failure_of(t), name=f"watch.{t.__name__}")
                     for t in (pump_watch, pump_audit, lease)
                 ]
                 stopping = tg.create_task(stop.wait(), name="watch.stop")

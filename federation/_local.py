@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 from agents import Ticker, TokenBucket, TransportError
 
+from ._cli_common import failure_of, platforms_of, wait_for_members
 from ._cli_time import seconds, when
 from ._platform import PlatformConfig
 
@@ -321,18 +322,17 @@ class LocalChannel:
         send: Callable[[Any], Any],
         reader: asyncio.StreamReader,
     ) -> None:
-        from ._cli_net import _wait_for, platforms_of
 
         p = self.platform
         op = request.get("op")
         wait = float(request.get("wait", 3.0))
         timeout = float(request.get("timeout", 10.0))
         if op == "platforms":
-            await _wait_for(p, None, wait)
+            await wait_for_members(p, None, wait)
             await send({"ok": platforms_of(p)})
         elif op == "request":
             target = str(request["platform"])
-            await _wait_for(p, target, wait)
+            await wait_for_members(p, target, wait)
             answer = await p.federation_agent.request_from(
                 target, request["content"], timeout=timeout
             )
@@ -353,7 +353,7 @@ class LocalChannel:
         p = self.platform
         target = str(request["platform"])
         labels = [str(x) for x in request["labels"]]
-        await _wait_for_platform(p, target, wait)
+        await wait_for_members(p, target, wait)
         acquired: list[str] = []
         try:
             for semantic in labels:
@@ -422,15 +422,13 @@ class LocalChannel:
             finally:
                 sub.close()
 
-        from ._cli_net import _failure_of
-
         count = request.get("count")
         seen = 0
         error: Exception | None = None
         async with asyncio.TaskGroup() as tg:
-            pumps = [tg.create_task(_failure_of(pump, s), name=f"relay[{s}]") for s in labels]
+            pumps = [tg.create_task(failure_of(pump, s), name=f"relay[{s}]") for s in labels]
             # EOF: the command stopped
-            gone = tg.create_task(_failure_of(reader.read), name="relay.gone")
+            gone = tg.create_task(failure_of(reader.read), name="relay.gone")
             try:
                 while count is None or seen < int(count):
                     getting = tg.create_task(queue.get(), name="relay.next")
@@ -453,12 +451,6 @@ class LocalChannel:
                     t.cancel()
         if error is not None:
             raise error
-
-
-async def _wait_for_platform(p: FederationPlatform, target: str, wait: float) -> None:
-    from ._cli_net import _wait_for
-
-    await _wait_for(p, target, wait)
 
 
 class NodeUnreachable(Exception):

@@ -41,7 +41,8 @@ from dyknow_core.kpl import (
 from dyknow_core.kpl import parse as parse_kpl
 from dyknow_core.kpl import setup as setup_kpl
 
-from ._cli_net import _opened, _stop_event, _wait_for
+from ._cli_common import wait_for_members as _wait_for
+from ._cli_net import _opened, _stop_event
 from ._cli_time import seconds, when, when_ns
 
 log = logging.getLogger(__name__)

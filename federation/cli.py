@@ -31,7 +31,7 @@ from ._platform import PlatformConfig, PlatformConfigError
 
 
 def _demo_app() -> typer.Typer:
-    from .demo._cli import demo_app
+    from .demo import demo_app
 
     return demo_app
 

@@ -2,3 +2,7 @@
 
 `dyknow demo traffic` runs it (see docs/demo.md).
 """
+
+from ._cli import demo_app
+
+__all__ = ["demo_app"]

@@ -60,7 +60,7 @@ from dyknow_core.reasoning import (
     add_monitor,
 )
 
-from .._cli_net import settle_gc
+from .._cli_common import settle_gc
 from .._platform import FederationPlatform, PlatformConfig
 from ._traffic import (
     CHRONICLES,

@@ -1,0 +1,66 @@
+"""What the ``dyknow`` commands and a running node share: membership views, task failures, GC.
+
+Apart from ``_cli_net`` (the commands) and ``_local`` (the running node's local channel),
+which both use these and would otherwise import each other.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import gc
+import time
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from ._platform import FederationPlatform
+
+__all__ = ["failure_of", "platforms_of", "settle_gc", "wait_for_members"]
+
+
+def settle_gc() -> None:
+    """Move what start-up allocated out of the cyclic GC's sight (a long-running node).
+
+    The modules, agents and caches built at start-up live as long as the process; without
+    this, every full collection walks them again (measured: 16-24% of a node's loop time
+    in the GC, a 70 ms pause inside a global query at scale).
+    """
+    gc.collect()
+    gc.freeze()
+
+
+async def failure_of(job: Callable[..., Awaitable[Any]], *args: Any) -> Exception | None:
+    """Run ``job(*args)``; its failure is returned, not raised.
+
+    For the tasks of a task group whose failure the caller raises itself: a group would
+    raise it wrapped in an ExceptionGroup, and cancel its siblings and its caller first.
+    """
+    try:
+        await job(*args)
+    except Exception as exc:
+        return exc
+    return None
+
+
+async def wait_for_members(p: FederationPlatform, want: str | None, wait: float) -> None:
+    """Wait (at most ``wait`` s) until ``want`` (or any other platform) is seen, then settle."""
+    gdf = p.agents.global_df
+    deadline = time.monotonic() + wait
+    while time.monotonic() < deadline:
+        alive = [x for x in (gdf.platforms if gdf else []) if x != p.name]
+        if (want in alive) if want else alive:
+            await asyncio.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
+            return
+        await asyncio.sleep(0.1)
+
+
+def platforms_of(p: FederationPlatform) -> dict[str, list[dict[str, Any]]]:
+    """``{platform: [service, …]}`` of those alive, as ``p`` sees them (``p`` left out)."""
+    gdf = p.agents.global_df
+    if gdf is None:
+        return {}
+    return {
+        name: [{"name": s.name, "type": s.type, "provider": s.provider} for s in gdf.services(name)]
+        for name in gdf.platforms
+        if name != p.name
+    }
