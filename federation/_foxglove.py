@@ -8,7 +8,9 @@ it imports on a channel of a Foxglove WebSocket server (the official ``foxglove-
 ``/<platform>/<label>``, the value as JSON, its valid time as the message's log time.
 With the section's ``origin`` (latitude, longitude of the local frame's x = y = 0),
 positions are also published as ``foxglove.LocationFix`` (``…/fix``) and areas, tracks
-and violations as ``foxglove.GeoJSON`` (``…/geo``), which Foxglove's Map panel draws.
+and violations as ``foxglove.GeoJSON`` (``…/geo``), which Foxglove's Map panel draws;
+with or without it, every stream with a role also as a ``foxglove.SceneUpdate``
+(``…/scene``) in the local frame, for the 3D panel.
 
 Every channel is JSON-encoded with a JSON schema (``jsonschema``): the well-known
 Foxglove ones by their names, a stream's own inferred from its first sample (its
@@ -91,7 +93,43 @@ GEOJSON_SCHEMA: dict[str, Any] = {
 }
 """Foxglove's well-known ``foxglove.GeoJSON``: one GeoJSON document as a string."""
 
+FRAME = "world"
+"""The frame of the 3D scene: the federation's local metres, x east, y north, z up."""
+VIOLATION_LIFETIME = 10  # s: how long a violation's marker stays in the 3D scene
+
+_SHAPE_KINDS = ("arrows", "cubes", "spheres", "cylinders", "lines", "triangles", "texts", "models")
+_VECTOR = {"type": "object", "properties": {k: {"type": "number"} for k in "xyz"}}
+_ENTITY = {
+    "title": "foxglove.SceneEntity",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "frame_id": {"type": "string"},
+        "id": {"type": "string"},
+        "lifetime": {**_TIME, "title": "duration"},
+        "frame_locked": {"type": "boolean"},
+        "metadata": {"type": "array", "items": {"type": "object"}},
+        **{kind: {"type": "array", "items": {"type": "object"}} for kind in _SHAPE_KINDS},
+    },
+}
+SCENE_UPDATE_SCHEMA: dict[str, Any] = {
+    "title": "foxglove.SceneUpdate",
+    "description": "Positions, areas, tracked cars and violations in the local frame (metres)",
+    "type": "object",
+    "properties": {
+        "deletions": {"type": "array", "items": {"type": "object"}},
+        "entities": {"type": "array", "items": _ENTITY},
+    },
+    "required": ["deletions", "entities"],
+}
+"""Foxglove's well-known ``foxglove.SceneUpdate`` (entities' shapes left open here)."""
+
 _NO_COVARIANCE = [0.0] * 9
+_UAV = {"r": 0.1, "g": 0.45, "b": 0.95, "a": 1.0}
+_CAR = {"r": 0.95, "g": 0.65, "b": 0.1, "a": 1.0}
+_AREA = {"r": 0.3, "g": 0.8, "b": 0.4, "a": 0.8}
+_VIOLATION = {"r": 0.9, "g": 0.1, "b": 0.1, "a": 0.7}
+_TEXT = {"r": 1.0, "g": 1.0, "b": 1.0, "a": 1.0}
 
 
 def json_schema(title: str, value: Any, description: str | None = None) -> dict[str, Any]:
@@ -146,7 +184,7 @@ def _number(value: Any) -> float | None:
 class _Topic:
     """One served stream: its JSON channel and, with an origin, its map channel."""
 
-    __slots__ = ("bridge", "fix", "geo", "label", "platform", "raw", "role")
+    __slots__ = ("bridge", "fix", "geo", "label", "platform", "raw", "role", "scene")
 
     def __init__(self, bridge: FoxgloveBridge, platform: str, label: str, role: str | None):
         self.bridge = bridge
@@ -156,6 +194,7 @@ class _Topic:
         self.raw: Any = None  # created with the first sample: its schema is the sample's
         self.fix: Any = None
         self.geo: Any = None
+        self.scene: Any = None
 
     @property
     def topic(self) -> str:
@@ -171,11 +210,17 @@ class _Topic:
                 self.fix = b.channel(f"{self.topic}/fix", LOCATION_FIX_SCHEMA)
             elif b.origin is not None and self.role is not None:
                 self.geo = b.channel(f"{self.topic}/geo", GEOJSON_SCHEMA)
-        raw, fix, geo = self.raw, self.fix, self.geo
+            if self.role is not None:
+                self.scene = b.channel(f"{self.topic}/scene", SCENE_UPDATE_SCHEMA)
+        raw, fix, geo, scene = self.raw, self.fix, self.geo, self.scene
         for value, valid, _ in batch:
             if raw.has_sinks():
                 raw.log(_dumps(message(value)), log_time=valid)
             try:
+                if scene is not None and scene.has_sinks():
+                    update = self.scene_update(value, valid)
+                    if update is not None:
+                        scene.log(_dumps(update), log_time=valid)
                 if fix is not None and fix.has_sinks():
                     located = self.location_fix(value, valid)
                     if located is not None:
@@ -227,23 +272,107 @@ class _Topic:
                 features.append(_feature("Point", point, {**props, **_scalars(value)}))
         return {"type": "FeatureCollection", "features": features}
 
+    def scene_update(self, value: Any, valid: int) -> dict[str, Any] | None:
+        """A sample as a ``foxglove.SceneUpdate`` in the local frame (`FRAME`, metres).
+
+        A position is a sphere with the platform's name, an area its outline, the tracked
+        cars boxes: each replaces the previous (one entity per stream). A violation is a
+        marker of its own, shown for `VIOLATION_LIFETIME` seconds.
+        """
+        if not isinstance(value, dict):
+            return None
+        entity_id = f"{self.platform}/{self.label}"
+        lifetime = 0
+        shapes: dict[str, list[dict[str, Any]]] = {}
+        if self.role == "positions":
+            at = _xyz(value)
+            if at is None:
+                return None
+            shapes["spheres"] = [_shape(at, (8.0, 8.0, 8.0), _UAV)]
+            shapes["texts"] = [_text((at[0], at[1], at[2] + 10.0), self.platform)]
+        elif self.role == "areas":
+            points = [_xyz(p) for p in value.get("polygon") or ()]
+            ring = [{"x": p[0], "y": p[1], "z": 0.0} for p in points if p is not None]
+            if len(ring) < 3:
+                return None
+            shapes["lines"] = [_line_loop(ring)]
+        elif self.role == "tracks":
+            cars = [_xyz(c) for c in value.get("cars") or () if isinstance(c, dict)]
+            shapes["cubes"] = [_shape(c, (4.5, 1.8, 1.5), _CAR) for c in cars if c is not None]
+        else:  # violations: one marker each, for a while
+            at = _xyz(value)
+            if at is None:
+                return None
+            entity_id = f"{entity_id}/{valid}"
+            lifetime = VIOLATION_LIFETIME * NS_PER_S
+            shapes["spheres"] = [_shape(at, (12.0, 12.0, 12.0), _VIOLATION)]
+            shapes["texts"] = [_text((at[0], at[1], 15.0), str(value.get("kind", "violation")))]
+        entity = {
+            "timestamp": _stamp(valid),
+            "frame_id": FRAME,
+            "id": entity_id,
+            "lifetime": _stamp(lifetime),
+            "frame_locked": False,
+            "metadata": [],
+            **{kind: shapes.get(kind, []) for kind in _SHAPE_KINDS},
+        }
+        return {"deletions": [], "entities": [entity]}
+
     def _geo_point(self, value: Any) -> tuple[float, float] | None:
-        origin = self.bridge.origin
-        if origin is None:
-            return None
-        if isinstance(value, dict):
-            x, y = _number(value.get("x")), _number(value.get("y"))
-        elif isinstance(value, list | tuple) and len(value) >= 2:
-            x, y = _number(value[0]), _number(value[1])
-        else:
-            return None
-        if x is None or y is None:
-            return None
-        return local_to_geo(origin, x, y)
+        origin, at = self.bridge.origin, _xyz(value)
+        return None if origin is None or at is None else local_to_geo(origin, at[0], at[1])
 
     def _lon_lat(self, value: Any) -> list[float] | None:
         point = self._geo_point(value)
         return None if point is None else [point[1], point[0]]  # GeoJSON: longitude first
+
+
+def _xyz(value: Any) -> tuple[float, float, float] | None:
+    """A point ``{"x", "y"[, "z"]}`` or ``[x, y]`` in metres; None when it is none."""
+    if isinstance(value, dict):
+        x, y, z = _number(value.get("x")), _number(value.get("y")), _number(value.get("z"))
+    elif isinstance(value, list | tuple) and len(value) >= 2:
+        x, y, z = _number(value[0]), _number(value[1]), None
+    else:
+        return None
+    return None if x is None or y is None else (x, y, z or 0.0)
+
+
+def _pose(at: tuple[float, float, float]) -> dict[str, Any]:
+    return {
+        "position": {"x": at[0], "y": at[1], "z": at[2]},
+        "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+    }
+
+
+def _shape(
+    at: tuple[float, float, float], size: tuple[float, float, float], color: dict[str, float]
+) -> dict[str, Any]:
+    return {"pose": _pose(at), "size": dict(zip("xyz", size, strict=True)), "color": color}
+
+
+def _text(at: tuple[float, float, float], text: str) -> dict[str, Any]:
+    return {
+        "pose": _pose(at),
+        "billboard": True,
+        "font_size": 14.0,
+        "scale_invariant": True,
+        "color": _TEXT,
+        "text": text,
+    }
+
+
+def _line_loop(points: list[dict[str, float]]) -> dict[str, Any]:
+    return {
+        "type": 1,  # LINE_LOOP
+        "pose": _pose((0.0, 0.0, 0.0)),
+        "thickness": 2.0,
+        "scale_invariant": True,
+        "points": points,
+        "color": _AREA,
+        "colors": [],
+        "indices": [],
+    }
 
 
 def _feature(kind: str, coordinates: Any, props: dict[str, Any]) -> dict[str, Any]:

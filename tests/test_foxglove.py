@@ -246,6 +246,8 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
             "/uav-a/heli-position",
             "/uav-a/heli-altitude",
             "/uav-a/tracked-cars/geo",
+            "/uav-a/heli-position/scene",
+            "/uav-a/tracked-cars/scene",
         ]
         watched = subprocess.run(
             ["node", str(foxglove_client), url, "5", "60", *topics],
@@ -263,6 +265,7 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
             ("/uav-a/heli-position/fix", "foxglove.LocationFix"),
             ("/uav-a/heli-position", "heli-position"),
             ("/uav-a/tracked-cars/geo", "foxglove.GeoJSON"),
+            ("/uav-a/tracked-cars/scene", "foxglove.SceneUpdate"),
         ):
             ch = channels[topic]
             assert (ch["encoding"], ch["schemaName"], ch["schemaEncoding"]) == (
@@ -300,6 +303,20 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
         assert car["properties"]["id"] == "uav-a/car1" and car["properties"]["speed"] == 13.9
         lon, lat = car["geometry"]["coordinates"]
         assert abs(lat - ANCHOR[0]) < 0.01 and abs(lon - ANCHOR[1]) < 0.02
+        # the 3D panel's scene: local metres, one entity per stream, replaced each sample
+        for e in by_topic["/uav-a/heli-position/scene"]:
+            (entity,) = e["message"]["entities"]
+            assert (entity["id"], entity["frame_id"]) == ("uav-a/heli-position", "world")
+            assert entity["timestamp"]["sec"] * 10**9 + entity["timestamp"]["nsec"] == int(
+                e["logTime"]
+            )
+            (sphere,) = entity["spheres"]
+            at = sphere["pose"]["position"]
+            assert at["x"] >= 300.0 and (at["y"], at["z"]) == (200.0, 60.0)
+            assert entity["texts"][0]["text"] == "uav-a" and entity["cubes"] == []
+        (entity,) = by_topic["/uav-a/tracked-cars/scene"][-1]["message"]["entities"]
+        (cube,) = entity["cubes"]
+        assert cube["pose"]["position"]["y"] == 198.25 and cube["pose"]["position"]["x"] >= 250
 
         bridge.send_signal(signal.SIGINT)
         out, err = bridge.communicate(timeout=20)
