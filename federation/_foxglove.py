@@ -184,7 +184,17 @@ def _number(value: Any) -> float | None:
 class _Topic:
     """One served stream: its JSON channel and, with an origin, its map channel."""
 
-    __slots__ = ("bridge", "fix", "geo", "label", "platform", "raw", "role", "scene")
+    __slots__ = (
+        "bridge",
+        "fix",
+        "geo",
+        "label",
+        "last_valid",
+        "platform",
+        "raw",
+        "role",
+        "scene",
+    )
 
     def __init__(self, bridge: FoxgloveBridge, platform: str, label: str, role: str | None):
         self.bridge = bridge
@@ -195,6 +205,7 @@ class _Topic:
         self.fix: Any = None
         self.geo: Any = None
         self.scene: Any = None
+        self.last_valid: int | None = None  # the newest valid time served (ns)
 
     @property
     def topic(self) -> str:
@@ -214,6 +225,8 @@ class _Topic:
                 self.scene = b.channel(f"{self.topic}/scene", SCENE_UPDATE_SCHEMA)
         raw, fix, geo, scene = self.raw, self.fix, self.geo, self.scene
         for value, valid, _ in batch:
+            if self.last_valid is None or valid > self.last_valid:
+                self.last_valid = valid
             if raw.has_sinks():
                 raw.log(_dumps(message(value)), log_time=valid)
             try:
@@ -612,11 +625,10 @@ class FoxgloveBridge:
     async def _follow(self, m: _Member, label: str) -> None:
         """Ask ``m`` for the stream (again while refused or ended) and serve its samples."""
         topic = self._topic(m.name, label, self._role_of.get(label))
-        last_valid: int | None = None
         while True:
             if self.ask:
                 await self._ask_for(m, label)
-            last_valid = await self._serve_import(m, topic, last_valid)
+            await self._serve_import(m, topic)
             # ended while its platform is alive (its lease for us expired): ask again
             m.exports.pop(label, None)
             await asyncio.sleep(RETRY)
@@ -633,8 +645,8 @@ class FoxgloveBridge:
                 log.info("foxglove: %s refused %s: %s", m.name, label, exc)
             await asyncio.sleep(RETRY)
 
-    async def _serve_import(self, m: _Member, topic: _Topic, last_valid: int | None) -> int | None:
-        """Serve the import of ``topic`` until it ends; the newest valid time served."""
+    async def _serve_import(self, m: _Member, topic: _Topic) -> None:
+        """Serve the import of ``topic`` until it ends."""
         while True:
             try:
                 local = await self.platform.imported(m.name, topic.label, timeout=WAIT_IMPORT)
@@ -642,14 +654,11 @@ class FoxgloveBridge:
             except TimeoutError:
                 continue  # a platform may have nothing to say yet (no violation so far)
         # From the start the first time (the cache keeps what arrived before we looked),
-        # after that from where we were: nothing served twice.
-        start = 0 if last_valid is None else last_valid + 1
+        # after that, a platform come back included, from where we were: nothing twice.
+        start = 0 if topic.last_valid is None else topic.last_valid + 1
         with self.platform.instance.subscribe(local, Policy(start=start)) as sub:
             async for batch in sub.batches():
                 topic.publish(batch)
-                if batch:
-                    last_valid = max(last_valid or 0, max(s[1] for s in batch))
-        return last_valid
 
     async def _serve_local(self, label: str) -> None:
         topic = self._topic(self.name, label, self._role_of.get(label))

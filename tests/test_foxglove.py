@@ -10,6 +10,8 @@ and the ``[foxglove]`` section's checks, are tested here too.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import math
 import os
@@ -25,9 +27,17 @@ from typing import Any
 import pytest
 
 from agents.keys import gen_keys, trust_keys
-from federation import PlatformConfig, PlatformConfigError
+from agents.transports import MemoryHub
+from federation import FederationPlatform, FoxgloveBridge, PlatformConfig, PlatformConfigError
 from federation._foxglove import json_schema, message
 from federation._geo import EARTH_RADIUS, local_to_geo
+from federation.console import OperatorConsole
+from federation.demo._vocabulary import (
+    console_config,
+    foxglove_config,
+    local_mapping,
+    vocabulary,
+)
 from federation.demo._world import ANCHOR, World
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -208,6 +218,12 @@ asyncio.run(run())
 """
 
 
+async def _cancelled(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+
+
 def _kill(proc: subprocess.Popen[str]) -> None:
     if proc.poll() is None:
         proc.kill()
@@ -342,3 +358,97 @@ def test_foxglove_refuses_a_stream_outside_the_vocabulary(tmp_path: Path) -> Non
     )
     assert done.returncode == 2, done.stderr
     assert "foxglove.streams: 'temperature' is not in the federation's vocabulary" in done.stderr
+
+
+# -- in one process: beside the console, serving what the console asks for ----------------
+
+
+async def _watch(client: Path, url: str, count: int, *topics: str) -> list[dict[str, Any]]:
+    """The Node client's events: every topic's first ``count`` messages (60 s at most)."""
+    proc = await asyncio.create_subprocess_exec(
+        "node",
+        str(client),
+        url,
+        str(count),
+        "60",
+        *topics,
+        cwd=NODE_DIR,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    out, err = await proc.communicate()
+    assert proc.returncode == 0, err.decode()
+    return [json.loads(line) for line in out.decode().splitlines()]
+
+
+async def test_bridge_beside_the_console_serves_its_imports_and_local_labels(
+    tmp_path: Path, foxglove_client: Path
+) -> None:
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in ("operator", "uav-a")]
+    trust_keys(tmp_path / "trust.json", pubs, federation="demo")
+
+    def config(name: str, **sections: Any) -> PlatformConfig:
+        return PlatformConfig.from_dict(
+            {
+                "name": name,
+                "federation": "demo",
+                "key": str(tmp_path / "keys" / f"{name}.key"),
+                "trust": str(tmp_path / "trust.json"),
+                "vocabulary": vocabulary(),
+                "mapping": local_mapping(),
+                **sections,
+            }
+        )
+
+    operator_config = config(
+        "operator",
+        console=console_config(),
+        foxglove={**foxglove_config(), "streams": ["heli-position"], "local": ["operator/notes"]},
+    )
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack:
+        t = await stack.enter_async_context(hub.transport())
+        operator = await stack.enter_async_context(FederationPlatform(operator_config, transport=t))
+        notes = operator.instance.add_source("operator/notes")
+        t = await stack.enter_async_context(hub.transport())
+        uav = await stack.enter_async_context(FederationPlatform(config("uav-a"), transport=t))
+        position = uav.instance.add_source("uav/self/position")
+
+        async def fly() -> None:
+            k = 0
+            while True:
+                position.push({"x": 300.0 + k, "y": 200.0, "z": 60.0})
+                notes.push({"text": f"note {k}", "x": 10.0, "y": 20.0})
+                k += 1
+                await asyncio.sleep(0.05)
+
+        flying = asyncio.create_task(fly())
+        stack.push_async_callback(_cancelled, flying)
+        console = await stack.enter_async_context(OperatorConsole(operator, port=0))
+        bridge = await stack.enter_async_context(FoxgloveBridge(operator, port=0, ask=False))
+        assert bridge.served() == ["heli-position (positions)", "operator/notes (local)"]
+        assert bridge.url == f"ws://127.0.0.1:{bridge.port}" and bridge.port > 0
+        assert console.url != bridge.url
+
+        events = await _watch(
+            foxglove_client, bridge.url, 3, "/uav-a/heli-position/fix", "/operator/operator/notes"
+        )
+        fixes = [e["message"] for e in events if e.get("topic") == "/uav-a/heli-position/fix"]
+        assert len(fixes) >= 3
+        expected = local_to_geo(ANCHOR, 300.0, 200.0)
+        assert fixes[0]["latitude"] == pytest.approx(expected[0])
+        assert all(f["longitude"] >= expected[1] for f in fixes)
+        notes_topic = "/operator/operator/notes"  # this platform's own label
+        seen = [e["message"] for e in events if e.get("topic") == notes_topic]
+        assert len(seen) >= 3 and seen[0]["text"].startswith("note ")
+        advertised = {
+            e["advertised"]["topic"]: e["advertised"] for e in events if "advertised" in e
+        }
+        notes_schema = json.loads(advertised[notes_topic]["schema"])
+        assert notes_schema["properties"]["text"] == {"type": "string"}
+        assert "/uav-a/tracked-cars" not in advertised  # not one of the [foxglove] streams
+
+        # uav-a exports to the operator what the console asked (of the labels it has);
+        # the bridge asked for nothing (a second export of a label would be refused)
+        exported = [e.semantic_label for e in uav.exporter.exports("operator")]
+        assert exported == ["heli-position"]
