@@ -37,7 +37,7 @@ from ._geo import local_to_geo
 from ._platform import ConsoleRoles, FederationPlatform, FoxgloveSettings
 from ._service import MembershipEvent
 
-__all__ = ["FoxgloveBridge", "json_schema"]
+__all__ = ["FoxgloveBridge", "json_schema", "message"]
 
 log = logging.getLogger("federation.foxglove")
 
