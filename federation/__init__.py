@@ -5,9 +5,11 @@ member of a federation; `FederationAgent` is its DyKnow Federation service, the 
 carry agreed streams, and `add_fusion` merges an imported stream with a local one.
 `GatewayAgent` is the ACL face of the local DyKnow instance (its content mapping is
 `GatewayService`); it lives here, not in `agents`, which knows nothing of DyKnow.
+`FoxgloveBridge` serves a platform's view of its federation to Foxglove (docs/foxglove.md).
 """
 
 from ._export import Export, ExportProxy
+from ._foxglove import FoxgloveBridge
 from ._fusion import Fusion, add_fusion
 from ._gateway import GATEWAY_SERVICE_TYPE, GatewayAgent, GatewayStats
 from ._gateway_service import GatewayRefusal, GatewayService
@@ -15,6 +17,7 @@ from ._import import Import, ImportProxy
 from ._platform import (
     DEFAULT_IMPORT_LABEL,
     FederationPlatform,
+    FoxgloveSettings,
     KxLimitSettings,
     MqttSettings,
     PlatformConfig,
@@ -53,6 +56,8 @@ __all__ = [
     "Exporter",
     "FederationAgent",
     "FederationPlatform",
+    "FoxgloveBridge",
+    "FoxgloveSettings",
     "Fusion",
     "GatewayAgent",
     "GatewayRefusal",

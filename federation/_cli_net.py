@@ -146,6 +146,44 @@ async def run_console(
     say(f"dyknow console: {config.name} stopped")
 
 
+async def run_foxglove(
+    config: PlatformConfig,
+    source: str,
+    host: str,
+    port: int,
+    say: Callable[[str], None],
+    *,
+    sample_period: float | None = None,
+) -> None:
+    """Run one platform serving Foxglove (docs/foxglove.md) until SIGINT/SIGTERM.
+
+    The ready line ends with the WebSocket URL to open in Foxglove.
+    """
+    from ._application import NodeApplication, check_application
+    from ._foxglove import FoxgloveBridge
+    from ._local import LocalChannel, refuse_duplicate
+
+    check_application(config, source)
+    transport = config.make_transport()
+    async with (
+        transport,
+        _checked(refuse_duplicate(transport, config)),
+        FederationPlatform(config, source=source, join=False, transport=transport) as p,
+        NodeApplication(p, source),
+        LocalChannel(p),
+        FoxgloveBridge(p, host=host, port=port, sample_period=sample_period) as bridge,
+    ):
+        await p.join()
+        stop = _stop_event()
+        settle_gc()
+        say(f"dyknow foxglove: serving {', '.join(bridge.served()) or 'no streams'}")
+        if bridge.origin is None:
+            say("dyknow foxglove: no [foxglove] origin: positions are not drawn on a map")
+        say(f"dyknow foxglove: {p.name} ready in federation {config.federation}: {bridge.url}")
+        await stop.wait()
+    say(f"dyknow foxglove: {config.name} stopped")
+
+
 async def run_router(listen: list[str], json5: str | None, say: Callable[[str], None]) -> None:
     """A zenoh session in router mode until SIGINT/SIGTERM."""
     import zenoh

@@ -55,6 +55,9 @@ A config file (TOML; relative paths are relative to the file)::
     positions = "heli-position"
     violations = "violation"
 
+    [foxglove]                   # `dyknow foxglove` only (docs/foxglove.md)
+    origin = [58.3975, 15.5765]  # latitude, longitude of x = y = 0 (streams: the console's)
+
     [transport]
     kind = "zenoh"
     mode = "peer"
@@ -118,6 +121,7 @@ from ontology import (
 from ._export import ExportProxy
 from ._fusion import Fusion, add_fusion
 from ._gateway import GatewayAgent
+from ._geo import check_origin
 from ._import import Import, ImportProxy
 from ._inputs import InputSettings
 from ._outputs import OutputSettings
@@ -130,6 +134,7 @@ __all__ = [
     "ConsoleRoles",
     "ConsoleSettings",
     "FederationPlatform",
+    "FoxgloveSettings",
     "KxLimitSettings",
     "MqttSettings",
     "PlatformConfig",
@@ -261,6 +266,56 @@ class ConsoleSettings(BaseModel):
         return value
 
 
+class FoxgloveSettings(BaseModel):
+    """``[foxglove]``: what ``dyknow foxglove`` serves to Foxglove (docs/foxglove.md).
+
+    ``streams`` (default: the console's) are the semantic labels asked of every other
+    member, ``roles`` (default: the console's) which of them are positions, areas, tracks
+    and violations (`ConsoleRoles`); ``local`` are labels of this platform's own instance
+    served too. ``origin`` is the latitude and longitude of the local frame's (0, 0), x
+    metres east and y north: with it, positions become ``foxglove.LocationFix`` and areas,
+    tracks and violations GeoJSON, drawn on the Map panel.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    streams: tuple[Annotated[str, Field(min_length=1)], ...] | None = None
+    roles: ConsoleRoles | None = None
+    local: tuple[Annotated[str, Field(min_length=1)], ...] = ()
+    origin: tuple[float, float] | None = None
+
+    @field_validator("streams", "local")
+    @classmethod
+    def _distinct(cls, value: tuple[str, ...] | None) -> tuple[str, ...] | None:
+        twice = sorted({label for label in value or () if value and value.count(label) > 1})
+        if twice:
+            raise ValueError(f"{twice[0]!r} is listed twice")
+        return value
+
+    @field_validator("origin")
+    @classmethod
+    def _on_earth(cls, value: tuple[float, float] | None) -> tuple[float, float] | None:
+        return None if value is None else check_origin(*value)
+
+    def resolve(self, console: ConsoleSettings) -> tuple[tuple[str, ...], ConsoleRoles]:
+        """The streams and roles served: these settings', else the console's.
+
+        ValueError when a role names a label that is not one of the streams.
+        """
+        streams = console.streams if self.streams is None else self.streams
+        roles = console.roles if self.roles is None else self.roles
+        for role, label in roles.model_dump().items():
+            if label is not None and label not in streams:
+                if self.roles is None:  # the console's role of a stream not served here
+                    roles = roles.model_copy(update={role: None})
+                    continue
+                raise ValueError(
+                    f"foxglove.roles: {role} = {label!r} is not one of the streams "
+                    f"({', '.join(streams) or 'none'})"
+                )
+        return streams, roles
+
+
 class SecuritySettings(BaseModel):
     """The ``[security]`` table: confidentiality of what this platform sends and publishes.
 
@@ -342,6 +397,7 @@ class PlatformConfig(BaseModel):
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
     console: ConsoleSettings = Field(default_factory=ConsoleSettings)
+    foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
 
     # -- the application on this node (docs/application.md): run by `dyknow node` --------
     application: Path | None = Field(default=None, description="The node's KPL file.")

@@ -233,6 +233,39 @@ def console(
         raise _fail(f"dyknow console: {config}: {exc}", 1) from None
 
 
+@app.command("foxglove")
+def foxglove(
+    config: ConfigOpt,
+    host: Annotated[
+        str, typer.Option("--host", help="the address to serve on (clients only watch)")
+    ] = "127.0.0.1",
+    port: Annotated[
+        int, typer.Option("--port", help="the WebSocket port (0: any free one)")
+    ] = 8765,
+    sample_period: Annotated[
+        float | None,
+        typer.Option("--sample-period", min=0.0, help="seconds between samples asked"),
+    ] = None,
+) -> None:
+    """Run a platform serving its federation's streams to Foxglove (docs/foxglove.md)."""
+    from ._cli_net import run_foxglove
+    from ._local import PlatformAliveError
+
+    cfg = _load(config)
+    try:
+        asyncio.run(run_foxglove(cfg, str(config), host, port, _say, sample_period=sample_period))
+    except PlatformConfigError as exc:
+        raise _fail(str(exc)) from None
+    except ValueError as exc:  # [foxglove] names what the federation does not have
+        raise _fail(f"dyknow foxglove: {config}: {exc}") from None
+    except PlatformAliveError as exc:
+        raise _fail(f"dyknow foxglove: {config}: {exc}") from None
+    except (TransportError, OSError) as exc:
+        raise _fail(f"dyknow foxglove: {config}: {exc}", 1) from None
+    except RuntimeError as exc:  # the SDK's server could not start (the port is taken)
+        raise _fail(f"dyknow foxglove: {config}: {exc}", 1) from None
+
+
 @app.command("router")
 def router(
     zenoh_config: Annotated[

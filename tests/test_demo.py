@@ -192,7 +192,11 @@ async def test_the_demo_finds_the_violation_across_the_border_from_fused_states(
     uavs: int, seed: int
 ) -> None:
     lines: list[str] = []
-    options = DemoOptions(uavs=uavs, duration=60.0, seed=seed, speed=4.0, console=False)
+    # one run serves Foxglove too (without the console: the bridge asks for the streams)
+    foxglove = 0 if uavs == 2 else None
+    options = DemoOptions(
+        uavs=uavs, duration=60.0, seed=seed, speed=4.0, console=False, foxglove_port=foxglove
+    )
     report = await asyncio.wait_for(run_traffic_demo(options, lines.append), 120)
     names = uav_names(uavs)
     # the leader's Contract-Net gives each area to the UAV hovering over it (cheapest)
@@ -214,6 +218,8 @@ async def test_the_demo_finds_the_violation_across_the_border_from_fused_states(
     assert [f["platform"] for f in fused] == [b]
     assert any(line.startswith("t=") for line in lines)  # progress while it ran
     assert any("from fused states" in line for line in lines)
+    if foxglove is not None:
+        assert any(line.startswith("operator foxglove: ws://127.0.0.1:") for line in lines)
 
 
 def test_the_demo_command_refuses_bad_options(capsys: pytest.CaptureFixture[str]) -> None:

@@ -33,6 +33,14 @@ def traffic(
     ] = 8080,
     host: Annotated[str, typer.Option("--host", help="the console's address")] = "127.0.0.1",
     no_console: Annotated[bool, typer.Option("--no-console", help="no web console")] = False,
+    foxglove_port: Annotated[
+        int | None,
+        typer.Option(
+            "--foxglove-port",
+            help="the operator also serves Foxglove on this WebSocket port (0: any; "
+            "docs/foxglove.md)",
+        ),
+    ] = None,
     allow_host: Annotated[
         list[str] | None,
         typer.Option(
@@ -72,6 +80,7 @@ def traffic(
         hold=hold,
         console_token=token,
         allow_hosts=hosts,
+        foxglove_port=foxglove_port,
     )
     say = (lambda _: None) if as_json else (lambda text: _out.print(text, markup=False))
     # SIGTERM (timeout, docker stop, a closed CI job) takes Ctrl-C's way out, so the UAV

@@ -33,7 +33,7 @@ from dyknow_core import NS_PER_S, DyKnowInstance
 
 from .._platform import FederationPlatform, PlatformConfig
 from ._uav import ONTOLOGY, SPEEDING, SimClock, UavSettings, run_uav
-from ._vocabulary import console_config, local_mapping, vocabulary
+from ._vocabulary import console_config, foxglove_config, local_mapping, vocabulary
 from ._world import Violation, World
 
 __all__ = ["DemoOptions", "DemoReport", "DemoStarted", "run_traffic_demo", "uav_names"]
@@ -68,6 +68,7 @@ class DemoOptions:
     hold: float = 0.0  # s to keep running (console open) after the report
     console_token: str | None = None  # None: a random one (the URL printed carries it)
     allow_hosts: tuple[str, ...] = ()  # host names the console may be reached by
+    foxglove_port: int | None = None  # the operator serves Foxglove there too (0: any port)
 
 
 @dataclass(frozen=True, slots=True)
@@ -154,6 +155,7 @@ def _federation_files(
             },
         }
     configs[OPERATOR]["console"] = console_config()
+    configs[OPERATOR]["foxglove"] = foxglove_config()
     return configs
 
 
@@ -344,6 +346,18 @@ async def _operate(
                     say(f"port {options.port} is taken ({exc.strerror}); using a free one")
                     console = await stack.enter_async_context(make(0))
                 say(f"operator console: {console.login_url}")
+            if options.foxglove_port is not None:
+                from .._foxglove import FoxgloveBridge
+
+                # beside the console, which asks for the same streams, it only serves them
+                bridge = FoxgloveBridge(
+                    platform,
+                    host=options.host,
+                    port=options.foxglove_port,
+                    ask=console is None,
+                )
+                await stack.enter_async_context(bridge)
+                say(f"operator foxglove: {bridge.url}")
             agent = await platform.agents.add(_Operator())
             await _wait_members(platform, names, procs, say)
             if started is not None and not started.done():

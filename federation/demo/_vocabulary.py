@@ -22,7 +22,9 @@ from __future__ import annotations
 
 from typing import Any
 
-__all__ = ["LABELS", "console_config", "local_mapping", "vocabulary"]
+from ._world import ANCHOR
+
+__all__ = ["LABELS", "console_config", "foxglove_config", "local_mapping", "vocabulary"]
 
 LABELS: dict[str, str] = {
     "heli-position": "the platform's own position (x, y, z), metres",
@@ -69,3 +71,8 @@ def console_config() -> dict[str, Any]:
             "violations": "violation",
         },
     }
+
+
+def foxglove_config() -> dict[str, Any]:
+    """The operator's ``[foxglove]`` section: the console's streams, on the world's map."""
+    return {"origin": list(ANCHOR)}

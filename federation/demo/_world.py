@@ -43,6 +43,11 @@ The camera sees every car inside its area (borders included). Its track ids (``v
 numbered by the start of each stay in view, so they depend on ``t`` alone: a car keeps its
 vid while it stays in view (missed detections included) and gets a new one if it comes
 back. No generated car leaves an area and comes back, so each car has one vid per camera.
+
+Where it lies: the map's origin (0, 0) is `ANCHOR`, a real place (Linköping University's
+campus, where DyKnow was built), x east and y north of it. ``World.lat_lon`` gives a map
+point's latitude and longitude; the operator's ``[foxglove] origin`` is `ANCHOR`, so its
+Foxglove map draws the UAVs and cars there (docs/foxglove.md).
 """
 
 from __future__ import annotations
@@ -53,7 +58,10 @@ from bisect import bisect_right
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from .._geo import local_to_geo
+
 __all__ = [
+    "ANCHOR",
     "AREA_WIDTH",
     "BESIDE_DISTANCE",
     "LANE_WIDTH",
@@ -75,6 +83,8 @@ BESIDE_DISTANCE = 8.0
 CROSSING_RADIUS = 12.0
 UAV_ALTITUDE = 60.0
 MAX_UAVS = 32
+ANCHOR = (58.3975, 15.5765)
+"""Latitude and longitude (degrees) of the map's origin: Linköping University (Valla)."""
 
 _DRIVE_Y = MAIN_Y - LANE_WIDTH / 2  # eastbound traffic keeps to the southern (right) lane
 _PASS_Y = MAIN_Y + LANE_WIDTH / 2
@@ -334,6 +344,7 @@ class World:
         if not (math.isfinite(duration) and duration > 0):
             raise ValueError(f"duration must be a positive number of seconds, not {duration}")
         self.seed = seed
+        self.anchor = ANCHOR
         self.n_uavs = n_uavs
         self.duration = float(duration)
         self.width = AREA_WIDTH * n_uavs
@@ -418,6 +429,10 @@ class World:
         if not 0 <= k < self.n_uavs - 1:
             raise ValueError(f"there is no border after area {k} with {self.n_uavs} areas")
         return AREA_WIDTH * (k + 1)
+
+    def lat_lon(self, x: float, y: float) -> tuple[float, float]:
+        """The latitude and longitude (degrees) of map point (x, y): `ANCHOR` is (0, 0)."""
+        return local_to_geo(self.anchor, x, y)
 
     def to_dict(self) -> dict[str, object]:
         """The JSON-ready map for the operator console."""

@@ -1,0 +1,454 @@
+"""`dyknow foxglove`: a platform's federation served over Foxglove's WebSocket protocol.
+
+The end-to-end test runs a UAV (a producer process pushing positions, tracked cars and its
+altitude) and ``dyknow foxglove`` as the operator, and watches with an independent client
+of the protocol: the reference TypeScript one, ``@foxglove/ws-protocol``, under Node
+(tests/node: ``npm ci`` installs the locked packages when they are missing or older than
+the lock file). The conversion of the traffic world's metres to latitude and longitude,
+and the ``[foxglove]`` section's checks, are tested here too.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from agents.keys import gen_keys, trust_keys
+from agents.transports import MemoryHub
+from federation import FederationPlatform, FoxgloveBridge, PlatformConfig, PlatformConfigError
+from federation._foxglove import json_schema, message
+from federation._geo import EARTH_RADIUS, local_to_geo
+from federation.console import OperatorConsole
+from federation.demo._vocabulary import (
+    console_config,
+    foxglove_config,
+    local_mapping,
+    vocabulary,
+)
+from federation.demo._world import ANCHOR, World
+
+ROOT = Path(__file__).resolve().parent.parent
+NODE_DIR = ROOT / "tests" / "node"
+CLI = [sys.executable, "-m", "federation.cli"]
+
+
+# -- the world on Earth ---------------------------------------------------------------------
+
+
+def test_local_metres_become_latitude_and_longitude() -> None:
+    assert local_to_geo(ANCHOR, 0.0, 0.0) == pytest.approx(ANCHOR)
+    lat, lon = local_to_geo(ANCHOR, 0.0, 1000.0)  # 1 km north
+    assert lon == pytest.approx(ANCHOR[1])
+    assert lat - ANCHOR[0] == pytest.approx(math.degrees(1000.0 / EARTH_RADIUS))
+    assert lat - ANCHOR[0] == pytest.approx(0.008993, abs=1e-6)
+    lat, lon = local_to_geo(ANCHOR, 1000.0, 0.0)  # 1 km east: more degrees up north
+    assert lat == pytest.approx(ANCHOR[0])
+    assert lon - ANCHOR[1] == pytest.approx(0.008993 / math.cos(math.radians(ANCHOR[0])), 1e-4)
+    # across the antimeridian, longitudes stay in [-180, 180)
+    assert local_to_geo((0.0, 179.9999), 1000.0, 0.0)[1] < -179.99
+
+
+def test_the_traffic_world_lies_at_its_anchor() -> None:
+    world = World.generate(7, n_uavs=3, duration=60.0)
+    assert world.anchor == ANCHOR == (58.3975, 15.5765)
+    assert world.lat_lon(0.0, 0.0) == pytest.approx(ANCHOR)
+    # the far corner of the map: 1800 m east, 400 m north, still near Linköping
+    lat, lon = world.lat_lon(world.width, world.height)
+    assert 58.40 < lat < 58.402 and 15.60 < lon < 15.61
+    # the world itself is unchanged: the same seed, the same cars
+    again = World.generate(7, n_uavs=3, duration=60.0)
+    assert again.cars_at(30.0) == world.cars_at(30.0)
+    assert "anchor" not in world.to_dict()
+
+
+# -- the [foxglove] section -----------------------------------------------------------------
+
+
+def _config(**foxglove: Any) -> PlatformConfig:
+    return PlatformConfig.from_dict(
+        {
+            "name": "operator",
+            "federation": "demo",
+            "key": "k.key",
+            "trust": "trust.json",
+            "vocabulary": {"name": "t", "labels": {"a": "a", "b": "b"}},
+            "mapping": {"vocabulary": "t", "labels": {"a": "x/a", "b": "x/b"}},
+            "console": {"streams": ["a", "b"], "roles": {"positions": "a"}},
+            "foxglove": foxglove,
+        }
+    )
+
+
+def test_foxglove_settings_default_to_the_console() -> None:
+    cfg = _config(origin=[58.3975, 15.5765])
+    streams, roles = cfg.foxglove.resolve(cfg.console)
+    assert streams == ("a", "b") and roles.positions == "a"
+    assert cfg.foxglove.origin == (58.3975, 15.5765)
+    streams, roles = _config(streams=["b"]).foxglove.resolve(cfg.console)
+    assert streams == ("b",) and roles.positions is None  # the console's role not served
+    cfg = _config(streams=["b"], roles={"violations": "a"})
+    with pytest.raises(ValueError, match=r"foxglove\.roles: violations = 'a' is not one of"):
+        cfg.foxglove.resolve(cfg.console)
+
+
+@pytest.mark.parametrize(
+    ("section", "error"),
+    [
+        ({"origin": [91.0, 0.0]}, "foxglove.origin"),
+        ({"origin": [58.0]}, "foxglove.origin"),
+        ({"streams": ["a", "a"]}, "'a' is listed twice"),
+        ({"port": 8765}, "foxglove.port"),
+    ],
+)
+def test_foxglove_settings_errors_name_the_key(section: dict[str, Any], error: str) -> None:
+    with pytest.raises(PlatformConfigError, match=error):
+        _config(**section)
+
+
+def test_messages_and_their_schemas() -> None:
+    schema = json_schema("heli-position", {"x": 1.0, "y": 2, "kind": "uav", "fused": True})
+    assert schema["title"] == "heli-position" and schema["type"] == "object"
+    assert schema["properties"] == {
+        "x": {"type": "number"},
+        "y": {"type": "number"},
+        "kind": {"type": "string"},
+        "fused": {"type": "boolean"},
+    }
+    cars = json_schema("tracked-cars", {"cars": [{"id": "c1", "x": 1.0}]}, "what it tracks")
+    assert cars["description"] == "what it tracks"
+    assert cars["properties"]["cars"]["items"]["properties"]["id"] == {"type": "string"}
+    # a number is no object: sent as {"value": …}
+    assert json_schema("heli-altitude", 60.0)["properties"] == {"value": {"type": "number"}}
+    assert message(60.0) == {"value": 60.0} and message({"x": 1}) == {"x": 1}
+
+
+# -- end to end: a UAV, `dyknow foxglove`, a Node client -----------------------------------
+
+
+@pytest.fixture(scope="module")
+def foxglove_client() -> Path:
+    """tests/node's client with its locked packages installed (``npm ci`` when stale)."""
+    npm, node = shutil.which("npm"), shutil.which("node")
+    assert npm and node, "Node.js and npm are needed: the test's protocol client runs under Node"
+    lock = NODE_DIR / "package-lock.json"
+    installed = NODE_DIR / "node_modules" / ".package-lock.json"  # npm writes it last
+    if not installed.exists() or installed.stat().st_mtime < lock.stat().st_mtime:
+        subprocess.run(
+            [npm, "ci", "--no-audit", "--no-fund", "--loglevel=error"],
+            cwd=NODE_DIR,
+            check=True,
+            timeout=300,
+        )
+    return NODE_DIR / "foxglove_client.mjs"
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+LABELS = {
+    "heli-position": "the platform's own position (x, y, z), metres",
+    "heli-altitude": "the platform's altitude, m",
+    "tracked-cars": "every car the platform tracks now, with positions",
+}
+
+
+def _write_federation(tmp_path: Path, port: int) -> dict[str, Path]:
+    """Keys, trust file, vocabulary, mappings and configs for uav-a and the operator."""
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in ("uav-a", "operator")]
+    trust_keys(tmp_path / "trust.json", pubs, federation="traffic")
+    vocab = "".join(f'"{label}" = "{text}"\n' for label, text in LABELS.items())
+    (tmp_path / "traffic.toml").write_text(f'name = "traffic"\n[labels]\n{vocab}')
+    configs = {}
+    for name, transport in (
+        ("uav-a", f'listen = ["tcp/127.0.0.1:{port}"]'),
+        ("operator", f'connect = ["tcp/127.0.0.1:{port}"]'),
+    ):
+        mapping = "".join(f'"{label}" = "{name}/{label}"\n' for label in LABELS)
+        (tmp_path / f"{name}-labels.toml").write_text(
+            f'vocabulary = "traffic"\n[labels]\n{mapping}'
+        )
+        configs[name] = tmp_path / f"{name}.toml"
+        configs[name].write_text(
+            f'name = "{name}"\nfederation = "traffic"\nkey = "keys/{name}.key"\n'
+            f'trust = "trust.json"\nvocabulary = "traffic.toml"\n'
+            f'mapping = "{name}-labels.toml"\n\n[transport]\nmode = "peer"\n{transport}\n'
+        )
+    with configs["operator"].open("a") as f:
+        f.write(
+            '\n[console]\nstreams = ["heli-position", "tracked-cars", "heli-altitude"]\n'
+            '[console.roles]\npositions = "heli-position"\ntracks = "tracked-cars"\n'
+            f"\n[foxglove]\norigin = [{ANCHOR[0]}, {ANCHOR[1]}]\n"
+        )
+    return configs
+
+
+PRODUCER = """
+import asyncio, sys
+from federation import FederationPlatform, PlatformConfig
+async def run():
+    async with FederationPlatform(PlatformConfig.load(sys.argv[1])) as p:
+        add = p.instance.add_source
+        pos, alt = add("uav-a/heli-position"), add("uav-a/heli-altitude")
+        cars = add("uav-a/tracked-cars")
+        print("ready", flush=True)
+        k = 0
+        while True:
+            pos.push({"x": 300.0 + k, "y": 200.0, "z": 60.0})
+            alt.push(60.0)
+            cars.push({"cars": [{"id": "uav-a/car1", "x": 250.0 + k, "y": 198.25, "speed": 13.9}]})
+            k += 1
+            await asyncio.sleep(0.1)
+asyncio.run(run())
+"""
+
+
+async def _cancelled(task: asyncio.Task[None]) -> None:
+    task.cancel()
+    with contextlib.suppress(asyncio.CancelledError):
+        await task
+
+
+def _kill(proc: subprocess.Popen[str]) -> None:
+    if proc.poll() is None:
+        proc.kill()
+        proc.wait(5)
+
+
+@pytest.mark.timeout(300)  # a first `npm ci` included
+def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_client: Path) -> None:
+    configs = _write_federation(tmp_path, _free_port())
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_RUNTIME_DIR": str(tmp_path)}
+    procs: list[subprocess.Popen[str]] = []
+
+    def start(*args: str) -> subprocess.Popen[str]:
+        proc = subprocess.Popen(
+            list(args), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=env
+        )
+        procs.append(proc)
+        return proc
+
+    try:
+        producer = start(sys.executable, "-c", PRODUCER, str(configs["uav-a"]))
+        assert producer.stdout is not None
+        assert producer.stdout.readline().strip() == "ready", producer.stderr
+        bridge = start(*CLI, "foxglove", "--config", str(configs["operator"]), "--port", "0")
+        assert bridge.stdout is not None
+        lines = [bridge.stdout.readline() for _ in range(2)]  # bounded by the test's timeout
+        assert lines[0].startswith("dyknow foxglove: serving heli-position (positions), "), lines
+        assert "operator ready in federation traffic: ws://127.0.0.1:" in lines[1], (
+            lines,
+            bridge.stderr.read() if bridge.stderr else "",
+        )
+        url = lines[1].rsplit(": ", 1)[1].strip()
+        t0 = time.time_ns()
+        topics = [
+            "/uav-a/heli-position/fix",
+            "/uav-a/heli-position",
+            "/uav-a/heli-altitude",
+            "/uav-a/tracked-cars/geo",
+            "/uav-a/heli-position/scene",
+            "/uav-a/tracked-cars/scene",
+        ]
+        watched = subprocess.run(
+            ["node", str(foxglove_client), url, "5", "60", *topics],
+            capture_output=True,
+            text=True,
+            cwd=NODE_DIR,
+            timeout=90,
+        )
+        assert watched.returncode == 0, watched.stderr
+        events = [json.loads(line) for line in watched.stdout.splitlines()]
+        info = next(e["serverInfo"] for e in events if "serverInfo" in e)
+        assert info["name"] == "dyknow operator (traffic)"
+        channels = {e["advertised"]["topic"]: e["advertised"] for e in events if "advertised" in e}
+        for topic, schema in (
+            ("/uav-a/heli-position/fix", "foxglove.LocationFix"),
+            ("/uav-a/heli-position", "heli-position"),
+            ("/uav-a/tracked-cars/geo", "foxglove.GeoJSON"),
+            ("/uav-a/tracked-cars/scene", "foxglove.SceneUpdate"),
+        ):
+            ch = channels[topic]
+            assert (ch["encoding"], ch["schemaName"], ch["schemaEncoding"]) == (
+                "json",
+                schema,
+                "jsonschema",
+            )
+            assert json.loads(ch["schema"])["title"] == schema
+        position = json.loads(channels["/uav-a/heli-position"]["schema"])
+        assert position["properties"]["x"] == {"type": "number"}
+        assert position["description"].startswith("the platform's own position")
+
+        by_topic: dict[str, list[dict[str, Any]]] = {t: [] for t in topics}
+        for e in events:
+            if "topic" in e:
+                by_topic[e["topic"]].append(e)
+        assert all(len(got) >= 5 for got in by_topic.values()), by_topic
+        fixes = by_topic["/uav-a/heli-position/fix"]
+        for e in fixes:
+            fix, log_time = e["message"], int(e["logTime"])
+            # the sample's valid time is the message's log time and its timestamp
+            assert log_time == fix["timestamp"]["sec"] * 10**9 + fix["timestamp"]["nsec"]
+            assert t0 - 60 * 10**9 < log_time < time.time_ns() + 10**9
+            assert fix["frame_id"] == "uav-a" and fix["altitude"] == 60.0
+            assert abs(fix["latitude"] - ANCHOR[0]) < 0.01
+            assert abs(fix["longitude"] - ANCHOR[1]) < 0.02
+            assert fix["latitude"] == pytest.approx(local_to_geo(ANCHOR, 0.0, 200.0)[0])
+        longitudes = [e["message"]["longitude"] for e in fixes]
+        assert longitudes == sorted(longitudes) and longitudes[0] < longitudes[-1]  # east
+        raw = [e["message"] for e in by_topic["/uav-a/heli-position"]]
+        assert all(r["y"] == 200.0 and r["z"] == 60.0 and r["x"] >= 300.0 for r in raw)
+        assert by_topic["/uav-a/heli-altitude"][0]["message"] == {"value": 60.0}
+        geo = json.loads(by_topic["/uav-a/tracked-cars/geo"][-1]["message"]["geojson"])
+        (car,) = geo["features"]
+        assert car["properties"]["id"] == "uav-a/car1" and car["properties"]["speed"] == 13.9
+        lon, lat = car["geometry"]["coordinates"]
+        assert abs(lat - ANCHOR[0]) < 0.01 and abs(lon - ANCHOR[1]) < 0.02
+        # the 3D panel's scene: local metres, one entity per stream, replaced each sample
+        for e in by_topic["/uav-a/heli-position/scene"]:
+            (entity,) = e["message"]["entities"]
+            assert (entity["id"], entity["frame_id"]) == ("uav-a/heli-position", "world")
+            assert entity["timestamp"]["sec"] * 10**9 + entity["timestamp"]["nsec"] == int(
+                e["logTime"]
+            )
+            (sphere,) = entity["spheres"]
+            at = sphere["pose"]["position"]
+            assert at["x"] >= 300.0 and (at["y"], at["z"]) == (200.0, 60.0)
+            assert entity["texts"][0]["text"] == "uav-a" and entity["cubes"] == []
+        (entity,) = by_topic["/uav-a/tracked-cars/scene"][-1]["message"]["entities"]
+        (cube,) = entity["cubes"]
+        assert cube["pose"]["position"]["y"] == 198.25 and cube["pose"]["position"]["x"] >= 250
+
+        bridge.send_signal(signal.SIGINT)
+        out, err = bridge.communicate(timeout=20)
+        assert bridge.returncode == 0, err
+        assert "operator stopped" in out and "Traceback" not in err
+    finally:
+        for p in procs:
+            _kill(p)
+
+
+def test_foxglove_refuses_a_stream_outside_the_vocabulary(tmp_path: Path) -> None:
+    configs = _write_federation(tmp_path, _free_port())
+    with configs["operator"].open("a") as f:
+        f.write('streams = ["temperature"]\n')
+    env = {**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)}
+    done = subprocess.run(
+        [*CLI, "foxglove", "--config", str(configs["operator"]), "--port", "0"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env=env,
+        timeout=60,
+    )
+    assert done.returncode == 2, done.stderr
+    assert "foxglove.streams: 'temperature' is not in the federation's vocabulary" in done.stderr
+
+
+# -- in one process: beside the console, serving what the console asks for ----------------
+
+
+async def _watch(client: Path, url: str, count: int, *topics: str) -> list[dict[str, Any]]:
+    """The Node client's events: every topic's first ``count`` messages (60 s at most)."""
+    proc = await asyncio.create_subprocess_exec(
+        "node",
+        str(client),
+        url,
+        str(count),
+        "60",
+        *topics,
+        cwd=NODE_DIR,
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+    )
+    out, err = await proc.communicate()
+    assert proc.returncode == 0, err.decode()
+    return [json.loads(line) for line in out.decode().splitlines()]
+
+
+async def test_bridge_beside_the_console_serves_its_imports_and_local_labels(
+    tmp_path: Path, foxglove_client: Path
+) -> None:
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in ("operator", "uav-a")]
+    trust_keys(tmp_path / "trust.json", pubs, federation="demo")
+
+    def config(name: str, **sections: Any) -> PlatformConfig:
+        return PlatformConfig.from_dict(
+            {
+                "name": name,
+                "federation": "demo",
+                "key": str(tmp_path / "keys" / f"{name}.key"),
+                "trust": str(tmp_path / "trust.json"),
+                "vocabulary": vocabulary(),
+                "mapping": local_mapping(),
+                **sections,
+            }
+        )
+
+    operator_config = config(
+        "operator",
+        console=console_config(),
+        foxglove={**foxglove_config(), "streams": ["heli-position"], "local": ["operator/notes"]},
+    )
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack:
+        t = await stack.enter_async_context(hub.transport())
+        operator = await stack.enter_async_context(FederationPlatform(operator_config, transport=t))
+        notes = operator.instance.add_source("operator/notes")
+        t = await stack.enter_async_context(hub.transport())
+        uav = await stack.enter_async_context(FederationPlatform(config("uav-a"), transport=t))
+        position = uav.instance.add_source("uav/self/position")
+
+        async def fly() -> None:
+            k = 0
+            while True:
+                position.push({"x": 300.0 + k, "y": 200.0, "z": 60.0})
+                notes.push({"text": f"note {k}", "x": 10.0, "y": 20.0})
+                k += 1
+                await asyncio.sleep(0.05)
+
+        flying = asyncio.create_task(fly())
+        stack.push_async_callback(_cancelled, flying)
+        console = await stack.enter_async_context(OperatorConsole(operator, port=0))
+        bridge = await stack.enter_async_context(FoxgloveBridge(operator, port=0, ask=False))
+        assert bridge.served() == ["heli-position (positions)", "operator/notes (local)"]
+        assert bridge.url == f"ws://127.0.0.1:{bridge.port}" and bridge.port > 0
+        assert console.url != bridge.url
+
+        events = await _watch(
+            foxglove_client, bridge.url, 3, "/uav-a/heli-position/fix", "/operator/operator/notes"
+        )
+        fixes = [e["message"] for e in events if e.get("topic") == "/uav-a/heli-position/fix"]
+        assert len(fixes) >= 3
+        expected = local_to_geo(ANCHOR, 300.0, 200.0)
+        assert fixes[0]["latitude"] == pytest.approx(expected[0])
+        assert all(f["longitude"] >= expected[1] for f in fixes)
+        notes_topic = "/operator/operator/notes"  # this platform's own label
+        seen = [e["message"] for e in events if e.get("topic") == notes_topic]
+        assert len(seen) >= 3 and seen[0]["text"].startswith("note ")
+        advertised = {
+            e["advertised"]["topic"]: e["advertised"] for e in events if "advertised" in e
+        }
+        notes_schema = json.loads(advertised[notes_topic]["schema"])
+        assert notes_schema["properties"]["text"] == {"type": "string"}
+        assert "/uav-a/tracked-cars" not in advertised  # not one of the [foxglove] streams
+
+        # uav-a exports to the operator what the console asked (of the labels it has);
+        # the bridge asked for nothing (a second export of a label would be refused)
+        exported = [e.semantic_label for e in uav.exporter.exports("operator")]
+        assert exported == ["heli-position"]
