@@ -41,6 +41,7 @@ from ._policy import (
 )
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
 from ._record import (
+    MessageDecoder,
     RecordedSample,
     Recorder,
     RecordError,
@@ -50,6 +51,7 @@ from ._record import (
     ReplaySummary,
     advance_to,
     read_recording,
+    recording_info,
     register_record_type,
     replay,
 )
@@ -86,6 +88,7 @@ __all__ = [
     "Location",
     "ManualClock",
     "MembershipChange",
+    "MessageDecoder",
     "Missing",
     "ObjectError",
     "ObjectManager",
@@ -124,6 +127,7 @@ __all__ = [
     "as_sample",
     "ns_to_seconds",
     "read_recording",
+    "recording_info",
     "register_record_type",
     "replay",
     "seconds_to_ns",
