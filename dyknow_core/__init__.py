@@ -54,6 +54,7 @@ from ._record import (
     recording_info,
     register_record_type,
     replay,
+    topic_label,
 )
 from ._sample import Answer, RawSample, Sample, as_sample
 from ._state import Missing, StatePolicy, StateProcess, StateStats, StateStrategy, add_state
@@ -131,4 +132,5 @@ __all__ = [
     "register_record_type",
     "replay",
     "seconds_to_ns",
+    "topic_label",
 ]

@@ -741,13 +741,14 @@ def _dkr_ext_hook(code: int, data: bytes) -> Any:
 class Recording:
     """A recording opened for reading: its header, then its samples in available-time order.
 
-    Reads our MCAP recordings, any other MCAP file, and old ``.dkr`` files. In an MCAP file
-    not written by DyKnow every topic is a label; a ``json`` channel's messages are the
-    values, with the publish time as the valid time (the log time when it is 0) and the log
-    time as the available time. ``decoders`` maps another message encoding (``cdr``,
-    ``protobuf``, …) to a ``MessageDecoder``; messages no decoder reads are skipped and
-    counted per topic in ``undecodable`` (why in ``problems``). A file whose writer did not
-    finish (no summary) is read in file order up to its last complete chunk (``truncated``).
+    Reads our MCAP recordings, any other MCAP file, and old ``.dkr`` files. In an MCAP
+    file not written by DyKnow every topic is a label (``topic_label``); a ``json``
+    channel's messages are the values, with the publish time as the valid time (the log
+    time when it is 0) and the log time as the available time. ``decoders`` maps another
+    message encoding (``cdr``, ``protobuf``, …) to a ``MessageDecoder``; messages no
+    decoder reads are skipped and counted per label in ``undecodable`` (why in
+    ``problems``). A file whose writer did not finish (no summary) is read in file order
+    up to its last complete chunk (``truncated``).
     """
 
     def __init__(
@@ -820,7 +821,7 @@ class Recording:
         with contextlib.suppress(Exception):  # no summary: a file whose writer did not finish
             summary = SeekingReader(f).get_summary() if _finished(f) else None
             if summary is not None:
-                labels = sorted({c.topic for c in summary.channels.values()})
+                labels = sorted({topic_label(c.topic) for c in summary.channels.values()})
                 stats = summary.statistics
                 if stats is not None and stats.message_count:
                     first = stats.message_start_time
@@ -911,6 +912,7 @@ class Recording:
         encoding: str = channel.message_encoding
         if self.ours and encoding == "json":
             return self._our_decoder(topic)
+        topic = topic_label(topic)
         if encoding == "json":
 
             def foreign_json(m: Message) -> RecordedSample | None:
@@ -1108,6 +1110,14 @@ def _finished(f: IO[bytes]) -> bool:
     return done
 
 
+def topic_label(topic: str) -> str:
+    """The label of a topic of a file not written by DyKnow: without its leading ``/``.
+
+    (A KPL label does not start with one, and no DyKnow label needs to.)
+    """
+    return topic.removeprefix("/")
+
+
 def read_recording(
     path: str | os.PathLike[str], *, decoders: Mapping[str, MessageDecoder] | None = None
 ) -> Recording:
@@ -1282,4 +1292,5 @@ __all__ = [
     "recording_info",
     "replay",
     "settle",
+    "topic_label",
 ]

@@ -323,7 +323,7 @@ def info_lines(data: dict[str, Any]) -> list[str]:
         ]
         if data["format"] == "mcap":
             lines.append(
-                f"time offset: {data['time_offset']} ns (MCAP log time = available time + "
+                f"offset:     {data['time_offset']} ns (MCAP log time = available time + "
                 "offset, publish time = valid time + offset)"
             )
     else:

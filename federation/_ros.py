@@ -29,7 +29,14 @@ from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dyknow_core import MessageDecoder, RecordedSample, RecordError, RecordHeader, recording_info
+from dyknow_core import (
+    MessageDecoder,
+    RecordedSample,
+    RecordError,
+    RecordHeader,
+    recording_info,
+    topic_label,
+)
 
 from ._inputs import BadMessage, InputRunner, Ros2Input, RosbagInput, _Queue, zenoh_subscriber
 
@@ -253,11 +260,11 @@ def cdr_decoder(distro: str = "humble") -> MessageDecoder:
 class RosbagRecording:
     """A rosbag2 bag (a directory with ``metadata.yaml``) read as a recording.
 
-    Each topic is a label; a message becomes plain dicts and lists, its available time
-    the bag's time stamp and its valid time its ``header.stamp`` (the bag's time stamp
-    when it has none). Messages that do not decode are skipped and counted per topic in
-    ``undecodable`` (why in ``problems``). Iterates in time-stamp order, as
-    ``dyknow_core.replay`` wants.
+    Each topic is a label (``dyknow_core.topic_label``: without its leading ``/``); a
+    message becomes plain dicts and lists, its available time the bag's time stamp and
+    its valid time its ``header.stamp`` (the bag's time stamp when it has none). Messages
+    that do not decode are skipped and counted per label in ``undecodable`` (why in
+    ``problems``). Iterates in time-stamp order, as ``dyknow_core.replay`` wants.
     """
 
     def __init__(self, path: Path, *, distro: str = "humble") -> None:
@@ -270,7 +277,7 @@ class RosbagRecording:
         self.problems: dict[str, str] = {}
         try:
             with Reader(path) as bag:
-                labels = sorted({c.topic for c in bag.connections})
+                labels = sorted({topic_label(c.topic) for c in bag.connections})
                 start = bag.start_time if bag.message_count else 0
                 ros_distro = bag.ros_distro
         except Exception as exc:  # rosbags raises several kinds on a bad bag
@@ -301,16 +308,16 @@ class RosbagRecording:
         store = _typestore(self.distro)
         with Reader(self.path) as bag:
             for conn, t, data in bag.messages():
-                rostype = conn.msgtype
+                rostype, label = conn.msgtype, topic_label(conn.topic)
                 if conn.msgdef is not None:
                     _learn_type(store, rostype, "ros2msg", conn.msgdef.data)
                 try:
                     plain = to_plain(store.deserialize_cdr(bytes(data), rostype))
                 except Exception as exc:  # an unknown type, a message that is not CDR
-                    self._skip(conn.topic, f"{rostype}: {type(exc).__name__}: {exc}")
+                    self._skip(label, f"{rostype}: {type(exc).__name__}: {exc}")
                     continue
                 stamp = header_stamp(plain)
-                yield RecordedSample(conn.topic, plain, t if stamp is None else stamp, t)
+                yield RecordedSample(label, plain, t if stamp is None else stamp, t)
 
     def info(self) -> dict[str, Any]:
         """What ``dyknow_core.Recording.info`` says, of this bag."""

@@ -341,7 +341,8 @@ async def test_the_mcap_library_finds_every_sample(tmp_path: Path, start: int) -
 def test_replay_of_an_mcap_file_written_by_the_mcap_library(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A foreign JSON MCAP file: topics are labels, publish time valid, log time available."""
+    """A foreign JSON MCAP file: topics are labels (no leading '/'), publish time valid, log
+    time available."""
     path = tmp_path / "foreign.mcap"
     t0 = 1_764_000_000 * NS_PER_S
     with path.open("wb") as f:
@@ -362,16 +363,16 @@ def test_replay_of_an_mcap_file_written_by_the_mcap_library(
     rows = [json.loads(line) for line in out.out.splitlines()]
     summary = rows.pop()["summary"]
     assert [(r["label"], r["value"], r["valid"], r["available"]) for r in rows] == [
-        ("/station/wind", {"ms": 3}, t0 + 20 * MS, t0 + 20 * MS),
-        ("/station/temp", {"c": 20.5}, t0 + 10 * MS, t0 + 30 * MS),
-        ("/station/temp", {"c": 21.0}, t0 + 40 * MS, t0 + 60 * MS),
+        ("station/wind", {"ms": 3}, t0 + 20 * MS, t0 + 20 * MS),
+        ("station/temp", {"c": 20.5}, t0 + 10 * MS, t0 + 30 * MS),
+        ("station/temp", {"c": 21.0}, t0 + 40 * MS, t0 + 60 * MS),
     ]
-    assert summary["counts"] == {"/station/temp": 2, "/station/wind": 1}
-    assert summary["undecodable"] == {"/camera/raw": 1}
-    assert "/camera/raw: 1 messages not decoded" in out.err and "protobuf" in out.err
+    assert summary["counts"] == {"station/temp": 2, "station/wind": 1}
+    assert summary["undecodable"] == {"camera/raw": 1}
+    assert "camera/raw: 1 messages not decoded" in out.err and "protobuf" in out.err
     assert main(["replay", "--info", str(path)]) == 0
     text = capsys.readouterr().out
-    assert "written by someone else" in text and "/station/temp: 2" in text
+    assert "written by someone else" in text and "station/temp: 2" in text
 
 
 def _ros_messages() -> list[tuple[str, str, Any, int]]:
@@ -404,13 +405,14 @@ def _ros_messages() -> list[tuple[str, str, Any, int]]:
 
 
 def _expected_ros_rows() -> list[tuple[str, Any, int, int]]:
+    """What a replay gives of ``_ros_messages``: labels without the topics' leading '/'."""
     rows = []
     for topic, _, msg, t in _ros_messages():
         if topic == "/uav/pose":
             value = {"x": msg.pose.position.x, "frame": "map"}
-            rows.append((topic, value, t - 30 * MS, t))
+            rows.append(("uav/pose", value, t - 30 * MS, t))
         else:
-            rows.append((topic, {"data": msg.data}, t, t))
+            rows.append(("uav/temp", {"data": msg.data}, t, t))
     return rows
 
 
@@ -419,7 +421,7 @@ def _ros_rows(out: str) -> list[tuple[str, Any, int, int]]:
     got = []
     for r in rows:
         v = r["value"]
-        if r["label"] == "/uav/pose":
+        if r["label"] == "uav/pose":
             v = {"x": v["pose"]["position"]["x"], "frame": v["header"]["frame_id"]}
         got.append((r["label"], v, r["valid"], r["available"]))
     return got
