@@ -551,13 +551,17 @@ class Recorder:
         for label in self._labels:
             self.instance.stream(label)  # an unknown label fails before the file is made
         clock = self.instance.clock
-        self._t0 = clock.now() if self._since is None else self._since
+        now = clock.now()
+        self._t0 = now if self._since is None else self._since
         self.writer = RecordWriter(
             self.path,
-            time_offset=default_time_offset(clock.now()),
+            time_offset=default_time_offset(now),
             instance=self.instance.name,
             clock=type(clock).__name__,
-            start=self._t0,
+            # when it started, not ``since``: a replay's clock starts there (or at the first
+            # sample, if earlier), and a ``since`` of 0 on a real clock would have its
+            # timers run through every period from 1970
+            start=now,
             labels=None if self.all_labels else [self._rename.get(x, x) for x in self._labels],
             meta=self._meta,
             batch_size=self.batch_size,
