@@ -50,10 +50,12 @@ from ._record import (
     RecordWriter,
     ReplaySummary,
     advance_to,
+    label_schema,
     read_recording,
     recording_info,
     register_record_type,
     replay,
+    sample_json,
     topic_label,
 )
 from ._sample import Answer, RawSample, Sample, as_sample
@@ -126,11 +128,13 @@ __all__ = [
     "add_state",
     "advance_to",
     "as_sample",
+    "label_schema",
     "ns_to_seconds",
     "read_recording",
     "recording_info",
     "register_record_type",
     "replay",
+    "sample_json",
     "seconds_to_ns",
     "topic_label",
 ]

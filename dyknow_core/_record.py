@@ -65,7 +65,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 EPOCH_SINCE = 10**18
 SIM_OFFSET = 10**18
 _SETTLE_MAX = 10_000  # loop iterations a replay step waits at most for the instance to idle
-# the JSON encoding of values: dataclasses come to ``_default``, to carry their type name
+# the JSON encoding of values: dataclasses come to the default hook, to carry their type name
 _JSON_OPTIONS = orjson.OPT_PASSTHROUGH_DATACLASS
 _TYPE_KEY = "$type"
 _TYPE_MARK = b'"$type"'
@@ -468,6 +468,20 @@ class RecordWriter:
 
 
 _MESSAGE = b'{"value":%b,"valid_time":{"sec":%d,"nsec":%d},"available_time":{"sec":%d,"nsec":%d}}'
+
+
+_SHARED_ENCODER = _Encoder()
+
+
+def sample_json(value: Any, valid_time: int, available_time: int) -> bytes:
+    """One sample as a recording's message holds it (JSON bytes; ``label_schema`` is its schema).
+
+    For a live view that should show what a recording shows (the same fields, the same
+    layouts in Foxglove).
+    """
+    vs, vn = divmod(valid_time, NS_PER_S)
+    as_, an = divmod(available_time, NS_PER_S)
+    return _MESSAGE % (_SHARED_ENCODER.encode(value), vs, vn, as_, an)
 
 
 def _clamp(t: int) -> int:
@@ -1295,6 +1309,7 @@ __all__ = [
     "read_recording",
     "recording_info",
     "replay",
+    "sample_json",
     "settle",
     "topic_label",
 ]

@@ -36,6 +36,7 @@ from dyknow_core import (
     kpl,
     read_recording,
     replay,
+    sample_json,
 )
 from dyknow_core._record import DKR_MAGIC, settle
 from federation.cli import main
@@ -333,6 +334,7 @@ async def test_the_mcap_library_finds_every_sample(tmp_path: Path, start: int) -
             body = orjson.loads(message.data)
             tv, ta = _time(body["valid_time"]), _time(body["available_time"])
             assert (message.log_time, message.publish_time) == (ta + offset, tv + offset)
+            assert message.data == sample_json(body["value"], tv, ta)
             got.append((channel.topic, body["value"], tv, ta))
     assert got == expected
     assert _samples(path) == expected  # and ours reads the same
