@@ -883,6 +883,20 @@ class Recording:
             raise self._fail(f"corrupt header: {exc}") from None
 
     def _mcap_samples(self) -> Iterator[RecordedSample]:
+        samples = self._mcap_read()
+        if self.ours:
+            return samples
+        try:
+            with open(self.path, "rb") as f:
+                if _finished(f):
+                    return samples
+        except OSError as exc:
+            raise self._fail(f"cannot be read: {exc.strerror}") from None
+        # another writer's unfinished file, in file order: its log times may not be (an
+        # index would have ordered them), so in memory, as mcap's own reader does then
+        return iter(sorted(samples, key=lambda s: s.available_time))
+
+    def _mcap_read(self) -> Iterator[RecordedSample]:
         try:
             f = open(self.path, "rb")  # noqa: SIM115 - closed below
         except OSError as exc:

@@ -375,6 +375,15 @@ def test_replay_of_an_mcap_file_written_by_the_mcap_library(
     assert main(["replay", "--info", str(path)]) == 0
     text = capsys.readouterr().out
     assert "written by someone else" in text and "station/temp: 2" in text
+    # its writer killed (no summary, no index): still in log-time order
+    path.write_bytes(path.read_bytes()[:-30])
+    rec = read_recording(path)
+    assert [(s.label, s.available_time) for s in rec] == [
+        ("station/wind", t0 + 20 * MS),
+        ("station/temp", t0 + 30 * MS),
+        ("station/temp", t0 + 60 * MS),
+    ]
+    assert rec.truncated
 
 
 def _ros_messages() -> list[tuple[str, str, Any, int]]:
