@@ -41,6 +41,7 @@ from ._policy import (
 )
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
 from ._record import (
+    MessageDecoder,
     RecordedSample,
     Recorder,
     RecordError,
@@ -49,9 +50,13 @@ from ._record import (
     RecordWriter,
     ReplaySummary,
     advance_to,
+    label_schema,
     read_recording,
+    recording_info,
     register_record_type,
     replay,
+    sample_json,
+    topic_label,
 )
 from ._sample import Answer, RawSample, Sample, as_sample
 from ._state import Missing, StatePolicy, StateProcess, StateStats, StateStrategy, add_state
@@ -86,6 +91,7 @@ __all__ = [
     "Location",
     "ManualClock",
     "MembershipChange",
+    "MessageDecoder",
     "Missing",
     "ObjectError",
     "ObjectManager",
@@ -122,9 +128,13 @@ __all__ = [
     "add_state",
     "advance_to",
     "as_sample",
+    "label_schema",
     "ns_to_seconds",
     "read_recording",
+    "recording_info",
     "register_record_type",
     "replay",
+    "sample_json",
     "seconds_to_ns",
+    "topic_label",
 ]

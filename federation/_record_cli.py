@@ -1,9 +1,10 @@
 """``dyknow record`` and ``dyknow replay``: flights to a file, and back through a local instance.
 
 ``record`` joins the federation like ``dyknow stream`` (a create-stream from a platform to
-this one) and writes what arrives to a recording (``dyknow_core.Recorder``). ``replay``
-pushes a recording through a fresh local instance on a manual clock, optionally with a
-KPL application set up on it, and prints what its processes produce.
+this one) and writes what arrives to an MCAP recording (``dyknow_core.Recorder``).
+``replay`` pushes a recording (ours, any MCAP file, a rosbag2 bag, an old ``.dkr``)
+through a fresh local instance on a manual clock, optionally with a KPL application set
+up on it, and prints what its processes produce.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import time
 from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from dyknow_core import (
     DyKnowInstance,
@@ -44,6 +45,9 @@ from dyknow_core.kpl import setup as setup_kpl
 from ._cli_common import wait_for_members as _wait_for
 from ._cli_net import _opened, _stop_event
 from ._cli_time import seconds, when, when_ns
+
+if TYPE_CHECKING:
+    from ._ros import RosbagRecording
 
 log = logging.getLogger(__name__)
 
@@ -272,10 +276,23 @@ async def _until_stopped(
 # -- replay -------------------------------------------------------------------------------------
 
 
-def open_recording(path: Path) -> Recording:
-    """Open a recording or raise ReplayUsageError naming the file and what is wrong."""
+def open_recording(path: Path) -> Recording | RosbagRecording:
+    """Open a recording or raise ReplayUsageError naming the file and what is wrong.
+
+    A directory is a rosbag2 bag; a file is read by ``dyknow_core.Recording`` (our MCAP
+    recordings, any MCAP file with its ROS 2 channels decoded, an old ``.dkr``).
+    """
+    from ._ros import RosbagRecording, cdr_decoder
+
     try:
-        return Recording(path)
+        if path.is_dir():
+            if not (path / "metadata.yaml").is_file():
+                raise RecordError(
+                    f"{path}: is a directory, not a recording (nor a rosbag2 bag: it has "
+                    "no metadata.yaml)"
+                )
+            return RosbagRecording(path)
+        return Recording(path, decoders={"cdr": cdr_decoder()})
     except RecordError as exc:
         raise ReplayUsageError(str(exc)) from None
 
@@ -288,25 +305,46 @@ def info(path: Path) -> dict[str, Any]:
         raise ReplayUsageError(str(exc)) from None
 
 
+_FORMATS = {"mcap": "MCAP", "rosbag2": "rosbag2", "dkr": ".dkr"}
+
+
 def info_lines(data: dict[str, Any]) -> list[str]:
     """``dyknow replay --info`` as text."""
-    lines = [
-        f"file:       {data['file']}",
-        f"format:     dyknow-record version {data['version']}",
-        f"instance:   {data['instance']!r} ({data['clock']}, start {when_ns(data['start'])})",
-        f"created:    {_created(data['created'])}",
-        f"labels:     {'every stream' if data['labels'] is None else ', '.join(data['labels'])}",
-    ]
+    kind = _FORMATS.get(data["format"], data["format"])
+    lines = [f"file:       {data['file']}"]
+    if data["version"]:
+        lines += [
+            f"format:     {kind}, dyknow-record version {data['version']}"
+            + (f" ({data['library']})" if data["library"] else ""),
+            f"instance:   {data['instance']!r} ({data['clock']}, start {when_ns(data['start'])})",
+            f"created:    {_created(data['created'])}",
+            "labels:     "
+            + ("every stream" if data["labels"] is None else ", ".join(data["labels"])),
+        ]
+        if data["format"] == "mcap":
+            lines.append(
+                f"offset:     {data['time_offset']} ns (MCAP log time = available time + "
+                "offset, publish time = valid time + offset)"
+            )
+    else:
+        lines += [
+            f"format:     {kind}, written by {data['library'] or 'an unnamed writer'} (topics "
+            "are labels, log times available times)",
+            f"start:      {when_ns(data['start'])}",
+            f"topics:     {', '.join(data['labels'] or []) or '-'}",
+        ]
     for k, v in sorted(data["meta"].items()):
         lines.append(f"meta.{k}: {v}")
-    lines.append(f"samples:    {data['samples']} in {data['batches']} batches")
+    lines.append(f"samples:    {data['samples']}")
     for label, n in data["counts"].items():
         lines.append(f"  {label}: {n}")
+    for topic, n in data["undecodable"].items():
+        lines.append(f"  {topic}: {n} not decoded ({data['problems'].get(topic, '?')})")
     if data["valid_span"] is not None:
         lo, hi = data["valid_span"]
         lines.append(f"valid time: {_span(lo, hi)}")
     if data["truncated"]:
-        lines.append("truncated:  yes (the writer stopped mid-batch; read up to the last batch)")
+        lines.append("truncated:  yes (its writer did not finish; read up to the last chunk)")
     return lines
 
 
@@ -343,6 +381,8 @@ async def run_replay(
     """
     rec = open_recording(path)
     data = rec.info()  # one pass for the labels and the first available time
+    for topic, n in data["undecodable"].items():
+        warn(f"dyknow replay: {topic}: {n} messages not decoded ({data['problems'][topic]})")
     recorded = list(data["counts"])
     start = rec.header.start
     if data["available_span"] is not None:
@@ -398,6 +438,7 @@ async def run_replay(
         file=str(path),
         produced=produced,
         not_fed={k: v for k, v in summary.skipped.items() if k in computed},
+        undecodable=data["undecodable"],
         failures=failures,
     )
     return result
@@ -426,8 +467,10 @@ def summary_lines(result: dict[str, Any]) -> list[str]:
         lines.append(f"valid time {_span(lo, hi)}")
     produced = ", ".join(f"{k}={n}" for k, n in result["produced"].items())
     lines.append(f"printed: {produced or '-'}")
+    for topic, n in result["undecodable"].items():
+        lines.append(f"  {topic}: {n} messages not decoded, not replayed")
     if result["truncated"]:
-        lines.append("the recording is truncated: replayed up to its last complete batch")
+        lines.append("the recording is truncated: replayed up to its last complete chunk")
     for f in result["failures"]:
         lines.append(f"process failure: {f}")
     return lines

@@ -1,5 +1,8 @@
 """ROS 2 inputs: topics published through rmw_zenoh, and recorded rosbag2 / MCAP files.
 
+Also what ``dyknow replay`` needs of ROS recordings: ``cdr_decoder`` for the ROS 2
+channels of an MCAP file, ``RosbagRecording`` for a rosbag2 bag (docs/record.md).
+
 rmw_zenoh (ROS 2's middleware on zenoh) puts each message of a topic on the key
 
     <domain id>/<topic without its leading '/'>/<type>/<type hash>
@@ -17,19 +20,37 @@ docs/application.md, "ROS 2".
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import logging
 import time
+from collections.abc import Iterator
 from functools import cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from dyknow_core import (
+    MessageDecoder,
+    RecordedSample,
+    RecordError,
+    RecordHeader,
+    recording_info,
+    topic_label,
+)
 
 from ._inputs import BadMessage, InputRunner, Ros2Input, RosbagInput, _Queue, zenoh_subscriber
 
 if TYPE_CHECKING:
     from dyknow_core import DyKnowInstance
 
-__all__ = ["dds_type", "ros_runner", "ros_type", "to_plain"]
+__all__ = [
+    "RosbagRecording",
+    "cdr_decoder",
+    "dds_type",
+    "ros_runner",
+    "ros_type",
+    "to_plain",
+]
 
 log = logging.getLogger(__name__)
 
@@ -199,3 +220,105 @@ def ros_runner(settings: Ros2Input | RosbagInput, instance: DyKnowInstance) -> I
     if isinstance(settings, Ros2Input):
         return _Ros2Runner(settings, instance)
     return _RosbagRunner(settings, instance)
+
+
+# -- recordings made by ROS tools, replayed by ``dyknow replay`` (docs/record.md) ----------------
+
+
+def _learn_type(store: Any, rostype: str, encoding: str, text: str) -> None:
+    """Register a message type the file defines (``ros2msg`` text) and the store lacks."""
+    if rostype in store.types or encoding != "ros2msg" or not text.strip():
+        return
+    from rosbags.typesys import get_types_from_msg
+
+    # a definition rosbags cannot parse leaves the type unknown: its messages are skipped
+    with contextlib.suppress(Exception):
+        store.register(get_types_from_msg(text, rostype))
+
+
+def cdr_decoder(distro: str = "humble") -> MessageDecoder:
+    """The decoder of an MCAP file's ROS 2 (``cdr``) channels for ``dyknow_core.Recording``.
+
+    A message becomes plain dicts and lists, its ``header.stamp`` (when it has one) the
+    valid time; types the file defines that rosbags lacks are learnt from the file.
+    """
+    stores: list[Any] = []  # made on first use: rosbags' type store takes a while to load
+
+    def decode(name: str, encoding: str, text: bytes, data: bytes) -> tuple[Any, int | None]:
+        if not stores:
+            stores.append(_typestore(distro))
+        store = stores[0]
+        _learn_type(store, name, encoding, text.decode("utf-8", "replace"))
+        if name not in store.types:
+            raise ValueError(f"{name or 'no schema'}: not a ROS 2 type rosbags knows")
+        plain = to_plain(store.deserialize_cdr(data, name))
+        return plain, header_stamp(plain)
+
+    return decode
+
+
+class RosbagRecording:
+    """A rosbag2 bag (a directory with ``metadata.yaml``) read as a recording.
+
+    Each topic is a label (``dyknow_core.topic_label``: without its leading ``/``); a
+    message becomes plain dicts and lists, its available time the bag's time stamp and
+    its valid time its ``header.stamp`` (the bag's time stamp when it has none). Messages
+    that do not decode are skipped and counted per label in ``undecodable`` (why in
+    ``problems``). Iterates in time-stamp order, as ``dyknow_core.replay`` wants.
+    """
+
+    def __init__(self, path: Path, *, distro: str = "humble") -> None:
+        from rosbags.rosbag2 import Reader
+
+        self.path = path
+        self.distro = distro
+        self.truncated = False
+        self.undecodable: dict[str, int] = {}
+        self.problems: dict[str, str] = {}
+        try:
+            with Reader(path) as bag:
+                labels = sorted({topic_label(c.topic) for c in bag.connections})
+                start = bag.start_time if bag.message_count else 0
+                ros_distro = bag.ros_distro
+        except Exception as exc:  # rosbags raises several kinds on a bad bag
+            raise RecordError(
+                f"{path}: not a readable rosbag2 bag: {type(exc).__name__}: {exc}"
+            ) from None
+        self.header = RecordHeader(
+            version=0,
+            instance="",
+            clock="",
+            start=start,
+            labels=labels,
+            created="",
+            meta={"ros_distro": ros_distro} if ros_distro else {},
+            format="rosbag2",
+            library="rosbag2",
+        )
+
+    def _skip(self, topic: str, why: str) -> None:
+        self.undecodable[topic] = self.undecodable.get(topic, 0) + 1
+        self.problems.setdefault(topic, why)
+
+    def __iter__(self) -> Iterator[RecordedSample]:
+        from rosbags.rosbag2 import Reader
+
+        self.undecodable.clear()
+        self.problems.clear()
+        store = _typestore(self.distro)
+        with Reader(self.path) as bag:
+            for conn, t, data in bag.messages():
+                rostype, label = conn.msgtype, topic_label(conn.topic)
+                if conn.msgdef is not None:
+                    _learn_type(store, rostype, "ros2msg", conn.msgdef.data)
+                try:
+                    plain = to_plain(store.deserialize_cdr(bytes(data), rostype))
+                except Exception as exc:  # an unknown type, a message that is not CDR
+                    self._skip(label, f"{rostype}: {type(exc).__name__}: {exc}")
+                    continue
+                stamp = header_stamp(plain)
+                yield RecordedSample(label, plain, t if stamp is None else stamp, t)
+
+    def info(self) -> dict[str, Any]:
+        """What ``dyknow_core.Recording.info`` says, of this bag."""
+        return recording_info(self, str(self.path))

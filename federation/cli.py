@@ -536,7 +536,9 @@ def record(
     label_names: LabelsArg,
     config: ConfigOpt,
     platform: PlatformOpt,
-    out: Annotated[Path, typer.Option("--out", "-o", help="the recording to write (.dkr)")],
+    out: Annotated[
+        Path, typer.Option("--out", "-o", help="the recording to write (MCAP, e.g. flight.mcap)")
+    ],
     duration: Annotated[
         float | None, typer.Option("--duration", min=0.0, help="stop after S seconds")
     ] = None,
@@ -552,8 +554,9 @@ def record(
     """Record streams of a platform to a file (Ctrl-C or SIGTERM stops, the file complete).
 
     Creates the streams like 'dyknow stream' does and writes every sample that arrives
-    (value, valid and available time, semantic label) to OUT in batches flushed every
-    second, with a progress line on stderr. 'dyknow replay OUT' plays it back.
+    (value, valid and available time, semantic label) to OUT, an MCAP file (one channel
+    per label, JSON) that Foxglove opens, in chunks flushed every second, with a progress
+    line on stderr. 'dyknow replay OUT' plays it back.
     """
     from ._record_cli import record_federation
 
@@ -580,7 +583,12 @@ def record(
 
 @app.command("replay")
 def replay_recording(
-    file: Annotated[Path, typer.Argument(metavar="FILE", help="the recording (.dkr)")],
+    file: Annotated[
+        Path,
+        typer.Argument(
+            metavar="FILE", help="the recording: MCAP, a rosbag2 bag (directory) or an old .dkr"
+        ),
+    ],
     kpl_spec: Annotated[
         Path | None, typer.Option("--kpl", help="a KPL application to set up and feed")
     ] = None,
@@ -600,6 +608,9 @@ def replay_recording(
     ] = False,
 ) -> None:
     """Replay a recording through a local instance on a manual clock (deterministic).
+
+    FILE is a recording of 'dyknow record', any MCAP file (JSON and ROS 2 channels; each
+    topic a label) or a rosbag2 bag.
 
     The clock is advanced to each sample's available time before it is pushed into a
     source of its label, so the same recording always gives the same outputs; it runs

@@ -86,7 +86,7 @@ def test_one_shot_commands_run_beside_the_console_with_its_config(tmp_path: Path
         ready = console.stdout.readline()  # bounded by the test's timeout
         assert "operator ready" in ready, console.stderr.read() if console.stderr else ""
         url = ready.rsplit(": ", 1)[1].strip()
-        record = station.dir / "t.dkr"
+        record = station.dir / "t.mcap"
         commands = [
             ("platforms",),
             ("labels", "-p", "station"),

@@ -1,8 +1,9 @@
-"""Recordings: the file format, Recorder, replay on a manual clock, dyknow record / replay."""
+"""Recordings: MCAP files, Recorder, replay on a manual clock, dyknow record / replay."""
 
 from __future__ import annotations
 
 import asyncio
+import io
 import json
 import os
 import signal
@@ -15,7 +16,10 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
+import orjson
 import pytest
+from mcap.reader import make_reader
+from mcap.writer import Writer as McapWriter
 
 from dyknow_core import (
     NS_PER_S,
@@ -32,8 +36,9 @@ from dyknow_core import (
     kpl,
     read_recording,
     replay,
+    sample_json,
 )
-from dyknow_core._record import MAGIC, settle
+from dyknow_core._record import DKR_MAGIC, settle
 from federation.cli import main
 from tests.test_cli import PRODUCER, ROOT, _free_port, _kill, _write_federation
 
@@ -75,7 +80,7 @@ def _derived(inst: DyKnowInstance) -> dict[str, list[tuple[Any, int, int]]]:
 
 
 async def test_round_trip_keeps_values_times_labels_and_order(tmp_path: Path) -> None:
-    path = tmp_path / "flight.dkr"
+    path = tmp_path / "flight.mcap"
     clock = ManualClock(5 * NS_PER_S)
     values: list[Any] = [1, 2.5, "text", {"x": [1, 2], "y": None}, [1, "a", None], None, True]
     async with DyKnowInstance("uav-a", clock=clock) as inst:
@@ -95,12 +100,13 @@ async def test_round_trip_keeps_values_times_labels_and_order(tmp_path: Path) ->
     assert got == expected
     assert isinstance(got[-1][1], ChangeEvent)
     header = read_recording(path).header
-    assert (header.version, header.instance, header.clock) == (1, "uav-a", "ManualClock")
+    assert (header.version, header.instance, header.clock) == (2, "uav-a", "ManualClock")
     assert header.start == 5 * NS_PER_S and header.labels == ["gps/pos", "camera/objects"]
+    assert (header.format, header.time_offset) == ("mcap", 10**18)  # not an epoch clock
 
 
 async def test_every_stream_including_those_created_after_the_start(tmp_path: Path) -> None:
-    path = tmp_path / "all.dkr"
+    path = tmp_path / "all.mcap"
     clock = ManualClock()
     async with DyKnowInstance(clock=clock) as inst:
         a = inst.add_source("a")
@@ -122,14 +128,14 @@ async def test_every_stream_including_those_created_after_the_start(tmp_path: Pa
 
 def test_an_unknown_label_is_refused_before_a_file_is_made(tmp_path: Path) -> None:
     with pytest.raises(UnknownLabelError, match="nope"):
-        Recorder(DyKnowInstance(clock=ManualClock()), ["nope"], tmp_path / "x.dkr").start()
-    assert not (tmp_path / "x.dkr").exists()
+        Recorder(DyKnowInstance(clock=ManualClock()), ["nope"], tmp_path / "x.mcap").start()
+    assert not (tmp_path / "x.mcap").exists()
     with pytest.raises(RecordError, match="cannot be written"):
-        RecordWriter(tmp_path / "missing" / "x.dkr")
+        RecordWriter(tmp_path / "missing" / "x.mcap")
 
 
 async def test_batches_are_written_while_recording(tmp_path: Path) -> None:
-    path = tmp_path / "batches.dkr"
+    path = tmp_path / "batches.mcap"
     async with DyKnowInstance(clock=ManualClock()) as inst:
         src = inst.add_source("x")
         async with Recorder(inst, ["x"], path, batch_size=4, flush_interval=0.05) as rec:
@@ -147,18 +153,22 @@ async def test_batches_are_written_while_recording(tmp_path: Path) -> None:
 
 
 def test_a_truncated_file_reads_up_to_its_last_complete_batch(tmp_path: Path) -> None:
-    path = tmp_path / "cut.dkr"
+    path = tmp_path / "cut.mcap"
     w = RecordWriter(path, instance="i", batch_size=3)
     for k in range(7):
         w.add("x", k, k, k)
-    complete = path.stat().st_size  # two batches of 3 are written
+    complete = path.stat().st_size  # two batches of 3 are written, each a chunk
+    assert [s[1] for s in read_recording(path)] == [0, 1, 2, 3, 4, 5]  # while it writes
     w.close()
     data = path.read_bytes()
-    for cut in (complete + 3, len(data) - 1):  # mid frame header, mid payload
+    for cut in (complete + 3, complete + 20):  # mid record header, mid chunk
         path.write_bytes(data[:cut])
         rec = read_recording(path)
         assert [s[1] for s in rec] == [0, 1, 2, 3, 4, 5]
         assert rec.truncated and rec.info()["truncated"]
+    path.write_bytes(data[:-1])  # every chunk, the summary cut: read in file order
+    rec = read_recording(path)
+    assert [s[1] for s in rec] == list(range(7)) and rec.truncated
     path.write_bytes(data)
     rec = read_recording(path)
     assert [s[1] for s in rec] == list(range(7)) and not rec.truncated
@@ -169,22 +179,37 @@ def _frame(obj: Any) -> bytes:
     return struct.pack(">II", len(payload), zlib.crc32(payload)) + payload
 
 
+def _mcap_with(metadata: dict[str, str]) -> bytes:
+    out = io.BytesIO()
+    w = McapWriter(out)
+    w.start()
+    w.add_metadata("dyknow", metadata)
+    w.finish()
+    return out.getvalue()
+
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+
+
 @pytest.mark.parametrize(
     ("content", "problem"),
     [
         (None, "no such file"),
         ("dir", "is a directory"),
-        (b"hello world, not a recording", "not a DyKnow recording"),
-        (MAGIC + b"\x00\x00\x00\x05\x00\x00\x00\x00abcde", "corrupt header"),
-        (MAGIC + b"\x00\x00", "corrupt header"),
-        (MAGIC + _frame({"format": "dyknow-record", "version": 7}), "format version 7"),
-        (MAGIC + _frame({"format": "something-else", "version": 1}), "corrupt header"),
+        (b"hello world, not a recording", "not a recording"),
+        (MCAP_MAGIC + b"\x01\x02", "corrupt header"),
+        (_mcap_with({"format": "dyknow-record", "version": "9"}), "format version 9"),
+        (_mcap_with({"format": "other"}), "corrupt header"),
+        (DKR_MAGIC + b"\x00\x00\x00\x05\x00\x00\x00\x00abcde", "corrupt header"),
+        (DKR_MAGIC + b"\x00\x00", "corrupt header"),
+        (DKR_MAGIC + _frame({"format": "dyknow-record", "version": 7}), "format version 7"),
+        (DKR_MAGIC + _frame({"format": "something-else", "version": 1}), "corrupt header"),
     ],
 )
 def test_bad_files_are_refused_naming_the_file_and_the_problem(
     tmp_path: Path, content: Any, problem: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    path = tmp_path / "bad.dkr"
+    path = tmp_path / "bad.mcap"
     if content == "dir":
         path.mkdir()
     elif content is not None:
@@ -198,20 +223,265 @@ def test_bad_files_are_refused_naming_the_file_and_the_problem(
         assert str(path) in out.err and problem in out.err and "Traceback" not in out.err
 
 
-def test_a_corrupt_batch_is_an_error_after_the_good_ones(tmp_path: Path) -> None:
-    path = tmp_path / "flip.dkr"
+def test_a_corrupt_chunk_is_an_error_after_the_good_ones(tmp_path: Path) -> None:
+    path = tmp_path / "flip.mcap"
     w = RecordWriter(path, batch_size=2)
     for k in range(4):
         w.add("x", k, k, k)
     w.close()
+    with path.open("rb") as f:
+        second = make_reader(f).get_summary().chunk_indexes[1]  # type: ignore[union-attr]
     data = bytearray(path.read_bytes())
-    data[-3] ^= 0xFF  # inside the last batch's payload
+    data[second.chunk_start_offset + second.chunk_length - 3] ^= 0xFF  # its compressed data
     path.write_bytes(bytes(data))
     got = []
-    with pytest.raises(RecordError, match=r"batch 2 at byte \d+: corrupt \(checksum mismatch\)"):
+    with pytest.raises(RecordError, match=r"flip.mcap: corrupt near byte \d+"):
         for s in read_recording(path):
             got.append(s.value)
     assert got == [0, 1]
+
+
+def test_values_round_trip_through_json(tmp_path: Path) -> None:
+    path = tmp_path / "values.mcap"
+    values: list[Any] = [
+        float("nan"),
+        float("inf"),
+        -0.5,
+        2**70,
+        b"\x00\xffraw",
+        {1: "int key", (1, 2): "tuple key"},
+        {"nested": [ChangeEvent(old=None, new=b"x")]},
+        {"$type": "ChangeEvent", "old": 1, "new": 2},  # a dict naming a type: rebuilt
+        (1, "tuple"),
+        {"a", "set"} - {"set"},
+        object(),  # recorded as its repr, counted
+    ]
+    w = RecordWriter(path)
+    for k, v in enumerate(values):
+        w.add("v", v, k, k)
+    w.close()
+    assert w.unencodable == 1
+    got = [s.value for s in read_recording(path)]
+    assert str(got[0]) == "nan" and got[1:4] == [float("inf"), -0.5, 2**70]
+    assert got[4:7] == [b"\x00\xffraw", {1: "int key", (1, 2): "tuple key"}, values[6]]
+    assert got[7] == ChangeEvent(1, 2) and got[8] == [1, "tuple"] and got[9] == ["a"]
+    assert got[10].startswith("<object object at")
+
+
+def test_a_dkr_file_of_version_1_is_still_read(tmp_path: Path) -> None:
+    path = tmp_path / "old.dkr"
+    header = {"format": "dyknow-record", "version": 1, "instance": "old", "clock": "ManualClock"}
+    header |= {"start": 0, "labels": ["x", "y"], "created": "2026-01-01T00:00:00+00:00"}
+    typed = msgpack.ExtType(1, msgpack.packb(["ChangeEvent", {"old": 1, "new": 2}]))
+    batch = {"l": ["x", "y"], "s": [[0, 1.5, -3, 1], [1, typed, 2, 3], [0, [1, 2], 3, 4]]}
+    path.write_bytes(DKR_MAGIC + _frame(header) + _frame(batch) + _frame(batch)[:5])
+    rec = read_recording(path)
+    assert (rec.header.format, rec.header.version, rec.header.instance) == ("dkr", 1, "old")
+    assert _samples(path) == [
+        ("x", 1.5, -3, 1),
+        ("y", ChangeEvent(1, 2), 2, 3),
+        ("x", [1, 2], 3, 4),
+    ]
+    assert rec.info()["truncated"]
+
+
+# -- MCAP as other tools see it ------------------------------------------------------------------
+
+
+def _time(t: dict[str, int]) -> int:
+    return t["sec"] * NS_PER_S + t["nsec"]
+
+
+@pytest.mark.parametrize("start", [0, 1_764_000_000 * NS_PER_S])
+async def test_the_mcap_library_finds_every_sample(tmp_path: Path, start: int) -> None:
+    """Our recording read by mcap's own reader: labels as channels, values, both times."""
+    path = tmp_path / "flight.mcap"
+    clock = ManualClock(start)
+    expected: list[tuple[str, Any, int, int]] = []
+    async with DyKnowInstance("uav-a", clock=clock) as inst:
+        alt, pos = inst.add_source("uav/altitude"), inst.add_source("uav/position")
+        async with Recorder(inst, ["uav/altitude", "uav/position"], path, batch_size=4):
+            for k in range(10):
+                ta = start + k * 100 * MS
+                tv = ta - 250 * MS  # valid before available: negative at a clock's 0
+                alt.push(100.0 + k, tv, ta)
+                pos.push({"lat": 58.0 + k, "lon": 15.0}, tv, ta + 1)
+                expected += [("uav/altitude", 100.0 + k, tv, ta)]
+                expected += [("uav/position", {"lat": 58.0 + k, "lon": 15.0}, tv, ta + 1)]
+    offset = 0 if start else 10**18  # an epoch clock as it is, another shifted
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        assert summary.statistics.message_count == 20 and len(summary.chunk_indexes) == 5
+        assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        channels = {c.topic: c for c in summary.channels.values()}
+        assert set(channels) == {"uav/altitude", "uav/position"}
+        for channel in channels.values():
+            assert channel.message_encoding == "json"
+            schema = summary.schemas[channel.schema_id]
+            assert (schema.name, schema.encoding) == (channel.topic, "jsonschema")
+            properties = json.loads(schema.data)["properties"]
+            assert {"valid_time", "available_time"} <= set(properties)
+        assert json.loads(summary.schemas[channels["uav/altitude"].schema_id].data)["properties"][
+            "value"
+        ] == {"type": "number"}
+        (meta,) = reader.iter_metadata()
+        assert meta.name == "dyknow" and meta.metadata["time_offset"] == str(offset)
+        assert meta.metadata["instance"] == "uav-a" and meta.metadata["version"] == "2"
+        got = []
+        for _, channel, message in reader.iter_messages(log_time_order=True):
+            body = orjson.loads(message.data)
+            tv, ta = _time(body["valid_time"]), _time(body["available_time"])
+            assert (message.log_time, message.publish_time) == (ta + offset, tv + offset)
+            assert message.data == sample_json(body["value"], tv, ta)
+            got.append((channel.topic, body["value"], tv, ta))
+    assert got == expected
+    assert _samples(path) == expected  # and ours reads the same
+
+
+def test_replay_of_an_mcap_file_written_by_the_mcap_library(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A foreign JSON MCAP file: topics are labels (no leading '/'), publish time valid, log
+    time available."""
+    path = tmp_path / "foreign.mcap"
+    t0 = 1_764_000_000 * NS_PER_S
+    with path.open("wb") as f:
+        w = McapWriter(f)
+        w.start(profile="", library="someone else")
+        schema = w.register_schema("Reading", "jsonschema", b'{"type": "object"}')
+        temp = w.register_channel("/station/temp", "json", schema)
+        wind = w.register_channel("/station/wind", "json", schema)
+        raw = w.register_channel("/camera/raw", "protobuf", 0)
+        # written out of log-time order across channels; a publish time of 0 means "none"
+        w.add_message(temp, t0 + 30 * MS, b'{"c": 20.5}', t0 + 10 * MS)
+        w.add_message(wind, t0 + 20 * MS, b'{"ms": 3}', 0)
+        w.add_message(raw, t0 + 25 * MS, b"\x08\x01", t0)
+        w.add_message(temp, t0 + 60 * MS, b'{"c": 21.0}', t0 + 40 * MS)
+        w.finish()
+    assert main(["replay", str(path), "--json"]) == 0
+    out = capsys.readouterr()
+    rows = [json.loads(line) for line in out.out.splitlines()]
+    summary = rows.pop()["summary"]
+    assert [(r["label"], r["value"], r["valid"], r["available"]) for r in rows] == [
+        ("station/wind", {"ms": 3}, t0 + 20 * MS, t0 + 20 * MS),
+        ("station/temp", {"c": 20.5}, t0 + 10 * MS, t0 + 30 * MS),
+        ("station/temp", {"c": 21.0}, t0 + 40 * MS, t0 + 60 * MS),
+    ]
+    assert summary["counts"] == {"station/temp": 2, "station/wind": 1}
+    assert summary["undecodable"] == {"camera/raw": 1}
+    assert "camera/raw: 1 messages not decoded" in out.err and "protobuf" in out.err
+    assert main(["replay", "--info", str(path)]) == 0
+    text = capsys.readouterr().out
+    assert "written by someone else" in text and "station/temp: 2" in text
+    # its writer killed (no summary, no index): still in log-time order
+    path.write_bytes(path.read_bytes()[:-30])
+    rec = read_recording(path)
+    assert [(s.label, s.available_time) for s in rec] == [
+        ("station/wind", t0 + 20 * MS),
+        ("station/temp", t0 + 30 * MS),
+        ("station/temp", t0 + 60 * MS),
+    ]
+    assert rec.truncated
+
+
+def _ros_messages() -> list[tuple[str, str, Any, int]]:
+    """(topic, ROS type, message, bag time) of a short ROS 2 flight, in time order."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    pose, float64 = (
+        store.types["geometry_msgs/msg/PoseStamped"],
+        store.types["std_msgs/msg/Float64"],
+    )
+    header, stamp = store.types["std_msgs/msg/Header"], store.types["builtin_interfaces/msg/Time"]
+    point, quat = (
+        store.types["geometry_msgs/msg/Point"],
+        store.types["geometry_msgs/msg/Quaternion"],
+    )
+    posecls = store.types["geometry_msgs/msg/Pose"]
+    t0 = 1_764_000_000 * NS_PER_S
+    out = []
+    for n in range(3):
+        t = t0 + n * 100 * MS
+        sec, nsec = divmod(t - 30 * MS, NS_PER_S)  # stamped 30 ms before it was logged
+        msg = pose(
+            header(stamp(sec, nsec), "map"),
+            posecls(point(float(n), 2.0, 3.0), quat(0.0, 0.0, 0.0, 1.0)),
+        )
+        out.append(("/uav/pose", "geometry_msgs/msg/PoseStamped", msg, t))
+        out.append(("/uav/temp", "std_msgs/msg/Float64", float64(20.0 + n), t + 5 * MS))
+    return out
+
+
+def _expected_ros_rows() -> list[tuple[str, Any, int, int]]:
+    """What a replay gives of ``_ros_messages``: labels without the topics' leading '/'."""
+    rows = []
+    for topic, _, msg, t in _ros_messages():
+        if topic == "/uav/pose":
+            value = {"x": msg.pose.position.x, "frame": "map"}
+            rows.append(("uav/pose", value, t - 30 * MS, t))
+        else:
+            rows.append(("uav/temp", {"data": msg.data}, t, t))
+    return rows
+
+
+def _ros_rows(out: str) -> list[tuple[str, Any, int, int]]:
+    rows = [json.loads(line) for line in out.splitlines()][:-1]
+    got = []
+    for r in rows:
+        v = r["value"]
+        if r["label"] == "uav/pose":
+            v = {"x": v["pose"]["position"]["x"], "frame": v["header"]["frame_id"]}
+        got.append((r["label"], v, r["valid"], r["available"]))
+    return got
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_replay_of_a_rosbag2_bag_written_by_rosbags(
+    tmp_path: Path, storage: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A rosbag2 bag: topics are labels, header.stamp valid (else bag time), bag time available."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    bag = tmp_path / "flight_bag"
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(bag, version=9, storage_plugin=plugin) as w:
+        conns: dict[str, Any] = {}
+        for topic, rostype, msg, t in _ros_messages():
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, rostype, typestore=store)
+            w.write(conns[topic], t, bytes(store.serialize_cdr(msg, rostype)))
+    assert main(["replay", str(bag), "--json"]) == 0
+    assert _ros_rows(capsys.readouterr().out) == _expected_ros_rows()
+    assert main(["replay", "--info", str(bag)]) == 0
+    assert "rosbag2" in capsys.readouterr().out
+
+
+def test_replay_of_a_ros2_mcap_file_written_by_the_mcap_library(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """ROS 2 messages (CDR) in an MCAP file of the mcap library: decoded, stamped, in order."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    path = tmp_path / "ros.mcap"
+    with path.open("wb") as f:
+        w = McapWriter(f)
+        w.start(profile="ros2", library="a ROS tool")
+        channels: dict[str, int] = {}
+        for n, (topic, rostype, msg, t) in enumerate(_ros_messages()):
+            if topic not in channels:
+                msgdef, _ = store.generate_msgdef(rostype)
+                schema = w.register_schema(rostype, "ros2msg", msgdef.encode())
+                channels[topic] = w.register_channel(topic, "cdr", schema)
+            w.add_message(channels[topic], t, bytes(store.serialize_cdr(msg, rostype)), t, n)
+        w.finish()
+    assert main(["replay", str(path), "--json"]) == 0
+    assert _ros_rows(capsys.readouterr().out) == _expected_ros_rows()
 
 
 # -- replay ---------------------------------------------------------------------------------------
@@ -255,7 +525,7 @@ async def _replay(path: Path) -> dict[str, list[tuple[Any, int, int]]]:
 
 
 async def test_replay_is_deterministic_and_reproduces_the_live_run(tmp_path: Path) -> None:
-    path = tmp_path / "live.dkr"
+    path = tmp_path / "live.mcap"
     live = await _live_run(path)
     assert len(live["chronicles/left_road"]) == 3  # the scenario does recognize something
     assert any(not s[0]["verdict"] for s in live["monitors/speeding"])
@@ -271,7 +541,7 @@ async def test_replay_is_deterministic_and_reproduces_the_live_run(tmp_path: Pat
 
 
 async def test_replay_paces_at_the_given_speed(tmp_path: Path) -> None:
-    path = tmp_path / "paced.dkr"
+    path = tmp_path / "paced.mcap"
     w = RecordWriter(path)
     for k in range(5):
         w.add("x", k, k * NS_PER_S // 10, k * NS_PER_S // 10)  # 0.4 s of recording
@@ -284,7 +554,7 @@ async def test_replay_paces_at_the_given_speed(tmp_path: Path) -> None:
 
 
 async def test_replay_needs_a_manual_clock_and_a_free_label(tmp_path: Path) -> None:
-    path = tmp_path / "x.dkr"
+    path = tmp_path / "x.mcap"
     w = RecordWriter(path)
     w.add("x", 1, 0, 0)
     w.close()
@@ -303,7 +573,7 @@ async def test_replay_needs_a_manual_clock_and_a_free_label(tmp_path: Path) -> N
 
 
 def test_cli_replay_info_and_kpl_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    path = tmp_path / "live.dkr"
+    path = tmp_path / "live.mcap"
     live = asyncio.run(_live_run(path))
     spec = tmp_path / "app.kpl"
     spec.write_text(SPEC)
@@ -311,10 +581,10 @@ def test_cli_replay_info_and_kpl_json(tmp_path: Path, capsys: pytest.CaptureFixt
     assert main(["replay", "--info", str(path), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["counts"]["car/speed"] == 40 and info["instance"] == "live"
-    assert info["version"] == 1 and not info["truncated"]
+    assert info["version"] == 2 and not info["truncated"]
     assert main(["replay", "--info", str(path)]) == 0
     text = capsys.readouterr().out
-    assert "car/offset: 40" in text and "dyknow-record version 1" in text
+    assert "car/offset: 40" in text and "MCAP, dyknow-record version 2" in text
 
     args = ["replay", str(path), "--kpl", str(spec), "--json", "--tail", "1.25"]
     outputs = []
@@ -379,7 +649,7 @@ def test_record_from_a_federation_then_replay(tmp_path: Path) -> None:
         assert producer.stdout is not None
         assert producer.stdout.readline().strip() == "ready"
         # --count: stops by itself after 3 samples
-        counted = tmp_path / "counted.dkr"
+        counted = tmp_path / "counted.mcap"
         done = subprocess.run(
             [*cli, "record", "heli-altitude", *op, "--out", str(counted), "--count", "3"],
             capture_output=True,
@@ -398,7 +668,7 @@ def test_record_from_a_federation_then_replay(tmp_path: Path) -> None:
         assert header.labels == ["heli-altitude"] and header.meta["platform"] == "uav-a"
 
         # no limit: SIGTERM ends it cleanly, the file complete
-        signalled = tmp_path / "signalled.dkr"
+        signalled = tmp_path / "signalled.mcap"
         recorder = subprocess.Popen(
             [*cli, "record", "heli-altitude", *op, "--out", str(signalled)],
             stdout=subprocess.PIPE,
