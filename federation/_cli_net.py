@@ -154,10 +154,13 @@ async def run_foxglove(
     say: Callable[[str], None],
     *,
     sample_period: float | None = None,
+    token: str | None = None,
+    allow_hosts: Sequence[str] = (),
 ) -> None:
     """Run one platform serving Foxglove (docs/foxglove.md) until SIGINT/SIGTERM.
 
-    The ready line ends with the WebSocket URL to open in Foxglove.
+    The ready line ends with the WebSocket URL to open in Foxglove, token included
+    (``…/?token=…``); the connections relayed and refused are said at the end.
     """
     from ._application import NodeApplication, check_application
     from ._foxglove import FoxgloveBridge
@@ -171,7 +174,14 @@ async def run_foxglove(
         FederationPlatform(config, source=source, join=False, transport=transport) as p,
         NodeApplication(p, source),
         LocalChannel(p),
-        FoxgloveBridge(p, host=host, port=port, sample_period=sample_period) as bridge,
+        FoxgloveBridge(
+            p,
+            host=host,
+            port=port,
+            sample_period=sample_period,
+            token=token,
+            allow_hosts=allow_hosts,
+        ) as bridge,
     ):
         await p.join()
         stop = _stop_event()
@@ -179,8 +189,16 @@ async def run_foxglove(
         say(f"dyknow foxglove: serving {', '.join(bridge.served()) or 'no streams'}")
         if bridge.origin is None:
             say("dyknow foxglove: no [foxglove] origin: positions are not drawn on a map")
-        say(f"dyknow foxglove: {p.name} ready in federation {config.federation}: {bridge.url}")
+        say(
+            f"dyknow foxglove: {p.name} ready in federation {config.federation}: {bridge.login_url}"
+        )
         await stop.wait()
+        stats = bridge.stats()
+        refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())
+        say(
+            f"dyknow foxglove: connections: {stats['relayed']} relayed, "
+            f"{stats['refused_total']} refused ({refused}), {stats['declined']} declined"
+        )
     say(f"dyknow foxglove: {config.name} stopped")
 
 

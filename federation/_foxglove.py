@@ -16,6 +16,11 @@ Every channel is JSON-encoded with a JSON schema (``jsonschema``): the well-know
 Foxglove ones by their names, a stream's own inferred from its first sample (its
 description the vocabulary's). The server offers no publishing, services or
 parameters to its clients: they only watch.
+
+Only who holds the bridge's token watches: the SDK's server, which has no login, listens
+on an ephemeral port of 127.0.0.1, behind a `FoxgloveRelay` on ``host``:``port`` that
+lets in a WebSocket only with the token, an allowed ``Host`` and an ``Origin`` absent or
+allowed (`ConsoleAccess`, as the web console's; docs/foxglove.md, "Access").
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import asyncio
 import contextlib
 import logging
 import math
-from collections.abc import Coroutine
+from collections.abc import Coroutine, Iterable
 from dataclasses import dataclass, field
 from typing import Any, Self
 
@@ -403,6 +408,10 @@ def _scalars(value: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def _is_wildcard(host: str) -> bool:
+    return host in ("", "0.0.0.0", "::")
+
+
 def _dumps(value: Any) -> bytes:
     # orjson writes NaN and infinities as null: a browser's JSON.parse refuses them
     return orjson.dumps(value, default=str)
@@ -427,6 +436,10 @@ class FoxgloveBridge:
     ``ask=False`` serves what arrives without asking for it: beside an `OperatorConsole`
     that asks every member for the same streams. ``sample_period`` is the period asked
     for every stream (None: every sample).
+
+    Who may connect: who presents ``token`` (None: a random one; `login_url` carries it),
+    to a ``Host`` of localhost, an IP address or ``allow_hosts``, from no web page or one
+    of ``origins`` (None: the settings', Foxglove's web app by default).
     """
 
     def __init__(
@@ -438,12 +451,25 @@ class FoxgloveBridge:
         port: int = 8765,
         ask: bool = True,
         sample_period: float | None = None,
+        token: str | None = None,
+        allow_hosts: Iterable[str] = (),
+        origins: Iterable[str] | None = None,
     ) -> None:
+        from .console import ConsoleAccess
+
         if sample_period is not None and not sample_period > 0:
             raise ValueError(f"sample_period must be > 0 seconds, got {sample_period}")
         self.platform = platform
         self.name = platform.name
         self.settings = platform.config.foxglove if settings is None else settings
+        interface = getattr(platform, "interface", None)
+        self.access = ConsoleAccess(
+            token=token,
+            allow_hosts=[*allow_hosts, *([] if _is_wildcard(host) else [host])],
+            audit=interface.audit if interface is not None else None,
+            origins=self.settings.origins if origins is None else origins,
+            stage="foxglove",
+        )
         streams, roles = self.settings.resolve(platform.config.console)
         unknown = [label for label in streams if label not in platform.vocabulary]
         if unknown:
@@ -464,7 +490,25 @@ class FoxgloveBridge:
         self._tasks: set[asyncio.Task[None]] = set()
         self._context: Any = None
         self._server: Any = None
+        self._relay: Any = None
+        self._closing = asyncio.Event()
         self._stack: contextlib.AsyncExitStack | None = None
+
+    @property
+    def token(self) -> str:
+        """The secret a client presents (``?token=`` in the URL, or a Bearer)."""
+        return self.access.token
+
+    @property
+    def login_url(self) -> str:
+        """`url` with the token: what the operator opens in Foxglove (printed at start)."""
+        return f"{self.url}/?token={self.token}" if self.url else ""
+
+    def stats(self) -> dict[str, Any]:
+        """The connections relayed and refused (by kind), as the console's ``/api/stats``."""
+        if self._relay is None:
+            return {"relayed": 0, "open": 0, "declined": 0, **self.access.stats()}
+        return dict(self._relay.stats())
 
     def __repr__(self) -> str:
         return f"<FoxgloveBridge of {self.name} at {self.url or 'not started'}>"
@@ -492,19 +536,30 @@ class FoxgloveBridge:
             missing = [label for label in self.settings.local if not instance.has_label(label)]
             if missing:
                 raise ValueError(f"foxglove.local: {missing[0]!r} is not a label of {self.name}")
+            from ._foxglove_relay import FoxgloveRelay
+
             # A context of our own: channels of another SDK user in this process (a
             # recorder, a second bridge) are not served here, nor ours there.
             self._context = foxglove.Context()
+            # The SDK's server lets in anyone: only on loopback, on a port nobody is
+            # told, reached through the relay (another local user can still find it).
             server = self._server = foxglove.start_server(
                 name=f"dyknow {self.name} ({self.platform.config.federation})",
-                host=self.host,
-                port=self.port,
+                host="127.0.0.1",
+                port=0,
                 context=self._context,
             )
             stack.callback(server.stop)
             stack.push_async_callback(self._close_tasks)
-            self.port = server.port
-            host = "127.0.0.1" if self.host in ("", "0.0.0.0", "::") else self.host
+            self._relay = await stack.enter_async_context(
+                FoxgloveRelay(
+                    self.access, f"ws://127.0.0.1:{server.port}/", host=self.host, port=self.port
+                )
+            )
+            self.port = self._relay.port
+            stack.callback(self._closing.set)  # first out: the refusals' last report
+            self._spawn(self.access.run_reports(self._closing), f"foxglove[{self.name}].refusals")
+            host = "127.0.0.1" if _is_wildcard(self.host) else self.host
             self.url = f"ws://{f'[{host}]' if ':' in host else host}:{self.port}"
             for label in self.settings.local:
                 self._spawn(self._serve_local(label), f"foxglove[{self.name}].local[{label}]")

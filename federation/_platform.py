@@ -71,6 +71,7 @@ import asyncio
 import contextlib
 import inspect
 import logging
+import re
 import string
 import tomllib
 from collections.abc import Awaitable, Callable, Iterable, Mapping
@@ -266,6 +267,12 @@ class ConsoleSettings(BaseModel):
         return value
 
 
+FOXGLOVE_ORIGINS = ("https://app.foxglove.dev", "file://")
+"""The ``Origin`` values a Foxglove connection may have by default: the web app's, and
+``file://``, what an Electron app's pages (the desktop app) send."""
+_WEB_ORIGIN = re.compile(r"[a-z][a-z0-9+.-]*://([a-z0-9.-]+|\[[0-9a-f:.]+\])?(:[0-9]{1,5})?")
+
+
 class FoxgloveSettings(BaseModel):
     """``[foxglove]``: what ``dyknow foxglove`` serves to Foxglove (docs/foxglove.md).
 
@@ -275,6 +282,11 @@ class FoxgloveSettings(BaseModel):
     served too. ``origin`` is the latitude and longitude of the local frame's (0, 0), x
     metres east and y north: with it, positions become ``foxglove.LocationFix`` and areas,
     tracks and violations GeoJSON, drawn on the Map panel.
+
+    Who may connect is as the console's (a token, the allowed ``Host`` names):
+    ``token_file`` and ``allow_hosts`` default to the console's. ``origins`` are the web
+    origins a browser's connection may come from (`FOXGLOVE_ORIGINS`: Foxglove's web app
+    and an Electron app's ``file://``); one without an ``Origin`` is no browser page.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -283,6 +295,20 @@ class FoxgloveSettings(BaseModel):
     roles: ConsoleRoles | None = None
     local: tuple[Annotated[str, Field(min_length=1)], ...] = ()
     origin: tuple[float, float] | None = None
+    origins: tuple[str, ...] = FOXGLOVE_ORIGINS
+    allow_hosts: tuple[str, ...] | None = None
+    token_file: Path | None = None
+
+    @field_validator("origins")
+    @classmethod
+    def _web_origins(cls, value: tuple[str, ...]) -> tuple[str, ...]:
+        for origin in value:
+            if not _WEB_ORIGIN.fullmatch(origin):
+                raise ValueError(
+                    f"{origin!r} is not a web origin (scheme://host[:port], lower case, "
+                    "no path: https://app.foxglove.dev)"
+                )
+        return value
 
     @field_validator("streams", "local")
     @classmethod
@@ -460,9 +486,11 @@ class PlatformConfig(BaseModel):
                 update[name] = base / value
         if isinstance(self.transport, ZenohSettings | MqttSettings):  # its TLS (and password) files
             update["transport"] = self.transport.relative_to(base)
-        token_file = self.console.token_file
-        if token_file is not None and not token_file.is_absolute():
-            update["console"] = self.console.model_copy(update={"token_file": base / token_file})
+        for section in ("console", "foxglove"):
+            settings = getattr(self, section)
+            token_file = settings.token_file
+            if token_file is not None and not token_file.is_absolute():
+                update[section] = settings.model_copy(update={"token_file": base / token_file})
         if self.application is not None and not self.application.is_absolute():
             update["application"] = base / self.application
         if self.inputs:

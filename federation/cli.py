@@ -246,14 +246,51 @@ def foxglove(
         float | None,
         typer.Option("--sample-period", min=0.0, help="seconds between samples asked"),
     ] = None,
+    allow_host: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--allow-host",
+            help="a host name Foxglove may connect by, besides localhost and IP addresses "
+            "(repeatable; adds to foxglove.allow_hosts, else console.allow_hosts, and "
+            "$DYKNOW_CONSOLE_ALLOW_HOSTS)",
+        ),
+    ] = None,
+    token_file: Annotated[
+        Path | None,
+        typer.Option(
+            "--token-file",
+            help="a file holding the token (else $DYKNOW_CONSOLE_TOKEN, else "
+            "foxglove.token_file, else console.token_file, else a random one, printed "
+            "with the URL)",
+        ),
+    ] = None,
 ) -> None:
     """Run a platform serving its federation's streams to Foxglove (docs/foxglove.md)."""
     from ._cli_net import run_foxglove
     from ._local import PlatformAliveError
+    from .console import allowed_names, configured_token
 
     cfg = _load(config)
+    fox = cfg.foxglove
     try:
-        asyncio.run(run_foxglove(cfg, str(config), host, port, _say, sample_period=sample_period))
+        token = configured_token(token_file, fox.token_file or cfg.console.token_file)
+        configured = cfg.console.allow_hosts if fox.allow_hosts is None else fox.allow_hosts
+        hosts = allowed_names([*configured, *(allow_host or [])], os.environ)
+    except ValueError as exc:
+        raise _fail(f"dyknow foxglove: {config}: {exc}") from None
+    try:
+        asyncio.run(
+            run_foxglove(
+                cfg,
+                str(config),
+                host,
+                port,
+                _say,
+                sample_period=sample_period,
+                token=token,
+                allow_hosts=hosts,
+            )
+        )
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
     except ValueError as exc:  # [foxglove] names what the federation does not have
@@ -262,7 +299,7 @@ def foxglove(
         raise _fail(f"dyknow foxglove: {config}: {exc}") from None
     except (TransportError, OSError) as exc:
         raise _fail(f"dyknow foxglove: {config}: {exc}", 1) from None
-    except RuntimeError as exc:  # the SDK's server could not start (the port is taken)
+    except RuntimeError as exc:  # the SDK's server could not start
         raise _fail(f"dyknow foxglove: {config}: {exc}", 1) from None
 
 

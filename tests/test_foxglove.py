@@ -6,6 +6,11 @@ of the protocol: the reference TypeScript one, ``@foxglove/ws-protocol``, under 
 (tests/node: ``npm ci`` installs the locked packages when they are missing or older than
 the lock file). The conversion of the traffic world's metres to latitude and longitude,
 and the ``[foxglove]`` section's checks, are tested here too.
+
+Who may watch: plain WebSocket clients (aiohttp's, every header their own) attack the
+bridge's relay without the token, with a wrong one, from a foreign web page (``Origin``)
+and by a rebound name (``Host``): each refused before the upgrade, counted and audited
+(``stage: "foxglove"``); the token from Foxglove's web app is relayed.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import aiohttp
 import pytest
 
 from agents.keys import gen_keys, trust_keys
@@ -111,6 +117,9 @@ def test_foxglove_settings_default_to_the_console() -> None:
         ({"origin": [58.0]}, "foxglove.origin"),
         ({"streams": ["a", "a"]}, "'a' is listed twice"),
         ({"port": 8765}, "foxglove.port"),
+        ({"origins": ["https://app.foxglove.dev/"]}, "not a web origin"),
+        ({"origins": ["*"]}, "foxglove.origins"),
+        ({"origins": ["null"]}, "foxglove.origins"),
     ],
 )
 def test_foxglove_settings_errors_name_the_key(section: dict[str, Any], error: str) -> None:
@@ -255,7 +264,8 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
             lines,
             bridge.stderr.read() if bridge.stderr else "",
         )
-        url = lines[1].rsplit(": ", 1)[1].strip()
+        url = lines[1].rsplit(": ", 1)[1].strip()  # ws://127.0.0.1:P/?token=…
+        assert "/?token=" in url
         t0 = time.time_ns()
         topics = [
             "/uav-a/heli-position/fix",
@@ -338,6 +348,7 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
         out, err = bridge.communicate(timeout=20)
         assert bridge.returncode == 0, err
         assert "operator stopped" in out and "Traceback" not in err
+        assert "dyknow foxglove: connections: 1 relayed, 0 refused (host 0, " in out, out
     finally:
         for p in procs:
             _kill(p)
@@ -363,7 +374,9 @@ def test_foxglove_refuses_a_stream_outside_the_vocabulary(tmp_path: Path) -> Non
 # -- in one process: beside the console, serving what the console asks for ----------------
 
 
-async def _watch(client: Path, url: str, count: int, *topics: str) -> list[dict[str, Any]]:
+async def _watch(
+    client: Path, url: str, count: int, *topics: str, env: dict[str, str] | None = None
+) -> list[dict[str, Any]]:
     """The Node client's events: every topic's first ``count`` messages (60 s at most)."""
     proc = await asyncio.create_subprocess_exec(
         "node",
@@ -375,6 +388,7 @@ async def _watch(client: Path, url: str, count: int, *topics: str) -> list[dict[
         cwd=NODE_DIR,
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
+        env={**os.environ, **(env or {})},
     )
     out, err = await proc.communicate()
     assert proc.returncode == 0, err.decode()
@@ -430,8 +444,15 @@ async def test_bridge_beside_the_console_serves_its_imports_and_local_labels(
         assert bridge.url == f"ws://127.0.0.1:{bridge.port}" and bridge.port > 0
         assert console.url != bridge.url
 
+        assert console.token != bridge.token  # each its own, unless given the same
+        # the token as a Bearer, the Origin of Foxglove's web app
         events = await _watch(
-            foxglove_client, bridge.url, 3, "/uav-a/heli-position/fix", "/operator/operator/notes"
+            foxglove_client,
+            bridge.url,
+            3,
+            "/uav-a/heli-position/fix",
+            "/operator/operator/notes",
+            env={"FOXGLOVE_TOKEN": bridge.token, "FOXGLOVE_ORIGIN": APP_ORIGIN},
         )
         fixes = [e["message"] for e in events if e.get("topic") == "/uav-a/heli-position/fix"]
         assert len(fixes) >= 3
@@ -452,3 +473,122 @@ async def test_bridge_beside_the_console_serves_its_imports_and_local_labels(
         # the bridge asked for nothing (a second export of a label would be refused)
         exported = [e.semantic_label for e in uav.exporter.exports("operator")]
         assert exported == ["heli-position"]
+
+
+# -- who may watch: attacks on the relay ---------------------------------------------------
+
+APP_ORIGIN = "https://app.foxglove.dev"
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+
+
+async def _first_advertised(ws: aiohttp.ClientWebSocketResponse[Any]) -> dict[str, Any]:
+    """The first channel ``ws``'s server advertises (after its serverInfo)."""
+    async with asyncio.timeout(20):
+        while True:
+            msg = await ws.receive()
+            assert msg.type == aiohttp.WSMsgType.TEXT, msg
+            op = json.loads(msg.data)
+            if op["op"] == "advertise" and op["channels"]:
+                return dict(op["channels"][0])
+
+
+async def test_the_relay_lets_in_only_the_token_from_an_allowed_origin(tmp_path: Path) -> None:
+    pub = gen_keys("operator", tmp_path / "keys")[2]
+    trust_keys(tmp_path / "trust.json", [pub], federation="demo")
+    config = PlatformConfig.from_dict(
+        {
+            "name": "operator",
+            "federation": "demo",
+            "key": str(tmp_path / "keys" / "operator.key"),
+            "trust": str(tmp_path / "trust.json"),
+            "vocabulary": vocabulary(),
+            "mapping": local_mapping(),
+            "foxglove": {"streams": [], "local": ["operator/notes"]},
+        }
+    )
+    token = "the-viewers-token-0123456789"
+    async with contextlib.AsyncExitStack() as stack:
+        t = await stack.enter_async_context(MemoryHub().transport())
+        operator = await stack.enter_async_context(FederationPlatform(config, transport=t))
+        notes = operator.instance.add_source("operator/notes")
+        notes.push({"text": "hello"})
+        bridge = await stack.enter_async_context(
+            FoxgloveBridge(operator, port=0, token=token, allow_hosts=["viewer.test"])
+        )
+        assert bridge.login_url == f"ws://127.0.0.1:{bridge.port}/?token={token}"
+        assert bridge._server.port != bridge.port  # the SDK's own server: not this port
+        url = bridge.url
+        session = await stack.enter_async_context(aiohttp.ClientSession())
+
+        attacks: list[tuple[str, int, str, dict[str, Any]]] = [
+            ("no-token", 401, url, {}),  # any local process, any page
+            ("bad-token", 403, f"{url}/?token=guessed-0123456789abc", {}),
+            ("bad-token", 403, url, {"headers": {"Authorization": "Bearer guessed-01234567"}}),
+            ("bad-token", 403, url, {"headers": {"Authorization": f"Basic {token}"}}),
+            # a page of another site, even with the token (leaked, or guessed)
+            ("origin", 403, bridge.login_url, {"origin": "https://evil.example"}),
+            ("origin", 403, bridge.login_url, {"origin": "null"}),  # a sandboxed frame
+            ("origin", 403, bridge.login_url, {"origin": f"{APP_ORIGIN}.evil.example"}),
+            # DNS rebinding: evil.example now resolves to 127.0.0.1
+            ("host", 403, bridge.login_url, {"headers": {"Host": f"evil.example:{bridge.port}"}}),
+        ]
+        for kind, status, target, options in attacks:
+            with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+                async with session.ws_connect(target, protocols=SUBPROTOCOLS, **options):
+                    pass
+            assert refused.value.status == status, (kind, options)
+        # refused before any upgrade: a plain HTTP answer, saying why
+        async with session.get(url) as response:
+            assert response.status == 401
+            assert response.headers["WWW-Authenticate"] == 'Bearer realm="dyknow-foxglove"'
+            assert (await response.json())["error"].startswith("token: missing")
+
+        stats = bridge.stats()
+        assert stats["refused"] == {"host": 1, "origin": 3, "no-token": 2, "bad-token": 3}
+        assert stats["refused_total"] == 9 and stats["audited"] == 9
+        assert stats["relayed"] == 0
+        records = [r for r in operator.interface.audit.records if r.get("stage") == "foxglove"]
+        assert [r["refusal"] for r in records] == [
+            *(kind for kind, *_ in attacks),
+            "no-token",
+        ]
+        assert all(r["verdict"] == "refused" and r["client"] == "127.0.0.1" for r in records)
+        assert records[4]["origin"] == "https://evil.example"
+        assert records[7]["host"] == f"evil.example:{bridge.port}"
+        assert "is not a name of this foxglove server" in records[7]["reason"]
+        assert all(token not in json.dumps(r) for r in records)  # the secret is no record's
+
+        # the token, from Foxglove's web app: relayed, the channels advertised
+        async with session.ws_connect(
+            bridge.login_url, protocols=SUBPROTOCOLS, origin=APP_ORIGIN
+        ) as ws:
+            assert ws.protocol == "foxglove.sdk.v1"  # what the SDK's server chose
+            channel = await _first_advertised(ws)
+            assert channel["topic"] == "/operator/operator/notes"
+            # frames both ways: a subscription up (text), the next note down (binary)
+            subscribe = [{"id": 1, "channelId": channel["id"]}]
+            await ws.send_json({"op": "subscribe", "subscriptions": subscribe})
+            async with asyncio.timeout(20):
+                while True:
+                    notes.push({"text": "seen"})
+                    try:
+                        msg = await asyncio.wait_for(ws.receive(), 0.5)
+                    except TimeoutError:
+                        continue
+                    if msg.type == aiohttp.WSMsgType.BINARY:
+                        break
+            assert msg.data[0] == 1 and msg.data.endswith(b'{"text":"seen"}')  # messageData
+        # a script or the desktop app: a Bearer, no Origin, by an allowed name
+        async with session.ws_connect(
+            url,
+            protocols=["foxglove.sdk.v1"],
+            headers={"Authorization": f"Bearer {token}", "Host": f"viewer.test:{bridge.port}"},
+        ) as ws:
+            assert (await _first_advertised(ws))["topic"] == "/operator/operator/notes"
+        # a client of no Foxglove protocol is turned away, not relayed
+        with pytest.raises(aiohttp.WSServerHandshakeError) as refused:
+            async with session.ws_connect(bridge.login_url, protocols=["chat"]):
+                pass
+        assert refused.value.status == 400
+        stats = bridge.stats()
+        assert (stats["relayed"], stats["declined"], stats["refused_total"]) == (2, 1, 9)

@@ -15,6 +15,10 @@ Every HTTP request passes `ConsoleAccess.middleware` before it reaches a handler
 Every refusal is counted (`refusals`, ``GET /api/stats``) and recorded in the platform's
 audit (the Interface Agent's `AuditLog`, ``stage: "console"``) and the log, within a
 budget: past it, refusals are counted and summed up in one record per `REPORT_INTERVAL`.
+
+The same guard stands before another server's WebSocket upgrades (`check_upgrade`: the
+Foxglove relay, ``stage: "foxglove"``): the token in ``?token=`` or a Bearer, no cookie,
+and an ``Origin`` of its own list (``origins``) besides its own.
 """
 
 from __future__ import annotations
@@ -151,7 +155,11 @@ def _clip(value: str | None) -> str | None:
 
 
 class ConsoleAccess:
-    """The console's guard: the token, the allowed host names, the refusals counted."""
+    """The console's guard: the token, the allowed host names, the refusals counted.
+
+    ``stage`` names what it guards (in the audit, the log and the reasons); ``origins``
+    are web origins allowed besides the server's own (none for the console's page).
+    """
 
     def __init__(
         self,
@@ -160,11 +168,16 @@ class ConsoleAccess:
         allow_hosts: Iterable[str] = (),
         audit: AuditLog | None = None,
         cookie: str = "dyknow_console",
+        origins: Iterable[str] = (),
+        stage: str = "console",
     ) -> None:
         self.token = new_token() if token is None else check_token(token)
         self.allow_hosts = frozenset(LOOPBACK_NAMES | {_allowed_name(h) for h in allow_hosts})
         self.audit = audit
         self.cookie = cookie
+        self.origins = frozenset(origins)  # allowed besides the server's own
+        self.stage = stage  # what guarded: the audit's stage, the log's prefix
+        self._what = stage if stage == "console" else f"{stage} server"  # in the reasons
         # The cookie holds a value derived from the token, not the token itself.
         self._cookie_value = hmac.new(self.token.encode(), b"console-cookie", "sha256").hexdigest()
         self.refusals: dict[str, int] = {"host": 0, "origin": 0, "no-token": 0, "bad-token": 0}
@@ -189,23 +202,60 @@ class ConsoleAccess:
             "allow_hosts": sorted(self.allow_hosts),
         }
 
-    @web.middleware
-    async def middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
-        """Refuse a request of a foreign host or origin, or without the token; else serve it."""
+    def _foreign(self, request: web.Request) -> web.Response | None:
+        """The refusal of a request of a foreign host or origin, or None."""
         host = request.headers.get("Host", "")
         if not self.allowed_host(host):
             return self._refuse(
                 request,
                 "host",
                 403,
-                f"Host: {_clip(host)!r} is not a name of this console (use 127.0.0.1 or "
-                "localhost, or allow the name: --allow-host / console.allow_hosts)",
+                f"Host: {_clip(host)!r} is not a name of this {self._what} (use 127.0.0.1 or "
+                f"localhost, or allow the name: --allow-host / {self.stage}.allow_hosts)",
             )
         origin = request.headers.get("Origin")
-        if origin is not None and origin != f"{request.scheme}://{host}":
+        if (
+            origin is not None
+            and origin != f"{request.scheme}://{host}"
+            and origin not in self.origins
+        ):
             return self._refuse(
-                request, "origin", 403, f"Origin: {_clip(origin)} is not this console's"
+                request, "origin", 403, f"Origin: {_clip(origin)} is not this {self._what}'s"
             )
+        return None
+
+    def check_upgrade(self, request: web.Request) -> web.Response | None:
+        """The refusal of a WebSocket upgrade, or None: Host, Origin, then the token.
+
+        The token comes in the URL's ``?token=`` (what a browser's WebSocket can send) or
+        ``Authorization: Bearer``; no cookie. None: 401; a wrong one: 403.
+        """
+        refused = self._foreign(request)
+        if refused is not None:
+            return refused
+        given = request.query.get("token")
+        auth = request.headers.get("Authorization")
+        if given is None and auth is not None:
+            scheme, _, value = auth.strip().partition(" ")
+            given = value.strip() if scheme.lower() == "bearer" else ""
+        if given is None:
+            return self._refuse(
+                request,
+                "no-token",
+                401,
+                f"token: missing (open the URL the {self._what} printed, with ?token=…, or "
+                "send Authorization: Bearer <token>)",
+            )
+        if not self._token_is(given):
+            return self._refuse(request, "bad-token", 403, f"token: not this {self._what}'s")
+        return None
+
+    @web.middleware
+    async def middleware(self, request: web.Request, handler: Handler) -> web.StreamResponse:
+        """Refuse a request of a foreign host or origin, or without the token; else serve it."""
+        refused = self._foreign(request)
+        if refused is not None:
+            return refused
         if request.method == "GET" and request.path == "/" and "token" in request.query:
             if not self._token_is(request.query["token"]):
                 return self._refuse(request, "bad-token", 403, "token: not this console's")
@@ -256,7 +306,8 @@ class ConsoleAccess:
                 refusal=kind,
             )
             log.warning(
-                "console: refused %s %s from %s: %s",
+                "%s: refused %s %s from %s: %s",
+                self.stage,
                 request.method,
                 _clip(request.path),
                 client,
@@ -265,7 +316,8 @@ class ConsoleAccess:
         else:
             # a flood of bad requests must not become a flood of audit records
             self._unaudited += 1
-        headers = {"WWW-Authenticate": 'Bearer realm="dyknow-console"'} if status == 401 else {}
+        realm = f'Bearer realm="dyknow-{self.stage}"'
+        headers = {"WWW-Authenticate": realm} if status == 401 else {}
         return web.Response(
             text=json.dumps({"error": reason}),
             status=status,
@@ -275,7 +327,7 @@ class ConsoleAccess:
 
     def _record(self, **fields: Any) -> None:
         if self.audit is not None:
-            self.audit.record(verdict="refused", stage="console", **fields)
+            self.audit.record(verdict="refused", stage=self.stage, **fields)
 
     def report(self) -> None:
         """Sum up the refusals past the budget in one record (and one log line), if any."""
@@ -283,11 +335,11 @@ class ConsoleAccess:
         if not n:
             return
         reason = (
-            f"{n} more console request(s) refused without a record each "
+            f"{n} more {self.stage} request(s) refused without a record each "
             f"(over {AUDIT_RATE:g} records/s)"
         )
         self._record(reason=reason, count=n)
-        log.warning("console: %s; refusals so far %s", reason, self.refusals)
+        log.warning("%s: %s; refusals so far %s", self.stage, reason, self.refusals)
 
     async def run_reports(self, closing: asyncio.Event) -> None:
         """`report` every `REPORT_INTERVAL` s until ``closing``, then a last time."""

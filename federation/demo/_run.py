@@ -355,9 +355,12 @@ async def _operate(
                     host=options.host,
                     port=options.foxglove_port,
                     ask=console is None,
+                    # the operator's one token: the console's (random unless given)
+                    token=options.console_token if console is None else console.token,
+                    allow_hosts=options.allow_hosts,
                 )
                 await stack.enter_async_context(bridge)
-                say(f"operator foxglove: {bridge.url}")
+                say(f"operator foxglove: {bridge.login_url}")
             agent = await platform.agents.add(_Operator())
             await _wait_members(platform, names, procs, say)
             if started is not None and not started.done():

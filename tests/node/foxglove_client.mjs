@@ -3,6 +3,9 @@
 //
 //   node foxglove_client.mjs URL COUNT TIMEOUT_S TOPIC...
 //
+// The server lets in only who holds its token: in URL (the ready line's ws://…/?token=…),
+// or in $FOXGLOVE_TOKEN, sent as "Authorization: Bearer" (what a browser cannot do).
+// $FOXGLOVE_ORIGIN, when set, is sent as the Origin a browser page would send.
 // Connects to URL, subscribes to each TOPIC as soon as it is advertised and prints one
 // JSON line per event: {"advertised": channel} for every channel the server advertises,
 // {"topic", "logTime", "message"} for every message of a subscribed topic, its payload
@@ -21,7 +24,11 @@ const bySubscription = new Map();
 const decoder = new TextDecoder();
 
 // the foxglove-sdk server speaks the protocol's "foxglove.sdk.v1" version
-const ws = new WebSocket(url, ["foxglove.sdk.v1", FoxgloveClient.SUPPORTED_SUBPROTOCOL]);
+const { FOXGLOVE_TOKEN: token, FOXGLOVE_ORIGIN: origin } = process.env;
+const ws = new WebSocket(url, ["foxglove.sdk.v1", FoxgloveClient.SUPPORTED_SUBPROTOCOL], {
+  headers: token ? { Authorization: `Bearer ${token}` } : {},
+  ...(origin ? { origin } : {}),
+});
 const client = new FoxgloveClient({ ws });
 const print = (obj) => process.stdout.write(JSON.stringify(obj) + "\n");
 const fail = (why) => {
