@@ -103,6 +103,12 @@ def test_foxglove_settings_default_to_the_console() -> None:
     streams, roles = cfg.foxglove.resolve(cfg.console)
     assert streams == ("a", "b") and roles.positions == "a"
     assert cfg.foxglove.origin == (58.3975, 15.5765)
+    # who may connect: the web app's and an Electron app's origins; the console's names
+    assert cfg.foxglove.origins == ("https://app.foxglove.dev", "file://")
+    assert cfg.foxglove.allow_hosts is None and cfg.foxglove.token_file is None
+    assert cfg.relative_to("/etc/dyknow").foxglove.token_file is None
+    cfg = _config(token_file="viewer.token", origins=["http://localhost:8080"])
+    assert cfg.relative_to("/etc/dyknow").foxglove.token_file == Path("/etc/dyknow/viewer.token")
     streams, roles = _config(streams=["b"]).foxglove.resolve(cfg.console)
     assert streams == ("b",) and roles.positions is None  # the console's role not served
     cfg = _config(streams=["b"], roles={"violations": "a"})
@@ -242,7 +248,13 @@ def _kill(proc: subprocess.Popen[str]) -> None:
 @pytest.mark.timeout(300)  # a first `npm ci` included
 def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_client: Path) -> None:
     configs = _write_federation(tmp_path, _free_port())
-    env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_RUNTIME_DIR": str(tmp_path)}
+    token = "a-chosen-token-0123456789"  # read as the console's is
+    env = {
+        **os.environ,
+        "PYTHONUNBUFFERED": "1",
+        "XDG_RUNTIME_DIR": str(tmp_path),
+        "DYKNOW_CONSOLE_TOKEN": token,
+    }
     procs: list[subprocess.Popen[str]] = []
 
     def start(*args: str) -> subprocess.Popen[str]:
@@ -265,7 +277,7 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
             bridge.stderr.read() if bridge.stderr else "",
         )
         url = lines[1].rsplit(": ", 1)[1].strip()  # ws://127.0.0.1:P/?token=…
-        assert "/?token=" in url
+        assert url.endswith(f"/?token={token}"), url
         t0 = time.time_ns()
         topics = [
             "/uav-a/heli-position/fix",
@@ -369,6 +381,22 @@ def test_foxglove_refuses_a_stream_outside_the_vocabulary(tmp_path: Path) -> Non
     )
     assert done.returncode == 2, done.stderr
     assert "foxglove.streams: 'temperature' is not in the federation's vocabulary" in done.stderr
+
+
+def test_foxglove_refuses_an_unusable_token(tmp_path: Path) -> None:
+    configs = _write_federation(tmp_path, _free_port())
+    short = tmp_path / "short.token"
+    short.write_text("short\n")
+    done = subprocess.run(
+        [*CLI, "foxglove", "--config", str(configs["operator"]), "--token-file", str(short)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "XDG_RUNTIME_DIR": str(tmp_path)},
+        timeout=60,
+    )
+    assert done.returncode == 2, done.stderr
+    assert "short.token: a console token has at least 16 characters" in done.stderr
 
 
 # -- in one process: beside the console, serving what the console asks for ----------------
