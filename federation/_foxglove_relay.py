@@ -38,7 +38,7 @@ chooses (foxglove-sdk 0.30 speaks ``foxglove.sdk.v1`` only)."""
 MAX_CONNECTIONS = 32  # clients relayed at once: past it, 503
 MAX_MESSAGE = 64 * 1024 * 1024  # bytes of one message of the server (a big sample's)
 MAX_CLIENT_MESSAGE = 1024 * 1024  # bytes of one message of a client (subscriptions)
-CONNECT_TIMEOUT = 5.0  # s: to open the inner connection
+CONNECT_TIMEOUT = 5.0  # s: to open the inner connection (and to close one)
 HEARTBEAT = 30.0  # s: a client that answers no ping in this time is gone
 _SENDABLE = frozenset({1000, 1001, 1003, 1007, 1008, 1009, 1010, 1011})  # close codes
 
@@ -89,7 +89,8 @@ class FoxgloveRelay:
     async def __aenter__(self) -> FoxgloveRelay:
         stack = self._stack = contextlib.AsyncExitStack()
         try:
-            self._session = await stack.enter_async_context(aiohttp.ClientSession())
+            timeout = aiohttp.ClientTimeout(total=CONNECT_TIMEOUT)  # the inner upgrade
+            self._session = await stack.enter_async_context(aiohttp.ClientSession(timeout=timeout))
             app = web.Application()
             app.router.add_get("/{tail:.*}", self._upgrade)
             runner = web.AppRunner(app, shutdown_timeout=2.0, access_log=None)
