@@ -423,6 +423,7 @@ function drawMap() {
     drawPick(ctx, X(pendingClick.x), Y(pendingClick.y));
     drawn.add("pick");
   }
+  drawScale(ctx, v);
   placeLabels(v, titles, labels);
   renderLegend(drawn);
   const canvasEl = $("#map");
@@ -503,6 +504,20 @@ function drawParking(ctx, pts) {
   }
 }
 
+// a scale bar in the bottom-left corner: a round length about 100 px long
+function drawScale(ctx, v) {
+  const want = 100 / v.scale;
+  const step = 10 ** Math.floor(Math.log10(want));
+  const metres = [1, 2, 5, 10].map((k) => k * step).reduce((a, b) => (Math.abs(b - want) < Math.abs(a - want) ? b : a));
+  const len = metres * v.scale, x = 12, y = v.ch - 12;
+  ctx.save();
+  ctx.strokeStyle = "#475569"; ctx.lineWidth = 1.5;
+  ctx.beginPath(); ctx.moveTo(x, y - 5); ctx.lineTo(x, y); ctx.lineTo(x + len, y); ctx.lineTo(x + len, y - 5); ctx.stroke();
+  ctx.fillStyle = "#475569"; ctx.font = "11px system-ui, sans-serif"; ctx.textBaseline = "bottom";
+  ctx.fillText(metres >= 1000 ? `${metres / 1000} km` : `${metres} m`, x + 4, y - 2);
+  ctx.restore();
+}
+
 function drawPick(ctx, x, y) {
   ctx.strokeStyle = OBSERVATION_INK; ctx.lineWidth = 1.5;
   ctx.beginPath(); ctx.arc(x, y, 8, 0, 2 * Math.PI); ctx.stroke();
@@ -565,9 +580,17 @@ function renderLegend(drawn) {
 
 // -- labels ---------------------------------------------------------------------------
 
+const widths = new Map();  // text -> its label's width (the same few texts, frame after frame)
+
 function textWidth(text) {
-  measure.font = LABEL_FONT;
-  return Math.ceil(measure.measureText(text).width) + 2 * LABEL_PAD;
+  let w = widths.get(text);
+  if (w === undefined) {
+    measure.font = LABEL_FONT;
+    w = Math.ceil(measure.measureText(text).width) + 2 * LABEL_PAD;
+    if (widths.size > 2000) widths.clear();
+    widths.set(text, w);
+  }
+  return w;
 }
 
 function overlaps(a, b, pad = 1) {
@@ -590,6 +613,7 @@ function placeLabels(v, titles, labels) {
       const t = tools.getBoundingClientRect();
       boxes.push({ x: t.left - canvasBox.left, y: t.top - canvasBox.top, w: t.width, h: t.height });
     }
+    boxes.push({ x: 0, y: v.ch - 30, w: 130, h: 30 });  // the scale bar
     const inside = (b) => b.x >= 2 && b.y >= 2 && b.x + b.w <= v.cw - 2 && b.y + b.h <= v.ch - 2;
     // area titles: in the area's top-left corner (what is visible of it), the longest text that fits
     for (const t of titles) {
