@@ -571,11 +571,12 @@ function renderLegend(drawn) {
     drawSwatch(cx, kind, 26, 18);
     return el("li", { "data-mark": kind }, c, text);
   });
+  // each platform's colour, kept together on one line
   const owners = (state ? state.platforms : []).map((p) =>
-    el("li", { "data-platform": p.name, class: "owner" },
+    el("span", { "data-platform": p.name, class: "owner" },
       el("span", { class: "sw", style: `background:${p.state === "alive" ? colourOf(p.name) : GONE}` }),
       p.state === "alive" ? p.name : `${p.name} (${p.state})`));
-  list.replaceChildren(...items, ...owners);
+  list.replaceChildren(...items, ...(owners.length ? [el("li", { class: "owners" }, ...owners)] : []));
 }
 
 // -- labels ---------------------------------------------------------------------------
