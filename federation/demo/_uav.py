@@ -54,7 +54,7 @@ from agents import (
     on_request,
     platform_of,
 )
-from dyknow_core import NS_PER_S, DyKnowInstance, Source
+from dyknow_core import NS_PER_S, Domain, DyKnowInstance, Source
 from dyknow_core._anchoring import Anchoring, LinkType, ObjectClass, add_anchoring
 from ontology import DomainRule, Rule, StreamRule
 
@@ -81,6 +81,7 @@ __all__ = [
     "UavSettings",
     "fact_rules",
     "run_uav",
+    "tracked_domain",
 ]
 
 log = logging.getLogger(__name__)
@@ -114,7 +115,7 @@ def _colour(state: Any) -> Any:
     return state.get("colour") if isinstance(state, dict) else None
 
 
-def tracked_domain(dk: DyKnowInstance) -> Any:
+def tracked_domain(dk: DyKnowInstance) -> Domain:
     """The instance's `TRACKED` domain, made on first use (before the fact feed needs it)."""
     if TRACKED not in dk.objects.domains():
         dk.objects.add_domain(TRACKED)
