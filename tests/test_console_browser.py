@@ -254,7 +254,8 @@ async def test_what_the_operator_sees(
             await expect(page.locator("#observations li")).to_contain_text(
                 "accident at the first crossing"
             )
-            await page.screenshot(path=str(tmp_path / "console.png"))
+            ARTIFACTS.mkdir(parents=True, exist_ok=True)
+            await page.screenshot(path=str(ARTIFACTS / "console-1500-observation.png"))
 
             # a UAV killed: shown as gone, its cars off the list
             await running_federation.kill(b)
@@ -265,7 +266,8 @@ async def test_what_the_operator_sees(
             await expect(page.locator(f'#platforms li[data-platform="{a}"]')).to_have_attribute(
                 "data-state", "alive"
             )
-            await page.screenshot(path=str(tmp_path / "console-gone.png"))
+            await page.evaluate("() => window.scrollTo(0, 0)")
+            await page.screenshot(path=str(ARTIFACTS / "console-1500-gone.png"))
         finally:
             await browser.close()
 

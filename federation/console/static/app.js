@@ -246,15 +246,15 @@ const OBSERVATION_INK = "#0f766e";
 const GONE = "#9aa3ad";
 // every kind of mark, in the legend's order, with what it means
 const MARKS = [
-  ["uav", "UAV (its colour)"],
-  ["uav-area", "area a UAV monitors (its colour)"],
+  ["uav", "UAV or other platform (its colour)"],
+  ["uav-area", "area it monitors (its colour)"],
   ["car", "car (its colour, ringed in its tracker's)"],
   ["violation", "violation (the newest strongest)"],
   ["observation", "operator's observation"],
   ["road", "road (dashes between lanes)"],
   ["crossing", "crossing"],
   ["parking", "parking lot"],
-  ["world-area", "area no UAV monitors (dashed)"],
+  ["world-area", "area no one monitors (dashed)"],
   ["pick", "point picked for an observation"],
 ];
 
@@ -350,8 +350,8 @@ function drawMap() {
     polygon(ctx, a.polygon, X, Y, "rgba(100,116,139,0.05)", "rgba(100,116,139,0.6)", [5, 4]);
     drawn.add("world-area");
     titles.push({ key: `area:${a.index}`, polygon: a.polygon, colour: "#64748b",
-      texts: [`area ${a.index} · no UAV`, `area ${a.index}`, String(a.index)] });
-    areasDrawn.push({ polygon: a.polygon, tip: `area ${a.index}: no UAV monitors it now` });
+      texts: [`area ${a.index} · no one`, `area ${a.index}`, String(a.index)] });
+    areasDrawn.push({ polygon: a.polygon, tip: `area ${a.index}: no platform monitors it now` });
   }
   for (const pk of w.parking || []) {
     drawParking(ctx, pk.map(([x, y]) => [X(x), Y(y)]));
