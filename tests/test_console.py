@@ -366,6 +366,12 @@ async def test_label_search_asks_every_platform(demo_keys: Path) -> None:
         for body in ({"formula": "(all ?x (Car ?x)"}, {"formula": ""}, {"formula": 3}, {}):
             status, answer = await post(http, url, body)
             assert status == 400 and answer["error"].startswith("formula: "), (body, answer)
+        # a concept the vocabulary does not have is named before anyone is asked
+        status, answer = await post(http, url, {"formula": "(all ?x (Truck ?x))"})
+        assert status == 400 and "Truck" in answer["error"], answer
+        # whether anything matches is each platform's answer, the operator's too
+        status, answer = await post(http, url, {"formula": "(iota ?x (Car ?x))"})
+        assert status == 200 and "nothing satisfies" in answer["refused"]["operator"], answer
 
 
 async def test_policy_change_recreates_the_export_and_the_rate_follows(demo_keys: Path) -> None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import types
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -30,16 +31,32 @@ from federation.demo._run import (
     run_traffic_demo,
     uav_names,
 )
-from federation.demo._uav import BASE_NS, PERIOD, SimClock, UavApplication, UavSettings, _Track
-from federation.demo._world import World
+from federation.demo._uav import (
+    BASE_NS,
+    PERIOD,
+    SimClock,
+    UavApplication,
+    UavSettings,
+    _Track,
+    fact_rules,
+)
+from federation.demo._world import _COLOURS, World
+from ontology import FactBase, FactFeed, evaluate, parse
 
 WAIT = 10.0
 
 
-async def run_offline(area: int, *, n_uavs: int = 3, seed: int = 1) -> list[dict[str, Any]]:
+async def run_offline(
+    area: int,
+    *,
+    n_uavs: int = 3,
+    seed: int = 1,
+    after_step: Callable[[UavApplication], Awaitable[None]] | None = None,
+) -> list[dict[str, Any]]:
     """One UAV's local application over 60 s of world time, on a ManualClock.
 
     Its recognized events, then the speed monitor's violations (kind ``speeding``).
+    ``after_step`` is awaited after each tracker step.
     """
     world = World.generate(seed, n_uavs, 60.0)
     clock = ManualClock(BASE_NS)
@@ -67,6 +84,8 @@ async def run_offline(area: int, *, n_uavs: int = 3, seed: int = 1) -> list[dict
             clock.set(t + p // 2)
             app.step(t + p // 2, publish_cars=k % 3 == 0)
             await asyncio.sleep(0)  # callbacks of the chronicles' subscriptions
+            if after_step is not None:
+                await after_step(app)
         found = [{k: v for k, v in x.items() if k != "end-instance"} for x in app.violations]
         return found + [{"kind": "speeding", **x} for x in app.speeding]
 
@@ -237,6 +256,37 @@ async def test_the_speed_monitor_flags_the_reckless_driver_once() -> None:
     assert len(area1) == 1 and len(area1[0]["cars"]) == 1
     assert area1[0]["cars"][0].startswith("uav_b_car")
     assert not [f for f in await run_offline(0, seed=1) if f["kind"] == "speeding"]
+
+
+async def test_speeding_is_a_violation_and_the_tracked_cars_are_facts() -> None:
+    # the console lists every violation from one stream: the speeding car is a sample of
+    # it; the label search answers from the cars tracked now and their colours
+    published: list[dict[str, Any]] = []
+    facts = FactBase()
+    tracked: list[tuple[set[str], set[str]]] = []
+    colours: set[str] = set()
+    following: list[bool] = []
+    async with contextlib.AsyncExitStack() as stack:
+
+        async def after_step(app: UavApplication) -> None:
+            if not following:  # the first step: follow what the app publishes
+                following.append(True)
+                sub = app.dk.subscribe(
+                    "chronicle/violations",
+                    callback=lambda batch: published.extend(v for v, _, _ in batch),
+                )
+                stack.enter_context(sub)
+                await stack.enter_async_context(FactFeed(app.dk, facts, fact_rules()))
+            cars = {b["x"] for b in evaluate(parse("(all ?x (Car ?x))"), facts)}
+            tracked.append((cars, set(app.local_now)))
+            colours.update(b["c"] for b in evaluate(parse("(all ?c (Colour ?x ?c))"), facts))
+
+        await run_offline(1, seed=1, after_step=after_step)
+    (speeding,) = [v for v in published if v["kind"] == "speeding"]
+    assert speeding["car"].startswith("uav_b_car") and speeding["platform"] == "uav-b"
+    assert speeding["x"] is not None and speeding["end"] - speeding["start"] == 2.0
+    assert all(cars == now for cars, now in tracked) and any(now for _, now in tracked)
+    assert colours and colours <= set(_COLOURS)
 
 
 @pytest.mark.timeout(90)

@@ -39,7 +39,7 @@ from aiohttp import web
 
 from agents.transports import Subscription
 from dyknow_core import NS_PER_S, Policy, Source
-from ontology import OntologyError
+from ontology import OntologyError, parse
 
 from .._platform import ConsoleSettings, FederationPlatform
 from .._service import MembershipEvent
@@ -616,8 +616,10 @@ class OperatorConsole:
         if not isinstance(formula, str) or not formula.strip():
             raise BadRequest("formula: expected a FIPA-SL formula, e.g. (all ?x (Car ?x))")
         try:
-            self.platform.labels.find(formula)  # our own parser names a malformed formula
-        except Exception as exc:
+            # malformed, or a concept the vocabulary does not have: named before anyone
+            # is asked (whether anything matches is each platform's answer, ours too)
+            self.platform.vocabulary.check(parse(formula))
+        except OntologyError as exc:
             raise BadRequest(f"formula: {_reason(exc)}") from exc
         result = await self._ask(
             lambda: self.platform.federation_agent.global_request(

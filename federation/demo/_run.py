@@ -510,6 +510,9 @@ def _report(
             {"platform": name, **x} for name, r in reports.items() for x in r.get("speeding", [])
         ],
     }
+    # each recognition and each car flagged for speeding is one sample of the UAVs'
+    # violation stream: what the operator console lists, one row each
+    figures["violations-reported"] = len(found) + sum(len(x["cars"]) for x in figures["speeding"])
     return DemoReport(truth, found, matched, false_pos, reports, delegation, figures)
 
 
@@ -539,6 +542,11 @@ def _print_report(report: DemoReport, say: Say) -> None:
             f"  speeding (monitor '{SPEEDING}'): {', '.join(x['cars'])} "
             f"by {x['platform']} at t={x['t']:.1f}"
         )
+    flagged = sum(len(x["cars"]) for x in fig["speeding"])
+    say(
+        f"violations reported: {fig['violations-reported']} ({flagged} speeding), "
+        "as the operator console lists them"
+    )
     say(
         f"federation: {fig['acl-messages-sent']} ACL messages sent, "
         f"{fig['streams-exported']} streams exported, {fig['streams-imported']} imported"

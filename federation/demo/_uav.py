@@ -10,7 +10,11 @@ The local DyKnow application (never changed for the federation's sake):
   tracks (``tracker/cars``) and the qualitative relations between cars (behind, beside,
   beside-fast, in-front) and crossing events as event streams;
 * chronicles recognize overtakes, reckless overtakes and turns in crossings; recognitions
-  become ``violation`` samples.
+  become ``violation`` samples, and so does each car the speed monitor flags (kind
+  ``speeding``): the operator's console lists every violation from that one stream;
+* the cars tracked now are the domain `TRACKED` (by their federation names), whose facts
+  (`fact_rules`: ``(Car uav_b_car3)``, ``(Colour uav_b_car3 red)``) answer label
+  searches such as ``(all ?x (Car ?x))`` with the tracked cars' ``{object}-state`` labels.
 
 The federation part: the `TrafficMonitor` agent takes part in the leader's delegation
 (global request for capabilities, Contract-Net per area). When a possible violation is
@@ -50,7 +54,7 @@ from agents import (
     on_request,
     platform_of,
 )
-from dyknow_core import NS_PER_S, DyKnowInstance, Source
+from dyknow_core import NS_PER_S, Domain, DyKnowInstance, Source
 from dyknow_core.reasoning import (
     Anchoring,
     LinkType,
@@ -59,6 +63,7 @@ from dyknow_core.reasoning import (
     add_chronicle,
     add_monitor,
 )
+from ontology import DomainRule, Rule, StreamRule
 
 from .._cli_common import settle_gc
 from .._platform import FederationPlatform, PlatformConfig
@@ -77,10 +82,13 @@ from ._world import Camera, World
 __all__ = [
     "BASE_S",
     "SERVICE_TYPE",
+    "TRACKED",
     "SimClock",
     "TrafficMonitor",
     "UavSettings",
+    "fact_rules",
     "run_uav",
+    "tracked_domain",
 ]
 
 log = logging.getLogger(__name__)
@@ -98,6 +106,27 @@ MIN_POINTS = 4  # positions before a track has a state: two give a noisy speed
 MISSES = 3  # detections missed in a row before a percept is retired
 MATCH = 15.0  # m: an anchored object's predicted position vs a local world object
 OBJECT_STATE = re.compile(r"([A-Za-z0-9_]+)-state")
+TRACKED = "tracked"
+"""The domain of the cars a UAV tracks now, by their federation names (``uav_b_car3``)."""
+
+
+def fact_rules() -> list[Rule]:
+    """The facts a UAV's label search answers from: each tracked car and its colour."""
+    return [
+        DomainRule(TRACKED, "Car"),
+        StreamRule("car/{object}/state", "Colour", domain=TRACKED, convert=_colour),
+    ]
+
+
+def _colour(state: Any) -> Any:
+    return state.get("colour") if isinstance(state, dict) else None
+
+
+def tracked_domain(dk: DyKnowInstance) -> Domain:
+    """The instance's `TRACKED` domain, made on first use (before the fact feed needs it)."""
+    if TRACKED not in dk.objects.domains():
+        dk.objects.add_domain(TRACKED)
+    return dk.objects.domain(TRACKED)
 
 
 class SimClock:
@@ -289,6 +318,8 @@ class UavApplication:
         self.fast_now: dict[str, bool] = {}
         self.speeding: list[dict[str, Any]] = []  # the speed monitor's violations
         self.flagged: set[str] = set()
+        self.tracked = tracked_domain(self.dk)
+        self.named: set[str] = set()  # federation names given to the DOM already
 
     # -- set-up ----------------------------------------------------------------------------
     def setup(self) -> None:
@@ -341,7 +372,27 @@ class UavApplication:
                 fast = sorted(c for c, f in self.fast_now.items() if f and c not in self.flagged)
                 self.flagged.update(fast)
                 if fast:
-                    self.speeding.append({"t": round(self.world_time(tv), 2), "cars": fast})
+                    t = round(self.world_time(tv), 2)
+                    self.speeding.append({"t": t, "cars": fast})
+                    self._report_speeding(fast, t, tv)
+
+    def _report_speeding(self, cars: list[str], t: float, tv: int) -> None:
+        """One ``violation`` sample per car flagged: the console lists them with the others."""
+        for car in cars:
+            where = self.last_states.get(car, {})
+            value = {
+                "kind": "speeding",
+                "car": car,
+                "other": None,
+                "start": round(t - 2.0, 2),  # fast for the monitor's 2 s
+                "end": t,
+                "x": where.get("x"),
+                "y": where.get("y"),
+                "speed": where.get("speed"),
+                "platform": self.name,
+                "fused": False,
+            }
+            self.sources["chronicle/violations"].push(value, tv)
 
     async def __aenter__(self) -> Self:
         async with contextlib.AsyncExitStack() as stack:
@@ -510,6 +561,7 @@ class UavApplication:
         cars = {f"{self.prefix}_{c}" for c in anch.members("Car")}
         tracked = {o: s for o, s in states.items() if o in cars}
         self.last_cars = sorted(tracked)
+        self._track(set(tracked), t)
         self.local_now = set(tracked)
         self.fast_now = {o: self._fast(s) for o, s in tracked.items()}
         self.sources["tracker/car-names"].push(self.last_cars, t)
@@ -535,6 +587,16 @@ class UavApplication:
         self._relations(tracked, t)
         self._crossings(tracked, t)
         self._violations()
+
+    def _track(self, now: set[str], t: int) -> None:
+        """The `TRACKED` domain follows the cars tracked now (the label search's facts)."""
+        for obj in sorted(now - self.local_now):
+            if obj not in self.named:
+                self.dk.objects.reserve(obj)
+                self.named.add(obj)
+            self.tracked.add(obj, time=t)
+        for obj in sorted(self.local_now - now):
+            self.tracked.discard(obj, time=t)
 
     def _push(self, label: str, value: Any, t: int) -> None:
         src = self.sources.get(label)
@@ -905,9 +967,12 @@ async def _main(settings: UavSettings) -> None:
         return await app_box[0].anchor_object(semantic, local, requester)
 
     instance = DyKnowInstance(config.name, clock=clock)
+    tracked_domain(instance)  # the fact feed follows it from the platform's start
     async with (
         instance,
-        FederationPlatform(config, instance=instance, join=False, anchor=anchor) as platform,
+        FederationPlatform(
+            config, instance=instance, join=False, anchor=anchor, rules=fact_rules()
+        ) as platform,
     ):
         app = UavApplication(platform, settings, world)
         app_box.append(app)

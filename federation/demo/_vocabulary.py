@@ -12,9 +12,10 @@ Every value is plain msgpack/JSON data (dicts of numbers and strings):
   object's state (e.g. ``uav_b_car3-state``: objects are named ``<platform>_<id>`` with
   ``-`` as ``_``, since object names are letters, digits and underscores).
 - ``violation``: ``{"kind", "car", "other", "start", "end", "x", "y", "platform",
-  "fused"}``: a recognized overtake, reckless overtake or turn in a crossing (``car`` and
-  ``other`` are object names, times are world seconds); ``fused`` when the platform needed
-  imported states to see it.
+  "fused"}``: a recognized overtake, reckless overtake or turn in a crossing, or a car the
+  speed monitor flagged (kind ``speeding``, ``other`` null, with its ``speed``); ``car``
+  and ``other`` are object names, times are world seconds; ``fused`` when the platform
+  needed imported states to see it.
 - ``observation``: ``{"x", "y", "text"}``, an observation the operator entered.
 """
 
@@ -33,7 +34,7 @@ LABELS: dict[str, str] = {
     "area": "the area the platform monitors now (polygon, metres)",
     "tracked-cars": "every car the platform tracks now, with positions",
     "{object}-state": "the state of a tracked car, e.g. uav_b_car3-state",
-    "violation": "a recognized overtake, reckless overtake or turn in a crossing",
+    "violation": "a recognized overtake, reckless overtake, turn in a crossing or speeding",
     "observation": "an observation entered by a person at the operator console",
 }
 

@@ -7,7 +7,6 @@ const $ = (sel) => document.querySelector(sel);
 
 let state = null;           // the last model received
 let lastVersion = -1;
-let view = null;            // world -> canvas transform
 let pendingClick = null;    // where the operator clicked, in world coordinates
 
 // -- small helpers ------------------------------------------------------------------------
@@ -96,7 +95,7 @@ function render(s) {
     renderQueryLabels(s);
     lastVersion = s.version;
   }
-  drawMap();
+  requestDraw();
 }
 
 // -- platforms panel (updated in place: the policy inputs keep what is typed) -------------
@@ -115,6 +114,7 @@ function renderPlatforms(s) {
           el("span", { class: "p-name", text: p.name }),
           el("span", { class: "badge" }),
           el("span", { class: "p-meta" })),
+        el("div", { class: "p-area" }),
         el("table", { class: "grid streams" },
           el("thead", {}, el("tr", {},
             el("th", { text: "stream" }), el("th", { text: "state" }), el("th", { text: "rate" }),
@@ -128,17 +128,16 @@ function renderPlatforms(s) {
     badge.textContent = p.state;
     li.querySelector(".p-meta").textContent =
       `${p.samples} samples · last ${fmtAge(p.last, s.now)}`;
+    const area = p.area && p.state !== "gone"
+      ? `monitors area ${p.area.index ?? "?"}` + (p.area["delegated-by"] ? `, delegated by ${p.area["delegated-by"]}` : "")
+      : "";
+    const areaEl = li.querySelector(".p-area");
+    if (areaEl.textContent !== area) areaEl.textContent = area;
     const body = li.querySelector("tbody");
     for (const st of p.streams) renderStream(body, p, st);
   }
   for (const li of [...list.children]) if (!seen.has(li.dataset.platform)) li.remove();
   $("#no-platforms").hidden = s.platforms.length > 0;
-  // the legend: one colour per platform
-  const legend = $("#legend");
-  legend.replaceChildren(...s.platforms.map((p) =>
-    el("span", { "data-platform": p.name },
-      el("span", { class: "sw", style: `background:${p.state === "alive" ? colourOf(p.name) : "#9aa3ad"}` }),
-      p.name)));
 }
 
 function renderStream(body, p, st) {
@@ -188,7 +187,7 @@ function renderCars(s) {
     if (p.state === "gone") continue;
     for (const c of p.cars) {
       rows.push(el("tr", { "data-car": c.id, "data-platform": p.name },
-        el("td", {}, el("span", { class: "sw" }), String(c.id)),
+        el("td", { title: String(c.id) }, el("span", { class: "sw", style: `background:${colourOf(p.name)}` }), String(c.id).split("/").pop()),
         el("td", { text: p.name }),
         el("td", { text: `${fmtNum(c.speed)} m/s` }),
         el("td", { text: c.road ?? "–" }),
@@ -199,15 +198,21 @@ function renderCars(s) {
   $("#car-count").textContent = String(rows.length);
 }
 
+// every violation reported (any kind: speeding too), newest first: when, what, which car, who
 function renderViolations(s) {
-  const items = s.violations.map((v) => el("li", { "data-kind": v.kind, "data-car": v.car },
-    el("span", { class: "kind", text: v.kind }),
-    el("span", {}, `${v.car}${v.other ? " vs " + v.other : ""}`, v.fused ? el("span", { class: "fused", text: "fused" }) : null),
-    el("span", { class: "who",
-      text: `by ${v.platform || v["reported-by"]} · ${fmtClock(v.end ?? v.valid)} · at ${fmtNum(v.x, 0)}, ${fmtNum(v.y, 0)}` })));
+  const items = s.violations.map((v) => {
+    const who = v.platform || v["reported-by"];
+    const cars = carsOf(v);
+    return el("li", { "data-kind": v.kind, "data-car": Array.isArray(v.cars) ? v.cars.join(" ") : v.car, "data-platform": who },
+      el("span", { class: "time", title: "world time of its end", text: fmtClock(v.end ?? v.valid) }),
+      el("span", { class: "kind", text: v.kind }),
+      el("span", { class: "car", title: cars, text: cars }),
+      el("span", { class: "platform" }, who ?? "–", v.fused ? el("span", { class: "fused", title: "seen with another UAV's states", text: "fused" }) : null));
+  });
   $("#violations").replaceChildren(...items);
   $("#violation-count").textContent = String(items.length);
   $("#no-violations").hidden = items.length > 0;
+  $("#violations-head").hidden = items.length === 0;
 }
 
 function renderObservations(s) {
@@ -227,6 +232,38 @@ function renderQueryPlatforms(s) {
 }
 
 // -- the map ------------------------------------------------------------------------------
+// Drawn on a canvas, zoomed and panned by the operator; its labels are HTML boxes over it,
+// each put at the first free place around its mark: one with no free place is not shown
+// (hovering the mark shows it). Every kind of mark drawn is in the legend.
+
+const LABEL_FONT = "600 12px system-ui, -apple-system, \"Segoe UI\", Roboto, \"DejaVu Sans\", sans-serif";
+const LABEL_H = 16;     // px: a label's box (line height)
+const LABEL_PAD = 3;    // px each side of its text
+const ZOOM_MIN = 0.5, ZOOM_MAX = 40;
+const WORLD_BG = "#eef2ea";
+const VIOLATION = "#c2410c";
+const OBSERVATION_INK = "#0f766e";
+const GONE = "#9aa3ad";
+// every kind of mark, in the legend's order, with what it means
+const MARKS = [
+  ["uav", "UAV or other platform (its colour)"],
+  ["uav-area", "area it monitors (its colour)"],
+  ["car", "car (its colour, ringed in its tracker's)"],
+  ["violation", "violation (the newest strongest)"],
+  ["observation", "operator's observation"],
+  ["road", "road (dashes between lanes)"],
+  ["crossing", "crossing"],
+  ["parking", "parking lot"],
+  ["world-area", "area no one monitors (dashed)"],
+  ["pick", "point picked for an observation"],
+];
+
+const mapView = { zoom: 1, cx: null, cy: null };  // centre in world units; null: the map's
+let view = null;         // the last frame's transform
+let marks = [];          // what the last frame drew at a point (hover, label placement)
+let areasDrawn = [];     // the areas of the last frame (hover)
+let drawRequested = false;
+const measure = document.createElement("canvas").getContext("2d");
 
 function bounds(s) {
   const w = s.world;
@@ -249,16 +286,30 @@ function bounds(s) {
   return { x0: Math.min(...xs) - pad, y0: Math.min(...ys) - pad, x1: Math.max(...xs) + pad, y1: Math.max(...ys) + pad };
 }
 
+// world -> canvas: zoom 1 shows the whole map; world y grows upwards, the canvas' downwards
+function frame(s, cw, ch) {
+  const b = bounds(s);
+  const margin = 20;
+  const fit = Math.max(1e-9, Math.min((cw - 2 * margin) / (b.x1 - b.x0), (ch - 2 * margin) / (b.y1 - b.y0)));
+  const scale = fit * mapView.zoom;
+  const cx = mapView.cx ?? (b.x0 + b.x1) / 2, cy = mapView.cy ?? (b.y0 + b.y1) / 2;
+  return {
+    b, scale, cx, cy, cw, ch,
+    X: (x) => cw / 2 + (x - cx) * scale,
+    Y: (y) => ch / 2 - (y - cy) * scale,
+    toWorld: (sx, sy) => ({ x: cx + (sx - cw / 2) / scale, y: cy - (sy - ch / 2) / scale }),
+  };
+}
+
+function requestDraw() {
+  if (drawRequested) return;
+  drawRequested = true;
+  requestAnimationFrame(() => { drawRequested = false; drawMap(); });
+}
+
 function drawMap() {
   const canvas = $("#map");
   const dpr = window.devicePixelRatio || 1;
-  if (state) {
-    // as tall as the world's shape needs, within reason
-    const b0 = bounds(state);
-    const want = Math.round(canvas.clientWidth * (b0.y1 - b0.y0) / (b0.x1 - b0.x0)) + 32;
-    const h = Math.max(240, Math.min(620, want));
-    if (Math.abs(canvas.clientHeight - h) > 2) canvas.style.height = `${h}px`;
-  }
   const cw = canvas.clientWidth, ch = canvas.clientHeight;
   if (canvas.width !== Math.round(cw * dpr) || canvas.height !== Math.round(ch * dpr)) {
     canvas.width = Math.round(cw * dpr);
@@ -267,106 +318,209 @@ function drawMap() {
   const ctx = canvas.getContext("2d");
   ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
   ctx.clearRect(0, 0, cw, ch);
-  if (!state) return;
-  const b = bounds(state);
-  const margin = 16;
-  const scale = Math.min((cw - 2 * margin) / (b.x1 - b.x0), (ch - 2 * margin) / (b.y1 - b.y0));
-  const ox = (cw - scale * (b.x1 - b.x0)) / 2, oy = (ch - scale * (b.y1 - b.y0)) / 2;
-  // world y grows upwards, the canvas' downwards
-  const X = (x) => ox + (x - b.x0) * scale;
-  const Y = (y) => ch - (oy + (y - b.y0) * scale);
-  view = { b, scale, ox, oy, ch };
+  marks = [];
+  areasDrawn = [];
+  const drawn = new Set();
+  const labels = [];   // {key, text, sx, sy, r, priority, kind, colour}
+  const titles = [];   // area titles: {key, polygon, texts, colour}
+  if (!state) { placeLabels(null, titles, labels); return; }
+  const v = view = frame(state, cw, ch);
+  const { X, Y, scale } = v;
   const w = state.world || {};
 
-  // areas: the world's partition, then what each UAV monitors now (its colour)
-  for (const a of w.areas || []) polygon(ctx, a.polygon, X, Y, "rgba(100,116,139,0.06)", "rgba(100,116,139,0.35)", [4, 4]);
+  if (w.width && w.height) {
+    ctx.fillStyle = WORLD_BG;
+    ctx.fillRect(X(0), Y(w.height), w.width * scale, w.height * scale);
+  }
+  // areas: what each UAV monitors now (its colour), the others dashed
+  const monitored = new Set();
   for (const p of state.platforms) {
     if (!p.area || p.state === "gone") continue;
+    monitored.add(p.area.index);
     const c = colourOf(p.name);
-    polygon(ctx, p.area.polygon, X, Y, c + "1f", c, []);
-    // labelled in its top-left corner, clear of the roads
-    const xs = p.area.polygon.map((q) => q[0]), ys = p.area.polygon.map((q) => q[1]);
-    ctx.fillStyle = c;
-    ctx.font = "600 12px system-ui, sans-serif";
-    ctx.textAlign = "left";
-    const delegated = p.area["delegated-by"] ? ` · delegated by ${p.area["delegated-by"]}` : "";
-    haloText(ctx, `area ${p.area.index ?? ""} · ${p.name}${delegated}`, X(Math.min(...xs)) + 6, Y(Math.max(...ys)) + 16);
+    polygon(ctx, p.area.polygon, X, Y, c + "1a", c, []);
+    drawn.add("uav-area");
+    const i = p.area.index ?? "";
+    titles.push({ key: `area:${p.name}`, polygon: p.area.polygon, colour: c,
+      texts: [`area ${i} · ${p.name}`, `${i} · ${p.name}`, p.name] });
+    areasDrawn.push({ polygon: p.area.polygon, tip: areaTip(p) });
   }
-  for (const pk of w.parking || []) polygon(ctx, pk, X, Y, "rgba(148,163,184,0.25)", "rgba(148,163,184,0.6)", []);
+  for (const a of w.areas || []) {
+    if (monitored.has(a.index)) continue;
+    polygon(ctx, a.polygon, X, Y, "rgba(100,116,139,0.05)", "rgba(100,116,139,0.6)", [5, 4]);
+    drawn.add("world-area");
+    titles.push({ key: `area:${a.index}`, polygon: a.polygon, colour: "#64748b",
+      texts: [`area ${a.index} · no one`, `area ${a.index}`, String(a.index)] });
+    areasDrawn.push({ polygon: a.polygon, tip: `area ${a.index}: no platform monitors it now` });
+  }
+  for (const pk of w.parking || []) {
+    drawParking(ctx, pk.map(([x, y]) => [X(x), Y(y)]));
+    drawn.add("parking");
+    const xs = pk.map((q) => q[0]), ys = pk.map((q) => q[1]);
+    marks.push({ kind: "parking", sx: X((Math.min(...xs) + Math.max(...xs)) / 2), sy: Y((Math.min(...ys) + Math.max(...ys)) / 2),
+      r: Math.max(6, (Math.max(...xs) - Math.min(...xs)) * scale / 2), tip: "parking lot", obstacle: false });
+  }
   // roads and crossings
-  ctx.lineCap = "round";
   for (const r of w.roads || []) {
-    ctx.strokeStyle = "#b8bec6";
-    ctx.lineWidth = Math.max(3, 3.5 * (r.lanes || 1) * Math.min(scale, 1.5));
-    line(ctx, X(r.a[0]), Y(r.a[1]), X(r.b[0]), Y(r.b[1]));
-    ctx.strokeStyle = "#ffffff";
-    ctx.lineWidth = 1;
-    ctx.setLineDash([6, 6]);
-    line(ctx, X(r.a[0]), Y(r.a[1]), X(r.b[0]), Y(r.b[1]));
-    ctx.setLineDash([]);
+    drawRoad(ctx, X(r.a[0]), Y(r.a[1]), X(r.b[0]), Y(r.b[1]), Math.max(3, 3.5 * (r.lanes || 1) * scale), r.lanes || 1);
+    drawn.add("road");
   }
   for (const c of w.crossings || []) {
-    ctx.fillStyle = "#cfd4da";
-    ctx.beginPath();
-    ctx.arc(X(c.x), Y(c.y), Math.max(5, (c.radius || 10) * scale), 0, 2 * Math.PI);
-    ctx.fill();
+    const rad = Math.max(4, (c.radius || 10) * scale);
+    drawCrossing(ctx, X(c.x), Y(c.y), rad);
+    drawn.add("crossing");
+    marks.push({ kind: "crossing", sx: X(c.x), sy: Y(c.y), r: rad,
+      tip: `crossing ${c.id ?? ""}${c.roads ? " · roads " + c.roads.join(", ") : ""}`, obstacle: false });
   }
-  // violations, where they happened
-  state.violations.slice(0, 30).forEach((v, i) => {
-    if (!isFinite(v.x) || !isFinite(v.y)) return;
-    ctx.globalAlpha = Math.max(0.25, 1 - i / 12);  // the newest stand out
-    ctx.strokeStyle = "#c2410c";
-    ctx.lineWidth = 2.5;
-    const x = X(v.x), y = Y(v.y);
-    line(ctx, x - 7, y - 7, x + 7, y + 7);
-    line(ctx, x - 7, y + 7, x + 7, y - 7);
-    ctx.beginPath(); ctx.arc(x, y, 11, 0, 2 * Math.PI); ctx.stroke();
-  });
-  ctx.globalAlpha = 1;
+  // violations where they happened, the newest last (on top) and strongest
+  const shown = state.violations.slice(0, 30);
+  for (let i = shown.length - 1; i >= 0; i--) {
+    const viol = shown[i];
+    if (!isFinite(viol.x) || !isFinite(viol.y)) continue;
+    const x = X(viol.x), y = Y(viol.y);
+    drawViolation(ctx, x, y, Math.max(0.25, 1 - i / 12));
+    drawn.add("violation");
+    marks.push({ kind: "violation", sx: x, sy: y, r: 10, tip: violationTip(viol), obstacle: true });
+    if (i < 4) labels.push({ key: `v:${i}:${viol.kind}:${carsOf(viol)}`, text: viol.kind, sx: x, sy: y, r: 10, priority: 3, kind: "violation" });
+  }
   // cars
-  ctx.font = "11px system-ui, sans-serif";
-  ctx.textAlign = "left";
+  const carR = Math.min(9, Math.max(4.5, 2.2 * scale));
   for (const p of state.platforms) {
     if (p.state === "gone") continue;
     const c = colourOf(p.name);
     for (const car of p.cars) {
       const x = X(car.x), y = Y(car.y);
-      ctx.fillStyle = car.colour && CSS.supports("color", car.colour) ? car.colour : c;
-      ctx.strokeStyle = c;
-      ctx.lineWidth = 2;
-      ctx.beginPath(); ctx.arc(x, y, 5, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
-      ctx.fillStyle = "#1f2933";
-      haloText(ctx, String(car.id).split("/").pop(), x + 7, y - 6);
+      const fill = car.colour && CSS.supports("color", car.colour) ? car.colour : c;
+      drawCar(ctx, x, y, carR, fill, c);
+      drawn.add("car");
+      const id = String(car.id);
+      marks.push({ kind: "car", sx: x, sy: y, r: carR + 1, tip: carTip(car, p), obstacle: true });
+      // short names repeat across trackers (car2 of each): the label is in the tracker's colour
+      labels.push({ key: `car:${id}`, text: shortCar(id), sx: x, sy: y, r: carR + 1, priority: 2, kind: "car", colour: darker(c) });
     }
   }
   // UAVs
   for (const p of state.platforms) {
     if (!p.position) continue;
     const alive = p.state === "alive";
-    const c = alive ? colourOf(p.name) : "#9aa3ad";
     const x = X(p.position.x), y = Y(p.position.y);
-    ctx.fillStyle = c;
-    ctx.strokeStyle = "#ffffff";
-    ctx.lineWidth = 2;
-    ctx.beginPath();
-    ctx.moveTo(x, y - 10); ctx.lineTo(x + 9, y + 7); ctx.lineTo(x, y + 3); ctx.lineTo(x - 9, y + 7);
-    ctx.closePath(); ctx.fill(); ctx.stroke();
-    ctx.fillStyle = alive ? "#1f2933" : "#9aa3ad";
-    ctx.font = "600 12px system-ui, sans-serif";
-    haloText(ctx, alive ? p.name : `${p.name} (gone)`, x + 11, y + 4);
+    drawUav(ctx, x, y, alive ? colourOf(p.name) : GONE);
+    drawn.add("uav");
+    marks.push({ kind: "uav", sx: x, sy: y, r: 10, tip: uavTip(p), obstacle: true });
+    labels.push({ key: `uav:${p.name}`, text: alive ? p.name : `${p.name} (${p.state})`, sx: x, sy: y, r: 10,
+      priority: alive ? 0 : 1, kind: "uav", colour: alive ? darker(colourOf(p.name)) : GONE });
   }
   // the operator's observations
-  for (const o of state.observations) {
+  state.observations.slice(0, 50).forEach((o, i) => {
+    if (!isFinite(o.x) || !isFinite(o.y)) return;
     const x = X(o.x), y = Y(o.y);
-    ctx.fillStyle = "#0f766e";
-    ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x - 6, y - 12); ctx.lineTo(x + 6, y - 12); ctx.closePath(); ctx.fill();
-    ctx.font = "italic 11px system-ui, sans-serif";
-    haloText(ctx, compact(o.text, 40), x + 8, y - 8);
-  }
+    drawObservation(ctx, x, y);
+    drawn.add("observation");
+    marks.push({ kind: "observation", sx: x, sy: y - 6, r: 7, tip: `observation: ${o.text} (${fmtNum(o.x, 0)}, ${fmtNum(o.y, 0)})`, obstacle: true });
+    labels.push({ key: `obs:${i}:${o.text}`, text: compact(o.text, 32), sx: x, sy: y - 6, r: 7, priority: 4, kind: "observation" });
+  });
   if (pendingClick) {
-    ctx.strokeStyle = "#0f766e"; ctx.lineWidth = 1.5;
-    ctx.beginPath(); ctx.arc(X(pendingClick.x), Y(pendingClick.y), 8, 0, 2 * Math.PI); ctx.stroke();
+    drawPick(ctx, X(pendingClick.x), Y(pendingClick.y));
+    drawn.add("pick");
   }
+  drawScale(ctx, v);
+  placeLabels(v, titles, labels);
+  renderLegend(drawn);
+  const canvasEl = $("#map");
+  canvasEl.dataset.marks = [...drawn].sort().join(" ");
+  canvasEl.dataset.zoom = mapView.zoom.toFixed(2);
+}
+
+// -- marks (the map and the legend draw them alike) -----------------------------------
+
+function drawUav(ctx, x, y, colour) {
+  ctx.fillStyle = colour;
+  ctx.strokeStyle = "#ffffff";
+  ctx.lineWidth = 2;
+  ctx.beginPath();
+  ctx.moveTo(x, y - 10); ctx.lineTo(x + 9, y + 7); ctx.lineTo(x, y + 3); ctx.lineTo(x - 9, y + 7);
+  ctx.closePath(); ctx.fill(); ctx.stroke();
+}
+
+function drawCar(ctx, x, y, r, fill, ring) {
+  ctx.fillStyle = fill;
+  ctx.strokeStyle = ring;
+  ctx.lineWidth = 2;
+  ctx.beginPath(); ctx.arc(x, y, r, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
+}
+
+function drawViolation(ctx, x, y, alpha) {
+  ctx.save();
+  ctx.globalAlpha = alpha;
+  ctx.strokeStyle = VIOLATION;
+  ctx.lineWidth = 2.5;
+  line(ctx, x - 6, y - 6, x + 6, y + 6);
+  line(ctx, x - 6, y + 6, x + 6, y - 6);
+  ctx.beginPath(); ctx.arc(x, y, 9, 0, 2 * Math.PI); ctx.stroke();
+  ctx.restore();
+}
+
+function drawObservation(ctx, x, y) {
+  ctx.fillStyle = OBSERVATION_INK;
+  ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x - 6, y - 12); ctx.lineTo(x + 6, y - 12); ctx.closePath(); ctx.fill();
+}
+
+function drawRoad(ctx, x0, y0, x1, y1, width, lanes) {
+  ctx.save();
+  ctx.lineCap = "round";
+  ctx.strokeStyle = "#b8bec6";
+  ctx.lineWidth = width;
+  line(ctx, x0, y0, x1, y1);
+  if (lanes > 1) {
+    ctx.strokeStyle = "#ffffff";
+    ctx.lineWidth = 1;
+    ctx.setLineDash([6, 6]);
+    line(ctx, x0, y0, x1, y1);
+  }
+  ctx.restore();
+}
+
+function drawCrossing(ctx, x, y, r) {
+  ctx.fillStyle = "#cfd4da";
+  ctx.strokeStyle = "#9aa3ad";
+  ctx.lineWidth = 1;
+  ctx.beginPath(); ctx.arc(x, y, r, 0, 2 * Math.PI); ctx.fill(); ctx.stroke();
+}
+
+function drawParking(ctx, pts) {
+  ctx.beginPath();
+  pts.forEach(([x, y], i) => (i ? ctx.lineTo(x, y) : ctx.moveTo(x, y)));
+  ctx.closePath();
+  ctx.fillStyle = "rgba(148,163,184,0.3)"; ctx.fill();
+  ctx.strokeStyle = "rgba(100,116,139,0.7)"; ctx.lineWidth = 1; ctx.stroke();
+  const xs = pts.map((q) => q[0]), ys = pts.map((q) => q[1]);
+  const side = Math.min(Math.max(...xs) - Math.min(...xs), Math.max(...ys) - Math.min(...ys));
+  if (side >= 11) {
+    ctx.fillStyle = "rgba(71,85,105,0.8)";
+    ctx.font = `700 ${Math.min(14, Math.floor(side * 0.7))}px system-ui, sans-serif`;
+    ctx.textAlign = "center"; ctx.textBaseline = "middle";
+    ctx.fillText("P", (Math.min(...xs) + Math.max(...xs)) / 2, (Math.min(...ys) + Math.max(...ys)) / 2 + 0.5);
+    ctx.textAlign = "left"; ctx.textBaseline = "alphabetic";
+  }
+}
+
+// a scale bar in the bottom-left corner: a round length about 100 px long
+function drawScale(ctx, v) {
+  const want = 100 / v.scale;
+  const step = 10 ** Math.floor(Math.log10(want));
+  const metres = [1, 2, 5, 10].map((k) => k * step).reduce((a, b) => (Math.abs(b - want) < Math.abs(a - want) ? b : a));
+  const len = metres * v.scale, x = 12, y = v.ch - 12;
+  ctx.save();
+  ctx.strokeStyle = "#475569"; ctx.lineWidth = 1.5;
+  ctx.beginPath(); ctx.moveTo(x, y - 5); ctx.lineTo(x, y); ctx.lineTo(x + len, y); ctx.lineTo(x + len, y - 5); ctx.stroke();
+  ctx.fillStyle = "#475569"; ctx.font = "11px system-ui, sans-serif"; ctx.textBaseline = "bottom";
+  ctx.fillText(metres >= 1000 ? `${metres / 1000} km` : `${metres} m`, x + 4, y - 2);
+  ctx.restore();
+}
+
+function drawPick(ctx, x, y) {
+  ctx.strokeStyle = OBSERVATION_INK; ctx.lineWidth = 1.5;
+  ctx.beginPath(); ctx.arc(x, y, 8, 0, 2 * Math.PI); ctx.stroke();
 }
 
 function polygon(ctx, pts, X, Y, fill, stroke, dash) {
@@ -379,35 +533,314 @@ function polygon(ctx, pts, X, Y, fill, stroke, dash) {
   ctx.setLineDash([]);
 }
 
-// text with a white outline: readable over roads and areas alike
-function haloText(ctx, text, x, y) {
-  ctx.save();
-  ctx.strokeStyle = "rgba(255,255,255,0.85)";
-  ctx.lineWidth = 3;
-  ctx.lineJoin = "round";
-  ctx.setLineDash([]);
-  ctx.strokeText(text, x, y);
-  ctx.restore();
-  ctx.fillText(text, x, y);
-}
-
 function line(ctx, x0, y0, x1, y1) {
   ctx.beginPath(); ctx.moveTo(x0, y0); ctx.lineTo(x1, y1); ctx.stroke();
 }
 
-$("#map").addEventListener("click", (e) => {
+// one legend sample of a kind of mark, drawn by the map's own code
+function drawSwatch(ctx, kind, w, h) {
+  const x = w / 2, y = h / 2;
+  const accent = PALETTE[0];
+  ctx.fillStyle = WORLD_BG; ctx.fillRect(0, 0, w, h);
+  const rect = (fill, stroke, dash) => polygon(ctx, [[3, 3], [w - 3, 3], [w - 3, h - 3], [3, h - 3]], (a) => a, (a) => a, fill, stroke, dash);
+  if (kind === "uav") drawUav(ctx, x, y + 1, accent);
+  else if (kind === "uav-area") rect(accent + "1a", accent, []);
+  else if (kind === "world-area") rect("rgba(100,116,139,0.05)", "rgba(100,116,139,0.8)", [4, 3]);
+  else if (kind === "car") drawCar(ctx, x, y, 5, "#dc2626", accent);
+  else if (kind === "violation") drawViolation(ctx, x, y, 1);
+  else if (kind === "observation") drawObservation(ctx, x, y + 6);
+  else if (kind === "road") drawRoad(ctx, 2, y, w - 2, y, 8, 2);
+  else if (kind === "crossing") drawCrossing(ctx, x, y, 6);
+  else if (kind === "parking") drawParking(ctx, [[x - 7, y - 7], [x + 7, y - 7], [x + 7, y + 7], [x - 7, y + 7]]);
+  else if (kind === "pick") drawPick(ctx, x, y);
+}
+
+function renderLegend(drawn) {
+  const list = $("#legend");
+  const kinds = MARKS.filter(([k]) => drawn.has(k));
+  const platforms = state ? state.platforms.map((p) => `${p.name}:${p.state}`).join(",") : "";
+  const key = kinds.map(([k]) => k).join(",") + "|" + platforms;
+  if (list.dataset.key === key) return;
+  list.dataset.key = key;
+  const items = kinds.map(([kind, text]) => {
+    const c = el("canvas", { width: "26", height: "18", "aria-hidden": "true" });
+    const dpr = window.devicePixelRatio || 1;
+    c.width = 26 * dpr; c.height = 18 * dpr;
+    const cx = c.getContext("2d");
+    cx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    drawSwatch(cx, kind, 26, 18);
+    return el("li", { "data-mark": kind }, c, text);
+  });
+  // each platform's colour, kept together on one line
+  const owners = (state ? state.platforms : []).map((p) =>
+    el("span", { "data-platform": p.name, class: "owner" },
+      el("span", { class: "sw", style: `background:${p.state === "alive" ? colourOf(p.name) : GONE}` }),
+      p.state === "alive" ? p.name : `${p.name} (${p.state})`));
+  list.replaceChildren(...items, ...(owners.length ? [el("li", { class: "owners" }, ...owners)] : []));
+}
+
+// -- labels ---------------------------------------------------------------------------
+
+const widths = new Map();  // text -> its label's width (the same few texts, frame after frame)
+
+function textWidth(text) {
+  let w = widths.get(text);
+  if (w === undefined) {
+    measure.font = LABEL_FONT;
+    w = Math.ceil(measure.measureText(text).width) + 2 * LABEL_PAD;
+    if (widths.size > 2000) widths.clear();
+    widths.set(text, w);
+  }
+  return w;
+}
+
+function overlaps(a, b, pad = 1) {
+  return a.x < b.x + b.w + pad && b.x < a.x + a.w + pad && a.y < b.y + b.h + pad && b.y < a.y + a.h + pad;
+}
+
+function coversMark(box, m) {
+  const nx = Math.max(box.x, Math.min(m.sx, box.x + box.w));
+  const ny = Math.max(box.y, Math.min(m.sy, box.y + box.h));
+  return Math.hypot(nx - m.sx, ny - m.sy) < m.r + 1;
+}
+
+function placeLabels(v, titles, labels) {
+  const boxes = [];
+  const out = [];
+  if (v) {
+    const tools = $(".map-tools");
+    const canvasBox = $("#map").getBoundingClientRect();
+    if (tools) {
+      const t = tools.getBoundingClientRect();
+      boxes.push({ x: t.left - canvasBox.left, y: t.top - canvasBox.top, w: t.width, h: t.height });
+    }
+    boxes.push({ x: 0, y: v.ch - 30, w: 130, h: 30 });  // the scale bar
+    const inside = (b) => b.x >= 2 && b.y >= 2 && b.x + b.w <= v.cw - 2 && b.y + b.h <= v.ch - 2;
+    // area titles: in the area's top-left corner (what is visible of it), the longest text that fits
+    for (const t of titles) {
+      const xs = t.polygon.map((q) => v.X(q[0])), ys = t.polygon.map((q) => v.Y(q[1]));
+      const left = Math.max(Math.min(...xs), 0) + 6, right = Math.min(Math.max(...xs), v.cw) - 6;
+      const top = Math.max(Math.min(...ys), 0) + 5;
+      const text = t.texts.find((s) => textWidth(s) <= right - left);
+      if (text === undefined) continue;
+      const box = { x: left, y: top, w: textWidth(text), h: LABEL_H };
+      if (!inside(box) || boxes.some((b) => overlaps(b, box))) continue;
+      boxes.push(box);
+      out.push({ key: t.key, text, box, kind: "area-title", colour: darker(t.colour) });
+    }
+    const obstacles = marks.filter((m) => m.obstacle);
+    labels.sort((a, b) => a.priority - b.priority);
+    for (const l of labels) {
+      const w = textWidth(l.text), h = LABEL_H, r = l.r + 3, d = r * 0.72;
+      const candidates = [
+        [l.sx + r, l.sy - h / 2],          // right
+        [l.sx + d, l.sy - d - h],          // above right
+        [l.sx + d, l.sy + d],              // below right
+        [l.sx - w / 2, l.sy - r - h],      // above
+        [l.sx - w / 2, l.sy + r],          // below
+        [l.sx - r - w, l.sy - h / 2],      // left
+        [l.sx - d - w, l.sy - d - h],      // above left
+        [l.sx - d - w, l.sy + d],          // below left
+      ];
+      let placed = null;
+      for (const [x, y] of candidates) {
+        const box = { x: Math.round(x), y: Math.round(y), w, h };
+        if (inside(box) && !boxes.some((b) => overlaps(b, box)) && !obstacles.some((m) => coversMark(box, m))) {
+          placed = box;
+          break;
+        }
+      }
+      if (!placed) continue;  // no room: hovering its mark shows it
+      boxes.push(placed);
+      out.push({ key: l.key, text: l.text, box: placed, kind: l.kind, colour: l.colour });
+    }
+  }
+  const layer = $("#map-labels");
+  const existing = new Map([...layer.children].map((n) => [n.dataset.key, n]));
+  const keep = new Set();
+  for (const o of out) {
+    let node = existing.get(o.key);
+    if (!node) {
+      node = el("div", { class: "map-label", "data-key": o.key });
+      layer.append(node);
+    }
+    keep.add(o.key);
+    node.dataset.kind = o.kind;
+    if (node.textContent !== o.text) node.textContent = o.text;
+    node.style.left = `${o.box.x}px`;
+    node.style.top = `${o.box.y}px`;
+    node.style.width = `${o.box.w}px`;
+    node.style.color = o.colour || "";
+  }
+  for (const [key, node] of existing) if (!keep.has(key)) node.remove();
+  $("#map").dataset.labels = String(out.length);
+  $("#map").dataset.unlabelled = String(labels.length + titles.length - out.length);
+}
+
+// -- what a mark is, on hover -----------------------------------------------------------
+
+function shortCar(id) {
+  // "uav-b/uav_b_car3" -> "car3": the ring's colour says whose
+  const name = id.split("/").pop();
+  const m = name.match(/_([A-Za-z]+\d+)$/);
+  return m ? m[1] : name;
+}
+
+function carsOf(v) {
+  if (Array.isArray(v.cars)) return v.cars.join(", ");
+  return `${v.car ?? "–"}${v.other ? " vs " + v.other : ""}`;
+}
+
+function carTip(car, p) {
+  const parts = [`${car.id} · tracked by ${p.name}`];
+  if (isFinite(car.speed)) parts.push(`${fmtNum(car.speed)} m/s${car.road ? " on " + car.road : ""}`);
+  if (car.colour) parts.push(String(car.colour));
+  return parts.join(" · ");
+}
+
+function uavTip(p) {
+  const parts = [`${p.name} (${p.state})`];
+  if (p.area) parts.push(`monitors area ${p.area.index ?? "?"}${p.area["delegated-by"] ? ", delegated by " + p.area["delegated-by"] : ""}`);
+  if (p.position && isFinite(p.position.z)) parts.push(`at ${fmtNum(p.position.z, 0)} m`);
+  return parts.join(" · ");
+}
+
+function areaTip(p) {
+  return `area ${p.area.index ?? "?"}: monitored by ${p.name}` +
+    (p.area["delegated-by"] ? `, delegated by ${p.area["delegated-by"]}` : "");
+}
+
+function violationTip(v) {
+  return `${v.kind}: ${carsOf(v)} · by ${v.platform || v["reported-by"]} · ${fmtClock(v.end ?? v.valid)}`;
+}
+
+function insidePolygon(x, y, pts) {
+  let inside = false;
+  for (let i = 0, j = pts.length - 1; i < pts.length; j = i++) {
+    const [xi, yi] = pts[i], [xj, yj] = pts[j];
+    if ((yi > y) !== (yj > y) && x < ((xj - xi) * (y - yi)) / (yj - yi) + xi) inside = !inside;
+  }
+  return inside;
+}
+
+function showTip(e) {
+  const tip = $("#map-tip");
   if (!view) return;
-  const r = e.currentTarget.getBoundingClientRect();
-  const cx = e.clientX - r.left, cy = e.clientY - r.top;
-  const x = view.b.x0 + (cx - view.ox) / view.scale;
-  const y = view.b.y0 + (view.ch - cy - view.oy) / view.scale;
-  pendingClick = { x, y };
-  $("#obs-x").value = x.toFixed(1);
-  $("#obs-y").value = y.toFixed(1);
-  $("#obs-text").focus();
-  drawMap();
+  const r = $("#map").getBoundingClientRect();
+  const sx = e.clientX - r.left, sy = e.clientY - r.top;
+  let best = null, bestD = Infinity;
+  for (const m of marks) {
+    const d = Math.hypot(m.sx - sx, m.sy - sy);
+    // a point mark first; a parking lot or crossing only when nothing else is near
+    const reach = m.r + 6, rank = d + (m.obstacle ? 0 : 20);
+    if (d <= reach && rank < bestD) { best = m; bestD = rank; }
+  }
+  let text = best ? best.tip : null;
+  if (!text) {
+    const w = view.toWorld(sx, sy);
+    const area = areasDrawn.find((a) => insidePolygon(w.x, w.y, a.polygon));
+    text = area ? area.tip : null;
+  }
+  if (!text) { tip.hidden = true; return; }
+  tip.textContent = text;
+  tip.hidden = false;
+  const left = Math.min(sx + 14, r.width - tip.offsetWidth - 4);
+  const top = sy + 16 + tip.offsetHeight > r.height ? sy - tip.offsetHeight - 10 : sy + 16;
+  tip.style.left = `${Math.max(4, left)}px`;
+  tip.style.top = `${Math.max(4, top)}px`;
+}
+
+function darker(hex) {
+  // a label's ink: its mark's colour, darkened to read on the map's light ground
+  const m = /^#([0-9a-f]{6})/i.exec(hex || "");
+  if (!m) return hex;
+  const n = parseInt(m[1], 16);
+  const f = (c) => Math.round(c * 0.7).toString(16).padStart(2, "0");
+  return `#${f(n >> 16)}${f((n >> 8) & 255)}${f(n & 255)}`;
+}
+
+// -- zoom, pan, pick ------------------------------------------------------------------
+
+function clampView() {
+  if (!view) return;
+  const b = view.b;
+  if (mapView.cx !== null) mapView.cx = Math.min(b.x1, Math.max(b.x0, mapView.cx));
+  if (mapView.cy !== null) mapView.cy = Math.min(b.y1, Math.max(b.y0, mapView.cy));
+}
+
+function zoomAt(factor, sx, sy) {
+  if (!view) return;
+  const zoom = Math.min(ZOOM_MAX, Math.max(ZOOM_MIN, mapView.zoom * factor));
+  const at = view.toWorld(sx, sy);
+  const scale = view.scale * (zoom / mapView.zoom);
+  // the point under the cursor stays where it is
+  mapView.zoom = zoom;
+  mapView.cx = at.x - (sx - view.cw / 2) / scale;
+  mapView.cy = at.y + (sy - view.ch / 2) / scale;
+  clampView();
+  requestDraw();
+}
+
+function resetView() {
+  mapView.zoom = 1; mapView.cx = null; mapView.cy = null;
+  requestDraw();
+}
+
+let drag = null;
+const mapCanvas = $("#map");
+mapCanvas.addEventListener("pointerdown", (e) => {
+  if (e.button !== 0 || !view) return;
+  drag = { x: e.clientX, y: e.clientY, cx: view.cx, cy: view.cy, moved: false };
+  mapCanvas.setPointerCapture(e.pointerId);
 });
-window.addEventListener("resize", drawMap);
+mapCanvas.addEventListener("pointermove", (e) => {
+  if (!drag) { showTip(e); return; }
+  const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+  if (!drag.moved && Math.hypot(dx, dy) < 4) return;  // a click that shook a little
+  drag.moved = true;
+  mapCanvas.classList.add("dragging");
+  $("#map-tip").hidden = true;
+  mapView.cx = drag.cx - dx / view.scale;
+  mapView.cy = drag.cy + dy / view.scale;
+  clampView();
+  requestDraw();
+});
+mapCanvas.addEventListener("pointerup", (e) => {
+  const d = drag;
+  drag = null;
+  mapCanvas.classList.remove("dragging");
+  if (d && !d.moved) pick(e);
+});
+mapCanvas.addEventListener("pointercancel", () => { drag = null; mapCanvas.classList.remove("dragging"); });
+mapCanvas.addEventListener("pointerleave", () => { if (!drag) $("#map-tip").hidden = true; });
+mapCanvas.addEventListener("wheel", (e) => {
+  e.preventDefault();
+  const r = mapCanvas.getBoundingClientRect();
+  const unit = e.deltaMode === 1 ? 16 : e.deltaMode === 2 ? 400 : 1;  // lines, pages, pixels
+  zoomAt(Math.exp(-e.deltaY * unit * 0.0015), e.clientX - r.left, e.clientY - r.top);
+}, { passive: false });
+$("#zoom-in").addEventListener("click", () => zoomAt(1.5, mapCanvas.clientWidth / 2, mapCanvas.clientHeight / 2));
+$("#zoom-out").addEventListener("click", () => zoomAt(1 / 1.5, mapCanvas.clientWidth / 2, mapCanvas.clientHeight / 2));
+$("#zoom-fit").addEventListener("click", resetView);
+
+// click on the map: its coordinates go into the observation form
+function pick(e) {
+  if (!view) return;
+  const r = mapCanvas.getBoundingClientRect();
+  const at = view.toWorld(e.clientX - r.left, e.clientY - r.top);
+  pendingClick = at;
+  $("#obs-x").value = at.x.toFixed(1);
+  $("#obs-y").value = at.y.toFixed(1);
+  $("#obs-text").focus();
+  requestDraw();
+}
+new ResizeObserver(requestDraw).observe($("#map-wrap"));
+
+// what the map drew, where (canvas pixels): for tests and for a look from the devtools
+window.dyknowMap = {
+  marks: () => marks.map(({ kind, sx, sy, r, tip }) => ({ kind, x: sx, y: sy, r, tip })),
+  view: () => ({ zoom: mapView.zoom, cx: view && view.cx, cy: view && view.cy, scale: view && view.scale }),
+};
 
 // -- requests -----------------------------------------------------------------------------
 
@@ -492,6 +925,7 @@ function cellText(v) {
   return compact(v, 120);
 }
 
+// a label search: every platform's answer, and why an answer is empty
 $("#search-form").addEventListener("submit", async (e) => {
   e.preventDefault();
   const out = $("#query-result");
@@ -499,17 +933,29 @@ $("#search-form").addEventListener("submit", async (e) => {
   const r = await post("/api/search", { formula: $("#search-formula").value });
   if (!r.ok) return showError(out, r.body.error);
   const rows = [];
-  for (const [p, labels] of Object.entries(r.body.answers)) {
-    rows.push(el("tr", { "data-platform": p }, el("td", { text: p }), el("td", {}, el("code", { class: "v", text: labels.length ? labels.join(", ") : "—" }))));
+  let found = 0;
+  const byName = (a, b) => (a[0] < b[0] ? -1 : a[0] > b[0] ? 1 : 0);
+  for (const [p, labels] of Object.entries(r.body.answers).sort(byName)) {
+    found += labels.length;
+    rows.push(el("tr", { "data-platform": p, "data-labels": String(labels.length) }, el("td", { text: p }),
+      labels.length
+        ? el("td", {}, el("code", { class: "v", text: labels.join(", ") }))
+        : el("td", { class: "empty", text: "none: nothing this platform provides satisfies it" })));
   }
-  for (const [p, why] of Object.entries(r.body.refused)) {
-    rows.push(el("tr", { "data-platform": p }, el("td", { text: p }), el("td", { class: "error", text: why })));
+  for (const [p, why] of Object.entries(r.body.refused).sort(byName)) {
+    rows.push(el("tr", { "data-platform": p, "data-labels": "0" }, el("td", { text: p }), el("td", { class: "error", text: `refused: ${why}` })));
   }
-  for (const p of r.body.no_answer) {
-    rows.push(el("tr", { "data-platform": p }, el("td", { text: p }), el("td", { class: "empty", text: "no answer" })));
+  for (const p of [...r.body.no_answer].sort()) {
+    rows.push(el("tr", { "data-platform": p, "data-labels": "0" }, el("td", { text: p }), el("td", { class: "empty", text: "no answer within the search's 2 s" })));
   }
+  const asked = rows.length;
+  let caption;
+  if (!asked) caption = "no member answered: is the federation empty?";
+  else if (found) caption = `${found} label(s) matching ${r.body.formula}`;
+  else if (Object.keys(r.body.answers).length) caption = `no platform provides a label for what ${r.body.formula} describes`;
+  else caption = `no member answered ${r.body.formula}`;
   out.replaceChildren(
-    el("p", { class: "caption", text: `labels matching ${r.body.formula}` }),
+    el("p", { class: "caption", "data-found": String(found), text: caption }),
     el("table", { class: "grid", "data-testid": "result-table" },
       el("thead", {}, el("tr", {}, el("th", { text: "platform" }), el("th", { text: "labels" }))),
       el("tbody", {}, ...rows)));
@@ -525,6 +971,7 @@ $("#observation-form").addEventListener("submit", async (e) => {
   msg.textContent = `added: ${r.body.observation.text}`;
   $("#obs-text").value = "";
   pendingClick = null;
+  requestDraw();
 });
 
 connect();
