@@ -21,8 +21,11 @@ from ._syntax import (
     Implies,
     Not,
     Or,
+    Until,
     _as_formula,
 )
+
+_AtomFn: TypeAlias = Callable[[Mapping[str, Any], float], bool]
 
 # -- every-step fast path --------------------------------------------------------------------
 #
@@ -398,6 +401,71 @@ class _FWin(_FWindow):
             self.waiters.setdefault(p, []).append((i, s_i))
 
 
+class _FUntAtom(_FWindow):
+    """A bounded ``left until right`` of operands decided at each state, in order.
+
+    An undecided position has held ``left`` at every state since it (a false one decides
+    all of them false) and seen no ``right`` in its window yet; so a true ``right`` marks
+    the range of positions whose window holds it, a false ``left`` decides the rest false,
+    and a window that closes first is false: each position is decided once, O(1) amortised.
+    """
+
+    __slots__ = ("hi_hint", "lfn", "marked", "rfn")
+
+    def __init__(self, a: float, b: float, lfn: _AtomFn, rfn: _AtomFn, times: list[float]):
+        super().__init__(a, b, False, times)
+        self.lfn, self.rfn = lfn, rfn
+        self.marked = -1  # every position up to here whose window held a true right is marked
+        self.hi_hint = 0
+
+    def rebase(self, k: int) -> None:
+        super().rebase(k)
+        self.marked = max(self.marked - k, -1)
+        self.hi_hint = max(self.hi_hint - k, 0)
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        val, ta, tb = self.val, self.ta, self.tb
+        val.append(None)
+        tb.append(t + self.b)
+        if ta is not self.times:
+            ta.append(t + self.a)
+        out: list[int] = []
+        cl = self.close
+        if self.rfn(s, t):
+            # the undecided positions whose window holds t (left held since each of them)
+            lo = bisect.bisect_left(tb, t, cl, n + 1)
+            if ta is self.times:
+                hi = n
+            else:
+                hi = bisect.bisect_right(ta, t, self.hi_hint, n + 1) - 1
+                if hi >= 0:
+                    self.hi_hint = hi
+            m = self.marked
+            if m >= lo:
+                lo = m + 1
+            if hi >= lo:
+                for i in range(lo, hi + 1):
+                    val[i] = True
+                out.extend(range(lo, hi + 1))
+                self.marked = hi
+        if not self.lfn(s, t):
+            # left fails here: every position still open (window started or not) is false
+            for i in range(cl, n + 1):
+                if val[i] is None:
+                    val[i] = False
+                    out.append(i)
+            self.close = n + 1
+            return out
+        if tb[cl] <= t:
+            while cl <= n and tb[cl] <= t:
+                if val[cl] is None:
+                    val[cl] = False
+                    out.append(cl)
+                cl += 1
+            self.close = cl
+        return out
+
+
 def _fast_supported(f: Formula) -> bool:
     if isinstance(f, BoolConst | Feature | Compare):
         return True
@@ -407,10 +475,10 @@ def _fast_supported(f: Formula) -> bool:
         return _fast_supported(f.left) and _fast_supported(f.right)
     if isinstance(f, Always | Eventually):
         return f.hi != INF and _fast_supported(f.operand)
+    if isinstance(f, Until):
+        return f.hi != INF and _pure(f.left) and _pure(f.right)
     return False
 
-
-_AtomFn: TypeAlias = Callable[[Mapping[str, Any], float], bool]
 
 
 def _pure(f: Formula) -> bool:
@@ -460,6 +528,8 @@ def _fast_compile(f: Formula, times: list[float]) -> _FNode:
         return _FBin(left, right, dom)
     if isinstance(f, Not):
         return _FNot(_fast_compile(f.operand, times))
+    if isinstance(f, Until):
+        return _FUntAtom(f.lo, f.hi, _pure_fn(f.left), _pure_fn(f.right), times)
     assert isinstance(f, Always | Eventually)
     body = _fast_compile(f.operand, times)
     if isinstance(body, _FAtom):
