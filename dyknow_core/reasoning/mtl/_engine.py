@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import bisect
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeAlias, cast
 
 from ._monitor import Verdict
@@ -155,38 +155,35 @@ class _FBin(_FNode):
 
 
 class _FBinAtom(_FNode):
-    """``and``/``or`` whose left operand is decided at each state (a fused atom)."""
+    """``and``/``or`` whose left operand is decided at each state (a fused atom).
 
-    __slots__ = ("dom", "fn", "lv", "right")
+    A position left undecided had the unit on the left (true for ``and``, false for
+    ``or``), so the right operand's value, once known, is the value.
+    """
 
-    def __init__(self, fn: Callable[[Mapping[str, Any], float], bool], right: _FNode, dom: bool):
+    __slots__ = ("dom", "fn", "right")
+
+    def __init__(self, fn: _AtomFn, right: _FNode, dom: bool):
         super().__init__()
         self.fn, self.right, self.dom = fn, right, dom
-        self.lv: list[bool] = []
 
     def children(self) -> tuple[_FNode, ...]:
         return (self.right,)
 
-    def rebase(self, k: int) -> None:
-        del self.lv[:k]
-        super().rebase(k)
-
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
-        x = self.fn(s, t)
-        self.lv.append(x)
         er = self.right.step(n, t, s)
-        val, dom = self.val, self.dom
-        if x is dom:
-            val.append(dom)
+        val = self.val
+        if self.fn(s, t) is self.dom:
+            val.append(self.dom)
             out = [n]
         else:
             val.append(None)
             out = []
         if er:
-            lv, rv = self.lv, self.right.val
+            rv = self.right.val
             for j in er:
                 if val[j] is None:
-                    val[j] = rv[j] if lv[j] is not dom else dom
+                    val[j] = rv[j]
                     out.append(j)
         return out
 
@@ -287,15 +284,65 @@ class _FWinAtom(_FWindow):
         return out
 
 
+class _FWinAtom0(_FWindow):
+    """A bounded always/eventually from the current state (``[0, b]``) of a state formula.
+
+    Its window starts at its own position and the operand is decided in order, so the
+    undecided positions are always the last ones, ``close`` to ``n``: a dominant value
+    decides them all, and otherwise the windows that end by ``t`` close. No bisection.
+    """
+
+    __slots__ = ("fn",)
+
+    def __init__(self, b: float, fn: _AtomFn, always: bool, times: list[float]) -> None:
+        super().__init__(0.0, b, always, times)
+        self.fn = fn
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        # window ends are times[i] + b, the same float expression as everywhere
+        val, times, b = self.val, self.times, self.b
+        cl = self.close
+        if self.fn(s, t) is self.dom:
+            if cl == n:
+                val.append(self.dom)
+                self.close = n + 1
+                return [n]
+            val.append(None)
+            out: list[int] = []
+            nd = not self.dom
+            while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
+                val[cl] = nd
+                out.append(cl)
+                cl += 1
+            dom = self.dom
+            for i in range(cl, n + 1):
+                val[i] = dom
+            out.extend(range(cl, n + 1))
+            self.close = n + 1
+            return out
+        val.append(None)
+        if times[cl] + b > t:
+            return []
+        out = []
+        nd = not self.dom
+        while cl <= n and times[cl] + b <= t:
+            val[cl] = nd
+            out.append(cl)
+            cl += 1
+        self.close = cl
+        return out
+
+
 class _FWin(_FWindow):
     """A bounded always/eventually of any operand: decided once its window's values are."""
 
-    __slots__ = ("child", "cover_hi", "cover_lo", "cu", "waiters")
+    __slots__ = ("child", "cover_hi", "cover_lo", "cu", "end", "waiters")
 
     def __init__(self, a: float, b: float, child: _FNode, always: bool, times: list[float]):
         super().__init__(a, b, always, times)
         self.child = child
         self.cu = 0  # the child's first undecided position
+        self.end = 0  # the first position after the window of the last one closed
         self.cover_lo, self.cover_hi = 0, -1  # a range of positions all decided
         self.waiters: dict[int, list[tuple[int, int]]] = {}  # blocker -> (position, start)
 
@@ -309,6 +356,7 @@ class _FWin(_FWindow):
     def rebase(self, k: int) -> None:
         super().rebase(k)
         self.cu -= k
+        self.end = max(self.end - k, 0)
         self.cover_lo = max(self.cover_lo - k, 0)
         self.cover_hi = max(self.cover_hi - k, -1)
         # entries of positions already decided (by a dominant value) are stale: drop them
@@ -348,22 +396,24 @@ class _FWin(_FWindow):
         if tb[cl] <= t:
             cu = self.cu
             nd = not self.dom
-            while cl <= n and tb[cl] <= t:
+            e = self.end
+            while cl <= n:
+                tbc = tb[cl]
+                if tbc > t:
+                    break
                 if val[cl] is None:
                     # closed, and no dominant value in the window: decided once all are
-                    if cu > n:
+                    while e <= n and times[e] <= tbc:
+                        e += 1
+                    if cu >= e:
                         val[cl] = nd
                         out.append(cl)
                     else:
-                        e_i = bisect.bisect_right(times, tb[cl], cl) - 1
-                        if cu > e_i:
-                            val[cl] = nd
-                            out.append(cl)
-                        else:
-                            s_i = cl if ta is times else bisect.bisect_left(times, ta[cl], cl)
-                            self._scan(cl, s_i, e_i, out)
+                        s_i = cl if ta is times else bisect.bisect_left(times, ta[cl], cl)
+                        self._scan(cl, s_i, e - 1, out)
                 cl += 1
             self.close = cl
+            self.end = e
         return out
 
     def _mark(self, j: int, out: list[int]) -> None:
@@ -533,6 +583,8 @@ def _fast_compile(f: Formula, times: list[float]) -> _FNode:
     assert isinstance(f, Always | Eventually)
     body = _fast_compile(f.operand, times)
     if isinstance(body, _FAtom):
+        if f.lo == 0:
+            return _FWinAtom0(f.hi, body.fn, isinstance(f, Always), times)
         return _FWinAtom(f.lo, f.hi, body.fn, isinstance(f, Always), times)
     return _FWin(f.lo, f.hi, body, isinstance(f, Always), times)
 
@@ -582,6 +634,45 @@ class StepMonitor:
             return [new(Verdict, (times[j], t, val[j]))]
         ev.sort()
         return [new(Verdict, (times[j], t, val[j])) for j in ev]
+
+    def run(self, trace: Iterable[tuple[float, Mapping[str, Any]]]) -> list[Verdict]:
+        """Step through every ``(t, state)`` of ``trace``: the verdicts, in the order ``step`` gives."""
+        root = self._fast
+        if root is None:
+            out: list[Verdict] = []
+            for t, s in trace:
+                out += self._step_progress(t, s)
+            return out
+        # step's loop with its lookups done once (the every-step mode's batch form)
+        times = self._times
+        n = len(times)
+        compact_at = self._compact_at
+        append = times.append
+        root_step = root.step
+        val = root.val
+        new = tuple.__new__  # skips the named tuple's Python-level __new__
+        out = []
+        add = out.append
+        for t, s in trace:
+            if n >= compact_at:
+                k = root.base()
+                if k > 0:
+                    root.rebase(k)
+                    del times[:k]
+                    n -= k
+                compact_at = n + _COMPACT
+            append(t)
+            ev = root_step(n, t, s)
+            n += 1
+            if ev:
+                if len(ev) == 1:
+                    j = ev[0]
+                    add(new(Verdict, (times[j], t, val[j])))
+                else:
+                    ev.sort()
+                    out += [new(Verdict, (times[j], t, val[j])) for j in ev]
+        self._compact_at = compact_at
+        return out
 
     def _step_progress(self, t: float, state: Mapping[str, Any]) -> list[Verdict]:
         out: list[Verdict] = []
