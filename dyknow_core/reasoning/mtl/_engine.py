@@ -530,7 +530,6 @@ def _fast_supported(f: Formula) -> bool:
     return False
 
 
-
 def _pure(f: Formula) -> bool:
     if isinstance(f, BoolConst | Feature | Compare):
         return True
@@ -636,7 +635,7 @@ class StepMonitor:
         return [new(Verdict, (times[j], t, val[j])) for j in ev]
 
     def run(self, trace: Iterable[tuple[float, Mapping[str, Any]]]) -> list[Verdict]:
-        """Step through every ``(t, state)`` of ``trace``: the verdicts, in the order ``step`` gives."""
+        """Step through every ``(t, state)`` of ``trace``: the verdicts, as ``step`` orders them."""
         root = self._fast
         if root is None:
             out: list[Verdict] = []
