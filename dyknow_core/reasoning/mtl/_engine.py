@@ -396,6 +396,7 @@ class _FWin(_FWindow):
         cl = self.close
         if tb[cl] <= t:
             cu = self.cu
+            cv = self.child.val
             nd = not self.dom
             e = self.end
             while cl <= n:
@@ -410,8 +411,17 @@ class _FWin(_FWindow):
                         val[cl] = nd
                         out.append(cl)
                     else:
+                        # the child's last undecided position in the window, if any
                         s_i = cl if ta is times else bisect.bisect_left(times, ta[cl], cl)
-                        self._scan(cl, s_i, e - 1, out)
+                        lo = s_i if s_i > cu else cu
+                        p = e - 1
+                        while p >= lo and cv[p] is not None:
+                            p -= 1
+                        if p < lo:
+                            val[cl] = nd
+                            out.append(cl)
+                        else:
+                            self.waiters.setdefault(p, []).append((cl, s_i))
                 cl += 1
             self.close = cl
             self.end = e
@@ -517,6 +527,57 @@ class _FUntAtom(_FWindow):
         return out
 
 
+class _FUntAtom0(_FWindow):
+    """A ``left until[0, b] right`` of state formulas: its undecided positions are a suffix.
+
+    A true right decides every open position true (and the ones whose window ended since
+    the last state false), a false left decides them all false, otherwise the windows
+    ending by ``t`` close false; as for :class:`_FWinAtom0`, no bisection.
+    """
+
+    __slots__ = ("lfn", "rfn")
+
+    def __init__(self, b: float, lfn: _AtomFn, rfn: _AtomFn, times: list[float]) -> None:
+        super().__init__(0.0, b, False, times)
+        self.lfn, self.rfn = lfn, rfn
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        val, times, b = self.val, self.times, self.b
+        cl = self.close
+        if self.rfn(s, t):
+            if cl == n:
+                val.append(True)
+                self.close = n + 1
+                return [n]
+            val.append(None)
+            out: list[int] = []
+            while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
+                val[cl] = False
+                out.append(cl)
+                cl += 1
+            for i in range(cl, n + 1):
+                val[i] = True
+            out.extend(range(cl, n + 1))
+            self.close = n + 1
+            return out
+        if not self.lfn(s, t):
+            val.append(False)
+            for i in range(cl, n):
+                val[i] = False
+            self.close = n + 1
+            return list(range(cl, n + 1))
+        val.append(None)
+        if times[cl] + b > t:
+            return []
+        out = []
+        while cl <= n and times[cl] + b <= t:
+            val[cl] = False
+            out.append(cl)
+            cl += 1
+        self.close = cl
+        return out
+
+
 def _fast_supported(f: Formula) -> bool:
     if isinstance(f, BoolConst | Feature | Compare):
         return True
@@ -579,6 +640,8 @@ def _fast_compile(f: Formula, times: list[float]) -> _FNode:
     if isinstance(f, Not):
         return _FNot(_fast_compile(f.operand, times))
     if isinstance(f, Until):
+        if f.lo == 0:
+            return _FUntAtom0(f.hi, _pure_fn(f.left), _pure_fn(f.right), times)
         return _FUntAtom(f.lo, f.hi, _pure_fn(f.left), _pure_fn(f.right), times)
     assert isinstance(f, Always | Eventually)
     body = _fast_compile(f.operand, times)
