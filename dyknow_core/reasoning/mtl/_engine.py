@@ -70,6 +70,14 @@ class _FNode:
         for c in self.children():
             c.rebase(k)
 
+    def reserve(self, size: int) -> None:
+        # room for positions up to size - 1, undecided: a step assigns, never appends
+        val = self.val
+        if len(val) < size:
+            val.extend([None] * (size - len(val)))
+        for c in self.children():
+            c.reserve(size)
+
 
 class _FAtom(_FNode):
     __slots__ = ("fn",)
@@ -79,7 +87,7 @@ class _FAtom(_FNode):
         self.fn = fn
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
-        self.val.append(self.fn(s, t))
+        self.val[n] = self.fn(s, t)
         return [n]
 
 
@@ -91,7 +99,7 @@ class _FConst(_FNode):
         self.value = value
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
-        self.val.append(self.value)
+        self.val[n] = self.value
         return [n]
 
 
@@ -108,7 +116,6 @@ class _FNot(_FNode):
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
         ev = self.child.step(n, t, s)
         val, cv = self.val, self.child.val
-        val.append(None)
         for j in ev:
             val[j] = not cv[j]
         return ev
@@ -128,7 +135,6 @@ class _FBin(_FNode):
         el = self.left.step(n, t, s)
         er = self.right.step(n, t, s)
         val, lv, rv, dom = self.val, self.left.val, self.right.val, self.dom
-        val.append(None)
         out: list[int] = []
         for j in el:
             if val[j] is None:
@@ -175,10 +181,9 @@ class _FBinAtom(_FNode):
         er = self.right.step(n, t, s)
         val = self.val
         if self.fn(s, t) is self.dom:
-            val.append(self.dom)
+            val[n] = self.dom
             out = [n]
         else:
-            val.append(None)
             out = []
         if er:
             rv = self.right.val
@@ -245,17 +250,15 @@ class _FWinAtom(_FWindow):
         val, ta, tb, dom = self.val, self.ta, self.tb, self.dom
         tb.append(t + self.b)
         if x is not dom:
-            val.append(None)
             out: list[int] = []
             if len(ta) <= n:
                 ta.append(t + self.a)
         elif ta is self.times and self.marked == n - 1:
             # the window starts here and every earlier window holding t is already marked
-            val.append(dom)
+            val[n] = dom
             out = [n]
             self.marked = n
         else:
-            val.append(None)
             out = []
             if len(ta) <= n:
                 ta.append(t + self.a)
@@ -305,10 +308,9 @@ class _FWinAtom0(_FWindow):
         cl = self.close
         if self.fn(s, t) is self.dom:
             if cl == n:
-                val.append(self.dom)
+                val[n] = self.dom
                 self.close = n + 1
                 return [n]
-            val.append(None)
             out: list[int] = []
             nd = not self.dom
             while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
@@ -321,7 +323,6 @@ class _FWinAtom0(_FWindow):
             out.extend(range(cl, n + 1))
             self.close = n + 1
             return out
-        val.append(None)
         if times[cl] + b > t:
             return []
         out = []
@@ -371,7 +372,6 @@ class _FWin(_FWindow):
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
         ev = self.child.step(n, t, s)
         val, ta, tb, times = self.val, self.ta, self.tb, self.times
-        val.append(None)
         if ta is not times:
             ta.append(t + self.a)
         tb.append(t + self.b)
@@ -486,7 +486,6 @@ class _FUntAtom(_FWindow):
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
         val, ta, tb = self.val, self.ta, self.tb
-        val.append(None)
         tb.append(t + self.b)
         if ta is not self.times:
             ta.append(t + self.a)
@@ -546,10 +545,9 @@ class _FUntAtom0(_FWindow):
         cl = self.close
         if self.rfn(s, t):
             if cl == n:
-                val.append(True)
+                val[n] = True
                 self.close = n + 1
                 return [n]
-            val.append(None)
             out: list[int] = []
             while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
                 val[cl] = False
@@ -561,12 +559,11 @@ class _FUntAtom0(_FWindow):
             self.close = n + 1
             return out
         if not self.lfn(s, t):
-            val.append(False)
+            val[n] = False
             for i in range(cl, n):
                 val[i] = False
             self.close = n + 1
             return list(range(cl, n + 1))
-        val.append(None)
         if times[cl] + b > t:
             return []
         out = []
@@ -670,6 +667,7 @@ class StepMonitor:
         # the bottom-up windowed evaluation where the fragment allows it, else progression
         if _fast_supported(self.formula):
             self._fast = _fast_compile(self.formula, self._times)
+            self._fast.reserve(self._compact_at)
 
     def step(self, t: float, state: Mapping[str, Any]) -> list[Verdict]:
         """Start an evaluation at ``t``, progress all pending ones; the verdicts decided now."""
@@ -686,6 +684,7 @@ class StepMonitor:
                 del times[:k]
                 n -= k
             self._compact_at = n + _COMPACT
+            root.reserve(self._compact_at)
         times.append(t)
         ev = root.step(n, t, state)
         if not ev:
@@ -739,6 +738,7 @@ class StepMonitor:
                     del times[:k]
                     n -= k
                 compact_at = n + _COMPACT
+                root.reserve(compact_at)
             append(t)
             ev = root_step(n, t, s)
             n += 1
@@ -768,7 +768,8 @@ class StepMonitor:
     def undecided(self) -> list[float]:
         """Start times whose verdict the states so far leave unknown."""
         if self._fast is not None:
-            return [t for t, v in zip(self._times, self._fast.val, strict=True) if v is None]
+            val = self._fast.val[: len(self._times)]  # the rest is room reserved
+            return [t for t, v in zip(self._times, val, strict=True) if v is None]
         return [s for s, _ in self.pending]
 
 
