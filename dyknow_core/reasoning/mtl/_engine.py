@@ -394,38 +394,45 @@ class _FWin(_FWindow):
                             if val[i] is None:
                                 self._scan(i, s_i, j - 1, out)
         cl = self.close
-        if tb[cl] <= t:
+        tbc = tb[cl]
+        if tbc <= t:
             cu = self.cu
-            cv = self.child.val
             nd = not self.dom
-            e = self.end
-            while cl <= n:
-                tbc = tb[cl]
-                if tbc > t:
-                    break
+            while True:
                 if val[cl] is None:
                     # closed, and no dominant value in the window: decided once all are
-                    while e <= n and times[e] <= tbc:
-                        e += 1
-                    if cu >= e:
+                    if cu > n or times[cu] > tbc:
                         val[cl] = nd
                         out.append(cl)
                     else:
-                        # the child's last undecided position in the window, if any
-                        s_i = cl if ta is times else bisect.bisect_left(times, ta[cl], cl)
-                        lo = s_i if s_i > cu else cu
-                        p = e - 1
-                        while p >= lo and cv[p] is not None:
-                            p -= 1
-                        if p < lo:
-                            val[cl] = nd
-                            out.append(cl)
-                        else:
-                            self.waiters.setdefault(p, []).append((cl, s_i))
+                        self._wait(cl, tbc, n, out)
                 cl += 1
+                if cl > n:
+                    break
+                tbc = tb[cl]
+                if tbc > t:
+                    break
             self.close = cl
-            self.end = e
         return out
+
+    def _wait(self, i: int, tbc: float, n: int, out: list[int]) -> None:
+        # a closed window holding an undecided child position, maybe: scan back from its end
+        times, cu = self.times, self.cu
+        e = self.end
+        while e <= n and times[e] <= tbc:
+            e += 1
+        self.end = e
+        s_i = i if self.ta is times else bisect.bisect_left(times, self.ta[i], i)
+        cv = self.child.val
+        lo = s_i if s_i > cu else cu
+        p = e - 1
+        while p >= lo and cv[p] is not None:
+            p -= 1
+        if p < lo:
+            self.val[i] = not self.dom
+            out.append(i)
+        else:
+            self.waiters.setdefault(p, []).append((i, s_i))
 
     def _mark(self, j: int, out: list[int]) -> None:
         # every position whose window holds j takes the dominant value
