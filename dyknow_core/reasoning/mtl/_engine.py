@@ -582,6 +582,107 @@ class _FUntAtom0(_FWindow):
         return out
 
 
+# ``g -> always[0,b] p``, ``g and eventually[0,b] p``, ``g -> (p until[0,b] q)``: a state
+# formula joined with a window over state formulas, the usual body of an ``always``. One
+# node each (the join's value is the window's where the guard is not decisive), so the
+# window's positions a guard decides cost nothing more and no events pass between two.
+
+
+class _FGuardWin0(_FWindow):
+    """``guard or/and always/eventually[0, b] fn``, both state formulas: see ``_FWinAtom0``."""
+
+    __slots__ = ("fn", "gdom", "gfn")
+
+    def __init__(
+        self, b: float, fn: _AtomFn, always: bool, gfn: _AtomFn, gdom: bool, times: list[float]
+    ) -> None:
+        super().__init__(0.0, b, always, times)
+        self.fn, self.gfn, self.gdom = fn, gfn, gdom
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        val, times, b = self.val, self.times, self.b
+        if self.gfn(s, t) is self.gdom:
+            val[n] = self.gdom
+            out = [n]
+        else:
+            out = []
+        cl = self.close
+        if self.fn(s, t) is self.dom:
+            # the window's value is decided for every open position (the ended ones not)
+            nd = not self.dom
+            while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
+                if val[cl] is None:
+                    val[cl] = nd
+                    out.append(cl)
+                cl += 1
+            dom = self.dom
+            for i in range(cl, n + 1):
+                if val[i] is None:
+                    val[i] = dom
+                    out.append(i)
+            self.close = n + 1
+            return out
+        if times[cl] + b > t:
+            return out
+        nd = not self.dom
+        while cl <= n and times[cl] + b <= t:
+            if val[cl] is None:
+                val[cl] = nd
+                out.append(cl)
+            cl += 1
+        self.close = cl
+        return out
+
+
+class _FGuardUnt0(_FWindow):
+    """``guard or/and (lfn until[0, b] rfn)``, all state formulas: see ``_FUntAtom0``."""
+
+    __slots__ = ("gdom", "gfn", "lfn", "rfn")
+
+    def __init__(
+        self, b: float, lfn: _AtomFn, rfn: _AtomFn, gfn: _AtomFn, gdom: bool, times: list[float]
+    ) -> None:
+        super().__init__(0.0, b, False, times)
+        self.lfn, self.rfn, self.gfn, self.gdom = lfn, rfn, gfn, gdom
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        val, times, b = self.val, self.times, self.b
+        if self.gfn(s, t) is self.gdom:
+            val[n] = self.gdom
+            out = [n]
+        else:
+            out = []
+        cl = self.close
+        if self.rfn(s, t):
+            while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
+                if val[cl] is None:
+                    val[cl] = False
+                    out.append(cl)
+                cl += 1
+            for i in range(cl, n + 1):
+                if val[i] is None:
+                    val[i] = True
+                    out.append(i)
+            self.close = n + 1
+            return out
+        if not self.lfn(s, t):
+            for i in range(cl, n + 1):
+                if val[i] is None:
+                    val[i] = False
+                    out.append(i)
+            self.close = n + 1
+            return out
+        if times[cl] + b > t:
+            return out
+        while cl <= n and times[cl] + b <= t:
+            if val[cl] is None:
+                val[cl] = False
+                out.append(cl)
+            cl += 1
+        self.close = cl
+        return out
+
+
 def _fast_supported(f: Formula) -> bool:
     if isinstance(f, BoolConst | Feature | Compare):
         return True
@@ -639,6 +740,10 @@ def _fast_compile(f: Formula, times: list[float]) -> _FNode:
         if isinstance(right, _FAtom):
             left, right = right, left
         if isinstance(left, _FAtom):
+            if type(right) is _FWinAtom0:
+                return _FGuardWin0(right.b, right.fn, not right.dom, left.fn, dom, times)
+            if type(right) is _FUntAtom0:
+                return _FGuardUnt0(right.b, right.lfn, right.rfn, left.fn, dom, times)
             return _FBinAtom(left.fn, right, dom)
         return _FBin(left, right, dom)
     if isinstance(f, Not):
