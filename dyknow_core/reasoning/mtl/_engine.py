@@ -371,10 +371,10 @@ class _FWin(_FWindow):
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
         ev = self.child.step(n, t, s)
-        val, ta, tb, times = self.val, self.ta, self.tb, self.times
-        if ta is not times:
-            ta.append(t + self.a)
+        tb = self.tb
         tb.append(t + self.b)
+        if self.a:  # else the window starts are the times themselves
+            self.ta.append(t + self.a)
         out: list[int] = []
         if ev:  # only the child's new values can mark positions or unblock windows
             cv, dom = self.child.val, self.dom
@@ -385,18 +385,12 @@ class _FWin(_FWindow):
             while cu <= n and cv[cu] is not None:
                 cu += 1
             self.cu = cu
-            waiters = self.waiters
-            if waiters:
-                for j in ev:
-                    w = waiters.pop(j, None)
-                    if w:
-                        for i, s_i in w:
-                            if val[i] is None:
-                                self._scan(i, s_i, j - 1, out)
+            if self.waiters:
+                self._wake(ev, out)
         cl = self.close
         tbc = tb[cl]
         if tbc <= t:
-            cu = self.cu
+            val, times, cu = self.val, self.times, self.cu
             nd = not self.dom
             while True:
                 if val[cl] is None:
@@ -414,6 +408,16 @@ class _FWin(_FWindow):
                     break
             self.close = cl
         return out
+
+    def _wake(self, ev: list[int], out: list[int]) -> None:
+        # the windows waiting on a child position decided now: scan on from it
+        waiters, val = self.waiters, self.val
+        for j in ev:
+            w = waiters.pop(j, None)
+            if w:
+                for i, s_i in w:
+                    if val[i] is None:
+                        self._scan(i, s_i, j - 1, out)
 
     def _wait(self, i: int, tbc: float, n: int, out: list[int]) -> None:
         # a closed window holding an undecided child position, maybe: scan back from its end
