@@ -30,13 +30,19 @@ _AtomFn: TypeAlias = Callable[[Mapping[str, Any], float], bool]
 
 # -- every-step fast path --------------------------------------------------------------------
 #
-# For the fragment without quantifiers, unbounded windows or until, StepMonitor evaluates
-# bottom-up: each node keeps one value per position (None until certain) and its step
-# returns the positions it decided at this state. A bounded always/eventually marks, for a
-# child position j holding its dominant value (False/True), every position whose window
-# holds j (a contiguous range, found by bisection on the exact window bounds); a position
-# whose window has closed is decided the other way once its window holds no undecided child
-# position (scanned from the child's first undecided position, then waiting on the blocker).
+# For the fragment without quantifiers or unbounded windows, and with until only between
+# state formulas, StepMonitor evaluates bottom-up: each node keeps one value per position
+# (None until certain, in room reserved at each compaction) and its step returns the
+# positions it decided at this state. A bounded always/eventually marks, for a child
+# position j holding its dominant value (False/True), every position whose window holds j
+# (a contiguous range, found by bisection on the exact window bounds); a position whose
+# window has closed is decided the other way once its window holds no undecided child
+# position (scanned from the child's first undecided position, then waiting on the
+# blocker). Over a state formula, decided in order, the undecided positions of a window
+# from the current state (and of an until) are a suffix: no bisection, and a state
+# formula joined with such a window is the same node. Every position is decided once:
+# amortised, a state costs a few operations per node (and a bisection where a value of a
+# temporal operand decides a window).
 
 
 class _FNode:
