@@ -485,7 +485,8 @@ class _FUntAtom(_FWindow):
     An undecided position has held ``left`` at every state since it (a false one decides
     all of them false) and seen no ``right`` in its window yet; so a true ``right`` marks
     the range of positions whose window holds it, a false ``left`` decides the rest false,
-    and a window that closes first is false: each position is decided once, O(1) amortised.
+    and a window that closes first is false: each position is decided once (a bisection
+    finds the range a true right marks).
     """
 
     __slots__ = ("hi_hint", "lfn", "marked", "rfn")
