@@ -429,9 +429,9 @@ class _FWin(_FWindow):
         # a closed window holding an undecided child position, maybe: scan back from its end
         times, cu = self.times, self.cu
         e = self.end
-        while e <= n and times[e] <= tbc:
-            e += 1
-        self.end = e
+        if e <= n and times[e] <= tbc:
+            e = bisect.bisect_right(times, tbc, e, n + 1)
+            self.end = e
         s_i = i if self.ta is times else bisect.bisect_left(times, self.ta[i], i)
         cv = self.child.val
         lo = s_i if s_i > cu else cu
