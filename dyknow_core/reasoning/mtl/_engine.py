@@ -386,7 +386,14 @@ class _FWin(_FWindow):
             cv, dom = self.child.val, self.dom
             for j in ev:
                 if cv[j] is dom:
-                    self._mark(j, out)
+                    if j == self.cover_hi + 1 and not self.a:
+                        # the windows holding j before j's own are covered already
+                        self.cover_hi = j
+                        if self.val[j] is None:
+                            self.val[j] = dom
+                            out.append(j)
+                    else:
+                        self._mark(j, out)
             cu = self.cu
             while cu <= n and cv[cu] is not None:
                 cu += 1
