@@ -828,7 +828,10 @@ class StepMonitor:
         return [new(Verdict, (times[j], t, val[j])) for j in ev]
 
     def run(self, trace: Iterable[tuple[float, Mapping[str, Any]]]) -> list[Verdict]:
-        """Step through every ``(t, state)`` of ``trace``: the verdicts, as ``step`` orders them."""
+        """Step through every ``(t, state)`` of ``trace``: the verdicts, as ``step`` orders them.
+
+        The cycle collector is paused while it runs (and restored after).
+        """
         # Every verdict outlives the batch as a tracked object (a named tuple is never
         # untracked), so a long batch alone makes the cycle collector scan the whole heap
         # (a quarter of the time at 100 k states); the loop makes no cycles: pause it.
