@@ -22,11 +22,11 @@ verdicts at times between states; they are counted, not checked) and of reelay's
 that decided it) against mstlo's ``update_batch`` over the same trace, both timed from
 the formula's text, interleaved, best of ``REPEAT`` (``run`` pauses Python's cycle
 collector while it runs: its verdicts, named tuples, stay tracked, where mstlo's plain
-tuples are not, and would trigger full collections of the heap); ``BENCH mtl-progression-until`` does
-the same for a formula with ``until`` nested in ``always`` (mstlo's ``φ U ψ`` needs φ at
-the state where ψ holds too, so ours spells that out: the same meaning, checked against
-the brute force as above); ``BENCH mtl-progression-monitor`` gives our
-execution-monitoring mode beside both peers.
+tuples are not, and would trigger full collections of the heap);
+``BENCH mtl-progression-until`` does the same for a formula with ``until`` nested in
+``always`` (mstlo's ``φ U ψ`` needs φ at the state where ψ holds too, so ours spells that
+out: the same meaning, checked against the brute force as above);
+``BENCH mtl-progression-monitor`` gives our execution-monitoring mode beside both peers.
 """
 
 from __future__ import annotations
