@@ -449,7 +449,11 @@ class _FWin(_FWindow):
             self.val[i] = not self.dom
             out.append(i)
         else:
-            self.waiters.setdefault(p, []).append((i, s_i))
+            w = self.waiters.get(p)
+            if w is None:
+                self.waiters[p] = [(i, s_i)]
+            else:
+                w.append((i, s_i))
 
     def _mark(self, j: int, out: list[int]) -> None:
         # every position whose window holds j takes the dominant value
