@@ -502,11 +502,13 @@ def test_every_step_until_matches_progression_at_window_edges(text: str, trace: 
     slow = StepMonitor(f)
     slow._fast = None
     compacting = StepMonitor(f)
+    stepped = []
     for k, (t, s) in enumerate(trace):
         compacting._compact_at = 0
         got, want = fast.step(t, s), slow.step(t, s)
         assert got == want, (text, k)
         assert compacting.step(t, s) == want, (text, k)
+        stepped += got
         for v in got:
             start = next(j for j, (tj, _) in enumerate(trace) if tj == v.start)
             assert evaluate(f, trace[: k + 1], start) is v.verdict, (text, start, k)
@@ -514,3 +516,4 @@ def test_every_step_until_matches_progression_at_window_edges(text: str, trace: 
     for start in fast.undecided():
         i = next(j for j, (tj, _) in enumerate(trace) if tj == start)
         assert evaluate(f, trace, i) is None
+    assert StepMonitor(f).run(trace) == stepped  # the batch form gives the same, in order
