@@ -18,8 +18,15 @@ the whole trace; a verdict the brute force leaves unknown counts as wrong): all 
 a random sample of mstlo's verdicts at state times (its dense semantics also gives
 verdicts at times between states; they are counted, not checked) and of reelay's. The
 ``BENCH mtl-progression`` compares the same work as mstlo: our every-step mode
-(:class:`StepMonitor`, a verdict per state); ``BENCH mtl-progression-monitor`` gives our
-execution-monitoring mode beside both peers.
+(:meth:`StepMonitor.run` over the whole trace, a verdict per state, each with the state
+that decided it) against mstlo's ``update_batch`` over the same trace, both timed from
+the formula's text, interleaved, best of ``REPEAT`` (``run`` pauses Python's cycle
+collector while it runs: its verdicts, named tuples, stay tracked, where mstlo's plain
+tuples are not, and would trigger full collections of the heap);
+``BENCH mtl-progression-until`` does the same for a formula with ``until`` nested in
+``always`` (mstlo's ``φ U ψ`` needs φ at the state where ψ holds too, so ours spells that
+out: the same meaning, checked against the brute force as above);
+``BENCH mtl-progression-monitor`` gives our execution-monitoring mode beside both peers.
 """
 
 from __future__ import annotations
@@ -38,6 +45,9 @@ MSTLO_FORMULA = "G[0, 10](speed < 30 -> F[0, 5](on_road > 0.5))"
 # past time, read DELAY s later: at s + 5, speed as it was 5 s before and on_road within 5 s
 REELAY_FORMULA = "historically[0:10]((once[5:5]{speed < 30}) -> (once[0:5]{on_road}))"
 DELAY = 15.0
+# until inside always; mstlo's U also needs its left side where the right one holds
+UNTIL_FORMULA = "always[0,10](speed < 30 -> (speed < 35 until[0,5] (on_road and speed < 35)))"
+MSTLO_UNTIL_FORMULA = "G[0, 10](speed < 30 -> ((speed < 35) U[0, 5] (on_road > 0.5)))"
 N = 100_000
 REPEAT = 5
 CHECK = 2000  # mstlo verdicts checked against the brute force (it is O(window²) each)
@@ -62,14 +72,11 @@ def run_ours(trace: list[tuple[float, dict[str, Any]]]) -> list[Verdict]:
     return Monitor(FORMULA).run(trace)
 
 
-def run_ours_every_step(trace: list[tuple[float, dict[str, Any]]]) -> list[Verdict]:
+def run_ours_every_step(
+    trace: list[tuple[float, dict[str, Any]]], formula: str = FORMULA
+) -> list[Verdict]:
     """One evaluation per state (what mstlo computes), each reported once certain."""
-    sm = StepMonitor(FORMULA)
-    out: list[Verdict] = []
-    step = sm.step
-    for t, s in trace:
-        out += step(t, s)
-    return out
+    return StepMonitor(formula).run(trace)
 
 
 def mstlo_input(trace: list[tuple[float, dict[str, Any]]]) -> list[tuple[str, float, float]]:
@@ -81,9 +88,11 @@ def mstlo_input(trace: list[tuple[float, dict[str, Any]]]) -> list[tuple[str, fl
     return flat
 
 
-def run_mstlo(mstlo: Any, flat: list[tuple[str, float, float]]) -> list[tuple[float, bool]]:
+def run_mstlo(
+    mstlo: Any, flat: list[tuple[str, float, float]], formula: str = MSTLO_FORMULA
+) -> list[tuple[float, bool]]:
     """mstlo's eager monitor over the batch: (timestamp, verdict) pairs."""
-    mon = mstlo.Monitor(mstlo.parse_formula(MSTLO_FORMULA), semantics="EagerQualitative")
+    mon = mstlo.Monitor(mstlo.parse_formula(formula), semantics="EagerQualitative")
     return list(mon.update_batch(flat).verdicts())
 
 
@@ -119,20 +128,24 @@ def wrong_reelay(
     return wrong, len(sample)
 
 
-def wrong_ours(trace: list[tuple[float, dict[str, Any]]], verdicts: list[Verdict]) -> int:
+def wrong_ours(
+    trace: list[tuple[float, dict[str, Any]]], verdicts: list[Verdict], formula: str = FORMULA
+) -> int:
     """Our verdicts the brute force disagrees with (or leaves unknown)."""
-    f = parse(FORMULA)
+    f = parse(formula)
     index = {t: i for i, (t, _) in enumerate(trace)}
     return sum(1 for v in verdicts if evaluate(f, trace, index[v.start]) is not v.verdict)
 
 
 def wrong_mstlo(
-    trace: list[tuple[float, dict[str, Any]]], verdicts: list[tuple[float, bool]]
+    trace: list[tuple[float, dict[str, Any]]],
+    verdicts: list[tuple[float, bool]],
+    formula: str = FORMULA,
 ) -> tuple[int, int, int, int]:
     """Wrong verdicts in a random sample of mstlo's at state times; sample size, off-state
     verdicts (its dense semantics also decides times between states) and states without one.
     """
-    f = parse(FORMULA)
+    f = parse(formula)
     times = [t for t, _ in trace]
     at_state: dict[int, bool] = {}
     off = 0
@@ -149,7 +162,7 @@ def wrong_mstlo(
 
 
 def run() -> None:
-    """Measure and print the detail and the BENCH line."""
+    """Measure and print the detail and the BENCH lines."""
     trace = make_trace()
     try:
         import mstlo_python as mstlo
@@ -162,73 +175,90 @@ def run() -> None:
         reelay = None
         print(f"reelay: not available ({exc}); no comparison")
     flat = mstlo_input(trace) if mstlo is not None else []
-    ours_t: list[float] = []
-    mstlo_t: list[float] = []
-    ours_v: list[Verdict] = []
-    mstlo_v: list[tuple[float, bool]] = []
     records = reelay_input(trace) if reelay is not None else []
-    reelay_t: list[float] = []
-    reelay_v: list[dict[str, Any]] = []
+    # (ours, mstlo's) every-step formulas: the headline line and the until line
+    cases = {"mtl-progression": (FORMULA, MSTLO_FORMULA)}
+    cases["mtl-progression-until"] = (UNTIL_FORMULA, MSTLO_UNTIL_FORMULA)
+    times: dict[str, list[float]] = {}
+    out: dict[str, Any] = {}
+
+    def measure(key: str, fn: Any) -> None:
+        gc.collect()
+        d, out[key] = timed(fn)
+        times.setdefault(key, []).append(d)
+
     for k in range(REPEAT):
         progress(f"mtl run {k + 1}/{REPEAT}")
-        gc.collect()
-        d, ours_v = timed(lambda: run_ours(trace))
-        ours_t.append(d)
-        if mstlo is not None:
-            gc.collect()
-            d, mstlo_v = timed(lambda: run_mstlo(mstlo, flat))
-            mstlo_t.append(d)
+        measure("monitor", lambda: run_ours(trace))
+        for name, (ours_f, mstlo_f) in cases.items():
+            measure(f"{name}/ours", lambda f=ours_f: run_ours_every_step(trace, f))
+            if mstlo is not None:
+                measure(f"{name}/mstlo", lambda f=mstlo_f: run_mstlo(mstlo, flat, f))
         if reelay is not None:
-            gc.collect()
-            d, reelay_v = timed(lambda: run_reelay(reelay, records))
-            reelay_t.append(d)
-    d_step, step_v = timed(lambda: run_ours_every_step(trace[: N // 5]))
+            measure("reelay", lambda: run_reelay(reelay, records))
+
+    def rate(key: str) -> float:
+        return N / min(times[key])
+
+    def median(key: str) -> str:
+        return fmt(N / statistics.median(times[key]))
+
     progress("checking verdicts against brute force")
-    w_ours = wrong_ours(trace, ours_v)
-    w_step = wrong_ours(trace, step_v[:: max(1, len(step_v) // CHECK)])
-    ours_rate = N / min(ours_t)
+    ours_v: list[Verdict] = out["monitor"]
     print(
-        f"ours (monitor, restart after each verdict): {fmt(ours_rate)} states/s "
-        f"(median {fmt(N / statistics.median(ours_t))}), {len(ours_v)} verdicts, "
-        f"{w_ours} wrong vs brute force"
+        f"ours (monitor, restart after each verdict): {fmt(rate('monitor'))} states/s "
+        f"(median {median('monitor')}), {len(ours_v)} verdicts, "
+        f"{wrong_ours(trace, ours_v)} wrong vs brute force"
     )
-    step_rate = N // 5 / d_step
-    print(
-        f"ours (every step, a verdict per state): {fmt(step_rate)} states/s over "
-        f"{N // 5} states, {len(step_v)} verdicts, {w_step} wrong in a sample"
-    )
-    if reelay is not None:
-        w_r, checked_r = wrong_reelay(trace, reelay_v)
-        reelay_rate = N / min(reelay_t)
+    for name, (ours_f, mstlo_f) in cases.items():
+        step_v: list[Verdict] = out[f"{name}/ours"]
+        sample = step_v[:: max(1, len(step_v) // CHECK)]
         print(
-            f"reelay (dense, past-time rewrite read {DELAY:g} s later): {fmt(reelay_rate)} "
-            f"states/s (median {fmt(N / statistics.median(reelay_t))}), {len(reelay_v)} "
-            f"change points, {w_r} wrong of {checked_r} starts checked vs brute force"
+            f"{name}: ours {ours_f!r} (every step, StepMonitor.run): {fmt(rate(name + '/ours'))} "
+            f"states/s (median {median(name + '/ours')}), {len(step_v)} verdicts, "
+            f"{wrong_ours(trace, sample, ours_f)} wrong of {len(sample)} checked vs brute force"
+        )
+        if mstlo is not None:
+            mstlo_v = out[f"{name}/mstlo"]
+            w_m, checked, off, undecided = wrong_mstlo(trace, mstlo_v, ours_f)
+            print(
+                f"{name}: mstlo-python {mstlo.__version__} {mstlo_f!r} (EagerQualitative, "
+                f"batch): {fmt(rate(name + '/mstlo'))} states/s (median "
+                f"{median(name + '/mstlo')}), {len(mstlo_v)} verdicts ({off} at times between "
+                f"states, {undecided} states without one), {w_m} wrong of {checked} checked "
+                f"at state times vs brute force"
+            )
+    if reelay is not None:
+        reelay_v = out["reelay"]
+        w_r, checked_r = wrong_reelay(trace, reelay_v)
+        print(
+            f"reelay (dense, past-time rewrite read {DELAY:g} s later): {fmt(rate('reelay'))} "
+            f"states/s (median {median('reelay')}), {len(reelay_v)} change points, "
+            f"{w_r} wrong of {checked_r} starts checked vs brute force"
         )
     if mstlo is not None:
-        w_m, checked, off, undecided = wrong_mstlo(trace, mstlo_v)
-        mstlo_rate = N / min(mstlo_t)
-        print(
-            f"mstlo-python {mstlo.__version__} (EagerQualitative, batch): {fmt(mstlo_rate)} "
-            f"states/s (median {fmt(N / statistics.median(mstlo_t))}), {len(mstlo_v)} verdicts "
-            f"({off} at times between states, {undecided} states without one), "
-            f"{w_m} wrong of {checked} checked at state times vs brute force"
-        )
         # The headline compares the same work: a verdict for every state, as mstlo gives.
         # Our restart monitor (one verdict per evaluation) is reported apart, so a ratio
         # between different jobs is never the one quoted.
-        report("mtl-progression", step_rate, "mstlo", mstlo_rate, "states/s", better="higher")
-        report(
-            "mtl-progression-monitor",
-            ours_rate,
-            "mstlo",
-            mstlo_rate,
-            "states/s",
-            better="higher",
-        )
+        for name in cases:
+            report(
+                name,
+                rate(name + "/ours"),
+                "mstlo",
+                rate(name + "/mstlo"),
+                "states/s",
+                better="higher",
+            )
+        m = rate("mtl-progression/mstlo")
+        report("mtl-progression-monitor", rate("monitor"), "mstlo", m, "states/s", better="higher")
     if reelay is not None:
         report(
-            "mtl-progression-monitor", ours_rate, "reelay", reelay_rate, "states/s", better="higher"
+            "mtl-progression-monitor",
+            rate("monitor"),
+            "reelay",
+            rate("reelay"),
+            "states/s",
+            better="higher",
         )
 
 

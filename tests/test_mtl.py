@@ -465,3 +465,55 @@ def test_every_step_fast_path_matches_progression_exactly(text: str, trace: list
     for start in fast.undecided():
         i = next(j for j, (tj, _) in enumerate(trace) if tj == start)
         assert evaluate(f, trace, i) is None
+
+
+def _until_formulas() -> st.SearchStrategy[str]:
+    # bounds on the traces' quarter-second grid, so windows often end exactly at a state
+    bounds = st.tuples(st.sampled_from([0, 0.25, 0.5, 1, 2]), st.sampled_from([0, 0.5, 1, 1.5]))
+    pure = st.recursive(
+        st.one_of(_atoms, st.sampled_from(["true", "false"])),
+        lambda c: st.one_of(
+            st.builds(lambda a: f"not ({a})", c),
+            st.builds(lambda a, b: f"({a}) and ({b})", c, c),
+            st.builds(lambda a, b: f"({a}) or ({b})", c, c),
+        ),
+        max_leaves=2,
+    )
+    until = st.builds(lambda a, i, b: f"({a}) until{_iv(i)} ({b})", pure, bounds, pure)
+
+    def extend(children: st.SearchStrategy[str]) -> st.SearchStrategy[str]:
+        return st.one_of(
+            st.builds(lambda a: f"not ({a})", children),
+            st.builds(lambda a, b: f"({a}) and ({b})", children, children),
+            st.builds(lambda a, b: f"({a}) -> ({b})", children, children),
+            st.builds(lambda i, a: f"always{_iv(i)} ({a})", bounds, children),
+            st.builds(lambda i, a: f"eventually{_iv(i)} ({a})", bounds, children),
+        )
+
+    return st.recursive(st.one_of(until, _atoms), extend, max_leaves=4)
+
+
+@settings(max_examples=800, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(_until_formulas(), _long_traces)
+def test_every_step_until_matches_progression_at_window_edges(text: str, trace: list[Any]) -> None:
+    f = parse(text)
+    fast = StepMonitor(f)
+    assert fast._fast is not None
+    slow = StepMonitor(f)
+    slow._fast = None
+    compacting = StepMonitor(f)
+    stepped = []
+    for k, (t, s) in enumerate(trace):
+        compacting._compact_at = 0
+        got, want = fast.step(t, s), slow.step(t, s)
+        assert got == want, (text, k)
+        assert compacting.step(t, s) == want, (text, k)
+        stepped += got
+        for v in got:
+            start = next(j for j, (tj, _) in enumerate(trace) if tj == v.start)
+            assert evaluate(f, trace[: k + 1], start) is v.verdict, (text, start, k)
+    assert fast.undecided() == slow.undecided() == compacting.undecided()
+    for start in fast.undecided():
+        i = next(j for j, (tj, _) in enumerate(trace) if tj == start)
+        assert evaluate(f, trace, i) is None
+    assert StepMonitor(f).run(trace) == stepped  # the batch form gives the same, in order

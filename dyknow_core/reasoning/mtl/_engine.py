@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import bisect
-from collections.abc import Callable, Mapping
+import gc
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeAlias, cast
 
 from ._monitor import Verdict
@@ -21,18 +22,27 @@ from ._syntax import (
     Implies,
     Not,
     Or,
+    Until,
     _as_formula,
 )
 
+_AtomFn: TypeAlias = Callable[[Mapping[str, Any], float], bool]
+
 # -- every-step fast path --------------------------------------------------------------------
 #
-# For the fragment without quantifiers, unbounded windows or until, StepMonitor evaluates
-# bottom-up: each node keeps one value per position (None until certain) and its step
-# returns the positions it decided at this state. A bounded always/eventually marks, for a
-# child position j holding its dominant value (False/True), every position whose window
-# holds j (a contiguous range, found by bisection on the exact window bounds); a position
-# whose window has closed is decided the other way once its window holds no undecided child
-# position (scanned from the child's first undecided position, then waiting on the blocker).
+# For the fragment without quantifiers or unbounded windows, and with until only between
+# state formulas, StepMonitor evaluates bottom-up: each node keeps one value per position
+# (None until certain, in room reserved at each compaction) and its step returns the
+# positions it decided at this state. A bounded always/eventually marks, for a child
+# position j holding its dominant value (False/True), every position whose window holds j
+# (a contiguous range, found by bisection on the exact window bounds); a position whose
+# window has closed is decided the other way once its window holds no undecided child
+# position (scanned from the child's first undecided position, then waiting on the
+# blocker). Over a state formula, decided in order, the undecided positions of a window
+# from the current state (and of an until) are a suffix: no bisection, and a state
+# formula joined with such a window is the same node. Every position is decided once:
+# amortised, a state costs a few operations per node (and a bisection where a value of a
+# temporal operand decides a window).
 
 
 class _FNode:
@@ -66,6 +76,14 @@ class _FNode:
         for c in self.children():
             c.rebase(k)
 
+    def reserve(self, size: int) -> None:
+        # room for positions up to size - 1, undecided: a step assigns, never appends
+        val = self.val
+        if len(val) < size:
+            val.extend([None] * (size - len(val)))
+        for c in self.children():
+            c.reserve(size)
+
 
 class _FAtom(_FNode):
     __slots__ = ("fn",)
@@ -75,7 +93,7 @@ class _FAtom(_FNode):
         self.fn = fn
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
-        self.val.append(self.fn(s, t))
+        self.val[n] = self.fn(s, t)
         return [n]
 
 
@@ -87,7 +105,7 @@ class _FConst(_FNode):
         self.value = value
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
-        self.val.append(self.value)
+        self.val[n] = self.value
         return [n]
 
 
@@ -104,7 +122,6 @@ class _FNot(_FNode):
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
         ev = self.child.step(n, t, s)
         val, cv = self.val, self.child.val
-        val.append(None)
         for j in ev:
             val[j] = not cv[j]
         return ev
@@ -124,7 +141,6 @@ class _FBin(_FNode):
         el = self.left.step(n, t, s)
         er = self.right.step(n, t, s)
         val, lv, rv, dom = self.val, self.left.val, self.right.val, self.dom
-        val.append(None)
         out: list[int] = []
         for j in el:
             if val[j] is None:
@@ -152,38 +168,34 @@ class _FBin(_FNode):
 
 
 class _FBinAtom(_FNode):
-    """``and``/``or`` whose left operand is decided at each state (a fused atom)."""
+    """``and``/``or`` whose left operand is decided at each state (a fused atom).
 
-    __slots__ = ("dom", "fn", "lv", "right")
+    A position left undecided had the unit on the left (true for ``and``, false for
+    ``or``), so the right operand's value, once known, is the value.
+    """
 
-    def __init__(self, fn: Callable[[Mapping[str, Any], float], bool], right: _FNode, dom: bool):
+    __slots__ = ("dom", "fn", "right")
+
+    def __init__(self, fn: _AtomFn, right: _FNode, dom: bool):
         super().__init__()
         self.fn, self.right, self.dom = fn, right, dom
-        self.lv: list[bool] = []
 
     def children(self) -> tuple[_FNode, ...]:
         return (self.right,)
 
-    def rebase(self, k: int) -> None:
-        del self.lv[:k]
-        super().rebase(k)
-
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
-        x = self.fn(s, t)
-        self.lv.append(x)
         er = self.right.step(n, t, s)
-        val, dom = self.val, self.dom
-        if x is dom:
-            val.append(dom)
+        val = self.val
+        if self.fn(s, t) is self.dom:
+            val[n] = self.dom
             out = [n]
         else:
-            val.append(None)
             out = []
         if er:
-            lv, rv = self.lv, self.right.val
+            rv = self.right.val
             for j in er:
                 if val[j] is None:
-                    val[j] = rv[j] if lv[j] is not dom else dom
+                    val[j] = rv[j]
                     out.append(j)
         return out
 
@@ -244,17 +256,15 @@ class _FWinAtom(_FWindow):
         val, ta, tb, dom = self.val, self.ta, self.tb, self.dom
         tb.append(t + self.b)
         if x is not dom:
-            val.append(None)
             out: list[int] = []
             if len(ta) <= n:
                 ta.append(t + self.a)
         elif ta is self.times and self.marked == n - 1:
             # the window starts here and every earlier window holding t is already marked
-            val.append(dom)
+            val[n] = dom
             out = [n]
             self.marked = n
         else:
-            val.append(None)
             out = []
             if len(ta) <= n:
                 ta.append(t + self.a)
@@ -284,15 +294,63 @@ class _FWinAtom(_FWindow):
         return out
 
 
+class _FWinAtom0(_FWindow):
+    """A bounded always/eventually from the current state (``[0, b]``) of a state formula.
+
+    Its window starts at its own position and the operand is decided in order, so the
+    undecided positions are always the last ones, ``close`` to ``n``: a dominant value
+    decides them all, and otherwise the windows that end by ``t`` close. No bisection.
+    """
+
+    __slots__ = ("fn",)
+
+    def __init__(self, b: float, fn: _AtomFn, always: bool, times: list[float]) -> None:
+        super().__init__(0.0, b, always, times)
+        self.fn = fn
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        # window ends are times[i] + b, the same float expression as everywhere
+        val, times, b = self.val, self.times, self.b
+        cl = self.close
+        if self.fn(s, t) is self.dom:
+            if cl == n:
+                val[n] = self.dom
+                self.close = n + 1
+                return [n]
+            out: list[int] = []
+            nd = not self.dom
+            while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
+                val[cl] = nd
+                out.append(cl)
+                cl += 1
+            dom = self.dom
+            for i in range(cl, n + 1):
+                val[i] = dom
+            out.extend(range(cl, n + 1))
+            self.close = n + 1
+            return out
+        if times[cl] + b > t:
+            return []
+        out = []
+        nd = not self.dom
+        while cl <= n and times[cl] + b <= t:
+            val[cl] = nd
+            out.append(cl)
+            cl += 1
+        self.close = cl
+        return out
+
+
 class _FWin(_FWindow):
     """A bounded always/eventually of any operand: decided once its window's values are."""
 
-    __slots__ = ("child", "cover_hi", "cover_lo", "cu", "waiters")
+    __slots__ = ("child", "cover_hi", "cover_lo", "cu", "end", "waiters")
 
     def __init__(self, a: float, b: float, child: _FNode, always: bool, times: list[float]):
         super().__init__(a, b, always, times)
         self.child = child
         self.cu = 0  # the child's first undecided position
+        self.end = 0  # the first position after the window of the last one closed
         self.cover_lo, self.cover_hi = 0, -1  # a range of positions all decided
         self.waiters: dict[int, list[tuple[int, int]]] = {}  # blocker -> (position, start)
 
@@ -306,6 +364,7 @@ class _FWin(_FWindow):
     def rebase(self, k: int) -> None:
         super().rebase(k)
         self.cu -= k
+        self.end = max(self.end - k, 0)
         self.cover_lo = max(self.cover_lo - k, 0)
         self.cover_hi = max(self.cover_hi - k, -1)
         # entries of positions already decided (by a dominant value) are stale: drop them
@@ -318,50 +377,83 @@ class _FWin(_FWindow):
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
         ev = self.child.step(n, t, s)
-        val, ta, tb, times = self.val, self.ta, self.tb, self.times
-        val.append(None)
-        if ta is not times:
-            ta.append(t + self.a)
+        tb = self.tb
         tb.append(t + self.b)
+        if self.a:  # else the window starts are the times themselves
+            self.ta.append(t + self.a)
         out: list[int] = []
         if ev:  # only the child's new values can mark positions or unblock windows
             cv, dom = self.child.val, self.dom
             for j in ev:
                 if cv[j] is dom:
-                    self._mark(j, out)
+                    if j == self.cover_hi + 1 and not self.a:
+                        # the windows holding j before j's own are covered already
+                        self.cover_hi = j
+                        if self.val[j] is None:
+                            self.val[j] = dom
+                            out.append(j)
+                    else:
+                        self._mark(j, out)
             cu = self.cu
             while cu <= n and cv[cu] is not None:
                 cu += 1
             self.cu = cu
-            waiters = self.waiters
-            if waiters:
-                for j in ev:
-                    w = waiters.pop(j, None)
-                    if w:
-                        for i, s_i in w:
-                            if val[i] is None:
-                                self._scan(i, s_i, j - 1, out)
+            if self.waiters:
+                self._wake(ev, out)
         cl = self.close
-        if tb[cl] <= t:
-            cu = self.cu
+        tbc = tb[cl]
+        if tbc <= t:
+            val, times, cu = self.val, self.times, self.cu
             nd = not self.dom
-            while cl <= n and tb[cl] <= t:
+            while True:
                 if val[cl] is None:
                     # closed, and no dominant value in the window: decided once all are
-                    if cu > n:
+                    if cu > n or times[cu] > tbc:
                         val[cl] = nd
                         out.append(cl)
                     else:
-                        e_i = bisect.bisect_right(times, tb[cl], cl) - 1
-                        if cu > e_i:
-                            val[cl] = nd
-                            out.append(cl)
-                        else:
-                            s_i = cl if ta is times else bisect.bisect_left(times, ta[cl], cl)
-                            self._scan(cl, s_i, e_i, out)
+                        self._wait(cl, tbc, n, out)
                 cl += 1
+                if cl > n:
+                    break
+                tbc = tb[cl]
+                if tbc > t:
+                    break
             self.close = cl
         return out
+
+    def _wake(self, ev: list[int], out: list[int]) -> None:
+        # the windows waiting on a child position decided now: scan on from it
+        waiters, val = self.waiters, self.val
+        for j in ev:
+            w = waiters.pop(j, None)
+            if w:
+                for i, s_i in w:
+                    if val[i] is None:
+                        self._scan(i, s_i, j - 1, out)
+
+    def _wait(self, i: int, tbc: float, n: int, out: list[int]) -> None:
+        # a closed window holding an undecided child position, maybe: scan back from its end
+        times, cu = self.times, self.cu
+        e = self.end
+        if e <= n and times[e] <= tbc:
+            e = bisect.bisect_right(times, tbc, e, n + 1)
+            self.end = e
+        s_i = i if self.ta is times else bisect.bisect_left(times, self.ta[i], i)
+        cv = self.child.val
+        lo = s_i if s_i > cu else cu
+        p = e - 1
+        while p >= lo and cv[p] is not None:
+            p -= 1
+        if p < lo:
+            self.val[i] = not self.dom
+            out.append(i)
+        else:
+            w = self.waiters.get(p)
+            if w is None:
+                self.waiters[p] = [(i, s_i)]
+            else:
+                w.append((i, s_i))
 
     def _mark(self, j: int, out: list[int]) -> None:
         # every position whose window holds j takes the dominant value
@@ -398,6 +490,221 @@ class _FWin(_FWindow):
             self.waiters.setdefault(p, []).append((i, s_i))
 
 
+class _FUntAtom(_FWindow):
+    """A bounded ``left until right`` of operands decided at each state, in order.
+
+    An undecided position has held ``left`` at every state since it (a false one decides
+    all of them false) and seen no ``right`` in its window yet; so a true ``right`` marks
+    the range of positions whose window holds it, a false ``left`` decides the rest false,
+    and a window that closes first is false: each position is decided once (a bisection
+    finds the range a true right marks).
+    """
+
+    __slots__ = ("hi_hint", "lfn", "marked", "rfn")
+
+    def __init__(self, a: float, b: float, lfn: _AtomFn, rfn: _AtomFn, times: list[float]):
+        super().__init__(a, b, False, times)
+        self.lfn, self.rfn = lfn, rfn
+        self.marked = -1  # every position up to here whose window held a true right is marked
+        self.hi_hint = 0
+
+    def rebase(self, k: int) -> None:
+        super().rebase(k)
+        self.marked = max(self.marked - k, -1)
+        self.hi_hint = max(self.hi_hint - k, 0)
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        val, ta, tb = self.val, self.ta, self.tb
+        tb.append(t + self.b)
+        if ta is not self.times:
+            ta.append(t + self.a)
+        out: list[int] = []
+        cl = self.close
+        if self.rfn(s, t):
+            # the undecided positions whose window holds t (left held since each of them)
+            lo = bisect.bisect_left(tb, t, cl, n + 1)
+            if ta is self.times:
+                hi = n
+            else:
+                hi = bisect.bisect_right(ta, t, self.hi_hint, n + 1) - 1
+                if hi >= 0:
+                    self.hi_hint = hi
+            m = self.marked
+            if m >= lo:
+                lo = m + 1
+            if hi >= lo:
+                for i in range(lo, hi + 1):
+                    val[i] = True
+                out.extend(range(lo, hi + 1))
+                self.marked = hi
+        if not self.lfn(s, t):
+            # left fails here: every position still open (window started or not) is false
+            for i in range(cl, n + 1):
+                if val[i] is None:
+                    val[i] = False
+                    out.append(i)
+            self.close = n + 1
+            return out
+        if tb[cl] <= t:
+            while cl <= n and tb[cl] <= t:
+                if val[cl] is None:
+                    val[cl] = False
+                    out.append(cl)
+                cl += 1
+            self.close = cl
+        return out
+
+
+class _FUntAtom0(_FWindow):
+    """A ``left until[0, b] right`` of state formulas: its undecided positions are a suffix.
+
+    A true right decides every open position true (and the ones whose window ended since
+    the last state false), a false left decides them all false, otherwise the windows
+    ending by ``t`` close false; as for :class:`_FWinAtom0`, no bisection.
+    """
+
+    __slots__ = ("lfn", "rfn")
+
+    def __init__(self, b: float, lfn: _AtomFn, rfn: _AtomFn, times: list[float]) -> None:
+        super().__init__(0.0, b, False, times)
+        self.lfn, self.rfn = lfn, rfn
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        val, times, b = self.val, self.times, self.b
+        cl = self.close
+        if self.rfn(s, t):
+            if cl == n:
+                val[n] = True
+                self.close = n + 1
+                return [n]
+            out: list[int] = []
+            while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
+                val[cl] = False
+                out.append(cl)
+                cl += 1
+            for i in range(cl, n + 1):
+                val[i] = True
+            out.extend(range(cl, n + 1))
+            self.close = n + 1
+            return out
+        if not self.lfn(s, t):
+            val[n] = False
+            for i in range(cl, n):
+                val[i] = False
+            self.close = n + 1
+            return list(range(cl, n + 1))
+        if times[cl] + b > t:
+            return []
+        out = []
+        while cl <= n and times[cl] + b <= t:
+            val[cl] = False
+            out.append(cl)
+            cl += 1
+        self.close = cl
+        return out
+
+
+# ``g -> always[0,b] p``, ``g and eventually[0,b] p``, ``g -> (p until[0,b] q)``: a state
+# formula joined with a window over state formulas, the usual body of an ``always``. One
+# node each (the join's value is the window's where the guard is not decisive), so the
+# window's positions a guard decides cost nothing more and no events pass between two.
+
+
+class _FGuardWin0(_FWindow):
+    """``guard or/and always/eventually[0, b] fn``, both state formulas: see ``_FWinAtom0``."""
+
+    __slots__ = ("fn", "gdom", "gfn")
+
+    def __init__(
+        self, b: float, fn: _AtomFn, always: bool, gfn: _AtomFn, gdom: bool, times: list[float]
+    ) -> None:
+        super().__init__(0.0, b, always, times)
+        self.fn, self.gfn, self.gdom = fn, gfn, gdom
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        val, times, b = self.val, self.times, self.b
+        if self.gfn(s, t) is self.gdom:
+            val[n] = self.gdom
+            out = [n]
+        else:
+            out = []
+        cl = self.close
+        if self.fn(s, t) is self.dom:
+            # the window's value is decided for every open position (the ended ones not)
+            nd = not self.dom
+            while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
+                if val[cl] is None:
+                    val[cl] = nd
+                    out.append(cl)
+                cl += 1
+            dom = self.dom
+            for i in range(cl, n + 1):
+                if val[i] is None:
+                    val[i] = dom
+                    out.append(i)
+            self.close = n + 1
+            return out
+        if times[cl] + b > t:
+            return out
+        nd = not self.dom
+        while cl <= n and times[cl] + b <= t:
+            if val[cl] is None:
+                val[cl] = nd
+                out.append(cl)
+            cl += 1
+        self.close = cl
+        return out
+
+
+class _FGuardUnt0(_FWindow):
+    """``guard or/and (lfn until[0, b] rfn)``, all state formulas: see ``_FUntAtom0``."""
+
+    __slots__ = ("gdom", "gfn", "lfn", "rfn")
+
+    def __init__(
+        self, b: float, lfn: _AtomFn, rfn: _AtomFn, gfn: _AtomFn, gdom: bool, times: list[float]
+    ) -> None:
+        super().__init__(0.0, b, False, times)
+        self.lfn, self.rfn, self.gfn, self.gdom = lfn, rfn, gfn, gdom
+
+    def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
+        val, times, b = self.val, self.times, self.b
+        if self.gfn(s, t) is self.gdom:
+            val[n] = self.gdom
+            out = [n]
+        else:
+            out = []
+        cl = self.close
+        if self.rfn(s, t):
+            while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
+                if val[cl] is None:
+                    val[cl] = False
+                    out.append(cl)
+                cl += 1
+            for i in range(cl, n + 1):
+                if val[i] is None:
+                    val[i] = True
+                    out.append(i)
+            self.close = n + 1
+            return out
+        if not self.lfn(s, t):
+            for i in range(cl, n + 1):
+                if val[i] is None:
+                    val[i] = False
+                    out.append(i)
+            self.close = n + 1
+            return out
+        if times[cl] + b > t:
+            return out
+        while cl <= n and times[cl] + b <= t:
+            if val[cl] is None:
+                val[cl] = False
+                out.append(cl)
+            cl += 1
+        self.close = cl
+        return out
+
+
 def _fast_supported(f: Formula) -> bool:
     if isinstance(f, BoolConst | Feature | Compare):
         return True
@@ -407,10 +714,9 @@ def _fast_supported(f: Formula) -> bool:
         return _fast_supported(f.left) and _fast_supported(f.right)
     if isinstance(f, Always | Eventually):
         return f.hi != INF and _fast_supported(f.operand)
+    if isinstance(f, Until):
+        return f.hi != INF and _pure(f.left) and _pure(f.right)
     return False
-
-
-_AtomFn: TypeAlias = Callable[[Mapping[str, Any], float], bool]
 
 
 def _pure(f: Formula) -> bool:
@@ -456,13 +762,23 @@ def _fast_compile(f: Formula, times: list[float]) -> _FNode:
         if isinstance(right, _FAtom):
             left, right = right, left
         if isinstance(left, _FAtom):
+            if type(right) is _FWinAtom0:
+                return _FGuardWin0(right.b, right.fn, not right.dom, left.fn, dom, times)
+            if type(right) is _FUntAtom0:
+                return _FGuardUnt0(right.b, right.lfn, right.rfn, left.fn, dom, times)
             return _FBinAtom(left.fn, right, dom)
         return _FBin(left, right, dom)
     if isinstance(f, Not):
         return _FNot(_fast_compile(f.operand, times))
+    if isinstance(f, Until):
+        if f.lo == 0:
+            return _FUntAtom0(f.hi, _pure_fn(f.left), _pure_fn(f.right), times)
+        return _FUntAtom(f.lo, f.hi, _pure_fn(f.left), _pure_fn(f.right), times)
     assert isinstance(f, Always | Eventually)
     body = _fast_compile(f.operand, times)
     if isinstance(body, _FAtom):
+        if f.lo == 0:
+            return _FWinAtom0(f.hi, body.fn, isinstance(f, Always), times)
         return _FWinAtom(f.lo, f.hi, body.fn, isinstance(f, Always), times)
     return _FWin(f.lo, f.hi, body, isinstance(f, Always), times)
 
@@ -485,6 +801,7 @@ class StepMonitor:
         # the bottom-up windowed evaluation where the fragment allows it, else progression
         if _fast_supported(self.formula):
             self._fast = _fast_compile(self.formula, self._times)
+            self._fast.reserve(self._compact_at)
 
     def step(self, t: float, state: Mapping[str, Any]) -> list[Verdict]:
         """Start an evaluation at ``t``, progress all pending ones; the verdicts decided now."""
@@ -501,6 +818,7 @@ class StepMonitor:
                 del times[:k]
                 n -= k
             self._compact_at = n + _COMPACT
+            root.reserve(self._compact_at)
         times.append(t)
         ev = root.step(n, t, state)
         if not ev:
@@ -512,6 +830,64 @@ class StepMonitor:
             return [new(Verdict, (times[j], t, val[j]))]
         ev.sort()
         return [new(Verdict, (times[j], t, val[j])) for j in ev]
+
+    def run(self, trace: Iterable[tuple[float, Mapping[str, Any]]]) -> list[Verdict]:
+        """Step through every ``(t, state)`` of ``trace``: the verdicts, as ``step`` orders them.
+
+        The cycle collector is paused while it runs (and restored after).
+        """
+        # Every verdict outlives the batch as a tracked object (a named tuple is never
+        # untracked), so a long batch alone makes the cycle collector scan the whole heap
+        # (a quarter of the time at 100 k states); the loop makes no cycles: pause it.
+        paused = gc.isenabled()
+        if paused:
+            gc.disable()
+        try:
+            root = self._fast
+            if root is None:
+                out: list[Verdict] = []
+                for t, s in trace:
+                    out += self._step_progress(t, s)
+                return out
+            return self._run_fast(root, trace)
+        finally:
+            if paused:
+                gc.enable()
+
+    def _run_fast(
+        self, root: _FNode, trace: Iterable[tuple[float, Mapping[str, Any]]]
+    ) -> list[Verdict]:
+        # step's loop with its lookups done once
+        times = self._times
+        n = len(times)
+        compact_at = self._compact_at
+        append = times.append
+        root_step = root.step
+        val = root.val
+        new = tuple.__new__  # skips the named tuple's Python-level __new__
+        out: list[Verdict] = []
+        add = out.append
+        for t, s in trace:
+            if n >= compact_at:
+                k = root.base()
+                if k > 0:
+                    root.rebase(k)
+                    del times[:k]
+                    n -= k
+                compact_at = n + _COMPACT
+                root.reserve(compact_at)
+            append(t)
+            ev = root_step(n, t, s)
+            n += 1
+            if ev:
+                if len(ev) == 1:
+                    j = ev[0]
+                    add(new(Verdict, (times[j], t, val[j])))
+                else:
+                    ev.sort()
+                    out += [new(Verdict, (times[j], t, val[j])) for j in ev]
+        self._compact_at = compact_at
+        return out
 
     def _step_progress(self, t: float, state: Mapping[str, Any]) -> list[Verdict]:
         out: list[Verdict] = []
@@ -529,7 +905,8 @@ class StepMonitor:
     def undecided(self) -> list[float]:
         """Start times whose verdict the states so far leave unknown."""
         if self._fast is not None:
-            return [t for t, v in zip(self._times, self._fast.val, strict=True) if v is None]
+            val = self._fast.val[: len(self._times)]  # the rest is room reserved
+            return [t for t, v in zip(self._times, val, strict=True) if v is None]
         return [s for s, _ in self.pending]
 
 

@@ -383,24 +383,43 @@ class _Quant(_Node):
         return str(self.q)
 
 
+# ``feature OP const`` with the operator written out (no call to ``operator.lt`` and
+# ``bool``): the test every state of every window runs. One factory per operator and
+# polarity, from this fixed template and the operators of ``_OPS`` only.
+_COMPARE_SRC = """
+def make(name, const):
+    def fn(s, t):
+        v = s.get(name)
+        if v is None:
+            return {miss}
+        try:
+            return {yes} if v {op} const else {no}
+        except TypeError:
+            return {miss}
+    return fn
+"""
+_Test: TypeAlias = Callable[[Mapping[str, Any], float], bool]
+_COMPARE: dict[tuple[str, bool], Callable[[str, Any], _Test]] = {}
+
+
+def _compare_fn(op: str, negate: bool) -> Callable[[str, Any], _Test]:
+    make = _COMPARE.get((op, negate))
+    if make is None:
+        assert op in _OPS
+        code = _COMPARE_SRC.format(op=op, miss=negate, yes=not negate, no=negate)
+        scope: dict[str, Any] = {}
+        exec(code, scope)  # a fixed template and a whitelisted operator
+        make = _COMPARE[(op, negate)] = scope["make"]
+    return make
+
+
 def _compile_atom(f: Feature | Compare, env: Mapping[str, Any], negate: bool) -> _Node:
     text = str(f) if not negate else f"not {f}"
     if isinstance(f, Compare) and not env and isinstance(f.left, Feature) and not f.left.args:
         # the common case gets a closure without the generic reader
         name, const, op = f.left.name, f.right, f.op
         if not isinstance(const, Feature):
-            cmp = _OPS[op]
-
-            def fn(s: Mapping[str, Any], t: float) -> bool:
-                v = s.get(name)
-                if v is None:
-                    return negate
-                try:
-                    return bool(cmp(v, const)) is not negate
-                except TypeError:
-                    return negate
-
-            return _Atom(fn, text)
+            return _Atom(_compare_fn(op, negate)(name, const), text)
     if isinstance(f, Feature) and not f.args:
         fname = f.name
         if negate:
