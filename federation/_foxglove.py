@@ -43,6 +43,7 @@ from dyknow_core import NS_PER_S, Policy, label_schema, sample_json
 from ._follow import REQUEST_TIMEOUT, FollowedStream, cancel_export, follow
 from ._geo import local_to_geo
 from ._platform import ConsoleRoles, FederationPlatform, FoxgloveSettings
+from ._proxy_base import OwnedTasks
 from ._service import MembershipEvent
 
 __all__ = ["FoxgloveBridge"]
@@ -447,7 +448,7 @@ class FoxgloveBridge:
         self.url = ""
         self._members: dict[str, _Member] = {}
         self._topics: dict[tuple[str, str], _Topic] = {}
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks = OwnedTasks(f"foxglove of {self.name}")
         self._context: Any = None
         self._server: Any = None
         self._relay: Any = None
@@ -543,22 +544,10 @@ class FoxgloveBridge:
             await stack.aclose()
 
     def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
-        task = asyncio.get_running_loop().create_task(coro, name=name)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and (exc := task.exception()) is not None:
-            log.error("foxglove of %s: task %s failed", self.name, task.get_name(), exc_info=exc)
+        return self._tasks.spawn(coro, name)
 
     async def _close_tasks(self) -> None:
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        if tasks:
-            await asyncio.gather(*tasks, return_exceptions=True)
+        await self._tasks.aclose()
         cancels = [
             cancel_export(self.platform, m.name, s)
             for m in self._members.values()

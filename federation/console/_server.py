@@ -43,6 +43,7 @@ from ontology import OntologyError, parse
 
 from .._follow import REQUEST_TIMEOUT, FollowedStream, cancel_export, follow, reason
 from .._platform import ConsoleSettings, FederationPlatform
+from .._proxy_base import OwnedTasks
 from .._service import MembershipEvent
 from ._access import ConsoleAccess
 
@@ -181,7 +182,7 @@ class OperatorConsole:
         self._version = 0
         self._changed_event = asyncio.Event()
         self._closing = asyncio.Event()
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks = OwnedTasks(f"console of {self.name}")
         self._observation_source: Source | None = None
         self._observation_label: str | None = None
         self._observation_semantic: str | None = None  # None: the vocabulary has none
@@ -261,15 +262,7 @@ class OperatorConsole:
         self._spawn(self.access.run_reports(self._closing), f"console[{self.name}].refusals")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
-        task = asyncio.get_running_loop().create_task(coro, name=name)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and (exc := task.exception()) is not None:
-            log.error("console of %s: task %s failed", self.name, task.get_name(), exc_info=exc)
+        return self._tasks.spawn(coro, name)
 
     async def _close_tasks(self) -> None:
         # Best effort, bounded: a provider still alive stops streaming to a closed console.
@@ -280,11 +273,7 @@ class OperatorConsole:
             for s in p.streams.values()
             if s.export_id is not None
         ]
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        if tasks:
-            await asyncio.gather(*tasks, return_exceptions=True)
+        await self._tasks.aclose()
         if cancels:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(REQUEST_TIMEOUT):
