@@ -36,7 +36,7 @@ from agents.keys import gen_keys, trust_keys
 from agents.transports import MemoryHub
 from federation import FederationPlatform, FoxgloveBridge, PlatformConfig, PlatformConfigError
 from federation._geo import EARTH_RADIUS, local_to_geo
-from federation.console import OperatorConsole
+from federation.console import ConsoleRoles, ConsoleSettings, OperatorConsole
 from federation.demo._vocabulary import (
     console_config,
     foxglove_config,
@@ -113,6 +113,10 @@ def test_foxglove_settings_default_to_the_console() -> None:
     cfg = _config(streams=["b"], roles={"violations": "a"})
     with pytest.raises(ValueError, match=r"foxglove\.roles: violations = 'a' is not one of"):
         cfg.foxglove.resolve(cfg.console)
+    # the console's violations of several labels: those served stay
+    console = ConsoleSettings(streams=("a", "b"), roles=ConsoleRoles(violations=("a", "b")))
+    streams, roles = _config(streams=["b"]).foxglove.resolve(console)
+    assert roles.violations == ("b",) and roles.assigned() == [("violations", "b")]
 
 
 @pytest.mark.parametrize(
