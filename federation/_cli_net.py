@@ -12,7 +12,7 @@ import time
 import uuid
 from collections.abc import AsyncIterator, Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgpack
 
@@ -28,6 +28,10 @@ from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig,
 
 from ._cli_common import failure_of, platforms_of, settle_gc, wait_for_members
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
+
+if TYPE_CHECKING:
+    from ._application import NodeApplication
+    from ._local import LocalChannel
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +72,15 @@ def endpoints(config: PlatformConfig) -> str:
     return f"mqtt {getattr(t, 'host', '?')}:{getattr(t, 'port', '?')}"
 
 
-async def run_node(config: PlatformConfig, source: str, say: Callable[[str], None]) -> None:
-    """Run one platform and its application until SIGINT/SIGTERM, then shut it down cleanly."""
+@contextlib.asynccontextmanager
+async def _platform(
+    config: PlatformConfig, source: str
+) -> AsyncIterator[tuple[FederationPlatform, NodeApplication, LocalChannel]]:
+    """The config's platform with its application and local channel, not yet joined.
+
+    What ``dyknow node``, ``console`` and ``foxglove`` run; each joins once what it adds
+    (a console, a bridge) is up too.
+    """
     from ._application import NodeApplication, check_application
     from ._local import LocalChannel, refuse_duplicate
 
@@ -83,6 +94,12 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         NodeApplication(p, source) as application,
         LocalChannel(p) as channel,
     ):
+        yield p, application, channel
+
+
+async def run_node(config: PlatformConfig, source: str, say: Callable[[str], None]) -> None:
+    """Run one platform and its application until SIGINT/SIGTERM, then shut it down cleanly."""
+    async with _platform(config, source) as (p, application, channel):
         await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
         settle_gc()
@@ -118,18 +135,10 @@ async def run_console(
 
     The ready line ends with the URL to open, token included (``…/?token=…``).
     """
-    from ._application import NodeApplication, check_application
-    from ._local import LocalChannel, refuse_duplicate
     from .console import OperatorConsole
 
-    check_application(config, source)
-    transport = config.make_transport()
     async with (
-        transport,
-        _checked(refuse_duplicate(transport, config)),
-        FederationPlatform(config, source=source, join=False, transport=transport) as p,
-        NodeApplication(p, source),
-        LocalChannel(p) as channel,
+        _platform(config, source) as (p, _, channel),
         OperatorConsole(p, host=host, port=port, token=token, allow_hosts=allow_hosts) as console,
     ):
         await p.join()
@@ -162,18 +171,10 @@ async def run_foxglove(
     The ready line ends with the WebSocket URL to open in Foxglove, token included
     (``…/?token=…``); the connections relayed and refused are said at the end.
     """
-    from ._application import NodeApplication, check_application
     from ._foxglove import FoxgloveBridge
-    from ._local import LocalChannel, refuse_duplicate
 
-    check_application(config, source)
-    transport = config.make_transport()
     async with (
-        transport,
-        _checked(refuse_duplicate(transport, config)),
-        FederationPlatform(config, source=source, join=False, transport=transport) as p,
-        NodeApplication(p, source),
-        LocalChannel(p),
+        _platform(config, source) as (p, _, _),
         FoxgloveBridge(
             p,
             host=host,

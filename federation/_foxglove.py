@@ -5,7 +5,8 @@ application's operator, beside its `OperatorConsole`). It follows the federation
 membership, asks every other member for the streams of the config's ``[foxglove]``
 section (`FoxgloveSettings`; by default the ``[console]``'s), and publishes each sample
 it imports on a channel of a Foxglove WebSocket server (the official ``foxglove-sdk``):
-``/<platform>/<label>``, the value as JSON, its valid time as the message's log time.
+``/<platform>/<label>``, the sample as a recording holds it (`sample_json`: its value,
+valid and available time), its valid time as the message's log time.
 With the section's ``origin`` (latitude, longitude of the local frame's x = y = 0),
 positions are also published as ``foxglove.LocationFix`` (``…/fix``) and areas, tracks
 and violations as ``foxglove.GeoJSON`` (``…/geo``), which Foxglove's Map panel draws;
@@ -13,8 +14,9 @@ with or without it, every stream with a role also as a ``foxglove.SceneUpdate``
 (``…/scene``) in the local frame, for the 3D panel.
 
 Every channel is JSON-encoded with a JSON schema (``jsonschema``): the well-known
-Foxglove ones by their names, a stream's own inferred from its first sample (its
-description the vocabulary's). The server offers no publishing, services or
+Foxglove ones by their names, a stream's own inferred from its first sample as a
+recording's is (`label_schema`; its description the vocabulary's), so that a replayed
+recording shows the same fields. The server offers no publishing, services or
 parameters to its clients: they only watch.
 
 Only who holds the bridge's token watches: the SDK's server, which has no login, listens
@@ -36,20 +38,18 @@ from typing import Any, Self
 import orjson
 
 from agents.transports import Subscription
-from dyknow_core import NS_PER_S, Policy
+from dyknow_core import NS_PER_S, Policy, label_schema, sample_json
 
+from ._follow import REQUEST_TIMEOUT, FollowedStream, cancel_export, follow
 from ._geo import local_to_geo
 from ._platform import ConsoleRoles, FederationPlatform, FoxgloveSettings
+from ._proxy_base import OwnedTasks
 from ._service import MembershipEvent
 
-__all__ = ["FoxgloveBridge", "json_schema", "message"]
+__all__ = ["FoxgloveBridge"]
 
 log = logging.getLogger("federation.foxglove")
 
-RETRY = 2.0  # s: between attempts at a stream a platform refused or ended
-WAIT_IMPORT = 5.0  # s: one wait for the first sample of a stream (then waits again)
-REQUEST_TIMEOUT = 5.0  # s: one request to another platform
-SCHEMA_DEPTH = 4  # levels of a value's nesting its inferred schema describes
 
 _TIME = {
     "type": "object",
@@ -137,43 +137,6 @@ _VIOLATION = {"r": 0.9, "g": 0.1, "b": 0.1, "a": 0.7}
 _TEXT = {"r": 1.0, "g": 1.0, "b": 1.0, "a": 1.0}
 
 
-def json_schema(title: str, value: Any, description: str | None = None) -> dict[str, Any]:
-    """A JSON schema, named ``title``, for messages shaped like ``value`` (a stream's sample).
-
-    An object's fields are described by their first value's type (nested to
-    `SCHEMA_DEPTH`); none is required, since later samples may leave one out. A value
-    that is no object is sent as ``{"value": …}`` (`message`).
-    """
-    if not isinstance(value, dict):
-        value = {"value": value}
-    schema = {"title": title, **_schema_of(value, 0)}
-    if description:
-        schema["description"] = description
-    return schema
-
-
-def _schema_of(value: Any, depth: int) -> dict[str, Any]:
-    if isinstance(value, bool):
-        return {"type": "boolean"}
-    if isinstance(value, int | float):
-        return {"type": "number"}
-    if isinstance(value, str):
-        return {"type": "string"}
-    if depth >= SCHEMA_DEPTH:
-        return {}
-    if isinstance(value, dict):
-        props = {str(k): _schema_of(v, depth + 1) for k, v in value.items()}
-        return {"type": "object", "properties": props}
-    if isinstance(value, list | tuple):
-        return {"type": "array", "items": _schema_of(value[0], depth + 1) if value else {}}
-    return {}  # None, or anything JSON has no type for: left open
-
-
-def message(value: Any) -> dict[str, Any]:
-    """A sample's value as a JSON message: an object as is, anything else as ``value``."""
-    return value if isinstance(value, dict) else {"value": value}
-
-
 def _stamp(valid: int) -> dict[str, int]:
     sec, nsec = divmod(max(valid, 0), NS_PER_S)
     return {"sec": sec, "nsec": nsec}
@@ -194,7 +157,6 @@ class _Topic:
         "fix",
         "geo",
         "label",
-        "last_valid",
         "platform",
         "raw",
         "role",
@@ -210,7 +172,6 @@ class _Topic:
         self.fix: Any = None
         self.geo: Any = None
         self.scene: Any = None
-        self.last_valid: int | None = None  # the newest valid time served (ns)
 
     @property
     def topic(self) -> str:
@@ -221,7 +182,9 @@ class _Topic:
         """Log a batch of ``(value, valid, available)`` samples on the topic's channels."""
         b = self.bridge
         if self.raw is None and batch:
-            self.raw = b.channel(self.topic, json_schema(self.label, batch[0][0], b.describe(self)))
+            schema = label_schema(self.label, batch[0][0])
+            schema["description"] = b.describe(self)
+            self.raw = b.channel(self.topic, schema)
             if b.origin is not None and self.role == "positions":
                 self.fix = b.channel(f"{self.topic}/fix", LOCATION_FIX_SCHEMA)
             elif b.origin is not None and self.role is not None:
@@ -229,11 +192,9 @@ class _Topic:
             if self.role is not None:
                 self.scene = b.channel(f"{self.topic}/scene", SCENE_UPDATE_SCHEMA)
         raw, fix, geo, scene = self.raw, self.fix, self.geo, self.scene
-        for value, valid, _ in batch:
-            if self.last_valid is None or valid > self.last_valid:
-                self.last_valid = valid
-            if raw.has_sinks():
-                raw.log(_dumps(message(value)), log_time=valid)
+        for value, valid, available in batch:
+            if raw.has_sinks():  # as a recording holds it: a replay looks the same
+                raw.log(sample_json(value, valid, available), log_time=valid)
             try:
                 if scene is not None and scene.has_sinks():
                     update = self.scene_update(value, valid)
@@ -424,7 +385,7 @@ class _Member:
     name: str
     alive: bool = True
     tasks: set[asyncio.Task[None]] = field(default_factory=set)
-    exports: dict[str, str] = field(default_factory=dict)  # label -> export id (ours)
+    streams: dict[str, FollowedStream] = field(default_factory=dict)  # by label
 
 
 class FoxgloveBridge:
@@ -478,7 +439,7 @@ class FoxgloveBridge:
             )
         self.streams = streams
         self.roles: ConsoleRoles = roles
-        self._role_of = {label: role for role, label in roles.model_dump().items() if label}
+        self._role_of = {label: role for role, label in roles.assigned()}
         self.origin = self.settings.origin
         self.host = host
         self.port = port
@@ -487,7 +448,7 @@ class FoxgloveBridge:
         self.url = ""
         self._members: dict[str, _Member] = {}
         self._topics: dict[tuple[str, str], _Topic] = {}
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks = OwnedTasks(f"foxglove of {self.name}")
         self._context: Any = None
         self._server: Any = None
         self._relay: Any = None
@@ -583,28 +544,16 @@ class FoxgloveBridge:
             await stack.aclose()
 
     def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
-        task = asyncio.get_running_loop().create_task(coro, name=name)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and (exc := task.exception()) is not None:
-            log.error("foxglove of %s: task %s failed", self.name, task.get_name(), exc_info=exc)
+        return self._tasks.spawn(coro, name)
 
     async def _close_tasks(self) -> None:
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        if tasks:
-            await asyncio.gather(*tasks, return_exceptions=True)
-        fed = self.platform.federation_agent
+        await self._tasks.aclose()
         cancels = [
-            fed.cancel_stream(m.name, export_id, timeout=REQUEST_TIMEOUT)
+            cancel_export(self.platform, m.name, s)
             for m in self._members.values()
             if m.alive
-            for export_id in m.exports.values()
+            for s in m.streams.values()
+            if s.export_id is not None
         ]
         if cancels:  # best effort: a provider still alive stops streaming to a closed bridge
             with contextlib.suppress(TimeoutError):
@@ -623,7 +572,7 @@ class FoxgloveBridge:
 
         return foxglove.Channel(topic, schema=schema, context=self._context)
 
-    def describe(self, topic: _Topic) -> str | None:
+    def describe(self, topic: _Topic) -> str:
         """What a served stream is: the vocabulary's description of its label."""
         try:
             text = self.platform.vocabulary.description(topic.label)
@@ -670,7 +619,8 @@ class FoxgloveBridge:
         if m is None:
             return
         m.alive = False
-        m.exports.clear()  # stopped at the provider with us gone for it
+        for stream in m.streams.values():
+            stream.export_id = None  # stopped at the provider with us gone for it
         for task in list(m.tasks):
             task.cancel()
         m.tasks.clear()  # a return right after asks anew
@@ -680,40 +630,10 @@ class FoxgloveBridge:
     async def _follow(self, m: _Member, label: str) -> None:
         """Ask ``m`` for the stream (again while refused or ended) and serve its samples."""
         topic = self._topic(m.name, label, self._role_of.get(label))
-        while True:
-            if self.ask:
-                await self._ask_for(m, label)
-            await self._serve_import(m, topic)
-            # ended while its platform is alive (its lease for us expired): ask again
-            m.exports.pop(label, None)
-            await asyncio.sleep(RETRY)
-
-    async def _ask_for(self, m: _Member, label: str) -> None:
-        fed = self.platform.federation_agent
-        while True:
-            try:
-                m.exports[label] = await fed.create_stream(
-                    m.name, [label], sample_period=self.sample_period, timeout=REQUEST_TIMEOUT
-                )
-                return
-            except Exception as exc:
-                log.info("foxglove: %s refused %s: %s", m.name, label, exc)
-            await asyncio.sleep(RETRY)
-
-    async def _serve_import(self, m: _Member, topic: _Topic) -> None:
-        """Serve the import of ``topic`` until it ends."""
-        while True:
-            try:
-                local = await self.platform.imported(m.name, topic.label, timeout=WAIT_IMPORT)
-                break
-            except TimeoutError:
-                continue  # a platform may have nothing to say yet (no violation so far)
-        # From the start the first time (the cache keeps what arrived before we looked),
-        # after that, a platform come back included, from where we were: nothing twice.
-        start = 0 if topic.last_valid is None else topic.last_valid + 1
-        with self.platform.instance.subscribe(local, Policy(start=start)) as sub:
-            async for batch in sub.batches():
-                topic.publish(batch)
+        stream = m.streams.get(label)
+        if stream is None:  # kept when ``m`` goes: a return resumes where it was
+            stream = m.streams[label] = FollowedStream(label, self.sample_period)
+        await follow(self.platform, m.name, stream, topic.publish, ask=self.ask)
 
     async def _serve_local(self, label: str) -> None:
         topic = self._topic(self.name, label, self._role_of.get(label))

@@ -11,6 +11,8 @@ request says ``"relative": true`` (``from: -120`` = the last two minutes).
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
 from enum import Enum
 from typing import Annotated, Any, Literal
 
@@ -194,14 +196,8 @@ class GatewayService:
             raise GatewayRefusal(
                 f"unknown action {content['action']!r} (known: {', '.join(sorted(kinds))})"
             )
-        try:
+        with _refused_if_invalid():
             return model.model_validate(content)
-        except ValidationError as exc:
-            err = exc.errors()[0]
-            where = ".".join(str(p) for p in err.get("loc", ())) or "content"
-            raise GatewayRefusal(f"field {where!r}: {err.get('msg', 'invalid')}") from exc
-        except PolicyError as exc:
-            raise GatewayRefusal(str(exc)) from exc
 
     def perform(self, content: Any) -> dict[str, Any]:
         """Do what the content asks; the inform's content, or GatewayRefusal."""
@@ -258,18 +254,25 @@ class GatewayService:
 
     def subscription_policy(self, content: Any) -> tuple[str, Policy]:
         """Validate FIPA-Subscribe content into (label, policy)."""
-        try:
+        with _refused_if_invalid():
             sub = Subscribe.model_validate(content)
             policy = sub.policy.to_policy(self.instance.clock.now())
-        except ValidationError as exc:
-            err = exc.errors()[0]
-            where = ".".join(str(p) for p in err.get("loc", ())) or "content"
-            raise GatewayRefusal(f"field {where!r}: {err.get('msg', 'invalid')}") from exc
-        except PolicyError as exc:
-            raise GatewayRefusal(str(exc)) from exc
         if not self.instance.has_label(sub.label):
             raise GatewayRefusal(str(UnknownLabelError(sub.label, self.instance.labels())))
         return sub.label, policy
+
+
+@contextlib.contextmanager
+def _refused_if_invalid() -> Iterator[None]:
+    """Content that does not validate, or a policy that cannot be, as a GatewayRefusal."""
+    try:
+        yield
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        where = ".".join(str(p) for p in err.get("loc", ())) or "content"
+        raise GatewayRefusal(f"field {where!r}: {err.get('msg', 'invalid')}") from exc
+    except PolicyError as exc:
+        raise GatewayRefusal(str(exc)) from exc
 
 
 def _identity(v: Any) -> Any:

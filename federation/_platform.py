@@ -53,10 +53,15 @@ A config file (TOML; relative paths are relative to the file)::
 
     [console.roles]              # how the console's page draws them
     positions = "heli-position"
-    violations = "violation"
+    violations = ["violation"]   # a label, or a list of them (all listed as violations)
 
     [foxglove]                   # `dyknow foxglove` only (docs/foxglove.md)
-    origin = [58.3975, 15.5765]  # latitude, longitude of x = y = 0 (streams: the console's)
+    origin = [58.3975, 15.5765]  # latitude, longitude of x = y = 0
+    streams = ["heli-position"]  # default: console.streams (roles: console.roles)
+    local = ["operator/observations"]  # labels of this platform's own instance, served too
+    origins = ["https://app.foxglove.dev", "file://"]  # web pages let in (the default)
+    allow_hosts = ["viewer.example.org"]  # default: console.allow_hosts
+    token_file = "foxglove.token"         # default: console.token_file
 
     [transport]
     kind = "zenoh"
@@ -217,7 +222,9 @@ class ConsoleRoles(BaseModel):
     Each is one of ``streams`` or unset (nothing drawn so): ``positions`` a member's
     position ``{"x", "y", "z"}``, ``areas`` the area it covers ``{"polygon", "index",
     "delegated-by"}``, ``tracks`` what it tracks ``{"cars": [{"id", "x", "y", …}]}``,
-    ``violations`` one event per sample (listed, and drawn at its ``x``, ``y``).
+    ``violations`` one event per sample (listed, and drawn at its ``x``, ``y``): one label
+    or a list of them (a platform may publish each kind of violation on its own), all
+    listed together.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -225,7 +232,26 @@ class ConsoleRoles(BaseModel):
     positions: str | None = None
     areas: str | None = None
     tracks: str | None = None
-    violations: str | None = None
+    violations: str | tuple[Annotated[str, Field(min_length=1)], ...] | None = None
+
+    def assigned(self) -> list[tuple[str, str]]:
+        """Every ``(role, label)`` set; a role with a list of labels once per label."""
+        pairs: list[tuple[str, str]] = []
+        for role, value in self.model_dump().items():
+            labels = () if value is None else (value,) if isinstance(value, str) else value
+            pairs.extend((role, label) for label in labels)
+        return pairs
+
+    def among(self, streams: tuple[str, ...]) -> ConsoleRoles:
+        """These roles with only the labels among ``streams`` (a role left without unset)."""
+        update: dict[str, Any] = {}
+        for role, value in self.model_dump().items():
+            if isinstance(value, str) and value not in streams:
+                update[role] = None
+            elif isinstance(value, tuple) and any(label not in streams for label in value):
+                kept = tuple(label for label in value if label in streams)
+                update[role] = kept or None
+        return self.model_copy(update=update)
 
 
 class ConsoleSettings(BaseModel):
@@ -259,8 +285,8 @@ class ConsoleSettings(BaseModel):
         streams = info.data.get("streams")
         if streams is None:  # streams was wrong itself: that is the error to name
             return value
-        for role, label in value.model_dump().items():
-            if label is not None and label not in streams:
+        for role, label in value.assigned():
+            if label not in streams:
                 raise ValueError(
                     f"{role} = {label!r} is not one of streams ({', '.join(streams) or 'none'})"
                 )
@@ -330,11 +356,10 @@ class FoxgloveSettings(BaseModel):
         """
         streams = console.streams if self.streams is None else self.streams
         roles = console.roles if self.roles is None else self.roles
-        for role, label in roles.model_dump().items():
-            if label is not None and label not in streams:
-                if self.roles is None:  # the console's role of a stream not served here
-                    roles = roles.model_copy(update={role: None})
-                    continue
+        if self.roles is None:  # the console's roles of streams not served here: none
+            return streams, roles.among(streams)
+        for role, label in roles.assigned():
+            if label not in streams:
                 raise ValueError(
                     f"foxglove.roles: {role} = {label!r} is not one of the streams "
                     f"({', '.join(streams) or 'none'})"

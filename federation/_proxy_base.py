@@ -19,9 +19,10 @@ log = logging.getLogger(__name__)
 
 
 class OwnedTasks:
-    """A proxy's tasks: each named, kept until done, cancelled and awaited by `aclose`.
+    """An owner's tasks: each named, kept until done, cancelled and awaited by `aclose`.
 
-    What `asyncio.TaskGroup` gives, for an owner whose tasks start in plain calls
+    The proxies', the operator console's and the Foxglove bridge's: what
+    `asyncio.TaskGroup` gives, for an owner whose tasks start in plain calls
     (`ExportProxy.start_exporting` is synchronous and serves before and without
     ``async with``, which a group on Python 3.11 cannot): no task is left unowned.
     Unlike a group, a failed task does not cancel the others (a failed hook call must

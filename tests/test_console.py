@@ -583,6 +583,67 @@ async def test_a_console_streams_and_serves_the_labels_its_config_names(tmp_path
         assert status == 400 and "temperature, wind, station-position" in answer["error"]
 
 
+async def test_violations_of_several_labels_are_listed_together(tmp_path: Path) -> None:
+    # a platform may publish each kind of violation under a label of its own (the deployed
+    # UAVs' speeding): [console.roles] violations lists them, the console lists them as one
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in ("operator", "station-1")]
+    trust_keys(tmp_path / "trust.json", pubs, federation="weather")
+    alerts = {"gale": "winds over 20 m/s", "frost": "temperatures below 0 C"}
+    vocab = {**WEATHER, "labels": {**WEATHER["labels"], **alerts}}
+    mapping = {"vocabulary": "weather", "labels": {label: f"alerts/{label}" for label in alerts}}
+
+    def weather(name: str, console: dict[str, Any] | None = None) -> PlatformConfig:
+        data = {**weather_config(tmp_path, name, console).model_dump(), "vocabulary": vocab}
+        return PlatformConfig.from_dict({**data, "mapping": mapping})
+
+    console = {"streams": ["gale", "frost"], "roles": {"violations": ["gale", "frost"]}}
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack:
+        async with asyncio.timeout(WAIT):
+            operator = await stack.enter_async_context(
+                FederationPlatform(
+                    weather("operator", console),
+                    transport=await stack.enter_async_context(hub.transport()),
+                )
+            )
+            station = await stack.enter_async_context(
+                FederationPlatform(
+                    weather("station-1"), transport=await stack.enter_async_context(hub.transport())
+                )
+            )
+            fed = Federation(hub, tmp_path, operator)
+            fed.console = await stack.enter_async_context(OperatorConsole(operator))
+        gale, frost = (station.instance.add_source(f"alerts/{label}") for label in alerts)
+
+        async def alarms() -> None:
+            while True:
+                gale.push({"kind": "gale", "speed": 24.0, "x": 1.0, "y": 2.0})
+                frost.push({"kind": "frost", "temperature": -3.0})
+                await asyncio.sleep(PUSH)
+
+        pusher = asyncio.create_task(alarms(), name="test.push[station-1]")
+        stack.push_async_callback(_cancelled, pusher)
+        http = await stack.enter_async_context(client(fed))
+
+        def both(s: dict[str, Any]) -> bool:
+            return {v["kind"] for v in s["violations"]} == {"gale", "frost"}
+
+        state = await until_state(http, fed.url, both)
+        assert state["roles"]["violations"] == ["gale", "frost"]
+        kinds = {v["kind"]: v for v in state["violations"]}
+        assert set(kinds) == {"gale", "frost"}
+        assert all(v["reported-by"] == "station-1" for v in kinds.values())
+        assert kinds["gale"]["speed"] == 24.0 and kinds["frost"]["temperature"] == -3.0
+        # drawn as violations: neither kept as a stream's latest value
+        s1 = platform(state, "station-1")
+        assert [x["value"] for x in s1["streams"]] == [None, None]
+    # a single label is still one string; a listed label must be one of the streams
+    one = ConsoleSettings(streams=("gale",), roles={"violations": "gale"})
+    assert one.roles.violations == "gale" and one.roles.assigned() == [("violations", "gale")]
+    with pytest.raises(ValueError, match="violations = 'frost' is not one of streams"):
+        ConsoleSettings(streams=("gale",), roles={"violations": ["gale", "frost"]})
+
+
 async def test_a_console_of_no_streams_follows_the_members_only(demo_keys: Path) -> None:
     # no [console] streams: nothing is asked of anyone (no label is built in)
     cfg = config(demo_keys, "operator").model_copy(

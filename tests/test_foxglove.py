@@ -35,9 +35,8 @@ import pytest
 from agents.keys import gen_keys, trust_keys
 from agents.transports import MemoryHub
 from federation import FederationPlatform, FoxgloveBridge, PlatformConfig, PlatformConfigError
-from federation._foxglove import json_schema, message
 from federation._geo import EARTH_RADIUS, local_to_geo
-from federation.console import OperatorConsole
+from federation.console import ConsoleRoles, ConsoleSettings, OperatorConsole
 from federation.demo._vocabulary import (
     console_config,
     foxglove_config,
@@ -114,6 +113,10 @@ def test_foxglove_settings_default_to_the_console() -> None:
     cfg = _config(streams=["b"], roles={"violations": "a"})
     with pytest.raises(ValueError, match=r"foxglove\.roles: violations = 'a' is not one of"):
         cfg.foxglove.resolve(cfg.console)
+    # the console's violations of several labels: those served stay
+    console = ConsoleSettings(streams=("a", "b"), roles=ConsoleRoles(violations=("a", "b")))
+    streams, roles = _config(streams=["b"]).foxglove.resolve(console)
+    assert roles.violations == ("b",) and roles.assigned() == [("violations", "b")]
 
 
 @pytest.mark.parametrize(
@@ -131,23 +134,6 @@ def test_foxglove_settings_default_to_the_console() -> None:
 def test_foxglove_settings_errors_name_the_key(section: dict[str, Any], error: str) -> None:
     with pytest.raises(PlatformConfigError, match=error):
         _config(**section)
-
-
-def test_messages_and_their_schemas() -> None:
-    schema = json_schema("heli-position", {"x": 1.0, "y": 2, "kind": "uav", "fused": True})
-    assert schema["title"] == "heli-position" and schema["type"] == "object"
-    assert schema["properties"] == {
-        "x": {"type": "number"},
-        "y": {"type": "number"},
-        "kind": {"type": "string"},
-        "fused": {"type": "boolean"},
-    }
-    cars = json_schema("tracked-cars", {"cars": [{"id": "c1", "x": 1.0}]}, "what it tracks")
-    assert cars["description"] == "what it tracks"
-    assert cars["properties"]["cars"]["items"]["properties"]["id"] == {"type": "string"}
-    # a number is no object: sent as {"value": …}
-    assert json_schema("heli-altitude", 60.0)["properties"] == {"value": {"type": "number"}}
-    assert message(60.0) == {"value": 60.0} and message({"x": 1}) == {"x": 1}
 
 
 # -- end to end: a UAV, `dyknow foxglove`, a Node client -----------------------------------
@@ -312,8 +298,10 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
                 "jsonschema",
             )
             assert json.loads(ch["schema"])["title"] == schema
+        # a stream's channel as a recording's (label_schema), described by the vocabulary
         position = json.loads(channels["/uav-a/heli-position"]["schema"])
-        assert position["properties"]["x"] == {"type": "number"}
+        assert position["properties"]["value"]["properties"]["x"] == {"type": "number"}
+        assert set(position["properties"]) == {"value", "valid_time", "available_time"}
         assert position["description"].startswith("the platform's own position")
 
         by_topic: dict[str, list[dict[str, Any]]] = {t: [] for t in topics}
@@ -333,9 +321,12 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
             assert fix["latitude"] == pytest.approx(local_to_geo(ANCHOR, 0.0, 200.0)[0])
         longitudes = [e["message"]["longitude"] for e in fixes]
         assert longitudes == sorted(longitudes) and longitudes[0] < longitudes[-1]  # east
-        raw = [e["message"] for e in by_topic["/uav-a/heli-position"]]
+        raw = [e["message"]["value"] for e in by_topic["/uav-a/heli-position"]]
         assert all(r["y"] == 200.0 and r["z"] == 60.0 and r["x"] >= 300.0 for r in raw)
-        assert by_topic["/uav-a/heli-altitude"][0]["message"] == {"value": 60.0}
+        altitude = by_topic["/uav-a/heli-altitude"][0]  # a sample as a recording holds it
+        valid = altitude["message"]["valid_time"]
+        assert altitude["message"]["value"] == 60.0
+        assert valid["sec"] * 10**9 + valid["nsec"] == int(altitude["logTime"])
         geo = json.loads(by_topic["/uav-a/tracked-cars/geo"][-1]["message"]["geojson"])
         (car,) = geo["features"]
         assert car["properties"]["id"] == "uav-a/car1" and car["properties"]["speed"] == 13.9
@@ -489,12 +480,12 @@ async def test_bridge_beside_the_console_serves_its_imports_and_local_labels(
         assert all(f["longitude"] >= expected[1] for f in fixes)
         notes_topic = "/operator/operator/notes"  # this platform's own label
         seen = [e["message"] for e in events if e.get("topic") == notes_topic]
-        assert len(seen) >= 3 and seen[0]["text"].startswith("note ")
+        assert len(seen) >= 3 and seen[0]["value"]["text"].startswith("note ")
         advertised = {
             e["advertised"]["topic"]: e["advertised"] for e in events if "advertised" in e
         }
         notes_schema = json.loads(advertised[notes_topic]["schema"])
-        assert notes_schema["properties"]["text"] == {"type": "string"}
+        assert notes_schema["properties"]["value"]["properties"]["text"] == {"type": "string"}
         assert "/uav-a/tracked-cars" not in advertised  # not one of the [foxglove] streams
 
         # uav-a exports to the operator what the console asked (of the labels it has);
@@ -605,7 +596,7 @@ async def test_the_relay_lets_in_only_the_token_from_an_allowed_origin(tmp_path:
                         continue
                     if msg.type == aiohttp.WSMsgType.BINARY:
                         break
-            assert msg.data[0] == 1 and msg.data.endswith(b'{"text":"seen"}')  # messageData
+            assert msg.data[0] == 1 and b'{"value":{"text":"seen"},' in msg.data  # messageData
         # a script or the desktop app: a Bearer, no Origin, by an allowed name
         async with session.ws_connect(
             url,

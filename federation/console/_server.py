@@ -33,15 +33,17 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, Self
+from typing import Any, Literal, Self, cast
 
 from aiohttp import web
 
 from agents.transports import Subscription
-from dyknow_core import NS_PER_S, Policy, Source
+from dyknow_core import NS_PER_S, Source
 from ontology import OntologyError, parse
 
+from .._follow import REQUEST_TIMEOUT, FollowedStream, cancel_export, follow, reason
 from .._platform import ConsoleSettings, FederationPlatform
+from .._proxy_base import OwnedTasks
 from .._service import MembershipEvent
 from ._access import ConsoleAccess
 
@@ -57,16 +59,12 @@ LOCAL_OBSERVATIONS = "operator/observations"
 STATIC_DIR = Path(__file__).parent / "static"
 PUSH_INTERVAL = 0.25  # s: the fastest the page is sent a new state (bounds its redraws)
 KEEPALIVE = 1.0  # s: a state is sent at least this often (ages and rates move on)
-RETRY = 2.0  # s: between attempts at a stream a platform refused
-WAIT_IMPORT = 5.0  # s: one wait for the first sample of a stream (then waits again)
-REQUEST_TIMEOUT = 5.0  # s: one request to another platform
 SEARCH_DEADLINE = 2.0  # s: a label search waits this long for every platform
 RATE_WINDOW = 5.0  # s: the arrival rate shown is measured over this window
 MAX_VIOLATIONS = 200
 MAX_OBSERVATIONS = 200
 MAX_TEXT = 500
 
-StreamState = Literal["requesting", "active", "refused", "ended"]
 PlatformState = Literal["alive", "gone", "left"]
 Role = Literal["positions", "areas", "tracks", "violations"]
 
@@ -76,20 +74,13 @@ class BadRequest(ValueError):
 
 
 @dataclass(slots=True)
-class _Stream:
+class _Stream(FollowedStream):
     """One stream a platform exports to us: its export, policy and what arrived."""
 
-    label: str
-    sample_period: float | None
     role: Role | None = None  # how the page draws it; None: its latest value is shown
-    state: StreamState = "requesting"
-    export_id: str | None = None
-    error: str | None = None
     samples: int = 0
     last: float | None = None  # wall-clock time of the last arrival
     arrivals: deque[float] = field(default_factory=lambda: deque(maxlen=256))
-    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
-    last_valid: int | None = None  # the newest valid time taken in (ns)
     value: Any = None  # the latest value, kept for a stream with no role only
 
     def to_json(self, now: float) -> dict[str, Any]:
@@ -177,14 +168,10 @@ class OperatorConsole:
             raise ValueError(
                 f"console.streams: {unknown[0]!r} is not in the federation's vocabulary"
             )
-        r = self.settings.roles
-        roles: dict[Role, str | None] = {
-            "positions": r.positions,
-            "areas": r.areas,
-            "tracks": r.tracks,
-            "violations": r.violations,
+        # several labels may be violations (one per kind): all go to the one list
+        self._roles: dict[str, Role] = {
+            label: cast(Role, role) for role, label in self.settings.roles.assigned()
         }
-        self._roles = {label: role for role, label in roles.items() if label is not None}
         self.world_map = world_map
         self.host = host
         self.port = port
@@ -195,7 +182,7 @@ class OperatorConsole:
         self._version = 0
         self._changed_event = asyncio.Event()
         self._closing = asyncio.Event()
-        self._tasks: set[asyncio.Task[None]] = set()
+        self._tasks = OwnedTasks(f"console of {self.name}")
         self._observation_source: Source | None = None
         self._observation_label: str | None = None
         self._observation_semantic: str | None = None  # None: the vocabulary has none
@@ -275,45 +262,22 @@ class OperatorConsole:
         self._spawn(self.access.run_reports(self._closing), f"console[{self.name}].refusals")
 
     def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
-        task = asyncio.get_running_loop().create_task(coro, name=name)
-        self._tasks.add(task)
-        task.add_done_callback(self._task_done)
-        return task
-
-    def _task_done(self, task: asyncio.Task[None]) -> None:
-        self._tasks.discard(task)
-        if not task.cancelled() and (exc := task.exception()) is not None:
-            log.error("console of %s: task %s failed", self.name, task.get_name(), exc_info=exc)
+        return self._tasks.spawn(coro, name)
 
     async def _close_tasks(self) -> None:
         # Best effort, bounded: a provider still alive stops streaming to a closed console.
         cancels = [
-            self._cancel_export(p.name, s)
+            cancel_export(self.platform, p.name, s)
             for p in self._platforms.values()
             if p.state != "gone"  # one that left still streams to us
             for s in p.streams.values()
             if s.export_id is not None
         ]
-        tasks = list(self._tasks)
-        for task in tasks:
-            task.cancel()
-        if tasks:
-            await asyncio.gather(*tasks, return_exceptions=True)
+        await self._tasks.aclose()
         if cancels:
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(REQUEST_TIMEOUT):
                     await asyncio.gather(*cancels, return_exceptions=True)
-
-    async def _cancel_export(self, platform: str, stream: _Stream) -> None:
-        export_id, stream.export_id = stream.export_id, None
-        if export_id is None:
-            return
-        try:
-            await self.platform.federation_agent.cancel_stream(
-                platform, export_id, timeout=REQUEST_TIMEOUT
-            )
-        except Exception as exc:  # the export may be gone with its platform already
-            log.info("console: cancelling %s at %s: %s", export_id, platform, _reason(exc))
 
     # -- the model ------------------------------------------------------------------------
 
@@ -368,7 +332,7 @@ class OperatorConsole:
             stream = p.streams.get(label)
             if stream is None:
                 stream = p.streams[label] = _Stream(
-                    label, self.sample_period, self._roles.get(label)
+                    label, self.sample_period, role=self._roles.get(label)
                 )
             if any(t.get_name().endswith(f":{label}]") for t in p.tasks):
                 continue  # after a leave it kept flowing: nothing to ask again
@@ -404,77 +368,36 @@ class OperatorConsole:
 
     async def _follow_stream(self, p: _Platform, stream: _Stream) -> None:
         """Ask ``p`` for the stream (again while refused or ended), take in its samples."""
-        while True:
-            await self._ask_for(p, stream)
-            await self._take_in(p, stream)
-            if p.state != "alive":
-                if p.state != "gone":
-                    stream.state = "ended"
-                    self._changed()
-                return
-            # ended while its platform is alive (it stopped exporting to us: its lease
-            # for us expired): ask for it again
-            async with stream.lock:
-                stream.export_id, stream.state = None, "requesting"
+        await follow(
+            self.platform,
+            p.name,
+            stream,
+            lambda batch: self._take(p, stream, batch),
+            alive=lambda: p.state == "alive",
+            changed=self._changed,
+        )
+        if p.state != "gone":  # left: what was agreed has ended
+            stream.state = "ended"
             self._changed()
-            await asyncio.sleep(RETRY)
-
-    async def _ask_for(self, p: _Platform, stream: _Stream) -> None:
-        fed = self.platform.federation_agent
-        while True:
-            if p.state == "alive":
-                async with stream.lock:
-                    if stream.export_id is not None:
-                        return  # a policy change got it meanwhile
-                    try:
-                        stream.export_id = await fed.create_stream(
-                            p.name,
-                            [stream.label],
-                            sample_period=stream.sample_period,
-                            timeout=REQUEST_TIMEOUT,
-                        )
-                    except Exception as exc:
-                        stream.state, stream.error = "refused", _reason(exc)
-                        self._changed()
-                    else:
-                        stream.state, stream.error = "active", None
-                        self._changed()
-                        return
-            await asyncio.sleep(RETRY)
-
-    async def _take_in(self, p: _Platform, stream: _Stream) -> None:
-        while True:
-            try:
-                local = await self.platform.imported(p.name, stream.label, timeout=WAIT_IMPORT)
-                break
-            except TimeoutError:
-                continue  # a platform may have nothing to say yet (no violation so far)
-        # From the start of time the first time: the cache replays what arrived before we
-        # subscribed (at least the sample that opened the stream, perhaps its only one);
-        # after that, from where we were (nothing taken in twice).
-        start = 0 if stream.last_valid is None else stream.last_valid + 1
-        sub = self.platform.instance.subscribe(local, Policy(start=start))
-        with sub:
-            async for batch in sub.batches():
-                self._take(p, stream, batch)
 
     def _take(self, p: _Platform, stream: _Stream, batch: list[Any]) -> None:
         now = time.time()
         stream.samples += len(batch)
         stream.last = now
         stream.arrivals.extend(now for _ in range(min(len(batch), 64)))
-        for value, valid, _ in batch:
-            if stream.last_valid is None or valid > stream.last_valid:
-                stream.last_valid = valid
-            if stream.role is None:
-                continue  # only the latest is shown: taken once, below
-            try:
-                self._apply(p, stream.role, value, valid)
-            except Exception as exc:
-                # A malformed value from a platform is its problem, never the console's.
-                log.warning("console: %s %s: bad value %r: %s", p.name, stream.label, value, exc)
-        if stream.role is None and batch:
-            stream.value = _clean(batch[-1][0])
+        role = stream.role
+        if role is None:
+            if batch:  # only the latest is shown
+                stream.value = _clean(batch[-1][0])
+        else:
+            for value, valid, _ in batch:
+                try:
+                    self._apply(p, role, value, valid)
+                except Exception as exc:
+                    # A malformed value from a platform is its problem, never the console's.
+                    log.warning(
+                        "console: %s %s: bad value %r: %s", p.name, stream.label, value, exc
+                    )
         self._changed()
 
     def _apply(self, p: _Platform, role: Role, value: Any, valid: int) -> None:
@@ -620,7 +543,7 @@ class OperatorConsole:
             # is asked (whether anything matches is each platform's answer, ours too)
             self.platform.vocabulary.check(parse(formula))
         except OntologyError as exc:
-            raise BadRequest(f"formula: {_reason(exc)}") from exc
+            raise BadRequest(f"formula: {reason(exc)}") from exc
         result = await self._ask(
             lambda: self.platform.federation_agent.global_request(
                 {"action": "search-labels", "formula": formula},
@@ -669,7 +592,7 @@ class OperatorConsole:
         fed = self.platform.federation_agent
         async with stream.lock:
             old = stream.sample_period
-            await self._cancel_export(p.name, stream)
+            await cancel_export(self.platform, p.name, stream)
             try:
                 stream.export_id = await fed.create_stream(
                     p.name, [stream.label], sample_period=period, timeout=REQUEST_TIMEOUT
@@ -724,19 +647,11 @@ class OperatorConsole:
         except (BadRequest, asyncio.CancelledError):
             raise
         except Exception as exc:
-            raise _FederationError(_reason(exc)) from exc
+            raise _FederationError(reason(exc)) from exc
 
 
 class _FederationError(Exception):
     """Another platform refused, failed or did not answer."""
-
-
-def _reason(exc: BaseException) -> str:
-    message = getattr(exc, "message", None)
-    content = getattr(message, "content", None)
-    if isinstance(content, str) and content:
-        return f"{type(exc).__name__.lower()}: {content}"
-    return str(exc) or type(exc).__name__
 
 
 def _json(data: Any, status: int = 200) -> web.Response:

@@ -156,26 +156,8 @@ class ChronicleRecognizer:
         if time > clock:
             self.clock = time
             heap = self._expiry
-            if heap and heap[0][0] < time:
-                # expire what can no longer complete (as _expire, inlined: nearly every
-                # event lets some deadline pass)
-                alive = self._alive
-                pop = heapq.heappop
-                gone = 0
-                while heap and heap[0][0] < time:
-                    deadline, seq, inst = pop(heap)
-                    if inst[_ALIVE] and inst[_DEADLINE] == deadline:
-                        del alive[seq]
-                        inst[_ALIVE] = False
-                        for parent, key in inst[_REGS]:
-                            bucket = parent[key]
-                            del bucket[seq]
-                            # an unkeyed table has one bucket: kept, as it soon refills
-                            if not bucket and key:
-                                del parent[key]
-                        inst[_REGS] = None
-                        gone += 1
-                self.expired += gone
+            if heap and heap[0][0] < time:  # checked here: most events let none pass
+                self._expire(time)
             if self._pending:
                 self._release(time, out)
         plan = self._kinds.get(kind)
@@ -472,6 +454,7 @@ class ChronicleRecognizer:
             heapq.heapify(self._pending)
 
     def _expire(self, now: int) -> None:
+        """Forget every instance whose deadline passed before ``now`` (counted expired)."""
         heap = self._expiry
         alive = self._alive
         pop = heapq.heappop
@@ -484,7 +467,8 @@ class ChronicleRecognizer:
                 for parent, key in inst[_REGS]:
                     bucket = parent[key]
                     del bucket[seq]
-                    if not bucket:
+                    # an unkeyed table has one bucket: kept, as it soon refills
+                    if not bucket and key:
                         del parent[key]
                 inst[_REGS] = []
                 n += 1

@@ -1,0 +1,173 @@
+"""Following another member's stream: what the operator console and the Foxglove bridge share.
+
+A follower asks the member for a label (``create-stream``, again while refused), waits
+for the import to appear here, subscribes to it from where it last was and hands every
+batch to its owner; when the stream ends while the member is alive (its lease for us
+expired), it asks again. `FollowedStream` is what it keeps of one label of one member;
+`follow` runs it; `cancel_export` ends what was agreed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
+
+from dyknow_core import Policy
+
+if TYPE_CHECKING:
+    from ._platform import FederationPlatform
+
+__all__ = [
+    "REQUEST_TIMEOUT",
+    "RETRY",
+    "WAIT_IMPORT",
+    "FollowedStream",
+    "StreamState",
+    "cancel_export",
+    "follow",
+    "reason",
+]
+
+log = logging.getLogger("federation.follow")
+
+RETRY = 2.0  # s: between attempts at a stream a platform refused or ended
+WAIT_IMPORT = 5.0  # s: one wait for the first sample of a stream (then waits again)
+REQUEST_TIMEOUT = 5.0  # s: one request to another platform
+
+StreamState = Literal["requesting", "active", "refused", "ended"]
+
+
+@dataclass(slots=True)
+class FollowedStream:
+    """One label of another member as a follower asks for it and takes it in.
+
+    ``export_id`` is the provider's export for us (None: none agreed now); ``lock`` is
+    held while it changes, so that a change of policy and a renewed request never ask
+    twice; ``last_valid`` (ns) is where a new subscription resumes.
+    """
+
+    label: str
+    sample_period: float | None = None
+    state: StreamState = "requesting"
+    export_id: str | None = None
+    error: str | None = None
+    last_valid: int | None = None
+    lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+
+
+def _always() -> bool:
+    return True
+
+
+def _nothing() -> None:
+    return None
+
+
+async def follow(
+    platform: FederationPlatform,
+    member: str,
+    stream: FollowedStream,
+    feed: Callable[[list[Any]], None],
+    *,
+    ask: bool = True,
+    alive: Callable[[], bool] = _always,
+    changed: Callable[[], None] = _nothing,
+) -> None:
+    """Follow ``stream`` at ``member``, handing each batch of its import to ``feed``.
+
+    With ``ask`` it is asked for (again while refused, and only while ``alive()``);
+    without, what another asked for is taken in. When the import ends it starts over
+    while ``alive()``, else returns. ``changed()`` is called after every change of
+    ``stream.state``. Runs until cancelled or the member is no longer alive.
+    """
+    while True:
+        if ask:
+            await _ask_for(platform, member, stream, alive, changed)
+        await _take_in(platform, member, stream, feed)
+        if not alive():
+            return
+        # ended while its platform is alive (it stopped exporting to us: its lease for us
+        # expired): ask for it again
+        async with stream.lock:
+            stream.export_id, stream.state = None, "requesting"
+        changed()
+        await asyncio.sleep(RETRY)
+
+
+async def _ask_for(
+    platform: FederationPlatform,
+    member: str,
+    stream: FollowedStream,
+    alive: Callable[[], bool],
+    changed: Callable[[], None],
+) -> None:
+    fed = platform.federation_agent
+    while True:
+        if alive():
+            async with stream.lock:
+                if stream.export_id is not None:
+                    return  # a policy change got it meanwhile
+                try:
+                    stream.export_id = await fed.create_stream(
+                        member,
+                        [stream.label],
+                        sample_period=stream.sample_period,
+                        timeout=REQUEST_TIMEOUT,
+                    )
+                except Exception as exc:
+                    stream.state, stream.error = "refused", reason(exc)
+                    log.info("%s refused %s to %s: %s", member, stream.label, platform.name, exc)
+                    changed()
+                else:
+                    stream.state, stream.error = "active", None
+                    changed()
+                    return
+        await asyncio.sleep(RETRY)
+
+
+async def _take_in(
+    platform: FederationPlatform,
+    member: str,
+    stream: FollowedStream,
+    feed: Callable[[list[Any]], None],
+) -> None:
+    while True:
+        try:
+            local = await platform.imported(member, stream.label, timeout=WAIT_IMPORT)
+            break
+        except TimeoutError:
+            continue  # a platform may have nothing to say yet (no violation so far)
+    # From the start of time the first time: the cache replays what arrived before we
+    # subscribed (at least the sample that opened the stream, perhaps its only one);
+    # after that, a platform come back included, from where we were (nothing twice).
+    start = 0 if stream.last_valid is None else stream.last_valid + 1
+    with platform.instance.subscribe(local, Policy(start=start)) as sub:
+        async for batch in sub.batches():
+            if batch:
+                newest = max([s[1] for s in batch])
+                if stream.last_valid is None or newest > stream.last_valid:
+                    stream.last_valid = newest
+            feed(batch)
+
+
+async def cancel_export(platform: FederationPlatform, member: str, stream: FollowedStream) -> None:
+    """Ask ``member`` to stop the export agreed for ``stream`` (best effort: failures logged)."""
+    export_id, stream.export_id = stream.export_id, None
+    if export_id is None:
+        return
+    try:
+        await platform.federation_agent.cancel_stream(member, export_id, timeout=REQUEST_TIMEOUT)
+    except Exception as exc:  # the export may be gone with its platform already
+        log.info("cancelling %s at %s: %s", export_id, member, reason(exc))
+
+
+def reason(exc: BaseException) -> str:
+    """What went wrong, for a person: a refusal's content, else the exception's text."""
+    message = getattr(exc, "message", None)
+    content = getattr(message, "content", None)
+    if isinstance(content, str) and content:
+        return f"{type(exc).__name__.lower()}: {content}"
+    return str(exc) or type(exc).__name__
