@@ -366,8 +366,9 @@ def test_node_example_rosbag2_and_mcap_files_replayed(station: Station) -> None:
     history = station.dyknow("ask", "position", "temperature", "-p", "station", "--from", "0")
     positions = _samples(history, "position")
     assert [p[0]["x"] for p in positions] == [10.0 + n for n in range(10)]
-    # recorded pace: 0.9 s between the first and the last arrival, valid times as stamped
-    assert positions[-1][2] - positions[0][2] >= 0.8
+    # recorded pace: the last arrives at least the recorded 0.9 s after the first (later
+    # when the node is slow), valid times as stamped
+    assert positions[-1][2] - positions[0][2] >= 0.9 - 1e-3
     assert [p[1] for p in positions] == [pytest.approx(1764000000 + 0.1 * n) for n in range(10)]
     temperatures = _samples(history, "temperature")  # from the MCAP file, as fast as possible
     assert [t[0] for t in temperatures] == [21.0 + n for n in range(10)]
