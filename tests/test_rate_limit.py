@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _load import slowdown
 
 from agents import (
     ACLMessage,
@@ -313,21 +314,6 @@ N_GOOD, GOOD_PERIOD = 50, 0.02  # 50 requests/s, for 1 s and as long as the floo
 # target without the limit must serve all 20 000 requests/s, which is beyond it: its
 # queue grows and G waits ~180 ms (p50) to ~840 ms (p99), so this bound fails then.
 G_P99_MS = 50.0
-
-
-def slowdown() -> float:
-    """How many times slower than on a machine of its own this process runs now (>= 1).
-
-    Measured: a busy loop's CPU time over its wall time is the share of a CPU it gets (a
-    tenth with a load of 20 on 2 cores); the load average says the same over the last
-    minute, and whichever is worse counts, a busy spell being short or long.
-    """
-    t0, c0 = time.monotonic(), time.thread_time()
-    while time.monotonic() - t0 < 0.2:
-        pass
-    share = (time.thread_time() - c0) / (time.monotonic() - t0)
-    load = os.getloadavg()[0] / (os.cpu_count() or 1)
-    return max(1.0, load, 1.0 / max(share, 0.02))
 
 
 def latency_bound(slow: float | None = None) -> float:
