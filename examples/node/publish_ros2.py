@@ -81,8 +81,13 @@ def main(endpoint: str, count: int, stamp: float | None = None) -> None:
 def _await_subscriber(publisher: zenoh.Publisher, what: str, timeout: float = 30.0) -> None:
     """Return once a subscription matches: zenoh drops a put that none routes."""
     matched = threading.Event()
-    with publisher.declare_matching_listener(lambda s: s.matching and matched.set()):
-        if not publisher.matching_status.matching and not matched.wait(timeout):
+
+    def status(change: zenoh.MatchingStatus) -> None:
+        if change.matching:  # told at once when one matches already
+            matched.set()
+
+    with publisher.declare_matching_listener(status):
+        if not matched.wait(timeout):
             sys.exit(f"no subscriber of {what} within {timeout:g} s")
 
 
