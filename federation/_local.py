@@ -62,6 +62,7 @@ log = logging.getLogger(__name__)
 
 _SUN_PATH = 100  # bytes of a Unix socket's path, with a margin (108 on Linux, 104 on BSDs)
 _LINE = 1 << 20  # longest request line accepted (1 MiB)
+_REFUSE_WAIT = 5.0  # s a refused client has to send its request before the refusal
 ALIVE_WAIT = 1.0
 IDENTITY_RATE = 10.0
 """``identity`` queries a node answers per second (bursts as many); the rest are shed."""
@@ -292,6 +293,10 @@ class LocalChannel:
                 # the socket's mode keeps others out; this holds if it was loosened
                 self.refused += 1
                 log.warning("local channel: refused a client of uid %s", uid)
+                # its request is taken (never read) first: closing on a request still on
+                # its way would break the client's pipe before it could read the refusal
+                with contextlib.suppress(TimeoutError, ValueError):
+                    await asyncio.wait_for(reader.readline(), _REFUSE_WAIT)
                 await send({"error": "this node serves its own user only"})
                 return
             line = await reader.readline()

@@ -193,13 +193,17 @@ class _RosbagRunner(InputRunner):
         decoder = _Decoder(s.distro)
         messages = await asyncio.to_thread(_read_bag, s.path, s.topic)
         mapper = self.mapper
-        start = time.time_ns()
+        start: int | None = None  # the first message's valid time with shift = "now"
+        # the pace's time zero: once the first message was handed on, so that each later
+        # one comes at least its recorded gap after it, however late the first one was
+        paced: int | None = None
         first = messages[0][0]
         for n, (logged, rostype, data) in enumerate(messages):
             if s.pace == "recorded":
-                delay = (start + (logged - first) / s.speed - time.time_ns()) / 1e9
-                if delay > 0:
-                    await asyncio.sleep(delay)
+                if paced is not None:
+                    delay = (paced + (logged - first) / s.speed - time.time_ns()) / 1e9
+                    if delay > 0:
+                        await asyncio.sleep(delay)
             elif n % 1000 == 999:
                 await asyncio.sleep(0)  # let the node answer queries meanwhile
             try:
@@ -208,10 +212,14 @@ class _RosbagRunner(InputRunner):
                 mapper.stats.received += 1
                 mapper.bad(exc.reason, exc.detail)
                 continue
+            if start is None:
+                start, first = time.time_ns(), logged
             stamp = header_stamp(message)
             own = logged if stamp is None else stamp
             valid = start + (own - first) if s.shift == "now" else None
             mapper.handle(message, stamp=own, topic=s.topic, valid=valid)
+            if paced is None:
+                paced = time.time_ns()
         log.info("input %s: replayed %d messages", s.title(), len(messages))
 
 

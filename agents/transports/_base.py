@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import random
 import socket
 import threading
 from abc import ABC, abstractmethod
@@ -372,11 +373,43 @@ def _intersect(a: tuple[str, ...], b: tuple[str, ...]) -> bool:
     return False
 
 
+_PORTS_FROM = 10_000  # free_tcp_port picks from here up to the ephemeral range
+_handed_ports: set[int] = set()
+_ports_lock = threading.Lock()
+_port_random = random.SystemRandom()  # not the global generator: tests seed that one
+
+
 def free_tcp_port(host: str = "127.0.0.1") -> int:
-    """A TCP port that was free on ``host`` a moment ago (for tests and local setups)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((host, 0))
-        return int(s.getsockname()[1])
+    """A TCP port free on ``host`` now, for a listener of this process (tests, local setups).
+
+    It is below the system's ephemeral range: a port from ``bind(0)`` would be free to
+    be given to any other socket's ``bind(0)`` or outgoing connection between this call
+    and the caller's listen. Never the same port twice in one process.
+    """
+    end = _ephemeral_start()
+    with _ports_lock:
+        for _ in range(1000):
+            port = _port_random.randrange(_PORTS_FROM, end) if end > _PORTS_FROM else 0
+            if port in _handed_ports:
+                continue
+            with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+                try:
+                    s.bind((host, port))
+                except OSError:  # in use, or kept by a recent connection
+                    continue
+                port = int(s.getsockname()[1])
+            _handed_ports.add(port)
+            return port
+    raise OSError(f"no free TCP port on {host}")
+
+
+def _ephemeral_start() -> int:
+    """The first port of the range the kernel picks from for ``bind(0)`` and connections."""
+    try:
+        with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+            return int(f.read().split()[0])
+    except (OSError, ValueError, IndexError):
+        return 32768  # Linux's default; BSDs and macOS start higher
 
 
 def _match(pat: list[str], key: list[str]) -> bool:

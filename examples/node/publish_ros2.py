@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import sys
+import threading
 import time
 
 import zenoh
@@ -62,15 +63,32 @@ def main(endpoint: str, count: int, stamp: float | None = None) -> None:
     config.insert_json5("connect/endpoints", json.dumps([endpoint]))
     config.insert_json5("scouting/multicast/enabled", "false")
     with zenoh.open(config) as session:
-        time.sleep(0.5)  # let the subscriptions reach us
+        publishers = {
+            topic: session.declare_publisher(key(topic, rostype))
+            for topic, rostype, _ in messages(0, 0.0)
+        }
+        for topic, publisher in publishers.items():
+            _await_subscriber(publisher, f"{topic} at {endpoint}")
         for n in range(count):
             t = stamp + n if stamp is not None else time.time()
             for topic, rostype, msg in messages(n, t):
-                cdr = STORE.serialize_cdr(msg, rostype)
-                session.put(key(topic, rostype), bytes(cdr))
+                publishers[topic].put(bytes(STORE.serialize_cdr(msg, rostype)))
             time.sleep(0.1)
         # not CDR: counted as a bad message by the node, which goes on
-        session.put(key("/station/status", "std_msgs/msg/String"), b"\x00\x01")
+        publishers["/station/status"].put(b"\x00\x01")
+
+
+def _await_subscriber(publisher: zenoh.Publisher, what: str, timeout: float = 30.0) -> None:
+    """Return once a subscription matches: zenoh drops a put that none routes."""
+    matched = threading.Event()
+
+    def status(change: zenoh.MatchingStatus) -> None:
+        if change.matching:  # told at once when one matches already
+            matched.set()
+
+    with publisher.declare_matching_listener(status):
+        if not matched.wait(timeout):
+            sys.exit(f"no subscriber of {what} within {timeout:g} s")
 
 
 if __name__ == "__main__":

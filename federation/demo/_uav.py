@@ -152,8 +152,10 @@ class SimClock:
         """Sleep until instance time ``t``."""
         wall = self._t0 + (t - BASE_NS) / self._speed
         delay = (wall - time.time_ns()) / NS_PER_S
-        if delay > 0:
-            await asyncio.sleep(delay)
+        # late too, it yields: a loop behind time (a busy machine) catching up step after
+        # step would otherwise hold the event loop, and nothing else (requests, handovers,
+        # imports) would run until it caught up
+        await asyncio.sleep(max(delay, 0.0))
 
 
 @dataclass(frozen=True, slots=True)
@@ -730,11 +732,14 @@ class UavApplication:
         for a in self.anchored.values():
             match = a["match"]
             if match is None or match not in states:
-                match = a["match"] = self._find(a, states, ts)
-                if match is not None:
+                # not seen this step (gone, or its state late on a busy machine): look
+                # again, and keep the old match when nothing else fits
+                found = self._find(a, states, ts)
+                if found is not None and found != match:
+                    match = a["match"] = found
                     a.setdefault("matched", time.monotonic())
                     log.info("%s: anchored %s as our %s", self.name, a["local"], match)
-            if match is not None:
+            if match is not None and match in states:
                 self.sources[a["local"]].push(states[match], t)
 
     @staticmethod
