@@ -189,7 +189,15 @@ class ACLMessage(BaseModel):
 
 _FIELDS = frozenset(ACLMessage.model_fields)
 _DEFAULTS: dict[str, Any] = {name: f.default for name, f in ACLMessage.model_fields.items()}
-_OPTIONAL_STR = ("language", "encoding", "ontology", "protocol", "conversation_id")
+_OPTIONAL_STR = (
+    "language",
+    "encoding",
+    "ontology",
+    "protocol",
+    "conversation_id",
+    "reply_with",
+    "in_reply_to",
+)
 _PERFORMATIVES = {p.value: p for p in Performative}
 _aid_match = _AID.match
 _new_message = object.__new__
@@ -208,33 +216,33 @@ def _aids(value: Any) -> list[str] | None:
 
 def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
     """The model's fields for a decoded message that passes every check, else None."""
-    v = obj.get("v", WIRE_VERSION)
-    if type(v) is not int or v != WIRE_VERSION:
+    fields = dict(_DEFAULTS)  # in the model's order, as pydantic keeps them
+    fields.update(obj)
+    v = fields["v"]
+    performative = fields["performative"]
+    sender = fields["sender"]
+    if (
+        type(v) is not int
+        or v != WIRE_VERSION
+        or type(performative) is not str
+        or (performative := _PERFORMATIVES.get(performative)) is None
+        or type(sender) is not str
+        or _aid_match(sender) is None
+    ):
         return None
-    performative = _PERFORMATIVES.get(obj.get("performative"))  # type: ignore[arg-type]
-    sender = obj.get("sender")
-    if performative is None or type(sender) is not str or _aid_match(sender) is None:
-        return None
-    receivers = _aids(obj.get("receivers"))
+    receivers = _aids(fields["receivers"])
     if not receivers:
         return None
-    reply_to = obj.get("reply_to")
+    reply_to = fields["reply_to"]
     if reply_to is not None and (reply_to := _aids(reply_to)) is None:
         return None
     for name in _OPTIONAL_STR:
-        value = obj.get(name)
+        value = fields[name]
         if value is not None and type(value) is not str:
             return None
-    for name in ("reply_with", "in_reply_to"):
-        value = obj.get(name)
-        if value is not None and type(value) is not str:
-            return None
-    reply_by = obj.get("reply_by")
+    reply_by = fields["reply_by"]
     if reply_by is not None and (type(reply_by) is not float or not math.isfinite(reply_by)):
         return None  # an integer, or anything else: pydantic decides (and says why)
-    fields = dict(_DEFAULTS)
-    fields.update(obj)
-    fields["v"] = v
     fields["performative"] = performative
     fields["receivers"] = receivers
     fields["reply_to"] = reply_to

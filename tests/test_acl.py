@@ -342,3 +342,57 @@ def test_the_wire_document_lists_every_field_and_performative() -> None:
     assert fields == list(ACLMessage.model_fields)
     listed = section.split("Performatives (FIPA):", 1)[1].split("\n\n", 1)[0]
     assert re.findall(r"`([a-z-]+)`", listed) == sorted(p.value for p in Performative)
+
+
+# -- the quick parse of decoded messages -------------------------------------------------------
+
+_scalars = st.none() | st.booleans() | st.integers(-(2**63), 2**63 - 1) | st.floats()
+_json = st.recursive(
+    _scalars | st.text(max_size=5),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner, max_size=3)
+    ),
+    max_leaves=8,
+)
+_aid = st.sampled_from(["a@p", "bad", "x@y.z", "", "a@b@c"])
+_field_values = {
+    "v": st.sampled_from([1, 2, 1.0, True, "1"]) | _json,
+    "performative": st.sampled_from(["inform", "request", "shout", "INFORM"]) | _json,
+    "sender": _aid | _json,
+    "receivers": st.lists(_aid, max_size=3) | _json,
+    "reply_to": st.none() | st.lists(_aid, max_size=2) | _json,
+    "content": _json,
+    "ontology": st.none() | st.text(max_size=3) | _json,
+    "conversation_id": st.none() | st.text(max_size=3) | _json,
+    "reply_with": st.none() | st.text(max_size=3) | _json,
+    "reply_by": st.none() | st.floats() | st.integers() | _json,
+    "surprise": _json,
+}
+
+
+@st.composite
+def _decoded(draw: st.DrawFn) -> dict[str, Any]:
+    names = draw(st.sets(st.sampled_from(sorted(_field_values))))
+    obj = {name: draw(_field_values[name]) for name in names}
+    # mostly valid messages with one field changed, so every check is reached
+    base = {"performative": "inform", "sender": "a@p", "receivers": ["b@q"]}
+    return {**base, **obj} if draw(st.booleans()) else obj
+
+
+@settings(max_examples=400, deadline=None)
+@given(_decoded())
+def test_the_quick_parse_accepts_and_refuses_as_pydantic_does(obj: dict[str, Any]) -> None:
+    """from_parsed: the same message, or the same error, as the full validation."""
+    try:
+        slow = ACLMessage.from_obj(obj)
+    except MessageError as exc:
+        with pytest.raises(MessageError) as quick:
+            ACLMessage.from_parsed(obj)
+        assert str(quick.value) == str(exc)
+        return
+    quick = ACLMessage.from_parsed(obj)
+    assert quick == slow
+    assert quick.__dict__ == slow.__dict__
+    assert list(quick.__dict__) == list(slow.__dict__)
+    assert quick.model_fields_set == slow.model_fields_set
+    assert quick.to_json() == slow.to_json()
