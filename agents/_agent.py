@@ -597,7 +597,7 @@ class Agent:
         **fields: Any,
     ) -> ACLMessage:
         """A new message from this agent (other ACL fields as keywords)."""
-        return ACLMessage(
+        return ACLMessage.build(
             performative=performative,
             sender=self.aid,
             receivers=[receivers] if isinstance(receivers, str) else list(receivers),

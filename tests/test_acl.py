@@ -13,6 +13,7 @@ import orjson
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from agents import (
     MAX_MESSAGE_BYTES,
@@ -396,3 +397,47 @@ def test_the_quick_parse_accepts_and_refuses_as_pydantic_does(obj: dict[str, Any
     assert list(quick.__dict__) == list(slow.__dict__)
     assert quick.model_fields_set == slow.model_fields_set
     assert quick.to_json() == slow.to_json()
+
+
+_python_content = st.recursive(
+    _scalars | st.text(max_size=5) | st.sampled_from([Performative.INFORM, b"x", (1, 2)]),
+    lambda inner: (
+        st.lists(inner, max_size=3)
+        | st.dictionaries(st.text(max_size=3) | st.integers(0, 3), inner, max_size=3)
+        | st.tuples(inner)
+    ),
+    max_leaves=8,
+)
+
+
+@st.composite
+def _built(draw: st.DrawFn) -> dict[str, Any]:
+    names = draw(st.sets(st.sampled_from(sorted(_field_values))))
+    kw = {name: draw(_field_values[name]) for name in names}
+    kw["content"] = draw(_python_content)
+    base = {
+        "performative": draw(st.sampled_from([Performative.REQUEST, "inform"])),
+        "sender": "a@p",
+        "receivers": draw(st.sampled_from([["b@q"], ("b@q",)])),
+    }
+    return {**base, **kw} if draw(st.booleans()) else kw
+
+
+@settings(max_examples=400, deadline=None)
+@given(_built())
+def test_the_quick_build_makes_what_pydantic_makes(kw: dict[str, Any]) -> None:
+    """ACLMessage.build: the same message, or the same error, as ACLMessage(**fields)."""
+    try:
+        slow = ACLMessage(**kw)
+    except ValidationError as exc:
+        with pytest.raises(ValidationError) as quick:
+            ACLMessage.build(**kw)
+        assert str(quick.value) == str(exc)
+        return
+    quick = ACLMessage.build(**kw)
+    assert repr(quick) == repr(slow)  # repr: NaN in content is not equal to itself
+    assert list(quick.__dict__) == list(slow.__dict__)
+    assert quick.model_fields_set == slow.model_fields_set
+    assert type(quick.performative) is Performative
+    if isinstance(kw.get("content"), list | dict):
+        assert quick.content is not kw["content"]  # copied, as pydantic copies
