@@ -257,12 +257,31 @@ def _json_copy(value: Any, depth: int) -> Any:
     raise _NotPlain
 
 
+# identifiers that matched already: a platform talks with few agents, again and again
+_known_aids: set[str] = set()
+_MAX_KNOWN_AIDS = 4096
+
+
+def _valid_aid(aid: Any) -> bool:
+    """Whether ``aid`` is a str of the form name@platform (remembered when it is)."""
+    if type(aid) is not str:
+        return False
+    if aid in _known_aids:
+        return True
+    if _aid_match(aid) is None:
+        return False
+    if len(_known_aids) >= _MAX_KNOWN_AIDS:
+        _known_aids.clear()
+    _known_aids.add(aid)
+    return True
+
+
 def _aids(value: Any) -> list[str] | None:
     """A copy of a list of valid agent identifiers, else None."""
     if type(value) is not list:
         return None
     for aid in value:
-        if type(aid) is not str or _aid_match(aid) is None:
+        if not _valid_aid(aid):
             return None
     return list(value)
 
@@ -279,8 +298,7 @@ def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
         or v != WIRE_VERSION
         or (type(performative) is not str and type(performative) is not Performative)
         or (performative := _PERFORMATIVES.get(performative)) is None
-        or type(sender) is not str
-        or _aid_match(sender) is None
+        or not _valid_aid(sender)
     ):
         return None
     receivers = _aids(fields["receivers"])

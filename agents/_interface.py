@@ -749,8 +749,9 @@ class InterfaceAgent:
                 await self._take(host, peer, state, body)
                 continue
             items = await self._batch_items(host, peer, body)
+            now = self._monotonic()  # one reading: the batch arrived at once
             for obj in items:
-                await self._take(host, peer, state, obj)
+                await self._take(host, peer, state, obj, now)
                 n += 1
                 if not n & 63:
                     await asyncio.sleep(0)
@@ -773,14 +774,15 @@ class InterfaceAgent:
         self.audit.record(verdict="dropped", **{"from": peer}, reason=reason)
         return []
 
-    async def _take(self, host: AgentPlatform, peer: str, state: _Sender, raw: Any) -> None:
+    async def _take(
+        self, host: AgentPlatform, peer: str, state: _Sender, raw: Any, now: float = 0.0
+    ) -> None:
         """One message from ``peer`` (JSON bytes, or decoded in a batch): limit, parse, admit."""
         if self.mirroring:
             body = raw if type(raw) is bytes else orjson.dumps(raw)
             self._mirror.append(("acl", peer, time.time(), body))
-        now = 0.0
         if state.total is not None:
-            now = self._monotonic()
+            now = now or self._monotonic()
             if not state.total.take(now):
                 await self._limited(host, peer, state, raw, None, now)
                 return
@@ -797,10 +799,32 @@ class InterfaceAgent:
             await self._limited(host, peer, state, raw, message, now)
             return
         state.stats.accepted += 1
+        if self._admit_now(host, peer, message):
+            return
         try:
             await self._admit(host, peer, message)
         except Exception:
             log.exception("interface[%s]: delivering from %s failed", self._me, peer)
+
+    def _admit_now(self, host: AgentPlatform, peer: str, message: ACLMessage) -> bool:
+        """`_admit` for the common case, without waiting: False (nothing done) otherwise.
+
+        One receiver here, running with room in its mailbox; no reply_to; the sender an
+        agent of ``peer``; a request only to a service ``peer`` may use. Audited
+        ``accepted`` and delivered, as `_admit` would.
+        """
+        if message.reply_to or platform_of(message.sender) != peer:
+            return False
+        agent = host._ready_receiver(message)
+        if agent is None:
+            return False
+        if message.performative in INITIATING:
+            df = host.df
+            if df is None or not df.reachable(message.receivers[0], peer):
+                return False
+        self.audit.accepted(peer, message)
+        host._deliver_now(agent, message)
+        return True
 
     async def _malformed(self, host: AgentPlatform, peer: str, raw: Any, exc: MessageError) -> None:
         """A message that opened but is not valid: refuse it (not-understood) or drop it."""
