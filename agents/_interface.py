@@ -429,7 +429,7 @@ class InterfaceAgent:
             size = self._outbox_bytes[platform] + len(body) + 1
             if len(pending) >= MAX_BATCH or size > self._batch_limit():
                 self._flush(platform, again=True)  # full: out now; the turn goes on batching
-                size = len(body) + 1
+                size = 2 + len(body) + 1  # the brackets, this body and its comma, at most
             pending.append(body)
             self._outbox_bytes[platform] = size
             return
@@ -799,10 +799,9 @@ class InterfaceAgent:
             await self._limited(host, peer, state, raw, message, now)
             return
         state.stats.accepted += 1
-        if self._admit_now(host, peer, message):
-            return
         try:
-            await self._admit(host, peer, message)
+            if not self._admit_now(host, peer, message):
+                await self._admit(host, peer, message)
         except Exception:
             log.exception("interface[%s]: delivering from %s failed", self._me, peer)
 
