@@ -116,15 +116,16 @@ class ACLMessage(BaseModel):
         validation, and ~4x less for a large content. Anything else goes to pydantic.
         """
         if fields.keys() <= _FIELDS:
-            obj = dict(fields)
-            if "content" in obj:
+            # ``fields`` is this call's own keyword dict: the copied content may replace
+            # the caller's (pydantic, if it still decides, gets an equal value)
+            if "content" in fields:
                 try:
-                    obj["content"] = _json_copy(obj["content"], 0)
+                    fields["content"] = _json_copy(fields["content"], 0)
                 except _NotPlain:
                     return cls(**fields)
-            checked = _quick_fields(obj)
+            checked = _quick_fields(fields)
             if checked is not None:
-                return _constructed(cls, checked, set(obj))
+                return _constructed(cls, checked, set(fields))
         return cls(**fields)
 
     def reply(

@@ -750,8 +750,10 @@ class InterfaceAgent:
                 continue
             items = await self._batch_items(host, peer, body)
             now = self._monotonic()  # one reading: the batch arrived at once
+            take_now = self._take_now
             for obj in items:
-                await self._take(host, peer, state, obj, now)
+                if not take_now(host, peer, state, obj, now):
+                    await self._take(host, peer, state, obj, now)
                 n += 1
                 if not n & 63:
                     await asyncio.sleep(0)
@@ -805,22 +807,59 @@ class InterfaceAgent:
         except Exception:
             log.exception("interface[%s]: delivering from %s failed", self._me, peer)
 
-    def _admit_now(self, host: AgentPlatform, peer: str, message: ACLMessage) -> bool:
-        """`_admit` for the common case, without waiting: False (nothing done) otherwise.
+    def _take_now(
+        self, host: AgentPlatform, peer: str, state: _Sender, obj: Any, now: float
+    ) -> bool:
+        """`_take` of a decoded message when it needs no wait: False (nothing done) otherwise.
 
-        One receiver here, running with room in its mailbox; no reply_to; the sender an
-        agent of ``peer``; a request only to a service ``peer`` may use. Audited
-        ``accepted`` and delivered, as `_admit` would.
+        Everything is checked first, without changing anything (a bad message, a limit
+        reached, a receiver that is not ready: False, and `_take` does it all); then the
+        tokens are taken, the message audited and delivered, as `_take` would.
         """
-        if message.reply_to or platform_of(message.sender) != peer:
+        if self.mirroring:
             return False
-        agent = host._ready_receiver(message)
+        try:
+            message = ACLMessage.from_parsed(obj)
+        except MessageError:
+            return False
+        total, requests = state.total, state.requests
+        if total is not None and not total.ready(now):
+            return False
+        initiating = message.performative in INITIATING
+        if initiating and requests is not None and not requests.ready(now):
+            return False
+        agent = self._admit_target(host, peer, message)
         if agent is None:
             return False
-        if message.performative in INITIATING:
+        if total is not None:
+            total.take(now)
+        if initiating and requests is not None:
+            requests.take(now)
+        state.stats.accepted += 1
+        self.audit.accepted(peer, message)
+        host._deliver_now(agent, message)
+        return True
+
+    def _admit_target(self, host: AgentPlatform, peer: str, message: ACLMessage) -> Agent | None:
+        """The agent `_admit` would hand ``message`` to at once, in the common case; else None.
+
+        One receiver here, running with room in its mailbox; no reply_to; the sender an
+        agent of ``peer``; a request only to a service ``peer`` may use. Changes nothing.
+        """
+        if message.reply_to or platform_of(message.sender) != peer:
+            return None
+        agent = host._ready_receiver(message)
+        if agent is not None and message.performative in INITIATING:
             df = host.df
             if df is None or not df.reachable(message.receivers[0], peer):
-                return False
+                return None
+        return agent
+
+    def _admit_now(self, host: AgentPlatform, peer: str, message: ACLMessage) -> bool:
+        """`_admit` for the common case, without waiting: False (nothing done) otherwise."""
+        agent = self._admit_target(host, peer, message)
+        if agent is None:
+            return False
         self.audit.accepted(peer, message)
         host._deliver_now(agent, message)
         return True
