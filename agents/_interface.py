@@ -24,7 +24,14 @@ from typing import TYPE_CHECKING, Any
 import msgpack
 import orjson
 
-from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, platform_of
+from ._acl import (
+    MAX_MESSAGE_BYTES,
+    WIRE_VERSION,
+    ACLMessage,
+    Performative,
+    nesting_bound,
+    platform_of,
+)
 from ._agent import Agent, MessageTemplate, on
 from ._aio import Ticker
 from ._bucket import TokenBucket, check_rates
@@ -429,6 +436,7 @@ class InterfaceAgent:
             size = self._outbox_bytes[platform] + len(body) + 1
             if len(pending) >= MAX_BATCH or size > self._batch_limit():
                 self._flush(platform, again=True)  # full: out now; the turn goes on batching
+                pending = self._outbox[platform]
                 size = 2 + len(body) + 1  # the brackets, this body and its comma, at most
             pending.append(body)
             self._outbox_bytes[platform] = size
@@ -750,10 +758,11 @@ class InterfaceAgent:
                 continue
             items = await self._batch_items(host, peer, body)
             now = self._monotonic()  # one reading: the batch arrived at once
+            nesting = nesting_bound(body)  # bounds each message's too
             take_now = self._take_now
             for obj in items:
-                if not take_now(host, peer, state, obj, now):
-                    await self._take(host, peer, state, obj, now)
+                if not take_now(host, peer, state, obj, now, nesting):
+                    await self._take(host, peer, state, obj, now, nesting)
                 n += 1
                 if not n & 63:
                     await asyncio.sleep(0)
@@ -777,7 +786,13 @@ class InterfaceAgent:
         return []
 
     async def _take(
-        self, host: AgentPlatform, peer: str, state: _Sender, raw: Any, now: float = 0.0
+        self,
+        host: AgentPlatform,
+        peer: str,
+        state: _Sender,
+        raw: Any,
+        now: float = 0.0,
+        nesting: int | None = None,
     ) -> None:
         """One message from ``peer`` (JSON bytes, or decoded in a batch): limit, parse, admit."""
         if self.mirroring:
@@ -792,7 +807,7 @@ class InterfaceAgent:
             if type(raw) is bytes:
                 message = ACLMessage.from_json(raw, max_bytes=self.max_bytes)
             else:
-                message = ACLMessage.from_parsed(raw)
+                message = ACLMessage.from_parsed(raw, nesting=nesting)
         except MessageError as exc:
             await self._malformed(host, peer, raw, exc)
             return
@@ -808,7 +823,7 @@ class InterfaceAgent:
             log.exception("interface[%s]: delivering from %s failed", self._me, peer)
 
     def _take_now(
-        self, host: AgentPlatform, peer: str, state: _Sender, obj: Any, now: float
+        self, host: AgentPlatform, peer: str, state: _Sender, obj: Any, now: float, nesting: int
     ) -> bool:
         """`_take` of a decoded message when it needs no wait: False (nothing done) otherwise.
 
@@ -819,7 +834,7 @@ class InterfaceAgent:
         if self.mirroring:
             return False
         try:
-            message = ACLMessage.from_parsed(obj)
+            message = ACLMessage.from_parsed(obj, nesting=nesting)
         except MessageError:
             return False
         total, requests = state.total, state.requests

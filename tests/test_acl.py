@@ -441,3 +441,29 @@ def test_the_quick_build_makes_what_pydantic_makes(kw: dict[str, Any]) -> None:
     assert type(quick.performative) is Performative
     if isinstance(kw.get("content"), list | dict):
         assert quick.content is not kw["content"]  # copied, as pydantic copies
+
+
+@pytest.mark.parametrize("depth", [10, 199, 200, 254, 255, 300])
+def test_the_quick_parse_leaves_deep_content_to_pydantic(depth: int) -> None:
+    """Content nested past pydantic's limit is refused by from_json and from_parsed alike."""
+    content: Any = 1
+    for _ in range(depth):
+        content = [content]
+    obj = {"performative": "inform", "sender": "a@p", "receivers": ["b@q"], "content": content}
+    # by hand: orjson writes no more than 254 levels
+    data = b'{"performative":"inform","sender":"a@p","receivers":["b@q"],"content":'
+    data += b"[" * depth + b"1" + b"]" * depth + b"}"
+    try:
+        slow = ACLMessage.from_obj(obj)
+    except MessageError as exc:
+        for quick in (
+            lambda: ACLMessage.from_json(data),
+            lambda: ACLMessage.from_parsed(orjson.loads(data)),
+            lambda: ACLMessage.from_parsed(orjson.loads(data), nesting=depth),
+        ):
+            with pytest.raises(MessageError) as err:
+                quick()
+            assert str(err.value) == str(exc)
+        return
+    assert ACLMessage.from_json(data) == slow
+    assert ACLMessage.from_parsed(orjson.loads(data)) == slow

@@ -661,6 +661,16 @@ async def test_a_burst_goes_in_batches_each_message_checked_and_audited() -> Non
         envelopes = [m.payload for m in wire.inbox.drain()]
         assert 3 <= len(envelopes) < 300  # the first alone, then batches of at most 256
 
+        # large messages: a batch is closed before it outgrows what a receiver reads
+        big = "x" * 100_000
+        echo.informs.clear()
+        for i in range(7):
+            await asker.send(
+                asker.message(Performative.INFORM, "echo@uav-b", [i, big], ontology="demo")
+            )
+        await until(lambda: len(echo.informs) == 7, "the 7 large informs")
+        assert [m.content[0] for m in echo.informs] == list(range(7))
+
         # a batch sealed by a real session, with one bad message and one over the line:
         # the good ones arrive, the bad one is answered not-understood, the forged
         # sender is dropped; each has its own audit record
