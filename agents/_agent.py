@@ -597,7 +597,7 @@ class Agent:
         **fields: Any,
     ) -> ACLMessage:
         """A new message from this agent (other ACL fields as keywords)."""
-        return ACLMessage(
+        return ACLMessage.build(
             performative=performative,
             sender=self.aid,
             receivers=[receivers] if isinstance(receivers, str) else list(receivers),
@@ -687,9 +687,12 @@ class Agent:
         return True
 
     async def _receive_loop(self) -> None:
-        get = self._mailbox.get
+        mailbox = self._mailbox
+        items, get = mailbox._items, mailbox.get
+        stats = self.stats
         while True:
-            message = await get()
+            # what is queued is taken without a coroutine call: a burst costs less
+            message = items.popleft() if items else await get()
             try:
                 route = self._route_for(message)
             except Exception as exc:  # a template's `where` raised: the agent lives on
@@ -700,7 +703,16 @@ class Agent:
             elif route.concurrent:
                 self._spawn(self._handle(route.handler, message), "handle")
             else:
-                await self._handle(route.handler, message)
+                # `_handle`, inline: the common case of every message
+                try:
+                    await route.handler(message)
+                    stats.handled += 1
+                except Exception as exc:
+                    await self._failed(message, exc, "handler")
+                except asyncio.CancelledError:
+                    if self._state == _STOPPING and expects_reply(message):
+                        await self._answer(message, Performative.FAILURE, f"{self.aid} stopped")
+                    raise
 
     def _route_for(self, message: ACLMessage) -> _Route | None:
         for route in self._routes:

@@ -453,6 +453,33 @@ class AgentPlatform:
             self.stats.misrouted += 1
             log.warning("platform[%s]: message for %s arrived here", self.name, message.receivers)
 
+    def _ready_receiver(self, message: ACLMessage) -> Agent | None:
+        """The one local agent a remote ``message`` can be handed to now, without waiting.
+
+        None unless `deliver` would hand it over at once: one receiver, running, its
+        mailbox less than half full, and the sender not claiming this platform. Changes
+        nothing: the caller then calls `_deliver_now`, or `deliver` for the general path.
+        """
+        receivers = message.receivers
+        if len(receivers) != 1:
+            return None
+        receiver = receivers[0]
+        name = self.name
+        if platform_of(receiver) != name or platform_of(message.sender) == name:
+            return None
+        agent = self._agents.get(name_of(receiver))
+        if agent is None or not agent.running:
+            return None
+        mailbox = agent._mailbox
+        return agent if len(mailbox) < mailbox.maxlen >> 1 else None
+
+    def _deliver_now(self, agent: Agent, message: ACLMessage) -> None:
+        """What `deliver` does for a message `_ready_receiver` chose ``agent`` for."""
+        stats = self.stats
+        stats.received_remote += 1
+        agent._deliver(message)  # running, room in its mailbox: taken
+        stats.local += 1
+
     async def _local(self, receiver: str, message: ACLMessage) -> None:
         agent = self._agents.get(name_of(receiver))
         if agent is not None and agent._deliver(message):

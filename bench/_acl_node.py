@@ -259,6 +259,10 @@ async def _serve(
             )
             marks["ready"] = time.time()
             reports.put(("ready", os.getpid(), {"marks": marks, "responder": responder}))
+            # as a node does once started (federation's settle_gc): what start-up built
+            # lives as long as the process, out of the collector's sight
+            gc.collect()
+            gc.freeze()
             # a multiprocessing Event cannot be awaited: poll it (and the parent's life)
             while not stop.is_set() and os.getppid() == parent:  # noqa: ASYNC110
                 await asyncio.sleep(0.1)

@@ -25,6 +25,10 @@ measured, each beside a peer measured in the same run:
 - idle RSS of that node (VmRSS of the child, ready and idle), against the bare zenoh one;
 - the same round trip over MQTT through a mosquitto of our own (free loopback port),
   against a raw aiomqtt ping-pong through the same broker;
+- the agent peer: osBrain 0.6.5 (ZeroMQ over loopback TCP, no security), its REQ-REP
+  round trip and its PUSH-PULL one-way throughput between two agent processes, the same
+  counts (``bench/_osbrain.py``), beside our zenoh round trip (median) and flood
+  (``acl-rtt-median-vs-osbrain``, ``acl-throughput-vs-osbrain``);
 - encryption's cost: the zenoh round trip with encrypted sessions (ChaCha20-Poly1305, the
   default everywhere above) against MAC-only sessions, both sides restarted for each,
   alternating (``acl-rtt-median-encrypted``).
@@ -80,6 +84,7 @@ from bench._bare_node import bare_zenoh_main, mqtt_echo_main
 from bench._child import Child, ChildFailed
 from bench._mosquitto import executable as mosquitto_executable
 from bench._mosquitto import mosquitto
+from bench._osbrain import osbrain_main
 
 N_RTT = 2000
 WARMUP = 300
@@ -612,14 +617,53 @@ def print_encryption(e: dict[str, list[dict[str, float]]]) -> None:
     report("acl-rtt-median-encrypted", enc, "plain", plain, "ms", better="lower")
 
 
+def osbrain_phase() -> dict[str, list[float]]:
+    """osBrain's round trips and flood, ROUNDS rounds, in a child of its own (osBrain forks)."""
+    progress(f"osBrain: {ROUNDS} rounds of {N_RTT} REQ-REP round trips and {N_FLOOD:,} pushes")
+    pad = "x" * max(0, ACL_BYTES - len('{"seq":100000,"speed":12.5,"pad":""}'))
+    child = Child(osbrain_main, (N_RTT, WARMUP, ROUNDS, N_FLOOD, pad), "osbrain")
+    child.proc.daemon = False  # osBrain's agents are its children: a daemon may have none
+    with child.start():
+        result: dict[str, list[float]] = child.wait_report("result", 300)
+    return result
+
+
+def print_osbrain(o: dict[str, list[float]], z: dict[str, Any]) -> None:
+    """osBrain's detail and the two BENCH lines against it."""
+    print("osBrain 0.6.5 (ZeroMQ on loopback TCP, no security), two agent processes:")
+    for r in range(ROUNDS):
+        print(
+            f"  round {r + 1}: REQ-REP median {o['rtt'][r]:.3f} p99 {o['p99'][r]:.3f} ms; "
+            f"PUSH-PULL {fmt(o['flood'][r])} msgs/s"
+        )
+    report(
+        "acl-throughput-vs-osbrain",
+        _best(z["flood"], "rate", higher=True),
+        "osbrain",
+        max(o["flood"]),
+        "msgs/s",
+        better="higher",
+    )
+    report(
+        "acl-rtt-median-vs-osbrain",
+        _best(z["rtt"], "median"),
+        "osbrain",
+        min(o["rtt"]),
+        "ms",
+        better="lower",
+    )
+
+
 def run() -> None:
     """Measure the zenoh figures, then the MQTT ones; print the detail and the BENCH lines."""
     mosquitto_executable()  # fail now, not after a minute of zenoh, when it is missing
     with tempfile.TemporaryDirectory(prefix="bench-acl-") as tmp:
         keydir = Path(tmp)
         make_keys(keydir)
+        o = osbrain_phase()
         z = _run_async(zenoh_phase(keydir))
         print_zenoh(z)
+        print_osbrain(o, z)
         e = _run_async(encryption_phase(keydir))
         print_encryption(e)
         progress("starting mosquitto")

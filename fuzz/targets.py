@@ -35,7 +35,7 @@ from agents import AgentPlatform, ServiceDescription, on_request, wire_key
 from agents._acl import MAX_MESSAGE_BYTES, ACLMessage, Performative
 from agents._agent import Agent
 from agents._exceptions import AuthenticationError
-from agents._interface import InterfaceAgent
+from agents._interface import MAX_BATCH, InterfaceAgent
 from agents._security import Handshake, KeyPair, SecurityPolicy, SessionTable, TrustStore
 from agents.transports import MemoryHub, MemoryTransport, Message, Subscription
 from dyknow_core import DyKnowInstance
@@ -262,7 +262,8 @@ class InterfaceTarget(_Target):
         """Open what uav-b sent to uav-a since last time, and tally its performatives."""
         for payload in self.outbox.inbox.drain():
             _, body = self.table.open(payload.payload)
-            self.answers[ACLMessage.from_json(body).performative.value] += 1
+            for message in _messages(body):
+                self.answers[message.performative.value] += 1
 
     def _decisions(self) -> tuple[int, int, int]:
         """Audit records, envelopes dropped as not authentic, messages over a rate limit."""
@@ -279,8 +280,15 @@ class InterfaceTarget(_Target):
         records, unauthentic, limited = self._decisions()
         await self.raw.publish(self.inbox, payload)
         # every input ends in a decision: audited, or counted (garbage beyond the audit's
-        # budget for unauthenticated input is counted and summed up later)
-        await self._until(lambda: self._decisions() != (records, unauthentic, limited))
+        # budget for unauthenticated input is counted and summed up later); a batch of
+        # messages in one envelope, one decision per message
+        expected = _batch_size(self._sealed.get(payload, b""))
+
+        def decided() -> bool:
+            now = self._decisions()
+            return now[1:] != (unauthentic, limited) or now[0] >= records + expected
+
+        await self._until(decided)
         self._read_outbox()
         now_records, now_unauthentic, now_limited = self._decisions()
         if now_unauthentic > unauthentic:
@@ -288,8 +296,11 @@ class InterfaceTarget(_Target):
             return "dropped+counted"
         if now_limited > limited:
             return "rate-limited"
-        if now_records != records + 1:
-            raise Crash(f"{now_records - records} audit records for one authentic input")
+        if now_records != records + expected:
+            raise Crash(
+                f"{now_records - records} audit records for one authentic input "
+                f"({expected} message(s))"
+            )
         rec = audit.records[-1]
         verdict = rec["verdict"]
         if verdict == "refused" and rec["performative"] is None:
@@ -323,10 +334,10 @@ class InterfaceTarget(_Target):
             while True:
                 payload = await self.outbox.get()
                 _, body = self.table.open(payload.payload)
-                answer = ACLMessage.from_json(body)
-                self.answers[answer.performative.value] += 1
-                if answer.conversation_id == message.conversation_id:
-                    return answer.performative.value, answer.content
+                for answer in _messages(body):
+                    self.answers[answer.performative.value] += 1
+                    if answer.conversation_id == message.conversation_id:
+                        return answer.performative.value, answer.content
 
     def settle(self) -> None:
         """Wait until uav-a got every not-understood the outcomes promise (bounded)."""
@@ -339,6 +350,24 @@ class InterfaceTarget(_Target):
             await self._until(done)
 
         self.loop.run_until_complete(wait())
+
+
+def _batch_size(body: bytes) -> int:
+    """How many messages an (opened) body holds: a batch's, else one (docs/wire.md)."""
+    if body[:1] != b"[" or len(body) > MAX_MESSAGE_BYTES:
+        return 1
+    try:
+        items = orjson.loads(body)
+    except orjson.JSONDecodeError:
+        return 1
+    return len(items) if isinstance(items, list) and 1 <= len(items) <= MAX_BATCH else 1
+
+
+def _messages(body: bytes) -> list[ACLMessage]:
+    """The ACL messages of a body uav-b sealed: one, or a batch of them."""
+    if body[:1] != b"[":
+        return [ACLMessage.from_json(body)]
+    return [ACLMessage.from_parsed(obj) for obj in orjson.loads(body)]
 
 
 def _never_answered(body: bytes) -> bool:

@@ -13,6 +13,7 @@ import orjson
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from pydantic import ValidationError
 
 from agents import (
     MAX_MESSAGE_BYTES,
@@ -342,3 +343,127 @@ def test_the_wire_document_lists_every_field_and_performative() -> None:
     assert fields == list(ACLMessage.model_fields)
     listed = section.split("Performatives (FIPA):", 1)[1].split("\n\n", 1)[0]
     assert re.findall(r"`([a-z-]+)`", listed) == sorted(p.value for p in Performative)
+
+
+# -- the quick parse of decoded messages -------------------------------------------------------
+
+_scalars = st.none() | st.booleans() | st.integers(-(2**63), 2**63 - 1) | st.floats()
+_json = st.recursive(
+    _scalars | st.text(max_size=5),
+    lambda inner: (
+        st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=3), inner, max_size=3)
+    ),
+    max_leaves=8,
+)
+_aid = st.sampled_from(["a@p", "bad", "x@y.z", "", "a@b@c"])
+_field_values = {
+    "v": st.sampled_from([1, 2, 1.0, True, "1"]) | _json,
+    "performative": st.sampled_from(["inform", "request", "shout", "INFORM"]) | _json,
+    "sender": _aid | _json,
+    "receivers": st.lists(_aid, max_size=3) | _json,
+    "reply_to": st.none() | st.lists(_aid, max_size=2) | _json,
+    "content": _json,
+    "ontology": st.none() | st.text(max_size=3) | _json,
+    "conversation_id": st.none() | st.text(max_size=3) | _json,
+    "reply_with": st.none() | st.text(max_size=3) | _json,
+    "reply_by": st.none() | st.floats() | st.integers() | _json,
+    "surprise": _json,
+}
+
+
+@st.composite
+def _decoded(draw: st.DrawFn) -> dict[str, Any]:
+    names = draw(st.sets(st.sampled_from(sorted(_field_values))))
+    obj = {name: draw(_field_values[name]) for name in names}
+    # mostly valid messages with one field changed, so every check is reached
+    base = {"performative": "inform", "sender": "a@p", "receivers": ["b@q"]}
+    return {**base, **obj} if draw(st.booleans()) else obj
+
+
+@settings(max_examples=400, deadline=None)
+@given(_decoded())
+def test_the_quick_parse_accepts_and_refuses_as_pydantic_does(obj: dict[str, Any]) -> None:
+    """from_parsed: the same message, or the same error, as the full validation."""
+    try:
+        slow = ACLMessage.from_obj(obj)
+    except MessageError as exc:
+        with pytest.raises(MessageError) as quick:
+            ACLMessage.from_parsed(obj)
+        assert str(quick.value) == str(exc)
+        return
+    quick = ACLMessage.from_parsed(obj)
+    assert quick == slow
+    assert quick.__dict__ == slow.__dict__
+    assert list(quick.__dict__) == list(slow.__dict__)
+    assert quick.model_fields_set == slow.model_fields_set
+    assert quick.to_json() == slow.to_json()
+
+
+_python_content = st.recursive(
+    _scalars | st.text(max_size=5) | st.sampled_from([Performative.INFORM, b"x", (1, 2)]),
+    lambda inner: (
+        st.lists(inner, max_size=3)
+        | st.dictionaries(st.text(max_size=3) | st.integers(0, 3), inner, max_size=3)
+        | st.tuples(inner)
+    ),
+    max_leaves=8,
+)
+
+
+@st.composite
+def _built(draw: st.DrawFn) -> dict[str, Any]:
+    names = draw(st.sets(st.sampled_from(sorted(_field_values))))
+    kw = {name: draw(_field_values[name]) for name in names}
+    kw["content"] = draw(_python_content)
+    base = {
+        "performative": draw(st.sampled_from([Performative.REQUEST, "inform"])),
+        "sender": "a@p",
+        "receivers": draw(st.sampled_from([["b@q"], ("b@q",)])),
+    }
+    return {**base, **kw} if draw(st.booleans()) else kw
+
+
+@settings(max_examples=400, deadline=None)
+@given(_built())
+def test_the_quick_build_makes_what_pydantic_makes(kw: dict[str, Any]) -> None:
+    """ACLMessage.build: the same message, or the same error, as ACLMessage(**fields)."""
+    try:
+        slow = ACLMessage(**kw)
+    except ValidationError as exc:
+        with pytest.raises(ValidationError) as quick:
+            ACLMessage.build(**kw)
+        assert str(quick.value) == str(exc)
+        return
+    quick = ACLMessage.build(**kw)
+    assert repr(quick) == repr(slow)  # repr: NaN in content is not equal to itself
+    assert list(quick.__dict__) == list(slow.__dict__)
+    assert quick.model_fields_set == slow.model_fields_set
+    assert type(quick.performative) is Performative
+    if isinstance(kw.get("content"), list | dict):
+        assert quick.content is not kw["content"]  # copied, as pydantic copies
+
+
+@pytest.mark.parametrize("depth", [10, 199, 200, 254, 255, 300])
+def test_the_quick_parse_leaves_deep_content_to_pydantic(depth: int) -> None:
+    """Content nested past pydantic's limit is refused by from_json and from_parsed alike."""
+    content: Any = 1
+    for _ in range(depth):
+        content = [content]
+    obj = {"performative": "inform", "sender": "a@p", "receivers": ["b@q"], "content": content}
+    # by hand: orjson writes no more than 254 levels
+    data = b'{"performative":"inform","sender":"a@p","receivers":["b@q"],"content":'
+    data += b"[" * depth + b"1" + b"]" * depth + b"}"
+    try:
+        slow = ACLMessage.from_obj(obj)
+    except MessageError as exc:
+        for quick in (
+            lambda: ACLMessage.from_json(data),
+            lambda: ACLMessage.from_parsed(orjson.loads(data)),
+            lambda: ACLMessage.from_parsed(orjson.loads(data), nesting=depth),
+        ):
+            with pytest.raises(MessageError) as err:
+                quick()
+            assert str(err.value) == str(exc)
+        return
+    assert ACLMessage.from_json(data) == slow
+    assert ACLMessage.from_parsed(orjson.loads(data)) == slow

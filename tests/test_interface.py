@@ -643,6 +643,94 @@ async def test_malformed_acl_in_a_valid_envelope_is_answered_not_understood() ->
         assert len(listener.not_understood) == 1
 
 
+async def test_a_burst_goes_in_batches_each_message_checked_and_audited() -> None:
+    """Messages sent in one turn after the first share an envelope; each is admitted alone."""
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pa, pb, asker, echo = pair.pa, pair.pb, pair.asker, pair.echo
+        raw = await fed.raw()
+        wire = await raw.subscribe(wire_key(FED, "acl", "uav-b"))
+        accepted = ia(pb).audit.counts["accepted"]
+        for i in range(300):  # one turn: more than one batch holds (MAX_BATCH is 256)
+            await asker.send(
+                asker.message(Performative.INFORM, "echo@uav-b", {"i": i}, ontology="demo")
+            )
+        await until(lambda: len(echo.informs) == 300, "the 300 informs")
+        assert [m.content for m in echo.informs] == [{"i": i} for i in range(300)]  # in order
+        assert ia(pb).audit.counts["accepted"] == accepted + 300
+        envelopes = [m.payload for m in wire.inbox.drain()]
+        assert 3 <= len(envelopes) < 300  # the first alone, then batches of at most 256
+
+        # large messages: a batch is closed before it outgrows what a receiver reads
+        big = "x" * 100_000
+        echo.informs.clear()
+        for i in range(7):
+            await asker.send(
+                asker.message(Performative.INFORM, "echo@uav-b", [i, big], ontology="demo")
+            )
+        await until(lambda: len(echo.informs) == 7, "the 7 large informs")
+        assert [m.content[0] for m in echo.informs] == list(range(7))
+
+        # a batch sealed by a real session, with one bad message and one over the line:
+        # the good ones arrive, the bad one is answered not-understood, the forged
+        # sender is dropped; each has its own audit record
+        listener = await pa.add(Listener("listener"))
+        good = acl("listener@uav-a", "echo@uav-b", {"k": 1}, performative=Performative.INFORM)
+        bad = {"performative": "shout", "sender": "listener@uav-a", "receivers": ["echo@uav-b"]}
+        other = acl("victim@uav-c", "echo@uav-b", performative=Performative.INFORM)
+        batch = b"[" + b",".join([good.to_json(), orjson.dumps(bad), other.to_json()]) + b"]"
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", batch))
+        async with asyncio.timeout(WAIT):
+            await listener.got.wait()
+        await until(lambda: echo.informs[-1].content == {"k": 1}, "the good message")
+        await audited(pb, verdict="refused", sender="listener@uav-a")
+        rec = await audited(pb, verdict="dropped", sender="victim@uav-c")
+        assert "not an agent of 'uav-a'" in str(rec["reason"])
+
+        # a batch that is no array of messages is dropped whole, audited
+        for body in (b"[]", b"[" + b",".join([good.to_json()] * 257) + b"]", b"[1,"):
+            await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", body))
+        await until(
+            lambda: len(records(pb, verdict="dropped", sender=None, **{"from": "uav-a"})) >= 3,
+            "three malformed batches",
+        )
+        assert await request(asker, "echo@uav-b", 2, ontology="demo")
+
+
+async def test_batches_are_rate_limited_message_by_message() -> None:
+    """A batch counts as its messages against the sender's limits."""
+    from agents._interface import RateLimit
+
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start(
+            "uav-b", rate_limit=RateLimit(rate=1.0, burst=1.0, total_rate=5.0, total_burst=5.0)
+        )
+        asker = await serve(pa, "asker", None)
+        echo = await serve(pb, "echo")
+        await asker.send(asker.message(Performative.INFORM, "echo@uav-b", 0, ontology="demo"))
+        for i in range(1, 20):
+            await asker.send(asker.message(Performative.INFORM, "echo@uav-b", i, ontology="demo"))
+        await until(lambda: pb.stats.rate_limited >= 15, "the limited informs")
+        await asyncio.sleep(0.05)
+        assert len(echo.informs) == 5  # the burst of the total bucket, one by one
+        assert pb.stats.senders["uav-a"].accepted == 5
+
+
+def test_no_batches_over_a_transport_that_must_await_its_puts() -> None:
+    """A memory transport whose publish is overridden cannot publish from a loop callback."""
+
+    class Slow(MemoryTransport):
+        async def publish(self, key: str, payload: bytes, **kw: Any) -> None:
+            await super().publish(key, payload, **kw)
+
+    hub = MemoryHub()
+    assert hub.transport().publishes_nowait
+    assert not Slow(hub).publishes_nowait
+    with pytest.raises(TransportError):
+        Slow(hub).publish_nowait("a/b", b"x")
+
+
 # -- sessions --------------------------------------------------------------------------------
 
 

@@ -898,3 +898,28 @@ def test_simultaneous_renewals_keep_the_session_the_peer_is_about_to_use(clock: 
     a.table.add(a.hs.finish(reply))
     assert a.table.open(b.table.seal("uav-a", ACL))[0] == "uav-b"
     assert b.table.open(a.table.seal("uav-b", ACL))[0] == "uav-a"
+
+
+def test_the_direct_aead_calls_are_nacl_bindings_own() -> None:
+    """Sealing calls libsodium directly: the same bytes, and the same refusals, as nacl.bindings."""
+    from nacl import bindings
+    from nacl.exceptions import CryptoError
+
+    from agents._security import _aead_decrypt, _aead_encrypt
+
+    key, nonce, aad = os.urandom(32), os.urandom(12), b"ad"
+    for message in (b"", b"x", os.urandom(1000)):
+        box = _aead_encrypt(message, aad, nonce, key)
+        assert box == bindings.crypto_aead_chacha20poly1305_ietf_encrypt(message, aad, nonce, key)
+        assert _aead_decrypt(box, aad, nonce, key) == message
+        flipped = bytes([box[0] ^ 1]) + box[1:]
+        with pytest.raises(CryptoError):
+            _aead_decrypt(flipped, aad, nonce, key)
+        with pytest.raises(CryptoError):
+            _aead_decrypt(box, b"other", nonce, key)
+    for short in (b"", b"x" * 15):  # shorter than a tag: nacl.bindings's own error
+        with pytest.raises(Exception) as ours:
+            _aead_decrypt(short, aad, nonce, key)
+        with pytest.raises(Exception) as theirs:
+            bindings.crypto_aead_chacha20poly1305_ietf_decrypt(short, aad, nonce, key)
+        assert type(ours.value) is type(theirs.value)

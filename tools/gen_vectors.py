@@ -371,6 +371,16 @@ def generate() -> dict[str, Any]:
             clock=clock,
             about="the receiver's stream report (a binary envelope the other way)",
         ),
+        _envelope(
+            "json-box-batch",
+            s_init,
+            FEDERATION,
+            binary=False,
+            encrypt=True,
+            body=b"[" + request + b"," + request + b"]",
+            clock=clock,
+            about="a batch of two ACL messages in one encrypted envelope (a JSON array), counter 3",
+        ),
     ]
     for entry in envelopes:
         table = tables[entry["to"]]

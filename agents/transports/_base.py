@@ -17,7 +17,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, Generic, NamedTuple, Self, TypeVar
 
-from .._exceptions import TransportClosed
+from .._exceptions import TransportClosed, TransportError
 
 log = logging.getLogger(__name__)
 
@@ -323,6 +323,23 @@ class Transport(ABC):
     @abstractmethod
     async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Send ``payload`` to every subscriber whose key expression matches ``key``."""
+
+    @property
+    def publishes_nowait(self) -> bool:
+        """Whether `publish_nowait` works here: a put that never waits for the event loop.
+
+        True on zenoh and in memory, unless a subclass overrides ``publish`` (a test's
+        lossy link must see every put) without overriding this too.
+        """
+        return False
+
+    def publish_nowait(self, key: str, payload: bytes) -> None:
+        """Publish ``payload`` at once, from the loop's thread (see `publishes_nowait`).
+
+        For callers that batch: a batch goes out from a loop callback, in order with what
+        `publish` sent before it. Errors as `publish`; TransportError where unsupported.
+        """
+        raise TransportError(f"{self.name} transport cannot publish without waiting")
 
     @abstractmethod
     async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:

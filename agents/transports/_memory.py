@@ -65,6 +65,20 @@ class MemoryTransport(Transport):
 
     async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Deliver to every matching subscriber in the hub."""
+        self._put(key, payload, attachment)
+
+    @property
+    def publishes_nowait(self) -> bool:
+        """True (a put into the hub never waits), unless a subclass overrides ``publish``."""
+        return type(self).publish is MemoryTransport.publish
+
+    def publish_nowait(self, key: str, payload: bytes) -> None:
+        """Publish ``payload`` on ``key`` now."""
+        if not self.publishes_nowait:
+            super().publish_nowait(key, payload)
+        self._put(key, payload, None)
+
+    def _put(self, key: str, payload: bytes, attachment: bytes | None) -> None:
         self._check_open()
         msg = Message(key, payload, attachment)
         for expr, inbox in self.hub.subscribers:

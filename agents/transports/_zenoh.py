@@ -410,6 +410,20 @@ class ZenohTransport(Transport):
 
     async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Put ``payload`` on ``key`` through a cached publisher (DROP, reliable)."""
+        self._put(key, payload, attachment)
+
+    @property
+    def publishes_nowait(self) -> bool:
+        """True (a zenoh put never waits for the loop), unless a subclass overrides ``publish``."""
+        return type(self).publish is ZenohTransport.publish
+
+    def publish_nowait(self, key: str, payload: bytes) -> None:
+        """Publish ``payload`` on ``key`` now."""
+        if not self.publishes_nowait:
+            super().publish_nowait(key, payload)
+        self._put(key, payload, None)
+
+    def _put(self, key: str, payload: bytes, attachment: bytes | None) -> None:
         pub = self._publishers.get(key)
         if pub is None:
             pub = self._declare_publisher(key)
