@@ -29,6 +29,8 @@ from typing import Any
 
 import msgpack
 import orjson
+from cryptography.exceptions import InvalidTag
+from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from nacl import bindings as _sodium
 from nacl.exceptions import CryptoError
 from nacl.signing import SigningKey, VerifyKey
@@ -106,47 +108,34 @@ _MAC_BYTES = 32
 _TAG_BYTES = 16  # the ChaCha20-Poly1305 tag a box adds to its body
 
 
-def _bound_aead() -> tuple[Callable[[bytes, bytes, bytes, bytes], bytes], ...]:
-    """ChaCha20-Poly1305-IETF encrypt and decrypt, as nacl.bindings's, called directly.
+# ChaCha20-Poly1305-IETF through `cryptography` (OpenSSL): the same bytes as libsodium's,
+# and about half the cost per call of nacl.bindings' wrapper, which checks and formats its
+# arguments on every call (measured: 2.6 µs against 4.4 µs to seal 270 bytes). A key's
+# cipher object is made once: sessions seal thousands of envelopes under one key.
+_CIPHERS: dict[bytes, ChaCha20Poly1305] = {}
+_MAX_CIPHERS = 4096  # sessions are per peer: a bound well above any federation's size
 
-    nacl.bindings checks each argument's type and length and formats three error texts
-    per call before calling libsodium (~2 µs of a 3-4 µs call); ours are bytes of the
-    right lengths by construction (keys from the handshake, nonces built here). The same
-    libsodium functions, through PyNaCl's own cffi module; its bindings when that moves.
-    """
+
+def _cipher(key: bytes) -> ChaCha20Poly1305:
+    cipher = _CIPHERS.get(key)
+    if cipher is None:
+        if len(_CIPHERS) >= _MAX_CIPHERS:
+            _CIPHERS.clear()  # keys of ended sessions go; live ones come back on next use
+        cipher = _CIPHERS[key] = ChaCha20Poly1305(key)
+    return cipher
+
+
+def _aead_encrypt(message: bytes, aad: bytes, nonce: bytes, key: bytes) -> bytes:
+    """Encrypt ``message`` under ``key`` and ``nonce``, authenticating ``aad`` as well."""
+    return _cipher(key).encrypt(nonce, message, aad)
+
+
+def _aead_decrypt(ciphertext: bytes, aad: bytes, nonce: bytes, key: bytes) -> bytes:
+    """Decrypt and verify; a forged or damaged box raises CryptoError, as libsodium's does."""
     try:
-        from nacl._sodium import ffi, lib  # type: ignore[import-not-found]
-    except ImportError:  # pragma: no cover - a PyNaCl without its private module
-        return (
-            _sodium.crypto_aead_chacha20poly1305_ietf_encrypt,
-            _sodium.crypto_aead_chacha20poly1305_ietf_decrypt,
-        )
-    encrypt_c = lib.crypto_aead_chacha20poly1305_ietf_encrypt
-    decrypt_c = lib.crypto_aead_chacha20poly1305_ietf_decrypt
-    new, buffer, null = ffi.new, ffi.buffer, ffi.NULL
-    fallback = _sodium.crypto_aead_chacha20poly1305_ietf_decrypt
-
-    def encrypt(message: bytes, aad: bytes, nonce: bytes, key: bytes) -> bytes:
-        n = len(message) + _TAG_BYTES
-        out = new("unsigned char[]", n)
-        outlen = new("unsigned long long *")
-        if encrypt_c(out, outlen, message, len(message), aad, len(aad), null, nonce, key):
-            raise CryptoError("Encryption failed.")
-        return buffer(out, outlen[0])[:]
-
-    def decrypt(ciphertext: bytes, aad: bytes, nonce: bytes, key: bytes) -> bytes:
-        if len(ciphertext) < _TAG_BYTES:
-            return fallback(ciphertext, aad, nonce, key)  # its error, as before
-        out = new("unsigned char[]", max(1, len(ciphertext) - _TAG_BYTES))
-        outlen = new("unsigned long long *")
-        if decrypt_c(out, outlen, null, ciphertext, len(ciphertext), aad, len(aad), nonce, key):
-            raise CryptoError("Decryption failed. Ciphertext failed verification")
-        return buffer(out, outlen[0])[:]
-
-    return encrypt, decrypt
-
-
-_aead_encrypt, _aead_decrypt = _bound_aead()
+        return _cipher(key).decrypt(nonce, ciphertext, aad)
+    except InvalidTag:
+        raise CryptoError("Decryption failed. Ciphertext failed verification") from None
 
 
 def check_name(value: str, what: str = "platform") -> str:
