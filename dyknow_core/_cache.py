@@ -21,7 +21,7 @@ class Cache:
     available time) are kept: that is what answers "what did we believe at tq about tv".
     """
 
-    __slots__ = ("_appended", "_best", "_best_at", "_buf", "_max_age", "_scanned", "evicted")
+    __slots__ = ("_best", "_best_at", "_buf", "_max_age", "_scanned", "evicted")
 
     def __init__(self, spec: CacheSpec) -> None:
         self._buf: deque[RawSample] = deque(maxlen=spec.max_samples)
@@ -29,8 +29,7 @@ class Cache:
         self.evicted = 0
         # `latest` over everything cached, kept between calls so that each call reads only
         # what arrived since (a query per stream per request must not scan the whole cache):
-        # samples ever added, the best one and its index among them, how many were read
-        self._appended = 0
+        # the best sample, its index among all ever added (evicted + cached), how many read
         self._best: RawSample | None = None
         self._best_at = -1
         self._scanned = 0
@@ -47,7 +46,6 @@ class Cache:
             if over > 0:
                 self.evicted += min(over, len(buf) + len(batch))
         buf.extend(batch)
-        self._appended += len(batch)
         if self._max_age is not None and buf:
             cutoff = buf[-1][2] - self._max_age
             n = 0
@@ -74,8 +72,10 @@ class Cache:
         if not buf:
             return None
         if as_of is None or buf[-1][2] <= as_of:  # all of it: only what is new is read
-            appended = self._appended
-            first = appended - len(buf)  # the index of buf[0] among all samples added
+            # indices among all samples ever added: buf[0] is the first not evicted (counted
+            # from `evicted`, so extend, which is hot, keeps no count of its own)
+            first = self.evicted
+            appended = first + len(buf)
             best, best_at, start = self._best, self._best_at, self._scanned
             if best is None or best_at < first:  # none yet, or evicted since: read it all
                 best, best_at, start = None, -1, first
