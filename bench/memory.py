@@ -1,4 +1,4 @@
-"""Peak memory of a stream cached as "the last 10 s" while 1 M samples go through it.
+"""Memory: a stream cached as "the last 10 s" under 1 M samples; a node's start and idle RSS.
 
 A 1 kHz stream pushed for 1000 s of valid time through a source whose cache is
 ``CacheSpec(max_samples=None, max_age=10)``, with one subscriber, against the least
@@ -7,16 +7,31 @@ any program could hold for the same question: the last 10 s of samples in a
 allocations only, so the figure does not depend on what the interpreter had mapped
 before) from just before the first push; the in-flight batch counts for both.
 Memory is printed at a few points of the run: it must level off once 10 s are cached.
+
+Then a whole node: ``dyknow node`` (``python -m federation.cli node``, a platform with its
+Interface Agent, encryption on) spawned from its TOML config, from just before the spawn
+until it prints that it is ready, and its RSS once idle; beside it, in the same run, the
+least a zenoh node can be: a fresh interpreter that opens a session with the same
+settings, declares a queryable and a liveliness token, and says it is ready (``BENCH
+federation-node-ready`` and ``federation-node-rss``; ``bench.acl``'s ``node-ready`` is an
+agent platform without the federation).
 """
 
 from __future__ import annotations
 
 import gc
 import math
+import os
 import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
 import tracemalloc
 from collections import deque
 from collections.abc import Callable, Iterator
+from pathlib import Path
 
 from bench import progress, report
 from dyknow_core import CacheSpec, DyKnowInstance, ManualClock, Policy, RawSample, Sample
@@ -28,6 +43,23 @@ DELAY_NS = 2_000_000  # available 2 ms after valid
 MAX_AGE_S = 10.0
 CHECKPOINTS = (10_000, 100_000, 250_000, 500_000, 1_000_000)
 MB = 1024 * 1024
+NODE_REPEAT = 3  # spawns of each, alternating; the medians are reported
+NODE_IDLE_S = 1.0  # how long a ready node idles before its RSS is read
+NODE_TIMEOUT = 60.0  # s for a spawned node to say it is ready (a loaded 2-core machine)
+
+# The peer node: a session, a queryable and a token, then "ready" (the settings of ours).
+_BARE_NODE = """
+import sys, zenoh
+c = zenoh.Config()
+c.insert_json5("mode", '"peer"')
+c.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
+c.insert_json5("scouting/multicast/enabled", "false")
+s = zenoh.open(c)
+q = s.declare_queryable("bench/bare/ready", lambda query: query.reply(query.key_expr, b"1"))
+t = s.liveliness().declare_token("bench/bare/alive")
+print("ready", flush=True)
+sys.stdin.read()
+"""
 
 
 def batches(n: int = N) -> Iterator[list[Sample]]:
@@ -61,7 +93,94 @@ def measure(
     return peak, points
 
 
+def _node_config(directory: Path) -> Path:
+    """A node's TOML config, key pair and trust file in ``directory``: one platform alone."""
+    from agents.keys import gen_keys, trust_keys
+
+    pub = gen_keys("node", directory / "keys")[2]
+    trust_keys(directory / "trust.json", [pub], federation="bench-node")
+    path = directory / "node.toml"
+    path.write_text(
+        'name = "node"\nfederation = "bench-node"\n'
+        f'key = "{directory / "keys" / "node.key"}"\ntrust = "{directory / "trust.json"}"\n'
+        '[vocabulary]\nname = "bench"\n[vocabulary.labels]\nspeed = "a speed"\n'
+        '[mapping.labels]\nspeed = "bench/speed"\n'
+        '[transport]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:0"]\n'
+    )
+    return path
+
+
+def _spawn_ready(argv: list[str]) -> tuple[float, float]:
+    """Spawn ``argv``; seconds until it prints a line with "ready", and its RSS (MB) idle."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(
+        argv,
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert proc.stdout is not None
+        deadline = time.monotonic() + NODE_TIMEOUT
+        while "ready" not in (line := proc.stdout.readline()):
+            if not line or time.monotonic() > deadline:
+                raise AssertionError(f"{argv[-3:]} did not say it is ready (exit {proc.poll()})")
+        ready = time.perf_counter() - t0
+        time.sleep(NODE_IDLE_S)
+        with open(f"/proc/{proc.pid}/status") as f:
+            rss = next(int(x.split()[1]) / 1024 for x in f if x.startswith("VmRSS:"))
+        return ready, rss
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+
+
+def node_ready() -> None:
+    """``dyknow node`` start → ready and idle RSS, beside a bare zenoh node; the BENCH lines."""
+    ours: list[tuple[float, float]] = []
+    bare: list[tuple[float, float]] = []
+    with tempfile.TemporaryDirectory(prefix="bench-node-") as tmp:
+        config = _node_config(Path(tmp))
+        for i in range(NODE_REPEAT):
+            progress(f"node start-to-ready, spawn {i + 1}/{NODE_REPEAT}: bare zenoh, then ours")
+            bare.append(_spawn_ready([sys.executable, "-c", _BARE_NODE]))
+            ours.append(
+                _spawn_ready([sys.executable, "-m", "federation.cli", "node", "-c", str(config)])
+            )
+    print(f"node start to ready ({NODE_REPEAT} spawns each, s) and idle RSS (MB):")
+    for (r, m), (br, bm) in zip(ours, bare, strict=True):
+        print(f"  dyknow node {r:.3f} s {m:.1f} MB; bare zenoh node {br:.3f} s {bm:.1f} MB")
+    report(
+        "federation-node-ready",
+        statistics.median(r for r, _ in ours),
+        "zenoh-bare",
+        statistics.median(r for r, _ in bare),
+        "s",
+        better="lower",
+    )
+    report(
+        "federation-node-rss",
+        statistics.median(m for _, m in ours),
+        "zenoh-bare",
+        statistics.median(m for _, m in bare),
+        "MB",
+        better="lower",
+    )
+
+
 def run() -> None:
+    """The cache's memory against the deque reference, then the node's start and RSS."""
+    cache_memory()
+    node_ready()
+
+
+def cache_memory() -> None:
     """Measure ours and the deque reference, print the checkpoints and the BENCH line."""
     clock = ManualClock()
     dk = DyKnowInstance(clock=clock)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Iterable
+from itertools import islice
 from typing import Any
 
 from ._policy import Approximation, CacheSpec
@@ -20,12 +21,18 @@ class Cache:
     available time) are kept: that is what answers "what did we believe at tq about tv".
     """
 
-    __slots__ = ("_buf", "_max_age", "evicted")
+    __slots__ = ("_best", "_best_at", "_buf", "_max_age", "_scanned", "evicted")
 
     def __init__(self, spec: CacheSpec) -> None:
         self._buf: deque[RawSample] = deque(maxlen=spec.max_samples)
         self._max_age = None if spec.max_age is None else seconds_to_ns(spec.max_age)
         self.evicted = 0
+        # `latest` over everything cached, kept between calls so that each call reads only
+        # what arrived since (a query per stream per request must not scan the whole cache):
+        # the best sample, its index among all ever added (evicted + cached), how many read
+        self._best: RawSample | None = None
+        self._best_at = -1
+        self._scanned = 0
 
     def __len__(self) -> int:
         return len(self._buf)
@@ -61,7 +68,24 @@ class Cache:
 
     def latest(self, as_of: int | None = None) -> RawSample | None:
         """The sample with the greatest valid time (newest estimate on ties) seen by ``as_of``."""
-        best: RawSample | None = None
+        buf = self._buf
+        if not buf:
+            return None
+        if as_of is None or buf[-1][2] <= as_of:  # all of it: only what is new is read
+            # indices among all samples ever added: buf[0] is the first not evicted (counted
+            # from `evicted`, so extend, which is hot, keeps no count of its own)
+            first = self.evicted
+            appended = first + len(buf)
+            best, best_at, start = self._best, self._best_at, self._scanned
+            if best is None or best_at < first:  # none yet, or evicted since: read it all
+                best, best_at, start = None, -1, first
+            # newest first, so a later arrival wins a tie with an earlier one ("newest")
+            for j, s in enumerate(islice(reversed(buf), appended - start)):
+                if best is None or s[1] > best[1] or (best_at < start and s[1] == best[1]):
+                    best, best_at = s, appended - 1 - j
+            self._best, self._best_at, self._scanned = best, best_at, appended
+            return best
+        best = None
         for s in self._believed(as_of):
             if best is None or s[1] > best[1]:
                 best = s

@@ -65,10 +65,11 @@ def check_application(config: PlatformConfig, source: str) -> None:
 
     KPL errors come as ``FILE:LINE:COL: message`` lines (the form `dyknow kpl check` prints).
     """
-    from dyknow_core.kpl import check, resolve_callable
-
+    # the KPL modules load only for a node that has an application or Python inputs
     text = _application_text(config, source)
     if text is not None:
+        from dyknow_core.kpl import check
+
         errors = check(text)
         if errors:
             lines = "\n".join(e.format(str(config.application)) for e in errors)
@@ -77,6 +78,8 @@ def check_application(config: PlatformConfig, source: str) -> None:
     with _importable(config):
         for n, spec in enumerate(config.inputs):
             if isinstance(spec, PythonInput):
+                from dyknow_core.kpl import resolve_callable
+
                 module, attr = spec.entry.split(":", 1)
                 try:
                     resolve_callable(module, attr)
@@ -116,12 +119,12 @@ class NodeApplication:
         return c.application is None and not c.inputs and not c.outputs
 
     async def __aenter__(self) -> NodeApplication:
-        from dyknow_core.kpl import KPLCheckError, KPLSetupError, setup
-
         instance = self.platform.instance
         text = _application_text(self.config, self.source)
         with _importable(self.config):
             if text is not None:
+                from dyknow_core.kpl import KPLCheckError, KPLSetupError, setup
+
                 where = str(self.config.application)
                 try:
                     self.kpl = setup(instance, text)

@@ -66,6 +66,12 @@ RESEND_BURST = 40.0
 RESEND_REPORT_INTERVAL = 1.0
 
 
+def _done(fut: asyncio.Future[None]) -> None:
+    """End an export's wait (its timer ran out) unless something woke it already."""
+    if not fut.done():
+        fut.set_result(None)
+
+
 class Export:
     """One agreed stream to one receiver: its queue, its task and its counters.
 
@@ -399,14 +405,16 @@ class Export:
         )
 
     async def _wait(self, timeout: float) -> None:
-        fut = asyncio.get_running_loop().create_future()
+        loop = asyncio.get_running_loop()
+        fut = loop.create_future()
         self._waiter = fut
+        # a timer that ends the wait, not asyncio.timeout: this runs once per batch sent,
+        # and a timeout scope (a cancellation, undone) cost more than the rest of the wait
+        timer = loop.call_later(timeout, _done, fut)
         try:
-            async with asyncio.timeout(timeout):
-                await fut
-        except TimeoutError:
-            pass
+            await fut
         finally:
+            timer.cancel()
             self._waiter = None
 
     async def _send(self, samples: list[RawSample]) -> None:

@@ -128,6 +128,30 @@ def test_cache_bounds_are_respected(
         assert cache.evicted == len(seen) - len(kept)
 
 
+@settings(max_examples=150, deadline=None)
+@given(
+    batches=arrival_batches(),
+    max_samples=st.one_of(st.none(), st.integers(1, 12)),
+    max_age=st.one_of(st.none(), st.sampled_from([0.1, 0.5, 1.0, 2.5])),
+    asks=st.lists(st.integers(0, 3), min_size=1, max_size=40),
+)
+def test_latest_between_arrivals_is_the_full_scan(
+    batches: list[list[Sample]], max_samples: int | None, max_age: float | None, asks: list[int]
+) -> None:
+    """latest() reads only what arrived since its last call: it must equal a full scan."""
+    cache = Cache(CacheSpec(max_samples=max_samples or (None if max_age else 5), max_age=max_age))
+    for i, batch in enumerate(batches):
+        cache.extend(batch)
+        for _ in range(asks[i % len(asks)]):
+            kept = cache.samples()
+            want = None
+            for s in reversed(kept):  # newest arrival first: it wins a tie
+                if want is None or s[1] > want[1]:
+                    want = s
+            assert cache.latest() is want
+            assert cache.latest(as_of=kept[-1][2] if kept else None) is want
+
+
 def test_instance_streams_use_their_cache_spec(dk: DyKnowInstance) -> None:
     src = dk.add_source("x", cache=CacheSpec(max_samples=10))
     src.push_batch([(i, i * STEP, i * STEP) for i in range(100)])

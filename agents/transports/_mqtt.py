@@ -77,12 +77,8 @@ import uuid
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
-import aiomqtt
-from paho.mqtt.packettypes import PacketTypes
-from paho.mqtt.properties import Properties
-from paho.mqtt.subscribeoptions import SubscribeOptions
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
 from .._exceptions import TransportClosed, TransportError
@@ -101,7 +97,33 @@ from ._base import (
 
 log = logging.getLogger(__name__)
 
+if TYPE_CHECKING:
+    import aiomqtt
+    from paho.mqtt.packettypes import PacketTypes
+    from paho.mqtt.properties import Properties
+    from paho.mqtt.subscribeoptions import SubscribeOptions
+
 T = TypeVar("T")
+
+
+def _load_client() -> None:
+    """Import the MQTT client when a transport is made, not with this module.
+
+    Every platform imports this module (its config is one of the transports'), most never
+    speak MQTT: aiomqtt and paho cost them ~11 MB and tens of ms of start-up.
+    """
+    import aiomqtt
+    from paho.mqtt.packettypes import PacketTypes
+    from paho.mqtt.properties import Properties
+    from paho.mqtt.subscribeoptions import SubscribeOptions
+
+    globals().update(
+        aiomqtt=aiomqtt,
+        PacketTypes=PacketTypes,
+        Properties=Properties,
+        SubscribeOptions=SubscribeOptions,
+    )
+
 
 QUERY_PREFIX = "@query"
 REPLY_PREFIX = "@reply"
@@ -329,6 +351,7 @@ class MqttTransport(Transport):
 
     def __init__(self, config: MqttConfig | Mapping[str, Any] | None = None) -> None:
         super().__init__()
+        _load_client()
         self.config = (
             config if isinstance(config, MqttConfig) else MqttConfig.model_validate(config or {})
         )
