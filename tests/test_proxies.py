@@ -781,3 +781,55 @@ async def test_a_sigkilled_sender_is_told_within_a_second_over_zenoh() -> None:
         if proc.is_alive():
             proc.kill()
         proc.join(timeout=10)
+
+
+async def test_a_resend_is_paced_for_a_transport_that_drops_what_its_queue_cannot_take(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # zenoh publishes with congestion control DROP: resent bodies published back to back
+    # overflowed its queue after a partition healed, and a number is resent only once
+    monkeypatch.setattr(_export, "_RESEND_PACE", 100_000)  # bytes/s: 1 kB bodies 10 ms apart
+    drain = 200_000  # bytes/s the modelled queue takes: faster than the pace, slower than a burst
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        ta, a = await net.platform("uav-a")
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exp = await net.exporter("uav-a", max_batch_bytes=1024)
+        imp = await net.importer("uav-b", translate=agreed(SEM))
+        mode = "ok"
+        busy_until = 0.0
+        overflowed = 0
+        publish = ta.publish
+
+        async def queued(key: str, payload: bytes, *args: Any, **kwargs: Any) -> Any:
+            nonlocal busy_until, overflowed
+            if "/stream/" in key and mode == "drop":
+                return None  # the partition: lost on the way
+            if "/stream/" in key and mode == "queue" and len(payload) > 512:
+                # a body near a batch's size takes a batch of its own; small ones share
+                now = time.monotonic()
+                if now < busy_until:  # still taking the previous body: dropped, silently
+                    overflowed += 1
+                    return None
+                busy_until = now + len(payload) / drain
+            return await publish(key, payload, *args, **kwargs)
+
+        ta.publish = queued  # type: ignore[method-assign]
+        export = exp.start_exporting(LOCAL, SEM, "uav-b", history=10)
+        pad = "x" * 300  # about 3 samples a body: the history's 10 go as 4 bodies
+
+        async def push(n: int) -> None:
+            for _ in range(n):
+                src.push(pad)
+                await asyncio.sleep(0.02)
+
+        await push(3)
+        mode = "drop"
+        await push(20)
+        mode = "queue"
+        src.push(0)  # the gap's end arrives (a small body): the 10 before it are asked back at once
+        rec = await until(lambda: imp.get("uav-a", SEM), "the import")
+        await until(lambda: export.recovered == 10, "the history resent")
+        await until(lambda: rec.recovered == 10, f"all 10 arrived ({overflowed} dropped)")
+        assert overflowed == 0 and rec.lost == 10
