@@ -611,26 +611,42 @@ class _FUntAtom0(_FWindow):
 
 
 class _FGuardWin0(_FWindow):
-    """``guard or/and always/eventually[0, b] fn``, both state formulas: see ``_FWinAtom0``."""
+    """``guard or/and always/eventually[0, b] operand``, state formulas: see ``_FWinAtom0``."""
 
-    __slots__ = ("fn", "gdom", "gfn")
+    __slots__ = ("gdom", "tests")
 
     def __init__(
-        self, b: float, fn: _AtomFn, always: bool, gfn: _AtomFn, gdom: bool, times: list[float]
+        self,
+        b: float,
+        operand: Formula,
+        always: bool,
+        guard: Formula,
+        gdom: bool,
+        times: list[float],
     ) -> None:
         super().__init__(0.0, b, always, times)
-        self.fn, self.gfn, self.gdom = fn, gfn, gdom
+        self.gdom = gdom
+        # one call a state for both tests: (the guard decides, the operand is dominant)
+        self.tests = _tests_fn(_is(guard, gdom), _is(operand, self.dom))
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
-        val, times, b = self.val, self.times, self.b
-        if self.gfn(s, t) is self.gdom:
+        decides, dominant = self.tests(s, t)
+        val = self.val
+        if decides:
             val[n] = self.gdom
             out = [n]
         else:
             out = []
         cl = self.close
-        if self.fn(s, t) is self.dom:
+        if dominant:
             # the window's value is decided for every open position (the ended ones not)
+            if cl == n:  # nothing else open (half the states of the bench): no loops
+                if not decides:
+                    val[n] = self.dom
+                    out.append(n)
+                self.close = n + 1
+                return out
+            times, b = self.times, self.b
             nd = not self.dom
             while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
                 if val[cl] is None:
@@ -644,6 +660,7 @@ class _FGuardWin0(_FWindow):
                     out.append(i)
             self.close = n + 1
             return out
+        times, b = self.times, self.b
         if times[cl] + b > t:
             return out
         nd = not self.dom
@@ -657,25 +674,41 @@ class _FGuardWin0(_FWindow):
 
 
 class _FGuardUnt0(_FWindow):
-    """``guard or/and (lfn until[0, b] rfn)``, all state formulas: see ``_FUntAtom0``."""
+    """``guard or/and (left until[0, b] right)``, all state formulas: see ``_FUntAtom0``."""
 
-    __slots__ = ("gdom", "gfn", "lfn", "rfn")
+    __slots__ = ("gdom", "tests")
 
     def __init__(
-        self, b: float, lfn: _AtomFn, rfn: _AtomFn, gfn: _AtomFn, gdom: bool, times: list[float]
+        self,
+        b: float,
+        left: Formula,
+        right: Formula,
+        guard: Formula,
+        gdom: bool,
+        times: list[float],
     ) -> None:
         super().__init__(0.0, b, False, times)
-        self.lfn, self.rfn, self.gfn, self.gdom = lfn, rfn, gfn, gdom
+        self.gdom = gdom
+        # one call a state for the three tests: (the guard decides, right, left)
+        self.tests = _tests_fn(_is(guard, gdom), right, left)
 
     def step(self, n: int, t: float, s: Mapping[str, Any]) -> list[int]:
-        val, times, b = self.val, self.times, self.b
-        if self.gfn(s, t) is self.gdom:
+        decides, right, left = self.tests(s, t)
+        val = self.val
+        if decides:
             val[n] = self.gdom
             out = [n]
         else:
             out = []
         cl = self.close
-        if self.rfn(s, t):
+        if right:
+            if cl == n:  # nothing else open (most states where right holds): no loops
+                if not decides:
+                    val[n] = True
+                    out.append(n)
+                self.close = n + 1
+                return out
+            times, b = self.times, self.b
             while times[cl] + b < t:  # ended since the last state (not n's: b >= 0)
                 if val[cl] is None:
                     val[cl] = False
@@ -687,13 +720,14 @@ class _FGuardUnt0(_FWindow):
                     out.append(i)
             self.close = n + 1
             return out
-        if not self.lfn(s, t):
+        if not left:
             for i in range(cl, n + 1):
                 if val[i] is None:
                     val[i] = False
                     out.append(i)
             self.close = n + 1
             return out
+        times, b = self.times, self.b
         if times[cl] + b > t:
             return out
         while cl <= n and times[cl] + b <= t:
@@ -745,6 +779,19 @@ def _pure_fn(f: Formula) -> _AtomFn:
     return cast(_AtomFn, scope["fn"])
 
 
+def _is(f: Formula, value: bool) -> Formula:
+    """``f`` as the test that it has ``value``."""
+    return f if value else Not(f)
+
+
+def _tests_fn(*fs: Formula) -> Callable[[Mapping[str, Any], float], tuple[bool, ...]]:
+    """One generated function giving the values of several state formulas, in order."""
+    scope: dict[str, Any] = {}
+    code = _PURE_SRC.format(expr="(" + "".join(_pure_expr(f, scope) + ", " for f in fs) + ")")
+    exec(code, scope)  # as for _pure_fn
+    return cast(Callable[[Mapping[str, Any], float], tuple[bool, ...]], scope["fn"])
+
+
 def _pure_expr(f: Formula, scope: dict[str, Any]) -> str:
     # each subexpression is a bool, so ``and``/``or`` give bools and short-circuit as Kleene
     if isinstance(f, BoolConst):
@@ -783,16 +830,19 @@ def _fast_compile(f: Formula, times: list[float]) -> _FNode:
     if _pure(f):
         return _FAtom(_pure_fn(f))
     if isinstance(f, And | Or | Implies):
-        left = _fast_compile(Not(f.left) if isinstance(f, Implies) else f.left, times)
-        right = _fast_compile(f.right, times)
+        lf, rf = Not(f.left) if isinstance(f, Implies) else f.left, f.right
+        left, right = _fast_compile(lf, times), _fast_compile(rf, times)
         dom = not isinstance(f, And)
         if isinstance(right, _FAtom):
-            left, right = right, left
+            left, right, lf, rf = right, left, rf, lf
         if isinstance(left, _FAtom):
+            # a window over a state formula is made only from these (see below)
             if type(right) is _FWinAtom0:
-                return _FGuardWin0(right.b, right.fn, not right.dom, left.fn, dom, times)
+                assert isinstance(rf, Always | Eventually)
+                return _FGuardWin0(right.b, rf.operand, isinstance(rf, Always), lf, dom, times)
             if type(right) is _FUntAtom0:
-                return _FGuardUnt0(right.b, right.lfn, right.rfn, left.fn, dom, times)
+                assert isinstance(rf, Until)
+                return _FGuardUnt0(right.b, rf.left, rf.right, lf, dom, times)
             return _FBinAtom(left.fn, right, dom)
         return _FBin(left, right, dom)
     if isinstance(f, Not):
