@@ -957,12 +957,12 @@ class StepMonitor:
             ev = root_step(n, t, s)
             n += 1
             if ev:
-                if len(ev) == 1:
-                    j = ev[0]
-                    add(new(Verdict, (times[j], t, val[j])))
-                else:
+                # a loop, not a comprehension: most lists are short, and a comprehension
+                # is a call of its own (measured)
+                if len(ev) > 1:
                     ev.sort()
-                    out += [new(Verdict, (times[j], t, val[j])) for j in ev]
+                for j in ev:
+                    add(new(Verdict, (times[j], t, val[j])))
         self._compact_at = compact_at
         return out
 
