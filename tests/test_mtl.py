@@ -32,6 +32,7 @@ from dyknow_core.reasoning.mtl import (
     StepMonitor,
     Until,
     Var,
+    _engine,
     add_monitor,
     domains,
     evaluate,
@@ -546,3 +547,22 @@ def test_every_step_state_formulas_agree_with_progression(text: str, states: lis
     for k, s in enumerate(states):
         got = sm.step(float(k), s)
         assert [v.verdict for v in got] == [progress(f, s, float(k))], (text, s)
+
+
+@settings(max_examples=500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.one_of(_fast_formulas(), _until_formulas()), _long_traces, st.integers(0, 14))
+def test_monitor_run_matches_stepping(text: str, trace: list[Any], cut: int) -> None:
+    # run reads the restarting verdicts off the every-step engine; step progresses
+    f = parse(text)
+    stepped, ran = Monitor(f), Monitor(f)
+    want = [v for v in (stepped.step(t, s) for t, s in trace) if v is not None]
+    compact = _engine._COMPACT
+    _engine._COMPACT = 1 + cut % 3  # forget decided positions every state or few
+    try:
+        got = ran.run(trace[:cut])
+    finally:
+        _engine._COMPACT = compact
+    # the evaluation left open goes on by step, as if run had stepped
+    got += [v for v in (ran.step(t, s) for t, s in trace[cut:]) if v is not None]
+    assert got == want, text
+    assert (ran.residual is None) == (stepped.residual is None)

@@ -863,6 +863,49 @@ def _fast_compile(f: Formula, times: list[float]) -> _FNode:
 _COMPACT = 4096  # every-step fast path: steps between forgetting decided positions
 
 
+def _run_restarting(
+    formula: Formula, trace: Iterable[tuple[float, Mapping[str, Any]]]
+) -> tuple[list[Verdict], list[tuple[float, Mapping[str, Any]]]]:
+    """:meth:`Monitor.run` (restarting) by this engine: the verdicts, and the states of the
+    evaluation still open at the end.
+
+    The engine decides every position exactly when progression does, so the restarting
+    monitor's verdict for a start is this position's value, read the state it is set;
+    the next evaluation starts at the next position. Measured on the bench formula, this
+    costs two thirds of progressing the one evaluation (whose residual is rebuilt at
+    every state), though it evaluates from every state.
+    """
+    times: list[float] = []
+    states: list[Mapping[str, Any]] = []  # the states since the last compaction
+    root = _fast_compile(formula, times)
+    compact_at = _COMPACT
+    root.reserve(compact_at)
+    val = root.val
+    step = root.step
+    add_t, add_s = times.append, states.append
+    out: list[Verdict] = []
+    n = want = 0  # want: the position the current evaluation starts at
+    for t, s in trace:
+        if n >= compact_at:
+            k = root.base()  # at most want, which is undecided or not stepped yet
+            if k > 0:
+                root.rebase(k)
+                del times[:k], states[:k]
+                n -= k
+                want -= k
+            compact_at = n + _COMPACT
+            root.reserve(compact_at)
+        add_t(t)
+        add_s(s)
+        step(n, t, s)
+        n += 1
+        v = val[want]
+        if v is not None:
+            out.append(Verdict(times[want], t, v))
+            want = n
+    return out, list(zip(times[want:n], states[want:n], strict=True))
+
+
 class StepMonitor:
     """Evaluates the formula from every state: one verdict per start time, once certain."""
 

@@ -74,6 +74,19 @@ class Monitor:
 
     def run(self, trace: Iterable[tuple[float, Mapping[str, Any]]]) -> list[Verdict]:
         """Every verdict over a whole trace."""
+        if self.restart and self._node is None:
+            # imported here: the engine makes Verdicts, defined above
+            from ._engine import _fast_supported, _run_restarting
+
+            if _fast_supported(self.formula):
+                # the every-step engine, reading off the restarting evaluations' verdicts
+                # (measured: a third faster on the bench formula), then the evaluation
+                # left open is progressed, so that step and residual go on from it
+                verdicts, rest = _run_restarting(self.formula, trace)
+                for t, s in rest:
+                    if self.step(t, s) is not None:
+                        raise AssertionError("the engines disagree")  # pragma: no cover
+                return verdicts
         out = []
         step = self.step
         for t, s in trace:
