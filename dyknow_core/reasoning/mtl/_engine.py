@@ -1,13 +1,13 @@
-"""The every-step MTL engine: bottom-up windowed evaluation, one verdict per start."""
+"""The every-step MTL engine (bottom-up windowed evaluation) and the verdicts monitors report."""
 
 from __future__ import annotations
 
 import bisect
 import gc
 from collections.abc import Callable, Iterable, Mapping
-from typing import Any, TypeAlias, cast
+from typing import Any, NamedTuple, TypeAlias, cast
 
-from ._monitor import Verdict
+from ..._record import register_record_type
 from ._progression import Node, _compile, _compile_atom
 from ._semantics import _OPS, _fut
 from ._syntax import (
@@ -25,6 +25,18 @@ from ._syntax import (
     Until,
     _as_formula,
 )
+
+
+class Verdict(NamedTuple):
+    """A certain verdict: the formula evaluated from ``start`` is ``verdict``, known at ``time``."""
+
+    start: float
+    time: float
+    verdict: bool
+
+
+register_record_type(Verdict)  # a replay gives verdicts back as themselves
+
 
 _AtomFn: TypeAlias = Callable[[Mapping[str, Any], float], bool]
 
@@ -1028,6 +1040,3 @@ class StepMonitor:
             val = self._fast.val[: len(self._times)]  # the rest is room reserved
             return [t for t, v in zip(self._times, val, strict=True) if v is None]
         return [s for s, _ in self.pending]
-
-
-# -- in an instance ------------------------------------------------------------------------
