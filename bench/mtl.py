@@ -3,8 +3,9 @@
 Same generated trace (non-uniform steps of 0.05-0.95 s, speed a random walk in [0, 40],
 on_road in bursts), same process, runs interleaved, best of ``REPEAT``:
 
-- ours: :class:`dyknow_core.reasoning.mtl.Monitor` — progression, one verdict as soon as it is
-  certain, then a restart at the next state (the execution-monitoring mode);
+- ours: :class:`dyknow_core.reasoning.mtl.Monitor` — one verdict as soon as it is certain,
+  then a restart at the next state (the execution-monitoring mode; ``run`` reads these
+  verdicts off the every-step evaluation, ``step`` progresses one formula);
 - mstlo-python (Rust core, ``EagerQualitative``): ``G[0, 10](speed < 30 -> F[0, 5](on_road >
   0.5))`` fed with ``update_batch`` (prepared outside the timing), one verdict per
   timestamp. Its signals are dense, piecewise constant, which for this formula (windows
