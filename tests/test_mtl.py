@@ -32,6 +32,7 @@ from dyknow_core.reasoning.mtl import (
     StepMonitor,
     Until,
     Var,
+    _engine,
     add_monitor,
     domains,
     evaluate,
@@ -517,3 +518,51 @@ def test_every_step_until_matches_progression_at_window_edges(text: str, trace: 
         i = next(j for j, (tj, _) in enumerate(trace) if tj == start)
         assert evaluate(f, trace, i) is None
     assert StepMonitor(f).run(trace) == stepped  # the batch form gives the same, in order
+
+
+_values = st.sampled_from([None, 0, 1, 2, 0.5, 1.5, -0.0, math.nan, math.inf, "a", True, False])
+_pure_atoms = st.sampled_from(
+    ["p", "x < 1.5", "x >= 1", "x == 2", "x != 0.5", "x > y", "x <= 2", "not x < 1", "2 > x"]
+)
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    st.recursive(
+        st.one_of(_pure_atoms, st.sampled_from(["true", "false"])),
+        lambda c: st.one_of(
+            st.builds(lambda a: f"not ({a})", c),
+            st.builds(lambda a, b: f"({a}) and ({b})", c, c),
+            st.builds(lambda a, b: f"({a}) or ({b})", c, c),
+            st.builds(lambda a, b: f"({a}) -> ({b})", c, c),
+        ),
+        max_leaves=4,
+    ),
+    st.lists(st.fixed_dictionaries({"p": _values, "x": _values, "y": _values}), max_size=6),
+)
+def test_every_step_state_formulas_agree_with_progression(text: str, states: list[Any]) -> None:
+    # the every-step engine writes comparisons out: missing, odd and non-float values too
+    f = parse(text)
+    sm = StepMonitor(f)
+    for k, s in enumerate(states):
+        got = sm.step(float(k), s)
+        assert [v.verdict for v in got] == [progress(f, s, float(k))], (text, s)
+
+
+@settings(max_examples=500, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.one_of(_fast_formulas(), _until_formulas()), _long_traces, st.integers(0, 14))
+def test_monitor_run_matches_stepping(text: str, trace: list[Any], cut: int) -> None:
+    # run reads the restarting verdicts off the every-step engine; step progresses
+    f = parse(text)
+    stepped, ran = Monitor(f), Monitor(f)
+    want = [v for v in (stepped.step(t, s) for t, s in trace) if v is not None]
+    compact = _engine._COMPACT
+    _engine._COMPACT = 1 + cut % 3  # forget decided positions every state or few
+    try:
+        got = ran.run(trace[:cut])
+    finally:
+        _engine._COMPACT = compact
+    # the evaluation left open goes on by step, as if run had stepped
+    got += [v for v in (ran.step(t, s) for t, s in trace[cut:]) if v is not None]
+    assert got == want, text
+    assert (ran.residual is None) == (stepped.residual is None)

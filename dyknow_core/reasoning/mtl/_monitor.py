@@ -1,15 +1,15 @@
-"""MTL monitors: verdicts, the restarting monitor, and monitoring in an instance."""
+"""MTL monitors: the restarting monitor, and monitoring in an instance."""
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import TYPE_CHECKING, Any
 
 from ..._exceptions import ProcessError
 from ..._process import Process
-from ..._record import register_record_type
 from ..._state import StatePolicy
 from ..._time import NS_PER_S
+from ._engine import Verdict, _fast_supported, _run_restarting
 from ._progression import Node, Residual, _compile
 from ._syntax import Formula, _as_formula, state_keys
 
@@ -18,17 +18,6 @@ if TYPE_CHECKING:
     from ..._stream import StreamGenerator, Subscription
 
 # -- monitors ------------------------------------------------------------------------------
-
-
-class Verdict(NamedTuple):
-    """A certain verdict: the formula evaluated from ``start`` is ``verdict``, known at ``time``."""
-
-    start: float
-    time: float
-    verdict: bool
-
-
-register_record_type(Verdict)  # a replay gives verdicts back as themselves
 
 
 class Monitor:
@@ -74,6 +63,15 @@ class Monitor:
 
     def run(self, trace: Iterable[tuple[float, Mapping[str, Any]]]) -> list[Verdict]:
         """Every verdict over a whole trace."""
+        if self.restart and self._node is None and _fast_supported(self.formula):
+            # the every-step engine, reading off the restarting evaluations' verdicts
+            # (measured: a third faster on the bench formula), then the evaluation
+            # left open is progressed, so that step and residual go on from it
+            verdicts, rest = _run_restarting(self.formula, trace)
+            for t, s in rest:
+                if self.step(t, s) is not None:
+                    raise AssertionError("the engines disagree")  # pragma: no cover
+            return verdicts
         out = []
         step = self.step
         for t, s in trace:
