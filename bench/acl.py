@@ -33,6 +33,12 @@ measured, each beside a peer measured in the same run:
   default everywhere above) against MAC-only sessions, both sides restarted for each,
   alternating (``acl-rtt-median-encrypted``).
 
+Event loops: both agent sides (this process and the node) run on `agents.run`'s loop,
+uvloop where installed (the node runner's too), asyncio's own with
+``DYKNOW_EVENT_LOOP=asyncio``; the loop is printed with the results. The raw zenoh peers
+use no event loop (zenoh's threads, blocking calls); osBrain is ZeroMQ in its own
+processes.
+
 ``python -m bench.acl --profile`` profiles the zenoh round trip and the throughput path
 instead (cProfile on both sides, plus the per-stage costs measured one by one).
 """
@@ -64,8 +70,10 @@ from agents import (
     ReplyTimeout,
     SecurityError,
     TransportError,
+    event_loop_name,
     request,
 )
+from agents import run as run_loop
 from agents._interface import InterfaceAgent
 from agents._security import KeyPair, SecurityPolicy, TrustStore
 from agents.transports import (
@@ -472,7 +480,7 @@ def _best(rounds: list[dict[str, float]], key: str, *, higher: bool = False) -> 
 
 def print_zenoh(z: dict[str, Any]) -> None:
     """The zenoh detail and its BENCH lines."""
-    print(f"responder: {z['responder']}")
+    print(f"responder: {z['responder']}; event loop of both agent sides: {event_loop_name()}")
     print(f"round trips over zenoh, {N_RTT} per round after {WARMUP} warm-up, ms:")
     for r in range(ROUNDS):
         raw = z["raw"][r]
@@ -676,7 +684,7 @@ def _run_async(coro: Awaitable[Any]) -> Any:
     async def main() -> Any:
         return await coro
 
-    return asyncio.run(main())
+    return run_loop(main())
 
 
 if __name__ == "__main__":
