@@ -23,7 +23,7 @@ from ._agent import (
     on,
     reason_of,
 )
-from ._aio import Mailbox, Ticker
+from ._aio import Mailbox, Ticker, event_loop_name, run
 from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
@@ -169,6 +169,7 @@ __all__ = [
     "check_name",
     "contract_net",
     "deregister_service",
+    "event_loop_name",
     "modify_service",
     "name_of",
     "new_id",
@@ -184,6 +185,7 @@ __all__ = [
     "reason_of",
     "register_service",
     "request",
+    "run",
     "search_services",
     "subscribe",
     "subscribe_services",

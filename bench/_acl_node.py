@@ -47,6 +47,7 @@ from agents import (  # noqa: E402
     TrustStore,
     on,
     on_request,
+    run,
 )
 from agents.transports import (  # noqa: E402
     MqttConfig,
@@ -286,7 +287,7 @@ def node_main(
     """
     gc.callbacks.append(GC)
     try:
-        asyncio.run(_serve(kind, config, keydir, platform, federation, reports, stop, encrypt))
+        run(_serve(kind, config, keydir, platform, federation, reports, stop, encrypt))
     except Exception:
         # the parent raises it with this traceback; exiting quietly avoids printing it twice
         reports.put(("error", os.getpid(), traceback.format_exc()))

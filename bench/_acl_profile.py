@@ -14,7 +14,6 @@ Three views, from cleanest to most complete:
 
 from __future__ import annotations
 
-import asyncio
 import cProfile
 import gc
 import os
@@ -34,6 +33,7 @@ from agents import (
     MemoryHub,
     Performative,
     new_id,
+    run,
 )
 from agents._interface import AuditLog, InterfaceAgent, RateLimit
 from agents._security import Handshake, KeyPair, SessionTable, TrustStore
@@ -352,7 +352,7 @@ def profile() -> None:
     for what, us in stages():
         print(f"  {what:<50} {us:7.2f}")
     for with_interface in (True, False):
-        us = asyncio.run(_in_process(with_interface))
+        us = run(_in_process(with_interface))
         what = "interface agent (MAC sessions, audit)" if with_interface else "plain channel"
         print(f"whole stack in one process over the memory transport, {what}: median {us:.0f} µs")
     out = Path(os.environ.get("ACL_PROFILE_DIR") or tempfile.mkdtemp(prefix="acl-profile-"))
@@ -360,5 +360,5 @@ def profile() -> None:
     with tempfile.TemporaryDirectory(prefix="bench-acl-") as tmp:
         keydir = Path(tmp)
         acl.make_keys(keydir)
-        asyncio.run(_profiled(keydir, out))
+        run(_profiled(keydir, out))
     print(f"profiles in {out} (pstats files: rtt-here, rtt-node, flood-here, flood-node)")

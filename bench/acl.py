@@ -33,6 +33,13 @@ measured, each beside a peer measured in the same run:
   default everywhere above) against MAC-only sessions, both sides restarted for each,
   alternating (``acl-rtt-median-encrypted``).
 
+Event loops: both agent sides (this process and the node) run on `agents.run`'s loop,
+uvloop where installed (the node runner's too), asyncio's own with
+``DYKNOW_EVENT_LOOP=asyncio``; the loop is printed with the results. The raw zenoh peers
+use no event loop (zenoh's threads, blocking calls); osBrain is ZeroMQ in its own
+processes. Both agent sides put what their start-up built out of the collector's sight
+before the timed round trips (``gc.freeze``), as a started node does.
+
 ``python -m bench.acl --profile`` profiles the zenoh round trip and the throughput path
 instead (cProfile on both sides, plus the per-stage costs measured one by one).
 """
@@ -41,6 +48,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import gc
 import statistics
 import sys
 import tempfile
@@ -64,8 +72,10 @@ from agents import (
     ReplyTimeout,
     SecurityError,
     TransportError,
+    event_loop_name,
     request,
 )
+from agents import run as run_loop
 from agents._interface import InterfaceAgent
 from agents._security import KeyPair, SecurityPolicy, TrustStore
 from agents.transports import (
@@ -131,6 +141,16 @@ def _line(name: str, s: dict[str, float]) -> str:
         f"  {name:<22} median {s['median']:.3f}  p90 {s['p90']:.3f}  p99 {s['p99']:.3f}  "
         f"max {s['max']:.2f} ms  (n={int(s['n'])})"
     )
+
+
+def settle_gc() -> None:
+    """What this side built so far out of the collector's sight, as a node does once started.
+
+    The node does it too (``bench/_acl_node.py``); without it a full collection here walks
+    the interpreter's whole start-up (zenoh, pydantic, the agents) inside a round trip.
+    """
+    gc.collect()
+    gc.freeze()
 
 
 def make_keys(directory: Path) -> None:
@@ -377,6 +397,7 @@ async def zenoh_phase(keydir: Path) -> dict[str, Any]:
             assert the_node is not None
             progress(f"zenoh round trips: warm-up ({WARMUP})")
             await round_trips(asker, WARMUP, "warm-up")
+            settle_gc()
             for r in range(ROUNDS):
                 progress(f"round {r + 1}/{ROUNDS}: raw zenoh ping-pong, get, one-way")
                 res["raw"].append(
@@ -472,7 +493,7 @@ def _best(rounds: list[dict[str, float]], key: str, *, higher: bool = False) -> 
 
 def print_zenoh(z: dict[str, Any]) -> None:
     """The zenoh detail and its BENCH lines."""
-    print(f"responder: {z['responder']}")
+    print(f"responder: {z['responder']}; event loop of both agent sides: {event_loop_name()}")
     print(f"round trips over zenoh, {N_RTT} per round after {WARMUP} warm-up, ms:")
     for r in range(ROUNDS):
         raw = z["raw"][r]
@@ -676,7 +697,7 @@ def _run_async(coro: Awaitable[Any]) -> Any:
     async def main() -> Any:
         return await coro
 
-    return asyncio.run(main())
+    return run_loop(main())
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from rich.console import Console
 from rich.table import Table
 
 from agents import TransportError
+from agents import run as run_loop
 
 from ._cli_reasoning import kpl_app, monitor
 from ._cli_time import when, when_ns
@@ -180,7 +181,7 @@ def node(config: ConfigOpt) -> None:
 
     cfg = _load(config)
     try:
-        asyncio.run(run_node(cfg, str(config), _say))
+        run_loop(run_node(cfg, str(config), _say))
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
     except PlatformAliveError as exc:
@@ -224,7 +225,7 @@ def console(
     except ValueError as exc:
         raise _fail(f"dyknow console: {config}: {exc}") from None
     try:
-        asyncio.run(run_console(cfg, str(config), host, port, _say, token=token, allow_hosts=hosts))
+        run_loop(run_console(cfg, str(config), host, port, _say, token=token, allow_hosts=hosts))
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
     except PlatformAliveError as exc:
@@ -279,7 +280,7 @@ def foxglove(
     except ValueError as exc:
         raise _fail(f"dyknow foxglove: {config}: {exc}") from None
     try:
-        asyncio.run(
+        run_loop(
             run_foxglove(
                 cfg,
                 str(config),
@@ -326,7 +327,7 @@ def router(
     except OSError as exc:
         raise _fail(f"{zenoh_config}: cannot be read: {exc.strerror}") from None
     try:
-        asyncio.run(run_router(list(listen or []), json5, _say))
+        run_loop(run_router(list(listen or []), json5, _say))
     except ValidationError as exc:
         msgs = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
         raise _fail(f"{zenoh_config or 'dyknow router'}: {msgs}") from None
