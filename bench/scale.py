@@ -110,6 +110,8 @@ class ScaleResult:
     raw_ms: list[float] = field(default_factory=list)
     rounds: list[tuple[float | None, float | None]] = field(default_factory=list)  # ours, raw ms
     gc_collections: tuple[int, ...] = ()  # the operator's, per generation, over the window
+    gc_longest_ms: tuple[float, ...] = ()  # the operator's longest collection, per generation
+    rounds_in_gc: list[tuple[float | None, float | None]] = field(default_factory=list)
     query_failures: list[str] = field(default_factory=list)
     raw_failures: int = 0
     window: float = 0.0  # s the streams ran while measured
@@ -134,6 +136,36 @@ class ScaleResult:
     def sent_expected(self) -> int:
         """Samples the UAVs were meant to push over the window: platforms × streams × hz × s."""
         return round(self.platforms * self.streams * self.hz * self.window)
+
+
+class _GcWatch:
+    """Times the operator's garbage collections (``gc.callbacks``) while it is on."""
+
+    def __init__(self) -> None:
+        self.longest = [0.0, 0.0, 0.0]
+        self.spans: list[tuple[float, float]] = []  # perf_counter start, end of gen ≥ 1
+        self._t0 = 0.0
+
+    def __call__(self, phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            self._t0 = time.perf_counter()
+            return
+        now = time.perf_counter()
+        gen = info["generation"]
+        self.longest[gen] = max(self.longest[gen], 1e3 * (now - self._t0))
+        if gen:
+            self.spans.append((self._t0, now))
+
+    def __enter__(self) -> _GcWatch:
+        gc.callbacks.append(self)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        gc.callbacks.remove(self)
+
+    def inside(self, start: float, end: float) -> bool:
+        """Whether a collection of generation 1 or 2 ran between ``start`` and ``end``."""
+        return any(a < end and b > start for a, b in self.spans)
 
 
 def pct(xs: list[float], q: float) -> float:
@@ -470,6 +502,7 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             w0, c0, s0 = time.perf_counter(), [_proc_cpu(p) for p in pids], _self_cpu()
             got0 = sum(len(c.seen) for c in counters.values())
             gc0 = [g["collections"] for g in gc.get_stats()]
+            watch = _GcWatch().__enter__()
             session = op.transport.session if isinstance(op.transport, ZenohTransport) else None
             assert session is not None
             for i in range(queries):
@@ -478,6 +511,7 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                 gap = max(left / (2 * (queries - i)) - 0.03, 0.01)
                 kinds = ("ours", "raw") if i % 2 == 0 else ("raw", "ours")
                 ours_ms = raw_ms = None
+                round_t0 = time.perf_counter()
                 for kind in kinds:
                     if kind == "ours":
                         got = await _our_query(op, labels, n)
@@ -495,6 +529,8 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                             result.raw_ms.append(raw_ms)
                     await asyncio.sleep(gap)
                 result.rounds.append((ours_ms, raw_ms))
+                if watch.inside(round_t0, time.perf_counter()):
+                    result.rounds_in_gc.append((ours_ms, raw_ms))
                 if (i + 1) % 10 == 0:
                     progress(
                         f"{i + 1}/{queries} queries: ours p50 {pct(result.query_ms, 0.5):.1f} ms, "
@@ -504,9 +540,11 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             await asyncio.sleep(max(0.0, seconds - (time.perf_counter() - w0)))
             w1, c1, s1 = time.perf_counter(), [_proc_cpu(p) for p in pids], _self_cpu()
             result.load = (load0, os.getloadavg()[0])
+            watch.__exit__()
             result.gc_collections = tuple(
                 g["collections"] - c for g, c in zip(gc.get_stats(), gc0, strict=True)
             )
+            result.gc_longest_ms = tuple(watch.longest)
             got1 = sum(len(c.seen) for c in counters.values())
             result.window = w1 - w0
             result.window_rate = (got1 - got0) / result.window
@@ -649,9 +687,15 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
             f"  ours / raw over the same {len(r.rounds)} rounds: p50 {ratios[0]:.2f}, p99 "
             f"{ratios[1]:.2f} (target ≤ {QUERY_TARGET_RATIO:g}: {'met' if met else 'MISSED'}); "
             f"slowest 1% of rounds, ours/raw ms: by ours {_slowest_rounds(r, 0)}; by raw "
-            f"{_slowest_rounds(r, 1)}; operator's GC collections over the window (per "
-            f"generation) {'/'.join(map(str, r.gc_collections))}"
+            f"{_slowest_rounds(r, 1)}"
         )
+    print(
+        f"  the operator's GC over the window, per generation: "
+        f"{'/'.join(map(str, r.gc_collections))} collections, the longest "
+        f"{'/'.join(f'{x:.1f}' for x in r.gc_longest_ms)} ms; rounds with a collection of "
+        f"generation 1 or 2 in them, ours/raw ms: "
+        + (", ".join(f"{a or 0:.0f}/{b or 0:.0f}" for a, b in r.rounds_in_gc) or "none")
+    )
     print(
         f"  samples: {r.counted} counted at the operator over the run, {r.expected} pushed "
         f"in the counted ranges, lost {r.lost} "
