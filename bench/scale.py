@@ -123,6 +123,8 @@ class ScaleResult:
     never_arrived: int = 0  # streams of which not one sample was counted
     import_lost: int = 0  # what the import proxies counted lost (their own sequence numbers)
     late_ticks: int = 0  # UAV push ticks that started more than a period late
+    worker_gc_longest_ms: tuple[float, ...] = ()  # longest collection in any worker, per gen
+    worker_lag_ms: float = 0.0  # the longest a worker's push loop woke late (a stalled loop)
     window_rate: float = 0.0  # samples/s counted at the operator over the window
     e2e_ms: list[float] = field(default_factory=list)
     cpu_operator: float = 0.0  # cores
@@ -563,6 +565,10 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                 u: q["last"] for group, q in zip(plan.groups, finals, strict=True) for u in group
             }
             result.late_ticks = sum(q["late"] for q in finals)
+            result.worker_gc_longest_ms = tuple(
+                max(q["gc_longest"][g] for q in finals) for g in range(3)
+            )
+            result.worker_lag_ms = max(q["lag"] for q in finals)
             drain = time.monotonic() + 15
             # Polled: waking on every one of 320 streams' samples would cost more than this.
             while time.monotonic() < drain and any(  # noqa: ASYNC110
@@ -690,7 +696,10 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
             f"{_slowest_rounds(r, 1)}"
         )
     print(
-        f"  the operator's GC over the window, per generation: "
+        f"  the workers' longest GC per generation "
+        f"{'/'.join(f'{x:.1f}' for x in r.worker_gc_longest_ms)} ms, their push loops woke "
+        f"up to {r.worker_lag_ms:.0f} ms late; the operator's GC over the window, per "
+        "generation: "
         f"{'/'.join(map(str, r.gc_collections))} collections, the longest "
         f"{'/'.join(f'{x:.1f}' for x in r.gc_longest_ms)} ms; rounds with a collection of "
         f"generation 1 or 2 in them, ours/raw ms: "
