@@ -145,7 +145,7 @@ class _GcWatch:
 
     def __init__(self) -> None:
         self.longest = [0.0, 0.0, 0.0]
-        self.spans: list[tuple[float, float]] = []  # perf_counter start, end of gen ≥ 1
+        self.spans: list[tuple[float, float]] = []  # perf_counter start, end of a full one
         self._t0 = 0.0
 
     def __call__(self, phase: str, info: dict[str, int]) -> None:
@@ -155,7 +155,7 @@ class _GcWatch:
         now = time.perf_counter()
         gen = info["generation"]
         self.longest[gen] = max(self.longest[gen], 1e3 * (now - self._t0))
-        if gen:
+        if gen == 2:
             self.spans.append((self._t0, now))
 
     def __enter__(self) -> _GcWatch:
@@ -166,7 +166,7 @@ class _GcWatch:
         gc.callbacks.remove(self)
 
     def inside(self, start: float, end: float) -> bool:
-        """Whether a collection of generation 1 or 2 ran between ``start`` and ``end``."""
+        """Whether a full collection (generation 2) ran between ``start`` and ``end``."""
         return any(a < end and b > start for a, b in self.spans)
 
 
@@ -702,7 +702,7 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
         "generation: "
         f"{'/'.join(map(str, r.gc_collections))} collections, the longest "
         f"{'/'.join(f'{x:.1f}' for x in r.gc_longest_ms)} ms; rounds with a collection of "
-        f"generation 1 or 2 in them, ours/raw ms: "
+        f"generation 2 in them, ours/raw ms: "
         + (", ".join(f"{a or 0:.0f}/{b or 0:.0f}" for a, b in r.rounds_in_gc) or "none")
     )
     print(
