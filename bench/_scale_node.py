@@ -17,6 +17,7 @@ Both targets follow `bench._child.Child`: ``target(spec, …, reports, stop)``, 
 
 from __future__ import annotations
 
+import gc
 import json
 import os
 import time
@@ -94,6 +95,20 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
         uavs = [Uav(c) for c in spec["configs"]]
         await asyncio.gather(*(u.open(stack) for u in uavs))
         settle_gc()  # as `dyknow node` does once its platform is up
+        gc_longest = [0.0, 0.0, 0.0]  # ms, per generation, from here on
+        gc_started = 0.0
+        worst_lag = 0.0  # ms the push loop woke later than asked
+
+        def on_gc(phase: str, info: dict[str, int]) -> None:
+            nonlocal gc_started
+            if phase == "start":
+                gc_started = time.perf_counter()
+            else:
+                gen = info["generation"]
+                took = 1e3 * (time.perf_counter() - gc_started)
+                gc_longest[gen] = max(gc_longest[gen], took)
+
+        gc.callbacks.append(on_gc)
         reports.put(
             (
                 "ready",
@@ -122,8 +137,17 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
             delay = tick - loop.time()
             if delay < -period:
                 late += 1
+            asked = loop.time() + max(delay, 0.0)
             await asyncio.sleep(max(delay, 0.0))
-        reports.put(("quiet", os.getpid(), {"last": seq - 1, "late": late}))
+            worst_lag = max(worst_lag, 1e3 * (loop.time() - asked))
+        gc.callbacks.remove(on_gc)
+        reports.put(
+            (
+                "quiet",
+                os.getpid(),
+                {"last": seq - 1, "late": late, "gc_longest": gc_longest, "lag": worst_lag},
+            )
+        )
         while not stop.is_set() and os.getppid() == parent:  # noqa: ASYNC110
             await asyncio.sleep(0.1)
 

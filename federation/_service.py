@@ -1213,7 +1213,9 @@ class FederationAgent(Agent):
     ) -> GlobalResult:
         """Ask every member's federation service at once; answers until ``deadline`` s.
 
-        Returns as soon as everyone answered, else at the deadline. ``select``: the
+        A reading action (``get-*``, ``search-labels``, ``list-labels``) is asked as
+        query-ref, any other as request. Returns as soon as everyone answered, else at
+        the deadline. ``select``: the
         ``"first"`` answer to arrive, the ``"newest"`` by valid time (its newest sample),
         or a function fusing ``{platform: answer}`` (may be async). Do not call it from a
         handler of this agent with ``include_self``: our own request would wait behind it.
@@ -1228,6 +1230,12 @@ class FederationAgent(Agent):
             return result
         for platform in providers:
             self._expect_from(platform, content)  # a global create-stream: to us, agreed
+        # A reading action goes as query-ref: each provider answers it in its agent's receive
+        # loop, not in a task of its own per request as an action (which may wait) needs.
+        if isinstance(content, dict) and content.get("action") in _READS:
+            performative, protocol = P.QUERY_REF, FIPA_QUERY
+        else:
+            performative, protocol = P.REQUEST, FIPA_REQUEST
         loop = asyncio.get_running_loop()
         end = loop.time() + deadline
         conversation_id = new_id("c")
@@ -1237,10 +1245,10 @@ class FederationAgent(Agent):
                 platform: asyncio.ensure_future(
                     conv.send(
                         self.message(
-                            P.REQUEST,
+                            performative,
                             aid,
                             content,
-                            protocol=FIPA_REQUEST,
+                            protocol=protocol,
                             ontology=ONTOLOGY,
                             language="json",
                             conversation_id=conversation_id,
@@ -1295,6 +1303,9 @@ class FederationAgent(Agent):
             req.request, deadline=req.deadline, select=req.select, include_self=req.include_self
         )
         return result.to_content()
+
+
+_READS = QUERY_ACTIONS | {"list-labels"}
 
 
 def _take(buckets: dict[str, TokenBucket], platform: str) -> bool:

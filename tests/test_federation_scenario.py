@@ -286,7 +286,7 @@ class Silent(Agent):
             )
         )
 
-    @on(MessageTemplate(P.REQUEST, ontology=ONTOLOGY))
+    @on(MessageTemplate((P.REQUEST, P.QUERY_REF), ontology=ONTOLOGY))
     async def _swallow(self, message: ACLMessage) -> None:
         """Say nothing."""
 

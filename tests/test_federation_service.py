@@ -158,6 +158,7 @@ class Silent(Agent):
     def __init__(self) -> None:
         super().__init__("federation")
         self.got = asyncio.Event()
+        self.performatives: list[P] = []
 
     async def setup(self) -> None:
         assert self.platform.df is not None
@@ -170,8 +171,9 @@ class Silent(Agent):
             )
         )
 
-    @on(MessageTemplate(P.REQUEST, ontology=ONTOLOGY))
+    @on(MessageTemplate((P.REQUEST, P.QUERY_REF), ontology=ONTOLOGY))
     async def _swallow(self, message: Any) -> None:
+        self.performatives.append(message.performative)
         self.got.set()
 
 
@@ -542,6 +544,8 @@ async def test_global_request_names_the_silent_platform() -> None:
         assert "heli-max-speed" in result.refused["operator"]
         assert result.no_answer == ["uav-c"]
         assert w.silent["uav-c"].got.is_set()  # it was asked; it did not answer
+        # a reading action is asked as a query: answered without a task per request
+        assert w.silent["uav-c"].performatives == [P.QUERY_REF]
 
 
 async def test_global_request_selects_newest_or_fuses() -> None:
