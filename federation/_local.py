@@ -64,9 +64,9 @@ _SUN_PATH = 100  # bytes of a Unix socket's path, with a margin (108 on Linux, 1
 _LINE = 1 << 20  # longest request line accepted (1 MiB)
 _REFUSE_WAIT = 5.0  # s a refused client has to send its request before the refusal
 ALIVE_WAIT = 1.0
+"""Seconds one ask for a platform's token may take (zenoh returns once every peer answered)."""
 IDENTITY_RATE = 10.0
 """``identity`` queries a node answers per second (bursts as many); the rest are shed."""
-"""Seconds a starting node listens for its own name's liveliness token before going on."""
 
 
 # -- the duplicate check ---------------------------------------------------------------------
@@ -108,18 +108,7 @@ async def refuse_duplicate(
 
     ``command``: the refused one is a one-shot command (the message says where to run it).
     """
-    presence = await transport.watch_presence(alive_key(config), history=True)
-    alive = False
-    try:
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(wait):
-                async for change in presence:
-                    if change.alive:
-                        alive = True
-                        break
-    finally:
-        presence.close()
-    if not alive:
+    if not await transport.tokens(alive_key(config), timeout=wait):
         return
     where = "where and since when unknown (it did not say)"
     try:
