@@ -130,7 +130,11 @@ _PACKAGES = ("dyknow_core", "ontology", "agents", "federation")
 
 
 def _installed(directory: Path) -> dict[str, str]:
-    """Our packages copied to ``directory`` with their bytecode; the environment to run them."""
+    """Our packages copied to ``directory`` with their bytecode; the environment to run them.
+
+    Run them with ``directory`` as the working directory: ``python -m`` and ``-c`` put the
+    working directory first on the path, and the source tree would be found before the copy.
+    """
     for name in _PACKAGES:
         source = Path(importlib.import_module(name).__file__ or "").parent
         target = directory / name
@@ -140,7 +144,9 @@ def _installed(directory: Path) -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": path}
 
 
-def _spawn_ready(argv: list[str], env: dict[str, str] | None = None) -> tuple[float, float]:
+def _spawn_ready(
+    argv: list[str], env: dict[str, str] | None = None, cwd: Path | None = None
+) -> tuple[float, float]:
     """Spawn ``argv``; seconds until it prints a line with "ready", and its RSS (MB) idle."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
@@ -150,6 +156,7 @@ def _spawn_ready(argv: list[str], env: dict[str, str] | None = None) -> tuple[fl
         stderr=subprocess.DEVNULL,
         text=True,
         env={**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"},
+        cwd=cwd,
     )
     try:
         assert proc.stdout is not None
@@ -178,16 +185,17 @@ def node_ready() -> None:
     imports: list[tuple[float, float]] = []
     with tempfile.TemporaryDirectory(prefix="bench-node-") as tmp:
         config = _node_config(Path(tmp))
-        env = _installed(Path(tmp) / "site")
+        site = Path(tmp) / "site"
+        env = _installed(site)
         for i in range(NODE_REPEAT):
             progress(f"node start-to-ready, spawn {i + 1}/{NODE_REPEAT}: bare zenoh, then ours")
             bare.append(_spawn_ready([sys.executable, "-c", _BARE_NODE]))
             ours.append(
                 _spawn_ready(
-                    [sys.executable, "-m", "federation.cli", "node", "-c", str(config)], env
+                    [sys.executable, "-m", "federation.cli", "node", "-c", str(config)], env, site
                 )
             )
-            imports.append(_spawn_ready([sys.executable, "-c", _IMPORTS_ONLY], env))
+            imports.append(_spawn_ready([sys.executable, "-c", _IMPORTS_ONLY], env, site))
     print(f"node start to ready ({NODE_REPEAT} spawns each, s) and idle RSS (MB):")
     for (r, m), (br, bm), (ir, im) in zip(ours, bare, imports, strict=True):
         print(
