@@ -38,7 +38,7 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents import Ticker, TokenBucket, TransportError
+from agents import Ticker, TokenBucket, TransportError, wire_key
 
 from ._cli_common import failure_of, platforms_of, wait_for_members
 from ._cli_time import seconds, when
@@ -89,15 +89,11 @@ def _identity(config: PlatformConfig, started: float) -> dict[str, Any]:
 
 def identity_key(config: PlatformConfig) -> str:
     """The key a running node answers ``who are you`` queries on."""
-    from agents import wire_key
-
     return wire_key(config.federation, "identity", config.name)
 
 
 def alive_key(config: PlatformConfig) -> str:
     """The liveliness token of a platform of this config's name."""
-    from agents import wire_key
-
     return wire_key(config.federation, "alive", config.name)
 
 
@@ -108,7 +104,10 @@ async def refuse_duplicate(
 
     ``command``: the refused one is a one-shot command (the message says where to run it).
     """
-    if not await transport.tokens(alive_key(config), timeout=wait):
+    # Every platform's token, not only ours: any other's in the answer shows the session
+    # is routed to the federation already, so ours missing from it is known at once.
+    alive = await transport.tokens(wire_key(config.federation, "alive", "*"), timeout=wait)
+    if alive_key(config) not in alive:
         return
     where = "where and since when unknown (it did not say)"
     try:
