@@ -14,15 +14,22 @@ until it prints that it is ready, and its RSS once idle; beside it, in the same 
 least a zenoh node can be: a fresh interpreter that opens a session with the same
 settings, declares a queryable and a liveliness token, and says it is ready (``BENCH
 federation-node-ready`` and ``federation-node-rss``; ``bench.acl``'s ``node-ready`` is an
-agent platform without the federation).
+agent platform without the federation). The node runs from a copy of our packages with
+their bytecode compiled, as an installed node has it: compiling ~70 modules from source
+(when ``PYTHONDONTWRITEBYTECODE`` keeps the tree free of it) costs ~0.5 s at every start.
+Beside it, the imports alone (``import federation.cli``), to split start → ready into
+imports and the platform's start.
 """
 
 from __future__ import annotations
 
+import compileall
 import gc
+import importlib
 import math
 import os
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -57,6 +64,15 @@ c.insert_json5("scouting/multicast/enabled", "false")
 s = zenoh.open(c)
 q = s.declare_queryable("bench/bare/ready", lambda query: query.reply(query.key_expr, b"1"))
 t = s.liveliness().declare_token("bench/bare/alive")
+print("ready", flush=True)
+sys.stdin.read()
+"""
+
+
+# What ``dyknow node`` imports before it starts anything, then "ready".
+_IMPORTS_ONLY = """
+import sys
+import federation.cli
 print("ready", flush=True)
 sys.stdin.read()
 """
@@ -110,7 +126,27 @@ def _node_config(directory: Path) -> Path:
     return path
 
 
-def _spawn_ready(argv: list[str]) -> tuple[float, float]:
+_PACKAGES = ("dyknow_core", "ontology", "agents", "federation")
+
+
+def _installed(directory: Path) -> dict[str, str]:
+    """Our packages copied to ``directory`` with their bytecode; the environment to run them.
+
+    Run them with ``directory`` as the working directory: ``python -m`` and ``-c`` put the
+    working directory first on the path, and the source tree would be found before the copy.
+    """
+    for name in _PACKAGES:
+        source = Path(importlib.import_module(name).__file__ or "").parent
+        target = directory / name
+        shutil.copytree(source, target, ignore=shutil.ignore_patterns("__pycache__"))
+        compileall.compile_dir(target, quiet=1)
+    path = os.pathsep.join(p for p in (str(directory), os.environ.get("PYTHONPATH")) if p)
+    return {**os.environ, "PYTHONPATH": path}
+
+
+def _spawn_ready(
+    argv: list[str], env: dict[str, str] | None = None, cwd: Path | None = None
+) -> tuple[float, float]:
     """Spawn ``argv``; seconds until it prints a line with "ready", and its RSS (MB) idle."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
@@ -119,7 +155,8 @@ def _spawn_ready(argv: list[str]) -> tuple[float, float]:
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
         text=True,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        env={**(os.environ if env is None else env), "PYTHONUNBUFFERED": "1"},
+        cwd=cwd,
     )
     try:
         assert proc.stdout is not None
@@ -145,17 +182,26 @@ def node_ready() -> None:
     """``dyknow node`` start → ready and idle RSS, beside a bare zenoh node; the BENCH lines."""
     ours: list[tuple[float, float]] = []
     bare: list[tuple[float, float]] = []
+    imports: list[tuple[float, float]] = []
     with tempfile.TemporaryDirectory(prefix="bench-node-") as tmp:
         config = _node_config(Path(tmp))
+        site = Path(tmp) / "site"
+        env = _installed(site)
         for i in range(NODE_REPEAT):
             progress(f"node start-to-ready, spawn {i + 1}/{NODE_REPEAT}: bare zenoh, then ours")
             bare.append(_spawn_ready([sys.executable, "-c", _BARE_NODE]))
             ours.append(
-                _spawn_ready([sys.executable, "-m", "federation.cli", "node", "-c", str(config)])
+                _spawn_ready(
+                    [sys.executable, "-m", "federation.cli", "node", "-c", str(config)], env, site
+                )
             )
+            imports.append(_spawn_ready([sys.executable, "-c", _IMPORTS_ONLY], env, site))
     print(f"node start to ready ({NODE_REPEAT} spawns each, s) and idle RSS (MB):")
-    for (r, m), (br, bm) in zip(ours, bare, strict=True):
-        print(f"  dyknow node {r:.3f} s {m:.1f} MB; bare zenoh node {br:.3f} s {bm:.1f} MB")
+    for (r, m), (br, bm), (ir, im) in zip(ours, bare, imports, strict=True):
+        print(
+            f"  dyknow node {r:.3f} s {m:.1f} MB (its imports alone {ir:.3f} s {im:.1f} MB); "
+            f"bare zenoh node {br:.3f} s {bm:.1f} MB"
+        )
     report(
         "federation-node-ready",
         statistics.median(r for r, _ in ours),

@@ -33,11 +33,6 @@ from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
 import msgpack
 import orjson
-from mcap.reader import NonSeekingReader, SeekingReader
-from mcap.records import Chunk, Header, Message, Metadata
-from mcap.stream_reader import StreamReader
-from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
-from mcap.writer import Writer as McapWriter
 
 from ._aio import Ticker
 from ._events import ChangeEvent
@@ -50,6 +45,8 @@ from ._stream import Subscription
 from ._time import NS_PER_S, ManualClock
 
 if TYPE_CHECKING:
+    from mcap.records import Message
+
     from ._instance import DyKnowInstance
 
 log = logging.getLogger(__name__)
@@ -371,6 +368,10 @@ class RecordWriter:
         self._channels: dict[str, int] = {}
         # set when samples may have been buffered out of order (a stream found late)
         self.sort_pending = False
+        # mcap (with zstd and lz4, ~3.5 MB) only once a recording is made or read
+        from mcap.writer import LIBRARY_IDENTIFIER, CompressionType
+        from mcap.writer import Writer as McapWriter
+
         self.header = RecordHeader(
             version=FORMAT_VERSION,
             instance=instance,
@@ -812,6 +813,10 @@ class Recording:
 
     # -- MCAP ---------------------------------------------------------------------------------
     def _mcap_header(self, f: IO[bytes]) -> RecordHeader:
+        from mcap.reader import SeekingReader
+        from mcap.records import Chunk, Header, Message, Metadata
+        from mcap.stream_reader import StreamReader
+
         header: Header | None = None
         meta: dict[str, str] | None = None
         first: int | None = None
@@ -901,6 +906,8 @@ class Recording:
             f = open(self.path, "rb")  # noqa: SIM115 - closed below
         except OSError as exc:
             raise self._fail(f"cannot be read: {exc.strerror}") from None
+        from mcap.reader import NonSeekingReader, SeekingReader
+
         with f:
             size = os.fstat(f.fileno()).st_size
             finished = _finished(f)

@@ -102,8 +102,8 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
     async with _platform(config, source) as (p, application, channel):
         await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
-        settle_gc()
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
+        settle_gc()  # once ready: a full collection is ~15 ms a supervisor need not wait for
         await stop.wait()
         for row in application.stats():
             say(f"dyknow node: {json.dumps(row, sort_keys=True)}")
@@ -143,10 +143,10 @@ async def run_console(
     ):
         await p.join()
         stop = _stop_event()
-        settle_gc()
         say(
             f"dyknow console: {p.name} ready in federation {config.federation}: {console.login_url}"
         )
+        settle_gc()
         await stop.wait()
         say(
             f"dyknow console: local channel: {channel.served} commands served, "
@@ -186,13 +186,13 @@ async def run_foxglove(
     ):
         await p.join()
         stop = _stop_event()
-        settle_gc()
         say(f"dyknow foxglove: serving {', '.join(bridge.served()) or 'no streams'}")
         if bridge.origin is None:
             say("dyknow foxglove: no [foxglove] origin: positions are not drawn on a map")
         say(
             f"dyknow foxglove: {p.name} ready in federation {config.federation}: {bridge.login_url}"
         )
+        settle_gc()
         await stop.wait()
         stats = bridge.stats()
         refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())

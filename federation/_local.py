@@ -38,7 +38,7 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents import Ticker, TokenBucket, TransportError
+from agents import Ticker, TokenBucket, TransportError, wire_key
 
 from ._cli_common import failure_of, platforms_of, wait_for_members
 from ._cli_time import seconds, when
@@ -64,9 +64,9 @@ _SUN_PATH = 100  # bytes of a Unix socket's path, with a margin (108 on Linux, 1
 _LINE = 1 << 20  # longest request line accepted (1 MiB)
 _REFUSE_WAIT = 5.0  # s a refused client has to send its request before the refusal
 ALIVE_WAIT = 1.0
+"""Seconds one ask for a platform's token may take (zenoh returns once every peer answered)."""
 IDENTITY_RATE = 10.0
 """``identity`` queries a node answers per second (bursts as many); the rest are shed."""
-"""Seconds a starting node listens for its own name's liveliness token before going on."""
 
 
 # -- the duplicate check ---------------------------------------------------------------------
@@ -89,15 +89,11 @@ def _identity(config: PlatformConfig, started: float) -> dict[str, Any]:
 
 def identity_key(config: PlatformConfig) -> str:
     """The key a running node answers ``who are you`` queries on."""
-    from agents import wire_key
-
     return wire_key(config.federation, "identity", config.name)
 
 
 def alive_key(config: PlatformConfig) -> str:
     """The liveliness token of a platform of this config's name."""
-    from agents import wire_key
-
     return wire_key(config.federation, "alive", config.name)
 
 
@@ -108,18 +104,10 @@ async def refuse_duplicate(
 
     ``command``: the refused one is a one-shot command (the message says where to run it).
     """
-    presence = await transport.watch_presence(alive_key(config), history=True)
-    alive = False
-    try:
-        with contextlib.suppress(TimeoutError):
-            async with asyncio.timeout(wait):
-                async for change in presence:
-                    if change.alive:
-                        alive = True
-                        break
-    finally:
-        presence.close()
-    if not alive:
+    # Every platform's token, not only ours: any other's in the answer shows the session
+    # is routed to the federation already, so ours missing from it is known at once.
+    alive = await transport.tokens(wire_key(config.federation, "alive", "*"), timeout=wait)
+    if alive_key(config) not in alive:
         return
     where = "where and since when unknown (it did not say)"
     try:

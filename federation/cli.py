@@ -1,4 +1,4 @@
-"""The ``dyknow`` command (typer + rich): every subcommand, one style of flags.
+"""The ``dyknow`` command (typer; rich for tables): every subcommand, one style of flags.
 
 The same flag means the same thing in every command: ``--config/-c`` is this platform's
 TOML config, ``--platform/-p`` the platform asked (or whose key it is), ``--json``
@@ -17,11 +17,9 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.console import Console
-from rich.table import Table
 
 from agents import TransportError
 from agents import run as run_loop
@@ -29,6 +27,9 @@ from agents import run as run_loop
 from ._cli_reasoning import kpl_app, monitor
 from ._cli_time import when, when_ns
 from ._platform import PlatformConfig, PlatformConfigError
+
+if TYPE_CHECKING:
+    from rich.table import Table
 
 
 def _demo_app() -> typer.Typer:
@@ -52,8 +53,23 @@ keys_app = typer.Typer(
 app.add_typer(keys_app, name="keys")
 app.add_typer(_demo_app(), name="demo")
 
-_out = Console(highlight=False, soft_wrap=True)
-_err = Console(stderr=True, highlight=False, soft_wrap=True)
+
+def _table(title: str, *columns: str) -> Table:
+    """A rich table with these columns (rich is imported by the commands that print one)."""
+    from rich.table import Table
+
+    table = Table(title=title)
+    for column in columns:
+        table.add_column(column)
+    return table
+
+
+def _print(table: Table) -> None:
+    """Print a rich table to stdout."""
+    from rich.console import Console
+
+    Console(highlight=False, soft_wrap=True).print(table)
+
 
 ConfigOpt = Annotated[Path, typer.Option("--config", "-c", help="the platform's TOML config")]
 PlatformOpt = Annotated[str, typer.Option("--platform", "-p", help="the platform to ask")]
@@ -366,17 +382,13 @@ def platforms(config: ConfigOpt, as_json: JsonOpt = False, wait: WaitOpt = 3.0) 
     if as_json:
         _say(dumps(found))
         return
-    table = Table(title="platforms alive")
-    table.add_column("platform")
-    table.add_column("service")
-    table.add_column("type")
-    table.add_column("provider")
+    table = _table("platforms alive", "platform", "service", "type", "provider")
     for name, services in found.items():
         if not services:
             table.add_row(name, "-", "-", "-")
         for s in services:
             table.add_row(name, s["name"], s["type"], s["provider"])
-    _out.print(table)
+    _print(table)
 
 
 @app.command("labels")
@@ -403,11 +415,10 @@ def labels(
     if as_json:
         _say(dumps(answer))
         return
-    table = Table(title=f"labels of {platform}")
-    table.add_column("semantic label")
+    table = _table(f"labels of {platform}", "semantic label")
     for label in answer.get("labels", []):
         table.add_row(label)
-    _out.print(table)
+    _print(table)
 
 
 @app.command("ask")
@@ -454,9 +465,9 @@ def ask(
     if as_json:
         _say(dumps(answer))
         return
-    table = Table(title=f"{content['action']} from {platform}")
-    for col in ("label", "query time", "value", "valid", "available"):
-        table.add_column(col)
+    table = _table(
+        f"{content['action']} from {platform}", "label", "query time", "value", "valid", "available"
+    )
     for label, result in answer.items():
         samples = result.get("samples", []) if isinstance(result, dict) else []
         qt = result.get("query_time") if isinstance(result, dict) else None
@@ -465,7 +476,7 @@ def ask(
             table.add_row(label, shown, "-", "-", "-")
         for value, valid, available in samples:
             table.add_row(label, shown, repr(value), when(valid), when(available))
-    _out.print(table)
+    _print(table)
 
 
 @app.command("stream")

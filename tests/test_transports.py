@@ -374,6 +374,20 @@ async def test_a_second_watcher_gets_the_history_too(net: Net) -> None:
     assert await take(second, 1) == [Presence(key, False)]
 
 
+async def test_tokens_are_the_ones_alive_now(net: Net) -> None:
+    a, b = await net.open(), await net.open()
+    key_a, key_b = net.key("alive/a"), net.key("alive/b")
+    token_a = await a.declare_token(key_a)
+    await b.declare_token(key_b)
+    watch = await b.watch_presence(key_a)
+    assert await take(watch, 1) == [Presence(key_a, True)]
+    assert await b.tokens(net.key("alive/*"), timeout=net.query_timeout) == [key_a, key_b]
+    assert await b.tokens(net.key("alive/c"), timeout=net.query_timeout) == []
+    await token_a.aclose()
+    assert await take(watch, 1) == [Presence(key_a, False)]
+    assert await b.tokens(net.key("alive/*"), timeout=net.query_timeout) == [key_b]
+
+
 async def test_token_needs_a_concrete_key(net: Net) -> None:
     a = await net.open()
     with pytest.raises(TransportError):

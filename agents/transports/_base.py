@@ -365,6 +365,24 @@ class Transport(ABC):
     ) -> Subscription[Presence]:
         """Be told when tokens matching ``key_expr`` appear and go (the current ones first)."""
 
+    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
+        """The keys of the tokens matching ``key_expr`` alive now, as known by ``timeout`` s.
+
+        zenoh asks its peers and routers and returns once they all answered; this
+        default, for a transport whose history has no end (MQTT's retained messages),
+        listens to `watch_presence` for ``timeout`` s.
+        """
+        presence = await self.watch_presence(key_expr, history=True)
+        alive: set[str] = set()
+        try:
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(timeout):
+                    async for change in presence:
+                        (alive.add if change.alive else alive.discard)(change.key)
+        finally:
+            presence.close()
+        return sorted(alive)
+
 
 def key_matches(key_expr: str, key: str) -> bool:
     """Whether concrete ``key`` matches zenoh-style ``key_expr`` (``*`` one chunk, ``**`` any)."""

@@ -168,6 +168,11 @@ class MemoryTransport(Transport):
         self._handles.append(h)
         return h
 
+    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
+        """The tokens alive on ``key_expr`` (the hub knows them all at once)."""
+        self._check_open()
+        return sorted(key for key in self.hub.tokens if key_matches(key_expr, key))
+
     async def watch_presence(
         self, key_expr: str, *, history: bool = True, buffer_size: int = 4096
     ) -> Subscription[Presence]:

@@ -59,6 +59,9 @@ _PUBLISHER_CACHE = 1024
 # How long past its own timeout a query may take before we stop waiting for zenoh's
 # "finished" signal: a backstop, zenoh ends every query at its timeout.
 _QUERY_GRACE = 1.0
+# How long after opening zenoh may still route a liveliness get to no one: a link is
+# connected before its peer is in the routing (seen: 2-15 ms, 140 ms on a loaded machine).
+_LINK_SETTLE = 0.25
 
 # Sessions opened and not yet closed, closed at exit: an unclosed session with callback
 # subscribers can hang interpreter shutdown.
@@ -329,6 +332,18 @@ def _listens(json5: str | None, cfg: zenoh.Config) -> bool:
     return isinstance(endpoints, list) and bool(endpoints)
 
 
+def _seeks(cfg: zenoh.Config) -> bool:
+    """Whether a session of ``cfg`` connects to endpoints or scouts for peers by multicast."""
+    try:
+        connect = json.loads(cfg.get_json("connect/endpoints"))
+        multicast = json.loads(cfg.get_json("scouting/multicast/enabled"))
+    except (zenoh.ZError, ValueError):
+        return True
+    if isinstance(connect, dict):  # per mode
+        connect = [e for endpoints in connect.values() for e in endpoints or ()]
+    return bool(connect) or multicast is not False
+
+
 @contextlib.contextmanager
 def _converted(what: str) -> Iterator[None]:
     """Raise zenoh's errors as TransportError, saying what was being done."""
@@ -350,6 +365,8 @@ class ZenohTransport(Transport):
         )
         self._session: zenoh.Session | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._opened = 0.0  # loop time the session opened (see `tokens`)
+        self._seeks = False  # whether the session looks for peers or routers (see `tokens`)
         self._publishers: OrderedDict[str, zenoh.Publisher] = OrderedDict()
         self._subs: set[Subscription[Any]] = set()
         self._handles: set[Handle] = set()
@@ -375,6 +392,8 @@ class ZenohTransport(Transport):
             opening.add_done_callback(_close_opened)
             raise
         self._loop = loop
+        self._opened = loop.time()
+        self._seeks = _seeks(cfg)
         self._session = session
         _OPEN_SESSIONS[id(session)] = session
         await self._start_tasks()
@@ -620,6 +639,51 @@ class ZenohTransport(Transport):
                 key_expr, zenoh.handlers.Callback(on_sample, inbox.close), history=history
             )
         return self._subscription(inbox, lambda: self._undeclare(zsub))
+
+    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
+        """The tokens alive on ``key_expr``: a liveliness get, done once every peer answered.
+
+        Right after opening, zenoh may still be connecting to the ``connect`` endpoints
+        (in the background) or not yet route the get to a just-connected peer or router:
+        it finishes at once with nothing. So while the session is younger than
+        ``_LINK_SETTLE`` and has, or seeks, a peer or router, an empty answer is asked
+        again; a session alone (no ``connect`` endpoints, no multicast) answers at once.
+        """
+        session, loop = self._open_session()
+        keys = await self._tokens(session, loop, key_expr, timeout)
+        pause = 0.005
+        while not keys and (left := self._opened + _LINK_SETTLE - loop.time()) > 0:
+            if not (self._seeks or session.info.peers_zid() or session.info.routers_zid()):
+                break  # nobody to ask, nor being connected to: the answer is complete
+            await asyncio.sleep(min(pause, left))
+            pause *= 2
+            keys = await self._tokens(session, loop, key_expr, timeout)
+        return keys
+
+    async def _tokens(
+        self,
+        session: zenoh.Session,
+        loop: asyncio.AbstractEventLoop,
+        key_expr: str,
+        timeout: float,
+    ) -> list[str]:
+        inbox: Inbox[str] = Inbox(loop)
+        put = inbox.put
+
+        def on_reply(reply: zenoh.Reply) -> None:
+            if (ok := reply.ok) is not None:
+                put(str(ok.key_expr))
+
+        with _converted(f"ask the liveliness tokens on {key_expr!r}"):
+            session.liveliness().get(
+                key_expr, zenoh.handlers.Callback(on_reply, inbox.close), timeout=timeout
+            )
+        keys: set[str] = set()
+        with contextlib.suppress(TransportClosed, TimeoutError):  # closed: all answered
+            async with asyncio.timeout(timeout + _QUERY_GRACE):
+                while True:
+                    keys.add(await inbox.get())
+        return sorted(keys)
 
     def _subscription(self, inbox: Inbox[T], undeclare: Callable[[], None]) -> Subscription[T]:
         """A subscription that this transport ends when it closes."""

@@ -7,15 +7,24 @@ import json
 import os
 import signal
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.console import Console
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 __all__ = ["demo_app"]
 
+
+def _console(**options: Any) -> Console:
+    """A rich console (rich is imported when a demo runs, not with the ``dyknow`` command)."""
+    from rich.console import Console
+
+    return Console(**options)
+
+
 demo_app = typer.Typer(help="Demos: 'dyknow demo traffic' (multi-UAV traffic monitoring).")
-_out = Console(highlight=False, soft_wrap=True)
 
 
 @demo_app.command("traffic")
@@ -66,7 +75,7 @@ def traffic(
         token = configured_token(None)
         hosts = tuple(allowed_names(allow_host or [], os.environ))
     except ValueError as exc:
-        Console(stderr=True).print(f"dyknow demo traffic: {exc}", markup=False)
+        _console(stderr=True).print(f"dyknow demo traffic: {exc}", markup=False)
         raise typer.Exit(2) from None
     options = DemoOptions(
         uavs=uavs,
@@ -82,7 +91,8 @@ def traffic(
         allow_hosts=hosts,
         foxglove_port=foxglove_port,
     )
-    say = (lambda _: None) if as_json else (lambda text: _out.print(text, markup=False))
+    out = _console(highlight=False, soft_wrap=True)
+    say = (lambda _: None) if as_json else (lambda text: out.print(text, markup=False))
     # SIGTERM (timeout, docker stop, a closed CI job) takes Ctrl-C's way out, so the UAV
     # processes are stopped too; asyncio.run would otherwise die without cleaning up
     signal.signal(signal.SIGTERM, signal.default_int_handler)
@@ -91,7 +101,7 @@ def traffic(
     except KeyboardInterrupt:
         raise typer.Exit(130) from None
     except (TimeoutError, RuntimeError, OSError) as exc:
-        Console(stderr=True).print(f"dyknow demo traffic: {exc}", markup=False)
+        _console(stderr=True).print(f"dyknow demo traffic: {exc}", markup=False)
         raise typer.Exit(1) from None
     if as_json:
         print(json.dumps(report.to_dict(), indent=1, default=str))
