@@ -275,6 +275,7 @@ async def flood(asker: Agent, n: int) -> dict[str, float]:
         "received": got,
         "inbox_dropped": counted["inbox_dropped"],
         "mailbox_full": counted["mailbox_full"],
+        "rate_limited": counted["rate_limited"],
         "rate": got / max(counted["t1"] - t0, 1e-9),
         "sent_rate": n / sent_s,
         "recv_rate": got / recv_s,
