@@ -177,8 +177,8 @@ class ACLMessage(BaseModel):
         caller knows (`nesting_bound` of the decoded bytes), spares that walk. Anything
         the quick checks do not accept goes through `from_obj`, which says what is wrong.
         """
-        if type(obj) is dict and obj.keys() <= _FIELDS:
-            fields = _quick_fields(obj)
+        if type(obj) is dict:
+            fields = _quick_fields(obj)  # None for a key that is no field, among others
             if fields is not None and (
                 (nesting is not None and nesting < _TRUSTED_NESTING)
                 or _shallower(fields["content"], _TRUSTED_NESTING)
@@ -293,15 +293,18 @@ def _json_copy(value: Any, depth: int) -> Any:
         return value
     if depth > _MAX_QUICK_DEPTH:
         raise _NotPlain
+    # scalars inside are taken as they are, without a call each
     if kind is dict:
         out = {}
         for key, item in value.items():
             if type(key) is not str:
                 raise _NotPlain
-            out[key] = _json_copy(item, depth + 1)
+            out[key] = item if type(item) in _JSON_SCALARS else _json_copy(item, depth + 1)
         return out
     if kind is list:
-        return [_json_copy(item, depth + 1) for item in value]
+        return [
+            item if type(item) in _JSON_SCALARS else _json_copy(item, depth + 1) for item in value
+        ]
     raise _NotPlain
 
 
