@@ -230,7 +230,7 @@ class AuditLog:
 
     def accepted(self, peer: str, message: ACLMessage, ts: float | None = None) -> None:
         """Record that ``message`` from platform ``peer`` was admitted (at ``ts``, Unix s)."""
-        entry = (ts or time.time(), peer, message)
+        entry = (time.time() if ts is None else ts, peer, message)
         self._log.append(entry)
         self._pending.append(entry)
         self.counts["accepted"] += 1
@@ -253,39 +253,23 @@ class AuditLog:
             "reason": None,
         }
 
-    def _line(self, entry: Any) -> bytes:
-        """A log entry as its JSON line (the accepted ones pieced together, as orjson would)."""
-        if type(entry) is not tuple:
-            return orjson.dumps(entry) + b"\n"
-        ts, peer, message = entry
+    def _middle(self, peer: str, message: ACLMessage) -> bytes:
+        """The JSON of an accepted record from "platform" to "performative" (no braces)."""
+        lines = self._lines
+        if len(lines) >= _MAX_AUDIT_LINES:
+            lines.clear()
         receivers = message.receivers
-        if len(receivers) != 1:
-            return orjson.dumps(self._as_dict(entry)) + b"\n"
         key = (peer, message.sender, receivers[0], message.performative)
-        middle = self._lines.get(key)
-        if middle is None:
-            if len(self._lines) >= _MAX_AUDIT_LINES:
-                self._lines.clear()
-            middle = self._lines[key] = orjson.dumps(
-                {
-                    "platform": self.platform,
-                    "from": peer,
-                    "sender": message.sender,
-                    "receivers": receivers,
-                    "performative": message.performative.value,
-                }
-            )[1:-1]
-        return b"".join(
-            (
-                b'{"v":%d,"ts":' % WIRE_VERSION,
-                orjson.dumps(ts),
-                b",",
-                middle,
-                b',"conversation_id":',
-                orjson.dumps(message.conversation_id),
-                b',"verdict":"accepted","reason":null}\n',
-            )
-        )
+        middle = lines[key] = orjson.dumps(
+            {
+                "platform": self.platform,
+                "from": peer,
+                "sender": message.sender,
+                "receivers": receivers,
+                "performative": message.performative.value,
+            }
+        )[1:-1]
+        return middle
 
     def take(self) -> bytes:
         """The records not yet flushed, as JSON lines (empty when none); appended to ``path``."""
@@ -293,8 +277,31 @@ class AuditLog:
             return b""
         pending = list(self._pending)
         self._pending.clear()
-        line = self._line
-        data = b"".join([line(e) for e in pending])
+        out: list[bytes] = []
+        add = out.append
+        dumps, lines = orjson.dumps, self._lines
+        last_ts, ts_json = None, b""
+        for e in pending:
+            if type(e) is tuple:
+                # an accepted message: its line pieced together, the same bytes orjson
+                # makes of the record (fields in the same order)
+                ts, peer, message = e
+                receivers = message.receivers
+                if len(receivers) == 1:
+                    key = (peer, message.sender, receivers[0], message.performative)
+                    middle = lines.get(key) or self._middle(peer, message)
+                    if ts != last_ts:  # a batch's records share theirs
+                        last_ts, ts_json = ts, dumps(ts)
+                    conv = message.conversation_id
+                    add(
+                        b'{"v":%d,"ts":%b,%b,"conversation_id":%b,"verdict":"accepted",'
+                        b'"reason":null}\n'
+                        % (WIRE_VERSION, ts_json, middle, b"null" if conv is None else dumps(conv))
+                    )
+                    continue
+                e = self._as_dict(e)
+            add(dumps(e) + b"\n")
+        data = b"".join(out)
         if self.path is not None:
             try:
                 with self.path.open("ab") as f:
