@@ -924,7 +924,8 @@ class InterfaceAgent:
         here = host.name
         df = host.df
         audit = self.audit
-        log_append, pending_append = audit._log.append, audit._pending.append
+        entries: list[tuple[float, str, ACLMessage]] = []  # logged together, at the end
+        add_entry = entries.append
         ts = time.time()  # one decision time for the batch, as one arrival time
         start = i
         try:
@@ -958,14 +959,14 @@ class InterfaceAgent:
                         requests.tokens -= 1.0
                 if total is not None:
                     total.tokens -= 1.0
-                entry = (ts, peer, message)
-                log_append(entry)
-                pending_append(entry)
+                add_entry((ts, peer, message))
                 agent._deliver(message)  # running, room in its mailbox: taken
                 i += 1
         finally:
             taken = i - start
             if taken:
+                audit._log.extend(entries)
+                audit._pending.extend(entries)
                 state.stats.accepted += taken
                 audit.counts["accepted"] += taken
                 stats = host.stats
