@@ -181,7 +181,7 @@ class AuditLog:
     def __init__(
         self, *, keep: int = 10_000, path: str | Path | None = None, platform: str | None = None
     ) -> None:
-        # each entry a record (a dict), or an accepted message as (ts, peer, message):
+        # each entry a record (a dict), or an accepted message as a tuple (`accepted_entry`):
         # the common record of a flood, made a dict or a JSON line only when read
         self._log: deque[Any] = deque(maxlen=keep)
         self.counts: dict[str, int] = {"accepted": 0, "refused": 0, "dropped": 0}
@@ -191,7 +191,7 @@ class AuditLog:
         self._pending: deque[Any] = deque(maxlen=keep)
         # the JSON of an accepted record between "ts" and "conversation_id", per
         # (peer, sender, receiver, performative): a platform hears few such combinations
-        self._lines: dict[tuple[str, str, str, str], bytes] = {}
+        self._lines: dict[tuple[Any, ...], bytes] = {}
 
     @property
     def records(self) -> deque[dict[str, Any]]:
@@ -230,7 +230,7 @@ class AuditLog:
 
     def accepted(self, peer: str, message: ACLMessage, ts: float | None = None) -> None:
         """Record that ``message`` from platform ``peer`` was admitted (at ``ts``, Unix s)."""
-        entry = (time.time() if ts is None else ts, peer, message)
+        entry = accepted_entry(time.time() if ts is None else ts, peer, message)
         self._log.append(entry)
         self._pending.append(entry)
         self.counts["accepted"] += 1
@@ -239,34 +239,33 @@ class AuditLog:
         """A log entry as its record."""
         if type(entry) is not tuple:
             return entry
-        ts, peer, message = entry
+        ts, peer, sender, receivers, performative, conversation_id = entry
         return {
             "v": WIRE_VERSION,
             "ts": ts,
             "platform": self.platform,
             "from": peer,
-            "sender": message.sender,
-            "receivers": message.receivers,
-            "performative": message.performative.value,
-            "conversation_id": message.conversation_id,
+            "sender": sender,
+            "receivers": [receivers] if type(receivers) is str else list(receivers),
+            "performative": performative,
+            "conversation_id": conversation_id,
             "verdict": "accepted",
             "reason": None,
         }
 
-    def _middle(self, peer: str, message: ACLMessage) -> bytes:
+    def _middle(self, key: tuple[Any, ...]) -> bytes:
         """The JSON of an accepted record from "platform" to "performative" (no braces)."""
         lines = self._lines
         if len(lines) >= _MAX_AUDIT_LINES:
             lines.clear()
-        receivers = message.receivers
-        key = (peer, message.sender, receivers[0], message.performative)
+        peer, sender, receiver, performative = key
         middle = lines[key] = orjson.dumps(
             {
                 "platform": self.platform,
                 "from": peer,
-                "sender": message.sender,
-                "receivers": receivers,
-                "performative": message.performative.value,
+                "sender": sender,
+                "receivers": [receiver],
+                "performative": performative,
             }
         )[1:-1]
         return middle
@@ -283,16 +282,14 @@ class AuditLog:
         last_ts, ts_json = None, b""
         for e in pending:
             if type(e) is tuple:
-                # an accepted message: its line pieced together, the same bytes orjson
-                # makes of the record (fields in the same order)
-                ts, peer, message = e
-                receivers = message.receivers
-                if len(receivers) == 1:
-                    key = (peer, message.sender, receivers[0], message.performative)
-                    middle = lines.get(key) or self._middle(peer, message)
+                ts, peer, sender, receivers, performative, conv = e
+                if type(receivers) is str:
+                    # an accepted message to one agent: its line pieced together, the
+                    # same bytes orjson makes of the record (fields in the same order)
+                    key = (peer, sender, receivers, performative)
+                    middle = lines.get(key) or self._middle(key)
                     if ts != last_ts:  # a batch's records share theirs
                         last_ts, ts_json = ts, dumps(ts)
-                    conv = message.conversation_id
                     add(
                         b'{"v":%d,"ts":%b,%b,"conversation_id":%b,"verdict":"accepted",'
                         b'"reason":null}\n'
@@ -310,6 +307,27 @@ class AuditLog:
                 # a full disk must not stop the Interface Agent, nor the published audit
                 log.warning("audit file %s not written: %s", self.path, exc)
         return data
+
+
+def accepted_entry(ts: float, peer: str, message: ACLMessage) -> tuple[Any, ...]:
+    """The audit log's entry for an accepted message: what its record says, and no more.
+
+    Strings and a float only (one receiver as a str, several as a tuple): the garbage
+    collector stops tracking such a tuple, and the message itself is not kept alive.
+    """
+    receivers = message.receivers
+    return (
+        ts,
+        peer,
+        message.sender,
+        receivers[0] if len(receivers) == 1 else tuple(receivers),
+        _NAMES[message.performative],
+        message.conversation_id,
+    )
+
+
+_NAMES = {p: p.value for p in Performative}
+"""Each performative's name, a plain str (cheaper to look up than ``.value``)."""
 
 
 _MAX_AUDIT_LINES = 4096
@@ -924,7 +942,7 @@ class InterfaceAgent:
         here = host.name
         df = host.df
         audit = self.audit
-        entries: list[tuple[float, str, ACLMessage]] = []  # logged together, at the end
+        entries: list[tuple[Any, ...]] = []  # logged together, at the end
         add_entry = entries.append
         ts = time.time()  # one decision time for the batch, as one arrival time
         start = i
@@ -950,7 +968,8 @@ class InterfaceAgent:
                 mailbox = agent._mailbox
                 if len(mailbox) >= mailbox.maxlen >> 1:
                     break
-                if message.performative in INITIATING:
+                performative = message.performative
+                if performative in INITIATING:
                     if requests is not None and not requests.ready(now):
                         break
                     if df is None or not df.reachable(receiver, peer):
@@ -959,7 +978,10 @@ class InterfaceAgent:
                         requests.tokens -= 1.0
                 if total is not None:
                     total.tokens -= 1.0
-                add_entry((ts, peer, message))
+                # accepted_entry, inline (one receiver, this sender)
+                add_entry(
+                    (ts, peer, sender, receiver, _NAMES[performative], message.conversation_id)
+                )
                 agent._deliver(message)  # running, room in its mailbox: taken
                 i += 1
         finally:
