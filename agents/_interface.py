@@ -515,18 +515,20 @@ class InterfaceAgent:
         its end and go together in one envelope, after it (so in order). A batch that
         cannot be sent then is logged and counted in ``batches_lost``.
         """
-        host = self._require_host()
         body = message.to_json()
         pending = self._outbox.get(platform)
-        if pending is not None:
-            size = self._outbox_bytes[platform] + len(body) + 1
-            if len(pending) >= MAX_BATCH or size > self._batch_limit():
+        if pending is not None:  # the common case of a burst: no call but to_json
+            sizes = self._outbox_bytes
+            size = sizes[platform] + len(body) + 1
+            # the largest batch body: what a receiver reads at most (both sides' default)
+            if len(pending) >= MAX_BATCH or size > min(self.max_bytes, self.policy.max_body_bytes):
                 self._flush(platform, again=True)  # full: out now; the turn goes on batching
                 pending = self._outbox[platform]
                 size = 2 + len(body) + 1  # the brackets, this body and its comma, at most
             pending.append(body)
-            self._outbox_bytes[platform] = size
+            sizes[platform] = size
             return
+        host = self._require_host()
         try:
             payload = self.sessions.seal(platform, body)
         except UnknownSession:
@@ -538,10 +540,6 @@ class InterfaceAgent:
             self._outbox[platform] = []
             self._outbox_bytes[platform] = 2
             asyncio.get_running_loop().call_soon(self._flush, platform)
-
-    def _batch_limit(self) -> int:
-        """The largest batch body: what a receiver reads at most (both sides' default)."""
-        return min(self.max_bytes, self.policy.max_body_bytes)
 
     def _flush(self, platform: str, again: bool = False) -> None:
         """Seal what waits for ``platform`` in one envelope and publish it (a loop callback).
