@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import operator
 import os
 import re
 from enum import StrEnum
@@ -115,17 +116,17 @@ class ACLMessage(BaseModel):
         content copied as pydantic would: a few µs less per message than pydantic's
         validation, and ~4x less for a large content. Anything else goes to pydantic.
         """
-        if fields.keys() <= _FIELDS:
-            # ``fields`` is this call's own keyword dict: the copied content may replace
-            # the caller's (pydantic, if it still decides, gets an equal value)
-            if "content" in fields:
-                try:
-                    fields["content"] = _json_copy(fields["content"], 0)
-                except _NotPlain:
-                    return cls(**fields)
-            checked = _quick_fields(fields)
-            if checked is not None:
-                return _constructed(cls, checked, set(fields))
+        # ``fields`` is this call's own keyword dict: the copied content may replace the
+        # caller's (pydantic, if it still decides, gets an equal value); a keyword that
+        # is no field makes _quick_fields say None, and pydantic say which
+        if "content" in fields:
+            try:
+                fields["content"] = _json_copy(fields["content"], 0)
+            except _NotPlain:
+                return cls(**fields)
+        checked = _quick_fields(fields)
+        if checked is not None:
+            return _constructed(cls, checked, set(fields))
         return cls(**fields)
 
     def reply(
@@ -176,8 +177,8 @@ class ACLMessage(BaseModel):
         caller knows (`nesting_bound` of the decoded bytes), spares that walk. Anything
         the quick checks do not accept goes through `from_obj`, which says what is wrong.
         """
-        if type(obj) is dict and obj.keys() <= _FIELDS:
-            fields = _quick_fields(obj)
+        if type(obj) is dict:
+            fields = _quick_fields(obj)  # None for a key that is no field, among others
             if fields is not None and (
                 (nesting is not None and nesting < _TRUSTED_NESTING)
                 or _shallower(fields["content"], _TRUSTED_NESTING)
@@ -254,13 +255,26 @@ def _shallower(value: Any, limit: int) -> bool:
     return True
 
 
+# the slots pydantic's model_construct fills, set through their descriptors (cheaper
+# than object.__setattr__ looking each name up)
+_set_dict, _set_fields_set, _set_extra, _set_private = (
+    BaseModel.__dict__[name].__set__
+    for name in (
+        "__dict__",
+        "__pydantic_fields_set__",
+        "__pydantic_extra__",
+        "__pydantic_private__",
+    )
+)
+
+
 def _constructed(cls: type[ACLMessage], fields: dict[str, Any], names: set[str]) -> ACLMessage:
     """The message with these checked fields, made as pydantic's model_construct makes one."""
     message: ACLMessage = _new_message(cls)
-    _setattr(message, "__dict__", fields)
-    _setattr(message, "__pydantic_fields_set__", names)
-    _setattr(message, "__pydantic_extra__", None)
-    _setattr(message, "__pydantic_private__", None)
+    _set_dict(message, fields)
+    _set_fields_set(message, names)
+    _set_extra(message, None)
+    _set_private(message, None)
     return message
 
 
@@ -279,15 +293,18 @@ def _json_copy(value: Any, depth: int) -> Any:
         return value
     if depth > _MAX_QUICK_DEPTH:
         raise _NotPlain
+    # scalars inside are taken as they are, without a call each
     if kind is dict:
         out = {}
         for key, item in value.items():
             if type(key) is not str:
                 raise _NotPlain
-            out[key] = _json_copy(item, depth + 1)
+            out[key] = item if type(item) in _JSON_SCALARS else _json_copy(item, depth + 1)
         return out
     if kind is list:
-        return [_json_copy(item, depth + 1) for item in value]
+        return [
+            item if type(item) in _JSON_SCALARS else _json_copy(item, depth + 1) for item in value
+        ]
     raise _NotPlain
 
 
@@ -314,16 +331,19 @@ def _aids(value: Any) -> list[str] | None:
     """A copy of a list of valid agent identifiers, else None."""
     if type(value) is not list:
         return None
+    known = _known_aids
     for aid in value:
-        if not _valid_aid(aid):
+        if type(aid) is not str or (aid not in known and not _valid_aid(aid)):
             return None
-    return list(value)
+    return value.copy()
 
 
 def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
     """The model's fields for a decoded message that passes every check, else None."""
     fields = dict(_DEFAULTS)  # in the model's order, as pydantic keeps them
     fields.update(obj)
+    if len(fields) != _N_FIELDS:
+        return None  # a key that is no field: pydantic says which
     v = fields["v"]
     performative = fields["performative"]
     sender = fields["sender"]
@@ -332,7 +352,8 @@ def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
         or v != WIRE_VERSION
         or (type(performative) is not str and type(performative) is not Performative)
         or (performative := _PERFORMATIVES.get(performative)) is None
-        or not _valid_aid(sender)
+        or type(sender) is not str
+        or (sender not in _known_aids and not _valid_aid(sender))
     ):
         return None
     receivers = _aids(fields["receivers"])
@@ -341,8 +362,7 @@ def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
     reply_to = fields["reply_to"]
     if reply_to is not None and (reply_to := _aids(reply_to)) is None:
         return None
-    for name in _OPTIONAL_STR:
-        value = fields[name]
+    for value in _optional_strs(fields):
         if value is not None and type(value) is not str:
             return None
     reply_by = fields["reply_by"]
@@ -352,3 +372,7 @@ def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
     fields["receivers"] = receivers
     fields["reply_to"] = reply_to
     return fields
+
+
+_N_FIELDS = len(_FIELDS)
+_optional_strs = operator.itemgetter(*_OPTIONAL_STR)

@@ -172,8 +172,8 @@ class _Sender:
 class AuditLog:
     """What the Interface Agent decided about each remote message: kept, written, published.
 
-    The last ``keep`` records stay in memory; with ``path`` they are appended to a
-    JSON-lines file; with a platform they are published in batches on
+    The last ``keep`` records stay in memory (`records`); with ``path`` they are appended
+    to a JSON-lines file; with a platform they are published in batches on
     ``dyknow/<fed>/v1/audit/<platform>`` (one JSON record per line), so one publish
     carries many records and auditing does not double the transport's load.
     """
@@ -181,12 +181,28 @@ class AuditLog:
     def __init__(
         self, *, keep: int = 10_000, path: str | Path | None = None, platform: str | None = None
     ) -> None:
-        self.records: deque[dict[str, Any]] = deque(maxlen=keep)
+        # each entry a record (a dict), or an accepted message as a tuple (`accepted_entry`):
+        # the common record of a flood, made a dict or a JSON line only when read
+        self._log: deque[Any] = deque(maxlen=keep)
         self.counts: dict[str, int] = {"accepted": 0, "refused": 0, "dropped": 0}
         self.path = Path(path) if path is not None else None
         self.platform = platform
         # bounded too: records pile up here if nothing flushes them
-        self._pending: deque[dict[str, Any]] = deque(maxlen=keep)
+        self._pending: deque[Any] = deque(maxlen=keep)
+        # the JSON of an accepted record between "ts" and "conversation_id", per
+        # (peer, sender, receiver, performative): a platform hears few such combinations
+        self._lines: dict[tuple[Any, ...], bytes] = {}
+
+    @property
+    def records(self) -> deque[dict[str, Any]]:
+        """The last records kept in memory, oldest first (a copy: the log goes on)."""
+        log = self._log
+        return deque((self._as_dict(e) for e in log), maxlen=log.maxlen)
+
+    def last(self, n: int) -> list[dict[str, Any]]:
+        """Copies of the last ``n`` records (none for n <= 0)."""
+        entries = list(self._log)[-n:] if n > 0 else []
+        return [dict(self._as_dict(e)) for e in entries]
 
     def record(self, **fields: Any) -> None:
         """Add one decision (``verdict`` is accepted, refused or dropped).
@@ -207,28 +223,52 @@ class AuditLog:
             "reason": None,
             **fields,
         }
-        self.records.append(rec)
+        self._log.append(rec)
         self._pending.append(rec)
         verdict = rec["verdict"]
         self.counts[verdict] = self.counts.get(verdict, 0) + 1
 
-    def accepted(self, peer: str, message: ACLMessage) -> None:
-        """Record that ``message`` from platform ``peer`` was admitted (`record`, quicker)."""
-        rec = {
+    def accepted(self, peer: str, message: ACLMessage, ts: float | None = None) -> None:
+        """Record that ``message`` from platform ``peer`` was admitted (at ``ts``, Unix s)."""
+        entry = accepted_entry(time.time() if ts is None else ts, peer, message)
+        self._log.append(entry)
+        self._pending.append(entry)
+        self.counts["accepted"] += 1
+
+    def _as_dict(self, entry: Any) -> dict[str, Any]:
+        """A log entry as its record."""
+        if type(entry) is not tuple:
+            return entry
+        ts, peer, sender, receivers, performative, conversation_id = entry
+        return {
             "v": WIRE_VERSION,
-            "ts": time.time(),
+            "ts": ts,
             "platform": self.platform,
             "from": peer,
-            "sender": message.sender,
-            "receivers": message.receivers,
-            "performative": message.performative.value,
-            "conversation_id": message.conversation_id,
+            "sender": sender,
+            "receivers": [receivers] if type(receivers) is str else list(receivers),
+            "performative": performative,
+            "conversation_id": conversation_id,
             "verdict": "accepted",
             "reason": None,
         }
-        self.records.append(rec)
-        self._pending.append(rec)
-        self.counts["accepted"] = self.counts.get("accepted", 0) + 1
+
+    def _middle(self, key: tuple[Any, ...]) -> bytes:
+        """The JSON of an accepted record from "platform" to "performative" (no braces)."""
+        lines = self._lines
+        if len(lines) >= _MAX_AUDIT_LINES:
+            lines.clear()
+        peer, sender, receiver, performative = key
+        middle = lines[key] = orjson.dumps(
+            {
+                "platform": self.platform,
+                "from": peer,
+                "sender": sender,
+                "receivers": [receiver],
+                "performative": performative,
+            }
+        )[1:-1]
+        return middle
 
     def take(self) -> bytes:
         """The records not yet flushed, as JSON lines (empty when none); appended to ``path``."""
@@ -236,7 +276,29 @@ class AuditLog:
             return b""
         pending = list(self._pending)
         self._pending.clear()
-        data = b"".join(orjson.dumps(r) + b"\n" for r in pending)
+        out: list[bytes] = []
+        add = out.append
+        dumps, lines = orjson.dumps, self._lines
+        last_ts, ts_json = None, b""
+        for e in pending:
+            if type(e) is tuple:
+                ts, peer, sender, receivers, performative, conv = e
+                if type(receivers) is str:
+                    # an accepted message to one agent: its line pieced together, the
+                    # same bytes orjson makes of the record (fields in the same order)
+                    key = (peer, sender, receivers, performative)
+                    middle = lines.get(key) or self._middle(key)
+                    if ts != last_ts:  # a batch's records share theirs
+                        last_ts, ts_json = ts, dumps(ts)
+                    add(
+                        b'{"v":%d,"ts":%b,%b,"conversation_id":%b,"verdict":"accepted",'
+                        b'"reason":null}\n'
+                        % (WIRE_VERSION, ts_json, middle, b"null" if conv is None else dumps(conv))
+                    )
+                    continue
+                e = self._as_dict(e)
+            add(dumps(e) + b"\n")
+        data = b"".join(out)
         if self.path is not None:
             try:
                 with self.path.open("ab") as f:
@@ -245,6 +307,30 @@ class AuditLog:
                 # a full disk must not stop the Interface Agent, nor the published audit
                 log.warning("audit file %s not written: %s", self.path, exc)
         return data
+
+
+def accepted_entry(ts: float, peer: str, message: ACLMessage) -> tuple[Any, ...]:
+    """The audit log's entry for an accepted message: what its record says, and no more.
+
+    Strings and a float only (one receiver as a str, several as a tuple): the garbage
+    collector stops tracking such a tuple, and the message itself is not kept alive.
+    """
+    receivers = message.receivers
+    return (
+        ts,
+        peer,
+        message.sender,
+        receivers[0] if len(receivers) == 1 else tuple(receivers),
+        _NAMES[message.performative],
+        message.conversation_id,
+    )
+
+
+_NAMES = {p: p.value for p in Performative}
+"""Each performative's name, a plain str (cheaper to look up than ``.value``)."""
+
+
+_MAX_AUDIT_LINES = 4096
 
 
 class InterfaceAgent:
@@ -429,18 +515,20 @@ class InterfaceAgent:
         its end and go together in one envelope, after it (so in order). A batch that
         cannot be sent then is logged and counted in ``batches_lost``.
         """
-        host = self._require_host()
         body = message.to_json()
         pending = self._outbox.get(platform)
-        if pending is not None:
-            size = self._outbox_bytes[platform] + len(body) + 1
-            if len(pending) >= MAX_BATCH or size > self._batch_limit():
+        if pending is not None:  # the common case of a burst: no call but to_json
+            sizes = self._outbox_bytes
+            size = sizes[platform] + len(body) + 1
+            # the largest batch body: what a receiver reads at most (both sides' default)
+            if len(pending) >= MAX_BATCH or size > min(self.max_bytes, self.policy.max_body_bytes):
                 self._flush(platform, again=True)  # full: out now; the turn goes on batching
                 pending = self._outbox[platform]
                 size = 2 + len(body) + 1  # the brackets, this body and its comma, at most
             pending.append(body)
-            self._outbox_bytes[platform] = size
+            sizes[platform] = size
             return
+        host = self._require_host()
         try:
             payload = self.sessions.seal(platform, body)
         except UnknownSession:
@@ -452,10 +540,6 @@ class InterfaceAgent:
             self._outbox[platform] = []
             self._outbox_bytes[platform] = 2
             asyncio.get_running_loop().call_soon(self._flush, platform)
-
-    def _batch_limit(self) -> int:
-        """The largest batch body: what a receiver reads at most (both sides' default)."""
-        return min(self.max_bytes, self.policy.max_body_bytes)
 
     def _flush(self, platform: str, again: bool = False) -> None:
         """Seal what waits for ``platform`` in one envelope and publish it (a loop callback).
@@ -759,12 +843,17 @@ class InterfaceAgent:
             items = await self._batch_items(host, peer, body)
             now = self._monotonic()  # one reading: the batch arrived at once
             nesting = nesting_bound(body)  # bounds each message's too
-            take_now = self._take_now
-            for obj in items:
-                if not take_now(host, peer, state, obj, now, nesting):
-                    await self._take(host, peer, state, obj, now, nesting)
-                n += 1
-                if not n & 63:
+            i, end = 0, len(items)
+            while i < end:
+                done = self._take_batch(host, peer, state, items, i, now, nesting)
+                n += done - i
+                i = done
+                if i < end:  # one the quick path leaves (a limit, a refusal …): in full
+                    await self._take(host, peer, state, items[i], now, nesting)
+                    i += 1
+                    n += 1
+                if n >= 64:
+                    n = 0
                     await asyncio.sleep(0)
 
     async def _batch_items(self, host: AgentPlatform, peer: str, body: bytes) -> list[Any]:
@@ -822,38 +911,88 @@ class InterfaceAgent:
         except Exception:
             log.exception("interface[%s]: delivering from %s failed", self._me, peer)
 
-    def _take_now(
-        self, host: AgentPlatform, peer: str, state: _Sender, obj: Any, now: float, nesting: int
-    ) -> bool:
-        """`_take` of a decoded message when it needs no wait: False (nothing done) otherwise.
+    def _take_batch(
+        self,
+        host: AgentPlatform,
+        peer: str,
+        state: _Sender,
+        items: list[Any],
+        i: int,
+        now: float,
+        nesting: int,
+    ) -> int:
+        """`_take` of a batch's decoded messages from ``items[i]`` on, while none needs a wait.
 
-        Everything is checked first, without changing anything (a bad message, a limit
-        reached, a receiver that is not ready: False, and `_take` does it all); then the
-        tokens are taken, the message audited and delivered, as `_take` would.
+        Returns the index of the first message it left (``len(items)``: none), untouched,
+        for `_take`: a bad message, a limit reached, a receiver that is not ready, anything
+        but the common case of `_admit`. Each message taken is checked, counted against
+        the limits, audited and delivered as `_take` would, in one loop without a call per
+        step (this is the path a flood takes, message after message).
         """
+        end = len(items)
         if self.mirroring:
-            return False
-        try:
-            message = ACLMessage.from_parsed(obj, nesting=nesting)
-        except MessageError:
-            return False
+            return i
         total, requests = state.total, state.requests
-        if total is not None and not total.ready(now):
-            return False
-        initiating = message.performative in INITIATING
-        if initiating and requests is not None and not requests.ready(now):
-            return False
-        agent = self._admit_target(host, peer, message)
-        if agent is None:
-            return False
         if total is not None:
-            total.take(now)
-        if initiating and requests is not None:
-            requests.take(now)
-        state.stats.accepted += 1
-        self.audit.accepted(peer, message)
-        host._deliver_now(agent, message)
-        return True
+            total.ready(now)  # refilled once: ``now`` stays the same for the batch
+        from_parsed = ACLMessage.from_parsed
+        agents = host._agents
+        here = host.name
+        df = host.df
+        audit = self.audit
+        entries: list[tuple[Any, ...]] = []  # logged together, at the end
+        add_entry = entries.append
+        ts = time.time()  # one decision time for the batch, as one arrival time
+        start = i
+        try:
+            while i < end:
+                if total is not None and total.tokens < 1.0:
+                    break
+                try:
+                    message = from_parsed(items[i], nesting=nesting)
+                except MessageError:
+                    break
+                receivers = message.receivers
+                if len(receivers) != 1 or message.reply_to:
+                    break
+                receiver = receivers[0]
+                sender = message.sender
+                at = receiver.rpartition("@")
+                if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
+                    break
+                agent = agents.get(at[0])
+                if agent is None or not agent.running:
+                    break
+                mailbox = agent._mailbox
+                if len(mailbox) >= mailbox.maxlen >> 1:
+                    break
+                performative = message.performative
+                if performative in INITIATING:
+                    if requests is not None and not requests.ready(now):
+                        break
+                    if df is None or not df.reachable(receiver, peer):
+                        break
+                    if requests is not None:
+                        requests.tokens -= 1.0
+                if total is not None:
+                    total.tokens -= 1.0
+                # accepted_entry, inline (one receiver, this sender)
+                add_entry(
+                    (ts, peer, sender, receiver, _NAMES[performative], message.conversation_id)
+                )
+                agent._deliver(message)  # running, room in its mailbox: taken
+                i += 1
+        finally:
+            taken = i - start
+            if taken:
+                audit._log.extend(entries)
+                audit._pending.extend(entries)
+                state.stats.accepted += taken
+                audit.counts["accepted"] += taken
+                stats = host.stats
+                stats.received_remote += taken
+                stats.local += taken
+        return i
 
     def _admit_target(self, host: AgentPlatform, peer: str, message: ACLMessage) -> Agent | None:
         """The agent `_admit` would hand ``message`` to at once, in the common case; else None.
@@ -1254,8 +1393,7 @@ class _InterfaceQueries(Agent):
             asked = content["audit"]
             n = asked if isinstance(asked, int) and not isinstance(asked, bool) else 100
             # copies: local messages are not serialized, and the log keeps changing
-            last = list(audit.records)[-n:] if n > 0 else []
-            return {"audit": [dict(r) for r in last], "counts": dict(audit.counts)}
+            return {"audit": audit.last(n), "counts": dict(audit.counts)}
         if content.get("sessions"):
             return {"peers": sorted(self.interface.sessions.peers())}
         if content.get("senders"):

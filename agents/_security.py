@@ -101,6 +101,23 @@ _dumps = orjson.dumps
 _JSONDecodeError = orjson.JSONDecodeError
 _b2a = binascii.b2a_base64
 _a2b = binascii.a2b_base64
+
+
+def _canonical_tail(raw: bytes, text: str) -> bool:
+    """Whether ``text``, which strict base64 decoding made ``raw``, is its canonical spelling.
+
+    Strict decoding accepts the alphabet only, padded, and nothing but padding after it;
+    what it lets through besides the canonical form are padding to excess (the length
+    tells) and unused bits set in the last quantum: re-encoding the bytes of that
+    quantum, not the whole box, tells.
+    """
+    n = len(raw)
+    if len(text) != (n + 2) // 3 * 4:
+        return False
+    rest = n % 3
+    return not rest or _b2a(raw[-rest:], newline=False).decode("ascii") == text[-4:]
+
+
 _compare = hmac.compare_digest
 _packb = msgpack.packb  # a fresh packer per call: a shared one would not be thread-safe
 _unpackb = msgpack.unpackb
@@ -752,11 +769,11 @@ class Session:
         peer = self.peer
         if mac is None:
             try:
-                raw = _a2b(payload)
+                raw = _a2b(payload, strict_mode=True)
             except ValueError:  # binascii.Error is a ValueError
                 raw = b""
             # canonical base64 only: two spellings of one ciphertext would defeat byte checks
-            if not raw or _b2a(raw, newline=False) != payload.encode():
+            if not raw or not _canonical_tail(raw, payload):
                 raise Malformed("field 'box' is not canonical base64", peer)
             try:
                 body: bytes = _aead_decrypt(

@@ -295,6 +295,7 @@ async def flood(asker: Agent, n: int) -> dict[str, float]:
         "received": got,
         "inbox_dropped": counted["inbox_dropped"],
         "mailbox_full": counted["mailbox_full"],
+        "rate_limited": counted["rate_limited"],
         "rate": got / max(counted["t1"] - t0, 1e-9),
         "sent_rate": n / sent_s,
         "recv_rate": got / recv_s,
@@ -513,11 +514,12 @@ def print_zenoh(z: dict[str, Any]) -> None:
     for r in range(ROUNDS):
         f, raw = z["flood"][r], z["raw"][r]
         lost = f["sent"] - f["received"]
-        in_zenoh = lost - f["inbox_dropped"] - f["mailbox_full"]
+        in_zenoh = lost - f["inbox_dropped"] - f["mailbox_full"] - f["rate_limited"]
         print(
             f"  round {r + 1}: ours {fmt(f['rate'])} msgs/s end to end, "
             f"{f['received']:,}/{f['sent']:,} delivered; lost: {f['inbox_dropped']:,} by the "
-            f"node's full inbox, {f['mailbox_full']:,} by the full mailbox, {in_zenoh:,} before "
+            f"node's full inbox, {f['mailbox_full']:,} by the full mailbox, "
+            f"{f['rate_limited']:,} by its rate limit, {in_zenoh:,} before "
             f"the node saw them (zenoh's congestion control DROP)"
         )
         print(

@@ -39,7 +39,7 @@ from agents import (
     wire_key,
 )
 from agents._exceptions import Forged
-from agents._interface import InterfaceAgent
+from agents._interface import AuditLog, InterfaceAgent
 from agents._security import Handshake, KeyPair, SecurityPolicy, TrustStore
 from agents.transports import (
     MemoryHub,
@@ -1049,3 +1049,30 @@ async def test_request_inform_over_zenoh_between_two_sessions() -> None:
             with pytest.raises(TransportError, match="did not answer the key exchange"):
                 await request(echo_a, "echo@uav-c", 1, ontology="demo")
             assert time.monotonic() - started < 3.0
+
+
+def test_audit_lines_of_accepted_messages_are_the_records_as_json() -> None:
+    """The lines pieced together for accepted messages are orjson's bytes of the records."""
+    audit = AuditLog(platform="uav-b")
+    messages = [
+        ACLMessage.build(
+            performative=Performative.INFORM, sender="a@uav-a", receivers=["b@uav-b"], content=1
+        ),
+        ACLMessage.build(
+            performative=Performative.REQUEST,
+            sender="a@uav-a",
+            receivers=["b@uav-b"],
+            conversation_id='c-"ö\\\u2028',
+        ),
+        ACLMessage.build(
+            performative=Performative.INFORM, sender="a@uav-a", receivers=["b@uav-b", "c@uav-b"]
+        ),
+    ]
+    for ts in (1795000000.125, 1795000000.125, 0.1 + 0.2, 1e-7, 0.0):
+        for message in messages:
+            audit.accepted("uav-a", message, ts)
+    audit.record(verdict="dropped", reason="something else")
+    lines = audit.take().splitlines()
+    assert lines == [orjson.dumps(r) for r in audit.records]
+    assert audit.counts["accepted"] == 15 and len(lines) == 16
+    assert audit.last(1)[0]["verdict"] == "dropped"
