@@ -14,7 +14,10 @@ until it prints that it is ready, and its RSS once idle; beside it, in the same 
 least a zenoh node can be: a fresh interpreter that opens a session with the same
 settings, declares a queryable and a liveliness token, and says it is ready (``BENCH
 federation-node-ready`` and ``federation-node-rss``; ``bench.acl``'s ``node-ready`` is an
-agent platform without the federation). The node runs from a copy of our packages with
+agent platform without the federation); and the same zenoh node after importing the
+third-party packages ``dyknow node`` imports (asyncio, pydantic with a model built,
+cryptography, PyNaCl, msgpack, orjson, typer): the least a node built on them can hold,
+so what is above it is our own code and state. The node runs from a copy of our packages with
 their bytecode compiled, as an installed node has it: compiling ~70 modules from source
 (when ``PYTHONDONTWRITEBYTECODE`` keeps the tree free of it) costs ~0.5 s at every start.
 Beside it, the imports alone (``import federation.cli``), to split start → ready into
@@ -67,6 +70,21 @@ t = s.liveliness().declare_token("bench/bare/alive")
 print("ready", flush=True)
 sys.stdin.read()
 """
+
+
+# The bare node after the third-party packages ``dyknow node`` imports (asyncio imports
+# ssl; pydantic's first model imports importlib.metadata for its plugins).
+_DEPS_NODE = (
+    """
+import asyncio, msgpack, orjson, pydantic, typer
+import nacl.bindings, nacl.signing
+from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+class M(pydantic.BaseModel):
+    x: int = 0
+M(x=1)
+"""
+    + _BARE_NODE
+)
 
 
 # What ``dyknow node`` imports before it starts anything, then "ready".
@@ -183,6 +201,7 @@ def node_ready() -> None:
     ours: list[tuple[float, float]] = []
     bare: list[tuple[float, float]] = []
     imports: list[tuple[float, float]] = []
+    deps: list[tuple[float, float]] = []
     with tempfile.TemporaryDirectory(prefix="bench-node-") as tmp:
         config = _node_config(Path(tmp))
         site = Path(tmp) / "site"
@@ -196,11 +215,12 @@ def node_ready() -> None:
                 )
             )
             imports.append(_spawn_ready([sys.executable, "-c", _IMPORTS_ONLY], env, site))
+            deps.append(_spawn_ready([sys.executable, "-c", _DEPS_NODE]))
     print(f"node start to ready ({NODE_REPEAT} spawns each, s) and idle RSS (MB):")
-    for (r, m), (br, bm), (ir, im) in zip(ours, bare, imports, strict=True):
+    for (r, m), (br, bm), (ir, im), (_, dm) in zip(ours, bare, imports, deps, strict=True):
         print(
             f"  dyknow node {r:.3f} s {m:.1f} MB (its imports alone {ir:.3f} s {im:.1f} MB); "
-            f"bare zenoh node {br:.3f} s {bm:.1f} MB"
+            f"bare zenoh node {br:.3f} s {bm:.1f} MB, {dm:.1f} MB with our dependencies"
         )
     report(
         "federation-node-ready",
