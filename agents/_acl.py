@@ -133,9 +133,41 @@ class ACLMessage(BaseModel):
         self, performative: Performative, content: Any = None, *, sender: str | None = None
     ) -> ACLMessage:
         """The reply to this message: same conversation, addressed to its reply_to or sender."""
+        sender = sender or self.receivers[0]
+        # The fields taken from this message were checked when it was made: only the
+        # new ones (performative, sender, content) are, here, as `build` checks them; a
+        # value the quick checks leave goes to `build`, which decides as before.
+        if type(performative) is Performative and (sender in _known_aids or _valid_aid(sender)):
+            try:
+                content = _json_copy(content, 0)
+            except _NotPlain:
+                pass
+            else:
+                fields = self.__dict__
+                receivers = fields["reply_to"] or [fields["sender"]]
+                return _constructed(
+                    ACLMessage,
+                    {
+                        "v": WIRE_VERSION,
+                        "performative": performative,
+                        "sender": sender,
+                        "receivers": list(receivers),
+                        "reply_to": None,
+                        "content": content,
+                        "language": fields["language"],
+                        "encoding": None,
+                        "ontology": fields["ontology"],
+                        "protocol": fields["protocol"],
+                        "conversation_id": fields["conversation_id"],
+                        "reply_with": None,
+                        "in_reply_to": fields["reply_with"],
+                        "reply_by": None,
+                    },
+                    set(_REPLY_FIELDS),
+                )
         return ACLMessage.build(
             performative=performative,
-            sender=sender or self.receivers[0],
+            sender=sender,
             receivers=list(self.reply_to or [self.sender]),
             content=content,
             language=self.language,
@@ -375,4 +407,18 @@ def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
 
 
 _N_FIELDS = len(_FIELDS)
+# the fields `ACLMessage.reply` sets (its message's fields_set, as `build` records it)
+_REPLY_FIELDS = frozenset(
+    (
+        "performative",
+        "sender",
+        "receivers",
+        "content",
+        "language",
+        "ontology",
+        "protocol",
+        "conversation_id",
+        "in_reply_to",
+    )
+)
 _optional_strs = operator.itemgetter(*_OPTIONAL_STR)

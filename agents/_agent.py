@@ -345,7 +345,7 @@ class Conversation:
         if not items and self.closed:
             raise ConversationError(f"conversation {self.id} is closed", self.last_sent)
         try:
-            item = await items.get(deadline)
+            item = await items.get(deadline, loop=self._agent._loop)
         except TimeoutError:
             raise ReplyTimeout(
                 f"no reply from {self._peers_text()} in conversation {self.id}", self.last_sent
@@ -420,6 +420,9 @@ class Agent:
         self._tg: asyncio.TaskGroup | None = None
         self._children: set[asyncio.Task[Any]] = set()
         self._stop_requested: asyncio.Future[None] | None = None
+        # the loop the agent runs on, from its start until it stops: looking it up costs
+        # a system call (getpid) in Python 3.11, and conversations need it every time
+        self._loop: asyncio.AbstractEventLoop | None = None
         for attr, spec in _class_specs(type(self)):
             bound = getattr(self, attr)
             handler = spec.make(self, bound) if spec.make is not None else bound
@@ -493,7 +496,7 @@ class Agent:
         self._platform = platform
         self.aid = agent_id(self.name, platform.name)
         self._state = _STARTING
-        loop = asyncio.get_running_loop()
+        loop = self._loop = asyncio.get_running_loop()
         ready: asyncio.Future[None] = loop.create_future()
         self._stop_requested = loop.create_future()
         self._task = tg.create_task(self._run(ready), name=f"agent[{self.aid}]")
@@ -532,6 +535,7 @@ class Agent:
         finally:
             self._state = _STOPPED
             self._tg = None
+            self._loop = None
             err = ConversationError(f"{self} stopped")
             for conv in {*self._by_conv.values(), *self._by_reply.values()}:
                 conv.close(err)
@@ -644,7 +648,7 @@ class Agent:
             raise AgentError(f"{self} already has conversation {conversation_id} open")
         deadline = None
         if timeout is not None:
-            deadline = asyncio.get_running_loop().time() + timeout
+            deadline = (self._loop or asyncio.get_running_loop()).time() + timeout
         return Conversation(self, conversation_id, peers=peers, deadline=deadline, maxlen=maxlen)
 
     async def ask(self, message: ACLMessage, *, timeout: float) -> ACLMessage:
@@ -689,10 +693,11 @@ class Agent:
     async def _receive_loop(self) -> None:
         mailbox = self._mailbox
         items, get = mailbox._items, mailbox.get
+        loop = asyncio.get_running_loop()
         stats = self.stats
         while True:
             # what is queued is taken without a coroutine call: a burst costs less
-            message = items.popleft() if items else await get()
+            message = items.popleft() if items else await get(loop=loop)
             try:
                 route = self._route_for(message)
             except Exception as exc:  # a template's `where` raised: the agent lives on

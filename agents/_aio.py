@@ -99,11 +99,18 @@ class Mailbox(Generic[T]):
         if w is not None and not w.done():
             w.set_result(None)
 
-    async def get(self, deadline: float | None = None) -> T:
-        """The next item; TimeoutError if none came by ``deadline`` (loop time; None: never)."""
+    async def get(
+        self, deadline: float | None = None, *, loop: asyncio.AbstractEventLoop | None = None
+    ) -> T:
+        """The next item; TimeoutError if none came by ``deadline`` (loop time; None: never).
+
+        ``loop``: the running loop, when the caller has it at hand (Python 3.11 pays a
+        system call, getpid, for each ``asyncio.get_running_loop``).
+        """
         items = self._items
         if not items:
-            loop = asyncio.get_running_loop()
+            if loop is None:
+                loop = asyncio.get_running_loop()
             while not items:
                 self._waiter = w = loop.create_future()
                 # a timer setting the future is cheaper than asyncio.timeout on a hot path

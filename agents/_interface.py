@@ -448,6 +448,9 @@ class InterfaceAgent:
         # per platform: the messages waiting for the end of this turn of the loop (the
         # entry exists while a flush is scheduled: a message went out alone this turn)
         self._outbox: dict[str, list[bytes]] = {}
+        # the platform's loop, once started (each asyncio.get_running_loop is a getpid
+        # system call in Python 3.11, and every first message of a turn needs the loop)
+        self._loop: asyncio.AbstractEventLoop | None = None
         self._outbox_bytes: dict[str, int] = {}
         self.batches_lost = 0  # batched messages a failed flush did not send
 
@@ -483,6 +486,7 @@ class InterfaceAgent:
         self._host = platform
         transport = platform.transport
         self._batching = self.batch and transport.publishes_nowait
+        self._loop = asyncio.get_running_loop()
         gate = self.kx_gate
         self._kx = await transport.serve(
             platform.key("kx"), self._on_key_exchange, admit=None if gate is None else gate.admit
@@ -539,7 +543,7 @@ class InterfaceAgent:
         if self._batching and platform not in self._outbox:
             self._outbox[platform] = []
             self._outbox_bytes[platform] = 2
-            asyncio.get_running_loop().call_soon(self._flush, platform)
+            (self._loop or asyncio.get_running_loop()).call_soon(self._flush, platform)
 
     def _flush(self, platform: str, again: bool = False) -> None:
         """Seal what waits for ``platform`` in one envelope and publish it (a loop callback).

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import queue
+import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 _CTX = mp.get_context("spawn")  # never fork: a zenoh session may be open in this process
@@ -23,8 +24,16 @@ class Child:
     ``stop``, waits a little, then kills: no child outlives its benchmark.
     """
 
-    def __init__(self, target: Callable[..., None], args: tuple[Any, ...], name: str) -> None:
+    def __init__(
+        self,
+        target: Callable[..., None],
+        args: tuple[Any, ...],
+        name: str,
+        *,
+        path: Sequence[str] = (),
+    ) -> None:
         self.name = name
+        self.path = list(path)  # put first on the child's module search path
         self.reports: Any = _CTX.Queue()
         self.stop: Any = _CTX.Event()
         self.proc = _CTX.Process(
@@ -34,10 +43,19 @@ class Child:
         self.started_wall = 0.0  # time.time() just before the spawn
 
     def start(self) -> Child:
-        """Spawn the process (the clocks start just before)."""
-        self.started_wall = time.time()
-        self.started = time.perf_counter()
-        self.proc.start()
+        """Spawn the process (the clocks start just before).
+
+        A spawned child takes this process's ``sys.path`` as it is at the spawn: ``path``
+        goes first on it for that moment only (what this process imported stays as it is).
+        """
+        saved = sys.path[:]
+        sys.path[:0] = self.path
+        try:
+            self.started_wall = time.time()
+            self.started = time.perf_counter()
+            self.proc.start()
+        finally:
+            sys.path[:] = saved
         return self
 
     @property

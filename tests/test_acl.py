@@ -86,6 +86,44 @@ def test_reply_keeps_the_conversation_and_answers_reply_to() -> None:
     assert r.reply_with is None
 
 
+def test_reply_is_the_message_build_makes() -> None:
+    m = ACLMessage(
+        performative=P.REQUEST,
+        sender="a@p",
+        receivers=["b@q", "d@q"],
+        content={"x": [1]},
+        language="json",
+        ontology="o",
+        protocol="fipa-request",
+        conversation_id="c-9",
+        reply_with="r-9",
+        reply_by=5.0,
+    )
+    content: Any = {"samples": [[1.5, 2.0, None]], "label": "a/b"}
+    for answering in (m, m.model_copy(update={"reply_to": ["c@p"]})):
+        for performative, sender in ((P.INFORM, None), (P.REFUSE, "d@q"), ("inform", "b@q")):
+            r = answering.reply(performative, content, sender=sender)  # type: ignore[arg-type]
+            made = ACLMessage.build(
+                performative=performative,
+                sender=sender or answering.receivers[0],
+                receivers=list(answering.reply_to or [answering.sender]),
+                content=content,
+                language=answering.language,
+                ontology=answering.ontology,
+                protocol=answering.protocol,
+                conversation_id=answering.conversation_id,
+                in_reply_to=answering.reply_with,
+            )
+            assert (r, r.model_fields_set, r.to_json()) == (
+                made,
+                made.model_fields_set,
+                made.to_json(),
+            )
+            assert r.content is not content and r.receivers is not answering.receivers
+    with pytest.raises(ValidationError):
+        m.reply(P.INFORM, sender="not an id")
+
+
 def test_agent_identifiers() -> None:
     assert agent_id("federation", "uav-a") == "federation@uav-a"
     assert platform_of("federation@uav-a") == "uav-a"

@@ -27,8 +27,9 @@ from agents import (
     request,
     subscribe,
 )
-from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Source
-from federation import GATEWAY_SERVICE_TYPE, GatewayAgent
+from dyknow_core import NS_PER_S, DyKnowError, DyKnowInstance, ManualClock, Source
+from federation import GATEWAY_SERVICE_TYPE, GatewayAgent, GatewayRefusal, GatewayService
+from federation._gateway_service import answer_to_json
 
 FED = "t"
 T0 = 1000 * NS_PER_S  # the instance's now when a test starts
@@ -488,3 +489,41 @@ async def test_without_a_service_other_platforms_are_denied() -> None:
         # its own platform still may
         local = await w.uav.add(Agent("local"))
         assert await request(local, GW, {"action": "list-labels"}, ontology="dyknow", timeout=5)
+
+
+def test_the_quick_query_answers_and_refuses_as_the_models_do() -> None:
+    clock = ManualClock(T0)
+    dk = DyKnowInstance("uav-a", clock=clock)
+    src = dk.add_source("a/b")
+    for v in (1, 2.5, (3, 4)):
+        src.push(v)
+    dk.add_source("empty")
+    service = GatewayService(dk)
+
+    def by_the_models(content: Any) -> Any:
+        try:
+            return answer_to_json(service.query(service.parse(content)))  # type: ignore[arg-type]
+        except GatewayRefusal as exc:
+            return ("refused", exc.reason)
+        except DyKnowError as exc:
+            return ("refused", str(exc))
+
+    def performed(content: Any) -> Any:
+        try:
+            return service.perform(content)
+        except GatewayRefusal as exc:
+            return ("refused", exc.reason)
+
+    for content in (
+        {"action": "query", "label": "a/b"},
+        {"action": "query", "label": "a/b", "kind": "latest"},
+        {"action": "query", "label": "empty"},
+        {"action": "query", "label": "nope"},
+        {"action": "query", "label": 3},
+        {"action": "query"},
+        {"action": "query", "label": "a/b", "kind": "LATEST"},
+        {"action": "query", "label": "a/b", "kind": None},
+        {"action": "query", "label": "a/b", "extra": 1},
+        {"action": "query", "label": "a/b", "kind": "at"},
+    ):
+        assert performed(content) == by_the_models(content), content
