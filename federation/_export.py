@@ -58,11 +58,6 @@ _MAX_RECOVER = 16
 _MAX_HISTORY = 1_000_000
 _MAX_FAILED = 256  # failed ranges remembered per export (older ones stay counted)
 _HISTORY_SLACK = 256
-# Bytes a second a resend publishes at most. The transport drops what its queue cannot
-# take (zenoh: congestion control DROP, a few batches of 64 kB), and a resent body is
-# up to a batch: published back to back, just when a healed link drains its backlog,
-# they overflowed it, and a number resent once is never resent again (each at most once).
-_RESEND_PACE = 4 * 1024 * 1024
 # Resend requests a receiver may make per second (all its exports), and at once: one per
 # gap plus the re-asks of its reports (2/s per stream) fit; a flood of them does not.
 RESEND_RATE = 20.0
@@ -356,23 +351,22 @@ class Export:
         oldest = self._seq - len(kept)  # the sequence number of kept[0]
         # forget what is no longer kept: it cannot be asked back anyway
         self._resent_ranges = [(a, b) for a, b in self._resent_ranges if b > oldest]
-        pace = 0.0
+        transport = self._proxy.transport
         for asked_first, asked_end in ranges:
             # asked twice before this ran: resent once
             for first, end in uncovered(self._resent_ranges, max(asked_first, oldest), asked_end):
                 samples = kept[first - oldest : end - oldest]
                 start = first
                 for body, count in self._pack_resent(first, samples):
-                    if pace:  # let the transport's queue take the previous body first
-                        await asyncio.sleep(pace)
                     try:
-                        await self._publish(body)
+                        # each number is resent once: it waits for room on a congested
+                        # link rather than being dropped there, as `publish` would
+                        await transport.publish_blocking(self.key, await self._seal(body))
                     except (asyncio.CancelledError, TransportClosed):
                         raise
                     except Exception as exc:  # the receiver may ask again
                         log.debug("%s: resending failed: %s", self.name, exc)
                         break
-                    pace = len(body) / _RESEND_PACE
                     self.recovered += count
                     self._resent_ranges = cover(self._resent_ranges, start, start + count)
                     if self._failed:

@@ -783,13 +783,11 @@ async def test_a_sigkilled_sender_is_told_within_a_second_over_zenoh() -> None:
         proc.join(timeout=10)
 
 
-async def test_a_resend_is_paced_for_a_transport_that_drops_what_its_queue_cannot_take(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
+async def test_a_resend_waits_for_room_on_a_link_that_drops_what_its_queue_cannot_take() -> None:
     # zenoh publishes with congestion control DROP: resent bodies published back to back
-    # overflowed its queue after a partition healed, and a number is resent only once
-    monkeypatch.setattr(_export, "_RESEND_PACE", 100_000)  # bytes/s: 1 kB bodies 10 ms apart
-    drain = 200_000  # bytes/s the modelled queue takes: faster than the pace, slower than a burst
+    # overflowed its queue after a partition healed, and a number is resent only once;
+    # a resend goes through publish_blocking, which waits for room instead (BLOCK)
+    drain = 200_000  # bytes/s the modelled queue takes: slower than a burst
     async with contextlib.AsyncExitStack() as stack:
         net = Net(stack)
         ta, a = await net.platform("uav-a")
@@ -799,23 +797,38 @@ async def test_a_resend_is_paced_for_a_transport_that_drops_what_its_queue_canno
         imp = await net.importer("uav-b", translate=agreed(SEM))
         mode = "ok"
         busy_until = 0.0
-        overflowed = 0
+        overflowed = waited = 0
         publish = ta.publish
 
+        def room(payload: bytes) -> float:
+            """Seconds until the modelled queue takes ``payload`` (0: taken now)."""
+            nonlocal busy_until
+            if mode != "queue" or len(payload) <= 512:
+                return 0.0  # a body near a batch's size takes a batch of its own
+            now = time.monotonic()
+            if now < busy_until:
+                return busy_until - now
+            busy_until = now + len(payload) / drain
+            return 0.0
+
         async def queued(key: str, payload: bytes, *args: Any, **kwargs: Any) -> Any:
-            nonlocal busy_until, overflowed
+            nonlocal overflowed
             if "/stream/" in key and mode == "drop":
                 return None  # the partition: lost on the way
-            if "/stream/" in key and mode == "queue" and len(payload) > 512:
-                # a body near a batch's size takes a batch of its own; small ones share
-                now = time.monotonic()
-                if now < busy_until:  # still taking the previous body: dropped, silently
-                    overflowed += 1
-                    return None
-                busy_until = now + len(payload) / drain
+            if "/stream/" in key and room(payload):  # still taking the previous body
+                overflowed += 1
+                return None  # dropped, silently
             return await publish(key, payload, *args, **kwargs)
 
+        async def blocking(key: str, payload: bytes) -> None:
+            nonlocal waited
+            while "/stream/" in key and (wait := room(payload)):
+                waited += 1
+                await asyncio.sleep(wait)
+            await publish(key, payload)
+
         ta.publish = queued  # type: ignore[method-assign]
+        ta.publish_blocking = blocking  # type: ignore[method-assign]
         export = exp.start_exporting(LOCAL, SEM, "uav-b", history=10)
         pad = "x" * 300  # about 3 samples a body: the history's 10 go as 4 bodies
 
@@ -832,4 +845,5 @@ async def test_a_resend_is_paced_for_a_transport_that_drops_what_its_queue_canno
         rec = await until(lambda: imp.get("uav-a", SEM), "the import")
         await until(lambda: export.recovered == 10, "the history resent")
         await until(lambda: rec.recovered == 10, f"all 10 arrived ({overflowed} dropped)")
-        assert overflowed == 0 and rec.lost == 10
+        # the bodies came back to back: without waiting, the queue would have dropped some
+        assert overflowed == 0 and waited > 0 and rec.lost == 10

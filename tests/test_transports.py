@@ -169,6 +169,33 @@ async def test_pubsub_wildcards(net: Net) -> None:
     assert got_many[-1].attachment == b"att"
 
 
+async def test_publish_blocking_delivers_in_order_and_leaves_the_loop_free(net: Net) -> None:
+    # what a receiver asked for (a resend): waits for room rather than being dropped
+    a, b = await net.open(), await net.open()
+    sub = await a.subscribe(net.key("blk/*"))
+    await ready(net, b, a)
+    ticks = 0
+
+    async def tick() -> None:
+        nonlocal ticks
+        while True:
+            ticks += 1
+            await asyncio.sleep(0)
+
+    ticker = asyncio.create_task(tick())
+    try:
+        for i in range(50):
+            await b.publish_blocking(net.key(f"blk/{i}"), b"x" * 60_000 + bytes([i]))
+    finally:
+        ticker.cancel()
+    got = await take(sub, 50)
+    assert [m.payload[-1] for m in got] == list(range(50))
+    assert ticks > 0 or net.kind != "zenoh"  # zenoh's puts ran off the loop
+    await b.aclose()
+    with pytest.raises(TransportClosed):
+        await b.publish_blocking(net.key("blk/x"), b"")
+
+
 async def test_two_subscribers(net: Net) -> None:
     a, b, c = await net.open(), await net.open(), await net.open()
     key = net.key("s/k")

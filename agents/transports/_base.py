@@ -324,6 +324,17 @@ class Transport(ABC):
     async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Send ``payload`` to every subscriber whose key expression matches ``key``."""
 
+    async def publish_blocking(self, key: str, payload: bytes) -> None:
+        """Publish ``payload``, waiting for room on the way rather than dropping it.
+
+        For what a receiver asked for and is waiting for (a resend): `publish` may drop
+        what a congested link cannot take at once, so that a frozen subscriber never
+        stalls the publisher; this waits instead, within the transport's own bound
+        (zenoh: 5 s for room in its queue), and never blocks the event loop. Here, and
+        on transports whose `publish` never drops (MQTT, memory), it is `publish`.
+        """
+        await self.publish(key, payload)
+
     @property
     def publishes_nowait(self) -> bool:
         """Whether `publish_nowait` works here: a put that never waits for the event loop.
