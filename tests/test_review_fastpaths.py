@@ -1,0 +1,244 @@
+"""The fast paths decide as the checks they stand in for: each is attacked against its oracle.
+
+An envelope's base64 box against the old canonical check (re-encode the whole box and
+compare); a reply made without `build` against `build`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import binascii
+import string
+from typing import Any
+
+import orjson
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from agents import ACLMessage, MessageError, RateLimit, wire_key
+from agents import Performative as P
+from agents._security import _canonical_tail
+
+FED = "demo"
+
+# -- the envelope's box: canonical base64 only ------------------------------------------
+
+
+def _old_canonical(payload: str) -> bool:
+    """The check before the rewrite: decode leniently, re-encode it all, compare."""
+    try:
+        raw = binascii.a2b_base64(payload)
+    except ValueError:
+        raw = b""
+    return bool(raw) and binascii.b2a_base64(raw, newline=False) == payload.encode()
+
+
+def _new_canonical(payload: str) -> bool:
+    """The check `Session._accept` makes now (strict decoding, the length, the last quantum)."""
+    try:
+        raw = binascii.a2b_base64(payload, strict_mode=True)
+    except ValueError:
+        raw = b""
+    return bool(raw) and _canonical_tail(raw, payload)
+
+
+_B64 = string.ascii_letters + string.digits + "+/"
+# the alphabet, padding, the url-safe letters, whitespace, and a few that are none of them
+_HOSTILE = _B64 + "=-_ \n\r\t.\x00é"
+
+
+def _spellings(raw: bytes) -> list[str]:
+    """The canonical spelling of ``raw`` and near ones: other tail bits, padding, spaces."""
+    good = binascii.b2a_base64(raw, newline=False).decode("ascii")
+    out = [good, good.rstrip("="), good + "=", good + "==", " " + good, good + "\n"]
+    out += [good[:i] + "\n" + good[i:] for i in range(0, len(good), 5)]
+    out.append(good.replace("+", "-").replace("/", "_"))
+    stripped = good.rstrip("=")
+    if stripped:
+        # every letter in the last position: the unused bits set in all ways
+        out += [stripped[:-1] + c + good[len(stripped) :] for c in _B64]
+    return out
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.binary(max_size=40))
+def test_the_box_check_accepts_what_the_old_one_did_near_a_canonical_spelling(
+    raw: bytes,
+) -> None:
+    for text in _spellings(raw):
+        assert _new_canonical(text) == _old_canonical(text), repr(text)
+
+
+@settings(max_examples=2000, deadline=None)
+@given(st.text(alphabet=_HOSTILE, max_size=24))
+def test_the_box_check_accepts_what_the_old_one_did_for_any_text(text: str) -> None:
+    assert _new_canonical(text) == _old_canonical(text), repr(text)
+
+
+@pytest.mark.parametrize(
+    "text", ["", "=", "====", "QQ", "QQ=", "QR==", "QQ===", "QQ==QQ==", "QUI=", "QUJD", " QUJD"]
+)
+def test_the_box_check_on_the_known_edge_cases(text: str) -> None:
+    assert _new_canonical(text) == _old_canonical(text)
+
+
+# -- ACLMessage.reply: what build would make, or build's error ------------------------------
+
+
+def _asked() -> ACLMessage:
+    return ACLMessage.build(
+        performative=P.REQUEST,
+        sender="a@p1",
+        receivers=["b@p2"],
+        content={"x": 1},
+        conversation_id="c-1",
+        reply_with="r-1",
+        protocol="fipa-request",
+        ontology="o",
+        language="json",
+    )
+
+
+class _Lying(str):
+    """A str that says it equals (and hashes as) an identifier it does not spell."""
+
+    def __eq__(self, other: object) -> bool:
+        return True
+
+    def __hash__(self) -> int:
+        return hash("b@p2")
+
+
+@pytest.mark.parametrize("sender", [["b@p2"], {"b": 1}, _Lying("not an aid")])
+def test_a_reply_from_a_sender_that_is_no_identifier_is_refused_as_build_refuses(
+    sender: object,
+) -> None:
+    asked = _asked()
+    ACLMessage.build(performative=P.INFORM, sender="b@p2", receivers=["a@p1"])  # known now
+    with pytest.raises((MessageError, ValueError)) as built:
+        ACLMessage.build(
+            performative=P.INFORM,
+            sender=sender,
+            receivers=["a@p1"],
+        )
+    with pytest.raises(type(built.value)):
+        asked.reply(P.INFORM, {"ok": True}, sender=sender)  # type: ignore[arg-type]
+
+
+def test_a_reply_is_the_message_build_makes() -> None:
+    asked = _asked()
+    for content in (None, 1, 1.5, "s", [1, [2, {"a": None}]], {"k": [True, {"z": "y"}]}):
+        got = asked.reply(P.INFORM, content)
+        want = ACLMessage.build(
+            performative=P.INFORM,
+            sender="b@p2",
+            receivers=["a@p1"],
+            content=content,
+            language="json",
+            ontology="o",
+            protocol="fipa-request",
+            conversation_id="c-1",
+            in_reply_to="r-1",
+        )
+        assert got == want
+        assert got.model_fields_set == want.model_fields_set
+        assert got.to_json() == want.to_json()
+
+
+# -- InterfaceAgent: a batch's messages decided as each alone -------------------------------
+
+
+async def _decisions(batched: bool) -> dict[str, Any]:
+    """What uav-b decides about one hostile mix of messages from uav-a, batched or one by one."""
+    from test_interface import Listener, _captured_session, federation, ia, serve, until
+
+    async with federation("uav-a", "uav-b") as fed:
+        limit = RateLimit(rate=1e-3, burst=4.0, total_rate=1e-3, total_burst=14.0, refusals=1e-3)
+        pair = await _captured_session(fed)
+        pa, pb = pair.pa, pair.pb
+        # a fresh sender state with these limits (the captured request used the default one)
+        ib = ia(pb)
+        ib.rate_limit = limit
+        ib._senders.clear()
+        await pa.add(Listener("l"))
+        await serve(pb, "private", None)
+        stopped = await serve(pb, "stopped")
+        await stopped.stop()
+        echo = pair.echo
+        echo.calls.clear()
+        echo.informs.clear()
+        inform, req = P.INFORM, P.REQUEST
+        items: list[Any] = [
+            _m("l@uav-a", "echo@uav-b", inform, {"i": 1}),
+            _m("l@uav-a", "echo@uav-b", req, {"i": 2}),
+            _m("l@uav-a", "private@uav-b", req, {"i": 3}),  # no service: refused
+            _m("victim@uav-c", "echo@uav-b", inform, {"i": 4}),  # forged sender
+            _m("l@uav-a", "echo@uav-b", req, {"i": 5}, reply_to=["x@uav-c"]),  # reflection
+            _m("l@uav-a", "echo@uav-b", inform, {"i": 6}, reply_to=["echo@uav-b"]),
+            _m("l@uav-a", "ghost@uav-b", inform, {"i": 7}),  # no such agent
+            _m("l@uav-a", "stopped@uav-b", inform, {"i": 8}),  # stopped
+            {"performative": "shout", "sender": "l@uav-a", "receivers": ["echo@uav-b"]},
+            _m("l@uav-a", "echo@uav-c", inform, {"i": 10}),  # for another platform
+            _m("l@uav-a", "echo@uav-b", req, {"i": 11}),
+            _m("l@uav-a", "echo@uav-b", req, {"i": 12}),  # over the request limit
+            _m("l@uav-b", "echo@uav-b", inform, {"i": 13}),  # claims the receiver's platform
+        ]
+        items += [_m("l@uav-a", "echo@uav-b", inform, {"i": i}) for i in range(14, 24)]
+        bodies = [orjson.dumps(i) if isinstance(i, dict) else i.to_json() for i in items]
+        key = wire_key(FED, "acl", "uav-b")
+        raw = await fed.raw()
+        seal = ia(pa).sessions.seal
+        before = len(ib.audit.last(10_000))
+        if batched:
+            await raw.publish(key, seal("uav-b", b"[" + b",".join(bodies) + b"]"))
+        else:
+            for body in bodies:
+                await raw.publish(key, seal("uav-b", body))
+        sender = pb.stats.senders["uav-a"]
+        await until(
+            lambda: sender.accepted + sender.limited >= len(items) - 1, "every message decided"
+        )
+        await asyncio.sleep(0.2)  # the refusals and not-understoods go out
+        records = [
+            {k: v for k, v in r.items() if k != "ts"} for r in ib.audit.last(10_000)[before:]
+        ]
+        stats = pb.stats
+        return {
+            "records": records,
+            "informs": [m.content for m in echo.informs],
+            "calls": [m.content for m in echo.calls],
+            "accepted": sender.accepted,
+            "limited": sender.limited,
+            "refused": sender.refused,
+            "counts": dict(ib.audit.counts),
+            "platform": (
+                stats.received_remote,
+                stats.local,
+                stats.forged,
+                stats.unknown_receiver,
+                stats.rate_limited,
+            ),
+        }
+
+
+def _m(sender: str, receiver: str, performative: P, content: Any, **fields: Any) -> ACLMessage:
+    return ACLMessage.build(
+        performative=performative,
+        sender=sender,
+        receivers=[receiver],
+        content=content,
+        ontology="demo",
+        protocol="fipa-request",
+        conversation_id=f"c-{content}",
+        reply_with=f"r-{content}",
+        **fields,
+    )
+
+
+async def test_a_hostile_batch_is_decided_as_its_messages_one_by_one() -> None:
+    """Limits, sender binding, reply_to, access, unknown agents, audit: batch == one by one."""
+    alone = await _decisions(batched=False)
+    together = await _decisions(batched=True)
+    assert together == alone
+    assert alone["limited"] >= 2  # both limits reached
