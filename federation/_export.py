@@ -24,6 +24,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
+from functools import partial
 from typing import Self
 
 import msgpack
@@ -360,8 +361,10 @@ class Export:
                 for body, count in self._pack_resent(first, samples):
                     try:
                         # each number is resent once: it waits for room on a congested
-                        # link rather than being dropped there, as `publish` would
-                        await transport.publish_blocking(self.key, await self._seal(body))
+                        # link rather than being dropped there, as `publish` would; sealed
+                        # when it can go, so the wait cannot age it out of the receiver's
+                        # skew or replay window
+                        await transport.publish_blocking(self.key, partial(self._seal, body))
                     except (asyncio.CancelledError, TransportClosed):
                         raise
                     except Exception as exc:  # the receiver may ask again

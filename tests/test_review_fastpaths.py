@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import asyncio
 import binascii
+import contextlib
 import string
+import time
 from typing import Any
 
 import orjson
@@ -18,7 +20,10 @@ from hypothesis import strategies as st
 
 from agents import ACLMessage, MessageError, RateLimit, wire_key
 from agents import Performative as P
+from agents._exceptions import Expired
 from agents._security import _canonical_tail
+from agents.transports import MemoryHub, MemoryTransport
+from federation._sessions import PlainSessions
 
 FED = "demo"
 
@@ -242,3 +247,91 @@ async def test_a_hostile_batch_is_decided_as_its_messages_one_by_one() -> None:
     together = await _decisions(batched=True)
     assert together == alone
     assert alone["limited"] >= 2  # both limits reached
+
+
+# -- a resend waiting for room: sealed when it leaves, not when it begins to wait -----------
+
+_SKEW = 0.3  # the receiver's allowed age of an envelope, scaled down from 30 s
+_FROZEN = 0.8  # how long a put to a frozen receiver holds the worker
+
+
+class _Pooled(MemoryTransport):
+    """A memory transport whose blocking puts share one worker, as zenoh's share a few threads.
+
+    A put to a frozen receiver holds it (zenoh's BLOCK waits for room in that link's
+    queue); the others wait for it, as a task waits in zenoh's executor queue.
+    """
+
+    def __init__(self, hub: MemoryHub) -> None:
+        super().__init__(hub)
+        self.pool = asyncio.Semaphore(1)
+        self.drop_streams = False
+
+    async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
+        """Lose stream batches while the link is down (the gap a resend fills)."""
+        if self.drop_streams and "/stream/" in key:
+            return
+        await super().publish(key, payload, attachment=attachment)
+
+    async def publish_blocking(self, key: str, payload: Any) -> None:
+        """One at a time; a frozen receiver's put holds the worker for a while."""
+        async with self.pool:
+            if callable(payload):
+                payload = await payload()
+            if "/frozen/" in key:
+                await asyncio.sleep(_FROZEN)
+                return
+            await super().publish(key, payload)
+
+
+_sealed: dict[bytes, float] = {}
+
+
+class _Stamped(PlainSessions):
+    """Plain envelopes that expire, as a real session's do past the allowed skew."""
+
+    def seal_bytes(self, peer: str, body: bytes) -> bytes:
+        """Seal, remembering when."""
+        envelope = super().seal_bytes(peer, body)
+        _sealed[envelope] = time.monotonic()
+        return envelope
+
+    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
+        """Open, refusing an envelope sealed longer ago than the skew."""
+        frm, body = super().open_bytes(envelope)
+        if time.monotonic() - _sealed.get(envelope, time.monotonic()) > _SKEW:
+            raise Expired("sealed too long ago", frm)
+        return frm, body
+
+
+async def test_a_resend_waiting_behind_a_frozen_receivers_put_is_not_lost() -> None:
+    """A resend sealed, then kept waiting for the worker, would arrive expired: lost for good."""
+    from test_proxies import LOCAL, SEM, Net, agreed
+    from test_proxies import until as until_p
+
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        ta = _Pooled(net.hub)
+        _, a = await net.platform("uav-a", transport=ta)
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exp = await net.exporter("uav-a", sessions=_Stamped("uav-a"), max_batch_bytes=1024)
+        imp = await net.importer("uav-b", sessions=_Stamped("uav-b"), translate=agreed(SEM))
+        export = exp.start_exporting(LOCAL, SEM, "uav-b", history=10)
+        for _ in range(3):
+            src.push(1)
+            await asyncio.sleep(0.02)
+        ta.drop_streams = True
+        for _ in range(5):
+            src.push(2)
+            await asyncio.sleep(0.02)
+        ta.drop_streams = False
+        # the attacker: a frozen receiver's resend holds the worker when ours is asked
+        frozen = asyncio.ensure_future(ta.publish_blocking("dyknow/x/frozen/uav-f", b"x"))
+        await asyncio.sleep(0)
+        src.push(3)  # the gap's end arrives: the 5 lost are asked back at once
+        rec = await until_p(lambda: imp.get("uav-a", SEM), "the import")
+        await until_p(lambda: export.recovered == 5, "the history resent")
+        await frozen
+        await asyncio.sleep(0.1)
+        assert rec.recovered == 5, "a resend arrived expired: its samples are lost"

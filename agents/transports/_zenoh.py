@@ -33,7 +33,7 @@ import json
 import logging
 import re
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Literal, TypeVar, cast
@@ -375,6 +375,7 @@ class ZenohTransport(Transport):
         self._seeks = False  # whether the session looks for peers or routers (see `tokens`)
         self._publishers: OrderedDict[str, zenoh.Publisher] = OrderedDict()
         self._blocking: ThreadPoolExecutor | None = None  # publish_blocking's puts wait here
+        self._slots = asyncio.Semaphore(_BLOCKING_PUTS)  # its threads free for a put
         self._subs: set[Subscription[Any]] = set()
         self._handles: set[Handle] = set()
 
@@ -442,21 +443,32 @@ class ZenohTransport(Transport):
         """Put ``payload`` on ``key`` through a cached publisher (DROP, reliable)."""
         self._put(key, payload, attachment)
 
-    async def publish_blocking(self, key: str, payload: bytes) -> None:
+    async def publish_blocking(
+        self, key: str, payload: bytes | Callable[[], Awaitable[bytes]]
+    ) -> None:
         """Put ``payload`` on ``key`` with congestion control BLOCK, from a worker thread.
 
         zenoh waits for room in the link's queue (up to ``wait_before_close``, 5 s, after
         which it closes the link) instead of dropping; the loop goes on meanwhile. A
         subclass that overrides ``publish`` (a test's lossy link) gets ``publish``.
+        ``payload`` as a function is made once a worker thread is free for it (see
+        `Transport.publish_blocking`).
         """
         if type(self).publish is not ZenohTransport.publish:
-            await self.publish(key, payload)
+            await self.publish(key, payload if isinstance(payload, bytes) else await payload())
             return
         session, loop = self._open_session()
         if self._blocking is None:
             self._blocking = ThreadPoolExecutor(_BLOCKING_PUTS, thread_name_prefix="zenoh-block")
+            self._slots = asyncio.Semaphore(_BLOCKING_PUTS)
+        executor, slots = self._blocking, self._slots
         try:
-            await loop.run_in_executor(self._blocking, self._put_blocking, session, key, payload)
+            # a free thread first: the payload is made when the put starts, and waits
+            # behind other receivers' puts in the semaphore, never in the executor's queue
+            async with slots:
+                if not isinstance(payload, bytes):
+                    payload = await payload()
+                await loop.run_in_executor(executor, self._put_blocking, session, key, payload)
         except zenoh.ZError as exc:
             if self._state != "opened":
                 raise TransportClosed(f"{self.name} transport is {self._state}") from exc
