@@ -335,3 +335,48 @@ async def test_a_resend_waiting_behind_a_frozen_receivers_put_is_not_lost() -> N
         await frozen
         await asyncio.sleep(0.1)
         assert rec.recovered == 5, "a resend arrived expired: its samples are lost"
+
+
+# -- one platform, one process: the duplicate seen though its link comes up a little late ----
+
+
+async def _delaying_proxy(port: int, to: int, delay: float) -> asyncio.Server:
+    """A TCP forwarder on ``port`` to ``to`` that connects onward ``delay`` s late."""
+
+    async def pipe(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(Exception):
+            while data := await r.read(65536):
+                w.write(data)
+                await w.drain()
+        w.close()
+
+    async def serve(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        await asyncio.sleep(delay)
+        r2, w2 = await asyncio.open_connection("127.0.0.1", to)
+        await asyncio.gather(pipe(r, w2), pipe(r2, w))
+
+    return await asyncio.start_server(serve, "127.0.0.1", port)
+
+
+async def test_a_second_node_of_a_name_is_refused_though_its_link_to_the_first_is_late() -> None:
+    """A third platform answering first must not hide the running one still being connected."""
+    from types import SimpleNamespace
+
+    from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+    from federation._local import PlatformAliveError, refuse_duplicate
+
+    fed = "demo"
+    pa, pc, pb, proxy = (free_tcp_port() for _ in range(4))
+    async with contextlib.AsyncExitStack() as stack:
+        a = await stack.enter_async_context(ZenohTransport(ZenohConfig.loopback(pa)))
+        c = await stack.enter_async_context(ZenohTransport(ZenohConfig.loopback(pc)))
+        await a.declare_token(wire_key(fed, "alive", "x"))
+        await c.declare_token(wire_key(fed, "alive", "c"))
+        server = await _delaying_proxy(proxy, pa, 0.4)
+        stack.push_async_callback(server.wait_closed)
+        stack.callback(server.close)
+        b = await stack.enter_async_context(
+            ZenohTransport(ZenohConfig.loopback(pb, connect=[pc, proxy]))
+        )
+        with pytest.raises(PlatformAliveError):
+            await refuse_duplicate(b, SimpleNamespace(federation=fed, name="x"))  # type: ignore[arg-type]

@@ -350,6 +350,23 @@ def _seeks(cfg: zenoh.Config) -> bool:
     return bool(connect) or multicast is not False
 
 
+def _links_wanted(cfg: zenoh.Config) -> int:
+    """The links a session of ``cfg`` makes to its ``connect`` endpoints once they are up.
+
+    A peer or a router links to each; a client to one router of them.
+    """
+    try:
+        connect = json.loads(cfg.get_json("connect/endpoints"))
+        mode = json.loads(cfg.get_json("mode"))
+    except (zenoh.ZError, ValueError):
+        return 0
+    if isinstance(connect, dict):  # per mode
+        connect = connect.get(mode) or ()
+    if not isinstance(connect, list):
+        return 0
+    return min(len(connect), 1) if mode == "client" else len(connect)
+
+
 @contextlib.contextmanager
 def _converted(what: str) -> Iterator[None]:
     """Raise zenoh's errors as TransportError, saying what was being done."""
@@ -373,6 +390,7 @@ class ZenohTransport(Transport):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._opened = 0.0  # loop time the session opened (see `tokens`)
         self._seeks = False  # whether the session looks for peers or routers (see `tokens`)
+        self._links_wanted = 0  # links its ``connect`` endpoints make, once up (see `tokens`)
         self._publishers: OrderedDict[str, zenoh.Publisher] = OrderedDict()
         self._blocking: ThreadPoolExecutor | None = None  # publish_blocking's puts wait here
         self._slots = asyncio.Semaphore(_BLOCKING_PUTS)  # its threads free for a put
@@ -402,6 +420,7 @@ class ZenohTransport(Transport):
         self._loop = loop
         self._opened = loop.time()
         self._seeks = _seeks(cfg)
+        self._links_wanted = _links_wanted(cfg)
         self._session = session
         _OPEN_SESSIONS[id(session)] = session
         await self._start_tasks()
@@ -697,15 +716,32 @@ class ZenohTransport(Transport):
         it finishes at once with nothing. So while the session is younger than
         ``_LINK_SETTLE`` and has, or seeks, a peer or router, an empty answer is asked
         again; a session alone (no ``connect`` endpoints, no multicast) answers at once.
+        While fewer links are up than its ``connect`` endpoints make, any answer is asked
+        again, until ``timeout`` after opening: one peer answering first says nothing of
+        the tokens of another whose link is still coming up.
         """
         session, loop = self._open_session()
         keys = await self._tokens(session, loop, key_expr, timeout)
+        info = session.info
+
+        def again() -> float:
+            """Seconds left to ask again (none: the answer is complete)."""
+            age = loop.time() - self._opened
+            links = len(list(info.peers_zid())) + len(list(info.routers_zid()))
+            left = 0.0
+            if not keys and (self._seeks or links):
+                left = _LINK_SETTLE - age
+            if links < self._links_wanted:
+                # a connect endpoint not linked yet may be the one holding the token
+                # asked for (one peer's quick answer says nothing of another's): ask
+                # again while it may still come up, within the bound of an answer
+                left = max(left, timeout - age)
+            return left
+
         pause = 0.005
-        while not keys and (left := self._opened + _LINK_SETTLE - loop.time()) > 0:
-            if not (self._seeks or session.info.peers_zid() or session.info.routers_zid()):
-                break  # nobody to ask, nor being connected to: the answer is complete
+        while (left := again()) > 0:
             await asyncio.sleep(min(pause, left))
-            pause *= 2
+            pause = min(pause * 2, 0.05)
             keys = await self._tokens(session, loop, key_expr, timeout)
         return keys
 
