@@ -380,3 +380,43 @@ async def test_a_second_node_of_a_name_is_refused_though_its_link_to_the_first_i
         )
         with pytest.raises(PlatformAliveError):
             await refuse_duplicate(b, SimpleNamespace(federation=fed, name="x"))  # type: ignore[arg-type]
+
+
+# -- the Gateway: reserved labels are not even named to another platform --------------------
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        {"action": "query", "label": "nope"},  # the quick query
+        {"action": "query", "label": "nope", "kind": "at", "t": 1.0},  # the models' path
+        {"action": "create-stream", "label": "nope", "output": "out"},
+    ],
+)
+async def test_an_unknown_label_refusal_names_no_reserved_label_to_another_platform(
+    content: dict[str, Any],
+) -> None:
+    from test_gateway import world
+
+    from agents import Refused
+
+    async with world(visibility="protected") as w:
+        w.dk.add_source("import/uav-c/secret")
+        with pytest.raises(Refused) as refused:
+            await w.ask(content)
+        reason = str(refused.value)
+        assert "unknown label 'nope'" in reason
+        assert "car5-state" in reason  # what it may see is still listed
+        assert "import/" not in reason
+
+
+async def test_an_unknown_label_subscription_names_no_reserved_label_to_another_platform() -> None:
+    from test_gateway import GW, world
+
+    from agents import Refused, subscribe
+
+    async with world(visibility="protected") as w:
+        w.dk.add_source("import/uav-c/secret")
+        with pytest.raises(Refused) as refused:
+            await subscribe(w.asker, GW, {"label": "nope"}, ontology="dyknow", timeout=5)
+        assert "import/" not in str(refused.value)
