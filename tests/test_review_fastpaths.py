@@ -262,10 +262,11 @@ class _Pooled(MemoryTransport):
     queue); the others wait for it, as a task waits in zenoh's executor queue.
     """
 
-    def __init__(self, hub: MemoryHub) -> None:
+    def __init__(self, hub: MemoryHub, workers: int = 1) -> None:
         super().__init__(hub)
-        self.pool = asyncio.Semaphore(1)
+        self.pool = asyncio.Semaphore(workers)
         self.drop_streams = False
+        self.frozen_puts = 0  # puts to a frozen receiver holding a worker now
 
     async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Lose stream batches while the link is down (the gap a resend fills)."""
@@ -278,8 +279,12 @@ class _Pooled(MemoryTransport):
         async with self.pool:
             if callable(payload):
                 payload = await payload()
-            if "/frozen/" in key:
-                await asyncio.sleep(_FROZEN)
+            if "/frozen/" in key or "/stream/uav-f/" in key:
+                self.frozen_puts += 1
+                try:
+                    await asyncio.sleep(_FROZEN)
+                finally:
+                    self.frozen_puts -= 1
                 return
             await super().publish(key, payload)
 
@@ -420,3 +425,45 @@ async def test_an_unknown_label_subscription_names_no_reserved_label_to_another_
         with pytest.raises(Refused) as refused:
             await subscribe(w.asker, GW, {"label": "nope"}, ontology="dyknow", timeout=5)
         assert "import/" not in str(refused.value)
+
+
+async def test_a_frozen_receiver_holds_one_worker_whatever_its_number_of_streams() -> None:
+    """Its resends take one worker at a time: another receiver's resend (and stream) goes on."""
+    from test_proxies import Net, agreed
+    from test_proxies import until as until_p
+
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        ta = _Pooled(net.hub, workers=2)
+        _, a = await net.platform("uav-a", transport=ta)
+        await net.platform("uav-f")
+        await net.platform("uav-b")
+        sources = {s: a.add_source(f"car/{s}") for s in ("f1", "f2", "b")}
+        exp = await net.exporter("uav-a", max_batch_bytes=1024)
+        await net.importer("uav-f", translate=agreed("f1", "f2"))
+        await net.importer("uav-b", translate=agreed("b"))
+        exports = {
+            s: exp.start_exporting(f"car/{s}", s, "uav-b" if s == "b" else "uav-f", history=10)
+            for s in sources
+        }
+
+        async def push(names: str, value: int) -> None:
+            for name in names.split():
+                sources[name].push(value)
+            await asyncio.sleep(0.02)
+
+        for _ in range(3):
+            await push("f1 f2 b", 1)
+        ta.drop_streams = True
+        for _ in range(5):
+            await push("f1 f2 b", 2)
+        ta.drop_streams = False
+        # the frozen receiver's two streams ask their resends first, and hold workers
+        await push("f1 f2", 3)
+        await until_p(lambda: ta.frozen_puts >= 1, "the frozen receiver's resends")
+        await asyncio.sleep(0.05)  # both of its streams had their turn to take a worker
+        began = time.monotonic()
+        await push("b", 3)
+        await until_p(lambda: exports["b"].recovered == 5, "the other receiver's resend")
+        took = time.monotonic() - began
+        assert took < _FROZEN / 2, f"another receiver's resend waited {took:.2f} s"
