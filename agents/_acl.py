@@ -137,7 +137,12 @@ class ACLMessage(BaseModel):
         # The fields taken from this message were checked when it was made: only the
         # new ones (performative, sender, content) are, here, as `build` checks them; a
         # value the quick checks leave goes to `build`, which decides as before.
-        if type(performative) is Performative and (sender in _known_aids or _valid_aid(sender)):
+        # `type(sender) is str` first: a set lookup would hash (or fail on) anything else
+        if (
+            type(performative) is Performative
+            and type(sender) is str
+            and (sender in _known_aids or _valid_aid(sender))
+        ):
             try:
                 content = _json_copy(content, 0)
             except _NotPlain:

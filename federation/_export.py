@@ -24,6 +24,7 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
+from functools import partial
 from typing import Self
 
 import msgpack
@@ -352,6 +353,9 @@ class Export:
         # forget what is no longer kept: it cannot be asked back anyway
         self._resent_ranges = [(a, b) for a, b in self._resent_ranges if b > oldest]
         transport = self._proxy.transport
+        # one blocking put per receiver at a time: a frozen one, however many streams it
+        # imports, holds one of the transport's few worker threads, not all of them
+        turn = self._proxy._resend_turn(self.receiver)
         for asked_first, asked_end in ranges:
             # asked twice before this ran: resent once
             for first, end in uncovered(self._resent_ranges, max(asked_first, oldest), asked_end):
@@ -360,8 +364,11 @@ class Export:
                 for body, count in self._pack_resent(first, samples):
                     try:
                         # each number is resent once: it waits for room on a congested
-                        # link rather than being dropped there, as `publish` would
-                        await transport.publish_blocking(self.key, await self._seal(body))
+                        # link rather than being dropped there, as `publish` would; sealed
+                        # when it can go, so the wait cannot age it out of the receiver's
+                        # skew or replay window
+                        async with turn:
+                            await transport.publish_blocking(self.key, partial(self._seal, body))
                     except (asyncio.CancelledError, TransportClosed):
                         raise
                     except Exception as exc:  # the receiver may ask again
@@ -554,6 +561,7 @@ class ExportProxy(ProxyBase):
         self._reports: asyncio.Task[None] | None = None  # started with the first export
         self.reports_refused = 0  # loss reports that did not open or parse
         self._resend_buckets: dict[str, TokenBucket] = {}  # per receiver (authenticated)
+        self._resend_turns: dict[str, asyncio.Lock] = {}  # per receiver: its blocking puts
 
     async def __aenter__(self) -> Self:
         return self
@@ -653,6 +661,13 @@ class ExportProxy(ProxyBase):
                     self._audit_resend_refusals(export, now)
         finally:
             sub.close()
+
+    def _resend_turn(self, receiver: str) -> asyncio.Lock:
+        """The lock ``receiver``'s resends take turns with (made on first use)."""
+        turn = self._resend_turns.get(receiver)
+        if turn is None:
+            turn = self._resend_turns[receiver] = asyncio.Lock()
+        return turn
 
     def _resend_bucket(self, receiver: str, now: float) -> TokenBucket:
         """The resend requests ``receiver`` may still make (one bucket per trusted platform)."""

@@ -48,7 +48,7 @@ from agents import (
     platform_of,
 )
 from agents.transports import Subscription as TransportSubscription
-from dyknow_core import DyKnowError, DyKnowInstance, Subscription
+from dyknow_core import DyKnowError, DyKnowInstance, Subscription, UnknownLabelError
 
 from ._gateway_service import ONTOLOGY, GatewayRefusal, GatewayService, samples_to_json
 
@@ -177,10 +177,24 @@ class GatewayAgent(Agent):
         try:
             result = self.service.perform(content)
         except GatewayRefusal as exc:
-            raise Refuse(exc.reason) from exc
+            raise Refuse(self._told(exc, message)) from exc
         if remote and isinstance(content, dict) and content.get("action") == "list-labels":
             result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
         return result
+
+    def _told(self, refusal: GatewayRefusal, message: ACLMessage) -> str:
+        """The refusal's reason as ``message``'s sender may read it.
+
+        An unknown label's reason lists labels that exist: to another platform, only
+        those it may see (reserved ones are not even named, as in list-labels).
+        """
+        cause = refusal.__cause__
+        if isinstance(cause, UnknownLabelError) and platform_of(message.sender) != (
+            self.platform.name
+        ):
+            seen = [lb for lb in self.instance.labels() if not self._is_reserved(lb)]
+            return str(UnknownLabelError(cause.label, seen))
+        return refusal.reason
 
     def _is_reserved(self, label: Any) -> bool:
         return isinstance(label, str) and label.startswith(self.reserved)
@@ -247,7 +261,7 @@ class GatewayAgent(Agent):
             label, policy = self.service.subscription_policy(message.content)
             sub = self.instance.subscribe(label, policy)
         except GatewayRefusal as exc:
-            await self.reply(message, P.REFUSE, exc.reason)
+            await self.reply(message, P.REFUSE, self._told(exc, message))
             return
         except (DyKnowError, OverflowError) as exc:
             await self.reply(message, P.REFUSE, str(exc))

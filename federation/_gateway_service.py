@@ -289,7 +289,8 @@ class GatewayService:
             sub = Subscribe.model_validate(content)
             policy = sub.policy.to_policy(self.instance.clock.now())
         if not self.instance.has_label(sub.label):
-            raise GatewayRefusal(str(UnknownLabelError(sub.label, self.instance.labels())))
+            unknown = UnknownLabelError(sub.label, self.instance.labels())
+            raise GatewayRefusal(str(unknown)) from unknown
         return sub.label, policy
 
 

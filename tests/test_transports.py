@@ -191,6 +191,12 @@ async def test_publish_blocking_delivers_in_order_and_leaves_the_loop_free(net: 
     got = await take(sub, 50)
     assert [m.payload[-1] for m in got] == list(range(50))
     assert ticks > 0 or net.kind != "zenoh"  # zenoh's puts ran off the loop
+
+    async def made() -> bytes:  # a payload made when the put can start (a sealed resend)
+        return b"made"
+
+    await b.publish_blocking(net.key("blk/made"), made)
+    assert [m.payload for m in await take(sub, 1)] == [b"made"]
     await b.aclose()
     with pytest.raises(TransportClosed):
         await b.publish_blocking(net.key("blk/x"), b"")

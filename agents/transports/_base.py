@@ -324,7 +324,9 @@ class Transport(ABC):
     async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
         """Send ``payload`` to every subscriber whose key expression matches ``key``."""
 
-    async def publish_blocking(self, key: str, payload: bytes) -> None:
+    async def publish_blocking(
+        self, key: str, payload: bytes | Callable[[], Awaitable[bytes]]
+    ) -> None:
         """Publish ``payload``, waiting for room on the way rather than dropping it.
 
         For what a receiver asked for and is waiting for (a resend): `publish` may drop
@@ -332,8 +334,13 @@ class Transport(ABC):
         stalls the publisher; this waits instead, within the transport's own bound
         (zenoh: 5 s for room in its queue), and never blocks the event loop. Here, and
         on transports whose `publish` never drops (MQTT, memory), it is `publish`.
+
+        ``payload`` may be a function making it, awaited once the put can start: an
+        envelope sealed then carries the time and counter it leaves with, not those of
+        when it began to wait (behind other receivers' puts), which the receiver's skew
+        and replay window would refuse.
         """
-        await self.publish(key, payload)
+        await self.publish(key, payload if isinstance(payload, bytes) else await payload())
 
     @property
     def publishes_nowait(self) -> bool:

@@ -33,7 +33,7 @@ import json
 import logging
 import re
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Iterator, Mapping
+from collections.abc import Awaitable, Callable, Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Literal, TypeVar, cast
@@ -350,6 +350,23 @@ def _seeks(cfg: zenoh.Config) -> bool:
     return bool(connect) or multicast is not False
 
 
+def _links_wanted(cfg: zenoh.Config) -> int:
+    """The links a session of ``cfg`` makes to its ``connect`` endpoints once they are up.
+
+    A peer or a router links to each; a client to one router of them.
+    """
+    try:
+        connect = json.loads(cfg.get_json("connect/endpoints"))
+        mode = json.loads(cfg.get_json("mode"))
+    except (zenoh.ZError, ValueError):
+        return 0
+    if isinstance(connect, dict):  # per mode
+        connect = connect.get(mode) or ()
+    if not isinstance(connect, list):
+        return 0
+    return min(len(connect), 1) if mode == "client" else len(connect)
+
+
 @contextlib.contextmanager
 def _converted(what: str) -> Iterator[None]:
     """Raise zenoh's errors as TransportError, saying what was being done."""
@@ -373,8 +390,10 @@ class ZenohTransport(Transport):
         self._loop: asyncio.AbstractEventLoop | None = None
         self._opened = 0.0  # loop time the session opened (see `tokens`)
         self._seeks = False  # whether the session looks for peers or routers (see `tokens`)
+        self._links_wanted = 0  # links its ``connect`` endpoints make, once up (see `tokens`)
         self._publishers: OrderedDict[str, zenoh.Publisher] = OrderedDict()
         self._blocking: ThreadPoolExecutor | None = None  # publish_blocking's puts wait here
+        self._slots = asyncio.Semaphore(_BLOCKING_PUTS)  # its threads free for a put
         self._subs: set[Subscription[Any]] = set()
         self._handles: set[Handle] = set()
 
@@ -401,6 +420,7 @@ class ZenohTransport(Transport):
         self._loop = loop
         self._opened = loop.time()
         self._seeks = _seeks(cfg)
+        self._links_wanted = _links_wanted(cfg)
         self._session = session
         _OPEN_SESSIONS[id(session)] = session
         await self._start_tasks()
@@ -442,21 +462,32 @@ class ZenohTransport(Transport):
         """Put ``payload`` on ``key`` through a cached publisher (DROP, reliable)."""
         self._put(key, payload, attachment)
 
-    async def publish_blocking(self, key: str, payload: bytes) -> None:
+    async def publish_blocking(
+        self, key: str, payload: bytes | Callable[[], Awaitable[bytes]]
+    ) -> None:
         """Put ``payload`` on ``key`` with congestion control BLOCK, from a worker thread.
 
         zenoh waits for room in the link's queue (up to ``wait_before_close``, 5 s, after
         which it closes the link) instead of dropping; the loop goes on meanwhile. A
         subclass that overrides ``publish`` (a test's lossy link) gets ``publish``.
+        ``payload`` as a function is made once a worker thread is free for it (see
+        `Transport.publish_blocking`).
         """
         if type(self).publish is not ZenohTransport.publish:
-            await self.publish(key, payload)
+            await self.publish(key, payload if isinstance(payload, bytes) else await payload())
             return
         session, loop = self._open_session()
         if self._blocking is None:
             self._blocking = ThreadPoolExecutor(_BLOCKING_PUTS, thread_name_prefix="zenoh-block")
+            self._slots = asyncio.Semaphore(_BLOCKING_PUTS)
+        executor, slots = self._blocking, self._slots
         try:
-            await loop.run_in_executor(self._blocking, self._put_blocking, session, key, payload)
+            # a free thread first: the payload is made when the put starts, and waits
+            # behind other receivers' puts in the semaphore, never in the executor's queue
+            async with slots:
+                if not isinstance(payload, bytes):
+                    payload = await payload()
+                await loop.run_in_executor(executor, self._put_blocking, session, key, payload)
         except zenoh.ZError as exc:
             if self._state != "opened":
                 raise TransportClosed(f"{self.name} transport is {self._state}") from exc
@@ -685,15 +716,32 @@ class ZenohTransport(Transport):
         it finishes at once with nothing. So while the session is younger than
         ``_LINK_SETTLE`` and has, or seeks, a peer or router, an empty answer is asked
         again; a session alone (no ``connect`` endpoints, no multicast) answers at once.
+        While fewer links are up than its ``connect`` endpoints make, any answer is asked
+        again, until ``timeout`` after opening: one peer answering first says nothing of
+        the tokens of another whose link is still coming up.
         """
         session, loop = self._open_session()
         keys = await self._tokens(session, loop, key_expr, timeout)
+        info = session.info
+
+        def again() -> float:
+            """Seconds left to ask again (none: the answer is complete)."""
+            age = loop.time() - self._opened
+            links = len(list(info.peers_zid())) + len(list(info.routers_zid()))
+            left = 0.0
+            if not keys and (self._seeks or links):
+                left = _LINK_SETTLE - age
+            if links < self._links_wanted:
+                # a connect endpoint not linked yet may be the one holding the token
+                # asked for (one peer's quick answer says nothing of another's): ask
+                # again while it may still come up, within the bound of an answer
+                left = max(left, timeout - age)
+            return left
+
         pause = 0.005
-        while not keys and (left := self._opened + _LINK_SETTLE - loop.time()) > 0:
-            if not (self._seeks or session.info.peers_zid() or session.info.routers_zid()):
-                break  # nobody to ask, nor being connected to: the answer is complete
+        while (left := again()) > 0:
             await asyncio.sleep(min(pause, left))
-            pause *= 2
+            pause = min(pause * 2, 0.05)
             keys = await self._tokens(session, loop, key_expr, timeout)
         return keys
 
