@@ -541,6 +541,7 @@ class UavApplication:
         ts = t / NS_PER_S
         wt = self.world_time(t)
         states: dict[str, dict[str, Any]] = {}
+        border = math.inf if self.area is None else self.world.areas[self.area].x1
         for wid in anch.members("WorldObject"):
             pos = self.dk.latest(f"wo/{wid}/pos").latest
             if pos is None:
@@ -557,6 +558,11 @@ class UavApplication:
             road = self.world.road_at(est[0], est[1])
             state = _state_dict(*est, None if colour is None else colour.value, road)
             obj = f"{self.prefix}_{wid}"
+            if obj in self.handovers and est[0] > border:
+                # past our border our camera sees it no more: the estimate is extrapolated
+                # from its last points (a lane change's sideways motion too) and could
+                # place it in front before it is. The neighbour's states tell from here.
+                continue
             states[obj] = state
             self._push(f"car/{obj}/state", state, t)
         self._feed_anchored(states, t, ts)
