@@ -22,6 +22,8 @@ from dyknow_core import (
     seconds_to_ns,
 )
 
+_EARLIEST = -(2**63)  # a subscription start before any valid time: the whole cache
+
 
 class Fusion(Process):
     """Publishes ``output``: every local sample, and imported ones where no local one is near.
@@ -33,6 +35,9 @@ class Fusion(Process):
     suppressed imported value into nothing or into a value of its own choosing:
     ``combine(local_value, imported_value) -> value | None`` is called with the nearest
     local sample, and a non-None result is emitted at the imported valid time.
+    With ``replay``, the imported samples already in the stream's cache are fused too (at
+    start, before the live ones): a fusion made once an import's first sample arrived
+    (`FederationPlatform.fuse`) does not miss that sample.
     """
 
     kind = "fusion"
@@ -48,12 +53,14 @@ class Fusion(Process):
         window: float,
         combine: Callable[[Any, Any], Any] | None = None,
         cache: CacheSpec | None = None,
+        replay: bool = False,
     ) -> None:
         super().__init__(name, instance)
         self.local_label = local
         self.imported_label = imported
         self.window = seconds_to_ns(window)
         self.combine = combine
+        self.replay = replay
         self.label = output
         self.output = instance.create_stream(output, cache=cache)
         self.local_emitted = 0
@@ -69,7 +76,12 @@ class Fusion(Process):
         dk = self.instance
         self._subs = [
             dk.subscribe(self.local_label, Policy(), callback=self._on_local),
-            dk.subscribe(self.imported_label, Policy(), callback=self._on_imported),
+            # a past start replays what the cache holds, then the live samples follow
+            dk.subscribe(
+                self.imported_label,
+                Policy(start=_EARLIEST) if self.replay else Policy(),
+                callback=self._on_imported,
+            ),
         ]
         dk.spawn(f"fusion[{self.name}].timer", self._timer())
 
@@ -178,8 +190,12 @@ def add_fusion(
     combine: Callable[[Any, Any], Any] | None = None,
     name: str | None = None,
     cache: CacheSpec | None = None,
+    replay: bool = False,
 ) -> Fusion:
-    """Add a fusion process: ``output`` = ``local`` plus ``imported`` where local is silent."""
+    """Add a fusion process: ``output`` = ``local`` plus ``imported`` where local is silent.
+
+    ``replay``: the imported samples already arrived are fused too (see `Fusion`).
+    """
     instance.stream(local)  # unknown labels fail before anything is created
     instance.stream(imported)
     fusion = Fusion(
@@ -191,6 +207,7 @@ def add_fusion(
         window=window,
         combine=combine,
         cache=cache,
+        replay=replay,
     )
     instance.add_process(fusion)
     fusion._start()

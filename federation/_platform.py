@@ -941,9 +941,14 @@ class FederationPlatform:
     ) -> Fusion:
         """Fuse our own ``semantic`` stream with ``sender``'s import, preferring ours.
 
-        Waits (at most ``timeout`` s) for the imported stream's first sample; ``output``
-        is a local label (see `add_fusion` for ``window`` and ``combine``).
+        Waits (at most ``timeout`` s) for the imported stream's first sample, which is
+        fused with the ones after it; ``output`` is a local label (see `add_fusion` for
+        ``window`` and ``combine``).
         """
         local = self.labels.to_local(semantic)
         imported = await self.imported(sender, semantic, timeout=timeout)
-        return add_fusion(self.instance, local, imported, output, window=window, combine=combine)
+        # what arrived while we waited (the first sample at least) is fused too: left out,
+        # the first fused sample of a 0.5 s stream would come a period later than need be
+        return add_fusion(
+            self.instance, local, imported, output, window=window, combine=combine, replay=True
+        )

@@ -67,7 +67,7 @@ from agents.transports import (
     ZenohTransport,
     free_tcp_port,
 )
-from dyknow_core import NS_PER_S, DyKnowInstance, Sample, Source
+from dyknow_core import NS_PER_S, DyKnowInstance, Policy, Sample, Source
 from dyknow_core import Subscription as StreamSubscription
 from federation import (
     FEDERATION_SERVICE_TYPE,
@@ -427,8 +427,8 @@ async def step_stream_and_fusion(scene: Scene) -> None:
     assert await b.imported("uav-a", "car5-state", timeout=WAIT) == label
     scene.timings["first-import"] = time.monotonic() - t
     # Nothing suspends between these three lines: the fusion and the subscription see
-    # the same imported samples.
-    imports = dk.subscribe(label)
+    # the same imported samples, those that arrived already included (the fusion's too).
+    imports = dk.subscribe(label, Policy(start=0))
     fusion = await b.fuse("car5-state", "uav-a", "fused/car5/state", window=WINDOW)
     fused = dk.subscribe("fused/car5/state")
 

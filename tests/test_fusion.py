@@ -64,6 +64,26 @@ async def test_combine_merges_instead_of_suppressing() -> None:
         assert [s.value for s in got] == [10.0, 15.0]
 
 
+async def test_a_replaying_fusion_fuses_the_imported_samples_that_came_before_it() -> None:
+    # platform.fuse makes the fusion once the import's first sample arrived: not lost
+    clock = ManualClock()
+    async with DyKnowInstance(clock=clock) as dk:
+        dk.add_source("l")
+        imported = dk.add_source("i")
+        clock.set(1 * S)
+        imported.push("remote@1", 1 * S)
+        add_fusion(dk, "l", "i", "late", window=0.5)
+        fusion = add_fusion(dk, "l", "i", "o", window=0.5, replay=True)
+        out = dk.subscribe("o")
+        clock.set(2 * S)
+        imported.push("remote@2", 2 * S)
+        clock.set(3 * S)
+        got = await drain(out, 2)
+        assert [s.value for s in got] == ["remote@1", "remote@2"]
+        assert fusion.imported_emitted == 2
+        assert dk.latest("late").latest.value == "remote@2"  # without replay: from now on
+
+
 async def test_unknown_labels_are_refused_before_anything_is_created() -> None:
     async with DyKnowInstance(clock=ManualClock()) as dk:
         dk.add_source("l")
