@@ -322,16 +322,18 @@ async def stream_through_node(
     }
     seen = 0
     lines = via_node(PlatformConfig.load(config_path), request)
-    stopping = asyncio.ensure_future(stop.wait())
-    nxt: asyncio.Future[dict[str, Any]] | None = None
+
+    async def next_line() -> dict[str, Any]:
+        return await anext(lines)
+
+    loop = asyncio.get_running_loop()
+    stopping = loop.create_task(stop.wait(), name="stream.stop")
+    nxt: asyncio.Task[dict[str, Any]] | None = None
     try:
         while True:
-            nxt = asyncio.ensure_future(anext(lines))
+            nxt = loop.create_task(next_line(), name="stream.next")
             done, _ = await asyncio.wait([nxt, stopping], return_when=asyncio.FIRST_COMPLETED)
             if nxt not in done:
-                nxt.cancel()
-                with contextlib.suppress(BaseException):
-                    await nxt
                 return seen
             try:
                 line = nxt.result()
@@ -347,11 +349,14 @@ async def stream_through_node(
             emit(label, value, valid, available)
             seen += 1
     finally:
-        stopping.cancel()
-        if nxt is not None and not nxt.done():
-            # cancelled while reading: the generator cannot be closed while it still runs
-            nxt.cancel()
-            await asyncio.wait([nxt])
+        # both waits end here, whatever ended the loop; a read cut short must have ended
+        # before the generator can be closed (it cannot be while it still runs)
+        waits = [stopping] if nxt is None else [stopping, nxt]
+        for w in waits:
+            w.cancel()
+        await asyncio.wait(waits)
+        if nxt is not None and not nxt.cancelled():
+            nxt.exception()  # retrieved: what a read cut short raised is no failure
         await lines.aclose()
 
 

@@ -322,6 +322,29 @@ async def test_handler_error_becomes_error_reply(net: Net) -> None:
     assert b"boom: cannot answer" in replies[0].payload
 
 
+async def test_a_memory_query_leaves_no_handler_running() -> None:
+    # the query owns its handlers' tasks: the late ones end with it, and all of them
+    # when it is cancelled
+    hub = MemoryHub()
+    async with hub.transport() as s, hub.transport() as q:
+
+        async def stuck(key: str, payload: bytes) -> bytes:
+            await asyncio.Event().wait()
+            return b"never"
+
+        await s.serve("test/stuck", stuck)
+        before = asyncio.all_tasks()
+        assert await q.query("test/stuck", timeout=0.05) == []
+        assert asyncio.all_tasks() == before
+        asking = asyncio.create_task(q.query("test/stuck", timeout=60))
+        await asyncio.sleep(0.01)
+        names = {t.get_name() for t in asyncio.all_tasks()}
+        assert "memory.query[test/stuck].test/stuck" in names
+        asking.cancel()
+        await asyncio.wait([asking])
+        assert asyncio.all_tasks() == before
+
+
 async def test_handler_may_not_reply(net: Net) -> None:
     s, q = await net.open(), await net.open()
 

@@ -646,7 +646,9 @@ class ZenohTransport(Transport):
                         query = await queries.get()
                     except TransportClosed:
                         break
-                    answers.create_task(self._answer(key_expr, handler, query))
+                    answers.create_task(
+                        self._answer(key_expr, handler, query), name=f"zenoh.answer[{key_expr}]"
+                    )
         finally:
             # Queries still queued when the transport closes: tell their queriers now
             # rather than leaving them to their timeout.
