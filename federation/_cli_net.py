@@ -6,7 +6,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import re
 import signal
 import time
 import uuid
@@ -34,23 +33,6 @@ if TYPE_CHECKING:
     from ._local import LocalChannel
 
 log = logging.getLogger(__name__)
-
-_RELATIVE = re.compile(r"^-(\d+(?:\.\d+)?)(ms|s|m|h)?$")
-_UNITS = {"ms": 0.001, "s": 1.0, "m": 60.0, "h": 3600.0, None: 1.0}
-
-
-def parse_time(text: str) -> tuple[float, bool]:
-    """``now``, ``-90s``/``-2m``/``-1h``/``-500ms`` (relative) or seconds: ``(value, relative)``."""
-    text = text.strip()
-    if text == "now":
-        return 0.0, True
-    m = _RELATIVE.match(text)
-    if m:
-        return -float(m.group(1)) * _UNITS[m.group(2)], True
-    try:
-        return float(text), False
-    except ValueError:
-        raise ValueError(f"{text!r} is not a time (seconds, 'now' or e.g. -90s, -2m)") from None
 
 
 def _stop_event() -> asyncio.Event:
