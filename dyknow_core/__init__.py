@@ -6,6 +6,7 @@ that the core does not import: ``dyknow_core.reasoning`` (MTL, chronicles, ancho
 refinement) and ``dyknow_core.kpl`` (the declarative application language).
 """
 
+from ._aio import sleep_until_woken
 from ._cache import Cache
 from ._events import ChangeEvent, EventProcess, add_arrival_events, add_change_events
 from ._exceptions import (
@@ -136,5 +137,6 @@ __all__ = [
     "replay",
     "sample_json",
     "seconds_to_ns",
+    "sleep_until_woken",
     "topic_label",
 ]

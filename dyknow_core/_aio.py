@@ -67,11 +67,17 @@ async def sleep_until_woken(clock: Clock, deadline: int | None, wake: asyncio.Ev
     For timers whose next deadline may move earlier while they sleep: whoever moves it
     sets ``wake`` (the timer clears it before reading its deadline).
     """
-    waits: set[asyncio.Future[Any]] = {asyncio.ensure_future(wake.wait())}
+    loop = asyncio.get_running_loop()
+    me = asyncio.current_task()
+    owner = "sleep_until_woken" if me is None else me.get_name()
+    waits: set[asyncio.Task[Any]] = {loop.create_task(wake.wait(), name=f"{owner}.wake")}
     if deadline is not None:
-        waits.add(asyncio.ensure_future(clock.sleep_until(deadline)))
+        sleeping = clock.sleep_until(deadline)
+        waits.add(loop.create_task(sleeping, name=f"{owner}.deadline"))
     try:
         await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
     finally:
+        # both end here: none outlives this call
         for w in waits:
             w.cancel()
+        await asyncio.wait(waits)

@@ -6,7 +6,6 @@ import asyncio
 import contextlib
 import json
 import logging
-import re
 import signal
 import time
 import uuid
@@ -34,23 +33,6 @@ if TYPE_CHECKING:
     from ._local import LocalChannel
 
 log = logging.getLogger(__name__)
-
-_RELATIVE = re.compile(r"^-(\d+(?:\.\d+)?)(ms|s|m|h)?$")
-_UNITS = {"ms": 0.001, "s": 1.0, "m": 60.0, "h": 3600.0, None: 1.0}
-
-
-def parse_time(text: str) -> tuple[float, bool]:
-    """``now``, ``-90s``/``-2m``/``-1h``/``-500ms`` (relative) or seconds: ``(value, relative)``."""
-    text = text.strip()
-    if text == "now":
-        return 0.0, True
-    m = _RELATIVE.match(text)
-    if m:
-        return -float(m.group(1)) * _UNITS[m.group(2)], True
-    try:
-        return float(text), False
-    except ValueError:
-        raise ValueError(f"{text!r} is not a time (seconds, 'now' or e.g. -90s, -2m)") from None
 
 
 def _stop_event() -> asyncio.Event:
@@ -322,16 +304,18 @@ async def stream_through_node(
     }
     seen = 0
     lines = via_node(PlatformConfig.load(config_path), request)
-    stopping = asyncio.ensure_future(stop.wait())
-    nxt: asyncio.Future[dict[str, Any]] | None = None
+
+    async def next_line() -> dict[str, Any]:
+        return await anext(lines)
+
+    loop = asyncio.get_running_loop()
+    stopping = loop.create_task(stop.wait(), name="stream.stop")
+    nxt: asyncio.Task[dict[str, Any]] | None = None
     try:
         while True:
-            nxt = asyncio.ensure_future(anext(lines))
+            nxt = loop.create_task(next_line(), name="stream.next")
             done, _ = await asyncio.wait([nxt, stopping], return_when=asyncio.FIRST_COMPLETED)
             if nxt not in done:
-                nxt.cancel()
-                with contextlib.suppress(BaseException):
-                    await nxt
                 return seen
             try:
                 line = nxt.result()
@@ -347,11 +331,14 @@ async def stream_through_node(
             emit(label, value, valid, available)
             seen += 1
     finally:
-        stopping.cancel()
-        if nxt is not None and not nxt.done():
-            # cancelled while reading: the generator cannot be closed while it still runs
-            nxt.cancel()
-            await asyncio.wait([nxt])
+        # both waits end here, whatever ended the loop; a read cut short must have ended
+        # before the generator can be closed (it cannot be while it still runs)
+        waits = [stopping] if nxt is None else [stopping, nxt]
+        for w in waits:
+            w.cancel()
+        await asyncio.wait(waits)
+        if nxt is not None and not nxt.cancelled():
+            nxt.exception()  # retrieved: what a read cut short raised is no failure
         await lines.aclose()
 
 

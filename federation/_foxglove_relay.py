@@ -177,8 +177,9 @@ class FoxgloveRelay:
         self, ws: web.WebSocketResponse, inner: aiohttp.ClientWebSocketResponse[Any]
     ) -> None:
         """Copy frames both ways until one side closes; then close the other alike."""
-        up = asyncio.ensure_future(_pump(ws, inner))
-        down = asyncio.ensure_future(_pump(inner, ws))
+        loop = asyncio.get_running_loop()
+        up = loop.create_task(_pump(ws, inner), name="foxglove.relay.up")
+        down = loop.create_task(_pump(inner, ws), name="foxglove.relay.down")
         try:
             done, _ = await asyncio.wait((up, down), return_when=asyncio.FIRST_COMPLETED)
         finally:

@@ -20,6 +20,7 @@ from dyknow_core import (
     Sample,
     Subscription,
     seconds_to_ns,
+    sleep_until_woken,
 )
 
 _EARLIEST = -(2**63)  # a subscription start before any valid time: the whole cache
@@ -140,21 +141,14 @@ class Fusion(Process):
             self.imported_emitted += len(out)
 
     async def _timer(self) -> None:
+        """Decide when the first pending import's window has passed (or on new imports)."""
         clock = self.instance.clock
+        wake = self._wake
         while self.running:
-            if not self._pending:
-                self._wake.clear()
-                await self._wake.wait()
-                continue
-            due = self._pending[0][0]
-            sleeper = asyncio.ensure_future(clock.sleep_until(due + 1))
-            waker = asyncio.ensure_future(self._wake.wait())
-            try:
-                await asyncio.wait({sleeper, waker}, return_when=asyncio.FIRST_COMPLETED)
-            finally:
-                sleeper.cancel()
-                waker.cancel()
-            self._wake.clear()
+            wake.clear()
+            # strictly after the due time, as the core's timers wait: the window includes it
+            due = self._pending[0][0] + 1 if self._pending else None
+            await sleep_until_woken(clock, due, wake)
             try:
                 self._decide(clock.now())
             except Exception as exc:

@@ -242,24 +242,32 @@ class LocalChannel:
         self._handle = await self.platform.transport.serve(
             identity_key(config), who, admit=self._admit_who
         )
-        self._reports = asyncio.ensure_future(self._report_shed())
-        _private_dir(self.path.parent)
-        # Our name was not alive (refuse_duplicate): a socket left here is a dead node's.
-        with contextlib.suppress(FileNotFoundError):
-            self.path.unlink()
-        old = os.umask(0o177)
+        self._reports = asyncio.get_running_loop().create_task(
+            self._report_shed(), name=f"local[{config.name}].identity-shed"
+        )
         try:
-            self._server = await asyncio.start_unix_server(
-                self._serve, path=str(self.path), limit=_LINE
-            )
-        finally:
-            os.umask(old)
-        os.chmod(self.path, 0o600)
+            _private_dir(self.path.parent)
+            # Our name was not alive (refuse_duplicate): a socket left here is a dead node's.
+            with contextlib.suppress(FileNotFoundError):
+                self.path.unlink()
+            old = os.umask(0o177)
+            try:
+                self._server = await asyncio.start_unix_server(
+                    self._serve, path=str(self.path), limit=_LINE
+                )
+            finally:
+                os.umask(old)
+            os.chmod(self.path, 0o600)
+        except BaseException:
+            await self.__aexit__()  # not entered: what was set up ends here
+            raise
         return self
 
     async def __aexit__(self, *exc: object) -> None:
-        if self._reports is not None:
-            self._reports.cancel()
+        reports, self._reports = self._reports, None
+        if reports is not None:
+            reports.cancel()
+            await asyncio.wait([reports])
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(TimeoutError):  # a client still connected: do not wait

@@ -14,6 +14,7 @@ import contextlib
 import fnmatch
 import json
 import logging
+from collections.abc import AsyncIterator
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -145,11 +146,23 @@ class OutputRunner:
         async for _ in Ticker(_RESCAN):
             self._follow()
 
+    @contextlib.asynccontextmanager
+    async def _scanning(self) -> AsyncIterator[None]:
+        """Follow the streams that come to match while the body publishes; ends with it."""
+        name = f"output[{self.settings.title()}].scan"
+        scan = asyncio.get_running_loop().create_task(self._scan(), name=name)
+        try:
+            yield
+        finally:
+            scan.cancel()
+            await asyncio.wait([scan])  # (a cancellation of this task is not swallowed)
+            if not scan.cancelled():
+                scan.result()  # a scan that failed fails the output
+
     async def _run_mqtt(self, s: MqttOutput) -> None:
         import aiomqtt
 
-        scan = asyncio.create_task(self._scan())
-        try:
+        async with self._scanning():
             while True:  # reconnects: the broker may restart
                 try:
                     async with aiomqtt.Client(s.host, s.port) as client:
@@ -161,10 +174,6 @@ class OutputRunner:
                 except aiomqtt.MqttError as exc:
                     log.warning("output %s: %s; reconnecting in 1 s", s.title(), exc)
                     await asyncio.sleep(1.0)
-        finally:
-            scan.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await scan
 
     async def _run_zenoh(self, s: ZenohOutput, session: Any | None) -> None:
         import zenoh
@@ -180,16 +189,13 @@ class OutputRunner:
             cfg = ZenohConfig(mode="client", connect=s.connect).to_zenoh()
             own = session = await asyncio.to_thread(zenoh.open, cfg)
         assert session is not None
-        scan = asyncio.create_task(self._scan())
         try:
-            while True:
-                label, payload = await self._queue.get()
-                session.put(s.key.replace("{label}", label), payload)
-                self.published += 1
+            async with self._scanning():
+                while True:
+                    label, payload = await self._queue.get()
+                    session.put(s.key.replace("{label}", label), payload)
+                    self.published += 1
         finally:
-            scan.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await scan
             if own is not None:
                 await asyncio.to_thread(own.close)
 

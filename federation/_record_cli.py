@@ -253,7 +253,11 @@ async def _until_stopped(
     deadline = None if duration is None else started + duration
     shown = -1
     also = also or asyncio.Event()
-    waits = {asyncio.ensure_future(e.wait()) for e in (stop, rec.done, also)}
+    loop = asyncio.get_running_loop()
+    waits = {
+        loop.create_task(e.wait(), name=f"record.until[{what}]")
+        for what, e in (("stop", stop), ("done", rec.done), ("also", also))
+    }
     try:
         while not (stop.is_set() or rec.done.is_set() or also.is_set()):
             step = 1.0 if deadline is None else min(1.0, deadline - time.monotonic())
@@ -271,6 +275,7 @@ async def _until_stopped(
     finally:
         for w in waits:
             w.cancel()
+        await asyncio.wait(waits)  # none outlives this call
 
 
 # -- replay -------------------------------------------------------------------------------------

@@ -1242,7 +1242,7 @@ class FederationAgent(Agent):
         pending = set(providers)
         with self.conversation(conversation_id, peers=providers.values()) as conv:
             sends = {
-                platform: asyncio.ensure_future(
+                platform: loop.create_task(
                     conv.send(
                         self.message(
                             performative,
@@ -1255,18 +1255,18 @@ class FederationAgent(Agent):
                             reply_with=new_id("r"),
                             reply_by=time.time() + deadline,
                         )
-                    )
+                    ),
+                    name=f"global-request[{conversation_id}].send[{platform}]",
                 )
                 for platform, aid in providers.items()
             }
             # Concurrently: a platform slow to reach (a key exchange) holds up no other.
             try:
-                _, late = await asyncio.wait(sends.values(), timeout=deadline)
+                await asyncio.wait(sends.values(), timeout=deadline)
             finally:
                 for task in sends.values():
                     task.cancel()  # no-op for those done; none outlives this call
-            if late:
-                await asyncio.wait(late)
+                await asyncio.wait(sends.values())
             for platform, task in sends.items():
                 if task.cancelled():
                     reason = "unreachable: sending did not finish before the deadline"

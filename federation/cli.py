@@ -5,7 +5,7 @@ TOML config, ``--platform/-p`` the platform asked (or whose key it is), ``--json
 machine-readable output instead of text, ``--wait`` seconds to wait for the federation
 to be seen, ``--timeout`` seconds to wait for the asked platform's answer. Semantic
 labels are arguments. Times in text output are ISO 8601 with the local offset, durations
-seconds (``_cli_time``).
+seconds, and a time given to a command may be written the same way (``_cli_time``).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from agents import TransportError
 from agents import run as run_loop
 
 from ._cli_reasoning import kpl_app, monitor
-from ._cli_time import when, when_ns
+from ._cli_time import asked, parse_time, when, when_ns
 from ._platform import PlatformConfig, PlatformConfigError
 
 if TYPE_CHECKING:
@@ -426,17 +426,23 @@ def ask(
     label_names: LabelsArg,
     config: ConfigOpt,
     platform: PlatformOpt,
-    at: Annotated[str | None, typer.Option("--at", help="value at T (POSIX s, now, -10s)")] = None,
-    since: Annotated[
-        str | None, typer.Option("--from", help="trajectory from T (POSIX s, now, -2m)")
+    at: Annotated[
+        str | None,
+        typer.Option("--at", help="value at T (ISO 8601 with offset, POSIX s, now, -10s)"),
     ] = None,
-    until: Annotated[str | None, typer.Option("--to", help="trajectory until T")] = None,
+    since: Annotated[
+        str | None,
+        typer.Option("--from", help="trajectory from T (ISO 8601 with offset, POSIX s, now, -2m)"),
+    ] = None,
+    until: Annotated[
+        str | None, typer.Option("--to", help="trajectory until T (as --from)")
+    ] = None,
     as_json: JsonOpt = False,
     wait: WaitOpt = 3.0,
     timeout: TimeoutOpt = 10.0,
 ) -> None:
     """Latest value (default), value --at T, or samples --from T [--to T] of labels."""
-    from ._cli_net import ask_platform, dumps, parse_time
+    from ._cli_net import ask_platform, dumps
 
     _load(config)
     if at is not None and (since is not None or until is not None):
@@ -465,9 +471,15 @@ def ask(
     if as_json:
         _say(dumps(answer))
         return
-    table = _table(
-        f"{content['action']} from {platform}", "label", "query time", "value", "valid", "available"
-    )
+    title = content["action"]
+    rel = content.get("relative", False)
+    if "t" in content:
+        title += f" {asked(content['t'], rel)}"
+    elif title == "get-trajectory":
+        low = asked(content["from"], rel) if "from" in content else "the start"
+        high = asked(content["to"], rel) if "to" in content else "now"
+        title += f" {low} .. {high}"
+    table = _table(f"{title} from {platform}", "label", "query time", "value", "valid", "available")
     for label, result in answer.items():
         samples = result.get("samples", []) if isinstance(result, dict) else []
         qt = result.get("query_time") if isinstance(result, dict) else None

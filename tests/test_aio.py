@@ -193,9 +193,19 @@ async def test_sleep_until_woken_ends_at_the_deadline_or_when_woken() -> None:
     assert not sleeping.done()
     wake.set()
     await asyncio.wait_for(sleeping, 1.0)
-    pending = {t for t in asyncio.all_tasks() if t is not asyncio.current_task()}
+    assert asyncio.all_tasks() == {asyncio.current_task()}  # the waits it started ended
+
+
+async def test_sleep_until_woken_cancelled_leaves_no_task_of_its_own() -> None:
+    sleeping = asyncio.create_task(
+        sleep_until_woken(ManualClock(0), 100, asyncio.Event()), name="timer"
+    )
     await asyncio.sleep(0)
-    assert all(t.done() for t in pending)  # the waits it started are ended
+    waits = {t.get_name() for t in asyncio.all_tasks()} - {"timer"}
+    assert {"timer.wake", "timer.deadline"} <= waits  # named after the task that sleeps
+    sleeping.cancel()
+    await asyncio.wait([sleeping])
+    assert asyncio.all_tasks() == {asyncio.current_task()}
 
 
 # -- Inbox: the loop's thread is its own, not asyncio's private attribute ------------------------

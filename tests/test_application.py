@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import shutil
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from dyknow_core import DyKnowInstance
 from federation._inputs import ZenohInput, input_runner
+from federation._outputs import ZenohOutput, output_runner
 from federation.cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -112,6 +116,35 @@ async def test_messages_map_to_samples_and_bad_ones_are_counted() -> None:
         assert stats["received"] == 7 and stats["samples"] == 2
         assert stats["bad"] == {"bad-time": 1, "no-label-field": 2, "no-field": 2}
         assert runner.mapper.decode(b"\x81\xa1a\x01", "msgpack") == {"a": 1}
+
+
+async def test_an_output_stopped_leaves_no_task_of_its_own() -> None:
+    class Session:  # the node's zenoh session, as the output uses it
+        def __init__(self) -> None:
+            self.puts: list[tuple[str, bytes]] = []
+            self.put_once = asyncio.Event()
+
+        def put(self, key: str, payload: Any) -> None:
+            self.puts.append((key, payload))
+            self.put_once.set()
+
+    async with DyKnowInstance("t") as inst:
+        src = inst.add_source("wx/temp")
+        out = output_runner(ZenohOutput(kind="zenoh", key="out/{label}", labels=["wx/*"]), inst)
+        session = Session()
+        running = asyncio.create_task(out.run(session), name="output")
+        async with asyncio.timeout(5):
+            while not session.put_once.is_set():  # pushed until the output follows the stream
+                src.push(21.5)
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(session.put_once.wait(), 0.01)
+        assert session.puts[0][0] == "out/wx/temp"
+        names = {t.get_name() for t in asyncio.all_tasks()}
+        assert "output[zenoh out/{label}].scan" in names  # its rescan task, named
+        running.cancel()
+        await asyncio.wait([running])
+        # (the instance's own timer tasks come and go: only the output's are compared)
+        assert not [t for t in asyncio.all_tasks() if t.get_name().startswith("output")]
 
 
 def test_a_zenoh_input_on_an_mqtt_node_needs_its_own_connect(

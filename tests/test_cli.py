@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import stat
@@ -152,14 +153,36 @@ def test_monitor_and_kpl(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
 
 
 def test_parse_time() -> None:
-    from federation._cli_net import parse_time
+    from federation._cli_time import asked, parse_time, when
 
     assert parse_time("now") == (0.0, True)
     assert parse_time("-2m") == (-120.0, True)
     assert parse_time("-500ms") == (-0.5, True)
     assert parse_time("12.5") == (12.5, False)
-    with pytest.raises(ValueError):
+    # ISO 8601 with its offset, as the commands print times (or Z for UTC)
+    t = 1_795_768_205.25  # 2026-11-27T08:30:05.250Z
+    assert parse_time("2026-11-27T09:30:05.250+01:00") == (t, False)
+    assert parse_time("2026-11-27T08:30:05.25Z") == (t, False)
+    assert parse_time(when(t)) == (t, False)
+    assert asked(t, False) == when(t) and asked(-90.0, True) == "now - 90 s"
+    with pytest.raises(ValueError, match="ISO 8601 with its offset"):
         parse_time("yesterday")
+    with pytest.raises(ValueError, match="has no UTC offset: add one"):
+        parse_time("2026-11-27T09:30:05")
+
+
+def test_ask_refuses_a_time_it_cannot_read(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # refused before anything is asked: no platform runs here
+    configs = _write_federation(tmp_path, _free_port())
+    ask = ["ask", "heli-altitude", "--platform", "uav-a", "--config", str(configs["operator"])]
+    assert main([*ask, "--at", "2026-11-27T09:30:05"]) == 2
+    assert "dyknow ask: '2026-11-27T09:30:05' has no UTC offset" in capsys.readouterr().err
+    assert main([*ask, "--from", "noon"]) == 2
+    assert "'noon' is not a time (ISO 8601 with its offset" in capsys.readouterr().err
+    assert main([*ask, "--from", "2026-11-27T09:30:05Z", "--to", "now"]) == 2
+    assert "both be relative or both absolute" in capsys.readouterr().err
 
 
 def _kill(proc: subprocess.Popen[str]) -> None:
@@ -254,6 +277,25 @@ def test_labels_ask_stream_against_a_producer(tmp_path: Path) -> None:
         assert isinstance(latest, dict) and latest["heli-altitude"]["samples"][0][0] >= 100.0
         history = dyknow("ask", "heli-altitude", "--platform", "uav-a", "--from", "-1m")
         assert isinstance(history, dict) and len(history["heli-altitude"]["samples"]) >= 2
+        # --at in ISO 8601 with its offset, as the text output prints times
+        from federation._cli_time import when
+
+        at = when(time.time() - 0.05)
+        value = dyknow("ask", "heli-altitude", "--platform", "uav-a", "--at", at)
+        assert isinstance(value, dict) and value["heli-altitude"]["samples"][0][0] >= 100.0
+        text = subprocess.run(
+            [*cli, "ask", "heli-altitude", "--platform", "uav-a", "--at", at, *op[:2]],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env={**env, "COLUMNS": "200"},
+            timeout=20,
+        )
+        assert text.returncode == 0, text.stderr
+        assert f"get-value-at {at} from uav-a" in text.stdout
+        iso = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}[+-]\d\d:\d\d"
+        row = next(line for line in text.stdout.splitlines() if "heli-altitude" in line)
+        assert len(re.findall(iso, row)) == 3, row  # query time, valid, available
         out = dyknow("stream", "heli-altitude", "--platform", "uav-a", "--count", "2")
         rows = [json.loads(line) for line in str(out).splitlines()]
         assert len(rows) == 2 and all(r["label"] == "heli-altitude" for r in rows)

@@ -6,13 +6,15 @@ own key and the session the provider agreed with it) receives the stream and sen
 sealed, what an attacker would: a storm of reports claiming huge losses and asking for
 every range, again and again. The provider resends each sample at most once, within its
 history and the member's reported losses, at most RESEND_RATE requests a second; its
-counters match what it really resent, and its refusals are counted and audited.
+counters match what it really resent, and its refusals are counted and audited. Both
+sides then shut down in order, logging no failure.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import multiprocessing
 import uuid
 from collections.abc import Iterator
@@ -40,13 +42,33 @@ START = 30.0  # a spawned interpreter imports zenoh and pydantic: seconds when l
 WAIT = 15.0
 
 
+class _Failures(logging.Handler):
+    """The provider's records of something that failed, once it was told to stop."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.stopping = False
+        self.seen: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        if self.stopping and "failed" in record.getMessage():
+            self.seen.append(f"{record.name}: {record.getMessage()}")
+
+
 def provider_main(config: dict[str, Any], fed: str, keys: str, trust: str, conn: Any) -> None:
-    """The provider: exports ``car1-state`` to the member, 200 samples/s, history 50."""
-    asyncio.run(_provider(config, fed, Path(keys), Path(trust), conn))
+    """The provider: exports ``car1-state`` to the member, 200 samples/s, history 50.
+
+    Once stopped it sends what it logged as failed while shutting down (nothing, in order).
+    """
+    logging.basicConfig(level=logging.WARNING)  # its warnings still shown on stderr
+    failures = _Failures()
+    logging.getLogger().addHandler(failures)
+    asyncio.run(_provider(config, fed, Path(keys), Path(trust), conn, failures))
+    conn.send({"failed at shutdown": failures.seen})
 
 
 async def _provider(
-    config: dict[str, Any], fed: str, keys: Path, trust: Path, conn: Connection
+    config: dict[str, Any], fed: str, keys: Path, trust: Path, conn: Connection, failures: _Failures
 ) -> None:
     channel = InterfaceAgent(KeyPair.load(keys / f"{PROVIDER}.key"), TrustStore.load(trust))
     async with (
@@ -69,11 +91,15 @@ async def _provider(
                 i += 1
                 await asyncio.sleep(0.005)
 
-        pf.spawn(produce(), "produce")
+        # the instance owns what pushes into it: it ends the producer as it closes its
+        # streams (owned by the platform, which closes after the instance, it would push
+        # into a closed stream and fail)
+        dk.spawn("produce", produce())
         conn.send("ready")
         while True:
             cmd = await asyncio.to_thread(conn.recv)
             if cmd == "stop":
+                failures.stopping = True
                 return
             conn.send(
                 {
@@ -106,7 +132,7 @@ async def ask(conn: Connection, what: str) -> Any:
 
 
 async def test_a_storm_of_resend_requests_resends_each_sample_at_most_once(
-    tmp_path: Path,
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """Reports asking everything back, thousands of times: bounded resends, honest counters."""
     fed = f"rs-{uuid.uuid4().hex[:8]}"
@@ -218,6 +244,12 @@ async def test_a_storm_of_resend_requests_resends_each_sample_at_most_once(
             # the stream itself went on
             assert after["stats"]["active"] and fresh > before["stats"]["sent"] - HISTORY
             stream.close()
+            caplog.clear()
+        # an orderly shutdown, on both sides: nothing logged as failed
+        assert [r.getMessage() for r in caplog.records if "failed" in r.getMessage()] == []
+        here.send("stop")
+        report = await asyncio.to_thread(recv, here, "the provider's shutdown")
+        assert report == {"failed at shutdown": []}
     finally:
         with contextlib.suppress(OSError):
             here.send("stop")

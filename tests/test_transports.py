@@ -322,6 +322,29 @@ async def test_handler_error_becomes_error_reply(net: Net) -> None:
     assert b"boom: cannot answer" in replies[0].payload
 
 
+async def test_a_memory_query_leaves_no_handler_running() -> None:
+    # the query owns its handlers' tasks: the late ones end with it, and all of them
+    # when it is cancelled
+    hub = MemoryHub()
+    async with hub.transport() as s, hub.transport() as q:
+
+        async def stuck(key: str, payload: bytes) -> bytes:
+            await asyncio.Event().wait()
+            return b"never"
+
+        await s.serve("test/stuck", stuck)
+        before = asyncio.all_tasks()
+        assert await q.query("test/stuck", timeout=0.05) == []
+        assert asyncio.all_tasks() == before
+        asking = asyncio.create_task(q.query("test/stuck", timeout=60))
+        await asyncio.sleep(0.01)
+        names = {t.get_name() for t in asyncio.all_tasks()}
+        assert "memory.query[test/stuck].test/stuck" in names
+        asking.cancel()
+        await asyncio.wait([asking])
+        assert asyncio.all_tasks() == before
+
+
 async def test_handler_may_not_reply(net: Net) -> None:
     s, q = await net.open(), await net.open()
 
@@ -582,3 +605,23 @@ def test_zenoh_config_keeps_the_listen_endpoints_of_its_json5_file() -> None:
     assert json.loads(flags.get_json("listen/endpoints")) == ["tcp/127.0.0.1:18000"]
     default = ZenohConfig(mode="peer").to_zenoh()
     assert json.loads(default.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+
+
+def test_zenoh_reach_is_read_from_the_config_once() -> None:
+    # whether a session seeks peers, and how many links its connect endpoints make: what
+    # `tokens` waits for, read at open from the one zenoh.Config
+    from agents.transports._zenoh import _reach
+
+    def reach(**fields: Any) -> tuple[bool, int]:
+        return _reach(ZenohConfig(**fields).to_zenoh())
+
+    alone = {"listen": ("tcp/127.0.0.1:0",), "multicast_scouting": False}
+    two = ("tcp/127.0.0.1:7001", "tcp/127.0.0.1:7002")
+    assert reach(**alone) == (False, 0)
+    assert reach(**{**alone, "multicast_scouting": True}) == (True, 0)
+    assert reach(**alone, connect=two) == (True, 2)  # a peer links to each
+    assert reach(mode="client", connect=two) == (True, 1)  # a client to one router
+    import zenoh  # a config of zenoh's own may give the endpoints per mode
+
+    per_mode = '{mode: "peer", connect: {endpoints: {peer: ["tcp/127.0.0.1:7001"], client: []}}}'
+    assert _reach(zenoh.Config.from_json5(per_mode)) == (True, 1)

@@ -20,6 +20,10 @@ from ._base import (
 )
 
 
+async def _ask(handler: QueryHandler, key_expr: str, payload: bytes) -> bytes | None:
+    return await handler(key_expr, payload)
+
+
 class MemoryHub:
     """What connects in-memory transports: the same hub is the same network."""
 
@@ -110,10 +114,18 @@ class MemoryTransport(Transport):
         ]
         if not targets:
             return []
-        tasks = [asyncio.ensure_future(h(key_expr, payload)) for _, h in targets]
-        done, pending = await asyncio.wait(tasks, timeout=timeout)
-        for t in pending:
-            t.cancel()
+        loop = asyncio.get_running_loop()
+        tasks = [
+            loop.create_task(_ask(h, key_expr, payload), name=f"memory.query[{key_expr}].{e}")
+            for e, h in targets
+        ]
+        try:
+            done, _ = await asyncio.wait(tasks, timeout=timeout)
+        finally:
+            # the handlers late (or all, when this query is cancelled) end with it
+            for t in tasks:
+                t.cancel()
+            await asyncio.wait(tasks)
         replies = []
         for (expr, _), t in zip(targets, tasks, strict=True):
             if t not in done:

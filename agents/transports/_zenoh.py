@@ -338,33 +338,38 @@ def _listens(json5: str | None, cfg: zenoh.Config) -> bool:
     return isinstance(endpoints, list) and bool(endpoints)
 
 
-def _seeks(cfg: zenoh.Config) -> bool:
-    """Whether a session of ``cfg`` connects to endpoints or scouts for peers by multicast."""
+_UNREAD: Any = object()  # a setting of a zenoh.Config that could not be read
+
+
+def _setting(cfg: zenoh.Config, path: str) -> Any:
+    """The setting at ``path`` of ``cfg``, or ``_UNREAD``."""
     try:
-        connect = json.loads(cfg.get_json("connect/endpoints"))
-        multicast = json.loads(cfg.get_json("scouting/multicast/enabled"))
+        return json.loads(cfg.get_json(path))
     except (zenoh.ZError, ValueError):
-        return True
-    if isinstance(connect, dict):  # per mode
-        connect = [e for endpoints in connect.values() for e in endpoints or ()]
-    return bool(connect) or multicast is not False
+        return _UNREAD
 
 
-def _links_wanted(cfg: zenoh.Config) -> int:
-    """The links a session of ``cfg`` makes to its ``connect`` endpoints once they are up.
+def _reach(cfg: zenoh.Config) -> tuple[bool, int]:
+    """Whether a session of ``cfg`` seeks peers or routers, and the links it makes once up.
 
-    A peer or a router links to each; a client to one router of them.
+    It seeks them when it connects to endpoints or scouts by multicast (or when that
+    cannot be read). The links are those to its ``connect`` endpoints: a peer or a
+    router links to each, a client to one router of them. Each setting is read once.
     """
-    try:
-        connect = json.loads(cfg.get_json("connect/endpoints"))
-        mode = json.loads(cfg.get_json("mode"))
-    except (zenoh.ZError, ValueError):
-        return 0
+    connect = _setting(cfg, "connect/endpoints")
+    multicast = _setting(cfg, "scouting/multicast/enabled")
+    mode = _setting(cfg, "mode")
+    if connect is _UNREAD:
+        return True, 0
     if isinstance(connect, dict):  # per mode
-        connect = connect.get(mode) or ()
-    if not isinstance(connect, list):
-        return 0
-    return min(len(connect), 1) if mode == "client" else len(connect)
+        anywhere = [e for endpoints in connect.values() for e in endpoints or ()]
+        connect = None if mode is _UNREAD else connect.get(mode) or ()
+    else:
+        anywhere = connect
+    seeks = bool(anywhere) or multicast is not False  # (unread: not False)
+    if mode is _UNREAD or not isinstance(connect, list):
+        return seeks, 0
+    return seeks, min(len(connect), 1) if mode == "client" else len(connect)
 
 
 @contextlib.contextmanager
@@ -419,8 +424,7 @@ class ZenohTransport(Transport):
             raise
         self._loop = loop
         self._opened = loop.time()
-        self._seeks = _seeks(cfg)
-        self._links_wanted = _links_wanted(cfg)
+        self._seeks, self._links_wanted = _reach(cfg)
         self._session = session
         _OPEN_SESSIONS[id(session)] = session
         await self._start_tasks()
@@ -646,7 +650,9 @@ class ZenohTransport(Transport):
                         query = await queries.get()
                     except TransportClosed:
                         break
-                    answers.create_task(self._answer(key_expr, handler, query))
+                    answers.create_task(
+                        self._answer(key_expr, handler, query), name=f"zenoh.answer[{key_expr}]"
+                    )
         finally:
             # Queries still queued when the transport closes: tell their queriers now
             # rather than leaving them to their timeout.

@@ -738,7 +738,8 @@ def _dumps(data: Any, **options: Any) -> str:
 
 async def _first(*aws: Coroutine[Any, Any, Any], timeout: float) -> None:
     """Wait until the first of ``aws`` is done, or ``timeout`` s; cancel the rest."""
-    tasks = [asyncio.ensure_future(a) for a in aws]
+    loop = asyncio.get_running_loop()
+    tasks = [loop.create_task(a, name=f"console.first[{i}]") for i, a in enumerate(aws)]
     try:
         await asyncio.wait(tasks, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
     finally:
