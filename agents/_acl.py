@@ -184,10 +184,48 @@ class ACLMessage(BaseModel):
 
     def to_json(self) -> bytes:
         """The message as compact JSON bytes, leaving out unset fields."""
+        fields = self.__dict__
         try:
             # the fields are already valid JSON values (content is validated as JsonValue,
             # performative is a str enum): dumping __dict__ skips pydantic's serializer
-            return orjson.dumps({k: v for k, v in self.__dict__.items() if v is not None})
+            # __dict__ holds every field in the model's order (as pydantic, its
+            # model_construct and `_constructed` make it): the dict of those not None is
+            # put together below without a loop, which is cheaper. Only unvalidated
+            # messages (model_construct) can lack a field or leave a required one None.
+            v = fields.get("v")
+            performative = fields.get("performative")
+            sender = fields.get("sender")
+            receivers = fields.get("receivers")
+            if (
+                len(fields) != _N_FIELDS
+                or v is None
+                or performative is None
+                or sender is None
+                or receivers is None
+            ):
+                return orjson.dumps({k: v for k, v in fields.items() if v is not None})
+            wire = {"v": v, "performative": performative, "sender": sender, "receivers": receivers}
+            if (value := fields["reply_to"]) is not None:
+                wire["reply_to"] = value
+            if (value := fields["content"]) is not None:
+                wire["content"] = value
+            if (value := fields["language"]) is not None:
+                wire["language"] = value
+            if (value := fields["encoding"]) is not None:
+                wire["encoding"] = value
+            if (value := fields["ontology"]) is not None:
+                wire["ontology"] = value
+            if (value := fields["protocol"]) is not None:
+                wire["protocol"] = value
+            if (value := fields["conversation_id"]) is not None:
+                wire["conversation_id"] = value
+            if (value := fields["reply_with"]) is not None:
+                wire["reply_with"] = value
+            if (value := fields["in_reply_to"]) is not None:
+                wire["in_reply_to"] = value
+            if (value := fields["reply_by"]) is not None:
+                wire["reply_by"] = value
+            return orjson.dumps(wire)
         except orjson.JSONEncodeError as exc:  # e.g. an int beyond 64 bits: valid here, not JSON
             raise MessageError(f"content cannot be sent as JSON: {exc}") from exc
 
@@ -332,11 +370,12 @@ def _json_copy(value: Any, depth: int) -> Any:
         raise _NotPlain
     # scalars inside are taken as they are, without a call each
     if kind is dict:
-        out = {}
-        for key, item in value.items():
+        out = value.copy()  # in C; a value not scalar is replaced by its copy below
+        for key, item in out.items():
             if type(key) is not str:
                 raise _NotPlain
-            out[key] = item if type(item) in _JSON_SCALARS else _json_copy(item, depth + 1)
+            if type(item) not in _JSON_SCALARS:
+                out[key] = _json_copy(item, depth + 1)  # the same key: the dict keeps its size
         return out
     if kind is list:
         return [
@@ -409,6 +448,63 @@ def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
     fields["receivers"] = receivers
     fields["reply_to"] = reply_to
     return fields
+
+
+_OPTIONAL_STR_SET = frozenset(_OPTIONAL_STR)
+
+
+def compose(
+    performative: Any, sender: str, receivers: Any, content: Any, fields: dict[str, Any]
+) -> ACLMessage:
+    """``ACLMessage.build`` of an agent's message: receivers one identifier or an iterable.
+
+    What agents send is nearly always made of fields that are already of their exact
+    type (a Performative, identifiers met before, a plain JSON content, optional str
+    fields): those are checked here, at the cost of a few lookups, and the message put
+    together directly, in the model's order of fields and with the fields_set `build`
+    gives it. Anything else goes to `build`, which decides as before (same errors).
+    """
+    receivers = [receivers] if isinstance(receivers, str) else list(receivers)
+    act = _PERFORMATIVES.get(performative) if type(performative) is str else performative
+    if _plain_message(act, sender, receivers, fields):
+        try:
+            copied = _json_copy(content, 0)
+        except _NotPlain:
+            pass
+        else:
+            message = _DEFAULTS.copy()  # every field, in the model's order
+            message["performative"] = act
+            message["sender"] = sender
+            message["receivers"] = receivers
+            message["content"] = copied
+            names = {"performative", "sender", "receivers", "content"}
+            if fields:
+                message.update(fields)
+                names.update(fields)
+            return _constructed(ACLMessage, message, names)
+    return ACLMessage.build(
+        performative=performative,
+        sender=sender,
+        receivers=receivers,
+        content=content,
+        **fields,
+    )
+
+
+def _plain_message(act: Any, sender: Any, receivers: list[Any], fields: dict[str, Any]) -> bool:
+    """Whether `compose` may put these fields together without `build`'s checks."""
+    if type(act) is not Performative or type(sender) is not str or not receivers:
+        return False
+    known = _known_aids
+    if sender not in known and not _valid_aid(sender):
+        return False
+    for aid in receivers:
+        if type(aid) is not str or (aid not in known and not _valid_aid(aid)):
+            return False
+    for name, value in fields.items():
+        if name not in _OPTIONAL_STR_SET or (value is not None and type(value) is not str):
+            return False
+    return True
 
 
 _N_FIELDS = len(_FIELDS)

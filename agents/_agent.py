@@ -31,7 +31,7 @@ from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
-from ._acl import ACLMessage, Performative, agent_id, new_id
+from ._acl import ACLMessage, Performative, agent_id, compose, new_id
 from ._aio import Mailbox
 from ._exceptions import AgentError
 
@@ -601,13 +601,7 @@ class Agent:
         **fields: Any,
     ) -> ACLMessage:
         """A new message from this agent (other ACL fields as keywords)."""
-        return ACLMessage.build(
-            performative=performative,
-            sender=self.aid,
-            receivers=[receivers] if isinstance(receivers, str) else list(receivers),
-            content=content,
-            **fields,
-        )
+        return compose(performative, self.aid, receivers, content, fields)
 
     async def send(self, message: ACLMessage) -> None:
         """Send ``message`` (its sender must be this agent) to its receivers."""

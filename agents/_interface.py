@@ -519,19 +519,9 @@ class InterfaceAgent:
         its end and go together in one envelope, after it (so in order). A batch that
         cannot be sent then is logged and counted in ``batches_lost``.
         """
-        body = message.to_json()
-        pending = self._outbox.get(platform)
-        if pending is not None:  # the common case of a burst: no call but to_json
-            sizes = self._outbox_bytes
-            size = sizes[platform] + len(body) + 1
-            # the largest batch body: what a receiver reads at most (both sides' default)
-            if len(pending) >= MAX_BATCH or size > min(self.max_bytes, self.policy.max_body_bytes):
-                self._flush(platform, again=True)  # full: out now; the turn goes on batching
-                pending = self._outbox[platform]
-                size = 2 + len(body) + 1  # the brackets, this body and its comma, at most
-            pending.append(body)
-            sizes[platform] = size
+        if self.join_batch(platform, message):
             return
+        body = message.to_json()
         host = self._require_host()
         try:
             payload = self.sessions.seal(platform, body)
@@ -544,6 +534,29 @@ class InterfaceAgent:
             self._outbox[platform] = []
             self._outbox_bytes[platform] = 2
             (self._loop or asyncio.get_running_loop()).call_soon(self._flush, platform)
+
+    def join_batch(self, platform: str, message: ACLMessage) -> bool:
+        """Add ``message`` to the batch waiting for ``platform`` in this turn; False if none.
+
+        What `send` does with a message that follows another in the same turn of the
+        loop, without a coroutine: a platform sending in a burst calls it first, and
+        `send` only when it says False.
+        """
+        pending = self._outbox.get(platform)
+        if pending is None:
+            return False
+        body = message.to_json()
+        sizes = self._outbox_bytes
+        size = sizes[platform] + len(body) + 1
+        # the largest batch body: what a receiver reads at most (both sides' default)
+        # (two comparisons rather than min(): ~0.1 µs a message less)
+        if len(pending) >= MAX_BATCH or size > self.max_bytes or size > self.policy.max_body_bytes:
+            self._flush(platform, again=True)  # full: out now; the turn goes on batching
+            pending = self._outbox[platform]
+            size = 2 + len(body) + 1  # the brackets, this body and its comma, at most
+        pending.append(body)
+        sizes[platform] = size
+        return True
 
     def _flush(self, platform: str, again: bool = False) -> None:
         """Seal what waits for ``platform`` in one envelope and publish it (a loop callback).

@@ -30,6 +30,7 @@ from agents import (
     on,
     platform_of,
 )
+from agents._acl import compose
 
 P = Performative
 BASE: dict[str, Any] = {"performative": "inform", "sender": "a@uav-a", "receivers": ["b@uav-b"]}
@@ -505,3 +506,128 @@ def test_the_quick_parse_leaves_deep_content_to_pydantic(depth: int) -> None:
         return
     assert ACLMessage.from_json(data) == slow
     assert ACLMessage.from_parsed(orjson.loads(data)) == slow
+
+
+# -- what agents send: Agent.message without build's general checks, to_json without a loop ----
+
+
+def _as_build_made_it(
+    performative: Any, sender: Any, receivers: Any, content: Any, fields: dict[str, Any]
+) -> ACLMessage:
+    """Agent.message as it was: every field through `ACLMessage.build`."""
+    return ACLMessage.build(
+        performative=performative,
+        sender=sender,
+        receivers=[receivers] if isinstance(receivers, str) else list(receivers),
+        content=content,
+        **fields,
+    )
+
+
+def _outcome(make: Any) -> tuple[str, Any]:
+    try:
+        return "ok", make()
+    except Exception as exc:  # the type and the words the caller sees
+        return type(exc).__name__, str(exc)
+
+
+_str_field = st.none() | st.text(max_size=3) | _json
+_agent_fields = {
+    **{name: _str_field for name in ("language", "encoding", "protocol", "in_reply_to")},
+    **{
+        name: _field_values[name]
+        for name in ("ontology", "conversation_id", "reply_with", "reply_to", "reply_by", "v")
+    },
+    "surprise": _json,
+    "sender": _aid,  # a keyword Agent.message already sets
+}
+
+
+@st.composite
+def _composed(draw: st.DrawFn) -> tuple[Any, ...]:
+    performative = draw(
+        st.sampled_from([Performative.INFORM, Performative.REQUEST, "inform", "shout", "INFORM"])
+        | _json
+    )
+    sender = draw(_aid)
+    receivers = draw(
+        _aid | st.lists(_aid, max_size=3) | st.tuples(_aid) | st.integers() | st.none()
+    )
+    names = draw(st.sets(st.sampled_from(sorted(_agent_fields)), max_size=3))
+    fields = {name: draw(_agent_fields[name]) for name in names}
+    return performative, sender, receivers, draw(_python_content), fields
+
+
+@settings(max_examples=500, deadline=None)
+@given(_composed())
+def test_an_agents_message_is_the_message_build_makes(args: tuple[Any, ...]) -> None:
+    """compose (Agent.message): the same message as build, or the same error."""
+    performative, sender, receivers, content, fields = args
+    old = _outcome(lambda: _as_build_made_it(*args))
+    new = _outcome(lambda: compose(performative, sender, receivers, content, dict(fields)))
+    if old[0] != "ok":
+        assert new == old
+        return
+    assert new[0] == "ok"
+    quick, slow = new[1], old[1]
+    assert repr(quick) == repr(slow)  # repr: NaN in content is not equal to itself
+    assert list(quick.__dict__) == list(slow.__dict__)
+    assert quick.model_fields_set == slow.model_fields_set
+    assert type(quick.performative) is Performative
+    # on the wire: the bytes the old path (build, then to_json's loop) wrote
+    assert _outcome(quick.to_json) == _outcome(lambda: _old_to_json(slow))
+    if isinstance(content, list | dict):
+        assert quick.content is not content  # copied: changing it later changes no message
+
+
+async def test_an_agent_not_on_a_platform_cannot_make_a_message() -> None:
+    agent = Agent("loose")  # its identifier is no name@platform yet
+    with pytest.raises(ValidationError):
+        agent.message(P.INFORM, "b@q", {"x": 1})
+
+
+def _old_to_json(message: ACLMessage) -> bytes:
+    """to_json as it was: the fields not None, found by a loop over __dict__."""
+    try:
+        return orjson.dumps({k: v for k, v in message.__dict__.items() if v is not None})
+    except orjson.JSONEncodeError as exc:
+        raise MessageError(f"content cannot be sent as JSON: {exc}") from exc
+
+
+@st.composite
+def _any_message(draw: st.DrawFn) -> ACLMessage:
+    names = draw(st.sets(st.sampled_from(sorted(_every_field))))
+    kw = {name: draw(_every_field[name]) for name in names}
+    kind = draw(st.sampled_from(["validated", "construct", "copy"]))
+    if kind == "construct":  # unvalidated: fields may lack, or be None where required
+        return ACLMessage.model_construct(**kw)
+    base = {"performative": "inform", "sender": "a@p", "receivers": ["b@q"]}
+    try:
+        message = ACLMessage(**{**base, **kw})
+    except ValidationError:
+        message = ACLMessage(**base, content=kw.get("content"))
+    if kind == "copy":
+        message = message.model_copy(update=kw)
+    return message
+
+
+# every field (and one that is none)
+_every_field = {**_agent_fields, **_field_values}
+
+
+@settings(max_examples=500, deadline=None)
+@given(_any_message())
+def test_to_json_writes_the_bytes_it_wrote(message: ACLMessage) -> None:
+    """The same bytes, or the same error, as before; pydantic's own dump agrees."""
+    assert _outcome(message.to_json) == _outcome(lambda: _old_to_json(message))
+    if list(message.__dict__) != list(ACLMessage.model_fields):
+        return  # a copy updated with a name that is no field: pydantic's dump leaves it out
+    try:
+        ours = orjson.loads(message.to_json())
+        theirs = orjson.loads(message.model_dump_json(warnings=False))
+    except (MessageError, ValueError):
+        return  # not JSON (a Python int past 64 bits, …), or not dumpable by pydantic
+    # (a non-finite float, only in a model_construct, is written null by both)
+    assert {k: v for k, v in ours.items() if v is not None} == {
+        k: v for k, v in theirs.items() if v is not None
+    }

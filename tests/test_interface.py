@@ -24,6 +24,7 @@ from agents import (
     ACLMessage,
     Agent,
     AgentPlatform,
+    MessageError,
     MessageTemplate,
     Performative,
     Refused,
@@ -695,6 +696,27 @@ async def test_a_burst_goes_in_batches_each_message_checked_and_audited() -> Non
             "three malformed batches",
         )
         assert await request(asker, "echo@uav-b", 2, ontology="demo")
+
+
+async def test_a_message_that_is_no_json_is_refused_at_send_in_a_burst_too() -> None:
+    """First of its turn or joining the batch: MessageError where it is sent; the rest go."""
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        asker, echo = pair.asker, pair.echo
+        # (each round starts a turn of the loop: its first message goes alone, the
+        # others join the batch)
+        for position in (0, 1, 5):
+            echo.informs.clear()
+            for i in range(8):
+                content = 2**70 if i == position else {"i": i}  # a Python int, not JSON
+                message = asker.message(Performative.INFORM, "echo@uav-b", content, ontology="demo")
+                if i == position:
+                    with pytest.raises(MessageError, match="cannot be sent as JSON"):
+                        await asker.send(message)
+                else:
+                    await asker.send(message)
+            await until(lambda: len(echo.informs) == 7, "the 7 good informs")
+            assert [m.content["i"] for m in echo.informs] == [i for i in range(8) if i != position]
 
 
 async def test_batches_are_rate_limited_message_by_message() -> None:
