@@ -23,7 +23,7 @@ from ._agent import (
     on,
     reason_of,
 )
-from ._aio import Mailbox, Ticker, event_loop_name, run
+from ._aio import Mailbox, Pending, Ticker, event_loop_name, run
 from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
@@ -134,6 +134,7 @@ __all__ = [
     "MessageTemplate",
     "Misdirected",
     "NotUnderstood",
+    "Pending",
     "Performative",
     "PlainChannel",
     "PlatformStats",

@@ -2,14 +2,17 @@
 
 `Mailbox`: a bounded queue whose one consumer waits for the next item up to a deadline.
 `Ticker`: the ticks of a periodic loop, on a fixed grid of loop time.
+`Pending`: a count other threads add to, taken by one task at most once per period.
 `run`: ``asyncio.run`` on uvloop when it is installed (what long-running processes use).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import os
+import threading
 from collections import deque
 from collections.abc import Coroutine
 from typing import Any, Generic, Self, TypeVar
@@ -173,6 +176,58 @@ class Ticker:
             await asyncio.sleep(due - now)
         self._due = due + period
         return due
+
+
+class Pending:
+    """A count any thread adds to, summed up by one task at most once per ``period`` s.
+
+    For a periodic report of what happened (queries shed, messages dropped) that has
+    nothing to say most of the time: ``n = await pending.take()`` sleeps while nothing
+    is pending, so an idle process does not wake for it. The first count after a quiet
+    spell is taken at once; what comes within ``period`` of a take is summed up into the
+    next one.
+    """
+
+    __slots__ = ("_event", "_lock", "_loop", "_n", "_next", "period")
+
+    def __init__(self, period: float) -> None:
+        self.period = _check_period(period)
+        self._lock = threading.Lock()
+        self._n = 0
+        self._loop: asyncio.AbstractEventLoop | None = None  # the taker's, once it waits
+        self._event = asyncio.Event()
+        self._next = -math.inf  # loop time the next take may return at
+
+    def add(self, n: int = 1) -> None:
+        """Count ``n`` more (from any thread); wakes the taking task if it sleeps."""
+        with self._lock:
+            self._n += n
+            first = self._n == n
+        loop = self._loop
+        if first and loop is not None:
+            with contextlib.suppress(RuntimeError):  # the loop is closed: nothing takes now
+                loop.call_soon_threadsafe(self._event.set)
+
+    async def take(self) -> int:
+        """Wait until something is pending and a period has passed since the last take."""
+        loop = self._loop = asyncio.get_running_loop()
+        while True:
+            with self._lock:
+                pending = self._n > 0
+            if pending:
+                break
+            self._event.clear()
+            with self._lock:  # an add between the check and the clear has set it again
+                pending = self._n > 0
+            if not pending:
+                await self._event.wait()
+        wait = self._next - loop.time()
+        if wait > 0:
+            await asyncio.sleep(wait)
+        with self._lock:
+            n, self._n = self._n, 0
+        self._next = loop.time() + self.period
+        return n
 
 
 def _check_period(period: float) -> float:

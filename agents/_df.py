@@ -37,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
 
 from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_of
 from ._agent import Agent
-from ._aio import Ticker
+from ._aio import Pending
 from ._bucket import TokenBucket
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
 from ._exceptions import ServiceError, TransportError
@@ -240,7 +240,7 @@ class DirectoryFacilitator(Agent):
         self._query_bucket = TokenBucket(DF_QUERY_RATE, DF_QUERY_RATE, time.monotonic())
         self.queries_shed = 0  # directory queries dropped unanswered, since start
         self.subscriptions_refused = 0  # subscribes of other platforms over their limit
-        self._shed_pending = 0  # since the last audit record
+        self._shed_pending = Pending(1.0)  # shed since the last audit record
 
     async def setup(self) -> None:
         """Serve this platform's public services to the global directory."""
@@ -255,14 +255,13 @@ class DirectoryFacilitator(Agent):
             if self._query_bucket.take(time.monotonic()):
                 return True
             self.queries_shed += 1
-            self._shed_pending += 1
-            return False
+        self._shed_pending.add()
+        return False
 
     async def _report_shed(self) -> None:
         """Audit the directory queries shed, summed up, at most once per second."""
-        async for _ in Ticker(1.0):
-            with self._query_lock:
-                n, self._shed_pending = self._shed_pending, 0
+        while True:
+            n = await self._shed_pending.take()  # asleep while nothing is shed
             if n:
                 self.platform.audit(
                     verdict="dropped",
@@ -592,7 +591,8 @@ class GlobalDirectory:
         self._platform = platform
         self.query_timeout = query_timeout
         # with a trust file: how often every member is asked again (None: never)
-        self.recheck_interval = recheck_interval
+        self._recheck_interval = recheck_interval
+        self._recheck_changed = asyncio.Event()  # the recheck task sleeps until due or this
         self._auth: DirectoryAuth = platform.directory_auth
         self._entries: dict[str, dict[tuple[str, str], ServiceDescription]] = {}
         self._alive: set[str] = set()
@@ -632,6 +632,16 @@ class GlobalDirectory:
             pinbox.close()
         self._watchers.clear()
         self._presence_watchers.clear()
+
+    @property
+    def recheck_interval(self) -> float | None:
+        """Seconds between asking every member again (None: never); may be changed live."""
+        return self._recheck_interval
+
+    @recheck_interval.setter
+    def recheck_interval(self, interval: float | None) -> None:
+        self._recheck_interval = interval
+        self._recheck_changed.set()  # the sleeping recheck task counts from the new interval
 
     @property
     def platforms(self) -> list[str]:
@@ -838,6 +848,15 @@ class GlobalDirectory:
                     continue
                 self._gone(platform)
 
+    async def _recheck_sleep(self, wait: float | None) -> None:
+        """Sleep ``wait`` s (None: for ever), or until the recheck interval is changed."""
+        self._recheck_changed.clear()
+        try:
+            async with asyncio.timeout(wait):
+                await self._recheck_changed.wait()
+        except TimeoutError:
+            pass
+
     async def _recheck(self) -> None:
         """Ask every member again now and then: the liveness presence alone cannot prove.
 
@@ -848,9 +867,16 @@ class GlobalDirectory:
         """
         misses: dict[str, int] = {}
         last = time.monotonic()
-        async for _ in Ticker(0.25):  # the interval may be changed while running
-            interval = self.recheck_interval
-            if interval is None or time.monotonic() - last < interval:
+        while True:
+            # Sleep until the next recheck is due, or until the interval is changed: an idle
+            # member has nothing to wake for in between.
+            interval = self._recheck_interval
+            if interval is None:
+                await self._recheck_sleep(None)
+                continue
+            wait = last + interval - time.monotonic()
+            if wait > 0:
+                await self._recheck_sleep(wait)
                 continue
             last = time.monotonic()
             # generous: a busy member must not be taken for gone (nothing waits on this)

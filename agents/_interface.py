@@ -11,6 +11,7 @@ agent. A refused message never reaches an agent. See ``docs/security.md``.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import threading
@@ -189,6 +190,8 @@ class AuditLog:
         self.platform = platform
         # bounded too: records pile up here if nothing flushes them
         self._pending: deque[Any] = deque(maxlen=keep)
+        # called when a record comes while none is pending: wakes a flush asleep while idle
+        self.wake: Callable[[], None] | None = None
         # the JSON of an accepted record between "ts" and "conversation_id", per
         # (peer, sender, receiver, performative): a platform hears few such combinations
         self._lines: dict[tuple[Any, ...], bytes] = {}
@@ -224,6 +227,8 @@ class AuditLog:
             **fields,
         }
         self._log.append(rec)
+        if not self._pending and self.wake is not None:
+            self.wake()
         self._pending.append(rec)
         verdict = rec["verdict"]
         self.counts[verdict] = self.counts.get(verdict, 0) + 1
@@ -232,6 +237,8 @@ class AuditLog:
         """Record that ``message`` from platform ``peer`` was admitted (at ``ts``, Unix s)."""
         entry = accepted_entry(time.time() if ts is None else ts, peer, message)
         self._log.append(entry)
+        if not self._pending and self.wake is not None:
+            self.wake()
         self._pending.append(entry)
         self.counts["accepted"] += 1
 
@@ -391,6 +398,11 @@ class InterfaceAgent:
         self.trust = trust
         self.policy = policy or SecurityPolicy()
         self.audit = AuditLog(path=audit_path, platform=keys.platform)
+        self.audit.wake = self._wake_flush
+        # the audit flush sleeps while it has nothing to do (`_flush_audit`); any thread wakes it
+        self._flush_idle = False
+        self._flush_due = asyncio.Event()
+        self._flush_loop: asyncio.AbstractEventLoop | None = None
         self.publish_audit = publish_audit
         self.seal_audit = seal_audit
         self.watchable = watchable
@@ -775,6 +787,7 @@ class InterfaceAgent:
         host = self._host
         if host is not None:
             host.stats.kx_shed += n
+        self._wake_flush()  # to audit them
 
     def _report_kx_shed(self, now: float) -> None:
         """Audit what the key-exchange gate dropped: a few one by one, the rest summed up."""
@@ -1288,12 +1301,53 @@ class InterfaceAgent:
                 # new process (it serves kx before its token shows): keep it then
                 self.handshake.cancel(peer)
 
+    def _wake_flush(self) -> None:
+        """Wake the audit flush if it sleeps for want of work (from any thread)."""
+        loop = self._flush_loop
+        if not self._flush_idle or loop is None:
+            return  # ticking anyway: what is new is flushed at its next tick
+        self._flush_idle = False
+        with contextlib.suppress(RuntimeError):  # the loop is closed: nothing flushes now
+            loop.call_soon_threadsafe(self._flush_due.set)
+
+    def _flush_has_work(self) -> bool:
+        """Whether the audit flush has anything to do at its next tick, or soon after."""
+        return bool(
+            self.audit._pending
+            or self.mirroring
+            or self._mirror
+            or self._unauth_pending
+            or self._watch_shed_pending
+            or (self.kx_gate is not None and self.kx_gate.pending)
+            or any(sender.pending for sender in self._senders.values())
+        )
+
+    async def _flush_idle_sleep(self) -> None:
+        """Sleep until there is something to flush: an idle platform does not tick for it."""
+        self._flush_loop = asyncio.get_running_loop()
+        self._flush_due.clear()
+        self._flush_idle = True
+        if self._flush_has_work():  # came meanwhile, from another thread
+            self._flush_idle = False
+            return
+        await self._flush_due.wait()
+
     async def _flush_audit(self) -> None:
-        """Write and publish the audit now and then (batched: one publish, many records)."""
+        """Write and publish the audit now and then (batched: one publish, many records).
+
+        Every ``audit_interval`` while there is something to write, publish or sum up;
+        a tick that finds nothing sends the task to sleep until something comes (the
+        first record after that is flushed within an interval, as before).
+        """
         host = self._require_host()
         ticker = Ticker(self.audit_interval)
-        async for _ in ticker:
+        while True:
+            await ticker.tick()
             ticker.period = self.audit_interval  # it may be changed while running
+            if not self._flush_has_work():
+                await self._flush_idle_sleep()
+                ticker = Ticker(self.audit_interval)  # the next tick an interval from now
+                continue
             if self.rate_limit is not None:
                 # what a flood that stopped left uncounted in the audit
                 now = self._monotonic()
@@ -1335,7 +1389,8 @@ class InterfaceAgent:
                 return True
             self.watch_shed += 1
             self._watch_shed_pending += 1
-            return False
+        self._wake_flush()  # to audit them
+        return False
 
     def _report_watch_shed(self) -> None:
         """Audit the watch requests shed since the last record, summed up in one."""

@@ -190,6 +190,11 @@ class KxGate:
             self._on_shed(1)
         return False
 
+    @property
+    def pending(self) -> bool:
+        """Whether shed requests wait to be audited (read unlocked: a hint)."""
+        return bool(self._pending or self._details)
+
     def forget_seen(self, wall: float) -> None:
         """Drop remembered requests whose timestamps are now past the skew (``wall``: time.time)."""
         with self._lock:

@@ -19,8 +19,9 @@ operator is this process. Measured, in one run:
   ``get`` on ``scale/raw/*`` answered by a queryable on every UAV's own session with its
   latest numbers (JSON), until all replied, on the operator's own session. Both p99s
   come from the same rounds; beside them, what the other side took in the rounds of
-  each side's slowest 1% (a stall of the whole machine slows both) and the operator's
-  garbage collections over the window.
+  each side's slowest 1% (a stall of the whole machine slows both), which UAV (in which
+  worker process) answered last in ours' slowest 1%, and the operator's garbage
+  collections over the window.
 - ``samples``: the operator asks every UAV ``create-stream`` of its 10 labels; each UAV
   pushes a sequence number into each stream at ``hz``; the operator's subscriber on
   each imported stream counts them end to end, from the import's first sample (what
@@ -109,6 +110,8 @@ class ScaleResult:
     idle_ms: list[float] = field(default_factory=list)  # the same query before exports flow
     raw_ms: list[float] = field(default_factory=list)
     rounds: list[tuple[float | None, float | None]] = field(default_factory=list)  # ours, raw ms
+    last_answer: list[str | None] = field(default_factory=list)  # per round: ours' last UAV
+    host: dict[str, int] = field(default_factory=dict)  # UAV → the worker process it runs in
     gc_collections: tuple[int, ...] = ()  # the operator's, per generation, over the window
     gc_longest_ms: tuple[float, ...] = ()  # the operator's longest collection, per generation
     rounds_in_gc: list[tuple[float | None, float | None]] = field(default_factory=list)
@@ -383,13 +386,20 @@ async def _raw_get(session: zenoh.Session, n: int) -> float | None:
         return None
 
 
-async def _our_query(op: FederationPlatform, labels: list[str], n: int) -> float | str:
-    """The global get-latest: seconds until every UAV answered, or what went wrong."""
+async def _our_query(
+    op: FederationPlatform, labels: list[str], n: int, last: list[str | None] | None = None
+) -> float | str:
+    """The global get-latest: seconds until every UAV answered, or what went wrong.
+
+    ``last`` gets the UAV whose answer came last (the one the round waited for).
+    """
     t0 = time.perf_counter()
     r = await op.federation_agent.global_request(
         {"action": "get-latest", "labels": labels}, deadline=QUERY_DEADLINE
     )
     dt = time.perf_counter() - t0
+    if last is not None:
+        last.append(next(reversed(r.answers), None))  # answers keep their arrival order
     if len(r.answers) != n:
         return f"{len(r.answers)}/{n} answered; refused {r.refused}; silent {r.no_answer}"
     for platform, answer in r.answers.items():
@@ -516,7 +526,7 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                 round_t0 = time.perf_counter()
                 for kind in kinds:
                     if kind == "ours":
-                        got = await _our_query(op, labels, n)
+                        got = await _our_query(op, labels, n, result.last_answer)
                         if isinstance(got, str):
                             result.query_failures.append(got)
                         else:
@@ -629,6 +639,7 @@ def measure(
     with tempfile.TemporaryDirectory(prefix="bench-scale-") as tmp:
         plan = _plan(Path(tmp), platforms, streams, workers)
         result.workers = len(plan.groups)
+        result.host = {name: i for i, group in enumerate(plan.groups) for name in group}
         if bare:
             progress(f"peer: {platforms} bare zenoh sessions in {len(plan.groups)} processes")
             bare_join(plan, result)
@@ -646,6 +657,16 @@ def _slowest_rounds(r: ScaleResult, side: int) -> str:
     worst = done[: max(1, len(done) // 100)]
     return ", ".join(
         f"{x[side]:.0f}/" + ("-" if x[1 - side] is None else f"{x[1 - side]:.0f}") for x in worst
+    )
+
+
+def _waited_for(r: ScaleResult) -> str:
+    """Whose answer came last in ours' slowest 1% of rounds: UAV (its worker process)."""
+    done = [(ms, last) for (ms, _), last in zip(r.rounds, r.last_answer, strict=False) if ms]
+    done.sort(key=lambda x: x[0], reverse=True)
+    worst = done[: max(1, len(done) // 100)]
+    return ", ".join(
+        f"{ms:.0f} ms {last} (process {r.host.get(last or '', '?')})" for ms, last in worst
     )
 
 
@@ -693,7 +714,8 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
             f"  ours / raw over the same {len(r.rounds)} rounds: p50 {ratios[0]:.2f}, p99 "
             f"{ratios[1]:.2f} (target ≤ {QUERY_TARGET_RATIO:g}: {'met' if met else 'MISSED'}); "
             f"slowest 1% of rounds, ours/raw ms: by ours {_slowest_rounds(r, 0)}; by raw "
-            f"{_slowest_rounds(r, 1)}"
+            f"{_slowest_rounds(r, 1)}; ours' slowest rounds waited last for "
+            f"{_waited_for(r)}"
         )
     print(
         f"  the workers' longest GC per generation "

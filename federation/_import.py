@@ -213,6 +213,8 @@ class ImportProxy(ProxyBase):
         # bounded, since anyone on the network can invent keys
         self._strays: dict[tuple[str, str], Import] = {}
         self._gone: set[str] = set()
+        # set when there is something to report on: until then the report task sleeps
+        self._reportable = asyncio.Event()
         self._subs: list[TransportSubscription[Message] | TransportSubscription[Presence]] = []
         self._state = "unopened"
 
@@ -262,6 +264,10 @@ class ImportProxy(ProxyBase):
         carries this side's running total of its samples that never arrived.
         """
         while True:
+            if not self._imports and not self._refused:
+                # nothing imported, nothing refused: an idle platform does not wake for this
+                self._reportable.clear()
+                await self._reportable.wait()
             await asyncio.sleep(self.report_interval)
             self._tell_refused()
             reports: dict[str, dict[str, Any]] = {}
@@ -388,6 +394,7 @@ class ImportProxy(ProxyBase):
             rec.dropped_batches = stray.dropped_batches
             rec.dropped_samples = stray.dropped_samples
         self._imports[(sender, semantic_label)] = rec
+        self._reportable.set()
         return rec
 
     def _refuse(self, sender: str, label: str, reason: str) -> None:
@@ -410,6 +417,7 @@ class ImportProxy(ProxyBase):
                 entry = self._refused.get(key)
             if entry is None:
                 entry = self._refused[key] = [0, 0]
+                self._reportable.set()
         entry[0] += 1
         entry[1] += samples
 

@@ -38,7 +38,7 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents import Ticker, TokenBucket, TransportError, wire_key
+from agents import Pending, TokenBucket, TransportError, wire_key
 
 from ._cli_common import failure_of, platforms_of, wait_for_members
 from ._cli_time import seconds, when
@@ -205,7 +205,7 @@ class LocalChannel:
         self._who_lock = threading.Lock()
         self._who_bucket = TokenBucket(IDENTITY_RATE, IDENTITY_RATE, time.monotonic())
         self.identity_shed = 0  # identity queries dropped unanswered, since start
-        self._shed_pending = 0
+        self._shed_pending = Pending(1.0)  # shed since the last audit record
         self._reports: asyncio.Task[None] | None = None
 
     def _admit_who(self, payload: bytes) -> bool:
@@ -213,14 +213,13 @@ class LocalChannel:
             if self._who_bucket.take(time.monotonic()):
                 return True
             self.identity_shed += 1
-            self._shed_pending += 1
-            return False
+        self._shed_pending.add()
+        return False
 
     async def _report_shed(self) -> None:
         """Audit the identity queries shed, summed up, at most once per second."""
-        async for _ in Ticker(1.0):
-            with self._who_lock:
-                n, self._shed_pending = self._shed_pending, 0
+        while True:
+            n = await self._shed_pending.take()  # asleep while nothing is shed
             if n:
                 self.platform.interface.audit.record(
                     verdict="dropped",

@@ -1,4 +1,5 @@
 """The asyncio helpers: Mailbox (deadline, cancellation, order, overflow), Ticker (drift),
+Pending (asleep when idle, at once after a quiet spell, at most once per period),
 sleep_until_woken, and the Inbox's own record of its loop's thread."""
 
 from __future__ import annotations
@@ -8,7 +9,7 @@ import threading
 
 import pytest
 
-from agents import Mailbox, Ticker
+from agents import Mailbox, Pending, Ticker
 from agents.transports import Inbox
 from dyknow_core import ManualClock
 from dyknow_core._aio import Ticker as CoreTicker
@@ -135,6 +136,38 @@ async def test_an_overrun_skips_the_missed_ticks(ticker_class: type[Ticker]) -> 
     assert ticker.skipped >= 2
     assert second == pytest.approx(first + (ticker.skipped + 1) * period)
     assert second <= now < second + period
+
+
+# -- Pending ------------------------------------------------------------------------------------
+
+
+async def test_pending_sleeps_until_a_count_comes_from_another_thread() -> None:
+    loop = asyncio.get_running_loop()
+    pending = Pending(10.0)
+    taking = asyncio.create_task(pending.take())
+    await asyncio.sleep(0.05)
+    assert not taking.done()  # nothing pending: asleep, however long the period
+    added = loop.time()
+    threading.Thread(target=pending.add, args=(3,)).start()
+    # the first count after a quiet spell is taken at once, not a period later
+    assert await asyncio.wait_for(taking, 1.0) == 3
+    assert loop.time() - added < 1.0
+
+
+async def test_pending_sums_up_what_comes_within_a_period() -> None:
+    loop = asyncio.get_running_loop()
+    period = 0.1
+    pending = Pending(period)
+    pending.add()
+    assert await pending.take() == 1
+    taken = loop.time()
+    pending.add()
+    pending.add(2)
+    assert await pending.take() == 3  # summed up, and not before a period has passed
+    assert loop.time() - taken >= period * 0.99
+    assert pending.period == period
+    with pytest.raises(ValueError, match="period"):
+        Pending(0)
 
 
 async def test_the_period_may_change_between_ticks() -> None:

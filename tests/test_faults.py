@@ -577,6 +577,29 @@ async def test_lease_ends_the_export_to_a_silent_receiver_only() -> None:
         assert live.active and live.last_heard > started
 
 
+async def test_an_importer_idle_until_a_stream_comes_reports_on_it_at_once() -> None:
+    """The report task sleeps while nothing is imported; the first stream wakes it in time."""
+    hub = MemoryHub()
+    async with (
+        hub.transport() as ta,
+        hub.transport() as tb,
+        DyKnowInstance("a") as ia,
+        DyKnowInstance("b") as ib,
+        ExportProxy("a", "f", ta, ia, PlainSessions("a"), lease=0.5) as exporter,
+        ImportProxy(
+            "b", "f", tb, ib, PlainSessions("b"), lambda s, lab: f"in/{lab}", report_interval=0.1
+        ),
+    ):
+        await asyncio.sleep(0.5)  # an idle spell: nothing imported, nothing to report on
+        ia.add_source("x")
+        export = exporter.start_exporting("x", "x", "b")
+        started = time.monotonic()
+        # the first report within a few report intervals, well inside the lease
+        await until(lambda: export.last_heard > started, "the first report", 0.4)
+        await asyncio.sleep(1.0)  # two leases more: still reported on
+        assert export.active and export.last_heard > started + 0.5
+
+
 async def test_lease_needs_a_positive_number() -> None:
     async with MemoryHub().transport() as t, DyKnowInstance("x") as dk:
         for bad in (0, -1.0):

@@ -11,6 +11,7 @@ import asyncio
 import base64
 import contextlib
 import os
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass
@@ -314,6 +315,37 @@ async def test_request_inform_both_ways_audited_and_published() -> None:
                 seen += [orjson.loads(line) for line in lines.splitlines()]
         published = next(r for r in seen if r["performative"] == "request")
         assert published == req
+
+
+async def test_an_idle_audit_flush_sleeps_and_wakes_for_the_next_record() -> None:
+    """Nothing to flush: the task sleeps; what comes next is published within an interval."""
+    async with federation("uav-a") as fed:
+        pa = await fed.start("uav-a", audit_interval=0.05)
+        channel = ia(pa)
+        raw = await fed.raw()
+        feed = await raw.subscribe(wire_key(FED, "audit", "uav-a"))
+        await until(lambda: channel._flush_idle, "the audit flush asleep")
+        await asyncio.sleep(0.3)  # six intervals: it does not tick meanwhile
+        assert channel._flush_idle
+
+        async def published(stage: str) -> float:
+            """Seconds until a record of ``stage`` is published."""
+            t0 = time.monotonic()
+            async with asyncio.timeout(WAIT):
+                while True:
+                    lines = channel.keys.open_sealed((await feed.get()).payload)
+                    if any(orjson.loads(x).get("stage") == stage for x in lines.splitlines()):
+                        return time.monotonic() - t0
+
+        channel.audit.record(verdict="dropped", stage="test", reason="after an idle spell")
+        assert await published("test") < 1.0  # an interval (0.05 s), with room for a loaded CI
+        await until(lambda: channel._flush_idle, "the audit flush asleep again")
+        # watch requests shed on the transport's thread wake it too
+        shed = threading.Thread(target=lambda: [channel._admit_watch(b"") for _ in range(50)])
+        shed.start()
+        shed.join()
+        assert channel.watch_shed > 0
+        assert await published("watch-shed") < 1.0
 
 
 # -- hostile envelopes ----------------------------------------------------------------------
