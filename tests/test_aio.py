@@ -216,3 +216,69 @@ async def test_an_inbox_wakes_its_consumer_from_the_loop_thread_and_from_others(
     producer.start()
     assert await asyncio.wait_for(getting, 1.0) == 2
     producer.join()
+
+
+# -- Inbox with a consumer: called by the loop as items come, never inside a put ----------------
+
+
+async def test_an_inbox_consumer_takes_items_as_they_come_never_inside_the_put() -> None:
+    loop = asyncio.get_running_loop()
+    inbox: Inbox[int] = Inbox(loop)
+    taken: list[int] = []
+    calls = 0
+    putting = False
+
+    def consume() -> None:
+        nonlocal calls
+        calls += 1
+        assert not putting  # the loop calls it, not the producer's put
+        while (item := inbox.next_or_idle()) is not None:
+            taken.append(item)
+
+    inbox.put(0)  # queued before: taken once the consumer is set
+    inbox.set_consumer(consume)
+    await asyncio.sleep(0)
+    assert taken == [0]
+    putting = True
+    inbox.put(1)
+    inbox.put(2)  # one call for both: not woken again until it found the inbox empty
+    putting = False
+    await asyncio.sleep(0)
+    assert taken == [0, 1, 2] and calls == 2
+
+    producer = threading.Thread(target=inbox.put, args=(3,))
+    producer.start()
+    producer.join()
+    for _ in range(100):
+        if taken[-1:] == [3]:
+            break
+        await asyncio.sleep(0.01)
+    assert taken == [0, 1, 2, 3]
+
+    inbox.set_consumer(None)  # back to get: nothing is called any more
+    inbox.put(4)
+    await asyncio.sleep(0)
+    assert taken == [0, 1, 2, 3] and await inbox.get() == 4
+
+
+async def test_an_inbox_consumer_hears_of_the_close_and_may_stop_early() -> None:
+    loop = asyncio.get_running_loop()
+    inbox: Inbox[int] = Inbox(loop)
+    taken: list[int] = []
+    closed = asyncio.Event()
+
+    def consume() -> None:
+        item = inbox.next_or_idle()  # one at a time: asks to be called again for the rest
+        if item is None:
+            if inbox.closed:
+                closed.set()
+            return
+        taken.append(item)
+        inbox.resume()
+
+    inbox.set_consumer(consume)
+    for n in range(3):
+        inbox.put(n)
+    inbox.close()
+    await asyncio.wait_for(closed.wait(), 1.0)
+    assert taken == [0, 1, 2]
