@@ -842,8 +842,8 @@ class InterfaceAgent:
                     n = 0
                     continue
                 try:
-                    item = await inbox.__anext__()
-                except StopAsyncIteration:
+                    item = await queue.get()
+                except TransportClosed:
                     return
                 n += 1
                 if not n & 63:
