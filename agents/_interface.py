@@ -56,7 +56,7 @@ from ._security import (
     fingerprint,
     seal_for_owner,
 )
-from .transports import Handle, Inbox, Message, Presence, Subscription
+from .transports import Handle, Message, Presence, Subscription
 
 if TYPE_CHECKING:
     from ._platform import AgentPlatform, SenderStats
@@ -453,9 +453,6 @@ class InterfaceAgent:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._outbox_bytes: dict[str, int] = {}
         self.batches_lost = 0  # batched messages a failed flush did not send
-        # the inbox of ACL envelopes, and the receiving task's wait for one that waits
-        self._acl_inbox: Inbox[Message] | None = None
-        self._handed: asyncio.Future[tuple[str, bytes] | None] | None = None
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -502,7 +499,6 @@ class InterfaceAgent:
         self._subs.append(presence)
         inbox = await transport.subscribe(platform.key("acl"))
         self._subs.append(inbox)
-        self._acl_inbox = inbox.inbox
         platform.spawn(self._receive(inbox), "interface.inbox")
         platform.spawn(self._watch(presence), "interface.presence")
         if (
@@ -821,117 +817,49 @@ class InterfaceAgent:
 
     async def _receive(self, inbox: Subscription[Message]) -> None:
         host = self._require_host()
-        queue = inbox.inbox
-        loop = asyncio.get_running_loop()
+        open_envelope = self.sessions.open
+        stats = host.stats
         n = 0
-        try:
-            while True:
-                if not queue and not queue.closed:
-                    # Idle: what comes is taken as it comes, by `_on_envelopes` (a loop
-                    # callback: no task to wake per message); this task waits for the
-                    # first one that must be waited for, and takes over from there.
-                    self._handed = handed = loop.create_future()
-                    queue.set_consumer(self._on_envelopes)
-                    try:
-                        opened = await handed
-                    finally:
-                        queue.set_consumer(None)
-                        self._handed = None
-                    if opened is not None:
-                        await self._take_opened(host, *opened)
-                    n = 0
-                    continue
-                try:
-                    item = await queue.get()
-                except TransportClosed:
-                    return
-                n += 1
-                if not n & 63:
-                    # Getting a queued item never suspends, and dropping one is cheap:
-                    # without this a flood would hold the loop, and no agent would run to
-                    # answer others.
-                    await asyncio.sleep(0)
-                opened = self._open(host, item.payload)
-                if opened is not None:
-                    n += await self._take_opened(host, *opened)
-        finally:
-            queue.set_consumer(None)
-
-    def _on_envelopes(self) -> None:
-        """Take what the inbox holds, as it comes (a loop callback; see `_receive`).
-
-        Each envelope is opened and its message taken at once (`_take_now`) when it can
-        be; the first that cannot (a batch, anything that waits) goes to the receiving
-        task, and everything after it with it, in order. After 64 the loop runs others.
-        """
-        handed, queue, host = self._handed, self._acl_inbox, self._host
-        if handed is None or handed.done() or queue is None or host is None:
-            return
-        try:
-            for _ in range(64):
-                item = queue.next_or_idle()
-                if item is None:
-                    if queue.closed:  # the task ends the receiving
-                        queue.set_consumer(None)
-                        handed.set_result(None)
-                    return
-                opened = self._open(host, item.payload)
-                if opened is None:
-                    continue
-                peer, body = opened
-                state = self._senders.get(peer)
-                if state is None:
-                    state = self._sender(host, peer)
-                if body[:1] != b"[" and self._take_now(host, peer, state, body):
-                    continue
-                queue.set_consumer(None)
-                handed.set_result(opened)
-                return
-            queue.resume()
-        except BaseException as exc:  # the task raises it, as it did its own
-            queue.set_consumer(None)
-            handed.set_exception(exc)
-
-    def _open(self, host: AgentPlatform, payload: bytes) -> tuple[str, bytes] | None:
-        """The envelope opened: ``(peer, body)``; None when it is refused (counted, audited)."""
-        try:
-            return self.sessions.open(payload)
-        except AuthenticationError as exc:
-            host.stats.unauthenticated += 1
-            self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}")
-            if isinstance(exc, UnknownSession) and exc.platform is not None:
-                self.rehandshake(exc.platform)
-        except Exception as exc:  # never let one envelope end the loop
-            host.stats.unauthenticated += 1
-            self._drop_unauthenticated(None, f"malformed: {exc}")
-        return None
-
-    async def _take_opened(self, host: AgentPlatform, peer: str, body: bytes) -> int:
-        """Take the message or batch of an opened envelope; how many messages it held."""
-        state = self._senders.get(peer)
-        if state is None:
-            state = self._sender(host, peer)
-        if body[:1] != b"[":
-            if not self._take_now(host, peer, state, body):
-                await self._take(host, peer, state, body)
-            return 0
-        items = await self._batch_items(host, peer, body)
-        now = self._monotonic()  # one reading: the batch arrived at once
-        nesting = nesting_bound(body)  # bounds each message's too
-        n = 0
-        i, end = 0, len(items)
-        while i < end:
-            done = self._take_batch(host, peer, state, items, i, now, nesting)
-            n += done - i
-            i = done
-            if i < end:  # one the quick path leaves (a limit, a refusal …): in full
-                await self._take(host, peer, state, items[i], now, nesting)
-                i += 1
-                n += 1
-            if n >= 64:
-                n = 0
+        async for item in inbox:
+            n += 1
+            if not n & 63:
+                # Getting a queued item never suspends, and dropping one is cheap: without
+                # this a flood would hold the loop, and no agent would run to answer others.
                 await asyncio.sleep(0)
-        return n
+            try:
+                peer, body = open_envelope(item.payload)
+            except AuthenticationError as exc:
+                stats.unauthenticated += 1
+                self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}")
+                if isinstance(exc, UnknownSession) and exc.platform is not None:
+                    self.rehandshake(exc.platform)
+                continue
+            except Exception as exc:  # never let one envelope end the loop
+                stats.unauthenticated += 1
+                self._drop_unauthenticated(None, f"malformed: {exc}")
+                continue
+            state = self._senders.get(peer)
+            if state is None:
+                state = self._sender(host, peer)
+            if body[:1] != b"[":
+                if not self._take_now(host, peer, state, body):
+                    await self._take(host, peer, state, body)
+                continue
+            items = await self._batch_items(host, peer, body)
+            now = self._monotonic()  # one reading: the batch arrived at once
+            nesting = nesting_bound(body)  # bounds each message's too
+            i, end = 0, len(items)
+            while i < end:
+                done = self._take_batch(host, peer, state, items, i, now, nesting)
+                n += done - i
+                i = done
+                if i < end:  # one the quick path leaves (a limit, a refusal …): in full
+                    await self._take(host, peer, state, items[i], now, nesting)
+                    i += 1
+                    n += 1
+                if n >= 64:
+                    n = 0
+                    await asyncio.sleep(0)
 
     async def _batch_items(self, host: AgentPlatform, peer: str, body: bytes) -> list[Any]:
         """The messages (decoded, not yet checked) of a batch; none when it is malformed."""

@@ -84,8 +84,6 @@ class Inbox(Generic[T]):
         # that thread wakes the consumer directly, others through call_soon_threadsafe.
         self._loop_thread: int | None = None
         self._wake_pending = False
-        # a function the loop calls when items come (`set_consumer`), instead of waking `get`
-        self._consumer: Callable[[], None] | None = None
         self.dropped = 0
         self.received = 0
         self.closed = False
@@ -100,68 +98,26 @@ class Inbox(Generic[T]):
                 self.dropped += 1
             self._items.append(item)
             self.received += 1
-            if (self._waiter is None and self._consumer is None) or self._wake_pending:
+            if self._waiter is None or self._wake_pending:
                 return
             self._wake_pending = True
         self._wake_threadsafe()
 
     def _wake_threadsafe(self) -> None:
         try:
-            if threading.get_ident() != self._loop_thread:
-                self._loop.call_soon_threadsafe(self._wake)
-            elif self._consumer is None:
+            if threading.get_ident() == self._loop_thread:
                 self._wake()
-            else:  # never the consumer inside the producer's call
-                self._loop.call_soon(self._wake)
+            else:
+                self._loop.call_soon_threadsafe(self._wake)
         except RuntimeError:  # the loop is closed: nobody is waiting any more
             pass
 
     def _wake(self) -> None:
         with self._lock:
-            consumer = self._consumer
-            if consumer is None:
-                self._wake_pending = False
-                w = self._waiter
-        if consumer is not None:
-            consumer()  # it takes what is queued, and says when it is done (`next_or_idle`)
-            return
+            self._wake_pending = False
+            w = self._waiter
         if w is not None and not w.done():
             w.set_result(None)
-
-    def set_consumer(self, consumer: Callable[[], None] | None) -> None:
-        """Have the loop call ``consumer`` when items come, instead of waking `get` (loop thread).
-
-        For a consumer that handles most items at once: no task wakes per item. The loop
-        calls it (never a producer's call) when items are queued, on close too, and not
-        again until it has taken everything: it takes items with `next_or_idle` until
-        that says the inbox is empty. None returns to `get`; `get` may not wait meanwhile.
-        """
-        with self._lock:
-            self._consumer = consumer
-            self._loop_thread = threading.get_ident()
-            if consumer is None:
-                self._wake_pending = False
-                return
-            if not (self._items or self.closed) or self._wake_pending:
-                return
-            self._wake_pending = True
-        self._loop.call_soon(self._wake)
-
-    def next_or_idle(self, idle: Any = None) -> Any:
-        """The consumer's next item, or ``idle`` when none is queued (woken again on the next).
-
-        Items are converted as `get` converts them.
-        """
-        with self._lock:
-            if not self._items:
-                self._wake_pending = False
-                return idle
-            item = self._items.popleft()
-        return item if self._convert is None else self._convert(item)
-
-    def resume(self) -> None:
-        """Have the loop call the consumer again soon: it stopped before taking everything."""
-        self._loop.call_soon(self._wake)
 
     def close(self) -> None:
         """End the consumer's iteration once it has drained what is queued (any thread)."""
@@ -170,11 +126,7 @@ class Inbox(Generic[T]):
                 return
             self.closed = True
             waiting = self._waiter is not None
-            # a consumer hears of the close as of an item: once, when not already due
-            consumer = self._consumer is not None and not self._wake_pending
-            if consumer:
-                self._wake_pending = True
-        if waiting or consumer:
+        if waiting:
             self._wake_threadsafe()
 
     async def get(self) -> T:
