@@ -145,6 +145,9 @@ def _query(query: object, fields: dict[str, Any]) -> ServiceQuery:
     return ServiceQuery.model_validate(query)
 
 
+_MAX_REACH = 4096  # `reachable`'s remembered answers: (receiver, platform) pairs in use
+
+
 def visibility_allows(
     service: ServiceDescription, asker_platform: str, via_interface: bool
 ) -> bool:
@@ -228,6 +231,9 @@ class DirectoryFacilitator(Agent):
     def __init__(self, name: str = "df") -> None:
         super().__init__(name)
         self._services: dict[str, dict[str, ServiceDescription]] = {}
+        # `reachable`'s answers, asked for every request from another platform; emptied
+        # whenever a service is registered, modified or removed
+        self._reach: dict[tuple[str, str, bool], bool] = {}
         self._watchers: list[Inbox[DirectoryEvent]] = []
         self._subscriptions = Publisher(
             self, ontology=FIPA_AGENT_MANAGEMENT, accept=self._accept_subscriber
@@ -302,6 +308,7 @@ class DirectoryFacilitator(Agent):
         if self._get(*service.key) is not None:
             raise ServiceError(f"{service.provider} already registered {service.name!r}")
         self._services.setdefault(service.provider, {})[service.name] = service
+        self._reach.clear()
         await self._changed("register", None, service)
         return service
 
@@ -312,6 +319,7 @@ class DirectoryFacilitator(Agent):
         if old is None:
             raise ServiceError(f"{service.provider} has no service {service.name!r}")
         self._services[service.provider][service.name] = service
+        self._reach.clear()
         await self._changed("modify", old, service)
         return service
 
@@ -326,6 +334,7 @@ class DirectoryFacilitator(Agent):
         mine = self._services.get(provider)
         if not mine:
             return []
+        self._reach.clear()
         if name is None:
             removed = list(mine.values())
             mine.clear()
@@ -390,12 +399,22 @@ class DirectoryFacilitator(Agent):
         True when ``receiver`` provides at least one service the asker may use
         (`visibility_allows`); the DF itself is always reachable, for searches.
         """
-        if receiver == self.aid or asker_platform == self.platform.name:
-            return True
-        return any(
-            visibility_allows(s, asker_platform, via_interface)
-            for s in self._services.get(receiver, {}).values()
+        key = (receiver, asker_platform, via_interface)
+        known = self._reach.get(key)
+        if known is not None:
+            return known
+        allowed = (
+            receiver == self.aid
+            or asker_platform == self.platform.name
+            or any(
+                visibility_allows(s, asker_platform, via_interface)
+                for s in self._services.get(receiver, {}).values()
+            )
         )
+        if len(self._reach) >= _MAX_REACH:
+            self._reach.clear()
+        self._reach[key] = allowed
+        return allowed
 
     def watch(self, maxlen: int = 1024) -> Subscription[DirectoryEvent]:
         """An async iterator of this DF's changes (all services: local code sees everything)."""

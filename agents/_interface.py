@@ -868,7 +868,8 @@ class InterfaceAgent:
             if state is None:
                 state = self._sender(host, peer)
             if body[:1] != b"[":
-                await self._take(host, peer, state, body)
+                if not self._take_now(host, peer, state, body):
+                    await self._take(host, peer, state, body)
                 continue
             items = await self._batch_items(host, peer, body)
             now = self._monotonic()  # one reading: the batch arrived at once
@@ -940,6 +941,73 @@ class InterfaceAgent:
                 await self._admit(host, peer, message)
         except Exception:
             log.exception("interface[%s]: delivering from %s failed", self._me, peer)
+
+    def _take_now(self, host: AgentPlatform, peer: str, state: _Sender, body: bytes) -> bool:
+        """`_take` of one message (JSON bytes) in the common case, at once; else False.
+
+        The common case is `_admit_now`'s, within ``peer``'s limits: the message valid,
+        one receiver here, running with room in its mailbox; no reply_to; the sender an
+        agent of ``peer``; a request only to a service ``peer`` may use. Every check is
+        made before anything is taken or counted, so False leaves everything as it was,
+        for `_take` to decide the message in full. Taken, the message is limited,
+        counted, audited and delivered as `_take` does, without its calls per step (the
+        path of every request and reply that comes alone).
+        """
+        if self.mirroring or len(body) > self.max_bytes:
+            return False
+        total, requests = state.total, state.requests
+        now = 0.0
+        if total is not None:
+            now = self._monotonic()
+            if not total.ready(now):
+                return False
+        try:
+            message = ACLMessage.from_json(body, max_bytes=self.max_bytes)
+        except MessageError:
+            return False
+        receivers = message.receivers
+        if len(receivers) != 1 or message.reply_to:
+            return False
+        receiver = receivers[0]
+        sender = message.sender
+        here = host.name
+        at = receiver.rpartition("@")
+        if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
+            return False
+        agent = host._agents.get(at[0])
+        if agent is None or not agent.running:
+            return False
+        mailbox = agent._mailbox
+        if len(mailbox) >= mailbox.maxlen >> 1:
+            return False
+        performative = message.performative
+        initiating = performative in INITIATING
+        if initiating:
+            if requests is not None and not requests.ready(now):
+                return False
+            df = host.df
+            if df is None or not df.reachable(receiver, peer):
+                return False
+            if requests is not None:
+                requests.tokens -= 1.0
+        if total is not None:
+            total.tokens -= 1.0
+        state.stats.accepted += 1
+        audit = self.audit
+        # accepted_entry, inline (one receiver, this sender)
+        entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
+        audit._log.append(entry)
+        audit._pending.append(entry)
+        audit.counts["accepted"] += 1
+        stats = host.stats
+        stats.received_remote += 1
+        try:
+            agent._deliver(message)  # running, room in its mailbox: taken
+        except Exception:
+            log.exception("interface[%s]: delivering from %s failed", self._me, peer)
+        else:
+            stats.local += 1
+        return True
 
     def _take_batch(
         self,
