@@ -684,6 +684,39 @@ class Agent:
         self.stats.received += 1
         return True
 
+    def _deliver_batch(self, messages: list[ACLMessage]) -> int:
+        """`_deliver` each of ``messages``, in order, waking the receive loop once; how many taken.
+
+        Replies still go to the conversation waiting for them; the rest go to the mailbox
+        together (nothing runs in between, so each queue keeps the order a `_deliver` per
+        message would give it).
+        """
+        stats = self.stats
+        routed = 0
+        if self._by_reply or self._by_conv:  # else none can be a conversation's
+            by_reply, by_conv = self._by_reply, self._by_conv
+            rest = []
+            for message in messages:
+                conv = None
+                if message.in_reply_to is not None:
+                    conv = by_reply.get(message.in_reply_to)
+                if conv is None and message.conversation_id is not None:
+                    conv = by_conv.get(message.conversation_id)
+                if conv is not None and conv.accepts(message):
+                    stats.received += 1
+                    conv._put(message)
+                    routed += 1
+                else:
+                    rest.append(message)
+            messages = rest
+        if self._state in (_STOPPING, _STOPPED):
+            stats.dropped += len(messages)
+            return routed
+        taken = self._mailbox.put_many(messages)
+        stats.received += taken
+        stats.dropped += len(messages) - taken
+        return routed + taken
+
     async def _receive_loop(self) -> None:
         mailbox = self._mailbox
         items, get = mailbox._items, mailbox.get

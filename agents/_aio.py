@@ -14,7 +14,7 @@ import math
 import os
 import threading
 from collections import deque
-from collections.abc import Coroutine
+from collections.abc import Coroutine, Iterable
 from typing import Any, Generic, Self, TypeVar
 
 T = TypeVar("T")
@@ -91,6 +91,30 @@ class Mailbox(Generic[T]):
         items.append(item)
         self._wake()
         return added
+
+    def put_many(self, batch: Iterable[T]) -> int:
+        """`put` each item of ``batch``, in order, waking the consumer once; how many fitted.
+
+        The same accounting as a `put` per item: past ``maxlen`` the rest are refused, or
+        with ``drop_oldest`` each drops the oldest; every loss is counted in ``dropped``.
+        Returns how many of the puts would have returned True.
+        """
+        items = self._items
+        before = len(items)
+        items.extend(batch)
+        n = len(items) - before
+        lost = min(len(items) - self.maxlen, n)
+        if lost > 0:
+            self.dropped += lost
+            if self.drop_oldest:  # each one past maxlen pushed the oldest out
+                for _ in range(lost):
+                    items.popleft()
+            else:  # the last ones found the box full
+                for _ in range(lost):
+                    items.pop()
+        if n and (lost < n or self.drop_oldest):
+            self._wake()
+        return n - max(lost, 0)
 
     def put_front(self, item: T) -> None:
         """Put ``item`` back in front, to be taken next (even when full)."""

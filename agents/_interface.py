@@ -287,8 +287,15 @@ class AuditLog:
         add = out.append
         dumps, lines = orjson.dumps, self._lines
         last_ts, ts_json = None, b""
+        last: Any = None  # the last accepted entry pieced together, and its line
+        line = b""
         for e in pending:
             if type(e) is tuple:
+                if e == last:
+                    # the same record again: a batch's messages of one conversation
+                    # (equal times make the same JSON, as ``ts_json`` below assumes)
+                    add(line)
+                    continue
                 ts, peer, sender, receivers, performative, conv = e
                 if type(receivers) is str:
                     # an accepted message to one agent: its line pieced together, the
@@ -297,11 +304,13 @@ class AuditLog:
                     middle = lines.get(key) or self._middle(key)
                     if ts != last_ts:  # a batch's records share theirs
                         last_ts, ts_json = ts, dumps(ts)
-                    add(
+                    line = (
                         b'{"v":%d,"ts":%b,%b,"conversation_id":%b,"verdict":"accepted",'
                         b'"reason":null}\n'
                         % (WIRE_VERSION, ts_json, middle, b"null" if conv is None else dumps(conv))
                     )
+                    add(line)
+                    last = e
                     continue
                 e = self._as_dict(e)
             add(dumps(e) + b"\n")
@@ -1025,7 +1034,8 @@ class InterfaceAgent:
         for `_take`: a bad message, a limit reached, a receiver that is not ready, anything
         but the common case of `_admit`. Each message taken is checked, counted against
         the limits, audited and delivered as `_take` would, in one loop without a call per
-        step (this is the path a flood takes, message after message).
+        step (this is the path a flood takes, message after message); the messages for
+        one agent are handed over together (`Agent._deliver_batch`), once decided.
         """
         end = len(items)
         if self.mirroring:
@@ -1036,12 +1046,23 @@ class InterfaceAgent:
         from_parsed = ACLMessage.from_parsed
         agents = host._agents
         here = host.name
+        if peer == here:  # a message claiming this platform's sender: `_take` drops it
+            return i
         df = host.df
         audit = self.audit
         entries: list[tuple[Any, ...]] = []  # logged together, at the end
         add_entry = entries.append
         ts = time.time()  # one decision time for the batch, as one arrival time
         start = i
+        # The messages taken for one agent, handed over together when the next is for
+        # another one, or at the end (nothing runs in between: the same as one by one).
+        run: list[ACLMessage] = []
+        run_agent: Agent | None = None
+        # what was found of the last receiver and sender, unchanged within the batch (an
+        # agent neither starts nor stops meanwhile): a batch is mostly one conversation
+        last_receiver: str | None = None
+        last_sender: str | None = None
+        room = 0  # how many more the receiver's mailbox takes before it is half full
         try:
             while i < end:
                 if total is not None and total.tokens < 1.0:
@@ -1054,15 +1075,27 @@ class InterfaceAgent:
                 if len(receivers) != 1 or message.reply_to:
                     break
                 receiver = receivers[0]
+                if receiver != last_receiver:
+                    at = receiver.rpartition("@")
+                    if at[2] != here:
+                        break
+                    agent = agents.get(at[0])
+                    if agent is None or not agent.running:
+                        break
+                    if agent is not run_agent:
+                        if run_agent is not None and run:
+                            run_agent._deliver_batch(run)
+                            run = []
+                        run_agent = agent
+                    mailbox = agent._mailbox
+                    room = (mailbox.maxlen >> 1) - len(mailbox._items) - len(run)
+                    last_receiver = receiver
                 sender = message.sender
-                at = receiver.rpartition("@")
-                if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
-                    break
-                agent = agents.get(at[0])
-                if agent is None or not agent.running:
-                    break
-                mailbox = agent._mailbox
-                if len(mailbox) >= mailbox.maxlen >> 1:
+                if sender != last_sender:
+                    if sender.rpartition("@")[2] != peer:
+                        break
+                    last_sender = sender
+                if room <= 0:  # counting those not yet handed over
                     break
                 performative = message.performative
                 if performative in INITIATING:
@@ -1078,7 +1111,8 @@ class InterfaceAgent:
                 add_entry(
                     (ts, peer, sender, receiver, _NAMES[performative], message.conversation_id)
                 )
-                agent._deliver(message)  # running, room in its mailbox: taken
+                run.append(message)  # running, room in its mailbox: taken
+                room -= 1
                 i += 1
         finally:
             taken = i - start
@@ -1090,6 +1124,8 @@ class InterfaceAgent:
                 stats = host.stats
                 stats.received_remote += taken
                 stats.local += taken
+            if run_agent is not None and run:
+                run_agent._deliver_batch(run)  # audited first, as `_admit_now` does
         return i
 
     def _admit_target(self, host: AgentPlatform, peer: str, message: ACLMessage) -> Agent | None:

@@ -279,6 +279,75 @@ async def test_only_peers_are_heard_in_a_conversation() -> None:
             assert (label, other.content) == ("mailbox", "fake")
 
 
+def _batch_for(to: str) -> list[ACLMessage]:
+    """Messages for ``to``: some for its conversations, some for its mailbox, in a mix."""
+
+    def m(sender: str, content: Any, **fields: Any) -> ACLMessage:
+        return ACLMessage(
+            performative=P.INFORM, sender=sender, receivers=[to], content=content, **fields
+        )
+
+    return [
+        m("peer@p", 1, conversation_id="c1"),  # the conversation's, by its id
+        m("peer@p", 2),
+        m("peer@p", 3, in_reply_to="r1"),  # the other conversation's, by in_reply_to
+        m("intruder@p", 4, conversation_id="c1"),  # not its peer: the mailbox's
+        m("peer@p", 5, conversation_id="c1", in_reply_to="r1"),  # in_reply_to first
+        m("peer@p", 6),
+        m("peer@p", 7),  # the mailbox is full by now: dropped
+        m("peer@p", 8, conversation_id="c1"),
+        m("peer@p", 9, in_reply_to="r-unknown"),
+    ]
+
+
+@pytest.mark.parametrize("stopping", [False, True])
+def test_a_batch_is_delivered_as_its_messages_one_by_one(stopping: bool) -> None:
+    """Conversations get their replies, the mailbox the rest, in order; the same counts."""
+    got = {}
+    for batched in (False, True):
+        agent = Agent("a", mailbox_size=3)
+        agent.aid = "a@p"
+        if stopping:
+            agent._state = "stopping"  # its conversations still hear, its mailbox does not
+        by_id = agent.conversation("c1", peers=["peer@p"])
+        by_reply = agent.conversation(peers=["peer@p"])
+        by_reply.expect("r1")
+        batch = _batch_for(agent.aid)
+        taken = agent._deliver_batch(batch) if batched else sum(agent._deliver(m) for m in batch)
+        got[batched] = (
+            taken,
+            [m.content for m in agent._mailbox._items],
+            [m.content for m in by_id._items._items],  # type: ignore[union-attr]
+            [m.content for m in by_reply._items._items],  # type: ignore[union-attr]
+            agent.stats,
+        )
+    assert got[True] == got[False]
+    taken, mailbox, by_id_got, by_reply_got, stats = got[True]
+    assert (by_id_got, by_reply_got) == ([1, 8], [3, 5])
+    if stopping:
+        assert (mailbox, taken, stats.dropped) == ([], 4, 5)
+    else:
+        assert (mailbox, taken, stats.dropped) == ([2, 4, 6], 7, 2)
+
+
+async def test_a_batch_wakes_the_waiting_conversation_and_the_handlers_once() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        a = await p.add(Recorder("a"))
+        a.add_handler(MessageTemplate(), _keep(a, "mailbox"))
+        with a.conversation("c1", peers=["peer@p"], timeout=2) as conv:
+            waiting = asyncio.create_task(conv.receive())
+            await asyncio.sleep(0)
+            batch = [
+                ACLMessage(performative=P.INFORM, sender="peer@p", receivers=[a.aid], content=i)
+                for i in range(5)
+            ]
+            batch.insert(2, batch[2].model_copy(update={"conversation_id": "c1", "content": 9}))
+            assert a._deliver_batch(batch) == 6
+            assert (await waiting).content == 9
+            assert [(await a.next())[1].content for _ in range(5)] == [0, 1, 2, 3, 4]
+            assert a.stats.received == 6 and a.stats.handled == 5
+
+
 async def test_an_agent_can_ask_itself() -> None:
     class Self_(Agent):
         @on(MessageTemplate(P.REQUEST))

@@ -97,6 +97,66 @@ async def test_forced_and_front_items_pass_a_full_box() -> None:
     assert box.dropped == 0
 
 
+class _CountingBox(Mailbox[int]):
+    """A Mailbox that counts its wakes."""
+
+    def __init__(self, maxlen: int, *, drop_oldest: bool = False) -> None:
+        super().__init__(maxlen, drop_oldest=drop_oldest)
+        self.wakes = 0
+
+    def _wake(self) -> None:
+        self.wakes += 1
+        super()._wake()
+
+
+@pytest.mark.parametrize("drop_oldest", [False, True])
+def test_put_many_keeps_the_accounting_of_a_put_per_item(drop_oldest: bool) -> None:
+    for maxlen in range(1, 5):
+        for queued in range(6):  # beyond maxlen: forced items
+            for n in range(7):
+                one: Mailbox[int] = Mailbox(maxlen, drop_oldest=drop_oldest)
+                many: Mailbox[int] = Mailbox(maxlen, drop_oldest=drop_oldest)
+                for box in (one, many):
+                    for q in range(queued):
+                        box.put(-q, force=True)
+                batch = list(range(n))
+                fitted = sum(one.put(x) for x in batch)
+                case = (maxlen, queued, n)
+                assert many.put_many(batch) == fitted, case
+                assert many.dropped == one.dropped, case
+                assert list(many._items) == list(one._items), case
+
+
+@pytest.mark.parametrize(
+    ("drop_oldest", "queued", "n", "wakes"),
+    [
+        (False, 0, 3, 1),  # one wake for the batch
+        (False, 2, 3, 1),  # some refused: still woken for the rest
+        (False, 4, 3, 0),  # all refused: nothing to wake for
+        (False, 0, 0, 0),  # nothing put
+        (True, 4, 3, 1),  # each pushed the oldest out: woken once
+    ],
+)
+def test_put_many_wakes_the_consumer_once_if_anything_went_in(
+    drop_oldest: bool, queued: int, n: int, wakes: int
+) -> None:
+    box = _CountingBox(4, drop_oldest=drop_oldest)
+    for q in range(queued):
+        box.put(q)
+    box.wakes = 0
+    box.put_many(range(10, 10 + n))
+    assert box.wakes == wakes
+
+
+async def test_put_many_wakes_a_waiting_consumer_with_the_whole_batch() -> None:
+    box: Mailbox[int] = Mailbox(10)
+    getting = asyncio.create_task(box.get())
+    await asyncio.sleep(0)
+    assert box.put_many([1, 2, 3]) == 3
+    assert await getting == 1
+    assert [box.get_nowait(), box.get_nowait()] == [2, 3]
+
+
 def test_a_mailbox_needs_room() -> None:
     with pytest.raises(ValueError, match="maxlen"):
         Mailbox(0)

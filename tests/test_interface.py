@@ -1124,9 +1124,10 @@ def test_audit_lines_of_accepted_messages_are_the_records_as_json() -> None:
     ]
     for ts in (1795000000.125, 1795000000.125, 0.1 + 0.2, 1e-7, 0.0):
         for message in messages:
-            audit.accepted("uav-a", message, ts)
+            for _ in range(2):  # a record again: its line again
+                audit.accepted("uav-a", message, ts)
     audit.record(verdict="dropped", reason="something else")
     lines = audit.take().splitlines()
     assert lines == [orjson.dumps(r) for r in audit.records]
-    assert audit.counts["accepted"] == 15 and len(lines) == 16
+    assert audit.counts["accepted"] == 30 and len(lines) == 31
     assert audit.last(1)[0]["verdict"] == "dropped"
