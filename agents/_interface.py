@@ -1006,6 +1006,8 @@ class InterfaceAgent:
         # accepted_entry, inline (one receiver, this sender)
         entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
         audit._log.append(entry)
+        if not audit._pending and audit.wake is not None:
+            audit.wake()  # a flush asleep for want of records (as `AuditLog.accepted`)
         audit._pending.append(entry)
         audit.counts["accepted"] += 1
         stats = host.stats
@@ -1118,6 +1120,8 @@ class InterfaceAgent:
             taken = i - start
             if taken:
                 audit._log.extend(entries)
+                if not audit._pending and audit.wake is not None:
+                    audit.wake()  # a flush asleep for want of records (as `AuditLog.accepted`)
                 audit._pending.extend(entries)
                 state.stats.accepted += taken
                 audit.counts["accepted"] += taken

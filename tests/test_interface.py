@@ -348,6 +348,50 @@ async def test_an_idle_audit_flush_sleeps_and_wakes_for_the_next_record() -> Non
         assert await published("watch-shed") < 1.0
 
 
+async def test_accepted_messages_alone_or_batched_wake_an_asleep_audit_flush() -> None:
+    """A request that comes alone, or a batch: their accepted records are published soon."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b", audit_interval=0.05)
+        channel = ia(pb)
+        raw = await fed.raw()
+        feed = await raw.subscribe(wire_key(FED, "audit", "uav-b"))
+        asker = await serve(pa, "asker", None)
+        echo = await serve(pb, "echo")
+
+        async def accepted_published(n: int) -> None:
+            """Until ``n`` accepted records from uav-a came in published audit batches."""
+            seen = 0
+            async with asyncio.timeout(1.0):  # an interval (0.05 s), room for a loaded CI
+                while seen < n:
+                    lines = channel.keys.open_sealed((await feed.get()).payload).splitlines()
+                    seen += sum(
+                        1
+                        for x in lines
+                        if (r := orjson.loads(x))["verdict"] == "accepted" and r["from"] == "uav-a"
+                    )
+
+        for round_ in range(2):
+            await until(lambda: channel._flush_idle, "the audit flush asleep")
+            feed.inbox.drain()
+            # alone: the request and its reply take the one-message path
+            assert await request(asker, "echo@uav-b", {"r": round_}, ontology="demo") is not None
+            await accepted_published(1)
+            await until(lambda: channel._flush_idle, "the audit flush asleep again")
+            feed.inbox.drain()
+            informs = len(echo.informs)
+            # a batch (as a burst's second envelope is) is the first thing after the sleep
+            batch = [
+                asker.message(Performative.INFORM, "echo@uav-b", {"i": i}, ontology="demo")
+                for i in range(20)
+            ]
+            body = b"[" + b",".join(m.to_json() for m in batch) + b"]"
+            await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", body))
+            want = informs + 20
+            await until(lambda w=want: len(echo.informs) == w, "the 20 informs")
+            await accepted_published(20)
+
+
 # -- hostile envelopes ----------------------------------------------------------------------
 
 
