@@ -1226,6 +1226,9 @@ class InterfaceAgent:
                 except Exception as exc:
                     log.debug("interface[%s]: could not refuse %s: %s", self._me, peer, exc)
         self._report_limited(peer, sender, now)
+        if sender.pending:
+            # summed up later, by the flush: it may sleep, with no record to wake it
+            self._wake_flush()
 
     def _refuse_limited(self, host: AgentPlatform, peer: str, message: ACLMessage) -> bool:
         """Whether a dropped message is a request its sender can be told about."""
@@ -1275,6 +1278,9 @@ class InterfaceAgent:
         # a flood of garbage must not become a flood of audit records: count, sum up later
         self._unauth_pending += 1
         self._report_unauthenticated(self._monotonic())
+        if self._unauth_pending:
+            # summed up later, by the flush: it may sleep, with no record to wake it
+            self._wake_flush()
 
     def _report_unauthenticated(self, now: float) -> None:
         """Audit the unauthenticated input dropped without a record, once per interval."""
