@@ -1226,8 +1226,8 @@ class InterfaceAgent:
                 except Exception as exc:
                     log.debug("interface[%s]: could not refuse %s: %s", self._me, peer, exc)
         self._report_limited(peer, sender, now)
-        if sender.pending:
-            # summed up later, by the flush: it may sleep, with no record to wake it
+        if sender.pending and self._flush_idle:
+            # summed up later, by the flush: it sleeps, and no record came to wake it
             self._wake_flush()
 
     def _refuse_limited(self, host: AgentPlatform, peer: str, message: ACLMessage) -> bool:
@@ -1278,8 +1278,8 @@ class InterfaceAgent:
         # a flood of garbage must not become a flood of audit records: count, sum up later
         self._unauth_pending += 1
         self._report_unauthenticated(self._monotonic())
-        if self._unauth_pending:
-            # summed up later, by the flush: it may sleep, with no record to wake it
+        if self._unauth_pending and self._flush_idle:
+            # summed up later, by the flush: it sleeps, and no record came to wake it
             self._wake_flush()
 
     def _report_unauthenticated(self, now: float) -> None:
