@@ -266,7 +266,7 @@ class AuditLog:
         if len(lines) >= _MAX_AUDIT_LINES:
             lines.clear()
         peer, sender, receiver, performative = key
-        middle = lines[key] = orjson.dumps(
+        middle = orjson.dumps(
             {
                 "platform": self.platform,
                 "from": peer,
@@ -275,6 +275,8 @@ class AuditLog:
                 "performative": performative,
             }
         )[1:-1]
+        if len(middle) <= _MAX_AUDIT_LINE:  # a long one (names made up by a peer) is not kept
+            lines[key] = middle
         return middle
 
     def take(self) -> bytes:
@@ -347,6 +349,7 @@ _NAMES = {p: p.value for p in Performative}
 
 
 _MAX_AUDIT_LINES = 4096
+_MAX_AUDIT_LINE = 1024  # bytes of a kept line's middle: 4096 of a message's size would be 1 GiB
 
 
 class InterfaceAgent:
