@@ -387,6 +387,7 @@ def _json_copy(value: Any, depth: int) -> Any:
 # identifiers that matched already: a platform talks with few agents, again and again
 _known_aids: set[str] = set()
 _MAX_KNOWN_AIDS = 4096
+_MAX_KNOWN_AID = 256  # longer ones are checked each time: 4096 of a message's size would be 1 GiB
 
 
 def _valid_aid(aid: Any) -> bool:
@@ -397,6 +398,8 @@ def _valid_aid(aid: Any) -> bool:
         return True
     if _aid_match(aid) is None:
         return False
+    if len(aid) > _MAX_KNOWN_AID:
+        return True  # valid, not remembered: another platform may make up such names
     if len(_known_aids) >= _MAX_KNOWN_AIDS:
         _known_aids.clear()
     _known_aids.add(aid)

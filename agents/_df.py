@@ -145,7 +145,7 @@ def _query(query: object, fields: dict[str, Any]) -> ServiceQuery:
     return ServiceQuery.model_validate(query)
 
 
-_MAX_REACH = 4096  # `reachable`'s remembered answers: (receiver, platform) pairs in use
+_MAX_REACH = 4096  # `reachable`'s remembered answers: (provider here, asking platform) pairs
 
 
 def visibility_allows(
@@ -403,12 +403,19 @@ class DirectoryFacilitator(Agent):
         known = self._reach.get(key)
         if known is not None:
             return known
+        services = self._services.get(receiver)
+        if services is None and receiver != self.aid:
+            # no service: decided at once, and not remembered (the name comes from the
+            # asker, who could make the kept answers take a message's size each)
+            return asker_platform == self.platform.name
         allowed = (
             receiver == self.aid
             or asker_platform == self.platform.name
-            or any(
-                visibility_allows(s, asker_platform, via_interface)
-                for s in self._services.get(receiver, {}).values()
+            or (
+                services is not None
+                and any(
+                    visibility_allows(s, asker_platform, via_interface) for s in services.values()
+                )
             )
         )
         if len(self._reach) >= _MAX_REACH:

@@ -266,7 +266,7 @@ class AuditLog:
         if len(lines) >= _MAX_AUDIT_LINES:
             lines.clear()
         peer, sender, receiver, performative = key
-        middle = lines[key] = orjson.dumps(
+        middle = orjson.dumps(
             {
                 "platform": self.platform,
                 "from": peer,
@@ -275,6 +275,8 @@ class AuditLog:
                 "performative": performative,
             }
         )[1:-1]
+        if len(middle) <= _MAX_AUDIT_LINE:  # a long one (names made up by a peer) is not kept
+            lines[key] = middle
         return middle
 
     def take(self) -> bytes:
@@ -347,6 +349,7 @@ _NAMES = {p: p.value for p in Performative}
 
 
 _MAX_AUDIT_LINES = 4096
+_MAX_AUDIT_LINE = 1024  # bytes of a kept line's middle: 4096 of a message's size would be 1 GiB
 
 
 class InterfaceAgent:
@@ -1226,6 +1229,9 @@ class InterfaceAgent:
                 except Exception as exc:
                     log.debug("interface[%s]: could not refuse %s: %s", self._me, peer, exc)
         self._report_limited(peer, sender, now)
+        if sender.pending and self._flush_idle:
+            # summed up later, by the flush: it sleeps, and no record came to wake it
+            self._wake_flush()
 
     def _refuse_limited(self, host: AgentPlatform, peer: str, message: ACLMessage) -> bool:
         """Whether a dropped message is a request its sender can be told about."""
@@ -1275,6 +1281,9 @@ class InterfaceAgent:
         # a flood of garbage must not become a flood of audit records: count, sum up later
         self._unauth_pending += 1
         self._report_unauthenticated(self._monotonic())
+        if self._unauth_pending and self._flush_idle:
+            # summed up later, by the flush: it sleeps, and no record came to wake it
+            self._wake_flush()
 
     def _report_unauthenticated(self, now: float) -> None:
         """Audit the unauthenticated input dropped without a record, once per interval."""

@@ -631,3 +631,19 @@ def test_to_json_writes_the_bytes_it_wrote(message: ACLMessage) -> None:
     assert {k: v for k, v in ours.items() if v is not None} == {
         k: v for k, v in theirs.items() if v is not None
     }
+
+
+def test_long_agent_identifiers_are_checked_each_time_not_remembered() -> None:
+    """Identifiers another platform makes up, a message long, do not fill the memory."""
+    from agents import _acl
+
+    long = "x" * 100_000 + "@p"
+    for i in range(20):
+        aid = f"{i}{long}"
+        message = ACLMessage.from_json(
+            orjson.dumps({"performative": "inform", "sender": aid, "receivers": [aid]})
+        )
+        assert message.sender == aid
+        assert compose(Performative.INFORM, aid, aid, None, {}).receivers == [aid]
+    assert sum(len(a) for a in _acl._known_aids) < 4096 * 300
+    assert not any(a.endswith(long) for a in _acl._known_aids)

@@ -200,6 +200,27 @@ async def test_access_control_lookups_for_the_interface_agent() -> None:
         assert df.reachable("df@uav-a", "uav-b")  # the DF answers searches from anywhere
 
 
+async def test_access_lookups_remember_only_agents_that_offer_services() -> None:
+    """Names another platform invents (up to a message long) are answered, not remembered.
+
+    The answers kept are per provider registered here: a platform asking for agents that
+    offer nothing cannot fill the DF's memory with its names, nor push out what it keeps.
+    """
+    async with asyncio.timeout(5), platforms("uav-a") as [p]:
+        df = p.df
+        assert df is not None
+        await df.register(svc("pub@uav-a", "s1", V.PUBLIC))
+        assert df.reachable("pub@uav-a", "uav-b")
+        for i in range(50):
+            name = f"{i:04d}" + "x" * 100_000 + "@uav-a"  # a valid, very long identifier
+            assert not df.reachable(name, "uav-b")
+            assert df.reachable(name, "uav-a")  # local agents reach everyone
+        assert df.reachable("df@uav-a", "uav-b")
+        kept = df._reach
+        assert all(receiver in ("pub@uav-a", "df@uav-a") for receiver, _, _ in kept)
+        assert sum(len(receiver) for receiver, _, _ in kept) < 100
+
+
 # -- the ACL face --------------------------------------------------------------------------
 
 

@@ -1149,6 +1149,25 @@ async def test_request_inform_over_zenoh_between_two_sessions() -> None:
             assert time.monotonic() - started < 3.0
 
 
+def test_audit_lines_of_long_names_are_written_not_kept() -> None:
+    """A line made of names another platform made up, a message long, is not kept."""
+    audit = AuditLog(platform="uav-b")
+    for i in range(20):
+        sender = f"{i}" + "x" * 200_000 + "@uav-a"
+        message = ACLMessage.build(
+            performative=Performative.INFORM, sender=sender, receivers=["b@uav-b"]
+        )
+        audit.accepted("uav-a", message, 1.5)
+    audit.accepted(
+        "uav-a",
+        ACLMessage.build(performative="inform", sender="a@uav-a", receivers=["b@uav-b"]),
+        1.5,
+    )
+    lines = audit.take().splitlines()
+    assert lines == [orjson.dumps(r) for r in audit.records]
+    assert sum(len(middle) for middle in audit._lines.values()) < 1024
+
+
 def test_audit_lines_of_accepted_messages_are_the_records_as_json() -> None:
     """The lines pieced together for accepted messages are orjson's bytes of the records."""
     audit = AuditLog(platform="uav-b")

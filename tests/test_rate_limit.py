@@ -458,6 +458,53 @@ async def test_informs_count_against_the_total_rate() -> None:
         assert sink.got == list(range(100))  # the first ones, in order
 
 
+async def test_a_message_limited_while_the_audit_flush_sleeps_is_audited() -> None:
+    """A drop summed up for later (within the report interval) wakes a flush asleep meanwhile."""
+    limit = RateLimit(total_rate=0, total_burst=1, refusals=0, report_interval=1.0)
+    async with memory(TARGET, FLOOD) as fed:
+        target = await fed.start(TARGET, rate_limit=limit)
+        pf = await fed.start(FLOOD)
+        await target.add(Sink())
+        sender = await pf.add(Agent("talker"))
+        channel = ia(target)
+        for i in range(2):  # the burst, then the first drop: audited at once
+            await sender.send(sender.message(Performative.INFORM, f"sink@{TARGET}", i))
+        await until(lambda: len(limit_records(target, FLOOD)) == 1, "the first drop audited")
+        await until(lambda: channel._flush_idle, "the audit flush asleep")
+        # within the report interval of the first record: counted, to be summed up later
+        await sender.send(sender.message(Performative.INFORM, f"sink@{TARGET}", 2))
+        await until(lambda: target.stats.senders[FLOOD].limited == 2, "the second drop")
+        await until(
+            lambda: len(limit_records(target, FLOOD)) == 2,
+            "the second drop audited",
+            timeout=limit.report_interval * 4,
+        )
+        assert limit_records(target, FLOOD)[1]["count"] == 1
+
+
+async def test_garbage_counted_while_the_audit_flush_sleeps_is_audited() -> None:
+    """Envelopes over the unauthenticated budget, counted while the flush sleeps, are summed up."""
+    limit = RateLimit(unauthenticated=0, report_interval=1.0)
+    async with memory(TARGET) as fed:
+        target = await fed.start(TARGET, rate_limit=limit)
+        channel = ia(target)
+        raw = await fed.stack.enter_async_context(fed.hub.transport())
+        inbox = wire_key(FED, "acl", TARGET)
+
+        def summed() -> int:
+            audit = channel.audit.records
+            return sum(r["count"] for r in audit if r.get("stage") == "unauthenticated")
+
+        await raw.publish(inbox, os.urandom(64))  # the first: summed up at once
+        await until(lambda: summed() == 1, "the first envelope audited")
+        await until(lambda: channel._flush_idle, "the audit flush asleep")
+        await raw.publish(inbox, os.urandom(64))  # within the interval: counted for later
+        await until(lambda: target.stats.unauthenticated == 2, "the second envelope counted")
+        await until(
+            lambda: summed() == 2, "the second envelope audited", timeout=limit.report_interval * 4
+        )
+
+
 class Sink(Agent):
     """Keeps the content of every inform."""
 

@@ -154,8 +154,12 @@ def test_a_reply_is_the_message_build_makes() -> None:
 # -- InterfaceAgent: a batch's messages decided as each alone -------------------------------
 
 
-async def _decisions(batched: bool) -> dict[str, Any]:
-    """What uav-b decides about one hostile mix of messages from uav-a, batched or one by one."""
+async def _decisions(batched: bool, runs: bool = False) -> dict[str, Any]:
+    """What uav-b decides about one hostile mix of messages from uav-a, batched or one by one.
+
+    With ``runs``: runs of messages for two agents from two senders, interleaved, with a
+    forged sender or receiver in the middle of a run (the batch path caches both).
+    """
     from test_interface import Listener, _captured_session, federation, ia, serve, until
 
     async with federation("uav-a", "uav-b") as fed:
@@ -190,6 +194,33 @@ async def _decisions(batched: bool) -> dict[str, Any]:
             _m("l@uav-b", "echo@uav-b", inform, {"i": 13}),  # claims the receiver's platform
         ]
         items += [_m("l@uav-a", "echo@uav-b", inform, {"i": i}) for i in range(14, 24)]
+        other = None
+        if runs:
+            ib.rate_limit = RateLimit(rate=1e-3, burst=6.0, total_rate=1e-3, total_burst=40.0)
+            other = await serve(pb, "echo2")
+            items = [
+                _m("l@uav-a", "echo@uav-b", inform, {"i": 1}),
+                _m("m@uav-a", "echo2@uav-b", inform, {"i": 2}),
+                _m("l@uav-a", "echo@uav-b", inform, {"i": 3}),
+                _m("l@uav-a", "echo@uav-b", req, {"i": 4}),
+                _m("victim@uav-c", "echo@uav-b", inform, {"i": 5}),  # forged, mid-run
+                _m("l@uav-a", "echo@uav-b", inform, {"i": 6}),
+                _m("l@uav-a", "echo2@uav-b", req, {"i": 7}),
+                _m("l@uav-a", "private@uav-b", req, {"i": 8}),  # no service, mid-run
+                _m("l@uav-a", "echo2@uav-b", req, {"i": 9}),
+                _m("m@uav-a", "echo@uav-b", inform, {"i": 10}),
+                _m("m@uav-a", "echo@uav-b", inform, {"i": 11}, reply_to=["m@uav-a"]),
+                _m("m@uav-a", "ghost@uav-b", inform, {"i": 12}),  # no such agent, mid-run
+                _m("m@uav-a", "echo@uav-b", inform, {"i": 13}),
+                _m("m@uav-a", "echo@uav-c", inform, {"i": 14}),  # another platform, mid-run
+                _m("m@uav-a", "echo2@uav-b", inform, {"i": 15}),
+                _m("l@uav-b", "echo2@uav-b", inform, {"i": 16}),  # claims uav-b, mid-run
+                _m("l@uav-a", "echo2@uav-b", inform, {"i": 17}),
+                _m("l@uav-a", "echo@uav-b", req, {"i": 18}),
+                _m("l@uav-a", "echo@uav-b", req, {"i": 19}),
+                _m("l@uav-a", "echo2@uav-b", req, {"i": 20}),  # over the request limit
+                _m("m@uav-a", "echo2@uav-b", inform, {"i": 21}),
+            ]
         bodies = [orjson.dumps(i) if isinstance(i, dict) else i.to_json() for i in items]
         key = wire_key(FED, "acl", "uav-b")
         raw = await fed.raw()
@@ -212,6 +243,8 @@ async def _decisions(batched: bool) -> dict[str, Any]:
         return {
             "records": records,
             "informs": [m.content for m in echo.informs],
+            "informs2": None if other is None else [m.content for m in other.informs],
+            "calls2": None if other is None else [m.content for m in other.calls],
             "calls": [m.content for m in echo.calls],
             "accepted": sender.accepted,
             "limited": sender.limited,
@@ -247,6 +280,16 @@ async def test_a_hostile_batch_is_decided_as_its_messages_one_by_one() -> None:
     together = await _decisions(batched=True)
     assert together == alone
     assert alone["limited"] >= 2  # both limits reached
+
+
+async def test_interleaved_runs_of_a_hostile_batch_are_decided_as_one_by_one() -> None:
+    """Two receivers, two senders, a bad one mid-run: batch == one by one, order kept."""
+    alone = await _decisions(batched=False, runs=True)
+    together = await _decisions(batched=True, runs=True)
+    assert together == alone
+    assert alone["informs"] == [{"i": 1}, {"i": 3}, {"i": 6}, {"i": 10}, {"i": 11}, {"i": 13}]
+    assert alone["informs2"] == [{"i": 2}, {"i": 15}, {"i": 17}, {"i": 21}]
+    assert alone["limited"] == 1
 
 
 # -- a resend waiting for room: sealed when it leaves, not when it begins to wait -----------
