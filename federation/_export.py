@@ -235,8 +235,8 @@ class Export:
                     continue
                 n = min(len(q), batch_size)
                 await self._send([q.popleft() for _ in range(n)])
-                # a transport that never suspends (memory) would otherwise hold the loop
-                await asyncio.sleep(0)
+                if q:  # a transport that never suspends (memory) would otherwise hold the loop
+                    await asyncio.sleep(0)
         except TransportClosed as exc:
             self._end(f"the transport closed: {exc}")
         except asyncio.CancelledError:
