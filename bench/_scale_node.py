@@ -10,7 +10,8 @@ Both targets follow `bench._child.Child`: ``target(spec, …, reports, stop)``, 
   each provides ``spec["streams"]`` local streams and pushes a sequence number into every
   one at ``spec["hz"]`` until ``quiet`` is set, then reports the last number pushed. Each
   also answers raw zenoh gets on ``scale/raw/<name>`` with its latest numbers, on its own
-  session: the raw peer of the operator's global query.
+  session: the raw peer of the operator's global query. Its loop is `agents.run`'s, as
+  ``dyknow node``'s: uvloop where installed.
 - ``bare_main``: opens the same number of zenoh sessions with the same settings, each
   declaring a liveliness token: the least a member of a zenoh network costs to appear.
 """
@@ -44,9 +45,9 @@ def uav_main(spec: dict[str, Any], quiet: Any, reports: Any, stop: Any) -> None:
     """A worker's entry point: run its UAV platforms until ``stop``; errors are reported."""
     t_main = time.time()
     try:
-        import asyncio
+        from agents import run
 
-        asyncio.run(_uavs(spec, t_main, quiet, reports, stop))
+        run(_uavs(spec, t_main, quiet, reports, stop))
     except BaseException:
         reports.put(("error", os.getpid(), traceback.format_exc()))
         raise SystemExit(1) from None

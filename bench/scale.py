@@ -29,6 +29,8 @@ operator is this process. Measured, in one run:
   time on the UAV → delivery here, one clock). After ``seconds`` the UAVs stop, report their last
   number, and every stream must hold every number from its first counted one to that
   last one: ``lost`` is what is missing.
+- The operator and the workers run on `agents.run`'s loop, as ``dyknow node`` does
+  (uvloop where installed; ``DYKNOW_EVENT_LOOP=asyncio`` for asyncio's own).
 - CPU (process CPU time / wall over the window, from ``/proc`` and ``resource``) and RSS
   of the operator and of the workers, total and per platform (bare sessions beside).
 
@@ -58,6 +60,8 @@ from typing import Any
 
 import zenoh
 
+from agents import event_loop_name
+from agents import run as run_loop
 from agents.keys import gen_keys, trust_keys
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 from bench import fmt, progress, report
@@ -643,7 +647,7 @@ def measure(
         if bare:
             progress(f"peer: {platforms} bare zenoh sessions in {len(plan.groups)} processes")
             bare_join(plan, result)
-        asyncio.run(_federation(plan, result, seconds, queries))
+        run_loop(_federation(plan, result, seconds, queries))
     return result
 
 
@@ -683,7 +687,8 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
     per = r.platforms / r.workers
     print(
         f"  {r.platforms} UAVs in {r.workers} processes ({per:g} each) + the operator; "
-        f"{r.streams} streams each at {r.hz:g} Hz"
+        f"{r.streams} streams each at {r.hz:g} Hz; event loop of the operator and the "
+        f"workers: {event_loop_name()}"
     )
     print(
         f"  join: all members {r.join:.2f} s after launch (target ≤ {JOIN_TARGET:g} s: "

@@ -54,6 +54,8 @@ _IDLE_CHECK = 1.0
 # An idle export not acknowledged for this long sends an empty batch (receivers report
 # every 0.5 s by default): a live receiver learns of the stream and answers.
 _KEEPALIVE_AFTER = 1.0
+# A wait timer firing this close (s) before its deadline ends the wait: not re-armed.
+_CLOCK_SLACK = 1e-3
 # Pending resend requests kept per export.
 _MAX_RECOVER = 16
 _MAX_HISTORY = 1_000_000
@@ -65,12 +67,6 @@ RESEND_RATE = 20.0
 RESEND_BURST = 40.0
 # A receiver's refused resend requests are audited at most once per this many seconds.
 RESEND_REPORT_INTERVAL = 1.0
-
-
-def _done(fut: asyncio.Future[None]) -> None:
-    """End an export's wait (its timer ran out) unless something woke it already."""
-    if not fut.done():
-        fut.set_result(None)
 
 
 class Export:
@@ -131,6 +127,9 @@ class Export:
         # numbered ranges that failed to go out, while the history may still resend them
         self._failed: deque[tuple[int, int, DropReason]] = deque(maxlen=_MAX_FAILED)
         self._waiter: asyncio.Future[None] | None = None
+        # the current wait's deadline (loop time), and the one timer that enforces it
+        self._deadline = 0.0
+        self._timer: asyncio.TimerHandle | None = None
         self._backoff = 0.0
         # the last numbered samples: more than the receiver asks for, since the sender goes
         # on numbering while its request travels
@@ -236,8 +235,8 @@ class Export:
                     continue
                 n = min(len(q), batch_size)
                 await self._send([q.popleft() for _ in range(n)])
-                # a transport that never suspends (memory) would otherwise hold the loop
-                await asyncio.sleep(0)
+                if q:  # a transport that never suspends (memory) would otherwise hold the loop
+                    await asyncio.sleep(0)
         except TransportClosed as exc:
             self._end(f"the transport closed: {exc}")
         except asyncio.CancelledError:
@@ -245,6 +244,8 @@ class Export:
         except Exception as exc:
             log.exception("%s: failed", self.name)
             self._end(f"failed: {type(exc).__name__}: {exc}")
+        finally:
+            self._disarm()
 
     def _lease_expired(self, lease: float) -> bool:
         """End the export when its receiver has not reported for ``lease`` s (frozen, gone)."""
@@ -415,17 +416,42 @@ class Export:
         )
 
     async def _wait(self, timeout: float) -> None:
+        """Wait until woken (samples, a resend request) or ``timeout`` s have passed."""
         loop = asyncio.get_running_loop()
         fut = loop.create_future()
         self._waiter = fut
-        # a timer that ends the wait, not asyncio.timeout: this runs once per batch sent,
-        # and a timeout scope (a cancellation, undone) cost more than the rest of the wait
-        timer = loop.call_later(timeout, _done, fut)
+        self._deadline = deadline = loop.time() + timeout
+        # This runs once per batch sent, and samples usually wake it long before the
+        # deadline: rather than a timer made and cancelled per wait, one timer stays armed,
+        # and when it fires early for a later wait it re-arms for that wait's deadline.
+        timer = self._timer
+        if timer is None or timer.when() > deadline:
+            if timer is not None:
+                timer.cancel()
+            self._timer = loop.call_at(deadline, self._on_deadline)
         try:
             await fut
         finally:
-            timer.cancel()
             self._waiter = None
+
+    def _on_deadline(self) -> None:
+        """The wait timer fired: end the wait if its deadline passed, else re-arm for it."""
+        self._timer = None
+        fut = self._waiter
+        if fut is None or fut.done():
+            return  # not waiting: the next wait arms a timer
+        loop = fut.get_loop()
+        # a loop's timers round to its clock (uvloop: to the millisecond): within that, due
+        if loop.time() + _CLOCK_SLACK >= self._deadline:
+            fut.set_result(None)
+        else:
+            self._timer = loop.call_at(self._deadline, self._on_deadline)
+
+    def _disarm(self) -> None:
+        """Cancel the wait timer: the export's task is done."""
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
 
     async def _send(self, samples: list[RawSample]) -> None:
         proxy = self._proxy

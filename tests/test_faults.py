@@ -577,6 +577,38 @@ async def test_lease_ends_the_export_to_a_silent_receiver_only() -> None:
         assert live.active and live.last_heard > started
 
 
+async def test_a_lease_expires_in_time_after_samples_stop_flowing() -> None:
+    """Samples wake the export's waits early; once they stop, its wait still ends in time."""
+    hub = MemoryHub()
+    lease = 0.6  # the export looks every lease / 3 s while idle
+    expired: list[float] = []
+    async with (
+        hub.transport() as ta,
+        DyKnowInstance("a") as ia,
+        ExportProxy(
+            "a",
+            "f",
+            ta,
+            ia,
+            PlainSessions("a"),
+            lease=lease,
+            on_drop=lambda e, why, n: (
+                expired.append(time.monotonic()) if why == "lease-expired" else None
+            ),
+        ) as exporter,
+    ):
+        src = ia.add_source("x")
+        export = exporter.start_exporting("x", "x", "ghost")
+        started = export.last_heard
+        for k in range(20):  # 0.4 s of samples, well inside the lease
+            src.push(k, valid_time=k)
+            await asyncio.sleep(0.02)
+        await until(lambda: expired, "the silent receiver's lease", 3.0)
+        assert export.sent >= 10 and export.ended and export.ended.startswith("lease-expired")
+        # a look at most lease / 3 s after the wait began (plus a loaded machine's slack)
+        assert lease <= expired[0] - started <= lease + lease / 3 + 0.3
+
+
 async def test_an_importer_idle_until_a_stream_comes_reports_on_it_at_once() -> None:
     """The report task sleeps while nothing is imported; the first stream wakes it in time."""
     hub = MemoryHub()
