@@ -207,6 +207,8 @@ class LocalChannel:
         self.identity_shed = 0  # identity queries dropped unanswered, since start
         self._shed_pending = Pending(1.0)  # shed since the last audit record
         self._reports: asyncio.Task[None] | None = None
+        # the tasks serving connected commands: asyncio's server does not end them on close
+        self._clients: set[asyncio.Task[Any]] = set()
 
     def _admit_who(self, payload: bytes) -> bool:
         with self._who_lock:
@@ -271,6 +273,13 @@ class LocalChannel:
             self._server.close()
             with contextlib.suppress(TimeoutError):  # a client still connected: do not wait
                 await asyncio.wait_for(self._server.wait_closed(), 2.0)
+        clients = set(self._clients)
+        for task in clients:
+            task.cancel()  # a command still connected (a stream it follows) ends with the node
+        if clients:
+            _, pending = await asyncio.wait(clients, timeout=2.0)
+            if pending:
+                log.warning("local channel: %d command(s) did not end in 2 s", len(pending))
         with contextlib.suppress(FileNotFoundError):
             self.path.unlink()
         if self._handle is not None:
@@ -282,6 +291,10 @@ class LocalChannel:
             writer.write(json.dumps(obj, default=str).encode() + b"\n")
             await writer.drain()
 
+        task = asyncio.current_task()
+        if task is not None:
+            task.set_name(f"local[{self.platform.name}].command")
+            self._clients.add(task)
         try:
             uid = _peer_uid(writer)
             if uid is None or uid not in (os.getuid(), 0):
@@ -312,6 +325,8 @@ class LocalChannel:
         except (ConnectionError, asyncio.IncompleteReadError):
             pass  # the command went away (Ctrl-C): its stream is cancelled below
         finally:
+            if task is not None:
+                self._clients.discard(task)
             writer.close()
             with contextlib.suppress(OSError):  # the peer went: its socket is gone already
                 await writer.wait_closed()

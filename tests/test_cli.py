@@ -12,6 +12,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
 from typer.testing import CliRunner
@@ -357,3 +358,42 @@ def test_console_serves_the_federation_it_sees(tmp_path: Path) -> None:
     finally:
         for p in procs:
             _kill(p)
+
+
+async def test_commands_still_connected_end_with_the_local_channel(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A node that stops ends the commands connected to it: no task of theirs outlives it."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # a socket of this test's own
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    async with asyncio.timeout(30):
+        async with FederationPlatform(config, join=False) as p:
+            channel = LocalChannel(p)
+            async with channel:
+                # one command connected and silent, one halfway through its request line
+                silent = await asyncio.open_unix_connection(str(channel.path))
+                halfway = await asyncio.open_unix_connection(str(channel.path))
+                halfway[1].write(b'{"op": "platf')
+                await halfway[1].drain()
+
+                def serving() -> set[asyncio.Task[Any]]:
+                    """The tasks serving a command (asyncio's server starts them)."""
+                    return {
+                        t
+                        for t in asyncio.all_tasks()
+                        if getattr(t.get_coro(), "__qualname__", "") == "LocalChannel._serve"
+                    }
+
+                while len(serving()) < 2:  # noqa: ASYNC110 (no event to await)
+                    await asyncio.sleep(0.01)
+                tasks = serving()
+                assert {t.get_name() for t in tasks} == {"local[uav-a].command"}
+            assert all(t.done() for t in tasks) and not serving()
+            for reader, writer in (silent, halfway):
+                assert await reader.read() == b""  # told: the connection was closed
+                writer.close()
