@@ -308,7 +308,8 @@ _TRUSTED_NESTING = 200  # below pydantic's limit of nesting (255): deeper goes t
 def nesting_bound(data: bytes | str) -> int:
     """A bound of how deep JSON ``data`` nests: its opening brackets and braces, counted."""
     if isinstance(data, bytes):
-        return data.count(b"[") + data.count(b"{")
+        # one pass in C, about half the time of two counts over a large batch
+        return len(data) - len(data.translate(None, b"[{"))
     return data.count("[") + data.count("{")
 
 
@@ -419,8 +420,7 @@ def _aids(value: Any) -> list[str] | None:
 
 def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
     """The model's fields for a decoded message that passes every check, else None."""
-    fields = dict(_DEFAULTS)  # in the model's order, as pydantic keeps them
-    fields.update(obj)
+    fields = {**_DEFAULTS, **obj}  # in the model's order, as pydantic keeps them
     if len(fields) != _N_FIELDS:
         return None  # a key that is no field: pydantic says which
     v = fields["v"]
@@ -435,15 +435,31 @@ def _quick_fields(obj: dict[str, Any]) -> dict[str, Any] | None:
         or (sender not in _known_aids and not _valid_aid(sender))
     ):
         return None
-    receivers = _aids(fields["receivers"])
-    if not receivers:
+    receivers = fields["receivers"]
+    if type(receivers) is list and len(receivers) == 1:  # the common case, without a call
+        receiver = receivers[0]
+        if type(receiver) is not str or (receiver not in _known_aids and not _valid_aid(receiver)):
+            return None
+        receivers = [receiver]
+    elif not (receivers := _aids(receivers)):
         return None
     reply_to = fields["reply_to"]
     if reply_to is not None and (reply_to := _aids(reply_to)) is None:
         return None
-    for value in _optional_strs(fields):
-        if value is not None and type(value) is not str:
-            return None
+    # unrolled: a loop over the seven costs as much again
+    language, encoding, ontology, protocol, conversation_id, reply_with, in_reply_to = (
+        _optional_strs(fields)
+    )
+    if (
+        (language is not None and type(language) is not str)
+        or (encoding is not None and type(encoding) is not str)
+        or (ontology is not None and type(ontology) is not str)
+        or (protocol is not None and type(protocol) is not str)
+        or (conversation_id is not None and type(conversation_id) is not str)
+        or (reply_with is not None and type(reply_with) is not str)
+        or (in_reply_to is not None and type(in_reply_to) is not str)
+    ):
+        return None
     reply_by = fields["reply_by"]
     if reply_by is not None and (type(reply_by) is not float or not math.isfinite(reply_by)):
         return None  # an integer, or anything else: pydantic decides (and says why)

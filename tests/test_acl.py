@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import re
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -24,13 +25,14 @@ from agents import (
     MessageError,
     MessageTemplate,
     Performative,
+    _acl,
     agent_id,
     name_of,
     new_id,
     on,
     platform_of,
 )
-from agents._acl import compose
+from agents._acl import compose, nesting_bound
 
 P = Performative
 BASE: dict[str, Any] = {"performative": "inform", "sender": "a@uav-a", "receivers": ["b@uav-b"]}
@@ -402,7 +404,11 @@ _field_values = {
     "receivers": st.lists(_aid, max_size=3) | _json,
     "reply_to": st.none() | st.lists(_aid, max_size=2) | _json,
     "content": _json,
+    "language": st.none() | st.text(max_size=3) | _json,
+    "encoding": st.none() | st.text(max_size=3) | _json,
     "ontology": st.none() | st.text(max_size=3) | _json,
+    "protocol": st.none() | st.text(max_size=3) | _json,
+    "in_reply_to": st.none() | st.text(max_size=3) | _json,
     "conversation_id": st.none() | st.text(max_size=3) | _json,
     "reply_with": st.none() | st.text(max_size=3) | _json,
     "reply_by": st.none() | st.floats() | st.integers() | _json,
@@ -436,6 +442,60 @@ def test_the_quick_parse_accepts_and_refuses_as_pydantic_does(obj: dict[str, Any
     assert list(quick.__dict__) == list(slow.__dict__)
     assert quick.model_fields_set == slow.model_fields_set
     assert quick.to_json() == slow.to_json()
+
+
+def _quick_fields_before(obj: dict[str, Any]) -> dict[str, Any] | None:
+    """`_quick_fields` as it was before its common case was unrolled (the reference)."""
+    fields = dict(_acl._DEFAULTS)
+    fields.update(obj)
+    if len(fields) != _acl._N_FIELDS:
+        return None
+    v, performative, sender = fields["v"], fields["performative"], fields["sender"]
+    if (
+        type(v) is not int
+        or v != _acl.WIRE_VERSION
+        or (type(performative) is not str and type(performative) is not Performative)
+        or (performative := _acl._PERFORMATIVES.get(performative)) is None
+        or not _acl._valid_aid(sender)
+    ):
+        return None
+    receivers = _acl._aids(fields["receivers"])
+    if not receivers:
+        return None
+    reply_to = fields["reply_to"]
+    if reply_to is not None and (reply_to := _acl._aids(reply_to)) is None:
+        return None
+    for value in _acl._optional_strs(fields):
+        if value is not None and type(value) is not str:
+            return None
+    reply_by = fields["reply_by"]
+    if reply_by is not None and (type(reply_by) is not float or not math.isfinite(reply_by)):
+        return None
+    fields["performative"] = performative
+    fields["receivers"] = receivers
+    fields["reply_to"] = reply_to
+    return fields
+
+
+@settings(max_examples=400, deadline=None)
+@given(_decoded())
+def test_the_quick_fields_are_those_of_the_reference(obj: dict[str, Any]) -> None:
+    """_quick_fields: the same fields, in the same order, or None, as the plain version."""
+    before = _quick_fields_before(obj)
+    now = _acl._quick_fields(obj)
+    assert now == before
+    if now is not None and before is not None:
+        assert list(now) == list(before)
+        assert now["receivers"] is not obj["receivers"]  # a copy, as before
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.binary(max_size=64) | _json.map(orjson.dumps))
+def test_the_nesting_bound_counts_brackets_and_braces(data: bytes) -> None:
+    """nesting_bound: the count of ``[`` and ``{``, for bytes and for str alike."""
+    assert nesting_bound(data) == data.count(b"[") + data.count(b"{")
+    text = data.decode("utf-8", "replace")
+    assert nesting_bound(text) == text.count("[") + text.count("{")
 
 
 _python_content = st.recursive(
