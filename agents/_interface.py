@@ -17,7 +17,7 @@ import math
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -238,12 +238,15 @@ class AuditLog:
 
     def accepted(self, peer: str, message: ACLMessage, ts: float | None = None) -> None:
         """Record that ``message`` from platform ``peer`` was admitted (at ``ts``, Unix s)."""
-        entry = accepted_entry(time.time() if ts is None else ts, peer, message)
-        self._log.append(entry)
+        self.add_accepted((accepted_entry(time.time() if ts is None else ts, peer, message),))
+
+    def add_accepted(self, entries: Sequence[tuple[Any, ...]]) -> None:
+        """Record admitted messages given as their `accepted_entry` tuples (a batch's at once)."""
+        self._log.extend(entries)
         if not self._pending and self.wake is not None:
-            self.wake()
-        self._pending.append(entry)
-        self.counts["accepted"] += 1
+            self.wake()  # a flush asleep for want of records
+        self._pending.extend(entries)
+        self.counts["accepted"] += len(entries)
 
     def _as_dict(self, entry: Any) -> dict[str, Any]:
         """A log entry as its record."""
@@ -1011,11 +1014,7 @@ class InterfaceAgent:
         audit = self.audit
         # accepted_entry, inline (one receiver, this sender)
         entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
-        audit._log.append(entry)
-        if not audit._pending and audit.wake is not None:
-            audit.wake()  # a flush asleep for want of records (as `AuditLog.accepted`)
-        audit._pending.append(entry)
-        audit.counts["accepted"] += 1
+        audit.add_accepted((entry,))
         stats = host.stats
         stats.received_remote += 1
         try:
@@ -1133,12 +1132,8 @@ class InterfaceAgent:
         finally:
             taken = i - start
             if taken:
-                audit._log.extend(entries)
-                if not audit._pending and audit.wake is not None:
-                    audit.wake()  # a flush asleep for want of records (as `AuditLog.accepted`)
-                audit._pending.extend(entries)
+                audit.add_accepted(entries)  # one per message taken
                 state.stats.accepted += taken
-                audit.counts["accepted"] += taken
                 stats = host.stats
                 stats.received_remote += taken
                 stats.local += taken
