@@ -1318,6 +1318,7 @@ class InterfaceAgent:
             len(receivers) == 1
             and not message.reply_to
             and platform_of(message.sender) == peer
+            and peer != host.name
             and platform_of(receivers[0]) == host.name
         ):
             # the common case, decided as below without building the lists and records
@@ -1339,6 +1340,16 @@ class InterfaceAgent:
             # the envelope proves the platform; an agent of another one is impersonated
             self.audit.record(
                 verdict="dropped", **base, reason=f"sender is not an agent of {peer!r}"
+            )
+            return
+        if peer == host.name:
+            # local messages never come through a channel (`deliver` drops them as forged):
+            # refused here, before anything could audit it as accepted, and counted as forged
+            host.stats.forged += 1
+            self.audit.record(
+                verdict="dropped",
+                **base,
+                reason=f"sender claims this platform {peer!r}: its agents never send from outside",
             )
             return
         local = [r for r in message.receivers if platform_of(r) == host.name]
