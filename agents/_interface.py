@@ -230,9 +230,10 @@ class AuditLog:
             **fields,
         }
         self._log.append(rec)
-        if not self._pending and self.wake is not None:
-            self.wake()
+        first = not self._pending  # the first since the flush took them: it may sleep
         self._pending.append(rec)
+        if first and self.wake is not None:
+            self.wake()  # after the append: a flush woken from another thread finds it
         verdict = rec["verdict"]
         self.counts[verdict] = self.counts.get(verdict, 0) + 1
 
@@ -243,9 +244,10 @@ class AuditLog:
     def add_accepted(self, entries: Sequence[tuple[Any, ...]]) -> None:
         """Record admitted messages given as their `accepted_entry` tuples (a batch's at once)."""
         self._log.extend(entries)
-        if not self._pending and self.wake is not None:
-            self.wake()  # a flush asleep for want of records
+        first = not self._pending  # a flush may sleep for want of records
         self._pending.extend(entries)
+        if first and self.wake is not None:
+            self.wake()  # after the append: a flush woken from another thread finds them
         self.counts["accepted"] += len(entries)
 
     def _as_dict(self, entry: Any) -> dict[str, Any]:
