@@ -230,9 +230,10 @@ class AuditLog:
             **fields,
         }
         self._log.append(rec)
-        if not self._pending and self.wake is not None:
-            self.wake()
+        first = not self._pending  # the first since the flush took them: it may sleep
         self._pending.append(rec)
+        if first and self.wake is not None:
+            self.wake()  # after the append: a flush woken from another thread finds it
         verdict = rec["verdict"]
         self.counts[verdict] = self.counts.get(verdict, 0) + 1
 
@@ -243,9 +244,10 @@ class AuditLog:
     def add_accepted(self, entries: Sequence[tuple[Any, ...]]) -> None:
         """Record admitted messages given as their `accepted_entry` tuples (a batch's at once)."""
         self._log.extend(entries)
-        if not self._pending and self.wake is not None:
-            self.wake()  # a flush asleep for want of records
+        first = not self._pending  # a flush may sleep for want of records
         self._pending.extend(entries)
+        if first and self.wake is not None:
+            self.wake()  # after the append: a flush woken from another thread finds them
         self.counts["accepted"] += len(entries)
 
     def _as_dict(self, entry: Any) -> dict[str, Any]:
@@ -1318,6 +1320,7 @@ class InterfaceAgent:
             len(receivers) == 1
             and not message.reply_to
             and platform_of(message.sender) == peer
+            and peer != host.name
             and platform_of(receivers[0]) == host.name
         ):
             # the common case, decided as below without building the lists and records
@@ -1339,6 +1342,16 @@ class InterfaceAgent:
             # the envelope proves the platform; an agent of another one is impersonated
             self.audit.record(
                 verdict="dropped", **base, reason=f"sender is not an agent of {peer!r}"
+            )
+            return
+        if peer == host.name:
+            # local messages never come through a channel (`deliver` drops them as forged):
+            # refused here, before anything could audit it as accepted, and counted as forged
+            host.stats.forged += 1
+            self.audit.record(
+                verdict="dropped",
+                **base,
+                reason=f"sender claims this platform {peer!r}: its agents never send from outside",
             )
             return
         local = [r for r in message.receivers if platform_of(r) == host.name]

@@ -9,10 +9,11 @@ when the deadline moves.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 from typing import Any, Self
 
-from ._time import Clock
+from ._time import NS_PER_S, Clock, RealClock
 
 
 class Ticker:
@@ -65,8 +66,22 @@ async def sleep_until_woken(clock: Clock, deadline: int | None, wake: asyncio.Ev
     """Sleep until ``deadline`` on ``clock`` (ns; None: no deadline) or until ``wake`` is set.
 
     For timers whose next deadline may move earlier while they sleep: whoever moves it
-    sets ``wake`` (the timer clears it before reading its deadline).
+    sets ``wake`` (the timer clears it before reading its deadline). It always yields to
+    the loop at least once, and nothing it starts outlives it.
     """
+    if deadline is None or type(clock) is RealClock:
+        # The wait for ``wake`` in this task, cut short by a loop timer (the wall clock's
+        # deadline is one): no task to start, and none to cancel and wait for once woken,
+        # which would resume the timer turns later than the wake.
+        delay = None if deadline is None else (deadline - clock.now()) / NS_PER_S
+        if wake.is_set() or (delay is not None and delay <= 0):
+            await asyncio.sleep(0)  # a timer whose deadline has passed still lets others run
+            return
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(delay):
+                await wake.wait()
+        return
+    # Another clock's sleep is a coroutine: it and the wait for ``wake`` run as tasks
     loop = asyncio.get_running_loop()
     me = asyncio.current_task()
     owner = "sleep_until_woken" if me is None else me.get_name()

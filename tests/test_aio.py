@@ -11,7 +11,7 @@ import pytest
 
 from agents import Mailbox, Pending, Ticker
 from agents.transports import Inbox
-from dyknow_core import ManualClock
+from dyknow_core import Clock, ManualClock, RealClock
 from dyknow_core._aio import Ticker as CoreTicker
 from dyknow_core._aio import sleep_until_woken
 
@@ -298,6 +298,49 @@ async def test_sleep_until_woken_cancelled_leaves_no_task_of_its_own() -> None:
     assert {"timer.wake", "timer.deadline"} <= waits  # named after the task that sleeps
     sleeping.cancel()
     await asyncio.wait([sleeping])
+    assert asyncio.all_tasks() == {asyncio.current_task()}
+
+
+@pytest.mark.parametrize("clock", [RealClock(), ManualClock(0)], ids=["real", "manual"])
+async def test_a_timer_without_a_deadline_resumes_on_the_turn_it_is_woken(clock: Clock) -> None:
+    """Woken, it resumes with the event's own waiters, and started nothing to wait for."""
+    wake = asyncio.Event()
+    sleeping = asyncio.create_task(sleep_until_woken(clock, None, wake))
+    await asyncio.sleep(0)
+    assert asyncio.all_tasks() == {asyncio.current_task(), sleeping}
+    wake.set()
+    await asyncio.sleep(0)  # one turn: the sleeper's, queued before this task's
+    assert sleeping.done()
+    await sleeping
+
+
+async def test_a_wall_clock_timer_resumes_on_the_turn_it_is_woken() -> None:
+    """On the wall clock, a woken timer resumes at once; the wake stays set for the next wait."""
+    clock, wake = RealClock(), asyncio.Event()
+    sleeping = asyncio.create_task(sleep_until_woken(clock, clock.now() + 10**12, wake))
+    await asyncio.sleep(0)
+    assert asyncio.all_tasks() == {asyncio.current_task(), sleeping}  # no wait of its own
+    wake.set()
+    await asyncio.sleep(0)
+    assert sleeping.done()
+    await sleeping
+    # not consumed: a timer that did not clear it before its next wait does not sleep
+    await asyncio.wait_for(sleep_until_woken(clock, clock.now() + 10**12, wake), 1.0)
+    # the deadline, as before; one past already still yields to the others once
+    wake.clear()
+    t0 = clock.now()
+    await asyncio.wait_for(sleep_until_woken(clock, t0 + 20_000_000, wake), 1.0)
+    assert clock.now() >= t0 + 20_000_000
+    others: list[int] = []
+    asyncio.get_running_loop().call_soon(others.append, 1)
+    await sleep_until_woken(clock, t0, wake)
+    assert others == [1]
+    # cancelled, it is cancelled (not taken for its deadline), and leaves nothing behind
+    sleeping = asyncio.create_task(sleep_until_woken(clock, clock.now() + 10**12, wake))
+    await asyncio.sleep(0)
+    sleeping.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await sleeping
     assert asyncio.all_tasks() == {asyncio.current_task()}
 
 

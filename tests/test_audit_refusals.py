@@ -39,8 +39,8 @@ from test_interface import (
     untouched,
 )
 
-from agents import AgentPlatform, Refused, request, wire_key
-from agents._security import Handshake, KeyPair, TrustStore
+from agents import AgentPlatform, Performative, Refused, request, wire_key
+from agents._security import Handshake, KeyPair, Session, TrustStore
 from agents.transports import Message, Subscription
 
 
@@ -311,4 +311,55 @@ async def test_misdirected_and_unknown_session(tmp_path: Path) -> None:
         await raw.publish(w.inbox, orjson.dumps({**env, "sid": "A" * 22}))
         rec = await logged(w, "unknown-session:", verdict="dropped")
         assert rec["from"] == "uav-a"
+        untouched(w.echo, calls, received)
+
+
+async def test_a_message_claiming_the_receivers_own_platform(tmp_path: Path) -> None:
+    """A sender of uav-b's own platform from outside is dropped, never audited as accepted.
+
+    Whoever holds uav-b's key cannot open a session with uav-b as uav-b (the handshake is
+    misdirected); were a session with itself in its table all the same, a message from
+    "its own" agent on it is dropped, counted as forged and audited with its reason, and
+    the audit has no record of it as accepted (alone, in a batch, or to several receivers).
+    """
+    async with watched(tmp_path) as w:
+        raw = await w.fed.raw()
+        table = ia(w.pb).sessions
+        init = orjson.loads(Handshake(w.fed.keys["uav-b"], table.trust).initiate("uav-a"))
+        replies = await raw.query(w.kx, orjson.dumps({**init, "to": "uav-b"}), timeout=1)
+        assert [r for r in replies if r.ok] == []
+        rec = await logged(w, "misdirected:", verdict="dropped", stage="kx")
+        assert "this platform itself" in rec["reason"]
+        assert table.sessions("uav-b") == []
+
+        keys = {k: os.urandom(32) for k in ("i2r mac", "r2i mac", "i2r box", "r2i box")}
+        made: dict[str, Any] = {"me": "uav-b", "peer": "uav-b", "federation": FED}
+        made.update(sid="S" * 22, keys=keys, order=(0, "S" * 22), policy=table.policy)
+        mine = Session(initiator=True, clock=time.time, **made)
+        table.add(Session(initiator=False, clock=time.time, **made))
+
+        calls, received = len(w.echo.calls), w.echo.stats.received
+        counts, forged = dict(ia(w.pb).audit.counts), w.pb.stats.forged
+        inform = Performative.INFORM
+        alone = acl("spy@uav-b", "echo@uav-b", 1, performative=inform)
+        several = acl("spy@uav-b", "echo@uav-b", 2, performative=inform)
+        several = several.model_copy(update={"receivers": ["echo@uav-b", "asker@uav-a"]})
+        batched = acl("spy@uav-b", "echo@uav-b", 3, performative=inform)
+        for body in (alone.to_json(), several.to_json(), b"[" + batched.to_json() + b"]"):
+            await raw.publish(w.inbox, mine.seal(body))
+        for m in (alone, several, batched):
+            rec = await logged(
+                w, "sender claims this platform 'uav-b'", conversation_id=m.conversation_id
+            )
+            assert (rec["verdict"], rec["from"], rec["sender"]) == ("dropped", "uav-b", "spy@uav-b")
+            assert rec["receivers"] == m.receivers
+        assert w.pb.stats.forged == forged + 3
+        after = ia(w.pb).audit.counts
+        assert after["dropped"] == counts["dropped"] + 3
+        assert after["accepted"] == counts["accepted"]
+        ours = {"from": "uav-b", "verdict": "accepted"}
+        assert records(w.pb, **ours) == []
+        lines = [orjson.loads(line) for line in w.path.read_bytes().splitlines()]
+        for log in (lines, w.published):
+            assert [r for r in log if all(r.get(k) == v for k, v in ours.items())] == []
         untouched(w.echo, calls, received)

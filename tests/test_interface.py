@@ -41,7 +41,7 @@ from agents import (
     wire_key,
 )
 from agents._exceptions import Forged
-from agents._interface import AuditLog, InterfaceAgent
+from agents._interface import AuditLog, InterfaceAgent, accepted_entry
 from agents._security import Handshake, KeyPair, SecurityPolicy, TrustStore
 from agents.transports import (
     MemoryHub,
@@ -1166,6 +1166,21 @@ def test_audit_lines_of_long_names_are_written_not_kept() -> None:
     lines = audit.take().splitlines()
     assert lines == [orjson.dumps(r) for r in audit.records]
     assert sum(len(middle) for middle in audit._lines.values()) < 1024
+
+
+def test_the_flush_a_record_wakes_finds_it_pending() -> None:
+    """Each record's wake comes once it is pending: a flush woken on another thread finds it."""
+    audit = AuditLog(platform="uav-b")
+    found: list[int] = []
+    # the flush, run the moment it is woken (as one on another thread may be)
+    audit.wake = lambda: found.append(len(audit.take().splitlines()))
+    message = ACLMessage.build(performative="inform", sender="a@uav-a", receivers=["b@uav-b"])
+    audit.record(verdict="dropped", reason="one")
+    audit.accepted("uav-a", message)
+    audit.add_accepted([accepted_entry(1.5, "uav-a", message)] * 2)
+    assert found == [1, 1, 2]
+    assert audit.counts == {"accepted": 3, "refused": 0, "dropped": 1}
+    assert audit.take() == b""
 
 
 def test_audit_lines_of_accepted_messages_are_the_records_as_json() -> None:

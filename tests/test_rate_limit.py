@@ -19,7 +19,7 @@ import statistics
 import time
 import uuid
 from collections import Counter
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -215,18 +215,25 @@ async def pace(
     count: int,
     period: float,
     during: asyncio.Future[Any] | None = None,
+    watch: Callable[[], Any] | None = None,
+    watched: list[tuple[Any, Any]] | None = None,
 ) -> list[float]:
     """``count`` requests one after the other every ``period`` s; their round trips in ms.
 
-    With ``during``: as many as start before it is done (at least ``count``).
+    With ``during``: as many as start before it is done (at least ``count``). With
+    ``watch`` and ``watched``: what ``watch`` says as each request leaves and as its
+    answer comes, appended to ``watched``.
     """
     rtts: list[float] = []
     start = time.monotonic()
     i = 0
     while i < count or (during is not None and not during.done()):
+        before = watch() if watch is not None else None
         t0 = time.monotonic()
         answer = await request(asker, receiver, {"n": i}, ontology="demo", timeout=WAIT)
         rtts.append((time.monotonic() - t0) * 1000)
+        if watch is not None and watched is not None:
+            watched.append((before, watch()))
         assert answer == {"echo": {"n": i}}
         i += 1
         await asyncio.sleep(max(0.0, start + i * period - time.monotonic()))
@@ -306,13 +313,8 @@ async def until(predicate: Any, what: str, timeout: float = WAIT) -> None:
 LIMIT = RateLimit(rate=500, burst=50, refusals=20, report_interval=0.5)
 N_FLOOD, FLOOD_RATE = 30_000, 20_000.0  # requests, per second: 1.5 s, beyond T's capacity
 N_GOOD, GOOD_PERIOD = 50, 0.02  # 50 requests/s, for 1 s and as long as the flood lasts
-# G's bound. Without the flood G's p99 is ~1-3 ms here. During it, each of G's requests
-# waits behind what the target has queued: at the flood's start F's whole burst of
-# accepted requests (50 x ~150 µs for the full path in this one process: ~8 ms), later one
-# 10 ms chunk of the flood (200 dropped at ~5 µs, plus the ~5 accepted at 500/s: ~2 ms).
-# Measured: p99 ~5-10 ms. 50 ms leaves room for a GC pass and a busy 2-core machine. A
-# target without the limit must serve all 20 000 requests/s, which is beyond it: its
-# queue grows and G waits ~180 ms (p50) to ~840 ms (p99), so this bound fails then.
+# G's latency bound, for the tests that still have one. Without a flood G's p99 is ~1-3 ms
+# here; 50 ms leaves room for a GC pass and a busy 2-core machine.
 G_P99_MS = 50.0
 
 
@@ -326,12 +328,22 @@ def latency_bound(slow: float | None = None) -> float:
 
 
 async def test_flood_is_limited_per_sender_and_others_are_answered() -> None:
-    """G is answered within its bound during F's flood; F's excess is dropped, counted, audited."""
+    """G is answered throughout F's flood; F gets no more than its limit, the rest dropped.
+
+    Bounded by counts, and by the time the limit itself measures: F's admitted requests,
+    over the flood and while each of G's requests waited, are at most its burst plus its
+    rate over that time, however long the machine makes it. No bound on G's latency: on a
+    busy machine that measures the machine (in one process here, flooder and target share
+    the CPU: a flood beyond what the target's share can drop starves everyone, limit or
+    not). Idle, G's p50 stays ~0.2 ms and its p99 ~5-10 ms during the flood. A target
+    without the limit admits the whole flood, thousands over F's count; at the full flood
+    rate, tens to hundreds of them while one of G's requests waits.
+    """
     async with memory(TARGET, FLOOD, GOOD) as fed:
-        # MAC-only sessions: the bound above was calibrated on them, with the flooder in this
-        # very process. Encrypted (the default), each dropped envelope costs the target
-        # about twice as much to open (~8 instead of ~4 µs, docs/security.md "Costs"), and
-        # 20 000/s of them then take most of a busy 2-core machine in one process.
+        # MAC-only sessions: in one process the flooder shares the CPU with the target.
+        # Encrypted (the default), each dropped envelope costs the target about twice as
+        # much to open (~8 instead of ~4 µs, docs/security.md "Costs"), and 20 000/s of
+        # them then take most of a busy 2-core machine in one process.
         mac = SecurityPolicy(encrypt=False)
         target = await fed.start(TARGET, rate_limit=LIMIT, policy=mac)
         pf = await fed.start(FLOOD, policy=mac)
@@ -343,47 +355,57 @@ async def test_flood_is_limited_per_sender_and_others_are_answered() -> None:
         quiet = await pace(asker, ECHO, N_GOOD, GOOD_PERIOD)
         # F's first request, answered: the session the flood is sealed on
         assert await request(flooder, ECHO, "hi", ontology="demo") == {"echo": "hi"}
-
-        # a machine that gives this process a fifth of a CPU gets a fifth of the flood (for
-        # as long; at least four times the limit): a flood beyond what the target's share
-        # of the CPU can even drop starves everyone, limit or not, which is not measured here
-        slow = slowdown()
-        scale = min(slow, FLOOD_RATE / (4 * LIMIT.rate))
-        n_flood = int(N_FLOOD / scale)
-        flood = asyncio.create_task(flood_sealed(pf, flooder, n_flood, FLOOD_RATE / scale))
-        await asyncio.sleep(0.1)  # G starts once the flood is on
-        # as long as the flood lasts; the last ones only just after (N_GOOD is reached first)
-        during = await pace(asker, ECHO, 1, GOOD_PERIOD, during=flood)
-        took = await flood
-        bound = latency_bound(slow)
-        assert len(during) >= 10, len(during)  # G's requests overlapped the flood
-
         f = target.stats.senders[FLOOD]
         g = target.stats.senders[GOOD]
+
+        # a machine that gives this process a fifth of a CPU gets a fifth of the flood (for
+        # as long; at least four times the limit), so that the target can at least drop it
+        scale = min(slowdown(), FLOOD_RATE / (4 * LIMIT.rate))
+        n_flood = int(N_FLOOD / scale)
+        start = time.monotonic()  # F's bucket is full (its burst) from here on
+        flood = asyncio.create_task(flood_sealed(pf, flooder, n_flood, FLOOD_RATE / scale))
+        await asyncio.sleep(0.1)  # G starts once the flood is on
+        # each of G's requests with F's admitted and counted requests as it left and came
+        # back; at least ten, and as long as the flood is published
+        windows: list[tuple[tuple[int, int], tuple[int, int]]] = []
+        during = await pace(
+            asker,
+            ECHO,
+            10,
+            GOOD_PERIOD,
+            during=flood,
+            watch=lambda: (f.accepted, f.accepted + f.limited),
+            watched=windows,
+        )
+        took = await flood
         await until(lambda: f.accepted + f.limited == n_flood + 1, "every flood request counted")
+        span = time.monotonic() - start  # F's requests were admitted within it
         await until(lambda: echo.calls[FLOOD] == f.accepted, "the accepted ones answered")
         print(
             f"\nG without flood: {figures(quiet)}\nG during flood:  {figures(during)}\n"
-            f"F: {n_flood} requests in {took:.2f} s ({n_flood / took:.0f}/s): "
-            f"accepted {f.accepted}, limited {f.limited}, refused {f.refused}; "
-            f"bound on G's p99 {bound:.0f} ms"
+            f"F: {n_flood} requests in {took:.2f} s ({n_flood / took:.0f}/s), counted in "
+            f"{span:.2f} s: accepted {f.accepted}, limited {f.limited}, refused {f.refused}"
         )
 
-        # G: everything answered (pace asserts each answer), in time, never limited
+        # G: everything answered (pace asserts each answer), never limited
         assert g.limited == 0 and g.accepted == len(quiet) + len(during)
         assert echo.calls[GOOD] == len(quiet) + len(during)
-        # the typical request is answered as without a flood; one may meet a GC pass or a
-        # busy machine, so the tail gets room (an unlimited target: p50 ~180 ms, p99 ~840)
-        assert statistics.median(during) < bound / 2, figures(during)
-        assert p99(during) < 4 * bound, figures(during)
+        # G asked while the flood came: its first request left before the target had
+        # counted F's whole flood, which was published over more than a second
+        assert windows[0][0][1] < n_flood + 1, (windows[0], n_flood)
+        # and while each of G's requests waited, F got no more than its limit allows over
+        # that wait (its bucket holds a burst at most); without it, all the target took
+        for rtt, ((accepted0, _), (accepted1, _)) in zip(during, windows, strict=True):
+            alongside = 1 + LIMIT.burst + LIMIT.rate * rtt / 1000
+            assert accepted1 - accepted0 <= alongside, (accepted1 - accepted0, rtt, figures(during))
 
-        # F: at most its burst plus its rate over the flood (a little slack for timing)
-        allowed = 1 + LIMIT.burst + LIMIT.rate * (took + 0.2)
+        # F: its first request, then at most its burst plus its rate until all were counted
+        allowed = 1 + LIMIT.burst + LIMIT.rate * span
         assert LIMIT.burst <= f.accepted <= allowed, (f.accepted, allowed)
-        assert f.limited >= n_flood - allowed
+        assert f.limited == n_flood + 1 - f.accepted
         assert target.stats.rate_limited == f.limited
         # a bounded number of refusals told F why; the rest was dropped silently
-        assert 1 <= f.refused <= LIMIT.refusals * (took + 1.2)
+        assert 1 <= f.refused <= LIMIT.refusals * (1 + span)
         await until(lambda: len(flooder.refusals) == f.refused, "F's refusals")
         assert {m.content for m in flooder.refusals} == {"rate limit exceeded"}
         assert {m.sender for m in flooder.refusals} == {ECHO}
@@ -396,7 +418,8 @@ async def test_flood_is_limited_per_sender_and_others_are_answered() -> None:
             "every limited message in the audit's counts",
         )
         recs = limit_records(target, FLOOD)
-        assert 1 <= len(recs) <= (took + 1.0) / LIMIT.report_interval + 2, len(recs)
+        since = time.monotonic() - start
+        assert 1 <= len(recs) <= since / LIMIT.report_interval + 2, (len(recs), since)
         assert recs[0]["count"] == 1  # the first drop is recorded at once
         assert all(r["verdict"] == "dropped" for r in recs)
         assert all(r["reason"].startswith("rate limit exceeded: ") for r in recs)
