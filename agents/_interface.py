@@ -1243,8 +1243,10 @@ class InterfaceAgent:
 
     def _refuse_limited(self, host: AgentPlatform, peer: str, message: ACLMessage) -> bool:
         """Whether a dropped message is a request its sender can be told about."""
+        # never to our own platform: its agents do not send from outside (see _admit)
         return (
             message.performative in INITIATING
+            and peer != host.name
             and platform_of(message.sender) == peer
             and any(platform_of(r) == host.name for r in message.receivers)
         )
