@@ -32,8 +32,8 @@ from ._acl import (
     ACLMessage,
     Performative,
     _constructed,
+    _nests_less,
     _quick_fields,
-    nesting_bound,
     platform_of,
 )
 from ._agent import Agent, MessageTemplate, on
@@ -891,14 +891,13 @@ class InterfaceAgent:
                 continue
             items = await self._batch_items(host, peer, body)
             now = self._monotonic()  # one reading: the batch arrived at once
-            nesting = nesting_bound(body)  # bounds each message's too
             i, end = 0, len(items)
             while i < end:
-                done = self._take_batch(host, peer, state, items, i, now, nesting)
+                done = self._take_batch(host, peer, state, items, i, now)
                 n += done - i
                 i = done
                 if i < end:  # one the quick path leaves (a limit, a refusal …): in full
-                    await self._take(host, peer, state, items[i], now, nesting)
+                    await self._take(host, peer, state, items[i], now)
                     i += 1
                     n += 1
                 if n >= 64:
@@ -934,7 +933,7 @@ class InterfaceAgent:
     ) -> None:
         """One message from ``peer`` (JSON bytes, or decoded in a batch): limit, parse, admit."""
         if self.mirroring:
-            body = raw if type(raw) is bytes else orjson.dumps(raw)
+            body = raw if type(raw) is bytes else _written(raw)
             self._mirror.append(("acl", peer, time.time(), body))
         if state.total is not None:
             now = now or self._monotonic()
@@ -1033,7 +1032,7 @@ class InterfaceAgent:
         items: list[Any],
         i: int,
         now: float,
-        nesting: int,
+        nesting: int | None = None,
     ) -> int:
         """`_take` of a batch's decoded messages from ``items[i]`` on, while none needs a wait.
 
@@ -1051,8 +1050,9 @@ class InterfaceAgent:
         if total is not None:
             total.ready(now)  # refilled once: ``now`` stays the same for the batch
         from_parsed = ACLMessage.from_parsed
-        # every message nests less than the batch: `from_parsed`'s quick path, inline
-        shallow = nesting < _TRUSTED_NESTING
+        # ``nesting`` (a bound of the whole batch's, when the caller has one) low enough:
+        # no message's content needs its depth checked; else each one's is (`_nests_less`)
+        shallow = nesting is not None and nesting < _TRUSTED_NESTING
         agents = host._agents
         here = host.name
         if peer == here:  # a message claiming this platform's sender: `_take` drops it
@@ -1077,7 +1077,12 @@ class InterfaceAgent:
                 if total is not None and total.tokens < 1.0:
                     break
                 obj = items[i]
-                if shallow and type(obj) is dict and (fields := _quick_fields(obj)) is not None:
+                # `from_parsed`'s quick path, inline
+                if (
+                    type(obj) is dict
+                    and (fields := _quick_fields(obj)) is not None
+                    and (shallow or _nests_less(fields["content"]))
+                ):
                     message = _constructed(ACLMessage, fields, set(obj))
                 else:
                     try:
@@ -1167,7 +1172,7 @@ class InterfaceAgent:
 
     async def _malformed(self, host: AgentPlatform, peer: str, raw: Any, exc: MessageError) -> None:
         """A message that opened but is not valid: refuse it (not-understood) or drop it."""
-        body = raw if type(raw) is bytes else orjson.dumps(raw)
+        body = raw if type(raw) is bytes else _written(raw)
         sender = _claimed_sender(body)
         if sender is not None and platform_of(sender) != peer:
             # the envelope proves only the platform: a not-understood to another
@@ -1604,6 +1609,29 @@ class _InterfaceQueries(Agent):
     @on(MessageTemplate(Performative.INFORM, ontology=INTERFACE_ONTOLOGY))
     async def _new_session(self, message: ACLMessage) -> None:
         """A peer's announcement of a new session: receiving it was the point."""
+
+
+def _written(obj: Any) -> bytes:
+    """A batch's decoded message as JSON again, even one nesting deeper than orjson writes.
+
+    orjson reads 1024 levels but writes 254: such a message is written with its deep
+    values left out (null in their place), keeping the scalar and flat fields that tell
+    its sender, receivers and conversation (enough to answer it not-understood).
+    """
+    try:
+        return orjson.dumps(obj)
+    except orjson.JSONEncodeError:
+        if type(obj) is not dict:
+            return b"null"
+        return orjson.dumps(
+            {
+                key: None
+                if type(value) is dict
+                or (type(value) is list and any(type(v) in (dict, list) for v in value))
+                else value
+                for key, value in obj.items()
+            }
+        )
 
 
 def _claimed_sender(body: bytes) -> str | None:
