@@ -26,7 +26,6 @@ import msgpack
 import orjson
 
 from ._acl import (
-    _TRUSTED_NESTING,
     MAX_MESSAGE_BYTES,
     WIRE_VERSION,
     ACLMessage,
@@ -929,7 +928,6 @@ class InterfaceAgent:
         state: _Sender,
         raw: Any,
         now: float = 0.0,
-        nesting: int | None = None,
     ) -> None:
         """One message from ``peer`` (JSON bytes, or decoded in a batch): limit, parse, admit."""
         if self.mirroring:
@@ -944,7 +942,7 @@ class InterfaceAgent:
             if type(raw) is bytes:
                 message = ACLMessage.from_json(raw, max_bytes=self.max_bytes)
             else:
-                message = ACLMessage.from_parsed(raw, nesting=nesting)
+                message = ACLMessage.from_parsed(raw)
         except MessageError as exc:
             await self._malformed(host, peer, raw, exc)
             return
@@ -1032,7 +1030,6 @@ class InterfaceAgent:
         items: list[Any],
         i: int,
         now: float,
-        nesting: int | None = None,
     ) -> int:
         """`_take` of a batch's decoded messages from ``items[i]`` on, while none needs a wait.
 
@@ -1050,9 +1047,6 @@ class InterfaceAgent:
         if total is not None:
             total.ready(now)  # refilled once: ``now`` stays the same for the batch
         from_parsed = ACLMessage.from_parsed
-        # ``nesting`` (a bound of the whole batch's, when the caller has one) low enough:
-        # no message's content needs its depth checked; else each one's is (`_nests_less`)
-        shallow = nesting is not None and nesting < _TRUSTED_NESTING
         agents = host._agents
         here = host.name
         if peer == here:  # a message claiming this platform's sender: `_take` drops it
@@ -1081,12 +1075,12 @@ class InterfaceAgent:
                 if (
                     type(obj) is dict
                     and (fields := _quick_fields(obj)) is not None
-                    and (shallow or _nests_less(fields["content"]))
+                    and _nests_less(fields["content"])  # each message's depth, not the batch's
                 ):
                     message = _constructed(ACLMessage, fields, set(obj))
                 else:
                     try:
-                        message = from_parsed(obj, nesting=nesting)
+                        message = from_parsed(obj)
                     except MessageError:
                         break
                     fields = message.__dict__
