@@ -256,7 +256,7 @@ class ACLMessage(BaseModel):
             fields = _quick_fields(obj)  # None for a key that is no field, among others
             if fields is not None and (
                 (nesting is not None and nesting < _TRUSTED_NESTING)
-                or _shallower(fields["content"], _TRUSTED_NESTING)
+                or _nests_less(fields["content"])
             ):
                 return _constructed(cls, fields, set(obj))
         return cls.from_obj(obj)
@@ -313,6 +313,24 @@ def nesting_bound(data: bytes | str) -> int:
     return data.count("[") + data.count("{")
 
 
+def _nests_less(content: Any) -> bool:
+    """Whether a decoded content nests less than `_TRUSTED_NESTING` levels deep.
+
+    A scalar, or a dict or list of scalars (the common contents), is told in C without
+    a walk; anything else is walked (`_shallower`).
+    """
+    kind = type(content)
+    if kind is dict:
+        if _all_scalars(map(type, content.values())):
+            return True
+    elif kind is list:
+        if _all_scalars(map(type, content)):
+            return True
+    else:
+        return True  # decoded JSON: a scalar
+    return _shallower(content, _TRUSTED_NESTING)
+
+
 def _shallower(value: Any, limit: int) -> bool:
     """Whether ``value``'s dicts and lists nest less than ``limit`` levels deep."""
     stack = [(value, 1)]
@@ -359,6 +377,7 @@ class _NotPlain(Exception):
 
 
 _JSON_SCALARS = frozenset({str, int, float, bool, type(None)})
+_all_scalars = _JSON_SCALARS.issuperset
 _MAX_QUICK_DEPTH = 64
 
 

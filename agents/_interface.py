@@ -26,14 +26,13 @@ import msgpack
 import orjson
 
 from ._acl import (
-    _TRUSTED_NESTING,
     MAX_MESSAGE_BYTES,
     WIRE_VERSION,
     ACLMessage,
     Performative,
     _constructed,
+    _nests_less,
     _quick_fields,
-    nesting_bound,
     platform_of,
 )
 from ._agent import Agent, MessageTemplate, on
@@ -893,14 +892,13 @@ class InterfaceAgent:
                 continue
             items = await self._batch_items(host, peer, body)
             now = self._monotonic()  # one reading: the batch arrived at once
-            nesting = nesting_bound(body)  # bounds each message's too
             i, end = 0, len(items)
             while i < end:
-                done = self._take_batch(host, peer, state, items, i, now, nesting)
+                done = self._take_batch(host, peer, state, items, i, now)
                 n += done - i
                 i = done
                 if i < end:  # one the quick path leaves (a limit, a refusal …): in full
-                    await self._take(host, peer, state, items[i], now, nesting)
+                    await self._take(host, peer, state, items[i], now)
                     i += 1
                     n += 1
                 if n >= 64:
@@ -932,11 +930,10 @@ class InterfaceAgent:
         state: _Sender,
         raw: Any,
         now: float = 0.0,
-        nesting: int | None = None,
     ) -> None:
         """One message from ``peer`` (JSON bytes, or decoded in a batch): limit, parse, admit."""
         if self.mirroring:
-            body = raw if type(raw) is bytes else orjson.dumps(raw)
+            body = raw if type(raw) is bytes else _written(raw)
             self._mirror.append(("acl", peer, time.time(), body))
         if state.total is not None:
             now = now or self._monotonic()
@@ -947,7 +944,7 @@ class InterfaceAgent:
             if type(raw) is bytes:
                 message = ACLMessage.from_json(raw, max_bytes=self.max_bytes)
             else:
-                message = ACLMessage.from_parsed(raw, nesting=nesting)
+                message = ACLMessage.from_parsed(raw)
         except MessageError as exc:
             await self._malformed(host, peer, raw, exc)
             return
@@ -1035,7 +1032,6 @@ class InterfaceAgent:
         items: list[Any],
         i: int,
         now: float,
-        nesting: int,
     ) -> int:
         """`_take` of a batch's decoded messages from ``items[i]`` on, while none needs a wait.
 
@@ -1053,8 +1049,6 @@ class InterfaceAgent:
         if total is not None:
             total.ready(now)  # refilled once: ``now`` stays the same for the batch
         from_parsed = ACLMessage.from_parsed
-        # every message nests less than the batch: `from_parsed`'s quick path, inline
-        shallow = nesting < _TRUSTED_NESTING
         agents = host._agents
         here = host.name
         if peer == here:  # a message claiming this platform's sender: `_take` drops it
@@ -1079,11 +1073,16 @@ class InterfaceAgent:
                 if total is not None and total.tokens < 1.0:
                     break
                 obj = items[i]
-                if shallow and type(obj) is dict and (fields := _quick_fields(obj)) is not None:
+                # `from_parsed`'s quick path, inline
+                if (
+                    type(obj) is dict
+                    and (fields := _quick_fields(obj)) is not None
+                    and _nests_less(fields["content"])  # each message's depth, not the batch's
+                ):
                     message = _constructed(ACLMessage, fields, set(obj))
                 else:
                     try:
-                        message = from_parsed(obj, nesting=nesting)
+                        message = from_parsed(obj)
                     except MessageError:
                         break
                     fields = message.__dict__
@@ -1169,7 +1168,7 @@ class InterfaceAgent:
 
     async def _malformed(self, host: AgentPlatform, peer: str, raw: Any, exc: MessageError) -> None:
         """A message that opened but is not valid: refuse it (not-understood) or drop it."""
-        body = raw if type(raw) is bytes else orjson.dumps(raw)
+        body = raw if type(raw) is bytes else _written(raw)
         sender = _claimed_sender(body)
         if sender is not None and platform_of(sender) != peer:
             # the envelope proves only the platform: a not-understood to another
@@ -1619,6 +1618,29 @@ class _InterfaceQueries(Agent):
     @on(MessageTemplate(Performative.INFORM, ontology=INTERFACE_ONTOLOGY))
     async def _new_session(self, message: ACLMessage) -> None:
         """A peer's announcement of a new session: receiving it was the point."""
+
+
+def _written(obj: Any) -> bytes:
+    """A batch's decoded message as JSON again, even one nesting deeper than orjson writes.
+
+    orjson reads 1024 levels but writes 254: such a message is written with its deep
+    values left out (null in their place), keeping the scalar and flat fields that tell
+    its sender, receivers and conversation (enough to answer it not-understood).
+    """
+    try:
+        return orjson.dumps(obj)
+    except orjson.JSONEncodeError:
+        if type(obj) is not dict:
+            return b"null"
+        return orjson.dumps(
+            {
+                key: None
+                if type(value) is dict
+                or (type(value) is list and any(type(v) in (dict, list) for v in value))
+                else value
+                for key, value in obj.items()
+            }
+        )
 
 
 def _claimed_sender(body: bytes) -> str | None:

