@@ -411,9 +411,13 @@ class DyKnowInstance:
     def latest(self, label: str, *, as_of: int | None = None) -> Answer:
         """The newest value of ``label``, as believed at ``as_of`` (default: now; `_as_of`)."""
         now = self.clock.now()
-        return self._location_of(label).latest(
-            label, query_time=now, as_of=self._as_of(label, now, as_of)
-        )
+        try:
+            location = self._labels[label]
+            if as_of is None:  # `_as_of`, inline (`stream` is this location's generator)
+                as_of = max(now, location.generators[label].made_ta)
+        except KeyError:
+            raise UnknownLabelError(label, list(self._labels)) from None
+        return location.latest(label, query_time=now, as_of=as_of)
 
     def at(
         self,

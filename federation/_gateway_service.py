@@ -163,9 +163,13 @@ _SCALAR_TYPES = frozenset(_SCALARS)
 
 def answer_to_json(answer: Answer) -> dict[str, Any]:
     """A query answer as content: samples as [value, valid s, available s]."""
+    return {"label": answer.label, **answer_content(answer)}
+
+
+def answer_content(answer: Answer) -> dict[str, Any]:
+    """`answer_to_json` without the label: what the Federation Agent answers per label."""
     scalar = _SCALAR_TYPES
     return {
-        "label": answer.label,
         "query_time": ns_to_seconds(answer.query_time),
         "samples": [
             # a plain scalar as it is, without a call (what jsonable returns for it)

@@ -118,7 +118,7 @@ from agents import (
 from agents.transports import Inbox, Subscription
 from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, UnknownLabelError
 
-from ._gateway_service import GatewayRefusal, GatewayService, answer_to_json, jsonable
+from ._gateway_service import GatewayRefusal, GatewayService, answer_content, jsonable
 from ._gateway_service import Query as GatewayQuery
 from ._service_content import (
     ONTOLOGY,
@@ -1040,15 +1040,21 @@ class FederationAgent(Agent):
             raise ContentError(
                 "the answer to a query goes to the asker: 'to-units' may only name its platform"
             )
-        for semantic in dict.fromkeys(req.labels):
-            self._check_sharing("query", semantic, asker)
-        pairs = [(s, self._translate(s)) for s in dict.fromkeys(req.labels)]
+        labels = list(dict.fromkeys(req.labels))
+        if asker != self.platform.name:  # `_check_sharing` of each label, without its calls
+            check = self.sharing.check
+            for semantic in labels:
+                reason = check("query", semantic, asker)
+                if reason is not None:
+                    raise Denied("sharing-rule", reason)
+        pairs = [(s, self._translate(s)) for s in labels]
         out: dict[str, Any] = {}
+        # the gateway's "latest" query, without building its model per label
+        latest = self.instance.latest if isinstance(req, GetLatest) else None
         for semantic, local in pairs:
             try:
-                if isinstance(req, GetLatest):
-                    # the gateway's "latest" query, without building its model per label
-                    answer = self.instance.latest(local)
+                if latest is not None:
+                    answer = latest(local)
                 else:
                     answer = self.gateway.query(_gateway_query(req, local))
             except UnknownLabelError as exc:
@@ -1058,9 +1064,7 @@ class FederationAgent(Agent):
                 raise ContentError(exc.reason.replace(local, semantic)) from exc
             except (DyKnowError, OverflowError) as exc:
                 raise ContentError(_about(semantic, str(exc).replace(local, semantic))) from exc
-            body = answer_to_json(answer)
-            del body["label"]  # the local label
-            out[semantic] = body
+            out[semantic] = answer_content(answer)  # without the local label
         return out
 
     def _search(self, formula: str) -> dict[str, Any]:
@@ -1196,9 +1200,14 @@ class FederationAgent(Agent):
         if gdf is None:
             raise ServiceError(f"platform {self.platform.name} keeps no global directory")
         found: dict[str, str] = {}
-        for s in gdf.search(type=FEDERATION_SERVICE_TYPE):
-            if s.platform != self.platform.name:
-                found.setdefault(s.platform, s.provider)
+        me = self.platform.name
+        # gdf.search(type=…), without validating a query each time: this runs per global
+        # request, over every member's services
+        for s in gdf.services():
+            if s.type == FEDERATION_SERVICE_TYPE:
+                platform = platform_of(s.provider)
+                if platform != me:
+                    found.setdefault(platform, s.provider)
         if include_self:
             found[self.platform.name] = self.aid
         return dict(sorted(found.items()))
@@ -1240,25 +1249,33 @@ class FederationAgent(Agent):
         end = loop.time() + deadline
         conversation_id = new_id("c")
         pending = set(providers)
+        # One message checked (its content copied) once; each provider's is a copy of it
+        # with its own receiver and reply_with, both checked already (a directory entry's
+        # provider, a fresh id)
+        first = self.message(
+            performative,
+            next(iter(providers.values())),
+            content,
+            protocol=protocol,
+            ontology=ONTOLOGY,
+            language="json",
+            conversation_id=conversation_id,
+            reply_with=new_id("r"),
+            reply_by=time.time() + deadline,
+        )
         with self.conversation(conversation_id, peers=providers.values()) as conv:
             sends = {
                 platform: loop.create_task(
                     conv.send(
-                        self.message(
-                            performative,
-                            aid,
-                            content,
-                            protocol=protocol,
-                            ontology=ONTOLOGY,
-                            language="json",
-                            conversation_id=conversation_id,
-                            reply_with=new_id("r"),
-                            reply_by=time.time() + deadline,
+                        first
+                        if i == 0
+                        else first.model_copy(
+                            update={"receivers": [aid], "reply_with": new_id("r")}
                         )
                     ),
                     name=f"global-request[{conversation_id}].send[{platform}]",
                 )
-                for platform, aid in providers.items()
+                for i, (platform, aid) in enumerate(providers.items())
             }
             # Concurrently: a platform slow to reach (a key exchange) holds up no other.
             try:
