@@ -26,12 +26,10 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgpack
 import orjson
-from cryptography.exceptions import InvalidTag
-from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from nacl import bindings as _sodium
 from nacl.exceptions import CryptoError
 from nacl.signing import SigningKey, VerifyKey
@@ -49,6 +47,9 @@ from ._exceptions import (
     UnknownPlatform,
     UnknownSession,
 )
+
+if TYPE_CHECKING:
+    from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 
 __all__ = [
     "Clock",
@@ -172,13 +173,29 @@ _TAG_BYTES = 16  # the ChaCha20-Poly1305 tag a box adds to its body
 # and about half the cost per call of nacl.bindings' wrapper, which checks and formats its
 # arguments on every call (measured: 2.6 µs against 4.4 µs to seal 270 bytes). A key's
 # cipher object is made once: sessions seal thousands of envelopes under one key.
+# `cryptography` is imported with the first cipher, when the first session is made: its
+# OpenSSL build is ~6 MB of a process's memory, which a node with no peer never needs.
 _CIPHERS: dict[bytes, ChaCha20Poly1305] = {}
 _MAX_CIPHERS = 4096  # sessions are per peer: a bound well above any federation's size
+
+
+class _NoCipherYet(Exception):
+    """Stands for cryptography's InvalidTag until the first cipher imports it."""
+
+
+# what a cipher raises on a forged box; only a cipher can raise it, so the real class,
+# bound by `_cipher` before any cipher exists, is there by the time one is caught
+InvalidTag: type[Exception] = _NoCipherYet
 
 
 def _cipher(key: bytes) -> ChaCha20Poly1305:
     cipher = _CIPHERS.get(key)
     if cipher is None:
+        global InvalidTag
+        import cryptography.exceptions
+        from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+
+        InvalidTag = cryptography.exceptions.InvalidTag
         if len(_CIPHERS) >= _MAX_CIPHERS:
             _CIPHERS.clear()  # keys of ended sessions go; live ones come back on next use
         cipher = _CIPHERS[key] = ChaCha20Poly1305(key)

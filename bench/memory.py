@@ -15,8 +15,9 @@ least a zenoh node can be: a fresh interpreter that opens a session with the sam
 settings, declares a queryable and a liveliness token, and says it is ready (``BENCH
 federation-node-ready`` and ``federation-node-rss``; ``bench.acl``'s ``node-ready`` is an
 agent platform without the federation); and the same zenoh node after importing the
-third-party packages ``dyknow node`` imports (asyncio, pydantic with a model built,
-cryptography, PyNaCl, msgpack, orjson, typer): the least a node built on them can hold,
+third-party packages ``dyknow node`` imports (asyncio, uvloop, pydantic with a model
+built, PyNaCl, msgpack, orjson, typer; not cryptography, which comes with the first
+session's cipher, and a node alone has none): the least a node built on them can hold,
 so what is above it is our own code and state. The node runs from a copy of our packages with
 their bytecode compiled, as an installed node has it: compiling ~70 modules from source
 (when ``PYTHONDONTWRITEBYTECODE`` keeps the tree free of it) costs ~0.5 s at every start.
@@ -76,9 +77,8 @@ sys.stdin.read()
 # ssl; pydantic's first model imports importlib.metadata for its plugins).
 _DEPS_NODE = (
     """
-import asyncio, msgpack, orjson, pydantic, typer
+import asyncio, msgpack, orjson, pydantic, typer, uvloop
 import nacl.bindings, nacl.signing
-from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 class M(pydantic.BaseModel):
     x: int = 0
 M(x=1)

@@ -4,7 +4,12 @@ A local DyKnow instance. Everything public in the core is re-exported here; the
 underscored modules are the implementation. The layers above are packages of their own
 that the core does not import: ``dyknow_core.reasoning`` (MTL, chronicles, anchoring,
 refinement) and ``dyknow_core.kpl`` (the declarative application language).
+
+The recording names (``Recorder``, ``replay``, ``sample_json``, …) are imported on first
+use: most processes (a node that records nothing) never need their ~1 300 lines.
 """
+
+from typing import TYPE_CHECKING, Any
 
 from ._aio import sleep_until_woken
 from ._cache import Cache
@@ -41,28 +46,51 @@ from ._policy import (
     Policy,
 )
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
-from ._record import (
-    MessageDecoder,
-    RecordedSample,
-    Recorder,
-    RecordError,
-    RecordHeader,
-    Recording,
-    RecordWriter,
-    ReplaySummary,
-    advance_to,
-    label_schema,
-    read_recording,
-    recording_info,
-    register_record_type,
-    replay,
-    sample_json,
-    topic_label,
-)
 from ._sample import Answer, RawSample, Sample, as_sample
 from ._state import Missing, StatePolicy, StateProcess, StateStats, StateStrategy, add_state
 from ._stream import StreamGenerator, StreamMetrics, Subscription
 from ._time import NS_PER_S, Clock, ManualClock, RealClock, ns_to_seconds, seconds_to_ns
+
+if TYPE_CHECKING:
+    from ._record import (
+        MessageDecoder,
+        RecordedSample,
+        Recorder,
+        RecordError,
+        RecordHeader,
+        Recording,
+        RecordWriter,
+        ReplaySummary,
+        advance_to,
+        label_schema,
+        read_recording,
+        recording_info,
+        register_record_type,
+        replay,
+        sample_json,
+        topic_label,
+    )
+
+_RECORD_NAMES = frozenset(
+    (
+        "MessageDecoder",
+        "RecordedSample",
+        "Recorder",
+        "RecordError",
+        "RecordHeader",
+        "Recording",
+        "RecordWriter",
+        "ReplaySummary",
+        "advance_to",
+        "label_schema",
+        "read_recording",
+        "recording_info",
+        "register_record_type",
+        "replay",
+        "sample_json",
+        "topic_label",
+    )
+)
 
 __all__ = [
     "DEFAULT_LOCATION",
@@ -140,3 +168,14 @@ __all__ = [
     "sleep_until_woken",
     "topic_label",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """A recording name, imported from ``_record`` on first use (then a plain attribute)."""
+    if name in _RECORD_NAMES:
+        from . import _record
+
+        value = getattr(_record, name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

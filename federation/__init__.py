@@ -5,11 +5,13 @@ member of a federation; `FederationAgent` is its DyKnow Federation service, the 
 carry agreed streams, and `add_fusion` merges an imported stream with a local one.
 `GatewayAgent` is the ACL face of the local DyKnow instance (its content mapping is
 `GatewayService`); it lives here, not in `agents`, which knows nothing of DyKnow.
-`FoxgloveBridge` serves a platform's view of its federation to Foxglove (docs/foxglove.md).
+`FoxgloveBridge` serves a platform's view of its federation to Foxglove (docs/foxglove.md);
+it is imported on first use, which a node (``dyknow node``) never makes.
 """
 
+from typing import TYPE_CHECKING, Any
+
 from ._export import Export, ExportProxy
-from ._foxglove import FoxgloveBridge
 from ._fusion import Fusion, add_fusion
 from ._gateway import GATEWAY_SERVICE_TYPE, GatewayAgent, GatewayStats
 from ._gateway_service import GatewayRefusal, GatewayService
@@ -42,6 +44,9 @@ from ._service import (
 )
 from ._sessions import InterfaceSessions, SessionsProvider, TableSessions
 from ._sharing import Sharing, SharingRule, SharingSettings
+
+if TYPE_CHECKING:
+    from ._foxglove import FoxgloveBridge
 
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
@@ -85,3 +90,13 @@ __all__ = [
     "ZenohSettings",
     "add_fusion",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """``FoxgloveBridge``, imported from ``_foxglove`` on first use (then a plain attribute)."""
+    if name == "FoxgloveBridge":
+        from ._foxglove import FoxgloveBridge
+
+        globals()[name] = FoxgloveBridge
+        return FoxgloveBridge
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

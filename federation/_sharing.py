@@ -41,7 +41,10 @@ Action = Literal["query", "stream"]
 class SharingRule(BaseModel):
     """One rule: the labels it covers, and the platforms that may query / stream them."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # defer_build: a config's rules are checked by PlatformConfig's own schema, so this
+    # model's validator is built only if something validates one on its own (~0.3 MB of
+    # a node's memory for the inputs, outputs and sharing rules together)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
     name: Annotated[str, Field(min_length=1, max_length=100)] | None = None
     labels: Annotated[list[Pattern], Field(min_length=1)]

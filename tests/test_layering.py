@@ -41,3 +41,23 @@ def test_importing_a_package_loads_none_of_the_layers_it_must_not_know(package: 
         check=True,
     )
     assert done.stdout.split() == [], f"importing {package} loaded: {done.stdout.split()}"
+
+
+def test_the_node_command_leaves_out_what_only_other_commands_or_peers_use() -> None:
+    # `dyknow node` imports federation.cli; a node alone records nothing, serves no
+    # Foxglove and has no session to seal: ~7 MB of its memory (bench.memory) it need not hold
+    lazy = ("cryptography", "dyknow_core._record", "federation._foxglove")
+    code = (
+        "import sys, federation.cli\n"
+        f"print('\\n'.join(m for m in sys.modules if m.startswith({lazy!r})))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        check=True,
+    )
+    assert done.stdout.split() == [], f"importing federation.cli loaded: {done.stdout.split()}"
