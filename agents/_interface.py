@@ -566,6 +566,10 @@ class InterfaceAgent:
             self._outbox_bytes[platform] = 2
             (self._loop or asyncio.get_running_loop()).call_soon(self._flush, platform)
 
+    def sends_now(self, platform: str) -> bool:
+        """Whether `send` to ``platform`` goes out without waiting: no session to agree first."""
+        return platform in self._outbox or self.sessions.session_for(platform) is not None
+
     def join_batch(self, platform: str, message: ACLMessage) -> bool:
         """Add ``message`` to the batch waiting for ``platform`` in this turn; False if none.
 
