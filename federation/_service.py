@@ -1250,8 +1250,7 @@ class FederationAgent(Agent):
         conversation_id = new_id("c")
         pending = set(providers)
         # One message checked (its content copied) once; each provider's is a copy of it
-        # with its own receiver and reply_with, both checked already (a directory entry's
-        # provider, a fresh id)
+        # with its own receiver (a directory entry's provider) and reply_with (readdressed)
         first = self.message(
             performative,
             next(iter(providers.values())),
@@ -1268,11 +1267,7 @@ class FederationAgent(Agent):
         with self.conversation(conversation_id, peers=providers.values()) as conv:
             sends: dict[str, asyncio.Task[None]] = {}
             for i, (platform, aid) in enumerate(providers.items()):
-                message = (
-                    first
-                    if i == 0
-                    else first.model_copy(update={"receivers": [aid], "reply_with": new_id("r")})
-                )
+                message = first if i == 0 else first.readdressed(aid, new_id("r"))
                 if platform == me or (sends_now is not None and sends_now(platform)):
                     # Nothing to wait for but the transport: sent in turn, without a task
                     try:
