@@ -262,6 +262,8 @@ class Conversation:
 
     __slots__ = (
         "_agent",
+        "_awaiting",
+        "_gathered",
         "_items",
         "_keys",
         "closed",
@@ -291,6 +293,8 @@ class Conversation:
         self._keys: list[str] = []
         self.closed = False
         self.last_sent: ACLMessage | None = None
+        self._awaiting: set[str] | None = None  # while `gather` waits: who has not answered
+        self._gathered: asyncio.Future[None] | None = None
         if conversation_id is not None:
             agent._by_conv[conversation_id] = self
 
@@ -319,6 +323,15 @@ class Conversation:
             log.warning(
                 "%s: conversation %s overflowed; oldest reply dropped", self._agent, self.id
             )
+        awaiting = self._awaiting
+        if (
+            awaiting is not None
+            and message.sender in awaiting
+            and message.performative is not Performative.AGREE
+        ):
+            awaiting.discard(message.sender)
+            if not awaiting:
+                _settle(self._gathered)
 
     def unread(self, message: ACLMessage) -> None:
         """Put ``message`` back in front, to be received again."""
@@ -357,6 +370,38 @@ class Conversation:
             )
         return item
 
+    async def gather(self, senders: Iterable[str], *, deadline: float | None = None) -> None:
+        """Wait until each of ``senders`` has answered (an agree is no answer yet), or ``deadline``.
+
+        ``deadline`` is loop time (None: the conversation's). The answers stay queued: `receive`
+        then returns each without waiting, and raises as always once they are read (the
+        deadline passed, the conversation closed). A reader of many peers' answers wakes
+        once for all of them rather than once per answer. Returns at the deadline or
+        when the conversation closes without raising.
+        """
+        awaiting = set(senders)
+        if awaiting:
+            agree = Performative.AGREE
+            for item in self._items._items:  # what came already
+                if isinstance(item, _Ended):
+                    return
+                if item.performative is not agree:
+                    awaiting.discard(item.sender)
+        if not awaiting or self.closed:
+            return
+        if deadline is None:
+            deadline = self.deadline
+        loop = self._agent._loop or asyncio.get_running_loop()
+        self._awaiting = awaiting
+        self._gathered = done = loop.create_future()
+        timer = None if deadline is None else loop.call_at(deadline, _settle, done)
+        try:
+            await done
+        finally:
+            self._awaiting = self._gathered = None
+            if timer is not None:
+                timer.cancel()
+
     def _peers_text(self) -> str:
         return ", ".join(sorted(self.peers)) if self.peers else "anyone"
 
@@ -374,12 +419,19 @@ class Conversation:
                 del agent._by_reply[key]
                 agent._remember_closed(key)
         self._items.put(_Ended(error), force=True)
+        _settle(self._gathered)
 
     def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _settle(waiter: asyncio.Future[None] | None) -> None:
+    """End a `Conversation.gather` wait (all answered, its deadline, the conversation closed)."""
+    if waiter is not None and not waiter.done():
+        waiter.set_result(None)
 
 
 _UNATTACHED, _STARTING, _RUNNING, _STOPPING, _STOPPED = (

@@ -566,6 +566,19 @@ class InterfaceAgent:
             self._outbox_bytes[platform] = 2
             (self._loop or asyncio.get_running_loop()).call_soon(self._flush, platform)
 
+    def sends_now(self, platform: str) -> bool:
+        """Whether `send` to ``platform`` waits for nothing (no key exchange, no broker).
+
+        A session to seal with is there, and the transport publishes at once (zenoh,
+        memory; not MQTT, whose publish may wait for the broker).
+        """
+        host = self._host
+        return (
+            host is not None
+            and host.transport.publishes_nowait
+            and (platform in self._outbox or self.sessions.session_for(platform) is not None)
+        )
+
     def join_batch(self, platform: str, message: ACLMessage) -> bool:
         """Add ``message`` to the batch waiting for ``platform`` in this turn; False if none.
 

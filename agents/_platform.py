@@ -65,7 +65,11 @@ class RemoteChannel(Protocol):
       A channel that batches what is sent in one turn of the loop may also have a plain
       method ``join_batch(platform_name, message) -> bool``, which the platform calls
       first for a message to one receiver: True when it took the message as ``send``
-      would have (no coroutine per message in a burst), False when ``send`` must.
+      would have (no coroutine per message in a burst), False when ``send`` must. It
+      may also have ``sends_now(platform_name) -> bool``: True when ``send`` would wait
+      for nothing (no key exchange first, a transport that publishes at once), so a
+      caller sending to many platforms can send to those in turn rather than each in a
+      task of its own.
     * ``await aclose()`` once, as the platform closes: stop receiving. Idempotent.
 
     A channel never changes a message; what it refuses never reaches an agent.
@@ -105,6 +109,11 @@ class PlainChannel:
         )
         self._sub = await platform.transport.subscribe(platform.key("acl"))
         platform.spawn(self._receive(self._sub), "acl-inbox")
+
+    def sends_now(self, platform: str) -> bool:
+        """Whether `send` waits for nothing: started, on a transport that publishes at once."""
+        host = self._platform
+        return host is not None and host.transport.publishes_nowait
 
     async def send(self, platform: str, message: ACLMessage) -> None:
         """Publish ``message`` as JSON on ``platform``'s inbox."""

@@ -1250,8 +1250,7 @@ class FederationAgent(Agent):
         conversation_id = new_id("c")
         pending = set(providers)
         # One message checked (its content copied) once; each provider's is a copy of it
-        # with its own receiver and reply_with, both checked already (a directory entry's
-        # provider, a fresh id)
+        # with its own receiver (a directory entry's provider) and reply_with (readdressed)
         first = self.message(
             performative,
             next(iter(providers.values())),
@@ -1263,27 +1262,31 @@ class FederationAgent(Agent):
             reply_with=new_id("r"),
             reply_by=time.time() + deadline,
         )
+        me = self.platform.name
+        sends_now = getattr(self.platform.channel, "sends_now", None)
         with self.conversation(conversation_id, peers=providers.values()) as conv:
-            sends = {
-                platform: loop.create_task(
-                    conv.send(
-                        first
-                        if i == 0
-                        else first.model_copy(
-                            update={"receivers": [aid], "reply_with": new_id("r")}
-                        )
-                    ),
-                    name=f"global-request[{conversation_id}].send[{platform}]",
+            sends: dict[str, asyncio.Task[None]] = {}
+            for i, (platform, aid) in enumerate(providers.items()):
+                message = first if i == 0 else first.readdressed(aid, new_id("r"))
+                if platform == me or (sends_now is not None and sends_now(platform)):
+                    # Nothing to wait for but the transport: sent in turn, without a task
+                    try:
+                        await conv.send(message)
+                    except Exception as error:
+                        result.refused[platform] = f"unreachable: {reason_of(error)}"
+                        pending.discard(platform)
+                    continue
+                # Concurrently: a platform slow to reach (a key exchange) holds up no other.
+                sends[platform] = loop.create_task(
+                    conv.send(message), name=f"global-request[{conversation_id}].send[{platform}]"
                 )
-                for i, (platform, aid) in enumerate(providers.items())
-            }
-            # Concurrently: a platform slow to reach (a key exchange) holds up no other.
-            try:
-                await asyncio.wait(sends.values(), timeout=deadline)
-            finally:
-                for task in sends.values():
-                    task.cancel()  # no-op for those done; none outlives this call
-                await asyncio.wait(sends.values())
+            if sends:
+                try:
+                    await asyncio.wait(sends.values(), timeout=deadline)
+                finally:
+                    for task in sends.values():
+                        task.cancel()  # no-op for those done; none outlives this call
+                    await asyncio.wait(sends.values())
             for platform, task in sends.items():
                 if task.cancelled():
                     reason = "unreachable: sending did not finish before the deadline"
@@ -1293,6 +1296,8 @@ class FederationAgent(Agent):
                     continue
                 result.refused[platform] = reason
                 pending.discard(platform)
+            # Woken once, when every answer is in (or at the deadline), not once per answer
+            await conv.gather([providers[p] for p in pending], deadline=end)
             while pending:
                 try:
                     m = await conv.receive(deadline=end)

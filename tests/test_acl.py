@@ -127,6 +127,27 @@ def test_reply_is_the_message_build_makes() -> None:
         m.reply(P.INFORM, sender="not an id")
 
 
+def test_readdressed_is_the_copy_model_copy_makes_with_the_receiver_checked() -> None:
+    m = ACLMessage(
+        performative=Performative.QUERY_REF,
+        sender="a@p",
+        receivers=["b@q"],
+        content={"action": "get-latest", "labels": ["x"]},
+        conversation_id="c-1",
+        reply_with="r-1",
+        reply_by=1795000000.5,
+    )
+    got = m.readdressed("c@r", "r-2")
+    want = m.model_copy(update={"receivers": ["c@r"], "reply_with": "r-2"})
+    assert got == want and got.to_json() == want.to_json()
+    assert got.model_fields_set == want.model_fields_set
+    assert m.receivers == ["b@q"] and m.reply_with == "r-1"  # the original unchanged
+    with pytest.raises(MessageError, match="name@platform"):
+        m.readdressed("no-platform", "r-3")
+    with pytest.raises(MessageError, match="reply_with"):
+        m.readdressed("c@r", 3)  # type: ignore[arg-type]
+
+
 def test_agent_identifiers() -> None:
     assert agent_id("federation", "uav-a") == "federation@uav-a"
     assert platform_of("federation@uav-a") == "uav-a"

@@ -348,6 +348,39 @@ async def test_a_batch_wakes_the_waiting_conversation_and_the_handlers_once() ->
             assert a.stats.received == 6 and a.stats.handled == 5
 
 
+async def test_gather_wakes_once_every_peer_answered_and_leaves_the_answers_to_read() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        a = await p.add(Agent("a"))
+        peers = ["x@p", "y@p", "z@p"]
+
+        def m(sender: str, perf: P = P.INFORM) -> ACLMessage:
+            return ACLMessage(
+                performative=perf, sender=sender, receivers=[a.aid], conversation_id="c1"
+            )
+
+        with a.conversation("c1", peers=peers, timeout=2) as conv:
+            a._deliver(m("x@p"))  # came before the gathering
+            gathering = asyncio.create_task(conv.gather(peers))
+            await asyncio.sleep(0)
+            a._deliver(m("y@p", P.AGREE))  # not an answer yet
+            a._deliver(m("y@p", P.FAILURE))
+            await asyncio.sleep(0)
+            assert not gathering.done()
+            a._deliver(m("z@p"))
+            await gathering
+            got = [(await conv.receive()).sender for _ in range(conv.pending())]
+            assert got == ["x@p", "y@p", "y@p", "z@p"]
+            t0 = time.monotonic()  # one never answers: back at the deadline, not raising
+            await conv.gather(["w@p"], deadline=asyncio.get_running_loop().time() + 0.05)
+            assert 0.04 < time.monotonic() - t0 < 1.0
+            closing = asyncio.create_task(conv.gather(["w@p"]))
+            await asyncio.sleep(0)
+            conv.close()
+            await closing  # the conversation closed: back at once
+            with pytest.raises(ConversationError):
+                await conv.receive()
+
+
 async def test_an_agent_can_ask_itself() -> None:
     class Self_(Agent):
         @on(MessageTemplate(P.REQUEST))

@@ -593,6 +593,23 @@ async def test_global_request_selects_newest_or_fuses() -> None:
         assert "this platform only" in reason
 
 
+async def test_global_request_sends_in_turn_or_in_a_task_where_it_must_agree_first() -> None:
+    async with world() as w:
+        w["uav-a"].push("heli-altitude", 120.0, seconds_ago=5)
+        w["uav-b"].push("heli-altitude", 80.0, seconds_ago=1)
+        op = w["operator"].fed
+        channel = w["operator"].platform.channel
+        assert isinstance(channel, InterfaceAgent)
+        await channel.agree("uav-a")
+        channel.sessions.forget("uav-b")  # a key exchange first: in a task of its own
+        assert channel.sends_now("uav-a") and not channel.sends_now("uav-b")
+        content = {"action": "get-latest", "labels": ["heli-altitude"]}
+        result = await op.global_request(content, deadline=WAIT, select="newest")
+        assert sorted(result.answers) == ["uav-a", "uav-b"] and result.chosen == "uav-b"
+        assert result.no_answer == [] and result.refused == {}
+        assert channel.sends_now("uav-b")  # agreed on the way
+
+
 # -- label search --------------------------------------------------------------------------------
 
 
