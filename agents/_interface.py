@@ -67,6 +67,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
+_loads = orjson.loads
+
 INTERFACE_AGENT = "interface"
 INTERFACE_ONTOLOGY = "interface"
 
@@ -549,7 +551,7 @@ class InterfaceAgent:
         its end and go together in one envelope, after it (so in order). A batch that
         cannot be sent then is logged and counted in ``batches_lost``.
         """
-        if self.join_batch(platform, message):
+        if self._outbox and self.join_batch(platform, message):  # none waits: no call
             return
         body = message.to_json()
         host = self._require_host()
@@ -979,10 +981,22 @@ class InterfaceAgent:
             now = self._monotonic()
             if not total.ready(now):
                 return False
+        # `ACLMessage.from_json`, inline (its size check is made above): the quick parse
         try:
-            message = ACLMessage.from_json(body, max_bytes=self.max_bytes)
-        except MessageError:
+            obj = _loads(body)
+        except orjson.JSONDecodeError:
             return False
+        if (
+            type(obj) is dict
+            and (fields := _quick_fields(obj)) is not None
+            and nesting_bound(body) < _TRUSTED_NESTING
+        ):
+            message = _constructed(ACLMessage, fields, set(obj))
+        else:
+            try:
+                message = ACLMessage.from_parsed(obj, nesting=nesting_bound(body))
+            except MessageError:
+                return False
         receivers = message.receivers
         if len(receivers) != 1 or message.reply_to:
             return False
