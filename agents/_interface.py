@@ -554,7 +554,9 @@ class InterfaceAgent:
         if self._outbox and self.join_batch(platform, message):  # none waits: no call
             return
         body = message.to_json()
-        host = self._require_host()
+        host = self._host  # `_require_host`, inline
+        if host is None:
+            raise SecurityError("the Interface Agent is not started")
         try:
             payload = self.sessions.seal(platform, body)
         except UnknownSession:
