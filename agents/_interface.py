@@ -484,6 +484,8 @@ class InterfaceAgent:
         # system call in Python 3.11, and every first message of a turn needs the loop)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._outbox_bytes: dict[str, int] = {}
+        # each peer's ACL key (``host.key("acl", peer)``), made once: one per trusted peer
+        self._acl_keys: dict[str, str] = {}
         self.batches_lost = 0  # batched messages a failed flush did not send
 
     # -- RemoteChannel ----------------------------------------------------------------
@@ -516,6 +518,7 @@ class InterfaceAgent:
                 self.trust.federation,
             )
         self._host = platform
+        self._acl_keys.clear()  # keys of this platform's federation only
         transport = platform.transport
         self._batching = self.batch and transport.publishes_nowait
         self._loop = asyncio.get_running_loop()
@@ -562,7 +565,10 @@ class InterfaceAgent:
         except UnknownSession:
             await self.agree(platform)
             payload = self.sessions.seal(platform, body)
-        await host.transport.publish(host.key("acl", platform), payload)
+        key = self._acl_keys.get(platform)
+        if key is None:  # sealed: a peer we hold a session with
+            key = self._acl_keys[platform] = host.key("acl", platform)
+        await host.transport.publish(key, payload)
         self.renew_if_needed(platform)
         if self._batching and platform not in self._outbox:
             self._outbox[platform] = []
@@ -1012,7 +1018,7 @@ class InterfaceAgent:
         if agent is None or not agent.running:
             return False
         mailbox = agent._mailbox
-        if len(mailbox) >= mailbox.maxlen >> 1:
+        if len(mailbox._items) >= mailbox.maxlen >> 1:
             return False
         performative = message.performative
         initiating = performative in INITIATING

@@ -116,6 +116,8 @@ class Inbox(Generic[T]):
         with self._lock:
             self._wake_pending = False
             w = self._waiter
+            # the consumer's wait ends here: it need not take the lock again to say so
+            self._waiter = None
         if w is not None and not w.done():
             w.set_result(None)
 
@@ -148,9 +150,11 @@ class Inbox(Generic[T]):
                     self._loop_thread = threading.get_ident()
             try:
                 await waiter
-            finally:
+            except BaseException:  # cancelled: no wake-up cleared it
                 with self._lock:
-                    self._waiter = None
+                    if self._waiter is waiter:
+                        self._waiter = None
+                raise
 
     def drain(self) -> list[T]:
         """Everything queued now, without waiting."""
