@@ -36,7 +36,7 @@ from ._acl import (
     nesting_bound,
     platform_of,
 )
-from ._agent import Agent, MessageTemplate, on
+from ._agent import _RUNNING, Agent, MessageTemplate, on
 from ._aio import Ticker
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
@@ -1015,7 +1015,7 @@ class InterfaceAgent:
         if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
             return False
         agent = host._agents.get(at[0])
-        if agent is None or not agent.running:
+        if agent is None or agent._state != _RUNNING:  # `agent.running`, inline
             return False
         mailbox = agent._mailbox
         if len(mailbox._items) >= mailbox.maxlen >> 1:
