@@ -516,9 +516,10 @@ def compose(
 
     What agents send is nearly always made of fields that are already of their exact
     type (a Performative, identifiers met before, a plain JSON content, optional str
-    fields): those are checked here, at the cost of a few lookups, and the message put
-    together directly, in the model's order of fields and with the fields_set `build`
-    gives it. Anything else goes to `build`, which decides as before (same errors).
+    fields, a finite float reply_by): those are checked here, at the cost of a few
+    lookups, and the message put together directly, in the model's order of fields and
+    with the fields_set `build` gives it. Anything else goes to `build`, which decides
+    as before (same errors).
     """
     receivers = [receivers] if isinstance(receivers, str) else list(receivers)
     act = _PERFORMATIVES.get(performative) if type(performative) is str else performative
@@ -558,7 +559,14 @@ def _plain_message(act: Any, sender: Any, receivers: list[Any], fields: dict[str
         if type(aid) is not str or (aid not in known and not _valid_aid(aid)):
             return False
     for name, value in fields.items():
-        if name not in _OPTIONAL_STR_SET or (value is not None and type(value) is not str):
+        if value is None:
+            if name not in _OPTIONAL_STR_SET and name != "reply_by":
+                return False
+        elif type(value) is str:
+            if name not in _OPTIONAL_STR_SET:
+                return False
+        # a finite float ``reply_by``, as `_quick_fields` takes it (every request has one)
+        elif name != "reply_by" or type(value) is not float or not math.isfinite(value):
             return False
     return True
 

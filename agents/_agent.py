@@ -726,10 +726,18 @@ class Agent:
             conv = self._by_reply.get(message.in_reply_to)
         if conv is None and message.conversation_id is not None:
             conv = self._by_conv.get(message.conversation_id)
-        if conv is not None and conv.accepts(message):
-            self.stats.received += 1
-            conv._put(message)
-            return True
+        if conv is not None:
+            # `conv.accepts(message)`, inline: the path of every reply
+            peers = conv.peers
+            rw = message.reply_with
+            if (
+                not conv.closed
+                and (peers is None or message.sender in peers)
+                and (rw is None or rw not in conv._keys)
+            ):
+                self.stats.received += 1
+                conv._put(message)
+                return True
         if self._state in (_STOPPING, _STOPPED) or not self._mailbox.put(message):
             self.stats.dropped += 1
             return False

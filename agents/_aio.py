@@ -89,7 +89,9 @@ class Mailbox(Generic[T]):
             items.popleft()
             added = False
         items.append(item)
-        self._wake()
+        w = self._waiter  # `_wake`, inline
+        if w is not None and not w.done():
+            w.set_result(None)
         return added
 
     def put_many(self, batch: Iterable[T]) -> int:

@@ -26,6 +26,7 @@ import msgpack
 import orjson
 
 from ._acl import (
+    _TRUSTED_NESTING,
     MAX_MESSAGE_BYTES,
     WIRE_VERSION,
     ACLMessage,
@@ -33,9 +34,10 @@ from ._acl import (
     _constructed,
     _nests_less,
     _quick_fields,
+    nesting_bound,
     platform_of,
 )
-from ._agent import Agent, MessageTemplate, on
+from ._agent import _RUNNING, Agent, MessageTemplate, on
 from ._aio import Ticker
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
@@ -65,6 +67,8 @@ if TYPE_CHECKING:
     from ._platform import AgentPlatform, SenderStats
 
 log = logging.getLogger(__name__)
+
+_loads = orjson.loads
 
 INTERFACE_AGENT = "interface"
 INTERFACE_ONTOLOGY = "interface"
@@ -483,6 +487,8 @@ class InterfaceAgent:
         # system call in Python 3.11, and every first message of a turn needs the loop)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._outbox_bytes: dict[str, int] = {}
+        # each peer's ACL key (``host.key("acl", peer)``), made once: one per trusted peer
+        self._acl_keys: dict[str, str] = {}
         self.batches_lost = 0  # batched messages a failed flush did not send
 
     # -- RemoteChannel ----------------------------------------------------------------
@@ -515,6 +521,7 @@ class InterfaceAgent:
                 self.trust.federation,
             )
         self._host = platform
+        self._acl_keys.clear()  # keys of this platform's federation only
         transport = platform.transport
         self._batching = self.batch and transport.publishes_nowait
         self._loop = asyncio.get_running_loop()
@@ -550,16 +557,21 @@ class InterfaceAgent:
         its end and go together in one envelope, after it (so in order). A batch that
         cannot be sent then is logged and counted in ``batches_lost``.
         """
-        if self.join_batch(platform, message):
+        if self._outbox and self.join_batch(platform, message):  # none waits: no call
             return
         body = message.to_json()
-        host = self._require_host()
+        host = self._host  # `_require_host`, inline
+        if host is None:
+            raise SecurityError("the Interface Agent is not started")
         try:
             payload = self.sessions.seal(platform, body)
         except UnknownSession:
             await self.agree(platform)
             payload = self.sessions.seal(platform, body)
-        await host.transport.publish(host.key("acl", platform), payload)
+        key = self._acl_keys.get(platform)
+        if key is None:  # sealed: a peer we hold a session with
+            key = self._acl_keys[platform] = host.key("acl", platform)
+        await host.transport.publish(key, payload)
         self.renew_if_needed(platform)
         if self._batching and platform not in self._outbox:
             self._outbox[platform] = []
@@ -991,10 +1003,22 @@ class InterfaceAgent:
             now = self._monotonic()
             if not total.ready(now):
                 return False
+        # `ACLMessage.from_json`, inline (its size check is made above): the quick parse
         try:
-            message = ACLMessage.from_json(body, max_bytes=self.max_bytes)
-        except MessageError:
+            obj = _loads(body)
+        except orjson.JSONDecodeError:
             return False
+        if (
+            type(obj) is dict
+            and (fields := _quick_fields(obj)) is not None
+            and nesting_bound(body) < _TRUSTED_NESTING
+        ):
+            message = _constructed(ACLMessage, fields, set(obj))
+        else:
+            try:
+                message = ACLMessage.from_parsed(obj, nesting=nesting_bound(body))
+            except MessageError:
+                return False
         receivers = message.receivers
         if len(receivers) != 1 or message.reply_to:
             return False
@@ -1005,10 +1029,10 @@ class InterfaceAgent:
         if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
             return False
         agent = host._agents.get(at[0])
-        if agent is None or not agent.running:
+        if agent is None or agent._state != _RUNNING:  # `agent.running`, inline
             return False
         mailbox = agent._mailbox
-        if len(mailbox) >= mailbox.maxlen >> 1:
+        if len(mailbox._items) >= mailbox.maxlen >> 1:
             return False
         performative = message.performative
         initiating = performative in INITIATING

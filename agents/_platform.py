@@ -423,7 +423,7 @@ class AgentPlatform:
             raise AgentError(f"platform {self.name} is {self._state}")
         receivers = message.receivers
         if len(receivers) == 1:  # the common case, without building sets
-            target = platform_of(receivers[0])
+            target = receivers[0].rpartition("@")[2]  # platform_of, inline
             if target == self.name:
                 await self._local(receivers[0], message)
                 return

@@ -203,9 +203,11 @@ class GatewayAgent(Agent):
         """Refuse (count, audit) another platform's request naming a reserved label."""
         if not isinstance(content, dict):
             return
+        reserved = self.reserved
         for key in ("label", "output"):
             label = content.get(key)
-            if isinstance(label, str) and self._is_reserved(label):
+            # `_is_reserved`, inline: every request from another platform passes here
+            if isinstance(label, str) and label.startswith(reserved):
                 prefix = next(p for p in self.reserved if label.startswith(p))
                 reason = (
                     f"label {label!r} is reserved (prefix {prefix!r}: streams other "

@@ -9,8 +9,8 @@ import threading
 
 import pytest
 
-from agents import Mailbox, Pending, Ticker
-from agents.transports import Inbox
+from agents import Mailbox, Pending, Ticker, TransportClosed
+from agents.transports import Inbox, Subscription
 from dyknow_core import Clock, ManualClock, RealClock
 from dyknow_core._aio import Ticker as CoreTicker
 from dyknow_core._aio import sleep_until_woken
@@ -362,3 +362,31 @@ async def test_an_inbox_wakes_its_consumer_from_the_loop_thread_and_from_others(
     producer.start()
     assert await asyncio.wait_for(getting, 1.0) == 2
     producer.join()
+
+
+async def test_an_inbox_wait_cancelled_or_woken_leaves_the_next_one_wakeable() -> None:
+    """The wake-up clears the waiter, a cancelled wait its own: either way the next wait wakes."""
+    loop = asyncio.get_running_loop()
+    inbox: Inbox[int] = Inbox(loop)
+    getting = asyncio.create_task(inbox.get())
+    await asyncio.sleep(0)
+    getting.cancel()
+    await asyncio.wait([getting])
+    assert inbox._waiter is None
+    for i in range(3):  # woken, then waiting again at once
+        getting = asyncio.create_task(inbox.get())
+        await asyncio.sleep(0)
+        threading.Thread(target=inbox.put, args=(i,)).start()
+        assert await asyncio.wait_for(getting, 1.0) == i
+        assert inbox._waiter is None
+    iterating = asyncio.create_task(_drained(Subscription(inbox, lambda: None)))
+    await asyncio.sleep(0)
+    inbox.put(7)
+    inbox.close()
+    assert await asyncio.wait_for(iterating, 1.0) == [7]  # ends on close, as ever
+    with pytest.raises(TransportClosed):
+        await inbox.get()
+
+
+async def _drained(sub: Subscription[int]) -> list[int]:
+    return [item async for item in sub]

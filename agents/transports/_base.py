@@ -116,6 +116,8 @@ class Inbox(Generic[T]):
         with self._lock:
             self._wake_pending = False
             w = self._waiter
+            # the consumer's wait ends here: it need not take the lock again to say so
+            self._waiter = None
         if w is not None and not w.done():
             w.set_result(None)
 
@@ -129,24 +131,30 @@ class Inbox(Generic[T]):
         if waiting:
             self._wake_threadsafe()
 
-    async def get(self) -> T:
-        """The next item; TransportClosed once closed and drained."""
+    def get(self) -> Coroutine[Any, Any, T]:
+        """The next item (await it); TransportClosed once closed and drained."""
+        return self._get(TransportClosed)
+
+    async def _get(self, end: type[Exception]) -> T:
+        """`get`, raising ``end`` once closed and drained (StopAsyncIteration for a loop)."""
         while True:
             with self._lock:
                 if self._items:
                     item = self._items.popleft()
                     return item if self._convert is None else self._convert(item)
                 if self.closed:
-                    raise TransportClosed("subscription closed")
+                    raise end("subscription closed")
                 self._waiter = self._loop.create_future()
                 waiter = self._waiter
                 if self._loop_thread is None:
                     self._loop_thread = threading.get_ident()
             try:
                 await waiter
-            finally:
+            except BaseException:  # cancelled: no wake-up cleared it
                 with self._lock:
-                    self._waiter = None
+                    if self._waiter is waiter:
+                        self._waiter = None
+                raise
 
     def drain(self) -> list[T]:
         """Everything queued now, without waiting."""
@@ -173,11 +181,9 @@ class Subscription(Generic[T]):
     def __aiter__(self) -> Self:
         return self
 
-    async def __anext__(self) -> T:
-        try:
-            return await self.inbox.get()
-        except TransportClosed:
-            raise StopAsyncIteration from None
+    def __anext__(self) -> Coroutine[Any, Any, T]:
+        # the inbox's own coroutine: no second one per item to translate its end
+        return self.inbox._get(StopAsyncIteration)
 
     async def get(self, timeout: float | None = None) -> T:
         """The next item, TimeoutError after ``timeout`` s, TransportClosed at the end."""

@@ -19,6 +19,18 @@ from ._base import (
     key_matches,
 )
 
+# (key expression, key) → whether it matches: the hub's few subscriptions see the same
+# keys again and again, and matching splits both strings each time
+_matched: dict[tuple[str, str], bool] = {}
+_MAX_MATCHED = 4096
+
+
+def _match_remembered(expr: str, key: str) -> bool:
+    if len(_matched) >= _MAX_MATCHED:
+        _matched.clear()
+    hit = _matched[(expr, key)] = key_matches(expr, key)
+    return hit
+
 
 async def _ask(handler: QueryHandler, key_expr: str, payload: bytes) -> bytes | None:
     return await handler(key_expr, payload)
@@ -85,8 +97,12 @@ class MemoryTransport(Transport):
     def _put(self, key: str, payload: bytes, attachment: bytes | None) -> None:
         self._check_open()
         msg = Message(key, payload, attachment)
+        matched = _matched
         for expr, inbox in self.hub.subscribers:
-            if key_matches(expr, key):
+            hit = matched.get((expr, key))
+            if hit is None:
+                hit = _match_remembered(expr, key)
+            if hit:
                 inbox.put(msg)
 
     async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
