@@ -42,7 +42,8 @@ processes. Both agent sides put what their start-up built out of the collector's
 before the timed round trips (``gc.freeze``), as a started node does.
 
 ``python -m bench.acl --profile`` profiles the zenoh round trip and the throughput path
-instead (cProfile on both sides, plus the per-stage costs measured one by one).
+instead (cProfile on both sides, plus the per-stage costs measured one by one);
+``python -m bench._acl_trace [N]`` times one round trip stage by stage in both processes.
 """
 
 from __future__ import annotations
