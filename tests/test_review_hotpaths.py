@@ -7,14 +7,16 @@ conversation's answers gathered by two waiters at once.
 from __future__ import annotations
 
 import asyncio
+from typing import Any
 
 import orjson
 import pytest
 from pydantic import ValidationError
 
-from agents import ACLMessage, Agent, AgentPlatform, MemoryHub, MessageError
+from agents import ACLMessage, Agent, AgentPlatform, MemoryHub, MessageError, wire_key
 from agents import Performative as P
 
+FED = "demo"
 _HOSTILE_AIDS = ["c@z\n", "c\n@z", "c@z\r", "c@z\n\n", "\nc@z", "c@z "]
 
 
@@ -73,3 +75,101 @@ async def test_two_gathers_of_one_conversation_each_wake_when_their_senders_answ
             await asyncio.sleep(0)
             conv.close()
             await asyncio.wait_for(asyncio.gather(third, fourth), 1)
+
+
+# -- InterfaceAgent: a lone message's quick parse decides as the full one ------------------
+
+
+def _deep(levels: int) -> bytes:
+    return b"[" * levels + b"1" + b"]" * levels
+
+
+def _hostile_bodies() -> list[bytes]:
+    """Bodies that open (sealed by uav-a) but are no message `_take_now` may take."""
+    ok = (
+        b'{"performative":"inform","sender":"l@uav-a","receivers":["echo@uav-b"],'
+        b'"conversation_id":"c","content":%b}'
+    )
+    return [
+        ok % b"1",  # a good one, for reference
+        ok % _deep(198),
+        ok % _deep(199),
+        ok % _deep(200),
+        ok % _deep(260),  # deeper than pydantic takes
+        ok % _deep(1100),  # deeper than orjson reads
+        b"[1,2,3]",
+        b"42",
+        b'"inform"',
+        b"null",
+        ok % b"1" + b" trailing",
+        ok % b"1" * 2,
+        ok % b"123456789012345678901234567890",  # bigger than 64 bits
+        ok % b"1e400",
+        ok.replace(b'"sender":"l@uav-a"', b'"sender":"l@uav-a","sender":"x@uav-c"') % b"2",
+        ok.replace(b'"sender":"l@uav-a"', b'"sender":"x@uav-c","sender":"l@uav-a"') % b"3",
+        ok.replace(b'"l@uav-a"', b"7") % b"4",
+        ok.replace(b'["echo@uav-b"]', b'"echo@uav-b"') % b"5",
+        ok.replace(b'"l@uav-a"', b'"l@uav-a\\n"') % b"6",
+        ok.replace(b'["echo@uav-b"]', b'["echo@uav-b\\n"]') % b"7",
+        ok.replace(b'"inform"', b'"INFORM"') % b"8",
+        ok.replace(b'"conversation_id":"c"', b'"conversation_id":7') % b"9",
+        ok.replace(b'"conversation_id":"c"', b'"v":2') % b"10",
+        ok.replace(b'"conversation_id":"c"', b'"v":true') % b"11",
+        ok.replace(b'"conversation_id":"c"', b'"extra":1') % b"12",
+        ok.replace(b'"conversation_id":"c"', b'"reply_by":"soon"') % b"13",
+        ok % b'"\\ud800"',
+        ok.replace(b'"l@uav-a"', b'"l@uav-b"') % b"14",  # claims the receiver's platform
+        ok.replace(b'"inform"', b'"request"') % b"15",
+        ok.replace(b'"conversation_id":"c"', b'"reply_to":["x@uav-c"]') % b"16",
+        ok.replace(b'"echo@uav-b"', b'"ghost@uav-b"') % b"17",
+        ok % b"2",  # a good one at the end: everything before it was decided
+    ]
+
+
+async def _lone_decisions(quick: bool) -> dict[str, Any]:
+    """What uav-b decides about the hostile bodies, each alone; ``quick`` False: in full."""
+    from test_interface import _captured_session, federation, ia, until
+
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pa, pb = pair.pa, pair.pb
+        ib = ia(pb)
+        ib._senders.clear()
+        if not quick:
+            # `_take_now` takes nothing while mirroring: every message goes through `_take`
+            ib.mirroring = True
+            ib._mirror_until = float("inf")
+        key = wire_key(FED, "acl", "uav-b")
+        raw = await fed.raw()
+        seal = ia(pa).sessions.seal
+        before = len(ib.audit.last(10_000))
+        for body in _hostile_bodies():
+            await raw.publish(key, seal("uav-b", body))
+        # one record each, three for the batch of three numbers
+        want = len(_hostile_bodies()) + 2
+        await until(lambda: len(ib.audit.last(10_000)) - before >= want, "every one decided")
+        await asyncio.sleep(0.2)  # the refusals and not-understoods go out
+        records = [
+            {k: v for k, v in r.items() if k != "ts"} for r in ib.audit.last(10_000)[before:]
+        ]
+        sender = pb.stats.senders["uav-a"]
+        stats = pb.stats
+        return {
+            "records": records,
+            "accepted": sender.accepted,
+            "refused": sender.refused,
+            "counts": dict(ib.audit.counts),
+            "platform": (
+                stats.received_remote,
+                stats.local,
+                stats.forged,
+                stats.unknown_receiver,
+                stats.rejected if hasattr(stats, "rejected") else None,
+            ),
+        }
+
+
+async def test_a_lone_hostile_message_is_decided_by_the_quick_parse_as_in_full() -> None:
+    quick = await _lone_decisions(quick=True)
+    full = await _lone_decisions(quick=False)
+    assert quick == full
