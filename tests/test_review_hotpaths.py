@@ -173,3 +173,37 @@ async def test_a_lone_hostile_message_is_decided_by_the_quick_parse_as_in_full()
     quick = await _lone_decisions(quick=True)
     full = await _lone_decisions(quick=False)
     assert quick == full
+
+
+# -- global requests: a send that fails partway ---------------------------------------------
+
+
+@pytest.mark.parametrize("in_turn", [True, False])
+async def test_a_global_request_whose_send_fails_still_asks_the_others(in_turn: bool) -> None:
+    """In turn (a session held) or in a task: the failure is reported, the rest answer."""
+    from test_federation_service import WAIT, world
+
+    from agents import InterfaceAgent, TransportError
+
+    async with world() as w:
+        w["uav-a"].push("heli-altitude", 120.0, seconds_ago=5)
+        w["uav-b"].push("heli-altitude", 80.0, seconds_ago=1)
+        op = w["operator"].fed
+        channel = w["operator"].platform.channel
+        assert isinstance(channel, InterfaceAgent)
+        await channel.agree("uav-a")
+        await channel.agree("uav-b")
+        if not in_turn:
+            channel.sends_now = lambda platform: False  # type: ignore[method-assign]
+        send = channel.send
+
+        async def failing(platform: str, message: ACLMessage) -> None:
+            if platform == "uav-a":
+                raise TransportError("link down")
+            await send(platform, message)
+
+        channel.send = failing  # type: ignore[method-assign]
+        content = {"action": "get-latest", "labels": ["heli-altitude"]}
+        result = await op.global_request(content, deadline=WAIT, select="newest")
+        assert result.refused == {"uav-a": "unreachable: TransportError: link down"}
+        assert sorted(result.answers) == ["uav-b"] and result.no_answer == []
