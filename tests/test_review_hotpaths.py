@@ -126,8 +126,14 @@ def _hostile_bodies() -> list[bytes]:
     ]
 
 
-async def _lone_decisions(quick: bool) -> dict[str, Any]:
-    """What uav-b decides about the hostile bodies, each alone; ``quick`` False: in full."""
+async def _lone_decisions(
+    quick: bool, batchable: bool = False, batched: bool = False
+) -> dict[str, Any]:
+    """What uav-b decides about the hostile bodies, each alone; ``quick`` False: in full.
+
+    ``batchable``: only those a batch can hold (JSON within orjson's depth, no batch);
+    ``batched``: those, in one batch.
+    """
     from test_interface import _captured_session, federation, ia, until
 
     async with federation("uav-a", "uav-b") as fed:
@@ -143,10 +149,16 @@ async def _lone_decisions(quick: bool) -> dict[str, Any]:
         raw = await fed.raw()
         seal = ia(pa).sessions.seal
         before = len(ib.audit.last(10_000))
-        for body in _hostile_bodies():
-            await raw.publish(key, seal("uav-b", body))
+        bodies = _hostile_bodies()
+        if batchable or batched:
+            bodies = [b for b in bodies if _batchable(b)]
+        if batched:
+            await raw.publish(key, seal("uav-b", b"[" + b",".join(bodies) + b"]"))
+        else:
+            for body in bodies:
+                await raw.publish(key, seal("uav-b", body))
         # one record each, three for the batch of three numbers
-        want = len(_hostile_bodies()) + 2
+        want = len(bodies) + (0 if batchable or batched else 2)
         await until(lambda: len(ib.audit.last(10_000)) - before >= want, "every one decided")
         await asyncio.sleep(0.2)  # the refusals and not-understoods go out
         records = [
@@ -169,10 +181,25 @@ async def _lone_decisions(quick: bool) -> dict[str, Any]:
         }
 
 
+def _batchable(body: bytes) -> bool:
+    """Whether ``body`` is one JSON value a batch can hold, and no batch itself."""
+    try:
+        orjson.loads(body)
+    except orjson.JSONDecodeError:
+        return False
+    return not body.startswith(b"[")
+
+
 async def test_a_lone_hostile_message_is_decided_by_the_quick_parse_as_in_full() -> None:
     quick = await _lone_decisions(quick=True)
     full = await _lone_decisions(quick=False)
     assert quick == full
+
+
+async def test_hostile_messages_in_a_batch_are_decided_as_each_alone() -> None:
+    alone = await _lone_decisions(quick=True, batchable=True)
+    together = await _lone_decisions(quick=True, batched=True)
+    assert together == alone
 
 
 # -- global requests: a send that fails partway ---------------------------------------------
