@@ -51,7 +51,7 @@ class Performative(StrEnum):
 
 
 def _check_aid(value: str) -> str:
-    if not _AID.match(value):
+    if not _AID.fullmatch(value):  # `$` alone lets a trailing newline through
         raise ValueError(f"agent identifier {value!r} is not of the form name@platform")
     return value
 
@@ -315,7 +315,8 @@ _OPTIONAL_STR = (
     "in_reply_to",
 )
 _PERFORMATIVES = {p.value: p for p in Performative}
-_aid_match = _AID.match
+# fullmatch, as pydantic's pattern matches: `match` takes "a@b\n", whose `$` ends before it
+_aid_match = _AID.fullmatch
 _new_message = object.__new__
 _setattr = object.__setattr__  # as pydantic's model_construct sets a frozen model's state
 

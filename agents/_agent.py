@@ -262,8 +262,7 @@ class Conversation:
 
     __slots__ = (
         "_agent",
-        "_awaiting",
-        "_gathered",
+        "_gathers",
         "_items",
         "_keys",
         "closed",
@@ -293,8 +292,8 @@ class Conversation:
         self._keys: list[str] = []
         self.closed = False
         self.last_sent: ACLMessage | None = None
-        self._awaiting: set[str] | None = None  # while `gather` waits: who has not answered
-        self._gathered: asyncio.Future[None] | None = None
+        # each waiting `gather`: who has not answered yet, and the future that ends its wait
+        self._gathers: list[tuple[set[str], asyncio.Future[None]]] = []
         if conversation_id is not None:
             agent._by_conv[conversation_id] = self
 
@@ -323,15 +322,13 @@ class Conversation:
             log.warning(
                 "%s: conversation %s overflowed; oldest reply dropped", self._agent, self.id
             )
-        awaiting = self._awaiting
-        if (
-            awaiting is not None
-            and message.sender in awaiting
-            and message.performative is not Performative.AGREE
-        ):
-            awaiting.discard(message.sender)
-            if not awaiting:
-                _settle(self._gathered)
+        if self._gathers and message.performative is not Performative.AGREE:
+            sender = message.sender
+            for awaiting, done in self._gathers:
+                if sender in awaiting:
+                    awaiting.discard(sender)
+                    if not awaiting:
+                        _settle(done)
 
     def unread(self, message: ACLMessage) -> None:
         """Put ``message`` back in front, to be received again."""
@@ -392,13 +389,15 @@ class Conversation:
         if deadline is None:
             deadline = self.deadline
         loop = self._agent._loop or asyncio.get_running_loop()
-        self._awaiting = awaiting
-        self._gathered = done = loop.create_future()
+        done: asyncio.Future[None] = loop.create_future()
+        # one entry per waiter: gathers of one conversation in several tasks each wake
+        gathering = (awaiting, done)
+        self._gathers.append(gathering)
         timer = None if deadline is None else loop.call_at(deadline, _settle, done)
         try:
             await done
         finally:
-            self._awaiting = self._gathered = None
+            self._gathers.remove(gathering)
             if timer is not None:
                 timer.cancel()
 
@@ -419,7 +418,8 @@ class Conversation:
                 del agent._by_reply[key]
                 agent._remember_closed(key)
         self._items.put(_Ended(error), force=True)
-        _settle(self._gathered)
+        for _, done in self._gathers:
+            _settle(done)
 
     def __enter__(self) -> Self:
         return self
