@@ -219,7 +219,7 @@ class AgentPlatform:
         query_timeout: float = 1.0,
     ) -> None:
         for what, value in (("platform", name), ("federation", federation)):
-            if not _NAME.match(value):
+            if not _NAME.fullmatch(value):
                 raise ValueError(f"{what} name {value!r}: use letters, digits, '-', '_', '.'")
         self.name = name
         self.federation = federation

@@ -221,7 +221,7 @@ def _aead_decrypt(ciphertext: bytes, aad: bytes, nonce: bytes, key: bytes) -> by
 
 def check_name(value: str, what: str = "platform") -> str:
     """Check a platform or federation name (letters, digits, ``-``, ``_``, ``.``) and return it."""
-    if not isinstance(value, str) or not _NAME.match(value) or value in {".", ".."}:
+    if not isinstance(value, str) or not _NAME.fullmatch(value) or value in {".", ".."}:
         raise ValueError(f"{what} name {value!r} must be 1-128 letters, digits, '-', '_' or '.'")
     return value
 
@@ -1583,7 +1583,7 @@ def _parse_kx(data: bytes | str, kind: str, fields: frozenset[str]) -> dict[str,
         raise Malformed(f"expected a handshake {kind!r}, got {msg['kx']!r}", frm)
     for key in ("fed", "from", "to"):
         value = msg[key]
-        if type(value) is not str or not _NAME.match(value):
+        if type(value) is not str or not _NAME.fullmatch(value):
             raise Malformed(f"handshake field {key!r} is not a valid name", frm)
     ts = msg["ts_ms"]
     if type(ts) is not int or not 0 <= ts <= _MAX_COUNTER:

@@ -37,7 +37,7 @@ _unpackb = msgpack.unpackb
 
 def check_semantic_label(label: str) -> str:
     """Check that a semantic label can travel as key chunks, and return it."""
-    if not isinstance(label, str) or len(label) > _MAX_LABEL or not _LABEL.match(label):
+    if not isinstance(label, str) or len(label) > _MAX_LABEL or not _LABEL.fullmatch(label):
         raise ValueError(
             f"semantic label {label!r} must be 1-{_MAX_LABEL} characters, '/'-separated "
             "non-empty chunks without spaces or any of * $ ? # +"

@@ -57,7 +57,7 @@ def parse_time(text: str) -> tuple[float, bool]:
     text = text.strip()
     if text == "now":
         return 0.0, True
-    m = _RELATIVE.match(text)
+    m = _RELATIVE.fullmatch(text)
     if m:
         return -float(m.group(1)) * _UNITS[m.group(2)], True
     try:

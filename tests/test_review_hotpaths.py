@@ -234,3 +234,20 @@ async def test_a_global_request_whose_send_fails_still_asks_the_others(in_turn: 
         result = await op.global_request(content, deadline=WAIT, select="newest")
         assert result.refused == {"uav-a": "unreachable: TransportError: link down"}
         assert sorted(result.answers) == ["uav-b"] and result.no_answer == []
+
+
+@pytest.mark.parametrize("tail", ["\n", "\n\n"])
+def test_a_name_label_or_endpoint_ending_in_a_newline_is_refused(tail: str) -> None:
+    # `$` also matches before a final newline: each check must take the whole text
+    from agents import check_name
+    from agents.transports import ZenohConfig
+    from federation._batch import check_semantic_label
+
+    with pytest.raises(ValueError, match="name"):
+        check_name("uav-a" + tail)
+    with pytest.raises(ValueError, match="semantic label"):
+        check_semantic_label("uav/pos" + tail)
+    with pytest.raises(ValueError, match="name"):
+        AgentPlatform("uav-a" + tail, MemoryHub().transport())
+    with pytest.raises(ValueError, match="endpoint"):
+        ZenohConfig(listen=["tcp/127.0.0.1:7447" + tail])

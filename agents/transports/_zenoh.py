@@ -231,7 +231,7 @@ class ZenohConfig(BaseModel):
     @classmethod
     def _endpoints(cls, value: tuple[str, ...] | None) -> tuple[str, ...] | None:
         for endpoint in value or ():
-            if not _ENDPOINT.match(endpoint):
+            if not _ENDPOINT.fullmatch(endpoint):
                 raise ValueError(f"{endpoint!r} is not an endpoint like tcp/127.0.0.1:7447")
             try:
                 zenoh.Config().insert_json5("connect/endpoints", json.dumps([endpoint]))
