@@ -593,14 +593,21 @@ async def test_global_request_selects_newest_or_fuses() -> None:
         assert "this platform only" in reason
 
 
+async def altitudes_and_operator_sessions(w: dict[str, Any], *agreed: str) -> InterfaceAgent:
+    """Both UAVs' altitudes pushed (uav-b's newer); the operator's channel, sessions agreed."""
+    w["uav-a"].push("heli-altitude", 120.0, seconds_ago=5)
+    w["uav-b"].push("heli-altitude", 80.0, seconds_ago=1)
+    channel = w["operator"].platform.channel
+    assert isinstance(channel, InterfaceAgent)
+    for platform in agreed:
+        await channel.agree(platform)
+    return channel
+
+
 async def test_global_request_sends_in_turn_or_in_a_task_where_it_must_agree_first() -> None:
     async with world() as w:
-        w["uav-a"].push("heli-altitude", 120.0, seconds_ago=5)
-        w["uav-b"].push("heli-altitude", 80.0, seconds_ago=1)
         op = w["operator"].fed
-        channel = w["operator"].platform.channel
-        assert isinstance(channel, InterfaceAgent)
-        await channel.agree("uav-a")
+        channel = await altitudes_and_operator_sessions(w, "uav-a")
         channel.sessions.forget("uav-b")  # a key exchange first: in a task of its own
         assert channel.sends_now("uav-a") and not channel.sends_now("uav-b")
         content = {"action": "get-latest", "labels": ["heli-altitude"]}

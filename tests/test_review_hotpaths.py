@@ -176,7 +176,6 @@ async def _lone_decisions(
                 stats.local,
                 stats.forged,
                 stats.unknown_receiver,
-                stats.rejected if hasattr(stats, "rejected") else None,
             ),
         }
 
@@ -208,18 +207,13 @@ async def test_hostile_messages_in_a_batch_are_decided_as_each_alone() -> None:
 @pytest.mark.parametrize("in_turn", [True, False])
 async def test_a_global_request_whose_send_fails_still_asks_the_others(in_turn: bool) -> None:
     """In turn (a session held) or in a task: the failure is reported, the rest answer."""
-    from test_federation_service import WAIT, world
+    from test_federation_service import WAIT, altitudes_and_operator_sessions, world
 
-    from agents import InterfaceAgent, TransportError
+    from agents import TransportError
 
     async with world() as w:
-        w["uav-a"].push("heli-altitude", 120.0, seconds_ago=5)
-        w["uav-b"].push("heli-altitude", 80.0, seconds_ago=1)
         op = w["operator"].fed
-        channel = w["operator"].platform.channel
-        assert isinstance(channel, InterfaceAgent)
-        await channel.agree("uav-a")
-        await channel.agree("uav-b")
+        channel = await altitudes_and_operator_sessions(w, "uav-a", "uav-b")
         if not in_turn:
             channel.sends_now = lambda platform: False  # type: ignore[method-assign]
         send = channel.send
