@@ -487,6 +487,9 @@ class InterfaceAgent:
         # system call in Python 3.11, and every first message of a turn needs the loop)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._outbox_bytes: dict[str, int] = {}
+        # the platforms the last turn of the loop sent two messages or more: a burst, whose
+        # next turn batches its first message too (one envelope a turn, not two)
+        self._bursting: set[str] = set()
         # each peer's ACL key (``host.key("acl", peer)``), made once: one per trusted peer
         self._acl_keys: dict[str, str] = {}
         self.batches_lost = 0  # batched messages a failed flush did not send
@@ -554,8 +557,10 @@ class InterfaceAgent:
 
         The first message for ``platform`` in a turn of the event loop goes at once, alone
         (errors raise here); with batching, those that follow it in the same turn wait for
-        its end and go together in one envelope, after it (so in order). A batch that
-        cannot be sent then is logged and counted in ``batches_lost``.
+        its end and go together in one envelope, after it (so in order). While a burst
+        goes on (the last turn sent ``platform`` two or more), the first waits in the
+        batch too, once its session is there. A batch that cannot be sent then is logged
+        and counted in ``batches_lost``.
         """
         if self._outbox and self.join_batch(platform, message):  # none waits: no call
             return
@@ -563,6 +568,20 @@ class InterfaceAgent:
         host = self._host  # `_require_host`, inline
         if host is None:
             raise SecurityError("the Interface Agent is not started")
+        if (
+            platform in self._bursting
+            and (size := 3 + len(body)) <= self.max_bytes
+            and size <= self.policy.max_body_bytes
+            and self.sessions.session_for(platform) is not None
+        ):
+            # a burst goes on: this first message of the turn waits for its end too, in
+            # the batch, rather than in an envelope of its own (a seal, a put and an
+            # open more per turn); sealing it then cannot fail for want of a session
+            self._outbox[platform] = [body]
+            self._outbox_bytes[platform] = size
+            (self._loop or asyncio.get_running_loop()).call_soon(self._flush, platform)
+            self.renew_if_needed(platform)
+            return
         try:
             payload = self.sessions.seal(platform, body)
         except UnknownSession:
@@ -621,9 +640,15 @@ class InterfaceAgent:
         """
         pending = self._outbox.pop(platform, None)
         self._outbox_bytes.pop(platform, None)
+        bursting = self._bursting
         if again:
             self._outbox[platform] = []
             self._outbox_bytes[platform] = 2
+        elif pending and (len(pending) > 1 or platform not in bursting):
+            # the turn sent two or more (the first alone, unless it was bursting already)
+            bursting.add(platform)
+        else:
+            bursting.discard(platform)
         if not pending:
             return
         body = pending[0] if len(pending) == 1 else b"[" + b",".join(pending) + b"]"

@@ -812,6 +812,30 @@ async def test_each_message_of_a_batch_is_checked_for_depth_however_deep_the_bat
         assert await request(pair.asker, "echo@uav-b", 1, ontology="demo")
 
 
+async def test_a_burst_that_goes_on_sends_one_envelope_a_turn() -> None:
+    """After a turn that sent two or more, the next turn's first message joins its batch."""
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        asker, echo = pair.asker, pair.echo
+        raw = await fed.raw()
+        wire = await raw.subscribe(wire_key(FED, "acl", "uav-b"))
+        echo.informs.clear()
+        got = 0
+        envelopes = []
+        # turns of 5, 5, 1, 3, 3 messages: the first alone then a batch, then one batch
+        # while the burst goes on, a turn of one ends it, and the next starts alone again
+        for k in (5, 5, 1, 3, 3):
+            for _ in range(k):
+                await asker.send(
+                    asker.message(Performative.INFORM, "echo@uav-b", {"i": got}, ontology="demo")
+                )
+                got += 1
+            await until(lambda n=got: len(echo.informs) == n, f"{got} informs")
+            envelopes.append(len(wire.inbox.drain()))
+        assert envelopes == [2, 1, 1, 2, 1]
+        assert [m.content["i"] for m in echo.informs] == list(range(got))  # in order
+
+
 async def test_a_message_that_is_no_json_is_refused_at_send_in_a_burst_too() -> None:
     """First of its turn or joining the batch: MessageError where it is sent; the rest go."""
     async with federation("uav-a", "uav-b") as fed:
