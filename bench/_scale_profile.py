@@ -32,6 +32,7 @@ from typing import Any
 from agents import run as run_loop
 from agents._agent import Conversation
 from agents.transports import free_tcp_port
+from bench import progress
 from bench._child import _CTX, Child
 from bench._scale_node import semantic_label, uav_main
 from bench.scale import (
@@ -101,14 +102,52 @@ def profiled_uav_main(
         profiler.dump_stats(spec["profile"])
 
 
+_STAGES: dict[str, list[float]] = {}  # stage → [CPU seconds, calls] at the operator
+
+
+def _time_stages() -> None:
+    """Wrap the operator's stages of a message (in this process) to count their loop CPU."""
+    from agents._interface import InterfaceAgent
+    from agents._security import SessionTable
+    from agents.transports import ZenohTransport
+
+    def timed(cls: Any, name: str) -> None:
+        fn = getattr(cls, name)
+        acc = _STAGES.setdefault(f"{cls.__name__}.{name}", [0.0, 0])
+        clock = time.thread_time
+
+        def wrapper(*a: Any, **k: Any) -> Any:
+            t = clock()
+            try:
+                return fn(*a, **k)
+            finally:
+                acc[0] += clock() - t
+                acc[1] += 1
+
+        setattr(cls, name, wrapper)
+
+    timed(SessionTable, "open")
+    timed(SessionTable, "seal")
+    timed(InterfaceAgent, "_take_now")
+    timed(ZenohTransport, "_put")
+
+
 def _med(xs: list[float]) -> float:
     return statistics.median(xs) if xs else float("nan")
 
 
 async def _profile(
-    workers: int, queries: int, flow: bool, cprofile: bool, raw: bool, platforms: int = 32
+    workers: int,
+    queries: int,
+    flow: bool,
+    cprofile: bool,
+    raw: bool,
+    stages: bool,
+    platforms: int = 32,
 ) -> None:
     streams = 10
+    if stages:
+        _time_stages()
     with tempfile.TemporaryDirectory(prefix="bench-scale-profile-") as tmp:
         plan = _plan(Path(tmp), platforms, streams, workers)
         labels = [semantic_label(j) for j in range(streams)]
@@ -198,6 +237,7 @@ async def _measure(
     pids = [c.pid for c in children]
     # the UAVs' CPU without queries, over as long as the queries will take
     span = queries * (gap + 0.01)
+    progress(f"idle for {span:.1f} s (worker processes {' '.join(map(str, pids))})")
     w0, c0 = time.perf_counter(), sum(_proc_cpu(p) for p in pids)
     t0 = _sum_threads(pids)
     await asyncio.sleep(span)
@@ -208,6 +248,8 @@ async def _measure(
 
     arrivals: list[float] = []
     sent: list[float] = []
+    sent_cpu: list[float] = []  # the loop's CPU clock when the last request was out
+    send_cpu: list[float] = []
     put, gather = Conversation._put, Conversation.gather
 
     def timed_put(self: Conversation, message: Any) -> None:
@@ -216,6 +258,7 @@ async def _measure(
 
     async def timed_gather(self: Conversation, *a: Any, **k: Any) -> None:
         sent.append(time.perf_counter())
+        sent_cpu.append(time.thread_time())
         await gather(self, *a, **k)
 
     loop_cpu: list[float] = []
@@ -229,11 +272,15 @@ async def _measure(
     Conversation._put = timed_put  # type: ignore[method-assign]
     Conversation.gather = timed_gather  # type: ignore[method-assign]
     try:
+        progress(f"{queries} queries")
+        for acc in _STAGES.values():
+            acc[:] = [0.0, 0]
         w0, c0 = time.perf_counter(), sum(_proc_cpu(p) for p in pids)
         th0 = _sum_threads(pids)
         for _ in range(queries):
             arrivals.clear()
             sent.clear()
+            sent_cpu.clear()
             t0, l0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
             if profiler is not None:
                 profiler.enable()
@@ -251,6 +298,8 @@ async def _measure(
             proc_cpu.append(p1 - p0)
             wall.append(t1 - t0)
             last_sent.append(sent[0] - t0)
+            if sent_cpu:
+                send_cpu.append(sent_cpu[0] - l0)
             a = sorted(x - t0 for x in arrivals)
             first.append(a[0])
             median.append(a[len(a) // 2])
@@ -278,7 +327,8 @@ async def _measure(
     print(f"  wall per query: p50 {ms(wall)} ms, p99 {p99(wall)} ms")
     print(
         f"  operator CPU per query: loop thread {ms(loop_cpu)} ms, other threads (zenoh) "
-        f"{1e3 * (_med(proc_cpu) - _med(loop_cpu)):.3f} ms"
+        f"{1e3 * (_med(proc_cpu) - _med(loop_cpu)):.3f} ms; the loop's until the last "
+        f"request was out {ms(send_cpu) if send_cpu else '-'} ms"
     )
     print(
         f"  UAV processes' CPU per query (less idle): {1e3 * uav_cpu / queries:.2f} ms in all, "
@@ -290,6 +340,11 @@ async def _measure(
         f"first {ms(first)}, median {ms(median)}, last {ms(last)}, the call returns {ms(wall)}"
     )
     print(f"  p99 of the same: last out {p99(last_sent)}, first {p99(first)}, last {p99(last)}")
+    for name, (cpu, calls) in _STAGES.items():
+        print(
+            f"  operator stage {name}: {1e3 * cpu / queries:.3f} ms per query, "
+            f"{calls / queries:.1f} calls, {1e6 * cpu / max(calls, 1):.1f} µs each"
+        )
     if profiler is not None:
         stats = pstats.Stats(profiler)
         stats.sort_stats("tottime")
@@ -310,8 +365,9 @@ def main() -> None:
     ap.add_argument("--flow", action="store_true")
     ap.add_argument("--cprofile", action="store_true")
     ap.add_argument("--raw", action="store_true", help="the raw zenoh get instead of ours")
+    ap.add_argument("--stages", action="store_true", help="the operator's CPU per stage")
     a = ap.parse_args()
-    run_loop(_profile(a.workers, a.queries, a.flow, a.cprofile, a.raw))
+    run_loop(_profile(a.workers, a.queries, a.flow, a.cprofile, a.raw, a.stages))
 
 
 if __name__ == "__main__":
