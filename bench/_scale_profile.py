@@ -143,6 +143,7 @@ async def _profile(
     cprofile: bool,
     raw: bool,
     stages: bool,
+    asked: int = 10,
     platforms: int = 32,
 ) -> None:
     streams = 10
@@ -150,7 +151,7 @@ async def _profile(
         _time_stages()
     with tempfile.TemporaryDirectory(prefix="bench-scale-profile-") as tmp:
         plan = _plan(Path(tmp), platforms, streams, workers)
-        labels = [semantic_label(j) for j in range(streams)]
+        labels = [semantic_label(j) for j in range(asked)]
         seed = free_tcp_port()
         config = PlatformConfig.from_dict(plan.config(OPERATOR, seed), source="profile")
         children: list[Child] = []
@@ -184,7 +185,9 @@ async def _profile(
                 if flow:
                     await asyncio.gather(
                         *(
-                            op.federation_agent.create_stream(u, labels, timeout=30)
+                            op.federation_agent.create_stream(
+                                u, [semantic_label(j) for j in range(streams)], timeout=30
+                            )
                             for u in plan.names
                         )
                     )
@@ -366,8 +369,9 @@ def main() -> None:
     ap.add_argument("--cprofile", action="store_true")
     ap.add_argument("--raw", action="store_true", help="the raw zenoh get instead of ours")
     ap.add_argument("--stages", action="store_true", help="the operator's CPU per stage")
+    ap.add_argument("--labels", type=int, default=10, help="labels asked of each UAV (1-10)")
     a = ap.parse_args()
-    run_loop(_profile(a.workers, a.queries, a.flow, a.cprofile, a.raw, a.stages))
+    run_loop(_profile(a.workers, a.queries, a.flow, a.cprofile, a.raw, a.stages, a.labels))
 
 
 if __name__ == "__main__":
