@@ -19,7 +19,7 @@ from ._location import Location
 from ._objects import ObjectManager
 from ._policy import Approximation, CacheSpec, Change, Policy
 from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
-from ._sample import Answer
+from ._sample import Answer, RawSample
 from ._state import StatePolicy, StateProcess
 from ._stream import BatchCallback, StreamGenerator, Subscription
 from ._time import Clock, RealClock
@@ -418,6 +418,29 @@ class DyKnowInstance:
         except KeyError:
             raise UnknownLabelError(label, list(self._labels)) from None
         return location.latest(label, query_time=now, as_of=as_of)
+
+    def latest_many(self, labels: Sequence[str]) -> tuple[int, list[RawSample | None]]:
+        """`latest` of each of ``labels`` at one clock reading: the query time, then each
+        label's newest raw ``(value, valid, available)`` sample (None: none yet).
+
+        The same answers as one `latest` per label made at that time, without an `Answer`
+        or a `Sample` for each (a provider answers many labels at once). An unknown label
+        raises `UnknownLabelError` naming it.
+        """
+        now = self.clock.now()
+        where = self._labels
+        out: list[RawSample | None] = []
+        add = out.append
+        label = ""
+        try:
+            for label in labels:
+                # `latest` with its default ``as_of``, inline
+                gen = where[label].generators[label]
+                made = gen.made_ta
+                add(gen.cache.latest(now if now >= made else made))
+        except KeyError:
+            raise UnknownLabelError(label, list(where)) from None
+        return now, out
 
     def at(
         self,

@@ -12,7 +12,7 @@ request says ``"relative": true`` (``from: -120`` = the last two minutes).
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from enum import Enum
 from typing import Annotated, Any, Literal
 
@@ -181,6 +181,32 @@ def answer_content(answer: Answer) -> dict[str, Any]:
             for value, valid, available in answer.samples
         ],
     }
+
+
+def latest_contents(instance: DyKnowInstance, labels: Sequence[str]) -> list[dict[str, Any]]:
+    """`answer_content` of ``instance.latest(label)`` for each of ``labels``, at one clock reading.
+
+    What a provider answers to a get-latest of many labels, without an `Answer` per label
+    (`DyKnowInstance.latest_many`); an unknown label raises as `latest` does.
+    """
+    now, rows = instance.latest_many(labels)
+    query_time = now / NS_PER_S  # as ns_to_seconds, inline
+    scalar = _SCALAR_TYPES
+    return [
+        {
+            "query_time": query_time,
+            "samples": []
+            if s is None
+            else [
+                [
+                    s[0] if type(s[0]) in scalar else jsonable(s[0]),
+                    s[1] / NS_PER_S,
+                    s[2] / NS_PER_S,
+                ]
+            ],
+        }
+        for s in rows
+    ]
 
 
 def samples_to_json(batch: list[tuple[Any, int, int]]) -> list[list[Any]]:

@@ -118,7 +118,13 @@ from agents import (
 from agents.transports import Inbox, Subscription
 from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, UnknownLabelError
 
-from ._gateway_service import GatewayRefusal, GatewayService, answer_content, jsonable
+from ._gateway_service import (
+    GatewayRefusal,
+    GatewayService,
+    answer_content,
+    jsonable,
+    latest_contents,
+)
 from ._gateway_service import Query as GatewayQuery
 from ._service_content import (
     ONTOLOGY,
@@ -1048,6 +1054,13 @@ class FederationAgent(Agent):
                 if reason is not None:
                     raise Denied("sharing-rule", reason)
         pairs = [(s, self._translate(s)) for s in labels]
+        if isinstance(req, GetLatest):
+            try:
+                contents = latest_contents(self.instance, [local for _, local in pairs])
+            except Exception:  # the loop below raises it again, named per label
+                pass
+            else:
+                return dict(zip(labels, contents, strict=True))
         out: dict[str, Any] = {}
         # the gateway's "latest" query, without building its model per label
         latest = self.instance.latest if isinstance(req, GetLatest) else None

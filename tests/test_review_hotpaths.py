@@ -245,3 +245,40 @@ def test_a_name_label_or_endpoint_ending_in_a_newline_is_refused(tail: str) -> N
         AgentPlatform("uav-a" + tail, MemoryHub().transport())
     with pytest.raises(ValueError, match="endpoint"):
         ZenohConfig(listen=["tcp/127.0.0.1:7447" + tail])
+
+
+# -- get-latest of many labels: one clock reading, no Answer per label ----------------------
+
+
+async def test_latest_of_many_labels_answers_as_one_latest_per_label() -> None:
+    """`latest_contents` gives what `answer_content(latest(label))` gives, label by label."""
+    from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, UnknownLabelError
+    from federation._gateway_service import answer_content, latest_contents
+
+    t0 = 1_000 * NS_PER_S
+    clock = ManualClock(t0)
+    async with DyKnowInstance("u", clock=clock) as dk:
+        scalar, rich, _, bumped, future = (
+            dk.add_source(label) for label in ("s", "r", "e", "b", "f")
+        )
+        scalar.push(1.5, valid_time=t0 - 5)
+        scalar.push(2.5, valid_time=t0 - 9)  # older valid time: not the latest
+        rich.push({"pos": (1, 2)}, valid_time=t0 - 1)  # a tuple inside: made JSON
+        bumped.push("x")
+        bumped.push("y")  # the same clock reading: stamped 1 ns later, seen now
+        future.push(7, available_time=t0 + NS_PER_S)  # not known before the clock gets there
+        labels = ["s", "r", "e", "b", "f", "s"]
+        want = [answer_content(dk.latest(label)) for label in labels]
+        assert latest_contents(dk, labels) == want
+        # the cases above are what they say
+        assert [c["samples"][0][0] if c["samples"] else None for c in want] == [
+            1.5,
+            {"pos": [1, 2]},
+            None,
+            "y",
+            None,
+            1.5,
+        ]
+        with pytest.raises(UnknownLabelError) as info:
+            latest_contents(dk, ["s", "nope"])
+        assert info.value.label == "nope"
