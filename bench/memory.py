@@ -16,13 +16,14 @@ settings, declares a queryable and a liveliness token, and says it is ready (``B
 federation-node-ready`` and ``federation-node-rss``; ``bench.acl``'s ``node-ready`` is an
 agent platform without the federation); and the same zenoh node after importing the
 third-party packages ``dyknow node`` imports (asyncio, uvloop, pydantic with a model
-built, PyNaCl, msgpack, orjson, typer; not cryptography, which comes with the first
-session's cipher, and a node alone has none): the least a node built on them can hold,
-so what is above it is our own code and state. The node runs from a copy of our packages with
-their bytecode compiled, as an installed node has it: compiling ~70 modules from source
-(when ``PYTHONDONTWRITEBYTECODE`` keeps the tree free of it) costs ~0.5 s at every start.
-Beside it, the imports alone (``import federation.cli``), to split start → ready into
-imports and the platform's start.
+built, PyNaCl, msgpack, orjson; not typer, which only the other commands use, nor
+cryptography, which comes with the first session's cipher, and a node alone has none):
+the least a node built on them can hold, so what is above it is our own code and state.
+The node runs from a copy of our packages with their bytecode compiled, as an installed
+node has it: compiling ~70 modules from source (when ``PYTHONDONTWRITEBYTECODE`` keeps
+the tree free of it) costs ~0.5 s at every start.
+Beside it, the imports alone (what ``dyknow node`` imports before it reads its config),
+to split start → ready into imports and the platform's start.
 """
 
 from __future__ import annotations
@@ -77,7 +78,7 @@ sys.stdin.read()
 # ssl; pydantic's first model imports importlib.metadata for its plugins).
 _DEPS_NODE = (
     """
-import asyncio, msgpack, orjson, pydantic, typer, uvloop
+import asyncio, msgpack, orjson, pydantic, uvloop
 import nacl.bindings, nacl.signing
 class M(pydantic.BaseModel):
     x: int = 0
@@ -87,10 +88,12 @@ M(x=1)
 )
 
 
-# What ``dyknow node`` imports before it starts anything, then "ready".
+# What ``dyknow node`` imports before it starts anything, then "ready" (its config missing,
+# the node's path exits 2 once it has imported all it runs).
 _IMPORTS_ONLY = """
 import sys
-import federation.cli
+from federation.cli import main
+main(["node", "-c", "no-such-config.toml"])
 print("ready", flush=True)
 sys.stdin.read()
 """

@@ -20,7 +20,8 @@ from typer.testing import CliRunner
 from agents._exceptions import UnknownPlatform
 from agents._security import Handshake, KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
-from federation.cli import app, main
+from federation._cli_app import app
+from federation.cli import main
 
 runner = CliRunner()
 ROOT = Path(__file__).resolve().parent.parent
@@ -138,6 +139,50 @@ def test_config_errors_name_file_and_key(
     assert main(["node", "--config", str(tmp_path / "missing.toml")]) == 2
     assert "cannot be read" in capsys.readouterr().err
     assert main(["ask", "x", "--platform", "uav-a", "--config", str(bad)]) == 2
+
+
+def test_node_without_typer_reads_its_command_line_as_the_typer_command_does(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # `dyknow node -c FILE` is run without typer (_cli_node); its one option is typer's
+    # node command's: the same flags, and only it (a new option needs the fast path too)
+    import typer.main
+
+    from federation._cli_node import CONFIG_FLAGS, node_config
+
+    command = typer.main.get_command(app).commands["node"]  # type: ignore[attr-defined]
+    assert [(p.name, tuple(p.opts), p.required) for p in command.params] == [
+        ("config", CONFIG_FLAGS, True)
+    ]
+    for args in (
+        ["node", "-c", "a.toml"],
+        ["node", "--config", "a b.toml"],
+        ["node", "--config=a.toml"],
+        ["node", "--config=x=y.toml"],
+    ):
+        ctx = command.make_context("node", args[1:])
+        assert node_config(args) == Path(ctx.params["config"]), args
+    for args in (
+        ["node"],
+        ["node", "--help"],
+        ["node", "-c"],
+        ["node", "-c", "-x"],
+        ["node", "--config="],
+        ["node", "-ca.toml"],
+        ["node", "-c", "a.toml", "--help"],
+        ["node", "-c", "a.toml", "b"],
+        ["console", "-c", "a.toml"],
+        ["node", "--", "-c"],
+        [],
+    ):
+        assert node_config(args) is None, args  # typer answers these
+    # a missing config: the same message and exit code with and without typer
+    missing = str(tmp_path / "missing.toml")
+    assert main(["node", "-c", missing]) == 2
+    fast = capsys.readouterr().err
+    result = runner.invoke(app, ["node", "-c", missing])
+    assert result.exit_code == 2 and "cannot be read" in fast
+    assert fast.strip() in result.output
 
 
 def test_monitor_and_kpl(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -544,8 +544,8 @@ def test_peers_over_mutual_tls_federate_and_a_client_without_the_federations_cer
 
 def test_watch_prints_one_readable_line_per_event() -> None:
     """``dyknow watch`` without --json: a line per message, batch, report and record."""
+    from federation._cli_app import _watch_line
     from federation._cli_net import decode_watched
-    from federation.cli import _watch_line
 
     acl = ACLMessage(
         performative=Performative.REQUEST,

@@ -27,7 +27,7 @@ from typer.testing import CliRunner
 
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
-from federation.cli import app
+from federation._cli_app import app
 from federation.console import ALLOW_HOSTS_ENV, TOKEN_ENV, allowed_names, configured_token
 from federation.console._access import AUDIT_BURST, REPORT_INTERVAL
 

@@ -49,9 +49,47 @@ def test_importing_a_package_loads_none_of_the_layers_it_must_not_know(package: 
     assert loaded == [], f"importing {package} loaded: {loaded}"
 
 
+def _loaded_by_node(prefixes: tuple[str, ...]) -> list[str]:
+    """The modules starting with one of ``prefixes`` that ``dyknow node -c FILE`` loads.
+
+    Through the entry point, with a missing config: the node's path imports everything it
+    runs before it reads the file, then exits 2.
+    """
+    code = (
+        "import sys\n"
+        "from federation.cli import main\n"
+        "assert main(['node', '-c', 'no-such-config.toml']) == 2\n"
+        f"print('\\n'.join(m for m in sys.modules if m.startswith({prefixes!r})))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        check=True,
+    )
+    return sorted(done.stdout.split())
+
+
 def test_the_node_command_leaves_out_what_only_other_commands_or_peers_use() -> None:
-    # `dyknow node` imports federation.cli; a node alone records nothing, serves no
-    # Foxglove and has no session to seal: ~7 MB of its memory (bench.memory) it need not hold
-    lazy = ("cryptography", "dyknow_core._record", "federation._foxglove")
-    loaded = _loaded("federation.cli", lazy)
-    assert loaded == [], f"importing federation.cli loaded: {loaded}"
+    # a node alone records nothing, serves no Foxglove and has no session to seal (~7 MB of
+    # its memory, bench.memory), and its command line is read without typer and the other
+    # commands (~2 MB; federation._cli_node)
+    lazy = (
+        "cryptography",
+        "dyknow_core._record",
+        "federation._foxglove",
+        "typer",
+        "click",
+        "rich",
+        "federation._cli_app",
+        "federation._cli_reasoning",
+        "federation.demo",
+    )
+    loaded = _loaded_by_node((*lazy, "federation._cli_net"))
+    # the node's own modules are there: the entry point did run the node's path
+    assert "federation._cli_net" in loaded
+    unwanted = [m for m in loaded if any(m == p or m.startswith(p + ".") for p in lazy)]
+    assert unwanted == [], f"dyknow node loaded: {unwanted}"

@@ -1,0 +1,69 @@
+"""``dyknow node``: its option and its run, importable without typer.
+
+A node is the process a platform keeps running, and what it imports it holds for its
+whole life. So the ``dyknow`` entry (``federation.cli``) runs ``dyknow node -c FILE``
+from here, without loading typer and the other commands; every other command line,
+``--help`` and mistakes included, goes to the typer app (``federation._cli_app``), whose
+``node`` command is built from the same option (`CONFIG_FLAGS`, `CONFIG_HELP`) and runs
+the same `run_node`. `node_config` takes only the plainest spellings of that option and
+leaves the rest to typer, so the two cannot read one command line differently.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+# the --config/-c of every command (a platform's TOML config), `dyknow node`'s only option
+CONFIG_FLAGS = ("--config", "-c")
+CONFIG_HELP = "the platform's TOML config"
+
+
+def say(text: str) -> None:
+    """Print one line to stdout, flushed (a supervisor may be reading)."""
+    print(text, flush=True)
+
+
+def node_config(args: Sequence[str]) -> Path | None:
+    """The config of ``node -c FILE`` / ``--config FILE`` / ``--config=FILE``; else None.
+
+    None means typer parses ``args``: anything else (help, a missing or option-looking
+    value, another command) gets typer's own answer.
+    """
+    if len(args) == 3 and args[0] == "node" and args[1] in CONFIG_FLAGS:
+        value = args[2]
+    elif len(args) == 2 and args[0] == "node" and args[1].startswith(CONFIG_FLAGS[0] + "="):
+        value = args[1].partition("=")[2]
+    else:
+        return None
+    return Path(value) if value and not value.startswith("-") else None
+
+
+def _fail(message: str, code: int = 2) -> int:
+    """Print ``message`` on stderr; the exit code to return."""
+    print(message, file=sys.stderr, flush=True)
+    return code
+
+
+def run_node(config: Path) -> int:
+    """Run one platform from its TOML config until SIGINT/SIGTERM; the exit code.
+
+    2: the config is wrong or the platform runs already; 1: the transport failed.
+    """
+    from agents import TransportError, run
+
+    from ._cli_net import run_node as serve
+    from ._local import PlatformAliveError
+    from ._platform import PlatformConfig, PlatformConfigError
+
+    try:
+        cfg = PlatformConfig.load(config)
+        run(serve(cfg, str(config), say))
+    except PlatformConfigError as exc:
+        return _fail(str(exc))
+    except PlatformAliveError as exc:
+        return _fail(f"dyknow node: {config}: {exc}")
+    except TransportError as exc:
+        return _fail(f"dyknow node: {config}: {exc}", 1)
+    return 0
