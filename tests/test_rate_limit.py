@@ -690,7 +690,10 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
         ):
             echo = await target.add(Echo())
             asker = await pg.add(Agent("asker"))
+            # both ways: T's answers go to G's inbox, which T must know of (a busy
+            # machine can delay that past G's first request)
             await alive(pg, TARGET)
+            await alive(target, GOOD)
             quiet = await pace(asker, ECHO, 50, 0.02)
             proc.start()
             # F's bucket is made (full: its burst) with its counters, after the last time
