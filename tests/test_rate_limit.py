@@ -699,13 +699,18 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
             # F's bucket is made (full: its burst) with its counters, after the last time
             # they were seen absent; the flood has begun once the limit drops something
             absent = time.monotonic()
-            async with asyncio.timeout(START):
-                while not ((s := target.stats.senders.get(FLOOD)) is not None and s.limited > 0):
-                    if not proc.is_alive():
-                        raise AssertionError(f"the flooder exited with {proc.exitcode}")
-                    if s is None:
-                        absent = time.monotonic()
-                    await asyncio.sleep(0.01)
+            s = None
+            try:
+                async with asyncio.timeout(START):
+                    while not ((s := target.stats.senders.get(FLOOD)) is not None and s.limited):
+                        if not proc.is_alive():
+                            raise AssertionError(f"the flooder exited with {proc.exitcode}")
+                        if s is None:
+                            absent = time.monotonic()
+                        await asyncio.sleep(0.01)
+            except TimeoutError:
+                seen = "F not seen" if s is None else f"F's counters {s}"
+                raise AssertionError(f"no flood within {START:g} s: {seen}") from None
             f = target.stats.senders[FLOOD]
             # F's admitted and counted requests as each of G's requests left and came back
             windows: list[tuple[tuple[int, int], tuple[int, int]]] = []
