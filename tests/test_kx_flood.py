@@ -43,10 +43,14 @@ from bench.kxflood import (
     acl_payloads,
     figures,
     flood,
-    latency_bound,
-    p99,
     recv,
 )
+
+# The victim's CPU per flood request, in µs. Measured here: ~20 when it sheds, ~85 when
+# every request reaches the event loop and has its signature checked (the victim then
+# takes most of a core at 10 000/s). CPU time, unlike latency, is barely stretched by
+# others' load on the machine.
+SHED_CPU_US = 45.0
 
 
 @pytest.fixture(autouse=True)
@@ -58,20 +62,24 @@ def _no_leftover_children() -> Iterator[None]:
 
 
 def test_kx_flood_is_shed_and_a_member_is_still_served(tmp_path: Path) -> None:
-    """10 000 handshake requests/s from an outsider: the member's p99 stays in its bound.
+    """10 000 handshake requests/s from an outsider: shed cheaply, the member still served.
 
     The victim drops them before any signature check (all but a few per second), counts
     each one and sums them up in a few audit records; its session with the member and
     the member's requests are unaffected. (``python -m bench kxflood`` runs the same.)
+
+    Bounded by counts and by the victim's CPU time per request, not by the member's
+    latency: with three processes and the attacker's on a busy machine that measures the
+    machine. CPU time is what a flood takes from the victim, whatever else runs.
     """
     run = flood(tmp_path)
-    calm, during, sent, seconds, report = run.calm, run.during, run.sent, run.seconds, run.report
-    # a machine busy with others' work shows in the calm run first: never bound the
-    # flooded run below three times that (without the shedding it is ~600 times)
-    bound = max(latency_bound(), 3 * p99(calm))
-    print(f"\n{run.lines()}\nbound {bound:.0f} ms")
+    during, sent, seconds, report = run.during, run.sent, run.seconds, run.report
+    cost = run.cpu * seconds / sent * 1e6  # the victim's CPU per request sent, µs
+    print(f"\n{run.lines()}\nvictim CPU {cost:.1f} µs per request (bound {SHED_CPU_US:g})")
     assert sent / seconds > 5000, "the attacker did not flood"
-    assert p99(during) <= bound, figures(during)
+    # every one of the member's requests answered during the flood (pace asserts each)
+    assert len(during) == PACE_N
+    assert cost <= SHED_CPU_US, figures(during)
     # all but the budget is shed: per trusted name claimed (2/s, burst 10), and the
     # member's name is exempt from the shared budget only (it has a session)
     assert report["admitted"] <= 2 * (10 + 2 * (seconds + 2)) + 20

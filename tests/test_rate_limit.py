@@ -313,18 +313,6 @@ async def until(predicate: Any, what: str, timeout: float = WAIT) -> None:
 LIMIT = RateLimit(rate=500, burst=50, refusals=20, report_interval=0.5)
 N_FLOOD, FLOOD_RATE = 30_000, 20_000.0  # requests, per second: 1.5 s, beyond T's capacity
 N_GOOD, GOOD_PERIOD = 50, 0.02  # 50 requests/s, for 1 s and as long as the flood lasts
-# G's latency bound, for the tests that still have one. Without a flood G's p99 is ~1-3 ms
-# here; 50 ms leaves room for a GC pass and a busy 2-core machine.
-G_P99_MS = 50.0
-
-
-def latency_bound(slow: float | None = None) -> float:
-    """G_P99_MS, scaled up by the slowdown when the machine is oversubscribed.
-
-    Every wait in wall-clock time stretches with the share of the CPU this process gets;
-    on a machine that is not overloaded it is G_P99_MS.
-    """
-    return G_P99_MS * (slowdown() if slow is None else slow)
 
 
 async def test_flood_is_limited_per_sender_and_others_are_answered() -> None:
@@ -555,13 +543,21 @@ async def test_without_a_limit_nothing_is_dropped() -> None:
 
 
 async def test_a_garbage_flood_is_counted_not_audited_one_by_one() -> None:
-    """Envelopes that do not open share one audit budget; G is answered meanwhile."""
+    """Envelopes that do not open share one audit budget; G is answered meanwhile.
+
+    Bounded by counts and by the flood's own duration, not by G's latency (in one
+    process the garbage, G and the target share the CPU: a busy machine stretches them
+    all). Records one by one: at most the budget per second of the flood. G: every
+    request answered and never limited, and answered while the garbage still came (its
+    answers are not queued behind the whole flood). Without the budget, every one of
+    the 20 000 envelopes is audited one by one.
+    """
     limit = RateLimit(unauthenticated=50, report_interval=0.3)
     n = 20_000
     async with memory(TARGET, GOOD) as fed:
         target = await fed.start(TARGET, rate_limit=limit)
         pg = await fed.start(GOOD)
-        await target.add(Echo())
+        echo = await target.add(Echo())
         asker = await pg.add(Agent("asker"))
         raw = await fed.stack.enter_async_context(fed.hub.transport())
         inbox = wire_key(FED, "acl", TARGET)
@@ -575,9 +571,19 @@ async def test_a_garbage_flood_is_counted_not_audited_one_by_one() -> None:
 
         start = time.monotonic()
         flood = asyncio.create_task(garbage())
-        rtts = await pace(asker, ECHO, 30, 0.01, during=flood)
+        # the garbage counted as each of G's requests left and as its answer came
+        windows: list[tuple[int, int]] = []
+        counted = target.stats
+        rtts = await pace(
+            asker,
+            ECHO,
+            30,
+            0.01,
+            during=flood,
+            watch=lambda: counted.unauthenticated,
+            watched=windows,
+        )
         await flood
-        bound = latency_bound()
         await until(lambda: target.stats.unauthenticated == n, "every envelope counted")
         took = time.monotonic() - start
         audit = ia(target).audit
@@ -585,20 +591,30 @@ async def test_a_garbage_flood_is_counted_not_audited_one_by_one() -> None:
         def dropped() -> list[dict[str, Any]]:
             return [r for r in audit.records if r["verdict"] == "dropped"]
 
+        budget = limit.unauthenticated * (took + 1)  # records one by one, at most
+
+        def one_by_one() -> list[dict[str, Any]]:
+            return [r for r in dropped() if r.get("stage") is None]
+
+        # (or the budget overrun: the audit keeps a bounded history, a flood washes it out)
         await until(
-            lambda: sum(r.get("count", 1) for r in dropped()) == n, "every envelope in the audit"
+            lambda: sum(r.get("count", 1) for r in dropped()) == n or len(one_by_one()) > budget,
+            "every envelope in the audit",
         )
         records = dropped()
-        one_by_one = [r for r in records if r.get("stage") is None]
+        single = one_by_one()
         summed = [r for r in records if r.get("stage") == "unauthenticated"]
         print(
-            f"\n{n} garbage envelopes in {took:.2f} s: {len(one_by_one)} audited one by one, "
-            f"{len(summed)} summaries; G meanwhile: {figures(rtts)} (bound {bound:.0f} ms)"
+            f"\n{n} garbage envelopes in {took:.2f} s: {len(single)} audited one by one, "
+            f"{len(summed)} summaries; G meanwhile: {figures(rtts)}"
         )
-        assert len(one_by_one) <= limit.unauthenticated * (took + 1)
+        assert len(single) <= budget, (len(single), budget)
         assert 1 <= len(summed) <= took / limit.report_interval + 2
         assert all(r["reason"].endswith("(over 50 records/s)") for r in summed)
-        assert p99(rtts) < bound, figures(rtts)
+        # G: every request answered (pace asserts each), and answers came back while the
+        # garbage was still being counted, not after the whole flood
+        assert echo.calls[GOOD] == len(rtts) >= 30
+        assert any(0 < after < n for _, after in windows), windows
         # the good platform's messages were never mistaken for the garbage claiming its name
         assert target.stats.senders[GOOD].limited == 0
 
@@ -638,7 +654,14 @@ async def _flooder(config: dict[str, Any], federation: str, keys: Path, trust: P
 
 
 async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
-    """A flooding child process is limited; the parent's other platform is answered meanwhile."""
+    """A flooding child process is limited; the parent's other platform is answered meanwhile.
+
+    Bounded by counts and by the time the limit itself measures, as in one process: F's
+    admitted requests, over the whole flood and while each of G's requests waited, are at
+    most its burst plus its rate over that time. No bound on G's latency: with three
+    processes on a busy machine it measures the machine (idle, G's p50 stays ~1 ms
+    during the flood). A target without the limit admits F's whole flood, thousands over.
+    """
     federation = f"rl-{uuid.uuid4().hex[:8]}"
     keydir, trust = tmp_path / "keys", tmp_path / "trust.json"
     trust_keys(
@@ -667,35 +690,63 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
         ):
             echo = await target.add(Echo())
             asker = await pg.add(Agent("asker"))
+            # both ways: T's answers go to G's inbox, which T must know of (a busy
+            # machine can delay that past G's first request)
             await alive(pg, TARGET)
+            await alive(target, GOOD)
             quiet = await pace(asker, ECHO, 50, 0.02)
             proc.start()
-            # the flood has begun once the target's limit drops something
-            async with asyncio.timeout(START):
-                while not ((s := target.stats.senders.get(FLOOD)) is not None and s.limited > 0):
-                    if not proc.is_alive():
-                        raise AssertionError(f"the flooder exited with {proc.exitcode}")
-                    await asyncio.sleep(0.01)
-            during = await pace(asker, ECHO, 50, 0.02)
-            bound = latency_bound()
+            # F's bucket is made (full: its burst) with its counters, after the last time
+            # they were seen absent; the flood has begun once the limit drops something
+            absent = time.monotonic()
+            s = None
+            try:
+                async with asyncio.timeout(START):
+                    while not ((s := target.stats.senders.get(FLOOD)) is not None and s.limited):
+                        if not proc.is_alive():
+                            raise AssertionError(f"the flooder exited with {proc.exitcode}")
+                        if s is None:
+                            absent = time.monotonic()
+                        await asyncio.sleep(0.01)
+            except TimeoutError:
+                seen = "F not seen" if s is None else f"F's counters {s}"
+                raise AssertionError(f"no flood within {START:g} s: {seen}") from None
             f = target.stats.senders[FLOOD]
+            # F's admitted and counted requests as each of G's requests left and came back
+            windows: list[tuple[tuple[int, int], tuple[int, int]]] = []
+            during = await pace(
+                asker,
+                ECHO,
+                50,
+                0.02,
+                watch=lambda: (f.accepted, f.accepted + f.limited),
+                watched=windows,
+            )
             # the rest of the flood, or what zenoh's congestion control left of it
             settled = -1
             while settled != f.accepted + f.limited:
                 settled = f.accepted + f.limited
                 await asyncio.sleep(0.3)
+            span = time.monotonic() - absent  # F's requests were admitted within it
             print(
                 f"\nzenoh, G without flood: {figures(quiet)}\n"
                 f"zenoh, G during flood:  {figures(during)}\n"
-                f"zenoh, F: {settled} of {MP_FLOOD + 1} requests arrived: accepted "
-                f"{f.accepted}, limited {f.limited}, refused {f.refused}; bound {bound:.0f} ms"
+                f"zenoh, F: {settled} of {MP_FLOOD + 1} requests arrived in {span:.2f} s: "
+                f"accepted {f.accepted}, limited {f.limited}, refused {f.refused}"
             )
+            # G: every request answered (pace asserts each), never limited, and asked
+            # while the flood still came
             assert target.stats.senders[GOOD].limited == 0
             assert echo.calls[GOOD] == 100
-            # as in one process: the typical request as without a flood, room for the tail
-            assert statistics.median(during) < bound / 2, figures(during)
-            assert p99(during) < 4 * bound, figures(during)
-            assert f.limited > 0 and f.accepted < settled
+            assert windows[0][0][1] < settled, (windows[0], settled)
+            # while each of G's requests waited, F got no more than its limit allows
+            for rtt, ((accepted0, _), (accepted1, _)) in zip(during, windows, strict=True):
+                alongside = 1 + MP_LIMIT.burst + MP_LIMIT.rate * rtt / 1000
+                assert accepted1 - accepted0 <= alongside, (accepted1 - accepted0, rtt)
+            # F: at most its burst plus its rate from its first request until all were
+            # counted; the rest dropped
+            allowed = MP_LIMIT.burst + MP_LIMIT.rate * span
+            assert f.limited > 0 and f.accepted <= allowed, (f.accepted, allowed)
             await until(lambda: echo.calls[FLOOD] == f.accepted, "F's accepted ones answered")
             await until(lambda: limit_records(target, FLOOD) != [], "the flood in the audit")
     finally:

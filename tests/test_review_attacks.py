@@ -45,8 +45,6 @@ from bench.kxflood import (
     Federation,
     attacker_main,
     figures,
-    latency_bound,
-    p99,
     recv,
 )
 from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
@@ -56,6 +54,11 @@ CLI = [sys.executable, "-m", "federation.cli"]
 pytestmark = pytest.mark.timeout(180)
 
 FEDERATION_ONTOLOGY = "dyknow-federation"
+# The victim's CPU per query of a flood below, in µs. Measured here: ~17 for both when
+# shed; ~53 (watch) and ~75 (directory) when every query reaches the event loop. CPU
+# time, unlike latency, is barely stretched by others' load on the machine.
+WATCH_SHED_CPU_US = 35.0
+DF_SHED_CPU_US = 40.0
 
 
 async def test_membership_subscriptions_are_bounded_per_platform(tmp_path: Path) -> None:
@@ -270,13 +273,27 @@ class _Flooded:
     during: list[float]
     sent: int
     seconds: float
+    cpu: float  # the victim's CPU seconds from the flood's start to its end
     report: dict[str, Any]
 
-    def check(self, shed: int, stage: str) -> None:
-        """The member's p99 within bound; most of the flood shed, counted, summed up."""
-        bound = max(latency_bound(), 3 * p99(self.calm))
+    def check(self, shed: int, stage: str, cpu_us: float) -> None:
+        """The member served; the flood shed cheaply, counted, summed up.
+
+        Cheaply: at most ``cpu_us`` of the victim's CPU per query sent. Bounded by CPU
+        time, not by the member's latency: with three processes and the attacker's on a
+        busy machine that measures the machine; CPU time is what the flood takes from
+        the victim, whatever else runs.
+        """
+        cost = self.cpu / self.sent * 1e6
+        print(
+            f"\nmember calm: {figures(self.calm)}\nmember during flood: {figures(self.during)}"
+            f"\nattacker: {self.sent} in {self.seconds:.1f} s; victim shed {shed}, "
+            f"CPU {cost:.1f} µs per query (bound {cpu_us:g})"
+        )
         assert self.sent / self.seconds > 5000, "the attacker did not flood"
-        assert p99(self.during) <= bound, figures(self.during)
+        # every one of the member's requests answered during the flood (pace asserts each)
+        assert len(self.during) == PACE_N
+        assert cost <= cpu_us, (cost, figures(self.during))
         assert shed >= 0.5 * self.sent, (shed, self.sent)
         summaries = [r for r in self.report["records"] if r.get("stage") == stage]
         assert summaries and sum(r["count"] for r in summaries) == shed
@@ -304,6 +321,8 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
         recv(member, "the member's first requests", WAIT + PACE_N * PACE_PERIOD)
         member.send("pace")
         calm = recv(member, "the member's calm requests", WAIT + PACE_N * PACE_PERIOD)
+        victim.send("report")
+        cpu0 = recv(victim, "the victim's report")["cpu"]
         attacker.send("go")
         time.sleep(0.5)
         member.send("pace")
@@ -311,9 +330,11 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
         with contextlib.suppress(OSError):
             attacker.send("stop")
         sent, seconds = recv(attacker, "the attacker's count")
+        victim.send("report")
+        cpu = recv(victim, "the victim's report")["cpu"] - cpu0
         time.sleep(1.5)  # the last summaries
         victim.send("report")
-        yield _Flooded(f, calm, during, sent, seconds, recv(victim, "the victim's report"))
+        yield _Flooded(f, calm, during, sent, seconds, cpu, recv(victim, "the victim's report"))
     finally:
         f.close(pipes)
 
@@ -327,7 +348,7 @@ def test_a_watch_request_flood_is_shed_before_the_event_loop(tmp_path: Path) -> 
     WATCH_RATE/s go on; the owner can watch once the flood is over.
     """
     with _flood(tmp_path, "watch", _forged_watch_requests) as run:
-        run.check(run.report["watch_shed"], "watch-shed")
+        run.check(run.report["watch_shed"], "watch-shed", WATCH_SHED_CPU_US)
         first = next(r for r in run.report["records"] if r.get("stage") == "watch-shed")
         assert first["reason"].startswith("watch requests shed: ")
         owner = KeyPair.load(run.f.keydir / f"{VICTIM}.key")
@@ -345,7 +366,7 @@ def test_a_directory_query_flood_is_shed_before_the_event_loop(tmp_path: Path) -
     are answered; the directory is answered again once the flood is over.
     """
     with _flood(tmp_path, "df", lambda fed: [b""] * 100) as run:
-        run.check(run.report["df_shed"], "df-shed")
+        run.check(run.report["df_shed"], "df-shed", DF_SHED_CPU_US)
         first = next(r for r in run.report["records"] if r.get("stage") == "df-shed")
         assert first["reason"].startswith("directory queries shed: ")
         replies = asyncio.run(_ask(run.f.port, wire_key(run.f.fed, "df", VICTIM), b""))
