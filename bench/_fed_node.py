@@ -45,6 +45,7 @@ from dyknow_core import DyKnowInstance, Policy, RawSample
 from federation._batch import pack_batch
 from federation._export import ExportProxy
 from federation._import import ImportProxy
+from federation._proxy_stats import ImportProxyStats
 from federation._sessions import TableSessions
 
 FED = "bench"
@@ -563,6 +564,6 @@ class Receiver(_Node):
         self.raw_lat.clear()
         return got
 
-    async def op_stats(self) -> dict[str, Any]:
+    async def op_stats(self) -> ImportProxyStats:
         """The import proxy's counters."""
         return self.importer.stats()

@@ -72,6 +72,11 @@ def _sum_threads(pids: list[int]) -> tuple[float, float]:
     return sum(g[0] for g in got), sum(g[1] for g in got)
 
 
+def _close_all(children: list[Child]) -> None:
+    for c in children:
+        c.close()
+
+
 def profiled_uav_main(
     spec: dict[str, Any], quiet: Any, profiling: Any, reports: Any, stop: Any
 ) -> None:
@@ -94,7 +99,7 @@ def profiled_uav_main(
                 profiler.disable()
         return await sleep(delay, result)
 
-    asyncio.sleep = watching_sleep  # type: ignore[assignment]
+    asyncio.sleep = watching_sleep
     try:
         uav_main(spec, quiet, reports, stop)
     finally:
@@ -198,7 +203,7 @@ async def _profile(
                 profiling.clear()
                 await asyncio.sleep(0.3)  # a tick of the push loop: the profiler is off
             finally:
-                await asyncio.to_thread(lambda: [c.close() for c in children])
+                await asyncio.to_thread(_close_all, children)
             if cprofile:
                 _print_uav_profile(os.path.join(tmp, "uav.prof"), queries, len(plan.groups[0]))
 
@@ -242,12 +247,15 @@ async def _measure(
     span = queries * (gap + 0.01)
     progress(f"idle for {span:.1f} s (worker processes {' '.join(map(str, pids))})")
     w0, c0 = time.perf_counter(), sum(_proc_cpu(p) for p in pids)
-    t0 = _sum_threads(pids)
+    idle_th0 = _sum_threads(pids)
     await asyncio.sleep(span)
     idle_span = time.perf_counter() - w0
     idle_rate = (sum(_proc_cpu(p) for p in pids) - c0) / idle_span
-    t1 = _sum_threads(pids)
-    idle_threads = ((t1[0] - t0[0]) / idle_span, (t1[1] - t0[1]) / idle_span)
+    idle_th1 = _sum_threads(pids)
+    idle_threads = (
+        (idle_th1[0] - idle_th0[0]) / idle_span,
+        (idle_th1[1] - idle_th0[1]) / idle_span,
+    )
 
     arrivals: list[float] = []
     sent: list[float] = []
@@ -287,6 +295,7 @@ async def _measure(
             t0, l0, p0 = time.perf_counter(), time.thread_time(), time.process_time()
             if profiler is not None:
                 profiler.enable()
+            got: float | str | None
             if raw:
                 got = await _raw_get(session, n)
                 sent.append(t0)

@@ -53,7 +53,7 @@ def _responder(port: int, ready: Any, stop: Any) -> None:
         def on_count(query: Any) -> None:
             query.reply(query.key_expr, json.dumps(counter).encode())
 
-        subs = [
+        subs: list[zenoh.Subscriber[None] | zenoh.Queryable[None]] = [
             s.declare_subscriber("raw/ping", on_ping),
             s.declare_subscriber("raw/flood", on_flood),
             s.declare_queryable("raw/get", lambda q: q.reply(q.key_expr, b"x")),
@@ -105,7 +105,10 @@ def measure(round_trips: int = 2000, flood: int = 200_000, payload: int = 362) -
             counted: dict[str, float] = {}
             while time.time() < deadline:
                 r = list(s.get("raw/count", timeout=2.0))
-                counted = json.loads(r[0].ok.payload.to_bytes())
+                ok = r[0].ok
+                if ok is None:
+                    raise RuntimeError(f"raw count query failed: {r[0].err}")
+                counted = json.loads(ok.payload.to_bytes())
                 if counted["n"] >= flood * 0.99:
                     break
                 time.sleep(0.05)

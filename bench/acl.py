@@ -59,7 +59,7 @@ import time
 import uuid
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypedDict
 
 import aiomqtt
 import zenoh
@@ -282,7 +282,27 @@ def flood_content(asker: Agent) -> Callable[[int], Any]:
     return lambda i: content(i, pad)
 
 
-async def flood(asker: Agent, n: int) -> dict[str, float]:
+class Flood(TypedDict):
+    """What one ``flood`` delivered, how fast, and at what CPU on each side."""
+
+    sent: int
+    received: int
+    inbox_dropped: int
+    mailbox_full: int
+    rate_limited: int
+    rate: float
+    sent_rate: float
+    recv_rate: float
+    sender_cpu_us: float
+    sender_loop_us: float
+    node_cpu_us: float
+    node_loop_us: float
+    gc_share: float
+    gc_full: int
+    gc_by_gen: list[tuple[int, float]]  # per generation: (collections, ms collecting)
+
+
+async def flood(asker: Agent, n: int) -> Flood:
     """Send ``n`` informs to the sink as fast as the stack takes them; what arrived, how fast.
 
     ``rate`` is end to end: messages delivered to the sink over the time from our first

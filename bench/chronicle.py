@@ -23,6 +23,7 @@ from __future__ import annotations
 import bisect
 import gc
 import random
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -132,7 +133,7 @@ def run() -> None:
             ("batch", batch, events, peer_set),
         ):
             gc.collect()
-            dt, raw = timed(lambda fn=fn, data=data: fn(data))
+            dt, raw = timed(partial(fn, data))
             got = conv(raw)
             if ref is None:
                 ref = got

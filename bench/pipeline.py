@@ -22,9 +22,10 @@ import gc
 import random
 import statistics
 from collections.abc import Callable
-from typing import Any
+from typing import Any, TypeVar
 
 import reactivex as rx
+from reactivex import Observable
 from reactivex import operators as ops
 
 from bench import fmt, progress, report, timed
@@ -45,6 +46,13 @@ REPEAT = 3
 LOWER, UPPER = 0.0, 100.0
 PERIOD_NS = 1_000_000  # 1 kHz valid time
 DELAY_NS = 400_000  # available 0.4 ms after valid
+
+_In = TypeVar("_In")
+_Out = TypeVar("_Out")
+# A reactivex operator. Its functions (filter, map...) are generic in the element type and
+# are called before pipe() sees the source, so mypy cannot bind that type from the source:
+# each operator is annotated with this instead.
+Operator = Callable[[Observable[_In]], Observable[_Out]]
 
 
 def scale(v: float) -> float:
@@ -120,22 +128,22 @@ def run_ours_async(batches: list[list[Sample]]) -> list[RawSample]:
 def run_reactivex(values: list[float]) -> list[float]:
     """Filter bounds → distinct_until_changed → map on plain values; the subscriber appends."""
     got: list[float] = []
-    rx.from_iterable(values).pipe(
-        ops.filter(lambda v: LOWER <= v <= UPPER),
-        ops.distinct_until_changed(),
-        ops.map(scale),
-    ).subscribe(got.append)
+    in_bounds: Operator[float, float] = ops.filter(lambda v: LOWER <= v <= UPPER)
+    changed: Operator[float, float] = ops.distinct_until_changed()
+    mapped: Operator[float, float] = ops.map(scale)
+    rx.from_iterable(values).pipe(in_bounds, changed, mapped).subscribe(got.append)
     return got
 
 
 def run_reactivex_samples(batches: list[list[Sample]]) -> list[Sample]:
     """The reactivex chain carrying the times too, as ours does (for the detail line)."""
     got: list[Sample] = []
-    rx.from_iterable(s for b in batches for s in b).pipe(
-        ops.filter(lambda s: LOWER <= s[0] <= UPPER),
-        ops.distinct_until_changed(lambda s: s[0]),
-        ops.map(lambda s: Sample(scale(s[0]), s[1], s[2])),
-    ).subscribe(got.append)
+    in_bounds: Operator[Sample, Sample] = ops.filter(lambda s: LOWER <= s[0] <= UPPER)
+    changed: Operator[Sample, Sample] = ops.distinct_until_changed(lambda s: s[0])
+    mapped: Operator[Sample, Sample] = ops.map(lambda s: Sample(scale(s[0]), s[1], s[2]))
+    rx.from_iterable(s for b in batches for s in b).pipe(in_bounds, changed, mapped).subscribe(
+        got.append
+    )
     return got
 
 

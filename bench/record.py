@@ -20,6 +20,7 @@ from __future__ import annotations
 import gc
 import statistics
 import tempfile
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -113,7 +114,7 @@ def run() -> None:
         for rep in range(REPEAT):
             for name, fn in runs.items():  # interleaved: a slow spell hits both alike
                 gc.collect()
-                seconds, _ = timed(lambda fn=fn, name=name: fn(flight, paths[name]))
+                seconds, _ = timed(partial(fn, flight, paths[name]))
                 times[name].append(seconds)
                 progress(f"run {rep + 1}/{REPEAT} {name}: {seconds:.2f} s")
         ours, peer = messages(paths["ours"]), messages(paths["mcap"])
