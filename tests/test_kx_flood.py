@@ -86,10 +86,14 @@ def test_kx_flood_is_shed_and_a_member_is_still_served(tmp_path: Path) -> None:
     assert sent / seconds > 5000, "the attacker did not flood"
     # every one of the member's requests answered during the flood (pace asserts each)
     assert len(during) == PACE_N
+    # all but the budget is shed before the event loop: per trusted name claimed (2/s,
+    # burst 10), and the member's name is exempt from the shared budget only (it has a
+    # session). A count, whatever the CPU and the load: a victim starved of CPU costs
+    # little per request sent even when it sheds nothing, zenoh dropping the rest.
+    budget = 2 * (10 + 2 * (seconds + 2)) + 20
+    assert run.handled <= budget, (run.handled, budget)
+    assert report["admitted"] <= budget
     assert cost <= bound, figures(during)
-    # all but the budget is shed: per trusted name claimed (2/s, burst 10), and the
-    # member's name is exempt from the shared budget only (it has a session)
-    assert report["admitted"] <= 2 * (10 + 2 * (seconds + 2)) + 20
     assert report["kx_shed"] == sum(report["shed"].values())
     # most of the flood reached the victim (zenoh may drop some on a loaded machine)
     assert report["kx_shed"] >= 0.5 * sent
