@@ -1,9 +1,16 @@
-"""How loaded the machine running the tests is, measured: for tests that run in real time."""
+"""How loaded the machine running the tests is, how fast its CPU: for tests run in real time."""
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
+import statistics
 import time
+
+# The median CPU time of one `_cpu_work` on the machine the tests' CPU bounds were measured
+# on (2 cores of an AMD EPYC, busy with other work as well), in seconds.
+CPU_WORK_SECONDS = 0.0033
 
 
 def slowdown() -> float:
@@ -19,3 +26,35 @@ def slowdown() -> float:
     share = (time.thread_time() - c0) / (time.monotonic() - t0)
     load = os.getloadavg()[0] / (os.cpu_count() or 1)
     return max(1.0, load, 1.0 / max(share, 0.02))
+
+
+def _cpu_work() -> None:
+    """A platform's work on messages, in small: dicts, str and bytes, JSON, a hash."""
+    messages = {}
+    for i in range(800):
+        key = f"uav-{i}/acl/{i * 7919 % 1000}"
+        messages[key] = {"n": i, "from": key.split("/")[0], "body": key.encode() * 3}
+    for key, m in messages.items():
+        text = json.dumps({"key": key, "n": m["n"], "from": m["from"]})
+        back = json.loads(text)
+        data = m["body"] + text.encode()
+        hashlib.sha256(data).digest()
+        if back["key"].startswith("uav-1"):
+            data.find(b"acl")
+
+
+def cpu_slowdown(samples: int = 15) -> float:
+    """How many times slower this CPU is than the one the CPU bounds were measured on (>= 1).
+
+    For bounds on a process's CPU time (what a flood costs a victim per query, say),
+    which a slower CPU stretches and others' load hardly does: the median CPU time of a
+    fixed piece of work, run now, against CPU_WORK_SECONDS. Never below 1: a faster CPU
+    keeps the bound as it was measured.
+    """
+    times = []
+    for _ in range(samples):
+        c0 = time.thread_time()
+        _cpu_work()
+        times.append(time.thread_time() - c0)
+        time.sleep(0.01)  # spread over a while: a busy spell does not make the median
+    return max(1.0, statistics.median(times) / CPU_WORK_SECONDS)

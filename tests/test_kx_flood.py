@@ -25,6 +25,7 @@ from typing import Any
 
 import orjson
 import pytest
+from _load import cpu_slowdown
 
 from agents import AgentPlatform, wire_key
 from agents._interface import InterfaceAgent
@@ -46,7 +47,8 @@ from bench.kxflood import (
     recv,
 )
 
-# The victim's CPU per flood request, in µs. Measured here: ~20 when it sheds, ~85 when
+# The victim's CPU per flood request, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled
+# by `cpu_slowdown` on a slower one). Measured there: ~11-31 when it sheds, ~85-91 when
 # every request reaches the event loop and has its signature checked (the victim then
 # takes most of a core at 10 000/s). CPU time, unlike latency, is barely stretched by
 # others' load on the machine.
@@ -75,14 +77,23 @@ def test_kx_flood_is_shed_and_a_member_is_still_served(tmp_path: Path) -> None:
     run = flood(tmp_path)
     during, sent, seconds, report = run.during, run.sent, run.seconds, run.report
     cost = run.cpu * seconds / sent * 1e6  # the victim's CPU per request sent, µs
-    print(f"\n{run.lines()}\nvictim CPU {cost:.1f} µs per request (bound {SHED_CPU_US:g})")
+    slower = cpu_slowdown()
+    bound = SHED_CPU_US * slower
+    print(
+        f"\n{run.lines()}\nvictim CPU {cost:.1f} µs per request "
+        f"(bound {bound:.1f}: {SHED_CPU_US:g} times this CPU's slowdown {slower:.2f})"
+    )
     assert sent / seconds > 5000, "the attacker did not flood"
     # every one of the member's requests answered during the flood (pace asserts each)
     assert len(during) == PACE_N
-    assert cost <= SHED_CPU_US, figures(during)
-    # all but the budget is shed: per trusted name claimed (2/s, burst 10), and the
-    # member's name is exempt from the shared budget only (it has a session)
-    assert report["admitted"] <= 2 * (10 + 2 * (seconds + 2)) + 20
+    # all but the budget is shed before the event loop: per trusted name claimed (2/s,
+    # burst 10), and the member's name is exempt from the shared budget only (it has a
+    # session). A count, whatever the CPU and the load: a victim starved of CPU costs
+    # little per request sent even when it sheds nothing, zenoh dropping the rest.
+    budget = 2 * (10 + 2 * (seconds + 2)) + 20
+    assert run.handled <= budget, (run.handled, budget)
+    assert report["admitted"] <= budget
+    assert cost <= bound, figures(during)
     assert report["kx_shed"] == sum(report["shed"].values())
     # most of the flood reached the victim (zenoh may drop some on a loaded machine)
     assert report["kx_shed"] >= 0.5 * sent

@@ -20,6 +20,8 @@ import time
 import uuid
 from collections import Counter
 from collections.abc import AsyncIterator, Callable, Iterator
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
 
@@ -634,25 +636,61 @@ async def alive(platform: AgentPlatform, peer: str) -> None:
             pass
 
 
-def flooder_main(config: dict[str, Any], federation: str, keys: str, trust: str) -> None:
-    """The child: platform ``flood`` sends MP_FLOOD requests to the target, then idles."""
-    asyncio.run(_flooder(config, federation, Path(keys), Path(trust)))
+def flooder_main(
+    config: dict[str, Any], federation: str, keys: str, trust: str, conn: Connection
+) -> None:
+    """The child: platform ``flood`` sends MP_FLOOD requests to the target, then idles.
+
+    It tells ``conn`` each step it is past (FLOODER_STEPS), for the parent to bound each.
+    """
+    asyncio.run(_flooder(config, federation, Path(keys), Path(trust), conn))
 
 
-async def _flooder(config: dict[str, Any], federation: str, keys: Path, trust: Path) -> None:
+# what the flooder says as it goes, and what each step waits for
+FLOODER_STEPS = (
+    ("open", "a spawned interpreter importing zenoh and opening its platform"),
+    ("saw the target", "the target's liveliness token"),
+    ("answered", "a key exchange and the target's answer to a first request"),
+)
+
+
+async def _flooder(
+    config: dict[str, Any], federation: str, keys: Path, trust: Path, conn: Connection
+) -> None:
     channel = InterfaceAgent(KeyPair.load(keys / f"{FLOOD}.key"), TrustStore.load(trust))
     async with (
         ZenohTransport(ZenohConfig.model_validate(config)) as t,
         AgentPlatform(FLOOD, t, federation=federation, channel=channel) as platform,
     ):
         flooder = await platform.add(Flooder())
-        await alive(platform, TARGET)
-        # the key exchange first, so the flood is measured, not the handshake
-        await request(flooder, ECHO, "hello", ontology="demo", timeout=START)
+        conn.send("open")
+        try:
+            await alive(platform, TARGET)
+            conn.send("saw the target")
+            # the key exchange first, so the flood is measured, not the handshake
+            await request(flooder, ECHO, "hello", ontology="demo", timeout=START)
+        except Exception as exc:  # said at once: closing the platform may take a while
+            conn.send(f"failed: {exc!r}")
+            raise
+        conn.send("answered")
         await flooder.flood(ECHO, MP_FLOOD, MP_FLOOD_RATE)
         await asyncio.sleep(3600)  # until the parent kills us
 
 
+async def _flooder_step(conn: Connection, proc: BaseProcess, step: str) -> None:
+    """The flooder past ``step`` of FLOODER_STEPS within START s of the one before, or why not."""
+    what = dict(FLOODER_STEPS)[step]
+    if not await asyncio.to_thread(conn.poll, START):
+        raise AssertionError(f"the flooder: not {step} within {START:g} s (waiting for {what})")
+    try:
+        said = conn.recv()
+    except EOFError:
+        proc.join(timeout=WAIT)
+        raise AssertionError(f"the flooder exited with {proc.exitcode} before {step}") from None
+    assert said == step, (said, step)
+
+
+@pytest.mark.timeout(180)
 async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
     """A flooding child process is limited; the parent's other platform is answered meanwhile.
 
@@ -669,8 +707,12 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
     )
     port = free_tcp_port()
     child = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
-    proc = multiprocessing.get_context("spawn").Process(
-        target=flooder_main, args=(child, federation, str(keydir), str(trust)), name="rl-flooder"
+    ctx = multiprocessing.get_context("spawn")
+    steps, there = ctx.Pipe(duplex=False)
+    proc = ctx.Process(
+        target=flooder_main,
+        args=(child, federation, str(keydir), str(trust), there),
+        name="rl-flooder",
     )
 
     def channel(name: str, **options: Any) -> InterfaceAgent:
@@ -680,7 +722,7 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
 
     try:
         async with (
-            asyncio.timeout(START + 3 * WAIT),
+            asyncio.timeout(4 * START + 3 * WAIT),
             ZenohTransport(ZenohConfig.loopback(port)) as tt,
             AgentPlatform(
                 TARGET, tt, federation=federation, channel=channel(TARGET, rate_limit=MP_LIMIT)
@@ -696,9 +738,16 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
             await alive(target, GOOD)
             quiet = await pace(asker, ECHO, 50, 0.02)
             proc.start()
+            there.close()  # the child's end: an EOF here once the child is gone
+            # each step of the child's start bounded on its own: a spawned interpreter's
+            # imports on a busy machine take most of START alone
+            await _flooder_step(steps, proc, "open")
             # F's bucket is made (full: its burst) with its counters, after the last time
-            # they were seen absent; the flood has begun once the limit drops something
+            # they were seen absent: F's first request comes once it saw the target, after
+            # this; the flood has begun once the limit drops something
             absent = time.monotonic()
+            await _flooder_step(steps, proc, "saw the target")
+            await _flooder_step(steps, proc, "answered")
             s = None
             try:
                 async with asyncio.timeout(START):
@@ -750,6 +799,7 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
             await until(lambda: echo.calls[FLOOD] == f.accepted, "F's accepted ones answered")
             await until(lambda: limit_records(target, FLOOD) != [], "the flood in the audit")
     finally:
+        steps.close()
         if proc.pid is not None:
             proc.kill()
             proc.join(timeout=10)

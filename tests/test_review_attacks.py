@@ -25,12 +25,14 @@ from typing import Any
 
 import orjson
 import pytest
+from _load import cpu_slowdown
 from _node_example import Station
 from test_faults import until
 from test_member_authz import audited, in_file, mallory, refusal, world
 
 from agents import FIPA_AGENT_MANAGEMENT, Refused, request, wire_key
-from agents._df import MAX_DF_SUBSCRIPTIONS
+from agents._df import DF_QUERY_RATE, MAX_DF_SUBSCRIPTIONS
+from agents._interface import WATCH_RATE
 from agents._protocols import SubscriptionStream, subscribe
 from agents._security import KeyPair, watch_request
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
@@ -54,9 +56,10 @@ CLI = [sys.executable, "-m", "federation.cli"]
 pytestmark = pytest.mark.timeout(180)
 
 FEDERATION_ONTOLOGY = "dyknow-federation"
-# The victim's CPU per query of a flood below, in µs. Measured here: ~17 for both when
-# shed; ~53 (watch) and ~75 (directory) when every query reaches the event loop. CPU
-# time, unlike latency, is barely stretched by others' load on the machine.
+# The victim's CPU per query of a flood below, in µs, on the CPU of
+# `_load.CPU_WORK_SECONDS` (scaled by `cpu_slowdown` on a slower one). Measured there:
+# ~11-31 for both when shed; ~47-53 (watch) and ~75 (directory) when every query reaches
+# the event loop. CPU time, unlike latency, is barely stretched by others' load.
 WATCH_SHED_CPU_US = 35.0
 DF_SHED_CPU_US = 40.0
 
@@ -157,14 +160,19 @@ async def test_a_member_cannot_make_a_platform_ask_a_third_one_at_will(tmp_path:
             "requester": "operator",
             "labels": [f"car{i}-state" for i in range(64)],
         }
-        n = 100
+        n, at_once = 100, 10
         t0 = time.monotonic()
-        reasons = await asyncio.gather(
-            *[
-                refusal(request(m, "federation@uav-a", content, ontology=FEDERATION_ONTOLOGY))
-                for _ in range(n)
-            ]
-        )
+        reasons: list[str] = []
+        # ten at a time: a hundred (~140 kB) in one turn overran zenoh's send queue on a
+        # busy machine, which drops what does not fit (congestion control DROP), and the
+        # requests it dropped were never answered
+        for _ in range(n // at_once):
+            reasons += await asyncio.gather(
+                *[
+                    refusal(request(m, "federation@uav-a", content, ontology=FEDERATION_ONTOLOGY))
+                    for _ in range(at_once)
+                ]
+            )
         elapsed = time.monotonic() - t0
         checked = [r for r in reasons if "did not confirm" in r]
         limited = [r for r in reasons if r.startswith("too many accept-stream requests")]
@@ -274,26 +282,36 @@ class _Flooded:
     sent: int
     seconds: float
     cpu: float  # the victim's CPU seconds from the flood's start to its end
+    handled: int  # queries of the flood's kind that reached the victim's event loop meanwhile
     report: dict[str, Any]
 
-    def check(self, shed: int, stage: str, cpu_us: float) -> None:
+    def check(self, shed: int, stage: str, cpu_us: float, rate: float) -> None:
         """The member served; the flood shed cheaply, counted, summed up.
 
-        Cheaply: at most ``cpu_us`` of the victim's CPU per query sent. Bounded by CPU
-        time, not by the member's latency: with three processes and the attacker's on a
-        busy machine that measures the machine; CPU time is what the flood takes from
-        the victim, whatever else runs.
+        Before the event loop: at most ``rate`` a second (bursts of as many) reached it.
+        A count, whatever the CPU and the load: a victim starved of CPU costs little per
+        query sent even when it sheds nothing, zenoh dropping the rest. Cheaply: at most
+        ``cpu_us`` of the victim's CPU per query sent, times how much slower this CPU is
+        than the one it was measured on. Bounded by CPU time, not by the member's
+        latency: with three processes and the attacker's on a busy machine that measures
+        the machine; CPU time is what the flood takes from the victim, whatever else runs.
         """
         cost = self.cpu / self.sent * 1e6
+        slower = cpu_slowdown()
+        bound = cpu_us * slower
         print(
             f"\nmember calm: {figures(self.calm)}\nmember during flood: {figures(self.during)}"
             f"\nattacker: {self.sent} in {self.seconds:.1f} s; victim shed {shed}, "
-            f"CPU {cost:.1f} µs per query (bound {cpu_us:g})"
+            f"{self.handled} on its event loop, "
+            f"CPU {cost:.1f} µs per query (bound {bound:.1f}: {cpu_us:g} times this "
+            f"CPU's slowdown {slower:.2f})"
         )
         assert self.sent / self.seconds > 5000, "the attacker did not flood"
         # every one of the member's requests answered during the flood (pace asserts each)
         assert len(self.during) == PACE_N
-        assert cost <= cpu_us, (cost, figures(self.during))
+        budget = rate * (1 + self.seconds + 2)  # a burst, and the flood's time with a margin
+        assert self.handled <= budget, (self.handled, budget)
+        assert cost <= bound, (cost, bound, figures(self.during))
         assert shed >= 0.5 * self.sent, (shed, self.sent)
         summaries = [r for r in self.report["records"] if r.get("stage") == stage]
         assert summaries and sum(r["count"] for r in summaries) == shed
@@ -322,7 +340,7 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
         member.send("pace")
         calm = recv(member, "the member's calm requests", WAIT + PACE_N * PACE_PERIOD)
         victim.send("report")
-        cpu0 = recv(victim, "the victim's report")["cpu"]
+        before = recv(victim, "the victim's report")
         attacker.send("go")
         time.sleep(0.5)
         member.send("pace")
@@ -331,10 +349,13 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
             attacker.send("stop")
         sent, seconds = recv(attacker, "the attacker's count")
         victim.send("report")
-        cpu = recv(victim, "the victim's report")["cpu"] - cpu0
+        after = recv(victim, "the victim's report")
+        cpu = after["cpu"] - before["cpu"]
+        handled = after["answered"][what] - before["answered"][what]
         time.sleep(1.5)  # the last summaries
         victim.send("report")
-        yield _Flooded(f, calm, during, sent, seconds, cpu, recv(victim, "the victim's report"))
+        report = recv(victim, "the victim's report")
+        yield _Flooded(f, calm, during, sent, seconds, cpu, handled, report)
     finally:
         f.close(pipes)
 
@@ -348,7 +369,7 @@ def test_a_watch_request_flood_is_shed_before_the_event_loop(tmp_path: Path) -> 
     WATCH_RATE/s go on; the owner can watch once the flood is over.
     """
     with _flood(tmp_path, "watch", _forged_watch_requests) as run:
-        run.check(run.report["watch_shed"], "watch-shed", WATCH_SHED_CPU_US)
+        run.check(run.report["watch_shed"], "watch-shed", WATCH_SHED_CPU_US, WATCH_RATE)
         first = next(r for r in run.report["records"] if r.get("stage") == "watch-shed")
         assert first["reason"].startswith("watch requests shed: ")
         owner = KeyPair.load(run.f.keydir / f"{VICTIM}.key")
@@ -366,7 +387,7 @@ def test_a_directory_query_flood_is_shed_before_the_event_loop(tmp_path: Path) -
     are answered; the directory is answered again once the flood is over.
     """
     with _flood(tmp_path, "df", lambda fed: [b""] * 100) as run:
-        run.check(run.report["df_shed"], "df-shed", DF_SHED_CPU_US)
+        run.check(run.report["df_shed"], "df-shed", DF_SHED_CPU_US, DF_QUERY_RATE)
         first = next(r for r in run.report["records"] if r.get("stage") == "df-shed")
         assert first["reason"].startswith("directory queries shed: ")
         replies = asyncio.run(_ask(run.f.port, wire_key(run.f.fed, "df", VICTIM), b""))
