@@ -559,8 +559,8 @@ class InterfaceAgent:
         (errors raise here); with batching, those that follow it in the same turn wait for
         its end and go together in one envelope, after it (so in order). While a burst
         goes on (the last turn that sent to ``platform`` sent it two or more), the first
-        waits in the batch too, once its session is there. A batch that cannot be sent then is logged
-        and counted in ``batches_lost``.
+        waits in the batch too, once its session is there. A batch that cannot be sent
+        then is logged and counted in ``batches_lost``.
         """
         if self._outbox and self.join_batch(platform, message):  # none waits: no call
             return

@@ -185,6 +185,35 @@ def test_node_without_typer_reads_its_command_line_as_the_typer_command_does(
     assert fast.strip() in result.output
 
 
+def test_node_whose_output_reader_went_away_exits_as_the_typer_command_does(
+    tmp_path: Path,
+) -> None:
+    # a supervisor that stops reading: `dyknow node -c FILE` (without typer) and
+    # `dyknow node -cFILE` (typer) both end with 1 and nothing on stderr, no traceback
+    from _node_example import CLI, Station
+
+    answers = []
+    for i, form in enumerate((["-c", "station-file.toml"], ["-cstation-file.toml"])):
+        (tmp_path / str(i)).mkdir()
+        station = Station(tmp_path / str(i))
+        r, w = os.pipe()
+        os.close(r)  # nobody reads the node's stdout: its ready line meets a broken pipe
+        try:
+            done = subprocess.run(
+                [*CLI, "node", *form],
+                stdout=w,
+                stderr=subprocess.PIPE,
+                text=True,
+                cwd=station.dir,
+                env={**station.env, "PYTHONPATH": str(ROOT)},
+                timeout=60,
+            )
+        finally:
+            os.close(w)
+        answers.append((done.returncode, done.stderr))
+    assert answers == [(1, ""), (1, "")], answers
+
+
 def test_monitor_and_kpl(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     trace = tmp_path / "t.jsonl"
     trace.write_text('{"t": 0, "p": true}\n{"t": 1, "p": false}\n{"t": 2, "p": true}\n')
