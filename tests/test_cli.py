@@ -176,6 +176,13 @@ def test_node_without_typer_reads_its_command_line_as_the_typer_command_does(
         [],
     ):
         assert node_config(args) is None, args  # typer answers these
+    # typer reads one variable of the environment before the command line: with it set,
+    # typer answers (here that it completes nothing)
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("_DYKNOW_COMPLETE", "bash_complete")
+        assert node_config(["node", "-c", "a.toml"]) is None
+        assert main(["node", "-c", str(tmp_path / "missing.toml")]) == 1
+        assert "cannot be read" not in capsys.readouterr().err
     # a missing config: the same message and exit code with and without typer
     missing = str(tmp_path / "missing.toml")
     assert main(["node", "-c", missing]) == 2
