@@ -487,8 +487,8 @@ class InterfaceAgent:
         # system call in Python 3.11, and every first message of a turn needs the loop)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._outbox_bytes: dict[str, int] = {}
-        # the platforms the last turn of the loop sent two messages or more: a burst, whose
-        # next turn batches its first message too (one envelope a turn, not two)
+        # the platforms the last turn that sent to them sent two messages or more: a burst,
+        # whose next turn (however late) batches its first message too (one envelope a turn)
         self._bursting: set[str] = set()
         # each peer's ACL key (``host.key("acl", peer)``), made once: one per trusted peer
         self._acl_keys: dict[str, str] = {}
@@ -558,9 +558,9 @@ class InterfaceAgent:
         The first message for ``platform`` in a turn of the event loop goes at once, alone
         (errors raise here); with batching, those that follow it in the same turn wait for
         its end and go together in one envelope, after it (so in order). While a burst
-        goes on (the last turn sent ``platform`` two or more), the first waits in the
-        batch too, once its session is there. A batch that cannot be sent then is logged
-        and counted in ``batches_lost``.
+        goes on (the last turn that sent to ``platform`` sent it two or more), the first
+        waits in the batch too, once its session is there. A batch that cannot be sent
+        then is logged and counted in ``batches_lost``.
         """
         if self._outbox and self.join_batch(platform, message):  # none waits: no call
             return

@@ -11,6 +11,7 @@ leaves the rest to typer, so the two cannot read one command line differently.
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,6 +19,8 @@ from pathlib import Path
 # the --config/-c of every command (a platform's TOML config), `dyknow node`'s only option
 CONFIG_FLAGS = ("--config", "-c")
 CONFIG_HELP = "the platform's TOML config"
+# the variable by which a shell asks the ``dyknow`` command (click, under typer) to complete
+COMPLETE_VAR = "_DYKNOW_COMPLETE"
 
 
 def say(text: str) -> None:
@@ -29,8 +32,11 @@ def node_config(args: Sequence[str]) -> Path | None:
     """The config of ``node -c FILE`` / ``--config FILE`` / ``--config=FILE``; else None.
 
     None means typer parses ``args``: anything else (help, a missing or option-looking
-    value, another command) gets typer's own answer.
+    value, another command, a shell-completion request in the environment) gets typer's
+    own answer.
     """
+    if COMPLETE_VAR in os.environ:  # typer reads this before the command line
+        return None
     if len(args) == 3 and args[0] == "node" and args[1] in CONFIG_FLAGS:
         value = args[2]
     elif len(args) == 2 and args[0] == "node" and args[1].startswith(CONFIG_FLAGS[0] + "="):

@@ -8,8 +8,27 @@ memory for as long as it runs.
 
 from __future__ import annotations
 
+import errno
 import sys
 from collections.abc import Sequence
+from typing import Any, TextIO
+
+
+class _Pacified:
+    """A standard stream whose flush ignores a reader gone away (EPIPE), as click's does."""
+
+    def __init__(self, wrapped: TextIO) -> None:
+        self._wrapped = wrapped
+
+    def flush(self) -> None:
+        try:
+            self._wrapped.flush()
+        except OSError as exc:
+            if exc.errno != errno.EPIPE:
+                raise
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._wrapped, name)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -23,6 +42,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             return run_node(config)
         except KeyboardInterrupt:  # as typer answers it
             return 130
+        except OSError as exc:
+            if exc.errno != errno.EPIPE:
+                raise
+            # what typer answers: the reader of our output went away; 1, without a word
+            # (and without the interpreter's own complaint when it flushes at exit)
+            sys.stdout = _Pacified(sys.stdout)
+            sys.stderr = _Pacified(sys.stderr)
+            return 1
     from ._cli_app import app
 
     try:

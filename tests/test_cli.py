@@ -176,6 +176,13 @@ def test_node_without_typer_reads_its_command_line_as_the_typer_command_does(
         [],
     ):
         assert node_config(args) is None, args  # typer answers these
+    # typer reads one variable of the environment before the command line: with it set,
+    # typer answers (here that it completes nothing)
+    with pytest.MonkeyPatch.context() as env:
+        env.setenv("_DYKNOW_COMPLETE", "bash_complete")
+        assert node_config(["node", "-c", "a.toml"]) is None
+        assert main(["node", "-c", str(tmp_path / "missing.toml")]) == 1
+        assert "cannot be read" not in capsys.readouterr().err
     # a missing config: the same message and exit code with and without typer
     missing = str(tmp_path / "missing.toml")
     assert main(["node", "-c", missing]) == 2
@@ -183,6 +190,35 @@ def test_node_without_typer_reads_its_command_line_as_the_typer_command_does(
     result = runner.invoke(app, ["node", "-c", missing])
     assert result.exit_code == 2 and "cannot be read" in fast
     assert fast.strip() in result.output
+
+
+def test_node_whose_output_reader_went_away_exits_as_the_typer_command_does(
+    tmp_path: Path,
+) -> None:
+    # a supervisor that stops reading: `dyknow node -c FILE` (without typer) and
+    # `dyknow node -cFILE` (typer) both end with 1 and nothing on stderr, no traceback
+    from _node_example import CLI, Station
+
+    answers = []
+    for i, form in enumerate((["-c", "station-file.toml"], ["-cstation-file.toml"])):
+        (tmp_path / str(i)).mkdir()
+        station = Station(tmp_path / str(i))
+        r, w = os.pipe()
+        os.close(r)  # nobody reads the node's stdout: its ready line meets a broken pipe
+        try:
+            done = subprocess.run(
+                [*CLI, "node", *form],
+                stdout=w,
+                stderr=subprocess.PIPE,
+                text=True,
+                cwd=station.dir,
+                env={**station.env, "PYTHONPATH": str(ROOT)},
+                timeout=60,
+            )
+        finally:
+            os.close(w)
+        answers.append((done.returncode, done.stderr))
+    assert answers == [(1, ""), (1, "")], answers
 
 
 def test_monitor_and_kpl(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
