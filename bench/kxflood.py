@@ -59,18 +59,6 @@ START = 30.0  # a spawned interpreter imports zenoh and pydantic: seconds when l
 WAIT = 15.0  # the bound on any other wait
 PACE_N, PACE_PERIOD = 150, 0.02  # the member's requests: 50/s for 3 s, calm then flooded
 FLOOD_RATE, FLOOD_MAX, FLOOD_SECONDS = 10_000.0, 250_000, 25.0
-# The member's p99 bound during the flood, on loopback. Calm, its p99 is ~2 ms here; a
-# victim that verified every forged signature reached ~1.2 s. Scaled by load (below).
-P99_MS = 20.0
-
-
-def latency_bound() -> float:
-    """P99_MS, scaled up when the machine is oversubscribed (load above its CPU count).
-
-    The three processes of this test keep about two cores busy themselves; a load above
-    the CPU count means others share them, and every wall-clock wait stretches with it.
-    """
-    return P99_MS * max(1.0, os.getloadavg()[0] / (os.cpu_count() or 1))
 
 
 def p99(ms: list[float]) -> float:
