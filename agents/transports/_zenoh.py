@@ -14,9 +14,11 @@ Choices that follow from ``shared/ANCHORS.md``:
   (1 ms), silently: with zenoh's default queue (2 batches of 64 kB a priority), a burst
   of a few hundred kB (an Interface Agent's batched envelopes) was lost whenever zenoh's
   send thread did not run for a few ms (a busy machine) or the receiver read slowly. So
-  the data priority's queue is zenoh's largest, 16 batches (~1 MB a link), unless the
-  user's JSON5 or ``overrides`` set it: what a sender promises is that a burst of up to
-  ~1 MB a link waits in the queue rather than being dropped; beyond that, DROP.
+  the data priority's queue is zenoh's largest, 16 batches of 64 kB a link, unless the
+  user's JSON5 or ``overrides`` set it: what a sender promises is that a burst waits in
+  that queue rather than being dropped while it fits (16 puts at least, each in a batch
+  of its own when zenoh's send thread is starved; up to ~1 MB of small puts packed
+  together); beyond that, DROP.
   ``publish_blocking`` (a reply a receiver asked for, such as a resend) uses BLOCK, in a
   worker thread so the event loop never waits: a congested link delays it, up to zenoh's
   ``wait_before_close`` (5 s) for room in the queue, instead of dropping it.
@@ -77,7 +79,8 @@ _QUERY_GRACE = 1.0
 _LINK_SETTLE = 0.25
 
 # The data priority's send queue, in batches (zenoh's limit, 16; its default, 2): a burst
-# of up to ~1 MB a link waits for zenoh's send thread instead of being dropped (see above).
+# of 16 puts at least, ~1 MB at most, waits for zenoh's send thread instead of being
+# dropped (see above).
 _TX_QUEUE = "transport/link/tx/queue/size/data"
 _TX_QUEUE_BATCHES = 16
 
