@@ -10,6 +10,15 @@ Choices that follow from ``shared/ANCHORS.md``:
 
 - ``publish`` uses congestion control DROP with reliable reliability: a frozen subscriber
   costs dropped samples, never a publisher stalled for seconds (BLOCK stalled 5 s).
+  DROP drops what finds the link's send queue full for zenoh's ``wait_before_drop``
+  (1 ms), silently: with zenoh's default queue (2 batches of 64 kB a priority), a burst
+  of a few hundred kB (an Interface Agent's batched envelopes) was lost whenever zenoh's
+  send thread did not run for a few ms (a busy machine) or the receiver read slowly. So
+  the data priority's queue is zenoh's largest, 16 batches of 64 kB a link, unless the
+  user's JSON5 or ``overrides`` set it: what a sender promises is that a burst waits in
+  that queue rather than being dropped while it fits (16 puts at least, each in a batch
+  of its own when zenoh's send thread is starved; up to ~1 MB of small puts packed
+  together); beyond that, DROP.
   ``publish_blocking`` (a reply a receiver asked for, such as a resend) uses BLOCK, in a
   worker thread so the event loop never waits: a congested link delays it, up to zenoh's
   ``wait_before_close`` (5 s) for room in the queue, instead of dropping it.
@@ -68,6 +77,12 @@ _QUERY_GRACE = 1.0
 # How long after opening zenoh may still route a liveliness get to no one: a link is
 # connected before its peer is in the routing (seen: 2-15 ms, 140 ms on a loaded machine).
 _LINK_SETTLE = 0.25
+
+# The data priority's send queue, in batches (zenoh's limit, 16; its default, 2): a burst
+# of 16 puts at least, ~1 MB at most, waits for zenoh's send thread instead of being
+# dropped (see above).
+_TX_QUEUE = "transport/link/tx/queue/size/data"
+_TX_QUEUE_BATCHES = 16
 
 # Sessions opened and not yet closed, closed at exit: an unclosed session with callback
 # subscribers can hang interpreter shutdown.
@@ -301,6 +316,9 @@ class ZenohConfig(BaseModel):
         password = None if self.usrpwd is None else self.usrpwd.password()
         try:
             cfg = zenoh.Config.from_json5(self.json5) if self.json5 else zenoh.Config()
+            if not self.json5 or _setting(cfg, _TX_QUEUE) == _setting(zenoh.Config(), _TX_QUEUE):
+                # (a size a user's JSON5 chose other than zenoh's stays; ``overrides`` come after)
+                cfg.insert_json5(_TX_QUEUE, json.dumps(_TX_QUEUE_BATCHES))
             listen = self.listen
             if listen is None and not _listens(self.json5, cfg):
                 listen = () if self.mode == "client" else ("tcp/127.0.0.1:0",)
