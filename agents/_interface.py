@@ -371,7 +371,8 @@ class InterfaceAgent:
     It joins the platform as agent ``interface@<platform>``, which local agents can ask
     (FIPA-Query, ontology ``interface``) for ``{"audit": n}`` (the last n records) or
     ``{"sessions": true}`` or ``{"senders": true}`` (per platform: accepted, limited,
-    refused by the rate limit).
+    refused by the rate limit; missing: ACL envelopes it sent that never arrived,
+    also `missing`, and warned of in the log).
 
     The published audit is sealed to this platform's owner (``seal_audit``; see
     ``docs/wire.md``, "Audit records"): outsiders and other members do not read it. The
@@ -493,6 +494,9 @@ class InterfaceAgent:
         # each peer's ACL key (``host.key("acl", peer)``), made once: one per trusted peer
         self._acl_keys: dict[str, str] = {}
         self.batches_lost = 0  # batched messages a failed flush did not send
+        # per peer, the missing count last warned of and when (`_report_missing`)
+        self._missing_warned: dict[str, tuple[int, float]] = {}
+        self.missing_warn_interval = 60.0
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -857,6 +861,24 @@ class InterfaceAgent:
         if host is not None:
             host.stats.kx_shed += n
         self._wake_flush()  # to audit them
+
+    def missing(self) -> dict[str, int]:
+        """Per peer, the ACL envelopes it sent that never arrived (``docs/wire.md``, ``n``)."""
+        return self.sessions.missing()
+
+    def _report_missing(self, now: float) -> None:
+        """Warn of envelopes lost from a peer: when its count first grows, then once a while."""
+        warned = self._missing_warned
+        for peer, count in self.sessions.missing().items():
+            last, at = warned.get(peer, (0, -math.inf))
+            if count > last and now - at >= self.missing_warn_interval:
+                warned[peer] = (count, now)
+                log.warning(
+                    "interface[%s]: %d ACL envelope(s) from %s missing (sent, never arrived)",
+                    self._me,
+                    count,
+                    peer,
+                )
 
     def _report_kx_shed(self, now: float) -> None:
         """Audit what the key-exchange gate dropped: a few one by one, the rest summed up."""
@@ -1559,6 +1581,7 @@ class InterfaceAgent:
                 self._report_kx_shed(self._monotonic())
                 self.kx_gate.forget_seen(time.time())
             self._report_watch_shed()
+            self._report_missing(self._monotonic())
             if not self.publish_audit and self.audit.path is None:
                 continue
             data = self.audit.take()
@@ -1669,10 +1692,21 @@ class _InterfaceQueries(Agent):
             return {"peers": sorted(self.interface.sessions.peers())}
         if content.get("senders"):
             senders = self.platform.stats.senders
+            missing = self.interface.missing()
             return {
                 "senders": {
-                    p: {"accepted": s.accepted, "limited": s.limited, "refused": s.refused}
+                    p: {
+                        "accepted": s.accepted,
+                        "limited": s.limited,
+                        "refused": s.refused,
+                        "missing": missing.get(p, 0),
+                    }
                     for p, s in senders.items()
+                }
+                | {
+                    p: {"accepted": 0, "limited": 0, "refused": 0, "missing": n}
+                    for p, n in missing.items()
+                    if p not in senders
                 }
             }
         raise Refuse("ask for {'audit': n}, {'sessions': true} or {'senders': true}")

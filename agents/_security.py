@@ -635,6 +635,7 @@ class Session:
         "_bhi",
         "_bin_ad_rx",
         "_bin_ad_tx",
+        "_bin_received",
         "_bin_rx",
         "_bin_tx",
         "_bmask",
@@ -728,6 +729,9 @@ class Session:
         self._window = policy.window
         self._full = (1 << policy.window) - 1
         self._received = 0
+        # binary envelopes accepted: `_received` less these is the JSON ones (`missing`),
+        # so the JSON path counts nothing more than it did
+        self._bin_received = 0
         # an initiator knows the responder holds the keys (it answered); a responder only
         # learns that the initiator finished when a message arrives on the session
         self._confirmed = initiator
@@ -754,6 +758,15 @@ class Session:
     def received(self) -> int:
         """Envelopes accepted on this session so far (JSON and binary)."""
         return self._received
+
+    @property
+    def missing(self) -> int:
+        """JSON envelopes the peer sealed up to the highest counter seen that never opened here.
+
+        The highest counter less those accepted: lost on the way (or refused here), or still
+        on their way (one that comes late within the window is counted again as it opens).
+        """
+        return self._hi - (self._received - self._bin_received)
 
     @property
     def confirmed(self) -> bool:
@@ -974,6 +987,7 @@ class Session:
         self._check_live(ts, now)
         self._bhi, self._bmask = self._check_window(n, self._bhi, self._bmask)
         self._received += 1
+        self._bin_received += 1
         return body
 
 
@@ -1008,6 +1022,8 @@ class SessionTable:
         self._rx_latest: dict[str, Session] = {}
         # when each peer's last envelope opened: authenticated proof that it runs
         self._heard: dict[str, float] = {}
+        # per peer, the `Session.missing` of its sessions dropped from the table
+        self._missing_dropped: dict[str, int] = {}
         self._max_envelope = policy.max_envelope_bytes
         # a binary body is carried as is: the body plus a header of names, integers and a MAC
         self._max_bin_envelope = policy.max_body_bytes + 1024
@@ -1061,8 +1077,20 @@ class SessionTable:
         self._tx.pop(session.peer, None)
         self.prune()
 
+    def missing(self) -> dict[str, int]:
+        """Per peer, its JSON envelopes that never opened here (`Session.missing`, summed).
+
+        Sessions dropped from the table count still; a peer with none missing is left out.
+        """
+        counts = dict(self._missing_dropped)
+        for s in self._by_sid.values():
+            counts[s.peer] = counts.get(s.peer, 0) + s.missing
+        return {peer: n for peer, n in counts.items() if n > 0}
+
     def _drop(self, session: Session) -> None:
-        self._by_sid.pop(session.sid, None)
+        if self._by_sid.pop(session.sid, None) is not None and session.missing > 0:
+            dropped = self._missing_dropped
+            dropped[session.peer] = dropped.get(session.peer, 0) + session.missing
         mine = self._by_peer.get(session.peer)
         if mine is not None:
             if session in mine:

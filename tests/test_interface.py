@@ -931,6 +931,87 @@ async def test_sessions_renew_while_messages_keep_flowing() -> None:
         for p in (pa, pb):
             assert ia(p).audit.counts == {"accepted": 30, "refused": 0, "dropped": 0}
             assert len(ia(p).sessions) <= policy.max_sessions_per_peer
+            assert ia(p).missing() == {}  # renewed and dropped sessions lost nothing
+
+
+class LossyAcl(MemoryTransport):
+    """Loses the ACL envelopes to ``to`` numbered in ``lose`` (1, 2, …); holds those in ``hold``."""
+
+    def __init__(self, hub: MemoryHub, to: str) -> None:
+        super().__init__(hub)
+        self.key = wire_key(FED, "acl", to)
+        self.sent = 0
+        self.lose: set[int] = set()
+        self.hold: set[int] = set()
+        self.held: list[bytes] = []
+
+    async def publish(self, key: str, payload: bytes, **kw: Any) -> None:
+        """Publish, but for what this link loses or holds back (to publish late)."""
+        if key == self.key:
+            self.sent += 1
+            if self.sent in self.lose:
+                return
+            if self.sent in self.hold:
+                self.held.append(payload)
+                return
+        await super().publish(key, payload, **kw)
+
+    async def release(self) -> None:
+        """Publish what was held back, after what followed it."""
+        for payload in self.held:
+            await super().publish(self.key, payload)
+        self.held.clear()
+
+
+async def test_envelopes_lost_on_the_way_are_counted_and_warned_of(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The receiver counts a peer's envelopes that never came; a late one is not counted."""
+    async with federation("uav-a", "uav-b") as fed:
+        link = LossyAcl(fed.hub, "uav-b")
+        pa = await fed.start("uav-a", transport=link, batch=False)
+        pb = await fed.start("uav-b", batch=False)
+        asker = await serve(pa, "asker", None)
+        echo = await serve(pb, "echo")
+        local = await pb.add(Agent("ops"))
+        await request(asker, "echo@uav-b", 0, ontology="demo")
+        assert ia(pb).missing() == {}
+
+        def inform(i: int) -> ACLMessage:
+            return asker.message(Performative.INFORM, "echo@uav-b", i, ontology="demo")
+
+        def warnings() -> list[str]:
+            return [
+                r.getMessage()
+                for r in caplog.records
+                if r.levelname == "WARNING" and "missing" in r.getMessage()
+            ]
+
+        caplog.set_level("WARNING", logger="agents")
+        start = link.sent
+        link.lose = {start + 2, start + 5, start + 6}  # 3 of the next 10 envelopes
+        for i in range(10):
+            await asker.send(inform(i))
+        await until(lambda: len(echo.informs) == 7, "the 7 that came through")
+        await until(lambda: ia(pb).missing() == {"uav-a": 3}, "3 missing")
+        await until(warnings, "the warning")
+        assert len(warnings()) == 1  # the first growth; then at most one a minute
+        assert "from uav-a missing" in warnings()[0]
+        seen = await query_ref(local, "interface@uav-b", {"senders": True}, ontology="interface")
+        assert isinstance(seen, dict) and seen["senders"]["uav-a"]["missing"] == 3
+        ia(pb).missing_warn_interval = 0.0
+        await until(lambda: any("3 ACL envelope(s) from uav-a" in w for w in warnings()), "3")
+
+        # out of order within the window: missing while late, not once it came
+        link.hold = {link.sent + 1}
+        for i in range(10, 13):
+            await asker.send(inform(i))
+        await until(lambda: len(echo.informs) == 9, "the 2 not held")
+        assert ia(pb).missing() == {"uav-a": 4}
+        await link.release()
+        await until(lambda: len(echo.informs) == 10, "the late one")
+        assert ia(pb).missing() == {"uav-a": 3}
+        assert echo.informs[-1].content == 10
 
 
 async def test_encrypted_sessions_carry_no_readable_body() -> None:

@@ -371,3 +371,25 @@ def test_json_envelope_is_unchanged(pair: tuple[Platform, Platform]) -> None:
     env = orjson.loads(a.table.seal("uav-b", ACL))
     assert set(env) == {"v", "from", "to", "sid", "ts_ms", "n", "body", "mac"}
     assert b.table.open(orjson.dumps(env)) == ("uav-a", ACL)
+
+
+def test_missing_counts_json_envelopes_that_never_opened_not_binary_ones(clock: Clock) -> None:
+    policy = MacPolicy(window=8)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    _, sb = connect(a, b)
+    envs = [a.table.seal("uav-b", ACL) for _ in range(20)]
+    for i in (0, 2, 5):  # 1, 3 and 4 late (or lost) so far
+        b.table.open(envs[i])
+    for _ in range(5):  # batches: counted apart, they neither add nor hide a gap
+        b.table.open_bytes(a.table.seal_bytes("uav-b", BODY))
+    assert sb.missing == 3 and b.table.missing() == {"uav-a": 3}
+    b.table.open(envs[3])  # late, within the window: no longer missing
+    with pytest.raises(Replayed):
+        b.table.open(envs[3])  # a replay opens nothing and counts nothing
+    assert b.table.missing() == {"uav-a": 2}
+    b.table.open(envs[19])
+    with pytest.raises(Replayed, match="older than the replay window"):
+        b.table.open(envs[1])  # too late: refused, stays missing
+    assert b.table.missing() == {"uav-a": 2 + 13}
+    assert b.table.forget("uav-a") == 1
+    assert b.table.missing() == {"uav-a": 15}  # a dropped session's count stays
