@@ -23,10 +23,10 @@ _MUST_NOT_LOAD = {
 }
 
 
-def _loaded(package: str, prefixes: tuple[str, ...]) -> list[str]:
-    """The modules starting with one of ``prefixes`` that a fresh ``import package`` loads."""
+def _modules_after(setup: str, prefixes: tuple[str, ...]) -> list[str]:
+    """The modules starting with one of ``prefixes`` loaded after ``setup`` in a new interpreter."""
     code = (
-        f"import sys, {package}\n"
+        f"import sys\n{setup}\n"
         f"print('\\n'.join(m for m in sys.modules if m.startswith({prefixes!r})))\n"
     )
     done = subprocess.run(
@@ -39,6 +39,11 @@ def _loaded(package: str, prefixes: tuple[str, ...]) -> list[str]:
         check=True,
     )
     return sorted(done.stdout.split())
+
+
+def _loaded(package: str, prefixes: tuple[str, ...]) -> list[str]:
+    """The modules starting with one of ``prefixes`` that a fresh ``import package`` loads."""
+    return _modules_after(f"import {package}", prefixes)
 
 
 @pytest.mark.parametrize("package", sorted(_MUST_NOT_LOAD))
@@ -55,22 +60,10 @@ def _loaded_by_node(prefixes: tuple[str, ...]) -> list[str]:
     Through the entry point, with a missing config: the node's path imports everything it
     runs before it reads the file, then exits 2.
     """
-    code = (
-        "import sys\n"
-        "from federation.cli import main\n"
-        "assert main(['node', '-c', 'no-such-config.toml']) == 2\n"
-        f"print('\\n'.join(m for m in sys.modules if m.startswith({prefixes!r})))\n"
+    return _modules_after(
+        "from federation.cli import main\nassert main(['node', '-c', 'no-such-config.toml']) == 2",
+        prefixes,
     )
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-        check=True,
-    )
-    return sorted(done.stdout.split())
 
 
 def test_the_node_command_leaves_out_what_only_other_commands_or_peers_use() -> None:
