@@ -125,21 +125,12 @@ def _stage_medians(calls: dict[str, list[int]], n: int) -> dict[str, float]:
 
 async def _measure(keydir: Path, n: int, stages: bool = False) -> dict[str, Any]:
     """``n`` round trips to a spawned node; latency (µs) and each side's CPU (µs) per trip."""
-    from agents import Agent, AgentPlatform, request
-    from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+    from agents import request
     from bench import acl
     from bench._child import Child
 
-    port = free_tcp_port()
-    config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
-    async with (
-        ZenohTransport(ZenohConfig.loopback(port)) as transport,
-        AgentPlatform(
-            acl.HERE, transport, federation=acl.FEDERATION, channel=acl.interface(keydir)
-        ) as host,
-    ):
-        asker = await host.add(Agent("asker"))
-        presence = await transport.watch_presence(host.key("alive", acl.THERE))
+    async with acl.asker_side(keydir) as asking:
+        _, _, asker, presence, config = asking
         if stages:
             args = ("zenoh", config, str(keydir), acl.THERE, acl.FEDERATION)
             child = Child(stage_node_main, args, "acl-stages-node").start()

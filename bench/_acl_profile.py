@@ -37,7 +37,6 @@ from agents import (
 )
 from agents._interface import AuditLog, InterfaceAgent, RateLimit
 from agents._security import Handshake, KeyPair, SessionTable, TrustStore
-from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 from bench import acl
 from bench._acl_node import FLOOD_ONTOLOGY, Gateway, add_gateway
 from dyknow_core import DyKnowInstance
@@ -282,16 +281,8 @@ def grouped(path_or_prof: Any, per: int, scale_to_us: float | None, top: int = 1
 
 
 async def _profiled(keydir: Path, out: Path) -> None:
-    port = free_tcp_port()
-    child_config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
-    async with (
-        ZenohTransport(ZenohConfig.loopback(port)) as transport,
-        AgentPlatform(
-            acl.HERE, transport, federation=acl.FEDERATION, channel=acl.interface(keydir)
-        ) as host,
-    ):
-        asker = await host.add(Agent("asker"))
-        presence = await transport.watch_presence(host.key("alive", acl.THERE))
+    async with acl.asker_side(keydir) as side:
+        _, _, asker, presence, child_config = side
         with acl.node("zenoh", child_config, keydir).start() as child:
             await acl.wait_alive(presence, child, True)
             await acl.first_reply(asker, child)

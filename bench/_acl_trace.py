@@ -224,21 +224,12 @@ def _sched_delta(
 
 async def _asker(keydir: Path, n: int) -> dict[str, Any]:
     """N round trips from this process to a spawned node; this side's and the node's marks."""
-    from agents import Agent, AgentPlatform, request
-    from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+    from agents import request
     from bench import acl
     from bench._child import Child
 
-    port = free_tcp_port()
-    config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
-    async with (
-        ZenohTransport(ZenohConfig.loopback(port)) as transport,
-        AgentPlatform(
-            acl.HERE, transport, federation=acl.FEDERATION, channel=acl.interface(keydir)
-        ) as host,
-    ):
-        asker = await host.add(Agent("asker"))
-        presence = await transport.watch_presence(host.key("alive", acl.THERE))
+    async with acl.asker_side(keydir) as side:
+        _, _, asker, presence, config = side
         args = ("zenoh", config, str(keydir), acl.THERE, acl.FEDERATION)
         child = Child(trace_node_main, args, "acl-trace-node").start()
         try:

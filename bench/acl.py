@@ -49,6 +49,7 @@ instead (cProfile on both sides, plus the per-stage costs measured one by one);
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import functools
 import gc
 import statistics
@@ -57,9 +58,9 @@ import tempfile
 import threading
 import time
 import uuid
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
-from typing import Any, TypedDict
+from typing import Any, NamedTuple, TypedDict
 
 import aiomqtt
 import zenoh
@@ -196,6 +197,35 @@ def node(kind: str, config: dict[str, Any], keydir: Path, *, encrypt: bool = Tru
         f"acl-node-{kind}",
         path=[str(site)] if site.is_dir() else [],
     )
+
+
+class AskerSide(NamedTuple):
+    """The asking platform of a round-trip benchmark, and the config its node connects with."""
+
+    transport: ZenohTransport
+    host: AgentPlatform
+    asker: Agent
+    presence: Subscription[Presence]
+    node_config: dict[str, Any]
+
+
+@contextlib.asynccontextmanager
+async def asker_side(keydir: Path, *, encrypt: bool = True) -> AsyncIterator[AskerSide]:
+    """The asking platform over zenoh on loopback, its ``asker`` and a watch for the node.
+
+    ``node_config`` is the zenoh config of a node (`node`) that connects to it.
+    """
+    port = free_tcp_port()
+    node_config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
+    async with (
+        ZenohTransport(ZenohConfig.loopback(port)) as transport,
+        AgentPlatform(
+            HERE, transport, federation=FEDERATION, channel=interface(keydir, encrypt=encrypt)
+        ) as host,
+    ):
+        asker = await host.add(Agent("asker"))
+        presence = await transport.watch_presence(host.key("alive", THERE))
+        yield AskerSide(transport, host, asker, presence, node_config)
 
 
 async def wait_alive(presence: Subscription[Presence], child: Child, alive: bool) -> None:
@@ -398,14 +428,8 @@ async def zenoh_phase(keydir: Path) -> dict[str, Any]:
         "raw": [],
         "flood": [],
     }
-    port = free_tcp_port()
-    child_config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
-    async with (
-        ZenohTransport(ZenohConfig.loopback(port)) as transport,
-        AgentPlatform(HERE, transport, federation=FEDERATION, channel=interface(keydir)) as host,
-    ):
-        asker = await host.add(Agent("asker"))
-        presence = await transport.watch_presence(host.key("alive", THERE))
+    async with asker_side(keydir) as side:
+        _, host, asker, presence, child_config = side
         the_node: Child | None = None
         try:
             for i in range(READY_REPEAT):
@@ -645,19 +669,8 @@ async def encryption_phase(keydir: Path) -> dict[str, list[dict[str, float]]]:
         # each kind goes first every other round: neither gets the fresher machine
         for kind, encrypt in kinds if r % 2 == 0 else kinds[::-1]:
             progress(f"encryption round {r + 1}/{ENC_ROUNDS}: {kind} sessions, {N_RTT_ENC} trips")
-            port = free_tcp_port()
-            child_config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
-            async with (
-                ZenohTransport(ZenohConfig.loopback(port)) as transport,
-                AgentPlatform(
-                    HERE,
-                    transport,
-                    federation=FEDERATION,
-                    channel=interface(keydir, encrypt=encrypt),
-                ) as host,
-            ):
-                asker = await host.add(Agent("asker"))
-                presence = await transport.watch_presence(host.key("alive", THERE))
+            async with asker_side(keydir, encrypt=encrypt) as side:
+                _, _, asker, presence, child_config = side
                 child = node("zenoh", child_config, keydir, encrypt=encrypt).start()
                 try:
                     await wait_alive(presence, child, True)
