@@ -77,6 +77,8 @@ class Cache:
             first = self.evicted
             appended = first + len(buf)
             best, best_at, start = self._best, self._best_at, self._scanned
+            if start == appended and best is not None and best_at >= first:
+                return best  # nothing arrived since, and the best is still cached
             if best is None or best_at < first:  # none yet, or evicted since: read it all
                 best, best_at, start = None, -1, first
             # newest first, so a later arrival wins a tie with an earlier one ("newest")

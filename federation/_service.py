@@ -142,6 +142,7 @@ from ._service_content import (
     Query,
     Request,
     SearchLabels,
+    latest_labels,
     newest_valid_time,
     parse_request,
 )
@@ -633,6 +634,10 @@ class FederationAgent(Agent):
     async def _on_request(self, message: ACLMessage) -> Any:
         """Every action of the service: its result, or refuse with the reason."""
         try:
+            # the common request, a plain get-latest, without its model (`latest_labels`)
+            labels = latest_labels(message.content)
+            if labels is not None:
+                return self._latest(labels, platform_of(message.sender))
             return await self._perform(parse_request(message.content), message)
         except Denied as exc:
             self._denied(message, exc)
@@ -646,6 +651,9 @@ class FederationAgent(Agent):
         if message.performative is P.QUERY_IF:
             raise Refuse("the federation service answers query-ref, not query-if")
         try:
+            labels = latest_labels(message.content)  # as in `_on_request`
+            if labels is not None:
+                return self._latest(labels, platform_of(message.sender))
             req = parse_request(message.content)
             if req.action not in QUERY_ACTIONS and req.action != "list-labels":
                 raise ContentError(f"{req.action} is an action: ask for it with FIPA-Request")
@@ -1046,27 +1054,47 @@ class FederationAgent(Agent):
             raise ContentError(
                 "the answer to a query goes to the asker: 'to-units' may only name its platform"
             )
-        labels = list(dict.fromkeys(req.labels))
-        if asker != self.platform.name:  # `_check_sharing` of each label, without its calls
-            check = self.sharing.check
-            for semantic in labels:
-                reason = check("query", semantic, asker)
-                if reason is not None:
-                    raise Denied("sharing-rule", reason)
-        pairs = [(s, self._translate(s)) for s in labels]
         if isinstance(req, GetLatest):
+            return self._latest(req.labels, asker)
+        labels = list(dict.fromkeys(req.labels))
+        return self._answers(req, labels, self._locals(labels, asker))
+
+    def _locals(self, labels: list[str], asker: str) -> list[str]:
+        """The local labels of ``labels`` if ``asker``'s platform may query them all."""
+        if asker != self.platform.name:  # `_check_sharing` of each label
+            reason = self.sharing.check_all("query", labels, asker)
+            if reason is not None:
+                raise Denied("sharing-rule", reason)
+        # `_translate` of each label, without its calls (a try in the loop costs nothing)
+        to_local = self.translator.to_local
+        out: list[str] = []
+        for semantic in labels:
             try:
-                contents = latest_contents(self.instance, [local for _, local in pairs])
-            except Exception:  # the loop below raises it again, named per label
-                pass
-            else:
-                return dict(zip(labels, contents, strict=True))
+                out.append(to_local(semantic))
+            except Exception as exc:
+                raise ContentError(_about(semantic, _reason(exc))) from exc
+        return out
+
+    def _latest(self, labels: list[str], asker: str) -> dict[str, Any]:
+        """The answer to a get-latest of ``labels`` (checked content) from ``asker``'s platform."""
+        labels = list(dict.fromkeys(labels))
+        local = self._locals(labels, asker)
+        try:
+            contents = latest_contents(self.instance, local)
+        except Exception:  # `_answers` raises it again, named per label
+            return self._answers(None, labels, local)
+        return dict(zip(labels, contents, strict=True))
+
+    def _answers(
+        self, req: GetValueAt | GetTrajectory | None, labels: list[str], local_labels: list[str]
+    ) -> dict[str, Any]:
+        """Each label's answer to ``req`` (None: get-latest), or the refusal naming the label."""
         out: dict[str, Any] = {}
-        # the gateway's "latest" query, without building its model per label
-        latest = self.instance.latest if isinstance(req, GetLatest) else None
-        for semantic, local in pairs:
+        # get-latest: the gateway's "latest" query, without building its model per label
+        latest = self.instance.latest
+        for semantic, local in zip(labels, local_labels, strict=True):
             try:
-                if latest is not None:
+                if req is None:
                     answer = latest(local)
                 else:
                     answer = self.gateway.query(_gateway_query(req, local))

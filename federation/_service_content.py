@@ -17,10 +17,12 @@ from ._gateway_service import PolicySpec, RemotePeriod, Seconds
 ONTOLOGY = "dyknow-federation"
 """The ontology of every message to and from a DyKnow Federation Agent."""
 
-Label = Annotated[str, Field(min_length=1, max_length=200)]
+_MAX_LABEL = 200
 # A request names a handful of labels; the bound keeps one request from asking for the
 # whole instance.
-Labels = Annotated[list[Label], Field(min_length=1, max_length=64)]
+_MAX_LABELS = 64
+Label = Annotated[str, Field(min_length=1, max_length=_MAX_LABEL)]
+Labels = Annotated[list[Label], Field(min_length=1, max_length=_MAX_LABELS)]
 Platform = Annotated[str, Field(pattern=r"^[A-Za-z0-9_.\-]+$", max_length=200)]
 Units = Annotated[list[Platform], Field(min_length=1, max_length=64)]
 
@@ -216,6 +218,34 @@ def parse_request(content: Any) -> Request:
         )
     parsed: Request = _validated(model, content)
     return parsed
+
+
+_LATEST_KEYS = frozenset({"action", "labels"})
+
+
+def latest_labels(content: Any) -> list[str] | None:
+    """The labels of a plain get-latest, ``{"action": "get-latest", "labels": [s…]}``; else None.
+
+    What `parse_request` makes of that exact shape (a `GetLatest` of those labels, no
+    ``to-units``), checked in plain Python: pydantic's validation costs more than a
+    provider's answer to a few labels. Anything else (another key or spelling, a label of
+    another type or length, too few or too many) is None: `parse_request` decides it.
+    """
+    if type(content) is not dict or content.keys() != _LATEST_KEYS:
+        return None
+    action = content["action"]
+    labels = content["labels"]
+    if (
+        type(action) is not str
+        or action != "get-latest"
+        or type(labels) is not list
+        or not 0 < len(labels) <= _MAX_LABELS
+    ):
+        return None
+    for label in labels:
+        if type(label) is not str or not 0 < len(label) <= _MAX_LABEL:
+            return None
+    return labels
 
 
 def newest_valid_time(content: Any) -> float | None:

@@ -25,6 +25,7 @@ of the platform itself are never restricted by these rules.
 from __future__ import annotations
 
 import fnmatch
+from collections.abc import Iterable
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
@@ -98,6 +99,18 @@ class Sharing:
             f"label {label!r} may not be {verb} {platform}: no sharing rule names it "
             'and sharing.default is "none"'
         )
+
+    def check_all(self, action: Action, labels: Iterable[str], platform: str) -> str | None:
+        """`check` of each of ``labels`` in turn: the first refusal, or None if all are allowed."""
+        settings = self.settings
+        if not settings.rules and settings.default == "members":
+            return None  # what `check` says of any label (the default table), without a call each
+        check = self.check
+        for label in labels:
+            reason = check(action, label, platform)
+            if reason is not None:
+                return reason
+        return None
 
     def accepts_for(self, requester: str) -> str | None:
         """None if streams ``requester`` asks for this platform are accepted; else why not."""

@@ -15,6 +15,8 @@ from typing import Any
 
 import orjson
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from agents import (
     FIPA_REQUEST,
@@ -42,6 +44,8 @@ from federation._service import (
     FederationAgent,
     MembershipEvent,
 )
+from federation._service_content import ContentError, GetLatest, latest_labels, parse_request
+from federation._sharing import Sharing, SharingRule, SharingSettings
 
 FED = "t"
 T0 = 1000 * NS_PER_S  # every instance's now when a test starts
@@ -520,6 +524,142 @@ async def test_get_latest_across_platforms() -> None:
         assert await op.request_from("operator", {"action": "list-labels"}) == {
             "labels": ["picture"]
         }
+
+
+_HOSTILE_LATEST: list[Any] = [
+    {"action": "get-latest", "labels": ["heli-altitude", "car5-state"]},
+    {"labels": ["car5-state", "heli-altitude", "car5-state"], "action": "get-latest"},
+    {"action": "get-latest", "labels": ["secret-state"]},  # a sharing rule refuses it
+    {"action": "get-latest", "labels": ["heli-altitude", "secret-state", "x9"]},
+    {"action": "get-latest", "labels": ["x9", "secret-state"]},
+    {"action": "get-latest", "labels": ["heli-max-speed"]},  # no sample yet
+    {"action": "get-latest", "labels": ["gone-state"]},  # mapped, no stream behind it
+    {"action": "get-latest", "semantic-labels": ["car5-state"]},
+    {"action": "get-latest", "labels": ["car5-state"], "relative": True},
+    {"action": "get-latest", "labels": ["car5-state"], "to-units": ["uav-b"]},
+    {"action": "get-latest", "labels": ["car5-state"], "to-units": ["operator"]},
+    {"action": "get-latest", "labels": ["car5-state"], "extra": 1},
+    {"action": "get-latest", "labels": []},
+    {"action": "get-latest", "labels": [""]},
+    {"action": "get-latest", "labels": ["x" * 200]},
+    {"action": "get-latest", "labels": ["x" * 201]},
+    {"action": "get-latest", "labels": ["car5-state"] * 64},
+    {"action": "get-latest", "labels": ["car5-state"] * 65},
+    {"action": "get-latest", "labels": ["car5-state", 5]},
+    {"action": "get-latest", "labels": "car5-state"},
+    {"action": "get-latest", "labels": None},
+    {"action": "get-latest"},
+    {"action": "get-value-at", "labels": ["car5-state"]},
+    {"action": "list-labels", "labels": ["car5-state"]},
+    {"action": 1, "labels": ["car5-state"]},
+    {"action": "get-latest ", "labels": ["car5-state"]},
+    ["get-latest", ["car5-state"]],
+    None,
+]
+
+
+async def test_a_plain_get_latest_is_decided_as_its_model_decides(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The quick path of a plain get-latest: the same answers, refusals and counts as without."""
+    from federation import _service
+
+    rule = SharingRule(name="private", labels=["secret-*"], query=["operator"])
+    sharing = Sharing(SharingSettings(rules=[rule]))
+    tables = {**TABLES["uav-a"], "secret-state": "a/secret", "gone-state": "a/gone"}
+
+    async def outcomes() -> tuple[list[Any], dict[str, int]]:
+        async with world(sharing=sharing) as w:
+            a, b = w["uav-a"], w["uav-b"]
+            a.fed.translator = FakeTranslator(tables)
+            a.dk.add_source("a/secret").push(7, valid_time=T0 - NS_PER_S)
+            a.push("car5-state", {"pos": [1.0, 2.0]}, seconds_ago=3)
+            a.push("heli-altitude", 120.0, seconds_ago=2)
+            got: list[Any] = []
+            for content in _HOSTILE_LATEST:
+                for ask in (b.fed.request_from, _query_ref_of(b.fed)):
+                    try:
+                        got.append(("inform", await ask("uav-a", content)))
+                    except Refused as exc:
+                        assert exc.message is not None
+                        got.append(("refuse", exc.message.content))
+            return got, dict(a.fed.refusals)
+
+    quick = await outcomes()
+    assert sum(1 for kind, _ in quick[0] if kind == "inform") >= 8
+    assert quick[1].get("sharing-rule", 0) == 6
+    monkeypatch.setattr(_service, "latest_labels", lambda content: None)
+    assert await outcomes() == quick
+
+
+def _query_ref_of(fed: FederationAgent) -> Any:
+    async def ask(platform: str, content: Any) -> Any:
+        return await query_ref(fed, f"federation@{platform}", content, ontology=ONTOLOGY)
+
+    return ask
+
+
+@settings(max_examples=500, deadline=None)
+@given(
+    st.dictionaries(
+        st.sampled_from(["action", "labels", "semantic-labels", "relative", "to-units"]),
+        st.sampled_from(["get-latest", "get-latest\n", "get-value-at", 1, None, True])
+        | st.lists(
+            st.text(max_size=3)
+            | st.text(min_size=199, max_size=201)
+            | st.integers()
+            | st.none()
+            | st.binary(max_size=2),
+            max_size=66,
+        ),
+    )
+    | st.fixed_dictionaries(
+        {
+            "action": st.just("get-latest"),
+            "labels": st.lists(
+                st.text(max_size=4) | st.text(min_size=198, max_size=202), max_size=66
+            )
+            | st.builds(lambda n: ["s"] * n, st.integers(0, 70)),
+        }
+    )
+)
+def test_the_quick_get_latest_labels_are_those_of_the_model(content: dict[str, Any]) -> None:
+    """latest_labels: the labels parse_request's GetLatest has, on the exact shape, else None."""
+    try:
+        parsed: Any = parse_request(content)
+    except ContentError:
+        parsed = None
+    quick = latest_labels(content)
+    if quick is not None:
+        assert isinstance(parsed, GetLatest)
+        assert parsed.labels == quick and parsed.to_units is None
+    exact = content.keys() == {"action", "labels"} and isinstance(content["labels"], list)
+    if exact and all(type(s) is str for s in content["labels"]):
+        # on the exact shape, with labels of the exact type, it decides as the model does
+        assert (quick is not None) == isinstance(parsed, GetLatest)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(
+        st.builds(
+            lambda labels, query: SharingRule(labels=labels, query=query),
+            st.lists(st.sampled_from(["car*", "heli-?ltitude", "*", "x[0-9]"]), min_size=1),
+            st.lists(st.sampled_from(["uav-*", "operator", "*"]), max_size=2),
+        ),
+        max_size=3,
+    ),
+    st.sampled_from(["members", "none"]),
+    st.lists(st.sampled_from(["car5", "heli-altitude", "x1", "y"]), max_size=4),
+    st.sampled_from(["uav-b", "operator"]),
+)
+def test_check_all_is_the_first_refusal_of_check(
+    rules: list[SharingRule], default: Any, labels: list[str], platform: str
+) -> None:
+    """Sharing.check_all: what `check` of each label says first, with or without rules."""
+    sharing = Sharing(SharingSettings(rules=rules, default=default))
+    want = next((r for s in labels if (r := sharing.check("query", s, platform)) is not None), None)
+    assert sharing.check_all("query", labels, platform) == want
 
 
 # -- global requests ------------------------------------------------------------------------------
