@@ -340,6 +340,22 @@ class Conversation:
         # once closed, the end marker is the last item, and nothing comes after it
         return n - 1 if n and self.closed else n
 
+    def drain(self) -> list[ACLMessage]:
+        """Every message queued now, in order, taken without waiting (as `receive` takes them).
+
+        For a reader of many answers once `gather` returned: all that came, in one call.
+        The end of a closed conversation stays queued (it is always last), for `receive`
+        to raise.
+        """
+        items = self._items._items
+        if not items:
+            return []
+        taken = list(items)
+        items.clear()
+        if type(taken[-1]) is _Ended:
+            items.append(taken.pop())
+        return taken  # type: ignore[return-value]
+
     async def receive(
         self, *, deadline: float | None = None, timeout: float | None = None
     ) -> ACLMessage:

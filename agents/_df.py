@@ -629,6 +629,8 @@ class GlobalDirectory:
         self.invalid = 0
         self.refused = 0
         self.stale = 0
+        self.version = 0
+        """Changes with every change of `services`: a view of them is current while it is equal."""
 
     async def start(self) -> None:
         """Subscribe, take the snapshot, and follow changes (tasks owned by the platform)."""
@@ -771,6 +773,7 @@ class GlobalDirectory:
         old = self._entries.get(platform, {})
         new = {s.key: s for s in services}
         self._entries[platform] = new
+        self.version += 1
         for key, service in new.items():
             before = old.get(key)
             if before is None:
@@ -787,9 +790,11 @@ class GlobalDirectory:
         if op == "deregister":
             if before is not None:
                 del entries[service.key]
+                self.version += 1
                 self._tell(DirectoryEvent("deregister", platform, before))
             return
         entries[service.key] = service
+        self.version += 1
         if before is None:
             self._tell(DirectoryEvent("register", platform, service))
         elif before != service:
@@ -836,10 +841,14 @@ class GlobalDirectory:
                 continue
             self._apply(platform, op, service)
 
+    def _drop_entries(self, platform: str) -> None:
+        self._entries.pop(platform, None)
+        self.version += 1
+
     def _gone(self, platform: str) -> None:
         if platform in self._alive:
             self._alive.discard(platform)
-            self._entries.pop(platform, None)
+            self._drop_entries(platform)
             self._tell(DirectoryEvent("platform-gone", platform, None))
 
     async def _follow_presence(self, sub: Subscription[Presence]) -> None:
@@ -859,7 +868,7 @@ class GlobalDirectory:
                 if not confirmed and self._auth.authenticates:
                     # a token anyone could declare; the platform itself did not answer
                     self._alive.discard(platform)
-                    self._entries.pop(platform, None)
+                    self._drop_entries(platform)
                     self._refuse(platform, "presence without a signed directory answer", "presence")
                     continue
                 self._tell(DirectoryEvent("platform-up", platform, None))

@@ -97,6 +97,7 @@ from agents import (
     DirectoryEvent,
     DirectoryFacilitator,
     Failure,
+    GlobalDirectory,
     MessageTemplate,
     Performative,
     Publisher,
@@ -425,6 +426,8 @@ class FederationAgent(Agent):
         self._members: set[str] = set()
         self._watchers: list[Inbox[MembershipEvent]] = []
         self._directory: Subscription[DirectoryEvent] | None = None
+        # include_self -> (the directory, its version, `providers` of it): asked per request
+        self._providers: dict[bool, tuple[GlobalDirectory, int, dict[str, str]]] = {}
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
         self.add_handler(
             MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_conversation),
@@ -1240,6 +1243,12 @@ class FederationAgent(Agent):
         gdf = self.platform.global_df
         if gdf is None:
             raise ServiceError(f"platform {self.platform.name} keeps no global directory")
+        # Computed again only when the directory changed: walking every member's services
+        # cost ~70 µs of each global request (measured with 32 members)
+        cached = self._providers.get(include_self)
+        if cached is not None and cached[0] is gdf and cached[1] == gdf.version:
+            return cached[2].copy()
+        version = gdf.version
         found: dict[str, str] = {}
         me = self.platform.name
         # gdf.search(type=…), without validating a query each time: this runs per global
@@ -1251,7 +1260,9 @@ class FederationAgent(Agent):
                     found.setdefault(platform, s.provider)
         if include_self:
             found[self.platform.name] = self.aid
-        return dict(sorted(found.items()))
+        found = dict(sorted(found.items()))
+        self._providers[include_self] = (gdf, version, found)
+        return found.copy()
 
     async def global_request(
         self,
@@ -1278,8 +1289,9 @@ class FederationAgent(Agent):
         result = GlobalResult(asked=list(providers))
         if not providers:
             return result
-        for platform in providers:
-            self._expect_from(platform, content)  # a global create-stream: to us, agreed
+        if isinstance(content, dict) and content.get("action") == "create-stream":
+            for platform in providers:
+                self._expect_from(platform, content)  # a global create-stream: to us, agreed
         # A reading action goes as query-ref: each provider answers it in its agent's receive
         # loop, not in a task of its own per request as an action (which may wait) needs.
         if isinstance(content, dict) and content.get("action") in _READS:
@@ -1339,11 +1351,16 @@ class FederationAgent(Agent):
                 pending.discard(platform)
             # Woken once, when every answer is in (or at the deadline), not once per answer
             await conv.gather([providers[p] for p in pending], deadline=end)
+            # What came (everything, unless the deadline came first) is read at once; then,
+            # while some have not answered, what comes until the deadline
+            came = iter(conv.drain())
             while pending:
-                try:
-                    m = await conv.receive(deadline=end)
-                except ReplyTimeout:
-                    break
+                m = next(came, None)
+                if m is None:
+                    try:
+                        m = await conv.receive(deadline=end)
+                    except ReplyTimeout:
+                        break
                 platform = platform_of(m.sender)
                 if platform not in pending or m.performative is P.AGREE:
                     continue

@@ -381,6 +381,38 @@ async def test_gather_wakes_once_every_peer_answered_and_leaves_the_answers_to_r
                 await conv.receive()
 
 
+async def test_drain_takes_what_receive_would_return_at_once() -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        a = await p.add(Agent("a"))
+
+        def m(content: int) -> ACLMessage:
+            return ACLMessage(
+                performative=P.INFORM,
+                sender="x@p",
+                receivers=[a.aid],
+                conversation_id="c1",
+                content=content,
+            )
+
+        with a.conversation("c1", timeout=2) as conv:
+            assert conv.drain() == []  # nothing came yet
+            for i in range(3):
+                a._deliver(m(i))
+            assert (await conv.receive()).content == 0  # one queue, in order
+            assert [x.content for x in conv.drain()] == [1, 2]
+            assert conv.drain() == [] and conv.pending() == 0
+            a._deliver(m(3))
+            a._deliver(m(4))
+            conv.close()
+            # what came before the close; its end stays, for receive to raise
+            assert [x.content for x in conv.drain()] == [3, 4]
+            assert conv.drain() == []
+            with pytest.raises(ConversationError):
+                await conv.receive()
+            with pytest.raises(ConversationError):
+                await conv.receive()
+
+
 async def test_an_agent_can_ask_itself() -> None:
     class Self_(Agent):
         @on(MessageTemplate(P.REQUEST))

@@ -447,6 +447,42 @@ async def test_a_platform_coming_back_is_queried_again() -> None:
                 assert pa.global_df.services() == []
 
 
+async def test_the_view_s_version_changes_with_its_services() -> None:
+    # what a cache of the view (the federation service's providers) relies on: equal
+    # versions, equal services
+    hub = MemoryHub()
+    async with asyncio.timeout(5), platforms("uav-a", hub=hub) as [pa]:
+        view = pa.global_df
+        assert view is not None
+        seen = [(view.version, view.services())]
+
+        def changed() -> bool:
+            before_version, before = seen[-1]
+            seen.append((view.version, view.services()))
+            return view.version != before_version and view.services() != before
+
+        async with view.watch() as w:
+            async with hub.transport() as t, AgentPlatform("uav-b", t, federation="t") as pb:
+                assert pb.df is not None
+                await wait_for(w, lambda e: e.op == "platform-up" and e.platform == "uav-b")
+                assert view.version != seen[-1][0]  # its snapshot taken (no public service)
+                seen.append((view.version, view.services()))
+                await pb.df.register(svc("cam@uav-b", "cam", V.PUBLIC, resolution=720))
+                await wait_for(w, lambda e: e.op == "register" and e.platform == "uav-b")
+                assert changed()
+                await pb.df.modify(svc("cam@uav-b", "cam", V.PUBLIC, resolution=1080))
+                await wait_for(w, lambda e: e.op == "modify")
+                assert changed()
+                await pb.df.register(svc("cam@uav-b", "rear", V.PUBLIC))
+                await wait_for(w, lambda e: e.op == "register" and e.service.name == "rear")
+                assert changed()
+                await pb.df.deregister("cam@uav-b", "cam")
+                await wait_for(w, lambda e: e.op == "deregister")
+                assert changed() and names(view.services()) == ["rear"]
+            await wait_for(w, lambda e: e.op == "platform-gone")
+            assert changed() and view.services() == []
+
+
 async def test_bad_directory_events_are_counted_and_ignored() -> None:
     async with asyncio.timeout(5), platforms("uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df

@@ -801,6 +801,11 @@ async def test_leave_and_join_are_seen_in_the_others_global_directory() -> None:
                 watcher, "federation@uav-b", {"membership": True}, ontology=ONTOLOGY, timeout=WAIT
             ) as remote,
         ):
+            # who a global request asks, kept between requests while the directory stays
+            assert list(b.fed.providers()) == ["operator", "uav-a"]
+            assert list(b.fed.providers(include_self=True)) == ["operator", "uav-a", "uav-b"]
+            b.fed.providers().clear()  # the caller's own copy
+            assert list(b.fed.providers()) == ["operator", "uav-a"]
             await a.fed.leave()
             assert not a.fed.joined
             assert await next_event(seen_by_b, MembershipEvent("left", "uav-a"))
@@ -809,6 +814,8 @@ async def test_leave_and_join_are_seen_in_the_others_global_directory() -> None:
             listed = b.platform.global_df.search(type=FEDERATION_SERVICE_TYPE)
             assert sorted(s.platform for s in listed) == ["operator", "uav-b"]
             assert b.fed.members == ["operator", "uav-b"]
+            assert list(b.fed.providers()) == ["operator"]
+            assert list(b.fed.providers(include_self=True)) == ["operator", "uav-b"]
             # The stream set up before keeps flowing; new requests from outside are refused.
             assert len(a.exporter.running) == 1
             assert "access denied" in await refusal(
@@ -820,6 +827,10 @@ async def test_leave_and_join_are_seen_in_the_others_global_directory() -> None:
             assert await next_event(seen_by_b, MembershipEvent("joined", "uav-a"))
             assert await next_event(remote, {"event": "joined", "platform": "uav-a"})
             assert b.fed.members == ["operator", "uav-a", "uav-b"]
+            assert b.fed.providers() == {
+                "operator": "federation@operator",
+                "uav-a": "federation@uav-a",
+            }
             assert await b.fed.request_from("uav-a", {"action": "list-labels"}) == {
                 "labels": sorted(TABLES["uav-a"])
             }
@@ -837,6 +848,7 @@ async def test_a_vanished_platform_is_reported_gone_within_a_second() -> None:
                 watcher, "federation@uav-b", {"membership": True}, ontology=ONTOLOGY, timeout=WAIT
             ) as remote,
         ):
+            assert "uav-a" in b.fed.providers()
             loop = asyncio.get_running_loop()
             started = loop.time()
             # uav-a's connection goes at once, as when its process is killed.
@@ -845,7 +857,7 @@ async def test_a_vanished_platform_is_reported_gone_within_a_second() -> None:
                 assert await next_event(seen_by_b, MembershipEvent("gone", "uav-a"))
                 assert await next_event(remote, {"event": "gone", "platform": "uav-a"})
             assert loop.time() - started < 1.0
-            assert "uav-a" not in b.fed.members
+            assert "uav-a" not in b.fed.members and "uav-a" not in b.fed.providers()
             # The export to uav-a stopped; the one to the operator goes on.
             assert [e.receiver for e in b.exporter.running] == ["operator"]
             (record,) = b.fed.exports.values()
