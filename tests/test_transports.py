@@ -642,6 +642,20 @@ def test_zenoh_config_gives_the_data_queue_room_unless_the_user_chose() -> None:
     assert size(overrides={path: 2}) == 2
 
 
+def test_zenoh_config_leaves_shared_memory_off_unless_the_user_chose() -> None:
+    # zenoh's shared memory, once a link has it, wakes a task every 100 ms for the
+    # session's life: off by default; the user's JSON5 or overrides may turn it on
+    path = "transport/shared_memory/enabled"
+
+    def enabled(**fields: Any) -> Any:
+        return json.loads(ZenohConfig(**fields).to_zenoh().get_json(path))
+
+    assert enabled() is False
+    assert enabled(json5="{ mode: 'peer' }") is False
+    assert enabled(json5="{ transport: { shared_memory: { enabled: true } } }") is True
+    assert enabled(overrides={path: True}) is True
+
+
 async def test_zenoh_burst_behind_a_slow_receiver_waits_in_the_queue() -> None:
     """A burst of 12 puts of 40 kB while the receiver reads nothing: none is lost.
 
