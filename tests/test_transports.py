@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import subprocess
+import sys
 import time
 import uuid
 from collections.abc import AsyncIterator, Callable
@@ -640,6 +643,69 @@ def test_zenoh_config_gives_the_data_queue_room_unless_the_user_chose() -> None:
     chosen = "{ transport: { link: { tx: { queue: { size: { data: 4 } } } } } }"
     assert size(json5=chosen) == 4
     assert size(overrides={path: 2}) == 2
+
+
+def test_zenoh_config_leaves_shared_memory_off_unless_the_user_chose() -> None:
+    # zenoh's shared memory, once a link has it, wakes a task every 100 ms for the
+    # session's life: off by default; the user's JSON5 or overrides may turn it on
+    path = "transport/shared_memory/enabled"
+
+    def enabled(**fields: Any) -> Any:
+        return json.loads(ZenohConfig(**fields).to_zenoh().get_json(path))
+
+    assert enabled() is False
+    assert enabled(json5="{ mode: 'peer' }") is False
+    assert enabled(json5="{ transport: { shared_memory: { enabled: true } } }") is True
+    assert enabled(overrides={path: True}) is True
+
+
+# Two linked sessions idle for a second in a fresh interpreter (zenoh's runtime is the
+# process's, and its shared-memory task, once started, runs until the process exits):
+# how many times zenoh's network threads woke. Linux: counted in /proc.
+_IDLE_WAKEUPS = """
+import asyncio, os, sys, time
+from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+
+def net_wakeups():
+    n = 0
+    for tid in os.listdir("/proc/self/task"):
+        with open(f"/proc/self/task/{tid}/comm") as f:
+            if not f.read().startswith("net-"):
+                continue
+        with open(f"/proc/self/task/{tid}/status") as f:
+            n += sum(int(line.split()[1]) for line in f if line.startswith("voluntary_ctxt"))
+    return n
+
+async def main():
+    overrides = {"transport/shared_memory/enabled": True} if sys.argv[1] == "on" else {}
+    seed = free_tcp_port()
+    a = ZenohTransport(ZenohConfig.loopback(seed, overrides=overrides))
+    b = ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed], overrides=overrides))
+    async with a, b:
+        await a.publish("test/idle/x", b"y" * 8192)  # a put that shared memory would carry
+        await asyncio.sleep(0.5)
+        before = net_wakeups()
+        time.sleep(1.0)  # the event loop asleep too: only zenoh's own threads run
+        print(net_wakeups() - before)
+
+asyncio.run(main())
+"""
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="counts wake-ups in /proc")
+def test_zenoh_idle_link_does_not_wake_every_100_ms() -> None:
+    def wakeups(shm: str) -> int:
+        out = subprocess.run(
+            [sys.executable, "-c", _IDLE_WAKEUPS, shm],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            check=True,
+        )
+        return int(out.stdout.split()[-1])
+
+    assert wakeups("on") >= 10  # the count sees zenoh's 100 ms task (~20 wake-ups a second)
+    assert wakeups("off") <= 5  # by default it never starts
 
 
 async def test_zenoh_burst_behind_a_slow_receiver_waits_in_the_queue() -> None:

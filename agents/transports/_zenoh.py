@@ -84,6 +84,13 @@ _LINK_SETTLE = 0.25
 _TX_QUEUE = "transport/link/tx/queue/size/data"
 _TX_QUEUE_BATCHES = 16
 
+# zenoh's shared memory (on by default) carries puts over 3 kB between two sessions of one
+# host through /dev/shm; once a link has it, a task of zenoh's wakes every 100 ms for as
+# long as the session lives (~20 thread wakeups/s, most of an idle node's), buffers or no
+# buffers. Off unless the user's JSON5 sets it or ``overrides`` turn it on: nodes on
+# separate hosts never use it, and on one host the link carries the bytes instead.
+_SHM = "transport/shared_memory/enabled"
+
 # Sessions opened and not yet closed, closed at exit: an unclosed session with callback
 # subscribers can hang interpreter shutdown.
 _OPEN_SESSIONS: dict[int, zenoh.Session] = {}
@@ -319,6 +326,9 @@ class ZenohConfig(BaseModel):
             if not self.json5 or _setting(cfg, _TX_QUEUE) == _setting(zenoh.Config(), _TX_QUEUE):
                 # (a size a user's JSON5 chose other than zenoh's stays; ``overrides`` come after)
                 cfg.insert_json5(_TX_QUEUE, json.dumps(_TX_QUEUE_BATCHES))
+            if not self.json5 or "shared_memory" not in self.json5:
+                # (zenoh's default read back cannot say whether the user's JSON5 chose it)
+                cfg.insert_json5(_SHM, "false")
             listen = self.listen
             if listen is None and not _listens(self.json5, cfg):
                 listen = () if self.mode == "client" else ("tcp/127.0.0.1:0",)
