@@ -160,6 +160,40 @@ def test_matching_counts_misses_and_false_positives() -> None:
         uav_names(0)
 
 
+async def test_cars_asked_for_late_are_anchored_where_they_were_first_seen() -> None:
+    # seed 1: the reckless overtaker and the car it passes cross from area 1 into area 2.
+    # uav-c is asked for them with uav-b's last states (from the border, where uav-b stops
+    # tracking them); on a busy machine the ask comes seconds after the cars crossed, when
+    # the overtaker has cut in and braked, far from a straight line drawn from that state.
+    world = World.generate(1, 3, 60.0)
+    (v,) = [v for v in world.ground_truth() if v.kind == "reckless-overtake"]
+    border = world.border(1)
+    crossed: dict[str, float] = {}
+    for k in range(int(v.start / PERIOD), int(v.end / PERIOD) + 10):
+        for car in world.cars_at(k * PERIOD):
+            if car.id in (v.car, v.other) and car.x > border:
+                crossed.setdefault(car.id, k * PERIOD)
+    late = max(crossed.values()) + 6.0
+    asked: list[UavApplication] = []
+
+    async def after_step(app: UavApplication) -> None:
+        if asked or app.world_time(app.dk.clock.now()) < late:
+            return
+        asked.append(app)
+        start = BASE_NS / NS_PER_S
+        for name, t in crossed.items():
+            (car,) = [c for c in world.cars_at(t) if c.id == name]
+            local = f"car/uav_b_{name}/state"
+            app.sources[local] = app.dk.add_source(local)
+            last = {"x": car.x, "y": car.y, "vx": car.vx, "vy": car.vy, "colour": car.colour}
+            app.anchored[name] = {"local": local, "last": last, "valid": start + t, "match": None}
+
+    await run_offline(2, seed=1, after_step=after_step)
+    (app,) = asked
+    matches = {name: a["match"] for name, a in app.anchored.items()}
+    assert None not in matches.values() and len(set(matches.values())) == 2, matches
+
+
 # -- the anchoring hook of the federation service --------------------------------------------
 
 

@@ -565,7 +565,7 @@ class UavApplication:
                 continue
             states[obj] = state
             self._push(f"car/{obj}/state", state, t)
-        self._feed_anchored(states, t, ts)
+        self._feed_anchored(states, t)
         cars = {f"{self.prefix}_{c}" for c in anch.members("Car")}
         tracked = {o: s for o, s in states.items() if o in cars}
         self.last_cars = sorted(tracked)
@@ -744,13 +744,13 @@ class UavApplication:
         )
         return True
 
-    def _feed_anchored(self, states: dict[str, dict[str, Any]], t: int, ts: float) -> None:
+    def _feed_anchored(self, states: dict[str, dict[str, Any]], t: int) -> None:
         for a in self.anchored.values():
             match = a["match"]
             if match is None or match not in states:
                 # not seen this step (gone, or its state late on a busy machine): look
                 # again, and keep the old match when nothing else fits
-                found = self._find(a, states, ts)
+                found = self._find(a, states, t)
                 if found is not None and found != match:
                     match = a["match"] = found
                     a.setdefault("matched", time.monotonic())
@@ -758,15 +758,33 @@ class UavApplication:
             if match is not None and match in states:
                 self.sources[a["local"]].push(states[match], t)
 
-    @staticmethod
-    def _find(a: dict[str, Any], states: dict[str, dict[str, Any]], ts: float) -> str | None:
-        last, dt = a["last"], ts - a["valid"]
-        px, py = last["x"] + last["vx"] * dt, last["y"] + last["vy"] * dt
+    def _find(self, a: dict[str, Any], states: dict[str, dict[str, Any]], t: int) -> str | None:
+        """The object tracked now that was nearest the asker's last state, moved on.
+
+        Each candidate is compared where it was first tracked here after that state, not
+        where it is now: the ask is answered when it comes, seconds later on a busy
+        machine, and by then a car that braked or cut in since the asker's state is far
+        from a straight line drawn from it (the reckless overtaker, 5 s after it crossed
+        the border: 18 m, beyond MATCH; at its first sighting here: about 1 m).
+        """
+        last, valid = a["last"], a["valid"]
+        since = min(int(valid * NS_PER_S), t)
+        first: dict[str, tuple[float, float, float]] = a.setdefault("first", {})
         best, best_d = None, MATCH
         for obj, s in states.items():
             if last.get("colour") is not None and s.get("colour") != last["colour"]:
                 continue
-            d = math.hypot(s["x"] - px, s["y"] - py)
+            seen = first.get(obj)
+            if seen is None:
+                # its states since then, oldest first (this step's is there: pushed above)
+                samples = self.dk.between(f"car/{obj}/state", since, t).samples
+                if not samples:
+                    continue
+                v = samples[0].value
+                seen = first[obj] = (samples[0].valid_time / NS_PER_S, v["x"], v["y"])
+            ts, x, y = seen
+            dt = ts - valid
+            d = math.hypot(x - (last["x"] + last["vx"] * dt), y - (last["y"] + last["vy"] * dt))
             if d < best_d:
                 best, best_d = obj, d
         return best
