@@ -1504,13 +1504,18 @@ class InterfaceAgent:
             log.warning("interface[%s]: could not refuse %s: %s", self._me, message.sender, exc)
 
     async def _watch(self, presence: Subscription[Presence]) -> None:
-        """Forget a platform's sessions when it leaves or reappears (a new process)."""
+        """Forget a platform's sessions when it leaves, or reappears without having left."""
         host = self._require_host()
         async for change in presence:
             peer = change.key.rpartition("/")[2]
             if peer == host.name or peer not in self.trust:
                 continue  # no session with an untrusted name to forget (the directory audits it)
-            self.sessions.forget(peer)
+            if not change.alive or peer in self._alive:
+                # Not on a first sight, nor on a return after a leave (its sessions went
+                # then): a platform's token can reach us after the key exchange of its
+                # first request (zenoh on a loaded machine); forgetting then would drop
+                # the session that request is sealed on, and the request with it.
+                self.sessions.forget(peer)
             self._last_rehandshake.pop(peer, None)
             if change.alive:
                 self._alive.add(peer)

@@ -160,6 +160,49 @@ def test_matching_counts_misses_and_false_positives() -> None:
         uav_names(0)
 
 
+@pytest.mark.parametrize("state", ["at-border", "swerving"])
+async def test_cars_asked_for_late_are_anchored_where_they_were_first_seen(state: str) -> None:
+    # seed 1: the reckless overtaker and the car it passes cross from area 1 into area 2.
+    # uav-c is asked for them with uav-b's last states: from the border, where uav-b stops
+    # tracking them, or from the overtaker's swerve out (an ask as they come beside). On
+    # a busy machine the ask comes seconds after the cars crossed, when the overtaker has
+    # cut in and braked, far from a straight line drawn from either state.
+    world = World.generate(1, 3, 60.0)
+    (v,) = [v for v in world.ground_truth() if v.kind == "reckless-overtake"]
+    border = world.border(1)
+    crossed: dict[str, float] = {}
+    for k in range(int(v.start / PERIOD), int(v.end / PERIOD) + 10):
+        for car in world.cars_at(k * PERIOD):
+            if car.id in (v.car, v.other) and car.x > border:
+                crossed.setdefault(car.id, k * PERIOD)
+    swerve = max(
+        (c.vy, k * PERIOD)
+        for k in range(int((v.start - 4) / PERIOD), int(v.start / PERIOD))
+        for c in world.cars_at(k * PERIOD)
+        if c.id == v.car
+    )[1]
+    when = crossed if state == "at-border" else {name: swerve for name in crossed}
+    late = max(crossed.values()) + 6.0
+    asked: list[UavApplication] = []
+
+    async def after_step(app: UavApplication) -> None:
+        if asked or app.world_time(app.dk.clock.now()) < late:
+            return
+        asked.append(app)
+        start = BASE_NS / NS_PER_S
+        for name, t in when.items():
+            (car,) = [c for c in world.cars_at(t) if c.id == name]
+            local = f"car/uav_b_{name}/state"
+            app.sources[local] = app.dk.add_source(local)
+            last = {k: getattr(car, k) for k in ("x", "y", "vx", "vy", "colour", "road")}
+            app.anchored[name] = {"local": local, "last": last, "valid": start + t, "match": None}
+
+    await run_offline(2, seed=1, after_step=after_step)
+    (app,) = asked
+    matches = {name: a["match"] for name, a in app.anchored.items()}
+    assert None not in matches.values() and len(set(matches.values())) == 2, matches
+
+
 # -- the anchoring hook of the federation service --------------------------------------------
 
 

@@ -44,6 +44,7 @@ from agents._exceptions import Forged
 from agents._interface import AuditLog, InterfaceAgent, accepted_entry
 from agents._security import Handshake, KeyPair, SecurityPolicy, TrustStore
 from agents.transports import (
+    Handle,
     MemoryHub,
     MemoryTransport,
     Message,
@@ -125,6 +126,27 @@ class DeafTransport(MemoryTransport):
         return await super().watch_presence(
             "nothing/matches/this", history=history, buffer_size=buffer_size
         )
+
+
+class LateTokenTransport(MemoryTransport):
+    """A memory transport whose liveliness tokens others see only once ``show`` is awaited.
+
+    As zenoh on a loaded machine may deliver a platform's token after its first messages.
+    """
+
+    def __init__(self, hub: MemoryHub) -> None:
+        super().__init__(hub)
+        self.hidden: list[str] = []
+
+    async def declare_token(self, key: str) -> Handle:
+        """Keep the token back (until ``show``)."""
+        self.hidden.append(key)
+        return Handle(lambda: None)
+
+    async def show(self) -> None:
+        """Declare the tokens kept back."""
+        for key in self.hidden:
+            await super().declare_token(key)
 
 
 class Fed:
@@ -1104,6 +1126,27 @@ async def test_a_restarted_platform_is_reachable_again() -> None:
                 "echo": 3,
                 "by": "asker@uav-a",
             }
+
+
+async def test_a_token_seen_after_the_key_exchange_leaves_its_session() -> None:
+    """A peer's token that arrives after its first key exchange does not undo the session.
+
+    The request sealed on that session is answered (zenoh on a loaded machine delivers a
+    token that late; forgetting the session there lost the request).
+    """
+    async with federation("uav-a", "uav-b") as fed:
+        pb = await fed.start("uav-b")
+        await serve(pb, "echo")
+        late = LateTokenTransport(fed.hub)
+        pa = await fed.start("uav-a", transport=late)
+        asker = await serve(pa, "asker", None)
+        await ia(pa).agree("uav-b")  # the first request's key exchange
+        await late.show()
+        await until(lambda: "uav-a" in ia(pb)._alive, "uav-b seeing uav-a's token")
+        assert ia(pb).sessions.peers() == ["uav-a"]
+        answer = await request(asker, "echo@uav-b", 1, ontology="demo", timeout=WAIT)
+        assert answer == {"echo": 1, "by": "echo@uav-b"}
+        assert pb.stats.unauthenticated == pb.stats.rehandshakes == 0
 
 
 async def _eventually(call: Callable[[], Any], what: str) -> Any:

@@ -210,6 +210,11 @@ class _Track:
         return mx + vx * (t - mt), my + vy * (t - mt), vx, vy
 
 
+def _unit(dx: float, dy: float) -> tuple[float, float]:
+    n = math.hypot(dx, dy)
+    return (dx / n, dy / n) if n > 0 else (0.0, 0.0)
+
+
 def _state_dict(
     x: float, y: float, vx: float, vy: float, colour: str | None, road: str | None
 ) -> dict[str, Any]:
@@ -295,6 +300,10 @@ class UavApplication:
         self.world = world
         self.name = platform.name
         self.prefix = platform.name.replace("-", "_")
+        # each road's direction (a unit vector): an asked-for car is predicted along it
+        self._roads: dict[str | None, tuple[float, float]] = {
+            r.id: _unit(r.b[0] - r.a[0], r.b[1] - r.a[1]) for r in world.roads
+        }
         self.dk: DyKnowInstance = platform.instance
         self.area: int | None = None
         self.delegated_by: str | None = None
@@ -565,7 +574,7 @@ class UavApplication:
                 continue
             states[obj] = state
             self._push(f"car/{obj}/state", state, t)
-        self._feed_anchored(states, t, ts)
+        self._feed_anchored(states, t)
         cars = {f"{self.prefix}_{c}" for c in anch.members("Car")}
         tracked = {o: s for o, s in states.items() if o in cars}
         self.last_cars = sorted(tracked)
@@ -744,13 +753,13 @@ class UavApplication:
         )
         return True
 
-    def _feed_anchored(self, states: dict[str, dict[str, Any]], t: int, ts: float) -> None:
+    def _feed_anchored(self, states: dict[str, dict[str, Any]], t: int) -> None:
         for a in self.anchored.values():
             match = a["match"]
             if match is None or match not in states:
                 # not seen this step (gone, or its state late on a busy machine): look
                 # again, and keep the old match when nothing else fits
-                found = self._find(a, states, ts)
+                found = self._find(a, states, t)
                 if found is not None and found != match:
                     match = a["match"] = found
                     a.setdefault("matched", time.monotonic())
@@ -758,15 +767,41 @@ class UavApplication:
             if match is not None and match in states:
                 self.sources[a["local"]].push(states[match], t)
 
-    @staticmethod
-    def _find(a: dict[str, Any], states: dict[str, dict[str, Any]], ts: float) -> str | None:
-        last, dt = a["last"], ts - a["valid"]
-        px, py = last["x"] + last["vx"] * dt, last["y"] + last["vy"] * dt
+    def _find(self, a: dict[str, Any], states: dict[str, dict[str, Any]], t: int) -> str | None:
+        """The object tracked now whose first sighting here fits the asker's last state.
+
+        Each candidate is compared where our camera first saw it after that state (its
+        position's capture time), not where it is now nor where our tracker first placed
+        it: both come later the busier this process, and the asker's answer later the
+        busier the machine. The state is moved on along its road, not sideways: a car
+        asked about during a lane change (the reckless overtaker swerving out) stays on
+        its road, while its lane-change speed carried on for 5 s puts it 13 m off.
+        """
+        last, valid = a["last"], a["valid"]
+        start = self.world_start or 0.0
+        since = min(int(valid * NS_PER_S), t)
+        first: dict[str, tuple[float, float, float]] = a.setdefault("first", {})
+        vx, vy = last["vx"], last["vy"]
+        road = self._roads.get(last.get("road"))
+        if road is not None:  # the velocity along the road only
+            along = vx * road[0] + vy * road[1]
+            vx, vy = along * road[0], along * road[1]
         best, best_d = None, MATCH
         for obj, s in states.items():
             if last.get("colour") is not None and s.get("colour") != last["colour"]:
                 continue
-            d = math.hypot(s["x"] - px, s["y"] - py)
+            seen = first.get(obj)
+            if seen is None:
+                wid = obj[len(self.prefix) + 1 :]
+                # its positions since then, oldest first (one at least: it is tracked)
+                samples = self.dk.between(f"wo/{wid}/pos", since, t).samples
+                if not samples:
+                    continue
+                x, y, captured = samples[0].value
+                seen = first[obj] = (start + captured, x, y)
+            ts, x, y = seen
+            dt = ts - valid
+            d = math.hypot(x - (last["x"] + vx * dt), y - (last["y"] + vy * dt))
             if d < best_d:
                 best, best_d = obj, d
         return best
