@@ -162,6 +162,9 @@ def zenoh_settings(config: Any) -> list[tuple[str, str]]:
         ("scouting/multicast/enabled", json.dumps(config.multicast_scouting)),
         ("scouting/gossip/enabled", json.dumps(config.gossip)),
         ("open/return_conditions/connect_scouted", json.dumps(config.wait_for_scouted)),
+        # what `ZenohConfig.to_zenoh` sets for every session of ours besides the above
+        ("transport/link/tx/queue/size/data", "16"),
+        ("transport/shared_memory/enabled", "false"),
     ]
 
 

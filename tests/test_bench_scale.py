@@ -7,6 +7,7 @@ every sample pushed arrives, and the BENCH lines come out in the form CI greps f
 
 from __future__ import annotations
 
+import json
 import re
 
 import pytest
@@ -82,3 +83,16 @@ def test_bad_sizes_are_refused_by_name(kwargs: dict[str, float], named: str) -> 
 def test_the_runner_knows_scale_and_leaves_options_to_it() -> None:
     assert "scale" in bench_main.available()
     assert bench_main.main(["--quick", "no-such-bench"]) == 2
+
+
+def test_the_bare_sessions_have_our_sessions_settings() -> None:
+    """The join's peer is fair: every setting the bare sessions get is what ours run with."""
+    from agents.transports import ZenohConfig
+    from bench._scale_node import zenoh_settings
+
+    config = ZenohConfig.loopback(0, connect=["tcp/127.0.0.1:7447"])
+    ours = config.to_zenoh()
+    settings = dict(zenoh_settings(config))
+    assert {"transport/shared_memory/enabled", "transport/link/tx/queue/size/data"} <= set(settings)
+    for path, value in settings.items():
+        assert json.loads(ours.get_json(path)) == json.loads(value), path
