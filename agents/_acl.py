@@ -132,8 +132,14 @@ class ACLMessage(BaseModel):
     def reply(
         self, performative: Performative, content: Any = None, *, sender: str | None = None
     ) -> ACLMessage:
-        """The reply to this message: same conversation, addressed to its reply_to or sender."""
+        """The reply to this message: same conversation, addressed to its reply_to or sender.
+
+        ``content`` is copied and checked, as `build` does, unless it is `HandedOver`.
+        """
         sender = sender or self.receivers[0]
+        handed_over = type(content) is HandedOver
+        if handed_over:
+            content = content.value
         # The fields taken from this message were checked when it was made: only the
         # new ones (performative, sender, content) are, here, as `build` checks them; a
         # value the quick checks leave goes to `build`, which decides as before.
@@ -144,7 +150,8 @@ class ACLMessage(BaseModel):
             and (sender in _known_aids or _valid_aid(sender))
         ):
             try:
-                content = _json_copy(content, 0)
+                if not handed_over:  # its maker vouches for it: no copy, no check
+                    content = _json_copy(content, 0)
             except _NotPlain:
                 pass
             else:
@@ -389,6 +396,24 @@ def _constructed(cls: type[ACLMessage], fields: dict[str, Any], names: set[str])
     _set_extra(message, None)
     _set_private(message, None)
     return message
+
+
+class HandedOver:
+    """A reply's content its maker gives up: plain JSON that nothing else refers to.
+
+    `ACLMessage.reply` takes ``value`` as the content as it is, without the copy and
+    check it makes of any other content (~7 µs for a provider's answer of 10 labels).
+    The maker vouches for both: ``value`` is made of dicts with str keys, lists, and str,
+    int, float, bool and None of exactly those types (no subclass, no cycle, at most 64
+    levels deep), and neither it nor anything else keeps a reference to ``value`` or to
+    any dict or list in it. Anything else is to be handed to `reply` as it is, to be
+    copied and checked.
+    """
+
+    __slots__ = ("value",)
+
+    def __init__(self, value: Any) -> None:
+        self.value = value
 
 
 class _NotPlain(Exception):

@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator, Sequence
 from enum import Enum
+from itertools import chain
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -189,24 +190,31 @@ def latest_contents(instance: DyKnowInstance, labels: Sequence[str]) -> list[dic
     What a provider answers to a get-latest of many labels, without an `Answer` per label
     (`DyKnowInstance.latest_many`); an unknown label raises as `latest` does.
     """
+    return latest_contents_plain(instance, labels)[0]
+
+
+def latest_contents_plain(
+    instance: DyKnowInstance, labels: Sequence[str]
+) -> tuple[list[dict[str, Any]], bool]:
+    """`latest_contents`, and whether they are plain JSON values.
+
+    Plain: every value and time in them a str, int, float, bool or None of exactly that
+    type (told in one pass in C), so that an answer made of them may be handed over to
+    its reply without a copy (`agents.HandedOver`).
+    """
     now, rows = instance.latest_many(labels)
     query_time = now / NS_PER_S  # as ns_to_seconds, inline
     scalar = _SCALAR_TYPES
-    return [
-        {
-            "query_time": query_time,
-            "samples": []
-            if s is None
-            else [
-                [
-                    s[0] if type(s[0]) in scalar else jsonable(s[0]),
-                    s[1] / NS_PER_S,
-                    s[2] / NS_PER_S,
-                ]
-            ],
-        }
-        for s in rows
-    ]
+    samples = [None if s is None else [s[0], s[1] / NS_PER_S, s[2] / NS_PER_S] for s in rows]
+    plain = type(query_time) is float and scalar.issuperset(
+        map(type, chain.from_iterable(filter(None, samples)))
+    )
+    if not plain:  # a value not a plain scalar becomes what jsonable makes of it
+        samples = [
+            r if r is None or type(r[0]) in scalar else [jsonable(r[0]), r[1], r[2]]
+            for r in samples
+        ]
+    return [{"query_time": query_time, "samples": [] if r is None else [r]} for r in samples], plain
 
 
 def samples_to_json(batch: list[tuple[Any, int, int]]) -> list[list[Any]]:

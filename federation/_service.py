@@ -98,6 +98,7 @@ from agents import (
     DirectoryFacilitator,
     Failure,
     GlobalDirectory,
+    HandedOver,
     MessageTemplate,
     Performative,
     Publisher,
@@ -124,7 +125,7 @@ from ._gateway_service import (
     GatewayService,
     answer_content,
     jsonable,
-    latest_contents,
+    latest_contents_plain,
 )
 from ._gateway_service import Query as GatewayQuery
 from ._service_content import (
@@ -150,6 +151,8 @@ from ._service_content import (
 from ._sharing import Sharing
 
 log = logging.getLogger(__name__)
+
+_only_str = frozenset({str}).issuperset
 
 P = Performative
 
@@ -640,7 +643,7 @@ class FederationAgent(Agent):
             # the common request, a plain get-latest, without its model (`latest_labels`)
             labels = latest_labels(message.content)
             if labels is not None:
-                return self._latest(labels, platform_of(message.sender))
+                return self._latest_reply(labels, platform_of(message.sender))
             return await self._perform(parse_request(message.content), message)
         except Denied as exc:
             self._denied(message, exc)
@@ -656,7 +659,7 @@ class FederationAgent(Agent):
         try:
             labels = latest_labels(message.content)  # as in `_on_request`
             if labels is not None:
-                return self._latest(labels, platform_of(message.sender))
+                return self._latest_reply(labels, platform_of(message.sender))
             req = parse_request(message.content)
             if req.action not in QUERY_ACTIONS and req.action != "list-labels":
                 raise ContentError(f"{req.action} is an action: ask for it with FIPA-Request")
@@ -1080,13 +1083,24 @@ class FederationAgent(Agent):
 
     def _latest(self, labels: list[str], asker: str) -> dict[str, Any]:
         """The answer to a get-latest of ``labels`` (checked content) from ``asker``'s platform."""
+        return self._latest_reply(labels, asker, hand_over=False)
+
+    def _latest_reply(self, labels: list[str], asker: str, *, hand_over: bool = True) -> Any:
+        """`_latest`, handed over to its reply (`HandedOver`) when it is plain JSON.
+
+        The answer's dicts and lists are made here and kept nowhere else; with labels and
+        values of exact JSON types, the reply needs no copy or check of it.
+        """
         labels = list(dict.fromkeys(labels))
         local = self._locals(labels, asker)
         try:
-            contents = latest_contents(self.instance, local)
+            contents, plain = latest_contents_plain(self.instance, local)
         except Exception:  # `_answers` raises it again, named per label
             return self._answers(None, labels, local)
-        return dict(zip(labels, contents, strict=True))
+        answer = dict(zip(labels, contents, strict=True))
+        if hand_over and plain and _only_str(map(type, labels)):
+            return HandedOver(answer)
+        return answer
 
     def _answers(
         self, req: GetValueAt | GetTrajectory | None, labels: list[str], local_labels: list[str]

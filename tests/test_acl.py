@@ -21,6 +21,7 @@ from agents import (
     ACLMessage,
     Agent,
     AgentPlatform,
+    HandedOver,
     MemoryHub,
     MessageError,
     MessageTemplate,
@@ -125,6 +126,34 @@ def test_reply_is_the_message_build_makes() -> None:
             assert r.content is not content and r.receivers is not answering.receivers
     with pytest.raises(ValidationError):
         m.reply(P.INFORM, sender="not an id")
+
+
+def test_a_handed_over_content_is_the_reply_s_own_else_it_is_copied_and_checked() -> None:
+    """HandedOver: the reply takes the content as it is; a reply built by `build` copies it."""
+    m = ACLMessage.build(
+        performative=P.QUERY_REF,
+        sender="a@p",
+        receivers=["b@q"],
+        conversation_id="c-9",
+        reply_with="r-9",
+    )
+    content: Any = {"x": {"query_time": 1.5, "samples": [[1, 2.0, 3.0]]}}
+    r = m.reply(P.INFORM, HandedOver(content))
+    assert r.content is content  # no copy: its maker gave it up
+    made = m.reply(P.INFORM, {"x": {"query_time": 1.5, "samples": [[1, 2.0, 3.0]]}})
+    assert (r, r.model_fields_set, r.to_json()) == (made, made.model_fields_set, made.to_json())
+    # a performative or sender the quick checks leave: `build` decides, as without it
+    for performative, sender in (("inform", "b@q"), (P.INFORM, "not an id")):
+        try:
+            want: Any = m.reply(performative, content, sender=sender)  # type: ignore[arg-type]
+        except ValidationError as exc:
+            with pytest.raises(ValidationError) as err:
+                m.reply(performative, HandedOver(content), sender=sender)  # type: ignore[arg-type]
+            assert str(err.value) == str(exc)
+            continue
+        got = m.reply(performative, HandedOver(content), sender=sender)  # type: ignore[arg-type]
+        assert (got, got.model_fields_set) == (want, want.model_fields_set)
+        assert got.content is not content
 
 
 def test_readdressed_is_the_copy_model_copy_makes_with_the_receiver_checked() -> None:

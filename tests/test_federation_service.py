@@ -11,6 +11,8 @@ import asyncio
 import contextlib
 from collections.abc import AsyncIterator, Awaitable
 from dataclasses import dataclass, field
+from enum import IntEnum, StrEnum
+from types import SimpleNamespace
 from typing import Any
 
 import orjson
@@ -20,9 +22,11 @@ from hypothesis import strategies as st
 
 from agents import (
     FIPA_REQUEST,
+    ACLMessage,
     Agent,
     AgentPlatform,
     Failed,
+    HandedOver,
     MessageTemplate,
     Performative,
     Refused,
@@ -38,6 +42,7 @@ from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.transports import MemoryHub, MemoryTransport
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Policy, Source, UnknownLabelError
+from federation._gateway_service import jsonable
 from federation._service import (
     FEDERATION_SERVICE_TYPE,
     ONTOLOGY,
@@ -870,3 +875,137 @@ async def test_membership_subscription_needs_its_content() -> None:
             subscribe(w["uav-b"].fed, "federation@uav-a", {"members": 1}, ontology=ONTOLOGY)
         )
         assert "membership" in reason
+
+
+# -- a plain get-latest's answer handed over to its reply, without the reply's copy ------------
+
+
+class _Code(IntEnum):
+    A = 1
+
+
+class _Name(StrEnum):
+    A = "a"
+
+
+class _Float(float):
+    pass
+
+
+class _Str(str):
+    pass
+
+
+class _Int(int):
+    pass
+
+
+class _Rows:
+    """What latest_contents reads of an instance: one clock reading and a sample per label."""
+
+    def __init__(self, now: Any, rows: list[Any]) -> None:
+        self.now, self.rows = now, rows
+
+    def latest_many(self, labels: list[str]) -> tuple[Any, list[Any]]:
+        return self.now, list(self.rows)
+
+
+_odd = st.sampled_from(
+    [_Code.A, _Name.A, _Float(1.5), _Str("x"), _Int(3), (1, 2), object(), b"x", {1: 2}]
+)
+_leaf = (
+    st.none()
+    | st.booleans()
+    | st.integers()
+    | st.integers(min_value=2**64)
+    | st.floats()  # NaN and infinities included
+    | st.text(max_size=3)
+    | _odd
+)
+_sample_value = st.recursive(
+    _leaf,
+    lambda inner: (
+        st.lists(inner, max_size=3)
+        | st.dictionaries(
+            st.text(max_size=2) | st.sampled_from([_Str("k"), 1, _Code.A]), inner, max_size=2
+        )
+        | st.tuples(inner)
+    ),
+    max_leaves=6,
+)
+_time = st.integers(-(2**70), 2**70) | st.floats() | st.sampled_from([_Int(5), _Float(2.0)])
+_sample = st.none() | st.tuples(_sample_value, _time, _time)
+
+
+def _exact(value: Any) -> Any:
+    """``value``'s types, all the way down (an equal value of another type differs here)."""
+    if type(value) is dict:
+        return {(type(k), k): _exact(v) for k, v in value.items()}
+    if type(value) is list:
+        return [_exact(v) for v in value]
+    return type(value), repr(value)
+
+
+def _reply_outcome(content: Any) -> tuple[Any, ...]:
+    question = ACLMessage.build(
+        performative=Performative.QUERY_REF,
+        sender="federation@operator",
+        receivers=["federation@uav-a"],
+        content={"action": "get-latest", "labels": ["x"]},
+        conversation_id="c-1",
+        reply_with="r-1",
+    )
+    try:
+        answer = question.reply(Performative.INFORM, content, sender="federation@uav-a")
+    except Exception as exc:  # the type and the words the handler sees
+        return type(exc).__name__, str(exc)
+    try:
+        wire: Any = answer.to_json()
+    except Exception as exc:
+        wire = (type(exc).__name__, str(exc))
+    return repr(answer), _exact(answer.content), answer.model_fields_set, wire
+
+
+@settings(max_examples=400, deadline=None)
+@given(
+    st.integers(0, 2**62) | _time,
+    st.lists(
+        st.tuples(st.text(min_size=1, max_size=3) | st.just(_Str("s")), _sample),
+        max_size=4,
+        unique_by=lambda drawn: drawn[0],
+    ),
+)
+def test_a_handed_over_latest_is_the_reply_the_copy_made(now: Any, drawn: list[Any]) -> None:
+    """_latest_reply: the reply it hands its answer to is the one the copied answer made."""
+    labels = [label for label, _ in drawn]
+    rows = [sample for _, sample in drawn]
+    fake = SimpleNamespace(
+        instance=_Rows(now, rows),
+        _locals=lambda labels, asker: labels,
+        _answers=lambda req, labels, local: "answered one by one",
+    )
+    # before: each value as jsonable makes it, the answer copied and checked by the reply
+    try:
+        query_time = now / NS_PER_S
+        old: Any = dict.fromkeys(labels)
+        for label, s in zip(labels, rows, strict=True):
+            samples = [] if s is None else [[jsonable(s[0]), s[1] / NS_PER_S, s[2] / NS_PER_S]]
+            old[label] = {"query_time": query_time, "samples": samples}
+    except Exception:
+        old = "answered one by one"
+    new = FederationAgent._latest_reply(fake, labels, "operator")  # type: ignore[arg-type]
+    if isinstance(new, HandedOver):
+        assert new.value == old or repr(new.value) == repr(old)  # NaN is not equal to itself
+        assert _reply_outcome(new) == _reply_outcome(old)
+    else:
+        assert _reply_outcome(new) == _reply_outcome(old)
+    # the quick answer of plain values and labels is handed over; nothing else is
+    plain = old != "answered one by one" and all(
+        type(x) in (str, int, float, bool, type(None))
+        for x in [
+            *labels,
+            now / NS_PER_S,
+            *(v for s in rows if s is not None for v in (s[0], s[1] / NS_PER_S, s[2] / NS_PER_S)),
+        ]
+    )
+    assert isinstance(new, HandedOver) == plain
