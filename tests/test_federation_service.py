@@ -667,6 +667,17 @@ def test_check_all_is_the_first_refusal_of_check(
     assert sharing.check_all("query", labels, platform) == want
 
 
+def test_check_all_asks_a_subclass_s_own_check() -> None:
+    """A `Sharing` that decides otherwise (its own `check`) is asked, default table or not."""
+
+    class NoCars(Sharing):
+        def check(self, action: Any, label: str, platform: str) -> str | None:
+            return "no cars" if label.startswith("car") else super().check(action, label, platform)
+
+    assert NoCars().check_all("query", ["heli-altitude", "car5"], "uav-b") == "no cars"
+    assert NoCars().check_all("query", ["heli-altitude"], "uav-b") is None
+
+
 # -- global requests ------------------------------------------------------------------------------
 
 

@@ -656,6 +656,12 @@ def test_zenoh_config_leaves_shared_memory_off_unless_the_user_chose() -> None:
     assert enabled() is False
     assert enabled(json5="{ mode: 'peer' }") is False
     assert enabled(json5="{ transport: { shared_memory: { enabled: true } } }") is True
+    assert enabled(json5='{ "transport": { "shared_memory": { "enabled": false } } }') is False
+    # a shared_memory key keeps zenoh's value, its default (on) where the file has none
+    assert enabled(json5="{ transport: { shared_memory: { mode: 'init' } } }") is True
+    # a comment saying so is not a key
+    assert enabled(json5="{\n  // shared_memory: we want it off\n  mode: 'peer',\n}") is False
+    assert enabled(json5="{ /* shared_memory: on? */ mode: 'peer' }") is False
     assert enabled(overrides={path: True}) is True
 
 

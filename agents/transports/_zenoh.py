@@ -90,6 +90,10 @@ _TX_QUEUE_BATCHES = 16
 # buffers. Off unless the user's JSON5 sets it or ``overrides`` turn it on: nodes on
 # separate hosts never use it, and on one host the link carries the bytes instead.
 _SHM = "transport/shared_memory/enabled"
+# A JSON5 text that has ``shared_memory`` as a key (quoted or not, followed by a colon),
+# once its comments (``/* */``, and ``//`` at a line's start or after a space) are gone
+_SHM_KEY = re.compile(r"""(?:^|[\s{,'"])shared_memory['"]?\s*:""")
+_JSON5_COMMENT = re.compile(r"/\*.*?\*/|(?:^|(?<=\s))//[^\n]*", re.DOTALL | re.MULTILINE)
 
 # Sessions opened and not yet closed, closed at exit: an unclosed session with callback
 # subscribers can hang interpreter shutdown.
@@ -326,7 +330,7 @@ class ZenohConfig(BaseModel):
             if not self.json5 or _setting(cfg, _TX_QUEUE) == _setting(zenoh.Config(), _TX_QUEUE):
                 # (a size a user's JSON5 chose other than zenoh's stays; ``overrides`` come after)
                 cfg.insert_json5(_TX_QUEUE, json.dumps(_TX_QUEUE_BATCHES))
-            if not self.json5 or "shared_memory" not in self.json5:
+            if not self.json5 or not _SHM_KEY.search(_JSON5_COMMENT.sub("", self.json5)):
                 # (zenoh's default read back cannot say whether the user's JSON5 chose it)
                 cfg.insert_json5(_SHM, "false")
             listen = self.listen
