@@ -858,6 +858,60 @@ async def test_a_burst_that_goes_on_sends_one_envelope_a_turn() -> None:
         assert [m.content["i"] for m in echo.informs] == list(range(got))  # in order
 
 
+async def _three_with_sessions(fed: Fed) -> tuple[AgentPlatform, Echo, Echo, Echo]:
+    """uav-a with a session to uav-b and to uav-c, an echo on each."""
+    pa = await fed.start("uav-a")
+    asker = await serve(pa, "asker", None)
+    echo_b = await serve(await fed.start("uav-b"), "echo")
+    echo_c = await serve(await fed.start("uav-c"), "echo")
+    for peer in ("uav-b", "uav-c"):
+        assert await request(asker, f"echo@{peer}", 1, ontology="demo") is not None
+    echo_b.informs.clear()
+    echo_c.informs.clear()
+    return pa, asker, echo_b, echo_c
+
+
+async def test_a_batch_that_cannot_go_keeps_no_other_platform_s_batch(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """One platform's envelope failing at the end of the turn: logged, counted, the rest go."""
+    async with federation("uav-a", "uav-b", "uav-c") as fed:
+        pa, asker, echo_b, echo_c = await _three_with_sessions(fed)
+        interface = ia(pa)
+        transport = pa.transport
+        publish_nowait = transport.publish_nowait
+        refused = wire_key(FED, "acl", "uav-b")
+
+        def failing(key: str, payload: bytes) -> None:
+            if key == refused:
+                raise TransportError("the link to uav-b is gone")
+            publish_nowait(key, payload)
+
+        transport.publish_nowait = failing  # type: ignore[method-assign]
+        try:
+            for i in range(4):  # uav-b first: its batch fails before uav-c's is sealed
+                for peer in ("uav-b", "uav-c"):
+                    await asker.send(
+                        asker.message(
+                            Performative.INFORM, f"echo@{peer}", {"i": i}, ontology="demo"
+                        )
+                    )
+            await until(lambda: len(echo_c.informs) == 4, "uav-c's 4 informs")
+        finally:
+            transport.publish_nowait = publish_nowait  # type: ignore[method-assign]
+        assert [m.content["i"] for m in echo_c.informs] == [0, 1, 2, 3]
+        assert interface.batches_lost == 3  # uav-b's batch; its first went alone, at once
+        assert "3 message(s) to uav-b not sent: the link to uav-b is gone" in caplog.text
+        await until(lambda: len(echo_b.informs) == 1, "uav-b's first inform")
+        assert echo_b.informs[0].content == {"i": 0}
+        # the next turn to uav-b goes as ever (a burst: its one message waits for the
+        # end of the turn, then goes alone)
+        await asker.send(
+            asker.message(Performative.INFORM, "echo@uav-b", {"i": 9}, ontology="demo")
+        )
+        await until(lambda: len(echo_b.informs) == 2, "uav-b's next inform")
+
+
 async def test_a_message_that_is_no_json_is_refused_at_send_in_a_burst_too() -> None:
     """First of its turn or joining the batch: MessageError where it is sent; the rest go."""
     async with federation("uav-a", "uav-b") as fed:
