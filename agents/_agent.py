@@ -347,13 +347,9 @@ class Conversation:
         The end of a closed conversation stays queued (it is always last), for `receive`
         to raise.
         """
-        items = self._items._items
-        if not items:
-            return []
-        taken = list(items)
-        items.clear()
-        if type(taken[-1]) is _Ended:
-            items.append(taken.pop())
+        taken = self._items.get_all_nowait()
+        if taken and type(taken[-1]) is _Ended:
+            self._items.put_front(taken.pop())
         return taken  # type: ignore[return-value]
 
     async def receive(

@@ -160,6 +160,12 @@ class Mailbox(Generic[T]):
             raise asyncio.QueueEmpty
         return self._items.popleft()
 
+    def get_all_nowait(self) -> list[T]:
+        """Every item queued now, in order (none: an empty list), taken without waiting."""
+        items = list(self._items)
+        self._items.clear()
+        return items
+
     def __len__(self) -> int:
         return len(self._items)
 

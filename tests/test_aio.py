@@ -26,6 +26,17 @@ async def test_items_come_out_in_order() -> None:
     assert len(box) == 0
 
 
+def test_get_all_nowait_takes_what_is_queued_in_order() -> None:
+    box: Mailbox[int] = Mailbox(4)
+    assert box.get_all_nowait() == []
+    for i in range(3):
+        box.put(i)
+    assert box.get_all_nowait() == [0, 1, 2]
+    assert len(box) == 0
+    box.put(3)
+    assert box.get_nowait() == 3
+
+
 async def test_a_waiting_consumer_gets_the_next_item() -> None:
     box: Mailbox[str] = Mailbox(10)
     getting = asyncio.create_task(box.get())
