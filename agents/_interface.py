@@ -1504,18 +1504,31 @@ class InterfaceAgent:
             log.warning("interface[%s]: could not refuse %s: %s", self._me, message.sender, exc)
 
     async def _watch(self, presence: Subscription[Presence]) -> None:
-        """Forget a platform's sessions when it leaves, or reappears without having left."""
+        """Forget a platform's sessions when it leaves, or reappears without having left.
+
+        On its token's first sight (or its return after a leave), send on none of them
+        until it sends on one: they may be a previous process's.
+        """
         host = self._require_host()
         async for change in presence:
             peer = change.key.rpartition("/")[2]
             if peer == host.name or peer not in self.trust:
                 continue  # no session with an untrusted name to forget (the directory audits it)
             if not change.alive or peer in self._alive:
-                # Not on a first sight, nor on a return after a leave (its sessions went
-                # then): a platform's token can reach us after the key exchange of its
-                # first request (zenoh on a loaded machine); forgetting then would drop
-                # the session that request is sealed on, and the request with it.
                 self.sessions.forget(peer)
+            else:
+                # A first sight forgets nothing: a platform's token can reach us after the
+                # key exchange of its first request (zenoh on a loaded machine), and that
+                # request, or our answer to it, is sealed on the session. But the session
+                # may be one we agreed with a previous process of that platform, whose
+                # token we never saw (the tokens alive when we started are not reported)
+                # nor its end: the new process cannot open it and our next request would
+                # be lost. So none is sent on until the peer sends on one; the next message
+                # agrees a new session first. What waits in this turn's batch goes as the
+                # message before it did.
+                if peer in self._outbox:
+                    self._flush(peer)
+                self.sessions.doubt(peer)
             self._last_rehandshake.pop(peer, None)
             if change.alive:
                 self._alive.add(peer)

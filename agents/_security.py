@@ -770,7 +770,10 @@ class Session:
 
     @property
     def confirmed(self) -> bool:
-        """True once the peer is known to hold the session (initiator, or a message came)."""
+        """True once the peer is known to hold the session (initiator, or a message came).
+
+        `SessionTable.doubt` makes it False again until the peer sends on it.
+        """
         return self._confirmed
 
     def age(self) -> float:
@@ -1110,6 +1113,25 @@ class SessionTable:
         self._tx.pop(peer, None)
         self._rx_latest.pop(peer, None)
         return len(dropped)
+
+    def doubt(self, peer: str) -> int:
+        """Seal for ``peer`` on none of its sessions until it sends on one; how many were in use.
+
+        For a platform whose liveliness token shows for the first time: the sessions held
+        with it may be a previous process's (its token never seen here), which the new one
+        cannot open; or the current one's (its token late), whose envelopes in flight must
+        still open here. So none is dropped: the next message agrees a new session first
+        (`session_for` is None), and one the peer sends on is trusted again.
+        """
+        doubted = 0
+        for session in self._by_peer.get(peer, ()):
+            if session._confirmed:
+                session._confirmed = False
+                doubted += 1
+        self._tx.pop(peer, None)
+        # the next envelope from the peer, on whichever session, confirms that one again
+        self._rx_latest.pop(peer, None)
+        return doubted
 
     def prune(self) -> int:
         """Drop sessions past their lifetime or their grace period; how many were dropped."""

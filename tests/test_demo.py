@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import math
 import types
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -38,6 +39,7 @@ from federation.demo._uav import (
     SimClock,
     UavApplication,
     UavSettings,
+    _state_dict,
     _Track,
     fact_rules,
 )
@@ -201,6 +203,61 @@ async def test_cars_asked_for_late_are_anchored_where_they_were_first_seen(state
     (app,) = asked
     matches = {name: a["match"] for name, a in app.anchored.items()}
     assert None not in matches.values() and len(set(matches.values())) == 2, matches
+
+
+async def reckless_seen_by_b(lag: float) -> list[dict[str, Any]]:
+    """uav-b's (area 1, seed 1) reckless overtakes, the pair handed over to a neighbour.
+
+    The neighbour's states (the cars' true ones on a 0.5 s grid, from when its own view
+    tracks them past the border) are in ``lag`` s ahead of each tracker step: a step run
+    that late on a busy machine, catching up, finds them imported already.
+    """
+    world = World.generate(1, 3, 60.0)
+    border = world.border(1)
+    fused: dict[str, tuple[str, Source]] = {}  # our object -> (the true car, its fused label)
+    pushed: dict[str, int] = {}  # our object -> the newest state's world time, half seconds
+
+    async def after_step(app: UavApplication) -> None:
+        wt = app.world_time(app.dk.clock.now())
+        if not fused:  # as uav-b does on the pair's beside: ask the neighbour for both
+            pairs = [k for k, r in app.relations.current.items() if r == "beside-fast"]
+            if not pairs:
+                return
+            cars = world.cars_at(wt)
+            for obj in pairs[0]:
+                s = app.last_states[obj]
+                car = min(cars, key=lambda c: math.hypot(c.x - s["x"], c.y - s["y"]))
+                label = f"fused/{obj}/state"
+                fused[obj] = (car.id, app.dk.add_source(label))
+                pushed[obj] = math.floor(wt / 0.5)
+                app.handovers[obj] = {"to": "uav-c", "label": label}
+        # in by the next step: what is valid up to its time, plus how late it runs
+        upto = math.floor((wt + PERIOD + lag) / 0.5 + 1e-6)  # in half seconds
+        for obj, (car_id, src) in fused.items():
+            for half in range(pushed[obj] + 1, upto + 1):
+                pushed[obj] = half
+                (car,) = [c for c in world.cars_at(half * 0.5) if c.id == car_id]
+                if car.x > border + 10:
+                    road = world.road_at(car.x, car.y)
+                    valid = BASE_NS + half * NS_PER_S // 2
+                    src.push(_state_dict(car.x, car.y, car.vx, car.vy, car.colour, road), valid)
+
+    found = await run_offline(1, seed=1, after_step=after_step)
+    assert len(fused) == 2
+    return [f for f in found if f["kind"] == "reckless-overtake"]
+
+
+async def test_a_tracker_step_run_late_sees_no_state_of_its_future() -> None:
+    # On a busy machine uav-b's step for time t ran late, when the neighbour's states of
+    # the handed-over overtaker were in for seconds after t: the newest, moved back to t,
+    # placed it back in its lane while it was still beside the other car, and the overtake
+    # was recognized 3 s before it ended. A step sees what was valid by its own time only.
+    world = World.generate(1, 3, 60.0)
+    (truth,) = [v for v in world.ground_truth() if v.kind == "reckless-overtake"]
+    on_time = await reckless_seen_by_b(0.0)
+    (found,) = on_time
+    assert found["fused"] and abs(found["end"] - truth.end) < 1.5, found
+    assert await reckless_seen_by_b(4.0) == on_time
 
 
 # -- the anchoring hook of the federation service --------------------------------------------

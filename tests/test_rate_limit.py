@@ -733,8 +733,12 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
         ):
             echo = await target.add(Echo())
             asker = await pg.add(Agent("asker"))
-            # both ways: T's answers go to G's inbox, which T must know of (a busy
-            # machine can delay that past G's first request)
+            # both ways. T seeing G's token first was added for a flake blamed on T not
+            # knowing G's inbox; its cause was the session: G's token reached T (a busy
+            # machine) after the key exchange of G's first request, and T forgot a
+            # platform's sessions on any presence change, that one too, so the request
+            # sealed on it was refused as unknown-session and lost. A first sight forgets
+            # no session now; the wait only keeps the test's start as it was.
             await alive(pg, TARGET)
             await alive(target, GOOD)
             quiet = await pace(asker, ECHO, 50, 0.02)

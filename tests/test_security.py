@@ -631,6 +631,29 @@ def test_forget(pair: tuple[Platform, Platform]) -> None:
     assert a.hs.cancel("uav-b") == 1
 
 
+def test_doubt_keeps_the_sessions_but_seals_on_none_until_the_peer_sends(
+    clock: Clock,
+) -> None:
+    # a's token first seen by b: b's session with a may be a previous process's of a
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    sb, sa = connect(b, a)  # b initiated it: b seals on it at once
+    assert b.table.session_for("uav-a") is sb
+    assert b.table.doubt("uav-a") == 1 and b.table.doubt("uav-a") == 0
+    assert b.table.peers() == ["uav-a"] and b.table.session_for("uav-a") is None
+    with pytest.raises(UnknownSession):
+        b.table.seal("uav-a", ACL)
+    assert b.table.needs_renewal("uav-a")
+    # a sends on it (a's current process after all): it opens, and b seals on it again
+    assert b.table.open(sa.seal(ACL)) == ("uav-a", ACL)
+    assert b.table.session_for("uav-a") is sb
+    # doubted again, a new handshake makes the session to seal with; the old one still opens
+    b.table.doubt("uav-a")
+    clock.advance(0.01)
+    sb2, _ = connect(b, a)
+    assert b.table.session_for("uav-a") is sb2
+    assert b.table.open(sa.seal(ACL)) == ("uav-a", ACL)
+
+
 def test_table_refuses_foreign_or_duplicate_session(pair: tuple[Platform, Platform]) -> None:
     a, b = pair
     (sa,) = a.table.sessions("uav-b")

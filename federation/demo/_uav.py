@@ -54,7 +54,7 @@ from agents import (
     on_request,
     platform_of,
 )
-from dyknow_core import NS_PER_S, Domain, DyKnowInstance, Source
+from dyknow_core import NS_PER_S, Domain, DyKnowInstance, Sample, Source
 from dyknow_core.reasoning import (
     Anchoring,
     LinkType,
@@ -552,7 +552,7 @@ class UavApplication:
         states: dict[str, dict[str, Any]] = {}
         border = math.inf if self.area is None else self.world.areas[self.area].x1
         for wid in anch.members("WorldObject"):
-            pos = self.dk.latest(f"wo/{wid}/pos").latest
+            pos = self._valid_by(f"wo/{wid}/pos", t, FRESH)
             if pos is None:
                 continue
             x, y, captured = pos.value
@@ -597,13 +597,29 @@ class UavApplication:
             fused = h.get("label")
             if obj in tracked or fused is None:
                 continue
-            s = self.dk.latest(fused).latest
+            s = self._valid_by(fused, t, FUSED_FRESH)
             if s is not None and ts - s.valid_time / NS_PER_S <= FUSED_FRESH:
                 tracked[obj] = self._moved(s.value, ts - s.valid_time / NS_PER_S)
         self.last_states.update(tracked)
         self._relations(tracked, t)
         self._crossings(tracked, t)
         self._violations()
+
+    def _valid_by(self, label: str, t: int, back: float) -> Sample | None:
+        """The newest sample of ``label`` valid at or before ``t`` (and at most ``back`` s before).
+
+        A step runs for its time ``t``, and on a busy machine late, catching up: by then
+        samples valid after ``t`` may be in (the neighbour's states of a handed-over car,
+        our anchoring's positions). Taken as the newest, a state from the step's future,
+        moved back to ``t``, places a car where it only gets later: a reckless overtaker
+        seen back in its lane while it is still beside, the overtake recognized seconds
+        before it ends.
+        """
+        s = self.dk.latest(label).latest
+        if s is None or s.valid_time <= t:
+            return s
+        older = self.dk.between(label, t - int(back * NS_PER_S), t).samples
+        return older[-1] if older else None
 
     def _moved(self, state: dict[str, Any], dt: float) -> dict[str, Any]:
         """A fused state ``dt`` s old, moved on by its velocity to the step's time.
