@@ -41,6 +41,7 @@ from federation.demo._uav import (
     UavSettings,
     _state_dict,
     _Track,
+    await_members,
     fact_rules,
 )
 from federation.demo._world import _COLOURS, World
@@ -324,7 +325,9 @@ async def test_the_demo_finds_the_violation_across_the_border_from_fused_states(
     names = uav_names(uavs)
     # the leader's Contract-Net gives each area to the UAV hovering over it (cheapest)
     assert report.delegation["assignments"] == {str(i): n for i, n in enumerate(names)}
-    assert sorted(report.delegation["capabilities"]) == [n for n in names if n != names[0]]
+    assert sorted(report.delegation["capabilities"]) == [n for n in names if n != names[0]], (
+        report.delegation
+    )
     missed = [gt for gt, f in report.matched if f is None]
     assert missed == [] and report.false_positives == [], "\n".join(lines)
     assert report.handover_detected, "\n".join(lines)
@@ -343,6 +346,33 @@ async def test_the_demo_finds_the_violation_across_the_border_from_fused_states(
     assert any("from fused states" in line for line in lines)
     if foxglove is not None:
         assert any(line.startswith("operator foxglove: ws://127.0.0.1:") for line in lines)
+
+
+async def test_the_leader_waits_until_its_own_directory_lists_the_uavs_the_operator_saw(
+    tmp_path: Path,
+) -> None:
+    # Each platform learns the members by itself: the operator saw uav-b join, the leader
+    # not yet. Delegating then would ask uav-b nothing and give it no area.
+    configs = _federation_files(tmp_path, ["uav-a", "uav-b"])
+    hub = MemoryHub()
+    async with contextlib.AsyncExitStack() as stack, asyncio.timeout(WAIT):
+
+        async def start(name: str) -> FederationPlatform:
+            transport = await stack.enter_async_context(hub.transport())
+            config = PlatformConfig.from_dict(configs[name])
+            return await stack.enter_async_context(FederationPlatform(config, transport=transport))
+
+        a = await start("uav-a")
+        waiting = asyncio.create_task(await_members(a, ["uav-a", "uav-b"], 10.0))
+        await asyncio.sleep(0.2)
+        assert not waiting.done() and "uav-b" not in a.members
+        await start("uav-b")
+        assert await waiting == set() and "uav-b" in a.members
+        # listed already: no wait; one that never comes: the bound, then it is named
+        assert await await_members(a, ["uav-b"], 10.0) == set()
+        t0 = asyncio.get_running_loop().time()
+        assert await await_members(a, ["uav-b", "uav-x"], 0.3) == {"uav-x"}
+        assert asyncio.get_running_loop().time() - t0 >= 0.29
 
 
 def test_the_demo_command_refuses_bad_options(capsys: pytest.CaptureFixture[str]) -> None:

@@ -371,7 +371,11 @@ async def _operate(
             leader = names[0]
             say(f"operator → {leader}: monitor the area (global request + Contract-Net)")
             delegation: Any = await request(
-                agent, f"traffic@{leader}", {"action": "monitor"}, ontology=ONTOLOGY, timeout=30.0
+                agent,
+                f"traffic@{leader}",
+                {"action": "monitor", "uavs": names},
+                ontology=ONTOLOGY,
+                timeout=45.0,
             )
             assert isinstance(delegation, dict)
             for area, who in sorted(delegation["assignments"].items()):

@@ -35,6 +35,7 @@ import re
 import signal
 import time
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, Self
 
@@ -105,6 +106,8 @@ HANDOVER_RANGE = 150.0  # m before the east border: ask the neighbour for the ca
 MIN_POINTS = 4  # positions before a track has a state: two give a noisy speed
 MISSES = 3  # detections missed in a row before a percept is retired
 MATCH = 15.0  # m: an anchored object's predicted position vs a local world object
+MEMBERS_WAIT = 10.0  # s: the leader waits at most this for the UAVs the operator saw join
+CAPABILITIES_DEADLINE = 10.0  # s: for every member's capabilities (returns when all answered)
 OBJECT_STATE = re.compile(r"([A-Za-z0-9_]+)-state")
 TRACKED = "tracked"
 """The domain of the cars a UAV tracks now, by their federation names (``uav_b_car3``)."""
@@ -916,20 +919,37 @@ class TrafficMonitor(Agent):
         content = message.content
         action = content.get("action") if isinstance(content, dict) else None
         if action == "monitor":
-            return await self.delegate()
+            assert isinstance(content, dict)  # action is only set for a dict
+            uavs = content.get("uavs", [])
+            if not isinstance(uavs, list):
+                raise Refuse("'uavs' must be a list of platform names")
+            names = [u for u in uavs if isinstance(u, str)]
+            if len(names) != len(uavs):
+                raise Refuse("'uavs' must be a list of platform names")
+            return await self.delegate(names)
         if action == "status":
             return self.app.status()
         if action == "report":
             return self.app.report()
         raise Refuse(f"unknown action {action!r} (monitor, status or report)")
 
-    async def delegate(self) -> dict[str, Any]:
-        """Global request for capabilities, then one Contract-Net per area."""
+    async def delegate(self, uavs: Iterable[str] = ()) -> dict[str, Any]:
+        """Global request for capabilities, then one Contract-Net per area.
+
+        ``uavs``: the platforms the operator saw join; the leader waits (bounded) until its
+        own directory lists them too, since each platform learns the members by itself and
+        a UAV not yet listed here would be neither asked nor given an area.
+        """
         app = self.app
         fed = app.platform.federation_agent
+        if missing := await await_members(app.platform, uavs, MEMBERS_WAIT):
+            log.warning("%s: delegating without %s (not listed here)", self, sorted(missing))
+        # The request returns as soon as every member answered: the deadline only bounds
+        # the wait for one that cannot (a first request to a member agrees a session first,
+        # slow on a loaded machine)
         caps = await fed.global_request(
             {"action": "get-latest", "labels": ["heli-max-speed", "heli-altitude"]},
-            deadline=3.0,
+            deadline=CAPABILITIES_DEADLINE,
         )
         gdf = self.platform.global_df
         assert gdf is not None
@@ -1000,6 +1020,20 @@ class TrafficMonitor(Agent):
         c: Any = message.content
         if isinstance(c, dict) and isinstance(c.get("assignments"), dict):
             self.app.assignments = {int(k): str(v) for k, v in c["assignments"].items()}
+
+
+async def await_members(
+    platform: FederationPlatform, names: Iterable[str], timeout: float
+) -> set[str]:
+    """Wait until ``platform`` lists every one of ``names`` (at most ``timeout`` s); the rest."""
+    expected = set(names) - {platform.name}
+    if not expected <= set(platform.members):
+        with contextlib.suppress(TimeoutError):
+            async with platform.membership() as events, asyncio.timeout(timeout):
+                # listed by now, or between the check above and the subscription
+                while not expected <= set(platform.members):
+                    await events.get()
+    return expected - set(platform.members)
 
 
 def _cheapest(proposals: list[Proposal]) -> list[Proposal]:
