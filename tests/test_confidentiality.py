@@ -443,6 +443,8 @@ with zenoh.open(cfg) as session:
     deadline = time.monotonic() + settings["seconds"]
     while time.monotonic() < deadline:
         peers = [str(z) for z in session.info.peers_zid()]
+        if settings["until_seen"] and peers and got:
+            break  # what it was to show, shown: no need to look on
         time.sleep(0.2)
     print(json.dumps({"peers": peers, "samples": len(got)}), flush=True)
 """
@@ -465,18 +467,35 @@ def _tls_table(pki: Path, name: str) -> str:
     )
 
 
-def _probe(connect: str, key: str, seconds: float, tls: dict[str, Any] | None = None) -> Any:
-    settings = {"connect": connect, "key": key, "seconds": seconds, "tls": tls or {}}
-    done = subprocess.run(
-        [sys.executable, "-c", PROBE, json.dumps(settings)],
-        capture_output=True,
-        text=True,
-        timeout=seconds + START,
-        cwd=ROOT,
-        env=_env(),
-    )
-    assert done.returncode == 0, done.stderr[-2000:]
-    return json.loads(done.stdout.strip().splitlines()[-1])
+def _probes(
+    key: str, seconds: float, probes: list[tuple[str, dict[str, Any] | None, bool]]
+) -> list[Any]:
+    """Plain zenoh sessions, one per (endpoint, TLS settings, until_seen), side by side.
+
+    Each looks ``seconds`` s at whom it reached and what it saw on ``key``; one with
+    ``until_seen`` stops as soon as it has a peer and a sample. They run at once: what
+    one of them reaches does not depend on the others, and each waits its own ``seconds``
+    from its own session's start.
+    """
+    procs = []
+    with _processes() as running:
+        for connect, tls, until_seen in probes:
+            settings = {
+                "connect": connect,
+                "key": key,
+                "seconds": seconds,
+                "tls": tls or {},
+                "until_seen": until_seen,
+            }
+            proc = _spawn("-c", PROBE, json.dumps(settings))
+            running.append(proc)
+            procs.append(proc)
+        results = []
+        for proc in procs:
+            out, err = proc.communicate(timeout=seconds + START)
+            assert proc.returncode == 0, err[-2000:]
+            results.append(json.loads(out.strip().splitlines()[-1]))
+    return results
 
 
 @pytest.mark.timeout(180)
@@ -516,13 +535,8 @@ def test_peers_over_mutual_tls_federate_and_a_client_without_the_federations_cer
         _line(watch, '{"kind": "stream"')
         _stop(watch)
 
-        key = f"dyknow/{fed}/**"
-        # plain TCP to a TLS listener: no session at all
-        plain = _probe(f"tcp/127.0.0.1:{seed}", key, 3.0)
-        assert plain == {"peers": [], "samples": 0}, plain
         # TLS, trusting the right CA, but without a client certificate: mTLS refuses it
         anonymous = {"root_ca_certificate": str(pki / "ca.crt"), "verify_name_on_connect": False}
-        assert _probe(f"tls/127.0.0.1:{seed}", key, 3.0, anonymous)["peers"] == []
         # a certificate from another CA
         other = {
             **anonymous,
@@ -530,7 +544,6 @@ def test_peers_over_mutual_tls_federate_and_a_client_without_the_federations_cer
             "connect_private_key": str(rogue / "uav-a.key"),
             "enable_mtls": True,
         }
-        assert _probe(f"tls/127.0.0.1:{seed}", key, 3.0, other)["peers"] == []
         # the control: the federation's CA and a certificate of it get in (and see traffic)
         member = {
             **anonymous,
@@ -538,7 +551,19 @@ def test_peers_over_mutual_tls_federate_and_a_client_without_the_federations_cer
             "connect_private_key": str(pki / "operator.key"),
             "enable_mtls": True,
         }
-        inside = _probe(f"tls/127.0.0.1:{seed}", key, 3.0, member)
+        plain, refused, rogue_ca, inside = _probes(
+            f"dyknow/{fed}/**",
+            3.0,
+            [
+                (f"tcp/127.0.0.1:{seed}", None, False),  # plain TCP to a TLS listener
+                (f"tls/127.0.0.1:{seed}", anonymous, False),
+                (f"tls/127.0.0.1:{seed}", other, False),
+                (f"tls/127.0.0.1:{seed}", member, True),
+            ],
+        )
+        assert plain == {"peers": [], "samples": 0}, plain  # no session at all
+        assert refused["peers"] == [], refused
+        assert rogue_ca["peers"] == [], rogue_ca
         assert inside["peers"] and inside["samples"] > 0, inside
 
 

@@ -1,23 +1,18 @@
-"""The deployed UAV application (deploy/config/traffic-app.kpl) recognizes the seeded world's
-violations from its camera feed, as ``dyknow demo traffic`` does: asked from another process."""
+"""The deployed UAV application (deploy/config/traffic-app.kpl): its definitions and units.
+
+That it recognizes the seeded world's violations from its camera feed, as ``dyknow demo
+traffic`` does, asked from another process, is checked in tests/test_deploy_local.py, in
+the deployment that test starts: the world runs in real time, and one run of it serves
+both (over 30 s each).
+"""
 
 from __future__ import annotations
 
-import json
-import os
-import signal
-import subprocess
-import sys
-import time
-import uuid
-from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
 
-from agents.keys import gen_keys, trust_keys
-from agents.transports import free_tcp_port
 from dyknow_core import NS_PER_S
 from dyknow_core.kpl import ChronicleDecl, MonitorDecl, check, parse
 from dyknow_core.reasoning.chronicles import Recognition
@@ -27,153 +22,6 @@ from federation.demo._world import World
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIG = ROOT / "deploy" / "config"
-CLI = [sys.executable, "-m", "federation.cli"]
-ASK = ["--config", "operator.toml", "--json", "--wait", "10"]
-
-
-class Deployment:
-    """deploy/config on loopback: a router, UAV nodes, and the operator's one-shot commands."""
-
-    def __init__(self, tmp: Path) -> None:
-        self.dir = tmp / "config"
-        self.dir.mkdir()
-        self.router = f"tcp/127.0.0.1:{free_tcp_port()}"
-        self.federation = f"traffic-{uuid.uuid4().hex[:8]}"  # one of its own per test
-        for f in [*CONFIG.glob("*.toml"), *CONFIG.glob("*.kpl")]:
-            text = f.read_text().replace('"tcp/172.28.0.10:7447"', f'"{self.router}"')
-            text = text.replace('federation = "traffic"', f'federation = "{self.federation}"')
-            (self.dir / f.name).write_text(text)
-        keys = self.dir / "keys"
-        pubs = [gen_keys(name, keys)[2] for name in ("uav-a", "uav-c", "operator")]
-        trust_keys(keys / "trust.json", pubs, federation=self.federation)
-        runtime = tmp / "run"
-        runtime.mkdir(mode=0o700)  # the local channels of this test's nodes
-        self.env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_RUNTIME_DIR": str(runtime)}
-        self.procs: list[subprocess.Popen[str]] = []
-
-    def spawn(self, *args: str) -> subprocess.Popen[str]:
-        """A long-running ``dyknow`` command in the config directory."""
-        proc = subprocess.Popen(
-            [*CLI, *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=self.dir,
-            env=self.env,
-        )
-        self.procs.append(proc)
-        return proc
-
-    def start(self, *uavs: str) -> None:
-        """The router, then each UAV's node, ready."""
-        router = self.spawn("router", "--listen", self.router)
-        assert router.stdout is not None
-        listening = router.stdout.readline()  # the nodes connect to it: it listens first
-        assert "listening on" in listening, listening + self.stop()
-        nodes = {uav: self.spawn("node", "--config", f"{uav}.toml") for uav in uavs}
-        for uav, node in nodes.items():
-            assert node.stdout is not None
-            ready = node.stdout.readline()  # bounded by the test's timeout
-            assert f"{uav} ready" in ready, ready + self.stop()
-
-    def ask(self, uav: str, *labels: str, history: bool = True) -> dict[str, Any]:
-        """``dyknow ask LABELS --platform UAV [--from 0] --json`` as the operator."""
-        done = subprocess.run(
-            [*CLI, "ask", *labels, "--platform", uav, *(["--from", "0"] if history else []), *ASK],
-            capture_output=True,
-            text=True,
-            cwd=self.dir,
-            env=self.env,
-            timeout=60,
-        )
-        assert done.returncode == 0, done.stderr
-        answer: dict[str, Any] = json.loads(done.stdout)
-        return answer
-
-    def until(
-        self,
-        uav: str,
-        labels: tuple[str, ...],
-        done: Callable[[dict[str, Any]], bool],
-        within: float,
-    ) -> dict[str, Any]:
-        """Ask until the answer satisfies ``done``, for at most ``within`` seconds."""
-        deadline = time.monotonic() + within
-        answer: dict[str, Any] = {}
-        while time.monotonic() < deadline:
-            answer = self.ask(uav, *labels)
-            if done(answer):
-                return answer
-            time.sleep(2.0)  # the world runs in real time: nothing here to await
-        raise AssertionError(f"not within {within} s: {json.dumps(answer)[:2000]}")
-
-    def stop(self) -> str:
-        """SIGINT every process, newest first; their stderr."""
-        errs = []
-        for proc in reversed(self.procs):
-            if proc.poll() is None:
-                proc.send_signal(signal.SIGINT)
-            try:
-                _, err = proc.communicate(timeout=15)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                _, err = proc.communicate(timeout=5)
-            errs.append(err)
-        self.procs.clear()
-        return "\n".join(errs)
-
-
-@pytest.fixture
-def deployment(tmp_path: Path) -> Iterator[Deployment]:
-    d = Deployment(tmp_path)
-    try:
-        yield d
-    finally:
-        d.stop()
-
-
-def _values(answer: dict[str, Any], label: str) -> list[Any]:
-    result = answer.get(label)
-    return [s[0] for s in result["samples"]] if isinstance(result, dict) else []
-
-
-@pytest.mark.timeout(300)
-def test_the_uavs_recognize_the_speeding_the_overtake_and_the_turn_of_the_seeded_world(
-    deployment: Deployment,
-) -> None:
-    # seed 7: in uav-a's area car9 drives over 1.2 x the limit from the start and car4
-    # overtakes car2 (the simulator's script ends it at t = 33.8 s); in uav-c's, car6
-    # turns in crossing c3 (t = 30.2 s)
-    deployment.start("uav-a", "uav-c")
-    started = time.monotonic()
-    labels = ("speeding", "violation", "true-violation")
-    answer = deployment.until("uav-a", labels, lambda a: bool(_values(a, "speeding")), 60)
-    assert _values(answer, "speeding")[0] == {"kind": "speeding", "cars": ["car9"]}
-    answer = deployment.until("uav-a", labels, lambda a: bool(_values(a, "violation")), 90)
-    assert time.monotonic() - started < 90
-    (found,) = _values(answer, "violation")
-    assert (found["kind"], found["car"], found["other"]) == ("overtake", "car4", "car2")
-    assert set(found) == {"kind", "car", "other", "start", "end", "x", "y"}
-    # recognized from the camera's view, not copied: the truth has a label of its own,
-    # and the recognition ends close to when and where the script ended it
-    truth = deployment.until("uav-a", labels, lambda a: bool(_values(a, "true-violation")), 30)
-    ((true, true_valid, _),) = truth["true-violation"]["samples"]
-    assert (true["kind"], true["car"], true["other"]) == ("overtake", "car4", "car2")
-    assert abs(found["end"] - true_valid) < 5
-    assert abs(found["x"] - true["x"]) < 80
-    # what the console shows of a UAV, in the demo's shapes
-    now = deployment.ask("uav-a", "heli-position", "area", "tracked-cars", history=False)
-    (position,) = _values(now, "heli-position")
-    assert set(position) == {"x", "y", "z"}
-    (area,) = _values(now, "area")
-    assert area["index"] == 0 and len(area["polygon"]) >= 4
-    (cars,) = _values(now, "tracked-cars")
-    assert {"id", "x", "y", "speed", "colour", "road"} <= set(cars["cars"][0])
-    # the other chronicle, in the other UAV, by then
-    answer = deployment.until("uav-c", labels, lambda a: bool(_values(a, "violation")), 30)
-    (turn,) = _values(answer, "violation")
-    assert (turn["kind"], turn["car"], turn["other"]) == ("turn", "car6", None)
-    assert turn["start"] < turn["end"]
 
 
 # -- the application's definitions and units, without processes -------------------------------

@@ -40,7 +40,6 @@ from bench.kxflood import (
     FLOOD_SECONDS,
     MEMBER,
     PACE_N,
-    PACE_PERIOD,
     START,
     VICTIM,
     WAIT,
@@ -48,6 +47,7 @@ from bench.kxflood import (
     attacker_main,
     figures,
     recv,
+    summed_up,
 )
 from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
 
@@ -277,7 +277,6 @@ class _Flooded:
     """A flood of queries on one key of the victim, and what it did."""
 
     f: Federation
-    calm: list[float]
     during: list[float]
     sent: int
     seconds: float
@@ -300,7 +299,7 @@ class _Flooded:
         slower = cpu_slowdown()
         bound = cpu_us * slower
         print(
-            f"\nmember calm: {figures(self.calm)}\nmember during flood: {figures(self.during)}"
+            f"\nmember during flood: {figures(self.during)}"
             f"\nattacker: {self.sent} in {self.seconds:.1f} s; victim shed {shed}, "
             f"{self.handled} on its event loop, "
             f"CPU {cost:.1f} µs per query (bound {bound:.1f}: {cpu_us:g} times this "
@@ -335,10 +334,8 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
         pipes.append(member)
         assert recv(member, "the member", START) == "ready"
         assert recv(attacker, "the attacker", START) == "ready"
-        member.send("pace")
-        recv(member, "the member's first requests", WAIT + PACE_N * PACE_PERIOD)
-        member.send("pace")
-        calm = recv(member, "the member's calm requests", WAIT + PACE_N * PACE_PERIOD)
+        member.send("warm")  # its session with the victim agreed before the flood
+        recv(member, "the member's first request")
         victim.send("report")
         before = recv(victim, "the victim's report")
         attacker.send("go")
@@ -352,10 +349,8 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
         after = recv(victim, "the victim's report")
         cpu = after["cpu"] - before["cpu"]
         handled = after["answered"][what] - before["answered"][what]
-        time.sleep(1.5)  # the last summaries
-        victim.send("report")
-        report = recv(victim, "the victim's report")
-        yield _Flooded(f, calm, during, sent, seconds, cpu, handled, report)
+        report = summed_up(victim, f"{what}_shed", f"{what}-shed")
+        yield _Flooded(f, during, sent, seconds, cpu, handled, report)
     finally:
         f.close(pipes)
 
