@@ -172,7 +172,9 @@ receivers a provider asks (accept-stream)."""
 MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
 """Membership subscriptions one other platform may hold here (each event informs each)."""
 
-_MAX_RESOLVED = 256  # label lists whose translation a provider keeps (any peer may vary them)
+# the labels (counted in the lists asked) whose translation a provider keeps: any member
+# may ask for new lists of valid labels (a pattern's), and each label may be 200 characters
+_MAX_RESOLVED = 2048
 
 __all__ = [
     "FEDERATION_AGENT",
@@ -439,6 +441,7 @@ class FederationAgent(Agent):
         # ``_resolved_by`` (`_remember`); a provider is asked the same lists again
         self._resolved: dict[tuple[Any, ...], tuple[list[str], list[str], bool]] = {}
         self._resolved_by: tuple[PlatformLabels, LabelMapping, Vocabulary] | None = None
+        self._resolved_labels = 0  # in the keys of `_resolved`
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
         self.add_handler(
             MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_conversation),
@@ -1138,7 +1141,8 @@ class FederationAgent(Agent):
         Only a `PlatformLabels` (not a subclass) answers from its mapping alone, and a
         `LabelMapping` and its `Vocabulary` are never changed once made: the translation
         holds while the three are the same objects. Another translator may answer
-        otherwise each time: nothing is kept for it.
+        otherwise each time: nothing is kept for it. At most `_MAX_RESOLVED` labels are
+        kept (then all are dropped, and kept again as they are asked).
         """
         translator = self.translator
         if type(translator) is not PlatformLabels:
@@ -1153,11 +1157,14 @@ class FederationAgent(Agent):
             or by[0] is not translator
             or by[1] is not mapping
             or by[2] is not mapping.vocabulary
-            or len(resolved) >= _MAX_RESOLVED
+            or self._resolved_labels + len(key) > _MAX_RESOLVED
         ):
             resolved.clear()
+            self._resolved_labels = 0
             self._resolved_by = (translator, mapping, mapping.vocabulary)
-        resolved[key] = (labels, local, only_str)
+        if len(key) <= _MAX_RESOLVED:
+            resolved[key] = (labels, local, only_str)
+            self._resolved_labels += len(key)
 
     def _answers(
         self, req: GetValueAt | GetTrajectory | None, labels: list[str], local_labels: list[str]

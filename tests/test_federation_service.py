@@ -693,6 +693,26 @@ async def test_a_kept_get_latest_translation_follows_mapping_sharing_and_streams
         assert await values() == [25.0]
 
 
+async def test_the_kept_get_latest_translations_are_bounded() -> None:
+    """Members asking ever new lists of valid labels (a pattern's) keep a bounded number."""
+    from federation._service import _MAX_RESOLVED
+
+    async with world() as w:
+        a = w["uav-a"]
+        a.fed.translator = PlatformLabels(LabelMapping(_VOCABULARY, _MAPPING), a.dk)
+        a.push("heli-altitude", 120.0, seconds_ago=2)
+        asks = _MAX_RESOLVED // 4 + 10  # 4 labels each: past the bound
+        for i in range(asks):
+            labels = ["heli-altitude", f"obj{i}-state", f"obj{i + 1}-state", "heli-altitude"]
+            with pytest.raises(ContentError, match=f"obj{i}-state.: no stream for it here"):
+                a.fed._latest_reply(labels, "uav-b")
+            kept = sum(map(len, a.fed._resolved))
+            assert kept == a.fed._resolved_labels <= _MAX_RESOLVED
+        assert 0 < len(a.fed._resolved) < asks  # dropped once, kept again since
+        answer = a.fed._latest_reply(["heli-altitude"], "uav-b").value
+        assert answer["heli-altitude"]["samples"][0][0] == 120.0
+
+
 def _query_ref_of(fed: FederationAgent) -> Any:
     async def ask(platform: str, content: Any) -> Any:
         return await query_ref(fed, f"federation@{platform}", content, ontology=ONTOLOGY)
