@@ -14,7 +14,6 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Iterator, Sequence
 from enum import Enum
-from itertools import chain
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -199,22 +198,31 @@ def latest_contents_plain(
     """`latest_contents`, and whether they are plain JSON values.
 
     Plain: every value and time in them a str, int, float, bool or None of exactly that
-    type (told in one pass in C), so that an answer made of them may be handed over to
-    its reply without a copy (`agents.HandedOver`).
+    type (told as each label's content is made), so that an answer made of them may be
+    handed over to its reply without a copy (`agents.HandedOver`).
     """
     now, rows = instance.latest_many(labels)
-    query_time = now / NS_PER_S  # as ns_to_seconds, inline
+    ns = NS_PER_S
+    query_time = now / ns  # as ns_to_seconds, inline
     scalar = _SCALAR_TYPES
-    samples = [None if s is None else [s[0], s[1] / NS_PER_S, s[2] / NS_PER_S] for s in rows]
-    plain = type(query_time) is float and scalar.issuperset(
-        map(type, chain.from_iterable(filter(None, samples)))
-    )
-    if not plain:  # a value not a plain scalar becomes what jsonable makes of it
-        samples = [
-            r if r is None or type(r[0]) in scalar else [jsonable(r[0]), r[1], r[2]]
-            for r in samples
-        ]
-    return [{"query_time": query_time, "samples": [] if r is None else [r]} for r in samples], plain
+    plain = type(query_time) is float
+    out: list[dict[str, Any]] = []
+    add = out.append
+    # one pass: each label's content, and whether all of them are plain so far
+    for s in rows:
+        if s is None:
+            add({"query_time": query_time, "samples": []})
+            continue
+        value = s[0]
+        valid = s[1] / ns
+        available = s[2] / ns
+        if type(value) not in scalar:  # what jsonable makes of it
+            value = jsonable(value)
+            plain = False
+        elif plain and (type(valid) not in scalar or type(available) not in scalar):
+            plain = False
+        add({"query_time": query_time, "samples": [[value, valid, available]]})
+    return out, plain
 
 
 def samples_to_json(batch: list[tuple[Any, int, int]]) -> list[list[Any]]:

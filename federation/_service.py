@@ -119,6 +119,7 @@ from agents import (
 )
 from agents.transports import Inbox, Subscription
 from dyknow_core import DyKnowError, DyKnowInstance, Policy, PolicyError, UnknownLabelError
+from ontology import LabelMapping, PlatformLabels, Vocabulary
 
 from ._gateway_service import (
     GatewayRefusal,
@@ -170,6 +171,10 @@ receivers a provider asks (accept-stream)."""
 
 MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
 """Membership subscriptions one other platform may hold here (each event informs each)."""
+
+# the labels (counted in the lists asked) whose translation a provider keeps: any member
+# may ask for new lists of valid labels (a pattern's), and each label may be 200 characters
+_MAX_RESOLVED = 2048
 
 __all__ = [
     "FEDERATION_AGENT",
@@ -431,6 +436,12 @@ class FederationAgent(Agent):
         self._directory: Subscription[DirectoryEvent] | None = None
         # include_self -> (the directory, its version, `providers` of it): asked per request
         self._providers: dict[bool, tuple[GlobalDirectory, int, dict[str, str]]] = {}
+        # the labels of a get-latest as asked -> (each once, their local labels, all str):
+        # kept while the translator, its mapping and vocabulary are those of
+        # ``_resolved_by`` (`_remember`); a provider is asked the same lists again
+        self._resolved: dict[tuple[Any, ...], tuple[list[str], list[str], bool]] = {}
+        self._resolved_by: tuple[PlatformLabels, LabelMapping, Vocabulary] | None = None
+        self._resolved_labels = 0  # in the keys of `_resolved`
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
         self.add_handler(
             MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_conversation),
@@ -1091,16 +1102,69 @@ class FederationAgent(Agent):
         The answer's dicts and lists are made here and kept nowhere else; with labels and
         values of exact JSON types, the reply needs no copy or check of it.
         """
-        labels = list(dict.fromkeys(labels))
-        local = self._locals(labels, asker)
+        key = tuple(labels)
+        by = self._resolved_by
+        translator = self.translator
+        resolved = None
+        if (
+            by is not None
+            and by[0] is translator
+            and by[1] is by[0].mapping
+            and by[2] is by[1].vocabulary
+        ):
+            resolved = self._resolved.get(key)
+        if resolved is None:
+            labels = list(dict.fromkeys(labels))
+            local = self._locals(labels, asker)
+            only_str = _only_str(map(type, labels))
+            self._remember(key, labels, local, only_str)
+        else:
+            labels, local, only_str = resolved
+            if asker != self.platform.name:  # `_locals`' sharing check, every time
+                reason = self.sharing.check_all("query", labels, asker)
+                if reason is not None:
+                    raise Denied("sharing-rule", reason)
         try:
             contents, plain = latest_contents_plain(self.instance, local)
         except Exception:  # `_answers` raises it again, named per label
             return self._answers(None, labels, local)
         answer = dict(zip(labels, contents, strict=True))
-        if hand_over and plain and _only_str(map(type, labels)):
+        if hand_over and plain and only_str:
             return HandedOver(answer)
         return answer
+
+    def _remember(
+        self, key: tuple[Any, ...], labels: list[str], local: list[str], only_str: bool
+    ) -> None:
+        """Keep the translation of a get-latest's labels, if the translator's may be kept.
+
+        Only a `PlatformLabels` (not a subclass) answers from its mapping alone, and a
+        `LabelMapping` and its `Vocabulary` are never changed once made: the translation
+        holds while the three are the same objects. Another translator may answer
+        otherwise each time: nothing is kept for it. At most `_MAX_RESOLVED` labels are
+        kept (then all are dropped, and kept again as they are asked).
+        """
+        translator = self.translator
+        if type(translator) is not PlatformLabels:
+            return
+        mapping = translator.mapping
+        if type(mapping) is not LabelMapping or type(mapping.vocabulary) is not Vocabulary:
+            return
+        by = self._resolved_by
+        resolved = self._resolved
+        if (
+            by is None
+            or by[0] is not translator
+            or by[1] is not mapping
+            or by[2] is not mapping.vocabulary
+            or self._resolved_labels + len(key) > _MAX_RESOLVED
+        ):
+            resolved.clear()
+            self._resolved_labels = 0
+            self._resolved_by = (translator, mapping, mapping.vocabulary)
+        if len(key) <= _MAX_RESOLVED:
+            resolved[key] = (labels, local, only_str)
+            self._resolved_labels += len(key)
 
     def _answers(
         self, req: GetValueAt | GetTrajectory | None, labels: list[str], local_labels: list[str]

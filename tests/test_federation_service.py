@@ -51,6 +51,7 @@ from federation._service import (
 )
 from federation._service_content import ContentError, GetLatest, latest_labels, parse_request
 from federation._sharing import Sharing, SharingRule, SharingSettings
+from ontology import LabelMapping, PlatformLabels, Vocabulary
 
 FED = "t"
 T0 = 1000 * NS_PER_S  # every instance's now when a test starts
@@ -597,6 +598,121 @@ async def test_a_plain_get_latest_is_decided_as_its_model_decides(
     assert await outcomes() == quick
 
 
+# uav-a's labels as the ontology translates them: a pattern, fixed labels, one unmapped
+_VOCABULARY = Vocabulary(
+    ["heli-max-speed", "heli-altitude", "secret-state", "gone-state", "x9", "{object}-state"]
+)
+_MAPPING = {
+    "heli-max-speed": "a/limits/max_speed",
+    "heli-altitude": "a/state/altitude",
+    "secret-state": "a/secret",
+    "gone-state": "a/gone",
+    "{object}-state": "a/cars/{object}/state",
+}
+
+
+class _TranslatedAfresh(PlatformLabels):
+    """`PlatformLabels` as another translator: the provider keeps none of its translations."""
+
+
+async def test_a_kept_get_latest_translation_decides_as_a_fresh_one() -> None:
+    """The provider keeps the translation of the labels a get-latest asks (`PlatformLabels`):
+    the same answers, refusals and counts as translating each time, asked twice over."""
+    rule = SharingRule(name="private", labels=["secret-*"], query=["operator"])
+    sharing = Sharing(SharingSettings(rules=[rule]))
+
+    async def outcomes(
+        translator: type[PlatformLabels],
+    ) -> tuple[list[Any], dict[str, int], int]:
+        async with world(sharing=sharing) as w:
+            a, b = w["uav-a"], w["uav-b"]
+            a.fed.translator = translator(LabelMapping(_VOCABULARY, _MAPPING), a.dk)
+            a.dk.add_source("a/secret").push(7, valid_time=T0 - NS_PER_S)
+            a.push("car5-state", {"pos": [1.0, 2.0]}, seconds_ago=3)
+            a.push("heli-altitude", 120.0, seconds_ago=2)
+            got: list[Any] = []
+            for _ in range(2):
+                for content in _HOSTILE_LATEST:
+                    for ask in (b.fed.request_from, _query_ref_of(b.fed)):
+                        try:
+                            got.append(("inform", await ask("uav-a", content)))
+                        except Refused as exc:
+                            assert exc.message is not None
+                            got.append(("refuse", exc.message.content))
+            return got, dict(a.fed.refusals), len(a.fed._resolved)
+
+    kept = await outcomes(PlatformLabels)
+    assert kept[2] > 0  # the kept translations answered the second round
+    assert sum(1 for kind, _ in kept[0] if kind == "inform") >= 16
+    assert kept[1].get("sharing-rule", 0) == 12
+    afresh = await outcomes(_TranslatedAfresh)
+    assert afresh[2] == 0
+    assert afresh[:2] == kept[:2]
+
+
+async def test_a_kept_get_latest_translation_follows_mapping_sharing_and_streams() -> None:
+    """What the provider keeps of a get-latest is dropped as the mapping, the translator,
+    the sharing rules or the streams change: the next answer is the new one."""
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        a.fed.translator = labels = PlatformLabels(LabelMapping(_VOCABULARY, _MAPPING), a.dk)
+        a.push("heli-altitude", 120.0, seconds_ago=2)
+        a.push("heli-max-speed", 25.0, seconds_ago=9)
+        a.push("car5-state", "car5 here", seconds_ago=1)
+        content = {"action": "get-latest", "labels": ["heli-altitude", "car5-state"]}
+
+        async def values() -> list[Any]:
+            answer = await b.fed.request_from("uav-a", content)
+            return [answer[s]["samples"][0][0] for s in content["labels"]]
+
+        assert await values() == await values() == [120.0, "car5 here"]
+        # another mapping in the same translator: heli-altitude is the max-speed stream
+        swapped = {"heli-altitude": "a/limits/max_speed", "heli-max-speed": "a/state/altitude"}
+        labels.mapping = LabelMapping(_VOCABULARY, {**_MAPPING, **swapped})
+        assert await values() == [25.0, "car5 here"]
+        # another translator
+        a.fed.translator = PlatformLabels(LabelMapping(_VOCABULARY, _MAPPING), a.dk)
+        assert await values() == [120.0, "car5 here"]
+        # a sharing rule that refuses uav-b, then none
+        rule = SharingRule(name="mine", labels=["car*"], query=["operator"])
+        a.fed.sharing = Sharing(SharingSettings(rules=[rule]))
+        assert "sharing rule 'mine'" in await refusal(b.fed.request_from("uav-a", content))
+        assert a.fed.refusals == {"sharing-rule": 1}
+        a.fed.sharing = Sharing()
+        assert await values() == [120.0, "car5 here"]
+        # the stream behind a label gone, then back
+        a.dk.remove_stream("a/cars/car5/state")
+        reason = await refusal(b.fed.request_from("uav-a", content))
+        assert reason == "label 'car5-state': no stream for it here"
+        a.dk.add_source("a/cars/car5/state", name="car5 again").push("car5 back", valid_time=T0)
+        assert await values() == [120.0, "car5 back"]
+        # another translator kind: asked each time
+        a.fed.translator = FakeTranslator({"heli-altitude": "a/limits/max_speed"})
+        assert "car5-state" in await refusal(b.fed.request_from("uav-a", content))
+        content["labels"] = ["heli-altitude"]
+        assert await values() == [25.0]
+
+
+async def test_the_kept_get_latest_translations_are_bounded() -> None:
+    """Members asking ever new lists of valid labels (a pattern's) keep a bounded number."""
+    from federation._service import _MAX_RESOLVED
+
+    async with world() as w:
+        a = w["uav-a"]
+        a.fed.translator = PlatformLabels(LabelMapping(_VOCABULARY, _MAPPING), a.dk)
+        a.push("heli-altitude", 120.0, seconds_ago=2)
+        asks = _MAX_RESOLVED // 4 + 10  # 4 labels each: past the bound
+        for i in range(asks):
+            labels = ["heli-altitude", f"obj{i}-state", f"obj{i + 1}-state", "heli-altitude"]
+            with pytest.raises(ContentError, match=f"obj{i}-state.: no stream for it here"):
+                a.fed._latest_reply(labels, "uav-b")
+            kept = sum(map(len, a.fed._resolved))
+            assert kept == a.fed._resolved_labels <= _MAX_RESOLVED
+        assert 0 < len(a.fed._resolved) < asks  # dropped once, kept again since
+        answer = a.fed._latest_reply(["heli-altitude"], "uav-b").value
+        assert answer["heli-altitude"]["samples"][0][0] == 120.0
+
+
 def _query_ref_of(fed: FederationAgent) -> Any:
     async def ask(platform: str, content: Any) -> Any:
         return await query_ref(fed, f"federation@{platform}", content, ontology=ONTOLOGY)
@@ -994,6 +1110,9 @@ def test_a_handed_over_latest_is_the_reply_the_copy_made(now: Any, drawn: list[A
         instance=_Rows(now, rows),
         _locals=lambda labels, asker: labels,
         _answers=lambda req, labels, local: "answered one by one",
+        _resolved_by=None,  # a translator whose translations are not kept
+        _remember=lambda key, labels, local, only_str: None,
+        translator=None,
     )
     # before: each value as jsonable makes it, the answer copied and checked by the reply
     try:
