@@ -771,38 +771,41 @@ class InterfaceAgent:
     async def _exchange(self, peer: str) -> None:
         host = self._require_host()
         request = self.handshake.initiate(peer)
+        errors: list[str] = []
+        refusals: list[AuthenticationError] = []
+        # Anyone on the network can answer a query on kx/<peer>: a bad reply must not hide
+        # the good one, so each is tried as it comes (a refused one leaves our request
+        # pending), and the first that finishes the exchange ends it, without waiting for
+        # the query's end (on MQTT, its whole timeout).
         try:
-            replies = await host.transport.query(
+            async with await host.transport.ask(
                 host.key("kx", peer), request, timeout=self.handshake_timeout
-            )
+            ) as replies:
+                async for reply in replies:
+                    if not reply.ok:
+                        errors.append(reply.payload[:200].decode(errors="replace"))
+                        continue
+                    try:
+                        session = self.handshake.finish(reply.payload)
+                    except AuthenticationError as exc:
+                        self.audit.record(
+                            verdict="dropped",
+                            stage="kx",
+                            **{"from": exc.platform or peer},
+                            reason=f"{exc.code}: {exc.reason}",
+                        )
+                        refusals.append(exc)
+                        continue
+                    self.sessions.add(session)
+                    self._kx_priority()
+                    return
         except BaseException:
             self.handshake.cancel(peer)
             raise
-        good = [r for r in replies if r.ok]
-        if not good:
-            self.handshake.cancel(peer)
-            errors = [r.payload[:200].decode(errors="replace") for r in replies if not r.ok]
+        self.handshake.cancel(peer)
+        if not refusals:
             detail = f" (error replies, not authenticated: {'; '.join(errors)})" if errors else ""
             raise TransportError(f"platform {peer!r} did not answer the key exchange{detail}")
-        # Anyone on the network can answer a query on kx/<peer>: a bad reply must not hide
-        # the good one, so each is tried (a refused one leaves our request pending).
-        refusals: list[AuthenticationError] = []
-        for reply in good:
-            try:
-                session = self.handshake.finish(reply.payload)
-            except AuthenticationError as exc:
-                self.audit.record(
-                    verdict="dropped",
-                    stage="kx",
-                    **{"from": exc.platform or peer},
-                    reason=f"{exc.code}: {exc.reason}",
-                )
-                refusals.append(exc)
-                continue
-            self.sessions.add(session)
-            self._kx_priority()
-            return
-        self.handshake.cancel(peer)
         first = refusals[0]
         raise SecurityError(f"key exchange with {peer!r} refused: {first.reason}") from first
 

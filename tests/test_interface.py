@@ -1,6 +1,7 @@
 """The Interface Agent: authenticated sessions, access control and audit between platforms.
 
-Several platforms share one MemoryHub (one process); one test runs over zenoh on loopback.
+Several platforms share one MemoryHub (one process); one test runs over zenoh on loopback,
+two over MQTT (the conftest's mosquitto).
 Hostile envelopes are built from real ones captured on the wire, or sealed with the
 sender's own session table, so each check of the receiving side is hit on purpose.
 """
@@ -19,7 +20,10 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import orjson
+import paho.mqtt.client as paho
 import pytest
+from paho.mqtt.packettypes import PacketTypes
+from paho.mqtt.properties import Properties
 
 from agents import (
     ACLMessage,
@@ -48,8 +52,12 @@ from agents.transports import (
     MemoryHub,
     MemoryTransport,
     Message,
+    MqttConfig,
+    MqttTransport,
     Presence,
-    Reply,
+    QueryFilter,
+    QueryHandler,
+    Replies,
     Subscription,
     Transport,
     ZenohConfig,
@@ -106,14 +114,14 @@ class CountingTransport(MemoryTransport):
         self.kx_queries = 0
         self.delay = delay
 
-    async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
-        """Count (and delay) key exchanges, then query as usual."""
+    async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:
+        """Count (and delay) key exchanges, then ask as usual."""
         if "/kx/" in key_expr:
             self.kx_queries += 1
             if self.delay:
                 # long enough for concurrent senders to pile up behind one exchange
                 await asyncio.sleep(self.delay)
-        return await super().query(key_expr, payload, timeout=timeout)
+        return await super().ask(key_expr, payload, timeout=timeout)
 
 
 class DeafTransport(MemoryTransport):
@@ -1387,6 +1395,139 @@ async def test_request_inform_over_zenoh_between_two_sessions() -> None:
             with pytest.raises(TransportError, match="did not answer the key exchange"):
                 await request(echo_a, "echo@uav-c", 1, ontology="demo")
             assert time.monotonic() - started < 3.0
+
+
+# -- over MQTT ---------------------------------------------------------------------------------
+
+
+class HeldKx(MqttTransport):
+    """An MQTT transport whose key-exchange answers wait until ``release`` is set."""
+
+    def __init__(self, config: MqttConfig) -> None:
+        super().__init__(config)
+        self.release = asyncio.Event()
+        self.release.set()
+
+    async def serve(
+        self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None
+    ) -> Handle:
+        """Serve as MqttTransport does; a key exchange is answered once released."""
+        if "/kx/" not in key_expr:
+            return await super().serve(key_expr, handler, admit=admit)
+
+        async def held(key: str, payload: bytes) -> bytes | None:
+            async with asyncio.timeout(WAIT):
+                await self.release.wait()
+            return await handler(key, payload)
+
+        return await super().serve(key_expr, held, admit=admit)
+
+
+@contextlib.asynccontextmanager
+async def mqtt_pair(
+    host: str, port: int, keys: dict[str, KeyPair], handshake_timeout: float
+) -> AsyncIterator[tuple[AgentPlatform, AgentPlatform, HeldKx]]:
+    """uav-a and uav-b on one broker, each seeing the other; uav-b's transport is a HeldKx."""
+    trust = {n: k.public_key for n, k in keys.items()}
+    ta = MqttTransport(MqttConfig(host=host, port=port, client_id="uav-a"))
+    tb = HeldKx(MqttConfig(host=host, port=port, client_id="uav-b"))
+    async with ta, tb:
+        ia_a = InterfaceAgent(
+            keys["uav-a"],
+            TrustStore(FED, trust),
+            audit_interval=0.02,
+            handshake_timeout=handshake_timeout,
+        )
+        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(FED, trust), audit_interval=0.02)
+        async with (
+            AgentPlatform("uav-a", ta, federation=FED, channel=ia_a) as pa,
+            AgentPlatform("uav-b", tb, federation=FED, channel=ia_b) as pb,
+        ):
+            await _sees(ta, "uav-b")
+            await _sees(tb, "uav-a")
+            yield pa, pb, tb
+
+
+# Long enough that a first request waiting for the whole key-exchange query, as MQTT's
+# query does, is far over the bound these tests set (half of it), on any machine.
+MQTT_KX_TIMEOUT = 5.0
+
+
+async def test_a_first_request_over_mqtt_does_not_wait_for_the_kx_timeout(
+    mosquitto: tuple[str, int],
+) -> None:
+    """The key exchange ends at its first authenticated reply, not at the query's timeout."""
+    host, port = mosquitto
+    keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
+    async with (
+        asyncio.timeout(WAIT * 3),
+        mqtt_pair(host, port, keys, MQTT_KX_TIMEOUT) as (pa, pb, _),
+    ):
+        asker = await serve(pa, "asker", None)
+        await serve(pb, "echo")
+        started = time.monotonic()
+        answer = await request(asker, "echo@uav-b", 1, ontology="demo", timeout=WAIT * 2)
+        took = time.monotonic() - started
+        assert answer == {"echo": 1, "by": "echo@uav-b"}
+        assert took < MQTT_KX_TIMEOUT / 2, f"the first request took {took:.2f} s"
+        assert len(ia(pa).sessions.sessions("uav-b")) == 1
+        assert ia(pa).audit.counts["dropped"] == 0
+
+
+async def test_forged_mqtt_kx_replies_first_do_not_hide_the_real_one(
+    mosquitto: tuple[str, int],
+) -> None:
+    """Junk and a forged reply, answered before the peer, are refused and audited; the real
+    reply still ends the exchange at once."""
+    host, port = mosquitto
+    keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
+    fake_b = KeyPair.generate("uav-b")  # uav-b's name, another key
+    fake_hs = Handshake(
+        fake_b, TrustStore(FED, {"uav-b": fake_b.public_key, "uav-a": keys["uav-a"].public_key})
+    )
+    answered: list[bytes] = []
+
+    def answer(client: paho.Client, userdata: Any, m: paho.MQTTMessage) -> None:
+        # what anyone may do: read the query off the broker, answer on its response topic
+        props = Properties(PacketTypes.PUBLISH)
+        props.CorrelationData = m.properties.CorrelationData
+        forged, _ = fake_hs.respond(m.payload)
+        for junk in (b"not a key exchange", forged):
+            client.publish(m.properties.ResponseTopic, junk, properties=props)
+        answered.append(m.payload)
+
+    attacker = paho.Client(paho.CallbackAPIVersion.VERSION2, protocol=paho.MQTTv5)
+    attacker.on_message = answer
+    attacker.connect(host, port)
+    attacker.subscribe(f"@query/{wire_key(FED, 'kx', 'uav-b')}")
+    attacker.loop_start()
+    try:
+        async with (
+            asyncio.timeout(WAIT * 3),
+            mqtt_pair(host, port, keys, MQTT_KX_TIMEOUT) as (pa, pb, tb),
+        ):
+            asker = await serve(pa, "asker", None)
+            await serve(pb, "echo")
+            # uav-b answers only once uav-a refused both: the forgeries come first
+            tb.release.clear()
+            started = time.monotonic()
+            asking = asyncio.create_task(
+                request(asker, "echo@uav-b", 1, ontology="demo", timeout=WAIT * 2)
+            )
+            await until(lambda: ia(pa).audit.counts["dropped"] >= 2, "the forgeries refused")
+            tb.release.set()
+            assert await asking == {"echo": 1, "by": "echo@uav-b"}
+            took = time.monotonic() - started
+            assert took < MQTT_KX_TIMEOUT / 2, f"the first request took {took:.2f} s"
+            assert len(answered) == 1
+            refused = records(pa, verdict="dropped", stage="kx")
+            assert [str(r["reason"]).split(":")[0] for r in refused] == ["malformed", "forged"]
+            assert all(r["from"] == "uav-b" for r in refused)
+            assert ia(pa).audit.counts["dropped"] == 2
+            assert len(ia(pa).sessions.sessions("uav-b")) == 1
+    finally:
+        attacker.loop_stop()
+        attacker.disconnect()
 
 
 def test_audit_lines_of_long_names_are_written_not_kept() -> None:

@@ -303,6 +303,34 @@ async def test_query_replies_from_two_servers(net: Net) -> None:
     assert only_a == [Reply(net.key("svc/a"), b"a:x")]
 
 
+async def test_ask_yields_each_reply_as_it_comes(net: Net) -> None:
+    # a caller need not wait for the slow queryables (nor, on MQTT, the timeout); leaving
+    # ends the query, and the transport queries on as before
+    s1, s2, q = await net.open(), await net.open(), await net.open()
+    release = asyncio.Event()
+
+    async def fast(key: str, payload: bytes) -> bytes:
+        return b"fast:" + payload
+
+    async def slow(key: str, payload: bytes) -> bytes:
+        await release.wait()
+        return b"slow"
+
+    await s1.serve(net.key("ask/fast"), fast)
+    await s2.serve(net.key("ask/slow"), slow)
+    await ready(net, q, s1, s2)
+    started = time.monotonic()
+    try:
+        async with await q.ask(net.key("ask/*"), b"hi", timeout=WAIT * 2) as replies:
+            first = await replies.get(timeout=WAIT)
+    finally:
+        release.set()
+    assert first == Reply(net.key("ask/fast"), b"fast:hi")
+    assert time.monotonic() - started < WAIT
+    again = await q.query(net.key("ask/fast"), b"x", timeout=net.query_timeout)
+    assert again == [Reply(net.key("ask/fast"), b"fast:x")]
+
+
 async def test_query_without_server_returns_nothing_in_bounded_time(net: Net) -> None:
     q = await net.open()
     start = time.monotonic()

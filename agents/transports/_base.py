@@ -212,6 +212,32 @@ class Subscription(Generic[T]):
         self.close()
 
 
+class Replies(Subscription[Reply]):
+    """The replies to one query, as they come (see `Transport.ask`); ends with the query.
+
+    Use as ``async with await transport.ask(k, p, timeout=t) as replies: async for r in
+    replies: …``; leaving the block early ends the query (late replies are dropped).
+    """
+
+    def __init__(
+        self,
+        inbox: Inbox[Reply],
+        on_close: Callable[[], None],
+        on_aclose: Callable[[], Awaitable[None]] | None = None,
+    ) -> None:
+        super().__init__(inbox, on_close)
+        self._on_aclose = on_aclose
+
+    async def aclose(self) -> None:
+        """End the query and wait until it is over (memory: until its handlers ended)."""
+        self.close()
+        if self._on_aclose is not None:
+            await self._on_aclose()
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+
 class Handle:
     """Something declared on a transport (a queryable, a liveliness token): close to undeclare.
 
@@ -370,8 +396,19 @@ class Transport(ABC):
         """Receive what is published under keys matching ``key_expr``."""
 
     @abstractmethod
+    async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:
+        """Ask every queryable matching ``key_expr``; its replies as they come.
+
+        The iteration ends once every queryable answered (zenoh, memory), at the latest
+        after ``timeout`` s (always then on MQTT, which cannot tell how many queryables
+        heard the query); a caller that has what it needs leaves early, which ends the
+        query. Errors sending the query are raised here, not by the iteration.
+        """
+
     async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
-        """Ask every queryable matching ``key_expr``; the replies that came by ``timeout`` s."""
+        """Ask every queryable matching ``key_expr``; all the replies `ask` yields."""
+        async with await self.ask(key_expr, payload, timeout=timeout) as replies:
+            return [reply async for reply in replies]
 
     @abstractmethod
     async def serve(

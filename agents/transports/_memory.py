@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 
 from .._exceptions import TransportError
 from ._base import (
@@ -13,9 +14,11 @@ from ._base import (
     Presence,
     QueryFilter,
     QueryHandler,
+    Replies,
     Reply,
     Subscription,
     Transport,
+    _ignore,
     key_matches,
 )
 
@@ -120,37 +123,55 @@ class MemoryTransport(Transport):
         self._subs.append(sub)
         return sub
 
-    async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
-        """Ask every matching queryable (concurrently); collect replies until ``timeout``."""
+    async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:
+        """Ask every matching queryable (concurrently); each reply as its handler returns.
+
+        The query owns its handlers' tasks: those still running at ``timeout``, or when
+        the caller leaves early, are cancelled, and `Replies.aclose` waits for them.
+        """
         self._check_open()
+        loop = asyncio.get_running_loop()
+        inbox: Inbox[Reply] = Inbox(loop)
         targets = [
             (e, h)
             for e, h in self.hub.queryables
             if key_matches(e, key_expr) or key_matches(key_expr, e)
         ]
         if not targets:
-            return []
-        loop = asyncio.get_running_loop()
-        tasks = [
-            loop.create_task(_ask(h, key_expr, payload), name=f"memory.query[{key_expr}].{e}")
-            for e, h in targets
-        ]
-        try:
-            done, _ = await asyncio.wait(tasks, timeout=timeout)
-        finally:
-            # the handlers late (or all, when this query is cancelled) end with it
+            inbox.close()
+            return Replies(inbox, _ignore)
+        left = len(targets)
+
+        def answered(expr: str, task: asyncio.Task[bytes | None]) -> None:
+            nonlocal left
+            left -= 1
+            if not task.cancelled():
+                if (exc := task.exception()) is not None:
+                    inbox.put(Reply(expr, str(exc).encode(), ok=False))
+                elif (r := task.result()) is not None:
+                    inbox.put(Reply(expr, r))
+            if not left:
+                inbox.close()
+
+        tasks = []
+        for e, h in targets:
+            task = loop.create_task(
+                _ask(h, key_expr, payload), name=f"memory.query[{key_expr}].{e}"
+            )
+            task.add_done_callback(functools.partial(answered, e))
+            tasks.append(task)
+
+        def end() -> None:
+            timer.cancel()
             for t in tasks:
                 t.cancel()
+            inbox.close()  # a reply not yet put when the query ends is late: dropped
+
+        async def ended() -> None:
             await asyncio.wait(tasks)
-        replies = []
-        for (expr, _), t in zip(targets, tasks, strict=True):
-            if t not in done:
-                continue
-            if t.exception() is not None:
-                replies.append(Reply(expr, str(t.exception()).encode(), ok=False))
-            elif (r := t.result()) is not None:
-                replies.append(Reply(expr, r))
-        return replies
+
+        timer = loop.call_later(timeout, end)
+        return Replies(inbox, end, ended)
 
     async def serve(
         self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None

@@ -48,8 +48,10 @@ Presence
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
       hop (about twice zenoh's peer-to-peer latency on loopback).
-    - A query cannot know how many queryables there are, so it always waits until its
-      timeout (zenoh returns once every matching queryable has answered).
+    - A query cannot know how many queryables there are, so `query` always waits until
+      its timeout (zenoh returns once every matching queryable has answered); `ask`
+      yields each reply as it comes, for a caller that stops at the first it can use
+      (the key exchange: the first authenticated reply).
     - A dead process is seen gone when the broker notices: at once when its TCP connection
       closes (a killed process), but only after 1.5 x keepalive for a frozen one or a lost
       network; and a broker that restarts without persistence forgets every token.
@@ -89,6 +91,7 @@ from ._base import (
     Presence,
     QueryFilter,
     QueryHandler,
+    Replies,
     Reply,
     Subscription,
     Transport,
@@ -658,8 +661,12 @@ class MqttTransport(Transport):
             inbox, lambda: self._detach(topic, lambda f: f.inboxes.remove(inbox))
         )
 
-    async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
-        """Ask every queryable intersecting ``key_expr``; the replies that came by ``timeout``."""
+    async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:
+        """Ask every queryable intersecting ``key_expr``; replies as they come, for ``timeout``.
+
+        MQTT cannot tell how many queryables heard the query: the replies end only at the
+        timeout, unless the caller leaves as soon as it has what it needs.
+        """
         client, loop = self._connected()
         topic = query_topic(key_expr)
         correlation = next(self._correlation).to_bytes(8, "big")
@@ -669,20 +676,24 @@ class MqttTransport(Transport):
         props.UserProperty = [("key", key_expr)]
         inbox: Inbox[Reply] = Inbox(loop)
         self._pending[correlation] = inbox
-        replies: list[Reply] = []
         try:
-            try:
-                await client.publish(topic, payload, qos=self.config.qos, properties=props)
-            except aiomqtt.MqttError as exc:
-                raise self._error(f"query {key_expr!r}", exc) from exc
-            # MQTT cannot tell how many queryables heard the query: wait until the timeout.
-            with contextlib.suppress(TimeoutError, TransportClosed):
-                async with asyncio.timeout(timeout):
-                    while True:
-                        replies.append(await inbox.get())
-        finally:
+            await client.publish(topic, payload, qos=self.config.qos, properties=props)
+        except BaseException as exc:
             del self._pending[correlation]
-        return replies
+            if isinstance(exc, aiomqtt.MqttError):
+                raise self._error(f"query {key_expr!r}", exc) from exc
+            raise
+
+        def stop() -> None:
+            timer.cancel()
+            self._pending.pop(correlation, None)  # a reply still to come is late: dropped
+
+        def end() -> None:
+            stop()
+            inbox.close()
+
+        timer = loop.call_later(timeout, end)
+        return Replies(inbox, stop)
 
     async def serve(
         self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None

@@ -58,6 +58,7 @@ from ._base import (
     Presence,
     QueryFilter,
     QueryHandler,
+    Replies,
     Reply,
     Subscription,
     Transport,
@@ -598,8 +599,8 @@ class ZenohTransport(Transport):
             )
         return self._subscription(inbox, lambda: self._undeclare(zsub))
 
-    async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
-        """Ask every queryable matching ``key_expr``; return once all answered or at ``timeout``."""
+    async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:
+        """Ask every queryable matching ``key_expr``; replies until all answered or ``timeout``."""
         session, loop = self._open_session()
         inbox: Inbox[Reply] = Inbox(loop)
         put = inbox.put
@@ -613,6 +614,7 @@ class ZenohTransport(Transport):
 
         cancel = zenoh.CancellationToken()
         with _converted(f"query {key_expr!r}"):
+            # zenoh closes the inbox when it is "finished": every replier done, or its timeout
             session.get(
                 key_expr,
                 zenoh.handlers.Callback(on_reply, inbox.close),
@@ -622,20 +624,21 @@ class ZenohTransport(Transport):
                 consolidation=zenoh.ConsolidationMode.NONE,
                 cancellation_token=cancel,
             )
-        replies: list[Reply] = []
-        try:
-            async with asyncio.timeout(timeout + _QUERY_GRACE):
-                while True:
-                    replies.append(await inbox.get())
-        except TransportClosed:  # zenoh's "finished": every replier done, or its timeout
-            pass
-        except TimeoutError:
-            log.warning("zenoh query on %r did not finish by its timeout", key_expr)
-        finally:
-            if not inbox.closed:
+
+        def stop() -> None:
+            timer.cancel()
+            if not inbox.closed:  # the caller left before zenoh finished
                 with contextlib.suppress(zenoh.ZError):
                     cancel.cancel()
-        return replies
+
+        def late() -> None:
+            if not inbox.closed:
+                log.warning("zenoh query on %r did not finish by its timeout", key_expr)
+                stop()
+                inbox.close()
+
+        timer = loop.call_later(timeout + _QUERY_GRACE, late)
+        return Replies(inbox, stop)
 
     async def serve(
         self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None
