@@ -590,7 +590,14 @@ class InterfaceAgent:
             payload = self.sessions.seal(platform, body)
         except UnknownSession:
             await self.agree(platform)
-            payload = self.sessions.seal(platform, body)
+            try:
+                payload = self.sessions.seal(platform, body)
+            except UnknownSession:
+                # its token's first sight came while we waited (`SessionTable.doubt`): the
+                # session may be a previous process's, so one more is agreed (at most once:
+                # a first sight is seen once until the platform leaves)
+                await self.agree(platform)
+                payload = self.sessions.seal(platform, body)
         key = self._acl_keys.get(platform)
         if key is None:  # sealed: a peer we hold a session with
             key = self._acl_keys[platform] = host.key("acl", platform)

@@ -494,7 +494,14 @@ class Export:
         except (UnknownSession, Expired):
             async with asyncio.timeout(self._proxy.agree_timeout):
                 await sessions.ensure(self.receiver)
-            return sessions.seal_bytes(self.receiver, body)
+            try:
+                return sessions.seal_bytes(self.receiver, body)
+            except UnknownSession:
+                # the receiver's token first seen while we waited: its sessions doubted
+                # (`SessionTable.doubt`), so one more is agreed, once
+                async with asyncio.timeout(self._proxy.agree_timeout):
+                    await sessions.ensure(self.receiver)
+                return sessions.seal_bytes(self.receiver, body)
 
     def _pack(self, samples: list[RawSample]) -> list[tuple[bytes, int]]:
         """Bodies of at most ``max_batch_bytes``: ``(body, sample count)``; bad samples dropped."""

@@ -208,7 +208,7 @@ def latest_contents_plain(
     plain = type(query_time) is float
     out: list[dict[str, Any]] = []
     add = out.append
-    # one pass: each label's content, and whether all of them are plain so far
+    # one pass over the rows (a call per label per pass is most of this function's cost)
     for s in rows:
         if s is None:
             add({"query_time": query_time, "samples": []})

@@ -441,7 +441,7 @@ class FederationAgent(Agent):
         # ``_resolved_by`` (`_remember`); a provider is asked the same lists again
         self._resolved: dict[tuple[Any, ...], tuple[list[str], list[str], bool]] = {}
         self._resolved_by: tuple[PlatformLabels, LabelMapping, Vocabulary] | None = None
-        self._resolved_labels = 0  # in the keys of `_resolved`
+        self._resolved_labels = 0  # bounds `_resolved` (`_MAX_RESOLVED`): members pick the lists
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
         self.add_handler(
             MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_conversation),

@@ -97,7 +97,8 @@ def _the_application_recognizes_the_seeded_world(
     answer = until("uav-a", lambda a: bool(_values(a, "violation")), 90)
     assert time.monotonic() - started < 90
     assert _values(answer, "speeding")[0] == {"kind": "speeding", "cars": ["car9"]}
-    (found,) = _values(answer, "violation")
+    # the first (the world repeats every 120 s: a later pass may be in by the time asked)
+    found = _values(answer, "violation")[0]
     assert (found["kind"], found["car"], found["other"]) == ("overtake", "car4", "car2")
     assert set(found) == {"kind", "car", "other", "start", "end", "x", "y"}
     # recognized from the camera's view, not copied: the truth has a label of its own,
@@ -119,7 +120,7 @@ def _the_application_recognizes_the_seeded_world(
     assert {"id", "x", "y", "speed", "colour", "road"} <= set(cars["cars"][0])
     # the other chronicle, in the other UAV, by then
     answer = until("uav-c", lambda a: bool(_values(a, "violation")), 30)
-    (turn,) = _values(answer, "violation")
+    turn = _values(answer, "violation")[0]
     assert (turn["kind"], turn["car"], turn["other"]) == ("turn", "car6", None)
     assert turn["start"] < turn["end"]
 

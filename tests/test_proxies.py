@@ -222,6 +222,36 @@ async def test_end_to_end_with_real_sessions_agreed_on_first_send() -> None:
         assert session.received == rec.batches and session.confirmed
 
 
+async def test_a_first_sight_while_the_export_agrees_its_session_drops_nothing() -> None:
+    # The receiver's token first seen while the exporter waited for the key exchange: its
+    # sessions are doubted (they may be a previous process's), and one more is agreed.
+    tables = Tables("uav-a", "uav-b")
+    provider = tables.provider("uav-a")
+    agree = provider.agree
+    assert agree is not None
+    agreements = 0
+
+    async def agree_then_first_sight(peer: str) -> None:
+        nonlocal agreements
+        await agree(peer)
+        agreements += 1
+        if agreements == 1:
+            tables.tables["uav-a"].doubt(peer)
+
+    provider.agree = agree_then_first_sight
+    async with network() as net:
+        await net.platform("uav-a")
+        await net.platform("uav-b")
+        src = net.instances["uav-a"].add_source(LOCAL)
+        exporter = await net.exporter("uav-a", provider)
+        importer = await net.importer("uav-b", tables.provider("uav-b"))
+        export = exporter.start_exporting(LOCAL, SEM, "uav-b")
+        src.push_batch([(float(i), i, i) for i in range(100)])
+        rec = await until(lambda: importer.get("uav-a", SEM), "the import")
+        await until(lambda: rec.injected == 100, "every sample injected")
+        assert agreements == 2 and export.dropped == {}
+
+
 async def test_policy_is_applied_at_the_provider() -> None:
     async with network() as net:
         _, a = await net.platform("uav-a")

@@ -207,7 +207,7 @@ async def _restart(
     await _until(lambda: ECHO in channel._alive, "uav-a seeing the new uav-b's token")
     # every request is answered at once, by the new process, none refused there
     for i in range(2, 5):
-        answer = await request(asker, f"echo@{ECHO}", i, ontology="demo", timeout=5)
+        answer = await request(asker, f"echo@{ECHO}", i, ontology="demo", timeout=10)
         assert answer["echo"] == i and answer["pid"] == second.pid, answer
     assert answer["unauthenticated"] == answer["rehandshakes"] == 0, answer
 

@@ -609,7 +609,7 @@ class UavApplication:
         self._violations()
 
     def _valid_by(self, label: str, t: int, back: float) -> Sample | None:
-        """The newest sample of ``label`` valid at or before ``t`` (and at most ``back`` s before).
+        """The newest sample of ``label`` valid at or before ``t`` (the callers check its age).
 
         A step runs for its time ``t``, and on a busy machine late, catching up: by then
         samples valid after ``t`` may be in (the neighbour's states of a handed-over car,
