@@ -564,6 +564,19 @@ _HOSTILE_LATEST: list[Any] = [
 ]
 
 
+async def _asked_hostile(fed: FederationAgent) -> list[Any]:
+    """uav-a's answer to each of `_HOSTILE_LATEST`, asked by request and by query-ref."""
+    got: list[Any] = []
+    for content in _HOSTILE_LATEST:
+        for ask in (fed.request_from, _query_ref_of(fed)):
+            try:
+                got.append(("inform", await ask("uav-a", content)))
+            except Refused as exc:
+                assert exc.message is not None
+                got.append(("refuse", exc.message.content))
+    return got
+
+
 async def test_a_plain_get_latest_is_decided_as_its_model_decides(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
@@ -581,15 +594,7 @@ async def test_a_plain_get_latest_is_decided_as_its_model_decides(
             a.dk.add_source("a/secret").push(7, valid_time=T0 - NS_PER_S)
             a.push("car5-state", {"pos": [1.0, 2.0]}, seconds_ago=3)
             a.push("heli-altitude", 120.0, seconds_ago=2)
-            got: list[Any] = []
-            for content in _HOSTILE_LATEST:
-                for ask in (b.fed.request_from, _query_ref_of(b.fed)):
-                    try:
-                        got.append(("inform", await ask("uav-a", content)))
-                    except Refused as exc:
-                        assert exc.message is not None
-                        got.append(("refuse", exc.message.content))
-            return got, dict(a.fed.refusals)
+            return await _asked_hostile(b.fed), dict(a.fed.refusals)
 
     quick = await outcomes()
     assert sum(1 for kind, _ in quick[0] if kind == "inform") >= 8
@@ -630,15 +635,7 @@ async def test_a_kept_get_latest_translation_decides_as_a_fresh_one() -> None:
             a.dk.add_source("a/secret").push(7, valid_time=T0 - NS_PER_S)
             a.push("car5-state", {"pos": [1.0, 2.0]}, seconds_ago=3)
             a.push("heli-altitude", 120.0, seconds_ago=2)
-            got: list[Any] = []
-            for _ in range(2):
-                for content in _HOSTILE_LATEST:
-                    for ask in (b.fed.request_from, _query_ref_of(b.fed)):
-                        try:
-                            got.append(("inform", await ask("uav-a", content)))
-                        except Refused as exc:
-                            assert exc.message is not None
-                            got.append(("refuse", exc.message.content))
+            got = await _asked_hostile(b.fed) + await _asked_hostile(b.fed)
             return got, dict(a.fed.refusals), len(a.fed._resolved)
 
     kept = await outcomes(PlatformLabels)
