@@ -394,7 +394,10 @@ class InterfaceAgent:
     (default `KxLimit()`; None: none) sheds key-exchange requests on the transport's
     thread before their signature check (``agents._kxgate``). A trusted peer sealing on a
     session this platform lost makes it agree a new one at most once per
-    ``rehandshake_interval`` seconds.
+    ``rehandshake_interval`` seconds. Presence is not authenticated: a peer's presence
+    changes are acted on (its sessions forgotten or doubted) within a budget,
+    `PRESENCE_BURST` at once, then `PRESENCE_RATE` per ``rehandshake_interval``; the rest
+    are counted (``stats.presence_suppressed``) and audited (``presence-limited``).
 
     ``batch`` (default on): messages for one platform sent in the same turn of the event
     loop after the first leave together, at the end of the turn, sealed in one envelope

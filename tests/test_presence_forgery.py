@@ -46,10 +46,12 @@ from agents import (
     TrustStore,
     on_request,
     request,
+    wire_key,
 )
 from agents._interface import PRESENCE_BURST, PRESENCE_RATE
 from agents.keys import gen_keys, trust_keys
 from agents.transports import (
+    MemoryHub,
     MqttConfig,
     MqttTransport,
     Transport,
@@ -213,6 +215,45 @@ def _zenoh_outsider(port: int) -> zenoh.Session:
 def _bound(seconds: float) -> int:
     """Presence changes a peer's budget lets act on in ``seconds`` (deferred doubts included)."""
     return PRESENCE_BURST + int(seconds * PRESENCE_RATE / INTERVAL) + 1
+
+
+async def test_presence_changes_over_the_budget_are_counted_audited_and_doubt_later() -> None:
+    """In memory, an explicit count: 20 changes of uav-c's token at once, 4 acted on."""
+    hub = MemoryHub()
+    keys = {n: KeyPair.generate(n) for n in (VICTIM, ABSENT)}
+    trust = TrustStore("fed", {n: k.public_key for n, k in keys.items()})
+    channel = InterfaceAgent(keys[VICTIM], trust, rehandshake_interval=0.5, audit_interval=0.02)
+    async with (
+        asyncio.timeout(WAIT),
+        hub.transport() as transport,
+        hub.transport() as outsider,
+        AgentPlatform(VICTIM, transport, federation="fed", channel=channel) as pa,
+    ):
+        costs = Costs(channel)
+        channel._last_rehandshake[ABSENT] = time.monotonic()  # a re-handshake just ran
+        key = wire_key("fed", "alive", ABSENT)
+        for _ in range(10):
+            token = await outsider.declare_token(key)
+            token.close()
+            channel.rehandshake(ABSENT)  # a forged envelope on an unknown session, each time
+            await asyncio.sleep(0.001)
+        await _until(
+            "20 changes seen", lambda: costs.acted(ABSENT) + pa.stats.presence_suppressed >= 20
+        )
+        assert costs.acted(ABSENT) == PRESENCE_BURST
+        assert pa.stats.presence_suppressed == 20 - PRESENCE_BURST
+        # the limiter lifted once: one re-handshake, not one per change
+        assert pa.stats.rehandshakes <= 1
+        assert pa.stats.rehandshakes + pa.stats.rehandshakes_suppressed <= 10
+        records = await _until("the audit record", lambda: _limited(channel, ABSENT))
+        assert records[0]["count"] == 20 - PRESENCE_BURST
+        assert records[0]["verdict"] == "dropped"
+        assert records[0]["reason"].startswith(f"presence changes of {ABSENT!r} ignored: 16 ")
+        # once the budget allows (0.25 s here), one doubt stands for the changes ignored
+        doubts = costs.doubts[ABSENT]
+        await _until("the doubt that stands in", lambda: costs.doubts[ABSENT] == doubts + 1)
+        await asyncio.sleep(0.6)
+        assert costs.doubts[ABSENT] == doubts + 1 and not channel._presence_later
 
 
 @pytest.mark.timeout(180)
