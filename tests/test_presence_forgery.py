@@ -384,7 +384,7 @@ async def test_forged_presence_on_mqtt_costs_the_member_few_key_exchanges(
                     answered += 1
                     try:
                         got = await request(
-                            asker, f"echo@{MEMBER}", answered, ontology="demo", timeout=3
+                            asker, f"echo@{MEMBER}", answered, ontology="demo", timeout=5
                         )
                         assert got == answered
                     except Exception as exc:  # what the forgery cost, reported below
