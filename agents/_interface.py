@@ -97,6 +97,12 @@ RATE_LIMIT_REASON = "rate limit exceeded"
 WATCH_RATE = 20.0
 """Watch requests per second (bursts as many) handed to the event loop; the rest are shed."""
 
+PRESENCE_BURST = 4
+"""Presence changes of one peer acted on at once (a restart is two: gone, then back)."""
+PRESENCE_RATE = 2.0
+"""Presence changes of one peer acted on per ``rehandshake_interval`` past its burst."""
+_PRESENCE_REPORT_INTERVAL = 1.0  # seconds between audit records of ignored changes
+
 _MIRROR_CHUNK = 512 * 1024
 
 MAX_BATCH = 256
@@ -388,7 +394,10 @@ class InterfaceAgent:
     (default `KxLimit()`; None: none) sheds key-exchange requests on the transport's
     thread before their signature check (``agents._kxgate``). A trusted peer sealing on a
     session this platform lost makes it agree a new one at most once per
-    ``rehandshake_interval`` seconds.
+    ``rehandshake_interval`` seconds. Presence is not authenticated: a peer's presence
+    changes are acted on (its sessions forgotten or doubted) within a budget,
+    `PRESENCE_BURST` at once, then `PRESENCE_RATE` per ``rehandshake_interval``; the rest
+    are counted (``stats.presence_suppressed``) and audited (``presence-limited``).
 
     ``batch`` (default on): messages for one platform sent in the same turn of the event
     loop after the first leave together, at the end of the turn, sealed in one envelope
@@ -452,6 +461,14 @@ class InterfaceAgent:
         self.sessions = SessionTable(keys.platform, trust, policy=self.policy, clock=clock)
         self._handshakes: dict[str, asyncio.Future[None]] = {}
         self._last_rehandshake: dict[str, float] = {}
+        # Liveliness is not authenticated: per trusted peer, the presence changes acted on
+        # (`_presence_admits`), when one last lifted its re-handshake limiter, the changes
+        # ignored since the last audit record, and the doubt that stands in for them later
+        self._presence_buckets: dict[str, TokenBucket] = {}
+        self._presence_lifted: dict[str, float] = {}
+        self._presence_ignored: dict[str, int] = {}
+        self._presence_last_report = -math.inf
+        self._presence_later: dict[str, asyncio.TimerHandle] = {}
         self._subs: list[Subscription[Message] | Subscription[Presence]] = []
         self._kx: Handle | None = None
         self._host: AgentPlatform | None = None
@@ -702,6 +719,9 @@ class InterfaceAgent:
             self._flush(platform)
         for sub in self._subs:
             sub.close()
+        for later in self._presence_later.values():
+            later.cancel()
+        self._presence_later.clear()
         if self._kx is not None:
             self._kx.close()
         if self._watch_handle is not None:
@@ -1517,38 +1537,125 @@ class InterfaceAgent:
         """Forget a platform's sessions when it leaves, or reappears without having left.
 
         On its token's first sight (or its return after a leave), send on none of them
-        until it sends on one: they may be a previous process's.
+        until it sends on one: they may be a previous process's. Anyone may write a
+        presence (`_presence_admits`): changes over a peer's budget are counted and
+        audited, and stand for one doubt of its sessions once the budget allows.
         """
         host = self._require_host()
         async for change in presence:
             peer = change.key.rpartition("/")[2]
             if peer == host.name or peer not in self.trust:
                 continue  # no session with an untrusted name to forget (the directory audits it)
-            if not change.alive or peer in self._alive:
-                self.sessions.forget(peer)
-            else:
-                # A first sight forgets nothing: a platform's token can reach us after the
-                # key exchange of its first request (zenoh on a loaded machine), and that
-                # request, or our answer to it, is sealed on the session. But the session
-                # may be one we agreed with a previous process of that platform, whose
-                # token we never saw (the tokens alive when we started are not reported)
-                # nor its end: the new process cannot open it and our next request would
-                # be lost. So none is sent on until the peer sends on one; the next message
-                # agrees a new session first. What waits in this turn's batch goes as the
-                # message before it did.
-                if peer in self._outbox:
-                    self._flush(peer)
-                self.sessions.doubt(peer)
-            self._last_rehandshake.pop(peer, None)
+            acted = self._presence_admits(host, peer)
+            if acted:
+                if not change.alive or peer in self._alive:
+                    self.sessions.forget(peer)
+                else:
+                    # A first sight forgets nothing: a platform's token can reach us after
+                    # the key exchange of its first request (zenoh on a loaded machine), and
+                    # that request, or our answer to it, is sealed on the session. But the
+                    # session may be one we agreed with a previous process of that platform,
+                    # whose token we never saw (the tokens alive when we started are not
+                    # reported) nor its end: the new process cannot open it and our next
+                    # request would be lost. So none is sent on until the peer sends on one;
+                    # the next message agrees a new session first.
+                    self._doubt(peer)
+                self._lift_rehandshake_limit(peer)
             if change.alive:
                 self._alive.add(peer)
             else:
                 self._alive.discard(peer)
             self._kx_priority()
-            if not change.alive:
+            if acted and not change.alive:
                 # a request still pending when a platform reappears may be answered by the
                 # new process (it serves kx before its token shows): keep it then
                 self.handshake.cancel(peer)
+
+    def _doubt(self, peer: str) -> None:
+        """Seal for ``peer`` on none of its sessions until it sends on one (`SessionTable.doubt`).
+
+        What waits in this turn's batch goes as the message before it did.
+        """
+        if peer in self._outbox:
+            self._flush(peer)
+        self.sessions.doubt(peer)
+
+    def _presence_admits(self, host: AgentPlatform, peer: str) -> bool:
+        """Whether a presence change of trusted ``peer`` is acted on now: within its budget.
+
+        Presence is not authenticated (a forged zenoh token, a retained MQTT message), and
+        each change acted on costs a key exchange with the peer, so at most
+        `PRESENCE_BURST` at once, then `PRESENCE_RATE` per ``rehandshake_interval``. A
+        genuine restart (gone, then back) fits; the rest of a toggling is counted
+        (``stats.presence_suppressed``), audited, and doubts the peer's sessions once,
+        when the budget allows, as its last change may have been true.
+        """
+        now = self._monotonic()
+        bucket = self._presence_buckets.get(peer)
+        if bucket is None:
+            rate = PRESENCE_RATE / max(self.rehandshake_interval, 1e-3)
+            bucket = self._presence_buckets[peer] = TokenBucket(rate, PRESENCE_BURST, now)
+        later = self._presence_later.pop(peer, None)
+        if bucket.take(now):
+            if later is not None:
+                later.cancel()  # this change brings the peer's sessions up to date
+            return True
+        host.stats.presence_suppressed += 1
+        self._presence_ignored[peer] = self._presence_ignored.get(peer, 0) + 1
+        self._presence_later[peer] = later or asyncio.get_running_loop().call_later(
+            (1.0 - bucket.tokens) / bucket.rate, self._presence_catch_up, peer
+        )
+        self._wake_flush()  # to audit it
+        return False
+
+    def _presence_catch_up(self, peer: str) -> None:
+        """Doubt ``peer``'s sessions for the presence changes ignored, once its budget allows."""
+        self._presence_later.pop(peer, None)
+        host = self._host
+        if host is None or not host.running:
+            return
+        bucket = self._presence_buckets[peer]
+        if not bucket.take(self._monotonic()):
+            delay = max((1.0 - bucket.tokens) / bucket.rate, 0.05)
+            self._presence_later[peer] = asyncio.get_running_loop().call_later(
+                delay, self._presence_catch_up, peer
+            )
+            return
+        self._doubt(peer)
+
+    def _lift_rehandshake_limit(self, peer: str) -> None:
+        """Let ``peer``'s next re-handshake cue act at once: at most once per interval.
+
+        After a presence change the peer may seal on a session just forgotten here; an
+        outsider toggling the presence must not make `rehandshake` run more often.
+        """
+        now = time.monotonic()  # the limiter's clock (`rehandshake`)
+        if now - self._presence_lifted.get(peer, -math.inf) >= self.rehandshake_interval:
+            self._presence_lifted[peer] = now
+            self._last_rehandshake.pop(peer, None)
+
+    def _report_presence_ignored(self, now: float) -> None:
+        """Audit the presence changes ignored, one record per peer and interval."""
+        if (
+            not self._presence_ignored
+            or now - self._presence_last_report < _PRESENCE_REPORT_INTERVAL
+        ):
+            return
+        interval = self.rehandshake_interval
+        for peer, n in self._presence_ignored.items():
+            self.audit.record(
+                verdict="dropped",
+                stage="presence-limited",
+                count=n,
+                reason=(
+                    f"presence changes of {peer!r} ignored: {n} over the budget of "
+                    f"{PRESENCE_BURST} at once and {PRESENCE_RATE:g} per {interval:g} s "
+                    "(presence is not authenticated); its sessions are doubted once instead"
+                ),
+                **{"from": peer},
+            )
+        self._presence_ignored.clear()
+        self._presence_last_report = now
 
     def _wake_flush(self) -> None:
         """Wake the audit flush if it sleeps for want of work (from any thread)."""
@@ -1567,6 +1674,7 @@ class InterfaceAgent:
             or self._mirror
             or self._unauth_pending
             or self._watch_shed_pending
+            or self._presence_ignored
             or (self.kx_gate is not None and self.kx_gate.pending)
             or any(sender.pending for sender in self._senders.values())
         )
@@ -1609,6 +1717,7 @@ class InterfaceAgent:
                 self._report_kx_shed(self._monotonic())
                 self.kx_gate.forget_seen(time.time())
             self._report_watch_shed()
+            self._report_presence_ignored(self._monotonic())
             self._report_missing(self._monotonic())
             if not self.publish_audit and self.audit.path is None:
                 continue

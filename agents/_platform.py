@@ -170,7 +170,9 @@ class PlatformStats:
     limit; ``kx_shed`` key-exchange requests dropped before their signature check (the
     Interface Agent's gate); ``rehandshakes`` new sessions started because a trusted peer
     sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
-    ignored (at most one per peer per ``rehandshake_interval``); ``senders`` holds
+    ignored (at most one per peer per ``rehandshake_interval``), ``presence_suppressed``
+    presence changes of trusted peers not acted on (over a peer's budget: presence is not
+    authenticated, and each change acted on costs a key exchange); ``senders`` holds
     per-platform figures (keyed by authenticated platform name, so bounded by the trust
     file).
     """
@@ -189,6 +191,7 @@ class PlatformStats:
     kx_shed: int = 0
     rehandshakes: int = 0
     rehandshakes_suppressed: int = 0
+    presence_suppressed: int = 0
     senders: dict[str, SenderStats] = field(default_factory=dict)
 
 

@@ -1,0 +1,498 @@
+"""Forged presence buys an outsider no re-handshakes nor key exchanges, real processes.
+
+uav-a (the victim) runs in the test; uav-b, a trusted member, in a spawned process;
+uav-c is trusted but never runs. The attacker has no key of the federation: a plain
+zenoh session (peer mode on loopback, where anyone may declare a liveliness token under
+any name) or a plain MQTT client (a broker without the generated ACL, where anyone may
+publish a platform's retained presence). It toggles a trusted name's presence many times
+a second. Each change the Interface Agent acted on would forget or doubt that peer's
+sessions (one key exchange each, with the real peer when it runs) and lift its
+re-handshake limiter (one more key exchange per forged envelope on an unknown session).
+Per peer, presence is now acted on within a budget (`PRESENCE_BURST` changes at once,
+then `PRESENCE_RATE` per ``rehandshake_interval``) and lifts the limiter at most once per
+interval; the rest is counted (``stats.presence_suppressed``) and audited
+(``stage`` ``presence-limited``), and the peer's sessions are doubted once, later.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import json
+import multiprocessing
+import os
+import threading
+import time
+import uuid
+from collections import Counter
+from collections.abc import Callable, Iterator
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from pathlib import Path
+from typing import Any
+
+import orjson
+import paho.mqtt.client as paho
+import pytest
+import zenoh
+
+from agents import (
+    ACLMessage,
+    Agent,
+    AgentPlatform,
+    InterfaceAgent,
+    KeyPair,
+    ServiceDescription,
+    TrustStore,
+    on_request,
+    request,
+    wire_key,
+)
+from agents._interface import PRESENCE_BURST, PRESENCE_RATE
+from agents.keys import gen_keys, trust_keys
+from agents.transports import (
+    MemoryHub,
+    MqttConfig,
+    MqttTransport,
+    Transport,
+    ZenohConfig,
+    ZenohTransport,
+    free_tcp_port,
+)
+
+START = 20.0  # a spawned interpreter imports zenoh and pydantic: seconds when loaded
+WAIT = 15.0
+VICTIM, MEMBER, ABSENT = "uav-a", "uav-b", "uav-c"
+INTERVAL = 5.0  # the victim's rehandshake_interval (the default)
+ALIVE = b'{"v":1,"alive":true}'  # what an MQTT token publishes (docs/wire.md)
+TOGGLES = 300
+pytestmark = pytest.mark.timeout(120)
+
+
+class Echo(Agent):
+    """Answers with what it was asked."""
+
+    def __init__(self) -> None:
+        super().__init__("echo")
+
+    async def setup(self) -> None:
+        """Protected: uav-a reaches it through the Interface Agent."""
+        assert self.platform.df is not None
+        await self.platform.df.register(
+            ServiceDescription(name="echo", type="echo", provider=self.aid, visibility="protected")
+        )
+
+    @on_request("demo")
+    async def _echo(self, message: ACLMessage) -> Any:
+        """The content."""
+        return message.content
+
+
+def _transport(kind: str, config: dict[str, Any]) -> Transport:
+    if kind == "zenoh":
+        return ZenohTransport(ZenohConfig.model_validate(config))
+    return MqttTransport(MqttConfig.model_validate(config))
+
+
+def member_main(
+    kind: str, config: dict[str, Any], fed: str, keys: str, trust: str, ready: Any
+) -> None:
+    """uav-b's process: the echo agent until it is killed; says "ready" once it serves."""
+    asyncio.run(_member(kind, config, fed, Path(keys), Path(trust), ready))
+
+
+async def _member(
+    kind: str, config: dict[str, Any], fed: str, keys: Path, trust: Path, ready: Connection
+) -> None:
+    channel = InterfaceAgent(KeyPair.load(keys / f"{MEMBER}.key"), TrustStore.load(trust))
+    async with (
+        _transport(kind, config) as transport,
+        AgentPlatform(MEMBER, transport, federation=fed, channel=channel) as platform,
+    ):
+        await platform.add(Echo())
+        ready.send("ready")
+        await asyncio.Event().wait()  # until killed
+
+
+def _start_member(kind: str, config: dict[str, Any], fed: str, tmp: Path) -> BaseProcess:
+    """uav-b in a new process, returned once it serves (bounded by START)."""
+    ctx = multiprocessing.get_context("spawn")
+    theirs, ours = ctx.Pipe(duplex=False)
+    proc = ctx.Process(
+        target=member_main,
+        args=(kind, config, fed, str(tmp / "keys"), str(tmp / "trust.json"), ours),
+        name=MEMBER,
+    )
+    proc.start()
+    ours.close()
+    if not theirs.poll(START):
+        proc.kill()
+        raise AssertionError(f"uav-b did not start within {START} s (exit code {proc.exitcode})")
+    assert theirs.recv() == "ready"
+    return proc
+
+
+def _federation(tmp: Path) -> str:
+    fed = f"presence-{uuid.uuid4().hex[:8]}"
+    pubs = [gen_keys(n, tmp / "keys")[2] for n in (VICTIM, MEMBER, ABSENT)]
+    trust_keys(tmp / "trust.json", pubs, federation=fed)
+    return fed
+
+
+async def _until(what: str, cond: Callable[[], Any], timeout: float = WAIT) -> Any:
+    deadline = time.monotonic() + timeout
+    while not (value := cond()):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"not within {timeout} s: {what}")
+        await asyncio.sleep(0.02)
+    return value
+
+
+class Costs:
+    """What presence made the victim do, per peer: counted around its session table."""
+
+    def __init__(self, channel: InterfaceAgent) -> None:
+        self.channel = channel
+        self.forgets: Counter[str] = Counter()
+        self.doubts: Counter[str] = Counter()
+        self.agreed: Counter[str] = Counter()  # key exchanges the victim started
+        table = channel.sessions
+        forget, doubt, agree = table.forget, table.doubt, channel.agree
+
+        def counted_forget(peer: str) -> int:
+            self.forgets[peer] += 1
+            return forget(peer)
+
+        def counted_doubt(peer: str) -> int:
+            self.doubts[peer] += 1
+            return doubt(peer)
+
+        async def counted_agree(peer: str) -> None:
+            self.agreed[peer] += 1
+            await agree(peer)
+
+        table.forget = counted_forget  # type: ignore[method-assign]
+        table.doubt = counted_doubt  # type: ignore[method-assign]
+        channel.agree = counted_agree  # type: ignore[method-assign]
+
+    def acted(self, peer: str) -> int:
+        """Presence changes acted on (each forgets or doubts the peer's sessions)."""
+        return self.forgets[peer] + self.doubts[peer]
+
+
+def _limited(channel: InterfaceAgent, peer: str) -> list[dict[str, Any]]:
+    return [
+        r
+        for r in channel.audit.records
+        if r.get("stage") == "presence-limited" and r.get("from") == peer
+    ]
+
+
+def _unknown_session(fed: str, claimed: str) -> bytes:
+    """An envelope in ``claimed``'s name on a session that does not exist (docs/wire.md)."""
+    return orjson.dumps(
+        {
+            "v": 1,
+            "from": claimed,
+            "to": VICTIM,
+            "sid": base64.urlsafe_b64encode(os.urandom(16)).rstrip(b"=").decode(),
+            "ts_ms": int(time.time() * 1000),
+            "n": 1,
+            "body": '{"performative":"inform"}',
+            "mac": base64.b64encode(os.urandom(32)).decode(),
+        }
+    )
+
+
+def _zenoh_outsider(port: int) -> zenoh.Session:
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    return zenoh.open(conf)
+
+
+def _bound(seconds: float) -> int:
+    """Presence changes a peer's budget lets act on in ``seconds`` (deferred doubts included)."""
+    return PRESENCE_BURST + int(seconds * PRESENCE_RATE / INTERVAL) + 1
+
+
+async def test_presence_changes_over_the_budget_are_counted_audited_and_doubt_later() -> None:
+    """In memory, an explicit count: 20 changes of uav-c's token at once, 4 acted on."""
+    hub = MemoryHub()
+    keys = {n: KeyPair.generate(n) for n in (VICTIM, ABSENT)}
+    trust = TrustStore("fed", {n: k.public_key for n, k in keys.items()})
+    clock = [1000.0]  # the budget's clock: still while the changes come, however loaded
+    channel = InterfaceAgent(keys[VICTIM], trust, audit_interval=0.02, monotonic=lambda: clock[0])
+    async with (
+        asyncio.timeout(WAIT),
+        hub.transport() as transport,
+        hub.transport() as outsider,
+        AgentPlatform(VICTIM, transport, federation="fed", channel=channel) as pa,
+    ):
+        costs = Costs(channel)
+        channel._last_rehandshake[ABSENT] = time.monotonic()  # a re-handshake just ran
+        key = wire_key("fed", "alive", ABSENT)
+        for _ in range(10):
+            token = await outsider.declare_token(key)
+            token.close()
+            channel.rehandshake(ABSENT)  # a forged envelope on an unknown session, each time
+            await asyncio.sleep(0.001)
+        await _until(
+            "20 changes seen", lambda: costs.acted(ABSENT) + pa.stats.presence_suppressed >= 20
+        )
+        assert costs.acted(ABSENT) == PRESENCE_BURST
+        assert pa.stats.presence_suppressed == 20 - PRESENCE_BURST
+        # the limiter lifted once (per 5 s): one re-handshake, not one per change
+        assert pa.stats.rehandshakes <= 1
+        assert pa.stats.rehandshakes + pa.stats.rehandshakes_suppressed <= 10
+        records = await _until("the audit record", lambda: _limited(channel, ABSENT))
+        assert records[0]["count"] == 20 - PRESENCE_BURST
+        assert records[0]["verdict"] == "dropped"
+        assert records[0]["reason"].startswith(f"presence changes of {ABSENT!r} ignored: 16 ")
+        # once the budget allows (2.5 s on), one doubt stands for the changes ignored
+        doubts = costs.doubts[ABSENT]
+        clock[0] += INTERVAL
+        await _until("the doubt that stands in", lambda: costs.doubts[ABSENT] == doubts + 1)
+        await asyncio.sleep(0.3)
+        assert costs.doubts[ABSENT] == doubts + 1 and not channel._presence_later
+
+
+@pytest.mark.timeout(180)
+async def test_forged_tokens_on_zenoh_rekey_within_the_bound(tmp_path: Path) -> None:
+    """Token toggles: none reach the victim while uav-b runs; for uav-c, bounded and counted."""
+    fed = _federation(tmp_path)
+    port = free_tcp_port()
+    procs: list[BaseProcess] = []
+    channel = InterfaceAgent(
+        KeyPair.load(tmp_path / "keys" / f"{VICTIM}.key"), TrustStore.load(tmp_path / "trust.json")
+    )
+    try:
+        async with (
+            ZenohTransport(ZenohConfig.loopback(port)) as transport,
+            AgentPlatform(VICTIM, transport, federation=fed, channel=channel) as pa,
+        ):
+            member_config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
+            procs.append(
+                await asyncio.to_thread(_start_member, "zenoh", member_config, fed, tmp_path)
+            )
+            await _until("uav-a seeing uav-b's token", lambda: MEMBER in channel._alive)
+            asker = await pa.add(Agent("asker"))
+            assert await request(asker, f"echo@{MEMBER}", 0, ontology="demo", timeout=10) == 0
+            costs = Costs(channel)
+            outsider = _zenoh_outsider(port)
+            try:
+                prefix = f"dyknow/{fed}/v1"
+                await _until(
+                    "the outsider reaching uav-a",
+                    lambda: (
+                        outsider.liveliness().get(f"{prefix}/alive/{VICTIM}", timeout=1.0).recv()
+                        is not None
+                    ),
+                )
+
+                # 1. uav-b runs: zenoh keeps its key alive while any token holds it, so no
+                #    forged declare or undeclare of it reaches the victim's presence watch
+                def toggle(name: str, n: int, cue: bool) -> float:
+                    start = time.monotonic()
+                    for _ in range(n):
+                        token = outsider.liveliness().declare_token(f"{prefix}/alive/{name}")
+                        time.sleep(0.005)
+                        token.undeclare()
+                        if cue:
+                            outsider.put(f"{prefix}/acl/{VICTIM}", _unknown_session(fed, name))
+                        time.sleep(0.005)
+                    return time.monotonic() - start
+
+                await asyncio.to_thread(toggle, MEMBER, 100, False)
+                await asyncio.sleep(0.5)
+                assert costs.acted(MEMBER) == 0, (costs.forgets, costs.doubts)
+                # 2. uav-c is trusted and not running: each declare and undeclare is a change
+                before = pa.stats.rehandshakes
+                seconds = await asyncio.to_thread(toggle, ABSENT, 200, True)
+                await asyncio.sleep(1.0)
+                rekeys = pa.stats.rehandshakes - before
+                print(
+                    f"\nzenoh, uav-c's token toggled 200 times in {seconds:.1f} s: "
+                    f"{costs.acted(ABSENT)} presence change(s) acted on "
+                    f"({pa.stats.presence_suppressed} suppressed), {rekeys} re-handshake(s) "
+                    f"({pa.stats.rehandshakes_suppressed} cues ignored), "
+                    f"{costs.agreed[ABSENT]} key exchange(s) started"
+                )
+                assert costs.acted(ABSENT) <= _bound(seconds + 1.0)
+                assert rekeys <= 2 + 2 * int((seconds + 1.0) / INTERVAL)
+                assert pa.stats.presence_suppressed >= 200  # most of 400 changes
+                records = await _until(
+                    "the suppressed changes audited", lambda: _limited(channel, ABSENT)
+                )
+                assert sum(r["count"] for r in records) <= pa.stats.presence_suppressed
+                assert records[0]["verdict"] == "dropped"
+                assert "presence changes" in records[0]["reason"]
+                # uav-b is still served, on its session
+                assert await request(asker, f"echo@{MEMBER}", 1, ontology="demo", timeout=10) == 1
+            finally:
+                outsider.close()
+    finally:
+        for proc in procs:
+            if proc.is_alive():
+                proc.kill()
+            proc.join(timeout=10)
+
+
+@pytest.mark.timeout(180)
+async def test_forged_presence_on_mqtt_costs_the_member_few_key_exchanges(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    """uav-b's retained presence cleared and set again, many times, while uav-a asks it."""
+    host, port = mosquitto
+    fed = _federation(tmp_path)
+    procs: list[BaseProcess] = []
+    channel = InterfaceAgent(
+        KeyPair.load(tmp_path / "keys" / f"{VICTIM}.key"), TrustStore.load(tmp_path / "trust.json")
+    )
+    config = MqttConfig(host=host, port=port, keepalive=5)
+    try:
+        async with (
+            MqttTransport(config) as transport,
+            AgentPlatform(VICTIM, transport, federation=fed, channel=channel) as pa,
+        ):
+            procs.append(
+                await asyncio.to_thread(_start_member, "mqtt", config.model_dump(), fed, tmp_path)
+            )
+            await _until("uav-a seeing uav-b's presence", lambda: MEMBER in channel._alive)
+            asker = await pa.add(Agent("asker"))
+            assert await request(asker, f"echo@{MEMBER}", 0, ontology="demo", timeout=10) == 0
+            costs = Costs(channel)
+            attacker = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=f"x-{os.getpid()}")
+            attacker.connect(host, port)
+            attacker.loop_start()
+            stop = threading.Event()
+            topic = f"dyknow/{fed}/v1/alive/{MEMBER}"
+
+            def toggle() -> float:
+                start = time.monotonic()
+                for _ in range(TOGGLES):
+                    attacker.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
+                    attacker.publish(topic, ALIVE, qos=1, retain=True).wait_for_publish(5)
+                    time.sleep(0.01)
+                stop.set()
+                return time.monotonic() - start
+
+            try:
+                before = pa.stats.rehandshakes
+                attack = asyncio.create_task(asyncio.to_thread(toggle))
+                answered, failed = 0, []
+                while not stop.is_set():  # uav-a keeps asking uav-b meanwhile
+                    answered += 1
+                    try:
+                        got = await request(
+                            asker, f"echo@{MEMBER}", answered, ontology="demo", timeout=5
+                        )
+                        assert got == answered
+                    except Exception as exc:  # what the forgery cost, reported below
+                        failed.append(repr(exc))
+                    await asyncio.sleep(0.05)
+                seconds = await attack
+                await asyncio.sleep(1.0)
+                rekeys = pa.stats.rehandshakes - before
+                print(
+                    f"\nmqtt, uav-b's presence toggled {TOGGLES} times in {seconds:.1f} s while "
+                    f"uav-a asked {answered} times: {costs.acted(MEMBER)} presence change(s) "
+                    f"acted on ({costs.forgets[MEMBER]} forgets, {costs.doubts[MEMBER]} doubts; "
+                    f"{pa.stats.presence_suppressed} suppressed), {rekeys} re-handshake(s), "
+                    f"{costs.agreed[MEMBER]} key exchange(s) started, "
+                    f"{len(failed)} request(s) failed"
+                )
+                print("\n".join(failed[:3]))
+                # a forget acted on may lose what is in flight on the session it drops
+                assert len(failed) <= costs.forgets[MEMBER], failed
+                assert costs.acted(MEMBER) <= _bound(seconds + 1.0)
+                assert costs.agreed[MEMBER] <= _bound(seconds + 1.0) + 2
+                assert rekeys <= 2 + 2 * int((seconds + 1.0) / INTERVAL)
+                assert pa.stats.presence_suppressed >= 100
+                records = await _until(
+                    "the suppressed changes audited", lambda: _limited(channel, MEMBER)
+                )
+                assert sum(r["count"] for r in records) <= pa.stats.presence_suppressed
+                # and uav-b is still served once the attack stops
+                got = await request(asker, f"echo@{MEMBER}", -1, ontology="demo", timeout=10)
+                assert got == -1
+            finally:
+                attacker.loop_stop()
+                attacker.disconnect()
+    finally:
+        for proc in procs:
+            if proc.is_alive():
+                proc.kill()
+            proc.join(timeout=10)
+
+
+@pytest.mark.timeout(180)
+async def test_a_real_restart_recovers_as_fast_while_its_name_is_toggled(tmp_path: Path) -> None:
+    """uav-b killed and started again, twice: calm, then with its token toggled meanwhile.
+
+    A real restart is two changes (gone, back), within the budget; the toggling while uav-b
+    is down spends it, and the new process's token may then be ignored. The first request
+    after the new process serves is answered either way, about as fast.
+    """
+    fed = _federation(tmp_path)
+    port = free_tcp_port()
+    procs: list[BaseProcess] = []
+    channel = InterfaceAgent(
+        KeyPair.load(tmp_path / "keys" / f"{VICTIM}.key"), TrustStore.load(tmp_path / "trust.json")
+    )
+    prefix = f"dyknow/{fed}/v1"
+    try:
+        async with (
+            ZenohTransport(ZenohConfig.loopback(port)) as transport,
+            AgentPlatform(VICTIM, transport, federation=fed, channel=channel) as pa,
+        ):
+            asker = await pa.add(Agent("asker"))
+            outsider = _zenoh_outsider(port)
+            recovery: dict[str, float] = {}
+            try:
+                for run in ("calm", "toggled"):
+                    config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
+                    proc = await asyncio.to_thread(_start_member, "zenoh", config, fed, tmp_path)
+                    procs.append(proc)
+                    started = time.monotonic()
+                    got = await request(asker, f"echo@{MEMBER}", run, ontology="demo", timeout=10)
+                    assert got == run
+                    recovery[run] = time.monotonic() - started
+                    await _until("uav-a seeing uav-b", lambda: MEMBER in channel._alive)
+                    proc.kill()
+                    await asyncio.to_thread(proc.join, 10)
+                    await _until("uav-a seeing uav-b go", lambda: MEMBER not in channel._alive)
+                    if run == "calm":
+                        # while uav-b is down, its name's token toggled: its budget spent
+                        suppressed = pa.stats.presence_suppressed
+                        for _ in range(50):
+                            token = outsider.liveliness().declare_token(f"{prefix}/alive/{MEMBER}")
+                            await asyncio.sleep(0.005)
+                            token.undeclare()
+                            await asyncio.sleep(0.005)
+                        await _until(
+                            "the toggling suppressed",
+                            lambda n=suppressed + 50: pa.stats.presence_suppressed > n,
+                        )
+            finally:
+                outsider.close()
+            print(
+                f"\nfirst answer after uav-b serves again: calm {recovery['calm']:.3f} s, "
+                f"its token toggled while it was down {recovery['toggled']:.3f} s"
+            )
+            # a fresh platform's first request agrees a session (as the calm one did)
+            assert recovery["toggled"] < max(2.0, 3 * recovery["calm"])
+    finally:
+        for proc in procs:
+            if proc.is_alive():
+                proc.kill()
+            proc.join(timeout=10)
+
+
+@pytest.fixture(autouse=True)
+def _no_leftover_children() -> Iterator[None]:
+    yield
+    for proc in multiprocessing.active_children():
+        proc.kill()
+        proc.join(timeout=5)
