@@ -105,6 +105,8 @@ _PRESENCE_REPORT_INTERVAL = 1.0  # seconds between audit records of ignored chan
 
 _MIRROR_CHUNK = 512 * 1024
 
+_KX_ERRORS_KEPT = 8  # error replies to a key exchange quoted when none finishes it
+
 MAX_BATCH = 256
 """At most this many ACL messages in one envelope (a batch: ``docs/wire.md``)."""
 
@@ -799,7 +801,8 @@ class InterfaceAgent:
         host = self._require_host()
         request = self.handshake.initiate(peer)
         errors: list[str] = []
-        refusals: list[AuthenticationError] = []
+        first: AuthenticationError | None = None
+        stats = host.stats
         # Anyone on the network can answer a query on kx/<peer>: a bad reply must not hide
         # the good one, so each is tried as it comes (a refused one leaves our request
         # pending), and the first that finishes the exchange ends it, without waiting for
@@ -810,18 +813,20 @@ class InterfaceAgent:
             ) as replies:
                 async for reply in replies:
                     if not reply.ok:
-                        errors.append(reply.payload[:200].decode(errors="replace"))
+                        if len(errors) < _KX_ERRORS_KEPT:  # anyone may send them, unbounded
+                            errors.append(reply.payload[:200].decode(errors="replace"))
                         continue
                     try:
                         session = self.handshake.finish(reply.payload)
                     except AuthenticationError as exc:
-                        self.audit.record(
-                            verdict="dropped",
-                            stage="kx",
-                            **{"from": exc.platform or peer},
-                            reason=f"{exc.code}: {exc.reason}",
+                        # as cheap to send as any unauthenticated input: a flood of them
+                        # must not become a flood of audit records (the shared budget)
+                        stats.kx_replies_refused += 1
+                        self._drop_unauthenticated(
+                            exc.platform or peer, f"{exc.code}: {exc.reason}", stage="kx"
                         )
-                        refusals.append(exc)
+                        if first is None:
+                            first = exc
                         continue
                     self.sessions.add(session)
                     self._kx_priority()
@@ -830,10 +835,9 @@ class InterfaceAgent:
             self.handshake.cancel(peer)
             raise
         self.handshake.cancel(peer)
-        if not refusals:
+        if first is None:
             detail = f" (error replies, not authenticated: {'; '.join(errors)})" if errors else ""
             raise TransportError(f"platform {peer!r} did not answer the key exchange{detail}")
-        first = refusals[0]
         raise SecurityError(f"key exchange with {peer!r} refused: {first.reason}") from first
 
     async def _renew(self, peer: str, *, announce: bool = False) -> None:

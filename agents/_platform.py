@@ -168,7 +168,9 @@ class PlatformStats:
     because too many were on their way; ``unauthenticated`` envelopes that did not open
     (the Interface Agent drops them); ``rate_limited`` messages dropped by a sender's rate
     limit; ``kx_shed`` key-exchange requests dropped before their signature check (the
-    Interface Agent's gate); ``rehandshakes`` new sessions started because a trusted peer
+    Interface Agent's gate); ``kx_replies_refused`` replies to this platform's own
+    key-exchange requests that it refused (junk, forged, …: anyone may answer them);
+    ``rehandshakes`` new sessions started because a trusted peer
     sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
     ignored (at most one per peer per ``rehandshake_interval``), ``presence_suppressed``
     presence changes of trusted peers not acted on (over a peer's budget: presence is not
@@ -189,6 +191,7 @@ class PlatformStats:
     unauthenticated: int = 0
     rate_limited: int = 0
     kx_shed: int = 0
+    kx_replies_refused: int = 0
     rehandshakes: int = 0
     rehandshakes_suppressed: int = 0
     presence_suppressed: int = 0

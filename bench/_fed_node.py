@@ -39,6 +39,7 @@ import msgpack
 import zenoh
 from nacl.signing import SigningKey
 
+from agents import AuthenticationError
 from agents._security import Handshake, KeyPair, SecurityPolicy, SessionTable, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport
 from dyknow_core import DyKnowInstance, Policy, RawSample
@@ -264,15 +265,35 @@ class Exporter(_Node):
         self.zenoh_entities.append(session.declare_subscriber(f"{ACK}/*", on_ack))
 
     async def _agree(self, peer: str) -> None:
-        """Run the key exchange with ``peer`` over a zenoh query; keep the session."""
+        """Run the key exchange with ``peer`` over a zenoh query; keep the session.
+
+        As the Interface Agent does: each reply is tried as it comes, and the first that
+        finishes the exchange ends the query.
+        """
         request = self.handshake.initiate(peer)
-        replies = await self.transport.query(f"{KX}/{peer}", request, timeout=2.0)
-        good = [r for r in replies if r.ok]
-        if not good:
+        detail: bytes | None = None  # the first error reply's
+        refused: AuthenticationError | None = None
+        try:
+            async with await self.transport.ask(f"{KX}/{peer}", request, timeout=2.0) as replies:
+                async for reply in replies:
+                    if not reply.ok:
+                        detail = detail or reply.payload[:200]
+                        continue
+                    try:
+                        session = self.handshake.finish(reply.payload)
+                    except AuthenticationError as exc:
+                        refused = refused or exc
+                        continue
+                    self.table.add(session)
+                    return
+        except BaseException:
             self.handshake.cancel(peer)
-            detail = replies[0].payload[:200] if replies else b"no reply"
-            raise ConnectionError(f"{peer} did not answer the key exchange: {detail!r}")
-        self.table.add(self.handshake.finish(good[0].payload))
+            raise
+        self.handshake.cancel(peer)
+        if refused is not None:
+            raise refused
+        detail = detail or b"no reply"
+        raise ConnectionError(f"{peer} did not answer the key exchange: {detail!r}")
 
     async def op_export(self, receivers: list[str], timeout: float) -> dict[str, str]:
         """Agree a session with each receiver (retrying until ``timeout``), then export to it."""
