@@ -50,7 +50,7 @@ from ._protocols import (
     request,
     subscribe,
 )
-from .transports import Handle, Inbox, Message, Presence, Subscription
+from .transports import Handle, Inbox, Message, Presence, Reply, Subscription
 
 if TYPE_CHECKING:
     from ._platform import AgentPlatform
@@ -633,13 +633,28 @@ class GlobalDirectory:
         """Changes with every change of `services`: a view of them is current while it is equal."""
 
     async def start(self) -> None:
-        """Subscribe, take the snapshot, and follow changes (tasks owned by the platform)."""
+        """Subscribe, take the snapshot, and follow changes (tasks owned by the platform).
+
+        The snapshot is whole when this returns: every DF answered (zenoh, memory), or
+        over MQTT every platform whose token is alive and may count, or the query timed out.
+        """
         p = self._platform
         # Subscribe before the snapshot: what changes meanwhile is queued, not lost.
         events = await p.transport.subscribe(p.key("df-events", "*"))
         presence = await p.transport.watch_presence(p.key("alive", "*"))
         self._subs = [events, presence]
-        for platform, services in (await self._query("*")).items():
+        expect = None
+        if not p.transport.asks_end_when_answered:
+            # MQTT: the snapshot would wait out its timeout; it is whole once every
+            # platform alive (that may count) has answered, and so is this one's own
+            try:
+                alive = await p.transport.tokens(p.key("alive", "*"), timeout=self.query_timeout)
+            except TransportError as exc:
+                log.warning("global-df[%s]: asking the tokens failed: %s", p.name, exc)
+            else:
+                names = {key.rpartition("/")[2] for key in alive}
+                expect = {n for n in names if self._auth.trusted(n)} | {p.name}
+        for platform, services in (await self._query("*", expect=expect)).items():
             self._alive.add(platform)
             self._replace(platform, services)
         p.spawn(self._follow_events(events), "global-df.events")
@@ -729,45 +744,56 @@ class GlobalDirectory:
             audit(claimed, reason, stage)
 
     async def _query(
-        self, platform: str, timeout: float | None = None
+        self, platform: str, timeout: float | None = None, *, expect: set[str] | None = None
     ) -> dict[str, list[ServiceDescription]]:
-        """Ask the DF(s) for their public services: {platform: services} of those that answered."""
+        """Ask the DF(s) for their public services: {platform: services} of those that answered.
+
+        The query ends once every platform of ``expect`` answered (one named: that one),
+        or when the transport knows all did, or at the timeout.
+        """
+        if expect is None and "*" not in platform:
+            expect = {platform}  # its answer is all there is (MQTT's query would wait on)
         nonce = make_nonce()
+        found: dict[str, list[ServiceDescription]] = {}
         try:
-            replies = await self._platform.transport.query(
+            async with await self._platform.transport.ask(
                 self._platform.key("df", platform),
                 orjson.dumps({"v": WIRE_VERSION, "nonce": base64.b64encode(nonce).decode()}),
                 timeout=self.query_timeout if timeout is None else timeout,
-            )
+            ) as replies:
+                async for reply in replies:
+                    self._take(reply, nonce, found)
+                    if expect is not None and expect.issubset(found):
+                        break
         except TransportError as exc:
             log.warning("global-df[%s]: query failed: %s", self._platform.name, exc)
-            return {}
-        found: dict[str, list[ServiceDescription]] = {}
-        for reply in replies:
-            if not reply.ok:
-                continue
-            name = reply.key.rpartition("/")[2]
-            where = None if "*" in name else name
-            try:
-                statement = self._auth.open(reply.payload, "df", platform=where, nonce=nonce)
-            except DirectoryStatementError as exc:
-                self._refuse(exc.platform or where, f"directory answer: {exc.reason}", "df")
-                continue
-            try:
-                items = statement.body
-                if not isinstance(items, list):
-                    raise ValueError("not a list")
-                services = [ServiceDescription.model_validate(i) for i in items]
-            except (ValueError, ValidationError) as exc:
-                self.invalid += 1
-                log.warning("global-df: bad answer from %s: %s", reply.key, exc)
-                continue
-            name = statement.platform
-            if not self._auth.trusted(name):
-                self._refuse(name, "directory answer from a platform not in the trust file", "df")
-                continue
-            found[name] = [s for s in services if s.platform == name]
         return found
+
+    def _take(self, reply: Reply, nonce: bytes, found: dict[str, list[ServiceDescription]]) -> None:
+        """Add a directory answer to ``found`` if it authenticates; refuse and count it if not."""
+        if not reply.ok:
+            return
+        name = reply.key.rpartition("/")[2]
+        where = None if "*" in name else name
+        try:
+            statement = self._auth.open(reply.payload, "df", platform=where, nonce=nonce)
+        except DirectoryStatementError as exc:
+            self._refuse(exc.platform or where, f"directory answer: {exc.reason}", "df")
+            return
+        try:
+            items = statement.body
+            if not isinstance(items, list):
+                raise ValueError("not a list")
+            services = [ServiceDescription.model_validate(i) for i in items]
+        except (ValueError, ValidationError) as exc:
+            self.invalid += 1
+            log.warning("global-df: bad answer from %s: %s", reply.key, exc)
+            return
+        name = statement.platform
+        if not self._auth.trusted(name):
+            self._refuse(name, "directory answer from a platform not in the trust file", "df")
+            return
+        found[name] = [s for s in services if s.platform == name]
 
     def _replace(self, platform: str, services: Iterable[ServiceDescription]) -> None:
         old = self._entries.get(platform, {})

@@ -17,12 +17,15 @@ from agents import (
     Agent,
     AgentPlatform,
     DirectoryEvent,
+    InterfaceAgent,
+    KeyPair,
     MemoryHub,
     NotUnderstood,
     Refused,
     ServiceDescription,
     ServiceError,
     ServiceQuery,
+    TrustStore,
     Visibility,
     deregister_service,
     modify_service,
@@ -33,7 +36,7 @@ from agents import (
     subscribe_services,
     visibility_allows,
 )
-from agents.transports import Subscription
+from agents.transports import MqttConfig, MqttTransport, Subscription
 
 V = Visibility
 
@@ -528,3 +531,43 @@ def test_the_wire_document_lists_every_field_of_a_service_and_a_query() -> None:
     visibility = re.search(r"^\| `visibility` \| (.*?) \|", section, re.MULTILINE)
     assert visibility is not None
     assert re.findall(r'`"([a-z]+)"`', visibility.group(1)) == [v.value for v in Visibility]
+
+
+# Long enough that a start waiting out one directory query, as MQTT's query would, is far
+# over the bound the test sets (half of it), on any machine.
+MQTT_QUERY_TIMEOUT = 8.0
+
+
+async def test_a_start_over_mqtt_does_not_wait_out_the_directory_query(
+    mosquitto: tuple[str, int],
+) -> None:
+    """Over MQTT a start's snapshot ends once every trusted platform alive answered.
+
+    A query there cannot know who heard it; the tokens alive say whom to expect. The view
+    is whole when the start returns, and an untrusted token is not waited for.
+    """
+    host, port = mosquitto
+    names = ["uav-a", "uav-b", "uav-c", "uav-d"]
+    keys = {n: KeyPair.generate(n) for n in names}
+    trust = {n: k.public_key for n, k in keys.items()}
+    async with contextlib.AsyncExitStack() as stack:
+        outsider = await stack.enter_async_context(MqttTransport(MqttConfig(host=host, port=port)))
+        await outsider.declare_token("dyknow/t/v1/alive/mallory")  # in no trust file
+        started: list[AgentPlatform] = []
+        for n in names:
+            transport = MqttTransport(MqttConfig(host=host, port=port, client_id=n))
+            await stack.enter_async_context(transport)
+            channel = InterfaceAgent(keys[n], TrustStore("t", trust))
+            platform = AgentPlatform(
+                n, transport, federation="t", channel=channel, query_timeout=MQTT_QUERY_TIMEOUT
+            )
+            t0 = asyncio.get_running_loop().time()
+            await stack.enter_async_context(platform)
+            took = asyncio.get_running_loop().time() - t0
+            assert took < MQTT_QUERY_TIMEOUT / 2, f"{n} started in {took:.2f} s"
+            view = platform.global_df
+            assert view is not None and platform.df is not None
+            assert view.platforms == [p.name for p in [*started, platform]]
+            assert sorted(s.provider for s in view.services()) == [f"cam@{p.name}" for p in started]
+            await platform.df.register(svc(f"cam@{n}", "cam", V.PUBLIC))
+            started.append(platform)

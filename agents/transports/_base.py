@@ -292,6 +292,12 @@ class Transport(ABC):
     On zenoh (and in memory) a presence is gone only when every token on the key is: a
     client may add a token, never remove another's.
     """
+    asks_end_when_answered = True
+    """Whether an `ask` ends once every queryable that heard it answered (zenoh, memory).
+
+    False on MQTT, which cannot tell how many heard it: there a caller that knows whom
+    to expect (the tokens alive, `tokens`) leaves once they answered, not at the timeout.
+    """
 
     def __init__(self) -> None:
         self._state = "unopened"
@@ -429,9 +435,9 @@ class Transport(ABC):
     async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
         """The keys of the tokens matching ``key_expr`` alive now, as known by ``timeout`` s.
 
-        zenoh asks its peers and routers and returns once they all answered; this
-        default, for a transport whose history has no end (MQTT's retained messages),
-        listens to `watch_presence` for ``timeout`` s.
+        zenoh asks its peers and routers and returns once they all answered; MQTT once
+        the broker has sent its retained ones. This default, for a transport whose
+        history has no end, listens to `watch_presence` for ``timeout`` s.
         """
         presence = await self.watch_presence(key_expr, history=True)
         alive: set[str] = set()

@@ -43,7 +43,9 @@ Presence
     Closing the token publishes the empty retained message (which clears it); a process
     that dies loses its connection and the broker publishes the will.
     ``watch_presence`` subscribes to the key expression: retained messages are the
-    history, live ones the changes; a watcher reports only changes.
+    history, live ones the changes; a watcher reports only changes. ``tokens`` knows the
+    history is complete once a message it sends itself through the broker comes back:
+    the broker sends a subscription's retained messages before what it routes later.
 
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
@@ -51,7 +53,9 @@ What MQTT cannot guarantee, compared to zenoh
     - A query cannot know how many queryables there are, so `query` always waits until
       its timeout (zenoh returns once every matching queryable has answered); `ask`
       yields each reply as it comes, for a caller that stops at the first it can use
-      (the key exchange: the first authenticated reply).
+      (the key exchange: the first authenticated reply) or once those it expects
+      answered (a platform's start: every platform whose token is alive).
+      ``asks_end_when_answered`` is False here for such callers.
     - A dead process is seen gone when the broker notices: at once when its TCP connection
       closes (a killed process), but only after 1.5 x keepalive for a frozen one or a lost
       network; and a broker that restarts without persistence forgets every token.
@@ -351,6 +355,7 @@ class MqttTransport(Transport):
 
     name = "mqtt"
     forgeable_presence = True
+    asks_end_when_answered = False
 
     def __init__(self, config: MqttConfig | Mapping[str, Any] | None = None) -> None:
         super().__init__()
@@ -694,6 +699,51 @@ class MqttTransport(Transport):
 
         timer = loop.call_later(timeout, end)
         return Replies(inbox, stop)
+
+    async def _round_trip(self, timeout: float) -> bool:
+        """Whether a message to this client through the broker came back within ``timeout`` s.
+
+        The broker sends a client what it owes it in order, the retained messages of a
+        subscription as it takes it: once this is back, those of every subscription
+        made before it have arrived here, and were handed on.
+        """
+        client, loop = self._connected()
+        correlation = secrets.token_bytes(16)  # random: nobody else can end it early
+        inbox: Inbox[Reply] = Inbox(loop, 1)
+        self._pending[correlation] = inbox
+        try:
+            props = Properties(PacketTypes.PUBLISH)
+            props.CorrelationData = correlation
+            try:
+                await client.publish(self._reply_topic, b"", qos=self.config.qos, properties=props)
+            except aiomqtt.MqttError as exc:
+                raise self._error("a round trip through the broker", exc) from exc
+            try:
+                async with asyncio.timeout(timeout):
+                    await inbox.get()
+            except (TimeoutError, TransportClosed):
+                return False
+            return True
+        finally:
+            self._pending.pop(correlation, None)
+
+    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
+        """The tokens alive on ``key_expr``: the retained ones, once the broker sent them all.
+
+        A round trip through the broker after subscribing ends after the retained
+        messages (`_round_trip`), a few ms; what came by ``timeout`` s when it does not.
+        """
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        presence = await self.watch_presence(key_expr, history=True)
+        try:
+            await self._round_trip(max(0.0, deadline - loop.time()))
+            alive: set[str] = set()
+            for change in presence.inbox.drain():
+                (alive.add if change.alive else alive.discard)(change.key)
+        finally:
+            presence.close()
+        return sorted(alive)
 
     async def serve(
         self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None
