@@ -64,7 +64,9 @@ def _table(title: str, *columns: str) -> Table:
 
     table = Table(title=title)
     for column in columns:
-        table.add_column(column)
+        # folded, not cut with an ellipsis: a time or label cut short on an 80-column
+        # terminal (or a pipe) says nothing
+        table.add_column(column, overflow="fold")
     return table
 
 
@@ -123,9 +125,11 @@ def keys_gen(
     ] = False,
 ) -> None:
     """Generate a platform's key pair (private key 0600), optionally trusting it."""
-    from agents.keys import KeysError, gen_keys, trust_keys
+    from agents.keys import KeysError, check_trust_file, gen_keys, trust_keys
 
     try:
+        if trust_file is not None:  # a trust file it cannot use: refused before any key is made
+            check_trust_file(trust_file, federation)
         pair, key_path, pub_path = gen_keys(platform, directory, force=force)
         _say(f"created {key_path} (private, mode 0600: keep it on {platform} only)")
         _say(f"created {pub_path} (public: add it to the federation's trust file)")

@@ -88,6 +88,41 @@ def test_keys_gen_and_trust(tmp_path: Path) -> None:
     assert r.exit_code == 1
 
 
+def test_keys_gen_refuses_a_trust_file_it_cannot_use_before_writing_keys(tmp_path: Path) -> None:
+    keys, trust = tmp_path / "keys", tmp_path / "trust.json"
+    trust_keys(trust, [gen_keys("uav-a", keys)[2]], federation="demo")
+    for extra in (
+        ("--trust-file", str(trust), "--federation", "traffic"),
+        ("--trust-file", str(tmp_path / "no.json")),
+    ):
+        r = runner.invoke(app, ["keys", "gen", "-p", "uav-b", "-d", str(keys), *extra])
+        assert r.exit_code == 1, r.output
+        assert "'demo', not 'traffic'" in r.output or "give --federation" in r.output
+        assert not (keys / "uav-b.key").exists()  # a retry is not told the key is there
+    r = runner.invoke(
+        app, ["keys", "gen", "-p", "uav-b", "-d", str(keys), "--trust-file", str(trust)]
+    )
+    assert r.exit_code == 0, r.output
+    assert list(TrustStore.load(trust)) == ["uav-a", "uav-b"]
+
+
+def test_tables_fold_what_an_80_column_terminal_cannot_hold(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from federation._cli_app import _print, _table
+
+    monkeypatch.setenv("COLUMNS", "80")
+    stamp = "2026-11-28T02:52:47.964+00:00"
+    table = _table("get-latest from uav-a", "label", "query time", "value", "valid", "available")
+    table.add_row("wind-speed-kmh", stamp, "20.808496403110213", stamp, stamp)
+    _print(table)
+    out = capsys.readouterr().out
+    assert "…" not in out and max(map(len, out.splitlines())) <= 80
+    body = [line.split("│")[1:-1] for line in out.splitlines() if line.startswith("│")]
+    cells = ["".join(part.strip() for part in column) for column in zip(*body, strict=True)]
+    assert cells == ["wind-speed-kmh", stamp, "20.808496403110213", stamp, stamp]
+
+
 def test_keys_untrust_revokes_and_show_lists(tmp_path: Path) -> None:
     keys, trust = tmp_path / "keys", tmp_path / "trust.json"
     for name in ("uav-a", "uav-b", "uav-c"):
