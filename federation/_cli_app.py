@@ -354,6 +354,12 @@ def _alive_error() -> type[Exception]:
     return PlatformAliveError
 
 
+def _relayed_error() -> type[Exception]:
+    from ._cli_net import RelayedError
+
+    return RelayedError
+
+
 def _run_query(coro: Any) -> Any:
     """Run a query coroutine; config and request errors exit 2 / 1 with a message."""
     try:
@@ -362,6 +368,8 @@ def _run_query(coro: Any) -> Any:
         raise _fail(str(exc)) from None
     except _alive_error() as exc:
         raise _fail(f"dyknow: {exc}") from None
+    except _relayed_error() as exc:  # the node's text names the error's kind already
+        raise _fail(f"dyknow: {exc}", 1) from None
     except Exception as exc:  # the user gets the reason, not a traceback
         raise _fail(f"dyknow: {type(exc).__name__}: {exc}", 1) from None
 

@@ -35,6 +35,10 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 
+class RelayedError(RuntimeError):
+    """An error the running node reported for a command it relayed; its text says what."""
+
+
 def _stop_event() -> asyncio.Event:
     """An event set on SIGINT or SIGTERM."""
     stop = asyncio.Event()
@@ -241,12 +245,12 @@ async def _through_node(config_path: str, request: dict[str, Any]) -> tuple[bool
     try:
         async for line in via_node(PlatformConfig.load(config_path), request):
             if "error" in line:
-                raise RuntimeError(line["error"])
+                raise RelayedError(line["error"])
             if "ok" in line:
                 return True, line["ok"]
     except NodeUnreachable:
         return False, None
-    raise RuntimeError("the running node closed the local channel without an answer")
+    raise RelayedError("the running node closed the local channel without an answer")
 
 
 async def list_platforms(config_path: str, wait: float) -> dict[str, list[dict[str, Any]]]:
@@ -324,7 +328,7 @@ async def stream_through_node(
             except NodeUnreachable:
                 return None
             if "error" in line:
-                raise RuntimeError(line["error"])
+                raise RelayedError(line["error"])
             if "end" in line:
                 return seen
             label, value, valid, available = line["sample"]

@@ -123,6 +123,24 @@ def test_tables_fold_what_an_80_column_terminal_cannot_hold(
     assert cells == ["wind-speed-kmh", stamp, "20.808496403110213", stamp, stamp]
 
 
+def test_an_error_relayed_by_the_running_node_is_said_once(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import typer
+
+    from federation._cli_app import _run_query
+    from federation._cli_net import RelayedError
+
+    async def refused() -> None:
+        raise RelayedError("Refused: federation@uav-a refused: label 'x': no stream for it here")
+
+    with pytest.raises(typer.Exit) as exit_:
+        _run_query(refused())
+    assert exit_.value.exit_code == 1
+    err = capsys.readouterr().err
+    assert err == "dyknow: Refused: federation@uav-a refused: label 'x': no stream for it here\n"
+
+
 def test_keys_untrust_revokes_and_show_lists(tmp_path: Path) -> None:
     keys, trust = tmp_path / "keys", tmp_path / "trust.json"
     for name in ("uav-a", "uav-b", "uav-c"):
