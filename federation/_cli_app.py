@@ -562,10 +562,11 @@ def _watch_line(event: dict[str, Any]) -> str:
     if kind == "audit":
         r = event["record"]
         stage = f" ({r['stage']})" if r.get("stage") else ""
-        return (
-            f"{stamp} audit  {r.get('verdict')}{stage} from {r.get('from')} "
-            f"{r.get('performative') or ''} {r.get('sender') or ''}: {r.get('reason') or ''}"
-        )
+        # a record about no peer (the owner's own watch) has no 'from': say nothing of it
+        who = [f"from {r['from']}"] if r.get("from") else []
+        who += [str(r[k]) for k in ("performative", "sender") if r.get(k)]
+        head = " ".join([f"{r.get('verdict')}{stage}", *who])
+        return f"{stamp} audit  {head}: {r.get('reason') or ''}"
     if kind == "watching":
         return f"watching {event['platform']}: messages, batches and audit addressed to it"
     return f"{stamp} {kind} {json.dumps(event, default=str)}"
