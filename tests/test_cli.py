@@ -287,6 +287,20 @@ def test_monitor_and_kpl(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert "Missing" in capsys.readouterr().err
 
 
+def test_the_readmes_monitor_command_on_the_example_trace(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    formula = "always[0,10](speed < 30 -> eventually[0,5] on_road)"  # README.md, reasoning.md
+    assert main(["monitor", formula, "--trace", str(ROOT / "examples" / "flight.jsonl")]) == 0
+    verdicts = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    # off the road from 12 s to 19 s: the window from 11 s is violated, certain at 17 s
+    assert verdicts == [
+        {"t": 10, "from": 0, "verdict": True},
+        {"t": 17, "from": 11, "verdict": False},
+        {"t": 28, "from": 18, "verdict": True},
+    ]
+
+
 def test_parse_time() -> None:
     from federation._cli_time import asked, parse_time, when
 
