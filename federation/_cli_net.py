@@ -25,7 +25,7 @@ from agents import (
 )
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
 
-from ._cli_common import failure_of, platforms_of, settle_gc, wait_for_members
+from ._cli_common import failure_of, platforms_of, reaching, settle_gc, wait_for_members
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
 
 if TYPE_CHECKING:
@@ -277,8 +277,7 @@ async def ask_platform(
     done, answer = await _through_node(config_path, request)
     if done:
         return answer
-    async with _opened(config_path) as p:
-        await wait_for_members(p, platform, wait)
+    async with _opened(config_path) as p, reaching(p, platform, wait):
         return await p.federation_agent.request_from(platform, content, timeout=timeout)
 
 
@@ -383,11 +382,11 @@ async def follow_stream(
     if relayed is not None:
         return relayed
     async with _opened(config_path) as p:
-        await wait_for_members(p, platform, wait)
         fed = p.federation_agent
-        export_id = await fed.create_stream(
-            platform, semantic_labels, sample_period=sample_period, timeout=timeout
-        )
+        async with reaching(p, platform, wait):
+            export_id = await fed.create_stream(
+                platform, semantic_labels, sample_period=sample_period, timeout=timeout
+            )
         queue: asyncio.Queue[tuple[str, Any, int, int]] = asyncio.Queue()
 
         async def pump(semantic: str) -> None:

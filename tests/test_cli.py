@@ -334,6 +334,22 @@ def test_ask_refuses_a_time_it_cannot_read(
     assert "both be relative or both absolute" in capsys.readouterr().err
 
 
+@pytest.mark.timeout(40)
+def test_asking_a_platform_that_is_not_running_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    configs = _write_federation(tmp_path, _free_port())  # uav-a is not started
+    asked = ["heli-altitude", "--platform", "uav-a", "--config", str(configs["operator"])]
+    quick = ["--wait", "0.5", "--timeout", "1"]
+    for command in ("ask", "stream"):
+        assert main([command, *asked, *quick]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(
+            "dyknow: platform 'uav-a' was not seen in federation 'traffic' within 0.5 s (--wait)"
+        ), err
+        assert "is it running" in err and "Traceback" not in err
+
+
 def _kill(proc: subprocess.Popen[str]) -> None:
     if proc.poll() is None:
         proc.kill()
