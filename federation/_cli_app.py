@@ -26,7 +26,7 @@ import typer
 from agents import TransportError
 from agents import run as run_loop
 
-from ._cli_common import NotSeenError
+from ._cli_common import NotAnsweredError
 from ._cli_node import CONFIG_FLAGS, CONFIG_HELP, run_node
 from ._cli_node import say as _say
 from ._cli_reasoning import kpl_app, monitor
@@ -371,7 +371,7 @@ def _run_query(coro: Any) -> Any:
         raise _fail(f"dyknow: {exc}") from None
     except _relayed_error() as exc:  # the node's text names the error's kind already
         raise _fail(f"dyknow: {exc}", 1) from None
-    except NotSeenError as exc:
+    except NotAnsweredError as exc:
         raise _fail(f"dyknow: {exc}", 1) from None
     except Exception as exc:  # the user gets the reason, not a traceback
         raise _fail(f"dyknow: {type(exc).__name__}: {exc}", 1) from None

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from ._platform import FederationPlatform
 
 __all__ = [
-    "NotSeenError",
+    "NotAnsweredError",
     "failure_of",
     "platforms_of",
     "reaching",
@@ -52,8 +52,8 @@ async def failure_of(job: Callable[..., Awaitable[Any]], *args: Any) -> Exceptio
     return None
 
 
-class NotSeenError(Exception):
-    """The asked platform was never seen in the federation, and then did not answer."""
+class NotAnsweredError(Exception):
+    """The asked platform did not answer; the message says the likely cause."""
 
 
 async def wait_for_members(p: FederationPlatform, want: str | None, wait: float) -> bool:
@@ -83,13 +83,19 @@ async def reaching(p: FederationPlatform, want: str, wait: float) -> AsyncIterat
     try:
         yield
     except (TransportError, TimeoutError) as exc:
-        if seen:
-            raise
-        raise NotSeenError(
-            f"platform {want!r} was not seen in federation {p.config.federation!r} within "
-            f"{wait:g} s (--wait) and did not answer ({exc}): is it running, and does "
-            f"{p.name}'s [transport] reach it?"
-        ) from None
+        if not seen:
+            raise NotAnsweredError(
+                f"platform {want!r} was not seen in federation {p.config.federation!r} within "
+                f"{wait:g} s (--wait) and did not answer ({exc}): is it running, and does "
+                f"{p.name}'s [transport] reach it?"
+            ) from None
+        if isinstance(exc, TransportError) and "key exchange" in str(exc):
+            # alive, yet silent to us: what a platform does with a key it does not trust
+            raise NotAnsweredError(
+                f"{exc}: it is alive, so does it trust {p.name!r}? A platform reads its "
+                "trust file when it starts: restart it after 'dyknow keys trust'"
+            ) from None
+        raise
 
 
 def platforms_of(p: FederationPlatform) -> dict[str, list[dict[str, Any]]]:

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 from agents import Pending, TokenBucket, TransportError, wire_key
 
-from ._cli_common import NotSeenError, failure_of, platforms_of, reaching, wait_for_members
+from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
 from ._cli_time import seconds, when
 from ._platform import PlatformConfig
 
@@ -320,7 +320,7 @@ class LocalChannel:
                 await self._answer(request, send, reader)
             except (ConnectionError, asyncio.IncompleteReadError):
                 raise
-            except NotSeenError as exc:  # says what it is
+            except NotAnsweredError as exc:  # says what it is
                 await send({"error": str(exc)})
             except Exception as exc:
                 await send({"error": f"{type(exc).__name__}: {exc}"})

@@ -350,6 +350,35 @@ def test_asking_a_platform_that_is_not_running_says_so(
         assert "is it running" in err and "Traceback" not in err
 
 
+@pytest.mark.timeout(40)
+def test_asking_a_platform_that_does_not_trust_us_says_what_to_check(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    configs = _write_federation(tmp_path, _free_port())
+    # uav-a runs with the trust file of before the operator's key was added to it
+    trust_keys(tmp_path / "trust-a.json", [tmp_path / "keys" / "uav-a.pub"], federation="traffic")
+    text = configs["uav-a"].read_text()
+    configs["uav-a"].write_text(text.replace('trust = "trust.json"', 'trust = "trust-a.json"'))
+    node = subprocess.Popen(
+        [sys.executable, "-m", "federation.cli", "node", "--config", str(configs["uav-a"])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert node.stdout is not None
+        assert "uav-a ready" in node.stdout.readline()  # bounded by the test's timeout
+        asked = ["heli-altitude", "--platform", "uav-a", "--config", str(configs["operator"])]
+        assert main(["ask", *asked, "--wait", "5", "--timeout", "2"]) == 1
+        err = capsys.readouterr().err
+        assert "did not answer the key exchange: it is alive, so does it trust 'operator'?" in err
+        assert "restart it after 'dyknow keys trust'" in err and "Traceback" not in err
+    finally:
+        _kill(node)
+
+
 def _kill(proc: subprocess.Popen[str]) -> None:
     if proc.poll() is None:
         proc.kill()
