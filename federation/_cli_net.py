@@ -533,6 +533,12 @@ async def watch_platform(
                 for line in data.splitlines():
                     await queue.put({"kind": "audit", "record": json.loads(line)})
 
+        def unanswered(waited: float) -> TransportError:
+            return TransportError(
+                f"platform {me!r} did not answer the watch request in {waited:g} s "
+                "(is it running, reachable, with [security] watch = true?)"
+            )
+
         async def lease() -> None:
             deadline = time.monotonic() + timeout
             answered = False
@@ -545,13 +551,11 @@ async def watch_platform(
                         await queue.put({"kind": "watching", "platform": me})
                     answered = True
                 elif not answered and time.monotonic() > deadline:
-                    raise TransportError(
-                        f"platform {me!r} did not answer the watch request in {timeout:g} s "
-                        "(is it running, reachable, with [security] watch = true?)"
-                    )
+                    raise unanswered(timeout)
                 await asyncio.sleep(renew if answered else 0.5)
 
         seen = 0
+        watching = False
         error: Exception | None = None
         try:
             async with asyncio.TaskGroup() as tg:
@@ -573,8 +577,13 @@ async def watch_platform(
                             getting.cancel()
                             failed = [t.result() for t in jobs if t in done]
                             error = next((e for e in failed if e is not None), None)
+                            if error is None and ending in done and not watching:
+                                # --duration ran out before the platform ever answered:
+                                # printing nothing and exiting 0 would look like a quiet one
+                                error = unanswered(duration or 0.0)
                             break
                         event = getting.result()
+                        watching = watching or event["kind"] == "watching"
                         emit(event)
                         seen += 1
                 except Exception as exc:  # raised below: the group would wrap it

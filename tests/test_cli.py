@@ -379,6 +379,16 @@ def test_asking_a_platform_that_does_not_trust_us_says_what_to_check(
         _kill(node)
 
 
+@pytest.mark.timeout(40)
+def test_watching_a_platform_that_is_not_running_says_so_within_its_duration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    configs = _write_federation(tmp_path, _free_port())  # uav-a is not started
+    assert main(["watch", "--config", str(configs["uav-a"]), "--duration", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "platform 'uav-a' did not answer the watch request in 1 s (is it running" in err
+
+
 def _kill(proc: subprocess.Popen[str]) -> None:
     if proc.poll() is None:
         proc.kill()
