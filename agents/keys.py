@@ -20,7 +20,7 @@ from pathlib import Path
 from ._exceptions import KeyFileError
 from ._security import KeyPair, TrustStore, check_name, fingerprint, read_public_key
 
-__all__ = ["KeysError", "gen_keys", "show", "trust_keys", "untrust"]
+__all__ = ["KeysError", "check_trust_file", "gen_keys", "show", "trust_keys", "untrust"]
 
 
 class KeysError(Exception):
@@ -61,6 +61,11 @@ def _open_trust(trust_file: Path, federation: str | None) -> tuple[TrustStore, b
         return TrustStore(federation), True
     except ValueError as exc:
         raise KeysError(str(exc)) from None
+
+
+def check_trust_file(trust_file: str | os.PathLike[str], federation: str | None = None) -> None:
+    """Raise KeysError if ``trust_keys`` would refuse this trust file and federation."""
+    _open_trust(Path(trust_file), federation)
 
 
 def _existing_trust(trust_file: Path) -> TrustStore:

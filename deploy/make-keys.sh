@@ -53,6 +53,6 @@ done
 cat <<MSG
 Keys and trust file are in ${keys_dir}, certificates and passwords in ${keys_dir}/tls.
 The containers run as uid 10001 and private keys must be mode 0600, so either run
-  DYKNOW_UID=\$(id -u) DYKNOW_GID=\$(id -g) docker compose -f deploy/docker-compose.yml up
+  DYKNOW_UID=\$(id -u) DYKNOW_GID=\$(id -g) docker compose -p dyknow -f deploy/docker-compose.yml up --build
 or give the keys to that user: sudo chown -R 10001:10001 ${keys_dir}
 MSG

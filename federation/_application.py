@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 from dyknow_core import DyKnowInstance
 
 from ._inputs import (
+    FileInput,
     InputRunner,
     InputSettings,
     PythonInput,
@@ -61,7 +62,7 @@ def _application_text(config: PlatformConfig, source: str) -> str | None:
 
 
 def check_application(config: PlatformConfig, source: str) -> None:
-    """Check the KPL file and the Python entry points; PlatformConfigError listing each problem.
+    """Check the KPL file, the input files and Python entry points; PlatformConfigError if not.
 
     KPL errors come as ``FILE:LINE:COL: message`` lines (the form `dyknow kpl check` prints).
     """
@@ -75,6 +76,10 @@ def check_application(config: PlatformConfig, source: str) -> None:
             lines = "\n".join(e.format(str(config.application)) for e in errors)
             message = f"the KPL file does not check:\n{lines}"
             raise PlatformConfigError(source, "application", message)
+    for n, spec in enumerate(config.inputs):
+        # a recording is read once, at start: without it the input could only stop
+        if isinstance(spec, FileInput | RosbagInput) and not spec.path.exists():
+            raise PlatformConfigError(source, f"inputs[{n}].path", f"{spec.path}: no such file")
     with _importable(config):
         for n, spec in enumerate(config.inputs):
             if isinstance(spec, PythonInput):

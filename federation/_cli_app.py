@@ -26,6 +26,7 @@ import typer
 from agents import TransportError
 from agents import run as run_loop
 
+from ._cli_common import NotAnsweredError
 from ._cli_node import CONFIG_FLAGS, CONFIG_HELP, run_node
 from ._cli_node import say as _say
 from ._cli_reasoning import kpl_app, monitor
@@ -64,7 +65,9 @@ def _table(title: str, *columns: str) -> Table:
 
     table = Table(title=title)
     for column in columns:
-        table.add_column(column)
+        # folded, not cut with an ellipsis: a time or label cut short on an 80-column
+        # terminal (or a pipe) says nothing
+        table.add_column(column, overflow="fold")
     return table
 
 
@@ -123,9 +126,11 @@ def keys_gen(
     ] = False,
 ) -> None:
     """Generate a platform's key pair (private key 0600), optionally trusting it."""
-    from agents.keys import KeysError, gen_keys, trust_keys
+    from agents.keys import KeysError, check_trust_file, gen_keys, trust_keys
 
     try:
+        if trust_file is not None:  # a trust file it cannot use: refused before any key is made
+            check_trust_file(trust_file, federation)
         pair, key_path, pub_path = gen_keys(platform, directory, force=force)
         _say(f"created {key_path} (private, mode 0600: keep it on {platform} only)")
         _say(f"created {pub_path} (public: add it to the federation's trust file)")
@@ -350,6 +355,12 @@ def _alive_error() -> type[Exception]:
     return PlatformAliveError
 
 
+def _relayed_error() -> type[Exception]:
+    from ._cli_net import RelayedError
+
+    return RelayedError
+
+
 def _run_query(coro: Any) -> Any:
     """Run a query coroutine; config and request errors exit 2 / 1 with a message."""
     try:
@@ -358,6 +369,10 @@ def _run_query(coro: Any) -> Any:
         raise _fail(str(exc)) from None
     except _alive_error() as exc:
         raise _fail(f"dyknow: {exc}") from None
+    except _relayed_error() as exc:  # the node's text names the error's kind already
+        raise _fail(f"dyknow: {exc}", 1) from None
+    except NotAnsweredError as exc:
+        raise _fail(f"dyknow: {exc}", 1) from None
     except Exception as exc:  # the user gets the reason, not a traceback
         raise _fail(f"dyknow: {type(exc).__name__}: {exc}", 1) from None
 
@@ -550,10 +565,11 @@ def _watch_line(event: dict[str, Any]) -> str:
     if kind == "audit":
         r = event["record"]
         stage = f" ({r['stage']})" if r.get("stage") else ""
-        return (
-            f"{stamp} audit  {r.get('verdict')}{stage} from {r.get('from')} "
-            f"{r.get('performative') or ''} {r.get('sender') or ''}: {r.get('reason') or ''}"
-        )
+        # a record about no peer (the owner's own watch) has no 'from': say nothing of it
+        who = [f"from {r['from']}"] if r.get("from") else []
+        who += [str(r[k]) for k in ("performative", "sender") if r.get(k)]
+        head = " ".join([f"{r.get('verdict')}{stage}", *who])
+        return f"{stamp} audit  {head}: {r.get('reason') or ''}"
     if kind == "watching":
         return f"watching {event['platform']}: messages, batches and audit addressed to it"
     return f"{stamp} {kind} {json.dumps(event, default=str)}"

@@ -7,15 +7,25 @@ which both use these and would otherwise import each other.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import TYPE_CHECKING, Any
+
+from agents import TransportError
 
 if TYPE_CHECKING:
     from ._platform import FederationPlatform
 
-__all__ = ["failure_of", "platforms_of", "settle_gc", "wait_for_members"]
+__all__ = [
+    "NotAnsweredError",
+    "failure_of",
+    "platforms_of",
+    "reaching",
+    "settle_gc",
+    "wait_for_members",
+]
 
 
 def settle_gc() -> None:
@@ -42,16 +52,50 @@ async def failure_of(job: Callable[..., Awaitable[Any]], *args: Any) -> Exceptio
     return None
 
 
-async def wait_for_members(p: FederationPlatform, want: str | None, wait: float) -> None:
-    """Wait (at most ``wait`` s) until ``want`` (or any other platform) is seen, then settle."""
+class NotAnsweredError(Exception):
+    """The asked platform did not answer; the message says the likely cause."""
+
+
+async def wait_for_members(p: FederationPlatform, want: str | None, wait: float) -> bool:
+    """Wait (at most ``wait`` s) until ``want`` (or any other platform) is seen, then settle.
+
+    True when it was seen; else the caller asks anyway (it may answer all the same).
+    """
     gdf = p.agents.global_df
     deadline = time.monotonic() + wait
     while time.monotonic() < deadline:
         alive = [x for x in (gdf.platforms if gdf else []) if x != p.name]
         if (want in alive) if want else alive:
             await asyncio.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
-            return
+            return True
         await asyncio.sleep(0.1)
+    return False
+
+
+@contextlib.asynccontextmanager
+async def reaching(p: FederationPlatform, want: str, wait: float) -> AsyncIterator[None]:
+    """Wait for ``want`` to be seen; a request of the body that then fails says it never was.
+
+    The transport's own words ("did not answer the key exchange") do not tell a user that
+    the platform is not running, or not reachable with this config, the usual causes.
+    """
+    seen = await wait_for_members(p, want, wait)
+    try:
+        yield
+    except (TransportError, TimeoutError) as exc:
+        if not seen:
+            raise NotAnsweredError(
+                f"platform {want!r} was not seen in federation {p.config.federation!r} within "
+                f"{wait:g} s (--wait) and did not answer ({exc}): is it running, and does "
+                f"{p.name}'s [transport] reach it?"
+            ) from None
+        if isinstance(exc, TransportError) and "key exchange" in str(exc):
+            # alive, yet silent to us: what a platform does with a key it does not trust
+            raise NotAnsweredError(
+                f"{exc}: it is alive, so does it trust {p.name!r}? A platform reads its "
+                "trust file when it starts: restart it after 'dyknow keys trust'"
+            ) from None
+        raise
 
 
 def platforms_of(p: FederationPlatform) -> dict[str, list[dict[str, Any]]]:

@@ -25,7 +25,7 @@ from agents import (
 )
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
 
-from ._cli_common import failure_of, platforms_of, settle_gc, wait_for_members
+from ._cli_common import failure_of, platforms_of, reaching, settle_gc, wait_for_members
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
 
 if TYPE_CHECKING:
@@ -33,6 +33,10 @@ if TYPE_CHECKING:
     from ._local import LocalChannel
 
 log = logging.getLogger(__name__)
+
+
+class RelayedError(RuntimeError):
+    """An error the running node reported for a command it relayed; its text says what."""
 
 
 def _stop_event() -> asyncio.Event:
@@ -241,12 +245,12 @@ async def _through_node(config_path: str, request: dict[str, Any]) -> tuple[bool
     try:
         async for line in via_node(PlatformConfig.load(config_path), request):
             if "error" in line:
-                raise RuntimeError(line["error"])
+                raise RelayedError(line["error"])
             if "ok" in line:
                 return True, line["ok"]
     except NodeUnreachable:
         return False, None
-    raise RuntimeError("the running node closed the local channel without an answer")
+    raise RelayedError("the running node closed the local channel without an answer")
 
 
 async def list_platforms(config_path: str, wait: float) -> dict[str, list[dict[str, Any]]]:
@@ -273,8 +277,7 @@ async def ask_platform(
     done, answer = await _through_node(config_path, request)
     if done:
         return answer
-    async with _opened(config_path) as p:
-        await wait_for_members(p, platform, wait)
+    async with _opened(config_path) as p, reaching(p, platform, wait):
         return await p.federation_agent.request_from(platform, content, timeout=timeout)
 
 
@@ -324,7 +327,7 @@ async def stream_through_node(
             except NodeUnreachable:
                 return None
             if "error" in line:
-                raise RuntimeError(line["error"])
+                raise RelayedError(line["error"])
             if "end" in line:
                 return seen
             label, value, valid, available = line["sample"]
@@ -379,11 +382,11 @@ async def follow_stream(
     if relayed is not None:
         return relayed
     async with _opened(config_path) as p:
-        await wait_for_members(p, platform, wait)
         fed = p.federation_agent
-        export_id = await fed.create_stream(
-            platform, semantic_labels, sample_period=sample_period, timeout=timeout
-        )
+        async with reaching(p, platform, wait):
+            export_id = await fed.create_stream(
+                platform, semantic_labels, sample_period=sample_period, timeout=timeout
+            )
         queue: asyncio.Queue[tuple[str, Any, int, int]] = asyncio.Queue()
 
         async def pump(semantic: str) -> None:
@@ -530,6 +533,12 @@ async def watch_platform(
                 for line in data.splitlines():
                     await queue.put({"kind": "audit", "record": json.loads(line)})
 
+        def unanswered(waited: float) -> TransportError:
+            return TransportError(
+                f"platform {me!r} did not answer the watch request in {waited:g} s "
+                "(is it running, reachable, with [security] watch = true?)"
+            )
+
         async def lease() -> None:
             deadline = time.monotonic() + timeout
             answered = False
@@ -542,13 +551,11 @@ async def watch_platform(
                         await queue.put({"kind": "watching", "platform": me})
                     answered = True
                 elif not answered and time.monotonic() > deadline:
-                    raise TransportError(
-                        f"platform {me!r} did not answer the watch request in {timeout:g} s "
-                        "(is it running, reachable, with [security] watch = true?)"
-                    )
+                    raise unanswered(timeout)
                 await asyncio.sleep(renew if answered else 0.5)
 
         seen = 0
+        watching = False
         error: Exception | None = None
         try:
             async with asyncio.TaskGroup() as tg:
@@ -570,8 +577,13 @@ async def watch_platform(
                             getting.cancel()
                             failed = [t.result() for t in jobs if t in done]
                             error = next((e for e in failed if e is not None), None)
+                            if error is None and ending in done and not watching:
+                                # --duration ran out before the platform ever answered:
+                                # printing nothing and exiting 0 would look like a quiet one
+                                error = unanswered(duration or 0.0)
                             break
                         event = getting.result()
+                        watching = watching or event["kind"] == "watching"
                         emit(event)
                         seen += 1
                 except Exception as exc:  # raised below: the group would wrap it

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 from agents import Pending, TokenBucket, TransportError, wire_key
 
-from ._cli_common import failure_of, platforms_of, wait_for_members
+from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
 from ._cli_time import seconds, when
 from ._platform import PlatformConfig
 
@@ -320,6 +320,8 @@ class LocalChannel:
                 await self._answer(request, send, reader)
             except (ConnectionError, asyncio.IncompleteReadError):
                 raise
+            except NotAnsweredError as exc:  # says what it is
+                await send({"error": str(exc)})
             except Exception as exc:
                 await send({"error": f"{type(exc).__name__}: {exc}"})
         except (ConnectionError, asyncio.IncompleteReadError):
@@ -347,10 +349,10 @@ class LocalChannel:
             await send({"ok": platforms_of(p)})
         elif op == "request":
             target = str(request["platform"])
-            await wait_for_members(p, target, wait)
-            answer = await p.federation_agent.request_from(
-                target, request["content"], timeout=timeout
-            )
+            async with reaching(p, target, wait):
+                answer = await p.federation_agent.request_from(
+                    target, request["content"], timeout=timeout
+                )
             await send({"ok": answer})
         elif op == "stream":
             await self._stream(request, send, reader, wait, timeout)
@@ -368,12 +370,12 @@ class LocalChannel:
         p = self.platform
         target = str(request["platform"])
         labels = [str(x) for x in request["labels"]]
-        await wait_for_members(p, target, wait)
         acquired: list[str] = []
         try:
-            for semantic in labels:
-                await self._acquire(target, semantic, request.get("sample_period"), timeout)
-                acquired.append(semantic)
+            async with reaching(p, target, wait):
+                for semantic in labels:
+                    await self._acquire(target, semantic, request.get("sample_period"), timeout)
+                    acquired.append(semantic)
             await self._relay(p, target, labels, request, send, reader, timeout)
         finally:
             for semantic in acquired:

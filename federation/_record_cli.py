@@ -42,7 +42,7 @@ from dyknow_core.kpl import (
 from dyknow_core.kpl import parse as parse_kpl
 from dyknow_core.kpl import setup as setup_kpl
 
-from ._cli_common import wait_for_members as _wait_for
+from ._cli_common import reaching
 from ._cli_net import _opened, _stop_event
 from ._cli_time import seconds, when, when_ns
 
@@ -128,12 +128,12 @@ async def record_federation(
         return relayed
     async with _opened(config_path) as p:
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
-        await _wait_for(p, platform, wait)
         fed = p.federation_agent
         since = p.instance.clock.now()
-        export_id = await fed.create_stream(
-            platform, semantic_labels, sample_period=sample_period, timeout=timeout
-        )
+        async with reaching(p, platform, wait):
+            export_id = await fed.create_stream(
+                platform, semantic_labels, sample_period=sample_period, timeout=timeout
+            )
         try:
             local = {
                 await p.imported(platform, semantic, timeout=timeout): semantic

@@ -86,6 +86,11 @@ def test_config_keys_of_inputs_are_named(station: Path, capsys: pytest.CaptureFi
     )
     code, err = _node(station, capsys)
     assert code == 2 and "inputs[2].entry: nowhere:gen: ModuleNotFoundError" in err
+    station.write_text(text.replace('path = "observations.csv"', 'path = "observation.csv"'))
+    code, err = _node(station, capsys)
+    missing = station.parent / "observation.csv"
+    assert code == 2 and f"inputs[1].path: {missing}: no such file" in err
+    assert "Traceback" not in err
 
 
 async def test_messages_map_to_samples_and_bad_ones_are_counted() -> None:

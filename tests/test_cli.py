@@ -88,6 +88,59 @@ def test_keys_gen_and_trust(tmp_path: Path) -> None:
     assert r.exit_code == 1
 
 
+def test_keys_gen_refuses_a_trust_file_it_cannot_use_before_writing_keys(tmp_path: Path) -> None:
+    keys, trust = tmp_path / "keys", tmp_path / "trust.json"
+    trust_keys(trust, [gen_keys("uav-a", keys)[2]], federation="demo")
+    for extra in (
+        ("--trust-file", str(trust), "--federation", "traffic"),
+        ("--trust-file", str(tmp_path / "no.json")),
+    ):
+        r = runner.invoke(app, ["keys", "gen", "-p", "uav-b", "-d", str(keys), *extra])
+        assert r.exit_code == 1, r.output
+        assert "'demo', not 'traffic'" in r.output or "give --federation" in r.output
+        assert not (keys / "uav-b.key").exists()  # a retry is not told the key is there
+    r = runner.invoke(
+        app, ["keys", "gen", "-p", "uav-b", "-d", str(keys), "--trust-file", str(trust)]
+    )
+    assert r.exit_code == 0, r.output
+    assert list(TrustStore.load(trust)) == ["uav-a", "uav-b"]
+
+
+def test_tables_fold_what_an_80_column_terminal_cannot_hold(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from federation._cli_app import _print, _table
+
+    monkeypatch.setenv("COLUMNS", "80")
+    stamp = "2026-11-28T02:52:47.964+00:00"
+    table = _table("get-latest from uav-a", "label", "query time", "value", "valid", "available")
+    table.add_row("wind-speed-kmh", stamp, "20.808496403110213", stamp, stamp)
+    _print(table)
+    out = capsys.readouterr().out
+    assert "…" not in out and max(map(len, out.splitlines())) <= 80
+    body = [line.split("│")[1:-1] for line in out.splitlines() if line.startswith("│")]
+    cells = ["".join(part.strip() for part in column) for column in zip(*body, strict=True)]
+    assert cells == ["wind-speed-kmh", stamp, "20.808496403110213", stamp, stamp]
+
+
+def test_an_error_relayed_by_the_running_node_is_said_once(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    import typer
+
+    from federation._cli_app import _run_query
+    from federation._cli_net import RelayedError
+
+    async def refused() -> None:
+        raise RelayedError("Refused: federation@uav-a refused: label 'x': no stream for it here")
+
+    with pytest.raises(typer.Exit) as exit_:
+        _run_query(refused())
+    assert exit_.value.exit_code == 1
+    err = capsys.readouterr().err
+    assert err == "dyknow: Refused: federation@uav-a refused: label 'x': no stream for it here\n"
+
+
 def test_keys_untrust_revokes_and_show_lists(tmp_path: Path) -> None:
     keys, trust = tmp_path / "keys", tmp_path / "trust.json"
     for name in ("uav-a", "uav-b", "uav-c"):
@@ -234,6 +287,20 @@ def test_monitor_and_kpl(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> 
     assert "Missing" in capsys.readouterr().err
 
 
+def test_the_readmes_monitor_command_on_the_example_trace(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    formula = "always[0,10](speed < 30 -> eventually[0,5] on_road)"  # README.md, reasoning.md
+    assert main(["monitor", formula, "--trace", str(ROOT / "examples" / "flight.jsonl")]) == 0
+    verdicts = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    # off the road from 12 s to 19 s: the window from 11 s is violated, certain at 17 s
+    assert verdicts == [
+        {"t": 10, "from": 0, "verdict": True},
+        {"t": 17, "from": 11, "verdict": False},
+        {"t": 28, "from": 18, "verdict": True},
+    ]
+
+
 def test_parse_time() -> None:
     from federation._cli_time import asked, parse_time, when
 
@@ -265,6 +332,61 @@ def test_ask_refuses_a_time_it_cannot_read(
     assert "'noon' is not a time (ISO 8601 with its offset" in capsys.readouterr().err
     assert main([*ask, "--from", "2026-11-27T09:30:05Z", "--to", "now"]) == 2
     assert "both be relative or both absolute" in capsys.readouterr().err
+
+
+@pytest.mark.timeout(40)
+def test_asking_a_platform_that_is_not_running_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    configs = _write_federation(tmp_path, _free_port())  # uav-a is not started
+    asked = ["heli-altitude", "--platform", "uav-a", "--config", str(configs["operator"])]
+    quick = ["--wait", "0.5", "--timeout", "1"]
+    for command in ("ask", "stream"):
+        assert main([command, *asked, *quick]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(
+            "dyknow: platform 'uav-a' was not seen in federation 'traffic' within 0.5 s (--wait)"
+        ), err
+        assert "is it running" in err and "Traceback" not in err
+
+
+@pytest.mark.timeout(40)
+def test_asking_a_platform_that_does_not_trust_us_says_what_to_check(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    configs = _write_federation(tmp_path, _free_port())
+    # uav-a runs with the trust file of before the operator's key was added to it
+    trust_keys(tmp_path / "trust-a.json", [tmp_path / "keys" / "uav-a.pub"], federation="traffic")
+    text = configs["uav-a"].read_text()
+    configs["uav-a"].write_text(text.replace('trust = "trust.json"', 'trust = "trust-a.json"'))
+    node = subprocess.Popen(
+        [sys.executable, "-m", "federation.cli", "node", "--config", str(configs["uav-a"])],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert node.stdout is not None
+        assert "uav-a ready" in node.stdout.readline()  # bounded by the test's timeout
+        asked = ["heli-altitude", "--platform", "uav-a", "--config", str(configs["operator"])]
+        assert main(["ask", *asked, "--wait", "5", "--timeout", "2"]) == 1
+        err = capsys.readouterr().err
+        assert "did not answer the key exchange: it is alive, so does it trust 'operator'?" in err
+        assert "restart it after 'dyknow keys trust'" in err and "Traceback" not in err
+    finally:
+        _kill(node)
+
+
+@pytest.mark.timeout(40)
+def test_watching_a_platform_that_is_not_running_says_so_within_its_duration(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    configs = _write_federation(tmp_path, _free_port())  # uav-a is not started
+    assert main(["watch", "--config", str(configs["uav-a"]), "--duration", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "platform 'uav-a' did not answer the watch request in 1 s (is it running" in err
 
 
 def _kill(proc: subprocess.Popen[str]) -> None:

@@ -588,10 +588,17 @@ def test_watch_prints_one_readable_line_per_event() -> None:
         _watch_line(
             {"kind": "audit", "record": {"verdict": "dropped", "from": "x", "reason": "r"}}
         ),
+        _watch_line(
+            {
+                "kind": "audit",
+                "record": {"verdict": "accepted", "stage": "watch", "reason": "the owner watches"},
+            }
+        ),
     ]
     assert "request federation@operator -> federation@uav-a [dyknow-federation]" in lines[0]
     assert "get-latest" in lines[0]
     assert f"stream from uav-b heli-altitude: 2 sample(s) {BASE!r}, {BASE + 1!r}" in lines[1]
     assert "report from operator" in lines[2] and "lost" in lines[2]
     assert "audit  dropped from x" in lines[3] and lines[3].endswith(": r")
+    assert lines[4].endswith(" audit  accepted (watch): the owner watches")  # no 'from None'
     assert decode_watched("bin", "uav-b", 1.0, b"\xc1")["kind"] == "binary"  # not msgpack

@@ -92,6 +92,11 @@ def test_make_keys_script_runs_the_same_commands() -> None:
     assert 'gen --platform "${platform}" --dir "${keys_dir}"' in script
     assert 'trust --trust-file "${trust_file}" --federation "${federation}"' in script
     assert '"${here}/make_certs.py" --dir "${keys_dir}/tls"' in script
+    # the command it prints is deploy/README.md's: the project named, as the later
+    # `docker compose -p dyknow … logs operator` expects
+    readme = (DEPLOY / "README.md").read_text()
+    printed = "docker compose -p dyknow -f deploy/docker-compose.yml up --build"
+    assert printed in script and printed in readme
     assert "/deploy/config/keys/" in (DEPLOY.parent / ".gitignore").read_text().splitlines()
 
 

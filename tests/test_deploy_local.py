@@ -137,6 +137,8 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         started = time.monotonic()  # every platform ready: the world runs from here
         url = f"http://127.0.0.1:{console}/?token="
         assert f"the console: {url}" in up.stdout  # the URL with the console's token
+        # the command it suggests is the README's, for a car uav-a sees (car1 it did not)
+        assert "e.g. .venv/bin/dyknow ask car2-state -p uav-a --config" in up.stdout
         url = up.stdout.split("the console: ", 1)[1].split()[0]
         # every platform ready, keys made on first use, the configs on loopback
         assert (run / "config" / "keys" / "trust.json").exists()

@@ -190,7 +190,7 @@ def up() -> int:
         time.sleep(0.2)  # honcho's log is a file: nothing to await
     _say(f"deploy/local: up (router 127.0.0.1:{router}, uav-a, uav-b, uav-c, operator)")
     _say(
-        f"deploy/local: configs in {config}; e.g. .venv/bin/dyknow ask car1-state -p uav-a "
+        f"deploy/local: configs in {config}; e.g. .venv/bin/dyknow ask car2-state -p uav-a "
         f"--config {config / 'operator.toml'}"
     )
     _say(f"deploy/local: the console: {_url(ready)}")
