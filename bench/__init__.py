@@ -4,7 +4,7 @@ Each benchmark is a module of this package with a ``run()`` function; ``python -
 runs them all, ``python -m bench <name>`` one of them. The machines we run on are noisy
 (2x drift between runs), so a benchmark never reports an absolute figure alone: it runs
 the peer in the same process, on the same data, interleaved with ours, and prints the
-ratio in the form ``../shared/ANCHORS.md`` fixes::
+ratio, one line per comparison, always in this form (so runs can be compared by script)::
 
     BENCH <name> ours=<number> <peer>=<number> ratio=<ours/peer> unit=<unit> better=<higher|lower>
 """
