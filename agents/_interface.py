@@ -383,7 +383,9 @@ class InterfaceAgent:
     also `missing`, and warned of in the log).
 
     The published audit is sealed to this platform's owner (``seal_audit``; see
-    ``docs/wire.md``, "Audit records"): outsiders and other members do not read it. The
+    ``docs/wire.md``, "Audit records"): outsiders and other members do not read it. A
+    batch is sealed and published only while the transport may have a subscriber for it
+    (`Transport.has_subscribers`; counted in ``audit_published`` and ``audit_unheard``). The
     owner may also ask (``dyknow watch``: a request signed with the platform's key on
     ``watch/<platform>``) to see, for ``watch_lease`` seconds, every ACL message, sample
     batch and stream report this platform receives, opened, sealed to the owner too;
@@ -440,6 +442,12 @@ class InterfaceAgent:
         self._flush_loop: asyncio.AbstractEventLoop | None = None
         self.publish_audit = publish_audit
         self.seal_audit = seal_audit
+        # Audit batches nobody could receive are not sealed nor published, but the last one
+        # is kept for one more flush: a watcher that came meanwhile (after the transport
+        # said none) gets it then, so none of what it would have had is lost
+        self._audit_held = b""
+        self.audit_published = 0  # audit batches sealed and published, since start
+        self.audit_unheard = 0  # audit batches not published: no subscriber, since start
         self.watchable = watchable
         self.watch_lease = watch_lease
         # what the owner watches: (kind, peer, time, body) while a lease runs; bounded, as
@@ -565,6 +573,10 @@ class InterfaceAgent:
         self._subs.append(inbox)
         platform.spawn(self._receive(inbox), "interface.inbox")
         platform.spawn(self._watch(presence), "interface.presence")
+        if self.publish_audit:
+            # asked once now so that zenoh declares the publisher and learns of the
+            # subscribers before the first flush (a client's says none until then)
+            transport.has_subscribers(platform.key("audit"))
         if (
             self.publish_audit
             or self.watchable
@@ -735,9 +747,9 @@ class InterfaceAgent:
                 fut.exception()
         host = self._host
         data = self.audit.take()
-        if data and host is not None and self.publish_audit:
+        if host is not None and self.publish_audit:
             try:
-                await host.transport.publish(host.key("audit"), self._audit_payload(data))
+                await self._publish_audit(host, data)
             except Exception as exc:  # closing: the transport may be gone already
                 log.warning("interface: the last audit records were not published: %s", exc)
 
@@ -1679,6 +1691,7 @@ class InterfaceAgent:
             or self._unauth_pending
             or self._watch_shed_pending
             or self._presence_ignored
+            or self._audit_held  # published or dropped at the next tick
             or (self.kx_gate is not None and self.kx_gate.pending)
             or any(sender.pending for sender in self._senders.values())
         )
@@ -1726,13 +1739,35 @@ class InterfaceAgent:
             if not self.publish_audit and self.audit.path is None:
                 continue
             data = self.audit.take()
-            if data and self.publish_audit:
+            if self.publish_audit:
                 try:
-                    await host.transport.publish(host.key("audit"), self._audit_payload(data))
+                    await self._publish_audit(host, data)
                 except TransportError as exc:
                     log.debug("interface[%s]: audit not published: %s", self._me, exc)
 
     # -- the owner's view -------------------------------------------------------------------
+
+    async def _publish_audit(self, host: AgentPlatform, data: bytes) -> None:
+        """Seal and publish an audit batch (and the one held back) if anyone may receive it.
+
+        A batch no subscriber could receive costs no seal (~50 µs) and no put: it is held
+        until the next flush instead, and dropped then if still nobody listens. The
+        transport's answer may lag a subscriber that just came (zenoh tells the publisher
+        a moment after the subscriber declared); the batch held back covers that moment.
+        """
+        held, self._audit_held = self._audit_held, b""
+        if not data and not held:
+            return
+        key = host.key("audit")
+        if not host.transport.has_subscribers(key):
+            if data:
+                self.audit_unheard += 1
+                self._audit_held = data
+            return
+        if held:
+            data = held + data
+        await host.transport.publish(key, self._audit_payload(data))
+        self.audit_published += 1
 
     def _audit_payload(self, data: bytes) -> bytes:
         """The published audit batch: sealed to this platform's owner unless configured plain."""

@@ -44,6 +44,7 @@ from agents import (
     search_services,
     wire_key,
 )
+from agents import _interface as interface_module
 from agents._exceptions import Forged
 from agents._interface import AuditLog, InterfaceAgent, accepted_entry
 from agents._security import Handshake, KeyPair, SecurityPolicy, TrustStore
@@ -1369,6 +1370,86 @@ async def test_the_audit_file_is_written_even_when_not_published(tmp_path: Path)
         assert len(ia(pb).audit._pending) == 0
 
 
+class LaggingTransport(MemoryTransport):
+    """A memory transport told of a new subscriber one question late, as zenoh's publisher is."""
+
+    def __init__(self, hub: MemoryHub) -> None:
+        super().__init__(hub)
+        self._said = False
+
+    def has_subscribers(self, key: str) -> bool:
+        """What the hub said the last time it was asked."""
+        now = super().has_subscribers(key)
+        said, self._said = self._said, now
+        return said
+
+
+def _count_seals(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Count the Interface Agents' seals for the owner (audit and watch): a list of one count."""
+    seals = [0]
+    real = interface_module.seal_for_owner
+
+    def counting(public_key: bytes, data: bytes) -> bytes:
+        seals[0] += 1
+        return real(public_key, data)
+
+    monkeypatch.setattr(interface_module, "seal_for_owner", counting)
+    return seals
+
+
+async def _published_records(feed: Subscription[Message], keys: KeyPair) -> list[dict[str, Any]]:
+    """The records of the next audit batch published on ``feed`` (sealed to ``keys``)."""
+    msg = await feed.get(timeout=WAIT)
+    return [orjson.loads(x) for x in keys.open_sealed(msg.payload).splitlines()]
+
+
+async def test_no_audit_batch_is_sealed_while_nobody_subscribes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Nobody subscribes to the audit: no seal, no put; a watcher then gets what comes next."""
+    seals = _count_seals(monkeypatch)
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b")
+        channel = ia(pb)
+        asker = await serve(pa, "asker", None)
+        await serve(pb, "echo")
+        for i in range(3):
+            await request(asker, "echo@uav-b", i, ontology="demo")
+        await until(
+            lambda: channel.audit_unheard and not channel._audit_held and channel._flush_idle,
+            "the audit batches flushed unheard, the last one no longer held",
+        )
+        assert channel.audit.counts["accepted"] == 3  # the audit itself is kept
+        assert (seals[0], channel.audit_published, ia(pa).audit_published) == (0, 0, 0)
+
+        raw = await fed.raw()
+        feed = await raw.subscribe(wire_key(FED, "audit", "uav-b"))
+        await request(asker, "echo@uav-b", "watched", ontology="demo")
+        (got,) = await _published_records(feed, channel.keys)
+        assert (got["verdict"], got["sender"]) == ("accepted", "asker@uav-a")
+        assert got == records(pb)[-1]
+        assert (seals[0], channel.audit_published) == (1, 1)
+        feed.close()
+        channel.audit.record(verdict="dropped", stage="test", reason="nobody watches again")
+        await until(lambda: channel.audit_unheard >= 2 and channel._flush_idle, "unheard again")
+        assert (seals[0], channel.audit_published) == (1, 1)
+
+
+async def test_a_watcher_the_transport_tells_of_late_loses_no_audit_batch() -> None:
+    """The transport says "nobody" just after a watcher came: the batch goes out next flush."""
+    async with federation("uav-a") as fed:
+        pa = await fed.start("uav-a", transport=LaggingTransport(fed.hub))
+        channel = ia(pa)
+        await until(lambda: channel._flush_idle, "the audit flush asleep")
+        raw = await fed.raw()
+        feed = await raw.subscribe(wire_key(FED, "audit", "uav-a"))
+        channel.audit.record(verdict="dropped", stage="test", reason="made once watched")
+        got = await _published_records(feed, channel.keys)
+        assert [r["stage"] for r in got] == ["test"]
+        assert (channel.audit_unheard, channel.audit_published) == (1, 1)
+
+
 # -- over zenoh --------------------------------------------------------------------------------
 
 
@@ -1425,6 +1506,38 @@ async def test_request_inform_over_zenoh_between_two_sessions() -> None:
             with pytest.raises(TransportError, match="did not answer the key exchange"):
                 await request(echo_a, "echo@uav-c", 1, ontology="demo")
             assert time.monotonic() - started < 3.0
+
+
+async def test_over_zenoh_the_audit_is_sealed_only_while_someone_subscribes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """zenoh's matching status: no seal while nobody subscribes; a watcher gets what follows."""
+    seals = _count_seals(monkeypatch)
+    keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
+    trust = {n: k.public_key for n, k in keys.items()}
+    seed = free_tcp_port()
+    ta = ZenohTransport(ZenohConfig.loopback(seed))
+    tb = ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed]))
+    async with asyncio.timeout(WAIT * 2), ta, tb:
+        ia_a = InterfaceAgent(keys["uav-a"], TrustStore(FED, trust), audit_interval=0.02)
+        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(FED, trust), audit_interval=0.02)
+        async with (
+            AgentPlatform("uav-a", ta, federation=FED, channel=ia_a) as pa,
+            AgentPlatform("uav-b", tb, federation=FED, channel=ia_b) as pb,
+        ):
+            await _sees(ta, "uav-b")
+            echo_a = await serve(pa, "echo")
+            await serve(pb, "echo")
+            await request(echo_a, "echo@uav-b", 1, ontology="demo")
+            await until(lambda: ia_b.audit_unheard and ia_b._flush_idle, "an unheard batch")
+            assert (seals[0], ia_b.audit_published) == (0, 0)
+
+            feed = await ta.subscribe(wire_key(FED, "audit", "uav-b"))
+            await until(lambda: tb.has_subscribers(wire_key(FED, "audit", "uav-b")), "matched")
+            await request(echo_a, "echo@uav-b", 2, ontology="demo")
+            got = await _published_records(feed, keys["uav-b"])
+            assert [(r["verdict"], r["sender"]) for r in got] == [("accepted", "echo@uav-a")]
+            assert ia_b.audit_published == 1 and seals[0] == 1
 
 
 # -- over MQTT ---------------------------------------------------------------------------------

@@ -239,6 +239,34 @@ async def test_unsubscribe(net: Net) -> None:
     assert [m.payload for m in await drain_until_end(stays)] == []
 
 
+async def test_has_subscribers_follows_the_subscriptions_where_the_transport_knows(
+    net: Net,
+) -> None:
+    # what the Interface Agent asks before it seals an audit batch (MQTT cannot tell: True)
+    a, b = await net.open(), await net.open()
+    key = net.key("h/x")
+    knows = net.kind != "mqtt"
+
+    async def says(want: bool) -> None:
+        async with asyncio.timeout(WAIT):
+            # a transport learns of subscribers with no event to await: poll, briefly
+            while b.has_subscribers(key) is not want:  # noqa: ASYNC110
+                await asyncio.sleep(0.005)
+
+    assert b.has_subscribers(key) is (not knows)
+    sub = await a.subscribe(net.key("h/*"))
+    await says(True)
+    await b.publish(key, b"heard")
+    assert [m.payload for m in await take(sub, 1)] == [b"heard"]
+    assert b.has_subscribers(net.key("h/y/z")) is (not knows)  # no match: nobody there
+    sub.close()
+    await says(not knows)
+    await b.aclose()
+    if knows:
+        with pytest.raises(TransportClosed):
+            b.has_subscribers(key)
+
+
 async def test_iterator_ends_when_subscription_closes(net: Net) -> None:
     a, b = await net.open(), await net.open()
     sub = await a.subscribe(net.key("i/k"))

@@ -397,6 +397,15 @@ class Transport(ABC):
         """
         raise TransportError(f"{self.name} transport cannot publish without waiting")
 
+    def has_subscribers(self, key: str) -> bool:
+        """Whether a put on ``key`` now may reach a subscriber; True when the transport cannot tell.
+
+        For a publisher that would rather skip work nobody receives (the Interface Agent's
+        audit batches). zenoh knows (the matching status its put is routed by), as does
+        the memory hub; MQTT does not, so the answer there is always True.
+        """
+        return True
+
     @abstractmethod
     async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
         """Receive what is published under keys matching ``key_expr``."""

@@ -108,6 +108,18 @@ class MemoryTransport(Transport):
             if hit:
                 inbox.put(msg)
 
+    def has_subscribers(self, key: str) -> bool:
+        """Whether a subscription in the hub matches ``key`` (a put would reach it)."""
+        self._check_open()
+        matched = _matched
+        for expr, _ in self.hub.subscribers:
+            hit = matched.get((expr, key))
+            if hit is None:
+                hit = _match_remembered(expr, key)
+            if hit:
+                return True
+        return False
+
     async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
         """Receive what is published on matching keys."""
         self._check_open()

@@ -558,6 +558,24 @@ class ZenohTransport(Transport):
                 raise TransportClosed(f"{self.name} transport is {self._state}") from exc
             raise TransportError(f"zenoh: put on {key!r}: {exc}") from exc
 
+    def has_subscribers(self, key: str) -> bool:
+        """Whether zenoh knows a subscriber matching ``key`` now (its publisher's matching status).
+
+        What zenoh routes a put by: one made while this is False reaches nobody, in peer
+        and client mode alike. A client's publisher just declared says False until its
+        router answered (a few ms) though its puts do go out meanwhile: a caller that
+        skips work on False should keep what it skipped for a moment.
+        """
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._declare_publisher(key)
+        try:
+            # a MatchingStatus, though zenoh's stub says bool (and bool() of it is always True)
+            status: Any = pub.matching_status
+            return bool(status.matching)
+        except zenoh.ZError:
+            return True  # cannot tell: as if someone listens
+
     def _declare_publisher(self, key: str) -> zenoh.Publisher:
         session, _ = self._open_session()
         with _converted(f"declare a publisher on {key!r}"):
