@@ -1,0 +1,89 @@
+"""An outsider (a plain zenoh client, no key of the federation) against real processes.
+
+Each test starts `dyknow node` processes (`_node_example.Station`) on a federation of
+their own, on loopback, and attacks them with the tools an outsider has: a bare zenoh
+session in the peer mesh. Each asserts what the attack must not achieve.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import time
+from pathlib import Path
+
+import pytest
+import zenoh
+from _node_example import CLI, Station, _samples
+
+pytestmark = pytest.mark.timeout(150)
+
+
+def _outsider(station: Station) -> zenoh.Session:
+    """A plain zenoh client connected to the station's endpoint: no key, no trust file."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{station.port}"]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
+def test_a_forged_presence_does_not_keep_a_platform_from_starting(tmp_path: Path) -> None:
+    """A liveliness token under a member's name, declared by an outsider, is no proof it runs.
+
+    Before, `dyknow node`, `console` and every one-shot command of that member refused
+    to start ("platform 'operator' is alive already") for as long as the outsider held
+    the token: one token kept a platform out of its federation, or from restarting
+    after a crash. Now a presence counts as a running platform only when that platform
+    answers a fresh directory query with a statement it signed.
+    """
+    station = Station(tmp_path)
+    session = None
+    try:
+        station.start("python")
+        session = _outsider(station)
+        alive = f"dyknow/{station.federation}/v1/alive/operator"
+        token = session.liveliness().declare_token(alive)
+        # and an answer to "who runs it", as a running node would give
+        forged = json.dumps(
+            {
+                "platform": "operator",
+                "federation": station.federation,
+                "host": "elsewhere",
+                "pid": 1,
+                "since": time.time(),
+            }
+        )
+        who = session.declare_queryable(
+            f"dyknow/{station.federation}/v1/identity/operator",
+            lambda q: q.reply(q.key_expr, forged.encode()),
+        )
+        seen = list(session.liveliness().get(alive, timeout=2.0))
+        assert seen, "the forged token is not routed"
+        # a one-shot command as the operator (no node of it runs): not refused
+        answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
+        # nor the operator's node
+        node = subprocess.Popen(
+            [*CLI, "node", "--config", "operator.toml"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        try:
+            assert node.stdout is not None
+            ready = node.stdout.readline()
+            assert f"operator ready in federation {station.federation}" in ready
+        finally:
+            node.terminate()
+            _, err = node.communicate(timeout=20)
+        assert "is alive in federation" not in err and "Traceback" not in err
+        who.undeclare()
+        token.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        _, err = station.stop()
+    assert "Traceback" not in err
