@@ -7,14 +7,19 @@ session in the peer mesh. Each asserts what the attack must not achieve.
 
 from __future__ import annotations
 
+import base64
 import json
 import subprocess
 import time
 from pathlib import Path
 
+import msgpack
+import orjson
 import pytest
 import zenoh
 from _node_example import CLI, Station, _samples
+
+from agents._security import seal_for_owner
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -87,3 +92,62 @@ def test_a_forged_presence_does_not_keep_a_platform_from_starting(tmp_path: Path
             session.close()
         _, err = station.stop()
     assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("as_json", [True, False])
+def test_an_outsider_cannot_end_or_feed_the_owners_watch(tmp_path: Path, as_json: bool) -> None:
+    """What an outsider publishes on ``audit/<platform>`` and ``watch/<platform>``.
+
+    The owner's `dyknow watch` ended (exit 1, ``JSONDecodeError``, ``TypeError``) on a
+    payload that was not the platform's: a plain ``{junk`` on the audit key, a sealed box
+    (anyone can seal to the public key) of something other than a list of entries, an
+    entry whose fields are not of their types. And it showed a plain audit record as the
+    platform's own although the platform seals its audit. Now those show as
+    ``unreadable`` and the watch goes on until its ``--duration``.
+    """
+    station = Station(tmp_path)
+    session = None
+    watch = None
+    try:
+        station.start("python")
+        session = _outsider(station)
+        args = ["watch", "--config", "station-python.toml", "--duration", "6"]
+        watch = subprocess.Popen(
+            [*CLI, *args, *(["--json"] if as_json else [])],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        assert watch.stdout is not None
+        assert "watching" in watch.stdout.readline()
+        fed = station.federation
+        trust = json.loads((station.dir / "keys" / "trust.json").read_text())
+        owner = base64.b64decode(trust["platforms"]["station"])  # public: in the trust file
+        forged = {"v": 1, "verdict": "accepted", "from": "operator", "reason": "FORGED-PLAIN"}
+        for payload in (orjson.dumps(forged) + b"\n", b"{junk", b"[1]\n"):
+            session.put(f"dyknow/{fed}/v1/audit/station", payload)
+        for entries in (
+            5,
+            [["acl"]],
+            [["acl", "operator", 1.0, 7]],
+            {"a": 1},
+            [["acl", "operator", 1e300, b'{"receivers": [1, 2], "sender": {}}']],
+            [["bin", "operator", 1.0, msgpack.packb({"s": "x", "b": [1, 2]})]],
+        ):
+            session.put(
+                f"dyknow/{fed}/v1/watch/station", seal_for_owner(owner, msgpack.packb(entries))
+            )
+        out, err = watch.communicate(timeout=40)
+    finally:
+        if watch is not None and watch.poll() is None:
+            watch.kill()
+            watch.communicate()
+        if session is not None:
+            session.close()
+        station.stop()
+    assert watch.returncode == 0, err
+    assert "Traceback" not in err and "Error" not in err, err
+    assert "FORGED-PLAIN" not in out
+    assert out.count("unreadable") >= 6, out
