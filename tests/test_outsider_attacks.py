@@ -151,3 +151,64 @@ def test_an_outsider_cannot_end_or_feed_the_owners_watch(tmp_path: Path, as_json
     assert "Traceback" not in err and "Error" not in err, err
     assert "FORGED-PLAIN" not in out
     assert out.count("unreadable") >= 6, out
+
+
+def _over_mqtt(station: Station, port: int) -> None:
+    """The station's and the operator's configs with the MQTT transport on ``port``."""
+    for name, client in (("station-python.toml", "station"), ("operator.toml", "operator")):
+        conf = station.dir / name
+        text = conf.read_text()
+        start = text.index("[transport]")
+        end = text.find("\n[", start)
+        rest = text[end:] if end != -1 else ""
+        transport = (
+            f'[transport]\nkind = "mqtt"\nhost = "127.0.0.1"\nport = {port}\n'
+            f'client_id = "{client}"\n'
+        )
+        conf.write_text(text[:start] + transport + rest)
+
+
+def test_one_mqtt_message_does_not_make_a_platform_deaf(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    """An outsider on the broker (a plain paho client, no key) against an MQTT node.
+
+    Before, one message ended the transport's receive task: the node ran on but
+    received nothing more (no key exchange answered, no request, no batch): a message on
+    the platform's ``acl`` key with a user property ``att`` that is not base64
+    (``binascii.Error``), or a query whose ``key`` has thousands of ``**`` chunks
+    (``RecursionError`` in the key matching, which took exponential time on fewer).
+    Now such a message is dropped and the platform answers as before.
+    """
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.packettypes import PacketTypes
+    from paho.mqtt.properties import Properties
+
+    host, port = mosquitto
+    station = Station(tmp_path)
+    _over_mqtt(station, port)
+    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, protocol=mqtt.MQTTv5)
+    try:
+        station.start("python")
+        station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        client.connect(host, port)
+        client.loop_start()
+        fed = station.federation
+        bad_att = Properties(PacketTypes.PUBLISH)
+        bad_att.UserProperty = [("att", "!!not base64")]
+        client.publish(f"dyknow/{fed}/v1/acl/station", b"x", properties=bad_att).wait_for_publish()
+        for chunks in (["**"] * 3000, ["**", "*"] * 40):
+            deep = Properties(PacketTypes.PUBLISH)
+            deep.UserProperty = [("key", "/".join([*chunks, "nowhere"]))]
+            deep.ResponseTopic = "@reply/outsider/1"
+            deep.CorrelationData = b"1"
+            client.publish("@query/dyknow", b"x", properties=deep).wait_for_publish()
+        time.sleep(1.0)
+        # a new one-shot command: a new key exchange, a request and its answer
+        answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
+    finally:
+        client.loop_stop()
+        client.disconnect()
+        _, err = station.stop()
+    assert "receive failed" not in err, err

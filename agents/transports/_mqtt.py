@@ -473,7 +473,10 @@ class MqttTransport(Transport):
         while True:
             try:
                 async for message in client.messages:
-                    self._dispatch(message)
+                    try:
+                        self._dispatch(message)
+                    except Exception:  # one message, from anyone on the broker, never ends this
+                        log.warning("mqtt: dropping a message on %r", message.topic, exc_info=True)
                 return
             except aiomqtt.MqttError as exc:
                 if self._state != "opened":
@@ -526,7 +529,11 @@ class MqttTransport(Transport):
                 attachment = None
                 if getattr(props, "UserProperty", None):
                     att = _user_properties(props).get("att")
-                    attachment = None if att is None else base64.b64decode(att)
+                    try:
+                        attachment = None if att is None else base64.b64decode(att)
+                    except ValueError:  # binascii.Error: anyone on the broker can send one
+                        log.debug("mqtt: a message on %r: attachment not base64", topic)
+                        continue
                 msg = Message(topic, payload, attachment)
                 for inbox in f.inboxes:
                     inbox.put(msg)
