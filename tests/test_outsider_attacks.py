@@ -212,3 +212,54 @@ def test_one_mqtt_message_does_not_make_a_platform_deaf(
         client.disconnect()
         _, err = station.stop()
     assert "receive failed" not in err, err
+
+
+def _rss_mb(pid: int) -> int:
+    """A process's resident memory, in MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) // 1024
+    raise AssertionError(f"no VmRSS for pid {pid}")
+
+
+def test_presences_under_invented_names_cost_an_mqtt_platform_bounded_memory(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    """An outsider publishing presences under ever new keys on the broker.
+
+    Every presence watcher of the platform (its Interface Agent's, its directory's)
+    remembered every key it ever heard, for good: ~60-70 MiB more per 20 000 keys of 8 kB,
+    without end. Now what it remembers is bounded; the platform still answers.
+    """
+    import paho.mqtt.client as mqtt
+
+    host, port = mosquitto
+    station = Station(tmp_path)
+    _over_mqtt(station, port)
+    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, protocol=mqtt.MQTTv5)
+    try:
+        station.start("python")
+        node = station.node
+        assert node is not None
+        client.connect(host, port)
+        client.loop_start()
+        long = "x" * 8000
+        rss = []
+        for phase in range(4):
+            for i in range(20_000):
+                key = f"dyknow/{station.federation}/v1/alive/{long}{phase}-{i}"
+                client.publish(key, b'{"v":1,"alive":true}', qos=0)
+                if i % 1000 == 0:
+                    time.sleep(0.05)  # paced: the broker drops what a slow reader cannot take
+            time.sleep(3.0)
+            rss.append(_rss_mb(node.pid))
+        print(f"\nthe platform's RSS after each phase (MiB): {rss}")
+        # the first phases fill what is bounded (and the allocator's arenas); then no growth
+        assert rss[3] - rss[1] < 40, rss
+        answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
+    finally:
+        client.loop_stop()
+        client.disconnect()
+        _, err = station.stop()
+    assert "receive failed" not in err, err

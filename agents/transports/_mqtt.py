@@ -298,6 +298,10 @@ def _user_properties(props: Properties | None) -> dict[str, str]:
     return dict(pairs) if pairs else {}
 
 
+_MAX_PRESENCE_KEYS = 4096  # remembered per watcher: well above any federation's size
+_MAX_PRESENCE_KEY = 1024  # characters: ours are ``dyknow/<fed>/v1/alive/<name>``, < 300
+
+
 class _Watcher:
     """A presence watcher: turns retained presence messages into changes."""
 
@@ -318,9 +322,17 @@ class _Watcher:
                 return
         else:
             alive = False
-        if self.known.get(key) == alive:
+        known = self.known
+        if known.get(key) == alive:
             return
-        self.known[key] = alive
+        # Anyone on the broker can publish under invented keys: what is remembered is
+        # bounded (the oldest forgotten first; a platform's key is short). A key not
+        # remembered is reported again when it repeats, which consumers take as a hint.
+        if len(key) <= _MAX_PRESENCE_KEY:
+            known.pop(key, None)
+            known[key] = alive
+            if len(known) > _MAX_PRESENCE_KEYS:
+                del known[next(iter(known))]
         self.inbox.put(Presence(key, alive))
 
 
