@@ -484,7 +484,7 @@ def decode_watched(kind: str, peer: str, ts: float, body: bytes) -> WatchEvent:
     if kind == "acl":
         try:
             message: Any = json.loads(body)
-        except ValueError:
+        except (ValueError, RecursionError):  # what opened need not be JSON, nor shallow
             message = body.decode(errors="replace")
         return {"kind": "acl", "from": peer, "ts": ts, "message": message}
     try:
@@ -553,7 +553,7 @@ async def watch_platform(
                     records = [json.loads(line) for line in data.splitlines()]
                     if not all(isinstance(r, dict) for r in records):
                         raise ValueError("an audit record is a JSON object")
-                except ValueError as exc:
+                except (ValueError, RecursionError) as exc:
                     await queue.put({"kind": "unreadable", "key": item.key, "error": str(exc)})
                     continue
                 for record in records:

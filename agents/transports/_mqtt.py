@@ -317,7 +317,7 @@ class _Watcher:
         if payload:
             try:
                 alive = bool(json.loads(payload)["alive"])
-            except (ValueError, TypeError, KeyError):
+            except (ValueError, TypeError, KeyError, RecursionError):  # nested too deep
                 log.warning("mqtt: ignoring a malformed presence message on %r", key)
                 return
         else:
@@ -752,6 +752,8 @@ class MqttTransport(Transport):
         correlation = getattr(props, "CorrelationData", None)
         if not key or not response_topic or not key_intersects(server.key_expr, key):
             return
+        if "+" in response_topic or "#" in response_topic:
+            return  # no topic to publish on: the answer could not go out
         if server.admit is not None and not server.admit(payload):
             return
         self._spawn(
