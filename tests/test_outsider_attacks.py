@@ -1,8 +1,9 @@
-"""An outsider (a plain zenoh client, no key of the federation) against real processes.
+"""An outsider (no key of the federation) against real processes.
 
 Each test starts `dyknow node` processes (`_node_example.Station`) on a federation of
 their own, on loopback, and attacks them with the tools an outsider has: a bare zenoh
-session in the peer mesh. Each asserts what the attack must not achieve.
+session in the peer mesh, or a plain paho client on the MQTT broker the platforms use
+(a mosquitto of the tests' own). Each asserts what the attack must not achieve.
 """
 
 from __future__ import annotations
