@@ -50,10 +50,11 @@ from ._protocols import (
     request,
     subscribe,
 )
-from .transports import Handle, Inbox, Message, Presence, Reply, Subscription
+from .transports import Handle, Inbox, Message, Presence, Reply, Subscription, Transport
 
 if TYPE_CHECKING:
     from ._platform import AgentPlatform
+    from ._security import KeyPair, TrustStore
 
 log = logging.getLogger(__name__)
 
@@ -1005,6 +1006,43 @@ class GlobalDirectory:
 
 
 # -- client helpers (ACL) ----------------------------------------------------------------
+
+
+async def runs_signed(
+    transport: Transport,
+    keys: KeyPair,
+    trust: TrustStore,
+    platform: str,
+    *,
+    timeout: float = 2.0,
+    tries: int = 3,
+) -> bool:
+    """Whether ``platform`` answers a fresh directory query with a statement it signed.
+
+    What proves a platform runs, where its presence (a liveliness token, a retained MQTT
+    message) is only a hint anyone on the network can give: the answer must verify with
+    the key ``trust`` holds for ``platform`` (``keys``: this side's, for its own name).
+    """
+    auth = DirectoryAuth(trust.federation, keys, trust)
+    key = f"dyknow/{trust.federation}/v{WIRE_VERSION}/df/{platform}"  # as wire_key makes it
+    for _ in range(tries):
+        nonce = make_nonce()
+        query = orjson.dumps({"v": WIRE_VERSION, "nonce": base64.b64encode(nonce).decode()})
+        try:
+            replies = await transport.query(key, query, timeout=timeout)
+        except TransportError as exc:
+            log.debug("asking %s whether it runs: %s", platform, exc)
+            continue
+        for reply in replies:
+            if not reply.ok:
+                continue
+            try:
+                auth.open(reply.payload, "df", platform=platform, nonce=nonce)
+            except DirectoryStatementError as exc:
+                log.info("a directory answer in %r's name refused: %s", platform, exc.reason)
+                continue
+            return True
+    return False
 
 
 def _df_of(agent: Agent, df: str | None) -> str:

@@ -541,7 +541,15 @@ def stream(
 
 
 def _watch_line(event: dict[str, Any]) -> str:
-    """One watched event as a line of text."""
+    """One watched event as a line of text (as JSON when its fields are not as expected)."""
+    try:
+        return _watch_text(event)
+    except (TypeError, ValueError, KeyError, AttributeError, OverflowError, OSError):
+        # what opened need not be a well-formed message: a member may send anything
+        return f"{event.get('kind')} {json.dumps(event, default=repr)}"
+
+
+def _watch_text(event: dict[str, Any]) -> str:
     kind = event["kind"]
     stamp = when(event.get("ts") or time.time())
     if kind == "acl":

@@ -466,12 +466,28 @@ def _reachable(endpoint: str) -> str:
     return endpoint.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:")
 
 
+def _watched_entry(entry: Any) -> tuple[str, str, float, bytes]:
+    """One ``[kind, from, ts, body]`` entry of a watch batch; ValueError if it is not one."""
+    if not isinstance(entry, list | tuple) or len(entry) != 4:
+        raise ValueError("a watch entry is [kind, from, ts, body]")
+    kind, peer, ts, body = entry
+    if (
+        kind not in ("acl", "bin")
+        or not isinstance(peer, str)
+        or isinstance(ts, bool)
+        or not isinstance(ts, int | float)
+        or not isinstance(body, bytes)
+    ):
+        raise ValueError("a watch entry is [kind, from, ts, body]")
+    return kind, peer, ts, body
+
+
 def decode_watched(kind: str, peer: str, ts: float, body: bytes) -> WatchEvent:
     """One opened envelope the platform showed its owner, as an event."""
     if kind == "acl":
         try:
             message: Any = json.loads(body)
-        except ValueError:
+        except (ValueError, RecursionError):  # what opened need not be JSON, nor shallow
             message = body.decode(errors="replace")
         return {"kind": "acl", "from": peer, "ts": ts, "message": message}
     try:
@@ -511,27 +527,40 @@ async def watch_platform(
         watched = await transport.subscribe(wire_key(fed, "watch", me))
         audit = await transport.subscribe(wire_key(fed, "audit", me))
 
+        # Anyone on an open network can publish on these keys (and seal to the owner's
+        # public key): what does not read as the platform's own is shown as unreadable,
+        # never ends the watch.
         async def pump_watch() -> None:
             async for item in watched:
                 try:
                     entries = msgpack.unpackb(keys.open_sealed(item.payload), raw=False)
-                except (AuthenticationError, ValueError) as exc:
+                    events = [decode_watched(*_watched_entry(e)) for e in entries]
+                except (AuthenticationError, ValueError, TypeError) as exc:
                     await queue.put({"kind": "unreadable", "key": item.key, "error": str(exc)})
                     continue
-                for kind, peer, ts, body in entries:
-                    await queue.put(decode_watched(kind, peer, ts, body))
+                for event in events:
+                    await queue.put(event)
+
+        plain = config.security.audit == "plain"
 
         async def pump_audit() -> None:
             async for item in audit:
                 try:
                     data = keys.open_sealed(item.payload)
                 except AuthenticationError:
-                    if not item.payload.startswith(b"{"):
+                    if not plain:  # this platform seals its audit: a plain one is not its own
                         await queue.put({"kind": "unreadable", "key": item.key})
                         continue
                     data = item.payload  # published plain ([security] audit = "plain")
-                for line in data.splitlines():
-                    await queue.put({"kind": "audit", "record": json.loads(line)})
+                try:
+                    records = [json.loads(line) for line in data.splitlines()]
+                    if not all(isinstance(r, dict) for r in records):
+                        raise ValueError("an audit record is a JSON object")
+                except (ValueError, RecursionError) as exc:
+                    await queue.put({"kind": "unreadable", "key": item.key, "error": str(exc)})
+                    continue
+                for record in records:
+                    await queue.put({"kind": "audit", "record": record})
 
         def unanswered(waited: float) -> TransportError:
             return TransportError(

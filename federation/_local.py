@@ -38,7 +38,7 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents import Pending, TokenBucket, TransportError, wire_key
+from agents import KeyPair, Pending, TokenBucket, TransportError, TrustStore, runs_signed, wire_key
 
 from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
 from ._cli_time import seconds, when
@@ -109,6 +109,20 @@ async def refuse_duplicate(
     alive = await transport.tokens(wire_key(config.federation, "alive", "*"), timeout=wait)
     if alive_key(config) not in alive:
         return
+    # A presence is only a hint (anyone on an open network can declare one): the name
+    # runs when it answers a fresh directory query with a statement signed by its key.
+    try:
+        keys, trust = KeyPair.load(config.key), TrustStore.load(config.trust)
+    except Exception as exc:  # the platform's own start says what is wrong with them
+        log.debug("reading the keys to check a presence: %s", exc)
+    else:
+        if not await runs_signed(transport, keys, trust, config.name):
+            log.warning(
+                "a presence of %r answers no signed directory query: not a running "
+                "platform (forged, or gone); starting",
+                config.name,
+            )
+            return
     where = "where and since when unknown (it did not say)"
     try:
         replies = await transport.query(identity_key(config), timeout=2.0)

@@ -467,20 +467,37 @@ def key_matches(key_expr: str, key: str) -> bool:
 
 def key_intersects(a: str, b: str) -> bool:
     """Whether two zenoh-style key expressions (wildcards on either side) share a key."""
-    return _intersect(tuple(a.split("/")), tuple(b.split("/")))
-
-
-def _intersect(a: tuple[str, ...], b: tuple[str, ...]) -> bool:
-    if not a:
-        return all(c == "**" for c in b)
-    if not b:
-        return all(c == "**" for c in a)
-    if a[0] == "**":
-        return _intersect(a[1:], b) or _intersect(a, b[1:])
-    if b[0] == "**":
-        return _intersect(a, b[1:]) or _intersect(a[1:], b)
-    if a[0] == "*" or b[0] == "*" or a[0] == b[0]:
-        return _intersect(a[1:], b[1:])
+    # A walk over (chunk of a, chunk of b) pairs, each visited once: O(len(a) * len(b)).
+    # Either key may come from anyone on the network (an MQTT query's ``key``): a
+    # recursion over `**` chunks took exponential time, or blew the stack, on a long one.
+    x, y = a.split("/"), b.split("/")
+    n, m = len(x), len(y)
+    todo, seen = [(0, 0)], set()
+    while todo:
+        state = todo.pop()
+        if state in seen:
+            continue
+        seen.add(state)
+        i, j = state
+        if i == n and j == m:
+            return True
+        xi = x[i] if i < n else None
+        yj = y[j] if j < m else None
+        if xi == "**":
+            todo.append((i + 1, j))  # matching no chunk
+            if yj is not None:
+                todo.append((i, j + 1))  # taking b's chunk
+        if yj == "**":
+            todo.append((i, j + 1))
+            if xi is not None:
+                todo.append((i + 1, j))
+        if (
+            xi is not None
+            and yj is not None
+            and "**" not in (xi, yj)
+            and (xi == "*" or yj == "*" or xi == yj)
+        ):
+            todo.append((i + 1, j + 1))
     return False
 
 

@@ -302,6 +302,10 @@ def _user_properties(props: Properties | None) -> dict[str, str]:
     return dict(pairs) if pairs else {}
 
 
+_MAX_PRESENCE_KEYS = 4096  # remembered per watcher: well above any federation's size
+_MAX_PRESENCE_KEY = 1024  # characters: ours are ``dyknow/<fed>/v1/alive/<name>``, < 300
+
+
 class _Watcher:
     """A presence watcher: turns retained presence messages into changes."""
 
@@ -317,14 +321,22 @@ class _Watcher:
         if payload:
             try:
                 alive = bool(json.loads(payload)["alive"])
-            except (ValueError, TypeError, KeyError):
+            except (ValueError, TypeError, KeyError, RecursionError):  # nested too deep
                 log.warning("mqtt: ignoring a malformed presence message on %r", key)
                 return
         else:
             alive = False
-        if self.known.get(key) == alive:
+        known = self.known
+        if known.get(key) == alive:
             return
-        self.known[key] = alive
+        # Anyone on the broker can publish under invented keys: what is remembered is
+        # bounded (the oldest forgotten first; a platform's key is short). A key not
+        # remembered is reported again when it repeats, which consumers take as a hint.
+        if len(key) <= _MAX_PRESENCE_KEY:
+            known.pop(key, None)
+            known[key] = alive
+            if len(known) > _MAX_PRESENCE_KEYS:
+                del known[next(iter(known))]
         self.inbox.put(Presence(key, alive))
 
 
@@ -478,7 +490,10 @@ class MqttTransport(Transport):
         while True:
             try:
                 async for message in client.messages:
-                    self._dispatch(message)
+                    try:
+                        self._dispatch(message)
+                    except Exception:  # one message, from anyone on the broker, never ends this
+                        log.warning("mqtt: dropping a message on %r", message.topic, exc_info=True)
                 return
             except aiomqtt.MqttError as exc:
                 if self._state != "opened":
@@ -531,7 +546,11 @@ class MqttTransport(Transport):
                 attachment = None
                 if getattr(props, "UserProperty", None):
                     att = _user_properties(props).get("att")
-                    attachment = None if att is None else base64.b64decode(att)
+                    try:
+                        attachment = None if att is None else base64.b64decode(att)
+                    except ValueError:  # binascii.Error: anyone on the broker can send one
+                        log.debug("mqtt: a message on %r: attachment not base64", topic)
+                        continue
                 msg = Message(topic, payload, attachment)
                 for inbox in f.inboxes:
                     inbox.put(msg)
@@ -783,6 +802,8 @@ class MqttTransport(Transport):
         correlation = getattr(props, "CorrelationData", None)
         if not key or not response_topic or not key_intersects(server.key_expr, key):
             return
+        if "+" in response_topic or "#" in response_topic:
+            return  # no topic to publish on: the answer could not go out
         if server.admit is not None and not server.admit(payload):
             return
         self._spawn(

@@ -1,0 +1,277 @@
+"""An outsider (no key of the federation) against real processes.
+
+Each test starts `dyknow node` processes (`_node_example.Station`) on a federation of
+their own, on loopback, and attacks them with the tools an outsider has: a bare zenoh
+session in the peer mesh, or a plain paho client on the MQTT broker the platforms use
+(a mosquitto of the tests' own). Each asserts what the attack must not achieve.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import subprocess
+import time
+from pathlib import Path
+
+import msgpack
+import orjson
+import pytest
+import zenoh
+from _node_example import CLI, Station, _samples
+
+from agents._security import seal_for_owner
+
+pytestmark = pytest.mark.timeout(150)
+
+
+def _outsider(station: Station) -> zenoh.Session:
+    """A plain zenoh client connected to the station's endpoint: no key, no trust file."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{station.port}"]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
+def test_a_forged_presence_does_not_keep_a_platform_from_starting(tmp_path: Path) -> None:
+    """A liveliness token under a member's name, declared by an outsider, is no proof it runs.
+
+    Before, `dyknow node`, `console` and every one-shot command of that member refused
+    to start ("platform 'operator' is alive already") for as long as the outsider held
+    the token: one token kept a platform out of its federation, or from restarting
+    after a crash. Now a presence counts as a running platform only when that platform
+    answers a fresh directory query with a statement it signed.
+    """
+    station = Station(tmp_path)
+    session = None
+    try:
+        station.start("python")
+        session = _outsider(station)
+        alive = f"dyknow/{station.federation}/v1/alive/operator"
+        token = session.liveliness().declare_token(alive)
+        # and an answer to "who runs it", as a running node would give
+        forged = json.dumps(
+            {
+                "platform": "operator",
+                "federation": station.federation,
+                "host": "elsewhere",
+                "pid": 1,
+                "since": time.time(),
+            }
+        )
+        who = session.declare_queryable(
+            f"dyknow/{station.federation}/v1/identity/operator",
+            lambda q: q.reply(q.key_expr, forged.encode()),
+        )
+        seen = list(session.liveliness().get(alive, timeout=2.0))
+        assert seen, "the forged token is not routed"
+        # a one-shot command as the operator (no node of it runs): not refused
+        answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
+        # nor the operator's node
+        node = subprocess.Popen(
+            [*CLI, "node", "--config", "operator.toml"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        try:
+            assert node.stdout is not None
+            ready = node.stdout.readline()
+            assert f"operator ready in federation {station.federation}" in ready
+        finally:
+            node.terminate()
+            _, err = node.communicate(timeout=20)
+        assert "is alive in federation" not in err and "Traceback" not in err
+        who.undeclare()
+        token.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        _, err = station.stop()
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("as_json", [True, False])
+def test_an_outsider_cannot_end_or_feed_the_owners_watch(tmp_path: Path, as_json: bool) -> None:
+    """What an outsider publishes on ``audit/<platform>`` and ``watch/<platform>``.
+
+    The owner's `dyknow watch` ended (exit 1, ``JSONDecodeError``, ``TypeError``) on a
+    payload that was not the platform's: a plain ``{junk`` on the audit key, a sealed box
+    (anyone can seal to the public key) of something other than a list of entries, an
+    entry whose fields are not of their types. And it showed a plain audit record as the
+    platform's own although the platform seals its audit. Now those show as
+    ``unreadable`` and the watch goes on until its ``--duration``.
+    """
+    station = Station(tmp_path)
+    session = None
+    watch = None
+    try:
+        station.start("python")
+        session = _outsider(station)
+        args = ["watch", "--config", "station-python.toml", "--duration", "6"]
+        watch = subprocess.Popen(
+            [*CLI, *args, *(["--json"] if as_json else [])],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        assert watch.stdout is not None
+        assert "watching" in watch.stdout.readline()
+        fed = station.federation
+        trust = json.loads((station.dir / "keys" / "trust.json").read_text())
+        owner = base64.b64decode(trust["platforms"]["station"])  # public: in the trust file
+        forged = {"v": 1, "verdict": "accepted", "from": "operator", "reason": "FORGED-PLAIN"}
+        deep = b"[" * 100_000 + b"]" * 100_000
+        for payload in (orjson.dumps(forged) + b"\n", b"{junk", b"[1]\n"):
+            session.put(f"dyknow/{fed}/v1/audit/station", payload)
+        session.put(f"dyknow/{fed}/v1/audit/station", seal_for_owner(owner, deep))
+        for entries in (
+            5,
+            [["acl"]],
+            [["acl", "operator", 1.0, 7]],
+            {"a": 1},
+            [["acl", "operator", 1e300, b'{"receivers": [1, 2], "sender": {}}']],
+            [["bin", "operator", 1.0, msgpack.packb({"s": "x", "b": [1, 2]})]],
+            [["acl", "operator", 1.0, deep]],
+        ):
+            session.put(
+                f"dyknow/{fed}/v1/watch/station", seal_for_owner(owner, msgpack.packb(entries))
+            )
+        out, err = watch.communicate(timeout=40)
+    finally:
+        if watch is not None and watch.poll() is None:
+            watch.kill()
+            watch.communicate()
+        if session is not None:
+            session.close()
+        station.stop()
+    assert watch.returncode == 0, err
+    assert "Traceback" not in err and "Error" not in err, err
+    assert "FORGED-PLAIN" not in out
+    assert out.count("unreadable") >= 7, out
+
+
+def _over_mqtt(station: Station, port: int) -> None:
+    """The station's and the operator's configs with the MQTT transport on ``port``."""
+    for name, client in (("station-python.toml", "station"), ("operator.toml", "operator")):
+        conf = station.dir / name
+        text = conf.read_text()
+        start = text.index("[transport]")
+        end = text.find("\n[", start)
+        rest = text[end:] if end != -1 else ""
+        transport = (
+            f'[transport]\nkind = "mqtt"\nhost = "127.0.0.1"\nport = {port}\n'
+            f'client_id = "{client}"\n'
+        )
+        conf.write_text(text[:start] + transport + rest)
+
+
+def test_one_mqtt_message_does_not_make_a_platform_deaf(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    """An outsider on the broker (a plain paho client, no key) against an MQTT node.
+
+    Before, one message ended the transport's receive task: the node ran on but
+    received nothing more (no key exchange answered, no request, no batch): a message on
+    the platform's ``acl`` key with a user property ``att`` that is not base64
+    (``binascii.Error``), or a query whose ``key`` has thousands of ``**`` chunks
+    (``RecursionError`` in the key matching, which took exponential time on fewer), or
+    a presence nested too deep for the JSON parser (``RecursionError`` again).
+    Now such a message is dropped and the platform answers as before.
+    """
+    import paho.mqtt.client as mqtt
+    from paho.mqtt.packettypes import PacketTypes
+    from paho.mqtt.properties import Properties
+
+    host, port = mosquitto
+    station = Station(tmp_path)
+    _over_mqtt(station, port)
+    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, protocol=mqtt.MQTTv5)
+    try:
+        station.start("python")
+        station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        client.connect(host, port)
+        client.loop_start()
+        fed = station.federation
+        bad_att = Properties(PacketTypes.PUBLISH)
+        bad_att.UserProperty = [("att", "!!not base64")]
+        client.publish(f"dyknow/{fed}/v1/acl/station", b"x", properties=bad_att).wait_for_publish()
+        deep_json = b"[" * 100_000 + b"]" * 100_000  # RecursionError in the presence watcher
+        client.publish(f"dyknow/{fed}/v1/alive/operator", deep_json).wait_for_publish()
+        for chunks in (["**"] * 3000, ["**", "*"] * 40):
+            deep = Properties(PacketTypes.PUBLISH)
+            deep.UserProperty = [("key", "/".join([*chunks, "nowhere"]))]
+            deep.ResponseTopic = "@reply/outsider/1"
+            deep.CorrelationData = b"1"
+            client.publish("@query/dyknow", b"x", properties=deep).wait_for_publish()
+        wild = Properties(PacketTypes.PUBLISH)  # an answer to no topic: the handler failed
+        wild.UserProperty = [("key", f"dyknow/{fed}/v1/identity/station")]
+        wild.ResponseTopic = "@reply/+/x"
+        client.publish(f"@query/dyknow/{fed}/v1/identity", b"", properties=wild).wait_for_publish()
+        time.sleep(1.0)
+        # a new one-shot command: a new key exchange, a request and its answer
+        answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
+    finally:
+        client.loop_stop()
+        client.disconnect()
+        _, err = station.stop()
+    assert "receive failed" not in err and "dropping a message" not in err, err
+    assert "Publish topic cannot contain wildcards" not in err, err
+
+
+def _rss_mb(pid: int) -> int:
+    """A process's resident memory, in MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) // 1024
+    raise AssertionError(f"no VmRSS for pid {pid}")
+
+
+def test_presences_under_invented_names_cost_an_mqtt_platform_bounded_memory(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    """An outsider publishing presences under ever new keys on the broker.
+
+    Every presence watcher of the platform (its Interface Agent's, its directory's)
+    remembered every key it ever heard, for good: ~60-70 MiB more per 20 000 keys of 8 kB,
+    without end. Now what it remembers is bounded; the platform still answers.
+    """
+    import paho.mqtt.client as mqtt
+
+    host, port = mosquitto
+    station = Station(tmp_path)
+    _over_mqtt(station, port)
+    client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, protocol=mqtt.MQTTv5)
+    try:
+        station.start("python")
+        node = station.node
+        assert node is not None
+        client.connect(host, port)
+        client.loop_start()
+        long = "x" * 8000
+        rss = []
+        for phase in range(4):
+            for i in range(20_000):
+                key = f"dyknow/{station.federation}/v1/alive/{long}{phase}-{i}"
+                client.publish(key, b'{"v":1,"alive":true}', qos=0)
+                if i % 1000 == 0:
+                    time.sleep(0.05)  # paced: the broker drops what a slow reader cannot take
+            time.sleep(3.0)
+            rss.append(_rss_mb(node.pid))
+        print(f"\nthe platform's RSS after each phase (MiB): {rss}")
+        # the first phases fill what is bounded (and the allocator's arenas); then no growth
+        assert rss[3] - rss[1] < 40, rss
+        answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
+    finally:
+        client.loop_stop()
+        client.disconnect()
+        _, err = station.stop()
+    assert "receive failed" not in err, err
