@@ -1029,19 +1029,21 @@ async def runs_signed(
         nonce = make_nonce()
         query = orjson.dumps({"v": WIRE_VERSION, "nonce": base64.b64encode(nonce).decode()})
         try:
-            replies = await transport.query(key, query, timeout=timeout)
+            # the first signed answer ends the query (over MQTT it would last its timeout)
+            async with await transport.ask(key, query, timeout=timeout) as replies:
+                async for reply in replies:
+                    if not reply.ok:
+                        continue
+                    try:
+                        auth.open(reply.payload, "df", platform=platform, nonce=nonce)
+                    except DirectoryStatementError as exc:
+                        log.info(
+                            "a directory answer in %r's name refused: %s", platform, exc.reason
+                        )
+                        continue
+                    return True
         except TransportError as exc:
             log.debug("asking %s whether it runs: %s", platform, exc)
-            continue
-        for reply in replies:
-            if not reply.ok:
-                continue
-            try:
-                auth.open(reply.payload, "df", platform=platform, nonce=nonce)
-            except DirectoryStatementError as exc:
-                log.info("a directory answer in %r's name refused: %s", platform, exc.reason)
-                continue
-            return True
     return False
 
 

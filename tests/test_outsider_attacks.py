@@ -234,6 +234,22 @@ def _rss_mb(pid: int) -> int:
     raise AssertionError(f"no VmRSS for pid {pid}")
 
 
+def _settled_rss_mb(pid: int, *, within: float = 90.0) -> int:
+    """A process's resident memory once it stops moving (its backlog read), in MiB.
+
+    A fixed wait reads it mid-backlog on a loaded machine: settled is three readings
+    1 s apart within 1 MiB of each other (at most ``within`` s, then the last reading).
+    """
+    readings = [_rss_mb(pid)]
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline:
+        time.sleep(1.0)
+        readings.append(_rss_mb(pid))
+        if len(readings) >= 3 and max(readings[-3:]) - min(readings[-3:]) <= 1:
+            break
+    return readings[-1]
+
+
 def test_presences_under_invented_names_cost_an_mqtt_platform_bounded_memory(
     tmp_path: Path, mosquitto: tuple[str, int]
 ) -> None:
@@ -263,8 +279,7 @@ def test_presences_under_invented_names_cost_an_mqtt_platform_bounded_memory(
                 client.publish(key, b'{"v":1,"alive":true}', qos=0)
                 if i % 1000 == 0:
                     time.sleep(0.05)  # paced: the broker drops what a slow reader cannot take
-            time.sleep(3.0)
-            rss.append(_rss_mb(node.pid))
+            rss.append(_settled_rss_mb(node.pid))
         print(f"\nthe platform's RSS after each phase (MiB): {rss}")
         # the first phases fill what is bounded (and the allocator's arenas); then no growth
         assert rss[3] - rss[1] < 40, rss
