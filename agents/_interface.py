@@ -46,6 +46,7 @@ from ._exceptions import (
     SecurityError,
     TransportClosed,
     TransportError,
+    UnknownPlatform,
     UnknownSession,
 )
 from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
@@ -106,6 +107,14 @@ _PRESENCE_REPORT_INTERVAL = 1.0  # seconds between audit records of ignored chan
 _MIRROR_CHUNK = 512 * 1024
 
 _KX_ERRORS_KEPT = 8  # error replies to a key exchange quoted when none finishes it
+
+# An operator asking "why does it not answer me" reads the log, not the sealed audit: a
+# refused untrusted sender is logged once per name per interval, a few names an interval,
+# the others summed up in one line (anyone may claim any name, as often as it likes).
+UNTRUSTED_LOG_INTERVAL = 30.0
+"""Seconds between two log lines about one untrusted sender."""
+_UNTRUSTED_LOGGED = 8  # names logged one by one per interval
+_UNTRUSTED_NAME = 64  # characters of a claimed name logged
 
 MAX_BATCH = 256
 """At most this many ACL messages in one envelope (a batch: ``docs/wire.md``)."""
@@ -496,6 +505,9 @@ class InterfaceAgent:
         )
         self._unauth_pending = 0
         self._unauth_last_report = -math.inf
+        self._untrusted_logged: set[str] = set()  # names logged in the current interval
+        self._untrusted_unlogged = 0  # refusals of other names since, summed up next
+        self._untrusted_since = -math.inf
         if kx_limit is not None and not isinstance(kx_limit, KxLimit):
             raise TypeError(f"kx_limit: expected a KxLimit or None, got {kx_limit!r}")
         # key-exchange requests are screened on the transport's thread (see _kxgate)
@@ -1412,6 +1424,8 @@ class InterfaceAgent:
         self, claimed: str | None, reason: str, *, stage: str | None = None
     ) -> None:
         """Audit an envelope or handshake that did not authenticate, within a global budget."""
+        if claimed is not None and reason.startswith(UnknownPlatform.code + ":"):
+            self._log_untrusted(claimed, reason)
         extra = {} if stage is None else {"stage": stage}
         bucket = self._unauth
         if bucket is None or bucket.take(self._monotonic()):
@@ -1423,6 +1437,39 @@ class InterfaceAgent:
         if self._unauth_pending and self._flush_idle:
             # summed up later, by the flush: it sleeps, and no record came to wake it
             self._wake_flush()
+
+    def _log_untrusted(self, claimed: str, reason: str) -> None:
+        """Log a refused untrusted sender: once per name per interval, the rest summed up."""
+        now = self._monotonic()
+        if now - self._untrusted_since >= UNTRUSTED_LOG_INTERVAL:
+            if self._untrusted_unlogged:
+                log.warning(
+                    "interface[%s]: %d more refusal(s) of senders not in the trust file in "
+                    "%.0f s, not logged one by one (the audit has them)",
+                    self._me,
+                    self._untrusted_unlogged,
+                    now - self._untrusted_since,
+                )
+            self._untrusted_logged.clear()
+            self._untrusted_unlogged = 0
+            self._untrusted_since = now
+        name = claimed[:_UNTRUSTED_NAME]
+        logged = self._untrusted_logged
+        if name in logged:
+            return
+        if len(logged) >= _UNTRUSTED_LOGGED:
+            self._untrusted_unlogged += 1
+            return
+        logged.add(name)
+        log.warning(
+            "interface[%s]: refused %r: not in this platform's trust file (%s); it is not "
+            "answered until its key is trusted and this platform restarted (logged once per "
+            "%.0f s)",
+            self._me,
+            name,
+            reason[:200],
+            UNTRUSTED_LOG_INTERVAL,
+        )
 
     def _report_unauthenticated(self, now: float) -> None:
         """Audit the unauthenticated input dropped without a record, once per interval."""

@@ -7,6 +7,7 @@ import contextlib
 import json
 import logging
 import signal
+import sys
 import time
 import uuid
 from collections.abc import AsyncIterator, Callable, Sequence
@@ -58,6 +59,34 @@ def endpoints(config: PlatformConfig) -> str:
     return f"mqtt {getattr(t, 'host', '?')}:{getattr(t, 'port', '?')}"
 
 
+def unprovided(platform: FederationPlatform, source: str) -> list[str]:
+    """Warnings for the mapping's fixed entries whose local label is no stream here yet.
+
+    Not an error: a stream may appear after the start (an input with ``create = true``,
+    an imported stream, a source added by the program), but a label the application
+    lacks, a typo, is otherwise found only when asked for it ("no stream for it here").
+    """
+    config, mapping = platform.config, platform.mapping
+    instance, vocabulary = platform.instance, platform.vocabulary
+    where = (
+        f"{source}: mapping: {config.mapping}"
+        if isinstance(config.mapping, Path)
+        else f"{source}: mapping"
+    )
+    warnings = []
+    for semantic in mapping.mapped:
+        entry = vocabulary.pattern(semantic)
+        if entry is not None and entry.parameterized:
+            continue  # a pattern's streams come and go with their objects
+        local = mapping.to_local(semantic)
+        if not instance.has_label(local):
+            warnings.append(
+                f"{where}: labels.{semantic}: warning: no stream {local!r} here yet (a label "
+                f"the application lacks?): asking for {semantic!r} is refused until one appears"
+            )
+    return warnings
+
+
 @contextlib.asynccontextmanager
 async def _platform(
     config: PlatformConfig, source: str
@@ -86,6 +115,7 @@ async def _platform(
 async def run_node(config: PlatformConfig, source: str, say: Callable[[str], None]) -> None:
     """Run one platform and its application until SIGINT/SIGTERM, then shut it down cleanly."""
     async with _platform(config, source) as (p, application, channel):
+        _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
@@ -98,6 +128,12 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
             f"{channel.refused} refused"
         )
     say(f"dyknow node: {config.name} stopped")
+
+
+def _warn(warnings: list[str]) -> None:
+    """Print each warning on stderr, flushed (a supervisor may be reading)."""
+    for line in warnings:
+        print(line, file=sys.stderr, flush=True)
 
 
 @contextlib.asynccontextmanager
@@ -127,6 +163,7 @@ async def run_console(
         _platform(config, source) as (p, _, channel),
         OperatorConsole(p, host=host, port=port, token=token, allow_hosts=allow_hosts) as console,
     ):
+        _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()
         say(
@@ -170,6 +207,7 @@ async def run_foxglove(
             allow_hosts=allow_hosts,
         ) as bridge,
     ):
+        _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()
         say(f"dyknow foxglove: serving {', '.join(bridge.served()) or 'no streams'}")

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _node_example import Station
 
 from dyknow_core import DyKnowInstance
 from federation._inputs import ZenohInput, input_runner
@@ -70,6 +71,26 @@ def test_input_and_output_labels_are_checked_at_start(
     station.write_text(text + '\n[[outputs]]\nkind = "zenoh"\nkey = "x"\nlabels = ["wx/nope"]\n')
     code, err = _node(station, capsys)
     assert code == 2 and "outputs[0].labels: no stream 'wx/nope' here" in err
+
+
+def test_a_mapping_entry_of_no_stream_is_warned_about_at_start(tmp_path: Path) -> None:
+    # a typo in the mapping: the node starts (a stream may appear later), but says so
+    station = Station(tmp_path)
+    labels = station.dir / "station-labels.toml"
+    good = labels.read_text()
+    try:
+        station.start("python")
+        assert "mapping" not in station.stop()[1]  # the example maps only its streams
+        labels.write_text(good.replace('"wx/temperature"', '"wx/temprature"'))
+        station.start("python")
+        err = station.stop()[1]
+    finally:
+        station.stop()
+    assert err.splitlines() == [
+        "station-python.toml: mapping: station-labels.toml: labels.temperature: warning: "
+        "no stream 'wx/temprature' here yet (a label the application lacks?): asking for "
+        "'temperature' is refused until one appears"
+    ]
 
 
 def test_config_keys_of_inputs_are_named(station: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import logging
 import os
 import re
 import time
@@ -40,6 +41,7 @@ from test_interface import (
 )
 
 from agents import AgentPlatform, Performative, Refused, request, wire_key
+from agents import _interface as interface_module
 from agents._security import Handshake, KeyPair, Session, TrustStore
 from agents.transports import Message, Subscription
 
@@ -232,6 +234,41 @@ async def test_unknown_platform(tmp_path: Path) -> None:
         rec = await logged(w, "untrusted:", verdict="dropped", stage=None)
         assert rec["from"] == "evil"
         untouched(w.echo, calls, received)
+
+
+async def test_an_untrusted_sender_is_logged_once_a_while_and_garbage_summed_up(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The operator of a platform that refuses an untrusted asker sees it in its log, rarely."""
+    caplog.set_level(logging.WARNING, logger="agents._interface")
+
+    def lines(text: str) -> list[str]:
+        return [r.getMessage() for r in caplog.records if text in r.getMessage()]
+
+    async with watched(tmp_path) as w:
+        raw = await w.fed.raw()
+        evil = KeyPair.generate("evil")
+        trust = TrustStore(FED, {"evil": evil.public_key, "uav-b": w.fed.keys["uav-b"].public_key})
+        for _ in range(3):  # an asker trying again and again
+            await raw.query(w.kx, Handshake(evil, trust).initiate("uav-b"), timeout=1)
+        await until(lambda: len(records(w.pb, **{"from": "evil"})) >= 3, "three refusals")
+        assert lines("'evil'") == [
+            "interface[uav-b]: refused 'evil': not in this platform's trust file (untrusted: "
+            "platform 'evil' is not in the trust file); it is not answered until its key is "
+            "trusted and this platform restarted (logged once per 30 s)"
+        ]
+
+        # a flood of made-up names: a few logged, the rest summed up in the next interval
+        agent = ia(w.pb)
+        for n in range(100):
+            name = f"x{n}"
+            agent.audit_unauthenticated(name, f"untrusted: platform {name!r} is not in", "kx")
+        assert len(lines("refused '")) == 8
+        monkeypatch.setattr(interface_module, "UNTRUSTED_LOG_INTERVAL", 0.0)
+        agent.audit_unauthenticated("evil", "untrusted: platform 'evil' is not in", "kx")
+        (summed,) = lines("more refusal")
+        assert summed.startswith("interface[uav-b]: 93 more refusal(s) of senders not in the ")
+        assert len(lines("'evil'")) == 2  # a new interval: logged again
 
 
 async def test_impersonation(tmp_path: Path) -> None:

@@ -776,3 +776,20 @@ async def test_a_stream_its_live_platform_stops_is_asked_for_again(demo_keys: Pa
         assert old.ended is not None and old.ended.startswith("lease-expired")
         assert platform(state, "uav-a")["state"] == "alive"
         assert any(e.semantic_label == "tracked-cars" for e in uav.exporter.exports())
+
+
+async def test_a_console_stops_promptly_when_no_provider_answers(demo_keys: Path) -> None:
+    # deploy/local/down: the router goes while the console still follows streams; the
+    # cancels it sends on closing are never answered, and must not hold its stop
+    async with console_federation(demo_keys) as fed, client(fed) as http:
+        state = await until_state(http, fed.url, lambda s: all(filled(s, n) for n in UAVS))
+        assert all(s["export_id"] for n in UAVS for s in platform(state, n)["streams"])
+
+        async def lost(*args: Any, **kwargs: Any) -> None:
+            return None
+
+        fed.operator.transport.publish = lost  # type: ignore[method-assign]
+        assert fed.console is not None
+        started = asyncio.get_running_loop().time()
+        await fed.console.aclose()
+        assert asyncio.get_running_loop().time() - started < 2.5

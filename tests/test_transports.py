@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import socket
 import subprocess
 import sys
 import time
@@ -651,6 +652,22 @@ async def test_mqtt_unreachable_broker_is_a_transport_error() -> None:
     t = MqttTransport(MqttConfig(port=free_tcp_port(), connect_timeout=2))
     with pytest.raises(TransportError, match="cannot connect"):
         await t.__aenter__()
+
+
+async def test_zenoh_listen_endpoint_in_use_is_one_clear_line() -> None:
+    # a second node on a port in use: the endpoint and what to do, no Rust source paths
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        t = ZenohTransport(ZenohConfig.loopback(port))
+        with pytest.raises(TransportError) as raised:
+            await t.__aenter__()
+    assert str(raised.value) == (
+        f"zenoh: cannot listen on tcp/127.0.0.1:{port}: the address is in use (by another "
+        "node, maybe this very platform running already, or another program): stop that one "
+        "first, or listen on another endpoint"
+    )
 
 
 def test_zenoh_config_keeps_the_listen_endpoints_of_its_json5_file() -> None:

@@ -405,13 +405,32 @@ def _reach(cfg: zenoh.Config) -> tuple[bool, int]:
     return seeks, min(len(connect), 1) if mode == "client" else len(connect)
 
 
+# zenoh's errors end their parts with where in its Rust sources they were raised
+_RUST_SOURCE = re.compile(r"\s+at /\S+?\.rs:\d+\.?")
+_IN_USE = re.compile(r"bound to (?P<endpoint>[\w-]+/\S+?):? \[")
+
+
+def _zenoh_error(exc: zenoh.ZError) -> str:
+    """A zenoh error's text for a person: without Rust source paths; an endpoint in use said so."""
+    text = _RUST_SOURCE.sub("", str(exc)).strip()
+    if "Address already in use" in text:
+        found = _IN_USE.search(text)
+        endpoint = found["endpoint"] if found else "a listen endpoint"
+        return (
+            f"cannot listen on {endpoint}: the address is in use (by another node, maybe "
+            "this very platform running already, or another program): stop that one first, "
+            "or listen on another endpoint"
+        )
+    return text
+
+
 @contextlib.contextmanager
 def _converted(what: str) -> Iterator[None]:
     """Raise zenoh's errors as TransportError, saying what was being done."""
     try:
         yield
     except zenoh.ZError as exc:
-        raise TransportError(f"zenoh: {what}: {exc}") from exc
+        raise TransportError(f"zenoh: {what}: {_zenoh_error(exc)}") from exc
 
 
 class ZenohTransport(Transport):
@@ -450,7 +469,10 @@ class ZenohTransport(Transport):
         try:
             session = await asyncio.shield(opening)
         except zenoh.ZError as exc:
-            raise TransportError(f"zenoh: cannot open a session: {exc}") from exc
+            error = _zenoh_error(exc)
+            if error.startswith("cannot listen on"):  # the endpoint says all
+                raise TransportError(f"zenoh: {error}") from exc
+            raise TransportError(f"zenoh: cannot open a session: {error}") from exc
         except asyncio.CancelledError:
             # The session still opens in its thread: close it then, or it is leaked.
             opening.add_done_callback(_close_opened)

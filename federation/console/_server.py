@@ -61,6 +61,9 @@ PUSH_INTERVAL = 0.25  # s: the fastest the page is sent a new state (bounds its 
 KEEPALIVE = 1.0  # s: a state is sent at least this often (ages and rates move on)
 SEARCH_DEADLINE = 2.0  # s: a label search waits this long for every platform
 RATE_WINDOW = 5.0  # s: the arrival rate shown is measured over this window
+# s: closing waits this long at most for its cancels to be answered (a provider behind a
+# router gone never answers; it stops exporting once our liveliness token goes anyway)
+CLOSE_WAIT = 1.0
 MAX_VIOLATIONS = 200
 MAX_OBSERVATIONS = 200
 MAX_TEXT = 500
@@ -276,7 +279,7 @@ class OperatorConsole:
         await self._tasks.aclose()
         if cancels:
             with contextlib.suppress(TimeoutError):
-                async with asyncio.timeout(REQUEST_TIMEOUT):
+                async with asyncio.timeout(CLOSE_WAIT):
                     await asyncio.gather(*cancels, return_exceptions=True)
 
     # -- the model ------------------------------------------------------------------------
