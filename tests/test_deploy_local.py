@@ -179,6 +179,11 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         assert done.returncode == 0, done.stderr
         rows = [json.loads(line) for line in done.stdout.splitlines()]
         assert len(rows) == 3 and all(len(r["value"]) == 3 for r in rows)
+        # each UAV's top speed, as the demo's UAVs give it (what a leader weighs)
+        done = dyknow("ask", "heli-max-speed", "--platform", "uav-b")
+        assert done.returncode == 0, done.stderr
+        [(top, _, _)] = json.loads(done.stdout)["heli-max-speed"]["samples"]
+        assert top == 20.0
         # the console draws what the UAVs' applications see and recognize: positions,
         # areas, cars, and the overtake uav-a recognizes about 33 s into the world
         token = url.split("token=", 1)[1]
@@ -215,6 +220,8 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         r"dyknow console: local channel: (\d+) commands", (run / "honcho.log").read_text()
     )
     assert served and int(served.group(1)) >= 3  # labels, ask, stream: through the console
+    # every label the shipped configs map is one the deployment provides
+    assert "here yet" not in (run / "honcho.log").read_text()
     again = _script("down", env)
     assert again.returncode == 0 and "nothing running" in again.stdout
 

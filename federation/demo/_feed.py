@@ -81,7 +81,8 @@ async def world_feed(
         yield {"time": now, "position": {"x": round(x, 2), "y": round(y, 2), "z": round(z, 2)}}
         if now >= area_due:
             area_due = now + AREA_PERIOD
-            yield {"time": now, "area": area}
+            # the UAV's top speed as the demo's UAVs give it (`heli-max-speed`)
+            yield {"time": now, "area": area, "max_speed": 18.0 + 2.0 * index}
         seen: dict[str, dict[str, Any]] = {}
         for car in world.cars_at(t):
             if world.area_of(car.x, car.y) != index:
