@@ -885,6 +885,25 @@ class FederationPlatform:
         self.importer.expect(sender, semantic, label)
         return label
 
+    def agreed(self, sender: str, semantic: str) -> bool:
+        """Whether this platform agreed to receive ``sender``'s stream of ``semantic``."""
+        return self.importer.get(sender, semantic) is not None
+
+    def withdraw(self, sender: str, semantic: str) -> bool:
+        """Undo `expect` for a stream that did not come: False (kept) if a sample landed here.
+
+        The Federation Agent withdraws what its create-stream expected when the provider
+        refuses, fails or does not answer; a stream whose samples arrived meanwhile (they
+        may overtake the answer) is left alone, like any agreement made otherwise.
+        """
+        rec = self.importer.get(sender, semantic)
+        if rec is None:
+            return True
+        if rec.injected or rec.source is not None:
+            return False
+        self.importer.forget(sender, semantic)
+        return True
+
     def _import_translate(self, sender: str, semantic: str) -> None:
         # what this platform did not agree (`expect`) is dropped and counted: "unagreed"
         return None

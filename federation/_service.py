@@ -246,6 +246,14 @@ class ImportAgreements(Protocol):
         """Agree to receive ``sender``'s stream of ``semantic``; raises if it cannot land here."""
         ...
 
+    def agreed(self, sender: str, semantic: str, /) -> bool:
+        """Whether ``sender``'s stream of ``semantic`` is agreed here already."""
+        ...
+
+    def withdraw(self, sender: str, semantic: str, /) -> object:
+        """Undo `expect` after the request failed, unless a sample of the stream landed here."""
+        ...
+
 
 Consent = Callable[[str, str, list[str]], str | None]
 """``consent(requester, provider, labels)``: None to receive the streams, else why not."""
@@ -428,6 +436,9 @@ class FederationAgent(Agent):
         self._exports: dict[str, StreamExport] = {}
         self._by_conversation: dict[tuple[str, str], str] = {}
         self._reserved = 0
+        # (provider, label) -> how many of our create-streams not yet answered expect it,
+        # agreed by nothing else: withdrawn when none of them is accepted (`_settle`)
+        self._tentative: dict[tuple[str, str], int] = {}
         # provider -> the id create_stream returned -> what was asked, the export id now
         self._durable: dict[str, dict[str, _Durable]] = {}
         self._asking: dict[str, asyncio.Lock] = {}  # one re-ask at a time per provider
@@ -1256,7 +1267,7 @@ class FederationAgent(Agent):
             content["relative"] = True
         if history:
             content["history"] = history
-        self._expect_from(provider, content)
+        held = self._expect_from(provider, content)
         others = [
             (provider, w, s)
             for w in dict.fromkeys(content.get("to-units", []))
@@ -1266,10 +1277,13 @@ class FederationAgent(Agent):
         self._count_for_others(others, +1)  # the receivers ask us to confirm it meanwhile
         try:
             answer = await self.request_from(provider, content, timeout=timeout)
+            export_id = str(answer["id"])
         except BaseException:
+            # refused, failed, timed out, unreachable or cancelled: nothing stays agreed
             self._count_for_others(others, -1)
+            self._settle(held, accepted=False)
             raise
-        export_id = str(answer["id"])
+        self._settle(held, accepted=True)
         if others:
             self._for_others_by[(provider, export_id)] = others
         if durable:
@@ -1285,25 +1299,66 @@ class FederationAgent(Agent):
             else:
                 table.pop(key, None)
 
-    def _expect_from(self, provider: str, content: Any) -> None:
+    def _expect_from(self, provider: str, content: Any) -> list[tuple[str, str]]:
         """Agree to receive what a create-stream ``content`` asks ``provider`` to send us.
 
-        Before asking: the first batch may overtake the provider's inform. It stays agreed
-        after a cancel: the same stream asked again (a new policy) lands in the same label
-        and its subscribers go on.
+        Before asking: the first batch may overtake the provider's inform. Agreed
+        tentatively: the (provider, label) pairs returned, to `_settle` once answered.
+        Accepted, it stays agreed after a cancel: the same stream asked again (a new
+        policy) lands in the same label and its subscribers go on.
         """
         imports = self.imports
         if imports is None or provider == self.platform.name:
-            return
+            return []
         if not isinstance(content, dict) or content.get("action") != "create-stream":
-            return
+            return []
         units = content.get("to-units")
         if units is not None and self.platform.name not in units:
-            return  # for others only: they agree themselves when the provider asks them
+            return []  # for others only: they agree themselves when the provider asks them
         labels = content.get("labels", content.get("semantic-labels"))
-        for semantic in dict.fromkeys(labels if isinstance(labels, list) else []):
-            if isinstance(semantic, str):
-                imports.expect(provider, semantic)
+        tentative = self._tentative
+        held: list[tuple[str, str]] = []
+        try:
+            for semantic in dict.fromkeys(labels if isinstance(labels, list) else []):
+                if not isinstance(semantic, str):
+                    continue
+                key = (provider, semantic)
+                if key in tentative:
+                    tentative[key] += 1  # another request of ours, not answered yet
+                elif imports.agreed(provider, semantic):
+                    continue  # agreed before (accepted, consented, by the application)
+                else:
+                    imports.expect(provider, semantic)
+                    tentative[key] = 1
+                held.append(key)
+        except BaseException:
+            self._settle(held, accepted=False)  # a label that cannot land: none stays
+            raise
+        return held
+
+    def _settle(self, held: list[tuple[str, str]], *, accepted: bool) -> None:
+        """A request that expected ``held`` was answered: keep them, or withdraw them.
+
+        Accepted, they are agreed for good. Otherwise each is withdrawn once no other
+        request of ours still waits for it, unless one was accepted meanwhile or a
+        sample of it already landed here (the imports keep a stream that flows).
+        """
+        tentative, imports = self._tentative, self.imports
+        for key in held:
+            n = tentative.get(key)
+            if n is None:
+                continue  # another request for it was accepted: agreed for good
+            if accepted:
+                del tentative[key]
+            elif n > 1:
+                tentative[key] = n - 1
+            else:
+                del tentative[key]
+                if imports is not None:
+                    try:
+                        imports.withdraw(*key)
+                    except Exception:
+                        log.exception("%s: withdrawing %s from %s failed", self, key[1], key[0])
 
     async def cancel_stream(
         self, provider: str, export_id: str, *, timeout: float = DEFAULT_TIMEOUT
@@ -1367,9 +1422,31 @@ class FederationAgent(Agent):
         result = GlobalResult(asked=list(providers))
         if not providers:
             return result
+        held: dict[str, list[tuple[str, str]]] = {}
         if isinstance(content, dict) and content.get("action") == "create-stream":
-            for platform in providers:
-                self._expect_from(platform, content)  # a global create-stream: to us, agreed
+            try:
+                for platform in providers:
+                    # a global create-stream: to us, agreed until that provider refuses
+                    held[platform] = self._expect_from(platform, content)
+            except BaseException:
+                for keys in held.values():
+                    self._settle(keys, accepted=False)
+                raise
+        try:
+            result = await self._global_request(content, providers, result, deadline)
+        except BaseException:
+            for keys in held.values():
+                self._settle(keys, accepted=False)
+            raise
+        for platform, keys in held.items():
+            self._settle(keys, accepted=platform in result.answers)
+        await _select(result, select)
+        return result
+
+    async def _global_request(
+        self, content: Any, providers: dict[str, str], result: GlobalResult, deadline: float
+    ) -> GlobalResult:
+        """Send ``content`` to every provider; ``result`` with the answers until ``deadline``."""
         # A reading action goes as query-ref: each provider answers it in its agent's receive
         # loop, not in a task of its own per request as an action (which may wait) needs.
         if isinstance(content, dict) and content.get("action") in _READS:
@@ -1449,7 +1526,6 @@ class FederationAgent(Agent):
                     content_text = m.content if isinstance(m.content, str) else str(m.content)
                     result.refused[platform] = f"{m.performative}: {content_text}"
         result.no_answer = [p for p in providers if p in pending]
-        await _select(result, select)
         return result
 
     async def _global_on_behalf(self, req: GlobalRequest, message: ACLMessage) -> Any:
