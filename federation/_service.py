@@ -381,11 +381,11 @@ class FederationAgent(Agent):
     ``max_exports_per_platform`` of them asked by one platform, keeping at most
     ``max_history_per_platform`` samples of history for it. ``sharing`` says who may
     query or stream which label (default: every member, every label). ``imports`` records
-    the streams this platform agreed to receive: those it asks for itself, and those
-    ``consent(requester, provider, labels)`` accepts when another platform asks a provider
-    to stream here (without ``consent``: none). ``join=False`` leaves the platform out of
-    the federation until `join`. Refusals by rule or limit are counted in ``refusals``
-    (by code) and audited.
+    the streams this platform agreed to receive: those it asks for itself (withdrawn
+    when the request fails), and those ``consent(requester, provider, labels)`` accepts
+    when another platform asks a provider to stream here (without ``consent``: none).
+    ``join=False`` leaves the platform out of the federation until `join`. Refusals by
+    rule or limit are counted in ``refusals`` (by code) and audited.
     """
 
     def __init__(
@@ -778,10 +778,15 @@ class FederationAgent(Agent):
             await self._confirm_with(req.requester, provider, labels)
         imports = self.imports
         if imports is not None:
+            new: list[str] = []  # refused after all: what this request agreed is withdrawn
             for semantic in labels:
                 try:
-                    imports.expect(provider, semantic)
+                    if not imports.agreed(provider, semantic):
+                        imports.expect(provider, semantic)
+                        new.append(semantic)
                 except Exception as exc:
+                    for agreed in new:
+                        self._withdraw(provider, agreed)
                     raise ContentError(_about(semantic, _reason(exc))) from exc
         log.info("%s: agreed to receive %s from %s for %s", self, labels, provider, req.requester)
         return {"accepted": labels}
@@ -1343,7 +1348,7 @@ class FederationAgent(Agent):
         request of ours still waits for it, unless one was accepted meanwhile or a
         sample of it already landed here (the imports keep a stream that flows).
         """
-        tentative, imports = self._tentative, self.imports
+        tentative = self._tentative
         for key in held:
             n = tentative.get(key)
             if n is None:
@@ -1354,11 +1359,17 @@ class FederationAgent(Agent):
                 tentative[key] = n - 1
             else:
                 del tentative[key]
-                if imports is not None:
-                    try:
-                        imports.withdraw(*key)
-                    except Exception:
-                        log.exception("%s: withdrawing %s from %s failed", self, key[1], key[0])
+                self._withdraw(*key)
+
+    def _withdraw(self, provider: str, semantic: str) -> None:
+        """Undo our agreement to receive ``provider``'s ``semantic`` (a request failed)."""
+        imports = self.imports
+        if imports is None:
+            return
+        try:
+            imports.withdraw(provider, semantic)
+        except Exception:  # a failed request's cleanup: what failed is already raised
+            log.exception("%s: withdrawing %s from %s failed", self, semantic, provider)
 
     async def cancel_stream(
         self, provider: str, export_id: str, *, timeout: float = DEFAULT_TIMEOUT

@@ -933,6 +933,37 @@ async def test_a_create_stream_that_fails_leaves_nothing_agreed(
         assert agreed() == ["car5-state"] and fed._tentative == {}
 
 
+async def test_streams_waiting_for_their_first_sample_are_bounded_per_sender(
+    demo_keys: Path,
+) -> None:
+    # what may stay agreed without a sample (accepted streams that never start, another
+    # platform's accept-streams) is bounded; a refused accept-stream keeps none of its labels
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        b.max_waiting_imports = 2
+        cars = {k: a.instance.add_source(f"cars/car{k}/state") for k in (5, 7, 9)}
+
+        def agreed() -> list[str]:
+            return sorted(r.semantic_label for r in b.importer.imports("uav-a"))
+
+        await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        # the operator's request for two more: uav-b agrees to one, then refuses, keeps none
+        with pytest.raises(Refused, match="none of them has sent a sample yet"):
+            await op.federation_agent.create_stream(
+                "uav-a", ["car7-state", "car9-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        assert agreed() == ["car5-state"]
+        await b.federation_agent.create_stream("uav-a", ["car7-state"], timeout=WAIT)
+        with pytest.raises(ValueError, match="at most 2"):  # refused here, before asking
+            await b.federation_agent.create_stream("uav-a", ["car9-state"], timeout=WAIT)
+        assert agreed() == ["car5-state", "car7-state"]
+        cars[5].push(car_state(0, 1, "uav-a"))  # its first sample frees a place
+        await b.imported("uav-a", "car5-state", timeout=WAIT)
+        await b.federation_agent.create_stream("uav-a", ["car9-state"], timeout=WAIT)
+        assert agreed() == ["car5-state", "car7-state", "car9-state"]
+
+
 async def test_a_stream_that_flows_before_the_refusal_stays_agreed(
     demo_keys: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
