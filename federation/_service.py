@@ -788,6 +788,9 @@ class FederationAgent(Agent):
                     for agreed in new:
                         self._withdraw(provider, agreed)
                     raise ContentError(_about(semantic, _reason(exc))) from exc
+            for semantic in labels:
+                # agreed for good now, even if a request of ours for it fails
+                self._tentative.pop((provider, semantic), None)
         log.info("%s: agreed to receive %s from %s for %s", self, labels, provider, req.requester)
         return {"accepted": labels}
 

@@ -932,6 +932,16 @@ async def test_a_create_stream_that_fails_leaves_nothing_agreed(
             await asking
         assert agreed() == ["car5-state"] and fed._tentative == {}
 
+        # the same stream asked twice at once: one accepted, one refused; it stays agreed
+        a.instance.add_source("cars/car9/state")
+        answers = await asyncio.gather(
+            fed.create_stream("uav-a", ["car9-state"], timeout=WAIT),
+            fed.create_stream("uav-a", ["car9-state"], timeout=WAIT),
+            return_exceptions=True,
+        )
+        assert sorted(type(x).__name__ for x in answers) == ["Refused", "str"]
+        assert agreed() == ["car5-state", "car9-state"] and fed._tentative == {}
+
 
 async def test_streams_waiting_for_their_first_sample_are_bounded_per_sender(
     demo_keys: Path,
