@@ -656,6 +656,11 @@ class _Imports(ImportProxy):
         return source
 
 
+def _waiting(rec: Import) -> bool:
+    """Whether an agreed import still waits for its first sample (none landed here)."""
+    return not rec.injected and rec.source is None
+
+
 class FederationPlatform:
     """One platform's assembly, as an async context manager: everything a member needs.
 
@@ -668,6 +673,10 @@ class FederationPlatform:
     gone (its imported streams are then ended). ``anchor`` is asked when another platform
     wants a stream of an object not known here yet (see `FederationAgent`).
     """
+
+    max_waiting_imports = 256
+    """Streams agreed from one sender that may wait for their first sample at once: what
+    accepted streams that never start, or another platform's accept-streams, can grow."""
 
     def __init__(
         self,
@@ -875,15 +884,42 @@ class FederationPlatform:
         The import proxy accepts only agreed streams; the Federation Agent agrees to what
         it asks for (and what ``sharing.accept_for`` lets others ask for here). Call this
         when an agent asks a provider for a stream other than through the Federation Agent.
-        UnknownSemanticLabel when ``semantic`` is not in the federation's vocabulary.
+        UnknownSemanticLabel when ``semantic`` is not in the federation's vocabulary;
+        ValueError when ``max_waiting_imports`` streams of ``sender`` wait already.
         """
         self.vocabulary.entry(semantic)
         label = self.config.import_label_of(sender, semantic)
         rec = self.importer.get(sender, semantic)
         if rec is not None and rec.local_label is not None:
             return rec.local_label
+        limit = self.max_waiting_imports
+        waiting = sum(1 for r in self.importer.imports(sender) if _waiting(r))
+        if waiting >= limit:
+            raise ValueError(
+                f"{waiting} streams from {sender} are agreed here and none of them has "
+                f"sent a sample yet (at most {limit}): {semantic!r} not agreed"
+            )
         self.importer.expect(sender, semantic, label)
         return label
+
+    def agreed(self, sender: str, semantic: str) -> bool:
+        """Whether this platform agreed to receive ``sender``'s stream of ``semantic``."""
+        return self.importer.get(sender, semantic) is not None
+
+    def withdraw(self, sender: str, semantic: str) -> bool:
+        """Undo `expect` for a stream that did not come: False (kept) if a sample landed here.
+
+        The Federation Agent withdraws what its create-stream expected when the provider
+        refuses, fails or does not answer; a stream whose samples arrived meanwhile (they
+        may overtake the answer) is left alone, like any agreement made otherwise.
+        """
+        rec = self.importer.get(sender, semantic)
+        if rec is None:
+            return True
+        if not _waiting(rec):
+            return False
+        self.importer.forget(sender, semantic)
+        return True
 
     def _import_translate(self, sender: str, semantic: str) -> None:
         # what this platform did not agree (`expect`) is dropped and counted: "unagreed"

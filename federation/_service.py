@@ -246,6 +246,14 @@ class ImportAgreements(Protocol):
         """Agree to receive ``sender``'s stream of ``semantic``; raises if it cannot land here."""
         ...
 
+    def agreed(self, sender: str, semantic: str, /) -> bool:
+        """Whether ``sender``'s stream of ``semantic`` is agreed here already."""
+        ...
+
+    def withdraw(self, sender: str, semantic: str, /) -> object:
+        """Undo `expect` after the request failed, unless a sample of the stream landed here."""
+        ...
+
 
 Consent = Callable[[str, str, list[str]], str | None]
 """``consent(requester, provider, labels)``: None to receive the streams, else why not."""
@@ -373,11 +381,11 @@ class FederationAgent(Agent):
     ``max_exports_per_platform`` of them asked by one platform, keeping at most
     ``max_history_per_platform`` samples of history for it. ``sharing`` says who may
     query or stream which label (default: every member, every label). ``imports`` records
-    the streams this platform agreed to receive: those it asks for itself, and those
-    ``consent(requester, provider, labels)`` accepts when another platform asks a provider
-    to stream here (without ``consent``: none). ``join=False`` leaves the platform out of
-    the federation until `join`. Refusals by rule or limit are counted in ``refusals``
-    (by code) and audited.
+    the streams this platform agreed to receive: those it asks for itself (withdrawn
+    when the request fails), and those ``consent(requester, provider, labels)`` accepts
+    when another platform asks a provider to stream here (without ``consent``: none).
+    ``join=False`` leaves the platform out of the federation until `join`. Refusals by
+    rule or limit are counted in ``refusals`` (by code) and audited.
     """
 
     def __init__(
@@ -428,6 +436,9 @@ class FederationAgent(Agent):
         self._exports: dict[str, StreamExport] = {}
         self._by_conversation: dict[tuple[str, str], str] = {}
         self._reserved = 0
+        # (provider, label) -> how many of our create-streams not yet answered expect it,
+        # agreed by nothing else: withdrawn when none of them is accepted (`_settle`)
+        self._tentative: dict[tuple[str, str], int] = {}
         # provider -> the id create_stream returned -> what was asked, the export id now
         self._durable: dict[str, dict[str, _Durable]] = {}
         self._asking: dict[str, asyncio.Lock] = {}  # one re-ask at a time per provider
@@ -767,11 +778,19 @@ class FederationAgent(Agent):
             await self._confirm_with(req.requester, provider, labels)
         imports = self.imports
         if imports is not None:
+            new: list[str] = []  # refused after all: what this request agreed is withdrawn
             for semantic in labels:
                 try:
-                    imports.expect(provider, semantic)
+                    if not imports.agreed(provider, semantic):
+                        imports.expect(provider, semantic)
+                        new.append(semantic)
                 except Exception as exc:
+                    for agreed in new:
+                        self._withdraw(provider, agreed)
                     raise ContentError(_about(semantic, _reason(exc))) from exc
+            for semantic in labels:
+                # agreed for good now, even if a request of ours for it fails
+                self._tentative.pop((provider, semantic), None)
         log.info("%s: agreed to receive %s from %s for %s", self, labels, provider, req.requester)
         return {"accepted": labels}
 
@@ -1256,7 +1275,7 @@ class FederationAgent(Agent):
             content["relative"] = True
         if history:
             content["history"] = history
-        self._expect_from(provider, content)
+        held = self._expect_from(provider, content)
         others = [
             (provider, w, s)
             for w in dict.fromkeys(content.get("to-units", []))
@@ -1266,10 +1285,13 @@ class FederationAgent(Agent):
         self._count_for_others(others, +1)  # the receivers ask us to confirm it meanwhile
         try:
             answer = await self.request_from(provider, content, timeout=timeout)
+            export_id = str(answer["id"])
         except BaseException:
+            # refused, failed, timed out, unreachable or cancelled: nothing stays agreed
             self._count_for_others(others, -1)
+            self._settle(held, accepted=False)
             raise
-        export_id = str(answer["id"])
+        self._settle(held, accepted=True)
         if others:
             self._for_others_by[(provider, export_id)] = others
         if durable:
@@ -1285,25 +1307,72 @@ class FederationAgent(Agent):
             else:
                 table.pop(key, None)
 
-    def _expect_from(self, provider: str, content: Any) -> None:
+    def _expect_from(self, provider: str, content: Any) -> list[tuple[str, str]]:
         """Agree to receive what a create-stream ``content`` asks ``provider`` to send us.
 
-        Before asking: the first batch may overtake the provider's inform. It stays agreed
-        after a cancel: the same stream asked again (a new policy) lands in the same label
-        and its subscribers go on.
+        Before asking: the first batch may overtake the provider's inform. Agreed
+        tentatively: the (provider, label) pairs returned, to `_settle` once answered.
+        Accepted, it stays agreed after a cancel: the same stream asked again (a new
+        policy) lands in the same label and its subscribers go on.
         """
         imports = self.imports
         if imports is None or provider == self.platform.name:
-            return
+            return []
         if not isinstance(content, dict) or content.get("action") != "create-stream":
-            return
+            return []
         units = content.get("to-units")
         if units is not None and self.platform.name not in units:
-            return  # for others only: they agree themselves when the provider asks them
+            return []  # for others only: they agree themselves when the provider asks them
         labels = content.get("labels", content.get("semantic-labels"))
-        for semantic in dict.fromkeys(labels if isinstance(labels, list) else []):
-            if isinstance(semantic, str):
-                imports.expect(provider, semantic)
+        tentative = self._tentative
+        held: list[tuple[str, str]] = []
+        try:
+            for semantic in dict.fromkeys(labels if isinstance(labels, list) else []):
+                if not isinstance(semantic, str):
+                    continue
+                key = (provider, semantic)
+                if key in tentative:
+                    tentative[key] += 1  # another request of ours, not answered yet
+                elif imports.agreed(provider, semantic):
+                    continue  # agreed before (accepted, consented, by the application)
+                else:
+                    imports.expect(provider, semantic)
+                    tentative[key] = 1
+                held.append(key)
+        except BaseException:
+            self._settle(held, accepted=False)  # a label that cannot land: none stays
+            raise
+        return held
+
+    def _settle(self, held: list[tuple[str, str]], *, accepted: bool) -> None:
+        """A request that expected ``held`` was answered: keep them, or withdraw them.
+
+        Accepted, they are agreed for good. Otherwise each is withdrawn once no other
+        request of ours still waits for it, unless one was accepted meanwhile or a
+        sample of it already landed here (the imports keep a stream that flows).
+        """
+        tentative = self._tentative
+        for key in held:
+            n = tentative.get(key)
+            if n is None:
+                continue  # another request for it was accepted: agreed for good
+            if accepted:
+                del tentative[key]
+            elif n > 1:
+                tentative[key] = n - 1
+            else:
+                del tentative[key]
+                self._withdraw(*key)
+
+    def _withdraw(self, provider: str, semantic: str) -> None:
+        """Undo our agreement to receive ``provider``'s ``semantic`` (a request failed)."""
+        imports = self.imports
+        if imports is None:
+            return
+        try:
+            imports.withdraw(provider, semantic)
+        except Exception:  # a failed request's cleanup: what failed is already raised
+            log.exception("%s: withdrawing %s from %s failed", self, semantic, provider)
 
     async def cancel_stream(
         self, provider: str, export_id: str, *, timeout: float = DEFAULT_TIMEOUT
@@ -1367,9 +1436,31 @@ class FederationAgent(Agent):
         result = GlobalResult(asked=list(providers))
         if not providers:
             return result
+        held: dict[str, list[tuple[str, str]]] = {}
         if isinstance(content, dict) and content.get("action") == "create-stream":
-            for platform in providers:
-                self._expect_from(platform, content)  # a global create-stream: to us, agreed
+            try:
+                for platform in providers:
+                    # a global create-stream: to us, agreed until that provider refuses
+                    held[platform] = self._expect_from(platform, content)
+            except BaseException:
+                for keys in held.values():
+                    self._settle(keys, accepted=False)
+                raise
+        try:
+            result = await self._global_request(content, providers, result, deadline)
+        except BaseException:
+            for keys in held.values():
+                self._settle(keys, accepted=False)
+            raise
+        for platform, keys in held.items():
+            self._settle(keys, accepted=platform in result.answers)
+        await _select(result, select)
+        return result
+
+    async def _global_request(
+        self, content: Any, providers: dict[str, str], result: GlobalResult, deadline: float
+    ) -> GlobalResult:
+        """Send ``content`` to every provider; ``result`` with the answers until ``deadline``."""
         # A reading action goes as query-ref: each provider answers it in its agent's receive
         # loop, not in a task of its own per request as an action (which may wait) needs.
         if isinstance(content, dict) and content.get("action") in _READS:
@@ -1449,7 +1540,6 @@ class FederationAgent(Agent):
                     content_text = m.content if isinstance(m.content, str) else str(m.content)
                     result.refused[platform] = f"{m.performative}: {content_text}"
         result.no_answer = [p for p in providers if p in pending]
-        await _select(result, select)
         return result
 
     async def _global_on_behalf(self, req: GlobalRequest, message: ACLMessage) -> Any:

@@ -45,12 +45,17 @@ from agents import (
     ACLMessage,
     Agent,
     AgentPlatform,
+    Failed,
+    Failure,
     InterfaceAgent,
     KeyPair,
     MessageTemplate,
     Performative,
+    Refused,
+    ReplyTimeout,
     ServiceDescription,
     TrustStore,
+    UnknownPlatform,
     Visibility,
     on,
     on_request,
@@ -864,6 +869,136 @@ async def test_a_global_create_stream_is_received_from_every_provider_that_agree
         label = await b.imported("uav-a", "car5-state", timeout=WAIT)
         assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
         assert not b.importer.stats()["totals"]["dropped_samples"]
+        # the provider that refused leaves nothing agreed behind
+        assert b.importer.get("operator", "car5-state") is None
+        assert b.federation_agent._tentative == {}
+
+
+async def never_answers(*args: Any) -> Any:
+    """A request handler that never answers."""
+    await asyncio.Event().wait()
+
+
+async def test_a_create_stream_that_fails_leaves_nothing_agreed(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: B agreed before asking and kept it whatever the answer, so each mistyped
+    # object stayed agreed for ever and "uav-a is gone; its streams imported here ended"
+    # named streams that never existed
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        fed = b.federation_agent
+        car5 = a.instance.add_source("cars/car5/state")
+
+        def agreed() -> list[str]:
+            return sorted(r.semantic_label for r in b.importer.imports("uav-a"))
+
+        with pytest.raises(Refused, match="car22-state"):  # uav-a has no car22
+            await fed.create_stream("uav-a", ["car22-state"], timeout=WAIT)
+        assert agreed() == []
+        with pytest.raises(Refused, match="car22-state"):  # refused as a whole
+            await fed.create_stream("uav-a", ["car5-state", "car22-state"], timeout=WAIT)
+        assert agreed() == []
+        with pytest.raises(UnknownSemanticLabel):  # refused here, before asking
+            await fed.create_stream("uav-a", ["car5-state", "wind"], timeout=WAIT)
+        assert agreed() == []
+
+        # unreachable (not in the trust file), or silent (timed out): nothing either
+        with pytest.raises(UnknownPlatform):
+            await fed.create_stream("uav-z", ["car5-state"], timeout=WAIT)
+        assert b.importer.get("uav-z", "car5-state") is None
+        monkeypatch.setattr(op.federation_agent, "_create_stream", never_answers)
+        with pytest.raises(ReplyTimeout):
+            await fed.create_stream("operator", ["car5-state"], timeout=0.2)
+        assert b.importer.get("operator", "car5-state") is None
+
+        # accepted: agreed for good; a later refusal naming it too leaves it agreed
+        await fed.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        with pytest.raises(Refused, match="cancel it first"):
+            await fed.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        assert agreed() == ["car5-state"] and fed._tentative == {}
+        car5.push(car_state(0, 1, "uav-a"))
+        label = await b.imported("uav-a", "car5-state", timeout=WAIT)
+        assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
+
+        # cancelled while asking: agreed meanwhile (a batch may overtake the answer), then not
+        a.instance.add_source("cars/car7/state")
+        asking = asyncio.create_task(fed.create_stream("uav-a", ["car7-state"], timeout=WAIT))
+        async with asyncio.timeout(WAIT):
+            while agreed() != ["car5-state", "car7-state"]:  # noqa: ASYNC110
+                await asyncio.sleep(0)
+        asking.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await asking
+        assert agreed() == ["car5-state"] and fed._tentative == {}
+
+        # the same stream asked twice at once: one accepted, one refused; it stays agreed
+        a.instance.add_source("cars/car9/state")
+        answers = await asyncio.gather(
+            fed.create_stream("uav-a", ["car9-state"], timeout=WAIT),
+            fed.create_stream("uav-a", ["car9-state"], timeout=WAIT),
+            return_exceptions=True,
+        )
+        assert sorted(type(x).__name__ for x in answers) == ["Refused", "str"]
+        assert agreed() == ["car5-state", "car9-state"] and fed._tentative == {}
+
+
+async def test_streams_waiting_for_their_first_sample_are_bounded_per_sender(
+    demo_keys: Path,
+) -> None:
+    # what may stay agreed without a sample (accepted streams that never start, another
+    # platform's accept-streams) is bounded; a refused accept-stream keeps none of its labels
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        b.max_waiting_imports = 2
+        cars = {k: a.instance.add_source(f"cars/car{k}/state") for k in (5, 7, 9)}
+
+        def agreed() -> list[str]:
+            return sorted(r.semantic_label for r in b.importer.imports("uav-a"))
+
+        await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        # the operator's request for two more: uav-b agrees to one, then refuses, keeps none
+        with pytest.raises(Refused, match="none of them has sent a sample yet"):
+            await op.federation_agent.create_stream(
+                "uav-a", ["car7-state", "car9-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        assert agreed() == ["car5-state"]
+        await b.federation_agent.create_stream("uav-a", ["car7-state"], timeout=WAIT)
+        with pytest.raises(ValueError, match="at most 2"):  # refused here, before asking
+            await b.federation_agent.create_stream("uav-a", ["car9-state"], timeout=WAIT)
+        assert agreed() == ["car5-state", "car7-state"]
+        cars[5].push(car_state(0, 1, "uav-a"))  # its first sample frees a place
+        await b.imported("uav-a", "car5-state", timeout=WAIT)
+        await b.federation_agent.create_stream("uav-a", ["car9-state"], timeout=WAIT)
+        assert agreed() == ["car5-state", "car7-state", "car9-state"]
+
+
+async def test_a_stream_that_flows_before_the_refusal_stays_agreed(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # the race: the provider's batches overtake its answer, then the answer is a failure;
+    # what already landed here is a stream with subscribers, left alone
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        car5 = a.instance.add_source("cars/car5/state")
+        car7 = a.instance.add_source("cars/car7/state")
+
+        async def streams_then_fails(req: Any, message: ACLMessage) -> Any:
+            a.exporter.start_exporting("cars/car5/state", "car5-state", "uav-b")
+            car5.push(car_state(0, 1, "uav-a"))
+            await b.imported("uav-a", "car5-state", timeout=WAIT)
+            raise Failure("the exporter failed")
+
+        monkeypatch.setattr(a.federation_agent, "_create_stream", streams_then_fails)
+        with pytest.raises(Failed, match="the exporter failed"):
+            await b.federation_agent.create_stream(
+                "uav-a", ["car5-state", "car7-state"], timeout=WAIT
+            )
+        assert [r.semantic_label for r in b.importer.imports("uav-a")] == ["car5-state"]
+        car7.push(car_state(0, 1, "uav-a"))
+        label = b.import_label("uav-a", "car5-state")
+        assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
 
 
 async def test_samples_dropped_before_sending_are_not_counted_again_as_lost_in_transit() -> None:
