@@ -592,23 +592,25 @@ async def test_a_command_sends_nothing_to_a_node_of_another_key(
 
     path.parent.mkdir(parents=True, exist_ok=True)  # a long tmp_path: hashed into <tmp>
     server = await asyncio.start_unix_server(impostor, path=str(path))
-    async with asyncio.timeout(50), server:
-        with pytest.raises(ForeignNodeError, match="another deployment, so nothing was sent"):
-            async for _ in via_node(a, {"op": "platforms"}):
-                pass
-        command = await asyncio.create_subprocess_exec(
-            *(sys.executable, "-m", "federation.cli", "platforms", "--config", str(config_a)),
-            stdout=asyncio.subprocess.PIPE,
-            stderr=asyncio.subprocess.PIPE,
-            cwd=ROOT,
-        )
-        _, err = await command.communicate()
-        assert command.returncode == 2, err
-        assert b"dyknow: the node on " in err and b"nothing was sent to it" in err
-        assert b"Traceback" not in err
-        while len(received) < 2:  # noqa: ASYNC110 (the server's task has no event to await)
-            await asyncio.sleep(0.01)
-    path.unlink()
+    try:
+        async with asyncio.timeout(50), server:
+            with pytest.raises(ForeignNodeError, match="another deployment, so nothing was sent"):
+                async for _ in via_node(a, {"op": "platforms"}):
+                    pass
+            command = await asyncio.create_subprocess_exec(
+                *(sys.executable, "-m", "federation.cli", "platforms", "--config", str(config_a)),
+                stdout=asyncio.subprocess.PIPE,
+                stderr=asyncio.subprocess.PIPE,
+                cwd=ROOT,
+            )
+            _, err = await command.communicate()
+            assert command.returncode == 2, err
+            assert b"dyknow: the node on " in err and b"nothing was sent to it" in err
+            assert b"Traceback" not in err
+            while len(received) < 2:  # noqa: ASYNC110 (the server's task has no event to await)
+                await asyncio.sleep(0.01)
+    finally:
+        path.unlink()  # a server closed leaves its socket (shared <tmp> when hashed)
     assert received == [b"", b""]
 
 
