@@ -349,10 +349,10 @@ def router(
 # -- one-shot queries ---------------------------------------------------------------------------
 
 
-def _alive_error() -> type[Exception]:
-    from ._local import PlatformAliveError
+def _alive_error() -> tuple[type[Exception], ...]:
+    from ._local import ForeignNodeError, PlatformAliveError
 
-    return PlatformAliveError
+    return PlatformAliveError, ForeignNodeError
 
 
 def _relayed_error() -> type[Exception]:

@@ -15,7 +15,15 @@ sessions, so:
   user), so the channel gives nothing the key would not. Without a running node the
   commands act as the platform themselves, as before.
 
-The channel's protocol: the client sends one JSON object on a line (``op``: ``platforms``,
+The channel belongs to the platform's identity, its key, not only to its names: the
+socket's name carries the public key's fingerprint, and the node states its key first
+on every connection, so a command with the config of another deployment that uses the
+same federation and platform names (other keys) never reaches this node.
+
+The channel's protocol: to a client of its own OS user the node first sends ``{"node":
+{"platform": name, "federation": federation, "ed25519": its public key, base64}}`` on a
+line (to another user's, once its request line came, only the refusal); the client, once
+it sees that key is its config's, sends one JSON object on a line (``op``: ``platforms``,
 ``request`` or ``stream``, with their arguments); the node answers with JSON lines:
 ``{"ok": result}``, or ``{"sample": [label, value, valid, available]}`` lines then
 ``{"end": n}``, or ``{"error": "message"}``. See docs/application.md.
@@ -24,6 +32,7 @@ The channel's protocol: the client sends one JSON object on a line (``op``: ``pl
 from __future__ import annotations
 
 import asyncio
+import base64
 import contextlib
 import hashlib
 import json
@@ -38,7 +47,16 @@ from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from agents import KeyPair, Pending, TokenBucket, TransportError, TrustStore, runs_signed, wire_key
+from agents import (
+    KeyPair,
+    Pending,
+    SecurityError,
+    TokenBucket,
+    TransportError,
+    TrustStore,
+    runs_signed,
+    wire_key,
+)
 
 from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
 from ._cli_time import seconds, when
@@ -50,6 +68,7 @@ if TYPE_CHECKING:
     from ._platform import FederationPlatform
 
 __all__ = [
+    "ForeignNodeError",
     "LocalChannel",
     "NodeUnreachable",
     "PlatformAliveError",
@@ -63,6 +82,7 @@ log = logging.getLogger(__name__)
 _SUN_PATH = 100  # bytes of a Unix socket's path, with a margin (108 on Linux, 104 on BSDs)
 _LINE = 1 << 20  # longest request line accepted (1 MiB)
 _REFUSE_WAIT = 5.0  # s a refused client has to send its request before the refusal
+_HELLO_WAIT = 10.0  # s a node has to state its key once a command connected
 ALIVE_WAIT = 1.0
 """Seconds one ask for a platform's token may take (zenoh returns once every peer answered)."""
 IDENTITY_RATE = 10.0
@@ -159,21 +179,50 @@ def _where(info: dict[str, Any]) -> str:
 # -- the local channel -----------------------------------------------------------------------
 
 
-def channel_path(config: PlatformConfig) -> Path:
-    """Where the node of ``config`` listens: ``$XDG_RUNTIME_DIR/dyknow/<federation>/<name>.sock``.
+def channel_path(config: PlatformConfig, keys: KeyPair | None = None) -> Path:
+    """Where the node of ``config`` listens: ``…/dyknow/<federation>/<name>-<fingerprint>.sock``.
 
-    Without ``XDG_RUNTIME_DIR``, ``<tmp>/dyknow-<uid>/…``; the directories are made 0700.
-    A path too long for a socket becomes ``<tmp>/dyknow-<uid>/<its hash>.sock``.
+    Under ``$XDG_RUNTIME_DIR``, or ``<tmp>/dyknow-<uid>/`` without it; the directories are
+    made 0700. ``<fingerprint>``: of the platform's public key (of ``keys``, or read from
+    ``config.key``; NodeUnreachable when it cannot be), so two deployments that use the same
+    names with other keys have channels of their own. A path too long for a socket becomes
+    ``<tmp>/dyknow-<uid>/<its hash>.sock``.
     """
+    if keys is None:
+        keys = _keys_of(config)
     runtime = os.environ.get("XDG_RUNTIME_DIR")
     short = Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"
     base = Path(runtime) / "dyknow" if runtime else short
-    path = base / config.federation / f"{config.name}.sock"
+    path = base / config.federation / f"{config.name}-{keys.fingerprint}.sock"
     if len(os.fsencode(path)) > _SUN_PATH:
         # a socket's path has ~107 bytes at most: a short one named by the long one's hash
+        # (the long one names the key's fingerprint, so the hash stands for it too)
         digest = hashlib.sha256(os.fsencode(path)).hexdigest()[:24]
         path = short / f"{digest}.sock"
     return path
+
+
+def _keys_of(config: PlatformConfig) -> KeyPair:
+    """The key pair of ``config``'s platform; NodeUnreachable when its key file is unusable.
+
+    Without its key a command cannot tell its node from another deployment's: it acts as the
+    platform itself, whose start then says what is wrong with the key.
+    """
+    try:
+        return KeyPair.load(config.key)
+    except (OSError, ValueError, SecurityError) as exc:
+        raise NodeUnreachable(f"the platform's key cannot be read: {exc}") from None
+
+
+def _hello(config: PlatformConfig, public_key: bytes) -> dict[str, Any]:
+    """The line a node states who it is with, first on every connection."""
+    return {
+        "node": {
+            "platform": config.name,
+            "federation": config.federation,
+            "ed25519": base64.b64encode(public_key).decode("ascii"),
+        }
+    }
 
 
 def _private_dir(path: Path) -> None:
@@ -206,7 +255,9 @@ class LocalChannel:
 
     def __init__(self, platform: FederationPlatform) -> None:
         self.platform = platform
-        self.path = channel_path(platform.config)
+        keys = platform.interface.keys
+        self.path = channel_path(platform.config, keys)
+        self._hello = json.dumps(_hello(platform.config, keys.public_key)).encode() + b"\n"
         self.started = time.time()
         self._server: asyncio.base_events.Server | None = None
         self._handle: Any = None
@@ -321,6 +372,10 @@ class LocalChannel:
                     await asyncio.wait_for(reader.readline(), _REFUSE_WAIT)
                 await send({"error": "this node serves its own user only"})
                 return
+            # who we are, before anything is asked: a command of another deployment's
+            # config (same names, other key) stops here, its request unsent
+            writer.write(self._hello)
+            await writer.drain()
             line = await reader.readline()
             try:
                 request = json.loads(line)
@@ -488,17 +543,39 @@ class NodeUnreachable(Exception):
     """No node of this config runs here (no socket, or nobody listening on it)."""
 
 
+class ForeignNodeError(RuntimeError):
+    """The node on this config's channel is not of this config's platform (another key)."""
+
+
 async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGenerator[Any, None]:
     """Send ``request`` to the running node of ``config``; its answer lines, decoded.
 
-    NodeUnreachable (before any line) when no node of this config runs on this host.
+    NodeUnreachable (before any line) when no node of this config runs on this host;
+    ForeignNodeError, the request unsent, when the node there states another key or names.
     """
-    path = channel_path(config)
+    keys = _keys_of(config)
+    path = channel_path(config, keys)
     try:
         reader, writer = await asyncio.open_unix_connection(str(path), limit=64 << 20)
     except (FileNotFoundError, ConnectionRefusedError) as exc:
         raise NodeUnreachable(str(exc)) from None
     try:
+        try:
+            first = await asyncio.wait_for(reader.readline(), _HELLO_WAIT)
+        except TimeoutError:
+            raise ForeignNodeError(
+                f"the listener on {path} did not say which platform it is in {_HELLO_WAIT:g} s: "
+                "not a node of this config; stop it, or remove the socket"
+            ) from None
+        if not first:
+            raise NodeUnreachable(f"{path}: the node closed the channel")
+        hello = json.loads(first)
+        if isinstance(hello, dict) and "error" in hello:  # refused (another OS user)
+            yield hello
+            return
+        if hello != _hello(config, keys.public_key):
+            node = hello.get("node") if isinstance(hello, dict) else None
+            raise ForeignNodeError(_foreign(path, config, keys, node))
         writer.write(json.dumps(request).encode() + b"\n")
         await writer.drain()
         while True:
@@ -510,3 +587,18 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
         writer.close()
         with contextlib.suppress(OSError):  # the node went: its socket is gone already
             await writer.wait_closed()
+
+
+def _foreign(path: Path, config: PlatformConfig, keys: KeyPair, node: Any) -> str:
+    """Why the node on ``path`` is not ``config``'s, for the command's user."""
+    ours = (
+        f"platform {config.name!r} of federation {config.federation!r} "
+        f"(key fingerprint {keys.fingerprint})"
+    )
+    if not isinstance(node, dict):
+        return f"the listener on {path} is not a node of {ours}: it did not state its key"
+    return (
+        f"the node on {path} is platform {node.get('platform')!r} of federation "
+        f"{node.get('federation')!r} with key {node.get('ed25519')!r}, not this config's "
+        f"{ours}: it runs another deployment, so nothing was sent to it"
+    )

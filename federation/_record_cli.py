@@ -180,11 +180,14 @@ async def _record_relayed(
     from dyknow_core import DyKnowInstance
 
     from ._cli_net import stream_through_node
-    from ._local import channel_path
+    from ._local import NodeUnreachable, channel_path
     from ._platform import PlatformConfig
 
     config = PlatformConfig.load(config_path)
-    if not channel_path(config).exists():
+    try:
+        if not channel_path(config).exists():
+            return None
+    except NodeUnreachable:  # the key is unusable: acting as the platform says why
         return None
     stop = _stop_event()
     async with DyKnowInstance(f"{config.name}.record") as inst:

@@ -508,6 +508,112 @@ def test_labels_ask_stream_against_a_producer(tmp_path: Path) -> None:
         _kill(producer)
 
 
+@pytest.mark.timeout(90)
+def test_a_command_reaches_the_node_of_its_own_key_only(tmp_path: Path) -> None:
+    # two deployments on one host and one user's runtime directory, with the same
+    # federation and platform names but keys and networks of their own: A runs uav-a and
+    # operator, B runs operator only. Each config's command goes through its own operator.
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "XDG_RUNTIME_DIR": str(tmp_path / "run")}
+    cmd = [sys.executable, "-m", "federation.cli"]
+    a = _write_federation(tmp_path / "a", _free_port())
+    b = _write_federation(tmp_path / "b", _free_port())
+    procs: list[subprocess.Popen[str]] = []
+
+    def start(config: Path) -> subprocess.Popen[str]:
+        node = subprocess.Popen(
+            [*cmd, "node", "--config", str(config)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            env=env,
+        )
+        procs.append(node)
+        assert node.stdout is not None
+        ready = node.stdout.readline()  # bounded by the test's timeout
+        assert " ready in federation traffic" in ready, node.stderr.read() if node.stderr else ""
+        return node
+
+    def platforms(config: Path) -> dict[str, Any]:
+        listed = subprocess.run(
+            [*cmd, "platforms", "--config", str(config), "--json", "--wait", "3"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env=env,
+            timeout=30,
+        )
+        assert listed.returncode == 0, listed.stderr
+        return dict(json.loads(listed.stdout))
+
+    def stop(node: subprocess.Popen[str]) -> str:
+        node.send_signal(signal.SIGINT)
+        out, err = node.communicate(timeout=15)
+        assert node.returncode == 0 and "Traceback" not in err, err
+        return out
+
+    try:
+        start(a["uav-a"])
+        operator_a = start(a["operator"])
+        operator_b = start(b["operator"])  # started last: its name's socket was A's
+        assert "uav-a" in platforms(a["operator"])  # A's network, through A's operator
+        assert "uav-a" not in platforms(b["operator"])  # B's network, through B's operator
+        assert "local channel: 1 commands served" in stop(operator_a)
+        assert "local channel: 1 commands served" in stop(operator_b)
+    finally:
+        for p in procs:
+            _kill(p)
+
+
+@pytest.mark.timeout(60)
+async def test_a_command_sends_nothing_to_a_node_of_another_key(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A node on the config's channel stating another key: refused, the request unsent."""
+    import asyncio
+
+    from federation import PlatformConfig
+    from federation._local import ForeignNodeError, _hello, channel_path, via_node
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "run"))
+    config_a = _write_federation(tmp_path / "a", _free_port())["operator"]
+    a = PlatformConfig.load(config_a)
+    b = PlatformConfig.load(_write_federation(tmp_path / "b", _free_port())["operator"])
+    path = channel_path(a)
+    assert path != channel_path(b) and path.parent == channel_path(b).parent  # same names
+    received: list[bytes] = []
+
+    async def impostor(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        # B's node, as if on A's channel (a hash collision, or a socket moved by hand)
+        writer.write(json.dumps(_hello(b, KeyPair.load(b.key).public_key)).encode() + b"\n")
+        await writer.drain()
+        received.append(await reader.read())
+        writer.close()
+
+    path.parent.mkdir(parents=True, exist_ok=True)  # a long tmp_path: hashed into <tmp>
+    server = await asyncio.start_unix_server(impostor, path=str(path))
+    try:
+        async with asyncio.timeout(50), server:
+            with pytest.raises(ForeignNodeError, match="another deployment, so nothing was sent"):
+                async for _ in via_node(a, {"op": "platforms"}):
+                    pass
+            command = await asyncio.create_subprocess_exec(
+                *(sys.executable, "-m", "federation.cli", "platforms", "--config", str(config_a)),
+                stdout=asyncio.subprocess.PIPE,
+                stderr=asyncio.subprocess.PIPE,
+                cwd=ROOT,
+            )
+            _, err = await command.communicate()
+            assert command.returncode == 2, err
+            assert b"dyknow: the node on " in err and b"nothing was sent to it" in err
+            assert b"Traceback" not in err
+            while len(received) < 2:  # noqa: ASYNC110 (the server's task has no event to await)
+                await asyncio.sleep(0.01)
+    finally:
+        path.unlink()  # a server closed leaves its socket (shared <tmp> when hashed)
+    assert received == [b"", b""]
+
+
 @pytest.mark.timeout(40)
 def test_console_serves_the_federation_it_sees(tmp_path: Path) -> None:
     # `dyknow console`: the operator's platform with its web console (the compose files'
@@ -598,5 +704,7 @@ async def test_commands_still_connected_end_with_the_local_channel(
                 assert {t.get_name() for t in tasks} == {"local[uav-a].command"}
             assert all(t.done() for t in tasks) and not serving()
             for reader, writer in (silent, halfway):
-                assert await reader.read() == b""  # told: the connection was closed
+                # the node said who it is first (its key), then: the connection was closed
+                assert json.loads(await reader.readline())["node"]["platform"] == "uav-a"
+                assert await reader.read() == b""
                 writer.close()
