@@ -661,6 +661,11 @@ def _waiting(rec: Import) -> bool:
     return not rec.injected and rec.source is None
 
 
+def _unstarted(rec: Import | None) -> bool:
+    """Whether an agreed import has seen no batch yet (not even a started export's empty one)."""
+    return rec is not None and rec.batches == 0
+
+
 class FederationPlatform:
     """One platform's assembly, as an async context manager: everything a member needs.
 
@@ -675,8 +680,13 @@ class FederationPlatform:
     """
 
     max_waiting_imports = 256
-    """Streams agreed from one sender that may wait for their first sample at once: what
-    accepted streams that never start, or another platform's accept-streams, can grow."""
+    """Streams from one sender agreed by consent (another platform asked for them here)
+    that may wait for their first batch at once: what other members' accept-streams can
+    grow. This platform's own requests and `expect` are not counted."""
+
+    consent_lease = 60.0
+    """Seconds a stream agreed by consent may wait for its first batch before it is
+    withdrawn (a started export sends at least an empty batch every idle second)."""
 
     def __init__(
         self,
@@ -763,6 +773,8 @@ class FederationPlatform:
         )
         self._on_import_ended = on_import_ended
         self._waiters: dict[tuple[str, str], list[asyncio.Future[str]]] = {}
+        # sender -> semantic -> the end of its consent lease: agreed by `accept`, no batch yet
+        self._leased: dict[str, dict[str, asyncio.TimerHandle]] = {}
         self._stack: contextlib.AsyncExitStack | None = None
 
     def __repr__(self) -> str:
@@ -815,6 +827,10 @@ class FederationPlatform:
         stack = self._stack
         if stack is None:
             return
+        for leases in self._leased.values():
+            for handle in leases.values():
+                handle.cancel()  # not while the import proxy closes
+        self._leased.clear()
         try:
             await stack.aclose()
         finally:
@@ -884,23 +900,68 @@ class FederationPlatform:
         The import proxy accepts only agreed streams; the Federation Agent agrees to what
         it asks for (and what ``sharing.accept_for`` lets others ask for here). Call this
         when an agent asks a provider for a stream other than through the Federation Agent.
-        UnknownSemanticLabel when ``semantic`` is not in the federation's vocabulary;
-        ValueError when ``max_waiting_imports`` streams of ``sender`` wait already.
+        It is agreed for good: a create-stream of the Federation Agent's that waits for the
+        same stream and fails no longer withdraws it, nor does a consent lease end it.
+        UnknownSemanticLabel when ``semantic`` is not in the federation's vocabulary.
         """
-        self.vocabulary.entry(semantic)
-        label = self.config.import_label_of(sender, semantic)
+        label = self._agree(sender, semantic)
+        self._unlease(sender, semantic)
+        self.federation_agent.keep_import(sender, semantic)
+        return label
+
+    def accept(self, sender: str, semantic: str) -> str:
+        """Agree to receive a stream another platform asked ``sender`` to send here.
+
+        The Federation Agent calls it when it consents to an ``accept-stream``. Unless it
+        was agreed already, the agreement lasts ``consent_lease`` seconds if no batch of
+        the stream arrives meanwhile (a stream that started stays). ValueError when
+        ``max_waiting_imports`` such agreements with ``sender`` wait already.
+        """
         rec = self.importer.get(sender, semantic)
         if rec is not None and rec.local_label is not None:
             return rec.local_label
+        leases = self._leased.get(sender, {})
         limit = self.max_waiting_imports
-        waiting = sum(1 for r in self.importer.imports(sender) if _waiting(r))
+        waiting = sum(1 for s in leases if _unstarted(self.importer.get(sender, s)))
         if waiting >= limit:
             raise ValueError(
-                f"{waiting} streams from {sender} are agreed here and none of them has "
-                f"sent a sample yet (at most {limit}): {semantic!r} not agreed"
+                f"{waiting} streams from {sender} that other platforms asked for here have "
+                f"sent nothing yet (at most {limit}): {semantic!r} not agreed"
             )
+        label = self._agree(sender, semantic)
+        handle = asyncio.get_running_loop().call_later(
+            self.consent_lease, self._lease_ended, sender, semantic
+        )
+        self._leased.setdefault(sender, {})[semantic] = handle
+        return label
+
+    def _agree(self, sender: str, semantic: str) -> str:
+        """Record in the import proxy that ``sender``'s ``semantic`` lands here."""
+        self.vocabulary.entry(semantic)
+        rec = self.importer.get(sender, semantic)
+        if rec is not None and rec.local_label is not None:
+            return rec.local_label
+        label = self.config.import_label_of(sender, semantic)
         self.importer.expect(sender, semantic, label)
         return label
+
+    def _unlease(self, sender: str, semantic: str) -> None:
+        """The stream is agreed for good, or not at all: its consent lease ends."""
+        leases = self._leased.get(sender)
+        if leases is None:
+            return
+        handle = leases.pop(semantic, None)
+        if handle is not None:
+            handle.cancel()
+        if not leases:
+            del self._leased[sender]
+
+    def _lease_ended(self, sender: str, semantic: str) -> None:
+        # a consent nobody acted on: the provider never started the export (or refused)
+        self._unlease(sender, semantic)
+        if _unstarted(self.importer.get(sender, semantic)):
+            log.info("platform %s: %r from %s never came: withdrawn", self.name, semantic, sender)
+            self.importer.forget(sender, semantic)
 
     def agreed(self, sender: str, semantic: str) -> bool:
         """Whether this platform agreed to receive ``sender``'s stream of ``semantic``."""
@@ -918,6 +979,7 @@ class FederationPlatform:
             return True
         if not _waiting(rec):
             return False
+        self._unlease(sender, semantic)
         self.importer.forget(sender, semantic)
         return True
 

@@ -246,6 +246,11 @@ class ImportAgreements(Protocol):
         """Agree to receive ``sender``'s stream of ``semantic``; raises if it cannot land here."""
         ...
 
+    def accept(self, sender: str, semantic: str, /) -> object:
+        """Agree to a stream another platform asked for here: bounded, and withdrawn if it
+        does not start within a lease; raises if it cannot land here."""
+        ...
+
     def agreed(self, sender: str, semantic: str, /) -> bool:
         """Whether ``sender``'s stream of ``semantic`` is agreed here already."""
         ...
@@ -254,6 +259,9 @@ class ImportAgreements(Protocol):
         """Undo `expect` after the request failed, unless a sample of the stream landed here."""
         ...
 
+
+_Held = tuple[str, str, bool]
+"""(provider, label, counted) a create-stream of ours expects: see `_expect_from`."""
 
 Consent = Callable[[str, str, list[str]], str | None]
 """``consent(requester, provider, labels)``: None to receive the streams, else why not."""
@@ -383,7 +391,8 @@ class FederationAgent(Agent):
     query or stream which label (default: every member, every label). ``imports`` records
     the streams this platform agreed to receive: those it asks for itself (withdrawn
     when the request fails), and those ``consent(requester, provider, labels)`` accepts
-    when another platform asks a provider to stream here (without ``consent``: none).
+    when another platform asks a provider to stream here (``imports.accept``: bounded,
+    and withdrawn if they do not start; without ``consent``: none).
     ``join=False`` leaves the platform out of the federation until `join`. Refusals by
     rule or limit are counted in ``refusals`` (by code) and audited.
     """
@@ -782,14 +791,14 @@ class FederationAgent(Agent):
             for semantic in labels:
                 try:
                     if not imports.agreed(provider, semantic):
-                        imports.expect(provider, semantic)
+                        imports.accept(provider, semantic)
                         new.append(semantic)
                 except Exception as exc:
                     for agreed in new:
                         self._withdraw(provider, agreed)
                     raise ContentError(_about(semantic, _reason(exc))) from exc
             for semantic in labels:
-                # agreed for good now, even if a request of ours for it fails
+                # consented: kept even if a request of ours for it, waiting still, fails
                 self._tentative.pop((provider, semantic), None)
         log.info("%s: agreed to receive %s from %s for %s", self, labels, provider, req.requester)
         return {"accepted": labels}
@@ -1307,13 +1316,15 @@ class FederationAgent(Agent):
             else:
                 table.pop(key, None)
 
-    def _expect_from(self, provider: str, content: Any) -> list[tuple[str, str]]:
+    def _expect_from(self, provider: str, content: Any) -> list[_Held]:
         """Agree to receive what a create-stream ``content`` asks ``provider`` to send us.
 
         Before asking: the first batch may overtake the provider's inform. Agreed
-        tentatively: the (provider, label) pairs returned, to `_settle` once answered.
-        Accepted, it stays agreed after a cancel: the same stream asked again (a new
-        policy) lands in the same label and its subscribers go on.
+        tentatively: the (provider, label, counted) entries returned, to `_settle` once
+        answered (counted: in ``_tentative`` for this request; not counted: agreed before,
+        made ours for good if the provider accepts). Accepted, it stays agreed after a
+        cancel: the same stream asked again (a new policy) lands in the same label and its
+        subscribers go on.
         """
         imports = self.imports
         if imports is None or provider == self.platform.name:
@@ -1325,7 +1336,7 @@ class FederationAgent(Agent):
             return []  # for others only: they agree themselves when the provider asks them
         labels = content.get("labels", content.get("semantic-labels"))
         tentative = self._tentative
-        held: list[tuple[str, str]] = []
+        held: list[_Held] = []
         try:
             for semantic in dict.fromkeys(labels if isinstance(labels, list) else []):
                 if not isinstance(semantic, str):
@@ -1334,17 +1345,20 @@ class FederationAgent(Agent):
                 if key in tentative:
                     tentative[key] += 1  # another request of ours, not answered yet
                 elif imports.agreed(provider, semantic):
-                    continue  # agreed before (accepted, consented, by the application)
+                    # agreed before (accepted, consented, by the application): kept as it
+                    # is if we are refused; a consent's lease ends if we are accepted
+                    held.append((provider, semantic, False))
+                    continue
                 else:
                     imports.expect(provider, semantic)
                     tentative[key] = 1
-                held.append(key)
+                held.append((provider, semantic, True))
         except BaseException:
             self._settle(held, accepted=False)  # a label that cannot land: none stays
             raise
         return held
 
-    def _settle(self, held: list[tuple[str, str]], *, accepted: bool) -> None:
+    def _settle(self, held: list[_Held], *, accepted: bool) -> None:
         """A request that expected ``held`` was answered: keep them, or withdraw them.
 
         Accepted, they are agreed for good. Otherwise each is withdrawn once no other
@@ -1352,17 +1366,35 @@ class FederationAgent(Agent):
         sample of it already landed here (the imports keep a stream that flows).
         """
         tentative = self._tentative
-        for key in held:
-            n = tentative.get(key)
-            if n is None:
-                continue  # another request for it was accepted: agreed for good
+        for provider, semantic, counted in held:
+            key = (provider, semantic)
             if accepted:
-                del tentative[key]
-            elif n > 1:
+                tentative.pop(key, None)
+                if not counted:
+                    self._keep(provider, semantic)
+                continue
+            n = tentative.get(key)
+            if not counted or n is None:
+                continue  # agreed before, or another request for it was accepted
+            if n > 1:
                 tentative[key] = n - 1
             else:
                 del tentative[key]
-                self._withdraw(*key)
+                self._withdraw(provider, semantic)
+
+    def keep_import(self, provider: str, semantic: str) -> None:
+        """``provider``'s ``semantic`` is agreed for good: a request of ours that fails keeps it."""
+        self._tentative.pop((provider, semantic), None)
+
+    def _keep(self, provider: str, semantic: str) -> None:
+        """Our request for it was accepted: agreed for good (a consent's lease ends)."""
+        imports = self.imports
+        if imports is None:
+            return
+        try:
+            imports.expect(provider, semantic)
+        except Exception:  # the provider accepted: what we asked for is not undone
+            log.exception("%s: agreeing to %s from %s failed", self, semantic, provider)
 
     def _withdraw(self, provider: str, semantic: str) -> None:
         """Undo our agreement to receive ``provider``'s ``semantic`` (a request failed)."""
@@ -1436,7 +1468,7 @@ class FederationAgent(Agent):
         result = GlobalResult(asked=list(providers))
         if not providers:
             return result
-        held: dict[str, list[tuple[str, str]]] = {}
+        held: dict[str, list[_Held]] = {}
         if isinstance(content, dict) and content.get("action") == "create-stream":
             try:
                 for platform in providers:

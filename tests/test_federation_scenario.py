@@ -943,35 +943,86 @@ async def test_a_create_stream_that_fails_leaves_nothing_agreed(
         assert agreed() == ["car5-state", "car9-state"] and fed._tentative == {}
 
 
-async def test_streams_waiting_for_their_first_sample_are_bounded_per_sender(
+async def test_consented_streams_that_never_start_are_bounded_and_expire(
     demo_keys: Path,
 ) -> None:
-    # what may stay agreed without a sample (accepted streams that never start, another
-    # platform's accept-streams) is bounded; a refused accept-stream keeps none of its labels
+    # regression: the operator asked uav-a for streams to uav-b that uav-a maps but has no
+    # stream for; uav-b consented, uav-a refused, and the agreements stayed for good until
+    # they filled max_waiting_imports and uav-b's own create-stream from uav-a was refused
     consent = {"sharing": {"accept_for": ["operator"]}}
     async with memory_federation(demo_keys, **consent) as (ps, _):
         a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
         b.max_waiting_imports = 2
-        cars = {k: a.instance.add_source(f"cars/car{k}/state") for k in (5, 7, 9)}
+        b.consent_lease = 2.0  # long enough for the checks before it ends
+        car5 = a.instance.add_source("cars/car5/state")
+        car7 = a.instance.add_source("cars/car7/state")
 
         def agreed() -> list[str]:
             return sorted(r.semantic_label for r in b.importer.imports("uav-a"))
 
-        await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
-        # the operator's request for two more: uav-b agrees to one, then refuses, keeps none
-        with pytest.raises(Refused, match="none of them has sent a sample yet"):
+        with pytest.raises(Refused, match="no stream for it here"):  # uav-b consented
             await op.federation_agent.create_stream(
-                "uav-a", ["car7-state", "car9-state"], to_units=["uav-b"], timeout=WAIT
+                "uav-a", ["car11-state", "car13-state"], to_units=["uav-b"], timeout=WAIT
             )
-        assert agreed() == ["car5-state"]
-        await b.federation_agent.create_stream("uav-a", ["car7-state"], timeout=WAIT)
-        with pytest.raises(ValueError, match="at most 2"):  # refused here, before asking
-            await b.federation_agent.create_stream("uav-a", ["car9-state"], timeout=WAIT)
-        assert agreed() == ["car5-state", "car7-state"]
-        cars[5].push(car_state(0, 1, "uav-a"))  # its first sample frees a place
+        assert agreed() == ["car11-state", "car13-state"]
+        # more are refused by uav-b, which keeps none of their labels
+        with pytest.raises(Refused, match=r"sent nothing yet \(at most 2\)"):
+            await op.federation_agent.create_stream(
+                "uav-a", ["car15-state", "car17-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        assert agreed() == ["car11-state", "car13-state"]
+
+        # uav-b's own requests are not denied by what others made it agree
+        await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        b.expect("uav-a", "car19-state")
+        car5.push(car_state(0, 1, "uav-a"))
         await b.imported("uav-a", "car5-state", timeout=WAIT)
-        await b.federation_agent.create_stream("uav-a", ["car9-state"], timeout=WAIT)
-        assert agreed() == ["car5-state", "car7-state", "car9-state"]
+        # asking for a consented one ourselves: accepted, it is ours for good; refused, it
+        # stays as it was (its lease goes on)
+        a.instance.add_source("cars/car13/state")
+        await b.federation_agent.create_stream("uav-a", ["car13-state"], timeout=WAIT)
+        assert list(b._leased["uav-a"]) == ["car11-state"]
+        with pytest.raises(Refused, match="no stream for it here"):
+            await b.federation_agent.create_stream("uav-a", ["car11-state"], timeout=WAIT)
+        assert "car11-state" in agreed()
+
+        # the consents nobody acted on end with their lease, freeing their places
+        async with asyncio.timeout(WAIT):
+            while "car11-state" in agreed():  # noqa: ASYNC110
+                await asyncio.sleep(0.05)
+        assert agreed() == ["car13-state", "car19-state", "car5-state"]
+        # a consented stream that starts stays after its lease
+        await op.federation_agent.create_stream(
+            "uav-a", ["car7-state"], to_units=["uav-b"], timeout=WAIT
+        )
+        car7.push(car_state(0, 1, "uav-a"))
+        label = await b.imported("uav-a", "car7-state", timeout=WAIT)
+        await asyncio.sleep(b.consent_lease + 0.2)
+        assert agreed() == ["car13-state", "car19-state", "car5-state", "car7-state"]
+        assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
+        assert b._leased == {}
+
+
+async def test_the_application_agreeing_while_our_request_waits_keeps_it(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: `expect` found the pair agreed (tentatively, by our create-stream still
+    # waiting) and left it tentative, so the request's failure withdrew the application's
+    # agreement too
+    async with memory_federation(demo_keys) as (ps, _):
+        b, op = ps["uav-b"], ps["operator"]
+        monkeypatch.setattr(op.federation_agent, "_create_stream", never_answers)
+        asking = asyncio.create_task(
+            b.federation_agent.create_stream("operator", ["car5-state"], timeout=0.5)
+        )
+        async with asyncio.timeout(WAIT):
+            while not b.agreed("operator", "car5-state"):  # noqa: ASYNC110
+                await asyncio.sleep(0)
+        b.expect("operator", "car5-state")
+        with pytest.raises(ReplyTimeout):
+            await asking
+        assert b.agreed("operator", "car5-state")
+        assert b.federation_agent._tentative == {}
 
 
 async def test_a_stream_that_flows_before_the_refusal_stays_agreed(
