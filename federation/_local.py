@@ -162,13 +162,29 @@ async def _node_here(path: Path) -> int | None:
     return int(pid)
 
 
+def _since(pid: int) -> float | None:
+    """When process ``pid`` of this host started (POSIX s); None where /proc does not say."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        ticks = int(stat.rsplit(")", 1)[1].split()[19])  # starttime: clock ticks after boot
+        boot = next(
+            int(line.split()[1])
+            for line in Path("/proc/stat").read_text().splitlines()
+            if line.startswith("btime ")
+        )
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
 async def _alive_error(
     transport: Transport, config: PlatformConfig, here: int | None, command: bool
 ) -> PlatformAliveError:
     """The refusal: where the running one is (``here``: its pid, when it runs on this host)."""
     where = "where and since when unknown (it did not say)"
     if here is not None:
-        where = _where({"pid": here or "unknown", "host": socket.gethostname()})
+        local = {"pid": here or "unknown", "host": socket.gethostname(), "since": _since(here)}
+        where = _where(local)
     try:
         replies = await transport.query(identity_key(config), timeout=2.0)
         for reply in replies:

@@ -305,3 +305,43 @@ def _channel(config: object, runtime: Path) -> Path:
             del os.environ["XDG_RUNTIME_DIR"]
         else:
             os.environ["XDG_RUNTIME_DIR"] = saved
+
+
+async def test_a_channel_never_unlinks_a_socket_a_node_listens_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only a socket nobody listens on is a dead node's: one that answers is refused, kept."""
+    import asyncio
+    import socket
+
+    from federation import FederationPlatform
+    from federation._local import LocalChannel, PlatformAliveError, channel_path
+
+    station = Station(tmp_path)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
+    config = PlatformConfig.load(station.dir / "station-python.toml")
+    path = channel_path(config)
+    path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
+    async with asyncio.timeout(30):
+        # a node that started since refuse_duplicate looked: listening there
+        other = await asyncio.start_unix_server(lambda r, w: w.close(), path=str(path))
+        async with FederationPlatform(config, join=False) as p:
+            with pytest.raises(PlatformAliveError, match=rf"pid {os.getpid()} on host"):
+                async with LocalChannel(p):
+                    pass
+            assert path.is_socket()
+            async with asyncio.timeout(5):  # and it still answers
+                _, writer = await asyncio.open_unix_connection(str(path))
+                writer.close()
+            other.close()
+            await other.wait_closed()
+            # a dead node's socket, left behind: taken over
+            stale = socket.socket(socket.AF_UNIX)
+            path.unlink(missing_ok=True)
+            stale.bind(str(path))
+            stale.close()
+            async with LocalChannel(p) as channel:
+                _, writer = await asyncio.open_unix_connection(str(path))
+                writer.close()
+                assert channel.path == path
+            assert not path.exists()
