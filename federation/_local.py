@@ -6,7 +6,9 @@ sessions, so:
 
 * a node (``dyknow node`` / ``dyknow console``) refuses to start when its name is alive
   in the federation already (`refuse_duplicate`), before it subscribes or announces
-  anything: the running one is not touched;
+  anything: the running one is not touched. On one host a node listening on the local
+  channel below decides (no outsider can flood it); across hosts, a presence confirmed
+  by a signed directory answer;
 * a running node listens on a **local channel**, a Unix socket only its own OS user can
   open (a 0700 directory, the socket 0600, and the peer's uid checked), and the one-shot
   commands (``platforms``, ``labels``, ``ask``, ``stream``, ``record``) run with the same
@@ -34,6 +36,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import fcntl
 import hashlib
 import json
 import logging
@@ -124,6 +127,11 @@ async def refuse_duplicate(
 
     ``command``: the refused one is a one-shot command (the message says where to run it).
     """
+    # On this host first: a node listening on our own channel (a 0700 directory of ours)
+    # is this platform running, whatever the network says; nobody outside can flood that.
+    here = await _node_here(channel_path(config))
+    if here is not None:
+        raise await _alive_error(transport, config, here, command)
     # Every platform's token, not only ours: any other's in the answer shows the session
     # is routed to the federation already, so ours missing from it is known at once.
     alive = await transport.tokens(wire_key(config.federation, "alive", "*"), timeout=wait)
@@ -139,28 +147,89 @@ async def refuse_duplicate(
         if not await runs_signed(transport, keys, trust, config.name):
             log.warning(
                 "a presence of %r answers no signed directory query: not a running "
-                "platform (forged, or gone); starting",
+                "platform on this host (none listens on its local channel), and taken for "
+                "forged or gone elsewhere; starting. If it does run on another host while "
+                "its directory is flooded with queries, this start is a second process of it",
                 config.name,
             )
             return
+    raise await _alive_error(transport, config, None, command)
+
+
+async def _node_here(path: Path) -> int | None:
+    """The pid of the node listening on the local channel ``path``; None when none listens.
+
+    0 when one listens but its pid is unknown. A socket nobody listens on is a dead
+    node's (connecting is refused at once).
+    """
+    try:
+        _, writer = await asyncio.wait_for(asyncio.open_unix_connection(str(path)), 2.0)
+    except TimeoutError:
+        return 0  # a backlog full: someone listens, busy
+    except OSError:  # no socket, or a stale one (refused), or not ours to open
+        return None
+    try:
+        sock = writer.get_extra_info("socket")
+        # on a connected Unix socket, the pid of the process that listens on it
+        creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+        pid, _uid, _gid = struct.unpack("3i", creds)
+    except (OSError, AttributeError):  # no SO_PEERCRED here (not Linux)
+        pid = 0
+    finally:
+        writer.close()
+        with contextlib.suppress(OSError):
+            await writer.wait_closed()
+    return int(pid)
+
+
+def _since(pid: int) -> float | None:
+    """When process ``pid`` of this host started (POSIX s); None where /proc does not say."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        ticks = int(stat.rsplit(")", 1)[1].split()[19])  # starttime: clock ticks after boot
+        boot = next(
+            int(line.split()[1])
+            for line in Path("/proc/stat").read_text().splitlines()
+            if line.startswith("btime ")
+        )
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+async def _alive_error(
+    transport: Transport, config: PlatformConfig, here: int | None, command: bool
+) -> PlatformAliveError:
+    """The refusal: where the running one is (``here``: its pid, when it runs on this host)."""
     where = "where and since when unknown (it did not say)"
+    if here is not None:
+        local = {"pid": here or "unknown", "host": socket.gethostname(), "since": _since(here)}
+        where = _where(local)
     try:
         replies = await transport.query(identity_key(config), timeout=2.0)
         for reply in replies:
             info = json.loads(reply.payload)
-            if isinstance(info, dict) and info.get("platform") == config.name:
-                where = _where(info)
-                break
+            if not isinstance(info, dict) or info.get("platform") != config.name:
+                continue
+            # unauthenticated: on this host, only the answer of the pid listening here
+            if here and (info.get("pid") != here or info.get("host") != socket.gethostname()):
+                continue
+            where = _where(info)
+            break
     except Exception as exc:  # the error says it is alive either way, only less precisely
         log.debug("asking the running platform where it runs: %s", exc)
     who = f"platform {config.name!r} is alive in federation {config.federation!r} already"
+    if command and here is not None:  # it started since the command looked for it
+        return PlatformAliveError(
+            f"{who}: {where}. Run this command again: it goes through the running node"
+        )
     if command:
-        raise PlatformAliveError(
+        return PlatformAliveError(
             f"{who}: {where}. Acting as it from here would break its sessions: run this command on "
             "its host (it goes through the running node there), or with a config of a "
             "platform of its own"
         )
-    raise PlatformAliveError(
+    return PlatformAliveError(
         f"{who}: {where}. A platform runs in one process: stop that one first, or give this one "
         "a name of its own (the one-shot commands go through the running node)"
     )
@@ -260,6 +329,7 @@ class LocalChannel:
         self._hello = json.dumps(_hello(platform.config, keys.public_key)).encode() + b"\n"
         self.started = time.time()
         self._server: asyncio.base_events.Server | None = None
+        self._bound: tuple[int, int] | None = None  # the socket's (device, inode) once bound
         self._handle: Any = None
         self.served = 0
         self.refused = 0
@@ -313,17 +383,30 @@ class LocalChannel:
         )
         try:
             _private_dir(self.path.parent)
-            # Our name was not alive (refuse_duplicate): a socket left here is a dead node's.
-            with contextlib.suppress(FileNotFoundError):
-                self.path.unlink()
-            old = os.umask(0o177)
+            # One at a time from the check to the bind: two nodes starting at once must not
+            # both find the place free (the second would unlink the first's socket).
+            lock_path = self.path.with_name(self.path.name + ".lock")
+            lock = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o600)
             try:
-                self._server = await asyncio.start_unix_server(
-                    self._serve, path=str(self.path), limit=_LINE
-                )
+                await asyncio.to_thread(fcntl.flock, lock, fcntl.LOCK_EX)
+                here = await _node_here(self.path)
+                if here is not None:  # started since refuse_duplicate looked: never unlinked
+                    raise await _alive_error(self.platform.transport, config, here, False)
+                # nobody listens on a socket left here: a dead node's
+                with contextlib.suppress(FileNotFoundError):
+                    self.path.unlink()
+                old = os.umask(0o177)
+                try:
+                    self._server = await asyncio.start_unix_server(
+                        self._serve, path=str(self.path), limit=_LINE
+                    )
+                finally:
+                    os.umask(old)
+                os.chmod(self.path, 0o600)
+                st = self.path.stat()
+                self._bound = (st.st_dev, st.st_ino)
             finally:
-                os.umask(old)
-            os.chmod(self.path, 0o600)
+                os.close(lock)  # and the lock with it
         except BaseException:
             await self.__aexit__()  # not entered: what was set up ends here
             raise
@@ -345,8 +428,11 @@ class LocalChannel:
             _, pending = await asyncio.wait(clients, timeout=2.0)
             if pending:
                 log.warning("local channel: %d command(s) did not end in 2 s", len(pending))
+        # only the socket this channel bound: not another node's, had it never bound one
         with contextlib.suppress(FileNotFoundError):
-            self.path.unlink()
+            st = self.path.stat()
+            if self._bound == (st.st_dev, st.st_ino):
+                self.path.unlink()
         if self._handle is not None:
             with contextlib.suppress(TransportError):  # the transport may be closed already
                 self._handle.close()

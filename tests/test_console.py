@@ -792,4 +792,4 @@ async def test_a_console_stops_promptly_when_no_provider_answers(demo_keys: Path
         assert fed.console is not None
         started = asyncio.get_running_loop().time()
         await fed.console.aclose()
-        assert asyncio.get_running_loop().time() - started < 2.5
+        assert asyncio.get_running_loop().time() - started < 5.0

@@ -9,12 +9,15 @@ import re
 import signal
 import subprocess
 import sys
+import time
 import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
 from _node_example import Station, _samples
+
+from federation import PlatformConfig
 
 CLI = [sys.executable, "-m", "federation.cli"]
 
@@ -64,6 +67,89 @@ def test_a_second_node_of_a_live_name_is_refused_and_the_first_goes_on(tmp_path:
         assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
         assert node.poll() is None
     finally:
+        out, err = station.stop()
+    assert "station stopped" in out and "Traceback" not in err
+
+
+@pytest.mark.timeout(150)
+def test_a_flood_of_directory_queries_does_not_let_a_second_node_start(tmp_path: Path) -> None:
+    """An outsider emptying the running node's directory limiter does not let its twin start.
+
+    The signed directory answer that confirms a presence goes through the running node's
+    directory limiter, shared by everyone: an outsider flooding ``df/<name>`` had it
+    shed, the twin started, and it unlinked the running node's socket. On one host the
+    node listening on the local channel decides, which nobody outside can flood.
+    """
+    import threading
+
+    import zenoh
+
+    station = Station(tmp_path)
+    stop = threading.Event()
+    session = None
+    try:
+        station.start("python")
+        node = station.node
+        assert node is not None
+        config = PlatformConfig.load(station.dir / "station-python.toml")
+        sock = _channel(config, Path(station.env["XDG_RUNTIME_DIR"]))
+        assert sock.is_socket()
+        cfg = zenoh.Config()  # a plain zenoh client: no key, no trust file
+        cfg.insert_json5("mode", '"client"')
+        cfg.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{station.port}"]))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        session = zenoh.open(cfg)
+        key = f"dyknow/{station.federation}/v1/df/station"
+
+        def flood() -> None:
+            while not stop.is_set():
+                for _ in range(100):
+                    session.get(key, lambda _reply: None, timeout=1.0)
+                time.sleep(0.01)  # ~10 000 queries/s: the limiter (50/s) stays empty
+
+        flooder = threading.Thread(target=flood, daemon=True)
+        flooder.start()
+        time.sleep(1.0)
+        twin = station.dir / "twin.toml"
+        text = (station.dir / "station-python.toml").read_text()
+        twin.write_text(text.replace("listen = [", "connect = ["))
+        second = subprocess.Popen(
+            [*CLI, "node", "--config", str(twin)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        try:
+            out, err = second.communicate(timeout=60)
+        except subprocess.TimeoutExpired:  # it started: what it says when stopped
+            second.send_signal(signal.SIGINT)
+            out, err = second.communicate(timeout=20)
+        finally:
+            stop.set()
+            flooder.join(10)
+        assert second.returncode == 2, err
+        assert "platform 'station' is alive in federation" in err and "already" in err
+        assert f"pid {node.pid} on host" in err
+        assert "ready" not in out and "Traceback" not in err
+        # the first one keeps its socket, and it serves a one-shot command of its config
+        assert sock.is_socket()
+        done = subprocess.run(
+            [*CLI, "labels", "-p", "station", "--config", "station-python.toml", "--json"],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+            timeout=40,
+        )
+        assert done.returncode == 0, done.stderr
+        assert "temperature" in json.loads(done.stdout)["labels"]
+        assert node.poll() is None
+    finally:
+        stop.set()
+        if session is not None:
+            session.close()
         out, err = station.stop()
     assert "station stopped" in out and "Traceback" not in err
 
@@ -219,3 +305,43 @@ def _channel(config: object, runtime: Path) -> Path:
             del os.environ["XDG_RUNTIME_DIR"]
         else:
             os.environ["XDG_RUNTIME_DIR"] = saved
+
+
+async def test_a_channel_never_unlinks_a_socket_a_node_listens_on(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Only a socket nobody listens on is a dead node's: one that answers is refused, kept."""
+    import asyncio
+    import socket
+
+    from federation import FederationPlatform
+    from federation._local import LocalChannel, PlatformAliveError, channel_path
+
+    station = Station(tmp_path)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
+    config = PlatformConfig.load(station.dir / "station-python.toml")
+    path = channel_path(config)
+    path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
+    async with asyncio.timeout(30):
+        # a node that started since refuse_duplicate looked: listening there
+        other = await asyncio.start_unix_server(lambda r, w: w.close(), path=str(path))
+        async with FederationPlatform(config, join=False) as p:
+            with pytest.raises(PlatformAliveError, match=rf"pid {os.getpid()} on host"):
+                async with LocalChannel(p):
+                    pass
+            assert path.is_socket()
+            async with asyncio.timeout(5):  # and it still answers
+                _, writer = await asyncio.open_unix_connection(str(path))
+                writer.close()
+            other.close()
+            await other.wait_closed()
+            # a dead node's socket, left behind: taken over
+            stale = socket.socket(socket.AF_UNIX)
+            path.unlink(missing_ok=True)
+            stale.bind(str(path))
+            stale.close()
+            async with LocalChannel(p) as channel:
+                _, writer = await asyncio.open_unix_connection(str(path))
+                writer.close()
+                assert channel.path == path
+            assert not path.exists()
