@@ -129,7 +129,11 @@ async def refuse_duplicate(
     """
     # On this host first: a node listening on our own channel (a 0700 directory of ours)
     # is this platform running, whatever the network says; nobody outside can flood that.
-    here = await _node_here(channel_path(config))
+    try:
+        path = channel_path(config)
+    except NodeUnreachable:  # its key unreadable: the platform's own start says why
+        path = None
+    here = None if path is None else await _node_here(path)
     if here is not None:
         raise await _alive_error(transport, config, here, command)
     # Every platform's token, not only ours: any other's in the answer shows the session

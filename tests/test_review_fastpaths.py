@@ -11,6 +11,7 @@ import binascii
 import contextlib
 import string
 import time
+from pathlib import Path
 from typing import Any
 
 import orjson
@@ -435,7 +436,9 @@ async def test_a_second_node_of_a_name_is_refused_though_its_link_to_the_first_i
             ZenohTransport(ZenohConfig.loopback(pb, connect=[pc, proxy]))
         )
         with pytest.raises(PlatformAliveError):
-            await refuse_duplicate(b, SimpleNamespace(federation=fed, name="x"))  # type: ignore[arg-type]
+            # no key to read: no local channel to look at, only the network
+            config = SimpleNamespace(federation=fed, name="x", key=Path("no-such.key"))
+            await refuse_duplicate(b, config)  # type: ignore[arg-type]
 
 
 # -- the Gateway: reserved labels are not even named to another platform --------------------
