@@ -1798,13 +1798,13 @@ class InterfaceAgent:
     # -- the owner's view -------------------------------------------------------------------
 
     async def _publish_audit(self, host: AgentPlatform, data: bytes) -> None:
-        """Seal and publish an audit batch (and the one held back) if anyone may receive it.
+        """Seal and publish an audit batch (and those held back) if anyone may receive it.
 
         A batch no subscriber could receive costs no seal (~50 µs) and no put: it is held
         `AUDIT_HOLD` s instead (at most `_AUDIT_HELD` batches, the oldest dropped first),
         and dropped then if still nobody listens. The transport's answer may lag a
         subscriber that just came (zenoh tells the publisher a moment after the subscriber
-        declared); the batches held cover a lag of up to `AUDIT_HOLD` s.
+        declared); the batches held cover a lag of up to `AUDIT_HOLD` s less one flush.
         """
         held = self._audit_held
         now = time.monotonic()  # real time, whatever clock the budgets run on

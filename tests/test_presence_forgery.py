@@ -557,15 +557,16 @@ async def test_mqtt_restart_while_the_budget_is_spent_recovers_within_the_bound(
                 )
                 procs.append(new)
                 started = time.monotonic()
-                asked = 0
+                asked, failed = 0, []
                 while True:  # uav-a asks until answered, each request bounded
                     asked += 1
                     try:
                         got = await request(
                             asker, f"echo@{MEMBER}", asked, ontology="demo", timeout=1.0
                         )
-                    except TimeoutError:
-                        assert time.monotonic() - started < RESTART_BOUND + 5.0, asked
+                    except Exception as exc:  # the first is lost: sealed on the old session
+                        failed.append(repr(exc))
+                        assert time.monotonic() - started < RESTART_BOUND + 5.0, failed
                         continue
                     assert got == asked
                     break
@@ -586,6 +587,7 @@ async def test_mqtt_restart_while_the_budget_is_spent_recovers_within_the_bound(
                 f"{pa.stats.rehandshakes} re-handshake(s); during the restart "
                 f"{restart[0]} acted on, {restart[1]} suppressed"
             )
+            print("\n".join(failed[:3]))
             assert recovery < RESTART_BOUND
     finally:
         for proc in procs:
