@@ -102,6 +102,9 @@ PRESENCE_BURST = 4
 """Presence changes of one peer acted on at once (a restart is two: gone, then back)."""
 PRESENCE_RATE = 2.0
 """Presence changes of one peer acted on per ``rehandshake_interval`` past its burst."""
+AUDIT_HOLD = 1.0
+"""Seconds an unheard audit batch is kept for a subscriber the transport tells of late."""
+_AUDIT_HELD = 16  # unheard audit batches kept at most: memory, if ``audit_interval`` is short
 _PRESENCE_REPORT_INTERVAL = 1.0  # seconds between audit records of ignored changes
 
 _MIRROR_CHUNK = 512 * 1024
@@ -451,10 +454,10 @@ class InterfaceAgent:
         self._flush_loop: asyncio.AbstractEventLoop | None = None
         self.publish_audit = publish_audit
         self.seal_audit = seal_audit
-        # Audit batches nobody could receive are not sealed nor published, but the last one
-        # is kept for one more flush: a watcher that came meanwhile (after the transport
-        # said none) gets it then, so none of what it would have had is lost
-        self._audit_held = b""
+        # Audit batches nobody could receive are not sealed nor published, but kept for
+        # `AUDIT_HOLD` s (at most `_AUDIT_HELD` of them): a watcher that came meanwhile
+        # (the transport tells of it late) gets them with the next batch published
+        self._audit_held: deque[tuple[float, bytes]] = deque(maxlen=_AUDIT_HELD)
         self.audit_published = 0  # audit batches sealed and published, since start
         self.audit_unheard = 0  # audit batches not published: no subscriber, since start
         self.watchable = watchable
@@ -1462,9 +1465,9 @@ class InterfaceAgent:
             return
         logged.add(name)
         log.warning(
-            "interface[%s]: refused %r: not in this platform's trust file (%s); it is not "
-            "answered until its key is trusted and this platform restarted (logged once per "
-            "%.0f s)",
+            "interface[%s]: refused a platform calling itself %r (a claimed name, not "
+            "authenticated): not in this platform's trust file (%s); if it is one of yours, "
+            "trust its key and restart this platform (logged once per %.0f s)",
             self._me,
             name,
             reason[:200],
@@ -1738,7 +1741,7 @@ class InterfaceAgent:
             or self._unauth_pending
             or self._watch_shed_pending
             or self._presence_ignored
-            or self._audit_held  # published or dropped at the next tick
+            or self._audit_held  # published, or dropped once older than AUDIT_HOLD
             or (self.kx_gate is not None and self.kx_gate.pending)
             or any(sender.pending for sender in self._senders.values())
         )
@@ -1795,24 +1798,29 @@ class InterfaceAgent:
     # -- the owner's view -------------------------------------------------------------------
 
     async def _publish_audit(self, host: AgentPlatform, data: bytes) -> None:
-        """Seal and publish an audit batch (and the one held back) if anyone may receive it.
+        """Seal and publish an audit batch (and those held back) if anyone may receive it.
 
         A batch no subscriber could receive costs no seal (~50 µs) and no put: it is held
-        until the next flush instead, and dropped then if still nobody listens. The
-        transport's answer may lag a subscriber that just came (zenoh tells the publisher
-        a moment after the subscriber declared); the batch held back covers that moment.
+        `AUDIT_HOLD` s instead (at most `_AUDIT_HELD` batches, the oldest dropped first),
+        and dropped then if still nobody listens. The transport's answer may lag a
+        subscriber that just came (zenoh tells the publisher a moment after the subscriber
+        declared); the batches held cover a lag of up to `AUDIT_HOLD` s less one flush.
         """
-        held, self._audit_held = self._audit_held, b""
+        held = self._audit_held
+        now = time.monotonic()  # real time, whatever clock the budgets run on
+        while held and now - held[0][0] > AUDIT_HOLD:
+            held.popleft()
         if not data and not held:
             return
         key = host.key("audit")
         if not host.transport.has_subscribers(key):
             if data:
                 self.audit_unheard += 1
-                self._audit_held = data
+                held.append((now, data))
             return
         if held:
-            data = held + data
+            data = b"".join(batch for _, batch in held) + data
+            held.clear()
         await host.transport.publish(key, self._audit_payload(data))
         self.audit_published += 1
 

@@ -253,9 +253,10 @@ async def test_an_untrusted_sender_is_logged_once_a_while_and_garbage_summed_up(
             await raw.query(w.kx, Handshake(evil, trust).initiate("uav-b"), timeout=1)
         await until(lambda: len(records(w.pb, **{"from": "evil"})) >= 3, "three refusals")
         assert lines("'evil'") == [
-            "interface[uav-b]: refused 'evil': not in this platform's trust file (untrusted: "
-            "platform 'evil' is not in the trust file); it is not answered until its key is "
-            "trusted and this platform restarted (logged once per 30 s)"
+            "interface[uav-b]: refused a platform calling itself 'evil' (a claimed name, not "
+            "authenticated): not in this platform's trust file (untrusted: platform 'evil' is "
+            "not in the trust file); if it is one of yours, trust its key and restart this "
+            "platform (logged once per 30 s)"
         ]
 
         # a flood of made-up names: a few logged, the rest summed up in the next interval
@@ -263,7 +264,7 @@ async def test_an_untrusted_sender_is_logged_once_a_while_and_garbage_summed_up(
         for n in range(100):
             name = f"x{n}"
             agent.audit_unauthenticated(name, f"untrusted: platform {name!r} is not in", "kx")
-        assert len(lines("refused '")) == 8
+        assert len(lines("calling itself '")) == 8
         monkeypatch.setattr(interface_module, "UNTRUSTED_LOG_INTERVAL", 0.0)
         agent.audit_unauthenticated("evil", "untrusted: platform 'evil' is not in", "kx")
         (summed,) = lines("more refusal")

@@ -1450,6 +1450,43 @@ async def test_a_watcher_the_transport_tells_of_late_loses_no_audit_batch() -> N
         assert (channel.audit_unheard, channel.audit_published) == (1, 1)
 
 
+class SlowToTell(MemoryTransport):
+    """A memory transport told of a new subscriber ``lag`` seconds late (several flushes)."""
+
+    def __init__(self, hub: MemoryHub, lag: float) -> None:
+        super().__init__(hub)
+        self.lag = lag
+        self._since: float | None = None
+
+    def has_subscribers(self, key: str) -> bool:
+        """What the hub says, once it has said so for ``lag`` seconds."""
+        if not super().has_subscribers(key):
+            self._since = None
+            return False
+        if self._since is None:
+            self._since = time.monotonic()
+        return time.monotonic() - self._since >= self.lag
+
+
+async def test_a_watcher_told_of_up_to_the_audit_hold_late_gets_every_record() -> None:
+    """Batches flushed while the transport lags a watcher (under `AUDIT_HOLD`) all reach it."""
+    lag = interface_module.AUDIT_HOLD * 0.6  # more than one flush (0.25 s), less than the hold
+    async with federation("uav-a") as fed:
+        pa = await fed.start("uav-a", transport=SlowToTell(fed.hub, lag))
+        channel = ia(pa)
+        await until(lambda: channel._flush_idle, "the audit flush asleep")
+        raw = await fed.raw()
+        feed = await raw.subscribe(wire_key(FED, "audit", "uav-a"))
+        for n in range(3):  # one record per flush while the transport still says "nobody"
+            channel.audit.record(verdict="dropped", stage="test", reason=f"made once watched {n}")
+            await asyncio.sleep(channel.audit_interval)
+        got = []
+        while len(got) < 3:
+            got += await _published_records(feed, channel.keys)
+        assert [r["reason"] for r in got] == [f"made once watched {n}" for n in range(3)]
+        assert channel.audit_unheard >= 2
+
+
 # -- over zenoh --------------------------------------------------------------------------------
 
 

@@ -31,7 +31,14 @@ from agents.transports import (
     free_tcp_port,
     key_intersects,
 )
-from agents.transports._mqtt import query_topic, queryable_filters, topic_filter
+from agents.transports._base import Inbox
+from agents.transports._mqtt import (
+    _MAX_PRESENCE_KEYS,
+    _Watcher,
+    query_topic,
+    queryable_filters,
+    topic_filter,
+)
 
 T = TypeVar("T")
 
@@ -453,6 +460,20 @@ async def test_closed_queryable_no_longer_answers(net: Net) -> None:
 
 
 # --- presence --------------------------------------------------------------------------------
+
+
+async def test_mqtt_presence_watcher_remembers_a_bounded_number_of_keys() -> None:
+    """An outsider's presences under 5000 new short keys: each reported, 4096 remembered."""
+    inbox: Inbox[Presence] = Inbox(asyncio.get_running_loop())
+    watcher = _Watcher(inbox, history=False)
+    keys = [f"dyknow/f/v1/alive/x{i}" for i in range(5000)]
+    for key in keys:
+        watcher.feed(key, b'{"v":1,"alive":true}', retained=False)
+    assert inbox.received == 5000
+    assert len(watcher.known) == _MAX_PRESENCE_KEYS == 4096
+    assert list(watcher.known) == keys[-4096:]  # the oldest forgotten first
+    watcher.feed(keys[0], b'{"v":1,"alive":true}', retained=False)  # forgotten: a change again
+    assert inbox.received == 5001 and len(watcher.known) == 4096
 
 
 async def test_presence_appears_and_goes_with_history(net: Net) -> None:
