@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import os
 import threading
 import time
 from collections import deque
@@ -203,11 +204,30 @@ class AuditLog:
     to a JSON-lines file; with a platform they are published in batches on
     ``dyknow/<fed>/v1/audit/<platform>`` (one JSON record per line), so one publish
     carries many records and auditing does not double the transport's load.
+
+    The file holds at most ``max_bytes`` (whole records; one longer record alone): the
+    record that would pass it goes to a new file, the full one becomes ``<path>.1``, the
+    older ones ``<path>.2`` ... ``<path>.<backups>``, and the oldest beyond is deleted.
     """
 
+    DEFAULT_MAX_BYTES = 64 * 1024 * 1024
+    DEFAULT_BACKUPS = 4
+
     def __init__(
-        self, *, keep: int = 10_000, path: str | Path | None = None, platform: str | None = None
+        self,
+        *,
+        keep: int = 10_000,
+        path: str | Path | None = None,
+        platform: str | None = None,
+        max_bytes: int = DEFAULT_MAX_BYTES,
+        backups: int = DEFAULT_BACKUPS,
     ) -> None:
+        if max_bytes < 1:
+            raise ValueError(f"the audit file's max_bytes must be at least 1, not {max_bytes}")
+        if backups < 0:
+            raise ValueError(f"the audit file's backups must be 0 or more, not {backups}")
+        self.max_bytes = max_bytes
+        self.backups = backups
         # each entry a record (a dict), or an accepted message as a tuple (`accepted_entry`):
         # the common record of a flood, made a dict or a JSON line only when read
         self._log: deque[Any] = deque(maxlen=keep)
@@ -350,12 +370,84 @@ class AuditLog:
         data = b"".join(out)
         if self.path is not None:
             try:
-                with self.path.open("ab") as f:
-                    f.write(data)
+                self._append(self.path, data)
             except OSError as exc:
                 # a full disk must not stop the Interface Agent, nor the published audit
                 log.warning("audit file %s not written: %s", self.path, exc)
         return data
+
+    def _append(self, path: Path, data: bytes) -> None:
+        """Append the JSON lines ``data`` to ``path``, rotating it at ``max_bytes``."""
+        fresh = False  # the file was rotated just now: it takes a line whatever its length
+        while True:
+            with path.open("ab") as f:
+                size = f.tell()  # the file's end (append mode), whoever wrote or truncated it
+                room = self.max_bytes - size
+                if len(data) <= room:
+                    f.write(data)
+                    return
+                # the whole lines that fit; the rest goes to the next file
+                cut = data.rfind(b"\n", 0, max(room, 0)) + 1
+                if not cut and (fresh or not size):
+                    cut = data.find(b"\n") + 1 or len(data)  # longer than the bound: alone
+                if cut:
+                    f.write(data[:cut])
+                    data = data[cut:]
+                    if not data:
+                        return
+                # before its name changes: what is written stays written, even on power loss
+                f.flush()
+                os.fsync(f.fileno())
+            self._rotate(path)
+            fresh = True
+
+    def _rotate(self, path: Path) -> None:
+        """Move ``path`` to ``path.1`` (and each backup one up), and begin it anew.
+
+        Each step is one atomic rename, the oldest last to go (overwritten): a crash
+        between two leaves a gap in the numbers, never a record lost.
+        """
+        names = [path, *(path.with_name(f"{path.name}.{i}") for i in range(1, self.backups + 1))]
+        if self.backups == 0:
+            path.unlink(missing_ok=True)
+        for i in range(self.backups, 0, -1):
+            with contextlib.suppress(FileNotFoundError):
+                os.replace(names[i - 1], names[i])
+        previous = names[1].name if self.backups else None
+        note = f"audit file rotated at {self.max_bytes} bytes: the records before this one " + (
+            f"are in {previous}" if previous else "were deleted (no backups kept)"
+        )
+        record = {
+            "v": WIRE_VERSION,
+            "ts": time.time(),
+            "platform": self.platform,
+            "from": None,
+            "sender": None,
+            "receivers": None,
+            "performative": None,
+            "conversation_id": None,
+            "verdict": None,
+            "reason": note,
+            "stage": "audit-rotated",
+            "previous": previous,
+        }
+        with path.open("ab") as f:
+            f.write(orjson.dumps(record) + b"\n")
+        _fsync_dir(path.parent)
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make the renames in ``directory`` durable (where the system allows it)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return  # e.g. Windows opens no directory: its renames stand as they are
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def accepted_entry(ts: float, peer: str, message: ACLMessage) -> tuple[Any, ...]:
@@ -403,6 +495,9 @@ class InterfaceAgent:
     batch and stream report this platform receives, opened, sealed to the owner too;
     ``watchable=False`` turns that off.
 
+    ``audit_path``'s file is rotated at ``audit_max_bytes``, ``audit_backups`` older files
+    kept (`AuditLog`).
+
     ``rate_limit`` (default `RateLimit()`; None: no limit) bounds what each other
     platform may send here, after authentication, so one platform's flood is dropped
     before it reaches the agents' mailboxes and others are still served. ``monotonic`` is
@@ -429,6 +524,8 @@ class InterfaceAgent:
         *,
         policy: SecurityPolicy | None = None,
         audit_path: str | Path | None = None,
+        audit_max_bytes: int = AuditLog.DEFAULT_MAX_BYTES,
+        audit_backups: int = AuditLog.DEFAULT_BACKUPS,
         publish_audit: bool = True,
         seal_audit: bool = True,
         watchable: bool = True,
@@ -446,7 +543,12 @@ class InterfaceAgent:
         self.keys = keys
         self.trust = trust
         self.policy = policy or SecurityPolicy()
-        self.audit = AuditLog(path=audit_path, platform=keys.platform)
+        self.audit = AuditLog(
+            path=audit_path,
+            platform=keys.platform,
+            max_bytes=audit_max_bytes,
+            backups=audit_backups,
+        )
         self.audit.wake = self._wake_flush
         # the audit flush sleeps while it has nothing to do (`_flush_audit`); any thread wakes it
         self._flush_idle = False

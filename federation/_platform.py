@@ -95,6 +95,7 @@ from pydantic import (
 
 from agents import (
     AgentPlatform,
+    AuditLog,
     InterfaceAgent,
     KeyPair,
     KxLimit,
@@ -422,7 +423,8 @@ class PlatformConfig(BaseModel):
     ``history_limit_per_platform`` the samples of history kept for one other platform;
     ``import_label`` names the local label of an imported stream, with ``{sender}`` and
     ``{semantic}``. ``sharing`` says what is shared with whom (`SharingSettings`).
-    ``audit``, when set, is the Interface Agent's JSON-lines audit file.
+    ``audit``, when set, is the Interface Agent's JSON-lines audit file, rotated at
+    ``audit_max_bytes`` with ``audit_backups`` older files kept (`AuditLog`).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -447,6 +449,9 @@ class PlatformConfig(BaseModel):
     kx_limit: KxLimitSettings = Field(default_factory=KxLimitSettings)
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
+    # a flood must not fill the disk: the audit file's bound, and the rotated files kept
+    audit_max_bytes: int = Field(default=AuditLog.DEFAULT_MAX_BYTES, ge=4096)
+    audit_backups: int = Field(default=AuditLog.DEFAULT_BACKUPS, ge=0, le=1000)
     console: ConsoleSettings = Field(default_factory=ConsoleSettings)
     foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
 
@@ -714,6 +719,8 @@ class FederationPlatform:
             files.keys,
             files.trust,
             audit_path=config.audit,
+            audit_max_bytes=config.audit_max_bytes,
+            audit_backups=config.audit_backups,
             rate_limit=config.rate_limit.to_rate_limit(),
             policy=config.security.to_policy(),
             publish_audit=config.security.audit != "off",
