@@ -95,7 +95,15 @@ from ._protocols import (
     request,
     subscribe,
 )
-from ._security import KeyPair, SecurityPolicy, SessionTable, TrustStore, check_name, watch_request
+from ._security import (
+    KeyPair,
+    OwnerBatches,
+    SecurityPolicy,
+    SessionTable,
+    TrustStore,
+    check_name,
+    watch_request,
+)
 from .transports import MemoryHub, MemoryTransport, Transport
 
 __all__ = [
@@ -137,6 +145,7 @@ __all__ = [
     "MessageTemplate",
     "Misdirected",
     "NotUnderstood",
+    "OwnerBatches",
     "Pending",
     "Performative",
     "PlainChannel",

@@ -61,7 +61,8 @@ from ._security import (
     TrustStore,
     WatchGate,
     fingerprint,
-    seal_for_owner,
+    seal_owner_batch,
+    sign_owner_batch,
 )
 from .transports import Handle, Message, Presence, Subscription
 
@@ -486,8 +487,9 @@ class InterfaceAgent:
     refused by the rate limit; missing: ACL envelopes it sent that never arrived,
     also `missing`, and warned of in the log).
 
-    The published audit is sealed to this platform's owner (``seal_audit``; see
-    ``docs/wire.md``, "Audit records"): outsiders and other members do not read it. A
+    The published audit is signed with this platform's key and sealed to its owner
+    (``seal_audit``; see ``docs/wire.md``, "Batches for the owner"): outsiders and other
+    members do not read it, nor pass off a batch of their own as this platform's. A
     batch is sealed and published only while the transport may have a subscriber for it
     (`Transport.has_subscribers`; counted in ``audit_published`` and ``audit_unheard``). The
     owner may also ask (``dyknow watch``: a request signed with the platform's key on
@@ -571,6 +573,7 @@ class InterfaceAgent:
         self._mirror_until = -math.inf
         self._watch_handle: Handle | None = None
         self._watch_gate = WatchGate(keys, trust.federation, policy=self.policy, clock=clock)
+        self._owner_clock = clock  # the time signed into the batches for the owner
         # watch requests are screened on the transport's thread, as key exchanges are: a
         # flood of them would cost the event loop a task each (the owner asks once a lease)
         self._watch_lock = threading.Lock()
@@ -1902,10 +1905,10 @@ class InterfaceAgent:
     async def _publish_audit(self, host: AgentPlatform, data: bytes) -> None:
         """Seal and publish an audit batch (and those held back) if anyone may receive it.
 
-        A batch no subscriber could receive costs no seal (~50 µs) and no put: it is held
-        `AUDIT_HOLD` s instead (at most `_AUDIT_HELD` batches, the oldest dropped first),
-        and dropped then if still nobody listens. The transport's answer may lag a
-        subscriber that just came (zenoh tells the publisher a moment after the subscriber
+        A batch no subscriber could receive costs no signature and seal (~100 µs a KiB) and
+        no put: it is held `AUDIT_HOLD` s instead (at most `_AUDIT_HELD` batches, the oldest
+        dropped first), and dropped then if still nobody listens. The transport's answer may
+        lag a subscriber that just came (zenoh tells the publisher a moment after the subscriber
         declared); the batches held cover a lag of up to `AUDIT_HOLD` s less one flush.
         """
         held = self._audit_held
@@ -1923,14 +1926,14 @@ class InterfaceAgent:
         if held:
             data = b"".join(batch for _, batch in held) + data
             held.clear()
-        await host.transport.publish(key, self._audit_payload(data))
+        await host.transport.publish(key, self._audit_payload(key, data))
         self.audit_published += 1
 
-    def _audit_payload(self, data: bytes) -> bytes:
-        """The published audit batch: sealed to this platform's owner unless configured plain."""
+    def _audit_payload(self, key: str, data: bytes) -> bytes:
+        """The published audit batch: signed, and sealed to this platform's owner unless plain."""
         if not self.seal_audit:
-            return data
-        return seal_for_owner(self.keys.public_key, data)
+            return sign_owner_batch(self.keys, key, data, int(self._owner_clock() * 1000))
+        return seal_owner_batch(self.keys, key, data, clock=self._owner_clock)
 
     def mirror_bytes(self, peer: str, body: bytes) -> None:
         """Show the owner an opened binary envelope (a sample batch or stream report)."""
@@ -1976,7 +1979,7 @@ class InterfaceAgent:
         return orjson.dumps({"v": WIRE_VERSION, "watching": True, "lease_s": self.watch_lease})
 
     async def _flush_mirror(self, host: AgentPlatform) -> None:
-        """Publish what the owner watches, sealed to the owner; end the lease when it runs out."""
+        """Publish what the owner watches, signed and sealed to the owner; end an expired lease."""
         if self.mirroring and self._monotonic() > self._mirror_until:
             self.mirroring = False
         items = list(self._mirror)
@@ -1992,8 +1995,9 @@ class InterfaceAgent:
             data = msgpack.packb(chunk, use_bin_type=True)
             chunk, size = [], 0
             try:
+                key = host.key("watch")
                 await host.transport.publish(
-                    host.key("watch"), seal_for_owner(self.keys.public_key, data)
+                    key, seal_owner_batch(self.keys, key, data, clock=self._owner_clock)
                 )
             except TransportError as exc:
                 log.debug("interface[%s]: watch not published: %s", self._me, exc)

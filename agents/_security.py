@@ -55,6 +55,7 @@ __all__ = [
     "Clock",
     "Handshake",
     "KeyPair",
+    "OwnerBatches",
     "SecurityPolicy",
     "Session",
     "SessionTable",
@@ -66,6 +67,8 @@ __all__ = [
     "open_for_owner",
     "read_public_key",
     "seal_for_owner",
+    "seal_owner_batch",
+    "sign_owner_batch",
     "watch_request",
 ]
 
@@ -93,6 +96,8 @@ _ENV_BOX = b"dyknow-env-v1 box\x00"
 # verifies as a JSON one, so the two may keep separate counters and replay windows.
 _BIN_MAC = b"dyknow-bin-v1 mac\x00"
 _BIN_BOX = b"dyknow-bin-v1 box\x00"
+# What a platform publishes to its owner (audit, watch) is signed under a label of its own.
+_OWNER_SIG = b"dyknow-owner-v1 sig\x00"
 
 _PLAIN_FIELDS = frozenset(("v", "from", "to", "sid", "ts_ms", "n", "body", "mac"))
 _BOX_FIELDS = frozenset(("v", "from", "to", "sid", "ts_ms", "n", "box"))
@@ -1653,8 +1658,9 @@ def seal_for_owner(public_key: bytes, data: bytes) -> bytes:
 
     The Ed25519 key is converted to its X25519 form (``crypto_sign_ed25519_pk_to_curve25519``);
     only the private key's holder opens it (`KeyPair.open_sealed`). Anonymous: the box does
-    not say who sealed it, so what a platform seals for its owner is authenticated by the
-    key it was published under only (``docs/wire.md``, "Audit records").
+    not say who sealed it (anyone with the public key can), so what a platform publishes
+    for its owner is signed inside the box (`seal_owner_batch`; ``docs/wire.md``, "Batches
+    for the owner").
     """
     box: bytes = _sodium.crypto_box_seal(data, _owner_box_key(public_key))
     return box
@@ -1670,6 +1676,77 @@ def _owner_box_key(public_key: bytes) -> bytes:
 def open_for_owner(keys: KeyPair, data: bytes) -> bytes:
     """`KeyPair.open_sealed`, as a function (the counterpart of `seal_for_owner`)."""
     return keys.open_sealed(data)
+
+
+OWNER_BATCH_OVERHEAD = 72
+"""What signing adds to a batch for the owner: the signature (64 B) and ``ts_ms`` (8 B)."""
+
+
+def _owner_transcript(key: str, ts_ms: int, data: bytes) -> bytes:
+    """What a platform signs for its owner: label, the key published on, the time, the batch."""
+    return _OWNER_SIG + _lp(key) + _U64.pack(ts_ms) + data
+
+
+def sign_owner_batch(keys: KeyPair, key: str, data: bytes, ts_ms: int) -> bytes:
+    """``data`` signed by the platform for publishing on ``key``: ``sig ‖ u64(ts_ms) ‖ data``.
+
+    The signature binds the batch to the key expression it is published on (an audit
+    batch never verifies as a watch batch, nor on another platform's key) and to its time
+    (``docs/wire.md``, "Batches for the owner").
+    """
+    return keys.sign(_owner_transcript(key, ts_ms, data)) + _U64.pack(ts_ms) + data
+
+
+def seal_owner_batch(keys: KeyPair, key: str, data: bytes, *, clock: Clock = time.time) -> bytes:
+    """``data`` signed by the platform (`sign_owner_batch`), then sealed to its owner."""
+    return seal_for_owner(keys.public_key, sign_owner_batch(keys, key, data, int(clock() * 1000)))
+
+
+class OwnerBatches:
+    """The owner's side: opens the batches a platform published to it and checks they are its.
+
+    A batch is the platform's when it opens with the owner's key (sealed ones), its
+    signature verifies with ``public_key`` (the platform's key in the trust file) over the
+    key it came on, its ``ts_ms`` is within ``skew`` s of this clock, and its signature was
+    not seen before (a replay within the skew). Anything else raises an
+    AuthenticationError: an anonymous sealed box proves nothing about who sealed it.
+    """
+
+    def __init__(
+        self,
+        keys: KeyPair,
+        public_key: bytes,
+        *,
+        skew: float = _DEFAULT_POLICY.skew,
+        clock: Clock = time.time,
+    ) -> None:
+        self.keys = keys
+        self._verify = VerifyKey(public_key)
+        self._skew_ms = int(skew * 1000)
+        self._clock = clock
+        self._seen: dict[bytes, int] = {}  # signature -> ts_ms, while within the skew
+
+    def open(self, key: str, payload: bytes, *, sealed: bool = True) -> bytes:
+        """The batch ``payload`` carries on ``key``, once opened (``sealed``) and verified."""
+        signed = self.keys.open_sealed(payload) if sealed else payload
+        if len(signed) < OWNER_BATCH_OVERHEAD:
+            raise Malformed(f"a batch for the owner has at least {OWNER_BATCH_OVERHEAD} bytes")
+        sig = signed[:64]
+        (ts_ms,) = _U64.unpack_from(signed, 64)
+        data = signed[OWNER_BATCH_OVERHEAD:]
+        now_ms = int(self._clock() * 1000)
+        if abs(now_ms - ts_ms) > self._skew_ms:
+            raise Expired("batch for the owner outside the allowed clock skew")
+        try:
+            self._verify.verify(_owner_transcript(key, ts_ms, data), sig)
+        except (CryptoError, ValueError):
+            raise Forged(f"batch on {key!r} not signed by the platform's key", None) from None
+        for old in [s for s, t in self._seen.items() if now_ms - t > self._skew_ms]:
+            del self._seen[old]
+        if sig in self._seen:
+            raise Replayed(f"batch on {key!r} seen before")
+        self._seen[sig] = ts_ms
+        return data
 
 
 _WATCH = b"dyknow-watch-v1\x00"

@@ -19,8 +19,11 @@ import msgpack
 from agents import (
     AuthenticationError,
     KeyPair,
+    OwnerBatches,
     SecurityError,
     TransportError,
+    TrustStore,
+    UnknownPlatform,
     watch_request,
     wire_key,
 )
@@ -549,9 +552,10 @@ async def watch_platform(
 
     Asks the platform (a request signed with its key, renewed every ``renew`` s) to show
     its owner every ACL message, sample batch and stream report it opens; those come
-    sealed to the owner's key, as does the audit, which is shown too. Runs until SIGINT
-    or ``duration`` s; how many events were emitted. TransportError when the platform
-    does not answer within ``timeout`` s.
+    signed by the platform and sealed to the owner's key, as does the audit, which is
+    shown too; a batch whose signature does not verify is shown as unreadable, counted.
+    Runs until SIGINT or ``duration`` s; how many events were emitted. TransportError when
+    the platform does not answer within ``timeout`` s.
     """
     config = PlatformConfig.load(config_path)
     try:
@@ -559,22 +563,38 @@ async def watch_platform(
     except (OSError, ValueError, SecurityError) as exc:
         raise PlatformConfigError(config_path, "key", str(exc)) from None
     fed, me = config.federation, config.name
+    try:
+        # the key members trust as the platform's; a trust file without it leaves the
+        # owner's own public key, which its private key vouches for
+        public = TrustStore.load(config.trust).public_key(me)
+    except UnknownPlatform:
+        public = keys.public_key
+    except (OSError, ValueError, SecurityError) as exc:
+        raise PlatformConfigError(config_path, "trust", str(exc)) from None
+    batches = OwnerBatches(keys, public)
     stop = _stop_event()
     queue: asyncio.Queue[WatchEvent] = asyncio.Queue()
+    unreadable = 0
+
+    async def refuse(key: str, error: str) -> None:
+        # Anyone can seal to the owner's public key: a batch not signed by the platform
+        # (or replayed, or that does not decode) is shown as unreadable and counted,
+        # never as the platform's, and never ends the watch.
+        nonlocal unreadable
+        unreadable += 1
+        await queue.put({"kind": "unreadable", "key": key, "error": error, "count": unreadable})
+
     async with watcher_transport(config) as transport:
         watched = await transport.subscribe(wire_key(fed, "watch", me))
         audit = await transport.subscribe(wire_key(fed, "audit", me))
 
-        # Anyone on an open network can publish on these keys (and seal to the owner's
-        # public key): what does not read as the platform's own is shown as unreadable,
-        # never ends the watch.
         async def pump_watch() -> None:
             async for item in watched:
                 try:
-                    entries = msgpack.unpackb(keys.open_sealed(item.payload), raw=False)
+                    entries = msgpack.unpackb(batches.open(item.key, item.payload), raw=False)
                     events = [decode_watched(*_watched_entry(e)) for e in entries]
                 except (AuthenticationError, ValueError, TypeError) as exc:
-                    await queue.put({"kind": "unreadable", "key": item.key, "error": str(exc)})
+                    await refuse(item.key, str(exc))
                     continue
                 for event in events:
                     await queue.put(event)
@@ -584,18 +604,18 @@ async def watch_platform(
         async def pump_audit() -> None:
             async for item in audit:
                 try:
-                    data = keys.open_sealed(item.payload)
-                except AuthenticationError:
-                    if not plain:  # this platform seals its audit: a plain one is not its own
-                        await queue.put({"kind": "unreadable", "key": item.key})
-                        continue
-                    data = item.payload  # published plain ([security] audit = "plain")
-                try:
+                    try:
+                        data = batches.open(item.key, item.payload)
+                    except AuthenticationError:
+                        if not plain:  # this platform seals its audit: a plain one is not its own
+                            raise
+                        # [security] audit = "plain": signed, not sealed
+                        data = batches.open(item.key, item.payload, sealed=False)
                     records = [json.loads(line) for line in data.splitlines()]
                     if not all(isinstance(r, dict) for r in records):
                         raise ValueError("an audit record is a JSON object")
-                except (ValueError, RecursionError) as exc:
-                    await queue.put({"kind": "unreadable", "key": item.key, "error": str(exc)})
+                except (AuthenticationError, ValueError, RecursionError) as exc:
+                    await refuse(item.key, str(exc))
                     continue
                 for record in records:
                     await queue.put({"kind": "audit", "record": record})

@@ -42,7 +42,7 @@ from test_interface import (
 
 from agents import AgentPlatform, Performative, Refused, request, wire_key
 from agents import _interface as interface_module
-from agents._security import Handshake, KeyPair, Session, TrustStore
+from agents._security import Handshake, KeyPair, OwnerBatches, Session, TrustStore
 from agents.transports import Message, Subscription
 
 
@@ -116,7 +116,8 @@ async def logged(w: Watched, code: str, **match: Any) -> dict[str, Any]:
     async with asyncio.timeout(WAIT):
         while rec not in w.published:
             msg = await w.feed.get()
-            opened = ia(w.pb).keys.open_sealed(msg.payload)  # sealed to uav-b's owner
+            keys = ia(w.pb).keys  # sealed to uav-b's owner, signed with its key
+            opened = OwnerBatches(keys, keys.public_key).open(msg.key, msg.payload)
             w.published += [orjson.loads(line) for line in opened.splitlines()]
     return rec
 

@@ -37,13 +37,14 @@ from agents import ACLMessage, Performative, wire_key
 from agents._security import (
     Handshake,
     KeyPair,
+    OwnerBatches,
     SecurityPolicy,
     SessionTable,
     TrustStore,
     watch_request,
 )
 from agents.keys import gen_keys, trust_keys
-from agents.transports import ZenohConfig, ZenohTransport
+from agents.transports import Message, ZenohConfig, ZenohTransport
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
@@ -356,6 +357,11 @@ async def _attack_in_plain(tmp: Path, fed: str, seed: int, owner: KeyPair) -> li
     keys = KeyPair.load(tmp / "keys" / "uav-m.key")
     trust = TrustStore.load(tmp / "trust.json")
     records: list[dict[str, Any]] = []
+    batches = OwnerBatches(owner, owner.public_key)
+
+    def opened(item: Message) -> bytes:
+        return batches.open(item.key, item.payload)
+
     async with ZenohTransport(ZenohConfig.loopback(_free_port(), connect=[seed])) as t:
         audit = await t.subscribe(wire_key(fed, "audit", "uav-a"))
 
@@ -411,7 +417,7 @@ async def _attack_in_plain(tmp: Path, fed: str, seed: int, owner: KeyPair) -> li
             ):
                 item = await audit.get()
                 # the published audit is sealed to uav-a's owner: the test holds its key
-                for line in owner.open_sealed(item.payload).splitlines():
+                for line in opened(item).splitlines():
                     records.append(json.loads(line))
         await asyncio.sleep(1.0)  # anything more (there must be nothing) would show up here
         while True:
@@ -419,7 +425,7 @@ async def _attack_in_plain(tmp: Path, fed: str, seed: int, owner: KeyPair) -> li
                 item = await audit.get(timeout=0.1)
             except TimeoutError:
                 break
-            records += [json.loads(x) for x in owner.open_sealed(item.payload).splitlines()]
+            records += [json.loads(x) for x in opened(item).splitlines()]
         assert len(watched.inbox) == 0  # nothing shown to a watcher that did not check out
     return records
 

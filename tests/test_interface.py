@@ -47,7 +47,7 @@ from agents import (
 from agents import _interface as interface_module
 from agents._exceptions import Forged
 from agents._interface import AuditLog, InterfaceAgent, accepted_entry
-from agents._security import Handshake, KeyPair, SecurityPolicy, TrustStore
+from agents._security import Handshake, KeyPair, OwnerBatches, SecurityPolicy, TrustStore
 from agents.transports import (
     Handle,
     MemoryHub,
@@ -341,7 +341,7 @@ async def test_request_inform_both_ways_audited_and_published() -> None:
                 msg = await feed.get()
                 with pytest.raises(Forged):
                     ia(pa).keys.open_sealed(msg.payload)
-                lines = ia(pb).keys.open_sealed(msg.payload)
+                lines = _opened(ia(pb).keys, msg)
                 assert lines.endswith(b"\n")
                 seen += [orjson.loads(line) for line in lines.splitlines()]
         published = next(r for r in seen if r["performative"] == "request")
@@ -364,7 +364,7 @@ async def test_an_idle_audit_flush_sleeps_and_wakes_for_the_next_record() -> Non
             t0 = time.monotonic()
             async with asyncio.timeout(WAIT):
                 while True:
-                    lines = channel.keys.open_sealed((await feed.get()).payload)
+                    lines = _opened(channel.keys, await feed.get())
                     if any(orjson.loads(x).get("stage") == stage for x in lines.splitlines()):
                         return time.monotonic() - t0
 
@@ -395,7 +395,7 @@ async def test_accepted_messages_alone_or_batched_wake_an_asleep_audit_flush() -
             seen = 0
             async with asyncio.timeout(1.0):  # an interval (0.05 s), room for a loaded CI
                 while seen < n:
-                    lines = channel.keys.open_sealed((await feed.get()).payload).splitlines()
+                    lines = _opened(channel.keys, await feed.get()).splitlines()
                     seen += sum(
                         1
                         for x in lines
@@ -1387,20 +1387,25 @@ class LaggingTransport(MemoryTransport):
 def _count_seals(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """Count the Interface Agents' seals for the owner (audit and watch): a list of one count."""
     seals = [0]
-    real = interface_module.seal_for_owner
+    real = interface_module.seal_owner_batch
 
-    def counting(public_key: bytes, data: bytes) -> bytes:
+    def counting(keys: KeyPair, key: str, data: bytes, **kw: Any) -> bytes:
         seals[0] += 1
-        return real(public_key, data)
+        return real(keys, key, data, **kw)
 
-    monkeypatch.setattr(interface_module, "seal_for_owner", counting)
+    monkeypatch.setattr(interface_module, "seal_owner_batch", counting)
     return seals
+
+
+def _opened(keys: KeyPair, msg: Message) -> bytes:
+    """An audit batch published on ``msg.key``: opened with ``keys`` and its signature checked."""
+    return OwnerBatches(keys, keys.public_key).open(msg.key, msg.payload)
 
 
 async def _published_records(feed: Subscription[Message], keys: KeyPair) -> list[dict[str, Any]]:
     """The records of the next audit batch published on ``feed`` (sealed to ``keys``)."""
     msg = await feed.get(timeout=WAIT)
-    return [orjson.loads(x) for x in keys.open_sealed(msg.payload).splitlines()]
+    return [orjson.loads(x) for x in _opened(keys, msg).splitlines()]
 
 
 async def test_no_audit_batch_is_sealed_while_nobody_subscribes(
@@ -1534,7 +1539,7 @@ async def test_request_inform_over_zenoh_between_two_sessions() -> None:
             async with asyncio.timeout(WAIT):
                 while True:
                     msg: Message = await feed.get()
-                    opened = keys["uav-b"].open_sealed(msg.payload)
+                    opened = _opened(keys["uav-b"], msg)
                     lines = [orjson.loads(x) for x in opened.splitlines()]
                     if any(r["performative"] == "request" for r in lines):
                         break

@@ -20,7 +20,7 @@ import pytest
 import zenoh
 from _node_example import CLI, Station, _samples
 
-from agents._security import seal_for_owner
+from agents._security import KeyPair, seal_for_owner, sign_owner_batch
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -155,6 +155,92 @@ def test_an_outsider_cannot_end_or_feed_the_owners_watch(tmp_path: Path, as_json
     assert "Traceback" not in err and "Error" not in err, err
     assert "FORGED-PLAIN" not in out
     assert out.count("unreadable") >= 7, out
+
+
+def test_an_outsider_with_the_public_key_cannot_pass_a_batch_off_as_the_platforms(
+    tmp_path: Path,
+) -> None:
+    """Well-formed batches sealed to the owner by an outsider who has the public key only.
+
+    A sealed box is anonymous: before, a list of well-formed entries or audit lines sealed
+    to the platform's public key (in the trust file every member holds) showed in `dyknow
+    watch` as the platform's own. Now every batch is signed with the platform's key, over
+    the key it is published on and its time: the forgeries (unsigned, a random signature,
+    an impostor's key, a real batch replayed or moved to the other key) show as
+    ``unreadable``, counted, and the platform's own batches verify.
+    """
+    station = Station(tmp_path)
+    session = None
+    watch = None
+    fed = station.federation
+    audit_key, watch_key = f"dyknow/{fed}/v1/audit/station", f"dyknow/{fed}/v1/watch/station"
+    try:
+        station.start("python")
+        session = _outsider(station)
+        args = ["watch", "--config", "station-python.toml", "--duration", "8", "--json"]
+        watch = subprocess.Popen(
+            [*CLI, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        assert watch.stdout is not None
+        assert "watching" in watch.stdout.readline()
+        # sealed audit batches the outsider sees go by (the watch sees each one too)
+        real: list[bytes] = []
+        spy = session.declare_subscriber(audit_key, lambda s: real.append(s.payload.to_bytes()))
+        # something for the platform to show: the operator asks it, over the federation
+        station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        deadline = time.monotonic() + 10
+        while not real and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert real, "no audit batch published while the owner watches"
+        trust = json.loads((station.dir / "keys" / "trust.json").read_text())
+        owner = base64.b64decode(trust["platforms"]["station"])  # public: in the trust file
+        impostor = KeyPair.generate("station")
+        now = int(time.time() * 1000)
+        record = orjson.dumps({"v": 1, "verdict": "accepted", "from": "operator"})
+        audit = record[:-1] + b',"reason":"FORGED-AUDIT"}\n'
+        body = orjson.dumps({"performative": "inform", "content": "FORGED-WATCH"})
+        entries = msgpack.packb([["acl", "operator", time.time(), body]])
+        forged = {
+            audit_key: [
+                seal_for_owner(owner, audit),  # well-formed, unsigned (as before)
+                seal_for_owner(owner, bytes(64) + now.to_bytes(8, "big") + audit),
+                seal_for_owner(owner, sign_owner_batch(impostor, audit_key, audit, now)),
+                real[0],  # the platform's own, replayed
+            ],
+            watch_key: [
+                seal_for_owner(owner, entries),
+                seal_for_owner(owner, sign_owner_batch(impostor, watch_key, entries, now)),
+                real[0],  # an audit batch moved to the watch key
+            ],
+        }
+        for key, payloads in forged.items():
+            for payload in payloads:
+                session.put(key, payload)
+        spy.undeclare()
+        out, err = watch.communicate(timeout=40)
+    finally:
+        if watch is not None and watch.poll() is None:
+            watch.kill()
+            watch.communicate()
+        if session is not None:
+            session.close()
+        station.stop()
+    assert watch.returncode == 0, err
+    assert "Traceback" not in err, err
+    assert "FORGED" not in out
+    events = [json.loads(line) for line in out.splitlines()]
+    refused = [e for e in events if e["kind"] == "unreadable"]
+    assert len(refused) == 7, refused
+    assert [e["count"] for e in refused] == list(range(1, 8))
+    assert any("seen before" in e["error"] for e in refused), refused  # the replay
+    # the platform's own batches verify: its audit, and what reached it from the operator
+    assert any(e["kind"] == "audit" and e["record"].get("stage") == "watch" for e in events)
+    assert any(e["kind"] == "acl" and e["from"] == "operator" for e in events), events
 
 
 def _over_mqtt(station: Station, port: int) -> None:

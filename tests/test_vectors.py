@@ -239,6 +239,15 @@ def test_refusals_fail_to_verify_from_the_description(entry: dict[str, Any]) -> 
         with pytest.raises(BadSignatureError):
             verify.verify(h(KX["init"]["t1_hex"]), b64(msg["sig"]))
         return
+    if entry["kind"] == "owner-batch":
+        signed = h(entry["signed_hex"])
+        sig, ts, batch = signed[:64], int.from_bytes(signed[64:72], "big"), signed[72:]
+        public = VerifyKey(h(VECTORS["platforms"]["uav-a"]["ed25519_public_hex"]))
+        if "transcript_hex" in entry:
+            public.verify(h(entry["transcript_hex"]), sig)  # it signs the wrong bytes
+        with pytest.raises(BadSignatureError):
+            public.verify(owner_transcript(entry["key"], ts, batch), sig)
+        return
     if entry["kind"] == "binary":
         env = msgpack.unpackb(h(entry["envelope_hex"]), raw=False)
         frm, to, sid, ts, n, body, mac = env[1:]
@@ -250,6 +259,44 @@ def test_refusals_fail_to_verify_from_the_description(entry: dict[str, Any]) -> 
     right = header(f"dyknow-{kind}-v1 mac", FED, frm, to, sid, ts, n) + body
     assert hmac.digest(keys["i2r mac"], h(entry["mac_input_hex"]), "sha256") == mac
     assert hmac.digest(keys["i2r mac"], right, "sha256") != mac
+
+
+def owner_transcript(key: str, ts_ms: int, batch: bytes) -> bytes:
+    """What a platform signs for its owner (docs/wire.md, "Batches for the owner")."""
+    return b"dyknow-owner-v1 sig\x00" + lp(key) + u64(ts_ms) + batch
+
+
+@pytest.mark.parametrize("entry", VECTORS["owner_batches"], ids=lambda e: e["name"])
+def test_owner_batches_from_the_description(entry: dict[str, Any]) -> None:
+    p = VECTORS["platforms"][entry["platform"]]
+    public, seed = h(p["ed25519_public_hex"]), h(p["ed25519_seed_hex"])
+    assert entry["key"] == f"dyknow/{FED}/v1/{entry['name']}/{entry['platform']}"
+    # the owner opens the sealed box with the platform's key in its X25519 form
+    x_public = sodium.crypto_sign_ed25519_pk_to_curve25519(public)
+    x_secret = sodium.crypto_sign_ed25519_sk_to_curve25519(seed + public)
+    assert x_public.hex() == entry["owner_x25519_public_hex"]
+    payload = h(entry["payload_hex"])
+    signed = sodium.crypto_box_seal_open(payload, x_public, x_secret)
+    assert signed.hex() == entry["signed_hex"]
+    # a libsodium sealed box: ephemeral public key, then crypto_box under the BLAKE2b nonce
+    epk = sodium.crypto_scalarmult_base(h(entry["ephemeral_secret_hex"]))
+    nonce = hashlib.blake2b(epk + x_public, digest_size=24).digest()
+    assert (epk.hex(), nonce.hex()) == (entry["ephemeral_public_hex"], entry["nonce_hex"])
+    assert payload == epk + sodium.crypto_box(
+        signed, nonce, x_public, h(entry["ephemeral_secret_hex"])
+    )
+    # inside: the signature, the time, the batch; signed over label, key, time and batch
+    sig, ts, batch = signed[:64], int.from_bytes(signed[64:72], "big"), signed[72:]
+    assert (ts, batch.hex(), sig.hex()) == (entry["ts_ms"], entry["batch_hex"], entry["sig_hex"])
+    transcript = owner_transcript(entry["key"], ts, batch)
+    assert transcript.hex() == entry["transcript_hex"]
+    VerifyKey(public).verify(transcript, sig)
+    assert SigningKey(seed).sign(transcript).signature == sig  # deterministic (RFC 8032)
+    if entry["name"] == "audit":
+        assert all(json.loads(line)["v"] == 1 for line in batch.splitlines())
+    else:
+        [[kind, frm, _ts, body]] = msgpack.unpackb(batch, raw=False)
+        assert (kind, frm, json.loads(body)["performative"]) == ("acl", "uav-b", "request")
 
 
 # -- the project's code ------------------------------------------------------------------------
@@ -324,12 +371,42 @@ def test_our_code_seals_the_same_envelopes_and_opens_them() -> None:
             assert opened == (entry["from"], entry["body"].encode())
 
 
+def test_our_code_signs_and_opens_the_owner_batches() -> None:
+    from agents._exceptions import Forged, Replayed
+    from agents._security import KeyPair, OwnerBatches, sign_owner_batch
+
+    for entry in VECTORS["owner_batches"]:
+        seed = h(VECTORS["platforms"][entry["platform"]]["ed25519_seed_hex"])
+        owner = KeyPair(entry["platform"], SigningKey(seed))
+        batch, key, ts = h(entry["batch_hex"]), entry["key"], entry["ts_ms"]
+        assert sign_owner_batch(owner, key, batch, ts).hex() == entry["signed_hex"]
+        batches = OwnerBatches(owner, owner.public_key, clock=FixedClock(ts))
+        assert batches.open(key, h(entry["payload_hex"])) == batch
+        # the same batch again is a replay; on the other key it is not the platform's
+        with pytest.raises(Replayed):
+            batches.open(key, h(entry["payload_hex"]))
+        other = (
+            key.replace("/audit/", "/watch/")
+            if "/audit/" in key
+            else key.replace("/watch/", "/audit/")
+        )
+        with pytest.raises(Forged):
+            OwnerBatches(owner, owner.public_key, clock=FixedClock(ts)).open(
+                other, h(entry["payload_hex"])
+            )
+
+
 def test_our_code_refuses_the_usual_mistakes() -> None:
     from agents._exceptions import Forged
-    from agents._security import SessionTable
+    from agents._security import KeyPair, OwnerBatches, SessionTable
 
     a, b, trust, policy, clocks, hs = _ours()
+    owner = KeyPair(a, SigningKey(h(VECTORS["platforms"][a]["ed25519_seed_hex"])))
     for entry in VECTORS["must_refuse"]:
+        if entry["kind"] == "owner-batch":
+            batches = OwnerBatches(owner, owner.public_key, clock=FixedClock(entry["ts_ms"]))
+            with pytest.raises(Forged, match="not signed"):
+                batches.open(entry["key"], h(entry["signed_hex"]), sealed=False)
         if entry["kind"] == "kx-init":
             with pytest.raises(Forged, match="signature"):
                 hs[b].respond(entry["json"].encode())

@@ -36,9 +36,11 @@ from agents._security import (
     _BIN_MAC,
     _ENV_BOX,
     _ENV_MAC,
+    _OWNER_SIG,
     _U64X2,
     Handshake,
     KeyPair,
+    OwnerBatches,
     SecurityPolicy,
     Session,
     SessionTable,
@@ -48,8 +50,10 @@ from agents._security import (
     _env_head,
     _hkdf,
     _init_transcript,
+    _owner_transcript,
     _reply_part,
     _session_id,
+    sign_owner_batch,
 )
 from federation._batch import pack_batch
 
@@ -66,6 +70,9 @@ EPHEMERAL = {
 TS_INIT, TS_REPLY = 1795000000123, 1795000000125
 TS_ENVELOPES = 1795000000200  # the first envelope; each next one 1 ms later
 LABEL = "car5-state"
+TS_OWNER = 1795000000300  # the first batch for the owner; the next one 1 ms later
+# the X25519 ephemeral secret of each sealed box to the owner (random in a real one)
+OWNER_EPHEMERAL = (bytes(range(0xA0, 0xC0)), bytes(range(0xC0, 0xE0)))
 
 
 class _Clock:
@@ -218,6 +225,83 @@ def _refusals(
             "envelope_hex": msgpack.packb(arr).hex(),
         },
     ]
+
+
+def _seal(message: bytes, public_x25519: bytes, secret: bytes) -> tuple[bytes, bytes, bytes]:
+    """A libsodium sealed box with a given ephemeral secret: (its public key, nonce, box)."""
+    epk = sodium.crypto_scalarmult_base(secret)
+    nonce = hashlib.blake2b(epk + public_x25519, digest_size=24).digest()
+    return epk, nonce, epk + sodium.crypto_box(message, nonce, public_x25519, secret)
+
+
+def _owner_batches(owner: KeyPair) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """Batches ``owner``'s platform publishes to its owner, and the usual mistakes in them."""
+    public_x25519 = sodium.crypto_sign_ed25519_pk_to_curve25519(owner.public_key)
+    audit_key = f"dyknow/{FEDERATION}/v1/audit/{owner.platform}"
+    watch_key = f"dyknow/{FEDERATION}/v1/watch/{owner.platform}"
+    record = {"v": 1, "ts": 1795000000.25, "platform": owner.platform, "from": RESPONDER}
+    record |= {"sender": f"federation@{RESPONDER}", "receivers": [f"federation@{owner.platform}"]}
+    record |= {"performative": "request", "conversation_id": "c-0123abcd-1"}
+    record |= {"verdict": "accepted", "reason": None}
+    audit = json.dumps(record, separators=(",", ":")).encode() + b"\n"
+    acl = _acl(RESPONDER, owner.platform, Performative.REQUEST, {"action": "get-latest"})
+    watch = msgpack.packb([["acl", RESPONDER, 1795000000.25, acl]], use_bin_type=True)
+    entries = []
+    for i, (name, key, batch, about) in enumerate(
+        (
+            ("audit", audit_key, audit, "an audit batch of one record (JSON lines)"),
+            ("watch", watch_key, watch, "a watch batch: one ACL message uav-b sent uav-a"),
+        )
+    ):
+        ts = TS_OWNER + i
+        transcript = _owner_transcript(key, ts, batch)
+        signed = sign_owner_batch(owner, key, batch, ts)
+        epk, nonce, payload = _seal(signed, public_x25519, OWNER_EPHEMERAL[i])
+        assert owner.open_sealed(payload) == signed
+        opened = OwnerBatches(owner, owner.public_key, clock=_Clock(ts)).open(key, payload)
+        assert opened == batch, name
+        entries.append(
+            {
+                "name": name,
+                "about": about,
+                "platform": owner.platform,
+                "key": key,
+                "ts_ms": ts,
+                "batch_hex": batch.hex(),
+                "transcript_hex": transcript.hex(),
+                "sig_hex": signed[:64].hex(),
+                "signed_hex": signed.hex(),
+                "owner_x25519_public_hex": public_x25519.hex(),
+                "ephemeral_secret_hex": OWNER_EPHEMERAL[i].hex(),
+                "ephemeral_public_hex": epk.hex(),
+                "nonce_hex": nonce.hex(),
+                "payload_hex": payload.hex(),
+            }
+        )
+    watched = entries[1]
+    # the length of the key in 4 bytes, as directory statements have it, instead of 2
+    wide = _OWNER_SIG + len(audit_key).to_bytes(4, "big") + audit_key.encode()
+    wide += TS_OWNER.to_bytes(8, "big") + audit
+    refusals = [
+        {
+            "name": "owner-batch-on-another-key",
+            "about": "the watch batch (signed over its key) published on the audit key",
+            "kind": "owner-batch",
+            "key": audit_key,
+            "ts_ms": watched["ts_ms"],
+            "signed_hex": watched["signed_hex"],
+        },
+        {
+            "name": "owner-batch-key-4-byte-length",
+            "about": "the audit batch signed with the key's length in 4 bytes, not 2",
+            "kind": "owner-batch",
+            "key": audit_key,
+            "ts_ms": TS_OWNER,
+            "transcript_hex": wide.hex(),
+            "signed_hex": (owner.sign(wide) + TS_OWNER.to_bytes(8, "big") + audit).hex(),
+        },
+    ]
+    return entries, refusals
 
 
 def generate() -> dict[str, Any]:
@@ -391,6 +475,7 @@ def generate() -> dict[str, Any]:
         else:
             opened = table.open_bytes(bytes.fromhex(entry["envelope_hex"]))
             assert opened == (entry["from"], bytes.fromhex(entry["body_hex"])), entry["name"]
+    owner_batches, owner_refusals = _owner_batches(pairs[INITIATOR])
     return {
         "v": 1,
         "about": "DyKnow Federation wire test vectors; docs/test-vectors.md explains each entry",
@@ -398,7 +483,8 @@ def generate() -> dict[str, Any]:
         "platforms": platforms,
         "key_exchange": key_exchange,
         "envelopes": envelopes,
-        "must_refuse": _refusals(pairs, init, envelopes, keys),
+        "owner_batches": owner_batches,
+        "must_refuse": _refusals(pairs, init, envelopes, keys) + owner_refusals,
     }
 
 
