@@ -903,6 +903,9 @@ class InterfaceAgent:
         try:
             reply, session = self.handshake.respond(payload)
         except AuthenticationError as exc:
+            host = self._host
+            if host is not None:
+                host.stats.kx_requests_refused += 1
             self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}", stage="kx")
             return None
         self.sessions.add(session)

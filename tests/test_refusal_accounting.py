@@ -1,0 +1,287 @@
+"""Refusals an outsider causes are each counted and audited, within the audit's budget.
+
+A victim platform (``uav-v``, exporting a stream to ``uav-m``) runs in a spawned process;
+an attacker process with a plain zenoh client and no key of the federation sends it:
+
+- key-exchange requests forged under trusted names (signed with keys of its own), few
+  enough that the key-exchange gate lets every one through to the signature check;
+- junk stream reports on ``stream-report/uav-v/uav-m``, where the export proxy reads
+  its receivers' reports.
+
+The victim refuses each, counts each (``platform.stats.kx_requests_refused``,
+``exporter.reports_refused``) and audits them within the unauthenticated budget: a few
+one by one, with why, the rest summed up.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import multiprocessing
+import os
+import time
+import uuid
+from collections.abc import Iterator
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from agents import AgentPlatform, wire_key
+from agents._interface import InterfaceAgent, RateLimit
+from agents._security import Handshake, KeyPair, TrustStore
+from agents.keys import gen_keys, trust_keys
+from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+from dyknow_core import DyKnowInstance
+from federation import ExportProxy, InterfaceSessions
+
+VICTIM, MEMBER, ABSENT = "uav-v", "uav-m", "uav-q"  # trusted, neither runs but the victim
+LABEL = "car1-state"
+START = 30.0  # a spawned interpreter imports zenoh and pydantic: seconds when loaded
+WAIT = 15.0
+BUDGET = 1.0  # the victim's RateLimit.unauthenticated: audit records/s, bursts of one
+N_FORGED = 8  # per trusted name: within the gate's per-platform burst (10), 16 in all
+N_REPORTS = 300
+
+
+@pytest.fixture(autouse=True)
+def _no_leftover_children() -> Iterator[None]:
+    yield
+    for proc in multiprocessing.active_children():
+        proc.kill()
+        proc.join(timeout=5)
+
+
+def recv(conn: Connection, what: str, timeout: float = WAIT) -> Any:
+    """The next message on ``conn``; fails naming ``what`` after ``timeout`` s."""
+    if not conn.poll(timeout):
+        raise AssertionError(f"timed out waiting for {what}")
+    return conn.recv()
+
+
+# -- the victim ----------------------------------------------------------------------------------
+
+
+def victim_main(config: dict[str, Any], fed: str, keys: str, trust: str, conn: Any) -> None:
+    """The victim platform: exports ``car1-state`` to uav-m, reports its counters on request."""
+    asyncio.run(_victim(config, fed, Path(keys), Path(trust), conn))
+
+
+async def _victim(
+    config: dict[str, Any], fed: str, keys: Path, trust: Path, conn: Connection
+) -> None:
+    channel = InterfaceAgent(
+        KeyPair.load(keys / f"{VICTIM}.key"),
+        TrustStore.load(trust),
+        audit_interval=0.1,
+        rate_limit=RateLimit(unauthenticated=BUDGET, report_interval=0.5),
+    )
+    async with (
+        ZenohTransport(ZenohConfig.model_validate(config)) as t,
+        AgentPlatform(VICTIM, t, federation=fed, channel=channel) as pf,
+        DyKnowInstance(VICTIM) as dk,
+        ExportProxy(VICTIM, fed, t, dk, InterfaceSessions(channel), lease=None) as exporter,
+    ):
+        dk.add_source("x")
+        exporter.start_exporting("x", LABEL, MEMBER)  # its reports are read from now on
+        conn.send("ready")
+        while True:
+            cmd = await asyncio.to_thread(conn.recv)
+            if cmd == "stop":
+                return
+            conn.send(
+                {
+                    # read by name: a counter missing fails its test, not the other's
+                    "kx_requests_refused": getattr(pf.stats, "kx_requests_refused", None),
+                    "kx_shed": pf.stats.kx_shed,
+                    "reports_refused": exporter.reports_refused,
+                    "records": [r for r in channel.audit.records if r["verdict"] == "dropped"],
+                }
+            )
+
+
+# -- the attacker: a plain zenoh client, no key of the federation -------------------------------
+
+
+def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> None:
+    """Send each payload once to ``key`` (queries on ``kx/…``, else puts); then the count."""
+    import zenoh
+
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", f'["{endpoint}"]')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(cfg)
+    try:
+        publisher = None if "/kx/" in key else session.declare_publisher(key)
+        if publisher is not None:  # puts before the victim's subscriber is known go nowhere
+            deadline = time.monotonic() + START
+            while not publisher.matching_status.matching and time.monotonic() < deadline:
+                time.sleep(0.05)
+        conn.send("ready")
+        conn.recv()  # go
+        answers = 0
+        for payload in payloads:
+            if publisher is not None:
+                publisher.put(payload)
+                time.sleep(0.001)
+            else:
+                # one after the other, each to its end: the victim answers none of them
+                answers += sum(1 for r in session.get(key, payload=payload, timeout=5.0) if r.ok)
+        conn.send((len(payloads), answers))
+    finally:
+        session.close()
+
+
+class Federation:
+    """The victim and the attacker as spawned processes, with their pipes."""
+
+    def __init__(self, tmp_path: Path) -> None:
+        self.fed = f"refusals-{uuid.uuid4().hex[:8]}"
+        self.keydir, self.trust_file = tmp_path / "keys", tmp_path / "trust.json"
+        trust_keys(
+            self.trust_file,
+            [gen_keys(n, self.keydir)[2] for n in (VICTIM, MEMBER, ABSENT)],
+            federation=self.fed,
+        )
+        self.trust = TrustStore.load(self.trust_file)
+        self.port = free_tcp_port()
+        self.ctx = multiprocessing.get_context("spawn")
+        self.procs: list[Any] = []
+        self.pipes: list[Connection] = []
+
+    def _start(self, target: Any, args: tuple[Any, ...], name: str) -> Connection:
+        here, there = self.ctx.Pipe()
+        proc = self.ctx.Process(target=target, args=(*args, there), name=name)
+        proc.start()
+        self.procs.append(proc)
+        self.pipes.append(here)
+        return here
+
+    def victim(self) -> Connection:
+        """Start the victim, listening; its pipe once it says it is ready."""
+        config = ZenohConfig.loopback(self.port).model_dump()
+        args = (config, self.fed, str(self.keydir), str(self.trust_file))
+        pipe = self._start(victim_main, args, "refusals-victim")
+        assert recv(pipe, "the victim", START) == "ready"
+        return pipe
+
+    def attacker(self, what: str, payloads: list[bytes]) -> Connection:
+        """Start the attacker on the victim's ``what`` key; its pipe once it is ready."""
+        key = wire_key(self.fed, what, VICTIM)
+        if what == "stream-report":
+            key += f"/{MEMBER}"  # as if uav-m reported
+        args = (f"tcp/127.0.0.1:{self.port}", key, payloads)
+        pipe = self._start(attacker_main, args, f"refusals-attacker-{what}")
+        assert recv(pipe, "the attacker", START) == "ready"
+        return pipe
+
+    def close(self) -> None:
+        """Ask every child to stop, then make sure."""
+        for pipe in self.pipes:
+            with contextlib.suppress(OSError):
+                pipe.send("stop")
+        for proc in self.procs:
+            proc.join(timeout=15)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(timeout=5)
+
+
+@contextlib.contextmanager
+def federation(tmp_path: Path) -> Iterator[Federation]:
+    """A `Federation` whose children are stopped at the end."""
+    f = Federation(tmp_path)
+    try:
+        yield f
+    finally:
+        f.close()
+
+
+def accounted(victim: Connection, counter: str, stage: str, n: int) -> dict[str, Any]:
+    """The victim's report once ``counter`` is ``n`` and its audit accounts for all of them.
+
+    Accounted: the refusals audited one by one (``stage``) and those summed up (the
+    ``unauthenticated`` summaries, once per report interval) add up to ``counter``.
+    Bounded by WAIT; the report as it is then, whatever it says.
+    """
+    deadline = time.monotonic() + WAIT
+    while True:
+        victim.send("report")
+        report: dict[str, Any] = recv(victim, "the victim's report")
+        records = report["records"]
+        detailed = [r for r in records if r.get("stage") == stage]
+        summed = sum(r["count"] for r in records if r.get("stage") == "unauthenticated")
+        report["detailed"], report["summed"] = detailed, summed
+        done = report[counter] == n and len(detailed) + summed == n
+        if done or time.monotonic() > deadline:
+            return report
+        time.sleep(0.2)
+
+
+# -- the tests -----------------------------------------------------------------------------------
+
+
+def test_forged_kx_requests_past_the_gate_are_counted_and_audited_within_budget(
+    tmp_path: Path,
+) -> None:
+    """Requests the gate lets through and the signature check refuses: each counted, audited."""
+    with federation(tmp_path) as f:
+        victim = f.victim()
+        victim_public = f.trust.public_key(VICTIM)
+        forged: list[bytes] = []
+        for name in (MEMBER, ABSENT):
+            mine = KeyPair.generate(name)  # the attacker's own key, under a trusted name
+            own = TrustStore(f.fed, {name: mine.public_key, VICTIM: victim_public})
+            forged += [Handshake(mine, own).initiate(VICTIM) for _ in range(N_FORGED)]
+        attacker = f.attacker("kx", forged)
+        start = time.monotonic()
+        attacker.send("go")
+        sent, answers = recv(attacker, "the attacker's count", WAIT + len(forged) * 5.0)
+        seconds = time.monotonic() - start
+        assert (sent, answers) == (len(forged), 0)  # none answered
+        report = accounted(victim, "kx_requests_refused", "kx", len(forged))
+        print(
+            f"\n{sent} forged requests in {seconds:.1f} s: refused "
+            f"{report['kx_requests_refused']}, audited {len(report['detailed'])} one by one, "
+            f"{report['summed']} summed up"
+        )
+        # all of them reached the signature check: none shed by the gate
+        assert report["kx_shed"] == 0
+        assert report["kx_requests_refused"] == len(forged)
+        detailed = report["detailed"]
+        assert detailed, report["records"]
+        for r in detailed:
+            assert r["reason"].startswith("forged: "), r
+            assert r["from"] in (MEMBER, ABSENT)
+        # bounded: one record a second (bursts of one), the rest summed up
+        assert len(detailed) <= 1 + BUDGET * (seconds + WAIT)
+        assert len(detailed) < len(forged)
+        assert len(detailed) + report["summed"] == len(forged)
+
+
+def test_junk_stream_reports_are_counted_and_audited_within_budget(tmp_path: Path) -> None:
+    """Reports under a receiver's name that do not open: each counted, audited within budget."""
+    with federation(tmp_path) as f:
+        victim = f.victim()
+        junk = [os.urandom(64) for _ in range(N_REPORTS // 2)]
+        junk += [b"\x94\x01\xa4uav-m\xa4uav-v\xc4\x00"] * (N_REPORTS - len(junk))
+        attacker = f.attacker("stream-report", junk)
+        start = time.monotonic()
+        attacker.send("go")
+        sent, _ = recv(attacker, "the attacker's count", WAIT + N_REPORTS * 0.01)
+        seconds = time.monotonic() - start
+        assert sent == N_REPORTS
+        report = accounted(victim, "reports_refused", "stream-report", N_REPORTS)
+        print(
+            f"\n{sent} junk reports in {seconds:.1f} s: refused {report['reports_refused']}, "
+            f"audited {len(report['detailed'])} one by one, {report['summed']} summed up"
+        )
+        assert report["reports_refused"] == N_REPORTS
+        detailed = report["detailed"]
+        assert detailed, report["records"]
+        for r in detailed:
+            assert r["reason"].startswith("malformed: "), r
+        assert len(detailed) <= 1 + BUDGET * (seconds + WAIT)
+        assert len(detailed) + report["summed"] == N_REPORTS
