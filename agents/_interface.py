@@ -474,6 +474,7 @@ class InterfaceAgent:
         self._watch_lock = threading.Lock()
         self._watch_bucket = TokenBucket(WATCH_RATE, WATCH_RATE, monotonic())
         self.watch_shed = 0  # watch requests dropped before the event loop, since start
+        self.watch_refused = 0  # watch requests let through whose check refused them
         self._watch_shed_pending = 0  # since the last audit record
         self.audit_interval = audit_interval
         self.handshake_timeout = handshake_timeout
@@ -1868,6 +1869,7 @@ class InterfaceAgent:
         try:
             self._watch_gate.check(payload)
         except AuthenticationError as exc:
+            self.watch_refused += 1
             self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}", stage="watch")
             return None
         if not self.mirroring:

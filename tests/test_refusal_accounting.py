@@ -6,11 +6,14 @@ an attacker process with a plain zenoh client and no key of the federation sends
 - key-exchange requests forged under trusted names (signed with keys of its own), few
   enough that the key-exchange gate lets every one through to the signature check;
 - junk stream reports on ``stream-report/uav-v/uav-m``, where the export proxy reads
-  its receivers' reports.
+  its receivers' reports;
+- forged watch requests and junk directory queries, few enough that their gates let
+  every one through to the event loop.
 
 The victim refuses each, counts each (``platform.stats.kx_requests_refused``,
-``exporter.reports_refused``) and audits them within the unauthenticated budget: a few
-one by one, with why, the rest summed up.
+``exporter.reports_refused``, ``interface.watch_refused``, ``df.queries_refused``) and
+audits them within the unauthenticated budget: a few one by one, with why, the rest
+summed up.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ from typing import Any
 
 import pytest
 
-from agents import AgentPlatform, wire_key
+from agents import AgentPlatform, watch_request, wire_key
 from agents._interface import InterfaceAgent, RateLimit
 from agents._security import Handshake, KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
@@ -43,6 +46,8 @@ WAIT = 15.0
 BUDGET = 1.0  # the victim's RateLimit.unauthenticated: audit records/s, bursts of one
 N_FORGED = 8  # per trusted name: within the gate's per-platform burst (10), 16 in all
 N_REPORTS = 300
+N_WATCH = 8  # within the watch gate's burst (20) and its signature checks (10/s)
+N_QUERIES = 30  # within the directory's burst (50)
 
 
 @pytest.fixture(autouse=True)
@@ -96,6 +101,10 @@ async def _victim(
                     "kx_requests_refused": getattr(pf.stats, "kx_requests_refused", None),
                     "kx_shed": pf.stats.kx_shed,
                     "reports_refused": exporter.reports_refused,
+                    "watch_refused": getattr(channel, "watch_refused", None),
+                    "watch_shed": channel.watch_shed,
+                    "queries_refused": getattr(pf.df, "queries_refused", None),
+                    "queries_shed": pf.df.queries_shed if pf.df is not None else None,
                     "records": [r for r in channel.audit.records if r["verdict"] == "dropped"],
                 }
             )
@@ -105,7 +114,7 @@ async def _victim(
 
 
 def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> None:
-    """Send each payload once to ``key`` (queries on ``kx/…``, else puts); then the count."""
+    """Send each payload once to ``key`` (puts on ``stream-report/…``, else queries); the count."""
     import zenoh
 
     cfg = zenoh.Config()
@@ -114,7 +123,7 @@ def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> 
     cfg.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(cfg)
     try:
-        publisher = None if "/kx/" in key else session.declare_publisher(key)
+        publisher = session.declare_publisher(key) if "/stream-report/" in key else None
         if publisher is not None:  # puts before the victim's subscriber is known go nowhere
             deadline = time.monotonic() + START
             while not publisher.matching_status.matching and time.monotonic() < deadline:
@@ -285,3 +294,49 @@ def test_junk_stream_reports_are_counted_and_audited_within_budget(tmp_path: Pat
             assert r["reason"].startswith("malformed: "), r
         assert len(detailed) <= 1 + BUDGET * (seconds + WAIT)
         assert len(detailed) + report["summed"] == N_REPORTS
+
+
+def test_forged_watch_requests_past_the_gate_are_counted_and_audited_within_budget(
+    tmp_path: Path,
+) -> None:
+    """Watch requests not signed by the owner's key: each counted, audited within budget."""
+    with federation(tmp_path) as f:
+        victim = f.victim()
+        stranger = KeyPair.generate(VICTIM)  # the owner's name, not its key
+        forged = [watch_request(stranger, f.fed) for _ in range(N_WATCH)]
+        attacker = f.attacker("watch", forged)
+        start = time.monotonic()
+        attacker.send("go")
+        sent, answers = recv(attacker, "the attacker's count", WAIT + N_WATCH * 5.0)
+        seconds = time.monotonic() - start
+        assert (sent, answers) == (N_WATCH, 0)
+        report = accounted(victim, "watch_refused", "watch", N_WATCH)
+        assert report["watch_shed"] == 0  # all of them reached the check
+        assert report["watch_refused"] == N_WATCH
+        detailed = report["detailed"]
+        assert detailed, report["records"]
+        assert all(r["reason"].startswith("forged: ") for r in detailed), detailed
+        assert len(detailed) <= 1 + BUDGET * (seconds + WAIT)
+        assert len(detailed) + report["summed"] == N_WATCH
+
+
+def test_junk_directory_queries_are_counted_and_audited_within_budget(tmp_path: Path) -> None:
+    """Directory queries that are no query: unanswered, each counted, audited within budget."""
+    with federation(tmp_path) as f:
+        victim = f.victim()
+        junk = [b"not json", b'{"nonce": "!!"}', b"{}", b'{"nonce": "' + b"QUFB" * 30 + b'"}']
+        queries = [junk[i % len(junk)] for i in range(N_QUERIES)]
+        attacker = f.attacker("df", queries)
+        start = time.monotonic()
+        attacker.send("go")
+        sent, answers = recv(attacker, "the attacker's count", WAIT + N_QUERIES * 5.0)
+        seconds = time.monotonic() - start
+        assert (sent, answers) == (N_QUERIES, 0)
+        report = accounted(victim, "queries_refused", "df", N_QUERIES)
+        assert report["queries_shed"] == 0  # all of them reached the event loop
+        assert report["queries_refused"] == N_QUERIES
+        detailed = report["detailed"]
+        assert detailed, report["records"]
+        assert all(r["reason"].startswith("malformed: ") for r in detailed), detailed
+        assert len(detailed) <= 1 + BUDGET * (seconds + WAIT)
+        assert len(detailed) + report["summed"] == N_QUERIES
