@@ -1322,6 +1322,7 @@ class InterfaceAgent:
         if sender is not None and platform_of(sender) != peer:
             # the envelope proves only the platform: a not-understood to another
             # one's agent would be sent on the word of this one
+            host.stats.malformed += 1
             self.audit.record(
                 verdict="dropped",
                 **{"from": peer},
@@ -1525,6 +1526,7 @@ class InterfaceAgent:
         }
         if platform_of(message.sender) != peer:
             # the envelope proves the platform; an agent of another one is impersonated
+            host.stats.denied += 1
             self.audit.record(
                 verdict="dropped", **base, reason=f"sender is not an agent of {peer!r}"
             )
@@ -1541,6 +1543,7 @@ class InterfaceAgent:
             return
         local = [r for r in message.receivers if platform_of(r) == host.name]
         if not local:
+            host.stats.denied += 1
             self.audit.record(
                 verdict="dropped", **base, reason=f"no receiver on platform {host.name!r}"
             )
@@ -1591,6 +1594,7 @@ class InterfaceAgent:
         reason: str,
     ) -> None:
         """Refuse an authenticated message: tell its sender if it asked something, audit."""
+        host.stats.denied += 1
         if message.performative not in INITIATING:
             self.audit.record(verdict="dropped", **base, reason=reason)
             return

@@ -10,6 +10,10 @@ an attacker process with a plain zenoh client and no key of the federation sends
 - forged watch requests and junk directory queries, few enough that their gates let
   every one through to the event loop.
 
+A member (this process, with its own key: an authenticated peer) sends it sealed
+messages the Interface Agent refuses for what they claim or ask; each is counted
+(``platform.stats.denied``, ``platform.stats.malformed``) and audited.
+
 The victim refuses each, counts each (``platform.stats.kx_requests_refused``,
 ``exporter.reports_refused``, ``interface.watch_refused``, ``df.queries_refused``) and
 audits them within the unauthenticated budget: a few one by one, with why, the rest
@@ -29,6 +33,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+import orjson
 import pytest
 
 from agents import AgentPlatform, watch_request, wire_key
@@ -48,6 +53,7 @@ N_FORGED = 8  # per trusted name: within the gate's per-platform burst (10), 16 
 N_REPORTS = 300
 N_WATCH = 8  # within the watch gate's burst (20) and its signature checks (10/s)
 N_QUERIES = 30  # within the directory's burst (50)
+N_EACH = 4  # the member's messages of each kind refused
 
 
 @pytest.fixture(autouse=True)
@@ -105,7 +111,9 @@ async def _victim(
                     "watch_shed": channel.watch_shed,
                     "queries_refused": getattr(pf.df, "queries_refused", None),
                     "queries_shed": pf.df.queries_shed if pf.df is not None else None,
-                    "records": [r for r in channel.audit.records if r["verdict"] == "dropped"],
+                    "denied": getattr(pf.stats, "denied", None),
+                    "malformed": pf.stats.malformed,
+                    "records": [r for r in channel.audit.records if r["verdict"] != "accepted"],
                 }
             )
 
@@ -340,3 +348,70 @@ def test_junk_directory_queries_are_counted_and_audited_within_budget(tmp_path: 
         assert all(r["reason"].startswith("malformed: ") for r in detailed), detailed
         assert len(detailed) <= 1 + BUDGET * (seconds + WAIT)
         assert len(detailed) + report["summed"] == N_QUERIES
+
+
+async def test_an_authenticated_peers_refused_messages_are_counted_and_audited(
+    tmp_path: Path,
+) -> None:
+    """Messages of a trusted peer refused for what they claim or ask: each counted, audited."""
+    with federation(tmp_path) as f:
+        victim = f.victim()
+        here = f"asker@{MEMBER}"
+        bodies = {
+            # impersonation: an agent of another platform than the envelope's
+            f"sender is not an agent of {MEMBER!r}": _acl("inform", "spy@uav-q", "x@uav-v"),
+            f"no receiver on platform {VICTIM!r}": _acl("inform", here, "x@uav-q"),
+            "access denied: nobody@uav-v offers no service": _acl("request", here, "nobody@uav-v"),
+            "reply_to may not name agents of this platform": _acl(
+                "inform", here, "x@uav-v", reply_to=["x@uav-v"]
+            ),
+            # not a message, naming a sender of another platform: nobody to tell (the
+            # reason says what is wrong with it first)
+            "…; and the sender is not an agent of": _acl("bogus", "spy@uav-q", "x@uav-v"),
+        }
+        channel = InterfaceAgent(KeyPair.load(f.keydir / f"{MEMBER}.key"), f.trust)
+        config = ZenohConfig.loopback(free_tcp_port(), connect=[f.port])
+        async with (
+            ZenohTransport(config) as t,
+            AgentPlatform(MEMBER, t, federation=f.fed, channel=channel),
+        ):
+            await channel.agree(VICTIM)
+            inbox = wire_key(f.fed, "acl", VICTIM)
+            for body in bodies.values():
+                for _ in range(N_EACH):
+                    await t.publish(inbox, channel.sessions.seal(VICTIM, body))
+            deadline = time.monotonic() + WAIT
+            while True:
+                victim.send("report")
+                report = await asyncio.to_thread(recv, victim, "the victim's report")
+                if report["denied"] == 4 * N_EACH and report["malformed"] == N_EACH:
+                    break
+                if time.monotonic() > deadline:
+                    break
+                await asyncio.sleep(0.2)
+        assert report["denied"] == 4 * N_EACH, report
+        assert report["malformed"] == N_EACH, report
+        for words in bodies:
+            audited = [r for r in report["records"] if _says(str(r.get("reason")), words)]
+            assert len(audited) == N_EACH, (words, report["records"])
+            assert all(r["from"] == MEMBER for r in audited), audited
+
+
+def _says(reason: str, words: str) -> bool:
+    """Whether an audit record's reason is ``words`` (after what ``…`` stands for)."""
+    if words.startswith("…"):
+        return words[1:] in reason
+    return reason.startswith(words)
+
+
+def _acl(performative: str, sender: str, receiver: str, **fields: Any) -> bytes:
+    """An ACL message's JSON, as the wire has it (any performative, valid or not)."""
+    return orjson.dumps(
+        {
+            "v": 1,
+            "performative": performative,
+            "sender": sender,
+            "receivers": [receiver],
+            **fields,
+        }
+    )
