@@ -8,7 +8,8 @@ an attacker process with a plain zenoh client and no key of the federation sends
 - junk stream reports on ``stream-report/uav-v/uav-m``, where the export proxy reads
   its receivers' reports;
 - forged watch requests and junk directory queries, few enough that their gates let
-  every one through to the event loop.
+  every one through to the event loop;
+- batches under a stream key with no label, where the import proxy receives.
 
 A member (this process, with its own key: an authenticated peer) sends it sealed
 messages the Interface Agent refuses for what they claim or ask; each is counted
@@ -42,7 +43,7 @@ from agents._security import Handshake, KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 from dyknow_core import DyKnowInstance
-from federation import ExportProxy, InterfaceSessions
+from federation import ExportProxy, ImportProxy, InterfaceSessions
 
 VICTIM, MEMBER, ABSENT = "uav-v", "uav-m", "uav-q"  # trusted, neither runs but the victim
 LABEL = "car1-state"
@@ -54,6 +55,7 @@ N_REPORTS = 300
 N_WATCH = 8  # within the watch gate's burst (20) and its signature checks (10/s)
 N_QUERIES = 30  # within the directory's burst (50)
 N_EACH = 4  # the member's messages of each kind refused
+N_BATCHES = 200
 
 
 @pytest.fixture(autouse=True)
@@ -82,6 +84,7 @@ def victim_main(config: dict[str, Any], fed: str, keys: str, trust: str, conn: A
 async def _victim(
     config: dict[str, Any], fed: str, keys: Path, trust: Path, conn: Connection
 ) -> None:
+    import_refused: list[tuple[str, str, int, int]] = []  # what on_refused was told
     channel = InterfaceAgent(
         KeyPair.load(keys / f"{VICTIM}.key"),
         TrustStore.load(trust),
@@ -93,6 +96,16 @@ async def _victim(
         AgentPlatform(VICTIM, t, federation=fed, channel=channel) as pf,
         DyKnowInstance(VICTIM) as dk,
         ExportProxy(VICTIM, fed, t, dk, InterfaceSessions(channel), lease=None) as exporter,
+        ImportProxy(
+            VICTIM,
+            fed,
+            t,
+            dk,
+            InterfaceSessions(channel),
+            lambda sender, semantic: None,  # nothing agreed
+            on_refused=lambda *told: import_refused.append(told),
+            report_interval=0.1,
+        ) as importer,
     ):
         dk.add_source("x")
         exporter.start_exporting("x", LABEL, MEMBER)  # its reports are read from now on
@@ -112,6 +125,8 @@ async def _victim(
                     "queries_refused": getattr(pf.df, "queries_refused", None),
                     "queries_shed": pf.df.queries_shed if pf.df is not None else None,
                     "denied": getattr(pf.stats, "denied", None),
+                    "import_dropped": importer.stats()["totals"]["dropped_batches"],
+                    "import_refused": list(import_refused),
                     "malformed": pf.stats.malformed,
                     "records": [r for r in channel.audit.records if r["verdict"] != "accepted"],
                 }
@@ -122,7 +137,7 @@ async def _victim(
 
 
 def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> None:
-    """Send each payload once to ``key`` (puts on ``stream-report/…``, else queries); the count."""
+    """Send each payload once to ``key`` (puts on ``stream…``, else queries); the count."""
     import zenoh
 
     cfg = zenoh.Config()
@@ -131,7 +146,8 @@ def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> 
     cfg.insert_json5("scouting/multicast/enabled", "false")
     session = zenoh.open(cfg)
     try:
-        publisher = session.declare_publisher(key) if "/stream-report/" in key else None
+        puts = "/stream-report/" in key or "/stream/" in key
+        publisher = session.declare_publisher(key) if puts else None
         if publisher is not None:  # puts before the victim's subscriber is known go nowhere
             deadline = time.monotonic() + START
             while not publisher.matching_status.matching and time.monotonic() < deadline:
@@ -189,6 +205,8 @@ class Federation:
         key = wire_key(self.fed, what, VICTIM)
         if what == "stream-report":
             key += f"/{MEMBER}"  # as if uav-m reported
+        elif what == "stream":
+            key += "/evil"  # a sender, and no label
         args = (f"tcp/127.0.0.1:{self.port}", key, payloads)
         pipe = self._start(attacker_main, args, f"refusals-attacker-{what}")
         assert recv(pipe, "the attacker", START) == "ready"
@@ -348,6 +366,31 @@ def test_junk_directory_queries_are_counted_and_audited_within_budget(tmp_path: 
         assert all(r["reason"].startswith("malformed: ") for r in detailed), detailed
         assert len(detailed) <= 1 + BUDGET * (seconds + WAIT)
         assert len(detailed) + report["summed"] == N_QUERIES
+
+
+def test_batches_under_a_key_without_a_label_are_counted_and_told_to_on_refused(
+    tmp_path: Path,
+) -> None:
+    """What comes on ``stream/uav-v/evil`` (no label): each batch counted and told, summed."""
+    with federation(tmp_path) as f:
+        victim = f.victim()
+        attacker = f.attacker("stream", [os.urandom(32) for _ in range(N_BATCHES)])
+        attacker.send("go")
+        sent, _ = recv(attacker, "the attacker's count", WAIT + N_BATCHES * 0.01)
+        assert sent == N_BATCHES
+        deadline = time.monotonic() + WAIT
+        while True:
+            victim.send("report")
+            report = recv(victim, "the victim's report")
+            told = report["import_refused"]
+            if sum(t[2] for t in told) >= N_BATCHES or time.monotonic() > deadline:
+                break
+            time.sleep(0.2)
+        assert report["import_dropped"] == {"malformed": N_BATCHES}
+        # told summed up, a call per sender and reason per report interval: not one per batch
+        assert sum(t[2] for t in told) == N_BATCHES, told
+        assert {(t[0], t[1]) for t in told} == {("evil", "malformed")}
+        assert len(told) < N_BATCHES
 
 
 async def test_an_authenticated_peers_refused_messages_are_counted_and_audited(
