@@ -746,6 +746,13 @@ class GlobalDirectory:
             for pinbox in list(self._presence_watchers):
                 pinbox.put(change)
 
+    def _audit_invalid(self, platform: str, reason: str, stage: str) -> None:
+        """Audit a signed statement whose body is no directory's, within the channel's budget."""
+        # signed, yet as cheap to repeat as unsigned input: the same budget bounds the records
+        audit = getattr(self._platform.channel, "audit_unauthenticated", None)
+        if audit is not None:
+            audit(platform, f"invalid: {reason}"[:300], stage)
+
     def _refuse(self, claimed: str | None, reason: str, stage: str) -> None:
         """Count and audit what did not authenticate (the channel bounds the records)."""
         self.refused += 1
@@ -801,6 +808,7 @@ class GlobalDirectory:
         except (ValueError, ValidationError) as exc:
             self.invalid += 1
             log.warning("global-df: bad answer from %s: %s", reply.key, exc)
+            self._audit_invalid(statement.platform, f"directory answer: {exc}", "df")
             return
         name = statement.platform
         if not self._auth.trusted(name):
@@ -877,6 +885,7 @@ class GlobalDirectory:
                 log.warning(
                     "global-df[%s]: bad event on %s: %s", self._platform.name, item.key, exc
                 )
+                self._audit_invalid(platform, f"directory event: {exc}", "df-events")
                 continue
             self._apply(platform, op, service)
 

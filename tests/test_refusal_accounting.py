@@ -128,6 +128,7 @@ async def _victim(
                     "import_dropped": importer.stats()["totals"]["dropped_batches"],
                     "import_refused": list(import_refused),
                     "malformed": pf.stats.malformed,
+                    "df_invalid": pf.global_df.invalid if pf.global_df is not None else None,
                     "records": [r for r in channel.audit.records if r["verdict"] != "accepted"],
                 }
             )
@@ -438,6 +439,52 @@ async def test_an_authenticated_peers_refused_messages_are_counted_and_audited(
             audited = [r for r in report["records"] if _says(str(r.get("reason")), words)]
             assert len(audited) == N_EACH, (words, report["records"])
             assert all(r["from"] == MEMBER for r in audited), audited
+
+
+async def test_a_members_signed_directory_events_that_are_no_events_are_audited(
+    tmp_path: Path,
+) -> None:
+    """Directory events a trusted member signs, that are none: each counted and audited."""
+    with federation(tmp_path) as f:
+        victim = f.victim()
+        channel = InterfaceAgent(KeyPair.load(f.keydir / f"{MEMBER}.key"), f.trust)
+        config = ZenohConfig.loopback(free_tcp_port(), connect=[f.port])
+        async with (
+            ZenohTransport(config) as t,
+            AgentPlatform(MEMBER, t, federation=f.fed, channel=channel) as pm,
+        ):
+            report: dict[str, Any] = {}
+            deadline = time.monotonic() + WAIT
+            # the victim reads a member's events once it saw its token and signed answer:
+            # sent until it counts one, then N_EACH more
+            while time.monotonic() < deadline:
+                event = pm.directory_auth.seal(MEMBER, "df-event", {"op": "bogus"})
+                await t.publish(pm.key("df-events"), event)
+                await asyncio.sleep(0.05)
+                victim.send("report")
+                report = await asyncio.to_thread(recv, victim, "the victim's report")
+                if report["df_invalid"]:
+                    break
+            for _ in range(N_EACH):
+                event = pm.directory_auth.seal(MEMBER, "df-event", {"op": "bogus"})
+                await t.publish(pm.key("df-events"), event)
+                await asyncio.sleep(0.01)
+            want = report["df_invalid"] + N_EACH
+            while time.monotonic() < deadline + WAIT:
+                victim.send("report")
+                report = await asyncio.to_thread(recv, victim, "the victim's report")
+                detailed = [r for r in report["records"] if r.get("stage") == "df-events"]
+                summed = sum(
+                    r["count"] for r in report["records"] if r.get("stage") == "unauthenticated"
+                )
+                if report["df_invalid"] == want and len(detailed) + summed == want:
+                    break
+                await asyncio.sleep(0.2)
+        assert report["df_invalid"] == want, report
+        assert detailed, report["records"]
+        assert all(r["reason"].startswith("invalid: directory event: ") for r in detailed)
+        assert all(r["from"] == MEMBER for r in detailed), detailed
+        assert len(detailed) + summed == want
 
 
 def _says(reason: str, words: str) -> bool:
