@@ -1,24 +1,25 @@
-"""Refusals an outsider causes are each counted and audited, within the audit's budget.
+"""Refusals are each counted and audited, within the audit's budget, against a real process.
 
-A victim platform (``uav-v``, exporting a stream to ``uav-m``) runs in a spawned process;
-an attacker process with a plain zenoh client and no key of the federation sends it:
+A victim platform (``uav-v``, exporting a stream to ``uav-m``, importing nothing) runs in
+a spawned process. An attacker process with a plain zenoh client and no key of the
+federation sends it:
 
 - key-exchange requests forged under trusted names (signed with keys of its own), few
-  enough that the key-exchange gate lets every one through to the signature check;
+  enough that the key-exchange gate lets every one through to the signature check
+  (counted: ``platform.stats.kx_requests_refused``);
 - junk stream reports on ``stream-report/uav-v/uav-m``, where the export proxy reads
-  its receivers' reports;
+  its receivers' reports (``exporter.reports_refused``);
 - forged watch requests and junk directory queries, few enough that their gates let
-  every one through to the event loop;
-- batches under a stream key with no label, where the import proxy receives.
+  every one through to the event loop (``interface.watch_refused``,
+  ``df.queries_refused``);
+- batches under a stream key with no label (the import proxy's ``malformed``, told to
+  ``on_refused``, which the platform audits).
 
-A member (this process, with its own key: an authenticated peer) sends it sealed
-messages the Interface Agent refuses for what they claim or ask; each is counted
-(``platform.stats.denied``, ``platform.stats.malformed``) and audited.
-
-The victim refuses each, counts each (``platform.stats.kx_requests_refused``,
-``exporter.reports_refused``, ``interface.watch_refused``, ``df.queries_refused``) and
-audits them within the unauthenticated budget: a few one by one, with why, the rest
-summed up.
+Each is audited within the unauthenticated budget: a few one by one, with why, the rest
+summed up. A member (this process, with its own key: an authenticated peer) sends it
+sealed messages the Interface Agent refuses for what they claim or ask
+(``platform.stats.denied``, ``platform.stats.malformed``), and signed directory events
+that are none (``global_df.invalid``); each is audited too.
 """
 
 from __future__ import annotations
