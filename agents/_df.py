@@ -246,6 +246,7 @@ class DirectoryFacilitator(Agent):
         self._query_lock = threading.Lock()
         self._query_bucket = TokenBucket(DF_QUERY_RATE, DF_QUERY_RATE, time.monotonic())
         self.queries_shed = 0  # directory queries dropped unanswered, since start
+        self.queries_refused = 0  # let through, but not a query (audited: `_refuse_query`)
         self.subscriptions_refused = 0  # subscribes of other platforms over their limit
         self._shed_pending = Pending(1.0)  # shed since the last audit record
 
@@ -264,6 +265,14 @@ class DirectoryFacilitator(Agent):
             self.queries_shed += 1
         self._shed_pending.add()
         return False
+
+    def _refuse_query(self, reason: str) -> None:
+        """Count a directory query refused unanswered; audit it within the channel's budget."""
+        self.queries_refused += 1
+        # anyone may query: the channel bounds the records of unauthenticated input
+        audit = getattr(self.platform.channel, "audit_unauthenticated", None)
+        if audit is not None:
+            audit(None, f"malformed: {reason}", "df")
 
     async def _report_shed(self) -> None:
         """Audit the directory queries shed, summed up, at most once per second."""
@@ -489,9 +498,12 @@ class DirectoryFacilitator(Agent):
             try:
                 obj = orjson.loads(payload)
                 nonce = base64.b64decode(obj["nonce"], validate=True)
-            except (ValueError, TypeError, KeyError, binascii.Error):
-                return None  # a query we cannot answer fresh gets no answer
+            except (ValueError, TypeError, KeyError, binascii.Error) as exc:
+                # a query we cannot answer fresh gets no answer
+                self._refuse_query(f"not a directory query: {exc!r}"[:200])
+                return None
             if len(nonce) > 64:
+                self._refuse_query(f"a nonce of {len(nonce)} bytes (at most 64)")
                 return None
         services = [
             s.to_obj()
@@ -734,6 +746,13 @@ class GlobalDirectory:
             for pinbox in list(self._presence_watchers):
                 pinbox.put(change)
 
+    def _audit_invalid(self, platform: str, reason: str, stage: str) -> None:
+        """Audit a signed statement whose body is no directory's, within the channel's budget."""
+        # signed, yet as cheap to repeat as unsigned input: the same budget bounds the records
+        audit = getattr(self._platform.channel, "audit_unauthenticated", None)
+        if audit is not None:
+            audit(platform, f"invalid: {reason}"[:300], stage)
+
     def _refuse(self, claimed: str | None, reason: str, stage: str) -> None:
         """Count and audit what did not authenticate (the channel bounds the records)."""
         self.refused += 1
@@ -789,6 +808,7 @@ class GlobalDirectory:
         except (ValueError, ValidationError) as exc:
             self.invalid += 1
             log.warning("global-df: bad answer from %s: %s", reply.key, exc)
+            self._audit_invalid(statement.platform, f"directory answer: {exc}", "df")
             return
         name = statement.platform
         if not self._auth.trusted(name):
@@ -865,6 +885,7 @@ class GlobalDirectory:
                 log.warning(
                     "global-df[%s]: bad event on %s: %s", self._platform.name, item.key, exc
                 )
+                self._audit_invalid(platform, f"directory event: {exc}", "df-events")
                 continue
             self._apply(platform, op, service)
 

@@ -579,6 +579,7 @@ class InterfaceAgent:
         self._watch_lock = threading.Lock()
         self._watch_bucket = TokenBucket(WATCH_RATE, WATCH_RATE, monotonic())
         self.watch_shed = 0  # watch requests dropped before the event loop, since start
+        self.watch_refused = 0  # watch requests let through whose check refused them
         self._watch_shed_pending = 0  # since the last audit record
         self.audit_interval = audit_interval
         self.handshake_timeout = handshake_timeout
@@ -1008,6 +1009,9 @@ class InterfaceAgent:
         try:
             reply, session = self.handshake.respond(payload)
         except AuthenticationError as exc:
+            host = self._host
+            if host is not None:
+                host.stats.kx_requests_refused += 1
             self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}", stage="kx")
             return None
         self.sessions.add(session)
@@ -1423,6 +1427,7 @@ class InterfaceAgent:
         if sender is not None and platform_of(sender) != peer:
             # the envelope proves only the platform: a not-understood to another
             # one's agent would be sent on the word of this one
+            host.stats.malformed += 1
             self.audit.record(
                 verdict="dropped",
                 **{"from": peer},
@@ -1626,6 +1631,7 @@ class InterfaceAgent:
         }
         if platform_of(message.sender) != peer:
             # the envelope proves the platform; an agent of another one is impersonated
+            host.stats.denied += 1
             self.audit.record(
                 verdict="dropped", **base, reason=f"sender is not an agent of {peer!r}"
             )
@@ -1642,6 +1648,7 @@ class InterfaceAgent:
             return
         local = [r for r in message.receivers if platform_of(r) == host.name]
         if not local:
+            host.stats.denied += 1
             self.audit.record(
                 verdict="dropped", **base, reason=f"no receiver on platform {host.name!r}"
             )
@@ -1692,6 +1699,7 @@ class InterfaceAgent:
         reason: str,
     ) -> None:
         """Refuse an authenticated message: tell its sender if it asked something, audit."""
+        host.stats.denied += 1
         if message.performative not in INITIATING:
             self.audit.record(verdict="dropped", **base, reason=reason)
             return
@@ -1970,6 +1978,7 @@ class InterfaceAgent:
         try:
             self._watch_gate.check(payload)
         except AuthenticationError as exc:
+            self.watch_refused += 1
             self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}", stage="watch")
             return None
         if not self.mirroring:

@@ -170,6 +170,11 @@ class PlatformStats:
     limit; ``kx_shed`` key-exchange requests dropped before their signature check (the
     Interface Agent's gate); ``kx_replies_refused`` replies to this platform's own
     key-exchange requests that it refused (junk, forged, …: anyone may answer them);
+    ``kx_requests_refused`` key-exchange requests the gate let through whose checks
+    (signature, freshness, trust) then refused them;
+    ``denied`` authenticated messages the Interface Agent refused or dropped for what
+    they claim or ask (a sender of another platform, no receiver here, a ``reply_to`` it
+    does not allow, access denied; each audited);
     ``rehandshakes`` new sessions started because a trusted peer
     sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
     ignored (at most one per peer per ``rehandshake_interval``), ``presence_suppressed``
@@ -192,6 +197,8 @@ class PlatformStats:
     rate_limited: int = 0
     kx_shed: int = 0
     kx_replies_refused: int = 0
+    kx_requests_refused: int = 0
+    denied: int = 0
     rehandshakes: int = 0
     rehandshakes_suppressed: int = 0
     presence_suppressed: int = 0

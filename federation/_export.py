@@ -29,7 +29,16 @@ from typing import Self
 
 import msgpack
 
-from agents import Expired, TokenBucket, TransportClosed, UnknownSession, check_name, wire_key
+from agents import (
+    AuthenticationError,
+    Expired,
+    TokenBucket,
+    TransportClosed,
+    Unencrypted,
+    UnknownSession,
+    check_name,
+    wire_key,
+)
 from agents.transports import Transport
 from dyknow_core import DyKnowInstance, Policy, RawSample
 from dyknow_core import Subscription as StreamSubscription
@@ -592,7 +601,8 @@ class ExportProxy(ProxyBase):
         self.ended: deque[Export] = deque(maxlen=256)
         self._exports: dict[tuple[str, str], Export] = {}
         self._reports: asyncio.Task[None] | None = None  # started with the first export
-        self.reports_refused = 0  # loss reports that did not open or parse
+        # loss reports that did not open or parse (audited: `_refuse_report`)
+        self.reports_refused = 0
         self._resend_buckets: dict[str, TokenBucket] = {}  # per receiver (authenticated)
         self._resend_turns: dict[str, asyncio.Lock] = {}  # per receiver: its blocking puts
 
@@ -655,6 +665,7 @@ class ExportProxy(ProxyBase):
         sub = await self.transport.subscribe(key, buffer_size=1024)
         try:
             async for item in sub:
+                sender = None  # until the envelope opens: then authenticated
                 try:
                     sender, body = self.sessions.open_bytes(item.payload)
                     report = msgpack.unpackb(body, raw=False)
@@ -667,8 +678,8 @@ class ExportProxy(ProxyBase):
                         or type(resend) is not dict
                     ):
                         raise ValueError("not a loss report from its sender")
-                except Exception:
-                    self.reports_refused += 1
+                except Exception as exc:
+                    self._refuse_report(sender, exc)
                     continue
                 now = time.monotonic()
                 for label, total in lost.items():
@@ -694,6 +705,23 @@ class ExportProxy(ProxyBase):
                     self._audit_resend_refusals(export, now)
         finally:
             sub.close()
+
+    def _refuse_report(self, sender: str | None, exc: Exception) -> None:
+        """Count a report refused; audit it within the budget of unauthenticated input.
+
+        ``sender`` is the authenticated one when the envelope opened (its body was no
+        report), else None. Anyone can publish under ``stream-report/<me>/…``: a flood
+        of them is summed up by the Interface Agent's budget, not one record each.
+        """
+        self.reports_refused += 1
+        sessions = self.sessions
+        if not isinstance(sessions, InterfaceSessions) or isinstance(exc, Unencrypted):
+            return  # no audit here; a plain envelope the sessions audited already
+        if isinstance(exc, AuthenticationError):
+            claimed, reason = exc.platform, f"{exc.code}: {exc.reason}"
+        else:
+            claimed, reason = sender, f"malformed: not a stream report: {exc}"
+        sessions.agent.audit_unauthenticated(claimed, reason[:300], stage="stream-report")
 
     def _resend_turn(self, receiver: str) -> asyncio.Lock:
         """The lock ``receiver``'s resends take turns with (made on first use)."""

@@ -164,7 +164,7 @@ class ImportProxy(ProxyBase):
     ``on_sender_gone(sender, semantic_labels)`` is told. When a sender ends an export by
     itself (its lease expired: we did not report in time) and says so, the stream ends
     and ``on_export_ended(sender, semantic_label)`` is told. Batches dropped whole
-    (never agreed, not authentic, under another sender's name) are summed up per sender
+    (never agreed, not authentic, under another sender's name, malformed) are summed up per sender
     and reason and told to ``on_refused(sender, reason, batches, samples)`` once per
     ``report_interval`` (an audit, bounded whatever the flood). Use as an async context
     manager (or ``start`` / ``aclose``).
@@ -467,7 +467,7 @@ class ImportProxy(ProxyBase):
         """One payload: open, check, decode, translate, inject; or drop and count why."""
         sender, _, label = key[len(self._prefix) :].partition("/")
         if not sender or not label:
-            self._counts(sender or "?", label or "?")._drop_batch(DropReason.MALFORMED)
+            self._refuse(sender or "?", label or "?", DropReason.MALFORMED)
             return
         try:
             frm, body = self.sessions.open_bytes(payload)
