@@ -20,8 +20,8 @@ import zenoh
 from _node_example import Station, _samples
 
 from agents import AgentPlatform, KeyPair, TrustStore, runs_signed
-from federation import PlatformConfig, _local
-from federation._cli_net import ask_platform
+from federation import PlatformConfig, _cli_net, _local
+from federation._cli_net import ask_platform, watch_platform
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -69,6 +69,7 @@ def test_a_silent_queryable_does_not_hold_a_one_shot_ask(
 
     monkeypatch.setattr(AgentPlatform, "__init__", platform)
     monkeypatch.setattr(_local, "_IDENTITY_WAIT", STRETCHED)
+    monkeypatch.setattr(_cli_net, "_WATCH_ASK", STRETCHED)
     operator = str(station.dir / "operator.toml")
     session = None
     try:
@@ -115,6 +116,17 @@ def test_a_silent_queryable_does_not_hold_a_one_shot_ask(
         # the junk identity answer is skipped, the running node's own ends the query
         assert said < BOUND, f"asking where the station runs took {said:.2f} s"
         assert station.node is not None and f"pid {station.node.pid} on host" in error, error
+
+        # the owner's watch: its lease is granted at once, not once the query timed out
+        watching: list[float] = []
+        start = time.monotonic()
+
+        def emit(event: dict[str, Any]) -> None:
+            if event.get("kind") == "watching":
+                watching.append(time.monotonic() - start)
+
+        asyncio.run(watch_platform(str(station.dir / "station-python.toml"), emit, duration=3))
+        assert watching and watching[0] < BOUND, f"the watch began after {watching} s"
     finally:
         if session is not None:
             session.close()
