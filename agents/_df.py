@@ -28,7 +28,7 @@ import binascii
 import logging
 import threading
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable
 from enum import StrEnum
 from typing import TYPE_CHECKING, Annotated, Any, NamedTuple
 
@@ -648,26 +648,20 @@ class GlobalDirectory:
     async def start(self) -> None:
         """Subscribe, take the snapshot, and follow changes (tasks owned by the platform).
 
-        The snapshot is whole when this returns: every DF answered (zenoh, memory), or
-        over MQTT every platform whose token is alive and may count, or the query timed out.
+        The snapshot is whole when this returns: every platform whose token is alive (and
+        that may count) answered, and so did this one's own directory; or, when the tokens
+        could not be asked, every DF answered (zenoh, memory); or the query timed out.
         """
         p = self._platform
         # Subscribe before the snapshot: what changes meanwhile is queued, not lost.
         events = await p.transport.subscribe(p.key("df-events", "*"))
         presence = await p.transport.watch_presence(p.key("alive", "*"))
         self._subs = [events, presence]
-        expect = None
-        if not p.transport.asks_end_when_answered:
-            # MQTT: the snapshot would wait out its timeout; it is whole once every
-            # platform alive (that may count) has answered, and so is this one's own
-            try:
-                alive = await p.transport.tokens(p.key("alive", "*"), timeout=self.query_timeout)
-            except TransportError as exc:
-                log.warning("global-df[%s]: asking the tokens failed: %s", p.name, exc)
-            else:
-                names = {key.rpartition("/")[2] for key in alive}
-                expect = {n for n in names if self._auth.trusted(n)} | {p.name}
-        for platform, services in (await self._query("*", expect=expect)).items():
+        # Those alive are whom to expect: a queryable that never answers (anyone may
+        # declare one on dyknow/<fed>/v1/**) keeps even zenoh's query open to its
+        # timeout, and MQTT's always is. One alive that answers later, or not in the
+        # tokens yet, is taken when its presence comes (the watch above has its history).
+        for platform, services in (await self._query("*", expect=self._expected)).items():
             self._alive.add(platform)
             self._replace(platform, services)
         p.spawn(self._follow_events(events), "global-df.events")
@@ -763,13 +757,34 @@ class GlobalDirectory:
         if audit is not None:
             audit(claimed, reason, stage)
 
+    async def _expected(self) -> set[str] | None:
+        """The platforms whose answers make a snapshot whole: those alive that may count.
+
+        This one's own name is always there (its token is declared after the snapshot);
+        None when the tokens could not be asked.
+        """
+        p = self._platform
+        try:
+            alive = await p.transport.tokens(p.key("alive", "*"), timeout=self.query_timeout)
+        except TransportError as exc:
+            log.warning("global-df[%s]: asking the tokens failed: %s", p.name, exc)
+            return None
+        names = {key.rpartition("/")[2] for key in alive}
+        return {n for n in names if self._auth.trusted(n)} | {p.name}
+
     async def _query(
-        self, platform: str, timeout: float | None = None, *, expect: set[str] | None = None
+        self,
+        platform: str,
+        timeout: float | None = None,
+        *,
+        expect: set[str] | Callable[[], Awaitable[set[str] | None]] | None = None,
     ) -> dict[str, list[ServiceDescription]]:
         """Ask the DF(s) for their public services: {platform: services} of those that answered.
 
         The query ends once every platform of ``expect`` answered (one named: that one),
-        or when the transport knows all did, or at the timeout.
+        or when the transport knows all did, or at the timeout. ``expect`` may be a
+        function finding that set, called once the query is sent (its replies queue
+        meanwhile); only an authenticated answer counts.
         """
         if expect is None and "*" not in platform:
             expect = {platform}  # its answer is all there is (MQTT's query would wait on)
@@ -781,9 +796,10 @@ class GlobalDirectory:
                 orjson.dumps({"v": WIRE_VERSION, "nonce": base64.b64encode(nonce).decode()}),
                 timeout=self.query_timeout if timeout is None else timeout,
             ) as replies:
+                wanted = await expect() if callable(expect) else expect
                 async for reply in replies:
                     self._take(reply, nonce, found)
-                    if expect is not None and expect.issubset(found):
+                    if wanted is not None and wanted.issubset(found):
                         break
         except TransportError as exc:
             log.warning("global-df[%s]: query failed: %s", self._platform.name, exc)

@@ -37,6 +37,7 @@ if TYPE_CHECKING:
     from ._local import LocalChannel
 
 log = logging.getLogger(__name__)
+_WATCH_ASK = 2.0  # s one watch request waits for the platform's answer
 
 
 class RelayedError(RuntimeError):
@@ -630,10 +631,16 @@ async def watch_platform(
             deadline = time.monotonic() + timeout
             answered = False
             while True:
-                replies = await transport.query(
-                    wire_key(fed, "watch", me), watch_request(keys, fed), timeout=2.0
-                )
-                if any(r.ok for r in replies):
+                # the first answer ends the query: a queryable that never answers (anyone
+                # may declare one) would hold each renewal to its timeout
+                ok = False
+                async with await transport.ask(
+                    wire_key(fed, "watch", me), watch_request(keys, fed), timeout=_WATCH_ASK
+                ) as replies:
+                    async for reply in replies:
+                        if ok := reply.ok:
+                            break
+                if ok:
                     if not answered:
                         await queue.put({"kind": "watching", "platform": me})
                     answered = True

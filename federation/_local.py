@@ -66,7 +66,7 @@ from ._cli_time import seconds, when
 from ._platform import PlatformConfig
 
 if TYPE_CHECKING:
-    from agents.transports import Transport
+    from agents.transports import Reply, Transport
 
     from ._platform import FederationPlatform
 
@@ -86,6 +86,7 @@ _SUN_PATH = 100  # bytes of a Unix socket's path, with a margin (108 on Linux, 1
 _LINE = 1 << 20  # longest request line accepted (1 MiB)
 _REFUSE_WAIT = 5.0  # s a refused client has to send its request before the refusal
 _HELLO_WAIT = 10.0  # s a node has to state its key once a command connected
+_IDENTITY_WAIT = 2.0  # s the refusal waits for the running node to say where it runs
 ALIVE_WAIT = 1.0
 """Seconds one ask for a platform's token may take (zenoh returns once every peer answered)."""
 IDENTITY_RATE = 10.0
@@ -210,16 +211,18 @@ async def _alive_error(
         local = {"pid": here or "unknown", "host": socket.gethostname(), "since": _since(here)}
         where = _where(local)
     try:
-        replies = await transport.query(identity_key(config), timeout=2.0)
-        for reply in replies:
-            info = json.loads(reply.payload)
-            if not isinstance(info, dict) or info.get("platform") != config.name:
-                continue
-            # unauthenticated: on this host, only the answer of the pid listening here
-            if here and (info.get("pid") != here or info.get("host") != socket.gethostname()):
-                continue
-            where = _where(info)
-            break
+        # the first answer that fits ends the query: a queryable that never answers
+        # (anyone may declare one) would otherwise hold it to its timeout
+        async with await transport.ask(identity_key(config), timeout=_IDENTITY_WAIT) as replies:
+            async for reply in replies:
+                info = _identity_of(reply)
+                if info is None or info.get("platform") != config.name:
+                    continue
+                # unauthenticated: on this host, only the answer of the pid listening here
+                if here and (info.get("pid") != here or info.get("host") != socket.gethostname()):
+                    continue
+                where = _where(info)
+                break
     except Exception as exc:  # the error says it is alive either way, only less precisely
         log.debug("asking the running platform where it runs: %s", exc)
     who = f"platform {config.name!r} is alive in federation {config.federation!r} already"
@@ -237,6 +240,17 @@ async def _alive_error(
         f"{who}: {where}. A platform runs in one process: stop that one first, or give this one "
         "a name of its own (the one-shot commands go through the running node)"
     )
+
+
+def _identity_of(reply: Reply) -> dict[str, Any] | None:
+    """A running node's answer to an identity query; None for an error or junk reply."""
+    if not reply.ok:
+        return None
+    try:
+        info = json.loads(reply.payload)
+    except ValueError:
+        return None
+    return info if isinstance(info, dict) else None
 
 
 def _where(info: dict[str, Any]) -> str:

@@ -295,8 +295,9 @@ class Transport(ABC):
     asks_end_when_answered = True
     """Whether an `ask` ends once every queryable that heard it answered (zenoh, memory).
 
-    False on MQTT, which cannot tell how many heard it: there a caller that knows whom
-    to expect (the tokens alive, `tokens`) leaves once they answered, not at the timeout.
+    False on MQTT, which cannot tell how many heard it. On any transport a queryable that
+    never answers (anyone may declare one) holds an `ask` to its timeout: a caller that
+    knows whom to expect (the tokens alive, `tokens`) leaves once they answered.
     """
 
     def __init__(self) -> None:
@@ -416,8 +417,9 @@ class Transport(ABC):
 
         The iteration ends once every queryable answered (zenoh, memory), at the latest
         after ``timeout`` s (always then on MQTT, which cannot tell how many queryables
-        heard the query); a caller that has what it needs leaves early, which ends the
-        query. Errors sending the query are raised here, not by the iteration.
+        heard the query, and anywhere one never answers); a caller that has what it needs
+        leaves early, which ends the query. Errors sending the query are raised here, not
+        by the iteration.
         """
 
     async def query(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> list[Reply]:
