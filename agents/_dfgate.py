@@ -47,8 +47,9 @@ class DfEventLimit:
     ``report_interval``.
     """
 
-    per_platform: float = 10.0
-    per_platform_burst: float = 20.0
+    # a member registering its services at start sends a burst: its own, within these
+    per_platform: float = 20.0
+    per_platform_burst: float = 50.0
     total: float = 20.0
     total_burst: float = 20.0
     detailed: int = 20

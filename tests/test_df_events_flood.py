@@ -25,7 +25,7 @@ from agents._security import KeyPair, TrustStore
 from bench.dfflood import CHANGES, SEEN_WITHIN, _forged, flood
 
 # The victim's CPU per event sent, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled by
-# `cpu_slowdown` on a slower one). Measured there: ~9 when it sheds, ~39 when every event
+# `cpu_slowdown` on a slower one). Measured there: 7-9 when it sheds, ~39 when every event
 # reaches the event loop and has its signature checked.
 SHED_CPU_US = 20.0
 
@@ -54,15 +54,15 @@ def test_a_df_events_flood_is_shed_and_a_members_changes_are_still_seen(tmp_path
     assert len(run.seen) == 2 * CHANGES
     assert max(run.seen) <= SEEN_WITHIN, run.seen
     assert run.cpu_per_event <= bound
-    # all but the budget shed before the event loop: per trusted name claimed (10/s, burst
-    # 20), the member and uav-q; the member's own real events (up to 2 per change) too
-    budget = 2 * (20 + 10 * (run.seconds + 2)) + 2 * CHANGES
+    # all but the budget shed before the event loop: per trusted name claimed (20/s, burst
+    # 50), the member and uav-q; the member's own real events (up to 2 per change) too
+    budget = 2 * (50 + 20 * (run.seconds + 2)) + 2 * CHANGES
     assert report["admitted"] <= budget, (report["admitted"], budget)
     # what was let through failed its signature check (the forged ones) or was real
     assert report["refused"] - before["refused"] <= report["admitted"]
     assert report["events_shed"] == sum(report["shed"].values())
     assert report["events_shed"] >= 0.5 * run.sent  # zenoh may drop some on a loaded machine
-    for reason in ("untrusted", "malformed", "unsigned", PLATFORM_BUDGET):
+    for reason in ("untrusted", "malformed", "unsigned", PLATFORM_BUDGET, TOTAL_BUDGET):
         assert report["shed"].get(reason, 0) > 0, (reason, report["shed"])
     assert report["resyncs"] > before["resyncs"]
     summaries = [r for r in report["records"] if r.get("stage") == "df-events-shed"]
