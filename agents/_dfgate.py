@@ -6,9 +6,9 @@ the platform's CPU, and push real events out of the subscription's queue. The
 `DfEventGate` runs on the transport's receiving thread, before the event is queued for
 the event loop and before any signature check: it drops what is malformed, not a
 directory event of this federation, from an untrusted name, unsigned or expired, or not
-newer than the last accepted event of its platform (only counted as ``stale`` then, as
-before: it changes nothing), a few microseconds each, and lets
-through only as many of the rest as a budget allows, per claimed platform and in all.
+newer than the last accepted event of its platform (only counted as ``stale`` then: it
+changes nothing), a few microseconds each, and lets through only as many of the rest as
+a budget allows, per claimed platform and in all.
 An event of a member shed for its budget (a forger claiming that member's name) is made
 good by asking the member again (`GlobalDirectory` takes a fresh signed snapshot). See
 ``docs/security.md`` ("Directory-event load shedding").

@@ -38,6 +38,7 @@ from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 from bench.kxflood import ABSENT, MEMBER, START, VICTIM, WAIT, Federation, recv
 
 CHANGES = 4  # the member's registers (and as many deregisters) during the flood
+MIN_FLOOD = 4.0  # seconds the flood lasts at least
 SEEN_WITHIN = 5.0  # each must show in the victim's view within this (s): a resync is ~1 s
 
 
@@ -265,6 +266,7 @@ def flood(tmp: Path, *, shed: bool = True) -> FloodRun:
         victim.send(("report",))
         before = recv(victim, "the victim's report")
         attacker.send("go")
+        began = time.monotonic()
         time.sleep(1.0)  # the flood under way
         seen: list[float] = []
         for i in range(CHANGES):
@@ -272,6 +274,8 @@ def flood(tmp: Path, *, shed: bool = True) -> FloodRun:
                 member.send((op, f"svc-{i}"))
                 recv(member, f"the member's {op}")
                 seen.append(_until_seen(victim, f"svc-{i}", listed))
+        # long enough to measure the victim's CPU, however fast the changes showed
+        time.sleep(max(0.0, began + MIN_FLOOD - time.monotonic()))
         with contextlib.suppress(OSError):  # it may have ended its bounded flood already
             attacker.send("stop")
         sent, seconds = recv(attacker, "the attacker's count")

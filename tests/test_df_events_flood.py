@@ -11,17 +11,22 @@ signature check, counts it and sums it up in a few audit records.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import multiprocessing
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from _load import cpu_slowdown
 from nacl.signing import SigningKey
 
+from agents import AgentPlatform, InterfaceAgent, ServiceDescription
 from agents._dfgate import PLATFORM_BUDGET, TOTAL_BUDGET, DfEventGate, DfEventLimit
 from agents._directory_auth import DirectoryAuth
 from agents._security import KeyPair, TrustStore
+from agents.transports import MemoryHub, Message
 from bench.dfflood import CHANGES, SEEN_WITHIN, _forged, flood
 
 # The victim's CPU per event sent, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled by
@@ -168,3 +173,76 @@ def test_a_limit_is_checked() -> None:
         DfEventLimit(per_platform_burst=0.5)
     with pytest.raises(ValueError, match="detailed"):
         DfEventLimit(detailed=-1)
+
+
+# -- in memory: the screen in front of the subscription, the queue's overflow ------------------
+
+
+@contextlib.asynccontextmanager
+async def _members(*names: str) -> AsyncIterator[list[AgentPlatform]]:
+    """Trusted platforms (each with a trust file) on one in-memory hub."""
+    hub = MemoryHub()
+    keys = {n: KeyPair.generate(n) for n in names}
+    trust = {n: k.public_key for n, k in keys.items()}
+    async with contextlib.AsyncExitStack() as stack:
+        out = []
+        for n in names:
+            transport = await stack.enter_async_context(hub.transport())
+            channel = InterfaceAgent(keys[n], TrustStore("t", trust))
+            platform = AgentPlatform(n, transport, federation="t", channel=channel)
+            out.append(await stack.enter_async_context(platform))
+        yield out
+
+
+def _public(provider: str, name: str) -> ServiceDescription:
+    return ServiceDescription(name=name, type="demo", provider=provider, visibility="public")
+
+
+async def test_forged_events_never_reach_the_queue_and_real_ones_still_do() -> None:
+    async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, pb]:
+        view = pa.global_df
+        assert view is not None and view.event_gate is not None and pb.df is not None
+        key = pa.key("df-events", "uav-b")
+        sub = view._subs[0]
+        received = sub.inbox.received
+        for i in range(500):
+            await pb.transport.publish(key, _forged("t", "uav-b", i + 1, GONE, None))
+        assert sub.inbox.received == received  # unsigned: none queued
+        assert view.event_gate.shed["unsigned"] == 500
+        async with view.watch() as w:
+            await pb.df.register(_public("svc@uav-b", "real"))
+            assert (await w.get(5)).op == "register"
+        assert [s.name for s in view.services("uav-b")] == ["real"]
+        assert sub.inbox.received == received + 1
+        summary = await _records(pa, "df-events-shed")
+        assert summary[0]["count"] == 500 and summary[0]["by_reason"] == {"unsigned": 500}
+
+
+async def test_an_event_lost_in_an_overflowing_queue_is_made_good_by_a_resync() -> None:
+    """The queue dropped an authenticated event (the loop stalled): its member is asked again."""
+    async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, pb]:
+        view = pa.global_df
+        assert view is not None and pb.df is not None
+        inbox = view._subs[0].inbox
+        inbox._maxlen = 1  # a queue of one: the next put drops the event queued
+        resyncs = view.resyncs
+        async with view.watch() as w:
+            await pb.df.register(_public("svc@uav-b", "lost"))  # queued, not yet taken
+            inbox.put(Message(pa.key("df-events", "uav-b"), b"junk", None))  # pushes it out
+            assert inbox.dropped == 1
+            event = await w.get(5)
+        assert event.op == "register" and event.service is not None
+        assert event.service.name == "lost"
+        assert view.resyncs == resyncs + 2  # every member asked again: uav-a and uav-b
+
+
+async def _records(platform: AgentPlatform, stage: str) -> list[dict[str, Any]]:
+    """The channel's audit records of ``stage``, once there are some."""
+    channel = platform.channel
+    assert isinstance(channel, InterfaceAgent)
+    async with asyncio.timeout(5):
+        while True:
+            found = [r for r in channel.audit.records if r.get("stage") == stage]
+            if found:
+                return found
+            await asyncio.sleep(0.01)
