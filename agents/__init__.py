@@ -42,6 +42,7 @@ from ._df import (
     subscribe_services,
     visibility_allows,
 )
+from ._dfgate import DfEventLimit
 from ._exceptions import (
     AgentError,
     AuthenticationError,
@@ -125,6 +126,7 @@ __all__ = [
     "ContractNetResult",
     "Conversation",
     "ConversationError",
+    "DfEventLimit",
     "DirectoryEvent",
     "DirectoryFacilitator",
     "Expired",

@@ -39,6 +39,7 @@ from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_o
 from ._agent import Agent
 from ._aio import Pending
 from ._bucket import TokenBucket
+from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventGate, DfEventLimit
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
 from ._exceptions import ServiceError, TransportError
 from ._protocols import (
@@ -618,6 +619,12 @@ class GlobalDirectory:
     members are asked again (a member that answers none twice in a row is gone: on zenoh
     a forged token would otherwise keep a dead platform listed). What is refused is
     counted (``refused``) and audited through the channel, within its budget.
+
+    With a trust file, events are screened on the transport's thread before any signature
+    check (`DfEventGate`, ``event_limit``; None: not screened): a flood of forged ones is
+    shed cheaply, counted (``events_shed``) and summed up in ``df-events-shed`` audit
+    records, and a member whose events were shed over its budget is asked again at once
+    (``resyncs``); so is every member when the subscription's queue overflowed.
     """
 
     def __init__(
@@ -626,6 +633,7 @@ class GlobalDirectory:
         *,
         query_timeout: float = 1.0,
         recheck_interval: float | None = 30.0,
+        event_limit: DfEventLimit | None = DEFAULT_DF_EVENT_LIMIT,
     ) -> None:
         self._platform = platform
         self.query_timeout = query_timeout
@@ -641,7 +649,13 @@ class GlobalDirectory:
         self._subs: list[Subscription[Message] | Subscription[Presence]] = []
         self.invalid = 0
         self.refused = 0
-        self.stale = 0
+        self._stale = 0
+        self.resyncs = 0  # fresh snapshots taken because events may have been lost, since start
+        self.event_gate: DfEventGate | None = None
+        self._shed_pending = Pending(1.0 if event_limit is None else event_limit.report_interval)
+        if self._auth.authenticates and event_limit is not None:
+            self.event_gate = DfEventGate(self._auth, event_limit, on_shed=self._shed_pending.add)
+        self._resyncing: set[str] = set()
         self.version = 0
         """Changes with every change of `services`: a view of them is current while it is equal."""
 
@@ -653,8 +667,11 @@ class GlobalDirectory:
         could not be asked, every DF answered (zenoh, memory); or the query timed out.
         """
         p = self._platform
+        gate = self.event_gate
         # Subscribe before the snapshot: what changes meanwhile is queued, not lost.
-        events = await p.transport.subscribe(p.key("df-events", "*"))
+        events = await p.transport.subscribe(
+            p.key("df-events", "*"), admit=None if gate is None else gate.admit
+        )
         presence = await p.transport.watch_presence(p.key("alive", "*"))
         self._subs = [events, presence]
         # Those alive are whom to expect: a queryable that never answers (anyone may
@@ -664,6 +681,9 @@ class GlobalDirectory:
         for platform, services in (await self._query("*", expect=self._expected)).items():
             self._alive.add(platform)
             self._replace(platform, services)
+        if gate is not None:
+            gate.priority = frozenset(self._alive)
+            p.spawn(self._report_shed(gate), "global-df.shed-report")
         p.spawn(self._follow_events(events), "global-df.events")
         p.spawn(self._follow_presence(presence), "global-df.presence")
         if self._auth.authenticates:
@@ -734,6 +754,9 @@ class GlobalDirectory:
         for inbox in list(self._watchers):
             inbox.put(event)
         if event.op in ("platform-up", "platform-gone"):
+            if self.event_gate is not None:
+                # replaced whole: the transport's thread reads it without a lock
+                self.event_gate.priority = frozenset(self._alive)
             change = Presence(
                 self._platform.key("alive", event.platform), event.op == "platform-up"
             )
@@ -750,6 +773,10 @@ class GlobalDirectory:
     def _refuse(self, claimed: str | None, reason: str, stage: str) -> None:
         """Count and audit what did not authenticate (the channel bounds the records)."""
         self.refused += 1
+        self._audit_refusal(claimed, reason, stage)
+
+    def _audit_refusal(self, claimed: str | None, reason: str, stage: str) -> None:
+        """Log and audit a refusal through the channel (which bounds the records)."""
         log.info(
             "global-df[%s]: %s from %r refused: %s", self._platform.name, stage, claimed, reason
         )
@@ -863,14 +890,77 @@ class GlobalDirectory:
         elif before != service:
             self._tell(DirectoryEvent("modify", platform, service))
 
+    @property
+    def stale(self) -> int:
+        """Events not newer than the last accepted of their platform (dropped), since start."""
+        gate = self.event_gate
+        return self._stale + (0 if gate is None else gate.stale)
+
+    @property
+    def events_shed(self) -> int:
+        """Directory events dropped before their signature check, since start."""
+        return 0 if self.event_gate is None else self.event_gate.shed_total
+
+    async def _report_shed(self, gate: DfEventGate) -> None:
+        """Audit the events shed, summed up once per interval; ask again whom they hid."""
+        while True:
+            await self._shed_pending.take()  # asleep while nothing is shed
+            while True:
+                details, summary, resync = gate.take_report(time.monotonic())
+                for claimed, reason in details:
+                    self._audit_refusal(claimed, f"directory event shed: {reason}", "df-events")
+                if summary is not None:
+                    self._audit_shed(gate.limit, summary)
+                self._want_resync(resync)
+                if summary is not None or not gate.pending:
+                    break
+                # a summary is due within the interval: the flood may be over by then
+                await asyncio.sleep(gate.limit.report_interval / 4)
+
+    def _audit_shed(self, limit: DfEventLimit, summary: dict[str, Any]) -> None:
+        seconds = summary["seconds"]
+        since = "" if seconds is None else f" in {seconds:.1f} s"
+        reasons = ", ".join(f"{k} {v}" for k, v in summary["by_reason"].items())
+        self._platform.audit(
+            verdict="dropped",
+            stage="df-events-shed",
+            count=summary["count"],
+            by_reason=summary["by_reason"],
+            reason=(
+                f"directory events shed: {summary['count']} dropped before any signature "
+                f"check{since} ({reasons}; budget {limit.per_platform:g}/s per platform, "
+                f"burst {limit.per_platform_burst:g}; {limit.total:g}/s for platforms not "
+                f"in the directory, burst {limit.total_burst:g})"
+            ),
+        )
+
+    def _want_resync(self, platforms: Iterable[str]) -> None:
+        """Take a fresh snapshot of each of ``platforms`` alive: events of theirs may be lost."""
+        for platform in platforms:
+            if platform in self._alive and platform not in self._resyncing:
+                self._resyncing.add(platform)
+                self._platform.spawn(self._resync(platform), f"global-df.resync[{platform}]")
+
+    async def _resync(self, platform: str) -> None:
+        try:
+            self.resyncs += 1
+            await self._fetch(platform)
+        finally:
+            self._resyncing.discard(platform)
+
     async def _follow_events(self, sub: Subscription[Message]) -> None:
+        lost = 0
         async for item in sub:
+            if sub.dropped != lost:
+                # the queue overflowed: an authenticated event may be among those lost
+                lost = sub.dropped
+                self._want_resync(list(self._alive))
             platform = item.key.rpartition("/")[2]
             try:
                 statement = self._auth.open(item.payload, "df-event", platform=platform)
             except DirectoryStatementError as exc:
                 if exc.reason.startswith("stale"):
-                    self.stale += 1  # already reflected, or replayed: changes nothing
+                    self._stale += 1  # already reflected, or replayed: changes nothing
                     continue
                 if self._auth.authenticates:
                     self._refuse(platform, f"directory event: {exc.reason}", "df-events")

@@ -263,6 +263,10 @@ class DirectoryAuth:
                 f"timestamp is {delta:+.1f} s from this clock (allowed ±{self.skew:g} s)", frm
             )
 
+    def newest(self, platform: str) -> tuple[int, int] | None:
+        """The ``(boot, seq)`` of ``platform``'s newest statement accepted (any thread)."""
+        return self._newest.get(platform)
+
     def forget(self, platform: str) -> None:
         """Nothing to remember of ``platform`` any more (its process ended)."""
         self._newest.pop(platform, None)

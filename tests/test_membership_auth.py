@@ -109,6 +109,10 @@ def _audit(platform: FederationPlatform, stage: str, claimed: str) -> list[dict[
     ]
 
 
+def _stage(platform: FederationPlatform, stage: str) -> list[dict[str, Any]]:
+    return [r for r in platform.interface.audit.records if r.get("stage") == stage]
+
+
 def _file_audit(path: Path, stage: str, claimed: str) -> list[dict[str, Any]]:
     if not path.exists():
         return []
@@ -196,13 +200,19 @@ async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
                 _statement(fed, "uav-b", "df-event", body, rogue),
                 _statement(fed, "uav-b", "df-event", {"op": "leave"}, rogue),
             ]
-            refused = gdf.refused
+            refused, shed = gdf.refused, gdf.events_shed
             for payload in forged:
                 outsider.put(f"{prefix}/df-events/uav-b", payload)
-            await _until("uav-a refused 4 forged events", lambda: gdf.refused >= refused + 4)
-            records = await _until(
-                "uav-a's audit of the forgeries", lambda: _audit(a, "df-events", "uav-b")
+            # the junk and the unsigned one shed before any signature check, the two signed
+            # with a rogue key refused by it
+            await _until(
+                "uav-a refused 4 forged events",
+                lambda: (gdf.refused, gdf.events_shed) == (refused + 2, shed + 2),
             )
+            await _until(
+                "uav-a's audit of the forgeries", lambda: len(_audit(a, "df-events", "uav-b")) >= 3
+            )
+            records = _audit(a, "df-events", "uav-b")
             assert all(r["verdict"] == "dropped" for r in records)
             assert any("unsigned" in r["reason"] for r in records), records
             assert any("signature does not verify" in r["reason"] for r in records), records
@@ -216,7 +226,7 @@ async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
 
             # 2. uav-x (not in the trust file) as token, DF answer and event; uav-c (trusted,
             #    not running) as a forged token: neither is listed
-            refused = gdf.refused
+            refused, shed = gdf.refused, gdf.events_shed
             token_x = outsider.liveliness().declare_token(f"{prefix}/alive/uav-x")
             fake = _statement(fed, "uav-x", "df", [dict(service, provider="fed@uav-x")], rogue)
             queryable = outsider.declare_queryable(
@@ -232,7 +242,8 @@ async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
                 "presence without a signed directory answer"
                 in _audit(a, "presence", "uav-c")[0]["reason"]
             )
-            assert _audit(a, "df-events", "uav-x")
+            # shed events are audited once per interval
+            await _until("uav-x's event audited", lambda: _audit(a, "df-events", "uav-x"))
             assert "uav-x" not in gdf.platforms and "uav-c" not in gdf.platforms
             assert "uav-x" not in a.members and "uav-c" not in a.members
             assert not [s for s in gdf.services() if s.platform in ("uav-x", "uav-c")]
@@ -249,28 +260,34 @@ async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
             marker.undeclare()
             assert [e for e in membership.inbox.drain() if e.platform == "uav-b"] == []
             assert "uav-b" in a.members and "uav-b" in gdf.platforms
-            # uav-x up, its event, uav-c's token, uav-x gone, uav-x up again: each counted once
-            assert gdf.refused == refused + 5
+            # uav-x up, uav-c's token, uav-x gone, uav-x up again: each counted once; uav-x's
+            # event shed (a name not in the trust file) before any signature check
+            assert gdf.refused == refused + 4
+            assert gdf.events_shed == shed + 1
 
-            # 3. a flood of forgeries is counted one by one, audited within a budget
-            refused, before = gdf.refused, len(_audit(a, "df-events", "uav-b"))
+            # 3. a flood of forgeries is shed before the event loop and counted one by one,
+            #    a few audited one by one, the rest summed up
+            shed, before = gdf.events_shed, len(_audit(a, "df-events", "uav-b"))
             for _ in range(2000):  # none dropped at the sender: each must be counted
                 outsider.put(
                     f"{prefix}/df-events/uav-b",
                     forged[1],
                     congestion_control=zenoh.CongestionControl.BLOCK,
                 )
-            await _until("2000 more refused", lambda: gdf.refused >= refused + 2000)
+            await _until("2000 more shed", lambda: gdf.events_shed >= shed + 2000)
+            assert gdf.event_gate is not None and gdf.event_gate.shed["unsigned"] >= 2001
             assert len(_audit(a, "df-events", "uav-b")) - before < 1000
             summary = await _until(
-                "a summary record of what was not audited one by one",
+                "the summary records of what was shed",
                 lambda: [
                     r
                     for r in a.interface.audit.records
-                    if r.get("stage") == "unauthenticated" and r.get("count")
+                    if r.get("stage") == "df-events-shed"
+                    and sum(x["count"] for x in _stage(a, "df-events-shed")) == gdf.events_shed
                 ],
             )
             assert summary[-1]["verdict"] == "dropped"
+            assert "unsigned" in summary[-1]["by_reason"]
             assert "uav-b" in a.members and len(gdf.services("uav-b")) == before_services
             membership.close()
         finally:

@@ -226,6 +226,23 @@ async def test_two_subscribers(net: Net) -> None:
         assert [m.payload for m in await take(sub, len(payloads))] == payloads
 
 
+async def test_admit_screens_published_messages_before_they_are_queued(net: Net) -> None:
+    """A message ``admit`` refuses is neither queued nor counted as dropped; others arrive."""
+    a, b = await net.open(), await net.open()
+    sub = await a.subscribe(net.key("sg/*"), admit=lambda p: not p.startswith(b"junk"))
+    plain = await a.subscribe(net.key("sg/*"))
+    await ready(net, b, a)
+    for p in (b"junk-1", b"one", b"junk-2", b"two"):
+        await b.publish(net.key("sg/k"), p)
+    assert [m.payload for m in await take(plain, 4)] == [b"junk-1", b"one", b"junk-2", b"two"]
+    assert [m.payload for m in await take(sub, 2)] == [b"one", b"two"]
+    assert sub.inbox.received == 2 and sub.dropped == 0
+    sub.close()
+    await b.publish(net.key("sg/k"), b"three")
+    assert [m.payload for m in await take(plain, 1)] == [b"three"]
+    assert await drain_until_end(sub) == []
+
+
 async def test_unsubscribe(net: Net) -> None:
     a, b = await net.open(), await net.open()
     key = net.key("u/k")

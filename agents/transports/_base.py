@@ -51,9 +51,9 @@ QueryHandler = Callable[[str, bytes], Awaitable[bytes | None]]
 """Answers a query: gets the query's key and payload, returns the reply (None: no reply)."""
 
 QueryFilter = Callable[[bytes], bool]
-"""Screens a query's payload where it arrives (the library's receiving thread, any thread),
-before it is queued for the event loop: False drops it unanswered. Thread-safe, cheap,
-never raises."""
+"""Screens a query's (or a published message's) payload where it arrives (the library's
+receiving thread, any thread), before it is queued for the event loop: False drops it
+(a query unanswered). Thread-safe, cheap, never raises."""
 
 
 class Inbox(Generic[T]):
@@ -165,6 +165,21 @@ class Inbox(Generic[T]):
 
     def __len__(self) -> int:
         return len(self._items)
+
+
+class Screened:
+    """An inbox behind its subscription's ``admit``: what that refuses is never queued."""
+
+    __slots__ = ("admit", "inbox")
+
+    def __init__(self, inbox: Inbox[Message], admit: QueryFilter) -> None:
+        self.inbox = inbox
+        self.admit = admit
+
+    def put(self, msg: Message) -> None:
+        """Queue ``msg`` if ``admit`` lets its payload through."""
+        if self.admit(msg.payload):
+            self.inbox.put(msg)
 
 
 class Subscription(Generic[T]):
@@ -408,8 +423,14 @@ class Transport(ABC):
         return True
 
     @abstractmethod
-    async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
-        """Receive what is published under keys matching ``key_expr``."""
+    async def subscribe(
+        self, key_expr: str, *, buffer_size: int = 65536, admit: QueryFilter | None = None
+    ) -> Subscription[Message]:
+        """Receive what is published under keys matching ``key_expr``.
+
+        ``admit`` screens each payload where it arrives, before it is queued: one it
+        refuses is dropped there (neither queued nor counted in ``dropped``).
+        """
 
     @abstractmethod
     async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:

@@ -16,6 +16,7 @@ from ._base import (
     QueryHandler,
     Replies,
     Reply,
+    Screened,
     Subscription,
     Transport,
     _ignore,
@@ -43,7 +44,7 @@ class MemoryHub:
     """What connects in-memory transports: the same hub is the same network."""
 
     def __init__(self) -> None:
-        self.subscribers: list[tuple[str, Inbox[Message]]] = []
+        self.subscribers: list[tuple[str, Inbox[Message] | Screened]] = []
         self.queryables: list[tuple[str, QueryHandler]] = []
         self.tokens: dict[str, int] = {}
         self.watchers: list[tuple[str, Inbox[Presence]]] = []
@@ -120,11 +121,13 @@ class MemoryTransport(Transport):
                 return True
         return False
 
-    async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
-        """Receive what is published on matching keys."""
+    async def subscribe(
+        self, key_expr: str, *, buffer_size: int = 65536, admit: QueryFilter | None = None
+    ) -> Subscription[Message]:
+        """Receive what is published on matching keys; those ``admit`` refuses are dropped."""
         self._check_open()
         inbox: Inbox[Message] = Inbox(asyncio.get_running_loop(), buffer_size)
-        entry = (key_expr, inbox)
+        entry = (key_expr, inbox if admit is None else Screened(inbox, admit))
         self.hub.subscribers.append(entry)
 
         def remove() -> None:

@@ -97,6 +97,7 @@ from ._base import (
     QueryHandler,
     Replies,
     Reply,
+    Screened,
     Subscription,
     Transport,
     key_intersects,
@@ -354,7 +355,7 @@ class _Filter:
     topic: str
     sid: int
     ready: asyncio.Future[bool]
-    inboxes: list[Inbox[Message]] = field(default_factory=list)
+    inboxes: list[Inbox[Message] | Screened] = field(default_factory=list)
     watchers: list[_Watcher] = field(default_factory=list)
     servers: list[_Server] = field(default_factory=list)
 
@@ -675,14 +676,21 @@ class MqttTransport(Transport):
         except aiomqtt.MqttError as exc:
             raise self._error(f"publish on {key!r}", exc) from exc
 
-    async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
-        """Receive what is published on topics matching ``key_expr``."""
+    async def subscribe(
+        self, key_expr: str, *, buffer_size: int = 65536, admit: QueryFilter | None = None
+    ) -> Subscription[Message]:
+        """Receive what is published on topics matching ``key_expr``.
+
+        ``admit`` screens each message as it is read off the connection, before it is
+        queued: one it refuses is dropped there.
+        """
         _, loop = self._connected()
         topic = topic_filter(key_expr)
         inbox: Inbox[Message] = Inbox(loop, buffer_size)
-        await self._attach(topic, lambda f: f.inboxes.append(inbox))
+        entry = inbox if admit is None else Screened(inbox, admit)
+        await self._attach(topic, lambda f: f.inboxes.append(entry))
         return self._subscription(
-            inbox, lambda: self._detach(topic, lambda f: f.inboxes.remove(inbox))
+            inbox, lambda: self._detach(topic, lambda f: f.inboxes.remove(entry))
         )
 
     async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:

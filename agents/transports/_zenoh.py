@@ -613,8 +613,14 @@ class ZenohTransport(Transport):
                 oldest.undeclare()
         return pub
 
-    async def subscribe(self, key_expr: str, *, buffer_size: int = 65536) -> Subscription[Message]:
-        """Receive what is put on keys matching ``key_expr``."""
+    async def subscribe(
+        self, key_expr: str, *, buffer_size: int = 65536, admit: QueryFilter | None = None
+    ) -> Subscription[Message]:
+        """Receive what is put on keys matching ``key_expr``.
+
+        ``admit`` runs on zenoh's thread for each sample: one it refuses is dropped there,
+        never queued for the event loop.
+        """
         session, loop = self._open_session()
         # On zenoh's thread only what must be done there: copy the payload out of zenoh's
         # receive buffer (holding the sample would pin that buffer, ~8 kB a sample). The
@@ -632,6 +638,14 @@ class ZenohTransport(Transport):
                     None if att is None else att.to_bytes(),
                 )
             )
+
+        if admit is not None:
+
+            def on_sample(sample: zenoh.Sample) -> None:
+                payload = sample.payload.to_bytes()
+                if admit(payload):
+                    att = sample.attachment
+                    put((sample.key_expr, payload, None if att is None else att.to_bytes()))
 
         with _converted(f"declare a subscriber on {key_expr!r}"):
             zsub = session.declare_subscriber(

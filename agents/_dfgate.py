@@ -1,0 +1,240 @@
+"""Directory-event load shedding: most of a flood of forged ``df-events`` is dropped unread.
+
+A directory event under a trusted name costs its receiver a signature check; anyone on
+the network can publish on ``df-events/<platform>``, so a flood of forged ones would take
+the platform's CPU, and push real events out of the subscription's queue. The
+`DfEventGate` runs on the transport's receiving thread, before the event is queued for
+the event loop and before any signature check: it drops what is malformed, not a
+directory event of this federation, from an untrusted name, unsigned or expired, or not
+newer than the last accepted event of its platform (only counted as ``stale`` then: it
+changes nothing), a few microseconds each, and lets through only as many of the rest as
+a budget allows, per claimed platform and in all.
+An event of a member shed for its budget (a forger claiming that member's name) is made
+good by asking the member again (`GlobalDirectory` takes a fresh signed snapshot). See
+``docs/security.md`` ("Directory-event load shedding").
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import orjson
+
+from ._bucket import TokenBucket, check_rates
+from ._directory_auth import MAX_STATEMENT_BYTES, WIRE_VERSION, DirectoryAuth
+
+
+@dataclass(frozen=True, slots=True)
+class DfEventLimit:
+    """How many directory events a platform checks the signature of, per second.
+
+    An event that passes the cheap checks (well formed, of this federation, from a
+    trusted name, signed, stamped within the skew, newer than the last accepted one of
+    its platform) still needs a token: ``per_platform`` per second (bursts of
+    ``per_platform_burst``) for each claimed platform, and, for a platform not alive in
+    the global directory, one of the ``total`` per second (bursts of ``total_burst``) all
+    such share. A member alive in the directory is held to its own budget only: a forger
+    claiming other names cannot spend it. Of the events dropped, up to ``detailed`` per
+    ``report_interval`` are audited one by one (with their reason); all are counted and
+    summed up in one audit record per ``report_interval``; a member whose events were
+    shed over its budget is asked for a fresh snapshot, at most once per
+    ``report_interval``.
+    """
+
+    # a member registering its services at start sends a burst: its own, within these
+    per_platform: float = 20.0
+    per_platform_burst: float = 50.0
+    total: float = 20.0
+    total_burst: float = 20.0
+    detailed: int = 20
+    report_interval: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_rates(
+            self,
+            "DfEventLimit",
+            ("per_platform", "per_platform_burst", "total", "total_burst", "report_interval"),
+            ("per_platform_burst", "total_burst"),
+            "every event",
+        )
+        if isinstance(self.detailed, bool) or not isinstance(self.detailed, int):
+            raise ValueError(f"DfEventLimit.detailed: {self.detailed!r} is not an integer")
+        if self.detailed < 0:
+            raise ValueError(f"DfEventLimit.detailed: {self.detailed!r} is not >= 0")
+
+
+DEFAULT_DF_EVENT_LIMIT = DfEventLimit()
+
+# Reasons an event is shed besides the cheap checks' own.
+PLATFORM_BUDGET = "over-platform-budget"
+TOTAL_BUDGET = "over-total-budget"
+_WHY = {
+    "malformed": "not a directory statement",
+    "misdirected": "not a directory event of this federation",
+    "untrusted": "from a platform not in the trust file",
+    "unsigned": "unsigned statement",
+    "expired": "timestamp outside the allowed skew",
+}
+
+
+class DfEventGate:
+    """Decides, on the transport's thread, which directory events are worth checking.
+
+    ``admit(payload)`` is thread-safe and never raises; ``take_report(now)`` (the event
+    loop's side) returns what to audit and which members to ask again. ``priority`` (a
+    frozenset of platform names, replaced whole by the owner) names the platforms alive
+    in the directory: exempt from the shared budget.
+    """
+
+    def __init__(
+        self,
+        auth: DirectoryAuth,
+        limit: DfEventLimit,
+        *,
+        monotonic: Callable[[], float] = time.monotonic,
+        on_shed: Callable[[], None] | None = None,
+    ) -> None:
+        self.auth = auth
+        self.limit = limit
+        self.priority: frozenset[str] = frozenset()
+        self._monotonic = monotonic
+        self._on_shed = on_shed
+        self._lock = threading.Lock()
+        self._total = TokenBucket(limit.total, limit.total_burst, monotonic())
+        self._platforms: dict[str, TokenBucket] = {}
+        self.shed: Counter[str] = Counter()  # every event shed, by reason, since start
+        self.admitted = 0  # events let through to their signature check, since start
+        self.stale = 0  # events dropped as not newer than the last accepted, since start
+        self._pending: Counter[str] = Counter()  # shed since the last summary
+        self._details: list[tuple[str | None, str]] = []
+        self._detailed = 0  # detailed in the current interval
+        self._resync: set[str] = set()  # members shed over their budget since the last take
+        self._last_report = -math.inf
+
+    def admit(self, payload: bytes) -> bool:
+        """Whether the directory event ``payload`` goes on to its signature check."""
+        try:
+            screened = self._screen(payload)
+        except Exception:  # whatever it is, it is not an event to check
+            screened = ("malformed", None)
+        reason, frm = screened
+        if reason == "stale":
+            # already reflected, or replayed: changes nothing, as before (not audited)
+            with self._lock:
+                self.stale += 1
+            return False
+        if reason:
+            return self._drop(reason, frm)
+        assert frm is not None
+        now = self._monotonic()
+        with self._lock:
+            bucket = self._platforms.get(frm)
+            if bucket is None:  # one per trusted name: bounded by the trust file
+                bucket = self._platforms[frm] = TokenBucket(
+                    self.limit.per_platform, self.limit.per_platform_burst, now
+                )
+            if not bucket.ready(now):
+                if frm in self.priority:
+                    self._resync.add(frm)  # a real event may be among those shed
+                return self._drop_locked(PLATFORM_BUDGET, frm)
+            if frm not in self.priority:
+                # both or neither: an event shed by one budget spends nothing of the other
+                if not self._total.ready(now):
+                    return self._drop_locked(TOTAL_BUDGET, frm)
+                self._total.tokens -= 1.0
+            bucket.tokens -= 1.0
+            self.admitted += 1
+        return True
+
+    def _screen(self, payload: bytes) -> tuple[str, str | None]:
+        """``("", from)`` for an event worth a look, else ``(why not, claimed platform)``.
+
+        `DirectoryAuth.open`'s checks without the signature: comparisons only. What they
+        refuse, ``open`` refuses too.
+        """
+        if len(payload) > MAX_STATEMENT_BYTES:
+            return "malformed", None
+        obj = orjson.loads(payload)
+        if type(obj) is not dict:
+            return "malformed", None
+        auth = self.auth
+        frm = obj.get("from")
+        if type(frm) is not str:
+            return "malformed", None
+        if obj.get("v") != WIRE_VERSION or obj.get("kind") != "df-event":
+            return "malformed", frm
+        if obj.get("fed") != auth.federation:
+            return "misdirected", frm
+        if not auth.trusted(frm):
+            return "untrusted", frm
+        boot, seq, ts_ms = obj.get("boot"), obj.get("seq"), obj.get("ts_ms")
+        if type(boot) is not int or type(seq) is not int or type(ts_ms) is not int:
+            return "malformed", frm
+        if auth.authenticates:
+            if type(obj.get("sig")) is not str:
+                return "unsigned", frm
+            if abs(time.time() - ts_ms / 1000) > auth.skew:
+                return "expired", frm
+        newest = auth.newest(frm)
+        if newest is not None and (boot, seq) <= newest:
+            return "stale", frm
+        return "", frm
+
+    def _drop(self, reason: str, claimed: str | None) -> bool:
+        with self._lock:
+            return self._drop_locked(reason, claimed)
+
+    def _drop_locked(self, reason: str, claimed: str | None) -> bool:
+        self.shed[reason] += 1
+        self._pending[reason] += 1
+        if self._detailed < self.limit.detailed:
+            self._detailed += 1
+            why = _WHY.get(reason) or (
+                f"over {claimed!r}'s budget of {self.limit.per_platform:g}/s"
+                if reason == PLATFORM_BUDGET
+                else f"over the shared budget of {self.limit.total:g}/s"
+            )
+            self._details.append((claimed, f"{reason}: {why}"))
+        if self._on_shed is not None:
+            self._on_shed()
+        return False
+
+    @property
+    def pending(self) -> bool:
+        """Whether shed events wait to be summed up (read unlocked: a hint)."""
+        return bool(self._pending)
+
+    @property
+    def shed_total(self) -> int:
+        """Every event shed since start, whatever the reason."""
+        return sum(self.shed.values())
+
+    def take_report(
+        self, now: float
+    ) -> tuple[list[tuple[str | None, str]], dict[str, Any] | None, set[str]]:
+        """The shed events to audit one by one, a summary once per interval (else None),
+        and the members to ask again (their events were shed over their budget).
+
+        The summary has ``count`` (events shed since the last one), ``by_reason`` and
+        ``seconds`` (since the last summary; None for the first).
+        """
+        with self._lock:
+            details, self._details = self._details, []
+            resync, self._resync = self._resync, set()
+            if not self._pending or now - self._last_report < self.limit.report_interval:
+                return details, None, resync
+            self._detailed = 0
+            pending, self._pending = self._pending, Counter()
+            last, self._last_report = self._last_report, now
+        summary = {
+            "count": sum(pending.values()),
+            "by_reason": dict(pending.most_common()),
+            "seconds": None if math.isinf(last) else now - last,
+        }
+        return details, summary, resync
