@@ -18,6 +18,7 @@ from ._gateway_service import GatewayRefusal, GatewayService
 from ._import import Import, ImportProxy
 from ._platform import (
     DEFAULT_IMPORT_LABEL,
+    FactSettings,
     FederationPlatform,
     FoxgloveSettings,
     KxLimitSettings,
@@ -59,6 +60,7 @@ __all__ = [
     "Export",
     "ExportProxy",
     "Exporter",
+    "FactSettings",
     "FederationAgent",
     "FederationPlatform",
     "FoxgloveBridge",

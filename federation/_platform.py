@@ -31,6 +31,11 @@ A config file (TOML; relative paths are relative to the file)::
     audit = "sealed"             # published audit sealed to the owner; "plain" or "off"
     watch = true                 # the owner may watch what arrives (dyknow watch)
 
+    [[facts]]                    # label search by formula (docs/ontology.md): (Car car5)
+    predicate = "Car"
+    stream = "car/{object}/state"
+    unary = true
+
     [sharing]                    # what is shared with whom (federation/_sharing.py)
     gateway = "private"          # "protected": other members may use the Gateway Agent
     default = "members"          # labels no rule names: every member, or "none"
@@ -91,6 +96,7 @@ from pydantic import (
     ValidationError,
     ValidationInfo,
     field_validator,
+    model_validator,
 )
 
 from agents import (
@@ -122,6 +128,7 @@ from ontology import (
     OntologyError,
     PlatformLabels,
     Rule,
+    StreamRule,
     Vocabulary,
 )
 
@@ -140,6 +147,7 @@ __all__ = [
     "DEFAULT_IMPORT_LABEL",
     "ConsoleRoles",
     "ConsoleSettings",
+    "FactSettings",
     "FederationPlatform",
     "FoxgloveSettings",
     "KxLimitSettings",
@@ -414,6 +422,50 @@ class KxLimitSettings(BaseModel):
         return KxLimit(**self.model_dump(exclude={"enabled"}))
 
 
+@dataclass(frozen=True, slots=True)
+class _Field:
+    """A stream rule's ``convert`` from a config's ``field``: that key of a dict value."""
+
+    key: str
+
+    def __call__(self, value: Any) -> Any:
+        return value.get(self.key) if isinstance(value, dict) else None
+
+
+class FactSettings(BaseModel):
+    """One ``[[facts]]`` table: a `StreamRule` keeping ``platform.facts`` current.
+
+    ``stream`` is a local label pattern with ``{object}``; each matching stream's latest
+    value is the fact ``(predicate object value)``, or with ``field`` that key of a dict
+    value, or with ``unary`` ``(predicate object)`` while the value is true
+    (`docs/ontology.md`). Domain rules need the domain made first: pass them as
+    ``FederationPlatform(rules=…)``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    predicate: str
+    stream: str
+    field: str | None = None
+    unary: bool = False
+
+    @model_validator(mode="after")
+    def _check(self) -> Self:
+        if self.field is not None and self.unary:
+            raise ValueError("'field' and 'unary' exclude each other")
+        try:
+            # the feed checks its rules (pattern, predicate) when made, before any instance use
+            FactFeed(None, FactBase(), [self.to_rule()])  # type: ignore[arg-type]
+        except OntologyError as exc:
+            raise ValueError(str(exc)) from None
+        return self
+
+    def to_rule(self) -> StreamRule:
+        """The `StreamRule` this table describes."""
+        convert = _Field(self.field) if self.field is not None else None
+        return StreamRule(self.stream, self.predicate, convert=convert, unary=self.unary)
+
+
 class PlatformConfig(BaseModel):
     """One platform's settings, validated at the edge (`load`, `from_dict` name the bad key).
 
@@ -423,6 +475,7 @@ class PlatformConfig(BaseModel):
     ``history_limit_per_platform`` the samples of history kept for one other platform;
     ``import_label`` names the local label of an imported stream, with ``{sender}`` and
     ``{semantic}``. ``sharing`` says what is shared with whom (`SharingSettings`).
+    ``facts`` are the rules keeping `FederationPlatform.facts` current (`FactSettings`).
     ``audit``, when set, is the Interface Agent's JSON-lines audit file, rotated at
     ``audit_max_bytes`` with ``audit_backups`` older files kept (`AuditLog`).
     """
@@ -454,6 +507,7 @@ class PlatformConfig(BaseModel):
     audit_backups: int = Field(default=AuditLog.DEFAULT_BACKUPS, ge=0, le=1000)
     console: ConsoleSettings = Field(default_factory=ConsoleSettings)
     foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
+    facts: list[FactSettings] = Field(default_factory=list)
 
     # -- the application on this node (docs/application.md): run by `dyknow node` --------
     application: Path | None = Field(default=None, description="The node's KPL file.")
@@ -678,7 +732,8 @@ class FederationPlatform:
     ``instance`` and ``transport``, when given, are used instead of new ones and left
     open on exit (their owner closes them). ``join=False`` keeps the platform out of the
     federation until `join` (set up local streams and agents first). ``rules`` keep
-    `facts` current from the instance's streams, for label search by formula.
+    `facts` current from the instance's streams, for label search by formula, after the
+    config's ``[[facts]]``.
     ``on_import_ended(sender, labels)`` is told when a sender whose streams we import is
     gone (its imported streams are then ended). ``anchor`` is asked when another platform
     wants a stream of an object not known here yet (see `FederationAgent`).
@@ -738,7 +793,7 @@ class FederationPlatform:
             self.instance, visibility=gateway_visibility, reserved=(config.import_prefix,)
         )
         self.facts = FactBase()
-        self._rules = list(rules)
+        self._rules = [*(f.to_rule() for f in config.facts), *rules]
         self.labels = PlatformLabels(self.mapping, self.instance, self.facts)
         self.exporter = ExportProxy(
             config.name,

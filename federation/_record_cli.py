@@ -423,7 +423,7 @@ async def run_replay(
             except KPLCheckError as exc:
                 raise ReplayUsageError("\n".join(e.format(str(kpl)) for e in exc.errors)) from None
             except KPLSetupError as exc:
-                raise ReplayUsageError(f"{kpl}:{exc}") from None
+                raise ReplayUsageError(f"{kpl}:{exc.line}:{exc.column}: {exc.message}") from None
         for label in sorted(spec_sources - set(recorded)):
             warn(f"dyknow replay: spec source {label!r} is not in the recording: nothing feeds it")
         if prints is None:

@@ -10,6 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from dyknow_core._exceptions import UnknownLabelError
 from dyknow_core._instance import DyKnowInstance
 from dyknow_core._time import NS_PER_S, ManualClock
 from dyknow_core.reasoning.chronicles import (
@@ -408,6 +409,18 @@ def test_add_chronicle_needs_a_label_for_every_event() -> None:
     with pytest.raises(ChronicleError) as info:
         add_chronicle(inst, PASSED, {})
     assert info.value.field == "inputs"
+
+    with pytest.raises(ChronicleError, match=r"event\(s\) incross \(no event reads 'incros'\)"):
+        add_chronicle(inst, PASSED, {"incros": "events/changed/car/{car}/incross"})
+
+
+def test_add_chronicle_refuses_an_unknown_input_label_before_publishing() -> None:
+    inst = DyKnowInstance(clock=ManualClock())
+    inst.add_source("events/changed/car/car5/incross")
+    with pytest.raises(UnknownLabelError, match="'events/changed/car/car5/incros'") as info:
+        add_chronicle(inst, PASSED, {"incross": "events/changed/car/car5/incros"})
+    assert "chronicles/passed" not in str(info.value)  # not its own output, made and removed
+    assert inst.labels() == ["events/changed/car/car5/incross"]
 
 
 def test_mapping_values_carry_the_arguments() -> None:

@@ -132,6 +132,14 @@ async def test_anchoring_example_joins_and_leaves_on_road() -> None:
     assert on_road == [(10, "joined"), (35, "left")]
     # b2's faint blob never became an object
     assert [who for _, e, _, who in events if e == "created"] == ["visionobject1", "worldobject1"]
+    # each object is reported created before it joins its class, a percept or a link's end
+    created_then_joined = [(e, who) for t, e, _, who in events if t == 0 and "->" not in who]
+    assert created_then_joined == [
+        ("created", "visionobject1"),
+        ("joined", "visionobject1"),
+        ("created", "worldobject1"),
+        ("joined", "worldobject1"),
+    ]
 
 
 @pytest.mark.timeout(30)

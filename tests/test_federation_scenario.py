@@ -800,6 +800,51 @@ async def test_rules_see_the_streams_added_after_the_platform_is_entered(demo_ke
         assert await search("(all ?x (Color ?x red))") == {"labels": []}
 
 
+async def test_config_facts_answer_label_search(demo_keys: Path) -> None:
+    """A config-only node's ``[[facts]]`` tables are its rules: label search by formula
+    answers from them (a dict value's ``field``, a ``unary`` fact)."""
+    hub = MemoryHub()
+    facts = [
+        {"predicate": "Car", "stream": "cars/{object}/state", "unary": True},
+        {"predicate": "Color", "stream": "cars/{object}/state", "field": "colour"},
+    ]
+    async with contextlib.AsyncExitStack() as stack, asyncio.timeout(WAIT):
+        a = await stack.enter_async_context(
+            FederationPlatform(
+                PlatformConfig.from_dict(_config(demo_keys, "uav-a", facts=facts)),
+                transport=await stack.enter_async_context(hub.transport()),
+                join=False,
+            )
+        )
+        a.instance.add_source("cars/car5/state").push({"x": 1.0, "colour": "blue"})
+        car6 = a.instance.add_source("cars/car6/state")
+        car6.push({"x": 2.0, "colour": "red"})
+        search = a.labels.find
+        assert search("(all ?x (and (Car ?x) (Color ?x blue)))") == ["car5-state"]
+        assert search("(all ?x (Color ?x red))") == ["car6-state"]
+        car6.push({"x": 3.0})  # no colour: its Color fact is retracted
+        assert search("(all ?x (Color ?x red))") == []
+        assert search("(all ?x (Car ?x))") == ["car5-state", "car6-state"]
+
+
+@pytest.mark.parametrize(
+    ("table", "message"),
+    [
+        ({"predicate": "Car"}, "facts[0].stream: missing"),
+        ({"predicate": "Car", "stream": "cars/{id}/state"}, "{object}"),
+        ({"predicate": "(Car", "stream": "c/{object}"}, "not an SL word"),
+        ({"predicate": "Car", "stream": "c/{object}", "field": "a", "unary": True}, "exclude"),
+        ({"predicate": "Car", "stream": "c/{object}", "domain": "cars"}, "unknown key"),
+    ],
+)
+def test_config_facts_refused_naming_the_table(
+    demo_keys: Path, table: dict[str, Any], message: str
+) -> None:
+    with pytest.raises(PlatformConfigError, match="facts") as caught:
+        PlatformConfig.from_dict(_config(demo_keys, "uav-a", facts=[table]), source="a.toml")
+    assert message in str(caught.value)
+
+
 async def test_an_export_that_ended_by_itself_frees_its_slot(demo_keys: Path) -> None:
     # regression: the agent kept the record of an export whose `to` had passed, so the same
     # request was refused for ever and the export limit filled up

@@ -206,6 +206,14 @@ def test_lexical_errors() -> None:
     assert errors("source a\n  source @b\n")[0] == (2, 10, "unexpected character '@'")
 
 
+def test_a_number_with_a_unit_is_named_once() -> None:
+    text = "source a\nstream b = a with {max_delay: 300ms}\nstate s = {a: a} every 1s latest\n"
+    assert errors(text) == [
+        (2, 31, "'300ms': a number takes no unit (durations are in seconds)"),
+        (3, 24, "'1s': a number takes no unit (durations are in seconds)"),
+    ]
+
+
 def test_unknown_policy_fields_and_impossible_policies() -> None:
     text = (
         "source a\n"

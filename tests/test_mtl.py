@@ -97,6 +97,12 @@ def test_syntax_errors_point_at_line_and_column(text: str, line: int, column: in
     assert f"line {line}, column {column}" in str(e.value)
 
 
+def test_a_misspelt_operator_is_named() -> None:
+    with pytest.raises(MTLSyntaxError, match="'eventualy' is not an operator") as e:
+        parse("always[0,10](speed < 30 -> eventualy[0,5] on_road)")
+    assert "did you mean 'eventually'?" in str(e.value) and e.value.column == 28
+
+
 # -- progression -------------------------------------------------------------------------------
 
 

@@ -619,6 +619,11 @@ def test_cli_replay_info_and_kpl_json(tmp_path: Path, capsys: pytest.CaptureFixt
     assert main(["replay", str(path), "--kpl", str(bad)]) == 2
     err = capsys.readouterr().err
     assert f"{bad}:1:" in err and "missing/label" in err and "Traceback" not in err
+    # a CU that checks but does not import: FILE:LINE:COL as check's errors are
+    bad.write_text("source car5/speed\ncu c = nowhere_module:f inputs car5/speed output o\n")
+    assert main(["replay", str(path), "--kpl", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert f"{bad}:2:1: cu 'c': " in err and "nowhere_module" in err and "Traceback" not in err
 
 
 def test_cli_help_explains_record_and_replay(capsys: pytest.CaptureFixture[str]) -> None:

@@ -82,6 +82,8 @@ _TOKEN = re.compile(
     re.VERBOSE,
 )
 
+_UNIT = re.compile(r"[A-Za-z_][A-Za-z0-9_./]*")  # right after a number: `1s`, `300ms`
+
 
 @dataclass(frozen=True)
 class _Tok:
@@ -112,6 +114,13 @@ def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError]]:
         kind = m.lastgroup or "ws"
         if kind != "ws":
             toks.append(_Tok(kind, m.group(), pos))
+        unit = _UNIT.match(text, m.end()) if kind == "num" else None
+        if unit is not None:
+            # `every 1s`, `max_delay: 0.3s`: report the unit, keep the number, parse on
+            written = m.group() + unit.group()
+            errs.append((pos, f"'{written}': a number takes no unit (durations are in seconds)"))
+            i = unit.end()
+            continue
         nl = m.group().count("\n")
         if nl:
             line += nl

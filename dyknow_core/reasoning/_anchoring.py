@@ -410,8 +410,9 @@ class Anchoring(Process):
                     if _became(m.step(ts, state, dt), True):
                         self._drop_monitors("establish", lt.name, f)
                         to = self.instance.objects.new_id(self.classes[lt.to_class].id_prefix)
-                        self.join(lt.to_class, to, t)
+                        # created, then joined: the order a created percept reports
                         self._event(t, event="created", **{"class": lt.to_class, "id": to})
+                        self.join(lt.to_class, to, t)
                         self._link(lt.name, f, to, t)
             if lt.compute is not None:
                 patterns = self._patterns(lt.to_class)

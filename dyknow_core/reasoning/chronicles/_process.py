@@ -150,7 +150,10 @@ def add_chronicle(
     )
     missing = sorted(compiled.kinds - set(inputs))
     if missing:
-        raise ChronicleError("inputs", f"no label for event(s) {', '.join(missing)}")
+        # a misspelt input name shows as an unused one
+        unused = sorted(set(inputs) - compiled.kinds)
+        stray = f" (no event reads {', '.join(map(repr, unused))})" if unused else ""
+        raise ChronicleError("inputs", f"no label for event(s) {', '.join(missing)}{stray}")
     output = output or f"chronicles/{compiled.name}"
     name = name or f"chronicle:{compiled.name}"
     if name in instance.processes:
@@ -159,6 +162,8 @@ def add_chronicle(
     for kind, labels in expanded.items():
         if not labels:
             raise ChronicleError(f"inputs.{kind}", f"no published label matches {inputs[kind]!r}")
+        for label, _ in labels:
+            instance.stream(label)  # UnknownLabelError naming it, before the output exists
     gen = instance.create_stream(output, value_type=Recognition)
     proc = ChronicleProcess(name, instance, ChronicleRecognizer(compiled), gen)
     policy = Policy(order=Order.MONOTONE)

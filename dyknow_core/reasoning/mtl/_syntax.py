@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import math
 import re
 from collections.abc import Iterator
@@ -380,6 +381,15 @@ class _Parser:
             return self.comparison(self.constant())
         if t.kind == "name":
             feat = self.feature()
+            if self.tok.kind == "op" and self.tok.text == "[":
+                # `eventualy[0,5] p`: a misspelt operator reads as a feature
+                close = difflib.get_close_matches(t.text, ("always", "eventually"), n=1)
+                hint = f": did you mean {close[0]!r}?" if close else ""
+                raise self.error(
+                    f"{t.text!r} is not an operator (an interval follows always, eventually"
+                    f" or until){hint}",
+                    t.pos,
+                )
             if self.tok.kind == "op" and self.tok.text in _COMPARISONS:
                 return self.comparison(feat)
             return feat
