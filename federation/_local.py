@@ -353,6 +353,9 @@ class LocalChannel:
         self.refused = 0
         self._lock = asyncio.Lock()
         self._exports: dict[tuple[str, str], list[Any]] = {}  # export id, commands following
+        # the streams whose import this channel created: once cancelled, that import is
+        # never the node's own, even while its end is still on its way
+        self._made: set[tuple[str, str]] = set()
         # anyone on the network may ask who we are: screened on the transport's thread, so
         # a flood costs no task each on the event loop (a second node asks once)
         self._who_lock = threading.Lock()
@@ -564,20 +567,25 @@ class LocalChannel:
         following it at once (the first one's sample period) and cancelled after the last.
         """
         p = self.platform
+        key = (target, semantic)
         async with self._lock:
-            entry = self._exports.get((target, semantic))
+            entry = self._exports.get(key)
             if entry is not None:
                 entry[1] += 1
                 return
             rec = p.importer.get(target, semantic)
-            if rec is not None and rec.source is not None and not rec.ended:
+            mine = key in self._made  # made here, cancelled since: never the node's own
+            if not mine and rec is not None and rec.source is not None and not rec.ended:
                 return  # the node's own
             export_id = await p.federation_agent.create_stream(
                 target, [semantic], sample_period=sample_period, timeout=timeout
             )
-            self._exports[(target, semantic)] = [export_id, 1]
+            self._exports[key] = [export_id, 1]
+            self._made.add(key)
 
     async def _release(self, target: str, semantic: str) -> None:
+        # Cancelled under the lock: a command asking for the stream meanwhile would
+        # otherwise follow the import being cancelled and wait for samples for ever.
         async with self._lock:
             entry = self._exports.get((target, semantic))
             if entry is None:
@@ -586,10 +594,10 @@ class LocalChannel:
             if entry[1] > 0:
                 return
             del self._exports[(target, semantic)]
-        try:
-            await self.platform.federation_agent.cancel_stream(target, entry[0], timeout=2.0)
-        except Exception as exc:  # the export ends with its lease there anyway
-            log.info("local: cancelling the export %s at %s: %s", entry[0], target, exc)
+            try:
+                await self.platform.federation_agent.cancel_stream(target, entry[0], timeout=2.0)
+            except Exception as exc:  # the export ends with its lease there anyway
+                log.info("local: cancelling the export %s at %s: %s", entry[0], target, exc)
 
     async def _relay(
         self,

@@ -345,3 +345,45 @@ async def test_a_channel_never_unlinks_a_socket_a_node_listens_on(
                 writer.close()
                 assert channel.path == path
             assert not path.exists()
+
+
+@pytest.mark.timeout(150)
+def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(tmp_path: Path) -> None:
+    """One command's stream ends (its export cancelled) just as the next asks for it.
+
+    The channel followed the import being cancelled as if it were the node's own, and the
+    next command waited for samples for ever (a full suite, loaded: `record` after `stream`).
+    """
+    station = Station(tmp_path)
+    console = None
+    try:
+        station.start("python")
+        console = subprocess.Popen(
+            [*CLI, "console", "--config", "operator.toml", "--port", "0"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        assert console.stdout is not None
+        assert "operator ready" in console.stdout.readline()
+        for n in range(4):  # each ends its stream as the next one asks for it
+            done = subprocess.run(
+                [
+                    *(*CLI, "stream", "temperature", "-p", "station", "--count", "1"),
+                    *("--config", "operator.toml", "--json", "--wait", "10"),
+                ],
+                capture_output=True,
+                text=True,
+                cwd=station.dir,
+                env=station.env,
+                timeout=40,
+            )
+            assert done.returncode == 0, (n, done.stderr)
+            assert len(done.stdout.splitlines()) == 1, (n, done.stdout)
+    finally:
+        if console is not None:
+            console.terminate()
+            console.communicate(timeout=20)
+        station.stop()
