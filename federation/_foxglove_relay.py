@@ -26,7 +26,7 @@ from typing import Any
 import aiohttp
 from aiohttp import WSMsgType, web
 
-from .console import ConsoleAccess
+from .console import ConsoleAccess, serve
 
 __all__ = ["MAX_CONNECTIONS", "SUBPROTOCOLS", "FoxgloveRelay"]
 
@@ -93,14 +93,8 @@ class FoxgloveRelay:
             self._session = await stack.enter_async_context(aiohttp.ClientSession(timeout=timeout))
             app = web.Application()
             app.router.add_get("/{tail:.*}", self._upgrade)
-            runner = web.AppRunner(app, shutdown_timeout=2.0, access_log=None)
-            await runner.setup()
-            stack.push_async_callback(runner.cleanup)
+            self.port = await serve(app, self.host, self.port, stack, self.access)
             stack.push_async_callback(self._close_all)  # before the runner's cleanup
-            site = web.TCPSite(runner, self.host, self.port)
-            await site.start()
-            if runner.addresses:
-                self.port = int(runner.addresses[0][1])
         except BaseException:
             await stack.aclose()
             raise
