@@ -9,6 +9,7 @@ process has no token). Each refusal is asserted with its status, its count in
 
 from __future__ import annotations
 
+import contextlib
 import http.client
 import json
 import os
@@ -28,7 +29,9 @@ from typer.testing import CliRunner
 
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
+from federation import PlatformConfig
 from federation._cli_app import app
+from federation._local import _LINE, channel_path
 from federation.console import (
     ALLOW_HOSTS_ENV,
     IDLE_TIMEOUT,
@@ -359,6 +362,12 @@ def test_malformed_requests_are_answered_400_without_a_traceback(console: Consol
     for path, headers, body, want in [
         ("/api/query", post, deep, "body: JSON nested too deep"),
         ("/api/search", post, b'{"a":' * 50_000 + b"1" + b"}" * 50_000, "nested too deep"),
+        (  # a formula the page passes on to every member: parsed here first
+            "/api/search",
+            post,
+            json.dumps({"formula": "(not " * 5_000 + "(Car x)" + ")" * 5_000}).encode(),
+            "nested deeper than 64",
+        ),
         (
             "/api/observation",
             {**post, "Content-Type": "application/json; charset=bogus"},
@@ -375,6 +384,29 @@ def test_malformed_requests_are_answered_400_without_a_traceback(console: Consol
             conn.close()
         assert r.status == 400 and want in answer["error"], (path, r.status, answer)
     assert c.stats()["refused_total"] == 0
+
+
+@pytest.mark.timeout(60)
+def test_an_overlong_request_on_the_local_channel_is_answered_not_a_traceback(
+    console: Console, tmp_path: Path
+) -> None:
+    # the console is a node: its local channel (same user only) reads one request line of
+    # at most 1 MiB; a longer one was a ValueError out of the handler, logged with a
+    # traceback (the fixture's end checks the log), and the client got no answer
+    path = channel_path(PlatformConfig.load(tmp_path / "operator.toml"))
+    with socket.socket(socket.AF_UNIX) as s:
+        s.settimeout(WAIT)
+        s.connect(str(path))
+        hello = s.makefile("rb").readline()
+        assert b'"node"' in hello
+        # shut our side once sent: the node's answer then comes as its close, no reset
+        s.sendall(b"x" * (_LINE + 10))
+        s.shutdown(socket.SHUT_WR)
+        answer = b""
+        with contextlib.suppress(ConnectionResetError):
+            while chunk := s.recv(65536):
+                answer += chunk
+    assert not answer or b"longer than" in answer, answer
 
 
 # -- choosing the token ----------------------------------------------------------------------
