@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from _node_example import Station, _samples, _stats
 
 from tests.test_console_access import write_operator
 
@@ -99,3 +100,23 @@ def test_a_config_or_vocabulary_that_breaks_the_toml_reader_is_named(
     assert r.returncode == 2, (r.returncode, r.stderr[-2000:])
     assert f"{bad}: {want}" in r.stderr, r.stderr
     assert "Traceback" not in r.stderr
+
+
+@pytest.mark.timeout(120)
+def test_a_line_nested_past_the_stack_is_one_bad_message_of_a_file_input(tmp_path: Path) -> None:
+    # examples/node's station replaying its JSON-lines file, a hostile line first: the
+    # JSON reader's RecursionError ended the whole input (nothing of the file replayed)
+    station = Station(tmp_path)
+    try:
+        jsonl = station.dir / "observations.jsonl"
+        jsonl.write_text("[" * 100_000 + "]" * 100_000 + "\n" + jsonl.read_text())
+        station.start("file")
+        station.latest(
+            "temperature", until=lambda a: _samples(a, "temperature")[0][0] == 19.5
+        )  # the file's last line: every line after the hostile one replayed
+        out, err = station.stop()
+    finally:
+        station.stop()
+    [row] = [r for r in _stats(out) if str(r.get("input", "")).endswith("observations.jsonl")]
+    assert row["bad"] == {"bad-time": 1, "not-json": 1} and row["samples"] == 20, row
+    assert "line 1: nested too deep" in err and "Traceback" not in err
