@@ -26,7 +26,7 @@ from typing import Any
 import aiohttp
 from aiohttp import WSMsgType, web
 
-from .console import ConsoleAccess
+from .console import ConsoleAccess, serve
 
 __all__ = ["MAX_CONNECTIONS", "SUBPROTOCOLS", "FoxgloveRelay"]
 
@@ -74,6 +74,7 @@ class FoxgloveRelay:
         self.relayed = 0  # connections relayed so far
         self.declined = 0  # upgrades of token holders not relayed (see `_upgrade`)
         self._open: set[web.WebSocketResponse] = set()
+        self._taken = 0  # clients opening (the inner connection under way) or open
         self._stack: contextlib.AsyncExitStack | None = None
         self._session: aiohttp.ClientSession | None = None
 
@@ -93,14 +94,8 @@ class FoxgloveRelay:
             self._session = await stack.enter_async_context(aiohttp.ClientSession(timeout=timeout))
             app = web.Application()
             app.router.add_get("/{tail:.*}", self._upgrade)
-            runner = web.AppRunner(app, shutdown_timeout=2.0, access_log=None)
-            await runner.setup()
-            stack.push_async_callback(runner.cleanup)
+            self.port = await serve(app, self.host, self.port, stack, self.access)
             stack.push_async_callback(self._close_all)  # before the runner's cleanup
-            site = web.TCPSite(runner, self.host, self.port)
-            await site.start()
-            if runner.addresses:
-                self.port = int(runner.addresses[0][1])
         except BaseException:
             await stack.aclose()
             raise
@@ -135,10 +130,19 @@ class FoxgloveRelay:
         if not wanted:
             self.declined += 1
             return _json_error(400, f"offer a subprotocol of {', '.join(SUBPROTOCOLS)}")
-        if len(self._open) >= MAX_CONNECTIONS:
+        if self._taken >= MAX_CONNECTIONS:
             self.declined += 1
-            log.warning("foxglove: %d clients; declined %s", len(self._open), request.remote)
+            log.warning("foxglove: %d clients; declined %s", self._taken, request.remote)
             return _json_error(503, f"{MAX_CONNECTIONS} clients are watching already")
+        # taken before the first wait: upgrades at once must not all pass the check above
+        self._taken += 1
+        try:
+            return await self._connect(request, wanted)
+        finally:
+            self._taken -= 1
+
+    async def _connect(self, request: web.Request, wanted: list[str]) -> web.StreamResponse:
+        """Open the inner connection, answer the upgrade, relay until either side closes."""
         assert self._session is not None
         try:
             inner = await self._session.ws_connect(

@@ -571,6 +571,8 @@ def _rows(path: Path, fmt: str) -> list[Any]:
                     rows.append(json.loads(line))
                 except ValueError as exc:
                     rows.append(BadMessage("not-json", f"line {n}: {exc}"))
+                except RecursionError:  # one line must not end the whole file's replay
+                    rows.append(BadMessage("not-json", f"line {n}: nested too deep"))
         return rows
 
 

@@ -87,6 +87,7 @@ _LINE = 1 << 20  # longest request line accepted (1 MiB)
 _REFUSE_WAIT = 5.0  # s a refused client has to send its request before the refusal
 _HELLO_WAIT = 10.0  # s a node has to state its key once a command connected
 _IDENTITY_WAIT = 2.0  # s the refusal waits for the running node to say where it runs
+_REQUEST_WAIT = 30.0  # s a command has to send its request once the node stated its key
 ALIVE_WAIT = 1.0
 """Seconds one ask for a platform's token may take (zenoh returns once every peer answered)."""
 IDENTITY_RATE = 10.0
@@ -483,12 +484,19 @@ class LocalChannel:
             # config (same names, other key) stops here, its request unsent
             writer.write(self._hello)
             await writer.drain()
-            line = await reader.readline()
+            try:
+                line = await asyncio.wait_for(reader.readline(), _REQUEST_WAIT)
+            except TimeoutError:
+                await send({"error": f"bad request: none came within {_REQUEST_WAIT:g} s"})
+                return
+            except ValueError:  # past the reader's limit (asyncio's LimitOverrunError)
+                await send({"error": f"bad request: a line longer than {_LINE} bytes"})
+                return
             try:
                 request = json.loads(line)
                 if not isinstance(request, dict):
                     raise ValueError("not a JSON object")
-            except ValueError as exc:
+            except (ValueError, RecursionError) as exc:
                 await send({"error": f"bad request: {exc}"})
                 return
             self.served += 1

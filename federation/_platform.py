@@ -558,6 +558,12 @@ class PlatformConfig(BaseModel):
             raise PlatformConfigError(str(path), None, f"cannot be read: {exc.strerror}") from None
         except tomllib.TOMLDecodeError as exc:
             raise PlatformConfigError(str(path), None, f"not valid TOML: {exc}") from None
+        except UnicodeDecodeError as exc:  # TOML is UTF-8
+            raise PlatformConfigError(
+                str(path), None, f"not UTF-8 text: {exc.reason} at byte {exc.start}"
+            ) from None
+        except RecursionError:  # tomllib recurses into nested arrays and tables
+            raise PlatformConfigError(str(path), None, "not valid TOML: nested too deep") from None
         return cls.from_dict(data, source=str(path)).relative_to(path.parent)
 
     def relative_to(self, base: str | Path) -> PlatformConfig:

@@ -315,7 +315,20 @@ class RosbagRecording:
         self.problems.clear()
         store = _typestore(self.distro)
         with Reader(self.path) as bag:
-            for conn, t, data in bag.messages():
+            messages = bag.messages()
+            while True:
+                try:
+                    conn, t, data = next(messages)
+                except StopIteration:
+                    break
+                except Exception as exc:  # a damaged database: rosbags and SQLite raise many
+                    raise RecordError(
+                        f"{self.path}: damaged rosbag2 bag: {type(exc).__name__}: {exc}"
+                    ) from None
+                if type(t) is not int:  # a time stamp that is no integer (a damaged row)
+                    raise RecordError(
+                        f"{self.path}: damaged rosbag2 bag: a time stamp is {type(t).__name__}"
+                    )
                 rostype, label = conn.msgtype, topic_label(conn.topic)
                 if conn.msgdef is not None:
                     _learn_type(store, rostype, "ros2msg", conn.msgdef.data)

@@ -164,6 +164,11 @@ def _read_toml(path: str | Path) -> dict[str, Any]:
         raise VocabularyError(str(path), None, f"cannot be read: {exc.strerror}") from exc
     except tomllib.TOMLDecodeError as exc:
         raise VocabularyError(str(path), None, f"not valid TOML: {exc}") from exc
+    except UnicodeDecodeError as exc:  # TOML is UTF-8
+        reason = f"not UTF-8 text: {exc.reason} at byte {exc.start}"
+        raise VocabularyError(str(path), None, reason) from None
+    except RecursionError:  # tomllib recurses into nested arrays and tables
+        raise VocabularyError(str(path), None, "not valid TOML: nested too deep") from None
 
 
 def _check_keys(data: Any, allowed: tuple[str, ...], source: str) -> Mapping[str, Any]:

@@ -212,6 +212,10 @@ _UNSUPPORTED = frozenset(
     | {"feasible", "done", "result", "set", "sequence", "action"}
 )
 _OPERATORS = "all, any, iota, and, or, not"
+MAX_DEPTH = 64
+"""Levels a formula may nest (``(not (and (not …))))``): the parser and every walk over a
+formula recurse, and Python's stack is 1000 frames deep. A formula comes from anyone who
+may ask (a search of another member, the console's page)."""
 
 
 class _Token:
@@ -290,6 +294,7 @@ class _Parser:
         self.text = text
         self.tokens = _tokenize(text)
         self.i = 0
+        self.depth = 0  # formulas open (`MAX_DEPTH`)
 
     def error(self, message: str, token: _Token | int) -> SLSyntaxError:
         pos = token if isinstance(token, int) else token.pos
@@ -390,8 +395,14 @@ class _Parser:
         tok = self.peek()
         if tok.kind == ")":
             raise self.error("expected a formula, found ')'", tok)
+        if self.depth >= MAX_DEPTH:
+            raise self.error(f"formula nested deeper than {MAX_DEPTH} levels", tok)
         opening = self.open("a formula")
-        return self.rest_of_formula(opening, self.head(opening))
+        self.depth += 1
+        try:
+            return self.rest_of_formula(opening, self.head(opening))
+        finally:
+            self.depth -= 1
 
     def rest_of_formula(self, opening: _Token, head: _Token) -> Formula:
         name = head.text

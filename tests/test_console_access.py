@@ -9,11 +9,13 @@ process has no token). Each refusal is asserted with its status, its count in
 
 from __future__ import annotations
 
+import contextlib
 import http.client
 import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -27,8 +29,17 @@ from typer.testing import CliRunner
 
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
+from federation import PlatformConfig
 from federation._cli_app import app
-from federation.console import ALLOW_HOSTS_ENV, TOKEN_ENV, allowed_names, configured_token
+from federation._local import _LINE, channel_path
+from federation.console import (
+    ALLOW_HOSTS_ENV,
+    IDLE_TIMEOUT,
+    MAX_CLIENTS,
+    TOKEN_ENV,
+    allowed_names,
+    configured_token,
+)
 from federation.console._access import AUDIT_BURST, REPORT_INTERVAL
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -277,6 +288,125 @@ def test_a_flood_of_bad_requests_is_counted_not_audited_one_by_one(console: Cons
     assert single == stats["audited"] and len(records) <= budget + 2
     summary = next(r for r in records if "count" in r)
     assert summary["verdict"] == "refused" and "without a record each" in summary["reason"]
+
+
+def _closed(sock: socket.socket) -> bool:
+    """Whether the peer closed ``sock`` (what it answered first is read and dropped)."""
+    sock.settimeout(0.0)
+    try:
+        while data := sock.recv(65536):
+            del data
+        return True
+    except BlockingIOError:
+        return False
+    except OSError:  # reset
+        return True
+
+
+@pytest.mark.timeout(120)
+def test_slow_and_silent_clients_cost_the_console_bounded_connections(console: Console) -> None:
+    # Anyone who can reach the port, no token: connections that start a request and never
+    # finish it (slowloris). Each holds a file descriptor of the node's process; unbounded,
+    # and kept for aiohttp's hour, they were the node's every descriptor (its sessions, its
+    # audit file too). Now: MAX_CLIENTS at most, the next answered 503, each closed after
+    # IDLE_TIMEOUT s without a whole request.
+    c = console
+    held = []
+    try:
+        for _ in range(MAX_CLIENTS):
+            s = socket.create_connection(("127.0.0.1", c.port), timeout=WAIT)
+            s.sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # never ended
+            held.append(s)
+        deadline = time.monotonic() + WAIT
+        while True:  # once the console took the held ones in, one more is refused
+            extra = socket.create_connection(("127.0.0.1", c.port), timeout=0.5)
+            try:
+                answer = extra.recv(4096)
+            except TimeoutError:  # served: some held ones were still in the backlog
+                held.append(extra)
+            else:
+                extra.close()
+                if answer.startswith(b"HTTP/1.1 503"):
+                    break
+            assert time.monotonic() < deadline
+        assert b"too many connections" in answer
+        fds = len(os.listdir(f"/proc/{c.proc.pid}/fd"))
+        assert fds < MAX_CLIENTS + 100, fds  # the held ones, and what the node had
+        time.sleep(IDLE_TIMEOUT + 2.0)
+        still = [s for s in held if not _closed(s)]
+        assert not still, f"{len(still)} of {len(held)} slow connections still open"
+    finally:
+        for s in held:
+            s.close()
+    stats = c.stats()  # served again
+    assert stats["busy"] >= 1 and stats["refused_total"] == 0, stats
+
+
+@pytest.mark.timeout(60)
+def test_malformed_requests_are_answered_400_without_a_traceback(console: Console) -> None:
+    # the fixture's end asserts no traceback in the console's log: neither the outsider's
+    # broken request (aiohttp logs it) nor the token holder's odd body (ours) leaves one
+    c = console
+
+    def raw(request: bytes) -> bytes:
+        with socket.create_connection(("127.0.0.1", c.port), timeout=WAIT) as s:
+            s.sendall(request)
+            return s.recv(4096)
+
+    host = f"Host: 127.0.0.1:{c.port}\r\n".encode()
+    for _ in range(3):
+        answer = raw(b"GET /api/state HTTP/1.1\r\n" + host + b"Host: evil.example\r\n\r\n")
+        assert answer.startswith(b"HTTP/1.0 400") and b"Duplicate 'Host'" in answer, answer
+    post = {**c.bearer(), "Content-Type": "application/json"}
+    deep = b"[" * 100_000 + b"]" * 100_000
+    for path, headers, body, want in [
+        ("/api/query", post, deep, "body: JSON nested too deep"),
+        ("/api/search", post, b'{"a":' * 50_000 + b"1" + b"}" * 50_000, "nested too deep"),
+        (  # a formula the page passes on to every member: parsed here first
+            "/api/search",
+            post,
+            json.dumps({"formula": "(not " * 5_000 + "(Car x)" + ")" * 5_000}).encode(),
+            "nested deeper than 64",
+        ),
+        (
+            "/api/observation",
+            {**post, "Content-Type": "application/json; charset=bogus"},
+            b"{}",
+            "charset 'bogus'",
+        ),
+    ]:
+        conn = http.client.HTTPConnection("127.0.0.1", c.port, timeout=WAIT)
+        try:
+            conn.request("POST", path, body=body, headers=headers)
+            r = conn.getresponse()
+            answer = json.loads(r.read())
+        finally:
+            conn.close()
+        assert r.status == 400 and want in answer["error"], (path, r.status, answer)
+    assert c.stats()["refused_total"] == 0
+
+
+@pytest.mark.timeout(60)
+def test_an_overlong_request_on_the_local_channel_is_answered_not_a_traceback(
+    console: Console, tmp_path: Path
+) -> None:
+    # the console is a node: its local channel (same user only) reads one request line of
+    # at most 1 MiB; a longer one was a ValueError out of the handler, logged with a
+    # traceback (the fixture's end checks the log), and the client got no answer
+    path = channel_path(PlatformConfig.load(tmp_path / "operator.toml"))
+    with socket.socket(socket.AF_UNIX) as s:
+        s.settimeout(WAIT)
+        s.connect(str(path))
+        hello = s.makefile("rb").readline()
+        assert b'"node"' in hello
+        # shut our side once sent: the node's answer then comes as its close, no reset
+        s.sendall(b"x" * (_LINE + 10))
+        s.shutdown(socket.SHUT_WR)
+        answer = b""
+        with contextlib.suppress(ConnectionResetError):
+            while chunk := s.recv(65536):
+                answer += chunk
+    assert not answer or b"longer than" in answer, answer
 
 
 # -- choosing the token ----------------------------------------------------------------------

@@ -611,3 +611,55 @@ async def test_the_relay_lets_in_only_the_token_from_an_allowed_origin(tmp_path:
         assert refused.value.status == 400
         stats = bridge.stats()
         assert (stats["relayed"], stats["declined"], stats["refused_total"]) == (2, 1, 9)
+
+
+@pytest.mark.timeout(120)
+async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> None:
+    """``dyknow foxglove`` as a process: many upgrades at once, slow clients; both bounded."""
+    from federation._foxglove_relay import MAX_CONNECTIONS
+    from federation.console import IDLE_TIMEOUT
+    from tests.test_console_access import write_operator
+
+    config = write_operator(tmp_path)
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        *("-m", "federation.cli", "foxglove", "--config", str(config), "--port", "0"),
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    try:
+        assert proc.stdout is not None
+        async with asyncio.timeout(60):
+            while b"ready in federation" not in (line := await proc.stdout.readline()):
+                assert line, "dyknow foxglove ended before it was ready"
+        login = line.decode().split(": ")[-1].strip()
+        port = int(login.split(":")[2].split("/")[0])
+        async with aiohttp.ClientSession() as session:
+            # a token holder's upgrades at once: each waited for its inner connection
+            # before any was counted, so all passed the bound
+            async def upgrade() -> aiohttp.ClientWebSocketResponse | int:
+                try:
+                    return await session.ws_connect(login, protocols=["foxglove.sdk.v1"])
+                except aiohttp.WSServerHandshakeError as exc:
+                    return exc.status
+
+            tries = await asyncio.gather(*(upgrade() for _ in range(MAX_CONNECTIONS + 16)))
+            relayed = [t for t in tries if not isinstance(t, int)]
+            assert len(relayed) == MAX_CONNECTIONS
+            assert sorted(t for t in tries if isinstance(t, int)) == [503] * 16
+            for ws in relayed:
+                await ws.close()
+        # an outsider's connection that never ends its request is closed, not kept
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
+        async with asyncio.timeout(IDLE_TIMEOUT + 10):
+            assert await reader.read() == b""
+        writer.close()
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGINT)
+        async with asyncio.timeout(30):
+            _, err = await proc.communicate()
+        assert "Traceback" not in err.decode(), err.decode()[-3000:]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import io
 import json
 import os
@@ -459,6 +460,37 @@ def test_replay_of_a_rosbag2_bag_written_by_rosbags(
     assert _ros_rows(capsys.readouterr().out) == _expected_ros_rows()
     assert main(["replay", "--info", str(bag)]) == 0
     assert "rosbag2" in capsys.readouterr().out
+
+
+def test_a_damaged_rosbag2_bag_is_named_not_a_crash(tmp_path: Path) -> None:
+    """A bag whose database holds a time stamp that is no integer: exit 2 naming the bag."""
+    import sqlite3
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    bag = tmp_path / "damaged_bag"
+    with Writer(bag, version=9, storage_plugin=StoragePlugin.SQLITE3) as w:
+        conns: dict[str, Any] = {}
+        for topic, rostype, msg, t in _ros_messages():
+            if topic not in conns:
+                conns[topic] = w.add_connection(topic, rostype, typestore=store)
+            w.write(conns[topic], t, bytes(store.serialize_cdr(msg, rostype)))
+    (db,) = bag.glob("*.db3")
+    with contextlib.closing(sqlite3.connect(db)) as con, con:
+        con.execute("UPDATE messages SET timestamp = X'00' WHERE id = 2")  # a blob
+    for args in (["--info", str(bag)], [str(bag)]):  # a process of its own, as a user runs it
+        r = subprocess.run(
+            [sys.executable, "-m", "federation.cli", "replay", *args],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=60,
+        )
+        assert r.returncode == 2, (r.returncode, r.stderr)
+        assert f"{bag}: damaged rosbag2 bag: a time stamp is bytes" in r.stderr, r.stderr
+        assert "Traceback" not in r.stderr
 
 
 def test_replay_of_a_ros2_mcap_file_written_by_the_mcap_library(

@@ -16,6 +16,14 @@ Every refusal is counted (`refusals`, ``GET /api/stats``) and recorded in the pl
 audit (the Interface Agent's `AuditLog`, ``stage: "console"``) and the log, within a
 budget: past it, refusals are counted and summed up in one record per `REPORT_INTERVAL`.
 
+Below all that, `serve` bounds what any client costs before it says anything: at most
+`MAX_CLIENTS` connections at once (each holds a file descriptor of the node's process;
+past it a new one is answered 503 and closed, counted as ``busy``), and a connection that
+has sent no whole request within `IDLE_TIMEOUT` seconds is closed (slow headers, an idle
+keep-alive). A request that is not HTTP (a duplicate ``Host``, a broken header) is
+answered 400 by aiohttp and logged in one line, within the budget above, never with a
+traceback: anyone can send one.
+
 The same guard stands before another server's WebSocket upgrades (`check_upgrade`: the
 Foxglove relay, ``stage: "foxglove"``): the token in ``?token=`` or a Bearer, no cookie,
 and an ``Origin`` of its own list (``origins``) besides its own.
@@ -35,20 +43,24 @@ import secrets
 import time
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from agents import AuditLog, TokenBucket
 
 __all__ = [
     "ALLOW_HOSTS_ENV",
+    "IDLE_TIMEOUT",
+    "MAX_CLIENTS",
     "TOKEN_ENV",
     "ConsoleAccess",
     "allowed_names",
     "check_token",
     "configured_token",
     "new_token",
+    "serve",
 ]
 
 log = logging.getLogger("federation.console")
@@ -64,6 +76,15 @@ AUDIT_RATE = 2.0  # refusal records per second in the audit and the log, past th
 AUDIT_BURST = 20.0
 REPORT_INTERVAL = 5.0  # s: refusals past the budget are summed up this often
 FIELD_MAX = 200  # characters of a header or path kept in a record (they are the client's)
+MAX_CLIENTS = 128
+"""Connections one server (the console, a Foxglove relay) keeps at once; past it, 503."""
+IDLE_TIMEOUT = 15.0
+"""Seconds a connection may stay open without a whole request (slow headers, keep-alive)."""
+_BUSY_BODY = b'{"error": "too many connections open"}'
+_BUSY = (
+    b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+    b"Content-Length: %d\r\nConnection: close\r\n\r\n%s" % (len(_BUSY_BODY), _BUSY_BODY)
+)
 
 _TOKEN_CHARS = re.compile(r"[A-Za-z0-9._~-]+")  # unreserved URL characters: no escaping
 _HOST_NAME = re.compile(r"[a-z0-9]([a-z0-9-]*[a-z0-9])?(\.[a-z0-9]([a-z0-9-]*[a-z0-9])?)*")
@@ -182,6 +203,7 @@ class ConsoleAccess:
         self._cookie_value = hmac.new(self.token.encode(), b"console-cookie", "sha256").hexdigest()
         self.refusals: dict[str, int] = {"host": 0, "origin": 0, "no-token": 0, "bad-token": 0}
         self.audited = 0  # refusals with a record of their own
+        self.busy = 0  # connections closed unserved: `MAX_CLIENTS` were open (`serve`)
         self._budget = TokenBucket(AUDIT_RATE, AUDIT_BURST, time.monotonic())
         self._unaudited = 0  # refusals since the last summary, past the budget
 
@@ -199,6 +221,7 @@ class ConsoleAccess:
             "refused": dict(self.refusals),
             "refused_total": sum(self.refusals.values()),
             "audited": self.audited,
+            "busy": self.busy,
             "allow_hosts": sorted(self.allow_hosts),
         }
 
@@ -350,3 +373,88 @@ class ConsoleAccess:
                 self.report()
         finally:
             self.report()
+
+
+class _MalformedRequests(logging.Filter):
+    """aiohttp's record of a request that is not HTTP: one line, within a budget."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._budget = TokenBucket(AUDIT_RATE, AUDIT_BURST, time.monotonic())
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """Keep the record without its traceback, or drop it past the budget."""
+        exc = record.exc_info[1] if record.exc_info else None
+        if not isinstance(exc, HttpProcessingError):
+            return True  # an error of ours: its traceback is wanted
+        if not self._budget.take(time.monotonic()):
+            return False
+        record.msg = f"{record.getMessage()}: {exc.code} {_clip(str(exc.message))}"
+        record.args, record.exc_info, record.exc_text = (), None, None
+        record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+
+_http_log = logging.getLogger("federation.console.http")
+_http_log.addFilter(_MalformedRequests())
+
+
+class _Busy(asyncio.Protocol):
+    """A connection past `MAX_CLIENTS`: answered 503 and closed, its request never read."""
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        """Answer 503 and close."""
+        # a write transport (uvloop's is no subclass of asyncio's: no isinstance check)
+        cast(asyncio.WriteTransport, transport).write(_BUSY)
+        transport.close()
+
+
+async def serve(
+    app: web.Application,
+    host: str,
+    port: int,
+    stack: contextlib.AsyncExitStack,
+    access: ConsoleAccess,
+    *,
+    max_clients: int = MAX_CLIENTS,
+) -> int:
+    """Serve ``app`` on ``host``:``port`` until ``stack`` closes; the port bound.
+
+    Unlike a plain `aiohttp.web.TCPSite`, what a client costs is bounded before it sends
+    a request: ``max_clients`` connections at once (more are answered 503, counted in
+    ``access.busy``), and a connection without a whole request within `IDLE_TIMEOUT` s is
+    closed (aiohttp's own default keeps one for an hour). Requests under way (an event
+    stream, a WebSocket) are not timed.
+    """
+    runner = web.AppRunner(
+        app,
+        shutdown_timeout=2.0,
+        access_log=None,
+        keepalive_timeout=IDLE_TIMEOUT,
+        logger=_http_log,
+    )
+    await runner.setup()
+    stack.push_async_callback(runner.cleanup)
+    server = runner.server
+    assert server is not None
+
+    def connection() -> asyncio.Protocol:
+        if len(server.connections) < max_clients:
+            return server()
+        access.busy += 1
+        if access._budget.take(time.monotonic()):
+            log.warning(
+                "%s: %d connections open; one more closed unserved (%d so far)",
+                access.stage,
+                max_clients,
+                access.busy,
+            )
+        return _Busy()
+
+    listener = await asyncio.get_running_loop().create_server(
+        connection, host or None, port, reuse_address=True
+    )
+    # first out: no new connection, then the runner closes those open (never wait_closed
+    # here: it waits for every connection, which the runner has not closed yet)
+    stack.callback(listener.close)
+    return int(listener.sockets[0].getsockname()[1])

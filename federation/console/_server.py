@@ -45,7 +45,7 @@ from .._follow import REQUEST_TIMEOUT, FollowedStream, cancel_export, follow, re
 from .._platform import ConsoleSettings, FederationPlatform
 from .._proxy_base import OwnedTasks
 from .._service import MembershipEvent
-from ._access import ConsoleAccess
+from ._access import ConsoleAccess, serve
 
 __all__ = ["OperatorConsole"]
 
@@ -248,16 +248,9 @@ class OperatorConsole:
         app.router.add_post("/api/observation", self._post_observation)
         app.router.add_get("/api/stats", self._get_stats)
         # Event streams end as soon as we close (they watch `_closing`): no long wait.
-        runner = web.AppRunner(app, shutdown_timeout=2.0, access_log=None)
-        await runner.setup()
-        stack.push_async_callback(runner.cleanup)
-        site = web.TCPSite(runner, self.host, self.port)
-        await site.start()
-        addresses = runner.addresses  # the port bound, when we asked for any (0)
-        if addresses:
-            self.port = int(addresses[0][1])
-            # one cookie per console port: two consoles on one machine keep theirs apart
-            self.access.cookie = f"dyknow_console_{self.port}"
+        self.port = await serve(app, self.host, self.port, stack, self.access)
+        # one cookie per console port: two consoles on one machine keep theirs apart
+        self.access.cookie = f"dyknow_console_{self.port}"
         # a wildcard address is no place to open: the same server on loopback is
         host = "127.0.0.1" if _is_wildcard(self.host) else self.host
         host = f"[{host}]" if ":" in host else host
@@ -688,6 +681,10 @@ async def _body(request: web.Request) -> dict[str, Any]:
         body = await request.json()
     except (ValueError, UnicodeDecodeError) as exc:
         raise BadRequest(f"body: not JSON: {exc}") from exc
+    except RecursionError:
+        raise BadRequest("body: JSON nested too deep") from None
+    except LookupError:  # the Content-Type's charset
+        raise BadRequest(f"body: charset {request.charset!r} is not one Python knows") from None
     if not isinstance(body, dict):
         raise BadRequest("body: expected a JSON object")
     return body

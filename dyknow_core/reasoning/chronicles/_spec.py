@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -19,6 +19,9 @@ class ChronicleError(DyKnowError, ValueError):
 
 
 # -- definitions at the edge ---------------------------------------------------------------
+
+# Seconds of a window, finite and bounded (about 31 years): 1e300 s is no time line's
+Seconds = Annotated[float, Field(allow_inf_nan=False, ge=-1e9, le=1e9)]
 
 
 def _as_arg_map(v: Any) -> Any:
@@ -49,8 +52,8 @@ class ConstraintSpec(BaseModel):
 
     start: str
     end: str
-    lo: float | None = None
-    hi: float | None = None
+    lo: Seconds | None = None
+    hi: Seconds | None = None
 
 
 class ForbiddenSpec(BaseModel):
@@ -64,8 +67,8 @@ class ForbiddenSpec(BaseModel):
     to: Any = None
     start: str
     end: str | None = None
-    lo: float | None = None
-    hi: float | None = None
+    lo: Seconds | None = None
+    hi: Seconds | None = None
 
     _norm_args = field_validator("args", mode="before")(_as_arg_map)
 

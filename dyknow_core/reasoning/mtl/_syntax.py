@@ -216,6 +216,9 @@ _KEYWORDS = {
     "true", "false", "inf", "implies",
 }  # fmt: skip
 _COMPARISONS = {"<", "<=", ">", ">=", "==", "!="}
+MAX_DEPTH = 64
+"""Levels a formula may nest (operators, parentheses, chained ``and``/``or``): the parser
+and every walk over a formula recurse, and Python's stack is 1000 frames deep."""
 
 
 class _Tok(NamedTuple):
@@ -230,6 +233,7 @@ class _Parser:
         self.toks = self._lex(text)
         self.i = 0
         self.bound: list[str] = []
+        self.depth = 0  # nesting levels entered (`MAX_DEPTH`)
 
     def where(self, pos: int) -> tuple[int, int]:
         line = self.text.count("\n", 0, pos) + 1
@@ -279,6 +283,12 @@ class _Parser:
             return t
         raise self.error(f"expected {text!r}, found {_describe(t)}", t.pos)
 
+    def nest(self) -> None:
+        """One level deeper, or MTLSyntaxError past `MAX_DEPTH` (the caller restores depth)."""
+        self.depth += 1
+        if self.depth > MAX_DEPTH:
+            raise self.error(f"nested deeper than {MAX_DEPTH} levels", self.tok.pos)
+
     def parse(self) -> Formula:
         f = self.formula()
         t = self.tok
@@ -287,6 +297,14 @@ class _Parser:
         return f
 
     def formula(self) -> Formula:
+        depth = self.depth
+        self.nest()
+        try:
+            return self._formula()
+        finally:
+            self.depth = depth
+
+    def _formula(self) -> Formula:
         t = self.tok
         if t.kind == "kw" and t.text in ("forall", "exists"):
             self.i += 1
@@ -313,22 +331,32 @@ class _Parser:
         return left
 
     def disjunction(self) -> Formula:
+        depth = self.depth
         f = self.conjunction()
         while self.accept("or"):
+            self.nest()  # a chain nests as deep as it is long: Or(Or(a, b), c)
             f = Or(f, self.conjunction())
+        self.depth = depth
         return f
 
     def conjunction(self) -> Formula:
+        depth = self.depth
         f = self.until()
         while self.accept("and"):
+            self.nest()
             f = And(f, self.until())
+        self.depth = depth
         return f
 
     def until(self) -> Formula:
         left = self.unary()
         if self.accept("until"):
             lo, hi = self.interval()
-            return Until(lo, hi, left, self.until())
+            depth = self.depth
+            self.nest()
+            right = self.until()
+            self.depth = depth
+            return Until(lo, hi, left, right)
         return left
 
     def unary(self) -> Formula:
@@ -336,11 +364,18 @@ class _Parser:
         if t.kind == "kw":
             if t.text == "not":
                 self.i += 1
-                return Not(self.unary())
+                depth = self.depth
+                self.nest()
+                operand = self.unary()
+                self.depth = depth
+                return Not(operand)
             if t.text in ("always", "eventually"):
                 self.i += 1
                 lo, hi = self.interval()
+                depth = self.depth
+                self.nest()
                 body = self.unary()
+                self.depth = depth
                 return Always(lo, hi, body) if t.text == "always" else Eventually(lo, hi, body)
             if t.text in ("forall", "exists"):
                 return self.formula()
