@@ -10,6 +10,7 @@ process has no token). Each refusal is asserted with its status, its count in
 from __future__ import annotations
 
 import contextlib
+import hmac
 import http.client
 import json
 import os
@@ -188,10 +189,8 @@ def test_a_rebinding_page_a_local_process_and_a_foreign_page_are_refused(
 
     # a local process without the token
     for method, path, body in (
-        ("GET", "/", None),
         ("GET", "/api/state", None),
         ("GET", "/api/events", None),
-        ("GET", "/static/app.js", None),
         ("POST", "/api/observation", {"x": 1, "y": 2, "text": "fake"}),
         ("POST", "/api/policy", policy),
     ):
@@ -199,13 +198,26 @@ def test_a_rebinding_page_a_local_process_and_a_foreign_page_are_refused(
         refused("no-token", status, answer, 401)
         assert headers["WWW-Authenticate"].startswith("Bearer")
 
-    # a wrong token: in the URL, as a Bearer, as a cookie
+    # a cookie is no credential: a browser sends a host's cookies to every port of it, so
+    # any local server got the one the console used to set (and replayed it, no Origin)
+    old = hmac.new(c.token.encode(), b"console-cookie", "sha256").hexdigest()
+    for method, path, cookie, body in (
+        ("GET", "/api/state", old, None),
+        ("GET", "/api/events", old, None),
+        ("POST", "/api/policy", old, policy),
+        ("GET", "/api/state", c.token, None),
+    ):
+        jar = {"Cookie": f"dyknow_console_{c.port}={cookie}"}
+        status, headers, answer = c.request(method, path, jar, body)
+        refused("no-token", status, answer, 401)
+        assert "cookie is not accepted" in answer["error"], answer
+
+    # a wrong token: in the URL, as a Bearer, not a Bearer
     wrong = "w" * len(c.token)
     for path, headers in (
         (f"/?token={wrong}", {}),
         ("/api/state", {"Authorization": f"Bearer {wrong}"}),
         ("/api/state", {"Authorization": f"Basic {c.token}"}),
-        ("/api/state", {"Cookie": f"dyknow_console_{c.port}={wrong}"}),
     ):
         status, _, answer = c.request("GET", path, headers)
         refused("bad-token", status, answer, 403)
@@ -219,22 +231,24 @@ def test_a_rebinding_page_a_local_process_and_a_foreign_page_are_refused(
         refused("origin", status, answer, 403)
         assert "Origin" in answer["error"]
 
-    # the operator: the printed URL gives the page and a cookie, HttpOnly, SameSite=Strict
+    # the page and its files are the same for all and hold nothing of the state: no token
+    # needed (a reload, once the page took the token out of its URL), never a cookie
+    for path in ("/", "/static/app.js", f"/?token={c.token}"):
+        status, headers, text = c.request("GET", path)
+        assert status == 200 and "Set-Cookie" not in headers, (path, headers)
+        assert isinstance(text, str) and c.token not in text  # a file, not the state (JSON)
+    assert headers["Referrer-Policy"] == "no-referrer" and "no-store" in headers["Cache-Control"]
+    status, _, js = c.request("GET", "/static/app.js")
+    assert "sessionStorage" in js and "Authorization: `Bearer" in js and "EventSource(" not in js
+
+    # the operator: the printed URL's token, as a Bearer (what the page sends)
     assert c.login_url == f"http://127.0.0.1:{c.port}/?token={c.token}"
-    status, headers, page = c.request("GET", f"/?token={c.token}")
-    assert status == 200 and "operator console" in page
-    cookie = headers["Set-Cookie"]
-    assert cookie.startswith(f"dyknow_console_{c.port}=") and c.token not in cookie
-    assert "HttpOnly" in cookie and "SameSite=Strict" in cookie and "Path=/" in cookie
-    jar = {"Cookie": cookie.split(";", 1)[0]}
     own = {"Origin": f"http://127.0.0.1:{c.port}"}
     for host in (f"127.0.0.1:{c.port}", f"localhost:{c.port}", f"[::1]:{c.port}", ALLOWED):
-        status, _, state = c.request("GET", "/api/state", jar, host=host)
+        status, _, state = c.request("GET", "/api/state", c.bearer(), host=host)
         assert status == 200 and state["operator"] == "operator", (host, state)
-    status, _, js = c.request("GET", "/static/app.js", jar)
-    assert status == 200 and "EventSource" in js
     status, _, answer = c.request(
-        "POST", "/api/observation", {**jar, **own}, {"x": 1.0, "y": 2.0, "text": "mine"}
+        "POST", "/api/observation", {**c.bearer(), **own}, {"x": 1.0, "y": 2.0, "text": "mine"}
     )
     assert status == 200, answer
     status, _, state = c.request("GET", "/api/state", c.bearer())
@@ -242,11 +256,11 @@ def test_a_rebinding_page_a_local_process_and_a_foreign_page_are_refused(
 
     # every refusal counted, and in the platform's audit with why
     stats = c.stats()
-    assert stats["refused"] == seen and stats["refused_total"] == sum(seen.values()) == 16
-    records = c.wait_audit(16)
-    assert len(records) == 16 and stats["audited"] == 16
+    assert stats["refused"] == seen and stats["refused_total"] == sum(seen.values()) == 17
+    records = c.wait_audit(17)
+    assert len(records) == 17 and stats["audited"] == 17
     assert [r["refusal"] for r in records] == (
-        ["host"] * 4 + ["no-token"] * 6 + ["bad-token"] * 4 + ["origin"] * 2
+        ["host"] * 4 + ["no-token"] * 8 + ["bad-token"] * 3 + ["origin"] * 2
     )
     for r in records:
         assert r["verdict"] == "refused" and r["platform"] == "operator"

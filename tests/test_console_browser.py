@@ -157,6 +157,41 @@ async def _rebinding_page_is_refused(browser: Any, base: str, token: str) -> Non
     assert stats["refused"]["host"] >= 3 and stats["refused"]["no-token"] >= 1, stats
 
 
+async def _another_port_gets_nothing(browser: Any, token: str) -> None:
+    """A server on another port of the console's host gets no credential from the browser.
+
+    Browsers keep cookies per host, not per port: a cookie of the console's would reach
+    any local server the browser visits (found in Chromium). The token is no cookie.
+    """
+    from aiohttp import web
+
+    seen: list[dict[str, str]] = []
+
+    async def record(request: web.Request) -> web.Response:
+        seen.append(dict(request.headers))
+        return web.Response(text="<title>another server</title>", content_type="text/html")
+
+    app = web.Application()
+    app.router.add_get("/{tail:.*}", record)
+    runner = web.AppRunner(app)
+    await runner.setup()
+    try:
+        site = web.TCPSite(runner, "127.0.0.1", 0)
+        await site.start()
+        port = runner.addresses[0][1]
+        page = await browser.new_page()
+        try:
+            await page.goto(f"http://127.0.0.1:{port}/api/state")
+        finally:
+            await page.close()
+    finally:
+        await runner.cleanup()
+    assert seen, "the other server was not reached"
+    for headers in seen:
+        assert "Cookie" not in headers and "Authorization" not in headers, headers
+        assert token not in repr(headers), headers
+
+
 @pytest.mark.timeout(120)
 async def test_what_the_operator_sees(
     running_federation: RunningFederation, tmp_path: Path
@@ -176,11 +211,22 @@ async def test_what_the_operator_sees(
         try:
             page = browser.pages[0] if browser.pages else await browser.new_page()
             base, token = url.split("?token=")
-            refused = await page.goto(base)  # without the token: refused, nothing shown
-            assert refused is not None and refused.status == 401
+            # without the token: the page (the same for all), saying it is refused, and
+            # nothing of the state; its own origin without a token reads nothing either
+            await page.goto(base)
+            await expect(page.locator("#connection")).to_have_attribute("data-state", "refused")
+            await expect(page.locator("#platforms li")).to_have_count(0)
+            status = await page.evaluate("() => fetch('/api/state').then((r) => r.status)")
+            assert status == 401, status
             await page.goto(url)
             await expect(page).to_have_title("DyKnow Federation — operator console")
-            assert "token" not in page.url  # traded for a cookie, out of the address bar
+            await expect(page.locator("#connection")).to_have_text("live")
+            assert "token" not in page.url  # kept by the page, out of the address bar
+            assert await browser.cookies() == []  # no cookie: it would reach every port
+            await _another_port_gets_nothing(browser, token)
+            await page.reload()  # the token stays with the tab (sessionStorage), not the URL
+            await expect(page.locator("#connection")).to_have_text("live")
+            assert "token" not in page.url
             await _rebinding_page_is_refused(browser, base, token)
 
             # platforms listed, alive, their streams active

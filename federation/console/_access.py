@@ -8,9 +8,13 @@ Every HTTP request passes `ConsoleAccess.middleware` before it reaches a handler
    127.0.0.1 (DNS rebinding) sends ``Host: evil.example``: refused (403).
 2. ``Origin``, when a browser sends one, must be this console's own
    (``http://<Host>``): a page of another site is refused (403), GET or POST.
-3. The token: ``GET /?token=T`` with the right T answers the page and sets an HttpOnly,
-   SameSite=Strict cookie; every other request needs that cookie or
-   ``Authorization: Bearer T``. None: 401; a wrong one: 403.
+3. The token, as ``Authorization: Bearer T`` on every request of the API (``/api/…``).
+   None: 401; a wrong one: 403. The page (``GET /``) and its files (``/static/…``) are
+   the same for everyone and hold nothing of the state: they need no token (a wrong
+   ``?token=`` on the page is still refused, 403). The page keeps the token of its URL in
+   its own ``sessionStorage`` and sends it as a Bearer. No cookie, ever: a browser sends
+   a host's cookies to every port of it, so any server on another port of this machine
+   would get it; a cookie is no credential here (a request with only one: 401).
 
 Every refusal is counted (`refusals`, ``GET /api/stats``) and recorded in the platform's
 audit (the Interface Agent's `AuditLog`, ``stage: "console"``) and the log, within a
@@ -171,6 +175,11 @@ def allowed_names(entries: Iterable[str], environ: Mapping[str, str] | None = No
     return [_allowed_name(e) for e in [*entries, *extra.split(",")] if e.strip()]
 
 
+def _public(path: str) -> bool:
+    """Whether ``path`` is the page or one of its files: the same for all, no state."""
+    return path == "/" or (path.startswith("/static/") and ".." not in path)
+
+
 def _clip(value: str | None) -> str | None:
     return value if value is None or len(value) <= FIELD_MAX else value[: FIELD_MAX - 1] + "…"
 
@@ -188,19 +197,15 @@ class ConsoleAccess:
         token: str | None = None,
         allow_hosts: Iterable[str] = (),
         audit: AuditLog | None = None,
-        cookie: str = "dyknow_console",
         origins: Iterable[str] = (),
         stage: str = "console",
     ) -> None:
         self.token = new_token() if token is None else check_token(token)
         self.allow_hosts = frozenset(LOOPBACK_NAMES | {_allowed_name(h) for h in allow_hosts})
         self.audit = audit
-        self.cookie = cookie
         self.origins = frozenset(origins)  # allowed besides the server's own
         self.stage = stage  # what guarded: the audit's stage, the log's prefix
         self._what = stage if stage == "console" else f"{stage} server"  # in the reasons
-        # The cookie holds a value derived from the token, not the token itself.
-        self._cookie_value = hmac.new(self.token.encode(), b"console-cookie", "sha256").hexdigest()
         self.refusals: dict[str, int] = {"host": 0, "origin": 0, "no-token": 0, "bad-token": 0}
         self.audited = 0  # refusals with a record of their own
         self.busy = 0  # connections closed unserved: `MAX_CLIENTS` were open (`serve`)
@@ -279,37 +284,26 @@ class ConsoleAccess:
         refused = self._foreign(request)
         if refused is not None:
             return refused
-        if request.method == "GET" and request.path == "/" and "token" in request.query:
-            if not self._token_is(request.query["token"]):
+        if request.method == "GET" and _public(request.path):
+            given = request.query.get("token")
+            if given is not None and not self._token_is(given):
                 return self._refuse(request, "bad-token", 403, "token: not this console's")
-            response = await handler(request)
-            response.set_cookie(
-                self.cookie, self._cookie_value, httponly=True, samesite="Strict", path="/"
-            )
-            return response
-        auth = request.headers.get("Authorization")
-        if auth is not None:
-            scheme, _, value = auth.strip().partition(" ")
-            if scheme.lower() != "bearer" or not self._token_is(value.strip()):
-                return self._refuse(
-                    request, "bad-token", 403, "Authorization: not this console's token"
-                )
             return await handler(request)
-        cookie = request.cookies.get(self.cookie)
-        if cookie is None:
+        auth = request.headers.get("Authorization")
+        if auth is None:
+            # a cookie counts for nothing: any server on another port of this host gets it
+            cookie = " (a cookie is not accepted)" if "Cookie" in request.headers else ""
             return self._refuse(
                 request,
                 "no-token",
                 401,
-                "token: missing (open the URL the console printed, with ?token=…, or send "
-                "Authorization: Bearer <token>)",
+                f"token: missing{cookie} (open the URL the console printed, with ?token=…, "
+                "or send Authorization: Bearer <token>)",
             )
-        if not hmac.compare_digest(cookie.encode(), self._cookie_value.encode()):
+        scheme, _, value = auth.strip().partition(" ")
+        if scheme.lower() != "bearer" or not self._token_is(value.strip()):
             return self._refuse(
-                request,
-                "bad-token",
-                403,
-                "cookie: not this console's (open the URL the console printed, with ?token=…)",
+                request, "bad-token", 403, "Authorization: not this console's token"
             )
         return await handler(request)
 

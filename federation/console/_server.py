@@ -9,8 +9,8 @@ step: a map, the platforms and their streams, the violations, a query box, a pol
 editor and an observation form.
 
 Only who holds the console's token may use it (`ConsoleAccess`: a random token printed
-with the URL at start, ``GET /?token=…`` trades it for a cookie; the ``Host`` must be one of
-the console's names; a foreign ``Origin`` is refused).
+with the URL at start, which the page keeps and sends as ``Authorization: Bearer``, never
+a cookie; the ``Host`` must be one of the console's names; a foreign ``Origin`` is refused).
 
 HTTP API (see docs/console.md): ``GET /`` the page, ``GET /static/…`` its files,
 ``GET /api/state`` the model as JSON, ``GET /api/events`` the model as Server-Sent Events
@@ -194,7 +194,7 @@ class OperatorConsole:
 
     @property
     def token(self) -> str:
-        """The secret a client presents (``?token=`` once, then the cookie; or a Bearer)."""
+        """The secret a client presents: ``Authorization: Bearer`` (the page's from its URL)."""
         return self.access.token
 
     @property
@@ -249,8 +249,6 @@ class OperatorConsole:
         app.router.add_get("/api/stats", self._get_stats)
         # Event streams end as soon as we close (they watch `_closing`): no long wait.
         self.port = await serve(app, self.host, self.port, stack, self.access)
-        # one cookie per console port: two consoles on one machine keep theirs apart
-        self.access.cookie = f"dyknow_console_{self.port}"
         # a wildcard address is no place to open: the same server on loopback is
         host = "127.0.0.1" if _is_wildcard(self.host) else self.host
         host = f"[{host}]" if ":" in host else host
@@ -458,7 +456,11 @@ class OperatorConsole:
     # -- HTTP -----------------------------------------------------------------------------
 
     async def _index(self, request: web.Request) -> web.StreamResponse:
-        return web.FileResponse(STATIC_DIR / "index.html")
+        # the URL may hold the token: no Referer of it anywhere, no copy in a cache
+        return web.FileResponse(
+            STATIC_DIR / "index.html",
+            headers={"Referrer-Policy": "no-referrer", "Cache-Control": "no-store"},
+        )
 
     async def _get_state(self, request: web.Request) -> web.Response:
         return _json(self.state())

@@ -57,30 +57,75 @@ function compact(value, max = 90) {
 
 // -- the model from the server ------------------------------------------------------------
 
-function connect() {
-  const conn = $("#connection");
-  const source = new EventSource("/api/events");
-  source.addEventListener("state", (ev) => {
-    conn.dataset.state = "live";
-    conn.textContent = "live";
-    try { render(JSON.parse(ev.data)); } catch (e) { console.error(e); }
-  });
-  source.onerror = () => {
-    if (source.readyState === EventSource.CLOSED) {
-      // refused (401/403: no token, a wrong one): retrying would not help
-      conn.dataset.state = "refused";
-      conn.textContent = "refused: open the URL the console printed (…/?token=…)";
-      return;
-    }
-    conn.dataset.state = "lost";
-    conn.textContent = "reconnecting…";  // EventSource retries by itself
-  };
+// The token comes once in the address (…/?token=…). The page keeps it in sessionStorage
+// (this tab, this origin: this port only) and sends it as a Bearer; never a cookie, which a
+// browser would send to every port of this host. It leaves the address bar (and the
+// history, and what a screenshot shows); a reload finds it in sessionStorage.
+const TOKEN_KEY = "dyknow-console-token";
+const TOKEN = (() => {
+  const params = new URLSearchParams(location.search);
+  const given = params.get("token");
+  if (given !== null) {
+    sessionStorage.setItem(TOKEN_KEY, given);
+    params.delete("token");
+    const rest = params.toString();
+    history.replaceState(null, "", location.pathname + (rest ? `?${rest}` : "") + location.hash);
+  }
+  return sessionStorage.getItem(TOKEN_KEY);
+})();
+
+function withToken(headers = {}) {
+  return TOKEN ? { ...headers, Authorization: `Bearer ${TOKEN}` } : headers;
 }
 
-// The token came once in the address (…/?token=…); the server answered with a cookie, so
-// it leaves the address bar (and the history, and what a screenshot shows).
-if (new URLSearchParams(location.search).has("token")) {
-  history.replaceState(null, "", location.pathname);
+function refused(conn) {
+  conn.dataset.state = "refused";
+  conn.textContent = "refused: open the URL the console printed (…/?token=…)";
+}
+
+// /api/events read with fetch, not EventSource: an EventSource cannot send a header, and
+// the token must not go in a URL (logs, history) nor in a cookie.
+async function follow(conn) {
+  const r = await fetch("/api/events", { headers: withToken({ Accept: "text/event-stream" }), cache: "no-store" });
+  if (r.status === 401 || r.status === 403) return false;  // retrying would not help
+  if (!r.ok || !r.body) throw new Error(`HTTP ${r.status}`);
+  const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
+  let buffer = "";
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done) throw new Error("the stream ended");
+    buffer += value.replace(/\r\n?/g, "\n");
+    let end;
+    while ((end = buffer.indexOf("\n\n")) >= 0) {
+      const block = buffer.slice(0, end);
+      buffer = buffer.slice(end + 2);
+      let event = "message";
+      const data = [];
+      for (const line of block.split("\n")) {
+        if (line.startsWith("event:")) event = line.slice(6).trim();
+        else if (line.startsWith("data:")) data.push(line.slice(5).replace(/^ /, ""));
+      }
+      if (event !== "state" || !data.length) continue;
+      conn.dataset.state = "live";
+      conn.textContent = "live";
+      try { render(JSON.parse(data.join("\n"))); } catch (e) { console.error(e); }
+    }
+  }
+}
+
+async function connect() {
+  const conn = $("#connection");
+  if (!TOKEN) { refused(conn); return; }
+  for (let delay = 1000; ; delay = Math.min(delay * 2, 10000)) {
+    try {
+      if (!(await follow(conn))) { refused(conn); return; }
+    } catch (e) {
+      if (conn.dataset.state === "live") delay = 1000;  // it was up: try again soon
+      conn.dataset.state = "lost";
+      conn.textContent = "reconnecting…";
+    }
+    await new Promise((resolve) => setTimeout(resolve, delay));
+  }
 }
 
 function render(s) {
@@ -846,7 +891,7 @@ window.dyknowMap = {
 
 async function post(url, body) {
   try {
-    const r = await fetch(url, { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
+    const r = await fetch(url, { method: "POST", headers: withToken({ "Content-Type": "application/json" }), body: JSON.stringify(body) });
     const data = await r.json().catch(() => ({ error: `HTTP ${r.status}` }));
     return { ok: r.ok, status: r.status, body: data };
   } catch (e) {
