@@ -78,8 +78,8 @@ class ShedGate:
         bucket = self._buckets.get(frm)
         if bucket is None:  # one per trusted name: bounded by the trust file
             bucket = self._buckets[frm] = TokenBucket(self._rate, self._burst, now)
-        # `_refill` rather than `ready`: this method is itself the call the gates used to
-        # make inline, so a message costs no more calls than before
+        # `_refill`, not `ready`: saves as many calls as this method adds, per message on
+        # the transport's thread
         if bucket._refill(now) < 1.0:
             return self.CLAIMED_BUDGET
         if frm not in self.priority:
