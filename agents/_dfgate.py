@@ -16,18 +16,16 @@ good by asking the member again (`GlobalDirectory` takes a fresh signed snapshot
 
 from __future__ import annotations
 
-import math
-import threading
 import time
-from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 import orjson
 
-from ._bucket import TokenBucket, check_rates
 from ._directory_auth import MAX_STATEMENT_BYTES, WIRE_VERSION, DirectoryAuth
+from ._gate import TOTAL_BUDGET as TOTAL_BUDGET  # the other budget an event is shed by
+from ._gate import ShedGate, check_limit
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,24 +54,13 @@ class DfEventLimit:
     report_interval: float = 1.0
 
     def __post_init__(self) -> None:
-        check_rates(
-            self,
-            "DfEventLimit",
-            ("per_platform", "per_platform_burst", "total", "total_burst", "report_interval"),
-            ("per_platform_burst", "total_burst"),
-            "every event",
-        )
-        if isinstance(self.detailed, bool) or not isinstance(self.detailed, int):
-            raise ValueError(f"DfEventLimit.detailed: {self.detailed!r} is not an integer")
-        if self.detailed < 0:
-            raise ValueError(f"DfEventLimit.detailed: {self.detailed!r} is not >= 0")
+        check_limit(self, "DfEventLimit", "per_platform", "every event")
 
 
 DEFAULT_DF_EVENT_LIMIT = DfEventLimit()
 
 # Reasons an event is shed besides the cheap checks' own.
 PLATFORM_BUDGET = "over-platform-budget"
-TOTAL_BUDGET = "over-total-budget"
 _WHY = {
     "malformed": "not a directory statement",
     "misdirected": "not a directory event of this federation",
@@ -83,7 +70,7 @@ _WHY = {
 }
 
 
-class DfEventGate:
+class DfEventGate(ShedGate):
     """Decides, on the transport's thread, which directory events are worth checking.
 
     ``admit(payload)`` is thread-safe and never raises; ``take_report(now)`` (the event
@@ -91,6 +78,9 @@ class DfEventGate:
     frozenset of platform names, replaced whole by the owner) names the platforms alive
     in the directory: exempt from the shared budget.
     """
+
+    CLAIMED_BUDGET = PLATFORM_BUDGET
+    limit: DfEventLimit
 
     def __init__(
         self,
@@ -100,22 +90,10 @@ class DfEventGate:
         monotonic: Callable[[], float] = time.monotonic,
         on_shed: Callable[[], None] | None = None,
     ) -> None:
+        super().__init__(limit, limit.per_platform, limit.per_platform_burst, monotonic, on_shed)
         self.auth = auth
-        self.limit = limit
-        self.priority: frozenset[str] = frozenset()
-        self._monotonic = monotonic
-        self._on_shed = on_shed
-        self._lock = threading.Lock()
-        self._total = TokenBucket(limit.total, limit.total_burst, monotonic())
-        self._platforms: dict[str, TokenBucket] = {}
-        self.shed: Counter[str] = Counter()  # every event shed, by reason, since start
-        self.admitted = 0  # events let through to their signature check, since start
         self.stale = 0  # events dropped as not newer than the last accepted, since start
-        self._pending: Counter[str] = Counter()  # shed since the last summary
-        self._details: list[tuple[str | None, str]] = []
-        self._detailed = 0  # detailed in the current interval
         self._resync: set[str] = set()  # members shed over their budget since the last take
-        self._last_report = -math.inf
 
     def admit(self, payload: bytes) -> bool:
         """Whether the directory event ``payload`` goes on to its signature check."""
@@ -134,22 +112,11 @@ class DfEventGate:
         assert frm is not None
         now = self._monotonic()
         with self._lock:
-            bucket = self._platforms.get(frm)
-            if bucket is None:  # one per trusted name: bounded by the trust file
-                bucket = self._platforms[frm] = TokenBucket(
-                    self.limit.per_platform, self.limit.per_platform_burst, now
-                )
-            if not bucket.ready(now):
-                if frm in self.priority:
+            over = self._spend_locked(frm, now)
+            if over is not None:
+                if over is PLATFORM_BUDGET and frm in self.priority:
                     self._resync.add(frm)  # a real event may be among those shed
-                return self._drop_locked(PLATFORM_BUDGET, frm)
-            if frm not in self.priority:
-                # both or neither: an event shed by one budget spends nothing of the other
-                if not self._total.ready(now):
-                    return self._drop_locked(TOTAL_BUDGET, frm)
-                self._total.tokens -= 1.0
-            bucket.tokens -= 1.0
-            self.admitted += 1
+                return self._drop_locked(over, frm)
         return True
 
     def _screen(self, payload: bytes) -> tuple[str, str | None]:
@@ -186,29 +153,14 @@ class DfEventGate:
             return "stale", frm
         return "", frm
 
-    def _drop(self, reason: str, claimed: str | None) -> bool:
-        with self._lock:
-            return self._drop_locked(reason, claimed)
-
-    def _drop_locked(self, reason: str, claimed: str | None) -> bool:
-        self.shed[reason] += 1
-        self._pending[reason] += 1
-        if self._detailed < self.limit.detailed:
-            self._detailed += 1
-            why = _WHY.get(reason) or (
-                f"over {claimed!r}'s budget of {self.limit.per_platform:g}/s"
-                if reason == PLATFORM_BUDGET
-                else f"over the shared budget of {self.limit.total:g}/s"
-            )
-            self._details.append((claimed, f"{reason}: {why}"))
-        if self._on_shed is not None:
-            self._on_shed()
-        return False
-
-    @property
-    def pending(self) -> bool:
-        """Whether shed events wait to be summed up (read unlocked: a hint)."""
-        return bool(self._pending)
+    def _explain(self, reason: str, claimed: str | None) -> str:
+        """Why an event was shed, for its audit record."""
+        why = _WHY.get(reason) or (
+            f"over {claimed!r}'s budget of {self.limit.per_platform:g}/s"
+            if reason == PLATFORM_BUDGET
+            else f"over the shared budget of {self.limit.total:g}/s"
+        )
+        return f"{reason}: {why}"
 
     @property
     def shed_total(self) -> int:
@@ -225,16 +177,6 @@ class DfEventGate:
         ``seconds`` (since the last summary; None for the first).
         """
         with self._lock:
-            details, self._details = self._details, []
             resync, self._resync = self._resync, set()
-            if not self._pending or now - self._last_report < self.limit.report_interval:
-                return details, None, resync
-            self._detailed = 0
-            pending, self._pending = self._pending, Counter()
-            last, self._last_report = self._last_report, now
-        summary = {
-            "count": sum(pending.values()),
-            "by_reason": dict(pending.most_common()),
-            "seconds": None if math.isinf(last) else now - last,
-        }
+            details, summary = self._report_locked(now)
         return details, summary, resync

@@ -11,17 +11,17 @@ all. See ``docs/security.md`` ("Key-exchange load shedding").
 
 from __future__ import annotations
 
-import math
-import threading
+import functools
 import time
-from collections import Counter, OrderedDict
+from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from ._acl import WIRE_VERSION
-from ._bucket import TokenBucket, check_rates
 from ._exceptions import AuthenticationError, Replayed
+from ._gate import TOTAL_BUDGET as TOTAL_BUDGET  # the other budget a request is shed by
+from ._gate import ShedGate, check_limit
 from ._security import _INIT_FIELDS, MAX_HANDSHAKE_BYTES, Handshake, _loads, _parse_kx
 
 
@@ -48,35 +48,27 @@ class KxLimit:
     report_interval: float = 1.0
 
     def __post_init__(self) -> None:
-        check_rates(
-            self,
-            "KxLimit",
-            ("per_peer", "per_peer_burst", "total", "total_burst", "report_interval"),
-            ("per_peer_burst", "total_burst"),
-            "every request",
-        )
-        if isinstance(self.detailed, bool) or not isinstance(self.detailed, int):
-            raise ValueError(f"KxLimit.detailed: {self.detailed!r} is not an integer")
-        if self.detailed < 0:
-            raise ValueError(f"KxLimit.detailed: {self.detailed!r} is not >= 0")
+        check_limit(self, "KxLimit", "per_peer", "every request")
 
 
 DEFAULT_KX_LIMIT = KxLimit()
 
 # Reasons a request is shed besides the handshake's own refusal codes.
 PEER_BUDGET = "over-peer-budget"
-TOTAL_BUDGET = "over-total-budget"
 # (from, nonce) of requests let through, kept this long past their timestamp's skew
 _SEEN_MAX = 16_384
 
 
-class KxGate:
+class KxGate(ShedGate):
     """Decides, on the transport's thread, which key-exchange requests are worth checking.
 
     ``admit(payload)`` is thread-safe and never raises; ``take_report(now)`` (the event
     loop's side) returns what to audit. ``priority`` (a frozenset of platform names,
     replaced whole by the owner) names the platforms exempt from the shared budget.
     """
+
+    CLAIMED_BUDGET = PEER_BUDGET
+    limit: KxLimit
 
     def __init__(
         self,
@@ -86,22 +78,15 @@ class KxGate:
         monotonic: Callable[[], float] = time.monotonic,
         on_shed: Callable[[int], None] | None = None,
     ) -> None:
+        super().__init__(
+            limit,
+            limit.per_peer,
+            limit.per_peer_burst,
+            monotonic,
+            None if on_shed is None else functools.partial(on_shed, 1),
+        )
         self.handshake = handshake
-        self.limit = limit
-        self.priority: frozenset[str] = frozenset()
-        self._monotonic = monotonic
-        self._on_shed = on_shed
-        self._lock = threading.Lock()
-        now = monotonic()
-        self._total = TokenBucket(limit.total, limit.total_burst, now)
-        self._peers: dict[str, TokenBucket] = {}
         self._seen: OrderedDict[tuple[str, str], float] = OrderedDict()
-        self.shed: Counter[str] = Counter()  # every request shed, by reason, since start
-        self.admitted = 0
-        self._pending: Counter[str] = Counter()  # shed since the last summary
-        self._details: list[tuple[str | None, str]] = []
-        self._detailed = 0  # detailed in the current interval
-        self._last_report = -math.inf
 
     def admit(self, payload: bytes) -> bool:
         """Whether the key-exchange request ``payload`` goes on to its signature check."""
@@ -121,23 +106,12 @@ class KxGate:
             if (frm, nonce) in seen:
                 why = f"handshake request from {frm!r} was already answered"
                 return self._drop_locked(Replayed.code, frm, f"{Replayed.code}: {why}")
-            bucket = self._peers.get(frm)
-            if bucket is None:  # one per trusted name: bounded by the trust file
-                bucket = self._peers[frm] = TokenBucket(
-                    self.limit.per_peer, self.limit.per_peer_burst, now
-                )
-            if not bucket.ready(now):
-                return self._drop_locked(PEER_BUDGET, frm, None)
-            if frm not in self.priority:
-                # both or neither: a request shed by one budget spends nothing of the other
-                if not self._total.ready(now):
-                    return self._drop_locked(TOTAL_BUDGET, frm, None)
-                self._total.tokens -= 1.0
-            bucket.tokens -= 1.0
+            over = self._spend_locked(frm, now)
+            if over is not None:
+                return self._drop_locked(over, frm, None)
             seen[(frm, nonce)] = ts / 1000 + 2 * hs.policy.skew
             while len(seen) > _SEEN_MAX:
                 seen.popitem(last=False)
-            self.admitted += 1
         return True
 
     def _screen(self, payload: bytes) -> tuple[str, int, str] | str:
@@ -176,25 +150,6 @@ class KxGate:
             return self._drop("malformed", None, f"malformed: {exc}")
         return self._drop(code, None, f"{code}: handshake request refused")
 
-    def _drop(self, reason: str, claimed: str | None, detail: str | None) -> bool:
-        with self._lock:
-            return self._drop_locked(reason, claimed, detail)
-
-    def _drop_locked(self, reason: str, claimed: str | None, detail: str | None) -> bool:
-        self.shed[reason] += 1
-        self._pending[reason] += 1
-        if detail is not None and self._detailed < self.limit.detailed:
-            self._detailed += 1
-            self._details.append((claimed, detail))
-        if self._on_shed is not None:
-            self._on_shed(1)
-        return False
-
-    @property
-    def pending(self) -> bool:
-        """Whether shed requests wait to be audited (read unlocked: a hint)."""
-        return bool(self._pending or self._details)
-
     def forget_seen(self, wall: float) -> None:
         """Drop remembered requests whose timestamps are now past the skew (``wall``: time.time)."""
         with self._lock:
@@ -214,15 +169,4 @@ class KxGate:
         ``seconds`` (since the last summary; None for the first).
         """
         with self._lock:
-            details, self._details = self._details, []
-            if not self._pending or now - self._last_report < self.limit.report_interval:
-                return details, None
-            self._detailed = 0
-            pending, self._pending = self._pending, Counter()
-            last, self._last_report = self._last_report, now
-        summary = {
-            "count": sum(pending.values()),
-            "by_reason": dict(pending.most_common()),
-            "seconds": None if math.isinf(last) else now - last,
-        }
-        return details, summary
+            return self._report_locked(now)

@@ -34,6 +34,49 @@ def _outsider(station: Station) -> zenoh.Session:
     return zenoh.open(cfg)
 
 
+def _cli(station: Station, *args: str) -> subprocess.Popen[str]:
+    """``dyknow`` with ``args`` in the station's folder, its output piped as text."""
+    return subprocess.Popen(
+        [*CLI, *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=station.dir,
+        env=station.env,
+    )
+
+
+def _watch(station: Station, *args: str) -> subprocess.Popen[str]:
+    """The owner's `dyknow watch` of the station with ``args``, once it says it is watching."""
+    watch = _cli(station, "watch", "--config", "station-python.toml", *args)
+    try:
+        assert watch.stdout is not None
+        assert "watching" in watch.stdout.readline()
+    except BaseException:
+        watch.kill()
+        watch.communicate()
+        raise
+    return watch
+
+
+def _owner_key(station: Station) -> bytes:
+    """The station's public key: in the trust file every member holds, so an outsider's too."""
+    trust = json.loads((station.dir / "keys" / "trust.json").read_text())
+    return base64.b64decode(trust["platforms"]["station"])
+
+
+def _stop(
+    station: Station, session: zenoh.Session | None, watch: subprocess.Popen[str] | None
+) -> None:
+    """End the watch if it still runs, the outsider's session and the station."""
+    if watch is not None and watch.poll() is None:
+        watch.kill()
+        watch.communicate()
+    if session is not None:
+        session.close()
+    station.stop()
+
+
 def test_a_forged_presence_does_not_keep_a_platform_from_starting(tmp_path: Path) -> None:
     """A liveliness token under a member's name, declared by an outsider, is no proof it runs.
 
@@ -70,14 +113,7 @@ def test_a_forged_presence_does_not_keep_a_platform_from_starting(tmp_path: Path
         answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
         assert 19.0 <= _samples(answer, "temperature")[0][0] <= 21.0
         # nor the operator's node
-        node = subprocess.Popen(
-            [*CLI, "node", "--config", "operator.toml"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-        )
+        node = _cli(station, "node", "--config", "operator.toml")
         try:
             assert node.stdout is not None
             ready = node.stdout.readline()
@@ -112,20 +148,9 @@ def test_an_outsider_cannot_end_or_feed_the_owners_watch(tmp_path: Path, as_json
     try:
         station.start("python")
         session = _outsider(station)
-        args = ["watch", "--config", "station-python.toml", "--duration", "6"]
-        watch = subprocess.Popen(
-            [*CLI, *args, *(["--json"] if as_json else [])],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-        )
-        assert watch.stdout is not None
-        assert "watching" in watch.stdout.readline()
+        watch = _watch(station, "--duration", "6", *(["--json"] if as_json else []))
         fed = station.federation
-        trust = json.loads((station.dir / "keys" / "trust.json").read_text())
-        owner = base64.b64decode(trust["platforms"]["station"])  # public: in the trust file
+        owner = _owner_key(station)
         forged = {"v": 1, "verdict": "accepted", "from": "operator", "reason": "FORGED-PLAIN"}
         deep = b"[" * 100_000 + b"]" * 100_000
         for payload in (orjson.dumps(forged) + b"\n", b"{junk", b"[1]\n"):
@@ -145,12 +170,7 @@ def test_an_outsider_cannot_end_or_feed_the_owners_watch(tmp_path: Path, as_json
             )
         out, err = watch.communicate(timeout=40)
     finally:
-        if watch is not None and watch.poll() is None:
-            watch.kill()
-            watch.communicate()
-        if session is not None:
-            session.close()
-        station.stop()
+        _stop(station, session, watch)
     assert watch.returncode == 0, err
     assert "Traceback" not in err and "Error" not in err, err
     assert "FORGED-PLAIN" not in out
@@ -177,17 +197,7 @@ def test_an_outsider_with_the_public_key_cannot_pass_a_batch_off_as_the_platform
     try:
         station.start("python")
         session = _outsider(station)
-        args = ["watch", "--config", "station-python.toml", "--duration", "8", "--json"]
-        watch = subprocess.Popen(
-            [*CLI, *args],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-        )
-        assert watch.stdout is not None
-        assert "watching" in watch.stdout.readline()
+        watch = _watch(station, "--duration", "8", "--json")
         # sealed audit batches the outsider sees go by (the watch sees each one too)
         real: list[bytes] = []
         spy = session.declare_subscriber(audit_key, lambda s: real.append(s.payload.to_bytes()))
@@ -197,8 +207,7 @@ def test_an_outsider_with_the_public_key_cannot_pass_a_batch_off_as_the_platform
         while not real and time.monotonic() < deadline:
             time.sleep(0.1)
         assert real, "no audit batch published while the owner watches"
-        trust = json.loads((station.dir / "keys" / "trust.json").read_text())
-        owner = base64.b64decode(trust["platforms"]["station"])  # public: in the trust file
+        owner = _owner_key(station)
         impostor = KeyPair.generate("station")
         now = int(time.time() * 1000)
         record = orjson.dumps({"v": 1, "verdict": "accepted", "from": "operator"})
@@ -224,12 +233,7 @@ def test_an_outsider_with_the_public_key_cannot_pass_a_batch_off_as_the_platform
         spy.undeclare()
         out, err = watch.communicate(timeout=40)
     finally:
-        if watch is not None and watch.poll() is None:
-            watch.kill()
-            watch.communicate()
-        if session is not None:
-            session.close()
-        station.stop()
+        _stop(station, session, watch)
     assert watch.returncode == 0, err
     assert "Traceback" not in err, err
     assert "FORGED" not in out

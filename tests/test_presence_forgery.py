@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
 import multiprocessing
 import os
@@ -25,7 +26,7 @@ import threading
 import time
 import uuid
 from collections import Counter
-from collections.abc import Callable, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -35,6 +36,7 @@ import orjson
 import paho.mqtt.client as paho
 import pytest
 import zenoh
+from _echo import ProtectedEcho
 
 from agents import (
     ACLMessage,
@@ -42,7 +44,6 @@ from agents import (
     AgentPlatform,
     InterfaceAgent,
     KeyPair,
-    ServiceDescription,
     TrustStore,
     on_request,
     request,
@@ -71,18 +72,8 @@ RESTART_BOUND = 5.0  # s: a restarted member answered, its presence toggled (doc
 pytestmark = pytest.mark.timeout(120)
 
 
-class Echo(Agent):
+class Echo(ProtectedEcho):
     """Answers with what it was asked."""
-
-    def __init__(self) -> None:
-        super().__init__("echo")
-
-    async def setup(self) -> None:
-        """Protected: uav-a reaches it through the Interface Agent."""
-        assert self.platform.df is not None
-        await self.platform.df.register(
-            ServiceDescription(name="echo", type="echo", provider=self.aid, visibility="protected")
-        )
 
     @on_request("demo")
     async def _echo(self, message: ACLMessage) -> Any:
@@ -219,6 +210,53 @@ def _bound(seconds: float) -> int:
     return PRESENCE_BURST + int(seconds * PRESENCE_RATE / INTERVAL) + 1
 
 
+def _kill(procs: list[BaseProcess]) -> None:
+    """Kill those of ``procs`` still running, and wait for each."""
+    for proc in procs:
+        if proc.is_alive():
+            proc.kill()
+        proc.join(timeout=10)
+
+
+@contextlib.asynccontextmanager
+async def _mqtt_victim(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> AsyncIterator[tuple[str, MqttConfig, list[BaseProcess], InterfaceAgent, AgentPlatform, Agent]]:
+    """uav-a on MQTT, uav-b spawned and answering it: (fed, config, procs, channel, pa, asker).
+
+    The processes in ``procs`` (uav-b's, and any the test adds) are killed on the way out.
+    """
+    host, port = mosquitto
+    fed = _federation(tmp_path)
+    procs: list[BaseProcess] = []
+    channel = InterfaceAgent(
+        KeyPair.load(tmp_path / "keys" / f"{VICTIM}.key"), TrustStore.load(tmp_path / "trust.json")
+    )
+    config = MqttConfig(host=host, port=port, keepalive=5)
+    try:
+        async with (
+            MqttTransport(config) as transport,
+            AgentPlatform(VICTIM, transport, federation=fed, channel=channel) as pa,
+        ):
+            procs.append(
+                await asyncio.to_thread(_start_member, "mqtt", config.model_dump(), fed, tmp_path)
+            )
+            await _until("uav-a seeing uav-b's presence", lambda: MEMBER in channel._alive)
+            asker = await pa.add(Agent("asker"))
+            assert await request(asker, f"echo@{MEMBER}", 0, ontology="demo", timeout=10) == 0
+            yield fed, config, procs, channel, pa, asker
+    finally:
+        _kill(procs)
+
+
+def _mqtt_attacker(host: str, port: int) -> paho.Client:
+    """A plain MQTT client, no key of the federation, connected and looping (stop it)."""
+    attacker = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=f"x-{os.getpid()}")
+    attacker.connect(host, port)
+    attacker.loop_start()
+    return attacker
+
+
 async def test_presence_changes_over_the_budget_are_counted_audited_and_doubt_later() -> None:
     """In memory, an explicit count: 20 changes of uav-c's token at once, 4 acted on."""
     hub = MemoryHub()
@@ -340,10 +378,7 @@ async def test_forged_tokens_on_zenoh_rekey_within_the_bound(tmp_path: Path) -> 
             finally:
                 outsider.close()
     finally:
-        for proc in procs:
-            if proc.is_alive():
-                proc.kill()
-            proc.join(timeout=10)
+        _kill(procs)
 
 
 @pytest.mark.timeout(180)
@@ -351,87 +386,63 @@ async def test_forged_presence_on_mqtt_costs_the_member_few_key_exchanges(
     tmp_path: Path, mosquitto: tuple[str, int]
 ) -> None:
     """uav-b's retained presence cleared and set again, many times, while uav-a asks it."""
-    host, port = mosquitto
-    fed = _federation(tmp_path)
-    procs: list[BaseProcess] = []
-    channel = InterfaceAgent(
-        KeyPair.load(tmp_path / "keys" / f"{VICTIM}.key"), TrustStore.load(tmp_path / "trust.json")
-    )
-    config = MqttConfig(host=host, port=port, keepalive=5)
-    try:
-        async with (
-            MqttTransport(config) as transport,
-            AgentPlatform(VICTIM, transport, federation=fed, channel=channel) as pa,
-        ):
-            procs.append(
-                await asyncio.to_thread(_start_member, "mqtt", config.model_dump(), fed, tmp_path)
+    async with _mqtt_victim(tmp_path, mosquitto) as (fed, _, _, channel, pa, asker):
+        costs = Costs(channel)
+        attacker = _mqtt_attacker(*mosquitto)
+        stop = threading.Event()
+        topic = f"dyknow/{fed}/v1/alive/{MEMBER}"
+
+        def toggle() -> float:
+            start = time.monotonic()
+            for _ in range(TOGGLES):
+                attacker.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
+                attacker.publish(topic, ALIVE, qos=1, retain=True).wait_for_publish(5)
+                time.sleep(0.01)
+            stop.set()
+            return time.monotonic() - start
+
+        try:
+            before = pa.stats.rehandshakes
+            attack = asyncio.create_task(asyncio.to_thread(toggle))
+            answered, failed = 0, []
+            while not stop.is_set():  # uav-a keeps asking uav-b meanwhile
+                answered += 1
+                try:
+                    got = await request(
+                        asker, f"echo@{MEMBER}", answered, ontology="demo", timeout=5
+                    )
+                    assert got == answered
+                except Exception as exc:  # what the forgery cost, reported below
+                    failed.append(repr(exc))
+                await asyncio.sleep(0.05)
+            seconds = await attack
+            await asyncio.sleep(1.0)
+            rekeys = pa.stats.rehandshakes - before
+            print(
+                f"\nmqtt, uav-b's presence toggled {TOGGLES} times in {seconds:.1f} s while "
+                f"uav-a asked {answered} times: {costs.acted(MEMBER)} presence change(s) "
+                f"acted on ({costs.forgets[MEMBER]} forgets, {costs.doubts[MEMBER]} doubts; "
+                f"{pa.stats.presence_suppressed} suppressed), {rekeys} re-handshake(s), "
+                f"{costs.agreed[MEMBER]} key exchange(s) started, "
+                f"{len(failed)} request(s) failed"
             )
-            await _until("uav-a seeing uav-b's presence", lambda: MEMBER in channel._alive)
-            asker = await pa.add(Agent("asker"))
-            assert await request(asker, f"echo@{MEMBER}", 0, ontology="demo", timeout=10) == 0
-            costs = Costs(channel)
-            attacker = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=f"x-{os.getpid()}")
-            attacker.connect(host, port)
-            attacker.loop_start()
-            stop = threading.Event()
-            topic = f"dyknow/{fed}/v1/alive/{MEMBER}"
-
-            def toggle() -> float:
-                start = time.monotonic()
-                for _ in range(TOGGLES):
-                    attacker.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
-                    attacker.publish(topic, ALIVE, qos=1, retain=True).wait_for_publish(5)
-                    time.sleep(0.01)
-                stop.set()
-                return time.monotonic() - start
-
-            try:
-                before = pa.stats.rehandshakes
-                attack = asyncio.create_task(asyncio.to_thread(toggle))
-                answered, failed = 0, []
-                while not stop.is_set():  # uav-a keeps asking uav-b meanwhile
-                    answered += 1
-                    try:
-                        got = await request(
-                            asker, f"echo@{MEMBER}", answered, ontology="demo", timeout=5
-                        )
-                        assert got == answered
-                    except Exception as exc:  # what the forgery cost, reported below
-                        failed.append(repr(exc))
-                    await asyncio.sleep(0.05)
-                seconds = await attack
-                await asyncio.sleep(1.0)
-                rekeys = pa.stats.rehandshakes - before
-                print(
-                    f"\nmqtt, uav-b's presence toggled {TOGGLES} times in {seconds:.1f} s while "
-                    f"uav-a asked {answered} times: {costs.acted(MEMBER)} presence change(s) "
-                    f"acted on ({costs.forgets[MEMBER]} forgets, {costs.doubts[MEMBER]} doubts; "
-                    f"{pa.stats.presence_suppressed} suppressed), {rekeys} re-handshake(s), "
-                    f"{costs.agreed[MEMBER]} key exchange(s) started, "
-                    f"{len(failed)} request(s) failed"
-                )
-                print("\n".join(failed[:3]))
-                # a forget acted on may lose what is in flight on the session it drops
-                assert len(failed) <= costs.forgets[MEMBER], failed
-                assert costs.acted(MEMBER) <= _bound(seconds + 1.0)
-                assert costs.agreed[MEMBER] <= _bound(seconds + 1.0) + 2
-                assert rekeys <= 2 + 2 * int((seconds + 1.0) / INTERVAL)
-                assert pa.stats.presence_suppressed >= 100
-                records = await _until(
-                    "the suppressed changes audited", lambda: _limited(channel, MEMBER)
-                )
-                assert sum(r["count"] for r in records) <= pa.stats.presence_suppressed
-                # and uav-b is still served once the attack stops
-                got = await request(asker, f"echo@{MEMBER}", -1, ontology="demo", timeout=10)
-                assert got == -1
-            finally:
-                attacker.loop_stop()
-                attacker.disconnect()
-    finally:
-        for proc in procs:
-            if proc.is_alive():
-                proc.kill()
-            proc.join(timeout=10)
+            print("\n".join(failed[:3]))
+            # a forget acted on may lose what is in flight on the session it drops
+            assert len(failed) <= costs.forgets[MEMBER], failed
+            assert costs.acted(MEMBER) <= _bound(seconds + 1.0)
+            assert costs.agreed[MEMBER] <= _bound(seconds + 1.0) + 2
+            assert rekeys <= 2 + 2 * int((seconds + 1.0) / INTERVAL)
+            assert pa.stats.presence_suppressed >= 100
+            records = await _until(
+                "the suppressed changes audited", lambda: _limited(channel, MEMBER)
+            )
+            assert sum(r["count"] for r in records) <= pa.stats.presence_suppressed
+            # and uav-b is still served once the attack stops
+            got = await request(asker, f"echo@{MEMBER}", -1, ontology="demo", timeout=10)
+            assert got == -1
+        finally:
+            attacker.loop_stop()
+            attacker.disconnect()
 
 
 @pytest.mark.timeout(180)
@@ -493,10 +504,7 @@ async def test_a_real_restart_recovers_as_fast_while_its_name_is_toggled(tmp_pat
             # a fresh platform's first request agrees a session (as the calm one did)
             assert recovery["toggled"] < max(2.0, 3 * recovery["calm"])
     finally:
-        for proc in procs:
-            if proc.is_alive():
-                proc.kill()
-            proc.join(timeout=10)
+        _kill(procs)
 
 
 @pytest.mark.timeout(240)
@@ -511,89 +519,63 @@ async def test_mqtt_restart_while_the_budget_is_spent_recovers_within_the_bound(
     session it does not know) and the doubt that stands in for the ignored changes
     (`_presence_catch_up`) agree a new one. A request is answered within `RESTART_BOUND`.
     """
-    host, port = mosquitto
-    fed = _federation(tmp_path)
-    procs: list[BaseProcess] = []
-    channel = InterfaceAgent(
-        KeyPair.load(tmp_path / "keys" / f"{VICTIM}.key"), TrustStore.load(tmp_path / "trust.json")
-    )
-    config = MqttConfig(host=host, port=port, keepalive=5)
-    try:
-        async with (
-            MqttTransport(config) as transport,
-            AgentPlatform(VICTIM, transport, federation=fed, channel=channel) as pa,
-        ):
-            procs.append(
-                await asyncio.to_thread(_start_member, "mqtt", config.model_dump(), fed, tmp_path)
-            )
-            await _until("uav-a seeing uav-b's presence", lambda: MEMBER in channel._alive)
-            asker = await pa.add(Agent("asker"))
+    async with _mqtt_victim(tmp_path, mosquitto) as (fed, config, procs, channel, pa, asker):
+        costs = Costs(channel)
+        attacker = _mqtt_attacker(*mosquitto)
+        stop = threading.Event()
+        topic = f"dyknow/{fed}/v1/alive/{MEMBER}"
+
+        def toggle() -> None:
+            while not stop.is_set():
+                attacker.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
+                attacker.publish(topic, ALIVE, qos=1, retain=True).wait_for_publish(5)
+                time.sleep(0.02)
+
+        attack = asyncio.create_task(asyncio.to_thread(toggle))
+        try:
+            await _until("uav-b's budget spent", lambda: pa.stats.presence_suppressed >= 20)
+            # uav-a goes on asking: the answer is on a session with this process, which
+            # the restart's ignored changes do not forget
             assert await request(asker, f"echo@{MEMBER}", 0, ontology="demo", timeout=10) == 0
-            costs = Costs(channel)
-            attacker = paho.Client(paho.CallbackAPIVersion.VERSION2, client_id=f"x-{os.getpid()}")
-            attacker.connect(host, port)
-            attacker.loop_start()
-            stop = threading.Event()
-            topic = f"dyknow/{fed}/v1/alive/{MEMBER}"
-
-            def toggle() -> None:
-                while not stop.is_set():
-                    attacker.publish(topic, b"", qos=1, retain=True).wait_for_publish(5)
-                    attacker.publish(topic, ALIVE, qos=1, retain=True).wait_for_publish(5)
-                    time.sleep(0.02)
-
-            attack = asyncio.create_task(asyncio.to_thread(toggle))
-            try:
-                await _until("uav-b's budget spent", lambda: pa.stats.presence_suppressed >= 20)
-                # uav-a goes on asking: the answer is on a session with this process, which
-                # the restart's ignored changes do not forget
-                assert await request(asker, f"echo@{MEMBER}", 0, ontology="demo", timeout=10) == 0
-                assert channel.sessions.session_for(MEMBER) is not None
-                suppressed, acted = pa.stats.presence_suppressed, costs.acted(MEMBER)
-                procs[0].kill()
-                await asyncio.to_thread(procs[0].join, 10)
-                new = await asyncio.to_thread(
-                    _start_member, "mqtt", config.model_dump(), fed, tmp_path
-                )
-                procs.append(new)
-                started = time.monotonic()
-                asked, failed = 0, []
-                while True:  # uav-a asks until answered, each request bounded
-                    asked += 1
-                    try:
-                        got = await request(
-                            asker, f"echo@{MEMBER}", asked, ontology="demo", timeout=1.0
-                        )
-                    except Exception as exc:  # the first is lost: sealed on the old session
-                        failed.append(repr(exc))
-                        assert time.monotonic() - started < RESTART_BOUND + 5.0, failed
-                        continue
-                    assert got == asked
-                    break
-                recovery = time.monotonic() - started
-                restart = (costs.acted(MEMBER) - acted, pa.stats.presence_suppressed - suppressed)
-                stop.set()
-                await attack
-            finally:
-                stop.set()
-                await asyncio.wait([attack], timeout=10)
-                attacker.loop_stop()
-                attacker.disconnect()
-            print(
-                f"\nmqtt, uav-b killed and restarted while its presence is toggled: answered "
-                f"{recovery:.2f} s after the new process serves ({asked} request(s)); "
-                f"{costs.acted(MEMBER)} change(s) acted on ({costs.forgets[MEMBER]} forgets, "
-                f"{costs.doubts[MEMBER]} doubts), {pa.stats.presence_suppressed} suppressed, "
-                f"{pa.stats.rehandshakes} re-handshake(s); during the restart "
-                f"{restart[0]} acted on, {restart[1]} suppressed"
-            )
-            print("\n".join(failed[:3]))
-            assert recovery < RESTART_BOUND
-    finally:
-        for proc in procs:
-            if proc.is_alive():
-                proc.kill()
-            proc.join(timeout=10)
+            assert channel.sessions.session_for(MEMBER) is not None
+            suppressed, acted = pa.stats.presence_suppressed, costs.acted(MEMBER)
+            procs[0].kill()
+            await asyncio.to_thread(procs[0].join, 10)
+            new = await asyncio.to_thread(_start_member, "mqtt", config.model_dump(), fed, tmp_path)
+            procs.append(new)
+            started = time.monotonic()
+            asked, failed = 0, []
+            while True:  # uav-a asks until answered, each request bounded
+                asked += 1
+                try:
+                    got = await request(
+                        asker, f"echo@{MEMBER}", asked, ontology="demo", timeout=1.0
+                    )
+                except Exception as exc:  # the first is lost: sealed on the old session
+                    failed.append(repr(exc))
+                    assert time.monotonic() - started < RESTART_BOUND + 5.0, failed
+                    continue
+                assert got == asked
+                break
+            recovery = time.monotonic() - started
+            restart = (costs.acted(MEMBER) - acted, pa.stats.presence_suppressed - suppressed)
+            stop.set()
+            await attack
+        finally:
+            stop.set()
+            await asyncio.wait([attack], timeout=10)
+            attacker.loop_stop()
+            attacker.disconnect()
+        print(
+            f"\nmqtt, uav-b killed and restarted while its presence is toggled: answered "
+            f"{recovery:.2f} s after the new process serves ({asked} request(s)); "
+            f"{costs.acted(MEMBER)} change(s) acted on ({costs.forgets[MEMBER]} forgets, "
+            f"{costs.doubts[MEMBER]} doubts), {pa.stats.presence_suppressed} suppressed, "
+            f"{pa.stats.rehandshakes} re-handshake(s); during the restart "
+            f"{restart[0]} acted on, {restart[1]} suppressed"
+        )
+        print("\n".join(failed[:3]))
+        assert recovery < RESTART_BOUND
 
 
 @pytest.fixture(autouse=True)

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _echo import ProtectedEcho
 
 from agents import (
     ACLMessage,
@@ -30,7 +31,6 @@ from agents import (
     AgentPlatform,
     InterfaceAgent,
     KeyPair,
-    ServiceDescription,
     TrustStore,
     on_request,
     request,
@@ -43,18 +43,8 @@ START = 20.0  # a spawned interpreter imports zenoh and pydantic: seconds when l
 ASKER, ECHO = "uav-a", "uav-b"
 
 
-class Echo(Agent):
+class Echo(ProtectedEcho):
     """Answers with what it was asked, its process and what its Interface Agent refused."""
-
-    def __init__(self) -> None:
-        super().__init__("echo")
-
-    async def setup(self) -> None:
-        """Protected: uav-a reaches it through the Interface Agent."""
-        assert self.platform.df is not None
-        await self.platform.df.register(
-            ServiceDescription(name="echo", type="echo", provider=self.aid, visibility="protected")
-        )
 
     @on_request("demo")
     async def _echo(self, message: ACLMessage) -> Any:
