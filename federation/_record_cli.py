@@ -199,7 +199,10 @@ async def _record_relayed(
             "sample_period": sample_period,
             "through": "the running node",
         }
-        rec = Recorder(inst, semantic_labels, out, meta=meta, since=0, limit=count)
+        # written beside ``out`` and renamed once relayed: a refused request (an unknown
+        # label, a platform not there) must not leave an empty file in place of one there
+        part = out.with_name(f".{out.name}.part")
+        rec = Recorder(inst, semantic_labels, part, meta=meta, since=0, limit=count)
 
         def emit(label: str, value: Any, valid: int, available: int) -> None:
             sources[label].push(value, valid, available)
@@ -232,15 +235,21 @@ async def _record_relayed(
                 error = exc
             finally:
                 relay.cancel()
-    if error is not None:
-        raise error
-    if relay.cancelled():
-        return rec  # stopped (a signal, the duration, the count) while relaying
-    result = relay.result()
-    if isinstance(result, Exception):
-        raise result
-    if result is None:
+    result = None if error is not None or relay.cancelled() else relay.result()
+    if (
+        error is not None
+        or isinstance(result, Exception)
+        or (result is None and not relay.cancelled())
+    ):
+        part.unlink(missing_ok=True)
+        if error is not None:
+            raise error
+        if isinstance(result, Exception):
+            raise result
         return None  # a stale socket, nobody listening: record as the platform itself
+    # stopped (a signal, the duration, the count) while relaying, or the relay ended
+    part.replace(out)
+    rec.path = out
     return rec
 
 

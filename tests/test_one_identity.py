@@ -387,3 +387,46 @@ def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(tmp_path:
             console.terminate()
             console.communicate(timeout=20)
         station.stop()
+
+
+@pytest.mark.timeout(150)
+def test_a_refused_record_through_the_console_leaves_the_file_there_as_it_was(
+    tmp_path: Path,
+) -> None:
+    """A record the provider refuses (an unknown label) writes nothing over ``-o``'s file."""
+    station = Station(tmp_path)
+    console = None
+    try:
+        station.start("python")
+        console = subprocess.Popen(
+            [*CLI, "console", "--config", "operator.toml", "--port", "0"],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        assert console.stdout is not None
+        assert "operator ready" in console.stdout.readline()
+        kept = station.dir / "kept.mcap"
+        kept.write_bytes(b"an earlier recording")
+        done = subprocess.run(
+            [
+                *(*CLI, "record", "no-such-label", "-p", "station", "-o", str(kept)),
+                *("-n", "1", "--config", "operator.toml", "--wait", "10"),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+            timeout=60,
+        )
+        assert done.returncode != 0, done.stdout
+        assert "Traceback" not in done.stderr, done.stderr
+        assert kept.read_bytes() == b"an earlier recording"
+        assert sorted(p.name for p in station.dir.glob("*kept*")) == ["kept.mcap"]
+    finally:
+        if console is not None:
+            console.terminate()
+            console.communicate(timeout=20)
+        station.stop()
