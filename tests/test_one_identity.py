@@ -154,23 +154,29 @@ def test_a_flood_of_directory_queries_does_not_let_a_second_node_start(tmp_path:
     assert "station stopped" in out and "Traceback" not in err
 
 
+def _console(station: Station) -> tuple[subprocess.Popen[str], str]:
+    """``dyknow console`` as the station's operator, and its ready line (with its URL)."""
+    console = subprocess.Popen(
+        [*CLI, "console", "--config", "operator.toml", "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=station.dir,
+        env=station.env,
+    )
+    assert console.stdout is not None
+    ready = console.stdout.readline()  # bounded by the test's timeout
+    assert "operator ready" in ready, console.stderr.read() if console.stderr else ""
+    return console, ready
+
+
 @pytest.mark.timeout(150)
 def test_one_shot_commands_run_beside_the_console_with_its_config(tmp_path: Path) -> None:
     station = Station(tmp_path)
     console = None
     try:
         station.start("python")
-        console = subprocess.Popen(
-            [*CLI, "console", "--config", "operator.toml", "--port", "0"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-        )
-        assert console.stdout is not None
-        ready = console.stdout.readline()  # bounded by the test's timeout
-        assert "operator ready" in ready, console.stderr.read() if console.stderr else ""
+        console, ready = _console(station)
         url = ready.rsplit(": ", 1)[1].strip()
         record = station.dir / "t.mcap"
         commands = [
@@ -358,16 +364,7 @@ def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(tmp_path:
     console = None
     try:
         station.start("python")
-        console = subprocess.Popen(
-            [*CLI, "console", "--config", "operator.toml", "--port", "0"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-        )
-        assert console.stdout is not None
-        assert "operator ready" in console.stdout.readline()
+        console, _ = _console(station)
         for n in range(4):  # each ends its stream as the next one asks for it
             done = subprocess.run(
                 [
@@ -398,16 +395,7 @@ def test_a_refused_record_through_the_console_leaves_the_file_there_as_it_was(
     console = None
     try:
         station.start("python")
-        console = subprocess.Popen(
-            [*CLI, "console", "--config", "operator.toml", "--port", "0"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-        )
-        assert console.stdout is not None
-        assert "operator ready" in console.stdout.readline()
+        console, _ = _console(station)
         kept = station.dir / "kept.mcap"
         kept.write_bytes(b"an earlier recording")
         done = subprocess.run(
