@@ -270,7 +270,8 @@ class ConsoleSettings(BaseModel):
     how its page draws them (`ConsoleRoles`); a stream with no role is listed with its
     latest value. ``allow_hosts`` are host names a request's ``Host`` may name besides
     localhost and IP addresses; ``token_file`` holds the console's token (else
-    ``DYKNOW_CONSOLE_TOKEN``, else a random one, printed at start).
+    ``DYKNOW_CONSOLE_TOKEN``, else a random one, printed at start). ``idle_timeout``: the
+    seconds a connection has to send a whole request before it is closed.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -279,6 +280,7 @@ class ConsoleSettings(BaseModel):
     roles: ConsoleRoles = Field(default_factory=ConsoleRoles)
     allow_hosts: tuple[str, ...] = ()
     token_file: Path | None = None
+    idle_timeout: float = Field(default=15.0, gt=0.0, le=3600.0)
 
     @field_validator("streams")
     @classmethod

@@ -411,12 +411,13 @@ async def serve(
     access: ConsoleAccess,
     *,
     max_clients: int = MAX_CLIENTS,
+    idle_timeout: float = IDLE_TIMEOUT,
 ) -> int:
     """Serve ``app`` on ``host``:``port`` until ``stack`` closes; the port bound.
 
     Unlike a plain `aiohttp.web.TCPSite`, what a client costs is bounded before it sends
     a request: ``max_clients`` connections at once (more are answered 503, counted in
-    ``access.busy``), and a connection without a whole request within `IDLE_TIMEOUT` s is
+    ``access.busy``), and a connection without a whole request within ``idle_timeout`` s is
     closed (aiohttp's own default keeps one for an hour). Requests under way (an event
     stream, a WebSocket) are not timed.
     """
@@ -424,7 +425,7 @@ async def serve(
         app,
         shutdown_timeout=2.0,
         access_log=None,
-        keepalive_timeout=IDLE_TIMEOUT,
+        keepalive_timeout=idle_timeout,
         logger=_http_log,
     )
     await runner.setup()
