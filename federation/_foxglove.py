@@ -514,7 +514,11 @@ class FoxgloveBridge:
             stack.push_async_callback(self._close_tasks)
             self._relay = await stack.enter_async_context(
                 FoxgloveRelay(
-                    self.access, f"ws://127.0.0.1:{server.port}/", host=self.host, port=self.port
+                    self.access,
+                    f"ws://127.0.0.1:{server.port}/",
+                    host=self.host,
+                    port=self.port,
+                    idle_timeout=self.platform.config.console.idle_timeout,  # as its access
                 )
             )
             self.port = self._relay.port

@@ -26,7 +26,7 @@ from typing import Any
 import aiohttp
 from aiohttp import WSMsgType, web
 
-from .console import ConsoleAccess, serve
+from .console import IDLE_TIMEOUT, ConsoleAccess, serve
 
 __all__ = ["MAX_CONNECTIONS", "SUBPROTOCOLS", "FoxgloveRelay"]
 
@@ -66,8 +66,17 @@ class FoxgloveRelay:
     An async context manager; `port` is the one bound (0: a free one) once entered.
     """
 
-    def __init__(self, access: ConsoleAccess, inner_url: str, *, host: str, port: int) -> None:
+    def __init__(
+        self,
+        access: ConsoleAccess,
+        inner_url: str,
+        *,
+        host: str,
+        port: int,
+        idle_timeout: float = IDLE_TIMEOUT,
+    ) -> None:
         self.access = access
+        self.idle_timeout = idle_timeout  # s a connection has to send a whole request
         self.inner_url = inner_url
         self.host = host
         self.port = port
@@ -94,7 +103,9 @@ class FoxgloveRelay:
             self._session = await stack.enter_async_context(aiohttp.ClientSession(timeout=timeout))
             app = web.Application()
             app.router.add_get("/{tail:.*}", self._upgrade)
-            self.port = await serve(app, self.host, self.port, stack, self.access)
+            self.port = await serve(
+                app, self.host, self.port, stack, self.access, idle_timeout=self.idle_timeout
+            )
             stack.push_async_callback(self._close_all)  # before the runner's cleanup
         except BaseException:
             await stack.aclose()

@@ -617,10 +617,10 @@ async def test_the_relay_lets_in_only_the_token_from_an_allowed_origin(tmp_path:
 async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> None:
     """``dyknow foxglove`` as a process: many upgrades at once, slow clients; both bounded."""
     from federation._foxglove_relay import MAX_CONNECTIONS
-    from federation.console import IDLE_TIMEOUT
     from tests.test_console_access import write_operator
 
-    config = write_operator(tmp_path)
+    idle = 3.0  # s to send a whole request ([console] idle_timeout; 15 s by default)
+    config = write_operator(tmp_path, f"idle_timeout = {idle}")
     proc = await asyncio.create_subprocess_exec(
         sys.executable,
         *("-m", "federation.cli", "foxglove", "--config", str(config), "--port", "0"),
@@ -654,7 +654,7 @@ async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> 
         # an outsider's connection that never ends its request is closed, not kept
         reader, writer = await asyncio.open_connection("127.0.0.1", port)
         writer.write(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")
-        async with asyncio.timeout(IDLE_TIMEOUT + 10):
+        async with asyncio.timeout(idle + 10):
             assert await reader.read() == b""
         writer.close()
     finally:
