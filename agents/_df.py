@@ -26,6 +26,7 @@ import asyncio
 import base64
 import binascii
 import logging
+import math
 import threading
 import time
 from collections.abc import Awaitable, Callable, Iterable
@@ -601,6 +602,9 @@ class DirectoryFacilitator(Agent):
         raise Refuse(f"unsupported function {action!r}")
 
 
+_RESYNC_MAX_WAIT = 30.0  # s between a member's resyncs at most, while it does not answer
+
+
 class GlobalDirectory:
     """The federation's public services as seen from one platform (kept up to date).
 
@@ -656,6 +660,11 @@ class GlobalDirectory:
         if self._auth.authenticates and event_limit is not None:
             self.event_gate = DfEventGate(self._auth, event_limit, on_shed=self._shed_pending.add)
         self._resyncing: set[str] = set()
+        # a member whose events were shed while its resync ran is asked once more after it;
+        # each member is asked at most once per report interval (the interval after a
+        # refused or unanswered resync doubles, up to _RESYNC_MAX_WAIT s, while it is alive)
+        self._resync_again: set[str] = set()
+        self._resync_last: dict[str, float] = {}
         self.version = 0
         """Changes with every change of `services`: a view of them is current while it is equal."""
 
@@ -937,16 +946,40 @@ class GlobalDirectory:
     def _want_resync(self, platforms: Iterable[str]) -> None:
         """Take a fresh snapshot of each of ``platforms`` alive: events of theirs may be lost."""
         for platform in platforms:
-            if platform in self._alive and platform not in self._resyncing:
-                self._resyncing.add(platform)
-                self._platform.spawn(self._resync(platform), f"global-df.resync[{platform}]")
+            if platform not in self._alive:
+                continue
+            if platform in self._resyncing:
+                self._resync_again.add(platform)  # shed after its answer, maybe: once more
+                continue
+            self._resyncing.add(platform)
+            self._platform.spawn(self._resync(platform), f"global-df.resync[{platform}]")
 
     async def _resync(self, platform: str) -> None:
+        """Ask ``platform`` for its snapshot until it answered one taken after the last shed.
+
+        At most once per report interval; while it is alive and its answer does not come
+        (its directory shedding a flood of queries, say), again after a wait that doubles.
+        """
+        gate = self.event_gate
+        interval = gate.limit.report_interval if gate is not None else 1.0
+        backoff = interval
         try:
-            self.resyncs += 1
-            await self._fetch(platform)
+            while platform in self._alive:
+                wait = self._resync_last.get(platform, -math.inf) + interval - time.monotonic()
+                if wait > 0:
+                    await asyncio.sleep(wait)
+                self._resync_last[platform] = time.monotonic()
+                self._resync_again.discard(platform)
+                self.resyncs += 1
+                answered = await self._fetch(platform)
+                if answered and platform not in self._resync_again:
+                    return
+                if not answered:
+                    await asyncio.sleep(backoff)
+                    backoff = min(backoff * 2, _RESYNC_MAX_WAIT)
         finally:
             self._resyncing.discard(platform)
+            self._resync_again.discard(platform)
 
     async def _follow_events(self, sub: Subscription[Message]) -> None:
         lost = 0

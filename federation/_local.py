@@ -354,9 +354,10 @@ class LocalChannel:
         self.refused = 0
         self._lock = asyncio.Lock()
         self._exports: dict[tuple[str, str], list[Any]] = {}  # export id, commands following
-        # the streams whose import this channel created: once cancelled, that import is
-        # never the node's own, even while its end is still on its way
-        self._made: set[tuple[str, str]] = set()
+        # the imports this channel created: once cancelled, such an import is never the
+        # node's own, even while its end is still on its way (one the node made since is
+        # another record, and the node's)
+        self._made: dict[tuple[str, str], Any] = {}
         # anyone on the network may ask who we are: screened on the transport's thread, so
         # a flood costs no task each on the event loop (a second node asks once)
         self._who_lock = threading.Lock()
@@ -582,14 +583,14 @@ class LocalChannel:
                 entry[1] += 1
                 return
             rec = p.importer.get(target, semantic)
-            mine = key in self._made  # made here, cancelled since: never the node's own
+            mine = rec is not None and rec is self._made.get(key)  # made here, cancelled since
             if not mine and rec is not None and rec.source is not None and not rec.ended:
                 return  # the node's own
             export_id = await p.federation_agent.create_stream(
                 target, [semantic], sample_period=sample_period, timeout=timeout
             )
             self._exports[key] = [export_id, 1]
-            self._made.add(key)
+            self._made[key] = p.importer.get(target, semantic)
 
     async def _release(self, target: str, semantic: str) -> None:
         # Cancelled under the lock: a command asking for the stream meanwhile would

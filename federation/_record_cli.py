@@ -236,20 +236,17 @@ async def _record_relayed(
             finally:
                 relay.cancel()
     result = None if error is not None or relay.cancelled() else relay.result()
-    if (
-        error is not None
-        or isinstance(result, Exception)
-        or (result is None and not relay.cancelled())
-    ):
+    failed = error if error is not None else result if isinstance(result, Exception) else None
+    if rec.recorded or (failed is None and (result is not None or relay.cancelled())):
+        # what was recorded is kept, even when the relay failed later (the node stopped)
+        part.replace(out)
+        rec.path = out
+    else:
         part.unlink(missing_ok=True)
-        if error is not None:
-            raise error
-        if isinstance(result, Exception):
-            raise result
+    if failed is not None:
+        raise failed
+    if result is None and not relay.cancelled():
         return None  # a stale socket, nobody listening: record as the platform itself
-    # stopped (a signal, the duration, the count) while relaying, or the relay ended
-    part.replace(out)
-    rec.path = out
     return rec
 
 

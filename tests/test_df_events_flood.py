@@ -246,3 +246,37 @@ async def _records(platform: AgentPlatform, stage: str) -> list[dict[str, Any]]:
             if found:
                 return found
             await asyncio.sleep(0.01)
+
+
+async def test_a_resync_its_member_does_not_answer_is_asked_again_until_it_does() -> None:
+    """A member whose directory sheds the resync queries (a flood of them) is asked again.
+
+    Its events were shed and its answers did not come: the view asked once and gave up, so
+    the member's changes stayed hidden for good (found in review). Now it asks again after a
+    wait that doubles, while the member is alive, until an answer comes.
+    """
+    async with asyncio.timeout(20), _members("uav-a", "uav-b") as [pa, pb]:
+        view = pa.global_df
+        assert view is not None and view.event_gate is not None and pb.df is not None
+        real_fetch = view._fetch
+        unanswered = 2  # the first two resyncs get no answer (shed at uav-b)
+
+        async def fetch(platform: str) -> bool:
+            nonlocal unanswered
+            if unanswered:
+                unanswered -= 1
+                return False
+            return await real_fetch(platform)
+
+        async with view.watch() as w:
+            await pb.df.register(_public("svc@uav-b", "hidden"))
+            assert (await w.get(5)).op == "register"
+        view._entries["uav-b"] = {}  # as if its event had been shed
+        view._fetch = fetch  # type: ignore[method-assign]
+        resyncs = view.resyncs
+        view._want_resync(["uav-b"])
+        view._want_resync(["uav-b"])  # asked while under way: once more after, not twice now
+        while "uav-b" in view._resyncing:  # noqa: ASYNC110
+            await asyncio.sleep(0.05)  # no event to await: the view's own retries
+        assert view.resyncs - resyncs == 3 and unanswered == 0
+        assert [s.name for s in view.services("uav-b")] == ["hidden"]
