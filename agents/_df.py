@@ -43,6 +43,7 @@ from ._bucket import TokenBucket
 from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventGate, DfEventLimit
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
 from ._exceptions import ServiceError, TransportError
+from ._gate import shed_counts
 from ._protocols import (
     DEFAULT_TIMEOUT,
     Publisher,
@@ -927,9 +928,6 @@ class GlobalDirectory:
                 await asyncio.sleep(gate.limit.report_interval / 4)
 
     def _audit_shed(self, limit: DfEventLimit, summary: dict[str, Any]) -> None:
-        seconds = summary["seconds"]
-        since = "" if seconds is None else f" in {seconds:.1f} s"
-        reasons = ", ".join(f"{k} {v}" for k, v in summary["by_reason"].items())
         self._platform.audit(
             verdict="dropped",
             stage="df-events-shed",
@@ -937,7 +935,7 @@ class GlobalDirectory:
             by_reason=summary["by_reason"],
             reason=(
                 f"directory events shed: {summary['count']} dropped before any signature "
-                f"check{since} ({reasons}; budget {limit.per_platform:g}/s per platform, "
+                f"check{shed_counts(summary)}; budget {limit.per_platform:g}/s per platform, "
                 f"burst {limit.per_platform_burst:g}; {limit.total:g}/s for platforms not "
                 f"in the directory, burst {limit.total_burst:g})"
             ),

@@ -133,3 +133,11 @@ class ShedGate:
             "seconds": None if math.isinf(last) else now - last,
         }
         return details, summary
+
+
+def shed_counts(summary: dict[str, Any]) -> str:
+    """``in 1.0 s (reason n, …`` of a shed summary, as both gates' audit records say it."""
+    seconds = summary["seconds"]
+    since = "" if seconds is None else f" in {seconds:.1f} s"
+    reasons = ", ".join(f"{k} {v}" for k, v in summary["by_reason"].items())
+    return f"{since} ({reasons}"

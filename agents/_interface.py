@@ -50,6 +50,7 @@ from ._exceptions import (
     UnknownPlatform,
     UnknownSession,
 )
+from ._gate import shed_counts
 from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
 from ._protocols import Refuse, on_query
 from ._security import (
@@ -260,7 +261,18 @@ class AuditLog:
         Every record has the fields of ``docs/wire.md`` (None when unknown), so readers
         of the JSON lines need not guess which ones a kind of refusal leaves out.
         """
-        rec: dict[str, Any] = {
+        rec = self._new_record(**{"verdict": "accepted", **fields})
+        self._log.append(rec)
+        first = not self._pending  # the first since the flush took them: it may sleep
+        self._pending.append(rec)
+        if first and self.wake is not None:
+            self.wake()  # after the append: a flush woken from another thread finds it
+        verdict = rec["verdict"]
+        self.counts[verdict] = self.counts.get(verdict, 0) + 1
+
+    def _new_record(self, **fields: Any) -> dict[str, Any]:
+        """A record with every field of ``docs/wire.md``, None where ``fields`` say nothing."""
+        return {
             "v": WIRE_VERSION,
             "ts": time.time(),
             "platform": self.platform,
@@ -269,17 +281,10 @@ class AuditLog:
             "receivers": None,
             "performative": None,
             "conversation_id": None,
-            "verdict": "accepted",
+            "verdict": None,
             "reason": None,
             **fields,
         }
-        self._log.append(rec)
-        first = not self._pending  # the first since the flush took them: it may sleep
-        self._pending.append(rec)
-        if first and self.wake is not None:
-            self.wake()  # after the append: a flush woken from another thread finds it
-        verdict = rec["verdict"]
-        self.counts[verdict] = self.counts.get(verdict, 0) + 1
 
     def accepted(self, peer: str, message: ACLMessage, ts: float | None = None) -> None:
         """Record that ``message`` from platform ``peer`` was admitted (at ``ts``, Unix s)."""
@@ -418,20 +423,7 @@ class AuditLog:
         note = f"audit file rotated at {self.max_bytes} bytes: the records before this one " + (
             f"are in {previous}" if previous else "were deleted (no backups kept)"
         )
-        record = {
-            "v": WIRE_VERSION,
-            "ts": time.time(),
-            "platform": self.platform,
-            "from": None,
-            "sender": None,
-            "receivers": None,
-            "performative": None,
-            "conversation_id": None,
-            "verdict": None,
-            "reason": note,
-            "stage": "audit-rotated",
-            "previous": previous,
-        }
+        record = self._new_record(reason=note, stage="audit-rotated", previous=previous)
         with path.open("ab") as f:
             f.write(orjson.dumps(record) + b"\n")
         _fsync_dir(path.parent)
@@ -1061,9 +1053,6 @@ class InterfaceAgent:
         if summary is None:
             return
         limit = gate.limit
-        seconds = summary["seconds"]
-        since = "" if seconds is None else f" in {seconds:.1f} s"
-        reasons = ", ".join(f"{k} {v}" for k, v in summary["by_reason"].items())
         self.audit.record(
             verdict="dropped",
             stage="kx-shed",
@@ -1071,7 +1060,7 @@ class InterfaceAgent:
             by_reason=summary["by_reason"],
             reason=(
                 f"key-exchange requests shed: {summary['count']} dropped before any "
-                f"signature check{since} ({reasons}; budget {limit.per_peer:g}/s per "
+                f"signature check{shed_counts(summary)}; budget {limit.per_peer:g}/s per "
                 f"platform, burst {limit.per_peer_burst:g}; {limit.total:g}/s for "
                 f"platforms without a session, burst {limit.total_burst:g})"
             ),
