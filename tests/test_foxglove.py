@@ -378,6 +378,7 @@ def test_foxglove_refuses_an_unusable_token(tmp_path: Path) -> None:
     configs = _write_federation(tmp_path, _free_port())
     short = tmp_path / "short.token"
     short.write_text("short\n")
+    short.chmod(0o600)
     done = subprocess.run(
         [*CLI, "foxglove", "--config", str(configs["operator"]), "--token-file", str(short)],
         capture_output=True,
