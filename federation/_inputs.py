@@ -592,15 +592,19 @@ def _csv_rows(f: Iterable[str], path: Path) -> list[Any]:
             return rows
         except csv.Error as exc:
             where = f"{path}:{reader.line_num}"
+            # without its header no row can be read: the rest of the file is not tried
+            skipped = "row skipped" if header is not None else "no header row: file skipped"
             if "field limit" in str(exc):
                 limit = csv.field_size_limit()
-                why = f"{where}: a field over the {limit}-character limit; row skipped"
+                why = f"{where}: a field over the {limit}-character limit; {skipped}"
                 rows.append(BadMessage("field-too-large", why))
             else:
-                rows.append(BadMessage("not-csv", f"{where}: {exc}; row skipped"))
+                rows.append(BadMessage("not-csv", f"{where}: {exc}; {skipped}"))
+            if header is None:
+                return rows
             continue
         if header is None:
-            header = cells
+            header = cells or None  # blank lines before the header are no header
         elif len(cells) > len(header):
             why = f"{path}:{reader.line_num}: {len(cells)} cells, the header names {len(header)}"
             rows.append(BadMessage("not-csv", why))

@@ -205,3 +205,8 @@ async def test_a_csv_field_over_the_limit_costs_its_row_only(
         assert runner.stats.samples == 3
         assert f"{path}:3: a field over the 131072-character limit" in caplog.text
         assert f"{path}:5: 3 cells" in caplog.text
+        path.write_text(f"time,{big}\n1,20.5\n")  # no header: no row can be read
+        runner = input_runner(settings, inst)
+        await asyncio.wait_for(runner.run(None), 10)
+        assert runner.stats.as_dict()["bad"] == {"field-too-large": 1}
+        assert f"{path}:1: a field over the 131072-character limit; no header row" in caplog.text
