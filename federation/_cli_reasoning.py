@@ -81,7 +81,8 @@ def _expected(formula: Any) -> dict[str, tuple[bool, set[str] | None]]:
     """Each state key the formula reads → (parameterized, the kinds of value that it can read).
 
     A bare feature reads true or false; a feature compared to a constant, that constant's
-    kind; one ordered against another feature, a number or a string; a domain, an array.
+    kind; one ordered against another feature, a number or a string; a domain, an array
+    (or object) of members.
     None: any value (a feature tested for equality with another).
     """
     from dyknow_core.reasoning.mtl import (
