@@ -38,8 +38,10 @@ _unpackb = msgpack.unpackb
 def check_semantic_label(label: str) -> str:
     """Check that a semantic label can travel as key chunks, and return it."""
     if not isinstance(label, str) or len(label) > _MAX_LABEL or not _LABEL.fullmatch(label):
+        long = isinstance(label, str) and len(label) > 64  # not echoed whole into a reply
+        shown = repr(label[:64] + "…") if long else repr(label)
         raise ValueError(
-            f"semantic label {label!r} must be 1-{_MAX_LABEL} characters, '/'-separated "
+            f"semantic label {shown} must be 1-{_MAX_LABEL} characters, '/'-separated "
             "non-empty chunks without spaces or any of * $ ? # +"
         )
     return label

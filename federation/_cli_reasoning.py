@@ -13,8 +13,10 @@ other keys are ignored and blank lines skipped. The verdicts are printed as JSON
   from ``t`` (``null``: the trace ends before it is certain).
 
 A bad formula, an unreadable file, a line that is not a JSON object, a missing or
-non-increasing ``t`` or a missing feature is reported on stderr with its line number
-(and column for the formula) and the exit code is 2.
+non-increasing ``t``, a missing feature or a value of a kind its atoms cannot read (a
+string where the formula compares with a number, a number for a bare feature, which
+needs true or false) is reported on stderr with its line number (and column for the
+formula) and the exit code is 2.
 
 ``dyknow kpl check FILE`` checks a KPL file and prints its errors as ``FILE:LINE:COL: msg``:
 exit code 0 with ``ok: N declarations`` when the file checks, 2 otherwise. CU callables
@@ -58,7 +60,105 @@ def _complain(text: str) -> None:
     print(text, file=sys.stderr, flush=True)
 
 
-def _states(f: TextIO, keys: list[str]) -> Iterator[tuple[float, dict[str, Any]]]:
+# the kinds of JSON value an atom can read (JSON null is always allowed: no value)
+_KINDS = {bool: "true or false", float: "a number", str: "a string"}
+
+
+def _kind(value: Any) -> str:
+    """What a JSON value is, in the words of the expected kinds."""
+    if isinstance(value, bool):
+        return _KINDS[bool]
+    if isinstance(value, int | float):
+        return _KINDS[float]
+    if isinstance(value, str):
+        return _KINDS[str]
+    if isinstance(value, dict):
+        return "an object"
+    return "an array" if isinstance(value, list) else type(value).__name__
+
+
+def _expected(formula: Any) -> dict[str, tuple[bool, set[str] | None]]:
+    """Each state key the formula reads → (parameterized, the kinds of value that it can read).
+
+    A bare feature reads true or false; a feature compared to a constant, that constant's
+    kind; one ordered against another feature, a number or a string; a domain, an array
+    (or object) of members.
+    None: any value (a feature tested for equality with another).
+    """
+    from dyknow_core.reasoning.mtl import (
+        Always,
+        And,
+        Compare,
+        Eventually,
+        Feature,
+        Implies,
+        Not,
+        Or,
+        Quantifier,
+        Until,
+    )
+
+    out: dict[str, tuple[bool, set[str] | None]] = {}
+
+    def need(feat: Feature, kinds: set[str] | None) -> None:
+        params, seen = out.setdefault(feat.name, (bool(feat.args), set()))
+        if seen is not None:  # None: one of its atoms reads any value
+            out[feat.name] = (params, None if kinds is None else seen | kinds)
+
+    todo = [formula]
+    while todo:
+        f = todo.pop()
+        if isinstance(f, Feature):
+            need(f, {_KINDS[bool]})
+        elif isinstance(f, Compare):
+            for side, other in ((f.left, f.right), (f.right, f.left)):
+                if not isinstance(side, Feature):
+                    continue
+                if not isinstance(other, Feature):
+                    need(side, {_kind(other)})
+                elif f.op in ("==", "!="):
+                    need(side, None)
+                else:
+                    need(side, {_KINDS[float], _KINDS[str]})
+        elif isinstance(f, Not | Always | Eventually):
+            todo.append(f.operand)
+        elif isinstance(f, And | Or | Implies | Until):
+            todo += [f.left, f.right]
+        elif isinstance(f, Quantifier):
+            out.setdefault(f.domain, (False, {"an array", "an object"}))
+            todo.append(f.body)
+    return out
+
+
+def _check_types(
+    n: int, obj: dict[str, Any], expected: dict[str, tuple[bool, set[str] | None]]
+) -> None:
+    """Refuse a state value of a kind its atoms cannot read (they would be false silently)."""
+    for key, (params, kinds) in expected.items():
+        value = obj[key]
+        if value is None:
+            continue
+        want = "any value" if kinds is None else " or ".join(sorted(kinds))
+        if params:
+            if not isinstance(value, dict):
+                why = f"{key!r} is {_kind(value)}, expected an object of member → {want}"
+                raise _BadInput(f"line {n}: {why}")
+            members: Any = value.items()
+        else:
+            members = [(None, value)]
+        if kinds is None:
+            continue
+        for member, v in members:
+            got = _kind(v)
+            if v is None or got in kinds:
+                continue
+            where = repr(key) if member is None else f"{key!r}[{member!r}]"
+            raise _BadInput(f"line {n}: {where} is {got} ({v!r:.40}), expected {want}")
+
+
+def _states(
+    f: TextIO, keys: list[str], expected: dict[str, tuple[bool, set[str] | None]]
+) -> Iterator[tuple[float, dict[str, Any]]]:
     last = -math.inf
     for n, line in enumerate(f, start=1):
         if not line.strip():
@@ -78,6 +178,7 @@ def _states(f: TextIO, keys: list[str]) -> Iterator[tuple[float, dict[str, Any]]
         missing = [k for k in keys if k not in obj]
         if missing:
             raise _BadInput(f"line {n}: unknown feature(s) {', '.join(map(repr, missing))}")
+        _check_types(n, obj, expected)
         yield float(t), obj
 
 
@@ -125,7 +226,7 @@ def monitor(
     code = 0
     try:
         with f:
-            for t, state in _states(f, keys):
+            for t, state in _states(f, keys, _expected(parsed)):
                 if every is not None:
                     starts.append(t)
                     for v in every.step(t, state):

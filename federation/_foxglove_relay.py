@@ -14,6 +14,11 @@ reader pauses the socket past 64 KiB, its writer waits for the peer to drain), s
 client slows its inner connection, whose backlog the SDK bounds (it drops the oldest
 messages). A message larger than `MAX_MESSAGE` from the server, or `MAX_CLIENT_MESSAGE`
 from a client (a client only subscribes), ends the connection.
+
+What a client makes the SDK log (``foxglove.websocket.connected_client``: one line per
+unknown channel of a subscribe, so one 1 MiB message could write ~20 000) is held to
+one line per `SDK_LOG_INTERVAL` while a relay runs; the next line let through says how
+many were held back (`SdkLogThrottle`).
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import threading
+import time
 from typing import Any
 
 import aiohttp
@@ -28,7 +35,7 @@ from aiohttp import WSMsgType, web
 
 from .console import IDLE_TIMEOUT, ConsoleAccess, serve
 
-__all__ = ["MAX_CONNECTIONS", "SUBPROTOCOLS", "FoxgloveRelay"]
+__all__ = ["MAX_CONNECTIONS", "SDK_LOG_INTERVAL", "SUBPROTOCOLS", "FoxgloveRelay", "SdkLogThrottle"]
 
 log = logging.getLogger("federation.foxglove")
 
@@ -41,6 +48,63 @@ MAX_CLIENT_MESSAGE = 1024 * 1024  # bytes of one message of a client (subscripti
 CONNECT_TIMEOUT = 5.0  # s: to open the inner connection (and to close one)
 HEARTBEAT = 30.0  # s: a client that answers no ping in this time is gone
 _SENDABLE = frozenset({1000, 1001, 1003, 1007, 1008, 1009, 1010, 1011})  # close codes
+
+
+SDK_LOG_INTERVAL = 1.0  # s: at most one line of what clients make the SDK log, per interval
+_SDK_CLIENT_LOGGER = "foxglove.websocket.connected_client"  # the SDK's logger per client
+
+
+class SdkLogThrottle(logging.Filter):
+    """Lets one record through per ``interval``; the next one let through counts the rest.
+
+    Installed on the SDK's per-client logger while a relay runs (`installed`): a token
+    holder's messages must not flood the log. Thread-safe (the SDK logs from its threads).
+    """
+
+    def __init__(self, interval: float = SDK_LOG_INTERVAL) -> None:
+        super().__init__()
+        self.interval = interval
+        self.held = 0  # records held back since the last one let through
+        self._next = 0.0
+        self._lock = threading.Lock()
+        self._users = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """True for the first record of an interval (saying how many were held before it)."""
+        now = time.monotonic()
+        with self._lock:
+            if now < self._next:
+                self.held += 1
+                return False
+            self._next = now + self.interval
+            held, self.held = self.held, 0
+        if held:
+            record.msg = f"{record.getMessage()} (and {held} more lines held back before it)"
+            record.args = ()
+        return True
+
+    @contextlib.contextmanager
+    def installed(self) -> Any:
+        """On the SDK's per-client logger while in the block (shared by relays at once)."""
+        logger = logging.getLogger(_SDK_CLIENT_LOGGER)
+        with self._lock:
+            self._users += 1
+            if self._users == 1:
+                logger.addFilter(self)
+        try:
+            yield self
+        finally:
+            with self._lock:
+                self._users -= 1
+                last = self._users == 0
+                if last:
+                    logger.removeFilter(self)
+                held, self.held = (self.held, 0) if last else (0, self.held)
+            if held:  # the end of a flood no later line reported
+                log.warning("foxglove: %d more lines of %s were held back", held, logger.name)
+
+
+_SDK_LOG = SdkLogThrottle()
 
 
 def _json_error(status: int, reason: str, **headers: str) -> web.Response:
@@ -99,6 +163,7 @@ class FoxgloveRelay:
     async def __aenter__(self) -> FoxgloveRelay:
         stack = self._stack = contextlib.AsyncExitStack()
         try:
+            stack.enter_context(_SDK_LOG.installed())  # until the last client is gone
             timeout = aiohttp.ClientTimeout(total=CONNECT_TIMEOUT)  # the inner upgrade
             self._session = await stack.enter_async_context(aiohttp.ClientSession(timeout=timeout))
             app = web.Application()

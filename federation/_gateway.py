@@ -17,7 +17,8 @@ Agent only (a `FederationPlatform` makes it private unless its config opens it: 
 labels never leave a platform). Labels under a ``reserved`` prefix (``import/``: what
 other platforms stream here) are for this platform's agents only: a request from another
 platform that would read, create or write one is refused, counted
-(``gateway_stats.reserved_refused``) and audited.
+(``gateway_stats.reserved_refused``) and audited; so is a create-stream whose output is
+no valid semantic label (``gateway_stats.bad_label_refused``).
 """
 
 from __future__ import annotations
@@ -73,6 +74,7 @@ class GatewayStats:
     too_large: int = 0
     subscriptions: int = 0
     reserved_refused: int = 0
+    bad_label_refused: int = 0
 
 
 @dataclass(slots=True)
@@ -177,6 +179,9 @@ class GatewayAgent(Agent):
         try:
             result = self.service.perform(content)
         except GatewayRefusal as exc:
+            if exc.code == "bad-label":
+                self.gateway_stats.bad_label_refused += 1
+                self._audit_refusal(message, exc.code, exc.reason)
             raise Refuse(self._told(exc, message)) from exc
         if remote and isinstance(content, dict) and content.get("action") == "list-labels":
             result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
@@ -215,18 +220,22 @@ class GatewayAgent(Agent):
                     "or write it"
                 )
                 self.gateway_stats.reserved_refused += 1
-                self.platform.audit(
-                    verdict="refused",
-                    stage="gateway",
-                    code="reserved-label",
-                    **{"from": platform_of(message.sender)},
-                    sender=message.sender,
-                    receivers=message.receivers,
-                    performative=message.performative.value,
-                    conversation_id=message.conversation_id,
-                    reason=f"reserved-label: {reason}",
-                )
+                self._audit_refusal(message, "reserved-label", reason)
                 raise Refuse(reason)
+
+    def _audit_refusal(self, message: ACLMessage, code: str, reason: str) -> None:
+        """Record a refused request in the platform's audit log."""
+        self.platform.audit(
+            verdict="refused",
+            stage="gateway",
+            code=code,
+            **{"from": platform_of(message.sender)},
+            sender=message.sender,
+            receivers=message.receivers,
+            performative=message.performative.value,
+            conversation_id=message.conversation_id,
+            reason=f"{code}: {reason}",
+        )
 
     @on_request(ONTOLOGY)
     async def _on_request(self, message: ACLMessage) -> Any:

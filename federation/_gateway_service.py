@@ -31,6 +31,8 @@ from dyknow_core import (
     seconds_to_ns,
 )
 
+from ._batch import check_semantic_label
+
 ONTOLOGY = "dyknow"
 
 # Seconds at the edge, finite and bounded: seconds_to_ns(1e300) overflows (the bound is
@@ -44,8 +46,9 @@ RemotePeriod = Annotated[float, Field(allow_inf_nan=False, ge=1e-3, le=1e9)]
 class GatewayRefusal(Exception):
     """A request the gateway will not perform; ``reason`` goes into the refuse."""
 
-    def __init__(self, reason: str) -> None:
+    def __init__(self, reason: str, code: str | None = None) -> None:
         self.reason = reason
+        self.code = code  # set: a refusal the agent counts and audits under this code
         super().__init__(reason)
 
 
@@ -321,6 +324,10 @@ class GatewayService:
         dk = self.instance
         if len(self.created) >= self.max_streams:
             raise GatewayRefusal(f"too many created streams (limit {self.max_streams})")
+        try:
+            check_semantic_label(req.output)
+        except ValueError as exc:
+            raise GatewayRefusal(f"output: {exc}", code="bad-label") from exc
         if dk.has_label(req.output):
             raise GatewayRefusal(f"label {req.output!r} is already published")
         policy = req.policy.to_policy(dk.clock.now())

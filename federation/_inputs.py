@@ -19,7 +19,7 @@ import logging
 import re
 import time
 from collections import Counter
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -563,7 +563,7 @@ def _rows(path: Path, fmt: str) -> list[Any]:
     """Every message of a recorded file (JSON lines or CSV with a header row)."""
     with path.open(encoding="utf-8", newline="") as f:
         if fmt == "csv":
-            return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+            return _csv_rows(f, path)
         rows: list[Any] = []
         for n, line in enumerate(f, 1):
             if line.strip():
@@ -574,6 +574,43 @@ def _rows(path: Path, fmt: str) -> list[Any]:
                 except RecursionError:  # one line must not end the whole file's replay
                     rows.append(BadMessage("not-json", f"line {n}: nested too deep"))
         return rows
+
+
+def _csv_rows(f: Iterable[str], path: Path) -> list[Any]:
+    """The rows of a CSV file with a header row; a row that cannot be read is a BadMessage.
+
+    A field over ``csv.field_size_limit()`` (128 KiB) or a row of more cells than the
+    header costs that row only: the rest of the file is still replayed.
+    """
+    reader = csv.reader(f)
+    header: list[str] | None = None
+    rows: list[Any] = []
+    while True:
+        try:
+            cells = next(reader)
+        except StopIteration:
+            return rows
+        except csv.Error as exc:
+            where = f"{path}:{reader.line_num}"
+            # without its header no row can be read: the rest of the file is not tried
+            skipped = "row skipped" if header is not None else "no header row: file skipped"
+            if "field limit" in str(exc):
+                limit = csv.field_size_limit()
+                why = f"{where}: a field over the {limit}-character limit; {skipped}"
+                rows.append(BadMessage("field-too-large", why))
+            else:
+                rows.append(BadMessage("not-csv", f"{where}: {exc}; {skipped}"))
+            if header is None:
+                return rows
+            continue
+        if header is None:
+            header = cells or None  # blank lines before the header are no header
+        elif len(cells) > len(header):
+            why = f"{path}:{reader.line_num}: {len(cells)} cells, the header names {len(header)}"
+            rows.append(BadMessage("not-csv", why))
+        elif cells:  # a blank line is no row (as csv.DictReader)
+            cells += [""] * (len(header) - len(cells))  # missing cells are empty
+            rows.append({k: _number(v) for k, v in zip(header, cells, strict=True)})
 
 
 def _number(text: str | None) -> Any:

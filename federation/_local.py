@@ -573,23 +573,37 @@ class LocalChannel:
 
         A stream the node imports for its own use (the console's) is followed, never
         created or cancelled from here; one the channel created is shared by the commands
-        following it at once (the first one's sample period) and cancelled after the last.
+        following it at once (at the first one's sample period) and cancelled after the
+        last. One stream is imported once, at one rate: a command asking for a sample
+        period that import does not have is refused (NotAnsweredError says why), never
+        given another rate than it asked for.
         """
         p = self.platform
         key = (target, semantic)
         async with self._lock:
             entry = self._exports.get(key)
             if entry is not None:
+                if sample_period is not None and sample_period != entry[2]:
+                    rate = "every sample" if entry[2] is None else f"--sample-period {entry[2]:g}"
+                    raise NotAnsweredError(
+                        _other_rate(target, semantic, sample_period, f"another command ({rate})")
+                    )
                 entry[1] += 1
                 return
             rec = p.importer.get(target, semantic)
             mine = rec is not None and rec is self._made.get(key)  # made here, cancelled since
             if not mine and rec is not None and rec.source is not None and not rec.ended:
+                if sample_period is not None:  # at the rate the node asked for, not ours
+                    raise NotAnsweredError(
+                        _other_rate(
+                            target, semantic, sample_period, "its own use (the console's streams)"
+                        )
+                    )
                 return  # the node's own
             export_id = await p.federation_agent.create_stream(
                 target, [semantic], sample_period=sample_period, timeout=timeout
             )
-            self._exports[key] = [export_id, 1]
+            self._exports[key] = [export_id, 1, sample_period]
             self._made[key] = p.importer.get(target, semantic)
 
     async def _release(self, target: str, semantic: str) -> None:
@@ -658,6 +672,16 @@ class LocalChannel:
                     t.cancel()
         if error is not None:
             raise error
+
+
+def _other_rate(target: str, semantic: str, sample_period: Any, holder: str) -> str:
+    """Why a command's ``--sample-period`` cannot apply to a stream imported already."""
+    return (
+        f"{semantic!r} of platform {target!r} is imported by the running node already, "
+        f"for {holder}, and a stream is imported once, at one rate: --sample-period "
+        f"{sample_period:g} cannot apply to it. Leave --sample-period out to follow that "
+        "import at its rate, or run the command when the node does not import it"
+    )
 
 
 class NodeUnreachable(Exception):

@@ -185,3 +185,28 @@ def test_a_zenoh_input_on_an_mqtt_node_needs_its_own_connect(
     station.write_text(text)
     code, err = _node(station, capsys)
     assert code == 2 and "inputs[0].connect: missing: the node's transport is not zenoh" in err
+
+
+async def test_a_csv_field_over_the_limit_costs_its_row_only(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from federation._inputs import FileInput
+
+    path = tmp_path / "wx.csv"
+    big = "x" * (129 * 1024)
+    path.write_text(f"time,temp\n1,20.5\n2,{big}\n3,21.5\n4,1,extra\n5,22.5\n")
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/temp")
+        settings = FileInput(kind="file", path=path, pace="fast", fields={"temp": "wx/temp"})
+        runner = input_runner(settings, inst)
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            await asyncio.wait_for(runner.run(None), 10)
+        assert runner.stats.as_dict()["bad"] == {"field-too-large": 1, "not-csv": 1}
+        assert runner.stats.samples == 3
+        assert f"{path}:3: a field over the 131072-character limit" in caplog.text
+        assert f"{path}:5: 3 cells" in caplog.text
+        path.write_text(f"time,{big}\n1,20.5\n")  # no header: no row can be read
+        runner = input_runner(settings, inst)
+        await asyncio.wait_for(runner.run(None), 10)
+        assert runner.stats.as_dict()["bad"] == {"field-too-large": 1}
+        assert f"{path}:1: a field over the 131072-character limit; no header row" in caplog.text

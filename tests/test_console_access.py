@@ -451,8 +451,19 @@ def test_a_token_chosen_by_the_operator_is_checked(tmp_path: Path) -> None:
     assert r.exit_code == 2 and f"{TOKEN_ENV}: a console token has at least 16" in r.output
     bad = tmp_path / "bad.token"
     bad.write_text("has spaces in it, and is long\n")
+    bad.chmod(0o600)
     r = runner.invoke(app, ["console", "--config", str(config), "--token-file", str(bad)])
     assert r.exit_code == 2 and f"{bad}: a console token uses only" in r.output
+    shared = tmp_path / "shared.token"
+    shared.write_text("a-good-token-0123456789\n")
+    for mode in (0o644, 0o640, 0o604, 0o620):
+        shared.chmod(mode)
+        r = runner.invoke(app, ["console", "--config", str(config), "--token-file", str(shared)])
+        assert r.exit_code == 2 and "Traceback" not in r.output, r.output
+        assert (
+            f"console token file {shared}: its mode {mode:04o} lets group or others read or "
+            f"change it: keep it yours only (chmod 600 {shared})"
+        ) in " ".join(r.output.split()), r.output
     r = runner.invoke(
         app, ["console", "--config", str(config), "--token-file", str(tmp_path / "none")]
     )
@@ -483,6 +494,7 @@ def test_where_the_token_and_the_allowed_names_come_from(tmp_path: Path) -> None
     assert configured_token(None, None, {TOKEN_ENV: ""}) is None  # compose's default
     chosen = tmp_path / "console.token"
     chosen.write_text("from-a-file-0123456789\n")
+    chosen.chmod(0o600)
     env = {TOKEN_ENV: "from-the-env-0123456789"}
     assert configured_token(chosen, None, env) == "from-a-file-0123456789"  # --token-file
     assert configured_token(None, chosen, env) == "from-the-env-0123456789"  # env, config

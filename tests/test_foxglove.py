@@ -20,6 +20,7 @@ import contextlib
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import socket
@@ -378,6 +379,7 @@ def test_foxglove_refuses_an_unusable_token(tmp_path: Path) -> None:
     configs = _write_federation(tmp_path, _free_port())
     short = tmp_path / "short.token"
     short.write_text("short\n")
+    short.chmod(0o600)
     done = subprocess.run(
         [*CLI, "foxglove", "--config", str(configs["operator"]), "--token-file", str(short)],
         capture_output=True,
@@ -663,3 +665,51 @@ async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> 
         async with asyncio.timeout(30):
             _, err = await proc.communicate()
         assert "Traceback" not in err.decode(), err.decode()[-3000:]
+
+
+@pytest.mark.timeout(120)
+async def test_a_token_holder_cannot_flood_the_log_through_the_sdk(tmp_path: Path) -> None:
+    """One 1 MiB subscribe of unknown channels: a line or two in the log, not one per channel."""
+    from tests.test_console_access import write_operator
+
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        *("-m", "federation.cli", "foxglove", "--config", str(write_operator(tmp_path))),
+        *("--port", "0"),
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    n = 30_000  # ~1 MiB: what the relay lets a client send in one message
+    try:
+        assert proc.stdout is not None
+        async with asyncio.timeout(60):
+            while b"ready in federation" not in (line := await proc.stdout.readline()):
+                assert line, "dyknow foxglove ended before it was ready"
+        login = line.decode().split(": ")[-1].strip()
+        subs = [{"id": i, "channelId": 100_000 + i} for i in range(n)]
+        flood = json.dumps({"op": "subscribe", "subscriptions": subs}, separators=(",", ":"))
+        assert 900_000 < len(flood) < 1024 * 1024
+        last = {"op": "subscribe", "subscriptions": [{"id": n, "channelId": 999_999}]}
+        async with (
+            aiohttp.ClientSession() as session,
+            session.ws_connect(login, protocols=["foxglove.sdk.v1"]) as ws,
+        ):
+            await ws.send_str(flood)
+            await ws.send_json(last)
+            async with asyncio.timeout(30):  # until the SDK answered the last (or hung up)
+                async for msg in ws:
+                    if msg.type == aiohttp.WSMsgType.TEXT and "999999" in msg.data:
+                        break
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGINT)
+        async with asyncio.timeout(30):
+            _, err = await proc.communicate()
+    text = err.decode()
+    assert "Traceback" not in text, text[-3000:]
+    lines = [ln for ln in text.splitlines() if "unknown channel" in ln]
+    assert 1 <= len(lines) <= 5, text[-3000:]
+    held = sum(int(h) for h in re.findall(r"(\d+) more lines", text))
+    assert len(lines) + held >= n, text[-3000:]  # every one counted, none lost unsaid

@@ -527,3 +527,19 @@ def test_the_quick_query_answers_and_refuses_as_the_models_do() -> None:
         {"action": "query", "label": "a/b", "kind": "at"},
     ):
         assert performed(content) == by_the_models(content), content
+
+
+async def test_a_created_stream_needs_a_valid_output_label() -> None:
+    async with world() as w:
+        for output in ("", "x" * 100_000, "car 5", "car/#"):
+            create = {"action": "create-stream", "label": "car/car5/speed", "output": output}
+            reason = await refusal(w.ask(create))
+            assert reason.startswith("output: semantic label ")
+            assert "must be 1-256 characters, '/'-separated non-empty chunks" in reason
+            assert len(reason) < 300 and not w.dk.has_label(output)
+        assert w.gateway.gateway_stats.bad_label_refused == 4
+        channel = w.uav.channel
+        assert isinstance(channel, InterfaceAgent)
+        recs = [r for r in channel.audit.records if r.get("stage") == "gateway"]
+        assert [r["code"] for r in recs] == ["bad-label"] * 4
+        assert recs[0]["sender"] == "asker@operator" and recs[0]["reason"].startswith("bad-label")

@@ -516,3 +516,14 @@ async def test_setup_anchoring_membership_follows_the_clock() -> None:
         assert kinds.count("joined") >= 1 and "left" in kinds
         app.remove()
         assert set(inst.processes) == set() and not inst.has_label("events/kpl_anchoring")
+
+
+async def test_remove_takes_the_class_domains_it_created_and_their_labels() -> None:
+    async with DyKnowInstance(clock=ManualClock()) as inst:
+        inst.objects.add_domain("WorldObject", publish=True)  # the application's own
+        app = setup(inst, ON_ROAD_APP)
+        assert app.domains == ["OnRoadObject"] and inst.has_label("domain/OnRoadObject")
+        app.remove()
+        assert inst.objects.domains() == ["WorldObject"] and inst.labels() == ["domain/WorldObject"]
+        setup(inst, ON_ROAD_APP).remove()  # set up again, as the first time
+        assert inst.labels() == ["domain/WorldObject"]

@@ -403,6 +403,33 @@ def test_cli_reports_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture[str
     assert "line 2" in capsys.readouterr().err
 
 
+def test_cli_names_a_value_of_the_wrong_type(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    def err(formula: str, *states: dict[str, Any]) -> str:
+        trace = _write(tmp_path, [json.dumps({"t": t, **s}) for t, s in enumerate(states)])
+        assert monitor_main([formula, "--trace", trace]) == 2
+        return capsys.readouterr().err.strip()
+
+    ok = {"speed": 20, "p": True, "name": "a", "Cars": ["c1"], "v": {"c1": 1.5}}
+    assert err("always speed < 30", ok, {**ok, "speed": "31"}).endswith(
+        "line 2: 'speed' is a string ('31'), expected a number"
+    )
+    assert err("always p", ok, ok, {**ok, "p": 1}).endswith(
+        "line 3: 'p' is a number (1), expected true or false"
+    )
+    assert err("name == 'a' or name == 2", ok, {**ok, "name": [1]}).endswith(
+        "line 2: 'name' is an array ([1]), expected a number or a string"
+    )
+    bad = {**ok, "v": {"c1": True}}
+    assert err("forall c in Cars: v(c) > 1", ok, bad).endswith(
+        "line 2: 'v'['c1'] is true or false (True), expected a number"
+    )
+    assert "line 1: 'Cars' is a number" in err("exists c in Cars: v(c) > 1", {**ok, "Cars": 3})
+    trace = _write(tmp_path, [json.dumps({"t": 0, **ok, "speed": None, "p": None})])
+    assert monitor_main(["p or speed < 30 or name == p", "--trace", trace]) == 0  # null: no value
+
+
 def test_dyknow_command(tmp_path: Path) -> None:
     trace = _write(tmp_path, [json.dumps({"t": t, "speed": 20 + 5 * t}) for t in range(4)])
     exe = Path(sys.executable).with_name("dyknow")

@@ -418,3 +418,81 @@ def test_a_refused_record_through_the_console_leaves_the_file_there_as_it_was(
             console.terminate()
             console.communicate(timeout=20)
         station.stop()
+
+
+@pytest.mark.timeout(150)
+def test_a_sample_period_the_nodes_import_has_not_is_refused_not_ignored(tmp_path: Path) -> None:
+    station = Station(tmp_path)
+    operator = station.dir / "operator.toml"
+    operator.write_text(operator.read_text() + '\n[console]\nstreams = ["temperature"]\n')
+    console = follower = None
+    try:
+        station.start("python")
+        console, ready = _console(station)
+        base, token = ready.rsplit(": ", 1)[1].strip().split("?token=")
+        asked = urllib.request.Request(
+            base + "api/state", headers={"Authorization": f"Bearer {token}"}
+        )
+
+        def samples() -> int:
+            with urllib.request.urlopen(asked, timeout=10) as page:
+                state = json.loads(page.read())
+            return sum(p["samples"] for p in state["platforms"] if p["name"] == "station")
+
+        for _ in range(100):  # until the console's own import of temperature brought samples
+            if samples():
+                break
+            time.sleep(0.2)  # the console offers no event to wait on from outside
+        common = ["--config", "operator.toml", "--wait", "10"]
+
+        def run(*args: str) -> subprocess.CompletedProcess[str]:
+            return subprocess.run(
+                [*CLI, *args, *common],
+                capture_output=True,
+                text=True,
+                cwd=station.dir,
+                env=station.env,
+                timeout=60,
+            )
+
+        rec = station.dir / "t.mcap"
+        done = run(
+            "record",
+            "temperature",
+            "-p",
+            "station",
+            "-o",
+            str(rec),
+            "-n",
+            "1",
+            "--sample-period",
+            "2",
+        )
+        assert done.returncode == 1 and not rec.exists(), done.stderr
+        assert (
+            "'temperature' of platform 'station' is imported by the running node already, for "
+            "its own use (the console's streams), and a stream is imported once, at one rate: "
+            "--sample-period 2 cannot apply to it. Leave --sample-period out"
+        ) in done.stderr
+        assert run("stream", "temperature", "-p", "station", "-n", "2").returncode == 0
+        # a stream a command follows: another command at another rate is refused too
+        follower = subprocess.Popen(
+            [*CLI, "stream", "wind-speed", "-p", "station", "--sample-period", "0.5", *common],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        assert follower.stdout is not None and follower.stdout.readline()  # a sample came
+        done = run("stream", "wind-speed", "-p", "station", "--sample-period", "2", "-n", "1")
+        assert done.returncode == 1
+        assert "for another command (--sample-period 0.5)" in done.stderr, done.stderr
+        same = run("stream", "wind-speed", "-p", "station", "--sample-period", "0.5", "-n", "1")
+        assert same.returncode == 0, same.stderr  # at the same rate: it shares the import
+    finally:
+        for proc in (follower, console):
+            if proc is not None and proc.poll() is None:
+                proc.kill()
+                proc.communicate(timeout=10)
+        station.stop()

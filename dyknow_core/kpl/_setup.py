@@ -61,19 +61,25 @@ def resolve_callable(module: str, attr: str) -> Callable[..., Any]:
 
 @dataclass
 class KPLApplication:
-    """What ``setup`` created on an instance: process names in creation order, and notes."""
+    """What ``setup`` created on an instance: process names in creation order, domains, notes."""
 
     instance: DyKnowInstance
     program: Program
     processes: list[str] = field(default_factory=list)
     unsupported: list[str] = field(default_factory=list)
+    domains: list[str] = field(default_factory=list)
 
     def remove(self) -> None:
-        """Remove every process this application created, newest first."""
+        """Remove every process this application created, newest first, then its domains."""
         for name in reversed(self.processes):
             if name in self.instance.processes:
                 self.instance.remove_process(name)
         self.processes.clear()
+        objects = self.instance.objects
+        for domain in reversed(self.domains):  # and with each its ``domain/<class>`` label
+            if domain in objects.domains():
+                objects.remove_domain(domain)
+        self.domains.clear()
 
 
 def setup(instance: DyKnowInstance, source: str | Program) -> KPLApplication:
@@ -144,7 +150,11 @@ def _create_anchoring(
             links.append(LinkType(name=d.name, compute=compute, **d.fields.as_dict()))
         else:
             period, output = d.period, d.output
-    proc = add_anchoring(app.instance, classes, links, period=period, output=output)
+    before = set(app.instance.objects.domains())
+    try:
+        proc = add_anchoring(app.instance, classes, links, period=period, output=output)
+    finally:  # the class domains it created, even if it then failed
+        app.domains += [n for n in app.instance.objects.domains() if n not in before]
     app.processes.append(proc.name)
 
 

@@ -44,6 +44,7 @@ import logging
 import os
 import re
 import secrets
+import stat
 import time
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from pathlib import Path
@@ -119,7 +120,9 @@ def configured_token(
 
     First ``--token-file``, then the environment's `TOKEN_ENV` (when not empty), then the
     config's ``console.token_file``. Never a command-line argument: every local user can
-    read a process's arguments. ValueError names where an unusable token came from.
+    read a process's arguments. A token file that group or others may read or change
+    is refused, as ssh refuses such a key. ValueError names where an unusable token came
+    from.
     """
     if token_file is None and environ.get(TOKEN_ENV, "").strip():
         return check_token(environ[TOKEN_ENV].strip(), TOKEN_ENV)
@@ -127,7 +130,15 @@ def configured_token(
     if path is None:
         return None
     try:
-        text = Path(path).read_text().strip()
+        with open(path, encoding="utf-8") as f:
+            mode = os.fstat(f.fileno()).st_mode
+            # as ssh does for a private key: a token others may read is no secret any more
+            if os.name == "posix" and mode & 0o077:
+                raise ValueError(
+                    f"console token file {path}: its mode {stat.S_IMODE(mode):04o} lets "
+                    f"group or others read or change it: keep it yours only (chmod 600 {path})"
+                )
+            text = f.read().strip()
     except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(f"console token file {path}: cannot be read: {exc}") from None
     return check_token(text, f"console token file {path}")
