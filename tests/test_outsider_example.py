@@ -95,3 +95,16 @@ def test_a_member_written_from_the_documents_joins_streams_and_answers(tmp_path:
             outsider.kill()
             outsider.communicate(timeout=5)
         station.stop()
+
+
+def test_the_outsider_imports_nothing_of_ours() -> None:
+    """Written from the documents: plain libraries only, so it proves what they say."""
+    source = (ROOT / "examples" / "outsider.py").read_text(encoding="utf-8")
+    imported = {
+        line.split()[1].split(".")[0]
+        for line in source.splitlines()
+        if line.startswith(("import ", "from "))
+    }
+    plain = {"__future__", "argparse", "base64", "hashlib", "hmac", "json", "os", "struct"}
+    plain |= {"threading", "time", "typing", "msgpack", "nacl", "zenoh"}
+    assert imported <= plain, imported

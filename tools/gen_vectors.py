@@ -10,8 +10,10 @@ constants below. The outputs come from ``agents._security`` itself: a real hands
 between ``uav-a`` and ``uav-b`` (with the ephemeral keys and nonces injected, the clocks
 fixed) and real sealed envelopes. The intermediate byte strings an implementer checks
 step by step (transcripts, MAC inputs, associated data, nonces) are built with the same
-helpers the sessions use. ``docs/test-vectors.md`` explains each entry;
-``tests/test_vectors.py`` recomputes everything independently from that description.
+helpers the sessions use; the directory statements are sealed by
+``agents._directory_auth`` and opened by another platform's. ``docs/test-vectors.md``
+explains each entry; ``tests/test_vectors.py`` recomputes everything independently from
+that description.
 """
 
 from __future__ import annotations
