@@ -385,6 +385,9 @@ class AuditLog:
     def _append(self, path: Path, data: bytes) -> None:
         """Append the JSON lines ``data`` to ``path``, rotating it at ``max_bytes``."""
         fresh = False  # the file was rotated just now: it takes a line whatever its length
+        if not path.parent.is_dir():
+            # a config's `audit = "audit/<platform>.jsonl"` names a folder nobody made yet
+            path.parent.mkdir(parents=True, exist_ok=True)
         while True:
             with path.open("ab") as f:
                 size = f.tell()  # the file's end (append mode), whoever wrote or truncated it

@@ -69,6 +69,15 @@ def test_the_file_rotates_at_the_bound_and_keeps_every_record(tmp_path: Path) ->
     assert _lines(files[-1])[0]["stage"] != "audit-rotated"
 
 
+def test_the_audit_files_folder_is_made_at_the_first_write(tmp_path: Path) -> None:
+    """A config's `audit = "audit/uav-b.jsonl"` works without making the folder first."""
+    path = tmp_path / "audit" / "nested" / "uav-b.jsonl"
+    audit = AuditLog(path=path, platform="uav-b")
+    audit.record(verdict="dropped", reason="junk", stage="unauthenticated")
+    audit.take()
+    assert [r["reason"] for r in _lines(path)] == ["junk"]
+
+
 def test_only_backups_old_files_are_kept_the_oldest_go(tmp_path: Path) -> None:
     """With ``backups`` 2, the file and .1, .2; what went is the oldest records only."""
     path = tmp_path / "audit.jsonl"

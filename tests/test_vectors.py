@@ -239,6 +239,13 @@ def test_refusals_fail_to_verify_from_the_description(entry: dict[str, Any]) -> 
         with pytest.raises(BadSignatureError):
             verify.verify(h(KX["init"]["t1_hex"]), b64(msg["sig"]))
         return
+    if entry["kind"] == "directory":
+        st = json.loads(entry["statement"])
+        verify = VerifyKey(h(VECTORS["platforms"][st["from"]]["ed25519_public_hex"]))
+        verify.verify(h(entry["signed_hex"]), b64(st["sig"]))  # it signs the wrong bytes
+        with pytest.raises(BadSignatureError):
+            verify.verify(statement_bytes(st, h(entry["query_nonce_hex"])), b64(st["sig"]))
+        return
     if entry["kind"] == "owner-batch":
         signed = h(entry["signed_hex"])
         sig, ts, batch = signed[:64], int.from_bytes(signed[64:72], "big"), signed[72:]
@@ -297,6 +304,50 @@ def test_owner_batches_from_the_description(entry: dict[str, Any]) -> None:
     else:
         [[kind, frm, _ts, body]] = msgpack.unpackb(batch, raw=False)
         assert (kind, frm, json.loads(body)["performative"]) == ("acl", "uav-b", "request")
+
+
+def lp4(raw: bytes) -> bytes:
+    """A field of a directory statement's signed bytes: 4-byte big-endian length, then it."""
+    return len(raw).to_bytes(4, "big") + raw
+
+
+def statement_bytes(st: dict[str, Any], nonce: bytes) -> bytes:
+    """What a directory statement signs (docs/wire.md, "Directory statements")."""
+    return (
+        b"dyknow-dir-v1 sig\x00"
+        + lp4(st["fed"].encode())
+        + lp4(st["from"].encode())
+        + lp4(st["kind"].encode())
+        + u64(st["boot"])
+        + u64(st["seq"])
+        + u64(st["ts_ms"])
+        + lp4(nonce)  # the nonce's bytes, not its base64 text
+        + st["body"].encode()
+    )
+
+
+@pytest.mark.parametrize("entry", VECTORS["directory_statements"], ids=lambda e: e["name"])
+def test_directory_statements_from_the_description(entry: dict[str, Any]) -> None:
+    st = json.loads(entry["statement"])
+    assert set(st) == {"v", "fed", "from", "kind", "boot", "seq", "ts_ms", "nonce", "body", "sig"}
+    assert (st["v"], st["fed"], st["from"], st["kind"]) == (1, FED, entry["from"], entry["kind"])
+    folder = {"df": "df", "df-event": "df-events"}[st["kind"]]
+    assert entry["key"] == f"dyknow/{FED}/v1/{folder}/{st['from']}"
+    nonce = h(entry["query_nonce_hex"])
+    # an answer carries its query's nonce in base64; an event an empty one
+    assert st["nonce"] == base64.b64encode(nonce).decode()
+    assert (st["kind"] == "df") == (len(nonce) == 16)
+    signed = statement_bytes(st, nonce)
+    assert signed.hex() == entry["signed_hex"]
+    p = VECTORS["platforms"][st["from"]]
+    VerifyKey(h(p["ed25519_public_hex"])).verify(signed, b64(st["sig"]))
+    assert SigningKey(h(p["ed25519_seed_hex"])).sign(signed).signature.hex() == entry["sig_hex"]
+    body = json.loads(st["body"])
+    services = body if st["kind"] == "df" else [body["service"]]
+    for service in services:
+        assert service["type"] == "dyknow-federation"
+        assert service["provider"] == f"federation@{st['from']}"
+        assert service["visibility"] == "public"
 
 
 # -- the project's code ------------------------------------------------------------------------
@@ -396,13 +447,47 @@ def test_our_code_signs_and_opens_the_owner_batches() -> None:
             )
 
 
+def test_our_code_signs_and_opens_the_directory_statements() -> None:
+    from agents._directory_auth import DirectoryAuth
+
+    a, b, trust, _policy, _clocks, _hs = _ours()
+    pairs = {p: _pair(p) for p in (a, b)}
+    for entry in VECTORS["directory_statements"]:
+        clock = FixedClock(entry["ts_ms"])
+        mine = DirectoryAuth(FED, keys=pairs[b], trust=trust, clock=clock)
+        mine.boot, mine.seq = entry["boot"], entry["seq"] - (entry["kind"] == "df-event")
+        st = json.loads(entry["statement"])
+        nonce = h(entry["query_nonce_hex"])
+        made = mine.seal(b, entry["kind"], json.loads(st["body"]), nonce=nonce)
+        assert made.decode() == entry["statement"]
+        reader = DirectoryAuth(FED, keys=pairs[a], trust=trust, clock=clock)
+        opened = reader.open(made, entry["kind"], platform=b, nonce=nonce or None)
+        assert opened.body == json.loads(st["body"])
+
+
+def _pair(platform: str) -> Any:
+    from agents._security import KeyPair
+
+    return KeyPair(platform, SigningKey(h(VECTORS["platforms"][platform]["ed25519_seed_hex"])))
+
+
 def test_our_code_refuses_the_usual_mistakes() -> None:
+    from agents._directory_auth import DirectoryAuth, DirectoryStatementError
     from agents._exceptions import Forged
     from agents._security import KeyPair, OwnerBatches, SessionTable
 
     a, b, trust, policy, clocks, hs = _ours()
     owner = KeyPair(a, SigningKey(h(VECTORS["platforms"][a]["ed25519_seed_hex"])))
     for entry in VECTORS["must_refuse"]:
+        if entry["kind"] == "directory":
+            reader = DirectoryAuth(FED, keys=owner, trust=trust, clock=FixedClock(entry["ts_ms"]))
+            with pytest.raises(DirectoryStatementError, match="signature does not verify"):
+                reader.open(
+                    entry["statement"].encode(),
+                    "df",
+                    platform=json.loads(entry["statement"])["from"],
+                    nonce=h(entry["query_nonce_hex"]),
+                )
         if entry["kind"] == "owner-batch":
             batches = OwnerBatches(owner, owner.public_key, clock=FixedClock(entry["ts_ms"]))
             with pytest.raises(Forged, match="not signed"):

@@ -10,8 +10,10 @@ constants below. The outputs come from ``agents._security`` itself: a real hands
 between ``uav-a`` and ``uav-b`` (with the ephemeral keys and nonces injected, the clocks
 fixed) and real sealed envelopes. The intermediate byte strings an implementer checks
 step by step (transcripts, MAC inputs, associated data, nonces) are built with the same
-helpers the sessions use. ``docs/test-vectors.md`` explains each entry;
-``tests/test_vectors.py`` recomputes everything independently from that description.
+helpers the sessions use; the directory statements are sealed by
+``agents._directory_auth`` and opened by another platform's. ``docs/test-vectors.md``
+explains each entry; ``tests/test_vectors.py`` recomputes everything independently from
+that description.
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from nacl import bindings as sodium
 from nacl.signing import SigningKey
 
 from agents import ACLMessage, Performative
+from agents._directory_auth import DirectoryAuth
 from agents._security import (
     _BIN_BOX,
     _BIN_MAC,
@@ -73,6 +76,9 @@ LABEL = "car5-state"
 TS_OWNER = 1795000000300  # the first batch for the owner; the next one 1 ms later
 # the X25519 ephemeral secret of each sealed box to the owner (random in a real one)
 OWNER_EPHEMERAL = (bytes(range(0xA0, 0xC0)), bytes(range(0xC0, 0xE0)))
+# directory statements: uav-b's process start, the first statement's time, the DF query's nonce
+DIR_BOOT, TS_DIR = 1795000000000, 1795000000400
+DIR_NONCE = bytes(range(0xE0, 0xF0))
 
 
 class _Clock:
@@ -304,6 +310,98 @@ def _owner_batches(owner: KeyPair) -> tuple[list[dict[str, Any]], list[dict[str,
     return entries, refusals
 
 
+def _directory_statements(
+    pairs: dict[str, KeyPair], trust: TrustStore
+) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """uav-b's signed DF answer to uav-a's query and its register event; the usual mistake."""
+    me = RESPONDER
+    clock = _Clock(TS_DIR)
+    auth = DirectoryAuth(FEDERATION, keys=pairs[me], trust=trust, clock=clock)
+    auth.boot = DIR_BOOT
+    reader = DirectoryAuth(FEDERATION, keys=pairs[INITIATOR], trust=trust, clock=clock)
+    # the public entry every member lists (docs/federation.md, "Membership")
+    service = {
+        "name": "dyknow-federation-discovery",
+        "type": "dyknow-federation",
+        "provider": f"federation@{me}",
+        "properties": {"entry": "discovery"},
+        "ontology": "dyknow-federation",
+        "protocols": ["fipa-request", "fipa-query", "fipa-subscribe"],
+        "visibility": "public",
+    }
+    entries = []
+    for i, (name, kind, body, nonce, about) in enumerate(
+        (
+            ("df-answer", "df", [service], DIR_NONCE, "uav-b's answer to a query on df/uav-b"),
+            (
+                "df-event-register",
+                "df-event",
+                {"op": "register", "service": service},
+                b"",
+                "uav-b's event on df-events/uav-b as it registers the entry",
+            ),
+        )
+    ):
+        clock.ms = TS_DIR + i
+        statement = auth.seal(me, kind, body, nonce=nonce)
+        obj = json.loads(statement)
+        text = obj["body"].encode()
+        signed = (
+            b"dyknow-dir-v1 sig\x00"
+            + b"".join(len(x).to_bytes(4, "big") + x.encode() for x in (FEDERATION, me, kind))
+            + obj["boot"].to_bytes(8, "big")
+            + obj["seq"].to_bytes(8, "big")
+            + obj["ts_ms"].to_bytes(8, "big")
+            + len(nonce).to_bytes(4, "big")
+            + nonce
+            + text
+        )
+        assert base64.b64decode(obj["sig"]) == pairs[me].sign(signed), name
+        key = f"dyknow/{FEDERATION}/v1/{'df' if kind == 'df' else 'df-events'}/{me}"
+        opened = reader.open(statement, kind, platform=me, nonce=nonce if nonce else None)
+        assert opened.body == body, name
+        entries.append(
+            {
+                "name": name,
+                "about": about,
+                "key": key,
+                "kind": kind,
+                "from": me,
+                "boot": obj["boot"],
+                "seq": obj["seq"],
+                "ts_ms": obj["ts_ms"],
+                "query_nonce_hex": nonce.hex(),
+                "body": obj["body"],
+                "signed_hex": signed.hex(),
+                "sig_hex": base64.b64decode(obj["sig"]).hex(),
+                "statement": statement.decode(),
+            }
+        )
+    answer = entries[0]
+    # the nonce signed as its base64 text (what the statement carries) instead of its bytes
+    text_nonce = base64.b64encode(DIR_NONCE)
+    wrong = bytes.fromhex(answer["signed_hex"]).replace(
+        len(DIR_NONCE).to_bytes(4, "big") + DIR_NONCE,
+        len(text_nonce).to_bytes(4, "big") + text_nonce,
+    )
+    bad = {**json.loads(answer["statement"])}
+    bad["sig"] = base64.b64encode(pairs[me].sign(wrong)).decode()
+    refusals = [
+        {
+            "name": "df-answer-nonce-as-base64-text",
+            "about": "df-answer signed over the nonce's base64 text instead of its 16 bytes",
+            "kind": "directory",
+            "key": answer["key"],
+            "to": INITIATOR,
+            "ts_ms": answer["ts_ms"],
+            "query_nonce_hex": answer["query_nonce_hex"],
+            "signed_hex": wrong.hex(),
+            "statement": json.dumps(bad, separators=(",", ":")),
+        }
+    ]
+    return entries, refusals
+
+
 def generate() -> dict[str, Any]:
     """Every test vector, computed by the project's code from the fixed inputs above."""
     pairs = {p: KeyPair(p, SigningKey(seed)) for p, seed in SEEDS.items()}
@@ -476,6 +574,7 @@ def generate() -> dict[str, Any]:
             opened = table.open_bytes(bytes.fromhex(entry["envelope_hex"]))
             assert opened == (entry["from"], bytes.fromhex(entry["body_hex"])), entry["name"]
     owner_batches, owner_refusals = _owner_batches(pairs[INITIATOR])
+    statements, statement_refusals = _directory_statements(pairs, trust)
     return {
         "v": 1,
         "about": "DyKnow Federation wire test vectors; docs/test-vectors.md explains each entry",
@@ -484,7 +583,10 @@ def generate() -> dict[str, Any]:
         "key_exchange": key_exchange,
         "envelopes": envelopes,
         "owner_batches": owner_batches,
-        "must_refuse": _refusals(pairs, init, envelopes, keys) + owner_refusals,
+        "directory_statements": statements,
+        "must_refuse": _refusals(pairs, init, envelopes, keys)
+        + owner_refusals
+        + statement_refusals,
     }
 
 
