@@ -1444,9 +1444,9 @@ class FederationAgent(Agent):
         for provider, semantic, counted in held:
             key = (provider, semantic)
             if accepted:
-                # agreed before, or leased by a consent meanwhile: its lease ends
-                if tentative.pop(key, None) is None or not counted:
-                    self._keep(provider, semantic)
+                # for good: a consent's lease on it (taken before or meanwhile) ends
+                tentative.pop(key, None)
+                self._keep(provider, semantic)
                 continue
             n = tentative.get(key)
             if not counted or n is None:
