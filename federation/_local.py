@@ -338,6 +338,17 @@ def _peer_uid(writer: asyncio.StreamWriter) -> int | None:
     return int(uid)
 
 
+class _Shared:
+    """An export the channel made for commands: its id, its key, the commands following it."""
+
+    __slots__ = ("export_id", "following", "key")
+
+    def __init__(self, export_id: str, key: tuple[str, str]) -> None:
+        self.export_id = export_id
+        self.key = key
+        self.following = 1
+
+
 class LocalChannel:
     """A running node's local channel and its ``who are you`` answer (async context manager)."""
 
@@ -353,8 +364,7 @@ class LocalChannel:
         self.served = 0
         self.refused = 0
         self._lock = asyncio.Lock()
-        # export id, commands following, its key
-        self._exports: dict[tuple[str, str], list[Any]] = {}
+        self._exports: dict[tuple[str, str], _Shared] = {}  # by (target, semantic label)
         # the imports this channel created: once cancelled, such an import is never the
         # node's own, even while its end is still on its way (one the node made since is
         # another record, and the node's)
@@ -558,7 +568,7 @@ class LocalChannel:
         p = self.platform
         target = str(request["platform"])
         labels = [str(x) for x in request["labels"]]
-        held: list[list[Any]] = []  # the channel's exports this command counts in
+        held: list[_Shared] = []  # the channel's exports this command counts in
         try:
             async with reaching(p, target, wait):
                 for semantic in labels:
@@ -574,7 +584,7 @@ class LocalChannel:
 
     async def _acquire(
         self, target: str, semantic: str, sample_period: Any, timeout: float
-    ) -> list[Any] | None:
+    ) -> _Shared | None:
         """Have ``target``'s ``semantic`` stream imported here, shared by the commands.
 
         A stream the node imports for its own use (the console's) is followed, never
@@ -591,7 +601,7 @@ class LocalChannel:
                 if ending is None:
                     entry = self._exports.get(key)
                     if entry is not None:
-                        entry[1] += 1
+                        entry.following += 1
                         return entry
                     rec = p.importer.get(target, semantic)
                     mine = rec is not None and rec is self._made.get(key)  # cancelled since
@@ -600,29 +610,30 @@ class LocalChannel:
                     export_id = await p.federation_agent.create_stream(
                         target, [semantic], sample_period=sample_period, timeout=timeout
                     )
-                    entry = self._exports[key] = [export_id, 1, key]
+                    entry = self._exports[key] = _Shared(export_id, key)
                     self._made[key] = p.importer.get(target, semantic)
                     return entry
             await ending.wait()
 
-    async def _release(self, target: str, entry: list[Any]) -> None:
+    async def _release(self, target: str, entry: _Shared) -> None:
         """Take back the count `_acquire` took; the last one out cancels the export.
 
         The cancel (at most 2 s) runs outside the lock, so commands for other streams do
         not queue behind a dead target; one for this stream waits for it (`_ending`), or
         it would follow the import being cancelled and wait for samples for ever.
         """
-        key = entry[2]
+        key = entry.key
         async with self._lock:
-            entry[1] -= 1
-            if entry[1] > 0 or self._exports.get(key) is not entry:
+            entry.following -= 1
+            if entry.following > 0 or self._exports.get(key) is not entry:
                 return
             del self._exports[key]
             ending = self._ending[key] = asyncio.Event()
         try:
-            await self.platform.federation_agent.cancel_stream(target, entry[0], timeout=2.0)
+            agent = self.platform.federation_agent
+            await agent.cancel_stream(target, entry.export_id, timeout=2.0)
         except Exception as exc:  # the export ends with its lease there anyway
-            log.info("local: cancelling the export %s at %s: %s", entry[0], target, exc)
+            log.info("local: cancelling the export %s at %s: %s", entry.export_id, target, exc)
         finally:
             del self._ending[key]
             ending.set()

@@ -1270,9 +1270,9 @@ async def test_the_local_channel_releases_only_what_a_command_took(
         await b.federation_agent.cancel_stream("uav-a", own, timeout=WAIT)
         b.importer.forget("uav-a", "car5-state")  # the node's own import ends
         maker = await channel._acquire("uav-a", "car5-state", None, WAIT)
-        assert maker is not None and a.federation_agent.export_count == 1
-        # the follower leaves: it took nothing, so it gives nothing back
-        assert maker[1] == 1
+        # the follower, leaving, has nothing to give back: only the maker counts
+        assert maker is not None and maker.following == 1
+        assert a.federation_agent.export_count == 1
 
         # the last one out cancels; a silent target does not hold up another stream
         monkeypatch.setattr(a.federation_agent, "_cancel_stream", never_answers)
