@@ -91,8 +91,10 @@ async def _ask(
     language: str | None,
     timeout: float,
     on_agree: Callable[[ACLMessage], None] | None = None,
+    conversation_id: str | None = None,
 ) -> JsonValue:
-    conversation_id = new_id("c")
+    if conversation_id is None:
+        conversation_id = new_id("c")
     message = agent.message(
         performative,
         receiver,
@@ -123,11 +125,13 @@ async def request(
     language: str | None = "json",
     timeout: float = DEFAULT_TIMEOUT,
     on_agree: Callable[[ACLMessage], None] | None = None,
+    conversation_id: str | None = None,
 ) -> JsonValue:
     """FIPA-Request: ask ``receiver`` to act; the content of its ``inform``.
 
     An ``agree`` may come first (``on_agree`` sees it). ``timeout`` bounds the whole
-    exchange and is sent as ``reply_by``.
+    exchange and is sent as ``reply_by``. ``conversation_id`` (a new one by default)
+    lets the caller send a FIPA ``cancel`` in the same conversation if it gives up.
     """
     return await _ask(
         agent,
@@ -139,6 +143,7 @@ async def request(
         language=language,
         timeout=timeout,
         on_agree=on_agree,
+        conversation_id=conversation_id,
     )
 
 

@@ -338,6 +338,18 @@ def _peer_uid(writer: asyncio.StreamWriter) -> int | None:
     return int(uid)
 
 
+class _Shared:
+    """An export the channel made for commands: its id, key, sample period, commands following."""
+
+    __slots__ = ("export_id", "following", "key", "sample_period")
+
+    def __init__(self, export_id: str, key: tuple[str, str], sample_period: Any) -> None:
+        self.export_id = export_id
+        self.key = key
+        self.sample_period = sample_period
+        self.following = 1
+
+
 class LocalChannel:
     """A running node's local channel and its ``who are you`` answer (async context manager)."""
 
@@ -353,11 +365,13 @@ class LocalChannel:
         self.served = 0
         self.refused = 0
         self._lock = asyncio.Lock()
-        self._exports: dict[tuple[str, str], list[Any]] = {}  # export id, commands following
+        self._exports: dict[tuple[str, str], _Shared] = {}  # by (target, semantic label)
         # the imports this channel created: once cancelled, such an import is never the
         # node's own, even while its end is still on its way (one the node made since is
         # another record, and the node's)
         self._made: dict[tuple[str, str], Any] = {}
+        # (target, label) -> set once the cancel of the channel's export of it is done
+        self._ending: dict[tuple[str, str], asyncio.Event] = {}
         # anyone on the network may ask who we are: screened on the transport's thread, so
         # a flood costs no task each on the event loop (a second node asks once)
         self._who_lock = threading.Lock()
@@ -555,72 +569,95 @@ class LocalChannel:
         p = self.platform
         target = str(request["platform"])
         labels = [str(x) for x in request["labels"]]
-        acquired: list[str] = []
+        held: list[_Shared] = []  # the channel's exports this command counts in
         try:
             async with reaching(p, target, wait):
                 for semantic in labels:
-                    await self._acquire(target, semantic, request.get("sample_period"), timeout)
-                    acquired.append(semantic)
+                    entry = await self._acquire(
+                        target, semantic, request.get("sample_period"), timeout
+                    )
+                    if entry is not None:
+                        held.append(entry)
             await self._relay(p, target, labels, request, send, reader, timeout)
         finally:
-            for semantic in acquired:
-                await self._release(target, semantic)
+            for entry in held:
+                await self._release(target, entry)
 
     async def _acquire(
         self, target: str, semantic: str, sample_period: Any, timeout: float
-    ) -> None:
+    ) -> _Shared | None:
         """Have ``target``'s ``semantic`` stream imported here, shared by the commands.
 
         A stream the node imports for its own use (the console's) is followed, never
-        created or cancelled from here; one the channel created is shared by the commands
-        following it at once (at the first one's sample period) and cancelled after the
-        last. One stream is imported once, at one rate: a command asking for a sample
-        period that import does not have is refused (NotAnsweredError says why), never
-        given another rate than it asked for.
+        created or cancelled from here: None, no count taken. One the channel created is
+        shared by the commands following it at once (the first one's sample period) and
+        cancelled after the last: its entry, with this command counted in, for `_release`.
+        One stream is imported once, at one rate: a command asking for a sample period that
+        import does not have is refused (NotAnsweredError says why), never given another
+        rate than it asked for.
         """
         p = self.platform
         key = (target, semantic)
-        async with self._lock:
-            entry = self._exports.get(key)
-            if entry is not None:
-                if sample_period is not None and sample_period != entry[2]:
-                    rate = "every sample" if entry[2] is None else f"--sample-period {entry[2]:g}"
-                    raise NotAnsweredError(
-                        _other_rate(target, semantic, sample_period, f"another command ({rate})")
+        while True:
+            async with self._lock:
+                # a cancel of this stream on its way: asked again only once it has ended
+                ending = self._ending.get(key)
+                if ending is None:
+                    entry = self._exports.get(key)
+                    if entry is not None:
+                        if sample_period is not None and sample_period != entry.sample_period:
+                            had = entry.sample_period
+                            rate = "every sample" if had is None else f"--sample-period {had:g}"
+                            raise NotAnsweredError(
+                                _other_rate(
+                                    target, semantic, sample_period, f"another command ({rate})"
+                                )
+                            )
+                        entry.following += 1
+                        return entry
+                    rec = p.importer.get(target, semantic)
+                    mine = rec is not None and rec is self._made.get(key)  # cancelled since
+                    if not mine and rec is not None and rec.source is not None and not rec.ended:
+                        if sample_period is not None:  # at the rate the node asked for, not ours
+                            raise NotAnsweredError(
+                                _other_rate(
+                                    target,
+                                    semantic,
+                                    sample_period,
+                                    "its own use (the console's streams)",
+                                )
+                            )
+                        return None  # the node's own
+                    export_id = await p.federation_agent.create_stream(
+                        target, [semantic], sample_period=sample_period, timeout=timeout
                     )
-                entry[1] += 1
-                return
-            rec = p.importer.get(target, semantic)
-            mine = rec is not None and rec is self._made.get(key)  # made here, cancelled since
-            if not mine and rec is not None and rec.source is not None and not rec.ended:
-                if sample_period is not None:  # at the rate the node asked for, not ours
-                    raise NotAnsweredError(
-                        _other_rate(
-                            target, semantic, sample_period, "its own use (the console's streams)"
-                        )
-                    )
-                return  # the node's own
-            export_id = await p.federation_agent.create_stream(
-                target, [semantic], sample_period=sample_period, timeout=timeout
-            )
-            self._exports[key] = [export_id, 1, sample_period]
-            self._made[key] = p.importer.get(target, semantic)
+                    entry = self._exports[key] = _Shared(export_id, key, sample_period)
+                    self._made[key] = p.importer.get(target, semantic)
+                    return entry
+            await ending.wait()
 
-    async def _release(self, target: str, semantic: str) -> None:
-        # Cancelled under the lock: a command asking for the stream meanwhile would
-        # otherwise follow the import being cancelled and wait for samples for ever.
+    async def _release(self, target: str, entry: _Shared) -> None:
+        """Take back the count `_acquire` took; the last one out cancels the export.
+
+        The cancel (at most 2 s) runs outside the lock, so commands for other streams do
+        not queue behind a dead target; one for this stream waits for it (`_ending`), or
+        it would follow the import being cancelled and wait for samples for ever.
+        """
+        key = entry.key
         async with self._lock:
-            entry = self._exports.get((target, semantic))
-            if entry is None:
+            entry.following -= 1
+            if entry.following > 0 or self._exports.get(key) is not entry:
                 return
-            entry[1] -= 1
-            if entry[1] > 0:
-                return
-            del self._exports[(target, semantic)]
-            try:
-                await self.platform.federation_agent.cancel_stream(target, entry[0], timeout=2.0)
-            except Exception as exc:  # the export ends with its lease there anyway
-                log.info("local: cancelling the export %s at %s: %s", entry[0], target, exc)
+            del self._exports[key]
+            ending = self._ending[key] = asyncio.Event()
+        try:
+            agent = self.platform.federation_agent
+            await agent.cancel_stream(target, entry.export_id, timeout=2.0)
+        except Exception as exc:  # the export ends with its lease there anyway
+            log.info("local: cancelling the export %s at %s: %s", entry.export_id, target, exc)
+        finally:
+            del self._ending[key]
+            ending.set()
 
     async def _relay(
         self,

@@ -749,8 +749,12 @@ class FederationPlatform:
 
     max_waiting_imports = 256
     """Streams from one sender agreed by consent (another platform asked for them here)
-    that may wait for their first batch at once: what other members' accept-streams can
-    grow. This platform's own requests and `expect` are not counted."""
+    that may wait for their first batch at once, whoever asked: what other members'
+    accept-streams can grow. This platform's own requests and `expect` are not counted."""
+
+    max_waiting_imports_per_requester = 64
+    """Of those, how many one requesting platform may have asked for: one member cannot
+    use up what the others may ask a sender to stream here."""
 
     consent_lease = 60.0
     """Seconds a stream agreed by consent may wait for its first batch before it is
@@ -843,8 +847,9 @@ class FederationPlatform:
         )
         self._on_import_ended = on_import_ended
         self._waiters: dict[tuple[str, str], list[asyncio.Future[str]]] = {}
-        # sender -> semantic -> the end of its consent lease: agreed by `accept`, no batch yet
-        self._leased: dict[str, dict[str, asyncio.TimerHandle]] = {}
+        # sender -> semantic -> (the platform that asked, the end of its consent lease):
+        # agreed by `accept`, no batch yet
+        self._leased: dict[str, dict[str, tuple[str, asyncio.TimerHandle]]] = {}
         self._stack: contextlib.AsyncExitStack | None = None
 
     def __repr__(self) -> str:
@@ -898,7 +903,7 @@ class FederationPlatform:
         if stack is None:
             return
         for leases in self._leased.values():
-            for handle in leases.values():
+            for _, handle in leases.values():
                 handle.cancel()  # not while the import proxy closes
         self._leased.clear()
         try:
@@ -979,30 +984,41 @@ class FederationPlatform:
         self.federation_agent.keep_import(sender, semantic)
         return label
 
-    def accept(self, sender: str, semantic: str) -> str:
-        """Agree to receive a stream another platform asked ``sender`` to send here.
+    def accept(
+        self, sender: str, semantic: str, requester: str, /, *, pending: bool = False
+    ) -> str:
+        """Agree to receive a stream ``requester`` asked ``sender`` to send here.
 
         The Federation Agent calls it when it consents to an ``accept-stream``. Unless it
         was agreed already, the agreement lasts ``consent_lease`` seconds if no batch of
-        the stream arrives meanwhile (a stream that started stays). ValueError when
-        ``max_waiting_imports`` such agreements with ``sender`` wait already.
+        the stream arrives meanwhile (a stream that started stays). ``pending``: agreed
+        already, but only by a request of ours not answered yet; it goes under the lease
+        too (that request accepted, it is agreed for good). ValueError when
+        ``max_waiting_imports`` such agreements with ``sender`` wait already, or
+        ``max_waiting_imports_per_requester`` of them that ``requester`` asked for.
         """
         rec = self.importer.get(sender, semantic)
-        if rec is not None and rec.local_label is not None:
-            return rec.local_label
         leases = self._leased.get(sender, {})
-        limit = self.max_waiting_imports
-        waiting = sum(1 for s in leases if _unstarted(self.importer.get(sender, s)))
-        if waiting >= limit:
+        if rec is not None and rec.local_label is not None and (not pending or semantic in leases):
+            return rec.local_label
+        waiting = [r for s, (r, _) in leases.items() if _unstarted(self.importer.get(sender, s))]
+        limit, own = self.max_waiting_imports, self.max_waiting_imports_per_requester
+        if len(waiting) >= limit:
             raise ValueError(
-                f"{waiting} streams from {sender} that other platforms asked for here have "
-                f"sent nothing yet (at most {limit}): {semantic!r} not agreed"
+                f"{len(waiting)} streams from {sender} that other platforms asked for here "
+                f"have sent nothing yet (at most {limit}): {semantic!r} not agreed"
+            )
+        mine = waiting.count(requester)
+        if mine >= own:
+            raise ValueError(
+                f"{mine} streams from {sender} that {requester} asked for here have sent "
+                f"nothing yet (at most {own} per requester): {semantic!r} not agreed"
             )
         label = self._agree(sender, semantic)
         handle = asyncio.get_running_loop().call_later(
             self.consent_lease, self._lease_ended, sender, semantic
         )
-        self._leased.setdefault(sender, {})[semantic] = handle
+        self._leased.setdefault(sender, {})[semantic] = (requester, handle)
         return label
 
     def _agree(self, sender: str, semantic: str) -> str:
@@ -1020,9 +1036,9 @@ class FederationPlatform:
         leases = self._leased.get(sender)
         if leases is None:
             return
-        handle = leases.pop(semantic, None)
-        if handle is not None:
-            handle.cancel()
+        lease = leases.pop(semantic, None)
+        if lease is not None:
+            lease[1].cancel()
         if not leases:
             del self._leased[sender]
 
@@ -1083,12 +1099,25 @@ class FederationPlatform:
     async def _sender_gone(self, sender: str, labels: list[str]) -> None:
         # Membership subscribers hear "gone" from the Federation Agent (the global
         # directory follows the same liveliness token); here the imports are what ended.
-        log.warning(
-            "platform %s: %s is gone; its streams imported here ended: %s",
-            self.name,
-            sender,
-            ", ".join(labels),
-        )
+        # An agreed stream whose first sample never came did not end: it never flowed.
+        recs = [(s, self.importer.get(sender, s)) for s in labels]
+        waited = [s for s, rec in recs if rec is not None and _waiting(rec)]
+        flowed = [s for s in labels if s not in waited]
+        if flowed:
+            log.warning(
+                "platform %s: %s is gone; its streams imported here ended: %s",
+                self.name,
+                sender,
+                ", ".join(flowed),
+            )
+        if waited:
+            log.warning(
+                "platform %s: %s is gone; its streams agreed here that were waiting for "
+                "their first sample will not come: %s",
+                self.name,
+                sender,
+                ", ".join(waited),
+            )
         hook = self._on_import_ended
         if hook is not None:
             result = hook(sender, labels)

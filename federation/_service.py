@@ -34,7 +34,8 @@ FIPA-Request actions (answered ``inform``, or ``refuse`` with the reason):
 * ``{"action": "cancel-stream", "id": "x-…"}`` → the export stops; inform
   ``{"cancelled": id}``. Allowed to agents of the requester's platform, of a receiving
   platform, and of this one. A FIPA ``cancel`` in the create-stream's conversation, from
-  its requester, does the same.
+  its requester, does the same, also while the create-stream is still being done (the
+  export stops once started); `create_stream` sends one when it gives up waiting.
 * ``{"action": "get-latest", "labels": [s…]}``,
   ``{"action": "get-value-at", "labels": [s…], "t": t, "approximation":
   "most_recent"|"closest"|"linear"}``,
@@ -246,9 +247,13 @@ class ImportAgreements(Protocol):
         """Agree to receive ``sender``'s stream of ``semantic``; raises if it cannot land here."""
         ...
 
-    def accept(self, sender: str, semantic: str, /) -> object:
-        """Agree to a stream another platform asked for here: bounded, and withdrawn if it
-        does not start within a lease; raises if it cannot land here."""
+    def accept(
+        self, sender: str, semantic: str, requester: str, /, *, pending: bool = False
+    ) -> object:
+        """Agree to a stream ``requester`` asked ``sender`` for here: bounded per sender and
+        per (sender, requester), and withdrawn if it does not start within a lease (also
+        when ``pending``, agreed only by a request of ours not answered yet); raises if it
+        cannot land here or a bound is reached."""
         ...
 
     def agreed(self, sender: str, semantic: str, /) -> bool:
@@ -444,6 +449,9 @@ class FederationAgent(Agent):
         self._join_on_setup = join
         self._exports: dict[str, StreamExport] = {}
         self._by_conversation: dict[tuple[str, str], str] = {}
+        # (requester, conversation) -> cancelled: create-streams not answered yet; one its
+        # requester cancels meanwhile (it gave up waiting) is stopped once started
+        self._creating: dict[tuple[str, str], bool] = {}
         self._reserved = 0
         # (provider, label) -> how many of our create-streams not yet answered expect it,
         # agreed by nothing else: withdrawn when none of them is accepted (`_settle`)
@@ -788,18 +796,24 @@ class FederationAgent(Agent):
         imports = self.imports
         if imports is not None:
             new: list[str] = []  # refused after all: what this request agreed is withdrawn
+            tentative = self._tentative
             for semantic in labels:
                 try:
-                    if not imports.agreed(provider, semantic):
-                        imports.accept(provider, semantic)
+                    if (provider, semantic) in tentative:
+                        # a request of ours for it waits: consented, it is leased (kept
+                        # if that request fails, ours for good if it is accepted)
+                        imports.accept(provider, semantic, req.requester, pending=True)
+                    elif not imports.agreed(provider, semantic):
+                        imports.accept(provider, semantic, req.requester)
                         new.append(semantic)
                 except Exception as exc:
                     for agreed in new:
                         self._withdraw(provider, agreed)
                     raise ContentError(_about(semantic, _reason(exc))) from exc
             for semantic in labels:
-                # consented: kept even if a request of ours for it, waiting still, fails
-                self._tentative.pop((provider, semantic), None)
+                # consented: a request of ours for it, waiting still, that fails leaves it
+                # to the lease
+                tentative.pop((provider, semantic), None)
         log.info("%s: agreed to receive %s from %s for %s", self, labels, provider, req.requester)
         return {"accepted": labels}
 
@@ -946,6 +960,11 @@ class FederationAgent(Agent):
         self._reserved_by[requester] = self._reserved_by.get(requester, 0) + needed
         kept = req.history * needed
         self._history_reserved_by[requester] = self._history_reserved_by.get(requester, 0) + kept
+        creating = None
+        if message.conversation_id is not None:
+            creating = (message.sender, message.conversation_id)
+            self._creating[creating] = False
+        cancelled = False
         try:
             for receiver in receivers:
                 if receiver != requester:
@@ -971,6 +990,8 @@ class FederationAgent(Agent):
             await self._stop_handles(record)
             raise
         finally:
+            if creating is not None:
+                cancelled = self._creating.pop(creating, False)
             self._reserved -= needed
             for table, n in ((self._reserved_by, needed), (self._history_reserved_by, kept)):
                 left = table.get(requester, 0) - n
@@ -979,9 +1000,11 @@ class FederationAgent(Agent):
                 else:
                     table.pop(requester, None)
         self._exports[record.id] = record
-        if message.conversation_id is not None:
-            self._by_conversation[(message.sender, message.conversation_id)] = record.id
+        if creating is not None:
+            self._by_conversation[creating] = record.id
         log.info("%s: export %s of %s to %s", self, record.id, record.labels, receivers)
+        if cancelled:  # its requester stopped waiting for this answer
+            await self._end(record)
         return {"id": record.id, "labels": record.labels, "to-units": receivers}
 
     def _check_limits(self, requester: str, needed: int, history: int) -> None:
@@ -1051,11 +1074,18 @@ class FederationAgent(Agent):
         return {"cancelled": export_id}
 
     def _is_export_conversation(self, message: ACLMessage) -> bool:
-        return (message.sender, message.conversation_id or "") in self._by_conversation
+        key = (message.sender, message.conversation_id or "")
+        return key in self._by_conversation or key in self._creating
 
     async def _on_cancel(self, message: ACLMessage) -> None:
-        """FIPA cancel of a create-stream by its requester: stop the export, confirm."""
-        export_id = self._by_conversation.get((message.sender, message.conversation_id or ""))
+        """FIPA cancel of a create-stream by its requester: stop the export, confirm.
+
+        One still being created is stopped as soon as it started (its requester gave up).
+        """
+        key = (message.sender, message.conversation_id or "")
+        if key in self._creating:
+            self._creating[key] = True
+        export_id = self._by_conversation.get(key)
         record = self._exports.get(export_id or "")
         if record is not None:
             await self._end(record)
@@ -1241,11 +1271,21 @@ class FederationAgent(Agent):
         return agent_id(FEDERATION_AGENT, platform)
 
     async def request_from(
-        self, platform: str, content: Any, *, timeout: float = DEFAULT_TIMEOUT
+        self,
+        platform: str,
+        content: Any,
+        *,
+        timeout: float = DEFAULT_TIMEOUT,
+        conversation_id: str | None = None,
     ) -> Any:
         """FIPA-Request to the federation service of ``platform``: the inform's content."""
         return await request(
-            self, self.provider_of(platform), content, ontology=ONTOLOGY, timeout=timeout
+            self,
+            self.provider_of(platform),
+            content,
+            ontology=ONTOLOGY,
+            timeout=timeout,
+            conversation_id=conversation_id,
         )
 
     async def create_stream(
@@ -1268,7 +1308,9 @@ class FederationAgent(Agent):
         ``history`` N asks the exporter to keep its last N samples and resend those a
         partition made us miss. ``durable`` asks again by itself whenever ``provider``
         comes back after it was gone (a restart, a router restart, a long partition):
-        exports to a platform gone are stopped at the provider.
+        exports to a platform gone are stopped at the provider. Given up (no answer
+        within ``timeout``, or cancelled), the provider is sent a FIPA ``cancel`` so an
+        export it started does not run until its lease.
         """
         content: dict[str, Any] = {"action": "create-stream", "labels": list(labels)}
         for key, value in (
@@ -1292,13 +1334,19 @@ class FederationAgent(Agent):
             for s in dict.fromkeys(content["labels"])
         ]
         self._count_for_others(others, +1)  # the receivers ask us to confirm it meanwhile
+        conversation = new_id("c")
         try:
-            answer = await self.request_from(provider, content, timeout=timeout)
+            answer = await self.request_from(
+                provider, content, timeout=timeout, conversation_id=conversation
+            )
             export_id = str(answer["id"])
-        except BaseException:
+        except BaseException as exc:
             # refused, failed, timed out, unreachable or cancelled: nothing stays agreed
             self._count_for_others(others, -1)
             self._settle(held, accepted=False)
+            if isinstance(exc, ReplyTimeout | asyncio.CancelledError):
+                # the provider may have started it: nothing agreed covers it any more
+                self._give_up(provider, conversation)
             raise
         self._settle(held, accepted=True)
         if others:
@@ -1306,6 +1354,33 @@ class FederationAgent(Agent):
         if durable:
             self._durable.setdefault(provider, {})[export_id] = _Durable(content, export_id)
         return export_id
+
+    def _give_up(self, provider: str, conversation_id: str) -> None:
+        """Tell ``provider`` (FIPA cancel in the create-stream's conversation) we gave up.
+
+        Best-effort and in the background: an export it started, or starts after the
+        cancel arrives, stops then rather than with its lease.
+        """
+        cancel = self.message(
+            P.CANCEL,
+            self.provider_of(provider),
+            None,
+            protocol=FIPA_REQUEST,
+            ontology=ONTOLOGY,
+            conversation_id=conversation_id,
+        )
+        try:
+            self.spawn(self._send_quietly(cancel), "give-up")
+        except Exception as exc:  # stopping: the export ends with its lease there
+            log.info("%s: not cancelling the create-stream at %s: %s", self, provider, exc)
+
+    async def _send_quietly(self, message: ACLMessage) -> None:
+        """Send ``message``; a failure is logged (what it asks ends by a lease anyway)."""
+        try:
+            await self.send(message)
+        except Exception as exc:
+            what = message.performative
+            log.info("%s: %s to %s not sent: %s", self, what, message.receivers, exc)
 
     def _count_for_others(self, keys: list[tuple[str, str, str]], delta: int) -> None:
         table = self._for_others
@@ -1369,9 +1444,9 @@ class FederationAgent(Agent):
         for provider, semantic, counted in held:
             key = (provider, semantic)
             if accepted:
+                # for good: a consent's lease on it (taken before or meanwhile) ends
                 tentative.pop(key, None)
-                if not counted:
-                    self._keep(provider, semantic)
+                self._keep(provider, semantic)
                 continue
             n = tentative.get(key)
             if not counted or n is None:
@@ -1478,19 +1553,34 @@ class FederationAgent(Agent):
                 for keys in held.values():
                     self._settle(keys, accepted=False)
                 raise
+        conversation_id = new_id("c")
+        creates = isinstance(content, dict) and content.get("action") == "create-stream"
         try:
-            result = await self._global_request(content, providers, result, deadline)
+            result = await self._global_request(
+                content, providers, result, deadline, conversation_id
+            )
         except BaseException:
             for keys in held.values():
                 self._settle(keys, accepted=False)
+            if creates:  # given up on all of them: an export one started is stopped
+                for platform in providers:
+                    self._give_up(platform, conversation_id)
             raise
         for platform, keys in held.items():
             self._settle(keys, accepted=platform in result.answers)
+        if creates:
+            for platform in result.no_answer:  # silent until the deadline: given up
+                self._give_up(platform, conversation_id)
         await _select(result, select)
         return result
 
     async def _global_request(
-        self, content: Any, providers: dict[str, str], result: GlobalResult, deadline: float
+        self,
+        content: Any,
+        providers: dict[str, str],
+        result: GlobalResult,
+        deadline: float,
+        conversation_id: str,
     ) -> GlobalResult:
         """Send ``content`` to every provider; ``result`` with the answers until ``deadline``."""
         # A reading action goes as query-ref: each provider answers it in its agent's receive
@@ -1501,7 +1591,6 @@ class FederationAgent(Agent):
             performative, protocol = P.REQUEST, FIPA_REQUEST
         loop = asyncio.get_running_loop()
         end = loop.time() + deadline
-        conversation_id = new_id("c")
         pending = set(providers)
         # One message checked (its content copied) once; each provider's is a copy of it
         # with its own receiver (a directory entry's provider) and reply_with (readdressed)

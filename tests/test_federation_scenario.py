@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import multiprocessing
 import os
 import signal
@@ -1068,6 +1069,223 @@ async def test_the_application_agreeing_while_our_request_waits_keeps_it(
             await asking
         assert b.agreed("operator", "car5-state")
         assert b.federation_agent._tentative == {}
+
+
+async def test_the_consent_bound_is_per_requester_too(demo_keys: Path) -> None:
+    # regression: the bound on consented streams waiting for their first batch was one per
+    # sender, so the operator's requests used up what uav-a itself could ask to send to uav-b
+    consent = {"sharing": {"accept_for": ["operator", "uav-a"]}}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        b.max_waiting_imports, b.max_waiting_imports_per_requester = 3, 2
+
+        def agreed() -> list[str]:
+            return sorted(r.semantic_label for r in b.importer.imports("uav-a"))
+
+        with pytest.raises(Refused, match="no stream for it here"):  # uav-b consented
+            await op.federation_agent.create_stream(
+                "uav-a", ["car11-state", "car13-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        with pytest.raises(Refused, match=r"that operator asked for here .*at most 2 per"):
+            await op.federation_agent.create_stream(
+                "uav-a", ["car15-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        assert agreed() == ["car11-state", "car13-state"]
+        # another requester still has its share, up to the total per sender
+        with pytest.raises(Refused, match="no stream for it here"):
+            await a.federation_agent.create_stream(
+                "uav-a", ["car17-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        assert agreed() == ["car11-state", "car13-state", "car17-state"]
+        with pytest.raises(Refused, match=r"have sent nothing yet \(at most 3\)"):
+            await a.federation_agent.create_stream(
+                "uav-a", ["car19-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        assert agreed() == ["car11-state", "car13-state", "car17-state"]
+
+
+async def test_a_consent_while_our_request_waits_stays_under_its_lease(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: uav-b's own create-stream for a label waited when the operator had uav-a
+    # ask uav-b to receive it too; the consent took the label for good, so when uav-a then
+    # refused both, it stayed agreed for ever instead of ending with the consent's lease
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        b.consent_lease = 1.0
+        a.instance.add_source("cars/car5/state")
+        fed, create = a.federation_agent, a.federation_agent._create_stream
+        answer = asyncio.Event()
+
+        async def b_waits(req: Any, message: ACLMessage) -> Any:
+            if message.sender.endswith("@uav-b"):
+                await answer.wait()  # uav-b's request is answered when the test says
+            return await create(req, message)
+
+        monkeypatch.setattr(fed, "_create_stream", b_waits)
+
+        async def consent_while_b_waits(labels: list[str]) -> Any:
+            asking = asyncio.create_task(
+                b.federation_agent.create_stream("uav-a", labels[:1], timeout=WAIT)
+            )
+            async with asyncio.timeout(WAIT):
+                while not b.agreed("uav-a", labels[0]):  # noqa: ASYNC110
+                    await asyncio.sleep(0)
+            with pytest.raises(Refused, match="no stream for it here"):
+                await op.federation_agent.create_stream(
+                    "uav-a", labels, to_units=["uav-b"], timeout=WAIT
+                )
+            answer.set()
+            try:
+                return await asking
+            finally:
+                answer.clear()
+
+        # ours refused too: the consent's lease decides, and ends it
+        with pytest.raises(Refused, match="no stream for it here"):
+            await consent_while_b_waits(["car11-state"])
+        assert "car11-state" in b._leased["uav-a"]
+        async with asyncio.timeout(WAIT):
+            while b.agreed("uav-a", "car11-state"):  # noqa: ASYNC110
+                await asyncio.sleep(0.02)
+        # ours accepted: agreed for good, its lease ended (car13's, refused, goes on)
+        await consent_while_b_waits(["car5-state", "car13-state"])
+        assert list(b._leased["uav-a"]) == ["car13-state"]
+        assert b.agreed("uav-a", "car5-state")
+
+
+async def test_a_create_stream_we_gave_up_on_is_stopped_at_the_provider(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: uav-b's create-stream timed out and uav-b withdrew its agreement, but
+    # uav-a was not told: its export ran on until its lease (10 s), sending what nobody
+    # agreed to; now uav-b cancels (FIPA cancel in the conversation) when it gives up
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        a.instance.add_source("cars/car5/state")
+        a.instance.add_source("cars/car7/state")
+        fed = a.federation_agent
+        create, start = fed._create_stream, fed._start_export
+        go, started = asyncio.Event(), asyncio.Event()
+
+        async def starts_late(*args: Any) -> Any:  # car5: still starting when cancelled
+            await go.wait()
+            try:
+                return await start(*args)
+            finally:
+                started.set()
+
+        async def answers_late(req: Any, message: ACLMessage) -> Any:  # car7: running
+            result = await create(req, message)
+            started.set()
+            await go.wait()
+            return result
+
+        async def stopped_promptly() -> None:
+            async with asyncio.timeout(WAIT):
+                await started.wait()
+            async with asyncio.timeout(a.config.export_lease / 2):  # not by its lease
+                while fed.export_count or a.exporter.exports():  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)
+
+        monkeypatch.setattr(fed, "_start_export", starts_late)
+        with pytest.raises(ReplyTimeout):
+            await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=0.3)
+        received = fed.stats.received
+        async with asyncio.timeout(WAIT):  # the cancel is there before the export starts
+            while fed.stats.received == received:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        go.set()
+        await stopped_promptly()
+
+        monkeypatch.setattr(fed, "_start_export", start)
+        monkeypatch.setattr(fed, "_create_stream", answers_late)
+        go.clear()
+        started.clear()
+        with pytest.raises(ReplyTimeout):
+            await b.federation_agent.create_stream("uav-a", ["car7-state"], timeout=0.5)
+        await stopped_promptly()
+        go.set()
+        assert not b.agreed("uav-a", "car5-state") and not b.agreed("uav-a", "car7-state")
+
+        # a global create-stream: those silent until the deadline are told too
+        go.clear()
+        started.clear()
+        a.instance.add_source("cars/car9/state")
+        asked = {"action": "create-stream", "labels": ["car9-state"]}
+        result = await b.federation_agent.global_request(asked, deadline=0.5)
+        assert result.no_answer == ["uav-a"]
+        await stopped_promptly()
+        go.set()
+
+
+async def test_a_sender_gone_names_apart_the_streams_that_never_flowed(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # regression: "uav-b is gone; its streams imported here ended" also named agreed
+    # streams whose first sample never came
+    async with memory_federation(demo_keys) as (ps, b_stack):
+        a, b = ps["uav-a"], ps["uav-b"]
+        car5 = b.instance.add_source("tracks/car5/state")
+        await a.federation_agent.create_stream("uav-b", ["car5-state"], timeout=WAIT)
+        car5.push(car_state(0, 1, "uav-b"))
+        await a.imported("uav-b", "car5-state", timeout=WAIT)
+        a.expect("uav-b", "car7-state")  # agreed, never sent
+        caplog.set_level(logging.WARNING, logger="federation._platform")
+        async with a.membership() as events:
+            await b_stack.aclose()
+            async with asyncio.timeout(WAIT):
+                await next_event(events, MembershipEvent("gone", "uav-b"))
+        async with asyncio.timeout(WAIT):
+            while not any("is gone" in r.getMessage() for r in caplog.records):  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        gone = [r.getMessage() for r in caplog.records if "is gone" in r.getMessage()]
+        assert gone == [
+            "platform uav-a: uav-b is gone; its streams imported here ended: car5-state",
+            "platform uav-a: uav-b is gone; its streams agreed here that were waiting for "
+            "their first sample will not come: car7-state",
+        ]
+
+
+async def test_the_local_channel_releases_only_what_a_command_took(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: a command that followed the node's own import released it anyway,
+    # cancelling the export another command had made since; and a cancel to a silent target
+    # held the channel's lock (2 s), so every other command queued behind it
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(demo_keys / "run"))
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        car5 = a.instance.add_source("cars/car5/state")
+        op.instance.add_source("picture/car7")
+        channel = LocalChannel(b)
+        own = await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        car5.push(car_state(0, 1, "uav-a"))
+        await b.imported("uav-a", "car5-state", timeout=WAIT)
+        follower = await channel._acquire("uav-a", "car5-state", None, WAIT)
+        assert follower is None  # the node's own: followed, not counted
+        await b.federation_agent.cancel_stream("uav-a", own, timeout=WAIT)
+        b.importer.forget("uav-a", "car5-state")  # the node's own import ends
+        maker = await channel._acquire("uav-a", "car5-state", None, WAIT)
+        # the follower, leaving, has nothing to give back: only the maker counts
+        assert maker is not None and maker.following == 1
+        assert a.federation_agent.export_count == 1
+
+        # the last one out cancels; a silent target does not hold up another stream
+        monkeypatch.setattr(a.federation_agent, "_cancel_stream", never_answers)
+        releasing = asyncio.create_task(channel._release("uav-a", maker))
+        async with asyncio.timeout(WAIT):
+            while ("uav-a", "car5-state") not in channel._ending:  # noqa: ASYNC110
+                await asyncio.sleep(0)
+        other = await channel._acquire("operator", "car7-state", None, WAIT)
+        assert other is not None and not releasing.done()
+        async with asyncio.timeout(WAIT):
+            await releasing
+        await channel._release("operator", other)
+        assert op.federation_agent.export_count == 0
 
 
 async def test_a_stream_that_flows_before_the_refusal_stays_agreed(
