@@ -12,9 +12,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import threading
 from collections.abc import Callable, Hashable
+from typing import Any
+
+log = logging.getLogger(__name__)
 
 OVERFLOW = "*"
 """The key refusals share once a tally holds ``max_keys`` others in one interval."""
@@ -44,7 +48,7 @@ class Tally:
         self._emit = emit
         self._lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._pending: dict[Hashable, list[object]] = {}  # key -> [count, last detail]
+        self._pending: dict[Hashable, list[Any]] = {}  # key -> [count, last detail]
         self._scheduled = False  # a flush is due (or being scheduled)
         self._last = -math.inf  # loop time of the last flush
 
@@ -63,7 +67,7 @@ class Tally:
                     entry = pending.get(key)
                 if entry is None:
                     entry = pending[key] = [0, detail]
-            entry[0] += n  # type: ignore[operator]
+            entry[0] += n
             entry[1] = detail
             schedule = not self._scheduled
             self._scheduled = True
@@ -103,13 +107,16 @@ class Tally:
         if pending:
             self._last = now
         for key, (count, detail) in pending.items():
-            self._emit(key, count, detail, seconds)  # type: ignore[arg-type]
+            try:
+                self._emit(key, count, detail, seconds)
+            except Exception:  # one key's record failing must not lose the others'
+                log.exception("could not report %d refusal(s) of %r", count, key)
 
     @property
     def pending(self) -> int:
         """Refusals counted and not yet emitted."""
         with self._lock:
-            return sum(e[0] for e in self._pending.values())  # type: ignore[misc]
+            return sum(e[0] for e in self._pending.values())
 
 
 def since(seconds: float | None) -> str:
