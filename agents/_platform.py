@@ -175,10 +175,12 @@ class PlatformStats:
     (signature, freshness, trust) then refused them;
     ``denied`` authenticated messages the Interface Agent refused or dropped for what
     they claim or ask (a sender of another platform, no receiver here, a ``reply_to`` it
-    does not allow, access denied; each audited); ``agent_refused`` messages this
+    does not allow, access denied; each audited); ``agent_refused`` requests this
     platform's agents answered with ``refuse`` themselves (a responder raising
-    ``Refuse``); ``unknown_receiver``, ``mailbox_full`` (and those refused, from other
-    platforms, summed up in the audit: ``delivery``/``agent-refuse`` records);
+    ``Refuse``); ``unknown_receiver`` / ``mailbox_full`` messages for no agent here / for
+    a full mailbox (answered with ``failure``); those of other platforms among these
+    three are audited summed up (``agent-refuse`` / ``delivery`` records, one per
+    platform and kind per `REFUSAL_AUDIT_INTERVAL`; docs/security.md);
     ``rehandshakes`` new sessions started because a trusted peer
     sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
     ignored (at most one per peer per ``rehandshake_interval``), ``presence_suppressed``
