@@ -687,6 +687,8 @@ class Agent:
         answer = message.reply(performative, content, sender=self.aid)
         if reply_with is not None:
             answer = answer.model_copy(update={"reply_with": reply_with})
+        if performative == Performative.REFUSE and self._platform is not None:
+            self._platform.agent_refused(message, content)  # counted, audited summed up
         await self.send(answer)
         return answer
 

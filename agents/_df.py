@@ -53,6 +53,7 @@ from ._protocols import (
     request,
     subscribe,
 )
+from ._tally import Tally, since
 from .transports import Handle, Inbox, Message, Presence, Reply, Subscription, Transport
 
 if TYPE_CHECKING:
@@ -604,6 +605,10 @@ class DirectoryFacilitator(Agent):
 
 
 _RESYNC_MAX_WAIT = 30.0  # s between a member's resyncs at most, while it does not answer
+_STALE_KEYS = 64  # platforms whose stale events are summed up apart, per interval
+_STALE_UNREAD = "not newer than its last accepted one (dropped before its signature check)"
+INVALID_LOG_INTERVAL = 30.0
+"""Seconds between two log lines about one signer's invalid directory statements."""
 
 
 class GlobalDirectory:
@@ -658,8 +663,20 @@ class GlobalDirectory:
         self.resyncs = 0  # fresh snapshots taken because events may have been lost, since start
         self.event_gate: DfEventGate | None = None
         self._shed_pending = Pending(1.0 if event_limit is None else event_limit.report_interval)
+        # stale events (normal now and then: one re-sent, or one a snapshot reflected
+        # already) are audited summed up, per platform and interval, never one by one
+        self._stale_tally = Tally(
+            self._audit_stale, interval=self._shed_pending.period, max_keys=_STALE_KEYS
+        )
+        # invalid statements of trusted signers: logged once per signer per interval
+        self._invalid_log = Tally(self._log_invalid, interval=INVALID_LOG_INTERVAL)
         if self._auth.authenticates and event_limit is not None:
-            self.event_gate = DfEventGate(self._auth, event_limit, on_shed=self._shed_pending.add)
+            self.event_gate = DfEventGate(
+                self._auth,
+                event_limit,
+                on_shed=self._shed_pending.add,
+                on_stale=lambda frm: self._stale_tally.add(frm, _STALE_UNREAD),
+            )
         self._resyncing: set[str] = set()
         # a member whose events were shed while its resync ran is asked once more after it;
         # each member is asked at most once per report interval (the interval after a
@@ -678,6 +695,7 @@ class GlobalDirectory:
         """
         p = self._platform
         gate = self.event_gate
+        self._stale_tally.bind(asyncio.get_running_loop())  # told on the transport's thread
         # Subscribe before the snapshot: what changes meanwhile is queued, not lost.
         events = await p.transport.subscribe(
             p.key("df-events", "*"), admit=None if gate is None else gate.admit
@@ -773,6 +791,38 @@ class GlobalDirectory:
             for pinbox in list(self._presence_watchers):
                 pinbox.put(change)
 
+    def _audit_stale(
+        self, platform: object, count: int, detail: str, seconds: float | None
+    ) -> None:
+        """One audit record for ``count`` stale events of ``platform`` (summed up)."""
+        self._platform.audit(
+            verdict="dropped",
+            stage="df-events-stale",
+            code="stale",
+            count=count,
+            **{"from": platform},
+            reason=(
+                f"stale: {count} directory event(s) of {platform!r} not newer than its last "
+                f"accepted one dropped{since(seconds)} (last: {detail[:200]})"
+            ),
+        )
+
+    def _log_invalid(
+        self, platform: object, count: int, detail: str, seconds: float | None
+    ) -> None:
+        """One warning for ``count`` invalid statements signed by ``platform`` (summed up)."""
+        if count == 1:
+            log.warning("global-df[%s]: %s", self._platform.name, detail[:300])
+            return
+        log.warning(
+            "global-df[%s]: %d invalid directory statements from %r%s (last: %s)",
+            self._platform.name,
+            count,
+            platform,
+            since(seconds),
+            detail[:300],
+        )
+
     def _audit_invalid(self, platform: str, reason: str, stage: str) -> None:
         """Audit a signed statement whose body is no directory's, within the channel's budget."""
         # signed, yet as cheap to repeat as unsigned input: the same budget bounds the records
@@ -860,7 +910,7 @@ class GlobalDirectory:
             services = [ServiceDescription.model_validate(i) for i in items]
         except (ValueError, ValidationError) as exc:
             self.invalid += 1
-            log.warning("global-df: bad answer from %s: %s", reply.key, exc)
+            self._invalid_log.add(statement.platform, f"bad answer from {reply.key}: {exc}")
             self._audit_invalid(statement.platform, f"directory answer: {exc}", "df")
             return
         name = statement.platform
@@ -992,14 +1042,13 @@ class GlobalDirectory:
             except DirectoryStatementError as exc:
                 if exc.reason.startswith("stale"):
                     self._stale += 1  # already reflected, or replayed: changes nothing
+                    self._stale_tally.add(platform, exc.reason)
                     continue
                 if self._auth.authenticates:
                     self._refuse(platform, f"directory event: {exc.reason}", "df-events")
                 else:
                     self.invalid += 1
-                    log.warning(
-                        "global-df[%s]: bad event on %s: %s", self._platform.name, item.key, exc
-                    )
+                    self._invalid_log.add(platform, f"bad event on {item.key}: {exc}")
                 continue
             self._event_counts[platform] = self._event_counts.get(platform, 0) + 1
             if platform not in self._alive:
@@ -1019,9 +1068,7 @@ class GlobalDirectory:
                     raise ValueError(f"{platform} spoke for {service.provider}")
             except (ValueError, ValidationError) as exc:
                 self.invalid += 1
-                log.warning(
-                    "global-df[%s]: bad event on %s: %s", self._platform.name, item.key, exc
-                )
+                self._invalid_log.add(platform, f"bad event on {item.key}: {exc}")
                 self._audit_invalid(platform, f"directory event: {exc}", "df-events")
                 continue
             self._apply(platform, op, service)
@@ -1174,15 +1221,22 @@ async def runs_signed(
     *,
     timeout: float = 2.0,
     tries: int = 3,
+    refused: list[tuple[str | None, str]] | None = None,
 ) -> bool:
     """Whether ``platform`` answers a fresh directory query with a statement it signed.
 
     What proves a platform runs, where its presence (a liveliness token, a retained MQTT
     message) is only a hint anyone on the network can give: the answer must verify with
     the key ``trust`` holds for ``platform`` (``keys``: this side's, for its own name).
+    Answers that do not are refused: each appended to ``refused`` (the platform it
+    claims, why) when given, and all of them logged in one warning at the end (this
+    runs before the platform and its audit exist).
     """
     auth = DirectoryAuth(trust.federation, keys, trust)
     key = f"dyknow/{trust.federation}/v{WIRE_VERSION}/df/{platform}"  # as wire_key makes it
+    seen: list[tuple[str | None, str]] = [] if refused is None else refused
+    first = len(seen)
+    answered = False
     for _ in range(tries):
         nonce = make_nonce()
         query = orjson.dumps({"v": WIRE_VERSION, "nonce": base64.b64encode(nonce).decode()})
@@ -1195,14 +1249,26 @@ async def runs_signed(
                     try:
                         auth.open(reply.payload, "df", platform=platform, nonce=nonce)
                     except DirectoryStatementError as exc:
-                        log.info(
-                            "a directory answer in %r's name refused: %s", platform, exc.reason
-                        )
+                        seen.append((exc.platform, exc.reason[:200]))
                         continue
-                    return True
+                    answered = True
+                    break
         except TransportError as exc:
             log.debug("asking %s whether it runs: %s", platform, exc)
-    return False
+        if answered:
+            break
+    if len(seen) > first:
+        claimed, why = seen[first]
+        log.warning(
+            "asking whether %r runs: %d directory answer(s) in its name refused (the first "
+            "from a platform calling itself %r: %s)%s",
+            platform,
+            len(seen) - first,
+            claimed,
+            why,
+            "" if answered else "; no answer signed with its key",
+        )
+    return answered
 
 
 def _df_of(agent: Agent, df: str | None) -> str:

@@ -6,9 +6,9 @@ the platform's CPU, and push real events out of the subscription's queue. The
 `DfEventGate` runs on the transport's receiving thread, before the event is queued for
 the event loop and before any signature check: it drops what is malformed, not a
 directory event of this federation, from an untrusted name, unsigned or expired, or not
-newer than the last accepted event of its platform (only counted as ``stale`` then: it
-changes nothing), a few microseconds each, and lets through only as many of the rest as
-a budget allows, per claimed platform and in all.
+newer than the last accepted event of its platform (counted as ``stale`` then, and
+audited summed up: it changes nothing), a few microseconds each, and lets through only
+as many of the rest as a budget allows, per claimed platform and in all.
 An event of a member shed for its budget (a forger claiming that member's name) is made
 good by asking the member again (`GlobalDirectory` takes a fresh signed snapshot). See
 ``docs/security.md`` ("Directory-event load shedding").
@@ -89,10 +89,12 @@ class DfEventGate(ShedGate):
         *,
         monotonic: Callable[[], float] = time.monotonic,
         on_shed: Callable[[], None] | None = None,
+        on_stale: Callable[[str], None] | None = None,
     ) -> None:
         super().__init__(limit, limit.per_platform, limit.per_platform_burst, monotonic, on_shed)
         self.auth = auth
         self.stale = 0  # events dropped as not newer than the last accepted, since start
+        self._on_stale = on_stale  # told the claimed platform of each (on this thread)
         self._resync: set[str] = set()  # members shed over their budget since the last take
 
     def admit(self, payload: bytes) -> bool:
@@ -103,9 +105,11 @@ class DfEventGate(ShedGate):
             screened = ("malformed", None)
         reason, frm = screened
         if reason == "stale":
-            # already reflected, or replayed: changes nothing, as before (not audited)
+            # already reflected, or replayed: changes nothing; audited summed up (`on_stale`)
             with self._lock:
                 self.stale += 1
+            if self._on_stale is not None and frm is not None:
+                self._on_stale(frm)
             return False
         if reason:
             return self._drop(reason, frm)

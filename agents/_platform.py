@@ -26,6 +26,7 @@ from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, nam
 from ._agent import NEVER_ANSWERED, Agent
 from ._directory_auth import DirectoryAuth
 from ._exceptions import AgentError, MessageError
+from ._tally import Tally, since
 from .transports import Handle, Message, Subscription, Transport
 
 if TYPE_CHECKING:
@@ -174,7 +175,12 @@ class PlatformStats:
     (signature, freshness, trust) then refused them;
     ``denied`` authenticated messages the Interface Agent refused or dropped for what
     they claim or ask (a sender of another platform, no receiver here, a ``reply_to`` it
-    does not allow, access denied; each audited);
+    does not allow, access denied; each audited); ``agent_refused`` requests this
+    platform's agents answered with ``refuse`` themselves (a responder raising
+    ``Refuse``); ``unknown_receiver`` / ``mailbox_full`` messages for no agent here / for
+    a full mailbox (answered with ``failure``); those of other platforms among these
+    three are audited summed up (``agent-refuse`` / ``delivery`` records, one per
+    platform and kind per `REFUSAL_AUDIT_INTERVAL`; docs/security.md);
     ``rehandshakes`` new sessions started because a trusted peer
     sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
     ignored (at most one per peer per ``rehandshake_interval``), ``presence_suppressed``
@@ -199,6 +205,7 @@ class PlatformStats:
     kx_replies_refused: int = 0
     kx_requests_refused: int = 0
     denied: int = 0
+    agent_refused: int = 0
     rehandshakes: int = 0
     rehandshakes_suppressed: int = 0
     presence_suppressed: int = 0
@@ -209,6 +216,19 @@ _UNOPENED, _OPENED, _CLOSING, _CLOSED = "unopened", "opened", "closing", "closed
 
 # remote answers (failure, not-understood) the platform sends in the background at once
 MAX_ANSWERING = 256
+
+REFUSAL_AUDIT_INTERVAL = 1.0
+"""Seconds between two audit records summing up one platform's refusals of one kind."""
+
+# audit record (verdict, stage, what) per kind of refusal summed up by `_refusals`
+_REFUSAL_KINDS = {
+    "refuse": ("refused", "agent-refuse", "request(s) answered with refuse by an agent"),
+    "unknown-receiver": ("dropped", "delivery", "message(s) for no agent of this platform"),
+    "mailbox-full": ("dropped", "delivery", "message(s) for an agent whose mailbox is full"),
+    "stopping": ("dropped", "delivery", "message(s) for an agent that is stopping"),
+    # more (platform, kind) pairs in one interval than the tally sums up one by one
+    "*": ("dropped", "delivery", "refusal(s) of any kind (too many platforms to tell apart)"),
+}
 
 
 class AgentPlatform:
@@ -266,6 +286,9 @@ class AgentPlatform:
         self._token: Handle | None = None
         self._lock = asyncio.Lock()
         self._answering = 0  # answers of the platform's own being sent in the background
+        # refusals of other platforms' messages past the channel (an agent's refuse, no
+        # such receiver, a full mailbox): summed up per (platform, kind) per second
+        self._refusals = Tally(self._audit_refusals, interval=REFUSAL_AUDIT_INTERVAL)
 
     def __repr__(self) -> str:
         return f"<AgentPlatform {self.name} ({self.federation}) {self._state}>"
@@ -530,16 +553,19 @@ class AgentPlatform:
             return
         if agent is None:
             self.stats.unknown_receiver += 1
-            reason = f"no agent {receiver}"
+            kind, reason = "unknown-receiver", f"no agent {receiver}"
         elif not agent.running:
-            reason = f"{receiver} is stopping"
+            kind, reason = "stopping", f"{receiver} is stopping"
         else:
             self.stats.mailbox_full += 1
-            reason = f"the mailbox of {receiver} is full"
+            kind, reason = "mailbox-full", f"the mailbox of {receiver} is full"
             if self.stats.mailbox_full == 1 or self.stats.mailbox_full % 1000 == 0:
                 log.warning(
                     "platform[%s]: %s (%d dropped)", self.name, reason, self.stats.mailbox_full
                 )
+        peer = platform_of(message.sender)
+        if peer != self.name:  # another platform's (authenticated by the channel)
+            self._refusals.add((peer, kind), reason)
         if message.performative not in NEVER_ANSWERED:
             # The platform answers for the receiver: it is authoritative for its names.
             try:
@@ -548,6 +574,27 @@ class AgentPlatform:
                 log.exception("platform[%s]: could not tell %s", self.name, message.sender)
             else:
                 await self._answer(answer)
+
+    def agent_refused(self, message: ACLMessage, reason: object) -> None:
+        """Count a ``refuse`` an agent here answers ``message`` with; audit it (summed up)."""
+        self.stats.agent_refused += 1
+        peer = platform_of(message.sender)
+        if peer != self.name:
+            detail = f"{', '.join(message.receivers)}: {str(reason)[:200]}"
+            self._refusals.add((peer, "refuse"), detail)
+
+    def _audit_refusals(self, key: object, count: int, detail: str, seconds: float | None) -> None:
+        """One audit record for ``count`` refusals of one platform's messages, of one kind."""
+        peer, kind = key if isinstance(key, tuple) else ("*", "*")
+        verdict, stage, what = _REFUSAL_KINDS[kind]
+        self.audit(
+            verdict=verdict,
+            stage=stage,
+            code=kind,
+            count=count,
+            **{"from": peer},
+            reason=f"{kind}: {count} {what}, from {peer!r}{since(seconds)} (last: {detail})",
+        )
 
     async def reject(self, payload: bytes, reason: str) -> bool:
         """Account for bytes that arrived but are not a valid message (never raises).

@@ -53,6 +53,10 @@ OnExportEnded = Callable[[str, str], Awaitable[None] | None]
 OnRefused = Callable[[str, str, int, int], None]
 """``on_refused(sender, reason, batches, samples)``: whole batches dropped since last told."""
 
+OnBadSamples = Callable[[str, str, str, int], None]
+"""``on_bad_samples(sender, semantic_label, reason, samples)``: samples of authentic,
+agreed batches dropped (malformed, or rejected by the stream) since last told."""
+
 # How many payloads the import loop handles before letting other tasks run.
 _YIELD_EVERY = 64
 _MAX_REFUSED_KEYS = 32  # (sender, reason) pairs summed up between two on_refused calls: the
@@ -166,8 +170,10 @@ class ImportProxy(ProxyBase):
     and ``on_export_ended(sender, semantic_label)`` is told. Batches dropped whole
     (never agreed, not authentic, under another sender's name, malformed) are summed up per sender
     and reason and told to ``on_refused(sender, reason, batches, samples)`` once per
-    ``report_interval`` (an audit, bounded whatever the flood). Use as an async context
-    manager (or ``start`` / ``aclose``).
+    ``report_interval`` (an audit, bounded whatever the flood); samples dropped from
+    authentic batches of an agreed stream, per sender, stream and reason, to
+    ``on_bad_samples(sender, semantic_label, reason, samples)`` likewise. Use as an async
+    context manager (or ``start`` / ``aclose``).
     """
 
     def __init__(
@@ -182,6 +188,7 @@ class ImportProxy(ProxyBase):
         on_sender_gone: OnSenderGone | None = None,
         on_export_ended: OnExportEnded | None = None,
         on_refused: OnRefused | None = None,
+        on_bad_samples: OnBadSamples | None = None,
         cache: CacheSpec | None = None,
         keep_ended: bool = True,
         buffer_size: int = 1024,
@@ -198,6 +205,9 @@ class ImportProxy(ProxyBase):
         self.on_refused = on_refused
         # (sender, reason) -> [batches, samples] not yet told to on_refused (bounded keys)
         self._refused: dict[tuple[str, str], list[int]] = {}
+        self.on_bad_samples = on_bad_samples
+        # (sender, semantic label, reason) -> samples not yet told (bounded: agreed imports)
+        self._bad: dict[tuple[str, str, str], int] = {}
         self.cache = cache
         self.keep_ended = keep_ended
         self.buffer_size = buffer_size  # batches, not samples: ~256 k samples by default
@@ -421,8 +431,23 @@ class ImportProxy(ProxyBase):
         entry[0] += 1
         entry[1] += samples
 
+    def _bad_samples(self, rec: Import, reason: DropReason, n: int) -> None:
+        """Count ``n`` samples of an authentic batch dropped; sum them up for `on_bad_samples`."""
+        rec._drop_samples(reason, n)
+        if self.on_bad_samples is not None:
+            key = (rec.sender, rec.semantic_label, str(reason))
+            self._bad[key] = self._bad.get(key, 0) + n
+
     def _tell_refused(self) -> None:
         """Tell ``on_refused`` what was dropped since last time, one call per sender and reason."""
+        bad, hook_bad = self._bad, self.on_bad_samples
+        if bad and hook_bad is not None:
+            self._bad = {}
+            for (sender, label, why), samples in bad.items():
+                try:
+                    hook_bad(sender, label, why, samples)
+                except Exception:
+                    log.exception("import[%s]: on_bad_samples failed", self.platform)
         hook, refused = self.on_refused, self._refused
         if hook is None or not refused:
             return
@@ -569,7 +594,7 @@ class ImportProxy(ProxyBase):
                 append((s[0], s[1], ta))
                 ta += 1
         if len(out) != n:
-            rec._drop_samples(DropReason.MALFORMED, n - len(out))
+            self._bad_samples(rec, DropReason.MALFORMED, n - len(out))
         if not out:
             return
         source = rec.source
@@ -582,7 +607,7 @@ class ImportProxy(ProxyBase):
             source.push_batch(out, ordered=True)
         except Exception as exc:
             log.warning("import %s:%s: not injected: %s", rec.sender, rec.semantic_label, exc)
-            rec._drop_samples(DropReason.REJECTED, len(out))
+            self._bad_samples(rec, DropReason.REJECTED, len(out))
             return
         rec._last_ta = ta - 1
         rec.injected += len(out)

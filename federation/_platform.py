@@ -826,6 +826,7 @@ class FederationPlatform:
             on_open=self._import_opened,
             on_export_ended=self._export_ended,
             on_refused=self._import_refused,
+            on_bad_samples=self._import_bad_samples,
             # counters of what nobody agreed: a few labels for reading, then one bucket
             max_strays=64,
             presence=self._members_presence,
@@ -1084,6 +1085,23 @@ class FederationPlatform:
             reason=(
                 f"{reason}: {batches} batch(es), {samples} sample(s) from {sender!r} dropped "
                 f"by the import proxy ({_WHY.get(reason, 'not accepted')})"
+            ),
+        )
+
+    def _import_bad_samples(self, sender: str, label: str, reason: str, samples: int) -> None:
+        # one record per stream and reason per report interval: a flood is summed up
+        self.interface.audit.record(
+            verdict="dropped",
+            stage="import-samples",
+            code=reason,
+            count=samples,
+            stream=label,
+            **{"from": sender},
+            reason=(
+                f"{reason}: {samples} sample(s) of {sender!r}'s stream {label!r} dropped from "
+                "authentic batches by the import proxy ("
+                + ("not [value, valid time, …]" if reason == "malformed" else "refused here")
+                + ")"
             ),
         )
 

@@ -25,6 +25,7 @@ import asyncio
 import contextlib
 import dataclasses
 import json
+import logging
 import multiprocessing
 import uuid
 from collections.abc import AsyncIterator, Iterable
@@ -38,7 +39,16 @@ import pytest
 from test_faults import Pipe, killed_at_exit, until
 from test_proxies import Net, stream_key
 
-from agents import Agent, Performative, Refused, new_id, request, wire_key
+from agents import (
+    Agent,
+    MessageTemplate,
+    Performative,
+    Refused,
+    new_id,
+    on,
+    request,
+    wire_key,
+)
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
 from dyknow_core import seconds_to_ns
@@ -82,7 +92,13 @@ def _rss_kb() -> int:
 
 def _stats(p: FederationPlatform) -> dict[str, Any]:
     fed = p.federation_agent
+    gdf = p.agents.global_df
     return {
+        "platform": {k: v for k, v in dataclasses.asdict(p.agents.stats).items() if k != "senders"},
+        "df_stale": gdf.stale if gdf is not None else None,
+        "df_invalid": gdf.invalid if gdf is not None else None,
+        # the directory's warnings, as logged (their number is bounded per signer)
+        "df_warnings": list(_DF_WARNINGS),
         "audit": [dict(r) for r in p.interface.audit.records],
         "refusals": dict(fed.refusals),
         "gateway": dataclasses.asdict(p.gateway.gateway_stats),
@@ -119,8 +135,31 @@ async def _feed(p: FederationPlatform) -> None:
         await asyncio.sleep(0.05)
 
 
+_DF_WARNINGS: list[str] = []
+
+
+class _Kept(logging.Handler):
+    """Keeps the messages logged (the directory's warnings, for `_stats`)."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        _DF_WARNINGS.append(record.getMessage())
+
+
+class _Stuck(Agent):
+    """An agent whose first message holds its handler: its mailbox of 2 then fills."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name, mailbox_size=2)
+
+    @on(MessageTemplate(P.INFORM))
+    async def _hold(self, message: Any) -> None:
+        await asyncio.Event().wait()
+
+
 async def _victim(config: PlatformConfig, conn: Connection) -> None:
     pipe = Pipe(conn)
+    df_log = logging.getLogger("agents._df")
+    df_log.addHandler(_Kept(logging.WARNING))
     async with FederationPlatform(config) as p:
 
         async def serve() -> None:
@@ -135,6 +174,9 @@ async def _victim(config: PlatformConfig, conn: Connection) -> None:
                         pipe.send("asked", got)
                     except Exception as exc:
                         pipe.send("asked", f"error: {exc}")
+                elif msg[0] == "stuck":  # an agent whose mailbox fills (see `_Stuck`)
+                    await p.agents.add(_Stuck(msg[1]))
+                    pipe.send("stuck")
                 elif msg[0] == "exit":
                     return
 
