@@ -730,6 +730,9 @@ class GlobalDirectory:
             pinbox.close()
         self._watchers.clear()
         self._presence_watchers.clear()
+        # what was counted since the last summary is reported, not lost with the platform
+        self._stale_tally.flush()
+        self._invalid_log.flush()
 
     @property
     def recheck_interval(self) -> float | None:

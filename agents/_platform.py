@@ -374,6 +374,8 @@ class AgentPlatform:
             await agent.stop()
         if self.global_df is not None:
             self.global_df.close()
+        # refusals counted since the last summary are written before the audit closes
+        self._refusals.flush()
         try:
             await self.channel.aclose()
         except Exception:
