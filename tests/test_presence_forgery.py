@@ -80,6 +80,19 @@ class Echo(ProtectedEcho):
         """The content."""
         return message.content
 
+    @on_request("gated")
+    async def _gated(self, message: ACLMessage) -> Any:
+        """The content, once the file it names exists (the test says when to answer)."""
+        await asyncio.to_thread(_wait_for, Path(message.content))
+        return message.content
+
+
+def _wait_for(path: Path) -> None:
+    """Return once ``path`` exists (within `WAIT`)."""
+    deadline = time.monotonic() + WAIT
+    while not path.exists() and time.monotonic() < deadline:
+        time.sleep(0.01)
+
 
 def _transport(kind: str, config: dict[str, Any]) -> Transport:
     if kind == "zenoh":
@@ -427,8 +440,8 @@ async def test_forged_presence_on_mqtt_costs_the_member_few_key_exchanges(
                 f"{len(failed)} request(s) failed"
             )
             print("\n".join(failed[:3]))
-            # a forget acted on may lose what is in flight on the session it drops
-            assert len(failed) <= costs.forgets[MEMBER], failed
+            # presence forgets no session: nothing in flight on one is lost
+            assert costs.forgets[MEMBER] == 0 and not failed, failed
             assert costs.acted(MEMBER) <= _bound(seconds + 1.0)
             assert costs.agreed[MEMBER] <= _bound(seconds + 1.0) + 2
             assert rekeys <= 2 + 2 * int((seconds + 1.0) / INTERVAL)
@@ -440,6 +453,40 @@ async def test_forged_presence_on_mqtt_costs_the_member_few_key_exchanges(
             # and uav-b is still served once the attack stops
             got = await request(asker, f"echo@{MEMBER}", -1, ontology="demo", timeout=10)
             assert got == -1
+        finally:
+            attacker.loop_stop()
+            attacker.disconnect()
+
+
+async def test_a_forged_leave_loses_no_answer_in_flight(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    """uav-b's presence cleared by an outsider while uav-a waits for uav-b's answer.
+
+    The leave is within the budget, so it is acted on: uav-b's sessions are doubted, not
+    forgotten (forgetting them refused the answer uav-b then sealed on one: it was lost).
+    """
+    async with _mqtt_victim(tmp_path, mosquitto) as (fed, _, _, channel, pa, asker):
+        costs = Costs(channel)
+        gate = tmp_path / "answer-now"
+        sent = pa.stats.sent_remote
+        asking = asyncio.create_task(
+            request(asker, f"echo@{MEMBER}", str(gate), ontology="gated", timeout=5)
+        )
+        attacker = _mqtt_attacker(*mosquitto)
+        try:
+            # sealed on uav-a's session with uav-b: uav-b answers on it, whenever it gets it
+            await _until("the request sent", lambda: pa.stats.sent_remote > sent)
+            attacker.publish(
+                f"dyknow/{fed}/v1/alive/{MEMBER}", b"", qos=1, retain=True
+            ).wait_for_publish(5)
+            await _until("the forged leave acted on", lambda: costs.acted(MEMBER) >= 1)
+            assert pa.stats.presence_suppressed == 0
+            gate.touch()  # uav-b answers now, on the session it holds with uav-a
+            assert await asking == str(gate)
+            assert costs.forgets[MEMBER] == 0
+            # and the next request agrees a new session, answered as well
+            assert await request(asker, f"echo@{MEMBER}", 1, ontology="demo", timeout=5) == 1
         finally:
             attacker.loop_stop()
             attacker.disconnect()
