@@ -175,6 +175,46 @@ def test_a_limit_is_checked() -> None:
         DfEventLimit(detailed=-1)
 
 
+def test_a_platforms_config_sets_or_disables_the_df_event_limit() -> None:
+    """``[df_event_limit]`` in a platform's config: the fields of DfEventLimit, or off."""
+    from federation import PlatformConfig, PlatformConfigError
+
+    base = {"name": "a", "federation": "f", "key": "k", "trust": "t"}
+    base |= {"vocabulary": {}, "mapping": {}}
+    assert PlatformConfig.from_dict(base).df_event_limit.to_df_event_limit() == DfEventLimit()
+    tight = PlatformConfig.from_dict({**base, "df_event_limit": {"per_platform": 1, "total": 5}})
+    assert tight.df_event_limit.to_df_event_limit() == DfEventLimit(per_platform=1, total=5)
+    off = PlatformConfig.from_dict({**base, "df_event_limit": {"enabled": False}})
+    assert off.df_event_limit.to_df_event_limit() is None
+    with pytest.raises(PlatformConfigError, match=r"df_event_limit\.total_burst"):
+        PlatformConfig.from_dict({**base, "df_event_limit": {"total_burst": 0.5}})
+    with pytest.raises(PlatformConfigError, match=r"df_event_limit\.rate"):
+        PlatformConfig.from_dict({**base, "df_event_limit": {"rate": 1}})
+
+
+async def test_the_platforms_limit_is_its_global_directorys() -> None:
+    """`AgentPlatform(df_event_limit=…)` is what its global directory sheds by (None: none)."""
+    hub = MemoryHub()
+    keys = KeyPair.generate("uav-a")
+    trust = TrustStore("t", {"uav-a": keys.public_key})
+    tight = DfEventLimit(per_platform=1, total=5)
+    for limit in (tight, None):
+        async with (
+            asyncio.timeout(10),
+            hub.transport() as transport,
+            AgentPlatform(
+                "uav-a",
+                transport,
+                federation="t",
+                channel=InterfaceAgent(keys, trust),
+                df_event_limit=limit,
+            ) as pa,
+        ):
+            assert pa.global_df is not None
+            gate = pa.global_df.event_gate
+            assert (gate.limit if gate is not None else None) == limit
+
+
 # -- in memory: the screen in front of the subscription, the queue's overflow ------------------
 
 
