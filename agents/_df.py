@@ -689,10 +689,9 @@ class GlobalDirectory:
         # timeout, and MQTT's always is. One alive that answers later, or not in the
         # tokens yet, is taken when its presence comes (the watch above has its history).
         for platform, services in (await self._query("*", expect=self._expected)).items():
-            self._alive.add(platform)
+            self._set_alive(platform, True)
             self._replace(platform, services)
         if gate is not None:
-            gate.priority = frozenset(self._alive)
             p.spawn(self._report_shed(gate), "global-df.shed-report")
         p.spawn(self._follow_events(events), "global-df.events")
         p.spawn(self._follow_presence(presence), "global-df.presence")
@@ -760,13 +759,25 @@ class GlobalDirectory:
 
         return Subscription(inbox, remove)
 
+    def _set_alive(self, platform: str, alive: bool) -> None:
+        """Take ``platform`` for alive or not; the event gate's exemption follows at once.
+
+        A member is exempt from the shared budget from the moment its presence is taken
+        (its first snapshot under way), not only once listed: a flood of forged events
+        under other names must not shed the events it sends meanwhile.
+        """
+        if alive:
+            self._alive.add(platform)
+        else:
+            self._alive.discard(platform)
+        if self.event_gate is not None:
+            # replaced whole: the transport's thread reads it without a lock
+            self.event_gate.priority = frozenset(self._alive)
+
     def _tell(self, event: DirectoryEvent) -> None:
         for inbox in list(self._watchers):
             inbox.put(event)
         if event.op in ("platform-up", "platform-gone"):
-            if self.event_gate is not None:
-                # replaced whole: the transport's thread reads it without a lock
-                self.event_gate.priority = frozenset(self._alive)
             change = Presence(
                 self._platform.key("alive", event.platform), event.op == "platform-up"
             )
@@ -1032,7 +1043,7 @@ class GlobalDirectory:
 
     def _gone(self, platform: str) -> None:
         if platform in self._alive:
-            self._alive.discard(platform)
+            self._set_alive(platform, False)
             self._drop_entries(platform)
             self._tell(DirectoryEvent("platform-gone", platform, None))
 
@@ -1046,13 +1057,13 @@ class GlobalDirectory:
             if change.alive:
                 if platform in self._alive:
                     continue
-                self._alive.add(platform)
+                self._set_alive(platform, True)
                 confirmed = await self._fetch(platform)
                 if platform not in self._alive:
                     continue
                 if not confirmed and self._auth.authenticates:
                     # a token anyone could declare; the platform itself did not answer
-                    self._alive.discard(platform)
+                    self._set_alive(platform, False)
                     self._drop_entries(platform)
                     self._refuse(platform, "presence without a signed directory answer", "presence")
                     continue
@@ -1121,7 +1132,7 @@ class GlobalDirectory:
                     self._gone(platform)
             for platform, services in answered.items():
                 if platform not in self._alive and platform != self._platform.name:
-                    self._alive.add(platform)
+                    self._set_alive(platform, True)
                     self._replace(platform, services)
                     self._tell(DirectoryEvent("platform-up", platform, None))
 
