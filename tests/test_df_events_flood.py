@@ -267,6 +267,9 @@ async def test_an_event_lost_in_an_overflowing_queue_is_made_good_by_a_resync() 
     async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
         assert view is not None and pb.df is not None
+        # each platform's presence is taken on a task of its own: both taken, in any order
+        while view.platforms != ["uav-a", "uav-b"] or view._presence_queues:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)
         inbox = view._subs[0].inbox
         inbox._maxlen = 1  # a queue of one: the next put drops the event queued
         resyncs = view.resyncs

@@ -492,6 +492,93 @@ async def test_a_forged_leave_loses_no_answer_in_flight(
             attacker.disconnect()
 
 
+@pytest.mark.timeout(120)
+async def test_forged_tokens_cost_the_global_directory_few_queries_and_hold_up_no_member(
+    tmp_path: Path,
+) -> None:
+    """uav-c's token toggled, its directory key answered by a silent queryable; uav-b joins.
+
+    Each appearance of uav-c's token had uav-a's global directory ask uav-c a signed
+    query (three, each to its timeout: the queryable never answers), one change after the
+    other for every platform: uav-b's presence waited behind all of them. Now each
+    platform's changes are taken on a task of their own, and those costing a query within
+    uav-c's budget; the rest are counted and audited, the latest acted on.
+    """
+    fed = _federation(tmp_path)
+    port = free_tcp_port()
+    procs: list[BaseProcess] = []
+    channel = InterfaceAgent(
+        KeyPair.load(tmp_path / "keys" / f"{VICTIM}.key"), TrustStore.load(tmp_path / "trust.json")
+    )
+    prefix = f"dyknow/{fed}/v1"
+    try:
+        async with (
+            ZenohTransport(ZenohConfig.loopback(port)) as transport,
+            AgentPlatform(
+                VICTIM, transport, federation=fed, channel=channel, query_timeout=0.25
+            ) as pa,
+        ):
+            view = pa.global_df
+            assert view is not None
+            asked: Counter[str] = Counter()
+            real_query = view._query
+
+            async def query(platform: str, *args: Any, **kw: Any) -> Any:
+                asked[platform] += 1
+                return await real_query(platform, *args, **kw)
+
+            view._query = query  # type: ignore[method-assign]
+            outsider = _zenoh_outsider(port)
+            stop = threading.Event()
+
+            def toggle() -> float:
+                start = time.monotonic()
+                while not stop.is_set():
+                    token = outsider.liveliness().declare_token(f"{prefix}/alive/{ABSENT}")
+                    time.sleep(0.005)
+                    token.undeclare()
+                    time.sleep(0.005)
+                return time.monotonic() - start
+
+            held: list[Any] = []  # a query dropped is ended: kept, it waits its timeout
+            silent = outsider.declare_queryable(f"{prefix}/df/{ABSENT}", held.append)
+            attack = asyncio.create_task(asyncio.to_thread(toggle))
+            try:
+                await _until("uav-c's forged token asked about", lambda: asked[ABSENT] >= 1)
+                member_config = ZenohConfig.loopback(free_tcp_port(), connect=[port]).model_dump()
+                procs.append(
+                    await asyncio.to_thread(_start_member, "zenoh", member_config, fed, tmp_path)
+                )
+                serving = time.monotonic()
+                await _until("uav-b listed", lambda: MEMBER in view.platforms, timeout=5.0)
+                listed = time.monotonic() - serving
+                records = await _until(
+                    "uav-c's changes audited",
+                    lambda: [
+                        r
+                        for r in channel.audit.records
+                        if r.get("stage") == "df-presence-limited" and r.get("from") == ABSENT
+                    ],
+                )
+            finally:
+                stop.set()
+                seconds = await attack
+                silent.undeclare()
+                held.clear()
+                outsider.close()
+            print(
+                f"\nuav-c's token toggled for {seconds:.1f} s: uav-b listed {listed:.2f} s after "
+                f"it serves; {asked[ABSENT]} signed queries to uav-c, "
+                f"{view.presence_limited} changes not acted on one by one"
+            )
+            assert records[0]["verdict"] == "dropped" and records[0]["count"] >= 1
+            assert sum(r["count"] for r in records) <= view.presence_limited
+            # a fetch asks up to three times; one change more acted on as the latest
+            assert asked[ABSENT] <= 3 * _bound(seconds)
+    finally:
+        _kill(procs)
+
+
 @pytest.mark.timeout(180)
 async def test_a_real_restart_recovers_as_fast_while_its_name_is_toggled(tmp_path: Path) -> None:
     """uav-b started, then killed and started again twice: calm, then its token toggled.
