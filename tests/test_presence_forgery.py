@@ -5,8 +5,9 @@ uav-c is trusted but never runs. The attacker has no key of the federation: a pl
 zenoh session (peer mode on loopback, where anyone may declare a liveliness token under
 any name) or a plain MQTT client (a broker without the generated ACL, where anyone may
 publish a platform's retained presence). It toggles a trusted name's presence many times
-a second. Each change the Interface Agent acted on would forget or doubt that peer's
-sessions (one key exchange each, with the real peer when it runs) and lift its
+a second. Each change the Interface Agent acted on would doubt that peer's sessions
+(one key exchange each, with the real peer when it runs; before, a leave forgot them,
+losing what was in flight on them) and lift its
 re-handshake limiter (one more key exchange per forged envelope on an unknown session).
 Per peer, presence is now acted on within a budget (`PRESENCE_BURST` changes at once,
 then `PRESENCE_RATE` per ``rehandshake_interval``) and lifts the limiter at most once per
