@@ -45,7 +45,7 @@ from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventGate, DfEventLimit
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
 from ._exceptions import AgentError, ServiceError, TransportError
 from ._gate import shed_counts
-from ._interface import PRESENCE_BURST, PRESENCE_RATE
+from ._presence import PRESENCE_BURST, PRESENCE_RATE, presence_bucket
 from ._protocols import (
     DEFAULT_TIMEOUT,
     Publisher,
@@ -1078,7 +1078,6 @@ class GlobalDirectory:
                     )
                 except AgentError:
                     return  # the platform is closing: nothing to follow for
-
             if len(queue) >= _PRESENCE_QUEUED:
                 # a toggling faster than the changes are handled: only the latest can matter
                 self._presence_limit(platform, len(queue))
@@ -1119,10 +1118,8 @@ class GlobalDirectory:
         bucket = self._presence_buckets.get(platform)
         if bucket is None:
             interval = getattr(self._platform.channel, "rehandshake_interval", 5.0)
-            rate = PRESENCE_RATE / max(interval, 1e-3)
-            bucket = self._presence_buckets[platform] = TokenBucket(
-                rate, PRESENCE_BURST, time.monotonic()
-            )
+            bucket = presence_bucket(interval, time.monotonic())
+            self._presence_buckets[platform] = bucket
         return bucket
 
     async def _presence_over_budget(

@@ -52,6 +52,7 @@ from ._exceptions import (
 )
 from ._gate import shed_counts
 from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
+from ._presence import PRESENCE_BURST, PRESENCE_RATE, presence_bucket
 from ._protocols import Refuse, on_query
 from ._security import (
     Clock,
@@ -101,10 +102,6 @@ RATE_LIMIT_REASON = "rate limit exceeded"
 WATCH_RATE = 20.0
 """Watch requests per second (bursts as many) handed to the event loop; the rest are shed."""
 
-PRESENCE_BURST = 4
-"""Presence changes of one peer acted on at once (a restart is two: gone, then back)."""
-PRESENCE_RATE = 2.0
-"""Presence changes of one peer acted on per ``rehandshake_interval`` past its burst."""
 AUDIT_HOLD = 1.0
 """Seconds an unheard audit batch is kept for a subscriber the transport tells of late."""
 _AUDIT_HELD = 16  # unheard audit batches kept at most: memory, if ``audit_interval`` is short
@@ -1753,8 +1750,7 @@ class InterfaceAgent:
         now = self._monotonic()
         bucket = self._presence_buckets.get(peer)
         if bucket is None:
-            rate = PRESENCE_RATE / max(self.rehandshake_interval, 1e-3)
-            bucket = self._presence_buckets[peer] = TokenBucket(rate, PRESENCE_BURST, now)
+            bucket = self._presence_buckets[peer] = presence_bucket(self.rehandshake_interval, now)
         later = self._presence_later.pop(peer, None)
         if bucket.take(now):
             if later is not None:

@@ -50,7 +50,7 @@ from agents import (
     request,
     wire_key,
 )
-from agents._interface import PRESENCE_BURST, PRESENCE_RATE
+from agents._presence import PRESENCE_BURST, PRESENCE_RATE
 from agents.keys import gen_keys, trust_keys
 from agents.transports import (
     MemoryHub,
