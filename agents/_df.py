@@ -29,6 +29,7 @@ import logging
 import math
 import threading
 import time
+from collections import deque
 from collections.abc import Awaitable, Callable, Iterable
 from enum import StrEnum
 from typing import TYPE_CHECKING, Annotated, Any, NamedTuple
@@ -42,8 +43,9 @@ from ._aio import Pending
 from ._bucket import TokenBucket
 from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventGate, DfEventLimit
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
-from ._exceptions import ServiceError, TransportError
+from ._exceptions import AgentError, ServiceError, TransportError
 from ._gate import shed_counts
+from ._presence import PRESENCE_BURST, PRESENCE_RATE, presence_bucket
 from ._protocols import (
     DEFAULT_TIMEOUT,
     Publisher,
@@ -609,6 +611,7 @@ _STALE_KEYS = 64  # platforms whose stale events are summed up apart, per interv
 _STALE_UNREAD = "not newer than its last accepted one (dropped before its signature check)"
 INVALID_LOG_INTERVAL = 30.0
 """Seconds between two log lines about one signer's invalid directory statements."""
+_PRESENCE_QUEUED = 64  # raw presence changes of one platform kept while one is handled
 
 
 class GlobalDirectory:
@@ -628,7 +631,11 @@ class GlobalDirectory:
     longer answers a fresh signed query; and every ``recheck_interval`` seconds the
     members are asked again (a member that answers none twice in a row is gone: on zenoh
     a forged token would otherwise keep a dead platform listed). What is refused is
-    counted (``refused``) and audited through the channel, within its budget.
+    counted (``refused``) and audited through the channel, within its budget. Each
+    platform's presence changes are taken on a task of its own, those that cost a signed
+    query within a per-platform budget (`PRESENCE_BURST`, then `PRESENCE_RATE` per the
+    channel's ``rehandshake_interval``); the rest are counted (``presence_limited``),
+    audited (``df-presence-limited``) and stand for the latest, acted on later.
 
     With a trust file, events are screened on the transport's thread before any signature
     check (`DfEventGate`, ``event_limit``; None: not screened): a flood of forged ones is
@@ -683,6 +690,14 @@ class GlobalDirectory:
         # refused or unanswered resync doubles, up to _RESYNC_MAX_WAIT s, while it is alive)
         self._resync_again: set[str] = set()
         self._resync_last: dict[str, float] = {}
+        # raw presence changes, per trusted platform, waiting for its own task: one that is
+        # slow to answer (or a forged name that never does) holds up no other platform's
+        self._presence_queues: dict[str, deque[bool]] = {}
+        # per trusted platform, the presence changes that cost a signed query acted on:
+        # PRESENCE_BURST at once, then PRESENCE_RATE per the channel's rehandshake_interval
+        self._presence_buckets: dict[str, TokenBucket] = {}
+        self.presence_limited = 0  # presence changes not acted on one by one (over budget)
+        self._presence_ignored: dict[str, int] = {}  # counted, not yet in an audit record
         self.version = 0
         """Changes with every change of `services`: a view of them is current while it is equal."""
 
@@ -707,10 +722,9 @@ class GlobalDirectory:
         # timeout, and MQTT's always is. One alive that answers later, or not in the
         # tokens yet, is taken when its presence comes (the watch above has its history).
         for platform, services in (await self._query("*", expect=self._expected)).items():
-            self._alive.add(platform)
+            self._set_alive(platform, True)
             self._replace(platform, services)
         if gate is not None:
-            gate.priority = frozenset(self._alive)
             p.spawn(self._report_shed(gate), "global-df.shed-report")
         p.spawn(self._follow_events(events), "global-df.events")
         p.spawn(self._follow_presence(presence), "global-df.presence")
@@ -781,13 +795,25 @@ class GlobalDirectory:
 
         return Subscription(inbox, remove)
 
+    def _set_alive(self, platform: str, alive: bool) -> None:
+        """Take ``platform`` for alive or not; the event gate's exemption follows at once.
+
+        A member is exempt from the shared budget from the moment its presence is taken
+        (its first snapshot under way), not only once listed: a flood of forged events
+        under other names must not shed the events it sends meanwhile.
+        """
+        if alive:
+            self._alive.add(platform)
+        else:
+            self._alive.discard(platform)
+        if self.event_gate is not None:
+            # replaced whole: the transport's thread reads it without a lock
+            self.event_gate.priority = frozenset(self._alive)
+
     def _tell(self, event: DirectoryEvent) -> None:
         for inbox in list(self._watchers):
             inbox.put(event)
         if event.op in ("platform-up", "platform-gone"):
-            if self.event_gate is not None:
-                # replaced whole: the transport's thread reads it without a lock
-                self.event_gate.priority = frozenset(self._alive)
             change = Presence(
                 self._platform.key("alive", event.platform), event.op == "platform-up"
             )
@@ -1082,41 +1108,134 @@ class GlobalDirectory:
 
     def _gone(self, platform: str) -> None:
         if platform in self._alive:
-            self._alive.discard(platform)
+            self._set_alive(platform, False)
             self._drop_entries(platform)
             self._tell(DirectoryEvent("platform-gone", platform, None))
 
     async def _follow_presence(self, sub: Subscription[Presence]) -> None:
-        forgeable = getattr(self._platform.transport, "forgeable_presence", False)
+        """Hand each raw presence change of a trusted platform to that platform's own task."""
         async for change in sub:
             platform = change.key.rpartition("/")[2]
             if not self._auth.trusted(platform):
                 self._refuse(platform, "presence of a platform not in the trust file", "presence")
                 continue
-            if change.alive:
-                if platform in self._alive:
-                    continue
-                self._alive.add(platform)
-                confirmed = await self._fetch(platform)
-                if platform not in self._alive:
-                    continue
-                if not confirmed and self._auth.authenticates:
-                    # a token anyone could declare; the platform itself did not answer
-                    self._alive.discard(platform)
-                    self._drop_entries(platform)
-                    self._refuse(platform, "presence without a signed directory answer", "presence")
-                    continue
-                self._tell(DirectoryEvent("platform-up", platform, None))
-            elif platform in self._alive:
-                if forgeable and self._auth.authenticates and await self._answers(platform):
-                    self._refuse(
-                        platform,
-                        "presence cleared without a signed leave while the platform "
-                        "still answers: ignored",
-                        "presence",
+            queue = self._presence_queues.get(platform)
+            if queue is None:
+                queue = self._presence_queues[platform] = deque()
+                try:
+                    self._platform.spawn(
+                        self._follow_platform(platform, queue), f"global-df.presence[{platform}]"
                     )
-                    continue
-                self._gone(platform)
+                except AgentError:
+                    return  # the platform is closing: nothing to follow for
+            if len(queue) >= _PRESENCE_QUEUED:
+                # a toggling faster than the changes are handled: only the latest can matter
+                self._presence_limit(platform, len(queue))
+                queue.clear()
+            queue.append(change.alive)
+
+    async def _follow_platform(self, platform: str, queue: deque[bool]) -> None:
+        """Act on ``platform``'s presence changes in order, those that cost a query within budget.
+
+        Presence is not authenticated, and taking one that appears (or, where presence can
+        be forged, one that goes) costs a signed query: per platform, `PRESENCE_BURST` of
+        those at once, then `PRESENCE_RATE` per the channel's ``rehandshake_interval``. A
+        change over the budget, and those that come until the budget allows, are counted
+        (``presence_limited``), audited in one record, and stand for the latest of them,
+        acted on then.
+        """
+        try:
+            while queue:
+                alive = queue.popleft()
+                if self._presence_costs(platform, alive):
+                    bucket = self._presence_bucket(platform)
+                    if not bucket.take(time.monotonic()):
+                        alive = await self._presence_over_budget(platform, alive, queue, bucket)
+                await self._on_presence(platform, alive)
+        finally:
+            if self._presence_queues.get(platform) is queue:
+                del self._presence_queues[platform]
+
+    def _presence_costs(self, platform: str, alive: bool) -> bool:
+        """Whether acting on this presence change of ``platform`` asks it a signed query."""
+        if alive:
+            return platform not in self._alive
+        forgeable = getattr(self._platform.transport, "forgeable_presence", False)
+        return forgeable and self._auth.authenticates and platform in self._alive
+
+    def _presence_bucket(self, platform: str) -> TokenBucket:
+        """``platform``'s budget of presence changes acted on (one per trusted name)."""
+        bucket = self._presence_buckets.get(platform)
+        if bucket is None:
+            interval = getattr(self._platform.channel, "rehandshake_interval", 5.0)
+            bucket = presence_bucket(interval, time.monotonic())
+            self._presence_buckets[platform] = bucket
+        return bucket
+
+    async def _presence_over_budget(
+        self, platform: str, alive: bool, queue: deque[bool], bucket: TokenBucket
+    ) -> bool:
+        """Wait for ``platform``'s budget; the latest change by then (counted and audited)."""
+        ignored = 1
+        while not bucket.take(time.monotonic()):
+            await asyncio.sleep(max((1.0 - bucket.tokens) / bucket.rate, 0.05))
+            if queue:
+                ignored += len(queue)
+                alive = queue[-1]
+                queue.clear()
+        self._presence_limit(platform, ignored, alive, audit=True)
+        return alive
+
+    def _presence_limit(
+        self, platform: str, n: int, alive: bool | None = None, *, audit: bool = False
+    ) -> None:
+        """Count ``n`` presence changes of ``platform`` not acted on; audit what was summed."""
+        self.presence_limited += n
+        total = self._presence_ignored.pop(platform, 0) + n
+        if not audit:
+            self._presence_ignored[platform] = total
+            return
+        interval = getattr(self._platform.channel, "rehandshake_interval", 5.0)
+        self._platform.audit(
+            verdict="dropped",
+            stage="df-presence-limited",
+            count=total,
+            reason=(
+                f"presence changes of {platform!r} not acted on one by one: {total} over "
+                f"the budget of {PRESENCE_BURST} at once and {PRESENCE_RATE:g} per "
+                f"{interval:g} s (presence is not authenticated; each costs a signed "
+                f"query); acted on the latest ({'alive' if alive else 'gone'}) instead"
+            ),
+            **{"from": platform},
+        )
+
+    async def _on_presence(self, platform: str, alive: bool) -> None:
+        """Act on one raw presence change of trusted ``platform``."""
+        forgeable = getattr(self._platform.transport, "forgeable_presence", False)
+        if alive:
+            if platform in self._alive:
+                return
+            self._set_alive(platform, True)
+            confirmed = await self._fetch(platform)
+            if platform not in self._alive:
+                return
+            if not confirmed and self._auth.authenticates:
+                # a token anyone could declare; the platform itself did not answer
+                self._set_alive(platform, False)
+                self._drop_entries(platform)
+                self._refuse(platform, "presence without a signed directory answer", "presence")
+                return
+            self._tell(DirectoryEvent("platform-up", platform, None))
+        elif platform in self._alive:
+            if forgeable and self._auth.authenticates and await self._answers(platform):
+                self._refuse(
+                    platform,
+                    "presence cleared without a signed leave while the platform "
+                    "still answers: ignored",
+                    "presence",
+                )
+                return
+            self._gone(platform)
 
     async def _recheck_sleep(self, wait: float | None) -> None:
         """Sleep ``wait`` s (None: for ever), or until the recheck interval is changed."""
@@ -1171,7 +1290,7 @@ class GlobalDirectory:
                     self._gone(platform)
             for platform, services in answered.items():
                 if platform not in self._alive and platform != self._platform.name:
-                    self._alive.add(platform)
+                    self._set_alive(platform, True)
                     self._replace(platform, services)
                     self._tell(DirectoryEvent("platform-up", platform, None))
 

@@ -52,6 +52,7 @@ from ._exceptions import (
 )
 from ._gate import shed_counts
 from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
+from ._presence import PRESENCE_BURST, PRESENCE_RATE, presence_bucket
 from ._protocols import Refuse, on_query
 from ._security import (
     Clock,
@@ -101,10 +102,6 @@ RATE_LIMIT_REASON = "rate limit exceeded"
 WATCH_RATE = 20.0
 """Watch requests per second (bursts as many) handed to the event loop; the rest are shed."""
 
-PRESENCE_BURST = 4
-"""Presence changes of one peer acted on at once (a restart is two: gone, then back)."""
-PRESENCE_RATE = 2.0
-"""Presence changes of one peer acted on per ``rehandshake_interval`` past its burst."""
 AUDIT_HOLD = 1.0
 """Seconds an unheard audit batch is kept for a subscriber the transport tells of late."""
 _AUDIT_HELD = 16  # unheard audit batches kept at most: memory, if ``audit_interval`` is short
@@ -503,7 +500,7 @@ class InterfaceAgent:
     thread before their signature check (``agents._kxgate``). A trusted peer sealing on a
     session this platform lost makes it agree a new one at most once per
     ``rehandshake_interval`` seconds. Presence is not authenticated: a peer's presence
-    changes are acted on (its sessions forgotten or doubted) within a budget,
+    changes are acted on (its sessions doubted, never forgotten) within a budget,
     `PRESENCE_BURST` at once, then `PRESENCE_RATE` per ``rehandshake_interval``; the rest
     are counted (``stats.presence_suppressed``) and audited (``presence-limited``).
 
@@ -1705,42 +1702,34 @@ class InterfaceAgent:
             log.warning("interface[%s]: could not refuse %s: %s", self._me, message.sender, exc)
 
     async def _watch(self, presence: Subscription[Presence]) -> None:
-        """Forget a platform's sessions when it leaves, or reappears without having left.
+        """Doubt a platform's sessions when its presence changes: it left, came or came back.
 
-        On its token's first sight (or its return after a leave), send on none of them
-        until it sends on one: they may be a previous process's. Anyone may write a
-        presence (`_presence_admits`): changes over a peer's budget are counted and
-        audited, and stand for one doubt of its sessions once the budget allows.
+        Send on none of them until it sends on one: they may be a previous process's.
+        Nothing is forgotten, nor a pending key exchange cancelled, as anyone may write a
+        presence: a forged leave must not lose the answer in flight on a session (a real
+        leave shows when the next key exchange finds nobody). Changes over a peer's budget
+        (`_presence_admits`) are counted and audited, and stand for one doubt of its
+        sessions once the budget allows.
         """
         host = self._require_host()
         async for change in presence:
             peer = change.key.rpartition("/")[2]
             if peer == host.name or peer not in self.trust:
-                continue  # no session with an untrusted name to forget (the directory audits it)
-            acted = self._presence_admits(host, peer)
-            if acted:
-                if not change.alive or peer in self._alive:
-                    self.sessions.forget(peer)
-                else:
-                    # A first sight forgets nothing: a platform's token can reach us after
-                    # the key exchange of its first request (zenoh on a loaded machine), and
-                    # that request, or our answer to it, is sealed on the session. But the
-                    # session may be one we agreed with a previous process of that platform,
-                    # whose token we never saw (the tokens alive when we started are not
-                    # reported) nor its end: the new process cannot open it and our next
-                    # request would be lost. So none is sent on until the peer sends on one;
-                    # the next message agrees a new session first.
-                    self._doubt(peer)
+                continue  # no session with an untrusted name to doubt (the directory audits it)
+            if self._presence_admits(host, peer):
+                # Doubt, not forget: a request or an answer may be in flight on a session,
+                # sealed before a leave (forged, or the peer's token late at a first sight:
+                # zenoh on a loaded machine). But the sessions may be a previous process's,
+                # whose token we never saw (the tokens alive when we started are not
+                # reported) nor its end, which the new process cannot open. So none is sent
+                # on until the peer sends on one; the next message agrees a new session.
+                self._doubt(peer)
                 self._lift_rehandshake_limit(peer)
             if change.alive:
                 self._alive.add(peer)
             else:
                 self._alive.discard(peer)
             self._kx_priority()
-            if acted and not change.alive:
-                # a request still pending when a platform reappears may be answered by the
-                # new process (it serves kx before its token shows): keep it then
-                self.handshake.cancel(peer)
 
     def _doubt(self, peer: str) -> None:
         """Seal for ``peer`` on none of its sessions until it sends on one (`SessionTable.doubt`).
@@ -1764,8 +1753,7 @@ class InterfaceAgent:
         now = self._monotonic()
         bucket = self._presence_buckets.get(peer)
         if bucket is None:
-            rate = PRESENCE_RATE / max(self.rehandshake_interval, 1e-3)
-            bucket = self._presence_buckets[peer] = TokenBucket(rate, PRESENCE_BURST, now)
+            bucket = self._presence_buckets[peer] = presence_bucket(self.rehandshake_interval, now)
         later = self._presence_later.pop(peer, None)
         if bucket.take(now):
             if later is not None:
@@ -1797,8 +1785,9 @@ class InterfaceAgent:
     def _lift_rehandshake_limit(self, peer: str) -> None:
         """Let ``peer``'s next re-handshake cue act at once: at most once per interval.
 
-        After a presence change the peer may seal on a session just forgotten here; an
-        outsider toggling the presence must not make `rehandshake` run more often.
+        After a presence change the peer may be a new process, sealing on a session
+        unknown here; an outsider toggling the presence must not make `rehandshake` run
+        more often.
         """
         now = time.monotonic()  # the limiter's clock (`rehandshake`)
         if now - self._presence_lifted.get(peer, -math.inf) >= self.rehandshake_interval:

@@ -24,6 +24,7 @@ import orjson
 
 from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, name_of, platform_of
 from ._agent import NEVER_ANSWERED, Agent
+from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventLimit
 from ._directory_auth import DirectoryAuth
 from ._exceptions import AgentError, MessageError
 from ._tally import Tally, since
@@ -238,6 +239,8 @@ class AgentPlatform:
     global directory view, then declares the liveliness token
     ``dyknow/<federation>/v1/alive/<name>``; leaving undoes all of it and stops every
     agent. The transport is the caller's: open it before, close it after.
+    ``df_event_limit`` is the global directory's shedding of directory events
+    (`DfEventLimit`; None: none).
     """
 
     def __init__(
@@ -250,6 +253,7 @@ class AgentPlatform:
         directory: bool = True,
         global_directory: bool = True,
         query_timeout: float = 1.0,
+        df_event_limit: DfEventLimit | None = DEFAULT_DF_EVENT_LIMIT,
     ) -> None:
         for what, value in (("platform", name), ("federation", federation)):
             if not _NAME.fullmatch(value):
@@ -259,6 +263,8 @@ class AgentPlatform:
         self.transport = transport
         self.channel: RemoteChannel = channel if channel is not None else PlainChannel()
         self.query_timeout = query_timeout
+        # the global directory's shedding of df-events (`GlobalDirectory`; None: none)
+        self.df_event_limit = df_event_limit
         # a channel that batches a burst can take a message into the current batch
         # without a coroutine (`InterfaceAgent.join_batch`)
         self._join_batch: Callable[[str, ACLMessage], bool] | None = getattr(
@@ -335,7 +341,9 @@ class AgentPlatform:
         if self._want_df:
             self.df = await self.add(DirectoryFacilitator())
         if self._want_global:
-            self.global_df = GlobalDirectory(self, query_timeout=self.query_timeout)
+            self.global_df = GlobalDirectory(
+                self, query_timeout=self.query_timeout, event_limit=self.df_event_limit
+            )
             await self.global_df.start()
         # Last: when others see us alive, our inbox and directory already answer.
         self._token = await self.transport.declare_token(self.key("alive"))

@@ -35,7 +35,19 @@ from agents._df import GlobalDirectory
 from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
-from bench.kxflood import ABSENT, MEMBER, START, VICTIM, WAIT, Federation, recv
+from bench._flood import (
+    ABSENT,
+    MEMBER,
+    START,
+    VICTIM,
+    WAIT,
+    FloodFederation,
+    flood_at,
+    quick_run,
+    recv,
+    summed_up,
+    zenoh_client,
+)
 
 CHANGES = 4  # the member's registers (and as many deregisters) during the flood
 MIN_FLOOD = 4.0  # seconds the flood lasts at least
@@ -102,28 +114,18 @@ async def _node(
 
 def attacker_main(endpoint: str, fed: str, payloads: list[tuple[str, bytes]], conn: Any) -> None:
     """Publish ``payloads`` (key, payload) round and round at ~10 000/s until told to stop."""
-    import zenoh
-
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"client"')
-    cfg.insert_json5("connect/endpoints", orjson.dumps([endpoint]).decode())
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(cfg)
+    session = zenoh_client(endpoint)
     try:
         publishers = {key: session.declare_publisher(key) for key, _ in payloads}
         conn.send("ready")
         conn.recv()  # go
-        sent, start, n = 0, time.monotonic(), len(payloads)
-        rate, chunk = 10_000.0, 100  # a chunk every 10 ms
-        while time.monotonic() - start < 25.0:
-            if conn.poll():
-                break  # told to stop
-            for _ in range(chunk):
-                key, payload = payloads[sent % n]
-                publishers[key].put(payload)
-                sent += 1
-            time.sleep(max(0.0, sent / rate - (time.monotonic() - start)))
-        conn.send((sent, time.monotonic() - start))
+        n = len(payloads)
+
+        def send(i: int) -> None:
+            key, payload = payloads[i % n]
+            publishers[key].put(payload)
+
+        flood_at(conn, send)
     finally:
         session.close()
 
@@ -172,33 +174,17 @@ def event_payloads(fed: str) -> list[tuple[str, bytes]]:
     return [out[i] for i in order]
 
 
-class DfFederation(Federation):
+class DfFederation(FloodFederation):
     """The victim, the member and the attacker of a directory-event flood."""
 
-    def node(self, role: str, listen: int, connect: list[int], *, shed: bool = True) -> Connection:
-        """Start platform ``role``; its pipe (it says "ready" when it is)."""
-        here, there = self.ctx.Pipe()
-        config = ZenohConfig.loopback(listen, connect=connect).model_dump()
-        proc = self.ctx.Process(
-            target=node_main,
-            args=(role, config, self.fed, str(self.keydir), str(self.trust_file), there, shed),
-            name=f"df-{role}",
-        )
-        proc.start()
-        self.procs.append(proc)
-        return here
+    prefix = "df"
+    node_main = staticmethod(node_main)
 
     def flooder(self) -> Connection:
         """Start the attacker (it says "ready", then floods on "go" until "stop")."""
-        here, there = self.ctx.Pipe()
-        proc = self.ctx.Process(
-            target=attacker_main,
-            args=(f"tcp/127.0.0.1:{self.port}", self.fed, event_payloads(self.fed), there),
-            name="df-attacker",
-        )
-        proc.start()
-        self.procs.append(proc)
-        return here
+        endpoint = f"tcp/127.0.0.1:{self.port}"
+        payloads = event_payloads(self.fed)
+        return self.spawn(attacker_main, (endpoint, self.fed, payloads), "df-attacker")
 
 
 def _until_seen(victim: Connection, name: str, listed: bool) -> float:
@@ -282,34 +268,21 @@ def flood(tmp: Path, *, shed: bool = True) -> FloodRun:
         victim.send(("report",))
         after = recv(victim, "the victim's report")
         cpu = after["cpu"] - before["cpu"]
-        report = summed_up(victim) if shed else after
+        report = summed_up(victim, "events_shed", "df-events-shed", ("report",)) if shed else after
         return FloodRun(seen, sent, seconds, cpu, before, report)
     finally:
-        for pipe in pipes:
-            with contextlib.suppress(OSError):
-                pipe.send(("stop",))
-        f.close([])
-
-
-def summed_up(victim: Connection) -> dict[str, Any]:
-    """The victim's report once its ``df-events-shed`` summaries add up to what it shed."""
-    deadline = time.monotonic() + WAIT
-    while True:
-        victim.send(("report",))
-        report: dict[str, Any] = recv(victim, "the victim's report")
-        stages = [r for r in report["records"] if r.get("stage") == "df-events-shed"]
-        if sum(r["count"] for r in stages) == report["events_shed"] or time.monotonic() > deadline:
-            return report
-        time.sleep(0.1)
+        f.close(pipes, ("stop",))
 
 
 def run() -> None:
-    """The flood against a victim that sheds, then against one that does not."""
+    """The flood against a victim that sheds, then against one that does not (not --quick)."""
     runs = {}
-    for shed in (True, False):
+    for shed in (True,) if quick_run(__doc__) else (True, False):
         with tempfile.TemporaryDirectory() as tmp:
             runs[shed] = flood(Path(tmp), shed=shed)
             print(runs[shed].lines("df-events-flood" if shed else "df-events-flood-unshed"))
+    if False not in runs:
+        return
     ours, unshed = runs[True].cpu_per_event, runs[False].cpu_per_event
     print(
         f"BENCH df-events-flood-cpu ours={ours:.1f} unshed={unshed:.1f} "

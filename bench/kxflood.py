@@ -18,12 +18,10 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
-import multiprocessing
 import os
 import statistics
 import tempfile
 import time
-import uuid
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -43,7 +41,6 @@ from agents import (
 from agents._interface import InterfaceAgent
 from agents._kxgate import KxGate, KxLimit
 from agents._security import Handshake, KeyPair, TrustStore
-from agents.keys import gen_keys, trust_keys
 from agents.transports import (
     Handle,
     QueryFilter,
@@ -52,13 +49,24 @@ from agents.transports import (
     ZenohTransport,
     free_tcp_port,
 )
+from bench._flood import (
+    ABSENT,
+    FLOOD_SECONDS,
+    MEMBER,
+    START,
+    VICTIM,
+    WAIT,
+    FloodFederation,
+    flood_at,
+    quick_run,
+    recv,
+    summed_up,
+    zenoh_client,
+)
 
-VICTIM, MEMBER, ABSENT = "uav-v", "uav-m", "uav-q"  # uav-q: trusted, never runs
 ECHO = f"echo@{VICTIM}"
-START = 30.0  # a spawned interpreter imports zenoh and pydantic: seconds when loaded
-WAIT = 15.0  # the bound on any other wait
 PACE_N, PACE_PERIOD = 150, 0.02  # the member's requests: 50/s for 3 s, calm then flooded
-FLOOD_RATE, FLOOD_MAX, FLOOD_SECONDS = 10_000.0, 250_000, 25.0
+FLOOD_MAX = 250_000  # requests the attacker sends at most
 
 
 def p99(ms: list[float]) -> float:
@@ -70,29 +78,6 @@ def p99(ms: list[float]) -> float:
 def figures(ms: list[float]) -> str:
     """p50 and p99 of round trips, for printing."""
     return f"p50 {statistics.median(ms):.2f} ms, p99 {p99(ms):.2f} ms (n={len(ms)})"
-
-
-def recv(conn: Connection, what: str, timeout: float = WAIT) -> Any:
-    """The next message on ``conn``; fails naming ``what`` after ``timeout`` s."""
-    if not conn.poll(timeout):
-        raise AssertionError(f"timed out waiting for {what}")
-    return conn.recv()
-
-
-def summed_up(victim: Connection, counter: str, stage: str) -> dict[str, Any]:
-    """The victim's report once its ``stage`` audit summaries add up to its ``counter``.
-
-    The victim sums a flood up once a second: its last summary comes up to a second
-    after the flood. Bounded by WAIT; the report as it is then, whatever it says.
-    """
-    deadline = time.monotonic() + WAIT
-    while True:
-        victim.send("report")
-        report: dict[str, Any] = recv(victim, "the victim's report")
-        summed = sum(r["count"] for r in report["records"] if r.get("stage") == stage)
-        if summed == report[counter] or time.monotonic() > deadline:
-            return report
-        time.sleep(0.1)  # the summaries are written on the victim's clock: nothing to await
 
 
 # -- the victim and the member (our library) ---------------------------------------------------
@@ -224,34 +209,21 @@ async def pace(asker: Agent, n: int = PACE_N) -> list[float]:
 
 def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> None:
     """Send ``payloads`` round and round to ``key`` at FLOOD_RATE until told to stop."""
-    import zenoh
-
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", '"client"')
-    cfg.insert_json5("connect/endpoints", orjson.dumps([endpoint]).decode())
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(cfg)
+    session = zenoh_client(endpoint)
     try:
         conn.send("ready")
         conn.recv()  # go
-        kind = "put" if "/acl/" in key else "get"
-        publisher = session.declare_publisher(key) if kind == "put" else None
-
-        sent, start, n = 0, time.monotonic(), len(payloads)
-        chunk = int(FLOOD_RATE / 100)  # every 10 ms
-        while sent < FLOOD_MAX and time.monotonic() - start < FLOOD_SECONDS:
-            if conn.poll():
-                break  # told to stop
-            for _ in range(chunk):
-                payload = payloads[sent % n]
-                if publisher is not None:
-                    publisher.put(payload)
-                else:
-                    # zenoh's default handler: a Python callback would cost ~10x per query
-                    session.get(key, payload=payload, timeout=1.0)
-                sent += 1
-            time.sleep(max(0.0, sent / FLOOD_RATE - (time.monotonic() - start)))
-        conn.send((sent, time.monotonic() - start))
+        n = len(payloads)
+        if "/acl/" in key:
+            publisher = session.declare_publisher(key)
+            flood_at(conn, lambda i: publisher.put(payloads[i % n]), most=FLOOD_MAX)
+        else:
+            # zenoh's default handler: a Python callback would cost ~10x per query
+            flood_at(
+                conn,
+                lambda i: session.get(key, payload=payloads[i % n], timeout=1.0),
+                most=FLOOD_MAX,
+            )
     finally:
         session.close()
 
@@ -300,57 +272,17 @@ def acl_payloads(fed: str) -> list[bytes]:
     ]
 
 
-class Federation:
-    """The victim, the member and the attacker as spawned processes, with their pipes."""
+class Federation(FloodFederation):
+    """The victim, the member and the attacker of a key-exchange flood, with their pipes."""
 
-    def __init__(self, tmp_path: Path) -> None:
-        self.fed = f"kx-{uuid.uuid4().hex[:8]}"
-        self.keydir, self.trust_file = tmp_path / "keys", tmp_path / "trust.json"
-        trust_keys(
-            self.trust_file,
-            [gen_keys(n, self.keydir)[2] for n in (VICTIM, MEMBER, ABSENT)],
-            federation=self.fed,
-        )
-        self.trust = TrustStore.load(self.trust_file)
-        self.port = free_tcp_port()
-        self.ctx = multiprocessing.get_context("spawn")
-        self.procs: list[Any] = []
-
-    def node(self, role: str, listen: int, connect: list[int], *, shed: bool = True) -> Connection:
-        """Start platform ``role``; its pipe (it says "ready" when it is)."""
-        here, there = self.ctx.Pipe()
-        config = ZenohConfig.loopback(listen, connect=connect).model_dump()
-        proc = self.ctx.Process(
-            target=node_main,
-            args=(role, config, self.fed, str(self.keydir), str(self.trust_file), there, shed),
-            name=f"kx-{role}",
-        )
-        proc.start()
-        self.procs.append(proc)
-        return here
+    prefix = "kx"
+    node_main = staticmethod(node_main)
 
     def attacker(self, what: str, payloads: list[bytes]) -> Connection:
         """Start the attacker on ``what`` (kx or acl) of the victim."""
-        here, there = self.ctx.Pipe()
-        proc = self.ctx.Process(
-            target=attacker_main,
-            args=(f"tcp/127.0.0.1:{self.port}", wire_key(self.fed, what, VICTIM), payloads, there),
-            name=f"kx-attacker-{what}",
-        )
-        proc.start()
-        self.procs.append(proc)
-        return here
-
-    def close(self, pipes: list[Connection]) -> None:
-        """Ask every child to stop, then make sure."""
-        for pipe in pipes:
-            with contextlib.suppress(OSError):
-                pipe.send("stop")
-        for proc in self.procs:
-            proc.join(timeout=15)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(timeout=5)
+        endpoint = f"tcp/127.0.0.1:{self.port}"
+        key = wire_key(self.fed, what, VICTIM)
+        return self.spawn(attacker_main, (endpoint, key, payloads), f"kx-attacker-{what}")
 
 
 @dataclass
@@ -429,8 +361,9 @@ def flood(tmp: Path, *, shed: bool = True, calm: bool = True) -> FloodRun:
 
 
 def run() -> None:
-    """The flood against a victim that sheds, then against one that does not."""
-    for shed, name in ((True, "kx-flood-member-p99"), (False, "kx-flood-member-p99-unshed")):
+    """The flood against a victim that sheds, then against one that does not (not --quick)."""
+    runs = ((True, "kx-flood-member-p99"), (False, "kx-flood-member-p99-unshed"))
+    for shed, name in runs[:1] if quick_run(__doc__) else runs:
         with tempfile.TemporaryDirectory() as tmp:
             print(flood(Path(tmp), shed=shed).lines(name), flush=True)
 

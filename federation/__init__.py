@@ -18,6 +18,7 @@ from ._gateway_service import GatewayRefusal, GatewayService
 from ._import import Import, ImportProxy
 from ._platform import (
     DEFAULT_IMPORT_LABEL,
+    DfEventLimitSettings,
     FactSettings,
     FederationPlatform,
     FoxgloveSettings,
@@ -57,6 +58,7 @@ __all__ = [
     "ONTOLOGY",
     "Anchor",
     "Consent",
+    "DfEventLimitSettings",
     "Export",
     "ExportProxy",
     "Exporter",

@@ -102,6 +102,7 @@ from pydantic import (
 from agents import (
     AgentPlatform,
     AuditLog,
+    DfEventLimit,
     InterfaceAgent,
     KeyPair,
     KxLimit,
@@ -147,6 +148,7 @@ __all__ = [
     "DEFAULT_IMPORT_LABEL",
     "ConsoleRoles",
     "ConsoleSettings",
+    "DfEventLimitSettings",
     "FactSettings",
     "FederationPlatform",
     "FoxgloveSettings",
@@ -424,6 +426,29 @@ class KxLimitSettings(BaseModel):
         return KxLimit(**self.model_dump(exclude={"enabled"}))
 
 
+_DF = DfEventLimit()  # the defaults
+
+
+class DfEventLimitSettings(BaseModel):
+    """The ``[df_event_limit]`` table: directory events checked per second (`DfEventLimit`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = True
+    per_platform: float = Field(default=_DF.per_platform, ge=0)
+    per_platform_burst: float = Field(default=_DF.per_platform_burst, ge=1)
+    total: float = Field(default=_DF.total, ge=0)
+    total_burst: float = Field(default=_DF.total_burst, ge=1)
+    detailed: int = Field(default=_DF.detailed, ge=0)
+    report_interval: float = Field(default=_DF.report_interval, gt=0)
+
+    def to_df_event_limit(self) -> DfEventLimit | None:
+        """The global directory's directory-event load shedding, or None when disabled."""
+        if not self.enabled:
+            return None
+        return DfEventLimit(**self.model_dump(exclude={"enabled"}))
+
+
 @dataclass(frozen=True, slots=True)
 class _Field:
     """A stream rule's ``convert`` from a config's ``field``: that key of a dict value."""
@@ -502,6 +527,7 @@ class PlatformConfig(BaseModel):
     rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings)
     security: SecuritySettings = Field(default_factory=SecuritySettings)
     kx_limit: KxLimitSettings = Field(default_factory=KxLimitSettings)
+    df_event_limit: DfEventLimitSettings = Field(default_factory=DfEventLimitSettings)
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
     # a flood must not fill the disk: the audit file's bound, and the rotated files kept
@@ -796,7 +822,11 @@ class FederationPlatform:
             kx_limit=config.kx_limit.to_kx_limit(),
         )
         self.agents = AgentPlatform(
-            config.name, self.transport, federation=config.federation, channel=self.interface
+            config.name,
+            self.transport,
+            federation=config.federation,
+            channel=self.interface,
+            df_event_limit=config.df_event_limit.to_df_event_limit(),
         )
         if gateway_visibility is None:
             # private unless the config opens it: local labels never leave the platform

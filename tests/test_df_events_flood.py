@@ -14,19 +14,23 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import multiprocessing
+import threading
+import uuid
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+import zenoh
 from _load import cpu_slowdown
 from nacl.signing import SigningKey
 
-from agents import AgentPlatform, InterfaceAgent, ServiceDescription
+from agents import AgentPlatform, InterfaceAgent, ServiceDescription, wire_key
 from agents._dfgate import PLATFORM_BUDGET, TOTAL_BUDGET, DfEventGate, DfEventLimit
 from agents._directory_auth import DirectoryAuth
 from agents._security import KeyPair, TrustStore
-from agents.transports import MemoryHub, Message
+from agents.keys import gen_keys, trust_keys
+from agents.transports import MemoryHub, Message, ZenohConfig, ZenohTransport, free_tcp_port
 from bench.dfflood import CHANGES, SEEN_WITHIN, _forged, flood
 
 # The victim's CPU per event sent, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled by
@@ -175,6 +179,46 @@ def test_a_limit_is_checked() -> None:
         DfEventLimit(detailed=-1)
 
 
+def test_a_platforms_config_sets_or_disables_the_df_event_limit() -> None:
+    """``[df_event_limit]`` in a platform's config: the fields of DfEventLimit, or off."""
+    from federation import PlatformConfig, PlatformConfigError
+
+    base = {"name": "a", "federation": "f", "key": "k", "trust": "t"}
+    base |= {"vocabulary": {}, "mapping": {}}
+    assert PlatformConfig.from_dict(base).df_event_limit.to_df_event_limit() == DfEventLimit()
+    tight = PlatformConfig.from_dict({**base, "df_event_limit": {"per_platform": 1, "total": 5}})
+    assert tight.df_event_limit.to_df_event_limit() == DfEventLimit(per_platform=1, total=5)
+    off = PlatformConfig.from_dict({**base, "df_event_limit": {"enabled": False}})
+    assert off.df_event_limit.to_df_event_limit() is None
+    with pytest.raises(PlatformConfigError, match=r"df_event_limit\.total_burst"):
+        PlatformConfig.from_dict({**base, "df_event_limit": {"total_burst": 0.5}})
+    with pytest.raises(PlatformConfigError, match=r"df_event_limit\.rate"):
+        PlatformConfig.from_dict({**base, "df_event_limit": {"rate": 1}})
+
+
+async def test_the_platforms_limit_is_its_global_directorys() -> None:
+    """`AgentPlatform(df_event_limit=…)` is what its global directory sheds by (None: none)."""
+    hub = MemoryHub()
+    keys = KeyPair.generate("uav-a")
+    trust = TrustStore("t", {"uav-a": keys.public_key})
+    tight = DfEventLimit(per_platform=1, total=5)
+    for limit in (tight, None):
+        async with (
+            asyncio.timeout(10),
+            hub.transport() as transport,
+            AgentPlatform(
+                "uav-a",
+                transport,
+                federation="t",
+                channel=InterfaceAgent(keys, trust),
+                df_event_limit=limit,
+            ) as pa,
+        ):
+            assert pa.global_df is not None
+            gate = pa.global_df.event_gate
+            assert (gate.limit if gate is not None else None) == limit
+
+
 # -- in memory: the screen in front of the subscription, the queue's overflow ------------------
 
 
@@ -223,6 +267,9 @@ async def test_an_event_lost_in_an_overflowing_queue_is_made_good_by_a_resync() 
     async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
         assert view is not None and pb.df is not None
+        # each platform's presence is taken on a task of its own: both taken, in any order
+        while view.platforms != ["uav-a", "uav-b"] or view._presence_queues:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)
         inbox = view._subs[0].inbox
         inbox._maxlen = 1  # a queue of one: the next put drops the event queued
         resyncs = view.resyncs
@@ -280,3 +327,98 @@ async def test_a_resync_its_member_does_not_answer_is_asked_again_until_it_does(
             await asyncio.sleep(0.05)  # no event to await: the view's own retries
         assert view.resyncs - resyncs == 3 and unanswered == 0
         assert [s.name for s in view.services("uav-b")] == ["hidden"]
+
+
+# -- on zenoh: a member whose presence was just taken, while the shared budget is spent ---------
+
+
+@contextlib.contextmanager
+def _outsider_flooding(port: int, fed: str, names: list[str]) -> Iterator[threading.Event]:
+    """A plain zenoh session (no key) publishing forged events under ``names``, ~200/s each.
+
+    They pass every check but the signature: each spends its name's budget and, for a
+    name not alive in the victim's directory, the shared one. Yields the flood's stop.
+    """
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    session = zenoh.open(conf)
+    stop = threading.Event()
+    pubs = [session.declare_publisher(wire_key(fed, "df-events", n)) for n in names]
+
+    def flood() -> None:
+        seq = 0
+        while not stop.wait(0.005):
+            seq += 1
+            for name, pub in zip(names, pubs, strict=True):
+                pub.put(_forged(fed, name, seq, GONE, ROGUE))
+
+    thread = threading.Thread(target=flood, daemon=True)
+    thread.start()
+    try:
+        yield stop
+    finally:
+        stop.set()
+        thread.join(5)
+        session.close()
+
+
+async def test_a_member_just_seen_is_exempt_from_the_shared_budget(tmp_path: Path) -> None:
+    """uav-b's event sent while uav-a asks its first snapshot is not shed by a flood.
+
+    An outsider spends the shared budget with forged events under uav-c and uav-d
+    (trusted, not running). uav-b starts; uav-a takes its presence and asks its snapshot;
+    uav-b registers a service just after answering. That event was shed (uav-b not yet
+    exempt) and its change hidden until the next recheck; now uav-b is exempt from the
+    moment its presence is taken, so the event is checked and the snapshot asked again.
+    """
+    fed = f"dfp-{uuid.uuid4().hex[:8]}"
+    names = ["uav-a", "uav-b", "uav-c", "uav-d"]
+    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
+    trust = TrustStore.load(tmp_path / "trust.json")
+    port = free_tcp_port()
+
+    def channel(name: str) -> InterfaceAgent:
+        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+
+    async with (
+        asyncio.timeout(30),
+        ZenohTransport(ZenohConfig.loopback(port)) as ta,
+        AgentPlatform("uav-a", ta, federation=fed, channel=channel("uav-a")) as pa,
+    ):
+        view = pa.global_df
+        assert view is not None and view.event_gate is not None
+        view.recheck_interval = None  # only what this test is about shows uav-b's change
+        gate = view.event_gate
+        member: list[AgentPlatform] = []
+        real_query = view._query
+        asked = asyncio.Event()
+
+        async def query(platform: str, *args: Any, **kw: Any) -> Any:
+            answers = await real_query(platform, *args, **kw)
+            if platform == "uav-b" and member and not asked.is_set():
+                asked.set()  # uav-b answered its first snapshot: it registers right after
+                seen = view._event_counts.get("uav-b", 0)
+                assert member[0].df is not None
+                await member[0].df.register(_public("svc@uav-b", "late"))
+                with contextlib.suppress(TimeoutError):  # shed: it never comes
+                    async with asyncio.timeout(2):
+                        while view._event_counts.get("uav-b", 0) == seen:  # noqa: ASYNC110
+                            await asyncio.sleep(0.01)  # checked on the view's own task
+            return answers
+
+        view._query = query  # type: ignore[method-assign]
+        with _outsider_flooding(port, fed, ["uav-c", "uav-d"]):
+            while not gate.shed.get(TOTAL_BUDGET):  # noqa: ASYNC110
+                await asyncio.sleep(0.01)  # the outsider spends the shared budget
+            config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+            async with (
+                ZenohTransport(config) as tb,
+                AgentPlatform("uav-b", tb, federation=fed, channel=channel("uav-b")) as pb,
+            ):
+                member.append(pb)
+                await asyncio.wait_for(asked.wait(), 15)
+                async with asyncio.timeout(5):  # shown by the snapshot asked again
+                    while not any(s.name == "late" for s in view.services("uav-b")):  # noqa: ASYNC110
+                        await asyncio.sleep(0.02)

@@ -32,19 +32,21 @@ from agents._interface import InterfaceAgent
 from agents._kxgate import KxGate, KxLimit
 from agents._security import Handshake, KeyPair, TrustStore
 from agents.transports import MemoryHub, free_tcp_port
-from bench.kxflood import (
+from bench._flood import (
     ABSENT,
     MEMBER,
-    PACE_N,
-    PACE_PERIOD,
     START,
     VICTIM,
     WAIT,
+    recv,
+)
+from bench.kxflood import (
+    PACE_N,
+    PACE_PERIOD,
     Federation,
     acl_payloads,
     figures,
     flood,
-    recv,
 )
 
 # The victim's CPU per flood request, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled

@@ -460,7 +460,8 @@ async def test_a_member_that_talks_is_not_taken_for_gone_while_its_directory_she
     runs as well, so uav-a keeps it listed (without them it would be taken for gone after
     two intervals, and its streams stopped).
     """
-    from bench.kxflood import FLOOD_SECONDS, START, attacker_main, recv
+    from bench._flood import FLOOD_SECONDS, START, recv
+    from bench.kxflood import attacker_main
 
     fed = f"member{os.getpid()}f"
     port = free_tcp_port()

@@ -36,18 +36,20 @@ from agents._interface import WATCH_RATE
 from agents._protocols import SubscriptionStream, subscribe
 from agents._security import KeyPair, watch_request
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
-from bench.kxflood import (
+from bench._flood import (
     FLOOD_SECONDS,
     MEMBER,
-    PACE_N,
     START,
     VICTIM,
     WAIT,
+    recv,
+    summed_up,
+)
+from bench.kxflood import (
+    PACE_N,
     Federation,
     attacker_main,
     figures,
-    recv,
-    summed_up,
 )
 from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
 
