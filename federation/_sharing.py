@@ -117,10 +117,15 @@ class Sharing:
         patterns = self.settings.accept_for
         if _matches(requester, patterns):
             return None
-        allowed = ", ".join(patterns) if patterns else "no platform"
+        if not patterns:
+            # the default: saying "or when no platform asks" read as if none asking sufficed
+            return (
+                "this platform receives streams only when it asks for them "
+                f"(sharing.accept_for names no other platform); not for {requester}"
+            )
         return (
             f"this platform receives streams only when it asks for them, or when "
-            f"{allowed} asks for it (sharing.accept_for); not for {requester}"
+            f"{', '.join(patterns)} asks for it (sharing.accept_for); not for {requester}"
         )
 
 

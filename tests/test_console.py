@@ -423,6 +423,7 @@ async def test_an_observation_enters_the_instance_and_the_map(demo_keys: Path) -
         body = {"x": 120.5, "y": 300, "text": "a car stopped on the bridge"}
         status, answer = await post(http, url + "api/observation", body)
         assert status == 200, answer
+        assert answer["label"] == "observation"
         state = await until_state(http, url, lambda s: len(s["observations"]) == 1)
         assert state["observations"][0]["text"] == "a car stopped on the bridge"
         assert state["observations"][0]["x"] == 120.5
@@ -581,6 +582,10 @@ async def test_a_console_streams_and_serves_the_labels_its_config_names(tmp_path
         body = {"platform": "station-1", "label": "tracked-cars", "sample_period": 1}
         status, answer = await post(http, fed.url + "api/policy", body)
         assert status == 400 and "temperature, wind, station-position" in answer["error"]
+        # no 'observation' in this vocabulary: an observation stays local, shared under no label
+        body = {"x": 1.0, "y": 2.0, "text": "fog"}
+        status, answer = await post(http, fed.url + "api/observation", body)
+        assert status == 200 and answer["label"] is None, answer
 
 
 async def test_violations_of_several_labels_are_listed_together(tmp_path: Path) -> None:

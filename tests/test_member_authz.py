@@ -52,7 +52,7 @@ from agents import (
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
 from dyknow_core import seconds_to_ns
-from federation import FederationPlatform, PlatformConfig, PlatformConfigError
+from federation import FederationPlatform, PlatformConfig, PlatformConfigError, SharingSettings
 from federation._batch import pack_batch
 from federation._sessions import InterfaceSessions, PlainSessions
 
@@ -640,6 +640,20 @@ async def test_sharing_rules_say_who_may_query_or_stream_which_label(tmp_path: P
         recs = audited(s, verdict="refused", code="sharing-rule")
         assert [r["from"] for r in recs] == ["uav-m", "uav-m", "uav-m", "uav-c"]
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+
+
+def test_a_refused_consent_says_who_may_direct_streams_here() -> None:
+    # the default names nobody: the reason must not read as if nobody asking sufficed
+    default = SharingSettings().sharing().accepts_for("uav-m")
+    assert default == (
+        "this platform receives streams only when it asks for them "
+        "(sharing.accept_for names no other platform); not for uav-m"
+    )
+    named = SharingSettings(accept_for=["operator", "ops-*"]).sharing()
+    assert named.accepts_for("ops-2") is None
+    assert "or when operator, ops-* asks for it (sharing.accept_for)" in str(
+        named.accepts_for("uav-m")
+    )
 
 
 def test_sharing_settings_are_validated_with_file_and_key(tmp_path: Path) -> None:

@@ -622,7 +622,8 @@ class OperatorConsole:
             return _json({"error": "the observation stream is not this console's"}, status=500)
         value = {"x": x, "y": y, "text": text.strip()}
         source.push(value)
-        return _json({"observation": value, "label": OBSERVATION})
+        # the semantic label it is shared under: None when the vocabulary has none (kept local)
+        return _json({"observation": value, "label": self._observation_semantic})
 
     def _member(self, body: dict[str, Any]) -> str:
         name = body.get("platform")
