@@ -1220,6 +1220,57 @@ async def test_a_create_stream_we_gave_up_on_is_stopped_at_the_provider(
         go.set()
 
 
+async def test_a_stream_that_flowed_before_we_gave_up_ends_here(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: uav-b's create-stream timed out after samples had landed: the import
+    # stayed agreed and live while the cancel stopped the export (no end marker follows a
+    # cancel), so it never ended, and the local channel followed it as the node's own,
+    # waiting for samples for ever
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(demo_keys / "run"))
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        car5 = a.instance.add_source("cars/car5/state")
+        fed = a.federation_agent
+        create = fed._create_stream
+        go = asyncio.Event()
+
+        async def flows_then_answers_late(req: Any, message: ACLMessage) -> Any:
+            result = await create(req, message)
+            car5.push(car_state(0, 1, "uav-a"))
+            await go.wait()
+            return result
+
+        monkeypatch.setattr(fed, "_create_stream", flows_then_answers_late)
+        asking = asyncio.create_task(
+            b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        )
+        label = await b.imported("uav-a", "car5-state", timeout=WAIT)
+        asking.cancel()  # given up, as a timeout does
+        with pytest.raises(asyncio.CancelledError):
+            await asking
+        rec = b.importer.get("uav-a", "car5-state")
+        assert rec is None and not b.agreed("uav-a", "car5-state")
+        # what landed stays readable under its label
+        assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
+        async with asyncio.timeout(a.config.export_lease / 2):  # the cancel stopped it
+            while fed.export_count or a.exporter.exports():  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        go.set()
+
+        monkeypatch.setattr(fed, "_create_stream", create)
+        channel = LocalChannel(b)
+        entry = await channel._acquire("uav-a", "car5-state", None, WAIT)
+        assert entry is not None  # asked anew, not followed as the node's own
+        car5.push(car_state(1, 2, "uav-a"))
+        async with asyncio.timeout(WAIT):
+            while b.instance.latest(label).samples[0].value != car_state(1, 2, "uav-a"):  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        await channel._release("uav-a", entry)
+
+
 async def test_a_sender_gone_names_apart_the_streams_that_never_flowed(
     demo_keys: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
