@@ -1339,6 +1339,54 @@ async def test_the_local_channel_releases_only_what_a_command_took(
         assert op.federation_agent.export_count == 0
 
 
+async def test_a_cancelled_command_gives_back_every_stream_it_took(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: a command cancelled (the node stopping) while it released the first of
+    # its streams never released the others: counted for ever, their exports never
+    # cancelled; and a sample period that is no number failed formatting the refusal
+    from federation._cli_common import NotAnsweredError
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(demo_keys / "run"))
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        a.instance.add_source("cars/car5/state")
+        a.instance.add_source("cars/car7/state")
+        channel = LocalChannel(b)
+        relaying = asyncio.Event()
+
+        async def relays_for_ever(*args: Any) -> None:
+            relaying.set()
+            await asyncio.Event().wait()
+
+        monkeypatch.setattr(channel, "_relay", relays_for_ever)
+        request: dict[str, Any] = {
+            "op": "stream",
+            "platform": "uav-a",
+            "labels": ["car5-state", "car7-state"],
+        }
+        command = asyncio.create_task(channel._stream(request, None, None, WAIT, WAIT))  # type: ignore[arg-type]
+        async with asyncio.timeout(WAIT):
+            await relaying.wait()
+        assert len(channel._exports) == 2 and a.federation_agent.export_count == 2
+        for bad in ("1", True, -1, 0, float("nan"), float("inf"), [1]):
+            asking = dict(request, sample_period=bad)
+            with pytest.raises(NotAnsweredError, match="bad request: sample_period must be"):
+                await channel._stream(asking, None, None, WAIT, WAIT)  # type: ignore[arg-type]
+        monkeypatch.setattr(a.federation_agent, "_cancel_stream", never_answers)
+        command.cancel()
+        async with asyncio.timeout(WAIT):
+            while ("uav-a", "car5-state") not in channel._ending:  # noqa: ASYNC110
+                await asyncio.sleep(0)
+        command.cancel()  # again, while the first release waits for its cancel's answer
+        with pytest.raises(asyncio.CancelledError):
+            await command
+        async with asyncio.timeout(WAIT):
+            while channel._exports or channel._ending:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+
+
 async def test_a_stream_that_flows_before_the_refusal_stays_agreed(
     demo_keys: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
