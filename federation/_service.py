@@ -1483,7 +1483,7 @@ class FederationAgent(Agent):
         if imports is None:
             return
         try:
-            if gave_up:
+            if gave_up:  # asked only then: agreements written before it keep working
                 imports.withdraw(provider, semantic, gave_up=True)
             else:
                 imports.withdraw(provider, semantic)
@@ -1576,8 +1576,8 @@ class FederationAgent(Agent):
                     self._give_up(platform, conversation_id)
             raise
         for platform, keys in held.items():
-            answered = platform in result.answers
-            self._settle(keys, accepted=answered, gave_up=platform in result.no_answer)
+            gave_up = platform in result.no_answer
+            self._settle(keys, accepted=platform in result.answers, gave_up=gave_up)
         if creates:
             for platform in result.no_answer:  # silent until the deadline: given up
                 self._give_up(platform, conversation_id)
