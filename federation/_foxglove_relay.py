@@ -15,10 +15,11 @@ client slows its inner connection, whose backlog the SDK bounds (it drops the ol
 messages). A message larger than `MAX_MESSAGE` from the server, or `MAX_CLIENT_MESSAGE`
 from a client (a client only subscribes), ends the connection.
 
-What a client makes the SDK log (``foxglove.websocket.connected_client``: one line per
-unknown channel of a subscribe, so one 1 MiB message could write ~20 000) is held to
-one line per `SDK_LOG_INTERVAL` while a relay runs; the next line let through says how
-many were held back (`SdkLogThrottle`).
+What a client makes the SDK log (``foxglove.websocket.connected_client`` and the loggers
+below it, ``….poller`` and ``….send_lossy``: one line per unknown channel of a
+subscribe, so one 1 MiB message could write ~20 000; one per connection closed, per
+outbox found full) is held to one line per `SDK_LOG_INTERVAL` while a relay runs; the
+next line let through says how many were held back (`SdkLogThrottle`).
 """
 
 from __future__ import annotations
@@ -51,13 +52,14 @@ _SENDABLE = frozenset({1000, 1001, 1003, 1007, 1008, 1009, 1010, 1011})  # close
 
 
 SDK_LOG_INTERVAL = 1.0  # s: at most one line of what clients make the SDK log, per interval
-_SDK_CLIENT_LOGGER = "foxglove.websocket.connected_client"  # the SDK's logger per client
+# The SDK's logger per client; its modules log below it (``.poller``, ``.send_lossy``).
+_SDK_CLIENT_LOGGER = "foxglove.websocket.connected_client"
 
 
 class SdkLogThrottle(logging.Filter):
     """Lets one record through per ``interval``; the next one let through counts the rest.
 
-    Installed on the SDK's per-client logger while a relay runs (`installed`): a token
+    Installed on the SDK's per-client loggers while a relay runs (`installed`): a token
     holder's messages must not flood the log. Thread-safe (the SDK logs from its threads).
     """
 
@@ -68,6 +70,7 @@ class SdkLogThrottle(logging.Filter):
         self._next = 0.0
         self._lock = threading.Lock()
         self._users = 0
+        self._gate: _Gate | None = None
 
     def filter(self, record: logging.LogRecord) -> bool:
         """True for the first record of an interval (saying how many were held before it)."""
@@ -85,23 +88,52 @@ class SdkLogThrottle(logging.Filter):
 
     @contextlib.contextmanager
     def installed(self) -> Any:
-        """On the SDK's per-client logger while in the block (shared by relays at once)."""
+        """On the SDK's per-client loggers while in the block (shared by relays at once).
+
+        A logger's filter sees only what is logged on that logger, not what its children
+        propagate to it: the SDK logs below its per-client logger too. So the whole
+        subtree goes through one handler there, filtered, which passes what it lets
+        through on up the tree, as propagation would have.
+        """
         logger = logging.getLogger(_SDK_CLIENT_LOGGER)
         with self._lock:
             self._users += 1
             if self._users == 1:
-                logger.addFilter(self)
+                gate = self._gate = _Gate(logger, self)
+                logger.addHandler(gate)
+                logger.propagate = False
         try:
             yield self
         finally:
             with self._lock:
                 self._users -= 1
                 last = self._users == 0
-                if last:
-                    logger.removeFilter(self)
+                ending = self._gate
+                if last and ending is not None:
+                    logger.removeHandler(ending)
+                    logger.propagate = ending.propagate
+                    self._gate = None
                 held, self.held = (self.held, 0) if last else (0, self.held)
             if held:  # the end of a flood no later line reported
-                log.warning("foxglove: %d more lines of %s were held back", held, logger.name)
+                log.warning(
+                    "foxglove: %d more lines of %s (and below) were held back", held, logger.name
+                )
+
+
+class _Gate(logging.Handler):
+    """The throttle's handler on the SDK's per-client logger: what it lets through goes up."""
+
+    def __init__(self, logger: logging.Logger, throttle: SdkLogThrottle) -> None:
+        super().__init__()
+        self._logger = logger
+        self.propagate = logger.propagate  # as it was: restored when the last relay ends
+        self.addFilter(throttle)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        """Hand ``record`` to the handlers above, as propagation would have."""
+        above = self._logger.parent  # read now: a logger made later may sit in between
+        if self.propagate and above is not None:
+            above.callHandlers(record)
 
 
 _SDK_LOG = SdkLogThrottle()

@@ -576,22 +576,87 @@ def _rows(path: Path, fmt: str) -> list[Any]:
         return rows
 
 
+class _Lines:
+    """The physical lines under a csv reader, counted, with those of the record being read."""
+
+    __slots__ = ("_it", "n", "record")
+
+    def __init__(self, f: Iterable[str]) -> None:
+        self._it = iter(f)
+        self.n = 0
+        self.record: list[str] = []
+
+    def __iter__(self) -> _Lines:
+        return self
+
+    def __next__(self) -> str:
+        line = next(self._it)
+        self.n += 1
+        self.record.append(line)
+        return line
+
+    def skip_record(self) -> None:
+        """Skip the lines left of a record the reader gave up on, to where its quote closes.
+
+        The reader starts again at the next physical line after an error: without this,
+        the tail of a quoted field spanning lines would be read as rows of its own.
+        """
+        state = _START
+        for line in self.record:
+            state = _quote_state(line, state)
+        while state == _QUOTED:
+            try:
+                line = next(self._it)
+            except StopIteration:
+                return  # the quote never closes: the rest of the file was that row
+            self.n += 1
+            state = _quote_state(line, state)
+
+
+# where a line of the csv module's default dialect leaves a record: only _QUOTED goes on
+_START, _FIELD, _QUOTED, _QUOTE_IN_QUOTED = range(4)
+
+
+def _quote_state(line: str, state: int) -> int:
+    """The parse state after one physical line of CSV (excel dialect), from ``state``."""
+    if state != _QUOTED:
+        state = _START  # a line outside quotes starts a record
+    for ch in line:
+        if state == _QUOTED:
+            if ch == '"':
+                state = _QUOTE_IN_QUOTED
+        elif ch in "\r\n":
+            return _START
+        elif state == _START:
+            state = _QUOTED if ch == '"' else _START if ch == "," else _FIELD
+        elif state == _FIELD:
+            if ch == ",":
+                state = _START
+        else:  # _QUOTE_IN_QUOTED: a doubled quote, the next field or the field goes on
+            state = _QUOTED if ch == '"' else _START if ch == "," else _FIELD
+    return state
+
+
 def _csv_rows(f: Iterable[str], path: Path) -> list[Any]:
     """The rows of a CSV file with a header row; a row that cannot be read is a BadMessage.
 
     A field over ``csv.field_size_limit()`` (128 KiB) or a row of more cells than the
-    header costs that row only: the rest of the file is still replayed.
+    header costs that row only (a quoted field over several lines up to where its quote
+    closes): the rest of the file is still replayed. Errors name the row's first line.
     """
-    reader = csv.reader(f)
+    lines = _Lines(f)
+    reader = csv.reader(lines)
     header: list[str] | None = None
     rows: list[Any] = []
     while True:
+        lines.record.clear()
+        first = lines.n + 1
         try:
             cells = next(reader)
         except StopIteration:
             return rows
         except csv.Error as exc:
-            where = f"{path}:{reader.line_num}"
+            where = f"{path}:{first}"
             # without its header no row can be read: the rest of the file is not tried
             skipped = "row skipped" if header is not None else "no header row: file skipped"
             if "field limit" in str(exc):
@@ -602,11 +667,12 @@ def _csv_rows(f: Iterable[str], path: Path) -> list[Any]:
                 rows.append(BadMessage("not-csv", f"{where}: {exc}; {skipped}"))
             if header is None:
                 return rows
+            lines.skip_record()
             continue
         if header is None:
             header = cells or None  # blank lines before the header are no header
         elif len(cells) > len(header):
-            why = f"{path}:{reader.line_num}: {len(cells)} cells, the header names {len(header)}"
+            why = f"{path}:{first}: {len(cells)} cells, the header names {len(header)}"
             rows.append(BadMessage("not-csv", why))
         elif cells:  # a blank line is no row (as csv.DictReader)
             cells += [""] * (len(header) - len(cells))  # missing cells are empty

@@ -40,6 +40,7 @@ import fcntl
 import hashlib
 import json
 import logging
+import math
 import os
 import socket
 import struct
@@ -381,6 +382,7 @@ class LocalChannel:
         self._reports: asyncio.Task[None] | None = None
         # the tasks serving connected commands: asyncio's server does not end them on close
         self._clients: set[asyncio.Task[Any]] = set()
+        self._releasing: set[asyncio.Future[None]] = set()  # releases outliving their command
 
     def _admit_who(self, payload: bytes) -> bool:
         with self._who_lock:
@@ -465,6 +467,8 @@ class LocalChannel:
             _, pending = await asyncio.wait(clients, timeout=2.0)
             if pending:
                 log.warning("local channel: %d command(s) did not end in 2 s", len(pending))
+        if self._releasing:  # their exports given back (each cancel takes at most 2 s)
+            await asyncio.wait(set(self._releasing), timeout=2.0)
         # only the socket this channel bound: not another node's, had it never bound one
         with contextlib.suppress(FileNotFoundError):
             st = self.path.stat()
@@ -569,19 +573,36 @@ class LocalChannel:
         p = self.platform
         target = str(request["platform"])
         labels = [str(x) for x in request["labels"]]
+        sample_period = _sample_period(request.get("sample_period"))
         held: list[_Shared] = []  # the channel's exports this command counts in
         try:
             async with reaching(p, target, wait):
                 for semantic in labels:
-                    entry = await self._acquire(
-                        target, semantic, request.get("sample_period"), timeout
-                    )
+                    entry = await self._acquire(target, semantic, sample_period, timeout)
                     if entry is not None:
                         held.append(entry)
             await self._relay(p, target, labels, request, send, reader, timeout)
         finally:
-            for entry in held:
-                await self._release(target, entry)
+            await self._release_all(target, held)
+
+    async def _release_all(self, target: str, held: list[_Shared]) -> None:
+        """`_release` every entry of ``held``, all of them even when the command is cancelled.
+
+        Each release runs on in its own task if the command is cancelled meanwhile (the
+        node stopping): one cut short, or those after it, would leave their exports
+        counted for ever and never cancelled.
+        """
+        cancelled: asyncio.CancelledError | None = None
+        for entry in held:
+            release = asyncio.ensure_future(self._release(target, entry))
+            self._releasing.add(release)
+            release.add_done_callback(self._releasing.discard)
+            try:
+                await asyncio.shield(release)
+            except asyncio.CancelledError as exc:
+                cancelled = exc  # raised once every entry is on its way back
+        if cancelled is not None:
+            raise cancelled
 
     async def _acquire(
         self, target: str, semantic: str, sample_period: Any, timeout: float
@@ -709,6 +730,22 @@ class LocalChannel:
                     t.cancel()
         if error is not None:
             raise error
+
+
+def _sample_period(value: Any) -> float | None:
+    """A stream request's ``sample_period``: absent, or a positive finite number of seconds."""
+    if value is None:
+        return None
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | float)
+        or not math.isfinite(value)
+        or value <= 0
+    ):
+        raise NotAnsweredError(
+            f"bad request: sample_period must be a positive number of seconds, not {value!r}"
+        )
+    return value
 
 
 def _other_rate(target: str, semantic: str, sample_period: Any, holder: str) -> str:

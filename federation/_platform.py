@@ -1084,17 +1084,20 @@ class FederationPlatform:
         """Whether this platform agreed to receive ``sender``'s stream of ``semantic``."""
         return self.importer.get(sender, semantic) is not None
 
-    def withdraw(self, sender: str, semantic: str) -> bool:
+    def withdraw(self, sender: str, semantic: str, *, gave_up: bool = False) -> bool:
         """Undo `expect` for a stream that did not come: False (kept) if a sample landed here.
 
         The Federation Agent withdraws what its create-stream expected when the provider
         refuses, fails or does not answer; a stream whose samples arrived meanwhile (they
-        may overtake the answer) is left alone, like any agreement made otherwise.
+        may overtake the answer) is left alone, like any agreement made otherwise. Unless
+        it ``gave_up`` waiting and cancels the export: a cancel sends no end marker, so that
+        stream would never end here; it ends now (its samples stay readable under its
+        label) and later batches of it are dropped as unagreed.
         """
         rec = self.importer.get(sender, semantic)
         if rec is None:
             return True
-        if not _waiting(rec):
+        if not gave_up and not _waiting(rec):
             return False
         self._unlease(sender, semantic)
         self.importer.forget(sender, semantic)

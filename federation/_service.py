@@ -260,8 +260,9 @@ class ImportAgreements(Protocol):
         """Whether ``sender``'s stream of ``semantic`` is agreed here already."""
         ...
 
-    def withdraw(self, sender: str, semantic: str, /) -> object:
-        """Undo `expect` after the request failed, unless a sample of the stream landed here."""
+    def withdraw(self, sender: str, semantic: str, /, *, gave_up: bool = False) -> object:
+        """Undo `expect` after the request failed, unless a sample of the stream landed here
+        (``gave_up``: we stopped waiting and cancel the export, so even then)."""
         ...
 
 
@@ -1343,8 +1344,9 @@ class FederationAgent(Agent):
         except BaseException as exc:
             # refused, failed, timed out, unreachable or cancelled: nothing stays agreed
             self._count_for_others(others, -1)
-            self._settle(held, accepted=False)
-            if isinstance(exc, ReplyTimeout | asyncio.CancelledError):
+            gave_up = isinstance(exc, ReplyTimeout | asyncio.CancelledError)
+            self._settle(held, accepted=False, gave_up=gave_up)
+            if gave_up:
                 # the provider may have started it: nothing agreed covers it any more
                 self._give_up(provider, conversation)
             raise
@@ -1358,8 +1360,10 @@ class FederationAgent(Agent):
     def _give_up(self, provider: str, conversation_id: str) -> None:
         """Tell ``provider`` (FIPA cancel in the create-stream's conversation) we gave up.
 
-        Best-effort and in the background: an export it started, or starts after the
-        cancel arrives, stops then rather than with its lease.
+        Best-effort and in the background: once the provider handles the create-stream,
+        the cancel stops its export (at once, or as soon as it started); one that arrives
+        before that matches nothing there, and the export ends with its lease (we withdrew
+        the stream, so nothing here renews it).
         """
         cancel = self.message(
             P.CANCEL,
@@ -1433,12 +1437,14 @@ class FederationAgent(Agent):
             raise
         return held
 
-    def _settle(self, held: list[_Held], *, accepted: bool) -> None:
+    def _settle(self, held: list[_Held], *, accepted: bool, gave_up: bool = False) -> None:
         """A request that expected ``held`` was answered: keep them, or withdraw them.
 
         Accepted, they are agreed for good. Otherwise each is withdrawn once no other
-        request of ours still waits for it, unless one was accepted meanwhile or a
-        sample of it already landed here (the imports keep a stream that flows).
+        request of ours still waits for it, unless one was accepted meanwhile or (unless
+        we ``gave_up`` on the answer) a sample of it already landed here: the imports keep
+        a stream that flows, but one we cancel would never end here (no end marker
+        follows a cancel), so given up it is withdrawn even so.
         """
         tentative = self._tentative
         for provider, semantic, counted in held:
@@ -1455,7 +1461,7 @@ class FederationAgent(Agent):
                 tentative[key] = n - 1
             else:
                 del tentative[key]
-                self._withdraw(provider, semantic)
+                self._withdraw(provider, semantic, gave_up=gave_up)
 
     def keep_import(self, provider: str, semantic: str) -> None:
         """``provider``'s ``semantic`` is agreed for good: a request of ours that fails keeps it."""
@@ -1471,13 +1477,16 @@ class FederationAgent(Agent):
         except Exception:  # the provider accepted: what we asked for is not undone
             log.exception("%s: agreeing to %s from %s failed", self, semantic, provider)
 
-    def _withdraw(self, provider: str, semantic: str) -> None:
+    def _withdraw(self, provider: str, semantic: str, *, gave_up: bool = False) -> None:
         """Undo our agreement to receive ``provider``'s ``semantic`` (a request failed)."""
         imports = self.imports
         if imports is None:
             return
         try:
-            imports.withdraw(provider, semantic)
+            if gave_up:  # asked only then: agreements written before it keep working
+                imports.withdraw(provider, semantic, gave_up=True)
+            else:
+                imports.withdraw(provider, semantic)
         except Exception:  # a failed request's cleanup: what failed is already raised
             log.exception("%s: withdrawing %s from %s failed", self, semantic, provider)
 
@@ -1561,13 +1570,14 @@ class FederationAgent(Agent):
             )
         except BaseException:
             for keys in held.values():
-                self._settle(keys, accepted=False)
+                self._settle(keys, accepted=False, gave_up=creates)
             if creates:  # given up on all of them: an export one started is stopped
                 for platform in providers:
                     self._give_up(platform, conversation_id)
             raise
         for platform, keys in held.items():
-            self._settle(keys, accepted=platform in result.answers)
+            gave_up = platform in result.no_answer
+            self._settle(keys, accepted=platform in result.answers, gave_up=gave_up)
         if creates:
             for platform in result.no_answer:  # silent until the deadline: given up
                 self._give_up(platform, conversation_id)

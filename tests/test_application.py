@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import csv
+import io
 import shutil
 from pathlib import Path
 from typing import Any
@@ -210,3 +212,22 @@ async def test_a_csv_field_over_the_limit_costs_its_row_only(
         await asyncio.wait_for(runner.run(None), 10)
         assert runner.stats.as_dict()["bad"] == {"field-too-large": 1}
         assert f"{path}:1: a field over the 131072-character limit; no header row" in caplog.text
+
+
+async def test_a_quoted_csv_field_over_the_limit_costs_all_its_lines(tmp_path: Path) -> None:
+    from federation._inputs import _csv_rows
+
+    big = "x" * (csv.field_size_limit() + 10)
+    text = f'time,temp\n1,20.5\n2,"abc\n{big}\nlast,9"\n3,"a ""b""\nc"\n4,21.5\n5,"{big}\n'
+    rows = _csv_rows(io.StringIO(text, newline=""), tmp_path / "wx.csv")
+    bad = [r for r in rows if not isinstance(r, dict)]
+    assert [r for r in rows if isinstance(r, dict)] == [
+        {"time": 1, "temp": 20.5},
+        {"time": 3, "temp": 'a "b"\nc'},
+        {"time": 4, "temp": 21.5},
+    ]
+    # each error names its row's first line; an unclosed quote is the rest of the file
+    assert [(r.reason, r.detail.split(": ")[0]) for r in bad] == [
+        ("field-too-large", f"{tmp_path / 'wx.csv'}:3"),
+        ("field-too-large", f"{tmp_path / 'wx.csv'}:9"),
+    ]

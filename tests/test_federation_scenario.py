@@ -1220,6 +1220,57 @@ async def test_a_create_stream_we_gave_up_on_is_stopped_at_the_provider(
         go.set()
 
 
+async def test_a_stream_that_flowed_before_we_gave_up_ends_here(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: uav-b's create-stream timed out after samples had landed: the import
+    # stayed agreed and live while the cancel stopped the export (no end marker follows a
+    # cancel), so it never ended, and the local channel followed it as the node's own,
+    # waiting for samples for ever
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(demo_keys / "run"))
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        car5 = a.instance.add_source("cars/car5/state")
+        fed = a.federation_agent
+        create = fed._create_stream
+        go = asyncio.Event()
+
+        async def flows_then_answers_late(req: Any, message: ACLMessage) -> Any:
+            result = await create(req, message)
+            car5.push(car_state(0, 1, "uav-a"))
+            await go.wait()
+            return result
+
+        monkeypatch.setattr(fed, "_create_stream", flows_then_answers_late)
+        asking = asyncio.create_task(
+            b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        )
+        label = await b.imported("uav-a", "car5-state", timeout=WAIT)
+        asking.cancel()  # given up, as a timeout does
+        with pytest.raises(asyncio.CancelledError):
+            await asking
+        rec = b.importer.get("uav-a", "car5-state")
+        assert rec is None and not b.agreed("uav-a", "car5-state")
+        # what landed stays readable under its label
+        assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
+        async with asyncio.timeout(a.config.export_lease / 2):  # the cancel stopped it
+            while fed.export_count or a.exporter.exports():  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        go.set()
+
+        monkeypatch.setattr(fed, "_create_stream", create)
+        channel = LocalChannel(b)
+        entry = await channel._acquire("uav-a", "car5-state", None, WAIT)
+        assert entry is not None  # asked anew, not followed as the node's own
+        car5.push(car_state(1, 2, "uav-a"))
+        async with asyncio.timeout(WAIT):
+            while b.instance.latest(label).samples[0].value != car_state(1, 2, "uav-a"):  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        await channel._release("uav-a", entry)
+
+
 async def test_a_sender_gone_names_apart_the_streams_that_never_flowed(
     demo_keys: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -1286,6 +1337,54 @@ async def test_the_local_channel_releases_only_what_a_command_took(
             await releasing
         await channel._release("operator", other)
         assert op.federation_agent.export_count == 0
+
+
+async def test_a_cancelled_command_gives_back_every_stream_it_took(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: a command cancelled (the node stopping) while it released the first of
+    # its streams never released the others: counted for ever, their exports never
+    # cancelled; and a sample period that is no number failed formatting the refusal
+    from federation._cli_common import NotAnsweredError
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(demo_keys / "run"))
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        a.instance.add_source("cars/car5/state")
+        a.instance.add_source("cars/car7/state")
+        channel = LocalChannel(b)
+        relaying = asyncio.Event()
+
+        async def relays_for_ever(*args: Any) -> None:
+            relaying.set()
+            await asyncio.Event().wait()
+
+        monkeypatch.setattr(channel, "_relay", relays_for_ever)
+        request: dict[str, Any] = {
+            "op": "stream",
+            "platform": "uav-a",
+            "labels": ["car5-state", "car7-state"],
+        }
+        command = asyncio.create_task(channel._stream(request, None, None, WAIT, WAIT))  # type: ignore[arg-type]
+        async with asyncio.timeout(WAIT):
+            await relaying.wait()
+        assert len(channel._exports) == 2 and a.federation_agent.export_count == 2
+        for bad in ("1", True, -1, 0, float("nan"), float("inf"), [1]):
+            asking = dict(request, sample_period=bad)
+            with pytest.raises(NotAnsweredError, match="bad request: sample_period must be"):
+                await channel._stream(asking, None, None, WAIT, WAIT)  # type: ignore[arg-type]
+        monkeypatch.setattr(a.federation_agent, "_cancel_stream", never_answers)
+        command.cancel()
+        async with asyncio.timeout(WAIT):
+            while ("uav-a", "car5-state") not in channel._ending:  # noqa: ASYNC110
+                await asyncio.sleep(0)
+        command.cancel()  # again, while the first release waits for its cancel's answer
+        with pytest.raises(asyncio.CancelledError):
+            await command
+        async with asyncio.timeout(WAIT):
+            while channel._exports or channel._ending:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
 
 
 async def test_a_stream_that_flows_before_the_refusal_stays_agreed(

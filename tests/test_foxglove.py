@@ -713,3 +713,55 @@ async def test_a_token_holder_cannot_flood_the_log_through_the_sdk(tmp_path: Pat
     assert 1 <= len(lines) <= 5, text[-3000:]
     held = sum(int(h) for h in re.findall(r"(\d+) more lines", text))
     assert len(lines) + held >= n, text[-3000:]  # every one counted, none lost unsaid
+
+
+@pytest.mark.timeout(120)
+async def test_what_a_client_makes_the_sdk_log_below_its_logger_is_held_too(
+    tmp_path: Path,
+) -> None:
+    """Connections opened and closed at once: a line each from the SDK's poller, held too.
+
+    regression: the throttle was a filter on ``foxglove.websocket.connected_client``,
+    which sees nothing its child loggers (``….poller``, ``….send_lossy``) propagate.
+    """
+    from tests.test_console_access import write_operator
+
+    # a node whose application logs INFO (the poller's "Connection closed by client")
+    boot = (
+        "import logging, sys; logging.basicConfig(level=logging.INFO); "
+        "from federation.cli import main; sys.exit(main())"
+    )
+    proc = await asyncio.create_subprocess_exec(
+        sys.executable,
+        *("-c", boot, "foxglove", "--config", str(write_operator(tmp_path))),
+        *("--port", "0"),
+        stdout=asyncio.subprocess.PIPE,
+        stderr=asyncio.subprocess.PIPE,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    n = 40
+    try:
+        assert proc.stdout is not None
+        async with asyncio.timeout(60):
+            while b"ready in federation" not in (line := await proc.stdout.readline()):
+                assert line, "dyknow foxglove ended before it was ready"
+        login = line.decode().split(": ")[-1].strip()
+        start = time.monotonic()
+        async with aiohttp.ClientSession() as session:
+            for _ in range(n):
+                async with session.ws_connect(login, protocols=["foxglove.sdk.v1"]) as ws:
+                    await ws.receive()  # its serverInfo: the SDK has it
+        took = time.monotonic() - start
+        await asyncio.sleep(1.0)  # the SDK logs the last close
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGINT)
+        async with asyncio.timeout(30):
+            _, err = await proc.communicate()
+    text = err.decode()
+    assert "Traceback" not in text, text[-3000:]
+    lines = [ln for ln in text.splitlines() if "Connection closed by client" in ln]
+    assert 1 <= len(lines) <= took + 3, text[-3000:]
+    held = sum(int(h) for h in re.findall(r"(\d+) more lines", text))
+    assert len(lines) + held >= n, text[-3000:]  # every one counted, none lost unsaid

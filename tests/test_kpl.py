@@ -28,7 +28,7 @@ from dyknow_core.kpl import (
     parse,
     setup,
 )
-from dyknow_core.reasoning import Anchoring
+from dyknow_core.reasoning import Anchoring, ObjectClass, add_anchoring
 from federation.cli import main as dyknow_main
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -527,3 +527,18 @@ async def test_remove_takes_the_class_domains_it_created_and_their_labels() -> N
         assert inst.objects.domains() == ["WorldObject"] and inst.labels() == ["domain/WorldObject"]
         setup(inst, ON_ROAD_APP).remove()  # set up again, as the first time
         assert inst.labels() == ["domain/WorldObject"]
+
+
+async def test_remove_leaves_a_class_domain_a_running_anchoring_still_uses() -> None:
+    # regression: app.remove() removed every class domain its anchoring had created, even
+    # one that an anchoring set up since from Python still worked on
+    async with DyKnowInstance(clock=ManualClock()) as inst:
+        app = setup(inst, ON_ROAD_APP)
+        assert sorted(app.domains) == ["OnRoadObject", "WorldObject"]
+        mine = add_anchoring(
+            inst, [ObjectClass(name="OnRoadObject")], name="mine", output="events/mine"
+        )
+        app.remove()
+        assert inst.objects.domains() == ["OnRoadObject"]
+        assert inst.has_label("domain/OnRoadObject") and inst.processes["mine"] is mine
+        assert mine.running

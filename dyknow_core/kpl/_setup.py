@@ -12,6 +12,7 @@ from .._policy import CacheSpec, Policy
 from .._process import Input
 from .._state import StatePolicy
 from ..reasoning import (
+    Anchoring,
     LinkType,
     ObjectClass,
     add_anchoring,
@@ -70,14 +71,27 @@ class KPLApplication:
     domains: list[str] = field(default_factory=list)
 
     def remove(self) -> None:
-        """Remove every process this application created, newest first, then its domains."""
+        """Remove every process this application created, newest first, then its domains.
+
+        A class domain that a running anchoring created since (``add_anchoring`` from
+        Python) still uses is left to it.
+        """
+        instance = self.instance
         for name in reversed(self.processes):
-            if name in self.instance.processes:
-                self.instance.remove_process(name)
+            if name in instance.processes:
+                instance.remove_process(name)
         self.processes.clear()
-        objects = self.instance.objects
+        objects = instance.objects
+        in_use = {
+            c
+            for p in instance.processes.values()
+            if isinstance(p, Anchoring) and p.running
+            for c in p.classes
+        }
         for domain in reversed(self.domains):  # and with each its ``domain/<class>`` label
-            if domain in objects.domains():
+            if domain in in_use:
+                log.info("kpl: class domain %r left: a running anchoring uses it", domain)
+            elif domain in objects.domains():
                 objects.remove_domain(domain)
         self.domains.clear()
 
