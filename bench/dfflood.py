@@ -228,8 +228,11 @@ class FloodRun:
         )
 
 
-def flood(tmp: Path, *, shed: bool = True) -> FloodRun:
-    """Victim, member and attacker processes; the member's changes during the flood."""
+def flood(tmp: Path, *, shed: bool = True, changes: int = CHANGES) -> FloodRun:
+    """Victim, member and attacker processes; ``changes`` of the member's during the flood.
+
+    Each change after the first waits for a resync (~1 s): the test makes fewer of them.
+    """
     f = DfFederation(tmp)
     pipes: list[Connection] = []
     try:
@@ -255,7 +258,7 @@ def flood(tmp: Path, *, shed: bool = True) -> FloodRun:
         began = time.monotonic()
         time.sleep(1.0)  # the flood under way
         seen: list[float] = []
-        for i in range(CHANGES):
+        for i in range(changes):
             for op, listed in (("register", True), ("deregister", False)):
                 member.send((op, f"svc-{i}"))
                 recv(member, f"the member's {op}")

@@ -23,12 +23,13 @@ import socket
 import struct
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from contextlib import asynccontextmanager, contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import msgpack
 import pytest
@@ -198,6 +199,57 @@ def _stop(proc: subprocess.Popen[str], timeout: float = 20.0) -> str:
     return out
 
 
+def _follow(proc: subprocess.Popen[str]) -> tuple[list[str], threading.Thread]:
+    """The lines ``proc`` prints from now on, gathered as they come (a thread reads them)."""
+    lines: list[str] = []
+
+    def read(out: IO[str]) -> None:
+        for line in out:
+            lines.append(line)
+
+    assert proc.stdout is not None
+    reader = threading.Thread(target=read, args=(proc.stdout,), daemon=True)
+    reader.start()
+    return lines, reader
+
+
+def _stop_followed(proc: subprocess.Popen[str], lines: list[str], reader: threading.Thread) -> str:
+    """`_stop` for a process whose output `_follow` gathers: all it printed since."""
+    proc.send_signal(signal.SIGINT)
+    proc.wait(timeout=20)
+    assert proc.stderr is not None
+    err = proc.stderr.read()
+    assert proc.returncode == 0, err[-3000:]
+    reader.join(timeout=20)
+    return "".join(lines)
+
+
+def _owners_saw(a: list[dict[str, Any]], op: list[dict[str, Any]]) -> bool:
+    """uav-a's watch and the operator's showed what the test asserts they show, opened."""
+    return (
+        any(
+            e["kind"] == "acl"
+            and e["message"].get("sender") == "federation@operator"
+            and e["message"]["performative"] == "request"
+            for e in a
+        )
+        and any(e["kind"] == "stream-report" and e["from"] == "operator" for e in a)
+        and any(
+            e["kind"] == "audit"
+            and e["record"]["verdict"] == "accepted"
+            and e["record"]["from"] == "operator"
+            for e in a
+        )
+        and any(e["kind"] == "stream" and e["from"] == "uav-a" and e["batch"]["b"] for e in op)
+        and any(
+            e["kind"] == "acl"
+            and e["message"]["performative"] == "inform"
+            and "heli-altitude" in json.dumps(e["message"]["content"])
+            for e in op
+        )
+    )
+
+
 def _captured(path: Path) -> list[tuple[str, bytes]]:
     if not path.exists():
         return []
@@ -254,8 +306,17 @@ def test_an_outsider_in_the_peer_mesh_reads_nothing_the_owner_watches_everything
         procs.append(consumer)
         _line(consumer, "streaming")
         _line(watches["operator"], '{"kind": "watching"')
-        time.sleep(3.0)  # requests, answers, batches, reports and audit batches flow
-        seen = {name: _events(_stop(w)) for name, w in watches.items()}
+        # requests, answers, batches, reports and audit batches flow: until the outsider
+        # has captured each kind and each owner's watch has shown what is asserted below
+        followed = {name: _follow(w) for name, w in watches.items()}
+        deadline = time.monotonic() + START
+        while time.monotonic() < deadline:
+            kinds = {key.split("/")[3] for key, _ in _captured(capture)}
+            a, op = (_events("".join(followed[n][0])) for n in ("uav-a", "operator"))
+            if {"acl", "stream", "stream-report", "audit"} <= kinds and _owners_saw(a, op):
+                break
+            time.sleep(0.1)  # two processes' output and a file: nothing to await here
+        seen = {name: _events(_stop_followed(w, *followed[name])) for name, w in watches.items()}
         consumer.kill()
         provider.kill()
         outsider.kill()

@@ -175,6 +175,12 @@ def _runs(present: set[int], first: int, last: int) -> list[tuple[int, int]]:
     return runs
 
 
+def _never(samples: list[tuple[int, int]], last: int) -> int:
+    """How many numbers up to ``last`` never arrived after the first that did."""
+    present = {seq for seq, _ in samples}
+    return sum(b - a for a, b in _runs(present, min(present), last)) if present else -1
+
+
 async def test_partition_healed_resumes_reports_the_gap_and_recovers_history() -> None:
     missing = _missing()
     if missing is not None:
@@ -204,14 +210,34 @@ async def test_partition_healed_resumes_reports_the_gap_and_recovers_history() -
             hosts.cut(down=False)
             healed_ns = time.time_ns()
             healed_at = (await tx.ask(cmd="mark"))["seq"]
-            await asyncio.sleep(RESUME_WITHIN + 1.0)
+            # flowing again: a sample sent since the healing arrived on each stream (the
+            # assertions below say how soon), or the bound passed
+            deadline = time.monotonic() + RESUME_WITHIN + 1.0
+            while time.monotonic() < deadline:
+                if min((await rx.ask(cmd="count"))["last"].values()) >= healed_at:
+                    break
+                await asyncio.sleep(0.05)
             last = (await tx.ask(cmd="stop"))["seq"]
             async with asyncio.timeout(WAIT):
                 while min((await rx.ask(cmd="count"))["last"].values()) < last:  # noqa: ASYNC110
                     await asyncio.sleep(0.05)
-            await asyncio.sleep(1.0)  # loss reports reach the exporter (every 0.5 s)
-            got = await rx.ask(cmd="report")
-            sent = await tx.ask(cmd="report")
+            # the importer's loss reports (every 0.5 s) reach the exporter and the history
+            # is back: asked until both count what never arrived (as asserted below)
+            deadline = time.monotonic() + WAIT
+            while True:
+                got = await rx.ask(cmd="report")
+                sent = await tx.ask(cmd="report")
+                told = all(
+                    got["stats"][n]["lost"]
+                    == sent[n]["dropped_by_reason"].get("lost-in-transit")
+                    == _never(got["samples"][n], last)
+                    for n in ("plain", "hist")
+                )
+                if time.monotonic() > deadline or (
+                    told and got["stats"]["hist"]["recovered"] >= HISTORY
+                ):
+                    break
+                await asyncio.sleep(0.1)  # counters in other processes: polled
     finally:
         for child in children:
             with contextlib.suppress(Exception):

@@ -776,8 +776,13 @@ def test_trust_file_missing_or_world_writable(tmp_path: Path) -> None:
         TrustStore.load(path)
 
 
-def test_keys_cli(tmp_path: Path) -> None:
-    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+def test_keys_cli(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from federation.cli import main
+
+    def process(*args: str) -> subprocess.CompletedProcess[str]:
+        """``dyknow keys ARGS`` as a user runs it: a process of its own."""
         env = {**os.environ, "PYTHONPATH": str(ROOT)}
         return subprocess.run(
             [sys.executable, "-m", "federation.cli", "keys", *args],
@@ -789,8 +794,18 @@ def test_keys_cli(tmp_path: Path) -> None:
             check=False,
         )
 
-    for platform in ("uav-a", "uav-b"):
-        done = cli("gen", "--platform", platform, "--dir", "keys/")
+    def cli(*args: str) -> subprocess.CompletedProcess[str]:
+        """``dyknow keys ARGS`` in this process: the same code, without an interpreter's start.
+
+        Each process took about a second to start (imports); one shows the entry point works.
+        """
+        code = main(["keys", *args])
+        out = capsys.readouterr()
+        return subprocess.CompletedProcess(["dyknow", "keys", *args], code, out.out, out.err)
+
+    monkeypatch.chdir(tmp_path)
+    for platform, run in (("uav-a", process), ("uav-b", cli)):
+        done = run("gen", "--platform", platform, "--dir", "keys/")
         assert done.returncode == 0, done.stderr
         assert f"keys/{platform}.key" in done.stdout
     assert stat.S_IMODE((tmp_path / "keys/uav-a.key").stat().st_mode) == 0o600

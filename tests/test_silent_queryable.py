@@ -10,6 +10,7 @@ never ends it. The timeouts are stretched here so that waiting one out cannot pa
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from pathlib import Path
@@ -121,11 +122,25 @@ def test_a_silent_queryable_does_not_hold_a_one_shot_ask(
         watching: list[float] = []
         start = time.monotonic()
 
-        def emit(event: dict[str, Any]) -> None:
-            if event.get("kind") == "watching":
-                watching.append(time.monotonic() - start)
+        async def watch() -> None:
+            # ended once it watches: only when it began is asked, not what it then shows
+            began = asyncio.Event()
 
-        asyncio.run(watch_platform(str(station.dir / "station-python.toml"), emit, duration=3))
+            def emit(event: dict[str, Any]) -> None:
+                if event.get("kind") == "watching":
+                    watching.append(time.monotonic() - start)
+                    began.set()
+
+            conf = str(station.dir / "station-python.toml")
+            task = asyncio.create_task(watch_platform(conf, emit, duration=3))
+            await asyncio.wait(
+                [task, asyncio.create_task(began.wait())], return_when=asyncio.FIRST_COMPLETED
+            )
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+
+        asyncio.run(watch())
         assert watching and watching[0] < BOUND, f"the watch began after {watching} s"
     finally:
         if session is not None:
