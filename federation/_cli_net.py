@@ -91,6 +91,39 @@ def unprovided(platform: FederationPlatform, source: str) -> list[str]:
     return warnings
 
 
+async def _refuse_running_here(config: PlatformConfig) -> None:
+    """PlatformAliveError when a node of ``config`` listens on its local channel here.
+
+    Asked before the transport opens: that node holds the config's ``listen`` endpoints,
+    so a second start of the same config would otherwise stop on an address in use,
+    which does not say that the platform runs already, nor where.
+    """
+    import socket
+
+    from ._local import (
+        NodeUnreachable,
+        PlatformAliveError,
+        _node_here,
+        _since,
+        _where,
+        channel_path,
+    )
+
+    try:
+        path = channel_path(config)
+    except NodeUnreachable:  # its key unreadable: the platform's own start says why
+        return
+    here = await _node_here(path)
+    if here is None:
+        return
+    where = _where({"pid": here or "unknown", "host": socket.gethostname(), "since": _since(here)})
+    raise PlatformAliveError(
+        f"platform {config.name!r} is alive in federation {config.federation!r} already: "
+        f"{where}. A platform runs in one process: stop that one first, or give this one a "
+        "name of its own (the one-shot commands go through the running node)"
+    )
+
+
 @contextlib.asynccontextmanager
 async def _platform(
     config: PlatformConfig, source: str
@@ -104,6 +137,7 @@ async def _platform(
     from ._local import LocalChannel, refuse_duplicate
 
     check_application(config, source)  # before anything opens: exit 2, nothing touched
+    await _refuse_running_here(config)
     transport = config.make_transport()
     # Out of the federation until the application is set up: a query must find its streams.
     async with (

@@ -71,6 +71,42 @@ def test_a_second_node_of_a_live_name_is_refused_and_the_first_goes_on(tmp_path:
     assert "station stopped" in out and "Traceback" not in err
 
 
+@pytest.mark.timeout(120)
+def test_the_same_config_started_twice_is_told_the_platform_runs(tmp_path: Path) -> None:
+    """The twin holds the first's listen endpoint too: it is told who runs, not "address in use"."""
+    station = Station(tmp_path)
+    try:
+        station.start("python")
+        node = station.node
+        assert node is not None
+        for command in ("node", "console"):
+            done = subprocess.run(
+                [
+                    *CLI,
+                    command,
+                    "--config",
+                    "station-python.toml",
+                    *(["--port", "0"] * (command == "console")),
+                ],
+                capture_output=True,
+                text=True,
+                cwd=station.dir,
+                env=station.env,
+                timeout=60,
+            )
+            assert done.returncode == 2, done.stderr
+            err = done.stderr
+            assert (
+                f"platform 'station' is alive in federation {station.federation!r} already" in err
+            )
+            assert f"pid {node.pid} on host" in err and "address is in use" not in err, err
+            assert "ready" not in done.stdout and "Traceback" not in err
+        assert node.poll() is None
+    finally:
+        out, err = station.stop()
+    assert "station stopped" in out and "Traceback" not in err
+
+
 @pytest.mark.timeout(150)
 def test_a_flood_of_directory_queries_does_not_let_a_second_node_start(tmp_path: Path) -> None:
     """An outsider emptying the running node's directory limiter does not let its twin start.
