@@ -210,3 +210,28 @@ async def test_a_csv_field_over_the_limit_costs_its_row_only(
         await asyncio.wait_for(runner.run(None), 10)
         assert runner.stats.as_dict()["bad"] == {"field-too-large": 1}
         assert f"{path}:1: a field over the 131072-character limit; no header row" in caplog.text
+
+
+def test_an_mcap_file_without_the_topic_names_the_topics_it_has(tmp_path: Path) -> None:
+    """As a rosbag2 directory does: the user sees which topic they meant."""
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from federation._ros import _read_bag
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    float32 = "std_msgs/msg/Float32"
+    path = tmp_path / "run.mcap"
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2", library="test")
+        msgdef, _ = store.generate_msgdef(float32)
+        schema = writer.register_schema(float32, "ros2msg", msgdef.encode())
+        for topic in ("/battery", "/odom"):
+            channel = writer.register_channel(topic, "cdr", schema)
+            data = bytes(store.serialize_cdr(store.types[float32](data=1.0), float32))
+            writer.add_message(channel, 1, data, 1)
+        writer.finish()
+    with pytest.raises(ValueError, match=r"no topic '/odm' \(it has /battery, /odom\)"):
+        _read_bag(path, "/odm")
+    assert len(_read_bag(path, "/odom")) == 1
