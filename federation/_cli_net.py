@@ -159,13 +159,18 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
         settle_gc()  # once ready: a full collection is ~15 ms a supervisor need not wait for
         await stop.wait()
-        for row in application.stats():
-            say(f"dyknow node: {json.dumps(row, sort_keys=True)}")
+        _say_stats("node", application, say)
         say(
             f"dyknow node: local channel: {channel.served} commands served, "
             f"{channel.refused} refused"
         )
     say(f"dyknow node: {config.name} stopped")
+
+
+def _say_stats(command: str, application: NodeApplication, say: Callable[[str], None]) -> None:
+    """One JSON line per input and output of the application: what it received, published."""
+    for row in application.stats():
+        say(f"dyknow {command}: {json.dumps(row, sort_keys=True)}")
 
 
 def _warn(warnings: list[str]) -> None:
@@ -198,7 +203,7 @@ async def run_console(
     from .console import OperatorConsole
 
     async with (
-        _platform(config, source) as (p, _, channel),
+        _platform(config, source) as (p, application, channel),
         OperatorConsole(p, host=host, port=port, token=token, allow_hosts=allow_hosts) as console,
     ):
         _warn(unprovided(p, source))
@@ -209,6 +214,7 @@ async def run_console(
         )
         settle_gc()
         await stop.wait()
+        _say_stats("console", application, say)
         say(
             f"dyknow console: local channel: {channel.served} commands served, "
             f"{channel.refused} refused"
@@ -235,7 +241,7 @@ async def run_foxglove(
     from ._foxglove import FoxgloveBridge
 
     async with (
-        _platform(config, source) as (p, _, _),
+        _platform(config, source) as (p, application, _),
         FoxgloveBridge(
             p,
             host=host,
@@ -256,6 +262,7 @@ async def run_foxglove(
         )
         settle_gc()
         await stop.wait()
+        _say_stats("foxglove", application, say)
         stats = bridge.stats()
         refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())
         say(

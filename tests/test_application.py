@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -235,3 +237,37 @@ def test_an_mcap_file_without_the_topic_names_the_topics_it_has(tmp_path: Path) 
     with pytest.raises(ValueError, match=r"no topic '/odm' \(it has /battery, /odom\)"):
         _read_bag(path, "/odm")
     assert len(_read_bag(path, "/odom")) == 1
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("command", ["console", "foxglove"])
+def test_console_and_foxglove_say_what_the_application_received(
+    tmp_path: Path, command: str
+) -> None:
+    """They run the node's application, so they end with its inputs' counts as a node does."""
+    import signal
+    import subprocess
+    import sys
+
+    station = Station(tmp_path)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "federation.cli", command, "-c", "station-file.toml", "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=station.dir,
+        env=station.env,
+    )
+    assert proc.stdout is not None
+    for line in proc.stdout:  # bounded by the test's timeout
+        if "ready in federation" in line:
+            break
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    rows = [json.loads(line.split(": ", 1)[1]) for line in out.splitlines() if ': {"' in line]
+    inputs = {row["input"]: row for row in rows if "input" in row}
+    assert "file observations.csv" in inputs and inputs["file observations.csv"]["samples"] > 0, (
+        out + err
+    )
+    assert f"dyknow {command}: " + "{" in out and "Traceback" not in err
