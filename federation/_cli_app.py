@@ -14,6 +14,7 @@ seconds, and a time given to a command may be written the same way (``_cli_time`
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
 import os
 import sys
@@ -242,7 +243,17 @@ def console(
     except PlatformAliveError as exc:
         raise _fail(f"dyknow console: {config}: {exc}") from None
     except (TransportError, OSError) as exc:
-        raise _fail(f"dyknow console: {config}: {exc}", 1) from None
+        raise _fail(f"dyknow console: {config}: {_serving(exc, host, port)}", 1) from None
+
+
+def _serving(exc: Exception, host: str, port: int) -> str:
+    """What stopped a console or bridge, its port in use said in plain words."""
+    if isinstance(exc, OSError) and exc.errno == errno.EADDRINUSE:
+        return (
+            f"cannot serve on {host}:{port}: the address is in use (by another console, "
+            "or another program): stop that one, or choose another --port (0: any free one)"
+        )
+    return str(exc)
 
 
 @app.command("foxglove")
@@ -310,7 +321,7 @@ def foxglove(
     except PlatformAliveError as exc:
         raise _fail(f"dyknow foxglove: {config}: {exc}") from None
     except (TransportError, OSError) as exc:
-        raise _fail(f"dyknow foxglove: {config}: {exc}", 1) from None
+        raise _fail(f"dyknow foxglove: {config}: {_serving(exc, host, port)}", 1) from None
     except RuntimeError as exc:  # the SDK's server could not start
         raise _fail(f"dyknow foxglove: {config}: {exc}", 1) from None
 

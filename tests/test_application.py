@@ -271,3 +271,39 @@ def test_console_and_foxglove_say_what_the_application_received(
         out + err
     )
     assert f"dyknow {command}: " + "{" in out and "Traceback" not in err
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("command", ["console", "foxglove"])
+def test_a_console_port_in_use_is_named_with_the_option_to_change(
+    tmp_path: Path, command: str
+) -> None:
+    import socket
+    import subprocess
+    import sys
+
+    station = Station(tmp_path)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "federation.cli",
+                command,
+                "-c",
+                "station-file.toml",
+                "--port",
+                str(port),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+            timeout=60,
+        )
+    assert done.returncode == 1, done.stderr
+    assert f"cannot serve on 127.0.0.1:{port}: the address is in use" in done.stderr
+    assert "--port" in done.stderr and "Errno" not in done.stderr, done.stderr
