@@ -19,6 +19,7 @@ import json
 import os
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -109,6 +110,27 @@ def _load(config: Path) -> PlatformConfig:
         return PlatformConfig.load(config)
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
+
+
+def _in_vocabulary(command: str, cfg: PlatformConfig, labels: Sequence[str]) -> None:
+    """Exit 2 naming a label the config's vocabulary lacks: a typo is said before asking.
+
+    A provider would refuse it all the same, but maybe by its sharing rules first,
+    which do not say that the label is no label at all.
+    """
+    from ontology import OntologyError, Vocabulary
+
+    try:
+        if isinstance(cfg.vocabulary, Path):
+            vocabulary = Vocabulary.load(cfg.vocabulary)
+        else:
+            vocabulary = Vocabulary.from_dict(cfg.vocabulary)
+    except OntologyError:  # the platform's own start says what is wrong with it
+        return
+    unknown = [label for label in labels if label not in vocabulary]
+    if unknown:
+        name = f" {vocabulary.name}" if vocabulary.name else ""
+        raise _fail(f"dyknow {command}: {unknown[0]!r} is not a label of the vocabulary{name}")
 
 
 # -- keys ---------------------------------------------------------------------------------------
@@ -460,7 +482,7 @@ def ask(
     """Latest value (default), value --at T, or samples --from T [--to T] of labels."""
     from ._cli_net import ask_platform, dumps
 
-    _load(config)
+    _in_vocabulary("ask", _load(config), label_names)
     if at is not None and (since is not None or until is not None):
         raise _fail("dyknow ask: --at cannot be combined with --from/--to")
     content: dict[str, Any] = {"labels": label_names}
@@ -525,7 +547,7 @@ def stream(
     """Create a stream from a platform to this one and print its samples (Ctrl-C stops)."""
     from ._cli_net import follow_stream
 
-    _load(config)
+    _in_vocabulary("stream", _load(config), label_names)
 
     def emit(label: str, value: Any, valid: int, available: int) -> None:
         if as_json:
@@ -646,7 +668,7 @@ def record(
     """
     from ._record_cli import record_federation
 
-    _load(config)
+    _in_vocabulary("record", _load(config), label_names)
     if not out.parent.is_dir():
         raise _fail(f"dyknow record: --out {out}: directory {out.parent} does not exist")
     rec = _run_query(

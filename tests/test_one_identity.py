@@ -426,8 +426,10 @@ def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(tmp_path:
 def test_a_refused_record_through_the_console_leaves_the_file_there_as_it_was(
     tmp_path: Path,
 ) -> None:
-    """A record the provider refuses (an unknown label) writes nothing over ``-o``'s file."""
+    """A record the provider refuses (a label it does not map) writes nothing over ``-o``'s file."""
     station = Station(tmp_path)
+    vocabulary = station.dir / "weather.toml"  # a label of the vocabulary, no stream of it
+    vocabulary.write_text(vocabulary.read_text() + 'no-such-label = "mapped by nobody"\n')
     console = None
     try:
         station.start("python")
