@@ -307,3 +307,20 @@ def test_a_console_port_in_use_is_named_with_the_option_to_change(
     assert done.returncode == 1, done.stderr
     assert f"cannot serve on 127.0.0.1:{port}: the address is in use" in done.stderr
     assert "--port" in done.stderr and "Errno" not in done.stderr, done.stderr
+
+
+async def test_a_message_without_the_fields_says_which_fields_it_has(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A misspelt field is seen at once beside the message's own (a CSV file's columns)."""
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("lidar/range")
+        settings = ZenohInput(kind="zenoh", key="k", fields={"min_rang": "lidar/range"})
+        runner = input_runner(settings, inst)
+        with caplog.at_level("WARNING"):
+            runner.mapper.handle({"stamp": 1.0, "min_range": 2.0, "obstacle": False})
+            runner.mapper.handle([1, 2])
+        assert "none of the fields min_rang in the message (it has stamp, min_range, obstacle)" in (
+            caplog.text
+        )
+        assert "none of the fields min_rang in the message (a list)" in caplog.text
