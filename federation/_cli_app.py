@@ -14,10 +14,12 @@ seconds, and a time given to a command may be written the same way (``_cli_time`
 from __future__ import annotations
 
 import asyncio
+import errno
 import json
 import os
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -108,6 +110,27 @@ def _load(config: Path) -> PlatformConfig:
         return PlatformConfig.load(config)
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
+
+
+def _in_vocabulary(command: str, cfg: PlatformConfig, labels: Sequence[str]) -> None:
+    """Exit 2 naming a label the config's vocabulary lacks: a typo is said before asking.
+
+    A provider would refuse it all the same, but maybe by its sharing rules first,
+    which do not say that the label is no label at all.
+    """
+    from ontology import OntologyError, Vocabulary
+
+    try:
+        if isinstance(cfg.vocabulary, Path):
+            vocabulary = Vocabulary.load(cfg.vocabulary)
+        else:
+            vocabulary = Vocabulary.from_dict(cfg.vocabulary)
+    except OntologyError:  # the platform's own start says what is wrong with it
+        return
+    unknown = [label for label in labels if label not in vocabulary]
+    if unknown:
+        name = f" {vocabulary.name}" if vocabulary.name else ""
+        raise _fail(f"dyknow {command}: {unknown[0]!r} is not a label of the vocabulary{name}")
 
 
 # -- keys ---------------------------------------------------------------------------------------
@@ -242,7 +265,17 @@ def console(
     except PlatformAliveError as exc:
         raise _fail(f"dyknow console: {config}: {exc}") from None
     except (TransportError, OSError) as exc:
-        raise _fail(f"dyknow console: {config}: {exc}", 1) from None
+        raise _fail(f"dyknow console: {config}: {_serving(exc, host, port)}", 1) from None
+
+
+def _serving(exc: Exception, host: str, port: int) -> str:
+    """What stopped a console or bridge, its port in use said in plain words."""
+    if isinstance(exc, OSError) and exc.errno == errno.EADDRINUSE:
+        return (
+            f"cannot serve on {host}:{port}: the address is in use (by another console, "
+            "or another program): stop that one, or choose another --port (0: any free one)"
+        )
+    return str(exc)
 
 
 @app.command("foxglove")
@@ -310,7 +343,7 @@ def foxglove(
     except PlatformAliveError as exc:
         raise _fail(f"dyknow foxglove: {config}: {exc}") from None
     except (TransportError, OSError) as exc:
-        raise _fail(f"dyknow foxglove: {config}: {exc}", 1) from None
+        raise _fail(f"dyknow foxglove: {config}: {_serving(exc, host, port)}", 1) from None
     except RuntimeError as exc:  # the SDK's server could not start
         raise _fail(f"dyknow foxglove: {config}: {exc}", 1) from None
 
@@ -449,7 +482,7 @@ def ask(
     """Latest value (default), value --at T, or samples --from T [--to T] of labels."""
     from ._cli_net import ask_platform, dumps
 
-    _load(config)
+    _in_vocabulary("ask", _load(config), label_names)
     if at is not None and (since is not None or until is not None):
         raise _fail("dyknow ask: --at cannot be combined with --from/--to")
     content: dict[str, Any] = {"labels": label_names}
@@ -514,7 +547,7 @@ def stream(
     """Create a stream from a platform to this one and print its samples (Ctrl-C stops)."""
     from ._cli_net import follow_stream
 
-    _load(config)
+    _in_vocabulary("stream", _load(config), label_names)
 
     def emit(label: str, value: Any, valid: int, available: int) -> None:
         if as_json:
@@ -635,7 +668,7 @@ def record(
     """
     from ._record_cli import record_federation
 
-    _load(config)
+    _in_vocabulary("record", _load(config), label_names)
     if not out.parent.is_dir():
         raise _fail(f"dyknow record: --out {out}: directory {out.parent} does not exist")
     rec = _run_query(

@@ -91,6 +91,39 @@ def unprovided(platform: FederationPlatform, source: str) -> list[str]:
     return warnings
 
 
+async def _refuse_running_here(config: PlatformConfig) -> None:
+    """PlatformAliveError when a node of ``config`` listens on its local channel here.
+
+    Asked before the transport opens: that node holds the config's ``listen`` endpoints,
+    so a second start of the same config would otherwise stop on an address in use,
+    which does not say that the platform runs already, nor where.
+    """
+    import socket
+
+    from ._local import (
+        NodeUnreachable,
+        PlatformAliveError,
+        _node_here,
+        _since,
+        _where,
+        channel_path,
+    )
+
+    try:
+        path = channel_path(config)
+    except NodeUnreachable:  # its key unreadable: the platform's own start says why
+        return
+    here = await _node_here(path)
+    if here is None:
+        return
+    where = _where({"pid": here or "unknown", "host": socket.gethostname(), "since": _since(here)})
+    raise PlatformAliveError(
+        f"platform {config.name!r} is alive in federation {config.federation!r} already: "
+        f"{where}. A platform runs in one process: stop that one first, or give this one a "
+        "name of its own (the one-shot commands go through the running node)"
+    )
+
+
 @contextlib.asynccontextmanager
 async def _platform(
     config: PlatformConfig, source: str
@@ -104,6 +137,7 @@ async def _platform(
     from ._local import LocalChannel, refuse_duplicate
 
     check_application(config, source)  # before anything opens: exit 2, nothing touched
+    await _refuse_running_here(config)
     transport = config.make_transport()
     # Out of the federation until the application is set up: a query must find its streams.
     async with (
@@ -125,13 +159,18 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
         settle_gc()  # once ready: a full collection is ~15 ms a supervisor need not wait for
         await stop.wait()
-        for row in application.stats():
-            say(f"dyknow node: {json.dumps(row, sort_keys=True)}")
+        _say_stats("node", application, say)
         say(
             f"dyknow node: local channel: {channel.served} commands served, "
             f"{channel.refused} refused"
         )
     say(f"dyknow node: {config.name} stopped")
+
+
+def _say_stats(command: str, application: NodeApplication, say: Callable[[str], None]) -> None:
+    """One JSON line per input and output of the application: what it received, published."""
+    for row in application.stats():
+        say(f"dyknow {command}: {json.dumps(row, sort_keys=True)}")
 
 
 def _warn(warnings: list[str]) -> None:
@@ -164,7 +203,7 @@ async def run_console(
     from .console import OperatorConsole
 
     async with (
-        _platform(config, source) as (p, _, channel),
+        _platform(config, source) as (p, application, channel),
         OperatorConsole(p, host=host, port=port, token=token, allow_hosts=allow_hosts) as console,
     ):
         _warn(unprovided(p, source))
@@ -175,6 +214,7 @@ async def run_console(
         )
         settle_gc()
         await stop.wait()
+        _say_stats("console", application, say)
         say(
             f"dyknow console: local channel: {channel.served} commands served, "
             f"{channel.refused} refused"
@@ -201,7 +241,7 @@ async def run_foxglove(
     from ._foxglove import FoxgloveBridge
 
     async with (
-        _platform(config, source) as (p, _, _),
+        _platform(config, source) as (p, application, _),
         FoxgloveBridge(
             p,
             host=host,
@@ -222,6 +262,7 @@ async def run_foxglove(
         )
         settle_gc()
         await stop.wait()
+        _say_stats("foxglove", application, say)
         stats = bridge.stats()
         refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())
         say(

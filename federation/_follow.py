@@ -118,8 +118,19 @@ async def _ask_for(
                         timeout=REQUEST_TIMEOUT,
                     )
                 except Exception as exc:
-                    stream.state, stream.error = "refused", reason(exc)
-                    log.info("%s refused %s to %s: %s", member, stream.label, platform.name, exc)
+                    why = reason(exc)
+                    # said once per refusal: a page shows it, but a log may be all one sees
+                    # (dyknow foxglove); asked again every RETRY s, each time at info
+                    again = stream.state == "refused" and stream.error == why
+                    stream.state, stream.error = "refused", why
+                    (log.info if again else log.warning)(
+                        "%s refused %s to %s: %s (asked again every %g s)",
+                        member,
+                        stream.label,
+                        platform.name,
+                        exc,
+                        RETRY,
+                    )
                     changed()
                 else:
                     stream.state, stream.error = "active", None

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import csv
 import inspect
+import itertools
 import json
 import logging
 import re
@@ -266,6 +267,17 @@ def _get(message: Any, path: str) -> Any:
     return value
 
 
+def _shape(message: Any, most: int = 10) -> str:
+    """What a message holds, for the warning that none of the fields is in it."""
+    if isinstance(message, Mapping):
+        keys = [str(k)[:40] for k in itertools.islice(message, most + 1)]
+        more = ", …" if len(keys) > most else ""
+        return f"it has {', '.join(keys[:most]) or 'no field'}{more}"
+    if isinstance(message, list | tuple):
+        return "a list"
+    return f"a {type(message).__name__}"
+
+
 class InputStats:
     """What an input received: messages, samples pushed, bad messages by reason."""
 
@@ -361,7 +373,9 @@ class _Mapper:
             pushed += 1
         if not pushed:
             names = ", ".join(p for p, _, _ in self.fields)
-            raise BadMessage("no-field", f"none of the fields {names} in the message")
+            raise BadMessage(
+                "no-field", f"none of the fields {names} in the message ({_shape(message)})"
+            )
         self.stats.samples += pushed
 
     @staticmethod

@@ -181,8 +181,23 @@ def _read_bag(path: Path, topic: str) -> list[tuple[int, str, bytes]]:
                 continue
             out.append((message.log_time, schema.name, bytes(message.data)))
     if not out:
-        raise ValueError(f"{path}: no CDR message on topic {topic!r}")
+        topics = _mcap_topics(path)
+        if topic in topics:
+            raise ValueError(f"{path}: no CDR message on topic {topic!r}")
+        raise ValueError(f"{path}: no topic {topic!r} (it has {', '.join(topics) or 'none'})")
     return sorted(out, key=lambda m: m[0])
+
+
+def _mcap_topics(path: Path) -> list[str]:
+    """The topics of an MCAP file's channels, sorted (read in full when it has no summary)."""
+    from mcap.reader import make_reader
+
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        if summary is not None:
+            return sorted({c.topic for c in summary.channels.values()})
+        return sorted({channel.topic for _, channel, _ in reader.iter_messages()})
 
 
 class _RosbagRunner(InputRunner):

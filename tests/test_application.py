@@ -6,7 +6,9 @@ import asyncio
 import contextlib
 import csv
 import io
+import json
 import shutil
+import time
 from pathlib import Path
 from typing import Any
 
@@ -231,3 +233,113 @@ async def test_a_quoted_csv_field_over_the_limit_costs_all_its_lines(tmp_path: P
         ("field-too-large", f"{tmp_path / 'wx.csv'}:3"),
         ("field-too-large", f"{tmp_path / 'wx.csv'}:9"),
     ]
+def test_an_mcap_file_without_the_topic_names_the_topics_it_has(tmp_path: Path) -> None:
+    """As a rosbag2 directory does: the user sees which topic they meant."""
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from federation._ros import _read_bag
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    float32 = "std_msgs/msg/Float32"
+    path = tmp_path / "run.mcap"
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2", library="test")
+        msgdef, _ = store.generate_msgdef(float32)
+        schema = writer.register_schema(float32, "ros2msg", msgdef.encode())
+        for topic in ("/battery", "/odom"):
+            channel = writer.register_channel(topic, "cdr", schema)
+            data = bytes(store.serialize_cdr(store.types[float32](data=1.0), float32))
+            writer.add_message(channel, 1, data, 1)
+        writer.finish()
+    with pytest.raises(ValueError, match=r"no topic '/odm' \(it has /battery, /odom\)"):
+        _read_bag(path, "/odm")
+    assert len(_read_bag(path, "/odom")) == 1
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("command", ["console", "foxglove"])
+def test_console_and_foxglove_say_what_the_application_received(
+    tmp_path: Path, command: str
+) -> None:
+    """They run the node's application, so they end with its inputs' counts as a node does."""
+    import signal
+    import subprocess
+    import sys
+
+    station = Station(tmp_path)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "federation.cli", command, "-c", "station-file.toml", "--port", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=station.dir,
+        env=station.env,
+    )
+    assert proc.stdout is not None
+    for line in proc.stdout:  # bounded by the test's timeout
+        if "ready in federation" in line:
+            break
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=60)
+    rows = [json.loads(line.split(": ", 1)[1]) for line in out.splitlines() if ': {"' in line]
+    inputs = {row["input"]: row for row in rows if "input" in row}
+    assert "file observations.csv" in inputs and inputs["file observations.csv"]["samples"] > 0, (
+        out + err
+    )
+    assert f"dyknow {command}: " + "{" in out and "Traceback" not in err
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("command", ["console", "foxglove"])
+def test_a_console_port_in_use_is_named_with_the_option_to_change(
+    tmp_path: Path, command: str
+) -> None:
+    import socket
+    import subprocess
+    import sys
+
+    station = Station(tmp_path)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "federation.cli",
+                command,
+                "-c",
+                "station-file.toml",
+                "--port",
+                str(port),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+            timeout=60,
+        )
+    assert done.returncode == 1, done.stderr
+    assert f"cannot serve on 127.0.0.1:{port}: the address is in use" in done.stderr
+    assert "--port" in done.stderr and "Errno" not in done.stderr, done.stderr
+
+
+async def test_a_message_without_the_fields_says_which_fields_it_has(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A misspelt field is seen at once beside the message's own (a CSV file's columns)."""
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("lidar/range")
+        settings = ZenohInput(kind="zenoh", key="k", fields={"min_rang": "lidar/range"})
+        runner = input_runner(settings, inst)
+        with caplog.at_level("WARNING"):
+            runner.mapper.handle({"stamp": 1.0, "min_range": 2.0, "obstacle": False})
+            runner.mapper.handle([1, 2])
+        assert "none of the fields min_rang in the message (it has stamp, min_range, obstacle)" in (
+            caplog.text
+        )
+        assert "none of the fields min_rang in the message (a list)" in caplog.text

@@ -708,3 +708,18 @@ async def test_commands_still_connected_end_with_the_local_channel(
                 assert json.loads(await reader.readline())["node"]["platform"] == "uav-a"
                 assert await reader.read() == b""
                 writer.close()
+
+
+@pytest.mark.parametrize("command", ["ask", "stream", "record"])
+def test_a_label_not_in_the_vocabulary_is_said_so_before_asking(
+    tmp_path: Path, command: str
+) -> None:
+    """A misspelt label is named as such, not refused by the provider's sharing rules."""
+    configs = _write_federation(tmp_path, _free_port())
+    args = [command, "heli-altitude", "heli-altitud", "-p", "uav-a", "-c", str(configs["operator"])]
+    if command == "record":
+        args += ["--out", str(tmp_path / "out.mcap")]
+    r = runner.invoke(app, args)
+    assert r.exit_code == 2, r.output
+    assert "'heli-altitud' is not a label of the vocabulary traffic" in r.output
+    assert not (tmp_path / "out.mcap").exists()

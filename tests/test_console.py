@@ -451,7 +451,9 @@ async def test_an_observation_enters_the_instance_and_the_map(demo_keys: Path) -
             assert status == 400 and answer["error"].startswith(f"{key}: "), (key, answer)
 
 
-async def test_a_refused_stream_is_shown_and_asked_again(demo_keys: Path) -> None:
+async def test_a_refused_stream_is_shown_and_asked_again(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     async with console_federation(demo_keys) as fed, client(fed) as http:
         url = fed.url
         # a platform without the demo's streams joins: refused, shown, not fatal
@@ -466,6 +468,9 @@ async def test_a_refused_stream_is_shown_and_asked_again(demo_keys: Path) -> Non
         )
         refused = stream(state, "uav-c", "tracked-cars")
         assert "tracked-cars" in refused["error"] and "no stream" in refused["error"]
+        # said in the log too, where a view without a page (dyknow foxglove) shows it
+        said = [r for r in caplog.records if "uav-c refused tracked-cars" in r.getMessage()]
+        assert said and said[0].levelname == "WARNING", caplog.text
         assert filled(state, "uav-a")  # the others stream on
         # once it has them, the console's next attempt gets them
         uav = fed.uavs["uav-c"] = FakeUav(bare, 2)

@@ -71,6 +71,42 @@ def test_a_second_node_of_a_live_name_is_refused_and_the_first_goes_on(tmp_path:
     assert "station stopped" in out and "Traceback" not in err
 
 
+@pytest.mark.timeout(120)
+def test_the_same_config_started_twice_is_told_the_platform_runs(tmp_path: Path) -> None:
+    """The twin holds the first's listen endpoint too: it is told who runs, not "address in use"."""
+    station = Station(tmp_path)
+    try:
+        station.start("python")
+        node = station.node
+        assert node is not None
+        for command in ("node", "console"):
+            done = subprocess.run(
+                [
+                    *CLI,
+                    command,
+                    "--config",
+                    "station-python.toml",
+                    *(["--port", "0"] * (command == "console")),
+                ],
+                capture_output=True,
+                text=True,
+                cwd=station.dir,
+                env=station.env,
+                timeout=60,
+            )
+            assert done.returncode == 2, done.stderr
+            err = done.stderr
+            assert (
+                f"platform 'station' is alive in federation {station.federation!r} already" in err
+            )
+            assert f"pid {node.pid} on host" in err and "address is in use" not in err, err
+            assert "ready" not in done.stdout and "Traceback" not in err
+        assert node.poll() is None
+    finally:
+        out, err = station.stop()
+    assert "station stopped" in out and "Traceback" not in err
+
+
 @pytest.mark.timeout(150)
 def test_a_flood_of_directory_queries_does_not_let_a_second_node_start(tmp_path: Path) -> None:
     """An outsider emptying the running node's directory limiter does not let its twin start.
@@ -390,8 +426,10 @@ def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(tmp_path:
 def test_a_refused_record_through_the_console_leaves_the_file_there_as_it_was(
     tmp_path: Path,
 ) -> None:
-    """A record the provider refuses (an unknown label) writes nothing over ``-o``'s file."""
+    """A record the provider refuses (a label it does not map) writes nothing over ``-o``'s file."""
     station = Station(tmp_path)
+    vocabulary = station.dir / "weather.toml"  # a label of the vocabulary, no stream of it
+    vocabulary.write_text(vocabulary.read_text() + 'no-such-label = "mapped by nobody"\n')
     console = None
     try:
         station.start("python")
