@@ -233,6 +233,8 @@ async def test_a_quoted_csv_field_over_the_limit_costs_all_its_lines(tmp_path: P
         ("field-too-large", f"{tmp_path / 'wx.csv'}:3"),
         ("field-too-large", f"{tmp_path / 'wx.csv'}:9"),
     ]
+
+
 def test_an_mcap_file_without_the_topic_names_the_topics_it_has(tmp_path: Path) -> None:
     """As a rosbag2 directory does: the user sees which topic they meant."""
     from mcap.writer import Writer
