@@ -43,7 +43,7 @@ from dyknow_core.kpl import parse as parse_kpl
 from dyknow_core.kpl import setup as setup_kpl
 
 from ._cli_common import reaching
-from ._cli_net import _opened, _stop_event
+from ._cli_net import _opened, _stop_event, own_without_node
 from ._cli_time import seconds, when, when_ns
 
 if TYPE_CHECKING:
@@ -126,6 +126,7 @@ async def record_federation(
     )
     if relayed is not None:
         return relayed
+    own_without_node(config_path, platform, "record")
     async with _opened(config_path) as p:
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
         fed = p.federation_agent
@@ -260,7 +261,7 @@ async def _until_stopped(
     """Wait for a signal, the duration or the count; a progress line each second it changed."""
     started = time.monotonic()
     deadline = None if duration is None else started + duration
-    shown = -1
+    shown = 0  # no line before the first sample: a refusal comes first, alone
     also = also or asyncio.Event()
     loop = asyncio.get_running_loop()
     waits = {
