@@ -798,3 +798,43 @@ def test_a_monitor_comparing_a_whole_message_with_a_number_says_so(tmp_path: Pat
     east = [row["value"]["verdict"] for row in rows if row["label"] == "monitors/east"]
     # the nested field is read (x is 0, 1, 2): every state violates 'not x >= 0'
     assert east and not any(east)
+
+
+def test_replay_with_a_nodes_config_maps_the_recorded_labels_to_its_kpl(tmp_path: Path) -> None:
+    """A recording holds semantic labels; ``--config`` replays them into the node's own KPL.
+
+    Before, the node's application (local labels, ``wx/wind``) was fed nothing: "spec
+    source 'wx/wind' is not in the recording".
+    """
+    path = tmp_path / "station.mcap"
+    w = RecordWriter(path)
+    for k in range(3):
+        t = k * NS_PER_S
+        w.add("wind-speed", 10.0 + k, t, t + MS)
+        w.add("temperature", 20.0, t, t + 2 * MS)
+    w.close()
+    config = ROOT / "examples" / "node" / "station-python.toml"
+
+    def run(*args: str, cwd: Path = tmp_path) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "federation.cli", "replay", str(path), *args, "--json"],
+            capture_output=True,
+            text=True,
+            cwd=cwd,
+            timeout=60,
+        )
+
+    # its CUs import from the current directory without --config
+    bare = run("--kpl", "weather.kpl", "--print", "wx/wind_kmh", cwd=config.parent)
+    assert bare.returncode == 0, bare.stderr
+    assert "spec source 'wx/wind' is not in the recording" in bare.stderr
+    assert "give the node's config (--config NODE.toml)" in bare.stderr
+    # with it, from beside the node's KPL, as the node imports them
+    mapped = run("--config", str(config), "--print", "wx/wind_kmh")
+    assert mapped.returncode == 0, mapped.stderr
+    assert (
+        "'wx/wind' is not" not in mapped.stderr and "'wx/temperature' is not" not in mapped.stderr
+    )
+    rows = [json.loads(line) for line in mapped.stdout.splitlines()]
+    assert [r["value"] for r in rows[:-1]] == [36.0, 39.6, 43.2]
+    assert rows[-1]["summary"]["counts"] == {"wx/wind": 3, "wx/temperature": 3}
