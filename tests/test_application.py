@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import csv
 import io
+import itertools
 import json
 import shutil
 import time
@@ -214,6 +215,53 @@ async def test_a_csv_field_over_the_limit_costs_its_row_only(
         await asyncio.wait_for(runner.run(None), 10)
         assert runner.stats.as_dict()["bad"] == {"field-too-large": 1}
         assert f"{path}:1: a field over the 131072-character limit; no header row" in caplog.text
+
+
+@pytest.mark.parametrize("speed", [1.0, 2.0])
+async def test_a_looped_file_gives_each_pass_times_after_the_last(
+    tmp_path: Path, speed: float
+) -> None:
+    """``loop = true``, ``shift = "now"``: valid times never go back at a pass's seam.
+
+    Before, each pass started its valid times at the wall clock: behind the last pass's
+    latest when its last sleep woke early (by ~0.2 ms) or ``speed`` ran them ahead.
+    """
+    from federation._inputs import FileInput
+
+    path = tmp_path / "wx.jsonl"
+    path.write_text("".join(f'{{"t": {k * 0.01}, "temp": {k}}}\n' for k in range(3)))
+    got: list[tuple[int, int]] = []
+    enough = asyncio.Event()
+
+    def on_batch(batch: list[Any]) -> None:
+        got.extend((tv, ta) for _, tv, ta in batch)
+        if len(got) >= 12:
+            enough.set()
+
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/temp")
+        inst.subscribe("wx/temp", callback=on_batch)
+        settings = FileInput(
+            kind="file",
+            path=path,
+            loop=True,
+            shift="now",
+            speed=speed,
+            time="t",
+            fields={"temp": "wx/temp"},
+        )
+        runner = input_runner(settings, inst)
+        task = asyncio.create_task(runner.run(None))
+        try:
+            await asyncio.wait_for(enough.wait(), 20)
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+    valid = [tv for tv, _ in got]
+    assert all(b > a for a, b in itertools.pairwise(valid)), valid
+    if speed == 1.0:  # valid times are when each sample was due: none after its arrival
+        assert all(tv <= ta for tv, ta in got), got
 
 
 async def test_a_quoted_csv_field_over_the_limit_costs_all_its_lines(tmp_path: Path) -> None:
