@@ -482,8 +482,11 @@ class _Queue:
 @contextlib.asynccontextmanager
 async def zenoh_subscriber(
     settings: Any, zenoh_session: Any | None, key: str, on_sample: Callable[[Any], None]
-) -> AsyncIterator[None]:
-    """A subscriber for a zenoh-based input: on the node's session, or its own (``connect``)."""
+) -> AsyncIterator[Any]:
+    """A subscriber for a zenoh-based input: on the node's session, or its own (``connect``).
+
+    Yields the session it is on.
+    """
     import zenoh
 
     from agents.transports import ZenohConfig
@@ -499,7 +502,7 @@ async def zenoh_subscriber(
     assert zenoh_session is not None
     sub = zenoh_session.declare_subscriber(key, on_sample)
     try:
-        yield
+        yield zenoh_session
     finally:
         with contextlib.suppress(zenoh.ZError):  # the session may be closing already
             sub.undeclare()

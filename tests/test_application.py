@@ -8,6 +8,7 @@ import csv
 import io
 import itertools
 import json
+import logging
 import shutil
 import time
 from pathlib import Path
@@ -262,6 +263,79 @@ async def test_a_looped_file_gives_each_pass_times_after_the_last(
     assert all(b > a for a, b in itertools.pairwise(valid)), valid
     if speed == 1.0:  # valid times are when each sample was due: none after its arrival
         assert all(tv <= ta for tv, ta in got), got
+
+
+def _zenoh(**settings: str) -> Any:
+    """A zenoh session on this host only (no scouting)."""
+    import zenoh
+
+    config = zenoh.Config()
+    for key, value in settings.items():
+        config.insert_json5(key.replace("__", "/"), value)
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
+async def test_a_ros2_input_on_a_wrong_topic_warns_once_naming_the_topics_there(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before, a ``ros2`` input whose topic nobody publishes was silent for ever."""
+    import threading
+
+    from agents.transports import free_tcp_port
+    from federation import _ros
+    from federation._inputs import Ros2Input
+
+    monkeypatch.setattr(_ros, "SILENT_WARN", 0.2)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    node = _zenoh(mode='"peer"', listen__endpoints=json.dumps([endpoint]))
+    ros = _zenoh(mode='"client"', connect__endpoints=json.dumps([endpoint]))
+    stop = threading.Event()
+    hash_ = "RIHS01_" + "0" * 64
+    battery = ros.declare_publisher(f"0/robot/battery/std_msgs::msg::dds_::Float32_/{hash_}")
+    # a publisher as rmw_zenoh states it in the ROS graph, with no message yet
+    token = ros.liveliness().declare_token(
+        f"@ros2_lv/0/{ros.zid()}/0/11/MP/%/%/driver/%robot%pose/"
+        f"geometry_msgs::msg::dds_::PoseStamped_/{hash_}/::,10:,:,:,,"
+    )
+
+    def publish() -> None:
+        while not stop.wait(0.05):
+            battery.put(b"\x00\x01\x00\x00\x00\x00\xa0\x41")
+
+    publisher = threading.Thread(target=publish)
+    publisher.start()
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("b")
+            settings = Ros2Input(kind="ros2", topic="/robot/batery", fields={"data": "b"})
+            runner = _ros.ros_runner(settings, inst)
+            warned = asyncio.Event()
+            handler = logging.Handler(logging.WARNING)
+            handler.emit = lambda record: warned.set()  # type: ignore[method-assign]
+            ros_log = logging.getLogger("federation._ros")
+            ros_log.addHandler(handler)
+            with caplog.at_level("WARNING", logger="federation._ros"):
+                task = asyncio.create_task(runner.run(node))
+                try:
+                    await asyncio.wait_for(warned.wait(), 20)
+                finally:
+                    ros_log.removeHandler(handler)
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+        assert (
+            "input ros2 /robot/batery: no message on topic '/robot/batery' in 0.2 s (zenoh key "
+            "0/robot/batery/*/*); topics published in ROS domain 0: /robot/battery "
+            "(std_msgs/msg/Float32), /robot/pose (geometry_msgs/msg/PoseStamped)"
+        ) in caplog.text
+        assert caplog.text.count("no message on topic") == 1
+    finally:
+        stop.set()
+        publisher.join()
+        token.undeclare()
+        ros.close()
+        node.close()
 
 
 async def test_a_quoted_csv_field_over_the_limit_costs_all_its_lines(tmp_path: Path) -> None:
