@@ -467,3 +467,21 @@ async def test_a_message_without_the_fields_says_which_fields_it_has(
             caplog.text
         )
         assert "none of the fields min_rang in the message (a list)" in caplog.text
+
+
+async def test_an_input_that_stops_says_why_in_words(caplog: pytest.LogCaptureFixture) -> None:
+    """Before: ``input … stopped: ValueError: …``, the Python class of the failure."""
+    from federation._application import NodeApplication, in_words
+
+    async def failing() -> None:
+        raise ValueError("the reading 'x' is no number")
+
+    with caplog.at_level("ERROR", logger="federation._application"):
+        await NodeApplication._logged("input python feed:readings", failing())
+    assert "input python feed:readings stopped: the reading 'x' is no number" in caplog.text
+    assert "ValueError" not in caplog.text
+    assert in_words(ConnectionResetError()) == "connection reset"
+    assert in_words(TimeoutError()) == "timed out"
+    assert in_words(FileNotFoundError(2, "No such file or directory", "/srv/x.jsonl")) == (
+        "no such file or directory: /srv/x.jsonl"
+    )
