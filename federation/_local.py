@@ -62,6 +62,7 @@ from agents import (
     runs_signed,
     wire_key,
 )
+from dyknow_core import Policy
 
 from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
 from ._cli_time import seconds, when
@@ -699,11 +700,14 @@ class LocalChannel:
         queue: asyncio.Queue[list[Any]] = asyncio.Queue(10_000)
 
         async def pump(semantic: str) -> None:
+            policy = None
             if target == p.name:
                 label = p.labels.to_local(semantic)
+                # at the rate asked, as an export to another platform would have it
+                policy = Policy(sample_period=_sample_period(request.get("sample_period")))
             else:
                 label = await p.imported(target, semantic, timeout=timeout)
-            sub = p.instance.subscribe(label)
+            sub = p.instance.subscribe(label, policy)
             try:
                 async for s in sub:
                     await queue.put([semantic, s.value, s.valid_time, s.available_time])

@@ -568,6 +568,11 @@ def test_a_node_streams_and_records_its_own_streams_through_its_channel(tmp_path
         assert done.returncode == 0, done.stderr
         rows = [json.loads(line) for line in done.stdout.splitlines()]
         assert [r["label"] for r in rows] == ["temperature", "temperature"]
+        # at the rate asked (the feed gives one every 0.2 s): one a second, on its grid
+        done = run("stream", "temperature", "-n", "2", "--json", "--sample-period", "1")
+        assert done.returncode == 0, done.stderr
+        valid = [json.loads(line)["valid"] for line in done.stdout.splitlines()]
+        assert valid[1] - valid[0] >= 0.9e9, valid
         out = station.dir / "own.mcap"
         done = run("record", "temperature", "wind-speed", "-o", str(out), "-n", "3")
         assert done.returncode == 0, done.stderr
