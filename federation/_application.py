@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import re
 import sys
 from typing import TYPE_CHECKING, Any
 
@@ -101,6 +102,22 @@ def _importable(config: PlatformConfig) -> Any:
     if base is not None and base not in sys.path:
         sys.path.insert(0, base)
     yield
+
+
+def in_words(exc: BaseException) -> str:
+    """Why an input or output stopped, for its user: the reason, not the Python class."""
+    if isinstance(exc, OSError) and exc.strerror:
+        where = exc.filename if exc.filename is not None else None
+        return exc.strerror.lower() + (f": {where}" if where is not None else "")
+    if isinstance(exc, KeyError) and exc.args:
+        return f"no {exc.args[0]!r} where one was needed"
+    text = str(exc)
+    if text:
+        return text
+    # no message: the exception's name in words (ConnectionResetError: connection reset)
+    name = re.sub(r"(Error|Exception)$", "", type(exc).__name__) or type(exc).__name__
+    words = re.sub(r"(?<!^)(?=[A-Z])", " ", name).lower()
+    return {"timeout": "timed out", "stop iteration": "ended"}.get(words, words)
 
 
 class NodeApplication:
@@ -193,7 +210,7 @@ class NodeApplication:
         try:
             await coro
         except Exception as exc:
-            log.error("%s stopped: %s: %s", title, type(exc).__name__, exc)
+            log.error("%s stopped: %s", title, in_words(exc))
         else:
             log.info("%s ended", title)
 

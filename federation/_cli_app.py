@@ -714,6 +714,15 @@ def replay_recording(
     show_info: Annotated[
         bool, typer.Option("--info", help="only show the header and per-label counts")
     ] = False,
+    node_config: Annotated[
+        Path | None,
+        typer.Option(
+            "--config",
+            "-c",
+            help="a node's config: its mapping turns the recorded semantic labels into the "
+            "local ones its KPL names (and --kpl defaults to its application)",
+        ),
+    ] = None,
 ) -> None:
     """Replay a recording through a local instance on a manual clock (deterministic).
 
@@ -727,6 +736,10 @@ def replay_recording(
     recording, recorded labels it computes are recomputed, not fed. --print picks the
     streams printed as they are produced (default: with --kpl every stream the recording
     does not feed, without it the recorded samples). A summary ends the output.
+
+    A recording of 'dyknow record' holds semantic labels (temperature); a node's KPL
+    names local ones (wx/temperature): --config NODE.toml replays the recorded labels
+    under that node's mapping, into its application unless --kpl names another.
     """
     from dyknow_core import RecordError
 
@@ -735,6 +748,7 @@ def replay_recording(
         check_speed,
         info,
         info_lines,
+        load_mapping,
         print_sample,
         run_replay,
         summary_lines,
@@ -749,10 +763,15 @@ def replay_recording(
                 for line in info_lines(data):
                     _say(line)
             return
+        mapping = None
+        if node_config is not None:
+            mapping, application = load_mapping(node_config)
+            kpl_spec = kpl_spec or application
         result = asyncio.run(
             run_replay(
                 file,
                 kpl=kpl_spec,
+                mapping=mapping,
                 prints=print_labels or None,
                 speed=check_speed(speed),
                 tail=tail,

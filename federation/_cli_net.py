@@ -29,7 +29,14 @@ from agents import (
 )
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
 
-from ._cli_common import failure_of, platforms_of, reaching, settle_gc, wait_for_members
+from ._cli_common import (
+    NotAnsweredError,
+    failure_of,
+    platforms_of,
+    reaching,
+    settle_gc,
+    wait_for_members,
+)
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
 
 if TYPE_CHECKING:
@@ -428,6 +435,24 @@ async def stream_through_node(
         await lines.aclose()
 
 
+def own_without_node(config_path: str, platform: str, command: str) -> None:
+    """NotAnsweredError when ``platform`` is the config's own and no node of it runs here.
+
+    A platform's streams are made by its running node, and a platform exports to others
+    only: the command follows them through that node's local channel, or not at all.
+    """
+    config = PlatformConfig.load(config_path)
+    if platform != config.name:
+        return
+    raise NotAnsweredError(
+        f"platform {platform!r} is this config's own: its streams are made by its running "
+        f"node, and no node of {config_path} runs on this host. Start it (dyknow node "
+        f"--config {config_path}) and run this command again: 'dyknow {command}' then "
+        "follows the streams from the node itself. Or run the command with the config of "
+        "another platform of the federation"
+    )
+
+
 def read_json5(path: str | None) -> str | None:
     """The text of a JSON5 zenoh config file (or None)."""
     return None if path is None else Path(path).read_text(encoding="utf-8")
@@ -464,6 +489,7 @@ async def follow_stream(
     )
     if relayed is not None:
         return relayed
+    own_without_node(config_path, platform, "stream")
     async with _opened(config_path) as p:
         fed = p.federation_agent
         async with reaching(p, platform, wait):

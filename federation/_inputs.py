@@ -482,8 +482,11 @@ class _Queue:
 @contextlib.asynccontextmanager
 async def zenoh_subscriber(
     settings: Any, zenoh_session: Any | None, key: str, on_sample: Callable[[Any], None]
-) -> AsyncIterator[None]:
-    """A subscriber for a zenoh-based input: on the node's session, or its own (``connect``)."""
+) -> AsyncIterator[Any]:
+    """A subscriber for a zenoh-based input: on the node's session, or its own (``connect``).
+
+    Yields the session it is on.
+    """
     import zenoh
 
     from agents.transports import ZenohConfig
@@ -499,7 +502,7 @@ async def zenoh_subscriber(
     assert zenoh_session is not None
     sub = zenoh_session.declare_subscriber(key, on_sample)
     try:
-        yield
+        yield zenoh_session
     finally:
         with contextlib.suppress(zenoh.ZError):  # the session may be closing already
             sub.undeclare()
@@ -712,15 +715,29 @@ class _FileRunner(InputRunner):
         s = self.settings
         rows = await asyncio.to_thread(_rows, s.path, s.file_format())
         mapper = self.mapper
+        last: int | None = None
         while True:
-            await self._replay(rows, mapper, s)
+            last = await self._replay(rows, mapper, s, last)
             if not s.loop:
                 break
         log.info("input %s: replayed %d messages", s.title(), len(rows))
 
-    async def _replay(self, rows: list[Any], mapper: _Mapper, s: FileInput) -> None:
-        start_wall = time.time_ns()
+    async def _replay(
+        self, rows: list[Any], mapper: _Mapper, s: FileInput, after: int | None
+    ) -> int | None:
+        """One pass over ``rows``; the latest valid time it gave (``shift = "now"``).
+
+        A pass after another starts its valid times strictly after ``after``, the last
+        pass's latest: the clock may have woken that pass's last sleep a little early, or
+        ``speed`` run its valid times ahead of the wall clock.
+        """
+        now = time.time_ns()
+        base = now if after is None else max(now, after + 1)  # of this pass's valid times
+        # at speed 1 a valid time is when it is due: pushed no earlier than it (its
+        # available time)
+        start_wall = base if s.speed == 1 else now
         first: int | None = None
+        latest = after
         for row in rows:
             if isinstance(row, BadMessage):
                 mapper.stats.received += 1
@@ -736,14 +753,18 @@ class _FileRunner(InputRunner):
             if s.pace == "recorded" and t >= 0 and first is not None:
                 due = start_wall + int((t - first) / s.speed)
                 delay = (due - time.time_ns()) / 1e9
-                if delay > 0:
+                while delay > 0:  # the event loop may wake a timer a little early
                     await asyncio.sleep(delay)
+                    delay = (due - time.time_ns()) / 1e9
             elif s.pace == "fast" and mapper.stats.received % 1000 == 999:
                 await asyncio.sleep(0)  # let the node answer queries meanwhile
             if s.shift == "now" and t >= 0 and first is not None:
-                mapper.handle(row, valid=start_wall + (t - first))
+                valid = base + (t - first)
+                latest = valid if latest is None else max(latest, valid)
+                mapper.handle(row, valid=valid)
             else:
                 mapper.handle(row)
+        return latest
 
 
 class _PythonRunner(InputRunner):

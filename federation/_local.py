@@ -12,7 +12,8 @@ sessions, so:
 * a running node listens on a **local channel**, a Unix socket only its own OS user can
   open (a 0700 directory, the socket 0600, and the peer's uid checked), and the one-shot
   commands (``platforms``, ``labels``, ``ask``, ``stream``, ``record``) run with the same
-  config go through it: the node asks, under its own sessions, and relays the answers.
+  config go through it: the node asks, under its own sessions, and relays the answers
+  (a ``stream`` of the node's own platform follows its own instance: no export).
   Whoever can open the socket could read the platform's private key file as well (same
   user), so the channel gives nothing the key would not. Without a running node the
   commands act as the platform themselves, as before.
@@ -61,6 +62,7 @@ from agents import (
     runs_signed,
     wire_key,
 )
+from dyknow_core import Policy
 
 from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
 from ._cli_time import seconds, when
@@ -574,6 +576,11 @@ class LocalChannel:
         target = str(request["platform"])
         labels = [str(x) for x in request["labels"]]
         sample_period = _sample_period(request.get("sample_period"))
+        if target == p.name:
+            # the node's own streams: followed in its own instance, as they are made (a
+            # platform exports to others only; its local labels by its mapping)
+            await self._relay(p, target, labels, request, send, reader, timeout)
+            return
         held: list[_Shared] = []  # the channel's exports this command counts in
         try:
             async with reaching(p, target, wait):
@@ -693,8 +700,14 @@ class LocalChannel:
         queue: asyncio.Queue[list[Any]] = asyncio.Queue(10_000)
 
         async def pump(semantic: str) -> None:
-            label = await p.imported(target, semantic, timeout=timeout)
-            sub = p.instance.subscribe(label)
+            policy = None
+            if target == p.name:
+                label = p.labels.to_local(semantic)
+                # at the rate asked, as an export to another platform would have it
+                policy = Policy(sample_period=_sample_period(request.get("sample_period")))
+            else:
+                label = await p.imported(target, semantic, timeout=timeout)
+            sub = p.instance.subscribe(label, policy)
             try:
                 async for s in sub:
                     await queue.put([semantic, s.value, s.valid_time, s.available_time])

@@ -16,7 +16,7 @@ import json
 import logging
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from enum import Enum
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 from dyknow_core import (
     DyKnowInstance,
     ManualClock,
+    RecordedSample,
     Recorder,
     RecordError,
     Recording,
@@ -43,10 +44,12 @@ from dyknow_core.kpl import parse as parse_kpl
 from dyknow_core.kpl import setup as setup_kpl
 
 from ._cli_common import reaching
-from ._cli_net import _opened, _stop_event
+from ._cli_net import _opened, _stop_event, own_without_node
 from ._cli_time import seconds, when, when_ns
 
 if TYPE_CHECKING:
+    from ontology import LabelMapping
+
     from ._ros import RosbagRecording
 
 log = logging.getLogger(__name__)
@@ -126,6 +129,7 @@ async def record_federation(
     )
     if relayed is not None:
         return relayed
+    own_without_node(config_path, platform, "record")
     async with _opened(config_path) as p:
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
         fed = p.federation_agent
@@ -260,7 +264,7 @@ async def _until_stopped(
     """Wait for a signal, the duration or the count; a progress line each second it changed."""
     started = time.monotonic()
     deadline = None if duration is None else started + duration
-    shown = -1
+    shown = 0  # no line before the first sample: a refusal comes first, alone
     also = also or asyncio.Event()
     loop = asyncio.get_running_loop()
     waits = {
@@ -375,6 +379,64 @@ def _read_spec(kpl: Path) -> Program:
         raise ReplayUsageError("\n".join(e.format(str(kpl)) for e in exc.errors)) from None
 
 
+class _Renamed:
+    """A recording read under other labels: a node's mapping, semantic → local."""
+
+    __slots__ = ("rec", "rename")
+
+    def __init__(self, rec: Recording | RosbagRecording, rename: dict[str, str]) -> None:
+        self.rec = rec
+        self.rename = rename
+
+    @property
+    def truncated(self) -> bool:
+        """Whether the recording's writer did not finish (read up to its last chunk)."""
+        return bool(getattr(self.rec, "truncated", False))
+
+    def __iter__(self) -> Iterator[RecordedSample]:
+        rename = self.rename
+        for s in self.rec:
+            local = rename.get(s.label)
+            yield s if local is None else s._replace(label=local)
+
+
+def load_mapping(config_path: Path) -> tuple[LabelMapping, Path | None]:
+    """A node config's label mapping and application (KPL) path, for ``replay --config``."""
+    from ontology import LabelMapping, OntologyError, Vocabulary
+
+    from ._platform import PlatformConfig, PlatformConfigError
+
+    try:
+        config = PlatformConfig.load(config_path)
+    except PlatformConfigError as exc:
+        raise ReplayUsageError(str(exc)) from None
+    try:
+        if isinstance(config.vocabulary, Path):
+            vocabulary = Vocabulary.load(config.vocabulary)
+        else:
+            vocabulary = Vocabulary.from_dict(config.vocabulary, source=f"{config_path}")
+        if isinstance(config.mapping, Path):
+            mapping = LabelMapping.load(config.mapping, vocabulary)
+        else:
+            mapping = LabelMapping.from_dict(config.mapping, vocabulary, source=f"{config_path}")
+    except (OntologyError, OSError) as exc:
+        raise ReplayUsageError(f"{config_path}: {exc}") from None
+    return mapping, config.application
+
+
+def _local_labels(labels: list[str], mapping: LabelMapping) -> dict[str, str]:
+    """The recorded labels the mapping turns into local ones (the others stay as they are)."""
+    from ontology import OntologyError
+
+    out: dict[str, str] = {}
+    for label in labels:
+        try:
+            out[label] = mapping.to_local(label)
+        except (OntologyError, ValueError, KeyError):
+            continue  # not a semantic label of this platform: replayed under its own name
+    return out
+
+
 async def run_replay(
     path: Path,
     *,
@@ -384,6 +446,7 @@ async def run_replay(
     tail: float,
     emit: Callable[[str, Any, int, int], None],
     warn: Say,
+    mapping: LabelMapping | None = None,
 ) -> dict[str, Any]:
     """Replay ``path`` into a fresh manual-clock instance; the summary (JSON-ready).
 
@@ -391,14 +454,18 @@ async def run_replay(
     by the recording, recorded labels it does not declare become sources, and recorded
     labels it computes are not fed (it recomputes them). ``emit`` gets every sample of
     the printed labels (default: with a spec every stream not fed by the recording,
-    without one the recorded labels) as it is produced.
+    without one the recorded labels) as it is produced. With ``mapping`` (a node's), the
+    recorded semantic labels it maps are replayed under their local labels, as the
+    node's KPL names them.
     """
-    rec = open_recording(path)
-    data = rec.info()  # one pass for the labels and the first available time
+    opened = open_recording(path)
+    data = opened.info()  # one pass for the labels and the first available time
     for topic, n in data["undecodable"].items():
         warn(f"dyknow replay: {topic}: {n} messages not decoded ({data['problems'][topic]})")
-    recorded = list(data["counts"])
-    start = rec.header.start
+    rename = {} if mapping is None else _local_labels(list(data["counts"]), mapping)
+    rec: Recording | RosbagRecording | _Renamed = _Renamed(opened, rename) if rename else opened
+    recorded = [rename.get(label, label) for label in data["counts"]]
+    start = opened.header.start
     if data["available_span"] is not None:
         start = min(start, data["available_span"][0])
     program = _read_spec(kpl) if kpl is not None else None
@@ -424,14 +491,24 @@ async def run_replay(
             if kpl is not None and str(Path.cwd()) not in sys.path:
                 # a spec's CUs name modules as ``python -m`` would find them from here
                 sys.path.insert(0, str(Path.cwd()))
+            if kpl is not None and mapping is not None and str(kpl.parent) not in sys.path:
+                # a node's application: its CUs import from beside it, as the node has them
+                sys.path.insert(0, str(kpl.parent))
             try:
                 setup_kpl(inst, program)
             except KPLCheckError as exc:
                 raise ReplayUsageError("\n".join(e.format(str(kpl)) for e in exc.errors)) from None
             except KPLSetupError as exc:
                 raise ReplayUsageError(f"{kpl}:{exc.line}:{exc.column}: {exc.message}") from None
-        for label in sorted(spec_sources - set(recorded)):
+        missing = sorted(spec_sources - set(recorded))
+        for label in missing:
             warn(f"dyknow replay: spec source {label!r} is not in the recording: nothing feeds it")
+        if missing and mapping is None and recorded:
+            warn(
+                f"dyknow replay: the recording's labels are {', '.join(recorded)}; a node's KPL "
+                "names its local labels: give the node's config (--config NODE.toml) to "
+                "replay the recording's semantic labels under its mapping's local ones"
+            )
         if prints is None:
             shown = [x for x in inst.labels() if x not in feed] if program else recorded
         else:
@@ -516,6 +593,7 @@ __all__ = [
     "info",
     "info_lines",
     "jsonable",
+    "load_mapping",
     "open_recording",
     "print_sample",
     "record_federation",

@@ -23,6 +23,7 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
+import threading
 import time
 from collections.abc import Iterator
 from functools import cache
@@ -48,6 +49,7 @@ __all__ = [
     "cdr_decoder",
     "dds_type",
     "ros_runner",
+    "ros_topics",
     "ros_type",
     "to_plain",
 ]
@@ -121,6 +123,49 @@ class _Decoder:
             raise BadMessage("not-cdr", f"{rostype}: {type(exc).__name__}: {exc}") from None
 
 
+SILENT_WARN = 10.0
+"""Seconds a ``ros2`` input waits for its first message before it warns, once."""
+_GRAPH_WAIT = 1.0  # s spent looking at the ROS graph for that warning
+
+
+def ros_topics(session: Any, domain: int, wait: float = _GRAPH_WAIT) -> dict[str, str]:
+    """Topic → ROS type of what is published in ``domain`` through rmw_zenoh (blocking).
+
+    From the graph's liveliness tokens (``@ros2_lv/<domain>/…/MP/…/<topic>/<type>/…``, a
+    name's '/' written '%') and from the messages put on the domain's keys within ``wait``
+    seconds.
+    """
+    found: dict[str, str] = {}
+    lock = threading.Lock()
+
+    def seen(topic: str, dds: str) -> None:
+        try:
+            kind = ros_type(dds)
+        except ValueError:
+            kind = dds
+        with lock:
+            found.setdefault(topic, kind)
+
+    def on_sample(sample: Any) -> None:
+        parts = str(sample.key_expr).split("/")
+        if len(parts) >= 4:
+            seen("/" + "/".join(parts[1:-2]), parts[-2])
+
+    sub = session.declare_subscriber(f"{domain}/**", on_sample)
+    ends = time.monotonic() + wait
+    try:
+        for reply in session.liveliness().get(f"@ros2_lv/{domain}/**", timeout=wait):
+            ok = reply.ok
+            parts = [] if ok is None else str(ok.key_expr).split("/")
+            if len(parts) > 10 and parts[5] == "MP":  # a publisher
+                seen(parts[9].replace("%", "/"), parts[10])
+        time.sleep(max(0.0, ends - time.monotonic()))
+    finally:
+        sub.undeclare()
+    with lock:
+        return dict(found)
+
+
 class _Ros2Runner(InputRunner):
     settings: Ros2Input
 
@@ -139,11 +184,21 @@ class _Ros2Runner(InputRunner):
         def on_sample(sample: Any) -> None:
             q.put_threadsafe((sample.payload.to_bytes(), None, str(sample.key_expr)))
 
-        async with zenoh_subscriber(s, zenoh_session, self.key(), on_sample):
+        async with zenoh_subscriber(s, zenoh_session, self.key(), on_sample) as session:
             log.info("input %s: subscribed to %s", s.title(), self.key())
             mapper = self.mapper
+            heard = False
             while True:
-                payload, _, key = await q.queue.get()
+                if heard:
+                    payload, _, key = await q.queue.get()
+                else:
+                    try:
+                        payload, _, key = await asyncio.wait_for(q.queue.get(), SILENT_WARN)
+                    except TimeoutError:
+                        heard = True  # said once: a topic may be quiet for a while
+                        log.warning("%s", await self._silent(session))
+                        continue
+                    heard = True
                 try:
                     dds = str(key).split("/")[-2]
                     rostype = s.type or ros_type(dds)
@@ -156,6 +211,21 @@ class _Ros2Runner(InputRunner):
                         mapper.bad("bad-key", f"{key}: {exc}")
                     continue
                 mapper.handle(message, stamp=header_stamp(message), topic=s.topic)
+
+    async def _silent(self, session: Any) -> str:
+        """The warning of an input that got no message: its topic, and the topics there are."""
+        s = self.settings
+        try:
+            topics = await asyncio.to_thread(ros_topics, session, s.domain)
+        except Exception as exc:  # the warning goes out without them
+            log.debug("reading the ROS graph: %s", exc)
+            topics = {}
+        seen = ", ".join(f"{t} ({kind})" for t, kind in sorted(topics.items()))
+        return (
+            f"input {s.title()}: no message on topic {s.topic!r} in {SILENT_WARN:g} s (zenoh key "
+            f"{self.key()}); topics published in ROS domain {s.domain}: "
+            + (seen or "none seen (no ROS 2 node on rmw_zenoh reaches this node's session)")
+        )
 
 
 def _read_bag(path: Path, topic: str) -> list[tuple[int, str, bytes]]:

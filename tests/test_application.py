@@ -6,7 +6,9 @@ import asyncio
 import contextlib
 import csv
 import io
+import itertools
 import json
+import logging
 import shutil
 import time
 from pathlib import Path
@@ -216,6 +218,126 @@ async def test_a_csv_field_over_the_limit_costs_its_row_only(
         assert f"{path}:1: a field over the 131072-character limit; no header row" in caplog.text
 
 
+@pytest.mark.parametrize("speed", [1.0, 2.0])
+async def test_a_looped_file_gives_each_pass_times_after_the_last(
+    tmp_path: Path, speed: float
+) -> None:
+    """``loop = true``, ``shift = "now"``: valid times never go back at a pass's seam.
+
+    Before, each pass started its valid times at the wall clock: behind the last pass's
+    latest when its last sleep woke early (by ~0.2 ms) or ``speed`` ran them ahead.
+    """
+    from federation._inputs import FileInput
+
+    path = tmp_path / "wx.jsonl"
+    path.write_text("".join(f'{{"t": {k * 0.01}, "temp": {k}}}\n' for k in range(3)))
+    got: list[tuple[int, int]] = []
+    enough = asyncio.Event()
+
+    def on_batch(batch: list[Any]) -> None:
+        got.extend((tv, ta) for _, tv, ta in batch)
+        if len(got) >= 12:
+            enough.set()
+
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/temp")
+        inst.subscribe("wx/temp", callback=on_batch)
+        settings = FileInput(
+            kind="file",
+            path=path,
+            loop=True,
+            shift="now",
+            speed=speed,
+            time="t",
+            fields={"temp": "wx/temp"},
+        )
+        runner = input_runner(settings, inst)
+        task = asyncio.create_task(runner.run(None))
+        try:
+            await asyncio.wait_for(enough.wait(), 20)
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+    valid = [tv for tv, _ in got]
+    assert all(b > a for a, b in itertools.pairwise(valid)), valid
+    if speed == 1.0:  # valid times are when each sample was due: none after its arrival
+        assert all(tv <= ta for tv, ta in got), got
+
+
+def _zenoh(**settings: str) -> Any:
+    """A zenoh session on this host only (no scouting)."""
+    import zenoh
+
+    config = zenoh.Config()
+    for key, value in settings.items():
+        config.insert_json5(key.replace("__", "/"), value)
+    config.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(config)
+
+
+async def test_a_ros2_input_on_a_wrong_topic_warns_once_naming_the_topics_there(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Before, a ``ros2`` input whose topic nobody publishes was silent for ever."""
+    import threading
+
+    from agents.transports import free_tcp_port
+    from federation import _ros
+    from federation._inputs import Ros2Input
+
+    monkeypatch.setattr(_ros, "SILENT_WARN", 0.2)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    node = _zenoh(mode='"peer"', listen__endpoints=json.dumps([endpoint]))
+    ros = _zenoh(mode='"client"', connect__endpoints=json.dumps([endpoint]))
+    stop = threading.Event()
+    hash_ = "RIHS01_" + "0" * 64
+    battery = ros.declare_publisher(f"0/robot/battery/std_msgs::msg::dds_::Float32_/{hash_}")
+    # a publisher as rmw_zenoh states it in the ROS graph, with no message yet
+    token = ros.liveliness().declare_token(
+        f"@ros2_lv/0/{ros.zid()}/0/11/MP/%/%/driver/%robot%pose/"
+        f"geometry_msgs::msg::dds_::PoseStamped_/{hash_}/::,10:,:,:,,"
+    )
+
+    def publish() -> None:
+        while not stop.wait(0.05):
+            battery.put(b"\x00\x01\x00\x00\x00\x00\xa0\x41")
+
+    publisher = threading.Thread(target=publish)
+    publisher.start()
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("b")
+            settings = Ros2Input(kind="ros2", topic="/robot/batery", fields={"data": "b"})
+            runner = _ros.ros_runner(settings, inst)
+            warned = asyncio.Event()
+            handler = logging.Handler(logging.WARNING)
+            handler.emit = lambda record: warned.set()  # type: ignore[method-assign]
+            ros_log = logging.getLogger("federation._ros")
+            ros_log.addHandler(handler)
+            with caplog.at_level("WARNING", logger="federation._ros"):
+                task = asyncio.create_task(runner.run(node))
+                try:
+                    await asyncio.wait_for(warned.wait(), 20)
+                finally:
+                    ros_log.removeHandler(handler)
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+        assert (
+            "input ros2 /robot/batery: no message on topic '/robot/batery' in 0.2 s (zenoh key "
+            "0/robot/batery/*/*); topics published in ROS domain 0: /robot/battery "
+            "(std_msgs/msg/Float32), /robot/pose (geometry_msgs/msg/PoseStamped)"
+        ) in caplog.text
+        assert caplog.text.count("no message on topic") == 1
+    finally:
+        stop.set()
+        publisher.join()
+        token.undeclare()
+        ros.close()
+        node.close()
+
+
 async def test_a_quoted_csv_field_over_the_limit_costs_all_its_lines(tmp_path: Path) -> None:
     from federation._inputs import _csv_rows
 
@@ -345,3 +467,21 @@ async def test_a_message_without_the_fields_says_which_fields_it_has(
             caplog.text
         )
         assert "none of the fields min_rang in the message (a list)" in caplog.text
+
+
+async def test_an_input_that_stops_says_why_in_words(caplog: pytest.LogCaptureFixture) -> None:
+    """Before: ``input … stopped: ValueError: …``, the Python class of the failure."""
+    from federation._application import NodeApplication, in_words
+
+    async def failing() -> None:
+        raise ValueError("the reading 'x' is no number")
+
+    with caplog.at_level("ERROR", logger="federation._application"):
+        await NodeApplication._logged("input python feed:readings", failing())
+    assert "input python feed:readings stopped: the reading 'x' is no number" in caplog.text
+    assert "ValueError" not in caplog.text
+    assert in_words(ConnectionResetError()) == "connection reset"
+    assert in_words(TimeoutError()) == "timed out"
+    assert in_words(FileNotFoundError(2, "No such file or directory", "/srv/x.jsonl")) == (
+        "no such file or directory: /srv/x.jsonl"
+    )

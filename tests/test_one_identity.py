@@ -449,6 +449,7 @@ def test_a_refused_record_through_the_console_leaves_the_file_there_as_it_was(
         )
         assert done.returncode != 0, done.stdout
         assert "Traceback" not in done.stderr, done.stderr
+        assert "0 samples" not in done.stderr, done.stderr  # no progress line before it
         assert kept.read_bytes() == b"an earlier recording"
         assert sorted(p.name for p in station.dir.glob("*kept*")) == ["kept.mcap"]
     finally:
@@ -534,3 +535,49 @@ def test_a_sample_period_the_nodes_import_has_not_is_refused_not_ignored(tmp_pat
                 proc.kill()
                 proc.communicate(timeout=10)
         station.stop()
+
+
+@pytest.mark.timeout(150)
+def test_a_node_streams_and_records_its_own_streams_through_its_channel(tmp_path: Path) -> None:
+    """``stream``/``record`` of the config's own platform follow the node's own instance.
+
+    A platform exports to others only: before, both exited 1 with "a platform does not
+    export to itself"; without a running node the command says what to do.
+    """
+    from dyknow_core import Recording
+
+    station = Station(tmp_path)
+
+    def run(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [*CLI, *args, "-p", "station", "--config", "station-python.toml", "--wait", "10"],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+            timeout=60,
+        )
+
+    done = run("stream", "temperature", "-n", "1")
+    assert done.returncode == 1, done.stdout
+    assert "is this config's own" in done.stderr and "dyknow node --config" in done.stderr
+    assert "export to itself" not in done.stderr and "Traceback" not in done.stderr
+    try:
+        station.start("python")
+        done = run("stream", "temperature", "-n", "2", "--json")
+        assert done.returncode == 0, done.stderr
+        rows = [json.loads(line) for line in done.stdout.splitlines()]
+        assert [r["label"] for r in rows] == ["temperature", "temperature"]
+        # at the rate asked (the feed gives one every 0.2 s): one a second, on its grid
+        done = run("stream", "temperature", "-n", "2", "--json", "--sample-period", "1")
+        assert done.returncode == 0, done.stderr
+        valid = [json.loads(line)["valid"] for line in done.stdout.splitlines()]
+        assert valid[1] - valid[0] >= 0.9e9, valid
+        out = station.dir / "own.mcap"
+        done = run("record", "temperature", "wind-speed", "-o", str(out), "-n", "3")
+        assert done.returncode == 0, done.stderr
+        assert "3 samples" in done.stdout
+        assert Recording(out).info()["samples"] == 3
+    finally:
+        _, err = station.stop()
+    assert "Traceback" not in err, err

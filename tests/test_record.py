@@ -742,3 +742,99 @@ def test_record_from_a_federation_then_replay(tmp_path: Path) -> None:
         if recorder is not None:
             _kill(recorder)
         _kill(producer)
+
+
+def _ros_mcap(path: Path) -> None:
+    """``_ros_messages`` in an MCAP file, as a ROS tool writes it."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    with path.open("wb") as f:
+        w = McapWriter(f)
+        w.start(profile="ros2", library="a ROS tool")
+        channels: dict[str, int] = {}
+        for n, (topic, rostype, msg, t) in enumerate(_ros_messages()):
+            if topic not in channels:
+                msgdef, _ = store.generate_msgdef(rostype)
+                schema = w.register_schema(rostype, "ros2msg", msgdef.encode())
+                channels[topic] = w.register_channel(topic, "cdr", schema)
+            w.add_message(channels[topic], t, bytes(store.serialize_cdr(msg, rostype)), t, n)
+        w.finish()
+
+
+def test_a_monitor_comparing_a_whole_message_with_a_number_says_so(tmp_path: Path) -> None:
+    """``temp > 20`` on a Float64 topic is never true: a warning names the fields to read.
+
+    Before, every state was a violation and nothing was said. A nested field is read
+    with a dotted path: ``pose("pose.position.x")``.
+    """
+    path = tmp_path / "ros.mcap"
+    _ros_mcap(path)
+    spec = tmp_path / "app.kpl"
+    spec.write_text(
+        "source uav/temp\nsource uav/pose\n"
+        'monitor warm = "always (temp > 20)" every 0.1\n    with {temp: uav/temp}\n'
+        'monitor east = "always not (pose(\\"pose.position.x\\") >= 0)" every 0.1\n'
+        "    with {pose: uav/pose}\n"
+    )
+    r = subprocess.run(
+        [
+            *(sys.executable, "-m", "federation.cli", "replay", str(path)),
+            *("--kpl", str(spec), "--json", "--tail", "0.2"),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
+    assert r.returncode == 0, r.stderr
+    assert (
+        "monitor monitors/warm: feature 'temp' holds a message with fields (data), not a "
+        "number: temp > 20 is never true, so every state is a violation. Compare one of its "
+        'fields: temp("data")'
+    ) in r.stderr
+    assert r.stderr.count("holds a message") == 1, r.stderr  # once, and not for 'east'
+    rows = [json.loads(line) for line in r.stdout.splitlines()][:-1]
+    east = [row["value"]["verdict"] for row in rows if row["label"] == "monitors/east"]
+    # the nested field is read (x is 0, 1, 2): every state violates 'not x >= 0'
+    assert east and not any(east)
+
+
+def test_replay_with_a_nodes_config_maps_the_recorded_labels_to_its_kpl(tmp_path: Path) -> None:
+    """A recording holds semantic labels; ``--config`` replays them into the node's own KPL.
+
+    Before, the node's application (local labels, ``wx/wind``) was fed nothing: "spec
+    source 'wx/wind' is not in the recording".
+    """
+    path = tmp_path / "station.mcap"
+    w = RecordWriter(path)
+    for k in range(3):
+        t = k * NS_PER_S
+        w.add("wind-speed", 10.0 + k, t, t + MS)
+        w.add("temperature", 20.0, t, t + 2 * MS)
+    w.close()
+    config = ROOT / "examples" / "node" / "station-python.toml"
+
+    def run(*args: str, cwd: Path = tmp_path) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(
+            [sys.executable, "-m", "federation.cli", "replay", str(path), *args, "--json"],
+            capture_output=True,
+            text=True,
+            cwd=cwd,
+            timeout=60,
+        )
+
+    # its CUs import from the current directory without --config
+    bare = run("--kpl", "weather.kpl", "--print", "wx/wind_kmh", cwd=config.parent)
+    assert bare.returncode == 0, bare.stderr
+    assert "spec source 'wx/wind' is not in the recording" in bare.stderr
+    assert "give the node's config (--config NODE.toml)" in bare.stderr
+    # with it, from beside the node's KPL, as the node imports them
+    mapped = run("--config", str(config), "--print", "wx/wind_kmh")
+    assert mapped.returncode == 0, mapped.stderr
+    assert (
+        "'wx/wind' is not" not in mapped.stderr and "'wx/temperature' is not" not in mapped.stderr
+    )
+    rows = [json.loads(line) for line in mapped.stdout.splitlines()]
+    assert [r["value"] for r in rows[:-1]] == [36.0, 39.6, 43.2]
+    assert rows[-1]["summary"]["counts"] == {"wx/wind": 3, "wx/temperature": 3}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -11,11 +12,14 @@ from ..._state import StatePolicy
 from ..._time import NS_PER_S
 from ._engine import Verdict, _fast_supported, _run_restarting
 from ._progression import Node, Residual, _compile
-from ._syntax import Formula, _as_formula, state_keys
+from ._semantics import _field_at
+from ._syntax import Compare, Feature, Formula, _as_formula, _walk, state_keys
 
 if TYPE_CHECKING:
     from ..._instance import DyKnowInstance
     from ..._stream import StreamGenerator, Subscription
+
+log = logging.getLogger("dyknow_core.monitor")
 
 # -- monitors ------------------------------------------------------------------------------
 
@@ -108,10 +112,16 @@ class MonitorProcess(Process):
         self.subscription: Subscription | None = None
         self.verdicts = 0
         self._last_ta = -(2**63)
+        self.warnings: list[str] = []
+        # features compared with a number, until their first value was seen: a message
+        # (a mapping of fields) there makes the comparison never true, silently
+        self._unchecked = _compared_with_numbers(formula)
 
     def _on_states(self, batch: list[tuple[Any, int, int]]) -> None:
         if not self.running:
             return
+        if self._unchecked:
+            self._check_values(batch)
         out: list[tuple[Any, int, int]] = []
         step = self.monitor.step
         for value, tv, ta in batch:
@@ -133,6 +143,22 @@ class MonitorProcess(Process):
             except Exception as exc:
                 self._fail(exc)
 
+    def _check_values(self, batch: list[tuple[Any, int, int]]) -> None:
+        """Warn, once per feature, when one compared with a number holds a message."""
+        unchecked = self._unchecked
+        for state, _, _ in batch:
+            if not isinstance(state, Mapping):
+                continue
+            for name in [n for n in unchecked if state.get(n) is not None]:
+                atom = unchecked.pop(name)
+                value = state[name]
+                if isinstance(value, Mapping):
+                    warning = _message_warning(self.label, name, atom, value)
+                    self.warnings.append(warning)
+                    log.warning("%s", warning)
+            if not unchecked:
+                return
+
     def _stop(self) -> None:
         super()._stop()
         if self.subscription is not None:
@@ -145,7 +171,51 @@ class MonitorProcess(Process):
         d = super().describe()
         d.update(formula=self.text, state=self.state_name, output=self.label)
         d["verdicts"] = self.verdicts
+        if self.warnings:
+            d["warnings"] = list(self.warnings)
         return d
+
+
+def _compared_with_numbers(formula: Formula) -> dict[str, str]:
+    """Each feature read whole (no field) and compared with a number: the first such atom."""
+    out: dict[str, str] = {}
+    for node in _walk(formula):
+        if not isinstance(node, Compare):
+            continue
+        for side, other in ((node.left, node.right), (node.right, node.left)):
+            if (
+                isinstance(side, Feature)
+                and not side.args
+                and isinstance(other, int | float)
+                and not isinstance(other, bool)
+            ):
+                out.setdefault(side.name, str(node))
+    return out
+
+
+def _leaves(value: Mapping[str, Any], prefix: str = "", depth: int = 4) -> list[str]:
+    """The paths of a message's fields, nested ones dotted (``pose.position.x``)."""
+    out: list[str] = []
+    for k, v in value.items():
+        path = f"{prefix}{k}"
+        if isinstance(v, Mapping) and v and depth > 1:
+            out += _leaves(v, f"{path}.", depth - 1)
+        else:
+            out.append(path)
+    return out
+
+
+def _message_warning(label: str, name: str, atom: str, value: Mapping[str, Any]) -> str:
+    """What a user is told when feature ``name`` holds a message but is compared with a number."""
+    fields = _leaves(value)
+    numeric = [f for f in fields if type(_field_at(value, f)) in (int, float)]
+    pick = "data" if "data" in fields else (numeric or fields or ["data"])[0]
+    shown = ", ".join(fields[:8]) + (", …" if len(fields) > 8 else "")
+    return (
+        f"monitor {label}: feature {name!r} holds a message with fields ({shown}), not a "
+        f"number: {atom} is never true, so every state is a violation. Compare one of its "
+        f'fields: {name}("{pick}")'
+    )
 
 
 def add_monitor(

@@ -40,10 +40,28 @@ def _read(f: Feature, state: Mapping[str, Any], env: Mapping[str, Any]) -> Any:
     if not f.args or v is None:
         return v
     args = tuple(env.get(a.name) if isinstance(a, Var) else a for a in f.args)
+    key = args[0] if len(args) == 1 else args
     try:
-        return v.get(args[0] if len(args) == 1 else args)
+        r = v.get(key)
     except (AttributeError, TypeError):
         return None
+    if r is None and type(key) is str and "." in key:
+        return _field_at(v, key)
+    return r
+
+
+def _field_at(value: Any, path: str) -> Any:
+    """Field ``path`` (``pose.position.x``, ``ranges.0``) of a nested message; None if absent."""
+    for part in path.split("."):
+        if isinstance(value, Mapping):
+            value = value.get(part)
+        elif isinstance(value, list | tuple) and part.isdigit() and int(part) < len(value):
+            value = value[int(part)]
+        else:
+            return None
+        if value is None:
+            return None
+    return value
 
 
 def _atom_value(f: Feature | Compare, state: Mapping[str, Any], env: Mapping[str, Any]) -> bool:
