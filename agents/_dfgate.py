@@ -39,12 +39,12 @@ class DfEventLimit:
     its platform) still needs a token: ``per_platform`` per second (bursts of
     ``per_platform_burst``) for each claimed platform, and, for a platform not alive in
     the global directory, one of the ``total`` per second (bursts of ``total_burst``) all
-    such share. A member alive in the directory is held to its own budget only: a forger
-    claiming other names cannot spend it. Of the events dropped, up to ``detailed`` per
-    ``report_interval`` are audited one by one (with their reason); all are counted and
-    summed up in one audit record per ``report_interval``; a member whose events were
-    shed over its budget is asked for a fresh snapshot, at most once per
-    ``report_interval``.
+    such share. A member alive in the directory (its signed snapshot came) is held to its
+    own budget only: a forger claiming other names cannot spend it. Of the events
+    dropped, up to ``detailed`` per ``report_interval`` are audited one by one (with
+    their reason); all are counted and summed up in one audit record per
+    ``report_interval``; a member whose events were shed over its budget is asked for a
+    fresh snapshot, at most once per ``report_interval``.
     """
 
     # a member registering its services at start sends a burst: its own, within these

@@ -124,12 +124,14 @@ class Tally:
                 log.exception("could not report %d refusal(s) of %r", count, key)
 
     def close(self) -> None:
-        """Flush for the last time; what is added later is counted (`pending`), never emitted.
+        """Flush for the last time; what is added later is counted (`pending`), not emitted.
 
         Its owner calls it where it closes, before its audit does: no flush is left armed
         on a loop that may close with it.
         """
         with self._lock:
+            if self._closed:
+                return  # flushed when it closed (only a `flush` of its own emits what came since)
             self._closed = True
         self.flush()
 
