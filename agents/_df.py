@@ -608,10 +608,11 @@ class DirectoryFacilitator(Agent):
 
 _RESYNC_MAX_WAIT = 30.0  # s between a member's resyncs at most, while it does not answer
 _STALE_KEYS = 64  # platforms whose stale events are summed up apart, per interval
-_STALE_UNREAD = "not newer than its last accepted one (dropped before its signature check)"
 INVALID_LOG_INTERVAL = 30.0
 """Seconds between two log lines about one signer's invalid directory statements."""
 _PRESENCE_QUEUED = 64  # raw presence changes of one platform kept while one is handled
+RUNS_REFUSED_KEPT = 32
+"""Refused answers `runs_signed` hands its caller at most (the rest are only counted)."""
 
 
 class GlobalDirectory:
@@ -660,6 +661,8 @@ class GlobalDirectory:
         self._auth: DirectoryAuth = platform.directory_auth
         self._entries: dict[str, dict[tuple[str, str], ServiceDescription]] = {}
         self._alive: set[str] = set()
+        # alive, their first snapshot still asked: not exempt from the shared event budget
+        self._joining: set[str] = set()
         self._event_counts: dict[str, int] = {}
         self._watchers: list[Inbox[DirectoryEvent]] = []
         self._presence_watchers: list[Inbox[Presence]] = []
@@ -670,20 +673,16 @@ class GlobalDirectory:
         self.resyncs = 0  # fresh snapshots taken because events may have been lost, since start
         self.event_gate: DfEventGate | None = None
         self._shed_pending = Pending(1.0 if event_limit is None else event_limit.report_interval)
-        # stale events (normal now and then: one re-sent, or one a snapshot reflected
-        # already) are audited summed up, per platform and interval, never one by one
+        # stale events whose signature was checked (normal now and then: one re-sent, or
+        # one a snapshot reflected already) are audited summed up, per platform and
+        # interval, never one by one; the gate's, unchecked, are in its own summaries
         self._stale_tally = Tally(
             self._audit_stale, interval=self._shed_pending.period, max_keys=_STALE_KEYS
         )
         # invalid statements of trusted signers: logged once per signer per interval
         self._invalid_log = Tally(self._log_invalid, interval=INVALID_LOG_INTERVAL)
         if self._auth.authenticates and event_limit is not None:
-            self.event_gate = DfEventGate(
-                self._auth,
-                event_limit,
-                on_shed=self._shed_pending.add,
-                on_stale=lambda frm: self._stale_tally.add(frm, _STALE_UNREAD),
-            )
+            self.event_gate = DfEventGate(self._auth, event_limit, on_shed=self._shed_pending.add)
         self._resyncing: set[str] = set()
         # a member whose events were shed while its resync ran is asked once more after it;
         # each member is asked at most once per report interval (the interval after a
@@ -710,7 +709,7 @@ class GlobalDirectory:
         """
         p = self._platform
         gate = self.event_gate
-        self._stale_tally.bind(asyncio.get_running_loop())  # told on the transport's thread
+        self._stale_tally.bind(asyncio.get_running_loop())
         # Subscribe before the snapshot: what changes meanwhile is queued, not lost.
         events = await p.transport.subscribe(
             p.key("df-events", "*"), admit=None if gate is None else gate.admit
@@ -745,8 +744,17 @@ class GlobalDirectory:
         self._watchers.clear()
         self._presence_watchers.clear()
         # what was counted since the last summary is reported, not lost with the platform
-        self._stale_tally.flush()
-        self._invalid_log.flush()
+        self._stale_tally.close()
+        self._invalid_log.close()
+        for platform in list(self._presence_ignored):
+            self._presence_limit(platform, 0, audit=True)
+        gate = self.event_gate
+        if gate is not None:
+            details, summary, _ = gate.take_report(time.monotonic(), final=True)
+            for claimed, reason in details:
+                self._audit_refusal(claimed, f"directory event shed: {reason}", "df-events")
+            if summary is not None:
+                self._audit_shed(gate.limit, summary)
 
     @property
     def recheck_interval(self) -> float | None:
@@ -795,20 +803,29 @@ class GlobalDirectory:
 
         return Subscription(inbox, remove)
 
-    def _set_alive(self, platform: str, alive: bool) -> None:
+    def _set_alive(self, platform: str, alive: bool, *, joining: bool = False) -> None:
         """Take ``platform`` for alive or not; the event gate's exemption follows at once.
 
-        A member is exempt from the shared budget from the moment its presence is taken
-        (its first snapshot under way), not only once listed: a flood of forged events
-        under other names must not shed the events it sends meanwhile.
+        ``joining``: its presence was taken and its first signed snapshot is asked. It is
+        exempt from the shared budget only once that answer came: anyone may make a
+        trusted name's presence appear, and a silent name would keep its exemption for
+        as long as the query lasts. Its events shed over the shared budget meanwhile
+        have it asked again (`DfEventGate.joining`): no change it sends is lost.
         """
         if alive:
             self._alive.add(platform)
         else:
             self._alive.discard(platform)
-        if self.event_gate is not None:
-            # replaced whole: the transport's thread reads it without a lock
-            self.event_gate.priority = frozenset(self._alive)
+        if alive and joining:
+            self._joining.add(platform)
+        else:
+            self._joining.discard(platform)
+        gate = self.event_gate
+        if gate is not None:
+            # replaced whole: the transport's thread reads them without a lock; joining
+            # first, so that a name leaving it is never in neither set meanwhile
+            gate.joining = frozenset(self._joining)
+            gate.priority = frozenset(self._alive - self._joining)
 
     def _tell(self, event: DirectoryEvent) -> None:
         for inbox in list(self._watchers):
@@ -1080,16 +1097,18 @@ class GlobalDirectory:
                     self._invalid_log.add(platform, f"bad event on {item.key}: {exc}")
                 continue
             self._event_counts[platform] = self._event_counts.get(platform, 0) + 1
+            obj = statement.body
+            if isinstance(obj, dict) and obj.get("op") == "leave":
+                # whether or not still listed (its presence may have gone first): signed
+                self._gone(platform)
+                self._left(platform)
+                continue
             if platform not in self._alive:
                 continue  # its snapshot will be taken when its token appears
             try:
-                obj = statement.body
                 if not isinstance(obj, dict):
                     raise ValueError("the body of a directory event is an object")
                 op = obj.get("op")
-                if op == "leave":
-                    self._gone(platform)
-                    continue
                 if op not in _OPS:
                     raise ValueError(f"unknown op {op!r}")
                 service = ServiceDescription.model_validate(obj.get("service"))
@@ -1101,6 +1120,18 @@ class GlobalDirectory:
                 self._audit_invalid(platform, f"directory event: {exc}", "df-events")
                 continue
             self._apply(platform, op, service)
+
+    def _left(self, platform: str) -> None:
+        """Tell the channel that ``platform`` left, as it signed: its sessions can go.
+
+        Only a signed leave says so (a presence cleared may be forged): the channel then
+        seals for it on none of its sessions again, and ends a key exchange with it.
+        """
+        if not self._auth.authenticates:
+            return
+        left = getattr(self._platform.channel, "peer_left", None)
+        if left is not None:
+            left(platform)
 
     def _drop_entries(self, platform: str) -> None:
         self._entries.pop(platform, None)
@@ -1189,13 +1220,23 @@ class GlobalDirectory:
     def _presence_limit(
         self, platform: str, n: int, alive: bool | None = None, *, audit: bool = False
     ) -> None:
-        """Count ``n`` presence changes of ``platform`` not acted on; audit what was summed."""
+        """Count ``n`` presence changes of ``platform`` not acted on; audit what was summed.
+
+        ``alive``: the change acted on instead (None: none, the view closes).
+        """
         self.presence_limited += n
         total = self._presence_ignored.pop(platform, 0) + n
         if not audit:
             self._presence_ignored[platform] = total
             return
+        if not total:
+            return
         interval = getattr(self._platform.channel, "rehandshake_interval", 5.0)
+        then = (
+            "the view closed before acting on the latest"
+            if alive is None
+            else f"acted on the latest ({'alive' if alive else 'gone'}) instead"
+        )
         self._platform.audit(
             verdict="dropped",
             stage="df-presence-limited",
@@ -1204,7 +1245,7 @@ class GlobalDirectory:
                 f"presence changes of {platform!r} not acted on one by one: {total} over "
                 f"the budget of {PRESENCE_BURST} at once and {PRESENCE_RATE:g} per "
                 f"{interval:g} s (presence is not authenticated; each costs a signed "
-                f"query); acted on the latest ({'alive' if alive else 'gone'}) instead"
+                f"query); {then}"
             ),
             **{"from": platform},
         )
@@ -1215,8 +1256,17 @@ class GlobalDirectory:
         if alive:
             if platform in self._alive:
                 return
-            self._set_alive(platform, True)
-            confirmed = await self._fetch(platform)
+            self._set_alive(platform, True, joining=True)
+            try:
+                confirmed = await self._fetch(platform)
+            except Exception:
+                # not a transport's error (those are an unanswered query): whatever it is,
+                # the name must not stay alive, nor exempt, for good
+                log.exception("global-df[%s]: taking %r's snapshot", self._platform.name, platform)
+                if platform in self._alive:
+                    self._set_alive(platform, False)
+                    self._drop_entries(platform)
+                return
             if platform not in self._alive:
                 return
             if not confirmed and self._auth.authenticates:
@@ -1225,6 +1275,7 @@ class GlobalDirectory:
                 self._drop_entries(platform)
                 self._refuse(platform, "presence without a signed directory answer", "presence")
                 return
+            self._set_alive(platform, True)  # answered: exempt from the shared budget now
             self._tell(DirectoryEvent("platform-up", platform, None))
         elif platform in self._alive:
             if forgeable and self._auth.authenticates and await self._answers(platform):
@@ -1350,14 +1401,15 @@ async def runs_signed(
     What proves a platform runs, where its presence (a liveliness token, a retained MQTT
     message) is only a hint anyone on the network can give: the answer must verify with
     the key ``trust`` holds for ``platform`` (``keys``: this side's, for its own name).
-    Answers that do not are refused: each appended to ``refused`` (the platform it
-    claims, why) when given, and all of them logged in one warning at the end (this
-    runs before the platform and its audit exist).
+    Answers that do not are refused: the first `RUNS_REFUSED_KEPT` appended to
+    ``refused`` (the platform it claims, why) when given, and all of them counted and
+    logged in one warning at the end (this runs before the platform and its audit exist;
+    anyone may answer, as often as they like).
     """
     auth = DirectoryAuth(trust.federation, keys, trust)
     key = f"dyknow/{trust.federation}/v{WIRE_VERSION}/df/{platform}"  # as wire_key makes it
-    seen: list[tuple[str | None, str]] = [] if refused is None else refused
-    first = len(seen)
+    count = 0
+    first: tuple[str | None, str] | None = None
     answered = False
     for _ in range(tries):
         nonce = make_nonce()
@@ -1371,7 +1423,11 @@ async def runs_signed(
                     try:
                         auth.open(reply.payload, "df", platform=platform, nonce=nonce)
                     except DirectoryStatementError as exc:
-                        seen.append((exc.platform, exc.reason[:200]))
+                        count += 1
+                        if first is None:
+                            first = (exc.platform, exc.reason[:200])
+                        if refused is not None and count <= RUNS_REFUSED_KEPT:
+                            refused.append((exc.platform, exc.reason[:200]))
                         continue
                     answered = True
                     break
@@ -1379,13 +1435,13 @@ async def runs_signed(
             log.debug("asking %s whether it runs: %s", platform, exc)
         if answered:
             break
-    if len(seen) > first:
-        claimed, why = seen[first]
+    if first is not None:
+        claimed, why = first
         log.warning(
             "asking whether %r runs: %d directory answer(s) in its name refused (the first "
             "from a platform calling itself %r: %s)%s",
             platform,
-            len(seen) - first,
+            count,
             claimed,
             why,
             "" if answered else "; no answer signed with its key",

@@ -6,12 +6,14 @@ the platform's CPU, and push real events out of the subscription's queue. The
 `DfEventGate` runs on the transport's receiving thread, before the event is queued for
 the event loop and before any signature check: it drops what is malformed, not a
 directory event of this federation, from an untrusted name, unsigned or expired, or not
-newer than the last accepted event of its platform (counted as ``stale`` then, and
-audited summed up: it changes nothing), a few microseconds each, and lets through only
-as many of the rest as a budget allows, per claimed platform and in all.
-An event of a member shed for its budget (a forger claiming that member's name) is made
-good by asking the member again (`GlobalDirectory` takes a fresh signed snapshot). See
-``docs/security.md`` ("Directory-event load shedding").
+newer than the last accepted event of its platform (``stale``: it changes nothing, and
+anyone may send one under any name), a few microseconds each, and lets through only
+as many of the rest as a budget allows, per claimed platform and in all. All it drops is
+summed up in the same audit records (``df-events-shed``), none attributed to the
+platform it claims. An event of a member shed for its budget (a forger claiming that
+member's name), or of one joining (its first snapshot under way) shed for the shared
+budget, is made good by asking the member again (`GlobalDirectory` takes a fresh signed
+snapshot). See ``docs/security.md`` ("Directory-event load shedding").
 """
 
 from __future__ import annotations
@@ -37,12 +39,12 @@ class DfEventLimit:
     its platform) still needs a token: ``per_platform`` per second (bursts of
     ``per_platform_burst``) for each claimed platform, and, for a platform not alive in
     the global directory, one of the ``total`` per second (bursts of ``total_burst``) all
-    such share. A member alive in the directory is held to its own budget only: a forger
-    claiming other names cannot spend it. Of the events dropped, up to ``detailed`` per
-    ``report_interval`` are audited one by one (with their reason); all are counted and
-    summed up in one audit record per ``report_interval``; a member whose events were
-    shed over its budget is asked for a fresh snapshot, at most once per
-    ``report_interval``.
+    such share. A member alive in the directory (its signed snapshot came) is held to its
+    own budget only: a forger claiming other names cannot spend it. Of the events
+    dropped, up to ``detailed`` per ``report_interval`` are audited one by one (with
+    their reason); all are counted and summed up in one audit record per
+    ``report_interval``; a member whose events were shed over its budget is asked for a
+    fresh snapshot, at most once per ``report_interval``.
     """
 
     # a member registering its services at start sends a burst: its own, within these
@@ -68,6 +70,7 @@ _WHY = {
     "unsigned": "unsigned statement",
     "expired": "timestamp outside the allowed skew",
 }
+STALE = "stale"  # not newer than the last accepted event of its platform: counted only
 
 
 class DfEventGate(ShedGate):
@@ -76,7 +79,10 @@ class DfEventGate(ShedGate):
     ``admit(payload)`` is thread-safe and never raises; ``take_report(now)`` (the event
     loop's side) returns what to audit and which members to ask again. ``priority`` (a
     frozenset of platform names, replaced whole by the owner) names the platforms alive
-    in the directory: exempt from the shared budget.
+    in the directory: exempt from the shared budget. ``joining`` (likewise) names those
+    whose presence was taken and whose first signed snapshot is still asked: held to the
+    shared budget (anyone may make a presence appear), but an event of theirs shed over
+    it has them asked again.
     """
 
     CLAIMED_BUDGET = PLATFORM_BUDGET
@@ -89,12 +95,10 @@ class DfEventGate(ShedGate):
         *,
         monotonic: Callable[[], float] = time.monotonic,
         on_shed: Callable[[], None] | None = None,
-        on_stale: Callable[[str], None] | None = None,
     ) -> None:
         super().__init__(limit, limit.per_platform, limit.per_platform_burst, monotonic, on_shed)
         self.auth = auth
-        self.stale = 0  # events dropped as not newer than the last accepted, since start
-        self._on_stale = on_stale  # told the claimed platform of each (on this thread)
+        self.joining: frozenset[str] = frozenset()
         self._resync: set[str] = set()  # members shed over their budget since the last take
 
     def admit(self, payload: bytes) -> bool:
@@ -104,21 +108,16 @@ class DfEventGate(ShedGate):
         except Exception:  # whatever it is, it is not an event to check
             screened = ("malformed", None)
         reason, frm = screened
-        if reason == "stale":
-            # already reflected, or replayed: changes nothing; audited summed up (`on_stale`)
-            with self._lock:
-                self.stale += 1
-            if self._on_stale is not None and frm is not None:
-                self._on_stale(frm)
-            return False
         if reason:
+            # a stale one too: already reflected, or replayed, and its signature unchecked,
+            # so counted with the rest, never attributed to the platform it claims
             return self._drop(reason, frm)
         assert frm is not None
         now = self._monotonic()
         with self._lock:
             over = self._spend_locked(frm, now)
             if over is not None:
-                if over is PLATFORM_BUDGET and frm in self.priority:
+                if (over is PLATFORM_BUDGET and frm in self.priority) or frm in self.joining:
                     self._resync.add(frm)  # a real event may be among those shed
                 return self._drop_locked(over, frm)
         return True
@@ -154,11 +153,18 @@ class DfEventGate(ShedGate):
                 return "expired", frm
         newest = auth.newest(frm)
         if newest is not None and (boot, seq) <= newest:
-            return "stale", frm
+            return STALE, frm
         return "", frm
 
-    def _explain(self, reason: str, claimed: str | None) -> str:
-        """Why an event was shed, for its audit record."""
+    @property
+    def stale(self) -> int:
+        """Events dropped as not newer than the last accepted of their platform, since start."""
+        return self.shed[STALE]
+
+    def _explain(self, reason: str, claimed: str | None) -> str | None:
+        """Why an event was shed, for its audit record (None: a stale one, counted only)."""
+        if reason == STALE:
+            return None  # normal now and then (one re-sent): never a record of its own
         why = _WHY.get(reason) or (
             f"over {claimed!r}'s budget of {self.limit.per_platform:g}/s"
             if reason == PLATFORM_BUDGET
@@ -172,15 +178,16 @@ class DfEventGate(ShedGate):
         return sum(self.shed.values())
 
     def take_report(
-        self, now: float
+        self, now: float, *, final: bool = False
     ) -> tuple[list[tuple[str | None, str]], dict[str, Any] | None, set[str]]:
         """The shed events to audit one by one, a summary once per interval (else None),
         and the members to ask again (their events were shed over their budget).
+        ``final``: the owner closes, the summary of what is pending is due now.
 
         The summary has ``count`` (events shed since the last one), ``by_reason`` and
         ``seconds`` (since the last summary; None for the first).
         """
         with self._lock:
             resync, self._resync = self._resync, set()
-            details, summary = self._report_locked(now)
+            details, summary = self._report_locked(now, final)
         return details, summary, resync

@@ -118,11 +118,16 @@ class ShedGate:
         return bool(self._pending or self._details)
 
     def _report_locked(
-        self, now: float
+        self, now: float, final: bool = False
     ) -> tuple[list[tuple[str | None, str]], dict[str, Any] | None]:
-        """The details kept since the last call, and a summary once per interval (else None)."""
+        """The details kept since the last call, and a summary once per interval (else None).
+
+        ``final``: the owner closes; a summary of what is pending now, whenever the last.
+        """
         details, self._details = self._details, []
-        if not self._pending or now - self._last_report < self.limit.report_interval:
+        if not self._pending or (
+            not final and now - self._last_report < self.limit.report_interval
+        ):
             return details, None
         self._detailed = 0
         pending, self._pending = self._pending, Counter()

@@ -580,6 +580,8 @@ class InterfaceAgent:
         self.handshake = Handshake(keys, trust, policy=self.policy, clock=clock)
         self.sessions = SessionTable(keys.platform, trust, policy=self.policy, clock=clock)
         self._handshakes: dict[str, asyncio.Future[None]] = {}
+        # the key exchange under way with each peer, ended at once by its signed leave
+        self._exchanging: dict[str, asyncio.Timeout] = {}
         self._last_rehandshake: dict[str, float] = {}
         # Liveliness is not authenticated: per trusted peer, the presence changes acted on
         # (`_presence_admits`), when one last lifted its re-handshake limiter, the changes
@@ -932,10 +934,14 @@ class InterfaceAgent:
         # the good one, so each is tried as it comes (a refused one leaves our request
         # pending), and the first that finishes the exchange ends it, without waiting for
         # the query's end (on MQTT, its whole timeout).
+        ended = self._exchanging[peer] = asyncio.timeout(None)  # `peer_left` ends it
         try:
-            async with await host.transport.ask(
-                host.key("kx", peer), request, timeout=self.handshake_timeout
-            ) as replies:
+            async with (
+                ended,
+                await host.transport.ask(
+                    host.key("kx", peer), request, timeout=self.handshake_timeout
+                ) as replies,
+            ):
                 async for reply in replies:
                     if not reply.ok:
                         if len(errors) < _KX_ERRORS_KEPT:  # anyone may send them, unbounded
@@ -956,9 +962,19 @@ class InterfaceAgent:
                     self.sessions.add(session)
                     self._kx_priority()
                     return
+        except TimeoutError:
+            self.handshake.cancel(peer)
+            if not ended.expired():
+                raise
+            raise TransportError(
+                f"platform {peer!r} left the federation (signed): no key exchange with it"
+            ) from None
         except BaseException:
             self.handshake.cancel(peer)
             raise
+        finally:
+            if self._exchanging.get(peer) is ended:
+                del self._exchanging[peer]
         self.handshake.cancel(peer)
         if first is None:
             detail = f" (error replies, not authenticated: {'; '.join(errors)})" if errors else ""
@@ -1707,7 +1723,7 @@ class InterfaceAgent:
         Send on none of them until it sends on one: they may be a previous process's.
         Nothing is forgotten, nor a pending key exchange cancelled, as anyone may write a
         presence: a forged leave must not lose the answer in flight on a session (a real
-        leave shows when the next key exchange finds nobody). Changes over a peer's budget
+        leave is signed: `peer_left` retires the sessions then). Changes over a peer's budget
         (`_presence_admits`) are counted and audited, and stand for one doubt of its
         sessions once the budget allows.
         """
@@ -1730,6 +1746,24 @@ class InterfaceAgent:
             else:
                 self._alive.discard(peer)
             self._kx_priority()
+
+    def peer_left(self, peer: str) -> None:
+        """``peer`` said, signed, that it leaves: retire its sessions, end a key exchange.
+
+        Its global directory tells (a signed leave cannot be forged, unlike a presence
+        cleared): none of its sessions is sealed on again, nor trusted again by an
+        envelope of its that comes late (they open within ``grace``, then go), so the
+        next message to it agrees a new session, and finds nobody at once if it is gone.
+        """
+        if peer == self._me or peer not in self.trust:
+            return
+        if peer in self._outbox:
+            self._flush(peer)  # what waits in this turn's batch goes as the message before it
+        self.sessions.retire(peer)
+        exchange = self._exchanging.get(peer)
+        if exchange is not None:
+            with contextlib.suppress(RuntimeError):  # it is just ending anyway
+                exchange.reschedule(asyncio.get_running_loop().time())  # ends it at once
 
     def _doubt(self, peer: str) -> None:
         """Seal for ``peer`` on none of its sessions until it sends on one (`SessionTable.doubt`).

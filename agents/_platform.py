@@ -178,10 +178,11 @@ class PlatformStats:
     they claim or ask (a sender of another platform, no receiver here, a ``reply_to`` it
     does not allow, access denied; each audited); ``agent_refused`` requests this
     platform's agents answered with ``refuse`` themselves (a responder raising
-    ``Refuse``); ``unknown_receiver`` / ``mailbox_full`` messages for no agent here / for
-    a full mailbox (answered with ``failure``); those of other platforms among these
-    three are audited summed up (``agent-refuse`` / ``delivery`` records, one per
-    platform and kind per `REFUSAL_AUDIT_INTERVAL`; docs/security.md);
+    ``Refuse``); ``unknown_receiver`` / ``mailbox_full`` / ``stopping`` messages for no
+    agent here / for a full mailbox / for an agent that is stopping (answered with
+    ``failure``); those of other platforms among these four are audited summed up
+    (``agent-refuse`` / ``delivery`` records, one per platform and kind per
+    `REFUSAL_AUDIT_INTERVAL`; docs/security.md);
     ``rehandshakes`` new sessions started because a trusted peer
     sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
     ignored (at most one per peer per ``rehandshake_interval``), ``presence_suppressed``
@@ -198,6 +199,7 @@ class PlatformStats:
     forged: int = 0
     unknown_receiver: int = 0
     mailbox_full: int = 0
+    stopping: int = 0
     misrouted: int = 0
     answers_dropped: int = 0
     unauthenticated: int = 0
@@ -382,8 +384,10 @@ class AgentPlatform:
             await agent.stop()
         if self.global_df is not None:
             self.global_df.close()
-        # refusals counted since the last summary are written before the audit closes
-        self._refusals.flush()
+        # refusals counted since the last summary are written before the audit closes (the
+        # channel's subscriptions close with it, so none comes once it closes; any later
+        # is counted in the stats only)
+        self._refusals.close()
         try:
             await self.channel.aclose()
         except Exception:
@@ -565,6 +569,7 @@ class AgentPlatform:
             self.stats.unknown_receiver += 1
             kind, reason = "unknown-receiver", f"no agent {receiver}"
         elif not agent.running:
+            self.stats.stopping += 1
             kind, reason = "stopping", f"{receiver} is stopping"
         else:
             self.stats.mailbox_full += 1

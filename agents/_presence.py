@@ -3,8 +3,10 @@
 Anyone on the network may declare a liveliness token, or write a retained MQTT presence,
 under a trusted platform's name. The Interface Agent (doubting the peer's sessions) and
 the global directory (asking the peer a signed query) each act on a peer's presence
-changes within the same budget: `PRESENCE_BURST` at once, then `PRESENCE_RATE` per the
-channel's ``rehandshake_interval``. See ``docs/security.md`` ("Presence within a budget").
+changes within a budget of the same size: `PRESENCE_BURST` at once, then
+`PRESENCE_RATE` per the channel's ``rehandshake_interval``. Each keeps its own bucket, so
+a peer's changes are acted on up to twice that overall (once by each). See
+``docs/security.md`` ("Presence within a budget").
 """
 
 from __future__ import annotations

@@ -1032,6 +1032,8 @@ class SessionTable:
         self._heard: dict[str, float] = {}
         # per peer, the `Session.missing` of its sessions dropped from the table
         self._missing_dropped: dict[str, int] = {}
+        # per peer that left (signed), when: its sessions made before are never trusted again
+        self._left: dict[str, float] = {}
         self._max_envelope = policy.max_envelope_bytes
         # a binary body is carried as is: the body plus a header of names, integers and a MAC
         self._max_bin_envelope = policy.max_body_bytes + 1024
@@ -1137,6 +1139,26 @@ class SessionTable:
         # the next envelope from the peer, on whichever session, confirms that one again
         self._rx_latest.pop(peer, None)
         return doubted
+
+    def retire(self, peer: str) -> int:
+        """Seal for ``peer`` on none of its sessions again, and drop them after ``grace``.
+
+        For a peer that said, signed, that it leaves: unlike `doubt`, an envelope of its
+        that comes late still opens (within ``grace``) but trusts no session again, so
+        the next message to it agrees a new session (and finds nobody, if it is gone).
+        How many sessions were retired.
+        """
+        now = self._clock()
+        retire_at = now + self.policy.grace
+        sessions = self._by_peer.get(peer, ())
+        for session in sessions:
+            session._confirmed = False
+            if session._retire_at is None or session._retire_at > retire_at:
+                session._retire_at = retire_at
+        self._left[peer] = now
+        self._tx.pop(peer, None)
+        self._rx_latest.pop(peer, None)
+        return len(sessions)
 
     def prune(self) -> int:
         """Drop sessions past their lifetime or their grace period; how many were dropped."""
@@ -1332,6 +1354,9 @@ class SessionTable:
 
     def _on_rx_switch(self, session: Session, now: float) -> None:
         """The peer sent on another session than last time: confirm it, retire older ones."""
+        left = self._left.get(session.peer)
+        if left is not None and session.established <= left:
+            return  # in flight when the peer left: opened, but its session is over
         session._confirmed = True
         self._tx.pop(session.peer, None)  # the choice of sending session may change
         latest = self._rx_latest.get(session.peer)

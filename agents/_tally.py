@@ -5,7 +5,9 @@ little to repeat (a request an agent refuses, a message for a full mailbox): a r
 each would let a flood of them flood the audit. `Tally` counts each one (a dict
 increment under a lock) and hands the counts to its ``emit`` callback once per
 ``interval`` at most, one call per key: the first refusal after a quiet spell at once,
-what follows within the interval summed up into the next call.
+what follows within the interval summed up into the next call. The quiet spell is the
+tally's as a whole, not the key's: within ``interval`` of any flush, a key's first
+refusal waits for the next one too. `Tally.close` flushes for the last time.
 """
 
 from __future__ import annotations
@@ -37,7 +39,8 @@ class Tally:
     """
 
     __slots__ = (
-        "_emit", "_last", "_lock", "_loop", "_pending", "_scheduled", "interval", "max_keys",
+        "_closed", "_emit", "_handle", "_last", "_lock", "_loop", "_pending", "_scheduled",
+        "interval", "max_keys",
     )  # fmt: skip
 
     def __init__(self, emit: Emit, *, interval: float = 1.0, max_keys: int = 256) -> None:
@@ -51,6 +54,8 @@ class Tally:
         self._pending: dict[Hashable, list[Any]] = {}  # key -> [count, last detail]
         self._scheduled = False  # a flush is due (or being scheduled)
         self._last = -math.inf  # loop time of the last flush
+        self._handle: asyncio.TimerHandle | None = None  # the flush armed for later
+        self._closed = False  # `close`d: refusals are counted only, never emitted
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         """Flush on ``loop`` (for `add` from other threads)."""
@@ -69,8 +74,9 @@ class Tally:
                     entry = pending[key] = [0, detail]
             entry[0] += n
             entry[1] = detail
-            schedule = not self._scheduled
-            self._scheduled = True
+            schedule = not self._scheduled and not self._closed
+            if schedule:
+                self._scheduled = True
         if schedule:
             self._schedule()
 
@@ -90,9 +96,11 @@ class Tally:
         """On the loop: flush now if an interval passed since the last, else when it has."""
         loop = self._loop
         assert loop is not None
+        if self._closed:
+            return  # armed before `close`, which flushed
         wait = self._last + self.interval - loop.time()
         if wait > 0:
-            loop.call_later(wait, self.flush)
+            self._handle = loop.call_later(wait, self.flush)
         else:
             self.flush()
 
@@ -100,6 +108,9 @@ class Tally:
         """Emit what is pending now, one call per key (on the loop)."""
         loop = self._loop
         now = loop.time() if loop is not None else 0.0
+        handle, self._handle = self._handle, None
+        if handle is not None:
+            handle.cancel()  # a no-op when it is what runs this flush
         with self._lock:
             pending, self._pending = self._pending, {}
             self._scheduled = False
@@ -111,6 +122,18 @@ class Tally:
                 self._emit(key, count, detail, seconds)
             except Exception:  # one key's record failing must not lose the others'
                 log.exception("could not report %d refusal(s) of %r", count, key)
+
+    def close(self) -> None:
+        """Flush for the last time; what is added later is counted (`pending`), not emitted.
+
+        Its owner calls it where it closes, before its audit does: no flush is left armed
+        on a loop that may close with it.
+        """
+        with self._lock:
+            if self._closed:
+                return  # flushed when it closed (only a `flush` of its own emits what came since)
+            self._closed = True
+        self.flush()
 
     @property
     def pending(self) -> int:

@@ -266,6 +266,8 @@ class ImportProxy(ProxyBase):
         await self._tasks.aclose()
         for rec in self._imports.values():
             self._end(rec)
+        # what was refused since the last report is told, not lost with the proxy
+        self._tell_refused()
 
     async def _report_losses(self) -> None:
         """Report to each sender, every ``report_interval``, on every stream it sends here.

@@ -15,11 +15,13 @@ import asyncio
 import contextlib
 import multiprocessing
 import threading
+import time
 import uuid
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
 
+import orjson
 import pytest
 import zenoh
 from _load import cpu_slowdown
@@ -152,7 +154,7 @@ def test_gate_budgets_per_claimed_platform_and_shared() -> None:
 
 
 def test_gate_drops_junk_untrusted_unsigned_expired_and_counts_stale() -> None:
-    """The cheap checks; a stale event is counted as such (it changes nothing), not shed."""
+    """The cheap checks; a stale event is counted as such (it changes nothing) and shed."""
     gate, _ = _gate(DfEventLimit())
     old = _forged("f", "uav-m", 1, GONE, ROGUE)
     assert gate.admit(old)
@@ -172,8 +174,13 @@ def test_gate_drops_junk_untrusted_unsigned_expired_and_counts_stale() -> None:
         "misdirected": 1,
         "unsigned": 1,
         "expired": 1,
+        "stale": 1,
     }
     assert gate.admitted == 1
+    # summed up with the rest, never one by one: unchecked, it may be anyone's
+    details, summary, _ = gate.take_report(0.0)
+    assert summary is not None and summary["by_reason"]["stale"] == 1
+    assert all("stale" not in why for _, why in details), details
 
 
 def test_a_limit_is_checked() -> None:
@@ -426,3 +433,153 @@ async def test_a_member_just_seen_is_exempt_from_the_shared_budget(tmp_path: Pat
                 async with asyncio.timeout(5):  # shown by the snapshot asked again
                     while not any(s.name == "late" for s in view.services("uav-b")):  # noqa: ASYNC110
                         await asyncio.sleep(0.02)
+
+
+def _zenoh_session(port: int) -> zenoh.Session:
+    """A plain zenoh session of an outsider (no key of the federation), on loopback."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    return zenoh.open(conf)
+
+
+@contextlib.contextmanager
+def _outsider_toggling(port: int, fed: str, names: list[str]) -> Iterator[None]:
+    """An outsider's tokens under ``names`` toggled, their directories held silent."""
+    session = _zenoh_session(port)
+    stop = threading.Event()
+    held: list[Any] = []  # a query dropped is ended: kept, it waits its timeout
+    silent = [session.declare_queryable(wire_key(fed, "df", n), held.append) for n in names]
+
+    def toggle() -> None:
+        while not stop.is_set():
+            tokens = [session.liveliness().declare_token(wire_key(fed, "alive", n)) for n in names]
+            stop.wait(0.05)
+            for token in tokens:
+                token.undeclare()
+            stop.wait(0.05)
+
+    thread = threading.Thread(target=toggle, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join(5)
+        for queryable in silent:
+            queryable.undeclare()
+        held.clear()
+        session.close()
+
+
+async def test_a_name_whose_presence_an_outsider_toggles_is_held_to_the_shared_budget(
+    tmp_path: Path,
+) -> None:
+    """uav-c and uav-d (trusted, not running): tokens toggled, directories silent, events forged.
+
+    Each appearance had uav-a take the name for alive, exempt from the shared budget, while
+    it asked the name's snapshot (three queries, each to its timeout): the forged events
+    under both names reached their signature check at each name's own budget nearly all
+    the time. Now a name is exempt only once its signed snapshot came: until then its
+    events spend the shared budget, as any name's not in the directory.
+    """
+    fed = f"dfj-{uuid.uuid4().hex[:8]}"
+    names = ["uav-a", "uav-c", "uav-d"]
+    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
+    trust = TrustStore.load(tmp_path / "trust.json")
+    port = free_tcp_port()
+    channel = InterfaceAgent(KeyPair.load(tmp_path / "uav-a.key"), trust)
+    seconds = 5.0
+    async with (
+        asyncio.timeout(60),
+        ZenohTransport(ZenohConfig.loopback(port)) as ta,
+        AgentPlatform("uav-a", ta, federation=fed, channel=channel, query_timeout=0.5) as pa,
+    ):
+        view = pa.global_df
+        assert view is not None and view.event_gate is not None
+        view.recheck_interval = None
+        gate, limit = view.event_gate, view.event_gate.limit
+        with (
+            _outsider_toggling(port, fed, ["uav-c", "uav-d"]),
+            _outsider_flooding(port, fed, ["uav-c", "uav-d"]),
+        ):
+            while not {"uav-c", "uav-d"} <= view._alive:  # noqa: ASYNC110
+                await asyncio.sleep(0.01)  # both names' presence taken
+            admitted, samples, taken = gate.admitted, 0, 0
+            end = asyncio.get_running_loop().time() + seconds
+            while asyncio.get_running_loop().time() < end:
+                samples += 1
+                taken += ("uav-c" in view._alive) + ("uav-d" in view._alive)
+                await asyncio.sleep(0.05)
+            checked = gate.admitted - admitted
+        print(
+            f"\n{checked} forged events reached their signature check in {seconds:g} s; "
+            f"the names taken for alive {taken / (2 * samples):.0%} of the time"
+        )
+        assert taken / (2 * samples) > 0.5, "the outsider's presence was not taken"
+        # the shared budget only: its burst (full at the start, maybe) and its rate
+        assert checked <= limit.total_burst + limit.total * (seconds + 0.5), checked
+        assert not gate.priority & {"uav-c", "uav-d"}
+
+
+async def test_stale_events_forged_under_a_member_are_not_audited_in_its_name(
+    tmp_path: Path,
+) -> None:
+    """An outsider re-sends junk under uav-b's name, stale (``boot`` 0, ``seq`` 0).
+
+    Dropped stale before any signature check, each wrote (one per second) a record
+    ``df-events-stale`` attributed to uav-b: an outsider wrote audit records in a member's
+    name, with what it liked. Now they are summed up with the rest the gate sheds
+    (``df-events-shed``, ``by_reason`` ``stale``), attributed to nobody.
+    """
+    fed = f"dfs-{uuid.uuid4().hex[:8]}"
+    names = ["uav-a", "uav-b"]
+    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
+    trust = TrustStore.load(tmp_path / "trust.json")
+    port = free_tcp_port()
+
+    def channel(name: str) -> InterfaceAgent:
+        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+
+    b_config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+    async with (
+        asyncio.timeout(30),
+        ZenohTransport(ZenohConfig.loopback(port)) as ta,
+        ZenohTransport(b_config) as tb,
+        AgentPlatform("uav-b", tb, federation=fed, channel=channel("uav-b")),
+        AgentPlatform("uav-a", ta, federation=fed, channel=channel("uav-a")) as pa,
+    ):
+        view = pa.global_df
+        assert view is not None and view.event_gate is not None
+        while "uav-b" not in view.platforms or view._auth.newest("uav-b") is None:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)
+        outsider = _zenoh_session(port)
+        try:
+            key = wire_key(fed, "df-events", "uav-b")
+            for _ in range(200):
+                junk = {"v": 1, "kind": "df-event", "fed": fed, "from": "uav-b", "boot": 0}
+                junk |= {"seq": 0, "ts_ms": int(time.time() * 1000), "sig": "junk", "body": "{}"}
+                outsider.put(key, orjson.dumps(junk))
+                await asyncio.sleep(0.005)
+            async with asyncio.timeout(10):
+                while view.event_gate.stale < 150:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)
+        finally:
+            outsider.close()
+        stale = view.event_gate.stale
+        audit = pa.channel.audit  # type: ignore[attr-defined]
+        summed = 0
+        async with asyncio.timeout(5):
+            while summed < stale:
+                records = list(audit.records)
+                shed = [r for r in records if r.get("stage") == "df-events-shed"]
+                summed = sum(r["by_reason"].get("stale", 0) for r in shed)
+                await asyncio.sleep(0.05)
+        assert summed == stale
+        assert all(r.get("from") is None for r in shed), shed
+        assert not [r for r in records if r.get("stage") == "df-events-stale"]
+        in_its_name = [
+            r for r in records if r.get("from") == "uav-b" and "df-events" in r.get("stage", "")
+        ]
+        assert not in_its_name, in_its_name

@@ -1,0 +1,166 @@
+"""A platform's signed leave retires its sessions: a request to it then fails fast.
+
+A presence that goes may be forged, so it only doubts the peer's sessions (none sealed on
+until the peer sends on one), and any late envelope of the peer trusted one again: after
+a real leave, the next request to the peer was sealed on a session nobody holds any
+more and waited its timeout. The leave the peer's directory signs cannot be forged: on
+it the sessions are retired (an envelope that comes late still opens, within ``grace``,
+but trusts none again), so the next message agrees a new session, and the key exchange
+finds nobody at once.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import uuid
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+from _echo import ProtectedEcho
+
+from agents import (
+    ACLMessage,
+    Agent,
+    AgentPlatform,
+    InterfaceAgent,
+    KeyPair,
+    TransportError,
+    TrustStore,
+    on_request,
+    request,
+    wire_key,
+)
+from agents._acl import Performative
+from agents._exceptions import AuthenticationError
+from agents.keys import gen_keys, trust_keys
+from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+
+TIMEOUT = 5.0  # the request's: what it waited after a real leave
+
+
+def _outsider(port: int) -> zenoh.Session:
+    """A plain zenoh session on loopback (no key of the federation)."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{port}"]')
+    return zenoh.open(conf)
+
+
+class Echo(ProtectedEcho):
+    """Answers with what it was asked."""
+
+    @on_request("demo")
+    async def _echo(self, message: ACLMessage) -> object:
+        """The content."""
+        return message.content
+
+
+async def test_a_request_to_a_platform_that_left_fails_at_once(tmp_path: Path) -> None:
+    """uav-b leaves (signed); an envelope it sealed before comes late; uav-a asks it again."""
+    fed = f"leave-{uuid.uuid4().hex[:8]}"
+    names = ["uav-a", "uav-b"]
+    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
+    trust = TrustStore.load(tmp_path / "trust.json")
+    port = free_tcp_port()
+
+    def channel(name: str) -> InterfaceAgent:
+        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+
+    ca = channel("uav-a")
+    async with (
+        asyncio.timeout(60),
+        ZenohTransport(ZenohConfig.loopback(port)) as ta,
+        AgentPlatform("uav-a", ta, federation=fed, channel=ca) as pa,
+    ):
+        view = pa.global_df
+        assert view is not None
+        asker = await pa.add(Agent("asker"))
+        late = b""
+        async with (
+            ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[port])) as tb,
+            AgentPlatform("uav-b", tb, federation=fed, channel=channel("uav-b")) as pb,
+        ):
+            await pb.add(Echo())
+            while "uav-b" not in view.platforms:  # noqa: ASYNC110
+                await asyncio.sleep(0.02)
+            assert await request(asker, "echo@uav-b", 1, ontology="demo", timeout=TIMEOUT) == 1
+            # sealed now, delivered after uav-b left (held up on the way)
+            inform = ACLMessage(
+                performative=Performative.INFORM,
+                sender="echo@uav-b",
+                receivers=["asker@uav-a"],
+                content={"late": True},
+            )
+            cb = pb.channel
+            assert isinstance(cb, InterfaceAgent)
+            late = cb.sessions.seal("uav-a", inform.to_json())
+            events = view._event_counts.get("uav-b", 0)
+        # uav-b is gone: its signed leave taken (an event), its presence too
+        while (  # noqa: ASYNC110
+            view._event_counts.get("uav-b", 0) == events
+            or "uav-b" in view.platforms
+            or "uav-b" in ca._alive
+        ):
+            await asyncio.sleep(0.02)
+        received = pa.stats.received_remote
+        with _outsider(port) as relay:  # whoever held it up lets it go now
+            relay.put(wire_key(fed, "acl", "uav-a"), late)
+            async with asyncio.timeout(5):
+                while pa.stats.received_remote == received:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)  # opened: it is authentic, within grace
+        start = time.monotonic()
+        with pytest.raises((TransportError, TimeoutError)):
+            await request(asker, "echo@uav-b", 2, ontology="demo", timeout=TIMEOUT)
+        waited = time.monotonic() - start
+        print(f"\na request to uav-b after it left failed in {waited:.2f} s")
+        assert waited < TIMEOUT / 2, waited  # its key exchange found nobody
+
+
+async def test_a_key_exchange_under_way_ends_when_the_peer_leaves(tmp_path: Path) -> None:
+    """uav-a agrees a session with uav-b; no answer comes (a silent queryable holds the
+    query open); uav-b leaves, signed: the key exchange ends then, not at its timeout."""
+    fed = f"leave-{uuid.uuid4().hex[:8]}"
+    names = ["uav-a", "uav-b"]
+    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
+    trust = TrustStore.load(tmp_path / "trust.json")
+    port = free_tcp_port()
+    ca = InterfaceAgent(KeyPair.load(tmp_path / "uav-a.key"), trust, handshake_timeout=TIMEOUT)
+    cb = InterfaceAgent(KeyPair.load(tmp_path / "uav-b.key"), trust)
+
+    def refuse(payload: bytes) -> Any:
+        raise AuthenticationError("not now", "uav-a")  # uav-b answers no key exchange
+
+    cb.handshake.respond = refuse  # type: ignore[method-assign]
+    held: list[Any] = []  # a query dropped is ended: kept, it waits its timeout
+    async with (
+        asyncio.timeout(60),
+        ZenohTransport(ZenohConfig.loopback(port)) as ta,
+        AgentPlatform("uav-a", ta, federation=fed, channel=ca) as pa,
+    ):
+        view = pa.global_df
+        assert view is not None
+        with _outsider(port) as outsider:
+            silent = outsider.declare_queryable(wire_key(fed, "kx", "uav-b"), held.append)
+            config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+            async with (
+                ZenohTransport(config) as tb,
+                AgentPlatform("uav-b", tb, federation=fed, channel=cb),
+            ):
+                while "uav-b" not in view.platforms:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)
+                agreeing = asyncio.create_task(ca.agree("uav-b"))
+                while not held:  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)  # the exchange is under way
+                start = time.monotonic()
+            # uav-b closed: its signed leave sent
+            with pytest.raises(TransportError):
+                await agreeing
+            waited = time.monotonic() - start
+            silent.undeclare()
+            held.clear()
+        print(f"\nthe key exchange with uav-b ended {waited:.2f} s after it began to leave")
+        assert waited < TIMEOUT / 2, waited
