@@ -1,0 +1,86 @@
+"""A member that misbehaves costs a victim bounded logs and audit records, every drop counted.
+
+The attacker is a *member* (``uav-m``, authenticated, running our own library); the victim
+a spawned platform (the harness of test_member_authz, whose victim here also counts the
+log records of our packages). Each test floods the victim with what it drops and asserts
+the drop, its count, its summed-up audit record and a bounded log.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import dataclasses
+import logging
+from collections import Counter
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import pytest
+import test_member_authz as authz
+from test_faults import until
+from test_member_authz import audited, in_file, mallory, world
+
+from agents import Performative
+
+pytestmark = pytest.mark.timeout(180)
+
+P = Performative
+_LOGGED: Counter[str] = Counter()  # in the victim: records logged, per logger
+
+
+class _Counted(logging.Handler):
+    """Counts what our packages log (WARNING and above) in the victim, per logger."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        _LOGGED[record.name] += 1
+
+
+def victim_main(config_path: str, conn: Connection) -> None:
+    """test_member_authz's victim, whose stats also say what it logged and its agents' stats."""
+    for name in ("agents", "federation"):
+        logging.getLogger(name).addHandler(_Counted(logging.WARNING))
+    stats = authz._stats
+
+    def more(p: Any) -> dict[str, Any]:
+        agents = {a.name: dataclasses.asdict(a.stats) for a in p.agents.agents}
+        return {**stats(p), "logged": dict(_LOGGED), "agent_stats": agents}
+
+    authz._stats = more
+    authz.victim_main(config_path, conn)
+
+
+@pytest.fixture
+def counted(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Victims spawned by `world` run `victim_main` above."""
+    monkeypatch.setattr(authz, "victim_main", victim_main)
+
+
+async def test_unsolicited_answers_are_counted_audited_and_logged_boundedly(
+    tmp_path: Path, counted: None
+) -> None:
+    n = 600
+    big = "x" * 100_000  # what each would make the victim log, were it logged
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"]) as w:
+        mal = await mallory(w)
+        for i in range(n):
+            kind = P.FAILURE if i % 2 else P.NOT_UNDERSTOOD
+            await mal.send(mal.message(kind, "federation@uav-a", f"{i} {big}"))
+            if i % 50 == 0:
+                await asyncio.sleep(0.01)
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: (
+                sum(r["count"] for r in audited(s, code="unsolicited", **{"from": "uav-m"})) >= n
+            ),
+            "every unsolicited answer counted and summed up in the audit",
+        )
+        assert s["agent_stats"]["federation"]["unsolicited"] == n
+        recs = audited(s, verdict="dropped", stage="delivery", code="unsolicited")
+        assert sum(r["count"] for r in recs) == n
+        assert len(recs) <= 20, len(recs)  # summed up, not one record each
+        assert recs[-1]["reason"].startswith("unsolicited: ")
+        assert len(recs[-1]["reason"]) < 1000  # the last one's content, cut short
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        # logged once, then once per 1000: not a line (of 100 kB) each
+        assert s["logged"].get("agents._agent", 0) <= 2, s["logged"]
