@@ -21,7 +21,9 @@ import test_member_authz as authz
 from test_faults import until
 from test_member_authz import audited, in_file, mallory, world
 
-from agents import Performative
+from agents import Performative, wire_key
+from federation._batch import pack_batch
+from federation._sessions import InterfaceSessions
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -84,3 +86,46 @@ async def test_unsolicited_answers_are_counted_audited_and_logged_boundedly(
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
         # logged once, then once per 1000: not a line (of 100 kB) each
         assert s["logged"].get("agents._agent", 0) <= 2, s["logged"]
+
+
+async def test_invented_senders_neither_hide_nor_frame_a_members_dropped_batches(
+    tmp_path: Path,
+) -> None:
+    rounds, ghosts = 12, 64
+    async with asyncio.timeout(150), world(tmp_path, ["uav-b"], ["uav-c", "uav-m"]) as w:
+        m = w.here["uav-m"]
+        sessions = InterfaceSessions(m.interface)
+        await sessions.ensure("uav-b")
+        stream = wire_key(w.federation, "stream", "uav-b")
+        for r in range(rounds):
+            # an outsider's junk under invented sender names (any zenoh client may publish
+            # it): each name its own summing-up key, until the proxy's bound
+            for g in range(ghosts):
+                await m.transport.publish(f"{stream}/ghost{r}-{g}/car1-state", b"junk")
+            # then the member: a batch nobody agreed to, and one sealed by it but published
+            # under uav-c's name
+            for claimed in ("uav-m", "uav-c"):
+                body = pack_batch("car1-state", [({"r": r}, r + 1, 0)], 0)
+                await m.transport.publish(
+                    f"{stream}/{claimed}/car1-state", sessions.seal_bytes("uav-b", body)
+                )
+            await asyncio.sleep(0.1)
+
+        def told(s: dict[str, Any], code: str, frm: str) -> int:
+            return sum(r["count"] for r in audited(s, stage="import", code=code, **{"from": frm}))
+
+        s = await w.until_stats(
+            "uav-b",
+            lambda s: sum(r["count"] for r in audited(s, stage="import")) >= rounds * (ghosts + 2),
+            "every dropped batch summed up in the audit",
+        )
+        # the member's own refusals are never summed up with the invented names' ("*")
+        assert told(s, "unagreed", "uav-m") == rounds
+        # and the batches it published as uav-c are its own, not uav-c's
+        assert told(s, "wrong-sender", "uav-m") == rounds
+        assert told(s, "wrong-sender", "uav-c") == 0
+        recs = audited(s, stage="import")
+        assert sum(r["count"] for r in recs) == rounds * (ghosts + 2)
+        assert len(recs) <= 40 * 8, len(recs)  # the invented names are still bounded
+        (last,) = audited(s, stage="import", code="wrong-sender")[-1:]
+        await until(lambda: in_file(tmp_path, "uav-b", last), "the record in the audit file")
