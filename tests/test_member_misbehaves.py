@@ -19,10 +19,11 @@ from typing import Any
 import pytest
 import test_member_authz as authz
 from test_faults import until
-from test_member_authz import audited, in_file, mallory, world
+from test_member_authz import WAIT, audited, in_file, mallory, world
 
-from agents import Performative, wire_key
+from agents import FIPA_REQUEST, Performative, wire_key
 from federation._batch import pack_batch
+from federation._service_content import ONTOLOGY
 from federation._sessions import InterfaceSessions
 
 pytestmark = pytest.mark.timeout(180)
@@ -129,3 +130,25 @@ async def test_invented_senders_neither_hide_nor_frame_a_members_dropped_batches
         assert len(recs) <= 40 * 8, len(recs)  # the invented names are still bounded
         (last,) = audited(s, stage="import", code="wrong-sender")[-1:]
         await until(lambda: in_file(tmp_path, "uav-b", last), "the record in the audit file")
+
+
+async def test_a_create_stream_cancelled_at_once_exports_nothing(tmp_path: Path) -> None:
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"]) as w:
+        fed = w.here["uav-m"].federation_agent
+        await fed.create_stream("uav-a", ["car0-state"], timeout=WAIT)  # sessions agreed
+        mal = await mallory(w)
+        to = fed.provider_of("uav-a")
+        for i in range(1, 6):
+            # a requester that gives up at once (a command interrupted): its create-stream
+            # and the FIPA cancel in its conversation reach the provider together
+            conversation = f"c-gave-up-{i}"
+            create = {"action": "create-stream", "labels": [f"car{i}-state"]}
+            fields = {"protocol": FIPA_REQUEST, "ontology": ONTOLOGY}
+            fields["conversation_id"] = conversation
+            await mal.send(mal.message(P.REQUEST, to, create, reply_with=f"r{i}", **fields))
+            await mal.send(mal.message(P.CANCEL, to, None, **fields))
+        await asyncio.sleep(2.0)
+        # none of them runs (the exports' lease would end them only after 10 s)
+        s = await w.stats("uav-a")
+        assert [e[:2] for e in s["exports"]] == [("uav-m", "car0-state")], s["exports"]
+        assert len(s["agreed"]) == 1 and s["refusals"] == {}
