@@ -477,7 +477,10 @@ class FederationAgent(Agent):
         self._resolved_by: tuple[PlatformLabels, LabelMapping, Vocabulary] | None = None
         self._resolved_labels = 0  # bounds `_resolved` (`_MAX_RESOLVED`): members pick the lists
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
-        self.add_handler(MessageTemplate(P.CANCEL, ontology=ONTOLOGY), self._on_cancel)
+        self.add_handler(
+            MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_cancel),
+            self._on_cancel,
+        )
 
     # -- lifecycle and membership -------------------------------------------------------
 
@@ -1079,6 +1082,14 @@ class FederationAgent(Agent):
             )
         await self._end(record)
         return {"cancelled": export_id}
+
+    def _is_export_cancel(self, message: ACLMessage) -> bool:
+        """A cancel of an export's conversation, or one that may be of a create-stream
+        not taken up yet (an initiator's: in a conversation, in reply to nothing)."""
+        key = (message.sender, message.conversation_id or "")
+        if key in self._by_conversation or key in self._creating:
+            return True
+        return message.conversation_id is not None and message.in_reply_to is None
 
     async def _on_cancel(self, message: ACLMessage) -> None:
         """FIPA cancel of a create-stream by its requester: stop the export, confirm.
