@@ -544,8 +544,9 @@ class ImportProxy(ProxyBase):
         rec.batches += 1
         rec.received += len(samples)
         if frm in self._gone:
-            # still in flight when the sender's token went: its streams are ended
-            rec._drop_samples(DropReason.SENDER_GONE, len(samples))
+            # still in flight when the sender's token went (its streams are ended), or sent
+            # by a member after it said it left: summed up in the audit too
+            self._bad_samples(rec, DropReason.SENDER_GONE, len(samples))
             return
         if batch.recovered:
             assert batch.seq is not None  # read_batch checks it

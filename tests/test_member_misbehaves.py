@@ -158,3 +158,32 @@ async def test_a_create_stream_cancelled_at_once_exports_nothing(tmp_path: Path)
         s = await w.stats("uav-a")
         assert [e[:2] for e in s["exports"]] == [("uav-m", "car0-state")], s["exports"]
         assert len(s["agreed"]) == 1 and s["refusals"] == {}
+
+
+async def test_a_member_streaming_after_its_leave_is_counted_and_audited(tmp_path: Path) -> None:
+    async with asyncio.timeout(150), world(tmp_path, ["uav-b"]) as w:
+        m = w.here["uav-m"]
+        assert (await w.ask("uav-b", "uav-m", ["car1-state"])).startswith("x-")
+        await w.until_stats(
+            "uav-b", lambda s: "import/uav-m/car1-state" in s["labels"], "the stream imported"
+        )
+        # uav-m says, signed, that it leaves; its export (20 batches a second) goes on
+        assert m.agents.df is not None
+        await m.agents.df.announce_leave()
+
+        def gone(s: dict[str, Any]) -> int:
+            return int(s["imports"]["totals"]["dropped_samples"].get("sender-gone", 0))
+
+        def told(s: dict[str, Any]) -> int:
+            recs = audited(s, stage="import-samples", code="sender-gone", **{"from": "uav-m"})
+            return sum(r["count"] for r in recs)
+
+        s = await w.until_stats(
+            "uav-b",
+            lambda s: gone(s) >= 20 and told(s) == gone(s),
+            "the samples of a member that left dropped, counted and audited summed up",
+        )
+        recs = audited(s, stage="import-samples", code="sender-gone")
+        assert len(recs) <= 2 * 30, len(recs)  # one per report interval at most
+        assert recs[-1]["stream"] == "car1-state"
+        assert "left" in recs[-1]["reason"]
