@@ -236,6 +236,7 @@ class AgentStats:
     handled: int = 0
     handler_errors: int = 0
     not_understood: int = 0
+    unsolicited: int = 0
     late: int = 0
     dropped: int = 0
     conversation_overflow: int = 0
@@ -862,14 +863,17 @@ class Agent:
             self.stats.late += 1
             log.debug("%s: late %s from %s dropped", self, message.performative, message.sender)
             return
+        platform = self._platform
         if message.performative in NEVER_ANSWERED:
-            log.warning(
-                "%s: unsolicited %s from %s: %r",
-                self,
-                message.performative,
-                message.sender,
-                message.content,
-            )
+            # another platform may send these at will: a line (of its content) each would
+            # let it fill the log; counted, audited summed up, logged now and then
+            self.stats.unsolicited += 1
+            n = self.stats.unsolicited
+            what = f"unsolicited {message.performative} for {self.aid}: {message.content!r:.200}"
+            if n == 1 or n % 1000 == 0:
+                log.warning("%s: %s, from %s (%d since start)", self, what, message.sender, n)
+            if platform is not None:
+                platform.agent_dropped(message, "unsolicited", what)
             return
         self.stats.not_understood += 1
         what = f"{message.performative}"
@@ -877,6 +881,8 @@ class Agent:
             what += f" (protocol {message.protocol})"
         if message.ontology:
             what += f" (ontology {message.ontology})"
+        if platform is not None:
+            platform.agent_dropped(message, "not-understood", f"{self.aid}: {what}"[:300])
         await self._answer(
             message, Performative.NOT_UNDERSTOOD, f"{self.aid} has no handler for {what}"
         )

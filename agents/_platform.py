@@ -229,6 +229,16 @@ _REFUSAL_KINDS = {
     "unknown-receiver": ("dropped", "delivery", "message(s) for no agent of this platform"),
     "mailbox-full": ("dropped", "delivery", "message(s) for an agent whose mailbox is full"),
     "stopping": ("dropped", "delivery", "message(s) for an agent that is stopping"),
+    "unsolicited": (
+        "dropped",
+        "delivery",
+        "failure / not-understood message(s) in no conversation of the agent",
+    ),
+    "not-understood": (
+        "dropped",
+        "delivery",
+        "message(s) no handler of the agent takes (answered not-understood)",
+    ),
     # more (platform, kind) pairs in one interval than the tally sums up one by one
     "*": ("dropped", "delivery", "refusal(s) of any kind (too many platforms to tell apart)"),
 }
@@ -597,6 +607,16 @@ class AgentPlatform:
         if peer != self.name:
             detail = f"{', '.join(message.receivers)}: {str(reason)[:200]}"
             self._refusals.add((peer, "refuse"), detail)
+
+    def agent_dropped(self, message: ACLMessage, kind: str, detail: str) -> None:
+        """Audit (summed up) a message of another platform an agent here had no use for.
+
+        ``kind``: ``unsolicited`` (an answer in no conversation: dropped) or
+        ``not-understood`` (no handler: answered not-understood); the agent counts it.
+        """
+        peer = platform_of(message.sender)
+        if peer != self.name:
+            self._refusals.add((peer, kind), detail)
 
     def _audit_refusals(self, key: object, count: int, detail: str, seconds: float | None) -> None:
         """One audit record for ``count`` refusals of one platform's messages, of one kind."""

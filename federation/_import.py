@@ -59,8 +59,12 @@ agreed batches dropped (malformed, or rejected by the stream) since last told.""
 
 # How many payloads the import loop handles before letting other tasks run.
 _YIELD_EVERY = 64
-_MAX_REFUSED_KEYS = 32  # (sender, reason) pairs summed up between two on_refused calls: the
-# rest (invented sender names of an outsider's flood) share one "*" entry per reason
+_MAX_REFUSED_KEYS = 32  # (claimed sender, reason) pairs summed up between two on_refused
+# calls: the rest (invented sender names of an outsider's flood) share one "*" entry per
+# reason. An authenticated sender (a member: bounded by the trust file) has its own up to
+# _MAX_AUTHENTIC_KEYS, or such a flood would hide a member's refusals among the invented
+# names' (that bound for sessions that prove nothing: PlainSessions, in tests)
+_MAX_AUTHENTIC_KEYS = 1024
 
 
 class Import:
@@ -409,22 +413,32 @@ class ImportProxy(ProxyBase):
         self._reportable.set()
         return rec
 
-    def _refuse(self, sender: str, label: str, reason: str) -> None:
-        """Count one whole batch dropped, and why, against what it claimed to be."""
+    def _refuse(self, sender: str, label: str, reason: str, by: str | None = None) -> None:
+        """Count one whole batch dropped, and why, against what it claimed to be.
+
+        ``by``: the member that sealed it (authenticated), told to `on_refused` instead
+        of the name it claimed.
+        """
         counts = self._counts(sender, label)
         counts.batches += 1
         counts._drop_batch(reason)
-        self._note_refused(sender, reason, 0)
+        self._note_refused(sender if by is None else by, reason, 0, authentic=by is not None)
 
-    def _note_refused(self, sender: str, reason: str, samples: int) -> None:
-        """Sum up a dropped batch for the next `on_refused` (bounded: a flood costs nothing)."""
+    def _note_refused(
+        self, sender: str, reason: str, samples: int, *, authentic: bool = False
+    ) -> None:
+        """Sum up a dropped batch for the next `on_refused` (bounded: a flood costs nothing).
+
+        ``authentic``: ``sender`` is proven (a member): invented names do not push it
+        into the ``"*"`` entry.
+        """
         if self.on_refused is None:
             return
         reason = str(reason)  # told as the plain string it always was (audit records keep it)
         key = (sender, reason)
         entry = self._refused.get(key)
         if entry is None:
-            if len(self._refused) >= _MAX_REFUSED_KEYS:
+            if len(self._refused) >= (_MAX_AUTHENTIC_KEYS if authentic else _MAX_REFUSED_KEYS):
                 key = ("*", reason)
                 entry = self._refused.get(key)
             if entry is None:
@@ -505,17 +519,18 @@ class ImportProxy(ProxyBase):
             self._refuse(sender, label, DropReason.MALFORMED)
             return
         if frm != sender:
-            # authentic, but published under another platform's name: trust neither
-            self._refuse(sender, label, DropReason.WRONG_SENDER)
+            # authentic, but published under another platform's name: trust neither; the
+            # audit names who sealed it (proven), not whom it would pass for
+            self._refuse(sender, label, DropReason.WRONG_SENDER, by=frm)
             return
         try:
             batch = read_batch(body)
         except ValueError:
-            self._refuse(frm, label, DropReason.MALFORMED)
+            self._refuse(frm, label, DropReason.MALFORMED, by=frm)
             return
         semantic, samples = batch.label, batch.samples
         if semantic != label:
-            self._refuse(frm, label, DropReason.WRONG_LABEL)
+            self._refuse(frm, label, DropReason.WRONG_LABEL, by=frm)
             return
         rec = self._imports.get((frm, semantic))
         if rec is None:
@@ -525,14 +540,15 @@ class ImportProxy(ProxyBase):
                 counts.batches += 1
                 counts.received += len(samples)
                 counts._drop_samples(DropReason.UNAGREED, len(samples))
-                self._note_refused(frm, DropReason.UNAGREED, len(samples))
+                self._note_refused(frm, DropReason.UNAGREED, len(samples), authentic=True)
                 return
             rec = self._new_import(frm, semantic, local)
         rec.batches += 1
         rec.received += len(samples)
         if frm in self._gone:
-            # still in flight when the sender's token went: its streams are ended
-            rec._drop_samples(DropReason.SENDER_GONE, len(samples))
+            # still in flight when the sender's token went (its streams are ended), or sent
+            # by a member after it said it left: summed up in the audit too
+            self._bad_samples(rec, DropReason.SENDER_GONE, len(samples))
             return
         if batch.recovered:
             assert batch.seq is not None  # read_batch checks it

@@ -759,6 +759,13 @@ def _unstarted(rec: Import | None) -> bool:
     return rec is not None and rec.batches == 0
 
 
+# why an import dropped samples of authentic batches, for `_import_bad_samples`'s records
+_BAD_SAMPLES = {
+    "malformed": "not [value, valid time, …]",
+    "sender-gone": "its sender left, or its token went, while they were on their way",
+}
+
+
 class FederationPlatform:
     """One platform's assembly, as an async context manager: everything a member needs.
 
@@ -1133,7 +1140,7 @@ class FederationPlatform:
             reason=(
                 f"{reason}: {samples} sample(s) of {sender!r}'s stream {label!r} dropped from "
                 "authentic batches by the import proxy ("
-                + ("not [value, valid time, …]" if reason == "malformed" else "refused here")
+                + _BAD_SAMPLES.get(reason, "refused here")
                 + ")"
             ),
         )

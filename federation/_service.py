@@ -176,6 +176,8 @@ MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
 # the labels (counted in the lists asked) whose translation a provider keeps: any member
 # may ask for new lists of valid labels (a pattern's), and each label may be 200 characters
 _MAX_RESOLVED = 2048
+_MAX_CANCELLED_EARLY = 256  # cancels kept for a create-stream not taken up yet (a member
+# may send cancels in conversations that never had one: the oldest are forgotten)
 
 __all__ = [
     "FEDERATION_AGENT",
@@ -453,6 +455,10 @@ class FederationAgent(Agent):
         # (requester, conversation) -> cancelled: create-streams not answered yet; one its
         # requester cancels meanwhile (it gave up waiting) is stopped once started
         self._creating: dict[tuple[str, str], bool] = {}
+        # (requester, conversation) of cancels that came before their create-stream was
+        # taken up: both were in the mailbox at once (a requester that gave up at once),
+        # and the create-stream's task had not run yet when the cancel was routed
+        self._cancelled_early: dict[tuple[str, str], None] = {}
         self._reserved = 0
         # (provider, label) -> how many of our create-streams not yet answered expect it,
         # agreed by nothing else: withdrawn when none of them is accepted (`_settle`)
@@ -473,7 +479,7 @@ class FederationAgent(Agent):
         self._resolved_labels = 0  # bounds `_resolved` (`_MAX_RESOLVED`): members pick the lists
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
         self.add_handler(
-            MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_conversation),
+            MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_cancel),
             self._on_cancel,
         )
 
@@ -964,7 +970,11 @@ class FederationAgent(Agent):
         creating = None
         if message.conversation_id is not None:
             creating = (message.sender, message.conversation_id)
-            self._creating[creating] = False
+            # its requester's cancel may have been routed before this task ran
+            early = creating in self._cancelled_early
+            if early:
+                del self._cancelled_early[creating]
+            self._creating[creating] = early
         cancelled = False
         try:
             for receiver in receivers:
@@ -1074,18 +1084,29 @@ class FederationAgent(Agent):
         await self._end(record)
         return {"cancelled": export_id}
 
-    def _is_export_conversation(self, message: ACLMessage) -> bool:
+    def _is_export_cancel(self, message: ACLMessage) -> bool:
+        """A cancel of an export's conversation, or one that may be of a create-stream
+        not taken up yet (an initiator's: in a conversation, in reply to nothing)."""
         key = (message.sender, message.conversation_id or "")
-        return key in self._by_conversation or key in self._creating
+        if key in self._by_conversation or key in self._creating:
+            return True
+        return message.conversation_id is not None and message.in_reply_to is None
 
     async def _on_cancel(self, message: ACLMessage) -> None:
         """FIPA cancel of a create-stream by its requester: stop the export, confirm.
 
-        One still being created is stopped as soon as it started (its requester gave up).
+        One still being created is stopped as soon as it started (its requester gave up);
+        one whose create-stream was not taken up yet, as soon as it is (bounded: the
+        latest `_MAX_CANCELLED_EARLY` such cancels are kept).
         """
         key = (message.sender, message.conversation_id or "")
         if key in self._creating:
             self._creating[key] = True
+        elif key not in self._by_conversation and message.conversation_id is not None:
+            early = self._cancelled_early
+            early[key] = None
+            while len(early) > _MAX_CANCELLED_EARLY:
+                del early[next(iter(early))]
         export_id = self._by_conversation.get(key)
         record = self._exports.get(export_id or "")
         if record is not None:

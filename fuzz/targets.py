@@ -25,7 +25,7 @@ import asyncio
 import contextlib
 import logging
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from typing import Any
 
@@ -216,6 +216,19 @@ class InterfaceTarget(_Target):
         self.platform = await self.stack.enter_async_context(
             AgentPlatform(ME, t, federation=FED, channel=channel)
         )
+        # records summing up refusals past the Interface Agent (an agent's not-understood,
+        # an unsolicited answer) come on top of its one decision per input, later
+        self.summed = 0  # such records, each one call (`AgentPlatform._audit_refusals`)
+        self._summed: deque[dict[str, Any]] = deque(maxlen=64)  # the latest of them
+        tally = self.platform._refusals
+        emit = tally._emit
+
+        def summed(*told: Any) -> None:
+            emit(*told)
+            self.summed += 1
+            self._summed.extend(self.ia.audit.last(1))
+
+        tally._emit = summed
         echo = await self.platform.add(_Echo("echo"))
         assert self.platform.df is not None
         await self.platform.df.register(
@@ -270,7 +283,7 @@ class InterfaceTarget(_Target):
         stats = self.platform.stats
         # counters of the platform's rate limiting, where it is there (getattr: optional)
         return (
-            sum(self.ia.audit.counts.values()),
+            sum(self.ia.audit.counts.values()) - self.summed,
             getattr(stats, "unauthenticated", 0),
             getattr(stats, "rate_limited", 0),
         )
@@ -301,7 +314,7 @@ class InterfaceTarget(_Target):
                 f"{now_records - records} audit records for one authentic input "
                 f"({expected} message(s))"
             )
-        rec = audit.records[-1]
+        rec = next(r for r in reversed(audit.records) if r not in self._summed)
         verdict = rec["verdict"]
         if verdict == "refused" and rec["performative"] is None:
             # no message was read: its bytes were refused, and its sender is told why,

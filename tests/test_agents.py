@@ -206,7 +206,7 @@ async def test_unmatched_message_gets_not_understood_saying_why() -> None:
         assert silent.stats.not_understood == 1
 
 
-async def test_stray_not_understood_and_failure_are_logged_not_answered(
+async def test_stray_not_understood_and_failure_are_counted_not_answered(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     async with asyncio.timeout(5), platforms("p") as [p]:
@@ -222,8 +222,11 @@ async def test_stray_not_understood_and_failure_are_logged_not_answered(
         assert answer.in_reply_to == "r-x"
         assert a.seen.empty()
         assert silent.stats.not_understood == 1
+        assert silent.stats.unsolicited == 2
+        # the first is logged; the rest are counted (and, from another platform, audited
+        # summed up), logged once per 1000: a peer could send them at will
         assert "unsolicited not-understood" in caplog.text
-        assert "unsolicited failure" in caplog.text
+        assert "unsolicited failure" not in caplog.text
 
 
 async def test_message_to_an_unknown_agent_fails_for_it() -> None:
