@@ -1383,8 +1383,8 @@ class FederationAgent(Agent):
 
         Best-effort and in the background: once the provider handles the create-stream,
         the cancel stops its export (at once, or as soon as it started); one that arrives
-        before that matches nothing there, and the export ends with its lease (we withdrew
-        the stream, so nothing here renews it).
+        before is kept there and stops it as soon as it starts; one lost on the way leaves
+        the export to end with its lease (we withdrew the stream, so nothing here renews it).
         """
         cancel = self.message(
             P.CANCEL,
