@@ -519,6 +519,7 @@ class FoxgloveBridge:
                     host=self.host,
                     port=self.port,
                     idle_timeout=self.platform.config.console.idle_timeout,  # as its access
+                    max_per_address=self.platform.config.console.max_clients_per_address,
                 )
             )
             self.port = self._relay.port

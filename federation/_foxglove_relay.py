@@ -18,8 +18,10 @@ from a client (a client only subscribes), ends the connection.
 What a client makes the SDK log (``foxglove.websocket.connected_client`` and the loggers
 below it, ``….poller`` and ``….send_lossy``: one line per unknown channel of a
 subscribe, so one 1 MiB message could write ~20 000; one per connection closed, per
-outbox found full) is held to one line per `SDK_LOG_INTERVAL` while a relay runs; the
-next line let through says how many were held back (`SdkLogThrottle`).
+outbox found full), and its server's (``foxglove.websocket.server``: a "Registered
+client" and an "Unregistered client" line per connection, so a client reconnecting in a
+loop writes two lines a turn), are each held to one line per `SDK_LOG_INTERVAL` while a
+relay runs; the next line let through says how many were held back (`SdkLogThrottle`).
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from typing import Any
 import aiohttp
 from aiohttp import WSMsgType, web
 
-from .console import IDLE_TIMEOUT, ConsoleAccess, serve
+from .console import IDLE_TIMEOUT, MAX_CLIENTS_PER_ADDRESS, ConsoleAccess, serve
 
 __all__ = ["MAX_CONNECTIONS", "SDK_LOG_INTERVAL", "SUBPROTOCOLS", "FoxgloveRelay", "SdkLogThrottle"]
 
@@ -54,18 +56,24 @@ _SENDABLE = frozenset({1000, 1001, 1003, 1007, 1008, 1009, 1010, 1011})  # close
 SDK_LOG_INTERVAL = 1.0  # s: at most one line of what clients make the SDK log, per interval
 # The SDK's logger per client; its modules log below it (``.poller``, ``.send_lossy``).
 _SDK_CLIENT_LOGGER = "foxglove.websocket.connected_client"
+# The SDK server's logger: a line per connection registered and per one unregistered.
+_SDK_SERVER_LOGGER = "foxglove.websocket.server"
 
 
 class SdkLogThrottle(logging.Filter):
     """Lets one record through per ``interval``; the next one let through counts the rest.
 
-    Installed on the SDK's per-client loggers while a relay runs (`installed`): a token
-    holder's messages must not flood the log. Thread-safe (the SDK logs from its threads).
+    Installed on one of the SDK's loggers (``logger``, the per-client one by default) and
+    those below it while a relay runs (`installed`): a token holder's messages, or its
+    connections, must not flood the log. Thread-safe (the SDK logs from its threads).
     """
 
-    def __init__(self, interval: float = SDK_LOG_INTERVAL) -> None:
+    def __init__(
+        self, interval: float = SDK_LOG_INTERVAL, logger: str = _SDK_CLIENT_LOGGER
+    ) -> None:
         super().__init__()
         self.interval = interval
+        self.logger = logger  # the name of the logger whose subtree it holds
         self.held = 0  # records held back since the last one let through
         self._next = 0.0
         self._lock = threading.Lock()
@@ -88,14 +96,14 @@ class SdkLogThrottle(logging.Filter):
 
     @contextlib.contextmanager
     def installed(self) -> Any:
-        """On the SDK's per-client loggers while in the block (shared by relays at once).
+        """On ``self.logger`` and those below it while in the block (shared by relays at once).
 
         A logger's filter sees only what is logged on that logger, not what its children
         propagate to it: the SDK logs below its per-client logger too. So the whole
         subtree goes through one handler there, filtered, which passes what it lets
         through on up the tree, as propagation would have.
         """
-        logger = logging.getLogger(_SDK_CLIENT_LOGGER)
+        logger = logging.getLogger(self.logger)
         with self._lock:
             self._users += 1
             if self._users == 1:
@@ -137,6 +145,7 @@ class _Gate(logging.Handler):
 
 
 _SDK_LOG = SdkLogThrottle()
+_SDK_SERVER_LOG = SdkLogThrottle(logger=_SDK_SERVER_LOGGER)  # a budget of its own
 
 
 def _json_error(status: int, reason: str, **headers: str) -> web.Response:
@@ -170,8 +179,10 @@ class FoxgloveRelay:
         host: str,
         port: int,
         idle_timeout: float = IDLE_TIMEOUT,
+        max_per_address: int = MAX_CLIENTS_PER_ADDRESS,
     ) -> None:
         self.access = access
+        self.max_per_address = max_per_address  # connections one client address may hold
         self.idle_timeout = idle_timeout  # s a connection has to send a whole request
         self.inner_url = inner_url
         self.host = host
@@ -196,12 +207,19 @@ class FoxgloveRelay:
         stack = self._stack = contextlib.AsyncExitStack()
         try:
             stack.enter_context(_SDK_LOG.installed())  # until the last client is gone
+            stack.enter_context(_SDK_SERVER_LOG.installed())
             timeout = aiohttp.ClientTimeout(total=CONNECT_TIMEOUT)  # the inner upgrade
             self._session = await stack.enter_async_context(aiohttp.ClientSession(timeout=timeout))
             app = web.Application()
             app.router.add_get("/{tail:.*}", self._upgrade)
             self.port = await serve(
-                app, self.host, self.port, stack, self.access, idle_timeout=self.idle_timeout
+                app,
+                self.host,
+                self.port,
+                stack,
+                self.access,
+                max_per_address=self.max_per_address,
+                idle_timeout=self.idle_timeout,
             )
             stack.push_async_callback(self._close_all)  # before the runner's cleanup
         except BaseException:

@@ -375,6 +375,8 @@ class LocalChannel:
         self._made: dict[tuple[str, str], Any] = {}
         # (target, label) -> set once the cancel of the channel's export of it is done
         self._ending: dict[tuple[str, str], asyncio.Event] = {}
+        # (target, label) -> set once the channel's create-stream of it has ended, either way
+        self._creating: dict[tuple[str, str], asyncio.Event] = {}
         # anyone on the network may ask who we are: screened on the transport's thread, so
         # a flood costs no task each on the event loop (a second node asks once)
         self._who_lock = threading.Lock()
@@ -622,14 +624,17 @@ class LocalChannel:
         cancelled after the last: its entry, with this command counted in, for `_release`.
         One stream is imported once, at one rate: a command asking for a sample period that
         import does not have is refused (NotAnsweredError says why), never given another
-        rate than it asked for.
+        rate than it asked for. Its create-stream runs outside the lock: a command for
+        another stream never waits for it (a platform that does not answer holds it up to
+        ``timeout`` s); one for this stream does (`_creating`), then shares what it made.
         """
         p = self.platform
         key = (target, semantic)
         while True:
             async with self._lock:
-                # a cancel of this stream on its way: asked again only once it has ended
-                ending = self._ending.get(key)
+                # a cancel of this stream on its way, or its create-stream: asked again only
+                # once that has ended (the create's outcome is then in `_exports`)
+                ending = self._ending.get(key) or self._creating.get(key)
                 if ending is None:
                     entry = self._exports.get(key)
                     if entry is not None:
@@ -656,13 +661,23 @@ class LocalChannel:
                                 )
                             )
                         return None  # the node's own
-                    export_id = await p.federation_agent.create_stream(
-                        target, [semantic], sample_period=sample_period, timeout=timeout
-                    )
-                    entry = self._exports[key] = _Shared(export_id, key, sample_period)
-                    self._made[key] = p.importer.get(target, semantic)
-                    return entry
+                    creating = self._creating[key] = asyncio.Event()
+                    break
             await ending.wait()
+        # The create-stream runs outside the lock (up to ``timeout`` s for a platform that
+        # does not answer): only the commands for this stream wait for it (`_creating`).
+        try:
+            export_id = await p.federation_agent.create_stream(
+                target, [semantic], sample_period=sample_period, timeout=timeout
+            )
+            # recorded with no await between: a cancel arriving now cannot lose the export
+            entry = self._exports[key] = _Shared(export_id, key, sample_period)
+            self._made[key] = p.importer.get(target, semantic)
+            return entry
+        finally:
+            # failed or cancelled: the next command for it asks again itself
+            del self._creating[key]
+            creating.set()
 
     async def _release(self, target: str, entry: _Shared) -> None:
         """Take back the count `_acquire` took; the last one out cancels the export.

@@ -273,7 +273,9 @@ class ConsoleSettings(BaseModel):
     latest value. ``allow_hosts`` are host names a request's ``Host`` may name besides
     localhost and IP addresses; ``token_file`` holds the console's token (else
     ``DYKNOW_CONSOLE_TOKEN``, else a random one, printed at start). ``idle_timeout``: the
-    seconds a connection has to send a whole request before it is closed.
+    seconds a connection has to send a whole request before it is closed;
+    ``max_clients_per_address``: the connections one client address may hold open at once
+    (of 128 in all; behind a shared proxy every client has the proxy's address).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -283,6 +285,7 @@ class ConsoleSettings(BaseModel):
     allow_hosts: tuple[str, ...] = ()
     token_file: Path | None = None
     idle_timeout: float = Field(default=15.0, gt=0.0, le=3600.0)
+    max_clients_per_address: int = Field(default=32, ge=1, le=128)
 
     @field_validator("streams")
     @classmethod

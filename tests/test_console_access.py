@@ -36,6 +36,7 @@ from federation._local import _LINE, channel_path
 from federation.console import (
     ALLOW_HOSTS_ENV,
     MAX_CLIENTS,
+    MAX_CLIENTS_PER_ADDRESS,
     TOKEN_ENV,
     allowed_names,
     configured_token,
@@ -341,14 +342,23 @@ def test_slow_and_silent_clients_cost_the_console_bounded_connections(
     # idle_timeout s without a whole request (15 s, `IDLE_TIMEOUT`; IDLE here, to be quick).
     c = quick_console
     held = []
+    # from as many loopback addresses as one may hold its share each (Linux answers on all
+    # of 127/8), the extra ones from one more: the bound in all, not one address's
+    sources = MAX_CLIENTS // MAX_CLIENTS_PER_ADDRESS
     try:
-        for _ in range(MAX_CLIENTS):
-            s = socket.create_connection(("127.0.0.1", c.port), timeout=WAIT)
+        for i in range(MAX_CLIENTS):
+            s = socket.create_connection(
+                ("127.0.0.1", c.port),
+                timeout=WAIT,
+                source_address=(f"127.0.0.{i % sources + 2}", 0),
+            )
             s.sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # never ended
             held.append(s)
         deadline = time.monotonic() + WAIT
         while True:  # once the console took the held ones in, one more is refused
-            extra = socket.create_connection(("127.0.0.1", c.port), timeout=0.5)
+            extra = socket.create_connection(
+                ("127.0.0.1", c.port), timeout=0.5, source_address=(f"127.0.0.{sources + 2}", 0)
+            )
             try:
                 answer = extra.recv(4096)
             except TimeoutError:  # served: some held ones were still in the backlog
@@ -371,6 +381,47 @@ def test_slow_and_silent_clients_cost_the_console_bounded_connections(
             s.close()
     stats = c.stats()  # served again
     assert stats["busy"] >= 1 and stats["refused_total"] == 0, stats
+    assert stats["busy_address"] == 0, stats
+
+
+@pytest.mark.timeout(90)
+def test_one_address_cannot_take_every_connection(console: Console) -> None:
+    # One client address held MAX_CLIENTS connections, each unfinished: the console had
+    # none left for anyone. Now MAX_CLIENTS_PER_ADDRESS of them, the next one refused,
+    # while another address (127.0.0.2, a loopback address too) is still served.
+    c = console
+    held = []
+    try:
+        for _ in range(MAX_CLIENTS_PER_ADDRESS):
+            s = socket.create_connection(("127.0.0.1", c.port), timeout=WAIT)
+            s.sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # never ended
+            held.append(s)
+        deadline = time.monotonic() + WAIT
+        while True:  # once the console took the held ones in, one more is refused
+            extra = socket.create_connection(("127.0.0.1", c.port), timeout=0.5)
+            try:
+                answer = extra.recv(4096)
+            except TimeoutError:  # served: some held ones were still in the backlog
+                held.append(extra)
+            else:
+                extra.close()
+                if answer.startswith(b"HTTP/1.1 503"):
+                    break
+            assert time.monotonic() < deadline
+        assert b"too many connections open from this address" in answer
+        assert len(held) == MAX_CLIENTS_PER_ADDRESS  # none of the held ones was refused
+        with socket.create_connection(
+            ("127.0.0.1", c.port), timeout=WAIT, source_address=("127.0.0.2", 0)
+        ) as other:
+            other.sendall(
+                b"GET /api/stats HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n"
+            )
+            assert other.recv(4096).startswith(b"HTTP/1.1 401")  # served: asked for its token
+    finally:
+        for s in held:
+            s.close()
+    stats = c.stats()
+    assert stats["busy_address"] >= 1 and stats["busy"] == 0, stats
 
 
 @pytest.mark.timeout(60)

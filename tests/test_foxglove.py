@@ -719,7 +719,8 @@ async def test_a_token_holder_cannot_flood_the_log_through_the_sdk(tmp_path: Pat
 async def test_what_a_client_makes_the_sdk_log_below_its_logger_is_held_too(
     tmp_path: Path,
 ) -> None:
-    """Connections opened and closed at once: a line each from the SDK's poller, held too.
+    """Connections opened and closed at once: a line each from the SDK's poller, held too,
+    and the SDK server's "Registered/Unregistered client" lines.
 
     regression: the throttle was a filter on ``foxglove.websocket.connected_client``,
     which sees nothing its child loggers (``….poller``, ``….send_lossy``) propagate.
@@ -765,3 +766,14 @@ async def test_what_a_client_makes_the_sdk_log_below_its_logger_is_held_too(
     assert 1 <= len(lines) <= took + 3, text[-3000:]
     held = sum(int(h) for h in re.findall(r"(\d+) more lines", text))
     assert len(lines) + held >= n, text[-3000:]  # every one counted, none lost unsaid
+    # the SDK server's line per connection registered and unregistered: held as well
+    server = [ln for ln in text.splitlines() if "egistered client" in ln]
+    assert 1 <= len(server) <= took + 3, text[-3000:]
+    held_server = sum(
+        int(h) for h in re.findall(r"(\d+) more lines of foxglove\.websocket\.server", text)
+    ) + sum(
+        int(h)
+        for ln in server
+        for h in re.findall(r"\(and (\d+) more lines held back before it\)", ln)
+    )
+    assert len(server) + held_server >= 2 * n, text[-3000:]

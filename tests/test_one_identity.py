@@ -581,3 +581,81 @@ def test_a_node_streams_and_records_its_own_streams_through_its_channel(tmp_path
     finally:
         _, err = station.stop()
     assert "Traceback" not in err, err
+
+
+@pytest.mark.timeout(150)
+def test_a_platform_that_never_answers_holds_up_no_other_platforms_stream(
+    tmp_path: Path,
+) -> None:
+    """A command's create-stream waits out its timeout; one for another platform goes on.
+
+    The channel held its lock over the create-stream: every other command's stream waited
+    behind a platform that does not answer.
+    """
+    import threading
+
+    import zenoh
+
+    from agents import TrustStore, wire_key
+    from agents._security import Handshake
+    from agents.keys import gen_keys, trust_keys
+
+    station = Station(tmp_path)
+    keys = station.dir / "keys"
+    # "ghost": trusted, it finishes the key exchange, then answers no request
+    ghost_keys, _, public = gen_keys("ghost", keys)
+    trust_keys(keys / "trust.json", [public], federation=station.federation)
+    handshake = Handshake(ghost_keys, TrustStore.load(keys / "trust.json"))
+    asked = threading.Event()
+
+    def on_kx(query: zenoh.Query) -> None:
+        body = query.payload
+        reply, _ = handshake.respond(b"" if body is None else body.to_bytes())
+        query.reply(query.key_expr, reply)
+        asked.set()
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"peer"')
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{station.port}"]')
+    console = ghost = None
+    session = zenoh.open(conf)
+    try:
+        session.declare_queryable(wire_key(station.federation, "kx", "ghost"), on_kx)
+        station.start("python")
+        console, _ = _console(station)
+        ghost = subprocess.Popen(
+            [
+                *(*CLI, "stream", "temperature", "-p", "ghost", "--config", "operator.toml"),
+                *("--json", "--wait", "0.5", "--timeout", "60"),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+        )
+        assert asked.wait(30)  # the node is in its create-stream to ghost
+        done = subprocess.run(
+            [
+                *(*CLI, "stream", "temperature", "-p", "station", "--count", "1"),
+                *("--config", "operator.toml", "--json", "--wait", "10", "--timeout", "20"),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
+            timeout=40,  # well within ghost's 60 s
+        )
+        assert done.returncode == 0, done.stderr
+        assert len(done.stdout.splitlines()) == 1, done.stdout
+        assert ghost.poll() is None  # still waiting for ghost's answer
+    finally:
+        if ghost is not None:
+            ghost.kill()
+            ghost.communicate(timeout=10)
+        if console is not None:
+            console.terminate()
+            console.communicate(timeout=20)
+        station.stop()
+        session.close()

@@ -22,7 +22,9 @@ budget: past it, refusals are counted and summed up in one record per `REPORT_IN
 
 Below all that, `serve` bounds what any client costs before it says anything: at most
 `MAX_CLIENTS` connections at once (each holds a file descriptor of the node's process;
-past it a new one is answered 503 and closed, counted as ``busy``), and a connection that
+past it a new one is answered 503 and closed, counted as ``busy``), at most
+`MAX_CLIENTS_PER_ADDRESS` of them from one address (past it, 503, counted as
+``busy_address``: one address must not take them all), and a connection that
 has sent no whole request within `IDLE_TIMEOUT` seconds is closed (slow headers, an idle
 keep-alive). A request that is not HTTP (a duplicate ``Host``, a broken header) is
 answered 400 by aiohttp and logged in one line, within the budget above, never with a
@@ -59,6 +61,7 @@ __all__ = [
     "ALLOW_HOSTS_ENV",
     "IDLE_TIMEOUT",
     "MAX_CLIENTS",
+    "MAX_CLIENTS_PER_ADDRESS",
     "TOKEN_ENV",
     "ConsoleAccess",
     "allowed_names",
@@ -85,11 +88,19 @@ MAX_CLIENTS = 128
 """Connections one server (the console, a Foxglove relay) keeps at once; past it, 503."""
 IDLE_TIMEOUT = 15.0
 """Seconds a connection may stay open without a whole request (slow headers, keep-alive)."""
-_BUSY_BODY = b'{"error": "too many connections open"}'
-_BUSY = (
-    b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
-    b"Content-Length: %d\r\nConnection: close\r\n\r\n%s" % (len(_BUSY_BODY), _BUSY_BODY)
-)
+MAX_CLIENTS_PER_ADDRESS = 32
+"""Of those, the connections one client address keeps at once; past it, 503."""
+
+
+def _unavailable(body: bytes) -> bytes:
+    return (
+        b"HTTP/1.1 503 Service Unavailable\r\nContent-Type: application/json\r\n"
+        b"Content-Length: %d\r\nConnection: close\r\n\r\n%s" % (len(body), body)
+    )
+
+
+_BUSY = _unavailable(b'{"error": "too many connections open"}')
+_BUSY_ADDRESS = _unavailable(b'{"error": "too many connections open from this address"}')
 
 _TOKEN_CHARS = re.compile(r"[A-Za-z0-9._~-]+")  # unreserved URL characters: no escaping
 _HOST_NAME = re.compile(r"[a-z0-9]([a-z0-9-]*[a-z0-9])?(\.[a-z0-9]([a-z0-9-]*[a-z0-9])?)*")
@@ -220,6 +231,8 @@ class ConsoleAccess:
         self.refusals: dict[str, int] = {"host": 0, "origin": 0, "no-token": 0, "bad-token": 0}
         self.audited = 0  # refusals with a record of their own
         self.busy = 0  # connections closed unserved: `MAX_CLIENTS` were open (`serve`)
+        # connections closed unserved: their address had `MAX_CLIENTS_PER_ADDRESS` open
+        self.busy_address = 0
         self._budget = TokenBucket(AUDIT_RATE, AUDIT_BURST, time.monotonic())
         self._unaudited = 0  # refusals since the last summary, past the budget
 
@@ -238,6 +251,7 @@ class ConsoleAccess:
             "refused_total": sum(self.refusals.values()),
             "audited": self.audited,
             "busy": self.busy,
+            "busy_address": self.busy_address,
             "allow_hosts": sorted(self.allow_hosts),
         }
 
@@ -414,6 +428,31 @@ class _Busy(asyncio.Protocol):
         transport.close()
 
 
+def _address(transport: asyncio.BaseTransport | None) -> str | None:
+    """The client's address (no port) of a connection, None once it is gone."""
+    peer = None if transport is None else transport.get_extra_info("peername")
+    return str(peer[0]) if isinstance(peer, tuple) and peer else None
+
+
+class _PerAddress(asyncio.Protocol):
+    """A new connection's first protocol: served (handed to aiohttp's) or, past its
+    address's share, answered 503 and closed, its request never read."""
+
+    def __init__(self, admit: Callable[[str | None], bool], serve: Callable[[], Any]) -> None:
+        self._admit = admit
+        self._serve = serve
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        """Hand the connection on, or refuse it; nothing has been read yet either way."""
+        if not self._admit(_address(transport)):
+            cast(asyncio.WriteTransport, transport).write(_BUSY_ADDRESS)
+            transport.close()
+            return
+        handler = self._serve()
+        transport.set_protocol(handler)
+        handler.connection_made(transport)
+
+
 async def serve(
     app: web.Application,
     host: str,
@@ -422,13 +461,15 @@ async def serve(
     access: ConsoleAccess,
     *,
     max_clients: int = MAX_CLIENTS,
+    max_per_address: int = MAX_CLIENTS_PER_ADDRESS,
     idle_timeout: float = IDLE_TIMEOUT,
 ) -> int:
     """Serve ``app`` on ``host``:``port`` until ``stack`` closes; the port bound.
 
     Unlike a plain `aiohttp.web.TCPSite`, what a client costs is bounded before it sends
     a request: ``max_clients`` connections at once (more are answered 503, counted in
-    ``access.busy``), and a connection without a whole request within ``idle_timeout`` s is
+    ``access.busy``), ``max_per_address`` of them from one client address (more: 503,
+    ``access.busy_address``), and a connection without a whole request within ``idle_timeout`` s is
     closed (aiohttp's own default keeps one for an hour). Requests under way (an event
     stream, a WebSocket) are not timed.
     """
@@ -444,9 +485,25 @@ async def serve(
     server = runner.server
     assert server is not None
 
+    def admit(address: str | None) -> bool:
+        # aiohttp's list of the connections open: at most max_clients, walked once each
+        same = sum(1 for h in server.connections if _address(h.transport) == address)
+        if address is None or same < max_per_address:
+            return True
+        access.busy_address += 1
+        if access._budget.take(time.monotonic()):
+            log.warning(
+                "%s: %d connections open from %s; one more closed unserved (%d so far)",
+                access.stage,
+                same,
+                address,
+                access.busy_address,
+            )
+        return False
+
     def connection() -> asyncio.Protocol:
         if len(server.connections) < max_clients:
-            return server()
+            return _PerAddress(admit, server)
         access.busy += 1
         if access._budget.take(time.monotonic()):
             log.warning(

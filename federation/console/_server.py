@@ -249,7 +249,13 @@ class OperatorConsole:
         app.router.add_get("/api/stats", self._get_stats)
         # Event streams end as soon as we close (they watch `_closing`): no long wait.
         self.port = await serve(
-            app, self.host, self.port, stack, self.access, idle_timeout=self.settings.idle_timeout
+            app,
+            self.host,
+            self.port,
+            stack,
+            self.access,
+            max_per_address=self.settings.max_clients_per_address,
+            idle_timeout=self.settings.idle_timeout,
         )
         # a wildcard address is no place to open: the same server on loopback is
         host = "127.0.0.1" if _is_wildcard(self.host) else self.host
