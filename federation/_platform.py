@@ -187,15 +187,23 @@ class PlatformConfigError(ValueError):
 
 # -- the config ------------------------------------------------------------------------------
 
+# every table of the file: a limit of inf (or nan) is a number TOML reads, and none of ours
+# means anything with it; refused here, naming file, table and key, not at start-up
+_SETTINGS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
 
 class ZenohSettings(ZenohConfig):
     """The ``[transport]`` table for zenoh (``kind = "zenoh"``): mode, listen, connect, …."""
+
+    model_config = ConfigDict(allow_inf_nan=False)  # merged with ZenohConfig's
 
     kind: Literal["zenoh"] = "zenoh"
 
 
 class MqttSettings(MqttConfig):
     """The ``[transport]`` table for MQTT (``kind = "mqtt"``): host, port, keepalive, …."""
+
+    model_config = ConfigDict(allow_inf_nan=False)  # merged with MqttConfig's
 
     kind: Literal["mqtt"] = "mqtt"
 
@@ -209,7 +217,7 @@ _LIMIT = RateLimit()  # the defaults
 class RateLimitSettings(BaseModel):
     """The ``[rate_limit]`` table: what each other platform may send here (`RateLimit`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     enabled: bool = True
     rate: float = Field(default=_LIMIT.rate, gt=0)
@@ -238,7 +246,7 @@ class ConsoleRoles(BaseModel):
     listed together.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     positions: str | None = None
     areas: str | None = None
@@ -276,7 +284,7 @@ class ConsoleSettings(BaseModel):
     seconds a connection has to send a whole request before it is closed.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     streams: tuple[Annotated[str, Field(min_length=1)], ...] = ()
     roles: ConsoleRoles = Field(default_factory=ConsoleRoles)
@@ -328,7 +336,7 @@ class FoxgloveSettings(BaseModel):
     and an Electron app's ``file://``); one without an ``Origin`` is no browser page.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     streams: tuple[Annotated[str, Field(min_length=1)], ...] | None = None
     roles: ConsoleRoles | None = None
@@ -391,7 +399,7 @@ class SecuritySettings(BaseModel):
     published). ``watch``: the owner may watch what arrives (``dyknow watch``).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     encrypt: bool = True
     require_encryption: bool | None = None
@@ -409,7 +417,7 @@ _KX = KxLimit()  # the defaults
 class KxLimitSettings(BaseModel):
     """The ``[kx_limit]`` table: key-exchange requests checked per second (`KxLimit`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     enabled: bool = True
     per_peer: float = Field(default=_KX.per_peer, ge=0)
@@ -432,7 +440,7 @@ _DF = DfEventLimit()  # the defaults
 class DfEventLimitSettings(BaseModel):
     """The ``[df_event_limit]`` table: directory events checked per second (`DfEventLimit`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     enabled: bool = True
     per_platform: float = Field(default=_DF.per_platform, ge=0)
@@ -469,7 +477,7 @@ class FactSettings(BaseModel):
     ``FederationPlatform(rules=…)``.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     predicate: str
     stream: str
@@ -507,7 +515,7 @@ class PlatformConfig(BaseModel):
     ``audit_max_bytes`` with ``audit_backups`` older files kept (`AuditLog`).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     name: str = Field(pattern=_NAME, description="This platform's name (uav-a, operator).")
     federation: str = Field(pattern=_NAME, description="The federation's name.")
