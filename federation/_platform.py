@@ -140,7 +140,7 @@ from ._geo import check_origin
 from ._import import Import, ImportProxy
 from ._inputs import InputSettings
 from ._outputs import OutputSettings
-from ._service import Anchor, FederationAgent, MembershipEvent
+from ._service import Anchor, Denied, FederationAgent, MembershipEvent
 from ._sessions import InterfaceSessions
 from ._sharing import SharingSettings
 
@@ -528,6 +528,8 @@ class PlatformConfig(BaseModel):
     # one member must not take every slot (or all the memory history keeps) from the others
     export_limit_per_platform: int = Field(default=32, ge=0)
     history_limit_per_platform: int = Field(default=200_000, ge=0)
+    # a provider another member (or itself) may ask to stream here: what it holds so, started
+    consented_import_limit: int = Field(default=256, ge=0)
     sharing: SharingSettings = Field(default_factory=SharingSettings)
     # an export whose receiver has not reported for this long ends ("lease-expired")
     # at least 4 of the receivers' report intervals (0.5 s): a shorter one ends live exports
@@ -801,6 +803,12 @@ class FederationPlatform:
     """Seconds a stream agreed by consent may wait for its first batch before it is
     withdrawn (a started export sends at least an empty batch every idle second)."""
 
+    max_consented_imports: int
+    """Streams from one sender agreed by consent that this platform holds at once, started
+    or not (the config's ``consented_import_limit``): a started one no longer waits, so
+    the bounds above do not count it. Past it an accept-stream is refused
+    (``consent-limit``). This platform's own requests and `expect` are not counted."""
+
     def __init__(
         self,
         config: PlatformConfig,
@@ -816,6 +824,7 @@ class FederationPlatform:
     ) -> None:
         self.config = config
         self.name = config.name
+        self.max_consented_imports = config.consented_import_limit
         files = _read_files(config, source or f"platform {config.name}")
         self.vocabulary = files.vocabulary
         self.mapping = files.mapping
@@ -896,6 +905,9 @@ class FederationPlatform:
         # sender -> semantic -> (the platform that asked, the end of its consent lease):
         # agreed by `accept`, no batch yet
         self._leased: dict[str, dict[str, tuple[str, asyncio.TimerHandle]]] = {}
+        # sender -> the streams agreed by consent (pruned of those no longer agreed when
+        # counted): what `max_consented_imports` bounds
+        self._consented: dict[str, set[str]] = {}
         self._stack: contextlib.AsyncExitStack | None = None
 
     def __repr__(self) -> str:
@@ -1027,6 +1039,7 @@ class FederationPlatform:
         """
         label = self._agree(sender, semantic)
         self._unlease(sender, semantic)
+        self._consented.get(sender, set()).discard(semantic)  # ours now
         self.federation_agent.keep_import(sender, semantic)
         return label
 
@@ -1041,7 +1054,8 @@ class FederationPlatform:
         already, but only by a request of ours not answered yet; it goes under the lease
         too (that request accepted, it is agreed for good). ValueError when
         ``max_waiting_imports`` such agreements with ``sender`` wait already, or
-        ``max_waiting_imports_per_requester`` of them that ``requester`` asked for.
+        ``max_waiting_imports_per_requester`` of them that ``requester`` asked for;
+        Denied (``consent-limit``) when ``sender`` holds ``max_consented_imports`` here.
         """
         rec = self.importer.get(sender, semantic)
         leases = self._leased.get(sender, {})
@@ -1060,7 +1074,19 @@ class FederationPlatform:
                 f"{mine} streams from {sender} that {requester} asked for here have sent "
                 f"nothing yet (at most {own} per requester): {semantic!r} not agreed"
             )
+        held = self._consented.setdefault(sender, set())
+        get = self.importer.get
+        held.difference_update([s for s in held if get(sender, s) is None])
+        if semantic not in held and len(held) >= self.max_consented_imports:
+            # started streams wait no more: without this a provider that may ask for
+            # itself streams here as many as it likes, one batch each
+            raise Denied(
+                "consent-limit",
+                f"{sender} holds {len(held)} streams here agreed by consent (at most "
+                f"{self.max_consented_imports}): {semantic!r} not agreed",
+            )
         label = self._agree(sender, semantic)
+        held.add(semantic)
         handle = asyncio.get_running_loop().call_later(
             self.consent_lease, self._lease_ended, sender, semantic
         )

@@ -813,6 +813,10 @@ class FederationAgent(Agent):
                     elif not imports.agreed(provider, semantic):
                         imports.accept(provider, semantic, req.requester)
                         new.append(semantic)
+                except Denied as exc:  # a limit: counted and audited
+                    for agreed in new:
+                        self._withdraw(provider, agreed)
+                    raise Denied(exc.code, _about(semantic, exc.reason)) from exc
                 except Exception as exc:
                     for agreed in new:
                         self._withdraw(provider, agreed)

@@ -1104,6 +1104,36 @@ async def test_the_consent_bound_is_per_requester_too(demo_keys: Path) -> None:
         assert agreed() == ["car11-state", "car13-state", "car17-state"]
 
 
+async def test_a_provider_holds_a_bounded_number_of_streams_by_consent(demo_keys: Path) -> None:
+    # attack: uav-a, in uav-b's accept_for, asked itself to stream its labels to uav-b and
+    # sent a batch on each; started, they no longer counted as waiting, so the imports it
+    # made at uav-b had no bound. Now it holds consented_import_limit of them, then refused
+    consent = {"sharing": {"accept_for": ["uav-a"]}, "consented_import_limit": 3}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        assert b.max_consented_imports == 3
+        b.max_waiting_imports = 1  # what no longer waits is not held by this bound
+        cars = [a.instance.add_source(f"cars/car{k}/state") for k in range(5)]
+        for k in range(3):
+            await a.federation_agent.create_stream(
+                "uav-a", [f"car{k}-state"], to_units=["uav-b"], timeout=WAIT
+            )
+            cars[k].push(car_state(k, 1, "uav-a"))
+            await b.imported("uav-a", f"car{k}-state", timeout=WAIT)
+        with pytest.raises(Refused, match=r"uav-a holds 3 streams here agreed by consent"):
+            await a.federation_agent.create_stream(
+                "uav-a", ["car3-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        assert not b.agreed("uav-a", "car3-state")
+        assert b.federation_agent.refusals.get("consent-limit") == 1
+        recs = [r for r in b.interface.audit.records if r.get("code") == "consent-limit"]
+        assert len(recs) == 1 and recs[0]["from"] == "uav-a", recs
+        # uav-b's own requests are not counted, nor refused by it
+        await b.federation_agent.create_stream("uav-a", ["car4-state"], timeout=WAIT)
+        cars[4].push(car_state(4, 1, "uav-a"))
+        await b.imported("uav-a", "car4-state", timeout=WAIT)
+
+
 async def test_a_consent_while_our_request_waits_stays_under_its_lease(
     demo_keys: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
