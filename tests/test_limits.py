@@ -1,17 +1,22 @@
 """What a member can still make a platform accept, and limits a config gives as ``inf``.
 
-A config's numeric limits are checked when the file is read (a limit of ``inf`` or
-``nan`` is TOML, and none of ours means anything with it), naming file, table and key.
+A member that said, signed, that it left is not served until its signed directory
+snapshot lists it again. A config's numeric limits are checked when the file is read
+(a limit of ``inf`` or ``nan`` is TOML, and none of ours means anything with it),
+naming file, table and key.
 """
 
 from __future__ import annotations
 
+import asyncio
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from test_member_authz import WAIT, audited, world
 
+from agents import Refused
 from federation import PlatformConfig, PlatformConfigError
 
 _BASE = 'name = "uav-a"\nfederation = "f"\nkey = "k"\ntrust = "t"\nvocabulary = {}\nmapping = {}\n'
@@ -56,3 +61,39 @@ def test_the_node_refuses_an_inf_limit_naming_file_table_and_key(tmp_path: Path)
     assert run.returncode == 2, run.stderr
     assert f"{path}: rate_limit.rate: Input should be a finite number" in run.stderr
     assert "Traceback" not in run.stderr
+
+
+async def test_a_member_that_said_it_left_is_not_served_until_listed_again(
+    tmp_path: Path,
+) -> None:
+    """uav-m says, signed, that it leaves, and keeps asking uav-a (a spawned platform)."""
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"]) as w:
+        m = w.here["uav-m"]
+        fed = m.federation_agent
+        assert (await fed.create_stream("uav-a", ["car0-state"], timeout=WAIT)).startswith("x-")
+        assert m.agents.df is not None
+        await m.agents.df.announce_leave()
+        # uav-a took it for gone (its exports to it stopped); before, it went on serving it
+        await w.until_stats("uav-a", lambda s: s["exports"] == [], "uav-m taken for gone")
+        with pytest.raises(Refused, match=r"refused: left: 'uav-m' said, signed, that it left"):
+            await fed.create_stream("uav-a", ["car1-state"], timeout=WAIT)
+        s = await w.stats("uav-a")
+        assert s["platform"]["from_left"] == 1 and s["exports"] == []
+        recs = audited(s, verdict="refused", sender="federation@uav-m", reason="left: 'uav-m'")
+        assert len(recs) == 1, recs
+        # it announces itself again (as a new process would): its presence comes back and
+        # its directory answers, signed; listed again, it is served again
+        agents = m.agents
+        agents.df._left = False
+        assert agents._token is not None
+        await agents._token.aclose()
+        await asyncio.sleep(0.5)
+        agents._token = await agents.transport.declare_token(agents.key("alive"))
+        async with asyncio.timeout(WAIT):
+            while True:
+                try:
+                    await fed.create_stream("uav-a", ["car1-state"], timeout=WAIT)
+                    break
+                except Refused as exc:
+                    assert "left: 'uav-m'" in str(exc)
+                    await asyncio.sleep(0.2)
