@@ -1125,24 +1125,21 @@ class FederationPlatform:
         """Whether this platform agreed to receive ``sender``'s stream of ``semantic``."""
         return self.importer.get(sender, semantic) is not None
 
-    def withdraw(self, sender: str, semantic: str, *, gave_up: bool = False) -> bool:
-        """Undo `expect` for a stream that did not come: False (kept) if a sample landed here.
+    def withdraw(self, sender: str, semantic: str, *, gave_up: bool = False) -> None:
+        """Undo `expect` for a stream whose create-stream did not succeed: it ends here.
 
         The Federation Agent withdraws what its create-stream expected when the provider
-        refuses, fails or does not answer; a stream whose samples arrived meanwhile (they
-        may overtake the answer) is left alone, like any agreement made otherwise. Unless
-        it ``gave_up`` waiting and cancels the export: a cancel sends no end marker, so that
-        stream would never end here; it ends now (its samples stay readable under its
-        label) and later batches of it are dropped as unagreed.
+        refuses, fails or does not answer (``gave_up``: and the export is cancelled). A
+        stream whose samples arrived meanwhile (they may overtake the answer) ends too:
+        the provider stopped what it started, or the cancel stops it, and neither sends
+        an end marker, so it would never end here. Its subscribers' iterators end, its
+        samples stay readable under its label, later batches of it are dropped as
+        unagreed and a later request asks again.
         """
-        rec = self.importer.get(sender, semantic)
-        if rec is None:
-            return True
-        if not gave_up and not _waiting(rec):
-            return False
+        if self.importer.get(sender, semantic) is None:
+            return
         self._unlease(sender, semantic)
         self.importer.forget(sender, semantic)
-        return True
 
     def _import_translate(self, sender: str, semantic: str) -> None:
         # what this platform did not agree (`expect`) is dropped and counted: "unagreed"
