@@ -1408,6 +1408,12 @@ class GlobalDirectory:
                 if self._auth.authenticates and attempt < 2:
                     continue  # it may still be starting: ask again before refusing
                 return False  # no answer: keep what the events say (without a trust file)
+            df = self._platform.df
+            if df is not None and self._auth.authenticates:
+                # signed, to our fresh nonce: a platform that said it left is served again
+                # now, not after the events that came meanwhile are taken too (a restarted
+                # one asks at once)
+                df.set_left(platform, False)
             if self._event_counts.get(platform, 0) == seen or attempt == 2:
                 self._replace(platform, services)
                 return True

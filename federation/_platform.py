@@ -805,9 +805,11 @@ class FederationPlatform:
 
     max_consented_imports: int
     """Streams from one sender agreed by consent that this platform holds at once, started
-    or not (the config's ``consented_import_limit``): a started one no longer waits, so
-    the bounds above do not count it. Past it an accept-stream is refused
-    (``consent-limit``). This platform's own requests and `expect` are not counted."""
+    or not, ended or not (the config's ``consented_import_limit``): a started one no longer
+    waits, so the bounds above do not count it, and an ended one keeps its label and
+    samples here. Past it an accept-stream is refused (``consent-limit``); the same stream
+    asked again is not counted twice. This platform's own requests and `expect` are not
+    counted, and what is withdrawn frees its place."""
 
     def __init__(
         self,
