@@ -528,7 +528,7 @@ class PlatformConfig(BaseModel):
     # one member must not take every slot (or all the memory history keeps) from the others
     export_limit_per_platform: int = Field(default=32, ge=0)
     history_limit_per_platform: int = Field(default=200_000, ge=0)
-    # a provider another member (or itself) may ask to stream here: what it holds so, started
+    # streams one sender holds here by consent (another member, or itself, asked), started too
     consented_import_limit: int = Field(default=256, ge=0)
     sharing: SharingSettings = Field(default_factory=SharingSettings)
     # an export whose receiver has not reported for this long ends ("lease-expired")
