@@ -247,6 +247,9 @@ class DirectoryFacilitator(Agent):
         )
         self._queryable: Handle | None = None
         self._left = False
+        # platforms that said, signed, that they left and were not listed again since:
+        # none of our agents is reachable for them (`reachable`)
+        self._said_left: set[str] = set()
         # directory queries are screened on the transport's thread: anyone on the network
         # may ask, and a flood would otherwise cost the event loop a task each
         self._query_lock = threading.Lock()
@@ -413,8 +416,11 @@ class DirectoryFacilitator(Agent):
         """Whether an agent of ``asker_platform`` may send to local agent ``receiver``.
 
         True when ``receiver`` provides at least one service the asker may use
-        (`visibility_allows`); the DF itself is always reachable, for searches.
+        (`visibility_allows`); the DF itself is always reachable, for searches. Never for
+        a platform that said, signed, that it left, until it is listed again (`said_left`).
         """
+        if asker_platform in self._said_left:
+            return False
         key = (receiver, asker_platform, via_interface)
         known = self._reach.get(key)
         if known is not None:
@@ -438,6 +444,21 @@ class DirectoryFacilitator(Agent):
             self._reach.clear()
         self._reach[key] = allowed
         return allowed
+
+    def said_left(self, platform: str) -> bool:
+        """Whether ``platform`` said, signed, that it left, and was not listed again since."""
+        return platform in self._said_left
+
+    def set_left(self, platform: str, left: bool) -> None:
+        """Record ``platform``'s signed leave (True), or its signed snapshot since (False).
+
+        The global directory tells: a platform that said it left is not served here (none
+        of our agents is `reachable` for it) until it announces itself again.
+        """
+        if left and platform != self.platform.name:
+            self._said_left.add(platform)
+        else:
+            self._said_left.discard(platform)
 
     def watch(self, maxlen: int = 1024) -> Subscription[DirectoryEvent]:
         """An async iterator of this DF's changes (all services: local code sees everything)."""
@@ -1129,9 +1150,19 @@ class GlobalDirectory:
         """
         if not self._auth.authenticates:
             return
+        df = self._platform.df
+        if df is not None:
+            df.set_left(platform, True)  # not served until its signed snapshot lists it again
         left = getattr(self._platform.channel, "peer_left", None)
         if left is not None:
             left(platform)
+
+    def _up(self, platform: str) -> None:
+        """``platform`` is listed (again), on its signed answer: served, and watchers told."""
+        df = self._platform.df
+        if df is not None:
+            df.set_left(platform, False)
+        self._tell(DirectoryEvent("platform-up", platform, None))
 
     def _drop_entries(self, platform: str) -> None:
         self._entries.pop(platform, None)
@@ -1276,7 +1307,7 @@ class GlobalDirectory:
                 self._refuse(platform, "presence without a signed directory answer", "presence")
                 return
             self._set_alive(platform, True)  # answered: exempt from the shared budget now
-            self._tell(DirectoryEvent("platform-up", platform, None))
+            self._up(platform)
         elif platform in self._alive:
             if forgeable and self._auth.authenticates and await self._answers(platform):
                 self._refuse(
@@ -1343,7 +1374,7 @@ class GlobalDirectory:
                 if platform not in self._alive and platform != self._platform.name:
                     self._set_alive(platform, True)
                     self._replace(platform, services)
-                    self._tell(DirectoryEvent("platform-up", platform, None))
+                    self._up(platform)
 
     def _heard_lately(self, platform: str, within: float) -> bool:
         """Whether an authenticated envelope of ``platform`` opened here within ``within`` s.
@@ -1377,6 +1408,12 @@ class GlobalDirectory:
                 if self._auth.authenticates and attempt < 2:
                     continue  # it may still be starting: ask again before refusing
                 return False  # no answer: keep what the events say (without a trust file)
+            df = self._platform.df
+            if df is not None and self._auth.authenticates:
+                # signed, to our fresh nonce: a platform that said it left is served again
+                # now, not after the events that came meanwhile are taken too (a restarted
+                # one asks at once)
+                df.set_left(platform, False)
             if self._event_counts.get(platform, 0) == seen or attempt == 2:
                 self._replace(platform, services)
                 return True

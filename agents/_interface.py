@@ -1683,6 +1683,14 @@ class InterfaceAgent:
             return
         if message.performative in INITIATING:
             df = host.df
+            if df is not None and df.said_left(peer):
+                host.stats.from_left += 1
+                reason = (
+                    f"left: {peer!r} said, signed, that it left the federation; it is served "
+                    "again once its signed directory snapshot lists it"
+                )
+                await self._refuse(host, message, base, local[0], reason)
+                return
             # without a directory no service is offered, so no request is admitted
             denied = [r for r in local if df is None or not df.reachable(r, peer)]
             if denied:

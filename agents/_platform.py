@@ -187,7 +187,9 @@ class PlatformStats:
     sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
     ignored (at most one per peer per ``rehandshake_interval``), ``presence_suppressed``
     presence changes of trusted peers not acted on (over a peer's budget: presence is not
-    authenticated, and each change acted on costs a key exchange); ``senders`` holds
+    authenticated, and each change acted on costs a key exchange); ``from_left``
+    requests refused because their platform said, signed, that it left (also in
+    ``denied``; served again once its signed directory snapshot lists it); ``senders`` holds
     per-platform figures (keyed by authenticated platform name, so bounded by the trust
     file).
     """
@@ -212,6 +214,7 @@ class PlatformStats:
     rehandshakes: int = 0
     rehandshakes_suppressed: int = 0
     presence_suppressed: int = 0
+    from_left: int = 0
     senders: dict[str, SenderStats] = field(default_factory=dict)
 
 

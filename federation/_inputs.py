@@ -62,7 +62,7 @@ class _InputBase(BaseModel):
     # defer_build: a config's inputs are checked by PlatformConfig's own schema, so this
     # model's validator is built only if something validates one on its own (~0.3 MB of
     # a node's memory for the inputs, outputs and sharing rules together)
-    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, defer_build=True)
 
     name: str | None = Field(default=None, description="A name for logs and counts.")
     fields: dict[str, str] = Field(

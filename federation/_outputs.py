@@ -38,7 +38,7 @@ class _OutputBase(BaseModel):
     # defer_build: a config's outputs are checked by PlatformConfig's own schema, so this
     # model's validator is built only if something validates one on its own (~0.3 MB of
     # a node's memory for the inputs, outputs and sharing rules together)
-    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, defer_build=True)
 
     labels: list[str] = Field(min_length=1, description="Local labels or glob patterns.")
     sample_period: float | None = Field(default=None, gt=0)

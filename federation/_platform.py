@@ -140,7 +140,7 @@ from ._geo import check_origin
 from ._import import Import, ImportProxy
 from ._inputs import InputSettings
 from ._outputs import OutputSettings
-from ._service import Anchor, FederationAgent, MembershipEvent
+from ._service import Anchor, Denied, FederationAgent, MembershipEvent
 from ._sessions import InterfaceSessions
 from ._sharing import SharingSettings
 
@@ -187,15 +187,23 @@ class PlatformConfigError(ValueError):
 
 # -- the config ------------------------------------------------------------------------------
 
+# every table of the file: a limit of inf (or nan) is a number TOML reads, and none of ours
+# means anything with it; refused here, naming file, table and key, not at start-up
+_SETTINGS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
 
 class ZenohSettings(ZenohConfig):
     """The ``[transport]`` table for zenoh (``kind = "zenoh"``): mode, listen, connect, …."""
+
+    model_config = ConfigDict(allow_inf_nan=False)  # merged with ZenohConfig's
 
     kind: Literal["zenoh"] = "zenoh"
 
 
 class MqttSettings(MqttConfig):
     """The ``[transport]`` table for MQTT (``kind = "mqtt"``): host, port, keepalive, …."""
+
+    model_config = ConfigDict(allow_inf_nan=False)  # merged with MqttConfig's
 
     kind: Literal["mqtt"] = "mqtt"
 
@@ -209,7 +217,7 @@ _LIMIT = RateLimit()  # the defaults
 class RateLimitSettings(BaseModel):
     """The ``[rate_limit]`` table: what each other platform may send here (`RateLimit`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     enabled: bool = True
     rate: float = Field(default=_LIMIT.rate, gt=0)
@@ -238,7 +246,7 @@ class ConsoleRoles(BaseModel):
     listed together.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     positions: str | None = None
     areas: str | None = None
@@ -278,7 +286,7 @@ class ConsoleSettings(BaseModel):
     (of 128 in all; behind a shared proxy every client has the proxy's address).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     streams: tuple[Annotated[str, Field(min_length=1)], ...] = ()
     roles: ConsoleRoles = Field(default_factory=ConsoleRoles)
@@ -331,7 +339,7 @@ class FoxgloveSettings(BaseModel):
     and an Electron app's ``file://``); one without an ``Origin`` is no browser page.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     streams: tuple[Annotated[str, Field(min_length=1)], ...] | None = None
     roles: ConsoleRoles | None = None
@@ -394,7 +402,7 @@ class SecuritySettings(BaseModel):
     published). ``watch``: the owner may watch what arrives (``dyknow watch``).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     encrypt: bool = True
     require_encryption: bool | None = None
@@ -412,7 +420,7 @@ _KX = KxLimit()  # the defaults
 class KxLimitSettings(BaseModel):
     """The ``[kx_limit]`` table: key-exchange requests checked per second (`KxLimit`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     enabled: bool = True
     per_peer: float = Field(default=_KX.per_peer, ge=0)
@@ -435,7 +443,7 @@ _DF = DfEventLimit()  # the defaults
 class DfEventLimitSettings(BaseModel):
     """The ``[df_event_limit]`` table: directory events checked per second (`DfEventLimit`)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     enabled: bool = True
     per_platform: float = Field(default=_DF.per_platform, ge=0)
@@ -472,7 +480,7 @@ class FactSettings(BaseModel):
     ``FederationPlatform(rules=…)``.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     predicate: str
     stream: str
@@ -510,7 +518,7 @@ class PlatformConfig(BaseModel):
     ``audit_max_bytes`` with ``audit_backups`` older files kept (`AuditLog`).
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = _SETTINGS
 
     name: str = Field(pattern=_NAME, description="This platform's name (uav-a, operator).")
     federation: str = Field(pattern=_NAME, description="The federation's name.")
@@ -523,6 +531,8 @@ class PlatformConfig(BaseModel):
     # one member must not take every slot (or all the memory history keeps) from the others
     export_limit_per_platform: int = Field(default=32, ge=0)
     history_limit_per_platform: int = Field(default=200_000, ge=0)
+    # streams one sender holds here by consent (another member, or itself, asked), started too
+    consented_import_limit: int = Field(default=256, ge=0)
     sharing: SharingSettings = Field(default_factory=SharingSettings)
     # an export whose receiver has not reported for this long ends ("lease-expired")
     # at least 4 of the receivers' report intervals (0.5 s): a shorter one ends live exports
@@ -796,6 +806,14 @@ class FederationPlatform:
     """Seconds a stream agreed by consent may wait for its first batch before it is
     withdrawn (a started export sends at least an empty batch every idle second)."""
 
+    max_consented_imports: int
+    """Streams from one sender agreed by consent that this platform holds at once, started
+    or not, ended or not (the config's ``consented_import_limit``): a started one no longer
+    waits, so the bounds above do not count it, and an ended one keeps its label and
+    samples here. Past it an accept-stream is refused (``consent-limit``); the same stream
+    asked again is not counted twice. This platform's own requests and `expect` are not
+    counted, and what is withdrawn frees its place."""
+
     def __init__(
         self,
         config: PlatformConfig,
@@ -811,6 +829,7 @@ class FederationPlatform:
     ) -> None:
         self.config = config
         self.name = config.name
+        self.max_consented_imports = config.consented_import_limit
         files = _read_files(config, source or f"platform {config.name}")
         self.vocabulary = files.vocabulary
         self.mapping = files.mapping
@@ -891,6 +910,9 @@ class FederationPlatform:
         # sender -> semantic -> (the platform that asked, the end of its consent lease):
         # agreed by `accept`, no batch yet
         self._leased: dict[str, dict[str, tuple[str, asyncio.TimerHandle]]] = {}
+        # sender -> the streams agreed by consent (pruned of those no longer agreed when
+        # counted): what `max_consented_imports` bounds
+        self._consented: dict[str, set[str]] = {}
         self._stack: contextlib.AsyncExitStack | None = None
 
     def __repr__(self) -> str:
@@ -1022,6 +1044,7 @@ class FederationPlatform:
         """
         label = self._agree(sender, semantic)
         self._unlease(sender, semantic)
+        self._consented.get(sender, set()).discard(semantic)  # ours now
         self.federation_agent.keep_import(sender, semantic)
         return label
 
@@ -1036,7 +1059,8 @@ class FederationPlatform:
         already, but only by a request of ours not answered yet; it goes under the lease
         too (that request accepted, it is agreed for good). ValueError when
         ``max_waiting_imports`` such agreements with ``sender`` wait already, or
-        ``max_waiting_imports_per_requester`` of them that ``requester`` asked for.
+        ``max_waiting_imports_per_requester`` of them that ``requester`` asked for;
+        Denied (``consent-limit``) when ``sender`` holds ``max_consented_imports`` here.
         """
         rec = self.importer.get(sender, semantic)
         leases = self._leased.get(sender, {})
@@ -1055,7 +1079,19 @@ class FederationPlatform:
                 f"{mine} streams from {sender} that {requester} asked for here have sent "
                 f"nothing yet (at most {own} per requester): {semantic!r} not agreed"
             )
+        held = self._consented.setdefault(sender, set())
+        get = self.importer.get
+        held.difference_update([s for s in held if get(sender, s) is None])
+        if semantic not in held and len(held) >= self.max_consented_imports:
+            # started streams wait no more: without this a provider that may ask for
+            # itself streams here as many as it likes, one batch each
+            raise Denied(
+                "consent-limit",
+                f"{sender} holds {len(held)} streams here agreed by consent (at most "
+                f"{self.max_consented_imports}): {semantic!r} not agreed",
+            )
         label = self._agree(sender, semantic)
+        held.add(semantic)
         handle = asyncio.get_running_loop().call_later(
             self.consent_lease, self._lease_ended, sender, semantic
         )
@@ -1094,24 +1130,21 @@ class FederationPlatform:
         """Whether this platform agreed to receive ``sender``'s stream of ``semantic``."""
         return self.importer.get(sender, semantic) is not None
 
-    def withdraw(self, sender: str, semantic: str, *, gave_up: bool = False) -> bool:
-        """Undo `expect` for a stream that did not come: False (kept) if a sample landed here.
+    def withdraw(self, sender: str, semantic: str, *, gave_up: bool = False) -> None:
+        """Undo `expect` for a stream whose create-stream did not succeed: it ends here.
 
         The Federation Agent withdraws what its create-stream expected when the provider
-        refuses, fails or does not answer; a stream whose samples arrived meanwhile (they
-        may overtake the answer) is left alone, like any agreement made otherwise. Unless
-        it ``gave_up`` waiting and cancels the export: a cancel sends no end marker, so that
-        stream would never end here; it ends now (its samples stay readable under its
-        label) and later batches of it are dropped as unagreed.
+        refuses, fails or does not answer (``gave_up``: and the export is cancelled). A
+        stream whose samples arrived meanwhile (they may overtake the answer) ends too:
+        the provider stopped what it started, or the cancel stops it, and neither sends
+        an end marker, so it would never end here. Its subscribers' iterators end, its
+        samples stay readable under its label, later batches of it are dropped as
+        unagreed and a later request asks again.
         """
-        rec = self.importer.get(sender, semantic)
-        if rec is None:
-            return True
-        if not gave_up and not _waiting(rec):
-            return False
+        if self.importer.get(sender, semantic) is None:
+            return
         self._unlease(sender, semantic)
         self.importer.forget(sender, semantic)
-        return True
 
     def _import_translate(self, sender: str, semantic: str) -> None:
         # what this platform did not agree (`expect`) is dropped and counted: "unagreed"

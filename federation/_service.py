@@ -263,8 +263,8 @@ class ImportAgreements(Protocol):
         ...
 
     def withdraw(self, sender: str, semantic: str, /, *, gave_up: bool = False) -> object:
-        """Undo `expect` after the request failed, unless a sample of the stream landed here
-        (``gave_up``: we stopped waiting and cancel the export, so even then)."""
+        """Undo `expect` after the request failed: the stream ends here, if samples landed
+        (``gave_up``: we stopped waiting and cancel the export)."""
         ...
 
 
@@ -813,6 +813,10 @@ class FederationAgent(Agent):
                     elif not imports.agreed(provider, semantic):
                         imports.accept(provider, semantic, req.requester)
                         new.append(semantic)
+                except Denied as exc:  # a limit: counted and audited
+                    for agreed in new:
+                        self._withdraw(provider, agreed)
+                    raise Denied(exc.code, _about(semantic, exc.reason)) from exc
                 except Exception as exc:
                     for agreed in new:
                         self._withdraw(provider, agreed)
@@ -1462,10 +1466,9 @@ class FederationAgent(Agent):
         """A request that expected ``held`` was answered: keep them, or withdraw them.
 
         Accepted, they are agreed for good. Otherwise each is withdrawn once no other
-        request of ours still waits for it, unless one was accepted meanwhile or (unless
-        we ``gave_up`` on the answer) a sample of it already landed here: the imports keep
-        a stream that flows, but one we cancel would never end here (no end marker
-        follows a cancel), so given up it is withdrawn even so.
+        request of ours still waits for it, unless one was accepted meanwhile; one whose
+        samples already landed here ends then (the provider stopped what it started, or
+        our cancel stops it, and no end marker follows either).
         """
         tentative = self._tentative
         for provider, semantic, counted in held:

@@ -45,7 +45,7 @@ class SharingRule(BaseModel):
     # defer_build: a config's rules are checked by PlatformConfig's own schema, so this
     # model's validator is built only if something validates one on its own (~0.3 MB of
     # a node's memory for the inputs, outputs and sharing rules together)
-    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, defer_build=True)
 
     name: Annotated[str, Field(min_length=1, max_length=100)] | None = None
     labels: Annotated[list[Pattern], Field(min_length=1)]
@@ -56,7 +56,7 @@ class SharingRule(BaseModel):
 class SharingSettings(BaseModel):
     """The ``[sharing]`` table: gateway access, the rules, their default, consent to receive."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     gateway: Literal["private", "protected"] = "private"
     default: Literal["members", "none"] = "members"

@@ -1104,6 +1104,36 @@ async def test_the_consent_bound_is_per_requester_too(demo_keys: Path) -> None:
         assert agreed() == ["car11-state", "car13-state", "car17-state"]
 
 
+async def test_a_provider_holds_a_bounded_number_of_streams_by_consent(demo_keys: Path) -> None:
+    # attack: uav-a, in uav-b's accept_for, asked itself to stream its labels to uav-b and
+    # sent a batch on each; started, they no longer counted as waiting, so the imports it
+    # made at uav-b had no bound. Now it holds consented_import_limit of them, then refused
+    consent = {"sharing": {"accept_for": ["uav-a"]}, "consented_import_limit": 3}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        assert b.max_consented_imports == 3
+        b.max_waiting_imports = 1  # what no longer waits is not held by this bound
+        cars = [a.instance.add_source(f"cars/car{k}/state") for k in range(5)]
+        for k in range(3):
+            await a.federation_agent.create_stream(
+                "uav-a", [f"car{k}-state"], to_units=["uav-b"], timeout=WAIT
+            )
+            cars[k].push(car_state(k, 1, "uav-a"))
+            await b.imported("uav-a", f"car{k}-state", timeout=WAIT)
+        with pytest.raises(Refused, match=r"uav-a holds 3 streams here agreed by consent"):
+            await a.federation_agent.create_stream(
+                "uav-a", ["car3-state"], to_units=["uav-b"], timeout=WAIT
+            )
+        assert not b.agreed("uav-a", "car3-state")
+        assert b.federation_agent.refusals.get("consent-limit") == 1
+        recs = [r for r in b.interface.audit.records if r.get("code") == "consent-limit"]
+        assert len(recs) == 1 and recs[0]["from"] == "uav-a", recs
+        # uav-b's own requests are not counted, nor refused by it
+        await b.federation_agent.create_stream("uav-a", ["car4-state"], timeout=WAIT)
+        cars[4].push(car_state(4, 1, "uav-a"))
+        await b.imported("uav-a", "car4-state", timeout=WAIT)
+
+
 async def test_a_consent_while_our_request_waits_stays_under_its_lease(
     demo_keys: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -1387,31 +1417,46 @@ async def test_a_cancelled_command_gives_back_every_stream_it_took(
                 await asyncio.sleep(0.01)
 
 
-async def test_a_stream_that_flows_before_the_refusal_stays_agreed(
+async def test_a_stream_that_flows_before_the_refusal_ends_here(
     demo_keys: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # the race: the provider's batches overtake its answer, then the answer is a failure;
-    # what already landed here is a stream with subscribers, left alone
+    # the race: the provider's batches overtake its answer, then the answer is a failure
+    # and the provider stops what it started (no end marker). It stayed agreed and never
+    # ended: followers waited for ever and a later request for it was never made. Now it
+    # ends here; the samples that landed stay readable under its label
     async with memory_federation(demo_keys) as (ps, _):
         a, b = ps["uav-a"], ps["uav-b"]
         car5 = a.instance.add_source("cars/car5/state")
-        car7 = a.instance.add_source("cars/car7/state")
+        fed = a.federation_agent
+        create = fed._create_stream
+        followers: list[Any] = []
 
         async def streams_then_fails(req: Any, message: ACLMessage) -> Any:
-            a.exporter.start_exporting("cars/car5/state", "car5-state", "uav-b")
+            export = a.exporter.start_exporting("cars/car5/state", "car5-state", "uav-b")
             car5.push(car_state(0, 1, "uav-a"))
-            await b.imported("uav-a", "car5-state", timeout=WAIT)
+            label = await b.imported("uav-a", "car5-state", timeout=WAIT)
+            followers.append(b.instance.subscribe(label, Policy(start=0)))
+            await a.exporter.stop(export)  # what was started stops (no end marker)
             raise Failure("the exporter failed")
 
-        monkeypatch.setattr(a.federation_agent, "_create_stream", streams_then_fails)
+        monkeypatch.setattr(fed, "_create_stream", streams_then_fails)
         with pytest.raises(Failed, match="the exporter failed"):
             await b.federation_agent.create_stream(
                 "uav-a", ["car5-state", "car7-state"], timeout=WAIT
             )
-        assert [r.semantic_label for r in b.importer.imports("uav-a")] == ["car5-state"]
-        car7.push(car_state(0, 1, "uav-a"))
+        assert b.importer.imports("uav-a") == [] and not b.agreed("uav-a", "car5-state")
+        async with asyncio.timeout(WAIT):  # the follower's iterator ends
+            got = [s.value async for s in followers[0]]
+        assert got == [car_state(0, 1, "uav-a")]
         label = b.import_label("uav-a", "car5-state")
         assert b.instance.latest(label).samples[0].value == car_state(0, 1, "uav-a")
+        # asked again, it flows again into the same label
+        monkeypatch.setattr(fed, "_create_stream", create)
+        await b.federation_agent.create_stream("uav-a", ["car5-state"], timeout=WAIT)
+        car5.push(car_state(1, 2, "uav-a"))
+        async with asyncio.timeout(WAIT):
+            while b.instance.latest(label).samples[0].value != car_state(1, 2, "uav-a"):  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
 
 
 async def test_samples_dropped_before_sending_are_not_counted_again_as_lost_in_transit() -> None:
