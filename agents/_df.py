@@ -1101,7 +1101,7 @@ class GlobalDirectory:
             if isinstance(obj, dict) and obj.get("op") == "leave":
                 # whether or not still listed (its presence may have gone first): signed
                 self._gone(platform)
-                self._left(platform)
+                self._left(platform, statement.ts_ms / 1000)
                 continue
             if platform not in self._alive:
                 continue  # its snapshot will be taken when its token appears
@@ -1121,17 +1121,19 @@ class GlobalDirectory:
                 continue
             self._apply(platform, op, service)
 
-    def _left(self, platform: str) -> None:
-        """Tell the channel that ``platform`` left, as it signed: its sessions can go.
+    def _left(self, platform: str, at: float) -> None:
+        """Tell the channel that ``platform`` left at ``at`` (POSIX s), as it signed.
 
         Only a signed leave says so (a presence cleared may be forged): the channel then
-        seals for it on none of its sessions again, and ends a key exchange with it.
+        seals for it on none of its sessions agreed before ``at`` again, and ends a key
+        exchange with it begun before (a leave replayed, or late after a restart, must
+        not end what the platform's next process agreed).
         """
         if not self._auth.authenticates:
             return
         left = getattr(self._platform.channel, "peer_left", None)
         if left is not None:
-            left(platform)
+            left(platform, at)
 
     def _drop_entries(self, platform: str) -> None:
         self._entries.pop(platform, None)
