@@ -258,7 +258,12 @@ def _get(message: Any, path: str) -> Any:
     for part in path.split("."):
         if isinstance(value, Mapping):
             value = value.get(part, _MISSING)
-        elif isinstance(value, list | tuple) and part.isdigit() and int(part) < len(value):
+        elif (
+            isinstance(value, list | tuple)
+            and part.isdecimal()
+            and part.isascii()  # "²" is a digit int() refuses
+            and int(part) < len(value)
+        ):
             value = value[int(part)]
         else:
             value = getattr(value, part, _MISSING)

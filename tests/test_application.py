@@ -485,3 +485,11 @@ async def test_an_input_that_stops_says_why_in_words(caplog: pytest.LogCaptureFi
     assert in_words(FileNotFoundError(2, "No such file or directory", "/srv/x.jsonl")) == (
         "no such file or directory: /srv/x.jsonl"
     )
+
+
+def test_a_superscript_digit_is_no_index_of_an_input_field() -> None:
+    """``items.²`` names no index (``"²".isdigit()``, yet ``int`` refuses it): no field."""
+    from federation._inputs import _MISSING, _get
+
+    assert _get({"items": [1, 2, 3]}, "items.²") is _MISSING
+    assert _get({"items": [1, 2, 3]}, "items.2") == 3
