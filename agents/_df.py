@@ -822,10 +822,10 @@ class GlobalDirectory:
             self._joining.discard(platform)
         gate = self.event_gate
         if gate is not None:
-            # replaced whole: the transport's thread reads them without a lock; joining
-            # first, so that a name leaving it is never in neither set meanwhile
-            gate.joining = frozenset(self._joining)
+            # replaced whole: the transport's thread reads them without a lock; priority
+            # first, so that a name leaving joining for it is never in neither set meanwhile
             gate.priority = frozenset(self._alive - self._joining)
+            gate.joining = frozenset(self._joining)
 
     def _tell(self, event: DirectoryEvent) -> None:
         for inbox in list(self._watchers):

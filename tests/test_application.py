@@ -485,6 +485,17 @@ async def test_an_input_that_stops_says_why_in_words(caplog: pytest.LogCaptureFi
     assert in_words(FileNotFoundError(2, "No such file or directory", "/srv/x.jsonl")) == (
         "no such file or directory: /srv/x.jsonl"
     )
+    assert in_words(KeyError("speed")) == "no 'speed' where one was needed"
+
+
+def test_a_key_error_with_its_own_text_is_said_as_it_is() -> None:
+    """UnknownLabelError is a KeyError: its message, not ``no "unknown label …" where …``."""
+    from dyknow_core import UnknownLabelError
+    from federation._application import in_words
+
+    assert in_words(UnknownLabelError("speed", ["altitude"])) == (
+        "unknown label 'speed' (known labels: altitude)"
+    )
 
 
 def test_a_superscript_digit_is_no_index_of_an_input_field() -> None:
