@@ -71,6 +71,7 @@ from dyknow_core import Policy
 
 from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
 from ._cli_time import seconds, when
+from ._gateway_service import MIN_REMOTE_PERIOD
 from ._platform import PlatformConfig
 
 if TYPE_CHECKING:
@@ -843,7 +844,11 @@ class LocalChannel:
 
 
 def _sample_period(value: Any) -> float | None:
-    """A stream request's ``sample_period``: absent, or a positive finite number of seconds."""
+    """A stream request's ``sample_period``: absent, or a finite number of seconds >= 1 ms.
+
+    The node's own streams take the same bound as an export (`RemotePeriod`): a grid
+    finer than that, over a gap in the data, fills grid point after grid point.
+    """
     if value is None:
         return None
     if (
@@ -854,6 +859,11 @@ def _sample_period(value: Any) -> float | None:
     ):
         raise NotAnsweredError(
             f"bad request: sample_period must be a positive number of seconds, not {value!r}"
+        )
+    if value < MIN_REMOTE_PERIOD:
+        raise NotAnsweredError(
+            f"bad request: sample_period {value:g} s is under {MIN_REMOTE_PERIOD:g} s, the "
+            "finest an export takes"
         )
     return value
 

@@ -723,3 +723,21 @@ def test_a_label_not_in_the_vocabulary_is_said_so_before_asking(
     assert r.exit_code == 2, r.output
     assert "'heli-altitud' is not a label of the vocabulary traffic" in r.output
     assert not (tmp_path / "out.mcap").exists()
+
+
+async def test_a_node_refuses_its_own_stream_at_a_period_an_export_refuses(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--sample-period`` under 1 ms on the node's own stream: refused, as an export is."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+    from federation._local import LocalChannel, via_node
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # a socket of this test's own
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    request = {"op": "stream", "platform": "uav-a", "labels": ["x"], "sample_period": 0.0005}
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p, LocalChannel(p):
+        lines = [line async for line in via_node(config, request)]
+    refusal = "bad request: sample_period 0.0005 s is under 0.001 s, the finest an export takes"
+    assert lines == [{"error": refusal}]
