@@ -544,7 +544,12 @@ class LocalChannel:
             if pending:
                 log.warning("local channel: %d command(s) did not end in 2 s", len(pending))
         if self._releasing:  # their exports given back (each cancel takes at most 2 s)
-            await asyncio.wait(set(self._releasing), timeout=2.0)
+            _, left = await asyncio.wait(set(self._releasing), timeout=2.0)
+            for release in left:  # none runs on while the platform closes
+                release.cancel()
+            if left:
+                log.warning("local channel: %d export release(s) cut short", len(left))
+                await asyncio.wait(left, timeout=1.0)
         # only the socket this channel bound: not another node's, had it never bound one
         with contextlib.suppress(FileNotFoundError):
             st = self.path.stat()
@@ -695,19 +700,23 @@ class LocalChannel:
 
         Each release runs on in its own task if the command is cancelled meanwhile (the
         node stopping): one cut short, or those after it, would leave their exports
-        counted for ever and never cancelled.
+        counted for ever and never cancelled. On a cancel the rest start at once, side by
+        side, and the cancel goes on up: the channel's end waits for them (bounded).
         """
-        cancelled: asyncio.CancelledError | None = None
-        for entry in held:
-            release = asyncio.ensure_future(self._release(target, entry))
-            self._releasing.add(release)
-            release.add_done_callback(self._releasing.discard)
+        for i, entry in enumerate(held):
             try:
-                await asyncio.shield(release)
-            except asyncio.CancelledError as exc:
-                cancelled = exc  # raised once every entry is on its way back
-        if cancelled is not None:
-            raise cancelled
+                await asyncio.shield(self._start_release(target, entry))
+            except asyncio.CancelledError:
+                for rest in held[i + 1 :]:
+                    self._start_release(target, rest)
+                raise
+
+    def _start_release(self, target: str, entry: _Shared) -> asyncio.Future[None]:
+        """`_release` ``entry`` in a task of its own, which the channel's end waits for."""
+        release = asyncio.ensure_future(self._release(target, entry))
+        self._releasing.add(release)
+        release.add_done_callback(self._releasing.discard)
+        return release
 
     async def _acquire(
         self, target: str, semantic: str, sample_period: Any, timeout: float
