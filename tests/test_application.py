@@ -504,3 +504,48 @@ def test_a_superscript_digit_is_no_index_of_an_input_field() -> None:
 
     assert _get({"items": [1, 2, 3]}, "items.²") is _MISSING
     assert _get({"items": [1, 2, 3]}, "items.2") == 3
+
+
+async def test_a_looped_file_played_fast_stays_near_the_wall_clock(tmp_path: Path) -> None:
+    """``pace = "fast"``, ``shift = "now"``: each pass starts at now, never back past the last.
+
+    Before, each pass started after the last one's latest: 100 passes of a 0.2 s file at
+    once ran 20 s ahead of the wall clock; and a row earlier than the first fell back
+    before the previous pass.
+    """
+    from federation._inputs import FileInput
+
+    path = tmp_path / "wx.jsonl"
+    times = [0.1, 0.0, 0.2]  # the second row earlier than the first
+    path.write_text("".join(f'{{"t": {t}, "temp": {k}}}\n' for k, t in enumerate(times)))
+    got: list[int] = []
+    enough = asyncio.Event()
+
+    def on_batch(batch: list[Any]) -> None:
+        got.extend(tv for _, tv, _ in batch)
+        if len(got) >= 300:
+            enough.set()
+
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/temp")
+        inst.subscribe("wx/temp", callback=on_batch)
+        settings = FileInput(
+            kind="file",
+            path=path,
+            loop=True,
+            shift="now",
+            pace="fast",
+            time="t",
+            fields={"temp": "wx/temp"},
+        )
+        task = asyncio.create_task(input_runner(settings, inst).run(None))
+        try:
+            await asyncio.wait_for(enough.wait(), 20)
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        ahead = (max(got) - time.time_ns()) / 1e9
+    assert ahead < 1.0, ahead  # one pass's span (0.2 s) at most, and some slack
+    passes = [got[i : i + 3] for i in range(0, len(got) - 2, 3)]
+    assert all(min(b) > max(a) for a, b in itertools.pairwise(passes)), passes[:4]
