@@ -293,15 +293,24 @@ async def test_a_ros2_input_on_a_wrong_topic_warns_once_naming_the_topics_there(
     stop = threading.Event()
     hash_ = "RIHS01_" + "0" * 64
     battery = ros.declare_publisher(f"0/robot/battery/std_msgs::msg::dds_::Float32_/{hash_}")
-    # a publisher as rmw_zenoh states it in the ROS graph, with no message yet
-    token = ros.liveliness().declare_token(
-        f"@ros2_lv/0/{ros.zid()}/0/11/MP/%/%/driver/%robot%pose/"
-        f"geometry_msgs::msg::dds_::PoseStamped_/{hash_}/::,10:,:,:,,"
-    )
+    # publishers as rmw_zenoh states them in the ROS graph: one publishing, one with no
+    # message yet
+    tokens = [
+        ros.liveliness().declare_token(
+            f"@ros2_lv/0/{ros.zid()}/0/{n}/MP/%/%/driver/{topic}/{kind}/{hash_}/::,10:,:,:,,"
+        )
+        for n, topic, kind in (
+            (10, "%robot%battery", "std_msgs::msg::dds_::Float32_"),
+            (11, "%robot%pose", "geometry_msgs::msg::dds_::PoseStamped_"),
+        )
+    ]
+    pulled: list[bool] = []  # whether the messages were ever asked for by the node
 
     def publish() -> None:
         while not stop.wait(0.05):
             battery.put(b"\x00\x01\x00\x00\x00\x00\xa0\x41")
+            if battery.matching_status.matching:
+                pulled.append(True)
 
     publisher = threading.Thread(target=publish)
     publisher.start()
@@ -326,14 +335,17 @@ async def test_a_ros2_input_on_a_wrong_topic_warns_once_naming_the_topics_there(
                         await task
         assert (
             "input ros2 /robot/batery: no message on topic '/robot/batery' in 0.2 s (zenoh key "
-            "0/robot/batery/*/*); topics published in ROS domain 0: /robot/battery "
-            "(std_msgs/msg/Float32), /robot/pose (geometry_msgs/msg/PoseStamped)"
+            "0/robot/batery/*/*); topics published in ROS domain 0: '/robot/battery' "
+            "(std_msgs/msg/Float32), '/robot/pose' (geometry_msgs/msg/PoseStamped)"
         ) in caplog.text
         assert caplog.text.count("no message on topic") == 1
+        # the graph's keys only: the domain's messages never pulled into the node
+        assert not pulled
     finally:
         stop.set()
         publisher.join()
-        token.undeclare()
+        for token in tokens:
+            token.undeclare()
         ros.close()
         node.close()
 
