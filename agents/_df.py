@@ -843,10 +843,10 @@ class GlobalDirectory:
             self._joining.discard(platform)
         gate = self.event_gate
         if gate is not None:
-            # replaced whole: the transport's thread reads them without a lock; joining
-            # first, so that a name leaving it is never in neither set meanwhile
-            gate.joining = frozenset(self._joining)
+            # replaced whole: the transport's thread reads them without a lock; priority
+            # first, so that a name leaving joining for it is never in neither set meanwhile
             gate.priority = frozenset(self._alive - self._joining)
+            gate.joining = frozenset(self._joining)
 
     def _tell(self, event: DirectoryEvent) -> None:
         for inbox in list(self._watchers):
@@ -1122,7 +1122,7 @@ class GlobalDirectory:
             if isinstance(obj, dict) and obj.get("op") == "leave":
                 # whether or not still listed (its presence may have gone first): signed
                 self._gone(platform)
-                self._left(platform)
+                self._left(platform, statement.ts_ms / 1000)
                 continue
             if platform not in self._alive:
                 continue  # its snapshot will be taken when its token appears
@@ -1142,11 +1142,13 @@ class GlobalDirectory:
                 continue
             self._apply(platform, op, service)
 
-    def _left(self, platform: str) -> None:
-        """Tell the channel that ``platform`` left, as it signed: its sessions can go.
+    def _left(self, platform: str, at: float) -> None:
+        """Tell the channel that ``platform`` left at ``at`` (POSIX s), as it signed.
 
         Only a signed leave says so (a presence cleared may be forged): the channel then
-        seals for it on none of its sessions again, and ends a key exchange with it.
+        seals for it on none of its sessions agreed before ``at`` again, and ends a key
+        exchange with it begun before (a leave replayed, or late after a restart, must
+        not end what the platform's next process agreed).
         """
         if not self._auth.authenticates:
             return
@@ -1155,7 +1157,7 @@ class GlobalDirectory:
             df.set_left(platform, True)  # not served until its signed snapshot lists it again
         left = getattr(self._platform.channel, "peer_left", None)
         if left is not None:
-            left(platform)
+            left(platform, at)
 
     def _up(self, platform: str) -> None:
         """``platform`` is listed (again), on its signed answer: served, and watchers told."""

@@ -53,15 +53,16 @@ class DirectoryStatementError(ValueError):
 
 
 class Statement:
-    """One opened statement: who said it, its order, and its body (parsed JSON)."""
+    """One opened statement: who said it, its order, its body (parsed JSON), when (Unix ms)."""
 
-    __slots__ = ("body", "boot", "platform", "seq")
+    __slots__ = ("body", "boot", "platform", "seq", "ts_ms")
 
-    def __init__(self, platform: str, boot: int, seq: int, body: Any) -> None:
+    def __init__(self, platform: str, boot: int, seq: int, body: Any, ts_ms: int = 0) -> None:
         self.platform = platform
         self.boot = boot
         self.seq = seq
         self.body = body
+        self.ts_ms = ts_ms  # as stamped by its platform (checked within the skew if signed)
 
 
 def make_nonce() -> bytes:
@@ -222,7 +223,7 @@ class DirectoryAuth:
             parsed = orjson.loads(body)
         except orjson.JSONDecodeError:
             raise DirectoryStatementError("field 'body' is not JSON", frm) from None
-        return Statement(frm, boot, seq, parsed)
+        return Statement(frm, boot, seq, parsed, ts_ms)
 
     def _verify(
         self,

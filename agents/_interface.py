@@ -581,7 +581,9 @@ class InterfaceAgent:
         self.sessions = SessionTable(keys.platform, trust, policy=self.policy, clock=clock)
         self._handshakes: dict[str, asyncio.Future[None]] = {}
         # the key exchange under way with each peer, ended at once by its signed leave
-        self._exchanging: dict[str, asyncio.Timeout] = {}
+        # per peer, the key exchange under way with it and when it began (clock s)
+        self._exchanging: dict[str, tuple[asyncio.Timeout, float]] = {}
+        self._clock = clock
         self._last_rehandshake: dict[str, float] = {}
         # Liveliness is not authenticated: per trusted peer, the presence changes acted on
         # (`_presence_admits`), when one last lifted its re-handshake limiter, the changes
@@ -934,7 +936,8 @@ class InterfaceAgent:
         # the good one, so each is tried as it comes (a refused one leaves our request
         # pending), and the first that finishes the exchange ends it, without waiting for
         # the query's end (on MQTT, its whole timeout).
-        ended = self._exchanging[peer] = asyncio.timeout(None)  # `peer_left` ends it
+        ended = asyncio.timeout(None)  # `peer_left` ends it
+        self._exchanging[peer] = (ended, self._clock())
         try:
             async with (
                 ended,
@@ -973,7 +976,8 @@ class InterfaceAgent:
             self.handshake.cancel(peer)
             raise
         finally:
-            if self._exchanging.get(peer) is ended:
+            under_way = self._exchanging.get(peer)
+            if under_way is not None and under_way[0] is ended:
                 del self._exchanging[peer]
         self.handshake.cancel(peer)
         if first is None:
@@ -1755,23 +1759,27 @@ class InterfaceAgent:
                 self._alive.discard(peer)
             self._kx_priority()
 
-    def peer_left(self, peer: str) -> None:
-        """``peer`` said, signed, that it leaves: retire its sessions, end a key exchange.
+    def peer_left(self, peer: str, at: float | None = None) -> None:
+        """``peer`` said, signed at ``at`` (POSIX s; now when None), that it leaves.
 
         Its global directory tells (a signed leave cannot be forged, unlike a presence
-        cleared): none of its sessions is sealed on again, nor trusted again by an
-        envelope of its that comes late (they open within ``grace``, then go), so the
-        next message to it agrees a new session, and finds nobody at once if it is gone.
+        cleared): none of its sessions agreed before ``at`` is sealed on again, nor
+        trusted again by an envelope of its that comes late (they open within
+        ``grace``, then go), so the next message to it agrees a new session, and finds
+        nobody at once if it is gone; a key exchange with it begun before ``at`` ends.
+        What began since is its next process's (a leave replayed by anyone within the
+        skew, or late after a restart): kept.
         """
         if peer == self._me or peer not in self.trust:
             return
+        cutoff = self._clock() if at is None else min(self._clock(), at)
         if peer in self._outbox:
             self._flush(peer)  # what waits in this turn's batch goes as the message before it
-        self.sessions.retire(peer)
-        exchange = self._exchanging.get(peer)
-        if exchange is not None:
+        self.sessions.retire(peer, cutoff)
+        under_way = self._exchanging.get(peer)
+        if under_way is not None and under_way[1] <= cutoff:
             with contextlib.suppress(RuntimeError):  # it is just ending anyway
-                exchange.reschedule(asyncio.get_running_loop().time())  # ends it at once
+                under_way[0].reschedule(asyncio.get_running_loop().time())  # ends it at once
 
     def _doubt(self, peer: str) -> None:
         """Seal for ``peer`` on none of its sessions until it sends on one (`SessionTable.doubt`).

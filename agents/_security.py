@@ -1140,25 +1140,33 @@ class SessionTable:
         self._rx_latest.pop(peer, None)
         return doubted
 
-    def retire(self, peer: str) -> int:
-        """Seal for ``peer`` on none of its sessions again, and drop them after ``grace``.
+    def retire(self, peer: str, before: float | None = None) -> int:
+        """Seal for ``peer`` on none of its sessions agreed before ``before`` again.
 
-        For a peer that said, signed, that it leaves: unlike `doubt`, an envelope of its
-        that comes late still opens (within ``grace``) but trusts no session again, so
-        the next message to it agrees a new session (and finds nobody, if it is gone).
-        How many sessions were retired.
+        For a peer that said, signed, that it leaves (``before``: when it signed that,
+        POSIX s; now when None or later): unlike `doubt`, an envelope of its that comes
+        late still opens (within ``grace``, then the session is dropped) but trusts none
+        of those sessions again, so the next message to it agrees a new session (and
+        finds nobody, if it is gone). Sessions agreed since are its next process's and
+        stay: a leave replayed, or come late, retires none of them. How many were retired.
         """
         now = self._clock()
+        cutoff = now if before is None else min(now, before)
         retire_at = now + self.policy.grace
-        sessions = self._by_peer.get(peer, ())
-        for session in sessions:
+        retired = 0
+        for session in self._by_peer.get(peer, ()):
+            if session.established > cutoff:
+                continue
+            retired += 1
             session._confirmed = False
             if session._retire_at is None or session._retire_at > retire_at:
                 session._retire_at = retire_at
-        self._left[peer] = now
+        self._left[peer] = max(self._left.get(peer, cutoff), cutoff)
         self._tx.pop(peer, None)
-        self._rx_latest.pop(peer, None)
-        return len(sessions)
+        latest = self._rx_latest.get(peer)
+        if latest is not None and latest.established <= cutoff:
+            del self._rx_latest[peer]
+        return retired
 
     def prune(self) -> int:
         """Drop sessions past their lifetime or their grace period; how many were dropped."""

@@ -109,7 +109,8 @@ def in_words(exc: BaseException) -> str:
     if isinstance(exc, OSError) and exc.strerror:
         where = exc.filename if exc.filename is not None else None
         return exc.strerror.lower() + (f": {where}" if where is not None else "")
-    if isinstance(exc, KeyError) and exc.args:
+    if isinstance(exc, KeyError) and exc.args and type(exc).__str__ is KeyError.__str__:
+        # a bare KeyError names only the key; a subclass with its own text says it all
         return f"no {exc.args[0]!r} where one was needed"
     text = str(exc)
     if text:

@@ -55,12 +55,13 @@ def _fail(message: str, code: int = 2) -> int:
 def run_node(config: Path) -> int:
     """Run one platform from its TOML config until SIGINT/SIGTERM; the exit code.
 
-    2: the config is wrong or the platform runs already; 1: the transport failed.
+    2: the config is wrong, the platform runs already, or its local channel's place is
+    another user's; 1: the transport failed.
     """
     from agents import TransportError, run
 
     from ._cli_net import run_node as serve
-    from ._local import PlatformAliveError
+    from ._local import ForeignNodeError, PlatformAliveError
     from ._platform import PlatformConfig, PlatformConfigError
 
     try:
@@ -68,7 +69,7 @@ def run_node(config: Path) -> int:
         run(serve(cfg, str(config), say))
     except PlatformConfigError as exc:
         return _fail(str(exc))
-    except PlatformAliveError as exc:
+    except (PlatformAliveError, ForeignNodeError) as exc:
         return _fail(f"dyknow node: {config}: {exc}")
     except TransportError as exc:
         return _fail(f"dyknow node: {config}: {exc}", 1)

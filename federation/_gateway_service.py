@@ -40,7 +40,8 @@ ONTOLOGY = "dyknow"
 Seconds = Annotated[float, Field(allow_inf_nan=False, ge=-1e12, le=1e12)]
 # Another platform may not ask for a grid finer than 1 ms: a gap in the data would make
 # each sample fill (up to a buffer of) grid points in the provider's publishing call.
-RemotePeriod = Annotated[float, Field(allow_inf_nan=False, ge=1e-3, le=1e9)]
+MIN_REMOTE_PERIOD = 1e-3
+RemotePeriod = Annotated[float, Field(allow_inf_nan=False, ge=MIN_REMOTE_PERIOD, le=1e9)]
 
 
 class GatewayRefusal(Exception):

@@ -258,7 +258,12 @@ def _get(message: Any, path: str) -> Any:
     for part in path.split("."):
         if isinstance(value, Mapping):
             value = value.get(part, _MISSING)
-        elif isinstance(value, list | tuple) and part.isdigit() and int(part) < len(value):
+        elif (
+            isinstance(value, list | tuple)
+            and part.isdecimal()
+            and part.isascii()  # "²" is a digit int() refuses
+            and int(part) < len(value)
+        ):
             value = value[int(part)]
         else:
             value = getattr(value, part, _MISSING)
@@ -727,15 +732,20 @@ class _FileRunner(InputRunner):
     ) -> int | None:
         """One pass over ``rows``; the latest valid time it gave (``shift = "now"``).
 
-        A pass after another starts its valid times strictly after ``after``, the last
-        pass's latest: the clock may have woken that pass's last sleep a little early, or
-        ``speed`` run its valid times ahead of the wall clock.
+        A pass after another gives valid times strictly after ``after``, the last pass's
+        latest: the clock may have woken that pass's last sleep a little early, ``speed``
+        or ``pace = "fast"`` run its valid times ahead of the wall clock, or a row be
+        earlier than the first. Each pass starts at the wall clock (a pass that takes
+        less time than it spans would otherwise run ahead of it further each time), and
+        a time that would not be after ``after`` is moved up to just after it.
         """
         now = time.time_ns()
-        base = now if after is None else max(now, after + 1)  # of this pass's valid times
-        # at speed 1 a valid time is when it is due: pushed no earlier than it (its
-        # available time)
+        # a pass paced at speed 1 takes as long as it spans: starting after the last one's
+        # latest keeps each valid time when it is due (pushed no earlier than it)
+        at_pace = s.pace == "recorded" and s.speed == 1
+        base = now if after is None or not at_pace else max(now, after + 1)
         start_wall = base if s.speed == 1 else now
+        floor = None if after is None else after + 1  # of this pass's valid times
         first: int | None = None
         latest = after
         for row in rows:
@@ -760,6 +770,9 @@ class _FileRunner(InputRunner):
                 await asyncio.sleep(0)  # let the node answer queries meanwhile
             if s.shift == "now" and t >= 0 and first is not None:
                 valid = base + (t - first)
+                if floor is not None and valid < floor:
+                    valid = floor  # never back past the last pass: one ns apart, in order
+                    floor += 1
                 latest = valid if latest is None else max(latest, valid)
                 mapper.handle(row, valid=valid)
             else:

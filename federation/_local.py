@@ -43,7 +43,9 @@ import json
 import logging
 import math
 import os
+import secrets
 import socket
+import stat
 import struct
 import tempfile
 import threading
@@ -51,6 +53,9 @@ import time
 from collections.abc import AsyncGenerator, Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+
+from nacl.exceptions import BadSignatureError
+from nacl.signing import VerifyKey
 
 from agents import (
     KeyPair,
@@ -66,6 +71,7 @@ from dyknow_core import Policy
 
 from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
 from ._cli_time import seconds, when
+from ._gateway_service import MIN_REMOTE_PERIOD
 from ._platform import PlatformConfig
 
 if TYPE_CHECKING:
@@ -169,7 +175,8 @@ async def _node_here(path: Path) -> int | None:
     """The pid of the node listening on the local channel ``path``; None when none listens.
 
     0 when one listens but its pid is unknown. A socket nobody listens on is a dead
-    node's (connecting is refused at once).
+    node's (connecting is refused at once). ForeignNodeError when the listener is
+    another OS user's: never taken for this platform running, never unlinked.
     """
     try:
         _, writer = await asyncio.wait_for(asyncio.open_unix_connection(str(path)), 2.0)
@@ -178,17 +185,17 @@ async def _node_here(path: Path) -> int | None:
     except OSError:  # no socket, or a stale one (refused), or not ours to open
         return None
     try:
-        sock = writer.get_extra_info("socket")
-        # on a connected Unix socket, the pid of the process that listens on it
-        creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-        pid, _uid, _gid = struct.unpack("3i", creds)
-    except (OSError, AttributeError):  # no SO_PEERCRED here (not Linux)
-        pid = 0
+        creds = _peer_cred(writer)
     finally:
         writer.close()
         with contextlib.suppress(OSError):
             await writer.wait_closed()
-    return int(pid)
+    if creds is None:  # no SO_PEERCRED here (not Linux): someone listens
+        return 0
+    pid, uid = creds
+    if uid != os.getuid():
+        raise ForeignNodeError(_not_ours_listener(path, uid))
+    return pid
 
 
 def _since(pid: int) -> float | None:
@@ -316,29 +323,95 @@ def _hello(config: PlatformConfig, public_key: bytes) -> dict[str, Any]:
     }
 
 
-def _private_dir(path: Path) -> None:
-    """Make the socket's own directory ``path`` 0700 and check it is ours.
+def _own_top(path: Path) -> Path:
+    """The first directory of ours above the socket directory ``path``.
 
-    Only that directory (always one of ours: ``<federation>/`` or ``dyknow-<uid>/``) is
-    changed, never the runtime or temporary directory above it.
+    ``$XDG_RUNTIME_DIR/dyknow`` or ``<tmp>/dyknow-<uid>``: the runtime or temporary
+    directory above it is the system's, never checked nor changed.
     """
-    for d in reversed([path, *path.parents]):
-        if not d.exists():
-            d.mkdir(mode=0o700)
-    st = path.stat()
-    if st.st_uid != os.getuid():
-        raise PermissionError(f"{path} belongs to uid {st.st_uid}, not to us")
-    if st.st_mode & 0o077:
-        os.chmod(path, 0o700)
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    tops = [Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"]
+    if runtime:
+        tops.insert(0, Path(runtime) / "dyknow")
+    for top in tops:
+        if top == path or top in path.parents:
+            return top
+    return path
+
+
+def _private_dir(path: Path, *, make: bool = True) -> bool:
+    """Check every directory from ours at the top down to ``path`` is ours and 0700.
+
+    ``make`` (the node): make those missing (0700) and tighten ours that are looser; else
+    (a command) False when one is missing. ForeignNodeError when one is another user's
+    (made there before us, as in a shared ``<tmp>``) or not a directory (a link): a
+    channel there could be theirs.
+    """
+    top = _own_top(path)
+    chain = [path, *path.parents]
+    for d in reversed(chain[: chain.index(top) + 1]):
+        if make:
+            with contextlib.suppress(FileExistsError):
+                d.mkdir(mode=0o700)
+        try:
+            st = os.lstat(d)
+        except FileNotFoundError:
+            if make:
+                raise
+            return False
+        if not stat.S_ISDIR(st.st_mode):
+            raise ForeignNodeError(
+                f"{d} is not a directory (a link?): the local channel is not placed under it; "
+                "remove it"
+            )
+        if st.st_uid != os.getuid():
+            raise ForeignNodeError(
+                f"{d} belongs to uid {st.st_uid}, not to this user (uid {os.getuid()}): "
+                "another user made it first, so a local channel under it could be theirs; "
+                "remove it, or set XDG_RUNTIME_DIR to a directory of this user's"
+            )
+        if make and st.st_mode & 0o077:  # a command checks the listener's uid instead
+            os.chmod(d, 0o700)
+    return True
+
+
+def _peer_cred(writer: asyncio.StreamWriter) -> tuple[int, int] | None:
+    """(pid, uid) of the process on the other end of a Unix socket; None where unknown.
+
+    SO_PEERCRED (Linux): of a listener, its credentials when it began to listen.
+    """
+    sock = writer.get_extra_info("socket")
+    option = getattr(socket, "SO_PEERCRED", None)
+    if sock is None or option is None:
+        return None
+    creds = sock.getsockopt(socket.SOL_SOCKET, option, struct.calcsize("3i"))
+    pid, uid, _gid = struct.unpack("3i", creds)
+    return int(pid), int(uid)
 
 
 def _peer_uid(writer: asyncio.StreamWriter) -> int | None:
-    sock = writer.get_extra_info("socket")
-    if sock is None:
-        return None
-    creds = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-    _pid, uid, _gid = struct.unpack("3i", creds)
-    return int(uid)
+    creds = _peer_cred(writer)
+    return None if creds is None else creds[1]
+
+
+def _not_ours_listener(path: Path, uid: int | None) -> str:
+    """Why the listener on ``path`` is not taken for a node of this user's."""
+    if uid is None:
+        return (
+            f"the listener on {path} cannot be checked to be this user's (no SO_PEERCRED on "
+            "this system): nothing was sent to it"
+        )
+    return (
+        f"the listener on {path} runs as uid {uid}, not as this user (uid {os.getuid()}): "
+        "not a node of this config, so nothing was sent to it; stop it, or remove the socket"
+    )
+
+
+def _proof_data(config: PlatformConfig, nonce: bytes) -> bytes:
+    """What a node signs to show a command it holds its config's key (for ``nonce``)."""
+    return b"\0".join(
+        (b"dyknow local channel", config.federation.encode(), config.name.encode(), nonce)
+    )
 
 
 class _Shared:
@@ -361,6 +434,7 @@ class LocalChannel:
         keys = platform.interface.keys
         self.path = channel_path(platform.config, keys)
         self._hello = json.dumps(_hello(platform.config, keys.public_key)).encode() + b"\n"
+        self._keys = keys
         self.started = time.time()
         self._server: asyncio.base_events.Server | None = None
         self._bound: tuple[int, int] | None = None  # the socket's (device, inode) once bound
@@ -472,7 +546,12 @@ class LocalChannel:
             if pending:
                 log.warning("local channel: %d command(s) did not end in 2 s", len(pending))
         if self._releasing:  # their exports given back (each cancel takes at most 2 s)
-            await asyncio.wait(set(self._releasing), timeout=2.0)
+            _, left = await asyncio.wait(set(self._releasing), timeout=2.0)
+            for release in left:  # none runs on while the platform closes
+                release.cancel()
+            if left:
+                log.warning("local channel: %d export release(s) cut short", len(left))
+                await asyncio.wait(left, timeout=1.0)
         # only the socket this channel bound: not another node's, had it never bound one
         with contextlib.suppress(FileNotFoundError):
             st = self.path.stat()
@@ -507,20 +586,23 @@ class LocalChannel:
             # config (same names, other key) stops here, its request unsent
             writer.write(self._hello)
             await writer.drain()
-            try:
-                line = await asyncio.wait_for(reader.readline(), _REQUEST_WAIT)
-            except TimeoutError:
-                await send({"error": f"bad request: none came within {_REQUEST_WAIT:g} s"})
-                return
-            except ValueError:  # past the reader's limit (asyncio's LimitOverrunError)
-                await send({"error": f"bad request: a line longer than {_LINE} bytes"})
+            # then the command's nonce, signed back: a key stated proves nothing, a fresh
+            # signature by it shows this node holds the config's key
+            request = await self._line(reader, send)
+            if request is None:
                 return
             try:
-                request = json.loads(line)
-                if not isinstance(request, dict):
-                    raise ValueError("not a JSON object")
-            except (ValueError, RecursionError) as exc:
-                await send({"error": f"bad request: {exc}"})
+                nonce = base64.b64decode(request["nonce"], validate=True)
+            except (KeyError, TypeError, ValueError):
+                await send({"error": "bad request: a nonce to sign comes first"})
+                return
+            if not 16 <= len(nonce) <= 64:
+                await send({"error": "bad request: a nonce of 16 to 64 bytes comes first"})
+                return
+            proof = self._keys.sign(_proof_data(self.platform.config, nonce))
+            await send({"proof": base64.b64encode(proof).decode("ascii")})
+            request = await self._line(reader, send)
+            if request is None:
                 return
             self.served += 1
             try:
@@ -539,6 +621,27 @@ class LocalChannel:
             writer.close()
             with contextlib.suppress(OSError):  # the peer went: its socket is gone already
                 await writer.wait_closed()
+
+    async def _line(
+        self, reader: asyncio.StreamReader, send: Callable[[Any], Any]
+    ) -> dict[str, Any] | None:
+        """The command's next line, a JSON object; None once a bad one was answered."""
+        try:
+            line = await asyncio.wait_for(reader.readline(), _REQUEST_WAIT)
+        except TimeoutError:
+            await send({"error": f"bad request: none came within {_REQUEST_WAIT:g} s"})
+            return None
+        except ValueError:  # past the reader's limit (asyncio's LimitOverrunError)
+            await send({"error": f"bad request: a line longer than {_LINE} bytes"})
+            return None
+        try:
+            request = json.loads(line)
+            if not isinstance(request, dict):
+                raise ValueError("not a JSON object")
+        except (ValueError, RecursionError) as exc:
+            await send({"error": f"bad request: {exc}"})
+            return None
+        return request
 
     async def _answer(
         self,
@@ -599,19 +702,23 @@ class LocalChannel:
 
         Each release runs on in its own task if the command is cancelled meanwhile (the
         node stopping): one cut short, or those after it, would leave their exports
-        counted for ever and never cancelled.
+        counted for ever and never cancelled. On a cancel the rest start at once, side by
+        side, and the cancel goes on up: the channel's end waits for them (bounded).
         """
-        cancelled: asyncio.CancelledError | None = None
-        for entry in held:
-            release = asyncio.ensure_future(self._release(target, entry))
-            self._releasing.add(release)
-            release.add_done_callback(self._releasing.discard)
+        for i, entry in enumerate(held):
             try:
-                await asyncio.shield(release)
-            except asyncio.CancelledError as exc:
-                cancelled = exc  # raised once every entry is on its way back
-        if cancelled is not None:
-            raise cancelled
+                await asyncio.shield(self._start_release(target, entry))
+            except asyncio.CancelledError:
+                for rest in held[i + 1 :]:
+                    self._start_release(target, rest)
+                raise
+
+    def _start_release(self, target: str, entry: _Shared) -> asyncio.Future[None]:
+        """`_release` ``entry`` in a task of its own, which the channel's end waits for."""
+        release = asyncio.ensure_future(self._release(target, entry))
+        self._releasing.add(release)
+        release.add_done_callback(self._releasing.discard)
+        return release
 
     async def _acquire(
         self, target: str, semantic: str, sample_period: Any, timeout: float
@@ -761,7 +868,11 @@ class LocalChannel:
 
 
 def _sample_period(value: Any) -> float | None:
-    """A stream request's ``sample_period``: absent, or a positive finite number of seconds."""
+    """A stream request's ``sample_period``: absent, or a finite number of seconds >= 1 ms.
+
+    The node's own streams take the same bound as an export (`RemotePeriod`): a grid
+    finer than that, over a gap in the data, fills grid point after grid point.
+    """
     if value is None:
         return None
     if (
@@ -772,6 +883,11 @@ def _sample_period(value: Any) -> float | None:
     ):
         raise NotAnsweredError(
             f"bad request: sample_period must be a positive number of seconds, not {value!r}"
+        )
+    if value < MIN_REMOTE_PERIOD:
+        raise NotAnsweredError(
+            f"bad request: sample_period {value:g} s is under {MIN_REMOTE_PERIOD:g} s, the "
+            "finest an export takes"
         )
     return value
 
@@ -802,11 +918,18 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
     """
     keys = _keys_of(config)
     path = channel_path(config, keys)
+    # every directory down to the socket ours and closed: else another user could have
+    # made the place first and listen there
+    if not _private_dir(path.parent, make=False):
+        raise NodeUnreachable(f"{path.parent}: no such directory")
     try:
         reader, writer = await asyncio.open_unix_connection(str(path), limit=64 << 20)
     except (FileNotFoundError, ConnectionRefusedError) as exc:
         raise NodeUnreachable(str(exc)) from None
     try:
+        creds = _peer_cred(writer)
+        if creds is None or creds[1] != os.getuid():
+            raise ForeignNodeError(_not_ours_listener(path, None if creds is None else creds[1]))
         try:
             first = await asyncio.wait_for(reader.readline(), _HELLO_WAIT)
         except TimeoutError:
@@ -823,6 +946,20 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
         if hello != _hello(config, keys.public_key):
             node = hello.get("node") if isinstance(hello, dict) else None
             raise ForeignNodeError(_foreign(path, config, keys, node))
+        nonce = secrets.token_bytes(32)
+        writer.write(json.dumps({"nonce": base64.b64encode(nonce).decode("ascii")}).encode())
+        writer.write(b"\n")
+        await writer.drain()
+        try:
+            answer = json.loads(await asyncio.wait_for(reader.readline(), _HELLO_WAIT))
+            proof = base64.b64decode(answer["proof"], validate=True)
+            VerifyKey(keys.public_key).verify(_proof_data(config, nonce), proof)
+        except (TimeoutError, ValueError, KeyError, TypeError, BadSignatureError):
+            raise ForeignNodeError(
+                f"the listener on {path} states this config's key but did not sign this "
+                "command's nonce with it: not the node of this config, so nothing was sent "
+                "to it; stop it, or remove the socket"
+            ) from None
         writer.write(json.dumps(request).encode() + b"\n")
         await writer.drain()
         while True:

@@ -23,7 +23,7 @@ import asyncio
 import contextlib
 import dataclasses
 import logging
-import threading
+import re
 import time
 from collections.abc import Iterator
 from functools import cache
@@ -131,39 +131,25 @@ _GRAPH_WAIT = 1.0  # s spent looking at the ROS graph for that warning
 def ros_topics(session: Any, domain: int, wait: float = _GRAPH_WAIT) -> dict[str, str]:
     """Topic → ROS type of what is published in ``domain`` through rmw_zenoh (blocking).
 
-    From the graph's liveliness tokens (``@ros2_lv/<domain>/…/MP/…/<topic>/<type>/…``, a
-    name's '/' written '%') and from the messages put on the domain's keys within ``wait``
-    seconds.
+    From the graph's liveliness tokens only (``@ros2_lv/<domain>/…/MP/…/<topic>/<type>/…``,
+    a name's '/' written '%'), which rmw_zenoh declares for every publisher, answered
+    within ``wait`` seconds: keys, never the messages (a camera's domain would pour its
+    images into this session meanwhile).
     """
     found: dict[str, str] = {}
-    lock = threading.Lock()
+    for reply in session.liveliness().get(f"@ros2_lv/{domain}/**", timeout=wait):
+        ok = reply.ok
+        parts = [] if ok is None else str(ok.key_expr).split("/")
+        if len(parts) > 10 and parts[5] == "MP":  # a publisher
+            try:
+                kind = ros_type(parts[10])
+            except ValueError:
+                kind = parts[10]
+            found.setdefault(parts[9].replace("%", "/"), kind)
+    return found
 
-    def seen(topic: str, dds: str) -> None:
-        try:
-            kind = ros_type(dds)
-        except ValueError:
-            kind = dds
-        with lock:
-            found.setdefault(topic, kind)
 
-    def on_sample(sample: Any) -> None:
-        parts = str(sample.key_expr).split("/")
-        if len(parts) >= 4:
-            seen("/" + "/".join(parts[1:-2]), parts[-2])
-
-    sub = session.declare_subscriber(f"{domain}/**", on_sample)
-    ends = time.monotonic() + wait
-    try:
-        for reply in session.liveliness().get(f"@ros2_lv/{domain}/**", timeout=wait):
-            ok = reply.ok
-            parts = [] if ok is None else str(ok.key_expr).split("/")
-            if len(parts) > 10 and parts[5] == "MP":  # a publisher
-                seen(parts[9].replace("%", "/"), parts[10])
-        time.sleep(max(0.0, ends - time.monotonic()))
-    finally:
-        sub.undeclare()
-    with lock:
-        return dict(found)
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9_/]+")
 
 
 class _Ros2Runner(InputRunner):
@@ -220,7 +206,11 @@ class _Ros2Runner(InputRunner):
         except Exception as exc:  # the warning goes out without them
             log.debug("reading the ROS graph: %s", exc)
             topics = {}
-        seen = ", ".join(f"{t} ({kind})" for t, kind in sorted(topics.items()))
+        # names from the network: quoted unless plain (a newline could forge a log line)
+        seen = ", ".join(
+            f"{t!r} ({kind if _PLAIN_NAME.fullmatch(kind) else repr(kind)})"
+            for t, kind in sorted(topics.items())
+        )
         return (
             f"input {s.title()}: no message on topic {s.topic!r} in {SILENT_WARN:g} s (zenoh key "
             f"{self.key()}); topics published in ROS domain {s.domain}: "

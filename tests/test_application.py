@@ -293,15 +293,24 @@ async def test_a_ros2_input_on_a_wrong_topic_warns_once_naming_the_topics_there(
     stop = threading.Event()
     hash_ = "RIHS01_" + "0" * 64
     battery = ros.declare_publisher(f"0/robot/battery/std_msgs::msg::dds_::Float32_/{hash_}")
-    # a publisher as rmw_zenoh states it in the ROS graph, with no message yet
-    token = ros.liveliness().declare_token(
-        f"@ros2_lv/0/{ros.zid()}/0/11/MP/%/%/driver/%robot%pose/"
-        f"geometry_msgs::msg::dds_::PoseStamped_/{hash_}/::,10:,:,:,,"
-    )
+    # publishers as rmw_zenoh states them in the ROS graph: one publishing, one with no
+    # message yet
+    tokens = [
+        ros.liveliness().declare_token(
+            f"@ros2_lv/0/{ros.zid()}/0/{n}/MP/%/%/driver/{topic}/{kind}/{hash_}/::,10:,:,:,,"
+        )
+        for n, topic, kind in (
+            (10, "%robot%battery", "std_msgs::msg::dds_::Float32_"),
+            (11, "%robot%pose", "geometry_msgs::msg::dds_::PoseStamped_"),
+        )
+    ]
+    pulled: list[bool] = []  # whether the messages were ever asked for by the node
 
     def publish() -> None:
         while not stop.wait(0.05):
             battery.put(b"\x00\x01\x00\x00\x00\x00\xa0\x41")
+            if battery.matching_status.matching:
+                pulled.append(True)
 
     publisher = threading.Thread(target=publish)
     publisher.start()
@@ -326,14 +335,17 @@ async def test_a_ros2_input_on_a_wrong_topic_warns_once_naming_the_topics_there(
                         await task
         assert (
             "input ros2 /robot/batery: no message on topic '/robot/batery' in 0.2 s (zenoh key "
-            "0/robot/batery/*/*); topics published in ROS domain 0: /robot/battery "
-            "(std_msgs/msg/Float32), /robot/pose (geometry_msgs/msg/PoseStamped)"
+            "0/robot/batery/*/*); topics published in ROS domain 0: '/robot/battery' "
+            "(std_msgs/msg/Float32), '/robot/pose' (geometry_msgs/msg/PoseStamped)"
         ) in caplog.text
         assert caplog.text.count("no message on topic") == 1
+        # the graph's keys only: the domain's messages never pulled into the node
+        assert not pulled
     finally:
         stop.set()
         publisher.join()
-        token.undeclare()
+        for token in tokens:
+            token.undeclare()
         ros.close()
         node.close()
 
@@ -485,3 +497,67 @@ async def test_an_input_that_stops_says_why_in_words(caplog: pytest.LogCaptureFi
     assert in_words(FileNotFoundError(2, "No such file or directory", "/srv/x.jsonl")) == (
         "no such file or directory: /srv/x.jsonl"
     )
+    assert in_words(KeyError("speed")) == "no 'speed' where one was needed"
+
+
+def test_a_key_error_with_its_own_text_is_said_as_it_is() -> None:
+    """UnknownLabelError is a KeyError: its message, not ``no "unknown label …" where …``."""
+    from dyknow_core import UnknownLabelError
+    from federation._application import in_words
+
+    assert in_words(UnknownLabelError("speed", ["altitude"])) == (
+        "unknown label 'speed' (known labels: altitude)"
+    )
+
+
+def test_a_superscript_digit_is_no_index_of_an_input_field() -> None:
+    """``items.²`` names no index (``"²".isdigit()``, yet ``int`` refuses it): no field."""
+    from federation._inputs import _MISSING, _get
+
+    assert _get({"items": [1, 2, 3]}, "items.²") is _MISSING
+    assert _get({"items": [1, 2, 3]}, "items.2") == 3
+
+
+async def test_a_looped_file_played_fast_stays_near_the_wall_clock(tmp_path: Path) -> None:
+    """``pace = "fast"``, ``shift = "now"``: each pass starts at now, never back past the last.
+
+    Before, each pass started after the last one's latest: 100 passes of a 0.2 s file at
+    once ran 20 s ahead of the wall clock; and a row earlier than the first fell back
+    before the previous pass.
+    """
+    from federation._inputs import FileInput
+
+    path = tmp_path / "wx.jsonl"
+    times = [0.1, 0.0, 0.2]  # the second row earlier than the first
+    path.write_text("".join(f'{{"t": {t}, "temp": {k}}}\n' for k, t in enumerate(times)))
+    got: list[int] = []
+    enough = asyncio.Event()
+
+    def on_batch(batch: list[Any]) -> None:
+        got.extend(tv for _, tv, _ in batch)
+        if len(got) >= 300:
+            enough.set()
+
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/temp")
+        inst.subscribe("wx/temp", callback=on_batch)
+        settings = FileInput(
+            kind="file",
+            path=path,
+            loop=True,
+            shift="now",
+            pace="fast",
+            time="t",
+            fields={"temp": "wx/temp"},
+        )
+        task = asyncio.create_task(input_runner(settings, inst).run(None))
+        try:
+            await asyncio.wait_for(enough.wait(), 20)
+        finally:
+            task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await task
+        ahead = (max(got) - time.time_ns()) / 1e9
+    assert ahead < 1.0, ahead  # one pass's span (0.2 s) at most, and some slack
+    passes = [got[i : i + 3] for i in range(0, len(got) - 2, 3)]
+    assert all(min(b) > max(a) for a, b in itertools.pairwise(passes)), passes[:4]

@@ -723,3 +723,56 @@ def test_a_label_not_in_the_vocabulary_is_said_so_before_asking(
     assert r.exit_code == 2, r.output
     assert "'heli-altitud' is not a label of the vocabulary traffic" in r.output
     assert not (tmp_path / "out.mcap").exists()
+
+
+async def test_a_node_refuses_its_own_stream_at_a_period_an_export_refuses(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``--sample-period`` under 1 ms on the node's own stream: refused, as an export is."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+    from federation._local import LocalChannel, via_node
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # a socket of this test's own
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    request = {"op": "stream", "platform": "uav-a", "labels": ["x"], "sample_period": 0.0005}
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p, LocalChannel(p):
+        lines = [line async for line in via_node(config, request)]
+    refusal = "bad request: sample_period 0.0005 s is under 0.001 s, the finest an export takes"
+    assert lines == [{"error": refusal}]
+
+
+async def test_releases_cut_short_by_a_cancel_start_at_once_and_end_with_the_channel(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A command cancelled while giving its exports back: the rest start side by side,
+    the cancel goes on at once, and none outlives the channel's end."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+    from federation._local import LocalChannel, _Shared
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # a socket of this test's own
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    started: list[str] = []
+
+    async def release(target: str, entry: _Shared) -> None:
+        started.append(entry.export_id)
+        await asyncio.sleep(3600)  # a cancel of the export that never comes back
+
+    held = [_Shared(f"e{i}", ("uav-b", f"l{i}"), None) for i in range(3)]
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p:
+        async with LocalChannel(p) as channel:
+            channel._release = release  # type: ignore[method-assign]
+            command = asyncio.create_task(channel._release_all("uav-b", held))
+            while not started:  # noqa: ASYNC110 (no event to await)
+                await asyncio.sleep(0.01)
+            command.cancel()  # the node stopping
+            async with asyncio.timeout(0.5):  # at once, not one release after another
+                with pytest.raises(asyncio.CancelledError):
+                    await command
+            assert started == ["e0", "e1", "e2"]
+            releasing = set(channel._releasing)
+            assert len(releasing) == 3
+        assert all(r.done() for r in releasing)  # cancelled by the channel's end

@@ -230,6 +230,48 @@ async def test_the_platforms_limit_is_its_global_directorys() -> None:
             assert (gate.limit if gate is not None else None) == limit
 
 
+async def test_a_joining_name_is_exempt_or_joining_at_every_moment() -> None:
+    """Its snapshot answered, a joining name moves to the exempt set: never in neither.
+
+    The transport's thread reads the two sets without a lock, between the two writes.
+    """
+    hub = MemoryHub()
+    keys = KeyPair.generate("uav-a")
+    trust = TrustStore(
+        "t", {"uav-a": keys.public_key, "uav-b": KeyPair.generate("uav-b").public_key}
+    )
+    async with (
+        asyncio.timeout(10),
+        hub.transport() as transport,
+        AgentPlatform(
+            "uav-a", transport, federation="t", channel=InterfaceAgent(keys, trust)
+        ) as pa,
+    ):
+        view = pa.global_df
+        assert view is not None and view.event_gate is not None
+        seen: list[tuple[frozenset[str], frozenset[str]]] = []
+
+        class Watched:
+            """The gate's two sets, each state between writes kept."""
+
+            def __init__(self) -> None:
+                self.__dict__["priority"] = frozenset()
+                self.__dict__["joining"] = frozenset()
+
+            def __setattr__(self, name: str, value: Any) -> None:
+                self.__dict__[name] = value
+                seen.append((self.__dict__["priority"], self.__dict__["joining"]))
+
+        view.event_gate = Watched()  # type: ignore[assignment]
+        view._set_alive("uav-b", True, joining=True)
+        view._set_alive("uav-b", True)
+        view.event_gate = None
+    assert "uav-b" in seen[-1][0] and not seen[-1][1]
+    # once in either set, in one of them at every moment after
+    held = ["uav-b" in priority | joining for priority, joining in seen]
+    assert all(held[held.index(True) :])
+
+
 # -- in memory: the screen in front of the subscription, the queue's overflow ------------------
 
 

@@ -599,3 +599,17 @@ def test_monitor_run_matches_stepping(text: str, trace: list[Any], cut: int) -> 
     got += [v for v in (ran.step(t, s) for t, s in trace[cut:]) if v is not None]
     assert got == want, text
     assert (ran.residual is None) == (stepped.residual is None)
+
+
+def test_a_member_named_with_a_dot_wins_even_when_null() -> None:
+    """``"a.b"`` present (even null) is that member, not the field ``b`` of ``a``."""
+    state = {"m": {"a.b": None, "a": {"b": 5}}}
+    assert evaluate('m("a.b") > 3', [(0.0, state)]) is not True
+    assert evaluate('m("a.b") > 3', [(0.0, {"m": {"a": {"b": 5}}})]) is True
+
+
+def test_a_superscript_digit_in_a_path_reads_nothing() -> None:
+    """``ranges.²``: no index (``"²".isdigit()`` but ``int`` refuses it), not an error."""
+    state = {"m": {"ranges": [7, 8, 9]}}
+    assert evaluate('m("ranges.²") > 3', [(0.0, state)]) is not True
+    assert evaluate('m("ranges.2") > 3', [(0.0, state)]) is True

@@ -13,10 +13,12 @@ import time
 import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import Any
 
 import pytest
 from _node_example import Station, _samples
 
+from agents import KeyPair
 from federation import PlatformConfig
 
 CLI = [sys.executable, "-m", "federation.cli"]
@@ -347,6 +349,154 @@ def _channel(config: object, runtime: Path) -> Path:
             del os.environ["XDG_RUNTIME_DIR"]
         else:
             os.environ["XDG_RUNTIME_DIR"] = saved
+
+
+OTHER_LISTENER = """
+import os, socket, sys
+path, hello = sys.argv[1], sys.argv[2].encode() + b"\\n"
+os.makedirs(os.path.dirname(path), exist_ok=True)
+s = socket.socket(socket.AF_UNIX)
+s.bind(path)
+if os.getuid() == 0:  # bound in the victim's place by root: listening as another user
+    os.setgid(65534)
+    os.setuid(65534)
+s.listen()
+print("listening", flush=True)
+while True:
+    c, _ = s.accept()
+    c.sendall(hello)  # the victim's node's own hello: a public key, proving nothing
+    c.close()
+"""
+
+
+def _other_listener(path: Path, hello: str, *, as_other: bool) -> subprocess.Popen[str]:
+    """A process of uid 65534 listening on ``path`` (bound by root when not ``as_other``)."""
+    extra: dict[str, Any] = {"user": 65534, "group": 65534} if as_other else {}
+    proc = subprocess.Popen(
+        ["/usr/bin/python3", "-c", OTHER_LISTENER, str(path), hello],
+        cwd="/",
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **extra,
+    )
+    assert proc.stdout is not None
+    assert proc.stdout.readline().strip() == "listening", proc.stderr
+    return proc
+
+
+async def _command(config: PlatformConfig) -> list[Any]:
+    from federation._local import via_node
+
+    return [line async for line in via_node(config, {"op": "platforms"})]
+
+
+@pytest.mark.timeout(90)
+def test_another_user_cannot_take_a_nodes_channel_in_a_shared_tmp(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A ``dyknow-<uid>`` made first by another user in ``<tmp>``: refused by node and command.
+
+    Without ``$XDG_RUNTIME_DIR`` the channel is under the shared ``<tmp>``: another user
+    could make the victim's directory there first and listen on the victim's socket.
+    """
+    import asyncio
+    import shutil
+    import tempfile
+
+    from federation._local import ForeignNodeError, _hello, channel_path
+
+    shared = Path(tempfile.mkdtemp(prefix="dyknow-tmp-", dir="/tmp"))
+    other = None
+    try:
+        shared.chmod(0o1777)  # like /tmp: everyone may make a directory there
+        station = Station(tmp_path)
+        monkeypatch.delenv("XDG_RUNTIME_DIR", raising=False)
+        monkeypatch.setattr(tempfile, "tempdir", str(shared))
+        config = PlatformConfig.load(station.dir / "station-python.toml")
+        path = channel_path(config)
+        assert path.is_relative_to(shared / f"dyknow-{os.getuid()}")
+        hello = json.dumps(_hello(config, KeyPair.load(config.key).public_key))
+        other = _other_listener(path, hello, as_other=True)
+        assert (shared / f"dyknow-{os.getuid()}").stat().st_uid == 65534
+        with pytest.raises(ForeignNodeError, match=r"dyknow-\d+ belongs to uid 65534, not to"):
+            asyncio.run(_command(config))
+        # the node refuses to start there, saying why (not that it runs already)
+        env = {k: v for k, v in station.env.items() if k != "XDG_RUNTIME_DIR"}
+        node = subprocess.run(
+            [*CLI, "node", "--config", str(station.dir / "station-python.toml")],
+            env={**env, "TMPDIR": str(shared)},
+            cwd=station.dir,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert node.returncode == 2, node.stderr
+        assert "uid 65534" in node.stderr and "alive" not in node.stderr
+        assert "Traceback" not in node.stderr
+    finally:
+        if other is not None:
+            other.kill()
+            other.wait()
+        shutil.rmtree(shared, ignore_errors=True)
+
+
+@pytest.mark.timeout(60)
+async def test_a_listener_of_another_uid_on_the_channel_is_not_taken_for_the_node(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A socket of ours listened on by another user: commands send nothing, nodes keep off."""
+    from federation._local import ForeignNodeError, _hello, _node_here, channel_path
+
+    station = Station(tmp_path)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
+    config = PlatformConfig.load(station.dir / "station-python.toml")
+    path = channel_path(config)
+    hello = json.dumps(_hello(config, KeyPair.load(config.key).public_key))
+    other = _other_listener(path, hello, as_other=False)
+    try:
+        with pytest.raises(ForeignNodeError, match="runs as uid 65534, not as this user"):
+            await _command(config)
+        with pytest.raises(ForeignNodeError, match="runs as uid 65534"):
+            await _node_here(path)
+    finally:
+        other.kill()
+        other.wait()
+
+
+async def test_a_node_stating_the_configs_key_must_sign_the_commands_nonce(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A hello replayed with a proof signed for another nonce: the request is never sent."""
+    import asyncio
+    import base64
+
+    from federation._local import ForeignNodeError, _hello, _proof_data, channel_path
+
+    station = Station(tmp_path)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
+    config = PlatformConfig.load(station.dir / "station-python.toml")
+    keys = KeyPair.load(config.key)
+    path = channel_path(config)
+    path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
+    recorded = keys.sign(_proof_data(config, b"n" * 32))  # a proof of an earlier command's
+    received: list[bytes] = []
+
+    async def replay(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(json.dumps(_hello(config, keys.public_key)).encode() + b"\n")
+        received.append(await reader.readline())  # the nonce
+        proof = {"proof": base64.b64encode(recorded).decode()}
+        writer.write(json.dumps(proof).encode() + b"\n")
+        received.append(await reader.read())
+        writer.close()
+
+    server = await asyncio.start_unix_server(replay, path=str(path))
+    async with asyncio.timeout(20), server:
+        with pytest.raises(ForeignNodeError, match="did not sign this command's nonce"):
+            await _command(config)
+        while len(received) < 2:  # noqa: ASYNC110 (the server's task has no event to await)
+            await asyncio.sleep(0.01)
+    assert set(json.loads(received[0])) == {"nonce"} and received[1] == b""
 
 
 async def test_a_channel_never_unlinks_a_socket_a_node_listens_on(

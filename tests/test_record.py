@@ -790,7 +790,8 @@ def test_a_monitor_comparing_a_whole_message_with_a_number_says_so(tmp_path: Pat
     assert r.returncode == 0, r.stderr
     assert (
         "monitor monitors/warm: feature 'temp' holds a message with fields (data), not a "
-        "number: temp > 20 is never true, so every state is a violation. Compare one of its "
+        "number: temp > 20 compares a message with a number, false with <, <=, >, >= and == "
+        "and true with !=, whatever the message holds. Compare one of its "
         'fields: temp("data")'
     ) in r.stderr
     assert r.stderr.count("holds a message") == 1, r.stderr  # once, and not for 'east'

@@ -12,6 +12,7 @@ finds nobody at once.
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 import uuid
 from pathlib import Path
@@ -164,3 +165,96 @@ async def test_a_key_exchange_under_way_ends_when_the_peer_leaves(tmp_path: Path
             held.clear()
         print(f"\nthe key exchange with uav-b ended {waited:.2f} s after it began to leave")
         assert waited < TIMEOUT / 2, waited
+
+
+def _is_leave(payload: bytes) -> bool:
+    """Whether a directory event's payload is a leave."""
+    return json.loads(json.loads(payload)["body"]).get("op") == "leave"
+
+
+async def _recorded_leave(tmp_path: Path, fed: str, port: int, trust: TrustStore) -> bytes:
+    """A signed leave of a process of uav-b's, as anyone on the network records it."""
+    got: list[bytes] = []
+    with _outsider(port) as outsider:
+        sub = outsider.declare_subscriber(
+            wire_key(fed, "df-events", "uav-b"), lambda s: got.append(bytes(s.payload))
+        )
+        config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+        channel = InterfaceAgent(KeyPair.load(tmp_path / "uav-b.key"), trust)
+        async with (
+            ZenohTransport(config) as tb,
+            AgentPlatform("uav-b", tb, federation=fed, channel=channel),
+        ):
+            pass
+        while not any(_is_leave(p) for p in got):  # noqa: ASYNC110
+            await asyncio.sleep(0.02)
+        sub.undeclare()
+    return next(p for p in got if _is_leave(p))
+
+
+async def test_a_leave_replayed_or_late_keeps_the_next_processs_session(tmp_path: Path) -> None:
+    """uav-b's earlier processes left, signed; its next one agrees a session with uav-a;
+    such a leave (replayed by an outsider, or held up on the way) then reaches uav-a: the
+    session agreed since stays, and a key exchange begun since goes on."""
+    fed = f"leave-{uuid.uuid4().hex[:8]}"
+    names = ["uav-a", "uav-b"]
+    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
+    trust = TrustStore.load(tmp_path / "trust.json")
+    port = free_tcp_port()
+    ca = InterfaceAgent(KeyPair.load(tmp_path / "uav-a.key"), trust, handshake_timeout=TIMEOUT)
+    held: list[Any] = []  # a query dropped is ended: kept, it waits its timeout
+    async with asyncio.timeout(60), ZenohTransport(ZenohConfig.loopback(port)) as ta:
+        # two processes' leaves, the second newer: each is news to uav-a once
+        leaves = [await _recorded_leave(tmp_path, fed, port, trust) for _ in range(2)]
+        async with AgentPlatform("uav-a", ta, federation=fed, channel=ca) as pa:
+            view = pa.global_df
+            assert view is not None
+            asker = await pa.add(Agent("asker"))
+            cb = InterfaceAgent(KeyPair.load(tmp_path / "uav-b.key"), trust)
+            config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+
+            async def deliver(leave: bytes) -> None:
+                """The leave reaches uav-a now, and is taken (signed, within the skew).
+
+                As in a view that has not read the next process's directory yet (its
+                presence late): else the leave, older, would be dropped as stale.
+                """
+                view._auth.forget("uav-b")
+                events = view._event_counts.get("uav-b", 0)
+                with _outsider(port) as outsider:
+                    # again until taken: a session just opened may not be routed yet (the
+                    # copies after the first are stale, dropped)
+                    while view._event_counts.get("uav-b", 0) == events:
+                        outsider.put(wire_key(fed, "df-events", "uav-b"), leave)
+                        await asyncio.sleep(0.1)
+
+            # uav-b's next process
+            async with (
+                ZenohTransport(config) as tb,
+                AgentPlatform("uav-b", tb, federation=fed, channel=cb) as pb,
+            ):
+                await pb.add(Echo())
+                assert await request(asker, "echo@uav-b", 1, ontology="demo", timeout=TIMEOUT) == 1
+                session = ca.sessions.session_for("uav-b")
+                assert session is not None
+                await deliver(leaves[0])
+                assert ca.sessions.session_for("uav-b") is session  # not retired
+                assert await request(asker, "echo@uav-b", 2, ontology="demo", timeout=TIMEOUT) == 2
+                assert ca.sessions.session_for("uav-b") is session
+
+                # a key exchange begun after the leave was signed: not ended by it
+                def refuse(payload: bytes) -> Any:
+                    raise AuthenticationError("not now", "uav-a")
+
+                cb.handshake.respond = refuse  # type: ignore[method-assign]
+                with _outsider(port) as outsider:
+                    silent = outsider.declare_queryable(wire_key(fed, "kx", "uav-b"), held.append)
+                    agreeing = asyncio.create_task(ca.agree("uav-b"))
+                    while not held:  # noqa: ASYNC110
+                        await asyncio.sleep(0.01)  # the exchange is under way
+                    await deliver(leaves[1])
+                    # it ends at its own timeout: not as if uav-b had left
+                    with pytest.raises(TransportError, match="did not answer"):
+                        await agreeing
+                    silent.undeclare()
+                    held.clear()

@@ -114,7 +114,7 @@ class MonitorProcess(Process):
         self._last_ta = -(2**63)
         self.warnings: list[str] = []
         # features compared with a number, until their first value was seen: a message
-        # (a mapping of fields) there makes the comparison never true, silently
+        # (a mapping of fields) there makes the comparison false (true for !=), silently
         self._unchecked = _compared_with_numbers(formula)
 
     def _on_states(self, batch: list[tuple[Any, int, int]]) -> None:
@@ -213,7 +213,8 @@ def _message_warning(label: str, name: str, atom: str, value: Mapping[str, Any])
     shown = ", ".join(fields[:8]) + (", …" if len(fields) > 8 else "")
     return (
         f"monitor {label}: feature {name!r} holds a message with fields ({shown}), not a "
-        f"number: {atom} is never true, so every state is a violation. Compare one of its "
+        f"number: {atom} compares a message with a number, false with <, <=, >, >= and == "
+        f"and true with !=, whatever the message holds. Compare one of its "
         f'fields: {name}("{pick}")'
     )
 

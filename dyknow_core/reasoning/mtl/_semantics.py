@@ -35,6 +35,9 @@ _OPS: dict[str, Callable[[Any, Any], Any]] = {
 }
 
 
+_ABSENT = object()  # a member not there at all (one there may hold None)
+
+
 def _read(f: Feature, state: Mapping[str, Any], env: Mapping[str, Any]) -> Any:
     v = state.get(f.name)
     if not f.args or v is None:
@@ -42,11 +45,12 @@ def _read(f: Feature, state: Mapping[str, Any], env: Mapping[str, Any]) -> Any:
     args = tuple(env.get(a.name) if isinstance(a, Var) else a for a in f.args)
     key = args[0] if len(args) == 1 else args
     try:
-        r = v.get(key)
+        r = v.get(key, _ABSENT)
     except (AttributeError, TypeError):
         return None
-    if r is None and type(key) is str and "." in key:
-        return _field_at(v, key)
+    if r is _ABSENT:
+        # a member of that whole name wins, even a null one; else a dotted path's field
+        return _field_at(v, key) if type(key) is str and "." in key else None
     return r
 
 
@@ -55,7 +59,12 @@ def _field_at(value: Any, path: str) -> Any:
     for part in path.split("."):
         if isinstance(value, Mapping):
             value = value.get(part)
-        elif isinstance(value, list | tuple) and part.isdigit() and int(part) < len(value):
+        elif (
+            isinstance(value, list | tuple)
+            and part.isdecimal()
+            and part.isascii()  # "²" is a digit int() refuses
+            and int(part) < len(value)
+        ):
             value = value[int(part)]
         else:
             return None
