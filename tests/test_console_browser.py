@@ -1,8 +1,9 @@
 """The operator console as a person sees it: headless Chromium (Playwright) against a federation.
 
-`running_federation` is the one fixture that knows what runs: the real traffic demo
-(`run_traffic_demo`, what `dyknow demo traffic` runs), three UAV processes over zenoh and
-the operator with its console in the test process. It yields the console's URL with its
+`running_federation` and `fast_federation` are the fixtures that know what runs: the real
+traffic demo (`run_traffic_demo`, what `dyknow demo traffic` runs), three UAV processes
+over zenoh and the operator with its console in the test process, the world at 2x or, for
+the layout, which waits for the demo's end, 4x. They yield the console's URL with its
 token (what the demo prints), the UAVs' names and a way to kill one (SIGKILL).
 
 Chromium resolves ``evil.example`` to 127.0.0.1 (``--host-resolver-rules``): a page of
@@ -35,6 +36,7 @@ from typing import Any
 
 import aiohttp
 import pytest
+from _load import slowdown
 
 from federation.demo._run import DemoOptions, DemoStarted, run_traffic_demo
 
@@ -87,10 +89,10 @@ class RunningFederation:
 
 
 @contextlib.asynccontextmanager
-async def _real_demo(tmp_path: Path) -> AsyncIterator[RunningFederation]:
+async def _real_demo(tmp_path: Path, speed: float) -> AsyncIterator[RunningFederation]:
     """`dyknow demo traffic` (3 UAV processes, the operator here), kept up while we look."""
     options = DemoOptions(
-        uavs=3, duration=60.0, seed=1, speed=SPEED, port=0, hold=600.0, run_dir=str(tmp_path)
+        uavs=3, duration=60.0, seed=1, speed=speed, port=0, hold=600.0, run_dir=str(tmp_path)
     )
     started: asyncio.Future[DemoStarted] = asyncio.get_running_loop().create_future()
     said: list[str] = []
@@ -120,7 +122,16 @@ async def _real_demo(tmp_path: Path) -> AsyncIterator[RunningFederation]:
 async def running_federation(tmp_path: Path) -> AsyncIterator[RunningFederation]:
     """The federation the console runs against: the real traffic demo."""
     _require_chromium()
-    async with _real_demo(tmp_path) as running:
+    async with _real_demo(tmp_path, SPEED) as running:
+        yield running
+
+
+@pytest.fixture
+async def fast_federation(tmp_path: Path) -> AsyncIterator[RunningFederation]:
+    """The same, the world at 4x: a process with a quarter of a CPU or less would fall
+    behind it (as in the demo's own test), so then slower, 1x at least."""
+    _require_chromium()
+    async with _real_demo(tmp_path, 4.0 / min(4.0, slowdown())) as running:
         yield running
 
 
@@ -455,11 +466,11 @@ async def _check_search(page: Any) -> None:
 
 @pytest.mark.timeout(240)
 async def test_the_console_reads_clearly(
-    running_federation: RunningFederation, tmp_path: Path
+    fast_federation: RunningFederation, tmp_path: Path
 ) -> None:
     from playwright.async_api import async_playwright, expect
 
-    fed = running_federation
+    fed = fast_federation
     expect.set_options(timeout=WAIT)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     async with async_playwright() as pw:

@@ -6,7 +6,9 @@ world's violations (deploy/README.md, "The UAVs' application").
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import math
 import os
 import re
 import socket
@@ -19,12 +21,20 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _load import slowdown
 
 from agents.transports import free_tcp_port
 
 ROOT = Path(__file__).resolve().parent.parent
 LOCAL = ROOT / "deploy" / "local"
 CLI = [sys.executable, "-m", "federation.cli"]
+WORLD_SPEED = 2.0  # the seeded world's, its overtake ~17 s in instead of ~33 s
+
+
+def _world_speed() -> float:
+    """The world's speed for this run: a loaded machine's camera frames come late and
+    see the world in bigger steps, so it runs slower then (1x at least)."""
+    return WORLD_SPEED / min(WORLD_SPEED, slowdown())
 
 
 def _env(run: Path, router: int, console: int) -> dict[str, str]:
@@ -35,6 +45,7 @@ def _env(run: Path, router: int, console: int) -> dict[str, str]:
         "DYKNOW_LOCAL_ROUTER_PORT": str(router),
         "DYKNOW_LOCAL_CONSOLE_PORT": str(console),
         "DYKNOW_LOCAL_TIMEOUT": "120",
+        "DYKNOW_LOCAL_WORLD_SPEED": str(_world_speed()),
         "XDG_RUNTIME_DIR": str(run.parent / "xdg"),
     }
 
@@ -75,10 +86,11 @@ def _the_application_recognizes_the_seeded_world(
     """The UAVs' application (deploy/config/traffic-app.kpl) recognizes what the world did.
 
     Seed 7: in uav-a's area car9 drives over 1.2 x the limit from the start and car4
-    overtakes car2 (the simulator's script ends it at t = 33.8 s); in uav-c's, car6 turns
-    in crossing c3 (t = 30.2 s). Asked as the operator with ``dyknow ask --from 0``, as
-    deploy/README.md shows; run here, in the one world this module starts, as the wait
-    for it (real time, over 30 s) is what a second deployment would cost.
+    overtakes car2 (the simulator's script ends it at t = 33.8 s of the world, which runs
+    `WORLD_SPEED` x); in uav-c's, car6 turns in crossing c3 (t = 30.2 s). Asked as the
+    operator with ``dyknow ask --from 0``, as deploy/README.md shows; run here, in the one
+    world this module starts, as the wait for it (real time, over 15 s) is what a second
+    deployment would cost.
     """
     labels = ("speeding", "violation", "true-violation")
 
@@ -97,7 +109,8 @@ def _the_application_recognizes_the_seeded_world(
     answer = until("uav-a", lambda a: bool(_values(a, "violation")), 90)
     assert time.monotonic() - started < 90
     assert _values(answer, "speeding")[0] == {"kind": "speeding", "cars": ["car9"]}
-    # the first (the world repeats every 120 s: a later pass may be in by the time asked)
+    # the first (the world repeats every 120 s of its own, 60 s at 2x: a later pass may be
+    # in by the time asked)
     found = _values(answer, "violation")[0]
     assert (found["kind"], found["car"], found["other"]) == ("overtake", "car4", "car2")
     assert set(found) == {"kind", "car", "other", "start", "end", "x", "y"}
@@ -186,6 +199,7 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         assert top == 20.0
         # the console draws what the UAVs' applications see and recognize: positions,
         # areas, cars, and the overtake uav-a recognizes about 33 s into the world
+        # (17 s at 2x)
         token = url.split("token=", 1)[1]
         state: dict[str, Any] = {}
         deadline = time.monotonic() + 120
@@ -242,3 +256,34 @@ def test_up_fails_loudly_naming_the_service(tmp_path: Path) -> None:
     pids = _pids(run)
     assert pids and not any(_alive(p) for p in pids)  # everything it started is stopped
     assert not (run / "honcho.pid").exists()
+
+
+def test_a_world_speed_reaches_each_feed_and_the_applications_windows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    spec = importlib.util.spec_from_file_location("deploy_local", LOCAL / "local.py")
+    assert spec is not None and spec.loader is not None
+    local = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(local)
+    config = local._configs(tmp_path, 7447, 2.0)
+    for uav in ("uav-a", "uav-b", "uav-c"):
+        text = (config / f"{uav}.toml").read_text()
+        assert f'args = {{uav = "{uav}", seed = 7, speed = 2.0}}' in text
+    app = (config / "traffic-app.kpl").read_text()
+    assert "always[0, 1] fast(c)" in app and "in [0, 7.5]" in app and "in [0, 15]" in app
+    same = local._configs(tmp_path / "1x", 7447)  # 1x: deploy/config's as they are
+    assert (same / "traffic-app.kpl").read_text() == (
+        ROOT / "deploy/config/traffic-app.kpl"
+    ).read_text()
+    for bad in ("0", "-1", "fast", "nan"):
+        monkeypatch.setenv("DYKNOW_LOCAL_WORLD_SPEED", bad)
+        with pytest.raises(SystemExit, match="DYKNOW_LOCAL_WORLD_SPEED"):
+            local._world_speed()
+
+
+async def test_the_world_feed_refuses_a_speed_that_is_none() -> None:
+    from federation.demo._feed import world_feed
+
+    for bad in (0, -2.0, math.inf, True):
+        with pytest.raises(ValueError, match="speed"):
+            await anext(world_feed("uav-a", speed=bad))
