@@ -24,6 +24,7 @@ import pytest
 from _load import slowdown
 
 from agents.transports import free_tcp_port
+from federation.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parent.parent
 LOCAL = ROOT / "deploy" / "local"
@@ -139,11 +140,14 @@ def _the_application_recognizes_the_seeded_world(
 
 
 @pytest.mark.timeout(400)
-def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
+def test_up_ask_stream_down_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     run = tmp_path / "run"
     (tmp_path / "xdg").mkdir(mode=0o700)
     router, console = free_tcp_port(), free_tcp_port()
     env = _env(run, router, console)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", env["XDG_RUNTIME_DIR"])  # the console's channel
     try:
         up = _script("up", env)
         assert up.returncode == 0, up.stdout + up.stderr
@@ -163,7 +167,8 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         assert again.returncode == 0 and "already up" in again.stdout, again.stderr
         operator = str(run / "config" / "operator.toml")
 
-        def dyknow(*args: str) -> subprocess.CompletedProcess[str]:
+        def process(*args: str) -> subprocess.CompletedProcess[str]:
+            """``dyknow ARGS`` as the operator, a process of its own, as a user runs it."""
             return subprocess.run(
                 [*CLI, *args, "--config", operator, "--json", "--wait", "10"],
                 env=env,
@@ -172,10 +177,18 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
                 timeout=60,
             )
 
+        def dyknow(*args: str) -> subprocess.CompletedProcess[str]:
+            """The same in this process: the same code, without an interpreter's start
+            (about half of a one-shot command's second)."""
+            argv = [*args, "--config", operator, "--json", "--wait", "10"]
+            code = cli_main(argv)
+            out = capsys.readouterr()
+            return subprocess.CompletedProcess(["dyknow", *argv], code, out.out, out.err)
+
         # uav-a's application, fed by the traffic world: cars appear as it sees them
         cars: list[str] = []
         for _ in range(30):
-            done = dyknow("labels", "--platform", "uav-a")
+            done = process("labels", "--platform", "uav-a")
             assert done.returncode == 0, done.stderr
             labels = json.loads(done.stdout)["labels"]
             cars = [x for x in labels if re.fullmatch(r"car\d+-state", x)]
@@ -268,9 +281,10 @@ def test_a_world_speed_reaches_each_feed_and_the_applications_windows(
     config = local._configs(tmp_path, 7447, 2.0)
     for uav in ("uav-a", "uav-b", "uav-c"):
         text = (config / f"{uav}.toml").read_text()
-        assert f'args = {{uav = "{uav}", seed = 7, speed = 2.0}}' in text
+        assert f'args = {{uav = "{uav}", seed = 7, speed = 2.0, period = 0.1}}' in text
     app = (config / "traffic-app.kpl").read_text()
-    assert "always[0, 1] fast(c)" in app and "in [0, 7.5]" in app and "in [0, 15]" in app
+    assert 'always[0, 1] fast(c))" every 0.1' in app and "max_delay 0.25" in app
+    assert "in [0, 7.5]" in app and "in [0, 15]" in app and "anchoring every 0.5" in app
     same = local._configs(tmp_path / "1x", 7447)  # 1x: deploy/config's as they are
     assert (same / "traffic-app.kpl").read_text() == (
         ROOT / "deploy/config/traffic-app.kpl"

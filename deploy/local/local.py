@@ -40,9 +40,12 @@ READY = {
 _LINE = re.compile(r"^\S+ (?P<name>[\w.-]+?)(?:\.1)?\s+\| (?P<text>.*)$")
 # the world feed's arguments in deploy/config/uav-*.toml, where a speed goes
 _FEED_ARGS = re.compile(r'^(args = \{uav = "uav-\w", seed = \d+)\}$', re.MULTILINE)
-# the application's windows (traffic-app.kpl): the monitor's always[a,b], the chronicles'
-# "in [a, b]", seconds of the messages' times, which a faster world runs through sooner
+# the application's times (traffic-app.kpl), seconds of the messages' times, which a
+# faster world runs through sooner: the monitor's always[a,b], the chronicles' "in [a, b]",
+# every period and max_delay
 _WINDOW = re.compile(r"(always\[|in \[)([\d.]+),\s*([\d.]+)\]")
+_PERIOD = re.compile(r"\b(every|max_delay) ([\d.]+)\b")
+FEED_PERIOD = 0.2  # s between two frames of the world feed at 1x (its default)
 
 
 def _settings() -> tuple[Path, int, int, float]:
@@ -74,8 +77,9 @@ def _say(text: str) -> None:
 def _configs(run: Path, router: int, speed: float = 1.0) -> Path:
     """deploy/config's files in ``run/config``, the router on 127.0.0.1:``router``.
 
-    ``speed``: the traffic world's, given to each UAV's world feed; the application's
-    windows shrink by as much, so that they span as much of the world as at 1x.
+    ``speed``: the traffic world's, given to each UAV's world feed; the feed's period and
+    the application's times (windows, periods) shrink by as much: the application sees
+    the world as at 1x, in less time.
     """
     config = run / "config"
     config.mkdir(parents=True, exist_ok=True)
@@ -85,13 +89,15 @@ def _configs(run: Path, router: int, speed: float = 1.0) -> Path:
         text = text.replace('"tcp/172.28.0.10:7447"', f'"tcp/127.0.0.1:{router}"')
         text = text.replace("(docker-compose.yml)", "(deploy/local)")
         if speed != 1.0 and re.fullmatch(r"uav-\w\.toml", f.name):
-            text, n = _FEED_ARGS.subn(rf"\1, speed = {speed!r}}}", text)
+            args = rf"\1, speed = {speed!r}, period = {FEED_PERIOD / speed!r}}}"
+            text, n = _FEED_ARGS.subn(args, text)
             if n != 1:  # the config changed shape: say so rather than run at 1x
                 raise SystemExit(f"deploy/local: no world feed's args in {f} to set the speed in")
         if speed != 1.0 and f.suffix == ".kpl":
             text = _WINDOW.sub(
                 lambda m: f"{m[1]}{float(m[2]) / speed:g}, {float(m[3]) / speed:g}]", text
             )
+            text = _PERIOD.sub(lambda m: f"{m[1]} {float(m[2]) / speed:g}", text)
         (config / f.name).write_text(text, encoding="utf-8")
     return config
 
