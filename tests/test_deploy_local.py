@@ -29,12 +29,13 @@ from federation.cli import main as cli_main
 ROOT = Path(__file__).resolve().parent.parent
 LOCAL = ROOT / "deploy" / "local"
 CLI = [sys.executable, "-m", "federation.cli"]
-WORLD_SPEED = 2.0  # the seeded world's, its overtake ~17 s in instead of ~33 s
+WORLD_SPEED = 3.0  # the seeded world's, its overtake ~11 s in instead of ~33 s
 
 
 def _world_speed() -> float:
-    """The world's speed for this run: a loaded machine's camera frames come late and
-    see the world in bigger steps, so it runs slower then (1x at least)."""
+    """The world's speed for this run: at 3x each UAV's feed and application step 3x as
+    often, which a process with a third of a CPU or less cannot keep up with: a loaded
+    machine runs the world slower (1x at least)."""
     return WORLD_SPEED / min(WORLD_SPEED, slowdown())
 
 
@@ -90,7 +91,7 @@ def _the_application_recognizes_the_seeded_world(
     overtakes car2 (the simulator's script ends it at t = 33.8 s of the world, which runs
     `WORLD_SPEED` x); in uav-c's, car6 turns in crossing c3 (t = 30.2 s). Asked as the
     operator with ``dyknow ask --from 0``, as deploy/README.md shows; run here, in the one
-    world this module starts, as the wait for it (real time, over 15 s) is what a second
+    world this module starts, as the wait for it (real time, over 10 s) is what a second
     deployment would cost.
     """
     labels = ("speeding", "violation", "true-violation")
@@ -110,7 +111,7 @@ def _the_application_recognizes_the_seeded_world(
     answer = until("uav-a", lambda a: bool(_values(a, "violation")), 90)
     assert time.monotonic() - started < 90
     assert _values(answer, "speeding")[0] == {"kind": "speeding", "cars": ["car9"]}
-    # the first (the world repeats every 120 s of its own, 60 s at 2x: a later pass may be
+    # the first (the world repeats every 120 s of its own, 40 s at 3x: a later pass may be
     # in by the time asked)
     found = _values(answer, "violation")[0]
     assert (found["kind"], found["car"], found["other"]) == ("overtake", "car4", "car2")
@@ -212,7 +213,7 @@ def test_up_ask_stream_down_leaves_nothing(
         assert top == 20.0
         # the console draws what the UAVs' applications see and recognize: positions,
         # areas, cars, and the overtake uav-a recognizes about 33 s into the world
-        # (17 s at 2x)
+        # (11 s at 3x)
         token = url.split("token=", 1)[1]
         state: dict[str, Any] = {}
         deadline = time.monotonic() + 120
