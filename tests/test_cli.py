@@ -526,7 +526,7 @@ def test_a_command_reaches_the_node_of_its_own_key_only(tmp_path: Path) -> None:
     b = _write_federation(tmp_path / "b", _free_port())
     procs: list[subprocess.Popen[str]] = []
 
-    def spawn(config: Path) -> subprocess.Popen[str]:
+    def start(config: Path) -> subprocess.Popen[str]:
         node = subprocess.Popen(
             [*cmd, "node", "--config", str(config)],
             stdout=subprocess.PIPE,
@@ -536,12 +536,9 @@ def test_a_command_reaches_the_node_of_its_own_key_only(tmp_path: Path) -> None:
             env=env,
         )
         procs.append(node)
-        return node
-
-    def ready(node: subprocess.Popen[str]) -> subprocess.Popen[str]:
         assert node.stdout is not None
-        line = node.stdout.readline()  # bounded by the test's timeout
-        assert " ready in federation traffic" in line, node.stderr.read() if node.stderr else ""
+        ready = node.stdout.readline()  # bounded by the test's timeout
+        assert " ready in federation traffic" in ready, node.stderr.read() if node.stderr else ""
         return node
 
     def platforms(config: Path) -> dict[str, Any]:
@@ -563,10 +560,9 @@ def test_a_command_reaches_the_node_of_its_own_key_only(tmp_path: Path) -> None:
         return out
 
     try:
-        uav_a, operator_a = spawn(a["uav-a"]), spawn(a["operator"])  # starting side by side
-        for node in (uav_a, operator_a):
-            ready(node)
-        operator_b = ready(spawn(b["operator"]))  # started last: its name's socket was A's
+        start(a["uav-a"])
+        operator_a = start(a["operator"])
+        operator_b = start(b["operator"])  # started last: its name's socket was A's
         assert "uav-a" in platforms(a["operator"])  # A's network, through A's operator
         assert "uav-a" not in platforms(b["operator"])  # B's network, through B's operator
         assert "local channel: 1 commands served" in stop(operator_a)
