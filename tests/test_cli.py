@@ -452,7 +452,9 @@ asyncio.run(run())
 
 
 @pytest.mark.timeout(60)
-def test_labels_ask_stream_against_a_producer(tmp_path: Path) -> None:
+def test_labels_ask_stream_against_a_producer(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
     configs = _write_federation(tmp_path, _free_port())
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     producer = subprocess.Popen(
@@ -467,16 +469,26 @@ def test_labels_ask_stream_against_a_producer(tmp_path: Path) -> None:
     op = ["--config", str(configs["operator"]), "--json"]
 
     def dyknow(*args: str) -> object:
-        done = subprocess.run(
-            [*cli, *args, *op], capture_output=True, text=True, cwd=ROOT, env=env, timeout=20
-        )
-        assert done.returncode == 0, done.stderr
-        return json.loads(done.stdout) if "stream" not in args else done.stdout
+        """``dyknow ARGS`` in this process: the same code, without an interpreter's start
+        (about half of a one-shot command's second); the first command is a process."""
+        code = main([*args, *op])
+        out = capsys.readouterr()
+        assert code == 0, out.err
+        return json.loads(out.out) if "stream" not in args else out.out
 
     try:
         assert producer.stdout is not None
         assert producer.stdout.readline().strip() == "ready"
-        assert dyknow("labels", "--platform", "uav-a") == {"labels": ["heli-altitude"]}
+        labels = subprocess.run(
+            [*cli, "labels", "--platform", "uav-a", *op],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            env=env,
+            timeout=20,
+        )
+        assert labels.returncode == 0, labels.stderr
+        assert json.loads(labels.stdout) == {"labels": ["heli-altitude"]}
         latest = dyknow("ask", "heli-altitude", "--platform", "uav-a")
         assert isinstance(latest, dict) and latest["heli-altitude"]["samples"][0][0] >= 100.0
         history = dyknow("ask", "heli-altitude", "--platform", "uav-a", "--from", "-1m")
@@ -487,18 +499,13 @@ def test_labels_ask_stream_against_a_producer(tmp_path: Path) -> None:
         at = when(time.time() - 0.05)
         value = dyknow("ask", "heli-altitude", "--platform", "uav-a", "--at", at)
         assert isinstance(value, dict) and value["heli-altitude"]["samples"][0][0] >= 100.0
-        text = subprocess.run(
-            [*cli, "ask", "heli-altitude", "--platform", "uav-a", "--at", at, *op[:2]],
-            capture_output=True,
-            text=True,
-            cwd=ROOT,
-            env={**env, "COLUMNS": "200"},
-            timeout=20,
-        )
-        assert text.returncode == 0, text.stderr
-        assert f"get-value-at {at} from uav-a" in text.stdout
+        monkeypatch.setenv("COLUMNS", "200")
+        code = main(["ask", "heli-altitude", "--platform", "uav-a", "--at", at, *op[:2]])
+        text = capsys.readouterr()
+        assert code == 0, text.err
+        assert f"get-value-at {at} from uav-a" in text.out
         iso = r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}[+-]\d\d:\d\d"
-        row = next(line for line in text.stdout.splitlines() if "heli-altitude" in line)
+        row = next(line for line in text.out.splitlines() if "heli-altitude" in line)
         assert len(re.findall(iso, row)) == 3, row  # query time, valid, available
         out = dyknow("stream", "heli-altitude", "--platform", "uav-a", "--count", "2")
         rows = [json.loads(line) for line in str(out).splitlines()]

@@ -307,6 +307,20 @@ async def test_a_platform_asked_for_an_unknown_object_anchors_it_then_exports(
 # -- the whole demo, UAVs as OS processes over zenoh -----------------------------------------
 
 
+DEMO_WORLD = 36.0  # s of world the demo runs below: short, every scripted event in it
+
+
+@pytest.mark.parametrize(("uavs", "seed"), [(3, 1), (2, 2)])
+def test_a_short_world_keeps_every_event_the_demo_test_asserts(uavs: int, seed: int) -> None:
+    """The demo test's short world has the 60 s world's events: none left out, none late."""
+    short = World.generate(seed, uavs, DEMO_WORLD).ground_truth()
+    full = World.generate(seed, uavs, 60.0).ground_truth()
+    assert sorted(v.kind for v in short) == sorted(v.kind for v in full)
+    (reckless,) = [v for v in short if v.kind == "reckless-overtake"]
+    assert reckless.end_area == reckless.start_area + 1  # the handover case
+    assert all(v.end <= DEMO_WORLD - 10 for v in short)
+
+
 @pytest.mark.timeout(150)
 @pytest.mark.parametrize(("uavs", "seed"), [(3, 1), (2, 2)])
 async def test_the_demo_finds_the_violation_across_the_border_from_fused_states(
@@ -318,8 +332,16 @@ async def test_the_demo_finds_the_violation_across_the_border_from_fused_states(
     # the world runs in real time, 4x; a process that gets a quarter of a CPU or less
     # would fall behind it (states too old to track): the world then runs slower, 1x at least
     speed = 4.0 / min(4.0, slowdown())
+    # 36 s of world: with both seeds all three scripted events (the reckless overtake
+    # across the border among them) end by t = 25.5 s, its cars in the next area 8 s on
+    # (`test_a_short_world_keeps_every_event_the_demo_test_asserts`)
     options = DemoOptions(
-        uavs=uavs, duration=60.0, seed=seed, speed=speed, console=False, foxglove_port=foxglove
+        uavs=uavs,
+        duration=DEMO_WORLD,
+        seed=seed,
+        speed=speed,
+        console=False,
+        foxglove_port=foxglove,
     )
     report = await asyncio.wait_for(run_traffic_demo(options, lines.append), 120)
     names = uav_names(uavs)

@@ -6,7 +6,9 @@ world's violations (deploy/README.md, "The UAVs' application").
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import math
 import os
 import re
 import socket
@@ -19,12 +21,22 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _load import slowdown
 
 from agents.transports import free_tcp_port
+from federation.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parent.parent
 LOCAL = ROOT / "deploy" / "local"
 CLI = [sys.executable, "-m", "federation.cli"]
+WORLD_SPEED = 3.0  # the seeded world's, its overtake ~11 s in instead of ~33 s
+
+
+def _world_speed() -> float:
+    """The world's speed for this run: at 3x each UAV's feed and application step 3x as
+    often, which a process with a third of a CPU or less cannot keep up with: a loaded
+    machine runs the world slower (1x at least)."""
+    return WORLD_SPEED / min(WORLD_SPEED, slowdown())
 
 
 def _env(run: Path, router: int, console: int) -> dict[str, str]:
@@ -35,6 +47,7 @@ def _env(run: Path, router: int, console: int) -> dict[str, str]:
         "DYKNOW_LOCAL_ROUTER_PORT": str(router),
         "DYKNOW_LOCAL_CONSOLE_PORT": str(console),
         "DYKNOW_LOCAL_TIMEOUT": "120",
+        "DYKNOW_LOCAL_WORLD_SPEED": str(_world_speed()),
         "XDG_RUNTIME_DIR": str(run.parent / "xdg"),
     }
 
@@ -75,10 +88,11 @@ def _the_application_recognizes_the_seeded_world(
     """The UAVs' application (deploy/config/traffic-app.kpl) recognizes what the world did.
 
     Seed 7: in uav-a's area car9 drives over 1.2 x the limit from the start and car4
-    overtakes car2 (the simulator's script ends it at t = 33.8 s); in uav-c's, car6 turns
-    in crossing c3 (t = 30.2 s). Asked as the operator with ``dyknow ask --from 0``, as
-    deploy/README.md shows; run here, in the one world this module starts, as the wait
-    for it (real time, over 30 s) is what a second deployment would cost.
+    overtakes car2 (the simulator's script ends it at t = 33.8 s of the world, which runs
+    `WORLD_SPEED` x); in uav-c's, car6 turns in crossing c3 (t = 30.2 s). Asked as the
+    operator with ``dyknow ask --from 0``, as deploy/README.md shows; run here, in the one
+    world this module starts, as the wait for it (real time, over 10 s) is what a second
+    deployment would cost.
     """
     labels = ("speeding", "violation", "true-violation")
 
@@ -97,7 +111,8 @@ def _the_application_recognizes_the_seeded_world(
     answer = until("uav-a", lambda a: bool(_values(a, "violation")), 90)
     assert time.monotonic() - started < 90
     assert _values(answer, "speeding")[0] == {"kind": "speeding", "cars": ["car9"]}
-    # the first (the world repeats every 120 s: a later pass may be in by the time asked)
+    # the first (the world repeats every 120 s of its own, 40 s at 3x: a later pass may be
+    # in by the time asked)
     found = _values(answer, "violation")[0]
     assert (found["kind"], found["car"], found["other"]) == ("overtake", "car4", "car2")
     assert set(found) == {"kind", "car", "other", "start", "end", "x", "y"}
@@ -126,11 +141,14 @@ def _the_application_recognizes_the_seeded_world(
 
 
 @pytest.mark.timeout(400)
-def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
+def test_up_ask_stream_down_leaves_nothing(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     run = tmp_path / "run"
     (tmp_path / "xdg").mkdir(mode=0o700)
     router, console = free_tcp_port(), free_tcp_port()
     env = _env(run, router, console)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", env["XDG_RUNTIME_DIR"])  # the console's channel
     try:
         up = _script("up", env)
         assert up.returncode == 0, up.stdout + up.stderr
@@ -150,7 +168,8 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         assert again.returncode == 0 and "already up" in again.stdout, again.stderr
         operator = str(run / "config" / "operator.toml")
 
-        def dyknow(*args: str) -> subprocess.CompletedProcess[str]:
+        def process(*args: str) -> subprocess.CompletedProcess[str]:
+            """``dyknow ARGS`` as the operator, a process of its own, as a user runs it."""
             return subprocess.run(
                 [*CLI, *args, "--config", operator, "--json", "--wait", "10"],
                 env=env,
@@ -159,10 +178,18 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
                 timeout=60,
             )
 
+        def dyknow(*args: str) -> subprocess.CompletedProcess[str]:
+            """The same in this process: the same code, without an interpreter's start
+            (about half of a one-shot command's second)."""
+            argv = [*args, "--config", operator, "--json", "--wait", "10"]
+            code = cli_main(argv)
+            out = capsys.readouterr()
+            return subprocess.CompletedProcess(["dyknow", *argv], code, out.out, out.err)
+
         # uav-a's application, fed by the traffic world: cars appear as it sees them
         cars: list[str] = []
         for _ in range(30):
-            done = dyknow("labels", "--platform", "uav-a")
+            done = process("labels", "--platform", "uav-a")
             assert done.returncode == 0, done.stderr
             labels = json.loads(done.stdout)["labels"]
             cars = [x for x in labels if re.fullmatch(r"car\d+-state", x)]
@@ -186,6 +213,7 @@ def test_up_ask_stream_down_leaves_nothing(tmp_path: Path) -> None:
         assert top == 20.0
         # the console draws what the UAVs' applications see and recognize: positions,
         # areas, cars, and the overtake uav-a recognizes about 33 s into the world
+        # (11 s at 3x)
         token = url.split("token=", 1)[1]
         state: dict[str, Any] = {}
         deadline = time.monotonic() + 120
@@ -242,3 +270,35 @@ def test_up_fails_loudly_naming_the_service(tmp_path: Path) -> None:
     pids = _pids(run)
     assert pids and not any(_alive(p) for p in pids)  # everything it started is stopped
     assert not (run / "honcho.pid").exists()
+
+
+def test_a_world_speed_reaches_each_feed_and_the_applications_windows(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    spec = importlib.util.spec_from_file_location("deploy_local", LOCAL / "local.py")
+    assert spec is not None and spec.loader is not None
+    local = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(local)
+    config = local._configs(tmp_path, 7447, 2.0)
+    for uav in ("uav-a", "uav-b", "uav-c"):
+        text = (config / f"{uav}.toml").read_text()
+        assert f'args = {{uav = "{uav}", seed = 7, speed = 2.0, period = 0.1}}' in text
+    app = (config / "traffic-app.kpl").read_text()
+    assert 'always[0, 1] fast(c))" every 0.1' in app and "max_delay 0.25" in app
+    assert "in [0, 7.5]" in app and "in [0, 15]" in app and "anchoring every 0.5" in app
+    same = local._configs(tmp_path / "1x", 7447)  # 1x: deploy/config's as they are
+    assert (same / "traffic-app.kpl").read_text() == (
+        ROOT / "deploy/config/traffic-app.kpl"
+    ).read_text()
+    for bad in ("0", "-1", "fast", "nan"):
+        monkeypatch.setenv("DYKNOW_LOCAL_WORLD_SPEED", bad)
+        with pytest.raises(SystemExit, match="DYKNOW_LOCAL_WORLD_SPEED"):
+            local._world_speed()
+
+
+async def test_the_world_feed_refuses_a_speed_that_is_none() -> None:
+    from federation.demo._feed import world_feed
+
+    for bad in (0, -2.0, math.inf, True):
+        with pytest.raises(ValueError, match="speed"):
+            await anext(world_feed("uav-a", speed=bad))

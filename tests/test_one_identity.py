@@ -20,6 +20,7 @@ from _node_example import Station, _samples
 
 from agents import KeyPair
 from federation import PlatformConfig
+from federation.cli import main as cli_main
 
 CLI = [sys.executable, "-m", "federation.cli"]
 
@@ -540,29 +541,41 @@ async def test_a_channel_never_unlinks_a_socket_a_node_listens_on(
 
 
 @pytest.mark.timeout(150)
-def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(tmp_path: Path) -> None:
+def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     """One command's stream ends (its export cancelled) just as the next asks for it.
 
     The channel followed the import being cancelled as if it were the node's own, and the
     next command waited for samples for ever (a full suite, loaded: `record` after `stream`).
+    The first command is a process; the others run in this process (the same code, without
+    an interpreter's start), so that each asks the sooner after the last one ended.
     """
     station = Station(tmp_path)
     console = None
+    args = [
+        *("stream", "temperature", "-p", "station", "--count", "1"),
+        *("--config", "operator.toml", "--json", "--wait", "10"),
+    ]
     try:
         station.start("python")
         console, _ = _console(station)
+        monkeypatch.chdir(station.dir)
+        monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
         for n in range(4):  # each ends its stream as the next one asks for it
-            done = subprocess.run(
-                [
-                    *(*CLI, "stream", "temperature", "-p", "station", "--count", "1"),
-                    *("--config", "operator.toml", "--json", "--wait", "10"),
-                ],
-                capture_output=True,
-                text=True,
-                cwd=station.dir,
-                env=station.env,
-                timeout=40,
-            )
+            if n == 0:
+                done = subprocess.run(
+                    [*CLI, *args],
+                    capture_output=True,
+                    text=True,
+                    cwd=station.dir,
+                    env=station.env,
+                    timeout=40,
+                )
+            else:
+                code = cli_main(args)
+                out = capsys.readouterr()
+                done = subprocess.CompletedProcess(["dyknow", *args], code, out.out, out.err)
             assert done.returncode == 0, (n, done.stderr)
             assert len(done.stdout.splitlines()) == 1, (n, done.stdout)
     finally:
@@ -610,7 +623,9 @@ def test_a_refused_record_through_the_console_leaves_the_file_there_as_it_was(
 
 
 @pytest.mark.timeout(150)
-def test_a_sample_period_the_nodes_import_has_not_is_refused_not_ignored(tmp_path: Path) -> None:
+def test_a_sample_period_the_nodes_import_has_not_is_refused_not_ignored(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
     station = Station(tmp_path)
     operator = station.dir / "operator.toml"
     operator.write_text(operator.read_text() + '\n[console]\nstreams = ["temperature"]\n')
@@ -634,7 +649,7 @@ def test_a_sample_period_the_nodes_import_has_not_is_refused_not_ignored(tmp_pat
             time.sleep(0.2)  # the console offers no event to wait on from outside
         common = ["--config", "operator.toml", "--wait", "10"]
 
-        def run(*args: str) -> subprocess.CompletedProcess[str]:
+        def process(*args: str) -> subprocess.CompletedProcess[str]:
             return subprocess.run(
                 [*CLI, *args, *common],
                 capture_output=True,
@@ -644,8 +659,16 @@ def test_a_sample_period_the_nodes_import_has_not_is_refused_not_ignored(tmp_pat
                 timeout=60,
             )
 
+        def run(*args: str) -> subprocess.CompletedProcess[str]:
+            """The same in this process, without an interpreter's start."""
+            code = cli_main([*args, *common])
+            out = capsys.readouterr()
+            return subprocess.CompletedProcess(["dyknow", *args], code, out.out, out.err)
+
+        monkeypatch.chdir(station.dir)
+        monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
         rec = station.dir / "t.mcap"
-        done = run(
+        done = process(
             "record",
             "temperature",
             "-p",

@@ -9,12 +9,14 @@ printed); a service that cannot start fails it, named, with its last log lines (
 everything stopped). ``down`` stops honcho, which stops every service. Both are
 idempotent. Settings (environment): DYKNOW_LOCAL_RUN (the run directory, default
 deploy/local/run), DYKNOW_LOCAL_ROUTER_PORT (17447), DYKNOW_LOCAL_CONSOLE_PORT (18080),
-DYKNOW_LOCAL_TIMEOUT (seconds ``up`` waits, 90). See deploy/README.md.
+DYKNOW_LOCAL_TIMEOUT (seconds ``up`` waits, 90), DYKNOW_LOCAL_WORLD_SPEED (the traffic
+world's simulated seconds per second, 1: a faster replay). See deploy/README.md.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import re
 import signal
@@ -36,6 +38,14 @@ READY = {
     "operator": "dyknow console: operator ready",
 }
 _LINE = re.compile(r"^\S+ (?P<name>[\w.-]+?)(?:\.1)?\s+\| (?P<text>.*)$")
+# the world feed's arguments in deploy/config/uav-*.toml, where a speed goes
+_FEED_ARGS = re.compile(r'^(args = \{uav = "uav-\w", seed = \d+)\}$', re.MULTILINE)
+# the application's times (traffic-app.kpl), seconds of the messages' times, which a
+# faster world runs through sooner: the monitor's always[a,b], the chronicles' "in [a, b]",
+# every period and max_delay
+_WINDOW = re.compile(r"(always\[|in \[)([\d.]+),\s*([\d.]+)\]")
+_PERIOD = re.compile(r"\b(every|max_delay) ([\d.]+)\b")
+FEED_PERIOD = 0.2  # s between two frames of the world feed at 1x (its default)
 
 
 def _settings() -> tuple[Path, int, int, float]:
@@ -46,12 +56,31 @@ def _settings() -> tuple[Path, int, int, float]:
     return run, router, console, timeout
 
 
+def _world_speed() -> float:
+    """DYKNOW_LOCAL_WORLD_SPEED: the traffic world's simulated seconds per second (1)."""
+    text = os.environ.get("DYKNOW_LOCAL_WORLD_SPEED", "1")
+    try:
+        speed = float(text)
+    except ValueError:
+        speed = math.nan
+    if not (math.isfinite(speed) and speed > 0):
+        raise SystemExit(
+            f"deploy/local: DYKNOW_LOCAL_WORLD_SPEED must be a positive number, not {text!r}"
+        )
+    return speed
+
+
 def _say(text: str) -> None:
     print(text, flush=True)
 
 
-def _configs(run: Path, router: int) -> Path:
-    """deploy/config's files in ``run/config``, the router on 127.0.0.1:``router``."""
+def _configs(run: Path, router: int, speed: float = 1.0) -> Path:
+    """deploy/config's files in ``run/config``, the router on 127.0.0.1:``router``.
+
+    ``speed``: the traffic world's, given to each UAV's world feed; the feed's period and
+    the application's times (windows, periods) shrink by as much: the application sees
+    the world as at 1x, in less time.
+    """
     config = run / "config"
     config.mkdir(parents=True, exist_ok=True)
     src = DEPLOY / "config"
@@ -59,6 +88,16 @@ def _configs(run: Path, router: int) -> Path:
         text = f.read_text(encoding="utf-8")
         text = text.replace('"tcp/172.28.0.10:7447"', f'"tcp/127.0.0.1:{router}"')
         text = text.replace("(docker-compose.yml)", "(deploy/local)")
+        if speed != 1.0 and re.fullmatch(r"uav-\w\.toml", f.name):
+            args = rf"\1, speed = {speed!r}, period = {FEED_PERIOD / speed!r}}}"
+            text, n = _FEED_ARGS.subn(args, text)
+            if n != 1:  # the config changed shape: say so rather than run at 1x
+                raise SystemExit(f"deploy/local: no world feed's args in {f} to set the speed in")
+        if speed != 1.0 and f.suffix == ".kpl":
+            text = _WINDOW.sub(
+                lambda m: f"{m[1]}{float(m[2]) / speed:g}, {float(m[3]) / speed:g}]", text
+            )
+            text = _PERIOD.sub(lambda m: f"{m[1]} {float(m[2]) / speed:g}", text)
         (config / f.name).write_text(text, encoding="utf-8")
     return config
 
@@ -150,6 +189,7 @@ def _honcho() -> list[str]:
 def up() -> int:
     """Start everything (or find it running); exit 0 once every platform is ready."""
     run, router, console, timeout = _settings()
+    speed = _world_speed()
     run.mkdir(parents=True, exist_ok=True)
     if _honcho_pid(run) is not None:
         ready, stopped = _state(run)
@@ -157,7 +197,7 @@ def up() -> int:
             _say(f"deploy/local: already up; the console: {_url(ready)}")
             return 0
         down()  # half up: start again from nothing
-    config = _configs(run, router)
+    config = _configs(run, router, speed)
     _keys(config)
     procfile = _procfile(run, router, console)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}

@@ -2,7 +2,8 @@
 
 ``world_feed`` is a ``kind = "python"`` input (docs/application.md) for the deployments
 (``deploy/config/uav-*.toml``, ``deploy/local``): it runs the demo's simulated world
-(`World`) in real time, looping every ``duration`` seconds, and every ``period`` yields
+(`World`) in real time (or ``speed`` times faster), looping every ``duration`` seconds of
+the world, and every ``period`` (wall-clock) seconds yields
 
 * ``{"time", "position"}``: the UAV's own position ``{"x", "y", "z"}``, metres (the
   ``heli-position`` shape of `federation.demo._vocabulary`, which the console reads);
@@ -20,7 +21,10 @@
   ground truth (``kind``, ``car``, ``other``, ``x``, ``y``), to compare what the
   application recognizes with, never an input of the recognition.
 
-``time`` is seconds since the epoch, the feed's start plus the simulated time.
+``time`` is seconds since the epoch, the wall clock's when the message is yielded: at a
+``speed`` over 1 the world's events come that many times sooner while the application's
+windows (seconds of ``time``) stay as written, so they span that many more seconds of the
+world, and the camera sees the world every ``period * speed`` simulated seconds.
 """
 
 from __future__ import annotations
@@ -57,9 +61,14 @@ async def world_feed(
     duration: float = 120.0,
     period: float = 0.2,
     noise: float = 0.5,
+    speed: float = 1.0,
 ) -> AsyncIterator[dict[str, Any]]:
     """What ``uav``'s camera sees of the simulated world, every ``period`` s, for ever."""
     index = _index(uav)
+    if isinstance(speed, bool) or not isinstance(speed, int | float):
+        raise ValueError(f"speed must be a number (simulated seconds per second), not {speed!r}")
+    if not (math.isfinite(speed) and speed > 0):
+        raise ValueError(f"speed must be a positive number, not {speed}")
     if not 0 <= index < uavs:
         raise ValueError(f"uav {uav!r} is not one of the {uavs} UAVs of the world")
     world = await asyncio.to_thread(World.generate, seed, uavs, duration)
@@ -73,7 +82,7 @@ async def world_feed(
     ticker = Ticker(period, first=asyncio.get_running_loop().time() + period)
     while True:
         now = time.time()
-        elapsed = now - start
+        elapsed = (now - start) * speed  # of the world's time
         t = elapsed % duration
         if int(elapsed // duration) != lap:
             lap, told = int(elapsed // duration), set()
