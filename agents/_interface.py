@@ -1687,6 +1687,10 @@ class InterfaceAgent:
             return
         if message.performative in INITIATING:
             df = host.df
+            if df is not None and df.said_left(peer) and self.sessions.back_since_left(peer):
+                # a restarted process, on a session it agreed after its leave: served at
+                # once, not after its directory answers (its start-up requests would fail)
+                df.set_left(peer, False)
             if df is not None and df.said_left(peer):
                 host.stats.from_left += 1
                 reason = (
@@ -1768,16 +1772,19 @@ class InterfaceAgent:
         ``grace``, then go), so the next message to it agrees a new session, and finds
         nobody at once if it is gone; a key exchange with it begun before ``at`` ends.
         What began since is its next process's (a leave replayed by anyone within the
-        skew, or late after a restart): kept.
+        skew, or late after a restart): kept. Sessions are judged by the time the peer
+        signed its half of the key exchange (its clock, as ``at``); a key exchange under
+        way, by our clock with ``at`` moved by the peer's offset its newest session shows.
         """
         if peer == self._me or peer not in self.trust:
             return
-        cutoff = self._clock() if at is None else min(self._clock(), at)
         if peer in self._outbox:
             self._flush(peer)  # what waits in this turn's batch goes as the message before it
-        self.sessions.retire(peer, cutoff)
+        self.sessions.retire(peer, at)
         under_way = self._exchanging.get(peer)
-        if under_way is not None and under_way[1] <= cutoff:
+        now = self._clock()
+        begun_by = now if at is None else at - self.sessions.peer_clock_offset(peer)
+        if under_way is not None and under_way[1] <= begun_by:
             with contextlib.suppress(RuntimeError):  # it is just ending anyway
                 under_way[0].reschedule(asyncio.get_running_loop().time())  # ends it at once
 

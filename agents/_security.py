@@ -674,6 +674,7 @@ class Session:
         "me",
         "order",
         "peer",
+        "peer_time",
         "sid",
     )
 
@@ -689,6 +690,7 @@ class Session:
         order: tuple[int, str],
         policy: SecurityPolicy,
         clock: Clock,
+        peer_time: float | None = None,
     ) -> None:
         self.me = me
         self.peer = peer
@@ -697,6 +699,9 @@ class Session:
         self.initiator = initiator
         self.order = order
         self.established = clock()
+        # when the peer signed its half of the key exchange (POSIX s, its clock): compared
+        # with the time it signs a leave at, never with ours (the clocks differ by the skew)
+        self.peer_time = self.established if peer_time is None else peer_time
         self._policy = policy
         self._clock = clock
         self._lifetime = policy.lifetime
@@ -1144,18 +1149,21 @@ class SessionTable:
         """Seal for ``peer`` on none of its sessions agreed before ``before`` again.
 
         For a peer that said, signed, that it leaves (``before``: when it signed that,
-        POSIX s; now when None or later): unlike `doubt`, an envelope of its that comes
+        POSIX s in its clock, compared with each session's `Session.peer_time`; now when
+        None): unlike `doubt`, an envelope of its that comes
         late still opens (within ``grace``, then the session is dropped) but trusts none
         of those sessions again, so the next message to it agrees a new session (and
         finds nobody, if it is gone). Sessions agreed since are its next process's and
         stay: a leave replayed, or come late, retires none of them. How many were retired.
         """
         now = self._clock()
-        cutoff = now if before is None else min(now, before)
+        # in the peer's clock, as each session's `peer_time`: what it agreed after it signed
+        # the leave is kept, however far (within the skew) its clock is from ours
+        cutoff = now if before is None else before
         retire_at = now + self.policy.grace
         retired = 0
         for session in self._by_peer.get(peer, ()):
-            if session.established > cutoff:
+            if session.peer_time > cutoff:
                 continue
             retired += 1
             session._confirmed = False
@@ -1164,9 +1172,35 @@ class SessionTable:
         self._left[peer] = max(self._left.get(peer, cutoff), cutoff)
         self._tx.pop(peer, None)
         latest = self._rx_latest.get(peer)
-        if latest is not None and latest.established <= cutoff:
+        if latest is not None and latest.peer_time <= cutoff:
             del self._rx_latest[peer]
         return retired
+
+    def back_since_left(self, peer: str) -> bool:
+        """Whether ``peer``, since the leave it signed, sent on a session it began after it.
+
+        Only the holder of its key can agree a session, so this is as strong a proof as
+        its signed directory snapshot that a process of it is back (a restarted one asks
+        at once, before its directory answers). A session begun here is not counted: the
+        refusal sent to a platform that left and goes on asking would agree one.
+        """
+        left = self._left.get(peer)
+        latest = self._rx_latest.get(peer)
+        return (
+            left is not None
+            and latest is not None
+            and not latest.initiator
+            and latest.peer_time > left
+        )
+
+    def peer_clock_offset(self, peer: str) -> float:
+        """How far ``peer``'s clock is ahead of ours, by its newest session (s; 0 when none).
+
+        The time it signed its half of the key exchange less when the session was made
+        here: the message's transit counts too, so a little less than the true offset.
+        """
+        newest = max(self._by_peer.get(peer, ()), key=lambda s: s.order, default=None)
+        return 0.0 if newest is None else newest.peer_time - newest.established
 
     def prune(self) -> int:
         """Drop sessions past their lifetime or their grace period; how many were dropped."""
@@ -1363,7 +1397,7 @@ class SessionTable:
     def _on_rx_switch(self, session: Session, now: float) -> None:
         """The peer sent on another session than last time: confirm it, retire older ones."""
         left = self._left.get(session.peer)
-        if left is not None and session.established <= left:
+        if left is not None and session.peer_time <= left:
             return  # in flight when the peer left: opened, but its session is over
         session._confirmed = True
         self._tx.pop(session.peer, None)  # the choice of sending session may change
@@ -1531,7 +1565,9 @@ class Handshake:
                 "sig": _b64(self.me.sign(full)),
             }
         )
-        return reply, self._session(frm, full, shared, initiator=False, order_ts=max(ts, my_ts))
+        return reply, self._session(
+            frm, full, shared, initiator=False, order_ts=max(ts, my_ts), peer_ts=ts
+        )
 
     def finish(self, reply: bytes | str) -> Session:
         """Check the reply to one of our requests and make the session, or refuse it."""
@@ -1561,7 +1597,9 @@ class Handshake:
         shared = _x25519(pending.secret, epk, frm)
         del self._pending[re_nonce]
         self._finished[re_nonce] = now
-        return self._session(frm, full, shared, initiator=True, order_ts=max(pending.ts_ms, ts))
+        return self._session(
+            frm, full, shared, initiator=True, order_ts=max(pending.ts_ms, ts), peer_ts=ts
+        )
 
     def pending(self, peer: str) -> bool:
         """True while a request of ours to ``peer`` awaits its reply (do not start another)."""
@@ -1615,7 +1653,14 @@ class Handshake:
             ) from None
 
     def _session(
-        self, peer: str, transcript: bytes, shared: bytes, *, initiator: bool, order_ts: int
+        self,
+        peer: str,
+        transcript: bytes,
+        shared: bytes,
+        *,
+        initiator: bool,
+        order_ts: int,
+        peer_ts: int,
     ) -> Session:
         keys = _hkdf(transcript, shared)
         sid = _session_id(keys["sid"])
@@ -1629,6 +1674,7 @@ class Handshake:
             order=(order_ts, sid),
             policy=self.policy,
             clock=self._clock,
+            peer_time=peer_ts / 1000,
         )
 
 

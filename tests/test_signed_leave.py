@@ -36,6 +36,7 @@ from agents import (
 )
 from agents._acl import Performative
 from agents._exceptions import AuthenticationError
+from agents._security import Handshake, SessionTable
 from agents.keys import gen_keys, trust_keys
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 
@@ -258,3 +259,85 @@ async def test_a_leave_replayed_or_late_keeps_the_next_processs_session(tmp_path
                         await agreeing
                     silent.undeclare()
                     held.clear()
+
+
+async def test_a_restarted_platform_is_served_at_once_after_its_leave(tmp_path: Path) -> None:
+    """uav-b leaves, signed, and starts again: its first request to uav-a is served, on
+    the session its new process agreed (not refused until its directory answers)."""
+    fed = f"leave-{uuid.uuid4().hex[:8]}"
+    names = ["uav-a", "uav-b"]
+    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
+    trust = TrustStore.load(tmp_path / "trust.json")
+    port = free_tcp_port()
+
+    def channel(name: str) -> InterfaceAgent:
+        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+
+    async with (
+        asyncio.timeout(60),
+        ZenohTransport(ZenohConfig.loopback(port)) as ta,
+        AgentPlatform("uav-a", ta, federation=fed, channel=channel("uav-a")) as pa,
+    ):
+        await pa.add(Echo())
+        df = pa.df
+        assert df is not None
+
+        async def ask(value: int) -> object:
+            """A new process of uav-b asks uav-a (its first request), then leaves, signed."""
+            config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+            async with (
+                ZenohTransport(config) as tb,
+                AgentPlatform("uav-b", tb, federation=fed, channel=channel("uav-b")) as pb,
+            ):
+                asker = await pb.add(Agent("asker"))
+                return await request(asker, "echo@uav-a", value, ontology="demo", timeout=TIMEOUT)
+
+        assert await ask(1) == 1
+        while not df.said_left("uav-b"):  # noqa: ASYNC110
+            await asyncio.sleep(0.02)  # its signed leave taken
+        assert await ask(2) == 2  # at once, before its presence or directory is read
+        assert pa.stats.from_left == 0
+
+
+@pytest.mark.parametrize("offset", [-20.0, 20.0])
+def test_the_leave_cut_off_is_in_the_leavers_clock(offset: float) -> None:
+    """uav-b's clock is 20 s behind (or ahead of) uav-a's: what it agreed before the time
+    it signed its leave is retired, what its next process agreed after is kept."""
+    now = [1_700_000_000.0]
+    keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
+    trust = TrustStore("demo", {n: k.public_key for n, k in keys.items()})
+
+    def a_clock() -> float:
+        return now[0]
+
+    def b_clock() -> float:
+        return now[0] + offset
+
+    a_hs = Handshake(keys["uav-a"], trust, clock=a_clock)
+    a_table = SessionTable("uav-a", trust, clock=a_clock)
+    b_hs = Handshake(keys["uav-b"], trust, clock=b_clock)
+    tables = [SessionTable("uav-b", trust, clock=b_clock)]
+
+    def agree() -> None:
+        """uav-b begins a session with uav-a, and sends on it."""
+        reply, on_a = a_hs.respond(b_hs.initiate("uav-a"))
+        a_table.add(on_a)
+        tables[-1].add(b_hs.finish(reply))
+        a_table.open(tables[-1].seal("uav-a", b"{}"))
+
+    agree()
+    now[0] += 10
+    agree()  # in uav-b's last 5 s (its clock)
+    last = a_table.session_for("uav-b")
+    assert last is not None
+    now[0] += 5
+    a_table.retire("uav-b", b_clock())  # the leave, signed at uav-b's time
+    assert a_table.session_for("uav-b") is None  # its last session too
+    assert not a_table.back_since_left("uav-b")
+    a_table.open(tables[-1].seal("uav-a", b"{}"))  # late, on the last session: opens
+    assert a_table.session_for("uav-b") is None
+    now[0] += 1
+    tables.append(SessionTable("uav-b", trust, clock=b_clock))  # its next process
+    agree()
+    assert a_table.back_since_left("uav-b")
+    assert a_table.session_for("uav-b") not in (None, last)
