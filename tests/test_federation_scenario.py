@@ -1508,3 +1508,23 @@ async def test_samples_dropped_before_sending_are_not_counted_again_as_lost_in_t
                 assert rec.lost == 1  # the receiver sees the gap …
                 await asyncio.sleep(0.3)  # … and reports it (several report intervals)
         assert export.dropped == {"no-session": 1}  # … but it is not counted twice
+
+
+async def test_the_commands_waiting_on_a_failed_create_stream_fail_with_it(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: the commands waiting on the channel's create-stream to a dead target
+    # each asked again after it failed, one after another: the k-th waited k timeouts
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(demo_keys / "run"))
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        monkeypatch.setattr(a.federation_agent, "_create_stream", never_answers)
+        channel = LocalChannel(b)
+        start = time.monotonic()
+        commands = [channel._acquire("uav-a", "car5-state", None, 0.5) for _ in range(3)]
+        results = await asyncio.gather(*commands, return_exceptions=True)
+        assert all(isinstance(r, ReplyTimeout) for r in results), results
+        assert time.monotonic() - start < 1.0  # one timeout for all three
+        assert channel._creating == {}
