@@ -1132,6 +1132,16 @@ async def test_a_provider_holds_a_bounded_number_of_streams_by_consent(demo_keys
         await b.federation_agent.create_stream("uav-a", ["car4-state"], timeout=WAIT)
         cars[4].push(car_state(4, 1, "uav-a"))
         await b.imported("uav-a", "car4-state", timeout=WAIT)
+        # one that ended counts no more (a long-running receiver is not refused for ever);
+        # it is withdrawn, so a batch of it cannot start it again uncounted
+        ended = b.importer.get("uav-a", "car0-state")
+        assert ended is not None and ended.local_label is not None
+        b.importer._end(ended)  # as the sender's end does
+        await a.federation_agent.create_stream(
+            "uav-a", ["car3-state"], to_units=["uav-b"], timeout=WAIT
+        )
+        assert b.agreed("uav-a", "car3-state") and not b.agreed("uav-a", "car0-state")
+        assert b.instance.latest(ended.local_label).samples[0].value == car_state(0, 1, "uav-a")
 
 
 async def test_a_consent_while_our_request_waits_stays_under_its_lease(
