@@ -935,7 +935,8 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
     """Send ``request`` to the running node of ``config``; its answer lines, decoded.
 
     NodeUnreachable (before any line) when no node of this config runs on this host;
-    ForeignNodeError, the request unsent, when the node there states another key or names.
+    ForeignNodeError, the request unsent, when the node there states another key or names;
+    an ``error`` line, the request unsent, when the node is older than this command.
     """
     keys = _keys_of(config)
     path = channel_path(config, keys)
@@ -973,14 +974,24 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
         await writer.drain()
         try:
             answer = json.loads(await asyncio.wait_for(reader.readline(), _HELLO_WAIT))
-            proof = base64.b64decode(answer["proof"], validate=True)
-            VerifyKey(keys.public_key).verify(_proof_data(config, nonce), proof)
+            older = isinstance(answer, dict) and "error" in answer and "proof" not in answer
+            if not older:
+                proof = base64.b64decode(answer["proof"], validate=True)
+                VerifyKey(keys.public_key).verify(_proof_data(config, nonce), proof)
         except (TimeoutError, ValueError, KeyError, TypeError, BadSignatureError):
             raise ForeignNodeError(
                 f"the listener on {path} states this config's key but did not sign this "
                 "command's nonce with it: not the node of this config, so nothing was sent "
                 "to it; stop it, or remove the socket"
             ) from None
+        if older:
+            # a node of this config from before the nonce step took the nonce for a bad
+            # request: a legitimate node, not one to remove
+            yield {
+                "error": f"the node on {path} is older than this command (no nonce step; it "
+                f"answered: {answer['error']}); restart it with this version"
+            }
+            return
         writer.write(json.dumps(request).encode() + b"\n")
         await writer.drain()
         while True:
