@@ -426,6 +426,16 @@ class _Shared:
         self.following = 1
 
 
+class _Creating:
+    """A create-stream under way for commands: set once it ends, with its error if it failed."""
+
+    __slots__ = ("done", "error")
+
+    def __init__(self) -> None:
+        self.done = asyncio.Event()
+        self.error: Exception | None = None
+
+
 class LocalChannel:
     """A running node's local channel and its ``who are you`` answer (async context manager)."""
 
@@ -449,8 +459,8 @@ class LocalChannel:
         self._made: dict[tuple[str, str], Any] = {}
         # (target, label) -> set once the cancel of the channel's export of it is done
         self._ending: dict[tuple[str, str], asyncio.Event] = {}
-        # (target, label) -> set once the channel's create-stream of it has ended, either way
-        self._creating: dict[tuple[str, str], asyncio.Event] = {}
+        # (target, label) -> the channel's create-stream of it under way
+        self._creating: dict[tuple[str, str], _Creating] = {}
         # anyone on the network may ask who we are: screened on the transport's thread, so
         # a flood costs no task each on the event loop (a second node asks once)
         self._who_lock = threading.Lock()
@@ -733,7 +743,9 @@ class LocalChannel:
         import does not have is refused (NotAnsweredError says why), never given another
         rate than it asked for. Its create-stream runs outside the lock: a command for
         another stream never waits for it (a platform that does not answer holds it up to
-        ``timeout`` s); one for this stream does (`_creating`), then shares what it made.
+        ``timeout`` s); one for this stream does (`_creating`), then shares what it made,
+        or fails with its error: a dead target costs each of them one timeout, not one per
+        command before it. Only a cancelled create-stream is asked again.
         """
         p = self.platform
         key = (target, semantic)
@@ -741,8 +753,9 @@ class LocalChannel:
             async with self._lock:
                 # a cancel of this stream on its way, or its create-stream: asked again only
                 # once that has ended (the create's outcome is then in `_exports`)
-                ending = self._ending.get(key) or self._creating.get(key)
-                if ending is None:
+                ending = self._ending.get(key)
+                pending = self._creating.get(key)
+                if ending is None and pending is None:
                     entry = self._exports.get(key)
                     if entry is not None:
                         if sample_period is not None and sample_period != entry.sample_period:
@@ -768,9 +781,14 @@ class LocalChannel:
                                 )
                             )
                         return None  # the node's own
-                    creating = self._creating[key] = asyncio.Event()
+                    creating = self._creating[key] = _Creating()
                     break
-            await ending.wait()
+            if pending is not None:
+                await pending.done.wait()
+                if pending.error is not None:
+                    raise pending.error
+            elif ending is not None:
+                await ending.wait()
         # The create-stream runs outside the lock (up to ``timeout`` s for a platform that
         # does not answer): only the commands for this stream wait for it (`_creating`).
         try:
@@ -781,10 +799,13 @@ class LocalChannel:
             entry = self._exports[key] = _Shared(export_id, key, sample_period)
             self._made[key] = p.importer.get(target, semantic)
             return entry
+        except Exception as error:
+            creating.error = error  # the commands waiting on it fail with it too
+            raise
         finally:
-            # failed or cancelled: the next command for it asks again itself
+            # cancelled: a command waiting on it asks again itself
             del self._creating[key]
-            creating.set()
+            creating.done.set()
 
     async def _release(self, target: str, entry: _Shared) -> None:
         """Take back the count `_acquire` took; the last one out cancels the export.
@@ -914,7 +935,8 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
     """Send ``request`` to the running node of ``config``; its answer lines, decoded.
 
     NodeUnreachable (before any line) when no node of this config runs on this host;
-    ForeignNodeError, the request unsent, when the node there states another key or names.
+    ForeignNodeError, the request unsent, when the node there states another key or names;
+    an ``error`` line, the request unsent, when the node is older than this command.
     """
     keys = _keys_of(config)
     path = channel_path(config, keys)
@@ -952,14 +974,24 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
         await writer.drain()
         try:
             answer = json.loads(await asyncio.wait_for(reader.readline(), _HELLO_WAIT))
-            proof = base64.b64decode(answer["proof"], validate=True)
-            VerifyKey(keys.public_key).verify(_proof_data(config, nonce), proof)
+            older = isinstance(answer, dict) and "error" in answer and "proof" not in answer
+            if not older:
+                proof = base64.b64decode(answer["proof"], validate=True)
+                VerifyKey(keys.public_key).verify(_proof_data(config, nonce), proof)
         except (TimeoutError, ValueError, KeyError, TypeError, BadSignatureError):
             raise ForeignNodeError(
                 f"the listener on {path} states this config's key but did not sign this "
                 "command's nonce with it: not the node of this config, so nothing was sent "
                 "to it; stop it, or remove the socket"
             ) from None
+        if older:
+            # a node of this config from before the nonce step took the nonce for a bad
+            # request: a legitimate node, not one to remove
+            yield {
+                "error": f"the node on {path} is older than this command (no nonce step; it "
+                f"answered: {answer['error']}); restart it with this version"
+            }
+            return
         writer.write(json.dumps(request).encode() + b"\n")
         await writer.drain()
         while True:

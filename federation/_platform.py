@@ -910,8 +910,8 @@ class FederationPlatform:
         # sender -> semantic -> (the platform that asked, the end of its consent lease):
         # agreed by `accept`, no batch yet
         self._leased: dict[str, dict[str, tuple[str, asyncio.TimerHandle]]] = {}
-        # sender -> the streams agreed by consent (pruned of those no longer agreed when
-        # counted): what `max_consented_imports` bounds
+        # sender -> the streams agreed by consent (pruned of those no longer agreed or
+        # ended when counted): what `max_consented_imports` bounds
         self._consented: dict[str, set[str]] = {}
         self._stack: contextlib.AsyncExitStack | None = None
 
@@ -1060,7 +1060,8 @@ class FederationPlatform:
         too (that request accepted, it is agreed for good). ValueError when
         ``max_waiting_imports`` such agreements with ``sender`` wait already, or
         ``max_waiting_imports_per_requester`` of them that ``requester`` asked for;
-        Denied (``consent-limit``) when ``sender`` holds ``max_consented_imports`` here.
+        Denied (``consent-limit``) when ``sender`` holds ``max_consented_imports`` here
+        that have not ended (waiting or flowing).
         """
         rec = self.importer.get(sender, semantic)
         leases = self._leased.get(sender, {})
@@ -1081,7 +1082,12 @@ class FederationPlatform:
             )
         held = self._consented.setdefault(sender, set())
         get = self.importer.get
-        held.difference_update([s for s in held if get(sender, s) is None])
+        # only those not ended count: an ended one is withdrawn (its samples stay readable),
+        # else a batch of it would start it again here uncounted; a new consent agrees it
+        for s in [s for s in held if (r := get(sender, s)) is None or r.ended]:
+            held.discard(s)
+            if s != semantic:
+                self.importer.forget(sender, s)
         if semantic not in held and len(held) >= self.max_consented_imports:
             # started streams wait no more: without this a provider that may ask for
             # itself streams here as many as it likes, one batch each

@@ -178,6 +178,7 @@ MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
 _MAX_RESOLVED = 2048
 _MAX_CANCELLED_EARLY = 256  # cancels kept for a create-stream not taken up yet (a member
 # may send cancels in conversations that never had one: the oldest are forgotten)
+_MAX_CANCELLED_EARLY_BY_SENDER = 16  # of them, one sender's: its flood forgets only its own
 
 __all__ = [
     "FEDERATION_AGENT",
@@ -1101,7 +1102,8 @@ class FederationAgent(Agent):
 
         One still being created is stopped as soon as it started (its requester gave up);
         one whose create-stream was not taken up yet, as soon as it is (bounded: the
-        latest `_MAX_CANCELLED_EARLY` such cancels are kept).
+        latest `_MAX_CANCELLED_EARLY` such cancels are kept, at most
+        `_MAX_CANCELLED_EARLY_BY_SENDER` of one sender's).
         """
         key = (message.sender, message.conversation_id or "")
         if key in self._creating:
@@ -1109,6 +1111,10 @@ class FederationAgent(Agent):
         elif key not in self._by_conversation and message.conversation_id is not None:
             early = self._cancelled_early
             early[key] = None
+            # a cancel message is rare: a scan of the (bounded) kept ones costs little
+            mine = [kept for kept in early if kept[0] == message.sender]
+            if len(mine) > _MAX_CANCELLED_EARLY_BY_SENDER:
+                del early[mine[0]]
             while len(early) > _MAX_CANCELLED_EARLY:
                 del early[next(iter(early))]
         export_id = self._by_conversation.get(key)

@@ -41,7 +41,7 @@ from federation.console import (
     allowed_names,
     configured_token,
 )
-from federation.console._access import AUDIT_BURST, REPORT_INTERVAL
+from federation.console._access import AUDIT_BURST, REPORT_INTERVAL, _client_key
 
 ROOT = Path(__file__).resolve().parent.parent
 WAIT = 20.0  # s: the bound on any single wait
@@ -585,3 +585,19 @@ def test_the_token_from_the_environment_is_the_one_printed_and_accepted(tmp_path
         if proc.poll() is None:
             proc.kill()
             proc.wait(WAIT)
+
+
+@pytest.mark.parametrize(
+    ("host", "key"),
+    [
+        ("192.0.2.7", "192.0.2.7"),
+        ("::ffff:192.0.2.7", "192.0.2.7"),  # an IPv4 client on a dual-stack socket
+        ("2001:db8:1:2:aaaa::1", "2001:db8:1:2::/64"),
+        ("2001:db8:1:2:bbbb::9", "2001:db8:1:2::/64"),  # the same host, a fresh address
+        ("2001:db8:1:3::1", "2001:db8:1:3::/64"),
+    ],
+)
+def test_a_client_counts_by_its_ipv4_address_or_its_ipv6_64(host: str, key: str) -> None:
+    # regression: each IPv6 address counted apart (one host holds a /64), and an IPv4
+    # client arriving IPv4-mapped counted apart from itself over IPv4
+    assert _client_key(host) == key

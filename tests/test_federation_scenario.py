@@ -1132,6 +1132,16 @@ async def test_a_provider_holds_a_bounded_number_of_streams_by_consent(demo_keys
         await b.federation_agent.create_stream("uav-a", ["car4-state"], timeout=WAIT)
         cars[4].push(car_state(4, 1, "uav-a"))
         await b.imported("uav-a", "car4-state", timeout=WAIT)
+        # one that ended counts no more (a long-running receiver is not refused for ever);
+        # it is withdrawn, so a batch of it cannot start it again uncounted
+        ended = b.importer.get("uav-a", "car0-state")
+        assert ended is not None and ended.local_label is not None
+        b.importer._end(ended)  # as the sender's end does
+        await a.federation_agent.create_stream(
+            "uav-a", ["car3-state"], to_units=["uav-b"], timeout=WAIT
+        )
+        assert b.agreed("uav-a", "car3-state") and not b.agreed("uav-a", "car0-state")
+        assert b.instance.latest(ended.local_label).samples[0].value == car_state(0, 1, "uav-a")
 
 
 async def test_a_consent_while_our_request_waits_stays_under_its_lease(
@@ -1508,3 +1518,23 @@ async def test_samples_dropped_before_sending_are_not_counted_again_as_lost_in_t
                 assert rec.lost == 1  # the receiver sees the gap …
                 await asyncio.sleep(0.3)  # … and reports it (several report intervals)
         assert export.dropped == {"no-session": 1}  # … but it is not counted twice
+
+
+async def test_the_commands_waiting_on_a_failed_create_stream_fail_with_it(
+    demo_keys: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # regression: the commands waiting on the channel's create-stream to a dead target
+    # each asked again after it failed, one after another: the k-th waited k timeouts
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(demo_keys / "run"))
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        monkeypatch.setattr(a.federation_agent, "_create_stream", never_answers)
+        channel = LocalChannel(b)
+        start = time.monotonic()
+        commands = [channel._acquire("uav-a", "car5-state", None, 0.5) for _ in range(3)]
+        results = await asyncio.gather(*commands, return_exceptions=True)
+        assert all(isinstance(r, ReplyTimeout) for r in results), results
+        assert time.monotonic() - start < 1.0  # one timeout for all three
+        assert channel._creating == {}

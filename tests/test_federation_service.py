@@ -453,6 +453,31 @@ async def test_cancel_stream_by_action_and_by_fipa_cancel() -> None:
         assert a.exporter.running == [] and a.fed.exports == {}
 
 
+async def test_one_senders_early_cancels_forget_only_its_own() -> None:
+    # regression: the early cancels kept were one FIFO for all senders, so a member sending
+    # fresh conversations pushed out another's
+    async with world() as w:
+        a, b, op = w["uav-a"], w["uav-b"], w["operator"]
+
+        async def cancel(fed: FederationAgent, conversation_id: str) -> None:
+            message = fed.message(
+                P.CANCEL,
+                "federation@uav-a",
+                None,
+                protocol=FIPA_REQUEST,
+                ontology=ONTOLOGY,
+                conversation_id=conversation_id,
+            )
+            assert (await fed.ask(message, timeout=WAIT)).performative is P.INFORM
+
+        await cancel(op.fed, "c-op")
+        for i in range(20):
+            await cancel(b.fed, f"c-b{i}")
+        kept = list(a.fed._cancelled_early)
+        assert (op.fed.aid, "c-op") in kept
+        assert [c for s, c in kept if s == b.fed.aid] == [f"c-b{i}" for i in range(4, 20)]
+
+
 # -- queries ----------------------------------------------------------------------------------
 
 

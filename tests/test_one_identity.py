@@ -500,6 +500,37 @@ async def test_a_node_stating_the_configs_key_must_sign_the_commands_nonce(
     assert set(json.loads(received[0])) == {"nonce"} and received[1] == b""
 
 
+async def test_a_node_older_than_the_command_is_said_so_not_called_foreign(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A node from before the nonce step answers it with an error: restart it, not remove it."""
+    import asyncio
+
+    from federation._local import _hello, channel_path
+
+    station = Station(tmp_path)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
+    config = PlatformConfig.load(station.dir / "station-python.toml")
+    keys = KeyPair.load(config.key)
+    path = channel_path(config)
+    path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
+
+    async def older(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(json.dumps(_hello(config, keys.public_key)).encode() + b"\n")
+        await reader.readline()  # the nonce, taken for a request
+        writer.write(b'{"error": "bad request: no op"}\n')
+        await reader.read()
+        writer.close()
+
+    server = await asyncio.start_unix_server(older, path=str(path))
+    async with asyncio.timeout(20), server:
+        [line] = await _command(config)
+    assert line == {
+        "error": f"the node on {path} is older than this command (no nonce step; it "
+        "answered: bad request: no op); restart it with this version"
+    }
+
+
 async def test_a_channel_never_unlinks_a_socket_a_node_listens_on(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

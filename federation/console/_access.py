@@ -23,8 +23,8 @@ budget: past it, refusals are counted and summed up in one record per `REPORT_IN
 Below all that, `serve` bounds what any client costs before it says anything: at most
 `MAX_CLIENTS` connections at once (each holds a file descriptor of the node's process;
 past it a new one is answered 503 and closed, counted as ``busy``), at most
-`MAX_CLIENTS_PER_ADDRESS` of them from one address (past it, 503, counted as
-``busy_address``: one address must not take them all), and a connection that
+`MAX_CLIENTS_PER_ADDRESS` of them from one address (an IPv6 client's /64; past it, 503,
+counted as ``busy_address``: one address must not take them all), and a connection that
 has sent no whole request within `IDLE_TIMEOUT` seconds is closed (slow headers, an idle
 keep-alive). A request that is not HTTP (a duplicate ``Host``, a broken header) is
 answered 400 by aiohttp and logged in one line, within the budget above, never with a
@@ -429,9 +429,26 @@ class _Busy(asyncio.Protocol):
 
 
 def _address(transport: asyncio.BaseTransport | None) -> str | None:
-    """The client's address (no port) of a connection, None once it is gone."""
+    """The client address a connection counts under (`_client_key`), None once it is gone."""
     peer = None if transport is None else transport.get_extra_info("peername")
-    return str(peer[0]) if isinstance(peer, tuple) and peer else None
+    return _client_key(str(peer[0])) if isinstance(peer, tuple) and peer else None
+
+
+def _client_key(host: str) -> str:
+    """What one client's connections count under: an IPv4 address, or an IPv6 one's /64.
+
+    One IPv6 host commonly holds a whole /64 (it may pick a fresh address per
+    connection), and an IPv4 client on a dual-stack socket arrives IPv4-mapped.
+    """
+    try:
+        ip = ipaddress.ip_address(host)
+    except ValueError:
+        return host
+    if isinstance(ip, ipaddress.IPv6Address):
+        if ip.ipv4_mapped is not None:
+            return str(ip.ipv4_mapped)
+        return str(ipaddress.IPv6Network((ip, 64), strict=False))
+    return str(ip)
 
 
 class _PerAddress(asyncio.Protocol):
