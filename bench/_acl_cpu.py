@@ -4,7 +4,7 @@ The zenoh round trip of ``bench.acl`` (``request`` from ``asker@bench-a`` to the
 of ``bench-b``, a spawned node; encryption on), N times after a warm-up, nothing wrapped:
 what ``bench._acl_trace`` measures minus its probes, so it also runs a tree whose classes
 cannot be patched (compiled modules). Printed as one JSON object: the round trip's median
-and p90 and p99 (µs), each side's event-loop thread CPU per round trip, split into user and
+and p90 (µs), each side's event-loop thread CPU per round trip, split into user and
 system time (``/proc/<pid>/task/<pid>/stat``), and the CPU of all of each side's
 threads (``schedstat``: zenoh's included). With ``--raw`` also raw zenoh's get median
 (``bench._zenoh_raw``) measured in the same run, and the ratio.
@@ -163,7 +163,6 @@ async def _measure(keydir: Path, n: int, stages: bool = False) -> dict[str, Any]
     out: dict[str, Any] = {
         "rtt_median": statistics.median(rtts),
         "rtt_p90": rtts[int(0.9 * (len(rtts) - 1))],
-        "rtt_p99": rtts[int(0.99 * (len(rtts) - 1))],
         "cpu_a": per[0],
         "all_threads_a": per[1],
         "cpu_b": per[2],

@@ -4,8 +4,7 @@
 and a replier, each with one zenoh session (peer mode, loopback TCP, as
 ``bench/_zenoh_raw.py``) and, where a variant has one, an event loop as `agents.run` makes
 it (uvloop unless ``DYKNOW_EVENT_LOOP=asyncio``). Each variant is a request → reply round
-trip; the variants run in the same processes, one after the other, in rounds whose order
-alternates (forward, backward, ...):
+trip between them:
 
 - ``get`` (a): a blocking zenoh ``get`` on a queryable that answers on zenoh's thread,
   exactly as ``bench/_zenoh_raw.py`` (the baseline ``bench.acl`` divides by);
@@ -15,8 +14,10 @@ alternates (forward, backward, ...):
   a reader task takes it; the replier's reader puts the reply, the asker's resolves the
   Future the asking coroutine awaits (with a timeout timer, as a request has); payloads
   the size of our sealed request and reply, a sequence number their only content;
-- ``asyncio-echo-task`` (b'): b, with the replier's reader handing each request to a
-  task of its own (an agent's mailbox and loop) that puts the reply;
+- ``asyncio-echo-task``: b, with the replier's reader handing each request to a task of
+  its own (an agent's mailbox and loop) that puts the reply;
+- ``asyncio-aead``: b with each payload boxed by ChaCha20-Poly1305 behind a fixed binary
+  header (what a binary envelope would cost at least);
 - ``asyncio-crypto`` (c): b plus the work of our envelope and body on both sides, done as
   plainly as it can be: the ACL message as JSON (orjson) of our request's and reply's
   shape, sealed with ChaCha20-Poly1305 (`cryptography`, as ``agents/_security.py``) into
@@ -24,33 +25,44 @@ alternates (forward, backward, ...):
   and the body parsed on the other side; no agents, no checks beyond those;
 - ``callback-reply`` (d): b with the replier answering on zenoh's callback thread (no
   loop hop there); the asker as in b;
+- ``callback-crypto``: c with the replier's work (open, parse, compose, seal, put) on
+  zenoh's callback thread;
 - ``asyncio-query`` (e): the request a zenoh ``get`` with the request as its payload,
   answered through the replier's loop (the queryable's callback hands the query over as
   in b), the reply handed over to the asker's loop as in b.
 
+The variants take turns in blocks of ``BLOCK`` round trips (a cycle: a block of each,
+forward, then backward, ...), so that all meet the same load on a shared machine; a
+round is ``N // BLOCK`` cycles. ``--ours`` adds our whole stack's round trip as one more
+turn of each cycle (``request`` to the gateway of a spawned node as ``bench.acl`` and
+``bench._acl_cpu`` run it: two platforms, the Interface Agent, encryption on; its asker
+in this process).
+
 Printed per variant: round trip median and p99 (µs, all rounds pooled), the CPU per round
 trip (µs, median of the rounds) of each side's loop thread (its main thread: where a
 blocking ``get`` waits in a) and of all its threads (zenoh's included; from
-``/proc/<pid>/task/*/schedstat``, as ``bench._acl_cpu``), and the median's ratio to a's,
-as ``BENCH acl-floor-<variant>-vs-get`` lines. CPU per round trip does not depend on what
-else loads the machine; the round trips do. ``--ours`` runs our whole stack's round trip
-(``bench._acl_cpu``: two platforms, the Interface Agent, encryption on) after each round,
-on the same machine, and prints it beside the floor.
+``/proc/<pid>/task/*/schedstat``, as ``bench._acl_cpu``), the median's ratio to a's, and
+each round's median (their spread says how noisy the run was); and the ratios as ``BENCH
+acl-floor-<variant>-vs-get`` lines. CPU per round trip depends little on what else loads
+the machine; the round trips do.
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import gc
 import os
 import statistics
 import struct
 import sys
+import tempfile
 import threading
 import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Coroutine
+from pathlib import Path
 from typing import Any
 
 from bench import progress, report
@@ -61,6 +73,7 @@ from bench._zenoh_raw import _config, free_port
 N_RTT = 2000
 WARMUP = 300
 ROUNDS = 3
+BLOCK = 100  # round trips of one variant before the next one's
 TIMEOUT = 5.0  # a request's reply timeout, as bench.acl's
 REQ_BYTES = 553  # our sealed request to the gateway (bench.acl's round trip), on the wire
 REP_BYTES = 585  # and its sealed reply
@@ -594,16 +607,18 @@ async def _asker(port: int, replier: int, commands: Any, reports: Any, stop: Any
             cmd = await loop.run_in_executor(None, commands.get)
             if cmd is None:
                 break
-            order, n, warmup = cmd
+            what, order, n = cmd
             out: dict[str, Any] = {}
             for name in order:
-                ask = asks[name]
-                for i in range(warmup):
-                    await ask(i)
+                if what == "warm-up":
+                    for i in range(n):
+                        await asks[name](i)
+                else:
+                    out[name] = await _timed(asks[name], n, me, replier)
+            if what == "warm-up":
                 gc.collect()
                 gc.freeze()
-                out[name] = await _timed(ask, n, me, replier)
-            reports.put(("round", me, out))
+            reports.put((what, me, out))
         for t in tasks:
             t.cancel()
         for h in held:
@@ -627,70 +642,138 @@ async def _first_answers(asks: dict[str, Ask]) -> None:
                     raise RuntimeError(f"floor variant {name} never answered") from None
 
 
-async def _timed(ask: Ask, n: int, me: int, replier: int) -> dict[str, Any]:
-    """``n`` round trips of ``ask``: each in µs, and both sides' CPU per round trip (µs)."""
+async def _timed(ask: Ask, n: int, me: int, other: int) -> tuple[list[float], list[float]]:
+    """``n`` round trips of ``ask``, each in µs; the CPU (µs) they took: this process's
+    loop thread and all its threads, ``other``'s (the replier's) the same."""
     ns = time.perf_counter_ns
-    before = (
-        _main_thread_cpu(me),
-        _all_threads_cpu(me),
-        _main_thread_cpu(replier),
-        _all_threads_cpu(replier),
-    )
+    before = _cpu(me, other)
     rtts = []
     for i in range(n):
         t = ns()
         await ask(i)
         rtts.append((ns() - t) / 1e3)
-    after = (
+    return rtts, [(b - a) * 1e6 for a, b in zip(before, _cpu(me, other), strict=True)]
+
+
+def _cpu(me: int, other: int) -> tuple[float, float, float, float]:
+    """The CPU seconds of ``me``'s main (loop) thread and all its threads, ``other``'s too."""
+    return (
         _main_thread_cpu(me),
         _all_threads_cpu(me),
-        _main_thread_cpu(replier),
-        _all_threads_cpu(replier),
+        _main_thread_cpu(other),
+        _all_threads_cpu(other),
     )
-    per = [(b - a) / n * 1e6 for a, b in zip(before, after, strict=True)]
-    return {"rtts": rtts, "loop_a": per[0], "all_a": per[1], "loop_b": per[2], "all_b": per[3]}
 
 
 # --------------------------------------------------------------------------- parent
 
 
 def measure(
-    n: int = N_RTT, rounds: int = ROUNDS, warmup: int = WARMUP, *, ours: bool = False
+    n: int = N_RTT,
+    rounds: int = ROUNDS,
+    *,
+    block: int = BLOCK,
+    warmup: int = WARMUP,
+    ours: bool = False,
 ) -> dict[str, Any]:
-    """Every variant's round trips in ``rounds`` alternated rounds; with ``ours``, ours too."""
+    """Every variant's round trips, ``n`` a round, in blocks interleaved; with ``ours``, ours.
+
+    Each round is ``n // block`` cycles; a cycle runs ``block`` round trips of each
+    variant (and of ours), forward and backward in turn, so that all see the same load.
+    Per round and variant: the round trips (µs) and the CPU per round trip (µs).
+    """
+    from agents import run
+
+    return run(_measure(n, rounds, block, warmup, ours))
+
+
+async def _measure(n: int, rounds: int, block: int, warmup: int, ours: bool) -> dict[str, Any]:
     from bench._child import _CTX
 
     port = free_port()
     commands = _CTX.Queue()
-    res: dict[str, Any] = {name: [] for name in VARIANTS}
-    res["ours"] = []
-    with Child(replier_main, (port,), "floor-replier").start() as replier:
-        replier.wait_report("ready", 30.0)
+    names = list(VARIANTS)
+    res: dict[str, Any] = {name: [] for name in [*names, *(["ours"] if ours else [])]}
+    async with contextlib.AsyncExitStack() as stack:
+        replier = stack.enter_context(Child(replier_main, (port,), "floor-replier").start())
+        await asyncio.to_thread(replier.wait_report, "ready", 30.0)
         args = (port, replier.pid, commands)
-        with Child(asker_main, args, "floor-asker").start() as asker:
-            res["loop"] = asker.wait_report("loop", 30.0)
-            asker.wait_report("ready", 60.0)
-            names = list(VARIANTS)
-            for r in range(rounds):
-                order = names if r % 2 == 0 else names[::-1]
-                progress(f"floor round {r + 1}/{rounds}: {', '.join(order)}")
-                commands.put((order, n, warmup))
-                got = asker.wait_report("round", 60.0 + n * len(order) * 0.01)
-                for name in VARIANTS:
-                    res[name].append(got[name])
-                if ours:
-                    from bench import _acl_cpu
-
-                    progress(f"floor round {r + 1}/{rounds}: our stack ({n} round trips)")
-                    res["ours"].append(_acl_cpu.measure(n))
-            commands.put(None)
+        asker = stack.enter_context(Child(asker_main, args, "floor-asker").start())
+        res["loop"] = await asyncio.to_thread(asker.wait_report, "loop", 30.0)
+        await asyncio.to_thread(asker.wait_report, "ready", 60.0)
+        ask_ours: Callable[[], Coroutine[Any, Any, tuple[list[float], list[float]]]] | None = None
+        if ours:
+            ask_ours = await _our_stack(stack, block, warmup)
+        progress(f"floor: warm-up, {warmup} round trips of each variant")
+        commands.put(("warm-up", names, warmup))
+        await asyncio.to_thread(asker.wait_report, "warm-up", 120.0)
+        cycles = max(1, n // block)
+        for r in range(rounds):
+            progress(f"floor round {r + 1}/{rounds}: {cycles} cycles of {block} round trips each")
+            acc: dict[str, tuple[list[float], list[float]]] = {}
+            for c in range(cycles):
+                forward = c % 2 == 0
+                if ask_ours is not None and forward:
+                    _add(acc, "ours", await ask_ours())
+                commands.put(("cycle", names if forward else names[::-1], block))
+                got = await asyncio.to_thread(asker.wait_report, "cycle", 60.0 + block * 0.1)
+                for name, one in got.items():
+                    _add(acc, name, one)
+                if ask_ours is not None and not forward:
+                    _add(acc, "ours", await ask_ours())
+            for name, (rtts, cpu) in acc.items():
+                per = [x / len(rtts) for x in cpu]
+                res[name].append(
+                    {
+                        "rtts": rtts,
+                        "loop_a": per[0],
+                        "all_a": per[1],
+                        "loop_b": per[2],
+                        "all_b": per[3],
+                    }
+                )
+        commands.put(None)
     return res
+
+
+def _add(
+    acc: dict[str, tuple[list[float], list[float]]], name: str, one: tuple[list[float], list[float]]
+) -> None:
+    rtts, cpu = acc.setdefault(name, ([], [0.0, 0.0, 0.0, 0.0]))
+    rtts.extend(one[0])
+    for i, x in enumerate(one[1]):
+        cpu[i] += x
+
+
+async def _our_stack(
+    stack: contextlib.AsyncExitStack, block: int, warmup: int
+) -> Callable[[], Coroutine[Any, Any, tuple[list[float], list[float]]]]:
+    """Our whole stack's round trip, as ``bench._acl_cpu`` runs it, ready for timed blocks."""
+    from agents import request
+    from bench import acl
+
+    keydir = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bench-floor-")))
+    acl.make_keys(keydir)
+    _, _, asker, presence, config = await stack.enter_async_context(acl.asker_side(keydir))
+    child = acl.node("zenoh", config, keydir).start()
+    stack.push_async_callback(asyncio.to_thread, child.close)
+    await acl.wait_alive(presence, child, True)
+    await acl.first_reply(asker, child)
+    progress(f"floor: our stack, warm-up ({warmup} round trips)")
+    await acl.round_trips(asker, warmup, "warm-up")
+    acl.settle_gc()
+    me, node = os.getpid(), child.pid
+
+    async def ask(i: int) -> Any:
+        return await request(asker, acl.GATEWAY, acl.QUERY, ontology="dyknow", timeout=TIMEOUT)
+
+    return lambda: _timed(ask, block, me, node)
 
 
 def summarise(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per variant: median and p99 of all round trips (µs), median CPU per round trip."""
     out: dict[str, dict[str, Any]] = {}
-    for name in VARIANTS:
+    for name in [*VARIANTS, *(["ours"] if res.get("ours") else [])]:
         rounds = res[name]
         rtts = sorted(x for r in rounds for x in r["rtts"])
         row = {
@@ -701,17 +784,6 @@ def summarise(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
         for k in ("loop_a", "all_a", "loop_b", "all_b"):
             row[k] = statistics.median(r[k] for r in rounds)
         out[name] = row
-    if res.get("ours"):
-        o = res["ours"]
-        out["ours"] = {
-            "median": statistics.median(x["rtt_median"] for x in o),
-            "p99": statistics.median(x["rtt_p99"] for x in o),
-            "round_medians": [x["rtt_median"] for x in o],
-            "loop_a": statistics.median(x["cpu_a"] for x in o),
-            "all_a": statistics.median(x["all_threads_a"] for x in o),
-            "loop_b": statistics.median(x["cpu_b"] for x in o),
-            "all_b": statistics.median(x["all_threads_b"] for x in o),
-        }
     return out
 
 
