@@ -29,7 +29,10 @@ trip between them:
   zenoh's callback thread;
 - ``asyncio-query`` (e): the request a zenoh ``get`` with the request as its payload,
   answered through the replier's loop (the queryable's callback hands the query over as
-  in b), the reply handed over to the asker's loop as in b.
+  in b), the reply handed over to the asker's loop as in b (as our transport's ``ask``:
+  the reply callback a ``zenoh.handlers.Callback``, zenoh's default ``indirect=True``);
+- ``asyncio-query-direct``: e with the asker's reply callback ``indirect=False`` (called
+  on zenoh's network thread rather than through a Python thread of zenoh's).
 
 The variants take turns in blocks of ``BLOCK`` round trips (a cycle: a block of each,
 forward, then backward, ...), so that all meet the same load on a shared machine; a
@@ -86,6 +89,7 @@ VARIANTS = {
     "callback-reply": "d. b, replier answers on zenoh's thread",
     "callback-crypto": "c, replier works on zenoh's thread",
     "asyncio-query": "e. get/queryable, each side's loop",
+    "asyncio-query-direct": "e, asker's reply callback direct",
 }
 SID = "Ano7Hijzn7f3C4ynN7Xojw"  # a session id of our length
 KEYS = (bytes(range(32)), bytes(range(32, 64)))  # the asker→replier and replier→asker keys
@@ -581,24 +585,28 @@ async def _asker(port: int, replier: int, commands: Any, reports: Any, stop: Any
             if ok is not None:
                 qput(ok.payload.to_bytes())
 
-        async def ask_query(i: int) -> Any:
-            fut = qpending[i] = loop.create_future()
-            timer = loop.call_later(TIMEOUT, expire, fut)
-            try:
-                s.get(
-                    "floor/query",
-                    zenoh.handlers.Callback(on_reply, _nothing),
-                    payload=_SEQ.pack(i) + request_pad,
-                    timeout=2.0,
-                    target=zenoh.QueryTarget.ALL,
-                    consolidation=zenoh.ConsolidationMode.NONE,
-                )
-                return await fut
-            finally:
-                timer.cancel()
-                qpending.pop(i, None)
+        def query_asker(indirect: bool) -> Ask:
+            async def ask(i: int) -> Any:
+                fut = qpending[i] = loop.create_future()
+                timer = loop.call_later(TIMEOUT, expire, fut)
+                try:
+                    s.get(
+                        "floor/query",
+                        zenoh.handlers.Callback(on_reply, _nothing, indirect=indirect),
+                        payload=_SEQ.pack(i) + request_pad,
+                        timeout=2.0,
+                        target=zenoh.QueryTarget.ALL,
+                        consolidation=zenoh.ConsolidationMode.NONE,
+                    )
+                    return await fut
+                finally:
+                    timer.cancel()
+                    qpending.pop(i, None)
 
-        asks["asyncio-query"] = ask_query
+            return ask
+
+        asks["asyncio-query"] = query_asker(True)
+        asks["asyncio-query-direct"] = query_asker(False)
 
         await _first_answers(asks)
         reports.put(("ready", os.getpid(), None))
@@ -795,13 +803,13 @@ def print_floor(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
         f"  acl floor ({res.get('loop', '?')}; µs per round trip; CPU: loop thread / all threads)"
     )
     print(
-        f"  {'variant':<19} {'median':>7} {'p99':>7}  {'asker CPU':>11}  {'replier CPU':>11}"
+        f"  {'variant':<20} {'median':>7} {'p99':>7}  {'asker CPU':>11}  {'replier CPU':>11}"
         f"  {'x get':>5}  rounds' medians"
     )
     for name, row in rows.items():
         meds = " ".join(f"{m:.0f}" for m in row["round_medians"])
         print(
-            f"  {name:<19} {row['median']:7.1f} {row['p99']:7.1f}  "
+            f"  {name:<20} {row['median']:7.1f} {row['p99']:7.1f}  "
             f"{row['loop_a']:5.1f}/{row['all_a']:5.1f}  {row['loop_b']:5.1f}/{row['all_b']:5.1f}"
             f"  {row['median'] / base:5.2f}  {meds}"
         )
