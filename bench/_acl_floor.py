@@ -795,8 +795,8 @@ def summarise(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
     return out
 
 
-def print_floor(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """The table and the BENCH lines; what `summarise` made of ``res``."""
+def print_floor(res: dict[str, Any]) -> list[str]:
+    """Print the table and the BENCH lines (returned)."""
     rows = summarise(res)
     base = rows["get"]["median"]
     print(
@@ -813,9 +813,7 @@ def print_floor(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
             f"{row['loop_a']:5.1f}/{row['all_a']:5.1f}  {row['loop_b']:5.1f}/{row['all_b']:5.1f}"
             f"  {row['median'] / base:5.2f}  {meds}"
         )
-    for name, row in rows.items():
-        if name == "get":
-            continue
+    return [
         report(
             f"acl-floor-{name}-vs-get",
             row["median"] / 1e3,
@@ -824,7 +822,9 @@ def print_floor(res: dict[str, Any]) -> dict[str, dict[str, Any]]:
             "ms",
             better="lower",
         )
-    return rows
+        for name, row in rows.items()
+        if name != "get"
+    ]
 
 
 def main(argv: list[str]) -> None:
