@@ -23,6 +23,8 @@ trip between them:
   shape, sealed with ChaCha20-Poly1305 (`cryptography`, as ``agents/_security.py``) into
   a JSON envelope with the box in base64, opened (JSON, canonical base64, AEAD, counter)
   and the body parsed on the other side; no agents, no checks beyond those;
+- ``asyncio-binary``: c with the envelope laid out in binary (the box behind a fixed
+  header, no JSON envelope, no base64); the bodies JSON as in c;
 - ``callback-reply`` (d): b with the replier answering on zenoh's callback thread (no
   loop hop there); the asker as in b;
 - ``callback-crypto``: c with the replier's work (open, parse, compose, seal, put) on
@@ -86,6 +88,7 @@ VARIANTS = {
     "asyncio-echo-task": "b + replier's answer in its own task",
     "asyncio-aead": "b + AEAD of binary bodies only",
     "asyncio-crypto": "c. b + seal/open + JSON bodies",
+    "asyncio-binary": "c with a binary envelope",
     "callback-reply": "d. b, replier answers on zenoh's thread",
     "callback-crypto": "c, replier works on zenoh's thread",
     "asyncio-query": "e. get/queryable, each side's loop",
@@ -263,6 +266,22 @@ class _BinaryBoxes:
         return seq, body
 
 
+class _BinaryEnvelopes:
+    """Our envelope's work laid out in binary: the AEAD box behind a fixed header (no JSON
+    envelope, no base64), the body still the ACL message's JSON."""
+
+    def __init__(self, tx: bytes, rx: bytes) -> None:
+        self._boxes = _BinaryBoxes(tx, rx)
+
+    def seal(self, body: bytes) -> bytes:
+        """``body`` boxed for the peer."""
+        return self._boxes.seal(0, body)
+
+    def open(self, data: bytes) -> bytes:
+        """The body of the peer's ``data``; ValueError (or InvalidTag) when refused."""
+        return self._boxes.open(data)[1]
+
+
 # what a binary body holds so that header and tag make a payload of our sealed sizes
 _AEAD_OVERHEAD = _BinaryBoxes.HEADER.size + 16
 
@@ -362,9 +381,13 @@ async def _replier(port: int, reports: Any, stop: Any) -> None:
             while True:
                 mailbox.put(await box.get())
 
-        def answerer(pub: Any) -> Callable[[bytes], None]:
+        def answerer(pub: Any, binary: bool = False) -> Callable[[bytes], None]:
             # a session of its own for each variant: counters and replay windows apart
-            env = _Envelopes("bench-b", "bench-a", KEYS[1], KEYS[0])
+            env: _Envelopes | _BinaryEnvelopes = (
+                _BinaryEnvelopes(KEYS[1], KEYS[0])
+                if binary
+                else _Envelopes("bench-b", "bench-a", KEYS[1], KEYS[0])
+            )
             loads, dumps, put = orjson.loads, orjson.dumps, pub.put
 
             def answer(payload: bytes) -> None:
@@ -376,6 +399,11 @@ async def _replier(port: int, reports: Any, stop: Any) -> None:
 
         async def crypto(box: _Box, pub: Any) -> None:
             answer = answerer(pub)
+            while True:
+                answer(await box.get())
+
+        async def binary(box: _Box, pub: Any) -> None:
+            answer = answerer(pub, binary=True)
             while True:
                 answer(await box.get())
 
@@ -397,6 +425,7 @@ async def _replier(port: int, reports: Any, stop: Any) -> None:
             ("asyncio-echo", echo),
             ("asyncio-echo-task", echo_via_task),
             ("asyncio-crypto", crypto),
+            ("asyncio-binary", binary),
             ("asyncio-aead", aead),
         ):
             box = boxed(f"floor/{name}/req")
@@ -502,9 +531,13 @@ async def _asker(port: int, replier: int, commands: Any, reports: Any, stop: Any
         for name in ("asyncio-echo", "asyncio-echo-task", "callback-reply"):
             asks[name] = put_asker(name)
 
-        def crypto_asker(name: str) -> Ask:
+        def crypto_asker(name: str, binary: bool = False) -> Ask:
             # c: our envelope's and body's work, plainly
-            env = _Envelopes("bench-a", "bench-b", KEYS[0], KEYS[1])
+            env: _Envelopes | _BinaryEnvelopes = (
+                _BinaryEnvelopes(KEYS[0], KEYS[1])
+                if binary
+                else _Envelopes("bench-a", "bench-b", KEYS[0], KEYS[1])
+            )
             box = _Box(loop)
             put = box.put
             held.append(
@@ -541,6 +574,7 @@ async def _asker(port: int, replier: int, commands: Any, reports: Any, stop: Any
 
         for name in ("asyncio-crypto", "callback-crypto"):
             asks[name] = crypto_asker(name)
+        asks["asyncio-binary"] = crypto_asker("asyncio-binary", binary=True)
 
         # AEAD alone, binary
         boxes = _BinaryBoxes(KEYS[0], KEYS[1])
