@@ -29,6 +29,7 @@ trip between them:
   loop hop there); the asker as in b;
 - ``callback-crypto``: c with the replier's work (open, parse, compose, seal, put) on
   zenoh's callback thread;
+- ``callback-binary``: both: the binary envelope, the replier's work on zenoh's thread;
 - ``asyncio-query`` (e): the request a zenoh ``get`` with the request as its payload,
   answered through the replier's loop (the queryable's callback hands the query over as
   in b), the reply handed over to the asker's loop as in b (as our transport's ``ask``:
@@ -58,6 +59,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import gc
 import os
 import statistics
@@ -93,6 +95,7 @@ VARIANTS = {
     "asyncio-binary": "c with a binary envelope",
     "callback-reply": "d. b, replier answers on zenoh's thread",
     "callback-crypto": "c, replier works on zenoh's thread",
+    "callback-binary": "both of the two above",
     "asyncio-query": "e. get/queryable, each side's loop",
     "asyncio-query-direct": "e, asker's reply callback direct",
 }
@@ -439,12 +442,14 @@ async def _replier(port: int, reports: Any, stop: Any) -> None:
                 lambda smp: direct.put(smp.payload.to_bytes()[:seq] + reply_pad),
             )
         )
-        answer = answerer(_publisher(s, "floor/callback-crypto/rep"))
-        held.append(
-            s.declare_subscriber(
-                "floor/callback-crypto/req", lambda smp: answer(smp.payload.to_bytes())
+        for name, binary_env in (("callback-crypto", False), ("callback-binary", True)):
+            answer = answerer(_publisher(s, f"floor/{name}/rep"), binary_env)
+            held.append(
+                s.declare_subscriber(
+                    f"floor/{name}/req",
+                    functools.partial(_answer_sample, answer),
+                )
             )
-        )
         qbox = _Box(loop)
         held.append(s.declare_queryable("floor/query", qbox.put))
         tasks.append(loop.create_task(query(qbox)))
@@ -576,7 +581,8 @@ async def _asker(port: int, replier: int, commands: Any, reports: Any, stop: Any
 
         for name in ("asyncio-crypto", "callback-crypto"):
             asks[name] = crypto_asker(name)
-        asks["asyncio-binary"] = crypto_asker("asyncio-binary", binary=True)
+        for name in ("asyncio-binary", "callback-binary"):
+            asks[name] = crypto_asker(name, binary=True)
 
         # AEAD alone, binary
         boxes = _BinaryBoxes(KEYS[0], KEYS[1])
@@ -667,6 +673,10 @@ async def _asker(port: int, replier: int, commands: Any, reports: Any, stop: Any
             t.cancel()
         for h in held:
             h.undeclare()
+
+
+def _answer_sample(answer: Callable[[bytes], None], sample: Any) -> None:
+    answer(sample.payload.to_bytes())
 
 
 def _nothing() -> None:
