@@ -32,7 +32,12 @@ measured, each beside a peer measured in the same run:
   (``acl-rtt-median-vs-osbrain``, ``acl-throughput-vs-osbrain``);
 - encryption's cost: the zenoh round trip with encrypted sessions (ChaCha20-Poly1305, the
   default everywhere above) against MAC-only sessions, both sides restarted for each,
-  alternating (``acl-rtt-median-encrypted``).
+  alternating (``acl-rtt-median-encrypted``);
+- the floor: the same two-process round trip built from the design's blocks alone, none
+  of our code (``bench/_acl_floor.py``: both sides on an event loop with our transport's
+  hand-over, with and without our envelope's crypto and JSON, the replier on zenoh's
+  thread ...), each against a raw zenoh get measured in turns with it
+  (``acl-floor-<variant>-vs-get``): what part of ``acl-rtt-median`` the design costs.
 
 Event loops: both agent sides (this process and the node) run on `agents.run`'s loop,
 uvloop where installed (the node runner's too), asyncio's own with
@@ -92,6 +97,8 @@ from agents.transports import (
     free_tcp_port,
 )
 from bench import _zenoh_raw, fmt, progress, report
+from bench._acl_floor import measure as measure_floor
+from bench._acl_floor import print_floor
 from bench._acl_node import CONTROL_ONTOLOGY, FLOOD_ONTOLOGY, LABEL, node_main
 from bench._bare_node import bare_zenoh_main, mqtt_echo_main
 from bench._child import Child, ChildFailed
@@ -741,6 +748,8 @@ def run() -> None:
         z = _run_async(zenoh_phase(keydir))
         print_zenoh(z)
         print_osbrain(o, z)
+        progress("the floor: the round trip from the design's blocks alone")
+        print_floor(measure_floor())
         e = _run_async(encryption_phase(keydir))
         print_encryption(e)
         progress("starting mosquitto")

@@ -1,0 +1,50 @@
+"""The ACL floor benchmark (``python -m bench._acl_floor``) run small, so it cannot rot unnoticed.
+
+Every variant answers between two spawned processes, the CPU figures are read, and the
+BENCH lines come out in the form CI greps for; the plain envelope it seals refuses what
+ours refuses first (a changed byte, a replayed counter), so the crypto variant does that
+work and no less.
+"""
+
+from __future__ import annotations
+
+import re
+
+import pytest
+
+from bench._acl_floor import KEYS, VARIANTS, _Envelopes, measure, print_floor
+
+BENCH_LINE = re.compile(
+    r"^BENCH [a-z0-9-]+ ours=\S+ [a-z0-9-]+=\S+ ratio=\d+\.\d\d unit=\S+ better=(higher|lower)$"
+)
+
+
+@pytest.mark.timeout(120)
+def test_a_small_run_answers_every_variant(capsys: pytest.CaptureFixture[str]) -> None:
+    res = measure(20, 1, block=10, warmup=5)
+    for name in VARIANTS:
+        (one,) = res[name]
+        assert len(one["rtts"]) == 20 and min(one["rtts"]) > 0
+        assert one["all_a"] > 0 and one["all_b"] > 0
+    lines = print_floor(res)
+    out = capsys.readouterr().out
+    assert [line.split()[1] for line in lines] == [
+        f"acl-floor-{name}-vs-get" for name in VARIANTS if name != "get"
+    ]
+    for line in lines:
+        assert BENCH_LINE.match(line), line
+        assert line in out
+
+
+def test_the_plain_envelope_opens_once_and_only_unchanged() -> None:
+    a = _Envelopes("bench-a", "bench-b", KEYS[0], KEYS[1])
+    b = _Envelopes("bench-b", "bench-a", KEYS[1], KEYS[0])
+    first, second = a.seal(b'{"x": 1}'), a.seal(b'{"x": 2}')
+    assert b.open(second) == b'{"x": 2}'
+    with pytest.raises(ValueError, match="replayed"):
+        b.open(first)  # an older counter than one already opened
+    tampered = bytearray(a.seal(b'{"x": 3}'))
+    i = tampered.index(b'"box":"') + 8
+    tampered[i] = ord("A") if tampered[i] != ord("A") else ord("B")
+    with pytest.raises(Exception):  # noqa: B017 (cryptography's InvalidTag or ValueError)
+        b.open(bytes(tampered))
