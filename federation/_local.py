@@ -69,7 +69,14 @@ from agents import (
 )
 from dyknow_core import Policy
 
-from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
+from ._cli_common import (
+    NotAnsweredError,
+    error_text,
+    failure_of,
+    platforms_of,
+    reaching,
+    wait_for_members,
+)
 from ._cli_time import seconds, when
 from ._gateway_service import MIN_REMOTE_PERIOD
 from ._platform import PlatformConfig
@@ -622,10 +629,8 @@ class LocalChannel:
                 await self._answer(request, send, reader)
             except (ConnectionError, asyncio.IncompleteReadError):
                 raise
-            except NotAnsweredError as exc:  # says what it is
-                await send({"error": str(exc)})
-            except Exception as exc:
-                await send({"error": f"{type(exc).__name__}: {exc}"})
+            except Exception as exc:  # in words, as the command says its own errors
+                await send({"error": error_text(exc)})
         except (ConnectionError, asyncio.IncompleteReadError):
             pass  # the command went away (Ctrl-C): its stream is cancelled below
         finally:
