@@ -15,6 +15,7 @@ import contextlib
 import logging
 import re
 import sys
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from dyknow_core import DyKnowInstance
@@ -41,12 +42,17 @@ __all__ = ["NodeApplication", "check_application"]
 log = logging.getLogger(__name__)
 
 
-def _input_runner(settings: InputSettings, instance: DyKnowInstance) -> InputRunner:
-    """The runner of one ``[[inputs]]`` table: a ROS 2 one from ``_ros``, else ``_inputs``."""
+def _input_runner(
+    settings: InputSettings, instance: DyKnowInstance, starts: dict[Path, tuple[int, int]]
+) -> InputRunner:
+    """The runner of one ``[[inputs]]`` table: a ROS 2 one from ``_ros``, else ``_inputs``.
+
+    ``starts`` is the node's, shared by its rosbag inputs (`federation._ros.ReplayStarts`).
+    """
     if isinstance(settings, Ros2Input | RosbagInput):
         from ._ros import ros_runner  # rosbags and mcap are imported only when used
 
-        return ros_runner(settings, instance)
+        return ros_runner(settings, instance, starts)
     return input_runner(settings, instance)
 
 
@@ -160,7 +166,8 @@ class NodeApplication:
                         "application",
                         f"{where}:{exc.line}:{exc.column}: {exc.message}",
                     ) from None
-            self.inputs = [_input_runner(s, instance) for s in self.config.inputs]
+            starts: dict[Path, tuple[int, int]] = {}  # one replay start per recording
+            self.inputs = [_input_runner(s, instance, starts) for s in self.config.inputs]
             self.outputs = [output_runner(s, instance) for s in self.config.outputs]
             for n, runner in enumerate(self.inputs):
                 problems = runner.check()

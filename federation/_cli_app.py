@@ -28,7 +28,7 @@ import typer
 from agents import TransportError
 from agents import run as run_loop
 
-from ._cli_common import NotAnsweredError
+from ._cli_common import error_text
 from ._cli_node import CONFIG_FLAGS, CONFIG_HELP, run_node
 from ._cli_node import say as _say
 from ._cli_reasoning import kpl_app, monitor
@@ -402,12 +402,10 @@ def _run_query(coro: Any) -> Any:
         raise _fail(str(exc)) from None
     except _alive_error() as exc:
         raise _fail(f"dyknow: {exc}") from None
-    except _relayed_error() as exc:  # the node's text names the error's kind already
-        raise _fail(f"dyknow: {exc}", 1) from None
-    except NotAnsweredError as exc:
+    except _relayed_error() as exc:  # the node's text is in words already
         raise _fail(f"dyknow: {exc}", 1) from None
     except Exception as exc:  # the user gets the reason, not a traceback
-        raise _fail(f"dyknow: {type(exc).__name__}: {exc}", 1) from None
+        raise _fail(f"dyknow: {error_text(exc)}", 1) from None
 
 
 @app.command("platforms")

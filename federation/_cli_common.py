@@ -13,13 +13,17 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
-from agents import TransportError
+from agents import ConversationError, TransportError
+from ontology import OntologyError
+
+from ._service_content import ContentError
 
 if TYPE_CHECKING:
     from ._platform import FederationPlatform
 
 __all__ = [
     "NotAnsweredError",
+    "error_text",
     "failure_of",
     "platforms_of",
     "reaching",
@@ -54,6 +58,19 @@ async def failure_of(job: Callable[..., Awaitable[Any]], *args: Any) -> Exceptio
 
 class NotAnsweredError(Exception):
     """The asked platform did not answer; the message says the likely cause."""
+
+
+def error_text(exc: BaseException) -> str:
+    """An error as a command prints it: in its own words when they say what it is.
+
+    A platform's refusal or failure, a label or a request refused (here or by the
+    platform asked) say it in words (``federation@uav-a refused: …``, ``semantic label
+    'x' has no mapping on this platform``): their Python class adds nothing. Another error
+    is unexpected: its class is part of what it says.
+    """
+    if isinstance(exc, ConversationError | OntologyError | ContentError | NotAnsweredError):
+        return str(exc) or type(exc).__name__
+    return f"{type(exc).__name__}: {exc}"
 
 
 async def wait_for_members(p: FederationPlatform, want: str | None, wait: float) -> bool:

@@ -257,11 +257,35 @@ def monitor(
 @kpl_app.command("check")
 def kpl_check_file(
     file: Annotated[Path, typer.Argument(metavar="FILE", help="the KPL file")],
+    recording: Annotated[
+        Path | None,
+        typer.Option(
+            "--recording",
+            help="a recording 'dyknow replay --kpl FILE' would feed: its labels exist",
+        ),
+    ] = None,
+    node_config: Annotated[
+        Path | None,
+        typer.Option(
+            "--config",
+            "-c",
+            help="with --recording: a node's config, whose mapping names the recorded "
+            "labels as replay --config does",
+        ),
+    ] = None,
 ) -> None:
-    """Check a KPL file; errors as FILE:LINE:COL: message (exit code 2), else 'ok: N'."""
+    """Check a KPL file; errors as FILE:LINE:COL: message (exit code 2), else 'ok: N'.
+
+    With --recording, the labels 'dyknow replay --kpl FILE' feeds from that recording (as
+    sources the file does not declare) may be used without a declaration.
+    """
+    from dyknow_core.kpl import KPLCheckError
     from dyknow_core.kpl import check as kpl_check
     from dyknow_core.kpl import parse as kpl_parse
 
+    if node_config is not None and recording is None:
+        _complain("dyknow kpl check: --config names a recording's labels: give --recording")
+        raise typer.Exit(2)
     try:
         text = file.read_text(encoding="utf-8")
     except OSError as exc:
@@ -270,7 +294,19 @@ def kpl_check_file(
     except UnicodeDecodeError as exc:
         _complain(f"{file}: not UTF-8 text: {exc.reason}")
         raise typer.Exit(2) from None
-    errors = kpl_check(text)
+    known: list[str] = []
+    if recording is not None:
+        from ._record_cli import ReplayUsageError, load_mapping, replayed_labels
+
+        try:
+            mapping = load_mapping(node_config)[0] if node_config is not None else None
+            known = replayed_labels(recording, kpl_parse(text), mapping)
+        except KPLCheckError:
+            pass  # its syntax errors are said below; no label is resolved then
+        except ReplayUsageError as exc:
+            _complain(str(exc))
+            raise typer.Exit(2) from None
+    errors = kpl_check(text, known)
     if errors:
         for e in errors:
             _complain(e.format(str(file)))

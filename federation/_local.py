@@ -69,7 +69,14 @@ from agents import (
 )
 from dyknow_core import Policy
 
-from ._cli_common import NotAnsweredError, failure_of, platforms_of, reaching, wait_for_members
+from ._cli_common import (
+    NotAnsweredError,
+    error_text,
+    failure_of,
+    platforms_of,
+    reaching,
+    wait_for_members,
+)
 from ._cli_time import seconds, when
 from ._gateway_service import MIN_REMOTE_PERIOD
 from ._platform import PlatformConfig
@@ -426,8 +433,12 @@ class _Shared:
         self.following = 1
 
 
-class _Creating:
-    """A create-stream under way for commands: set once it ends, with its error if it failed."""
+class _Pending:
+    """An operation on a stream under way (its create, or its cancel): wait for it.
+
+    ``done`` is set once it ends; ``error`` is what a failed create-stream raised (a
+    cancel never sets one: its export ends with its lease there anyway).
+    """
 
     __slots__ = ("done", "error")
 
@@ -457,10 +468,9 @@ class LocalChannel:
         # node's own, even while its end is still on its way (one the node made since is
         # another record, and the node's)
         self._made: dict[tuple[str, str], Any] = {}
-        # (target, label) -> set once the cancel of the channel's export of it is done
-        self._ending: dict[tuple[str, str], asyncio.Event] = {}
-        # (target, label) -> the channel's create-stream of it under way
-        self._creating: dict[tuple[str, str], _Creating] = {}
+        # (target, label) -> the channel's create-stream or cancel of it under way: a
+        # command for that stream waits for it to end, then looks again
+        self._pending: dict[tuple[str, str], _Pending] = {}
         # anyone on the network may ask who we are: screened on the transport's thread, so
         # a flood costs no task each on the event loop (a second node asks once)
         self._who_lock = threading.Lock()
@@ -619,10 +629,8 @@ class LocalChannel:
                 await self._answer(request, send, reader)
             except (ConnectionError, asyncio.IncompleteReadError):
                 raise
-            except NotAnsweredError as exc:  # says what it is
-                await send({"error": str(exc)})
-            except Exception as exc:
-                await send({"error": f"{type(exc).__name__}: {exc}"})
+            except Exception as exc:  # in words, as the command says its own errors
+                await send({"error": error_text(exc)})
         except (ConnectionError, asyncio.IncompleteReadError):
             pass  # the command went away (Ctrl-C): its stream is cancelled below
         finally:
@@ -743,7 +751,7 @@ class LocalChannel:
         import does not have is refused (NotAnsweredError says why), never given another
         rate than it asked for. Its create-stream runs outside the lock: a command for
         another stream never waits for it (a platform that does not answer holds it up to
-        ``timeout`` s); one for this stream does (`_creating`), then shares what it made,
+        ``timeout`` s); one for this stream does (`_pending`), then shares what it made,
         or fails with its error: a dead target costs each of them one timeout, not one per
         command before it. Only a cancelled create-stream is asked again.
         """
@@ -753,9 +761,8 @@ class LocalChannel:
             async with self._lock:
                 # a cancel of this stream on its way, or its create-stream: asked again only
                 # once that has ended (the create's outcome is then in `_exports`)
-                ending = self._ending.get(key)
-                pending = self._creating.get(key)
-                if ending is None and pending is None:
+                pending = self._pending.get(key)
+                if pending is None:
                     entry = self._exports.get(key)
                     if entry is not None:
                         if sample_period is not None and sample_period != entry.sample_period:
@@ -781,16 +788,13 @@ class LocalChannel:
                                 )
                             )
                         return None  # the node's own
-                    creating = self._creating[key] = _Creating()
+                    creating = self._pending[key] = _Pending()
                     break
-            if pending is not None:
-                await pending.done.wait()
-                if pending.error is not None:
-                    raise pending.error
-            elif ending is not None:
-                await ending.wait()
+            await pending.done.wait()
+            if pending.error is not None:
+                raise pending.error
         # The create-stream runs outside the lock (up to ``timeout`` s for a platform that
-        # does not answer): only the commands for this stream wait for it (`_creating`).
+        # does not answer): only the commands for this stream wait for it (`_pending`).
         try:
             export_id = await p.federation_agent.create_stream(
                 target, [semantic], sample_period=sample_period, timeout=timeout
@@ -804,14 +808,14 @@ class LocalChannel:
             raise
         finally:
             # cancelled: a command waiting on it asks again itself
-            del self._creating[key]
+            del self._pending[key]
             creating.done.set()
 
     async def _release(self, target: str, entry: _Shared) -> None:
         """Take back the count `_acquire` took; the last one out cancels the export.
 
         The cancel (at most 2 s) runs outside the lock, so commands for other streams do
-        not queue behind a dead target; one for this stream waits for it (`_ending`), or
+        not queue behind a dead target; one for this stream waits for it (`_pending`), or
         it would follow the import being cancelled and wait for samples for ever.
         """
         key = entry.key
@@ -820,15 +824,15 @@ class LocalChannel:
             if entry.following > 0 or self._exports.get(key) is not entry:
                 return
             del self._exports[key]
-            ending = self._ending[key] = asyncio.Event()
+            ending = self._pending[key] = _Pending()
         try:
             agent = self.platform.federation_agent
             await agent.cancel_stream(target, entry.export_id, timeout=2.0)
         except Exception as exc:  # the export ends with its lease there anyway
             log.info("local: cancelling the export %s at %s: %s", entry.export_id, target, exc)
         finally:
-            del self._ending[key]
-            ending.set()
+            del self._pending[key]
+            ending.done.set()
 
     async def _relay(
         self,

@@ -424,6 +424,35 @@ def load_mapping(config_path: Path) -> tuple[LabelMapping, Path | None]:
     return mapping, config.application
 
 
+def _spec_labels(program: Program) -> tuple[set[str], set[str]]:
+    """What a spec provides: (computed, declared sources); replay recomputes the first."""
+    computed: set[str] = set()
+    spec_sources: set[str] = set()
+    for d in program.decls:
+        provided = set(provides(d))
+        (spec_sources if isinstance(d, SourceDecl) else computed).update(provided)
+        if isinstance(d, ClassDecl):
+            computed.add(f"domain/{d.name}")  # anchoring publishes each class's domain
+    if any(isinstance(d, ClassDecl) for d in program.decls) and not any(
+        isinstance(d, AnchoringDecl) for d in program.decls
+    ):
+        computed.add("events/anchoring")
+    return computed, spec_sources
+
+
+def replayed_labels(path: Path, program: Program, mapping: LabelMapping | None = None) -> list[str]:
+    """The streams `run_replay` makes from ``path`` before it sets ``program`` up.
+
+    The recorded labels (under ``mapping``'s local ones) that the spec neither computes
+    nor declares as sources: what ``dyknow kpl check --recording`` takes as existing.
+    """
+    counts = list(info(path)["counts"])
+    rename = {} if mapping is None else _local_labels(counts, mapping)
+    recorded = [rename.get(label, label) for label in counts]
+    computed, spec_sources = _spec_labels(program)
+    return [x for x in recorded if x not in computed and x not in spec_sources]
+
+
 def _local_labels(labels: list[str], mapping: LabelMapping) -> dict[str, str]:
     """The recorded labels the mapping turns into local ones (the others stay as they are)."""
     from ontology import OntologyError
@@ -469,18 +498,7 @@ async def run_replay(
     if data["available_span"] is not None:
         start = min(start, data["available_span"][0])
     program = _read_spec(kpl) if kpl is not None else None
-    computed: set[str] = set()
-    spec_sources: set[str] = set()
-    if program is not None:
-        for d in program.decls:
-            provided = set(provides(d))
-            (spec_sources if isinstance(d, SourceDecl) else computed).update(provided)
-            if isinstance(d, ClassDecl):
-                computed.add(f"domain/{d.name}")  # anchoring publishes each class's domain
-        if any(isinstance(d, ClassDecl) for d in program.decls) and not any(
-            isinstance(d, AnchoringDecl) for d in program.decls
-        ):
-            computed.add("events/anchoring")
+    computed, spec_sources = _spec_labels(program) if program is not None else (set(), set())
     feed = [label for label in recorded if label not in computed]
     inst = DyKnowInstance("replay", clock=ManualClock(start))
     async with inst:

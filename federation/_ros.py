@@ -45,6 +45,7 @@ if TYPE_CHECKING:
     from dyknow_core import DyKnowInstance
 
 __all__ = [
+    "ReplayStarts",
     "RosbagRecording",
     "cdr_decoder",
     "dds_type",
@@ -260,15 +261,27 @@ def _mcap_topics(path: Path) -> list[str]:
         return sorted({channel.topic for _, channel, _ in reader.iter_messages()})
 
 
+ReplayStarts = dict[Path, tuple[int, int]]
+"""A node's replays with ``shift = "now"``, by recording: (wall clock, recorded time) of
+the first message its first input on that recording handed on (ns)."""
+
+
 class _RosbagRunner(InputRunner):
     settings: RosbagInput
+
+    def __init__(
+        self, settings: RosbagInput, instance: DyKnowInstance, starts: ReplayStarts
+    ) -> None:
+        super().__init__(settings, instance)
+        self._starts = starts
 
     async def _run(self, zenoh_session: Any | None) -> None:
         s = self.settings
         decoder = _Decoder(s.distro)
         messages = await asyncio.to_thread(_read_bag, s.path, s.topic)
         mapper = self.mapper
-        start: int | None = None  # the first message's valid time with shift = "now"
+        start: int | None = None  # with shift = "now": the valid time of recorded `origin`
+        origin = 0
         # the pace's time zero: once the first message was handed on, so that each later
         # one comes at least its recorded gap after it, however late the first one was
         paced: int | None = None
@@ -288,21 +301,33 @@ class _RosbagRunner(InputRunner):
                 mapper.bad(exc.reason, exc.detail)
                 continue
             if start is None:
-                start, first = time.time_ns(), logged
+                start = origin = first = logged
+                if s.shift == "now":
+                    # the node's inputs on one recording share the first one's start: one
+                    # recorded instant is one valid time, whichever topic it was on
+                    key = s.path.resolve()
+                    start, origin = self._starts.setdefault(key, (time.time_ns(), logged))
             stamp = header_stamp(message)
             own = logged if stamp is None else stamp
-            valid = start + (own - first) if s.shift == "now" else None
+            valid = start + (own - origin) if s.shift == "now" else None
             mapper.handle(message, stamp=own, topic=s.topic, valid=valid)
             if paced is None:
                 paced = time.time_ns()
         log.info("input %s: replayed %d messages", s.title(), len(messages))
 
 
-def ros_runner(settings: Ros2Input | RosbagInput, instance: DyKnowInstance) -> InputRunner:
-    """The runner of a ``ros2`` or ``rosbag`` input."""
+def ros_runner(
+    settings: Ros2Input | RosbagInput,
+    instance: DyKnowInstance,
+    starts: ReplayStarts | None = None,
+) -> InputRunner:
+    """The runner of a ``ros2`` or ``rosbag`` input.
+
+    ``starts`` is shared by the node's inputs (`ReplayStarts`); without it, this input's own.
+    """
     if isinstance(settings, Ros2Input):
         return _Ros2Runner(settings, instance)
-    return _RosbagRunner(settings, instance)
+    return _RosbagRunner(settings, instance, {} if starts is None else starts)
 
 
 # -- recordings made by ROS tools, replayed by ``dyknow replay`` (docs/record.md) ----------------

@@ -394,6 +394,69 @@ def test_an_mcap_file_without_the_topic_names_the_topics_it_has(tmp_path: Path) 
     assert len(_read_bag(path, "/odom")) == 1
 
 
+async def test_rosbag_inputs_on_one_recording_share_its_start(tmp_path: Path) -> None:
+    """``shift = "now"``: messages recorded at one instant get one valid time, on any topic.
+
+    Before, each input on the file took its own "now" at its own first message: one
+    recorded instant became valid times ~21 ms apart, or a topic's first message later.
+    """
+    from types import SimpleNamespace
+
+    from mcap.writer import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from federation._application import NodeApplication
+    from federation._inputs import RosbagInput
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    float32 = "std_msgs/msg/Float32"
+    path = tmp_path / "run.mcap"
+    second = 10**9
+    with path.open("wb") as f:
+        writer = Writer(f)
+        writer.start(profile="ros2", library="test")
+        msgdef, _ = store.generate_msgdef(float32)
+        schema = writer.register_schema(float32, "ros2msg", msgdef.encode())
+        channels = {t: writer.register_channel(t, "cdr", schema) for t in ("/a", "/b")}
+        # /a from 1 s on, /b only at 2 s: the inputs' first messages differ by a second
+        for topic, at in (("/a", 1 * second), ("/a", 2 * second), ("/b", 2 * second)):
+            data = bytes(store.serialize_cdr(store.types[float32](data=at / second), float32))
+            writer.add_message(channels[topic], at, data, at)
+        writer.finish()
+    inputs = [
+        RosbagInput(
+            kind="rosbag",
+            path=path,
+            topic=topic,
+            pace="fast",
+            shift="now",
+            fields={"data": f"bag/{topic[1:]}"},
+        )
+        for topic in ("/a", "/b")
+    ]
+    valid: dict[tuple[str, float], int] = {}
+    enough = asyncio.Event()
+
+    def on(label: str) -> Any:
+        def on_batch(batch: list[Any]) -> None:
+            valid.update(((label, v), tv) for v, tv, _ in batch)
+            if len(valid) >= 3:
+                enough.set()
+
+        return on_batch
+
+    async with DyKnowInstance("t") as inst:
+        for label in ("bag/a", "bag/b"):
+            inst.add_source(label)
+            inst.subscribe(label, callback=on(label))
+        config = SimpleNamespace(application=None, inputs=inputs, outputs=[])
+        platform = SimpleNamespace(instance=inst, config=config, transport=None)
+        async with NodeApplication(platform, "t.toml"):  # type: ignore[arg-type]
+            await asyncio.wait_for(enough.wait(), 20)
+    assert valid[("bag/a", 2.0)] == valid[("bag/b", 2.0)], valid
+    assert valid[("bag/a", 2.0)] - valid[("bag/a", 1.0)] == second, valid
+
+
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("command", ["console", "foxglove"])
 def test_console_and_foxglove_say_what_the_application_received(

@@ -128,17 +128,70 @@ def test_an_error_relayed_by_the_running_node_is_said_once(
 ) -> None:
     import typer
 
+    from agents import Refused
     from federation._cli_app import _run_query
     from federation._cli_net import RelayedError
+    from ontology import Refusal, UnknownSemanticLabel
 
-    async def refused() -> None:
-        raise RelayedError("Refused: federation@uav-a refused: label 'x': no stream for it here")
+    refusal = "federation@uav-a refused: label 'x': no stream for it here"
+    unmapped = "semantic label 'x' has no mapping on this platform (not-mapped)"
+    for error, said in [
+        (RelayedError(refusal), refusal),  # the node's text, as it is
+        # asked without a node: a platform's refusal, a label refused here, in their words
+        (Refused(refusal), refusal),
+        (UnknownSemanticLabel("x", Refusal.NOT_MAPPED), unmapped),
+        (RuntimeError("a bug"), "RuntimeError: a bug"),  # unexpected: its kind tells what
+    ]:
 
-    with pytest.raises(typer.Exit) as exit_:
-        _run_query(refused())
-    assert exit_.value.exit_code == 1
-    err = capsys.readouterr().err
-    assert err == "dyknow: Refused: federation@uav-a refused: label 'x': no stream for it here\n"
+        async def failing(error: Exception = error) -> None:
+            raise error
+
+        with pytest.raises(typer.Exit) as exit_:
+            _run_query(failing())
+        assert exit_.value.exit_code == 1
+        assert capsys.readouterr().err == f"dyknow: {said}\n"
+
+
+@pytest.mark.timeout(120)
+def test_a_refusal_through_the_running_node_is_said_in_words(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Before: ``dyknow: Refused: …``, ``dyknow: UnknownSemanticLabel: …``, the class first."""
+    import asyncio
+    import threading
+
+    from federation import FederationPlatform, PlatformConfig
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # a socket of this test's own
+    configs = _write_federation(tmp_path, _free_port())
+    vocabulary = tmp_path / "traffic.toml"  # a label of the vocabulary nobody maps
+    vocabulary.write_text(vocabulary.read_text() + '"heli-speed" = "speed, m/s"\n')
+    ready, stop = threading.Event(), threading.Event()
+
+    async def nodes() -> None:
+        a = PlatformConfig.load(configs["uav-a"])
+        op = PlatformConfig.load(configs["operator"])
+        async with FederationPlatform(a), FederationPlatform(op) as p, LocalChannel(p):
+            ready.set()
+            while not stop.is_set():  # noqa: ASYNC110 (set by another thread)
+                await asyncio.sleep(0.05)
+
+    thread = threading.Thread(target=asyncio.run, args=(nodes(),))
+    thread.start()
+    try:
+        assert ready.wait(60)
+        base = ["heli-speed", "-c", str(configs["operator"]), "--wait", "10", "--timeout", "10"]
+        unmapped = "semantic label 'heli-speed' has no mapping on this platform (not-mapped)"
+        for command, platform, said in [
+            ("ask", "uav-a", f"federation@uav-a refused: {unmapped}"),  # another's refusal
+            ("stream", "operator", unmapped),  # the node's own label, refused there
+        ]:
+            assert main([command, *base, "-p", platform]) == 1
+            assert capsys.readouterr().err == f"dyknow: {said}\n"
+    finally:
+        stop.set()
+        thread.join(30)
 
 
 def test_keys_untrust_revokes_and_show_lists(tmp_path: Path) -> None:

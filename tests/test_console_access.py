@@ -523,6 +523,29 @@ def test_a_token_chosen_by_the_operator_is_checked(tmp_path: Path) -> None:
     assert r.exit_code == 2 and "'http://x:80' is not a host name" in r.output
 
 
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() != 0, reason="chown needs root")
+def test_a_token_file_of_another_owner_is_refused(tmp_path: Path) -> None:
+    # as ssh's StrictModes: its owner could write another token into it, or open it to all
+    config = write_operator(tmp_path)
+    theirs = tmp_path / "theirs.token"
+    theirs.write_text("a-good-token-0123456789\n")
+    theirs.chmod(0o600)
+    os.chown(theirs, 65534, 65534)
+    with pytest.raises(ValueError, match="its owner is "):
+        configured_token(theirs, None, {})
+    for command in ("console", "foxglove"):
+        r = runner.invoke(app, [command, "--config", str(config), "--token-file", str(theirs)])
+        said = " ".join(r.output.split())
+        assert r.exit_code == 2 and "Traceback" not in r.output, r.output
+        assert f"console token file {theirs}: its owner is " in said, r.output
+        assert (
+            f"(uid 65534): only the user running this command, root (uid 0), may own it "
+            f"(chown root {theirs})"
+        ) in said, r.output
+    os.chown(theirs, 0, 0)  # its user's own (root here): taken
+    assert configured_token(theirs, None, {}) == "a-good-token-0123456789"
+
+
 def test_a_bad_console_section_is_named(tmp_path: Path) -> None:
     # what the console streams comes from [console]: a wrong one stops it at start, named
     config = write_operator(tmp_path)

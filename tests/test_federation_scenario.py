@@ -1369,7 +1369,7 @@ async def test_the_local_channel_releases_only_what_a_command_took(
         monkeypatch.setattr(a.federation_agent, "_cancel_stream", never_answers)
         releasing = asyncio.create_task(channel._release("uav-a", maker))
         async with asyncio.timeout(WAIT):
-            while ("uav-a", "car5-state") not in channel._ending:  # noqa: ASYNC110
+            while ("uav-a", "car5-state") not in channel._pending:  # noqa: ASYNC110
                 await asyncio.sleep(0)
         other = await channel._acquire("operator", "car7-state", None, WAIT)
         assert other is not None and not releasing.done()
@@ -1417,13 +1417,13 @@ async def test_a_cancelled_command_gives_back_every_stream_it_took(
         monkeypatch.setattr(a.federation_agent, "_cancel_stream", never_answers)
         command.cancel()
         async with asyncio.timeout(WAIT):
-            while ("uav-a", "car5-state") not in channel._ending:  # noqa: ASYNC110
+            while ("uav-a", "car5-state") not in channel._pending:  # noqa: ASYNC110
                 await asyncio.sleep(0)
         command.cancel()  # again, while the first release waits for its cancel's answer
         with pytest.raises(asyncio.CancelledError):
             await command
         async with asyncio.timeout(WAIT):
-            while channel._exports or channel._ending:  # noqa: ASYNC110
+            while channel._exports or channel._pending:  # noqa: ASYNC110
                 await asyncio.sleep(0.01)
 
 
@@ -1537,4 +1537,4 @@ async def test_the_commands_waiting_on_a_failed_create_stream_fail_with_it(
         results = await asyncio.gather(*commands, return_exceptions=True)
         assert all(isinstance(r, ReplyTimeout) for r in results), results
         assert time.monotonic() - start < 1.0  # one timeout for all three
-        assert channel._creating == {}
+        assert channel._pending == {}

@@ -801,6 +801,48 @@ def test_a_monitor_comparing_a_whole_message_with_a_number_says_so(tmp_path: Pat
     assert east and not any(east)
 
 
+def test_kpl_check_knows_the_labels_replay_feeds_from_a_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``kpl check --recording``: what ``replay --kpl`` gets from the file exists.
+
+    Before, ``kpl check`` alone refused a spec that ``replay --kpl`` ran: a recorded
+    label it uses without declaring it is "unknown".
+    """
+    path = tmp_path / "station.mcap"
+    w = RecordWriter(path)
+    for k in range(3):
+        t = k * NS_PER_S
+        w.add("wind-speed", 10.0 + k, t, t + MS)  # a semantic label (below)
+        w.add("car/speed", 20.0, t, t + MS)
+        w.add("car/offset", 1.0, t, t + MS)
+        w.add("car/offset_1s", 1.0, t, t + MS)  # recomputed by the spec, not fed
+    w.close()
+    spec = tmp_path / "app.kpl"
+    spec.write_text(
+        "source car/speed\n"  # declared: fed, not there before
+        "stream car/offset_1s = car/offset with {sample_period: 1}\n"
+    )
+    check = ["kpl", "check", str(spec)]
+    assert main(check) == 2
+    assert "unknown label 'car/offset'" in capsys.readouterr().err
+    assert main([*check, "--recording", str(path)]) == 0
+    assert capsys.readouterr().out == "ok: 2 declarations\n"
+    assert main(["replay", str(path), "--kpl", str(spec)]) == 0  # as replay has it
+    capsys.readouterr()
+    # a node's KPL names local labels: --config maps the recorded ones, as replay's does
+    config = ROOT / "examples" / "node" / "station-python.toml"
+    spec.write_text("stream wx/wind_1s = wx/wind with {sample_period: 1}\n")
+    assert main([*check, "--recording", str(path)]) == 2
+    assert "unknown label 'wx/wind'" in capsys.readouterr().err
+    assert main([*check, "--recording", str(path), "--config", str(config)]) == 0
+    assert capsys.readouterr().out == "ok: 1 declarations\n"
+    assert main([*check, "--config", str(config)]) == 2
+    assert "give --recording" in capsys.readouterr().err
+    assert main([*check, "--recording", str(tmp_path / "none.mcap")]) == 2
+    assert "none.mcap" in capsys.readouterr().err
+
+
 def test_replay_with_a_nodes_config_maps_the_recorded_labels_to_its_kpl(tmp_path: Path) -> None:
     """A recording holds semantic labels; ``--config`` replays them into the node's own KPL.
 

@@ -131,9 +131,9 @@ def configured_token(
 
     First ``--token-file``, then the environment's `TOKEN_ENV` (when not empty), then the
     config's ``console.token_file``. Never a command-line argument: every local user can
-    read a process's arguments. A token file that group or others may read or change
-    is refused, as ssh refuses such a key. ValueError names where an unusable token came
-    from.
+    read a process's arguments. A token file that group or others may read or change,
+    or that another user than the one running this (or root) owns, is refused, as ssh
+    refuses such a key. ValueError names where an unusable token came from.
     """
     if token_file is None and environ.get(TOKEN_ENV, "").strip():
         return check_token(environ[TOKEN_ENV].strip(), TOKEN_ENV)
@@ -142,17 +142,41 @@ def configured_token(
         return None
     try:
         with open(path, encoding="utf-8") as f:
-            mode = os.fstat(f.fileno()).st_mode
+            st = os.fstat(f.fileno())
+            mode = st.st_mode
             # as ssh does for a private key: a token others may read is no secret any more
             if os.name == "posix" and mode & 0o077:
                 raise ValueError(
                     f"console token file {path}: its mode {stat.S_IMODE(mode):04o} lets "
                     f"group or others read or change it: keep it yours only (chmod 600 {path})"
                 )
+            # as ssh's StrictModes: its owner could change it (chmod it, write another token)
+            if os.name == "posix" and st.st_uid not in (0, os.geteuid()):
+                me = os.geteuid()
+                who = _user(me) if me == 0 else f"{_user(me)}, or root"
+                raise ValueError(
+                    f"console token file {path}: its owner is {_user(st.st_uid)}: only the "
+                    f"user running this command, {who}, may own it (chown {_name(me)} {path})"
+                )
             text = f.read().strip()
     except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(f"console token file {path}: cannot be read: {exc}") from None
     return check_token(text, f"console token file {path}")
+
+
+def _name(uid: int) -> str:
+    """A user's name, or its uid when it has none on this host."""
+    try:
+        import pwd
+
+        return pwd.getpwuid(uid).pw_name
+    except (ImportError, KeyError):
+        return str(uid)
+
+
+def _user(uid: int) -> str:
+    """A user in words: ``name (uid N)``."""
+    return f"{_name(uid)} (uid {uid})"
 
 
 def host_name(host: str) -> str | None:
