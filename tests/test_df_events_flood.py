@@ -16,7 +16,6 @@ import contextlib
 import multiprocessing
 import threading
 import time
-import uuid
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -25,13 +24,13 @@ import orjson
 import pytest
 import zenoh
 from _load import cpu_slowdown
+from _victim import trusted
 from nacl.signing import SigningKey
 
 from agents import AgentPlatform, InterfaceAgent, ServiceDescription, wire_key
 from agents._dfgate import PLATFORM_BUDGET, TOTAL_BUDGET, DfEventGate, DfEventLimit
 from agents._directory_auth import DirectoryAuth
 from agents._security import KeyPair, TrustStore
-from agents.keys import gen_keys, trust_keys
 from agents.transports import MemoryHub, Message, ZenohConfig, ZenohTransport, free_tcp_port
 from bench.dfflood import SEEN_WITHIN, _forged, flood
 
@@ -426,14 +425,9 @@ async def test_a_member_just_seen_is_exempt_from_the_shared_budget(tmp_path: Pat
     exempt) and its change hidden until the next recheck; now uav-b is exempt from the
     moment its presence is taken, so the event is checked and the snapshot asked again.
     """
-    fed = f"dfp-{uuid.uuid4().hex[:8]}"
-    names = ["uav-a", "uav-b", "uav-c", "uav-d"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-
-    def channel(name: str) -> InterfaceAgent:
-        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+    federation = trusted(tmp_path, "dfp", ["uav-a", "uav-b", "uav-c", "uav-d"])
+    fed, port = federation.fed, federation.port
+    channel = federation.channel
 
     async with (
         asyncio.timeout(30),
@@ -526,12 +520,10 @@ async def test_a_name_whose_presence_an_outsider_toggles_is_held_to_the_shared_b
     the time. Now a name is exempt only once its signed snapshot came: until then its
     events spend the shared budget, as any name's not in the directory.
     """
-    fed = f"dfj-{uuid.uuid4().hex[:8]}"
     names = ["uav-a", "uav-c", "uav-d"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-    channel = InterfaceAgent(KeyPair.load(tmp_path / "uav-a.key"), trust)
+    federation = trusted(tmp_path, "dfj", names)
+    fed, port = federation.fed, federation.port
+    channel = federation.channel("uav-a")
     seconds = 5.0
     async with (
         asyncio.timeout(60),
@@ -575,14 +567,9 @@ async def test_stale_events_forged_under_a_member_are_not_audited_in_its_name(
     name, with what it liked. Now they are summed up with the rest the gate sheds
     (``df-events-shed``, ``by_reason`` ``stale``), attributed to nobody.
     """
-    fed = f"dfs-{uuid.uuid4().hex[:8]}"
-    names = ["uav-a", "uav-b"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-
-    def channel(name: str) -> InterfaceAgent:
-        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+    federation = trusted(tmp_path, "dfs", ["uav-a", "uav-b"])
+    fed, port = federation.fed, federation.port
+    channel = federation.channel
 
     b_config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
     async with (

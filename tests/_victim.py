@@ -1,0 +1,36 @@
+"""What the flood and leave tests set up alike: a federation of trusted keys, its channels.
+
+The processes a flood runs (victim, member, attacker) are bench's (``bench._flood``,
+``bench.kxflood``); this is the in-process side.
+"""
+
+from __future__ import annotations
+
+import uuid
+from pathlib import Path
+from typing import Any, NamedTuple
+
+from agents import InterfaceAgent
+from agents._security import KeyPair, TrustStore
+from agents.keys import gen_keys, trust_keys
+from agents.transports import free_tcp_port
+
+
+class Trusted(NamedTuple):
+    """A test's federation: its name, trust file, the first platform's port, the key directory."""
+
+    fed: str
+    trust: TrustStore
+    port: int
+    keys: Path
+
+    def channel(self, name: str, **options: Any) -> InterfaceAgent:
+        """``name``'s Interface Agent, with its key from the directory (``options`` its own)."""
+        return InterfaceAgent(KeyPair.load(self.keys / f"{name}.key"), self.trust, **options)
+
+
+def trusted(tmp_path: Path, prefix: str, names: list[str]) -> Trusted:
+    """Keys for ``names`` in ``tmp_path``, all trusted in a federation of its own (``prefix-…``)."""
+    fed = f"{prefix}-{uuid.uuid4().hex[:8]}"
+    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
+    return Trusted(fed, TrustStore.load(tmp_path / "trust.json"), free_tcp_port(), tmp_path)
