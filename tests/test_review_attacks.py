@@ -38,7 +38,6 @@ from agents._security import KeyPair, watch_request
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 from bench._flood import (
     FLOOD_SECONDS,
-    MEMBER,
     START,
     VICTIM,
     WAIT,
@@ -327,15 +326,7 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
     f = Federation(tmp_path)
     pipes: list[Connection] = []
     try:
-        victim = f.node(VICTIM, f.port, [])
-        pipes.append(victim)
-        assert recv(victim, "the victim", START) == "ready"
-        attacker = f.attacker(what, payloads(f.fed))
-        pipes.append(attacker)
-        member = f.node(MEMBER, free_tcp_port(), [f.port])
-        pipes.append(member)
-        assert recv(member, "the member", START) == "ready"
-        assert recv(attacker, "the attacker", START) == "ready"
+        victim, attacker, member = f.started(what, payloads(f.fed), pipes)
         member.send("warm")  # its session with the victim agreed before the flood
         recv(member, "the member's first request")
         victim.send("report")
