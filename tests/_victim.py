@@ -1,4 +1,5 @@
-"""What the flood and leave tests set up alike: a federation of trusted keys, its channels.
+"""What the flood, leave and one-identity tests set up alike: a federation of trusted
+keys and its Interface Agents; the station whose node's local channel a test stands in for.
 
 The processes a flood runs (victim, member, attacker) are bench's (``bench._flood``,
 ``bench.kxflood``); this is the in-process side.
@@ -10,14 +11,18 @@ import uuid
 from pathlib import Path
 from typing import Any, NamedTuple
 
+import pytest
+from _node_example import Station
+
 from agents import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
+from federation import PlatformConfig
 
 
 class Trusted(NamedTuple):
-    """A test's federation: its name, trust file, the first platform's port, the key directory."""
+    """A test's federation: its name, its trust, the first platform's port, the key directory."""
 
     fed: str
     trust: TrustStore
@@ -34,3 +39,13 @@ def trusted(tmp_path: Path, prefix: str, names: list[str]) -> Trusted:
     fed = f"{prefix}-{uuid.uuid4().hex[:8]}"
     trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
     return Trusted(fed, TrustStore.load(tmp_path / "trust.json"), free_tcp_port(), tmp_path)
+
+
+def station_channel(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[PlatformConfig, Path]:
+    """The station's config, this process's channels where its node's are; its node's channel."""
+    from federation._local import channel_path
+
+    station = Station(tmp_path)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
+    config = PlatformConfig.load(station.dir / "station-python.toml")
+    return config, channel_path(config)

@@ -14,8 +14,6 @@ import contextlib
 import json
 import multiprocessing
 import os
-import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -51,8 +49,6 @@ from bench.kxflood import (
     figures,
 )
 from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
-
-CLI = [sys.executable, "-m", "federation.cli"]
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -433,14 +429,7 @@ def test_an_identity_query_flood_on_a_node_is_shed_before_the_event_loop(
         twin.write_text(conf.read_text().replace("listen = [", "connect = ["))
         node = station.node
         assert node is not None
-        done = subprocess.run(
-            [*CLI, "node", "--config", str(twin)],
-            capture_output=True,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-            timeout=60,
-        )
+        done = station.command("node", "--config", str(twin), timeout=60)
         assert done.returncode == 2, done.stderr
         assert f"pid {node.pid} on host" in done.stderr
     finally:
