@@ -1,5 +1,6 @@
 """What the flood, leave and one-identity tests set up alike: a federation of trusted
-keys and its Interface Agents; the station whose node's local channel a test stands in for.
+keys and its Interface Agents (in memory, or with keys on disk); the station whose node's
+local channel a test stands in for.
 
 The processes a flood runs (victim, member, attacker) are bench's (``bench._flood``,
 ``bench.kxflood``); this is the in-process side.
@@ -7,17 +8,19 @@ The processes a flood runs (victim, member, attacker) are bench's (``bench._floo
 
 from __future__ import annotations
 
+import contextlib
 import uuid
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any, NamedTuple
 
 import pytest
 from _node_example import Station
 
-from agents import InterfaceAgent
+from agents import AgentPlatform, InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
-from agents.transports import free_tcp_port
+from agents.transports import MemoryHub, free_tcp_port
 from federation import PlatformConfig
 
 
@@ -49,3 +52,19 @@ def station_channel(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> tuple[Pl
     monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
     config = PlatformConfig.load(station.dir / "station-python.toml")
     return config, channel_path(config)
+
+
+@contextlib.asynccontextmanager
+async def members(fed: str, *names: str) -> AsyncIterator[list[AgentPlatform]]:
+    """Platforms of federation ``fed`` on one in-memory hub, each trusting all of them."""
+    hub = MemoryHub()
+    keys = {n: KeyPair.generate(n) for n in names}
+    trust = {n: k.public_key for n, k in keys.items()}
+    async with contextlib.AsyncExitStack() as stack:
+        out = []
+        for n in names:
+            transport = await stack.enter_async_context(hub.transport())
+            channel = InterfaceAgent(keys[n], TrustStore(fed, trust))
+            platform = AgentPlatform(n, transport, federation=fed, channel=channel)
+            out.append(await stack.enter_async_context(platform))
+        yield out

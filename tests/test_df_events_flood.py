@@ -16,7 +16,7 @@ import contextlib
 import multiprocessing
 import threading
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +24,7 @@ import orjson
 import pytest
 import zenoh
 from _load import cpu_slowdown
-from _victim import trusted
+from _victim import members, trusted
 from nacl.signing import SigningKey
 
 from agents import AgentPlatform, InterfaceAgent, ServiceDescription, wire_key
@@ -274,28 +274,12 @@ async def test_a_joining_name_is_exempt_or_joining_at_every_moment() -> None:
 # -- in memory: the screen in front of the subscription, the queue's overflow ------------------
 
 
-@contextlib.asynccontextmanager
-async def _members(*names: str) -> AsyncIterator[list[AgentPlatform]]:
-    """Trusted platforms (each with a trust file) on one in-memory hub."""
-    hub = MemoryHub()
-    keys = {n: KeyPair.generate(n) for n in names}
-    trust = {n: k.public_key for n, k in keys.items()}
-    async with contextlib.AsyncExitStack() as stack:
-        out = []
-        for n in names:
-            transport = await stack.enter_async_context(hub.transport())
-            channel = InterfaceAgent(keys[n], TrustStore("t", trust))
-            platform = AgentPlatform(n, transport, federation="t", channel=channel)
-            out.append(await stack.enter_async_context(platform))
-        yield out
-
-
 def _public(provider: str, name: str) -> ServiceDescription:
     return ServiceDescription(name=name, type="demo", provider=provider, visibility="public")
 
 
 async def test_forged_events_never_reach_the_queue_and_real_ones_still_do() -> None:
-    async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, pb]:
+    async with asyncio.timeout(10), members("t", "uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
         assert view is not None and view.event_gate is not None and pb.df is not None
         key = pa.key("df-events", "uav-b")
@@ -316,7 +300,7 @@ async def test_forged_events_never_reach_the_queue_and_real_ones_still_do() -> N
 
 async def test_an_event_lost_in_an_overflowing_queue_is_made_good_by_a_resync() -> None:
     """The queue dropped an authenticated event (the loop stalled): its member is asked again."""
-    async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, pb]:
+    async with asyncio.timeout(10), members("t", "uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
         assert view is not None and pb.df is not None
         # each platform's presence is taken on a task of its own: both taken, in any order
@@ -354,7 +338,7 @@ async def test_a_resync_its_member_does_not_answer_is_asked_again_until_it_does(
     the member's changes stayed hidden for good (found in review). Now it asks again after a
     wait that doubles, while the member is alive, until an answer comes.
     """
-    async with asyncio.timeout(20), _members("uav-a", "uav-b") as [pa, pb]:
+    async with asyncio.timeout(20), members("t", "uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
         assert view is not None and view.event_gate is not None and pb.df is not None
         real_fetch = view._fetch
