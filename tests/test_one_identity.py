@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _node_example import Station, _samples
+from _node_example import CLI, Station, _samples
 from _victim import station_channel
 
 from agents import KeyPair
@@ -740,14 +740,27 @@ def test_a_platform_that_never_answers_holds_up_no_other_platforms_stream(
         session.declare_queryable(wire_key(station.federation, "kx", "ghost"), on_kx)
         station.start("python")
         console, _ = _console(station)
-        ghost = station.spawn(
-            *("stream", "temperature", "-p", "ghost", "--config", "operator.toml"),
-            *("--json", "--wait", "0.5", "--timeout", "60"),
+        ghost = subprocess.Popen(
+            [
+                *(*CLI, "stream", "temperature", "-p", "ghost", "--config", "operator.toml"),
+                *("--json", "--wait", "0.5", "--timeout", "60"),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
         )
         assert asked.wait(30)  # the node is in its create-stream to ghost
-        done = station.command(
-            *("stream", "temperature", "-p", "station", "--count", "1"),
-            *("--config", "operator.toml", "--json", "--wait", "10", "--timeout", "20"),
+        done = subprocess.run(
+            [
+                *(*CLI, "stream", "temperature", "-p", "station", "--count", "1"),
+                *("--config", "operator.toml", "--json", "--wait", "10", "--timeout", "20"),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=station.env,
             timeout=40,  # well within ghost's 60 s
         )
         assert done.returncode == 0, done.stderr
