@@ -193,18 +193,24 @@ def mark(fn: Any, spec: RouteSpec) -> None:
     specs.append(spec)
 
 
+def declare(*specs: RouteSpec) -> Callable[[Any], Any]:
+    """The decorator that attaches ``specs`` to a function (what handler decorators return)."""
+
+    def decorate(fn: Any) -> Any:
+        for spec in specs:
+            mark(fn, spec)
+        return fn
+
+    return decorate
+
+
 def on(template: MessageTemplate, *, concurrent: bool = False) -> Callable[[Any], Any]:
     """Declare an agent method ``async def h(self, message)`` as the handler for ``template``.
 
     ``concurrent=True`` runs each message in its own task (owned by the agent), for
     handlers that wait (on another agent, a timer) and must not hold up the mailbox.
     """
-
-    def decorate(fn: Any) -> Any:
-        mark(fn, RouteSpec(template, concurrent))
-        return fn
-
-    return decorate
+    return declare(RouteSpec(template, concurrent))
 
 
 def _class_specs(cls: type) -> list[tuple[str, RouteSpec]]:

@@ -1492,6 +1492,13 @@ def _df_of(agent: Agent, df: str | None) -> str:
     return df or f"df@{agent.platform.name}"
 
 
+async def _ask_df(agent: Agent, df: str | None, content: dict[str, Any], timeout: float) -> Any:
+    """The DF's answer to a FIPA-Agent-Management request (the platform's DF unless ``df``)."""
+    return await request(
+        agent, _df_of(agent, df), content, ontology=FIPA_AGENT_MANAGEMENT, timeout=timeout
+    )
+
+
 async def register_service(
     agent: Agent,
     service: ServiceDescription,
@@ -1500,13 +1507,7 @@ async def register_service(
     timeout: float = DEFAULT_TIMEOUT,
 ) -> None:
     """Register ``agent``'s ``service`` with its platform's DF (or ``df``) over ACL."""
-    await request(
-        agent,
-        _df_of(agent, df),
-        {"action": "register", "service": service.to_obj()},
-        ontology=FIPA_AGENT_MANAGEMENT,
-        timeout=timeout,
-    )
+    await _ask_df(agent, df, {"action": "register", "service": service.to_obj()}, timeout)
 
 
 async def modify_service(
@@ -1517,13 +1518,7 @@ async def modify_service(
     timeout: float = DEFAULT_TIMEOUT,
 ) -> None:
     """Replace ``agent``'s registered service of the same name over ACL."""
-    await request(
-        agent,
-        _df_of(agent, df),
-        {"action": "modify", "service": service.to_obj()},
-        ontology=FIPA_AGENT_MANAGEMENT,
-        timeout=timeout,
-    )
+    await _ask_df(agent, df, {"action": "modify", "service": service.to_obj()}, timeout)
 
 
 async def deregister_service(
@@ -1537,9 +1532,7 @@ async def deregister_service(
     content: dict[str, Any] = {"action": "deregister"}
     if name is not None:
         content["name"] = name
-    n = await request(
-        agent, _df_of(agent, df), content, ontology=FIPA_AGENT_MANAGEMENT, timeout=timeout
-    )
+    n = await _ask_df(agent, df, content, timeout)
     return n if isinstance(n, int) else 0
 
 
@@ -1554,16 +1547,15 @@ async def search_services(
 ) -> list[ServiceDescription]:
     """Search a DF over ACL (``scope="global"``: its global view); the services it lets us see."""
     q = _query(query, fields)
-    found = await request(
+    found = await _ask_df(
         agent,
-        _df_of(agent, df),
+        df,
         {
             "action": "search",
             "query": q.model_dump(mode="json", exclude_defaults=True),
             "scope": scope,
         },
-        ontology=FIPA_AGENT_MANAGEMENT,
-        timeout=timeout,
+        timeout,
     )
     if not isinstance(found, list):
         raise ServiceError(f"the DF answered a search with {found!r}")

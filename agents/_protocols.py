@@ -35,7 +35,7 @@ from ._agent import (
     Refused,
     ReplyTimeout,
     RouteSpec,
-    mark,
+    declare,
 )
 
 log = logging.getLogger(__name__)
@@ -80,6 +80,34 @@ def _outcome(reply: ACLMessage) -> JsonValue:
     raise ConversationError(f"{who} answered {p}, which this protocol does not expect", reply)
 
 
+def _opening(
+    agent: Agent,
+    performative: Performative,
+    protocol: str,
+    receivers: str | list[str],
+    content: Any,
+    *,
+    ontology: str | None,
+    language: str | None,
+    timeout: float,
+    conversation_id: str | None = None,
+) -> ACLMessage:
+    """An initiator's first message: a new conversation unless given, due in ``timeout`` s."""
+    if conversation_id is None:
+        conversation_id = new_id("c")
+    return agent.message(
+        performative,
+        receivers,
+        content,
+        protocol=protocol,
+        ontology=ontology,
+        language=language,
+        conversation_id=conversation_id,
+        reply_with=new_id("r"),
+        reply_by=time.time() + timeout,
+    )
+
+
 async def _ask(
     agent: Agent,
     performative: Performative,
@@ -93,20 +121,18 @@ async def _ask(
     on_agree: Callable[[ACLMessage], None] | None = None,
     conversation_id: str | None = None,
 ) -> JsonValue:
-    if conversation_id is None:
-        conversation_id = new_id("c")
-    message = agent.message(
+    message = _opening(
+        agent,
         performative,
+        protocol,
         receiver,
         content,
-        protocol=protocol,
         ontology=ontology,
         language=language,
+        timeout=timeout,
         conversation_id=conversation_id,
-        reply_with=new_id("r"),
-        reply_by=time.time() + timeout,
     )
-    with agent.conversation(conversation_id, peers=(receiver,), timeout=timeout) as conv:
+    with agent.conversation(message.conversation_id, peers=(receiver,), timeout=timeout) as conv:
         await conv.send(message)
         reply = await conv.receive()
         if reply.performative is P.AGREE:  # optional: the result follows
@@ -200,8 +226,15 @@ Responder = Callable[[ACLMessage], Awaitable[Any]]
 """What a responder decorator wraps: gets the message, returns the answer's content."""
 
 
-def _respond(agent: Agent, fn: Responder, *, agree: bool, can_refuse: bool = True) -> Handler:
-    """The handler that turns ``fn``'s result or Refuse/Failure into the answer."""
+def _respond(
+    agent: Agent,
+    fn: Responder,
+    *,
+    agree: bool = False,
+    can_refuse: bool = True,
+    propose: bool = False,
+) -> Handler:
+    """The handler turning ``fn``'s result (inform or propose), Refuse or Failure into answers."""
     refuse = P.REFUSE if can_refuse and not agree else P.FAILURE
 
     async def handle(message: ACLMessage) -> None:
@@ -216,7 +249,10 @@ def _respond(agent: Agent, fn: Responder, *, agree: bool, can_refuse: bool = Tru
         except Failure as exc:
             await agent.reply(message, P.FAILURE, exc.content)
             return
-        await agent.reply(message, P.INFORM, result)
+        if propose:  # an accept-proposal answers it, in reply to its own reply_with
+            await agent.reply(message, P.PROPOSE, result, reply_with=new_id("r"))
+        else:
+            await agent.reply(message, P.INFORM, result)
 
     return handle
 
@@ -234,15 +270,9 @@ def on_request(
     running it (for long actions; the initiator's timeout still bounds the whole).
     """
     template = MessageTemplate(P.REQUEST, ontology=ontology, protocol=protocol)
-
-    def decorate(fn: Any) -> Any:
-        mark(
-            fn,
-            RouteSpec(template, concurrent, make=lambda agent, f: _respond(agent, f, agree=agree)),
-        )
-        return fn
-
-    return decorate
+    return declare(
+        RouteSpec(template, concurrent, make=lambda agent, f: _respond(agent, f, agree=agree))
+    )
 
 
 def on_query(
@@ -253,15 +283,7 @@ def on_query(
     For query-if return True or False.
     """
     template = MessageTemplate((P.QUERY_REF, P.QUERY_IF), ontology=ontology, protocol=protocol)
-
-    def decorate(fn: Any) -> Any:
-        mark(
-            fn,
-            RouteSpec(template, concurrent, make=lambda agent, f: _respond(agent, f, agree=False)),
-        )
-        return fn
-
-    return decorate
+    return declare(RouteSpec(template, concurrent, make=_respond))
 
 
 # -- FIPA-Subscribe ------------------------------------------------------------------
@@ -383,19 +405,17 @@ async def subscribe(
     ``timeout`` bounds the wait for the ``agree``; informs then come without deadline.
     Up to ``maxlen`` unread informs are kept (the oldest dropped beyond, and counted).
     """
-    conversation_id = new_id("c")
-    message = agent.message(
+    message = _opening(
+        agent,
         P.SUBSCRIBE,
+        FIPA_SUBSCRIBE,
         receiver,
         content,
-        protocol=FIPA_SUBSCRIBE,
         ontology=ontology,
         language=language,
-        conversation_id=conversation_id,
-        reply_with=new_id("r"),
-        reply_by=time.time() + timeout,
+        timeout=timeout,
     )
-    conv = agent.conversation(conversation_id, peers=(receiver,), maxlen=maxlen)
+    conv = agent.conversation(message.conversation_id, peers=(receiver,), maxlen=maxlen)
     try:
         await conv.send(message)
         reply = await conv.receive(timeout=timeout)
@@ -575,19 +595,17 @@ async def contract_net(
     if not who:
         return result
     loop = asyncio.get_running_loop()
-    conversation_id = new_id("c")
-    cfp = agent.message(
+    cfp = _opening(
+        agent,
         P.CFP,
+        FIPA_CONTRACT_NET,
         who,
         content,
-        protocol=FIPA_CONTRACT_NET,
         ontology=ontology,
         language=language,
-        conversation_id=conversation_id,
-        reply_with=new_id("r"),
-        reply_by=time.time() + deadline,
+        timeout=deadline,
     )
-    with agent.conversation(conversation_id, peers=who) as conv:
+    with agent.conversation(cfp.conversation_id, peers=who) as conv:
         await conv.send(cfp)
         pending = set(who)
         cfp_deadline = loop.time() + deadline
@@ -650,21 +668,6 @@ async def contract_net(
     return result
 
 
-def _propose(agent: Agent, fn: Responder) -> Handler:
-    async def handle(message: ACLMessage) -> None:
-        try:
-            proposal = await fn(message)
-        except Refuse as exc:
-            await agent.reply(message, P.REFUSE, exc.content)
-            return
-        except Failure as exc:
-            await agent.reply(message, P.FAILURE, exc.content)
-            return
-        await agent.reply(message, P.PROPOSE, proposal, reply_with=new_id("r"))
-
-    return handle
-
-
 async def _ignore(message: ACLMessage) -> None:
     """A rejected proposal needs no answer."""
 
@@ -677,13 +680,10 @@ def on_cfp(ontology: str | None = None, *, concurrent: bool = False) -> Callable
     """
     template = MessageTemplate(P.CFP, ontology=ontology)
     reject = MessageTemplate(P.REJECT_PROPOSAL, ontology=ontology)
-
-    def decorate(fn: Any) -> Any:
-        mark(fn, RouteSpec(template, concurrent, make=_propose))
-        mark(fn, RouteSpec(reject, fallback=True, make=lambda agent, f: _ignore))
-        return fn
-
-    return decorate
+    return declare(
+        RouteSpec(template, concurrent, make=lambda agent, f: _respond(agent, f, propose=True)),
+        RouteSpec(reject, fallback=True, make=lambda agent, f: _ignore),
+    )
 
 
 def on_accept_proposal(
@@ -694,27 +694,11 @@ def on_accept_proposal(
     Raise `Failure` when it cannot be done.
     """
     template = MessageTemplate(P.ACCEPT_PROPOSAL, ontology=ontology)
-
-    def decorate(fn: Any) -> Any:
-        mark(
-            fn,
-            RouteSpec(
-                template,
-                concurrent,
-                make=lambda agent, f: _respond(agent, f, agree=False, can_refuse=False),
-            ),
-        )
-        return fn
-
-    return decorate
+    return declare(
+        RouteSpec(template, concurrent, make=lambda agent, f: _respond(agent, f, can_refuse=False))
+    )
 
 
 def on_reject_proposal(ontology: str | None = None) -> Callable[[Any], Any]:
     """Declare what a participant does when its proposal is rejected (no answer is sent)."""
-    template = MessageTemplate(P.REJECT_PROPOSAL, ontology=ontology)
-
-    def decorate(fn: Any) -> Any:
-        mark(fn, RouteSpec(template))
-        return fn
-
-    return decorate
+    return declare(RouteSpec(MessageTemplate(P.REJECT_PROPOSAL, ontology=ontology)))

@@ -276,6 +276,24 @@ def key_paths(directory: str | os.PathLike[str], platform: str) -> tuple[Path, P
     return base / f"{platform}.key", base / f"{platform}.pub"
 
 
+def _mode(path: Path, what: str) -> int:
+    """``path``'s mode bits; KeyFileError when there is no such ``what``."""
+    try:
+        return path.stat().st_mode
+    except FileNotFoundError:
+        raise KeyFileError(path, f"no such {what}") from None
+
+
+def _file_json(obj: dict[str, Any]) -> bytes:
+    """A key or trust file's content: indented JSON ending in a newline."""
+    return _dumps(obj, option=orjson.OPT_INDENT_2 | orjson.OPT_APPEND_NEWLINE)
+
+
+def _untrusted(platform: str) -> UnknownPlatform:
+    """The error for a platform the trust file does not name."""
+    return UnknownPlatform(f"platform {platform!r} is not in the trust file", platform)
+
+
 def _read_json(path: Path, what: str) -> dict[str, Any]:
     try:
         raw = path.read_bytes()
@@ -326,6 +344,9 @@ def _write_atomic(path: Path, data: bytes, mode: int, *, overwrite: bool) -> Non
         raise
 
 
+_KEY_THERE = "a private key is already there; not overwriting it (use --force)"
+
+
 class KeyPair:
     """A platform's Ed25519 identity: its name and private signing key."""
 
@@ -372,14 +393,13 @@ class KeyPair:
 
     def public_json(self) -> bytes:
         """The public key file's content."""
-        return _dumps(
+        return _file_json(
             {
                 "v": WIRE_VERSION,
                 "kind": _PUBLIC_KIND,
                 "platform": self.platform,
                 "ed25519": _b64(self.public_key),
-            },
-            option=orjson.OPT_INDENT_2 | orjson.OPT_APPEND_NEWLINE,
+            }
         )
 
     def save(self, directory: str | os.PathLike[str], *, force: bool = False) -> tuple[Path, Path]:
@@ -391,24 +411,19 @@ class KeyPair:
         key_path, pub_path = key_paths(directory, self.platform)
         key_path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         if key_path.exists() and not force:
-            raise KeyFileError(
-                key_path, "a private key is already there; not overwriting it (use --force)"
-            )
-        private = _dumps(
+            raise KeyFileError(key_path, _KEY_THERE)
+        private = _file_json(
             {
                 "v": WIRE_VERSION,
                 "kind": _PRIVATE_KIND,
                 "platform": self.platform,
                 "ed25519_seed": _b64(bytes(self._signing_key)),
-            },
-            option=orjson.OPT_INDENT_2 | orjson.OPT_APPEND_NEWLINE,
+            }
         )
         try:
             _write_atomic(key_path, private, 0o600, overwrite=force)
         except FileExistsError:
-            raise KeyFileError(
-                key_path, "a private key is already there; not overwriting it (use --force)"
-            ) from None
+            raise KeyFileError(key_path, _KEY_THERE) from None
         _write_atomic(pub_path, self.public_json(), 0o644, overwrite=True)
         return key_path, pub_path
 
@@ -416,10 +431,7 @@ class KeyPair:
     def load(cls, path: str | os.PathLike[str]) -> KeyPair:
         """Read a private key file; refuse one that group or others can read."""
         path = Path(path)
-        try:
-            mode = path.stat().st_mode
-        except FileNotFoundError:
-            raise KeyFileError(path, "no such private key file") from None
+        mode = _mode(path, "private key file")
         if os.name == "posix" and mode & (stat.S_IRWXG | stat.S_IRWXO):
             raise KeyFileError(
                 path,
@@ -481,18 +493,14 @@ class TrustStore:
         try:
             return self._raw[platform]
         except KeyError:
-            raise UnknownPlatform(
-                f"platform {platform!r} is not in the trust file", platform
-            ) from None
+            raise _untrusted(platform) from None
 
     def verify_key(self, platform: str) -> VerifyKey:
         """The verifier for ``platform``'s signatures; UnknownPlatform when it is not trusted."""
         try:
             return self._keys[platform]
         except KeyError:
-            raise UnknownPlatform(
-                f"platform {platform!r} is not in the trust file", platform
-            ) from None
+            raise _untrusted(platform) from None
 
     def add(self, platform: str, public_key: bytes, *, replace: bool = False) -> bool:
         """Trust ``public_key`` for ``platform``; True when something changed.
@@ -523,13 +531,12 @@ class TrustStore:
 
     def to_json(self) -> bytes:
         """The trust file's content."""
-        return _dumps(
+        return _file_json(
             {
                 "v": WIRE_VERSION,
                 "federation": self.federation,
                 "platforms": {p: _b64(k) for p, k in sorted(self._raw.items())},
-            },
-            option=orjson.OPT_INDENT_2 | orjson.OPT_APPEND_NEWLINE,
+            }
         )
 
     def save(self, path: str | os.PathLike[str]) -> None:
@@ -542,10 +549,7 @@ class TrustStore:
     def load(cls, path: str | os.PathLike[str]) -> TrustStore:
         """Read a trust file; KeyFileError names the file and the key that is wrong."""
         path = Path(path)
-        try:
-            mode = path.stat().st_mode
-        except FileNotFoundError:
-            raise KeyFileError(path, "no such trust file") from None
+        mode = _mode(path, "trust file")
         if os.name == "posix" and mode & stat.S_IWOTH:
             # whoever can write the trust file decides whom this platform believes
             raise KeyFileError(
@@ -1627,7 +1631,7 @@ class Handshake:
         if frm == self.me.platform:
             raise Misdirected("handshake claims to come from this platform itself", frm)
         if frm not in self.trust:
-            raise UnknownPlatform(f"platform {frm!r} is not in the trust file", frm)
+            raise _untrusted(frm)
         ts = msg["ts_ms"]
         delta = self._clock() - ts / 1000
         if abs(delta) > self.policy.skew:

@@ -284,6 +284,25 @@ class Federation(FloodFederation):
         key = wire_key(self.fed, what, VICTIM)
         return self.spawn(attacker_main, (endpoint, key, payloads), f"kx-attacker-{what}")
 
+    def started(
+        self, what: str, payloads: list[bytes], pipes: list[Connection], *, shed: bool = True
+    ) -> tuple[Connection, Connection, Connection]:
+        """The victim, the attacker on its ``what`` and the member, all ready; their pipes.
+
+        Each pipe is added to ``pipes`` as soon as its process runs (to be closed).
+        """
+        victim = self.node(VICTIM, self.port, [], shed=shed)
+        pipes.append(victim)
+        assert recv(victim, "the victim", START) == "ready"
+        # a zenoh client: it needs the victim listening
+        attacker = self.attacker(what, payloads)
+        pipes.append(attacker)
+        member = self.node(MEMBER, free_tcp_port(), [self.port])
+        pipes.append(member)
+        assert recv(member, "the member", START) == "ready"
+        assert recv(attacker, "the attacker", START) == "ready"
+        return victim, attacker, member
+
 
 @dataclass
 class FloodRun:
@@ -325,16 +344,8 @@ def flood(tmp: Path, *, shed: bool = True, calm: bool = True) -> FloodRun:
     f = Federation(tmp)
     pipes: list[Connection] = []
     try:
-        victim = f.node(VICTIM, f.port, [], shed=shed)
-        pipes.append(victim)
-        assert recv(victim, "the victim", START) == "ready"
-        # a zenoh client: it needs the victim listening
-        attacker = f.attacker("kx", kx_payloads(f.keydir, f.fed, f.trust))
-        pipes.append(attacker)
-        member = f.node(MEMBER, free_tcp_port(), [f.port])
-        pipes.append(member)
-        assert recv(member, "the member", START) == "ready"
-        assert recv(attacker, "the attacker", START) == "ready"
+        payloads = kx_payloads(f.keydir, f.fed, f.trust)
+        victim, attacker, member = f.started("kx", payloads, pipes, shed=shed)
         member.send("pace" if calm else "warm")
         recv(member, "the member's first requests", WAIT + PACE_N * PACE_PERIOD)
         calmly: list[float] = []

@@ -324,6 +324,31 @@ async def _opened(path: str) -> AsyncIterator[FederationPlatform]:
             yield platform
 
 
+@contextlib.asynccontextmanager
+async def _exported(
+    p: FederationPlatform,
+    platform: str,
+    semantic_labels: list[str],
+    *,
+    sample_period: float | None,
+    wait: float,
+    timeout: float,
+) -> AsyncIterator[None]:
+    """Create-stream ``semantic_labels`` from ``platform`` to ``p``, cancelled after the block."""
+    fed = p.federation_agent
+    async with reaching(p, platform, wait):
+        export_id = await fed.create_stream(
+            platform, semantic_labels, sample_period=sample_period, timeout=timeout
+        )
+    try:
+        yield
+    finally:
+        try:
+            await fed.cancel_stream(platform, export_id, timeout=2.0)
+        except Exception as exc:  # the export ends with its lease there anyway
+            log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
+
+
 async def _through_node(config_path: str, request: dict[str, Any]) -> tuple[bool, Any]:
     """``(True, result)`` from the running node of this config, or ``(False, None)`` if none.
 
@@ -490,12 +515,12 @@ async def follow_stream(
     if relayed is not None:
         return relayed
     own_without_node(config_path, platform, "stream")
-    async with _opened(config_path) as p:
-        fed = p.federation_agent
-        async with reaching(p, platform, wait):
-            export_id = await fed.create_stream(
-                platform, semantic_labels, sample_period=sample_period, timeout=timeout
-            )
+    async with (
+        _opened(config_path) as p,
+        _exported(
+            p, platform, semantic_labels, sample_period=sample_period, wait=wait, timeout=timeout
+        ),
+    ):
         queue: asyncio.Queue[tuple[str, Any, int, int]] = asyncio.Queue()
 
         async def pump(semantic: str) -> None:
@@ -509,38 +534,31 @@ async def follow_stream(
 
         seen = 0
         error: Exception | None = None
-        try:
-            async with asyncio.TaskGroup() as tg:
-                pumps = [
-                    tg.create_task(failure_of(pump, s), name=f"stream[{s}]")
-                    for s in semantic_labels
-                ]
-                stopping = tg.create_task(stop.wait(), name="stream.stop")
-                try:
-                    while count is None or seen < count:
-                        getting = tg.create_task(queue.get(), name="stream.next")
-                        done, _ = await asyncio.wait(
-                            [getting, stopping, *pumps], return_when=asyncio.FIRST_COMPLETED
-                        )
-                        if getting not in done:
-                            getting.cancel()
-                            failed = [t.result() for t in pumps if t in done]
-                            error = next((e for e in failed if e is not None), None)
-                            break
-                        emit(*getting.result())
-                        seen += 1
-                except Exception as exc:  # raised below: the group would wrap it
-                    error = exc
-                finally:
-                    for t in (stopping, *pumps):
-                        t.cancel()
-            if error is not None:
-                raise error
-        finally:
+        async with asyncio.TaskGroup() as tg:
+            pumps = [
+                tg.create_task(failure_of(pump, s), name=f"stream[{s}]") for s in semantic_labels
+            ]
+            stopping = tg.create_task(stop.wait(), name="stream.stop")
             try:
-                await fed.cancel_stream(platform, export_id, timeout=2.0)
-            except Exception as exc:  # the export ends with its lease there anyway
-                log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
+                while count is None or seen < count:
+                    getting = tg.create_task(queue.get(), name="stream.next")
+                    done, _ = await asyncio.wait(
+                        [getting, stopping, *pumps], return_when=asyncio.FIRST_COMPLETED
+                    )
+                    if getting not in done:
+                        getting.cancel()
+                        failed = [t.result() for t in pumps if t in done]
+                        error = next((e for e in failed if e is not None), None)
+                        break
+                    emit(*getting.result())
+                    seen += 1
+            except Exception as exc:  # raised below: the group would wrap it
+                error = exc
+            finally:
+                for t in (stopping, *pumps):
+                    t.cancel()
+        if error is not None:
+            raise error
         return seen
 
 

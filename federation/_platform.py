@@ -87,7 +87,7 @@ import tomllib
 from collections.abc import Awaitable, Callable, Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, Self
+from typing import Annotated, Any, Literal, Self, TypeVar
 
 from pydantic import (
     BaseModel,
@@ -212,14 +212,26 @@ TransportSettings = Annotated[ZenohSettings | MqttSettings, Field(discriminator=
 
 
 _LIMIT = RateLimit()  # the defaults
+_Limit = TypeVar("_Limit", RateLimit, KxLimit, DfEventLimit)
 
 
-class RateLimitSettings(BaseModel):
-    """The ``[rate_limit]`` table: what each other platform may send here (`RateLimit`)."""
+class _LimitSettings(BaseModel):
+    """A limit's table: ``enabled`` and the keyword arguments of the limit it builds."""
 
     model_config = _SETTINGS
 
     enabled: bool = True
+
+    def _limit(self, kind: type[_Limit]) -> _Limit | None:
+        """The ``kind`` these settings describe, or None when disabled."""
+        if not self.enabled:
+            return None
+        return kind(**self.model_dump(exclude={"enabled"}))
+
+
+class RateLimitSettings(_LimitSettings):
+    """The ``[rate_limit]`` table: what each other platform may send here (`RateLimit`)."""
+
     rate: float = Field(default=_LIMIT.rate, gt=0)
     burst: float = Field(default=_LIMIT.burst, ge=1)
     total_rate: float = Field(default=_LIMIT.total_rate, gt=0)
@@ -230,9 +242,7 @@ class RateLimitSettings(BaseModel):
 
     def to_rate_limit(self) -> RateLimit | None:
         """The Interface Agent's limit, or None when disabled."""
-        if not self.enabled:
-            return None
-        return RateLimit(**self.model_dump(exclude={"enabled"}))
+        return self._limit(RateLimit)
 
 
 class ConsoleRoles(BaseModel):
@@ -417,12 +427,9 @@ class SecuritySettings(BaseModel):
 _KX = KxLimit()  # the defaults
 
 
-class KxLimitSettings(BaseModel):
+class KxLimitSettings(_LimitSettings):
     """The ``[kx_limit]`` table: key-exchange requests checked per second (`KxLimit`)."""
 
-    model_config = _SETTINGS
-
-    enabled: bool = True
     per_peer: float = Field(default=_KX.per_peer, ge=0)
     per_peer_burst: float = Field(default=_KX.per_peer_burst, ge=1)
     total: float = Field(default=_KX.total, ge=0)
@@ -432,20 +439,15 @@ class KxLimitSettings(BaseModel):
 
     def to_kx_limit(self) -> KxLimit | None:
         """The Interface Agent's key-exchange load shedding, or None when disabled."""
-        if not self.enabled:
-            return None
-        return KxLimit(**self.model_dump(exclude={"enabled"}))
+        return self._limit(KxLimit)
 
 
 _DF = DfEventLimit()  # the defaults
 
 
-class DfEventLimitSettings(BaseModel):
+class DfEventLimitSettings(_LimitSettings):
     """The ``[df_event_limit]`` table: directory events checked per second (`DfEventLimit`)."""
 
-    model_config = _SETTINGS
-
-    enabled: bool = True
     per_platform: float = Field(default=_DF.per_platform, ge=0)
     per_platform_burst: float = Field(default=_DF.per_platform_burst, ge=1)
     total: float = Field(default=_DF.total, ge=0)
@@ -455,9 +457,7 @@ class DfEventLimitSettings(BaseModel):
 
     def to_df_event_limit(self) -> DfEventLimit | None:
         """The global directory's directory-event load shedding, or None when disabled."""
-        if not self.enabled:
-            return None
-        return DfEventLimit(**self.model_dump(exclude={"enabled"}))
+        return self._limit(DfEventLimit)
 
 
 @dataclass(frozen=True, slots=True)

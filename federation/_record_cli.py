@@ -13,7 +13,6 @@ import asyncio
 import dataclasses
 import datetime as dt
 import json
-import logging
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -43,8 +42,7 @@ from dyknow_core.kpl import (
 from dyknow_core.kpl import parse as parse_kpl
 from dyknow_core.kpl import setup as setup_kpl
 
-from ._cli_common import reaching
-from ._cli_net import _opened, _stop_event, own_without_node
+from ._cli_net import _exported, _opened, _stop_event, own_without_node
 from ._cli_time import seconds, when, when_ns
 
 if TYPE_CHECKING:
@@ -52,7 +50,6 @@ if TYPE_CHECKING:
 
     from ._ros import RosbagRecording
 
-log = logging.getLogger(__name__)
 
 Say = Callable[[str], None]
 
@@ -132,13 +129,10 @@ async def record_federation(
     own_without_node(config_path, platform, "record")
     async with _opened(config_path) as p:
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
-        fed = p.federation_agent
         since = p.instance.clock.now()
-        async with reaching(p, platform, wait):
-            export_id = await fed.create_stream(
-                platform, semantic_labels, sample_period=sample_period, timeout=timeout
-            )
-        try:
+        async with _exported(
+            p, platform, semantic_labels, sample_period=sample_period, wait=wait, timeout=timeout
+        ):
             local = {
                 await p.imported(platform, semantic, timeout=timeout): semantic
                 for semantic in semantic_labels
@@ -155,11 +149,6 @@ async def record_federation(
             )
             async with rec:
                 await _until_stopped(rec, stop, duration, progress)
-        finally:
-            try:
-                await fed.cancel_stream(platform, export_id, timeout=2.0)
-            except Exception as exc:  # the export ends with its lease there anyway
-                log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
     return rec
 
 

@@ -51,18 +51,35 @@ class Station:
 
     def start(self, kind: str) -> str:
         """``dyknow node --config station-KIND.toml``; its ready line."""
-        self.node = subprocess.Popen(
-            [*CLI, "node", "--config", f"station-{kind}.toml"],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=self.dir,
-            env=self.env,
-        )
+        self.node = self.spawn("node", "--config", f"station-{kind}.toml")
         assert self.node.stdout is not None
         ready = self.node.stdout.readline()  # bounded by the test's timeout
         assert f"station ready in federation {self.federation}" in ready, self.stop()[1]
         return ready
+
+    def spawn(self, *args: str, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+        """``dyknow ARGS`` started in the station's directory, its output piped as text."""
+        return subprocess.Popen(
+            [*CLI, *args],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=self.dir,
+            env=self.env if env is None else env,
+        )
+
+    def command(
+        self, *args: str, timeout: float, env: dict[str, str] | None = None
+    ) -> subprocess.CompletedProcess[str]:
+        """``dyknow ARGS`` run to its end in the station's directory, as a user would."""
+        return subprocess.run(
+            [*CLI, *args],
+            capture_output=True,
+            text=True,
+            cwd=self.dir,
+            env=self.env if env is None else env,
+            timeout=timeout,
+        )
 
     def dyknow(self, *args: str) -> Any:
         """A one-shot command as the operator; its JSON answer.

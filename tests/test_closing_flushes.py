@@ -14,13 +14,13 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import logging
 import threading
-from collections.abc import AsyncIterator, Hashable
+from collections.abc import Hashable
 from typing import Any
 
 import pytest
+from _victim import members
 
 from agents import Agent, AgentPlatform, InterfaceAgent, KeyPair, TrustStore, runs_signed, wire_key
 from agents._acl import ACLMessage, Performative
@@ -53,22 +53,6 @@ async def test_a_closed_tally_flushes_once_and_arms_nothing_after() -> None:
     assert tally.pending == 3 and not tally._scheduled
 
 
-@contextlib.asynccontextmanager
-async def _members(*names: str) -> AsyncIterator[list[AgentPlatform]]:
-    """Trusted platforms (each with a trust file) on one in-memory hub."""
-    hub = MemoryHub()
-    keys = {n: KeyPair.generate(n) for n in names}
-    trust = {n: k.public_key for n, k in keys.items()}
-    async with contextlib.AsyncExitStack() as stack:
-        out = []
-        for n in names:
-            transport = await stack.enter_async_context(hub.transport())
-            channel = InterfaceAgent(keys[n], TrustStore(FED, trust))
-            platform = AgentPlatform(n, transport, federation=FED, channel=channel)
-            out.append(await stack.enter_async_context(platform))
-        yield out
-
-
 def _records(platform: AgentPlatform, stage: str) -> list[dict[str, Any]]:
     channel = platform.channel
     assert isinstance(channel, InterfaceAgent)
@@ -77,7 +61,7 @@ def _records(platform: AgentPlatform, stage: str) -> list[dict[str, Any]]:
 
 async def test_the_global_directorys_counts_are_audited_at_its_close() -> None:
     """Presence changes dropped from a full queue, events shed just now: in the audit."""
-    async with asyncio.timeout(10), _members("uav-a") as [pa]:
+    async with asyncio.timeout(10), members(FED, "uav-a") as [pa]:
         view = pa.global_df
         assert view is not None and view.event_gate is not None
         gate = view.event_gate
@@ -95,7 +79,7 @@ async def test_the_global_directorys_counts_are_audited_at_its_close() -> None:
 
 
 async def test_a_message_for_an_agent_that_is_stopping_is_counted() -> None:
-    async with asyncio.timeout(10), _members("uav-a") as [pa]:
+    async with asyncio.timeout(10), members(FED, "uav-a") as [pa]:
         agent = await pa.add(Agent("slow"))
         agent._state = _STOPPING  # as while it stops
         message = ACLMessage(  # an answer itself: the platform answers nothing
@@ -107,7 +91,7 @@ async def test_a_message_for_an_agent_that_is_stopping_is_counted() -> None:
 
 async def test_a_snapshot_that_raises_leaves_no_name_alive() -> None:
     """A fault (not an unanswered query) while taking uav-b's snapshot: it is not alive."""
-    async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, _]:
+    async with asyncio.timeout(10), members(FED, "uav-a", "uav-b") as [pa, _]:
         view = pa.global_df
         assert view is not None and view.event_gate is not None
         while "uav-b" not in view.platforms:  # noqa: ASYNC110

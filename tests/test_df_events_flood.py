@@ -16,8 +16,7 @@ import contextlib
 import multiprocessing
 import threading
 import time
-import uuid
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,13 +24,13 @@ import orjson
 import pytest
 import zenoh
 from _load import cpu_slowdown
+from _victim import members, trusted
 from nacl.signing import SigningKey
 
 from agents import AgentPlatform, InterfaceAgent, ServiceDescription, wire_key
 from agents._dfgate import PLATFORM_BUDGET, TOTAL_BUDGET, DfEventGate, DfEventLimit
 from agents._directory_auth import DirectoryAuth
 from agents._security import KeyPair, TrustStore
-from agents.keys import gen_keys, trust_keys
 from agents.transports import MemoryHub, Message, ZenohConfig, ZenohTransport, free_tcp_port
 from bench.dfflood import SEEN_WITHIN, _forged, flood
 
@@ -275,28 +274,12 @@ async def test_a_joining_name_is_exempt_or_joining_at_every_moment() -> None:
 # -- in memory: the screen in front of the subscription, the queue's overflow ------------------
 
 
-@contextlib.asynccontextmanager
-async def _members(*names: str) -> AsyncIterator[list[AgentPlatform]]:
-    """Trusted platforms (each with a trust file) on one in-memory hub."""
-    hub = MemoryHub()
-    keys = {n: KeyPair.generate(n) for n in names}
-    trust = {n: k.public_key for n, k in keys.items()}
-    async with contextlib.AsyncExitStack() as stack:
-        out = []
-        for n in names:
-            transport = await stack.enter_async_context(hub.transport())
-            channel = InterfaceAgent(keys[n], TrustStore("t", trust))
-            platform = AgentPlatform(n, transport, federation="t", channel=channel)
-            out.append(await stack.enter_async_context(platform))
-        yield out
-
-
 def _public(provider: str, name: str) -> ServiceDescription:
     return ServiceDescription(name=name, type="demo", provider=provider, visibility="public")
 
 
 async def test_forged_events_never_reach_the_queue_and_real_ones_still_do() -> None:
-    async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, pb]:
+    async with asyncio.timeout(10), members("t", "uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
         assert view is not None and view.event_gate is not None and pb.df is not None
         key = pa.key("df-events", "uav-b")
@@ -317,7 +300,7 @@ async def test_forged_events_never_reach_the_queue_and_real_ones_still_do() -> N
 
 async def test_an_event_lost_in_an_overflowing_queue_is_made_good_by_a_resync() -> None:
     """The queue dropped an authenticated event (the loop stalled): its member is asked again."""
-    async with asyncio.timeout(10), _members("uav-a", "uav-b") as [pa, pb]:
+    async with asyncio.timeout(10), members("t", "uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
         assert view is not None and pb.df is not None
         # each platform's presence is taken on a task of its own: both taken, in any order
@@ -355,7 +338,7 @@ async def test_a_resync_its_member_does_not_answer_is_asked_again_until_it_does(
     the member's changes stayed hidden for good (found in review). Now it asks again after a
     wait that doubles, while the member is alive, until an answer comes.
     """
-    async with asyncio.timeout(20), _members("uav-a", "uav-b") as [pa, pb]:
+    async with asyncio.timeout(20), members("t", "uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
         assert view is not None and view.event_gate is not None and pb.df is not None
         real_fetch = view._fetch
@@ -426,14 +409,9 @@ async def test_a_member_just_seen_is_exempt_from_the_shared_budget(tmp_path: Pat
     exempt) and its change hidden until the next recheck; now uav-b is exempt from the
     moment its presence is taken, so the event is checked and the snapshot asked again.
     """
-    fed = f"dfp-{uuid.uuid4().hex[:8]}"
-    names = ["uav-a", "uav-b", "uav-c", "uav-d"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-
-    def channel(name: str) -> InterfaceAgent:
-        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+    federation = trusted(tmp_path, "dfp", ["uav-a", "uav-b", "uav-c", "uav-d"])
+    fed, port = federation.fed, federation.port
+    channel = federation.channel
 
     async with (
         asyncio.timeout(30),
@@ -526,12 +504,10 @@ async def test_a_name_whose_presence_an_outsider_toggles_is_held_to_the_shared_b
     the time. Now a name is exempt only once its signed snapshot came: until then its
     events spend the shared budget, as any name's not in the directory.
     """
-    fed = f"dfj-{uuid.uuid4().hex[:8]}"
     names = ["uav-a", "uav-c", "uav-d"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-    channel = InterfaceAgent(KeyPair.load(tmp_path / "uav-a.key"), trust)
+    federation = trusted(tmp_path, "dfj", names)
+    fed, port = federation.fed, federation.port
+    channel = federation.channel("uav-a")
     seconds = 5.0
     async with (
         asyncio.timeout(60),
@@ -575,14 +551,9 @@ async def test_stale_events_forged_under_a_member_are_not_audited_in_its_name(
     name, with what it liked. Now they are summed up with the rest the gate sheds
     (``df-events-shed``, ``by_reason`` ``stale``), attributed to nobody.
     """
-    fed = f"dfs-{uuid.uuid4().hex[:8]}"
-    names = ["uav-a", "uav-b"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-
-    def channel(name: str) -> InterfaceAgent:
-        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+    federation = trusted(tmp_path, "dfs", ["uav-a", "uav-b"])
+    fed, port = federation.fed, federation.port
+    channel = federation.channel
 
     b_config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
     async with (

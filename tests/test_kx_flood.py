@@ -31,7 +31,7 @@ from agents import AgentPlatform, wire_key
 from agents._interface import InterfaceAgent
 from agents._kxgate import KxGate, KxLimit
 from agents._security import Handshake, KeyPair, TrustStore
-from agents.transports import MemoryHub, free_tcp_port
+from agents.transports import MemoryHub
 from bench._flood import (
     ABSENT,
     MEMBER,
@@ -124,15 +124,7 @@ def test_junk_envelopes_claiming_a_member_rekey_at_most_once_per_interval(
     f = Federation(tmp_path)
     pipes: list[Connection] = []
     try:
-        victim = f.node(VICTIM, f.port, [])
-        pipes.append(victim)
-        assert recv(victim, "the victim", START) == "ready"
-        attacker = f.attacker("acl", acl_payloads(f.fed))
-        pipes.append(attacker)
-        member = f.node(MEMBER, free_tcp_port(), [f.port])
-        pipes.append(member)
-        assert recv(member, "the member", START) == "ready"
-        assert recv(attacker, "the attacker", START) == "ready"
+        victim, attacker, member = f.started("acl", acl_payloads(f.fed), pipes)
         member.send("warm")  # its session with the victim agreed before the flood
         recv(member, "the member's first request", START)
         victim.send("report")

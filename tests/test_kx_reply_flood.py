@@ -36,6 +36,7 @@ from agents.transports import (
     ZenohTransport,
     free_tcp_port,
 )
+from bench._flood import recv
 
 FED = "demo"
 START = 30.0  # a spawned interpreter imports zenoh and paho: seconds on a loaded machine
@@ -135,13 +136,6 @@ def attacker_main(
     finally:
         client.loop_stop()
         client.disconnect()
-
-
-def recv(conn: Connection, what: str, timeout: float = WAIT) -> Any:
-    """The next message on ``conn``; fails naming ``what`` after ``timeout`` s."""
-    if not conn.poll(timeout):
-        raise AssertionError(f"timed out waiting for {what}")
-    return conn.recv()
 
 
 # -- uav-a and uav-b, in this process ----------------------------------------------------------

@@ -8,7 +8,6 @@ import os
 import re
 import signal
 import subprocess
-import sys
 import time
 import urllib.request
 from concurrent.futures import ThreadPoolExecutor
@@ -16,13 +15,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _node_example import Station, _samples
+from _node_example import CLI, Station, _samples
+from _victim import station_channel
 
 from agents import KeyPair
 from federation import PlatformConfig
 from federation.cli import main as cli_main
-
-CLI = [sys.executable, "-m", "federation.cli"]
 
 
 @pytest.mark.timeout(120)
@@ -36,14 +34,7 @@ def test_a_second_node_of_a_live_name_is_refused_and_the_first_goes_on(tmp_path:
         twin = station.dir / "twin.toml"
         text = (station.dir / "station-python.toml").read_text()
         twin.write_text(text.replace("listen = [", "connect = ["))
-        done = subprocess.run(
-            [*CLI, "node", "--config", str(twin)],
-            capture_output=True,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-            timeout=60,
-        )
+        done = station.command("node", "--config", str(twin), timeout=60)
         assert done.returncode == 2, done.stderr
         err = done.stderr
         assert f"platform 'station' is alive in federation {station.federation!r} already" in err
@@ -54,13 +45,8 @@ def test_a_second_node_of_a_live_name_is_refused_and_the_first_goes_on(tmp_path:
         # a one-shot command as 'station' where the node's channel is not (another host):
         # refused too, rather than acting as the live platform
         elsewhere = {**station.env, "XDG_RUNTIME_DIR": str(tmp_path / "elsewhere")}
-        done = subprocess.run(
-            [*CLI, "ask", "temperature", "-p", "station", "--config", str(twin)],
-            capture_output=True,
-            text=True,
-            cwd=station.dir,
-            env=elsewhere,
-            timeout=60,
+        done = station.command(
+            "ask", "temperature", "-p", "station", "--config", str(twin), timeout=60, env=elsewhere
         )
         assert done.returncode == 2, done.stderr
         assert "is alive in federation" in done.stderr
@@ -83,18 +69,11 @@ def test_the_same_config_started_twice_is_told_the_platform_runs(tmp_path: Path)
         node = station.node
         assert node is not None
         for command in ("node", "console"):
-            done = subprocess.run(
-                [
-                    *CLI,
-                    command,
-                    "--config",
-                    "station-python.toml",
-                    *(["--port", "0"] * (command == "console")),
-                ],
-                capture_output=True,
-                text=True,
-                cwd=station.dir,
-                env=station.env,
+            done = station.command(
+                command,
+                "--config",
+                "station-python.toml",
+                *(["--port", "0"] * (command == "console")),
                 timeout=60,
             )
             assert done.returncode == 2, done.stderr
@@ -152,14 +131,7 @@ def test_a_flood_of_directory_queries_does_not_let_a_second_node_start(tmp_path:
         twin = station.dir / "twin.toml"
         text = (station.dir / "station-python.toml").read_text()
         twin.write_text(text.replace("listen = [", "connect = ["))
-        second = subprocess.Popen(
-            [*CLI, "node", "--config", str(twin)],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-        )
+        second = station.spawn("node", "--config", str(twin))
         try:
             out, err = second.communicate(timeout=60)
         except subprocess.TimeoutExpired:  # it started: what it says when stopped
@@ -174,13 +146,8 @@ def test_a_flood_of_directory_queries_does_not_let_a_second_node_start(tmp_path:
         assert "ready" not in out and "Traceback" not in err
         # the first one keeps its socket, and it serves a one-shot command of its config
         assert sock.is_socket()
-        done = subprocess.run(
-            [*CLI, "labels", "-p", "station", "--config", "station-python.toml", "--json"],
-            capture_output=True,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-            timeout=40,
+        done = station.command(
+            "labels", "-p", "station", "--config", "station-python.toml", "--json", timeout=40
         )
         assert done.returncode == 0, done.stderr
         assert "temperature" in json.loads(done.stdout)["labels"]
@@ -195,14 +162,7 @@ def test_a_flood_of_directory_queries_does_not_let_a_second_node_start(tmp_path:
 
 def _console(station: Station) -> tuple[subprocess.Popen[str], str]:
     """``dyknow console`` as the station's operator, and its ready line (with its URL)."""
-    console = subprocess.Popen(
-        [*CLI, "console", "--config", "operator.toml", "--port", "0"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=station.dir,
-        env=station.env,
-    )
+    console = station.spawn("console", "--config", "operator.toml", "--port", "0")
     assert console.stdout is not None
     ready = console.stdout.readline()  # bounded by the test's timeout
     assert "operator ready" in ready, console.stderr.read() if console.stderr else ""
@@ -228,13 +188,8 @@ def test_one_shot_commands_run_beside_the_console_with_its_config(tmp_path: Path
 
         def run(args: tuple[str, ...]) -> subprocess.CompletedProcess[str]:
             extra = [] if args[0] == "record" else ["--json"]
-            return subprocess.run(
-                [*CLI, *args, "--config", "operator.toml", *extra, "--wait", "10"],
-                capture_output=True,
-                text=True,
-                cwd=station.dir,
-                env=station.env,
-                timeout=60,
+            return station.command(
+                *args, "--config", "operator.toml", *extra, "--wait", "10", timeout=60
             )
 
         # all at once, while the console runs as the same platform
@@ -424,13 +379,12 @@ def test_another_user_cannot_take_a_nodes_channel_in_a_shared_tmp(
             asyncio.run(_command(config))
         # the node refuses to start there, saying why (not that it runs already)
         env = {k: v for k, v in station.env.items() if k != "XDG_RUNTIME_DIR"}
-        node = subprocess.run(
-            [*CLI, "node", "--config", str(station.dir / "station-python.toml")],
-            env={**env, "TMPDIR": str(shared)},
-            cwd=station.dir,
-            capture_output=True,
-            text=True,
+        node = station.command(
+            "node",
+            "--config",
+            str(station.dir / "station-python.toml"),
             timeout=60,
+            env={**env, "TMPDIR": str(shared)},
         )
         assert node.returncode == 2, node.stderr
         assert "uid 65534" in node.stderr and "alive" not in node.stderr
@@ -447,12 +401,9 @@ async def test_a_listener_of_another_uid_on_the_channel_is_not_taken_for_the_nod
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """A socket of ours listened on by another user: commands send nothing, nodes keep off."""
-    from federation._local import ForeignNodeError, _hello, _node_here, channel_path
+    from federation._local import ForeignNodeError, _hello, _node_here
 
-    station = Station(tmp_path)
-    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
-    config = PlatformConfig.load(station.dir / "station-python.toml")
-    path = channel_path(config)
+    config, path = station_channel(tmp_path, monkeypatch)
     hello = json.dumps(_hello(config, KeyPair.load(config.key).public_key))
     other = _other_listener(path, hello, as_other=False)
     try:
@@ -472,13 +423,10 @@ async def test_a_node_stating_the_configs_key_must_sign_the_commands_nonce(
     import asyncio
     import base64
 
-    from federation._local import ForeignNodeError, _hello, _proof_data, channel_path
+    from federation._local import ForeignNodeError, _hello, _proof_data
 
-    station = Station(tmp_path)
-    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
-    config = PlatformConfig.load(station.dir / "station-python.toml")
+    config, path = station_channel(tmp_path, monkeypatch)
     keys = KeyPair.load(config.key)
-    path = channel_path(config)
     path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
     recorded = keys.sign(_proof_data(config, b"n" * 32))  # a proof of an earlier command's
     received: list[bytes] = []
@@ -506,13 +454,10 @@ async def test_a_node_older_than_the_command_is_said_so_not_called_foreign(
     """A node from before the nonce step answers it with an error: restart it, not remove it."""
     import asyncio
 
-    from federation._local import _hello, channel_path
+    from federation._local import _hello
 
-    station = Station(tmp_path)
-    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
-    config = PlatformConfig.load(station.dir / "station-python.toml")
+    config, path = station_channel(tmp_path, monkeypatch)
     keys = KeyPair.load(config.key)
-    path = channel_path(config)
     path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
 
     async def older(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -539,12 +484,9 @@ async def test_a_channel_never_unlinks_a_socket_a_node_listens_on(
     import socket
 
     from federation import FederationPlatform
-    from federation._local import LocalChannel, PlatformAliveError, channel_path
+    from federation._local import LocalChannel, PlatformAliveError
 
-    station = Station(tmp_path)
-    monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
-    config = PlatformConfig.load(station.dir / "station-python.toml")
-    path = channel_path(config)
+    config, path = station_channel(tmp_path, monkeypatch)
     path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
     async with asyncio.timeout(30):
         # a node that started since refuse_duplicate looked: listening there
@@ -595,14 +537,7 @@ def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(
         monkeypatch.setenv("XDG_RUNTIME_DIR", station.env["XDG_RUNTIME_DIR"])
         for n in range(4):  # each ends its stream as the next one asks for it
             if n == 0:
-                done = subprocess.run(
-                    [*CLI, *args],
-                    capture_output=True,
-                    text=True,
-                    cwd=station.dir,
-                    env=station.env,
-                    timeout=40,
-                )
+                done = station.command(*args, timeout=40)
             else:
                 code = cli_main(args)
                 out = capsys.readouterr()
@@ -630,15 +565,9 @@ def test_a_refused_record_through_the_console_leaves_the_file_there_as_it_was(
         console, _ = _console(station)
         kept = station.dir / "kept.mcap"
         kept.write_bytes(b"an earlier recording")
-        done = subprocess.run(
-            [
-                *(*CLI, "record", "no-such-label", "-p", "station", "-o", str(kept)),
-                *("-n", "1", "--config", "operator.toml", "--wait", "10"),
-            ],
-            capture_output=True,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
+        done = station.command(
+            *("record", "no-such-label", "-p", "station", "-o", str(kept)),
+            *("-n", "1", "--config", "operator.toml", "--wait", "10"),
             timeout=60,
         )
         assert done.returncode != 0, done.stdout
@@ -681,14 +610,7 @@ def test_a_sample_period_the_nodes_import_has_not_is_refused_not_ignored(
         common = ["--config", "operator.toml", "--wait", "10"]
 
         def process(*args: str) -> subprocess.CompletedProcess[str]:
-            return subprocess.run(
-                [*CLI, *args, *common],
-                capture_output=True,
-                text=True,
-                cwd=station.dir,
-                env=station.env,
-                timeout=60,
-            )
+            return station.command(*args, *common, timeout=60)
 
         def run(*args: str) -> subprocess.CompletedProcess[str]:
             """The same in this process, without an interpreter's start."""
@@ -719,13 +641,8 @@ def test_a_sample_period_the_nodes_import_has_not_is_refused_not_ignored(
         ) in done.stderr
         assert run("stream", "temperature", "-p", "station", "-n", "2").returncode == 0
         # a stream a command follows: another command at another rate is refused too
-        follower = subprocess.Popen(
-            [*CLI, "stream", "wind-speed", "-p", "station", "--sample-period", "0.5", *common],
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
+        follower = station.spawn(
+            "stream", "wind-speed", "-p", "station", "--sample-period", "0.5", *common
         )
         assert follower.stdout is not None and follower.stdout.readline()  # a sample came
         done = run("stream", "wind-speed", "-p", "station", "--sample-period", "2", "-n", "1")
@@ -753,13 +670,8 @@ def test_a_node_streams_and_records_its_own_streams_through_its_channel(tmp_path
     station = Station(tmp_path)
 
     def run(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run(
-            [*CLI, *args, "-p", "station", "--config", "station-python.toml", "--wait", "10"],
-            capture_output=True,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-            timeout=60,
+        return station.command(
+            *args, "-p", "station", "--config", "station-python.toml", "--wait", "10", timeout=60
         )
 
     done = run("stream", "temperature", "-n", "1")

@@ -23,7 +23,7 @@ import msgpack
 import orjson
 import pytest
 import zenoh
-from _node_example import CLI, Station, _samples
+from _node_example import Station, _samples
 
 from agents._security import KeyPair, seal_for_owner, sign_owner_batch
 
@@ -50,14 +50,7 @@ def _put(session: zenoh.Session, key: str, payload: bytes) -> None:
 
 def _cli(station: Station, *args: str) -> subprocess.Popen[str]:
     """``dyknow`` with ``args`` in the station's folder, its output piped as text."""
-    return subprocess.Popen(
-        [*CLI, *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=station.dir,
-        env=station.env,
-    )
+    return station.spawn(*args)
 
 
 def _watch(station: Station, *args: str) -> subprocess.Popen[str]:

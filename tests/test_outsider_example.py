@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from _node_example import CLI, ROOT, Station
+from _node_example import ROOT, Station
 
 
 def test_a_member_written_from_the_documents_joins_streams_and_answers(tmp_path: Path) -> None:
@@ -65,23 +65,16 @@ def test_a_member_written_from_the_documents_joins_streams_and_answers(tmp_path:
         assert all(isinstance(v, (int, float)) and isinstance(t, int) for v, t, _ in samples)
         assert steps["cancel-stream"]["performative"] == "inform"
         # the station asks the outsider: its key exchange, the outsider's answer
-        asked = subprocess.run(
-            [
-                *CLI,
-                "ask",
-                "temperature",
-                "--platform",
-                "operator",
-                "--config",
-                "station-python.toml",
-                "--json",
-                "--wait",
-                "10",
-            ],
-            capture_output=True,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
+        asked = station.command(
+            "ask",
+            "temperature",
+            "--platform",
+            "operator",
+            "--config",
+            "station-python.toml",
+            "--json",
+            "--wait",
+            "10",
             timeout=40,
         )
         assert asked.returncode == 0, asked.stderr

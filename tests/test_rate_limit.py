@@ -157,22 +157,24 @@ class Flooder(Agent):
         if message.performative is Performative.REFUSE:
             self.refusals.append(message)
 
+    def numbered(self, receiver: str, i: int) -> ACLMessage:
+        """The flood's request ``i`` to ``receiver``, in a conversation of its own."""
+        return self.message(
+            Performative.REQUEST,
+            receiver,
+            {"i": i},
+            ontology="demo",
+            protocol="fipa-request",
+            conversation_id=f"f-{i}",
+            reply_with=f"f-{i}",
+        )
+
     async def flood(self, receiver: str, count: int, per_second: float) -> float:
         """Send ``count`` requests at about ``per_second``; the seconds it took."""
         start = time.monotonic()
         chunk = max(1, int(per_second / 100))  # sent every 10 ms
         for i in range(count):
-            await self.send(
-                self.message(
-                    Performative.REQUEST,
-                    receiver,
-                    {"i": i},
-                    ontology="demo",
-                    protocol="fipa-request",
-                    conversation_id=f"f-{i}",
-                    reply_with=f"f-{i}",
-                )
-            )
+            await self.send(self.numbered(receiver, i))
             if (i + 1) % chunk == 0:
                 ahead = (i + 1) / per_second - (time.monotonic() - start)
                 await asyncio.sleep(max(0.0, ahead))
@@ -187,19 +189,7 @@ async def flood_sealed(pf: AgentPlatform, flooder: Flooder, count: int, per_seco
     """
     channel = ia(pf)
     envelopes = [
-        channel.sessions.seal(
-            TARGET,
-            flooder.message(
-                Performative.REQUEST,
-                ECHO,
-                {"i": i},
-                ontology="demo",
-                protocol="fipa-request",
-                conversation_id=f"f-{i}",
-                reply_with=f"f-{i}",
-            ).to_json(),
-        )
-        for i in range(count)
+        channel.sessions.seal(TARGET, flooder.numbered(ECHO, i).to_json()) for i in range(count)
     ]
     key, publish = pf.key("acl", TARGET), pf.transport.publish
     chunk = max(1, int(per_second / 100))  # sent every 10 ms

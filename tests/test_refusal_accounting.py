@@ -29,7 +29,6 @@ import contextlib
 import multiprocessing
 import os
 import time
-import uuid
 from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -41,15 +40,13 @@ import pytest
 from agents import AgentPlatform, watch_request, wire_key
 from agents._interface import InterfaceAgent, RateLimit
 from agents._security import Handshake, KeyPair, TrustStore
-from agents.keys import gen_keys, trust_keys
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+from bench._flood import ABSENT, MEMBER, START, VICTIM, WAIT, FloodFederation, recv
 from dyknow_core import DyKnowInstance
 from federation import ExportProxy, ImportProxy, InterfaceSessions
 
-VICTIM, MEMBER, ABSENT = "uav-v", "uav-m", "uav-q"  # trusted, neither runs but the victim
+# VICTIM, MEMBER, ABSENT (bench's): trusted, neither runs but the victim
 LABEL = "car1-state"
-START = 30.0  # a spawned interpreter imports zenoh and pydantic: seconds when loaded
-WAIT = 15.0
 BUDGET = 1.0  # the victim's RateLimit.unauthenticated: audit records/s, bursts of one
 N_FORGED = 8  # per trusted name: within the gate's per-platform burst (10), 16 in all
 N_REPORTS = 300
@@ -65,13 +62,6 @@ def _no_leftover_children() -> Iterator[None]:
     for proc in multiprocessing.active_children():
         proc.kill()
         proc.join(timeout=5)
-
-
-def recv(conn: Connection, what: str, timeout: float = WAIT) -> Any:
-    """The next message on ``conn``; fails naming ``what`` after ``timeout`` s."""
-    if not conn.poll(timeout):
-        raise AssertionError(f"timed out waiting for {what}")
-    return conn.recv()
 
 
 # -- the victim ----------------------------------------------------------------------------------
@@ -169,28 +159,17 @@ def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> 
         session.close()
 
 
-class Federation:
+class Federation(FloodFederation):
     """The victim and the attacker as spawned processes, with their pipes."""
 
+    prefix = "refusals"
+
     def __init__(self, tmp_path: Path) -> None:
-        self.fed = f"refusals-{uuid.uuid4().hex[:8]}"
-        self.keydir, self.trust_file = tmp_path / "keys", tmp_path / "trust.json"
-        trust_keys(
-            self.trust_file,
-            [gen_keys(n, self.keydir)[2] for n in (VICTIM, MEMBER, ABSENT)],
-            federation=self.fed,
-        )
-        self.trust = TrustStore.load(self.trust_file)
-        self.port = free_tcp_port()
-        self.ctx = multiprocessing.get_context("spawn")
-        self.procs: list[Any] = []
+        super().__init__(tmp_path)
         self.pipes: list[Connection] = []
 
     def _start(self, target: Any, args: tuple[Any, ...], name: str) -> Connection:
-        here, there = self.ctx.Pipe()
-        proc = self.ctx.Process(target=target, args=(*args, there), name=name)
-        proc.start()
-        self.procs.append(proc)
+        here = self.spawn(target, args, name)
         self.pipes.append(here)
         return here
 
@@ -214,17 +193,6 @@ class Federation:
         assert recv(pipe, "the attacker", START) == "ready"
         return pipe
 
-    def close(self) -> None:
-        """Ask every child to stop, then make sure."""
-        for pipe in self.pipes:
-            with contextlib.suppress(OSError):
-                pipe.send("stop")
-        for proc in self.procs:
-            proc.join(timeout=15)
-            if proc.is_alive():
-                proc.kill()
-                proc.join(timeout=5)
-
 
 @contextlib.contextmanager
 def federation(tmp_path: Path) -> Iterator[Federation]:
@@ -233,7 +201,7 @@ def federation(tmp_path: Path) -> Iterator[Federation]:
     try:
         yield f
     finally:
-        f.close()
+        f.close(f.pipes)
 
 
 def accounted(victim: Connection, counter: str, stage: str, n: int) -> dict[str, Any]:

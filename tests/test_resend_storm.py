@@ -31,6 +31,7 @@ from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+from bench._flood import recv
 from dyknow_core import DyKnowInstance
 from federation import ExportProxy, InterfaceSessions
 from federation._batch import read_batch
@@ -116,13 +117,6 @@ def _no_leftover_children() -> Iterator[None]:
     for proc in multiprocessing.active_children():
         proc.kill()
         proc.join(timeout=5)
-
-
-def recv(conn: Connection, what: str, timeout: float = WAIT) -> Any:
-    """The next message on ``conn``; fails naming ``what`` after ``timeout`` s."""
-    if not conn.poll(timeout):
-        raise AssertionError(f"timed out waiting for {what}")
-    return conn.recv()
 
 
 async def ask(conn: Connection, what: str) -> Any:

@@ -14,8 +14,6 @@ import contextlib
 import json
 import multiprocessing
 import os
-import subprocess
-import sys
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -38,7 +36,6 @@ from agents._security import KeyPair, watch_request
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 from bench._flood import (
     FLOOD_SECONDS,
-    MEMBER,
     START,
     VICTIM,
     WAIT,
@@ -52,8 +49,6 @@ from bench.kxflood import (
     figures,
 )
 from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
-
-CLI = [sys.executable, "-m", "federation.cli"]
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -327,15 +322,7 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
     f = Federation(tmp_path)
     pipes: list[Connection] = []
     try:
-        victim = f.node(VICTIM, f.port, [])
-        pipes.append(victim)
-        assert recv(victim, "the victim", START) == "ready"
-        attacker = f.attacker(what, payloads(f.fed))
-        pipes.append(attacker)
-        member = f.node(MEMBER, free_tcp_port(), [f.port])
-        pipes.append(member)
-        assert recv(member, "the member", START) == "ready"
-        assert recv(attacker, "the attacker", START) == "ready"
+        victim, attacker, member = f.started(what, payloads(f.fed), pipes)
         member.send("warm")  # its session with the victim agreed before the flood
         recv(member, "the member's first request")
         victim.send("report")
@@ -442,14 +429,7 @@ def test_an_identity_query_flood_on_a_node_is_shed_before_the_event_loop(
         twin.write_text(conf.read_text().replace("listen = [", "connect = ["))
         node = station.node
         assert node is not None
-        done = subprocess.run(
-            [*CLI, "node", "--config", str(twin)],
-            capture_output=True,
-            text=True,
-            cwd=station.dir,
-            env=station.env,
-            timeout=60,
-        )
+        done = station.command("node", "--config", str(twin), timeout=60)
         assert done.returncode == 2, done.stderr
         assert f"pid {node.pid} on host" in done.stderr
     finally:

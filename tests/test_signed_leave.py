@@ -15,13 +15,13 @@ import asyncio
 import contextlib
 import json
 import time
-import uuid
 from pathlib import Path
 from typing import Any
 
 import pytest
 import zenoh
 from _echo import ProtectedEcho
+from _victim import trusted
 
 from agents import (
     ACLMessage,
@@ -38,7 +38,6 @@ from agents import (
 from agents._acl import Performative
 from agents._exceptions import AuthenticationError
 from agents._security import Handshake, SessionTable
-from agents.keys import gen_keys, trust_keys
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 
 TIMEOUT = 5.0  # the request's: what it waited after a real leave
@@ -64,14 +63,9 @@ class Echo(ProtectedEcho):
 
 async def test_a_request_to_a_platform_that_left_fails_at_once(tmp_path: Path) -> None:
     """uav-b leaves (signed); an envelope it sealed before comes late; uav-a asks it again."""
-    fed = f"leave-{uuid.uuid4().hex[:8]}"
-    names = ["uav-a", "uav-b"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-
-    def channel(name: str) -> InterfaceAgent:
-        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, port = federation.fed, federation.port
+    channel = federation.channel
 
     ca = channel("uav-a")
     async with (
@@ -126,13 +120,10 @@ async def test_a_request_to_a_platform_that_left_fails_at_once(tmp_path: Path) -
 async def test_a_key_exchange_under_way_ends_when_the_peer_leaves(tmp_path: Path) -> None:
     """uav-a agrees a session with uav-b; no answer comes (a silent queryable holds the
     query open); uav-b leaves, signed: the key exchange ends then, not at its timeout."""
-    fed = f"leave-{uuid.uuid4().hex[:8]}"
-    names = ["uav-a", "uav-b"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-    ca = InterfaceAgent(KeyPair.load(tmp_path / "uav-a.key"), trust, handshake_timeout=TIMEOUT)
-    cb = InterfaceAgent(KeyPair.load(tmp_path / "uav-b.key"), trust)
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, port = federation.fed, federation.port
+    ca = federation.channel("uav-a", handshake_timeout=TIMEOUT)
+    cb = federation.channel("uav-b")
 
     def refuse(payload: bytes) -> Any:
         raise AuthenticationError("not now", "uav-a")  # uav-b answers no key exchange
@@ -198,12 +189,9 @@ async def test_a_leave_replayed_or_late_keeps_the_next_processs_session(tmp_path
     """uav-b's earlier processes left, signed; its next one agrees a session with uav-a;
     such a leave (replayed by an outsider, or held up on the way) then reaches uav-a: the
     session agreed since stays, and a key exchange begun since goes on."""
-    fed = f"leave-{uuid.uuid4().hex[:8]}"
-    names = ["uav-a", "uav-b"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-    ca = InterfaceAgent(KeyPair.load(tmp_path / "uav-a.key"), trust, handshake_timeout=TIMEOUT)
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, trust, port = federation.fed, federation.trust, federation.port
+    ca = federation.channel("uav-a", handshake_timeout=TIMEOUT)
     held: list[Any] = []  # a query dropped is ended: kept, it waits its timeout
     async with asyncio.timeout(60), ZenohTransport(ZenohConfig.loopback(port)) as ta:
         # two processes' leaves, the second newer: each is news to uav-a once
@@ -212,7 +200,7 @@ async def test_a_leave_replayed_or_late_keeps_the_next_processs_session(tmp_path
             view = pa.global_df
             assert view is not None
             asker = await pa.add(Agent("asker"))
-            cb = InterfaceAgent(KeyPair.load(tmp_path / "uav-b.key"), trust)
+            cb = federation.channel("uav-b")
             config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
 
             async def deliver(leave: bytes) -> None:
@@ -270,14 +258,9 @@ async def test_a_leave_replayed_or_late_keeps_the_next_processs_session(tmp_path
 async def test_a_restarted_platform_is_served_at_once_after_its_leave(tmp_path: Path) -> None:
     """uav-b leaves, signed, and starts again: its first request to uav-a is served, on
     the session its new process agreed (not refused until its directory answers)."""
-    fed = f"leave-{uuid.uuid4().hex[:8]}"
-    names = ["uav-a", "uav-b"]
-    trust_keys(tmp_path / "trust.json", [gen_keys(n, tmp_path)[2] for n in names], federation=fed)
-    trust = TrustStore.load(tmp_path / "trust.json")
-    port = free_tcp_port()
-
-    def channel(name: str) -> InterfaceAgent:
-        return InterfaceAgent(KeyPair.load(tmp_path / f"{name}.key"), trust)
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, port = federation.fed, federation.port
+    channel = federation.channel
 
     async with (
         asyncio.timeout(60),

@@ -292,6 +292,44 @@ class Handle:
         await self.aclose()
 
 
+class _Keeps:
+    """What a transport declared and ends when it closes: subscriptions and handles (sets)."""
+
+    _subs: set[Subscription[Any]]
+    _handles: set[Handle]
+
+    def _subscription(self, inbox: Inbox[T], undeclare: Callable[[], None]) -> Subscription[T]:
+        """A subscription that this transport ends when it closes."""
+        sub: Subscription[T]
+
+        def on_close() -> None:
+            self._subs.discard(sub)
+            undeclare()
+
+        sub = Subscription(inbox, on_close)
+        self._subs.add(sub)
+        return sub
+
+    def _handle(
+        self, undeclare: Callable[[], None], aundeclare: Callable[[], Awaitable[None]] | None = None
+    ) -> Handle:
+        """A handle that this transport closes when it closes."""
+        handle: Handle
+
+        def on_close() -> None:
+            self._handles.discard(handle)
+            undeclare()
+
+        async def on_aclose() -> None:
+            self._handles.discard(handle)
+            assert aundeclare is not None
+            await aundeclare()
+
+        handle = Handle(on_close, on_aclose if aundeclare is not None else None)
+        self._handles.add(handle)
+        return handle
+
+
 class Transport(ABC):
     """Moves bytes between platforms: publish/subscribe, query/serve, liveliness.
 

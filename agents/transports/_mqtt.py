@@ -80,10 +80,10 @@ import secrets
 import socket
 import ssl
 import uuid
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
 
@@ -100,6 +100,7 @@ from ._base import (
     Screened,
     Subscription,
     Transport,
+    _Keeps,
     key_intersects,
 )
 
@@ -110,8 +111,6 @@ if TYPE_CHECKING:
     from paho.mqtt.packettypes import PacketTypes
     from paho.mqtt.properties import Properties
     from paho.mqtt.subscribeoptions import SubscribeOptions
-
-T = TypeVar("T")
 
 
 def _load_client() -> None:
@@ -363,7 +362,7 @@ class _Filter:
         return not (self.inboxes or self.watchers or self.servers)
 
 
-class MqttTransport(Transport):
+class MqttTransport(_Keeps, Transport):
     """The Transport over one MQTT v5 broker connection (plus one per liveliness token)."""
 
     name = "mqtt"
@@ -628,37 +627,6 @@ class MqttTransport(Transport):
             await self._client.unsubscribe(topic)
         except aiomqtt.MqttError as exc:
             log.debug("mqtt: unsubscribing from %r failed: %s", topic, exc)
-
-    def _subscription(self, inbox: Inbox[T], undeclare: Callable[[], None]) -> Subscription[T]:
-        """A subscription that this transport ends when it closes."""
-        sub: Subscription[T]
-
-        def on_close() -> None:
-            self._subs.discard(sub)
-            undeclare()
-
-        sub = Subscription(inbox, on_close)
-        self._subs.add(sub)
-        return sub
-
-    def _handle(
-        self, undeclare: Callable[[], None], aundeclare: Callable[[], Awaitable[None]] | None = None
-    ) -> Handle:
-        """A handle that this transport closes when it closes."""
-        handle: Handle
-
-        def on_close() -> None:
-            self._handles.discard(handle)
-            undeclare()
-
-        async def on_aclose() -> None:
-            self._handles.discard(handle)
-            assert aundeclare is not None
-            await aundeclare()
-
-        handle = Handle(on_close, on_aclose if aundeclare is not None else None)
-        self._handles.add(handle)
-        return handle
 
     # --- the Transport interface ---------------------------------------------------------
 

@@ -45,7 +45,7 @@ from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Literal, TypeVar, cast
+from typing import Any, Literal, cast
 
 import zenoh
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
@@ -62,11 +62,11 @@ from ._base import (
     Reply,
     Subscription,
     Transport,
+    _Keeps,
 )
 
 log = logging.getLogger(__name__)
 
-T = TypeVar("T")
 
 _ENDPOINT = re.compile(r"^[a-z][a-z0-9+-]*/\S+$")
 _PUBLISHER_CACHE = 1024
@@ -433,7 +433,7 @@ def _converted(what: str) -> Iterator[None]:
         raise TransportError(f"zenoh: {what}: {_zenoh_error(exc)}") from exc
 
 
-class ZenohTransport(Transport):
+class ZenohTransport(_Keeps, Transport):
     """The Transport over a zenoh session (peer on loopback by default)."""
 
     name = "zenoh"
@@ -864,30 +864,6 @@ class ZenohTransport(Transport):
                 while True:
                     keys.add(await inbox.get())
         return sorted(keys)
-
-    def _subscription(self, inbox: Inbox[T], undeclare: Callable[[], None]) -> Subscription[T]:
-        """A subscription that this transport ends when it closes."""
-        sub: Subscription[T]
-
-        def on_close() -> None:
-            self._subs.discard(sub)
-            undeclare()
-
-        sub = Subscription(inbox, on_close)
-        self._subs.add(sub)
-        return sub
-
-    def _handle(self, undeclare: Callable[[], None]) -> Handle:
-        """A handle that this transport closes when it closes."""
-        handle: Handle
-
-        def on_close() -> None:
-            self._handles.discard(handle)
-            undeclare()
-
-        handle = Handle(on_close)
-        self._handles.add(handle)
-        return handle
 
     @staticmethod
     def _undeclare(entity: Any) -> None:
