@@ -22,6 +22,7 @@ import os
 import statistics
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -285,17 +286,24 @@ class Federation(FloodFederation):
         return self.spawn(attacker_main, (endpoint, key, payloads), f"kx-attacker-{what}")
 
     def started(
-        self, what: str, payloads: list[bytes], pipes: list[Connection], *, shed: bool = True
+        self,
+        what: str,
+        payloads: Callable[[], list[bytes]],
+        pipes: list[Connection],
+        *,
+        shed: bool = True,
     ) -> tuple[Connection, Connection, Connection]:
         """The victim, the attacker on its ``what`` and the member, all ready; their pipes.
 
-        Each pipe is added to ``pipes`` as soon as its process runs (to be closed).
+        ``payloads`` is called once the victim is ready: they carry signed times the victim
+        checks against its skew, so they must not age while it starts. Each pipe is added to
+        ``pipes`` as soon as its process runs (to be closed).
         """
         victim = self.node(VICTIM, self.port, [], shed=shed)
         pipes.append(victim)
         assert recv(victim, "the victim", START) == "ready"
         # a zenoh client: it needs the victim listening
-        attacker = self.attacker(what, payloads)
+        attacker = self.attacker(what, payloads())
         pipes.append(attacker)
         member = self.node(MEMBER, free_tcp_port(), [self.port])
         pipes.append(member)
@@ -344,8 +352,9 @@ def flood(tmp: Path, *, shed: bool = True, calm: bool = True) -> FloodRun:
     f = Federation(tmp)
     pipes: list[Connection] = []
     try:
-        payloads = kx_payloads(f.keydir, f.fed, f.trust)
-        victim, attacker, member = f.started("kx", payloads, pipes, shed=shed)
+        victim, attacker, member = f.started(
+            "kx", lambda: kx_payloads(f.keydir, f.fed, f.trust), pipes, shed=shed
+        )
         member.send("pace" if calm else "warm")
         recv(member, "the member's first requests", WAIT + PACE_N * PACE_PERIOD)
         calmly: list[float] = []

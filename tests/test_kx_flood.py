@@ -124,7 +124,7 @@ def test_junk_envelopes_claiming_a_member_rekey_at_most_once_per_interval(
     f = Federation(tmp_path)
     pipes: list[Connection] = []
     try:
-        victim, attacker, member = f.started("acl", acl_payloads(f.fed), pipes)
+        victim, attacker, member = f.started("acl", lambda: acl_payloads(f.fed), pipes)
         member.send("warm")  # its session with the victim agreed before the flood
         recv(member, "the member's first request", START)
         victim.send("report")

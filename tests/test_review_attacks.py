@@ -322,7 +322,7 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
     f = Federation(tmp_path)
     pipes: list[Connection] = []
     try:
-        victim, attacker, member = f.started(what, payloads(f.fed), pipes)
+        victim, attacker, member = f.started(what, lambda: payloads(f.fed), pipes)
         member.send("warm")  # its session with the victim agreed before the flood
         recv(member, "the member's first request")
         victim.send("report")
