@@ -6,8 +6,10 @@ and a replier, each with one zenoh session (peer mode, loopback TCP, as
 it (uvloop unless ``DYKNOW_EVENT_LOOP=asyncio``). Each variant is a request → reply round
 trip between them:
 
-- ``get`` (a): a blocking zenoh ``get`` on a queryable that answers on zenoh's thread,
-  exactly as ``bench/_zenoh_raw.py`` (the baseline ``bench.acl`` divides by);
+- ``get`` (a): raw zenoh ``get`` as ``bench/_zenoh_raw.py`` does it (a blocking ``get``
+  with an empty request and default get settings, on a queryable answering a 1-byte
+  reply on zenoh's thread): the bench's baseline, the one ``bench.acl`` divides by, not a
+  lower bound of a round trip (the ``callback-reply`` variant measured 0.71–0.84x of it);
 - ``asyncio-echo`` (b): the request a zenoh put, the reply a put, both sides asyncio: the
   subscriber's callback hands the payload over to the loop as our zenoh transport does
   (append to a queue under a lock, ``call_soon_threadsafe`` only when the reader waits),
@@ -51,8 +53,9 @@ trip (µs, median of the rounds) of each side's loop thread (its main thread: wh
 blocking ``get`` waits in a) and of all its threads (zenoh's included; from
 ``/proc/<pid>/task/*/schedstat``, as ``bench._acl_cpu``), the median's ratio to a's, and
 each round's median (their spread says how noisy the run was); and the ratios as ``BENCH
-acl-floor-<variant>-vs-get`` lines. CPU per round trip depends little on what else loads
-the machine; the round trips do.
+acl-floor-<variant>-vs-get`` lines, whose ``ours=`` holds the floor variant's median (ms,
+``ours`` too for our stack's) and ``zenoh-get=`` a's. CPU per round trip depends little on
+what else loads the machine; the round trips do.
 """
 
 from __future__ import annotations

@@ -36,8 +36,9 @@ measured, each beside a peer measured in the same run:
 - the floor: the same two-process round trip built from the design's blocks alone, none
   of our code (``bench/_acl_floor.py``: both sides on an event loop with our transport's
   hand-over, with and without our envelope's crypto and JSON, the replier on zenoh's
-  thread ...), each against a raw zenoh get measured in turns with it
-  (``acl-floor-<variant>-vs-get``): what part of ``acl-rtt-median`` the design costs.
+  thread ...), each against a raw zenoh get measured in turns with it, and our whole
+  stack's round trip in the same turns (``acl-floor-<variant>-vs-get``,
+  ``acl-floor-ours-vs-get``): what part of ``acl-rtt-median`` the design costs.
 
 Event loops: both agent sides (this process and the node) run on `agents.run`'s loop,
 uvloop where installed (the node runner's too), asyncio's own with
@@ -749,7 +750,7 @@ def run() -> None:
         print_zenoh(z)
         print_osbrain(o, z)
         progress("the floor: the round trip from the design's blocks alone")
-        print_floor(measure_floor())
+        print_floor(measure_floor(ours=True))
         e = _run_async(encryption_phase(keydir))
         print_encryption(e)
         progress("starting mosquitto")

@@ -13,8 +13,8 @@ import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import TYPE_CHECKING, Any
 
-from agents import ConversationError, TransportError
-from ontology import OntologyError
+from agents import Failed, NotUnderstood, Refused, ReplyTimeout, TransportError
+from ontology import UnknownSemanticLabel
 
 from ._service_content import ContentError
 
@@ -60,15 +60,29 @@ class NotAnsweredError(Exception):
     """The asked platform did not answer; the message says the likely cause."""
 
 
+_IN_WORDS = (
+    Refused,
+    Failed,
+    NotUnderstood,
+    ReplyTimeout,
+    UnknownSemanticLabel,
+    ContentError,  # Denied among them
+    NotAnsweredError,
+)
+"""The errors that say what they are in words: their class is not printed."""
+
+
 def error_text(exc: BaseException) -> str:
     """An error as a command prints it: in its own words when they say what it is.
 
-    A platform's refusal or failure, a label or a request refused (here or by the
-    platform asked) say it in words (``federation@uav-a refused: …``, ``semantic label
-    'x' has no mapping on this platform``): their Python class adds nothing. Another error
-    is unexpected: its class is part of what it says.
+    A platform's answer that was no (refused, failed, not understood) or none at all, a
+    label or a request refused (here or by the platform asked) say it in words
+    (``federation@uav-a refused: …``, ``semantic label 'x' has no mapping on this
+    platform``): their Python class adds nothing. Another error, an internal state's
+    (``ConversationError: conversation … is closed``) too, is unexpected: its class is
+    part of what it says.
     """
-    if isinstance(exc, ConversationError | OntologyError | ContentError | NotAnsweredError):
+    if isinstance(exc, _IN_WORDS):
         return str(exc) or type(exc).__name__
     return f"{type(exc).__name__}: {exc}"
 

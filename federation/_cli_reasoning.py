@@ -296,16 +296,20 @@ def kpl_check_file(
         raise typer.Exit(2) from None
     known: list[str] = []
     if recording is not None:
-        from ._record_cli import ReplayUsageError, load_mapping, replayed_labels
+        from ._record_cli import ReplayUsageError, load_mapping, recorded_labels, replayed_labels
 
+        # the recording (and config) first: one that is no recording is said whatever
+        # the file's syntax, not hidden behind its errors
         try:
             mapping = load_mapping(node_config)[0] if node_config is not None else None
-            known = replayed_labels(recording, kpl_parse(text), mapping)
-        except KPLCheckError:
-            pass  # its syntax errors are said below; no label is resolved then
+            recorded = recorded_labels(recording, mapping)
         except ReplayUsageError as exc:
             _complain(str(exc))
             raise typer.Exit(2) from None
+        try:
+            known = replayed_labels(recorded, kpl_parse(text))
+        except KPLCheckError:
+            pass  # its syntax errors are said below; no label is resolved then
     errors = kpl_check(text, known)
     if errors:
         for e in errors:

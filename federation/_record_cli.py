@@ -429,15 +429,22 @@ def _spec_labels(program: Program) -> tuple[set[str], set[str]]:
     return computed, spec_sources
 
 
-def replayed_labels(path: Path, program: Program, mapping: LabelMapping | None = None) -> list[str]:
-    """The streams `run_replay` makes from ``path`` before it sets ``program`` up.
+def recorded_labels(path: Path, mapping: LabelMapping | None = None) -> list[str]:
+    """The labels recorded in ``path``, under ``mapping``'s local ones where it has them.
 
-    The recorded labels (under ``mapping``'s local ones) that the spec neither computes
-    nor declares as sources: what ``dyknow kpl check --recording`` takes as existing.
+    ReplayUsageError names the file when it is no recording (or cannot be read).
     """
     counts = list(info(path)["counts"])
     rename = {} if mapping is None else _local_labels(counts, mapping)
-    recorded = [rename.get(label, label) for label in counts]
+    return [rename.get(label, label) for label in counts]
+
+
+def replayed_labels(recorded: list[str], program: Program) -> list[str]:
+    """The streams `run_replay` makes from a recording before it sets ``program`` up.
+
+    The ``recorded`` labels (`recorded_labels`) that the spec neither computes nor
+    declares as sources: what ``dyknow kpl check --recording`` takes as existing.
+    """
     computed, spec_sources = _spec_labels(program)
     return [x for x in recorded if x not in computed and x not in spec_sources]
 

@@ -282,14 +282,20 @@ class _RosbagRunner(InputRunner):
         mapper = self.mapper
         start: int | None = None  # with shift = "now": the valid time of recorded `origin`
         origin = 0
-        # the pace's time zero: once the first message was handed on, so that each later
-        # one comes at least its recorded gap after it, however late the first one was
-        paced: int | None = None
-        first = messages[0][0]
+        shared = s.shift == "now"
+        key = s.path.resolve()
+        # the pace's time zero (wall clock, recorded time). With shift = "now" the
+        # recording's shared start, so that a message comes when its valid time does, on a
+        # topic that starts later in the recording too; else once this input's first
+        # message was handed on, so that each later one comes at least its recorded gap
+        # after it, however late the first one was
+        zero: tuple[int, int] | None = None
         for n, (logged, rostype, data) in enumerate(messages):
             if s.pace == "recorded":
-                if paced is not None:
-                    delay = (paced + (logged - first) / s.speed - time.time_ns()) / 1e9
+                if zero is None and shared:
+                    zero = self._starts.get(key)
+                if zero is not None:
+                    delay = (zero[0] + (logged - zero[1]) / s.speed - time.time_ns()) / 1e9
                     if delay > 0:
                         await asyncio.sleep(delay)
             elif n % 1000 == 999:
@@ -301,18 +307,17 @@ class _RosbagRunner(InputRunner):
                 mapper.bad(exc.reason, exc.detail)
                 continue
             if start is None:
-                start = origin = first = logged
-                if s.shift == "now":
+                start = origin = logged
+                if shared:
                     # the node's inputs on one recording share the first one's start: one
                     # recorded instant is one valid time, whichever topic it was on
-                    key = s.path.resolve()
                     start, origin = self._starts.setdefault(key, (time.time_ns(), logged))
             stamp = header_stamp(message)
             own = logged if stamp is None else stamp
-            valid = start + (own - origin) if s.shift == "now" else None
+            valid = start + (own - origin) if shared else None
             mapper.handle(message, stamp=own, topic=s.topic, valid=valid)
-            if paced is None:
-                paced = time.time_ns()
+            if zero is None:
+                zero = (start, origin) if shared else (time.time_ns(), logged)
         log.info("input %s: replayed %d messages", s.title(), len(messages))
 
 

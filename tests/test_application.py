@@ -394,11 +394,14 @@ def test_an_mcap_file_without_the_topic_names_the_topics_it_has(tmp_path: Path) 
     assert len(_read_bag(path, "/odom")) == 1
 
 
-async def test_rosbag_inputs_on_one_recording_share_its_start(tmp_path: Path) -> None:
+@pytest.mark.parametrize("pace", ["fast", "recorded"])
+async def test_rosbag_inputs_on_one_recording_share_its_start(tmp_path: Path, pace: str) -> None:
     """``shift = "now"``: messages recorded at one instant get one valid time, on any topic.
 
     Before, each input on the file took its own "now" at its own first message: one
     recorded instant became valid times ~21 ms apart, or a topic's first message later.
+    With ``pace = "recorded"`` they are paced from that shared start too: a topic starting
+    later in the recording got valid times a gap ahead of its samples' arrival.
     """
     from types import SimpleNamespace
 
@@ -411,36 +414,40 @@ async def test_rosbag_inputs_on_one_recording_share_its_start(tmp_path: Path) ->
     store = get_typestore(Stores.ROS2_HUMBLE)
     float32 = "std_msgs/msg/Float32"
     path = tmp_path / "run.mcap"
-    second = 10**9
+    unit = 200_000_000  # the recorded gap (ns)
     with path.open("wb") as f:
         writer = Writer(f)
         writer.start(profile="ros2", library="test")
         msgdef, _ = store.generate_msgdef(float32)
         schema = writer.register_schema(float32, "ros2msg", msgdef.encode())
         channels = {t: writer.register_channel(t, "cdr", schema) for t in ("/a", "/b")}
-        # /a from 1 s on, /b only at 2 s: the inputs' first messages differ by a second
-        for topic, at in (("/a", 1 * second), ("/a", 2 * second), ("/b", 2 * second)):
-            data = bytes(store.serialize_cdr(store.types[float32](data=at / second), float32))
-            writer.add_message(channels[topic], at, data, at)
+        # /a from 1 unit on, /b from 2: the inputs' first messages differ by a gap
+        for topic, n in (("/a", 1), ("/a", 2), ("/b", 2), ("/b", 3)):
+            data = bytes(store.serialize_cdr(store.types[float32](data=n), float32))
+            writer.add_message(channels[topic], n * unit, data, n * unit)
         writer.finish()
     inputs = [
         RosbagInput(
             kind="rosbag",
             path=path,
             topic=topic,
-            pace="fast",
+            pace=pace,  # type: ignore[arg-type]
             shift="now",
             fields={"data": f"bag/{topic[1:]}"},
         )
         for topic in ("/a", "/b")
     ]
     valid: dict[tuple[str, float], int] = {}
+    arrived: dict[tuple[str, float], int] = {}
     enough = asyncio.Event()
 
     def on(label: str) -> Any:
         def on_batch(batch: list[Any]) -> None:
-            valid.update(((label, v), tv) for v, tv, _ in batch)
-            if len(valid) >= 3:
+            now = time.time_ns()
+            for v, tv, _ in batch:
+                valid[label, v] = tv
+                arrived[label, v] = now
+            if len(valid) >= 4:
                 enough.set()
 
         return on_batch
@@ -454,7 +461,12 @@ async def test_rosbag_inputs_on_one_recording_share_its_start(tmp_path: Path) ->
         async with NodeApplication(platform, "t.toml"):  # type: ignore[arg-type]
             await asyncio.wait_for(enough.wait(), 20)
     assert valid[("bag/a", 2.0)] == valid[("bag/b", 2.0)], valid
-    assert valid[("bag/a", 2.0)] - valid[("bag/a", 1.0)] == second, valid
+    assert valid[("bag/a", 2.0)] - valid[("bag/a", 1.0)] == unit, valid
+    assert valid[("bag/b", 3.0)] - valid[("bag/b", 2.0)] == unit, valid
+    if pace == "recorded":
+        # none comes before its valid time (a slack for the clocks; the bug was a gap early)
+        early = {k: (valid[k] - at) / 1e9 for k, at in arrived.items() if at < valid[k] - unit // 4}
+        assert not early, early
 
 
 @pytest.mark.timeout(120)

@@ -11,8 +11,10 @@ from __future__ import annotations
 import re
 
 import pytest
+from cryptography.exceptions import InvalidTag
 
-from bench._acl_floor import KEYS, VARIANTS, _Envelopes, measure, print_floor
+from bench import fmt
+from bench._acl_floor import KEYS, VARIANTS, _Envelopes, measure, print_floor, summarise
 
 BENCH_LINE = re.compile(
     r"^BENCH [a-z0-9-]+ ours=\S+ [a-z0-9-]+=\S+ ratio=\d+\.\d\d unit=\S+ better=(higher|lower)$"
@@ -31,9 +33,23 @@ def test_a_small_run_answers_every_variant(capsys: pytest.CaptureFixture[str]) -
     assert [line.split()[1] for line in lines] == [
         f"acl-floor-{name}-vs-get" for name in VARIANTS if name != "get"
     ]
+    rows = summarise(res)
     for line in lines:
         assert BENCH_LINE.match(line), line
         assert line in out
+        # ours= holds the floor variant, the peer raw get: the ratio is variant / get
+        fields = dict(f.split("=", 1) for f in line.split()[2:])
+        variant = line.split()[1].removeprefix("acl-floor-").removesuffix("-vs-get")
+        assert fields["ours"] == fmt(rows[variant]["median"] / 1e3), line
+        assert fields["zenoh-get"] == fmt(rows["get"]["median"] / 1e3), line
+        ours, peer = float(fields["ours"]), float(fields["zenoh-get"])
+        assert float(fields["ratio"]) == pytest.approx(ours / peer, rel=0.011, abs=0.005), line
+    # bench.acl measures ours in turns with them: its line comes last (a's rounds stand in)
+    with_ours = print_floor({**res, "ours": res["get"]})
+    assert [line.split()[1] for line in with_ours] == [
+        *(line.split()[1] for line in lines),
+        "acl-floor-ours-vs-get",
+    ]
 
 
 def test_the_plain_envelope_opens_once_and_only_unchanged() -> None:
@@ -46,5 +62,5 @@ def test_the_plain_envelope_opens_once_and_only_unchanged() -> None:
     tampered = bytearray(a.seal(b'{"x": 3}'))
     i = tampered.index(b'"box":"') + 8
     tampered[i] = ord("A") if tampered[i] != ord("A") else ord("B")
-    with pytest.raises(Exception):  # noqa: B017 (cryptography's InvalidTag or ValueError)
+    with pytest.raises((InvalidTag, ValueError)):
         b.open(bytes(tampered))

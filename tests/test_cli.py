@@ -128,10 +128,10 @@ def test_an_error_relayed_by_the_running_node_is_said_once(
 ) -> None:
     import typer
 
-    from agents import Refused
+    from agents import ConversationError, Refused
     from federation._cli_app import _run_query
     from federation._cli_net import RelayedError
-    from ontology import Refusal, UnknownSemanticLabel
+    from ontology import OntologyError, Refusal, UnknownSemanticLabel
 
     refusal = "federation@uav-a refused: label 'x': no stream for it here"
     unmapped = "semantic label 'x' has no mapping on this platform (not-mapped)"
@@ -141,6 +141,12 @@ def test_an_error_relayed_by_the_running_node_is_said_once(
         (Refused(refusal), refusal),
         (UnknownSemanticLabel("x", Refusal.NOT_MAPPED), unmapped),
         (RuntimeError("a bug"), "RuntimeError: a bug"),  # unexpected: its kind tells what
+        # an internal state, no refusal: its kind stays (before, it was said as a refusal)
+        (
+            ConversationError("conversation c1 is closed"),
+            "ConversationError: conversation c1 is closed",
+        ),
+        (OntologyError("the fact feed is closed"), "OntologyError: the fact feed is closed"),
     ]:
 
         async def failing(error: Exception = error) -> None:

@@ -9,6 +9,7 @@ process has no token). Each refusal is asserted with its status, its count in
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import hmac
 import http.client
@@ -546,8 +547,33 @@ def test_a_token_file_of_another_owner_is_refused(tmp_path: Path) -> None:
             f"(uid 65534): only the user running this command, root (uid 0), may own it "
             f"(chown root {theirs})"
         ) in said, r.output
+    # the owner is told first: a chmod would not make another's file usable
+    theirs.chmod(0o644)
+    with pytest.raises(ValueError, match=r"its owner is .*\(chown root ") as told:
+        configured_token(theirs, None, {})
+    assert "chmod" not in str(told.value)
     os.chown(theirs, 0, 0)  # its user's own (root here): taken
+    theirs.chmod(0o600)
     assert configured_token(theirs, None, {}) == "a-good-token-0123456789"
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs here")
+def test_a_token_file_that_is_no_regular_file_is_refused(tmp_path: Path) -> None:
+    # a FIFO would block the open until someone writes it: refused at once instead
+    fifo = tmp_path / "token.fifo"
+    os.mkfifo(fifo, 0o600)
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        checked = pool.submit(configured_token, fifo, None, {})
+        try:
+            with pytest.raises(ValueError, match=f"console token file {fifo}: is not a regular"):
+                checked.result(timeout=10)
+        finally:
+            if not checked.done():  # a writer unblocks the open: the test ends, failed
+                with contextlib.suppress(OSError):
+                    os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+    config = write_operator(tmp_path)
+    r = runner.invoke(app, ["console", "--config", str(config), "--token-file", str(fifo)])
+    assert r.exit_code == 2 and "is not a regular file" in r.output, r.output
 
 
 def test_a_bad_console_section_is_named(tmp_path: Path) -> None:

@@ -841,6 +841,14 @@ def test_kpl_check_knows_the_labels_replay_feeds_from_a_recording(
     assert "give --recording" in capsys.readouterr().err
     assert main([*check, "--recording", str(tmp_path / "none.mcap")]) == 2
     assert "none.mcap" in capsys.readouterr().err
+    # the recording is checked first: before, a spec's syntax error was all that was said
+    spec.write_text("stream = = nonsense\n")
+    assert main([*check, "--recording", str(tmp_path / "none.mcap")]) == 2
+    err = capsys.readouterr().err
+    assert "none.mcap" in err and "app.kpl:" not in err, err
+    assert main([*check, "--recording", str(spec)]) == 2  # a file, but no recording
+    err = capsys.readouterr().err
+    assert f"{spec}" in err and f"{spec}:1:" not in err, err
 
 
 def test_replay_with_a_nodes_config_maps_the_recorded_labels_to_its_kpl(tmp_path: Path) -> None:

@@ -131,9 +131,10 @@ def configured_token(
 
     First ``--token-file``, then the environment's `TOKEN_ENV` (when not empty), then the
     config's ``console.token_file``. Never a command-line argument: every local user can
-    read a process's arguments. A token file that group or others may read or change,
-    or that another user than the one running this (or root) owns, is refused, as ssh
-    refuses such a key. ValueError names where an unusable token came from.
+    read a process's arguments. A token file that is not a regular file, that another
+    user than the one running this (or root) owns, or that group or others may read or
+    change, is refused, as ssh refuses such a key. ValueError names where an unusable
+    token came from.
     """
     if token_file is None and environ.get(TOKEN_ENV, "").strip():
         return check_token(environ[TOKEN_ENV].strip(), TOKEN_ENV)
@@ -141,16 +142,14 @@ def configured_token(
     if path is None:
         return None
     try:
-        with open(path, encoding="utf-8") as f:
+        # non-blocking: a FIFO put there would block the open until someone writes it
+        with open(path, encoding="utf-8", opener=_open_nonblocking) as f:
             st = os.fstat(f.fileno())
             mode = st.st_mode
-            # as ssh does for a private key: a token others may read is no secret any more
-            if os.name == "posix" and mode & 0o077:
-                raise ValueError(
-                    f"console token file {path}: its mode {stat.S_IMODE(mode):04o} lets "
-                    f"group or others read or change it: keep it yours only (chmod 600 {path})"
-                )
-            # as ssh's StrictModes: its owner could change it (chmod it, write another token)
+            if not stat.S_ISREG(mode):
+                raise ValueError(f"console token file {path}: is not a regular file")
+            # as ssh's StrictModes: its owner could change it (chmod it, write another token),
+            # so the owner is told first: for another's file a chmod would not do
             if os.name == "posix" and st.st_uid not in (0, os.geteuid()):
                 me = os.geteuid()
                 who = _user(me) if me == 0 else f"{_user(me)}, or root"
@@ -158,10 +157,21 @@ def configured_token(
                     f"console token file {path}: its owner is {_user(st.st_uid)}: only the "
                     f"user running this command, {who}, may own it (chown {_name(me)} {path})"
                 )
+            # as ssh does for a private key: a token others may read is no secret any more
+            if os.name == "posix" and mode & 0o077:
+                raise ValueError(
+                    f"console token file {path}: its mode {stat.S_IMODE(mode):04o} lets "
+                    f"group or others read or change it: keep it yours only (chmod 600 {path})"
+                )
             text = f.read().strip()
     except (OSError, UnicodeDecodeError) as exc:
         raise ValueError(f"console token file {path}: cannot be read: {exc}") from None
     return check_token(text, f"console token file {path}")
+
+
+def _open_nonblocking(path: str, flags: int) -> int:
+    """``os.open`` for ``open(opener=)``, not waiting for a writer (of a FIFO)."""
+    return os.open(path, flags | getattr(os, "O_NONBLOCK", 0))
 
 
 def _name(uid: int) -> str:
