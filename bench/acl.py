@@ -50,6 +50,7 @@ before the timed round trips (``gc.freeze``), as a started node does.
 ``python -m bench.acl --profile`` profiles the zenoh round trip and the throughput path
 instead (cProfile on both sides, plus the per-stage costs measured one by one);
 ``python -m bench._acl_trace [N]`` times one round trip stage by stage in both processes.
+``python -m bench._acl_flood [N] [ROUNDS]`` runs the one-way flood alone (``--ab`` for two trees).
 """
 
 from __future__ import annotations
