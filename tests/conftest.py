@@ -15,6 +15,7 @@ settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
 # --- mosquitto, for the MQTT transport's tests ----------------------------------------------
 
+import multiprocessing  # noqa: E402
 import shutil  # noqa: E402
 import socket  # noqa: E402
 import subprocess  # noqa: E402
@@ -40,6 +41,15 @@ def _mosquitto_executable() -> str:
         "`apt-get install -y mosquitto`",
         pytrace=False,
     )
+
+
+@pytest.fixture
+def no_leftover_children() -> Iterator[None]:
+    """Kill every multiprocessing child still alive after the test (``usefixtures`` it)."""
+    yield
+    for proc in multiprocessing.active_children():
+        proc.kill()
+        proc.join(timeout=5)
 
 
 @pytest.fixture(scope="session")

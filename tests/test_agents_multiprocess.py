@@ -16,7 +16,7 @@ import os
 import signal
 import time
 import uuid
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from multiprocessing.process import BaseProcess
 from pathlib import Path
 from typing import Any
@@ -50,6 +50,9 @@ from agents.transports import (
 )
 from dyknow_core import DyKnowInstance
 from federation import GatewayAgent
+
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
 
 START = 20.0  # a spawned interpreter imports zenoh, pydantic and DyKnow: seconds when loaded
 LABEL = "car/car5/speed"
@@ -308,11 +311,3 @@ async def test_gateway_protocols_between_processes_over_mqtt(
     parent = MqttTransport(MqttConfig(host=host, port=port, keepalive=2))
     child = MqttConfig(host=host, port=port, keepalive=2).model_dump()  # its own client id
     await _run(parent, "mqtt", child, tmp_path, kill=False)
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import multiprocessing
 import threading
 import time
 from collections.abc import Iterator
@@ -34,6 +33,9 @@ from agents._security import KeyPair, TrustStore
 from agents.transports import MemoryHub, Message, ZenohConfig, ZenohTransport, free_tcp_port
 from bench.dfflood import SEEN_WITHIN, _forged, flood
 
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
+
 # The victim's CPU per event sent, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled by
 # `cpu_slowdown` on a slower one). Measured there: 7-9 when it sheds, ~39 when every event
 # reaches the event loop and has its signature checked.
@@ -42,14 +44,6 @@ SHED_CPU_US = 20.0
 # is shed with the forgeries and shows by a resync (~1 s); two show it as well as the
 # bench's four, and the flood still lasts its minimum for the CPU measure.
 CHANGES = 2
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
 
 
 def test_a_df_events_flood_is_shed_and_a_members_changes_are_still_seen(tmp_path: Path) -> None:

@@ -85,6 +85,9 @@ from federation import (
 )
 from ontology import StreamRule, UnknownSemanticLabel
 
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
+
 START = 30.0  # spawned interpreters import zenoh, pydantic and DyKnow: seconds when loaded
 WAIT = 10.0  # the bound on any other single wait
 TOTAL = 50.0  # the bound on one transport's whole scenario
@@ -617,14 +620,6 @@ async def test_scenario_over_mqtt(mosquitto: tuple[str, int], tmp_path: Path) ->
     await _scenario(
         "mqtt", tmp_path, {n: broker for n in PLATFORMS}, silent, gone_within=4.0, deadline=2.0
     )
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
 
 
 # -- one process: the assembly itself --------------------------------------------------------------

@@ -15,10 +15,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
-import multiprocessing
 import os
 import time
-from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -49,20 +47,15 @@ from bench.kxflood import (
     flood,
 )
 
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
+
 # The victim's CPU per flood request, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled
 # by `cpu_slowdown` on a slower one). Measured there: ~11-31 when it sheds, ~85-91 when
 # every request reaches the event loop and has its signature checked (the victim then
 # takes most of a core at 10 000/s). CPU time, unlike latency, is barely stretched by
 # others' load on the machine.
 SHED_CPU_US = 45.0
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
 
 
 def test_kx_flood_is_shed_and_a_member_is_still_served(tmp_path: Path) -> None:

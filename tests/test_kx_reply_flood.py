@@ -16,7 +16,7 @@ import contextlib
 import multiprocessing
 import threading
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -38,6 +38,9 @@ from agents.transports import (
 )
 from bench._flood import recv
 
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
+
 FED = "demo"
 START = 30.0  # a spawned interpreter imports zenoh and paho: seconds on a loaded machine
 WAIT = 15.0  # the bound on any other wait
@@ -47,14 +50,6 @@ BUDGET = 20.0  # uav-a's RateLimit.unauthenticated: audit records/s, bursts of a
 # must then end the exchange at once, not when the query ends (the attacker never ends it)
 KX_TIMEOUT = 20.0
 ATTACKER_READY = "kx-reply-flood/attacker"
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
 
 
 # -- the attacker: a plain zenoh session or paho client, in a process of its own ----------------

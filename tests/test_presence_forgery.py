@@ -27,7 +27,7 @@ import threading
 import time
 import uuid
 from collections import Counter
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -70,7 +70,8 @@ INTERVAL = 5.0  # the victim's rehandshake_interval (the default)
 ALIVE = b'{"v":1,"alive":true}'  # what an MQTT token publishes (docs/wire.md)
 TOGGLES = 300
 RESTART_BOUND = 5.0  # s: a restarted member answered, its presence toggled (docs/security.md)
-pytestmark = pytest.mark.timeout(120)
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = [pytest.mark.timeout(120), pytest.mark.usefixtures("no_leftover_children")]
 
 
 class Echo(ProtectedEcho):
@@ -711,11 +712,3 @@ async def test_mqtt_restart_while_the_budget_is_spent_recovers_within_the_bound(
         )
         print("\n".join(failed[:3]))
         assert recovery < RESTART_BOUND
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)

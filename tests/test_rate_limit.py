@@ -19,7 +19,7 @@ import statistics
 import time
 import uuid
 from collections import Counter
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator, Callable
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -45,6 +45,9 @@ from agents._interface import InterfaceAgent, RateLimit, TokenBucket
 from agents._security import KeyPair, SecurityPolicy, TrustStore
 from agents.keys import gen_keys, trust_keys
 from agents.transports import MemoryHub, ZenohConfig, ZenohTransport, free_tcp_port
+
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
 
 FED = "rl"
 WAIT = 10.0  # the bound on any one wait; the tests finish far below it
@@ -798,14 +801,6 @@ async def test_flood_between_processes_over_zenoh(tmp_path: Path) -> None:
         if proc.pid is not None:
             proc.kill()
             proc.join(timeout=10)
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
 
 
 async def test_answers_to_a_silent_platform_neither_block_nor_pile_up() -> None:

@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import multiprocessing
 import os
 import time
 from collections.abc import Iterator
@@ -45,6 +44,9 @@ from bench._flood import ABSENT, MEMBER, START, VICTIM, WAIT, FloodFederation, r
 from dyknow_core import DyKnowInstance
 from federation import ExportProxy, ImportProxy, InterfaceSessions
 
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
+
 # VICTIM, MEMBER, ABSENT (bench's): trusted, neither runs but the victim
 LABEL = "car1-state"
 BUDGET = 1.0  # the victim's RateLimit.unauthenticated: audit records/s, bursts of one
@@ -54,14 +56,6 @@ N_WATCH = 8  # within the watch gate's burst (20) and its signature checks (10/s
 N_QUERIES = 30  # within the directory's burst (50)
 N_EACH = 4  # the member's messages of each kind refused
 N_BATCHES = 200
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
 
 
 # -- the victim ----------------------------------------------------------------------------------

@@ -17,7 +17,6 @@ import contextlib
 import logging
 import multiprocessing
 import uuid
-from collections.abc import Iterator
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -36,6 +35,9 @@ from dyknow_core import DyKnowInstance
 from federation import ExportProxy, InterfaceSessions
 from federation._batch import read_batch
 from federation._export import RESEND_RATE
+
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
 
 PROVIDER, MEMBER = "uav-p", "uav-m"
 LABEL, HISTORY = "car1-state", 50
@@ -109,14 +111,6 @@ async def _provider(
                     "records": [r for r in channel.audit.records if r.get("stage") == "resend"],
                 }
             )
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
 
 
 async def ask(conn: Connection, what: str) -> Any:

@@ -243,14 +243,6 @@ async def test_a_member_cannot_make_a_provider_ask_third_platforms_at_will(
 # -- an outsider's floods of queries on keys other than kx -----------------------------------
 
 
-@pytest.fixture
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
-
-
 def _forged_watch_requests(fed: str) -> list[bytes]:
     """Well-formed watch requests in the victim's name, signed with the attacker's keys."""
     out = [watch_request(KeyPair.generate(VICTIM), fed) for _ in range(2000)]
@@ -344,7 +336,7 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
         f.close(pipes)
 
 
-@pytest.mark.usefixtures("_no_leftover_children")
+@pytest.mark.usefixtures("no_leftover_children")
 def test_a_watch_request_flood_is_shed_before_the_event_loop(tmp_path: Path) -> None:
     """10 000 forged watch requests/s (the watch key, not kx): shed, counted, audited.
 
@@ -362,7 +354,7 @@ def test_a_watch_request_flood_is_shed_before_the_event_loop(tmp_path: Path) -> 
         assert replies and orjson.loads(replies[0])["watching"] is True
 
 
-@pytest.mark.usefixtures("_no_leftover_children")
+@pytest.mark.usefixtures("no_leftover_children")
 def test_a_directory_query_flood_is_shed_before_the_event_loop(tmp_path: Path) -> None:
     """10 000 queries/s of the victim's ``df/<platform>`` by an outsider: shed, counted.
 

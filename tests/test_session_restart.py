@@ -16,7 +16,7 @@ import multiprocessing
 import os
 import signal
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
 from pathlib import Path
@@ -38,6 +38,9 @@ from agents import (
 )
 from agents.keys import gen_keys, trust_keys
 from agents.transports import Presence, Subscription, ZenohConfig, ZenohTransport, free_tcp_port
+
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
 
 START = 20.0  # a spawned interpreter imports zenoh and pydantic: seconds when loaded
 ASKER, ECHO = "uav-a", "uav-b"
@@ -200,11 +203,3 @@ async def _restart(
         answer = await request(asker, f"echo@{ECHO}", i, ontology="demo", timeout=10)
         assert answer["echo"] == i and answer["pid"] == second.pid, answer
     assert answer["unauthenticated"] == answer["rehandshakes"] == 0, answer
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)

@@ -28,6 +28,9 @@ from agents.transports import (
     free_tcp_port,
 )
 
+# every child a test spawned is gone after it, whatever the test did
+pytestmark = pytest.mark.usefixtures("no_leftover_children")
+
 START = 20.0  # a spawned interpreter imports zenoh and pydantic: seconds on a loaded machine
 
 
@@ -183,11 +186,3 @@ async def test_frozen_receiver_does_not_stall_the_publisher_over_zenoh() -> None
         if proc.is_alive():
             proc.kill()  # SIGKILL ends a stopped process too
         proc.join(timeout=10)
-
-
-@pytest.fixture(autouse=True)
-def _no_leftover_children() -> Any:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
