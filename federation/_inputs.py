@@ -701,6 +701,22 @@ def _csv_rows(f: Iterable[str], path: Path) -> list[Any]:
             rows.append({k: _number(v) for k, v in zip(header, cells, strict=True)})
 
 
+def _missing_columns(header: list[str], settings: _InputBase) -> list[str]:
+    """What the input reads that the CSV header lacks: a misspelt column maps nothing."""
+    where = f"(its columns: {', '.join(header)})"
+    problems = []
+    for path, label in settings.fields.items():
+        if path != _WHOLE and path.split(".", 1)[0] not in header:
+            problems.append(f"no column {path!r} {where}: fields.{path} gives {label!r} nothing")
+        for hole in _PLACEHOLDER.findall(label):
+            if hole != "topic" and hole.split(".", 1)[0] not in header:
+                problems.append(f"no column {hole!r} {where}: no row can fill label {label!r}")
+    t = settings.time
+    if t is not None and t.split(".", 1)[0] not in header:
+        problems.append(f"no column {t!r} {where}: time = {t!r}: rows are valid at their arrival")
+    return problems
+
+
 def _number(text: str | None) -> Any:
     """A CSV cell as int, float, bool or the text."""
     if text is None or text == "":
@@ -720,6 +736,11 @@ class _FileRunner(InputRunner):
         s = self.settings
         rows = await asyncio.to_thread(_rows, s.path, s.file_format())
         mapper = self.mapper
+        if s.file_format() == "csv":
+            header = next((list(r) for r in rows if isinstance(r, dict)), None)
+            if header is not None:
+                for problem in _missing_columns(header, s):
+                    log.warning("input %s: %s: %s", s.title(), s.path, problem)
         last: int | None = None
         while True:
             last = await self._replay(rows, mapper, s, last)

@@ -636,3 +636,26 @@ async def test_a_looped_file_played_fast_stays_near_the_wall_clock(tmp_path: Pat
     assert ahead < 1.0, ahead  # one pass's span (0.2 s) at most, and some slack
     passes = [got[i : i + 3] for i in range(0, len(got) - 2, 3)]
     assert all(min(b) > max(a) for a, b in itertools.pairwise(passes)), passes[:4]
+
+
+async def test_a_csv_column_the_input_names_and_the_header_lacks_is_warned_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A misspelt column gives no sample and no bad message: the header check names it."""
+    from federation._inputs import FileInput
+
+    path = tmp_path / "loops.csv"
+    path.write_text("time,segment,speed,flow\n1,s1,60,20\n2,s1,57,21\n")
+    fields = {"speeed": "seg/{segment}/speed", "flow": "seg/{segmnt}/flow"}
+    async with DyKnowInstance("t") as inst:
+        settings = FileInput(
+            kind="file", path=path, pace="fast", time="tme", create=True, fields=fields
+        )
+        runner = input_runner(settings, inst)
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            await asyncio.wait_for(runner.run(None), 10)
+    cols = "(its columns: time, segment, speed, flow)"
+    assert f"{path}: no column 'speeed' {cols}: fields.speeed gives" in caplog.text
+    assert f"no column 'segmnt' {cols}: no row can fill label 'seg/{{segmnt}}/flow'" in caplog.text
+    assert f"no column 'tme' {cols}: time = 'tme'" in caplog.text
+    assert caplog.text.count("no column 'speeed'") == 1  # once, not per row
