@@ -426,7 +426,9 @@ class _Mapper:
                 return msgpack.unpackb(payload, raw=False, strict_map_key=False)
             return json.loads(payload)
         except Exception as exc:
-            raise BadMessage(f"not-{fmt}", f"{type(exc).__name__}: {exc}") from None
+            # JSON's words say where it stopped; msgpack's errors are often their class only
+            words = str(exc) if isinstance(exc, json.JSONDecodeError) else ""
+            raise BadMessage(f"not-{fmt}", words or f"{type(exc).__name__}: {exc}") from None
 
 
 # -- running the inputs ----------------------------------------------------------------------

@@ -659,3 +659,15 @@ async def test_a_csv_column_the_input_names_and_the_header_lacks_is_warned_once(
     assert f"no column 'segmnt' {cols}: no row can fill label 'seg/{{segmnt}}/flow'" in caplog.text
     assert f"no column 'tme' {cols}: time = 'tme'" in caplog.text
     assert caplog.text.count("no column 'speeed'") == 1  # once, not per row
+
+
+def test_a_payload_that_does_not_decode_is_said_in_the_decoder_s_words() -> None:
+    """A malformed MQTT or zenoh payload: where it breaks, not the exception's class."""
+    from federation._inputs import BadMessage, MqttInput
+
+    settings = MqttInput(kind="mqtt", topic="traffic/#", fields={"kind": "incident/x"})
+    runner = input_runner(settings, DyKnowInstance("t"))
+    with pytest.raises(BadMessage) as raised:
+        runner.mapper.decode(b'{"segment": "s1", "kind": "acc', "json")
+    assert raised.value.reason == "not-json"
+    assert raised.value.detail == "Unterminated string starting at: line 1 column 27 (char 26)"
