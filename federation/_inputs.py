@@ -48,6 +48,7 @@ log = logging.getLogger(__name__)
 _UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 _PLACEHOLDER = re.compile(r"\{([^{}]+)\}")
 _WHOLE = "."  # the field path meaning the whole message
+_ERRNO = re.compile(r"\[Errno -?\d+\] ")  # an OS error's number, not for a person
 _LOGGED_PER_REASON = 5  # then one log line every _LOG_EVERY messages of that reason
 _LOG_EVERY = 1000
 _QUEUE = 10_000  # messages waiting between a transport's thread and the loop
@@ -578,7 +579,15 @@ class _MqttRunner(InputRunner):
                             continue
                         mapper.handle(message, topic=str(msg.topic))
             except aiomqtt.MqttError as exc:
-                log.warning("input %s: %s; reconnecting in %.1f s", s.title(), exc, delay)
+                why = _ERRNO.sub("", str(exc)) or type(exc).__name__
+                log.warning(
+                    "input %s: MQTT broker %s:%d: %s; reconnecting in %.1f s",
+                    s.title(),
+                    s.host,
+                    s.port,
+                    why,
+                    delay,
+                )
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, 10.0)
 

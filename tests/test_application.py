@@ -671,3 +671,24 @@ def test_a_payload_that_does_not_decode_is_said_in_the_decoder_s_words() -> None
         runner.mapper.decode(b'{"segment": "s1", "kind": "acc', "json")
     assert raised.value.reason == "not-json"
     assert raised.value.detail == "Unterminated string starting at: line 1 column 27 (char 26)"
+
+
+async def test_an_mqtt_input_without_its_broker_names_the_broker(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A wrong broker port: the warning says which broker, and why in words."""
+    from agents.transports import free_tcp_port
+    from federation._inputs import MqttInput
+
+    port = free_tcp_port()
+    settings = MqttInput(kind="mqtt", topic="t/#", port=port, fields={"kind": "incident/x"})
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("incident/x")
+        runner = input_runner(settings, inst)
+        with (
+            caplog.at_level("WARNING", logger="federation._inputs"),
+            contextlib.suppress(TimeoutError),
+        ):
+            await asyncio.wait_for(runner.run(None), 0.3)
+    assert f"input mqtt t/#: MQTT broker 127.0.0.1:{port}: Connection refused;" in caplog.text
+    assert "Errno" not in caplog.text
