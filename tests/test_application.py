@@ -692,3 +692,23 @@ async def test_an_mqtt_input_without_its_broker_names_the_broker(
             await asyncio.wait_for(runner.run(None), 0.3)
     assert f"input mqtt t/#: MQTT broker 127.0.0.1:{port}: Connection refused;" in caplog.text
     assert "Errno" not in caplog.text
+
+
+async def test_a_time_in_another_unit_is_a_bad_time_not_the_stream_s_latest(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Milliseconds read as seconds put a sample 50 000 years ahead, the latest for ever."""
+    from federation._inputs import MqttInput
+
+    settings = MqttInput(kind="mqtt", topic="t/#", time="time", fields={"kind": "incident/s1"})
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("incident/s1")
+        mapper = input_runner(settings, inst).mapper
+        now = time.time()
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            mapper.handle({"time": int(now * 1000), "kind": "in ms"})
+            mapper.handle({"time": now, "kind": "in s"})
+        assert mapper.stats.bad == {"bad-time": 1} and mapper.stats.samples == 1
+        assert [s.value for s in inst.latest("incident/s1").samples] == ["in s"]
+    assert "(bad-time): time is 2.08e+07 days after the message's arrival" in caplog.text
+    assert "(time_unit 's': is the time in another unit?)" in caplog.text
