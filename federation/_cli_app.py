@@ -133,6 +133,31 @@ def _in_vocabulary(command: str, cfg: PlatformConfig, labels: Sequence[str]) -> 
         raise _fail(f"dyknow {command}: {unknown[0]!r} is not a label of the vocabulary{name}")
 
 
+def _formula_checked(cfg: PlatformConfig, formula: str) -> None:
+    """Exit 2 on a formula that does not parse or uses a concept the vocabulary lacks.
+
+    As the console's search refuses it (a 400): said before asking, not as each
+    provider's refusal.
+    """
+    from ontology import OntologyError, Vocabulary, parse
+
+    try:
+        expr = parse(formula)
+    except OntologyError as exc:
+        raise _fail(f"dyknow labels: --formula: {exc}") from None
+    try:
+        if isinstance(cfg.vocabulary, Path):
+            vocabulary = Vocabulary.load(cfg.vocabulary)
+        else:
+            vocabulary = Vocabulary.from_dict(cfg.vocabulary)
+    except OntologyError:  # the platform's own start says what is wrong with it
+        return
+    try:
+        vocabulary.check(expr)
+    except OntologyError as exc:
+        raise _fail(f"dyknow labels: --formula: {exc}") from None
+
+
 # -- keys ---------------------------------------------------------------------------------------
 
 
@@ -441,7 +466,9 @@ def labels(
     """The semantic labels a platform provides (or those matching an SL formula)."""
     from ._cli_net import ask_platform, dumps
 
-    _load(config)
+    cfg = _load(config)
+    if formula is not None:
+        _formula_checked(cfg, formula)
     content: dict[str, Any] = (
         {"action": "list-labels"}
         if formula is None

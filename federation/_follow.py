@@ -56,6 +56,7 @@ class FollowedStream:
     error: str | None = None
     last_valid: int | None = None
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
+    refused_before: bool = False  # since it last flowed: its agreement is then said too
 
 
 def _always() -> bool:
@@ -123,6 +124,7 @@ async def _ask_for(
                     # (dyknow foxglove); asked again every RETRY s, each time at info
                     again = stream.state == "refused" and stream.error == why
                     stream.state, stream.error = "refused", why
+                    stream.refused_before = True
                     (log.info if again else log.warning)(
                         "%s refused %s to %s: %s (asked again every %g s)",
                         member,
@@ -134,6 +136,14 @@ async def _ask_for(
                     changed()
                 else:
                     stream.state, stream.error = "active", None
+                    if stream.refused_before:  # the refusal was a warning: so is its end
+                        stream.refused_before = False
+                        log.warning(
+                            "%s now streams %s to %s (refused before)",
+                            member,
+                            stream.label,
+                            platform.name,
+                        )
                     changed()
                     return
         await asyncio.sleep(RETRY)

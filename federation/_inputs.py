@@ -48,6 +48,10 @@ log = logging.getLogger(__name__)
 _UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 _PLACEHOLDER = re.compile(r"\{([^{}]+)\}")
 _WHOLE = "."  # the field path meaning the whole message
+_ERRNO = re.compile(r"\[Errno -?\d+\] ")  # an OS error's number, not for a person
+# a valid time this far after its arrival is a unit mistake (ms read as s), not a forecast:
+# pushed, it would stay its stream's latest sample for ever, hiding every correct one
+_MAX_AHEAD = 86_400 * 1_000_000_000
 _LOGGED_PER_REASON = 5  # then one log line every _LOG_EVERY messages of that reason
 _LOG_EVERY = 1000
 _QUEUE = 10_000  # messages waiting between a transport's thread and the loop
@@ -314,6 +318,7 @@ class _Mapper:
         ]
         self.time = settings.time
         self.unit = _UNITS[settings.time_unit]
+        self.unit_name = settings.time_unit
         self.create = settings.create
         self.sources: dict[str, Source] = {}
 
@@ -367,6 +372,13 @@ class _Mapper:
         """Map one message to samples and push them; BadMessage when nothing can be used."""
         if valid is None:  # still None after this: the source stamps the arrival
             valid = self.valid_time(message, stamp)
+            if valid is not None and valid - time.time_ns() > _MAX_AHEAD:
+                ahead = (valid - time.time_ns()) / 86_400e9
+                why = (
+                    f"{self.time or 'the stamp'} is {ahead:.3g} days after the message's arrival "
+                    f"(time_unit {self.unit_name!r}: is the time in another unit?)"
+                )
+                raise BadMessage("bad-time", why)
         pushed = 0
         for path, label, holes in self.fields:
             value = _get(message, path)
@@ -426,7 +438,9 @@ class _Mapper:
                 return msgpack.unpackb(payload, raw=False, strict_map_key=False)
             return json.loads(payload)
         except Exception as exc:
-            raise BadMessage(f"not-{fmt}", f"{type(exc).__name__}: {exc}") from None
+            # JSON's words say where it stopped; msgpack's errors are often their class only
+            words = str(exc) if isinstance(exc, json.JSONDecodeError) else ""
+            raise BadMessage(f"not-{fmt}", words or f"{type(exc).__name__}: {exc}") from None
 
 
 # -- running the inputs ----------------------------------------------------------------------
@@ -576,7 +590,15 @@ class _MqttRunner(InputRunner):
                             continue
                         mapper.handle(message, topic=str(msg.topic))
             except aiomqtt.MqttError as exc:
-                log.warning("input %s: %s; reconnecting in %.1f s", s.title(), exc, delay)
+                why = _ERRNO.sub("", str(exc)) or type(exc).__name__
+                log.warning(
+                    "input %s: MQTT broker %s:%d: %s; reconnecting in %.1f s",
+                    s.title(),
+                    s.host,
+                    s.port,
+                    why,
+                    delay,
+                )
                 await asyncio.sleep(delay)
                 delay = min(delay * 2, 10.0)
 
@@ -701,6 +723,22 @@ def _csv_rows(f: Iterable[str], path: Path) -> list[Any]:
             rows.append({k: _number(v) for k, v in zip(header, cells, strict=True)})
 
 
+def _missing_columns(header: list[str], settings: _InputBase) -> list[str]:
+    """What the input reads that the CSV header lacks: a misspelt column maps nothing."""
+    where = f"(its columns: {', '.join(header)})"
+    problems = []
+    for path, label in settings.fields.items():
+        if path != _WHOLE and path.split(".", 1)[0] not in header:
+            problems.append(f"no column {path!r} {where}: fields.{path} gives {label!r} nothing")
+        for hole in _PLACEHOLDER.findall(label):
+            if hole != "topic" and hole.split(".", 1)[0] not in header:
+                problems.append(f"no column {hole!r} {where}: no row can fill label {label!r}")
+    t = settings.time
+    if t is not None and t.split(".", 1)[0] not in header:
+        problems.append(f"no column {t!r} {where}: time = {t!r}: rows are valid at their arrival")
+    return problems
+
+
 def _number(text: str | None) -> Any:
     """A CSV cell as int, float, bool or the text."""
     if text is None or text == "":
@@ -720,6 +758,11 @@ class _FileRunner(InputRunner):
         s = self.settings
         rows = await asyncio.to_thread(_rows, s.path, s.file_format())
         mapper = self.mapper
+        if s.file_format() == "csv":
+            header = next((list(r) for r in rows if isinstance(r, dict)), None)
+            if header is not None:
+                for problem in _missing_columns(header, s):
+                    log.warning("input %s: %s: %s", s.title(), s.path, problem)
         last: int | None = None
         while True:
             last = await self._replay(rows, mapper, s, last)

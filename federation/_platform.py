@@ -79,6 +79,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fnmatch
 import inspect
 import logging
 import re
@@ -712,6 +713,8 @@ def _read_files(config: PlatformConfig, source: str) -> _Files:
             f"{config.trust} is the trust file of federation {trust.federation!r}, "
             f"not of {config.federation!r}",
         )
+    for problem in _strangers(config, trust):
+        log.warning("%s: %s", source, problem)
     try:
         if isinstance(config.vocabulary, Path):
             vocabulary = Vocabulary.load(config.vocabulary)
@@ -737,6 +740,22 @@ def _read_files(config: PlatformConfig, source: str) -> _Files:
             f"{unknown[0]!r} is not a label of the vocabulary {vocabulary.name or ''}".rstrip(),
         )
     return _Files(keys, trust, vocabulary, mapping)
+
+
+def _strangers(config: PlatformConfig, trust: TrustStore) -> list[str]:
+    """The ``[sharing]`` platform patterns no platform of the trust file matches (a typo)."""
+    names = sorted(trust)
+    settings = config.sharing
+    keyed = [(f"sharing.accept_for[{i}]", p) for i, p in enumerate(settings.accept_for)]
+    for r, rule in enumerate(settings.rules):
+        keyed += [(f"sharing.rules[{r}].query[{i}]", p) for i, p in enumerate(rule.query)]
+        keyed += [(f"sharing.rules[{r}].stream[{i}]", p) for i, p in enumerate(rule.stream)]
+    return [
+        f"{key}: {pattern!r} names no platform of the trust file {config.trust} "
+        f"({', '.join(names)}): it lets no one in"
+        for key, pattern in keyed
+        if not any(fnmatch.fnmatchcase(name, pattern) for name in names)
+    ]
 
 
 # -- the platform ----------------------------------------------------------------------------

@@ -636,3 +636,79 @@ async def test_a_looped_file_played_fast_stays_near_the_wall_clock(tmp_path: Pat
     assert ahead < 1.0, ahead  # one pass's span (0.2 s) at most, and some slack
     passes = [got[i : i + 3] for i in range(0, len(got) - 2, 3)]
     assert all(min(b) > max(a) for a, b in itertools.pairwise(passes)), passes[:4]
+
+
+async def test_a_csv_column_the_input_names_and_the_header_lacks_is_warned_once(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A misspelt column gives no sample and no bad message: the header check names it."""
+    from federation._inputs import FileInput
+
+    path = tmp_path / "loops.csv"
+    path.write_text("time,segment,speed,flow\n1,s1,60,20\n2,s1,57,21\n")
+    fields = {"speeed": "seg/{segment}/speed", "flow": "seg/{segmnt}/flow"}
+    async with DyKnowInstance("t") as inst:
+        settings = FileInput(
+            kind="file", path=path, pace="fast", time="tme", create=True, fields=fields
+        )
+        runner = input_runner(settings, inst)
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            await asyncio.wait_for(runner.run(None), 10)
+    cols = "(its columns: time, segment, speed, flow)"
+    assert f"{path}: no column 'speeed' {cols}: fields.speeed gives" in caplog.text
+    assert f"no column 'segmnt' {cols}: no row can fill label 'seg/{{segmnt}}/flow'" in caplog.text
+    assert f"no column 'tme' {cols}: time = 'tme'" in caplog.text
+    assert caplog.text.count("no column 'speeed'") == 1  # once, not per row
+
+
+def test_a_payload_that_does_not_decode_is_said_in_the_decoder_s_words() -> None:
+    """A malformed MQTT or zenoh payload: where it breaks, not the exception's class."""
+    from federation._inputs import BadMessage, MqttInput
+
+    settings = MqttInput(kind="mqtt", topic="traffic/#", fields={"kind": "incident/x"})
+    runner = input_runner(settings, DyKnowInstance("t"))
+    with pytest.raises(BadMessage) as raised:
+        runner.mapper.decode(b'{"segment": "s1", "kind": "acc', "json")
+    assert raised.value.reason == "not-json"
+    assert raised.value.detail == "Unterminated string starting at: line 1 column 27 (char 26)"
+
+
+async def test_an_mqtt_input_without_its_broker_names_the_broker(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A wrong broker port: the warning says which broker, and why in words."""
+    from agents.transports import free_tcp_port
+    from federation._inputs import MqttInput
+
+    port = free_tcp_port()
+    settings = MqttInput(kind="mqtt", topic="t/#", port=port, fields={"kind": "incident/x"})
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("incident/x")
+        runner = input_runner(settings, inst)
+        with (
+            caplog.at_level("WARNING", logger="federation._inputs"),
+            contextlib.suppress(TimeoutError),
+        ):
+            await asyncio.wait_for(runner.run(None), 0.3)
+    assert f"input mqtt t/#: MQTT broker 127.0.0.1:{port}: Connection refused;" in caplog.text
+    assert "Errno" not in caplog.text
+
+
+async def test_a_time_in_another_unit_is_a_bad_time_not_the_stream_s_latest(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """Milliseconds read as seconds put a sample 50 000 years ahead, the latest for ever."""
+    from federation._inputs import MqttInput
+
+    settings = MqttInput(kind="mqtt", topic="t/#", time="time", fields={"kind": "incident/s1"})
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("incident/s1")
+        mapper = input_runner(settings, inst).mapper
+        now = time.time()
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            mapper.handle({"time": int(now * 1000), "kind": "in ms"})
+            mapper.handle({"time": now, "kind": "in s"})
+        assert mapper.stats.bad == {"bad-time": 1} and mapper.stats.samples == 1
+        assert [s.value for s in inst.latest("incident/s1").samples] == ["in s"]
+    assert "(bad-time): time is 2.08e+07 days after the message's arrival" in caplog.text
+    assert "(time_unit 's': is the time in another unit?)" in caplog.text

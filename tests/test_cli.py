@@ -776,6 +776,23 @@ async def test_commands_still_connected_end_with_the_local_channel(
                 writer.close()
 
 
+def test_a_formula_that_cannot_be_answered_is_said_so_before_asking(tmp_path: Path) -> None:
+    """A malformed formula or a misspelt concept: exit 2 at once, as the console's 400."""
+    configs = _write_federation(tmp_path, _free_port())
+    vocabulary = tmp_path / "traffic.toml"
+    vocabulary.write_text(vocabulary.read_text() + "[concepts]\nIncident = 2\nSegment = 1\n")
+    base = ["labels", "-p", "uav-a", "-c", str(configs["operator"]), "--wait", "0.2"]
+    r = runner.invoke(app, [*base, "--formula", "(all ?x (Incidnt ?x accident))"])
+    assert r.exit_code == 2, r.output
+    assert r.output.strip() == (
+        "dyknow labels: --formula: unknown concept 'Incidnt' in (Incidnt ?x accident) "
+        "(the vocabulary has: Incident, Segment)"
+    )
+    r = runner.invoke(app, [*base, "--formula", "(all ?x (Segment ?x)"])
+    assert r.exit_code == 2, r.output
+    assert "dyknow labels: --formula: this '(' is never closed (line 1, column 1)" in r.output
+
+
 @pytest.mark.parametrize("command", ["ask", "stream", "record"])
 def test_a_label_not_in_the_vocabulary_is_said_so_before_asking(
     tmp_path: Path, command: str

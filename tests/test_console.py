@@ -803,3 +803,36 @@ async def test_a_console_stops_promptly_when_no_provider_answers(demo_keys: Path
         started = asyncio.get_running_loop().time()
         await fed.console.aclose()
         assert asyncio.get_running_loop().time() - started < 5.0
+
+
+async def test_a_stream_agreed_after_a_refusal_is_said_as_the_refusal_was(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The refusal is a warning in the console's log; its end (a sharing rule added) too."""
+    from types import SimpleNamespace
+
+    from federation import _follow
+    from federation._follow import FollowedStream
+
+    answers: list[Any] = [RuntimeError("label 's1-incident' may not be streamed to tmc"), "x-1"]
+
+    async def create_stream(member: str, labels: list[str], **_: Any) -> str:
+        answer = answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return str(answer)
+
+    platform = SimpleNamespace(
+        name="tmc", federation_agent=SimpleNamespace(create_stream=create_stream)
+    )
+    monkeypatch.setattr(_follow, "RETRY", 0.01)
+    stream = FollowedStream("s1-incident")
+    with caplog.at_level("WARNING", logger="federation.follow"):
+        await asyncio.wait_for(
+            _follow._ask_for(platform, "roadside", stream, lambda: True, lambda: None),  # type: ignore[arg-type]
+            5,
+        )
+    warned = [r.getMessage() for r in caplog.records]
+    assert warned[0].startswith("roadside refused s1-incident to tmc: label 's1-incident'")
+    assert warned[1:] == ["roadside now streams s1-incident to tmc (refused before)"]
+    assert stream.state == "active" and stream.export_id == "x-1"

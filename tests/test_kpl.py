@@ -214,6 +214,16 @@ def test_a_number_with_a_unit_is_named_once() -> None:
     ]
 
 
+def test_a_misspelt_declaration_after_a_state_is_named_as_such() -> None:
+    text = 'source a\nstate s = {x: a} every 1 latest\nmoniter m = "x > 1" every 1\n'
+    assert errors(text)[0] == (
+        3,
+        1,
+        "unknown state clause 'moniter' (expected latest, closest, interpolate, strategy, "
+        "max_delay, missing, start, end); or a misspelt declaration keyword, 'monitor'?",
+    )
+
+
 def test_unknown_policy_fields_and_impossible_policies() -> None:
     text = (
         "source a\n"

@@ -676,6 +676,36 @@ def test_sharing_settings_are_validated_with_file_and_key(tmp_path: Path) -> Non
         assert str(info.value).startswith(f"{path}: ")
 
 
+def test_a_sharing_pattern_no_trusted_platform_matches_is_warned_at_start(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A misspelt platform in [sharing] lets no one in, silently: the start names it."""
+    from federation._platform import _read_files
+
+    pubs = [gen_keys(n, tmp_path / "keys")[2] for n in ("roadside", "tmc")]
+    trust_keys(tmp_path / "trust.json", pubs, federation="f")
+    rules = [{"labels": ["*-speed"], "query": ["tmc", "ops-*"], "stream": ["tcm"]}]
+    config = PlatformConfig.from_dict(
+        {
+            "name": "roadside",
+            "federation": "f",
+            "key": str(tmp_path / "keys" / "roadside.key"),
+            "trust": str(tmp_path / "trust.json"),
+            "vocabulary": VOCABULARY,
+            "mapping": {"vocabulary": "traffic", "labels": MAPPING},
+            "sharing": {"default": "none", "accept_for": ["*"], "rules": rules},
+        }
+    )
+    with caplog.at_level("WARNING", logger="federation._platform"):
+        _read_files(config, "roadside.toml")
+    warned = [r.getMessage() for r in caplog.records]
+    known = f"names no platform of the trust file {tmp_path / 'trust.json'} (roadside, tmc)"
+    assert warned == [
+        f"roadside.toml: sharing.rules[0].query[1]: 'ops-*' {known}: it lets no one in",
+        f"roadside.toml: sharing.rules[0].stream[0]: 'tcm' {known}: it lets no one in",
+    ]
+
+
 async def test_drops_under_invented_sender_names_are_audited_in_bounded_records() -> None:
     # an outsider need not authenticate to invent senders: one record each would be a flood.
     # The budget is per report: 32 senders by name, then one "*" for the rest. A busy

@@ -708,6 +708,18 @@ async def test_zenoh_listen_endpoint_in_use_is_one_clear_line() -> None:
     )
 
 
+async def test_zenoh_client_without_its_router_names_the_address_in_one_line() -> None:
+    # a misspelt router address: the endpoint and what to check, not zenoh's Rust debug text
+    port = free_tcp_port()
+    t = ZenohTransport(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+    with pytest.raises(TransportError) as raised:
+        await t.__aenter__()
+    assert str(raised.value) == (
+        f"zenoh: cannot open a session: cannot connect to tcp/127.0.0.1:{port} (connect): "
+        "no router or peer answers there: is it running, and is the address right?"
+    )
+
+
 def test_zenoh_config_keeps_the_listen_endpoints_of_its_json5_file() -> None:
     # a router started from a JSON5 file (deploy/config/router.json5) listens where the
     # file says, not on the library's loopback default

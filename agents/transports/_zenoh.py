@@ -408,6 +408,8 @@ def _reach(cfg: zenoh.Config) -> tuple[bool, int]:
 # zenoh's errors end their parts with where in its Rust sources they were raised
 _RUST_SOURCE = re.compile(r"\s+at /\S+?\.rs:\d+\.?")
 _IN_USE = re.compile(r"bound to (?P<endpoint>[\w-]+/\S+?):? \[")
+_UNREACHED = re.compile(r"Unable to connect to any of \[(?P<endpoints>[^\]]*)\]")
+_ENDPOINT = re.compile(r"[\w-]+/[^\s,()\[\]]+")
 
 
 def _zenoh_error(exc: zenoh.ZError) -> str:
@@ -420,6 +422,13 @@ def _zenoh_error(exc: zenoh.ZError) -> str:
             f"cannot listen on {endpoint}: the address is in use (by another node, maybe "
             "this very platform running already, or another program): stop that one first, "
             "or listen on another endpoint"
+        )
+    found = _UNREACHED.search(text)
+    if found:
+        endpoints = ", ".join(_ENDPOINT.findall(found["endpoints"])) or "its connect endpoints"
+        return (
+            f"cannot connect to {endpoints} (connect): no router or peer answers there: "
+            "is it running, and is the address right?"
         )
     return text
 

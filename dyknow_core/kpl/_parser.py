@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import logging
 import math
 import re
@@ -594,10 +595,13 @@ class _Parser:
             elif t.text in _STATE_STRATEGIES:
                 entries.append(Entry("strategy", t.text, t.pos, t.pos))
             else:
+                # a misspelt declaration after a state reads as one of its clauses
+                near = difflib.get_close_matches(t.text, _DECL_KEYWORDS, n=1, cutoff=0.75)
+                hint = f"; or a misspelt declaration keyword, {near[0]!r}?" if near else ""
                 raise _Fail(
                     t.pos,
                     f"unknown state clause {t.text!r} (expected latest, closest, interpolate, "
-                    "strategy, max_delay, missing, start, end)",
+                    f"strategy, max_delay, missing, start, end){hint}",
                 )
         return StateDecl(label.label, comps, MappingNode(entries, every.pos), pos)
 
