@@ -839,7 +839,9 @@ def test_a_platform_that_never_answers_holds_up_no_other_platforms_stream(
             cwd=station.dir,
             env=station.env,
         )
-        assert asked.wait(30)  # the node is in its create-stream to ghost
+        if not asked.wait(30):  # the node is in its create-stream to ghost
+            ghost.kill()
+            pytest.fail(f"ghost was never asked: {ghost.communicate(timeout=10)}")
         done = subprocess.run(
             [
                 *(*CLI, "stream", "temperature", "-p", "station", "--count", "1"),
