@@ -59,9 +59,14 @@ compose:
 		DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq docker-compose >/dev/null; \
 	fi
 
+# The tests run in three worker processes (pytest-xdist) on two cores: most of them wait
+# (worlds in real time, leases, bounded waits for events), so a third keeps the cores busy;
+# worksteal hands a long test's queue to an idle worker. A plain `pytest` runs them in one.
+PYTEST_WORKERS ?= 3
+
 pytest: $(STAMP) mosquitto chromium compose
 	@echo "==> pytest"
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist worksteal
 
 test: lint typecheck pytest
 

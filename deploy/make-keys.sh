@@ -4,8 +4,9 @@
 # (make_certs.py; openssl needed), never committed (.gitignore). Run once, before
 # `docker compose up`:
 #   deploy/make-keys.sh            # or: deploy/make-keys.sh /some/other/config/dir
-# Uses `python -m federation.cli keys …` with PYTHON when it is set, else `dyknow keys …`
-# when the CLI is on the PATH, else the project's .venv (made by `make`), else python3.
+# Runs `python -m federation.cli keys …` with PYTHON when it is set, else with the Python
+# of the `dyknow` CLI on the PATH, else the project's .venv (made by `make`), else python3:
+# every command in one interpreter (each start costs a second and more on a loaded machine).
 set -euo pipefail
 
 here="$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)"
@@ -16,39 +17,62 @@ federation="traffic"
 platforms=(uav-a uav-b uav-c operator)
 
 root="$(cd "${here}/.." && pwd)"
+cli="$(command -v dyknow || true)"
+shebang="$( [[ -n "${cli}" ]] && head -n 1 "${cli}" || true)"
 if [[ -n "${PYTHON:-}" ]]; then
-    keys=("${PYTHON}" -m federation.cli keys)
-elif command -v dyknow >/dev/null 2>&1 && dyknow keys --help >/dev/null 2>&1; then
-    keys=(dyknow keys)
+    python="${PYTHON}"
+elif [[ "${shebang}" == "#!"* && -x "${shebang#\#!}" ]]; then
+    python="${shebang#\#!}"                  # the interpreter the CLI was installed with
 elif [[ -x "${root}/.venv/bin/python" ]]; then
-    keys=("${root}/.venv/bin/python" -m federation.cli keys)    # what `make` installed
+    python="${root}/.venv/bin/python"        # what `make` installed
 else
-    keys=(python3 -m federation.cli keys)
+    python=python3
 fi
 
 mkdir -p "${keys_dir}"
 chmod 700 "${keys_dir}"
-for platform in "${platforms[@]}"; do
-    if [[ -e "${keys_dir}/${platform}.key" ]]; then
-        echo "keep ${keys_dir}/${platform}.key (exists; delete it to make a new one)"
-    else
-        "${keys[@]}" gen --platform "${platform}" --dir "${keys_dir}"
-    fi
-done
-pubs=()
-for platform in "${platforms[@]}"; do
-    pubs+=("${keys_dir}/${platform}.pub")
-done
-"${keys[@]}" trust --trust-file "${trust_file}" --federation "${federation}" "${pubs[@]}"
-# the hubs' access control, from the trust file (the same as shipped for these platforms)
-"${PYTHON:-python3}" "${here}/make_hub_configs.py" --trust-file "${trust_file}" --out "${config_dir}"
+"${python}" - "${here}" "${config_dir}" "${keys_dir}" "${trust_file}" "${federation}" \
+    "${platforms[@]}" <<'PY'
+import importlib.util
+import sys
+from pathlib import Path
 
+from federation.cli import main as dyknow
+
+here, config_dir, keys_dir, trust_file, federation, *platforms = sys.argv[1:]
+
+
+def run(main, args):
+    """Run one command's main; stop with its exit status when it fails (as `set -e`)."""
+    code = main(args)
+    sys.stdout.flush()  # its lines before the next command's children (openssl) write
+    if code:
+        sys.exit(code)
+
+
+def script(name):
+    """The main of deploy/<name>.py, loaded from its file."""
+    spec = importlib.util.spec_from_file_location(name, Path(here) / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module.main
+
+
+for platform in platforms:
+    key = f"{keys_dir}/{platform}.key"
+    if Path(key).exists():
+        print(f"keep {key} (exists; delete it to make a new one)", flush=True)
+    else:
+        run(dyknow, ["keys", "gen", "--platform", platform, "--dir", keys_dir])
+pubs = [f"{keys_dir}/{platform}.pub" for platform in platforms]
+run(dyknow, ["keys", "trust", "--trust-file", trust_file, "--federation", federation, *pubs])
+# the hubs' access control, from the trust file (the same as shipped for these platforms)
+run(script("make_hub_configs"), ["--trust-file", trust_file, "--out", config_dir])
 # the zenoh links: the federation's CA, the router's and each platform's certificate
-certs=()
-for platform in "${platforms[@]}"; do
-    certs+=(--platform "${platform}")
-done
-"${PYTHON:-python3}" "${here}/make_certs.py" --dir "${keys_dir}/tls" "${certs[@]}"
+certs = [arg for platform in platforms for arg in ("--platform", platform)]
+run(script("make_certs"), ["--dir", f"{keys_dir}/tls", *certs])
+PY
 
 cat <<MSG
 Keys and trust file are in ${keys_dir}, certificates and passwords in ${keys_dir}/tls.

@@ -360,6 +360,7 @@ class PolicyFilter:
     """The state of one subscription's policy: what it emitted last and what it dropped."""
 
     __slots__ = (
+        "_held",
         "_post",
         "_pre",
         "ended",
@@ -395,6 +396,8 @@ class PolicyFilter:
             else previous.last_tv
         )
         self.ended = False
+        # the previous grid's sample still waiting for a grid point: fed to ours first
+        self._held: list[RawSample] = []
         if policy.sample_period is None:
             self.sampler: _Sampler | None = None
             self._pre = (
@@ -417,12 +420,19 @@ class PolicyFilter:
                     first = max(first, policy.start)
                 self.sampler.g = self.sampler._first_grid(first)
                 before = (previous.last_value, previous.last_tv, previous.last_tv)
-                pending = previous.sampler.before if previous.sampler is not None else None
-                if pending is not None and pending[1] > previous.last_tv:
-                    # a newer sample was waiting for the next grid point: it still decides it
-                    before = pending
                 if _within_bounds(policy, before[0]):
                     self.sampler.before = before
+                pending = previous.sampler.before if previous.sampler is not None else None
+                if (
+                    pending is not None
+                    and pending[1] > previous.last_tv
+                    and _within_bounds(policy, pending[0])
+                ):
+                    # a newer sample was waiting for the next grid point: it still decides
+                    # it, fed to this grid as it came. Not as `before`: that is older than
+                    # the grid's next point, and our grid points before it lie between the
+                    # last one emitted and it (interpolated, not extrapolated from it)
+                    self._held = [pending]
             # the window applies to grid times (in the sampler), not to the inputs: the
             # sample just before `start` or just after `end` decides the edge grid points.
             # Order is the contract's: applied to the inputs, before the grid.
@@ -449,7 +459,7 @@ class PolicyFilter:
         if self.sampler is None:
             self._pre(self, batch, out)
         else:
-            accepted: list[RawSample] = []
+            accepted, self._held = self._held, []
             self._pre(self, batch, accepted)
             grid: list[RawSample] = []
             self.sampler.feed(accepted, grid)
@@ -465,6 +475,9 @@ class PolicyFilter:
         out: list[RawSample] = []
         if self.sampler is not None and not self.ended:
             grid: list[RawSample] = []
+            if self._held:
+                held, self._held = self._held, []
+                self.sampler.feed(held, grid)
             self.sampler.tick(now, grid)
             g = self.sampler.g
             if g is not None and self.sampler._done(g):

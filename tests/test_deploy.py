@@ -89,9 +89,11 @@ def test_make_keys_script_runs_the_same_commands() -> None:
     assert "set -euo pipefail" in script
     assert "platforms=(uav-a uav-b uav-c operator)" in script
     assert f'federation="{FEDERATION}"' in script
-    assert 'gen --platform "${platform}" --dir "${keys_dir}"' in script
-    assert 'trust --trust-file "${trust_file}" --federation "${federation}"' in script
-    assert '"${here}/make_certs.py" --dir "${keys_dir}/tls"' in script
+    # one Python runs every command (the CLI's main, then the deploy scripts' mains)
+    assert '["keys", "gen", "--platform", platform, "--dir", keys_dir]' in script
+    assert '["keys", "trust", "--trust-file", trust_file, "--federation", federation' in script
+    assert 'run(script("make_hub_configs"), ["--trust-file", trust_file, "--out"' in script
+    assert 'run(script("make_certs"), ["--dir", f"{keys_dir}/tls"' in script
     # the command it prints is deploy/README.md's: the project named, as the later
     # `docker compose -p dyknow … logs operator` expects
     readme = (DEPLOY / "README.md").read_text()

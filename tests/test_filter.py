@@ -809,6 +809,33 @@ def test_window_is_respected(data: st.DataObject, a: int, b: int, period: float 
     assert all(start <= s[1] <= end for s in out)
 
 
+@pytest.mark.parametrize(
+    ("lower", "last", "expected"),
+    [
+        # interpolated between the last value emitted (0 at 0 s) and the waiting one (-1 at
+        # 0.2 s), not extrapolated back from the next (-2 at 0.1 s, below the bound)
+        (-1.0, Sample(0, seconds_to_ns(0.3), seconds_to_ns(0.3) + 2), [-0.5, -1, 0]),
+        # the next one at the waiting one's valid time: a division by zero before
+        (None, Sample(0, seconds_to_ns(0.2), seconds_to_ns(0.2) + 3), [0.0, 0]),
+    ],
+)
+def test_a_sample_waiting_on_the_old_grid_is_fed_to_the_new_one(
+    lower: float | None, last: Sample, expected: list[Any]
+) -> None:
+    """Found by the property below: the old grid's waiting sample was taken for the one
+    before the new grid's next point, which it is not (it is newer)."""
+    first = Policy(sample_period=0.25)
+    second = Policy(sample_period=0.1, approximation="linear", lower=lower)
+    waiting = Sample(-1 if lower is not None else 0, seconds_to_ns(0.2), seconds_to_ns(0.2) + 2)
+    f = PolicyFilter(first)
+    assert [tuple(x) for x in f.process([Sample(0, 0, 0), Sample(0, 0, 1), waiting])] == [(0, 0, 0)]
+    g = PolicyFilter(second, previous=f)
+    out = [tuple(x) for x in g.process([last])]
+    assert [x[0] for x in out] == expected
+    assert [x[1] for x in out] == [seconds_to_ns(0.1 * (i + 1)) for i in range(len(out))]
+    check_stream(second, out, [waiting, last])
+
+
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
 def test_replacing_the_policy_keeps_order_and_change_guarantees(data: st.DataObject) -> None:

@@ -734,11 +734,19 @@ def test_a_platform_that_never_answers_holds_up_no_other_platforms_stream(
     conf.insert_json5("mode", '"peer"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("connect/endpoints", f'["tcp/127.0.0.1:{station.port}"]')
-    console = ghost = None
-    session = zenoh.open(conf)
+    console = ghost = session = None
     try:
-        session.declare_queryable(wire_key(station.federation, "kx", "ghost"), on_kx)
         station.start("python")
+        # ghost joins once the station listens, and is linked to it before the operator's
+        # node starts: opened before, its session retried the connect on a back-off of up
+        # to seconds, and on a loaded machine the command's key exchange to ghost could go
+        # out before ghost was linked to anyone (then no answer came)
+        session = zenoh.open(conf)
+        session.declare_queryable(wire_key(station.federation, "kx", "ghost"), on_kx)
+        deadline = time.monotonic() + 30
+        while not list(session.info.peers_zid()):
+            assert time.monotonic() < deadline, "ghost never linked to the station"
+            time.sleep(0.05)  # zenoh has no event for a link made: asked until it is
         console, _ = _console(station)
         ghost = subprocess.Popen(
             [
@@ -751,7 +759,9 @@ def test_a_platform_that_never_answers_holds_up_no_other_platforms_stream(
             cwd=station.dir,
             env=station.env,
         )
-        assert asked.wait(30)  # the node is in its create-stream to ghost
+        if not asked.wait(30):  # the node is in its create-stream to ghost
+            ghost.kill()
+            pytest.fail(f"ghost was never asked: {ghost.communicate(timeout=10)}")
         done = subprocess.run(
             [
                 *(*CLI, "stream", "temperature", "-p", "station", "--count", "1"),
@@ -774,4 +784,5 @@ def test_a_platform_that_never_answers_holds_up_no_other_platforms_stream(
             console.terminate()
             console.communicate(timeout=20)
         station.stop()
-        session.close()
+        if session is not None:
+            session.close()

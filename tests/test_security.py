@@ -751,9 +751,12 @@ GOOD_KEY = base64.b64encode(KEYS["uav-a"].public_key).decode()
         ('{"v":1,"federation":"demo","platforms":{"uav-b":"abc"}}', "key 'platforms.uav-b'"),
         ('{"v":1,"federation":"demo","platforms":{"uav-b":"AAAA"}}', "key 'platforms.uav-b'"),
         ('{"v":1,"federation":"demo","platforms":{"uav-b":5}}', "key 'platforms.uav-b'"),
-        (
+        # named: the key is made at import, and an id from it would differ between the
+        # processes of a parallel run, which must all collect the same tests
+        pytest.param(
             f'{{"v":1,"federation":"demo","platforms":{{"u/x":"{GOOD_KEY}"}}}}',
             "key 'platforms.u/x'",
+            id="good-key-bad-name",
         ),
     ],
 )
