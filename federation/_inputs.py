@@ -49,9 +49,10 @@ _UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 _PLACEHOLDER = re.compile(r"\{([^{}]+)\}")
 _WHOLE = "."  # the field path meaning the whole message
 _ERRNO = re.compile(r"\[Errno -?\d+\] ")  # an OS error's number, not for a person
-# a valid time this far after its arrival is a unit mistake (ms read as s), not a forecast:
-# pushed, it would stay its stream's latest sample for ever, hiding every correct one
-_MAX_AHEAD = 86_400 * 1_000_000_000
+# a valid time more than this many times the wall clock's (after the year 2500) is a unit
+# mistake (ms read as s: 1000 times), not a forecast or a fast simulation: pushed, it would
+# stay its stream's latest sample for ever, hiding every correct one
+_MAX_AHEAD_FACTOR = 10
 _LOGGED_PER_REASON = 5  # then one log line every _LOG_EVERY messages of that reason
 _LOG_EVERY = 1000
 _QUEUE = 10_000  # messages waiting between a transport's thread and the loop
@@ -372,8 +373,9 @@ class _Mapper:
         """Map one message to samples and push them; BadMessage when nothing can be used."""
         if valid is None:  # still None after this: the source stamps the arrival
             valid = self.valid_time(message, stamp)
-            if valid is not None and valid - time.time_ns() > _MAX_AHEAD:
-                ahead = (valid - time.time_ns()) / 86_400e9
+            now = time.time_ns()
+            if valid is not None and valid > now * _MAX_AHEAD_FACTOR:
+                ahead = (valid - now) / 86_400e9
                 why = (
                     f"{self.time or 'the stamp'} is {ahead:.3g} days after the message's arrival "
                     f"(time_unit {self.unit_name!r}: is the time in another unit?)"

@@ -712,3 +712,18 @@ async def test_a_time_in_another_unit_is_a_bad_time_not_the_stream_s_latest(
         assert [s.value for s in inst.latest("incident/s1").samples] == ["in s"]
     assert "(bad-time): time is 2.08e+07 days after the message's arrival" in caplog.text
     assert "(time_unit 's': is the time in another unit?)" in caplog.text
+
+
+async def test_a_time_days_ahead_of_the_clock_is_a_good_time() -> None:
+    """A 48 h forecast or a fast simulation is ahead of the wall clock, not in another unit."""
+    from federation._inputs import MqttInput
+
+    settings = MqttInput(kind="mqtt", topic="t/#", time="time", fields={"kind": "forecast/s1"})
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("forecast/s1")
+        mapper = input_runner(settings, inst).mapper
+        ahead = time.time() + 2 * 86_400
+        mapper.handle({"time": ahead, "kind": "in two days"})
+        mapper.handle({"time": ahead * 5, "kind": "a fast simulation"})
+        assert mapper.stats.bad == {} and mapper.stats.samples == 2
+        assert [s.value for s in inst.latest("forecast/s1").samples] == ["a fast simulation"]
