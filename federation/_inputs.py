@@ -607,7 +607,8 @@ class _MqttRunner(InputRunner):
 
 def _rows(path: Path, fmt: str) -> list[Any]:
     """Every message of a recorded file (JSON lines or CSV with a header row)."""
-    with path.open(encoding="utf-8", newline="") as f:
+    # utf-8-sig: a byte-order mark (Excel writes one) is not the first column's name
+    with path.open(encoding="utf-8-sig", newline="") as f:
         if fmt == "csv":
             return _csv_rows(f, path)
         rows: list[Any] = []

@@ -661,6 +661,37 @@ async def test_a_csv_column_the_input_names_and_the_header_lacks_is_warned_once(
     assert caplog.text.count("no column 'speeed'") == 1  # once, not per row
 
 
+@pytest.mark.parametrize(
+    ("name", "text"),
+    [
+        ("loops.csv", "time,segment,speed\r\n1,s1,60\r\n"),
+        ("loops.jsonl", '{"time": 1, "segment": "s1", "speed": 60}\n'),
+    ],
+    ids=["csv", "jsonl"],
+)
+async def test_a_file_starting_with_a_byte_order_mark_reads_its_first_column(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, name: str, text: str
+) -> None:
+    """Excel saves CSV as UTF-8 with a byte-order mark: not part of the first column's name."""
+    from federation._inputs import FileInput
+
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8-sig")
+    assert path.read_bytes().startswith(b"\xef\xbb\xbf")
+    fields = {"speed": "seg/{segment}/speed"}
+    async with DyKnowInstance("t") as inst:
+        settings = FileInput(
+            kind="file", path=path, pace="fast", time="time", create=True, fields=fields
+        )
+        runner = input_runner(settings, inst)
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            await asyncio.wait_for(runner.run(None), 10)
+        assert runner.mapper.stats.bad == {} and runner.mapper.stats.samples == 1
+        [sample] = inst.latest("seg/s1/speed").samples
+        assert (sample.value, sample.valid_time) == (60, 1_000_000_000)
+    assert "no column" not in caplog.text
+
+
 def test_a_payload_that_does_not_decode_is_said_in_the_decoder_s_words() -> None:
     """A malformed MQTT or zenoh payload: where it breaks, not the exception's class."""
     from federation._inputs import BadMessage, MqttInput
