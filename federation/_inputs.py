@@ -734,8 +734,10 @@ def _missing_columns(header: list[str], settings: _InputBase) -> list[str]:
         if path != _WHOLE and path.split(".", 1)[0] not in header:
             problems.append(f"no column {path!r} {where}: fields.{path} gives {label!r} nothing")
         for hole in _PLACEHOLDER.findall(label):
-            if hole != "topic" and hole.split(".", 1)[0] not in header:
-                problems.append(f"no column {hole!r} {where}: no row can fill label {label!r}")
+            # a file has no topic: `{topic}` too is a column here
+            if hole.split(".", 1)[0] not in header:
+                why = " (a file input has no topic)" if hole == "topic" else ""
+                problems.append(f"no column {hole!r} {where}: no row can fill label {label!r}{why}")
     t = settings.time
     if t is not None and t.split(".", 1)[0] not in header:
         problems.append(f"no column {t!r} {where}: time = {t!r}: rows are valid at their arrival")
@@ -764,8 +766,10 @@ class _FileRunner(InputRunner):
         if s.file_format() == "csv":
             header = next((list(r) for r in rows if isinstance(r, dict)), None)
             if header is not None:
+                # the path once: the title is `file PATH` unless the input is named
+                title = s.title() if s.name is None else f"{s.title()}: {s.path}"
                 for problem in _missing_columns(header, s):
-                    log.warning("input %s: %s: %s", s.title(), s.path, problem)
+                    log.warning("input %s: %s", title, problem)
         last: int | None = None
         while True:
             last = await self._replay(rows, mapper, s, last)

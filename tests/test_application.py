@@ -659,6 +659,35 @@ async def test_a_csv_column_the_input_names_and_the_header_lacks_is_warned_once(
     assert f"no column 'segmnt' {cols}: no row can fill label 'seg/{{segmnt}}/flow'" in caplog.text
     assert f"no column 'tme' {cols}: time = 'tme'" in caplog.text
     assert caplog.text.count("no column 'speeed'") == 1  # once, not per row
+    warned = [r.getMessage() for r in caplog.records if "no column" in r.getMessage()]
+    assert len(warned) == 3 and all(w.count(str(path)) == 1 for w in warned)  # once a line
+
+
+async def test_a_topic_placeholder_in_a_file_input_s_label_is_a_column_too(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A file has no topic: `{topic}` is filled from a column of that name, or warned."""
+    from federation._inputs import FileInput
+
+    path = tmp_path / "loops.csv"
+    path.write_text("time,speed\n1,60\n")
+    async with DyKnowInstance("t") as inst:
+        settings = FileInput(
+            kind="file",
+            path=path,
+            pace="fast",
+            time="time",
+            create=True,
+            fields={"speed": "seg/{topic}/speed"},
+            name="loops",
+        )
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            await asyncio.wait_for(input_runner(settings, inst).run(None), 10)
+    line = (
+        f"input loops: {path}: no column 'topic' (its columns: time, speed): no row can fill"
+        " label 'seg/{topic}/speed' (a file input has no topic)"
+    )
+    assert line in caplog.text
 
 
 @pytest.mark.parametrize(
