@@ -22,7 +22,6 @@ import os
 import statistics
 import tempfile
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -208,12 +207,14 @@ async def pace(asker: Agent, n: int = PACE_N) -> list[float]:
 # -- the attacker: a plain zenoh session, no key of the federation -------------------------------
 
 
-def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> None:
-    """Send ``payloads`` round and round to ``key`` at FLOOD_RATE until told to stop."""
+def attacker_main(endpoint: str, key: str, conn: Any) -> None:
+    """Send the payloads `go` hands over round and round to ``key`` at FLOOD_RATE until
+    told to stop."""
     session = zenoh_client(endpoint)
     try:
         conn.send("ready")
-        conn.recv()  # go
+        go, payloads = conn.recv()
+        assert go == "go", go
         n = len(payloads)
         if "/acl/" in key:
             publisher = session.declare_publisher(key)
@@ -227,6 +228,16 @@ def attacker_main(endpoint: str, key: str, payloads: list[bytes], conn: Any) -> 
             )
     finally:
         session.close()
+
+
+def go(attacker: Connection, payloads: list[bytes]) -> None:
+    """Start the attacker's flood with ``payloads``.
+
+    Made by the caller just before: a forged handshake carries a signed time the victim
+    checks against its skew limit, and the calm rounds before a flood take long enough
+    to age payloads made at the attacker's spawn past it.
+    """
+    attacker.send(("go", payloads))
 
 
 def kx_payloads(keydir: Path, fed: str, trust: TrustStore) -> list[bytes]:
@@ -279,31 +290,25 @@ class Federation(FloodFederation):
     prefix = "kx"
     node_main = staticmethod(node_main)
 
-    def attacker(self, what: str, payloads: list[bytes]) -> Connection:
-        """Start the attacker on ``what`` (kx or acl) of the victim."""
+    def attacker(self, what: str) -> Connection:
+        """Start the attacker on ``what`` (kx or acl) of the victim; `go` gives it payloads."""
         endpoint = f"tcp/127.0.0.1:{self.port}"
         key = wire_key(self.fed, what, VICTIM)
-        return self.spawn(attacker_main, (endpoint, key, payloads), f"kx-attacker-{what}")
+        return self.spawn(attacker_main, (endpoint, key), f"kx-attacker-{what}")
 
     def started(
-        self,
-        what: str,
-        payloads: Callable[[], list[bytes]],
-        pipes: list[Connection],
-        *,
-        shed: bool = True,
+        self, what: str, pipes: list[Connection], *, shed: bool = True
     ) -> tuple[Connection, Connection, Connection]:
         """The victim, the attacker on its ``what`` and the member, all ready; their pipes.
 
-        ``payloads`` is called once the victim is ready: they carry signed times the victim
-        checks against its skew, so they must not age while it starts. Each pipe is added to
-        ``pipes`` as soon as its process runs (to be closed).
+        Each pipe is added to ``pipes`` as soon as its process runs (to be closed). The
+        attacker waits for `go` and its payloads.
         """
         victim = self.node(VICTIM, self.port, [], shed=shed)
         pipes.append(victim)
         assert recv(victim, "the victim", START) == "ready"
         # a zenoh client: it needs the victim listening
-        attacker = self.attacker(what, payloads())
+        attacker = self.attacker(what)
         pipes.append(attacker)
         member = self.node(MEMBER, free_tcp_port(), [self.port])
         pipes.append(member)
@@ -352,9 +357,7 @@ def flood(tmp: Path, *, shed: bool = True, calm: bool = True) -> FloodRun:
     f = Federation(tmp)
     pipes: list[Connection] = []
     try:
-        victim, attacker, member = f.started(
-            "kx", lambda: kx_payloads(f.keydir, f.fed, f.trust), pipes, shed=shed
-        )
+        victim, attacker, member = f.started("kx", pipes, shed=shed)
         member.send("pace" if calm else "warm")
         recv(member, "the member's first requests", WAIT + PACE_N * PACE_PERIOD)
         calmly: list[float] = []
@@ -363,7 +366,7 @@ def flood(tmp: Path, *, shed: bool = True, calm: bool = True) -> FloodRun:
             calmly = recv(member, "the member's calm requests", WAIT + PACE_N * PACE_PERIOD)
         victim.send("report")
         before = recv(victim, "the victim's report")
-        attacker.send("go")
+        go(attacker, kx_payloads(f.keydir, f.fed, f.trust))  # fresh, after the calm rounds
         time.sleep(0.5)  # the flood under way
         member.send("pace")
         during = recv(member, "the member's requests during the flood", 3 * FLOOD_SECONDS)

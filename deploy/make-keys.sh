@@ -19,10 +19,17 @@ platforms=(uav-a uav-b uav-c operator)
 root="$(cd "${here}/.." && pwd)"
 cli="$(command -v dyknow || true)"
 shebang="$( [[ -n "${cli}" ]] && head -n 1 "${cli}" || true)"
+cli_python="${shebang#\#!}"
+# only a Python named there: pip writes `#!/bin/sh` and an exec line instead when the
+# interpreter's path has a space or is too long for a shebang
+if [[ "${shebang}" != "#!"* || "$(basename -- "${cli_python}")" != python* \
+    || ! -x "${cli_python}" ]]; then
+    cli_python=""
+fi
 if [[ -n "${PYTHON:-}" ]]; then
     python="${PYTHON}"
-elif [[ "${shebang}" == "#!"* && -x "${shebang#\#!}" ]]; then
-    python="${shebang#\#!}"                  # the interpreter the CLI was installed with
+elif [[ -n "${cli_python}" ]]; then
+    python="${cli_python}"                   # the interpreter the CLI was installed with
 elif [[ -x "${root}/.venv/bin/python" ]]; then
     python="${root}/.venv/bin/python"        # what `make` installed
 else
@@ -73,6 +80,19 @@ run(script("make_hub_configs"), ["--trust-file", trust_file, "--out", config_dir
 certs = [arg for platform in platforms for arg in ("--platform", platform)]
 run(script("make_certs"), ["--dir", f"{keys_dir}/tls", *certs])
 PY
+
+# the interpreter may not have been Python at all and made nothing without failing
+for platform in "${platforms[@]}"; do
+    if [[ ! -f "${keys_dir}/${platform}.key" ]]; then
+        echo "make-keys.sh: no key ${keys_dir}/${platform}.key was made (with ${python});" \
+            "set PYTHON to a Python that has the project installed" >&2
+        exit 1
+    fi
+done
+if [[ ! -f "${trust_file}" ]]; then
+    echo "make-keys.sh: no trust file ${trust_file} was made (with ${python})" >&2
+    exit 1
+fi
 
 cat <<MSG
 Keys and trust file are in ${keys_dir}, certificates and passwords in ${keys_dir}/tls.

@@ -422,22 +422,34 @@ class PolicyFilter:
                 before = (previous.last_value, previous.last_tv, previous.last_tv)
                 if _within_bounds(policy, before[0]):
                     self.sampler.before = before
-                pending = previous.sampler.before if previous.sampler is not None else None
-                if (
-                    pending is not None
-                    and pending[1] > previous.last_tv
-                    and _within_bounds(policy, pending[0])
-                ):
+            pending = previous._waiting() if previous is not None else None
+            if pending is not None and _within_bounds(policy, pending[0]):
+                maxd = policy.max_delay
+                if maxd is None or pending[2] - pending[1] <= seconds_to_ns(maxd):
                     # a newer sample was waiting for the next grid point: it still decides
-                    # it, fed to this grid as it came. Not as `before`: that is older than
-                    # the grid's next point, and our grid points before it lie between the
-                    # last one emitted and it (interpolated, not extrapolated from it)
+                    # it, fed to this grid as it came (when this policy admits it). Not as
+                    # `before`: that is older than the grid's next point, and our grid
+                    # points before it lie between the last one emitted and it
+                    # (interpolated, not extrapolated from it)
                     self._held = [pending]
             # the window applies to grid times (in the sampler), not to the inputs: the
             # sample just before `start` or just after `end` decides the edge grid points.
             # Order is the contract's: applied to the inputs, before the grid.
             self._pre = _compile(policy, stages=("late", "order", "bounds"), order_attr="in_tv")
             self._post = _compile(policy, stages=("change", "emit"), mapper=mapper)
+
+    def _waiting(self) -> RawSample | None:
+        """The sample newer than the last one emitted that waits for a grid point, or None.
+
+        Still held for the grid (no batch or tick since this policy replaced another), or
+        the grid's sample before its next point.
+        """
+        if self._held:
+            return self._held[0]
+        pending = self.sampler.before if self.sampler is not None else None
+        if pending is not None and pending[1] > self.last_tv:
+            return pending
+        return None
 
     def process(self, batch: list[RawSample]) -> list[RawSample]:
         """Apply the policy to a batch of newly available samples; return what to emit.

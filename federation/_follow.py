@@ -135,15 +135,7 @@ async def _ask_for(
                     )
                     changed()
                 else:
-                    stream.state, stream.error = "active", None
-                    if stream.refused_before:  # the refusal was a warning: so is its end
-                        stream.refused_before = False
-                        log.warning(
-                            "%s now streams %s to %s (refused before)",
-                            member,
-                            stream.label,
-                            platform.name,
-                        )
+                    agreed(stream, member, platform.name)
                     changed()
                     return
         await asyncio.sleep(RETRY)
@@ -172,6 +164,14 @@ async def _take_in(
                 if stream.last_valid is None or newest > stream.last_valid:
                     stream.last_valid = newest
             feed(batch)
+
+
+def agreed(stream: FollowedStream, member: str, follower: str) -> None:
+    """Mark ``stream`` active: ``member`` agreed it. After a refusal, say so (a warning)."""
+    stream.state, stream.error = "active", None
+    if stream.refused_before:  # the refusal was a warning: so is its end, once
+        stream.refused_before = False
+        log.warning("%s now streams %s to %s (refused before)", member, stream.label, follower)
 
 
 async def cancel_export(platform: FederationPlatform, member: str, stream: FollowedStream) -> None:

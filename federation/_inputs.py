@@ -49,9 +49,10 @@ _UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 _PLACEHOLDER = re.compile(r"\{([^{}]+)\}")
 _WHOLE = "."  # the field path meaning the whole message
 _ERRNO = re.compile(r"\[Errno -?\d+\] ")  # an OS error's number, not for a person
-# a valid time this far after its arrival is a unit mistake (ms read as s), not a forecast:
-# pushed, it would stay its stream's latest sample for ever, hiding every correct one
-_MAX_AHEAD = 86_400 * 1_000_000_000
+# a valid time more than this many times the wall clock's (after the year 2500) is a unit
+# mistake (ms read as s: 1000 times), not a forecast or a fast simulation: pushed, it would
+# stay its stream's latest sample for ever, hiding every correct one
+_MAX_AHEAD_FACTOR = 10
 _LOGGED_PER_REASON = 5  # then one log line every _LOG_EVERY messages of that reason
 _LOG_EVERY = 1000
 _QUEUE = 10_000  # messages waiting between a transport's thread and the loop
@@ -372,8 +373,9 @@ class _Mapper:
         """Map one message to samples and push them; BadMessage when nothing can be used."""
         if valid is None:  # still None after this: the source stamps the arrival
             valid = self.valid_time(message, stamp)
-            if valid is not None and valid - time.time_ns() > _MAX_AHEAD:
-                ahead = (valid - time.time_ns()) / 86_400e9
+            now = time.time_ns()
+            if valid is not None and valid > now * _MAX_AHEAD_FACTOR:
+                ahead = (valid - now) / 86_400e9
                 why = (
                     f"{self.time or 'the stamp'} is {ahead:.3g} days after the message's arrival "
                     f"(time_unit {self.unit_name!r}: is the time in another unit?)"
@@ -605,7 +607,8 @@ class _MqttRunner(InputRunner):
 
 def _rows(path: Path, fmt: str) -> list[Any]:
     """Every message of a recorded file (JSON lines or CSV with a header row)."""
-    with path.open(encoding="utf-8", newline="") as f:
+    # utf-8-sig: a byte-order mark (Excel writes one) is not the first column's name
+    with path.open(encoding="utf-8-sig", newline="") as f:
         if fmt == "csv":
             return _csv_rows(f, path)
         rows: list[Any] = []
@@ -731,8 +734,10 @@ def _missing_columns(header: list[str], settings: _InputBase) -> list[str]:
         if path != _WHOLE and path.split(".", 1)[0] not in header:
             problems.append(f"no column {path!r} {where}: fields.{path} gives {label!r} nothing")
         for hole in _PLACEHOLDER.findall(label):
-            if hole != "topic" and hole.split(".", 1)[0] not in header:
-                problems.append(f"no column {hole!r} {where}: no row can fill label {label!r}")
+            # a file has no topic: `{topic}` too is a column here
+            if hole.split(".", 1)[0] not in header:
+                why = " (a file input has no topic)" if hole == "topic" else ""
+                problems.append(f"no column {hole!r} {where}: no row can fill label {label!r}{why}")
     t = settings.time
     if t is not None and t.split(".", 1)[0] not in header:
         problems.append(f"no column {t!r} {where}: time = {t!r}: rows are valid at their arrival")
@@ -761,8 +766,10 @@ class _FileRunner(InputRunner):
         if s.file_format() == "csv":
             header = next((list(r) for r in rows if isinstance(r, dict)), None)
             if header is not None:
+                # the path once: the title is `file PATH` unless the input is named
+                title = s.title() if s.name is None else f"{s.title()}: {s.path}"
                 for problem in _missing_columns(header, s):
-                    log.warning("input %s: %s: %s", s.title(), s.path, problem)
+                    log.warning("input %s: %s", title, problem)
         last: int | None = None
         while True:
             last = await self._replay(rows, mapper, s, last)

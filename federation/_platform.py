@@ -713,8 +713,6 @@ def _read_files(config: PlatformConfig, source: str) -> _Files:
             f"{config.trust} is the trust file of federation {trust.federation!r}, "
             f"not of {config.federation!r}",
         )
-    for problem in _strangers(config, trust):
-        log.warning("%s: %s", source, problem)
     try:
         if isinstance(config.vocabulary, Path):
             vocabulary = Vocabulary.load(config.vocabulary)
@@ -806,7 +804,8 @@ class FederationPlatform:
     open on exit (their owner closes them). ``join=False`` keeps the platform out of the
     federation until `join` (set up local streams and agents first). ``rules`` keep
     `facts` current from the instance's streams, for label search by formula, after the
-    config's ``[[facts]]``.
+    config's ``[[facts]]``. A ``[sharing]`` pattern no trusted platform matches is warned
+    when it joins (not by one opened only to ask).
     ``on_import_ended(sender, labels)`` is told when a sender whose streams we import is
     gone (its imported streams are then ended). ``anchor`` is asked when another platform
     wants a stream of an object not known here yet (see `FederationAgent`).
@@ -849,7 +848,12 @@ class FederationPlatform:
         self.config = config
         self.name = config.name
         self.max_consented_imports = config.consented_import_limit
-        files = _read_files(config, source or f"platform {config.name}")
+        source = source or f"platform {config.name}"
+        files = _read_files(config, source)
+        # said when it joins the federation (the platform's owner: a node, a console), not
+        # by every one-shot command that opens it from the config to ask
+        self._sharing_problems = [f"{source}: {p}" for p in _strangers(config, files.trust)]
+        self._join_on_open = join
         self.vocabulary = files.vocabulary
         self.mapping = files.mapping
         self._own_instance = instance is None
@@ -974,7 +978,15 @@ class FederationPlatform:
             await stack.aclose()
             raise
         log.info("platform %s: running in federation %s", self.name, self.config.federation)
+        if self._join_on_open:
+            self._say_sharing_problems()
         return self
+
+    def _say_sharing_problems(self) -> None:
+        """Warn, once, of the ``[sharing]`` patterns no trusted platform matches."""
+        for problem in self._sharing_problems:
+            log.warning("%s", problem)
+        self._sharing_problems = []
 
     async def __aexit__(self, *exc: object) -> None:
         await self.aclose()
@@ -1000,6 +1012,7 @@ class FederationPlatform:
 
     async def join(self) -> None:
         """Register the federation service: the platform becomes a member."""
+        self._say_sharing_problems()
         await self.federation_agent.join()
 
     async def leave(self) -> None:

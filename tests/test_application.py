@@ -659,6 +659,66 @@ async def test_a_csv_column_the_input_names_and_the_header_lacks_is_warned_once(
     assert f"no column 'segmnt' {cols}: no row can fill label 'seg/{{segmnt}}/flow'" in caplog.text
     assert f"no column 'tme' {cols}: time = 'tme'" in caplog.text
     assert caplog.text.count("no column 'speeed'") == 1  # once, not per row
+    warned = [r.getMessage() for r in caplog.records if "no column" in r.getMessage()]
+    assert len(warned) == 3 and all(w.count(str(path)) == 1 for w in warned)  # once a line
+
+
+async def test_a_topic_placeholder_in_a_file_input_s_label_is_a_column_too(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A file has no topic: `{topic}` is filled from a column of that name, or warned."""
+    from federation._inputs import FileInput
+
+    path = tmp_path / "loops.csv"
+    path.write_text("time,speed\n1,60\n")
+    async with DyKnowInstance("t") as inst:
+        settings = FileInput(
+            kind="file",
+            path=path,
+            pace="fast",
+            time="time",
+            create=True,
+            fields={"speed": "seg/{topic}/speed"},
+            name="loops",
+        )
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            await asyncio.wait_for(input_runner(settings, inst).run(None), 10)
+    line = (
+        f"input loops: {path}: no column 'topic' (its columns: time, speed): no row can fill"
+        " label 'seg/{topic}/speed' (a file input has no topic)"
+    )
+    assert line in caplog.text
+
+
+@pytest.mark.parametrize(
+    ("name", "text"),
+    [
+        ("loops.csv", "time,segment,speed\r\n1,s1,60\r\n"),
+        ("loops.jsonl", '{"time": 1, "segment": "s1", "speed": 60}\n'),
+    ],
+    ids=["csv", "jsonl"],
+)
+async def test_a_file_starting_with_a_byte_order_mark_reads_its_first_column(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, name: str, text: str
+) -> None:
+    """Excel saves CSV as UTF-8 with a byte-order mark: not part of the first column's name."""
+    from federation._inputs import FileInput
+
+    path = tmp_path / name
+    path.write_text(text, encoding="utf-8-sig")
+    assert path.read_bytes().startswith(b"\xef\xbb\xbf")
+    fields = {"speed": "seg/{segment}/speed"}
+    async with DyKnowInstance("t") as inst:
+        settings = FileInput(
+            kind="file", path=path, pace="fast", time="time", create=True, fields=fields
+        )
+        runner = input_runner(settings, inst)
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            await asyncio.wait_for(runner.run(None), 10)
+        assert runner.mapper.stats.bad == {} and runner.mapper.stats.samples == 1
+        [sample] = inst.latest("seg/s1/speed").samples
+        assert (sample.value, sample.valid_time) == (60, 1_000_000_000)
+    assert "no column" not in caplog.text
 
 
 def test_a_payload_that_does_not_decode_is_said_in_the_decoder_s_words() -> None:
@@ -712,3 +772,18 @@ async def test_a_time_in_another_unit_is_a_bad_time_not_the_stream_s_latest(
         assert [s.value for s in inst.latest("incident/s1").samples] == ["in s"]
     assert "(bad-time): time is 2.08e+07 days after the message's arrival" in caplog.text
     assert "(time_unit 's': is the time in another unit?)" in caplog.text
+
+
+async def test_a_time_days_ahead_of_the_clock_is_a_good_time() -> None:
+    """A 48 h forecast or a fast simulation is ahead of the wall clock, not in another unit."""
+    from federation._inputs import MqttInput
+
+    settings = MqttInput(kind="mqtt", topic="t/#", time="time", fields={"kind": "forecast/s1"})
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("forecast/s1")
+        mapper = input_runner(settings, inst).mapper
+        ahead = time.time() + 2 * 86_400
+        mapper.handle({"time": ahead, "kind": "in two days"})
+        mapper.handle({"time": ahead * 5, "kind": "a fast simulation"})
+        assert mapper.stats.bad == {} and mapper.stats.samples == 2
+        assert [s.value for s in inst.latest("forecast/s1").samples] == ["a fast simulation"]

@@ -836,3 +836,53 @@ async def test_a_stream_agreed_after_a_refusal_is_said_as_the_refusal_was(
     assert warned[0].startswith("roadside refused s1-incident to tmc: label 's1-incident'")
     assert warned[1:] == ["roadside now streams s1-incident to tmc (refused before)"]
     assert stream.state == "active" and stream.export_id == "x-1"
+
+
+async def test_a_refused_stream_a_policy_change_gets_is_said_as_agreed_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The page's policy change on a refused stream, agreed: said as the retry's agreement
+    is; and once only: asked again later, it was not refused since it flowed."""
+    from types import SimpleNamespace
+
+    from federation import _follow
+    from federation.console._server import _Platform, _Stream
+
+    answers: list[Any] = [RuntimeError("label 's1-incident' may not be streamed to tmc"), "x-1"]
+    answers += ["x-2"]
+
+    async def create_stream(member: str, labels: list[str], **_: Any) -> str:
+        answer = answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return str(answer)
+
+    async def cancel_stream(member: str, export_id: str, **_: Any) -> None:
+        return None
+
+    agent = SimpleNamespace(create_stream=create_stream, cancel_stream=cancel_stream)
+    platform = SimpleNamespace(name="tmc", federation_agent=agent)
+    console = SimpleNamespace(platform=platform, _changed=lambda: None)
+    stream = _Stream("s1-incident")
+    with caplog.at_level("WARNING", logger="federation.follow"):
+        # refused once (the retry loop's first ask), then the page asks for another period
+        with contextlib.suppress(TimeoutError):
+            await asyncio.wait_for(
+                _follow._ask_for(platform, "roadside", stream, lambda: True, lambda: None),  # type: ignore[arg-type]
+                0.2,
+            )
+        assert stream.state == "refused" and stream.refused_before
+        roadside = _Platform("roadside")
+        await OperatorConsole._change_policy(console, roadside, stream, 0.5)  # type: ignore[arg-type]
+        assert stream.state == "active" and stream.export_id == "x-1"
+        assert not stream.refused_before
+        # the export ends (its lease expired) and the follower asks again: agreed, not news
+        stream.export_id, stream.state = None, "requesting"
+        await asyncio.wait_for(
+            _follow._ask_for(platform, "roadside", stream, lambda: True, lambda: None),  # type: ignore[arg-type]
+            5,
+        )
+    warned = [r.getMessage() for r in caplog.records]
+    assert warned[0].startswith("roadside refused s1-incident to tmc: label 's1-incident'")
+    assert warned[1:] == ["roadside now streams s1-incident to tmc (refused before)"]
+    assert stream.state == "active" and stream.export_id == "x-2"

@@ -102,6 +102,62 @@ def test_make_keys_script_runs_the_same_commands() -> None:
     assert "/deploy/config/keys/" in (DEPLOY.parent / ".gitignore").read_text().splitlines()
 
 
+def _run_make_keys(tmp: Path, python3: str) -> tuple[subprocess.CompletedProcess[str], Path]:
+    """Run a copy of make-keys.sh with pip's long-path `dyknow` script on the PATH.
+
+    pip writes `#!/bin/sh` and an exec line into the script when the venv's path has a
+    space or is too long for a shebang. `python3` on the PATH runs the shell line
+    ``python3``. The copy has no .venv beside it: python3 is the next choice after the CLI's.
+    """
+    deploy = tmp / "deploy"
+    deploy.mkdir()
+    for name in ("make-keys.sh", "make_certs.py", "make_hub_configs.py"):
+        shutil.copy(DEPLOY / name, deploy / name)
+    config = deploy / "config"
+    shutil.copytree(CONFIG, config, ignore=shutil.ignore_patterns("keys"))
+    bin_dir = tmp / "bin"
+    bin_dir.mkdir()
+    dyknow = bin_dir / "dyknow"
+    dyknow.write_text(
+        "#!/bin/sh\n"
+        """'''exec' "/a venv/with a space/bin/python" "$0" "$@"\n"""
+        "' '''\n"
+        "from federation.cli import main\n"
+    )
+    (bin_dir / "python3").write_text(f"#!/bin/sh\n{python3}\n")
+    for script in (dyknow, bin_dir / "python3"):
+        script.chmod(0o755)
+    env = {k: v for k, v in os.environ.items() if k != "PYTHON"}
+    env["PATH"] = f"{bin_dir}{os.pathsep}{env.get('PATH', '')}"
+    env["PYTHONPATH"] = str(DEPLOY.parent)
+    done = subprocess.run(
+        ["bash", str(deploy / "make-keys.sh"), str(config)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        env=env,
+    )
+    return done, config / "keys"
+
+
+def test_make_keys_skips_a_cli_whose_first_line_is_not_a_python(tmp_path: Path) -> None:
+    done, keys = _run_make_keys(tmp_path, f'exec "{sys.executable}" "$@"')
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert all((keys / f"{p}.key").is_file() for p in PLATFORMS)
+    assert (keys / "trust.json").is_file()
+    assert "Keys and trust file are in" in done.stdout
+
+
+def test_make_keys_fails_when_no_key_was_made(tmp_path: Path) -> None:
+    # an interpreter that reads the program, does nothing, and exits 0
+    done, keys = _run_make_keys(tmp_path, "cat >/dev/null")
+    assert done.returncode != 0
+    assert "no key" in done.stderr and "PYTHON" in done.stderr
+    assert "Keys and trust file are in" not in done.stdout
+    assert not (keys / "uav-a.key").exists()
+
+
 @pytest.mark.parametrize("subdir", ["", "mqtt/", "secure/"])
 @pytest.mark.parametrize("platform", PLATFORMS)
 def test_platform_config_is_valid(keyed_config: Path, platform: str, subdir: str) -> None:

@@ -836,6 +836,41 @@ def test_a_sample_waiting_on_the_old_grid_is_fed_to_the_new_one(
     check_stream(second, out, [waiting, last])
 
 
+@pytest.mark.parametrize("replacements", [1, 2, 3])
+def test_a_waiting_sample_survives_replacements_with_nothing_between(replacements: int) -> None:
+    """Replaced again before a sample or tick, the filter still has the waiting sample (it
+    was held, not yet on the grid, where the next replacement did not look)."""
+    f = PolicyFilter(Policy(sample_period=0.25))
+    assert [tuple(x) for x in f.process([smp(0, 0), smp(5.0, 0.2)])] == [(0, 0, 0)]
+    second = Policy(sample_period=0.1, approximation="linear")
+    for _ in range(replacements):
+        f = PolicyFilter(second, previous=f)
+    out = [tuple(x) for x in f.process([smp(2.0, 0.4)])]
+    assert [x[1] for x in out] == [seconds_to_ns(t) for t in (0.1, 0.2, 0.3, 0.4)]
+    assert [x[0] for x in out] == pytest.approx([2.5, 5.0, 3.5, 2.0])
+
+
+def test_a_waiting_sample_survives_a_replacement_before_anything_was_emitted() -> None:
+    f = PolicyFilter(Policy(sample_period=1.0))
+    assert f.process([smp(1.0, 0.5)]) == []  # waits for the grid point at 1 s
+    second = Policy(sample_period=0.25, approximation="linear")
+    g = PolicyFilter(second, previous=f)
+    out = [tuple(x) for x in g.process([smp(2.0, 1.0)])]
+    assert [x[1] for x in out] == [seconds_to_ns(t) for t in (0.5, 0.75, 1.0)]
+    assert [x[0] for x in out] == pytest.approx([1.0, 1.5, 2.0])
+
+
+def test_a_waiting_sample_late_for_the_new_policy_is_dropped() -> None:
+    f = PolicyFilter(Policy(sample_period=0.25))
+    late = smp(5.0, 0.2, 0.5)  # 0.3 s after its valid time: late for the new policy
+    assert [tuple(x) for x in f.process([smp(0, 0), late])] == [(0, 0, 0)]
+    second = Policy(sample_period=0.1, approximation="most_recent", max_delay=0.25)
+    g = PolicyFilter(second, previous=f)
+    out = [tuple(x) for x in g.process([smp(2.0, 0.4, 0.5)])]
+    assert [x[1] for x in out] == [seconds_to_ns(t) for t in (0.1, 0.2, 0.3, 0.4)]
+    assert [x[0] for x in out] == [0, 0, 0, 2.0]  # never the late 5.0
+
+
 @settings(max_examples=150, deadline=None)
 @given(data=st.data())
 def test_replacing_the_policy_keeps_order_and_change_guarantees(data: st.DataObject) -> None:

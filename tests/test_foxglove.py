@@ -17,6 +17,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
+import hashlib
 import json
 import math
 import os
@@ -27,6 +29,7 @@ import socket
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -140,21 +143,59 @@ def test_foxglove_settings_errors_name_the_key(section: dict[str, Any], error: s
 # -- end to end: a UAV, `dyknow foxglove`, a Node client -----------------------------------
 
 
+def install_node_packages(node_dir: Path, npm: str) -> bool:
+    """``npm ci`` in ``node_dir`` unless its package-lock.json's content is installed there.
+
+    One process at a time (an exclusive lock on a file beside node_modules): pytest-xdist's
+    workers each run the module's fixture, and two ``npm ci`` on one node_modules break
+    each other. The one that waited finds the packages installed and installs nothing.
+    True when it ran ``npm ci``.
+    """
+    digest = hashlib.sha256((node_dir / "package-lock.json").read_bytes()).hexdigest()
+    stamp = node_dir / "node_modules" / ".installed-lock-sha256"  # written after npm ci
+    with (node_dir / ".npm-ci.lock").open("a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if stamp.exists() and stamp.read_text() == digest:
+            return False
+        subprocess.run(
+            [npm, "ci", "--no-audit", "--no-fund", "--loglevel=error"],
+            cwd=node_dir,
+            check=True,
+            timeout=300,
+        )
+        stamp.write_text(digest)
+        return True
+
+
 @pytest.fixture(scope="module")
 def foxglove_client() -> Path:
     """tests/node's client with its locked packages installed (``npm ci`` when stale)."""
     npm, node = shutil.which("npm"), shutil.which("node")
     assert npm and node, "Node.js and npm are needed: the test's protocol client runs under Node"
-    lock = NODE_DIR / "package-lock.json"
-    installed = NODE_DIR / "node_modules" / ".package-lock.json"  # npm writes it last
-    if not installed.exists() or installed.stat().st_mtime < lock.stat().st_mtime:
-        subprocess.run(
-            [npm, "ci", "--no-audit", "--no-fund", "--loglevel=error"],
-            cwd=NODE_DIR,
-            check=True,
-            timeout=300,
-        )
+    install_node_packages(NODE_DIR, npm)
     return NODE_DIR / "foxglove_client.mjs"
+
+
+def test_npm_ci_runs_once_for_workers_that_ask_at_once(tmp_path: Path) -> None:
+    """pytest-xdist's workers each want tests/node installed: one installs, one waits."""
+    node_dir = tmp_path / "node"
+    node_dir.mkdir()
+    (node_dir / "package-lock.json").write_text('{"lockfileVersion": 3}')
+    log = tmp_path / "npm.log"
+    npm = tmp_path / "npm"
+    npm.write_text(
+        f"#!/bin/sh\necho start >> {log}\nrm -rf node_modules\nsleep 0.5\n"
+        f"mkdir node_modules\necho end >> {log}\n"
+    )
+    npm.chmod(0o755)
+    with ThreadPoolExecutor(2) as pool:
+        ran = list(pool.map(lambda _: install_node_packages(node_dir, str(npm)), range(2)))
+    assert sorted(ran) == [False, True]
+    assert log.read_text().split() == ["start", "end"]
+    assert not install_node_packages(node_dir, str(npm))  # installed: nothing to do
+    (node_dir / "package-lock.json").write_text('{"lockfileVersion": 3, "packages": {}}')
+    assert install_node_packages(node_dir, str(npm))  # another lock file: installed again
+    assert log.read_text().split() == ["start", "end", "start", "end"]
 
 
 def _free_port() -> int:

@@ -45,6 +45,7 @@ from bench.kxflood import (
     acl_payloads,
     figures,
     flood,
+    go,
 )
 
 # every child a test spawned is gone after it, whatever the test did
@@ -117,12 +118,12 @@ def test_junk_envelopes_claiming_a_member_rekey_at_most_once_per_interval(
     f = Federation(tmp_path)
     pipes: list[Connection] = []
     try:
-        victim, attacker, member = f.started("acl", lambda: acl_payloads(f.fed), pipes)
+        victim, attacker, member = f.started("acl", pipes)
         member.send("warm")  # its session with the victim agreed before the flood
         recv(member, "the member's first request", START)
         victim.send("report")
         before = recv(victim, "the victim's report")
-        attacker.send("go")
+        go(attacker, acl_payloads(f.fed))
         time.sleep(6.0)
         attacker.send("stop")
         sent, seconds = recv(attacker, "the attacker's count")

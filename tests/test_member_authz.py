@@ -50,7 +50,7 @@ from agents import (
     wire_key,
 )
 from agents.keys import gen_keys, trust_keys
-from agents.transports import free_tcp_port
+from agents.transports import MemoryHub, free_tcp_port
 from dyknow_core import seconds_to_ns
 from federation import FederationPlatform, PlatformConfig, PlatformConfigError, SharingSettings
 from federation._batch import pack_batch
@@ -676,12 +676,11 @@ def test_sharing_settings_are_validated_with_file_and_key(tmp_path: Path) -> Non
         assert str(info.value).startswith(f"{path}: ")
 
 
-def test_a_sharing_pattern_no_trusted_platform_matches_is_warned_at_start(
+async def test_a_sharing_pattern_no_trusted_platform_matches_is_warned_on_joining(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """A misspelt platform in [sharing] lets no one in, silently: the start names it."""
-    from federation._platform import _read_files
-
+    """A misspelt platform in [sharing] lets no one in, silently: joining names it, once.
+    A platform opened only to ask (every one-shot command) says nothing of it."""
     pubs = [gen_keys(n, tmp_path / "keys")[2] for n in ("roadside", "tmc")]
     trust_keys(tmp_path / "trust.json", pubs, federation="f")
     rules = [{"labels": ["*-speed"], "query": ["tmc", "ops-*"], "stream": ["tcm"]}]
@@ -696,9 +695,30 @@ def test_a_sharing_pattern_no_trusted_platform_matches_is_warned_at_start(
             "sharing": {"default": "none", "accept_for": ["*"], "rules": rules},
         }
     )
+    hub = MemoryHub()
+
+    def said() -> list[str]:
+        return [r.getMessage() for r in caplog.records if r.name == "federation._platform"]
+
+    @contextlib.asynccontextmanager
+    async def opened(join: bool) -> AsyncIterator[FederationPlatform]:
+        async with (
+            hub.transport() as transport,
+            FederationPlatform(config, source="roadside.toml", join=join, transport=transport) as p,
+        ):
+            yield p
+
     with caplog.at_level("WARNING", logger="federation._platform"):
-        _read_files(config, "roadside.toml")
-    warned = [r.getMessage() for r in caplog.records]
+        async with opened(join=False):  # as `dyknow ask` opens it
+            pass
+        assert said() == []
+        async with opened(join=False) as node:  # as `dyknow node` does, then joins
+            await node.join()
+            await node.join()
+        warned = said()
+        async with opened(join=True):
+            pass
+        assert said() == warned * 2
     known = f"names no platform of the trust file {tmp_path / 'trust.json'} (roadside, tmc)"
     assert warned == [
         f"roadside.toml: sharing.rules[0].query[1]: 'ops-*' {known}: it lets no one in",

@@ -461,7 +461,7 @@ async def test_a_member_that_talks_is_not_taken_for_gone_while_its_directory_she
     two intervals, and its streams stopped).
     """
     from bench._flood import FLOOD_SECONDS, START, recv
-    from bench.kxflood import attacker_main
+    from bench.kxflood import attacker_main, go
 
     fed = f"member{os.getpid()}f"
     port = free_tcp_port()
@@ -477,7 +477,7 @@ async def test_a_member_that_talks_is_not_taken_for_gone_while_its_directory_she
     ctx = multiprocessing.get_context("spawn")
     here, there = ctx.Pipe()
     key = f"dyknow/{fed}/v1/df/uav-b"
-    attacker = ctx.Process(target=attacker_main, args=(f"tcp/127.0.0.1:{port}", key, [b""], there))
+    attacker = ctx.Process(target=attacker_main, args=(f"tcp/127.0.0.1:{port}", key, there))
     attacker.start()
     try:
         async with (
@@ -503,7 +503,7 @@ async def test_a_member_that_talks_is_not_taken_for_gone_while_its_directory_she
             talker = asyncio.create_task(talk(), name="uav-b talks to uav-a")
             try:
                 assert await asyncio.to_thread(recv, here, "the attacker", START) == "ready"
-                here.send("go")
+                go(here, [b""])
                 flooded = time.monotonic()
                 while time.monotonic() - flooded < 5.0:  # five recheck intervals
                     assert "uav-b" in gdf.platforms, "uav-b taken for gone during the flood"

@@ -47,6 +47,7 @@ from bench.kxflood import (
     Federation,
     attacker_main,
     figures,
+    go,
 )
 from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
 
@@ -314,12 +315,12 @@ def _flood(tmp_path: Path, what: str, payloads: Callable[[str], list[bytes]]) ->
     f = Federation(tmp_path)
     pipes: list[Connection] = []
     try:
-        victim, attacker, member = f.started(what, lambda: payloads(f.fed), pipes)
+        victim, attacker, member = f.started(what, pipes)
         member.send("warm")  # its session with the victim agreed before the flood
         recv(member, "the member's first request")
         victim.send("report")
         before = recv(victim, "the victim's report")
-        attacker.send("go")
+        go(attacker, payloads(f.fed))
         time.sleep(0.5)
         member.send("pace")
         during = recv(member, "the member's requests during the flood", 3 * FLOOD_SECONDS)
@@ -389,14 +390,12 @@ def test_an_identity_query_flood_on_a_node_is_shed_before_the_event_loop(
     ctx = multiprocessing.get_context("spawn")
     here, there = ctx.Pipe()
     key = wire_key(station.federation, "identity", "station")
-    attacker = ctx.Process(
-        target=attacker_main, args=(f"tcp/127.0.0.1:{station.port}", key, [b""] * 10, there)
-    )
+    attacker = ctx.Process(target=attacker_main, args=(f"tcp/127.0.0.1:{station.port}", key, there))
     try:
         station.start("python")
         attacker.start()
         assert recv(here, "the attacker", START) == "ready"
-        here.send("go")
+        go(here, [b""] * 10)
         time.sleep(3.0)
         here.send("stop")
         sent, seconds = recv(here, "the attacker's count")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import socket
 import subprocess
@@ -716,7 +717,34 @@ async def test_zenoh_client_without_its_router_names_the_address_in_one_line() -
         await t.__aenter__()
     assert str(raised.value) == (
         f"zenoh: cannot open a session: cannot connect to tcp/127.0.0.1:{port} (connect): "
-        "no router or peer answers there: is it running, and is the address right?"
+        "no zenoh router or peer accepted a session there (is it running, is the address "
+        "right, does it speak zenoh/TLS as configured?)"
+    )
+
+
+async def test_zenoh_client_at_an_address_that_does_not_speak_zenoh_says_it_may_not() -> None:
+    # something answers there (here: an HTTP-ish server), but no zenoh session opens:
+    # "no router answers" would send one looking for a dead router
+    answered: list[int] = []
+
+    async def talk(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        answered.append(1)
+        writer.write(b"HTTP/1.1 400 Bad Request\r\n\r\n")
+        with contextlib.suppress(ConnectionError):
+            await writer.drain()
+        writer.close()
+
+    server = await asyncio.start_server(talk, "127.0.0.1", 0)
+    port = server.sockets[0].getsockname()[1]
+    async with server:
+        t = ZenohTransport(ZenohConfig(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+        with pytest.raises(TransportError) as raised:
+            await t.__aenter__()
+    assert answered
+    assert str(raised.value) == (
+        f"zenoh: cannot open a session: cannot connect to tcp/127.0.0.1:{port} (connect): "
+        "no zenoh router or peer accepted a session there (is it running, is the address "
+        "right, does it speak zenoh/TLS as configured?)"
     )
 
 

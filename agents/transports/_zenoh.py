@@ -427,8 +427,9 @@ def _zenoh_error(exc: zenoh.ZError) -> str:
     if found:
         endpoints = ", ".join(_ENDPOINT.findall(found["endpoints"])) or "its connect endpoints"
         return (
-            f"cannot connect to {endpoints} (connect): no router or peer answers there: "
-            "is it running, and is the address right?"
+            f"cannot connect to {endpoints} (connect): no zenoh router or peer accepted a "
+            "session there (is it running, is the address right, does it speak zenoh/TLS "
+            "as configured?)"
         )
     return text
 

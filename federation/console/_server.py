@@ -41,7 +41,7 @@ from agents.transports import Subscription
 from dyknow_core import NS_PER_S, Source
 from ontology import OntologyError, parse
 
-from .._follow import REQUEST_TIMEOUT, FollowedStream, cancel_export, follow, reason
+from .._follow import REQUEST_TIMEOUT, FollowedStream, agreed, cancel_export, follow, reason
 from .._platform import ConsoleSettings, FederationPlatform
 from .._proxy_base import OwnedTasks
 from .._service import MembershipEvent
@@ -608,11 +608,12 @@ class OperatorConsole:
                     stream.export_id = await fed.create_stream(
                         p.name, [stream.label], sample_period=old, timeout=REQUEST_TIMEOUT
                     )
+                    agreed(stream, p.name, self.platform.name)  # a refused one may flow now
                 raise
             finally:
                 self._changed()
             stream.sample_period = period
-            stream.state, stream.error = "active", None
+            agreed(stream, p.name, self.platform.name)
             stream.arrivals.clear()  # the rate shown is the new policy's
 
     async def _post_observation(self, request: web.Request) -> web.Response:
