@@ -97,6 +97,10 @@ def _stats(p: FederationPlatform) -> dict[str, Any]:
         "platform": {k: v for k, v in dataclasses.asdict(p.agents.stats).items() if k != "senders"},
         "df_stale": gdf.stale if gdf is not None else None,
         "df_invalid": gdf.invalid if gdf is not None else None,
+        # of those stale, the ones the event gate shed before any signature check
+        "df_stale_shed": gdf.event_gate.stale if gdf is not None and gdf.event_gate else 0,
+        # the platforms whose signed snapshot came (none of theirs still asked)
+        "df_listed": sorted(set(gdf.platforms) - gdf._joining) if gdf is not None else [],
         # the directory's warnings, as logged (their number is bounded per signer)
         "df_warnings": list(_DF_WARNINGS),
         "audit": [dict(r) for r in p.interface.audit.records],
