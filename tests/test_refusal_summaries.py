@@ -22,7 +22,6 @@ import asyncio
 import logging
 import multiprocessing
 import time
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -270,16 +269,9 @@ def _impostor_main(port: int, fed: str, conn: Any) -> None:
     session.close()
 
 
-@pytest.fixture
-def _children() -> Iterator[None]:
-    yield
-    for proc in multiprocessing.active_children():
-        proc.kill()
-        proc.join(timeout=5)
-
-
+@pytest.mark.usefixtures("no_leftover_children")
 async def test_runs_signed_counts_refused_answers_and_logs_them_in_one_line(
-    tmp_path: Path, caplog: pytest.LogCaptureFixture, _children: None
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
     """Answers in uav-x's name signed by another key: refused, each told, one warning."""
     fed = "startup-check"
