@@ -9,11 +9,15 @@ import signal
 import subprocess
 import threading
 import time
+import tomllib
 from pathlib import Path
 from typing import IO
 
 import pytest
 from _node_example import Station, _samples
+
+from federation import PlatformConfigError, SharingSettings, load_sharing
+from federation._platform import sharing_changes
 
 CONFIG = "station-python.toml"
 ASK = ("--config", "operator.toml", "--json", "--wait", "10")
@@ -96,9 +100,20 @@ class Node:
         self.proc.send_signal(signal.SIGHUP)
 
     def audit(self) -> list[dict[str, object]]:
-        """The node's audit records so far."""
+        """The node's audit records written so far."""
         path = self.station.dir / "audit.jsonl"
+        if not path.exists():
+            return []
         return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+    def policy_records(self, verdicts: list[str], timeout: float = 15.0) -> list[dict[str, object]]:
+        """The ``policy`` audit records once their verdicts are ``verdicts`` (written apart)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            records = [r for r in self.audit() if r.get("stage") == "policy"]
+            if [r["verdict"] for r in records] == verdicts or time.monotonic() > deadline:
+                return records
+            time.sleep(0.1)
 
     def ask(self, label: str) -> subprocess.CompletedProcess[str]:
         """``dyknow ask LABEL -p station`` as the operator."""
@@ -147,7 +162,7 @@ def test_a_label_refused_is_served_once_sighup_reloads_a_sharing_that_allows_it(
         assert "sharing.default 'none' -> 'members'" in line, line
         assert "rule 'thermometer' removed" in line, line
         _ask_until_served(node, "wind-speed")
-        records = [r for r in node.audit() if r.get("stage") == "policy"]
+        records = node.policy_records(["reloaded"])
         assert [r["verdict"] for r in records] == ["reloaded"], records
         assert node.proc.poll() is None
     finally:
@@ -168,8 +183,8 @@ def test_an_export_the_reloaded_sharing_forbids_ends_and_is_audited(tmp_path: Pa
         assert "'temperature' to operator" in ended, ended
         # the receiver was told: its import ended, and with it the command's stream
         follower.wait(timeout=30)
-        records = [r for r in node.audit() if r.get("stage") == "policy"]
-        assert [r["verdict"] for r in records][:1] == ["reloaded"], records
+        records = node.policy_records(["reloaded", "ended"])
+        assert [r["verdict"] for r in records] == ["reloaded", "ended"], records
         gone = [r for r in records if r["verdict"] == "ended"]
         assert gone and gone[0]["stream"] == "temperature" and gone[0]["to"] == "operator"
         assert "sharing policy was reloaded" in str(gone[0]["reason"]), gone
@@ -216,3 +231,38 @@ def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
     finally:
         out, err = node.stop()
     assert "station stopped" in out and "Traceback" not in err, err
+
+
+def test_load_sharing_reads_only_the_table_and_names_the_key(tmp_path: Path) -> None:
+    path = tmp_path / "node.toml"
+    # the rest of the file is not validated: only [sharing] is reloaded
+    path.write_text('name = 3\nwhatever = "x"\n' + ONLY_TEMPERATURE)
+    settings = load_sharing(path)
+    assert settings.default == "none" and settings.rules[0].name == "thermometer"
+    path.write_text('name = "x"\n')
+    assert load_sharing(path) == SharingSettings()  # no table: the defaults
+    path.write_text('sharing = "open"\n')
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: sharing: must be a table"):
+        load_sharing(path)
+    path.write_text('[sharing]\naccept_for = ["uav b"]\n')
+    with pytest.raises(PlatformConfigError, match=r"sharing\.accept_for\[0\]: 'uav b'"):
+        load_sharing(path)
+    path.write_text("[sharing\n")
+    with pytest.raises(PlatformConfigError, match="not valid TOML"):
+        load_sharing(path)
+
+
+def test_sharing_changes_name_the_rules_added_and_removed_and_the_default() -> None:
+    old = SharingSettings.model_validate(tomllib.loads(ONLY_TEMPERATURE)["sharing"])
+    assert sharing_changes(old, old) == []
+    new = SharingSettings.model_validate(
+        {"default": "members", "rules": [{"labels": ["wind*"], "query": ["*"]}]}
+    )
+    assert sharing_changes(old, new) == [
+        "sharing.default 'none' -> 'members'",
+        "rule 'thermometer' removed",
+        "rule (wind*) added",
+    ]
+    two = SharingSettings(rules=[*old.rules, *new.rules])
+    back = SharingSettings(rules=[*new.rules, *old.rules])
+    assert sharing_changes(two, back) == ["rules reordered"]
