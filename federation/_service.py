@@ -929,6 +929,7 @@ class FederationAgent(Agent):
             raise ContentError("this platform exports no streams")
         requester = platform_of(message.sender)
         receivers = list(dict.fromkeys(req.to_units or [requester]))
+        sharing = self.sharing  # the policy checked: a reload while it starts checks again
         for semantic in dict.fromkeys(req.labels):
             for who in dict.fromkeys([requester, *receivers]):
                 self._check_sharing("stream", semantic, who)
@@ -1015,6 +1016,10 @@ class FederationAgent(Agent):
                     table[requester] = left
                 else:
                     table.pop(requester, None)
+        if self.sharing is not sharing:
+            # reloaded while this one started (`end_unshared` did not see it): the new
+            # policy decides whether it runs
+            await self._recheck(record, requester)
         self._exports[record.id] = record
         if creating is not None:
             self._by_conversation[creating] = record.id
@@ -1174,6 +1179,15 @@ class FederationAgent(Agent):
             if not record.handles:
                 await self._end(record)
         return ended
+
+    async def _recheck(self, record: StreamExport, requester: str) -> None:
+        """Denied (the export stopped) if the policy in force refuses any of ``record``."""
+        for semantic in record.labels:
+            for who in (requester, *record.receivers):
+                reason = self._refusal(semantic, who)
+                if reason is not None:
+                    await self._stop_handles(record)
+                    raise Denied("sharing-rule", reason)
 
     def _refusal(self, semantic: str, platform: str) -> str | None:
         """Why ``platform`` may not stream ``semantic`` now (None: it may, or it is us)."""
