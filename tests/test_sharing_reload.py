@@ -211,6 +211,8 @@ def test_an_export_the_reloaded_sharing_forbids_ends_and_is_audited(tmp_path: Pa
             "sharing.rules[0].stream",
             "list",
         ),
+        # valid, but the gateway service is registered at start
+        ('\n[sharing]\ngateway = "protected"\n', "sharing.gateway", "takes a restart"),
     ],
 )
 def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
