@@ -208,7 +208,7 @@ async def _reload_on_hup(
             continue
         except Exception as exc:  # a reload must never take the node down
             log.exception("reloading [sharing] from %s", source)
-            _warn([f"dyknow node: [sharing] not reloaded: {source}: {type(exc).__name__}: {exc}"])
+            _warn([f"dyknow node: [sharing] reload failed: {source}: {type(exc).__name__}: {exc}"])
             continue
         say(f"dyknow node: [sharing] reloaded from {source}: {'; '.join(changes) or 'no change'}")
         for export_id, semantic, receiver, _ in ended:
