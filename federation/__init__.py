@@ -28,6 +28,7 @@ from ._platform import (
     PlatformConfigError,
     RateLimitSettings,
     ZenohSettings,
+    load_sharing,
 )
 from ._service import (
     FEDERATION_AGENT,
@@ -93,6 +94,7 @@ __all__ = [
     "TableSessions",
     "ZenohSettings",
     "add_fusion",
+    "load_sharing",
 ]
 
 

@@ -158,20 +158,64 @@ async def _platform(
 
 
 async def run_node(config: PlatformConfig, source: str, say: Callable[[str], None]) -> None:
-    """Run one platform and its application until SIGINT/SIGTERM, then shut it down cleanly."""
+    """Run one platform and its application until SIGINT/SIGTERM, then shut it down cleanly.
+
+    SIGHUP re-reads the config file's ``[sharing]`` table (only that) and applies it
+    (`reload_sharing`); a wrong one is said in one line and the policy in force stays.
+    """
     async with _platform(config, source) as (p, application, channel):
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
+        hup = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        loop.add_signal_handler(signal.SIGHUP, hup.set)
+        reloads = loop.create_task(_reload_on_hup(p, source, hup, say), name="node.sighup")
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
         settle_gc()  # once ready: a full collection is ~15 ms a supervisor need not wait for
-        await stop.wait()
+        try:
+            await stop.wait()
+        finally:
+            loop.remove_signal_handler(signal.SIGHUP)
+            reloads.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await reloads
         _say_stats("node", application, say)
         say(
             f"dyknow node: local channel: {channel.served} commands served, "
             f"{channel.refused} refused"
         )
     say(f"dyknow node: {config.name} stopped")
+
+
+async def _reload_on_hup(
+    p: FederationPlatform, source: str, hup: asyncio.Event, say: Callable[[str], None]
+) -> None:
+    """Reload the ``[sharing]`` table of ``source`` each time ``hup`` is set (SIGHUP).
+
+    One reload at a time: signals that come meanwhile make one more after it.
+    """
+    from ._platform import load_sharing
+
+    while True:
+        await hup.wait()
+        hup.clear()
+        try:
+            settings = load_sharing(source)
+            changes, ended = await p.reload_sharing(settings, source=source)
+        except PlatformConfigError as exc:
+            _warn([f"dyknow node: [sharing] not reloaded, the policy in force stays: {exc}"])
+            continue
+        except Exception as exc:  # a reload must never take the node down
+            log.exception("reloading [sharing] from %s", source)
+            _warn([f"dyknow node: [sharing] reload failed: {source}: {type(exc).__name__}: {exc}"])
+            continue
+        say(f"dyknow node: [sharing] reloaded from {source}: {'; '.join(changes) or 'no change'}")
+        for export_id, semantic, receiver, _ in ended:
+            say(
+                f"dyknow node: export {export_id} of {semantic!r} to {receiver} ended: "
+                "the reloaded [sharing] no longer allows it"
+            )
 
 
 def _say_stats(command: str, application: NodeApplication, say: Callable[[str], None]) -> None:

@@ -761,14 +761,24 @@ class ExportProxy(ProxyBase):
                 ),
             )
 
-    async def stop(self, export: Export) -> None:
-        """End ``export``: unsubscribe, drop what is queued, wait for its task to finish."""
+    async def stop(self, export: Export, *, why: str | None = None) -> None:
+        """End ``export``: unsubscribe, drop what is queued, wait for its task to finish.
+
+        With ``why``, the receiver is told (an end marker naming it), as when the export
+        ends by itself: its import ends there. Without, it learns nothing (a cancel it
+        asked for, or a platform going away).
+        """
+        told = why is not None and export.ended is None
+        if told:
+            export.ended = why  # ended by this platform's decision, not listed in `ended`
         export._end("stopped")
         task = export.task
         if task is not None and task is not asyncio.current_task():
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+        if told:
+            await export._tell_ended()  # after its task: no batch follows the marker
 
     async def stop_all(self, receiver: str | None = None) -> list[Export]:
         """Stop every export to ``receiver`` (every export when None); the stopped ones."""

@@ -143,7 +143,7 @@ from ._inputs import InputSettings
 from ._outputs import OutputSettings
 from ._service import Anchor, Denied, FederationAgent, MembershipEvent
 from ._sessions import InterfaceSessions
-from ._sharing import SharingSettings
+from ._sharing import SharingRule, SharingSettings
 
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
@@ -161,6 +161,8 @@ __all__ = [
     "SecuritySettings",
     "SharingSettings",
     "ZenohSettings",
+    "load_sharing",
+    "sharing_changes",
 ]
 
 log = logging.getLogger(__name__)
@@ -593,20 +595,7 @@ class PlatformConfig(BaseModel):
     def load(cls, path: str | Path) -> PlatformConfig:
         """Read a TOML config file; relative paths in it are relative to the file."""
         path = Path(path)
-        try:
-            with path.open("rb") as f:
-                data = tomllib.load(f)
-        except OSError as exc:
-            raise PlatformConfigError(str(path), None, f"cannot be read: {exc.strerror}") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise PlatformConfigError(str(path), None, f"not valid TOML: {exc}") from None
-        except UnicodeDecodeError as exc:  # TOML is UTF-8
-            raise PlatformConfigError(
-                str(path), None, f"not UTF-8 text: {exc.reason} at byte {exc.start}"
-            ) from None
-        except RecursionError:  # tomllib recurses into nested arrays and tables
-            raise PlatformConfigError(str(path), None, "not valid TOML: nested too deep") from None
-        return cls.from_dict(data, source=str(path)).relative_to(path.parent)
+        return cls.from_dict(_read_toml(path), source=str(path)).relative_to(path.parent)
 
     def relative_to(self, base: str | Path) -> PlatformConfig:
         """A copy whose relative paths are resolved against ``base``."""
@@ -645,6 +634,56 @@ class PlatformConfig(BaseModel):
         return MqttTransport(self.transport)
 
 
+def _read_toml(path: Path) -> dict[str, Any]:
+    """A TOML file's tables; PlatformConfigError naming the file and why it cannot be read."""
+    try:
+        with path.open("rb") as f:
+            return tomllib.load(f)
+    except OSError as exc:
+        raise PlatformConfigError(str(path), None, f"cannot be read: {exc.strerror}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise PlatformConfigError(str(path), None, f"not valid TOML: {exc}") from None
+    except UnicodeDecodeError as exc:  # TOML is UTF-8
+        raise PlatformConfigError(
+            str(path), None, f"not UTF-8 text: {exc.reason} at byte {exc.start}"
+        ) from None
+    except RecursionError:  # tomllib recurses into nested arrays and tables
+        raise PlatformConfigError(str(path), None, "not valid TOML: nested too deep") from None
+
+
+def load_sharing(path: str | Path) -> SharingSettings:
+    """Only the ``[sharing]`` table of a TOML config file, validated as `PlatformConfig.load`
+    validates it; PlatformConfigError names the file and the key (``sharing.…``)."""
+    path = Path(path)
+    table = _read_toml(path).get("sharing", {})
+    if not isinstance(table, dict):
+        raise PlatformConfigError(str(path), "sharing", "must be a table")
+    try:
+        return SharingSettings.model_validate(table)
+    except ValidationError as exc:
+        raise _config_error(exc, str(path), within="sharing") from None
+
+
+def sharing_changes(old: SharingSettings, new: SharingSettings) -> list[str]:
+    """What differs from ``old`` in ``new``, one phrase each (empty: nothing)."""
+    changes = []
+    for key in ("gateway", "default"):
+        before, after = getattr(old, key), getattr(new, key)
+        if before != after:
+            changes.append(f"sharing.{key} {before!r} -> {after!r}")
+    if old.accept_for != new.accept_for:
+        changes.append(f"sharing.accept_for {old.accept_for} -> {new.accept_for}")
+
+    def named(rule: SharingRule) -> str:
+        return repr(rule.name) if rule.name else f"({', '.join(rule.labels)})"
+
+    changes += [f"rule {named(r)} removed" for r in old.rules if r not in new.rules]
+    changes += [f"rule {named(r)} added" for r in new.rules if r not in old.rules]
+    if not changes and new.rules != old.rules:
+        changes.append("rules reordered")  # the first rule that matches decides
+    return changes
+
+
 def _key_path(loc: tuple[int | str, ...]) -> str:
     """A pydantic location as a key path: ``transport.listen[0]`` (union tags left out)."""
     parts = list(loc)
@@ -658,8 +697,10 @@ def _key_path(loc: tuple[int | str, ...]) -> str:
     return out
 
 
-def _config_error(exc: ValidationError, source: str) -> PlatformConfigError:
+def _config_error(exc: ValidationError, source: str, within: str = "") -> PlatformConfigError:
     errors = exc.errors(include_url=False)
+    for e in errors if within else ():
+        e["loc"] = (within, *e["loc"])  # a table validated alone: keys as in the file
     first = errors[0]
     key = _key_path(first["loc"])
     message = str(first["msg"]).removeprefix("Value error, ")
@@ -924,7 +965,10 @@ class FederationPlatform:
             max_history_per_platform=config.history_limit_per_platform,
             sharing=sharing,
             imports=self,
-            consent=lambda requester, provider, labels: sharing.accepts_for(requester),
+            # the agent's current policy: a reload (`reload_sharing`) swaps it
+            consent=lambda requester, provider, labels: self.federation_agent.sharing.accepts_for(
+                requester
+            ),
             join=join,
             anchor=anchor,
         )
@@ -1007,6 +1051,55 @@ class FederationPlatform:
                 for fut in waiters:
                     fut.cancel()
             self._waiters.clear()
+
+    # -- the sharing policy ---------------------------------------------------------------
+
+    async def reload_sharing(
+        self, settings: SharingSettings, *, source: str | None = None
+    ) -> tuple[list[str], list[tuple[str, str, str, str]]]:
+        """Apply a new ``[sharing]`` table now: (what changed, the exports ended).
+
+        The Federation Agent's policy is swapped in one assignment: every check after it
+        (query, create-stream, consent) applies the new one. The exports it no longer
+        allows end (their receivers are told; see `FederationAgent.end_unshared`); what it
+        newly allows is served to the next request. ``gateway`` is not reloaded (the
+        Gateway Agent registers its service at start): a change of it raises
+        PlatformConfigError and nothing is applied. Audited: ``policy`` ``reloaded``, and
+        ``policy`` ``ended`` for each export ended.
+        """
+        source = source or f"platform {self.name}"
+        old = self.federation_agent.sharing.settings
+        if settings.gateway != old.gateway:
+            raise PlatformConfigError(
+                source,
+                "sharing.gateway",
+                f"{old.gateway!r} -> {settings.gateway!r} takes a restart of the node "
+                "(the gateway service is registered at start)",
+            )
+        changes = sharing_changes(old, settings)
+        self.federation_agent.sharing = settings.sharing()
+        self.config = self.config.model_copy(update={"sharing": settings})
+        audit = self.interface.audit
+        audit.record(
+            verdict="reloaded",
+            stage="policy",
+            reason=f"[sharing] reloaded from {source}: " + ("; ".join(changes) or "no change"),
+        )
+        for problem in _strangers(self.config, self.interface.trust):
+            log.warning("%s: %s", source, problem)
+        why = f"the sharing policy was reloaded from {source}"
+        ended = await self.federation_agent.end_unshared(why)
+        for export_id, semantic, receiver, reason in ended:
+            audit.record(
+                verdict="ended",
+                stage="policy",
+                code="sharing-rule",
+                stream=semantic,
+                to=receiver,
+                export=export_id,
+                reason=f"export {export_id} of {semantic!r} to {receiver} ended: {why}: {reason}",
+            )
+        return changes, ended
 
     # -- membership -----------------------------------------------------------------------
 

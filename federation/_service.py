@@ -300,8 +300,8 @@ class Exporter(Protocol):
         """Export ``local_label`` as ``semantic_label`` to ``receiver`` (keeping ``history``)."""
         ...
 
-    def stop(self, export: Any, /) -> object:
-        """Stop an export that `start_exporting` returned."""
+    def stop(self, export: Any, /, *, why: str | None = None) -> object:
+        """Stop an export that `start_exporting` returned (``why``: told to its receiver)."""
         ...
 
 
@@ -929,6 +929,7 @@ class FederationAgent(Agent):
             raise ContentError("this platform exports no streams")
         requester = platform_of(message.sender)
         receivers = list(dict.fromkeys(req.to_units or [requester]))
+        sharing = self.sharing  # the policy checked: a reload while it starts checks again
         for semantic in dict.fromkeys(req.labels):
             for who in dict.fromkeys([requester, *receivers]):
                 self._check_sharing("stream", semantic, who)
@@ -1015,6 +1016,10 @@ class FederationAgent(Agent):
                     table[requester] = left
                 else:
                     table.pop(requester, None)
+        if self.sharing is not sharing:
+            # reloaded while this one started (`end_unshared` did not see it): the new
+            # policy decides whether it runs
+            await self._recheck(record, requester)
         self._exports[record.id] = record
         if creating is not None:
             self._by_conversation[creating] = record.id
@@ -1142,6 +1147,53 @@ class FederationAgent(Agent):
                 await _resolved(exporter.stop(handle))
             except Exception:
                 log.exception("%s: stopping the export of %r to %s", self, *key)
+
+    async def end_unshared(self, why: str) -> list[tuple[str, str, str, str]]:
+        """End the exports ``sharing`` no longer allows (a policy reloaded): what ended.
+
+        Each export of a label to a receiver is checked as a create-stream of it is now
+        (its requester and its receiver may stream it); one refused stops, its receiver
+        told ``why`` and the refusal (its import ends there, as when an export ends by
+        itself). Returns (export id, label, receiver, refusal) of each one ended.
+        """
+        exporter = self.exporter
+        self._prune_ended()
+        check = self._refusal
+        ended: list[tuple[str, str, str, str]] = []
+        for record in list(self._exports.values()):
+            requester = platform_of(record.requester)
+            for key, handle in list(record.handles.items()):
+                semantic, receiver = key
+                reason = check(semantic, requester) or check(semantic, receiver)
+                if reason is None:
+                    continue
+                del record.handles[key]
+                ended.append((record.id, semantic, receiver, reason))
+                log.warning("%s: export %s of %r to %s ended: %s", self, record.id, *key, reason)
+                if exporter is None:
+                    continue
+                try:
+                    await _resolved(exporter.stop(handle, why=f"{why}: {reason}"))
+                except Exception:
+                    log.exception("%s: stopping the export of %r to %s", self, *key)
+            if not record.handles:
+                await self._end(record)
+        return ended
+
+    async def _recheck(self, record: StreamExport, requester: str) -> None:
+        """Denied (the export stopped) if the policy in force refuses any of ``record``."""
+        for semantic in record.labels:
+            for who in (requester, *record.receivers):
+                reason = self._refusal(semantic, who)
+                if reason is not None:
+                    await self._stop_handles(record)
+                    raise Denied("sharing-rule", reason)
+
+    def _refusal(self, semantic: str, platform: str) -> str | None:
+        """Why ``platform`` may not stream ``semantic`` now (None: it may, or it is us)."""
+        if platform == self.platform.name:
+            return None
+        return self.sharing.check("stream", semantic, platform)
 
     async def _stop_exports_to(self, platform: str) -> None:
         for record in list(self._exports.values()):

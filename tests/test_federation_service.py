@@ -130,6 +130,7 @@ class FakeExport:
     policy: Policy
     history: int = 0
     stopped: bool = False
+    why: str | None = None  # told to its receiver when stopped
 
 
 @dataclass
@@ -154,8 +155,8 @@ class FakeExporter:
         self.started.append(export)
         return export
 
-    def stop(self, export: FakeExport) -> None:
-        export.stopped = True
+    def stop(self, export: FakeExport, *, why: str | None = None) -> None:
+        export.stopped, export.why = True, why
 
     @property
     def running(self) -> list[FakeExport]:
@@ -350,6 +351,50 @@ async def test_create_stream_is_agreed_and_exported_to_each_receiver() -> None:
         # history: the exporter keeps the last N samples to resend what a partition lost
         await b.fed.create_stream("uav-a", ["heli-max-speed"], history=50)
         assert (started[-1].semantic, started[-1].history) == ("heli-max-speed", 50)
+
+
+async def test_a_reloaded_sharing_ends_the_exports_it_no_longer_allows() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        kept = await b.fed.create_stream("uav-a", ["heli-altitude"])
+        gone = await b.fed.create_stream("uav-a", ["car5-state"], to_units=["uav-b", "operator"])
+        rule = SharingRule(name="cars", labels=["car*"], stream=["operator"])
+        a.fed.sharing = Sharing(SharingSettings(rules=[rule]))
+        ended = await a.fed.end_unshared("reloaded")
+        # its requester may no longer stream it: every receiver's export of it ends
+        assert [(i, s, r) for i, s, r, _ in ended] == [
+            (gone, "car5-state", "uav-b"),
+            (gone, "car5-state", "operator"),
+        ]
+        assert all("sharing rule 'cars'" in reason for *_, reason in ended)
+        assert set(a.fed.exports) == {kept}
+        stopped = [e for e in a.exporter.started if e.stopped]
+        assert [e.semantic for e in stopped] == ["car5-state", "car5-state"]
+        assert all(e.why is not None and e.why.startswith("reloaded: ") for e in stopped)
+        assert [e.semantic for e in a.exporter.running] == ["heli-altitude"]
+        assert await a.fed.end_unshared("reloaded") == []
+
+
+async def test_a_create_stream_started_across_a_reload_is_checked_by_the_new_policy() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        starting = asyncio.Event()
+        start = a.exporter.start_exporting
+
+        async def slow(*args: Any, **options: Any) -> FakeExport:
+            starting.set()  # checked by the old policy, starting
+            await asyncio.sleep(0.3)
+            return await start(*args, **options)
+
+        a.exporter.start_exporting = slow  # type: ignore[method-assign]
+        asked = asyncio.create_task(b.fed.create_stream("uav-a", ["car5-state"]))
+        async with asyncio.timeout(WAIT):
+            await starting.wait()
+        a.fed.sharing = Sharing(SharingSettings(default="none"))
+        assert await a.fed.end_unshared("reloaded") == []  # not running yet
+        reason = await refusal(asked)
+        assert 'sharing.default is "none"' in reason, reason
+        assert a.exporter.running == [] and a.fed.exports == {}
 
 
 async def test_concurrent_create_streams_of_one_requester_are_all_agreed() -> None:

@@ -1,0 +1,270 @@
+"""A node's ``[sharing]`` changed without a restart: SIGHUP re-reads it, exports it no longer
+allows end, what it newly allows is served, a broken table leaves the policy in force."""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import subprocess
+import threading
+import time
+import tomllib
+from pathlib import Path
+from typing import IO
+
+import pytest
+from _node_example import Station, _samples
+
+from federation import PlatformConfigError, SharingSettings, load_sharing
+from federation._platform import sharing_changes
+
+CONFIG = "station-python.toml"
+ASK = ("--config", "operator.toml", "--json", "--wait", "10")
+# temperature to the operator only; wind to nobody
+ONLY_TEMPERATURE = """
+[sharing]
+default = "none"
+
+[[sharing.rules]]
+name = "thermometer"
+labels = ["temperature"]
+query = ["operator"]
+stream = ["operator"]
+"""
+EVERYTHING = '\n[sharing]\ndefault = "members"\n'
+NOTHING = '\n[sharing]\ndefault = "none"\n'
+
+
+class Lines:
+    """A pipe's lines, read by a thread of their own: waited for with a bound."""
+
+    def __init__(self, pipe: IO[str] | None) -> None:
+        assert pipe is not None
+        self.seen: list[str] = []
+        self._lines: queue.Queue[str | None] = queue.Queue()
+        self._thread = threading.Thread(target=self._read, args=(pipe,), daemon=True)
+        self._thread.start()
+
+    def _read(self, pipe: IO[str]) -> None:
+        for line in pipe:
+            self._lines.put(line)
+        self._lines.put(None)
+
+    def wait_for(self, text: str, timeout: float) -> str:
+        """The first line from now on containing ``text``; AssertionError after ``timeout``."""
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self._lines.get(timeout=left)
+            except queue.Empty:
+                break
+            if line is None:
+                break
+            self.seen.append(line)
+            if text in line:
+                return line
+        raise AssertionError(f"no line with {text!r} within {timeout} s: {self.seen}")
+
+    def rest(self, timeout: float = 5.0) -> str:
+        """What is left once the pipe closed (bounded)."""
+        self._thread.join(timeout)
+        while not self._lines.empty():
+            line = self._lines.get_nowait()
+            if line is not None:
+                self.seen.append(line)
+        return "".join(self.seen)
+
+
+class Node:
+    """``dyknow node`` of the station, with ``[sharing]`` as given, its output followed."""
+
+    def __init__(self, tmp: Path, sharing: str) -> None:
+        self.station = Station(tmp)
+        self.config = self.station.dir / CONFIG
+        base = self.config.read_text()
+        # the audit file: a top-level key, before the first table
+        self._base = base.replace('application = "weather.kpl"\n', _AUDIT, 1)
+        self.share(sharing)
+        self.proc = self.station.spawn("node", "--config", CONFIG)
+        self.out, self.err = Lines(self.proc.stdout), Lines(self.proc.stderr)
+        self.out.wait_for("station ready in federation", 60)
+
+    def share(self, sharing: str) -> None:
+        """Write the config with ``sharing`` as its ``[sharing]`` table."""
+        self.config.write_text(self._base + sharing)
+
+    def hup(self, sharing: str) -> None:
+        """Rewrite ``[sharing]`` and SIGHUP the node."""
+        self.share(sharing)
+        self.proc.send_signal(signal.SIGHUP)
+
+    def audit(self) -> list[dict[str, object]]:
+        """The node's audit records written so far."""
+        path = self.station.dir / "audit.jsonl"
+        if not path.exists():
+            return []
+        return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+    def policy_records(self, verdicts: list[str], timeout: float = 15.0) -> list[dict[str, object]]:
+        """The ``policy`` audit records once their verdicts are ``verdicts`` (written apart)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            records = [r for r in self.audit() if r.get("stage") == "policy"]
+            if [r["verdict"] for r in records] == verdicts or time.monotonic() > deadline:
+                return records
+            time.sleep(0.1)
+
+    def ask(self, label: str) -> subprocess.CompletedProcess[str]:
+        """``dyknow ask LABEL -p station`` as the operator."""
+        return self.station.command("ask", label, "-p", "station", *ASK, timeout=60)
+
+    def stop(self) -> tuple[str, str]:
+        """SIGINT it; its stdout and stderr."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+        try:
+            self.proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(timeout=5)
+        return self.out.rest(), self.err.rest()
+
+
+_AUDIT = 'application = "weather.kpl"\naudit = "audit.jsonl"\n'
+
+
+def _served(done: subprocess.CompletedProcess[str], label: str) -> bool:
+    return done.returncode == 0 and bool(_samples(json.loads(done.stdout), label))
+
+
+def _ask_until_served(node: Node, label: str) -> None:
+    for _ in range(20):  # the inputs are paced by the outside world (5 readings a second)
+        done = node.ask(label)
+        if _served(done, label):
+            return
+        assert done.returncode == 0, done.stderr
+        time.sleep(0.5)
+    raise AssertionError(f"{label} never served: {done.stdout} {done.stderr}")
+
+
+@pytest.mark.timeout(180)
+def test_a_label_refused_is_served_once_sighup_reloads_a_sharing_that_allows_it(
+    tmp_path: Path,
+) -> None:
+    node = Node(tmp_path, ONLY_TEMPERATURE)
+    try:
+        refused = node.ask("wind-speed")
+        assert refused.returncode != 0
+        assert "sharing" in refused.stderr and "wind-speed" in refused.stderr, refused.stderr
+        node.hup(EVERYTHING)
+        line = node.out.wait_for("[sharing] reloaded", 30)
+        assert "sharing.default 'none' -> 'members'" in line, line
+        assert "rule 'thermometer' removed" in line, line
+        _ask_until_served(node, "wind-speed")
+        records = node.policy_records(["reloaded"])
+        assert [r["verdict"] for r in records] == ["reloaded"], records
+        assert node.proc.poll() is None
+    finally:
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
+def test_an_export_the_reloaded_sharing_forbids_ends_and_is_audited(tmp_path: Path) -> None:
+    node = Node(tmp_path, EVERYTHING)
+    follower = node.station.spawn("stream", "temperature", "-p", "station", *ASK)
+    try:
+        samples = Lines(follower.stdout)
+        samples.wait_for("temperature", 60)  # the export runs: samples arrive
+        node.hup(NOTHING)
+        node.out.wait_for("[sharing] reloaded", 30)
+        ended = node.out.wait_for("ended: the reloaded [sharing] no longer allows it", 30)
+        assert "'temperature' to operator" in ended, ended
+        # the receiver was told: its import ended, and with it the command's stream
+        follower.wait(timeout=30)
+        records = node.policy_records(["reloaded", "ended"])
+        assert [r["verdict"] for r in records] == ["reloaded", "ended"], records
+        gone = [r for r in records if r["verdict"] == "ended"]
+        assert gone and gone[0]["stream"] == "temperature" and gone[0]["to"] == "operator"
+        assert "sharing policy was reloaded" in str(gone[0]["reason"]), gone
+        assert gone[0]["code"] == "sharing-rule"
+        # asked again, it is refused now
+        assert node.ask("temperature").returncode != 0
+        assert node.proc.poll() is None
+    finally:
+        if follower.poll() is None:
+            follower.kill()
+        follower.wait(timeout=10)
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize(
+    ("broken", "key", "why"),
+    [
+        ('\n[sharing]\ndefault = "none"\ncolour = "red"\n', "sharing.colour", "unknown key"),
+        ("\n[sharing]\ndefault = 3\n", "sharing.default", "'members' or 'none'"),
+        (
+            '\n[sharing]\n[[sharing.rules]]\nlabels = ["wind*"]\nstream = "operator"\n',
+            "sharing.rules[0].stream",
+            "list",
+        ),
+        # valid, but the gateway service is registered at start
+        ('\n[sharing]\ngateway = "protected"\n', "sharing.gateway", "takes a restart"),
+    ],
+)
+def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
+    tmp_path: Path, broken: str, key: str, why: str
+) -> None:
+    node = Node(tmp_path, ONLY_TEMPERATURE)
+    try:
+        _ask_until_served(node, "temperature")
+        node.hup(broken)
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert f"{node.config.name}: {key}: " in line and why in line, line
+        assert str(node.config) in line or f"{CONFIG}:" in line, line
+        assert len(line.strip().splitlines()) == 1
+        assert node.proc.poll() is None
+        _ask_until_served(node, "temperature")  # the old policy: still served …
+        assert node.ask("wind-speed").returncode != 0  # … and still refused
+        assert not [r for r in node.audit() if r.get("stage") == "policy"]
+    finally:
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+def test_load_sharing_reads_only_the_table_and_names_the_key(tmp_path: Path) -> None:
+    path = tmp_path / "node.toml"
+    # the rest of the file is not validated: only [sharing] is reloaded
+    path.write_text('name = 3\nwhatever = "x"\n' + ONLY_TEMPERATURE)
+    settings = load_sharing(path)
+    assert settings.default == "none" and settings.rules[0].name == "thermometer"
+    path.write_text('name = "x"\n')
+    assert load_sharing(path) == SharingSettings()  # no table: the defaults
+    path.write_text('sharing = "open"\n')
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: sharing: must be a table"):
+        load_sharing(path)
+    path.write_text('[sharing]\naccept_for = ["uav b"]\n')
+    with pytest.raises(PlatformConfigError, match=r"sharing\.accept_for\[0\]: 'uav b'"):
+        load_sharing(path)
+    path.write_text("[sharing\n")
+    with pytest.raises(PlatformConfigError, match="not valid TOML"):
+        load_sharing(path)
+
+
+def test_sharing_changes_name_the_rules_added_and_removed_and_the_default() -> None:
+    old = SharingSettings.model_validate(tomllib.loads(ONLY_TEMPERATURE)["sharing"])
+    assert sharing_changes(old, old) == []
+    new = SharingSettings.model_validate(
+        {"default": "members", "rules": [{"labels": ["wind*"], "query": ["*"]}]}
+    )
+    assert sharing_changes(old, new) == [
+        "sharing.default 'none' -> 'members'",
+        "rule 'thermometer' removed",
+        "rule (wind*) added",
+    ]
+    two = SharingSettings(rules=[*old.rules, *new.rules])
+    back = SharingSettings(rules=[*new.rules, *old.rules])
+    assert sharing_changes(two, back) == ["rules reordered"]
