@@ -651,17 +651,29 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise PlatformConfigError(str(path), None, "not valid TOML: nested too deep") from None
 
 
-def load_sharing(path: str | Path) -> SharingSettings:
-    """Only the ``[sharing]`` table of a TOML config file, validated as `PlatformConfig.load`
-    validates it; PlatformConfigError names the file and the key (``sharing.…``)."""
+def load_sharing(
+    path: str | Path, *, name: str | None = None, federation: str | None = None
+) -> SharingSettings:
+    """The ``[sharing]`` table of a TOML config file, once the whole file validates as a
+    config (as at start): a truncated or wrong file is refused, not read as the defaults.
+
+    ``name`` / ``federation``: the running platform's; a file of another is refused.
+    PlatformConfigError names the file and the key (``sharing.…``, ``name``…).
+    """
     path = Path(path)
-    table = _read_toml(path).get("sharing", {})
-    if not isinstance(table, dict):
+    data = _read_toml(path)
+    if "sharing" in data and not isinstance(data["sharing"], dict):
         raise PlatformConfigError(str(path), "sharing", "must be a table")
-    try:
-        return SharingSettings.model_validate(table)
-    except ValidationError as exc:
-        raise _config_error(exc, str(path), within="sharing") from None
+    config = PlatformConfig.from_dict(data, source=str(path))
+    for key, running in (("name", name), ("federation", federation)):
+        if running is not None and getattr(config, key) != running:
+            raise PlatformConfigError(
+                str(path),
+                key,
+                f"{getattr(config, key)!r} is not the running platform's {running!r} "
+                "(the file of another platform?)",
+            )
+    return config.sharing
 
 
 def sharing_changes(old: SharingSettings, new: SharingSettings) -> list[str]:

@@ -201,6 +201,33 @@ def test_an_export_the_reloaded_sharing_forbids_ends_and_is_audited(tmp_path: Pa
 
 
 @pytest.mark.timeout(180)
+def test_a_truncated_or_foreign_config_on_sighup_is_refused_and_the_policy_stays(
+    tmp_path: Path,
+) -> None:
+    node = Node(tmp_path, ONLY_TEMPERATURE)
+    try:
+        _ask_until_served(node, "temperature")
+        whole = node.config.read_text()
+        # an editor's half-written file: no [sharing] in it, which must not mean the defaults
+        node.config.write_text(whole[: whole.index("vocabulary")])
+        node.proc.send_signal(signal.SIGHUP)
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert "missing" in line, line
+        # another platform's file
+        node.config.write_text(whole.replace('name = "station"', 'name = "other"', 1))
+        node.proc.send_signal(signal.SIGHUP)
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert "name: 'other' is not the running platform's 'station'" in line, line
+        assert node.proc.poll() is None
+        _ask_until_served(node, "temperature")  # the old policy: still served …
+        assert node.ask("wind-speed").returncode != 0  # … and still refused
+        assert not [r for r in node.audit() if r.get("stage") == "policy"]
+    finally:
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
 @pytest.mark.parametrize(
     ("broken", "key", "why"),
     [
@@ -235,18 +262,30 @@ def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
     assert "station stopped" in out and "Traceback" not in err, err
 
 
-def test_load_sharing_reads_only_the_table_and_names_the_key(tmp_path: Path) -> None:
+def test_load_sharing_validates_the_whole_file_and_names_the_key(tmp_path: Path) -> None:
     path = tmp_path / "node.toml"
-    # the rest of the file is not validated: only [sharing] is reloaded
-    path.write_text('name = 3\nwhatever = "x"\n' + ONLY_TEMPERATURE)
-    settings = load_sharing(path)
+    whole = 'name = "x"\nfederation = "f"\nkey = "k"\ntrust = "t"\nvocabulary = "v.toml"\n'
+    whole += 'mapping = "m.toml"\n'
+    path.write_text(whole + ONLY_TEMPERATURE)
+    settings = load_sharing(path, name="x", federation="f")
     assert settings.default == "none" and settings.rules[0].name == "thermometer"
-    path.write_text('name = "x"\n')
-    assert load_sharing(path) == SharingSettings()  # no table: the defaults
-    path.write_text('sharing = "open"\n')
+    # the rest of the file is validated too: a truncated or wrong file is no policy
+    path.write_text('name = 3\nwhatever = "x"\n' + ONLY_TEMPERATURE)
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: "):
+        load_sharing(path)
+    path.write_text('name = "x"\n')  # cut short: not the defaults ("members")
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: .*missing"):
+        load_sharing(path)
+    path.write_text(whole)  # a whole config without [sharing]: the defaults
+    assert load_sharing(path, name="x", federation="f") == SharingSettings()
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: name: 'x' is not .* 'y'"):
+        load_sharing(path, name="y", federation="f")
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: federation: 'f' is not"):
+        load_sharing(path, name="x", federation="g")
+    path.write_text(whole + 'sharing = "open"\n')
     with pytest.raises(PlatformConfigError, match=r"node\.toml: sharing: must be a table"):
         load_sharing(path)
-    path.write_text('[sharing]\naccept_for = ["uav b"]\n')
+    path.write_text(whole + '[sharing]\naccept_for = ["uav b"]\n')
     with pytest.raises(PlatformConfigError, match=r"sharing\.accept_for\[0\]: 'uav b'"):
         load_sharing(path)
     path.write_text("[sharing\n")
