@@ -170,6 +170,10 @@ with their requester; past it they are refused unasked (else a reflection). The 
 budget bounds, per requesting platform, the create-streams for third platforms whose
 receivers a provider asks (accept-stream)."""
 
+UNSHARED_WHY = "the provider's sharing policy no longer allows it"
+"""What a receiver's end marker says when a reloaded policy ends its export (the rule and
+the config file are the provider's own: its log and audit have them)."""
+
 MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
 """Membership subscriptions one other platform may hold here (each event informs each)."""
 
@@ -1153,8 +1157,9 @@ class FederationAgent(Agent):
 
         Each export of a label to a receiver is checked as a create-stream of it is now
         (its requester and its receiver may stream it); one refused stops, its receiver
-        told ``why`` and the refusal (its import ends there, as when an export ends by
-        itself). Returns (export id, label, receiver, refusal) of each one ended.
+        told `UNSHARED_WHY` (its import ends there, as when an export ends by itself),
+        ``why`` and the refusal logged here. Returns (export id, label, receiver,
+        refusal) of each one ended.
         """
         exporter = self.exporter
         self._prune_ended()
@@ -1173,7 +1178,9 @@ class FederationAgent(Agent):
                 if exporter is None:
                     continue
                 try:
-                    await _resolved(exporter.stop(handle, why=f"{why}: {reason}"))
+                    # the receiver learns the fact only: the rule's platform list and the
+                    # config's path stay here (log, audit), and the marker stays small
+                    await _resolved(exporter.stop(handle, why=UNSHARED_WHY))
                 except Exception:
                     log.exception("%s: stopping the export of %r to %s", self, *key)
             if not record.handles:

@@ -42,6 +42,7 @@ from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.transports import MemoryHub, MemoryTransport
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Policy, Source, UnknownLabelError
+from federation._batch import pack_batch, read_batch
 from federation._gateway_service import jsonable
 from federation._service import (
     FEDERATION_SERVICE_TYPE,
@@ -370,9 +371,27 @@ async def test_a_reloaded_sharing_ends_the_exports_it_no_longer_allows() -> None
         assert set(a.fed.exports) == {kept}
         stopped = [e for e in a.exporter.started if e.stopped]
         assert [e.semantic for e in stopped] == ["car5-state", "car5-state"]
-        assert all(e.why is not None and e.why.startswith("reloaded: ") for e in stopped)
+        # told the fact, short, not the rule's platforms nor the reload's file
+        assert all(e.why == "the provider's sharing policy no longer allows it" for e in stopped)
         assert [e.semantic for e in a.exporter.running] == ["heli-altitude"]
         assert await a.fed.end_unshared("reloaded") == []
+
+
+async def test_a_reload_ending_an_export_tells_the_receiver_in_a_marker_it_accepts() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        await b.fed.create_stream("uav-a", ["car5-state"])
+        # a rule naming 40 platforms: its refusal lists them, over a marker's 1024 characters
+        many = [f"platform-with-a-long-name-{i:02d}" for i in range(40)]
+        rule = SharingRule(name="cars", labels=["car*"], stream=many)
+        a.fed.sharing = Sharing(SharingSettings(rules=[rule]))
+        ended = await a.fed.end_unshared("the sharing policy was reloaded from /etc/node.toml")
+        assert len(ended) == 1 and len(ended[0][3]) > 1024  # the refusal, kept for the audit
+        (stopped,) = [e for e in a.exporter.started if e.stopped]
+        assert stopped.why is not None and len(stopped.why) <= 200
+        assert "/etc/node.toml" not in stopped.why and "platform-with" not in stopped.why
+        marker = read_batch(pack_batch("car5-state", [], 0, ended=stopped.why))
+        assert marker.ended == stopped.why  # the receiver reads it: its import ends
 
 
 async def test_a_create_stream_started_across_a_reload_is_checked_by_the_new_policy() -> None:
