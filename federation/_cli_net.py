@@ -163,6 +163,8 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
     SIGHUP re-reads the config file's ``[sharing]`` table (only that) and applies it
     (`reload_sharing`); a wrong one is said in one line and the policy in force stays.
     """
+    from ._cli_node import take_held_hup
+
     async with _platform(config, source) as (p, application, channel):
         _warn(unprovided(p, source))
         await p.join()
@@ -170,6 +172,8 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         hup = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGHUP, hup.set)
+        if take_held_hup():  # one came while starting: the file may have changed since read
+            hup.set()
         reloads = loop.create_task(_reload_on_hup(p, source, hup, say), name="node.sighup")
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
         settle_gc()  # once ready: a full collection is ~15 ms a supervisor need not wait for
@@ -177,6 +181,7 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
             await stop.wait()
         finally:
             loop.remove_signal_handler(signal.SIGHUP)
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)  # stopping: a SIGHUP is no kill
             reloads.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await reloads

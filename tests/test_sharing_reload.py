@@ -200,6 +200,42 @@ def test_an_export_the_reloaded_sharing_forbids_ends_and_is_audited(tmp_path: Pa
     assert "station stopped" in out and "Traceback" not in err, err
 
 
+def _hup_handled(pid: int) -> bool:
+    """Whether process ``pid`` catches or ignores SIGHUP now (Linux: /proc)."""
+    fields = dict(
+        line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+    )
+    mask = int(fields["SigCgt"], 16) | int(fields["SigIgn"], 16)
+    return bool(mask & (1 << (signal.SIGHUP - 1)))
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+def test_a_sighup_while_the_node_starts_does_not_end_it_and_reloads_once_ready(
+    tmp_path: Path,
+) -> None:
+    station = Station(tmp_path)
+    proc = station.spawn("node", "--config", CONFIG)
+    out, err = Lines(proc.stdout), Lines(proc.stderr)
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and not _hup_handled(proc.pid):
+            assert time.monotonic() < deadline, "SIGHUP never handled"
+            time.sleep(0.005)
+        # held from the start of `dyknow node`, long before it is ready
+        assert out._lines.empty(), "ready before SIGHUP was handled"
+        proc.send_signal(signal.SIGHUP)
+        out.wait_for("station ready in federation", 60)
+        line = out.wait_for("[sharing] reloaded", 30)  # the held one, replayed
+        assert "no change" in line, line
+        assert proc.poll() is None
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=20)
+    assert "station stopped" in out.rest() and "Traceback" not in err.rest()
+
+
 @pytest.mark.timeout(180)
 def test_a_truncated_or_foreign_config_on_sighup_is_refused_and_the_policy_stays(
     tmp_path: Path,
