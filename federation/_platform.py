@@ -990,8 +990,9 @@ class FederationPlatform:
         # agreed by `accept`, no batch yet
         self._leased: dict[str, dict[str, tuple[str, asyncio.TimerHandle]]] = {}
         # sender -> the streams agreed by consent (pruned of those no longer agreed or
-        # ended when counted): what `max_consented_imports` bounds
-        self._consented: dict[str, set[str]] = {}
+        # ended when counted): what `max_consented_imports` bounds; each with the platform
+        # that asked (a narrowed `sharing.accept_for` withdraws those it no longer accepts)
+        self._consented: dict[str, dict[str, str]] = {}
         self._stack: contextlib.AsyncExitStack | None = None
 
     def __repr__(self) -> str:
@@ -1076,8 +1077,11 @@ class FederationPlatform:
         allows end (their receivers are told; see `FederationAgent.end_unshared`); what it
         newly allows is served to the next request. ``gateway`` is not reloaded (the
         Gateway Agent registers its service at start): a change of it raises
-        PlatformConfigError and nothing is applied. Audited: ``policy`` ``reloaded``, and
-        ``policy`` ``ended`` for each export ended.
+        PlatformConfigError and nothing is applied. The streams agreed here by consent
+        (flowing or leased) whose requester ``accept_for`` no longer lets direct streams
+        here are withdrawn (they end here). Audited: ``policy`` ``reloaded``, and
+        ``policy`` ``ended`` for each export ended (``sharing-rule``) and each stream
+        withdrawn (``accept-for``).
         """
         source = source or f"platform {self.name}"
         old = self.federation_agent.sharing.settings
@@ -1111,7 +1115,45 @@ class FederationPlatform:
                 export=export_id,
                 reason=f"export {export_id} of {semantic!r} to {receiver} ended: {why}: {reason}",
             )
+        for sender, semantic, requester, reason in self._withdraw_unaccepted():
+            audit.record(
+                verdict="ended",
+                stage="policy",
+                code="accept-for",
+                stream=semantic,
+                requester=requester,
+                **{"from": sender},
+                reason=(
+                    f"import of {semantic!r} from {sender}, asked for by {requester}, "
+                    f"withdrawn: {why}: {reason}"
+                ),
+            )
         return changes, ended
+
+    def _withdraw_unaccepted(self) -> list[tuple[str, str, str, str]]:
+        """Withdraw the streams agreed by consent (flowing or leased) whose requester
+        ``sharing.accept_for`` refuses now: (sender, label, requester, refusal) of each."""
+        accepts_for = self.federation_agent.sharing.accepts_for
+        gone = []
+        for sender, held in list(self._consented.items()):
+            for semantic, requester in list(held.items()):
+                reason = accepts_for(requester)
+                if reason is None:
+                    continue
+                del held[semantic]
+                gone.append((sender, semantic, requester, reason))
+                log.warning(
+                    "platform %s: %r from %s (asked for by %s) withdrawn: %s",
+                    self.name,
+                    semantic,
+                    sender,
+                    requester,
+                    reason,
+                )
+                self.withdraw(sender, semantic)
+            if not held:
+                del self._consented[sender]
+        return gone
 
     # -- membership -----------------------------------------------------------------------
 
@@ -1181,7 +1223,7 @@ class FederationPlatform:
         """
         label = self._agree(sender, semantic)
         self._unlease(sender, semantic)
-        self._consented.get(sender, set()).discard(semantic)  # ours now
+        self._consented.get(sender, {}).pop(semantic, None)  # ours now
         self.federation_agent.keep_import(sender, semantic)
         return label
 
@@ -1217,12 +1259,12 @@ class FederationPlatform:
                 f"{mine} streams from {sender} that {requester} asked for here have sent "
                 f"nothing yet (at most {own} per requester): {semantic!r} not agreed"
             )
-        held = self._consented.setdefault(sender, set())
+        held = self._consented.setdefault(sender, {})
         get = self.importer.get
         # only those not ended count: an ended one is withdrawn (its samples stay readable),
         # else a batch of it would start it again here uncounted; a new consent agrees it
         for s in [s for s in held if (r := get(sender, s)) is None or r.ended]:
-            held.discard(s)
+            del held[s]
             if s != semantic:
                 self.importer.forget(sender, s)
         if semantic not in held and len(held) >= self.max_consented_imports:
@@ -1234,7 +1276,7 @@ class FederationPlatform:
                 f"{self.max_consented_imports}): {semantic!r} not agreed",
             )
         label = self._agree(sender, semantic)
-        held.add(semantic)
+        held[semantic] = requester
         handle = asyncio.get_running_loop().call_later(
             self.consent_lease, self._lease_ended, sender, semantic
         )
