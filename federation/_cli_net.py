@@ -206,7 +206,9 @@ async def _reload_on_hup(
         await hup.wait()
         hup.clear()
         try:
-            settings = load_sharing(source, name=p.name, federation=p.config.federation)
+            settings = await asyncio.to_thread(
+                load_sharing, source, name=p.name, federation=p.config.federation
+            )
             changes, ended = await p.reload_sharing(settings, source=source)
         except PlatformConfigError as exc:
             _warn([f"dyknow node: [sharing] not reloaded, the policy in force stays: {exc}"])

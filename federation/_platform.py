@@ -82,7 +82,9 @@ import contextlib
 import fnmatch
 import inspect
 import logging
+import os
 import re
+import stat
 import string
 import tomllib
 from collections.abc import Awaitable, Callable, Iterable, Mapping
@@ -634,10 +636,16 @@ class PlatformConfig(BaseModel):
         return MqttTransport(self.transport)
 
 
-def _read_toml(path: Path) -> dict[str, Any]:
-    """A TOML file's tables; PlatformConfigError naming the file and why it cannot be read."""
+def _read_toml(path: Path, *, regular: bool = False) -> dict[str, Any]:
+    """A TOML file's tables; PlatformConfigError naming the file and why it cannot be read.
+
+    ``regular``: anything else than a regular file (a FIFO, a device) is refused, opened
+    without waiting for a writer.
+    """
     try:
-        with path.open("rb") as f:
+        with open(path, "rb", opener=_open_nonblocking if regular else None) as f:
+            if regular and not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise PlatformConfigError(str(path), None, "is not a regular file")
             return tomllib.load(f)
     except OSError as exc:
         raise PlatformConfigError(str(path), None, f"cannot be read: {exc.strerror}") from None
@@ -651,17 +659,23 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise PlatformConfigError(str(path), None, "not valid TOML: nested too deep") from None
 
 
+def _open_nonblocking(path: str, flags: int) -> int:
+    """``os.open`` for ``open(opener=)``, not waiting for a writer (of a FIFO)."""
+    return os.open(path, flags | getattr(os, "O_NONBLOCK", 0))
+
+
 def load_sharing(
     path: str | Path, *, name: str | None = None, federation: str | None = None
 ) -> SharingSettings:
     """The ``[sharing]`` table of a TOML config file, once the whole file validates as a
     config (as at start): a truncated or wrong file is refused, not read as the defaults.
 
-    ``name`` / ``federation``: the running platform's; a file of another is refused.
+    ``name`` / ``federation``: the running platform's; a file of another is refused, and so
+    is anything else than a regular file (a FIFO would block the reader).
     PlatformConfigError names the file and the key (``sharing.…``, ``name``…).
     """
     path = Path(path)
-    data = _read_toml(path)
+    data = _read_toml(path, regular=True)
     if "sharing" in data and not isinstance(data["sharing"], dict):
         raise PlatformConfigError(str(path), "sharing", "must be a table")
     config = PlatformConfig.from_dict(data, source=str(path))

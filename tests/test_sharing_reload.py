@@ -4,6 +4,7 @@ allows end, what it newly allows is served, a broken table leaves the policy in 
 from __future__ import annotations
 
 import json
+import os
 import queue
 import signal
 import subprocess
@@ -258,6 +259,27 @@ def test_a_truncated_or_foreign_config_on_sighup_is_refused_and_the_policy_stays
         _ask_until_served(node, "temperature")  # the old policy: still served …
         assert node.ask("wind-speed").returncode != 0  # … and still refused
         assert not [r for r in node.audit() if r.get("stage") == "policy"]
+    finally:
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs")
+def test_a_config_replaced_by_a_fifo_on_sighup_is_refused_and_the_node_serves(
+    tmp_path: Path,
+) -> None:
+    node = Node(tmp_path, ONLY_TEMPERATURE)
+    try:
+        _ask_until_served(node, "temperature")
+        node.config.unlink()
+        os.mkfifo(node.config)  # no writer ever: a blocking read would wait for good
+        node.proc.send_signal(signal.SIGHUP)
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert "is not a regular file" in line, line
+        _ask_until_served(node, "temperature")  # the node serves, the old policy in force
+        assert node.ask("wind-speed").returncode != 0
+        assert node.proc.poll() is None
     finally:
         out, err = node.stop()
     assert "station stopped" in out and "Traceback" not in err, err
