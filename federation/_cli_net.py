@@ -202,6 +202,15 @@ async def _reload_on_hup(
     """
     from ._platform import load_sharing
 
+    def tell(line: str, out: Callable[[str], None] = say) -> None:
+        try:
+            out(line)
+        except OSError as exc:  # stdout/stderr gone (a closed pipe): the reloads go on
+            log.warning("%s (not said: %s)", line, exc)
+
+    def warn(line: str) -> None:
+        tell(line, lambda text: _warn([text]))
+
     while True:
         await hup.wait()
         hup.clear()
@@ -211,15 +220,15 @@ async def _reload_on_hup(
             )
             changes, ended = await p.reload_sharing(settings, source=source)
         except PlatformConfigError as exc:
-            _warn([f"dyknow node: [sharing] not reloaded, the policy in force stays: {exc}"])
+            warn(f"dyknow node: [sharing] not reloaded, the policy in force stays: {exc}")
             continue
         except Exception as exc:  # a reload must never take the node down
             log.exception("reloading [sharing] from %s", source)
-            _warn([f"dyknow node: [sharing] reload failed: {source}: {type(exc).__name__}: {exc}"])
+            warn(f"dyknow node: [sharing] reload failed: {source}: {type(exc).__name__}: {exc}")
             continue
-        say(f"dyknow node: [sharing] reloaded from {source}: {'; '.join(changes) or 'no change'}")
+        tell(f"dyknow node: [sharing] reloaded from {source}: {'; '.join(changes) or 'no change'}")
         for export_id, semantic, receiver, _ in ended:
-            say(
+            tell(
                 f"dyknow node: export {export_id} of {semantic!r} to {receiver} ended: "
                 "the reloaded [sharing] no longer allows it"
             )

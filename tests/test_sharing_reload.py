@@ -3,6 +3,8 @@ allows end, what it newly allows is served, a broken table leaves the policy in 
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
 import os
 import queue
@@ -365,3 +367,42 @@ def test_sharing_changes_name_the_rules_added_and_removed_and_the_default() -> N
     two = SharingSettings(rules=[*old.rules, *new.rules])
     back = SharingSettings(rules=[*new.rules, *old.rules])
     assert sharing_changes(two, back) == ["rules reordered"]
+
+
+async def test_a_reload_whose_output_fails_goes_on_reloading(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from federation._cli_net import _reload_on_hup
+
+    path = tmp_path / "node.toml"
+    path.write_text(
+        'name = "x"\nfederation = "f"\nkey = "k"\ntrust = "t"\nvocabulary = "v.toml"\n'
+        'mapping = "m.toml"\n' + ONLY_TEMPERATURE
+    )
+    reloaded: list[SharingSettings] = []
+
+    async def reload_sharing(
+        settings: SharingSettings, *, source: str
+    ) -> tuple[list[str], list[tuple[str, str, str, str]]]:
+        reloaded.append(settings)
+        return ["sharing.default 'members' -> 'none'"], [("e1", "temperature", "operator", "r")]
+
+    def say(text: str) -> None:
+        raise BrokenPipeError(32, "Broken pipe")  # stdout's reader went away
+
+    p = SimpleNamespace(name="x", config=SimpleNamespace(federation="f"))
+    p.reload_sharing = reload_sharing
+    hup = asyncio.Event()
+    task = asyncio.create_task(_reload_on_hup(p, str(path), hup, say))  # type: ignore[arg-type]
+    try:
+        for n in (1, 2):
+            hup.set()
+            async with asyncio.timeout(10):
+                while len(reloaded) < n:  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)
+        await asyncio.sleep(0.05)
+        assert not task.done()  # still reloading: what it could not say is logged
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task  # stops without raising
