@@ -1165,6 +1165,8 @@ class FederationAgent(Agent):
         self._prune_ended()
         check = self._refusal
         ended: list[tuple[str, str, str, str]] = []
+        stops: list[tuple[tuple[str, str], Any]] = []
+        touched: list[StreamExport] = []
         for record in list(self._exports.values()):
             requester = platform_of(record.requester)
             for key, handle in list(record.handles.items()):
@@ -1175,14 +1177,27 @@ class FederationAgent(Agent):
                 del record.handles[key]
                 ended.append((record.id, semantic, receiver, reason))
                 log.warning("%s: export %s of %r to %s ended: %s", self, record.id, *key, reason)
-                if exporter is None:
-                    continue
-                try:
-                    # the receiver learns the fact only: the rule's platform list and the
-                    # config's path stay here (log, audit), and the marker stays small
-                    await _resolved(exporter.stop(handle, why=UNSHARED_WHY))
-                except Exception:
-                    log.exception("%s: stopping the export of %r to %s", self, *key)
+                stops.append((key, handle))
+                if record not in touched:
+                    touched.append(record)
+        if exporter is not None and stops:
+            # every one refused is out of its record (no agreement left) before any is
+            # stopped; the stops run together: each export ends at once (it sends no more)
+            # and then tells its receiver, the fact only (the rule's platform list and the
+            # config's path stay here, in the log and audit, and the marker stays small)
+            results = await asyncio.gather(
+                *(_resolved(exporter.stop(h, why=UNSHARED_WHY)) for _, h in stops),
+                return_exceptions=True,
+            )
+            for (key, _), result in zip(stops, results, strict=True):
+                if isinstance(result, Exception):
+                    log.error(
+                        "%s: stopping the export of %r to %s",
+                        self,
+                        *key,
+                        exc_info=result,
+                    )
+        for record in touched:
             if not record.handles:
                 await self._end(record)
         return ended

@@ -394,6 +394,27 @@ async def test_a_reload_ending_an_export_tells_the_receiver_in_a_marker_it_accep
         assert marker.ended == stopped.why  # the receiver reads it: its import ends
 
 
+async def test_a_reload_ends_every_refused_export_before_telling_any_receiver() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        for label in ("car5-state", "heli-altitude", "heli-max-speed"):
+            await b.fed.create_stream("uav-a", [label])
+        events: list[tuple[str, str]] = []
+
+        async def stop(export: FakeExport, *, why: str | None = None) -> None:
+            export.stopped, export.why = True, why  # it sends no more from here
+            events.append(("ended", export.semantic))
+            await asyncio.sleep(0.05)  # its end marker on the wire
+            events.append(("told", export.semantic))
+
+        a.exporter.stop = stop  # type: ignore[method-assign]
+        a.fed.sharing = Sharing(SharingSettings(default="none"))
+        async with asyncio.timeout(WAIT):
+            ended = await a.fed.end_unshared("reloaded")
+        assert len(ended) == 3 and a.fed.exports == {}
+        assert [e for e, _ in events] == ["ended"] * 3 + ["told"] * 3, events
+
+
 async def test_a_create_stream_started_across_a_reload_is_checked_by_the_new_policy() -> None:
     async with world() as w:
         a, b = w["uav-a"], w["uav-b"]
