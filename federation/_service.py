@@ -993,6 +993,10 @@ class FederationAgent(Agent):
                     await self._ask_consent(receiver, requester, record.labels)
             for semantic, local in pairs:
                 for receiver in receivers:
+                    if self.sharing is not sharing:
+                        # reloaded while this one started: the new policy decides before
+                        # anything more is sent (those running stop, their receivers told)
+                        await self._recheck(record, requester)
                     try:
                         handle = await self._start_export(
                             exporter, local, semantic, receiver, policy, requester, req.history
@@ -1139,7 +1143,9 @@ class FederationAgent(Agent):
         await self._stop_handles(record)
         log.info("%s: export %s stopped", self, record.id)
 
-    async def _stop_handles(self, record: StreamExport, receiver: str | None = None) -> None:
+    async def _stop_handles(
+        self, record: StreamExport, receiver: str | None = None, *, why: str | None = None
+    ) -> None:
         exporter = self.exporter
         for key, handle in list(record.handles.items()):
             if receiver is not None and key[1] != receiver:
@@ -1148,7 +1154,7 @@ class FederationAgent(Agent):
             if exporter is None:
                 continue
             try:
-                await _resolved(exporter.stop(handle))
+                await _resolved(exporter.stop(handle, why=why) if why else exporter.stop(handle))
             except Exception:
                 log.exception("%s: stopping the export of %r to %s", self, *key)
 
@@ -1208,7 +1214,7 @@ class FederationAgent(Agent):
             for who in (requester, *record.receivers):
                 reason = self._refusal(semantic, who)
                 if reason is not None:
-                    await self._stop_handles(record)
+                    await self._stop_handles(record, why=UNSHARED_WHY)  # receivers told
                     raise Denied("sharing-rule", reason)
 
     def _refusal(self, semantic: str, platform: str) -> str | None:

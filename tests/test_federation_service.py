@@ -437,6 +437,32 @@ async def test_a_create_stream_started_across_a_reload_is_checked_by_the_new_pol
         assert a.exporter.running == [] and a.fed.exports == {}
 
 
+async def test_a_reload_while_a_create_stream_starts_stops_it_before_the_next_label() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        starting = asyncio.Event()
+        start = a.exporter.start_exporting
+
+        async def slow(*args: Any, **options: Any) -> FakeExport:
+            export = await start(*args, **options)  # this one runs: it may send
+            starting.set()
+            await asyncio.sleep(0.3)
+            return export
+
+        a.exporter.start_exporting = slow  # type: ignore[method-assign]
+        asked = asyncio.create_task(b.fed.create_stream("uav-a", ["car5-state", "heli-altitude"]))
+        async with asyncio.timeout(WAIT):
+            await starting.wait()
+        a.fed.sharing = Sharing(SharingSettings(default="none"))
+        reason = await refusal(asked)
+        assert 'sharing.default is "none"' in reason, reason
+        # the next label never started; the one running stopped, its receiver told
+        assert [e.semantic for e in a.exporter.started] == ["car5-state"]
+        (first,) = a.exporter.started
+        assert first.stopped and first.why == "the provider's sharing policy no longer allows it"
+        assert a.fed.exports == {}
+
+
 async def test_concurrent_create_streams_of_one_requester_are_all_agreed() -> None:
     # regression: the per-requester reservations of two requests in flight at once were
     # released twice, and the second request failed
