@@ -288,6 +288,32 @@ def test_a_config_replaced_by_a_fifo_on_sighup_is_refused_and_the_node_serves(
 
 
 @pytest.mark.timeout(180)
+def test_an_export_ended_by_a_rule_naming_40_platforms_ends_the_receivers_import(
+    tmp_path: Path,
+) -> None:
+    node = Node(tmp_path, EVERYTHING)
+    follower = node.station.spawn("stream", "temperature", "-p", "station", *ASK)
+    try:
+        Lines(follower.stdout).wait_for("temperature", 60)
+        many = ", ".join(f'"platform-with-a-long-name-{i:02d}"' for i in range(40))
+        # its refusal names the 40: far over an end marker's 1024 characters
+        node.hup(
+            f'\n[sharing]\ndefault = "none"\n\n[[sharing.rules]]\nname = "few"\n'
+            f'labels = ["temperature"]\nstream = [{many}]\n'
+        )
+        node.out.wait_for("ended: the reloaded [sharing] no longer allows it", 30)
+        follower.wait(timeout=30)  # the marker arrived: the import, and the command, ended
+        gone = [r for r in node.policy_records(["reloaded", "ended"]) if r["verdict"] == "ended"]
+        assert gone and "platform-with-a-long-name-39" in str(gone[0]["reason"]), gone
+    finally:
+        if follower.poll() is None:
+            follower.kill()
+        follower.wait(timeout=10)
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
 @pytest.mark.parametrize(
     ("broken", "key", "why"),
     [
