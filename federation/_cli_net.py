@@ -163,6 +163,8 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
     SIGHUP re-reads the config file's ``[sharing]`` table (only that) and applies it
     (`reload_sharing`); a wrong one is said in one line and the policy in force stays.
     """
+    from ._cli_node import take_held_hup
+
     async with _platform(config, source) as (p, application, channel):
         _warn(unprovided(p, source))
         await p.join()
@@ -170,6 +172,8 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         hup = asyncio.Event()
         loop = asyncio.get_running_loop()
         loop.add_signal_handler(signal.SIGHUP, hup.set)
+        if take_held_hup():  # one came while starting: the file may have changed since read
+            hup.set()
         reloads = loop.create_task(_reload_on_hup(p, source, hup, say), name="node.sighup")
         say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
         settle_gc()  # once ready: a full collection is ~15 ms a supervisor need not wait for
@@ -177,6 +181,7 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
             await stop.wait()
         finally:
             loop.remove_signal_handler(signal.SIGHUP)
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)  # stopping: a SIGHUP is no kill
             reloads.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await reloads
@@ -197,22 +202,33 @@ async def _reload_on_hup(
     """
     from ._platform import load_sharing
 
+    def tell(line: str, out: Callable[[str], None] = say) -> None:
+        try:
+            out(line)
+        except OSError as exc:  # stdout/stderr gone (a closed pipe): the reloads go on
+            log.warning("%s (not said: %s)", line, exc)
+
+    def warn(line: str) -> None:
+        tell(line, lambda text: _warn([text]))
+
     while True:
         await hup.wait()
         hup.clear()
         try:
-            settings = load_sharing(source)
+            settings = await asyncio.to_thread(
+                load_sharing, source, name=p.name, federation=p.config.federation
+            )
             changes, ended = await p.reload_sharing(settings, source=source)
         except PlatformConfigError as exc:
-            _warn([f"dyknow node: [sharing] not reloaded, the policy in force stays: {exc}"])
+            warn(f"dyknow node: [sharing] not reloaded, the policy in force stays: {exc}")
             continue
         except Exception as exc:  # a reload must never take the node down
             log.exception("reloading [sharing] from %s", source)
-            _warn([f"dyknow node: [sharing] reload failed: {source}: {type(exc).__name__}: {exc}"])
+            warn(f"dyknow node: [sharing] reload failed: {source}: {type(exc).__name__}: {exc}")
             continue
-        say(f"dyknow node: [sharing] reloaded from {source}: {'; '.join(changes) or 'no change'}")
+        tell(f"dyknow node: [sharing] reloaded from {source}: {'; '.join(changes) or 'no change'}")
         for export_id, semantic, receiver, _ in ended:
-            say(
+            tell(
                 f"dyknow node: export {export_id} of {semantic!r} to {receiver} ended: "
                 "the reloaded [sharing] no longer allows it"
             )

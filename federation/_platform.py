@@ -82,7 +82,9 @@ import contextlib
 import fnmatch
 import inspect
 import logging
+import os
 import re
+import stat
 import string
 import tomllib
 from collections.abc import Awaitable, Callable, Iterable, Mapping
@@ -634,10 +636,16 @@ class PlatformConfig(BaseModel):
         return MqttTransport(self.transport)
 
 
-def _read_toml(path: Path) -> dict[str, Any]:
-    """A TOML file's tables; PlatformConfigError naming the file and why it cannot be read."""
+def _read_toml(path: Path, *, regular: bool = False) -> dict[str, Any]:
+    """A TOML file's tables; PlatformConfigError naming the file and why it cannot be read.
+
+    ``regular``: anything else than a regular file (a FIFO, a device) is refused, opened
+    without waiting for a writer.
+    """
     try:
-        with path.open("rb") as f:
+        with open(path, "rb", opener=_open_nonblocking if regular else None) as f:
+            if regular and not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise PlatformConfigError(str(path), None, "is not a regular file")
             return tomllib.load(f)
     except OSError as exc:
         raise PlatformConfigError(str(path), None, f"cannot be read: {exc.strerror}") from None
@@ -651,17 +659,35 @@ def _read_toml(path: Path) -> dict[str, Any]:
         raise PlatformConfigError(str(path), None, "not valid TOML: nested too deep") from None
 
 
-def load_sharing(path: str | Path) -> SharingSettings:
-    """Only the ``[sharing]`` table of a TOML config file, validated as `PlatformConfig.load`
-    validates it; PlatformConfigError names the file and the key (``sharing.…``)."""
+def _open_nonblocking(path: str, flags: int) -> int:
+    """``os.open`` for ``open(opener=)``, not waiting for a writer (of a FIFO)."""
+    return os.open(path, flags | getattr(os, "O_NONBLOCK", 0))
+
+
+def load_sharing(
+    path: str | Path, *, name: str | None = None, federation: str | None = None
+) -> SharingSettings:
+    """The ``[sharing]`` table of a TOML config file, once the whole file validates as a
+    config (as at start): a truncated or wrong file is refused, not read as the defaults.
+
+    ``name`` / ``federation``: the running platform's; a file of another is refused, and so
+    is anything else than a regular file (a FIFO would block the reader).
+    PlatformConfigError names the file and the key (``sharing.…``, ``name``…).
+    """
     path = Path(path)
-    table = _read_toml(path).get("sharing", {})
-    if not isinstance(table, dict):
+    data = _read_toml(path, regular=True)
+    if "sharing" in data and not isinstance(data["sharing"], dict):
         raise PlatformConfigError(str(path), "sharing", "must be a table")
-    try:
-        return SharingSettings.model_validate(table)
-    except ValidationError as exc:
-        raise _config_error(exc, str(path), within="sharing") from None
+    config = PlatformConfig.from_dict(data, source=str(path))
+    for key, running in (("name", name), ("federation", federation)):
+        if running is not None and getattr(config, key) != running:
+            raise PlatformConfigError(
+                str(path),
+                key,
+                f"{getattr(config, key)!r} is not the running platform's {running!r} "
+                "(the file of another platform?)",
+            )
+    return config.sharing
 
 
 def sharing_changes(old: SharingSettings, new: SharingSettings) -> list[str]:
@@ -978,8 +1004,9 @@ class FederationPlatform:
         # agreed by `accept`, no batch yet
         self._leased: dict[str, dict[str, tuple[str, asyncio.TimerHandle]]] = {}
         # sender -> the streams agreed by consent (pruned of those no longer agreed or
-        # ended when counted): what `max_consented_imports` bounds
-        self._consented: dict[str, set[str]] = {}
+        # ended when counted): what `max_consented_imports` bounds; each with the platform
+        # that asked (a narrowed `sharing.accept_for` withdraws those it no longer accepts)
+        self._consented: dict[str, dict[str, str]] = {}
         self._stack: contextlib.AsyncExitStack | None = None
 
     def __repr__(self) -> str:
@@ -1064,8 +1091,11 @@ class FederationPlatform:
         allows end (their receivers are told; see `FederationAgent.end_unshared`); what it
         newly allows is served to the next request. ``gateway`` is not reloaded (the
         Gateway Agent registers its service at start): a change of it raises
-        PlatformConfigError and nothing is applied. Audited: ``policy`` ``reloaded``, and
-        ``policy`` ``ended`` for each export ended.
+        PlatformConfigError and nothing is applied. The streams agreed here by consent
+        (flowing or leased) whose requester ``accept_for`` no longer lets direct streams
+        here are withdrawn (they end here). Audited: ``policy`` ``reloaded``, and
+        ``policy`` ``ended`` for each export ended (``sharing-rule``) and each stream
+        withdrawn (``accept-for``).
         """
         source = source or f"platform {self.name}"
         old = self.federation_agent.sharing.settings
@@ -1099,7 +1129,45 @@ class FederationPlatform:
                 export=export_id,
                 reason=f"export {export_id} of {semantic!r} to {receiver} ended: {why}: {reason}",
             )
+        for sender, semantic, requester, reason in self._withdraw_unaccepted():
+            audit.record(
+                verdict="ended",
+                stage="policy",
+                code="accept-for",
+                stream=semantic,
+                requester=requester,
+                **{"from": sender},
+                reason=(
+                    f"import of {semantic!r} from {sender}, asked for by {requester}, "
+                    f"withdrawn: {why}: {reason}"
+                ),
+            )
         return changes, ended
+
+    def _withdraw_unaccepted(self) -> list[tuple[str, str, str, str]]:
+        """Withdraw the streams agreed by consent (flowing or leased) whose requester
+        ``sharing.accept_for`` refuses now: (sender, label, requester, refusal) of each."""
+        accepts_for = self.federation_agent.sharing.accepts_for
+        gone = []
+        for sender, held in list(self._consented.items()):
+            for semantic, requester in list(held.items()):
+                reason = accepts_for(requester)
+                if reason is None:
+                    continue
+                del held[semantic]
+                gone.append((sender, semantic, requester, reason))
+                log.warning(
+                    "platform %s: %r from %s (asked for by %s) withdrawn: %s",
+                    self.name,
+                    semantic,
+                    sender,
+                    requester,
+                    reason,
+                )
+                self.withdraw(sender, semantic)
+            if not held:
+                del self._consented[sender]
+        return gone
 
     # -- membership -----------------------------------------------------------------------
 
@@ -1169,7 +1237,7 @@ class FederationPlatform:
         """
         label = self._agree(sender, semantic)
         self._unlease(sender, semantic)
-        self._consented.get(sender, set()).discard(semantic)  # ours now
+        self._consented.get(sender, {}).pop(semantic, None)  # ours now
         self.federation_agent.keep_import(sender, semantic)
         return label
 
@@ -1205,12 +1273,12 @@ class FederationPlatform:
                 f"{mine} streams from {sender} that {requester} asked for here have sent "
                 f"nothing yet (at most {own} per requester): {semantic!r} not agreed"
             )
-        held = self._consented.setdefault(sender, set())
+        held = self._consented.setdefault(sender, {})
         get = self.importer.get
         # only those not ended count: an ended one is withdrawn (its samples stay readable),
         # else a batch of it would start it again here uncounted; a new consent agrees it
         for s in [s for s in held if (r := get(sender, s)) is None or r.ended]:
-            held.discard(s)
+            del held[s]
             if s != semantic:
                 self.importer.forget(sender, s)
         if semantic not in held and len(held) >= self.max_consented_imports:
@@ -1222,7 +1290,7 @@ class FederationPlatform:
                 f"{self.max_consented_imports}): {semantic!r} not agreed",
             )
         label = self._agree(sender, semantic)
-        held.add(semantic)
+        held[semantic] = requester
         handle = asyncio.get_running_loop().call_later(
             self.consent_lease, self._lease_ended, sender, semantic
         )

@@ -170,6 +170,10 @@ with their requester; past it they are refused unasked (else a reflection). The 
 budget bounds, per requesting platform, the create-streams for third platforms whose
 receivers a provider asks (accept-stream)."""
 
+UNSHARED_WHY = "the provider's sharing policy no longer allows it"
+"""What a receiver's end marker says when a reloaded policy ends its export (the rule and
+the config file are the provider's own: its log and audit have them)."""
+
 MAX_MEMBERSHIP_SUBSCRIPTIONS = 16
 """Membership subscriptions one other platform may hold here (each event informs each)."""
 
@@ -989,6 +993,10 @@ class FederationAgent(Agent):
                     await self._ask_consent(receiver, requester, record.labels)
             for semantic, local in pairs:
                 for receiver in receivers:
+                    if self.sharing is not sharing:
+                        # reloaded while this one started: the new policy decides before
+                        # anything more is sent (those running stop, their receivers told)
+                        await self._recheck(record, requester)
                     try:
                         handle = await self._start_export(
                             exporter, local, semantic, receiver, policy, requester, req.history
@@ -1135,7 +1143,9 @@ class FederationAgent(Agent):
         await self._stop_handles(record)
         log.info("%s: export %s stopped", self, record.id)
 
-    async def _stop_handles(self, record: StreamExport, receiver: str | None = None) -> None:
+    async def _stop_handles(
+        self, record: StreamExport, receiver: str | None = None, *, why: str | None = None
+    ) -> None:
         exporter = self.exporter
         for key, handle in list(record.handles.items()):
             if receiver is not None and key[1] != receiver:
@@ -1144,7 +1154,7 @@ class FederationAgent(Agent):
             if exporter is None:
                 continue
             try:
-                await _resolved(exporter.stop(handle))
+                await _resolved(exporter.stop(handle, why=why) if why else exporter.stop(handle))
             except Exception:
                 log.exception("%s: stopping the export of %r to %s", self, *key)
 
@@ -1153,13 +1163,16 @@ class FederationAgent(Agent):
 
         Each export of a label to a receiver is checked as a create-stream of it is now
         (its requester and its receiver may stream it); one refused stops, its receiver
-        told ``why`` and the refusal (its import ends there, as when an export ends by
-        itself). Returns (export id, label, receiver, refusal) of each one ended.
+        told `UNSHARED_WHY` (its import ends there, as when an export ends by itself),
+        ``why`` and the refusal logged here. Returns (export id, label, receiver,
+        refusal) of each one ended.
         """
         exporter = self.exporter
         self._prune_ended()
         check = self._refusal
         ended: list[tuple[str, str, str, str]] = []
+        stops: list[tuple[tuple[str, str], Any]] = []
+        touched: list[StreamExport] = []
         for record in list(self._exports.values()):
             requester = platform_of(record.requester)
             for key, handle in list(record.handles.items()):
@@ -1170,12 +1183,27 @@ class FederationAgent(Agent):
                 del record.handles[key]
                 ended.append((record.id, semantic, receiver, reason))
                 log.warning("%s: export %s of %r to %s ended: %s", self, record.id, *key, reason)
-                if exporter is None:
-                    continue
-                try:
-                    await _resolved(exporter.stop(handle, why=f"{why}: {reason}"))
-                except Exception:
-                    log.exception("%s: stopping the export of %r to %s", self, *key)
+                stops.append((key, handle))
+                if record not in touched:
+                    touched.append(record)
+        if exporter is not None and stops:
+            # every one refused is out of its record (no agreement left) before any is
+            # stopped; the stops run together: each export ends at once (it sends no more)
+            # and then tells its receiver, the fact only (the rule's platform list and the
+            # config's path stay here, in the log and audit, and the marker stays small)
+            results = await asyncio.gather(
+                *(_resolved(exporter.stop(h, why=UNSHARED_WHY)) for _, h in stops),
+                return_exceptions=True,
+            )
+            for (key, _), result in zip(stops, results, strict=True):
+                if isinstance(result, Exception):
+                    log.error(
+                        "%s: stopping the export of %r to %s",
+                        self,
+                        *key,
+                        exc_info=result,
+                    )
+        for record in touched:
             if not record.handles:
                 await self._end(record)
         return ended
@@ -1186,7 +1214,7 @@ class FederationAgent(Agent):
             for who in (requester, *record.receivers):
                 reason = self._refusal(semantic, who)
                 if reason is not None:
-                    await self._stop_handles(record)
+                    await self._stop_handles(record, why=UNSHARED_WHY)  # receivers told
                     raise Denied("sharing-rule", reason)
 
     def _refusal(self, semantic: str, platform: str) -> str | None:

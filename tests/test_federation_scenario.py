@@ -82,6 +82,7 @@ from federation import (
     MembershipEvent,
     PlatformConfig,
     PlatformConfigError,
+    SharingSettings,
 )
 from ontology import StreamRule, UnknownSemanticLabel
 
@@ -893,6 +894,34 @@ async def test_a_durable_stream_for_a_consenting_third_platform_is_asked_again(
                 car5.push(car_state(0, 3, "uav-a"))
                 await asyncio.sleep(0.05)
         assert b.federation_agent.refusals == {} and a.federation_agent.refusals == {}
+
+
+async def test_a_narrowed_accept_for_withdraws_the_streams_agreed_for_those_it_refuses(
+    demo_keys: Path,
+) -> None:
+    # uav-b let the operator direct streams to it, then reloads a [sharing] that lets no one:
+    # what the operator directed there, flowing or waiting, is withdrawn, audited
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        car5 = a.instance.add_source("cars/car5/state")
+        await op.federation_agent.create_stream(
+            "uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT
+        )
+        car5.push(car_state(0, 1, "uav-a"))
+        await b.imported("uav-a", "car5-state", timeout=WAIT)  # flowing
+        a.instance.add_source("cars/car7/state")  # nothing pushed: no batch
+        await op.federation_agent.create_stream(
+            "uav-a", ["car7-state"], to_units=["uav-b"], timeout=WAIT
+        )
+        assert b.agreed("uav-a", "car7-state")  # leased: no batch yet
+        await b.reload_sharing(SharingSettings())  # accept_for: nobody
+        assert not b.agreed("uav-a", "car5-state") and not b.agreed("uav-a", "car7-state")
+        assert b._leased == {} and b._consented == {}
+        ended = [r for r in b.interface.audit.records if r.get("code") == "accept-for"]
+        assert sorted(r["stream"] for r in ended) == ["car5-state", "car7-state"], ended
+        assert all(r["verdict"] == "ended" and r["requester"] == "operator" for r in ended)
+        assert all(r["from"] == "uav-a" and r["stage"] == "policy" for r in ended)
 
 
 async def test_a_global_create_stream_is_received_from_every_provider_that_agreed(

@@ -42,6 +42,7 @@ from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.transports import MemoryHub, MemoryTransport
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Policy, Source, UnknownLabelError
+from federation._batch import pack_batch, read_batch
 from federation._gateway_service import jsonable
 from federation._service import (
     FEDERATION_SERVICE_TYPE,
@@ -370,9 +371,48 @@ async def test_a_reloaded_sharing_ends_the_exports_it_no_longer_allows() -> None
         assert set(a.fed.exports) == {kept}
         stopped = [e for e in a.exporter.started if e.stopped]
         assert [e.semantic for e in stopped] == ["car5-state", "car5-state"]
-        assert all(e.why is not None and e.why.startswith("reloaded: ") for e in stopped)
+        # told the fact, short, not the rule's platforms nor the reload's file
+        assert all(e.why == "the provider's sharing policy no longer allows it" for e in stopped)
         assert [e.semantic for e in a.exporter.running] == ["heli-altitude"]
         assert await a.fed.end_unshared("reloaded") == []
+
+
+async def test_a_reload_ending_an_export_tells_the_receiver_in_a_marker_it_accepts() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        await b.fed.create_stream("uav-a", ["car5-state"])
+        # a rule naming 40 platforms: its refusal lists them, over a marker's 1024 characters
+        many = [f"platform-with-a-long-name-{i:02d}" for i in range(40)]
+        rule = SharingRule(name="cars", labels=["car*"], stream=many)
+        a.fed.sharing = Sharing(SharingSettings(rules=[rule]))
+        ended = await a.fed.end_unshared("the sharing policy was reloaded from /etc/node.toml")
+        assert len(ended) == 1 and len(ended[0][3]) > 1024  # the refusal, kept for the audit
+        (stopped,) = [e for e in a.exporter.started if e.stopped]
+        assert stopped.why is not None and len(stopped.why) <= 200
+        assert "/etc/node.toml" not in stopped.why and "platform-with" not in stopped.why
+        marker = read_batch(pack_batch("car5-state", [], 0, ended=stopped.why))
+        assert marker.ended == stopped.why  # the receiver reads it: its import ends
+
+
+async def test_a_reload_ends_every_refused_export_before_telling_any_receiver() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        for label in ("car5-state", "heli-altitude", "heli-max-speed"):
+            await b.fed.create_stream("uav-a", [label])
+        events: list[tuple[str, str]] = []
+
+        async def stop(export: FakeExport, *, why: str | None = None) -> None:
+            export.stopped, export.why = True, why  # it sends no more from here
+            events.append(("ended", export.semantic))
+            await asyncio.sleep(0.05)  # its end marker on the wire
+            events.append(("told", export.semantic))
+
+        a.exporter.stop = stop  # type: ignore[method-assign]
+        a.fed.sharing = Sharing(SharingSettings(default="none"))
+        async with asyncio.timeout(WAIT):
+            ended = await a.fed.end_unshared("reloaded")
+        assert len(ended) == 3 and a.fed.exports == {}
+        assert [e for e, _ in events] == ["ended"] * 3 + ["told"] * 3, events
 
 
 async def test_a_create_stream_started_across_a_reload_is_checked_by_the_new_policy() -> None:
@@ -395,6 +435,32 @@ async def test_a_create_stream_started_across_a_reload_is_checked_by_the_new_pol
         reason = await refusal(asked)
         assert 'sharing.default is "none"' in reason, reason
         assert a.exporter.running == [] and a.fed.exports == {}
+
+
+async def test_a_reload_while_a_create_stream_starts_stops_it_before_the_next_label() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        starting = asyncio.Event()
+        start = a.exporter.start_exporting
+
+        async def slow(*args: Any, **options: Any) -> FakeExport:
+            export = await start(*args, **options)  # this one runs: it may send
+            starting.set()
+            await asyncio.sleep(0.3)
+            return export
+
+        a.exporter.start_exporting = slow  # type: ignore[method-assign]
+        asked = asyncio.create_task(b.fed.create_stream("uav-a", ["car5-state", "heli-altitude"]))
+        async with asyncio.timeout(WAIT):
+            await starting.wait()
+        a.fed.sharing = Sharing(SharingSettings(default="none"))
+        reason = await refusal(asked)
+        assert 'sharing.default is "none"' in reason, reason
+        # the next label never started; the one running stopped, its receiver told
+        assert [e.semantic for e in a.exporter.started] == ["car5-state"]
+        (first,) = a.exporter.started
+        assert first.stopped and first.why == "the provider's sharing policy no longer allows it"
+        assert a.fed.exports == {}
 
 
 async def test_concurrent_create_streams_of_one_requester_are_all_agreed() -> None:

@@ -3,7 +3,10 @@ allows end, what it newly allows is served, a broken table leaves the policy in 
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import json
+import os
 import queue
 import signal
 import subprocess
@@ -200,6 +203,116 @@ def test_an_export_the_reloaded_sharing_forbids_ends_and_is_audited(tmp_path: Pa
     assert "station stopped" in out and "Traceback" not in err, err
 
 
+def _hup_handled(pid: int) -> bool:
+    """Whether process ``pid`` catches or ignores SIGHUP now (Linux: /proc)."""
+    fields = dict(
+        line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+    )
+    mask = int(fields["SigCgt"], 16) | int(fields["SigIgn"], 16)
+    return bool(mask & (1 << (signal.SIGHUP - 1)))
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+def test_a_sighup_while_the_node_starts_does_not_end_it_and_reloads_once_ready(
+    tmp_path: Path,
+) -> None:
+    station = Station(tmp_path)
+    proc = station.spawn("node", "--config", CONFIG)
+    out, err = Lines(proc.stdout), Lines(proc.stderr)
+    try:
+        deadline = time.monotonic() + 60
+        while proc.poll() is None and not _hup_handled(proc.pid):
+            assert time.monotonic() < deadline, "SIGHUP never handled"
+            time.sleep(0.005)
+        # held from the start of `dyknow node`, long before it is ready
+        assert out._lines.empty(), "ready before SIGHUP was handled"
+        proc.send_signal(signal.SIGHUP)
+        out.wait_for("station ready in federation", 60)
+        line = out.wait_for("[sharing] reloaded", 30)  # the held one, replayed
+        assert "no change" in line, line
+        assert proc.poll() is None
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=20)
+    assert "station stopped" in out.rest() and "Traceback" not in err.rest()
+
+
+@pytest.mark.timeout(180)
+def test_a_truncated_or_foreign_config_on_sighup_is_refused_and_the_policy_stays(
+    tmp_path: Path,
+) -> None:
+    node = Node(tmp_path, ONLY_TEMPERATURE)
+    try:
+        _ask_until_served(node, "temperature")
+        whole = node.config.read_text()
+        # an editor's half-written file: no [sharing] in it, which must not mean the defaults
+        node.config.write_text(whole[: whole.index("vocabulary")])
+        node.proc.send_signal(signal.SIGHUP)
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert "missing" in line, line
+        # another platform's file
+        node.config.write_text(whole.replace('name = "station"', 'name = "other"', 1))
+        node.proc.send_signal(signal.SIGHUP)
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert "name: 'other' is not the running platform's 'station'" in line, line
+        assert node.proc.poll() is None
+        _ask_until_served(node, "temperature")  # the old policy: still served …
+        assert node.ask("wind-speed").returncode != 0  # … and still refused
+        assert not [r for r in node.audit() if r.get("stage") == "policy"]
+    finally:
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs")
+def test_a_config_replaced_by_a_fifo_on_sighup_is_refused_and_the_node_serves(
+    tmp_path: Path,
+) -> None:
+    node = Node(tmp_path, ONLY_TEMPERATURE)
+    try:
+        _ask_until_served(node, "temperature")
+        node.config.unlink()
+        os.mkfifo(node.config)  # no writer ever: a blocking read would wait for good
+        node.proc.send_signal(signal.SIGHUP)
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert "is not a regular file" in line, line
+        _ask_until_served(node, "temperature")  # the node serves, the old policy in force
+        assert node.ask("wind-speed").returncode != 0
+        assert node.proc.poll() is None
+    finally:
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
+def test_an_export_ended_by_a_rule_naming_40_platforms_ends_the_receivers_import(
+    tmp_path: Path,
+) -> None:
+    node = Node(tmp_path, EVERYTHING)
+    follower = node.station.spawn("stream", "temperature", "-p", "station", *ASK)
+    try:
+        Lines(follower.stdout).wait_for("temperature", 60)
+        many = ", ".join(f'"platform-with-a-long-name-{i:02d}"' for i in range(40))
+        # its refusal names the 40: far over an end marker's 1024 characters
+        node.hup(
+            f'\n[sharing]\ndefault = "none"\n\n[[sharing.rules]]\nname = "few"\n'
+            f'labels = ["temperature"]\nstream = [{many}]\n'
+        )
+        node.out.wait_for("ended: the reloaded [sharing] no longer allows it", 30)
+        follower.wait(timeout=30)  # the marker arrived: the import, and the command, ended
+        gone = [r for r in node.policy_records(["reloaded", "ended"]) if r["verdict"] == "ended"]
+        assert gone and "platform-with-a-long-name-39" in str(gone[0]["reason"]), gone
+    finally:
+        if follower.poll() is None:
+            follower.kill()
+        follower.wait(timeout=10)
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize(
     ("broken", "key", "why"),
@@ -235,18 +348,30 @@ def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
     assert "station stopped" in out and "Traceback" not in err, err
 
 
-def test_load_sharing_reads_only_the_table_and_names_the_key(tmp_path: Path) -> None:
+def test_load_sharing_validates_the_whole_file_and_names_the_key(tmp_path: Path) -> None:
     path = tmp_path / "node.toml"
-    # the rest of the file is not validated: only [sharing] is reloaded
-    path.write_text('name = 3\nwhatever = "x"\n' + ONLY_TEMPERATURE)
-    settings = load_sharing(path)
+    whole = 'name = "x"\nfederation = "f"\nkey = "k"\ntrust = "t"\nvocabulary = "v.toml"\n'
+    whole += 'mapping = "m.toml"\n'
+    path.write_text(whole + ONLY_TEMPERATURE)
+    settings = load_sharing(path, name="x", federation="f")
     assert settings.default == "none" and settings.rules[0].name == "thermometer"
-    path.write_text('name = "x"\n')
-    assert load_sharing(path) == SharingSettings()  # no table: the defaults
-    path.write_text('sharing = "open"\n')
+    # the rest of the file is validated too: a truncated or wrong file is no policy
+    path.write_text('name = 3\nwhatever = "x"\n' + ONLY_TEMPERATURE)
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: "):
+        load_sharing(path)
+    path.write_text('name = "x"\n')  # cut short: not the defaults ("members")
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: .*missing"):
+        load_sharing(path)
+    path.write_text(whole)  # a whole config without [sharing]: the defaults
+    assert load_sharing(path, name="x", federation="f") == SharingSettings()
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: name: 'x' is not .* 'y'"):
+        load_sharing(path, name="y", federation="f")
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: federation: 'f' is not"):
+        load_sharing(path, name="x", federation="g")
+    path.write_text(whole + 'sharing = "open"\n')
     with pytest.raises(PlatformConfigError, match=r"node\.toml: sharing: must be a table"):
         load_sharing(path)
-    path.write_text('[sharing]\naccept_for = ["uav b"]\n')
+    path.write_text(whole + '[sharing]\naccept_for = ["uav b"]\n')
     with pytest.raises(PlatformConfigError, match=r"sharing\.accept_for\[0\]: 'uav b'"):
         load_sharing(path)
     path.write_text("[sharing\n")
@@ -268,3 +393,42 @@ def test_sharing_changes_name_the_rules_added_and_removed_and_the_default() -> N
     two = SharingSettings(rules=[*old.rules, *new.rules])
     back = SharingSettings(rules=[*new.rules, *old.rules])
     assert sharing_changes(two, back) == ["rules reordered"]
+
+
+async def test_a_reload_whose_output_fails_goes_on_reloading(tmp_path: Path) -> None:
+    from types import SimpleNamespace
+
+    from federation._cli_net import _reload_on_hup
+
+    path = tmp_path / "node.toml"
+    path.write_text(
+        'name = "x"\nfederation = "f"\nkey = "k"\ntrust = "t"\nvocabulary = "v.toml"\n'
+        'mapping = "m.toml"\n' + ONLY_TEMPERATURE
+    )
+    reloaded: list[SharingSettings] = []
+
+    async def reload_sharing(
+        settings: SharingSettings, *, source: str
+    ) -> tuple[list[str], list[tuple[str, str, str, str]]]:
+        reloaded.append(settings)
+        return ["sharing.default 'members' -> 'none'"], [("e1", "temperature", "operator", "r")]
+
+    def say(text: str) -> None:
+        raise BrokenPipeError(32, "Broken pipe")  # stdout's reader went away
+
+    p = SimpleNamespace(name="x", config=SimpleNamespace(federation="f"))
+    p.reload_sharing = reload_sharing
+    hup = asyncio.Event()
+    task = asyncio.create_task(_reload_on_hup(p, str(path), hup, say))  # type: ignore[arg-type]
+    try:
+        for n in (1, 2):
+            hup.set()
+            async with asyncio.timeout(10):
+                while len(reloaded) < n:  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)
+        await asyncio.sleep(0.05)
+        assert not task.done()  # still reloading: what it could not say is logged
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task  # stops without raising
