@@ -216,7 +216,11 @@ async def _reload_on_hup(
         hup.clear()
         try:
             settings = await asyncio.to_thread(
-                load_sharing, source, name=p.name, federation=p.config.federation
+                load_sharing,
+                source,
+                name=p.name,
+                federation=p.config.federation,
+                running=p.federation_agent.sharing.settings,
             )
             changes, ended = await p.reload_sharing(settings, source=source)
         except PlatformConfigError as exc:

@@ -665,26 +665,41 @@ def _open_nonblocking(path: str, flags: int) -> int:
 
 
 def load_sharing(
-    path: str | Path, *, name: str | None = None, federation: str | None = None
+    path: str | Path,
+    *,
+    name: str | None = None,
+    federation: str | None = None,
+    running: SharingSettings | None = None,
 ) -> SharingSettings:
     """The ``[sharing]`` table of a TOML config file, once the whole file validates as a
     config (as at start): a truncated or wrong file is refused, not read as the defaults.
 
     ``name`` / ``federation``: the running platform's; a file of another is refused, and so
-    is anything else than a regular file (a FIFO would block the reader).
+    is anything else than a regular file (a FIFO would block the reader). ``running``: the
+    policy in force; a file with no ``[sharing]`` table is refused when that is not the
+    defaults (a file cut just before the table still validates: it would open every label).
     PlatformConfigError names the file and the key (``sharing.…``, ``name``…).
     """
     path = Path(path)
     data = _read_toml(path, regular=True)
-    if "sharing" in data and not isinstance(data["sharing"], dict):
+    if "sharing" not in data and running is not None and running != SharingSettings():
+        # a file cut short just before its [sharing] still validates: read as the defaults
+        # (members), a cut would open every label; returning to them is said explicitly
+        raise PlatformConfigError(
+            str(path),
+            "sharing",
+            "missing: a reload never falls back to the defaults; an empty [sharing] table "
+            "asks for them",
+        )
+    if not isinstance(data.get("sharing", {}), dict):
         raise PlatformConfigError(str(path), "sharing", "must be a table")
     config = PlatformConfig.from_dict(data, source=str(path))
-    for key, running in (("name", name), ("federation", federation)):
-        if running is not None and getattr(config, key) != running:
+    for key, ours in (("name", name), ("federation", federation)):
+        if ours is not None and getattr(config, key) != ours:
             raise PlatformConfigError(
                 str(path),
                 key,
-                f"{getattr(config, key)!r} is not the running platform's {running!r} "
+                f"{getattr(config, key)!r} is not the running platform's {ours!r} "
                 "(the file of another platform?)",
             )
     return config.sharing

@@ -362,8 +362,15 @@ def test_load_sharing_validates_the_whole_file_and_names_the_key(tmp_path: Path)
     path.write_text('name = "x"\n')  # cut short: not the defaults ("members")
     with pytest.raises(PlatformConfigError, match=r"node\.toml: .*missing"):
         load_sharing(path)
-    path.write_text(whole)  # a whole config without [sharing]: the defaults
-    assert load_sharing(path, name="x", federation="f") == SharingSettings()
+    path.write_text(whole)  # whole, but cut just before [sharing]: not the defaults
+    with pytest.raises(PlatformConfigError, match=r"node\.toml: sharing: missing: a reload never"):
+        load_sharing(path, name="x", federation="f", running=settings)
+    # a node running on the defaults: a file without the table changes nothing
+    assert load_sharing(path, name="x", federation="f", running=SharingSettings()) == (
+        SharingSettings()
+    )
+    path.write_text(whole + "[sharing]\n")  # the defaults, asked for
+    assert load_sharing(path, name="x", federation="f", running=settings) == SharingSettings()
     with pytest.raises(PlatformConfigError, match=r"node\.toml: name: 'x' is not .* 'y'"):
         load_sharing(path, name="y", federation="f")
     with pytest.raises(PlatformConfigError, match=r"node\.toml: federation: 'f' is not"):
@@ -416,7 +423,11 @@ async def test_a_reload_whose_output_fails_goes_on_reloading(tmp_path: Path) -> 
     def say(text: str) -> None:
         raise BrokenPipeError(32, "Broken pipe")  # stdout's reader went away
 
-    p = SimpleNamespace(name="x", config=SimpleNamespace(federation="f"))
+    p = SimpleNamespace(
+        name="x",
+        config=SimpleNamespace(federation="f"),
+        federation_agent=SimpleNamespace(sharing=SimpleNamespace(settings=SharingSettings())),
+    )
     p.reload_sharing = reload_sharing
     hup = asyncio.Event()
     task = asyncio.create_task(_reload_on_hup(p, str(path), hup, say))  # type: ignore[arg-type]
