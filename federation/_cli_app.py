@@ -38,6 +38,8 @@ from ._platform import PlatformConfig, PlatformConfigError
 if TYPE_CHECKING:
     from rich.table import Table
 
+    from ontology import Vocabulary
+
 
 def _demo_app() -> typer.Typer:
     from .demo import demo_app
@@ -118,19 +120,25 @@ def _in_vocabulary(command: str, cfg: PlatformConfig, labels: Sequence[str]) -> 
     A provider would refuse it all the same, but maybe by its sharing rules first,
     which do not say that the label is no label at all.
     """
-    from ontology import OntologyError, Vocabulary
-
-    try:
-        if isinstance(cfg.vocabulary, Path):
-            vocabulary = Vocabulary.load(cfg.vocabulary)
-        else:
-            vocabulary = Vocabulary.from_dict(cfg.vocabulary)
-    except OntologyError:  # the platform's own start says what is wrong with it
+    vocabulary = _vocabulary_of(cfg)
+    if vocabulary is None:
         return
     unknown = [label for label in labels if label not in vocabulary]
     if unknown:
         name = f" {vocabulary.name}" if vocabulary.name else ""
         raise _fail(f"dyknow {command}: {unknown[0]!r} is not a label of the vocabulary{name}")
+
+
+def _vocabulary_of(cfg: PlatformConfig) -> Vocabulary | None:
+    """The platform's vocabulary, or None when it cannot be read (its start says why)."""
+    from ontology import OntologyError, Vocabulary
+
+    try:
+        if isinstance(cfg.vocabulary, Path):
+            return Vocabulary.load(cfg.vocabulary)
+        return Vocabulary.from_dict(cfg.vocabulary)
+    except OntologyError:
+        return None
 
 
 def _formula_checked(cfg: PlatformConfig, formula: str) -> None:
@@ -139,18 +147,14 @@ def _formula_checked(cfg: PlatformConfig, formula: str) -> None:
     As the console's search refuses it (a 400): said before asking, not as each
     provider's refusal.
     """
-    from ontology import OntologyError, Vocabulary, parse
+    from ontology import OntologyError, parse
 
     try:
         expr = parse(formula)
     except OntologyError as exc:
         raise _fail(f"dyknow labels: --formula: {exc}") from None
-    try:
-        if isinstance(cfg.vocabulary, Path):
-            vocabulary = Vocabulary.load(cfg.vocabulary)
-        else:
-            vocabulary = Vocabulary.from_dict(cfg.vocabulary)
-    except OntologyError:  # the platform's own start says what is wrong with it
+    vocabulary = _vocabulary_of(cfg)
+    if vocabulary is None:
         return
     try:
         vocabulary.check(expr)
