@@ -163,7 +163,7 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
     SIGHUP re-reads the config file's ``[sharing]`` table (only that) and applies it
     (`reload_sharing`); a wrong one is said in one line and the policy in force stays.
     """
-    from ._cli_node import take_held_hup
+    from ._hup import take_held_hup
 
     async with _platform(config, source) as (p, application, channel):
         _warn(unprovided(p, source))

@@ -12,7 +12,6 @@ leaves the rest to typer, so the two cannot read one command line differently.
 from __future__ import annotations
 
 import os
-import signal
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -22,28 +21,6 @@ CONFIG_FLAGS = ("--config", "-c")
 CONFIG_HELP = "the platform's TOML config"
 # the variable by which a shell asks the ``dyknow`` command (click, under typer) to complete
 COMPLETE_VAR = "_DYKNOW_COMPLETE"
-
-
-_hup_pending = False  # a SIGHUP came before the node's reload handler was installed
-
-
-def _held_hup(signum: int, frame: object) -> None:
-    global _hup_pending
-    _hup_pending = True
-
-
-def hold_hup() -> None:
-    """From the start of ``dyknow node``: a SIGHUP (whose default ends the process) is
-    held until the node can reload (`take_held_hup`), not fatal while it starts."""
-    if hasattr(signal, "SIGHUP"):
-        signal.signal(signal.SIGHUP, _held_hup)
-
-
-def take_held_hup() -> bool:
-    """Whether a SIGHUP was held since `hold_hup` (and no longer)."""
-    global _hup_pending
-    pending, _hup_pending = _hup_pending, False
-    return pending
 
 
 def say(text: str) -> None:

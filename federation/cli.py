@@ -34,7 +34,8 @@ class _Pacified:
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse the command line and run the chosen subcommand; the exit code."""
     args = list(sys.argv[1:] if argv is None else argv)
-    from ._cli_node import hold_hup, node_config, run_node
+    from ._cli_node import node_config, run_node
+    from ._hup import hold_hup
 
     if args[:1] == ["node"]:
         hold_hup()  # a SIGHUP while the node starts must not end it (it reloads once ready)
