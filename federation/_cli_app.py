@@ -639,7 +639,9 @@ def _watch_text(event: dict[str, Any]) -> str:
         who = [f"from {r['from']}"] if r.get("from") else []
         who += [str(r[k]) for k in ("performative", "sender") if r.get(k)]
         head = " ".join([f"{r.get('verdict')}{stage}", *who])
-        return f"{stamp} audit  {head}: {r.get('reason') or ''}"
+        reason = r.get("reason")
+        # a record with no reason ends at its head: no colon left dangling
+        return f"{stamp} audit  {head}: {reason}" if reason else f"{stamp} audit  {head}"
     if kind == "watching":
         return f"watching {event['platform']}: messages, batches and audit addressed to it"
     return f"{stamp} {kind} {json.dumps(event, default=str)}"
