@@ -63,15 +63,18 @@ app.add_typer(keys_app, name="keys")
 app.add_typer(_demo_app(), name="demo")
 
 
-def _table(title: str, *columns: str) -> Table:
-    """A rich table with these columns (rich is imported by the commands that print one)."""
+def _table(title: str, *columns: str, whole: tuple[str, ...] = ()) -> Table:
+    """A rich table with these columns (rich is imported by the commands that print one).
+
+    The columns named in ``whole`` keep each cell on one line; the others give up width.
+    """
     from rich.table import Table
 
     table = Table(title=title)
     for column in columns:
         # folded, not cut with an ellipsis: a time or label cut short on an 80-column
         # terminal (or a pipe) says nothing
-        table.add_column(column, overflow="fold")
+        table.add_column(column, overflow="fold", no_wrap=column in whole)
     return table
 
 
@@ -447,7 +450,8 @@ def platforms(config: ConfigOpt, as_json: JsonOpt = False, wait: WaitOpt = 3.0) 
     if as_json:
         _say(dumps(found))
         return
-    table = _table("platforms alive", "platform", "service", "type", "provider")
+    # a service name is what a user copies into the next command: one line, not folded
+    table = _table("platforms alive", "platform", "service", "type", "provider", whole=("service",))
     for name, services in found.items():
         if not services:
             table.add_row(name, "-", "-", "-")
@@ -639,7 +643,9 @@ def _watch_text(event: dict[str, Any]) -> str:
         who = [f"from {r['from']}"] if r.get("from") else []
         who += [str(r[k]) for k in ("performative", "sender") if r.get(k)]
         head = " ".join([f"{r.get('verdict')}{stage}", *who])
-        return f"{stamp} audit  {head}: {r.get('reason') or ''}"
+        reason = r.get("reason")
+        # a record with no reason ends at its head: no colon left dangling
+        return f"{stamp} audit  {head}: {reason}" if reason else f"{stamp} audit  {head}"
     if kind == "watching":
         return f"watching {event['platform']}: messages, batches and audit addressed to it"
     return f"{stamp} {kind} {json.dumps(event, default=str)}"

@@ -55,6 +55,7 @@ _ERRNO = re.compile(r"\[Errno -?\d+\] ")  # an OS error's number, not for a pers
 _MAX_AHEAD_FACTOR = 10
 _LOGGED_PER_REASON = 5  # then one log line every _LOG_EVERY messages of that reason
 _LOG_EVERY = 1000
+_TOPIC_SHOWN = 120  # characters of a topic a warning names (an MQTT topic may be 64 KiB)
 _QUEUE = 10_000  # messages waiting between a transport's thread and the loop
 
 
@@ -423,15 +424,20 @@ class _Mapper:
         try:
             self.push(message, stamp=stamp, topic=topic, valid=valid)
         except BadMessage as exc:
-            self.bad(exc.reason, exc.detail)
+            self.bad(exc.reason, exc.detail, topic=topic)
         except Exception as exc:  # a value the stream refuses (closed, wrong type, …)
-            self.bad("refused", f"{type(exc).__name__}: {exc}")
+            self.bad("refused", f"{type(exc).__name__}: {exc}", topic=topic)
 
-    def bad(self, reason: str, detail: str) -> None:
+    def bad(self, reason: str, detail: str, *, topic: str | None = None) -> None:
         """Count a bad message; log the first few of each reason, then one in _LOG_EVERY."""
         n = self.stats.bad[reason] = self.stats.bad[reason] + 1
         if n <= _LOGGED_PER_REASON or n % _LOG_EVERY == 0:
-            log.warning("input %s: bad message #%d (%s): %s", self.title, n, reason, detail)
+            # the topic it came on: of many sensors on a wildcard, which one misbehaves
+            on = ""
+            if topic is not None:
+                cut = topic[:_TOPIC_SHOWN] + "…" if len(topic) > _TOPIC_SHOWN else topic
+                on = f" on {cut}"
+            log.warning("input %s: bad message #%d (%s)%s: %s", self.title, n, reason, on, detail)
 
     def decode(self, payload: bytes, fmt: str) -> Any:
         """A JSON or msgpack payload as data; BadMessage naming why not."""
@@ -555,7 +561,7 @@ class _ZenohRunner(InputRunner):
                     message = mapper.decode(payload, fmt)
                 except BadMessage as exc:
                     mapper.stats.received += 1
-                    mapper.bad(exc.reason, exc.detail)
+                    mapper.bad(exc.reason, exc.detail, topic=key)
                     continue
                 mapper.handle(message, stamp=stamp, topic=key)
 
@@ -584,13 +590,14 @@ class _MqttRunner(InputRunner):
                         payload = msg.payload
                         if not isinstance(payload, bytes | bytearray):
                             payload = str(payload).encode()
+                        topic = str(msg.topic)
                         try:
                             message = mapper.decode(bytes(payload), "json")
                         except BadMessage as exc:
                             mapper.stats.received += 1
-                            mapper.bad(exc.reason, exc.detail)
+                            mapper.bad(exc.reason, exc.detail, topic=topic)
                             continue
-                        mapper.handle(message, topic=str(msg.topic))
+                        mapper.handle(message, topic=topic)
             except aiomqtt.MqttError as exc:
                 why = _ERRNO.sub("", str(exc)) or type(exc).__name__
                 log.warning(

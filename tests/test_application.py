@@ -754,6 +754,50 @@ async def test_an_mqtt_input_without_its_broker_names_the_broker(
     assert "Errno" not in caplog.text
 
 
+async def test_a_bad_mqtt_message_names_the_topic_it_came_on(
+    caplog: pytest.LogCaptureFixture, mosquitto: tuple[str, int]
+) -> None:
+    """Of many sensors on a wildcard, the warning says which one sent the bad message."""
+    import uuid
+
+    import aiomqtt
+
+    from federation._inputs import MqttInput
+
+    host, port = mosquitto
+    base = f"trial-{uuid.uuid4().hex[:8]}"  # the broker is the session's: topics of our own
+    lidar, long = f"{base}/lidar-3", f"{base}/{'x' * 300}"
+    # retained: the input reads them as it subscribes, with no race against its start
+    async with aiomqtt.Client(host, port) as client:
+        await client.publish(lidar, b'{"kind": "acc', qos=1, retain=True)
+        await client.publish(long, b'{"knd": "x"}', qos=1, retain=True)
+    settings = MqttInput(
+        kind="mqtt", topic=f"{base}/#", host=host, port=port, fields={"kind": "incident/x"}
+    )
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("incident/x")
+            runner = input_runner(settings, inst)
+            with caplog.at_level("WARNING", logger="federation._inputs"):
+                task = asyncio.create_task(runner.run(None))
+                try:
+                    async with asyncio.timeout(10):
+                        while runner.stats.received < 2:  # noqa: ASYNC110 (no event to await)
+                            await asyncio.sleep(0.02)
+                finally:
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+    finally:
+        async with aiomqtt.Client(host, port) as client:  # an empty retained one clears it
+            await client.publish(lidar, b"", qos=1, retain=True)
+            await client.publish(long, b"", qos=1, retain=True)
+    assert f"bad message #1 (not-json) on {lidar}: Unterminated string" in caplog.text
+    shown = long[:120] + "…"  # bounded: a topic may be 64 KiB
+    assert f"bad message #1 (no-field) on {shown}: none of the fields kind" in caplog.text
+    assert "x" * 121 not in caplog.text
+
+
 async def test_a_time_in_another_unit_is_a_bad_time_not_the_stream_s_latest(
     caplog: pytest.LogCaptureFixture,
 ) -> None:

@@ -123,6 +123,35 @@ def test_tables_fold_what_an_80_column_terminal_cannot_hold(
     assert cells == ["wind-speed-kmh", stamp, "20.808496403110213", stamp, stamp]
 
 
+def test_platforms_keeps_a_service_name_on_one_line_at_80_columns(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A user copies a service name from ``dyknow platforms``: it is not folded in two."""
+    from federation import _cli_app, _cli_net
+
+    services = ["dyknow-federation", "dyknow-federation-discovery"]
+    found = {
+        name: [
+            {"name": s, "type": "dyknow-federation", "provider": f"federation@{name}"}
+            for s in services
+        ]
+        for name in ("uav-a", "traffic-management-centre")
+    }
+
+    async def list_platforms(config_path: str, wait: float) -> dict[str, Any]:
+        return found
+
+    monkeypatch.setattr(_cli_app, "_load", lambda config: None)
+    monkeypatch.setattr(_cli_net, "list_platforms", list_platforms)
+    monkeypatch.setenv("COLUMNS", "80")
+    _cli_app.platforms(Path("uav-a.toml"))
+    out = capsys.readouterr().out
+    assert max(map(len, out.splitlines())) <= 80, out
+    rows = [line.split("│") for line in out.splitlines() if line.startswith("│")]
+    named = [row[2].strip() for row in rows if row[2].strip()]
+    assert named == services * 2, out  # each whole on its row, no continuation line
+
+
 def test_an_error_relayed_by_the_running_node_is_said_once(
     capsys: pytest.CaptureFixture[str],
 ) -> None:

@@ -669,3 +669,26 @@ def test_watch_prints_one_readable_line_per_event() -> None:
     assert "audit  dropped from x" in lines[3] and lines[3].endswith(": r")
     assert lines[4].endswith(" audit  accepted (watch): the owner watches")  # no 'from None'
     assert decode_watched("bin", "uav-b", 1.0, b"\xc1")["kind"] == "binary"  # not msgpack
+
+
+def test_watch_prints_no_dangling_colon_for_an_audit_record_without_reason() -> None:
+    """An audit record with an empty or absent reason ends at its head, not at a colon."""
+    from federation._cli_app import _watch_line
+
+    for record in (
+        {
+            "verdict": "accepted",
+            "from": "tmc",
+            "performative": "request",
+            "sender": "federation@tmc",
+            "reason": "",
+        },
+        {
+            "verdict": "accepted",
+            "from": "tmc",
+            "performative": "request",
+            "sender": "federation@tmc",
+        },
+    ):
+        line = _watch_line({"kind": "audit", "record": record})
+        assert line.endswith(" audit  accepted from tmc request federation@tmc"), line
