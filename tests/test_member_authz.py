@@ -178,6 +178,9 @@ async def _victim(config: PlatformConfig, conn: Connection) -> None:
                         pipe.send("asked", got)
                     except Exception as exc:
                         pipe.send("asked", f"error: {exc}")
+                elif msg[0] == "quiet":  # its own streams stop: their history stops growing
+                    feed.cancel()
+                    pipe.send("quiet")
                 elif msg[0] == "stuck":  # an agent whose mailbox fills (see `_Stuck`)
                     await p.agents.add(_Stuck(msg[1]))
                     pipe.send("stuck")
@@ -539,6 +542,11 @@ async def test_unsolicited_batches_are_dropped_counted_and_audited_boundedly(
                 "every batch counted and summed up in the audit",
             )
 
+        # uav-b's own streams keep up to 10 000 samples each (the default cache): ~40 streams
+        # at 20 Hz grow its RSS by ~200 kB a second whatever arrives, more the longer a flood
+        # takes on a busy machine. Stopped, what grows between the floods is the flood's.
+        w.pipes["uav-b"].send("quiet")
+        await w.pipes["uav-b"].expect("quiet", WAIT)
         # the first flood warms up what any traffic grows (transport buffers, allocator)
         s = await push(0)
         assert s["imports"]["totals"]["dropped_samples"]["unagreed"] == n
