@@ -738,10 +738,8 @@ def _key_path(loc: tuple[int | str, ...]) -> str:
     return out
 
 
-def _config_error(exc: ValidationError, source: str, within: str = "") -> PlatformConfigError:
+def _config_error(exc: ValidationError, source: str) -> PlatformConfigError:
     errors = exc.errors(include_url=False)
-    for e in errors if within else ():
-        e["loc"] = (within, *e["loc"])  # a table validated alone: keys as in the file
     first = errors[0]
     key = _key_path(first["loc"])
     message = str(first["msg"]).removeprefix("Value error, ")

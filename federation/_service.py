@@ -1154,7 +1154,7 @@ class FederationAgent(Agent):
             if exporter is None:
                 continue
             try:
-                await _resolved(exporter.stop(handle, why=why) if why else exporter.stop(handle))
+                await _resolved(exporter.stop(handle, why=why))
             except Exception:
                 log.exception("%s: stopping the export of %r to %s", self, *key)
 
