@@ -414,6 +414,7 @@ class AuditLog:
         between two leaves a gap in the numbers, never a record lost.
         """
         names = [path, *(path.with_name(f"{path.name}.{i}") for i in range(1, self.backups + 1))]
+        number = _rotated_number(path) + 1  # read before its name changes
         if self.backups == 0:
             path.unlink(missing_ok=True)
         for i in range(self.backups, 0, -1):
@@ -423,10 +424,37 @@ class AuditLog:
         note = f"audit file rotated at {self.max_bytes} bytes: the records before this one " + (
             f"are in {previous}" if previous else "were deleted (no backups kept)"
         )
-        record = self._new_record(reason=note, stage="audit-rotated", previous=previous)
+        # `previous` names the file as it is now; the next rotation renames it, so the
+        # chain is followed by `file`, which no rename changes: file n follows file n - 1
+        record = self._new_record(
+            reason=note, stage="audit-rotated", previous=previous, file=number
+        )
         with path.open("ab") as f:
             f.write(orjson.dumps(record) + b"\n")
         _fsync_dir(path.parent)
+
+
+def _rotated_number(path: Path) -> int:
+    """The ``file`` number of the audit file ``path`` (its rotation record's); 0 without one.
+
+    0 is a file no rotation began: the first one, or a file written by an earlier release.
+    """
+    try:
+        with path.open("rb") as f:
+            first = f.readline(_MAX_FIRST_LINE)
+    except OSError:
+        return 0
+    try:
+        record = orjson.loads(first)
+    except orjson.JSONDecodeError:
+        return 0
+    if not isinstance(record, dict) or record.get("stage") != "audit-rotated":
+        return 0
+    number = record.get("file")
+    return max(number, 0) if isinstance(number, int) and not isinstance(number, bool) else 0
+
+
+_MAX_FIRST_LINE = 65536  # bytes read of an audit file's first line: a rotation record is < 1 KB
 
 
 def _fsync_dir(directory: Path) -> None:

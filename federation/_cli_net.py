@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import difflib
 import json
 import logging
+import re
 import signal
 import sys
 import time
@@ -71,8 +73,11 @@ def endpoints(config: PlatformConfig) -> str:
 
 
 def unprovided(platform: FederationPlatform, source: str) -> list[str]:
-    """Warnings for the mapping's fixed entries whose local label is no stream here yet.
+    """Warnings for the mapping's entries whose local label no stream here has or can have.
 
+    A fixed entry whose local label is no stream yet, and a pattern entry whose local
+    pattern matches no stream here and no label an input or an import can make (the
+    inputs' ``fields`` labels with their ``{field}`` placeholders, ``import_label``).
     Not an error: a stream may appear after the start (an input with ``create = true``,
     an imported stream, a source added by the program), but a label the application
     lacks, a typo, is otherwise found only when asked for it ("no stream for it here").
@@ -84,18 +89,44 @@ def unprovided(platform: FederationPlatform, source: str) -> list[str]:
         if isinstance(config.mapping, Path)
         else f"{source}: mapping"
     )
+    labels = instance.labels()
+    templates = [label for spec in config.inputs for label in spec.fields.values()]
+    templates.append(config.import_label)
     warnings = []
     for semantic in mapping.mapped:
         entry = vocabulary.pattern(semantic)
+        local_pattern = mapping.local_entry(semantic)
+        local = local_pattern.text
+        key = _key(semantic)
         if entry is not None and entry.parameterized:
-            continue  # a pattern's streams come and go with their objects
-        local = mapping.to_local(semantic)
+            # a pattern's streams come and go with their objects: only a pattern nothing
+            # can ever match is said (a typo on either side of a placeholder)
+            if any(local_pattern.overlaps(t) for t in [*labels, *templates]):
+                continue
+            candidates = sorted({*labels, *templates} - {config.import_label})
+            near = difflib.get_close_matches(local, candidates, n=3, cutoff=0.5)
+            listed = ", ".join(map(repr, candidates[:5])) + (", …" if len(candidates) > 5 else "")
+            could = f"did you mean {', '.join(map(repr, near))}?" if near else f"here: {listed}"
+            warnings.append(
+                f"{where}: {key}: warning: local pattern {local!r} can match no stream here nor "
+                f"any label an input or import makes ({could}): no {semantic!r} label is "
+                "served until one does"
+            )
+            continue
         if not instance.has_label(local):
             warnings.append(
-                f"{where}: labels.{semantic}: warning: no stream {local!r} here yet (a label "
+                f"{where}: {key}: warning: no stream {local!r} here yet (a label "
                 f"the application lacks?): asking for {semantic!r} is refused until one appears"
             )
     return warnings
+
+
+def _key(semantic: str) -> str:
+    """The mapping's entry as a TOML path: ``labels.x`` or ``labels."{object}-state"``."""
+    return f"labels.{semantic}" if _BARE_KEY.fullmatch(semantic) else f'labels."{semantic}"'
+
+
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 
 
 async def _refuse_running_here(config: PlatformConfig) -> None:

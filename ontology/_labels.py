@@ -48,6 +48,7 @@ shape (`Vocabulary.from_dict`, `LabelMapping.from_dict`).
 
 from __future__ import annotations
 
+import difflib
 import re
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -70,6 +71,7 @@ SEMANTIC_VALUE = r"[A-Za-z0-9_]+"
 LOCAL_VALUE = r"[^\s/{}*?\[\]]+"
 
 _PLACEHOLDER = re.compile(r"\{([A-Za-z_][A-Za-z0-9_]*)\}")
+_HOLE = re.compile(r"\{[^{}]+\}")  # a template's hole: an input's {field}, import {sender}
 _SEMANTIC = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_-]*")
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
 
@@ -126,6 +128,50 @@ class LabelPattern:
                 raise ValueError(f"{v!r} cannot stand for {{{name}}} in {self.text!r}")
             out = out.replace(f"{{{name}}}", v)
         return out
+
+    def overlaps(self, template: str) -> bool:
+        """Whether some label ``template`` stands for matches this pattern.
+
+        ``template`` is a label, or one with ``{holes}`` standing for any text (zero or
+        more characters: a message's field, a topic). The two are walked side by side, a
+        product of their automata: a placeholder here is one character of a value or more.
+        """
+        ours: list[str | None] = []  # a literal character, or None: one value character
+        stars: set[int] = set()  # the items that repeat (zero or more): a value's rest
+        pos = 0
+        for m in _PLACEHOLDER.finditer(self.text):
+            ours.extend(self.text[pos : m.start()])
+            ours.extend((None, None))
+            stars.add(len(ours) - 1)
+            pos = m.end()
+        ours.extend(self.text[pos:])
+        theirs: list[str | None] = []  # a literal character, or None: a hole (any text)
+        pos = 0
+        for m in _HOLE.finditer(template):
+            theirs.extend(template[pos : m.start()])
+            theirs.append(None)
+            pos = m.end()
+        theirs.extend(template[pos:])
+        seen: set[tuple[int, int]] = set()
+        todo = [(0, 0)]
+        while todo:
+            i, j = todo.pop()
+            if (i, j) in seen:
+                continue
+            seen.add((i, j))
+            if i == len(ours) and j == len(theirs):
+                return True
+            if i in stars:
+                todo.append((i + 1, j))
+            if j < len(theirs) and theirs[j] is None:
+                todo.append((i, j + 1))
+            if i == len(ours) or j == len(theirs):
+                continue
+            x, y = ours[i], theirs[j]
+            # one character both can be: a hole takes any; a value character one of its class
+            if y is None or (x == y if x is not None else bool(self._value.fullmatch(y))):
+                todo.append((i if i in stars else i + 1, j if y is None else j + 1))
+        return False
 
     def shape(self) -> str:
         """The pattern with its placeholder names erased: equal shapes match the same labels."""
@@ -358,8 +404,12 @@ class LabelMapping:
                 self._add_pattern(entry, local, where)
                 continue
             if semantic not in vocabulary:
+                near = difflib.get_close_matches(str(semantic), vocabulary.labels, n=3)
+                hint = f" (did you mean {', '.join(map(repr, near))}?)" if near else ""
                 raise VocabularyError(
-                    source, where, f"not in the vocabulary {vocabulary.name or vocabulary.source}"
+                    source,
+                    where,
+                    f"not in the vocabulary {vocabulary.name or vocabulary.source}{hint}",
                 )
             try:
                 if LabelPattern(local, value=LOCAL_VALUE).parameterized:
@@ -412,6 +462,13 @@ class LabelMapping:
     def mapped(self) -> list[str]:
         """The vocabulary entries (labels and patterns) this platform maps; no local labels."""
         return [*self._exact, *self._patterns]
+
+    def local_entry(self, entry: str) -> LabelPattern:
+        """The local label or local pattern an entry of `mapped` (as written) maps to."""
+        local = self._exact.get(entry)
+        return (
+            LabelPattern(local, value=LOCAL_VALUE) if local is not None else self._patterns[entry]
+        )
 
     def to_local(self, semantic: str) -> str:
         """The local label of ``semantic``; UnknownSemanticLabel says why if there is none."""

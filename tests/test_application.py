@@ -99,6 +99,70 @@ def test_a_mapping_entry_of_no_stream_is_warned_about_at_start(tmp_path: Path) -
     ]
 
 
+def _gusts(directory: Path, local: str) -> None:
+    """A vocabulary pattern, its mapping to ``local``, an input making 'gusts/{station}/kmh'."""
+    with (directory / "weather.toml").open("a") as f:
+        f.write('"{object}-gust" = "the gusts at a station, km/h"\n')
+    with (directory / "station-labels.toml").open("a") as f:
+        f.write(f'"{{object}}-gust" = "{local}"\n')
+    config = directory / "station-python.toml"
+    config.write_text(config.read_text() + 'gust = "gusts/{station}/kmh"\n')
+
+
+def test_a_mapping_pattern_nothing_can_match_is_warned_about_at_start(tmp_path: Path) -> None:
+    # a typo in a pattern's local side: no stream yet is normal for a pattern, but no
+    # label an input makes matching it either means it never will
+    good = Station(tmp_path / "good")
+    _gusts(good.dir, "gusts/{object}/kmh")
+    typo = Station(tmp_path / "typo")
+    _gusts(typo.dir, "gust/{object}/kmh")
+    try:
+        good.start("python")
+        assert good.stop()[1] == ""  # a pattern an input's label template matches: silent
+        typo.start("python")
+        err = typo.stop()[1]
+    finally:
+        good.stop()
+        typo.stop()
+    assert err.splitlines() == [
+        'station-python.toml: mapping: station-labels.toml: labels."{object}-gust": warning: '
+        "local pattern 'gust/{object}/kmh' can match no stream here nor any label an input "
+        "or import makes (did you mean 'gusts/{station}/kmh'?): no '{object}-gust' label is "
+        "served until one does"
+    ]
+
+
+@pytest.mark.parametrize(
+    ("semantic", "local", "refusal"),
+    [
+        (  # a misspelt vocabulary pattern: refused, naming what it could be
+            "{object}-gusts",
+            "gusts/{object}/kmh",
+            'labels."{object}-gusts": not in the vocabulary weather '
+            "(did you mean '{object}-gust'?)",
+        ),
+        (  # a placeholder on one side only
+            "{object}-gust",
+            "gusts/{station}/kmh",
+            "labels.\"{object}-gust\": local pattern 'gusts/{station}/kmh' must have "
+            "exactly {object}",
+        ),
+    ],
+)
+def test_a_mapping_pattern_certainly_wrong_stops_the_node(
+    station: Path, capsys: pytest.CaptureFixture[str], semantic: str, local: str, refusal: str
+) -> None:
+    _gusts(station.parent, "gusts/{object}/kmh")
+    labels = station.parent / "station-labels.toml"
+    labels.write_text(labels.read_text().replace('"{object}-gust" = "gusts/{object}/kmh"', ""))
+    with labels.open("a") as f:
+        f.write(f'"{semantic}" = "{local}"\n')
+    code, err = _node(station, capsys)
+    assert code == 2, err
+    assert f"mapping: {labels}: {refusal}" in err, err
+    assert "Traceback" not in err
+
+
 def test_config_keys_of_inputs_are_named(station: Path, capsys: pytest.CaptureFixture[str]) -> None:
     text = station.read_text()
     station.write_text(text.replace('kind = "file"', 'kind = "ftp"', 1))

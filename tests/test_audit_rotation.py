@@ -66,7 +66,51 @@ def test_the_file_rotates_at_the_bound_and_keeps_every_record(tmp_path: Path) ->
         assert note["stage"] == "audit-rotated" and note["verdict"] is None
         assert note["previous"] == "audit.jsonl.1"
         assert note["platform"] == "uav-b"
+    # numbered 1, 2, … from the oldest file begun by a rotation: the chain, whatever the names
+    assert [_lines(f)[0]["file"] for f in files[:-1]] == list(range(len(files) - 1, 0, -1))
     assert _lines(files[-1])[0]["stage"] != "audit-rotated"
+
+
+def test_the_chain_of_files_is_followed_by_their_numbers_after_many_rotations(
+    tmp_path: Path,
+) -> None:
+    """Each file begun by a rotation names its place, ``file``, which no later rename changes.
+
+    ``previous`` is the name the records before went to when it was written (always
+    ``.1``), stale once the files move up; ``file`` n follows ``file`` n - 1, so a reader
+    given the files in any order (or names) puts them back in order and sees a gap.
+    """
+    path = tmp_path / "audit.jsonl"
+    audit = AuditLog(path=path, platform="uav-b", max_bytes=1200, backups=5)
+    for i in range(120):
+        audit.record(verdict="dropped", reason=f"junk {i}")
+        audit.take()
+    files = _files(path)
+    assert len(files) == 6  # rotated more often than it keeps files: the oldest went
+    numbers = {}
+    for f in files:
+        note = _lines(f)[0]
+        assert note["stage"] == "audit-rotated"
+        assert note["previous"] == "audit.jsonl.1"  # as written, not as renamed since
+        numbers[note["file"]] = f
+    newest = max(numbers)
+    assert newest > 6  # the count goes on past the backups kept
+    # followed by number, newest first, each file's predecessor is the next one by name:
+    # the chain is the files' order, and nothing is missing between the kept ones
+    chain = [numbers[n] for n in range(newest, newest - 6, -1)]
+    assert chain == files
+    kept = [int(r["reason"].split()[1]) for r in _decisions(list(chain))]
+    assert kept == list(range(kept[0], 120))
+
+    # a new process on the same file goes on counting from the file's own record
+    again = AuditLog(path=path, platform="uav-b", max_bytes=1200, backups=5)
+    for i in range(120, 140):
+        again.record(verdict="dropped", reason=f"junk {i}")
+        again.take()
+    assert _lines(path)[0]["file"] > newest
+    assert [_lines(f)[0]["file"] for f in _files(path)] == list(
+        range(_lines(path)[0]["file"], _lines(path)[0]["file"] - 6, -1)
+    )
 
 
 def test_the_audit_files_folder_is_made_at_the_first_write(tmp_path: Path) -> None:

@@ -923,3 +923,25 @@ async def test_an_error_in_the_feeds_body_comes_out_as_is(dk: DyKnowInstance) ->
     with pytest.raises(KeyError, match="boom"):
         async with FactFeed(dk, FactBase(), RULES):
             raise KeyError("boom")
+
+
+@pytest.mark.parametrize(
+    ("pattern", "template", "overlaps"),
+    [
+        ("seg/{object}/flow", "seg/{segment}/flow", True),
+        ("seg/{object}/flw", "seg/{segment}/flow", False),  # a typo: never matches
+        ("seg/a{object}/flow", "seg/{segment}/flow", True),  # a segment 'a1' would do
+        ("seg/{object}/flow", "seg/s1/flow", True),
+        ("seg/{object}/flow", "seg//flow", False),  # a placeholder is never empty
+        ("seg/{object}/flow", "seg/a/b/flow", False),  # nor holds a '/' (a local value)
+        ("seg/{object}/flow", "{topic}", True),  # a hole is any text
+        ("cars/{object}", "import/{sender}/{semantic}", False),
+        ("import/uav-a/{object}-state", "import/{sender}/{semantic}", True),
+    ],
+)
+def test_a_local_pattern_overlaps_the_labels_a_template_stands_for(
+    pattern: str, template: str, overlaps: bool
+) -> None:
+    vocabulary = Vocabulary({"{object}-flow": ""})
+    local = LabelMapping(vocabulary, {"{object}-flow": pattern}).local_entry("{object}-flow")
+    assert local.overlaps(template) is overlaps

@@ -43,9 +43,12 @@ Presence
     Closing the token publishes the empty retained message (which clears it); a process
     that dies loses its connection and the broker publishes the will.
     ``watch_presence`` subscribes to the key expression: retained messages are the
-    history, live ones the changes; a watcher reports only changes. ``tokens`` knows the
-    history is complete once a message it sends itself through the broker comes back:
-    the broker sends a subscription's retained messages before what it routes later.
+    history, live ones the changes; a watcher reports only changes. ``tokens`` tells the
+    two apart by each message's retain flag, not by their order (MQTT orders messages of
+    one topic, not a subscription's retained ones against what it routes later): a live
+    message is newer than the retained snapshot of its key, whichever came first. The
+    history is taken as complete once a message it sends itself through the broker is
+    back and no retained message came for ``retained_quiet`` s (within its timeout).
 
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
@@ -228,6 +231,12 @@ class MqttConfig(BaseModel):
         gt=0,
         description="Seconds a query handler may run before the query gets an error reply.",
     )
+    retained_quiet: float = Field(
+        default=0.05,
+        gt=0,
+        le=10,
+        description="Seconds without a retained message that end a presence history's replay.",
+    )
 
     def relative_to(self, base: str | Path) -> MqttConfig:
         """A copy whose TLS files are resolved against ``base`` (a config file's directory)."""
@@ -347,6 +356,43 @@ class _Server:
     admit: QueryFilter | None = None
 
 
+class _Alive:
+    """The tokens seen on a presence subscription: its retained snapshot, then live changes.
+
+    A live message (retain flag unset) was routed after the subscription was made, so it
+    is newer than the retained message of its key, even one that arrives after it.
+    """
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.retained: dict[str, bool] = {}
+        self.live: dict[str, bool] = {}
+        self.last_retained = loop.time()  # the replay's latest message (the start before)
+        self.came = asyncio.Event()  # set at each retained message
+
+    def feed(self, key: str, payload: bytes, retained: bool) -> None:
+        """Take one message on a presence key (a `_Watcher`'s interface)."""
+        if payload:
+            try:
+                alive = bool(json.loads(payload)["alive"])
+            except (ValueError, TypeError, KeyError, RecursionError):  # nested too deep
+                log.warning("mqtt: ignoring a malformed presence message on %r", key)
+                return
+        else:
+            alive = False
+        seen = self.retained if retained else self.live
+        if key not in seen and len(self.retained) + len(self.live) >= _MAX_PRESENCE_KEYS:
+            return  # an outsider's flood of invented keys: what is kept stays bounded
+        seen[key] = alive
+        if retained:
+            self.last_retained = self.loop.time()
+            self.came.set()
+
+    def alive(self) -> list[str]:
+        """The keys alive: each one's latest live message, else its retained one."""
+        return sorted(k for k, v in (self.retained | self.live).items() if v)
+
+
 @dataclass(eq=False)
 class _Filter:
     """One broker subscription and everything in this transport that listens through it."""
@@ -355,7 +401,7 @@ class _Filter:
     sid: int
     ready: asyncio.Future[bool]
     inboxes: list[Inbox[Message] | Screened] = field(default_factory=list)
-    watchers: list[_Watcher] = field(default_factory=list)
+    watchers: list[_Watcher | _Alive] = field(default_factory=list)
     servers: list[_Server] = field(default_factory=list)
 
     def empty(self) -> bool:
@@ -725,20 +771,28 @@ class MqttTransport(_Keeps, Transport):
     async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
         """The tokens alive on ``key_expr``: the retained ones, once the broker sent them all.
 
-        A round trip through the broker after subscribing ends after the retained
-        messages (`_round_trip`), a few ms; what came by ``timeout`` s when it does not.
+        All sent: a round trip through the broker after subscribing is back
+        (`_round_trip`, a few ms) and no retained message came for ``retained_quiet`` s;
+        what came by ``timeout`` s when that takes longer. A live change that comes in
+        the meantime wins over its key's retained message, before or after it.
         """
-        loop = asyncio.get_running_loop()
+        _, loop = self._connected()
         deadline = loop.time() + timeout
-        presence = await self.watch_presence(key_expr, history=True)
+        topic = topic_filter(key_expr)
+        seen = _Alive(loop)
+        await self._attach(topic, lambda f: f.watchers.append(seen), resubscribe=True)
         try:
             await self._round_trip(max(0.0, deadline - loop.time()))
-            alive: set[str] = set()
-            for change in presence.inbox.drain():
-                (alive.add if change.alive else alive.discard)(change.key)
+            while (end := min(seen.last_retained + self.config.retained_quiet, deadline)) > (
+                now := loop.time()
+            ):
+                seen.came.clear()
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(end - now):
+                        await seen.came.wait()
         finally:
-            presence.close()
-        return sorted(alive)
+            self._detach(topic, lambda f: f.watchers.remove(seen))
+        return seen.alive()
 
     async def serve(
         self, key_expr: str, handler: QueryHandler, *, admit: QueryFilter | None = None
