@@ -354,7 +354,8 @@ async def test_a_leave_replayed_before_the_first_snapshot_is_refused(
     async with asyncio.timeout(60), ZenohTransport(ZenohConfig.loopback(port)) as ta:
         leave = await _recorded_leave(tmp_path, fed, port, trust)
         ca = federation.channel("uav-a")
-        async with AgentPlatform("uav-a", ta, federation=fed, channel=ca) as pa:
+        # its queries of uav-b's held directory outlast the replay on a loaded machine
+        async with AgentPlatform("uav-a", ta, federation=fed, channel=ca, query_timeout=3.0) as pa:
             await pa.add(Echo())
             view, df = pa.global_df, pa.df
             assert view is not None and df is not None
@@ -397,3 +398,26 @@ async def test_a_leave_replayed_before_the_first_snapshot_is_refused(
                 asker = await pb.add(Agent("asker"))
                 assert await request(asker, "echo@uav-a", 3, ontology="demo", timeout=TIMEOUT) == 3
                 assert pa.stats.from_left == 0
+
+
+async def test_a_leave_of_a_process_never_read_is_taken_once_nobody_answers(
+    tmp_path: Path,
+) -> None:
+    """uav-b's process left, signed, before uav-a's view read its directory (the leave held
+    up on the way): nobody answers for uav-b any more, so the leave is taken, not refused."""
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, trust, port = federation.fed, federation.trust, federation.port
+    async with asyncio.timeout(60), ZenohTransport(ZenohConfig.loopback(port)) as ta:
+        leave = await _recorded_leave(tmp_path, fed, port, trust)
+        ca = federation.channel("uav-a")
+        async with AgentPlatform("uav-a", ta, federation=fed, channel=ca) as pa:
+            view, df = pa.global_df, pa.df
+            assert view is not None and df is not None
+            refused = view.refused
+            with _outsider(port) as relay:  # whoever held it up lets it go now
+                while not view._event_counts.get("uav-b", 0):
+                    relay.put(wire_key(fed, "df-events", "uav-b"), leave)
+                    await asyncio.sleep(0.05)
+            while not df.said_left("uav-b"):  # noqa: ASYNC110
+                await asyncio.sleep(0.02)  # one query timeout later
+            assert view.refused == refused
