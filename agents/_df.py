@@ -42,7 +42,7 @@ from ._agent import Agent
 from ._aio import Pending
 from ._bucket import TokenBucket
 from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventGate, DfEventLimit
-from ._directory_auth import DirectoryAuth, DirectoryStatementError, make_nonce
+from ._directory_auth import DirectoryAuth, DirectoryStatementError, Statement, make_nonce
 from ._exceptions import AgentError, ServiceError, TransportError
 from ._gate import shed_counts
 from ._presence import PRESENCE_BURST, PRESENCE_RATE, presence_bucket
@@ -647,7 +647,9 @@ class GlobalDirectory:
     With a trust file (the platform's channel has one) only authenticated statements
     count (`DirectoryAuth`): a DF answer must sign this view's fresh nonce, an event must
     be signed and newer than the last; a presence under a name not in the trust file is
-    ignored; a platform is ``platform-up`` only once its signed answer came; where
+    ignored; a platform is ``platform-up`` only once its signed answer came; a signed
+    leave of a process whose answer was never read counts only once the platform no
+    longer answers a fresh signed query (else refused: recorded and replayed); where
     presence can be forged (``Transport.forgeable_presence``: MQTT's retained messages),
     a presence that goes without a signed leave is believed only when the platform no
     longer answers a fresh signed query; and every ``recheck_interval`` seconds the
@@ -685,6 +687,11 @@ class GlobalDirectory:
         # alive, their first snapshot still asked: not exempt from the shared event budget
         self._joining: set[str] = set()
         self._event_counts: dict[str, int] = {}
+        # per trusted platform, the boot of the process whose signed answer was read last:
+        # a leave of another process (one replayed from before this view read any) is
+        # taken only once the platform no longer answers (`_confirm_leave`)
+        self._answered_boot: dict[str, int] = {}
+        self._leaves_doubted: dict[str, Statement] = {}
         self._watchers: list[Inbox[DirectoryEvent]] = []
         self._presence_watchers: list[Inbox[Presence]] = []
         self._subs: list[Subscription[Message] | Subscription[Presence]] = []
@@ -985,6 +992,7 @@ class GlobalDirectory:
             self._refuse(name, "directory answer from a platform not in the trust file", "df")
             return
         found[name] = [s for s in services if s.platform == name]
+        self._answered_boot[name] = statement.boot
 
     def _replace(self, platform: str, services: Iterable[ServiceDescription]) -> None:
         old = self._entries.get(platform, {})
@@ -1120,9 +1128,7 @@ class GlobalDirectory:
             self._event_counts[platform] = self._event_counts.get(platform, 0) + 1
             obj = statement.body
             if isinstance(obj, dict) and obj.get("op") == "leave":
-                # whether or not still listed (its presence may have gone first): signed
-                self._gone(platform)
-                self._left(platform, statement.ts_ms / 1000)
+                self._take_leave(platform, statement)
                 continue
             if platform not in self._alive:
                 continue  # its snapshot will be taken when its token appears
@@ -1141,6 +1147,46 @@ class GlobalDirectory:
                 self._audit_invalid(platform, f"directory event: {exc}", "df-events")
                 continue
             self._apply(platform, op, service)
+
+    def _take_leave(self, platform: str, statement: Statement) -> None:
+        """Take ``platform``'s signed leave: at once when it is the leave of the process read.
+
+        A leave of a process whose signed answer this view never read (its first snapshot
+        under way, or not asked yet) may be one anyone recorded and replays within the
+        skew: it is taken only once the platform no longer answers a fresh signed query,
+        and refused (counted, audited) while it does (`_confirm_leave`).
+        """
+        if not self._auth.authenticates or self._answered_boot.get(platform) == statement.boot:
+            # whether or not still listed (its presence may have gone first): signed
+            self._gone(platform)
+            self._left(platform, statement.ts_ms / 1000)
+            return
+        doubted = platform in self._leaves_doubted
+        self._leaves_doubted[platform] = statement  # the latest stands for those before
+        if doubted:
+            return
+        try:
+            self._platform.spawn(self._confirm_leave(platform), f"global-df.leave[{platform}]")
+        except AgentError:
+            self._leaves_doubted.pop(platform, None)  # the platform is closing
+
+    async def _confirm_leave(self, platform: str) -> None:
+        """Take the doubted leave of ``platform`` if it no longer answers; refuse it if it does."""
+        try:
+            answers = await self._answers(platform)
+        finally:
+            statement = self._leaves_doubted.pop(platform)
+        if answers and self._answered_boot.get(platform) != statement.boot:
+            self._refuse(
+                platform,
+                f"directory event: a signed leave of its process of boot {statement.boot}, "
+                f"whose directory this view never read, while its process of boot "
+                f"{self._answered_boot.get(platform)} answers: replayed",
+                "df-events",
+            )
+            return
+        self._gone(platform)
+        self._left(platform, statement.ts_ms / 1000)
 
     def _left(self, platform: str, at: float) -> None:
         """Tell the channel that ``platform`` left at ``at`` (POSIX s), as it signed.

@@ -1790,8 +1790,10 @@ class OwnerBatches:
 
     A batch is the platform's when it opens with the owner's key (sealed ones), its
     signature verifies with ``public_key`` (the platform's key in the trust file) over the
-    key it came on, its ``ts_ms`` is within ``skew`` s of this clock, and its signature was
-    not seen before (a replay within the skew). Anything else raises an
+    key it came on, its ``ts_ms`` is within ``skew`` s of this clock, not before ``since``
+    (POSIX s; None: no bound) nor before the newest batch accepted on the same key, and
+    its signature was not seen before. So a batch recorded and replayed within the skew is
+    refused whether or not this side saw it go by. Anything else raises an
     AuthenticationError: an anonymous sealed box proves nothing about who sealed it.
     """
 
@@ -1802,12 +1804,16 @@ class OwnerBatches:
         *,
         skew: float = _DEFAULT_POLICY.skew,
         clock: Clock = time.time,
+        since: float | None = None,
     ) -> None:
         self.keys = keys
         self._verify = VerifyKey(public_key)
         self._skew_ms = int(skew * 1000)
         self._clock = clock
+        self._since_ms = None if since is None else int(since * 1000)
         self._seen: dict[bytes, int] = {}  # signature -> ts_ms, while within the skew
+        # key -> ts_ms of the newest batch accepted on it: the platform signs them in order
+        self._newest: dict[str, int] = {}
 
     def open(self, key: str, payload: bytes, *, sealed: bool = True) -> bytes:
         """The batch ``payload`` carries on ``key``, once opened (``sealed``) and verified."""
@@ -1824,11 +1830,24 @@ class OwnerBatches:
             self._verify.verify(_owner_transcript(key, ts_ms, data), sig)
         except (CryptoError, ValueError):
             raise Forged(f"batch on {key!r} not signed by the platform's key", None) from None
+        # checked once signed: only the platform's own batches may move these bounds
+        if self._since_ms is not None and ts_ms < self._since_ms:
+            raise Replayed(
+                f"batch on {key!r} signed {(self._since_ms - ts_ms) / 1000:.3f} s before this "
+                "side began reading (replayed, or the platform's clock is behind)"
+            )
+        newest = self._newest.get(key)
+        if newest is not None and ts_ms < newest:
+            raise Replayed(
+                f"batch on {key!r} signed {(newest - ts_ms) / 1000:.3f} s before one "
+                "already accepted (replayed)"
+            )
         for old in [s for s, t in self._seen.items() if now_ms - t > self._skew_ms]:
             del self._seen[old]
         if sig in self._seen:
             raise Replayed(f"batch on {key!r} seen before")
         self._seen[sig] = ts_ms
+        self._newest[key] = ts_ms
         return data
 
 

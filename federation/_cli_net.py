@@ -47,6 +47,10 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 _WATCH_ASK = 2.0  # s one watch request waits for the platform's answer
+# s a batch may be signed before the watch began: none reaches a subscriber declared after
+# it, so an older one is recorded and replayed; this much allows the platform's clock to be
+# behind this one's (beyond it, its first batches are refused, shown and counted)
+_WATCH_SLACK = 1.0
 
 
 class RelayedError(RuntimeError):
@@ -734,7 +738,8 @@ async def watch_platform(
     Asks the platform (a request signed with its key, renewed every ``renew`` s) to show
     its owner every ACL message, sample batch and stream report it opens; those come
     signed by the platform and sealed to the owner's key, as does the audit, which is
-    shown too; a batch whose signature does not verify is shown as unreadable, counted.
+    shown too; a batch whose signature does not verify, or that was signed before the
+    watch began (`_WATCH_SLACK`) or before one already shown, is shown as unreadable, counted.
     Runs until SIGINT or ``duration`` s; how many events were emitted. TransportError when
     the platform does not answer within ``timeout`` s.
     """
@@ -752,7 +757,7 @@ async def watch_platform(
         public = keys.public_key
     except (OSError, ValueError, SecurityError) as exc:
         raise PlatformConfigError(config_path, "trust", str(exc)) from None
-    batches = OwnerBatches(keys, public)
+    batches = OwnerBatches(keys, public, since=time.time() - _WATCH_SLACK)
     stop = _stop_event()
     queue: asyncio.Queue[WatchEvent] = asyncio.Queue()
     unreadable = 0

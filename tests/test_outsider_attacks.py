@@ -306,6 +306,55 @@ def test_an_outsider_with_the_public_key_cannot_pass_a_batch_off_as_the_platform
     assert any(e["kind"] == "acl" and e["from"] == "operator" for e in events), events
 
 
+def test_the_owners_watch_refuses_a_batch_recorded_before_it_began(tmp_path: Path) -> None:
+    """An outsider records the platform's sealed audit batches (its subscriber is reason
+    enough for the platform to publish them), then replays them to an owner's watch begun
+    since, within the 30 s skew. The watch never saw them go by, so its memory of the
+    signatures it accepted could not catch them: before, they showed as the platform's
+    current audit. Now a batch signed before the watch began is ``unreadable``, counted,
+    and the platform's own batches since still verify.
+    """
+    station = Station(tmp_path)
+    session = None
+    watch = None
+    audit_key = f"dyknow/{station.federation}/v1/audit/station"
+    try:
+        station.start("python")
+        session = _outsider(station)
+        recorded: list[bytes] = []
+        spy = session.declare_subscriber(audit_key, lambda s: recorded.append(s.payload.to_bytes()))
+        # something for the platform to audit: the operator asks it, over the federation
+        station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        deadline = time.monotonic() + 10
+        while not recorded and time.monotonic() < deadline:
+            time.sleep(0.1)
+        spy.undeclare()
+        assert recorded, "no audit batch published while the outsider listened"
+        replayed = recorded[:5]
+        watch = _watch(station, "--duration", "60", "--json")
+        for payload in replayed:
+            _put(session, audit_key, payload)
+
+        def shown(seen: list[str]) -> bool:
+            events = [json.loads(line) for line in seen]
+            refused = sum(e["kind"] == "unreadable" for e in events)
+            audits = [e["record"] for e in events if e["kind"] == "audit"]
+            return refused >= len(replayed) and any(r.get("stage") == "watch" for r in audits)
+
+        out, err = _watch_until(watch, shown)
+    finally:
+        _stop(station, session, watch)
+    assert watch.returncode == 0, err
+    assert "Traceback" not in err, err
+    events = [json.loads(line) for line in out.splitlines()]
+    refused = [e for e in events if e["kind"] == "unreadable"]
+    assert [e["count"] for e in refused] == list(range(1, len(replayed) + 1)), refused
+    assert all("before this side began reading" in e["error"] for e in refused), refused
+    assert all(e["key"] == audit_key for e in refused), refused
+    # the platform's own batches since verify: the audit of the watch request it took
+    assert any(e["kind"] == "audit" and e["record"].get("stage") == "watch" for e in events)
+
+
 def _over_mqtt(station: Station, port: int) -> None:
     """The station's and the operator's configs with the MQTT transport on ``port``."""
     for name, client in (("station-python.toml", "station"), ("operator.toml", "operator")):

@@ -34,6 +34,7 @@ from agents._security import (
     SEALED_OVERHEAD,
     Handshake,
     KeyPair,
+    OwnerBatches,
     SecurityPolicy,
     Session,
     SessionTable,
@@ -42,6 +43,7 @@ from agents._security import (
     key_paths,
     read_public_key,
     seal_for_owner,
+    sign_owner_batch,
     watch_request,
 )
 
@@ -353,6 +355,37 @@ def test_sealed_for_the_owner_opens_with_the_owners_key_only() -> None:
             owner.open_sealed(bad)
     with pytest.raises(Forged):
         other.open_sealed(box)
+
+
+def test_the_owner_refuses_a_batch_older_than_its_start_or_its_newest(clock: Clock) -> None:
+    """A batch signed by the platform within the skew, never seen here, is still refused when
+    it was signed before this side began reading, or before one already accepted on its key
+    (recorded and replayed); batches signed in order on either key are taken."""
+    platform = KeyPair.generate("uav-a")
+    audit, watch = "dyknow/demo/v1/audit/uav-a", "dyknow/demo/v1/watch/uav-a"
+
+    def batch(key: str, data: bytes, at: float) -> bytes:
+        """``data`` as the platform publishes it on ``key`` at ``at`` (POSIX s)."""
+        return seal_for_owner(
+            platform.public_key, sign_owner_batch(platform, key, data, int(at * 1000))
+        )
+
+    before = batch(audit, b"{}\n", clock() - 2)  # recorded before the owner began
+    owner = OwnerBatches(platform, platform.public_key, clock=clock, since=clock() - 1)
+    with pytest.raises(Replayed, match="before this side began reading"):
+        owner.open(audit, before)
+    earlier = batch(audit, b'{"n":1}\n', clock() + 1)  # signed, withheld from the owner
+    assert owner.open(audit, batch(audit, b'{"n":2}\n', clock() + 2)) == b'{"n":2}\n'
+    assert owner.open(audit, batch(audit, b'{"n":3}\n', clock() + 2)) == b'{"n":3}\n'
+    with pytest.raises(Replayed, match="before one already accepted"):
+        owner.open(audit, earlier)
+    # each key is in order of its own: the watch's batch signed earlier is taken
+    assert owner.open(watch, batch(watch, b"[]", clock() + 1)) == b"[]"
+    # refused ones move nothing: a forged time cannot hold the platform's batches off
+    later = int((clock() + 10) * 1000).to_bytes(8, "big")
+    with pytest.raises(Forged):
+        owner.open(audit, seal_for_owner(platform.public_key, bytes(64) + later + b"{}"))
+    assert owner.open(audit, batch(audit, b'{"n":4}\n', clock() + 3)) == b'{"n":4}\n'
 
 
 def test_watch_requests_are_signed_fresh_and_used_once(clock: Clock) -> None:

@@ -36,6 +36,7 @@ from agents import (
     wire_key,
 )
 from agents._acl import Performative
+from agents._df import DirectoryFacilitator
 from agents._exceptions import AuthenticationError
 from agents._security import Handshake, SessionTable
 from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
@@ -204,7 +205,7 @@ async def test_a_leave_replayed_or_late_keeps_the_next_processs_session(tmp_path
             config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
 
             async def deliver(leave: bytes) -> None:
-                """The leave reaches uav-a now, and is taken (signed, within the skew).
+                """The leave reaches uav-a now, and is read (signed, within the skew).
 
                 As in a view that has not read the next process's directory yet (its
                 presence late): else the leave, older, would be dropped as stale.
@@ -330,3 +331,93 @@ def test_the_leave_cut_off_is_in_the_leavers_clock(offset: float) -> None:
     agree()
     assert a_table.back_since_left("uav-b")
     assert a_table.session_for("uav-b") not in (None, last)
+
+
+async def test_a_leave_replayed_before_the_first_snapshot_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An outsider recorded the signed leave of uav-b's earlier process; uav-b's next one
+    runs, and uav-a, started since, is taking its first snapshot of it (uav-b's directory
+    slow to answer) when the outsider replays that leave: uav-b answers a fresh query, so
+    the leave is refused, counted and audited; uav-b is listed and served."""
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, trust, port = federation.fed, federation.trust, federation.port
+    busy = asyncio.Event()
+    serve = DirectoryFacilitator._serve_public
+
+    async def slow(self: DirectoryFacilitator, key: str, payload: bytes) -> bytes | None:
+        """uav-b's directory answers once ``busy`` is set (the others at once)."""
+        if self.platform.name == "uav-b":
+            await busy.wait()
+        return await serve(self, key, payload)
+
+    async with asyncio.timeout(60), ZenohTransport(ZenohConfig.loopback(port)) as ta:
+        leave = await _recorded_leave(tmp_path, fed, port, trust)
+        ca = federation.channel("uav-a")
+        # its queries of uav-b's held directory outlast the replay on a loaded machine
+        async with AgentPlatform("uav-a", ta, federation=fed, channel=ca, query_timeout=3.0) as pa:
+            await pa.add(Echo())
+            view, df = pa.global_df, pa.df
+            assert view is not None and df is not None
+            assert view._auth.newest("uav-b") is None  # nothing read of uav-b yet
+            monkeypatch.setattr(DirectoryFacilitator, "_serve_public", slow)
+            config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+            cb = federation.channel("uav-b")
+            async with (
+                ZenohTransport(config) as tb,
+                AgentPlatform("uav-b", tb, federation=fed, channel=cb) as pb,
+            ):
+                while "uav-b" not in view._joining:  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)  # its first snapshot is under way
+                assert view._auth.newest("uav-b") is None  # no event of its own since
+                refused = view.refused
+                with _outsider(port) as outsider:
+                    # again until it arrived: the outsider's session may not be routed yet
+                    # (the copies after the first are stale, dropped)
+                    while not view._event_counts.get("uav-b", 0):
+                        outsider.put(wire_key(fed, "df-events", "uav-b"), leave)
+                        await asyncio.sleep(0.05)
+                busy.set()
+                deadline = time.monotonic() + 10
+                while "uav-b" not in view.platforms or view.refused == refused:
+                    assert time.monotonic() < deadline, (
+                        f"uav-b listed: {'uav-b' in view.platforms}, refused: "
+                        f"{view.refused - refused}, said left: {df.said_left('uav-b')}"
+                    )
+                    await asyncio.sleep(0.02)
+                assert view.refused == refused + 1
+                assert not df.said_left("uav-b")
+                records = [
+                    r
+                    for r in ca.audit.records
+                    if r.get("stage") == "df-events" and "leave" in str(r.get("reason"))
+                ]
+                assert len(records) == 1, records
+                assert records[0]["from"] == "uav-b" and records[0]["verdict"] == "dropped"
+                # uav-b is served: its request is not refused as from a platform that left
+                asker = await pb.add(Agent("asker"))
+                assert await request(asker, "echo@uav-a", 3, ontology="demo", timeout=TIMEOUT) == 3
+                assert pa.stats.from_left == 0
+
+
+async def test_a_leave_of_a_process_never_read_is_taken_once_nobody_answers(
+    tmp_path: Path,
+) -> None:
+    """uav-b's process left, signed, before uav-a's view read its directory (the leave held
+    up on the way): nobody answers for uav-b any more, so the leave is taken, not refused."""
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, trust, port = federation.fed, federation.trust, federation.port
+    async with asyncio.timeout(60), ZenohTransport(ZenohConfig.loopback(port)) as ta:
+        leave = await _recorded_leave(tmp_path, fed, port, trust)
+        ca = federation.channel("uav-a")
+        async with AgentPlatform("uav-a", ta, federation=fed, channel=ca) as pa:
+            view, df = pa.global_df, pa.df
+            assert view is not None and df is not None
+            refused = view.refused
+            with _outsider(port) as relay:  # whoever held it up lets it go now
+                while not view._event_counts.get("uav-b", 0):
+                    relay.put(wire_key(fed, "df-events", "uav-b"), leave)
+                    await asyncio.sleep(0.05)
+            while not df.said_left("uav-b"):  # noqa: ASYNC110
+                await asyncio.sleep(0.02)  # one query timeout later
+            assert view.refused == refused
