@@ -31,6 +31,11 @@ operator is this process. Measured, in one run:
   last one: ``lost`` is what is missing.
 - The operator and the workers run on `agents.run`'s loop, as ``dyknow node`` does
   (uvloop where installed; ``DYKNOW_EVENT_LOOP=asyncio`` for asyncio's own).
+- Loop lag (`bench._scale_node.LoopProbe`): how often a 5 ms timer on the loop of each
+  worker (from its platforms' start until they stop pushing) and of the operator (over the
+  window) woke more than 5 / 20 ms late, and why, from the loop thread's ``schedstat``:
+  ``busy`` (the loop ran something long), ``core`` (the thread waited for a core) or
+  ``gil`` (it slept: another thread held the GIL); the worst with its parts.
 - CPU (process CPU time / wall over the window, from ``/proc`` and ``resource``) and RSS
   of the operator and of the workers, total and per platform (bare sessions beside).
 
@@ -69,6 +74,7 @@ from bench._child import _CTX, Child, ChildFailed
 from bench._scale_node import (
     BARE_KEY,
     RAW_KEY,
+    LoopProbe,
     bare_main,
     local_label,
     semantic_label,
@@ -132,6 +138,8 @@ class ScaleResult:
     late_ticks: int = 0  # UAV push ticks that started more than a period late
     worker_gc_longest_ms: tuple[float, ...] = ()  # longest collection in any worker, per gen
     worker_lag_ms: float = 0.0  # the longest a worker's push loop woke late (a stalled loop)
+    worker_probe: dict[str, Any] = field(default_factory=dict)  # `LoopProbe`, all workers
+    operator_probe: dict[str, Any] = field(default_factory=dict)  # `LoopProbe`, the window
     window_rate: float = 0.0  # samples/s counted at the operator over the window
     e2e_ms: list[float] = field(default_factory=list)
     cpu_operator: float = 0.0  # cores
@@ -519,6 +527,8 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             got0 = sum(len(c.seen) for c in counters.values())
             gc0 = [g["collections"] for g in gc.get_stats()]
             watch = _GcWatch().__enter__()
+            probe = LoopProbe()
+            probe.start(asyncio.get_running_loop())
             session = op.transport.session if isinstance(op.transport, ZenohTransport) else None
             assert session is not None
             for i in range(queries):
@@ -557,6 +567,8 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             w1, c1, s1 = time.perf_counter(), [_proc_cpu(p) for p in pids], _self_cpu()
             result.load = (load0, os.getloadavg()[0])
             watch.__exit__()
+            probe.stop()
+            result.operator_probe = probe.summary()
             result.gc_collections = tuple(
                 g["collections"] - c for g, c in zip(gc.get_stats(), gc0, strict=True)
             )
@@ -583,6 +595,9 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                 max(q["gc_longest"][g] for q in finals) for g in range(3)
             )
             result.worker_lag_ms = max(q["lag"] for q in finals)
+            probes = [q["probe"] for q in finals]
+            result.worker_probe = {k: sum(p[k] for p in probes) for k in probes[0] if k != "worst"}
+            result.worker_probe["worst"] = max(p["worst"] for p in probes)
             drain = time.monotonic() + 15
             # Polled: waking on every one of 320 streams' samples would cost more than this.
             while time.monotonic() < drain and any(  # noqa: ASYNC110
@@ -674,6 +689,17 @@ def _waited_for(r: ScaleResult) -> str:
     )
 
 
+def _probe(p: dict[str, Any]) -> str:
+    """A `LoopProbe` summary in words."""
+    if not p:
+        return "not measured"
+    late, ran, waited = p["worst"]
+    return (
+        ", ".join(f"{k} {p[k + '>5']}/{p[k + '>20']}" for k in LoopProbe.KINDS)
+        + f"; the worst {late:.0f} ms late: ran {ran:.0f} ms, waited for a core {waited:.0f} ms"
+    )
+
+
 def _dist(xs: list[float], unit: str) -> str:
     if not xs:
         return "none"
@@ -731,6 +757,12 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
         f"{'/'.join(f'{x:.1f}' for x in r.gc_longest_ms)} ms; rounds with a collection of "
         f"generation 2 in them, ours/raw ms: "
         + (", ".join(f"{a or 0:.0f}/{b or 0:.0f}" for a, b in r.rounds_in_gc) or "none")
+    )
+    print(
+        f"  loop lag (a {1e3 * LoopProbe().every:g} ms timer late by > 5 / > 20 ms; busy: the "
+        "loop thread ran ≥ half of it, core: it waited for a core, gil: it slept, another "
+        f"thread held the GIL): workers "
+        f"{_probe(r.worker_probe)}; the operator over the window {_probe(r.operator_probe)}"
     )
     print(
         f"  samples: {r.counted} counted at the operator over the run, {r.expected} pushed "
