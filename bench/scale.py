@@ -36,7 +36,8 @@ operator is this process. Measured, in one run:
   window) woke more than 5 / 20 ms late, and why, from the loop thread's ``schedstat``:
   ``busy`` (the loop ran something long), ``core`` (the thread waited for a core) or
   ``gil`` (it slept: another thread held the GIL); the worst with its parts.
-- CPU (process CPU time / wall over the window, from ``/proc`` and ``resource``) and RSS
+- CPU (process CPU time / wall over the window, from ``/proc`` and ``resource``; of it,
+  what the main threads, where the event loops run, used: the rest is zenoh's) and RSS
   of the operator and of the workers, total and per platform (bare sessions beside).
 
 ``python -m bench scale`` runs 4 workers (the ``BENCH`` lines: ``scale-32`` is the query's
@@ -144,6 +145,8 @@ class ScaleResult:
     e2e_ms: list[float] = field(default_factory=list)
     cpu_operator: float = 0.0  # cores
     cpu_workers: float = 0.0  # cores, all workers
+    cpu_operator_loop: float = 0.0  # cores, the operator's main thread (its event loop)
+    cpu_workers_loop: float = 0.0  # cores, the workers' main threads (their event loops)
     rss_operator: float = 0.0
     rss_workers: list[float] = field(default_factory=list)
     rss_bare_workers: list[float] = field(default_factory=list)
@@ -245,12 +248,17 @@ def _plan(directory: Path, platforms: int, streams: int, workers: int) -> _Plan:
 # -- measuring processes ------------------------------------------------------------------------
 
 
-def _proc_cpu(pid: int) -> float:
-    """CPU seconds (user + system) process ``pid`` used so far."""
-    with open(f"/proc/{pid}/stat") as f:
+def _proc_cpu(pid: int, where: str = "") -> float:
+    """CPU seconds (user + system) process ``pid`` (or its ``/proc/`` ``where``) used so far."""
+    with open(f"/proc/{where or pid}/stat") as f:
         stat = f.read()
     fields = stat[stat.rindex(")") + 2 :].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _loop_cpu(pid: int) -> float:
+    """CPU seconds process ``pid``'s main thread (where its event loop runs) used so far."""
+    return _proc_cpu(pid, f"{pid}/task/{pid}")
 
 
 def _self_cpu() -> float:
@@ -524,6 +532,8 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             pids = [c.pid for c in children]
             load0 = os.getloadavg()[0]
             w0, c0, s0 = time.perf_counter(), [_proc_cpu(p) for p in pids], _self_cpu()
+            me = os.getpid()
+            loops0 = sum(_loop_cpu(p) for p in pids), _loop_cpu(me)
             got0 = sum(len(c.seen) for c in counters.values())
             gc0 = [g["collections"] for g in gc.get_stats()]
             watch = _GcWatch().__enter__()
@@ -565,6 +575,7 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                     )
             await asyncio.sleep(max(0.0, seconds - (time.perf_counter() - w0)))
             w1, c1, s1 = time.perf_counter(), [_proc_cpu(p) for p in pids], _self_cpu()
+            loops1 = sum(_loop_cpu(p) for p in pids), _loop_cpu(me)
             result.load = (load0, os.getloadavg()[0])
             watch.__exit__()
             probe.stop()
@@ -578,6 +589,8 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             result.window_rate = (got1 - got0) / result.window
             result.cpu_workers = (sum(c1) - sum(c0)) / result.window
             result.cpu_operator = (s1 - s0) / result.window
+            result.cpu_workers_loop = (loops1[0] - loops0[0]) / result.window
+            result.cpu_operator_loop = (loops1[1] - loops0[1]) / result.window
             result.rss_operator = _rss_mb()
             result.rss_workers = [c.rss_mb() for c in children]
 
@@ -777,8 +790,9 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
     rss_w = sum(r.rss_workers)
     rss_b = sum(r.rss_bare_workers)
     print(
-        f"  CPU over the window: operator {r.cpu_operator:.2f} cores, workers "
-        f"{r.cpu_workers:.2f} cores ({1e3 * r.cpu_workers / r.platforms:.1f} ms/s per UAV); "
+        f"  CPU over the window: operator {r.cpu_operator:.2f} cores (its loop thread "
+        f"{r.cpu_operator_loop:.2f}), workers {r.cpu_workers:.2f} cores (their loop threads "
+        f"{r.cpu_workers_loop:.2f}; {1e3 * r.cpu_workers / r.platforms:.1f} ms/s per UAV); "
         f"machine load average {r.load[0]:.1f} → {r.load[1]:.1f} ({os.cpu_count()} CPUs: "
         "other work on this machine shows here)"
     )
