@@ -431,18 +431,25 @@ async def _our_query(
 async def _wait_members(
     op: FederationPlatform, names: list[str], children: list[Child], joined: dict[str, float]
 ) -> None:
+    """Wait until every UAV is a member and its Federation Agent is in the global directory.
+
+    A global request asks the directory's providers only: a member not listed yet is not
+    asked (nor counted refused or silent), and every query would come back short.
+    """
     want = set(names)
     deadline = time.monotonic() + START_TIMEOUT
     last_said = 0.0
-    while not want <= set(op.members):
+    while not want <= set(op.members) or not want <= set(op.federation_agent.providers()):
         _check(children)
+        members = len(want & set(op.members))
+        listed = len(want & set(op.federation_agent.providers()))
         if time.monotonic() > deadline:
             raise ScaleError(
-                f"{len(want & set(op.members))}/{len(want)} UAVs joined in {START_TIMEOUT} s"
+                f"{members}/{len(want)} UAVs joined, {listed} in the directory in {START_TIMEOUT} s"
             )
         if time.monotonic() - last_said > 2.0:
             last_said = time.monotonic()
-            progress(f"{len(want & set(op.members))}/{len(want)} UAVs are members")
+            progress(f"{members}/{len(want)} UAVs are members, {listed} in the directory")
         await asyncio.sleep(0.05)
 
 
