@@ -31,7 +31,13 @@ operator is this process. Measured, in one run:
   last one: ``lost`` is what is missing.
 - The operator and the workers run on `agents.run`'s loop, as ``dyknow node`` does
   (uvloop where installed; ``DYKNOW_EVENT_LOOP=asyncio`` for asyncio's own).
-- CPU (process CPU time / wall over the window, from ``/proc`` and ``resource``) and RSS
+- Loop lag (`bench._scale_node.LoopProbe`): how often a 10 ms timer on the loop of each
+  worker (from its platforms' start until they stop pushing) and of the operator (over the
+  window) woke more than 5 / 20 ms late, and why, from the loop thread's ``schedstat``:
+  ``busy`` (the loop ran something long), ``core`` (the thread waited for a core) or
+  ``gil`` (it slept: another thread held the GIL); the worst with its parts.
+- CPU (process CPU time / wall over the window, from ``/proc`` and ``resource``; of it,
+  what the main threads, where the event loops run, used: the rest is zenoh's) and RSS
   of the operator and of the workers, total and per platform (bare sessions beside).
 
 ``python -m bench scale`` runs 4 workers (the ``BENCH`` lines: ``scale-32`` is the query's
@@ -69,6 +75,7 @@ from bench._child import _CTX, Child, ChildFailed
 from bench._scale_node import (
     BARE_KEY,
     RAW_KEY,
+    LoopProbe,
     bare_main,
     local_label,
     semantic_label,
@@ -132,10 +139,14 @@ class ScaleResult:
     late_ticks: int = 0  # UAV push ticks that started more than a period late
     worker_gc_longest_ms: tuple[float, ...] = ()  # longest collection in any worker, per gen
     worker_lag_ms: float = 0.0  # the longest a worker's push loop woke late (a stalled loop)
+    worker_probe: dict[str, Any] = field(default_factory=dict)  # `LoopProbe`, all workers
+    operator_probe: dict[str, Any] = field(default_factory=dict)  # `LoopProbe`, the window
     window_rate: float = 0.0  # samples/s counted at the operator over the window
     e2e_ms: list[float] = field(default_factory=list)
     cpu_operator: float = 0.0  # cores
     cpu_workers: float = 0.0  # cores, all workers
+    cpu_operator_loop: float = 0.0  # cores, the operator's main thread (its event loop)
+    cpu_workers_loop: float = 0.0  # cores, the workers' main threads (their event loops)
     rss_operator: float = 0.0
     rss_workers: list[float] = field(default_factory=list)
     rss_bare_workers: list[float] = field(default_factory=list)
@@ -237,12 +248,17 @@ def _plan(directory: Path, platforms: int, streams: int, workers: int) -> _Plan:
 # -- measuring processes ------------------------------------------------------------------------
 
 
-def _proc_cpu(pid: int) -> float:
-    """CPU seconds (user + system) process ``pid`` used so far."""
-    with open(f"/proc/{pid}/stat") as f:
+def _proc_cpu(pid: int, where: str = "") -> float:
+    """CPU seconds (user + system) process ``pid`` (or its ``/proc/`` ``where``) used so far."""
+    with open(f"/proc/{where or pid}/stat") as f:
         stat = f.read()
     fields = stat[stat.rindex(")") + 2 :].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _loop_cpu(pid: int) -> float:
+    """CPU seconds process ``pid``'s main thread (where its event loop runs) used so far."""
+    return _proc_cpu(pid, f"{pid}/task/{pid}")
 
 
 def _self_cpu() -> float:
@@ -415,18 +431,25 @@ async def _our_query(
 async def _wait_members(
     op: FederationPlatform, names: list[str], children: list[Child], joined: dict[str, float]
 ) -> None:
+    """Wait until every UAV is a member and its Federation Agent is in the global directory.
+
+    A global request asks the directory's providers only: a member not listed yet is not
+    asked (nor counted refused or silent), and every query would come back short.
+    """
     want = set(names)
     deadline = time.monotonic() + START_TIMEOUT
     last_said = 0.0
-    while not want <= set(op.members):
+    while not want <= set(op.members) or not want <= set(op.federation_agent.providers()):
         _check(children)
+        members = len(want & set(op.members))
+        listed = len(want & set(op.federation_agent.providers()))
         if time.monotonic() > deadline:
             raise ScaleError(
-                f"{len(want & set(op.members))}/{len(want)} UAVs joined in {START_TIMEOUT} s"
+                f"{members}/{len(want)} UAVs joined, {listed} in the directory in {START_TIMEOUT} s"
             )
         if time.monotonic() - last_said > 2.0:
             last_said = time.monotonic()
-            progress(f"{len(want & set(op.members))}/{len(want)} UAVs are members")
+            progress(f"{members}/{len(want)} UAVs are members, {listed} in the directory")
         await asyncio.sleep(0.05)
 
 
@@ -516,9 +539,13 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             pids = [c.pid for c in children]
             load0 = os.getloadavg()[0]
             w0, c0, s0 = time.perf_counter(), [_proc_cpu(p) for p in pids], _self_cpu()
+            me = os.getpid()
+            loops0 = sum(_loop_cpu(p) for p in pids), _loop_cpu(me)
             got0 = sum(len(c.seen) for c in counters.values())
             gc0 = [g["collections"] for g in gc.get_stats()]
             watch = _GcWatch().__enter__()
+            probe = LoopProbe()
+            probe.start(asyncio.get_running_loop())
             session = op.transport.session if isinstance(op.transport, ZenohTransport) else None
             assert session is not None
             for i in range(queries):
@@ -555,8 +582,11 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                     )
             await asyncio.sleep(max(0.0, seconds - (time.perf_counter() - w0)))
             w1, c1, s1 = time.perf_counter(), [_proc_cpu(p) for p in pids], _self_cpu()
+            loops1 = sum(_loop_cpu(p) for p in pids), _loop_cpu(me)
             result.load = (load0, os.getloadavg()[0])
             watch.__exit__()
+            probe.stop()
+            result.operator_probe = probe.summary()
             result.gc_collections = tuple(
                 g["collections"] - c for g, c in zip(gc.get_stats(), gc0, strict=True)
             )
@@ -566,6 +596,8 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             result.window_rate = (got1 - got0) / result.window
             result.cpu_workers = (sum(c1) - sum(c0)) / result.window
             result.cpu_operator = (s1 - s0) / result.window
+            result.cpu_workers_loop = (loops1[0] - loops0[0]) / result.window
+            result.cpu_operator_loop = (loops1[1] - loops0[1]) / result.window
             result.rss_operator = _rss_mb()
             result.rss_workers = [c.rss_mb() for c in children]
 
@@ -583,6 +615,9 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                 max(q["gc_longest"][g] for q in finals) for g in range(3)
             )
             result.worker_lag_ms = max(q["lag"] for q in finals)
+            probes = [q["probe"] for q in finals]
+            result.worker_probe = {k: sum(p[k] for p in probes) for k in probes[0] if k != "worst"}
+            result.worker_probe["worst"] = max(p["worst"] for p in probes)
             drain = time.monotonic() + 15
             # Polled: waking on every one of 320 streams' samples would cost more than this.
             while time.monotonic() < drain and any(  # noqa: ASYNC110
@@ -674,6 +709,17 @@ def _waited_for(r: ScaleResult) -> str:
     )
 
 
+def _probe(p: dict[str, Any]) -> str:
+    """A `LoopProbe` summary in words."""
+    if not p:
+        return "not measured"
+    late, ran, waited = p["worst"]
+    return (
+        ", ".join(f"{k} {p[k + '>5']}/{p[k + '>20']}" for k in LoopProbe.KINDS)
+        + f"; the worst {late:.0f} ms late: ran {ran:.0f} ms, waited for a core {waited:.0f} ms"
+    )
+
+
 def _dist(xs: list[float], unit: str) -> str:
     if not xs:
         return "none"
@@ -733,6 +779,12 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
         + (", ".join(f"{a or 0:.0f}/{b or 0:.0f}" for a, b in r.rounds_in_gc) or "none")
     )
     print(
+        f"  loop lag (a {1e3 * LoopProbe().every:g} ms timer late by > 5 / > 20 ms; busy: the "
+        "loop thread ran ≥ half of it, core: it waited for a core, gil: it slept, another "
+        f"thread held the GIL): workers "
+        f"{_probe(r.worker_probe)}; the operator over the window {_probe(r.operator_probe)}"
+    )
+    print(
         f"  samples: {r.counted} counted at the operator over the run, {r.expected} pushed "
         f"in the counted ranges, lost {r.lost} "
         f"({'none' if r.lost == 0 and r.import_lost == 0 else 'LOST'}), "
@@ -745,8 +797,9 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
     rss_w = sum(r.rss_workers)
     rss_b = sum(r.rss_bare_workers)
     print(
-        f"  CPU over the window: operator {r.cpu_operator:.2f} cores, workers "
-        f"{r.cpu_workers:.2f} cores ({1e3 * r.cpu_workers / r.platforms:.1f} ms/s per UAV); "
+        f"  CPU over the window: operator {r.cpu_operator:.2f} cores (its loop thread "
+        f"{r.cpu_operator_loop:.2f}), workers {r.cpu_workers:.2f} cores (their loop threads "
+        f"{r.cpu_workers_loop:.2f}; {1e3 * r.cpu_workers / r.platforms:.1f} ms/s per UAV); "
         f"machine load average {r.load[0]:.1f} → {r.load[1]:.1f} ({os.cpu_count()} CPUs: "
         "other work on this machine shows here)"
     )

@@ -41,7 +41,16 @@ def test_small_run_joins_answers_and_loses_nothing(small: ScaleResult) -> None:
     assert r.never_arrived == 0 and r.duplicates == 0 and r.import_lost == 0
     assert 0 < len(r.e2e_ms) <= r.counted and min(r.e2e_ms) >= 0
     assert r.cpu_operator > 0 and r.cpu_workers > 0
+    # the loop thread's from /proc (10 ms ticks), the process's from rusage: a tick apart
+    assert 0 < r.cpu_operator_loop <= r.cpu_operator + 0.02 / r.window
+    assert 0 < r.cpu_workers_loop <= r.cpu_workers
     assert r.rss_operator > 0 and len(r.rss_workers) == 2 and len(r.rss_bare_workers) == 2
+    # the loop-lag probes ran in every worker and at the operator: each kind counted
+    for probe in (r.worker_probe, r.operator_probe):
+        assert set(probe) == {f"{k}>{ms}" for k in ("busy", "core", "gil") for ms in (5, 20)} | {
+            "worst"
+        }
+        assert len(probe["worst"]) == 3
 
 
 @pytest.mark.timeout(60)
