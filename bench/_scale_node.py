@@ -190,7 +190,8 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
         )
         loop = asyncio.get_running_loop()
         probe = LoopProbe()
-        probe.start(loop)
+        if spec.get("probe"):
+            probe.start(loop)
         period = 1.0 / float(spec["hz"])
         seq = 0
         late = 0  # ticks that started more than a period behind schedule
@@ -220,7 +221,7 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
                     "late": late,
                     "gc_longest": gc_longest,
                     "lag": worst_lag,
-                    "probe": probe.summary(),
+                    "probe": probe.summary() if spec.get("probe") else {},
                 },
             )
         )

@@ -31,7 +31,7 @@ operator is this process. Measured, in one run:
   last one: ``lost`` is what is missing.
 - The operator and the workers run on `agents.run`'s loop, as ``dyknow node`` does
   (uvloop where installed; ``DYKNOW_EVENT_LOOP=asyncio`` for asyncio's own).
-- Loop lag (`bench._scale_node.LoopProbe`): how often a 10 ms timer on the loop of each
+- Loop lag, with ``--probe`` (`bench._scale_node.LoopProbe`): how often a 10 ms timer on the loop of each
   worker (from its platforms' start until they stop pushing) and of the operator (over the
   window) woke more than 5 / 20 ms late, and why, from the loop thread's ``schedstat``:
   ``busy`` (the loop ran something long), ``core`` (the thread waited for a core) or
@@ -43,7 +43,8 @@ operator is this process. Measured, in one run:
 ``python -m bench scale`` runs 4 workers (the ``BENCH`` lines: ``scale-32`` is the query's
 p99, then ``-query-p50``, ``-join``, ``-rss``, ``-delivered``) and then one process per
 platform (lines ``scale-32-procs…``: 33 interpreters on 2 cores spend most of the join
-importing); ``--quick`` runs only the first, for 8 s and 100 queries.
+importing); ``--quick`` runs only the first, for 8 s and 100 queries; ``--probe`` adds the
+loop-lag probes.
 """
 
 from __future__ import annotations
@@ -453,7 +454,9 @@ async def _wait_members(
         await asyncio.sleep(0.05)
 
 
-async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries: int) -> None:
+async def _federation(
+    plan: _Plan, result: ScaleResult, seconds: float, queries: int, probing: bool
+) -> None:
     n = len(plan.names)
     labels = [semantic_label(j) for j in range(result.streams)]
     quiets: list[Any] = []
@@ -478,6 +481,7 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                     "configs": [plan.config(g, seed) for g in group],
                     "streams": result.streams,
                     "hz": result.hz,
+                    "probe": probing,
                 }
                 children.append(Child(uav_main, (spec, quiet), f"scale-uavs-{i}"))
             launched = time.time()
@@ -545,7 +549,8 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             gc0 = [g["collections"] for g in gc.get_stats()]
             watch = _GcWatch().__enter__()
             probe = LoopProbe()
-            probe.start(asyncio.get_running_loop())
+            if probing:
+                probe.start(asyncio.get_running_loop())
             session = op.transport.session if isinstance(op.transport, ZenohTransport) else None
             assert session is not None
             for i in range(queries):
@@ -585,8 +590,9 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
             loops1 = sum(_loop_cpu(p) for p in pids), _loop_cpu(me)
             result.load = (load0, os.getloadavg()[0])
             watch.__exit__()
-            probe.stop()
-            result.operator_probe = probe.summary()
+            if probing:
+                probe.stop()
+                result.operator_probe = probe.summary()
             result.gc_collections = tuple(
                 g["collections"] - c for g, c in zip(gc.get_stats(), gc0, strict=True)
             )
@@ -615,9 +621,12 @@ async def _federation(plan: _Plan, result: ScaleResult, seconds: float, queries:
                 max(q["gc_longest"][g] for q in finals) for g in range(3)
             )
             result.worker_lag_ms = max(q["lag"] for q in finals)
-            probes = [q["probe"] for q in finals]
-            result.worker_probe = {k: sum(p[k] for p in probes) for k in probes[0] if k != "worst"}
-            result.worker_probe["worst"] = max(p["worst"] for p in probes)
+            probes = [q["probe"] for q in finals if q["probe"]]
+            if probes:
+                result.worker_probe = {
+                    k: sum(p[k] for p in probes) for k in probes[0] if k != "worst"
+                }
+                result.worker_probe["worst"] = max(p["worst"] for p in probes)
             drain = time.monotonic() + 15
             # Polled: waking on every one of 320 streams' samples would cost more than this.
             while time.monotonic() < drain and any(  # noqa: ASYNC110
@@ -660,8 +669,13 @@ def measure(
     queries: int = QUERIES,
     *,
     bare: bool = True,
+    probe: bool = False,
 ) -> ScaleResult:
-    """Run the scale benchmark once (``workers`` processes host the UAVs); its figures."""
+    """Run the scale benchmark once (``workers`` processes host the UAVs); its figures.
+
+    ``probe``: run `LoopProbe` in every worker and at the operator (off by default: its
+    timer wakes every process 100 times a second, load on the machine it measures).
+    """
     for name, value, low in (
         ("platforms", platforms, 1),
         ("streams", streams, 1),
@@ -682,7 +696,7 @@ def measure(
         if bare:
             progress(f"peer: {platforms} bare zenoh sessions in {len(plan.groups)} processes")
             bare_join(plan, result)
-        run_loop(_federation(plan, result, seconds, queries))
+        run_loop(_federation(plan, result, seconds, queries, probe))
     return result
 
 
@@ -843,13 +857,14 @@ def run(quick: bool | None = None) -> None:
     """The scale benchmark: 4 worker processes (BENCH ``scale-32…``), then one per platform."""
     if quick is None:
         quick = "--quick" in sys.argv[1:]
+    probe = "--probe" in sys.argv[1:]
     seconds, queries = (8.0, 100) if quick else (SECONDS, QUERIES)
-    r = measure(seconds=seconds, queries=queries, workers=WORKERS)
+    r = measure(seconds=seconds, queries=queries, workers=WORKERS, probe=probe)
     print_result(r)
     if quick:
         return
     progress("again with one process per platform")
-    r = measure(seconds=seconds, queries=queries, workers=PLATFORMS)
+    r = measure(seconds=seconds, queries=queries, workers=PLATFORMS, probe=probe)
     print_result(r, "scale-32-procs")
 
 

@@ -23,7 +23,7 @@ BENCH_LINE = re.compile(
 @pytest.fixture(scope="module")
 def small() -> ScaleResult:
     """One small run shared by the tests below (spawning platforms is the slow part)."""
-    return measure(platforms=3, streams=2, hz=10.0, seconds=3.0, workers=2, queries=10)
+    return measure(platforms=3, streams=2, hz=10.0, seconds=3.0, workers=2, queries=10, probe=True)
 
 
 @pytest.mark.timeout(60)
