@@ -324,8 +324,7 @@ def test_an_export_ended_by_a_rule_naming_40_platforms_ends_the_receivers_import
             "sharing.rules[0].stream",
             "list",
         ),
-        # valid, but the gateway service is registered at start
-        ('\n[sharing]\ngateway = "protected"\n', "sharing.gateway", "takes a restart"),
+        ('\n[sharing]\ngateway = "public"\n', "sharing.gateway", "'private' or 'protected'"),
     ],
 )
 def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
@@ -443,3 +442,61 @@ async def test_a_reload_whose_output_fails_goes_on_reloading(tmp_path: Path) -> 
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task  # stops without raising
+
+
+GATEWAY_OPEN = '\n[sharing]\ngateway = "protected"\n'
+GATEWAY_CLOSED = '\n[sharing]\ngateway = "private"\n'
+
+
+@pytest.mark.timeout(180)
+async def test_sighup_opens_and_closes_the_gateway_to_other_members(tmp_path: Path) -> None:
+    from agents import Agent, Failed, Refused, request, subscribe
+    from federation import FederationPlatform
+    from federation._cli_common import wait_for_members
+
+    node = Node(tmp_path, GATEWAY_CLOSED)
+    listing = {"action": "list-labels"}
+    try:
+        operator = FederationPlatform.from_file(node.station.dir / "operator.toml")
+        async with asyncio.timeout(150), operator:
+            assert await wait_for_members(operator, "station", 30)
+            tester = await operator.agents.add(Agent("tester"))
+
+            async def ask() -> object:
+                return await request(
+                    tester, "gateway@station", listing, ontology="dyknow", timeout=10
+                )
+
+            with pytest.raises(Refused, match="access denied"):  # private: not even listed
+                await ask()
+            node.hup(GATEWAY_OPEN)
+            line = await asyncio.to_thread(node.out.wait_for, "[sharing] reloaded", 30)
+            assert "sharing.gateway 'private' -> 'protected'" in line, line
+            labels = await ask()  # the next request is let in
+            assert isinstance(labels, dict) and "wx/temperature" in labels["labels"], labels
+            feed = await subscribe(
+                tester, "gateway@station", {"label": "wx/temperature"}, ontology="dyknow"
+            )
+            first = await feed.get(timeout=30)  # samples flow to the other member
+            assert isinstance(first, dict) and first["label"] == "wx/temperature", first
+            node.hup(GATEWAY_CLOSED)
+            line = await asyncio.to_thread(node.out.wait_for, "[sharing] reloaded", 30)
+            assert "sharing.gateway 'protected' -> 'private'" in line, line
+            assert "gateway subscription of tester@operator to 'wx/temperature' ended" in line
+            # the subscriber is told, no more than an export's receiver
+            with pytest.raises(Failed, match="sharing policy no longer allows it"):
+                for _ in range(1000):  # informs sent before the end may come first
+                    await feed.get(timeout=30)
+            with pytest.raises(Refused, match="access denied"):
+                await ask()
+        records = await asyncio.to_thread(node.policy_records, ["reloaded", "reloaded", "ended"])
+        assert [r["verdict"] for r in records] == ["reloaded", "reloaded", "ended"], records
+        ended = records[2]
+        assert ended["code"] == "sharing-gateway" and ended["stream"] == "wx/temperature"
+        assert ended["to"] == "operator" and ended["subscriber"] == "tester@operator"
+        refused = [r for r in node.audit() if "access denied" in str(r.get("reason"))]
+        assert len(refused) == 2, refused  # one before the opening, one after the closing
+        assert node.proc.poll() is None
+    finally:
+        out, err = await asyncio.to_thread(node.stop)
+    assert "station stopped" in out and "Traceback" not in err, err
