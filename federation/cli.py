@@ -37,8 +37,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from ._cli_node import node_config, run_node
     from ._hup import hold_hup
 
-    if args[:1] == ["node"]:
-        hold_hup()  # a SIGHUP while the node starts must not end it (it reloads once ready)
+    if args[:1] in (["node"], ["console"], ["foxglove"]):
+        # a SIGHUP while the platform starts must not end it (it reloads once ready)
+        hold_hup()
     config = node_config(args)
     if config is not None:
         try:

@@ -80,16 +80,18 @@ class Lines:
 
 
 class Node:
-    """``dyknow node`` of the station, with ``[sharing]`` as given, its output followed."""
+    """``dyknow node`` (or another platform command) of the station, with ``[sharing]`` as
+    given, its output followed."""
 
-    def __init__(self, tmp: Path, sharing: str) -> None:
+    def __init__(self, tmp: Path, sharing: str, *command: str) -> None:
+        """``command``: the ``dyknow`` command and its options (default: ``node``)."""
         self.station = Station(tmp)
         self.config = self.station.dir / CONFIG
         base = self.config.read_text()
         # the audit file: a top-level key, before the first table
         self._base = base.replace('application = "weather.kpl"\n', _AUDIT, 1)
         self.share(sharing)
-        self.proc = self.station.spawn("node", "--config", CONFIG)
+        self.proc = self.station.spawn(*(command or ("node",)), "--config", CONFIG)
         self.out, self.err = Lines(self.proc.stdout), Lines(self.proc.stderr)
         self.out.wait_for("station ready in federation", 60)
 
@@ -500,3 +502,33 @@ async def test_sighup_opens_and_closes_the_gateway_to_other_members(tmp_path: Pa
     finally:
         out, err = await asyncio.to_thread(node.stop)
     assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("command", ["console", "foxglove"])
+def test_console_and_foxglove_reload_sharing_on_sighup_and_serve_on(
+    tmp_path: Path, command: str
+) -> None:
+    node = Node(tmp_path, ONLY_TEMPERATURE, command, "--port", "0")
+    url = node.out.seen[-1].rsplit(": ", 1)[1].strip()  # the ready line's, token included
+    try:
+        assert node.ask("wind-speed").returncode != 0
+        node.hup(EVERYTHING)
+        line = node.out.wait_for("[sharing] reloaded", 30)
+        assert line.startswith(f"dyknow {command}: [sharing] reloaded from {CONFIG}: "), line
+        assert "sharing.default 'none' -> 'members'" in line, line
+        _ask_until_served(node, "wind-speed")
+        node.hup(ONLY_TEMPERATURE.replace('"none"', '"nobody"'))  # wrong: the policy stays
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert line.startswith(f"dyknow {command}: [sharing] not reloaded"), line
+        assert "sharing.default" in line, line
+        _ask_until_served(node, "wind-speed")
+        assert node.proc.poll() is None
+        if command == "console":  # its page is served on, with the token of its start
+            import urllib.request
+
+            with urllib.request.urlopen(url, timeout=10) as page:
+                assert page.status == 200
+    finally:
+        out, err = node.stop()
+    assert f"dyknow {command}: station stopped" in out and "Traceback" not in err, err
