@@ -10,6 +10,7 @@ import os
 import queue
 import signal
 import subprocess
+import sys
 import threading
 import time
 import tomllib
@@ -532,3 +533,67 @@ def test_console_and_foxglove_reload_sharing_on_sighup_and_serve_on(
     finally:
         out, err = node.stop()
     assert f"dyknow {command}: station stopped" in out and "Traceback" not in err, err
+
+
+_HELD_WHEN = """
+import json, signal, sys
+from collections.abc import Callable
+heavy = ("agents", "dyknow_core", "pydantic", "zenoh", "msgpack", "orjson")
+seen: list[list[str]] = []
+install: Callable[..., object] = signal.signal
+def spy(signum, handler):
+    if signum == signal.SIGHUP and not seen:
+        seen.append(sorted(m for m in sys.modules if m.split(".")[0] in heavy))
+    return install(signum, handler)
+signal.signal = spy
+from federation.cli import main
+code = main([sys.argv[1], "--config", "no-such-config.toml"])
+print(json.dumps({"code": code, "heavy": seen}))
+"""
+
+
+@pytest.mark.parametrize("command", ["node", "console", "foxglove"])
+def test_sighup_is_held_before_the_entry_point_imports_anything_heavy(command: str) -> None:
+    # a fresh interpreter through the entry point, with a missing config: the hold
+    # comes first, before DyKnow, the agents, pydantic or zenoh are imported
+    done = subprocess.run(
+        [sys.executable, "-c", _HELD_WHEN, command],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parent.parent,
+    )
+    result = json.loads(done.stdout.splitlines()[-1])
+    assert result["code"] != 0, done.stderr  # it did run the command: the config is missing
+    assert result["heavy"] == [[]], result
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+def test_sighups_from_the_first_moment_until_ready_never_end_a_node(tmp_path: Path) -> None:
+    for attempt in range(3):
+        station = Station(tmp_path / str(attempt))
+        proc = station.spawn("node", "--config", CONFIG)
+        out, err = Lines(proc.stdout), Lines(proc.stderr)
+        sent = 0
+        try:
+            deadline = time.monotonic() + 10
+            while proc.poll() is None and not _hup_handled(proc.pid):  # the interpreter starts
+                assert time.monotonic() < deadline, "SIGHUP never handled"
+            ready = ""
+            deadline = time.monotonic() + 60
+            while not ready:  # one every 20 ms, whatever the node is doing meanwhile
+                assert proc.poll() is None, f"ended by SIGHUP {sent}: {err.rest()}"
+                assert time.monotonic() < deadline, f"not ready: {out.seen} {err.seen}"
+                proc.send_signal(signal.SIGHUP)
+                sent += 1
+                with contextlib.suppress(AssertionError):
+                    ready = out.wait_for("station ready in federation", 0.02)
+            line = out.wait_for("[sharing] reloaded", 30)  # those held: applied once ready
+            assert "no change" in line, line
+            assert proc.poll() is None and sent > 1
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=20)
+        assert "station stopped" in out.rest() and "Traceback" not in err.rest()
