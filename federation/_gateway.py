@@ -170,11 +170,13 @@ class GatewayAgent(Agent):
         request after it is let in or refused by it); made private, the subscriptions of
         other platforms end, their subscribers told ``failure`` with ``why``. Returns
         (subscriber, label) of each subscription ended."""
-        self.visibility = Visibility(visibility)
+        wanted = Visibility(visibility)
         platform = self.platform
         if self._register and platform.df is not None:
-            await platform.df.modify(self.description())
-        if self.visibility is not Visibility.PRIVATE:
+            # registered first: one that fails leaves the gateway as it was
+            await platform.df.modify(self.description().model_copy(update={"visibility": wanted}))
+        self.visibility = wanted
+        if wanted is not Visibility.PRIVATE:
             return []
         ended = []
         for feed in list(self._feeds.values()):

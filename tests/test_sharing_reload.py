@@ -597,3 +597,28 @@ def test_sighups_from_the_first_moment_until_ready_never_end_a_node(tmp_path: Pa
                 proc.send_signal(signal.SIGINT)
             proc.wait(timeout=20)
         assert "station stopped" in out.rest() and "Traceback" not in err.rest()
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("fixed", [None, "public"])
+async def test_a_gateway_visibility_the_program_set_stays_on_reload(
+    tmp_path: Path, fixed: str | None
+) -> None:
+    from agents import Visibility
+    from federation import FederationPlatform
+
+    station = Station(tmp_path)
+    path = station.dir / CONFIG
+    platform = FederationPlatform.from_file(path, join=False, gateway_visibility=fixed)
+    async with asyncio.timeout(100), platform as p:
+        assert p.agents.df is not None
+        assert p.gateway.visibility is Visibility(fixed or "private")
+        wanted = "protected"
+        changes, _ = await p.reload_sharing(SharingSettings(gateway=wanted), source=CONFIG)
+        assert changes[0] == f"sharing.gateway 'private' -> '{wanted}'", changes
+        (service,) = p.agents.df.search(provider=p.gateway.aid)
+        if fixed is None:  # the config's: re-registered as the file now says
+            assert service.visibility == wanted == p.gateway.visibility
+        else:
+            assert changes[1] == f"the Gateway Agent stays {fixed!r} (set by the program)"
+            assert service.visibility == fixed == p.gateway.visibility
