@@ -198,28 +198,17 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
     SIGHUP re-reads the config file's ``[sharing]`` table (only that) and applies it
     (`reload_sharing`); a wrong one is said in one line and the policy in force stays.
     """
-    from ._hup import take_held_hup
-
     async with _platform(config, source) as (p, application, channel):
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
-        hup = asyncio.Event()
-        loop = asyncio.get_running_loop()
-        loop.add_signal_handler(signal.SIGHUP, hup.set)
-        if take_held_hup():  # one came while starting: the file may have changed since read
-            hup.set()
-        reloads = loop.create_task(_reload_on_hup(p, source, hup, say), name="node.sighup")
-        say(f"dyknow node: {p.name} ready in federation {config.federation} ({endpoints(config)})")
-        settle_gc()  # once ready: a full collection is ~15 ms a supervisor need not wait for
-        try:
+        async with _reloading_on_hup(p, source, say, "node"):
+            say(
+                f"dyknow node: {p.name} ready in federation {config.federation} "
+                f"({endpoints(config)})"
+            )
+            settle_gc()  # once ready: a full collection is ~15 ms a supervisor need not wait for
             await stop.wait()
-        finally:
-            loop.remove_signal_handler(signal.SIGHUP)
-            signal.signal(signal.SIGHUP, signal.SIG_IGN)  # stopping: a SIGHUP is no kill
-            reloads.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await reloads
         _say_stats("node", application, say)
         say(
             f"dyknow node: local channel: {channel.served} commands served, "
@@ -228,12 +217,42 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
     say(f"dyknow node: {config.name} stopped")
 
 
+@contextlib.asynccontextmanager
+async def _reloading_on_hup(
+    p: FederationPlatform, source: str, say: Callable[[str], None], command: str
+) -> AsyncIterator[None]:
+    """While in it, SIGHUP reloads ``[sharing]`` (`_reload_on_hup`); one held since the
+    process started (`federation._hup`) is applied on entry; once out, SIGHUP is ignored
+    (the process stops: never the signal's default, which ends it)."""
+    from ._hup import take_held_hup
+
+    hup = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    loop.add_signal_handler(signal.SIGHUP, hup.set)
+    if take_held_hup():  # one came while starting: the file may have changed since read
+        hup.set()
+    reloads = loop.create_task(_reload_on_hup(p, source, hup, say, command), name="sighup")
+    try:
+        yield
+    finally:
+        loop.remove_signal_handler(signal.SIGHUP)
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)  # stopping: a SIGHUP is no kill
+        reloads.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await reloads
+
+
 async def _reload_on_hup(
-    p: FederationPlatform, source: str, hup: asyncio.Event, say: Callable[[str], None]
+    p: FederationPlatform,
+    source: str,
+    hup: asyncio.Event,
+    say: Callable[[str], None],
+    command: str = "node",
 ) -> None:
     """Reload the ``[sharing]`` table of ``source`` each time ``hup`` is set (SIGHUP).
 
-    One reload at a time: signals that come meanwhile make one more after it.
+    One reload at a time: signals that come meanwhile make one more after it. Each line
+    said starts ``dyknow COMMAND:``.
     """
     from ._platform import load_sharing
 
@@ -246,6 +265,7 @@ async def _reload_on_hup(
     def warn(line: str) -> None:
         tell(line, lambda text: _warn([text]))
 
+    me = f"dyknow {command}:"
     while True:
         await hup.wait()
         hup.clear()
@@ -259,16 +279,16 @@ async def _reload_on_hup(
             )
             changes, ended = await p.reload_sharing(settings, source=source)
         except PlatformConfigError as exc:
-            warn(f"dyknow node: [sharing] not reloaded, the policy in force stays: {exc}")
+            warn(f"{me} [sharing] not reloaded, the policy in force stays: {exc}")
             continue
         except Exception as exc:  # a reload must never take the node down
             log.exception("reloading [sharing] from %s", source)
-            warn(f"dyknow node: [sharing] reload failed: {source}: {type(exc).__name__}: {exc}")
+            warn(f"{me} [sharing] reload failed: {source}: {type(exc).__name__}: {exc}")
             continue
-        tell(f"dyknow node: [sharing] reloaded from {source}: {'; '.join(changes) or 'no change'}")
+        tell(f"{me} [sharing] reloaded from {source}: {'; '.join(changes) or 'no change'}")
         for export_id, semantic, receiver, _ in ended:
             tell(
-                f"dyknow node: export {export_id} of {semantic!r} to {receiver} ended: "
+                f"{me} export {export_id} of {semantic!r} to {receiver} ended: "
                 "the reloaded [sharing] no longer allows it"
             )
 
@@ -304,7 +324,8 @@ async def run_console(
 ) -> None:
     """Run one platform with the operator web console until SIGINT/SIGTERM.
 
-    The ready line ends with the URL to open, token included (``…/?token=…``).
+    The ready line ends with the URL to open, token included (``…/?token=…``). SIGHUP
+    reloads ``[sharing]``, as `run_node`.
     """
     from .console import OperatorConsole
 
@@ -315,11 +336,13 @@ async def run_console(
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()
-        say(
-            f"dyknow console: {p.name} ready in federation {config.federation}: {console.login_url}"
-        )
-        settle_gc()
-        await stop.wait()
+        async with _reloading_on_hup(p, source, say, "console"):
+            say(
+                f"dyknow console: {p.name} ready in federation {config.federation}: "
+                f"{console.login_url}"
+            )
+            settle_gc()
+            await stop.wait()
         _say_stats("console", application, say)
         say(
             f"dyknow console: local channel: {channel.served} commands served, "
@@ -342,7 +365,8 @@ async def run_foxglove(
     """Run one platform serving Foxglove (docs/foxglove.md) until SIGINT/SIGTERM.
 
     The ready line ends with the WebSocket URL to open in Foxglove, token included
-    (``…/?token=…``); the connections relayed and refused are said at the end.
+    (``…/?token=…``); the connections relayed and refused are said at the end. SIGHUP
+    reloads ``[sharing]``, as `run_node`.
     """
     from ._foxglove import FoxgloveBridge
 
@@ -360,14 +384,16 @@ async def run_foxglove(
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()
-        say(f"dyknow foxglove: serving {', '.join(bridge.served()) or 'no streams'}")
-        if bridge.origin is None:
-            say("dyknow foxglove: no [foxglove] origin: positions are not drawn on a map")
-        say(
-            f"dyknow foxglove: {p.name} ready in federation {config.federation}: {bridge.login_url}"
-        )
-        settle_gc()
-        await stop.wait()
+        async with _reloading_on_hup(p, source, say, "foxglove"):
+            say(f"dyknow foxglove: serving {', '.join(bridge.served()) or 'no streams'}")
+            if bridge.origin is None:
+                say("dyknow foxglove: no [foxglove] origin: positions are not drawn on a map")
+            say(
+                f"dyknow foxglove: {p.name} ready in federation {config.federation}: "
+                f"{bridge.login_url}"
+            )
+            settle_gc()
+            await stop.wait()
         _say_stats("foxglove", application, say)
         stats = bridge.stats()
         refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())

@@ -165,6 +165,32 @@ class GatewayAgent(Agent):
             except Exception as exc:
                 log.debug("%s: telling %s we stop: %s", self, feed.message.sender, exc)
 
+    async def set_visibility(self, visibility: Visibility | str, why: str) -> list[tuple[str, str]]:
+        """Serve with ``visibility`` from now on: the service re-registered so (each
+        request after it is let in or refused by it); made private, the subscriptions of
+        other platforms end, their subscribers told ``failure`` with ``why``. Returns
+        (subscriber, label) of each subscription ended."""
+        wanted = Visibility(visibility)
+        platform = self.platform
+        if self._register and platform.df is not None:
+            # registered first: one that fails leaves the gateway as it was
+            await platform.df.modify(self.description().model_copy(update={"visibility": wanted}))
+        self.visibility = wanted
+        if wanted is not Visibility.PRIVATE:
+            return []
+        ended = []
+        for feed in list(self._feeds.values()):
+            subscriber = feed.message.sender
+            if platform_of(subscriber) == platform.name:
+                continue  # this platform's own agents may still use a private gateway
+            self._drop(feed)
+            ended.append((subscriber, feed.label))
+            try:
+                await self.reply(feed.message, P.FAILURE, why)
+            except Exception as exc:  # it is ended here whether or not it hears so
+                log.debug("%s: telling %s its subscription ended: %s", self, subscriber, exc)
+        return ended
+
     @property
     def subscriptions(self) -> dict[tuple[str, str], str]:
         """The subscriptions served now: (subscriber, conversation id) → label."""

@@ -1,4 +1,5 @@
-"""A SIGHUP held from the start of ``dyknow node`` until the node can reload its policy.
+"""A SIGHUP held from the start of ``dyknow node`` (``console``, ``foxglove``) until the
+platform can reload its policy.
 
 A module of its own, so that the light entry (``federation.cli``), which holds the signal
 before anything heavy is imported, and the node's run (`_cli_net`), which takes it once
@@ -18,8 +19,9 @@ def _held_hup(signum: int, frame: object) -> None:
 
 
 def hold_hup() -> None:
-    """From the start of ``dyknow node``: a SIGHUP (whose default ends the process) is
-    held until the node can reload (`take_held_hup`), not fatal while it starts."""
+    """From the start of ``dyknow node`` (``console``, ``foxglove``): a SIGHUP (whose default
+    ends the process) is held until the platform can reload (`take_held_hup`), not fatal
+    while it starts."""
     if hasattr(signal, "SIGHUP"):
         signal.signal(signal.SIGHUP, _held_hup)
 

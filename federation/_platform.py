@@ -114,6 +114,7 @@ from agents import (
     SecurityPolicy,
     TrustStore,
     Visibility,
+    platform_of,
 )
 from agents.transports import (
     MqttConfig,
@@ -143,7 +144,7 @@ from ._geo import check_origin
 from ._import import Import, ImportProxy
 from ._inputs import InputSettings
 from ._outputs import OutputSettings
-from ._service import Anchor, Denied, FederationAgent, MembershipEvent
+from ._service import UNSHARED_WHY, Anchor, Denied, FederationAgent, MembershipEvent
 from ._sessions import InterfaceSessions
 from ._sharing import SharingRule, SharingSettings
 
@@ -960,6 +961,8 @@ class FederationPlatform:
             channel=self.interface,
             df_event_limit=config.df_event_limit.to_df_event_limit(),
         )
+        # set by the program: `reload_sharing` leaves it as it is
+        self._gateway_fixed = gateway_visibility is not None
         if gateway_visibility is None:
             # private unless the config opens it: local labels never leave the platform
             gateway_visibility = config.sharing.gateway
@@ -1102,24 +1105,32 @@ class FederationPlatform:
         The Federation Agent's policy is swapped in one assignment: every check after it
         (query, create-stream, consent) applies the new one. The exports it no longer
         allows end (their receivers are told; see `FederationAgent.end_unshared`); what it
-        newly allows is served to the next request. ``gateway`` is not reloaded (the
-        Gateway Agent registers its service at start): a change of it raises
-        PlatformConfigError and nothing is applied. The streams agreed here by consent
+        newly allows is served to the next request. A changed ``gateway`` re-registers
+        the Gateway Agent's service with it (unless the program set its visibility:
+        ``gateway_visibility=``); made private, the gateway's subscriptions of other
+        platforms end. The streams agreed here by consent
         (flowing or leased) whose requester ``accept_for`` no longer lets direct streams
         here are withdrawn (they end here). Audited: ``policy`` ``reloaded``, and
-        ``policy`` ``ended`` for each export ended (``sharing-rule``) and each stream
-        withdrawn (``accept-for``).
+        ``policy`` ``ended`` for each export ended (``sharing-rule``), each gateway
+        subscription ended (``sharing-gateway``) and each stream withdrawn (``accept-for``).
         """
         source = source or f"platform {self.name}"
         old = self.federation_agent.sharing.settings
-        if settings.gateway != old.gateway:
-            raise PlatformConfigError(
-                source,
-                "sharing.gateway",
-                f"{old.gateway!r} -> {settings.gateway!r} takes a restart of the node "
-                "(the gateway service is registered at start)",
-            )
         changes = sharing_changes(old, settings)
+        why = f"the sharing policy was reloaded from {source}"
+        gone: list[tuple[str, str]] = []  # the gateway subscriptions ended
+        if settings.gateway != old.gateway:
+            if self._gateway_fixed:
+                kept = self.gateway.visibility.value
+                changes.append(f"the Gateway Agent stays {kept!r} (set by the program)")
+            else:
+                # first: a re-registration that fails leaves the whole policy in force; the
+                # subscriber is told no more than an export's receiver (UNSHARED_WHY)
+                gone = await self.gateway.set_visibility(settings.gateway, UNSHARED_WHY)
+                changes.extend(
+                    f"gateway subscription of {subscriber} to {label!r} ended"
+                    for subscriber, label in gone
+                )
         self.federation_agent.sharing = settings.sharing()
         self.config = self.config.model_copy(update={"sharing": settings})
         audit = self.interface.audit
@@ -1130,7 +1141,19 @@ class FederationPlatform:
         )
         for problem in _strangers(self.config, self.interface.trust):
             log.warning("%s: %s", source, problem)
-        why = f"the sharing policy was reloaded from {source}"
+        for subscriber, label in gone:
+            audit.record(
+                verdict="ended",
+                stage="policy",
+                code="sharing-gateway",
+                stream=label,
+                to=platform_of(subscriber),
+                subscriber=subscriber,
+                reason=(
+                    f"gateway subscription of {subscriber} to {label!r} ended: {why}: "
+                    f"sharing.gateway is {settings.gateway!r}"
+                ),
+            )
         ended = await self.federation_agent.end_unshared(why)
         for export_id, semantic, receiver, reason in ended:
             audit.record(

@@ -34,11 +34,14 @@ class _Pacified:
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse the command line and run the chosen subcommand; the exit code."""
     args = list(sys.argv[1:] if argv is None else argv)
-    from ._cli_node import node_config, run_node
-    from ._hup import hold_hup
+    if args[:1] in (["node"], ["console"], ["foxglove"]):
+        from ._hup import hold_hup
 
-    if args[:1] == ["node"]:
-        hold_hup()  # a SIGHUP while the node starts must not end it (it reloads once ready)
+        # first, before any heavy import (the package imports nothing until used): a
+        # SIGHUP while the platform starts must not end it (it reloads once ready)
+        hold_hup()
+    from ._cli_node import node_config, run_node
+
     config = node_config(args)
     if config is not None:
         try:

@@ -10,6 +10,7 @@ import os
 import queue
 import signal
 import subprocess
+import sys
 import threading
 import time
 import tomllib
@@ -80,16 +81,18 @@ class Lines:
 
 
 class Node:
-    """``dyknow node`` of the station, with ``[sharing]`` as given, its output followed."""
+    """``dyknow node`` (or another platform command) of the station, with ``[sharing]`` as
+    given, its output followed."""
 
-    def __init__(self, tmp: Path, sharing: str) -> None:
+    def __init__(self, tmp: Path, sharing: str, *command: str) -> None:
+        """``command``: the ``dyknow`` command and its options (default: ``node``)."""
         self.station = Station(tmp)
         self.config = self.station.dir / CONFIG
         base = self.config.read_text()
         # the audit file: a top-level key, before the first table
         self._base = base.replace('application = "weather.kpl"\n', _AUDIT, 1)
         self.share(sharing)
-        self.proc = self.station.spawn("node", "--config", CONFIG)
+        self.proc = self.station.spawn(*(command or ("node",)), "--config", CONFIG)
         self.out, self.err = Lines(self.proc.stdout), Lines(self.proc.stderr)
         self.out.wait_for("station ready in federation", 60)
 
@@ -324,8 +327,7 @@ def test_an_export_ended_by_a_rule_naming_40_platforms_ends_the_receivers_import
             "sharing.rules[0].stream",
             "list",
         ),
-        # valid, but the gateway service is registered at start
-        ('\n[sharing]\ngateway = "protected"\n', "sharing.gateway", "takes a restart"),
+        ('\n[sharing]\ngateway = "public"\n', "sharing.gateway", "'private' or 'protected'"),
     ],
 )
 def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
@@ -443,3 +445,180 @@ async def test_a_reload_whose_output_fails_goes_on_reloading(tmp_path: Path) -> 
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await task  # stops without raising
+
+
+GATEWAY_OPEN = '\n[sharing]\ngateway = "protected"\n'
+GATEWAY_CLOSED = '\n[sharing]\ngateway = "private"\n'
+
+
+@pytest.mark.timeout(180)
+async def test_sighup_opens_and_closes_the_gateway_to_other_members(tmp_path: Path) -> None:
+    from agents import Agent, Failed, Refused, request, subscribe
+    from federation import FederationPlatform
+    from federation._cli_common import wait_for_members
+
+    node = Node(tmp_path, GATEWAY_CLOSED)
+    listing = {"action": "list-labels"}
+    try:
+        operator = FederationPlatform.from_file(node.station.dir / "operator.toml")
+        async with asyncio.timeout(150), operator:
+            assert await wait_for_members(operator, "station", 30)
+            tester = await operator.agents.add(Agent("tester"))
+
+            async def ask() -> object:
+                return await request(
+                    tester, "gateway@station", listing, ontology="dyknow", timeout=10
+                )
+
+            with pytest.raises(Refused, match="access denied"):  # private: not even listed
+                await ask()
+            node.hup(GATEWAY_OPEN)
+            line = await asyncio.to_thread(node.out.wait_for, "[sharing] reloaded", 30)
+            assert "sharing.gateway 'private' -> 'protected'" in line, line
+            labels = await ask()  # the next request is let in
+            assert isinstance(labels, dict) and "wx/temperature" in labels["labels"], labels
+            feed = await subscribe(
+                tester, "gateway@station", {"label": "wx/temperature"}, ontology="dyknow"
+            )
+            first = await feed.get(timeout=30)  # samples flow to the other member
+            assert isinstance(first, dict) and first["label"] == "wx/temperature", first
+            node.hup(GATEWAY_CLOSED)
+            line = await asyncio.to_thread(node.out.wait_for, "[sharing] reloaded", 30)
+            assert "sharing.gateway 'protected' -> 'private'" in line, line
+            assert "gateway subscription of tester@operator to 'wx/temperature' ended" in line
+            # the subscriber is told, no more than an export's receiver
+            with pytest.raises(Failed, match="sharing policy no longer allows it"):
+                for _ in range(1000):  # informs sent before the end may come first
+                    await feed.get(timeout=30)
+            with pytest.raises(Refused, match="access denied"):
+                await ask()
+        records = await asyncio.to_thread(node.policy_records, ["reloaded", "reloaded", "ended"])
+        assert [r["verdict"] for r in records] == ["reloaded", "reloaded", "ended"], records
+        ended = records[2]
+        assert ended["code"] == "sharing-gateway" and ended["stream"] == "wx/temperature"
+        assert ended["to"] == "operator" and ended["subscriber"] == "tester@operator"
+        refused = [r for r in node.audit() if "access denied" in str(r.get("reason"))]
+        assert len(refused) == 2, refused  # one before the opening, one after the closing
+        assert node.proc.poll() is None
+    finally:
+        out, err = await asyncio.to_thread(node.stop)
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(180)
+@pytest.mark.parametrize("command", ["console", "foxglove"])
+def test_console_and_foxglove_reload_sharing_on_sighup_and_serve_on(
+    tmp_path: Path, command: str
+) -> None:
+    node = Node(tmp_path, ONLY_TEMPERATURE, command, "--port", "0")
+    url = node.out.seen[-1].rsplit(": ", 1)[1].strip()  # the ready line's, token included
+    try:
+        assert node.ask("wind-speed").returncode != 0
+        node.hup(EVERYTHING)
+        line = node.out.wait_for("[sharing] reloaded", 30)
+        assert line.startswith(f"dyknow {command}: [sharing] reloaded from {CONFIG}: "), line
+        assert "sharing.default 'none' -> 'members'" in line, line
+        _ask_until_served(node, "wind-speed")
+        node.hup(ONLY_TEMPERATURE.replace('"none"', '"nobody"'))  # wrong: the policy stays
+        line = node.err.wait_for("[sharing] not reloaded", 30)
+        assert line.startswith(f"dyknow {command}: [sharing] not reloaded"), line
+        assert "sharing.default" in line, line
+        _ask_until_served(node, "wind-speed")
+        assert node.proc.poll() is None
+        if command == "console":  # its page is served on, with the token of its start
+            import urllib.request
+
+            with urllib.request.urlopen(url, timeout=10) as page:
+                assert page.status == 200
+    finally:
+        out, err = node.stop()
+    assert f"dyknow {command}: station stopped" in out and "Traceback" not in err, err
+
+
+_HELD_WHEN = """
+import json, signal, sys
+from collections.abc import Callable
+heavy = ("agents", "dyknow_core", "pydantic", "zenoh", "msgpack", "orjson")
+seen: list[list[str]] = []
+install: Callable[..., object] = signal.signal
+def spy(signum, handler):
+    if signum == signal.SIGHUP and not seen:
+        seen.append(sorted(m for m in sys.modules if m.split(".")[0] in heavy))
+    return install(signum, handler)
+signal.signal = spy
+from federation.cli import main
+code = main([sys.argv[1], "--config", "no-such-config.toml"])
+print(json.dumps({"code": code, "heavy": seen}))
+"""
+
+
+@pytest.mark.parametrize("command", ["node", "console", "foxglove"])
+def test_sighup_is_held_before_the_entry_point_imports_anything_heavy(command: str) -> None:
+    # a fresh interpreter through the entry point, with a missing config: the hold
+    # comes first, before DyKnow, the agents, pydantic or zenoh are imported
+    done = subprocess.run(
+        [sys.executable, "-c", _HELD_WHEN, command],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=Path(__file__).resolve().parent.parent,
+    )
+    result = json.loads(done.stdout.splitlines()[-1])
+    assert result["code"] != 0, done.stderr  # it did run the command: the config is missing
+    assert result["heavy"] == [[]], result
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+def test_sighups_from_the_first_moment_until_ready_never_end_a_node(tmp_path: Path) -> None:
+    for attempt in range(3):
+        station = Station(tmp_path / str(attempt))
+        proc = station.spawn("node", "--config", CONFIG)
+        out, err = Lines(proc.stdout), Lines(proc.stderr)
+        sent = 0
+        try:
+            deadline = time.monotonic() + 10
+            while proc.poll() is None and not _hup_handled(proc.pid):  # the interpreter starts
+                assert time.monotonic() < deadline, "SIGHUP never handled"
+            ready = ""
+            deadline = time.monotonic() + 60
+            while not ready:  # one every 20 ms, whatever the node is doing meanwhile
+                assert proc.poll() is None, f"ended by SIGHUP {sent}: {err.rest()}"
+                assert time.monotonic() < deadline, f"not ready: {out.seen} {err.seen}"
+                proc.send_signal(signal.SIGHUP)
+                sent += 1
+                with contextlib.suppress(AssertionError):
+                    ready = out.wait_for("station ready in federation", 0.02)
+            line = out.wait_for("[sharing] reloaded", 30)  # those held: applied once ready
+            assert "no change" in line, line
+            assert proc.poll() is None and sent > 1
+        finally:
+            if proc.poll() is None:
+                proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=20)
+        assert "station stopped" in out.rest() and "Traceback" not in err.rest()
+
+
+@pytest.mark.timeout(120)
+@pytest.mark.parametrize("fixed", [None, "public"])
+async def test_a_gateway_visibility_the_program_set_stays_on_reload(
+    tmp_path: Path, fixed: str | None
+) -> None:
+    from agents import Visibility
+    from federation import FederationPlatform
+
+    station = Station(tmp_path)
+    path = station.dir / CONFIG
+    platform = FederationPlatform.from_file(path, join=False, gateway_visibility=fixed)
+    async with asyncio.timeout(100), platform as p:
+        assert p.agents.df is not None
+        assert p.gateway.visibility is Visibility(fixed or "private")
+        wanted = "protected"
+        changes, _ = await p.reload_sharing(SharingSettings(gateway=wanted), source=CONFIG)
+        assert changes[0] == f"sharing.gateway 'private' -> '{wanted}'", changes
+        (service,) = p.agents.df.search(provider=p.gateway.aid)
+        if fixed is None:  # the config's: re-registered as the file now says
+            assert service.visibility == wanted == p.gateway.visibility
+        else:
+            assert changes[1] == f"the Gateway Agent stays {fixed!r} (set by the program)"
+            assert service.visibility == fixed == p.gateway.visibility
