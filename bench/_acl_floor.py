@@ -34,12 +34,13 @@ trip between them:
 - ``callback-binary``: both: the binary envelope, the replier's work on zenoh's thread;
 - ``asyncio-query`` (e): the request a zenoh ``get`` with the request as its payload,
   answered through the replier's loop (the queryable's callback hands the query over as
-  in b), the reply handed over to the asker's loop as in b (as our transport's ``ask``:
-  the reply callback a ``zenoh.handlers.Callback``, zenoh's default ``indirect=True``);
+  in b), the reply handed over to the asker's loop as in b (the reply callback a
+  ``zenoh.handlers.Callback``, zenoh's default ``indirect=True``);
 - ``asyncio-query-direct``: e with the asker's reply callback ``indirect=False``, called
-  on zenoh's network thread: with ``indirect=True`` zenoh starts a Python thread for each
-  handler, so each ``get`` with a callback starts one (200 gets, 200 threads; a
-  subscriber's or queryable's handler is one thread for its life).
+  on zenoh's network thread, as our transport's ``ask`` does (with Python's switch
+  interval; see ``bench/_ask_threads.py``): with ``indirect=True`` zenoh starts a Python
+  thread for each handler, so each ``get`` with a callback starts one (200 gets, 200
+  threads; a subscriber's or queryable's handler is one thread for its life).
 
 The variants take turns in blocks of ``BLOCK`` round trips (a cycle: a block of each,
 forward, then backward, ...), so that all meet the same load on a shared machine; a

@@ -101,6 +101,8 @@ def _stats(p: FederationPlatform) -> dict[str, Any]:
         "df_stale_shed": gdf.event_gate.stale if gdf is not None and gdf.event_gate else 0,
         # the platforms whose signed snapshot came (none of theirs still asked)
         "df_listed": sorted(set(gdf.platforms) - gdf._joining) if gdf is not None else [],
+        # the platforms its Federation Agent takes for members (from the directory)
+        "members": p.members,
         # the directory's warnings, as logged (their number is bounded per signer)
         "df_warnings": list(_DF_WARNINGS),
         "audit": [dict(r) for r in p.interface.audit.records],
@@ -220,17 +222,19 @@ class World:
         self.pipes[name].send("ask", provider, labels)
         return str((await self.pipes[name].expect("asked", WAIT + 5))[1])
 
-    async def until_stats(self, name: str, check: Any, what: str) -> dict[str, Any]:
+    async def until_stats(
+        self, name: str, check: Any, what: str, within: float = WAIT
+    ) -> dict[str, Any]:
         """Poll the victim's stats until ``check(stats)`` holds (counters have no event)."""
         try:
-            async with asyncio.timeout(WAIT):
+            async with asyncio.timeout(within):
                 while True:
                     s = await self.stats(name)
                     if check(s):
                         return s
                     await asyncio.sleep(0.1)
         except TimeoutError:
-            raise AssertionError(f"{name}: {what}: not within {WAIT} s") from None
+            raise AssertionError(f"{name}: {what}: not within {within} s") from None
 
 
 def _config(
@@ -305,6 +309,20 @@ async def world(
                 await w.pipes[n].expect("ready", START)
             for p in w.here.values():
                 await until(lambda p=p: set(names) <= set(p.members), "every member", START)
+            for n in spawned:
+                # A victim takes each member's signed snapshot when its presence comes, and
+                # asks again when an event came meanwhile: an event a test sends before that
+                # answer is taken may be counted stale (the answer reflects it), and the
+                # victim's Federation Agent may not take the member for one yet.
+                others = set(names) - {n}
+                await w.until_stats(
+                    n,
+                    lambda s, others=others: (
+                        others <= set(s["df_listed"]) and others <= set(s["members"])
+                    ),
+                    "every member's snapshot taken",
+                    START,
+                )
             yield w
             for n in spawned:
                 w.pipes[n].send("exit")

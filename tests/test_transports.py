@@ -29,6 +29,7 @@ from agents.transports import (
     Transport,
     ZenohConfig,
     ZenohTransport,
+    _zenoh,
     free_tcp_port,
     key_intersects,
 )
@@ -383,6 +384,47 @@ async def test_ask_yields_each_reply_as_it_comes(net: Net) -> None:
     assert time.monotonic() - started < WAIT
     again = await q.query(net.key("ask/fast"), b"x", timeout=net.query_timeout)
     assert again == [Reply(net.key("ask/fast"), b"fast:x")]
+
+
+@pytest.fixture
+async def zenoh_net() -> AsyncIterator[Net]:
+    """Zenoh transports only (what is zenoh's own: its threads)."""
+    n = Net("zenoh", f"test/{uuid.uuid4().hex[:10]}", 5.0, _zenoh_factory())
+    try:
+        yield n
+    finally:
+        for t in reversed(n.opened):
+            await t.aclose()
+
+
+@pytest.mark.parametrize("switch", [None, 0.05], ids=["default-switch", "raised-switch"])
+async def test_zenoh_replies_and_tokens_come_whatever_the_switch_interval(
+    zenoh_net: Net, switch: float | None
+) -> None:
+    # zenoh's network thread calls the reply callback up to Python's switch interval, a
+    # thread of its own above it: every reply and every token comes either way
+    net = zenoh_net
+    s1, s2, q = await net.open(), await net.open(), await net.open()
+
+    async def echo(key: str, payload: bytes) -> bytes:
+        return key.encode() + b":" + payload
+
+    for s in (s1, s2):
+        await s.serve(net.key(f"sw/{id(s)}"), echo)
+        await s.declare_token(net.key(f"alive/{id(s)}"))
+    await ready(net, q, s1, s2)
+    before = sys.getswitchinterval()
+    try:
+        if switch is not None:
+            sys.setswitchinterval(switch)
+        assert _zenoh._replies_indirect() is (switch is not None)  # both ways are run
+        for i in range(20):
+            replies = await q.query(net.key("sw/*"), b"%d" % i, timeout=WAIT)
+            assert sorted(r.payload.rpartition(b":")[2] for r in replies) == [b"%d" % i] * 2
+        tokens = await q.tokens(net.key("alive/*"), timeout=WAIT)
+        assert tokens == sorted(net.key(f"alive/{id(s)}") for s in (s1, s2))
+    finally:
+        sys.setswitchinterval(before)
 
 
 async def test_query_without_server_returns_nothing_in_bounded_time(net: Net) -> None:
