@@ -622,3 +622,43 @@ async def test_a_gateway_visibility_the_program_set_stays_on_reload(
         else:
             assert changes[1] == f"the Gateway Agent stays {fixed!r} (set by the program)"
             assert service.visibility == fixed == p.gateway.visibility
+
+
+@pytest.mark.timeout(120)
+async def test_a_failed_gateway_reload_changes_nothing_and_the_file_is_compared_with_the_gateway(
+    tmp_path: Path,
+) -> None:
+    from agents import Visibility
+    from federation import FederationPlatform
+
+    station = Station(tmp_path)
+    platform = FederationPlatform.from_file(station.dir / CONFIG, join=False)
+    async with asyncio.timeout(100), platform as p:
+        df = p.agents.df
+        assert df is not None
+
+        def entry() -> Visibility:
+            (service,) = df.search(provider=p.gateway.aid)
+            return service.visibility
+
+        async def broken(*args: object) -> None:
+            raise RuntimeError("injected: the directory event cannot be sent")
+
+        df._changed = broken  # type: ignore[method-assign]
+        try:
+            with pytest.raises(RuntimeError, match="injected"):
+                await p.reload_sharing(SharingSettings(gateway="protected"), source=CONFIG)
+        finally:
+            del df._changed
+        # nothing changed: the gateway, its directory entry, the policy
+        assert p.gateway.visibility is Visibility.PRIVATE is entry()
+        assert p.config.sharing.gateway == "private"
+        assert p.federation_agent.sharing.settings.gateway == "private"
+        same, _ = await p.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        assert same == [], same  # the file as before: no change, truly
+        # the gateway opened by the program: the file's "private" is a change, though the
+        # file is as before
+        await p.gateway.set_visibility("protected", "opened by the program")
+        changes, _ = await p.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        assert changes == ["the Gateway Agent re-registered 'private' (it served 'protected')"]
+        assert p.gateway.visibility is Visibility.PRIVATE is entry()
