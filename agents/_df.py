@@ -332,14 +332,25 @@ class DirectoryFacilitator(Agent):
         return service
 
     async def modify(self, service: ServiceDescription) -> ServiceDescription:
-        """Replace the registered service with the same (provider, name)."""
+        """Replace the registered service with the same (provider, name).
+
+        If telling the change fails (or is cancelled), the old entry is restored and the
+        error raised: a caller told of the failure may take the directory to be as it was.
+        """
         self._check_local(service)
         old = self._get(*service.key)
         if old is None:
             raise ServiceError(f"{service.provider} has no service {service.name!r}")
         self._services[service.provider][service.name] = service
         self._reach.clear()
-        await self._changed("modify", old, service)
+        try:
+            await self._changed("modify", old, service)
+        except BaseException:
+            mine = self._services.get(service.provider)
+            if mine is not None and mine.get(service.name) is service:  # not changed since
+                mine[service.name] = old
+                self._reach.clear()
+            raise
         return service
 
     async def deregister(self, provider: str, name: str | None = None) -> list[ServiceDescription]:

@@ -174,15 +174,16 @@ class PlatformStats:
     key-exchange requests that it refused (junk, forged, …: anyone may answer them);
     ``kx_requests_refused`` key-exchange requests the gate let through whose checks
     (signature, freshness, trust) then refused them;
-    ``denied`` authenticated messages the Interface Agent refused or dropped for what
-    they claim or ask (a sender of another platform, no receiver here, a ``reply_to`` it
-    does not allow, access denied; each audited); ``agent_refused`` requests this
-    platform's agents answered with ``refuse`` themselves (a responder raising
-    ``Refuse``); ``unknown_receiver`` / ``mailbox_full`` / ``stopping`` messages for no
-    agent here / for a full mailbox / for an agent that is stopping (answered with
-    ``failure``); those of other platforms among these four are audited summed up
-    (``agent-refuse`` / ``delivery`` records, one per platform and kind per
-    `REFUSAL_AUDIT_INTERVAL`; docs/security.md);
+    ``denied`` authenticated messages the Interface Agent refused or dropped for what they
+    claim or ask (a sender of another platform, no receiver here, a ``reply_to`` it does not
+    allow, access denied; each audited), and those an agent refuses as the Interface Agent
+    would have, had it seen the agent's service as it is now (the Gateway Agent, made
+    private while they waited; also in ``agent_refused``); ``agent_refused`` requests this
+    platform's agents answered with ``refuse`` themselves (a responder raising ``Refuse``);
+    ``unknown_receiver`` / ``mailbox_full`` / ``stopping`` messages for no agent here / for
+    a full mailbox / for an agent that is stopping (answered with ``failure``); those of
+    other platforms among these four are audited summed up (``agent-refuse`` / ``delivery``
+    records, one per platform and kind per `REFUSAL_AUDIT_INTERVAL`; docs/security.md);
     ``rehandshakes`` new sessions started because a trusted peer
     sealed on one this platform does not hold, ``rehandshakes_suppressed`` such cues
     ignored (at most one per peer per ``rehandshake_interval``), ``presence_suppressed``

@@ -224,19 +224,17 @@ async def _reloading_on_hup(
     """While in it, SIGHUP reloads ``[sharing]`` (`_reload_on_hup`); one held since the
     process started (`federation._hup`) is applied on entry; once out, SIGHUP is ignored
     (the process stops: never the signal's default, which ends it)."""
-    from ._hup import take_held_hup
+    from ._hup import on_hup
 
     hup = asyncio.Event()
     loop = asyncio.get_running_loop()
-    loop.add_signal_handler(signal.SIGHUP, hup.set)
-    if take_held_hup():  # one came while starting: the file may have changed since read
-        hup.set()
+    # the signal's handler runs between two bytecodes of whatever runs: it only schedules
+    on_hup(lambda: loop.call_soon_threadsafe(hup.set))
     reloads = loop.create_task(_reload_on_hup(p, source, hup, say, command), name="sighup")
     try:
         yield
     finally:
-        loop.remove_signal_handler(signal.SIGHUP)
-        signal.signal(signal.SIGHUP, signal.SIG_IGN)  # stopping: a SIGHUP is no kill
+        on_hup(None)  # stopping: a SIGHUP is ignored, never a kill
         reloads.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await reloads

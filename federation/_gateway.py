@@ -18,7 +18,11 @@ labels never leave a platform). Labels under a ``reserved`` prefix (``import/``:
 other platforms stream here) are for this platform's agents only: a request from another
 platform that would read, create or write one is refused, counted
 (``gateway_stats.reserved_refused``) and audited; so is a create-stream whose output is
-no valid semantic label (``gateway_stats.bad_label_refused``).
+no valid semantic label (``gateway_stats.bad_label_refused``). Made private while a
+request or subscribe of another platform waits in its mailbox (a sharing reload,
+`GatewayAgent.set_visibility`), it refuses that message as the Interface Agent would have
+("access denied"; ``gateway_stats.access_refused``, the platform's ``stats.denied``,
+audited).
 """
 
 from __future__ import annotations
@@ -75,6 +79,7 @@ class GatewayStats:
     subscriptions: int = 0
     reserved_refused: int = 0
     bad_label_refused: int = 0
+    access_refused: int = 0
 
 
 @dataclass(slots=True)
@@ -169,13 +174,20 @@ class GatewayAgent(Agent):
         """Serve with ``visibility`` from now on: the service re-registered so (each
         request after it is let in or refused by it); made private, the subscriptions of
         other platforms end, their subscribers told ``failure`` with ``why``. Returns
-        (subscriber, label) of each subscription ended."""
+        (subscriber, label) of each subscription ended. A re-registration that fails
+        leaves the gateway as it was (and raises)."""
         wanted = Visibility(visibility)
         platform = self.platform
-        if self._register and platform.df is not None:
-            # registered first: one that fails leaves the gateway as it was
-            await platform.df.modify(self.description().model_copy(update={"visibility": wanted}))
+        was = self.visibility
+        # set before the await: a request already in the mailbox, handled meanwhile, is
+        # let in or refused by the new setting (`_check_access`)
         self.visibility = wanted
+        if self._register and platform.df is not None:
+            try:
+                await platform.df.modify(self.description())
+            except BaseException:
+                self.visibility = was
+                raise
         if wanted is not Visibility.PRIVATE:
             return []
         ended = []
@@ -201,6 +213,7 @@ class GatewayAgent(Agent):
     def _perform(self, content: Any, message: ACLMessage) -> dict[str, Any]:
         remote = platform_of(message.sender) != self.platform.name
         if remote:
+            self._check_access(message)
             self._check_reserved(message, content)
         try:
             result = self.service.perform(content)
@@ -249,6 +262,25 @@ class GatewayAgent(Agent):
                 self._audit_refusal(message, "reserved-label", reason)
                 raise Refuse(reason)
 
+    def _check_access(self, message: ACLMessage) -> None:
+        """Refuse (count, audit) a message of another platform the gateway's visibility
+        no longer allows: the Interface Agent let it in, by the visibility of then.
+
+        A request or subscribe may wait in the mailbox while a reload makes the gateway
+        private; served, it would open a private gateway to another platform.
+        """
+        # as `visibility_allows` rules for a message that came through the Interface Agent
+        if self.visibility is not Visibility.PRIVATE:
+            return
+        reason = (
+            f"access denied: {self.aid} offers no service that platform "
+            f"{platform_of(message.sender)!r} may use"
+        )
+        self.gateway_stats.access_refused += 1
+        self.platform.stats.denied += 1
+        self._audit_refusal(message, "access-denied", reason)
+        raise Refuse(reason)
+
     def _audit_refusal(self, message: ACLMessage, code: str, reason: str) -> None:
         """Record a refused request in the platform's audit log."""
         self.platform.audit(
@@ -285,8 +317,16 @@ class GatewayAgent(Agent):
     @on(MessageTemplate(P.SUBSCRIBE, ontology=ONTOLOGY))
     async def _on_subscribe(self, message: ACLMessage) -> None:
         """Agree and start informing, or refuse (unknown label, bad policy) with the reason."""
-        reason = self._subscribe_problem(message)
-        if reason is None and platform_of(message.sender) != self.platform.name:
+        remote = platform_of(message.sender) != self.platform.name
+        reason = None
+        if remote:
+            try:
+                self._check_access(message)
+            except Refuse as exc:
+                reason = str(exc.content)
+        if reason is None:
+            reason = self._subscribe_problem(message)
+        if reason is None and remote:
             try:
                 self._check_reserved(message, message.content)
             except Refuse as exc:

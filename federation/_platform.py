@@ -1119,18 +1119,25 @@ class FederationPlatform:
         changes = sharing_changes(old, settings)
         why = f"the sharing policy was reloaded from {source}"
         gone: list[tuple[str, str]] = []  # the gateway subscriptions ended
-        if settings.gateway != old.gateway:
-            if self._gateway_fixed:
+        if self._gateway_fixed:
+            if settings.gateway != old.gateway:
                 kept = self.gateway.visibility.value
                 changes.append(f"the Gateway Agent stays {kept!r} (set by the program)")
-            else:
-                # first: a re-registration that fails leaves the whole policy in force; the
-                # subscriber is told no more than an export's receiver (UNSHARED_WHY)
-                gone = await self.gateway.set_visibility(settings.gateway, UNSHARED_WHY)
-                changes.extend(
-                    f"gateway subscription of {subscriber} to {label!r} ended"
-                    for subscriber, label in gone
+        elif (actual := self.gateway.visibility) is not Visibility(settings.gateway):
+            # what the gateway serves with, not the old file: they differ after a failed
+            # reload, and then the same file again must not be "no change"
+            if settings.gateway == old.gateway:
+                changes.append(
+                    f"the Gateway Agent re-registered {settings.gateway!r} "
+                    f"(it served {actual.value!r})"
                 )
+            # first: a re-registration that fails leaves the whole policy in force; the
+            # subscriber is told no more than an export's receiver (UNSHARED_WHY)
+            gone = await self.gateway.set_visibility(settings.gateway, UNSHARED_WHY)
+            changes.extend(
+                f"gateway subscription of {subscriber} to {label!r} ended"
+                for subscriber, label in gone
+            )
         self.federation_agent.sharing = settings.sharing()
         self.config = self.config.model_copy(update={"sharing": settings})
         audit = self.interface.audit

@@ -543,3 +543,134 @@ async def test_a_created_stream_needs_a_valid_output_label() -> None:
         recs = [r for r in channel.audit.records if r.get("stage") == "gateway"]
         assert [r["code"] for r in recs] == ["bad-label"] * 4
         assert recs[0]["sender"] == "asker@operator" and recs[0]["reason"].startswith("bad-label")
+
+
+# -- made private while it runs (a sharing reload) ------------------------------------------
+
+
+@contextlib.contextmanager
+def held(agent: Agent, performative: str) -> Any:
+    """Hold ``agent``'s incoming messages of ``performative`` out of its mailbox: the
+    Interface Agent has let them in; yields (the messages held, an event set at the first,
+    the function that hands them over)."""
+    messages: list[Any] = []
+    arrived = asyncio.Event()
+    deliver, deliver_batch = agent._deliver, agent._deliver_batch
+
+    def hold(message: Any) -> bool:
+        if message.performative == performative:
+            messages.append(message)
+            arrived.set()
+            return True
+        return deliver(message)
+
+    def hold_batch(batch: list[Any]) -> int:
+        return sum(hold(m) for m in batch)
+
+    def release() -> None:
+        for message in messages:
+            assert deliver(message)
+
+    agent._deliver = hold  # type: ignore[method-assign]
+    agent._deliver_batch = hold_batch  # type: ignore[method-assign]
+    try:
+        yield messages, arrived, release
+    finally:
+        agent._deliver, agent._deliver_batch = deliver, deliver_batch  # type: ignore[method-assign]
+
+
+@pytest.mark.parametrize("asking", ["subscribe", "request"])
+async def test_what_waited_in_the_mailbox_while_the_gateway_went_private_is_refused(
+    asking: str,
+) -> None:
+    async with world() as w:
+        assert w.gateway.visibility == "protected"  # other platforms let in
+        performative = "subscribe" if asking == "subscribe" else "request"
+        with held(w.gateway, performative) as (messages, arrived, release):
+            if asking == "subscribe":
+                call: Awaitable[Any] = subscribe(
+                    w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow"
+                )
+            else:
+                call = w.ask({"action": "query", "label": "car/car5/speed"})
+            asked = asyncio.ensure_future(call)
+            async with asyncio.timeout(5):
+                await arrived.wait()  # past the Interface Agent, not yet handled
+            ended = await w.gateway.set_visibility("private", "closed by the operator")
+            assert ended == []
+            release()
+            reason = await refusal(asked)
+        assert reason == (
+            f"access denied: {GW} offers no service that platform 'operator' may use"
+        ), reason
+        assert len(messages) == 1
+        # nothing served: no subscription, no core subscription, no inform, ever
+        for i in range(5):
+            w.speed.push(float(i), valid_time=T0 + i * NS_PER_S)
+        assert w.gateway.subscriptions == {}
+        assert w.dk.stream("car/car5/speed").subscriptions == []
+        received = w.asker.stats.received
+        await refusal(w.ask({"action": "list-labels"}))  # a round trip: the Interface Agent's
+        assert w.asker.stats.received == received + 1
+        assert w.gateway.gateway_stats.informs == 0 == w.gateway.gateway_stats.subscriptions
+        assert w.gateway.gateway_stats.access_refused == 1
+        channel = w.uav.channel
+        assert isinstance(channel, InterfaceAgent)
+        (record,) = [r for r in channel.audit.records if r.get("stage") == "gateway"]
+        assert record["code"] == "access-denied" and record["verdict"] == "refused"
+        assert record["sender"] == "asker@operator" and record["from"] == "operator"
+        assert record["performative"] == performative
+        assert record["reason"] == f"access-denied: {reason}"
+        # both counted as the platform's denials: the gateway's, then the Interface Agent's
+        assert w.uav.stats.denied == 2
+
+
+async def test_a_private_gateway_keeps_its_own_platforms_subscriptions() -> None:
+    async with world() as w:
+        local = await w.uav.add(Agent("local"))
+        mine = await subscribe(local, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        theirs = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        ended = await w.gateway.set_visibility("private", "closed by the operator")
+        assert ended == [("asker@operator", "car/car5/speed")]
+        with pytest.raises(Failed, match="closed by the operator"):
+            await theirs.get(timeout=5)
+        w.speed.push(1.0, valid_time=T0)
+        first = await mine.get(timeout=5)  # served on
+        assert [row[:2] for row in first["samples"]] == [[1.0, 1000.0]]
+        again = await subscribe(local, GW, {"label": "car5-state"}, ontology="dyknow")
+        assert again.agree.performative == "agree"  # and a new one agreed
+        assert len(w.gateway.subscriptions) == 2
+        assert w.gateway.gateway_stats.access_refused == 0
+        await mine.cancel()
+        await again.cancel()
+
+
+async def test_a_re_registration_that_fails_leaves_the_gateway_and_its_entry_as_they_were() -> None:
+    async with world() as w:
+        df = w.uav.df
+        assert df is not None
+        theirs = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+
+        async def broken(*args: Any) -> None:
+            raise RuntimeError("injected: the directory event cannot be sent")
+
+        df._changed = broken  # type: ignore[method-assign]
+        try:
+            with pytest.raises(RuntimeError, match="injected"):
+                await w.gateway.set_visibility("private", "closed by the operator")
+        finally:
+            del df._changed
+        assert w.gateway.visibility == "protected"
+        (entry,) = df.search(provider=GW)
+        assert entry.visibility == "protected"
+        assert len(w.gateway.subscriptions) == 1  # not ended: the gateway stays open
+        w.speed.push(1.0, valid_time=T0)
+        assert (await theirs.get(timeout=5))["label"] == "car/car5/speed"
+        # and the same change again, now told, applies
+        ended = await w.gateway.set_visibility("private", "closed by the operator")
+        assert ended == [("asker@operator", "car/car5/speed")]
+        (entry,) = df.search(provider=GW)
+        assert entry.visibility == "private" == w.gateway.visibility
+        with pytest.raises(Failed):
+            for _ in range(100):
+                await theirs.get(timeout=5)

@@ -217,11 +217,13 @@ def _hup_handled(pid: int) -> bool:
 
 @pytest.mark.timeout(180)
 @pytest.mark.skipif(not Path("/proc/self/status").exists(), reason="reads /proc")
+@pytest.mark.parametrize("command", ["node", "console", "foxglove"])
 def test_a_sighup_while_the_node_starts_does_not_end_it_and_reloads_once_ready(
-    tmp_path: Path,
+    tmp_path: Path, command: str
 ) -> None:
     station = Station(tmp_path)
-    proc = station.spawn("node", "--config", CONFIG)
+    options = () if command == "node" else ("--port", "0")
+    proc = station.spawn(command, "--config", CONFIG, *options)
     out, err = Lines(proc.stdout), Lines(proc.stderr)
     try:
         deadline = time.monotonic() + 60
@@ -233,7 +235,7 @@ def test_a_sighup_while_the_node_starts_does_not_end_it_and_reloads_once_ready(
         proc.send_signal(signal.SIGHUP)
         out.wait_for("station ready in federation", 60)
         line = out.wait_for("[sharing] reloaded", 30)  # the held one, replayed
-        assert "no change" in line, line
+        assert line.startswith(f"dyknow {command}: ") and "no change" in line, line
         assert proc.poll() is None
     finally:
         if proc.poll() is None:
@@ -580,6 +582,7 @@ def test_sighups_from_the_first_moment_until_ready_never_end_a_node(tmp_path: Pa
             deadline = time.monotonic() + 10
             while proc.poll() is None and not _hup_handled(proc.pid):  # the interpreter starts
                 assert time.monotonic() < deadline, "SIGHUP never handled"
+                time.sleep(0.0005)  # a pause, not a wait: 2 cores, the child must start
             ready = ""
             deadline = time.monotonic() + 60
             while not ready:  # one every 20 ms, whatever the node is doing meanwhile
@@ -622,3 +625,81 @@ async def test_a_gateway_visibility_the_program_set_stays_on_reload(
         else:
             assert changes[1] == f"the Gateway Agent stays {fixed!r} (set by the program)"
             assert service.visibility == fixed == p.gateway.visibility
+
+
+@pytest.mark.timeout(120)
+async def test_a_failed_gateway_reload_changes_nothing_and_the_file_is_compared_with_the_gateway(
+    tmp_path: Path,
+) -> None:
+    from agents import Visibility
+    from federation import FederationPlatform
+
+    station = Station(tmp_path)
+    platform = FederationPlatform.from_file(station.dir / CONFIG, join=False)
+    async with asyncio.timeout(100), platform as p:
+        df = p.agents.df
+        assert df is not None
+
+        def entry() -> Visibility:
+            (service,) = df.search(provider=p.gateway.aid)
+            return service.visibility
+
+        async def broken(*args: object) -> None:
+            raise RuntimeError("injected: the directory event cannot be sent")
+
+        df._changed = broken  # type: ignore[method-assign]
+        try:
+            with pytest.raises(RuntimeError, match="injected"):
+                await p.reload_sharing(SharingSettings(gateway="protected"), source=CONFIG)
+        finally:
+            del df._changed
+        # nothing changed: the gateway, its directory entry, the policy
+        assert p.gateway.visibility is Visibility.PRIVATE is entry()
+        assert p.config.sharing.gateway == "private"
+        assert p.federation_agent.sharing.settings.gateway == "private"
+        same, _ = await p.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        assert same == [], same  # the file as before: no change, truly
+        # the gateway opened by the program: the file's "private" is a change, though the
+        # file is as before
+        await p.gateway.set_visibility("protected", "opened by the program")
+        changes, _ = await p.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        assert changes == ["the Gateway Agent re-registered 'private' (it served 'protected')"]
+        assert p.gateway.visibility is Visibility.PRIVATE is entry()
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="POSIX signals")
+async def test_a_sighup_held_while_the_loop_takes_signals_is_applied_once() -> None:
+    from federation import _hup
+
+    loop = asyncio.get_running_loop()
+    before = signal.getsignal(signal.SIGHUP)
+    through = asyncio.Event()
+    # the loop takes a signal (as `_stop_event`'s): each signal now also writes its number
+    # to the loop's wakeup pipe, which the loop replays to a handler of its own, if any
+    loop.add_signal_handler(signal.SIGUSR1, through.set)
+    applied: list[int] = []
+    try:
+        _hup.hold_hup()
+        os.kill(os.getpid(), signal.SIGHUP)  # held, and its number in the pipe
+        _hup.on_hup(lambda: loop.call_soon_threadsafe(applied.append, 1))
+        os.kill(os.getpid(), signal.SIGUSR1)  # behind the SIGHUP in the pipe
+        async with asyncio.timeout(10):
+            await through.wait()  # the loop read the pipe past the held SIGHUP
+        assert applied == [1]  # the held one, once
+        os.kill(os.getpid(), signal.SIGHUP)
+        async with asyncio.timeout(10):
+            while len(applied) < 2:  # noqa: ASYNC110
+                await asyncio.sleep(0)  # call_soon_threadsafe: scheduled already
+        assert applied == [1, 1]
+        _hup.on_hup(None)
+        assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN  # stopping: never a kill
+        os.kill(os.getpid(), signal.SIGHUP)
+        through.clear()
+        os.kill(os.getpid(), signal.SIGUSR1)
+        async with asyncio.timeout(10):
+            await through.wait()
+        assert applied == [1, 1]
+    finally:
+        _hup.on_hup(None)
+        loop.remove_signal_handler(signal.SIGUSR1)
+        signal.signal(signal.SIGHUP, before)
