@@ -48,7 +48,9 @@ Presence
     one topic, not a subscription's retained ones against what it routes later): a live
     message is newer than the retained snapshot of its key, whichever came first. The
     history is taken as complete once a message it sends itself through the broker is
-    back and no retained message came for ``retained_quiet`` s (within its timeout).
+    back and, when ``retained_quiet`` is set (default 0: a broker such as mosquitto
+    sends the replay first), no retained message came for that long after it (within
+    its timeout).
 
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
@@ -232,10 +234,13 @@ class MqttConfig(BaseModel):
         description="Seconds a query handler may run before the query gets an error reply.",
     )
     retained_quiet: float = Field(
-        default=0.05,
-        gt=0,
+        default=0.0,
+        ge=0,
         le=10,
-        description="Seconds without a retained message that end a presence history's replay.",
+        description=(
+            "Seconds without a retained message, after the round trip, that end a presence "
+            "history's replay; 0: the round trip alone (a broker sending retained first)."
+        ),
     )
 
     def relative_to(self, base: str | Path) -> MqttConfig:
@@ -772,9 +777,10 @@ class MqttTransport(_Keeps, Transport):
         """The tokens alive on ``key_expr``: the retained ones, once the broker sent them all.
 
         All sent: a round trip through the broker after subscribing is back
-        (`_round_trip`, a few ms) and no retained message came for ``retained_quiet`` s;
-        what came by ``timeout`` s when that takes longer. A live change that comes in
-        the meantime wins over its key's retained message, before or after it.
+        (`_round_trip`, a few ms) and no retained message came for ``retained_quiet`` s
+        after it (0: none waited for); what came by ``timeout`` s when that takes longer.
+        A live change that comes in the meantime wins over its key's retained message,
+        before or after it.
         """
         _, loop = self._connected()
         deadline = loop.time() + timeout
@@ -783,6 +789,9 @@ class MqttTransport(_Keeps, Transport):
         await self._attach(topic, lambda f: f.watchers.append(seen), resubscribe=True)
         try:
             await self._round_trip(max(0.0, deadline - loop.time()))
+            # the quiet time runs from the echo, not from the start: a slow round trip
+            # must not end the wait for a replay that comes just after it
+            seen.last_retained = max(seen.last_retained, loop.time())
             while (end := min(seen.last_retained + self.config.retained_quiet, deadline)) > (
                 now := loop.time()
             ):
