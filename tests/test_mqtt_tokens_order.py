@@ -5,7 +5,8 @@ what the broker routes to it later (a clustered broker may not). A relay between
 client and a real mosquitto holds back the retained replay and the client's own round
 trip while a live change (a token cleared, one announced) goes through, then lets them
 go: ``tokens()`` still answers what is alive now. With a quiet time, a replay that comes
-just after a slow round trip is still waited for.
+just after a slow round trip is still waited for; and a flood of invented retained keys
+does not crowd out those a caller keeps.
 """
 
 from __future__ import annotations
@@ -13,13 +14,18 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import uuid
+from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
+import aiomqtt
 import pytest
 from pydantic import ValidationError
 
+from agents import wire_key
 from agents.transports import MqttConfig, MqttTransport
-from agents.transports._mqtt import REPLY_PREFIX
+from agents.transports._mqtt import _MAX_PRESENCE_KEYS, REPLY_PREFIX
+from federation._local import PlatformAliveError, refuse_duplicate
 
 WAIT = 10.0  # the bound on any single wait: generous for a loaded 2-core machine
 _PUBLISH = 3  # MQTT control packet type
@@ -242,3 +248,40 @@ async def test_no_quiet_time_answers_at_the_echo_on_mosquitto(mosquitto: tuple[s
         )
         for _ in range(3):  # every time, not once by luck
             assert await asker.tokens(f"{prefix}/*", timeout=WAIT) == keys
+
+
+async def test_a_flood_of_invented_presences_does_not_hide_the_kept_ones(
+    mosquitto: tuple[str, int],
+) -> None:
+    host, port = mosquitto
+    fed = f"flood-{uuid.uuid4().hex[:10]}"
+    prefix = wire_key(fed, "alive", "")
+    members = {f"{prefix}member-early", f"{prefix}member-late"}
+    junk = [f"{prefix}junk{i:05d}" for i in range(_MAX_PRESENCE_KEYS + 100)]
+    async with contextlib.AsyncExitStack() as stack:
+        holder = await stack.enter_async_context(MqttTransport(MqttConfig(host=host, port=port)))
+        await holder.declare_token(f"{prefix}member-early")
+        # an attacker on the broker: more retained presences than a call remembers
+        async with aiomqtt.Client(host, port) as attacker:
+            for key in junk:
+                await attacker.publish(key, b'{"v":1,"alive":true}', retain=True)
+        await holder.declare_token(f"{prefix}member-late")
+        asker = await stack.enter_async_context(MqttTransport(MqttConfig(host=host, port=port)))
+        try:
+            every = wire_key(fed, "alive", "*")
+            unscreened = await asker.tokens(every, timeout=WAIT)
+            assert len(unscreened) == _MAX_PRESENCE_KEYS  # bounded: some are crowded out
+            hidden = sorted(members - set(unscreened))
+            assert hidden  # the flood does hide a member from a call that keeps every key
+            kept = await asker.tokens(every, timeout=WAIT, keep=members.__contains__)
+            assert kept == sorted(members)
+            # a start's check of its name keeps only its own key: the flood hides it not
+            name = hidden[0].rpartition("/")[2]
+            with pytest.raises(PlatformAliveError, match=name):
+                # no key to read: no local channel to look at, only the broker's presences
+                config = SimpleNamespace(federation=fed, name=name, key=Path("no-such.key"))
+                await refuse_duplicate(asker, config, wait=WAIT)  # type: ignore[arg-type]
+        finally:
+            async with aiomqtt.Client(host, port) as attacker:  # leave the broker clean
+                for key in junk:
+                    await attacker.publish(key, b"", retain=True)

@@ -368,8 +368,11 @@ class _Alive:
     is newer than the retained message of its key, even one that arrives after it.
     """
 
-    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop, keep: Callable[[str], bool] | None = None
+    ) -> None:
         self.loop = loop
+        self.keep = keep
         self.retained: dict[str, bool] = {}
         self.live: dict[str, bool] = {}
         self.last_retained = loop.time()  # the replay's latest message (the start before)
@@ -385,6 +388,8 @@ class _Alive:
                 return
         else:
             alive = False
+        if self.keep is not None and not self.keep(key):
+            return  # screened before the bound below: junk keys cannot crowd these out
         seen = self.retained if retained else self.live
         if key not in seen and len(self.retained) + len(self.live) >= _MAX_PRESENCE_KEYS:
             return  # an outsider's flood of invented keys: what is kept stays bounded
@@ -773,19 +778,22 @@ class MqttTransport(_Keeps, Transport):
         finally:
             self._pending.pop(correlation, None)
 
-    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
+    async def tokens(
+        self, key_expr: str, *, timeout: float, keep: Callable[[str], bool] | None = None
+    ) -> list[str]:
         """The tokens alive on ``key_expr``: the retained ones, once the broker sent them all.
 
         All sent: a round trip through the broker after subscribing is back
         (`_round_trip`, a few ms) and no retained message came for ``retained_quiet`` s
         after it (0: none waited for); what came by ``timeout`` s when that takes longer.
         A live change that comes in the meantime wins over its key's retained message,
-        before or after it.
+        before or after it. ``keep`` screens each key as it comes, before the bound on
+        the keys remembered (`_MAX_PRESENCE_KEYS`).
         """
         _, loop = self._connected()
         deadline = loop.time() + timeout
         topic = topic_filter(key_expr)
-        seen = _Alive(loop)
+        seen = _Alive(loop, keep)
         await self._attach(topic, lambda f: f.watchers.append(seen), resubscribe=True)
         try:
             await self._round_trip(max(0.0, deadline - loop.time()))
