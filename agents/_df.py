@@ -936,13 +936,19 @@ class GlobalDirectory:
         None when the tokens could not be asked.
         """
         p = self._platform
+
+        def trusted(key: str) -> bool:
+            return self._auth.trusted(key.rpartition("/")[2])
+
         try:
-            alive = await p.transport.tokens(p.key("alive", "*"), timeout=self.query_timeout)
+            # screened as they come: invented presences cannot crowd trusted ones out
+            alive = await p.transport.tokens(
+                p.key("alive", "*"), timeout=self.query_timeout, keep=trusted
+            )
         except TransportError as exc:
             log.warning("global-df[%s]: asking the tokens failed: %s", p.name, exc)
             return None
-        names = {key.rpartition("/")[2] for key in alive}
-        return {n for n in names if self._auth.trusted(n)} | {p.name}
+        return {key.rpartition("/")[2] for key in alive} | {p.name}
 
     async def _query(
         self,

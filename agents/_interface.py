@@ -414,7 +414,9 @@ class AuditLog:
         between two leaves a gap in the numbers, never a record lost.
         """
         names = [path, *(path.with_name(f"{path.name}.{i}") for i in range(1, self.backups + 1))]
-        number = _rotated_number(path) + 1  # read before its name changes
+        # read before the names change; the highest of all, not the current file's: a
+        # crash between the renames and the record leaves a current file without one
+        number = max(_rotated_number(n) for n in names) + 1
         if self.backups == 0:
             path.unlink(missing_ok=True)
         for i in range(self.backups, 0, -1):

@@ -30,6 +30,7 @@ from agents import (
     wire_key,
 )
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
+from dyknow_core.reasoning import Anchoring
 
 from ._cli_common import (
     NotAnsweredError,
@@ -80,8 +81,9 @@ def unprovided(platform: FederationPlatform, source: str) -> list[str]:
     """Warnings for the mapping's entries whose local label no stream here has or can have.
 
     A fixed entry whose local label is no stream yet, and a pattern entry whose local
-    pattern matches no stream here and no label an input or an import can make (the
-    inputs' ``fields`` labels with their ``{field}`` placeholders, ``import_label``).
+    pattern matches no stream here and no label an input, an import or the anchoring can
+    make (the inputs' ``fields`` labels with their ``{field}`` placeholders,
+    ``import_label``, the class features' label patterns with their ``{id}``).
     Not an error: a stream may appear after the start (an input with ``create = true``,
     an imported stream, a source added by the program), but a label the application
     lacks, a typo, is otherwise found only when asked for it ("no stream for it here").
@@ -96,6 +98,11 @@ def unprovided(platform: FederationPlatform, source: str) -> list[str]:
     labels = instance.labels()
     templates = [label for spec in config.inputs for label in spec.fields.values()]
     templates.append(config.import_label)
+    # the anchoring makes a stream per feature of each object it creates or links
+    for process in instance.processes.values():
+        if isinstance(process, Anchoring):
+            for cls in process.classes.values():
+                templates.extend(cls.features.values())
     warnings = []
     for semantic in mapping.mapped:
         entry = vocabulary.pattern(semantic)
@@ -113,8 +120,8 @@ def unprovided(platform: FederationPlatform, source: str) -> list[str]:
             could = f"did you mean {', '.join(map(repr, near))}?" if near else f"here: {listed}"
             warnings.append(
                 f"{where}: {key}: warning: local pattern {local!r} can match no stream here nor "
-                f"any label an input or import makes ({could}): no {semantic!r} label is "
-                "served until one does"
+                f"any label an input, import or class feature makes ({could}): no "
+                f"{semantic!r} label is served until one does"
             )
             continue
         if not instance.has_label(local):

@@ -154,10 +154,14 @@ async def refuse_duplicate(
     here = None if path is None else await _node_here(path)
     if here is not None:
         raise await _alive_error(transport, config, here, command)
-    # Every platform's token, not only ours: any other's in the answer shows the session
-    # is routed to the federation already, so ours missing from it is known at once.
-    alive = await transport.tokens(wire_key(config.federation, "alive", "*"), timeout=wait)
-    if alive_key(config) not in alive:
+    # Every platform's token asked, not only ours: any other's in the answer shows the
+    # session is routed to the federation already, so ours missing from it is known at
+    # once. Only ours kept: a flood of invented presences cannot crowd it out.
+    own = alive_key(config)
+    alive = await transport.tokens(
+        wire_key(config.federation, "alive", "*"), timeout=wait, keep=own.__eq__
+    )
+    if own not in alive:
         return
     # A presence is only a hint (anyone on an open network can declare one): the name
     # runs when it answers a fresh directory query with a statement signed by its key.

@@ -126,10 +126,34 @@ def test_a_mapping_pattern_nothing_can_match_is_warned_about_at_start(tmp_path: 
         typo.stop()
     assert err.splitlines() == [
         'station-python.toml: mapping: station-labels.toml: labels."{object}-gust": warning: '
-        "local pattern 'gust/{object}/kmh' can match no stream here nor any label an input "
-        "or import makes (did you mean 'gusts/{station}/kmh'?): no '{object}-gust' label is "
-        "served until one does"
+        "local pattern 'gust/{object}/kmh' can match no stream here nor any label an input, "
+        "import or class feature makes (did you mean 'gusts/{station}/kmh'?): no "
+        "'{object}-gust' label is served until one does"
     ]
+
+
+def test_a_mapping_pattern_a_class_feature_makes_is_not_warned_about(tmp_path: Path) -> None:
+    # the anchoring creates a stream per feature of each object it makes, at run time:
+    # a pattern matching a feature's label pattern is no typo
+    station = Station(tmp_path)
+    with (station.dir / "weather.kpl").open("a") as f:
+        f.write(
+            "\nsource blobs\n"
+            "class VisionObject {\n"
+            '    feature pixel = "vo/{id}/pixel"\n'
+            '    create "pixel > 0" from blobs\n'
+            "}\n"
+            "anchoring every 1\n"
+        )
+    with (station.dir / "weather.toml").open("a") as f:
+        f.write('"{object}-pixel" = "a seen object\'s pixel"\n')
+    with (station.dir / "station-labels.toml").open("a") as f:
+        f.write('"{object}-pixel" = "vo/{object}/pixel"\n')
+    try:
+        station.start("python")
+    finally:
+        err = station.stop()[1]
+    assert err == ""
 
 
 @pytest.mark.parametrize(

@@ -173,6 +173,51 @@ def test_a_gap_left_by_a_crash_between_renames_loses_nothing(tmp_path: Path) -> 
     assert (tmp_path / "audit.jsonl.3").read_bytes() == b'{"n":3}\n'
 
 
+def test_the_count_goes_on_after_a_crash_left_a_file_without_its_record(
+    tmp_path: Path,
+) -> None:
+    """A crash after a rotation's renames, before its record: the numbers do not restart.
+
+    The file the restarted process writes has no rotation record; the next rotation
+    numbers its file one more than the highest kept, so numbers never repeat and the
+    unnumbered file sits between the two it came between.
+    """
+    path = tmp_path / "audit.jsonl"
+    audit = AuditLog(path=path, platform="uav-b", max_bytes=1200, backups=5)
+    for i in range(60):
+        audit.record(verdict="dropped", reason=f"junk {i}")
+        audit.take()
+    before = _lines(path)[0]["file"]
+    assert before >= 2
+    # the crash: the files moved up as a rotation does, the new file never begun
+    names = [path, *(path.with_name(f"audit.jsonl.{i}") for i in range(1, 6))]
+    for i in range(5, 0, -1):
+        if names[i - 1].exists():
+            names[i - 1].replace(names[i])
+    again = AuditLog(path=path, platform="uav-b", max_bytes=1200, backups=5)
+    second = path.with_name("audit.jsonl.2")
+    end = 60
+    while not (second.exists() and _lines(second)[0].get("stage") != "audit-rotated"):
+        # two rotations since the restart: the crash's file in the middle of those kept
+        again.record(verdict="dropped", reason=f"junk {end}")
+        again.take()
+        end += 1
+        assert end < 200, "the restarted log did not rotate twice"
+    firsts = [_lines(f)[0] for f in _files(path)]
+    numbers = [r.get("file") for r in firsts]
+    unnumbered = [i for i, r in enumerate(firsts) if r.get("stage") != "audit-rotated"]
+    assert len(unnumbered) == 1  # the file the crash left, now among the backups
+    k = unnumbered[0]
+    assert 0 < k < len(firsts) - 1  # in the middle of the chain
+    numbered = [n for n in numbers if n is not None]
+    assert len(set(numbered)) == len(numbered)  # no number given twice
+    assert numbered == sorted(numbered, reverse=True)  # newest first, by name as by number
+    assert numbers[k - 1] == numbers[k + 1] + 1  # it lies between two consecutive numbers
+    assert min(numbered) > 0 and max(numbered) > before
+    kept = [int(r["reason"].split()[1]) for r in _decisions(_files(path))]
+    assert kept == list(range(kept[0], end))  # nothing lost around the crash
+
+
 def test_a_record_longer_than_the_bound_is_written_alone(tmp_path: Path) -> None:
     """A record longer than the bound is not lost (nor looped on): it gets a file of its own."""
     path = tmp_path / "audit.jsonl"

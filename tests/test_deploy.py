@@ -13,6 +13,7 @@ deploy/config with what deploy/make-keys.sh runs (``dyknow keys``' functions).
 
 from __future__ import annotations
 
+import fnmatch
 import ipaddress
 import os
 import shutil
@@ -187,6 +188,10 @@ def test_platform_config_is_valid(keyed_config: Path, platform: str, subdir: str
         assert config.transport.connect == ("tcp/172.28.0.10:7447",)
     if platform != "operator":  # the UAVs track cars; the operator maps no car labels
         assert files.mapping.to_local("car5-state") == "car/car5/state"
+    # a sharing rule naming labels the platform maps none of is dead (a leftover)
+    for rule in config.sharing.rules:
+        for pattern in rule.labels:
+            assert fnmatch.filter(files.mapping.mapped, pattern), (rule.name, pattern)
 
 
 def test_router_config_is_zenoh_json5() -> None:

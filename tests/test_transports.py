@@ -579,6 +579,9 @@ async def test_tokens_are_the_ones_alive_now(net: Net) -> None:
     assert await take(watch, 1) == [Presence(key_a, True)]
     assert await b.tokens(net.key("alive/*"), timeout=net.query_timeout) == [key_a, key_b]
     assert await b.tokens(net.key("alive/c"), timeout=net.query_timeout) == []
+    # a caller's screen: only the keys it keeps are answered, on every transport
+    kept = await b.tokens(net.key("alive/*"), timeout=net.query_timeout, keep=key_b.__eq__)
+    assert kept == [key_b]
     await token_a.aclose()
     assert await take(watch, 1) == [Presence(key_a, False)]
     assert await b.tokens(net.key("alive/*"), timeout=net.query_timeout) == [key_b]

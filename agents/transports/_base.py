@@ -502,12 +502,16 @@ class Transport(ABC):
     ) -> Subscription[Presence]:
         """Be told when tokens matching ``key_expr`` appear and go (the current ones first)."""
 
-    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
+    async def tokens(
+        self, key_expr: str, *, timeout: float, keep: Callable[[str], bool] | None = None
+    ) -> list[str]:
         """The keys of the tokens matching ``key_expr`` alive now, as known by ``timeout`` s.
 
         zenoh asks its peers and routers and returns once they all answered; MQTT once
-        the broker has sent its retained ones. This default, for a transport whose
-        history has no end, listens to `watch_presence` for ``timeout`` s.
+        the broker has sent its retained ones. ``keep`` (cheap, never raising) screens
+        the keys: only those it keeps are answered, and on a transport that bounds what
+        it remembers (MQTT) others cannot crowd them out. This default, for a transport
+        whose history has no end, listens to `watch_presence` for ``timeout`` s.
         """
         presence = await self.watch_presence(key_expr, history=True)
         alive: set[str] = set()
@@ -515,7 +519,8 @@ class Transport(ABC):
             with contextlib.suppress(TimeoutError):
                 async with asyncio.timeout(timeout):
                     async for change in presence:
-                        (alive.add if change.alive else alive.discard)(change.key)
+                        if keep is None or keep(change.key):
+                            (alive.add if change.alive else alive.discard)(change.key)
         finally:
             presence.close()
         return sorted(alive)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+from collections.abc import Callable
 
 from .._exceptions import TransportError
 from ._base import (
@@ -232,10 +233,16 @@ class MemoryTransport(Transport):
         self._handles.append(h)
         return h
 
-    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
-        """The tokens alive on ``key_expr`` (the hub knows them all at once)."""
+    async def tokens(
+        self, key_expr: str, *, timeout: float, keep: Callable[[str], bool] | None = None
+    ) -> list[str]:
+        """The tokens alive on ``key_expr`` that ``keep`` keeps (the hub knows them all)."""
         self._check_open()
-        return sorted(key for key in self.hub.tokens if key_matches(key_expr, key))
+        return sorted(
+            key
+            for key in self.hub.tokens
+            if key_matches(key_expr, key) and (keep is None or keep(key))
+        )
 
     async def watch_presence(
         self, key_expr: str, *, history: bool = True, buffer_size: int = 4096

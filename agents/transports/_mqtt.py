@@ -48,7 +48,9 @@ Presence
     one topic, not a subscription's retained ones against what it routes later): a live
     message is newer than the retained snapshot of its key, whichever came first. The
     history is taken as complete once a message it sends itself through the broker is
-    back and no retained message came for ``retained_quiet`` s (within its timeout).
+    back and, when ``retained_quiet`` is set (default 0: a broker such as mosquitto
+    sends the replay first), no retained message came for that long after it (within
+    its timeout).
 
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
@@ -232,10 +234,13 @@ class MqttConfig(BaseModel):
         description="Seconds a query handler may run before the query gets an error reply.",
     )
     retained_quiet: float = Field(
-        default=0.05,
-        gt=0,
+        default=0.0,
+        ge=0,
         le=10,
-        description="Seconds without a retained message that end a presence history's replay.",
+        description=(
+            "Seconds without a retained message, after the round trip, that end a presence "
+            "history's replay; 0: the round trip alone (a broker sending retained first)."
+        ),
     )
 
     def relative_to(self, base: str | Path) -> MqttConfig:
@@ -363,8 +368,11 @@ class _Alive:
     is newer than the retained message of its key, even one that arrives after it.
     """
 
-    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+    def __init__(
+        self, loop: asyncio.AbstractEventLoop, keep: Callable[[str], bool] | None = None
+    ) -> None:
         self.loop = loop
+        self.keep = keep
         self.retained: dict[str, bool] = {}
         self.live: dict[str, bool] = {}
         self.last_retained = loop.time()  # the replay's latest message (the start before)
@@ -380,6 +388,8 @@ class _Alive:
                 return
         else:
             alive = False
+        if self.keep is not None and not self.keep(key):
+            return  # screened before the bound below: junk keys cannot crowd these out
         seen = self.retained if retained else self.live
         if key not in seen and len(self.retained) + len(self.live) >= _MAX_PRESENCE_KEYS:
             return  # an outsider's flood of invented keys: what is kept stays bounded
@@ -768,21 +778,28 @@ class MqttTransport(_Keeps, Transport):
         finally:
             self._pending.pop(correlation, None)
 
-    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
+    async def tokens(
+        self, key_expr: str, *, timeout: float, keep: Callable[[str], bool] | None = None
+    ) -> list[str]:
         """The tokens alive on ``key_expr``: the retained ones, once the broker sent them all.
 
         All sent: a round trip through the broker after subscribing is back
-        (`_round_trip`, a few ms) and no retained message came for ``retained_quiet`` s;
-        what came by ``timeout`` s when that takes longer. A live change that comes in
-        the meantime wins over its key's retained message, before or after it.
+        (`_round_trip`, a few ms) and no retained message came for ``retained_quiet`` s
+        after it (0: none waited for); what came by ``timeout`` s when that takes longer.
+        A live change that comes in the meantime wins over its key's retained message,
+        before or after it. ``keep`` screens each key as it comes, before the bound on
+        the keys remembered (`_MAX_PRESENCE_KEYS`).
         """
         _, loop = self._connected()
         deadline = loop.time() + timeout
         topic = topic_filter(key_expr)
-        seen = _Alive(loop)
+        seen = _Alive(loop, keep)
         await self._attach(topic, lambda f: f.watchers.append(seen), resubscribe=True)
         try:
             await self._round_trip(max(0.0, deadline - loop.time()))
+            # the quiet time runs from the echo, not from the start: a slow round trip
+            # must not end the wait for a replay that comes just after it
+            seen.last_retained = max(seen.last_retained, loop.time())
             while (end := min(seen.last_retained + self.config.retained_quiet, deadline)) > (
                 now := loop.time()
             ):

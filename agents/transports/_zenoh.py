@@ -843,7 +843,9 @@ class ZenohTransport(_Keeps, Transport):
             )
         return self._subscription(inbox, lambda: self._undeclare(zsub))
 
-    async def tokens(self, key_expr: str, *, timeout: float) -> list[str]:
+    async def tokens(
+        self, key_expr: str, *, timeout: float, keep: Callable[[str], bool] | None = None
+    ) -> list[str]:
         """The tokens alive on ``key_expr``: a liveliness get, done once every peer answered.
 
         Right after opening, zenoh may still be connecting to the ``connect`` endpoints
@@ -878,7 +880,8 @@ class ZenohTransport(_Keeps, Transport):
             await asyncio.sleep(min(pause, left))
             pause = min(pause * 2, 0.05)
             keys = await self._tokens(session, loop, key_expr, timeout)
-        return keys
+        # screened last: any key in the answer shows the peers were reached (above)
+        return keys if keep is None else [k for k in keys if keep(k)]
 
     async def _tokens(
         self,
