@@ -31,9 +31,10 @@ operator is this process. Measured, in one run:
   last one: ``lost`` is what is missing.
 - The operator and the workers run on `agents.run`'s loop, as ``dyknow node`` does
   (uvloop where installed; ``DYKNOW_EVENT_LOOP=asyncio`` for asyncio's own).
-- Loop lag, with ``--probe`` (`bench._scale_node.LoopProbe`): how often a 10 ms timer on the loop of each
-  worker (from its platforms' start until they stop pushing) and of the operator (over the
-  window) woke more than 5 / 20 ms late, and why, from the loop thread's ``schedstat``:
+- Loop lag, with ``--probe`` (`bench._scale_node.LoopProbe`): how often a 10 ms timer on
+  the loop of each worker (from its platforms' start until they stop pushing) and of the
+  operator (over the window) woke more than 5 / 20 ms late, and why, from the loop
+  thread's ``schedstat``:
   ``busy`` (the loop ran something long), ``core`` (the thread waited for a core) or
   ``gil`` (it slept: another thread held the GIL); the worst with its parts.
 - CPU (process CPU time / wall over the window, from ``/proc`` and ``resource``; of it,
