@@ -1395,8 +1395,8 @@ class GlobalDirectory:
                     self._set_alive(platform, False)
                     self._drop_entries(platform)
                 return
-            if platform not in self._alive:
-                return
+            if platform not in self._alive or platform not in self._joining:
+                return  # gone, or listed by the recheck, meanwhile
             if not confirmed and self._auth.authenticates:
                 # a token anyone could declare; the platform itself did not answer (yet):
                 # refused once, then asked again while the token holds
@@ -1475,6 +1475,8 @@ class GlobalDirectory:
             # generous: a busy member must not be taken for gone (nothing waits on this)
             answered = await self._query("*", max(self.query_timeout, 5.0))
             for platform in sorted(self._alive):
+                if platform in self._joining:
+                    continue  # its first snapshot is asked by its own task meanwhile
                 if (
                     platform == self._platform.name
                     or platform in answered
@@ -1493,7 +1495,10 @@ class GlobalDirectory:
                     )
                     self._gone(platform)
             for platform, services in answered.items():
-                if platform not in self._alive and platform != self._platform.name:
+                if platform == self._platform.name:
+                    continue
+                # not listed, or its snapshot asked meanwhile: this answer is as signed
+                if platform not in self._alive or platform in self._joining:
                     self._unconfirmed.pop(platform, None)
                     self._set_alive(platform, True)
                     self._replace(platform, services)
