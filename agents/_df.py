@@ -25,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import binascii
+import contextlib
 import logging
 import math
 import threading
@@ -639,6 +640,13 @@ class DirectoryFacilitator(Agent):
 
 
 _RESYNC_MAX_WAIT = 30.0  # s between a member's resyncs at most, while it does not answer
+UNCONFIRMED_FIRST_WAIT = 1.0
+"""Seconds before a platform whose presence holds, but whose first snapshot did not come,
+is asked again; the wait doubles after each unanswered query, up to `UNCONFIRMED_MAX_WAIT`."""
+UNCONFIRMED_MAX_WAIT = 4.0
+"""Seconds between two queries of such a platform at most: under the presence budget's
+steady rate (`PRESENCE_RATE` per ``rehandshake_interval``), so a forged token held under a
+trusted name costs fewer signed queries than toggling it would."""
 _STALE_KEYS = 64  # platforms whose stale events are summed up apart, per interval
 INVALID_LOG_INTERVAL = 30.0
 """Seconds between two log lines about one signer's invalid directory statements."""
@@ -660,7 +668,10 @@ class GlobalDirectory:
     be signed and newer than the last; a presence under a name not in the trust file is
     ignored; a platform is ``platform-up`` only once its signed answer came; a signed
     leave of a process whose answer was never read counts only once the platform no
-    longer answers a fresh signed query (else refused: recorded and replayed); where
+    longer answers a fresh signed query (else refused: recorded and replayed); a
+    presence refused for want of that answer is asked again while it holds
+    (``unconfirmed``: after `UNCONFIRMED_FIRST_WAIT` s, doubling up to
+    `UNCONFIRMED_MAX_WAIT`) and listed once it answers; where
     presence can be forged (``Transport.forgeable_presence``: MQTT's retained messages),
     a presence that goes without a signed leave is believed only when the platform no
     longer answers a fresh signed query; and every ``recheck_interval`` seconds the
@@ -735,6 +746,12 @@ class GlobalDirectory:
         # PRESENCE_BURST at once, then PRESENCE_RATE per the channel's rehandshake_interval
         self._presence_buckets: dict[str, TokenBucket] = {}
         self.presence_limited = 0  # presence changes not acted on one by one (over budget)
+        # trusted platforms whose presence holds but whose first signed snapshot did not come
+        # (refused): asked again, with backoff, while it holds; the value says whether
+        # watchers were told of entries of theirs (their events came while it was asked)
+        self._unconfirmed: dict[str, bool] = {}
+        # per platform followed: set when a raw presence change is queued for its task
+        self._presence_changed: dict[str, asyncio.Event] = {}
         self._presence_ignored: dict[str, int] = {}  # counted, not yet in an audit record
         self.version = 0
         """Changes with every change of `services`: a view of them is current while it is equal."""
@@ -1229,15 +1246,26 @@ class GlobalDirectory:
             df.set_left(platform, False)
         self._tell(DirectoryEvent("platform-up", platform, None))
 
-    def _drop_entries(self, platform: str) -> None:
-        self._entries.pop(platform, None)
+    def _drop_entries(self, platform: str) -> bool:
+        """Drop ``platform``'s entries; whether it had any."""
+        had = bool(self._entries.pop(platform, None))
         self.version += 1
+        return had
 
     def _gone(self, platform: str) -> None:
+        told = self._unconfirmed.pop(platform, False)
         if platform in self._alive:
             self._set_alive(platform, False)
             self._drop_entries(platform)
             self._tell(DirectoryEvent("platform-gone", platform, None))
+        elif told:
+            # watchers saw entries of its (signed) events before its snapshot was refused
+            self._tell(DirectoryEvent("platform-gone", platform, None))
+
+    @property
+    def unconfirmed(self) -> list[str]:
+        """Trusted platforms whose presence holds but whose signed snapshot has not come yet."""
+        return sorted(self._unconfirmed)
 
     async def _follow_presence(self, sub: Subscription[Presence]) -> None:
         """Hand each raw presence change of a trusted platform to that platform's own task."""
@@ -1260,6 +1288,9 @@ class GlobalDirectory:
                 self._presence_limit(platform, len(queue))
                 queue.clear()
             queue.append(change.alive)
+            changed = self._presence_changed.get(platform)
+            if changed is not None:
+                changed.set()  # its task may be waiting to ask an unconfirmed platform again
 
     async def _follow_platform(self, platform: str, queue: deque[bool]) -> None:
         """Act on ``platform``'s presence changes in order, those that cost a query within budget.
@@ -1271,17 +1302,35 @@ class GlobalDirectory:
         (``presence_limited``), audited in one record, and stand for the latest of them,
         acted on then.
         """
+        changed = self._presence_changed[platform] = asyncio.Event()
+        wait = UNCONFIRMED_FIRST_WAIT
         try:
-            while queue:
-                alive = queue.popleft()
-                if self._presence_costs(platform, alive):
-                    bucket = self._presence_bucket(platform)
-                    if not bucket.take(time.monotonic()):
-                        alive = await self._presence_over_budget(platform, alive, queue, bucket)
-                await self._on_presence(platform, alive)
+            while True:
+                while queue:
+                    alive = queue.popleft()
+                    if self._presence_costs(platform, alive):
+                        bucket = self._presence_bucket(platform)
+                        if not bucket.take(time.monotonic()):
+                            alive = await self._presence_over_budget(platform, alive, queue, bucket)
+                    await self._on_presence(platform, alive)
+                    wait = UNCONFIRMED_FIRST_WAIT
+                if platform not in self._unconfirmed:
+                    return
+                # Its presence holds, its snapshot did not come (a loaded machine, its
+                # directory shedding queries): asked again soon, not only at the recheck
+                changed.clear()
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(wait):
+                        await changed.wait()  # a presence change comes first: acted on
+                if queue or platform not in self._unconfirmed:
+                    continue
+                wait = min(wait * 2, UNCONFIRMED_MAX_WAIT)
+                await self._confirm(platform, timeout=max(self.query_timeout, wait))
         finally:
             if self._presence_queues.get(platform) is queue:
                 del self._presence_queues[platform]
+            if self._presence_changed.get(platform) is changed:
+                del self._presence_changed[platform]
 
     def _presence_costs(self, platform: str, alive: bool) -> bool:
         """Whether acting on this presence change of ``platform`` asks it a signed query."""
@@ -1363,16 +1412,21 @@ class GlobalDirectory:
                     self._set_alive(platform, False)
                     self._drop_entries(platform)
                 return
-            if platform not in self._alive:
-                return
+            if platform not in self._alive or platform not in self._joining:
+                return  # gone, or listed by the recheck, meanwhile
             if not confirmed and self._auth.authenticates:
-                # a token anyone could declare; the platform itself did not answer
+                # a token anyone could declare; the platform itself did not answer (yet):
+                # refused once, then asked again while the token holds
                 self._set_alive(platform, False)
-                self._drop_entries(platform)
+                told = self._drop_entries(platform)
+                self._unconfirmed[platform] = told or self._unconfirmed.get(platform, False)
                 self._refuse(platform, "presence without a signed directory answer", "presence")
                 return
+            self._unconfirmed.pop(platform, None)
             self._set_alive(platform, True)  # answered: exempt from the shared budget now
             self._up(platform)
+        elif platform in self._unconfirmed:
+            self._gone(platform)  # never confirmed: nothing to check, nothing to stop
         elif platform in self._alive:
             if forgeable and self._auth.authenticates and await self._answers(platform):
                 self._refuse(
@@ -1383,6 +1437,26 @@ class GlobalDirectory:
                 )
                 return
             self._gone(platform)
+
+    async def _confirm(self, platform: str, timeout: float) -> None:
+        """Ask unconfirmed ``platform`` again (one query): listed if it answers, signed."""
+        self._set_alive(platform, True, joining=True)
+        try:
+            confirmed = await self._fetch(platform, unanswered=1, timeout=timeout)
+        except Exception:
+            log.exception("global-df[%s]: asking %r again", self._platform.name, platform)
+            confirmed = False
+        if platform not in self._alive or platform not in self._unconfirmed:
+            return  # gone, or listed by the recheck, meanwhile
+        if not confirmed:
+            self._set_alive(platform, False)
+            if self._drop_entries(platform):
+                self._unconfirmed[platform] = True
+            return
+        del self._unconfirmed[platform]
+        self._set_alive(platform, True)
+        log.info("global-df[%s]: %r answered at last: listed", self._platform.name, platform)
+        self._up(platform)
 
     async def _recheck_sleep(self, wait: float | None) -> None:
         """Sleep ``wait`` s (None: for ever), or until the recheck interval is changed."""
@@ -1418,6 +1492,8 @@ class GlobalDirectory:
             # generous: a busy member must not be taken for gone (nothing waits on this)
             answered = await self._query("*", max(self.query_timeout, 5.0))
             for platform in sorted(self._alive):
+                if platform in self._joining:
+                    continue  # its first snapshot is asked by its own task meanwhile
                 if (
                     platform == self._platform.name
                     or platform in answered
@@ -1436,7 +1512,11 @@ class GlobalDirectory:
                     )
                     self._gone(platform)
             for platform, services in answered.items():
-                if platform not in self._alive and platform != self._platform.name:
+                if platform == self._platform.name:
+                    continue
+                # not listed, or its snapshot asked meanwhile: this answer is as signed
+                if platform not in self._alive or platform in self._joining:
+                    self._unconfirmed.pop(platform, None)
                     self._set_alive(platform, True)
                     self._replace(platform, services)
                     self._up(platform)
@@ -1459,18 +1539,23 @@ class GlobalDirectory:
         """Whether ``platform`` answers a fresh signed query now."""
         return platform in await self._query(platform)
 
-    async def _fetch(self, platform: str) -> bool:
+    async def _fetch(
+        self, platform: str, *, unanswered: int = 3, timeout: float | None = None
+    ) -> bool:
         """Take ``platform``'s snapshot; again if events came meanwhile (they may be newer).
 
-        True when the platform answered (authenticated, with a trust file).
+        True when the platform answered (authenticated, with a trust file). With a trust
+        file, up to ``unanswered`` queries go unanswered before giving up.
         """
+        misses = 0
         for attempt in range(3):
             seen = self._event_counts.get(platform, 0)
-            services = (await self._query(platform)).get(platform)
+            services = (await self._query(platform, timeout)).get(platform)
             if platform not in self._alive:
                 return False  # gone while we asked
             if services is None:
-                if self._auth.authenticates and attempt < 2:
+                misses += 1
+                if self._auth.authenticates and misses < unanswered:
                     continue  # it may still be starting: ask again before refusing
                 return False  # no answer: keep what the events say (without a trust file)
             df = self._platform.df

@@ -34,9 +34,9 @@ operator is this process. Measured, in one run:
 - Loop lag, with ``--probe`` (`bench._scale_node.LoopProbe`): how often a 10 ms timer on
   the loop of each worker (from its platforms' start until they stop pushing) and of the
   operator (over the window) woke more than 5 / 20 ms late, and why, from the loop
-  thread's ``schedstat``:
-  ``busy`` (the loop ran something long), ``core`` (the thread waited for a core) or
-  ``gil`` (it slept: another thread held the GIL); the worst with its parts.
+  thread's ``schedstat``: ``busy`` (the loop ran something long), ``core`` (the thread
+  waited for a core) or ``gil`` (it slept: another thread held the GIL); the worst with
+  its parts.
 - CPU (process CPU time / wall over the window, from ``/proc`` and ``resource``; of it,
   what the main threads, where the event loops run, used: the rest is zenoh's) and RSS
   of the operator and of the workers, total and per platform (bare sessions beside).
@@ -423,7 +423,10 @@ async def _our_query(
     if last is not None:
         last.append(next(reversed(r.answers), None))  # answers keep their arrival order
     if len(r.answers) != n:
-        return f"{len(r.answers)}/{n} answered; refused {r.refused}; silent {r.no_answer}"
+        return (
+            f"{len(r.answers)}/{n} answered; refused {r.refused}; silent {r.no_answer}; "
+            f"unlisted {r.unlisted}"
+        )
     for platform, answer in r.answers.items():
         if not isinstance(answer, dict) or set(answer) != set(labels):
             return f"{platform} answered {str(answer)[:200]}"

@@ -367,13 +367,16 @@ class GlobalResult:
     ``answers`` keeps arrival order. ``chosen`` names the platform whose answer is
     ``value`` (None when fused, or when nobody answered). ``refused`` holds the reasons
     of those that refused, failed or could not be reached; ``no_answer`` the platforms
-    silent until the deadline.
+    silent until the deadline; ``unlisted`` the members not asked because the global
+    directory does not list their federation service (yet): their signed snapshot has not
+    been read, so whom to ask there is not known.
     """
 
     asked: list[str] = field(default_factory=list)
     answers: dict[str, JsonValue] = field(default_factory=dict)
     refused: dict[str, str] = field(default_factory=dict)
     no_answer: list[str] = field(default_factory=list)
+    unlisted: list[str] = field(default_factory=list)
     value: Any = None
     chosen: str | None = None
 
@@ -385,6 +388,7 @@ class GlobalResult:
             "answers": self.answers,
             "refused": self.refused,
             "no-answer": self.no_answer,
+            "unlisted": self.unlisted,
             "asked": self.asked,
         }
 
@@ -1637,6 +1641,13 @@ class FederationAgent(Agent):
         self._providers[include_self] = (gdf, version, found)
         return found.copy()
 
+    def _unlisted(self, providers: dict[str, str]) -> list[str]:
+        """The members a global request to ``providers`` leaves out: not listed (yet)."""
+        # A member's signed events made it one, but its entries are dropped until its signed
+        # snapshot is read (a loaded machine: seconds); said, not silently left out
+        me = self.platform.name
+        return sorted(p for p in self._members if p not in providers and p != me)
+
     async def global_request(
         self,
         content: Any,
@@ -1649,7 +1660,8 @@ class FederationAgent(Agent):
 
         A reading action (``get-*``, ``search-labels``, ``list-labels``) is asked as
         query-ref, any other as request. Returns as soon as everyone answered, else at
-        the deadline. ``select``: the
+        the deadline. A member the directory does not list (yet) is not asked: it is
+        named in ``unlisted``. ``select``: the
         ``"first"`` answer to arrive, the ``"newest"`` by valid time (its newest sample),
         or a function fusing ``{platform: answer}`` (may be async). Do not call it from a
         handler of this agent with ``include_self``: our own request would wait behind it.
@@ -1659,7 +1671,7 @@ class FederationAgent(Agent):
         if select not in ("first", "newest") and not callable(select):
             raise ValueError(f"select must be 'first', 'newest' or a function, not {select!r}")
         providers = self.providers(include_self=include_self)
-        result = GlobalResult(asked=list(providers))
+        result = GlobalResult(asked=list(providers), unlisted=self._unlisted(providers))
         if not providers:
             return result
         held: dict[str, list[_Held]] = {}

@@ -362,7 +362,7 @@ async def test_label_search_asks_every_platform(demo_keys: Path) -> None:
         status, answer = await post(http, url, {"formula": "(all ?x (Car ?x))"})
         assert status == 200, answer
         assert sorted(answer["answers"]) == ["operator", *UAVS]
-        assert answer["refused"] == {} and answer["no_answer"] == []
+        assert answer["refused"] == {} and answer["no_answer"] == [] and answer["unlisted"] == []
         for body in ({"formula": "(all ?x (Car ?x)"}, {"formula": ""}, {"formula": 3}, {}):
             status, answer = await post(http, url, body)
             assert status == 400 and answer["error"].startswith("formula: "), (body, answer)

@@ -990,6 +990,7 @@ async def test_global_request_selects_newest_or_fuses() -> None:
         )
         assert on_behalf["chosen"] == "uav-b"  # type: ignore[index]
         assert on_behalf["no-answer"] == []  # type: ignore[index]
+        assert on_behalf["unlisted"] == []  # type: ignore[index]
         reason = await refusal(
             w["uav-b"].fed.request_from(
                 "operator", {"action": "global-request", "request": content, "deadline": 1}

@@ -567,6 +567,7 @@ class OperatorConsole:
                 "answers": answers,
                 "refused": result.refused,
                 "no_answer": result.no_answer,
+                "unlisted": result.unlisted,
             }
         )
 

@@ -988,6 +988,7 @@ class TrafficMonitor(Agent):
             "start": world_start,
             "capabilities": {p: a for p, a in caps.answers.items()},
             "silent": caps.no_answer,
+            "unlisted": caps.unlisted,
             "refused": caps.refused,
         }
 

@@ -993,6 +993,9 @@ $("#search-form").addEventListener("submit", async (e) => {
   for (const p of [...r.body.no_answer].sort()) {
     rows.push(el("tr", { "data-platform": p, "data-labels": "0" }, el("td", { text: p }), el("td", { class: "empty", text: "no answer within the search's 2 s" })));
   }
+  for (const p of [...(r.body.unlisted || [])].sort()) {
+    rows.push(el("tr", { "data-platform": p, "data-labels": "0" }, el("td", { text: p }), el("td", { class: "empty", text: "not asked: a member the directory does not list yet" })));
+  }
   const asked = rows.length;
   let caption;
   if (!asked) caption = "no member answered: is the federation empty?";
