@@ -446,6 +446,23 @@ async def test_zenoh_replies_and_tokens_come_whatever_the_switch_interval(
     assert not any(isinstance(t, threading._DummyThread) for t in putters[str]), putters
 
 
+async def test_zenoh_tokens_come_all_when_more_than_zenoh_s_channel_holds(
+    zenoh_net: Net,
+) -> None:
+    """300 tokens: beyond the 256 replies zenoh's channel to the callback's thread holds.
+
+    zenoh answers them inside the liveliness get, holding its session lock, and waits for
+    that thread when the channel is full: the thread drains it while the get waits.
+    """
+    net = zenoh_net
+    holder, q = await net.open(), await net.open()
+    for i in range(300):
+        await holder.declare_token(net.key(f"many/{i}"))
+    await ready(net, q, holder)
+    tokens = await q.tokens(net.key("many/*"), timeout=WAIT)
+    assert tokens == sorted(net.key(f"many/{i}") for i in range(300))
+
+
 async def test_query_without_server_returns_nothing_in_bounded_time(net: Net) -> None:
     q = await net.open()
     start = time.monotonic()
