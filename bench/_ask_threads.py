@@ -1,14 +1,15 @@
 """``transport.ask`` with its reply callback on a thread of its own or on zenoh's.
 
-``python -m bench._ask_threads [--rounds R] [--block B] [--loaded L] [--switch S]
-[--only direct|indirect]``. zenoh-python runs a ``zenoh.handlers.Callback`` in a Python
-thread of its own unless ``indirect=False``, so each ``ZenohTransport.ask`` (and
-``tokens``) starts and ends a thread; with ``indirect=False`` the callback runs on zenoh's
-network thread, which must then take the GIL. Two spawned processes, an asker and a
-replier (our `ZenohTransport` each, peer mode, loopback TCP, a 1 s link lease so that a
-stalled link shows as a lease expiry within the run). The replier answers ``ask``
-through its event loop (our ``serve``) and raw ``get`` on zenoh's thread; on demand it
-floods puts of an ACL message's size.
+``python -m bench._ask_threads [--rounds R] [--block B] [--loaded L] [--switch S] [--only
+direct|indirect]`` (R, B, L whole numbers from 1; S seconds above 0). zenoh-python runs a
+``zenoh.handlers.Callback`` in a Python thread of its own unless ``indirect=False``, so
+each ``ZenohTransport.ask`` starts and ends a thread; with ``indirect=False`` the callback
+runs on zenoh's network thread, which must then take the GIL (``tokens`` keeps a thread
+each: agents/transports/_zenoh.py). Two spawned processes, an asker and a replier (our
+`ZenohTransport` each, peer mode, loopback TCP, a 1 s link lease so that a stalled link
+shows as a lease expiry within the run). The replier answers ``ask`` through its event
+loop (our ``serve``) and raw ``get`` on zenoh's thread; on demand it floods puts of an ACL
+message's size.
 
 Quiet, in alternating blocks of ``B`` round trips: raw zenoh ``get`` (blocking, zenoh's
 default handler, as ``bench/_zenoh_raw.py``), ``ask`` with ``indirect=True`` (zenoh's
@@ -29,6 +30,7 @@ one's: the link is fresh).
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import multiprocessing as mp
 import statistics
@@ -285,25 +287,44 @@ async def _quiet(rounds: int, block: int, ask: Any, get: Any) -> None:
     )
 
 
+def _count(text: str) -> int:
+    """A whole number of at least 1 (rounds, asks, round trips)."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{n} is less than 1")
+    return n
+
+
+def _interval(text: str) -> float:
+    """A switch interval in seconds, above 0 (``sys.setswitchinterval`` refuses 0)."""
+    try:
+        s = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not 0 < s < 1e9:  # also refuses nan and inf
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive number of seconds")
+    return s
+
+
 def main(argv: list[str]) -> None:
-    """Run both phases with the options in ``argv``."""
-    rounds, block, loaded = 10, 100, 40
-    only = None
-    args = iter(argv)
-    for a in args:
-        if a == "--rounds":
-            rounds = int(next(args))
-        elif a == "--block":
-            block = int(next(args))
-        elif a == "--only":
-            only = f"ask-{next(args)}"
-        elif a == "--loaded":
-            loaded = int(next(args))
-        elif a == "--switch":
-            sys.setswitchinterval(float(next(args)))
-        else:
-            raise SystemExit(f"unknown option {a!r}")
-    asyncio.run(_main(rounds, block, loaded, only))
+    """Run both phases with the options in ``argv`` (a bad option: its error, exit 2)."""
+    ap = argparse.ArgumentParser(
+        prog="python -m bench._ask_threads", description=__doc__.splitlines()[0]
+    )
+    ap.add_argument("--rounds", type=_count, default=10, help="rounds of each phase")
+    ap.add_argument("--block", type=_count, default=100, help="round trips a quiet block")
+    ap.add_argument("--loaded", type=_count, default=40, help="asks a loaded block")
+    ap.add_argument("--switch", type=_interval, help="the asker's switch interval, s")
+    ap.add_argument(
+        "--only", choices=("direct", "indirect"), help="the loaded phase alone, one variant"
+    )
+    a = ap.parse_args(argv)
+    if a.switch is not None:
+        sys.setswitchinterval(a.switch)
+    asyncio.run(_main(a.rounds, a.block, a.loaded, None if a.only is None else f"ask-{a.only}"))
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ import contextlib
 import dataclasses
 import logging
 import re
+import threading
 import time
 from collections.abc import Iterator
 from functools import cache
@@ -127,6 +128,9 @@ class _Decoder:
 SILENT_WARN = 10.0
 """Seconds a ``ros2`` input waits for its first message before it warns, once."""
 _GRAPH_WAIT = 1.0  # s spent looking at the ROS graph for that warning
+# How long past its timeout a graph query may take before we stop waiting for zenoh's
+# "finished" signal: a backstop, zenoh ends every liveliness get at its timeout.
+_GRAPH_GRACE = 1.0
 
 
 def ros_topics(session: Any, domain: int, wait: float = _GRAPH_WAIT) -> dict[str, str]:
@@ -137,10 +141,29 @@ def ros_topics(session: Any, domain: int, wait: float = _GRAPH_WAIT) -> dict[str
     within ``wait`` seconds: keys, never the messages (a camera's domain would pour its
     images into this session meanwhile).
     """
+    import zenoh
+
+    keys: list[str] = []
+    done = threading.Event()
+
+    def on_reply(reply: Any) -> None:
+        if (ok := reply.ok) is not None:
+            keys.append(str(ok.key_expr))
+
+    # Not zenoh's default handler: a FIFO of 256 replies read once get() returns, while
+    # zenoh answers the tokens it knows inside get(), holding its session lock: with more
+    # than 256 (an rmw_zenoh graph easily has them) get() never returned, the session
+    # stuck. A callback on a thread of zenoh-python's own drains them as they come (not
+    # on zenoh's thread: see agents/transports/_zenoh.py).
+    session.liveliness().get(
+        f"@ros2_lv/{domain}/**",
+        zenoh.handlers.Callback(on_reply, done.set, indirect=True),
+        timeout=wait,
+    )
+    done.wait(wait + _GRAPH_GRACE)
     found: dict[str, str] = {}
-    for reply in session.liveliness().get(f"@ros2_lv/{domain}/**", timeout=wait):
-        ok = reply.ok
-        parts = [] if ok is None else str(ok.key_expr).split("/")
+    for key in list(keys):  # as many as came: a late reply only adds to the list
+        parts = key.split("/")
         if len(parts) > 10 and parts[5] == "MP":  # a publisher
             try:
                 kind = ros_type(parts[10])

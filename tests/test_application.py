@@ -11,6 +11,7 @@ import json
 import logging
 import shutil
 import time
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
@@ -436,6 +437,72 @@ async def test_a_ros2_input_on_a_wrong_topic_warns_once_naming_the_topics_there(
             token.undeclare()
         ros.close()
         node.close()
+
+
+def _graph_reader(endpoint: str, publishers: int, conn: Connection) -> None:
+    """Child: what ``ros_topics`` reads of ROS domain 0 through ``endpoint``, once all came."""
+    from federation._ros import ros_topics
+
+    node = _zenoh(mode='"peer"', connect__endpoints=json.dumps([endpoint]))
+    try:
+        deadline = time.monotonic() + 30  # the link may come up after the first query
+        calls = 1
+        while len(topics := ros_topics(node, 0)) < publishers and time.monotonic() < deadline:
+            calls += 1
+        conn.send((topics, calls))
+    finally:
+        node.close()
+        conn.close()
+
+
+@pytest.mark.timeout(120)
+def test_a_ros_graph_of_hundreds_of_tokens_is_read_whole() -> None:
+    """Before, over 256 matching tokens (zenoh's default handler's room) hung the reader.
+
+    zenoh answers the tokens it knows inside the liveliness get, holding its session's
+    lock, so the reader's session stayed stuck for ever; read in a spawned child so that a
+    hang fails this test (bounded) instead of hanging it.
+    """
+    import multiprocessing
+
+    from agents.transports import free_tcp_port
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    ros = _zenoh(mode='"peer"', listen__endpoints=json.dumps([endpoint]))
+    hash_ = "RIHS01_" + "0" * 64
+    pose = "geometry_msgs::msg::dds_::PoseStamped_"
+
+    def token(domain: int, n: int, kind: str, topic: str) -> Any:
+        node = f"@ros2_lv/{domain}/{ros.zid()}/0/{n}/{kind}/%/%/r{n}"
+        key = f"{node}/{topic}/{pose}/{hash_}/::,10:,:,:,,"
+        return ros.liveliness().declare_token(key)
+
+    # 300 publishers, 20 subscriptions (not listed) and another domain's publishers
+    publishers = 300
+    tokens = [token(0, n, "MP", f"%robot{n}%pose") for n in range(publishers)]
+    tokens += [token(0, n, "MS", f"%heard{n}") for n in range(20)]
+    tokens += [token(1, n, "MP", f"%elsewhere{n}") for n in range(5)]
+    ctx = multiprocessing.get_context("spawn")
+    mine, theirs = ctx.Pipe(duplex=False)
+    reader = ctx.Process(target=_graph_reader, args=(endpoint, publishers, theirs))
+    reader.start()
+    theirs.close()
+    try:
+        # a spawned interpreter imports zenoh and DyKnow first: generous on a busy box
+        assert mine.poll(60), f"ros_topics did not return within 60 s ({len(tokens)} tokens)"
+        topics, calls = mine.recv()
+        reader.join(10)
+        assert reader.exitcode == 0
+    finally:
+        if reader.is_alive():
+            reader.kill()
+            reader.join()
+        mine.close()
+        for t in tokens:
+            t.undeclare()
+        ros.close()
+    want = {f"/robot{n}/pose": "geometry_msgs/msg/PoseStamped" for n in range(publishers)}
+    assert topics == want, f"after {calls} graph queries: {len(topics)} topics"
 
 
 async def test_a_quoted_csv_field_over_the_limit_costs_all_its_lines(tmp_path: Path) -> None:

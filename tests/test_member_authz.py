@@ -59,6 +59,9 @@ from federation._sessions import InterfaceSessions, PlainSessions
 pytestmark = pytest.mark.timeout(180)
 
 START = 40.0  # a spawned interpreter imports zenoh, pydantic and DyKnow: generous on a busy box
+# A world's whole start (victims ready, members known, snapshots taken) shares this bound,
+# under the tests' own (120 s at least), so a slow start fails naming what is missing
+SETUP = 2 * START
 WAIT = 15.0
 P = Performative
 
@@ -222,19 +225,17 @@ class World:
         self.pipes[name].send("ask", provider, labels)
         return str((await self.pipes[name].expect("asked", WAIT + 5))[1])
 
-    async def until_stats(
-        self, name: str, check: Any, what: str, within: float = WAIT
-    ) -> dict[str, Any]:
+    async def until_stats(self, name: str, check: Any, what: str) -> dict[str, Any]:
         """Poll the victim's stats until ``check(stats)`` holds (counters have no event)."""
         try:
-            async with asyncio.timeout(within):
+            async with asyncio.timeout(WAIT):
                 while True:
                     s = await self.stats(name)
                     if check(s):
                         return s
                     await asyncio.sleep(0.1)
         except TimeoutError:
-            raise AssertionError(f"{name}: {what}: not within {within} s") from None
+            raise AssertionError(f"{name}: {what}: not within {WAIT} s") from None
 
 
 def _config(
@@ -290,6 +291,8 @@ async def world(
     ctx = multiprocessing.get_context("spawn")
     procs: list[BaseProcess] = []
     w = World(federation)
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + SETUP
     with killed_at_exit(procs):
         async with contextlib.AsyncExitStack() as stack:
             for n in spawned:
@@ -306,26 +309,54 @@ async def world(
                 task = asyncio.ensure_future(_feed(p))
                 stack.callback(task.cancel)
             for n in spawned:
-                await w.pipes[n].expect("ready", START)
+                try:
+                    await w.pipes[n].expect("ready", deadline - loop.time())
+                except TimeoutError:
+                    raise AssertionError(f"{n}: not ready within {SETUP:g} s") from None
             for p in w.here.values():
-                await until(lambda p=p: set(names) <= set(p.members), "every member", START)
-            for n in spawned:
-                # A victim takes each member's signed snapshot when its presence comes, and
-                # asks again when an event came meanwhile: an event a test sends before that
-                # answer is taken may be counted stale (the answer reflects it), and the
-                # victim's Federation Agent may not take the member for one yet.
-                others = set(names) - {n}
-                await w.until_stats(
-                    n,
-                    lambda s, others=others: (
-                        others <= set(s["df_listed"]) and others <= set(s["members"])
-                    ),
-                    "every member's snapshot taken",
-                    START,
-                )
+                try:
+                    await until(
+                        lambda p=p: set(names) <= set(p.members),
+                        "every member",
+                        deadline - loop.time(),
+                    )
+                except TimeoutError:
+                    missing = sorted(set(names) - set(p.members))
+                    raise AssertionError(
+                        f"{p.name}: members {missing} not known within {SETUP:g} s"
+                    ) from None
+            await _snapshots_taken(w, names, spawned, deadline - loop.time())
             yield w
             for n in spawned:
                 w.pipes[n].send("exit")
+
+
+async def _snapshots_taken(w: World, names: list[str], spawned: list[str], within: float) -> None:
+    """Until each victim has every other member's signed snapshot and takes it for a member.
+
+    A victim takes each member's signed snapshot when its presence comes, and asks again
+    when an event came meanwhile: an event a test sends before that answer is taken may be
+    counted stale (the answer reflects it), and the victim's Federation Agent may not take
+    the member for one yet. One bound for all the victims; past it, what each one lacks.
+    """
+    lacking: dict[str, str] = {n: "no stats answered" for n in spawned}
+    try:
+        async with asyncio.timeout(within):
+            while lacking:
+                for n in list(lacking):
+                    s = await w.stats(n)
+                    others = set(names) - {n}
+                    unlisted = sorted(others - set(s["df_listed"]))
+                    strangers = sorted(others - set(s["members"]))
+                    if unlisted or strangers:
+                        lacking[n] = f"no snapshot of {unlisted}, not members {strangers}"
+                    else:
+                        del lacking[n]
+                if lacking:
+                    await asyncio.sleep(0.1)
+    except TimeoutError:
+        why = "; ".join(f"{n}: {what}" for n, what in lacking.items())
+        raise AssertionError(f"snapshots not taken within {SETUP:g} s: {why}") from None
 
 
 async def mallory(w: World) -> Agent:

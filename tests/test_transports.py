@@ -8,6 +8,7 @@ import json
 import socket
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from collections.abc import AsyncIterator, Callable
@@ -29,7 +30,6 @@ from agents.transports import (
     Transport,
     ZenohConfig,
     ZenohTransport,
-    _zenoh,
     free_tcp_port,
     key_intersects,
 )
@@ -399,10 +399,14 @@ async def zenoh_net() -> AsyncIterator[Net]:
 
 @pytest.mark.parametrize("switch", [None, 0.05], ids=["default-switch", "raised-switch"])
 async def test_zenoh_replies_and_tokens_come_whatever_the_switch_interval(
-    zenoh_net: Net, switch: float | None
+    zenoh_net: Net, switch: float | None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # zenoh's network thread calls the reply callback up to Python's switch interval, a
-    # thread of its own above it: every reply and every token comes either way
+    """An ask's replies come on zenoh's thread up to the switch interval, tokens never do.
+
+    Up to Python's switch interval zenoh's network thread calls an ask's reply callback, a
+    Python thread of its own above it; a liveliness get's callback always has its own
+    (zenoh calls it holding its session lock): every reply and every token comes either way.
+    """
     net = zenoh_net
     s1, s2, q = await net.open(), await net.open(), await net.open()
 
@@ -413,11 +417,20 @@ async def test_zenoh_replies_and_tokens_come_whatever_the_switch_interval(
         await s.serve(net.key(f"sw/{id(s)}"), echo)
         await s.declare_token(net.key(f"alive/{id(s)}"))
     await ready(net, q, s1, s2)
+    # which thread put each reply and each token into the asker's inbox
+    putters: dict[type, set[threading.Thread]] = {Reply: set(), str: set()}
+    put = Inbox.put
+
+    def recorded(inbox: Inbox[Any], item: Any) -> None:
+        if type(item) in putters:
+            putters[type(item)].add(threading.current_thread())
+        put(inbox, item)
+
+    monkeypatch.setattr(Inbox, "put", recorded)
     before = sys.getswitchinterval()
     try:
         if switch is not None:
             sys.setswitchinterval(switch)
-        assert _zenoh._replies_indirect() is (switch is not None)  # both ways are run
         for i in range(20):
             replies = await q.query(net.key("sw/*"), b"%d" % i, timeout=WAIT)
             assert sorted(r.payload.rpartition(b":")[2] for r in replies) == [b"%d" % i] * 2
@@ -425,6 +438,29 @@ async def test_zenoh_replies_and_tokens_come_whatever_the_switch_interval(
         assert tokens == sorted(net.key(f"alive/{id(s)}") for s in (s1, s2))
     finally:
         sys.setswitchinterval(before)
+    # a thread Python did not start is a _DummyThread: zenoh's own
+    main = threading.main_thread()
+    on_zenoh = {isinstance(t, threading._DummyThread) for t in putters[Reply]}
+    assert on_zenoh == {switch is None}, putters
+    assert putters[str] and main not in putters[str], putters
+    assert not any(isinstance(t, threading._DummyThread) for t in putters[str]), putters
+
+
+async def test_zenoh_tokens_come_all_when_more_than_zenoh_s_channel_holds(
+    zenoh_net: Net,
+) -> None:
+    """300 tokens: beyond the 256 replies zenoh's channel to the callback's thread holds.
+
+    zenoh answers them inside the liveliness get, holding its session lock, and waits for
+    that thread when the channel is full: the thread drains it while the get waits.
+    """
+    net = zenoh_net
+    holder, q = await net.open(), await net.open()
+    for i in range(300):
+        await holder.declare_token(net.key(f"many/{i}"))
+    await ready(net, q, holder)
+    tokens = await q.tokens(net.key("many/*"), timeout=WAIT)
+    assert tokens == sorted(net.key(f"many/{i}") for i in range(300))
 
 
 async def test_query_without_server_returns_nothing_in_bounded_time(net: Net) -> None:

@@ -28,22 +28,31 @@ Choices that follow from what we measured with eclipse-zenoh 1.10.2 (Python, loo
 - Closing a session whose peer is frozen (SIGSTOP, not dead) takes zenoh's close timeout,
   about 10 s, whatever the link lease; ``aclose`` waits for it and only logs it.
 - Peer mode keeps gossip on, since peers do not forward for other peers.
-- ``ask`` and ``tokens`` have their reply callback called on zenoh's network thread
-  (``indirect=False``): zenoh's default starts a Python thread for each handler, so one
-  per get. Measured (``bench._ask_threads``, loopback, a busy machine): an ``ask`` round
-  trip 0.5-0.8 ms instead of 0.75-1.8 ms (0.59 instead of 4.1 ms when the CPUs were the
-  most contended: a new thread waits for one), and 0.52-0.69x the asker's CPU. The
-  callback only appends to an ``Inbox``, but zenoh's thread waits for the GIL first, and
-  the link's later messages (keep-alives, samples, replies) may wait behind it. With
-  Python's switch interval (5 ms), the loop thread and another thread spinning in pure
-  Python and a flood of puts on the same link, no reply was lost, the flood's rate
-  differed within the runs' noise and a 1 s link lease never expired, either way. With
-  a 50 ms interval, replies waited in line for the GIL: asks took 2.1 s (median)
-  instead of 0.4-0.9 s and 8 of 80 got no answer within 2 s (none with a thread each;
-  the 1 s lease expired in one run of two either way); so above 5 ms, a thread per get
-  again. zenoh-python releases the GIL while a call of ours waits (a get, a put, a
-  reply, a cancel), so a callback waiting for the GIL holds nothing the loop thread
-  waits for.
+- ``ask`` has its reply callback called on zenoh's network thread (``indirect=False``):
+  zenoh's default starts a Python thread for each handler, so one per get. Measured
+  (``bench._ask_threads``, loopback, a busy machine): an ``ask`` round trip 0.5-0.8 ms
+  instead of 0.75-1.8 ms (0.59 instead of 4.1 ms when the CPUs were the most contended:
+  a new thread waits for one), and 0.52-0.69x the asker's CPU. The callback only appends
+  to an ``Inbox``, but zenoh's thread waits for the GIL first, and the link's later
+  messages (keep-alives, samples, replies) may wait behind it. With Python's switch
+  interval (5 ms), the loop thread and another thread spinning in pure Python and a
+  flood of puts on the same link, no reply was lost, the flood's rate differed within
+  the runs' noise and a 1 s link lease never expired, either way. With a 50 ms interval,
+  replies waited in line for the GIL: asks took 2.1 s (median) instead of 0.4-0.9 s and
+  8 of 80 got no answer within 2 s (none with a thread each; the 1 s lease expired in
+  one run of two either way); so above 5 ms, a thread per get again.
+  This is safe for ``ask`` because zenoh releases its session lock before it calls a
+  query's callback (a reply, an error, the timeout, the last replier done), so zenoh's
+  thread waits for the GIL holding no lock. Not for ``tokens``: zenoh answers a
+  liveliness get (from the tokens it knows, or as they come) calling the callback while
+  it holds the session's state write lock, so a callback waiting for the GIL there would
+  deadlock against a thread holding the GIL and waiting for that lock. ``tokens`` keeps
+  zenoh's thread per get: its callback only pushes the reply into a 256-reply channel
+  that thread drains. That channel can fill (more than 256 matching tokens), and zenoh
+  then waits under the lock for the thread, which needs the GIL: so the rule for all of
+  our code is that nothing calls a zenoh method that takes the session lock without
+  releasing the GIL (``Session.is_closed()`` is one: never call it; a get, a put, a
+  declare, an undeclare, a cancel, ``close`` and ``info``'s zid lists release it).
 
 Error replies: a zenoh error reply carries no key, so its ``Reply.key`` is the query's
 key expression (the memory transport gives the queryable's).
@@ -95,7 +104,7 @@ _QUERY_GRACE = 1.0
 # How long after opening zenoh may still route a liveliness get to no one: a link is
 # connected before its peer is in the routing (seen: 2-15 ms, 140 ms on a loaded machine).
 _LINK_SETTLE = 0.25
-# Up to this switch interval (Python's default) a query's reply callback runs on zenoh's
+# Up to this switch interval (Python's default) an ask's reply callback runs on zenoh's
 # network thread, not in a Python thread of its own: see the module's docstring.
 _DIRECT_REPLIES_SWITCH = 0.005
 # None: by the switch interval; True or False: forced (``bench._ask_threads`` runs both)
@@ -103,7 +112,7 @@ _REPLIES_INDIRECT: bool | None = None
 
 
 def _replies_indirect() -> bool:
-    """Whether a get's reply callback gets a Python thread of its own (zenoh's default)."""
+    """Whether an ask's reply callback gets a Python thread of its own (zenoh's default)."""
     if _REPLIES_INDIRECT is not None:
         return _REPLIES_INDIRECT
     return sys.getswitchinterval() > _DIRECT_REPLIES_SWITCH
@@ -900,7 +909,8 @@ class ZenohTransport(_Keeps, Transport):
         with _converted(f"ask the liveliness tokens on {key_expr!r}"):
             session.liveliness().get(
                 key_expr,
-                zenoh.handlers.Callback(on_reply, inbox.close, indirect=_replies_indirect()),
+                # a thread of zenoh-python's own, never zenoh's: see the module's docstring
+                zenoh.handlers.Callback(on_reply, inbox.close, indirect=True),
                 timeout=timeout,
             )
         keys: set[str] = set()
