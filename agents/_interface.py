@@ -1361,18 +1361,54 @@ class InterfaceAgent:
         last_receiver: str | None = None
         last_sender: str | None = None
         room = 0  # how many more the receiver's mailbox takes before it is half full
+        # A batch is mostly one header (all but the content) again and again: a message
+        # whose header equals that of the last one taken (the first of a run) is valid
+        # and admitted as that one was, its fields a copy of that one's: only what is
+        # its own is checked (content's depth, the limits' tokens, room in the mailbox).
+        # The first header that differs ends this for the batch (requests, replies vary).
+        head: dict[str, Any] | None = None  # the header of the message taken last
+        head_fields: dict[str, Any] = {}  # its fields
+        head_entry: tuple[Any, ...] = ()  # its audit entry
+        head_initiating = False
+        reuse = True
         try:
             while i < end:
                 if total is not None and total.tokens < 1.0:
                     break
                 obj = items[i]
+                if head is not None and type(obj) is dict:
+                    rest = obj.copy()
+                    content = rest.pop("content", None)
+                    # equal to a header taken: valid, but for a number equal to its ``v``
+                    # that is no int (1.0, true)
+                    if rest == head and type(rest["v"]) is int and _nests_less(content):
+                        if room <= 0:
+                            break
+                        if head_initiating and requests is not None:
+                            if not requests.ready(now):
+                                break
+                            requests.tokens -= 1.0
+                        if total is not None:
+                            total.tokens -= 1.0
+                        copied = head_fields.copy()
+                        copied["receivers"] = rest["receivers"]  # its own list
+                        copied["content"] = content
+                        add_entry(head_entry)
+                        run.append(_constructed(ACLMessage, copied, set(obj)))
+                        room -= 1
+                        i += 1
+                        continue
+                    head = None
+                    reuse = False
                 # `from_parsed`'s quick path, inline
+                quick = False
                 if (
                     type(obj) is dict
                     and (fields := _quick_fields(obj)) is not None
                     and _nests_less(fields["content"])  # each message's depth, not the batch's
                 ):
                     message = _constructed(ACLMessage, fields, set(obj))
+                    quick = True
                 else:
                     try:
                         message = from_parsed(obj)
@@ -1407,7 +1443,8 @@ class InterfaceAgent:
                 if room <= 0:  # counting those not yet handed over
                     break
                 performative = fields["performative"]
-                if performative in INITIATING:
+                initiating = performative in INITIATING
+                if initiating:
                     if requests is not None and not requests.ready(now):
                         break
                     if df is None or not df.reachable(receiver, peer):
@@ -1417,12 +1454,25 @@ class InterfaceAgent:
                 if total is not None:
                     total.tokens -= 1.0
                 # accepted_entry, inline (one receiver, this sender)
-                add_entry(
-                    (ts, peer, sender, receiver, _NAMES[performative], fields["conversation_id"])
+                entry = (
+                    ts,
+                    peer,
+                    sender,
+                    receiver,
+                    _NAMES[performative],
+                    fields["conversation_id"],
                 )
+                add_entry(entry)
                 run.append(message)  # running, room in its mailbox: taken
                 room -= 1
                 i += 1
+                if reuse and quick:
+                    if "v" in obj and "reply_to" not in obj and "reply_by" not in obj:
+                        head = obj.copy()
+                        head.pop("content", None)
+                        head_fields, head_entry, head_initiating = fields, entry, initiating
+                    else:
+                        reuse = False
         finally:
             taken = i - start
             if taken:

@@ -805,6 +805,47 @@ async def test_a_burst_goes_in_batches_each_message_checked_and_audited() -> Non
         assert await request(asker, "echo@uav-b", 2, ontology="demo")
 
 
+async def test_a_batch_of_one_header_is_still_checked_message_by_message() -> None:
+    """Messages repeating one header: each taken as its own, an equal but invalid one refused.
+
+    ``v`` as 1.0 or true equals 1 in JSON's numbers but is no wire version: those are
+    answered not-understood and audited, the ones around them go in order, and each
+    message taken holds its own fields (its own list of receivers).
+    """
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pa, pb, echo = pair.pa, pair.pb, pair.echo
+        raw = await fed.raw()
+        listener = await pa.add(Listener("listener"))
+        head = orjson.loads(
+            acl(
+                "listener@uav-a",
+                "echo@uav-b",
+                performative=Performative.INFORM,
+                conversation_id=None,
+            ).to_json()
+        )
+        head.pop("content", None)
+        items: list[dict[str, Any]] = [{**head, "content": {"i": i}} for i in range(6)]
+        items[2] = {**head, "v": 1.0, "content": {"i": "float"}}
+        items[4] = {**head, "v": True, "content": {"i": "bool"}}
+        items.append(head)  # the same header, no content
+        accepted = ia(pb).audit.counts["accepted"]
+        body = b"[" + b",".join(orjson.dumps(item) for item in items) + b"]"
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", body))
+        await until(lambda: len(listener.not_understood) == 2, "two not-understood")
+        await until(lambda: len(echo.informs) == 5, "the 5 valid informs")
+        assert [m.content for m in echo.informs] == [{"i": 0}, {"i": 1}, {"i": 3}, {"i": 5}, None]
+        assert len({id(m.receivers) for m in echo.informs}) == 5
+        assert all(m.receivers == ["echo@uav-b"] and m.v == 1 for m in echo.informs)
+        assert ia(pb).audit.counts["accepted"] == accepted + 5
+        refused = records(pb, verdict="refused", sender="listener@uav-a")
+        assert [str(r["reason"]) for r in refused] == [
+            "unsupported wire version 1.0 (this side speaks 1)",
+            "unsupported wire version True (this side speaks 1)",
+        ]
+
+
 async def test_each_message_of_a_batch_is_checked_for_depth_however_deep_the_batch() -> None:
     """A batch nesting deeper than any message may: the shallow ones taken, the deep one not.
 
