@@ -1891,6 +1891,8 @@ def watch_time(public_key: bytes, federation: str, request: bytes, answer: bytes
     anyone answering in its place); an AuthenticationError when the answer carries a time
     not signed with ``public_key`` over this request's nonce (forged, or replayed).
     """
+    if len(answer) > MAX_HANDSHAKE_BYTES:
+        raise Malformed(f"watch answer of {len(answer)} bytes exceeds {MAX_HANDSHAKE_BYTES}")
     try:
         msg = _loads(answer)
         asked = _loads(request)

@@ -412,7 +412,8 @@ def test_a_watch_answer_carries_the_platforms_time_signed_for_that_request(clock
         watch_time(owner.public_key, "other", request, answer)
     bare = b'{"v":1,"watching":true,"lease_s":10.0}'
     assert watch_time(owner.public_key, "demo", request, bare) is None
-    for junk in (b"", b"[]", b'{"watching":false}', answer.replace(b'"ts_ms"', b'"ts"')):
+    wrong = answer.replace(b'"ts_ms"', b'"ts"')
+    for junk in (b"", b"[]", b'{"watching":false}', wrong, b'{"watching":true,"x":"' + b"x" * 5000):
         with pytest.raises(Malformed):
             watch_time(owner.public_key, "demo", request, junk)
 
