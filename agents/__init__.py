@@ -103,7 +103,9 @@ from ._security import (
     SessionTable,
     TrustStore,
     check_name,
+    watch_answer,
     watch_request,
+    watch_time,
 )
 from .transports import MemoryHub, MemoryTransport, Transport
 
@@ -206,6 +208,8 @@ __all__ = [
     "subscribe",
     "subscribe_services",
     "visibility_allows",
+    "watch_answer",
     "watch_request",
+    "watch_time",
     "wire_key",
 ]

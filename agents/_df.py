@@ -667,12 +667,11 @@ class GlobalDirectory:
     count (`DirectoryAuth`): a DF answer must sign this view's fresh nonce, an event must
     be signed and newer than the last; a presence under a name not in the trust file is
     ignored; a platform is ``platform-up`` only once its signed answer came; a signed
-    leave of a process whose answer was never read counts only once the platform no
-    longer answers a fresh signed query (else refused: recorded and replayed); a
-    presence refused for want of that answer is asked again while it holds
-    (``unconfirmed``: after `UNCONFIRMED_FIRST_WAIT` s, doubling up to
-    `UNCONFIRMED_MAX_WAIT`) and listed once it answers; where
-    presence can be forged (``Transport.forgeable_presence``: MQTT's retained messages),
+    leave of a process whose answer was never read counts only once the platform runs no
+    more (`_confirm_leave`; else refused as replayed or late); a presence refused for
+    want of that answer is asked again while it holds (``unconfirmed``: after
+    `UNCONFIRMED_FIRST_WAIT` s, doubling up to `UNCONFIRMED_MAX_WAIT`) and listed once it
+    answers; where presence can be forged (``Transport.forgeable_presence``: MQTT's retained messages),
     a presence that goes without a signed leave is believed only when the platform no
     longer answers a fresh signed query; and every ``recheck_interval`` seconds the
     members are asked again (a member that answers none twice in a row is gone: on zenoh
@@ -1187,8 +1186,8 @@ class GlobalDirectory:
 
         A leave of a process whose signed answer this view never read (its first snapshot
         under way, or not asked yet) may be one anyone recorded and replays within the
-        skew: it is taken only once the platform no longer answers a fresh signed query,
-        and refused (counted, audited) while it does (`_confirm_leave`).
+        skew, or an earlier process's, late: it is taken only once the platform runs no
+        more, and refused (counted, audited) while it does (`_confirm_leave`).
         """
         if not self._auth.authenticates or self._answered_boot.get(platform) == statement.boot:
             # whether or not still listed (its presence may have gone first): signed
@@ -1205,22 +1204,50 @@ class GlobalDirectory:
             self._leaves_doubted.pop(platform, None)  # the platform is closing
 
     async def _confirm_leave(self, platform: str) -> None:
-        """Take the doubted leave of ``platform`` if it no longer answers; refuse it if it does."""
+        """Take the doubted leave of ``platform`` once it no longer runs; refuse it while it does.
+
+        It runs while it answers a fresh signed query, while an answer of another process
+        of its is read meanwhile (a snapshot under way), or while it talks to this
+        platform (authenticated envelopes: its queryable may be shedding anyone's flood of
+        queries). Only three checks in a row finding none of these take the leave.
+        """
+        before = self._answered_boot.get(platform)
+        running: str | None = None
         try:
-            answers = await self._answers(platform)
+            for attempt in range(3):
+                started = time.monotonic()
+                if await self._answers(platform):
+                    running = "answers"
+                    break
+                boot = self._answered_boot.get(platform)
+                if boot != before and boot != self._leaves_doubted[platform].boot:
+                    running = "answered meanwhile"
+                    break
+                if self._heard_lately(platform, time.monotonic() - started):
+                    running = "talks to this platform"
+                    break
+                if attempt < 2:
+                    # a shed query ends at once: the next may find its budget again
+                    await asyncio.sleep(self.query_timeout)
         finally:
             statement = self._leaves_doubted.pop(platform)
-        if answers and self._answered_boot.get(platform) != statement.boot:
+        at = statement.ts_ms / 1000
+        if running is not None and self._answered_boot.get(platform) != statement.boot:
             self._refuse(
                 platform,
                 f"directory event: a signed leave of its process of boot {statement.boot}, "
-                f"whose directory this view never read, while its process of boot "
-                f"{self._answered_boot.get(platform)} answers: replayed",
+                f"whose directory this view never read, while it {running} (last boot read: "
+                f"{self._answered_boot.get(platform)}): replayed or late",
                 "df-events",
             )
+            # sessions agreed before that leave are its earlier process's (a late leave
+            # after a restart): retired; what its running process agreed since stays
+            left = getattr(self._platform.channel, "peer_left", None)
+            if left is not None:
+                left(platform, at)
             return
         self._gone(platform)
-        self._left(platform, statement.ts_ms / 1000)
+        self._left(platform, at)
 
     def _left(self, platform: str, at: float) -> None:
         """Tell the channel that ``platform`` left at ``at`` (POSIX s), as it signed.

@@ -65,6 +65,7 @@ from ._security import (
     fingerprint,
     seal_owner_batch,
     sign_owner_batch,
+    watch_answer,
 )
 from .transports import Handle, Message, Presence, Subscription
 
@@ -2094,7 +2095,7 @@ class InterfaceAgent:
     async def _on_watch(self, key: str, payload: bytes) -> bytes | None:
         """The owner asks to watch: a request signed with this platform's key renews a lease."""
         try:
-            self._watch_gate.check(payload)
+            nonce = self._watch_gate.check(payload)
         except AuthenticationError as exc:
             self.watch_refused += 1
             self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}", stage="watch")
@@ -2103,7 +2104,10 @@ class InterfaceAgent:
             self.audit.record(verdict="accepted", stage="watch", reason="the owner watches")
         self._mirror_until = self._monotonic() + self.watch_lease
         self.mirroring = True
-        return orjson.dumps({"v": WIRE_VERSION, "watching": True, "lease_s": self.watch_lease})
+        # the time the batches are signed with, so the owner bounds them on this clock
+        return watch_answer(
+            self.keys, self._watch_gate.federation, nonce, self.watch_lease, clock=self._owner_clock
+        )
 
     async def _flush_mirror(self, host: AgentPlatform) -> None:
         """Publish what the owner watches, signed and sealed to the owner; end an expired lease."""

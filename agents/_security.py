@@ -1790,11 +1790,12 @@ class OwnerBatches:
 
     A batch is the platform's when it opens with the owner's key (sealed ones), its
     signature verifies with ``public_key`` (the platform's key in the trust file) over the
-    key it came on, its ``ts_ms`` is within ``skew`` s of this clock, not before ``since``
-    (POSIX s; None: no bound) nor before the newest batch accepted on the same key, and
-    its signature was not seen before. So a batch recorded and replayed within the skew is
-    refused whether or not this side saw it go by. Anything else raises an
-    AuthenticationError: an anonymous sealed box proves nothing about who sealed it.
+    key it came on, its ``ts_ms`` is within ``skew`` s of this clock and not before
+    ``since`` (POSIX s on the platform's clock, when this side began listening; None: no
+    bound), and its signature was not seen before. Every batch signed since reached this
+    side as it went by, so a batch recorded and replayed within the skew is refused
+    whether or not this side saw it. Anything else raises an AuthenticationError: an
+    anonymous sealed box proves nothing about who sealed it.
     """
 
     def __init__(
@@ -1810,10 +1811,8 @@ class OwnerBatches:
         self._verify = VerifyKey(public_key)
         self._skew_ms = int(skew * 1000)
         self._clock = clock
-        self._since_ms = None if since is None else int(since * 1000)
+        self.since = since
         self._seen: dict[bytes, int] = {}  # signature -> ts_ms, while within the skew
-        # key -> ts_ms of the newest batch accepted on it: the platform signs them in order
-        self._newest: dict[str, int] = {}
 
     def open(self, key: str, payload: bytes, *, sealed: bool = True) -> bytes:
         """The batch ``payload`` carries on ``key``, once opened (``sealed``) and verified."""
@@ -1830,29 +1829,24 @@ class OwnerBatches:
             self._verify.verify(_owner_transcript(key, ts_ms, data), sig)
         except (CryptoError, ValueError):
             raise Forged(f"batch on {key!r} not signed by the platform's key", None) from None
-        # checked once signed: only the platform's own batches may move these bounds
-        if self._since_ms is not None and ts_ms < self._since_ms:
+        since_ms = None if self.since is None else int(self.since * 1000)
+        if since_ms is not None and ts_ms < since_ms:
             raise Replayed(
-                f"batch on {key!r} signed {(self._since_ms - ts_ms) / 1000:.3f} s before this "
-                "side began reading (replayed, or the platform's clock is behind)"
-            )
-        newest = self._newest.get(key)
-        if newest is not None and ts_ms < newest:
-            raise Replayed(
-                f"batch on {key!r} signed {(newest - ts_ms) / 1000:.3f} s before one "
-                "already accepted (replayed)"
+                f"batch on {key!r} signed {(since_ms - ts_ms) / 1000:.3f} s before this "
+                "side began reading (replayed, or the platform's clock stepped back)"
             )
         for old in [s for s, t in self._seen.items() if now_ms - t > self._skew_ms]:
             del self._seen[old]
         if sig in self._seen:
             raise Replayed(f"batch on {key!r} seen before")
         self._seen[sig] = ts_ms
-        self._newest[key] = ts_ms
         return data
 
 
 _WATCH = b"dyknow-watch-v1\x00"
+_WATCH_ANSWER = b"dyknow-watch-v1 answer\x00"
 _WATCH_FIELDS = frozenset(("v", "watch", "fed", "platform", "ts_ms", "nonce", "sig"))
+_WATCH_ANSWER_FIELDS = frozenset(("v", "watching", "lease_s", "ts_ms", "sig"))
 
 
 def watch_request(keys: KeyPair, federation: str, *, clock: Clock = time.time) -> bytes:
@@ -1874,6 +1868,52 @@ def watch_request(keys: KeyPair, federation: str, *, clock: Clock = time.time) -
             "sig": _b64(sig),
         }
     )
+
+
+def watch_answer(
+    keys: KeyPair, federation: str, nonce: bytes, lease_s: float, *, clock: Clock = time.time
+) -> bytes:
+    """The platform's answer to an accepted watch request of ``nonce``: its signed time.
+
+    The owner reads, from the platform's own clock, when it began listening (`watch_time`).
+    """
+    ts = int(clock() * 1000)
+    sig = keys.sign(_watch_answer_transcript(federation, keys.platform, ts, nonce))
+    return _dumps(
+        {"v": WIRE_VERSION, "watching": True, "lease_s": lease_s, "ts_ms": ts, "sig": _b64(sig)}
+    )
+
+
+def watch_time(public_key: bytes, federation: str, request: bytes, answer: bytes) -> float | None:
+    """The platform's time (POSIX s) it signed into its answer to the watch ``request``.
+
+    None for a bare ``{"v":1,"watching":true,...}`` (a platform of an older release, or
+    anyone answering in its place); an AuthenticationError when the answer carries a time
+    not signed with ``public_key`` over this request's nonce (forged, or replayed).
+    """
+    if len(answer) > MAX_HANDSHAKE_BYTES:
+        raise Malformed(f"watch answer of {len(answer)} bytes exceeds {MAX_HANDSHAKE_BYTES}")
+    try:
+        msg = _loads(answer)
+        asked = _loads(request)
+        nonce = _unb64(asked["nonce"], _NONCE_BYTES)
+        platform = asked["platform"]
+    except (_JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise Malformed(f"watch answer: {exc}") from None
+    if type(msg) is not dict or msg.get("watching") is not True:
+        raise Malformed("a watch answer is a JSON object with 'watching': true")
+    if "ts_ms" not in msg and "sig" not in msg:
+        return None
+    if msg.keys() != _WATCH_ANSWER_FIELDS or type(msg["ts_ms"]) is not int:
+        raise Malformed("a signed watch answer has exactly the fields of wire.md")
+    try:
+        sig = _unb64(msg["sig"], 64)
+        VerifyKey(public_key).verify(
+            _watch_answer_transcript(federation, platform, msg["ts_ms"], nonce), sig
+        )
+    except (CryptoError, ValueError):
+        raise Forged("watch answer not signed by the platform over this request") from None
+    return float(msg["ts_ms"]) / 1000
 
 
 class WatchGate:
@@ -1903,8 +1943,8 @@ class WatchGate:
         self._tokens = verify_rate
         self._stamp = clock()
 
-    def check(self, data: bytes | str) -> None:
-        """Accept a watch request, or raise an AuthenticationError saying why not."""
+    def check(self, data: bytes | str) -> bytes:
+        """Accept a watch request (its nonce, to answer), or raise an AuthenticationError."""
         if len(data) > MAX_HANDSHAKE_BYTES:
             raise Malformed(f"watch request of {len(data)} bytes exceeds {MAX_HANDSHAKE_BYTES}")
         try:
@@ -1945,6 +1985,11 @@ class WatchGate:
         for old in [n for n, t in self._seen.items() if t < stale]:
             del self._seen[old]
         self._seen[nonce] = ts
+        return nonce
+
+
+def _watch_answer_transcript(fed: str, platform: str, ts: int, nonce: bytes) -> bytes:
+    return _WATCH_ANSWER + _lp(fed) + _lp(platform) + _U64.pack(ts) + nonce
 
 
 def _watch_transcript(fed: str, platform: str, ts: int, nonce: bytes) -> bytes:

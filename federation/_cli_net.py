@@ -23,10 +23,12 @@ from agents import (
     KeyPair,
     OwnerBatches,
     SecurityError,
+    SecurityPolicy,
     TransportError,
     TrustStore,
     UnknownPlatform,
     watch_request,
+    watch_time,
     wire_key,
 )
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
@@ -48,10 +50,42 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 _WATCH_ASK = 2.0  # s one watch request waits for the platform's answer
-# s a batch may be signed before the watch began: none reaches a subscriber declared after
-# it, so an older one is recorded and replayed; this much allows the platform's clock to be
-# behind this one's (beyond it, its first batches are refused, shown and counted)
-_WATCH_SLACK = 1.0
+# s below the platform's time when the watch began listening that a batch may be signed:
+# the platform signs a batch just before it publishes it (and ms rounding)
+_WATCH_MARGIN = 0.25
+
+
+class _WatchAnchor:
+    """When, on the platform's clock, the owner's watch began listening: its batches' bound.
+
+    None reaches a subscriber declared later, so one signed before is recorded and
+    replayed. The platform signs its time into each answer to a watch request
+    (`watch_time`), somewhere between the request's asking and its answer's arrival here:
+    the watch began at least that long before it. A platform of an older release answers
+    bare: then this side's clock, less the federation's clock allowance, is the bound.
+    """
+
+    def __init__(self, batches: OwnerBatches, listening: float, skew: float) -> None:
+        self.batches = batches
+        self.listening = listening  # time.monotonic() before subscribing
+        self.skew = skew
+        self.signed = False
+
+    def answered(self, signed_at: float | None, asked: float, received: float) -> None:
+        """Take an answer the platform signed at ``signed_at`` (None: bare), asked/received then."""
+        if signed_at is None:
+            if self.batches.since is None:
+                self.batches.since = time.time() - (received - self.listening) - self.skew
+            return
+        earliest = signed_at - (received - self.listening)
+        latest = signed_at - (asked - self.listening)
+        since = self.batches.since
+        if not self.signed or since is None:
+            self.signed = True
+            self.batches.since = earliest - _WATCH_MARGIN
+        elif latest < since + _WATCH_MARGIN:
+            # its clock stepped back: else its batches would be refused until it caught up
+            self.batches.since = earliest - _WATCH_MARGIN
 
 
 class RelayedError(RuntimeError):
@@ -769,8 +803,8 @@ async def watch_platform(
     Asks the platform (a request signed with its key, renewed every ``renew`` s) to show
     its owner every ACL message, sample batch and stream report it opens; those come
     signed by the platform and sealed to the owner's key, as does the audit, which is
-    shown too; a batch whose signature does not verify, or that was signed before the
-    watch began (`_WATCH_SLACK`) or before one already shown, is shown as unreadable, counted.
+    shown too; a batch whose signature does not verify, seen before, or signed before the
+    watch began on the platform's clock (`_WatchAnchor`) is shown as unreadable, counted.
     Runs until SIGINT or ``duration`` s; how many events were emitted. TransportError when
     the platform does not answer within ``timeout`` s.
     """
@@ -788,7 +822,8 @@ async def watch_platform(
         public = keys.public_key
     except (OSError, ValueError, SecurityError) as exc:
         raise PlatformConfigError(config_path, "trust", str(exc)) from None
-    batches = OwnerBatches(keys, public, since=time.time() - _WATCH_SLACK)
+    batches = OwnerBatches(keys, public)
+    anchored = asyncio.Event()  # batches are read once the platform said when they may begin
     stop = _stop_event()
     queue: asyncio.Queue[WatchEvent] = asyncio.Queue()
     unreadable = 0
@@ -802,10 +837,12 @@ async def watch_platform(
         await queue.put({"kind": "unreadable", "key": key, "error": error, "count": unreadable})
 
     async with watcher_transport(config) as transport:
+        anchor = _WatchAnchor(batches, time.monotonic(), SecurityPolicy().skew)
         watched = await transport.subscribe(wire_key(fed, "watch", me))
         audit = await transport.subscribe(wire_key(fed, "audit", me))
 
         async def pump_watch() -> None:
+            await anchored.wait()
             async for item in watched:
                 try:
                     entries = msgpack.unpackb(batches.open(item.key, item.payload), raw=False)
@@ -819,6 +856,7 @@ async def watch_platform(
         plain = config.security.audit == "plain"
 
         async def pump_audit() -> None:
+            await anchored.wait()
             async for item in audit:
                 try:
                     try:
@@ -850,13 +888,27 @@ async def watch_platform(
                 # the first answer ends the query: a queryable that never answers (anyone
                 # may declare one) would hold each renewal to its timeout
                 ok = False
+                signed_at: float | None = None
+                request = watch_request(keys, fed)
+                asked = time.monotonic()
                 async with await transport.ask(
-                    wire_key(fed, "watch", me), watch_request(keys, fed), timeout=_WATCH_ASK
+                    wire_key(fed, "watch", me), request, timeout=_WATCH_ASK
                 ) as replies:
                     async for reply in replies:
-                        if ok := reply.ok:
+                        if not reply.ok:
+                            continue
+                        try:
+                            signed_at = watch_time(public, fed, request, reply.payload)
+                        except AuthenticationError:
+                            continue  # anyone may answer: not the platform's
+                        ok = True
+                        if signed_at is not None:
                             break
+                        # bare (an older release, or anyone answering first): a signed one
+                        # may still come; the query ends when every queryable answered
                 if ok:
+                    anchor.answered(signed_at, asked, time.monotonic())
+                    anchored.set()
                     if not answered:
                         await queue.put({"kind": "watching", "platform": me})
                     answered = True

@@ -26,6 +26,7 @@ import zenoh
 from _node_example import Station, _samples
 
 from agents._security import KeyPair, seal_for_owner, sign_owner_batch
+from federation._cli_net import _WATCH_MARGIN
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -322,15 +323,22 @@ def test_the_owners_watch_refuses_a_batch_recorded_before_it_began(tmp_path: Pat
         station.start("python")
         session = _outsider(station)
         recorded: list[bytes] = []
-        spy = session.declare_subscriber(audit_key, lambda s: recorded.append(s.payload.to_bytes()))
+        heard = threading.Event()
+
+        def record(sample: zenoh.Sample) -> None:
+            recorded.append(sample.payload.to_bytes())
+            heard.set()
+
+        spy = session.declare_subscriber(audit_key, record)
         # something for the platform to audit: the operator asks it, over the federation
         station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
-        deadline = time.monotonic() + 10
-        while not recorded and time.monotonic() < deadline:
-            time.sleep(0.1)
+        assert heard.wait(20), "no audit batch published while the outsider listened"
         spy.undeclare()
-        assert recorded, "no audit batch published while the outsider listened"
+        # the watch's bound allows a batch signed just before it began listening: the
+        # replayed ones are older than that, as a recording always is by the replay
+        heard_at = time.monotonic()
         replayed = recorded[:5]
+        time.sleep(max(0.0, heard_at + 4 * _WATCH_MARGIN - time.monotonic()))
         watch = _watch(station, "--duration", "60", "--json")
         for payload in replayed:
             _put(session, audit_key, payload)
@@ -348,7 +356,7 @@ def test_the_owners_watch_refuses_a_batch_recorded_before_it_began(tmp_path: Pat
     assert "Traceback" not in err, err
     events = [json.loads(line) for line in out.splitlines()]
     refused = [e for e in events if e["kind"] == "unreadable"]
-    assert [e["count"] for e in refused] == list(range(1, len(replayed) + 1)), refused
+    assert [e["count"] for e in refused] == list(range(1, len(replayed) + 1)), (out, err)
     assert all("before this side began reading" in e["error"] for e in refused), refused
     assert all(e["key"] == audit_key for e in refused), refused
     # the platform's own batches since verify: the audit of the watch request it took

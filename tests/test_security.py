@@ -8,6 +8,7 @@ import os
 import stat
 import subprocess
 import sys
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -44,8 +45,11 @@ from agents._security import (
     read_public_key,
     seal_for_owner,
     sign_owner_batch,
+    watch_answer,
     watch_request,
+    watch_time,
 )
+from federation._cli_net import _WATCH_MARGIN, _WatchAnchor
 
 ROOT = Path(__file__).resolve().parents[1]
 T0 = 1_795_000_000.0
@@ -357,35 +361,116 @@ def test_sealed_for_the_owner_opens_with_the_owners_key_only() -> None:
         other.open_sealed(box)
 
 
-def test_the_owner_refuses_a_batch_older_than_its_start_or_its_newest(clock: Clock) -> None:
+def _owner_batch(platform: KeyPair, key: str, data: bytes, at: float) -> bytes:
+    """``data`` as ``platform`` publishes it for its owner on ``key`` at ``at`` (POSIX s)."""
+    return seal_for_owner(
+        platform.public_key, sign_owner_batch(platform, key, data, int(at * 1000))
+    )
+
+
+def test_the_owner_refuses_a_batch_signed_before_it_began_listening(clock: Clock) -> None:
     """A batch signed by the platform within the skew, never seen here, is still refused when
-    it was signed before this side began reading, or before one already accepted on its key
-    (recorded and replayed); batches signed in order on either key are taken."""
+    it was signed before this side began listening (recorded and replayed); one signed since
+    is taken once, in whatever order it comes (a platform clock stepped back stalls nothing)."""
     platform = KeyPair.generate("uav-a")
-    audit, watch = "dyknow/demo/v1/audit/uav-a", "dyknow/demo/v1/watch/uav-a"
-
-    def batch(key: str, data: bytes, at: float) -> bytes:
-        """``data`` as the platform publishes it on ``key`` at ``at`` (POSIX s)."""
-        return seal_for_owner(
-            platform.public_key, sign_owner_batch(platform, key, data, int(at * 1000))
-        )
-
-    before = batch(audit, b"{}\n", clock() - 2)  # recorded before the owner began
+    audit = "dyknow/demo/v1/audit/uav-a"
+    before = _owner_batch(platform, audit, b"{}\n", clock() - 2)  # recorded before
     owner = OwnerBatches(platform, platform.public_key, clock=clock, since=clock() - 1)
     with pytest.raises(Replayed, match="before this side began reading"):
         owner.open(audit, before)
-    earlier = batch(audit, b'{"n":1}\n', clock() + 1)  # signed, withheld from the owner
-    assert owner.open(audit, batch(audit, b'{"n":2}\n', clock() + 2)) == b'{"n":2}\n'
-    assert owner.open(audit, batch(audit, b'{"n":3}\n', clock() + 2)) == b'{"n":3}\n'
-    with pytest.raises(Replayed, match="before one already accepted"):
-        owner.open(audit, earlier)
-    # each key is in order of its own: the watch's batch signed earlier is taken
-    assert owner.open(watch, batch(watch, b"[]", clock() + 1)) == b"[]"
-    # refused ones move nothing: a forged time cannot hold the platform's batches off
-    later = int((clock() + 10) * 1000).to_bytes(8, "big")
-    with pytest.raises(Forged):
-        owner.open(audit, seal_for_owner(platform.public_key, bytes(64) + later + b"{}"))
-    assert owner.open(audit, batch(audit, b'{"n":4}\n', clock() + 3)) == b'{"n":4}\n'
+    late = _owner_batch(platform, audit, b'{"n":1}\n', clock() + 1)  # delayed on the way
+    assert owner.open(audit, _owner_batch(platform, audit, b'{"n":2}\n', clock() + 2))
+    stepped = _owner_batch(platform, audit, b'{"n":3}\n', clock() - 0.5)  # its clock stepped back
+    assert owner.open(audit, stepped) == b'{"n":3}\n'
+    assert owner.open(audit, late) == b'{"n":1}\n'
+    with pytest.raises(Replayed, match="seen before"):
+        owner.open(audit, late)
+    clock.advance(32)
+    with pytest.raises(Expired):  # forgotten only once outside the skew
+        owner.open(audit, late)
+
+
+def test_a_watch_answer_carries_the_platforms_time_signed_for_that_request(clock: Clock) -> None:
+    """The answer's time verifies only with the platform's key over the request it answers:
+    anyone answering in its place, or replaying an earlier answer, is refused; a bare
+    answer (an older release) is told apart (None)."""
+    owner = KeyPair.generate("uav-a")
+    gate = WatchGate(owner, "demo", clock=clock)
+    request = watch_request(owner, "demo", clock=clock)
+    nonce = gate.check(request)
+    answer = watch_answer(owner, "demo", nonce, 10.0, clock=lambda: clock() + 20)
+    assert orjson.loads(answer)["lease_s"] == 10.0
+    assert watch_time(owner.public_key, "demo", request, answer) == clock() + 20
+    another = watch_request(owner, "demo", clock=clock)
+    with pytest.raises(Forged):  # an answer to another request: replayed
+        watch_time(owner.public_key, "demo", another, answer)
+    with pytest.raises(Forged):  # signed by anyone else
+        watch_time(
+            owner.public_key, "demo", request, watch_answer(KEYS["uav-b"], "demo", nonce, 10.0)
+        )
+    with pytest.raises(Forged):  # another federation's
+        watch_time(owner.public_key, "other", request, answer)
+    bare = b'{"v":1,"watching":true,"lease_s":10.0}'
+    assert watch_time(owner.public_key, "demo", request, bare) is None
+    wrong = answer.replace(b'"ts_ms"', b'"ts"')
+    for junk in (b"", b"[]", b'{"watching":false}', wrong, b'{"watching":true,"x":"' + b"x" * 5000):
+        with pytest.raises(Malformed):
+            watch_time(owner.public_key, "demo", request, junk)
+
+
+@pytest.mark.parametrize("offset", [20.0, -3.0])
+def test_the_watch_bounds_batches_on_the_platforms_clock_whatever_the_offset(
+    clock: Clock, offset: float
+) -> None:
+    """Platform ahead by 20 s: a batch recorded 15 s before the watch began is refused.
+    Platform behind by 3 s: its fresh batches are taken. The bound is the platform's time,
+    signed into its answer, less the time since this side began listening."""
+    platform = KeyPair.generate("uav-a")
+    audit = "dyknow/demo/v1/audit/uav-a"
+    began = clock() + offset  # the platform's clock when the watch began listening
+    recorded = _owner_batch(platform, audit, b"{}\n", began - 15)
+    owner = OwnerBatches(platform, platform.public_key, clock=clock)
+    anchor = _WatchAnchor(owner, listening=100.0, skew=30.0)
+    anchor.answered(began + 0.15, asked=100.1, received=100.2)  # signed in between
+    with pytest.raises(Replayed, match="before this side began reading"):
+        owner.open(audit, recorded)
+    fresh = b'{"n":1}\n'
+    assert owner.open(audit, _owner_batch(platform, audit, fresh, began + 0.3)) == fresh
+    assert owner.open(audit, _owner_batch(platform, audit, fresh, began - 0.1)) == fresh
+
+
+def test_a_platform_clock_stepped_back_is_followed_at_the_next_renewal(clock: Clock) -> None:
+    """The platform's clock steps back 5 s a second into the watch: its batches are refused
+    (shown, counted) until the next renewal's signed time shows the step; then taken, while
+    one recorded long before the watch stays refused. Its jitter never lowers the bound."""
+    platform = KeyPair.generate("uav-a")
+    audit = "dyknow/demo/v1/audit/uav-a"
+    owner = OwnerBatches(platform, platform.public_key, clock=clock)
+    anchor = _WatchAnchor(owner, listening=0.0, skew=30.0)
+    began = clock()
+    anchor.answered(began + 0.1, asked=0.05, received=0.2)
+    since = owner.since
+    anchor.answered(began + 3.05, asked=3.0, received=4.9)  # a slow answer: no step
+    assert owner.since == since
+    stepped = _owner_batch(platform, audit, b'{"n":1}\n', began + 1.2 - 5)
+    with pytest.raises(Replayed, match="stepped back"):
+        owner.open(audit, stepped)
+    anchor.answered(began + 6.05 - 5, asked=6.0, received=6.1)
+    assert owner.open(audit, _owner_batch(platform, audit, b'{"n":2}\n', began + 6.2 - 5))
+    with pytest.raises(Replayed):
+        owner.open(audit, _owner_batch(platform, audit, b"{}\n", began - 15))
+
+
+def test_a_bare_watch_answer_falls_back_to_this_clock_less_the_allowance(clock: Clock) -> None:
+    """A platform of an older release answers bare: the bound is this side's clock less the
+    federation's clock allowance; a signed answer later (the platform's) tightens it."""
+    owner = OwnerBatches(KEYS["uav-a"], KEYS["uav-a"].public_key, clock=clock)
+    anchor = _WatchAnchor(owner, listening=0.0, skew=30.0)
+    before = time.time()
+    anchor.answered(None, asked=0.0, received=0.5)
+    assert owner.since is not None and before - 31 < owner.since < time.time() - 30
+    anchor.answered(clock() + 3.1, asked=3.0, received=3.2)
+    assert owner.since == pytest.approx(clock() + 3.1 - 3.2 - _WATCH_MARGIN)
 
 
 def test_watch_requests_are_signed_fresh_and_used_once(clock: Clock) -> None:

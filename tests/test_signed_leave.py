@@ -14,7 +14,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,6 +29,7 @@ from agents import (
     ACLMessage,
     Agent,
     AgentPlatform,
+    GlobalDirectory,
     InterfaceAgent,
     KeyPair,
     TransportError,
@@ -161,6 +164,47 @@ async def test_a_key_exchange_under_way_ends_when_the_peer_leaves(tmp_path: Path
         assert waited < TIMEOUT / 2, waited
 
 
+def _leave_refusals(view: GlobalDirectory) -> asyncio.Queue[str]:
+    """The reasons of the leaves ``view`` refuses from now on, as it refuses them."""
+    reasons: asyncio.Queue[str] = asyncio.Queue()
+    refuse = view._refuse
+
+    def spy(claimed: str | None, reason: str, stage: str) -> None:
+        refuse(claimed, reason, stage)
+        if stage == "df-events" and "leave" in reason:
+            reasons.put_nowait(reason)
+
+    view._refuse = spy  # type: ignore[method-assign]
+    return reasons
+
+
+def _leaves_heard(channel: InterfaceAgent) -> list[tuple[str, float | None]]:
+    """The signed leaves the channel is told of (`InterfaceAgent.peer_left`), as told."""
+    told: list[tuple[str, float | None]] = []
+    peer_left = channel.peer_left
+
+    def spy(peer: str, at: float | None = None) -> None:
+        told.append((peer, at))
+        peer_left(peer, at)
+
+    channel.peer_left = spy  # type: ignore[method-assign]
+    return told
+
+
+def _leave_records(channel: InterfaceAgent) -> list[dict[str, Any]]:
+    """The audit records of the leaves ``channel``'s directory refused."""
+    return [
+        r
+        for r in channel.audit.records
+        if r.get("stage") == "df-events" and "leave" in str(r.get("reason"))
+    ]
+
+
+def _signed_at(leave: bytes) -> float:
+    """When a recorded leave was signed (POSIX s, the leaver's clock)."""
+    return float(json.loads(leave)["ts_ms"]) / 1000
+
+
 def _is_leave(payload: bytes) -> bool:
     """Whether a directory event's payload is a leave."""
     return json.loads(json.loads(payload)["body"]).get("op") == "leave"
@@ -227,10 +271,19 @@ async def test_a_leave_replayed_or_late_keeps_the_next_processs_session(tmp_path
             ):
                 await pb.add(Echo())
                 assert await request(asker, "echo@uav-b", 1, ontology="demo", timeout=TIMEOUT) == 1
+                refused_before = view.refused
                 session = ca.sessions.session_for("uav-b")
                 assert session is not None
+                refusals = _leave_refusals(view)
+                told = _leaves_heard(ca)
                 await deliver(leaves[0])
+                # uav-b's running process answers the check: replayed, or late after a restart
+                reason = await asyncio.wait_for(refusals.get(), 30)
+                assert "replayed or late" in reason and "answers" in reason, reason
+                # the channel still hears it: it retires only what was agreed before it
+                assert told == [("uav-b", _signed_at(leaves[0]))]
                 assert ca.sessions.session_for("uav-b") is session  # not retired
+                assert not pa.df.said_left("uav-b")  # type: ignore[union-attr]
                 assert await request(asker, "echo@uav-b", 2, ontology="demo", timeout=TIMEOUT) == 2
                 assert ca.sessions.session_for("uav-b") is session
 
@@ -249,11 +302,20 @@ async def test_a_leave_replayed_or_late_keeps_the_next_processs_session(tmp_path
                             agreeing = asyncio.create_task(ca.agree("uav-b"))
                         await asyncio.sleep(0.01)
                     await deliver(leaves[1])
+                    assert "replayed or late" in await asyncio.wait_for(refusals.get(), 30)
                     # it ends at its own timeout: not as if uav-b had left
                     with pytest.raises(TransportError, match="did not answer"):
                         await agreeing
                     silent.undeclare()
                     held.clear()
+                assert view.refused - refused_before == 2
+            # uav-b's running process leaves: that leave, of the process read, is taken
+            df = pa.df
+            assert df is not None
+            while not df.said_left("uav-b"):  # noqa: ASYNC110
+                await asyncio.sleep(0.02)  # bounded by the test's timeout
+            assert told[-1][0] == "uav-b" and told[-1][1] is not None
+            assert ca.sessions.session_for("uav-b") is None  # retired: agreed before it
 
 
 async def test_a_restarted_platform_is_served_at_once_after_its_leave(tmp_path: Path) -> None:
@@ -371,6 +433,7 @@ async def test_a_leave_replayed_before_the_first_snapshot_is_refused(
                     await asyncio.sleep(0.01)  # its first snapshot is under way
                 assert view._auth.newest("uav-b") is None  # no event of its own since
                 refused = view.refused
+                refusals = _leave_refusals(view)
                 with _outsider(port) as outsider:
                     # again until it arrived: the outsider's session may not be routed yet
                     # (the copies after the first are stale, dropped)
@@ -378,14 +441,12 @@ async def test_a_leave_replayed_before_the_first_snapshot_is_refused(
                         outsider.put(wire_key(fed, "df-events", "uav-b"), leave)
                         await asyncio.sleep(0.05)
                 busy.set()
-                deadline = time.monotonic() + 10
-                while "uav-b" not in view.platforms or view.refused == refused:
-                    assert time.monotonic() < deadline, (
-                        f"uav-b listed: {'uav-b' in view.platforms}, refused: "
-                        f"{view.refused - refused}, said left: {df.said_left('uav-b')}"
-                    )
-                    await asyncio.sleep(0.02)
-                assert view.refused == refused + 1
+                # the check's query answered (or the snapshot's, read meanwhile)
+                reason = await asyncio.wait_for(refusals.get(), 30)
+                assert "replayed or late" in reason, reason
+                while "uav-b" not in view.platforms:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)  # bounded by the test's timeout
+                assert refusals.empty() and view.refused > refused
                 assert not df.said_left("uav-b")
                 records = [
                     r
@@ -414,10 +475,121 @@ async def test_a_leave_of_a_process_never_read_is_taken_once_nobody_answers(
             view, df = pa.global_df, pa.df
             assert view is not None and df is not None
             refused = view.refused
+            checks: list[tuple[bool, bool]] = []  # (answered, said left by then)
+            answers = view._answers
+
+            async def check(platform: str) -> bool:
+                answered = await answers(platform)
+                checks.append((answered, df.said_left(platform)))
+                return answered
+
+            view._answers = check  # type: ignore[method-assign]
             with _outsider(port) as relay:  # whoever held it up lets it go now
                 while not view._event_counts.get("uav-b", 0):
                     relay.put(wire_key(fed, "df-events", "uav-b"), leave)
                     await asyncio.sleep(0.05)
             while not df.said_left("uav-b"):  # noqa: ASYNC110
-                await asyncio.sleep(0.02)  # one query timeout later
+                await asyncio.sleep(0.02)  # bounded by the test's timeout
             assert view.refused == refused
+            # taken only after uav-b was asked, three times, and answered none
+            assert checks == [(False, False)] * 3, checks
+
+
+@contextlib.contextmanager
+def _flooding(port: int, key: str) -> Iterator[None]:
+    """Anyone's plain zenoh client asking ``key`` as fast as it can, from two threads."""
+    stop = threading.Event()
+    with _outsider(port) as flooder:
+
+        def flood() -> None:
+            while not stop.is_set():
+                flooder.get(key, handler=lambda reply: None, timeout=0.2)
+
+        threads = [threading.Thread(target=flood, daemon=True) for _ in range(2)]
+        for t in threads:
+            t.start()
+        try:
+            yield
+        finally:
+            stop.set()
+            for t in threads:
+                t.join(timeout=10)
+
+
+async def test_a_leave_replayed_while_a_flood_sheds_its_check_is_refused(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An outsider floods uav-b's directory queryable (its budget is everyone's, 50/s) and
+    replays uav-b's recorded leave before uav-a read uav-b's directory: the check's query
+    goes unanswered. uav-b talks to uav-a meanwhile, so it runs: the leave is refused,
+    counted and audited; uav-b stays listed. Before, the unanswered check took the leave
+    (and abandoned the snapshot under way)."""
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, trust, port = federation.fed, federation.trust, federation.port
+    busy = asyncio.Event()
+    serve = DirectoryFacilitator._serve_public
+
+    async def slow(self: DirectoryFacilitator, key: str, payload: bytes) -> bytes | None:
+        """uav-b's directory answers once ``busy`` is set (the others at once)."""
+        if self.platform.name == "uav-b":
+            await busy.wait()
+        return await serve(self, key, payload)
+
+    async with asyncio.timeout(90), ZenohTransport(ZenohConfig.loopback(port)) as ta:
+        leave = await _recorded_leave(tmp_path, fed, port, trust)
+        ca = federation.channel("uav-a")
+        async with AgentPlatform("uav-a", ta, federation=fed, channel=ca, query_timeout=3.0) as pa:
+            await pa.add(Echo())
+            view, df = pa.global_df, pa.df
+            assert view is not None and df is not None
+            refusals = _leave_refusals(view)
+            monkeypatch.setattr(DirectoryFacilitator, "_serve_public", slow)
+            config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+            cb = federation.channel("uav-b")
+            async with (
+                ZenohTransport(config) as tb,
+                AgentPlatform("uav-b", tb, federation=fed, channel=cb) as pb,
+            ):
+                while "uav-b" not in view._joining:  # noqa: ASYNC110
+                    await asyncio.sleep(0.01)  # its first snapshot is under way
+                asker = await pb.add(Agent("asker"))
+                talked = asyncio.Event()
+
+                async def talk() -> None:
+                    """uav-b asks uav-a, again and again, as a member at work does."""
+                    n = 0
+                    while True:
+                        n += 1
+                        with contextlib.suppress(Exception):
+                            await request(asker, "echo@uav-a", n, ontology="demo", timeout=2)
+                        talked.set()
+                        await asyncio.sleep(0.2)
+
+                talking = asyncio.create_task(talk())
+                try:
+                    await asyncio.wait_for(talked.wait(), 20)
+                    refused = view.refused
+                    records = len(_leave_records(ca))
+                    with (
+                        _flooding(port, wire_key(fed, "df", "uav-b")),
+                        _outsider(port) as outsider,
+                    ):
+                        while not view._event_counts.get("uav-b", 0):
+                            outsider.put(wire_key(fed, "df-events", "uav-b"), leave)
+                            await asyncio.sleep(0.05)
+                        reason = await asyncio.wait_for(refusals.get(), 30)
+                finally:
+                    talking.cancel()
+                assert "talks to this platform" in reason and "replayed or late" in reason
+                assert pb.df is not None and pb.df.queries_shed > 0
+                # one leave refused (its snapshot held, its presence may be refused too)
+                assert refusals.empty() and view.refused > refused
+                audited = _leave_records(ca)
+                assert len(audited) == records + 1, audited
+                assert audited[-1]["from"] == "uav-b" and audited[-1]["verdict"] == "dropped"
+                assert not df.said_left("uav-b")
+                busy.set()
+                while "uav-b" not in view.platforms:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)  # its snapshot, not abandoned (or the recheck)
+                assert not df.said_left("uav-b")
+                assert await request(asker, "echo@uav-a", 0, ontology="demo", timeout=TIMEOUT) == 0
