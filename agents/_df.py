@@ -671,8 +671,8 @@ class GlobalDirectory:
     more (`_confirm_leave`; else refused as replayed or late); a presence refused for
     want of that answer is asked again while it holds (``unconfirmed``: after
     `UNCONFIRMED_FIRST_WAIT` s, doubling up to `UNCONFIRMED_MAX_WAIT`) and listed once it
-    answers; where presence can be forged (``Transport.forgeable_presence``: MQTT's retained messages),
-    a presence that goes without a signed leave is believed only when the platform no
+    answers; where presence can be forged (``Transport.forgeable_presence``: MQTT's
+    retained messages), a presence that goes without a signed leave is believed only when the platform no
     longer answers a fresh signed query; and every ``recheck_interval`` seconds the
     members are asked again (a member that answers none twice in a row is gone: on zenoh
     a forged token would otherwise keep a dead platform listed). What is refused is
