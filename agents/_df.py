@@ -672,10 +672,11 @@ class GlobalDirectory:
     want of that answer is asked again while it holds (``unconfirmed``: after
     `UNCONFIRMED_FIRST_WAIT` s, doubling up to `UNCONFIRMED_MAX_WAIT`) and listed once it
     answers; where presence can be forged (``Transport.forgeable_presence``: MQTT's
-    retained messages), a presence that goes without a signed leave is believed only when the platform no
-    longer answers a fresh signed query; and every ``recheck_interval`` seconds the
-    members are asked again (a member that answers none twice in a row is gone: on zenoh
-    a forged token would otherwise keep a dead platform listed). What is refused is
+    retained messages), a presence that goes without a signed leave is believed only when
+    the platform no longer answers a fresh signed query; and every ``recheck_interval``
+    seconds the members are asked again (a member that answers none twice in a row is
+    gone: on zenoh a forged token would otherwise keep a dead platform listed). What is
+    refused is
     counted (``refused``) and audited through the channel, within its budget. Each
     platform's presence changes are taken on a task of its own, those that cost a signed
     query within a per-platform budget (`PRESENCE_BURST`, then `PRESENCE_RATE` per the
