@@ -32,7 +32,6 @@ from agents import (
     wire_key,
 )
 from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
-from dyknow_core.reasoning import Anchoring
 
 from ._cli_common import (
     NotAnsweredError,
@@ -133,7 +132,12 @@ def unprovided(platform: FederationPlatform, source: str) -> list[str]:
     templates = [label for spec in config.inputs for label in spec.fields.values()]
     templates.append(config.import_label)
     # the anchoring makes a stream per feature of each object it creates or links
-    for process in instance.processes.values():
+    # (imported only where there are processes: a node without them does not load the
+    # reasoning package)
+    processes = list(instance.processes.values())
+    if processes:
+        from dyknow_core.reasoning import Anchoring
+    for process in processes:
         if isinstance(process, Anchoring):
             for cls in process.classes.values():
                 templates.extend(cls.features.values())
