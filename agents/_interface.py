@@ -1392,7 +1392,9 @@ class InterfaceAgent:
                         if total is not None:
                             total.tokens -= 1.0
                         copied = head_fields.copy()
-                        copied["receivers"] = rest["receivers"]  # its own list
+                        # its own list, the decoded batch's, not copied: nothing else
+                        # keeps the batch's items once they are taken
+                        copied["receivers"] = rest["receivers"]
                         copied["content"] = content
                         add_entry(head_entry)
                         run.append(_constructed(ACLMessage, copied, set(obj)))
