@@ -545,11 +545,33 @@ def compose(
     fields, a finite float reply_by): those are checked here, at the cost of a few
     lookups, and the message put together directly, in the model's order of fields and
     with the fields_set `build` gives it. Anything else goes to `build`, which decides
-    as before (same errors).
+    as before (same errors). A burst repeats one header (the same performative, sender
+    and receiver objects, equal str fields): the last one checked is remembered, and a
+    message repeating it is put together without its checks again (~0.35 µs less).
     """
-    receivers = [receivers] if isinstance(receivers, str) else list(receivers)
+    last = _last_header
+    if (
+        receivers is last.receivers  # one identifier (only a str is remembered), unchanged
+        and sender is last.sender
+        and performative is last.performative
+        # exact str or None, as `_plain_message` took them, before comparing: an equal
+        # value of another type (a str subclass) is not taken for the remembered one
+        and _all_str_or_none(map(type, fields.values()))
+        and fields == last.fields
+    ):
+        # a run of messages with the header of the last one (a burst): its checks hold
+        try:
+            copied = _json_copy(content, 0)
+        except _NotPlain:
+            pass
+        else:
+            message = last.template.copy()
+            message["receivers"] = [receivers]
+            message["content"] = copied
+            return _constructed(ACLMessage, message, set(last.names))
+    listed = [receivers] if isinstance(receivers, str) else list(receivers)
     act = _PERFORMATIVES.get(performative) if type(performative) is str else performative
-    if _plain_message(act, sender, receivers, fields):
+    if _plain_message(act, sender, listed, fields):
         try:
             copied = _json_copy(content, 0)
         except _NotPlain:
@@ -558,20 +580,68 @@ def compose(
             message = _DEFAULTS.copy()  # every field, in the model's order
             message["performative"] = act
             message["sender"] = sender
-            message["receivers"] = receivers
+            message["receivers"] = listed
             message["content"] = copied
             names = {"performative", "sender", "receivers", "content"}
             if fields:
                 message.update(fields)
                 names.update(fields)
+            if type(receivers) is str:
+                _remember_header(performative, sender, receivers, fields, message, names)
             return _constructed(ACLMessage, message, names)
     return ACLMessage.build(
         performative=performative,
         sender=sender,
-        receivers=receivers,
+        receivers=listed,
         content=content,
         **fields,
     )
+
+
+_NO_HEADER = object()
+
+
+class _Header:
+    """The header (all but content) of the last message `compose` checked and put together."""
+
+    __slots__ = ("fields", "names", "performative", "receivers", "sender", "template")
+
+    def __init__(self) -> None:
+        self.performative: Any = None
+        self.sender: Any = None
+        # a str (a list could change between two calls); none at first: no call's
+        self.receivers: Any = _NO_HEADER
+        self.fields: dict[str, Any] = {}
+        self.template: dict[str, Any] = {}
+        self.names: frozenset[str] = frozenset()
+
+
+_last_header = _Header()
+_all_str_or_none = frozenset({str, type(None)}).issuperset
+
+
+def _remember_header(
+    performative: Any,
+    sender: str,
+    receivers: str,
+    fields: dict[str, Any],
+    message: dict[str, Any],
+    names: set[str],
+) -> None:
+    """Remember a checked header, for `compose` to take the next equal one without checks."""
+    if not _all_str_or_none(map(type, fields.values())):
+        # a reply_by: every request has its own, and an equal one of another type
+        # (True, 1) is no float: `build` decides on it
+        return
+    header = _Header()
+    header.performative = performative
+    header.sender = sender
+    header.receivers = receivers
+    header.fields = fields.copy()  # the caller's dict is its own to change
+    header.template = {**message, "receivers": None, "content": None}
+    header.names = frozenset(names)
+    global _last_header
+    _last_header = header
 
 
 def _plain_message(act: Any, sender: Any, receivers: list[Any], fields: dict[str, Any]) -> bool:
