@@ -724,6 +724,16 @@ def test_a_burst_header_is_taken_again_only_as_it_was_checked() -> None:
             protocol="x",
         )
     )
+    # the last message made, written with the header's remembered JSON: as it is now
+    fourth = compose(Performative.INFORM, aid, sink, [1, "two"], {"ontology": "o", "protocol": "x"})
+    assert fourth.to_json() == _old_to_json(fourth)
+    fourth.receivers[0] = "elsewhere@r"
+    assert orjson.loads(fourth.to_json())["receivers"] == ["elsewhere@r"]
+    fourth.receivers.append("more@r")
+    assert fourth.to_json() == _old_to_json(fourth)
+    too_big = compose(Performative.INFORM, aid, sink, [2**70], {"ontology": "o", "protocol": "x"})
+    with pytest.raises(MessageError, match="content cannot be sent as JSON"):
+        too_big.to_json()
     # an equal value of another type goes to build, as it did before the header was met
     odd = {"ontology": _Text("o"), "protocol": "x"}
     built = _outcome(lambda: _as_build_made_it(Performative.INFORM, aid, sink, {"seq": 4}, odd))
