@@ -192,6 +192,16 @@ class ACLMessage(BaseModel):
     def to_json(self) -> bytes:
         """The message as compact JSON bytes, leaving out unset fields."""
         fields = self.__dict__
+        header = _last_header
+        if fields is header.made:  # the message `compose` made last, of a remembered header
+            receivers = fields["receivers"]
+            content = fields["content"]
+            # its list is its own to change: only an unchanged one is written as remembered
+            if content is not None and len(receivers) == 1 and receivers[0] is header.receivers:
+                try:
+                    return header.prefix + orjson.dumps(content) + header.suffix
+                except orjson.JSONEncodeError as exc:
+                    raise MessageError(f"content cannot be sent as JSON: {exc}") from exc
         try:
             # the fields are already valid JSON values (content is validated as JsonValue,
             # performative is a str enum): dumping __dict__ skips pydantic's serializer
@@ -545,11 +555,35 @@ def compose(
     fields, a finite float reply_by): those are checked here, at the cost of a few
     lookups, and the message put together directly, in the model's order of fields and
     with the fields_set `build` gives it. Anything else goes to `build`, which decides
-    as before (same errors).
+    as before (same errors). A burst repeats one header (the same performative, sender
+    and receiver objects, equal str fields): the last one checked is remembered, and a
+    message repeating it is put together without its checks again (~0.35 µs less), and
+    `to_json` writes the last one made with the header's JSON remembered (~0.35 µs less).
     """
-    receivers = [receivers] if isinstance(receivers, str) else list(receivers)
+    last = _last_header
+    if (
+        receivers is last.receivers  # one identifier (only a str is remembered), unchanged
+        and sender is last.sender
+        and performative is last.performative
+        # exact str or None, as `_plain_message` took them, before comparing: an equal
+        # value of another type (a str subclass) is not taken for the remembered one
+        and _all_str_or_none(map(type, fields.values()))
+        and fields == last.fields
+    ):
+        # a run of messages with the header of the last one (a burst): its checks hold
+        try:
+            copied = _json_copy(content, 0)
+        except _NotPlain:
+            pass
+        else:
+            message = last.template.copy()
+            message["receivers"] = [receivers]
+            message["content"] = copied
+            last.made = message  # for to_json: its header is written as remembered
+            return _constructed(ACLMessage, message, set(last.names))
+    listed = [receivers] if isinstance(receivers, str) else list(receivers)
     act = _PERFORMATIVES.get(performative) if type(performative) is str else performative
-    if _plain_message(act, sender, receivers, fields):
+    if _plain_message(act, sender, listed, fields):
         try:
             copied = _json_copy(content, 0)
         except _NotPlain:
@@ -558,20 +592,91 @@ def compose(
             message = _DEFAULTS.copy()  # every field, in the model's order
             message["performative"] = act
             message["sender"] = sender
-            message["receivers"] = receivers
+            message["receivers"] = listed
             message["content"] = copied
             names = {"performative", "sender", "receivers", "content"}
             if fields:
                 message.update(fields)
                 names.update(fields)
+            if type(receivers) is str:
+                _remember_header(performative, act, sender, receivers, fields, message, names)
             return _constructed(ACLMessage, message, names)
     return ACLMessage.build(
         performative=performative,
         sender=sender,
-        receivers=receivers,
+        receivers=listed,
         content=content,
         **fields,
     )
+
+
+_NO_HEADER = object()
+
+
+class _Header:
+    """The header (all but content) of the last message `compose` checked and put together."""
+
+    __slots__ = (
+        "fields",
+        "made",
+        "names",
+        "performative",
+        "prefix",
+        "receivers",
+        "sender",
+        "suffix",
+        "template",
+    )
+
+    def __init__(self) -> None:
+        self.performative: Any = None
+        self.sender: Any = None
+        # a str (a list could change between two calls); none at first: no call's
+        self.receivers: Any = _NO_HEADER
+        self.fields: dict[str, Any] = {}
+        self.template: dict[str, Any] = {}
+        self.names: frozenset[str] = frozenset()
+        # the last message's fields put together from it (a dict no one else makes), and
+        # its JSON around the content: `to_json` writes that message with one dump
+        self.made: dict[str, Any] | None = None
+        self.prefix = b""
+        self.suffix = b""
+
+
+_last_header = _Header()
+_all_str_or_none = frozenset({str, type(None)}).issuperset
+
+
+def _remember_header(
+    performative: Any,
+    act: Any,
+    sender: str,
+    receivers: str,
+    fields: dict[str, Any],
+    message: dict[str, Any],
+    names: set[str],
+) -> None:
+    """Remember a checked header, for `compose` to take the next equal one without checks."""
+    if not _all_str_or_none(map(type, fields.values())):
+        # a reply_by: every request has its own, and an equal one of another type
+        # (True, 1) is no float: `build` decides on it
+        return
+    header = _Header()
+    header.performative = performative
+    header.sender = sender
+    header.receivers = receivers
+    header.fields = fields.copy()  # the caller's dict is its own to change
+    header.template = {**message, "receivers": None, "content": None}
+    header.names = frozenset(names)
+    header.made = message
+    # the JSON to_json writes, split around the content (between receivers and the
+    # optional str fields, in the model's order; reply_to is a list: never remembered)
+    head = {"v": message["v"], "performative": act, "sender": sender, "receivers": [receivers]}
+    tail = {name: message[name] for name in _OPTIONAL_STR if message[name] is not None}
+    header.prefix = orjson.dumps(head)[:-1] + b',"content":'
+    header.suffix = b"," + orjson.dumps(tail)[1:] if tail else b"}"
+    global _last_header
+    _last_header = header
 
 
 def _plain_message(act: Any, sender: Any, receivers: list[Any], fields: dict[str, Any]) -> bool:

@@ -688,6 +688,63 @@ def test_an_agents_message_is_the_message_build_makes(args: tuple[Any, ...]) -> 
     assert _outcome(quick.to_json) == _outcome(lambda: _old_to_json(slow))
     if isinstance(content, list | dict):
         assert quick.content is not content  # copied: changing it later changes no message
+    # the same header again (a burst): taken as remembered, the same message as build's
+    again = compose(performative, sender, receivers, content, dict(fields))
+    assert repr(again) == repr(slow)
+    assert list(again.__dict__) == list(slow.__dict__)
+    assert again.model_fields_set == slow.model_fields_set
+    assert _outcome(again.to_json) == _outcome(lambda: _old_to_json(slow))
+    assert again.receivers is not quick.receivers  # each message its own list
+    if isinstance(content, list | dict):
+        assert again.content is not quick.content
+
+
+class _Text(str):
+    """A str subclass: equal to the str it spells, not of its exact type."""
+
+
+def test_a_burst_header_is_taken_again_only_as_it_was_checked() -> None:
+    """A header equal to the last one's is not checked again; anything else is, as before."""
+    aid, sink = "burst@p", "sink@q"
+    fields = {"ontology": "o", "protocol": "x"}
+    first = compose(Performative.INFORM, aid, sink, {"seq": 1}, fields)
+    fields["ontology"] = "changed"  # the caller's dict, changed after the call
+    second = compose(Performative.INFORM, aid, sink, {"seq": 2}, {"ontology": "o", "protocol": "x"})
+    assert second.ontology == "o" and second.content == {"seq": 2}
+    first.receivers.append("other@r")  # a message's list is its own
+    third = compose(Performative.INFORM, aid, sink, {"seq": 3}, {"ontology": "o", "protocol": "x"})
+    assert third.receivers == [sink]
+    assert third.to_json() == _old_to_json(
+        ACLMessage(
+            performative="inform",
+            sender=aid,
+            receivers=[sink],
+            content={"seq": 3},
+            ontology="o",
+            protocol="x",
+        )
+    )
+    # the last message made, written with the header's remembered JSON: as it is now
+    fourth = compose(Performative.INFORM, aid, sink, [1, "two"], {"ontology": "o", "protocol": "x"})
+    assert fourth.to_json() == _old_to_json(fourth)
+    fourth.receivers[0] = "elsewhere@r"
+    assert orjson.loads(fourth.to_json())["receivers"] == ["elsewhere@r"]
+    fourth.receivers.append("more@r")
+    assert fourth.to_json() == _old_to_json(fourth)
+    too_big = compose(Performative.INFORM, aid, sink, [2**70], {"ontology": "o", "protocol": "x"})
+    with pytest.raises(MessageError, match="content cannot be sent as JSON"):
+        too_big.to_json()
+    # an equal value of another type goes to build, as it did before the header was met
+    odd = {"ontology": _Text("o"), "protocol": "x"}
+    built = _outcome(lambda: _as_build_made_it(Performative.INFORM, aid, sink, {"seq": 4}, odd))
+    got = _outcome(lambda: compose(Performative.INFORM, aid, sink, {"seq": 4}, dict(odd)))
+    assert got[0] == built[0] == "ok"
+    assert repr(got[1]) == repr(built[1])
+    # a changed field or receiver is a new header: checked, refused as build refuses it
+    with pytest.raises(ValidationError):
+        compose(Performative.INFORM, aid, sink, None, {"ontology": 5, "protocol": "x"})
+    with pytest.raises(ValidationError):
+        compose(Performative.INFORM, aid, "no-platform", None, {"ontology": "o"})
 
 
 async def test_an_agent_not_on_a_platform_cannot_make_a_message() -> None:
