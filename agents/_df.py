@@ -1462,7 +1462,6 @@ class GlobalDirectory:
                 if platform in self._alive:
                     self._set_alive(platform, False)
                     self._drop_entries(platform)
-                    self._unconfirmed.pop(platform, None)
                 return
             if platform not in self._alive or platform not in self._joining:
                 return  # gone, or listed by the recheck, meanwhile
@@ -1472,7 +1471,8 @@ class GlobalDirectory:
                 self._hold(platform)
                 self._refuse(platform, "presence without a signed directory answer", "presence")
                 return
-            self._unconfirmed.pop(platform, None)
+            if self._unconfirmed.pop(platform, None) is not None:
+                self.version += 1  # its services count from now on
             self._set_alive(platform, True)  # answered: exempt from the shared budget now
             self._up(platform)
         elif platform in self._unconfirmed:
@@ -1520,6 +1520,7 @@ class GlobalDirectory:
             self._hold(platform)
             return
         del self._unconfirmed[platform]
+        self.version += 1  # its services count from now on
         self._set_alive(platform, True)
         log.info("global-df[%s]: %r answered at last: listed", self._platform.name, platform)
         self._up(platform)
