@@ -292,6 +292,7 @@ async def test_a_forged_token_held_is_asked_again_at_a_bounded_rate(
         gdf = a.agents.global_df
         assert gdf is not None
         audit = a.interface.audit
+        refused = gdf.refused
         seen: list[list[str]] = []
         with _outsider(port) as session:
 
@@ -333,6 +334,8 @@ async def test_a_forged_token_held_is_asked_again_at_a_bounded_rate(
     ]
     print([(r["count"], r["reason"]) for r in summed])
     assert len(summed) == 2 and sum(r["count"] for r in summed) == len(again), summed
+    # each refused answer counted: the first three askings', the presence, the re-askings'
+    assert gdf.refused == refused + 3 + 1 + len(again), (gdf.refused, refused, len(again))
 
 
 async def test_a_recheck_held_open_does_not_list_a_member_that_left_meanwhile(
