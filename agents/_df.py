@@ -644,9 +644,9 @@ UNCONFIRMED_FIRST_WAIT = 1.0
 """Seconds before a platform whose presence holds, but whose first snapshot did not come,
 is asked again; the wait doubles after each unanswered query, up to `UNCONFIRMED_MAX_WAIT`."""
 UNCONFIRMED_MAX_WAIT = 4.0
-"""Seconds between two queries of such a platform at most: under the presence budget's
-steady rate (`PRESENCE_RATE` per ``rehandshake_interval``), so a forged token held under a
-trusted name costs fewer signed queries than toggling it would."""
+"""Seconds between two queries of such a platform at most; each query is also taken from
+the name's presence budget (`PRESENCE_RATE` per ``rehandshake_interval``), so a forged
+token held under a trusted name costs no more signed queries than toggling it would."""
 _STALE_KEYS = 64  # platforms whose stale events are summed up apart, per interval
 INVALID_LOG_INTERVAL = 30.0
 """Seconds between two log lines about one signer's invalid directory statements."""
@@ -670,13 +670,14 @@ class GlobalDirectory:
     leave of a process whose answer was never read counts only once the platform runs no
     more (`_confirm_leave`; else refused as replayed or late); a presence refused for
     want of that answer is asked again while it holds (``unconfirmed``: after
-    `UNCONFIRMED_FIRST_WAIT` s, doubling up to `UNCONFIRMED_MAX_WAIT`) and listed once it
-    answers; where presence can be forged (``Transport.forgeable_presence``: MQTT's
-    retained messages), a presence that goes without a signed leave is believed only when
-    the platform no longer answers a fresh signed query; and every ``recheck_interval``
-    seconds the members are asked again (a member that answers none twice in a row is
-    gone: on zenoh a forged token would otherwise keep a dead platform listed). What is
-    refused is
+    `UNCONFIRMED_FIRST_WAIT` s, doubling up to `UNCONFIRMED_MAX_WAIT`, within its
+    presence budget) and listed once it answers, its snapshot compared with the entries
+    watchers were told of; where presence can be forged (``Transport.forgeable_presence``:
+    MQTT's retained messages), a presence that goes without a signed leave is believed
+    only when the platform no longer answers a fresh signed query; and every
+    ``recheck_interval`` seconds the members are asked again (a member that answers none
+    twice in a row is gone: on zenoh a forged token would otherwise keep a dead platform
+    listed). What is refused is
     counted (``refused``) and audited through the channel, within its budget. Each
     platform's presence changes are taken on a task of its own, those that cost a signed
     query within a per-platform budget (`PRESENCE_BURST`, then `PRESENCE_RATE` per the
@@ -731,6 +732,9 @@ class GlobalDirectory:
         )
         # invalid statements of trusted signers: logged once per signer per interval
         self._invalid_log = Tally(self._log_invalid, interval=INVALID_LOG_INTERVAL)
+        # answers refused to the re-asking of an unconfirmed platform: one asking every few
+        # s while a forged token is held, so summed up per claimed name and interval
+        self._retry_refused = Tally(self._audit_retry_refused, interval=INVALID_LOG_INTERVAL)
         if self._auth.authenticates and event_limit is not None:
             self.event_gate = DfEventGate(self._auth, event_limit, on_shed=self._shed_pending.add)
         self._resyncing: set[str] = set()
@@ -747,9 +751,13 @@ class GlobalDirectory:
         self._presence_buckets: dict[str, TokenBucket] = {}
         self.presence_limited = 0  # presence changes not acted on one by one (over budget)
         # trusted platforms whose presence holds but whose first signed snapshot did not come
-        # (refused): asked again, with backoff, while it holds; the value says whether
-        # watchers were told of entries of theirs (their events came while it was asked)
-        self._unconfirmed: dict[str, bool] = {}
+        # (refused): asked again, with backoff, while it holds; the value is the entries
+        # watchers were told of (their events came while it was asked), kept to be
+        # compared with its snapshot once it answers: what it dropped meanwhile is told
+        self._unconfirmed: dict[str, dict[tuple[str, str], ServiceDescription]] = {}
+        # when (monotonic) each platform was last taken for gone or left: an answer to a
+        # query begun before must not list it again
+        self._went_at: dict[str, float] = {}
         # per platform followed: set when a raw presence change is queued for its task
         self._presence_changed: dict[str, asyncio.Event] = {}
         self._presence_ignored: dict[str, int] = {}  # counted, not yet in an audit record
@@ -766,6 +774,7 @@ class GlobalDirectory:
         p = self._platform
         gate = self.event_gate
         self._stale_tally.bind(asyncio.get_running_loop())
+        self._retry_refused.bind(asyncio.get_running_loop())
         # Subscribe before the snapshot: what changes meanwhile is queued, not lost.
         events = await p.transport.subscribe(
             p.key("df-events", "*"), admit=None if gate is None else gate.admit
@@ -802,6 +811,7 @@ class GlobalDirectory:
         # what was counted since the last summary is reported, not lost with the platform
         self._stale_tally.close()
         self._invalid_log.close()
+        self._retry_refused.close()
         for platform in list(self._presence_ignored):
             self._presence_limit(platform, 0, audit=True)
         gate = self.event_gate
@@ -824,14 +834,24 @@ class GlobalDirectory:
 
     @property
     def platforms(self) -> list[str]:
-        """The platforms known alive."""
-        return sorted(self._alive)
+        """The platforms known alive (an unconfirmed one only once its signed answer came)."""
+        return sorted(p for p in self._alive if p not in self._unconfirmed)
 
     def services(self, platform: str | None = None) -> list[ServiceDescription]:
         """Every public service known (of ``platform`` only, when given)."""
+        # an unconfirmed platform's entries, restored while it is asked again, count only
+        # once it answered: a forged presence must not make a provider now and then
         if platform is not None:
+            if platform in self._unconfirmed:
+                return []
             return list(self._entries.get(platform, {}).values())
-        return [s for entries in self._entries.values() for s in entries.values()]
+        unconfirmed = self._unconfirmed
+        return [
+            s
+            for name, entries in self._entries.items()
+            if name not in unconfirmed
+            for s in entries.values()
+        ]
 
     def search(
         self, query: ServiceQuery | dict[str, Any] | None = None, **fields: Any
@@ -909,6 +929,22 @@ class GlobalDirectory:
             ),
         )
 
+    def _audit_retry_refused(
+        self, claimed: object, count: int, detail: str, seconds: float | None
+    ) -> None:
+        """One audit record for ``count`` refused answers to the re-asking of ``claimed``."""
+        self._platform.audit(
+            verdict="dropped",
+            stage="df",
+            count=count,
+            **{"from": claimed},
+            reason=(
+                f"directory answer: {count} answer(s) in the name of {claimed!r}, asked again "
+                f"while its presence holds unconfirmed, refused{since(seconds)} (last: "
+                f"{detail[:200]})"
+            ),
+        )
+
     def _log_invalid(
         self, platform: object, count: int, detail: str, seconds: float | None
     ) -> None:
@@ -973,13 +1009,15 @@ class GlobalDirectory:
         timeout: float | None = None,
         *,
         expect: set[str] | Callable[[], Awaitable[set[str] | None]] | None = None,
+        summed: bool = False,
     ) -> dict[str, list[ServiceDescription]]:
         """Ask the DF(s) for their public services: {platform: services} of those that answered.
 
         The query ends once every platform of ``expect`` answered (one named: that one),
         or when the transport knows all did, or at the timeout. ``expect`` may be a
         function finding that set, called once the query is sent (its replies queue
-        meanwhile); only an authenticated answer counts.
+        meanwhile); only an authenticated answer counts. ``summed``: answers refused are
+        audited summed up per claimed name (`_retry_refused`), not one by one.
         """
         if expect is None and "*" not in platform:
             expect = {platform}  # its answer is all there is (MQTT's query would wait on)
@@ -993,14 +1031,20 @@ class GlobalDirectory:
             ) as replies:
                 wanted = await expect() if callable(expect) else expect
                 async for reply in replies:
-                    self._take(reply, nonce, found)
+                    self._take(reply, nonce, found, summed)
                     if wanted is not None and wanted.issubset(found):
                         break
         except TransportError as exc:
             log.warning("global-df[%s]: query failed: %s", self._platform.name, exc)
         return found
 
-    def _take(self, reply: Reply, nonce: bytes, found: dict[str, list[ServiceDescription]]) -> None:
+    def _take(
+        self,
+        reply: Reply,
+        nonce: bytes,
+        found: dict[str, list[ServiceDescription]],
+        summed: bool = False,
+    ) -> None:
         """Add a directory answer to ``found`` if it authenticates; refuse and count it if not."""
         if not reply.ok:
             return
@@ -1009,7 +1053,11 @@ class GlobalDirectory:
         try:
             statement = self._auth.open(reply.payload, "df", platform=where, nonce=nonce)
         except DirectoryStatementError as exc:
-            self._refuse(exc.platform or where, f"directory answer: {exc.reason}", "df")
+            if summed:
+                self.refused += 1
+                self._retry_refused.add(exc.platform or where, exc.reason[:200])
+            else:
+                self._refuse(exc.platform or where, f"directory answer: {exc.reason}", "df")
             return
         try:
             items = statement.body
@@ -1281,7 +1329,8 @@ class GlobalDirectory:
         return had
 
     def _gone(self, platform: str) -> None:
-        told = self._unconfirmed.pop(platform, False)
+        self._went_at[platform] = time.monotonic()
+        told = bool(self._unconfirmed.pop(platform, None))
         if platform in self._alive:
             self._set_alive(platform, False)
             self._drop_entries(platform)
@@ -1345,20 +1394,38 @@ class GlobalDirectory:
                 if platform not in self._unconfirmed:
                     return
                 # Its presence holds, its snapshot did not come (a loaded machine, its
-                # directory shedding queries): asked again soon, not only at the recheck
-                changed.clear()
-                with contextlib.suppress(TimeoutError):
-                    async with asyncio.timeout(wait):
-                        await changed.wait()  # a presence change comes first: acted on
-                if queue or platform not in self._unconfirmed:
+                # directory shedding queries): asked again soon, not only at the recheck;
+                # each asking is taken from its presence budget, so a forged token held
+                # under its name costs no more signed queries than toggling it would
+                if not await self._await_retry(platform, queue, changed, wait):
                     continue
-                wait = min(wait * 2, UNCONFIRMED_MAX_WAIT)
                 await self._confirm(platform, timeout=max(self.query_timeout, wait))
+                wait = min(wait * 2, UNCONFIRMED_MAX_WAIT)
         finally:
             if self._presence_queues.get(platform) is queue:
                 del self._presence_queues[platform]
             if self._presence_changed.get(platform) is changed:
                 del self._presence_changed[platform]
+
+    async def _await_retry(
+        self, platform: str, queue: deque[bool], changed: asyncio.Event, wait: float
+    ) -> bool:
+        """Wait ``wait`` s, then for ``platform``'s presence budget; whether to ask it now.
+
+        False when a presence change came meanwhile (acted on first), or it is no longer
+        unconfirmed.
+        """
+        bucket = self._presence_bucket(platform)
+        while True:
+            changed.clear()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(wait):
+                    await changed.wait()
+            if queue or platform not in self._unconfirmed:
+                return False
+            if bucket.take(time.monotonic()):
+                return True
+            wait = max((1.0 - bucket.tokens) / bucket.rate, 0.05)
 
     def _presence_costs(self, platform: str, alive: bool) -> bool:
         """Whether acting on this presence change of ``platform`` asks it a signed query."""
@@ -1429,6 +1496,7 @@ class GlobalDirectory:
         if alive:
             if platform in self._alive:
                 return
+            self._restore(platform)
             self._set_alive(platform, True, joining=True)
             try:
                 confirmed = await self._fetch(platform)
@@ -1445,12 +1513,11 @@ class GlobalDirectory:
             if not confirmed and self._auth.authenticates:
                 # a token anyone could declare; the platform itself did not answer (yet):
                 # refused once, then asked again while the token holds
-                self._set_alive(platform, False)
-                told = self._drop_entries(platform)
-                self._unconfirmed[platform] = told or self._unconfirmed.get(platform, False)
+                self._hold(platform)
                 self._refuse(platform, "presence without a signed directory answer", "presence")
                 return
-            self._unconfirmed.pop(platform, None)
+            if self._unconfirmed.pop(platform, None) is not None:
+                self.version += 1  # its services count from now on
             self._set_alive(platform, True)  # answered: exempt from the shared budget now
             self._up(platform)
         elif platform in self._unconfirmed:
@@ -1466,22 +1533,39 @@ class GlobalDirectory:
                 return
             self._gone(platform)
 
+    def _restore(self, platform: str) -> None:
+        """Put back the entries watchers were told of for unconfirmed ``platform``.
+
+        Its events while it is asked, and its snapshot, are compared with what watchers
+        believe: a service it deregistered meanwhile is told ``deregister``.
+        """
+        told = self._unconfirmed.get(platform)
+        if told:
+            self._entries[platform] = dict(told)
+            self.version += 1
+
+    def _hold(self, platform: str) -> None:
+        """Take ``platform`` for not alive, unconfirmed: its entries kept aside, not served."""
+        self._set_alive(platform, False)
+        self._unconfirmed[platform] = self._entries.pop(platform, {})
+        self.version += 1
+
     async def _confirm(self, platform: str, timeout: float) -> None:
         """Ask unconfirmed ``platform`` again (one query): listed if it answers, signed."""
+        self._restore(platform)
         self._set_alive(platform, True, joining=True)
         try:
-            confirmed = await self._fetch(platform, unanswered=1, timeout=timeout)
+            confirmed = await self._fetch(platform, unanswered=1, timeout=timeout, summed=True)
         except Exception:
             log.exception("global-df[%s]: asking %r again", self._platform.name, platform)
             confirmed = False
         if platform not in self._alive or platform not in self._unconfirmed:
             return  # gone, or listed by the recheck, meanwhile
         if not confirmed:
-            self._set_alive(platform, False)
-            if self._drop_entries(platform):
-                self._unconfirmed[platform] = True
+            self._hold(platform)
             return
         del self._unconfirmed[platform]
+        self.version += 1  # its services count from now on
         self._set_alive(platform, True)
         log.info("global-df[%s]: %r answered at last: listed", self._platform.name, platform)
         self._up(platform)
@@ -1516,7 +1600,7 @@ class GlobalDirectory:
             if wait > 0:
                 await self._recheck_sleep(wait)
                 continue
-            last = time.monotonic()
+            last = began = time.monotonic()
             # generous: a busy member must not be taken for gone (nothing waits on this)
             answered = await self._query("*", max(self.query_timeout, 5.0))
             for platform in sorted(self._alive):
@@ -1542,8 +1626,14 @@ class GlobalDirectory:
             for platform, services in answered.items():
                 if platform == self._platform.name:
                     continue
+                if self._went_at.get(platform, -math.inf) >= began:
+                    # it left (signed) or was taken for gone after it answered: the answer
+                    # is older than that, and must not serve it again
+                    continue
                 # not listed, or its snapshot asked meanwhile: this answer is as signed
                 if platform not in self._alive or platform in self._joining:
+                    if platform not in self._alive:
+                        self._restore(platform)
                     self._unconfirmed.pop(platform, None)
                     self._set_alive(platform, True)
                     self._replace(platform, services)
@@ -1568,7 +1658,12 @@ class GlobalDirectory:
         return platform in await self._query(platform)
 
     async def _fetch(
-        self, platform: str, *, unanswered: int = 3, timeout: float | None = None
+        self,
+        platform: str,
+        *,
+        unanswered: int = 3,
+        timeout: float | None = None,
+        summed: bool = False,
     ) -> bool:
         """Take ``platform``'s snapshot; again if events came meanwhile (they may be newer).
 
@@ -1578,7 +1673,7 @@ class GlobalDirectory:
         misses = 0
         for attempt in range(3):
             seen = self._event_counts.get(platform, 0)
-            services = (await self._query(platform, timeout)).get(platform)
+            services = (await self._query(platform, timeout, summed=summed)).get(platform)
             if platform not in self._alive:
                 return False  # gone while we asked
             if services is None:

@@ -1641,12 +1641,15 @@ class FederationAgent(Agent):
         self._providers[include_self] = (gdf, version, found)
         return found.copy()
 
-    def _unlisted(self, providers: dict[str, str]) -> list[str]:
-        """The members a global request to ``providers`` leaves out: not listed (yet)."""
-        # A member's signed events made it one, but its entries are dropped until its signed
-        # snapshot is read (a loaded machine: seconds); said, not silently left out
-        me = self.platform.name
-        return sorted(p for p in self._members if p not in providers and p != me)
+    def _unlisted(self) -> list[str]:
+        """The members a global request leaves out: the directory does not list them yet."""
+        # A member's signed events made it one, but its entries are held aside until its
+        # signed snapshot is read (a loaded machine: seconds); said, not silently left out.
+        # Only those: a member merely without a provider is not waiting to be listed
+        gdf = self.platform.global_df
+        if gdf is None:
+            return []
+        return [p for p in gdf.unconfirmed if p in self._members]
 
     async def global_request(
         self,
@@ -1671,7 +1674,7 @@ class FederationAgent(Agent):
         if select not in ("first", "newest") and not callable(select):
             raise ValueError(f"select must be 'first', 'newest' or a function, not {select!r}")
         providers = self.providers(include_self=include_self)
-        result = GlobalResult(asked=list(providers), unlisted=self._unlisted(providers))
+        result = GlobalResult(asked=list(providers), unlisted=self._unlisted())
         if not providers:
             return result
         held: dict[str, list[_Held]] = {}

@@ -5,12 +5,18 @@ Directory Facilitator holds its answers back (as a loaded one does: each query e
 its timeout) while it joins: uav-a took its signed events (it joined) but never
 its signed snapshot, so uav-a refuses its presence and drops its entries. A global request
 then names uav-b ``unlisted`` instead of leaving it out silently; once uav-b's directory
-answers again, uav-a lists it within a few seconds (before: at the next recheck, 30 s).
+answers again, uav-a lists it within a few seconds (before: at the next recheck, 30 s);
+what it deregistered meanwhile is told then. An outsider's plain zenoh peer holds a token
+under a trusted name (asked again at a bounded rate), or holds the recheck's query open
+while a member leaves (its answer to it must not serve it again).
 """
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import itertools
+import json
 import os
 import time
 from collections.abc import Awaitable, Callable, Iterator
@@ -18,19 +24,22 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import zenoh
 
-from agents import DirectoryFacilitator
-from agents._df import UNCONFIRMED_MAX_WAIT
+from agents import Agent, DirectoryFacilitator, request, wire_key
+from agents import _df as df_module
+from agents._df import UNCONFIRMED_MAX_WAIT, GlobalDirectory
 from agents.keys import gen_keys, trust_keys
 from agents.transports import free_tcp_port
 from federation import FederationPlatform, PlatformConfig
+from federation._service import ONTOLOGY
 
 WAIT = 15.0
 pytestmark = pytest.mark.timeout(120)
 
 
-def _federation(tmp: Path, fed: str) -> None:
-    """uav-a listening, uav-b connecting to it; both trusted."""
+def _federation(tmp: Path, fed: str) -> int:
+    """uav-a listening, uav-b connecting to it; both trusted. The port uav-a listens on."""
     names = ["uav-a", "uav-b"]
     port = free_tcp_port()
     transport = {
@@ -49,6 +58,21 @@ def _federation(tmp: Path, fed: str) -> None:
             f'vocabulary = "vocab.toml"\nmapping = "{n}-labels.toml"\n'
             f'audit = "{n}-audit.jsonl"\n\n[transport]\n{transport[n]}\n'
         )
+    return port
+
+
+@contextlib.contextmanager
+def _outsider(port: int) -> Iterator[zenoh.Session]:
+    """A plain zenoh peer of an outsider (no key of the federation), on loopback."""
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"peer"')
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    cfg.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    session = zenoh.open(cfg)
+    try:
+        yield session
+    finally:
+        session.close()
 
 
 class _Withheld:
@@ -78,6 +102,23 @@ class _Withheld:
             return await real(df, key, payload)
 
         return serve
+
+
+@pytest.fixture
+def asked(monkeypatch: pytest.MonkeyPatch) -> list[float]:
+    """When uav-a's directory view asked uav-b alone (monotonic), from now on."""
+    times: list[float] = []
+    real = GlobalDirectory._query
+
+    async def counted(
+        self: GlobalDirectory, platform: str, *args: Any, **kwargs: Any
+    ) -> dict[str, Any]:
+        if platform == "uav-b" and self._platform.name == "uav-a":
+            times.append(time.monotonic())
+        return await real(self, platform, *args, **kwargs)
+
+    monkeypatch.setattr(GlobalDirectory, "_query", counted)
+    return times
 
 
 @pytest.fixture
@@ -120,7 +161,7 @@ async def _joined_unconfirmed(a: FederationPlatform, b: FederationPlatform) -> N
 
 
 async def test_a_member_not_listed_yet_is_unlisted_then_listed_once_it_answers(
-    tmp_path: Path, withheld: _Withheld
+    tmp_path: Path, withheld: _Withheld, asked: list[float]
 ) -> None:
     fed = f"unlisted{os.getpid()}a"
     _federation(tmp_path, fed)
@@ -133,6 +174,7 @@ async def test_a_member_not_listed_yet_is_unlisted_then_listed_once_it_answers(
         assert gdf is not None
         refused = gdf.refused
         await _joined_unconfirmed(a, b)
+        refused_at = time.monotonic()
         assert gdf.refused == refused + 1
         records = _presence_refusals(a)
         assert len(records) == 1, records
@@ -142,38 +184,76 @@ async def test_a_member_not_listed_yet_is_unlisted_then_listed_once_it_answers(
         result = await fed_a.global_request({"action": "list-labels"}, deadline=2.0)
         assert result.asked == [] and result.answers == {} and result.no_answer == []
         assert result.unlisted == ["uav-b"]
-        assert result.to_content()["unlisted"] == ["uav-b"]
+        # what a local agent asking over ACL (and the console) is told
+        asker = await a.agents.add(Agent("asker"))
+        content = {"action": "global-request", "request": {"action": "list-labels"}, "deadline": 1}
+        told = await request(asker, "federation@uav-a", content, ontology=ONTOLOGY)
+        assert isinstance(told, dict) and told["unlisted"] == ["uav-b"], told
+        assert told["asked"] == [] and told["no-answer"] == []
         with_self = await fed_a.global_request(
             {"action": "list-labels"}, deadline=2.0, include_self=True
         )
         assert with_self.asked == ["uav-a"] and with_self.unlisted == ["uav-b"]
 
-        # asked again while its presence holds, with a wait that grows: no storm of queries
-        before, since = withheld.held, time.monotonic()
-        await asyncio.sleep(3 * UNCONFIRMED_MAX_WAIT)  # what is measured is the query count
-        held = time.monotonic() - since
-        asked = withheld.held - before
-        print(f"uav-b asked {asked} times in {held:.1f} s while its directory was withheld")
-        assert 1 <= asked <= held / 1.0 + 1, asked
+        # asked again while its presence holds, the wait doubling up to its bound: three
+        # askings after the refusal (one would come every 2 s without the backoff)
+        first = len(asked)
+        await _until("uav-b asked again thrice", lambda: len(asked) >= first + 3, 4 * WAIT)
+        asks = asked[first:]
+        gaps = [round(b - a, 2) for a, b in itertools.pairwise(asks)]
+        held = asks[-1] - refused_at
+        print(f"uav-b asked {len(asks)} times in {held:.1f} s after its refusal; gaps {gaps}")
+        assert len(asks) <= held / UNCONFIRMED_MAX_WAIT + 3, asks
+        assert max(gaps) >= UNCONFIRMED_MAX_WAIT, gaps
         assert gdf.refused == refused + 1 and len(_presence_refusals(a)) == 1  # refused once
+        assert "uav-b" not in gdf.platforms  # asked, not listed, meanwhile
 
         withheld.release()
         answers = time.monotonic()
-        await _until(
-            "uav-a lists uav-b once it answers",
-            lambda: "uav-b" in fed_a.providers(),
-            wait=2 * UNCONFIRMED_MAX_WAIT + 4.0,
-        )
+        await _until("uav-a lists uav-b once it answers", lambda: "uav-b" in fed_a.providers())
         took = time.monotonic() - answers
         print(f"uav-b listed {took:.2f} s after its directory answered again")
+        # the query held meanwhile is answered at once: listed within its answer's time
+        assert took < 3.0, took
         assert gdf.unconfirmed == [] and "uav-b" in gdf.platforms
         result = await fed_a.global_request({"action": "list-labels"}, deadline=WAIT)
         assert result.asked == ["uav-b"] and list(result.answers) == ["uav-b"]
         assert result.unlisted == []
 
 
-async def test_an_unlisted_member_that_goes_is_gone(tmp_path: Path, withheld: _Withheld) -> None:
+async def test_a_service_deregistered_while_unlisted_is_told_once_listed(
+    tmp_path: Path, withheld: _Withheld
+) -> None:
+    """uav-b leaves the federation (signed) while not listed: members told once it answers."""
+    fed = f"unlisted{os.getpid()}c"
+    _federation(tmp_path, fed)
+    async with (
+        asyncio.timeout(6 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-b.toml"), join=False) as b,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        async with a.membership() as events:
+            await _joined_unconfirmed(a, b)
+            await b.leave()  # its signed deregistrations come while it is not listed
+            assert not b.federation_agent.joined
+            withheld.release()
+            await _until("uav-a lists uav-b", lambda: "uav-b" in gdf.platforms)
+            await _until("uav-a's members without uav-b", lambda: "uav-b" not in a.members)
+            kinds = [e.kind for e in events.inbox.drain() if e.platform == "uav-b"]
+            assert kinds == ["joined", "left"], kinds
+        assert gdf.unconfirmed == [] and gdf.services("uav-b") == []
+        result = await a.federation_agent.global_request({"action": "list-labels"}, deadline=2.0)
+        assert result.asked == [] and result.unlisted == []
+
+
+async def test_an_unlisted_member_that_goes_is_gone(
+    tmp_path: Path, withheld: _Withheld, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Its presence ends before its snapshot ever came: members told ``gone``, not kept."""
+    # not asked again meanwhile: the presence ending is what takes it, not a query's end
+    monkeypatch.setattr(df_module, "UNCONFIRMED_FIRST_WAIT", 10 * WAIT)
     fed = f"unlisted{os.getpid()}b"
     _federation(tmp_path, fed)
     async with (
@@ -187,9 +267,130 @@ async def test_an_unlisted_member_that_goes_is_gone(tmp_path: Path, withheld: _W
                 PlatformConfig.load(tmp_path / "uav-b.toml"), join=False
             ) as b:
                 await _joined_unconfirmed(a, b)
+                held = withheld.held
             await _until("uav-a's members without uav-b", lambda: "uav-b" not in a.members)
+            assert withheld.held == held  # never asked again: the presence's end took it
             assert gdf.unconfirmed == []
             kinds = [e.kind for e in events.inbox.drain() if e.platform == "uav-b"]
             assert kinds == ["joined", "gone"], kinds
         result = await a.federation_agent.global_request({"action": "list-labels"}, deadline=2.0)
         assert result.unlisted == []
+
+
+async def test_a_forged_token_held_is_asked_again_at_a_bounded_rate(
+    tmp_path: Path, asked: list[float]
+) -> None:
+    """An outsider holds a token under trusted uav-b's name (uav-b does not run) and answers
+    its directory queries with junk: refused once, asked again with the wait doubling, never
+    listed; the junk answers to the re-asking audited summed up, not one record each."""
+    fed = f"unlisted{os.getpid()}d"
+    port = _federation(tmp_path, fed)
+    async with (
+        asyncio.timeout(6 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        audit = a.interface.audit
+        refused = gdf.refused
+        seen: list[list[str]] = []
+        with _outsider(port) as session:
+
+            def junk(query: zenoh.Query) -> None:
+                query.reply(str(query.key_expr), b'{"platform": "uav-b", "junk": [')
+
+            queryable = session.declare_queryable(wire_key(fed, "df", "uav-b"), junk)
+            token = session.liveliness().declare_token(wire_key(fed, "alive", "uav-b"))
+            await _until("uav-a refuses the forged presence", lambda: gdf.unconfirmed)
+            refused_at = time.monotonic()
+            first = len(asked)
+            while len(asked) < first + 4:  # four askings again, each awaited
+                n = len(asked)
+                await _until("uav-b asked again", lambda n=n: len(asked) > n, 4 * WAIT)
+                seen.append(gdf.platforms)
+            token.undeclare()
+            queryable.undeclare()
+            await _until("the forged presence's end taken", lambda: not gdf.unconfirmed)
+        again = asked[first:]
+        gaps = [round(b - a, 2) for a, b in itertools.pairwise(again)]
+        held = again[-1] - refused_at
+        print(f"the forged uav-b asked {len(again)} times in {held:.1f} s; gaps {gaps}")
+        assert len(again) <= held / UNCONFIRMED_MAX_WAIT + 3, again
+        # the wait doubles (1, 2, 4 s), then stays: one asking per 4 s (2 s without backoff)
+        assert all(b >= a - 0.5 for a, b in itertools.pairwise(gaps)), gaps
+        assert gaps[-1] >= UNCONFIRMED_MAX_WAIT - 0.5, gaps
+        assert all("uav-b" not in p for p in seen), seen  # never in the view's platforms
+        mine = [r for r in audit.records if r.get("from") == "uav-b"]
+        assert [r["stage"] for r in mine if r["stage"] == "presence"] == ["presence"], mine
+        summed = [r for r in mine if r["stage"] == "df" and "asked again" in r["reason"]]
+        # the first at once, the rest within the interval in the next summary
+        assert len(summed) == 1 and summed[0]["count"] == 1, summed
+        # its first three askings answered junk too, each refused as any answer is
+        assert len([r for r in mine if r["stage"] == "df"]) == 1 + 3, mine
+    summed = [
+        r
+        for r in audit.records
+        if r.get("from") == "uav-b" and r.get("stage") == "df" and "asked again" in r["reason"]
+    ]
+    print([(r["count"], r["reason"]) for r in summed])
+    assert len(summed) == 2 and sum(r["count"] for r in summed) == len(again), summed
+    # each refused answer counted: the first three askings', the presence, the re-askings'
+    assert gdf.refused == refused + 3 + 1 + len(again), (gdf.refused, refused, len(again))
+
+
+async def test_a_recheck_held_open_does_not_list_a_member_that_left_meanwhile(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An outsider's silent queryable on ``df/zzz`` holds each recheck's query open; uav-b
+    answers one, then leaves (signed): the held query's end must not serve it again."""
+    answered: list[float] = []  # when uav-b's directory answered a query of every directory
+    real = DirectoryFacilitator._serve_public
+
+    async def serve(df: DirectoryFacilitator, key: str, payload: bytes) -> bytes | None:
+        out = await real(df, key, payload)
+        if df.platform.name == "uav-b" and out is not None and key.endswith("/*"):
+            answered.append(time.monotonic())
+        return out
+
+    monkeypatch.setattr(DirectoryFacilitator, "_serve_public", serve)
+    fed = f"unlisted{os.getpid()}e"
+    port = _federation(tmp_path, fed)
+    async with (
+        asyncio.timeout(6 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        gdf = a.agents.global_df
+        df = a.agents.df
+        assert gdf is not None and df is not None
+        with _outsider(port) as session:
+            held: list[float] = []  # when each query reached it (kept: a dropped one ends)
+            queries: list[zenoh.Query] = []
+
+            def silent(query: zenoh.Query) -> None:
+                held.append(time.monotonic())
+                queries.append(query)
+
+            queryable = session.declare_queryable(wire_key(fed, "df", "zzz"), silent)
+            async with FederationPlatform(PlatformConfig.load(tmp_path / "uav-b.toml")) as b:
+                b_df = b.agents.df
+                assert b_df is not None
+                await _until("uav-a lists uav-b", lambda: "uav-b" in gdf.platforms)
+                n = len(held)
+                # the recheck asks at once (its interval is due): not before this
+                began = time.monotonic()
+                gdf.recheck_interval = 1.0
+                await _until("a recheck asks every directory", lambda: len(held) > n)
+                await _until("uav-b answers it", lambda: answered and answered[-1] >= began)
+                # uav-b says, signed, that it leaves (and answers no more), the query held open
+                await b_df.announce_leave()
+                await _until("uav-b taken for gone", lambda: "uav-b" not in gdf.platforms)
+                left = time.monotonic()
+                assert left < began + 5.0, f"uav-b left {left - began:.2f} s in: nothing tested"
+                assert df.said_left("uav-b")
+                n = len(held)
+                await _until("the next recheck begins", lambda: len(held) > n)
+                print(f"uav-b left {left - began:.2f} s into a recheck held open")
+                assert "uav-b" not in gdf.platforms and df.said_left("uav-b")
+                assert not gdf.services("uav-b")
+            queryable.undeclare()
+            queries.clear()
