@@ -573,3 +573,56 @@ def test_no_answer_to_the_owners_watch_query_ends_the_watch(tmp_path: Path) -> N
     # the junk never loosened the bound: the platform's own answer was signed
     assert first == {"kind": "watching", "platform": "station", "signed": True}, first
     assert not [e for e in events if e["kind"] == "watching"], out
+
+
+def test_a_bare_answer_to_the_owners_watch_is_shown_with_the_bound_it_leaves(
+    tmp_path: Path,
+) -> None:
+    """An outsider answers the watch query bare, as a platform of an older release would.
+
+    Before, the watch took it silently: its batches' bound fell back to this side's clock
+    less the 30 s allowance, and nothing said so. Now the first line says the answer was
+    not signed, and the text output warns, naming the fallback bound. (The platform here
+    does not serve the watch, so the bare answer is the only one.)
+    """
+    station = Station(tmp_path)
+    unwatched = (station.dir / "station-python.toml").read_text() + "\n[security]\nwatch = false\n"
+    (station.dir / "station-unwatched.toml").write_text(unwatched)
+    session = None
+    watches: list[subprocess.Popen[str]] = []
+    watch_key = f"dyknow/{station.federation}/v1/watch/station"
+    try:
+        station.start("unwatched")
+        session = _outsider(station)
+        queryable = session.declare_queryable(
+            watch_key,
+            lambda q: q.reply(watch_key, b'{"v":1,"watching":true,"lease_s":10.0}'),
+        )
+        for args in (["--json"], []):
+            watches.append(
+                _cli(station, "watch", "--config", "station-python.toml", "--duration", "60", *args)
+            )
+        as_json, as_text = watches
+        assert as_json.stdout is not None and as_text.stdout is not None
+        first = json.loads(as_json.stdout.readline())
+        head = [as_text.stdout.readline(), as_text.stdout.readline()]
+        assert all(w.poll() is None for w in watches), "a watch ended on a bare answer"
+        queryable.undeclare()
+    finally:
+        for w in watches:
+            if w.poll() is None:
+                w.send_signal(signal.SIGINT)
+            w.communicate(timeout=20)
+        if session is not None:
+            session.close()
+        station.stop()
+    assert first == {
+        "kind": "watching",
+        "platform": "station",
+        "signed": False,
+        "allowance_s": 30.0,
+    }
+    assert head[0].startswith("watching station:"), head
+    assert head[1].startswith("warning: the platform's answer was not signed"), head
+    assert "this side's clock less the 30 s clock allowance" in head[1], head
+    assert [w.returncode for w in watches] == [0, 0]
