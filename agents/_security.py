@@ -1904,16 +1904,29 @@ def watch_time(public_key: bytes, federation: str, request: bytes, answer: bytes
         raise Malformed("a watch answer is a JSON object with 'watching': true")
     if "ts_ms" not in msg and "sig" not in msg:
         return None
-    if msg.keys() != _WATCH_ANSWER_FIELDS or type(msg["ts_ms"]) is not int:
-        raise Malformed("a signed watch answer has exactly the fields of wire.md")
+    if msg.keys() != _WATCH_ANSWER_FIELDS:
+        raise Malformed(
+            "a signed watch answer has exactly the fields v, watching, lease_s, ts_ms, sig"
+        )
+    # every field checked before the transcript: its packing must not fail on an
+    # answer's bytes (anyone may answer the watch query)
+    if type(msg["v"]) is not int or msg["v"] != WIRE_VERSION:
+        raise Malformed(f"unsupported watch answer version {msg['v']!r} (this side speaks 1)")
+    lease = msg["lease_s"]
+    if type(lease) not in (int, float) or not 0 < lease < float("inf"):
+        raise Malformed("watch answer field 'lease_s' must be a positive number")
+    ts = msg["ts_ms"]
+    if type(ts) is not int or not 0 <= ts < 2**63:
+        raise Malformed("watch answer field 'ts_ms' must be an integer in 0..2^63-1")
     try:
         sig = _unb64(msg["sig"], 64)
-        VerifyKey(public_key).verify(
-            _watch_answer_transcript(federation, platform, msg["ts_ms"], nonce), sig
-        )
+    except ValueError as exc:
+        raise Malformed(f"watch answer field 'sig': {exc}") from None
+    try:
+        VerifyKey(public_key).verify(_watch_answer_transcript(federation, platform, ts, nonce), sig)
     except (CryptoError, ValueError):
         raise Forged("watch answer not signed by the platform over this request") from None
-    return float(msg["ts_ms"]) / 1000
+    return float(ts) / 1000
 
 
 class WatchGate:

@@ -647,7 +647,16 @@ def _watch_text(event: dict[str, Any]) -> str:
         # a record with no reason ends at its head: no colon left dangling
         return f"{stamp} audit  {head}: {reason}" if reason else f"{stamp} audit  {head}"
     if kind == "watching":
-        return f"watching {event['platform']}: messages, batches and audit addressed to it"
+        line = f"watching {event['platform']}: messages, batches and audit addressed to it"
+        if event.get("signed", True):
+            return line
+        # the bound then rests on this side's clock: a batch recorded up to the allowance
+        # before the watch began could pass as current
+        return (
+            f"{line}\nwarning: the platform's answer was not signed (an older release, or "
+            "anyone answering in its place): batches are bounded by this side's clock less "
+            f"the {event.get('allowance_s', 0):g} s clock allowance"
+        )
     return f"{stamp} {kind} {json.dumps(event, default=str)}"
 
 

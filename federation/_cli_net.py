@@ -889,8 +889,8 @@ async def watch_platform(
             deadline = time.monotonic() + timeout
             answered = False
             while True:
-                # the first answer ends the query: a queryable that never answers (anyone
-                # may declare one) would hold each renewal to its timeout
+                # the first signed answer ends the query: a queryable that never answers
+                # (anyone may declare one) would hold each renewal to its timeout
                 ok = False
                 signed_at: float | None = None
                 request = watch_request(keys, fed)
@@ -903,18 +903,26 @@ async def watch_platform(
                             continue
                         try:
                             signed_at = watch_time(public, fed, request, reply.payload)
-                        except AuthenticationError:
-                            continue  # anyone may answer: not the platform's
+                        except AuthenticationError as exc:
+                            # anyone may answer: not the platform's, shown and counted
+                            await refuse(reply.key, f"watch answer refused: {exc}")
+                            continue
                         ok = True
                         if signed_at is not None:
                             break
                         # bare (an older release, or anyone answering first): a signed one
                         # may still come; the query ends when every queryable answered
                 if ok:
+                    was_signed = anchor.signed
                     anchor.answered(signed_at, asked, time.monotonic())
                     anchored.set()
-                    if not answered:
-                        await queue.put({"kind": "watching", "platform": me})
+                    if not answered or anchor.signed != was_signed:
+                        # a bare answer bounds batches by this side's clock, looser by the
+                        # clock allowance: the owner is told, and told when it tightens
+                        await queue.put(
+                            {"kind": "watching", "platform": me, "signed": anchor.signed}
+                            | ({} if anchor.signed else {"allowance_s": anchor.skew})
+                        )
                     answered = True
                 elif not answered and time.monotonic() > deadline:
                     raise unanswered(timeout)

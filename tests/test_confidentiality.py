@@ -692,3 +692,17 @@ def test_watch_prints_no_dangling_colon_for_an_audit_record_without_reason() -> 
     ):
         line = _watch_line({"kind": "audit", "record": record})
         assert line.endswith(" audit  accepted from tmc request federation@tmc"), line
+
+
+def test_watch_warns_when_the_platforms_answer_was_not_signed() -> None:
+    """A bare answer bounds batches by this side's clock: the text output says so, and how."""
+    from federation._cli_app import _watch_line
+
+    signed = _watch_line({"kind": "watching", "platform": "uav-a", "signed": True})
+    assert signed == "watching uav-a: messages, batches and audit addressed to it"
+    bare = _watch_line(
+        {"kind": "watching", "platform": "uav-a", "signed": False, "allowance_s": 30.0}
+    ).splitlines()
+    assert bare[0] == signed
+    assert bare[1].startswith("warning: the platform's answer was not signed")
+    assert "this side's clock less the 30 s clock allowance" in bare[1]

@@ -496,3 +496,133 @@ def test_presences_under_invented_names_cost_an_mqtt_platform_bounded_memory(
         client.disconnect()
         _, err = station.stop()
     assert "receive failed" not in err, err
+
+
+def test_no_answer_to_the_owners_watch_query_ends_the_watch(tmp_path: Path) -> None:
+    """An outsider's queryable answers each watch request with junk of every shape.
+
+    Before, a signed-looking answer with a negative ``ts_ms`` ended `dyknow watch`
+    (exit 1, "int too large to convert": the time was packed into the transcript before
+    it was checked). Now each answer that is not the platform's, whatever its bytes, is
+    refused, shown as ``unreadable`` and counted; the watch stays up, bounded by the
+    platform's own signed answer, and goes on showing the platform's batches.
+    """
+    station = Station(tmp_path)
+    session = None
+    watch = None
+    watch_key = f"dyknow/{station.federation}/v1/watch/station"
+    zero_sig = base64.b64encode(bytes(64)).decode()
+    signed = {"v": 1, "watching": True, "lease_s": 10.0, "ts_ms": 1, "sig": zero_sig}
+    variants: list[dict[str, object]] = [
+        {"ts_ms": -1},
+        {"ts_ms": 2**63},
+        {"ts_ms": 2**64 + 1},
+        {"ts_ms": 1.5},
+        {"ts_ms": True},
+        {"ts_ms": "1"},
+        {"sig": "!!not base64!!"},
+        {"sig": zero_sig.rstrip("=")},
+        {"sig": zero_sig[:-4] + "AAA="},  # padding bits set: not canonical
+        {"lease_s": -1},
+        {"lease_s": "10"},
+        {"v": 2},
+        {"v": True},
+        {"extra": 1},
+        {"pad": "x" * 5000},
+        {},  # well-formed, a signature of zeros
+    ]
+    junk = [json.dumps(signed | v).encode() for v in variants]
+    junk.append(b"[" * 5000)
+    try:
+        station.start("python")
+        session = _outsider(station)
+        watch = _cli(
+            station, "watch", "--config", "station-python.toml", "--duration", "60", "--json"
+        )
+        assert watch.stdout is not None
+        first = json.loads(watch.stdout.readline())
+
+        def answer(query: zenoh.Query) -> None:
+            for payload in junk:
+                query.reply(watch_key, payload)
+
+        queryable = session.declare_queryable(watch_key, answer)
+
+        def shown(seen: list[str]) -> bool:
+            events = [json.loads(line) for line in seen]
+            refused = [i for i, e in enumerate(events) if e["kind"] == "unreadable"]
+            later = [
+                i
+                for i, e in enumerate(events)
+                if e["kind"] == "audit" and e["record"].get("stage") == "watch"
+            ]
+            # two renewals' junk, and a batch of the platform's shown after the first
+            return len(refused) >= 2 * len(junk) and bool(later) and later[-1] > refused[0]
+
+        out, err = _watch_until(watch, shown)
+        queryable.undeclare()
+    finally:
+        _stop(station, session, watch)
+    assert watch.returncode == 0, err
+    assert "Traceback" not in err and "int too large" not in err, err
+    events = [json.loads(line) for line in out.splitlines()]
+    refused = [e for e in events if e["kind"] == "unreadable"]
+    assert [e["count"] for e in refused] == list(range(1, len(refused) + 1))
+    assert all(e["error"].startswith("watch answer refused: ") for e in refused), refused
+    assert all(e["key"] == watch_key for e in refused), refused
+    # the junk never loosened the bound: the platform's own answer was signed
+    assert first == {"kind": "watching", "platform": "station", "signed": True}, first
+    assert not [e for e in events if e["kind"] == "watching"], out
+
+
+def test_a_bare_answer_to_the_owners_watch_is_shown_with_the_bound_it_leaves(
+    tmp_path: Path,
+) -> None:
+    """An outsider answers the watch query bare, as a platform of an older release would.
+
+    Before, the watch took it silently: its batches' bound fell back to this side's clock
+    less the 30 s allowance, and nothing said so. Now the first line says the answer was
+    not signed, and the text output warns, naming the fallback bound. (The platform here
+    does not serve the watch, so the bare answer is the only one.)
+    """
+    station = Station(tmp_path)
+    unwatched = (station.dir / "station-python.toml").read_text() + "\n[security]\nwatch = false\n"
+    (station.dir / "station-unwatched.toml").write_text(unwatched)
+    session = None
+    watches: list[subprocess.Popen[str]] = []
+    watch_key = f"dyknow/{station.federation}/v1/watch/station"
+    try:
+        station.start("unwatched")
+        session = _outsider(station)
+        queryable = session.declare_queryable(
+            watch_key,
+            lambda q: q.reply(watch_key, b'{"v":1,"watching":true,"lease_s":10.0}'),
+        )
+        for args in (["--json"], []):
+            watches.append(
+                _cli(station, "watch", "--config", "station-python.toml", "--duration", "60", *args)
+            )
+        as_json, as_text = watches
+        assert as_json.stdout is not None and as_text.stdout is not None
+        first = json.loads(as_json.stdout.readline())
+        head = [as_text.stdout.readline(), as_text.stdout.readline()]
+        assert all(w.poll() is None for w in watches), "a watch ended on a bare answer"
+        queryable.undeclare()
+    finally:
+        for w in watches:
+            if w.poll() is None:
+                w.send_signal(signal.SIGINT)
+            w.communicate(timeout=20)
+        if session is not None:
+            session.close()
+        station.stop()
+    assert first == {
+        "kind": "watching",
+        "platform": "station",
+        "signed": False,
+        "allowance_s": 30.0,
+    }
+    assert head[0].startswith("watching station:"), head
+    assert head[1].startswith("warning: the platform's answer was not signed"), head
+    assert "this side's clock less the 30 s clock allowance" in head[1], head
+    assert [w.returncode for w in watches] == [0, 0]

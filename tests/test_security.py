@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import base64
 import functools
+import json
 import os
 import stat
 import subprocess
@@ -414,6 +415,25 @@ def test_a_watch_answer_carries_the_platforms_time_signed_for_that_request(clock
     assert watch_time(owner.public_key, "demo", request, bare) is None
     wrong = answer.replace(b'"ts_ms"', b'"ts"')
     for junk in (b"", b"[]", b'{"watching":false}', wrong, b'{"watching":true,"x":"' + b"x" * 5000):
+        with pytest.raises(Malformed):
+            watch_time(owner.public_key, "demo", request, junk)
+    fields = orjson.loads(answer)
+    # each field's type and range is checked before the transcript is packed
+    for change in (
+        {"ts_ms": -1},
+        {"ts_ms": 2**63},
+        {"ts_ms": 1.0},
+        {"ts_ms": True},
+        {"ts_ms": "1"},
+        {"v": 2},
+        {"v": True},
+        {"lease_s": 0},
+        {"lease_s": "10"},
+        {"sig": fields["sig"].rstrip("=")},
+        {"sig": 5},
+        {"extra": 1},
+    ):
+        junk = json.dumps(fields | change).encode()
         with pytest.raises(Malformed):
             watch_time(owner.public_key, "demo", request, junk)
 

@@ -465,6 +465,63 @@ def test_our_code_signs_and_opens_the_directory_statements() -> None:
         assert opened.body == json.loads(st["body"])
 
 
+def test_the_watch_request_and_answer_from_the_description() -> None:
+    w = VECTORS["watch"]
+    p = VECTORS["platforms"][w["platform"]]
+    public = VerifyKey(h(p["ed25519_public_hex"]))
+    request, answer = json.loads(w["request"]), json.loads(w["answer"])
+    assert set(request) == {"v", "watch", "fed", "platform", "ts_ms", "nonce", "sig"}
+    assert set(answer) == {"v", "watching", "lease_s", "ts_ms", "sig"}
+    nonce = b64(request["nonce"])
+    assert len(nonce) == 16
+    signed = (
+        b"dyknow-watch-v1\x00"
+        + lp(request["fed"])
+        + lp(request["platform"])
+        + u64(request["ts_ms"])
+        + nonce
+    )
+    assert signed.hex() == w["request_transcript_hex"]
+    assert b64(request["sig"]).hex() == w["request_sig_hex"]
+    public.verify(signed, b64(request["sig"]))
+    # the answer is bound to the request's nonce, under another label
+    said = (
+        b"dyknow-watch-v1 answer\x00"
+        + lp(request["fed"])
+        + lp(request["platform"])
+        + u64(answer["ts_ms"])
+        + nonce
+    )
+    assert said.hex() == w["answer_transcript_hex"]
+    assert b64(answer["sig"]).hex() == w["answer_sig_hex"]
+    public.verify(said, b64(answer["sig"]))
+    with pytest.raises(BadSignatureError):  # the request's signature does not answer it
+        public.verify(said, b64(request["sig"]))
+
+
+def test_our_code_accepts_the_watch_request_and_makes_the_same_answer(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    import agents._security as security
+    from agents._exceptions import Forged
+
+    w = VECTORS["watch"]
+    request, answer = json.loads(w["request"]), json.loads(w["answer"])
+    owner = _pair(w["platform"])
+    nonce = b64(request["nonce"])
+    monkeypatch.setattr(security.os, "urandom", lambda n: nonce[:n])
+    made = security.watch_request(owner, FED, clock=FixedClock(request["ts_ms"]))
+    assert made.decode() == w["request"]
+    gate = security.WatchGate(owner, FED, clock=FixedClock(request["ts_ms"]))
+    assert gate.check(made) == nonce
+    said = security.watch_answer(owner, FED, nonce, 10.0, clock=FixedClock(answer["ts_ms"]))
+    assert said.decode() == w["answer"]
+    assert security.watch_time(owner.public_key, FED, made, said) == answer["ts_ms"] / 1000
+    other = json.dumps(request | {"nonce": base64.b64encode(bytes(16)).decode()}).encode()
+    with pytest.raises(Forged):  # an answer to another request
+        security.watch_time(owner.public_key, FED, other, said)
+
+
 def _pair(platform: str) -> Any:
     from agents._security import KeyPair
 

@@ -48,6 +48,7 @@ from agents._security import (
     Session,
     SessionTable,
     TrustStore,
+    WatchGate,
     _aead_nonce,
     _bin_nonce,
     _env_head,
@@ -56,7 +57,11 @@ from agents._security import (
     _owner_transcript,
     _reply_part,
     _session_id,
+    _watch_answer_transcript,
+    _watch_transcript,
     sign_owner_batch,
+    watch_answer,
+    watch_time,
 )
 from federation._batch import pack_batch
 
@@ -77,6 +82,8 @@ TS_OWNER = 1795000000300  # the first batch for the owner; the next one 1 ms lat
 # the X25519 ephemeral secret of each sealed box to the owner (random in a real one)
 OWNER_EPHEMERAL = (bytes(range(0xA0, 0xC0)), bytes(range(0xC0, 0xE0)))
 # directory statements: uav-b's process start, the first statement's time, the DF query's nonce
+TS_WATCH, TS_WATCHING = 1795000000500, 1795000000510  # the watch request, its answer
+WATCH_NONCE = bytes(range(0xF0, 0x100))
 DIR_BOOT, TS_DIR = 1795000000000, 1795000000400
 DIR_NONCE = bytes(range(0xE0, 0xF0))
 
@@ -308,6 +315,39 @@ def _owner_batches(owner: KeyPair) -> tuple[list[dict[str, Any]], list[dict[str,
         },
     ]
     return entries, refusals
+
+
+def _watch(owner: KeyPair) -> dict[str, Any]:
+    """The owner's watch request for ``owner``'s platform and the platform's signed answer."""
+    request_transcript = _watch_transcript(FEDERATION, owner.platform, TS_WATCH, WATCH_NONCE)
+    request_sig = owner.sign(request_transcript)
+    request = {
+        "v": 1,
+        "watch": "lease",
+        "fed": FEDERATION,
+        "platform": owner.platform,
+        "ts_ms": TS_WATCH,
+        "nonce": base64.b64encode(WATCH_NONCE).decode(),
+        "sig": base64.b64encode(request_sig).decode(),
+    }
+    request_json = json.dumps(request, separators=(",", ":"))
+    gate = WatchGate(owner, FEDERATION, clock=_Clock(TS_WATCH))
+    assert gate.check(request_json.encode()) == WATCH_NONCE
+    answer = watch_answer(owner, FEDERATION, WATCH_NONCE, 10.0, clock=_Clock(TS_WATCHING))
+    answer_transcript = _watch_answer_transcript(
+        FEDERATION, owner.platform, TS_WATCHING, WATCH_NONCE
+    )
+    answered = watch_time(owner.public_key, FEDERATION, request_json.encode(), answer)
+    assert answered == TS_WATCHING / 1000
+    return {
+        "platform": owner.platform,
+        "request": request_json,
+        "request_transcript_hex": request_transcript.hex(),
+        "request_sig_hex": request_sig.hex(),
+        "answer": answer.decode(),
+        "answer_transcript_hex": answer_transcript.hex(),
+        "answer_sig_hex": base64.b64decode(json.loads(answer)["sig"]).hex(),
+    }
 
 
 def _directory_statements(
@@ -583,6 +623,7 @@ def generate() -> dict[str, Any]:
         "key_exchange": key_exchange,
         "envelopes": envelopes,
         "owner_batches": owner_batches,
+        "watch": _watch(pairs[INITIATOR]),
         "directory_statements": statements,
         "must_refuse": _refusals(pairs, init, envelopes, keys)
         + owner_refusals
