@@ -1262,9 +1262,11 @@ class GlobalDirectory:
         """
         before = self._answered_boot.get(platform)
         running: str | None = None
+        # heard from since the check began, pauses between queries included: a shed query
+        # ends at once, and a member's traffic comes when it comes
+        began = time.monotonic()
         try:
             for attempt in range(3):
-                started = time.monotonic()
                 if await self._answers(platform):
                     running = "answers"
                     break
@@ -1272,12 +1274,14 @@ class GlobalDirectory:
                 if boot != before and boot != self._leaves_doubted[platform].boot:
                     running = "answered meanwhile"
                     break
-                if self._heard_lately(platform, time.monotonic() - started):
+                if self._heard_lately(platform, time.monotonic() - began):
                     running = "talks to this platform"
                     break
                 if attempt < 2:
                     # a shed query ends at once: the next may find its budget again
                     await asyncio.sleep(self.query_timeout)
+            if running is None and self._heard_lately(platform, time.monotonic() - began):
+                running = "talks to this platform"
         finally:
             statement = self._leaves_doubted.pop(platform)
         at = statement.ts_ms / 1000
