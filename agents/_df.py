@@ -336,7 +336,8 @@ class DirectoryFacilitator(Agent):
         """Replace the registered service with the same (provider, name).
 
         If telling the change fails (or is cancelled), the old entry is restored and the
-        error raised: a caller told of the failure may take the directory to be as it was.
+        error raised: a caller told of the failure may take the entry to be as it was. Those
+        already told of the new one (watchers, subscribers) are not told of the revert.
         """
         self._check_local(service)
         old = self._get(*service.key)
