@@ -336,7 +336,8 @@ class DirectoryFacilitator(Agent):
         """Replace the registered service with the same (provider, name).
 
         If telling the change fails (or is cancelled), the old entry is restored and the
-        error raised: a caller told of the failure may take the directory to be as it was.
+        error raised: a caller told of the failure may take the entry to be as it was. Those
+        already told of the new one (watchers, subscribers) are not told of the revert.
         """
         self._check_local(service)
         old = self._get(*service.key)
@@ -733,7 +734,8 @@ class GlobalDirectory:
         # invalid statements of trusted signers: logged once per signer per interval
         self._invalid_log = Tally(self._log_invalid, interval=INVALID_LOG_INTERVAL)
         # answers refused to the re-asking of an unconfirmed platform: one asking every few
-        # s while a forged token is held, so summed up per claimed name and interval
+        # s while a forged token is held, so summed up per name asked (never the name an
+        # answer claims: each would be a key of its own) and interval
         self._retry_refused = Tally(self._audit_retry_refused, interval=INVALID_LOG_INTERVAL)
         if self._auth.authenticates and event_limit is not None:
             self.event_gate = DfEventGate(self._auth, event_limit, on_shed=self._shed_pending.add)
@@ -930,16 +932,20 @@ class GlobalDirectory:
         )
 
     def _audit_retry_refused(
-        self, claimed: object, count: int, detail: str, seconds: float | None
+        self, asked: object, count: int, detail: str, seconds: float | None
     ) -> None:
-        """One audit record for ``count`` refused answers to the re-asking of ``claimed``."""
+        """One audit record for ``count`` refused answers to the re-asking of ``asked``.
+
+        Keyed on the name asked (trusted), whatever name each answer claims: the last
+        claimed one, cut short, is in the detail.
+        """
         self._platform.audit(
             verdict="dropped",
             stage="df",
             count=count,
-            **{"from": claimed},
+            **{"from": asked},
             reason=(
-                f"directory answer: {count} answer(s) in the name of {claimed!r}, asked again "
+                f"directory answer: {count} answer(s) to the asking of {asked!r}, asked again "
                 f"while its presence holds unconfirmed, refused{since(seconds)} (last: "
                 f"{detail[:200]})"
             ),
@@ -1017,7 +1023,7 @@ class GlobalDirectory:
         or when the transport knows all did, or at the timeout. ``expect`` may be a
         function finding that set, called once the query is sent (its replies queue
         meanwhile); only an authenticated answer counts. ``summed``: answers refused are
-        audited summed up per claimed name (`_retry_refused`), not one by one.
+        audited summed up per name asked (`_retry_refused`), not one by one.
         """
         if expect is None and "*" not in platform:
             expect = {platform}  # its answer is all there is (MQTT's query would wait on)
@@ -1055,7 +1061,12 @@ class GlobalDirectory:
         except DirectoryStatementError as exc:
             if summed:
                 self.refused += 1
-                self._retry_refused.add(exc.platform or where, exc.reason[:200])
+                # keyed on the name asked, not the answer's claimed ``from``: an invented
+                # name per answer would be a record of its own each, past the budget
+                claimed = exc.platform if exc.platform is not None else where
+                self._retry_refused.add(
+                    where, f"claiming {str(claimed)[:64]!r}: {exc.reason[:200]}"
+                )
             else:
                 self._refuse(exc.platform or where, f"directory answer: {exc.reason}", "df")
             return
