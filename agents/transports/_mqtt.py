@@ -320,6 +320,17 @@ _MAX_PRESENCE_KEYS = 4096  # remembered per watcher: well above any federation's
 _MAX_PRESENCE_KEY = 1024  # characters: ours are ``dyknow/<fed>/v1/alive/<name>``, < 300
 
 
+def _alive(key: str, payload: bytes) -> bool | None:
+    """What a presence message on ``key`` says: alive or not; None (warned) if malformed."""
+    if not payload:
+        return False  # the empty retained message that clears a token
+    try:
+        return bool(json.loads(payload)["alive"])
+    except (ValueError, TypeError, KeyError, RecursionError):  # nested too deep
+        log.warning("mqtt: ignoring a malformed presence message on %r", key)
+        return None
+
+
 class _Watcher:
     """A presence watcher: turns retained presence messages into changes."""
 
@@ -332,14 +343,9 @@ class _Watcher:
         """Take one message on a presence key; report it if it changes what is known."""
         if retained and not self.history:
             return
-        if payload:
-            try:
-                alive = bool(json.loads(payload)["alive"])
-            except (ValueError, TypeError, KeyError, RecursionError):  # nested too deep
-                log.warning("mqtt: ignoring a malformed presence message on %r", key)
-                return
-        else:
-            alive = False
+        alive = _alive(key, payload)
+        if alive is None:
+            return
         known = self.known
         if known.get(key) == alive:
             return
@@ -380,14 +386,9 @@ class _Alive:
 
     def feed(self, key: str, payload: bytes, retained: bool) -> None:
         """Take one message on a presence key (a `_Watcher`'s interface)."""
-        if payload:
-            try:
-                alive = bool(json.loads(payload)["alive"])
-            except (ValueError, TypeError, KeyError, RecursionError):  # nested too deep
-                log.warning("mqtt: ignoring a malformed presence message on %r", key)
-                return
-        else:
-            alive = False
+        alive = _alive(key, payload)
+        if alive is None:
+            return
         if self.keep is not None and not self.keep(key):
             return  # screened before the bound below: junk keys cannot crowd these out
         seen = self.retained if retained else self.live
