@@ -1291,8 +1291,6 @@ class GlobalDirectory:
                 if attempt < 2:
                     # a shed query ends at once: the next may find its budget again
                     await asyncio.sleep(self.query_timeout)
-            if running is None and self._heard_lately(platform, time.monotonic() - began):
-                running = "talks to this platform"
         finally:
             statement = self._leaves_doubted.pop(platform)
         at = statement.ts_ms / 1000
@@ -1531,10 +1529,7 @@ class GlobalDirectory:
                 self._hold(platform)
                 self._refuse(platform, "presence without a signed directory answer", "presence")
                 return
-            if self._unconfirmed.pop(platform, None) is not None:
-                self.version += 1  # its services count from now on
-            self._set_alive(platform, True)  # answered: exempt from the shared budget now
-            self._up(platform)
+            self._listed(platform)
         elif platform in self._unconfirmed:
             self._gone(platform)  # never confirmed: nothing to check, nothing to stop
         elif platform in self._alive:
@@ -1579,10 +1574,14 @@ class GlobalDirectory:
         if not confirmed:
             self._hold(platform)
             return
-        del self._unconfirmed[platform]
-        self.version += 1  # its services count from now on
-        self._set_alive(platform, True)
         log.info("global-df[%s]: %r answered at last: listed", self._platform.name, platform)
+        self._listed(platform)
+
+    def _listed(self, platform: str) -> None:
+        """``platform`` answered, signed: listed, its services counted, watchers told."""
+        if self._unconfirmed.pop(platform, None) is not None:
+            self.version += 1  # its services count from now on
+        self._set_alive(platform, True)  # answered: exempt from the shared budget now
         self._up(platform)
 
     async def _recheck_sleep(self, wait: float | None) -> None:
