@@ -189,18 +189,21 @@ async def _node_here(path: Path) -> int | None:
     node's (connecting is refused at once). ForeignNodeError when the listener is
     another OS user's: never taken for this platform running, never unlinked.
     """
+    # A Unix socket's connect is decided in the kernel at once (no round trip, no accept):
+    # made without blocking, no wait of the loop's can be taken for a busy listener on a
+    # loaded machine; a full backlog (EAGAIN) is someone listening, busy.
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
-        _, writer = await asyncio.wait_for(asyncio.open_unix_connection(str(path)), 2.0)
-    except TimeoutError:
-        return 0  # a backlog full: someone listens, busy
-    except OSError:  # no socket, or a stale one (refused), or not ours to open
-        return None
-    try:
-        creds = _peer_cred(writer)
+        sock.setblocking(False)
+        try:
+            sock.connect(str(path))
+        except BlockingIOError:
+            return 0
+        except OSError:  # no socket, or a stale one (refused), or not ours to open
+            return None
+        creds = _socket_cred(sock)
     finally:
-        writer.close()
-        with contextlib.suppress(OSError):
-            await writer.wait_closed()
+        sock.close()
     if creds is None:  # no SO_PEERCRED here (not Linux): someone listens
         return 0
     pid, uid = creds
@@ -387,13 +390,18 @@ def _private_dir(path: Path, *, make: bool = True) -> bool:
 
 
 def _peer_cred(writer: asyncio.StreamWriter) -> tuple[int, int] | None:
-    """(pid, uid) of the process on the other end of a Unix socket; None where unknown.
+    """(pid, uid) of the process on the other end of a Unix socket; None where unknown."""
+    sock = writer.get_extra_info("socket")
+    return None if sock is None else _socket_cred(sock)
+
+
+def _socket_cred(sock: socket.socket) -> tuple[int, int] | None:
+    """(pid, uid) of the process on the other end of ``sock``; None where unknown.
 
     SO_PEERCRED (Linux): of a listener, its credentials when it began to listen.
     """
-    sock = writer.get_extra_info("socket")
     option = getattr(socket, "SO_PEERCRED", None)
-    if sock is None or option is None:
+    if option is None:
         return None
     creds = sock.getsockopt(socket.SOL_SOCKET, option, struct.calcsize("3i"))
     pid, uid, _gid = struct.unpack("3i", creds)

@@ -513,6 +513,46 @@ async def test_a_channel_never_unlinks_a_socket_a_node_listens_on(
             assert not path.exists()
 
 
+async def test_a_node_too_busy_to_accept_on_its_channel_is_still_taken_for_running(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A listener whose backlog is full: running (pid unknown), never a dead node's socket."""
+    import asyncio
+    import socket
+
+    from federation import FederationPlatform
+    from federation._local import LocalChannel, PlatformAliveError, _node_here
+
+    config, path = station_channel(tmp_path, monkeypatch)
+    path.parent.mkdir(parents=True, mode=0o700, exist_ok=True)
+    busy = socket.socket(socket.AF_UNIX)
+    busy.bind(str(path))
+    busy.listen(0)  # and never accepts: its backlog fills
+    waiting: list[socket.socket] = []
+    try:
+        assert await _node_here(path) == os.getpid()  # room in the backlog: who listens
+        for _ in range(64):
+            c = socket.socket(socket.AF_UNIX)
+            c.setblocking(False)
+            waiting.append(c)
+            try:
+                c.connect(str(path))
+            except BlockingIOError:
+                break
+        else:
+            pytest.fail("the listener's backlog never filled")
+        assert await _node_here(path) == 0  # someone listens, too busy to say who
+        async with asyncio.timeout(30), FederationPlatform(config, join=False) as p:
+            with pytest.raises(PlatformAliveError, match="is alive in federation"):
+                async with LocalChannel(p):
+                    pass
+        assert path.is_socket()
+    finally:
+        for c in waiting:
+            c.close()
+        busy.close()
+
+
 @pytest.mark.timeout(150)
 def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
