@@ -44,8 +44,8 @@ operator is this process. Measured, in one run:
 ``python -m bench scale`` runs 4 workers (the ``BENCH`` lines: ``scale-32`` is the query's
 p99, then ``-query-p50``, ``-join``, ``-rss``, ``-delivered``) and then one process per
 platform (lines ``scale-32-procs…``: 33 interpreters on 2 cores spend most of the join
-importing); ``--quick`` runs only the first, for 8 s and 100 queries; ``--probe`` adds the
-loop-lag probes.
+importing); ``--quick`` runs only the first, for 8 s and 100 queries; ``--procs`` runs only
+the second (with ``--quick``, for 8 s and 100 queries); ``--probe`` adds the loop-lag probes.
 """
 
 from __future__ import annotations
@@ -857,17 +857,25 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
     return lines
 
 
-def run(quick: bool | None = None) -> None:
-    """The scale benchmark: 4 worker processes (BENCH ``scale-32…``), then one per platform."""
+def run(quick: bool | None = None, procs: bool | None = None) -> None:
+    """The scale benchmark: 4 worker processes (BENCH ``scale-32…``), then one per platform.
+
+    ``quick``: the first only, shorter; ``procs``: the second only (shorter if ``quick``).
+    Either, when None, is read from the command line (``--quick``, ``--procs``).
+    """
+    args = sys.argv[1:]
     if quick is None:
-        quick = "--quick" in sys.argv[1:]
-    probe = "--probe" in sys.argv[1:]
+        quick = "--quick" in args
+    if procs is None:
+        procs = "--procs" in args
+    probe = "--probe" in args
     seconds, queries = (8.0, 100) if quick else (SECONDS, QUERIES)
-    r = measure(seconds=seconds, queries=queries, workers=WORKERS, probe=probe)
-    print_result(r)
-    if quick:
-        return
-    progress("again with one process per platform")
+    if not procs:
+        r = measure(seconds=seconds, queries=queries, workers=WORKERS, probe=probe)
+        print_result(r)
+        if quick:
+            return
+        progress("again with one process per platform")
     r = measure(seconds=seconds, queries=queries, workers=PLATFORMS, probe=probe)
     print_result(r, "scale-32-procs")
 

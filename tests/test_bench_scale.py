@@ -105,3 +105,40 @@ def test_the_bare_sessions_have_our_sessions_settings() -> None:
     assert {"transport/shared_memory/enabled", "transport/link/tx/queue/size/data"} <= set(settings)
     for path, value in settings.items():
         assert json.loads(ours.get_json(path)) == json.loads(value), path
+
+
+@pytest.mark.parametrize(
+    ("argv", "runs", "prefixes"),
+    [
+        ([], [(4, 30.0, 400), (32, 30.0, 400)], ["scale-32", "scale-32-procs"]),
+        (["--quick"], [(4, 8.0, 100)], ["scale-32"]),
+        (["--procs"], [(32, 30.0, 400)], ["scale-32-procs"]),
+        (["--quick", "--procs"], [(32, 8.0, 100)], ["scale-32-procs"]),
+    ],
+)
+def test_the_flags_choose_the_cases_run(
+    monkeypatch: pytest.MonkeyPatch,
+    argv: list[str],
+    runs: list[tuple[int, float, int]],
+    prefixes: list[str],
+) -> None:
+    """``--quick`` runs the 4-worker case only, ``--procs`` the one-process-per-UAV case only."""
+    from bench import scale
+
+    made: list[tuple[int, float, int]] = []
+    printed: list[str] = []
+
+    def fake_measure(*, seconds: float, queries: int, workers: int, probe: bool) -> ScaleResult:
+        made.append((workers, seconds, queries))
+        return ScaleResult(scale.PLATFORMS, scale.STREAMS, scale.HZ, workers)
+
+    def fake_print(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
+        printed.append(prefix)
+        return []
+
+    monkeypatch.setattr(scale, "measure", fake_measure)
+    monkeypatch.setattr(scale, "print_result", fake_print)
+    monkeypatch.setattr("sys.argv", ["bench", "scale", *argv])
+    scale.run()
+    assert made == runs
+    assert printed == prefixes
