@@ -11,6 +11,7 @@ leaves the rest to typer, so the two cannot read one command line differently.
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 from collections.abc import Sequence
@@ -58,12 +59,20 @@ def run_node(config: Path) -> int:
     2: the config is wrong, the platform runs already, or its local channel's place is
     another user's; 1: the transport failed.
     """
-    from agents import TransportError, run
+    # What the imports build lives as long as the node: the cyclic GC would walk it again
+    # and again while they run (~8 ms of a node's start), and after them it is frozen out
+    # of the collector's sight (a few hundred objects of garbage among it stay)
+    gc.disable()
+    try:
+        from agents import TransportError, run
 
-    from ._cli_net import run_node as serve
-    from ._local import ForeignNodeError, PlatformAliveError
-    from ._platform import PlatformConfig, PlatformConfigError
+        from ._cli_net import run_node as serve
+        from ._local import ForeignNodeError, PlatformAliveError
+        from ._platform import PlatformConfig, PlatformConfigError
 
+        gc.freeze()
+    finally:
+        gc.enable()
     try:
         cfg = PlatformConfig.load(config)
         run(serve(cfg, str(config), say))
