@@ -89,7 +89,7 @@ class ServiceDescription(BaseModel):
     A provider's services are told apart by name: (provider, name) is the key.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     name: _Name
     type: _Name
@@ -117,7 +117,7 @@ class ServiceDescription(BaseModel):
 class ServiceQuery(BaseModel):
     """A search: every field set must match; ``properties`` must be a subset of the service's."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     name: str | None = None
     type: str | None = None

@@ -195,7 +195,8 @@ class PlatformConfigError(ValueError):
 
 # every table of the file: a limit of inf (or nan) is a number TOML reads, and none of ours
 # means anything with it; refused here, naming file, table and key, not at start-up
-_SETTINGS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+# defer_build: the validators are built when a config is first read, not at import
+_SETTINGS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, defer_build=True)
 
 
 class ZenohSettings(ZenohConfig):

@@ -56,7 +56,7 @@ class SharingRule(BaseModel):
 class SharingSettings(BaseModel):
     """The ``[sharing]`` table: gateway access, the rules, their default, consent to receive."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, defer_build=True)
 
     gateway: Literal["private", "protected"] = "private"
     default: Literal["members", "none"] = "members"
