@@ -75,6 +75,15 @@ MAX_DF_SUBSCRIPTIONS = 16
 _Name = Annotated[str, Field(min_length=1, max_length=200)]
 
 
+def _no_items() -> list[Any]:
+    """A new empty list: the default of a list field.
+
+    Not ``list`` itself: pydantic reads a builtin's signature by tokenizing its text, and
+    the first time compiles the tokenizer's expressions (~6 ms of a node's start).
+    """
+    return []
+
+
 class Visibility(StrEnum):
     """Who may see and use a service."""
 
@@ -96,7 +105,7 @@ class ServiceDescription(BaseModel):
     provider: AgentIdStr
     properties: dict[str, JsonValue] = Field(default_factory=dict)
     ontology: str | None = None
-    protocols: list[str] = Field(default_factory=list)
+    protocols: list[str] = Field(default_factory=_no_items)
     visibility: Visibility = Visibility.PRIVATE
 
     @property
