@@ -60,8 +60,8 @@ def run_node(config: Path) -> int:
     another user's; 1: the transport failed.
     """
     # What the imports build lives as long as the node: the cyclic GC would walk it again
-    # and again while they run (~8 ms of a node's start), and after them it is frozen out
-    # of the collector's sight (a few hundred objects of garbage among it stay)
+    # and again until ready (~15 ms of a node's start), so it is off while they run and
+    # what they built is frozen out of its sight; once ready, `settle_gc` collects it all
     gc.disable()
     try:
         from agents import TransportError, run

@@ -195,8 +195,7 @@ class PlatformConfigError(ValueError):
 
 # every table of the file: a limit of inf (or nan) is a number TOML reads, and none of ours
 # means anything with it; refused here, naming file, table and key, not at start-up
-# defer_build: the validators are built when a config is first read, not at import
-_SETTINGS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, defer_build=True)
+_SETTINGS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class ZenohSettings(ZenohConfig):
