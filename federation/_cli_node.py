@@ -82,4 +82,8 @@ def run_node(config: Path) -> int:
         return _fail(f"dyknow node: {config}: {exc}")
     except TransportError as exc:
         return _fail(f"dyknow node: {config}: {exc}", 1)
+    finally:
+        # the node has ended: a caller that goes on (a test calling the entry point) gets
+        # its objects back in the collector's sight, a node that never got ready included
+        gc.unfreeze()
     return 0
