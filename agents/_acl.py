@@ -89,7 +89,9 @@ def new_id(kind: str = "c") -> str:
 class ACLMessage(BaseModel):
     """One speech act. ``content`` is any JSON value; ``reply_by`` is Unix time in seconds."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    # defer_build: its validator is built by the first message, not by every import of
+    # agents (a node that has started needs it from then on; a tool may never)
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     v: int = WIRE_VERSION
     performative: Performative

@@ -75,6 +75,15 @@ MAX_DF_SUBSCRIPTIONS = 16
 _Name = Annotated[str, Field(min_length=1, max_length=200)]
 
 
+def _no_items() -> list[Any]:
+    """A new empty list: the default of a list field.
+
+    Not ``list`` itself: pydantic reads a builtin's signature by tokenizing its text, and
+    the first time compiles the tokenizer's expressions (~6 ms of a node's start).
+    """
+    return []
+
+
 class Visibility(StrEnum):
     """Who may see and use a service."""
 
@@ -89,14 +98,14 @@ class ServiceDescription(BaseModel):
     A provider's services are told apart by name: (provider, name) is the key.
     """
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     name: _Name
     type: _Name
     provider: AgentIdStr
     properties: dict[str, JsonValue] = Field(default_factory=dict)
     ontology: str | None = None
-    protocols: list[str] = Field(default_factory=list)
+    protocols: list[str] = Field(default_factory=_no_items)
     visibility: Visibility = Visibility.PRIVATE
 
     @property
@@ -117,7 +126,7 @@ class ServiceDescription(BaseModel):
 class ServiceQuery(BaseModel):
     """A search: every field set must match; ``properties`` must be a subset of the service's."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid")
+    model_config = ConfigDict(frozen=True, extra="forbid", defer_build=True)
 
     name: str | None = None
     type: str | None = None

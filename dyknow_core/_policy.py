@@ -89,7 +89,7 @@ def _wrap_validation(exc: ValidationError) -> PolicyError:
 class _EdgeModel(BaseModel):
     """A frozen model whose validation errors become PolicyError naming the field."""
 
-    model_config = ConfigDict(frozen=True, extra="forbid", use_enum_values=False)
+    model_config = ConfigDict(frozen=True, extra="forbid", use_enum_values=False, defer_build=True)
 
     def __init__(self, **data: Any) -> None:
         try:

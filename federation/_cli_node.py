@@ -11,6 +11,7 @@ leaves the rest to typer, so the two cannot read one command line differently.
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 from collections.abc import Sequence
@@ -58,12 +59,20 @@ def run_node(config: Path) -> int:
     2: the config is wrong, the platform runs already, or its local channel's place is
     another user's; 1: the transport failed.
     """
-    from agents import TransportError, run
+    # What the imports build lives as long as the node: the cyclic GC would walk it again
+    # and again until ready (~15 ms of a node's start), so it is off while they run and
+    # what they built is frozen out of its sight; once ready, `settle_gc` collects it all
+    gc.disable()
+    try:
+        from agents import TransportError, run
 
-    from ._cli_net import run_node as serve
-    from ._local import ForeignNodeError, PlatformAliveError
-    from ._platform import PlatformConfig, PlatformConfigError
+        from ._cli_net import run_node as serve
+        from ._local import ForeignNodeError, PlatformAliveError
+        from ._platform import PlatformConfig, PlatformConfigError
 
+        gc.freeze()
+    finally:
+        gc.enable()
     try:
         cfg = PlatformConfig.load(config)
         run(serve(cfg, str(config), say))
@@ -73,4 +82,8 @@ def run_node(config: Path) -> int:
         return _fail(f"dyknow node: {config}: {exc}")
     except TransportError as exc:
         return _fail(f"dyknow node: {config}: {exc}", 1)
+    finally:
+        # the node has ended: a caller that goes on (a test calling the entry point) gets
+        # its objects back in the collector's sight, a node that never got ready included
+        gc.unfreeze()
     return 0

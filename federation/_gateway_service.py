@@ -54,7 +54,8 @@ class GatewayRefusal(Exception):
 
 
 class _Content(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # defer_build: a kind of request is built when the first one arrives, not at start
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
 
 class ListLabels(_Content):

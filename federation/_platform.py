@@ -146,7 +146,7 @@ from ._inputs import InputSettings
 from ._outputs import OutputSettings
 from ._service import UNSHARED_WHY, Anchor, Denied, FederationAgent, MembershipEvent
 from ._sessions import InterfaceSessions
-from ._sharing import SharingRule, SharingSettings
+from ._sharing import SharingRule, SharingSettings, _no_items
 
 __all__ = [
     "DEFAULT_IMPORT_LABEL",
@@ -554,12 +554,12 @@ class PlatformConfig(BaseModel):
     audit_backups: int = Field(default=AuditLog.DEFAULT_BACKUPS, ge=0, le=1000)
     console: ConsoleSettings = Field(default_factory=ConsoleSettings)
     foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
-    facts: list[FactSettings] = Field(default_factory=list)
+    facts: list[FactSettings] = Field(default_factory=_no_items)
 
     # -- the application on this node (docs/application.md): run by `dyknow node` --------
     application: Path | None = Field(default=None, description="The node's KPL file.")
-    inputs: list[InputSettings] = Field(default_factory=list)
-    outputs: list[OutputSettings] = Field(default_factory=list)
+    inputs: list[InputSettings] = Field(default_factory=_no_items)
+    outputs: list[OutputSettings] = Field(default_factory=_no_items)
 
     @field_validator("transport", mode="before")
     @classmethod

@@ -45,7 +45,8 @@ MAX_HISTORY = 100_000
 
 
 class _Content(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+    # defer_build: a kind of request is built when the first one arrives, not at start
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True, defer_build=True)
 
 
 class CreateStream(_Content):

@@ -163,7 +163,7 @@ class MqttTls(BaseModel):
     is the platform's name and becomes its MQTT user name.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
     root_ca_certificate: Path
     certificate: Path | None = None
@@ -205,7 +205,7 @@ class MqttTls(BaseModel):
 class MqttConfig(BaseModel):
     """Where the MQTT broker is and how to talk to it; validated once, errors name the field."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
     host: str = Field(default="127.0.0.1", min_length=1)
     port: int = Field(default=1883, ge=1, le=65535)

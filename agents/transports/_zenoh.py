@@ -170,7 +170,7 @@ class ZenohTls(BaseModel):
     matches (``cert_common_names``). Files are PEM; ``deploy/make_certs.py`` makes them.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
     root_ca_certificate: Path = Field(
         description="The CA certificate the other side must chain to."
@@ -222,7 +222,7 @@ class ZenohUser(BaseModel):
     platform's config file; ``deploy/make_certs.py`` writes one per platform.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
     user: str = Field(min_length=1, description="The user name the router knows.")
     password_file: Path = Field(description="A file holding the password (one line).")
@@ -247,7 +247,7 @@ class ZenohUser(BaseModel):
 class ZenohConfig(BaseModel):
     """How a zenoh session joins the network; validated once, errors name the field."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
 
     mode: Literal["peer", "client", "router"] = "peer"
     listen: tuple[str, ...] | None = Field(
