@@ -62,6 +62,7 @@ def run_node(config: Path) -> int:
     # What the imports build lives as long as the node: the cyclic GC would walk it again
     # and again until ready (~15 ms of a node's start), so it is off while they run and
     # what they built is frozen out of its sight; once ready, `settle_gc` collects it all
+    collecting = gc.isenabled()
     gc.disable()
     try:
         from agents import TransportError, run
@@ -72,7 +73,8 @@ def run_node(config: Path) -> int:
 
         gc.freeze()
     finally:
-        gc.enable()
+        if collecting:  # as the caller had it (an in-process caller may have it off)
+            gc.enable()
     try:
         cfg = PlatformConfig.load(config)
         run(serve(cfg, str(config), say))
