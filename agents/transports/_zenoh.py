@@ -22,6 +22,17 @@ Choices that follow from what we measured with eclipse-zenoh 1.10.2 (Python, loo
   ``publish_blocking`` (a reply a receiver asked for, such as a resend) uses BLOCK, in a
   worker thread so the event loop never waits: a congested link delays it, up to zenoh's
   ``wait_before_close`` (5 s) for room in the queue, instead of dropping it.
+- Every put, ACL envelopes included, goes at zenoh's default priority (data), batched
+  (express off). ACL envelopes at ``DATA_HIGH`` (their queue also 16 batches), so that
+  a request or reply need not wait behind stream samples in a link's send queue, did not
+  help: ``bench scale --quick``, 13 alternated pairs, the global get-latest's p50 and
+  p99 over raw get's 1.43 and 1.50 with it, 1.44 and 1.50 without (p50 13.8 / 12.7 ms).
+  The tail is not in the send queue. It also ran the one-way ACL flood at 0.75-1.06x
+  the rate (3 A/Bs), and 2 of 12 runs lost 2-4% of 30 000 messages (none without).
+  ``express`` on the ACL publisher made the two-process round trip 1.01-1.12x as long
+  (``bench._acl_cpu``, 2 A/Bs of 5 pairs; 1.08x with ``DATA_HIGH`` too), left the flood's
+  rate alone (1.00x) and the scale query's p50 ratio at 1.60 instead of 1.50 (6 rounds).
+  The wire is the same whatever the priority, so a peer may pick any.
 - Sessions are always closed (``aclose``, and an ``atexit`` safety net): a session with
   callback subscribers left open can hang the interpreter at exit.
 - Never ``fork`` a process that has a session open: start children with ``spawn``.
