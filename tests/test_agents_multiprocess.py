@@ -235,8 +235,11 @@ async def _check_subscribe(asker: Agent) -> None:
     assert await _probe(asker) == after_cancel
     assert asker.stats.received == received + asked + 1  # the answers and the probe's only
     assert asker.stats.late == late
+    # what came before the cancel is still read (none lost), then the end: an inform the
+    # child sent while the last probe went round (a loaded machine) is one of those
     with pytest.raises(SubscriptionEnded):
-        await stream.get(timeout=1)
+        for _ in range(100):
+            await stream.get(timeout=1)
 
 
 def _keys(tmp_path: Path, federation: str) -> tuple[Path, Path]:
