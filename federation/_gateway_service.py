@@ -26,6 +26,7 @@ from dyknow_core import (
     DyKnowInstance,
     Policy,
     PolicyError,
+    ProcessError,
     UnknownLabelError,
     ns_to_seconds,
     seconds_to_ns,
@@ -337,6 +338,18 @@ class GatewayService:
         dk.add_cu(name, _identity, [(req.label, policy)], req.output)
         self.created[req.output] = name
         return {"label": req.output, "source": req.label}
+
+    def remove(self, output: str) -> bool:
+        """Remove the stream created as ``output`` (its process, which closes the label);
+        False when there is none (never created here, or its process is gone already)."""
+        name = self.created.pop(output, None)
+        if name is None:
+            return False
+        try:
+            self.instance.remove_process(name)
+        except ProcessError:
+            return False
+        return True
 
     def subscription_policy(self, content: Any) -> tuple[str, Policy]:
         """Validate FIPA-Subscribe content into (label, policy)."""
