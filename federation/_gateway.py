@@ -86,10 +86,12 @@ class GatewayStats:
 
 class GatewayEnded(NamedTuple):
     """What `GatewayAgent.set_visibility` ended: (asker, label) of each subscription and
-    of each created stream (its process removed)."""
+    of each created stream (its process removed); ``kept``: (creator, label, readers) of
+    each created stream kept, as a process staying reads it (handed to this platform)."""
 
     subscriptions: list[tuple[str, str]]
     streams: list[tuple[str, str]]
+    kept: list[tuple[str, str, list[str]]]
 
 
 @dataclass(slots=True)
@@ -187,7 +189,8 @@ class GatewayAgent(Agent):
         request after it is let in or refused by it); made private, the subscriptions of
         other platforms end, their subscribers told ``failure`` with ``why``, then the
         streams they created here are removed (as their process removed by hand: this
-        platform's subscribers to one see it end). Returns what ended. A
+        platform's subscribers to one see it end), but for one a staying process reads:
+        kept, handed to this platform. Returns what ended and what was kept. A
         re-registration that fails leaves the gateway as it was (and raises)."""
         wanted = Visibility(visibility)
         platform = self.platform
@@ -201,7 +204,7 @@ class GatewayAgent(Agent):
             except BaseException:
                 self.visibility = was
                 raise
-        ended = GatewayEnded([], [])
+        ended = GatewayEnded([], [], [])
         if wanted is not Visibility.PRIVATE:
             return ended
         for feed in list(self._feeds.values()):
@@ -218,8 +221,14 @@ class GatewayAgent(Agent):
         # told `why` above, not "stream ended". The asker is told nothing more: its
         # create-stream conversation ended with the inform (a failure now would reach it
         # as a late or unsolicited answer).
-        for output, asker in list(self._creators.items()):
-            if platform_of(asker) == platform.name:
+        theirs = {o: a for o, a in self._creators.items() if platform_of(a) != platform.name}
+        # one a staying process reads (this platform's built on it) would leave that one
+        # without input: it is kept, handed to this platform (not considered again)
+        read_on = self.service.read_on(theirs)
+        for output, asker in theirs.items():
+            if output in read_on:
+                self._creators[output] = self.aid
+                ended.kept.append((asker, output, read_on[output]))
                 continue
             del self._creators[output]
             if self.service.remove(output):

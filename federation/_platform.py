@@ -1108,19 +1108,21 @@ class FederationPlatform:
         newly allows is served to the next request. A changed ``gateway`` re-registers
         the Gateway Agent's service with it (unless the program set its visibility:
         ``gateway_visibility=``); made private, the gateway's subscriptions of other
-        platforms end and the streams they created through it are removed. The streams
+        platforms end and the streams they created through it are removed (but for one
+        a staying process reads: kept, handed to this platform). The streams
         agreed here by consent
         (flowing or leased) whose requester ``accept_for`` no longer lets direct streams
         here are withdrawn (they end here). Audited: ``policy`` ``reloaded``, and
         ``policy`` ``ended`` for each export ended (``sharing-rule``), each gateway
-        subscription ended and each created stream removed (``sharing-gateway``) and each
+        subscription ended and each created stream removed (``sharing-gateway``; ``kept``
+        for one kept) and each
         stream withdrawn (``accept-for``).
         """
         source = source or f"platform {self.name}"
         old = self.federation_agent.sharing.settings
         changes = sharing_changes(old, settings)
         why = f"the sharing policy was reloaded from {source}"
-        gone = GatewayEnded([], [])  # the gateway's subscriptions and created streams
+        gone = GatewayEnded([], [], [])  # the gateway's subscriptions and created streams
         if self._gateway_fixed:
             if settings.gateway != old.gateway:
                 kept = self.gateway.visibility.value
@@ -1143,6 +1145,10 @@ class FederationPlatform:
             changes.extend(
                 f"gateway stream {label!r} created by {asker} removed"
                 for asker, label in gone.streams
+            )
+            changes.extend(
+                f"gateway stream {label!r} created by {asker} kept: read by {', '.join(readers)}"
+                for asker, label, readers in gone.kept
             )
         self.federation_agent.sharing = settings.sharing()
         self.config = self.config.model_copy(update={"sharing": settings})
@@ -1177,6 +1183,20 @@ class FederationPlatform:
                 creator=asker,
                 reason=(
                     f"gateway stream {label!r} created by {asker} removed: {why}: "
+                    f"sharing.gateway is {settings.gateway!r}"
+                ),
+            )
+        for asker, label, readers in gone.kept:
+            audit.record(
+                verdict="kept",
+                stage="policy",
+                code="sharing-gateway",
+                stream=label,
+                to=platform_of(asker),
+                creator=asker,
+                reason=(
+                    f"gateway stream {label!r} created by {asker} kept: read by "
+                    f"{', '.join(readers)} (now this platform's): {why}: "
                     f"sharing.gateway is {settings.gateway!r}"
                 ),
             )

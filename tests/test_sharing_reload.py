@@ -565,6 +565,53 @@ async def test_a_reload_closing_the_gateway_removes_what_other_members_created_t
         assert s.gateway.gateway_stats.streams_removed == 1
 
 
+@pytest.mark.timeout(120)
+async def test_a_reload_closing_the_gateway_keeps_a_stream_this_member_builds_on(
+    tmp_path: Path,
+) -> None:
+    from agents import Agent, request, subscribe
+    from federation import FederationPlatform
+    from federation._cli_common import wait_for_members
+
+    station = Station(tmp_path)
+    path = station.dir / CONFIG
+    path.write_text(path.read_text() + GATEWAY_OPEN)
+    here = FederationPlatform.from_file(path)
+    there = FederationPlatform.from_file(station.dir / "operator.toml")
+    async with asyncio.timeout(100), here as s, there as o:
+        source = s.instance.add_source("wx/temperature")
+        assert await wait_for_members(o, "station", 30)
+        local = await s.agents.add(Agent("local"))
+        tester = await o.agents.add(Agent("tester"))
+
+        async def create(asker: Agent, label: str, output: str) -> object:
+            content = {"action": "create-stream", "label": label, "output": output}
+            return await request(asker, "gateway@station", content, ontology="dyknow", timeout=10)
+
+        await create(tester, "wx/temperature", "op/a")  # the other member's
+        await create(local, "op/a", "station/b")  # this platform's, on top of it
+        feed = await subscribe(local, "gateway@station", {"label": "station/b"}, ontology="dyknow")
+        changes, _ = await s.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        kept = "gateway stream 'op/a' created by tester@operator kept: read by gateway:station/b"
+        assert changes == ["sharing.gateway 'protected' -> 'private'", kept], changes
+        records = [r for r in s.interface.audit.records if r.get("stage") == "policy"]
+        assert [r["verdict"] for r in records] == ["reloaded", "kept"], records
+        record = records[1]
+        assert record["code"] == "sharing-gateway" and record["stream"] == "op/a"
+        assert record["creator"] == "tester@operator" and kept in str(record["reason"])
+        assert s.gateway.gateway_stats.streams_removed == 0
+        # station/b still gets its input through op/a
+        source.push(21.5)
+        sample = await feed.get(timeout=10)
+        assert sample["label"] == "station/b" and sample["samples"][0][0] == 21.5, sample
+        # now this platform's: the next reload closing the gateway leaves it alone
+        await s.reload_sharing(SharingSettings(gateway="protected"), source=CONFIG)
+        changes, _ = await s.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        assert changes == ["sharing.gateway 'protected' -> 'private'"], changes
+        assert {"gateway:op/a", "gateway:station/b"} <= set(s.instance.processes)
+        await feed.cancel()
+
+
 @pytest.mark.timeout(180)
 @pytest.mark.parametrize("command", ["console", "foxglove"])
 def test_console_and_foxglove_reload_sharing_on_sighup_and_serve_on(
