@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from ._export import Export, ExportProxy
     from ._foxglove import FoxgloveBridge
     from ._fusion import Fusion, add_fusion
-    from ._gateway import GATEWAY_SERVICE_TYPE, GatewayAgent, GatewayStats
+    from ._gateway import GATEWAY_SERVICE_TYPE, GatewayAgent, GatewayEnded, GatewayStats
     from ._gateway_service import GatewayRefusal, GatewayService
     from ._import import Import, ImportProxy
     from ._platform import (
@@ -62,6 +62,7 @@ _WHERE = {  # each public name: the module it is imported from on first use
     "add_fusion": "._fusion",
     "GATEWAY_SERVICE_TYPE": "._gateway",
     "GatewayAgent": "._gateway",
+    "GatewayEnded": "._gateway",
     "GatewayStats": "._gateway",
     "GatewayRefusal": "._gateway_service",
     "GatewayService": "._gateway_service",
@@ -119,6 +120,7 @@ __all__ = [
     "FoxgloveSettings",
     "Fusion",
     "GatewayAgent",
+    "GatewayEnded",
     "GatewayRefusal",
     "GatewayService",
     "GatewayStats",

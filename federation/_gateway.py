@@ -22,7 +22,8 @@ no valid semantic label (``gateway_stats.bad_label_refused``). Made private whil
 request or subscribe of another platform waits in its mailbox (a sharing reload,
 `GatewayAgent.set_visibility`), it refuses that message as the Interface Agent would have
 ("access denied"; ``gateway_stats.access_refused``, the platform's ``stats.denied``,
-audited).
+audited); made private, it ends the subscriptions of other platforms and removes the
+streams they created here (`GatewayEnded`).
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import orjson
 
@@ -80,6 +81,17 @@ class GatewayStats:
     reserved_refused: int = 0
     bad_label_refused: int = 0
     access_refused: int = 0
+    streams_removed: int = 0
+
+
+class GatewayEnded(NamedTuple):
+    """What `GatewayAgent.set_visibility` ended: (asker, label) of each subscription and
+    of each created stream (its process removed); ``kept``: (creator, label, readers) of
+    each created stream kept, as a process staying reads it (handed to this platform)."""
+
+    subscriptions: list[tuple[str, str]]
+    streams: list[tuple[str, str]]
+    kept: list[tuple[str, str, list[str]]]
 
 
 @dataclass(slots=True)
@@ -134,6 +146,8 @@ class GatewayAgent(Agent):
         self.max_subscriptions = max_subscriptions
         self.gateway_stats = GatewayStats()
         self._feeds: dict[tuple[str, str], _Feed] = {}
+        # output label of each stream a create-stream made -> the agent that asked for it
+        self._creators: dict[str, str] = {}
         self._presence: TransportSubscription[DirectoryEvent] | None = None
 
     # -- lifecycle ----------------------------------------------------------------------
@@ -170,12 +184,14 @@ class GatewayAgent(Agent):
             except Exception as exc:
                 log.debug("%s: telling %s we stop: %s", self, feed.message.sender, exc)
 
-    async def set_visibility(self, visibility: Visibility | str, why: str) -> list[tuple[str, str]]:
+    async def set_visibility(self, visibility: Visibility | str, why: str) -> GatewayEnded:
         """Serve with ``visibility`` from now on: the service re-registered so (each
         request after it is let in or refused by it); made private, the subscriptions of
-        other platforms end, their subscribers told ``failure`` with ``why``. Returns
-        (subscriber, label) of each subscription ended. A re-registration that fails
-        leaves the gateway as it was (and raises)."""
+        other platforms end, their subscribers told ``failure`` with ``why``, then the
+        streams they created here are removed (as their process removed by hand: this
+        platform's subscribers to one see it end), but for one a staying process reads:
+        kept, handed to this platform. Returns what ended and what was kept. A
+        re-registration that fails leaves the gateway as it was (and raises)."""
         wanted = Visibility(visibility)
         platform = self.platform
         was = self.visibility
@@ -188,19 +204,36 @@ class GatewayAgent(Agent):
             except BaseException:
                 self.visibility = was
                 raise
+        ended = GatewayEnded([], [], [])
         if wanted is not Visibility.PRIVATE:
-            return []
-        ended = []
+            return ended
         for feed in list(self._feeds.values()):
             subscriber = feed.message.sender
             if platform_of(subscriber) == platform.name:
                 continue  # this platform's own agents may still use a private gateway
             self._drop(feed)
-            ended.append((subscriber, feed.label))
+            ended.subscriptions.append((subscriber, feed.label))
             try:
                 await self.reply(feed.message, P.FAILURE, why)
             except Exception as exc:  # it is ended here whether or not it hears so
                 log.debug("%s: telling %s its subscription ended: %s", self, subscriber, exc)
+        # After the subscriptions: another platform's subscriber to a created stream was
+        # told `why` above, not "stream ended". The asker is told nothing more: its
+        # create-stream conversation ended with the inform (a failure now would reach it
+        # as a late or unsolicited answer).
+        theirs = {o: a for o, a in self._creators.items() if platform_of(a) != platform.name}
+        # one a staying process reads (this platform's built on it) would leave that one
+        # without input: it is kept, handed to this platform (not considered again)
+        read_on = self.service.read_on(theirs)
+        for output, asker in theirs.items():
+            if output in read_on:
+                self._creators[output] = self.aid
+                ended.kept.append((asker, output, read_on[output]))
+                continue
+            del self._creators[output]
+            if self.service.remove(output):
+                self.gateway_stats.streams_removed += 1
+                ended.streams.append((asker, output))
         return ended
 
     @property
@@ -222,8 +255,12 @@ class GatewayAgent(Agent):
                 self.gateway_stats.bad_label_refused += 1
                 self._audit_refusal(message, exc.code, exc.reason)
             raise Refuse(self._told(exc, message)) from exc
-        if remote and isinstance(content, dict) and content.get("action") == "list-labels":
-            result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
+        if isinstance(content, dict):
+            action = content.get("action")
+            if action == "create-stream":
+                self._creators[result["label"]] = message.sender
+            elif remote and action == "list-labels":
+                result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
         return result
 
     def _told(self, refusal: GatewayRefusal, message: ACLMessage) -> str:

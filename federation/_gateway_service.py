@@ -12,7 +12,7 @@ request says ``"relative": true`` (``from: -120`` = the last two minutes).
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from enum import Enum
 from typing import Annotated, Any, Literal
 
@@ -22,10 +22,13 @@ from dyknow_core import (
     NS_PER_S,
     Answer,
     Approximation,
+    ComputationalUnit,
     DyKnowError,
     DyKnowInstance,
     Policy,
     PolicyError,
+    Process,
+    ProcessError,
     UnknownLabelError,
     ns_to_seconds,
     seconds_to_ns,
@@ -245,6 +248,9 @@ class GatewayService:
         self.instance = instance
         self.max_streams = max_streams
         self.created: dict[str, str] = {}  # output label -> process name
+        # the unit each create-stream added: a process of that name that is another one
+        # (this one removed by hand, the name reused) is not the gateway's to remove
+        self._units: dict[str, ComputationalUnit] = {}
 
     def parse(self, content: Any) -> ListLabels | Query | CreateStream:
         """Validate request content; GatewayRefusal names what is wrong."""
@@ -324,6 +330,7 @@ class GatewayService:
     def create_stream(self, req: CreateStream) -> dict[str, Any]:
         """Publish ``req.output`` as ``req.label`` filtered by the policy."""
         dk = self.instance
+        self._forget_removed()  # a stream removed by hand frees its slot
         if len(self.created) >= self.max_streams:
             raise GatewayRefusal(f"too many created streams (limit {self.max_streams})")
         try:
@@ -334,9 +341,54 @@ class GatewayService:
             raise GatewayRefusal(f"label {req.output!r} is already published")
         policy = req.policy.to_policy(dk.clock.now())
         name = f"gateway:{req.output}"
-        dk.add_cu(name, _identity, [(req.label, policy)], req.output)
+        cu = dk.add_cu(name, _identity, [(req.label, policy)], req.output)
         self.created[req.output] = name
+        self._units[req.output] = cu
         return {"label": req.output, "source": req.label}
+
+    def _is_ours(self, output: str) -> bool:
+        name = self.created.get(output)
+        unit = self._units.get(output)
+        return name is not None and unit is not None and self.instance.processes.get(name) is unit
+
+    def _forget_removed(self) -> None:
+        for output in [o for o in self.created if not self._is_ours(o)]:
+            del self.created[output]
+            self._units.pop(output, None)
+
+    def remove(self, output: str) -> bool:
+        """Remove the stream created as ``output`` (its process, which closes the label);
+        False when there is none (never created here, or its process is gone already or
+        the name now another process's: that one stays)."""
+        ours = self._is_ours(output)
+        name = self.created.pop(output, None)
+        self._units.pop(output, None)
+        if name is None or not ours:
+            return False
+        try:
+            self.instance.remove_process(name)
+        except ProcessError:
+            return False
+        return True
+
+    def read_on(self, outputs: Iterable[str]) -> dict[str, list[str]]:
+        """Of the created streams ``outputs`` about to be removed, those a process that
+        stays reads as input (one of the instance's, the application's included, not
+        itself among those removed): output -> the names of the processes reading it."""
+        going = {o for o in outputs if self._is_ours(o)}
+        kept: dict[str, list[str]] = {}
+        changed = True
+        while changed:  # a stream kept keeps what it reads in turn
+            changed = False
+            leaving = {self.created[o] for o in going}
+            for proc in self.instance.processes.values():
+                if proc.name in leaving:
+                    continue
+                for label in _inputs_of(proc) & going:
+                    kept.setdefault(label, []).append(proc.name)
+                    going.discard(label)
+                    changed = True
+        return kept
 
     def subscription_policy(self, content: Any) -> tuple[str, Policy]:
         """Validate FIPA-Subscribe content into (label, policy)."""
@@ -360,6 +412,23 @@ def _refused_if_invalid() -> Iterator[None]:
         raise GatewayRefusal(f"field {where!r}: {err.get('msg', 'invalid')}") from exc
     except PolicyError as exc:
         raise GatewayRefusal(str(exc)) from exc
+
+
+def _inputs_of(proc: Process) -> set[str]:
+    """The labels a process reads, as its description names them (each kind its key)."""
+    d = proc.describe()
+    labels: set[str] = set()
+    for key in ("inputs", "components"):
+        value = d.get(key)
+        if isinstance(value, dict):
+            value = list(value.values())
+        if isinstance(value, list):
+            labels.update(v for v in value if isinstance(v, str))
+    for key in ("source", "local", "imported", "target"):
+        value = d.get(key)
+        if isinstance(value, str):
+            labels.add(value)
+    return labels
 
 
 def _identity(v: Any) -> Any:

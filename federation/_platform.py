@@ -139,7 +139,7 @@ from ontology import (
 
 from ._export import ExportProxy
 from ._fusion import Fusion, add_fusion
-from ._gateway import GatewayAgent
+from ._gateway import GatewayAgent, GatewayEnded
 from ._geo import check_origin
 from ._import import Import, ImportProxy
 from ._inputs import InputSettings
@@ -1108,17 +1108,21 @@ class FederationPlatform:
         newly allows is served to the next request. A changed ``gateway`` re-registers
         the Gateway Agent's service with it (unless the program set its visibility:
         ``gateway_visibility=``); made private, the gateway's subscriptions of other
-        platforms end. The streams agreed here by consent
+        platforms end and the streams they created through it are removed (but for one
+        a staying process reads: kept, handed to this platform). The streams
+        agreed here by consent
         (flowing or leased) whose requester ``accept_for`` no longer lets direct streams
         here are withdrawn (they end here). Audited: ``policy`` ``reloaded``, and
         ``policy`` ``ended`` for each export ended (``sharing-rule``), each gateway
-        subscription ended (``sharing-gateway``) and each stream withdrawn (``accept-for``).
+        subscription ended and each created stream removed (``sharing-gateway``; ``kept``
+        for one kept) and each
+        stream withdrawn (``accept-for``).
         """
         source = source or f"platform {self.name}"
         old = self.federation_agent.sharing.settings
         changes = sharing_changes(old, settings)
         why = f"the sharing policy was reloaded from {source}"
-        gone: list[tuple[str, str]] = []  # the gateway subscriptions ended
+        gone = GatewayEnded([], [], [])  # the gateway's subscriptions and created streams
         if self._gateway_fixed:
             if settings.gateway != old.gateway:
                 kept = self.gateway.visibility.value
@@ -1136,7 +1140,15 @@ class FederationPlatform:
             gone = await self.gateway.set_visibility(settings.gateway, UNSHARED_WHY)
             changes.extend(
                 f"gateway subscription of {subscriber} to {label!r} ended"
-                for subscriber, label in gone
+                for subscriber, label in gone.subscriptions
+            )
+            changes.extend(
+                f"gateway stream {label!r} created by {asker} removed"
+                for asker, label in gone.streams
+            )
+            changes.extend(
+                f"gateway stream {label!r} created by {asker} kept: read by {', '.join(readers)}"
+                for asker, label, readers in gone.kept
             )
         self.federation_agent.sharing = settings.sharing()
         self.config = self.config.model_copy(update={"sharing": settings})
@@ -1148,7 +1160,7 @@ class FederationPlatform:
         )
         for problem in _strangers(self.config, self.interface.trust):
             log.warning("%s: %s", source, problem)
-        for subscriber, label in gone:
+        for subscriber, label in gone.subscriptions:
             audit.record(
                 verdict="ended",
                 stage="policy",
@@ -1158,6 +1170,33 @@ class FederationPlatform:
                 subscriber=subscriber,
                 reason=(
                     f"gateway subscription of {subscriber} to {label!r} ended: {why}: "
+                    f"sharing.gateway is {settings.gateway!r}"
+                ),
+            )
+        for asker, label in gone.streams:
+            audit.record(
+                verdict="ended",
+                stage="policy",
+                code="sharing-gateway",
+                stream=label,
+                to=platform_of(asker),
+                creator=asker,
+                reason=(
+                    f"gateway stream {label!r} created by {asker} removed: {why}: "
+                    f"sharing.gateway is {settings.gateway!r}"
+                ),
+            )
+        for asker, label, readers in gone.kept:
+            audit.record(
+                verdict="kept",
+                stage="policy",
+                code="sharing-gateway",
+                stream=label,
+                to=platform_of(asker),
+                creator=asker,
+                reason=(
+                    f"gateway stream {label!r} created by {asker} kept: read by "
+                    f"{', '.join(readers)} (now this platform's): {why}: "
                     f"sharing.gateway is {settings.gateway!r}"
                 ),
             )

@@ -597,7 +597,7 @@ async def test_what_waited_in_the_mailbox_while_the_gateway_went_private_is_refu
             async with asyncio.timeout(5):
                 await arrived.wait()  # past the Interface Agent, not yet handled
             ended = await w.gateway.set_visibility("private", "closed by the operator")
-            assert ended == []
+            assert ended == ([], [], [])
             release()
             reason = await refusal(asked)
         assert reason == (
@@ -631,7 +631,7 @@ async def test_a_private_gateway_keeps_its_own_platforms_subscriptions() -> None
         mine = await subscribe(local, GW, {"label": "car/car5/speed"}, ontology="dyknow")
         theirs = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
         ended = await w.gateway.set_visibility("private", "closed by the operator")
-        assert ended == [("asker@operator", "car/car5/speed")]
+        assert ended.subscriptions == [("asker@operator", "car/car5/speed")]
         with pytest.raises(Failed, match="closed by the operator"):
             await theirs.get(timeout=5)
         w.speed.push(1.0, valid_time=T0)
@@ -643,6 +643,90 @@ async def test_a_private_gateway_keeps_its_own_platforms_subscriptions() -> None
         assert w.gateway.gateway_stats.access_refused == 0
         await mine.cancel()
         await again.cancel()
+
+
+async def test_going_private_removes_the_streams_other_platforms_created_and_keeps_its_own() -> (
+    None
+):
+    async with world() as w:
+        local = await w.uav.add(Agent("local"))
+
+        async def create(asker: Agent, output: str) -> Any:
+            content = {"action": "create-stream", "label": "car/car5/speed", "output": output}
+            return await request(asker, GW, content, ontology="dyknow", timeout=5)
+
+        await create(w.asker, "theirs/speed")
+        await create(local, "mine/speed")
+        # the stream another platform created, followed by it and by this platform
+        theirs = await subscribe(w.asker, GW, {"label": "theirs/speed"}, ontology="dyknow")
+        here = await subscribe(local, GW, {"label": "theirs/speed"}, ontology="dyknow")
+        ended = await w.gateway.set_visibility("private", "closed by the operator")
+        assert ended.subscriptions == [("asker@operator", "theirs/speed")]
+        assert ended.streams == [("asker@operator", "theirs/speed")]
+        assert w.gateway.gateway_stats.streams_removed == 1
+        # gone as a removed process: no process, no label; this platform's subscriber told
+        assert "gateway:theirs/speed" not in w.dk.processes
+        assert not w.dk.has_label("theirs/speed")
+        with pytest.raises(SubscriptionEnded):  # the responder's cancel: a clean end
+            await here.get(timeout=5)
+        with pytest.raises(Failed, match="closed by the operator"):
+            await theirs.get(timeout=5)
+        # this platform's own stream is kept, and serves on
+        assert w.gateway.service.created == {"mine/speed": "gateway:mine/speed"}
+        w.speed.push(7.0, valid_time=T0)
+        answer = await request(
+            local, GW, {"action": "query", "label": "mine/speed"}, ontology="dyknow", timeout=5
+        )
+        assert [row[:2] for row in answer["samples"]] == [[7.0, 1000.0]]
+        # the removed one's slot is free: its output may be created again (here)
+        await create(local, "theirs/speed")
+        again = await w.gateway.set_visibility("private", "closed by the operator")
+        assert again == ([], [], [])  # what this platform created stays, reload after reload
+        assert w.gateway.gateway_stats.streams_removed == 1
+        assert set(w.gateway.service.created) == {"mine/speed", "theirs/speed"}
+
+
+async def _create(asker: Agent, label: str, output: str) -> Any:
+    content = {"action": "create-stream", "label": label, "output": output}
+    return await request(asker, GW, content, ontology="dyknow", timeout=5)
+
+
+async def test_going_private_keeps_a_stream_this_platforms_own_stream_reads() -> None:
+    async with world() as w:
+        local = await w.uav.add(Agent("local"))
+        await _create(w.asker, "car/car5/speed", "op/a")  # another platform's
+        await _create(local, "op/a", "station/b")  # this platform's, built on it
+        here = await subscribe(local, GW, {"label": "station/b"}, ontology="dyknow")
+        ended = await w.gateway.set_visibility("private", "closed by the operator")
+        assert ended == ([], [], [("asker@operator", "op/a", ["gateway:station/b"])])
+        assert w.gateway.gateway_stats.streams_removed == 0
+        assert {"gateway:op/a", "gateway:station/b"} <= set(w.dk.processes)
+        # station/b still gets its input: a sample pushed now reaches its subscriber
+        w.speed.push(7.0, valid_time=T0)
+        sample = await here.get(timeout=5)
+        assert sample["label"] == "station/b" and sample["samples"][0][0] == 7.0, sample
+        # handed to this platform: a later reload does not consider it again
+        assert await w.gateway.set_visibility("private", "again") == ([], [], [])
+        assert set(w.gateway.service.created) == {"op/a", "station/b"}
+        await here.cancel()
+
+
+async def test_a_stream_removed_by_hand_frees_its_slot_and_its_name() -> None:
+    async with world(max_streams=1) as w:
+        await _create(w.asker, "car/car5/speed", "op/t")
+        w.dk.remove_process("gateway:op/t")  # the operator, by hand
+        assert await _create(w.asker, "car/car5/speed", "op/u") == {
+            "label": "op/u",
+            "source": "car/car5/speed",
+        }
+        # the user's own process takes the name of the one removed by hand
+        w.dk.remove_process("gateway:op/u")
+        user = w.dk.add_source("op/u", name="gateway:op/u")
+        ended = await w.gateway.set_visibility("private", "closed by the operator")
+        assert ended == ([], [], [])  # not the gateway's to remove
+        assert w.dk.processes["gateway:op/u"] is user and w.dk.has_label("op/u")
+        assert w.gateway.gateway_stats.streams_removed == 0
+        assert w.gateway.service.created == {}
 
 
 async def test_a_re_registration_that_fails_leaves_the_gateway_and_its_entry_as_they_were() -> None:
@@ -668,7 +752,7 @@ async def test_a_re_registration_that_fails_leaves_the_gateway_and_its_entry_as_
         assert (await theirs.get(timeout=5))["label"] == "car/car5/speed"
         # and the same change again, now told, applies
         ended = await w.gateway.set_visibility("private", "closed by the operator")
-        assert ended == [("asker@operator", "car/car5/speed")]
+        assert ended.subscriptions == [("asker@operator", "car/car5/speed")]
         (entry,) = df.search(provider=GW)
         assert entry.visibility == "private" == w.gateway.visibility
         with pytest.raises(Failed):

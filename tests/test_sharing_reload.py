@@ -484,27 +484,132 @@ async def test_sighup_opens_and_closes_the_gateway_to_other_members(tmp_path: Pa
             )
             first = await feed.get(timeout=30)  # samples flow to the other member
             assert isinstance(first, dict) and first["label"] == "wx/temperature", first
+            create = {"action": "create-stream", "label": "wx/temperature", "output": "op/t"}
+            created = await request(tester, "gateway@station", create, ontology="dyknow")
+            assert created == {"label": "op/t", "source": "wx/temperature"}, created
             node.hup(GATEWAY_CLOSED)
             line = await asyncio.to_thread(node.out.wait_for, "[sharing] reloaded", 30)
             assert "sharing.gateway 'protected' -> 'private'" in line, line
             assert "gateway subscription of tester@operator to 'wx/temperature' ended" in line
+            # and the stream it created there removed (its process and its label)
+            assert "gateway stream 'op/t' created by tester@operator removed" in line, line
             # the subscriber is told, no more than an export's receiver
             with pytest.raises(Failed, match="sharing policy no longer allows it"):
                 for _ in range(1000):  # informs sent before the end may come first
                     await feed.get(timeout=30)
             with pytest.raises(Refused, match="access denied"):
                 await ask()
-        records = await asyncio.to_thread(node.policy_records, ["reloaded", "reloaded", "ended"])
-        assert [r["verdict"] for r in records] == ["reloaded", "reloaded", "ended"], records
-        ended = records[2]
+        verdicts = ["reloaded", "reloaded", "ended", "ended"]
+        records = await asyncio.to_thread(node.policy_records, verdicts)
+        assert [r["verdict"] for r in records] == verdicts, records
+        ended, removed = records[2:]
         assert ended["code"] == "sharing-gateway" and ended["stream"] == "wx/temperature"
         assert ended["to"] == "operator" and ended["subscriber"] == "tester@operator"
+        assert removed["code"] == "sharing-gateway" and removed["stream"] == "op/t"
+        assert removed["to"] == "operator" and removed["creator"] == "tester@operator"
         refused = [r for r in node.audit() if "access denied" in str(r.get("reason"))]
         assert len(refused) == 2, refused  # one before the opening, one after the closing
         assert node.proc.poll() is None
     finally:
         out, err = await asyncio.to_thread(node.stop)
     assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(120)
+async def test_a_reload_closing_the_gateway_removes_what_other_members_created_there(
+    tmp_path: Path,
+) -> None:
+    from agents import Agent, Refused, request
+    from federation import FederationPlatform
+    from federation._cli_common import wait_for_members
+
+    station = Station(tmp_path)
+    path = station.dir / CONFIG
+    path.write_text(path.read_text() + GATEWAY_OPEN)
+    here = FederationPlatform.from_file(path)
+    there = FederationPlatform.from_file(station.dir / "operator.toml")
+    async with asyncio.timeout(100), here as s, there as o:
+        s.instance.add_source("wx/temperature")  # the application is `dyknow node`'s
+        assert await wait_for_members(o, "station", 30)
+        local = await s.agents.add(Agent("local"))
+        tester = await o.agents.add(Agent("tester"))
+
+        async def create(asker: Agent, output: str) -> object:
+            content = {"action": "create-stream", "label": "wx/temperature", "output": output}
+            return await request(asker, "gateway@station", content, ontology="dyknow", timeout=10)
+
+        await create(tester, "op/t")
+        await create(local, "station/t")
+        assert {"gateway:op/t", "gateway:station/t"} <= set(s.instance.processes)
+        changes, _ = await s.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        assert changes == [
+            "sharing.gateway 'protected' -> 'private'",
+            "gateway stream 'op/t' created by tester@operator removed",
+        ], changes
+        # the other member's: its process and label gone, counted, audited
+        assert "gateway:op/t" not in s.instance.processes
+        assert not s.instance.has_label("op/t")
+        assert s.gateway.gateway_stats.streams_removed == 1
+        records = [r for r in s.interface.audit.records if r.get("stage") == "policy"]
+        assert [r["verdict"] for r in records] == ["reloaded", "ended"], records
+        removed = records[1]
+        assert removed["code"] == "sharing-gateway" and removed["stream"] == "op/t"
+        assert removed["to"] == "operator" and removed["creator"] == "tester@operator"
+        assert "gateway stream 'op/t' created by tester@operator removed" in str(removed["reason"])
+        # this platform's own: kept, and it may go on creating; the other member may not
+        assert "gateway:station/t" in s.instance.processes
+        assert s.gateway.service.created == {"station/t": "gateway:station/t"}
+        await create(local, "station/t2")
+        with pytest.raises(Refused, match="access denied"):
+            await create(tester, "op/t")
+        assert s.gateway.gateway_stats.streams_removed == 1
+
+
+@pytest.mark.timeout(120)
+async def test_a_reload_closing_the_gateway_keeps_a_stream_this_member_builds_on(
+    tmp_path: Path,
+) -> None:
+    from agents import Agent, request, subscribe
+    from federation import FederationPlatform
+    from federation._cli_common import wait_for_members
+
+    station = Station(tmp_path)
+    path = station.dir / CONFIG
+    path.write_text(path.read_text() + GATEWAY_OPEN)
+    here = FederationPlatform.from_file(path)
+    there = FederationPlatform.from_file(station.dir / "operator.toml")
+    async with asyncio.timeout(100), here as s, there as o:
+        source = s.instance.add_source("wx/temperature")
+        assert await wait_for_members(o, "station", 30)
+        local = await s.agents.add(Agent("local"))
+        tester = await o.agents.add(Agent("tester"))
+
+        async def create(asker: Agent, label: str, output: str) -> object:
+            content = {"action": "create-stream", "label": label, "output": output}
+            return await request(asker, "gateway@station", content, ontology="dyknow", timeout=10)
+
+        await create(tester, "wx/temperature", "op/a")  # the other member's
+        await create(local, "op/a", "station/b")  # this platform's, on top of it
+        feed = await subscribe(local, "gateway@station", {"label": "station/b"}, ontology="dyknow")
+        changes, _ = await s.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        kept = "gateway stream 'op/a' created by tester@operator kept: read by gateway:station/b"
+        assert changes == ["sharing.gateway 'protected' -> 'private'", kept], changes
+        records = [r for r in s.interface.audit.records if r.get("stage") == "policy"]
+        assert [r["verdict"] for r in records] == ["reloaded", "kept"], records
+        record = records[1]
+        assert record["code"] == "sharing-gateway" and record["stream"] == "op/a"
+        assert record["creator"] == "tester@operator" and kept in str(record["reason"])
+        assert s.gateway.gateway_stats.streams_removed == 0
+        # station/b still gets its input through op/a
+        source.push(21.5)
+        sample = await feed.get(timeout=10)
+        assert sample["label"] == "station/b" and sample["samples"][0][0] == 21.5, sample
+        # now this platform's: the next reload closing the gateway leaves it alone
+        await s.reload_sharing(SharingSettings(gateway="protected"), source=CONFIG)
+        changes, _ = await s.reload_sharing(SharingSettings(gateway="private"), source=CONFIG)
+        assert changes == ["sharing.gateway 'protected' -> 'private'"], changes
+        assert {"gateway:op/a", "gateway:station/b"} <= set(s.instance.processes)
+        await feed.cancel()
 
 
 @pytest.mark.timeout(180)
