@@ -1109,14 +1109,13 @@ class FederationPlatform:
         the Gateway Agent's service with it (unless the program set its visibility:
         ``gateway_visibility=``); made private, the gateway's subscriptions of other
         platforms end and the streams they created through it are removed (but for one
-        a staying process reads: kept, handed to this platform). The streams
-        agreed here by consent
-        (flowing or leased) whose requester ``accept_for`` no longer lets direct streams
-        here are withdrawn (they end here). Audited: ``policy`` ``reloaded``, and
-        ``policy`` ``ended`` for each export ended (``sharing-rule``), each gateway
-        subscription ended and each created stream removed (``sharing-gateway``; ``kept``
-        for one kept) and each
-        stream withdrawn (``accept-for``).
+        a staying process reads: kept, handed to this platform). The streams agreed here
+        by consent (flowing or leased) whose requester ``accept_for`` no longer lets
+        direct streams here are withdrawn (they end here). Audited: ``policy``
+        ``reloaded``, and ``policy`` ``ended`` for each export ended (``sharing-rule``),
+        each gateway subscription ended and each created stream removed
+        (``sharing-gateway``; ``kept`` for one kept) and each stream withdrawn
+        (``accept-for``).
         """
         source = source or f"platform {self.name}"
         old = self.federation_agent.sharing.settings
