@@ -173,10 +173,17 @@ def _line(proc: subprocess.Popen[str], want: str, timeout: float = START) -> str
                 return line
     finally:
         sel.close()
-    err = ""
-    if proc.poll() is not None and proc.stderr is not None:
-        err = proc.stderr.read()[-3000:]
-    raise AssertionError(f"no line {want!r} from {proc.args[1:3]} within {timeout:g} s: {err}")
+    # what it said on stderr says why: one still running is stopped to read it
+    if proc.poll() is None:
+        proc.kill()
+    try:
+        _, err = proc.communicate(timeout=10)
+    except (subprocess.TimeoutExpired, ValueError):  # ValueError: its stdout read already
+        err = ""
+    raise AssertionError(
+        f"no line {want!r} from the process {proc.args[3:]} within {timeout:g} s "
+        f"(exit {proc.returncode}): {(err or '')[-3000:]}"
+    )
 
 
 @contextmanager
