@@ -877,6 +877,47 @@ _BAD_SAMPLES = {
 }
 
 
+def _gateway_told(
+    gone: GatewayEnded,
+) -> list[tuple[str, str, str, str, str, str]]:
+    """What a gateway's reload ended or kept, as said and audited: (verdict, label, agent,
+    its audit field, the reload line's words, what the audit record adds to them)."""
+    told = [
+        (
+            "ended",
+            label,
+            subscriber,
+            "subscriber",
+            f"gateway subscription of {subscriber} to {label!r} ended",
+            "",
+        )
+        for subscriber, label in gone.subscriptions
+    ]
+    told += [
+        (
+            "ended",
+            label,
+            asker,
+            "creator",
+            f"gateway stream {label!r} created by {asker} removed",
+            "",
+        )
+        for asker, label in gone.streams
+    ]
+    told += [
+        (
+            "kept",
+            label,
+            asker,
+            "creator",
+            f"gateway stream {label!r} created by {asker} kept: read by {', '.join(readers)}",
+            " (now this platform's)",
+        )
+        for asker, label, readers in gone.kept
+    ]
+    return told
+
+
 class FederationPlatform:
     """One platform's assembly, as an async context manager: everything a member needs.
 
@@ -1137,18 +1178,8 @@ class FederationPlatform:
             # first: a re-registration that fails leaves the whole policy in force; the
             # subscriber is told no more than an export's receiver (UNSHARED_WHY)
             gone = await self.gateway.set_visibility(settings.gateway, UNSHARED_WHY)
-            changes.extend(
-                f"gateway subscription of {subscriber} to {label!r} ended"
-                for subscriber, label in gone.subscriptions
-            )
-            changes.extend(
-                f"gateway stream {label!r} created by {asker} removed"
-                for asker, label in gone.streams
-            )
-            changes.extend(
-                f"gateway stream {label!r} created by {asker} kept: read by {', '.join(readers)}"
-                for asker, label, readers in gone.kept
-            )
+        told = _gateway_told(gone)
+        changes.extend(what for _, _, _, _, what, _ in told)
         self.federation_agent.sharing = settings.sharing()
         self.config = self.config.model_copy(update={"sharing": settings})
         audit = self.interface.audit
@@ -1159,45 +1190,15 @@ class FederationPlatform:
         )
         for problem in _strangers(self.config, self.interface.trust):
             log.warning("%s: %s", source, problem)
-        for subscriber, label in gone.subscriptions:
+        for verdict, label, agent, role, what, more in told:
             audit.record(
-                verdict="ended",
+                verdict=verdict,
                 stage="policy",
                 code="sharing-gateway",
                 stream=label,
-                to=platform_of(subscriber),
-                subscriber=subscriber,
-                reason=(
-                    f"gateway subscription of {subscriber} to {label!r} ended: {why}: "
-                    f"sharing.gateway is {settings.gateway!r}"
-                ),
-            )
-        for asker, label in gone.streams:
-            audit.record(
-                verdict="ended",
-                stage="policy",
-                code="sharing-gateway",
-                stream=label,
-                to=platform_of(asker),
-                creator=asker,
-                reason=(
-                    f"gateway stream {label!r} created by {asker} removed: {why}: "
-                    f"sharing.gateway is {settings.gateway!r}"
-                ),
-            )
-        for asker, label, readers in gone.kept:
-            audit.record(
-                verdict="kept",
-                stage="policy",
-                code="sharing-gateway",
-                stream=label,
-                to=platform_of(asker),
-                creator=asker,
-                reason=(
-                    f"gateway stream {label!r} created by {asker} kept: read by "
-                    f"{', '.join(readers)} (now this platform's): {why}: "
-                    f"sharing.gateway is {settings.gateway!r}"
-                ),
+                to=platform_of(agent),
+                **{role: agent},
+                reason=f"{what}{more}: {why}: sharing.gateway is {settings.gateway!r}",
             )
         ended = await self.federation_agent.end_unshared(why)
         for export_id, semantic, receiver, reason in ended:

@@ -14,8 +14,9 @@ import sys
 import threading
 import time
 import tomllib
+from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import pytest
 from _node_example import Station, _samples
@@ -515,11 +516,12 @@ async def test_sighup_opens_and_closes_the_gateway_to_other_members(tmp_path: Pa
     assert "station stopped" in out and "Traceback" not in err, err
 
 
-@pytest.mark.timeout(120)
-async def test_a_reload_closing_the_gateway_removes_what_other_members_created_there(
-    tmp_path: Path,
-) -> None:
-    from agents import Agent, Refused, request
+@contextlib.asynccontextmanager
+async def _gateway_open(tmp_path: Path) -> AsyncIterator[tuple[Any, Any, Any, Any]]:
+    """The station with its gateway open and the operator, in this process over zenoh: the
+    station's platform, its ``wx/temperature`` source, an agent of its own (``local``) and
+    one of the operator's (``tester``)."""
+    from agents import Agent
     from federation import FederationPlatform
     from federation._cli_common import wait_for_members
 
@@ -528,11 +530,20 @@ async def test_a_reload_closing_the_gateway_removes_what_other_members_created_t
     path.write_text(path.read_text() + GATEWAY_OPEN)
     here = FederationPlatform.from_file(path)
     there = FederationPlatform.from_file(station.dir / "operator.toml")
-    async with asyncio.timeout(100), here as s, there as o:
-        s.instance.add_source("wx/temperature")  # the application is `dyknow node`'s
+    async with here as s, there as o:
+        source = s.instance.add_source("wx/temperature")  # the application is `dyknow node`'s
         assert await wait_for_members(o, "station", 30)
-        local = await s.agents.add(Agent("local"))
-        tester = await o.agents.add(Agent("tester"))
+        local, tester = await s.agents.add(Agent("local")), await o.agents.add(Agent("tester"))
+        yield s, source, local, tester
+
+
+@pytest.mark.timeout(120)
+async def test_a_reload_closing_the_gateway_removes_what_other_members_created_there(
+    tmp_path: Path,
+) -> None:
+    from agents import Agent, Refused, request
+
+    async with asyncio.timeout(100), _gateway_open(tmp_path) as (s, _, local, tester):
 
         async def create(asker: Agent, output: str) -> object:
             content = {"action": "create-stream", "label": "wx/temperature", "output": output}
@@ -570,19 +581,8 @@ async def test_a_reload_closing_the_gateway_keeps_a_stream_this_member_builds_on
     tmp_path: Path,
 ) -> None:
     from agents import Agent, request, subscribe
-    from federation import FederationPlatform
-    from federation._cli_common import wait_for_members
 
-    station = Station(tmp_path)
-    path = station.dir / CONFIG
-    path.write_text(path.read_text() + GATEWAY_OPEN)
-    here = FederationPlatform.from_file(path)
-    there = FederationPlatform.from_file(station.dir / "operator.toml")
-    async with asyncio.timeout(100), here as s, there as o:
-        source = s.instance.add_source("wx/temperature")
-        assert await wait_for_members(o, "station", 30)
-        local = await s.agents.add(Agent("local"))
-        tester = await o.agents.add(Agent("tester"))
+    async with asyncio.timeout(100), _gateway_open(tmp_path) as (s, source, local, tester):
 
         async def create(asker: Agent, label: str, output: str) -> object:
             content = {"action": "create-stream", "label": label, "output": output}
