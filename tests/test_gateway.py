@@ -57,7 +57,7 @@ class World:
 async def world(**gateway_options: Any) -> AsyncIterator[World]:
     """Two platforms on one in-memory hub; on exit, checks that no task is left behind."""
     ka, ko = KeyPair.generate("uav-a"), KeyPair.generate("operator")
-    trust = TrustStore(FED, {"uav-a": ka.public_key, "operator": ko.public_key})
+    keys = {"uav-a": ka.public_key, "operator": ko.public_key}
     hub = MemoryHub()
     clock = ManualClock(T0)
     async with contextlib.AsyncExitStack() as stack:
@@ -67,10 +67,14 @@ async def world(**gateway_options: Any) -> AsyncIterator[World]:
         ta = await stack.enter_async_context(hub.transport())
         to = await stack.enter_async_context(hub.transport())
         uav = await stack.enter_async_context(
-            AgentPlatform("uav-a", ta, federation=FED, channel=InterfaceAgent(ka, trust))
+            AgentPlatform(
+                "uav-a", ta, federation=FED, channel=InterfaceAgent(ka, TrustStore(FED, keys))
+            )
         )
         operator = await stack.enter_async_context(
-            AgentPlatform("operator", to, federation=FED, channel=InterfaceAgent(ko, trust))
+            AgentPlatform(
+                "operator", to, federation=FED, channel=InterfaceAgent(ko, TrustStore(FED, keys))
+            )
         )
         gateway = await uav.add(GatewayAgent(dk, **gateway_options))
         asker = await operator.add(Agent("asker"))
@@ -435,12 +439,37 @@ async def test_gateway_stopping_fails_its_subscriptions() -> None:
 
 async def test_subscriptions_of_a_platform_that_leaves_are_dropped() -> None:
     async with world() as w:
+        await _create(w.asker, "car5-state", "op/t")
         await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
         await subscribe(w.asker, GW, {"label": "car5-state"}, ontology="dyknow")
         assert len(w.gateway.subscriptions) == 2
         await w.operator.__aexit__(None, None, None)
         await eventually(lambda: w.gateway.subscriptions == {})
         assert w.dk.stream("car/car5/speed").subscriptions == []
+        # the stream it created stays (it may come back; `max_streams` bounds them)
+        assert w.gateway.service.created == {"op/t": "gateway:op/t"}
+        assert w.dk.has_label("op/t") and w.gateway.gateway_stats.streams_removed == 0
+
+
+async def test_a_platform_revoked_from_another_thread_loses_what_it_holds_here() -> None:
+    async with world() as w:
+        local = await w.uav.add(Agent("local"))
+        await _create(w.asker, "car/car5/speed", "op/t")
+        await _create(local, "car/car5/speed", "mine/t")
+        await subscribe(w.asker, GW, {"label": "car5-state"}, ontology="dyknow")
+        interface = w.uav.channel
+        assert isinstance(interface, InterfaceAgent)
+        # a program's thread revokes: done in the gateway's own loop
+        assert await asyncio.to_thread(interface.trust.remove, "operator")
+        await eventually(lambda: w.gateway.gateway_stats.streams_removed == 1)
+        assert w.gateway.subscriptions == {}
+        assert not w.dk.has_label("op/t") and w.dk.has_label("mine/t")
+        assert w.gateway.service.created == {"mine/t": "gateway:mine/t"}
+        records = [r for r in interface.audit.records if r.get("stage") == "trust"]
+        assert [(r["verdict"], r["code"], r["stream"]) for r in records] == [
+            ("ended", "untrusted", "car5-state"),
+            ("ended", "untrusted", "op/t"),
+        ], records
 
 
 async def test_informs_to_an_agent_that_left_end_its_subscription() -> None:
