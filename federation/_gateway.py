@@ -23,7 +23,10 @@ request or subscribe of another platform waits in its mailbox (a sharing reload,
 `GatewayAgent.set_visibility`), it refuses that message as the Interface Agent would have
 ("access denied"; ``gateway_stats.access_refused``, the platform's ``stats.denied``,
 audited); made private, it ends the subscriptions of other platforms and removes the
-streams they created here (`GatewayEnded`).
+streams they created here (`GatewayEnded`). A platform revoked (removed from the
+Interface Agent's trust store) loses its subscriptions and the streams it created here
+the same way, and what it asked that still waits in the mailbox is refused so too
+(``untrusted``).
 """
 
 from __future__ import annotations
@@ -197,6 +200,7 @@ class GatewayAgent(Agent):
         self._creators: dict[str, str] = {}
         self._presence: TransportSubscription[DirectoryEvent] | None = None
         self._unhook_trust: Callable[[], None] | None = None
+        self._trust: TrustStore | None = None  # the Interface Agent's: whom it let in
         self._loop: asyncio.AbstractEventLoop | None = None
 
     # -- lifecycle ----------------------------------------------------------------------
@@ -224,6 +228,7 @@ class GatewayAgent(Agent):
             self.spawn(self._follow_platforms(self._presence), "platforms")
         trust = getattr(platform.channel, "trust", None)
         if isinstance(trust, TrustStore):
+            self._trust = trust
             self._loop = asyncio.get_running_loop()
             self._unhook_trust = trust.on_remove(self._trust_removed)
 
@@ -406,21 +411,27 @@ class GatewayAgent(Agent):
 
     def _check_access(self, message: ACLMessage) -> None:
         """Refuse (count, audit) a message of another platform the gateway's visibility
-        no longer allows: the Interface Agent let it in, by the visibility of then.
+        no longer allows, or of a platform revoked since: the Interface Agent let it in,
+        by the visibility and the trust of then.
 
         A request or subscribe may wait in the mailbox while a reload makes the gateway
-        private; served, it would open a private gateway to another platform.
+        private, or while its platform is revoked; served, it would open a private gateway
+        to another platform, or create for a revoked one what its revocation removed.
         """
+        sender = platform_of(message.sender)
+        trust = self._trust
+        if trust is not None and sender not in trust:
+            code = "untrusted"
+            reason = f"platform {sender!r} is not in the trust file (revoked)"
         # as `visibility_allows` rules for a message that came through the Interface Agent
-        if self.visibility is not Visibility.PRIVATE:
+        elif self.visibility is Visibility.PRIVATE:
+            code = "access-denied"
+            reason = f"access denied: {self.aid} offers no service that platform {sender!r} may use"
+        else:
             return
-        reason = (
-            f"access denied: {self.aid} offers no service that platform "
-            f"{platform_of(message.sender)!r} may use"
-        )
         self.gateway_stats.access_refused += 1
         self.platform.stats.denied += 1
-        self._audit_refusal(message, "access-denied", reason)
+        self._audit_refusal(message, code, reason)
         raise Refuse(reason)
 
     def _audit_refusal(self, message: ACLMessage, code: str, reason: str) -> None:

@@ -654,6 +654,42 @@ async def test_what_waited_in_the_mailbox_while_the_gateway_went_private_is_refu
         assert w.uav.stats.denied == 2
 
 
+@pytest.mark.parametrize("asking", ["subscribe", "create-stream"])
+async def test_what_waited_in_the_mailbox_while_its_platform_was_revoked_is_refused(
+    asking: str,
+) -> None:
+    async with world() as w:
+        interface = w.uav.channel
+        assert isinstance(interface, InterfaceAgent)
+        performative = "subscribe" if asking == "subscribe" else "request"
+        with held(w.gateway, performative) as (messages, arrived, release):
+            if asking == "subscribe":
+                call: Awaitable[Any] = subscribe(
+                    w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow"
+                )
+            else:
+                call = _create(w.asker, "car/car5/speed", "op/t")
+            asked = asyncio.ensure_future(call)
+            async with asyncio.timeout(5):
+                await arrived.wait()  # past the Interface Agent, not yet handled
+            assert interface.trust.remove("operator")
+            release()
+            reason = await refusal(asked)  # sealed on the live session, as any answer
+        assert reason == "platform 'operator' is not in the trust file (revoked)", reason
+        assert len(messages) == 1
+        # nothing made for it: no subscription, no stream
+        assert w.gateway.subscriptions == {}
+        assert w.dk.stream("car/car5/speed").subscriptions == []
+        assert w.gateway.service.created == {} and not w.dk.has_label("op/t")
+        assert w.gateway.gateway_stats.access_refused == 1
+        assert w.uav.stats.denied == 1
+        (record,) = [r for r in interface.audit.records if r.get("stage") == "gateway"]
+        assert record["code"] == "untrusted" and record["verdict"] == "refused"
+        assert record["sender"] == "asker@operator" and record["from"] == "operator"
+        assert record["performative"] == performative
+        assert record["reason"] == f"untrusted: {reason}"
+
+
 async def test_a_private_gateway_keeps_its_own_platforms_subscriptions() -> None:
     async with world() as w:
         local = await w.uav.add(Agent("local"))
