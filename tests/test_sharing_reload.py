@@ -1,5 +1,6 @@
 """A node's ``[sharing]`` changed without a restart: SIGHUP re-reads it, exports it no longer
-allows end, what it newly allows is served, a broken table leaves the policy in force."""
+allows end, what it newly allows is served, a broken table leaves the policy in force; and
+a member revoked while the node runs loses at the gateway what a reload closing it ends."""
 
 from __future__ import annotations
 
