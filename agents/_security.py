@@ -18,6 +18,7 @@ import functools
 import hashlib
 import heapq
 import hmac
+import logging
 import os
 import re
 import stat
@@ -71,6 +72,8 @@ __all__ = [
     "sign_owner_batch",
     "watch_request",
 ]
+
+log = logging.getLogger(__name__)
 
 WIRE_VERSION = 1
 MAX_HANDSHAKE_BYTES = 4096
@@ -467,12 +470,13 @@ def read_public_key(path: str | os.PathLike[str]) -> tuple[str, bytes]:
 class TrustStore:
     """The federation's trust file: its name and the platforms (Ed25519 keys) it accepts."""
 
-    __slots__ = ("_keys", "_raw", "federation")
+    __slots__ = ("_keys", "_on_remove", "_raw", "federation")
 
     def __init__(self, federation: str, platforms: Mapping[str, bytes] | None = None) -> None:
         self.federation = check_name(federation, "federation")
         self._raw: dict[str, bytes] = {}
         self._keys: dict[str, VerifyKey] = {}
+        self._on_remove: list[Callable[[str], object]] = []
         for platform, public in (platforms or {}).items():
             self.add(platform, public)
 
@@ -525,9 +529,28 @@ class TrustStore:
         return True
 
     def remove(self, platform: str) -> bool:
-        """Stop trusting ``platform``; True when it was trusted."""
+        """Stop trusting ``platform`` (its envelopes refused from now on, live sessions
+        included), then tell each `on_remove` callback; True when it was trusted."""
         self._keys.pop(platform, None)
-        return self._raw.pop(platform, None) is not None
+        if self._raw.pop(platform, None) is None:
+            return False
+        for callback in list(self._on_remove):
+            try:
+                callback(platform)
+            except Exception:  # revoked all the same: the trust is gone already
+                log.exception("trust store: a callback on removing %r failed", platform)
+        return True
+
+    def on_remove(self, callback: Callable[[str], object]) -> Callable[[], None]:
+        """Call ``callback(platform)`` each time `remove` stops trusting a platform (what a
+        running platform keeps for it ends there); returns the call that unhooks it."""
+        self._on_remove.append(callback)
+
+        def unhook() -> None:
+            with contextlib.suppress(ValueError):
+                self._on_remove.remove(callback)
+
+        return unhook
 
     def to_json(self) -> bytes:
         """The trust file's content."""

@@ -23,13 +23,17 @@ request or subscribe of another platform waits in its mailbox (a sharing reload,
 `GatewayAgent.set_visibility`), it refuses that message as the Interface Agent would have
 ("access denied"; ``gateway_stats.access_refused``, the platform's ``stats.denied``,
 audited); made private, it ends the subscriptions of other platforms and removes the
-streams they created here (`GatewayEnded`).
+streams they created here (`GatewayEnded`). A platform revoked (removed from the
+Interface Agent's trust store) loses its subscriptions and the streams it created here
+the same way, and what it asked that still waits in the mailbox is refused so too
+(``untrusted``).
 """
 
 from __future__ import annotations
 
+import asyncio
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
 
@@ -47,6 +51,7 @@ from agents import (
     Performative,
     Refuse,
     ServiceDescription,
+    TrustStore,
     Visibility,
     on,
     on_query,
@@ -94,6 +99,48 @@ class GatewayEnded(NamedTuple):
     kept: list[tuple[str, str, list[str]]]
 
 
+def _gateway_told(
+    gone: GatewayEnded,
+) -> list[tuple[str, str, str, str, str, str]]:
+    """What a gateway's reload or a revocation ended or kept, as said and audited:
+    (verdict, label, agent, its audit field, the line's words, what the audit record adds
+    to them)."""
+    told = [
+        (
+            "ended",
+            label,
+            subscriber,
+            "subscriber",
+            f"gateway subscription of {subscriber} to {label!r} ended",
+            "",
+        )
+        for subscriber, label in gone.subscriptions
+    ]
+    told += [
+        (
+            "ended",
+            label,
+            asker,
+            "creator",
+            f"gateway stream {label!r} created by {asker} removed",
+            "",
+        )
+        for asker, label in gone.streams
+    ]
+    told += [
+        (
+            "kept",
+            label,
+            asker,
+            "creator",
+            f"gateway stream {label!r} created by {asker} kept: read by {', '.join(readers)}",
+            " (now this platform's)",
+        )
+        for asker, label, readers in gone.kept
+    ]
+    return told
+
+
 @dataclass(slots=True)
 class _Feed:
     """One FIPA-Subscribe being served: the subscribe message and its core subscription."""
@@ -120,8 +167,11 @@ class GatewayAgent(Agent):
     other platforms through the Interface Agent only; public: listed in the global
     directory too). ``register=False`` leaves the Directory Facilitator alone. The
     subscriptions of a platform that leaves the federation (its presence token goes) are
-    dropped with it. Labels starting with one of ``reserved`` may be read, created or
-    written by agents of this platform only.
+    dropped with it (the streams it created stay: it may come back). A platform removed
+    from the trust store of its platform's Interface Agent (revoked, `TrustStore.remove`)
+    loses both: its subscriptions end, the streams it created here are removed (counted,
+    audited, logged), as when the gateway goes private. Labels starting with one of
+    ``reserved`` may be read, created or written by agents of this platform only.
     """
 
     def __init__(
@@ -149,6 +199,9 @@ class GatewayAgent(Agent):
         # output label of each stream a create-stream made -> the agent that asked for it
         self._creators: dict[str, str] = {}
         self._presence: TransportSubscription[DirectoryEvent] | None = None
+        self._unhook_trust: Callable[[], None] | None = None
+        self._trust: TrustStore | None = None  # the Interface Agent's: whom it let in
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     # -- lifecycle ----------------------------------------------------------------------
 
@@ -165,16 +218,25 @@ class GatewayAgent(Agent):
         )
 
     async def setup(self) -> None:
-        """Register the gateway service; follow platforms leaving to drop their feeds."""
+        """Register the gateway service; follow platforms leaving to drop their feeds, and
+        platforms revoked to drop what they hold here."""
         platform = self.platform
         if self._register and platform.df is not None:
             await platform.df.register(self.description())
         if platform.global_df is not None:
             self._presence = platform.global_df.watch()
             self.spawn(self._follow_platforms(self._presence), "platforms")
+        trust = getattr(platform.channel, "trust", None)
+        if isinstance(trust, TrustStore):
+            self._trust = trust
+            self._loop = asyncio.get_running_loop()
+            self._unhook_trust = trust.on_remove(self._trust_removed)
 
     async def teardown(self) -> None:
         """End every subscription: the initiators get ``failure`` (we stop, not the stream)."""
+        if self._unhook_trust is not None:
+            self._unhook_trust()
+            self._unhook_trust = None
         if self._presence is not None:
             self._presence.close()
         for feed in list(self._feeds.values()):
@@ -221,7 +283,13 @@ class GatewayAgent(Agent):
         # told `why` above, not "stream ended". The asker is told nothing more: its
         # create-stream conversation ended with the inform (a failure now would reach it
         # as a late or unsolicited answer).
-        theirs = {o: a for o, a in self._creators.items() if platform_of(a) != platform.name}
+        self._remove_created(lambda p: p != platform.name, ended)
+        return ended
+
+    def _remove_created(self, of: Callable[[str], bool], ended: GatewayEnded) -> None:
+        """Remove the streams created here by the platforms ``of`` holds true for, but for
+        one a staying process reads (kept, handed to this platform); into ``ended``."""
+        theirs = {o: a for o, a in self._creators.items() if of(platform_of(a))}
         # one a staying process reads (this platform's built on it) would leave that one
         # without input: it is kept, handed to this platform (not considered again)
         read_on = self.service.read_on(theirs)
@@ -234,6 +302,48 @@ class GatewayAgent(Agent):
             if self.service.remove(output):
                 self.gateway_stats.streams_removed += 1
                 ended.streams.append((asker, output))
+
+    def _trust_removed(self, revoked: str) -> None:
+        """The trust store's callback: revoke now when called in this agent's event loop,
+        else in it, soon (the instance is that loop's)."""
+        loop = self._loop
+        try:
+            here = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            here = False
+        if here or loop is None:
+            self._revoke(revoked)
+        else:
+            loop.call_soon_threadsafe(self._revoke, revoked)
+
+    def _revoke(self, revoked: str) -> GatewayEnded:
+        """``revoked`` is no member any more (removed from the trust file): its
+        subscriptions end and the streams it created here are removed, as when the
+        gateway goes private (but for one a staying process reads: kept); counted,
+        audited (``code: untrusted``) and logged. It is told nothing: nothing it is sent
+        should reach it any more (a live session would still seal for it)."""
+        ended = GatewayEnded([], [], [])
+        if self._unhook_trust is None or revoked == self.platform.name:
+            return ended  # stopped meanwhile; or this platform's own: never its own streams
+        for feed in list(self._feeds.values()):
+            if platform_of(feed.message.sender) == revoked:
+                self._drop(feed)
+                ended.subscriptions.append((feed.message.sender, feed.label))
+        self._remove_created(lambda p: p == revoked, ended)
+        why = f"platform {revoked!r} was removed from the trust file (revoked)"
+        told = _gateway_told(ended)
+        for verdict, label, agent, role, what, more in told:
+            self.platform.audit(
+                verdict=verdict,
+                stage="trust",
+                code="untrusted",
+                stream=label,
+                to=platform_of(agent),
+                **{role: agent},
+                reason=f"{what}{more}: {why}",
+            )
+        if told:
+            log.warning("%s: %s: %s", self, why, "; ".join(what for *_, what, _ in told))
         return ended
 
     @property
@@ -301,21 +411,27 @@ class GatewayAgent(Agent):
 
     def _check_access(self, message: ACLMessage) -> None:
         """Refuse (count, audit) a message of another platform the gateway's visibility
-        no longer allows: the Interface Agent let it in, by the visibility of then.
+        no longer allows, or of a platform revoked since: the Interface Agent let it in,
+        by the visibility and the trust of then.
 
         A request or subscribe may wait in the mailbox while a reload makes the gateway
-        private; served, it would open a private gateway to another platform.
+        private, or while its platform is revoked; served, it would open a private gateway
+        to another platform, or create for a revoked one what its revocation removed.
         """
+        sender = platform_of(message.sender)
+        trust = self._trust
+        if trust is not None and sender not in trust:
+            code = "untrusted"
+            reason = f"platform {sender!r} is not in the trust file (revoked)"
         # as `visibility_allows` rules for a message that came through the Interface Agent
-        if self.visibility is not Visibility.PRIVATE:
+        elif self.visibility is Visibility.PRIVATE:
+            code = "access-denied"
+            reason = f"access denied: {self.aid} offers no service that platform {sender!r} may use"
+        else:
             return
-        reason = (
-            f"access denied: {self.aid} offers no service that platform "
-            f"{platform_of(message.sender)!r} may use"
-        )
         self.gateway_stats.access_refused += 1
         self.platform.stats.denied += 1
-        self._audit_refusal(message, "access-denied", reason)
+        self._audit_refusal(message, code, reason)
         raise Refuse(reason)
 
     def _audit_refusal(self, message: ACLMessage, code: str, reason: str) -> None:

@@ -139,7 +139,7 @@ from ontology import (
 
 from ._export import ExportProxy
 from ._fusion import Fusion, add_fusion
-from ._gateway import GatewayAgent, GatewayEnded
+from ._gateway import GatewayAgent, GatewayEnded, _gateway_told
 from ._geo import check_origin
 from ._import import Import, ImportProxy
 from ._inputs import InputSettings
@@ -875,47 +875,6 @@ _BAD_SAMPLES = {
     "malformed": "not [value, valid time, …]",
     "sender-gone": "its sender left, or its token went, while they were on their way",
 }
-
-
-def _gateway_told(
-    gone: GatewayEnded,
-) -> list[tuple[str, str, str, str, str, str]]:
-    """What a gateway's reload ended or kept, as said and audited: (verdict, label, agent,
-    its audit field, the reload line's words, what the audit record adds to them)."""
-    told = [
-        (
-            "ended",
-            label,
-            subscriber,
-            "subscriber",
-            f"gateway subscription of {subscriber} to {label!r} ended",
-            "",
-        )
-        for subscriber, label in gone.subscriptions
-    ]
-    told += [
-        (
-            "ended",
-            label,
-            asker,
-            "creator",
-            f"gateway stream {label!r} created by {asker} removed",
-            "",
-        )
-        for asker, label in gone.streams
-    ]
-    told += [
-        (
-            "kept",
-            label,
-            asker,
-            "creator",
-            f"gateway stream {label!r} created by {asker} kept: read by {', '.join(readers)}",
-            " (now this platform's)",
-        )
-        for asker, label, readers in gone.kept
-    ]
-    return told
 
 
 class FederationPlatform:

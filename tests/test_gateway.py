@@ -57,7 +57,7 @@ class World:
 async def world(**gateway_options: Any) -> AsyncIterator[World]:
     """Two platforms on one in-memory hub; on exit, checks that no task is left behind."""
     ka, ko = KeyPair.generate("uav-a"), KeyPair.generate("operator")
-    trust = TrustStore(FED, {"uav-a": ka.public_key, "operator": ko.public_key})
+    keys = {"uav-a": ka.public_key, "operator": ko.public_key}
     hub = MemoryHub()
     clock = ManualClock(T0)
     async with contextlib.AsyncExitStack() as stack:
@@ -67,10 +67,14 @@ async def world(**gateway_options: Any) -> AsyncIterator[World]:
         ta = await stack.enter_async_context(hub.transport())
         to = await stack.enter_async_context(hub.transport())
         uav = await stack.enter_async_context(
-            AgentPlatform("uav-a", ta, federation=FED, channel=InterfaceAgent(ka, trust))
+            AgentPlatform(
+                "uav-a", ta, federation=FED, channel=InterfaceAgent(ka, TrustStore(FED, keys))
+            )
         )
         operator = await stack.enter_async_context(
-            AgentPlatform("operator", to, federation=FED, channel=InterfaceAgent(ko, trust))
+            AgentPlatform(
+                "operator", to, federation=FED, channel=InterfaceAgent(ko, TrustStore(FED, keys))
+            )
         )
         gateway = await uav.add(GatewayAgent(dk, **gateway_options))
         asker = await operator.add(Agent("asker"))
@@ -435,12 +439,37 @@ async def test_gateway_stopping_fails_its_subscriptions() -> None:
 
 async def test_subscriptions_of_a_platform_that_leaves_are_dropped() -> None:
     async with world() as w:
+        await _create(w.asker, "car5-state", "op/t")
         await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
         await subscribe(w.asker, GW, {"label": "car5-state"}, ontology="dyknow")
         assert len(w.gateway.subscriptions) == 2
         await w.operator.__aexit__(None, None, None)
         await eventually(lambda: w.gateway.subscriptions == {})
         assert w.dk.stream("car/car5/speed").subscriptions == []
+        # the stream it created stays (it may come back; `max_streams` bounds them)
+        assert w.gateway.service.created == {"op/t": "gateway:op/t"}
+        assert w.dk.has_label("op/t") and w.gateway.gateway_stats.streams_removed == 0
+
+
+async def test_a_platform_revoked_from_another_thread_loses_what_it_holds_here() -> None:
+    async with world() as w:
+        local = await w.uav.add(Agent("local"))
+        await _create(w.asker, "car/car5/speed", "op/t")
+        await _create(local, "car/car5/speed", "mine/t")
+        await subscribe(w.asker, GW, {"label": "car5-state"}, ontology="dyknow")
+        interface = w.uav.channel
+        assert isinstance(interface, InterfaceAgent)
+        # a program's thread revokes: done in the gateway's own loop
+        assert await asyncio.to_thread(interface.trust.remove, "operator")
+        await eventually(lambda: w.gateway.gateway_stats.streams_removed == 1)
+        assert w.gateway.subscriptions == {}
+        assert not w.dk.has_label("op/t") and w.dk.has_label("mine/t")
+        assert w.gateway.service.created == {"mine/t": "gateway:mine/t"}
+        records = [r for r in interface.audit.records if r.get("stage") == "trust"]
+        assert [(r["verdict"], r["code"], r["stream"]) for r in records] == [
+            ("ended", "untrusted", "car5-state"),
+            ("ended", "untrusted", "op/t"),
+        ], records
 
 
 async def test_informs_to_an_agent_that_left_end_its_subscription() -> None:
@@ -623,6 +652,42 @@ async def test_what_waited_in_the_mailbox_while_the_gateway_went_private_is_refu
         assert record["reason"] == f"access-denied: {reason}"
         # both counted as the platform's denials: the gateway's, then the Interface Agent's
         assert w.uav.stats.denied == 2
+
+
+@pytest.mark.parametrize("asking", ["subscribe", "create-stream"])
+async def test_what_waited_in_the_mailbox_while_its_platform_was_revoked_is_refused(
+    asking: str,
+) -> None:
+    async with world() as w:
+        interface = w.uav.channel
+        assert isinstance(interface, InterfaceAgent)
+        performative = "subscribe" if asking == "subscribe" else "request"
+        with held(w.gateway, performative) as (messages, arrived, release):
+            if asking == "subscribe":
+                call: Awaitable[Any] = subscribe(
+                    w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow"
+                )
+            else:
+                call = _create(w.asker, "car/car5/speed", "op/t")
+            asked = asyncio.ensure_future(call)
+            async with asyncio.timeout(5):
+                await arrived.wait()  # past the Interface Agent, not yet handled
+            assert interface.trust.remove("operator")
+            release()
+            reason = await refusal(asked)  # sealed on the live session, as any answer
+        assert reason == "platform 'operator' is not in the trust file (revoked)", reason
+        assert len(messages) == 1
+        # nothing made for it: no subscription, no stream
+        assert w.gateway.subscriptions == {}
+        assert w.dk.stream("car/car5/speed").subscriptions == []
+        assert w.gateway.service.created == {} and not w.dk.has_label("op/t")
+        assert w.gateway.gateway_stats.access_refused == 1
+        assert w.uav.stats.denied == 1
+        (record,) = [r for r in interface.audit.records if r.get("stage") == "gateway"]
+        assert record["code"] == "untrusted" and record["verdict"] == "refused"
+        assert record["sender"] == "asker@operator" and record["from"] == "operator"
+        assert record["performative"] == performative
+        assert record["reason"] == f"untrusted: {reason}"
 
 
 async def test_a_private_gateway_keeps_its_own_platforms_subscriptions() -> None:

@@ -295,6 +295,31 @@ def test_untrusted_platform_and_revocation(clock: Clock) -> None:
         b.table.open(env)
 
 
+def test_removing_a_platform_tells_each_callback_once(
+    clock: Clock, caplog: pytest.LogCaptureFixture
+) -> None:
+    b = make_platform("uav-b", clock)
+    told: list[str] = []
+
+    def broken(platform: str) -> None:
+        raise RuntimeError("a broken callback")
+
+    b.trust.on_remove(broken)
+    unhook = b.trust.on_remove(told.append)
+    b.trust.add("uav-c", KeyPair.generate("uav-c").public_key)
+    assert b.trust.remove("uav-c")
+    assert not b.trust.remove("uav-c")  # no longer trusted: nothing to tell
+    assert not b.trust.remove("nobody")
+    assert told == ["uav-c"]  # told though a callback before it failed
+    assert "uav-c" not in b.trust  # revoked all the same, the failure logged
+    assert "a callback on removing 'uav-c' failed" in caplog.text
+    unhook()
+    unhook()  # twice: nothing more
+    b.trust.add("uav-c", KeyPair.generate("uav-c").public_key)
+    assert b.trust.remove("uav-c")
+    assert told == ["uav-c"]
+
+
 @pytest.mark.parametrize(
     ("data", "match"),
     [

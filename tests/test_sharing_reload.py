@@ -1,11 +1,13 @@
 """A node's ``[sharing]`` changed without a restart: SIGHUP re-reads it, exports it no longer
-allows end, what it newly allows is served, a broken table leaves the policy in force."""
+allows end, what it newly allows is served, a broken table leaves the policy in force; and
+a member revoked while the node runs loses at the gateway what a reload closing it ends."""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
 import json
+import logging
 import os
 import queue
 import signal
@@ -517,24 +519,42 @@ async def test_sighup_opens_and_closes_the_gateway_to_other_members(tmp_path: Pa
 
 
 @contextlib.asynccontextmanager
-async def _gateway_open(tmp_path: Path) -> AsyncIterator[tuple[Any, Any, Any, Any]]:
+async def _gateway_open(
+    tmp_path: Path, *others: str
+) -> AsyncIterator[tuple[Any, Any, Any, Any, list[Any]]]:
     """The station with its gateway open and the operator, in this process over zenoh: the
     station's platform, its ``wx/temperature`` source, an agent of its own (``local``) and
-    one of the operator's (``tester``)."""
+    one of the operator's (``tester``); and a ``tester`` of each member named in
+    ``others`` (trusted as the operator is, joined as it does)."""
     from agents import Agent
+    from agents.keys import gen_keys, trust_keys
     from federation import FederationPlatform
     from federation._cli_common import wait_for_members
 
     station = Station(tmp_path)
     path = station.dir / CONFIG
     path.write_text(path.read_text() + GATEWAY_OPEN)
+    keys = station.dir / "keys"
+    operator = (station.dir / "operator.toml").read_text()
+    for name in others:
+        trust_keys(keys / "trust.json", [gen_keys(name, keys)[2]])
+        text = operator.replace('name = "operator"', f'name = "{name}"')
+        (station.dir / f"{name}.toml").write_text(text.replace("operator.key", f"{name}.key"))
     here = FederationPlatform.from_file(path)
     there = FederationPlatform.from_file(station.dir / "operator.toml")
-    async with here as s, there as o:
+    async with contextlib.AsyncExitStack() as stack:
+        s = await stack.enter_async_context(here)
+        o = await stack.enter_async_context(there)
+        members = [o]
+        for name in others:
+            p = FederationPlatform.from_file(station.dir / f"{name}.toml")
+            members.append(await stack.enter_async_context(p))
         source = s.instance.add_source("wx/temperature")  # the application is `dyknow node`'s
-        assert await wait_for_members(o, "station", 30)
-        local, tester = await s.agents.add(Agent("local")), await o.agents.add(Agent("tester"))
-        yield s, source, local, tester
+        for member in members:
+            assert await wait_for_members(member, "station", 30)
+        local = await s.agents.add(Agent("local"))
+        testers = [await m.agents.add(Agent("tester")) for m in members]
+        yield s, source, local, testers[0], testers[1:]
 
 
 @pytest.mark.timeout(120)
@@ -543,7 +563,7 @@ async def test_a_reload_closing_the_gateway_removes_what_other_members_created_t
 ) -> None:
     from agents import Agent, Refused, request
 
-    async with asyncio.timeout(100), _gateway_open(tmp_path) as (s, _, local, tester):
+    async with asyncio.timeout(100), _gateway_open(tmp_path) as (s, _, local, tester, _):
 
         async def create(asker: Agent, output: str) -> object:
             content = {"action": "create-stream", "label": "wx/temperature", "output": output}
@@ -582,7 +602,7 @@ async def test_a_reload_closing_the_gateway_keeps_a_stream_this_member_builds_on
 ) -> None:
     from agents import Agent, request, subscribe
 
-    async with asyncio.timeout(100), _gateway_open(tmp_path) as (s, source, local, tester):
+    async with asyncio.timeout(100), _gateway_open(tmp_path) as (s, source, local, tester, _):
 
         async def create(asker: Agent, label: str, output: str) -> object:
             content = {"action": "create-stream", "label": label, "output": output}
@@ -610,6 +630,68 @@ async def test_a_reload_closing_the_gateway_keeps_a_stream_this_member_builds_on
         assert changes == ["sharing.gateway 'protected' -> 'private'"], changes
         assert {"gateway:op/a", "gateway:station/b"} <= set(s.instance.processes)
         await feed.cancel()
+
+
+@pytest.mark.timeout(120)
+async def test_a_member_revoked_loses_what_it_created_through_the_gateway(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    from agents import Agent, request, subscribe
+
+    async with (
+        asyncio.timeout(100),
+        _gateway_open(tmp_path, "ranger") as (s, source, local, tester, [ranger]),
+    ):
+
+        async def create(asker: Agent, label: str, output: str) -> object:
+            content = {"action": "create-stream", "label": label, "output": output}
+            return await request(asker, "gateway@station", content, ontology="dyknow", timeout=10)
+
+        await create(tester, "wx/temperature", "op/t")  # the operator's: removed
+        await create(tester, "wx/temperature", "op/a")  # the operator's, built on here: kept
+        await create(local, "op/a", "station/b")
+        await create(ranger, "wx/temperature", "rg/t")  # another member's: stays
+        follow = {"label": "wx/temperature"}
+        await subscribe(tester, "gateway@station", follow, ontology="dyknow")
+        theirs = await subscribe(ranger, "gateway@station", {"label": "rg/t"}, ontology="dyknow")
+        assert len(s.gateway.subscriptions) == 2
+        caplog.set_level(logging.WARNING, logger="federation._gateway")
+        # revoked while it runs: the trust store the station's Interface Agent holds
+        assert s.interface.trust.remove("operator")
+        # at once: its subscription ended, its stream gone (process and label), counted
+        assert [key[0] for key in s.gateway.subscriptions] == ["tester@ranger"]
+        assert "gateway:op/t" not in s.instance.processes
+        assert not s.instance.has_label("op/t")
+        assert s.gateway.gateway_stats.streams_removed == 1
+        # the one this platform reads kept (now this platform's), the other member's stays
+        assert {"gateway:op/a", "gateway:station/b", "gateway:rg/t"} <= set(s.instance.processes)
+        assert s.gateway.service.created == {
+            "op/a": "gateway:op/a",
+            "station/b": "gateway:station/b",
+            "rg/t": "gateway:rg/t",
+        }
+        records = [r for r in s.interface.audit.records if r.get("stage") == "trust"]
+        assert [r["verdict"] for r in records] == ["ended", "ended", "kept"], records
+        assert all(r["code"] == "untrusted" and r["to"] == "operator" for r in records)
+        ended, removed, kept = records
+        assert ended["subscriber"] == "tester@operator" and ended["stream"] == "wx/temperature"
+        assert removed["creator"] == "tester@operator" and removed["stream"] == "op/t"
+        assert kept["creator"] == "tester@operator" and kept["stream"] == "op/a"
+        assert "kept: read by gateway:station/b" in str(kept["reason"])
+        assert "removed from the trust file" in str(removed["reason"])
+        said = [r.getMessage() for r in caplog.records if "trust file" in r.getMessage()]
+        assert (
+            len(said) == 1
+            and "gateway stream 'op/t' created by tester@operator removed" in (said[0])
+        ), said
+        # the other member is served on, through its own stream
+        source.push(21.5)
+        while True:  # samples before the push may come first
+            sample = await theirs.get(timeout=10)
+            if any(row[0] == 21.5 for row in sample["samples"]):
+                break
+        assert sample["label"] == "rg/t", sample
+        await theirs.cancel()
 
 
 @pytest.mark.timeout(180)
