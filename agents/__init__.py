@@ -12,6 +12,7 @@ from ._acl import (
     platform_of,
 )
 from ._agent import (
+    LATER,
     Agent,
     AgentStats,
     Conversation,
@@ -116,6 +117,7 @@ __all__ = [
     "FIPA_QUERY",
     "FIPA_REQUEST",
     "FIPA_SUBSCRIBE",
+    "LATER",
     "MAX_MESSAGE_BYTES",
     "WIRE_VERSION",
     "ACLMessage",

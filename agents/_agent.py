@@ -246,6 +246,21 @@ class AgentStats:
     late: int = 0
     dropped: int = 0
     conversation_overflow: int = 0
+    answered_at_once: int = 0
+    """Of ``handled``: answered by `Agent.answer_at_once` as they came (no mailbox, no task)."""
+
+
+class _Later:
+    """The type of `LATER`."""
+
+    __slots__ = ()
+
+    def __repr__(self) -> str:
+        return "LATER"
+
+
+LATER: Any = _Later()
+"""What `Agent.answer_at_once` returns for a message it leaves to the handlers."""
 
 
 class _Ended:
@@ -473,6 +488,20 @@ class Agent:
     """
 
     mailbox_size = 16384
+
+    answer_at_once: Callable[[ACLMessage], Any] | None = None
+    """A read that never waits, answered as the message comes; None: every message queued.
+
+    Define it as a method ``def answer_at_once(self, message)`` returning the content of
+    the ``inform`` that answers ``message`` (as an `on_query` / `on_request` handler's
+    result), or `LATER` to leave the message to the mailbox and handlers. The Interface
+    Agent calls it on the event loop for a message of another platform that came alone,
+    once admitted (limits, directory, audit), when nothing waits in this agent's mailbox
+    (so it overtakes nothing) and it is not a reply to one of its conversations; the
+    answer is sealed and sent at once when a session is there (else the message is
+    queued as usual and the handler answers it). It must not wait, block or change
+    state: for reads only. It is asked first; an exception it raises is taken as `LATER`.
+    """
 
     def __init__(self, name: str, *, mailbox_size: int | None = None) -> None:
         agent_id(name, "platform")  # check the name's characters now, not on start

@@ -38,10 +38,11 @@ from ._acl import (
     nesting_bound,
     platform_of,
 )
-from ._agent import _RUNNING, Agent, MessageTemplate, on
+from ._agent import _RUNNING, LATER, Agent, MessageTemplate, on
 from ._aio import Ticker
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
+    AgentError,
     AuthenticationError,
     MessageError,
     SecurityError,
@@ -751,19 +752,7 @@ class InterfaceAgent:
         host = self._host  # `_require_host`, inline
         if host is None:
             raise SecurityError("the Interface Agent is not started")
-        if (
-            platform in self._bursting
-            and (size := 3 + len(body)) <= self.max_bytes
-            and size <= self.policy.max_body_bytes
-            and self.sessions.session_for(platform) is not None
-        ):
-            # a burst goes on: this first message of the turn waits for its end too, in
-            # the batch, rather than in an envelope of its own (a seal, a put and an
-            # open more per turn); sealing it then cannot fail for want of a session
-            self._outbox[platform] = [body]
-            self._outbox_bytes[platform] = size
-            (self._loop or asyncio.get_running_loop()).call_soon(self._flush, platform)
-            self.renew_if_needed(platform)
+        if self._burst_first(platform, body):
             return
         try:
             payload = self.sessions.seal(platform, body)
@@ -777,10 +766,63 @@ class InterfaceAgent:
                 # a first sight is seen once until the platform leaves)
                 await self.agree(platform)
                 payload = self.sessions.seal(platform, body)
+        await host.transport.publish(self._acl_key(host, platform), payload)
+        self._sent(platform)
+
+    def send_now(self, platform: str, message: ACLMessage) -> bool:
+        """`send` when it waits for nothing (`sends_now`); else False, and nothing is sent.
+
+        For an answer made as its question came (`Agent.answer_at_once`): no coroutine,
+        and a message that cannot go at once (no session yet, a transport that waits, a
+        session that must be renewed first) is left to `send`.
+        """
+        if self._outbox and self.join_batch(platform, message):
+            return True
+        host = self._host
+        if (
+            host is None
+            or not host.transport.publishes_nowait
+            or self.sessions.session_for(platform) is None
+        ):
+            return False
+        body = message.to_json()
+        if self._burst_first(platform, body):
+            return True
+        try:
+            payload = self.sessions.seal(platform, body)
+            host.transport.publish_nowait(self._acl_key(host, platform), payload)
+        except AgentError:  # `send` meets it again and raises it where it is awaited
+            return False
+        self._sent(platform)
+        return True
+
+    def _burst_first(self, platform: str, body: bytes) -> bool:
+        """While a burst to ``platform`` goes on, put the turn's first message in its batch."""
+        if (
+            platform in self._bursting
+            and (size := 3 + len(body)) <= self.max_bytes
+            and size <= self.policy.max_body_bytes
+            and self.sessions.session_for(platform) is not None
+        ):
+            # a burst goes on: this first message of the turn waits for its end too, in
+            # the batch, rather than in an envelope of its own (a seal, a put and an
+            # open more per turn); sealing it then cannot fail for want of a session
+            self._outbox[platform] = [body]
+            self._outbox_bytes[platform] = size
+            (self._loop or asyncio.get_running_loop()).call_soon(self._flush, platform)
+            self.renew_if_needed(platform)
+            return True
+        return False
+
+    def _acl_key(self, host: AgentPlatform, platform: str) -> str:
+        """The key ``platform``'s ACL envelopes are published on (made once per peer)."""
         key = self._acl_keys.get(platform)
         if key is None:  # sealed: a peer we hold a session with
             key = self._acl_keys[platform] = host.key("acl", platform)
-        await host.transport.publish(key, payload)
+        return key
+
+    def _sent(self, platform: str) -> None:
+        """After a message went alone: renew the session if due, batch what follows in the turn."""
         self.renew_if_needed(platform)
         if self._batching and platform not in self._outbox:
             self._outbox[platform] = []
@@ -1310,12 +1352,49 @@ class InterfaceAgent:
         audit.add_accepted((entry,))
         stats = host.stats
         stats.received_remote += 1
+        if (
+            agent.answer_at_once is not None
+            and not mailbox._items
+            and message.in_reply_to is None
+            and message.conversation_id not in agent._by_conv
+            and self._answer_at_once(host, peer, agent, message)
+        ):
+            stats.local += 1
+            return True
         try:
             agent._deliver(message)  # running, room in its mailbox: taken
         except Exception:
             log.exception("interface[%s]: delivering from %s failed", self._me, peer)
         else:
             stats.local += 1
+        return True
+
+    def _answer_at_once(
+        self, host: AgentPlatform, peer: str, agent: Agent, message: ACLMessage
+    ) -> bool:
+        """Answer ``message`` by ``agent.answer_at_once`` and send it now; False: not so.
+
+        Called for an admitted message only when the mailbox route would queue it (not a
+        reply to one of the agent's conversations) and nothing waits before it: False
+        leaves it to the mailbox, which then decides it as if this was never asked.
+        """
+        try:
+            content = agent.answer_at_once(message)  # type: ignore[misc]
+        except Exception:  # the handler meets it again and answers for it
+            return False
+        if content is LATER:
+            return False
+        try:
+            reply = message.reply(Performative.INFORM, content, sender=agent.aid)
+            if not self.send_now(peer, reply):
+                return False
+        except Exception:  # content an inform cannot carry: the handler's path says why
+            return False
+        agent_stats = agent.stats
+        agent_stats.received += 1
+        agent_stats.handled += 1
+        agent_stats.answered_at_once += 1
+        host.stats.sent_remote += 1
         return True
 
     def _take_batch(

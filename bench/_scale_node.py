@@ -140,6 +140,7 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
             self.last = [-1] * streams  # read by zenoh's callback thread: ints, no lock needed
             self.sources: list[Any] = []
             self.opened = self.ready = 0.0
+            self.platform: Any = None
 
         def answer(self, query: Any) -> None:
             """The raw peer of the global query: this platform's latest numbers, as JSON."""
@@ -148,7 +149,7 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
         async def open(self, stack: contextlib.AsyncExitStack) -> None:
             """Open the platform (left on ``stack``), add its sources and queryable, join."""
             self.opened = time.time()
-            platform = FederationPlatform(self.config, join=False)
+            platform = self.platform = FederationPlatform(self.config, join=False)
             await stack.enter_async_context(platform)
             self.sources = [platform.instance.add_source(local_label(j)) for j in range(streams)]
             transport = platform.transport
@@ -222,6 +223,12 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
                     "gc_longest": gc_longest,
                     "lag": worst_lag,
                     "probe": probe.summary() if spec.get("probe") else {},
+                    # the operator's queries its Federation Agents answered as they came
+                    # (`answer_at_once`), of all they handled
+                    "at_once": sum(
+                        u.platform.federation_agent.stats.answered_at_once for u in uavs
+                    ),
+                    "handled": sum(u.platform.federation_agent.stats.handled for u in uavs),
                 },
             )
         )

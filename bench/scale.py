@@ -153,6 +153,8 @@ class ScaleResult:
     rss_workers: list[float] = field(default_factory=list)
     rss_bare_workers: list[float] = field(default_factory=list)
     load: tuple[float, float] = (0.0, 0.0)  # 1-min load average at the window's start, end
+    at_once: int = 0  # of the UAVs' Federation Agents' messages, answered as they came
+    handled: int = 0  # every message the UAVs' Federation Agents handled
 
     @property
     def sent_expected(self) -> int:
@@ -625,6 +627,8 @@ async def _federation(
                 max(q["gc_longest"][g] for q in finals) for g in range(3)
             )
             result.worker_lag_ms = max(q["lag"] for q in finals)
+            result.at_once = sum(q["at_once"] for q in finals)
+            result.handled = sum(q["handled"] for q in finals)
             probes = [q["probe"] for q in finals if q["probe"]]
             if probes:
                 result.worker_probe = {
@@ -772,6 +776,10 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
         + (f" (first: {r.query_failures[0]})" if r.query_failures else "")
     )
     print(f"  the same query before any export flowed: {_dist(r.idle_ms, 'ms')}")
+    print(
+        f"  the UAVs' Federation Agents answered {r.at_once} of the {r.handled} messages they "
+        "handled as they came (`answer_at_once`: no mailbox, no task)"
+    )
     print(
         f"  raw zenoh get to {r.platforms} queryables on the same sessions: "
         f"{len(r.raw_ms)} complete, {_dist(r.raw_ms, 'ms')}; incomplete {r.raw_failures}"

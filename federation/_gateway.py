@@ -43,6 +43,7 @@ from agents import (
     FIPA_QUERY,
     FIPA_REQUEST,
     FIPA_SUBSCRIBE,
+    LATER,
     MAX_MESSAGE_BYTES,
     ACLMessage,
     Agent,
@@ -61,7 +62,14 @@ from agents import (
 from agents.transports import Subscription as TransportSubscription
 from dyknow_core import DyKnowError, DyKnowInstance, Subscription, UnknownLabelError
 
-from ._gateway_service import ONTOLOGY, GatewayRefusal, GatewayService, samples_to_json
+from ._gateway_service import (
+    ONTOLOGY,
+    GatewayRefusal,
+    GatewayService,
+    answer_to_json,
+    plain_latest,
+    samples_to_json,
+)
 
 log = logging.getLogger(__name__)
 
@@ -201,7 +209,13 @@ class GatewayAgent(Agent):
         self._presence: TransportSubscription[DirectoryEvent] | None = None
         self._unhook_trust: Callable[[], None] | None = None
         self._trust: TrustStore | None = None  # the Interface Agent's: whom it let in
-        self._loop: asyncio.AbstractEventLoop | None = None
+        cls = type(self)
+        # a subclass that answers otherwise: its handlers decide every message
+        self._at_once = (
+            cls._on_request is GatewayAgent._on_request
+            and cls._on_query is GatewayAgent._on_query
+            and cls._perform is GatewayAgent._perform
+        )
 
     # -- lifecycle ----------------------------------------------------------------------
 
@@ -229,7 +243,6 @@ class GatewayAgent(Agent):
         trust = getattr(platform.channel, "trust", None)
         if isinstance(trust, TrustStore):
             self._trust = trust
-            self._loop = asyncio.get_running_loop()
             self._unhook_trust = trust.on_remove(self._trust_removed)
 
     async def teardown(self) -> None:
@@ -447,6 +460,35 @@ class GatewayAgent(Agent):
             conversation_id=message.conversation_id,
             reason=f"{code}: {reason}",
         )
+
+    def answer_at_once(self, message: ACLMessage) -> Any:
+        """Another platform's query for a label's latest sample, answered as it comes.
+
+        What `_on_request` / `_on_query` answer to it, without the mailbox and a task;
+        anything else, and whatever they would refuse (a private gateway, a reserved
+        label, a label not here), is `LATER`: they decide, count and audit it.
+        """
+        performative = message.performative
+        if (
+            not self._at_once
+            or message.ontology != ONTOLOGY
+            or self.visibility is Visibility.PRIVATE
+        ):
+            return LATER
+        content = message.content
+        if performative is P.QUERY_REF:
+            if type(content) is not dict:
+                return LATER
+            content = {"action": "query", **content}
+        elif performative is not P.REQUEST:
+            return LATER
+        label = plain_latest(content)
+        if label is None or label.startswith(self.reserved):
+            return LATER
+        try:
+            return answer_to_json(self.instance.latest(label))
+        except Exception:
+            return LATER
 
     @on_request(ONTOLOGY)
     async def _on_request(self, message: ACLMessage) -> Any:

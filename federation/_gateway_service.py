@@ -241,6 +241,28 @@ def samples_to_json(batch: list[tuple[Any, int, int]]) -> list[list[Any]]:
 _LATEST_KEYS = frozenset({"action", "label", "kind"})
 
 
+def plain_latest(content: Any) -> str | None:
+    """The label of a plain query for the latest sample, ``{"action": "query", "label": …}``.
+
+    What `Query` accepts of that shape (``kind`` absent or ``"latest"``, nothing else),
+    checked in plain Python; None for anything else, which `GatewayService.parse` decides.
+    """
+    if type(content) is not dict or not content.keys() <= _LATEST_KEYS:
+        return None
+    label = content.get("label")
+    kind = content.get("kind", "latest")
+    action = content.get("action")
+    if (
+        type(label) is str
+        and type(kind) is str
+        and kind == "latest"
+        and type(action) is str
+        and action == "query"
+    ):
+        return label
+    return None
+
+
 class GatewayService:
     """Performs gateway requests on one DyKnow instance; refusals carry a reason."""
 
@@ -271,24 +293,15 @@ class GatewayService:
 
     def perform(self, content: Any) -> dict[str, Any]:
         """Do what the content asks; the inform's content, or GatewayRefusal."""
-        if type(content) is dict and content.keys() <= _LATEST_KEYS:
-            label = content.get("label")
-            kind = content.get("kind", "latest")
-            # the common request, ``{"action": "query", "label": …}`` for the latest
-            # sample, checked in plain Python: what `Query` would accept, done as `query`
-            # does it (pydantic's validation costs more than the query); anything else,
-            # errors included, goes through `parse`, which says what is wrong
-            if (
-                type(label) is str
-                and type(kind) is str
-                and kind == "latest"
-                and content.get("action") == "query"
-                and type(content["action"]) is str
-            ):
-                try:
-                    return answer_to_json(self.instance.latest(label))
-                except DyKnowError as exc:
-                    raise GatewayRefusal(str(exc)) from exc
+        label = plain_latest(content)
+        if label is not None:
+            # the common request, done as `query` does it without its model (pydantic's
+            # validation costs more than the query); anything else, errors included,
+            # goes through `parse`, which says what is wrong
+            try:
+                return answer_to_json(self.instance.latest(label))
+            except DyKnowError as exc:
+                raise GatewayRefusal(str(exc)) from exc
         req = self.parse(content)
         try:
             if isinstance(req, ListLabels):

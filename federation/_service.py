@@ -93,6 +93,7 @@ from agents import (
     FIPA_QUERY,
     FIPA_REQUEST,
     FIPA_SUBSCRIBE,
+    LATER,
     ACLMessage,
     Agent,
     DirectoryEvent,
@@ -487,6 +488,13 @@ class FederationAgent(Agent):
         self._resolved_by: tuple[PlatformLabels, LabelMapping, Vocabulary] | None = None
         self._resolved_labels = 0  # bounds `_resolved` (`_MAX_RESOLVED`): members pick the lists
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
+        cls = type(self)
+        # a subclass that answers otherwise: its handlers decide every message
+        self._at_once = (
+            cls._on_request is FederationAgent._on_request
+            and cls._on_query is FederationAgent._on_query
+            and cls._latest_reply is FederationAgent._latest_reply
+        )
         self.add_handler(
             MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_cancel),
             self._on_cancel,
@@ -690,6 +698,27 @@ class FederationAgent(Agent):
             await asyncio.sleep(min(2.0, 0.25 * 2**attempt))
 
     # -- requests -----------------------------------------------------------------------
+
+    def answer_at_once(self, message: ACLMessage) -> Any:
+        """A plain get-latest of another platform answered as it comes; anything else `LATER`.
+
+        What `_on_request` and `_on_query` answer to it, without the mailbox and a task:
+        it reads the latest samples and changes nothing. A refusal (a sharing rule, a
+        label not here) is left to them, so it is counted and audited as always.
+        """
+        if (
+            not self._at_once
+            or message.ontology != ONTOLOGY
+            or (message.performative is not P.QUERY_REF and message.performative is not P.REQUEST)
+        ):
+            return LATER
+        labels = latest_labels(message.content)
+        if labels is None:
+            return LATER
+        try:
+            return self._latest_reply(labels, platform_of(message.sender))
+        except Exception:
+            return LATER
 
     @on_request(ONTOLOGY, concurrent=True)
     async def _on_request(self, message: ACLMessage) -> Any:

@@ -35,6 +35,10 @@ def test_small_run_joins_answers_and_loses_nothing(small: ScaleResult) -> None:
     assert len(r.query_ms) == 10 and r.query_failures == []
     assert len(r.idle_ms) == 10  # the same query before the exports flow
     assert len(r.raw_ms) == 10 and r.raw_failures == 0
+    # every UAV answered each global get-latest as it came (`answer_at_once`), over real
+    # zenoh between processes; the create-stream of each went through its handler
+    assert r.at_once >= 3 * (len(r.query_ms) + len(r.idle_ms))
+    assert r.handled >= r.at_once + 3
     # 3 UAVs x 2 streams x 10 Hz over at least the 3 s window
     assert r.counted >= 3 * 2 * 10 * 3 * 0.8
     assert r.counted == r.expected and r.lost == 0

@@ -723,20 +723,39 @@ async def test_a_plain_get_latest_is_decided_as_its_model_decides(
     sharing = Sharing(SharingSettings(rules=[rule]))
     tables = {**TABLES["uav-a"], "secret-state": "a/secret", "gone-state": "a/gone"}
 
-    async def outcomes() -> tuple[list[Any], dict[str, int]]:
+    at_once: list[int] = []
+
+    async def outcomes(answer_at_once: bool = True) -> tuple[list[Any], dict[str, int]]:
         async with world(sharing=sharing) as w:
             a, b = w["uav-a"], w["uav-b"]
             a.fed.translator = FakeTranslator(tables)
+            a.fed._at_once = answer_at_once
             a.dk.add_source("a/secret").push(7, valid_time=T0 - NS_PER_S)
             a.push("car5-state", {"pos": [1.0, 2.0]}, seconds_ago=3)
             a.push("heli-altitude", 120.0, seconds_ago=2)
-            return await _asked_hostile(b.fed), dict(a.fed.refusals)
+            got = await _asked_hostile(b.fed), dict(a.fed.refusals)
+            at_once.append(a.fed.stats.answered_at_once)
+            return got
 
     quick = await outcomes()
     assert sum(1 for kind, _ in quick[0] if kind == "inform") >= 8
     assert quick[1].get("sharing-rule", 0) == 6
+    # every inform answering a plain get-latest was answered as it came (`answer_at_once`,
+    # each content asked twice: by request and by query-ref); the refusals went through
+    # the handlers, which counted them above
+    asked = [content for content in _HOSTILE_LATEST for _ in range(2)]
+    plain = [
+        content
+        for content, (kind, _) in zip(asked, quick[0], strict=True)
+        if kind == "inform" and latest_labels(content) is not None
+    ]
+    assert len(plain) >= 6
+    assert at_once == [len(plain)]
+    # the same without answering at once, and without the quick path at all
+    assert await outcomes(answer_at_once=False) == quick
     monkeypatch.setattr(_service, "latest_labels", lambda content: None)
     assert await outcomes() == quick
+    assert at_once == [len(plain), 0, 0]
 
 
 # uav-a's labels as the ontology translates them: a pattern, fixed labels, one unmapped

@@ -29,6 +29,7 @@ from agents import (
 )
 from dyknow_core import NS_PER_S, DyKnowError, DyKnowInstance, ManualClock, Source
 from federation import GATEWAY_SERVICE_TYPE, GatewayAgent, GatewayRefusal, GatewayService
+from federation._gateway import GatewayStats
 from federation._gateway_service import answer_to_json
 
 FED = "t"
@@ -558,6 +559,56 @@ def test_the_quick_query_answers_and_refuses_as_the_models_do() -> None:
         assert performed(content) == by_the_models(content), content
 
 
+_AT_ONCE_CONTENTS: list[Any] = [
+    {"action": "query", "label": "car/car5/speed"},
+    {"action": "query", "label": "car/car5/speed", "kind": "latest"},
+    {"label": "car/car5/speed"},  # query-ref's default action; a request refuses it
+    {"action": "query", "label": "car5-state"},  # no sample yet: none in the answer
+    {"action": "query", "label": "car/car9/speed"},  # no such label
+    {"action": "query", "label": "import/uav-b/x"},  # reserved
+    {"action": "query", "label": "car/car5/speed", "kind": "at", "t": 1001},
+    {"action": "query", "label": "car/car5/speed", "extra": 1},
+    {"action": "list-labels"},
+    ["query", "car/car5/speed"],
+]
+
+
+async def test_a_query_for_the_latest_is_answered_at_once_as_the_handlers_answer() -> None:
+    """Another platform's plain latest query is answered as it comes (no mailbox, no task),
+    with the handlers' very answer; what they refuse they still refuse, count and audit."""
+
+    async def outcomes(at_once: bool) -> tuple[list[Any], int, GatewayStats, list[Any]]:
+        async with world() as w:
+            w.gateway._at_once = at_once
+            for i in range(3):
+                w.speed.push(float(i), valid_time=T0 + i * NS_PER_S)
+            got: list[Any] = []
+            for content in _AT_ONCE_CONTENTS:
+                for ask in (request, query_ref):
+                    try:
+                        got.append(("inform", await ask(w.asker, GW, content, ontology="dyknow")))
+                    except Refused as exc:
+                        assert exc.message is not None
+                        got.append(("refuse", exc.message.content))
+            channel = w.uav.channel
+            assert isinstance(channel, InterfaceAgent)
+            audited = [
+                (r["verdict"], r.get("stage"), r.get("code"), r["performative"])
+                for r in channel.audit.records
+            ]
+            stats = w.gateway.stats
+            assert stats.handled == 2 * len(_AT_ONCE_CONTENTS)
+            return got, stats.answered_at_once, w.gateway.gateway_stats, audited
+
+    quick = await outcomes(True)
+    # the first two and the label without a sample by both asks, query-ref's default action
+    assert quick == (quick[0], 7, quick[2], quick[3])
+    assert quick[0][0] == quick[0][1]  # by request and by query-ref
+    assert quick[0][0][1]["samples"][0][:2] == [2.0, 1002.0]
+    assert quick[2].reserved_refused == 2
+    assert await outcomes(False) == (quick[0], 0, quick[2], quick[3])
+
+
 async def test_a_created_stream_needs_a_valid_output_label() -> None:
     async with world() as w:
         for output in ("", "x" * 100_000, "car 5", "car/#"):
@@ -602,10 +653,13 @@ def held(agent: Agent, performative: str) -> Any:
 
     agent._deliver = hold  # type: ignore[method-assign]
     agent._deliver_batch = hold_batch  # type: ignore[method-assign]
+    # nothing answered as it comes (`answer_at_once`): every message goes the mailbox's way
+    agent.answer_at_once = None  # type: ignore[method-assign]
     try:
         yield messages, arrived, release
     finally:
         agent._deliver, agent._deliver_batch = deliver, deliver_batch  # type: ignore[method-assign]
+        del agent.answer_at_once
 
 
 @pytest.mark.parametrize("asking", ["subscribe", "request"])
