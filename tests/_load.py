@@ -6,7 +6,9 @@ import hashlib
 import json
 import os
 import statistics
+import threading
 import time
+from types import TracebackType
 
 # The median CPU time of one `_cpu_work` on the machine the tests' CPU bounds were measured
 # on (2 cores of an AMD EPYC, busy with other work as well), in seconds.
@@ -58,3 +60,51 @@ def cpu_slowdown(samples: int = 15) -> float:
         times.append(time.thread_time() - c0)
         time.sleep(0.01)  # spread over a while: a busy spell does not make the median
     return max(1.0, statistics.median(times) / CPU_WORK_SECONDS)
+
+
+class CpuSlowdownMeter:
+    """`cpu_slowdown` measured over a stretch of time, in a thread: ``with`` the stretch.
+
+    One measurement before a flood swung from 1.3 to 2.4 on a busy 2-core machine, seconds
+    apart (the other core's load and the clock move the CPU time of the same work):
+    a bound on a victim's CPU time during the flood takes the slowdown of the same time.
+    """
+
+    def __init__(self, pause: float = 0.02) -> None:
+        self.times: list[float] = []
+        self._pause = pause
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._measure, daemon=True)
+
+    def _measure(self) -> None:
+        while not self._stop.is_set():
+            c0 = time.thread_time()
+            _cpu_work()
+            self.times.append(time.thread_time() - c0)
+            self._stop.wait(self._pause)  # a share of one core, not all of it
+
+    def __enter__(self) -> CpuSlowdownMeter:
+        self._thread.start()
+        return self
+
+    def __exit__(
+        self,
+        kind: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+
+    def slowdown(self) -> float:
+        """How many times slower this CPU ran than the reference, on average over the stretch.
+
+        The mean, as the victim's CPU time sums its work over the stretch, slow spells and
+        quick ones alike (a median picks one of them); the slowest and quickest tenth are
+        left out (a collection of this process's garbage, say). Never below 1.
+        """
+        times = sorted(self.times)
+        assert times, "the stretch measured nothing"
+        cut = len(times) // 10
+        kept = times[cut : len(times) - cut]
+        return max(1.0, statistics.fmean(kept) / CPU_WORK_SECONDS)

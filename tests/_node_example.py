@@ -10,6 +10,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 import uuid
 from collections.abc import Callable
@@ -44,6 +45,9 @@ class Station:
         pubs = [gen_keys(name, keys)[2] for name in ("station", "operator")]
         trust_keys(keys / "trust.json", pubs, federation=self.federation)
         self.node: subprocess.Popen[str] | None = None
+        self._said: list[str] | None = None  # the node's stderr lines, once followed
+        self._said_more = threading.Condition()
+        self._said_reader: threading.Thread | None = None
         # a runtime directory of its own: the local channels of this test's nodes
         runtime = tmp / "run"
         runtime.mkdir(mode=0o700)
@@ -111,6 +115,35 @@ class Station:
             time.sleep(0.5)  # the inputs are paced by the outside world, not by an event here
         raise AssertionError(f"no such answer: {answer}")
 
+    def follow_stderr(self) -> None:
+        """Gather the running node's stderr as it comes, for `said` (and `stop`'s answer)."""
+        node = self.node
+        assert node is not None and node.stderr is not None
+        stream, node.stderr = node.stderr, None  # read by the thread, no more by communicate
+        said: list[str] = []
+
+        def read() -> None:
+            for line in stream:
+                with self._said_more:
+                    said.append(line)
+                    self._said_more.notify_all()
+
+        self._said = said
+        self._said_reader = threading.Thread(target=read, daemon=True)
+        self._said_reader.start()
+
+    def said(self, text: str, *, within: float) -> bool:
+        """Whether the node writes a stderr line holding ``text`` (awaited at most ``within`` s).
+
+        `follow_stderr` first: the lines are the ones it wrote since.
+        """
+        said = self._said
+        assert said is not None, "follow_stderr() first"
+        with self._said_more:
+            return self._said_more.wait_for(
+                lambda: any(text in line for line in said), timeout=within
+            )
+
     def stop(self) -> tuple[str, str]:
         """SIGINT the node; its stdout and stderr."""
         node = self.node
@@ -124,6 +157,10 @@ class Station:
             node.kill()
             out, err = node.communicate(timeout=5)
         self.node = None
+        if self._said is not None and self._said_reader is not None:
+            self._said_reader.join(timeout=15)  # the node ended: its stderr ends too
+            err = "".join(self._said)
+            self._said = self._said_reader = None
         return out, err
 
 

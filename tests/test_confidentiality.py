@@ -50,6 +50,9 @@ from agents.transports import Message, ZenohConfig, ZenohTransport
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
 START = 40.0  # spawned interpreters import zenoh, pydantic and DyKnow: slow when loaded
+# The consumer's own budget, from its start, to see the provider listed, agree the stream
+# and take its first sample: it ends saying which step ran out, before the test gives up.
+CONSUMED = 50.0
 BASE = 7777.125  # the provider's samples: BASE, BASE + 1, …
 SECRET_LABEL = "uav-a/secret-altitude"  # a local label: only ever inside bodies
 
@@ -66,17 +69,33 @@ async def provider(p):
         await asyncio.sleep(0.05)
         k += 1
         src.push(BASE + k)
+async def listed(gdf, name):
+    came = gdf.watch_presence()
+    try:
+        while name not in gdf.platforms:
+            await anext(came)
+    finally:
+        came.close()
 async def consumer(p):
-    gdf = p.agents.global_df
-    for _ in range(400):
-        if gdf is not None and "uav-a" in gdf.platforms:
-            break
-        await asyncio.sleep(0.05)
-    fed = p.federation_agent
-    await fed.create_stream("uav-a", ["heli-altitude"], timeout=15)
-    label = await p.imported("uav-a", "heli-altitude", timeout=15)
-    sub = p.instance.subscribe(label)
-    first = await anext(aiter(sub))
+    within = float(sys.argv[4])
+    loop = asyncio.get_running_loop()
+    deadline = loop.time() + within
+    def left():
+        return max(0.1, deadline - loop.time())
+    step = "uav-a listed in the directory"
+    try:
+        gdf = p.agents.global_df
+        await asyncio.wait_for(listed(gdf, "uav-a"), left())
+        fed = p.federation_agent
+        step = "create_stream"
+        await fed.create_stream("uav-a", ["heli-altitude"], timeout=left())
+        step = "the import"
+        label = await p.imported("uav-a", "heli-altitude", timeout=left())
+        step = "the first sample"
+        sub = p.instance.subscribe(label)
+        first = await asyncio.wait_for(anext(aiter(sub)), left())
+    except TimeoutError:
+        sys.exit(f"consumer: no {step} within {within:g} s of its start")
     print("streaming", first.value, flush=True)
     while True:
         await fed.request_from("uav-a", {"action": "get-latest", "labels": ["heli-altitude"]},
@@ -273,7 +292,7 @@ def _secrets(top: int) -> list[bytes]:
     return [struct.pack(">d", v) for v in values] + [repr(v).encode() for v in values]
 
 
-@pytest.mark.timeout(150)
+@pytest.mark.timeout(200)
 @pytest.mark.parametrize("encrypt", [True, False], ids=["default-encrypted", "encryption-off"])
 def test_an_outsider_in_the_peer_mesh_reads_nothing_the_owner_watches_everything(
     tmp_path: Path, encrypt: bool
@@ -309,9 +328,11 @@ def test_an_outsider_in_the_peer_mesh_reads_nothing_the_owner_watches_everything
             watches[name] = _spawn(*cmd, "--timeout", str(START))
             procs.append(watches[name])
         _line(watches["uav-a"], '{"kind": "watching"')
-        consumer = _spawn("-c", NODE, str(configs["operator"]), "consumer", str(BASE), "-")
+        consumer = _spawn(
+            "-c", NODE, str(configs["operator"]), "consumer", str(BASE), str(CONSUMED)
+        )
         procs.append(consumer)
-        _line(consumer, "streaming")
+        _line(consumer, "streaming", START + CONSUMED)
         _line(watches["operator"], '{"kind": "watching"')
         # requests, answers, batches, reports and audit batches flow: until the outsider
         # has captured each kind and each owner's watch has shown what is asserted below
@@ -598,9 +619,12 @@ def test_peers_over_mutual_tls_federate_and_a_client_without_the_federations_cer
         provider = _spawn("-c", NODE, str(configs["uav-a"]), "provider", str(BASE), SECRET_LABEL)
         procs.append(provider)
         _line(provider, "ready")
-        consumer = _spawn("-c", NODE, str(configs["operator"]), "consumer", str(BASE), "-")
+        consumer = _spawn(
+            "-c", NODE, str(configs["operator"]), "consumer", str(BASE), str(CONSUMED)
+        )
         procs.append(consumer)
-        _line(consumer, "streaming")  # the stream flows between the two, over mutual TLS
+        # the stream flows between the two, over mutual TLS
+        _line(consumer, "streaming", START + CONSUMED)
         # the owner's watch goes over the same TLS links, with the platform's certificate
         cmd = ("-m", "federation.cli", "watch", "--config", str(configs["operator"]), "--json")
         watch = _spawn(*cmd, "--timeout", str(START))

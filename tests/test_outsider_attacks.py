@@ -17,7 +17,7 @@ import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO
+from typing import IO, TYPE_CHECKING
 
 import msgpack
 import orjson
@@ -27,6 +27,9 @@ from _node_example import Station, _samples
 
 from agents._security import KeyPair, seal_for_owner, sign_owner_batch
 from federation._cli_net import _WATCH_MARGIN
+
+if TYPE_CHECKING:
+    import paho.mqtt.client as mqtt
 
 pytestmark = pytest.mark.timeout(150)
 
@@ -440,11 +443,34 @@ def _rss_mb(pid: int) -> int:
     raise AssertionError(f"no VmRSS for pid {pid}")
 
 
-def _settled_rss_mb(pid: int, *, within: float = 90.0) -> int:
-    """A process's resident memory once it stops moving (its backlog read), in MiB.
+def _read_up_to_here(
+    station: Station, client: mqtt.Client, tag: str, *, within: float = 90.0
+) -> None:
+    """Wait until the node has read every message ``client`` published on the broker so far.
 
-    A fixed wait reads it mid-backlog on a loaded machine: settled is three readings
-    0.5 s apart within 1 MiB of each other (at most ``within`` s, then the last reading).
+    RSS read while the node still reads its backlog counts the backlog: on a loaded
+    machine a node starved of CPU moves slowly enough to look settled meanwhile. A
+    malformed presence published now (on a key of its own) is warned of on the node's
+    stderr as its transport reads it, after all that came before (the broker keeps one
+    client's order). The broker may drop it as it drops the flood's: one more each
+    second, until the node tells of any.
+    """
+    deadline = time.monotonic() + within
+    n = 0
+    while (left := deadline - time.monotonic()) > 0:
+        client.publish(f"dyknow/{station.federation}/v1/alive/read-{tag}-{n}", b"{", qos=0)
+        if station.said(f"/alive/read-{tag}-", within=min(1.0, left)):
+            return
+        n += 1
+    raise AssertionError(f"the node read nothing more of the broker's within {within:g} s")
+
+
+def _settled_rss_mb(pid: int, *, within: float = 90.0) -> int:
+    """A process's resident memory once it stops moving, in MiB (its backlog read first).
+
+    What the node read is still being taken by its watchers (their inboxes, bounded):
+    settled is three readings 0.5 s apart within 1 MiB of each other (at most ``within``
+    s, then the last reading).
     """
     readings = [_rss_mb(pid)]
     deadline = time.monotonic() + within
@@ -473,6 +499,7 @@ def test_presences_under_invented_names_cost_an_mqtt_platform_bounded_memory(
     client = mqtt.Client(mqtt.CallbackAPIVersion.VERSION2, protocol=mqtt.MQTTv5)
     try:
         station.start("python")
+        station.follow_stderr()
         node = station.node
         assert node is not None
         client.connect(host, port)
@@ -485,6 +512,7 @@ def test_presences_under_invented_names_cost_an_mqtt_platform_bounded_memory(
                 client.publish(key, b'{"v":1,"alive":true}', qos=0)
                 if i % 1000 == 0:
                     time.sleep(0.05)  # paced: the broker drops what a slow reader cannot take
+            _read_up_to_here(station, client, str(phase))
             rss.append(_settled_rss_mb(node.pid))
         print(f"\nthe platform's RSS after each phase (MiB): {rss}")
         # the first phases fill what is bounded (and the allocator's arenas); then no growth
