@@ -22,7 +22,7 @@ from typing import Any
 import orjson
 import pytest
 import zenoh
-from _load import cpu_slowdown
+from _load import CpuSlowdownMeter
 from _victim import members, trusted
 from nacl.signing import SigningKey
 
@@ -37,7 +37,7 @@ from bench.dfflood import SEEN_WITHIN, _forged, flood
 pytestmark = pytest.mark.usefixtures("no_leftover_children")
 
 # The victim's CPU per event sent, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled by
-# `cpu_slowdown` on a slower one). Measured there: 7-9 when it sheds, ~39 when every event
+# `CpuSlowdownMeter` on a slower one). Measured there: 7-9 when it sheds, ~39 when every event
 # reaches the event loop and has its signature checked.
 SHED_CPU_US = 20.0
 # The member's registers (and as many deregisters) during the flood: each after the first
@@ -53,9 +53,10 @@ def test_a_df_events_flood_is_shed_and_a_members_changes_are_still_seen(tmp_path
     forged ones (over its budget), and the victim asks the member again within a second,
     which shows them. (``python -m bench.dfflood`` runs the same, and without shedding.)
     """
-    run = flood(tmp_path, changes=CHANGES)
+    with CpuSlowdownMeter() as meter:  # the slowdown over the same stretch as the flood
+        run = flood(tmp_path, changes=CHANGES)
     report, before = run.report, run.before
-    slower = cpu_slowdown()
+    slower = meter.slowdown()
     bound = SHED_CPU_US * slower
     print(f"\n{run.lines()}\n(CPU bound {bound:.1f} µs: {SHED_CPU_US:g} x {slower:.2f})")
     assert run.sent / run.seconds > 5000, "the attacker did not flood"

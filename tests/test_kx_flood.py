@@ -23,7 +23,7 @@ from typing import Any
 
 import orjson
 import pytest
-from _load import cpu_slowdown
+from _load import CpuSlowdownMeter
 
 from agents import AgentPlatform, wire_key
 from agents._interface import InterfaceAgent
@@ -52,7 +52,7 @@ from bench.kxflood import (
 pytestmark = pytest.mark.usefixtures("no_leftover_children")
 
 # The victim's CPU per flood request, in µs, on the CPU of `_load.CPU_WORK_SECONDS` (scaled
-# by `cpu_slowdown` on a slower one). Measured there: ~11-31 when it sheds, ~85-91 when
+# by `CpuSlowdownMeter` on a slower one). Measured there: ~11-31 when it sheds, ~85-91 when
 # every request reaches the event loop and has its signature checked (the victim then
 # takes most of a core at 10 000/s). CPU time, unlike latency, is barely stretched by
 # others' load on the machine.
@@ -70,10 +70,11 @@ def test_kx_flood_is_shed_and_a_member_is_still_served(tmp_path: Path) -> None:
     latency: with three processes and the attacker's on a busy machine that measures the
     machine. CPU time is what a flood takes from the victim, whatever else runs.
     """
-    run = flood(tmp_path, calm=False)
+    with CpuSlowdownMeter() as meter:  # the slowdown over the same stretch as the flood
+        run = flood(tmp_path, calm=False)
     during, sent, seconds, report = run.during, run.sent, run.seconds, run.report
     cost = run.cpu * seconds / sent * 1e6  # the victim's CPU per request sent, µs
-    slower = cpu_slowdown()
+    slower = meter.slowdown()
     bound = SHED_CPU_US * slower
     print(
         f"\n{run.lines()}\nvictim CPU {cost:.1f} µs per request "
