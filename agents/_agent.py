@@ -495,12 +495,14 @@ class Agent:
     Define it as a method ``def answer_at_once(self, message)`` returning the content of
     the ``inform`` that answers ``message`` (as an `on_query` / `on_request` handler's
     result), or `LATER` to leave the message to the mailbox and handlers. The Interface
-    Agent calls it on the event loop for a message of another platform that came alone,
-    once admitted (limits, directory, audit), when nothing waits in this agent's mailbox
-    (so it overtakes nothing) and it is not a reply to one of its conversations; the
-    answer is sealed and sent at once when a session is there (else the message is
-    queued as usual and the handler answers it). It must not wait, block or change
-    state: for reads only. It is asked first; an exception it raises is taken as `LATER`.
+    Agent calls it on the event loop for a request (query, subscribe …) of another
+    platform that came alone, once admitted (limits, directory, audit), when nothing
+    waits in this agent's mailbox, its receive loop is in no handler and no concurrent
+    handler's task is yet to start (so it overtakes nothing that came before it), it is
+    not a reply to one of its conversations and the answer can be sealed and sent at
+    once (else it is not asked: the message is queued and the handler answers it). It
+    must not wait, block or change state: for reads only. An exception it raises is
+    taken as `LATER`.
     """
 
     def __init__(self, name: str, *, mailbox_size: int | None = None) -> None:
@@ -515,6 +517,7 @@ class Agent:
         self._by_reply: dict[str, Conversation] = {}
         self._by_conv: dict[str, Conversation] = {}
         self._closed_keys: OrderedDict[str, None] = OrderedDict()
+        self._handlers_starting = 0  # concurrent handlers' tasks spawned, not yet started
         self._state = _UNATTACHED
         self._task: asyncio.Task[None] | None = None
         self._tg: asyncio.TaskGroup | None = None
@@ -844,6 +847,7 @@ class Agent:
                 await self._unhandled(message)
             elif route.concurrent:
                 self._spawn(self._handle(route.handler, message), "handle")
+                self._handlers_starting += 1  # it starts in a later turn
             else:
                 # `_handle`, inline: the common case of every message
                 try:
@@ -866,6 +870,7 @@ class Agent:
         return None
 
     async def _handle(self, handler: Handler, message: ACLMessage) -> None:
+        self._handlers_starting -= 1
         try:
             await handler(message)
             self.stats.handled += 1

@@ -1354,7 +1354,11 @@ class InterfaceAgent:
         stats.received_remote += 1
         if (
             agent.answer_at_once is not None
+            and initiating  # admitted by the directory's access check, as no answer is
             and not mailbox._items
+            and mailbox._waiter is not None  # its receive loop is in no handler
+            and not agent._handlers_starting  # nor will a concurrent handler's task
+            and self.sends_now(peer)  # else the read would be made twice
             and message.in_reply_to is None
             and message.conversation_id not in agent._by_conv
             and self._answer_at_once(host, peer, agent, message)

@@ -209,13 +209,8 @@ class GatewayAgent(Agent):
         self._presence: TransportSubscription[DirectoryEvent] | None = None
         self._unhook_trust: Callable[[], None] | None = None
         self._trust: TrustStore | None = None  # the Interface Agent's: whom it let in
-        cls = type(self)
-        # a subclass that answers otherwise: its handlers decide every message
-        self._at_once = (
-            cls._on_request is GatewayAgent._on_request
-            and cls._on_query is GatewayAgent._on_query
-            and cls._perform is GatewayAgent._perform
-        )
+        # a subclass may add handlers (matched first) or checks: its handlers decide all
+        self._at_once = type(self) is GatewayAgent
 
     # -- lifecycle ----------------------------------------------------------------------
 

@@ -488,13 +488,8 @@ class FederationAgent(Agent):
         self._resolved_by: tuple[PlatformLabels, LabelMapping, Vocabulary] | None = None
         self._resolved_labels = 0  # bounds `_resolved` (`_MAX_RESOLVED`): members pick the lists
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
-        cls = type(self)
-        # a subclass that answers otherwise: its handlers decide every message
-        self._at_once = (
-            cls._on_request is FederationAgent._on_request
-            and cls._on_query is FederationAgent._on_query
-            and cls._latest_reply is FederationAgent._latest_reply
-        )
+        # a subclass may add handlers (matched first) or checks: its handlers decide all
+        self._at_once = type(self) is FederationAgent
         self.add_handler(
             MessageTemplate(P.CANCEL, ontology=ONTOLOGY, where=self._is_export_cancel),
             self._on_cancel,

@@ -110,6 +110,11 @@ def _stats(p: FederationPlatform) -> dict[str, Any]:
         "df_warnings": list(_DF_WARNINGS),
         "audit": [dict(r) for r in p.interface.audit.records],
         "refusals": dict(fed.refusals),
+        # answered as they came (`Agent.answer_at_once`): the attacks met that path too
+        "at_once": {
+            "federation": fed.stats.answered_at_once,
+            "gateway": p.gateway.stats.answered_at_once,
+        },
         "gateway": dataclasses.asdict(p.gateway.gateway_stats),
         "reply_to_refused": p.interface.reply_to_refused,
         "imports": p.importer.stats(),
@@ -455,7 +460,13 @@ async def test_an_opened_gateway_keeps_import_labels_and_creates_none(tmp_path: 
         assert isinstance(listed, dict)
         assert SECRET in listed["labels"]  # opened by its operator: local labels are visible
         assert not [lb for lb in listed["labels"] if lb.startswith("import/")]
+        # a read of a label it may see is answered as it comes; the reserved ones were not
+        got = await request(
+            m, "gateway@uav-a", {"action": "query", "label": SECRET}, ontology="dyknow"
+        )
+        assert isinstance(got, dict) and got["samples"]
         s = await w.stats("uav-a")
+        assert s["at_once"]["gateway"] == 1
         assert s["gateway"]["reserved_refused"] == 2
         recs = audited(s, verdict="refused", stage="gateway", sender="mallory@uav-m")
         assert [r["code"] for r in recs] == ["reserved-label", "reserved-label"]
@@ -697,6 +708,7 @@ async def test_sharing_rules_say_who_may_query_or_stream_which_label(tmp_path: P
         reason = await refusal(c.create_stream("uav-a", ["car5-state"], timeout=WAIT))
         assert "lets uav-b stream it" in reason
         s = await w.stats("uav-a")
+        assert s["at_once"]["federation"] == 1  # the neighbour's read; no refusal was
         assert s["refusals"] == {"sharing-rule": 4}
         recs = audited(s, verdict="refused", code="sharing-rule")
         assert [r["from"] for r in recs] == ["uav-m", "uav-m", "uav-m", "uav-c"]
