@@ -793,7 +793,10 @@ class InterfaceAgent:
             host.transport.publish_nowait(self._acl_key(host, platform), payload)
         except AgentError:  # `send` meets it again and raises it where it is awaited
             return False
-        self._sent(platform)
+        try:
+            self._sent(platform)
+        except Exception:  # it went: True, or the caller would send it a second time
+            log.exception("interface[%s]: after sending to %s", self._me, platform)
         return True
 
     def _burst_first(self, platform: str, body: bytes) -> bool:
