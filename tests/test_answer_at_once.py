@@ -214,3 +214,25 @@ async def test_a_read_the_interface_agent_refuses_never_reaches_the_hook() -> No
         assert limited["from"] == "uav-a"
         assert limited["count"] == 1
         assert len(records(pb, verdict="accepted", performative="query-ref")) == 1
+
+
+async def test_an_answer_that_went_is_not_sent_again_when_what_follows_it_fails() -> None:
+    """Sent at once, then renewing the session fails: the handler does not answer a second time."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b")
+        r = await reader(pb)
+        asker = await pa.add(Agent("asker"))
+
+        def broken(platform: str) -> None:
+            raise RuntimeError("renewal broke")
+
+        ia(pb)._sent = broken  # type: ignore[method-assign]
+        got = await query_ref(asker, "reader@uav-b", {"read": "speed"}, ontology="demo")
+        assert got == {"value": 12.5, "by": "at-once"}
+        assert r.handled == []
+        assert r.stats.answered_at_once == 1
+        # one answer only: a second would reach the asker as a late reply
+        await query_ref(asker, "reader@uav-b", {"read": "mode"}, ontology="demo")
+        assert asker.stats.received == 2
+        assert asker.stats.late == 0
