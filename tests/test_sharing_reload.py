@@ -1029,13 +1029,19 @@ async def test_a_member_removed_from_the_trust_file_on_sighup_is_refused_and_its
             for _ in range(2):
                 with pytest.raises(ReplyTimeout):
                     await operator.federation_agent.request_from("station", _LATEST, timeout=3)
-            refused = await asyncio.to_thread(_refusals_of, node, "operator", 2)
+            refused = await asyncio.to_thread(_untrusted, node, "operator", (None,), 2)
             assert len(refused) >= 2, refused
             assert all(r["verdict"] == "dropped" for r in refused), refused
             # nothing more streamed to it: its import stays where the revocation left it
             got = imported.received
             assert not [r for r in node.audit() if r.get("stage") == "trust" and r not in records]
         assert imported.received == got
+        # a new process of it, without a session: its key exchange is refused, audited
+        refused = node.ask("temperature")
+        assert refused.returncode != 0 and "does it trust 'operator'" in refused.stderr, (
+            refused.stderr
+        )
+        assert _untrusted(node, "operator", ("kx",), 1)
         # trusted again (its key back in the file), it is served after the next SIGHUP
         pub = keys / "operator.pub"
         again = node.station.command(
@@ -1052,16 +1058,16 @@ async def test_a_member_removed_from_the_trust_file_on_sighup_is_refused_and_its
     assert "station stopped" in out and "Traceback" not in err, err
 
 
-def _refusals_of(node: Node, platform: str, n: int, timeout: float = 15.0) -> list[dict[str, Any]]:
-    """The node's records of ACL envelopes of ``platform`` refused as untrusted, once there
-    are ``n`` (bounded)."""
-    deadline = time.monotonic() + timeout
+def _untrusted(node: Node, platform: str, stages: tuple[Any, ...], n: int) -> list[dict[str, Any]]:
+    """The node's records of what ``platform`` sent refused as untrusted at ``stages``
+    (None: an ACL envelope), once there are ``n`` (bounded)."""
+    deadline = time.monotonic() + 15.0
     while True:
         records = [
             r
             for r in node.audit()
             if r.get("from") == platform
-            and r.get("stage") is None
+            and r.get("stage") in stages
             and str(r.get("reason")).startswith("untrusted: ")
         ]
         if len(records) >= n or time.monotonic() > deadline:
