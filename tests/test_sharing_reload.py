@@ -1112,3 +1112,54 @@ def test_a_broken_trust_file_on_sighup_keeps_the_node_and_the_trust_in_force(
     finally:
         out, err = node.stop()
     assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(120)
+async def test_a_reloaded_trust_file_revokes_rekeys_and_adds_and_a_wrong_one_changes_nothing(
+    tmp_path: Path,
+) -> None:
+    from agents import KeyPair, TrustStore
+    from federation import FederationPlatform
+
+    station = Station(tmp_path)
+    s = FederationPlatform.from_file(station.dir / CONFIG)
+    async with asyncio.timeout(100), s:
+        trust = s.interface.trust
+        operator = trust.public_key("operator")
+        other, ranger = KeyPair.generate("operator"), KeyPair.generate("ranger")
+        mine = trust.public_key("station")
+        wrong = [
+            (TrustStore("elsewhere", {"station": mine}), "federation 'elsewhere'"),
+            (
+                TrustStore(trust.federation, {"station": KeyPair.generate("station").public_key}),
+                "another key for 'station'",
+            ),
+        ]
+        for store, why in wrong:
+            with pytest.raises(ValueError, match=why):
+                s.reload_trust(store, source="trust.json")
+            assert list(trust) == ["operator", "station"]
+            assert trust.public_key("operator") == operator
+        assert not [r for r in s.interface.audit.records if r.get("stage") == "trust"]
+        # the operator's key changed, the ranger added, this platform's own entry left out
+        new = TrustStore(
+            trust.federation, {"operator": other.public_key, "ranger": ranger.public_key}
+        )
+        changes = s.reload_trust(new, source="trust.json")
+        assert changes == [
+            "revoked and trusted with a new key 'operator'",
+            "trusted 'ranger'",
+            "'station' (this platform) is not in it: kept",
+        ], changes
+        assert list(trust) == ["operator", "ranger", "station"]
+        assert trust.public_key("operator") == other.public_key
+        assert trust.public_key("station") == mine
+        assert s.interface.revoked == 1  # the old key's sessions are gone with it
+        records = [r for r in s.interface.audit.records if r.get("stage") == "trust"]
+        assert [r["verdict"] for r in records] == ["reloaded", "revoked"], records
+        assert str(records[0]["reason"]).startswith("trust file reloaded from trust.json: ")
+        # the same file again: no change
+        assert s.reload_trust(new, source="trust.json") == [
+            "'station' (this platform) is not in it: kept"
+        ]
+        assert s.interface.revoked == 1
