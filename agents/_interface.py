@@ -673,6 +673,10 @@ class InterfaceAgent:
         # per peer, the missing count last warned of and when (`_report_missing`)
         self._missing_warned: dict[str, tuple[int, float]] = {}
         self.missing_warn_interval = 60.0
+        self.revoked = 0  # platforms removed from the trust store while running, since start
+        self.unsent_revoked = 0  # messages for a platform revoked then, not sent, since start
+        self._revoked: set[str] = set()  # revoked while running: what is for them is dropped
+        self._unhook_trust: Callable[[], None] | None = None
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -708,6 +712,8 @@ class InterfaceAgent:
         transport = platform.transport
         self._batching = self.batch and transport.publishes_nowait
         self._loop = asyncio.get_running_loop()
+        if self._unhook_trust is None:
+            self._unhook_trust = self.trust.on_remove(self._trust_removed)
         gate = self.kx_gate
         self._kx = await transport.serve(
             platform.key("kx"), self._on_key_exchange, admit=None if gate is None else gate.admit
@@ -757,6 +763,8 @@ class InterfaceAgent:
         try:
             payload = self.sessions.seal(platform, body)
         except UnknownSession:
+            if platform in self._revoked and self._unsent_revoked(platform):
+                return
             await self.agree(platform)
             try:
                 payload = self.sessions.seal(platform, body)
@@ -920,8 +928,69 @@ class InterfaceAgent:
         ):
             host.spawn(self._renew(peer), f"interface.renew[{peer}]")
 
+    def _trust_removed(self, peer: str) -> None:
+        """The trust store's callback: revoke ``peer`` now when called in the platform's event
+        loop, else in it, soon (the sessions and batches are that loop's)."""
+        loop = self._loop
+        try:
+            here = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            here = False
+        if here or loop is None:
+            self._revoke(peer)
+        else:
+            loop.call_soon_threadsafe(self._revoke, peer)
+
+    def _unsent_revoked(self, peer: str) -> bool:
+        """Whether a message for ``peer``, revoked here, is dropped (counted in
+        ``unsent_revoked``): an answer of an agent to what it asked before its revocation
+        is expected, not an error. False once it is trusted again."""
+        if peer in self.trust:
+            self._revoked.discard(peer)
+            return False
+        self.unsent_revoked += 1
+        log.debug("interface[%s]: a message for %r not sent: it was revoked", self._me, peer)
+        return True
+
+    def _revoke(self, peer: str) -> None:
+        """``peer`` was removed from the trust store: nothing is sealed for it any more.
+
+        Its sessions are forgotten (a message for it then needs a key exchange, which its
+        untrusted name refuses) and what waits for it in a batch is dropped; counted in
+        ``revoked`` and audited (``stage: trust``, ``code: untrusted``, ``verdict: revoked``).
+        """
+        if peer == self._me:
+            return  # its own name: no session with itself
+        forgotten = self.sessions.forget(peer)
+        self._revoked.add(peer)  # bounded by the trust file's platforms
+        waiting = len(self._outbox.pop(peer, ()))
+        self._outbox_bytes.pop(peer, None)
+        self._bursting.discard(peer)
+        self._acl_keys.pop(peer, None)
+        self.revoked += 1
+        self.audit.record(
+            verdict="revoked",
+            stage="trust",
+            code="untrusted",
+            to=peer,
+            reason=(
+                f"platform {peer!r} was removed from the trust file (revoked): "
+                f"{forgotten} session(s) with it forgotten, {waiting} message(s) for it dropped"
+            ),
+        )
+        log.warning(
+            "interface[%s]: platform %r revoked: %d session(s) forgotten, %d message(s) dropped",
+            self._me,
+            peer,
+            forgotten,
+            waiting,
+        )
+
     async def aclose(self) -> None:
         """Send what waits in a batch, stop receiving and serving key exchanges, flush the audit."""
+        if self._unhook_trust is not None:
+            self._unhook_trust()
+            self._unhook_trust = None
         for platform in list(self._outbox):
             self._flush(platform)
         for sub in self._subs:
@@ -1755,7 +1824,8 @@ class InterfaceAgent:
         log.warning(
             "interface[%s]: refused a platform calling itself %r (a claimed name, not "
             "authenticated): not in this platform's trust file (%s); if it is one of yours, "
-            "trust its key and restart this platform (logged once per %.0f s)",
+            "trust its key, then SIGHUP its node (dyknow node) or restart this platform "
+            "(logged once per %.0f s)",
             self._me,
             name,
             reason[:200],

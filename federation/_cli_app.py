@@ -223,7 +223,7 @@ def keys_untrust(
         list[str], typer.Argument(metavar="PLATFORMS", help="platform names to stop trusting")
     ],
 ) -> None:
-    """Remove platforms from the trust file (revoke them; running nodes: restart them)."""
+    """Remove platforms from the trust file (revoke them; a running node: send it SIGHUP)."""
     from agents.keys import KeysError, untrust
 
     try:

@@ -127,7 +127,8 @@ async def reaching(p: FederationPlatform, want: str, wait: float) -> AsyncIterat
             # alive, yet silent to us: what a platform does with a key it does not trust
             raise NotAnsweredError(
                 f"{exc}: it is alive, so does it trust {p.name!r}? A platform reads its "
-                "trust file when it starts: restart it after 'dyknow keys trust'"
+                "trust file when it starts and on SIGHUP ('dyknow node'): send it SIGHUP "
+                "after 'dyknow keys trust'"
             ) from None
         raise
 

@@ -7,8 +7,10 @@ import contextlib
 import difflib
 import json
 import logging
+import os
 import re
 import signal
+import stat
 import sys
 import time
 import uuid
@@ -312,6 +314,7 @@ async def _reload_on_hup(
     while True:
         await hup.wait()
         hup.clear()
+        await _reload_trust(p, me, tell, warn)
         try:
             settings = await asyncio.to_thread(
                 load_sharing,
@@ -334,6 +337,35 @@ async def _reload_on_hup(
                 f"{me} export {export_id} of {semantic!r} to {receiver} ended: "
                 "the reloaded [sharing] no longer allows it"
             )
+
+
+async def _reload_trust(
+    p: FederationPlatform,
+    me: str,
+    tell: Callable[[str], None],
+    warn: Callable[[str], None],
+) -> None:
+    """Re-read the trust file and apply it (`FederationPlatform.reload_trust`); a broken or
+    unreadable one is said in one line and the trust in force stays."""
+    path = None
+    try:
+        path = p.config.trust
+        # a FIFO put there would block the read for good: a regular file only, read in
+        # a thread; applied before the [sharing] reload, which warns of patterns no
+        # trusted platform matches
+        with contextlib.suppress(FileNotFoundError):  # said by the load, as at start
+            if not stat.S_ISREG(os.stat(path).st_mode):
+                raise ValueError(f"{path}: not a regular file")
+        store = await asyncio.to_thread(TrustStore.load, path)
+        changes = p.reload_trust(store, source=str(path))
+    except (SecurityError, ValueError, OSError) as exc:
+        warn(f"{me} trust file not reloaded, the trust in force stays: {exc}")
+        return
+    except Exception as exc:  # a reload must never take the node down
+        log.exception("reloading the trust file %s", path)
+        warn(f"{me} trust file reload failed: {path}: {type(exc).__name__}: {exc}")
+        return
+    tell(f"{me} trust file reloaded from {path}: {'; '.join(changes) or 'no change'}")
 
 
 def _say_stats(command: str, application: NodeApplication, say: Callable[[str], None]) -> None:

@@ -103,6 +103,7 @@ from pydantic import (
 )
 
 from agents import (
+    AgentError,
     AgentPlatform,
     AuditLog,
     DfEventLimit,
@@ -1024,6 +1025,8 @@ class FederationPlatform:
         # that asked (a narrowed `sharing.accept_for` withdraws those it no longer accepts)
         self._consented: dict[str, dict[str, str]] = {}
         self._stack: contextlib.AsyncExitStack | None = None
+        self.revoked_exports = 0  # exports ended as their platform was revoked, since start
+        self.revoked_imports = 0  # imports ended so
 
     def __repr__(self) -> str:
         return f"<FederationPlatform {self.name} ({self.config.federation})>"
@@ -1061,6 +1064,8 @@ class FederationPlatform:
             # Stopped before the proxies close: its teardown stops exports through them.
             stack.push_async_callback(self.agents.remove, self.federation_agent)
             await self.agents.add(self.federation_agent)
+            # after the Interface Agent's (hooked as it started): its sessions go first
+            stack.callback(self.interface.trust.on_remove(self._trust_removed))
         except BaseException:
             await stack.aclose()
             raise
@@ -1209,6 +1214,119 @@ class FederationPlatform:
             if not held:
                 del self._consented[sender]
         return gone
+
+    # -- revocation -----------------------------------------------------------------------
+
+    def reload_trust(self, new: TrustStore, *, source: str | None = None) -> list[str]:
+        """Trust from now on the platforms of ``new`` (the trust file re-read): what changed.
+
+        A platform no longer in it is revoked as `TrustStore.remove` does (its sessions
+        forgotten, its exports and imports ended, what it created at the gateway removed);
+        one added is trusted; one with another key is revoked, then trusted with the new
+        key. ValueError, and nothing changes, when ``new`` is another federation's or holds
+        another key for this platform. This platform's own entry is never revoked.
+        Audited: ``trust`` ``reloaded`` (the revocations audit what they end).
+        """
+        trust = self.interface.trust
+        source = source or str(self.config.trust)
+        if new.federation != trust.federation:
+            raise ValueError(
+                f"{source} is the trust file of federation {new.federation!r}, "
+                f"not {trust.federation!r}"
+            )
+        me = self.name
+        if me in new and new.public_key(me) != self.interface.keys.public_key:
+            raise ValueError(f"{source} holds another key for {me!r} than this platform's key pair")
+        old = set(trust) - {me}
+        now = set(new) - {me}
+        revoked = sorted(old - now)
+        added = sorted(now - old)
+        rekeyed = sorted(p for p in old & now if new.public_key(p) != trust.public_key(p))
+        changes = []
+        if revoked:
+            changes.append("revoked " + ", ".join(map(repr, revoked)))
+        if rekeyed:
+            changes.append("revoked and trusted with a new key " + ", ".join(map(repr, rekeyed)))
+        if added:
+            changes.append("trusted " + ", ".join(map(repr, added)))
+        if me in trust and me not in new:
+            changes.append(f"{me!r} (this platform) is not in it: kept")
+        self.interface.audit.record(
+            verdict="reloaded",
+            stage="trust",
+            reason=f"trust file reloaded from {source}: " + ("; ".join(changes) or "no change"),
+        )
+        # after the record: what each revocation ends is audited after it, as a
+        # [sharing] reload's ends are
+        for platform in revoked:
+            trust.remove(platform)
+        for platform in rekeyed:
+            trust.remove(platform)
+            trust.add(platform, new.public_key(platform))
+        for platform in added:
+            trust.add(platform, new.public_key(platform))
+        return changes
+
+    def _trust_removed(self, platform: str) -> None:
+        """The trust store's callback: end what ``platform`` holds here, in the platform's
+        event loop (`_revoked`; the Interface Agent forgot its sessions already)."""
+        agent = self.federation_agent
+        loop = agent._loop
+        if loop is None or platform == self.name:
+            return  # stopped meanwhile; or this platform's own name
+        try:
+            here = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            here = False
+
+        def start() -> None:
+            with contextlib.suppress(AgentError):  # stopping: its teardown ends them all
+                agent.spawn(self._revoked(platform), f"revoked[{platform}]")
+
+        if here:
+            start()
+        else:
+            loop.call_soon_threadsafe(start)
+
+    async def _revoked(self, platform: str) -> None:
+        """``platform`` was removed from the trust file: its exports and imports here end.
+
+        The exports to it (or that it asked for) stop, it told nothing; the streams agreed
+        from it end here (as withdrawn: their later batches would be refused anyway).
+        Counted (``revoked_exports``, ``revoked_imports``), audited (``stage: trust``,
+        ``code: untrusted``, ``verdict: ended``) and logged.
+        """
+        why = f"platform {platform!r} was removed from the trust file (revoked)"
+        audit = self.interface.audit
+        ended = await self.federation_agent.end_revoked(platform)
+        for export_id, semantic, receiver, _ in ended:
+            self.revoked_exports += 1
+            audit.record(
+                verdict="ended",
+                stage="trust",
+                code="untrusted",
+                stream=semantic,
+                to=receiver,
+                export=export_id,
+                reason=f"export {export_id} of {semantic!r} to {receiver} ended: {why}",
+            )
+        self._consented.pop(platform, None)
+        for rec in self.importer.imports(platform):
+            semantic = rec.semantic_label
+            self._unlease(platform, semantic)
+            self.importer.forget(platform, semantic)
+            self.revoked_imports += 1
+            audit.record(
+                verdict="ended",
+                stage="trust",
+                code="untrusted",
+                stream=semantic,
+                **{"from": platform},
+                reason=f"import of {semantic!r} from {platform} ended: {why}",
+            )
+            log.warning(
+                "platform %s: import of %r from %s ended: %s", self.name, semantic, platform, why
+            )
 
     # -- membership -----------------------------------------------------------------------
 

@@ -1195,9 +1195,45 @@ class FederationAgent(Agent):
         ``why`` and the refusal logged here. Returns (export id, label, receiver,
         refusal) of each one ended.
         """
+        check = self._refusal
+        return await self._end_exports(
+            lambda semantic, requester, receiver: (
+                check(semantic, requester) or check(semantic, receiver)
+            )
+        )
+
+    async def end_revoked(self, platform: str) -> list[tuple[str, str, str, str]]:
+        """End what ``platform``, removed from the trust file, holds here: the exports to it
+        or asked for by it, its membership subscriptions, its streams to ask for again.
+
+        It is told nothing (nothing is sealed for it any more); another receiver of an
+        export it asked for is told `UNSHARED_WHY`. Returns (export id, label, receiver,
+        reason) of each export ended.
+        """
+        reason = f"platform {platform!r} was removed from the trust file (revoked)"
+        subscribers = self._subscribers.subscribers
+        for key in [k for k in subscribers if platform_of(k[0]) == platform]:
+            del subscribers[key]
+        self._durable.pop(platform, None)
+        ended = await self._end_exports(
+            lambda semantic, requester, receiver: (
+                reason if platform in (requester, receiver) else None
+            ),
+            tell=lambda receiver: receiver != platform,
+        )
+        for record in self._exports.values():
+            record.receivers = [w for w in record.receivers if w != platform]
+        return ended
+
+    async def _end_exports(
+        self,
+        refusal: Callable[[str, str, str], str | None],
+        tell: Callable[[str], bool] = lambda receiver: True,
+    ) -> list[tuple[str, str, str, str]]:
+        """End each export of a label to a receiver ``refusal(label, requester platform,
+        receiver)`` names a reason for; its receiver told `UNSHARED_WHY` if ``tell`` it."""
         exporter = self.exporter
         self._prune_ended()
-        check = self._refusal
         ended: list[tuple[str, str, str, str]] = []
         stops: list[tuple[tuple[str, str], Any]] = []
         touched: list[StreamExport] = []
@@ -1205,7 +1241,7 @@ class FederationAgent(Agent):
             requester = platform_of(record.requester)
             for key, handle in list(record.handles.items()):
                 semantic, receiver = key
-                reason = check(semantic, requester) or check(semantic, receiver)
+                reason = refusal(semantic, requester, receiver)
                 if reason is None:
                     continue
                 del record.handles[key]
@@ -1220,7 +1256,10 @@ class FederationAgent(Agent):
             # and then tells its receiver, the fact only (the rule's platform list and the
             # config's path stay here, in the log and audit, and the marker stays small)
             results = await asyncio.gather(
-                *(_resolved(exporter.stop(h, why=UNSHARED_WHY)) for _, h in stops),
+                *(
+                    _resolved(exporter.stop(h, why=UNSHARED_WHY if tell(key[1]) else None))
+                    for key, h in stops
+                ),
                 return_exceptions=True,
             )
             for (key, _), result in zip(stops, results, strict=True):

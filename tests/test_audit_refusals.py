@@ -256,8 +256,8 @@ async def test_an_untrusted_sender_is_logged_once_a_while_and_garbage_summed_up(
         assert lines("'evil'") == [
             "interface[uav-b]: refused a platform calling itself 'evil' (a claimed name, not "
             "authenticated): not in this platform's trust file (untrusted: platform 'evil' is "
-            "not in the trust file); if it is one of yours, trust its key and restart this "
-            "platform (logged once per 30 s)"
+            "not in the trust file); if it is one of yours, trust its key, then SIGHUP its "
+            "node (dyknow node) or restart this platform (logged once per 30 s)"
         ]
 
         # a flood of made-up names: a few logged, the rest summed up in the next interval

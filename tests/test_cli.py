@@ -462,7 +462,7 @@ def test_asking_a_platform_that_does_not_trust_us_says_what_to_check(
         assert main(["ask", *asked, "--wait", "5", "--timeout", "2"]) == 1
         err = capsys.readouterr().err
         assert "did not answer the key exchange: it is alive, so does it trust 'operator'?" in err
-        assert "restart it after 'dyknow keys trust'" in err and "Traceback" not in err
+        assert "send it SIGHUP after 'dyknow keys trust'" in err and "Traceback" not in err
     finally:
         _kill(node)
 

@@ -19,6 +19,7 @@ from agents import (
     KeyPair,
     MemoryHub,
     Refused,
+    ReplyTimeout,
     ServiceDescription,
     SubscriptionEnded,
     TrustStore,
@@ -467,7 +468,8 @@ async def test_a_platform_revoked_from_another_thread_loses_what_it_holds_here()
         assert not w.dk.has_label("op/t") and w.dk.has_label("mine/t")
         assert w.gateway.service.created == {"mine/t": "gateway:mine/t"}
         records = [r for r in interface.audit.records if r.get("stage") == "trust"]
-        assert [(r["verdict"], r["code"], r["stream"]) for r in records] == [
+        assert [(r["verdict"], r["code"], r.get("stream")) for r in records] == [
+            ("revoked", "untrusted", None),  # its sessions forgotten, at once
             ("ended", "untrusted", "car5-state"),
             ("ended", "untrusted", "op/t"),
         ], records
@@ -719,17 +721,20 @@ async def test_what_waited_in_the_mailbox_while_its_platform_was_revoked_is_refu
         with held(w.gateway, performative) as (messages, arrived, release):
             if asking == "subscribe":
                 call: Awaitable[Any] = subscribe(
-                    w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow"
+                    w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow", timeout=2
                 )
             else:
-                call = _create(w.asker, "car/car5/speed", "op/t")
+                content = {"action": "create-stream", "label": "car/car5/speed", "output": "op/t"}
+                call = request(w.asker, GW, content, ontology="dyknow", timeout=2)
             asked = asyncio.ensure_future(call)
             async with asyncio.timeout(5):
                 await arrived.wait()  # past the Interface Agent, not yet handled
             assert interface.trust.remove("operator")
             release()
-            reason = await refusal(asked)  # sealed on the live session, as any answer
-        assert reason == "platform 'operator' is not in the trust file (revoked)", reason
+            with pytest.raises(ReplyTimeout):  # refused, and the refusal not sent: nothing is
+                await asked
+        reason = "platform 'operator' is not in the trust file (revoked)"
+        assert interface.unsent_revoked == 1
         assert len(messages) == 1
         # nothing made for it: no subscription, no stream
         assert w.gateway.subscriptions == {}

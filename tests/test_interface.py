@@ -504,7 +504,8 @@ async def test_forged_tampered_replayed_expired_and_untrusted_envelopes_are_drop
         assert str(records(pb, verdict="dropped")[-1]["reason"]).startswith("untrusted:")
 
         untouched(echo, calls, received)
-        assert ia(pb).audit.counts == {"accepted": 1, "refused": 0, "dropped": 6}
+        # and the revocation itself, once: its sessions forgotten
+        assert ia(pb).audit.counts == {"accepted": 1, "refused": 0, "dropped": 6, "revoked": 1}
 
 
 async def test_garbage_on_the_inbox_is_dropped_and_the_inbox_keeps_working() -> None:

@@ -432,7 +432,7 @@ async def test_a_reload_whose_output_fails_goes_on_reloading(tmp_path: Path) -> 
 
     p = SimpleNamespace(
         name="x",
-        config=SimpleNamespace(federation="f"),
+        config=SimpleNamespace(federation="f", trust=tmp_path / "t.json"),  # none: said
         federation_agent=SimpleNamespace(sharing=SimpleNamespace(settings=SharingSettings())),
     )
     p.reload_sharing = reload_sharing
@@ -671,9 +671,10 @@ async def test_a_member_revoked_loses_what_it_created_through_the_gateway(
             "rg/t": "gateway:rg/t",
         }
         records = [r for r in s.interface.audit.records if r.get("stage") == "trust"]
-        assert [r["verdict"] for r in records] == ["ended", "ended", "kept"], records
+        verdicts = ["revoked", "ended", "ended", "kept"]  # first its sessions, forgotten
+        assert [r["verdict"] for r in records] == verdicts, records
         assert all(r["code"] == "untrusted" and r["to"] == "operator" for r in records)
-        ended, removed, kept = records
+        _, ended, removed, kept = records
         assert ended["subscriber"] == "tester@operator" and ended["stream"] == "wx/temperature"
         assert removed["creator"] == "tester@operator" and removed["stream"] == "op/t"
         assert kept["creator"] == "tester@operator" and kept["stream"] == "op/a"
@@ -890,3 +891,275 @@ async def test_a_sighup_held_while_the_loop_takes_signals_is_applied_once() -> N
         _hup.on_hup(None)
         loop.remove_signal_handler(signal.SIGUSR1)
         signal.signal(signal.SIGHUP, before)
+
+
+_LATEST = {"action": "get-latest", "labels": ["temperature"]}
+
+
+async def _until(what: str, check: Any, timeout: float = 15.0) -> None:
+    """Poll ``check`` (counters have no event to await) until true, within ``timeout`` s;
+    AssertionError naming ``what`` if not."""
+    try:
+        async with asyncio.timeout(timeout):
+            while not check():  # noqa: ASYNC110
+                await asyncio.sleep(0.02)
+    except TimeoutError:
+        raise AssertionError(f"not within {timeout} s: {what}") from None
+
+
+@pytest.mark.timeout(120)
+async def test_a_live_export_to_a_platform_revoked_stops_and_nothing_more_is_sealed_for_it(
+    tmp_path: Path,
+) -> None:
+    from agents import ReplyTimeout
+    from federation import FederationPlatform
+    from federation._cli_common import wait_for_members
+
+    station = Station(tmp_path)
+    s = FederationPlatform.from_file(station.dir / CONFIG)
+    o = FederationPlatform.from_file(station.dir / "operator.toml")
+    async with asyncio.timeout(100), s, o:
+        source = s.instance.add_source("wx/temperature")  # the application is `dyknow node`'s
+        assert await wait_for_members(o, "station", 30)
+        export_id = await o.federation_agent.create_stream("station", ["temperature"], timeout=10)
+        [export] = s.exporter.exports("operator")
+        imported = o.importer.get("station", "temperature")
+        assert imported is not None
+        source.push(20.0)
+        await _until("a sample imported", lambda: imported.received > 0)
+        assert s.interface.sessions.sessions("operator")
+
+        # revoked while it runs: the trust store the station's Interface Agent holds
+        assert s.interface.trust.remove("operator")
+        # at once: nothing can be sealed for it (no session; a key exchange is refused)
+        assert s.interface.sessions.sessions("operator") == []
+        assert s.interface.revoked == 1
+        await _until("the export ended", lambda: s.revoked_exports == 1)
+        assert not export.active and s.exporter.exports("operator") == []
+        sent, received = export.sent, imported.received
+        for value in (21.0, 22.0, 23.0):
+            source.push(value)
+        # the samples pushed after the revocation are the station's …
+        assert "23.0" in repr(s.instance.latest("wx/temperature"))
+        # … and none is sealed for the revoked platform any more
+        assert export.sent == sent and imported.received == received
+        with pytest.raises(Exception, match="not in the trust file"):
+            await s.interface.agree("operator")  # no key exchange with it either
+        # it asks on the session it still holds: refused, counted, audited
+        unauthenticated = s.agents.stats.unauthenticated
+        with pytest.raises(ReplyTimeout):
+            await o.federation_agent.request_from("station", _LATEST, timeout=2)
+        assert s.agents.stats.unauthenticated >= unauthenticated + 1
+        [refused, *_] = [
+            r
+            for r in s.interface.audit.records
+            if r.get("verdict") == "dropped" and r.get("stage") is None
+        ]
+        assert refused["from"] == "operator", refused
+        assert str(refused["reason"]).startswith("untrusted: "), refused
+        records = [r for r in s.interface.audit.records if r.get("stage") == "trust"]
+        assert [r["verdict"] for r in records] == ["revoked", "ended"], records
+        assert all(r["code"] == "untrusted" and r["to"] == "operator" for r in records)
+        revoked, ended = records
+        assert "1 session(s) with it forgotten" in str(revoked["reason"]), revoked
+        assert ended["stream"] == "temperature" and ended["export"] == export_id, ended
+        assert "removed from the trust file" in str(ended["reason"]), ended
+
+        # the other side revokes the station: its import from it ends there
+        assert o.interface.trust.remove("station")
+        await _until("the import ended", lambda: o.revoked_imports == 1)
+        assert o.importer.get("station", "temperature") is None and imported.ended
+        [gone] = [r for r in o.interface.audit.records if r.get("verdict") == "ended"]
+        assert gone["stage"] == "trust" and gone["code"] == "untrusted"
+        assert gone["from"] == "station" and gone["stream"] == "temperature", gone
+
+
+def _trust_records(node: Node, verdicts: list[str], timeout: float = 15.0) -> list[dict[str, Any]]:
+    """The node's ``trust`` audit records once their verdicts are ``verdicts`` (bounded)."""
+    deadline = time.monotonic() + timeout
+    while True:
+        records = [r for r in node.audit() if r.get("stage") == "trust"]
+        if [r["verdict"] for r in records] == verdicts or time.monotonic() > deadline:
+            return records
+        time.sleep(0.1)  # the audit file is flushed every 0.25 s
+
+
+@pytest.mark.timeout(180)
+async def test_a_member_removed_from_the_trust_file_on_sighup_is_refused_and_its_export_ends(
+    tmp_path: Path,
+) -> None:
+    from agents import ReplyTimeout
+    from federation import FederationPlatform
+    from federation._cli_common import wait_for_members
+
+    node = Node(tmp_path, EVERYTHING)
+    keys = node.station.dir / "keys"
+    try:
+        operator = FederationPlatform.from_file(node.station.dir / "operator.toml")
+        async with asyncio.timeout(150), operator:
+            # a member streaming from the node and asking it, on a live session
+            assert await wait_for_members(operator, "station", 30)
+            export_id = await operator.federation_agent.create_stream(
+                "station", ["temperature"], timeout=10
+            )
+            imported = operator.importer.get("station", "temperature")
+            assert imported is not None
+            await _until("samples imported", lambda: imported.received > 0, 30)
+            assert await operator.federation_agent.request_from("station", _LATEST, timeout=10)
+            # its operator revokes it: the key out of the node's trust file, SIGHUP
+            untrust = node.station.command(
+                "keys", "untrust", "--trust-file", "keys/trust.json", "operator", timeout=30
+            )
+            assert untrust.returncode == 0, untrust.stderr
+            node.proc.send_signal(signal.SIGHUP)
+            line = await asyncio.to_thread(node.out.wait_for, "trust file reloaded", 30)
+            assert "revoked 'operator'" in line, line
+            # its export ends there, audited
+            records = await asyncio.to_thread(
+                _trust_records, node, ["reloaded", "revoked", "ended"]
+            )
+            assert [r["verdict"] for r in records] == ["reloaded", "revoked", "ended"], records
+            reloaded, revoked, ended = records
+            assert "revoked 'operator'" in str(reloaded["reason"]), reloaded
+            assert revoked["code"] == "untrusted" and revoked["to"] == "operator", revoked
+            assert ended["code"] == "untrusted" and ended["export"] == export_id, ended
+            assert ended["stream"] == "temperature" and ended["to"] == "operator", ended
+            # its next request, sealed on the session it still holds, is refused there:
+            # never answered, each envelope dropped and audited (the audit counts them)
+            for _ in range(2):
+                with pytest.raises(ReplyTimeout):
+                    await operator.federation_agent.request_from("station", _LATEST, timeout=3)
+            refused = await asyncio.to_thread(_untrusted, node, "operator", (None,), 2)
+            assert len(refused) >= 2, refused
+            assert all(r["verdict"] == "dropped" for r in refused), refused
+            # nothing more streamed to it: its import stays where the revocation left it
+            got = imported.received
+            assert not [r for r in node.audit() if r.get("stage") == "trust" and r not in records]
+        assert imported.received == got
+        # a new process of it, without a session: its key exchange is refused, audited
+        refused = node.ask("temperature")
+        assert refused.returncode != 0 and "does it trust 'operator'" in refused.stderr, (
+            refused.stderr
+        )
+        assert _untrusted(node, "operator", ("kx",), 1)
+        # trusted again (its key back in the file), it is served after the next SIGHUP
+        pub = keys / "operator.pub"
+        again = node.station.command(
+            "keys", "trust", "--trust-file", "keys/trust.json", str(pub), timeout=30
+        )
+        assert again.returncode == 0, again.stderr
+        node.proc.send_signal(signal.SIGHUP)
+        line = await asyncio.to_thread(node.out.wait_for, "trust file reloaded", 30)
+        assert "trusted 'operator'" in line, line
+        await asyncio.to_thread(_ask_until_served, node, "temperature")
+        assert node.proc.poll() is None
+    finally:
+        out, err = await asyncio.to_thread(node.stop)
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+def _untrusted(node: Node, platform: str, stages: tuple[Any, ...], n: int) -> list[dict[str, Any]]:
+    """The node's records of what ``platform`` sent refused as untrusted at ``stages``
+    (None: an ACL envelope), once there are ``n`` (bounded)."""
+    deadline = time.monotonic() + 15.0
+    while True:
+        records = [
+            r
+            for r in node.audit()
+            if r.get("from") == platform
+            and r.get("stage") in stages
+            and str(r.get("reason")).startswith("untrusted: ")
+        ]
+        if len(records) >= n or time.monotonic() > deadline:
+            return records
+        time.sleep(0.1)  # the audit file is flushed every 0.25 s
+
+
+@pytest.mark.timeout(180)
+def test_a_broken_trust_file_on_sighup_keeps_the_node_and_the_trust_in_force(
+    tmp_path: Path,
+) -> None:
+    node = Node(tmp_path, EVERYTHING)
+    path = node.station.dir / "keys" / "trust.json"
+    good = path.read_text()
+    foreign = json.loads(good)
+    foreign["federation"] = "elsewhere"
+    broken = [
+        ('{"v": 1, "federation": ', "not JSON"),
+        (json.dumps(foreign), "'elsewhere'"),
+        (None, "no such trust file"),
+        ("fifo", "not a regular file"),
+    ]
+    try:
+        _ask_until_served(node, "temperature")
+        for content, why in broken:
+            path.unlink(missing_ok=True)
+            if content == "fifo":
+                os.mkfifo(path)  # a read of it would never end
+            elif content is not None:
+                path.write_text(content)
+            node.proc.send_signal(signal.SIGHUP)
+            line = node.err.wait_for("trust file not reloaded", 30)
+            assert "the trust in force stays" in line and why in line, line
+            assert len(line.strip().splitlines()) == 1
+            # the [sharing] reload that follows goes on as ever
+            node.out.wait_for("[sharing] reloaded", 30)
+            assert node.proc.poll() is None
+        path.unlink(missing_ok=True)
+        path.write_text(good)  # for the operator's own command: the node never re-read it
+        _ask_until_served(node, "temperature")  # the operator is trusted still
+        assert not [r for r in node.audit() if r.get("stage") == "trust"]
+    finally:
+        out, err = node.stop()
+    assert "station stopped" in out and "Traceback" not in err, err
+
+
+@pytest.mark.timeout(120)
+async def test_a_reloaded_trust_file_revokes_rekeys_and_adds_and_a_wrong_one_changes_nothing(
+    tmp_path: Path,
+) -> None:
+    from agents import KeyPair, TrustStore
+    from federation import FederationPlatform
+
+    station = Station(tmp_path)
+    s = FederationPlatform.from_file(station.dir / CONFIG)
+    async with asyncio.timeout(100), s:
+        trust = s.interface.trust
+        operator = trust.public_key("operator")
+        other, ranger = KeyPair.generate("operator"), KeyPair.generate("ranger")
+        mine = trust.public_key("station")
+        wrong = [
+            (TrustStore("elsewhere", {"station": mine}), "federation 'elsewhere'"),
+            (
+                TrustStore(trust.federation, {"station": KeyPair.generate("station").public_key}),
+                "another key for 'station'",
+            ),
+        ]
+        for store, why in wrong:
+            with pytest.raises(ValueError, match=why):
+                s.reload_trust(store, source="trust.json")
+            assert list(trust) == ["operator", "station"]
+            assert trust.public_key("operator") == operator
+        assert not [r for r in s.interface.audit.records if r.get("stage") == "trust"]
+        # the operator's key changed, the ranger added, this platform's own entry left out
+        new = TrustStore(
+            trust.federation, {"operator": other.public_key, "ranger": ranger.public_key}
+        )
+        changes = s.reload_trust(new, source="trust.json")
+        assert changes == [
+            "revoked and trusted with a new key 'operator'",
+            "trusted 'ranger'",
+            "'station' (this platform) is not in it: kept",
+        ], changes
+        assert list(trust) == ["operator", "ranger", "station"]
+        assert trust.public_key("operator") == other.public_key
+        assert trust.public_key("station") == mine
+        assert s.interface.revoked == 1  # the old key's sessions are gone with it
+        records = [r for r in s.interface.audit.records if r.get("stage") == "trust"]
+        assert [r["verdict"] for r in records] == ["reloaded", "revoked"], records
+        assert str(records[0]["reason"]).startswith("trust file reloaded from trust.json: ")
+        # the same file again: no change
+        assert s.reload_trust(new, source="trust.json") == [
+            "'station' (this platform) is not in it: kept"
+        ]
+        assert s.interface.revoked == 1
