@@ -765,15 +765,21 @@ class InterfaceAgent:
         except UnknownSession:
             if platform in self._revoked and self._unsent_revoked(platform):
                 return
-            await self.agree(platform)
             try:
-                payload = self.sessions.seal(platform, body)
-            except UnknownSession:
-                # its token's first sight came while we waited (`SessionTable.doubt`): the
-                # session may be a previous process's, so one more is agreed (at most once:
-                # a first sight is seen once until the platform leaves)
                 await self.agree(platform)
-                payload = self.sessions.seal(platform, body)
+                try:
+                    payload = self.sessions.seal(platform, body)
+                except UnknownSession:
+                    # its token's first sight came while we waited (`SessionTable.doubt`):
+                    # the session may be a previous process's, so one more is agreed (at
+                    # most once: a first sight is seen once until the platform leaves)
+                    await self.agree(platform)
+                    payload = self.sessions.seal(platform, body)
+            except SecurityError:
+                # revoked while its key exchange ran: dropped as one sent after it
+                if platform in self._revoked and self._unsent_revoked(platform):
+                    return
+                raise
         await host.transport.publish(self._acl_key(host, platform), payload)
         self._sent(platform)
 
