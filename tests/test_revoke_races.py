@@ -108,7 +108,6 @@ async def test_an_import_ended_before_the_revocation_is_not_ended_again(tmp_path
         assert o.revoked_imports == 0 and ended == [], (o.revoked_imports, ended)
 
 
-@pytest.mark.xfail(strict=True, reason="the DF keeps a revoked platform's subscriptions")
 @pytest.mark.timeout(90)
 async def test_a_revoked_platforms_directory_subscription_ends(tmp_path: Path) -> None:
     from agents._df import subscribe_services
@@ -135,6 +134,9 @@ async def test_a_revoked_platforms_directory_subscription_ends(tmp_path: Path) -
         # name next (a rekey)
         held = [k for k in df._subscriptions.subscribers if k[0].endswith("@operator")]
         assert held == [], (held, s.interface.unsent_revoked)
+        assert s.interface.unsent_revoked == 0  # no inform of the changes was even tried
+        (record,) = [r for r in s.interface.audit.records if r.get("verdict") == "revoked"]
+        assert "1 directory subscription(s) of it ended" in record["reason"]
 
 
 @pytest.mark.xfail(strict=True, reason="a revoked platform stays a member, in the directory")
