@@ -565,6 +565,15 @@ class DirectoryFacilitator(Agent):
 
     # -- ACL API ------------------------------------------------------------------------
 
+    def drop_subscriptions_of(self, platform: str) -> int:
+        """End the subscriptions agents of ``platform`` hold here, telling them nothing (it
+        was revoked: nothing is sent to it any more); how many ended."""
+        subscribers = self._subscriptions.subscribers
+        gone = [key for key in subscribers if platform_of(key[0]) == platform]
+        for key in gone:
+            del subscribers[key]
+        return len(gone)
+
     def _accept_subscriber(self, message: ACLMessage) -> tuple[ServiceQuery, str, bool]:
         try:
             content = message.content

@@ -765,15 +765,21 @@ class InterfaceAgent:
         except UnknownSession:
             if platform in self._revoked and self._unsent_revoked(platform):
                 return
-            await self.agree(platform)
             try:
-                payload = self.sessions.seal(platform, body)
-            except UnknownSession:
-                # its token's first sight came while we waited (`SessionTable.doubt`): the
-                # session may be a previous process's, so one more is agreed (at most once:
-                # a first sight is seen once until the platform leaves)
                 await self.agree(platform)
-                payload = self.sessions.seal(platform, body)
+                try:
+                    payload = self.sessions.seal(platform, body)
+                except UnknownSession:
+                    # its token's first sight came while we waited (`SessionTable.doubt`):
+                    # the session may be a previous process's, so one more is agreed (at
+                    # most once: a first sight is seen once until the platform leaves)
+                    await self.agree(platform)
+                    payload = self.sessions.seal(platform, body)
+            except SecurityError:
+                # revoked while its key exchange ran: dropped as one sent after it
+                if platform in self._revoked and self._unsent_revoked(platform):
+                    return
+                raise
         await host.transport.publish(self._acl_key(host, platform), payload)
         self._sent(platform)
 
@@ -967,6 +973,10 @@ class InterfaceAgent:
         self._outbox_bytes.pop(peer, None)
         self._bursting.discard(peer)
         self._acl_keys.pop(peer, None)
+        # its directory subscriptions end too (it is told nothing): each change would be
+        # one more message dropped for it, and one it held would count against its limit
+        df = self._host.df if self._host is not None else None
+        subscriptions = df.drop_subscriptions_of(peer) if df is not None else 0
         self.revoked += 1
         self.audit.record(
             verdict="revoked",
@@ -975,15 +985,18 @@ class InterfaceAgent:
             to=peer,
             reason=(
                 f"platform {peer!r} was removed from the trust file (revoked): "
-                f"{forgotten} session(s) with it forgotten, {waiting} message(s) for it dropped"
+                f"{forgotten} session(s) with it forgotten, {waiting} message(s) for it "
+                f"dropped, {subscriptions} directory subscription(s) of it ended"
             ),
         )
         log.warning(
-            "interface[%s]: platform %r revoked: %d session(s) forgotten, %d message(s) dropped",
+            "interface[%s]: platform %r revoked: %d session(s) forgotten, %d message(s) "
+            "dropped, %d directory subscription(s) ended",
             self._me,
             peer,
             forgotten,
             waiting,
+            subscriptions,
         )
 
     async def aclose(self) -> None:

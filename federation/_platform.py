@@ -1313,8 +1313,11 @@ class FederationPlatform:
         self._consented.pop(platform, None)
         for rec in self.importer.imports(platform):
             semantic = rec.semantic_label
+            ended_before = rec.ended  # counted and audited then: forgotten, not ended again
             self._unlease(platform, semantic)
             self.importer.forget(platform, semantic)
+            if ended_before:
+                continue
             self.revoked_imports += 1
             audit.record(
                 verdict="ended",
