@@ -25,7 +25,7 @@ from ._agent import (
     on,
     reason_of,
 )
-from ._aio import Mailbox, Pending, Ticker, event_loop_name, run
+from ._aio import Mailbox, Pending, Ticker, call_in_loop, event_loop_name, run
 from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
@@ -185,6 +185,7 @@ __all__ = [
     "UnknownSession",
     "Visibility",
     "agent_id",
+    "call_in_loop",
     "check_name",
     "contract_net",
     "deregister_service",

@@ -14,7 +14,7 @@ import math
 import os
 import threading
 from collections import deque
-from collections.abc import Coroutine, Iterable
+from collections.abc import Callable, Coroutine, Iterable
 from typing import Any, Generic, Self, TypeVar
 
 T = TypeVar("T")
@@ -48,6 +48,24 @@ def run(main: Coroutine[Any, Any, T]) -> T:
 
         return uvloop.run(main)
     return asyncio.run(main)
+
+
+def call_in_loop(
+    loop: asyncio.AbstractEventLoop | None, fn: Callable[..., object], *args: Any
+) -> None:
+    """Call ``fn(*args)`` in ``loop``: now when it runs this thread (or is None), else soon.
+
+    For callbacks any thread may make (a trust store changed from another thread) into
+    state that belongs to one event loop.
+    """
+    try:
+        here = asyncio.get_running_loop() is loop
+    except RuntimeError:  # no loop runs in this thread
+        here = False
+    if here or loop is None:
+        fn(*args)
+    else:
+        loop.call_soon_threadsafe(fn, *args)
 
 
 def _expire(waiter: asyncio.Future[Any]) -> None:

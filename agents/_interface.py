@@ -39,7 +39,7 @@ from ._acl import (
     platform_of,
 )
 from ._agent import _RUNNING, LATER, Agent, MessageTemplate, on
-from ._aio import Ticker
+from ._aio import Ticker, call_in_loop
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
     AgentError,
@@ -937,15 +937,7 @@ class InterfaceAgent:
     def _trust_removed(self, peer: str) -> None:
         """The trust store's callback: revoke ``peer`` now when called in the platform's event
         loop, else in it, soon (the sessions and batches are that loop's)."""
-        loop = self._loop
-        try:
-            here = asyncio.get_running_loop() is loop
-        except RuntimeError:
-            here = False
-        if here or loop is None:
-            self._revoke(peer)
-        else:
-            loop.call_soon_threadsafe(self._revoke, peer)
+        call_in_loop(self._loop, self._revoke, peer)
 
     def _unsent_revoked(self, peer: str) -> bool:
         """Whether a message for ``peer``, revoked here, is dropped (counted in

@@ -31,7 +31,6 @@ the same way, and what it asked that still waits in the mailbox is refused so to
 
 from __future__ import annotations
 
-import asyncio
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -54,6 +53,7 @@ from agents import (
     ServiceDescription,
     TrustStore,
     Visibility,
+    call_in_loop,
     on,
     on_query,
     on_request,
@@ -314,15 +314,7 @@ class GatewayAgent(Agent):
     def _trust_removed(self, revoked: str) -> None:
         """The trust store's callback: revoke now when called in this agent's event loop,
         else in it, soon (the instance is that loop's)."""
-        loop = self._loop
-        try:
-            here = asyncio.get_running_loop() is loop
-        except RuntimeError:
-            here = False
-        if here or loop is None:
-            self._revoke(revoked)
-        else:
-            loop.call_soon_threadsafe(self._revoke, revoked)
+        call_in_loop(self._loop, self._revoke, revoked)
 
     def _revoke(self, revoked: str) -> GatewayEnded:
         """``revoked`` is no member any more (removed from the trust file): its

@@ -115,6 +115,7 @@ from agents import (
     SecurityPolicy,
     TrustStore,
     Visibility,
+    call_in_loop,
     platform_of,
 )
 from agents.transports import (
@@ -1274,19 +1275,12 @@ class FederationPlatform:
         loop = agent._loop
         if loop is None or platform == self.name:
             return  # stopped meanwhile; or this platform's own name
-        try:
-            here = asyncio.get_running_loop() is loop
-        except RuntimeError:
-            here = False
 
         def start() -> None:
             with contextlib.suppress(AgentError):  # stopping: its teardown ends them all
                 agent.spawn(self._revoked(platform), f"revoked[{platform}]")
 
-        if here:
-            start()
-        else:
-            loop.call_soon_threadsafe(start)
+        call_in_loop(loop, start)
 
     async def _revoked(self, platform: str) -> None:
         """``platform`` was removed from the trust file: its exports and imports here end.

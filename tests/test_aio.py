@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from agents import Mailbox, Pending, Ticker, TransportClosed
+from agents import Mailbox, Pending, Ticker, TransportClosed, call_in_loop
 from agents.transports import Inbox, Subscription
 from dyknow_core import Clock, ManualClock, RealClock
 from dyknow_core._aio import Ticker as CoreTicker
@@ -401,3 +401,26 @@ async def test_an_inbox_wait_cancelled_or_woken_leaves_the_next_one_wakeable() -
 
 async def _drained(sub: Subscription[int]) -> list[int]:
     return [item async for item in sub]
+
+
+async def test_call_in_loop_calls_at_once_in_its_loop_and_later_from_another_thread() -> None:
+    """In the loop's own thread the call is made before `call_in_loop` returns; from another
+    thread it is made in the loop's thread, not the caller's."""
+    loop = asyncio.get_running_loop()
+    calls: list[tuple[str, int]] = []
+    call_in_loop(loop, lambda what: calls.append((what, threading.get_ident())), "here")
+    assert calls == [("here", threading.get_ident())]
+    done = asyncio.Event()
+
+    def there(what: str) -> None:
+        calls.append((what, threading.get_ident()))
+        done.set()
+
+    worker = threading.Thread(target=call_in_loop, args=(loop, there, "from a thread"))
+    worker.start()
+    worker.join(timeout=5)
+    async with asyncio.timeout(5):
+        await done.wait()
+    assert calls[1] == ("from a thread", threading.get_ident())  # the loop's thread
+    call_in_loop(None, calls.append, ("no loop", 0))
+    assert calls[2] == ("no loop", 0)
