@@ -962,6 +962,7 @@ class InterfaceAgent:
         forgotten = self.sessions.forget(peer)
         self._revoked.add(peer)  # bounded by the trust file's platforms
         waiting = len(self._outbox.pop(peer, ()))
+        self.unsent_revoked += waiting  # as those its agents send it from now on
         self._outbox_bytes.pop(peer, None)
         self._bursting.discard(peer)
         self._acl_keys.pop(peer, None)

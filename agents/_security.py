@@ -297,13 +297,28 @@ def _untrusted(platform: str) -> UnknownPlatform:
     return UnknownPlatform(f"platform {platform!r} is not in the trust file", platform)
 
 
+MAX_KEY_FILE_BYTES = 4 << 20
+"""The largest key or trust file read (a trust file of ten thousand platforms is ~1 MB)."""
+
+
 def _read_json(path: Path, what: str) -> dict[str, Any]:
     try:
-        raw = path.read_bytes()
+        # non-blocking, and the type checked on the file opened (not on its name, which
+        # may be swapped in between): a FIFO put there would block the read for good
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
     except FileNotFoundError:
         raise KeyFileError(path, f"no such {what}") from None
     except OSError as exc:
         raise KeyFileError(path, f"cannot read the {what}: {exc.strerror or exc}") from None
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise KeyFileError(path, f"the {what} is not a regular file")
+        try:
+            raw = f.read(MAX_KEY_FILE_BYTES + 1)
+        except OSError as exc:
+            raise KeyFileError(path, f"cannot read the {what}: {exc.strerror or exc}") from None
+    if len(raw) > MAX_KEY_FILE_BYTES:
+        raise KeyFileError(path, f"the {what} is larger than {MAX_KEY_FILE_BYTES} bytes")
     try:
         obj = _loads(raw)
     except _JSONDecodeError as exc:

@@ -7,10 +7,8 @@ import contextlib
 import difflib
 import json
 import logging
-import os
 import re
 import signal
-import stat
 import sys
 import time
 import uuid
@@ -350,16 +348,21 @@ async def _reload_trust(
     path = None
     try:
         path = p.config.trust
-        # a FIFO put there would block the read for good: a regular file only, read in
-        # a thread; applied before the [sharing] reload, which warns of patterns no
+        # read in a thread (a regular file only: `TrustStore.load` checks the file it
+        # opened); applied before the [sharing] reload, which warns of patterns no
         # trusted platform matches
-        with contextlib.suppress(FileNotFoundError):  # said by the load, as at start
-            if not stat.S_ISREG(os.stat(path).st_mode):
-                raise ValueError(f"{path}: not a regular file")
         store = await asyncio.to_thread(TrustStore.load, path)
         changes = p.reload_trust(store, source=str(path))
     except (SecurityError, ValueError, OSError) as exc:
         warn(f"{me} trust file not reloaded, the trust in force stays: {exc}")
+        # audited: a trust file of another federation, or with another key for this
+        # platform, is what someone who can write it but not read our key would put there
+        p.interface.audit.record(
+            verdict="refused",
+            stage="trust",
+            code="trust-file",
+            reason=f"trust file not reloaded, the trust in force stays: {exc}",
+        )
         return
     except Exception as exc:  # a reload must never take the node down
         log.exception("reloading the trust file %s", path)

@@ -33,6 +33,7 @@ from agents._exceptions import (
     UnknownSession,
 )
 from agents._security import (
+    MAX_KEY_FILE_BYTES,
     SEALED_OVERHEAD,
     Handshake,
     KeyPair,
@@ -318,6 +319,32 @@ def test_removing_a_platform_tells_each_callback_once(
     b.trust.add("uav-c", KeyPair.generate("uav-c").public_key)
     assert b.trust.remove("uav-c")
     assert told == ["uav-c"]
+
+
+def test_a_trust_or_key_file_that_is_no_regular_file_or_too_large_is_refused_at_once(
+    tmp_path: Path,
+) -> None:
+    """A FIFO in the file's place is refused without blocking the read (the file opened is
+    checked, not its name), and so is a file larger than any trust file could be."""
+    trust = TrustStore("demo", {"uav-a": KeyPair.generate("uav-a").public_key})
+    path = tmp_path / "trust.json"
+    os.mkfifo(path, 0o600)  # a read of it would wait for a writer for ever
+    started = time.monotonic()
+    with pytest.raises(KeyFileError, match="the trust file is not a regular file"):
+        TrustStore.load(path)
+    assert time.monotonic() - started < 5
+    path.unlink()
+    data = trust.to_json()
+    path.write_bytes(data[:-1] + b" " * (MAX_KEY_FILE_BYTES + 1) + data[-1:])
+    path.chmod(0o600)
+    with pytest.raises(KeyFileError, match=f"larger than {MAX_KEY_FILE_BYTES} bytes"):
+        TrustStore.load(path)
+    path.write_bytes(data)  # the same content, no larger: read
+    assert set(TrustStore.load(path)) == {"uav-a"}
+    key = tmp_path / "uav-a.pub.json"
+    os.mkfifo(key, 0o600)
+    with pytest.raises(KeyFileError, match="the public key file is not a regular file"):
+        read_public_key(key)
 
 
 @pytest.mark.parametrize(

@@ -430,10 +430,12 @@ async def test_a_reload_whose_output_fails_goes_on_reloading(tmp_path: Path) -> 
     def say(text: str) -> None:
         raise BrokenPipeError(32, "Broken pipe")  # stdout's reader went away
 
+    audited: list[dict[str, object]] = []
     p = SimpleNamespace(
         name="x",
         config=SimpleNamespace(federation="f", trust=tmp_path / "t.json"),  # none: said
         federation_agent=SimpleNamespace(sharing=SimpleNamespace(settings=SharingSettings())),
+        interface=SimpleNamespace(audit=SimpleNamespace(record=lambda **r: audited.append(r))),
     )
     p.reload_sharing = reload_sharing
     hup = asyncio.Event()
@@ -446,6 +448,9 @@ async def test_a_reload_whose_output_fails_goes_on_reloading(tmp_path: Path) -> 
                     await asyncio.sleep(0.01)
         await asyncio.sleep(0.05)
         assert not task.done()  # still reloading: what it could not say is logged
+        # the trust file it could not read, audited each time though nobody read the line
+        assert [(r["verdict"], r["code"]) for r in audited] == [("refused", "trust-file")] * 2
+        assert all("no such trust file" in str(r["reason"]) for r in audited)
     finally:
         task.cancel()
         with contextlib.suppress(asyncio.CancelledError):
@@ -1108,7 +1113,13 @@ def test_a_broken_trust_file_on_sighup_keeps_the_node_and_the_trust_in_force(
         path.unlink(missing_ok=True)
         path.write_text(good)  # for the operator's own command: the node never re-read it
         _ask_until_served(node, "temperature")  # the operator is trusted still
-        assert not [r for r in node.audit() if r.get("stage") == "trust"]
+        # each refusal audited (a file another federation's may be someone's attempt),
+        # nothing reloaded, nobody revoked
+        trust = [r for r in node.audit() if r.get("stage") == "trust"]
+        assert [(r["verdict"], r["code"]) for r in trust] == [("refused", "trust-file")] * 4
+        for record, (_, why) in zip(trust, broken, strict=True):
+            assert record["reason"].startswith("trust file not reloaded, the trust in force")
+            assert why in record["reason"], record
     finally:
         out, err = node.stop()
     assert "station stopped" in out and "Traceback" not in err, err
