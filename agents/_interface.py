@@ -788,7 +788,7 @@ class InterfaceAgent:
 
         For an answer made as its question came (`Agent.answer_at_once`): no coroutine,
         and a message that cannot go at once (no session yet, a transport that waits, a
-        session that must be renewed first) is left to `send`.
+        session past its lifetime, whose seal fails) is left to `send`.
         """
         if self._outbox and self.join_batch(platform, message):
             return True
