@@ -1359,6 +1359,12 @@ class GlobalDirectory:
         self.version += 1
         return had
 
+    def revoked(self, platform: str) -> None:
+        """``platform`` was removed from the trust store: out of this view now, as when its
+        presence went (its entries dropped, watchers told ``platform-gone``); its token,
+        snapshots and events are refused from then on (its key is not trusted)."""
+        self._gone(platform)
+
     def _gone(self, platform: str) -> None:
         self._went_at[platform] = time.monotonic()
         told = bool(self._unconfirmed.pop(platform, None))

@@ -1283,7 +1283,8 @@ class FederationPlatform:
         call_in_loop(loop, start)
 
     async def _revoked(self, platform: str) -> None:
-        """``platform`` was removed from the trust file: its exports and imports here end.
+        """``platform`` was removed from the trust file: its exports and imports here end,
+        then it leaves the global directory and the members.
 
         The exports to it (or that it asked for) stop, it told nothing; the streams agreed
         from it end here (as withdrawn: their later batches would be refused anyway).
@@ -1324,6 +1325,10 @@ class FederationPlatform:
             log.warning(
                 "platform %s: import of %r from %s ended: %s", self.name, semantic, platform, why
             )
+        # last, once what it held here ended as revoked: no member any more, out of the
+        # global directory (its watchers, the members here among them, told it is gone)
+        if platform not in self.interface.trust and self.agents.global_df is not None:
+            self.agents.global_df.revoked(platform)
 
     # -- membership -----------------------------------------------------------------------
 
