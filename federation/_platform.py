@@ -1191,14 +1191,17 @@ class FederationPlatform:
             )
         return changes, ended
 
-    def _withdraw_unaccepted(self) -> list[tuple[str, str, str, str]]:
+    def _withdraw_unaccepted(
+        self, refusal: Callable[[str], str | None] | None = None
+    ) -> list[tuple[str, str, str, str]]:
         """Withdraw the streams agreed by consent (flowing or leased) whose requester
-        ``sharing.accept_for`` refuses now: (sender, label, requester, refusal) of each."""
-        accepts_for = self.federation_agent.sharing.accepts_for
+        ``refusal`` (by default ``sharing.accept_for``) refuses now: (sender, label,
+        requester, refusal) of each."""
+        refuse = refusal or self.federation_agent.sharing.accepts_for
         gone = []
         for sender, held in list(self._consented.items()):
             for semantic, requester in list(held.items()):
-                reason = accepts_for(requester)
+                reason = refuse(requester)
                 if reason is None:
                     continue
                 del held[semantic]
@@ -1324,6 +1327,20 @@ class FederationPlatform:
             )
             log.warning(
                 "platform %s: import of %r from %s ended: %s", self.name, semantic, platform, why
+            )
+        # what it directed here from other platforms (agreed by consent) goes too
+        for sender, semantic, requester, _ in self._withdraw_unaccepted(
+            lambda requester: why if requester == platform else None
+        ):
+            self.revoked_imports += 1
+            audit.record(
+                verdict="ended",
+                stage="trust",
+                code="untrusted",
+                stream=semantic,
+                requester=requester,
+                **{"from": sender},
+                reason=f"{semantic!r} from {sender}, asked for by {requester}, withdrawn: {why}",
             )
         # last, once what it held here ended as revoked: no member any more, out of the
         # global directory (its watchers, the members here among them, told it is gone)

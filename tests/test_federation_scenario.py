@@ -926,6 +926,44 @@ async def test_a_narrowed_accept_for_withdraws_the_streams_agreed_for_those_it_r
         assert all(r["from"] == "uav-a" and r["stage"] == "policy" for r in ended)
 
 
+async def test_the_streams_a_revoked_platform_directed_here_are_withdrawn(
+    demo_keys: Path,
+) -> None:
+    # the operator directed two of uav-a's streams to uav-b (by uav-b's consent), then uav-b
+    # revokes the operator: both are withdrawn, audited
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+        car5 = a.instance.add_source("cars/car5/state")
+        await op.federation_agent.create_stream(
+            "uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT
+        )
+        car5.push(car_state(0, 1, "uav-a"))
+        await b.imported("uav-a", "car5-state", timeout=WAIT)  # flowing
+        a.instance.add_source("cars/car7/state")  # nothing pushed: no batch
+        await op.federation_agent.create_stream(
+            "uav-a", ["car7-state"], to_units=["uav-b"], timeout=WAIT
+        )
+        assert b.agreed("uav-a", "car7-state")  # leased: no batch yet
+        assert b.interface.trust.remove("operator")
+        async with asyncio.timeout(WAIT):
+            while b.agreed("uav-a", "car5-state") or b.agreed("uav-a", "car7-state"):  # noqa: ASYNC110
+                await asyncio.sleep(0.01)  # the revocation's task: no event to await
+        assert b._consented == {}
+        ended = [
+            r
+            for r in b.interface.audit.records
+            if r.get("code") == "untrusted" and r.get("requester") == "operator"
+        ]
+        assert sorted(r["stream"] for r in ended) == ["car5-state", "car7-state"], ended
+        assert all(r["verdict"] == "ended" and r["stage"] == "trust" for r in ended)
+        assert all(r["from"] == "uav-a" for r in ended)
+        assert b.revoked_imports == 2
+        # as a narrowed accept_for withdraws: what uav-a sends of them now is dropped here
+        before = b.importer.get("uav-a", "car5-state")
+        assert before is None or before.ended
+
+
 async def test_a_global_create_stream_is_received_from_every_provider_that_agreed(
     demo_keys: Path,
 ) -> None:
