@@ -898,25 +898,34 @@ async def test_a_durable_stream_for_a_consenting_third_platform_is_asked_again(
         assert b.federation_agent.refusals == {} and a.federation_agent.refusals == {}
 
 
+_CONSENT = {"sharing": {"accept_for": ["operator"]}}
+
+
+async def _directed_to_uav_b(ps: dict[str, FederationPlatform]) -> None:
+    """The operator directs two of uav-a's streams to uav-b (by uav-b's consent): car5's
+    flowing, car7's agreed and leased (nothing pushed yet)."""
+    a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
+    car5 = a.instance.add_source("cars/car5/state")
+    await op.federation_agent.create_stream(
+        "uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT
+    )
+    car5.push(car_state(0, 1, "uav-a"))
+    await b.imported("uav-a", "car5-state", timeout=WAIT)  # flowing
+    a.instance.add_source("cars/car7/state")  # nothing pushed: no batch
+    await op.federation_agent.create_stream(
+        "uav-a", ["car7-state"], to_units=["uav-b"], timeout=WAIT
+    )
+    assert b.agreed("uav-a", "car7-state")  # leased: no batch yet
+
+
 async def test_a_narrowed_accept_for_withdraws_the_streams_agreed_for_those_it_refuses(
     demo_keys: Path,
 ) -> None:
     # uav-b let the operator direct streams to it, then reloads a [sharing] that lets no one:
     # what the operator directed there, flowing or waiting, is withdrawn, audited
-    consent = {"sharing": {"accept_for": ["operator"]}}
-    async with memory_federation(demo_keys, **consent) as (ps, _):
-        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
-        car5 = a.instance.add_source("cars/car5/state")
-        await op.federation_agent.create_stream(
-            "uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT
-        )
-        car5.push(car_state(0, 1, "uav-a"))
-        await b.imported("uav-a", "car5-state", timeout=WAIT)  # flowing
-        a.instance.add_source("cars/car7/state")  # nothing pushed: no batch
-        await op.federation_agent.create_stream(
-            "uav-a", ["car7-state"], to_units=["uav-b"], timeout=WAIT
-        )
-        assert b.agreed("uav-a", "car7-state")  # leased: no batch yet
+    async with memory_federation(demo_keys, **_CONSENT) as (ps, _):
+        b = ps["uav-b"]
+        await _directed_to_uav_b(ps)
         await b.reload_sharing(SharingSettings())  # accept_for: nobody
         assert not b.agreed("uav-a", "car5-state") and not b.agreed("uav-a", "car7-state")
         assert b._leased == {} and b._consented == {}
@@ -931,20 +940,9 @@ async def test_the_streams_a_revoked_platform_directed_here_are_withdrawn(
 ) -> None:
     # the operator directed two of uav-a's streams to uav-b (by uav-b's consent), then uav-b
     # revokes the operator: both are withdrawn, audited
-    consent = {"sharing": {"accept_for": ["operator"]}}
-    async with memory_federation(demo_keys, **consent) as (ps, _):
-        a, b, op = ps["uav-a"], ps["uav-b"], ps["operator"]
-        car5 = a.instance.add_source("cars/car5/state")
-        await op.federation_agent.create_stream(
-            "uav-a", ["car5-state"], to_units=["uav-b"], timeout=WAIT
-        )
-        car5.push(car_state(0, 1, "uav-a"))
-        await b.imported("uav-a", "car5-state", timeout=WAIT)  # flowing
-        a.instance.add_source("cars/car7/state")  # nothing pushed: no batch
-        await op.federation_agent.create_stream(
-            "uav-a", ["car7-state"], to_units=["uav-b"], timeout=WAIT
-        )
-        assert b.agreed("uav-a", "car7-state")  # leased: no batch yet
+    async with memory_federation(demo_keys, **_CONSENT) as (ps, _):
+        b = ps["uav-b"]
+        await _directed_to_uav_b(ps)
         assert b.interface.trust.remove("operator")
         async with asyncio.timeout(WAIT):
             while b.agreed("uav-a", "car5-state") or b.agreed("uav-a", "car7-state"):  # noqa: ASYNC110

@@ -4,7 +4,6 @@ count twice (the example station's platforms, in process)."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -12,6 +11,7 @@ import pytest
 from _node_example import Station
 
 from agents import ACLMessage, Agent, Performative, ServiceDescription, Visibility
+from tests.test_sharing_reload import _until
 
 if TYPE_CHECKING:
     from federation import FederationPlatform
@@ -36,16 +36,6 @@ def _hello(p: FederationPlatform, to: str) -> ACLMessage:
     return agent.message(
         Performative.INFORM, f"interface@{to}", {"session": "new"}, ontology="interface"
     )
-
-
-async def _until(what: str, check: Callable[[], bool], timeout: float = 10.0) -> None:
-    """Poll ``check`` (counters have no event to await) within ``timeout`` s."""
-    try:
-        async with asyncio.timeout(timeout):
-            while not check():  # noqa: ASYNC110
-                await asyncio.sleep(0.02)
-    except TimeoutError:
-        raise AssertionError(f"not within {timeout} s: {what}") from None
 
 
 @pytest.mark.timeout(90)
