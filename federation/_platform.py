@@ -1166,16 +1166,7 @@ class FederationPlatform:
                 reason=f"{what}{more}: {why}: sharing.gateway is {settings.gateway!r}",
             )
         ended = await self.federation_agent.end_unshared(why)
-        for export_id, semantic, receiver, reason in ended:
-            audit.record(
-                verdict="ended",
-                stage="policy",
-                code="sharing-rule",
-                stream=semantic,
-                to=receiver,
-                export=export_id,
-                reason=f"export {export_id} of {semantic!r} to {receiver} ended: {why}: {reason}",
-            )
+        self._audit_exports_ended(ended, stage="policy", code="sharing-rule", why=why)
         for sender, semantic, requester, reason in self._withdraw_unaccepted():
             audit.record(
                 verdict="ended",
@@ -1190,6 +1181,28 @@ class FederationPlatform:
                 ),
             )
         return changes, ended
+
+    def _audit_exports_ended(
+        self,
+        ended: list[tuple[str, str, str, str]],
+        *,
+        stage: str,
+        code: str,
+        why: str | None = None,
+    ) -> None:
+        """Audit each export ``ended`` (id, label, receiver, reason) by a reload or a
+        revocation: ``verdict: ended``, the reason after ``why`` when given."""
+        for export_id, semantic, receiver, reason in ended:
+            self.interface.audit.record(
+                verdict="ended",
+                stage=stage,
+                code=code,
+                stream=semantic,
+                to=receiver,
+                export=export_id,
+                reason=f"export {export_id} of {semantic!r} to {receiver} ended: "
+                + (reason if why is None else f"{why}: {reason}"),
+            )
 
     def _withdraw_unaccepted(
         self, refusal: Callable[[str], str | None] | None = None
@@ -1297,17 +1310,8 @@ class FederationPlatform:
         why = f"platform {platform!r} was removed from the trust file (revoked)"
         audit = self.interface.audit
         ended = await self.federation_agent.end_revoked(platform)
-        for export_id, semantic, receiver, _ in ended:
-            self.revoked_exports += 1
-            audit.record(
-                verdict="ended",
-                stage="trust",
-                code="untrusted",
-                stream=semantic,
-                to=receiver,
-                export=export_id,
-                reason=f"export {export_id} of {semantic!r} to {receiver} ended: {why}",
-            )
+        self.revoked_exports += len(ended)
+        self._audit_exports_ended(ended, stage="trust", code="untrusted")  # each ended by `why`
         self._consented.pop(platform, None)
         for rec in self.importer.imports(platform):
             semantic = rec.semantic_label
