@@ -18,7 +18,6 @@ import contextlib
 import errno
 import json
 import os
-import sys
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -29,7 +28,7 @@ import typer
 from agents import TransportError
 from agents import run as run_loop
 
-from ._cli_common import error_text
+from ._cli_common import complain, error_text
 from ._cli_node import CONFIG_FLAGS, CONFIG_HELP, run_node
 from ._cli_node import say as _say
 from ._cli_reasoning import kpl_app, monitor
@@ -106,7 +105,7 @@ FederationOpt = Annotated[
 
 def _fail(message: str, code: int = 2) -> typer.Exit:
     """Print ``message`` on stderr; the Exit to raise."""
-    print(message, file=sys.stderr, flush=True)
+    complain(message)
     return typer.Exit(code)
 
 
@@ -730,7 +729,7 @@ def record(
             sample_period=sample_period,
             wait=wait,
             timeout=timeout,
-            progress=lambda line: print(line, file=sys.stderr, flush=True),
+            progress=complain,
         )
     )
     counts = ", ".join(f"{k}={n}" for k, n in sorted(rec.counts.items()))
@@ -824,7 +823,7 @@ def replay_recording(
                 speed=check_speed(speed),
                 tail=tail,
                 emit=print_sample(as_json, _say),
-                warn=lambda line: print(line, file=sys.stderr, flush=True),
+                warn=complain,
             )
         )
     except (ReplayUsageError, RecordError) as exc:
