@@ -291,6 +291,13 @@ class ConsoleRoles(BaseModel):
         return self.model_copy(update=update)
 
 
+def _each_once(labels: tuple[str, ...]) -> None:
+    """ValueError naming a label a settings list (``streams``) holds twice (the first sorted)."""
+    twice = sorted({label for label in labels if labels.count(label) > 1})
+    if twice:
+        raise ValueError(f"{twice[0]!r} is listed twice")
+
+
 class ConsoleSettings(BaseModel):
     """``[console]``: what the operator console streams and who may use it (docs/console.md).
 
@@ -316,9 +323,7 @@ class ConsoleSettings(BaseModel):
     @field_validator("streams")
     @classmethod
     def _distinct(cls, value: tuple[str, ...]) -> tuple[str, ...]:
-        twice = sorted({label for label in value if value.count(label) > 1})
-        if twice:
-            raise ValueError(f"{twice[0]!r} is listed twice")
+        _each_once(value)
         return value
 
     @field_validator("roles")
@@ -381,9 +386,7 @@ class FoxgloveSettings(BaseModel):
     @field_validator("streams", "local")
     @classmethod
     def _distinct(cls, value: tuple[str, ...] | None) -> tuple[str, ...] | None:
-        twice = sorted({label for label in value or () if value and value.count(label) > 1})
-        if twice:
-            raise ValueError(f"{twice[0]!r} is listed twice")
+        _each_once(value or ())
         return value
 
     @field_validator("origin")
