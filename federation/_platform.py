@@ -1484,12 +1484,10 @@ class FederationPlatform:
 
     def _agree(self, sender: str, semantic: str) -> str:
         """Record in the import proxy that ``sender``'s ``semantic`` lands here."""
-        self.vocabulary.entry(semantic)
+        label = self.import_label(sender, semantic)
         rec = self.importer.get(sender, semantic)
-        if rec is not None and rec.local_label is not None:
-            return rec.local_label
-        label = self.config.import_label_of(sender, semantic)
-        self.importer.expect(sender, semantic, label)
+        if rec is None or rec.local_label is None:
+            self.importer.expect(sender, semantic, label)
         return label
 
     def _unlease(self, sender: str, semantic: str) -> None:
