@@ -14,12 +14,12 @@ seconds, and a time given to a command may be written the same way (``_cli_time`
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import errno
 import json
 import os
-import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -28,7 +28,7 @@ import typer
 from agents import TransportError
 from agents import run as run_loop
 
-from ._cli_common import error_text
+from ._cli_common import complain, error_text
 from ._cli_node import CONFIG_FLAGS, CONFIG_HELP, run_node
 from ._cli_node import say as _say
 from ._cli_reasoning import kpl_app, monitor
@@ -105,7 +105,7 @@ FederationOpt = Annotated[
 
 def _fail(message: str, code: int = 2) -> typer.Exit:
     """Print ``message`` on stderr; the Exit to raise."""
-    print(message, file=sys.stderr, flush=True)
+    complain(message)
     return typer.Exit(code)
 
 
@@ -168,6 +168,17 @@ def _formula_checked(cfg: PlatformConfig, formula: str) -> None:
 # -- keys ---------------------------------------------------------------------------------------
 
 
+@contextlib.contextmanager
+def _keys_failure(command: str) -> Iterator[None]:
+    """A `KeysError` in the block: said as ``dyknow keys COMMAND`` failing, exit 1."""
+    from agents.keys import KeysError
+
+    try:
+        yield
+    except KeysError as exc:
+        raise _fail(f"dyknow keys {command}: {exc}", 1) from None
+
+
 @keys_app.command("gen")
 def keys_gen(
     platform: Annotated[str, typer.Option("--platform", "-p", help="the platform's name")],
@@ -181,9 +192,9 @@ def keys_gen(
     ] = False,
 ) -> None:
     """Generate a platform's key pair (private key 0600), optionally trusting it."""
-    from agents.keys import KeysError, check_trust_file, gen_keys, trust_keys
+    from agents.keys import check_trust_file, gen_keys, trust_keys
 
-    try:
+    with _keys_failure("gen"):
         if trust_file is not None:  # a trust file it cannot use: refused before any key is made
             check_trust_file(trust_file, federation)
         pair, key_path, pub_path = gen_keys(platform, directory, force=force)
@@ -193,8 +204,6 @@ def keys_gen(
         if trust_file is not None:
             for line in trust_keys(trust_file, [pub_path], federation=federation):
                 _say(line)
-    except KeysError as exc:
-        raise _fail(f"dyknow keys gen: {exc}", 1) from None
 
 
 @keys_app.command("trust")
@@ -207,13 +216,11 @@ def keys_trust(
     ] = False,
 ) -> None:
     """Add public key files (.pub) to the federation's trust file."""
-    from agents.keys import KeysError, trust_keys
+    from agents.keys import trust_keys
 
-    try:
+    with _keys_failure("trust"):
         for line in trust_keys(trust_file, pubs, federation=federation, replace=replace):
             _say(line)
-    except KeysError as exc:
-        raise _fail(f"dyknow keys trust: {exc}", 1) from None
 
 
 @keys_app.command("untrust")
@@ -224,25 +231,21 @@ def keys_untrust(
     ],
 ) -> None:
     """Remove platforms from the trust file (revoke them; a running node: send it SIGHUP)."""
-    from agents.keys import KeysError, untrust
+    from agents.keys import untrust
 
-    try:
+    with _keys_failure("untrust"):
         for line in untrust(trust_file, platforms):
             _say(line)
-    except KeysError as exc:
-        raise _fail(f"dyknow keys untrust: {exc}", 1) from None
 
 
 @keys_app.command("show")
 def keys_show(trust_file: TrustFileOpt) -> None:
     """List the platforms a trust file accepts, with their key fingerprints."""
-    from agents.keys import KeysError, show
+    from agents.keys import show
 
-    try:
+    with _keys_failure("show"):
         for line in show(trust_file):
             _say(line)
-    except KeysError as exc:
-        raise _fail(f"dyknow keys show: {exc}", 1) from None
 
 
 # -- node, router -------------------------------------------------------------------------------
@@ -726,7 +729,7 @@ def record(
             sample_period=sample_period,
             wait=wait,
             timeout=timeout,
-            progress=lambda line: print(line, file=sys.stderr, flush=True),
+            progress=complain,
         )
     )
     counts = ", ".join(f"{k}={n}" for k, n in sorted(rec.counts.items()))
@@ -820,7 +823,7 @@ def replay_recording(
                 speed=check_speed(speed),
                 tail=tail,
                 emit=print_sample(as_json, _say),
-                warn=lambda line: print(line, file=sys.stderr, flush=True),
+                warn=complain,
             )
         )
     except (ReplayUsageError, RecordError) as exc:

@@ -9,6 +9,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import gc
+import sys
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from typing import TYPE_CHECKING, Any
@@ -23,6 +24,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "NotAnsweredError",
+    "complain",
     "error_text",
     "failure_of",
     "platforms_of",
@@ -30,6 +32,11 @@ __all__ = [
     "settle_gc",
     "wait_for_members",
 ]
+
+
+def complain(line: str) -> None:
+    """Print one line on stderr, flushed (a supervisor may be reading)."""
+    print(line, file=sys.stderr, flush=True)
 
 
 def settle_gc() -> None:

@@ -9,7 +9,6 @@ import json
 import logging
 import re
 import signal
-import sys
 import time
 import uuid
 from collections.abc import AsyncIterator, Callable, Sequence
@@ -35,6 +34,7 @@ from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig,
 
 from ._cli_common import (
     NotAnsweredError,
+    complain,
     failure_of,
     platforms_of,
     reaching,
@@ -306,7 +306,7 @@ async def _reload_on_hup(
             log.warning("%s (not said: %s)", line, exc)
 
     def warn(line: str) -> None:
-        tell(line, lambda text: _warn([text]))
+        tell(line, complain)
 
     me = f"dyknow {command}:"
     while True:
@@ -380,7 +380,7 @@ def _say_stats(command: str, application: NodeApplication, say: Callable[[str], 
 def _warn(warnings: list[str]) -> None:
     """Print each warning on stderr, flushed (a supervisor may be reading)."""
     for line in warnings:
-        print(line, file=sys.stderr, flush=True)
+        complain(line)
 
 
 @contextlib.asynccontextmanager

@@ -27,12 +27,14 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, TextIO
 
 import typer
+
+from ._cli_common import complain as _complain
+from ._cli_node import say as _say
 
 # the reasoning layer loads on first use (``dyknow_core``'s lazy names): each command
 # imports what it runs, so the other commands do not pay for the MTL and KPL modules
@@ -50,14 +52,6 @@ class _BadInput(Exception):
 
 def _json_num(x: float) -> float | int:
     return int(x) if x == int(x) and abs(x) < 2**53 else x
-
-
-def _say(text: str) -> None:
-    print(text, flush=True)
-
-
-def _complain(text: str) -> None:
-    print(text, file=sys.stderr, flush=True)
 
 
 # the kinds of JSON value an atom can read (JSON null is always allowed: no value)

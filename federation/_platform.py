@@ -291,6 +291,13 @@ class ConsoleRoles(BaseModel):
         return self.model_copy(update=update)
 
 
+def _each_once(labels: tuple[str, ...]) -> None:
+    """ValueError naming a label a settings list (``streams``) holds twice (the first sorted)."""
+    twice = sorted({label for label in labels if labels.count(label) > 1})
+    if twice:
+        raise ValueError(f"{twice[0]!r} is listed twice")
+
+
 class ConsoleSettings(BaseModel):
     """``[console]``: what the operator console streams and who may use it (docs/console.md).
 
@@ -316,9 +323,7 @@ class ConsoleSettings(BaseModel):
     @field_validator("streams")
     @classmethod
     def _distinct(cls, value: tuple[str, ...]) -> tuple[str, ...]:
-        twice = sorted({label for label in value if value.count(label) > 1})
-        if twice:
-            raise ValueError(f"{twice[0]!r} is listed twice")
+        _each_once(value)
         return value
 
     @field_validator("roles")
@@ -381,9 +386,7 @@ class FoxgloveSettings(BaseModel):
     @field_validator("streams", "local")
     @classmethod
     def _distinct(cls, value: tuple[str, ...] | None) -> tuple[str, ...] | None:
-        twice = sorted({label for label in value or () if value and value.count(label) > 1})
-        if twice:
-            raise ValueError(f"{twice[0]!r} is listed twice")
+        _each_once(value or ())
         return value
 
     @field_validator("origin")
@@ -1166,16 +1169,7 @@ class FederationPlatform:
                 reason=f"{what}{more}: {why}: sharing.gateway is {settings.gateway!r}",
             )
         ended = await self.federation_agent.end_unshared(why)
-        for export_id, semantic, receiver, reason in ended:
-            audit.record(
-                verdict="ended",
-                stage="policy",
-                code="sharing-rule",
-                stream=semantic,
-                to=receiver,
-                export=export_id,
-                reason=f"export {export_id} of {semantic!r} to {receiver} ended: {why}: {reason}",
-            )
+        self._audit_exports_ended(ended, stage="policy", code="sharing-rule", why=why)
         for sender, semantic, requester, reason in self._withdraw_unaccepted():
             audit.record(
                 verdict="ended",
@@ -1190,6 +1184,28 @@ class FederationPlatform:
                 ),
             )
         return changes, ended
+
+    def _audit_exports_ended(
+        self,
+        ended: list[tuple[str, str, str, str]],
+        *,
+        stage: str,
+        code: str,
+        why: str | None = None,
+    ) -> None:
+        """Audit each export ``ended`` (id, label, receiver, reason) by a reload or a
+        revocation: ``verdict: ended``, the reason after ``why`` when given."""
+        for export_id, semantic, receiver, reason in ended:
+            self.interface.audit.record(
+                verdict="ended",
+                stage=stage,
+                code=code,
+                stream=semantic,
+                to=receiver,
+                export=export_id,
+                reason=f"export {export_id} of {semantic!r} to {receiver} ended: "
+                + (reason if why is None else f"{why}: {reason}"),
+            )
 
     def _withdraw_unaccepted(
         self, refusal: Callable[[str], str | None] | None = None
@@ -1297,17 +1313,8 @@ class FederationPlatform:
         why = f"platform {platform!r} was removed from the trust file (revoked)"
         audit = self.interface.audit
         ended = await self.federation_agent.end_revoked(platform)
-        for export_id, semantic, receiver, _ in ended:
-            self.revoked_exports += 1
-            audit.record(
-                verdict="ended",
-                stage="trust",
-                code="untrusted",
-                stream=semantic,
-                to=receiver,
-                export=export_id,
-                reason=f"export {export_id} of {semantic!r} to {receiver} ended: {why}",
-            )
+        self.revoked_exports += len(ended)
+        self._audit_exports_ended(ended, stage="trust", code="untrusted")  # each ended by `why`
         self._consented.pop(platform, None)
         for rec in self.importer.imports(platform):
             semantic = rec.semantic_label
@@ -1477,12 +1484,10 @@ class FederationPlatform:
 
     def _agree(self, sender: str, semantic: str) -> str:
         """Record in the import proxy that ``sender``'s ``semantic`` lands here."""
-        self.vocabulary.entry(semantic)
+        label = self.import_label(sender, semantic)
         rec = self.importer.get(sender, semantic)
-        if rec is not None and rec.local_label is not None:
-            return rec.local_label
-        label = self.config.import_label_of(sender, semantic)
-        self.importer.expect(sender, semantic, label)
+        if rec is None or rec.local_label is None:
+            self.importer.expect(sender, semantic, label)
         return label
 
     def _unlease(self, sender: str, semantic: str) -> None:

@@ -307,25 +307,17 @@ async def test_a_csv_field_over_the_limit_costs_its_row_only(
         assert f"{path}:1: a field over the 131072-character limit; no header row" in caplog.text
 
 
-@pytest.mark.parametrize("speed", [1.0, 2.0])
-async def test_a_looped_file_gives_each_pass_times_after_the_last(
-    tmp_path: Path, speed: float
-) -> None:
-    """``loop = true``, ``shift = "now"``: valid times never go back at a pass's seam.
-
-    Before, each pass started its valid times at the wall clock: behind the last pass's
-    latest when its last sleep woke early (by ~0.2 ms) or ``speed`` ran them ahead.
-    """
+async def _looped_file(path: Path, n: int, **play: Any) -> list[tuple[int, int]]:
+    """The (valid, available) times of the first ``n`` (or a few more) samples a looped file
+    input (``shift = "now"``, its time in ``t``) pushes, played as ``play`` says."""
     from federation._inputs import FileInput
 
-    path = tmp_path / "wx.jsonl"
-    path.write_text("".join(f'{{"t": {k * 0.01}, "temp": {k}}}\n' for k in range(3)))
     got: list[tuple[int, int]] = []
     enough = asyncio.Event()
 
     def on_batch(batch: list[Any]) -> None:
         got.extend((tv, ta) for _, tv, ta in batch)
-        if len(got) >= 12:
+        if len(got) >= n:
             enough.set()
 
     async with DyKnowInstance("t") as inst:
@@ -336,18 +328,32 @@ async def test_a_looped_file_gives_each_pass_times_after_the_last(
             path=path,
             loop=True,
             shift="now",
-            speed=speed,
             time="t",
             fields={"temp": "wx/temp"},
+            **play,
         )
-        runner = input_runner(settings, inst)
-        task = asyncio.create_task(runner.run(None))
+        task = asyncio.create_task(input_runner(settings, inst).run(None))
         try:
             await asyncio.wait_for(enough.wait(), 20)
         finally:
             task.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await task
+    return got
+
+
+@pytest.mark.parametrize("speed", [1.0, 2.0])
+async def test_a_looped_file_gives_each_pass_times_after_the_last(
+    tmp_path: Path, speed: float
+) -> None:
+    """``loop = true``, ``shift = "now"``: valid times never go back at a pass's seam.
+
+    Before, each pass started its valid times at the wall clock: behind the last pass's
+    latest when its last sleep woke early (by ~0.2 ms) or ``speed`` ran them ahead.
+    """
+    path = tmp_path / "wx.jsonl"
+    path.write_text("".join(f'{{"t": {k * 0.01}, "temp": {k}}}\n' for k in range(3)))
+    got = await _looped_file(path, 12, speed=speed)
     valid = [tv for tv, _ in got]
     assert all(b > a for a, b in itertools.pairwise(valid)), valid
     if speed == 1.0:  # valid times are when each sample was due: none after its arrival
@@ -755,39 +761,11 @@ async def test_a_looped_file_played_fast_stays_near_the_wall_clock(tmp_path: Pat
     once ran 20 s ahead of the wall clock; and a row earlier than the first fell back
     before the previous pass.
     """
-    from federation._inputs import FileInput
-
     path = tmp_path / "wx.jsonl"
     times = [0.1, 0.0, 0.2]  # the second row earlier than the first
     path.write_text("".join(f'{{"t": {t}, "temp": {k}}}\n' for k, t in enumerate(times)))
-    got: list[int] = []
-    enough = asyncio.Event()
-
-    def on_batch(batch: list[Any]) -> None:
-        got.extend(tv for _, tv, _ in batch)
-        if len(got) >= 300:
-            enough.set()
-
-    async with DyKnowInstance("t") as inst:
-        inst.add_source("wx/temp")
-        inst.subscribe("wx/temp", callback=on_batch)
-        settings = FileInput(
-            kind="file",
-            path=path,
-            loop=True,
-            shift="now",
-            pace="fast",
-            time="t",
-            fields={"temp": "wx/temp"},
-        )
-        task = asyncio.create_task(input_runner(settings, inst).run(None))
-        try:
-            await asyncio.wait_for(enough.wait(), 20)
-        finally:
-            task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await task
-        ahead = (max(got) - time.time_ns()) / 1e9
+    got = [tv for tv, _ in await _looped_file(path, 300, pace="fast")]
+    ahead = (max(got) - time.time_ns()) / 1e9
     assert ahead < 1.0, ahead  # one pass's span (0.2 s) at most, and some slack
     passes = [got[i : i + 3] for i in range(0, len(got) - 2, 3)]
     assert all(min(b) > max(a) for a, b in itertools.pairwise(passes)), passes[:4]

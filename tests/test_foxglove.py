@@ -29,7 +29,9 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -656,17 +658,23 @@ async def test_the_relay_lets_in_only_the_token_from_an_allowed_origin(tmp_path:
         assert (stats["relayed"], stats["declined"], stats["refused_total"]) == (2, 1, 9)
 
 
-@pytest.mark.timeout(120)
-async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> None:
-    """``dyknow foxglove`` as a process: many upgrades at once, slow clients; both bounded."""
-    from federation._foxglove_relay import MAX_CONNECTIONS
-    from tests.test_console_access import write_operator
+@dataclass
+class _Served:
+    """A ``dyknow foxglove`` process's login URL, and its stderr once it stopped."""
 
-    idle = 3.0  # s to send a whole request ([console] idle_timeout; 15 s by default)
-    config = write_operator(tmp_path, f"idle_timeout = {idle}")
+    login: str = ""
+    stderr: str = ""
+
+
+@contextlib.asynccontextmanager
+async def _foxglove_process(config: Path, *python: str) -> AsyncIterator[_Served]:
+    """``dyknow foxglove --config CONFIG --port 0`` as a child process (run by ``python``'s
+    interpreter options, else ``-m federation.cli``), ready, until the block ends (SIGINT)."""
+    served = _Served()
     proc = await asyncio.create_subprocess_exec(
         sys.executable,
-        *("-m", "federation.cli", "foxglove", "--config", str(config), "--port", "0"),
+        *(python or ("-m", "federation.cli")),
+        *("foxglove", "--config", str(config), "--port", "0"),
         stdout=asyncio.subprocess.PIPE,
         stderr=asyncio.subprocess.PIPE,
         cwd=ROOT,
@@ -677,7 +685,26 @@ async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> 
         async with asyncio.timeout(60):
             while b"ready in federation" not in (line := await proc.stdout.readline()):
                 assert line, "dyknow foxglove ended before it was ready"
-        login = line.decode().split(": ")[-1].strip()
+        served.login = line.decode().split(": ")[-1].strip()
+        yield served
+    finally:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGINT)
+        async with asyncio.timeout(30):
+            _, err = await proc.communicate()
+        served.stderr = err.decode()
+
+
+@pytest.mark.timeout(120)
+async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> None:
+    """``dyknow foxglove`` as a process: many upgrades at once, slow clients; both bounded."""
+    from federation._foxglove_relay import MAX_CONNECTIONS
+    from tests.test_console_access import write_operator
+
+    idle = 3.0  # s to send a whole request ([console] idle_timeout; 15 s by default)
+    config = write_operator(tmp_path, f"idle_timeout = {idle}")
+    async with _foxglove_process(config) as served:
+        login = served.login
         port = int(login.split(":")[2].split("/")[0])
         async with aiohttp.ClientSession() as session:
             # a token holder's upgrades at once: each waited for its inner connection
@@ -700,12 +727,7 @@ async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> 
         async with asyncio.timeout(idle + 10):
             assert await reader.read() == b""
         writer.close()
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            proc.send_signal(signal.SIGINT)
-        async with asyncio.timeout(30):
-            _, err = await proc.communicate()
-        assert "Traceback" not in err.decode(), err.decode()[-3000:]
+    assert "Traceback" not in served.stderr, served.stderr[-3000:]
 
 
 @pytest.mark.timeout(120)
@@ -713,22 +735,9 @@ async def test_a_token_holder_cannot_flood_the_log_through_the_sdk(tmp_path: Pat
     """One 1 MiB subscribe of unknown channels: a line or two in the log, not one per channel."""
     from tests.test_console_access import write_operator
 
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        *("-m", "federation.cli", "foxglove", "--config", str(write_operator(tmp_path))),
-        *("--port", "0"),
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
     n = 30_000  # ~1 MiB: what the relay lets a client send in one message
-    try:
-        assert proc.stdout is not None
-        async with asyncio.timeout(60):
-            while b"ready in federation" not in (line := await proc.stdout.readline()):
-                assert line, "dyknow foxglove ended before it was ready"
-        login = line.decode().split(": ")[-1].strip()
+    async with _foxglove_process(write_operator(tmp_path)) as served:
+        login = served.login
         subs = [{"id": i, "channelId": 100_000 + i} for i in range(n)]
         flood = json.dumps({"op": "subscribe", "subscriptions": subs}, separators=(",", ":"))
         assert 900_000 < len(flood) < 1024 * 1024
@@ -743,12 +752,7 @@ async def test_a_token_holder_cannot_flood_the_log_through_the_sdk(tmp_path: Pat
                 async for msg in ws:
                     if msg.type == aiohttp.WSMsgType.TEXT and "999999" in msg.data:
                         break
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            proc.send_signal(signal.SIGINT)
-        async with asyncio.timeout(30):
-            _, err = await proc.communicate()
-    text = err.decode()
+    text = served.stderr
     assert "Traceback" not in text, text[-3000:]
     lines = [ln for ln in text.splitlines() if "unknown channel" in ln]
     assert 1 <= len(lines) <= 5, text[-3000:]
@@ -773,22 +777,9 @@ async def test_what_a_client_makes_the_sdk_log_below_its_logger_is_held_too(
         "import logging, sys; logging.basicConfig(level=logging.INFO); "
         "from federation.cli import main; sys.exit(main())"
     )
-    proc = await asyncio.create_subprocess_exec(
-        sys.executable,
-        *("-c", boot, "foxglove", "--config", str(write_operator(tmp_path))),
-        *("--port", "0"),
-        stdout=asyncio.subprocess.PIPE,
-        stderr=asyncio.subprocess.PIPE,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-    )
     n = 40
-    try:
-        assert proc.stdout is not None
-        async with asyncio.timeout(60):
-            while b"ready in federation" not in (line := await proc.stdout.readline()):
-                assert line, "dyknow foxglove ended before it was ready"
-        login = line.decode().split(": ")[-1].strip()
+    async with _foxglove_process(write_operator(tmp_path), "-c", boot) as served:
+        login = served.login
         start = time.monotonic()
         async with aiohttp.ClientSession() as session:
             for _ in range(n):
@@ -796,12 +787,7 @@ async def test_what_a_client_makes_the_sdk_log_below_its_logger_is_held_too(
                     await ws.receive()  # its serverInfo: the SDK has it
         took = time.monotonic() - start
         await asyncio.sleep(1.0)  # the SDK logs the last close
-    finally:
-        with contextlib.suppress(ProcessLookupError):
-            proc.send_signal(signal.SIGINT)
-        async with asyncio.timeout(30):
-            _, err = await proc.communicate()
-    text = err.decode()
+    text = served.stderr
     assert "Traceback" not in text, text[-3000:]
     lines = [ln for ln in text.splitlines() if "Connection closed by client" in ln]
     assert 1 <= len(lines) <= took + 3, text[-3000:]

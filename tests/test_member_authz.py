@@ -386,6 +386,16 @@ def in_file(tmp: Path, name: str, record: dict[str, Any]) -> bool:
     return path.exists() and record in [json.loads(x) for x in path.read_text().splitlines()]
 
 
+async def audited_in_file(
+    tmp: Path, stats: dict[str, Any], n: int, **match: Any
+) -> list[dict[str, Any]]:
+    """uav-a's ``n`` audit records that match (`audited`), the last one in its file too."""
+    recs = audited(stats, **match)
+    assert len(recs) == n, recs
+    await until(lambda: in_file(tmp, "uav-a", recs[-1]), "the record in the audit file")
+    return recs
+
+
 async def refusal(coro: Any) -> str:
     """The reason of the refuse ``coro`` ends with."""
     with pytest.raises(Refused) as info:
@@ -509,11 +519,14 @@ async def test_replies_go_to_the_requesting_platform_only(tmp_path: Path) -> Non
         )
         s = await w.stats("uav-a")
         assert s["reply_to_refused"] == n
-        recs = audited(
-            s, verdict="refused", sender="mallory@uav-m", reason="reply_to may name agents"
+        await audited_in_file(
+            tmp_path,
+            s,
+            n,
+            verdict="refused",
+            sender="mallory@uav-m",
+            reason="reply_to may name agents",
         )
-        assert len(recs) == n
-        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
         await asyncio.sleep(1.0)  # what would have been reflected has had time to arrive
         after = b.agents.stats.senders.get("uav-a")
         assert (0 if after is None else after.accepted) == from_a  # uav-b got nothing

@@ -16,7 +16,7 @@ import sys
 import threading
 import time
 import tomllib
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -128,6 +128,28 @@ class Node:
         """``dyknow ask LABEL -p station`` as the operator."""
         return self.station.command("ask", label, "-p", "station", *ASK, timeout=60)
 
+    def __enter__(self) -> Node:
+        return self
+
+    def __exit__(self, failed: type[BaseException] | None, *_: object) -> None:
+        """Stop it; once the block passed, AssertionError unless it said so, cleanly."""
+        out, err = self.stop()
+        if failed is None:
+            assert "station stopped" in out and "Traceback" not in err, err
+
+    @contextlib.contextmanager
+    def following(self, label: str) -> Iterator[subprocess.Popen[str]]:
+        """``dyknow stream LABEL -p station`` as the operator, its samples arriving, until
+        the block ends (then killed, if it still runs)."""
+        follower = self.station.spawn("stream", label, "-p", "station", *ASK)
+        try:
+            Lines(follower.stdout).wait_for(label, 60)
+            yield follower
+        finally:
+            if follower.poll() is None:
+                follower.kill()
+            follower.wait(timeout=10)
+
     def stop(self) -> tuple[str, str]:
         """SIGINT it; its stdout and stderr."""
         if self.proc.poll() is None:
@@ -161,8 +183,7 @@ def _ask_until_served(node: Node, label: str) -> None:
 def test_a_label_refused_is_served_once_sighup_reloads_a_sharing_that_allows_it(
     tmp_path: Path,
 ) -> None:
-    node = Node(tmp_path, ONLY_TEMPERATURE)
-    try:
+    with Node(tmp_path, ONLY_TEMPERATURE) as node:
         refused = node.ask("wind-speed")
         assert refused.returncode != 0
         assert "sharing" in refused.stderr and "wind-speed" in refused.stderr, refused.stderr
@@ -174,18 +195,12 @@ def test_a_label_refused_is_served_once_sighup_reloads_a_sharing_that_allows_it(
         records = node.policy_records(["reloaded"])
         assert [r["verdict"] for r in records] == ["reloaded"], records
         assert node.proc.poll() is None
-    finally:
-        out, err = node.stop()
-    assert "station stopped" in out and "Traceback" not in err, err
 
 
 @pytest.mark.timeout(180)
 def test_an_export_the_reloaded_sharing_forbids_ends_and_is_audited(tmp_path: Path) -> None:
-    node = Node(tmp_path, EVERYTHING)
-    follower = node.station.spawn("stream", "temperature", "-p", "station", *ASK)
-    try:
-        samples = Lines(follower.stdout)
-        samples.wait_for("temperature", 60)  # the export runs: samples arrive
+    # the export runs: samples arrive
+    with Node(tmp_path, EVERYTHING) as node, node.following("temperature") as follower:
         node.hup(NOTHING)
         node.out.wait_for("[sharing] reloaded", 30)
         ended = node.out.wait_for("ended: the reloaded [sharing] no longer allows it", 30)
@@ -201,12 +216,6 @@ def test_an_export_the_reloaded_sharing_forbids_ends_and_is_audited(tmp_path: Pa
         # asked again, it is refused now
         assert node.ask("temperature").returncode != 0
         assert node.proc.poll() is None
-    finally:
-        if follower.poll() is None:
-            follower.kill()
-        follower.wait(timeout=10)
-        out, err = node.stop()
-    assert "station stopped" in out and "Traceback" not in err, err
 
 
 def _hup_handled(pid: int) -> bool:
@@ -251,8 +260,7 @@ def test_a_sighup_while_the_node_starts_does_not_end_it_and_reloads_once_ready(
 def test_a_truncated_or_foreign_config_on_sighup_is_refused_and_the_policy_stays(
     tmp_path: Path,
 ) -> None:
-    node = Node(tmp_path, ONLY_TEMPERATURE)
-    try:
+    with Node(tmp_path, ONLY_TEMPERATURE) as node:
         _ask_until_served(node, "temperature")
         whole = node.config.read_text()
         # an editor's half-written file: no [sharing] in it, which must not mean the defaults
@@ -269,9 +277,6 @@ def test_a_truncated_or_foreign_config_on_sighup_is_refused_and_the_policy_stays
         _ask_until_served(node, "temperature")  # the old policy: still served …
         assert node.ask("wind-speed").returncode != 0  # … and still refused
         assert not [r for r in node.audit() if r.get("stage") == "policy"]
-    finally:
-        out, err = node.stop()
-    assert "station stopped" in out and "Traceback" not in err, err
 
 
 @pytest.mark.timeout(180)
@@ -279,8 +284,7 @@ def test_a_truncated_or_foreign_config_on_sighup_is_refused_and_the_policy_stays
 def test_a_config_replaced_by_a_fifo_on_sighup_is_refused_and_the_node_serves(
     tmp_path: Path,
 ) -> None:
-    node = Node(tmp_path, ONLY_TEMPERATURE)
-    try:
+    with Node(tmp_path, ONLY_TEMPERATURE) as node:
         _ask_until_served(node, "temperature")
         node.config.unlink()
         os.mkfifo(node.config)  # no writer ever: a blocking read would wait for good
@@ -290,19 +294,13 @@ def test_a_config_replaced_by_a_fifo_on_sighup_is_refused_and_the_node_serves(
         _ask_until_served(node, "temperature")  # the node serves, the old policy in force
         assert node.ask("wind-speed").returncode != 0
         assert node.proc.poll() is None
-    finally:
-        out, err = node.stop()
-    assert "station stopped" in out and "Traceback" not in err, err
 
 
 @pytest.mark.timeout(180)
 def test_an_export_ended_by_a_rule_naming_40_platforms_ends_the_receivers_import(
     tmp_path: Path,
 ) -> None:
-    node = Node(tmp_path, EVERYTHING)
-    follower = node.station.spawn("stream", "temperature", "-p", "station", *ASK)
-    try:
-        Lines(follower.stdout).wait_for("temperature", 60)
+    with Node(tmp_path, EVERYTHING) as node, node.following("temperature") as follower:
         many = ", ".join(f'"platform-with-a-long-name-{i:02d}"' for i in range(40))
         # its refusal names the 40: far over an end marker's 1024 characters
         node.hup(
@@ -313,12 +311,6 @@ def test_an_export_ended_by_a_rule_naming_40_platforms_ends_the_receivers_import
         follower.wait(timeout=30)  # the marker arrived: the import, and the command, ended
         gone = [r for r in node.policy_records(["reloaded", "ended"]) if r["verdict"] == "ended"]
         assert gone and "platform-with-a-long-name-39" in str(gone[0]["reason"]), gone
-    finally:
-        if follower.poll() is None:
-            follower.kill()
-        follower.wait(timeout=10)
-        out, err = node.stop()
-    assert "station stopped" in out and "Traceback" not in err, err
 
 
 @pytest.mark.timeout(180)
@@ -338,8 +330,7 @@ def test_an_export_ended_by_a_rule_naming_40_platforms_ends_the_receivers_import
 def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
     tmp_path: Path, broken: str, key: str, why: str
 ) -> None:
-    node = Node(tmp_path, ONLY_TEMPERATURE)
-    try:
+    with Node(tmp_path, ONLY_TEMPERATURE) as node:
         _ask_until_served(node, "temperature")
         node.hup(broken)
         line = node.err.wait_for("[sharing] not reloaded", 30)
@@ -350,9 +341,6 @@ def test_a_broken_sharing_on_sighup_keeps_the_node_and_the_policy_in_force(
         _ask_until_served(node, "temperature")  # the old policy: still served …
         assert node.ask("wind-speed").returncode != 0  # … and still refused
         assert not [r for r in node.audit() if r.get("stage") == "policy"]
-    finally:
-        out, err = node.stop()
-    assert "station stopped" in out and "Traceback" not in err, err
 
 
 def test_load_sharing_validates_the_whole_file_and_names_the_key(tmp_path: Path) -> None:
@@ -968,7 +956,10 @@ async def test_a_live_export_to_a_platform_revoked_stops_and_nothing_more_is_sea
         revoked, ended = records
         assert "1 session(s) with it forgotten" in str(revoked["reason"]), revoked
         assert ended["stream"] == "temperature" and ended["export"] == export_id, ended
-        assert "removed from the trust file" in str(ended["reason"]), ended
+        assert ended["reason"] == (
+            f"export {export_id} of 'temperature' to operator ended: "
+            "platform 'operator' was removed from the trust file (revoked)"
+        ), ended
 
         # the other side revokes the station: its import from it ends there
         assert o.interface.trust.remove("station")
@@ -1084,18 +1075,17 @@ def _untrusted(node: Node, platform: str, stages: tuple[Any, ...], n: int) -> li
 def test_a_broken_trust_file_on_sighup_keeps_the_node_and_the_trust_in_force(
     tmp_path: Path,
 ) -> None:
-    node = Node(tmp_path, EVERYTHING)
-    path = node.station.dir / "keys" / "trust.json"
-    good = path.read_text()
-    foreign = json.loads(good)
-    foreign["federation"] = "elsewhere"
-    broken = [
-        ('{"v": 1, "federation": ', "not JSON"),
-        (json.dumps(foreign), "'elsewhere'"),
-        (None, "no such trust file"),
-        ("fifo", "not a regular file"),
-    ]
-    try:
+    with Node(tmp_path, EVERYTHING) as node:
+        path = node.station.dir / "keys" / "trust.json"
+        good = path.read_text()
+        foreign = json.loads(good)
+        foreign["federation"] = "elsewhere"
+        broken = [
+            ('{"v": 1, "federation": ', "not JSON"),
+            (json.dumps(foreign), "'elsewhere'"),
+            (None, "no such trust file"),
+            ("fifo", "not a regular file"),
+        ]
         _ask_until_served(node, "temperature")
         for content, why in broken:
             path.unlink(missing_ok=True)
@@ -1120,9 +1110,6 @@ def test_a_broken_trust_file_on_sighup_keeps_the_node_and_the_trust_in_force(
         for record, (_, why) in zip(trust, broken, strict=True):
             assert record["reason"].startswith("trust file not reloaded, the trust in force")
             assert why in record["reason"], record
-    finally:
-        out, err = node.stop()
-    assert "station stopped" in out and "Traceback" not in err, err
 
 
 @pytest.mark.timeout(120)

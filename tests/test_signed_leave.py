@@ -16,7 +16,7 @@ import contextlib
 import json
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -208,6 +208,22 @@ def _signed_at(leave: bytes) -> float:
 def _is_leave(payload: bytes) -> bool:
     """Whether a directory event's payload is a leave."""
     return json.loads(json.loads(payload)["body"]).get("op") == "leave"
+
+
+def _held_directory(
+    name: str,
+) -> tuple[asyncio.Event, Callable[[DirectoryFacilitator, str, bytes], Awaitable[bytes | None]]]:
+    """A `DirectoryFacilitator._serve_public` under which ``name``'s directory answers once
+    the event is set (the others at once), and that event."""
+    busy = asyncio.Event()
+    serve = DirectoryFacilitator._serve_public
+
+    async def slow(self: DirectoryFacilitator, key: str, payload: bytes) -> bytes | None:
+        if self.platform.name == name:
+            await busy.wait()
+        return await serve(self, key, payload)
+
+    return busy, slow
 
 
 async def _recorded_leave(tmp_path: Path, fed: str, port: int, trust: TrustStore) -> bytes:
@@ -404,15 +420,7 @@ async def test_a_leave_replayed_before_the_first_snapshot_is_refused(
     the leave is refused, counted and audited; uav-b is listed and served."""
     federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
     fed, trust, port = federation.fed, federation.trust, federation.port
-    busy = asyncio.Event()
-    serve = DirectoryFacilitator._serve_public
-
-    async def slow(self: DirectoryFacilitator, key: str, payload: bytes) -> bytes | None:
-        """uav-b's directory answers once ``busy`` is set (the others at once)."""
-        if self.platform.name == "uav-b":
-            await busy.wait()
-        return await serve(self, key, payload)
-
+    busy, slow = _held_directory("uav-b")
     async with asyncio.timeout(60), ZenohTransport(ZenohConfig.loopback(port)) as ta:
         leave = await _recorded_leave(tmp_path, fed, port, trust)
         ca = federation.channel("uav-a")
@@ -526,15 +534,7 @@ async def test_a_leave_replayed_while_a_flood_sheds_its_check_is_refused(
     (and abandoned the snapshot under way)."""
     federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
     fed, trust, port = federation.fed, federation.trust, federation.port
-    busy = asyncio.Event()
-    serve = DirectoryFacilitator._serve_public
-
-    async def slow(self: DirectoryFacilitator, key: str, payload: bytes) -> bytes | None:
-        """uav-b's directory answers once ``busy`` is set (the others at once)."""
-        if self.platform.name == "uav-b":
-            await busy.wait()
-        return await serve(self, key, payload)
-
+    busy, slow = _held_directory("uav-b")
     async with asyncio.timeout(90), ZenohTransport(ZenohConfig.loopback(port)) as ta:
         leave = await _recorded_leave(tmp_path, fed, port, trust)
         ca = federation.channel("uav-a")
