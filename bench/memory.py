@@ -23,7 +23,11 @@ The node runs from a copy of our packages with their bytecode compiled, as an in
 node has it: compiling ~70 modules from source (when ``PYTHONDONTWRITEBYTECODE`` keeps
 the tree free of it) costs ~0.5 s at every start.
 Beside it, the imports alone (what ``dyknow node`` imports before it reads its config),
-to split start → ready into imports and the platform's start.
+to split start → ready into imports and the platform's start. Each one's idle RSS is split
+by what holds it (``/proc/<pid>/smaps``): the anonymous memory (Python's objects and the
+native heaps: zenoh's, pydantic-core's validators), and the pages of each large shared
+library that the process touched (zenoh's, the interpreter's, OpenSSL's, pydantic-core's,
+uvloop's), so what a change saves shows where it saved it.
 """
 
 from __future__ import annotations
@@ -165,10 +169,45 @@ def _installed(directory: Path) -> dict[str, str]:
     return {**os.environ, "PYTHONPATH": path}
 
 
+# What holds a process's RSS: its anonymous memory (with the brk heap), the pages it touched
+# of each large shared library (the first whose pattern is in the mapping's path), the rest.
+RSS_ANONYMOUS = "anonymous: Python's objects, native heaps"
+RSS_LIBRARIES = (
+    ("zenoh's library", ("/zenoh/",)),
+    ("the interpreter (libpython)", ("/libpython",)),
+    ("OpenSSL (asyncio's and uvloop's ssl)", ("/libcrypto.", "/libssl.", "/_ssl.", "/_hashlib.")),
+    ("pydantic-core's library", ("/_pydantic_core.",)),
+    ("uvloop's library", ("/uvloop/",)),
+)
+RSS_OTHER = "other libraries, stacks"
+RSS_PARTS = (RSS_ANONYMOUS, *(name for name, _ in RSS_LIBRARIES), RSS_OTHER)
+
+
+def _part_of(path: str) -> str:
+    """The `RSS_PARTS` name a mapping named ``path`` in smaps ("" if anonymous) counts in."""
+    if path in ("", "[heap]"):
+        return RSS_ANONYMOUS
+    return next((n for n, patterns in RSS_LIBRARIES if any(p in path for p in patterns)), RSS_OTHER)
+
+
+def rss_parts(pid: int) -> dict[str, float]:
+    """The RSS of process ``pid`` in MB by `RSS_PARTS`, read from ``/proc/<pid>/smaps``."""
+    parts = dict.fromkeys(RSS_PARTS, 0.0)
+    part = RSS_OTHER
+    with open(f"/proc/{pid}/smaps") as f:
+        for line in f:
+            head = line.split(maxsplit=5)
+            if "-" in head[0] and len(head) >= 5:  # a mapping's first line: its range, perms…
+                part = _part_of(head[5].strip() if len(head) > 5 else "")
+            elif head[0] == "Rss:":
+                parts[part] += int(head[1]) / 1024
+    return parts
+
+
 def _spawn_ready(
     argv: list[str], env: dict[str, str] | None = None, cwd: Path | None = None
-) -> tuple[float, float]:
-    """Spawn ``argv``; seconds until it prints a line with "ready", and its RSS (MB) idle."""
+) -> tuple[float, float, dict[str, float]]:
+    """Spawn ``argv``; seconds until it prints a line with "ready", its RSS (MB) idle, by part."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         argv,
@@ -189,7 +228,7 @@ def _spawn_ready(
         time.sleep(NODE_IDLE_S)
         with open(f"/proc/{proc.pid}/status") as f:
             rss = next(int(x.split()[1]) / 1024 for x in f if x.startswith("VmRSS:"))
-        return ready, rss
+        return ready, rss, rss_parts(proc.pid)
     finally:
         proc.terminate()
         try:
@@ -201,10 +240,10 @@ def _spawn_ready(
 
 def node_ready() -> None:
     """``dyknow node`` start → ready and idle RSS, beside a bare zenoh node; the BENCH lines."""
-    ours: list[tuple[float, float]] = []
-    bare: list[tuple[float, float]] = []
-    imports: list[tuple[float, float]] = []
-    deps: list[tuple[float, float]] = []
+    ours: list[tuple[float, float, dict[str, float]]] = []
+    bare: list[tuple[float, float, dict[str, float]]] = []
+    imports: list[tuple[float, float, dict[str, float]]] = []
+    deps: list[tuple[float, float, dict[str, float]]] = []
     with tempfile.TemporaryDirectory(prefix="bench-node-") as tmp:
         config = _node_config(Path(tmp))
         site = Path(tmp) / "site"
@@ -220,24 +259,36 @@ def node_ready() -> None:
             imports.append(_spawn_ready([sys.executable, "-c", _IMPORTS_ONLY], env, site))
             deps.append(_spawn_ready([sys.executable, "-c", _DEPS_NODE]))
     print(f"node start to ready ({NODE_REPEAT} spawns each, s) and idle RSS (MB):")
-    for (r, m), (br, bm), (ir, im), (_, dm) in zip(ours, bare, imports, deps, strict=True):
+    for (r, m, _), (br, bm, _), (ir, im, _), (_, dm, _) in zip(
+        ours, bare, imports, deps, strict=True
+    ):
         print(
             f"  dyknow node {r:.3f} s {m:.1f} MB (its imports alone {ir:.3f} s {im:.1f} MB); "
             f"bare zenoh node {br:.3f} s {bm:.1f} MB, {dm:.1f} MB with our dependencies"
         )
+    columns = (ours, imports, deps, bare)
+    print(
+        "idle RSS by part (MB, medians): dyknow node | its imports alone | "
+        "bare zenoh node with our dependencies | bare zenoh node"
+    )
+    for name in RSS_PARTS:
+        cells = (statistics.median(p[name] for *_, p in runs) for runs in columns)
+        print(f"  {name:<44}" + "".join(f"{c:8.1f}" for c in cells))
+    totals = (statistics.median(sum(p.values()) for *_, p in runs) for runs in columns)
+    print(f"  {'total':<44}" + "".join(f"{c:8.1f}" for c in totals))
     report(
         "federation-node-ready",
-        statistics.median(r for r, _ in ours),
+        statistics.median(r for r, *_ in ours),
         "zenoh-bare",
-        statistics.median(r for r, _ in bare),
+        statistics.median(r for r, *_ in bare),
         "s",
         better="lower",
     )
     report(
         "federation-node-rss",
-        statistics.median(m for _, m in ours),
+        statistics.median(m for _, m, _ in ours),
         "zenoh-bare",
-        statistics.median(m for _, m in bare),
+        statistics.median(m for _, m, _ in bare),
         "MB",
         better="lower",
     )

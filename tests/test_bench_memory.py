@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from bench import memory
@@ -17,7 +19,28 @@ def test_node_ready_spawns_both_and_prints_the_lines(
     out = capsys.readouterr().out
     lines = [line.split() for line in out.splitlines() if line.startswith("BENCH ")]
     assert [words[1] for words in lines] == ["federation-node-ready", "federation-node-rss"]
+    # the node's RSS split by part, one row each and their total (four columns of MB)
+    split = out.partition("idle RSS by part")[2].splitlines()[1 : len(memory.RSS_PARTS) + 2]
+    rows = {line[:46].strip(): [float(c) for c in line[46:].split()] for line in split}
+    assert list(rows) == [*memory.RSS_PARTS, "total"]
+    assert all(len(cells) == 4 for cells in rows.values())
+    ours_total = rows["total"][0]
+    assert abs(sum(rows[name][0] for name in memory.RSS_PARTS) - ours_total) < 0.1 * len(rows)
+    assert rows["zenoh's library"][0] > 1 and rows["zenoh's library"][3] > 1
     for words in lines:
         fields = dict(w.split("=", 1) for w in words[2:])
         assert float(fields["ours"]) > 0 and float(fields["zenoh-bare"]) > 0
         assert fields["better"] == "lower"
+
+
+def test_rss_parts_split_a_live_process_whole() -> None:
+    """The split of a process's RSS adds up to the kernel's figure and names its libraries."""
+    with open("/proc/self/status") as f:
+        before = next(int(x.split()[1]) / 1024 for x in f if x.startswith("VmRSS:"))
+    parts = memory.rss_parts(os.getpid())
+    with open("/proc/self/status") as f:
+        after = next(int(x.split()[1]) / 1024 for x in f if x.startswith("VmRSS:"))
+    assert tuple(parts) == memory.RSS_PARTS
+    assert before - 1 <= sum(parts.values()) <= after + 1  # read between the two, ±1 MB
+    assert parts[memory.RSS_ANONYMOUS] > 1  # this interpreter's objects
+    assert parts["the interpreter (libpython)"] + parts[memory.RSS_OTHER] > 1
