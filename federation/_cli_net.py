@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import difflib
 import json
 import logging
 import re
@@ -153,6 +152,8 @@ def unprovided(platform: FederationPlatform, source: str) -> list[str]:
             if any(local_pattern.overlaps(t) for t in [*labels, *templates]):
                 continue
             candidates = sorted({*labels, *templates} - {config.import_label})
+            import difflib  # only for a warning: not at every node's start
+
             near = difflib.get_close_matches(local, candidates, n=3, cutoff=0.5)
             listed = ", ".join(map(repr, candidates[:5])) + (", …" if len(candidates) > 5 else "")
             could = f"did you mean {', '.join(map(repr, near))}?" if near else f"here: {listed}"

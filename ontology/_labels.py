@@ -48,7 +48,6 @@ shape (`Vocabulary.from_dict`, `LabelMapping.from_dict`).
 
 from __future__ import annotations
 
-import difflib
 import re
 import tomllib
 from collections.abc import Iterable, Mapping
@@ -404,6 +403,8 @@ class LabelMapping:
                 self._add_pattern(entry, local, where)
                 continue
             if semantic not in vocabulary:
+                import difflib  # only for an error: not at every node's start
+
                 near = difflib.get_close_matches(str(semantic), vocabulary.labels, n=3)
                 hint = f" (did you mean {', '.join(map(repr, near))}?)" if near else ""
                 raise VocabularyError(
