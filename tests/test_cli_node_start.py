@@ -10,7 +10,10 @@ import json
 import os
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).parents[1]
 
@@ -112,3 +115,38 @@ def test_the_spared_loader_has_every_name_of_pydantics_own() -> None:
         check=True,
     )
     assert json.loads(done.stdout) == []
+
+
+def test_what_the_search_might_find_elsewhere_counts_as_a_plugin(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # anything importlib.metadata reads that the quick look does not (a zip or an egg on
+    # the path, an egg-info's entry points) keeps pydantic's own search; and whenever
+    # the search finds a plugin, the quick look says so too
+    from importlib.metadata import entry_points
+
+    from federation._cli_node import no_pydantic_plugins
+
+    def spared(*path: Path) -> bool:
+        monkeypatch.setattr(sys, "path", [str(p) for p in path])
+        quick = no_pydantic_plugins()
+        assert not (quick and list(entry_points(group="pydantic")))
+        return quick
+
+    assert spared(tmp_path / "nothing-here")
+    site = tmp_path / "site"
+    info = site / "Plug-1.0.EGG-INFO"
+    info.mkdir(parents=True)
+    (info / "PKG-INFO").write_text("Metadata-Version: 2.1\nName: Plug\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[pydantic]\nplug = plug:plugin\n")
+    assert not spared(site)
+    (info / "entry_points.txt").write_text("[console_scripts]\nplug = plug:main\n")
+    assert spared(site)
+    zipped = tmp_path / "lib.zip"
+    with zipfile.ZipFile(zipped, "w") as z:
+        z.writestr("plug-1.0.dist-info/METADATA", "Metadata-Version: 2.1\nName: plug\n")
+        z.writestr("plug-1.0.dist-info/entry_points.txt", "[pydantic]\nplug = plug:plugin\n")
+    assert not spared(site, zipped)
+    egg = tmp_path / "plug-1.0.egg"
+    egg.mkdir()
+    assert not spared(egg)
