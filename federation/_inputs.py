@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import csv
 import inspect
 import itertools
 import json
@@ -698,6 +697,8 @@ def _csv_rows(f: Iterable[str], path: Path) -> list[Any]:
     header costs that row only (a quoted field over several lines up to where its quote
     closes): the rest of the file is still replayed. Errors name the row's first line.
     """
+    import csv  # only for a CSV file: not at every node's start
+
     lines = _Lines(f)
     reader = csv.reader(lines)
     header: list[str] | None = None

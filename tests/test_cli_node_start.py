@@ -1,0 +1,152 @@
+"""What ``dyknow node`` spares at its start, and that it spares nothing a user installed.
+
+Each case runs the node's path (through the entry point, a missing config: everything a
+node runs is imported, then it exits 2) in a fresh interpreter.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).parents[1]
+
+# the node's path, then what pydantic's plugin search found and what it imported
+_NODE_PATH = """
+import json, sys
+from federation.cli import main
+assert main(["node", "-c", "no-such-config.toml"]) == 2
+from pydantic.plugin._schema_validator import create_schema_validator
+from pydantic.plugin._loader import get_plugins
+from pydantic import BaseModel
+class Late(BaseModel):
+    x: int = 0
+assert Late(x="1").x == 1
+print(json.dumps({
+    "plugins": sorted(type(p).__name__ for p in get_plugins()),
+    "metadata_imported": "importlib.metadata" in sys.modules,
+    "seen": sorted(sys.modules["fakeplug"].SEEN) if "fakeplug" in sys.modules else None,
+}))
+"""
+
+# a pydantic plugin as a user installs one: a distribution with a ``pydantic`` entry point
+_PLUGIN = """
+SEEN = set()
+
+
+class FakePlugin:
+    def new_schema_validator(self, schema, schema_type, path, kind, config, settings):
+        SEEN.add(path.name)
+        return None, None, None
+
+
+plugin = FakePlugin()
+"""
+
+
+def _node_path(extra_path: Path | None = None) -> dict[str, object]:
+    """Run the node's path in a new interpreter; what it printed (`_NODE_PATH`)."""
+    path = os.pathsep.join(str(p) for p in (ROOT, extra_path) if p is not None)
+    done = subprocess.run(
+        [sys.executable, "-c", _NODE_PATH],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": path},
+        check=True,
+    )
+    result: dict[str, object] = json.loads(done.stdout.splitlines()[-1])
+    return result
+
+
+def test_without_pydantic_plugins_the_node_does_not_search_for_them() -> None:
+    # no distribution declares one: the search (importlib.metadata and every
+    # distribution's entry points, ~15 ms of the start) is spared, models build as ever
+    found = _node_path()
+    assert found == {"plugins": [], "metadata_imported": False, "seen": None}
+
+
+def test_an_installed_pydantic_plugin_is_loaded_by_the_node(tmp_path: Path) -> None:
+    (tmp_path / "fakeplug.py").write_text(_PLUGIN)
+    info = tmp_path / "fakeplug-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: fakeplug\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[pydantic]\nfake = fakeplug:plugin\n")
+    found = _node_path(tmp_path)
+    assert found["plugins"] == ["FakePlugin"]
+    # it saw the validators the node built at its start and those built later
+    seen = found["seen"]
+    assert isinstance(seen, list) and "Late" in seen and len(seen) > 1, seen
+
+
+def test_the_spared_loader_has_every_name_of_pydantics_own() -> None:
+    # the stand-in replaces a private module of pydantic: a new pydantic that adds a name
+    # its own code reads would break the node's start, so this says so first
+    from federation._cli_node import _PLUGIN_LOADER
+
+    code = (
+        "import sys, json\n"
+        "from federation._cli_node import skip_pydantic_plugin_scan\n"
+        "assert skip_pydantic_plugin_scan()\n"
+        f"spared = set(vars(sys.modules[{_PLUGIN_LOADER!r}]))\n"
+        f"del sys.modules[{_PLUGIN_LOADER!r}]\n"
+        "import importlib\n"
+        f"real = importlib.import_module({_PLUGIN_LOADER!r})\n"
+        "own = {n for n, v in vars(real).items() if not n.startswith('__')\n"
+        "       and n != 'TYPE_CHECKING'\n"
+        "       and getattr(v, '__module__', real.__name__) == real.__name__\n"
+        "       and not isinstance(v, type(sys))}\n"
+        "print(json.dumps(sorted(own - spared)))\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        check=True,
+    )
+    assert json.loads(done.stdout) == []
+
+
+def test_what_the_search_might_find_elsewhere_counts_as_a_plugin(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # anything importlib.metadata reads that the quick look does not (a zip or an egg on
+    # the path, an egg-info's entry points) keeps pydantic's own search; and whenever
+    # the search finds a plugin, the quick look says so too
+    from importlib.metadata import entry_points
+
+    from federation._cli_node import no_pydantic_plugins
+
+    def spared(*path: Path) -> bool:
+        monkeypatch.setattr(sys, "path", [str(p) for p in path])
+        quick = no_pydantic_plugins()
+        assert not (quick and list(entry_points(group="pydantic")))
+        return quick
+
+    assert spared(tmp_path / "nothing-here")
+    site = tmp_path / "site"
+    info = site / "Plug-1.0.EGG-INFO"
+    info.mkdir(parents=True)
+    (info / "PKG-INFO").write_text("Metadata-Version: 2.1\nName: Plug\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[pydantic]\nplug = plug:plugin\n")
+    assert not spared(site)
+    (info / "entry_points.txt").write_text("[console_scripts]\nplug = plug:main\n")
+    assert spared(site)
+    zipped = tmp_path / "lib.zip"
+    with zipfile.ZipFile(zipped, "w") as z:
+        z.writestr("plug-1.0.dist-info/METADATA", "Metadata-Version: 2.1\nName: plug\n")
+        z.writestr("plug-1.0.dist-info/entry_points.txt", "[pydantic]\nplug = plug:plugin\n")
+    assert not spared(site, zipped)
+    egg = tmp_path / "plug-1.0.egg"
+    egg.mkdir()
+    assert not spared(egg)
