@@ -123,7 +123,7 @@ async def test_a_plain_get_latest_is_answered_on_zenohs_thread_counted_and_audit
         async with pair(lane=lane) as p:
             calls = _watch_threads(p.fed_a)
             answers = [await p.fed_op.request_from("uav-a", LATEST) for _ in range(8)]
-            await _until(lambda p=p: p.fed_a.stats.answered_at_once >= 7)
+            await _until(lambda p=p: not p.ia_a._lane_done and p.fed_a.stats.handled >= 8)
             sender = p.provider.stats.senders["operator"]
             accepted = [
                 r
@@ -158,6 +158,7 @@ async def test_a_read_waits_behind_what_its_peer_has_queued_for_the_loop() -> No
         for _ in range(3):  # warm: the next plain read is answerable on the thread
             await p.fed_op.request_from("uav-a", LATEST)
         await _until(lambda: p.ia_a.answered_on_thread >= 1)
+        await _until(lambda: not p.ia_a._lane_done)  # what the lane answered is booked
         before = (p.ia_a.answered_on_thread, p.fed_a.stats.handled)
         conv = "lane-order"
         slow = p.fed_op.request_from(
@@ -270,6 +271,7 @@ async def _revoked_outcomes(lane: bool) -> tuple[Any, ...]:
     async with pair(lane=lane) as p:
         for _ in range(3):
             await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: not p.ia_a._lane_done)  # what the lane answered is booked
         before = p.provider.stats.unauthenticated
         answered = p.fed_a.stats.answered_at_once
         p.trust_a.remove("operator")
