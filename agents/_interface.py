@@ -1305,6 +1305,11 @@ class InterfaceAgent:
                 # this a flood would hold the loop, and no agent would run to answer others.
                 await asyncio.sleep(0)
             if lane:  # opened on the transport's thread (`_lane_take`)
+                if self._lane_done:
+                    # what the lane answered before this came is booked before it is
+                    # taken: its posted booking waits behind this turn when the inbox
+                    # was being drained (no wake-up of its own put it in the queue)
+                    self._lane_book()
                 peer, body = item
                 if peer is None:
                     self._not_opened(stats, body)
@@ -1405,7 +1410,7 @@ class InterfaceAgent:
         sessions under the table's, the directory's decisions made before
         (`DirectoryFacilitator.reachable_now`), the agent's `Agent.answer_on_thread`, and
         a publisher the loop declared. What the loop alone changes (the counts, the audit
-        log, a session's renewal) it does in `_lane_book`, posted.
+        log, a session's renewal) it does in `_lane_book`, posted before the answer is put.
         """
         host = self._host
         if host is None or self.mirroring or len(body) > self.max_bytes or body[:1] == b"[":
@@ -1490,16 +1495,15 @@ class InterfaceAgent:
             lock.release()
         entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
         try:
-            put(self.sessions.seal(peer, reply))
-        except Exception:  # no session, one past its lifetime, a transport closing
-            with lock:  # given back: the loop decides it as if the lane never had
-                if requests is not None:
-                    requests.tokens = min(requests.burst, requests.tokens + 1.0)
-                if total is not None:
-                    total.tokens = min(total.burst, total.tokens + 1.0)
+            sealed = self.sessions.seal(peer, reply)
+        except Exception:  # no session, or one past its lifetime: the loop decides it
+            self._lane_give_back(state)
             return False
-        self._lane_done.append((peer, entry, agent))
+        # Booked before the answer leaves: whatever the peer sends once it has the answer
+        # reaches the loop behind this booking (FIFO ready queue, or `_receive`'s check).
+        done = (peer, entry, agent)
         with self._lane_lock:
+            self._lane_done.append(done)
             posted, self._lane_posted = self._lane_posted, True
         if not posted:
             loop = self._loop
@@ -1508,13 +1512,43 @@ class InterfaceAgent:
                     loop.call_soon_threadsafe(self._lane_book)
             except RuntimeError:  # the loop is closed: nobody reads the counts any more
                 pass
+        try:
+            put(sealed)
+        except Exception as exc:  # a transport closing
+            booked = True
+            with self._lane_lock:
+                pending = self._lane_done
+                for i, item in enumerate(pending):
+                    if item is done:  # not booked yet: taken back, the loop decides it
+                        del pending[i]
+                        booked = False
+                        break
+            if booked:
+                # booked already (the loop ran between): counted once, as answered,
+                # and its answer lost, as a handler's answer that could not be sent
+                log.warning(
+                    "interface[%s]: answering %s on the receiving thread: %s", self._me, peer, exc
+                )
+                return True
+            self._lane_give_back(state)
+            return False
         return True
+
+    @staticmethod
+    def _lane_give_back(state: _Sender) -> None:
+        """The tokens the lane took for a message it leaves to the loop after all."""
+        total, requests = state.total, state.requests
+        with state.lock:
+            if requests is not None:
+                requests.tokens = min(requests.burst, requests.tokens + 1.0)
+            if total is not None:
+                total.tokens = min(total.burst, total.tokens + 1.0)
 
     def _lane_book(self) -> None:
         """On the loop: count, audit and renew for what the lane answered, as `_take_now` would."""
         with self._lane_lock:
             self._lane_posted = False
-        done = self._lane_done
+            done, self._lane_done = self._lane_done, deque()
         host = self._host
         if host is None:
             done.clear()

@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from agents import LATER, AgentPlatform, RateLimit, Refused, request
+from agents import LATER, AgentPlatform, RateLimit, Refused, TransportError, request
 from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.transports import Inbox, ZenohConfig, ZenohTransport
@@ -337,3 +337,151 @@ async def test_what_the_full_inbox_drops_no_longer_holds_its_peers_reads_back() 
         await p.fed_op.request_from("uav-a", LATEST)
         await p.fed_op.request_from("uav-a", LATEST)
         await _until(lambda: p.ia_a.answered_on_thread >= 1)
+
+
+async def _sealed_reads(p: Pair, conv: str, n: int) -> tuple[list[bytes], list[Any]]:
+    """``n`` get-latest requests of operator's, sealed for uav-a but not sent; their futures."""
+    sealed: list[bytes] = []
+    real_put = p.asker.transport.publish
+
+    async def capture(key: str, payload: bytes, **kw: Any) -> None:
+        if key.endswith("/acl/uav-a"):
+            sealed.append(payload)
+            return
+        await real_put(key, payload, **kw)
+
+    p.asker.transport.publish = capture  # type: ignore[method-assign]
+    p.ia_op._batching = False  # each message in an envelope of its own
+    asks = [
+        asyncio.ensure_future(p.fed_op.request_from("uav-a", LATEST, conversation_id=f"{conv}-{i}"))
+        for i in range(n)
+    ]
+    await _until(lambda: len(sealed) == n)
+    p.asker.transport.publish = real_put  # type: ignore[method-assign]
+    return sealed, asks
+
+
+class _Hold(Exception):
+    """What holds uav-a's loop in its inbox's consumer (as a long turn of a busy loop)."""
+
+
+@pytest.mark.parametrize("held", [False, True], ids=["idle-loop", "draining-loop"])
+async def test_what_the_peer_sends_once_answered_finds_the_answer_counted(held: bool) -> None:
+    """The lane's answer is booked on the loop before the peer's next message is taken.
+
+    The next message enters the inbox the moment the answer is put (the fastest peer),
+    and the thread waits until the loop took it: the counts it met there include the
+    answer, whether the loop was idle (FIFO behind the posted booking) or busy taking
+    from the inbox then (no wake-up of its own: the consumer books what is pending).
+    """
+    async with pair() as p:
+        ia = p.ia_a
+        for _ in range(3):  # warm: the next plain read is answerable on the thread
+            await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: ia.answered_on_thread >= 1 and not ia._lane_done)
+        before = ia.answered_on_thread
+        conv = f"lane-book-{held}"
+        sealed, asks = await _sealed_reads(p, conv, 2)
+        inbox = ia._lane_inbox
+        assert inbox is not None
+        seen: list[int] = []  # answered_on_thread when the loop takes the next message
+        taken = threading.Event()
+        real_take_now = ia._take_now
+
+        def take_now(host: Any, peer: str, state: Any, body: bytes) -> bool:
+            if f"{conv}-1".encode() in body:
+                seen.append(ia.answered_on_thread)
+                taken.set()
+            return real_take_now(host, peer, state, body)
+
+        ia._take_now = take_now  # type: ignore[method-assign]
+        entered, release = threading.Event(), threading.Event()
+        real_not_opened = ia._not_opened
+
+        def not_opened(stats: Any, exc: Exception) -> None:
+            if isinstance(exc, _Hold):
+                entered.set()
+                release.wait(WAIT)
+                return
+            real_not_opened(stats, exc)
+
+        ia._not_opened = not_opened  # type: ignore[method-assign]
+        transport = p.provider.transport
+        real_declared = transport.declared_publisher
+
+        def declared(key: str) -> Any:
+            put = real_declared(key)
+            if put is None:
+                return None
+
+            def put_then_the_peer(payload: bytes) -> None:
+                put(payload)
+                inbox.put(ia._lane_take(sealed[1]))  # behind the first: for the loop
+                release.set()
+                taken.wait(WAIT)  # the loop took it before this thread goes on
+
+            return put_then_the_peer
+
+        transport.declared_publisher = declared  # type: ignore[method-assign]
+        took: list[Any] = []
+
+        def answer() -> None:
+            if held:
+                entered.wait(WAIT)
+            took.append(ia._lane_take(sealed[0]))
+
+        thread = threading.Thread(target=answer)
+        thread.start()
+        try:
+            if held:
+                inbox.put((None, _Hold()))
+            got = await asyncio.wait_for(asyncio.gather(*asks), WAIT)
+        finally:
+            release.set()
+            taken.set()
+            await asyncio.to_thread(thread.join, WAIT)
+        assert took == [None]  # the first was answered on the thread
+        assert [a["heli-altitude"]["samples"][0][0] for a in got] == [120.0, 120.0]
+        assert seen == [before + 1]
+
+
+async def test_an_answer_the_thread_could_not_put_is_the_loops_counted_once() -> None:
+    """A put that fails on the thread takes its booking back: the loop answers, counts once."""
+    async with pair() as p:
+        ia = p.ia_a
+        for _ in range(3):
+            await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: ia.answered_on_thread >= 1 and not ia._lane_done)
+        await _until(lambda: p.fed_a.stats.handled >= 3)
+        sender = p.provider.stats.senders["operator"]
+        before = (ia.answered_on_thread, sender.accepted, p.fed_a.stats.handled)
+        records = len([r for r in ia.audit.records if r.get("from") == "operator"])
+        transport = p.provider.transport
+        real_declared = transport.declared_publisher
+        failed: list[str] = []
+
+        def declared(key: str) -> Any:
+            if real_declared(key) is None:
+                return None
+
+            def put(payload: bytes) -> None:
+                failed.append(key)
+                raise TransportError("a put that fails")
+
+            return put
+
+        transport.declared_publisher = declared  # type: ignore[method-assign]
+        answer = await p.fed_op.request_from("uav-a", LATEST)
+        transport.declared_publisher = real_declared  # type: ignore[method-assign]
+        assert answer["heli-altitude"]["samples"][0][0] == 120.0
+        assert failed  # the thread tried, and the loop answered
+        await _until(lambda: p.fed_a.stats.handled == before[2] + 1)
+        await _until(
+            lambda: len([r for r in ia.audit.records if r.get("from") == "operator"]) >= records + 1
+        )
+        assert (ia.answered_on_thread, sender.accepted, p.fed_a.stats.handled) == (
+            before[0],
+            before[1] + 1,
+            before[2] + 1,
+        )
+        assert len([r for r in ia.audit.records if r.get("from") == "operator"]) == records + 1
