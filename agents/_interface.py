@@ -1474,7 +1474,8 @@ class InterfaceAgent:
             content = answer(message)
             if content is LATER:
                 return False
-            reply = message.reply(Performative.INFORM, content, sender=agent.aid).to_json()
+            answered = message.reply(Performative.INFORM, content, sender=agent.aid)
+            reply = answered.to_json()
         except Exception:  # the loop's `answer_at_once` and handler meet it again
             return False
         total, requests = state.total, state.requests
@@ -1524,15 +1525,36 @@ class InterfaceAgent:
                         booked = False
                         break
             if booked:
-                # booked already (the loop ran between): counted once, as answered,
-                # and its answer lost, as a handler's answer that could not be sent
-                log.warning(
-                    "interface[%s]: answering %s on the receiving thread: %s", self._me, peer, exc
-                )
+                # booked already (the loop ran between): counted once, as answered; the
+                # loop sends the answer its own way (a publisher evicted meanwhile is
+                # declared again there)
+                log.info("interface[%s]: the lane's put to %s failed: %s", self._me, peer, exc)
+                try:
+                    loop = self._loop
+                    if loop is not None:
+                        loop.call_soon_threadsafe(self._lane_resend, peer, answered)
+                except RuntimeError:  # the loop is closed: nobody waits for the answer
+                    pass
                 return True
             self._lane_give_back(state)
             return False
         return True
+
+    def _lane_resend(self, peer: str, answer: ACLMessage) -> None:
+        """On the loop: send an answer the lane booked but could not put (`send`)."""
+        host = self._host
+        if host is None or self.send_now(peer, answer):
+            return
+        try:
+            host.spawn(self._lane_send(peer, answer), "interface.lane-resend")
+        except AgentError:  # the platform is closing: nobody waits for the answer
+            pass
+
+    async def _lane_send(self, peer: str, answer: ACLMessage) -> None:
+        try:
+            await self.send(peer, answer)
+        except Exception as exc:  # as a handler's answer that could not be sent
+            log.warning("interface[%s]: could not send an answer to %s: %s", self._me, peer, exc)
 
     @staticmethod
     def _lane_give_back(state: _Sender) -> None:
