@@ -515,6 +515,17 @@ class Agent:
     taken as `LATER`.
     """
 
+    answer_on_thread: Callable[[ACLMessage], Any] | None = None
+    """`answer_at_once` on the transport's thread, before the event loop wakes; None: not so.
+
+    Asked by the Interface Agent on zenoh's receiving thread (`InterfaceAgent.lane`) for
+    a message `answer_at_once` would be asked for, under the same conditions. It runs
+    beside the event loop: it may read only what the loop replaces whole (a tuple, a
+    snapshot) and must give the answer `answer_at_once` gives at some moment of that
+    read, or `LATER` (the message then takes the loop's way, where `answer_at_once`
+    decides it). The Federation and Gateway Agents define it.
+    """
+
     def __init__(self, name: str, *, mailbox_size: int | None = None) -> None:
         agent_id(name, "platform")  # check the name's characters now, not on start
         self.name = name

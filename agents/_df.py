@@ -467,6 +467,16 @@ class DirectoryFacilitator(Agent):
         self._reach[key] = allowed
         return allowed
 
+    def reachable_now(self, receiver: str, asker_platform: str) -> bool:
+        """`reachable` (via the interface) from any thread, as decided before; False: ask that.
+
+        Reads only what `reachable` decided and kept (one lookup each in a set and a
+        dict the event loop changes): False when it never decided, or decided no.
+        """
+        if asker_platform in self._said_left:
+            return False
+        return self._reach.get((receiver, asker_platform, True)) is True
+
     def said_left(self, platform: str) -> bool:
         """Whether ``platform`` said, signed, that it left, and was not listed again since."""
         return platform in self._said_left

@@ -68,7 +68,7 @@ from ._security import (
     sign_owner_batch,
     watch_answer,
 )
-from .transports import Handle, Message, Presence, Subscription
+from .transports import Handle, Inbox, Presence, Subscription
 
 if TYPE_CHECKING:
     from ._platform import AgentPlatform, SenderStats
@@ -178,6 +178,7 @@ class _Sender:
 
     __slots__ = (
         "last_report",
+        "lock",
         "pending",
         "pending_refused",
         "refusals",
@@ -196,6 +197,9 @@ class _Sender:
         self.pending = 0  # limited since the last audit record
         self.pending_refused = 0
         self.last_report = -math.inf
+        # held around every check-then-take of ``requests`` and ``total``: zenoh's thread
+        # takes from them too (`InterfaceAgent.lane`), never waiting for this lock
+        self.lock = threading.Lock()
 
 
 class AuditLog:
@@ -541,6 +545,12 @@ class InterfaceAgent:
     (a JSON array of messages, ``docs/wire.md``); each is still checked, rate-limited and
     audited one by one where it arrives. Off for a federation with platforms of a release
     before batches (they drop them).
+
+    ``lane`` (default on; zenoh only): every ACL envelope is opened on zenoh's receiving
+    thread, and a plain read an agent answers by `Agent.answer_on_thread` is answered
+    there, before the event loop wakes, when the loop would answer it at once
+    (`Agent.answer_at_once`) and nothing of its peer waits for the loop; counted in
+    ``answered_on_thread`` (docs/agents.md says what runs where).
     """
 
     def __init__(
@@ -565,6 +575,7 @@ class InterfaceAgent:
         monotonic: Callable[[], float] = time.monotonic,
         kx_limit: KxLimit | None = DEFAULT_KX_LIMIT,
         batch: bool = True,
+        lane: bool = True,
     ) -> None:
         self.keys = keys
         self.trust = trust
@@ -625,7 +636,7 @@ class InterfaceAgent:
         self._presence_ignored: dict[str, int] = {}
         self._presence_last_report = -math.inf
         self._presence_later: dict[str, asyncio.TimerHandle] = {}
-        self._subs: list[Subscription[Message] | Subscription[Presence]] = []
+        self._subs: list[Subscription[Any]] = []
         self._kx: Handle | None = None
         self._host: AgentPlatform | None = None
         self.agent: Agent | None = None
@@ -677,6 +688,17 @@ class InterfaceAgent:
         self.unsent_revoked = 0  # messages for a platform revoked then, not sent, since start
         self._revoked: set[str] = set()  # revoked while running: what is for them is dropped
         self._unhook_trust: Callable[[], None] | None = None
+        self.lane = lane
+        self._lane_on = False  # the inbox is opened on the transport's thread (`_lane_take`)
+        self._lane_inbox: Inbox[Any] | None = None  # its queue for the loop, then
+        self._lane_lock = threading.Lock()
+        # per peer: its messages queued for the event loop or being taken there, and the
+        # one the lane is deciding; the lane answers only when it is the peer's only one
+        self._lane_queued: dict[str, int] = {}
+        # answered on the transport's thread, to be counted and audited on the loop
+        self._lane_done: deque[tuple[str, tuple[Any, ...], Agent]] = deque()
+        self._lane_posted = False  # `_lane_book` is posted to the loop and has not run
+        self.answered_on_thread = 0  # of ``answered_at_once``, on the transport's thread
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -724,7 +746,15 @@ class InterfaceAgent:
             )
         presence = await transport.watch_presence(platform.key("alive", "*"), history=False)
         self._subs.append(presence)
-        inbox = await transport.subscribe(platform.key("acl"))
+        inbox: Subscription[Any] | None = None
+        if self.lane:
+            inbox = await transport.subscribe_taking(
+                platform.key("acl"), self._lane_take, dropped=self._lane_dropped
+            )
+        self._lane_on = inbox is not None
+        self._lane_inbox = None if inbox is None else inbox.inbox
+        if inbox is None:
+            inbox = await transport.subscribe(platform.key("acl"))
         self._subs.append(inbox)
         platform.spawn(self._receive(inbox), "interface.inbox")
         platform.spawn(self._watch(presence), "interface.presence")
@@ -1262,10 +1292,11 @@ class InterfaceAgent:
 
     # -- receiving ----------------------------------------------------------------------------
 
-    async def _receive(self, inbox: Subscription[Message]) -> None:
+    async def _receive(self, inbox: Subscription[Any]) -> None:
         host = self._require_host()
         open_envelope = self.sessions.open
         stats = host.stats
+        lane = self._lane_on
         n = 0
         async for item in inbox:
             n += 1
@@ -1273,39 +1304,299 @@ class InterfaceAgent:
                 # Getting a queued item never suspends, and dropping one is cheap: without
                 # this a flood would hold the loop, and no agent would run to answer others.
                 await asyncio.sleep(0)
+            if lane:  # opened on the transport's thread (`_lane_take`)
+                if self._lane_done:
+                    # what the lane answered before this came is booked before it is
+                    # taken: its posted booking waits behind this turn when the inbox
+                    # was being drained (no wake-up of its own put it in the queue)
+                    self._lane_book()
+                peer, body = item
+                if peer is None:
+                    self._not_opened(stats, body)
+                    continue
+            else:
+                try:
+                    peer, body = open_envelope(item.payload)
+                except Exception as exc:
+                    self._not_opened(stats, exc)
+                    continue
             try:
-                peer, body = open_envelope(item.payload)
-            except AuthenticationError as exc:
-                stats.unauthenticated += 1
-                self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}")
-                if isinstance(exc, UnknownSession) and exc.platform is not None:
-                    self.rehandshake(exc.platform)
-                continue
-            except Exception as exc:  # never let one envelope end the loop
-                stats.unauthenticated += 1
-                self._drop_unauthenticated(None, f"malformed: {exc}")
-                continue
+                state = self._senders.get(peer)
+                if state is None:
+                    state = self._sender(host, peer)
+                if body[:1] != b"[":
+                    with state.lock:
+                        taken = self._take_now(host, peer, state, body)
+                    if not taken:
+                        await self._take(host, peer, state, body)
+                    continue
+                items = await self._batch_items(host, peer, body)
+                now = self._monotonic()  # one reading: the batch arrived at once
+                i, end = 0, len(items)
+                while i < end:
+                    with state.lock:
+                        done = self._take_batch(host, peer, state, items, i, now)
+                    n += done - i
+                    i = done
+                    if i < end:  # one the quick path leaves (a limit, a refusal …): in full
+                        await self._take(host, peer, state, items[i], now)
+                        i += 1
+                        n += 1
+                    if n >= 64:
+                        n = 0
+                        await asyncio.sleep(0)
+            finally:
+                if lane:
+                    self._lane_release(peer)
+
+    def _not_opened(self, stats: Any, exc: Exception) -> None:
+        """An ACL envelope that did not open: counted, audited (within budget), dropped."""
+        stats.unauthenticated += 1
+        if isinstance(exc, AuthenticationError):
+            self._drop_unauthenticated(exc.platform, f"{exc.code}: {exc.reason}")
+            if isinstance(exc, UnknownSession) and exc.platform is not None:
+                self.rehandshake(exc.platform)
+        else:
+            self._drop_unauthenticated(None, f"malformed: {exc}")
+
+    # -- the lane: plain reads answered on the transport's thread ---------------------
+
+    def _lane_release(self, peer: str) -> None:
+        """One message of ``peer`` the loop or the lane took is done with."""
+        with self._lane_lock:
+            left = self._lane_queued[peer] - 1
+            if left:
+                self._lane_queued[peer] = left
+            else:
+                del self._lane_queued[peer]
+
+    def _lane_dropped(self, item: tuple[str | None, Any]) -> None:
+        """The inbox was full and dropped ``item`` (oldest first): the loop never takes it."""
+        if item[0] is not None:
+            self._lane_release(item[0])
+
+    def _lane_take(self, payload: bytes) -> tuple[str | None, Any] | None:
+        """On zenoh's thread: open ``payload``; a plain read answered here (None), else
+        ``(peer, body)`` (``(None, error)``: it did not open) for the event loop, in order.
+
+        Every ACL envelope opens here (the loop opens none: one replay window, one
+        reader). A read is answered here only while nothing of its peer is queued for
+        the loop or taken there (it overtakes nothing), by `_lane_answer`.
+        """
+        try:
+            peer, body = self.sessions.open(payload)
+        except Exception as exc:  # the loop counts and audits it
+            return None, exc
+        with self._lane_lock:
+            queued = self._lane_queued.get(peer, 0)
+            self._lane_queued[peer] = queued + 1
+        if queued == 0:
+            try:
+                answered = self._lane_answer(peer, body)
+            except Exception:  # never into zenoh's thread: the loop decides it
+                log.exception("interface[%s]: answering %s on the receiving thread", self._me, peer)
+                answered = False
+            if answered:
+                self._lane_release(peer)
+                return None
+        return peer, body  # its count stands until the loop has taken it
+
+    def _lane_answer(self, peer: str, body: bytes) -> bool:
+        """`_take_now` and `_answer_at_once` of a plain read, on zenoh's thread; False: not so,
+        nothing taken (the loop then decides it as always).
+
+        The same checks, limits and answer, reading only what is safe beside the loop:
+        its dicts and sets by one lookup each, the sender's buckets under their lock, the
+        sessions under the table's, the directory's decisions made before
+        (`DirectoryFacilitator.reachable_now`), the agent's `Agent.answer_on_thread`, and
+        a publisher the loop declared. What the loop alone changes (the counts, the audit
+        log, a session's renewal) it does in `_lane_book`, posted before the answer is put.
+        """
+        host = self._host
+        if host is None or self.mirroring or len(body) > self.max_bytes or body[:1] == b"[":
+            return False
+        state = self._senders.get(peer)
+        if state is None:
+            return False
+        try:
+            obj = _loads(body)
+        except orjson.JSONDecodeError:
+            return False
+        if (
+            type(obj) is not dict
+            or (fields := _quick_fields(obj)) is None
+            or nesting_bound(body) >= _TRUSTED_NESTING
+        ):
+            return False  # the full model's parse, on the loop
+        message = _constructed(ACLMessage, fields, set(obj))
+        performative = message.performative
+        receivers = message.receivers
+        if (
+            performative not in INITIATING
+            or len(receivers) != 1
+            or message.reply_to
+            or message.in_reply_to is not None
+        ):
+            return False
+        receiver = receivers[0]
+        sender = message.sender
+        here = host.name
+        at = receiver.rpartition("@")
+        if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
+            return False
+        agent = host._agents.get(at[0])
+        if agent is None or agent._state != _RUNNING:
+            return False
+        answer = agent.answer_on_thread
+        mailbox = agent._mailbox
+        if (
+            answer is None
+            or agent.answer_at_once is None
+            or mailbox._items
+            or mailbox._waiter is None  # its receive loop is in a handler
+            or agent._handlers_starting
+            or message.conversation_id in agent._by_conv
+        ):
+            return False
+        df = host.df
+        if df is None or not df.reachable_now(receiver, peer):
+            return False
+        transport = host.transport
+        key = self._acl_keys.get(peer)  # made by the loop's first send to it
+        if key is None or peer in self._outbox:
+            # a batch of the loop's for it this turn: the answer would join it there (a
+            # burst of the loop's sends is no reason: the lane's answer is in no turn)
+            return False
+        put = transport.declared_publisher(key)
+        if put is None:
+            return False
+        try:
+            content = answer(message)
+            if content is LATER:
+                return False
+            answered = message.reply(Performative.INFORM, content, sender=agent.aid)
+            reply = answered.to_json()
+        except Exception:  # the loop's `answer_at_once` and handler meet it again
+            return False
+        total, requests = state.total, state.requests
+        now = 0.0 if total is None else self._monotonic()
+        lock = state.lock
+        if not lock.acquire(blocking=False):
+            return False  # the loop is taking from these buckets: it decides this one too
+        try:
+            if (total is not None and not total.ready(now)) or (
+                requests is not None and not requests.ready(now)
+            ):
+                return False  # limited: refused, counted and audited on the loop
+            if requests is not None:
+                requests.tokens -= 1.0
+            if total is not None:
+                total.tokens -= 1.0
+        finally:
+            lock.release()
+        entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
+        try:
+            sealed = self.sessions.seal(peer, reply)
+        except Exception:  # no session, or one past its lifetime: the loop decides it
+            self._lane_give_back(state)
+            return False
+        # Booked before the answer leaves: whatever the peer sends once it has the answer
+        # reaches the loop behind this booking (FIFO ready queue, or `_receive`'s check).
+        done = (peer, entry, agent)
+        with self._lane_lock:
+            self._lane_done.append(done)
+            posted, self._lane_posted = self._lane_posted, True
+        if not posted:
+            loop = self._loop
+            try:
+                if loop is not None:
+                    loop.call_soon_threadsafe(self._lane_book)
+            except RuntimeError:  # the loop is closed: nobody reads the counts any more
+                pass
+        try:
+            put(sealed)
+        except Exception as exc:  # a transport closing
+            booked = True
+            with self._lane_lock:
+                pending = self._lane_done
+                for i, item in enumerate(pending):
+                    if item is done:  # not booked yet: taken back, the loop decides it
+                        del pending[i]
+                        booked = False
+                        break
+            if booked:
+                # booked already (the loop ran between): counted once, as answered; the
+                # loop sends the answer its own way (a publisher evicted meanwhile is
+                # declared again there)
+                log.info("interface[%s]: the lane's put to %s failed: %s", self._me, peer, exc)
+                try:
+                    loop = self._loop
+                    if loop is not None:
+                        loop.call_soon_threadsafe(self._lane_resend, peer, answered)
+                except RuntimeError:  # the loop is closed: nobody waits for the answer
+                    pass
+                return True
+            self._lane_give_back(state)
+            return False
+        return True
+
+    def _lane_resend(self, peer: str, answer: ACLMessage) -> None:
+        """On the loop: send an answer the lane booked but could not put (`send`)."""
+        host = self._host
+        if host is None or self.send_now(peer, answer):
+            return
+        try:
+            host.spawn(self._lane_send(peer, answer), "interface.lane-resend")
+        except AgentError:  # the platform is closing: nobody waits for the answer
+            pass
+
+    async def _lane_send(self, peer: str, answer: ACLMessage) -> None:
+        try:
+            await self.send(peer, answer)
+        except Exception as exc:  # as a handler's answer that could not be sent
+            log.warning("interface[%s]: could not send an answer to %s: %s", self._me, peer, exc)
+
+    @staticmethod
+    def _lane_give_back(state: _Sender) -> None:
+        """The tokens the lane took for a message it leaves to the loop after all."""
+        total, requests = state.total, state.requests
+        with state.lock:
+            if requests is not None:
+                requests.tokens = min(requests.burst, requests.tokens + 1.0)
+            if total is not None:
+                total.tokens = min(total.burst, total.tokens + 1.0)
+
+    def _lane_book(self) -> None:
+        """On the loop: count, audit and renew for what the lane answered, as `_take_now` would."""
+        with self._lane_lock:
+            self._lane_posted = False
+            done, self._lane_done = self._lane_done, deque()
+        host = self._host
+        if host is None:
+            done.clear()
+            return
+        stats = host.stats
+        entries = []
+        peers = set()
+        while done:
+            peer, entry, agent = done.popleft()
             state = self._senders.get(peer)
-            if state is None:
-                state = self._sender(host, peer)
-            if body[:1] != b"[":
-                if not self._take_now(host, peer, state, body):
-                    await self._take(host, peer, state, body)
-                continue
-            items = await self._batch_items(host, peer, body)
-            now = self._monotonic()  # one reading: the batch arrived at once
-            i, end = 0, len(items)
-            while i < end:
-                done = self._take_batch(host, peer, state, items, i, now)
-                n += done - i
-                i = done
-                if i < end:  # one the quick path leaves (a limit, a refusal …): in full
-                    await self._take(host, peer, state, items[i], now)
-                    i += 1
-                    n += 1
-                if n >= 64:
-                    n = 0
-                    await asyncio.sleep(0)
+            if state is not None:
+                state.stats.accepted += 1
+            stats.received_remote += 1
+            stats.local += 1
+            stats.sent_remote += 1
+            agent_stats = agent.stats
+            agent_stats.received += 1
+            agent_stats.handled += 1
+            agent_stats.answered_at_once += 1
+            self.answered_on_thread += 1
+            entries.append(entry)
+            peers.add(peer)
+        if entries:
+            self.audit.add_accepted(entries)
+        for peer in peers:
+            self.renew_if_needed(peer)
 
     async def _batch_items(self, host: AgentPlatform, peer: str, body: bytes) -> list[Any]:
         """The messages (decoded, not yet checked) of a batch; none when it is malformed."""
@@ -1339,7 +1630,9 @@ class InterfaceAgent:
             self._mirror.append(("acl", peer, time.time(), body))
         if state.total is not None:
             now = now or self._monotonic()
-            if not state.total.take(now):
+            with state.lock:
+                taken = state.total.take(now)
+            if not taken:
                 await self._limited(host, peer, state, raw, None, now)
                 return
         try:
@@ -1351,9 +1644,12 @@ class InterfaceAgent:
             await self._malformed(host, peer, raw, exc)
             return
         requests = state.requests
-        if requests is not None and message.performative in INITIATING and not requests.take(now):
-            await self._limited(host, peer, state, raw, message, now)
-            return
+        if requests is not None and message.performative in INITIATING:
+            with state.lock:
+                taken = requests.take(now)
+            if not taken:
+                await self._limited(host, peer, state, raw, message, now)
+                return
         state.stats.accepted += 1
         try:
             if not self._admit_now(host, peer, message):

@@ -23,6 +23,7 @@ import os
 import re
 import stat
 import struct
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
@@ -1081,6 +1082,10 @@ class SessionTable:
         self._missing_dropped: dict[str, int] = {}
         # per peer that left (signed), when: its sessions made before are never trusted again
         self._left: dict[str, float] = {}
+        # Everything above, each session's counters and replay window included, under one
+        # lock: envelopes are opened on the transport's thread (zenoh's, `InterfaceAgent`)
+        # while the event loop seals, adds and drops. Reentrant: `seal` asks `session_for`.
+        self._lock = threading.RLock()
         self._max_envelope = policy.max_envelope_bytes
         # a binary body is carried as is: the body plus a header of names, integers and a MAC
         self._max_bin_envelope = policy.max_body_bytes + 1024
@@ -1093,56 +1098,61 @@ class SessionTable:
 
     def peers(self) -> list[str]:
         """The platforms this table holds sessions with."""
-        return sorted(self._by_peer)
+        with self._lock:
+            return sorted(self._by_peer)
 
     def heard_since(self, peer: str) -> float | None:
         """Seconds since an envelope from ``peer`` last opened here (None: never)."""
-        at = self._heard.get(peer)
-        return None if at is None else max(0.0, self._clock() - at)
+        with self._lock:
+            at = self._heard.get(peer)
+            return None if at is None else max(0.0, self._clock() - at)
 
     def sessions(self, peer: str | None = None) -> list[Session]:
         """The sessions with ``peer`` (all when None), oldest first."""
-        if peer is None:
-            return sorted(self._by_sid.values(), key=lambda s: s.order)
-        return sorted(self._by_peer.get(peer, ()), key=lambda s: s.order)
+        with self._lock:
+            if peer is None:
+                return sorted(self._by_sid.values(), key=lambda s: s.order)
+            return sorted(self._by_peer.get(peer, ()), key=lambda s: s.order)
 
     def add(self, session: Session) -> None:
         """Hold a session made by ``Handshake.respond`` or ``Handshake.finish``."""
-        if session.me != self.me:
-            raise ValueError(f"session of {session.me!r} added to the table of {self.me!r}")
-        if session.sid in self._by_sid:
-            raise ValueError(f"session {session.sid} is already in the table")
-        mine = self._by_peer.setdefault(session.peer, [])
-        mine.append(session)
-        self._by_sid[session.sid] = session
-        mine.sort(key=lambda s: s.order)
-        while len(mine) > self.policy.max_sessions_per_peer:
-            # Retired sessions go first. Then unconfirmed ones that are no newer than the
-            # newest confirmed one: a replayed request makes those, and they cannot be a
-            # renewal. A newer unconfirmed session stays: the peer may have just made it
-            # and be about to send on it (both sides can renew at once). Then the oldest.
-            # Never the one just added: it is a renewal.
-            others = [s for s in mine if s is not session]
-            newest = max((s.order[0] for s in others if s._confirmed), default=None)
+        with self._lock:
+            if session.me != self.me:
+                raise ValueError(f"session of {session.me!r} added to the table of {self.me!r}")
+            if session.sid in self._by_sid:
+                raise ValueError(f"session {session.sid} is already in the table")
+            mine = self._by_peer.setdefault(session.peer, [])
+            mine.append(session)
+            self._by_sid[session.sid] = session
+            mine.sort(key=lambda s: s.order)
+            while len(mine) > self.policy.max_sessions_per_peer:
+                # Retired sessions go first. Then unconfirmed ones that are no newer than the
+                # newest confirmed one: a replayed request makes those, and they cannot be a
+                # renewal. A newer unconfirmed session stays: the peer may have just made it
+                # and be about to send on it (both sides can renew at once). Then the oldest.
+                # Never the one just added: it is a renewal.
+                others = [s for s in mine if s is not session]
+                newest = max((s.order[0] for s in others if s._confirmed), default=None)
 
-            def rank(s: Session, newest: Any = newest) -> tuple[bool, bool, Any]:
-                # the order's timestamp, strictly: its second part is a random tie-break
-                plausible = s._confirmed or newest is None or s.order[0] > newest
-                return (s._retire_at is None, plausible, s.order)
+                def rank(s: Session, newest: Any = newest) -> tuple[bool, bool, Any]:
+                    # the order's timestamp, strictly: its second part is a random tie-break
+                    plausible = s._confirmed or newest is None or s.order[0] > newest
+                    return (s._retire_at is None, plausible, s.order)
 
-            self._drop(min(others, key=rank))
-        self._tx.pop(session.peer, None)
-        self.prune()
+                self._drop(min(others, key=rank))
+            self._tx.pop(session.peer, None)
+            self.prune()
 
     def missing(self) -> dict[str, int]:
         """Per peer, its JSON envelopes that never opened here (`Session.missing`, summed).
 
         Sessions dropped from the table count still; a peer with none missing is left out.
         """
-        counts = dict(self._missing_dropped)
-        for s in self._by_sid.values():
-            counts[s.peer] = counts.get(s.peer, 0) + s.missing
-        return {peer: n for peer, n in counts.items() if n > 0}
+        with self._lock:
+            counts = dict(self._missing_dropped)
+            for s in self._by_sid.values():
+                counts[s.peer] = counts.get(s.peer, 0) + s.missing
+            return {peer: n for peer, n in counts.items() if n > 0}
 
     def _drop(self, session: Session) -> None:
         if self._by_sid.pop(session.sid, None) is not None and session.missing > 0:
@@ -1161,12 +1171,13 @@ class SessionTable:
 
     def forget(self, peer: str) -> int:
         """Drop every session with ``peer`` (it left the federation); how many were dropped."""
-        dropped = list(self._by_peer.get(peer, ()))
-        for session in dropped:
-            self._drop(session)
-        self._tx.pop(peer, None)
-        self._rx_latest.pop(peer, None)
-        return len(dropped)
+        with self._lock:
+            dropped = list(self._by_peer.get(peer, ()))
+            for session in dropped:
+                self._drop(session)
+            self._tx.pop(peer, None)
+            self._rx_latest.pop(peer, None)
+            return len(dropped)
 
     def doubt(self, peer: str) -> int:
         """Seal for ``peer`` on none of its sessions until it sends on one; how many were in use.
@@ -1177,15 +1188,16 @@ class SessionTable:
         still open here. So none is dropped: the next message agrees a new session first
         (`session_for` is None), and one the peer sends on is trusted again.
         """
-        doubted = 0
-        for session in self._by_peer.get(peer, ()):
-            if session._confirmed:
-                session._confirmed = False
-                doubted += 1
-        self._tx.pop(peer, None)
-        # the next envelope from the peer, on whichever session, confirms that one again
-        self._rx_latest.pop(peer, None)
-        return doubted
+        with self._lock:
+            doubted = 0
+            for session in self._by_peer.get(peer, ()):
+                if session._confirmed:
+                    session._confirmed = False
+                    doubted += 1
+            self._tx.pop(peer, None)
+            # the next envelope from the peer, on whichever session, confirms that one again
+            self._rx_latest.pop(peer, None)
+            return doubted
 
     def retire(self, peer: str, before: float | None = None) -> int:
         """Seal for ``peer`` on none of its sessions agreed before ``before`` again.
@@ -1198,25 +1210,26 @@ class SessionTable:
         finds nobody, if it is gone). Sessions agreed since are its next process's and
         stay: a leave replayed, or come late, retires none of them. How many were retired.
         """
-        now = self._clock()
-        # in the peer's clock, as each session's `peer_time`: what it agreed after it signed
-        # the leave is kept, however far (within the skew) its clock is from ours
-        cutoff = now if before is None else before
-        retire_at = now + self.policy.grace
-        retired = 0
-        for session in self._by_peer.get(peer, ()):
-            if session.peer_time > cutoff:
-                continue
-            retired += 1
-            session._confirmed = False
-            if session._retire_at is None or session._retire_at > retire_at:
-                session._retire_at = retire_at
-        self._left[peer] = max(self._left.get(peer, cutoff), cutoff)
-        self._tx.pop(peer, None)
-        latest = self._rx_latest.get(peer)
-        if latest is not None and latest.peer_time <= cutoff:
-            del self._rx_latest[peer]
-        return retired
+        with self._lock:
+            now = self._clock()
+            # in the peer's clock, as each session's `peer_time`: what it agreed after it signed
+            # the leave is kept, however far (within the skew) its clock is from ours
+            cutoff = now if before is None else before
+            retire_at = now + self.policy.grace
+            retired = 0
+            for session in self._by_peer.get(peer, ()):
+                if session.peer_time > cutoff:
+                    continue
+                retired += 1
+                session._confirmed = False
+                if session._retire_at is None or session._retire_at > retire_at:
+                    session._retire_at = retire_at
+            self._left[peer] = max(self._left.get(peer, cutoff), cutoff)
+            self._tx.pop(peer, None)
+            latest = self._rx_latest.get(peer)
+            if latest is not None and latest.peer_time <= cutoff:
+                del self._rx_latest[peer]
+            return retired
 
     def back_since_left(self, peer: str) -> bool:
         """Whether ``peer``, since the leave it signed, sent on a session it began after it.
@@ -1226,14 +1239,15 @@ class SessionTable:
         at once, before its directory answers). A session begun here is not counted: the
         refusal sent to a platform that left and goes on asking would agree one.
         """
-        left = self._left.get(peer)
-        latest = self._rx_latest.get(peer)
-        return (
-            left is not None
-            and latest is not None
-            and not latest.initiator
-            and latest.peer_time > left
-        )
+        with self._lock:
+            left = self._left.get(peer)
+            latest = self._rx_latest.get(peer)
+            return (
+                left is not None
+                and latest is not None
+                and not latest.initiator
+                and latest.peer_time > left
+            )
 
     def peer_clock_offset(self, peer: str) -> float:
         """How far ``peer``'s clock is ahead of ours, by its newest session (s; 0 when none).
@@ -1241,16 +1255,18 @@ class SessionTable:
         The time it signed its half of the key exchange less when the session was made
         here: the message's transit counts too, so a little less than the true offset.
         """
-        newest = max(self._by_peer.get(peer, ()), key=lambda s: s.order, default=None)
-        return 0.0 if newest is None else newest.peer_time - newest.established
+        with self._lock:
+            newest = max(self._by_peer.get(peer, ()), key=lambda s: s.order, default=None)
+            return 0.0 if newest is None else newest.peer_time - newest.established
 
     def prune(self) -> int:
         """Drop sessions past their lifetime or their grace period; how many were dropped."""
-        now = self._clock()
-        dead = [s for s in self._by_sid.values() if s.expired(now)]
-        for session in dead:
-            self._drop(session)
-        return len(dead)
+        with self._lock:
+            now = self._clock()
+            dead = [s for s in self._by_sid.values() if s.expired(now)]
+            for session in dead:
+                self._drop(session)
+            return len(dead)
 
     def session_for(self, peer: str) -> Session | None:
         """The session to seal with for ``peer``, or None when a handshake is needed first.
@@ -1259,38 +1275,41 @@ class SessionTable:
         the peer has sent on. A responder never sends first on a fresh session, because a
         replayed request can make sessions the peer does not hold.
         """
-        now = self._clock()
-        cached = self._tx.get(peer)
-        # `Session.expired`, inline: the path of every message sealed
-        if (
-            cached is not None
-            and now - cached.established <= cached._lifetime
-            and (cached._retire_at is None or now <= cached._retire_at)
-        ):
-            return cached
-        best: Session | None = None
-        for s in self._by_peer.get(peer, ()):
-            if s._confirmed and not s.expired(now) and (best is None or s.order > best.order):
-                best = s
-        if best is None:
-            self._tx.pop(peer, None)
-        else:
-            self._tx[peer] = best
-        return best
+        with self._lock:
+            now = self._clock()
+            cached = self._tx.get(peer)
+            # `Session.expired`, inline: the path of every message sealed
+            if (
+                cached is not None
+                and now - cached.established <= cached._lifetime
+                and (cached._retire_at is None or now <= cached._retire_at)
+            ):
+                return cached
+            best: Session | None = None
+            for s in self._by_peer.get(peer, ()):
+                if s._confirmed and not s.expired(now) and (best is None or s.order > best.order):
+                    best = s
+            if best is None:
+                self._tx.pop(peer, None)
+            else:
+                self._tx[peer] = best
+            return best
 
     def seal(self, peer: str, body: bytes | str) -> bytes:
         """Seal ``body`` for ``peer`` on its current session; UnknownSession when there is none."""
-        session = self.session_for(peer)
-        if session is None:
-            raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
-        return session.seal(body)
+        with self._lock:
+            session = self.session_for(peer)
+            if session is None:
+                raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
+            return session.seal(body)
 
     def seal_bytes(self, peer: str, body: bytes) -> bytes:
         """Seal binary ``body`` for ``peer`` on its current session; UnknownSession when none."""
-        session = self.session_for(peer)
-        if session is None:
-            raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
-        return session.seal_bytes(body)
+        with self._lock:
+            session = self.session_for(peer)
+            if session is None:
+                raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
+            return session.seal_bytes(body)
 
     def needs_renewal(self, peer: str) -> bool:
         """True when there is no session to seal with for ``peer``, or it asks for renewal.
@@ -1298,19 +1317,20 @@ class SessionTable:
         The caller then starts a handshake unless ``Handshake.pending(peer)`` says one is
         already under way; it may keep sealing on the old session until the new one is made.
         """
-        now = self._clock()
-        newest: Session | None = None
-        for s in self._by_peer.get(peer, ()):
-            # local time, not the agreed order: "did I make a session lately?" is local
-            if (
-                s._confirmed
-                # `Session.expired`, inline: asked after every message sent
-                and now - s.established <= s._lifetime
-                and (s._retire_at is None or now <= s._retire_at)
-                and (newest is None or s.established > newest.established)
-            ):
-                newest = s
-        return newest is None or newest.needs_renewal()
+        with self._lock:
+            now = self._clock()
+            newest: Session | None = None
+            for s in self._by_peer.get(peer, ()):
+                # local time, not the agreed order: "did I make a session lately?" is local
+                if (
+                    s._confirmed
+                    # `Session.expired`, inline: asked after every message sent
+                    and now - s.established <= s._lifetime
+                    and (s._retire_at is None or now <= s._retire_at)
+                    and (newest is None or s.established > newest.established)
+                ):
+                    newest = s
+            return newest is None or newest.needs_renewal()
 
     def _session_of(self, frm: str, to: str, sid: str, ts: Any, n: Any) -> Session:
         """The header checks both envelope kinds share, in order; the session they name."""
@@ -1369,20 +1389,21 @@ class SessionTable:
         n = env["n"]
         if type(to) is not str or type(sid) is not str or type(payload) is not str:
             raise Malformed("fields 'to', 'sid', 'body'/'box' must be strings", frm)
-        session = self._session_of(frm, to, sid, ts, n)
-        tag: bytes | None = None
-        if not boxed:
-            if self.policy.require_encryption:
-                raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
-            mac = env["mac"]
-            if type(mac) is not str:
-                raise Malformed("field 'mac' must be a string", frm)
-            tag = mac.encode()
-        now = self._clock()
-        body = session._accept(ts, n, payload, tag, now)
-        self._heard[frm] = now
-        if self._rx_latest.get(frm) is not session:
-            self._on_rx_switch(session, now)
+        with self._lock:
+            session = self._session_of(frm, to, sid, ts, n)
+            tag: bytes | None = None
+            if not boxed:
+                if self.policy.require_encryption:
+                    raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
+                mac = env["mac"]
+                if type(mac) is not str:
+                    raise Malformed("field 'mac' must be a string", frm)
+                tag = mac.encode()
+            now = self._clock()
+            body = session._accept(ts, n, payload, tag, now)
+            self._heard[frm] = now
+            if self._rx_latest.get(frm) is not session:
+                self._on_rx_switch(session, now)
         return frm, body
 
     def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
@@ -1423,17 +1444,18 @@ class SessionTable:
                 f"{self.policy.max_body_bytes}",
                 frm,
             )
-        session = self._session_of(frm, to, sid, ts, n)
-        if not boxed:
-            if self.policy.require_encryption:
-                raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
-            if type(mac) is not bytes or len(mac) != _MAC_BYTES:
-                raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
-        now = self._clock()
-        body = session._accept_bytes(ts, n, payload, mac, now)
-        self._heard[frm] = now
-        if self._rx_latest.get(frm) is not session:
-            self._on_rx_switch(session, now)
+        with self._lock:
+            session = self._session_of(frm, to, sid, ts, n)
+            if not boxed:
+                if self.policy.require_encryption:
+                    raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
+                if type(mac) is not bytes or len(mac) != _MAC_BYTES:
+                    raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
+            now = self._clock()
+            body = session._accept_bytes(ts, n, payload, mac, now)
+            self._heard[frm] = now
+            if self._rx_latest.get(frm) is not session:
+                self._on_rx_switch(session, now)
         return frm, body
 
     def _on_rx_switch(self, session: Session, now: float) -> None:

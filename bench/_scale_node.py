@@ -229,6 +229,10 @@ async def _uavs(spec: dict[str, Any], t_main: float, quiet: Any, reports: Any, s
                         u.platform.federation_agent.stats.answered_at_once for u in uavs
                     ),
                     "handled": sum(u.platform.federation_agent.stats.handled for u in uavs),
+                    # of those, answered on zenoh's thread (`InterfaceAgent.lane`)
+                    "on_thread": sum(
+                        getattr(u.platform.interface, "answered_on_thread", 0) for u in uavs
+                    ),
                 },
             )
         )

@@ -154,6 +154,7 @@ class ScaleResult:
     rss_bare_workers: list[float] = field(default_factory=list)
     load: tuple[float, float] = (0.0, 0.0)  # 1-min load average at the window's start, end
     at_once: int = 0  # of the UAVs' Federation Agents' messages, answered as they came
+    on_thread: int = 0  # of those, answered on zenoh's thread (`InterfaceAgent.lane`)
     handled: int = 0  # every message the UAVs' Federation Agents handled
 
     @property
@@ -628,6 +629,7 @@ async def _federation(
             )
             result.worker_lag_ms = max(q["lag"] for q in finals)
             result.at_once = sum(q["at_once"] for q in finals)
+            result.on_thread = sum(q.get("on_thread", 0) for q in finals)
             result.handled = sum(q["handled"] for q in finals)
             probes = [q["probe"] for q in finals if q["probe"]]
             if probes:
@@ -778,7 +780,8 @@ def print_result(r: ScaleResult, prefix: str = "scale-32") -> list[str]:
     print(f"  the same query before any export flowed: {_dist(r.idle_ms, 'ms')}")
     print(
         f"  the UAVs' Federation Agents answered {r.at_once} of the {r.handled} messages they "
-        "handled as they came (`answer_at_once`: no mailbox, no task)"
+        "handled as they came (`answer_at_once`: no mailbox, no task), "
+        f"{r.on_thread} of them on zenoh's thread (the lane: before the event loop woke)"
     )
     print(
         f"  raw zenoh get to {r.platforms} queryables on the same sessions: "

@@ -21,18 +21,18 @@ class Cache:
     available time) are kept: that is what answers "what did we believe at tq about tv".
     """
 
-    __slots__ = ("_best", "_best_at", "_buf", "_max_age", "_scanned", "evicted")
+    __slots__ = ("_buf", "_max_age", "_memo", "evicted")
 
     def __init__(self, spec: CacheSpec) -> None:
         self._buf: deque[RawSample] = deque(maxlen=spec.max_samples)
         self._max_age = None if spec.max_age is None else seconds_to_ns(spec.max_age)
         self.evicted = 0
-        # `latest` over everything cached, kept between calls so that each call reads only
-        # what arrived since (a query per stream per request must not scan the whole cache):
-        # the best sample, its index among all ever added (evicted + cached), how many read
-        self._best: RawSample | None = None
-        self._best_at = -1
-        self._scanned = 0
+        # `latest` over everything cached, kept so that each update reads only what arrived
+        # since (a query per stream per request must not scan the whole cache): the best
+        # sample, its index among all ever added (evicted + cached), how many read, and the
+        # newest arrival's available time. One tuple, replaced whole by `extend` (the
+        # stream's one writer, on its event loop): `latest_now` reads it from any thread.
+        self._memo: tuple[RawSample | None, int, int, int] = (None, -1, 0, 0)
 
     def __len__(self) -> int:
         return len(self._buf)
@@ -53,6 +53,39 @@ class Cache:
                 buf.popleft()
                 n += 1
             self.evicted += n
+        self._update()
+
+    def _update(self) -> None:
+        """Bring the best of everything cached up to date, reading only what arrived since."""
+        buf = self._buf
+        if not buf:
+            self._memo = (None, -1, self.evicted, 0)
+            return
+        # indices among all samples ever added: buf[0] is the first not evicted (counted
+        # from `evicted`, so extend keeps no count of its own)
+        first = self.evicted
+        appended = first + len(buf)
+        best, best_at, start, _ = self._memo
+        if start == appended and best is not None and best_at >= first:
+            return  # nothing arrived since, and the best is still cached
+        if best is None or best_at < first:  # none yet, or evicted since: read it all
+            best, best_at, start = None, -1, first
+        # newest first, so a later arrival wins a tie with an earlier one ("newest")
+        for j, s in enumerate(islice(reversed(buf), appended - start)):
+            if best is None or s[1] > best[1] or (best_at < start and s[1] == best[1]):
+                best, best_at = s, appended - 1 - j
+        self._memo = (best, best_at, appended, buf[-1][2])
+
+    def latest_now(self, as_of: int) -> tuple[bool, RawSample | None]:
+        """`latest` (``as_of``) from any thread: ``(True, sample)``, or ``(False, None)`` when
+        only the stream's event loop can tell (a sample available after ``as_of``).
+
+        It reads the best sample `extend` keeps, replaced whole: never the cache itself.
+        """
+        best, _, _, newest = self._memo
+        if newest > as_of:
+            return False, None
+        return True, best
 
     def samples(self, as_of: int | None = None) -> list[RawSample]:
         """All cached samples in arrival order, only those available by ``as_of`` if given."""
@@ -71,22 +104,8 @@ class Cache:
         buf = self._buf
         if not buf:
             return None
-        if as_of is None or buf[-1][2] <= as_of:  # all of it: only what is new is read
-            # indices among all samples ever added: buf[0] is the first not evicted (counted
-            # from `evicted`, so extend, which is hot, keeps no count of its own)
-            first = self.evicted
-            appended = first + len(buf)
-            best, best_at, start = self._best, self._best_at, self._scanned
-            if start == appended and best is not None and best_at >= first:
-                return best  # nothing arrived since, and the best is still cached
-            if best is None or best_at < first:  # none yet, or evicted since: read it all
-                best, best_at, start = None, -1, first
-            # newest first, so a later arrival wins a tie with an earlier one ("newest")
-            for j, s in enumerate(islice(reversed(buf), appended - start)):
-                if best is None or s[1] > best[1] or (best_at < start and s[1] == best[1]):
-                    best, best_at = s, appended - 1 - j
-            self._best, self._best_at, self._scanned = best, best_at, appended
-            return best
+        if as_of is None or buf[-1][2] <= as_of:  # all of it: kept up by `extend`
+            return self._memo[0]
         best = None
         for s in self._believed(as_of):
             if best is None or s[1] > best[1]:

@@ -442,6 +442,29 @@ class DyKnowInstance:
             raise UnknownLabelError(label, list(where)) from None
         return now, out
 
+    def latest_many_now(self, labels: Sequence[str]) -> tuple[int, list[RawSample | None]] | None:
+        """`latest_many` from any thread, from what each stream's cache keeps (`Cache.latest_now`);
+        None when that cannot tell (a label not here, a sample available later than now).
+
+        Reads only references the event loop replaces whole, so a caller on another thread
+        gets the answers of some moment while samples arrive, never a torn one.
+        """
+        now = self.clock.now()
+        where = self._labels
+        out: list[RawSample | None] = []
+        add = out.append
+        for label in labels:
+            location = where.get(label)
+            gen = None if location is None else location.generators.get(label)
+            if gen is None:
+                return None
+            made = gen.made_ta
+            known, sample = gen.cache.latest_now(now if now >= made else made)
+            if not known:
+                return None
+            add(sample)
+        return now, out
+
     def at(
         self,
         label: str,

@@ -67,6 +67,7 @@ from ._gateway_service import (
     GatewayRefusal,
     GatewayService,
     answer_to_json,
+    contents_plain,
     plain_latest,
     samples_to_json,
 )
@@ -480,6 +481,33 @@ class GatewayAgent(Agent):
             return answer_to_json(self.instance.latest(label))
         except Exception:
             return LATER
+
+    def answer_on_thread(self, message: ACLMessage) -> Any:
+        """`answer_at_once` on zenoh's thread: the label's latest sample as `Cache.extend` keeps
+        it (`DyKnowInstance.latest_many_now`), or `LATER` (the loop's `answer_at_once` decides).
+        """
+        performative = message.performative
+        if (
+            not self._at_once
+            or message.ontology != ONTOLOGY
+            or self.visibility is Visibility.PRIVATE
+        ):
+            return LATER
+        content = message.content
+        if performative is P.QUERY_REF:
+            if type(content) is not dict:
+                return LATER
+            content = {"action": "query", **content}
+        elif performative is not P.REQUEST:
+            return LATER
+        label = plain_latest(content)
+        if label is None or label.startswith(self.reserved):
+            return LATER
+        read = self.instance.latest_many_now((label,))
+        if read is None:
+            return LATER
+        contents, _ = contents_plain(*read)
+        return {"label": label, **contents[0]}  # `answer_to_json`'s, made of the same row
 
     @on_request(ONTOLOGY)
     async def _on_request(self, message: ACLMessage) -> Any:

@@ -29,6 +29,7 @@ from dyknow_core import (
     PolicyError,
     Process,
     ProcessError,
+    RawSample,
     UnknownLabelError,
     ns_to_seconds,
     seconds_to_ns,
@@ -210,6 +211,11 @@ def latest_contents_plain(
     handed over to its reply without a copy (`agents.HandedOver`).
     """
     now, rows = instance.latest_many(labels)
+    return contents_plain(now, rows)
+
+
+def contents_plain(now: int, rows: Sequence[RawSample | None]) -> tuple[list[dict[str, Any]], bool]:
+    """`latest_contents_plain` of the rows `DyKnowInstance.latest_many` read at ``now``."""
     ns = NS_PER_S
     query_time = now / ns  # as ns_to_seconds, inline
     scalar = _SCALAR_TYPES

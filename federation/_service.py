@@ -127,6 +127,7 @@ from ._gateway_service import (
     GatewayRefusal,
     GatewayService,
     answer_content,
+    contents_plain,
     jsonable,
     latest_contents_plain,
 )
@@ -151,7 +152,7 @@ from ._service_content import (
     newest_valid_time,
     parse_request,
 )
-from ._sharing import Sharing
+from ._sharing import _CHECK, Sharing
 
 log = logging.getLogger(__name__)
 
@@ -491,6 +492,14 @@ class FederationAgent(Agent):
         self._resolved: dict[tuple[Any, ...], tuple[list[str], list[str], bool]] = {}
         self._resolved_by: tuple[PlatformLabels, LabelMapping, Vocabulary] | None = None
         self._resolved_labels = 0  # bounds `_resolved` (`_MAX_RESOLVED`): members pick the lists
+        # the two above as one reference, replaced whole: what `answer_on_thread` reads
+        self._resolved_view: (
+            tuple[
+                tuple[PlatformLabels, LabelMapping, Vocabulary],
+                dict[tuple[Any, ...], tuple[list[str], list[str], bool]],
+            ]
+            | None
+        ) = None
         self._subscribers = Publisher(self, ontology=ONTOLOGY, accept=self._accept_subscriber)
         # a subclass may add handlers (matched first) or checks: its handlers decide all
         self._at_once = type(self) is FederationAgent
@@ -718,6 +727,50 @@ class FederationAgent(Agent):
             return self._latest_reply(labels, platform_of(message.sender))
         except Exception:
             return LATER
+
+    def answer_on_thread(self, message: ACLMessage) -> Any:
+        """`answer_at_once` on zenoh's thread: from what the event loop replaces whole, or `LATER`.
+
+        The labels' translation kept by `_remember` (one reference), the sharing settings
+        (read once, the default class's check only) and each stream's latest sample
+        (`DyKnowInstance.latest_many_now`): a get-latest asked for the first time, a
+        refusal, a sample not yet available, go to `answer_at_once` on the loop.
+        """
+        if (
+            not self._at_once
+            or message.ontology != ONTOLOGY
+            or (message.performative is not P.QUERY_REF and message.performative is not P.REQUEST)
+        ):
+            return LATER
+        asked = latest_labels(message.content)
+        view = self._resolved_view
+        if asked is None or view is None:
+            return LATER
+        by, resolved = view
+        translator = self.translator
+        if by[0] is not translator or by[1] is not translator.mapping:
+            return LATER
+        if by[2] is not by[1].vocabulary:
+            return LATER
+        kept = resolved.get(tuple(asked))
+        if kept is None:
+            return LATER
+        labels, local, only_str = kept
+        asker = platform_of(message.sender)
+        if asker != self.platform.name:
+            sharing = self.sharing
+            if type(sharing).check is not _CHECK:
+                return LATER  # a subclass's check may read the loop's state
+            if sharing.check_all("query", labels, asker) is not None:
+                return LATER  # refused on the loop, counted and audited there
+        read = self.instance.latest_many_now(local)
+        if read is None:
+            return LATER
+        contents, plain = contents_plain(*read)
+        answer = dict(zip(labels, contents, strict=True))
+        if plain and only_str:
+            return HandedOver(answer)
+        return answer
 
     @on_request(ONTOLOGY, concurrent=True)
     async def _on_request(self, message: ACLMessage) -> Any:
@@ -1400,10 +1453,13 @@ class FederationAgent(Agent):
             or by[2] is not mapping.vocabulary
             or self._resolved_labels + len(key) > _MAX_RESOLVED
         ):
-            resolved.clear()
+            # a new dict, not cleared: `answer_on_thread` may be reading the old one
+            self._resolved = resolved = {}
             self._resolved_labels = 0
-            self._resolved_by = (translator, mapping, mapping.vocabulary)
+            self._resolved_by = by = (translator, mapping, mapping.vocabulary)
+            self._resolved_view = (by, resolved)
         if len(key) <= _MAX_RESOLVED:
+            # its lists are never changed once kept (another thread may read them)
             resolved[key] = (labels, local, only_str)
             self._resolved_labels += len(key)
 

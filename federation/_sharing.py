@@ -90,34 +90,22 @@ class Sharing:
 
     def check(self, action: Action, label: str, platform: str) -> str | None:
         """None if ``platform`` may ``action`` ``label``; else the refusal, naming the rule."""
-        verb = "queried by" if action == "query" else "streamed to"
-        for i, rule in enumerate(self.settings.rules):
-            if not _matches(label, rule.labels):
-                continue
-            allowed = rule.query if action == "query" else rule.stream
-            if _matches(platform, allowed):
-                return None
-            name = f"{rule.name!r} (sharing.rules[{i}])" if rule.name else f"sharing.rules[{i}]"
-            who = ", ".join(allowed) if allowed else "no platform"
-            return (
-                f"label {label!r} may not be {verb} {platform}: sharing rule {name} "
-                f"({', '.join(rule.labels)}) lets {who} {action} it"
-            )
-        if self.settings.default == "members":
-            return None
-        return (
-            f"label {label!r} may not be {verb} {platform}: no sharing rule names it "
-            'and sharing.default is "none"'
-        )
+        return _check_in(self.settings, action, label, platform)
 
     def check_all(self, action: Action, labels: Iterable[str], platform: str) -> str | None:
         """`check` of each of ``labels`` in turn: the first refusal, or None if all are allowed."""
-        settings = self.settings
-        if not settings.rules and settings.default == "members" and type(self).check is _CHECK:
+        settings = self.settings  # read once (a reload replaces it whole): any thread may ask
+        if type(self).check is not _CHECK:
+            check = self.check
+            for label in labels:
+                reason = check(action, label, platform)
+                if reason is not None:
+                    return reason
+            return None
+        if not settings.rules and settings.default == "members":
             return None  # what `check` says of any label (the default table), without a call each
-        check = self.check
         for label in labels:
-            reason = check(action, label, platform)
+            reason = _check_in(settings, action, label, platform)
             if reason is not None:
                 return reason
         return None
@@ -137,6 +125,29 @@ class Sharing:
             f"this platform receives streams only when it asks for them, or when "
             f"{', '.join(patterns)} asks for it (sharing.accept_for); not for {requester}"
         )
+
+
+def _check_in(settings: SharingSettings, action: Action, label: str, platform: str) -> str | None:
+    """`Sharing.check` by ``settings``."""
+    verb = "queried by" if action == "query" else "streamed to"
+    for i, rule in enumerate(settings.rules):
+        if not _matches(label, rule.labels):
+            continue
+        allowed = rule.query if action == "query" else rule.stream
+        if _matches(platform, allowed):
+            return None
+        name = f"{rule.name!r} (sharing.rules[{i}])" if rule.name else f"sharing.rules[{i}]"
+        who = ", ".join(allowed) if allowed else "no platform"
+        return (
+            f"label {label!r} may not be {verb} {platform}: sharing rule {name} "
+            f"({', '.join(rule.labels)}) lets {who} {action} it"
+        )
+    if settings.default == "members":
+        return None
+    return (
+        f"label {label!r} may not be {verb} {platform}: no sharing rule names it "
+        'and sharing.default is "none"'
+    )
 
 
 _CHECK = Sharing.check  # a subclass that decides otherwise is asked per label

@@ -71,8 +71,11 @@ class Inbox(Generic[T]):
         loop: asyncio.AbstractEventLoop,
         maxlen: int = 65536,
         convert: Callable[[Any], T] | None = None,
+        dropped: Callable[[Any], None] | None = None,
     ) -> None:
         self._loop = loop
+        # told of each item dropped when full (under the inbox's lock: cheap, never raising)
+        self._on_drop = dropped
         # With ``convert``, the producer puts the library's raw objects and the consumer
         # converts them on the way out: the producer's thread (and the GIL) is held less.
         self._convert = convert
@@ -94,8 +97,10 @@ class Inbox(Generic[T]):
             if self.closed:
                 return
             if len(self._items) >= self._maxlen:
-                self._items.popleft()
+                lost = self._items.popleft()
                 self.dropped += 1
+                if self._on_drop is not None:
+                    self._on_drop(lost)
             self._items.append(item)
             self.received += 1
             if self._waiter is None or self._wake_pending:
@@ -450,6 +455,32 @@ class Transport(ABC):
         `publish` sent before it. Errors as `publish`; TransportError where unsupported.
         """
         raise TransportError(f"{self.name} transport cannot publish without waiting")
+
+    async def subscribe_taking(
+        self,
+        key_expr: str,
+        take: Callable[[bytes], Any],
+        *,
+        buffer_size: int = 65536,
+        dropped: Callable[[Any], None] | None = None,
+    ) -> Subscription[Any] | None:
+        """`subscribe`, each payload given to ``take`` on the transport's own receiving thread.
+
+        ``take`` returns what to queue for the event loop (as is), or None when it dealt
+        with the payload there; ``dropped`` is told of each item the full queue drops
+        (`Inbox`). None (here): this transport has no receiving thread of its own (the
+        memory hub calls back on the loop, MQTT's client is read by it).
+        """
+        return None
+
+    def declared_publisher(self, key: str) -> Callable[[bytes], None] | None:
+        """A put on ``key`` that any thread may call, if its publisher is already declared.
+
+        None: none is (declaring changes the transport's state: only the event loop's
+        `publish` does it), or this transport cannot publish from another thread. The put
+        raises as `publish` does.
+        """
+        return None
 
     def has_subscribers(self, key: str) -> bool:
         """Whether a put on ``key`` now may reach a subscriber; True when the transport cannot tell.

@@ -65,6 +65,16 @@ Choices that follow from what we measured with eclipse-zenoh 1.10.2 (Python, loo
   releasing the GIL (``Session.is_closed()`` is one: never call it; a get, a put, a
   declare, an undeclare, a cancel, ``close`` and ``info``'s zid lists release it).
 
+What runs on zenoh's threads: a subscriber's ``admit`` screen and the ``take`` of
+``subscribe_taking``, a queryable's ``admit``, and the appends to each ``Inbox``. The
+Interface Agent's ``take`` (its lane) opens every ACL envelope there and may answer a
+plain read there too: it reads only what the loop replaces whole or guards by a lock
+(never waiting for one the loop may hold across a zenoh call: the sender's buckets are
+tried without waiting), seals under the session table's lock, and puts on a publisher
+the loop declared (``declared_publisher``: it never declares, which changes the
+publishers' table). Everything else, counts and audit of what it answered included, is
+posted to the event loop (``call_soon_threadsafe``).
+
 Error replies: a zenoh error reply carries no key, so its ``Reply.key`` is the query's
 key expression (the memory transport gives the queryable's).
 """
@@ -712,6 +722,56 @@ class ZenohTransport(_Keeps, Transport):
                 key_expr, zenoh.handlers.Callback(on_sample, inbox.close)
             )
         return self._subscription(inbox, lambda: self._undeclare(zsub))
+
+    async def subscribe_taking(
+        self,
+        key_expr: str,
+        take: Callable[[bytes], Any],
+        *,
+        buffer_size: int = 65536,
+        dropped: Callable[[Any], None] | None = None,
+    ) -> Subscription[Any] | None:
+        """`subscribe`, each payload given to ``take`` on zenoh's thread (what it returns queued).
+
+        ``take`` must never raise, and never wait for the event loop nor call a zenoh
+        method that takes the session lock without releasing the GIL (see above).
+        """
+        session, loop = self._open_session()
+        inbox: Inbox[Any] = Inbox(loop, buffer_size, dropped=dropped)
+        put = inbox.put
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            item = take(sample.payload.to_bytes())
+            if item is not None:
+                put(item)
+
+        with _converted(f"declare a subscriber on {key_expr!r}"):
+            zsub = session.declare_subscriber(
+                key_expr, zenoh.handlers.Callback(on_sample, inbox.close)
+            )
+        return self._subscription(inbox, lambda: self._undeclare(zsub))
+
+    def declared_publisher(self, key: str) -> Callable[[bytes], None] | None:
+        """A put on ``key`` for any thread when its publisher is declared already; else None.
+
+        Only reads the publishers' table (the event loop alone adds and evicts); a
+        publisher evicted meanwhile was undeclared, and its put raises as a closed one.
+        """
+        if not self.publishes_nowait:
+            return None
+        pub = self._publishers.get(key)
+        if pub is None:
+            return None
+
+        def put(payload: bytes) -> None:
+            try:
+                pub.put(payload)
+            except zenoh.ZError as exc:
+                if self._state != "opened":
+                    raise TransportClosed(f"{self.name} transport is {self._state}") from exc
+                raise TransportError(f"zenoh: put on {key!r}: {exc}") from exc
+
+        return put
 
     async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:
         """Ask every queryable matching ``key_expr``; replies until all answered or ``timeout``."""

@@ -1,0 +1,507 @@
+"""The lane: a plain get-latest answered on zenoh's receiving thread (`InterfaceAgent.lane`).
+
+Two platforms over two real zenoh sessions on loopback (one process): the provider
+``uav-a`` (a DyKnow instance, its Federation Agent) and the asker ``operator``. Each test
+compares the lane with the event loop's path (``lane=False``) where the decision matters:
+the same answers, refusals, counts and audit records; and checks what the lane must keep
+(the thread it ran on, the order of a peer's messages, distinct seal counters).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import threading
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+
+from agents import LATER, AgentPlatform, RateLimit, Refused, TransportError, request
+from agents._interface import InterfaceAgent
+from agents._security import KeyPair, TrustStore
+from agents.transports import Inbox, ZenohConfig, ZenohTransport
+from bench._zenoh_raw import free_port
+from dyknow_core import DyKnowInstance
+from federation._gateway import GatewayAgent
+from federation._gateway_service import ONTOLOGY as GATEWAY
+from federation._service import FederationAgent
+from ontology import LabelMapping, PlatformLabels, Vocabulary
+
+WAIT = 10.0  # the bound on any single wait (a busy machine); each test ends far below it
+LATEST = {"action": "get-latest", "labels": ["heli-altitude"]}
+HEADING = {"action": "get-latest", "labels": ["op-heading"]}
+
+
+@dataclass
+class Pair:
+    """The two platforms, their agents and the provider's DyKnow instance."""
+
+    provider: AgentPlatform
+    asker: AgentPlatform
+    fed_a: FederationAgent
+    fed_op: FederationAgent
+    ia_a: InterfaceAgent
+    ia_op: InterfaceAgent
+    dk: DyKnowInstance
+    trust_a: TrustStore
+    gateway: GatewayAgent
+
+
+def _translator(dk: DyKnowInstance, mapping: dict[str, str]) -> PlatformLabels:
+    return PlatformLabels(LabelMapping(Vocabulary(list(mapping)), mapping), dk)
+
+
+@contextlib.asynccontextmanager
+async def pair(*, lane: bool = True, **interface: Any) -> AsyncIterator[Pair]:
+    """uav-a and operator over zenoh, members of each other before the test runs."""
+    fed = f"lane-{free_port()}"
+    keys = {n: KeyPair.generate(n) for n in ("uav-a", "operator")}
+    trusted = {n: k.public_key for n, k in keys.items()}
+    seed = free_port()
+    ta = ZenohTransport(ZenohConfig.loopback(seed))
+    tb = ZenohTransport(ZenohConfig.loopback(free_port(), connect=[seed]))
+    trust_a = TrustStore(fed, trusted)
+    ia_a = InterfaceAgent(keys["uav-a"], trust_a, audit_interval=0.02, lane=lane, **interface)
+    ia_op = InterfaceAgent(keys["operator"], TrustStore(fed, trusted), audit_interval=0.02)
+    async with contextlib.AsyncExitStack() as stack:
+        await stack.enter_async_context(ta)
+        await stack.enter_async_context(tb)
+        dk = await stack.enter_async_context(DyKnowInstance("uav-a"))
+        dk_op = await stack.enter_async_context(DyKnowInstance("operator"))
+        dk.add_source("a/state/altitude").push(120.0)
+        dk_op.add_source("op/state/heading").push(90.0)
+        pa = await stack.enter_async_context(
+            AgentPlatform("uav-a", ta, federation=fed, channel=ia_a)
+        )
+        pb = await stack.enter_async_context(
+            AgentPlatform("operator", tb, federation=fed, channel=ia_op)
+        )
+        fed_a = await pa.add(
+            FederationAgent(dk, _translator(dk, {"heli-altitude": "a/state/altitude"}))
+        )
+        gateway = await pa.add(GatewayAgent(dk))
+        fed_op = await pb.add(
+            FederationAgent(dk_op, _translator(dk_op, {"op-heading": "op/state/heading"}))
+        )
+        async with asyncio.timeout(WAIT):
+            while fed_a.members != ["operator", "uav-a"] or fed_op.members != [  # noqa: ASYNC110
+                "operator",
+                "uav-a",
+            ]:
+                await asyncio.sleep(0.02)
+        yield Pair(pa, pb, fed_a, fed_op, ia_a, ia_op, dk, trust_a, gateway)
+
+
+async def _until(what: Any) -> None:
+    """Wait (bounded) until ``what()`` holds: the lane's counts are booked on the loop."""
+    async with asyncio.timeout(WAIT):
+        while not what():  # noqa: ASYNC110
+            await asyncio.sleep(0.005)
+
+
+def _watch_threads(fed: FederationAgent) -> list[tuple[bool, bool]]:
+    """Record, per call of ``fed.answer_on_thread``: (on the loop's thread, answered)."""
+    calls: list[tuple[bool, bool]] = []
+    loop_thread = threading.get_ident()
+    answer = fed.answer_on_thread
+
+    def watched(message: Any) -> Any:
+        content = answer(message)
+        calls.append((threading.get_ident() == loop_thread, content is not LATER))
+        return content
+
+    fed.answer_on_thread = watched  # type: ignore[method-assign]
+    return calls
+
+
+async def test_a_plain_get_latest_is_answered_on_zenohs_thread_counted_and_audited() -> None:
+    """Answered on zenoh's thread, the same answer as the loop's, counted and audited as it."""
+    outcomes = {}
+    for lane in (True, False):
+        async with pair(lane=lane) as p:
+            calls = _watch_threads(p.fed_a)
+            answers = [await p.fed_op.request_from("uav-a", LATEST) for _ in range(8)]
+            await _until(lambda p=p: not p.ia_a._lane_done and p.fed_a.stats.handled >= 8)
+            sender = p.provider.stats.senders["operator"]
+            accepted = [
+                r
+                for r in p.ia_a.audit.records
+                if r["verdict"] == "accepted" and r.get("from") == "operator"
+            ]
+            outcomes[lane] = (
+                [sorted(a) for a in answers],
+                [a["heli-altitude"]["samples"][0][0] for a in answers],
+                p.fed_a.stats.handled,
+                sender.accepted,
+                len([r for r in accepted if r["performative"] == "request"]),
+            )
+            if lane:
+                # the first asks warm what the thread reads (the translation, the
+                # directory's decision, the reply's publisher): the rest are its own
+                assert p.ia_a.answered_on_thread >= 6
+                assert p.fed_a.stats.answered_at_once == 8
+                assert calls and all(not on_loop for on_loop, _ in calls)
+                assert sum(answered for _, answered in calls) == p.ia_a.answered_on_thread
+            else:
+                assert p.ia_a.answered_on_thread == 0
+                assert calls == []  # the loop's path never asks it
+    assert outcomes[True] == outcomes[False]
+    assert outcomes[True][1] == [120.0] * 8
+    assert outcomes[True][4] == 8  # one accepted record per request, both ways
+
+
+async def test_a_read_waits_behind_what_its_peer_has_queued_for_the_loop() -> None:
+    """A get-latest behind a message of the same peer queued for the loop is left to the loop."""
+    async with pair() as p:
+        for _ in range(3):  # warm: the next plain read is answerable on the thread
+            await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: p.ia_a.answered_on_thread >= 1)
+        await _until(lambda: not p.ia_a._lane_done)  # what the lane answered is booked
+        before = (p.ia_a.answered_on_thread, p.fed_a.stats.handled)
+        conv = "lane-order"
+        slow = p.fed_op.request_from(
+            "uav-a", {"action": "list-labels"}, conversation_id=f"{conv}-1"
+        )
+        # the envelopes as zenoh's thread would get them, taken by the lane's own hook
+        # from another thread: the first is no plain read and is queued for the loop
+        sealed: list[bytes] = []
+        real_put = p.asker.transport.publish
+
+        async def capture(key: str, payload: bytes, **kw: Any) -> None:
+            if key.endswith("/acl/uav-a"):
+                sealed.append(payload)
+                return
+            await real_put(key, payload, **kw)
+
+        p.asker.transport.publish = capture  # type: ignore[method-assign]
+        p.ia_op._batching = False  # each message in an envelope of its own
+        first = asyncio.ensure_future(slow)
+        second = asyncio.ensure_future(
+            p.fed_op.request_from("uav-a", LATEST, conversation_id=f"{conv}-2")
+        )
+        await _until(lambda: len(sealed) == 2)
+        p.asker.transport.publish = real_put  # type: ignore[method-assign]
+        took = await asyncio.to_thread(lambda: [p.ia_a._lane_take(e) for e in sealed])
+        assert took[0] is not None and took[0][0] == "operator"  # for the loop
+        assert took[1] is not None and took[1][0] == "operator"  # behind it: the loop's too
+        assert p.ia_a._lane_queued == {"operator": 2}
+        inbox = p.ia_a._lane_inbox
+        assert inbox is not None
+        for item in took:
+            inbox.put(item)
+        listed, latest = await asyncio.gather(first, second)
+        assert "heli-altitude" in str(listed)
+        assert latest["heli-altitude"]["samples"][0][0] == 120.0
+        await _until(lambda: p.ia_a._lane_queued == {})
+        # both were the loop's (the read at once, or by its handler behind the other)
+        assert p.fed_a.stats.handled == before[1] + 2
+        assert p.ia_a.answered_on_thread == before[0]
+        # nothing queued any more: the next read is the thread's again
+        await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: p.ia_a.answered_on_thread == before[0] + 1)
+
+
+async def test_seals_from_the_loop_and_the_thread_never_share_a_counter() -> None:
+    """uav-a's loop asks while its thread answers, both sealing for operator: no counter twice."""
+    async with pair() as p:
+        for _ in range(3):
+            await p.fed_op.request_from("uav-a", LATEST)
+            await p.fed_a.request_from(
+                "operator", {"action": "get-latest", "labels": ["op-heading"]}
+            )
+        n = 150
+        asks = [p.fed_op.request_from("uav-a", LATEST) for _ in range(n)]
+        back = [
+            p.fed_a.request_from("operator", {"action": "get-latest", "labels": ["op-heading"]})
+            for _ in range(n)
+        ]
+        got = await asyncio.gather(*asks, *back)
+        assert [a["heli-altitude"]["samples"][0][0] for a in got[:n]] == [120.0] * n
+        assert [a["op-heading"]["samples"][0][0] for a in got[n:]] == [90.0] * n
+        await _until(lambda: p.ia_a.answered_on_thread > 0)
+        # the receiver refused nothing (a counter twice is refused as replayed), and every
+        # envelope uav-a sealed for it opened: none missing
+        assert p.asker.stats.unauthenticated == 0
+        assert not [r for r in p.ia_op.audit.records if r["verdict"] != "accepted"]
+        assert p.ia_op.sessions.missing() == {}
+        session = p.ia_a.sessions.session_for("operator")
+        assert session is not None
+        assert session.sent == p.ia_op.sessions.sessions("uav-a")[-1].received
+
+
+async def _limited_outcomes(lane: bool) -> tuple[Any, ...]:
+    now = [100.0]
+    limit = RateLimit(rate=0.0, burst=4.0, refusals=0.0)
+    async with pair(lane=lane, rate_limit=limit, monotonic=lambda: now[0]) as p:
+        got = []
+        for _ in range(7):
+            try:
+                answer = await p.fed_op.request_from("uav-a", LATEST, timeout=1.0)
+                got.append(answer["heli-altitude"]["samples"][0][0])
+            except Refused as exc:
+                got.append(("refused", exc.message.content if exc.message else None))
+            except TimeoutError:
+                got.append("dropped")
+        await _until(lambda: p.fed_a.stats.answered_at_once >= 4)
+        sender = p.provider.stats.senders["operator"]
+        records = [
+            (r["verdict"], r.get("stage"), r.get("count"))
+            for r in p.ia_a.audit.records
+            # (the directory's own screens may drop a stale event of operator's: not ours)
+            if r.get("from") == "operator" and r.get("stage") == "rate-limit"
+        ]
+        on_thread = p.ia_a.answered_on_thread
+        return (got, sender.accepted, sender.limited, sender.refused, records), on_thread
+
+
+async def test_a_limited_peer_is_refused_the_same_on_the_lane_as_on_the_loop() -> None:
+    """The request limit: the same answers, drops, counts and audit records either way."""
+    lane, on_thread = await _limited_outcomes(True)
+    loop, none = await _limited_outcomes(False)
+    assert lane == loop
+    got, accepted, limited, _, records = lane
+    assert got[:4] == [120.0] * 4 and accepted == 4 and limited == 3
+    assert records == [("dropped", "rate-limit", 1)]  # the first drop at once, the rest later
+    assert on_thread >= 1 and none == 0
+
+
+async def _revoked_outcomes(lane: bool) -> tuple[Any, ...]:
+    async with pair(lane=lane) as p:
+        for _ in range(3):
+            await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: not p.ia_a._lane_done)  # what the lane answered is booked
+        before = p.provider.stats.unauthenticated
+        answered = p.fed_a.stats.answered_at_once
+        p.trust_a.remove("operator")
+        with pytest.raises(TimeoutError):
+            await p.fed_op.request_from("uav-a", LATEST, timeout=0.5)
+        await _until(lambda: p.provider.stats.unauthenticated > before)
+        untrusted = [
+            r
+            for r in p.ia_a.audit.records
+            if r.get("code") == "untrusted" and r["verdict"] in ("dropped", "revoked")
+        ]
+        return (
+            p.provider.stats.unauthenticated - before,
+            p.fed_a.stats.answered_at_once - answered,
+            sorted({r["verdict"] for r in untrusted}),
+        )
+
+
+async def test_a_revoked_peer_is_refused_the_same_on_the_lane_as_on_the_loop() -> None:
+    """Revoked while running: its read opens nowhere, counted and audited either way."""
+    lane = await _revoked_outcomes(True)
+    assert lane == await _revoked_outcomes(False)
+    assert lane[0] == 1 and lane[1] == 0
+
+
+async def test_a_plain_gateway_query_is_answered_on_zenohs_thread_as_on_the_loop() -> None:
+    """The Gateway Agent's query for a label's latest sample: the same answer either way."""
+    query = {"action": "query", "label": "a/state/altitude"}
+    outcomes = {}
+    for lane in (True, False):
+        async with pair(lane=lane) as p:
+            calls = _watch_threads(p.gateway)  # type: ignore[arg-type]
+            got = [
+                await request(p.fed_op, "gateway@uav-a", query, ontology=GATEWAY) for _ in range(6)
+            ]
+            await _until(lambda p=p: p.gateway.stats.answered_at_once >= 6)
+            # the one sample pushed, the same in every answer (its times are this run's)
+            assert all(a["samples"] == got[0]["samples"] for a in got)
+            assert got[0]["query_time"] <= got[-1]["query_time"]
+            outcomes[lane] = [(sorted(a), a["label"], a["samples"][0][0]) for a in got]
+            if lane:
+                assert p.ia_a.answered_on_thread >= 4
+                assert calls and all(not on_loop for on_loop, _ in calls)
+            else:
+                assert p.ia_a.answered_on_thread == 0
+    assert outcomes[True] == outcomes[False]
+    assert outcomes[True][0][1:] == ("a/state/altitude", 120.0)
+
+
+async def test_what_the_full_inbox_drops_no_longer_holds_its_peers_reads_back() -> None:
+    """An item dropped by the lane's full queue releases its peer (else it waits forever)."""
+    seen: list[Any] = []
+    inbox: Inbox[Any] = Inbox(asyncio.get_running_loop(), 2, dropped=seen.append)
+    for item in ("a", "b", "c"):
+        inbox.put(item)
+    assert seen == ["a"] and inbox.dropped == 1
+    async with pair() as p:
+        with p.ia_a._lane_lock:
+            p.ia_a._lane_queued["operator"] = 1
+        p.ia_a._lane_dropped(("operator", b"{}"))
+        p.ia_a._lane_dropped((None, ValueError("did not open")))  # no peer: nothing held
+        assert p.ia_a._lane_queued == {}
+        await p.fed_op.request_from("uav-a", LATEST)
+        await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: p.ia_a.answered_on_thread >= 1)
+
+
+async def _sealed_reads(p: Pair, conv: str, n: int) -> tuple[list[bytes], list[Any]]:
+    """``n`` get-latest requests of operator's, sealed for uav-a but not sent; their futures."""
+    sealed: list[bytes] = []
+    real_put = p.asker.transport.publish
+
+    async def capture(key: str, payload: bytes, **kw: Any) -> None:
+        if key.endswith("/acl/uav-a"):
+            sealed.append(payload)
+            return
+        await real_put(key, payload, **kw)
+
+    p.asker.transport.publish = capture  # type: ignore[method-assign]
+    p.ia_op._batching = False  # each message in an envelope of its own
+    asks = [
+        asyncio.ensure_future(p.fed_op.request_from("uav-a", LATEST, conversation_id=f"{conv}-{i}"))
+        for i in range(n)
+    ]
+    await _until(lambda: len(sealed) == n)
+    p.asker.transport.publish = real_put  # type: ignore[method-assign]
+    return sealed, asks
+
+
+class _Hold(Exception):
+    """What holds uav-a's loop in its inbox's consumer (as a long turn of a busy loop)."""
+
+
+@pytest.mark.parametrize("held", [False, True], ids=["idle-loop", "draining-loop"])
+async def test_what_the_peer_sends_once_answered_finds_the_answer_counted(held: bool) -> None:
+    """The lane's answer is booked on the loop before the peer's next message is taken.
+
+    The next message enters the inbox the moment the answer is put (the fastest peer),
+    and the thread waits until the loop took it: the counts it met there include the
+    answer, whether the loop was idle (FIFO behind the posted booking) or busy taking
+    from the inbox then (no wake-up of its own: the consumer books what is pending).
+    """
+    async with pair() as p:
+        ia = p.ia_a
+        for _ in range(3):  # warm: the next plain read is answerable on the thread
+            await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: ia.answered_on_thread >= 1 and not ia._lane_done)
+        before = ia.answered_on_thread
+        conv = f"lane-book-{held}"
+        sealed, asks = await _sealed_reads(p, conv, 2)
+        inbox = ia._lane_inbox
+        assert inbox is not None
+        seen: list[int] = []  # answered_on_thread when the loop takes the next message
+        taken = threading.Event()
+        real_take_now = ia._take_now
+
+        def take_now(host: Any, peer: str, state: Any, body: bytes) -> bool:
+            if f"{conv}-1".encode() in body:
+                seen.append(ia.answered_on_thread)
+                taken.set()
+            return real_take_now(host, peer, state, body)
+
+        ia._take_now = take_now  # type: ignore[method-assign]
+        entered, release = threading.Event(), threading.Event()
+        real_not_opened = ia._not_opened
+
+        def not_opened(stats: Any, exc: Exception) -> None:
+            if isinstance(exc, _Hold):
+                entered.set()
+                release.wait(WAIT)
+                return
+            real_not_opened(stats, exc)
+
+        ia._not_opened = not_opened  # type: ignore[method-assign]
+        transport = p.provider.transport
+        real_declared = transport.declared_publisher
+
+        def declared(key: str) -> Any:
+            put = real_declared(key)
+            if put is None:
+                return None
+
+            def put_then_the_peer(payload: bytes) -> None:
+                put(payload)
+                inbox.put(ia._lane_take(sealed[1]))  # behind the first: for the loop
+                release.set()
+                taken.wait(WAIT)  # the loop took it before this thread goes on
+
+            return put_then_the_peer
+
+        transport.declared_publisher = declared  # type: ignore[method-assign]
+        took: list[Any] = []
+
+        def answer() -> None:
+            if held:
+                entered.wait(WAIT)
+            took.append(ia._lane_take(sealed[0]))
+
+        thread = threading.Thread(target=answer)
+        thread.start()
+        try:
+            if held:
+                inbox.put((None, _Hold()))
+            got = await asyncio.wait_for(asyncio.gather(*asks), WAIT)
+        finally:
+            release.set()
+            taken.set()
+            await asyncio.to_thread(thread.join, WAIT)
+        assert took == [None]  # the first was answered on the thread
+        assert [a["heli-altitude"]["samples"][0][0] for a in got] == [120.0, 120.0]
+        assert seen == [before + 1]
+
+
+@pytest.mark.parametrize("booked_first", [False, True], ids=["put-fails-at-once", "booked-first"])
+async def test_an_answer_the_thread_could_not_put_is_sent_and_counted_once(
+    booked_first: bool,
+) -> None:
+    """A put that fails on the thread: the answer still goes, counted and audited once.
+
+    Not booked yet (the usual case): the booking is taken back and the loop decides the
+    message. Booked already (the loop ran between): it stays the lane's, and the loop
+    sends the answer.
+    """
+    async with pair() as p:
+        ia = p.ia_a
+        for _ in range(3):
+            await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: ia.answered_on_thread >= 1 and not ia._lane_done)
+        await _until(lambda: p.fed_a.stats.handled >= 3)
+        sender = p.provider.stats.senders["operator"]
+        before = (ia.answered_on_thread, sender.accepted, p.fed_a.stats.handled)
+
+        def from_operator() -> int:
+            return len([r for r in ia.audit.records if r.get("from") == "operator"])
+
+        records = from_operator()
+        booked = threading.Event()
+        real_book = ia._lane_book
+
+        def book() -> None:
+            real_book()
+            booked.set()
+
+        ia._lane_book = book  # type: ignore[method-assign]
+        transport = p.provider.transport
+        real_declared = transport.declared_publisher
+        failed: list[str] = []
+
+        def declared(key: str) -> Any:
+            if real_declared(key) is None:
+                return None
+
+            def put(payload: bytes) -> None:
+                failed.append(key)
+                if booked_first:
+                    assert booked.wait(WAIT)  # the loop booked it before the put failed
+                raise TransportError("a put that fails")
+
+            return put
+
+        transport.declared_publisher = declared  # type: ignore[method-assign]
+        answer = await p.fed_op.request_from("uav-a", LATEST)
+        transport.declared_publisher = real_declared  # type: ignore[method-assign]
+        assert answer["heli-altitude"]["samples"][0][0] == 120.0
+        assert len(failed) == 1  # the thread tried once; the answer went the loop's way
+        await _until(lambda: p.fed_a.stats.handled == before[2] + 1)
+        await _until(lambda: from_operator() >= records + 1)
+        assert (sender.accepted, p.fed_a.stats.handled) == (before[1] + 1, before[2] + 1)
+        assert from_operator() == records + 1
+        if booked_first:
+            assert ia.answered_on_thread == before[0] + 1
+        else:  # (the loop may have booked it between, rarely: then as above)
+            assert ia.answered_on_thread in (before[0], before[0] + 1)
