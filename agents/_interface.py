@@ -1310,9 +1310,15 @@ class InterfaceAgent:
                     # taken: its posted booking waits behind this turn when the inbox
                     # was being drained (no wake-up of its own put it in the queue)
                     self._lane_book()
-                peer, body = item
+                peer, body = item[0], item[1]  # (None, error): it did not open
                 if peer is None:
                     self._not_opened(stats, body)
+                    continue
+                if item[2] != self.sessions.forgotten(peer):
+                    # its sessions were forgotten since it opened (revoked): refused as the
+                    # loop's own open of it now would refuse it
+                    self._lane_release(peer)
+                    self._not_opened(stats, self._forgotten_since(peer))
                     continue
             else:
                 try:
@@ -1349,6 +1355,12 @@ class InterfaceAgent:
                 if lane:
                     self._lane_release(peer)
 
+    def _forgotten_since(self, peer: str) -> AuthenticationError:
+        """What opening an envelope of ``peer`` says now that its sessions are forgotten."""
+        if peer not in self.trust:
+            return UnknownPlatform(f"platform {peer!r} is not in the trust file", peer)
+        return UnknownSession(f"the session with {peer!r} was forgotten since it opened", peer)
+
     def _not_opened(self, stats: Any, exc: Exception) -> None:
         """An ACL envelope that did not open: counted, audited (within budget), dropped."""
         stats.unauthenticated += 1
@@ -1370,23 +1382,25 @@ class InterfaceAgent:
             else:
                 del self._lane_queued[peer]
 
-    def _lane_dropped(self, item: tuple[str | None, Any]) -> None:
+    def _lane_dropped(self, item: tuple[Any, ...]) -> None:
         """The inbox was full and dropped ``item`` (oldest first): the loop never takes it."""
         if item[0] is not None:
             self._lane_release(item[0])
 
-    def _lane_take(self, payload: bytes) -> tuple[str | None, Any] | None:
+    def _lane_take(self, payload: bytes) -> tuple[str | None, Any, int] | None:
         """On zenoh's thread: open ``payload``; a plain read answered here (None), else
-        ``(peer, body)`` (``(None, error)``: it did not open) for the event loop, in order.
+        ``(peer, body, forgotten)`` (``(None, error, 0)``: it did not open) for the event
+        loop, in order (`SessionTable.open_noting`: the loop refuses it if the peer's
+        sessions were forgotten since).
 
         Every ACL envelope opens here (the loop opens none: one replay window, one
         reader). A read is answered here only while nothing of its peer is queued for
         the loop or taken there (it overtakes nothing), by `_lane_answer`.
         """
         try:
-            peer, body = self.sessions.open(payload)
+            peer, body, forgets = self.sessions.open_noting(payload)
         except Exception as exc:  # the loop counts and audits it
-            return None, exc
+            return None, exc, 0
         with self._lane_lock:
             queued = self._lane_queued.get(peer, 0)
             self._lane_queued[peer] = queued + 1
@@ -1399,7 +1413,7 @@ class InterfaceAgent:
             if answered:
                 self._lane_release(peer)
                 return None
-        return peer, body  # its count stands until the loop has taken it
+        return peer, body, forgets  # its count stands until the loop has taken it
 
     def _lane_answer(self, peer: str, body: bytes) -> bool:
         """`_take_now` and `_answer_at_once` of a plain read, on zenoh's thread; False: not so,

@@ -1080,6 +1080,9 @@ class SessionTable:
         self._heard: dict[str, float] = {}
         # per peer, the `Session.missing` of its sessions dropped from the table
         self._missing_dropped: dict[str, int] = {}
+        # per peer, how many times `forget` dropped sessions of it (`forgotten`): bounded,
+        # as ``_missing_dropped``, by the platforms that held sessions here
+        self._forgets: dict[str, int] = {}
         # per peer that left (signed), when: its sessions made before are never trusted again
         self._left: dict[str, float] = {}
         # Everything above, each session's counters and replay window included, under one
@@ -1177,7 +1180,23 @@ class SessionTable:
                 self._drop(session)
             self._tx.pop(peer, None)
             self._rx_latest.pop(peer, None)
+            if dropped:  # what opened on them before is refused when taken (`forgotten`)
+                self._forgets[peer] = self._forgets.get(peer, 0) + 1
             return len(dropped)
+
+    def forgotten(self, peer: str) -> int:
+        """How many times `forget` dropped ``peer``'s sessions (0: never).
+
+        An envelope opened on another thread and taken later (`open_noting`) opened on a
+        session gone since when this changed in between: as if opened now, it is refused.
+        """
+        return self._forgets.get(peer, 0)
+
+    def open_noting(self, envelope: bytes | str) -> tuple[str, bytes, int]:
+        """`open`, and `forgotten` of its sender at that moment (read under the same lock)."""
+        with self._lock:
+            frm, body = self.open(envelope)
+            return frm, body, self._forgets.get(frm, 0)
 
     def doubt(self, peer: str) -> int:
         """Seal for ``peer`` on none of its sessions until it sends on one; how many were in use.

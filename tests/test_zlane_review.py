@@ -14,9 +14,9 @@ import threading
 from typing import Any
 
 import pytest
+from test_answer_on_thread import LATEST, WAIT, _until, pair
 
 from agents._security import Handshake, KeyPair, SessionTable, TrustStore
-from test_answer_on_thread import LATEST, WAIT, _until, pair
 
 
 async def _sealed_by_operator(p: Any, content: dict[str, Any], conv: str) -> tuple[bytes, Any]:
@@ -42,10 +42,6 @@ async def _sealed_by_operator(p: Any, content: dict[str, Any], conv: str) -> tup
     return sealed[0], asked
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="an envelope opened on zenoh's thread before a revocation is taken after it",
-)
 async def test_a_request_opened_before_its_platform_is_revoked_is_not_taken_after_it() -> None:
     """Revoked on the loop (a SIGHUP's trust reload) while a request of it waits, opened on
     zenoh's thread, in the lane's queue: the loop must not take it as from a trusted platform.
@@ -164,7 +160,7 @@ async def test_closing_the_provider_while_its_thread_answers_ends_in_time(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
     """uav-a closes (agents, interface, zenoh) while operator's reads pour in and its thread
-    answers them: it ends within the bound, and the thread raised nothing."""
+    answers them: it ends within the bound, and the thread's answering raised nothing."""
     async with pair() as p:
         for _ in range(3):
             await p.fed_op.request_from("uav-a", LATEST)
@@ -185,4 +181,8 @@ async def test_closing_the_provider_while_its_thread_answers_ends_in_time(
         stop.set()
         async with asyncio.timeout(WAIT):
             await pourer
-    assert not [r for r in caplog.records if "receiving thread" in r.getMessage()]
+    # an answer whose put failed once booked is a warning (its answer lost, as a
+    # handler's); an exception out of the thread's answering is an error
+    assert not [
+        r for r in caplog.records if r.levelname == "ERROR" and "receiving thread" in r.getMessage()
+    ]
