@@ -717,6 +717,7 @@ class Session:
         "me",
         "order",
         "peer",
+        "peer_key",
         "peer_time",
         "sid",
     )
@@ -734,9 +735,13 @@ class Session:
         policy: SecurityPolicy,
         clock: Clock,
         peer_time: float | None = None,
+        peer_key: object | None = None,
     ) -> None:
         self.me = me
         self.peer = peer
+        # the trust store's key the exchange was verified with (None: not known): once the
+        # store holds another (rotated, or removed and added again), the session is over
+        self.peer_key = peer_key
         self.federation = federation
         self.sid = sid
         self.initiator = initiator
@@ -1369,6 +1374,12 @@ class SessionTable:
         if session.peer != frm:
             # the MAC binds the session's peer: a different 'from' is a tampered header
             raise Forged(f"session {sid} belongs to {session.peer!r}, not to {frm!r}", frm)
+        if session.peer_key is not None and session.peer_key is not self.trust._keys.get(frm):
+            # agreed with a key the trust store no longer holds: a platform removed and
+            # trusted again, or its key rotated, before its old sessions were forgotten
+            raise UnknownSession(
+                f"session {sid!r} with {frm!r} was agreed with a key no longer trusted", frm
+            )
         return session
 
     def open(self, envelope: bytes | str) -> tuple[str, bytes]:
@@ -1622,7 +1633,7 @@ class Handshake:
         msg = _parse_kx(request, "init", _INIT_FIELDS)
         frm, ts, nonce, epk, sig = self._check_kx(msg)
         transcript = _init_transcript(self.federation, frm, self.me.platform, ts, nonce, epk)
-        self._verify(frm, transcript, sig)
+        key = self._verify(frm, transcript, sig)
         now, my_ts = self._now_ms()
         self._prune(now)
         if (frm, nonce) in self._seen:
@@ -1649,7 +1660,7 @@ class Handshake:
             }
         )
         return reply, self._session(
-            frm, full, shared, initiator=False, order_ts=max(ts, my_ts), peer_ts=ts
+            frm, full, shared, initiator=False, order_ts=max(ts, my_ts), peer_ts=ts, key=key
         )
 
     def finish(self, reply: bytes | str) -> Session:
@@ -1673,7 +1684,7 @@ class Handshake:
         full = pending.transcript + _reply_part(
             self.federation, frm, self.me.platform, ts, nonce, epk
         )
-        self._verify(frm, full, sig)
+        key = self._verify(frm, full, sig)
         if now - pending.started > self.policy.skew:
             del self._pending[re_nonce]
             raise Expired(f"handshake reply from {frm!r} came too late", frm)
@@ -1681,7 +1692,13 @@ class Handshake:
         del self._pending[re_nonce]
         self._finished[re_nonce] = now
         return self._session(
-            frm, full, shared, initiator=True, order_ts=max(pending.ts_ms, ts), peer_ts=ts
+            frm,
+            full,
+            shared,
+            initiator=True,
+            order_ts=max(pending.ts_ms, ts),
+            peer_ts=ts,
+            key=key,
         )
 
     def pending(self, peer: str) -> bool:
@@ -1727,13 +1744,16 @@ class Handshake:
             raise Malformed(f"handshake field: {exc}", frm) from None
         return frm, ts, nonce, epk, sig
 
-    def _verify(self, platform: str, transcript: bytes, sig: bytes) -> None:
+    def _verify(self, platform: str, transcript: bytes, sig: bytes) -> VerifyKey:
+        """The trusted key of ``platform``, once ``sig`` verifies with it; else Forged."""
+        key = self.trust.verify_key(platform)
         try:
-            self.trust.verify_key(platform).verify(transcript, sig)
+            key.verify(transcript, sig)
         except CryptoError:
             raise Forged(
                 f"handshake signature does not verify with {platform!r}'s trusted key", platform
             ) from None
+        return key
 
     def _session(
         self,
@@ -1744,6 +1764,7 @@ class Handshake:
         initiator: bool,
         order_ts: int,
         peer_ts: int,
+        key: VerifyKey | None = None,
     ) -> Session:
         keys = _hkdf(transcript, shared)
         sid = _session_id(keys["sid"])
@@ -1758,6 +1779,7 @@ class Handshake:
             policy=self.policy,
             clock=self._clock,
             peer_time=peer_ts / 1000,
+            peer_key=key,
         )
 
 

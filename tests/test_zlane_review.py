@@ -77,11 +77,6 @@ async def test_a_request_opened_before_its_platform_is_revoked_is_not_taken_afte
         assert late == []
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="a platform removed and re-trusted (new key) from another thread: until the "
-    "loop runs the revocation, the lane answers on the sessions of its old key",
-)
 async def test_a_read_on_a_session_of_a_replaced_key_is_not_answered_on_the_thread() -> None:
     """`TrustStore.remove` then `add` with a new key from another thread (the old key lost):
     a read on a session agreed with the old key, opened before the loop forgot those
