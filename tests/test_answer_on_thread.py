@@ -505,3 +505,24 @@ async def test_an_answer_the_thread_could_not_put_is_sent_and_counted_once(
             assert ia.answered_on_thread == before[0] + 1
         else:  # (the loop may have booked it between, rarely: then as above)
             assert ia.answered_on_thread in (before[0], before[0] + 1)
+
+
+async def test_a_sharing_that_decides_in_its_own_check_all_is_asked_on_the_loop() -> None:
+    """A `Sharing` subclass (here its `check_all` alone) may read the loop's state: never
+    asked on zenoh's thread; the reads it allows are answered by the loop."""
+    from federation._sharing import Sharing
+
+    asked_on_loop: list[bool] = []
+    loop_thread = threading.get_ident()
+
+    class Watched(Sharing):
+        def check_all(self, action: Any, labels: Any, platform: str) -> str | None:
+            asked_on_loop.append(threading.get_ident() == loop_thread)
+            return super().check_all(action, labels, platform)
+
+    async with pair() as p:
+        p.fed_a.sharing = Watched()
+        answers = [await p.fed_op.request_from("uav-a", LATEST) for _ in range(8)]
+        assert [a["heli-altitude"]["samples"][0][0] for a in answers] == [120.0] * 8
+        assert p.ia_a.answered_on_thread == 0
+        assert len(asked_on_loop) >= 8 and all(asked_on_loop)
