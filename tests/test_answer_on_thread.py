@@ -54,7 +54,9 @@ def _translator(dk: DyKnowInstance, mapping: dict[str, str]) -> PlatformLabels:
 
 
 @contextlib.asynccontextmanager
-async def pair(*, lane: bool = True, **interface: Any) -> AsyncIterator[Pair]:
+async def pair(
+    *, lane: bool = True, asker_lane: bool = False, **interface: Any
+) -> AsyncIterator[Pair]:
     """uav-a and operator over zenoh, members of each other before the test runs."""
     fed = f"lane-{free_port()}"
     keys = {n: KeyPair.generate(n) for n in ("uav-a", "operator")}
@@ -64,7 +66,10 @@ async def pair(*, lane: bool = True, **interface: Any) -> AsyncIterator[Pair]:
     tb = ZenohTransport(ZenohConfig.loopback(free_port(), connect=[seed]))
     trust_a = TrustStore(fed, trusted)
     ia_a = InterfaceAgent(keys["uav-a"], trust_a, audit_interval=0.02, lane=lane, **interface)
-    ia_op = InterfaceAgent(keys["operator"], TrustStore(fed, trusted), audit_interval=0.02)
+    # the asker without a lane: with two in one process neither answers on its thread (`_Lanes`)
+    ia_op = InterfaceAgent(
+        keys["operator"], TrustStore(fed, trusted), audit_interval=0.02, lane=asker_lane
+    )
     async with contextlib.AsyncExitStack() as stack:
         await stack.enter_async_context(ta)
         await stack.enter_async_context(tb)
@@ -526,3 +531,29 @@ async def test_a_sharing_that_decides_in_its_own_check_all_is_asked_on_the_loop(
         assert [a["heli-altitude"]["samples"][0][0] for a in answers] == [120.0] * 8
         assert p.ia_a.answered_on_thread == 0
         assert len(asked_on_loop) >= 8 and all(asked_on_loop)
+
+
+async def test_with_two_lanes_in_one_process_envelopes_open_on_the_loop() -> None:
+    """Two platforms of one process with their lanes on: neither opens nor answers on
+    zenoh's thread (their threads would contend with the loop for the GIL); the reads are
+    answered at once by the loop, the same answers; the lanes' count ends with them."""
+    from agents._interface import _LANES
+
+    before = _LANES.open
+    async with pair(asker_lane=True) as p:
+        assert _LANES.open == before + 2
+        opened_on_thread: list[Any] = []
+        table = p.ia_a.sessions
+        real_open = table.open_noting
+
+        def watched(envelope: Any) -> Any:
+            opened_on_thread.append(threading.current_thread().name)
+            return real_open(envelope)
+
+        table.open_noting = watched  # type: ignore[method-assign]
+        answers = [await p.fed_op.request_from("uav-a", LATEST) for _ in range(6)]
+        assert [a["heli-altitude"]["samples"][0][0] for a in answers] == [120.0] * 6
+        assert p.ia_a.answered_on_thread == 0
+        assert p.fed_a.stats.answered_at_once >= 6  # the loop's own quick answer
+        assert opened_on_thread == []  # each opened by the loop (`SessionTable.open`)
+    assert _LANES.open == before
