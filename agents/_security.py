@@ -1374,9 +1374,15 @@ class SessionTable:
         if session.peer != frm:
             # the MAC binds the session's peer: a different 'from' is a tampered header
             raise Forged(f"session {sid} belongs to {session.peer!r}, not to {frm!r}", frm)
-        if session.peer_key is not None and session.peer_key is not self.trust._keys.get(frm):
+        agreed = session.peer_key
+        if (
+            agreed is not None
+            and agreed is not (trusted := self.trust._keys.get(frm))
+            and (trusted is None or agreed != trusted)
+        ):
             # agreed with a key the trust store no longer holds: a platform removed and
             # trusted again, or its key rotated, before its old sessions were forgotten
+            # (by value: a handshake may verify with another store holding the same keys)
             raise UnknownSession(
                 f"session {sid!r} with {frm!r} was agreed with a key no longer trusted", frm
             )
