@@ -1450,7 +1450,12 @@ class InterfaceAgent:
         reader). A read is answered here only while nothing of its peer is queued for
         the loop or taken there (it overtakes nothing), by `_lane_answer`.
         """
-        if _LANES.open > 1:
+        inbox = self._lane_inbox
+        if _LANES.open > 1 or self._lane_raw or (inbox is not None and inbox._items):
+            # The loop is draining (or several lanes share this process): it opens this
+            # one too. Opening it here would only hand the GIL to and fro (a burst of
+            # replies at an asker, a flood) where the lane gains nothing: no answer here
+            # can go before what waits for the loop.
             with self._lane_lock:
                 self._lane_raw += 1
             return _RAW, payload, 0
