@@ -572,11 +572,11 @@ class InterfaceAgent:
     audited one by one where it arrives. Off for a federation with platforms of a release
     before batches (they drop them).
 
-    ``lane`` (default on; zenoh only): every ACL envelope is opened on zenoh's receiving
-    thread, and a plain read an agent answers by `Agent.answer_on_thread` is answered
-    there, before the event loop wakes, when the loop would answer it at once
-    (`Agent.answer_at_once`) and nothing of its peer waits for the loop; counted in
-    ``answered_on_thread`` (docs/agents.md says what runs where).
+    ``lane`` (default on; zenoh only; one lane a process): an ACL envelope is opened on
+    zenoh's receiving thread while nothing waits for the loop, and a plain read an agent
+    answers by `Agent.answer_on_thread` is answered there, before the event loop wakes, when
+    the loop would answer it at once (`Agent.answer_at_once`) and nothing of its peer waits
+    for the loop; counted in ``answered_on_thread`` (docs/agents.md says what runs where).
     """
 
     def __init__(
@@ -1446,9 +1446,10 @@ class InterfaceAgent:
         loop, in order (`SessionTable.open_noting`: the loop refuses it if the peer's
         sessions were forgotten since).
 
-        Every ACL envelope opens here (the loop opens none: one replay window, one
-        reader). A read is answered here only while nothing of its peer is queued for
-        the loop or taken there (it overtakes nothing), by `_lane_answer`.
+        An envelope opens here while nothing waits for the loop; else (or with several lanes
+        in this process, `_Lanes`) it goes unopened (`_RAW`), in order, and the loop opens
+        it under the same table lock. A read is answered here only while nothing of its peer
+        is queued for the loop or taken there (it overtakes nothing), by `_lane_answer`.
         """
         inbox = self._lane_inbox
         if _LANES.open > 1 or self._lane_raw or (inbox is not None and inbox._items):

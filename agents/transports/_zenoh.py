@@ -67,13 +67,13 @@ Choices that follow from what we measured with eclipse-zenoh 1.10.2 (Python, loo
 
 What runs on zenoh's threads: a subscriber's ``admit`` screen and the ``take`` of
 ``subscribe_taking``, a queryable's ``admit``, and the appends to each ``Inbox``. The
-Interface Agent's ``take`` (its lane) opens every ACL envelope there and may answer a
-plain read there too: it reads only what the loop replaces whole or guards by a lock
-(never waiting for one the loop may hold across a zenoh call: the sender's buckets are
-tried without waiting), seals under the session table's lock, and puts on a publisher
-the loop declared (``declared_publisher``: it never declares, which changes the
-publishers' table). Everything else, counts and audit of what it answered included, is
-posted to the event loop (``call_soon_threadsafe``).
+Interface Agent's ``take`` (its lane) opens an ACL envelope there while nothing waits for
+the loop (else queues it unopened) and may answer a plain read there too: it reads only what
+the loop replaces whole or guards by a lock (never waiting for one the loop may hold across
+a zenoh call: the sender's buckets are tried without waiting), seals under the session
+table's lock, and puts on a publisher the loop declared (``declared_publisher``: it never
+declares, which changes the publishers' table). Everything else, counts and audit of what it
+answered included, is posted to the event loop (``call_soon_threadsafe``).
 
 Error replies: a zenoh error reply carries no key, so its ``Reply.key`` is the query's
 key expression (the memory transport gives the queryable's).
