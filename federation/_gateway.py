@@ -453,12 +453,11 @@ class GatewayAgent(Agent):
             reason=f"{code}: {reason}",
         )
 
-    def answer_at_once(self, message: ACLMessage) -> Any:
-        """Another platform's query for a label's latest sample, answered as it comes.
+    def _plain_latest_label(self, message: ACLMessage) -> str | None:
+        """The label a plain query for its latest sample asks, if answerable at once; else None.
 
-        What `_on_request` / `_on_query` answer to it, without the mailbox and a task;
-        anything else, and whatever they would refuse (a private gateway, a reserved
-        label, a label not here), is `LATER`: they decide, count and audit it.
+        None for a private gateway, another ontology or performative, any other action,
+        or a reserved label: `_on_request` / `_on_query` decide, count and audit those.
         """
         performative = message.performative
         if (
@@ -466,16 +465,28 @@ class GatewayAgent(Agent):
             or message.ontology != ONTOLOGY
             or self.visibility is Visibility.PRIVATE
         ):
-            return LATER
+            return None
         content = message.content
         if performative is P.QUERY_REF:
             if type(content) is not dict:
-                return LATER
+                return None
             content = {"action": "query", **content}
         elif performative is not P.REQUEST:
-            return LATER
+            return None
         label = plain_latest(content)
         if label is None or label.startswith(self.reserved):
+            return None
+        return label
+
+    def answer_at_once(self, message: ACLMessage) -> Any:
+        """Another platform's query for a label's latest sample, answered as it comes.
+
+        What `_on_request` / `_on_query` answer to it, without the mailbox and a task;
+        anything else, and whatever they would refuse (a private gateway, a reserved
+        label, a label not here), is `LATER`: they decide, count and audit it.
+        """
+        label = self._plain_latest_label(message)
+        if label is None:
             return LATER
         try:
             return answer_to_json(self.instance.latest(label))
@@ -486,22 +497,8 @@ class GatewayAgent(Agent):
         """`answer_at_once` on zenoh's thread: the label's latest sample as `Cache.extend` keeps
         it (`DyKnowInstance.latest_many_now`), or `LATER` (the loop's `answer_at_once` decides).
         """
-        performative = message.performative
-        if (
-            not self._at_once
-            or message.ontology != ONTOLOGY
-            or self.visibility is Visibility.PRIVATE
-        ):
-            return LATER
-        content = message.content
-        if performative is P.QUERY_REF:
-            if type(content) is not dict:
-                return LATER
-            content = {"action": "query", **content}
-        elif performative is not P.REQUEST:
-            return LATER
-        label = plain_latest(content)
-        if label is None or label.startswith(self.reserved):
+        label = self._plain_latest_label(message)
+        if label is None:
             return LATER
         read = self.instance.latest_many_now((label,))
         if read is None:

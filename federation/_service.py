@@ -707,6 +707,16 @@ class FederationAgent(Agent):
 
     # -- requests -----------------------------------------------------------------------
 
+    def _plain_get_latest(self, message: ACLMessage) -> list[str] | None:
+        """The labels of a plain get-latest this agent may answer at once; else None."""
+        if (
+            not self._at_once
+            or message.ontology != ONTOLOGY
+            or (message.performative is not P.QUERY_REF and message.performative is not P.REQUEST)
+        ):
+            return None
+        return latest_labels(message.content)
+
     def answer_at_once(self, message: ACLMessage) -> Any:
         """A plain get-latest of another platform answered as it comes; anything else `LATER`.
 
@@ -714,13 +724,7 @@ class FederationAgent(Agent):
         it reads the latest samples and changes nothing. A refusal (a sharing rule, a
         label not here) is left to them, so it is counted and audited as always.
         """
-        if (
-            not self._at_once
-            or message.ontology != ONTOLOGY
-            or (message.performative is not P.QUERY_REF and message.performative is not P.REQUEST)
-        ):
-            return LATER
-        labels = latest_labels(message.content)
+        labels = self._plain_get_latest(message)
         if labels is None:
             return LATER
         try:
@@ -736,13 +740,7 @@ class FederationAgent(Agent):
         (`DyKnowInstance.latest_many_now`): a get-latest asked for the first time, a
         refusal, a sample not yet available, go to `answer_at_once` on the loop.
         """
-        if (
-            not self._at_once
-            or message.ontology != ONTOLOGY
-            or (message.performative is not P.QUERY_REF and message.performative is not P.REQUEST)
-        ):
-            return LATER
-        asked = latest_labels(message.content)
+        asked = self._plain_get_latest(message)
         view = self._resolved_view
         if asked is None or view is None:
             return LATER
