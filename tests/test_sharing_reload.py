@@ -16,7 +16,7 @@ import sys
 import threading
 import time
 import tomllib
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -115,14 +115,27 @@ class Node:
             return []
         return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
 
-    def policy_records(self, verdicts: list[str], timeout: float = 15.0) -> list[dict[str, object]]:
-        """The ``policy`` audit records once their verdicts are ``verdicts`` (written apart)."""
+    def audit_until(
+        self, want: Callable[[list[dict[str, object]]], bool], timeout: float = 15.0
+    ) -> list[dict[str, object]]:
+        """The node's audit records once ``want`` holds of them (or at ``timeout``): the node
+        writes its file every audit interval, not at each record."""
         deadline = time.monotonic() + timeout
         while True:
-            records = [r for r in self.audit() if r.get("stage") == "policy"]
-            if [r["verdict"] for r in records] == verdicts or time.monotonic() > deadline:
+            records = self.audit()
+            if want(records) or time.monotonic() > deadline:
                 return records
             time.sleep(0.1)
+
+    def policy_records(self, verdicts: list[str], timeout: float = 15.0) -> list[dict[str, object]]:
+        """The ``policy`` audit records once their verdicts are ``verdicts`` (written apart)."""
+
+        def policy(records: list[dict[str, object]]) -> list[dict[str, object]]:
+            return [r for r in records if r.get("stage") == "policy"]
+
+        want = verdicts
+        records = self.audit_until(lambda rs: [r["verdict"] for r in policy(rs)] == want, timeout)
+        return policy(records)
 
     def ask(self, label: str) -> subprocess.CompletedProcess[str]:
         """``dyknow ask LABEL -p station`` as the operator."""
@@ -503,7 +516,12 @@ async def test_sighup_opens_and_closes_the_gateway_to_other_members(tmp_path: Pa
         assert ended["to"] == "operator" and ended["subscriber"] == "tester@operator"
         assert removed["code"] == "sharing-gateway" and removed["stream"] == "op/t"
         assert removed["to"] == "operator" and removed["creator"] == "tester@operator"
-        refused = [r for r in node.audit() if "access denied" in str(r.get("reason"))]
+
+        def denied(records: list[dict[str, object]]) -> list[dict[str, object]]:
+            return [r for r in records if "access denied" in str(r.get("reason"))]
+
+        records = await asyncio.to_thread(node.audit_until, lambda rs: len(denied(rs)) >= 2)
+        refused = denied(records)
         assert len(refused) == 2, refused  # one before the opening, one after the closing
         assert node.proc.poll() is None
     finally:
