@@ -21,7 +21,7 @@ class Cache:
     available time) are kept: that is what answers "what did we believe at tq about tv".
     """
 
-    __slots__ = ("_buf", "_max_age", "_memo", "evicted")
+    __slots__ = ("_buf", "_max_age", "_memo", "_watched", "evicted")
 
     def __init__(self, spec: CacheSpec) -> None:
         self._buf: deque[RawSample] = deque(maxlen=spec.max_samples)
@@ -33,6 +33,9 @@ class Cache:
         # newest arrival's available time. One tuple, replaced whole by `extend` (the
         # stream's one writer, on its event loop): `latest_now` reads it from any thread.
         self._memo: tuple[RawSample | None, int, int, int] = (None, -1, 0, 0)
+        # kept up by every `extend` only once `latest_now` was asked (a stream another
+        # thread reads): a stream nobody asks so pays nothing per batch (the pipeline's)
+        self._watched = False
 
     def __len__(self) -> int:
         return len(self._buf)
@@ -53,7 +56,8 @@ class Cache:
                 buf.popleft()
                 n += 1
             self.evicted += n
-        self._update()
+        if self._watched:
+            self._update()
 
     def _update(self) -> None:
         """Bring the best of everything cached up to date, reading only what arrived since."""
@@ -81,9 +85,14 @@ class Cache:
         only the stream's event loop can tell (a sample available after ``as_of``).
 
         It reads the best sample `extend` keeps, replaced whole: never the cache itself.
+        The first ask of a stream is ``(False, None)``: from then on `extend` keeps it.
         """
-        best, _, _, newest = self._memo
-        if newest > as_of:
+        best, _, scanned, newest = self._memo
+        if not self._watched:
+            self._watched = True  # a flag only ever set: any thread may set it
+            return False, None
+        if newest > as_of or scanned != self.evicted + len(self._buf):
+            # a sample available later, or arriving now (read half-way): the loop decides
             return False, None
         return True, best
 
@@ -104,7 +113,8 @@ class Cache:
         buf = self._buf
         if not buf:
             return None
-        if as_of is None or buf[-1][2] <= as_of:  # all of it: kept up by `extend`
+        if as_of is None or buf[-1][2] <= as_of:  # all of it: only what is new is read
+            self._update()
             return self._memo[0]
         best = None
         for s in self._believed(as_of):

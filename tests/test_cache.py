@@ -496,3 +496,35 @@ def test_bitemporal_queries_never_see_the_future(
             assert got[0].valid_time == t
             assert got[0].value == pytest.approx(want[0])
             assert got[0].available_time == want[1]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.lists(st.tuples(st.integers(0, 20), st.integers(0, 3)), min_size=1, max_size=4),
+        min_size=1,
+        max_size=8,
+    ),
+    st.sampled_from([(2, None), (5, None), (None, 3.0)]),
+)
+def test_latest_now_is_latest_once_asked_and_unknown_before(
+    batches: list[list[tuple[int, int]]], bounds: tuple[int | None, float | None]
+) -> None:
+    """Another thread's read (`Cache.latest_now`): unknown at its first ask (the stream is
+    not kept up for it yet: a stream nobody reads so pays nothing per batch), then what
+    `latest` says after every batch, while no sample is available later than asked."""
+    cache = Cache(CacheSpec(max_samples=bounds[0], max_age=bounds[1]))
+    ta = 0
+    asked = False
+    for batch in batches:
+        raws = []
+        for tv, gap in batch:
+            ta += gap + 1
+            raws.append((float(tv), tv * S, ta * S))
+        cache.extend(raws)
+        if not asked:
+            assert cache.latest_now(ta * S) == (False, None)
+            asked = True
+            continue
+        assert cache.latest_now(ta * S) == (True, cache.latest())
+        assert cache.latest_now(ta * S - 1) == (False, None)  # the newest came after it
