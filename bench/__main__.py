@@ -1,7 +1,9 @@
 """Run benchmarks: ``python -m bench`` runs all, ``python -m bench <name> …`` some.
 
 Arguments starting with ``-`` are options for the benchmarks, not names: they stay in
-``sys.argv`` for a benchmark to read (``python -m bench scale --quick``).
+``sys.argv`` for a benchmark to read (``python -m bench scale --quick``). ``-h`` or
+``--help`` prints what each named benchmark (all when none is named) measures and its
+options, and runs nothing.
 
 A benchmark is any public module of this package with a ``run()`` function, so adding one
 is adding a file; nothing here needs to know its name.
@@ -37,6 +39,11 @@ def main(argv: list[str]) -> int:
             file=sys.stderr,
         )
         return 2
+    if "-h" in argv or "--help" in argv:
+        for name in wanted:
+            doc = importlib.import_module(f"bench.{name}").__doc__ or "(no description)"
+            print(f"== bench {name}\n{doc.strip()}\n")
+        return 0
     for name in wanted:
         module = importlib.import_module(f"bench.{name}")
         if not callable(getattr(module, "run", None)):

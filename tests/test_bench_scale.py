@@ -98,6 +98,16 @@ def test_the_runner_knows_scale_and_leaves_options_to_it() -> None:
     assert bench_main.main(["--quick", "no-such-bench"]) == 2
 
 
+def test_help_says_what_a_benchmark_measures_and_runs_nothing(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """``python -m bench scale --help`` prints its description and options, not a run."""
+    assert bench_main.main(["scale", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("== bench scale\n") and "--quick" in out and "--procs" in out
+    assert "== bench scale took" not in out  # nothing ran
+
+
 def test_the_bare_sessions_have_our_sessions_settings() -> None:
     """The join's peer is fair: every setting the bare sessions get is what ours run with."""
     from agents.transports import ZenohConfig
