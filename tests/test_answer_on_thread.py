@@ -166,28 +166,11 @@ async def test_a_read_waits_behind_what_its_peer_has_queued_for_the_loop() -> No
         await _until(lambda: not p.ia_a._lane_done)  # what the lane answered is booked
         before = (p.ia_a.answered_on_thread, p.fed_a.stats.handled)
         conv = "lane-order"
-        slow = p.fed_op.request_from(
-            "uav-a", {"action": "list-labels"}, conversation_id=f"{conv}-1"
-        )
         # the envelopes as zenoh's thread would get them, taken by the lane's own hook
         # from another thread: the first is no plain read and is queued for the loop
-        sealed: list[bytes] = []
-        real_put = p.asker.transport.publish
-
-        async def capture(key: str, payload: bytes, **kw: Any) -> None:
-            if key.endswith("/acl/uav-a"):
-                sealed.append(payload)
-                return
-            await real_put(key, payload, **kw)
-
-        p.asker.transport.publish = capture  # type: ignore[method-assign]
-        p.ia_op._batching = False  # each message in an envelope of its own
-        first = asyncio.ensure_future(slow)
-        second = asyncio.ensure_future(
-            p.fed_op.request_from("uav-a", LATEST, conversation_id=f"{conv}-2")
+        sealed, (first, second) = await sealed_requests(
+            p, [({"action": "list-labels"}, f"{conv}-1"), (LATEST, f"{conv}-2")]
         )
-        await _until(lambda: len(sealed) == 2)
-        p.asker.transport.publish = real_put  # type: ignore[method-assign]
         took = await asyncio.to_thread(lambda: [p.ia_a._lane_take(e) for e in sealed])
         assert took[0] is not None and took[0][0] == "operator"  # for the loop
         assert took[1] is not None and took[1][0] == "operator"  # behind it: the loop's too
@@ -344,8 +327,11 @@ async def test_what_the_full_inbox_drops_no_longer_holds_its_peers_reads_back() 
         await _until(lambda: p.ia_a.answered_on_thread >= 1)
 
 
-async def _sealed_reads(p: Pair, conv: str, n: int) -> tuple[list[bytes], list[Any]]:
-    """``n`` get-latest requests of operator's, sealed for uav-a but not sent; their futures."""
+async def sealed_requests(
+    p: Pair, asks: list[tuple[dict[str, Any], str]], **kw: Any
+) -> tuple[list[bytes], list[Any]]:
+    """operator's requests to uav-a (content, conversation id), each sealed in an envelope of
+    its own and captured rather than published; their futures (``kw``: `request_from`'s)."""
     sealed: list[bytes] = []
     real_put = p.asker.transport.publish
 
@@ -357,13 +343,20 @@ async def _sealed_reads(p: Pair, conv: str, n: int) -> tuple[list[bytes], list[A
 
     p.asker.transport.publish = capture  # type: ignore[method-assign]
     p.ia_op._batching = False  # each message in an envelope of its own
-    asks = [
-        asyncio.ensure_future(p.fed_op.request_from("uav-a", LATEST, conversation_id=f"{conv}-{i}"))
-        for i in range(n)
+    asked = [
+        asyncio.ensure_future(p.fed_op.request_from("uav-a", content, conversation_id=conv, **kw))
+        for content, conv in asks
     ]
-    await _until(lambda: len(sealed) == n)
-    p.asker.transport.publish = real_put  # type: ignore[method-assign]
-    return sealed, asks
+    try:
+        await _until(lambda: len(sealed) == len(asks))
+    finally:
+        p.asker.transport.publish = real_put  # type: ignore[method-assign]
+    return sealed, asked
+
+
+async def _sealed_reads(p: Pair, conv: str, n: int) -> tuple[list[bytes], list[Any]]:
+    """``n`` get-latest requests of operator's, sealed for uav-a but not sent; their futures."""
+    return await sealed_requests(p, [(LATEST, f"{conv}-{i}") for i in range(n)])
 
 
 class _Hold(Exception):

@@ -14,32 +14,15 @@ import threading
 from typing import Any
 
 import pytest
-from test_answer_on_thread import LATEST, WAIT, _until, pair
+from test_answer_on_thread import LATEST, WAIT, _until, pair, sealed_requests
 
 from agents._security import Handshake, KeyPair, SessionTable, TrustStore
 
 
 async def _sealed_by_operator(p: Any, content: dict[str, Any], conv: str) -> tuple[bytes, Any]:
     """An envelope operator seals for uav-a's inbox, captured rather than published."""
-    sealed: list[bytes] = []
-    real_put = p.asker.transport.publish
-
-    async def capture(key: str, payload: bytes, **kw: Any) -> None:
-        if key.endswith("/acl/uav-a"):
-            sealed.append(payload)
-            return
-        await real_put(key, payload, **kw)
-
-    p.asker.transport.publish = capture
-    p.ia_op._batching = False
-    asked = asyncio.ensure_future(
-        p.fed_op.request_from("uav-a", content, conversation_id=conv, timeout=1.0)
-    )
-    try:
-        await _until(lambda: len(sealed) == 1)
-    finally:
-        p.asker.transport.publish = real_put
-    return sealed[0], asked
+    sealed, asked = await sealed_requests(p, [(content, conv)], timeout=1.0)
+    return sealed[0], asked[0]
 
 
 async def test_a_request_opened_before_its_platform_is_revoked_is_not_taken_after_it() -> None:
