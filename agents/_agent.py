@@ -896,7 +896,7 @@ class Agent:
         return None
 
     async def _handle(self, handler: Handler, message: ACLMessage) -> None:
-        self._handlers_starting.discard(asyncio.current_task())  # type: ignore[arg-type]
+        self._handlers_starting.discard(asyncio.current_task())
         try:
             await handler(message)
             self.stats.handled += 1
