@@ -223,7 +223,7 @@ async def _node_here(path: Path) -> int | None:
 
 
 _SHORT_OF = {errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM}
-"""What a connect may fail on that says nothing of whether a node listens."""
+"""Errors that say this host is short of descriptors or memory, nothing of the channel."""
 
 
 class LocalChannelError(OSError):
@@ -232,6 +232,14 @@ class LocalChannelError(OSError):
 
 def _cannot_look(path: Path, exc: OSError) -> LocalChannelError:
     """The error for ``exc`` met looking for a node on ``path``, its cause in words."""
+    return _short_of(
+        exc,
+        f"cannot tell whether a node of this platform runs on this host (its local channel {path})",
+    )
+
+
+def _short_of(exc: OSError, doing: str) -> LocalChannelError:
+    """``doing`` (what failed, in words) and the cause of ``exc`` (out of what)."""
     if exc.errno == errno.EMFILE:
         soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
         cause = (
@@ -244,10 +252,7 @@ def _cannot_look(path: Path, exc: OSError) -> LocalChannelError:
         cause = "the system is out of memory for sockets"
     else:
         cause = exc.strerror or str(exc)
-    return LocalChannelError(
-        f"cannot tell whether a node of this platform runs on this host (its local channel "
-        f"{path}): {cause}"
-    )
+    return LocalChannelError(f"{doing}: {cause}")
 
 
 def _since(pid: int) -> float | None:
@@ -573,7 +578,12 @@ class LocalChannel:
             # One at a time from the check to the bind: two nodes starting at once must not
             # both find the place free (the second would unlink the first's socket).
             lock_path = self.path.with_name(self.path.name + ".lock")
-            lock = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                lock = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o600)
+            except OSError as exc:
+                if exc.errno not in _SHORT_OF:
+                    raise
+                raise _short_of(exc, f"cannot open the local channel {self.path}") from None
             try:
                 await asyncio.to_thread(fcntl.flock, lock, fcntl.LOCK_EX)
                 here = await _node_here(self.path)
@@ -587,6 +597,10 @@ class LocalChannel:
                     self._server = await asyncio.start_unix_server(
                         self._serve, path=str(self.path), limit=_LINE
                     )
+                except OSError as exc:
+                    if exc.errno not in _SHORT_OF:
+                        raise
+                    raise _short_of(exc, f"cannot open the local channel {self.path}") from None
                 finally:
                     os.umask(old)
                 os.chmod(self.path, 0o600)
