@@ -1361,6 +1361,7 @@ class SessionTable:
         """
         with self._lock:
             now = self._clock()
+            trusted = self.trust._keys.get(peer)
             newest: Session | None = None
             for s in self._by_peer.get(peer, ()):
                 # local time, not the agreed order: "did I make a session lately?" is local
@@ -1370,6 +1371,12 @@ class SessionTable:
                     and now - s.established <= s._lifetime
                     and (s._retire_at is None or now <= s._retire_at)
                     and (newest is None or s.established > newest.established)
+                    # one of a key no longer trusted seals nothing (`session_for`): not fresh
+                    and (
+                        (agreed := s.peer_key) is trusted
+                        or agreed is None
+                        or (trusted is not None and agreed == trusted)
+                    )
                 ):
                     newest = s
             return newest is None or newest.needs_renewal()

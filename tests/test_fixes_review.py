@@ -18,10 +18,6 @@ from agents import KeyPair
 from tests.test_security import ACL, KEYS, Clock, connect, make_platform
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="needs_renewal counts a session agreed with a key no longer trusted as fresh",
-)
 def test_a_session_of_a_key_no_longer_trusted_asks_for_renewal() -> None:
     """`needs_renewal` is True when there is no session to seal with (its docstring),
     as `session_for` says after a re-key: the renewal asked after each message sent must
