@@ -538,7 +538,10 @@ class Agent:
         self._by_reply: dict[str, Conversation] = {}
         self._by_conv: dict[str, Conversation] = {}
         self._closed_keys: OrderedDict[str, None] = OrderedDict()
-        self._handlers_starting = 0  # concurrent handlers' tasks spawned, not yet started
+        # concurrent handlers' tasks spawned, not yet started (truthy: `answer_at_once`
+        # waits); a set, not a count, so that a task cancelled before its first step,
+        # whose `_handle` never runs, leaves it when it ends
+        self._handlers_starting: set[asyncio.Task[Any]] = set()
         self._state = _UNATTACHED
         self._task: asyncio.Task[None] | None = None
         self._tg: asyncio.TaskGroup | None = None
@@ -867,8 +870,10 @@ class Agent:
             if route is None:
                 await self._unhandled(message)
             elif route.concurrent:
-                self._spawn(self._handle(route.handler, message), "handle")
-                self._handlers_starting += 1  # it starts in a later turn
+                task = self._spawn(self._handle(route.handler, message), "handle")
+                starting = self._handlers_starting
+                starting.add(task)  # it starts in a later turn
+                task.add_done_callback(starting.discard)
             else:
                 # `_handle`, inline: the common case of every message
                 try:
@@ -891,7 +896,7 @@ class Agent:
         return None
 
     async def _handle(self, handler: Handler, message: ACLMessage) -> None:
-        self._handlers_starting -= 1
+        self._handlers_starting.discard(asyncio.current_task())
         try:
             await handler(message)
             self.stats.handled += 1

@@ -1297,21 +1297,39 @@ class SessionTable:
 
         The newest session the peer is known to hold: one this platform initiated, or one
         the peer has sent on. A responder never sends first on a fresh session, because a
-        replayed request can make sessions the peer does not hold.
+        replayed request can make sessions the peer does not hold. A session agreed with
+        a key the trust store no longer holds for ``peer`` is none, as opening says.
         """
         with self._lock:
             now = self._clock()
             cached = self._tx.get(peer)
-            # `Session.expired`, inline: the path of every message sealed
+            trusted = self.trust._keys.get(peer)
+            # `Session.expired` and the key check of `_session_of`, inline: the path of
+            # every message sealed (a re-key from another thread is seen before the
+            # revocation reaches the loop)
             if (
                 cached is not None
                 and now - cached.established <= cached._lifetime
                 and (cached._retire_at is None or now <= cached._retire_at)
+                and (
+                    (agreed := cached.peer_key) is trusted
+                    or agreed is None
+                    or (trusted is not None and agreed == trusted)
+                )
             ):
                 return cached
             best: Session | None = None
             for s in self._by_peer.get(peer, ()):
-                if s._confirmed and not s.expired(now) and (best is None or s.order > best.order):
+                if (
+                    s._confirmed
+                    and not s.expired(now)
+                    and (best is None or s.order > best.order)
+                    and (
+                        (agreed := s.peer_key) is trusted
+                        or agreed is None
+                        or (trusted is not None and agreed == trusted)
+                    )
+                ):
                     best = s
             if best is None:
                 self._tx.pop(peer, None)
@@ -1343,6 +1361,7 @@ class SessionTable:
         """
         with self._lock:
             now = self._clock()
+            trusted = self.trust._keys.get(peer)
             newest: Session | None = None
             for s in self._by_peer.get(peer, ()):
                 # local time, not the agreed order: "did I make a session lately?" is local
@@ -1352,6 +1371,12 @@ class SessionTable:
                     and now - s.established <= s._lifetime
                     and (s._retire_at is None or now <= s._retire_at)
                     and (newest is None or s.established > newest.established)
+                    # one of a key no longer trusted seals nothing (`session_for`): not fresh
+                    and (
+                        (agreed := s.peer_key) is trusted
+                        or agreed is None
+                        or (trusted is not None and agreed == trusted)
+                    )
                 ):
                     newest = s
             return newest is None or newest.needs_renewal()

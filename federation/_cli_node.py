@@ -126,7 +126,8 @@ def run_node(config: Path) -> int:
     """Run one platform from its TOML config until SIGINT/SIGTERM; the exit code.
 
     2: the config is wrong, the platform runs already, or its local channel's place is
-    another user's; 1: the transport failed.
+    another user's; 1: the transport failed, or the host lacks what the local channel
+    takes (file descriptors).
     """
     # What the imports build lives as long as the node: the cyclic GC would walk it again
     # and again until ready (~15 ms of a node's start), so it is off while they run and
@@ -138,7 +139,7 @@ def run_node(config: Path) -> int:
         from agents import TransportError, run
 
         from ._cli_net import run_node as serve
-        from ._local import ForeignNodeError, PlatformAliveError
+        from ._local import ForeignNodeError, LocalChannelError, PlatformAliveError
         from ._platform import PlatformConfig, PlatformConfigError
 
         gc.freeze()
@@ -152,7 +153,7 @@ def run_node(config: Path) -> int:
         return _fail(str(exc))
     except (PlatformAliveError, ForeignNodeError) as exc:
         return _fail(f"dyknow node: {config}: {exc}")
-    except TransportError as exc:
+    except (TransportError, LocalChannelError) as exc:
         return _fail(f"dyknow node: {config}: {exc}", 1)
     finally:
         # the node has ended: a caller that goes on (a test calling the entry point) gets

@@ -37,12 +37,14 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import errno
 import fcntl
 import hashlib
 import json
 import logging
 import math
 import os
+import resource
 import secrets
 import socket
 import stat
@@ -188,19 +190,27 @@ async def _node_here(path: Path) -> int | None:
     0 when one listens but its pid is unknown. A socket nobody listens on is a dead
     node's (connecting is refused at once). ForeignNodeError when the listener is
     another OS user's: never taken for this platform running, never unlinked.
+    LocalChannelError when this host cannot look (out of file descriptors or memory):
+    never taken for none listening, so never unlinked either.
     """
     # A Unix socket's connect is decided in the kernel at once (no round trip, no accept):
     # made without blocking, no wait of the loop's can be taken for a busy listener on a
     # loaded machine; a full backlog (EAGAIN) is someone listening, busy.
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    except OSError as exc:
+        raise _cannot_look(path, exc) from None
     try:
         sock.setblocking(False)
         try:
             sock.connect(str(path))
         except BlockingIOError:
             return 0
-        except OSError:  # no socket, or a stale one (refused), or not ours to open
-            return None
+        except OSError as exc:
+            if exc.errno in _SHORT_OF:
+                # not "none listens": the caller would unlink a live node's socket
+                raise _cannot_look(path, exc) from None
+            return None  # no socket, or a stale one (refused), or not ours to open
         creds = _socket_cred(sock)
     finally:
         sock.close()
@@ -210,6 +220,39 @@ async def _node_here(path: Path) -> int | None:
     if uid != os.getuid():
         raise ForeignNodeError(_not_ours_listener(path, uid))
     return pid
+
+
+_SHORT_OF = {errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM}
+"""Errors that say this host is short of descriptors or memory, nothing of the channel."""
+
+
+class LocalChannelError(OSError):
+    """This host lacks what looking at the local channel takes (file descriptors, memory)."""
+
+
+def _cannot_look(path: Path, exc: OSError) -> LocalChannelError:
+    """The error for ``exc`` met looking for a node on ``path``, its cause in words."""
+    return _short_of(
+        exc,
+        f"cannot tell whether a node of this platform runs on this host (its local channel {path})",
+    )
+
+
+def _short_of(exc: OSError, doing: str) -> LocalChannelError:
+    """``doing`` (what failed, in words) and the cause of ``exc`` (out of what)."""
+    if exc.errno == errno.EMFILE:
+        soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+        cause = (
+            f"this process is out of file descriptors (at most {soft} open at once: "
+            "RLIMIT_NOFILE; raise it, e.g. `ulimit -n 4096`, or find what holds them)"
+        )
+    elif exc.errno == errno.ENFILE:
+        cause = "the system's file table is full (fs.file-max): too many files open on this host"
+    elif exc.errno in (errno.ENOBUFS, errno.ENOMEM):
+        cause = "the system is out of memory for sockets"
+    else:
+        cause = exc.strerror or str(exc)
+    return LocalChannelError(f"{doing}: {cause}")
 
 
 def _since(pid: int) -> float | None:
@@ -535,7 +578,12 @@ class LocalChannel:
             # One at a time from the check to the bind: two nodes starting at once must not
             # both find the place free (the second would unlink the first's socket).
             lock_path = self.path.with_name(self.path.name + ".lock")
-            lock = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o600)
+            try:
+                lock = os.open(lock_path, os.O_RDWR | os.O_CREAT, 0o600)
+            except OSError as exc:
+                if exc.errno not in _SHORT_OF:
+                    raise
+                raise _short_of(exc, f"cannot open the local channel {self.path}") from None
             try:
                 await asyncio.to_thread(fcntl.flock, lock, fcntl.LOCK_EX)
                 here = await _node_here(self.path)
@@ -549,6 +597,10 @@ class LocalChannel:
                     self._server = await asyncio.start_unix_server(
                         self._serve, path=str(self.path), limit=_LINE
                     )
+                except OSError as exc:
+                    if exc.errno not in _SHORT_OF:
+                        raise
+                    raise _short_of(exc, f"cannot open the local channel {self.path}") from None
                 finally:
                     os.umask(old)
                 os.chmod(self.path, 0o600)

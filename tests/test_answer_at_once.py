@@ -20,10 +20,12 @@ from agents import (
     AgentPlatform,
     Failed,
     HandedOver,
+    MessageTemplate,
     Performative,
     RateLimit,
     Refused,
     ServiceDescription,
+    on,
     on_query,
     on_request,
     query_ref,
@@ -236,3 +238,58 @@ async def test_an_answer_that_went_is_not_sent_again_when_what_follows_it_fails(
         await query_ref(asker, "reader@uav-b", {"read": "mode"}, ontology="demo")
         assert asker.stats.received == 2
         assert asker.stats.late == 0
+
+
+class ConcurrentReader(Reader):
+    """A `Reader` whose ``slow`` informs each run in a task of their own."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.slow: list[Any] = []
+
+    @on(MessageTemplate(ontology="slow"), concurrent=True)
+    async def _slow(self, message: ACLMessage) -> None:
+        self.slow.append(message.content)
+        if message.content == "boom":
+            raise RuntimeError("the concurrent handler broke")
+
+
+async def test_reads_are_answered_at_once_again_after_a_concurrent_handler_never_started() -> None:
+    """A concurrent handler's task cancelled before its first step (its agent's tasks
+    cancelled, say), or one that fails: the next read is answered at once, not left to
+    the handler as if that task were still to start."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        pb = await fed.start("uav-b")
+        r = await pb.add(ConcurrentReader("reader"))
+        assert pb.df is not None
+        await pb.df.register(service(r, "protected"))
+        asker = await pa.add(Agent("asker"))
+        spawn = r._spawn
+        cancelled: list[asyncio.Task[Any]] = []
+
+        def spawn_then_cancel(coro: Any, name: str) -> asyncio.Task[Any]:
+            task = spawn(coro, name)
+            if name == "handle":
+                task.cancel()  # in the turn that made it: it never runs a step
+                cancelled.append(task)
+            return task
+
+        r._spawn = spawn_then_cancel  # type: ignore[method-assign]
+        await asker.send(asker.message(P.INFORM, "reader@uav-b", "never", ontology="slow"))
+        async with asyncio.timeout(WAIT):
+            while not (cancelled and cancelled[0].done()):  # noqa: ASYNC110
+                await asyncio.sleep(0.005)
+        assert cancelled[0].cancelled() and r.slow == []
+        del r._spawn  # the class's again
+        got = await query_ref(asker, "reader@uav-b", {"read": "speed"}, ontology="demo")
+        assert got == {"value": 12.5, "by": "at-once"}
+        assert r.stats.answered_at_once == 1
+
+        await asker.send(asker.message(P.INFORM, "reader@uav-b", "boom", ontology="slow"))
+        async with asyncio.timeout(WAIT):
+            while r.stats.handler_errors == 0:  # noqa: ASYNC110
+                await asyncio.sleep(0.005)
+        got = await query_ref(asker, "reader@uav-b", {"read": "mode"}, ontology="demo")
+        assert got == {"value": "survey", "by": "at-once"}
+        assert r.stats.answered_at_once == 2 and r.handled == []

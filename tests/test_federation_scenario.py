@@ -935,6 +935,28 @@ async def test_a_narrowed_accept_for_withdraws_the_streams_agreed_for_those_it_r
         assert all(r["from"] == "uav-a" and r["stage"] == "policy" for r in ended)
 
 
+async def test_a_withdrawn_stream_ends_at_its_provider_with_its_lease(demo_keys: Path) -> None:
+    # the provider is sent nothing at a withdrawal (no message names an export to a
+    # receiver that did not ask for it): uav-b reports on it no more, so uav-a's export
+    # ends once its lease runs out, and only then
+    async with memory_federation(demo_keys, export_lease=2.0, **_CONSENT) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        await _directed_to_uav_b(ps)
+        assert sorted(e.semantic_label for e in a.exporter.exports("uav-b")) == [
+            "car5-state",
+            "car7-state",
+        ]
+        await b.reload_sharing(SharingSettings())  # accept_for: nobody
+        async with asyncio.timeout(WAIT):
+            while a.exporter.exports("uav-b"):  # noqa: ASYNC110
+                await asyncio.sleep(0.05)  # the lease's end: no event to await
+        ended = {e.semantic_label: e.ended for e in a.exporter.ended if e.receiver == "uav-b"}
+        assert sorted(ended) == ["car5-state", "car7-state"], ended
+        assert all(
+            str(why).startswith("lease-expired: no report from uav-b") for why in ended.values()
+        )
+
+
 async def test_the_streams_a_revoked_platform_directed_here_are_withdrawn(
     demo_keys: Path,
 ) -> None:

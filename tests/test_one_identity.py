@@ -553,6 +553,120 @@ async def test_a_node_too_busy_to_accept_on_its_channel_is_still_taken_for_runni
         busy.close()
 
 
+_OUT_OF_FDS = """
+import asyncio, json, os, resource, socket, sys
+from pathlib import Path
+from federation._local import _node_here
+
+path = Path(sys.argv[1])
+node = socket.socket(socket.AF_UNIX)  # a node listening on the channel: this process
+node.bind(str(path))
+node.listen(8)
+loop = asyncio.new_event_loop()  # its descriptors taken before they run out
+_, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+held = []
+try:
+    while len(held) < 64:
+        held.append(os.open(os.devnull, os.O_RDONLY))
+except OSError:
+    pass
+try:
+    outcome = {"here": loop.run_until_complete(_node_here(path))}
+except Exception as exc:
+    outcome = {"error": type(exc).__name__, "message": str(exc)}
+for fd in held:
+    os.close(fd)
+outcome["after"] = loop.run_until_complete(_node_here(path))
+print(json.dumps(outcome))
+"""
+
+
+def test_a_node_looked_for_without_a_file_descriptor_left_is_a_clear_error_not_none(
+    tmp_path: Path,
+) -> None:
+    """Out of file descriptors (RLIMIT_NOFILE), looking at the local channel says so; it
+    is never "none listens" (the caller would unlink a live node's socket), nor a crash."""
+    import sys
+
+    path = tmp_path / "run" / "station.sock"
+    path.parent.mkdir(mode=0o700)
+    done = subprocess.run(
+        [sys.executable, "-c", _OUT_OF_FDS, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).parents[1])},
+    )
+    assert done.returncode == 0, done.stderr
+    outcome = json.loads(done.stdout)
+    assert outcome.get("error") == "LocalChannelError", outcome
+    message = outcome["message"]
+    assert "cannot tell whether a node of this platform runs on this host" in message
+    assert str(path) in message
+    assert "out of file descriptors (at most 64 open at once: RLIMIT_NOFILE" in message
+    assert outcome["after"] > 0  # descriptors back: the listener found, as ever
+    assert path.is_socket()
+
+
+_CHANNEL_OUT_OF_FDS = """
+import asyncio, json, os, resource, sys
+from agents import MemoryHub
+from federation import FederationPlatform, PlatformConfig
+from federation._local import LocalChannel, channel_path
+
+async def main():
+    config = PlatformConfig.load(sys.argv[1])
+    path = channel_path(config)
+    hub = MemoryHub()
+    async with hub.transport() as t, FederationPlatform(config, transport=t, join=False) as p:
+        _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+        held = []
+        try:
+            while len(held) < 64:
+                held.append(os.open(os.devnull, os.O_RDONLY))
+        except OSError:
+            pass
+        try:
+            async with LocalChannel(p):
+                outcome = {"opened": True}
+        except Exception as exc:
+            outcome = {"error": type(exc).__name__, "message": str(exc)}
+        for fd in held:
+            os.close(fd)
+        async with LocalChannel(p):
+            outcome["then"] = path.is_socket()
+    print(json.dumps(outcome))
+
+asyncio.run(main())
+"""
+
+
+def test_a_node_opening_its_channel_without_a_file_descriptor_left_says_why(
+    tmp_path: Path,
+) -> None:
+    """A node out of file descriptors as it opens its local channel: a clear error naming
+    the cause (the node says it in one line), not an OSError's traceback."""
+    import sys
+
+    station = Station(tmp_path)
+    done = subprocess.run(
+        [sys.executable, "-c", _CHANNEL_OUT_OF_FDS, "station-python.toml"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=station.dir,
+        env={**station.env, "PYTHONPATH": str(Path(__file__).parents[1])},
+    )
+    assert done.returncode == 0, done.stderr
+    outcome = json.loads(done.stdout)
+    assert outcome.get("error") == "LocalChannelError", outcome
+    assert outcome["message"].startswith("cannot open the local channel "), outcome
+    assert "out of file descriptors (at most 64 open at once: RLIMIT_NOFILE" in outcome["message"]
+    assert outcome["then"] is True  # descriptors back: it opens, as ever
+
+
 @pytest.mark.timeout(150)
 def test_a_stream_asked_again_as_the_last_follower_leaves_gets_samples(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]

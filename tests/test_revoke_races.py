@@ -152,3 +152,47 @@ async def test_a_revoked_platform_leaves_the_directory_and_the_members(tmp_path:
         # trusted (its snapshots and events are signed with a key no longer in the file)
         await asyncio.sleep(1.0)  # the directory's re-checks: nothing to await, a bounded look
         assert "operator" not in gdf.platforms and "operator" not in s.federation_agent.members
+
+
+@pytest.mark.timeout(90)
+async def test_a_platform_rekeyed_from_another_thread_gets_nothing_sealed_on_its_old_session(
+    tmp_path: Path,
+) -> None:
+    """A trust reload (SIGHUP's, on its own thread) gives the operator another key while the
+    loop is busy: before the revocation reaches the loop, what the loop sends is not sealed
+    on the session agreed with the old key; a key exchange is needed, and the one under the
+    new key fails (the operator cannot sign with it), as a send with no session does."""
+    import threading
+
+    from agents import KeyPair, SecurityError, TrustStore, UnknownSession
+    from federation._cli_common import wait_for_members
+
+    s, o = _pair(tmp_path)
+    async with asyncio.timeout(80), s, o:
+        assert await wait_for_members(o, "station", 30)
+        await s.interface.send("operator", _hello(s, "operator"))
+        await _until("the turn's batch closed", lambda: "operator" not in s.interface._outbox)
+        assert s.interface.sessions.session_for("operator") is not None
+        trust = s.interface.trust
+        new = TrustStore(
+            trust.federation,
+            {
+                "station": trust.public_key("station"),
+                "operator": KeyPair.generate("operator").public_key,
+            },
+        )
+        # joined here: the loop is held, as a busy one is, so the revocation waits for it
+        worker = threading.Thread(target=s.reload_trust, args=(new,))
+        worker.start()
+        worker.join(10)
+        assert not worker.is_alive()
+        assert s.interface.revoked == 0  # not yet on the loop
+        assert s.interface.sessions.session_for("operator") is None
+        with pytest.raises(UnknownSession):
+            s.interface.sessions.seal("operator", b"{}")
+        assert not s.interface.send_now("operator", _hello(s, "operator"))
+        with pytest.raises(SecurityError, match="key exchange with 'operator' refused"):
+            await s.interface.send("operator", _hello(s, "operator"))
+        await _until("the revocation", lambda: s.interface.revoked == 1)
+        (record,) = [r for r in s.interface.audit.records if r.get("verdict") == "revoked"]
+        assert record["to"] == "operator"

@@ -296,6 +296,27 @@ def test_untrusted_platform_and_revocation(clock: Clock) -> None:
         b.table.open(env)
 
 
+def test_a_session_of_a_key_no_longer_trusted_seals_nothing(clock: Clock) -> None:
+    """Sealing checks the session's key as opening does: by identity, then by value (a
+    handshake may verify with another store holding the same keys)."""
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    connect(a, b)
+    b.table.open(a.table.seal("uav-b", ACL))
+    assert a.table.session_for("uav-b") is not None
+    assert a.trust.add("uav-b", KeyPair.generate("uav-x").public_key, replace=True)
+    assert a.table.session_for("uav-b") is None  # re-keyed: none to seal with
+    with pytest.raises(UnknownSession, match="run a handshake first"):
+        a.table.seal("uav-b", ACL)
+    with pytest.raises(UnknownSession, match="run a handshake first"):
+        a.table.seal_bytes("uav-b", b"x")
+    # the agreed key back, in another key object (as another store holds it): by value
+    assert a.trust.add("uav-b", KEYS["uav-b"].public_key, replace=True)
+    b.table.open(a.table.seal("uav-b", ACL))
+    a.trust.remove("uav-b")
+    with pytest.raises(UnknownSession):
+        a.table.seal("uav-b", ACL)
+
+
 def test_removing_a_platform_tells_each_callback_once(
     clock: Clock, caplog: pytest.LogCaptureFixture
 ) -> None:
