@@ -91,6 +91,7 @@ if TYPE_CHECKING:
 __all__ = [
     "ForeignNodeError",
     "LocalChannel",
+    "LocalChannelError",
     "NodeUnreachable",
     "PlatformAliveError",
     "channel_path",
