@@ -572,6 +572,10 @@ class InterfaceAgent:
     audited one by one where it arrives. Off for a federation with platforms of a release
     before batches (they drop them).
 
+    ``binary_acl`` (default on): ACL envelopes are sealed in their binary form (a msgpack
+    array, ``docs/wire.md``); off, in the JSON form, for a federation with platforms of a
+    release before it (they drop binary ones). Either way both forms are read.
+
     ``lane`` (default on; zenoh only; one lane a process): an ACL envelope is opened on
     zenoh's receiving thread while nothing waits for the loop, and a plain read an agent
     answers by `Agent.answer_on_thread` is answered there, before the event loop wakes, when
@@ -602,6 +606,7 @@ class InterfaceAgent:
         kx_limit: KxLimit | None = DEFAULT_KX_LIMIT,
         batch: bool = True,
         lane: bool = True,
+        binary_acl: bool = True,
     ) -> None:
         self.keys = keys
         self.trust = trust
@@ -648,6 +653,10 @@ class InterfaceAgent:
         self.max_bytes = max_bytes
         self.handshake = Handshake(keys, trust, policy=self.policy, clock=clock)
         self.sessions = SessionTable(keys.platform, trust, policy=self.policy, clock=clock)
+        self.binary_acl = binary_acl
+        # how every ACL envelope is sealed (the form a receiver tells by its first byte);
+        # chosen again at start, as batching is
+        self._seal = self.sessions.seal_binary if binary_acl else self.sessions.seal
         self._handshakes: dict[str, asyncio.Future[None]] = {}
         # the key exchange under way with each peer, ended at once by its signed leave
         # per peer, the key exchange under way with it and when it began (clock s)
@@ -760,6 +769,7 @@ class InterfaceAgent:
         self._acl_keys.clear()  # keys of this platform's federation only
         transport = platform.transport
         self._batching = self.batch and transport.publishes_nowait
+        self._seal = self.sessions.seal_binary if self.binary_acl else self.sessions.seal
         self._loop = asyncio.get_running_loop()
         if self._unhook_trust is None:
             self._unhook_trust = self.trust.on_remove(self._trust_removed)
@@ -820,20 +830,20 @@ class InterfaceAgent:
         if self._burst_first(platform, body):
             return
         try:
-            payload = self.sessions.seal(platform, body)
+            payload = self._seal(platform, body)
         except UnknownSession:
             if platform in self._revoked and self._unsent_revoked(platform):
                 return
             try:
                 await self.agree(platform)
                 try:
-                    payload = self.sessions.seal(platform, body)
+                    payload = self._seal(platform, body)
                 except UnknownSession:
                     # its token's first sight came while we waited (`SessionTable.doubt`):
                     # the session may be a previous process's, so one more is agreed (at
                     # most once: a first sight is seen once until the platform leaves)
                     await self.agree(platform)
-                    payload = self.sessions.seal(platform, body)
+                    payload = self._seal(platform, body)
             except SecurityError:
                 # revoked while its key exchange ran: dropped as one sent after it
                 if platform in self._revoked and self._unsent_revoked(platform):
@@ -862,7 +872,7 @@ class InterfaceAgent:
         if self._burst_first(platform, body):
             return True
         try:
-            payload = self.sessions.seal(platform, body)
+            payload = self._seal(platform, body)
             host.transport.publish_nowait(self._acl_key(host, platform), payload)
         except AgentError:  # `send` meets it again and raises it where it is awaited
             return False
@@ -964,7 +974,7 @@ class InterfaceAgent:
         try:
             if host is None:
                 raise SecurityError("the Interface Agent is not started")
-            payload = self.sessions.seal(platform, body)
+            payload = self._seal(platform, body)
             host.transport.publish_nowait(host.key("acl", platform), payload)
         except Exception as exc:  # a session lost or a transport closed within the turn
             self.batches_lost += len(pending)
@@ -1574,7 +1584,7 @@ class InterfaceAgent:
             lock.release()
         entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
         try:
-            sealed = self.sessions.seal(peer, reply)
+            sealed = self._seal(peer, reply)
         except Exception:  # no session, or one past its lifetime: the loop decides it
             self._lane_give_back(state)
             return False

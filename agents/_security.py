@@ -87,6 +87,10 @@ _PRIVATE_KIND = "dyknow-ed25519-private"
 _PUBLIC_KIND = "dyknow-ed25519-public"
 _U64 = struct.Struct(">Q")
 _U64X2 = struct.Struct(">QQ")
+# a binary ACL envelope after its header, as our sender packs it: uint 64 `ts_ms`, uint 64
+# `n`, then the head of a bin 32 (the body or box follows)
+_ACL_TAIL = struct.Struct(">BQBQBI")
+_U64_HEAD, _BIN32_HEAD = 0xCF, 0xC6
 _NONCE = struct.Struct(">IQ")  # an AEAD nonce: 4 bytes of space (`_aead_nonce`), the counter
 _MAX_COUNTER = (1 << 63) - 1
 _NONCE_BYTES = 16
@@ -100,6 +104,13 @@ _ENV_BOX = b"dyknow-env-v1 box\x00"
 # verifies as a JSON one, so the two may keep separate counters and replay windows.
 _BIN_MAC = b"dyknow-bin-v1 mac\x00"
 _BIN_BOX = b"dyknow-bin-v1 box\x00"
+# Binary ACL envelopes (msgpack, on acl/<platform>) count with the JSON ones but have
+# labels of their own: one never verifies as a JSON ACL envelope nor as a sample batch's.
+_ACL_MAC = b"dyknow-acl-v1 mac\x00"
+_ACL_BOX = b"dyknow-acl-v1 box\x00"
+# what a binary ACL envelope starts with: a msgpack array (fixarray, array 16, array 32);
+# a JSON one starts with `{` (or white space), a str is JSON
+_BINARY_HEADS = frozenset(bytes((b,)) for b in (*range(0x90, 0xA0), 0xDC, 0xDD))
 # What a platform publishes to its owner (audit, watch) is signed under a label of its own.
 _OWNER_SIG = b"dyknow-owner-v1 sig\x00"
 
@@ -680,6 +691,12 @@ class Session:
     """
 
     __slots__ = (
+        "_acl_ad_rx",
+        "_acl_ad_tx",
+        "_acl_box_head",
+        "_acl_prefix",
+        "_acl_rx",
+        "_acl_tx",
         "_bhi",
         "_bin_ad_rx",
         "_bin_ad_tx",
@@ -776,6 +793,14 @@ class Session:
         self._bin_rx = hmac.new(keys[f"{rx} mac"], _env_head(_BIN_MAC, *rx_head), hashlib.sha256)
         self._bin_ad_tx = _env_head(_BIN_BOX, *tx_head)
         self._bin_ad_rx = _env_head(_BIN_BOX, *rx_head)
+        self._acl_tx = hmac.new(keys[f"{tx} mac"], _env_head(_ACL_MAC, *tx_head), hashlib.sha256)
+        self._acl_rx = hmac.new(keys[f"{rx} mac"], _env_head(_ACL_MAC, *rx_head), hashlib.sha256)
+        self._acl_ad_tx = _env_head(_ACL_BOX, *tx_head)
+        self._acl_ad_rx = _env_head(_ACL_BOX, *rx_head)
+        # a binary ACL envelope's msgpack up to its `ts_ms`, without the array's head
+        # (7 or 8 items): [v, from, to, sid] are the session's, packed once
+        self._acl_prefix = _packb((WIRE_VERSION, me, peer, sid))[1:]
+        self._acl_box_head = b"\x97" + self._acl_prefix
         self._n = 0
         self._hi = 0
         self._mask = 0
@@ -913,6 +938,96 @@ class Session:
                 "mac": _b2a(h.digest(), newline=False).decode("ascii"),
             }
         )
+
+    def seal_binary(self, body: bytes | str) -> bytes:
+        """Seal one ACL message (JSON) into a binary (msgpack) envelope for the peer.
+
+        ``[v, from, to, sid, ts_ms, n, box]``, or ``[v, from, to, sid, ts_ms, n, body, mac]``
+        with encryption off; ``n`` is the JSON envelopes' counter (``docs/wire.md``).
+        """
+        raw = body.encode() if isinstance(body, str) else body
+        if len(raw) > self._max_body:
+            raise MessageError(f"message of {len(raw)} bytes exceeds the limit of {self._max_body}")
+        # `_stamp`, inline (the path of every message)
+        now = self._clock()
+        if now - self.established > self._lifetime:
+            raise Expired(f"session {self.sid} with {self.peer} is past its lifetime; renew")
+        n = self._n + 1
+        if n > _MAX_COUNTER:
+            raise Expired(f"session {self.sid} with {self.peer} used up its counters; renew")
+        ts = int(now * 1000)
+        self._n = n
+        if self._encrypt:
+            box = self._seal_tx(_NONCE.pack(2, n), raw, self._acl_ad_tx + _U64X2.pack(ts, n))
+            # fixed widths (uint 64, uint 64, bin 32): one struct call, not a packer's
+            return b"".join(
+                (
+                    self._acl_box_head,
+                    _ACL_TAIL.pack(_U64_HEAD, ts, _U64_HEAD, n, _BIN32_HEAD, len(box)),
+                    box,
+                )
+            )
+        h = self._acl_tx.copy()
+        h.update(_U64X2.pack(ts, n))
+        h.update(raw)
+        return b"".join(
+            (
+                b"\x98",
+                self._acl_prefix,
+                _ACL_TAIL.pack(_U64_HEAD, ts, _U64_HEAD, n, _BIN32_HEAD, len(raw)),
+                raw,
+                b"\xc4\x20",  # bin 8 of 32 bytes
+                h.digest(),
+            )
+        )
+
+    def _accept_binary(
+        self, ts: int, n: int, payload: bytes, mac: bytes | None, now: float
+    ) -> bytes:
+        """Verify one parsed binary ACL envelope (``mac`` None: boxed); the body.
+
+        Its own labels and nonce space, the JSON envelopes' counter and replay window.
+        """
+        peer = self.peer
+        if mac is None:
+            try:
+                body: bytes = self._open_rx(
+                    _NONCE.pack(2, n), payload, self._acl_ad_rx + _U64X2.pack(ts, n)
+                )
+            except InvalidTag:
+                raise Forged(
+                    f"bad authentication tag on session {self.sid} from {peer!r}: "
+                    "forged or tampered",
+                    peer,
+                ) from None
+        else:
+            body = payload
+            h = self._acl_rx.copy()
+            h.update(_U64X2.pack(ts, n))
+            h.update(body)
+            if not _compare(h.digest(), mac):
+                raise Forged(
+                    f"bad MAC on session {self.sid} from {peer!r}: forged or tampered", peer
+                )
+        hi = self._hi
+        delta = now * 1000.0 - ts
+        skew_ms = self._skew_ms
+        if (
+            n > hi
+            and self._retire_at is None
+            and now - self.established <= self._lifetime
+            and delta <= skew_ms
+            and -delta <= skew_ms
+        ):
+            # as in `_accept`: the common case of `_check_live` and `_check_window`, inline
+            d = n - hi
+            self._hi = n
+            self._mask = ((self._mask << d) | 1) & self._full if d < self._window else 1
+        else:
+            self._check_live(ts, now)
+            self._hi, self._mask = self._check_window(n, hi, self._mask)
+        self._received += 1
+        return body
 
     def _accept(self, ts: int, n: int, payload: str, mac: bytes | None, now: float) -> bytes:
         """Verify one parsed envelope of this session (``mac`` None: boxed); the body."""
@@ -1055,6 +1170,11 @@ class Session:
 def _aead_nonce(n: int) -> bytes:
     """The 96-bit AEAD nonce: the session counter, unique per direction key by construction."""
     return b"\x00\x00\x00\x00" + _U64.pack(n)
+
+
+def _acl_nonce(n: int) -> bytes:
+    """The AEAD nonce of binary ACL envelopes: the JSON ones' counter, a nonce space apart."""
+    return b"\x00\x00\x00\x02" + _U64.pack(n)
 
 
 def _bin_nonce(n: int) -> bytes:
@@ -1345,6 +1465,14 @@ class SessionTable:
                 raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
             return session.seal(body)
 
+    def seal_binary(self, peer: str, body: bytes | str) -> bytes:
+        """`seal` in the binary (msgpack) form of an ACL envelope; `open` reads both forms."""
+        with self._lock:
+            session = self.session_for(peer)
+            if session is None:
+                raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
+            return session.seal_binary(body)
+
     def seal_bytes(self, peer: str, body: bytes) -> bytes:
         """Seal binary ``body`` for ``peer`` on its current session; UnknownSession when none."""
         with self._lock:
@@ -1416,9 +1544,13 @@ class SessionTable:
     def open(self, envelope: bytes | str) -> tuple[str, bytes]:
         """Verify a sealed envelope: ``(sender platform, ACL message JSON bytes)`` or a refusal.
 
-        Raises Malformed, Misdirected, UnknownPlatform, UnknownSession, Forged, Expired or
-        Replayed (all AuthenticationError); nothing of a refused envelope can be trusted.
+        Either form: a msgpack array (its first byte 0x90-0x9f, 0xdc or 0xdd) is a binary
+        ACL envelope, anything else is read as JSON. Raises Malformed, Misdirected,
+        UnknownPlatform, UnknownSession, Forged, Expired or Replayed (all
+        AuthenticationError); nothing of a refused envelope can be trusted.
         """
+        if type(envelope) is bytes and envelope[:1] in _BINARY_HEADS:
+            return self._open_binary(envelope)
         if len(envelope) > self._max_envelope:
             raise Malformed(
                 f"envelope of {len(envelope)} bytes exceeds the limit of {self._max_envelope}"
@@ -1467,11 +1599,28 @@ class SessionTable:
                 self._on_rx_switch(session, now)
         return frm, body
 
-    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
-        """Verify a binary envelope: ``(sender platform, body bytes)`` or a refusal.
+    def _open_binary(self, envelope: bytes) -> tuple[str, bytes]:
+        """`open` of a binary ACL envelope: the checks of `open_bytes`, the JSON form's counter."""
+        frm, to, sid, ts, n, payload, mac = self._unpack(envelope)
+        with self._lock:
+            session = self._session_of(frm, to, sid, ts, n)
+            if mac is not None:
+                if self.policy.require_encryption:
+                    raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
+                if type(mac) is not bytes or len(mac) != _MAC_BYTES:
+                    raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
+            now = self._clock()
+            body = session._accept_binary(ts, n, payload, mac, now)
+            self._heard[frm] = now
+            if self._rx_latest.get(frm) is not session:
+                self._on_rx_switch(session, now)
+        return frm, body
 
-        The msgpack counterpart of ``open``, with the same checks, in the same order, and
-        the same errors (all AuthenticationError).
+    def _unpack(self, envelope: bytes) -> tuple[str, Any, Any, Any, Any, bytes, Any]:
+        """A binary envelope's items ``(from, to, sid, ts_ms, n, body or box, mac or None)``.
+
+        The checks that need no session: size, msgpack, the array's length, ``v`` and the
+        types of names and body; Malformed otherwise.
         """
         if len(envelope) > self._max_bin_envelope:
             raise Malformed(
@@ -1486,6 +1635,8 @@ class SessionTable:
         if len(env) == 8:
             v, frm, to, sid, ts, n, payload, mac = env
             boxed = False
+            if mac is None:  # a nil MAC is no MAC: None below means a box
+                mac = b""  # refused as a MAC of the wrong size, where that is checked
         else:
             v, frm, to, sid, ts, n, payload = env
             mac = None
@@ -1505,9 +1656,18 @@ class SessionTable:
                 f"{self.policy.max_body_bytes}",
                 frm,
             )
+        return frm, to, sid, ts, n, payload, mac
+
+    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
+        """Verify a binary envelope: ``(sender platform, body bytes)`` or a refusal.
+
+        The msgpack counterpart of ``open``, with the same checks, in the same order, and
+        the same errors (all AuthenticationError).
+        """
+        frm, to, sid, ts, n, payload, mac = self._unpack(envelope)
         with self._lock:
             session = self._session_of(frm, to, sid, ts, n)
-            if not boxed:
+            if mac is not None:
                 if self.policy.require_encryption:
                     raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
                 if type(mac) is not bytes or len(mac) != _MAC_BYTES:

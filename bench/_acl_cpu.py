@@ -94,7 +94,8 @@ def install_stage_probes() -> None:
     from agents.transports import ZenohTransport
 
     _probe(SessionTable, "open", "open: SessionTable.open (envelope, AEAD, replay)")
-    _probe(SessionTable, "seal", "seal: SessionTable.seal")
+    _probe(SessionTable, "seal", "seal: SessionTable.seal (JSON form)")
+    _probe(SessionTable, "seal_binary", "seal: SessionTable.seal_binary (binary form)")
     _probe(ACLMessage, "to_json", "ACLMessage.to_json")
     _probe(InterfaceAgent, "_take_now", "_take_now (parse, checks, audit, deliver)")
     _probe(Agent, "_deliver", "  of which Agent._deliver")

@@ -31,6 +31,9 @@ import nacl.bindings as sodium
 import zenoh
 from nacl.signing import SigningKey, VerifyKey
 
+# an AEAD nonce's first 4 bytes, per envelope kind: JSON ACL, sample batch, binary ACL
+NONCE_SPACE = {"env": bytes(4), "bin": b"\x00\x00\x00\x01", "acl": b"\x00\x00\x00\x02"}
+
 
 def b64(raw: bytes) -> str:
     """Standard base64 with padding, as every binary JSON field."""
@@ -254,23 +257,28 @@ class Member:
         return label + lp2(self.fed) + lp2(frm) + lp2(to) + lp2(s.sid) + u64(ts) + u64(n)
 
     def seal(self, kind: str, s: Session, body: bytes) -> tuple[int, int, bytes]:
-        """Encrypt ``body`` (kind ``env``: JSON envelopes, ``bin``: binary ones)."""
+        """Encrypt ``body`` (kind ``env``: JSON ACL envelopes, ``bin``: sample batches)."""
         s.counters[kind] += 1
         n, ts = s.counters[kind], now_ms()
-        nonce = (b"\x00\x00\x00\x01" if kind == "bin" else bytes(4)) + u64(n)
+        nonce = NONCE_SPACE[kind] + u64(n)
         ad = self.head(kind, s, self.name, s.peer, ts, n)
         box = sodium.crypto_aead_chacha20poly1305_ietf_encrypt(body, ad, nonce, s.send_box)
         return ts, n, box
 
     def open(self, kind: str, frm: str, to: str, sid: str, ts: int, n: int, box: bytes) -> bytes:
-        """Decrypt an envelope to us on a session we hold; refuse replays."""
+        """Decrypt an envelope to us on a session we hold (kind ``acl``: an ACL envelope's
+        binary form); refuse replays."""
         s = self.sessions[sid]
-        if to != self.name or s.peer != frm or abs(ts - now_ms()) > 30_000 or (kind, n) in s.seen:
-            raise ValueError("misdirected, forged, expired or replayed")
-        nonce = (b"\x00\x00\x00\x01" if kind == "bin" else bytes(4)) + u64(n)
+        # the two forms of an ACL envelope count on one counter: an n is one envelope
+        counter = "bin" if kind == "bin" else "env"
+        if to != self.name or s.peer != frm or abs(ts - now_ms()) > 30_000:
+            raise ValueError("misdirected, forged or expired")
+        if (counter, n) in s.seen:
+            raise ValueError("replayed")
+        nonce = NONCE_SPACE[kind] + u64(n)
         ad = self.head(kind, s, frm, to, ts, n)
         body: bytes = sodium.crypto_aead_chacha20poly1305_ietf_decrypt(box, ad, nonce, s.recv_box)
-        s.seen.add((kind, n))
+        s.seen.add((counter, n))
         return body
 
     def send(self, peer: str, message: dict[str, Any]) -> None:
@@ -292,9 +300,18 @@ class Member:
         self.z.put(f"{self.prefix}acl/{peer}", json.dumps(env))
 
     def on_acl(self, sample: zenoh.Sample) -> None:
-        """An envelope on acl/<us>: one ACL message, or a batch of them (a JSON array)."""
-        e = json.loads(sample.payload.to_bytes())
-        body = self.open("env", e["from"], e["to"], e["sid"], e["ts_ms"], e["n"], unb64(e["box"]))
+        """An envelope on acl/<us>, JSON or binary (a msgpack array): one ACL message, or a
+        batch of them (a JSON array)."""
+        payload = sample.payload.to_bytes()
+        if payload[:1] == b"{":
+            e = json.loads(payload)
+            frm = e["from"]
+            body = self.open("env", frm, e["to"], e["sid"], e["ts_ms"], e["n"], unb64(e["box"]))
+        else:
+            v, frm, to, sid, ts, n, box = msgpack.unpackb(payload)
+            if v != 1:
+                return
+            body = self.open("acl", frm, to, sid, ts, n, box)
         messages = json.loads(body)
         for m in messages if isinstance(messages, list) else [messages]:
             waiter = self.waiting.get(m.get("in_reply_to", ""))
@@ -302,7 +319,7 @@ class Member:
                 waiter.append(m)
                 waiter[0].set()
             elif m["performative"] in ("request", "query-ref"):
-                self.answer(e["from"], m)
+                self.answer(frm, m)
 
     def answer(self, peer: str, m: dict[str, Any]) -> None:
         """Answer get-latest with our fixed values; refuse anything else."""

@@ -3,7 +3,8 @@
 Run: ``.venv/bin/python fuzz/fuzz_interface.py -runs=20000 [corpus_dir]`` (libFuzzer
 options apply). The first byte of each input picks what the rest becomes: the envelope
 itself, the body of a correctly sealed envelope, the content of a sealed ACL message,
-or a one-byte change to a real envelope. A `Crash` (an escaped exception, a dead receive
+or a one-byte change to a real envelope; the last two again in the binary form of the
+envelope (a msgpack array, its body raw bytes). A `Crash` (an escaped exception, a dead receive
 task, a decision not recorded within 5 s) ends the run with the input saved.
 """
 
@@ -22,7 +23,14 @@ with atheris.instrument_imports(include=["agents"]):
 
 PERFORMATIVES = [b"request", b"inform", b"query-ref", b"failure", b"shout", b"", b"cfp"]
 # where a campaign starts when its corpus is empty: one input of each mode
-SEEDS = [b"\x00{}", b"\x01not json", b'\x02\x00{"x": [1, 2]}', b"\x03\x00\x10\x01"]
+SEEDS = [
+    b"\x00{}",
+    b"\x01not json",
+    b'\x02\x00{"x": [1, 2]}',
+    b"\x03\x00\x10\x01",
+    b"\x04\xff not text",
+    b"\x05\x00\x10\x01",
+]
 
 
 def acl(performative: bytes, content: bytes) -> bytes:
@@ -44,7 +52,7 @@ def payload_of(t: InterfaceTarget, data: bytes) -> bytes:
     """What one fuzzer input stands for (see the module docstring)."""
     if not data:
         return b""
-    mode, rest = data[0] % 4, data[1:]
+    mode, rest = data[0] % 6, data[1:]
     if mode == 0:
         return rest
     if mode == 1:
@@ -52,7 +60,9 @@ def payload_of(t: InterfaceTarget, data: bytes) -> bytes:
     if mode == 2:
         choice = PERFORMATIVES[rest[0] % len(PERFORMATIVES)] if rest else b"request"
         return t.seal(acl(choice, utf8(rest[1:])))
-    good = t.seal(acl(b"inform", b'"x"'))
+    if mode == 4:  # the binary form's body is bytes: any, not only UTF-8 text
+        return t.seal(rest, binary=True)
+    good = t.seal(acl(b"inform", b'"x"'), binary=mode == 5)
     if len(rest) < 3:
         return good[: len(rest) * 7]
     i = int.from_bytes(rest[:2], "big") % len(good)

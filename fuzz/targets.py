@@ -258,9 +258,10 @@ class InterfaceTarget(_Target):
             t for t in self.platform._tasks if t.get_name().endswith("interface.inbox")
         )
 
-    def seal(self, body: bytes) -> bytes:
-        """``body`` sealed by uav-a for uav-b, as a JSON envelope (encrypted, its tag right)."""
-        envelope = self.table.seal(ME, body)
+    def seal(self, body: bytes, *, binary: bool = False) -> bytes:
+        """``body`` sealed by uav-a for uav-b (encrypted, its tag right): a JSON envelope,
+        or with ``binary`` one in the binary form (a msgpack array)."""
+        envelope = self.table.seal_binary(ME, body) if binary else self.table.seal(ME, body)
         if len(self._sealed) > 4096:
             self._sealed.clear()
         # an envelope that opens is one of these, unchanged: the body, without the key

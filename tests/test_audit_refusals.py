@@ -80,7 +80,8 @@ async def watched(tmp_path: Path, *names: str) -> AsyncIterator[Watched]:
         path = tmp_path / "audit-uav-b.jsonl"
         raw = await fed.raw()
         feed = await raw.subscribe(wire_key(FED, "audit", "uav-b"))
-        pa = await fed.start("uav-a", clock=lambda: time.time() + offset[0])
+        # JSON envelopes, whose fields these tests edit (tests/test_binary_acl.py: binary ones)
+        pa = await fed.start("uav-a", clock=lambda: time.time() + offset[0], binary_acl=False)
         pb = await fed.start("uav-b", audit_path=path)
         wire = await raw.subscribe(wire_key(FED, "acl", "uav-b"))
         asker = await serve(pa, "asker", None)

@@ -211,6 +211,19 @@ def envelope_inputs(t: InterfaceTarget) -> Iterator[tuple[str, bytes]]:
     yield "sealed: version 2", t.seal(dumps({**orjson.loads(acl_body(b"1")), "v": 2}))
     yield "sealed: unknown field", t.seal(dumps({**orjson.loads(acl_body(b"1")), "shout": 1}))
     yield "sealed: lone surrogate", t.seal(acl_body(b'"\\ud800"'))
+    # the binary form of the envelope: its body raw bytes, not necessarily UTF-8 text
+    good_bin = t.seal(acl_body(b'"x"', performative="inform"), binary=True)
+    yield "binary: empty array", b"\x90"
+    yield "binary: array 32 of 4 G items", b"\xdd\xff\xff\xff\xff"
+    yield "binary: deep arrays", b"\x91" * 100_000
+    yield "binary: truncated", good_bin[: len(good_bin) // 2]
+    yield "binary: a str box", msgpack.packb([*msgpack.unpackb(good_bin)[:6], "box"])
+    yield "binary: sealed not UTF-8", t.seal(b"\xff\xfe" + acl_body(b"1"), binary=True)
+    yield "binary: sealed request", t.seal(acl_body(b"1"), binary=True)
+    yield (
+        "binary: sealed batch",
+        t.seal(b"[" + acl_body(b"1") + b"," + acl_body(b"2") + b"]", binary=True),
+    )
 
 
 @st.composite
@@ -220,7 +233,9 @@ def interface_inputs(draw: st.DrawFn) -> tuple[str, Any]:
     kind = draw(
         st.sampled_from(
             ["raw", "text", "json", "envelope", "field", "truncated", "flip", "sealed"]
+            + ["bin-raw", "bin-array", "bin-field", "bin-flip", "bin-sealed"]
             + ["acl"] * 7
+            + ["bin-acl"] * 3
         )
     )
     if kind == "raw":
@@ -242,6 +257,19 @@ def interface_inputs(draw: st.DrawFn) -> tuple[str, Any]:
         return kind, (draw(st.floats(0, 1, exclude_max=True)), draw(st.integers(1, 255)))
     if kind == "sealed":  # garbage inside a valid envelope
         return kind, draw(st.binary(max_size=200).map(lambda b: b.decode("latin-1").encode()))
+    if kind == "bin-raw":  # bytes after a msgpack array's head: read as a binary envelope
+        head = draw(st.sampled_from([b"\x90", b"\x97", b"\x98", b"\x9f", b"\xdc", b"\xdd"]))
+        return kind, head + draw(st.binary(max_size=300))
+    if kind == "bin-array":
+        return kind, msgpack.packb(draw(st.lists(MSGPACK, max_size=9)))
+    if kind == "bin-field":  # a real binary envelope, one item replaced
+        return kind, (draw(st.integers(0, 6)), draw(MSGPACK))
+    if kind == "bin-flip":
+        return kind, (draw(st.floats(0, 1, exclude_max=True)), draw(st.integers(1, 255)))
+    if kind == "bin-sealed":  # any bytes inside a valid binary envelope (not only text)
+        return kind, draw(st.binary(max_size=200))
+    if kind == "bin-acl":
+        return kind, dumps(draw(ACL_SHAPED))
     return kind, dumps(draw(ACL_SHAPED))
 
 
@@ -251,6 +279,19 @@ def build_envelope(t: InterfaceTarget, kind: str, data: Any) -> bytes:
         return bytes(data)
     if kind in ("sealed", "acl"):
         return t.seal(data)
+    if kind in ("bin-raw", "bin-array"):
+        return bytes(data)
+    if kind in ("bin-sealed", "bin-acl"):
+        return t.seal(data, binary=True)
+    if kind.startswith("bin-"):
+        good_bin = t.seal(acl_body(b'"x"', performative="inform"), binary=True)
+        if kind == "bin-field":
+            items = msgpack.unpackb(good_bin)
+            items[data[0]] = data[1]
+            return bytes(msgpack.packb(items))
+        at, xor = data
+        i = int(at * len(good_bin))
+        return good_bin[:i] + bytes([good_bin[i] ^ xor]) + good_bin[i + 1 :]
     good = t.seal(acl_body(b'"x"', performative="inform"))
     if kind == "field":
         name, value = data
@@ -308,6 +349,16 @@ def test_fuzz_interface_agent_decoding() -> None:
     # orjson reads an integer beyond 64 bits as a float: a valid (if rounded) message
     assert named["sealed: integer beyond 64 bits"] == "accepted"
     assert named["sealed: not JSON"] == "dropped+counted"  # no sender to tell: counted only
+    for name in (
+        "binary: empty array",
+        "binary: array 32 of 4 G items",
+        "binary: deep arrays",
+        "binary: truncated",
+        "binary: a str box",
+        "binary: sealed not UTF-8",  # authentic, but no message to read a sender from
+    ):
+        assert named[name] == "dropped+counted", name
+    assert named["binary: sealed request"] == named["binary: sealed batch"] == "accepted"
     stats = t.platform.stats
     assert stats.unauthenticated == t.unauthentic  # each one counted by the platform
     assert stats.malformed >= t.outcomes["not-understood"]

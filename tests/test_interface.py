@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
+import msgpack
 import orjson
 import paho.mqtt.client as paho
 import pytest
@@ -438,10 +439,20 @@ class Pair:
     offset: list[float]
 
 
-async def _captured_session(fed: Fed) -> Pair:
-    """uav-a and uav-b with a session, and the envelope of a real request captured on the wire."""
+def envelope_from(envelope: bytes) -> str:
+    """The claimed sender of an ACL envelope, in either form (JSON, or binary: msgpack)."""
+    if envelope[:1] == b"{":
+        return str(orjson.loads(envelope)["from"])
+    return str(msgpack.unpackb(envelope)[1])
+
+
+async def _captured_session(fed: Fed, *, binary_acl: bool = True) -> Pair:
+    """uav-a and uav-b with a session, and the envelope of a real request captured on the wire.
+
+    ``binary_acl``: the form uav-a seals in (False: JSON, for the tests that edit its fields).
+    """
     offset = [0.0]
-    pa = await fed.start("uav-a", clock=lambda: time.time() + offset[0])
+    pa = await fed.start("uav-a", clock=lambda: time.time() + offset[0], binary_acl=binary_acl)
     pb = await fed.start("uav-b")
     raw = await fed.raw()
     wire = await raw.subscribe(wire_key(FED, "acl", "uav-b"))
@@ -450,14 +461,17 @@ async def _captured_session(fed: Fed) -> Pair:
     assert await request(asker, "echo@uav-b", {"x": 1}, ontology="demo") is not None
     envelope = (await wire.get(WAIT)).payload
     wire.close()
-    assert orjson.loads(envelope)["from"] == "uav-a"
+    assert envelope_from(envelope) == "uav-a"
     return Pair(pa, pb, asker, echo, envelope, offset)
 
 
 async def test_forged_tampered_replayed_expired_and_untrusted_envelopes_are_dropped() -> None:
-    """Hostile envelopes never reach an agent and are audited as dropped, with their code."""
+    """Hostile envelopes never reach an agent and are audited as dropped, with their code.
+
+    JSON envelopes; the binary form's are attacked in tests/test_binary_acl.py.
+    """
     async with federation("uav-a", "uav-b") as fed:
-        pair = await _captured_session(fed)
+        pair = await _captured_session(fed, binary_acl=False)
         pb, asker, echo, envelope = pair.pb, pair.asker, pair.echo, pair.envelope
         raw = await fed.raw()
         inbox = wire_key(FED, "acl", "uav-b")
@@ -1171,12 +1185,13 @@ async def test_envelopes_lost_on_the_way_are_counted_and_warned_of(
         assert echo.informs[-1].content == 10
 
 
-async def test_encrypted_sessions_carry_no_readable_body() -> None:
-    """With encryption on, plain tools see headers but no body."""
+@pytest.mark.parametrize("binary_acl", [True, False])
+async def test_encrypted_sessions_carry_no_readable_body(binary_acl: bool) -> None:
+    """With encryption on, plain tools see headers but no body, in either envelope form."""
     async with federation("uav-a", "uav-b") as fed:
         policy = SecurityPolicy(encrypt=True, require_encryption=True)
-        pa = await fed.start("uav-a", policy=policy)
-        pb = await fed.start("uav-b", policy=policy)
+        pa = await fed.start("uav-a", policy=policy, binary_acl=binary_acl)
+        pb = await fed.start("uav-b", policy=policy, binary_acl=binary_acl)
         raw = await fed.raw()
         wire = await raw.subscribe(wire_key(FED, "acl", "*"))
         asker = await serve(pa, "asker", "protected")
@@ -1191,10 +1206,15 @@ async def test_encrypted_sessions_carry_no_readable_body() -> None:
             "by": "asker@uav-a",
         }
         for _ in range(4):
-            env = orjson.loads((await wire.get(WAIT)).payload)
-            assert "box" in env
-            assert "body" not in env
-            assert "do not print" not in str(env)
+            payload = (await wire.get(WAIT)).payload
+            assert b"do not print" not in payload
+            if binary_acl:  # [v, from, to, sid, ts_ms, n, box]: no body, no MAC
+                env = msgpack.unpackb(payload)
+                assert payload[0] == 0x97 and type(env[6]) is bytes
+            else:
+                env = orjson.loads(payload)
+                assert "box" in env
+                assert "body" not in env
 
 
 async def test_a_cancelled_first_sender_does_not_fail_the_others() -> None:

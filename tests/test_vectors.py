@@ -70,8 +70,18 @@ def header(label: str, fed: str, frm: str, to: str, sid: str, ts: int, n: int) -
     return label.encode() + b"\x00" + lp(fed) + lp(frm) + lp(to) + lp(sid) + u64(ts) + u64(n)
 
 
-def aead_nonce(binary: bool, n: int) -> bytes:
-    return (b"\x00\x00\x00\x01" if binary else b"\x00\x00\x00\x00") + u64(n)
+# the first 4 bytes of an AEAD nonce, per envelope kind: JSON, binary (batches), binary ACL
+NONCE_SPACE = {
+    "json": b"\x00\x00\x00\x00",
+    "binary": b"\x00\x00\x00\x01",
+    "acl-binary": b"\x00\x00\x00\x02",
+}
+# the label's word, per envelope kind: dyknow-<word>-v1 mac / box
+LABEL_WORD = {"json": "env", "binary": "bin", "acl-binary": "acl"}
+
+
+def aead_nonce(kind: str, n: int) -> bytes:
+    return NONCE_SPACE[kind] + u64(n)
 
 
 def b64(value: str) -> bytes:
@@ -182,13 +192,16 @@ def test_session_keys_and_id_from_the_description() -> None:
 @pytest.mark.parametrize("entry", VECTORS["envelopes"], ids=lambda e: e["name"])
 def test_envelopes_from_the_description(entry: dict[str, Any]) -> None:
     keys = derived()
-    binary = entry["kind"] == "binary"
+    binary = entry["kind"] != "json"  # a msgpack array: a batch's, or an ACL message's
     if binary:
         env = msgpack.unpackb(h(entry["envelope_hex"]), raw=False)
         assert type(env) is list and len(env) == (7 if entry["encrypted"] else 8)
         v, frm, to, sid, ts, n, payload = env[:7]
-        body = h(entry["body_hex"])
-        assert msgpack.unpackb(body, raw=False) == entry["body_decoded"]
+        if entry["kind"] == "binary":
+            body = h(entry["body_hex"])
+            assert msgpack.unpackb(body, raw=False) == entry["body_decoded"]
+        else:  # the ACL message's JSON text, as in the JSON form
+            body = entry["body"].encode("utf-8")
     else:
         env = json.loads(entry["envelope"])
         assert set(env) == {"v", "from", "to", "sid", "ts_ms", "n"} | (
@@ -207,10 +220,10 @@ def test_envelopes_from_the_description(entry: dict[str, Any]) -> None:
     # the initiator (uav-a) sends on the i2r keys, the responder on the r2i keys
     direction = "i2r" if frm == KX["init"]["from"] else "r2i"
     assert entry["direction"] == direction
-    kind = "bin" if binary else "env"
+    kind = LABEL_WORD[entry["kind"]]
     if entry["encrypted"]:
         ad = header(f"dyknow-{kind}-v1 box", FED, frm, to, sid, ts, n)
-        nonce = aead_nonce(binary, n)
+        nonce = aead_nonce(entry["kind"], n)
         assert (ad.hex(), nonce.hex()) == (entry["ad_hex"], entry["nonce_hex"])
         box = payload if binary else b64(env["box"])
         assert box.hex() == entry["ciphertext_hex"]
@@ -227,6 +240,11 @@ def test_envelopes_from_the_description(entry: dict[str, Any]) -> None:
             assert payload == body
         else:
             assert env["body"] == entry["body"]
+    if entry["kind"] == "acl-binary":  # our sender's layout: docs/wire.md, "The binary form"
+        tail = b"\xcf" + u64(ts) + b"\xcf" + u64(n) + b"\xc6" + len(payload).to_bytes(4, "big")
+        mac = b"" if entry["encrypted"] else b"\xc4\x20" + env[7]
+        head = bytes([0x90 + len(env)]) + msgpack.packb(env[:4])[1:]
+        assert head + tail + payload + mac == h(entry["envelope_hex"])
 
 
 @pytest.mark.parametrize("entry", VECTORS["must_refuse"], ids=lambda e: e["name"])
@@ -255,10 +273,10 @@ def test_refusals_fail_to_verify_from_the_description(entry: dict[str, Any]) -> 
         with pytest.raises(BadSignatureError):
             public.verify(owner_transcript(entry["key"], ts, batch), sig)
         return
-    if entry["kind"] == "binary":
+    if entry["kind"] in ("binary", "acl-binary"):
         env = msgpack.unpackb(h(entry["envelope_hex"]), raw=False)
         frm, to, sid, ts, n, body, mac = env[1:]
-        kind = "bin"
+        kind = LABEL_WORD[entry["kind"]]
     else:
         env = json.loads(entry["envelope"])
         frm, to, sid, ts, n = (env[k] for k in ("from", "to", "sid", "ts_ms", "n"))
@@ -415,6 +433,11 @@ def test_our_code_seals_the_same_envelopes_and_opens_them() -> None:
             assert session.seal_bytes(body).hex() == entry["envelope_hex"], entry["name"]
             opened = tables[entry["to"]].open_bytes(h(entry["envelope_hex"]))
             assert opened == (entry["from"], body)
+        elif entry["kind"] == "acl-binary":
+            sealed = session.seal_binary(entry["body"])
+            assert sealed.hex() == entry["envelope_hex"], entry["name"]
+            opened = tables[entry["to"]].open(h(entry["envelope_hex"]))
+            assert opened == (entry["from"], entry["body"].encode())
         else:
             sealed = session.seal(entry["body"])
             assert sealed.decode() == entry["envelope"], entry["name"]
@@ -565,3 +588,7 @@ def test_our_code_refuses_the_usual_mistakes() -> None:
             clocks[b].ms = msgpack.unpackb(h(entry["envelope_hex"]))[4]
             with pytest.raises(Forged, match="bad MAC"):
                 table.open_bytes(h(entry["envelope_hex"]))
+        elif entry["kind"] == "acl-binary":
+            clocks[b].ms = msgpack.unpackb(h(entry["envelope_hex"]))[4]
+            with pytest.raises(Forged, match="bad MAC"):
+                table.open(h(entry["envelope_hex"]))

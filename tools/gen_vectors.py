@@ -35,6 +35,8 @@ from nacl.signing import SigningKey
 from agents import ACLMessage, Performative
 from agents._directory_auth import DirectoryAuth
 from agents._security import (
+    _ACL_BOX,
+    _ACL_MAC,
     _BIN_BOX,
     _BIN_MAC,
     _ENV_BOX,
@@ -49,6 +51,7 @@ from agents._security import (
     SessionTable,
     TrustStore,
     WatchGate,
+    _acl_nonce,
     _aead_nonce,
     _bin_nonce,
     _env_head,
@@ -127,10 +130,17 @@ def _envelope(
     body: bytes,
     clock: _Clock,
     about: str,
+    acl: bool = False,
 ) -> dict[str, Any]:
-    """Seal ``body`` on ``session`` with our code; the entry with its intermediate bytes."""
+    """Seal ``body`` on ``session`` with our code; the entry with its intermediate bytes.
+
+    ``acl``: an ACL message in the binary form (msgpack on acl/…, the JSON form's counter).
+    """
     session._encrypt = encrypt  # one session makes both kinds; only here
-    sealed = session.seal_bytes(body) if binary else session.seal(body)
+    if acl:
+        sealed = session.seal_binary(body)
+    else:
+        sealed = session.seal_bytes(body) if binary else session.seal(body)
     clock.ms += 1
     n = session.sent_binary if binary else session.sent
     ts = clock.ms - 1
@@ -138,7 +148,7 @@ def _envelope(
     entry: dict[str, Any] = {
         "name": name,
         "about": about,
-        "kind": "binary" if binary else "json",
+        "kind": "acl-binary" if acl else "binary" if binary else "json",
         "encrypted": encrypt,
         "from": session.me,
         "to": session.peer,
@@ -151,21 +161,23 @@ def _envelope(
     ctr = _U64X2.pack(ts, n)
     head = (fed, session.me, session.peer, session.sid)
     if encrypt:
-        ad = _env_head(_BIN_BOX if binary else _ENV_BOX, *head) + ctr
-        nonce = (_bin_nonce if binary else _aead_nonce)(n)
+        box_label = _ACL_BOX if acl else _BIN_BOX if binary else _ENV_BOX
+        ad = _env_head(box_label, *head) + ctr
+        nonce = (_acl_nonce if acl else _bin_nonce if binary else _aead_nonce)(n)
         entry["key"] = f"{direction} box"
         entry["ad_hex"] = ad.hex()
         entry["nonce_hex"] = nonce.hex()
-        if binary:
+        if binary or acl:
             box = msgpack.unpackb(sealed, raw=False)[6]
         else:
             box = base64.b64decode(json.loads(sealed)["box"])
         entry["ciphertext_hex"] = box.hex()
     else:
-        mac_input = _env_head(_BIN_MAC if binary else _ENV_MAC, *head) + ctr + body
+        mac_label = _ACL_MAC if acl else _BIN_MAC if binary else _ENV_MAC
+        mac_input = _env_head(mac_label, *head) + ctr + body
         entry["key"] = f"{direction} mac"
         entry["mac_input_hex"] = mac_input.hex()
-        if binary:
+        if binary or acl:
             mac = msgpack.unpackb(sealed, raw=False)[7]
         else:
             mac = base64.b64decode(json.loads(sealed)["mac"])
@@ -173,6 +185,8 @@ def _envelope(
     if binary:
         entry["envelope_hex"] = sealed.hex()
         entry["body_decoded"] = msgpack.unpackb(body, raw=False)
+    elif acl:
+        entry["envelope_hex"] = sealed.hex()
     else:
         entry["envelope"] = sealed.decode()
     return entry
@@ -212,6 +226,12 @@ def _refusals(
     swapped = _ENV_MAC + bin_input[len(_BIN_MAC) :]
     arr = msgpack.unpackb(bytes.fromhex(binary["envelope_hex"]), raw=False)
     arr[7] = hmac.digest(keys["i2r mac"], swapped, "sha256")
+    # a binary ACL envelope MACed with the JSON envelopes' label
+    acl_bin = next(e for e in envelopes if e["name"] == "acl-binary-mac")
+    acl_input = bytes.fromhex(acl_bin["mac_input_hex"])
+    acl_swapped = _ENV_MAC + acl_input[len(_ACL_MAC) :]
+    acl_arr = msgpack.unpackb(bytes.fromhex(acl_bin["envelope_hex"]), raw=False)
+    acl_arr[7] = hmac.digest(keys["i2r mac"], acl_swapped, "sha256")
     return [
         {
             "name": "kx-init-label-length-prefixed",
@@ -236,6 +256,14 @@ def _refusals(
             "to": RESPONDER,
             "mac_input_hex": swapped.hex(),
             "envelope_hex": msgpack.packb(arr).hex(),
+        },
+        {
+            "name": "acl-binary-mac-with-json-label",
+            "about": "acl-binary-mac with its MAC computed under the JSON label dyknow-env-v1 mac",
+            "kind": "acl-binary",
+            "to": RESPONDER,
+            "mac_input_hex": acl_swapped.hex(),
+            "envelope_hex": msgpack.packb(acl_arr).hex(),
         },
     ]
 
@@ -603,12 +631,38 @@ def generate() -> dict[str, Any]:
             clock=clock,
             about="a batch of two ACL messages in one encrypted envelope (a JSON array), counter 3",
         ),
+        _envelope(
+            "acl-binary-mac",
+            s_init,
+            FEDERATION,
+            binary=False,
+            acl=True,
+            encrypt=False,
+            body=request,
+            clock=clock,
+            about="the request in the binary form of an ACL envelope, authenticated; "
+            "the JSON envelopes' counter: 4",
+        ),
+        _envelope(
+            "acl-binary-box",
+            s_init,
+            FEDERATION,
+            binary=False,
+            acl=True,
+            encrypt=True,
+            body=request,
+            clock=clock,
+            about="the same request in the binary form, encrypted, counter 5",
+        ),
     ]
     for entry in envelopes:
         table = tables[entry["to"]]
         clocks[entry["to"]].ms = entry["ts_ms"]
         if entry["kind"] == "json":
             opened = table.open(entry["envelope"].encode())
+            assert opened == (entry["from"], entry["body"].encode()), entry["name"]
+        elif entry["kind"] == "acl-binary":
+            opened = table.open(bytes.fromhex(entry["envelope_hex"]))
             assert opened == (entry["from"], entry["body"].encode()), entry["name"]
         else:
             opened = table.open_bytes(bytes.fromhex(entry["envelope_hex"]))
