@@ -1,7 +1,8 @@
 """FIPA ACL speech acts as JSON: the message model, agent identifiers, parsing with limits."""
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import itertools
 import math
 import operator
@@ -110,7 +111,7 @@ class ACLMessage(BaseModel):
     reply_by: Annotated[float, Field(strict=True, allow_inf_nan=False)] | None = None
 
     @classmethod
-    def build(cls, **fields: Any) -> ACLMessage:
+    def build(cls, **fields: Any) -> "ACLMessage":
         """A new message, as ``ACLMessage(**fields)`` makes it, with the same errors.
 
         Fields of the exact expected types (str, list of str, content of dicts with str
@@ -133,7 +134,7 @@ class ACLMessage(BaseModel):
 
     def reply(
         self, performative: Performative, content: Any = None, *, sender: str | None = None
-    ) -> ACLMessage:
+    ) -> "ACLMessage":
         """The reply to this message: same conversation, addressed to its reply_to or sender.
 
         ``content`` is copied and checked, as `build` does, unless it is `HandedOver`.
@@ -249,7 +250,7 @@ class ACLMessage(BaseModel):
             raise MessageError(f"content cannot be sent as JSON: {exc}") from exc
 
     @classmethod
-    def from_json(cls, data: bytes | str, *, max_bytes: int = MAX_MESSAGE_BYTES) -> ACLMessage:
+    def from_json(cls, data: bytes | str, *, max_bytes: int = MAX_MESSAGE_BYTES) -> "ACLMessage":
         """Parse and validate a message; MessageError says what is wrong."""
         size = len(data) if isinstance(data, bytes) else len(data.encode("utf-8", "surrogatepass"))
         if size > max_bytes:
@@ -261,7 +262,7 @@ class ACLMessage(BaseModel):
         return cls.from_parsed(obj, nesting=nesting_bound(data))
 
     @classmethod
-    def from_parsed(cls, obj: Any, *, nesting: int | None = None) -> ACLMessage:
+    def from_parsed(cls, obj: Any, *, nesting: int | None = None) -> "ACLMessage":
         """Validate an object ``orjson.loads`` returned (only JSON types) as a message.
 
         The same checks and errors as `from_obj`, but a valid message is checked in plain
@@ -281,7 +282,7 @@ class ACLMessage(BaseModel):
         return cls.from_obj(obj)
 
     @classmethod
-    def from_obj(cls, obj: Any) -> ACLMessage:
+    def from_obj(cls, obj: Any) -> "ACLMessage":
         """Validate an already-decoded JSON object as a message."""
         if not isinstance(obj, dict):
             raise MessageError(f"a message is a JSON object, not {type(obj).__name__}")
@@ -303,7 +304,7 @@ class ACLMessage(BaseModel):
         except RecursionError as exc:
             raise MessageError("content nested too deeply") from exc
 
-    def readdressed(self, receiver: str, reply_with: str | None) -> ACLMessage:
+    def readdressed(self, receiver: str, reply_with: str | None) -> "ACLMessage":
         """This message for ``receiver`` alone, with its own ``reply_with``; else the same.
 
         One message sent to many platforms, each its own copy (sealed for its receiver):

@@ -34,6 +34,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Self
 from ._acl import ACLMessage, Performative, agent_id, compose, new_id
 from ._aio import Mailbox
 from ._exceptions import AgentError
+from ._records import Record
 
 if TYPE_CHECKING:
     from ._platform import AgentPlatform
@@ -244,20 +245,53 @@ def _class_specs(cls: type) -> list[tuple[str, RouteSpec]]:
     return specs
 
 
-@dataclass(slots=True)
-class AgentStats:
+@dataclass(init=False, repr=False, eq=False)
+class AgentStats(Record):
     """What an agent has seen: messages handled, answered not-understood, dropped …"""
 
-    received: int = 0
-    handled: int = 0
-    handler_errors: int = 0
-    not_understood: int = 0
-    unsolicited: int = 0
-    late: int = 0
-    dropped: int = 0
-    conversation_overflow: int = 0
-    answered_at_once: int = 0
+    __slots__ = (
+        "answered_at_once",
+        "conversation_overflow",
+        "dropped",
+        "handled",
+        "handler_errors",
+        "late",
+        "not_understood",
+        "received",
+        "unsolicited",
+    )
+    received: int
+    handled: int
+    handler_errors: int
+    not_understood: int
+    unsolicited: int
+    late: int
+    dropped: int
+    conversation_overflow: int
+    answered_at_once: int
     """Of ``handled``: answered by `Agent.answer_at_once` as they came (no mailbox, no task)."""
+
+    def __init__(
+        self,
+        received: int = 0,
+        handled: int = 0,
+        handler_errors: int = 0,
+        not_understood: int = 0,
+        unsolicited: int = 0,
+        late: int = 0,
+        dropped: int = 0,
+        conversation_overflow: int = 0,
+        answered_at_once: int = 0,
+    ) -> None:
+        self.received = received
+        self.handled = handled
+        self.handler_errors = handler_errors
+        self.not_understood = not_understood
+        self.unsolicited = unsolicited
+        self.late = late
+        self.dropped = dropped
+        self.conversation_overflow = conversation_overflow
+        self.answered_at_once = answered_at_once
 
 
 class _Later:

@@ -20,8 +20,9 @@ platform whose token goes (it crashed, was killed, left) disappear, and watchers
 counts (``docs/security.md``, "Membership and the directory").
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import asyncio
 import base64
 import binascii
@@ -722,7 +723,7 @@ class GlobalDirectory:
 
     def __init__(
         self,
-        platform: AgentPlatform,
+        platform: "AgentPlatform",
         *,
         query_timeout: float = 1.0,
         recheck_interval: float | None = 30.0,
@@ -1746,8 +1747,8 @@ class GlobalDirectory:
 
 async def runs_signed(
     transport: Transport,
-    keys: KeyPair,
-    trust: TrustStore,
+    keys: "KeyPair",
+    trust: "TrustStore",
     platform: str,
     *,
     timeout: float = 2.0,

@@ -28,10 +28,11 @@ import orjson
 from ._directory_auth import MAX_STATEMENT_BYTES, WIRE_VERSION, DirectoryAuth
 from ._gate import TOTAL_BUDGET as TOTAL_BUDGET  # the other budget an event is shed by
 from ._gate import ShedGate, check_limit
+from ._records import Frozen
 
 
-@dataclass(frozen=True, slots=True)
-class DfEventLimit:
+@dataclass(init=False, repr=False, eq=False)
+class DfEventLimit(Frozen):
     """How many directory events a platform checks the signature of, per second.
 
     An event that passes the cheap checks (well formed, of this federation, from a
@@ -47,13 +48,38 @@ class DfEventLimit:
     fresh snapshot, at most once per ``report_interval``.
     """
 
+    __slots__ = (
+        "detailed",
+        "per_platform",
+        "per_platform_burst",
+        "report_interval",
+        "total",
+        "total_burst",
+    )
+    per_platform: float
+    per_platform_burst: float
+    total: float
+    total_burst: float
+    detailed: int
+    report_interval: float
+
     # a member registering its services at start sends a burst: its own, within these
-    per_platform: float = 20.0
-    per_platform_burst: float = 50.0
-    total: float = 20.0
-    total_burst: float = 20.0
-    detailed: int = 20
-    report_interval: float = 1.0
+    def __init__(
+        self,
+        per_platform: float = 20.0,
+        per_platform_burst: float = 50.0,
+        total: float = 20.0,
+        total_burst: float = 20.0,
+        detailed: int = 20,
+        report_interval: float = 1.0,
+    ) -> None:
+        object.__setattr__(self, "per_platform", per_platform)
+        object.__setattr__(self, "per_platform_burst", per_platform_burst)
+        object.__setattr__(self, "total", total)
+        object.__setattr__(self, "total_burst", total_burst)
+        object.__setattr__(self, "detailed", detailed)
+        object.__setattr__(self, "report_interval", report_interval)
+        self.__post_init__()
 
     def __post_init__(self) -> None:
         check_limit(self, "DfEventLimit", "per_platform", "every event")

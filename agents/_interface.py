@@ -55,6 +55,7 @@ from ._gate import shed_counts
 from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
 from ._presence import PRESENCE_BURST, PRESENCE_RATE, presence_bucket
 from ._protocols import Refuse, on_query
+from ._records import Frozen
 from ._security import (
     Clock,
     Handshake,
@@ -125,8 +126,8 @@ MAX_BATCH = 256
 """At most this many ACL messages in one envelope (a batch: ``docs/wire.md``)."""
 
 
-@dataclass(frozen=True, slots=True)
-class RateLimit:
+@dataclass(init=False, repr=False, eq=False)
+class RateLimit(Frozen):
     """How much each other platform may send here, enforced after authentication.
 
     Token buckets per authenticated platform: ``rate`` initiating messages (requests,
@@ -142,13 +143,41 @@ class RateLimit:
     and summed up once per ``report_interval``. See ``docs/security.md``.
     """
 
-    rate: float = 5_000.0
-    burst: float = 200.0
-    total_rate: float = 50_000.0
-    total_burst: float = 50_000.0
-    refusals: float = 10.0
-    report_interval: float = 1.0
-    unauthenticated: float = 200.0
+    __slots__ = (
+        "burst",
+        "rate",
+        "refusals",
+        "report_interval",
+        "total_burst",
+        "total_rate",
+        "unauthenticated",
+    )
+    rate: float
+    burst: float
+    total_rate: float
+    total_burst: float
+    refusals: float
+    report_interval: float
+    unauthenticated: float
+
+    def __init__(
+        self,
+        rate: float = 5_000.0,
+        burst: float = 200.0,
+        total_rate: float = 50_000.0,
+        total_burst: float = 50_000.0,
+        refusals: float = 10.0,
+        report_interval: float = 1.0,
+        unauthenticated: float = 200.0,
+    ) -> None:
+        object.__setattr__(self, "rate", rate)
+        object.__setattr__(self, "burst", burst)
+        object.__setattr__(self, "total_rate", total_rate)
+        object.__setattr__(self, "total_burst", total_burst)
+        object.__setattr__(self, "refusals", refusals)
+        object.__setattr__(self, "report_interval", report_interval)
+        object.__setattr__(self, "unauthenticated", unauthenticated)
+        self.__post_init__()
 
     def __post_init__(self) -> None:
         check_rates(
@@ -166,6 +195,9 @@ class RateLimit:
             ("burst", "total_burst"),
             "every message",
         )
+
+
+DEFAULT_RATE_LIMIT = RateLimit()  # frozen: one instance serves every channel
 
 
 def _burst_of(rate: float) -> float:
@@ -601,7 +633,7 @@ class InterfaceAgent:
         rehandshake_interval: float = 5.0,
         max_bytes: int = MAX_MESSAGE_BYTES,
         clock: Clock = time.time,
-        rate_limit: RateLimit | None = RateLimit(),  # frozen: one instance serves all
+        rate_limit: RateLimit | None = DEFAULT_RATE_LIMIT,
         monotonic: Callable[[], float] = time.monotonic,
         kx_limit: KxLimit | None = DEFAULT_KX_LIMIT,
         batch: bool = True,

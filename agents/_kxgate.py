@@ -22,11 +22,12 @@ from ._acl import WIRE_VERSION
 from ._exceptions import AuthenticationError, Replayed
 from ._gate import TOTAL_BUDGET as TOTAL_BUDGET  # the other budget a request is shed by
 from ._gate import ShedGate, check_limit
+from ._records import Frozen
 from ._security import _INIT_FIELDS, MAX_HANDSHAKE_BYTES, Handshake, _loads, _parse_kx
 
 
-@dataclass(frozen=True, slots=True)
-class KxLimit:
+@dataclass(init=False, repr=False, eq=False)
+class KxLimit(Frozen):
     """How many key-exchange requests a platform checks the signature of, per second.
 
     A request that passes the cheap checks (well formed, for this platform and
@@ -40,12 +41,37 @@ class KxLimit:
     counted, and summed up in one audit record per ``report_interval``.
     """
 
-    per_peer: float = 2.0
-    per_peer_burst: float = 10.0
-    total: float = 20.0
-    total_burst: float = 20.0
-    detailed: int = 20
-    report_interval: float = 1.0
+    __slots__ = (
+        "detailed",
+        "per_peer",
+        "per_peer_burst",
+        "report_interval",
+        "total",
+        "total_burst",
+    )
+    per_peer: float
+    per_peer_burst: float
+    total: float
+    total_burst: float
+    detailed: int
+    report_interval: float
+
+    def __init__(
+        self,
+        per_peer: float = 2.0,
+        per_peer_burst: float = 10.0,
+        total: float = 20.0,
+        total_burst: float = 20.0,
+        detailed: int = 20,
+        report_interval: float = 1.0,
+    ) -> None:
+        object.__setattr__(self, "per_peer", per_peer)
+        object.__setattr__(self, "per_peer_burst", per_peer_burst)
+        object.__setattr__(self, "total", total)
+        object.__setattr__(self, "total_burst", total_burst)
+        object.__setattr__(self, "detailed", detailed)
+        object.__setattr__(self, "report_interval", report_interval)
+        self.__post_init__()
 
     def __post_init__(self) -> None:
         check_limit(self, "KxLimit", "per_peer", "every request")

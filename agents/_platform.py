@@ -17,7 +17,7 @@ import contextlib
 import logging
 import re
 from collections.abc import Callable, Coroutine
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol, Self, TypeVar, runtime_checkable
 
 import orjson
@@ -27,6 +27,7 @@ from ._agent import NEVER_ANSWERED, Agent
 from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventLimit
 from ._directory_auth import DirectoryAuth
 from ._exceptions import AgentError, MessageError
+from ._records import Record
 from ._tally import Tally, since
 from .transports import Handle, Message, Subscription, Transport
 
@@ -149,21 +150,27 @@ class PlainChannel:
         log.debug("platform[%s]: ACL inbox closed", platform.name)
 
 
-@dataclass(slots=True)
-class SenderStats:
+@dataclass(init=False, repr=False, eq=False)
+class SenderStats(Record):
     """What one other (authenticated) platform sent here, as its channel's rate limit saw it.
 
     ``accepted``: messages that passed the rate limit (they then go through access control);
     ``limited``: messages dropped by it, of which ``refused`` were answered with ``refuse``.
     """
 
-    accepted: int = 0
-    limited: int = 0
-    refused: int = 0
+    __slots__ = ("accepted", "limited", "refused")
+    accepted: int
+    limited: int
+    refused: int
+
+    def __init__(self, accepted: int = 0, limited: int = 0, refused: int = 0) -> None:
+        self.accepted = accepted
+        self.limited = limited
+        self.refused = refused
 
 
-@dataclass(slots=True)
-class PlatformStats:
+@dataclass(init=False, repr=False, eq=False)
+class PlatformStats(Record):
     """What a platform has moved: local and remote deliveries, malformed input, drops.
 
     ``answers_dropped`` counts failure/not-understood answers to other platforms not sent
@@ -195,28 +202,100 @@ class PlatformStats:
     file).
     """
 
-    local: int = 0
-    sent_remote: int = 0
-    received_remote: int = 0
-    malformed: int = 0
-    forged: int = 0
-    unknown_receiver: int = 0
-    mailbox_full: int = 0
-    stopping: int = 0
-    misrouted: int = 0
-    answers_dropped: int = 0
-    unauthenticated: int = 0
-    rate_limited: int = 0
-    kx_shed: int = 0
-    kx_replies_refused: int = 0
-    kx_requests_refused: int = 0
-    denied: int = 0
-    agent_refused: int = 0
-    rehandshakes: int = 0
-    rehandshakes_suppressed: int = 0
-    presence_suppressed: int = 0
-    from_left: int = 0
-    senders: dict[str, SenderStats] = field(default_factory=dict)
+    __slots__ = (
+        "agent_refused",
+        "answers_dropped",
+        "denied",
+        "forged",
+        "from_left",
+        "kx_replies_refused",
+        "kx_requests_refused",
+        "kx_shed",
+        "local",
+        "mailbox_full",
+        "malformed",
+        "misrouted",
+        "presence_suppressed",
+        "rate_limited",
+        "received_remote",
+        "rehandshakes",
+        "rehandshakes_suppressed",
+        "senders",
+        "sent_remote",
+        "stopping",
+        "unauthenticated",
+        "unknown_receiver",
+    )
+    local: int
+    sent_remote: int
+    received_remote: int
+    malformed: int
+    forged: int
+    unknown_receiver: int
+    mailbox_full: int
+    stopping: int
+    misrouted: int
+    answers_dropped: int
+    unauthenticated: int
+    rate_limited: int
+    kx_shed: int
+    kx_replies_refused: int
+    kx_requests_refused: int
+    denied: int
+    agent_refused: int
+    rehandshakes: int
+    rehandshakes_suppressed: int
+    presence_suppressed: int
+    from_left: int
+    senders: dict[str, SenderStats]
+
+    def __init__(
+        self,
+        local: int = 0,
+        sent_remote: int = 0,
+        received_remote: int = 0,
+        malformed: int = 0,
+        forged: int = 0,
+        unknown_receiver: int = 0,
+        mailbox_full: int = 0,
+        stopping: int = 0,
+        misrouted: int = 0,
+        answers_dropped: int = 0,
+        unauthenticated: int = 0,
+        rate_limited: int = 0,
+        kx_shed: int = 0,
+        kx_replies_refused: int = 0,
+        kx_requests_refused: int = 0,
+        denied: int = 0,
+        agent_refused: int = 0,
+        rehandshakes: int = 0,
+        rehandshakes_suppressed: int = 0,
+        presence_suppressed: int = 0,
+        from_left: int = 0,
+        senders: dict[str, SenderStats] | None = None,
+    ) -> None:
+        self.local = local
+        self.sent_remote = sent_remote
+        self.received_remote = received_remote
+        self.malformed = malformed
+        self.forged = forged
+        self.unknown_receiver = unknown_receiver
+        self.mailbox_full = mailbox_full
+        self.stopping = stopping
+        self.misrouted = misrouted
+        self.answers_dropped = answers_dropped
+        self.unauthenticated = unauthenticated
+        self.rate_limited = rate_limited
+        self.kx_shed = kx_shed
+        self.kx_replies_refused = kx_replies_refused
+        self.kx_requests_refused = kx_requests_refused
+        self.denied = denied
+        self.agent_refused = agent_refused
+        self.rehandshakes = rehandshakes
+        self.rehandshakes_suppressed = rehandshakes_suppressed
+        self.presence_suppressed = presence_suppressed
+        self.from_left = from_left
+        self.senders = {} if senders is None else senders
 
 
 _UNOPENED, _OPENED, _CLOSING, _CLOSED = "unopened", "opened", "closing", "closed"

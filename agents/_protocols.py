@@ -19,7 +19,7 @@ import inspect
 import logging
 import time
 from collections.abc import Awaitable, Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Self
 
 from pydantic import JsonValue
@@ -37,6 +37,7 @@ from ._agent import (
     RouteSpec,
     declare,
 )
+from ._records import Frozen, Record
 
 log = logging.getLogger(__name__)
 
@@ -435,12 +436,17 @@ async def subscribe(
     return SubscriptionStream(agent, conv, message, agree)
 
 
-@dataclass(slots=True)
-class Subscriber:
+@dataclass(init=False, repr=False, eq=False)
+class Subscriber(Record):
     """One subscription a `Publisher` serves: its subscribe message and what ``accept`` returned."""
 
+    __slots__ = ("data", "message")
     message: ACLMessage
-    data: Any = None
+    data: Any
+
+    def __init__(self, message: ACLMessage, data: Any = None) -> None:
+        self.message = message
+        self.data = data
 
     @property
     def agent(self) -> str:
@@ -546,27 +552,63 @@ class Publisher:
 # -- FIPA-Contract-Net ---------------------------------------------------------------
 
 
-@dataclass(frozen=True, slots=True)
-class Proposal:
+@dataclass(init=False, repr=False, eq=False)
+class Proposal(Frozen):
     """A participant's answer to a cfp: who, what it proposes, and the propose message."""
 
+    __slots__ = ("content", "message", "participant")
     participant: str
     content: JsonValue
     message: ACLMessage
 
+    def __init__(self, participant: str, content: JsonValue, message: ACLMessage) -> None:
+        object.__setattr__(self, "participant", participant)
+        object.__setattr__(self, "content", content)
+        object.__setattr__(self, "message", message)
 
-@dataclass(slots=True)
-class ContractNetResult:
+
+@dataclass(init=False, repr=False, eq=False)
+class ContractNetResult(Record):
     """How a contract net went: proposals, who refused, what was accepted, and the results."""
 
-    proposals: list[Proposal] = field(default_factory=list)
-    refused: dict[str, ACLMessage] = field(default_factory=dict)
-    accepted: list[Proposal] = field(default_factory=list)
-    results: dict[str, JsonValue] = field(default_factory=dict)
-    failures: dict[str, ACLMessage] = field(default_factory=dict)
-    no_answer: list[str] = field(default_factory=list)
-    no_result: list[str] = field(default_factory=list)
-    late: list[ACLMessage] = field(default_factory=list)
+    __slots__ = (
+        "accepted",
+        "failures",
+        "late",
+        "no_answer",
+        "no_result",
+        "proposals",
+        "refused",
+        "results",
+    )
+    proposals: list[Proposal]
+    refused: dict[str, ACLMessage]
+    accepted: list[Proposal]
+    results: dict[str, JsonValue]
+    failures: dict[str, ACLMessage]
+    no_answer: list[str]
+    no_result: list[str]
+    late: list[ACLMessage]
+
+    def __init__(
+        self,
+        proposals: list[Proposal] | None = None,
+        refused: dict[str, ACLMessage] | None = None,
+        accepted: list[Proposal] | None = None,
+        results: dict[str, JsonValue] | None = None,
+        failures: dict[str, ACLMessage] | None = None,
+        no_answer: list[str] | None = None,
+        no_result: list[str] | None = None,
+        late: list[ACLMessage] | None = None,
+    ) -> None:
+        self.proposals = [] if proposals is None else proposals
+        self.refused = {} if refused is None else refused
+        self.accepted = [] if accepted is None else accepted
+        self.results = {} if results is None else results
+        self.failures = {} if failures is None else failures
+        self.no_answer = [] if no_answer is None else no_answer
+        self.no_result = [] if no_result is None else no_result
+        self.late = [] if late is None else late
 
 
 def _accept_all(proposals: list[Proposal]) -> list[Proposal]:

@@ -49,6 +49,7 @@ from ._exceptions import (
     UnknownPlatform,
     UnknownSession,
 )
+from ._records import Frozen, Record
 
 if TYPE_CHECKING:
     from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
@@ -633,8 +634,8 @@ class TrustStore:
 # --------------------------------------------------------------------------- policy
 
 
-@dataclass(frozen=True, slots=True)
-class SecurityPolicy:
+@dataclass(init=False, repr=False, eq=False)
+class SecurityPolicy(Frozen):
     """The tunables of a platform's handshakes and sessions (a federation should agree on them).
 
     ``skew``: how far (s) a timestamp may be from this platform's clock, either way.
@@ -647,15 +648,49 @@ class SecurityPolicy:
     not encrypted (`Unencrypted`); None (the default) means the same as ``encrypt``.
     """
 
-    skew: float = 30.0
-    window: int = 1024
-    renew_after_messages: int = 1_000_000
-    renew_after_seconds: float = 3600.0
-    grace: float = 30.0
-    encrypt: bool = True
-    require_encryption: bool | None = None
-    max_sessions_per_peer: int = 4
-    max_body_bytes: int = MAX_MESSAGE_BYTES
+    __slots__ = (
+        "encrypt",
+        "grace",
+        "max_body_bytes",
+        "max_sessions_per_peer",
+        "renew_after_messages",
+        "renew_after_seconds",
+        "require_encryption",
+        "skew",
+        "window",
+    )
+    skew: float
+    window: int
+    renew_after_messages: int
+    renew_after_seconds: float
+    grace: float
+    encrypt: bool
+    require_encryption: bool | None
+    max_sessions_per_peer: int
+    max_body_bytes: int
+
+    def __init__(
+        self,
+        skew: float = 30.0,
+        window: int = 1024,
+        renew_after_messages: int = 1_000_000,
+        renew_after_seconds: float = 3600.0,
+        grace: float = 30.0,
+        encrypt: bool = True,
+        require_encryption: bool | None = None,
+        max_sessions_per_peer: int = 4,
+        max_body_bytes: int = MAX_MESSAGE_BYTES,
+    ) -> None:
+        object.__setattr__(self, "skew", skew)
+        object.__setattr__(self, "window", window)
+        object.__setattr__(self, "renew_after_messages", renew_after_messages)
+        object.__setattr__(self, "renew_after_seconds", renew_after_seconds)
+        object.__setattr__(self, "grace", grace)
+        object.__setattr__(self, "encrypt", encrypt)
+        object.__setattr__(self, "require_encryption", require_encryption)
+        object.__setattr__(self, "max_sessions_per_peer", max_sessions_per_peer)
+        object.__setattr__(self, "max_body_bytes", max_body_bytes)
+        self.__post_init__()
 
     def __post_init__(self) -> None:
         if self.require_encryption is None:
@@ -1713,13 +1748,28 @@ def _field_problem(env: Mapping[str, Any]) -> str:
 # --------------------------------------------------------------------------- handshake
 
 
-@dataclass(slots=True)
-class _Pending:
+@dataclass(init=False, repr=False, eq=False)
+class _Pending(Record):
+    __slots__ = ("peer", "secret", "started", "transcript", "ts_ms")
     peer: str
     transcript: bytes  # the signed part of our request
     secret: bytes  # our ephemeral X25519 private key
     started: float
     ts_ms: int
+
+    def __init__(
+        self,
+        peer: str,
+        transcript: bytes,
+        secret: bytes,
+        started: float,
+        ts_ms: int,
+    ) -> None:
+        self.peer = peer
+        self.transcript = transcript
+        self.secret = secret
+        self.started = started
+        self.ts_ms = ts_ms
 
 
 _SESSION_KEYS = ("i2r mac", "r2i mac", "i2r box", "r2i box", "sid")

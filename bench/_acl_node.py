@@ -25,9 +25,22 @@ import time
 
 _T_MODULE = time.time()  # before the heavy imports: where the interpreter's start ends
 
+import gc  # noqa: E402
+import multiprocessing  # noqa: E402
+
+from federation._cli_node import skip_pydantic_plugin_scan  # noqa: E402
+
+# The spawned node imports as `dyknow node` does (federation._cli_node.run_node): the
+# collector off while the imports build what lives as long as the node, then all of it
+# frozen out of its sight; pydantic's plugin search spared when no distribution declares
+# a plugin. Not in the parent, which imports this module for its names only.
+_NODE = multiprocessing.parent_process() is not None
+if _NODE:
+    gc.disable()
+    skip_pydantic_plugin_scan()
+
 import asyncio  # noqa: E402
 import cProfile  # noqa: E402
-import gc  # noqa: E402
 import os  # noqa: E402
 import sys  # noqa: E402
 import traceback  # noqa: E402
@@ -66,6 +79,9 @@ try:  # the Gateway Agent proper, once it is there; else the stand-in below
 except ImportError:  # pragma: no cover - depends on the state of agents/
     GatewayAgent = None  # type: ignore[assignment,misc]
 
+if _NODE:
+    gc.freeze()
+    gc.enable()
 _T_IMPORTED = time.time()
 
 LABEL = "bench/speed"

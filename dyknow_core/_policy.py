@@ -4,8 +4,9 @@ Durations are seconds (user-facing); time points (``start``, ``end``) are intege
 nanoseconds on the instance's time line, like every other time point.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import math
 import re
 from enum import StrEnum
@@ -241,7 +242,7 @@ class Policy(_EdgeModel):
             return "change"
         return None
 
-    def replace(self, **changes: Any) -> Policy:
+    def replace(self, **changes: Any) -> "Policy":
         """Return a validated copy with some fields changed (for live refinement)."""
         data = self.model_dump()
         data.update(changes)

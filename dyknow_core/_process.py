@@ -1,7 +1,8 @@
 """Knowledge processes: sources make data available, computational units compute streams."""
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import asyncio
 import inspect
 from collections import deque
@@ -38,7 +39,7 @@ class Process:
 
     kind = "process"
 
-    def __init__(self, name: str, instance: DyKnowInstance) -> None:
+    def __init__(self, name: str, instance: "DyKnowInstance") -> None:
         self.name = name
         self.instance = instance
         self.errors = 0
@@ -69,7 +70,7 @@ class Source(Process):
 
     kind = "source"
 
-    def __init__(self, name: str, instance: DyKnowInstance, generator: StreamGenerator) -> None:
+    def __init__(self, name: str, instance: "DyKnowInstance", generator: StreamGenerator) -> None:
         super().__init__(name, instance)
         self.generator = generator
         self.label = generator.label
@@ -131,7 +132,7 @@ class ComputationalUnit(Process):
     def __init__(
         self,
         name: str,
-        instance: DyKnowInstance,
+        instance: "DyKnowInstance",
         fn: Callable[..., Any],
         inputs: Sequence[Input],
         output: StreamGenerator,

@@ -1,7 +1,8 @@
 """Samples: the unit of a fluent stream, kept as plain tuples for the hot path."""
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 from typing import Any, NamedTuple
 
 

@@ -14,8 +14,9 @@ without a value then is *missing* and the state policy's ``missing`` says what h
 grid point at which no component has a value is never a state.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import asyncio
 import contextlib
 from collections.abc import Callable, Mapping
@@ -170,7 +171,7 @@ class StateProcess(Process):
     def __init__(
         self,
         name: str,
-        instance: DyKnowInstance,
+        instance: "DyKnowInstance",
         components: Mapping[str, str],
         policy: StatePolicy,
         output: StreamGenerator,
@@ -391,7 +392,7 @@ class StateProcess(Process):
 
 
 def add_state(
-    instance: DyKnowInstance,
+    instance: "DyKnowInstance",
     label: str,
     components: Mapping[str, str],
     policy: StatePolicy | Mapping[str, Any],

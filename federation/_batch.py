@@ -6,8 +6,9 @@ the export); ``docs/wire.md`` ("Sample batches") is the contract and
 ``docs/test-vectors.json`` pins the bytes.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import dataclasses
 import re
 from enum import Enum

@@ -29,8 +29,9 @@ the same way, and what it asked that still waits in the mailbox is refused so to
 (``untrusted``).
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass

@@ -9,8 +9,9 @@ edge: absolute on the instance's time line, or relative to the provider's now wh
 request says ``"relative": true`` (``from: -120`` = the last two minutes).
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import contextlib
 from collections.abc import Iterable, Iterator, Sequence
 from enum import Enum

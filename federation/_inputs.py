@@ -8,8 +8,9 @@ arrival. A message that cannot be used is counted by reason and logged, never ra
 a bad sensor must not stop the node.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import asyncio
 import contextlib
 import inspect
@@ -99,7 +100,7 @@ class _InputBase(BaseModel):
         """The name when none is given."""
         raise NotImplementedError
 
-    def relative_to(self, base: Path) -> _InputBase:
+    def relative_to(self, base: Path) -> "_InputBase":
         """A copy whose relative paths are resolved against ``base`` (files only have some)."""
         return self
 
@@ -136,7 +137,7 @@ class MqttInput(_InputBase):
         """``mqtt TOPIC``."""
         return f"mqtt {self.topic}"
 
-    def relative_to(self, base: Path) -> MqttInput:
+    def relative_to(self, base: Path) -> "MqttInput":
         """The password file resolved against ``base``."""
         if self.password_file is not None and not self.password_file.is_absolute():
             return self.model_copy(update={"password_file": base / self.password_file})
@@ -170,7 +171,7 @@ class FileInput(_InputBase):
             return self.format
         return "csv" if self.path.suffix.lower() == ".csv" else "jsonl"
 
-    def relative_to(self, base: Path) -> FileInput:
+    def relative_to(self, base: Path) -> "FileInput":
         """The file resolved against ``base``."""
         if not self.path.is_absolute():
             return self.model_copy(update={"path": base / self.path})
@@ -227,7 +228,7 @@ class RosbagInput(_InputBase):
         """``rosbag PATH TOPIC``."""
         return f"rosbag {self.path} {self.topic}"
 
-    def relative_to(self, base: Path) -> RosbagInput:
+    def relative_to(self, base: Path) -> "RosbagInput":
         """The bag resolved against ``base``."""
         if not self.path.is_absolute():
             return self.model_copy(update={"path": base / self.path})
@@ -310,7 +311,7 @@ class InputStats:
 class _Mapper:
     """Turns one message into samples pushed to the instance's sources."""
 
-    def __init__(self, settings: _InputBase, instance: DyKnowInstance, stats: InputStats) -> None:
+    def __init__(self, settings: _InputBase, instance: "DyKnowInstance", stats: InputStats) -> None:
         self.instance = instance
         self.stats = stats
         self.title = settings.title()
@@ -323,7 +324,7 @@ class _Mapper:
         self.create = settings.create
         self.sources: dict[str, Source] = {}
 
-    def source(self, label: str) -> Source:
+    def source(self, label: str) -> "Source":
         """The source publishing ``label`` (created when the input may create it)."""
         src = self.sources.get(label)
         if src is not None:
@@ -456,7 +457,7 @@ class _Mapper:
 class InputRunner:
     """One input, running as a task of the node; `stats` tells what it received."""
 
-    def __init__(self, settings: _InputBase, instance: DyKnowInstance) -> None:
+    def __init__(self, settings: _InputBase, instance: "DyKnowInstance") -> None:
         self.settings = settings
         self.stats = InputStats(settings.title())
         self.mapper = _Mapper(settings, instance, self.stats)
@@ -639,7 +640,7 @@ class _Lines:
         self.n = 0
         self.record: list[str] = []
 
-    def __iter__(self) -> _Lines:
+    def __iter__(self) -> "_Lines":
         return self
 
     def __next__(self) -> str:
@@ -856,7 +857,7 @@ class _PythonRunner(InputRunner):
             self.mapper.handle(message)
 
 
-def input_runner(settings: _InputBase, instance: DyKnowInstance) -> InputRunner:
+def input_runner(settings: _InputBase, instance: "DyKnowInstance") -> InputRunner:
     """The runner of one ``[[inputs]]`` table of a kind other than ROS 2 (``ros2``, ``rosbag``).
 
     Those are `federation._ros.ros_runner`'s: that module builds on this one, so this one

@@ -7,8 +7,9 @@ Each sample is one JSON object ``{"label", "value", "valid", "available"}`` (tim
 seconds since the epoch), so a dashboard needs no DyKnow library to read it.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import asyncio
 import contextlib
 import fnmatch
@@ -87,7 +88,7 @@ def sample_json(label: str, value: Any, valid: int, available: int) -> bytes:
 class OutputRunner:
     """One output: follows the matching streams and publishes their samples."""
 
-    def __init__(self, settings: MqttOutput | ZenohOutput, instance: DyKnowInstance) -> None:
+    def __init__(self, settings: MqttOutput | ZenohOutput, instance: "DyKnowInstance") -> None:
         self.settings = settings
         self.instance = instance
         self.published = 0
@@ -203,6 +204,6 @@ class OutputRunner:
                 await asyncio.to_thread(own.close)
 
 
-def output_runner(settings: MqttOutput | ZenohOutput, instance: DyKnowInstance) -> OutputRunner:
+def output_runner(settings: MqttOutput | ZenohOutput, instance: "DyKnowInstance") -> OutputRunner:
     """The runner of one ``[[outputs]]`` table."""
     return OutputRunner(settings, instance)

@@ -75,8 +75,9 @@ A config file (TOML; relative paths are relative to the file)::
     connect = ["tcp/127.0.0.1:7447"]
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import asyncio
 import contextlib
 import fnmatch
@@ -278,7 +279,7 @@ class ConsoleRoles(BaseModel):
             pairs.extend((role, label) for label in labels)
         return pairs
 
-    def among(self, streams: tuple[str, ...]) -> ConsoleRoles:
+    def among(self, streams: tuple[str, ...]) -> "ConsoleRoles":
         """These roles with only the labels among ``streams`` (a role left without unset)."""
         update: dict[str, Any] = {}
         for role, value in self.model_dump().items():
@@ -601,7 +602,7 @@ class PlatformConfig(BaseModel):
         return value
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], *, source: str = "<config>") -> PlatformConfig:
+    def from_dict(cls, data: Mapping[str, Any], *, source: str = "<config>") -> "PlatformConfig":
         """Validate ``data`` (shaped like the file); PlatformConfigError names the bad key."""
         try:
             return cls.model_validate(data)
@@ -609,12 +610,12 @@ class PlatformConfig(BaseModel):
             raise _config_error(exc, source) from None
 
     @classmethod
-    def load(cls, path: str | Path) -> PlatformConfig:
+    def load(cls, path: str | Path) -> "PlatformConfig":
         """Read a TOML config file; relative paths in it are relative to the file."""
         path = Path(path)
         return cls.from_dict(_read_toml(path), source=str(path)).relative_to(path.parent)
 
-    def relative_to(self, base: str | Path) -> PlatformConfig:
+    def relative_to(self, base: str | Path) -> "PlatformConfig":
         """A copy whose relative paths are resolved against ``base``."""
         base = Path(base)
         update: dict[str, Any] = {}
@@ -1060,7 +1061,7 @@ class FederationPlatform:
         return gdf.watch_presence()
 
     @classmethod
-    def from_file(cls, path: str | Path, **options: Any) -> FederationPlatform:
+    def from_file(cls, path: str | Path, **options: Any) -> "FederationPlatform":
         """A platform from a TOML config file (see `PlatformConfig.load`)."""
         return cls(PlatformConfig.load(path), source=str(path), **options)
 

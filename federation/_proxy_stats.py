@@ -5,8 +5,9 @@ console and the docs print; the stats are `TypedDict` s, so ``stats()`` stays th
 JSON-ready dict it always was.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 from enum import StrEnum
 from typing import TypedDict
 

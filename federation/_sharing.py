@@ -22,8 +22,9 @@ Rules are read in order; the first whose ``labels`` match a label decides for it
 of the platform itself are never restricted by these rules.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import fnmatch
 from collections.abc import Iterable
 from typing import Annotated, Any, Literal
@@ -73,7 +74,7 @@ class SharingSettings(BaseModel):
     accept_for: list[Pattern] = Field(default_factory=_no_items)
     rules: list[SharingRule] = Field(default_factory=_no_items)
 
-    def sharing(self) -> Sharing:
+    def sharing(self) -> "Sharing":
         """The rules as the Federation Agent applies them."""
         return Sharing(self)
 

@@ -41,7 +41,7 @@ from dyknow_core import (
 
 from ._exceptions import OntologyError
 from ._labels import LOCAL_VALUE, OBJECT, LabelPattern
-from ._sl import Atom, Constant, Value, format_value, is_word, parse
+from ._sl import Atom, Constant, Value, _Frozen, format_value, is_word, parse
 
 log = logging.getLogger(__name__)
 
@@ -58,12 +58,28 @@ def _constant(value: Any) -> Value:
     return int(value) if isinstance(value, int) else float(value)
 
 
-@dataclass(frozen=True, slots=True)
-class Fact:
+# the frozen dataclasses of this module have their methods written out (`ontology._sl`)
+
+
+@dataclass(init=False, repr=False, eq=False)
+class Fact(_Frozen):
     """A ground atom: a predicate applied to constants, ``(Color car5 blue)``."""
 
+    __slots__ = ("args", "predicate")
     predicate: str
-    args: tuple[Value, ...] = ()
+    args: tuple[Value, ...]
+
+    def __init__(self, predicate: str, args: tuple[Value, ...] = ()) -> None:
+        object.__setattr__(self, "predicate", predicate)
+        object.__setattr__(self, "args", args)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return (self.predicate, self.args) == (other.predicate, other.args)
+
+    def __hash__(self) -> int:
+        return hash((self.predicate, self.args))
 
     @classmethod
     def of(cls, predicate: str, *args: Any) -> Fact:
@@ -214,16 +230,29 @@ class FactBase:
 # --- rules and the feed ------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class DomainRule:
+@dataclass(init=False, repr=False, eq=False)
+class DomainRule(_Frozen):
     """Membership in a dyknow_core domain as a unary fact: ``cars`` ∋ car5 → ``(Car car5)``."""
 
+    __slots__ = ("domain", "predicate")
     domain: str
     predicate: str
 
+    def __init__(self, domain: str, predicate: str) -> None:
+        object.__setattr__(self, "domain", domain)
+        object.__setattr__(self, "predicate", predicate)
 
-@dataclass(frozen=True)
-class StreamRule:
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return (self.domain, self.predicate) == (other.domain, other.predicate)
+
+    def __hash__(self) -> int:
+        return hash((self.domain, self.predicate))
+
+
+@dataclass(init=False, repr=False, eq=False)
+class StreamRule(_Frozen):
     """The latest value of each object's stream as a fact about it.
 
     ``pattern`` is a local label pattern with ``{object}`` (``car/{object}/color``);
@@ -232,11 +261,37 @@ class StreamRule:
     follows that domain's members instead of the labels published at start.
     """
 
+    __slots__ = ("convert", "domain", "pattern", "predicate", "unary")
     pattern: str
     predicate: str
-    domain: str | None = None
-    convert: Callable[[Any], Any] | None = None
-    unary: bool = False
+    domain: str | None
+    convert: Callable[[Any], Any] | None
+    unary: bool
+
+    def __init__(
+        self,
+        pattern: str,
+        predicate: str,
+        domain: str | None = None,
+        convert: Callable[[Any], Any] | None = None,
+        unary: bool = False,
+    ) -> None:
+        object.__setattr__(self, "pattern", pattern)
+        object.__setattr__(self, "predicate", predicate)
+        object.__setattr__(self, "domain", domain)
+        object.__setattr__(self, "convert", convert)
+        object.__setattr__(self, "unary", unary)
+
+    def _key(self) -> tuple[object, ...]:
+        return (self.pattern, self.predicate, self.domain, self.convert, self.unary)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
 
 
 Rule = DomainRule | StreamRule

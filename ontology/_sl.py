@@ -36,7 +36,7 @@ import math
 import re
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import FrozenInstanceError, dataclass
 from enum import StrEnum
 from typing import Protocol
 
@@ -88,34 +88,81 @@ def is_word(text: str) -> bool:
 
 
 # --- the AST ---------------------------------------------------------------------------
+#
+# The nodes are frozen dataclasses whose methods are written out: the generated ones cost
+# ~0.4 ms of every process's start a class (Python compiles each method from source), and
+# every node and command imports this module. `dataclasses.fields`, `replace` and `asdict`
+# work as ever; `_Frozen` makes them immutable, pickled and printed like a frozen one.
 
 
-@dataclass(frozen=True, slots=True)
-class Variable:
+class _Frozen:
+    """What the frozen AST nodes share: no assignment, a dataclass's repr, pickling."""
+
+    __slots__ = ()
+    __match_args__: tuple[str, ...] = ()
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise FrozenInstanceError(f"cannot assign to field {name!r}")
+
+    def __delattr__(self, name: str) -> None:
+        raise FrozenInstanceError(f"cannot delete field {name!r}")
+
+    def __repr__(self) -> str:
+        fields = ", ".join(f"{n}={getattr(self, n)!r}" for n in self.__match_args__)
+        return f"{type(self).__qualname__}({fields})"
+
+    def __reduce__(self) -> tuple[type, tuple[object, ...]]:
+        return type(self), tuple(getattr(self, n) for n in self.__match_args__)
+
+
+@dataclass(init=False, repr=False, eq=False)
+class Variable(_Frozen):
     """A variable, ``?x``; ``name`` is without the question mark."""
 
+    __slots__ = ("name",)
     name: str
+
+    def __init__(self, name: str) -> None:
+        object.__setattr__(self, "name", name)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return self.name == other.name
+
+    def __hash__(self) -> int:
+        return hash((self.name,))
 
     def __str__(self) -> str:
         return f"?{self.name}"
 
 
-@dataclass(frozen=True, slots=True)
-class Constant:
+@dataclass(init=False, repr=False, eq=False)
+class Constant(_Frozen):
     """A constant: a word (``blue``), a string (``"dark blue"``) or a number (``7``).
 
     ``quoted`` only says how it was written; ``blue`` and ``"blue"`` are equal.
     """
 
+    __slots__ = ("quoted", "value")
     value: Value
-    quoted: bool = field(default=False, compare=False)
+    quoted: bool
 
-    def __post_init__(self) -> None:
-        v = self.value
-        if isinstance(v, bool) or not isinstance(v, str | int | float):
-            raise TypeError(f"an SL constant is a str, int or float, not {type(v).__name__}")
-        if isinstance(v, float) and not math.isfinite(v):
-            raise ValueError(f"an SL constant must be a finite number, got {v}")
+    def __init__(self, value: Value, quoted: bool = False) -> None:
+        if isinstance(value, bool) or not isinstance(value, str | int | float):
+            raise TypeError(f"an SL constant is a str, int or float, not {type(value).__name__}")
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ValueError(f"an SL constant must be a finite number, got {value}")
+        object.__setattr__(self, "value", value)
+        object.__setattr__(self, "quoted", quoted)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return self.value == other.value
+
+    def __hash__(self) -> int:
+        return hash((self.value,))
 
     def __str__(self) -> str:
         return format_value(self.value, quoted=self.quoted)
@@ -124,42 +171,91 @@ class Constant:
 Term = Variable | Constant
 
 
-@dataclass(frozen=True, slots=True)
-class Atom:
+@dataclass(init=False, repr=False, eq=False)
+class Atom(_Frozen):
     """A predicate applied to terms: ``(Color ?x blue)``."""
 
+    __slots__ = ("args", "predicate")
     predicate: str
-    args: tuple[Term, ...] = ()
+    args: tuple[Term, ...]
+
+    def __init__(self, predicate: str, args: tuple[Term, ...] = ()) -> None:
+        object.__setattr__(self, "predicate", predicate)
+        object.__setattr__(self, "args", args)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return (self.predicate, self.args) == (other.predicate, other.args)
+
+    def __hash__(self) -> int:
+        return hash((self.predicate, self.args))
 
     def __str__(self) -> str:
         return "(" + " ".join([self.predicate, *map(str, self.args)]) + ")"
 
 
-@dataclass(frozen=True, slots=True)
-class And:
+@dataclass(init=False, repr=False, eq=False)
+class And(_Frozen):
     """True when every operand is."""
 
+    __slots__ = ("operands",)
     operands: tuple[Formula, ...]
+
+    def __init__(self, operands: tuple[Formula, ...]) -> None:
+        object.__setattr__(self, "operands", operands)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return self.operands == other.operands
+
+    def __hash__(self) -> int:
+        return hash((self.operands,))
 
     def __str__(self) -> str:
         return "(and " + " ".join(map(str, self.operands)) + ")"
 
 
-@dataclass(frozen=True, slots=True)
-class Or:
+@dataclass(init=False, repr=False, eq=False)
+class Or(_Frozen):
     """True when some operand is."""
 
+    __slots__ = ("operands",)
     operands: tuple[Formula, ...]
+
+    def __init__(self, operands: tuple[Formula, ...]) -> None:
+        object.__setattr__(self, "operands", operands)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return self.operands == other.operands
+
+    def __hash__(self) -> int:
+        return hash((self.operands,))
 
     def __str__(self) -> str:
         return "(or " + " ".join(map(str, self.operands)) + ")"
 
 
-@dataclass(frozen=True, slots=True)
-class Not:
+@dataclass(init=False, repr=False, eq=False)
+class Not(_Frozen):
     """True when the operand is false (closed world: not known to hold)."""
 
+    __slots__ = ("operand",)
     operand: Formula
+
+    def __init__(self, operand: Formula) -> None:
+        object.__setattr__(self, "operand", operand)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return self.operand == other.operand
+
+    def __hash__(self) -> int:
+        return hash((self.operand,))
 
     def __str__(self) -> str:
         return f"(not {self.operand})"
@@ -176,13 +272,31 @@ class QueryKind(StrEnum):
     IOTA = "iota"
 
 
-@dataclass(frozen=True, slots=True)
-class Query:
+@dataclass(init=False, repr=False, eq=False)
+class Query(_Frozen):
     """An identifying expression: the objects (``variables``) that make ``formula`` true."""
 
+    __slots__ = ("formula", "kind", "variables")
     kind: QueryKind
     variables: tuple[Variable, ...]
     formula: Formula
+
+    def __init__(self, kind: QueryKind, variables: tuple[Variable, ...], formula: Formula) -> None:
+        object.__setattr__(self, "kind", kind)
+        object.__setattr__(self, "variables", variables)
+        object.__setattr__(self, "formula", formula)
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        mine, theirs = (
+            (self.kind, self.variables, self.formula),
+            (other.kind, other.variables, other.formula),
+        )
+        return mine == theirs
+
+    def __hash__(self) -> int:
+        return hash((self.kind, self.variables, self.formula))
 
     def __str__(self) -> str:
         if len(self.variables) == 1:

@@ -4,8 +4,9 @@ Key expressions use zenoh's syntax everywhere (``/``-separated chunks, ``*`` mat
 chunk, ``**`` any number); the MQTT transport maps them to ``+`` and ``#``.
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import asyncio
 import contextlib
 import logging

@@ -79,8 +79,9 @@ Error replies: a zenoh error reply carries no key, so its ``Reply.key`` is the q
 key expression (the memory transport gives the queryable's).
 """
 
-from __future__ import annotations
-
+# Annotations are evaluated here, not kept as strings (no ``from __future__ import
+# annotations``): the node imports this module, and pydantic and typing would compile
+# each string at every start. A name defined later or only for type checking is quoted.
 import asyncio
 import atexit
 import contextlib
@@ -204,7 +205,7 @@ class ZenohTls(BaseModel):
     )
 
     @model_validator(mode="after")
-    def _pair(self) -> ZenohTls:
+    def _pair(self) -> "ZenohTls":
         if (self.certificate is None) != (self.private_key is None):
             raise ValueError("certificate and private_key go together (give both or neither)")
         return self
@@ -349,7 +350,7 @@ class ZenohConfig(BaseModel):
         return value
 
     @model_validator(mode="after")
-    def _reachable(self) -> ZenohConfig:
+    def _reachable(self) -> "ZenohConfig":
         if self.mode == "client" and not self.connect and not self.multicast_scouting:
             raise ValueError(
                 "connect: a client with no connect endpoints and no multicast scouting "
@@ -358,7 +359,7 @@ class ZenohConfig(BaseModel):
         return self
 
     @classmethod
-    def loopback(cls, port: int, *, connect: Iterable[int] = (), **fields: Any) -> ZenohConfig:
+    def loopback(cls, port: int, *, connect: Iterable[int] = (), **fields: Any) -> "ZenohConfig":
         """A peer listening on 127.0.0.1:``port`` and connecting to the given loopback ports."""
         return cls(
             listen=(f"tcp/127.0.0.1:{port}",),
@@ -366,7 +367,7 @@ class ZenohConfig(BaseModel):
             **fields,
         )
 
-    def relative_to(self, base: str | Path) -> ZenohConfig:
+    def relative_to(self, base: str | Path) -> "ZenohConfig":
         """A copy whose relative TLS and password file paths are resolved against ``base``."""
         base = Path(base)
         update: dict[str, Any] = {}
