@@ -923,11 +923,24 @@ async def test_a_tight_loop_of_sends_goes_in_full_envelopes_in_order() -> None:
         wire = await raw.subscribe(wire_key(FED, "acl", "uav-b"))
         echo.informs.clear()
         accepted = ia(pb).audit.counts["accepted"]
+        loop = asyncio.get_running_loop()
+        turns = 0
+
+        def tick() -> None:  # counts the turns of the loop while the sender loops
+            nonlocal turns
+            turns += 1
+            if not sending.done():
+                loop.call_soon(tick)
+
+        sending = loop.create_future()
+        loop.call_soon(tick)
         n = 4 * 256
         for i in range(n):
             await asker.send(
                 asker.message(Performative.INFORM, "echo@uav-b", {"i": i}, ontology="demo")
             )
+        sending.set_result(None)
+        assert 4 <= turns <= 5  # other tasks still run, once per 256 sent
         await until(lambda: len(echo.informs) == n, f"the {n} informs")
         assert [m.content for m in echo.informs] == [{"i": i} for i in range(n)]
         assert ia(pb).audit.counts["accepted"] == accepted + n
