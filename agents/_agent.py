@@ -764,13 +764,16 @@ class Agent:
         """A new message from this agent (other ACL fields as keywords)."""
         return compose(performative, self.aid, receivers, content, fields)
 
-    async def send(self, message: ACLMessage) -> None:
-        """Send ``message`` (its sender must be this agent) to its receivers."""
+    def send(self, message: ACLMessage) -> Coroutine[Any, Any, None]:
+        """Send ``message`` (its sender must be this agent) to its receivers: await it.
+
+        A plain call returning the platform's coroutine, a coroutine less per message sent.
+        """
         if message.sender != self.aid:
             raise AgentError(f"{self} cannot send as {message.sender}")
         if self._platform is None:
             raise AgentError(f"{self} is not on a platform")
-        await self._platform.send(message)
+        return self._platform.send(message)
 
     async def reply(
         self,

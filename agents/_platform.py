@@ -40,6 +40,12 @@ A = TypeVar("A", bound=Agent)
 
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
+# A sender in a tight loop lets this process's other tasks run once per this many
+# messages sent to other platforms (a power of two: a mask tests it). As many as a batch
+# of ACL messages holds at most (the Interface Agent's MAX_BATCH): a turn of the loop
+# fills one envelope, where a turn per 64 sealed and put four times as many.
+_YIELD_MASK = 255
+
 
 def wire_key(federation: str, kind: str, platform: str) -> str:
     """The key ``dyknow/<federation>/v1/<kind>/<platform>`` (``platform`` may be ``*``)."""
@@ -576,7 +582,7 @@ class AgentPlatform:
                 await self.channel.send(target, message)
             stats = self.stats
             stats.sent_remote += 1
-            if not stats.sent_remote & 63:
+            if not stats.sent_remote & _YIELD_MASK:
                 await asyncio.sleep(0)  # as in _remote: let this process's receivers run
             return
         remote: dict[str, None] = {}
@@ -592,7 +598,7 @@ class AgentPlatform:
     async def _remote(self, target: str, message: ACLMessage) -> None:
         await self.channel.send(target, message)
         self.stats.sent_remote += 1
-        if not self.stats.sent_remote & 63:
+        if not self.stats.sent_remote & _YIELD_MASK:
             # Publishing rarely suspends: a sender in a tight loop would starve this
             # process's receive loops (and fill the receiver's inbox) without this.
             await asyncio.sleep(0)

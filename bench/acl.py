@@ -51,6 +51,8 @@ before the timed round trips (``gc.freeze``), as a started node does.
 instead (cProfile on both sides, plus the per-stage costs measured one by one);
 ``python -m bench._acl_trace [N]`` times one round trip stage by stage in both processes.
 ``python -m bench._acl_flood [N] [ROUNDS]`` runs the one-way flood alone (``--ab`` for two trees).
+``python -m bench._acl_oneway_cpu`` runs it with both platforms in one process (memory
+transport): both sides' CPU per message on one thread, free of the machine's load.
 """
 
 from __future__ import annotations

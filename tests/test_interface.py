@@ -923,6 +923,45 @@ async def test_a_burst_that_goes_on_sends_one_envelope_a_turn() -> None:
         assert [m.content["i"] for m in echo.informs] == list(range(got))  # in order
 
 
+async def test_a_tight_loop_of_sends_goes_in_full_envelopes_in_order() -> None:
+    """A sender looping on `send` lets the loop turn once per 256: envelopes of a full batch.
+
+    1024 informs in a loop that never waits otherwise: at most a partial batch at each end
+    and full ones of 256 between (a turn per 64 sent sixteen), each message delivered in
+    order and audited on its own.
+    """
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pb, asker, echo = pair.pb, pair.asker, pair.echo
+        raw = await fed.raw()
+        wire = await raw.subscribe(wire_key(FED, "acl", "uav-b"))
+        echo.informs.clear()
+        accepted = ia(pb).audit.counts["accepted"]
+        loop = asyncio.get_running_loop()
+        turns = 0
+
+        def tick() -> None:  # counts the turns of the loop while the sender loops
+            nonlocal turns
+            turns += 1
+            if not sending.done():
+                loop.call_soon(tick)
+
+        sending = loop.create_future()
+        loop.call_soon(tick)
+        n = 4 * 256
+        for i in range(n):
+            await asker.send(
+                asker.message(Performative.INFORM, "echo@uav-b", {"i": i}, ontology="demo")
+            )
+        sending.set_result(None)
+        assert 4 <= turns <= 5  # other tasks still run, once per 256 sent
+        await until(lambda: len(echo.informs) == n, f"the {n} informs")
+        assert [m.content for m in echo.informs] == [{"i": i} for i in range(n)]
+        assert ia(pb).audit.counts["accepted"] == accepted + n
+        envelopes = wire.inbox.drain()
+        assert 4 <= len(envelopes) <= 6
+
+
 async def _three_with_sessions(fed: Fed) -> tuple[AgentPlatform, Echo, Echo, Echo]:
     """uav-a with a session to uav-b and to uav-c, an echo on each."""
     pa = await fed.start("uav-a")

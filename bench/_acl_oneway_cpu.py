@@ -1,0 +1,152 @@
+"""The one-way flood's CPU per message, both sides in one thread.
+
+``python -m bench._acl_oneway_cpu [N] [ROUNDS]``: ``bench.acl``'s flood (``N`` informs
+of ~362 B from ``asker@bench-a`` to ``sink@bench-b`` through the public API: ``await
+asker.send(asker.message(...))`` in a loop), but both platforms in this process over the
+in-memory transport, their Interface Agents authenticating and encrypting as over zenoh.
+Everything both sides do (build, to_json, batch, seal; open, parse, admit, audit,
+deliver, the sink's handler) runs on the one event-loop thread, so its CPU time per
+message (``time.thread_time``) is the two loop threads' of the zenoh flood together,
+without zenoh's own threads and without the machine's load in it: a figure to compare
+two states of the code on a loaded machine. Prints one JSON object per round.
+
+``python -m bench._acl_oneway_cpu --ab TREE_A TREE_B [--pairs 5] [N] [ROUNDS]`` runs this
+file in a fresh process per run with ``PYTHONPATH`` set to each tree in turn (a tree
+without it too), in alternated pairs (A B, B A, A B ...), and prints each tree's medians
+and B's over A's.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+N = 30_000
+ROUNDS = 5
+WAIT_S = 60.0  # for the sink to count the round's last message
+KEYS = ("us_per_msg",)
+
+
+async def _rounds(n: int, rounds: int) -> list[dict[str, float]]:
+    """``rounds`` floods of ``n`` informs, each one's loop-thread CPU per message (µs)."""
+    from agents import (
+        ACLMessage,
+        Agent,
+        AgentPlatform,
+        MemoryHub,
+        MessageTemplate,
+        Performative,
+        on,
+    )
+    from agents._interface import InterfaceAgent, RateLimit
+    from agents._security import KeyPair, SecurityPolicy, TrustStore
+    from bench import acl
+    from bench._acl_node import FLOOD_ONTOLOGY, Sink
+
+    class CountingSink(Sink):
+        """The node's sink, telling when it has counted ``target`` informs."""
+
+        target = 0
+        done: asyncio.Event | None = None
+
+        @on(MessageTemplate(Performative.INFORM, ontology=FLOOD_ONTOLOGY))
+        async def count(self, message: ACLMessage) -> None:  # the sink's handler, extended
+            await super().count(message)
+            if self.n >= self.target and self.done is not None:
+                self.done.set()
+
+    ka, kb = KeyPair.generate(acl.HERE), KeyPair.generate(acl.THERE)
+    trust = TrustStore(acl.FEDERATION, {acl.HERE: ka.public_key, acl.THERE: kb.public_key})
+    # one process sends faster than the default limit of one platform's messages
+    unlimited = RateLimit(rate=1e6, burst=1e6, total_rate=1e7, total_burst=1e7)
+    hub = MemoryHub()
+
+    def channel(k: KeyPair) -> InterfaceAgent:
+        return InterfaceAgent(k, trust, policy=SecurityPolicy(encrypt=True), rate_limit=unlimited)
+
+    out: list[dict[str, float]] = []
+    async with (
+        hub.transport() as ta,
+        hub.transport() as tb,
+        AgentPlatform(acl.HERE, ta, federation=acl.FEDERATION, channel=channel(ka)) as pa,
+        AgentPlatform(acl.THERE, tb, federation=acl.FEDERATION, channel=channel(kb)) as pb,
+    ):
+        sink = await pb.add(CountingSink("sink"))
+        asker = await pa.add(Agent("asker"))
+        content = acl.flood_content(asker)
+        message, send = asker.message, asker.send
+        inform = Performative.INFORM
+        for r in range(rounds + 1):  # the first warms up
+            sink.reset()
+            sink.target, sink.done = n, asyncio.Event()
+            t = time.thread_time()
+            for i in range(n):
+                await send(message(inform, acl.SINK, content(i), ontology=FLOOD_ONTOLOGY))
+            await asyncio.wait_for(sink.done.wait(), WAIT_S)
+            used = time.thread_time() - t
+            if r:
+                out.append({"us_per_msg": used / n * 1e6})
+    return out
+
+
+def measure(n: int = N, rounds: int = ROUNDS) -> list[dict[str, float]]:
+    """Each round's figures."""
+    from agents import run as run_loop
+
+    result: list[dict[str, float]] = run_loop(_rounds(n, rounds))
+    return result
+
+
+def ab(trees: list[str], pairs: int, n: int, rounds: int) -> dict[str, dict[str, float]]:
+    """Alternated runs of the trees in fresh processes; each figure's median per tree."""
+    runs: dict[str, list[dict[str, float]]] = {t: [] for t in trees}
+    for i in range(pairs):
+        for tree in trees if i % 2 == 0 else trees[::-1]:
+            # this file, run against the tree's packages (a tree older than it lacks it)
+            cmd = [sys.executable, __file__, str(n), str(rounds)]
+            env = {**os.environ, "PYTHONPATH": tree}
+            proc = subprocess.run(
+                cmd, cwd=tree, env=env, capture_output=True, text=True, check=True
+            )
+            got = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+            run = {k: statistics.median(r[k] for r in got) for k in KEYS}
+            runs[tree].append(run)
+            shown = " ".join(f"{k}={v:.4g}" for k, v in run.items())
+            print(f"pair {i + 1} {tree}: {shown}", flush=True)
+    return {t: {k: statistics.median(r[k] for r in rs) for k in KEYS} for t, rs in runs.items()}
+
+
+def main(argv: list[str]) -> None:
+    """Parse the command line (see the module's docstring) and print the figures."""
+    if argv[:1] == ["--ab"]:
+        trees = [str(Path(t).resolve()) for t in argv[1:3]]
+        rest = argv[3:]
+        pairs = 5
+        if rest[:1] == ["--pairs"]:
+            pairs, rest = int(rest[1]), rest[2:]
+        n = int(rest[0]) if rest else N
+        rounds = int(rest[1]) if len(rest) > 1 else ROUNDS
+        med = ab(trees, pairs, n, rounds)
+        for tree, figures in med.items():
+            shown = ", ".join(f"{k} {v:.4g}" for k, v in figures.items())
+            print(f"median of {pairs} {tree}: {shown}")
+        a, b = (med[t] for t in trees)
+        print("B / A: " + ", ".join(f"{k} {b[k] / a[k]:.3f}" for k in KEYS if a[k]))
+        return
+    n = int(argv[0]) if argv else N
+    rounds = int(argv[1]) if len(argv) > 1 else ROUNDS
+    for got in measure(n, rounds):
+        print(json.dumps(got), flush=True)
+
+
+if __name__ == "__main__":
+    # run as a file (by `ab`): its folder, first on the path, would shadow our packages
+    here = str(Path(__file__).resolve().parent)
+    sys.path[:] = [p for p in sys.path if p != here]
+    main(sys.argv[1:])
