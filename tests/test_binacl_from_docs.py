@@ -70,7 +70,9 @@ def _fixed(frm: str, to: str, sid: str, ts_ms: int, n: int, payload: bytes) -> b
     )
 
 
-def seal_mac(key: bytes, fed: str, frm: str, to: str, sid: str, ts_ms: int, n: int, body: bytes):  # type: ignore[no-untyped-def]
+def seal_mac(
+    key: bytes, fed: str, frm: str, to: str, sid: str, ts_ms: int, n: int, body: bytes
+) -> tuple[bytes, bytes, bytes]:
     """``(mac input, mac, envelope)`` of a MAC-only binary ACL envelope."""
     mac_input = header("dyknow-acl-v1 mac", fed, frm, to, sid, ts_ms, n) + body
     mac = hmac.new(key, mac_input, hashlib.sha256).digest()
@@ -78,7 +80,9 @@ def seal_mac(key: bytes, fed: str, frm: str, to: str, sid: str, ts_ms: int, n: i
     return mac_input, mac, env
 
 
-def seal_box(key: bytes, fed: str, frm: str, to: str, sid: str, ts_ms: int, n: int, body: bytes):  # type: ignore[no-untyped-def]
+def seal_box(
+    key: bytes, fed: str, frm: str, to: str, sid: str, ts_ms: int, n: int, body: bytes
+) -> tuple[bytes, bytes, bytes, bytes]:
     """``(associated data, nonce, box, envelope)`` of an encrypted binary ACL envelope."""
     ad = header("dyknow-acl-v1 box", fed, frm, to, sid, ts_ms, n)
     box = sodium.crypto_aead_chacha20poly1305_ietf_encrypt(body, ad, nonce(n), key)
