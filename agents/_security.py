@@ -879,7 +879,7 @@ class Session:
 
     @property
     def missing(self) -> int:
-        """JSON envelopes the peer sealed up to the highest counter seen that never opened here.
+        """ACL envelopes, either form, the peer sealed up to the highest counter, not opened here.
 
         The highest counter less those accepted: lost on the way (or refused here), or still
         on their way (one that comes late within the window is counted again as it opens).
