@@ -1635,8 +1635,13 @@ class SessionTable:
         return frm, body
 
     def _open_binary(self, envelope: bytes) -> tuple[str, bytes]:
-        """`open` of a binary ACL envelope: the checks of `open_bytes`, the JSON form's counter."""
-        frm, to, sid, ts, n, payload, mac = self._unpack(envelope)
+        """`open` of a binary ACL envelope: the checks of `open_bytes`, the JSON form's counter.
+
+        Its size limit is the JSON form's envelope's, and no body limit before it opens: an
+        authentic body over the message limit opens in either form and is answered as a
+        message too large (`not-understood`), never dropped unanswered in one form only.
+        """
+        frm, to, sid, ts, n, payload, mac = self._unpack(envelope, self._max_envelope, None)
         with self._lock:
             session = self._session_of(frm, to, sid, ts, n)
             if mac is not None:
@@ -1651,15 +1656,18 @@ class SessionTable:
                 self._on_rx_switch(session, now)
         return frm, body
 
-    def _unpack(self, envelope: bytes) -> tuple[str, Any, Any, Any, Any, bytes, Any]:
+    def _unpack(
+        self, envelope: bytes, max_envelope: int, max_body: int | None
+    ) -> tuple[str, Any, Any, Any, Any, bytes, Any]:
         """A binary envelope's items ``(from, to, sid, ts_ms, n, body or box, mac or None)``.
 
-        The checks that need no session: size, msgpack, the array's length, ``v`` and the
-        types of names and body; Malformed otherwise.
+        The checks that need no session: size (``max_body`` None: the envelope's only),
+        msgpack, the array's length, ``v`` and the types of names and body; Malformed
+        otherwise.
         """
-        if len(envelope) > self._max_bin_envelope:
+        if len(envelope) > max_envelope:
             raise Malformed(
-                f"envelope of {len(envelope)} bytes exceeds the limit of {self._max_bin_envelope}"
+                f"envelope of {len(envelope)} bytes exceeds the limit of {max_envelope}"
             )
         try:
             env = _unpackb(envelope, raw=False, use_list=True)
@@ -1684,12 +1692,9 @@ class SessionTable:
             raise Malformed("fields 'to', 'sid' must be strings, 'body'/'box' binary", frm)
         # the envelope's limit leaves room for the header: the body has its own (a box adds
         # its tag), so a receiver never decodes a body larger than a sender may seal
-        limit = self.policy.max_body_bytes + (_TAG_BYTES if boxed else 0)
-        if len(payload) > limit:
+        if max_body is not None and len(payload) > max_body + (_TAG_BYTES if boxed else 0):
             raise Malformed(
-                f"binary body of {len(payload)} bytes exceeds the limit of "
-                f"{self.policy.max_body_bytes}",
-                frm,
+                f"binary body of {len(payload)} bytes exceeds the limit of {max_body}", frm
             )
         return frm, to, sid, ts, n, payload, mac
 
@@ -1699,7 +1704,9 @@ class SessionTable:
         The msgpack counterpart of ``open``, with the same checks, in the same order, and
         the same errors (all AuthenticationError).
         """
-        frm, to, sid, ts, n, payload, mac = self._unpack(envelope)
+        frm, to, sid, ts, n, payload, mac = self._unpack(
+            envelope, self._max_bin_envelope, self.policy.max_body_bytes
+        )
         with self._lock:
             session = self._session_of(frm, to, sid, ts, n)
             if mac is not None:

@@ -220,6 +220,8 @@ def envelope_inputs(t: InterfaceTarget) -> Iterator[tuple[str, bytes]]:
     yield "binary: a str box", msgpack.packb([*msgpack.unpackb(good_bin)[:6], "box"])
     yield "binary: sealed not UTF-8", t.seal(b"\xff\xfe" + acl_body(b"1"), binary=True)
     yield "binary: sealed request", t.seal(acl_body(b"1"), binary=True)
+    big = acl_body(dumps("x" * MAX_MESSAGE_BYTES))
+    yield "binary: sealed body just above 256 KiB", t.seal(big, binary=True)
     yield (
         "binary: sealed batch",
         t.seal(b"[" + acl_body(b"1") + b"," + acl_body(b"2") + b"]", binary=True),
@@ -341,6 +343,7 @@ def test_fuzz_interface_agent_decoding() -> None:
         "sealed: content nested 1000 deep",
         "sealed: content of dicts 1000 deep",
         "sealed: body just above 256 KiB",
+        "binary: sealed body just above 256 KiB",  # told alike in either form
         "sealed: unknown performative",
         "sealed: version 2",
         "sealed: unknown field",

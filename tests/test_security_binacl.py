@@ -212,7 +212,7 @@ def test_a_binary_acl_envelope_never_stands_for_another_kind(clock: Clock) -> No
         (msgpack.packb([1, "uav-a", "uav-b", "s", 1, 0, b"x"]), "'n'"),
         (msgpack.packb([1, "uav-a", "uav-b", "s", 1, -1, b"x"]), "'n'"),
         (b"\x97\xa1\xff", "not msgpack"),  # a str that is not UTF-8
-        (msgpack.packb([1, "uav-a", "uav-b", "s", 1, 1, b"x" * (256 * 1024 + 17)]), "limit"),
+        (msgpack.packb([1, "uav-a", "uav-b", "s", 1, 1, b"x" * (2 * 256 * 1024 + 1024)]), "limit"),
     ],
 )
 def test_malformed_binary_envelopes_are_refused_as_malformed(
