@@ -765,7 +765,8 @@ class InterfaceAgent:
         self._lane_raw = 0  # queued unopened (`_RAW`) or taken by the loop: none answered before
         # answered on the transport's thread, to be counted and audited on the loop
         self._lane_done: deque[tuple[str, tuple[Any, ...], Agent]] = deque()
-        self._lane_posted = False  # `_lane_book` is posted to the loop and has not run
+        # `_lane_book` is due (the audit flush woken or ticking, or posted) and has not run
+        self._lane_posted = False
         self.answered_on_thread = 0  # of ``answered_at_once``, on the transport's thread
 
     # -- RemoteChannel ----------------------------------------------------------------
@@ -840,7 +841,7 @@ class InterfaceAgent:
             or self.rate_limit is not None
             or self.kx_gate is not None
         ):
-            platform.spawn(self._flush_audit(), "interface.audit")
+            platform.spawn(self._flushing(), "interface.audit")
         self.agent = await platform.add(_InterfaceQueries(self))
 
     async def send(self, platform: str, message: ACLMessage) -> None:
@@ -1530,7 +1531,8 @@ class InterfaceAgent:
         sessions under the table's, the directory's decisions made before
         (`DirectoryFacilitator.reachable_now`), the agent's `Agent.answer_on_thread`, and
         a publisher the loop declared. What the loop alone changes (the counts, the audit
-        log, a session's renewal) it does in `_lane_book`, posted before the answer is put.
+        log, a session's renewal) it does in `_lane_book`, booked before the answer is put
+        and run at the audit flush's next tick (or before the loop's next take).
         """
         host = self._host
         if host is None or self.mirroring or len(body) > self.max_bytes or body[:1] == b"[":
@@ -1621,18 +1623,25 @@ class InterfaceAgent:
             self._lane_give_back(state)
             return False
         # Booked before the answer leaves: whatever the peer sends once it has the answer
-        # reaches the loop behind this booking (FIFO ready queue, or `_receive`'s check).
+        # reaches the loop behind this booking (`_receive`'s check, or the posted booking's
+        # FIFO place when no audit flush runs).
         done = (peer, entry, agent)
         with self._lane_lock:
             self._lane_done.append(done)
             posted, self._lane_posted = self._lane_posted, True
         if not posted:
-            loop = self._loop
-            try:
-                if loop is not None:
-                    loop.call_soon_threadsafe(self._lane_book)
-            except RuntimeError:  # the loop is closed: nobody reads the counts any more
-                pass
+            if self._flush_loop is not None:
+                # booked at the audit flush's next tick (it writes the record then anyway),
+                # or before the loop takes the peer's next message (`_receive`): a wake-up
+                # of the loop per answer cost it more than the answer (bench scale)
+                self._wake_flush()
+            else:
+                loop = self._loop
+                try:
+                    if loop is not None:
+                        loop.call_soon_threadsafe(self._lane_book)
+                except RuntimeError:  # the loop is closed: nobody reads the counts any more
+                    pass
         try:
             put(sealed)
         except Exception as exc:  # a transport closing
@@ -2547,7 +2556,8 @@ class InterfaceAgent:
     def _flush_has_work(self) -> bool:
         """Whether the audit flush has anything to do at its next tick, or soon after."""
         return bool(
-            self.audit._pending
+            self._lane_done
+            or self.audit._pending
             or self.mirroring
             or self._mirror
             or self._unauth_pending
@@ -2568,6 +2578,15 @@ class InterfaceAgent:
             return
         await self._flush_due.wait()
 
+    async def _flushing(self) -> None:
+        """`_flush_audit` until the platform stops; then what the lane answered is booked here."""
+        try:
+            await self._flush_audit()
+        finally:
+            self._flush_loop = None  # the lane posts its bookings to the loop again
+            if self._lane_done:
+                self._lane_book()
+
     async def _flush_audit(self) -> None:
         """Write and publish the audit now and then (batched: one publish, many records).
 
@@ -2577,9 +2596,12 @@ class InterfaceAgent:
         """
         host = self._require_host()
         ticker = Ticker(self.audit_interval)
+        self._flush_loop = asyncio.get_running_loop()  # the lane's bookings wait for it
         while True:
             await ticker.tick()
             ticker.period = self.audit_interval  # it may be changed while running
+            if self._lane_done:
+                self._lane_book()  # what the lane answered, counted and audited
             if not self._flush_has_work():
                 await self._flush_idle_sleep()
                 ticker = Ticker(self.audit_interval)  # the next tick an interval from now

@@ -1,7 +1,8 @@
 """Where a global get-latest's time goes: CPU per query in each process, and its timeline.
 
 Not a benchmark of its own (``make bench`` does not run it):
-``python -m bench._scale_profile [--workers 4] [--queries 300] [--flow] [--cprofile]``.
+``python -m bench._scale_profile [--workers 4] [--queries 300] [--flow] [--cprofile]
+[--stages]``.
 The operator and 32 UAVs of ``bench.scale`` (``--workers`` processes host the UAVs); with
 ``--flow`` every UAV exports its 10 streams to the operator meanwhile, as in the
 benchmark's window. Printed, as medians or totals over ``--queries`` global requests made
@@ -13,7 +14,11 @@ one after another (a gap between them, so that each starts on a quiet machine):
 - the timeline of one query at the operator: when the last request was handed to zenoh,
   and when the first, median and last answer reached the conversation;
 - with ``--cprofile``: the operator loop's functions with the most own time per query
-  (cProfile inflates small calls: read the ranking, not the µs).
+  (cProfile inflates small calls: read the ranking, not the µs);
+- with ``--stages``: the CPU (thread time) of each stage of a message, at the operator
+  per query and at the first worker per query per UAV: the envelope's open, the quick
+  take (`InterfaceAgent._take_now`; at a UAV it holds the quick answer: the answer made,
+  then sent, its seal and zenoh's put), and the worker's garbage collections.
 """
 
 from __future__ import annotations
@@ -21,6 +26,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import cProfile
+import gc
+import json
 import os
 import pstats
 import statistics
@@ -107,14 +114,66 @@ def profiled_uav_main(
         profiler.dump_stats(spec["profile"])
 
 
-_STAGES: dict[str, list[float]] = {}  # stage → [CPU seconds, calls] at the operator
+_STAGES: dict[str, list[float]] = {}  # stage → [CPU seconds, calls] in this process
+
+
+def staged_uav_main(
+    spec: dict[str, Any], quiet: Any, profiling: Any, reports: Any, stop: Any
+) -> None:
+    """`uav_main` with its stages timed (`_time_stages`) while ``profiling`` is set.
+
+    The counts start when ``profiling`` is set and stop when it is cleared (looked at
+    each time something sleeps, as `profiled_uav_main`); written as JSON to
+    ``spec["stages"]``.
+    """
+    _time_stages()
+    sleep = asyncio.sleep
+    on = False
+    kept: dict[str, list[float]] = {}
+    collecting = _STAGES.setdefault("garbage collection (any stage)", [0.0, 0])
+    began = [0.0]
+
+    def on_gc(phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            began[0] = time.thread_time()
+        else:
+            collecting[0] += time.thread_time() - began[0]
+            collecting[1] += 1
+
+    gc.callbacks.append(on_gc)
+
+    async def watching_sleep(delay: float, result: Any = None) -> Any:
+        nonlocal on
+        if profiling.is_set() != on:
+            on = not on
+            if on:
+                for acc in _STAGES.values():
+                    acc[:] = [0.0, 0]
+            else:
+                kept.update({k: list(v) for k, v in _STAGES.items()})
+        return await sleep(delay, result)
+
+    asyncio.sleep = watching_sleep
+    try:
+        uav_main(spec, quiet, reports, stop)
+    finally:
+        with open(spec["stages"], "w") as f:
+            json.dump(kept, f)
 
 
 def _time_stages() -> None:
-    """Wrap the operator's stages of a message (in this process) to count their loop CPU."""
+    """Wrap the stages of a message (in this process) to count their CPU (thread time).
+
+    Nested: `InterfaceAgent._take_now` holds `_answer_at_once` (a provider's quick answer),
+    which holds `FederationAgent.answer_at_once` (the answer made) and
+    `InterfaceAgent.send_now` (its send), which holds `SessionTable.seal` and
+    `ZenohTransport._put`; on zenoh's thread (the lane: one platform a process)
+    `InterfaceAgent._lane_answer` holds `FederationAgent.answer_on_thread` and the seal.
+    """
     from agents._interface import InterfaceAgent
     from agents._security import SessionTable
     from agents.transports import ZenohTransport
+    from federation._service import FederationAgent
 
     def timed(cls: Any, name: str) -> None:
         fn = getattr(cls, name)
@@ -134,6 +193,11 @@ def _time_stages() -> None:
     timed(SessionTable, "open")
     timed(SessionTable, "seal")
     timed(InterfaceAgent, "_take_now")
+    timed(InterfaceAgent, "_answer_at_once")
+    timed(InterfaceAgent, "send_now")
+    timed(FederationAgent, "answer_at_once")
+    timed(InterfaceAgent, "_lane_answer")
+    timed(FederationAgent, "answer_on_thread")
     timed(ZenohTransport, "_put")
 
 
@@ -177,6 +241,10 @@ async def _profile(
                         spec["profile"] = os.path.join(tmp, "uav.prof")
                         target = profiled_uav_main
                         args = (*args, profiling)
+                    elif stages and i == 0:
+                        spec["stages"] = os.path.join(tmp, "uav-stages.json")
+                        target = staged_uav_main
+                        args = (*args, profiling)
                     children.append(Child(target, args, f"profile-uavs-{i}"))
                 for c in children:
                     c.start()
@@ -206,6 +274,27 @@ async def _profile(
                 await asyncio.to_thread(_close_all, children)
             if cprofile:
                 _print_uav_profile(os.path.join(tmp, "uav.prof"), queries, len(plan.groups[0]))
+            elif stages:
+                _print_uav_stages(
+                    os.path.join(tmp, "uav-stages.json"), queries, len(plan.groups[0])
+                )
+
+
+def _print_uav_stages(path: str, queries: int, uavs: int) -> None:
+    """The first worker's CPU per stage, per query per UAV (`staged_uav_main`)."""
+    if not os.path.exists(path):
+        print("  (the staged worker wrote no stages)")
+        return
+    with open(path) as f:
+        got: dict[str, list[float]] = json.load(f)
+    per = queries * uavs
+    for name, (cpu, calls) in got.items():
+        if not calls:
+            continue  # the other path's stage (the loop's or the lane's)
+        print(
+            f"  worker 0 stage {name}: {1e6 * cpu / per:.1f} µs per query per UAV, "
+            f"{calls / per:.2f} calls, {1e6 * cpu / max(calls, 1):.1f} µs each"
+        )
 
 
 def _print_uav_profile(path: str, queries: int, uavs: int) -> None:
@@ -353,6 +442,8 @@ async def _measure(
     )
     print(f"  p99 of the same: last out {p99(last_sent)}, first {p99(first)}, last {p99(last)}")
     for name, (cpu, calls) in _STAGES.items():
+        if not calls:
+            continue  # a provider's stage: the operator answers nothing here
         print(
             f"  operator stage {name}: {1e3 * cpu / queries:.3f} ms per query, "
             f"{calls / queries:.1f} calls, {1e6 * cpu / max(calls, 1):.1f} µs each"
@@ -377,7 +468,9 @@ def main() -> None:
     ap.add_argument("--flow", action="store_true")
     ap.add_argument("--cprofile", action="store_true")
     ap.add_argument("--raw", action="store_true", help="the raw zenoh get instead of ours")
-    ap.add_argument("--stages", action="store_true", help="the operator's CPU per stage")
+    ap.add_argument(
+        "--stages", action="store_true", help="CPU per stage: the operator's, worker 0's"
+    )
     ap.add_argument("--labels", type=int, default=10, help="labels asked of each UAV (1-10)")
     a = ap.parse_args()
     run_loop(_profile(a.workers, a.queries, a.flow, a.cprofile, a.raw, a.stages, a.labels))

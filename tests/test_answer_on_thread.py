@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import inspect
 import threading
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -189,6 +190,39 @@ async def test_a_read_waits_behind_what_its_peer_has_queued_for_the_loop() -> No
         # nothing queued any more: the next read is the thread's again
         await p.fed_op.request_from("uav-a", LATEST)
         await _until(lambda: p.ia_a.answered_on_thread == before[0] + 1)
+
+
+async def test_what_the_lane_answers_is_booked_at_the_audit_flush_not_a_wake_up_each() -> None:
+    """Reads answered on zenoh's thread one after another wake the loop for none of them:
+    the audit flush books them at its tick (when it writes the records anyway), counted
+    and audited as the loop's own answers, within an audit interval or two."""
+    async with pair() as p:
+        ia = p.ia_a
+        for _ in range(3):  # warm: the next plain read is answerable on the thread
+            await p.fed_op.request_from("uav-a", LATEST)
+        await _until(lambda: ia.answered_on_thread >= 1 and not ia._lane_done)
+        before = (ia.answered_on_thread, p.provider.stats.senders["operator"].accepted)
+        records = len(ia.audit.records)
+        booked_by: list[str] = []
+        real_book = ia._lane_book
+
+        def book() -> None:
+            caller = inspect.currentframe()
+            caller = caller.f_back if caller is not None else None
+            # a callback of the loop's own has no Python caller (uvloop) or the loop's
+            booked_by.append("the loop" if caller is None else caller.f_code.co_name)
+            real_book()
+
+        ia._lane_book = book  # type: ignore[method-assign]
+        ia.audit_interval = 2.0  # an answer's round trip is far below: several per tick
+        answers = [await p.fed_op.request_from("uav-a", LATEST) for _ in range(6)]
+        assert [a["heli-altitude"]["samples"][0][0] for a in answers] == [120.0] * 6
+        await _until(lambda: ia.answered_on_thread >= before[0] + 4 and not ia._lane_done)
+        on_thread = ia.answered_on_thread - before[0]
+        assert set(booked_by) == {"_flush_audit"}  # never a callback of its own
+        assert len(booked_by) < on_thread  # several answers to a booking
+        assert p.provider.stats.senders["operator"].accepted == before[1] + 6
+        await _until(lambda: len(ia.audit.records) >= records + 6)
 
 
 async def test_seals_from_the_loop_and_the_thread_never_share_a_counter() -> None:
