@@ -474,9 +474,10 @@ async def test_an_answer_the_thread_could_not_put_is_sent_and_counted_once(
         booked = threading.Event()
         real_book = ia._lane_book
 
-        def book() -> None:
-            real_book()
+        def book(*current: Any) -> bool:
+            back = real_book(*current)
             booked.set()
+            return back
 
         ia._lane_book = book  # type: ignore[method-assign]
         transport = p.provider.transport
