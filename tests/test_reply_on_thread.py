@@ -319,3 +319,37 @@ async def test_a_reply_whose_platform_was_revoked_after_it_opened_is_refused() -
     lane = await _revoked(True)
     assert lane == await _revoked(False)
     assert lane[0][:4] == (0, 0, 0, 1)
+
+
+async def test_a_reply_the_loop_cannot_take_at_once_goes_back_ahead_of_what_followed() -> None:
+    """Handed over, then the loop may not take it so (the owner started watching): back to
+    the inbox's front, the message of its peer that the inbox's consumer held behind it,
+    and both taken in full, in order."""
+    async with pair(lane=False, asker_lane=True) as p:
+        ia = p.ia_op
+        await _warm(p)
+        taken = ia.replies_on_thread
+        request, asked = await _asked(p, "back")
+        later = p.fed_a.message(
+            Performative.INFORM, p.fed_op.aid, "unsolicited", conversation_id="after-back"
+        )
+        skip = len(ia.audit.records)
+        # here, one after the other: the loop runs nothing between
+        assert ia._lane_take(_reply(p, request)) is None  # handed over
+        held = ia._lane_take(p.ia_a.sessions.seal("operator", later.to_json()))
+        assert held is not None and held[0] == "uav-a"  # behind the reply: for the loop
+        ia._mirror_until = ia._monotonic() + WAIT
+        ia.mirroring = True  # each message is now taken in full (and copied for the owner)
+        # as the inbox's consumer books before taking ``held``: both go back, in order
+        assert ia._lane_book(held) is True
+        inbox = ia._lane_inbox
+        assert inbox is not None
+        assert [item[0] for item in inbox._items] == ["uav-a", "uav-a"]
+        assert inbox._items[1] is held
+        assert await asyncio.wait_for(asked, WAIT) == ANSWER
+        await _quiet(p)
+        await _until(lambda: len(_records(p, skip)) >= 2)
+        accepted = [conv for v, _, conv, _ in _records(p, skip) if v == "accepted"]
+        assert accepted == ["back", "after-back"]
+        assert ia.replies_on_thread == taken  # the loop's full path took it
+        ia.mirroring = False
