@@ -736,6 +736,9 @@ class InterfaceAgent:
         self._lane_posted = False  # `_lane_book` is posted to the loop and has not run
         self.answered_on_thread = 0  # of ``answered_at_once``, on the transport's thread
         self.lane_replies = lane_replies
+        # a reply handed to the loop waits in `_lane_done`: the loop has work, so what comes
+        # meanwhile goes to it unopened, as while the inbox holds anything
+        self._lane_handed = False
         self.replies_on_thread = 0  # replies opened and parsed there, taken by `_lane_book`
 
     # -- RemoteChannel ----------------------------------------------------------------
@@ -1465,7 +1468,12 @@ class InterfaceAgent:
         is queued for the loop or taken there (it overtakes nothing), by `_lane_answer`.
         """
         inbox = self._lane_inbox
-        if _LANES.open > 1 or self._lane_raw or (inbox is not None and inbox._items):
+        if (
+            _LANES.open > 1
+            or self._lane_raw
+            or self._lane_handed
+            or (inbox is not None and inbox._items)
+        ):
             # The loop is draining (or several lanes share this process): it opens this
             # one too. Opening it here would only hand the GIL to and fro (a burst of
             # replies at an asker, a flood) where the lane gains nothing: no answer here
@@ -1688,6 +1696,7 @@ class InterfaceAgent:
             return False
         with self._lane_lock:
             self._lane_done.append((peer, body, message, forgets))
+            self._lane_handed = True
             posted, self._lane_posted = self._lane_posted, True
         if not posted:
             try:
@@ -1729,7 +1738,7 @@ class InterfaceAgent:
         and take the replies it handed over; True: one went back to the inbox (the loop
         takes it in full), with ``current``, the item `_receive` took, behind it."""
         with self._lane_lock:
-            self._lane_posted = False
+            self._lane_posted = self._lane_handed = False
             done, self._lane_done = self._lane_done, deque()
         host = self._host
         if host is None:

@@ -20,6 +20,7 @@ import pytest
 
 from agents import ACLMessage, Performative
 from agents._agent import ConversationError
+from agents._interface import _RAW
 from tests.test_answer_on_thread import LATEST, WAIT, Pair, _until, pair, sealed_requests
 
 ANSWER = {"heli-altitude": {"samples": [[120.0, 1.0]]}}  # any content: the request returns it
@@ -162,12 +163,15 @@ async def test_a_reply_never_overtakes_nor_is_overtaken_by_its_peers_messages() 
             # taken here, one after the other, as zenoh's thread takes them: the loop runs
             # nothing between (on another thread it might book the first before the second)
             took = [ia._lane_take(x) for x in envelopes]
-            # both held for uav-a until the loop took them: the second waits for the first
-            assert ia._lane_queued == {"uav-a": 2}
             if order == "behind":
+                # both held for uav-a until the loop took them: the second waits for the first
+                assert ia._lane_queued == {"uav-a": 2}
                 assert [t[0] if t else t for t in took] == ["uav-a", "uav-a"]  # both queued
             else:
-                assert took[0] is None and took[1][0] == "uav-a"  # handed, then queued
+                # handed over (held for uav-a until the loop took it); the loop has work,
+                # so the next goes to it unopened, and it books the reply before opening it
+                assert ia._lane_queued == {"uav-a": 1} and ia._lane_raw == 1
+                assert took[0] is None and took[1][0] is _RAW
             inbox = ia._lane_inbox
             assert inbox is not None
             for item in took:
@@ -337,14 +341,14 @@ async def test_a_reply_the_loop_cannot_take_at_once_goes_back_ahead_of_what_foll
         # here, one after the other: the loop runs nothing between
         assert ia._lane_take(_reply(p, request)) is None  # handed over
         held = ia._lane_take(p.ia_a.sessions.seal("operator", later.to_json()))
-        assert held is not None and held[0] == "uav-a"  # behind the reply: for the loop
+        assert held is not None and held[0] is _RAW  # behind the reply: the loop opens it
         ia._mirror_until = ia._monotonic() + WAIT
         ia.mirroring = True  # each message is now taken in full (and copied for the owner)
         # as the inbox's consumer books before taking ``held``: both go back, in order
         assert ia._lane_book(held) is True
         inbox = ia._lane_inbox
         assert inbox is not None
-        assert [item[0] for item in inbox._items] == ["uav-a", "uav-a"]
+        assert [item[0] for item in inbox._items] == ["uav-a", _RAW]
         assert inbox._items[1] is held
         assert await asyncio.wait_for(asked, WAIT) == ANSWER
         await _quiet(p)
