@@ -555,6 +555,9 @@ class _Lanes:
 _LANES = _Lanes()
 # a queued item the lane did not open (`_LANES.open` > 1): its payload, for the loop to open
 _RAW: Any = object()
+# what `_lane_answer` did with a message: answered there; a reply handed to the loop in
+# `_lane_book`; neither (the loop decides it, queued as always)
+_ANSWERED, _HANDED, _LEFT = object(), object(), object()
 """Each performative's name, a plain str (cheaper to look up than ``.value``)."""
 
 
@@ -613,6 +616,9 @@ class InterfaceAgent:
     answers by `Agent.answer_on_thread` is answered there, before the event loop wakes, when
     the loop would answer it at once (`Agent.answer_at_once`) and nothing of its peer waits
     for the loop; counted in ``answered_on_thread`` (docs/agents.md says what runs where).
+    With ``lane_replies`` (default on) a reply one of the agents' open conversations waits
+    for, opened and parsed there, is taken on the loop in the callback that books what the
+    lane answered: no task of the loop's between (counted in ``replies_on_thread``).
     """
 
     def __init__(
@@ -639,6 +645,7 @@ class InterfaceAgent:
         batch: bool = True,
         lane: bool = True,
         binary_acl: bool = True,
+        lane_replies: bool = True,
     ) -> None:
         self.keys = keys
         self.trust = trust
@@ -764,10 +771,20 @@ class InterfaceAgent:
         self._lane_queued: dict[str, int] = {}
         self._lane_raw = 0  # queued unopened (`_RAW`) or taken by the loop: none answered before
         # answered on the transport's thread, to be counted and audited on the loop
-        self._lane_done: deque[tuple[str, tuple[Any, ...], Agent]] = deque()
+        # and the replies it handed to the loop to be taken into their conversations:
+        # ``(peer, entry, agent)`` and ``(peer, body, message, forgotten)``, in order
+        self._lane_done: deque[tuple[Any, ...]] = deque()
         # `_lane_book` is due (the audit flush woken or ticking, or posted) and has not run
         self._lane_posted = False
+        # `_lane_book` is posted to the loop for a reply and has not run: a reply is never
+        # left for the audit flush's tick, where the answers' bookings may wait
+        self._lane_reply_posted = False
         self.answered_on_thread = 0  # of ``answered_at_once``, on the transport's thread
+        self.lane_replies = lane_replies
+        # a reply handed to the loop waits in `_lane_done`: the loop has work, so what comes
+        # meanwhile goes to it unopened, as while the inbox holds anything
+        self._lane_handed = False
+        self.replies_on_thread = 0  # replies opened and parsed there, taken by `_lane_book`
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -1381,11 +1398,13 @@ class InterfaceAgent:
                 # this a flood would hold the loop, and no agent would run to answer others.
                 await asyncio.sleep(0)
             if lane:  # opened on the transport's thread (`_lane_take`)
-                if self._lane_done:
-                    # what the lane answered before this came is booked before it is
-                    # taken: its posted booking waits behind this turn when the inbox
-                    # was being drained (no wake-up of its own put it in the queue)
-                    self._lane_book()
+                if self._lane_done and self._lane_book(item):
+                    # what the lane answered or handed over before this came is booked
+                    # (and the replies taken) before it is taken: its posted booking waits
+                    # behind this turn when the inbox was being drained (no wake-up of its
+                    # own put it in the queue). True: a reply went back to the inbox, and
+                    # this item behind it
+                    continue
                 peer, body = item[0], item[1]  # (None, error): it did not open
                 if peer is _RAW:  # several lanes in this process: opened here (`_Lanes`)
                     try:
@@ -1495,7 +1514,12 @@ class InterfaceAgent:
         is queued for the loop or taken there (it overtakes nothing), by `_lane_answer`.
         """
         inbox = self._lane_inbox
-        if _LANES.open > 1 or self._lane_raw or (inbox is not None and inbox._items):
+        if (
+            _LANES.open > 1
+            or self._lane_raw
+            or self._lane_handed
+            or (inbox is not None and inbox._items)
+        ):
             # The loop is draining (or several lanes share this process): it opens this
             # one too. Opening it here would only hand the GIL to and fro (a burst of
             # replies at an asker, a flood) where the lane gains nothing: no answer here
@@ -1513,18 +1537,21 @@ class InterfaceAgent:
             raw = self._lane_raw
         if queued == 0 and not raw:
             try:
-                answered = self._lane_answer(peer, body)
+                answered = self._lane_answer(peer, body, forgets)
             except Exception:  # never into zenoh's thread: the loop decides it
                 log.exception("interface[%s]: answering %s on the receiving thread", self._me, peer)
-                answered = False
-            if answered:
+                answered = _LEFT
+            if answered is _ANSWERED:
                 self._lane_release(peer)
+                return None
+            if answered is _HANDED:  # a reply: its count stands until `_lane_book` takes it
                 return None
         return peer, body, forgets  # its count stands until the loop has taken it
 
-    def _lane_answer(self, peer: str, body: bytes) -> bool:
-        """`_take_now` and `_answer_at_once` of a plain read, on zenoh's thread; False: not so,
-        nothing taken (the loop then decides it as always).
+    def _lane_answer(self, peer: str, body: bytes, forgets: int) -> object:
+        """`_take_now` and `_answer_at_once` of a plain read, on zenoh's thread: `_ANSWERED`;
+        a reply an open conversation waits for handed to the loop (`_lane_reply`):
+        `_HANDED`; else `_LEFT`, nothing taken (the loop then decides it as always).
 
         The same checks, limits and answer, reading only what is safe beside the loop:
         its dicts and sets by one lookup each, the sender's buckets under their lock, the
@@ -1536,39 +1563,36 @@ class InterfaceAgent:
         """
         host = self._host
         if host is None or self.mirroring or len(body) > self.max_bytes or body[:1] == b"[":
-            return False
+            return _LEFT
         state = self._senders.get(peer)
         if state is None:
-            return False
+            return _LEFT
         try:
             obj = _loads(body)
         except orjson.JSONDecodeError:
-            return False
+            return _LEFT
         if (
             type(obj) is not dict
             or (fields := _quick_fields(obj)) is None
             or nesting_bound(body) >= _TRUSTED_NESTING
         ):
-            return False  # the full model's parse, on the loop
+            return _LEFT  # the full model's parse, on the loop
         message = _constructed(ACLMessage, fields, set(obj))
         performative = message.performative
+        if performative not in INITIATING:
+            return _HANDED if self._lane_reply(peer, body, message, forgets) else _LEFT
         receivers = message.receivers
-        if (
-            performative not in INITIATING
-            or len(receivers) != 1
-            or message.reply_to
-            or message.in_reply_to is not None
-        ):
-            return False
+        if len(receivers) != 1 or message.reply_to or message.in_reply_to is not None:
+            return _LEFT
         receiver = receivers[0]
         sender = message.sender
         here = host.name
         at = receiver.rpartition("@")
         if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
-            return False
+            return _LEFT
         agent = host._agents.get(at[0])
         if agent is None or agent._state != _RUNNING:
-            return False
+            return _LEFT
         answer = agent.answer_on_thread
         mailbox = agent._mailbox
         if (
@@ -1579,37 +1603,37 @@ class InterfaceAgent:
             or agent._handlers_starting
             or message.conversation_id in agent._by_conv
         ):
-            return False
+            return _LEFT
         df = host.df
         if df is None or not df.reachable_now(receiver, peer):
-            return False
+            return _LEFT
         transport = host.transport
         key = self._acl_keys.get(peer)  # made by the loop's first send to it
         if key is None or peer in self._outbox:
             # a batch of the loop's for it this turn: the answer would join it there (a
             # burst of the loop's sends is no reason: the lane's answer is in no turn)
-            return False
+            return _LEFT
         put = transport.declared_publisher(key)
         if put is None:
-            return False
+            return _LEFT
         try:
             content = answer(message)
             if content is LATER:
-                return False
+                return _LEFT
             answered = message.reply(Performative.INFORM, content, sender=agent.aid)
             reply = answered.to_json()
         except Exception:  # the loop's `answer_at_once` and handler meet it again
-            return False
+            return _LEFT
         total, requests = state.total, state.requests
         now = 0.0 if total is None else self._monotonic()
         lock = state.lock
         if not lock.acquire(blocking=False):
-            return False  # the loop is taking from these buckets: it decides this one too
+            return _LEFT  # the loop is taking from these buckets: it decides this one too
         try:
             if (total is not None and not total.ready(now)) or (
                 requests is not None and not requests.ready(now)
             ):
-                return False  # limited: refused, counted and audited on the loop
+                return _LEFT  # limited: refused, counted and audited on the loop
             if requests is not None:
                 requests.tokens -= 1.0
             if total is not None:
@@ -1621,7 +1645,7 @@ class InterfaceAgent:
             sealed = self._seal(peer, reply)
         except Exception:  # no session, or one past its lifetime: the loop decides it
             self._lane_give_back(state)
-            return False
+            return _LEFT
         # Booked before the answer leaves: whatever the peer sends once it has the answer
         # reaches the loop behind this booking (`_receive`'s check, or the posted booking's
         # FIFO place when no audit flush runs).
@@ -1664,10 +1688,10 @@ class InterfaceAgent:
                         loop.call_soon_threadsafe(self._lane_resend, peer, answered)
                 except RuntimeError:  # the loop is closed: nobody waits for the answer
                     pass
-                return True
+                return _ANSWERED
             self._lane_give_back(state)
-            return False
-        return True
+            return _LEFT
+        return _ANSWERED
 
     def _lane_resend(self, peer: str, answer: ACLMessage) -> None:
         """On the loop: send an answer the lane booked but could not put (`send`)."""
@@ -1695,20 +1719,102 @@ class InterfaceAgent:
             if total is not None:
                 total.tokens = min(total.burst, total.tokens + 1.0)
 
-    def _lane_book(self) -> None:
-        """On the loop: count, audit and renew for what the lane answered, as `_take_now` would."""
+    def _lane_reply(self, peer: str, body: bytes, message: ACLMessage, forgets: int) -> bool:
+        """On zenoh's thread: hand ``message``, a reply an open conversation waits for, to
+        the loop's `_lane_book`, which takes it (`_lane_take_reply`); False: not such a one.
+
+        Only read here (one dict lookup each); the loop decides everything again.
+        """
+        if not self.lane_replies or message.reply_to:
+            return False
+        host = self._host
+        receivers = message.receivers
+        if host is None or len(receivers) != 1:
+            return False
+        here = host.name
+        at = receivers[0].rpartition("@")
+        if at[2] != here or message.sender.rpartition("@")[2] != peer or peer == here:
+            return False
+        agent = host._agents.get(at[0])
+        if agent is None or agent._state != _RUNNING:
+            return False
+        conv = None
+        if message.in_reply_to is not None:
+            conv = agent._by_reply.get(message.in_reply_to)
+        if conv is None and message.conversation_id is not None:
+            conv = agent._by_conv.get(message.conversation_id)
+        if conv is None:  # a reply nobody waits for: the loop's way, as any other message
+            return False
+        loop = self._loop
+        if loop is None:
+            return False
         with self._lane_lock:
-            self._lane_posted = False
+            self._lane_done.append((peer, body, message, forgets))
+            self._lane_handed = True
+            posted, self._lane_reply_posted = self._lane_reply_posted, True
+        if not posted:
+            try:
+                loop.call_soon_threadsafe(self._lane_book)
+            except RuntimeError:  # the loop is closed: nobody waits for the reply
+                pass
+        return True
+
+    def _lane_take_reply(
+        self, host: AgentPlatform, peer: str, body: bytes, message: ACLMessage, forgets: int
+    ) -> bool:
+        """On the loop: what `_receive` does with a reply the lane opened and parsed; False:
+        nothing taken, `_receive` must take it in full (`_lane_book` queues it back)."""
+        if forgets != self.sessions.forgotten(peer):
+            # revoked since it opened: refused as `_receive` refuses it
+            self._lane_release(peer)
+            self._not_opened(host.stats, self._forgotten_since(peer))
+            return True
+        if self.mirroring or len(body) > self.max_bytes:
+            return False
+        state = self._senders.get(peer)
+        if state is None:
+            return False
+        total = state.total
+        with state.lock:
+            now = 0.0
+            if total is not None:
+                now = self._monotonic()
+                if not total.ready(now):
+                    return False
+            taken = self._take_message(host, peer, state, message, now)
+        if taken:
+            self._lane_release(peer)
+            self.replies_on_thread += 1
+        return taken
+
+    def _lane_book(self, current: tuple[Any, ...] | None = None) -> bool:
+        """On the loop: count, audit and renew for what the lane answered, as `_take_now` would,
+        and take the replies it handed over; True: one went back to the inbox (the loop
+        takes it in full), with ``current``, the item `_receive` took, behind it."""
+        with self._lane_lock:
+            self._lane_posted = self._lane_reply_posted = self._lane_handed = False
             done, self._lane_done = self._lane_done, deque()
         host = self._host
         if host is None:
             done.clear()
-            return
+            return False
         stats = host.stats
-        entries = []
+        entries: list[tuple[Any, ...]] = []
         peers = set()
+        back: list[tuple[Any, ...]] = []  # replies `_receive` takes in full after all
+        behind: set[str] = set()  # their peers: what follows of them goes back too
         while done:
-            peer, entry, agent = done.popleft()
+            item = done.popleft()
+            if len(item) == 4:  # a reply (`_lane_reply`)
+                if entries:  # the records in arrival order
+                    self.audit.add_accepted(entries)
+                    entries = []
+                peer, body, message, forgets = item
+                if peer in behind or not self._lane_take_reply(host, peer, body, message, forgets):
+                    back.append((peer, body, forgets))
+                    behind.add(peer)
+                continue
+            peer, entry, agent = item
             state = self._senders.get(peer)
             if state is not None:
                 state.stats.accepted += 1
@@ -1726,6 +1832,14 @@ class InterfaceAgent:
             self.audit.add_accepted(entries)
         for peer in peers:
             self.renew_if_needed(peer)
+        if not back:
+            return False
+        if current is not None:
+            back.append(current)
+        inbox = self._lane_inbox
+        if inbox is not None:
+            inbox.put_front(back)
+        return True
 
     async def _batch_items(self, host: AgentPlatform, peer: str, body: bytes) -> list[Any]:
         """The messages (decoded, not yet checked) of a batch; none when it is malformed."""
@@ -1799,7 +1913,7 @@ class InterfaceAgent:
         """
         if self.mirroring or len(body) > self.max_bytes:
             return False
-        total, requests = state.total, state.requests
+        total = state.total
         now = 0.0
         if total is not None:
             now = self._monotonic()
@@ -1821,6 +1935,13 @@ class InterfaceAgent:
                 message = ACLMessage.from_parsed(obj, nesting=nesting_bound(body))
             except MessageError:
                 return False
+        return self._take_message(host, peer, state, message, now)
+
+    def _take_message(
+        self, host: AgentPlatform, peer: str, state: _Sender, message: ACLMessage, now: float
+    ) -> bool:
+        """`_take_now` of a message parsed already, its total limit found ready at ``now``."""
+        total, requests = state.total, state.requests
         receivers = message.receivers
         if len(receivers) != 1 or message.reply_to:
             return False

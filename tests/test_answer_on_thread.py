@@ -56,9 +56,10 @@ def _translator(dk: DyKnowInstance, mapping: dict[str, str]) -> PlatformLabels:
 
 @contextlib.asynccontextmanager
 async def pair(
-    *, lane: bool = True, asker_lane: bool = False, **interface: Any
+    *, lane: bool = True, asker_lane: bool = False, asker_replies: bool = True, **interface: Any
 ) -> AsyncIterator[Pair]:
-    """uav-a and operator over zenoh, members of each other before the test runs."""
+    """uav-a and operator over zenoh, members of each other before the test runs
+    (``asker_replies``: operator's ``lane_replies``)."""
     fed = f"lane-{free_port()}"
     keys = {n: KeyPair.generate(n) for n in ("uav-a", "operator")}
     trusted = {n: k.public_key for n, k in keys.items()}
@@ -69,7 +70,11 @@ async def pair(
     ia_a = InterfaceAgent(keys["uav-a"], trust_a, audit_interval=0.02, lane=lane, **interface)
     # the asker without a lane: with two in one process neither answers on its thread (`_Lanes`)
     ia_op = InterfaceAgent(
-        keys["operator"], TrustStore(fed, trusted), audit_interval=0.02, lane=asker_lane
+        keys["operator"],
+        TrustStore(fed, trusted),
+        audit_interval=0.02,
+        lane=asker_lane,
+        lane_replies=asker_replies,
     )
     async with contextlib.AsyncExitStack() as stack:
         await stack.enter_async_context(ta)
@@ -503,9 +508,10 @@ async def test_an_answer_the_thread_could_not_put_is_sent_and_counted_once(
         booked = threading.Event()
         real_book = ia._lane_book
 
-        def book() -> None:
-            real_book()
+        def book(*current: Any) -> bool:
+            back = real_book(*current)
             booked.set()
+            return back
 
         ia._lane_book = book  # type: ignore[method-assign]
         transport = p.provider.transport

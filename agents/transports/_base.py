@@ -162,6 +162,19 @@ class Inbox(Generic[T]):
                         self._waiter = None
                 raise
 
+    def put_front(self, items: list[T]) -> None:
+        """Put ``items`` back before everything queued, in order (any thread); never drops.
+
+        For a consumer's own items it took aside and hands back to be taken next: they
+        were counted in ``received`` when first put.
+        """
+        with self._lock:
+            self._items.extendleft(reversed(items))
+            if self._waiter is None or self._wake_pending:
+                return
+            self._wake_pending = True
+        self._wake_threadsafe()
+
     def drain(self) -> list[T]:
         """Everything queued now, without waiting."""
         with self._lock:
