@@ -17,6 +17,14 @@ from collections.abc import Callable
 from typing import Any
 
 
+def helped(argv: list[str], doc: str | None) -> bool:
+    """Print a tool's description when ``-h`` or ``--help`` is asked; True: run nothing."""
+    if "-h" not in argv and "--help" not in argv:
+        return False
+    print((doc or "(no description)").strip())
+    return True
+
+
 def fmt(x: float) -> str:
     """A number as BENCH lines print it: three significant digits, ``1.94e6`` when big."""
     if x != 0 and (abs(x) >= 1e4 or abs(x) < 1e-3):

@@ -240,4 +240,7 @@ def main(argv: list[str]) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    from bench import helped
+
+    if not helped(sys.argv[1:], __doc__):
+        main(sys.argv[1:])

@@ -149,4 +149,7 @@ if __name__ == "__main__":
     # run as a file (by `ab`): its folder, first on the path, would shadow our packages
     here = str(Path(__file__).resolve().parent)
     sys.path[:] = [p for p in sys.path if p != here]
-    main(sys.argv[1:])
+    from bench import helped
+
+    if not helped(sys.argv[1:], __doc__):
+        main(sys.argv[1:])

@@ -356,4 +356,7 @@ def run(n: int = N) -> None:
 
 
 if __name__ == "__main__":
-    run(int(sys.argv[1]) if len(sys.argv) > 1 else N)
+    from bench import helped
+
+    if not helped(sys.argv[1:], __doc__):
+        run(int(sys.argv[1]) if len(sys.argv) > 1 else N)

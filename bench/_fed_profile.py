@@ -376,4 +376,7 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from bench import helped
+
+    if not helped(sys.argv[1:], __doc__):
+        sys.exit(main())

@@ -10,6 +10,7 @@ import json
 import multiprocessing as mp
 import socket
 import statistics
+import sys
 import threading
 import time
 from typing import Any
@@ -136,4 +137,7 @@ def _q(xs: list[float], q: float) -> float:
 
 
 if __name__ == "__main__":
-    print(measure())
+    from bench import helped
+
+    if not helped(sys.argv[1:], __doc__):
+        print(measure())
