@@ -1044,24 +1044,7 @@ class Session:
                 raise Forged(
                     f"bad MAC on session {self.sid} from {peer!r}: forged or tampered", peer
                 )
-        hi = self._hi
-        delta = now * 1000.0 - ts
-        skew_ms = self._skew_ms
-        if (
-            n > hi
-            and self._retire_at is None
-            and now - self.established <= self._lifetime
-            and delta <= skew_ms
-            and -delta <= skew_ms
-        ):
-            # as in `_accept`: the common case of `_check_live` and `_check_window`, inline
-            d = n - hi
-            self._hi = n
-            self._mask = ((self._mask << d) | 1) & self._full if d < self._window else 1
-        else:
-            self._check_live(ts, now)
-            self._hi, self._mask = self._check_window(n, hi, self._mask)
-        self._received += 1
+        self._admit(ts, n, now)
         return body
 
     def _accept(self, ts: int, n: int, payload: str, mac: bytes | None, now: float) -> bytes:
@@ -1091,6 +1074,12 @@ class Session:
                 raise Forged(
                     f"bad MAC on session {self.sid} from {peer!r}: forged or tampered", peer
                 )
+        self._admit(ts, n, now)
+        return body
+
+    def _admit(self, ts: int, n: int, now: float) -> None:
+        """Take an authentic ACL envelope's ``n`` into the replay window (either form), or
+        refuse it: the session over, the timestamp off, the counter seen or too old."""
         hi = self._hi
         delta = now * 1000.0 - ts
         skew_ms = self._skew_ms
@@ -1110,7 +1099,6 @@ class Session:
             self._check_live(ts, now)
             self._hi, self._mask = self._check_window(n, hi, self._mask)
         self._received += 1
-        return body
 
     def _check_live(self, ts: int, now: float) -> None:
         """Refuse an authentic envelope of a session that is over, or stamped too far off."""

@@ -11,9 +11,14 @@ ratio, one line per comparison, always in this form (so runs can be compared by 
 
 from __future__ import annotations
 
+import json
+import os
+import statistics
+import subprocess
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 
@@ -23,6 +28,42 @@ def helped(argv: list[str], doc: str | None) -> bool:
         return False
     print((doc or "(no description)").strip())
     return True
+
+
+def alternate(
+    trees: list[str], pairs: int, cmd: list[str], keys: tuple[str, ...]
+) -> dict[str, dict[str, float]]:
+    """Run ``cmd`` against each source tree in turn (A B, B A, ...), in fresh processes with
+    ``PYTHONPATH`` the tree; each of ``keys``' median per tree over its runs' medians over
+    the JSON lines each run prints. For A/Bs of two states of the code on a busy machine."""
+    runs: dict[str, list[dict[str, float]]] = {t: [] for t in trees}
+    for i in range(pairs):
+        for tree in trees if i % 2 == 0 else trees[::-1]:
+            env = {**os.environ, "PYTHONPATH": tree}
+            proc = subprocess.run(
+                cmd, cwd=tree, env=env, capture_output=True, text=True, check=True
+            )
+            got = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
+            run = {k: statistics.median(r[k] for r in got) for k in keys}
+            runs[tree].append(run)
+            shown = " ".join(f"{k}={v:.4g}" for k, v in run.items())
+            print(f"pair {i + 1} {tree}: {shown}", flush=True)
+    return {t: {k: statistics.median(r[k] for r in rs) for k in keys} for t, rs in runs.items()}
+
+
+def ab_main(argv: list[str], cmd: Callable[[list[str]], list[str]], keys: tuple[str, ...]) -> None:
+    """``--ab TREE_A TREE_B [--pairs P] ARGS...``: `alternate` ``cmd(ARGS)``, print B over A."""
+    trees = [str(Path(t).resolve()) for t in argv[1:3]]
+    rest = argv[3:]
+    pairs = 5
+    if rest[:1] == ["--pairs"]:
+        pairs, rest = int(rest[1]), rest[2:]
+    med = alternate(trees, pairs, cmd(rest), keys)
+    for tree, figures in med.items():
+        shown = ", ".join(f"{k} {v:.4g}" for k, v in figures.items())
+        print(f"median of {pairs} {tree}: {shown}")
+    a, b = (med[t] for t in trees)
+    print("B / A: " + ", ".join(f"{k} {b[k] / a[k]:.3f}" for k in keys if a[k]))
 
 
 def fmt(x: float) -> str:

@@ -20,9 +20,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import os
-import statistics
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -103,41 +100,13 @@ def measure(n: int = N, rounds: int = ROUNDS) -> list[dict[str, float]]:
     return result
 
 
-def ab(trees: list[str], pairs: int, n: int, rounds: int) -> dict[str, dict[str, float]]:
-    """Alternated runs of the trees in fresh processes; each figure's median per tree."""
-    runs: dict[str, list[dict[str, float]]] = {t: [] for t in trees}
-    for i in range(pairs):
-        for tree in trees if i % 2 == 0 else trees[::-1]:
-            # this file, run against the tree's packages (a tree older than it lacks it)
-            cmd = [sys.executable, __file__, str(n), str(rounds)]
-            env = {**os.environ, "PYTHONPATH": tree}
-            proc = subprocess.run(
-                cmd, cwd=tree, env=env, capture_output=True, text=True, check=True
-            )
-            got = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
-            run = {k: statistics.median(r[k] for r in got) for k in KEYS}
-            runs[tree].append(run)
-            shown = " ".join(f"{k}={v:.4g}" for k, v in run.items())
-            print(f"pair {i + 1} {tree}: {shown}", flush=True)
-    return {t: {k: statistics.median(r[k] for r in rs) for k in KEYS} for t, rs in runs.items()}
-
-
 def main(argv: list[str]) -> None:
     """Parse the command line (see the module's docstring) and print the figures."""
     if argv[:1] == ["--ab"]:
-        trees = [str(Path(t).resolve()) for t in argv[1:3]]
-        rest = argv[3:]
-        pairs = 5
-        if rest[:1] == ["--pairs"]:
-            pairs, rest = int(rest[1]), rest[2:]
-        n = int(rest[0]) if rest else N
-        rounds = int(rest[1]) if len(rest) > 1 else ROUNDS
-        med = ab(trees, pairs, n, rounds)
-        for tree, figures in med.items():
-            shown = ", ".join(f"{k} {v:.4g}" for k, v in figures.items())
-            print(f"median of {pairs} {tree}: {shown}")
-        a, b = (med[t] for t in trees)
-        print("B / A: " + ", ".join(f"{k} {b[k] / a[k]:.3f}" for k in KEYS if a[k]))
+        from bench import ab_main  # the parent's only: a child may run an older tree
+
+        # this file, run against the tree's packages (a tree older than it lacks it)
+        ab_main(argv, lambda rest: [sys.executable, __file__, *rest], KEYS)
         return
     n = int(argv[0]) if argv else N
     rounds = int(argv[1]) if len(argv) > 1 else ROUNDS
@@ -149,7 +118,8 @@ if __name__ == "__main__":
     # run as a file (by `ab`): its folder, first on the path, would shadow our packages
     here = str(Path(__file__).resolve().parent)
     sys.path[:] = [p for p in sys.path if p != here]
-    from bench import helped
-
-    if not helped(sys.argv[1:], __doc__):
+    # not `bench.helped`: a child of `--ab` runs this file against an older tree's bench
+    if "-h" in sys.argv or "--help" in sys.argv:
+        print((__doc__ or "").strip())
+    else:
         main(sys.argv[1:])
