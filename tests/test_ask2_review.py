@@ -13,8 +13,6 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
-import pytest
-
 from agents import ACLMessage, Performative
 from tests.test_answer_on_thread import WAIT, pair
 from tests.test_reply_on_thread import (
@@ -58,11 +56,6 @@ async def _other_agent(replies: bool) -> tuple[Any, ...]:
         )
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the lane hands over a reply its conversation refuses (not from one of its "
-    "peers) and counts it in replies_on_thread",
-)
 async def test_a_reply_from_an_agent_not_asked_is_not_handed_over_as_one_waited_for() -> None:
     """Another agent of the asked platform answers in the conversation: it never resolves
     the request either way, and the lane does not take it for a reply its conversation
