@@ -174,11 +174,12 @@ async def test_replies_handed_over_while_the_loop_closes_their_conversations_are
         async def hand_over() -> None:
             for envelope in envelopes:  # one a thread's call, the loop running between
                 took.extend(await _on_thread(p, [envelope]))
+                await _quiet(p)  # taken: the next finds nothing of uav-a held
 
         async def close_every_other() -> None:
-            for i in range(0, n, 2):  # one a turn of the loop, while the thread hands over
+            for i in range(0, n, 2):  # spread over the hand-overs (a millisecond apart)
                 p.fed_op._by_conv[f"race-{i}"].close()
-                await asyncio.sleep(0)
+                await asyncio.sleep(0.001)
 
         await asyncio.gather(hand_over(), close_every_other())
         answered = 0
@@ -196,7 +197,7 @@ async def test_replies_handed_over_while_the_loop_closes_their_conversations_are
         await _quiet(p)
         assert not ia._lane_handed and not ia._lane_done and ia._lane_queued == {}
         assert _delta(_counts(p), before)[6] == n // 2  # the closed ones' replies: late
-        assert sum(t is None for t in took) >= 1  # the thread handed some over
+        assert sum(t is None for t in took) >= n // 4  # the thread handed many over
 
 
 async def _stopping(replies: bool) -> tuple[Any, ...]:
