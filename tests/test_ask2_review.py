@@ -13,6 +13,8 @@ from __future__ import annotations
 import asyncio
 from typing import Any
 
+import pytest
+
 from agents import ACLMessage, Performative
 from tests.test_answer_on_thread import WAIT, pair
 from tests.test_reply_on_thread import (
@@ -234,3 +236,38 @@ async def test_a_reply_handed_over_as_its_agent_stops_is_decided_as_on_the_loop(
     loop = await _stopping(False)
     assert (lane[0], loop[0]) == (True, False)
     assert lane[1:] == loop[1:]
+
+
+async def _limited(replies: bool) -> tuple[Any, ...]:
+    async with pair(lane=False, asker_lane=True, asker_replies=replies) as p:
+        ia = p.ia_op
+        await _warm(p)
+        before, taken = _counts(p), ia.replies_on_thread
+        request, asked = await _asked(p, "limited", timeout=1.0)
+        state = ia._senders["uav-a"]
+        assert state.total is not None
+        with state.lock:  # uav-a has sent all its limit allows, and gets no more
+            state.total.rate = 0.0
+            state.total.tokens = 0.0
+        took = await _on_thread(p, [_reply(p, request)])
+        await _until(lambda: state.stats.limited == 1)
+        await _quiet(p)
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(asked, WAIT)
+        return (
+            took[0] is None,
+            _delta(_counts(p), before),
+            (state.stats.accepted, state.stats.limited),
+            p.asker.stats.rate_limited,
+            ia.replies_on_thread - taken,
+        )
+
+
+async def test_a_reply_over_its_platforms_limit_is_refused_as_on_the_loop() -> None:
+    """Handed over, then found over uav-a's total limit on the loop: back to the inbox and
+    limited there, the same counts either way; its request is left to time out."""
+    lane = await _limited(True)
+    loop = await _limited(False)
+    assert (lane[0], loop[0]) == (True, False)
+    assert lane[1:] == loop[1:]
+    assert lane[1][:3] == (0, 0, 0) and lane[4] == 0
