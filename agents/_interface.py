@@ -1743,7 +1743,9 @@ class InterfaceAgent:
             conv = agent._by_reply.get(message.in_reply_to)
         if conv is None and message.conversation_id is not None:
             conv = agent._by_conv.get(message.conversation_id)
-        if conv is None:  # a reply nobody waits for: the loop's way, as any other message
+        if conv is None or not conv.accepts(message):
+            # a reply nobody waits for, or one its conversation refuses (not from one of
+            # its peers): the loop's way, as any other message
             return False
         loop = self._loop
         if loop is None:
