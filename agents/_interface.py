@@ -1610,6 +1610,10 @@ class InterfaceAgent:
                     if item is done:  # not booked yet: taken back, the loop decides it
                         del pending[i]
                         booked = False
+                        if not pending:
+                            # nothing left to book: the next answer wakes a booking again
+                            # (a flush woken for this one finds none and does not clear it)
+                            self._lane_posted = False
                         break
             if booked:
                 # booked already (the loop ran between): counted once, as answered; the

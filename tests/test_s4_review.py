@@ -38,10 +38,6 @@ async def _warm(p: Any) -> None:
     await _until(lambda: ia.answered_on_thread >= 1 and not ia._lane_done)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the put's take-back leaves `_lane_posted` set: the next answer wakes no flush",
-)
 async def test_after_a_put_the_thread_took_back_the_next_answers_are_still_booked_in_time() -> None:
     """A put that failed on the thread takes its booking back; the lane's next answer, with
     the flush asleep meanwhile, is counted and audited within an audit interval or two."""
