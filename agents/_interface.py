@@ -1077,6 +1077,10 @@ class InterfaceAgent:
                 fut.set_exception(TransportClosed("the Interface Agent is closed"))
                 fut.exception()
         host = self._host
+        if self._lane_done:
+            # what the lane answered since the flush's last tick: the flush is cancelled
+            # only after this, so its records would miss the last batch and the file
+            self._lane_book()
         data = self.audit.take()
         if host is not None and self.publish_audit:
             try:
