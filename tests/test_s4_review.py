@@ -137,3 +137,33 @@ async def test_a_session_past_its_message_budget_on_the_lane_starts_renewing_at_
         renewed = await _within(lambda: ia.sessions.session_for("operator") is not old, 1.0)
         used = old._n + old._bn
         assert renewed, f"not renewed: the old session sealed {used} of a budget of {budget}"
+
+
+@pytest.mark.xfail(
+    strict=True, reason="the booking's renewal check does not ask whether the peer is trusted"
+)
+async def test_a_platform_revoked_before_the_lane_answer_is_booked_is_not_renewed_with() -> None:
+    """uav-a answers operator on the thread, then revokes it (a trust reload) before the
+    flush books the answer: the booking opens no key exchange with the revoked platform."""
+    async with pair() as p:
+        ia = p.ia_a
+        await _warm(p)
+        await _slow_flush(ia, 1.0)
+        agreed: list[str] = []
+        real_agree = ia.agree
+
+        async def agree(peer: str, *args: Any, **kw: Any) -> Any:
+            agreed.append(peer)
+            return await real_agree(peer, *args, **kw)
+
+        ia.agree = agree  # type: ignore[method-assign]
+        before = ia.answered_on_thread
+        sealed, asked = await sealed_requests(p, [(LATEST, "s4-revoked")])
+        took = await asyncio.to_thread(ia._lane_take, sealed[0])
+        assert took is None  # answered on zenoh's thread, booked at the flush's tick
+        await asyncio.wait_for(asked[0], WAIT)
+        p.trust_a.remove("operator")  # on the loop, as `reload_trust` does
+        await _until(lambda: ia.answered_on_thread == before + 1)  # the tick booked it
+        # a renewal the booking spawned has run its key exchange (refused: untrusted) by now
+        await _until(lambda: not [t for t in p.provider._tasks if "renew[" in t.get_name()])
+        assert agreed == []
