@@ -981,13 +981,16 @@ class InterfaceAgent:
         """Start agreeing a new session with ``peer`` in the background if the current one is old.
 
         Sending goes on over the current session meanwhile. Nothing is started while the
-        platform is stopping, while an exchange with ``peer`` runs, or while ``peer`` has
-        just made a session with us that it has not used yet.
+        platform is stopping, while an exchange with ``peer`` runs, while ``peer`` has
+        just made a session with us that it has not used yet, or once it is revoked.
         """
         host = self._host
         if (
             host is not None
             and host.running  # agents stopping with the platform still send; nothing renews then
+            # revoked since (the lane's answer booked at the flush's tick): no session is
+            # what asks for one, and no exchange with it is wanted
+            and peer in self.trust
             and peer not in self._handshakes
             and self.sessions.needs_renewal(peer)
             and not self._peer_renewing(peer)

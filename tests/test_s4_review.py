@@ -139,9 +139,6 @@ async def test_a_session_past_its_message_budget_on_the_lane_starts_renewing_at_
         assert renewed, f"not renewed: the old session sealed {used} of a budget of {budget}"
 
 
-@pytest.mark.xfail(
-    strict=True, reason="the booking's renewal check does not ask whether the peer is trusted"
-)
 async def test_a_platform_revoked_before_the_lane_answer_is_booked_is_not_renewed_with() -> None:
     """uav-a answers operator on the thread, then revokes it (a trust reload) before the
     flush books the answer: the booking opens no key exchange with the revoked platform."""
