@@ -726,6 +726,8 @@ class InterfaceAgent:
         self._lane_done: deque[tuple[str, tuple[Any, ...], Agent]] = deque()
         # `_lane_book` is due (the audit flush woken or ticking, or posted) and has not run
         self._lane_posted = False
+        # the session the lane took to its message budget and asked the loop to renew once
+        self._lane_renewing: object = None
         self.answered_on_thread = 0  # of ``answered_at_once``, on the transport's thread
 
     # -- RemoteChannel ----------------------------------------------------------------
@@ -1607,6 +1609,18 @@ class InterfaceAgent:
                         loop.call_soon_threadsafe(self._lane_book)
                 except RuntimeError:  # the loop is closed: nobody reads the counts any more
                     pass
+        session = self.sessions._tx.get(peer)  # the one just sealed on (one lookup, no lock)
+        if (
+            session is not None
+            and session._n + session._bn >= self.policy.renew_after_messages
+            and self._lane_renewing is not session
+        ):
+            # past its message budget: booked (and so renewed) now, once a session, not at
+            # the flush's tick, which may come many answers on that session later
+            self._lane_renewing = session
+            with contextlib.suppress(RuntimeError):  # the loop is closed: nothing renews
+                if (loop := self._loop) is not None:
+                    loop.call_soon_threadsafe(self._lane_book)
         try:
             put(sealed)
         except Exception as exc:  # a transport closing

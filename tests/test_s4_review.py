@@ -14,7 +14,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import pytest
 from test_answer_on_thread import LATEST, WAIT, _until, pair, sealed_requests
 
 from agents import TransportError
@@ -114,10 +113,6 @@ async def test_what_the_lane_answered_just_before_the_platform_stops_is_in_the_a
     assert set(convs) <= written, f"not in the audit file: {sorted(set(convs) - written)}"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="renewal is checked only when the flush books (up to an audit interval later)",
-)
 async def test_a_session_past_its_message_budget_on_the_lane_starts_renewing_at_once() -> None:
     """Reads answered on the thread take uav-a's session past ``renew_after_messages``: its
     renewal starts then (as when the loop answers), not an audit interval later, while the
