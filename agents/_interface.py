@@ -779,6 +779,8 @@ class InterfaceAgent:
         # `_lane_book` is posted to the loop for a reply and has not run: a reply is never
         # left for the audit flush's tick, where the answers' bookings may wait
         self._lane_reply_posted = False
+        # the session the lane took to its message budget and asked the loop to renew once
+        self._lane_renewing: object = None
         self.answered_on_thread = 0  # of ``answered_at_once``, on the transport's thread
         self.lane_replies = lane_replies
         # a reply handed to the loop waits in `_lane_done`: the loop has work, so what comes
@@ -1040,13 +1042,16 @@ class InterfaceAgent:
         """Start agreeing a new session with ``peer`` in the background if the current one is old.
 
         Sending goes on over the current session meanwhile. Nothing is started while the
-        platform is stopping, while an exchange with ``peer`` runs, or while ``peer`` has
-        just made a session with us that it has not used yet.
+        platform is stopping, while an exchange with ``peer`` runs, while ``peer`` has
+        just made a session with us that it has not used yet, or once it is revoked.
         """
         host = self._host
         if (
             host is not None
             and host.running  # agents stopping with the platform still send; nothing renews then
+            # revoked since (the lane's answer booked at the flush's tick): no session is
+            # what asks for one, and no exchange with it is wanted
+            and peer in self.trust
             and peer not in self._handshakes
             and self.sessions.needs_renewal(peer)
             and not self._peer_renewing(peer)
@@ -1136,6 +1141,10 @@ class InterfaceAgent:
                 fut.set_exception(TransportClosed("the Interface Agent is closed"))
                 fut.exception()
         host = self._host
+        if self._lane_done:
+            # what the lane answered since the flush's last tick: the flush is cancelled
+            # only after this, so its records would miss the last batch and the file
+            self._lane_book()
         data = self.audit.take()
         if host is not None and self.publish_audit:
             try:
@@ -1666,6 +1675,18 @@ class InterfaceAgent:
                         loop.call_soon_threadsafe(self._lane_book)
                 except RuntimeError:  # the loop is closed: nobody reads the counts any more
                     pass
+        session = self.sessions._tx.get(peer)  # the one just sealed on (one lookup, no lock)
+        if (
+            session is not None
+            and session._n + session._bn >= self.policy.renew_after_messages
+            and self._lane_renewing is not session
+        ):
+            # past its message budget: booked (and so renewed) now, once a session, not at
+            # the flush's tick, which may come many answers on that session later
+            self._lane_renewing = session
+            with contextlib.suppress(RuntimeError):  # the loop is closed: nothing renews
+                if (loop := self._loop) is not None:
+                    loop.call_soon_threadsafe(self._lane_book)
         try:
             put(sealed)
         except Exception as exc:  # a transport closing
@@ -1676,6 +1697,10 @@ class InterfaceAgent:
                     if item is done:  # not booked yet: taken back, the loop decides it
                         del pending[i]
                         booked = False
+                        if not pending:
+                            # nothing left to book: the next answer wakes a booking again
+                            # (a flush woken for this one finds none and does not clear it)
+                            self._lane_posted = False
                         break
             if booked:
                 # booked already (the loop ran between): counted once, as answered; the
