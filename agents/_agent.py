@@ -375,12 +375,15 @@ class Conversation:
         rw = message.reply_with
         return rw is None or rw not in self._keys  # an agent asking itself sees its request
 
-    async def send(self, message: ACLMessage) -> None:
-        """Send ``message`` within this conversation, expecting answers to its reply_with."""
+    def send(self, message: ACLMessage) -> Coroutine[Any, Any, None]:
+        """Send ``message`` within this conversation, expecting answers to its reply_with: await it.
+
+        A plain call returning `Agent.send`'s coroutine, a coroutine less per message sent.
+        """
         if message.reply_with is not None:
             self.expect(message.reply_with)
         self.last_sent = message
-        await self._agent.send(message)
+        return self._agent.send(message)
 
     def _put(self, message: ACLMessage) -> None:
         if not self._items.put(message):

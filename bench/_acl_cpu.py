@@ -10,11 +10,16 @@ threads (``schedstat``: zenoh's included). With ``--raw`` also raw zenoh's get m
 (``bench._zenoh_raw``) measured in the same run, and the ratio.
 
 ``--stages`` adds, in both processes, thread-CPU probes around the steps an ACL message
-takes on the loop thread (`SessionTable.open` and ``seal``, ``to_json``, the one-call
-path ``_take_now``, composing, zenoh's put): each step's median µs as it runs inside the
-round trip, caches cold from everything else the round trip touches, which is several
-times what the same step costs timed alone (``python -m bench.acl --profile``). The
-probes cost ~0.4 µs each and wrap methods of the classes (not for compiled modules).
+takes (`SessionTable.open` and ``seal``, ``to_json``, the one-call path ``_take_now``,
+a reply taken from zenoh's thread: ``_lane_book`` → ``_lane_take_reply`` →
+``_take_message`` → ``Agent._deliver``, the asker's conversation opened and closed,
+composing, ``_sent`` and the turn's ``_flush``, zenoh's put): each step's median µs as
+it runs inside the round trip, on the loop thread, or on zenoh's thread (marked so),
+caches cold from everything else the round trip touches, which is several times what
+the same step costs timed alone (``python -m bench.acl --profile``). Steps made fewer
+times than there were round trips are left out. The probes cost ~0.5 µs each (nested
+ones add theirs to the step around them) and wrap methods of the classes (not for
+compiled modules).
 
 ``python -m bench._acl_cpu --ab TREE_A TREE_B [--pairs 5] [N]`` runs the measurement in
 a fresh process per run with ``PYTHONPATH`` set to each source tree in turn, in
@@ -33,6 +38,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -73,7 +79,10 @@ def _probe(cls: Any, name: str, label: str) -> None:
     inner = cls.__dict__[name]
     fn = inner.__func__ if isinstance(inner, classmethod) else inner
     calls = STAGE_CPU.setdefault(label, [])
+    # zenoh's threads open envelopes and parse replies too: theirs are noted apart
+    elsewhere = STAGE_CPU.setdefault(f"{label} [zenoh's thread]", [])
     cpu = time.thread_time_ns
+    ident, loop_thread = threading.get_ident, threading.main_thread().ident
 
     @functools.wraps(fn)
     def probed(*args: Any, **kwargs: Any) -> Any:
@@ -81,7 +90,7 @@ def _probe(cls: Any, name: str, label: str) -> None:
         try:
             return fn(*args, **kwargs)
         finally:
-            calls.append(cpu() - t)
+            (calls if ident() == loop_thread else elsewhere).append(cpu() - t)
 
     setattr(cls, name, classmethod(probed) if isinstance(inner, classmethod) else probed)
 
@@ -89,7 +98,8 @@ def _probe(cls: Any, name: str, label: str) -> None:
 def install_stage_probes() -> None:
     """Wrap the thread-CPU probes around the steps of an ACL message (in this process)."""
     from agents import ACLMessage, InterfaceAgent
-    from agents._agent import Agent
+    from agents import _agent as agent_module
+    from agents._agent import Agent, Conversation
     from agents._security import SessionTable
     from agents.transports import ZenohTransport
 
@@ -98,9 +108,17 @@ def install_stage_probes() -> None:
     _probe(SessionTable, "seal_binary", "seal: SessionTable.seal_binary (binary form)")
     _probe(ACLMessage, "to_json", "ACLMessage.to_json")
     _probe(InterfaceAgent, "_take_now", "_take_now (parse, checks, audit, deliver)")
-    _probe(Agent, "_deliver", "  of which Agent._deliver")
+    _probe(InterfaceAgent, "_lane_book", "_lane_book (a reply opened on zenoh's thread)")
+    _probe(InterfaceAgent, "_lane_take_reply", "  of which _lane_take_reply")
+    _probe(InterfaceAgent, "_take_message", "    of which _take_message (checks, audit)")
+    _probe(Agent, "_deliver", "      of which Agent._deliver")
+    _probe(Conversation, "close", "Conversation.close (the asker's)")
+    _probe(Agent, "conversation", "Agent.conversation (the asker's, open)")
+    _probe(agent_module, "compose", "compose (an agent's message)")
     _probe(ACLMessage, "build", "ACLMessage.build (compose)")
     _probe(ACLMessage, "reply", "ACLMessage.reply (compose)")
+    _probe(InterfaceAgent, "_sent", "InterfaceAgent._sent (renew check, batch after)")
+    _probe(InterfaceAgent, "_flush", "InterfaceAgent._flush (the turn's batch)")
     _probe(ZenohTransport, "_put", "ZenohTransport._put (zenoh's put)")
     cpu = time.thread_time_ns
     empty = STAGE_CPU.setdefault("a probe's own cost", [])
@@ -120,8 +138,12 @@ def stage_node_main(*args: Any) -> None:
 
 
 def _stage_medians(calls: dict[str, list[int]], n: int) -> dict[str, float]:
-    """Each step's median thread CPU (µs) over its last ``n`` calls (the timed round trips)."""
-    return {k: statistics.median(v[-n:]) / 1e3 for k, v in calls.items() if v}
+    """Each step's median thread CPU (µs) over its last ``n`` calls (the timed round trips).
+
+    A step made fewer than ``n`` times in all is not one of every round trip (the
+    warm-up's, a first message's): it is left out rather than shown beside those.
+    """
+    return {k: statistics.median(v[-n:]) / 1e3 for k, v in calls.items() if len(v) >= n}
 
 
 async def _measure(keydir: Path, n: int, stages: bool = False) -> dict[str, Any]:
