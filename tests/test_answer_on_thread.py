@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import inspect
 import threading
+import uuid
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
@@ -23,7 +24,7 @@ from agents import LATER, AgentPlatform, RateLimit, Refused, TransportError, req
 from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.transports import Inbox, ZenohConfig, ZenohTransport
-from bench._zenoh_raw import free_port
+from agents.transports import free_tcp_port as free_port
 from dyknow_core import DyKnowInstance
 from federation._gateway import GatewayAgent
 from federation._gateway_service import ONTOLOGY as GATEWAY
@@ -60,7 +61,7 @@ async def pair(
 ) -> AsyncIterator[Pair]:
     """uav-a and operator over zenoh, members of each other before the test runs
     (``asker_replies``: operator's ``lane_replies``)."""
-    fed = f"lane-{free_port()}"
+    fed = f"lane-{uuid.uuid4().hex[:12]}"
     keys = {n: KeyPair.generate(n) for n in ("uav-a", "operator")}
     trusted = {n: k.public_key for n, k in keys.items()}
     seed = free_port()

@@ -15,6 +15,7 @@ import base64
 import contextlib
 import json
 import queue
+import uuid
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
@@ -29,7 +30,7 @@ from agents import AgentPlatform, request, wire_key
 from agents._interface import InterfaceAgent
 from agents._security import KeyPair, SecurityPolicy, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport
-from bench._zenoh_raw import free_port
+from agents.transports import free_tcp_port as free_port
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -75,7 +76,7 @@ async def pair(
     b: dict[str, Any] | None = None,
 ) -> AsyncIterator[Pair]:
     """uav-a and uav-b over zenoh (``a``, ``b``: their InterfaceAgent's options)."""
-    fed = f"binacl-{free_port()}"
+    fed = f"binacl-{uuid.uuid4().hex[:12]}"
     keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
     trusted = {n: k.public_key for n, k in keys.items()}
     seed = free_port()

@@ -6,7 +6,6 @@ import json
 import os
 import re
 import signal
-import socket
 import stat
 import subprocess
 import sys
@@ -20,6 +19,7 @@ from typer.testing import CliRunner
 from agents._exceptions import UnknownPlatform
 from agents._security import Handshake, KeyPair, TrustStore
 from agents.keys import gen_keys, trust_keys
+from agents.transports import free_tcp_port
 from federation._cli_app import app
 from federation.cli import main
 
@@ -28,9 +28,8 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    # below the ephemeral range: a port from bind(0) may go to another connection first
+    return free_tcp_port()
 
 
 def _write_federation(tmp_path: Path, port: int) -> dict[str, Path]:

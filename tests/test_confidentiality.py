@@ -19,7 +19,6 @@ import asyncio
 import json
 import os
 import signal
-import socket
 import struct
 import subprocess
 import sys
@@ -45,7 +44,7 @@ from agents._security import (
     watch_request,
 )
 from agents.keys import gen_keys, trust_keys
-from agents.transports import Message, ZenohConfig, ZenohTransport
+from agents.transports import Message, ZenohConfig, ZenohTransport, free_tcp_port
 
 ROOT = Path(__file__).resolve().parent.parent
 DEPLOY = ROOT / "deploy"
@@ -127,9 +126,8 @@ with zenoh.open(cfg) as session:
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    # below the ephemeral range: a port from bind(0) may go to another connection first
+    return free_tcp_port()
 
 
 def _env() -> dict[str, str]:

@@ -25,7 +25,6 @@ import os
 import re
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -39,7 +38,7 @@ import aiohttp
 import pytest
 
 from agents.keys import gen_keys, trust_keys
-from agents.transports import MemoryHub
+from agents.transports import MemoryHub, free_tcp_port
 from federation import FederationPlatform, FoxgloveBridge, PlatformConfig, PlatformConfigError
 from federation._geo import EARTH_RADIUS, local_to_geo
 from federation.console import ConsoleRoles, ConsoleSettings, OperatorConsole
@@ -201,9 +200,8 @@ def test_npm_ci_runs_once_for_workers_that_ask_at_once(tmp_path: Path) -> None:
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    # below the ephemeral range: a port from bind(0) may go to another connection first
+    return free_tcp_port()
 
 
 LABELS = {

@@ -23,7 +23,6 @@ import contextlib
 import json
 import os
 import select
-import socket
 import subprocess
 import sys
 import time
@@ -37,7 +36,7 @@ import zenoh
 
 from agents import TransportError
 from agents.keys import gen_keys, trust_keys
-from agents.transports import Message, Presence, Subscription, ZenohTransport
+from agents.transports import Message, Presence, Subscription, ZenohTransport, free_tcp_port
 from agents.transports._zenoh import ZenohConfig, ZenohTls, ZenohUser
 from federation import FederationPlatform, PlatformConfig, PlatformConfigError
 
@@ -54,9 +53,8 @@ pytestmark = pytest.mark.timeout(60)
 
 
 def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    # below the ephemeral range: a port from bind(0) may go to another connection first
+    return free_tcp_port()
 
 
 def _make_certs(directory: Path, *platforms: str) -> Path:
