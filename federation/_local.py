@@ -250,7 +250,7 @@ def _short_of(exc: OSError, doing: str) -> LocalChannelError:
     elif exc.errno == errno.ENFILE:
         cause = "the system's file table is full (fs.file-max): too many files open on this host"
     elif exc.errno in (errno.ENOBUFS, errno.ENOMEM):
-        cause = "the system is out of memory for sockets"
+        cause = "the system is out of memory (for sockets and files)"
     else:
         cause = exc.strerror or str(exc)
     return LocalChannelError(f"{doing}: {cause}")
@@ -359,7 +359,8 @@ def channel_path(config: PlatformConfig, keys: KeyPair | None = None) -> Path:
 
 
 def _keys_of(config: PlatformConfig) -> KeyPair:
-    """The key pair of ``config``'s platform; NodeUnreachable when its key file is unusable.
+    """The key pair of ``config``'s platform; NodeUnreachable when its key file is unusable
+    (LocalChannelError when this host is short of descriptors or memory to read it).
 
     Without its key a command cannot tell its node from another deployment's: it acts as the
     platform itself, whose start then says what is wrong with the key.
@@ -367,6 +368,11 @@ def _keys_of(config: PlatformConfig) -> KeyPair:
     try:
         return KeyPair.load(config.key)
     except (OSError, ValueError, SecurityError) as exc:
+        # this host short of descriptors or memory is no unusable key: taken for one, a
+        # command would act as the platform itself beside its running node
+        cause = exc if isinstance(exc, OSError) else exc.__context__  # a KeyFileError's OSError
+        if isinstance(cause, OSError) and cause.errno in _SHORT_OF:
+            raise _short_of(cause, f"cannot read the platform's key {config.key}") from None
         raise NodeUnreachable(f"the platform's key cannot be read: {exc}") from None
 
 
@@ -1004,6 +1010,7 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
     """Send ``request`` to the running node of ``config``; its answer lines, decoded.
 
     NodeUnreachable (before any line) when no node of this config runs on this host;
+    LocalChannelError when this host is short of descriptors or memory to tell;
     ForeignNodeError, the request unsent, when the node there states another key or names;
     an ``error`` line, the request unsent, when the node is older than this command.
     """
@@ -1017,6 +1024,10 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
         reader, writer = await asyncio.open_unix_connection(str(path), limit=64 << 20)
     except (FileNotFoundError, ConnectionRefusedError) as exc:
         raise NodeUnreachable(str(exc)) from None
+    except OSError as exc:
+        if exc.errno in _SHORT_OF:  # this host's lack, not the node's: never "none runs"
+            raise _short_of(exc, f"cannot reach the node on its local channel {path}") from None
+        raise
     try:
         creds = _peer_cred(writer)
         if creds is None or creds[1] != os.getuid():

@@ -3,6 +3,7 @@ commands run with a running node's config go through it and break none of its se
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import re
@@ -665,6 +666,90 @@ def test_a_node_opening_its_channel_without_a_file_descriptor_left_says_why(
     assert outcome["message"].startswith("cannot open the local channel "), outcome
     assert "out of file descriptors (at most 64 open at once: RLIMIT_NOFILE" in outcome["message"]
     assert outcome["then"] is True  # descriptors back: it opens, as ever
+
+
+_ASK_OUT_OF_FDS = """
+import asyncio, json, os, resource, sys
+from agents import MemoryHub
+from federation import FederationPlatform, PlatformConfig
+from federation._local import LocalChannel, via_node
+
+async def ask(config):
+    return [line async for line in via_node(config, {"op": "platforms"})]
+
+async def main():
+    config = PlatformConfig.load(sys.argv[1])
+    hub = MemoryHub()
+    async with hub.transport() as t, FederationPlatform(config, transport=t, join=False) as p:
+        async with LocalChannel(p):
+            _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+            resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+            held = []
+            try:
+                while len(held) < 64:
+                    held.append(os.open(os.devnull, os.O_RDONLY))
+            except OSError:
+                pass
+            try:
+                outcome = {"lines": await ask(config)}
+            except Exception as exc:
+                outcome = {"error": type(exc).__name__, "message": str(exc)}
+            for fd in held:
+                os.close(fd)
+            outcome["then"] = len(await ask(config))
+    print(json.dumps(outcome))
+
+asyncio.run(main())
+"""
+
+
+def test_a_command_out_of_file_descriptors_never_takes_its_node_for_none(
+    tmp_path: Path,
+) -> None:
+    """A one-shot command out of file descriptors as it looks for the running node: the
+    cause named (RLIMIT_NOFILE), never "no node runs" (it would then act as the platform
+    itself beside its node); with descriptors back the node answers it."""
+    import sys
+
+    station = Station(tmp_path)
+    done = subprocess.run(
+        [sys.executable, "-c", _ASK_OUT_OF_FDS, "station-python.toml"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=station.dir,
+        env={**station.env, "PYTHONPATH": str(Path(__file__).parents[1])},
+    )
+    assert done.returncode == 0, done.stderr
+    outcome = json.loads(done.stdout)
+    assert outcome.get("error") == "LocalChannelError", outcome
+    assert outcome["message"].startswith("cannot read the platform's key "), outcome
+    assert "out of file descriptors (at most 64 open at once: RLIMIT_NOFILE" in outcome["message"]
+    assert outcome["then"] >= 1  # descriptors back: the node answers, as ever
+
+
+async def test_a_command_whose_connect_is_short_of_descriptors_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The connect to the node's channel failing for lack of descriptors: LocalChannelError
+    naming the channel and the cause, not NodeUnreachable (nor a bare OSError)."""
+    import errno
+
+    from federation import PlatformConfig
+    from federation._local import LocalChannelError, _private_dir, channel_path, via_node
+
+    station = Station(tmp_path)
+    config = PlatformConfig.load(station.dir / "station-python.toml")
+    path = channel_path(config)
+    _private_dir(path.parent, make=True)
+
+    async def short(*_args: Any, **_kw: Any) -> Any:
+        raise OSError(errno.EMFILE, "Too many open files")
+
+    monkeypatch.setattr(asyncio, "open_unix_connection", short)
+    with pytest.raises(LocalChannelError, match="cannot reach the node on its local channel"):
+        async for _ in via_node(config, {"op": "platforms"}):
+            pass
 
 
 @pytest.mark.timeout(150)
