@@ -554,6 +554,28 @@ async def test_a_node_too_busy_to_accept_on_its_channel_is_still_taken_for_runni
         busy.close()
 
 
+# the child scripts' way to run out of file descriptors: RLIMIT_NOFILE lowered to 64 and
+# every one left taken; `give_back(held)` once the attempt is made
+_HOLD_EVERY_FD = """
+import os, resource
+
+def hold_every_fd():
+    _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
+    held = []
+    try:
+        while len(held) < 64:
+            held.append(os.open(os.devnull, os.O_RDONLY))
+    except OSError:
+        pass
+    return held
+
+def give_back(held):
+    for fd in held:
+        os.close(fd)
+"""
+
+
 _OUT_OF_FDS = """
 import asyncio, json, os, resource, socket, sys
 from pathlib import Path
@@ -564,20 +586,12 @@ node = socket.socket(socket.AF_UNIX)  # a node listening on the channel: this pr
 node.bind(str(path))
 node.listen(8)
 loop = asyncio.new_event_loop()  # its descriptors taken before they run out
-_, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
-held = []
-try:
-    while len(held) < 64:
-        held.append(os.open(os.devnull, os.O_RDONLY))
-except OSError:
-    pass
+held = hold_every_fd()
 try:
     outcome = {"here": loop.run_until_complete(_node_here(path))}
 except Exception as exc:
     outcome = {"error": type(exc).__name__, "message": str(exc)}
-for fd in held:
-    os.close(fd)
+give_back(held)
 outcome["after"] = loop.run_until_complete(_node_here(path))
 print(json.dumps(outcome))
 """
@@ -593,7 +607,7 @@ def test_a_node_looked_for_without_a_file_descriptor_left_is_a_clear_error_not_n
     path = tmp_path / "run" / "station.sock"
     path.parent.mkdir(mode=0o700)
     done = subprocess.run(
-        [sys.executable, "-c", _OUT_OF_FDS, str(path)],
+        [sys.executable, "-c", _HOLD_EVERY_FD + _OUT_OF_FDS, str(path)],
         capture_output=True,
         text=True,
         timeout=60,
@@ -621,21 +635,13 @@ async def main():
     path = channel_path(config)
     hub = MemoryHub()
     async with hub.transport() as t, FederationPlatform(config, transport=t, join=False) as p:
-        _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-        resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
-        held = []
-        try:
-            while len(held) < 64:
-                held.append(os.open(os.devnull, os.O_RDONLY))
-        except OSError:
-            pass
+        held = hold_every_fd()
         try:
             async with LocalChannel(p):
                 outcome = {"opened": True}
         except Exception as exc:
             outcome = {"error": type(exc).__name__, "message": str(exc)}
-        for fd in held:
-            os.close(fd)
+        give_back(held)
         async with LocalChannel(p):
             outcome["then"] = path.is_socket()
     print(json.dumps(outcome))
@@ -653,7 +659,7 @@ def test_a_node_opening_its_channel_without_a_file_descriptor_left_says_why(
 
     station = Station(tmp_path)
     done = subprocess.run(
-        [sys.executable, "-c", _CHANNEL_OUT_OF_FDS, "station-python.toml"],
+        [sys.executable, "-c", _HOLD_EVERY_FD + _CHANNEL_OUT_OF_FDS, "station-python.toml"],
         capture_output=True,
         text=True,
         timeout=60,
@@ -682,20 +688,12 @@ async def main():
     hub = MemoryHub()
     async with hub.transport() as t, FederationPlatform(config, transport=t, join=False) as p:
         async with LocalChannel(p):
-            _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
-            resource.setrlimit(resource.RLIMIT_NOFILE, (64, hard))
-            held = []
-            try:
-                while len(held) < 64:
-                    held.append(os.open(os.devnull, os.O_RDONLY))
-            except OSError:
-                pass
+            held = hold_every_fd()
             try:
                 outcome = {"lines": await ask(config)}
             except Exception as exc:
                 outcome = {"error": type(exc).__name__, "message": str(exc)}
-            for fd in held:
-                os.close(fd)
+            give_back(held)
             outcome["then"] = len(await ask(config))
     print(json.dumps(outcome))
 
@@ -713,7 +711,7 @@ def test_a_command_out_of_file_descriptors_never_takes_its_node_for_none(
 
     station = Station(tmp_path)
     done = subprocess.run(
-        [sys.executable, "-c", _ASK_OUT_OF_FDS, "station-python.toml"],
+        [sys.executable, "-c", _HOLD_EVERY_FD + _ASK_OUT_OF_FDS, "station-python.toml"],
         capture_output=True,
         text=True,
         timeout=60,
