@@ -787,6 +787,7 @@ class InterfaceAgent:
         # meanwhile goes to it unopened, as while the inbox holds anything
         self._lane_handed = False
         self.replies_on_thread = 0  # replies opened and parsed there, taken by `_lane_book`
+        self.lane_failed = 0  # bookings and hand-overs `_lane_book` skipped as they raised
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -1792,9 +1793,10 @@ class InterfaceAgent:
         """On the loop: what `_receive` does with a reply the lane opened and parsed; False:
         nothing taken, `_receive` must take it in full (`_lane_book` queues it back)."""
         if forgets != self.sessions.forgotten(peer):
-            # revoked since it opened: refused as `_receive` refuses it
-            self._lane_release(peer)
+            # revoked since it opened: refused as `_receive` refuses it (released last: one
+            # that raises is released by `_lane_book`, once)
             self._not_opened(host.stats, self._forgotten_since(peer))
+            self._lane_release(peer)
             return True
         if self.mirroring or len(body) > self.max_bytes:
             return False
@@ -1817,7 +1819,11 @@ class InterfaceAgent:
     def _lane_book(self, current: tuple[Any, ...] | None = None) -> bool:
         """On the loop: count, audit and renew for what the lane answered, as `_take_now` would,
         and take the replies it handed over; True: one went back to the inbox (the loop
-        takes it in full), with ``current``, the item `_receive` took, behind it."""
+        takes it in full), with ``current``, the item `_receive` took, behind it.
+
+        A booking or hand-over that raises costs only itself: logged with what failed,
+        counted in ``lane_failed``, its peer's count released; the others are made."""
+        inbox = self._lane_inbox
         with self._lane_lock:
             self._lane_posted = self._lane_reply_posted = self._lane_handed = False
             done, self._lane_done = self._lane_done, deque()
@@ -1834,39 +1840,69 @@ class InterfaceAgent:
             item = done.popleft()
             if len(item) == 4:  # a reply (`_lane_reply`)
                 if entries:  # the records in arrival order
-                    self.audit.add_accepted(entries)
+                    self._lane_records(entries)
                     entries = []
                 peer, body, message, forgets = item
-                if peer in behind or not self._lane_take_reply(host, peer, body, message, forgets):
+                if peer in behind:
+                    back.append((peer, body, forgets))
+                    continue
+                try:
+                    taken = self._lane_take_reply(host, peer, body, message, forgets)
+                except Exception:
+                    self._lane_failed("taking the reply handed over", peer, message)
+                    self._lane_release(peer)
+                    continue
+                if not taken:
                     back.append((peer, body, forgets))
                     behind.add(peer)
                 continue
             peer, entry, agent = item
-            state = self._senders.get(peer)
-            if state is not None:
-                state.stats.accepted += 1
-            stats.received_remote += 1
-            stats.local += 1
-            stats.sent_remote += 1
-            agent_stats = agent.stats
-            agent_stats.received += 1
-            agent_stats.handled += 1
-            agent_stats.answered_at_once += 1
+            try:
+                state = self._senders.get(peer)
+                if state is not None:
+                    state.stats.accepted += 1
+                stats.received_remote += 1
+                stats.local += 1
+                stats.sent_remote += 1
+                agent_stats = agent.stats
+                agent_stats.received += 1
+                agent_stats.handled += 1
+                agent_stats.answered_at_once += 1
+            except Exception:
+                self._lane_failed("counting the answer", peer, entry)
             self.answered_on_thread += 1
             entries.append(entry)
             peers.add(peer)
         if entries:
-            self.audit.add_accepted(entries)
+            self._lane_records(entries)
         for peer in peers:
-            self.renew_if_needed(peer)
+            try:
+                self.renew_if_needed(peer)
+            except Exception:
+                self._lane_failed("renewing the session of its answers", peer, None)
         if not back:
             return False
         if current is not None:
             back.append(current)
-        inbox = self._lane_inbox
         if inbox is not None:
             inbox.put_front(back)
         return True
+
+    def _lane_records(self, entries: list[tuple[Any, ...]]) -> None:
+        """The audit records of what the lane answered; one that fails costs only itself."""
+        try:
+            self.audit.add_accepted(entries)
+        except Exception:
+            for entry in entries:  # one at a time: which one failed
+                try:
+                    self.audit.add_accepted((entry,))
+                except Exception:
+                    self._lane_failed("recording the answer", entry[1], entry)
+
+    def _lane_failed(self, what: str, peer: str, item: Any) -> None:
+        """One booking or hand-over of `_lane_book` raised: logged once, counted, skipped."""
+        self.lane_failed += 1
+        log.exception("interface[%s]: %s from %s failed: %.200r", self._me, what, peer, item)
 
     async def _batch_items(self, host: AgentPlatform, peer: str, body: bytes) -> list[Any]:
         """The messages (decoded, not yet checked) of a batch; none when it is malformed."""
