@@ -618,7 +618,9 @@ class InterfaceAgent:
     for the loop; counted in ``answered_on_thread`` (docs/agents.md says what runs where).
     With ``lane_replies`` (default on) a reply one of the agents' open conversations waits
     for, opened and parsed there, is taken on the loop in the callback that books what the
-    lane answered: no task of the loop's between (counted in ``replies_on_thread``).
+    lane answered: no task of the loop's between (counted in ``replies_on_thread``). A
+    booking or hand-over there that raises costs only itself (logged, counted in
+    ``lane_failed``).
     """
 
     def __init__(
@@ -1825,6 +1827,18 @@ class InterfaceAgent:
         counted in ``lane_failed``, its peer's count released; the others are made."""
         inbox = self._lane_inbox
         with self._lane_lock:
+            if (
+                current is None
+                and self._lane_handed
+                and self._lane_on
+                and inbox is not None
+                and inbox._items
+            ):
+                # A reply handed over, and what came after it already queued: the inbox's
+                # consumer books it before its next take, in the same turn as what follows
+                # it, as it takes a reply and what follows from the inbox (a duplicate is
+                # then in the conversation before its task runs, not late after it)
+                return False
             self._lane_posted = self._lane_reply_posted = self._lane_handed = False
             done, self._lane_done = self._lane_done, deque()
         host = self._host

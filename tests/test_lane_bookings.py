@@ -19,6 +19,8 @@ from agents import ACLMessage, Performative
 from tests.test_answer_on_thread import HEADING, LATEST, WAIT, Pair, _until, pair
 from tests.test_reply_on_thread import (
     _asked,
+    _counts,
+    _delta,
     _quiet,
     _records,
     _reply,
@@ -43,6 +45,35 @@ def _arrive(p: Pair, envelopes: list[bytes]) -> None:
     thread.start()
     thread.join(WAIT)
     assert not thread.is_alive()
+
+
+async def _duplicate(replies: bool) -> tuple[Any, ...]:
+    async with pair(lane=False, asker_lane=True, asker_replies=replies) as p:
+        ia = p.ia_op
+        await _warm(p)
+        before, skip = _counts(p), len(ia.audit.records)
+        request, asked = await _asked(p, "twice-at-once")
+        # the same answer sent twice (two authentic envelopes, neither a replay), both here
+        # before the loop runs: the loop takes the first, then the second
+        _arrive(p, [_reply(p, request), _reply(p, request, {"second": True})])
+        await asyncio.wait_for(asked, WAIT)
+        # what the asker reads once its request returned
+        read = (_delta(_counts(p), before), _records(p, skip))
+        await _quiet(p)
+        return read, (_delta(_counts(p), before), _records(p, skip))
+
+
+async def test_a_reply_sent_twice_is_counted_alike_with_the_hand_over_on_and_off() -> None:
+    """Both replies came before the loop ran: either way the second is in the conversation
+    before its request returns (not late after it), the same counts and records read then."""
+    lane = await _duplicate(True)
+    loop = await _duplicate(False)
+    assert lane == loop
+    (counts, records), _ = lane
+    assert counts[:3] == (2, 2, 2) and counts[5:8] == (2, 0, 0)  # received twice, none late
+    assert [(v, perf, conv) for v, perf, conv, _ in records] == [
+        ("accepted", "inform", "twice-at-once")
+    ] * 2
 
 
 def _break_reply(p: Pair, conv: str) -> None:
