@@ -768,8 +768,10 @@ class InterfaceAgent:
         self._lane_on = False  # the inbox is opened on the transport's thread (`_lane_take`)
         self._lane_inbox: Inbox[Any] | None = None  # its queue for the loop, then
         self._lane_lock = threading.Lock()
-        # per peer: its messages queued for the event loop or being taken there, and the
-        # one the lane is deciding; the lane answers only when it is the peer's only one
+        # per peer: its ACL envelopes queued for the event loop or being taken there, and
+        # the one the lane is deciding; the lane answers only when it is the peer's only one
+        # (its key exchanges, directory statements and leave come on keys of their own,
+        # which zenoh orders with none of these: not counted)
         self._lane_queued: dict[str, int] = {}
         self._lane_raw = 0  # queued unopened (`_RAW`) or taken by the loop: none answered before
         # answered on the transport's thread, to be counted and audited on the loop
