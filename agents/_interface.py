@@ -1905,15 +1905,12 @@ class InterfaceAgent:
         return True
 
     def _lane_records(self, entries: list[tuple[Any, ...]]) -> None:
-        """The audit records of what the lane answered; one that fails costs only itself."""
+        """The audit records of what the lane answered; one add that raises costs only itself
+        (not made again one by one: records kept before it raised would be doubled)."""
         try:
             self.audit.add_accepted(entries)
         except Exception:
-            for entry in entries:  # one at a time: which one failed
-                try:
-                    self.audit.add_accepted((entry,))
-                except Exception:
-                    self._lane_failed("recording the answer", entry[1], entry)
+            self._lane_failed(f"recording {len(entries)} answers", entries[0][1], entries[0])
 
     def _lane_failed(self, what: str, peer: str, item: Any) -> None:
         """One booking or hand-over of `_lane_book` raised: logged once, counted, skipped."""
