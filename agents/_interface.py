@@ -618,7 +618,9 @@ class InterfaceAgent:
     for the loop; counted in ``answered_on_thread`` (docs/agents.md says what runs where).
     With ``lane_replies`` (default on) a reply one of the agents' open conversations waits
     for, opened and parsed there, is taken on the loop in the callback that books what the
-    lane answered: no task of the loop's between (counted in ``replies_on_thread``).
+    lane answered: no task of the loop's between (counted in ``replies_on_thread``). A
+    booking or hand-over there that raises costs only itself (logged, counted in
+    ``lane_failed``).
     """
 
     def __init__(
@@ -766,8 +768,10 @@ class InterfaceAgent:
         self._lane_on = False  # the inbox is opened on the transport's thread (`_lane_take`)
         self._lane_inbox: Inbox[Any] | None = None  # its queue for the loop, then
         self._lane_lock = threading.Lock()
-        # per peer: its messages queued for the event loop or being taken there, and the
-        # one the lane is deciding; the lane answers only when it is the peer's only one
+        # per peer: its ACL envelopes queued for the event loop or being taken there, and
+        # the one the lane is deciding; the lane answers only when it is the peer's only one
+        # (its key exchanges, directory statements and leave come on keys of their own,
+        # which zenoh orders with none of these: not counted)
         self._lane_queued: dict[str, int] = {}
         self._lane_raw = 0  # queued unopened (`_RAW`) or taken by the loop: none answered before
         # answered on the transport's thread, to be counted and audited on the loop
@@ -787,6 +791,7 @@ class InterfaceAgent:
         # meanwhile goes to it unopened, as while the inbox holds anything
         self._lane_handed = False
         self.replies_on_thread = 0  # replies opened and parsed there, taken by `_lane_book`
+        self.lane_failed = 0  # bookings and hand-overs `_lane_book` skipped as they raised
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -1792,9 +1797,10 @@ class InterfaceAgent:
         """On the loop: what `_receive` does with a reply the lane opened and parsed; False:
         nothing taken, `_receive` must take it in full (`_lane_book` queues it back)."""
         if forgets != self.sessions.forgotten(peer):
-            # revoked since it opened: refused as `_receive` refuses it
-            self._lane_release(peer)
+            # revoked since it opened: refused as `_receive` refuses it (released last: one
+            # that raises is released by `_lane_book`, once)
             self._not_opened(host.stats, self._forgotten_since(peer))
+            self._lane_release(peer)
             return True
         if self.mirroring or len(body) > self.max_bytes:
             return False
@@ -1817,8 +1823,24 @@ class InterfaceAgent:
     def _lane_book(self, current: tuple[Any, ...] | None = None) -> bool:
         """On the loop: count, audit and renew for what the lane answered, as `_take_now` would,
         and take the replies it handed over; True: one went back to the inbox (the loop
-        takes it in full), with ``current``, the item `_receive` took, behind it."""
+        takes it in full), with ``current``, the item `_receive` took, behind it.
+
+        A booking or hand-over that raises costs only itself: logged with what failed,
+        counted in ``lane_failed``, its peer's count released; the others are made."""
+        inbox = self._lane_inbox
         with self._lane_lock:
+            if (
+                current is None
+                and self._lane_handed
+                and self._lane_on
+                and inbox is not None
+                and inbox._items
+            ):
+                # A reply handed over, and what came after it already queued: the inbox's
+                # consumer books it before its next take, in the same turn as what follows
+                # it, as it takes a reply and what follows from the inbox (a duplicate is
+                # then in the conversation before its task runs, not late after it)
+                return False
             self._lane_posted = self._lane_reply_posted = self._lane_handed = False
             done, self._lane_done = self._lane_done, deque()
         host = self._host
@@ -1834,39 +1856,66 @@ class InterfaceAgent:
             item = done.popleft()
             if len(item) == 4:  # a reply (`_lane_reply`)
                 if entries:  # the records in arrival order
-                    self.audit.add_accepted(entries)
+                    self._lane_records(entries)
                     entries = []
                 peer, body, message, forgets = item
-                if peer in behind or not self._lane_take_reply(host, peer, body, message, forgets):
+                if peer in behind:
+                    back.append((peer, body, forgets))
+                    continue
+                try:
+                    taken = self._lane_take_reply(host, peer, body, message, forgets)
+                except Exception:
+                    self._lane_failed("taking the reply handed over", peer, message)
+                    self._lane_release(peer)
+                    continue
+                if not taken:
                     back.append((peer, body, forgets))
                     behind.add(peer)
                 continue
             peer, entry, agent = item
-            state = self._senders.get(peer)
-            if state is not None:
-                state.stats.accepted += 1
-            stats.received_remote += 1
-            stats.local += 1
-            stats.sent_remote += 1
-            agent_stats = agent.stats
-            agent_stats.received += 1
-            agent_stats.handled += 1
-            agent_stats.answered_at_once += 1
+            try:
+                state = self._senders.get(peer)
+                if state is not None:
+                    state.stats.accepted += 1
+                stats.received_remote += 1
+                stats.local += 1
+                stats.sent_remote += 1
+                agent_stats = agent.stats
+                agent_stats.received += 1
+                agent_stats.handled += 1
+                agent_stats.answered_at_once += 1
+            except Exception:
+                self._lane_failed("counting the answer", peer, entry)
             self.answered_on_thread += 1
             entries.append(entry)
             peers.add(peer)
         if entries:
-            self.audit.add_accepted(entries)
+            self._lane_records(entries)
         for peer in peers:
-            self.renew_if_needed(peer)
+            try:
+                self.renew_if_needed(peer)
+            except Exception:
+                self._lane_failed("renewing the session of its answers", peer, None)
         if not back:
             return False
         if current is not None:
             back.append(current)
-        inbox = self._lane_inbox
         if inbox is not None:
             inbox.put_front(back)
         return True
+
+    def _lane_records(self, entries: list[tuple[Any, ...]]) -> None:
+        """The audit records of what the lane answered; one add that raises costs only itself
+        (not made again one by one: records kept before it raised would be doubled)."""
+        try:
+            self.audit.add_accepted(entries)
+        except Exception:
+            self._lane_failed(f"recording {len(entries)} answers", entries[0][1], entries[0])
+
+    def _lane_failed(self, what: str, peer: str, item: Any) -> None:
+        """One booking or hand-over of `_lane_book` raised: logged once, counted, skipped."""
+        self.lane_failed += 1
+        log.exception("interface[%s]: %s from %s failed: %.200r", self._me, what, peer, item)
 
     async def _batch_items(self, host: AgentPlatform, peer: str, body: bytes) -> list[Any]:
         """The messages (decoded, not yet checked) of a batch; none when it is malformed."""

@@ -347,15 +347,19 @@ def channel_path(config: PlatformConfig, keys: KeyPair | None = None) -> Path:
     if keys is None:
         keys = _keys_of(config)
     runtime = os.environ.get("XDG_RUNTIME_DIR")
-    short = Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"
-    base = Path(runtime) / "dyknow" if runtime else short
+    base = Path(runtime) / "dyknow" if runtime else _tmp_top()
     path = base / config.federation / f"{config.name}-{keys.fingerprint}.sock"
     if len(os.fsencode(path)) > _SUN_PATH:
         # a socket's path has ~107 bytes at most: a short one named by the long one's hash
         # (the long one names the key's fingerprint, so the hash stands for it too)
         digest = hashlib.sha256(os.fsencode(path)).hexdigest()[:24]
-        path = short / f"{digest}.sock"
+        path = _tmp_top() / f"{digest}.sock"
     return path
+
+
+def _tmp_top() -> Path:
+    """``<tmp>/dyknow-<uid>``: asked for only when needed (finding ``<tmp>`` may fail)."""
+    return Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"
 
 
 def _keys_of(config: PlatformConfig) -> KeyPair:
@@ -394,12 +398,13 @@ def _own_top(path: Path) -> Path:
     directory above it is the system's, never checked nor changed.
     """
     runtime = os.environ.get("XDG_RUNTIME_DIR")
-    tops = [Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"]
     if runtime:
-        tops.insert(0, Path(runtime) / "dyknow")
-    for top in tops:
+        top = Path(runtime) / "dyknow"
         if top == path or top in path.parents:
             return top
+    top = _tmp_top()
+    if top == path or top in path.parents:
+        return top
     return path
 
 
