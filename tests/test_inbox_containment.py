@@ -247,3 +247,40 @@ async def test_interrupts_and_cancellation_pass_through_the_consumer(
             await ia._receive(one())  # type: ignore[arg-type]
         assert ia.inbox_failed == 0 and ia._lane_queued == {}
         assert not [r for r in caplog.records if "failed" in r.getMessage()]
+
+
+@pytest.mark.parametrize("raw", [False, True], ids=["opened-on-the-lane", "left-unopened"])
+async def test_the_lanes_count_an_envelope_held_is_released_when_it_raises(raw: bool) -> None:
+    """The consumer driven with what hub's lane queued for it: uav-a's envelope that raises
+    (opened there, or left unopened as behind others) releases the count it held, once, and
+    the consumer takes uav-a's next envelope after it."""
+    async with trio(lane=True) as t:
+        ia = t.ia
+        agent = t.senders["uav-a"]
+        seal = agent.platform.channel.sessions.seal  # type: ignore[union-attr]
+
+        def envelope(content: str) -> bytes:
+            message = agent.message(
+                Performative.INFORM, t.sink.aid, content, ontology="demo", conversation_id=content
+            )
+            return seal("hub", message.to_json())
+
+        if raw:
+            ia._lane_raw += 1  # as while the loop opens others: this one goes unopened
+        items = [ia._lane_take(envelope(POISON)), ia._lane_take(envelope("next"))]
+        if raw:
+            ia._lane_raw -= 1
+        assert all(item is not None for item in items)
+        assert ia._lane_raw == (2 if raw else 0)
+        assert ia._lane_queued == ({} if raw else {"uav-a": 2})
+        raised = _poisoned(ia, "_take_now")
+
+        async def queued() -> AsyncIterator[Any]:
+            for item in items:
+                yield item
+
+        await ia._receive(queued())  # type: ignore[arg-type]
+        await t.until_got("next")
+        assert raised == ["_take_now"] and ia.inbox_failed == 1
+        assert POISON not in t.sink.got
+        assert ia._lane_raw == 0 and ia._lane_queued == {}
