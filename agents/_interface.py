@@ -620,7 +620,8 @@ class InterfaceAgent:
     for, opened and parsed there, is taken on the loop in the callback that books what the
     lane answered: no task of the loop's between (counted in ``replies_on_thread``). A
     booking or hand-over there that raises costs only itself (logged, counted in
-    ``lane_failed``).
+    ``lane_failed``). So does an envelope whose taking raises on the loop, with or without
+    the lane (logged, counted in ``inbox_failed``): the inbox's consumer goes on.
     """
 
     def __init__(
@@ -792,6 +793,7 @@ class InterfaceAgent:
         self._lane_handed = False
         self.replies_on_thread = 0  # replies opened and parsed there, taken by `_lane_book`
         self.lane_failed = 0  # bookings and hand-overs `_lane_book` skipped as they raised
+        self.inbox_failed = 0  # items the inbox's consumer (`_receive`) skipped as they raised
 
     # -- RemoteChannel ----------------------------------------------------------------
 
@@ -1399,11 +1401,15 @@ class InterfaceAgent:
     # -- receiving ----------------------------------------------------------------------------
 
     async def _receive(self, inbox: Subscription[Any]) -> None:
+        """The inbox's consumer: each ACL envelope opened (unless the lane did), taken.
+
+        An item whose taking raises costs only itself: logged with what failed, counted in
+        ``inbox_failed``, the lane's count it held released; the consumer goes on (else
+        nothing of any peer would be taken any more)."""
         host = self._require_host()
         open_envelope = self.sessions.open
         stats = host.stats
         lane = self._lane_on
-        raw = False  # the item being taken was opened here (`_RAW`), not on the lane
         n = 0
         async for item in inbox:
             n += 1
@@ -1411,39 +1417,53 @@ class InterfaceAgent:
                 # Getting a queued item never suspends, and dropping one is cheap: without
                 # this a flood would hold the loop, and no agent would run to answer others.
                 await asyncio.sleep(0)
-            if lane:  # opened on the transport's thread (`_lane_take`)
-                if self._lane_done and self._lane_book(item):
-                    # what the lane answered or handed over before this came is booked
-                    # (and the replies taken) before it is taken: its posted booking waits
-                    # behind this turn when the inbox was being drained (no wake-up of its
-                    # own put it in the queue). True: a reply went back to the inbox, and
-                    # this item behind it
-                    continue
-                peer, body = item[0], item[1]  # (None, error): it did not open
-                if peer is _RAW:  # several lanes in this process: opened here (`_Lanes`)
+            peer = None
+            # the lane's count the item holds until it is done with: its peer's (an
+            # envelope the lane opened) or one of those left unopened (`_RAW`)
+            held: Any = None
+            what = "opening the envelope"
+            try:
+                if lane:  # opened on the transport's thread (`_lane_take`)
+                    if self._lane_done and self._lane_book_before(item):
+                        # what the lane answered or handed over before this came is booked
+                        # (and the replies taken) before it is taken: its posted booking
+                        # waits behind this turn when the inbox was being drained (no
+                        # wake-up of its own put it in the queue). True: a reply went back
+                        # to the inbox, and this item behind it
+                        continue
+                    peer, body = item[0], item[1]  # (None, error): it did not open
+                    if peer is _RAW:  # several lanes in this process: opened here (`_Lanes`)
+                        held, peer = _RAW, None
+                        try:
+                            peer, body = open_envelope(body)
+                        except Exception as exc:
+                            held = None
+                            self._lane_raw_release()
+                            what = "refusing the envelope"
+                            self._not_opened(stats, exc)
+                            continue
+                    elif peer is None:
+                        what = "refusing the envelope"
+                        self._not_opened(stats, body)
+                        continue
+                    else:
+                        held = peer
+                        if item[2] != self.sessions.forgotten(peer):
+                            # its sessions were forgotten since it opened (revoked): refused
+                            # as the loop's own open of it now would refuse it
+                            held = None
+                            self._lane_release(peer)
+                            what = "refusing the envelope"
+                            self._not_opened(stats, self._forgotten_since(peer))
+                            continue
+                else:
                     try:
-                        peer, body = open_envelope(body)
+                        peer, body = open_envelope(item.payload)
                     except Exception as exc:
-                        self._lane_raw_release()
+                        what = "refusing the envelope"
                         self._not_opened(stats, exc)
                         continue
-                    raw = True
-                elif peer is None:
-                    self._not_opened(stats, body)
-                    continue
-                elif item[2] != self.sessions.forgotten(peer):
-                    # its sessions were forgotten since it opened (revoked): refused as the
-                    # loop's own open of it now would refuse it
-                    self._lane_release(peer)
-                    self._not_opened(stats, self._forgotten_since(peer))
-                    continue
-            else:
-                try:
-                    peer, body = open_envelope(item.payload)
-                except Exception as exc:
-                    self._not_opened(stats, exc)
-                    continue
-            try:
+                what = "taking the message"
                 state = self._senders.get(peer)
                 if state is None:
                     state = self._sender(host, peer)
@@ -1453,6 +1473,7 @@ class InterfaceAgent:
                     if not taken:
                         await self._take(host, peer, state, body)
                     continue
+                what = "taking the batch"
                 items = await self._batch_items(host, peer, body)
                 now = self._monotonic()  # one reading: the batch arrived at once
                 i, end = 0, len(items)
@@ -1468,14 +1489,29 @@ class InterfaceAgent:
                     if n >= 64:
                         n = 0
                         await asyncio.sleep(0)
+            except Exception:
+                self._inbox_failed(what, peer, item)
             finally:
-                if not lane:
+                if held is None:
                     pass
-                elif raw:
-                    raw = False
+                elif held is _RAW:
                     self._lane_raw_release()
                 else:
-                    self._lane_release(peer)
+                    self._lane_release(held)
+
+    def _lane_book_before(self, item: tuple[Any, ...]) -> bool:
+        """`_lane_book` before the inbox's consumer takes ``item``; one that raises (beyond
+        what it contains itself) costs only itself, and ``item`` is taken as usual."""
+        try:
+            return self._lane_book(item)
+        except Exception:
+            self._lane_failed("booking what the lane took before an envelope", "?", item)
+            return False
+
+    def _inbox_failed(self, what: str, peer: str | None, item: Any) -> None:
+        """Taking one item of the inbox raised: logged once, counted, skipped."""
+        self.inbox_failed += 1
+        log.exception("interface[%s]: %s from %s failed: %.200r", self._me, what, peer or "?", item)
 
     def _forgotten_since(self, peer: str) -> AuthenticationError:
         """What opening an envelope of ``peer`` says now that its sessions are forgotten."""

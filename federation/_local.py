@@ -228,7 +228,8 @@ _SHORT_OF = {errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM}
 
 
 class LocalChannelError(OSError):
-    """This host lacks what looking at the local channel takes (file descriptors, memory)."""
+    """This host lacks what looking at the local channel takes (file descriptors, memory),
+    or a usable directory to place it in."""
 
 
 def _cannot_look(path: Path, exc: OSError) -> LocalChannelError:
@@ -342,24 +343,46 @@ def channel_path(config: PlatformConfig, keys: KeyPair | None = None) -> Path:
     made 0700. ``<fingerprint>``: of the platform's public key (of ``keys``, or read from
     ``config.key``; NodeUnreachable when it cannot be), so two deployments that use the same
     names with other keys have channels of their own. A path too long for a socket becomes
-    ``<tmp>/dyknow-<uid>/<its hash>.sock``.
+    ``<tmp>/dyknow-<uid>/<its hash>.sock``. LocalChannelError when ``<tmp>`` is needed and
+    there is no usable temporary directory.
     """
     if keys is None:
         keys = _keys_of(config)
     runtime = os.environ.get("XDG_RUNTIME_DIR")
-    base = Path(runtime) / "dyknow" if runtime else _tmp_top()
+    if runtime:
+        base = Path(runtime) / "dyknow"
+    else:
+        try:
+            base = _tmp_top()
+        except OSError as exc:
+            raise _no_tmp(config, "without $XDG_RUNTIME_DIR it goes there", exc) from None
     path = base / config.federation / f"{config.name}-{keys.fingerprint}.sock"
-    if len(os.fsencode(path)) > _SUN_PATH:
+    size = len(os.fsencode(path))
+    if size > _SUN_PATH:
         # a socket's path has ~107 bytes at most: a short one named by the long one's hash
         # (the long one names the key's fingerprint, so the hash stands for it too)
         digest = hashlib.sha256(os.fsencode(path)).hexdigest()[:24]
-        path = _tmp_top() / f"{digest}.sock"
+        try:
+            path = _tmp_top() / f"{digest}.sock"
+        except OSError as exc:
+            why = f"its path {path} is {size} bytes, too long for a socket ({_SUN_PATH} at most)"
+            raise _no_tmp(config, why, exc, "or XDG_RUNTIME_DIR to a shorter one") from None
     return path
 
 
 def _tmp_top() -> Path:
     """``<tmp>/dyknow-<uid>``: asked for only when needed (finding ``<tmp>`` may fail)."""
     return Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"
+
+
+def _no_tmp(config: PlatformConfig, why: str, exc: OSError, more: str = "") -> LocalChannelError:
+    """The local channel of ``config`` needs the temporary directory (``why``), and there is
+    no usable one (``exc``, `tempfile.gettempdir`'s): what to set, in words."""
+    return LocalChannelError(
+        f"cannot place the local channel of platform {config.name!r} under the temporary "
+        f"directory ({why}): there is no usable one ({exc}); set TMPDIR to a directory "
+        f"this user may write{', ' + more if more else ''}"
+    )
 
 
 def _keys_of(config: PlatformConfig) -> KeyPair:

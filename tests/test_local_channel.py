@@ -5,6 +5,7 @@ when the runtime path is too long for a socket."""
 
 from __future__ import annotations
 
+import asyncio
 import os
 import shutil
 import stat
@@ -16,7 +17,13 @@ import pytest
 
 from agents._security import KeyPair
 from federation import PlatformConfig
-from federation._local import _SUN_PATH, _private_dir, channel_path
+from federation._local import (
+    _SUN_PATH,
+    LocalChannelError,
+    _private_dir,
+    channel_path,
+    via_node,
+)
 
 
 def _config(tmp_path: Path) -> PlatformConfig:
@@ -64,5 +71,32 @@ def test_a_runtime_path_too_long_for_a_socket_goes_under_the_temporary_directory
     assert path.parent == Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"
     assert len(os.fsencode(path)) <= _SUN_PATH and path.suffix == ".sock"
     monkeypatch.setattr(tempfile, "gettempdir", _no_tmp)
-    with pytest.raises(FileNotFoundError):  # needed here: its error is the caller's to see
+    # needed here and missing: the module's error for a channel this host cannot have, an
+    # OSError (what the node's start and the commands report in one line), saying why
+    with pytest.raises(LocalChannelError) as raised:
         channel_path(config, keys)
+    said = str(raised.value)
+    assert "cannot place the local channel of platform 'uav-a'" in said
+    assert "too long for a socket" in said and "No usable temporary directory" in said
+    assert "set TMPDIR" in said and "XDG_RUNTIME_DIR to a shorter one" in said
+    assert isinstance(raised.value, OSError) and raised.value.__cause__ is None
+
+
+def test_without_a_runtime_directory_no_temporary_one_is_a_clear_error(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """No $XDG_RUNTIME_DIR and no usable <tmp>: LocalChannelError naming both, for the
+    node's start (`LocalChannel`) and a command reaching its node (`via_node`) alike."""
+    monkeypatch.delenv("XDG_RUNTIME_DIR", raising=False)
+    monkeypatch.setattr(tempfile, "gettempdir", _no_tmp)
+    config, keys = _config(tmp_path), KeyPair.generate("uav-a")
+    with pytest.raises(LocalChannelError, match=r"without \$XDG_RUNTIME_DIR .* set TMPDIR"):
+        channel_path(config, keys)
+    keys.save(tmp_path)  # uav-a.key, the config's key: the command reads it
+
+    async def reach() -> None:
+        async for _ in via_node(config, {"platforms": True}):
+            pass
+
+    with pytest.raises(LocalChannelError, match="no usable one"):
+        asyncio.run(reach())
