@@ -120,7 +120,6 @@ from agents import (
 )
 from agents.transports import (
     MqttConfig,
-    MqttTransport,
     Presence,
     Subscription,
     Transport,
@@ -649,6 +648,8 @@ class PlatformConfig(BaseModel):
         """A transport (not yet opened) as ``[transport]`` describes it."""
         if isinstance(self.transport, ZenohSettings):
             return ZenohTransport(self.transport)
+        from agents.transports import MqttTransport  # only a platform on MQTT imports it
+
         return MqttTransport(self.transport)
 
 
