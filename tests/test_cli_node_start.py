@@ -191,7 +191,8 @@ def test_the_node_generates_the_methods_of_few_dataclasses_at_its_start() -> Non
     ]
 
 
-# a zenoh node run to ready; then which transports it imported, and it stops as on SIGTERM
+# a zenoh node run to ready; then which transports it imported and whether it built a rare
+# request's validator, and it stops as on SIGTERM
 _ZENOH_NODE = """
 import json, os, signal, sys
 import federation._cli_node as node
@@ -199,7 +200,9 @@ def say(text):
     print(text, flush=True)
     if " ready in federation " in text:
         mods = [m for m in sys.modules if m.startswith(("agents.transports.", "aiomqtt", "paho"))]
-        print(json.dumps(sorted(mods)), flush=True)
+        from federation._gateway_service import PolicySpec
+        built = PolicySpec.__pydantic_complete__
+        print(json.dumps({"imported": sorted(mods), "policy_spec_built": built}), flush=True)
         os.kill(os.getpid(), signal.SIGTERM)
 node.say = say
 from federation.cli import main
@@ -207,9 +210,12 @@ sys.exit(main(["node", "-c", sys.argv[1]]))
 """
 
 
-def test_a_zenoh_node_runs_without_importing_the_other_transports(tmp_path: Path) -> None:
+def test_a_zenoh_node_runs_without_the_other_transports_nor_a_rare_validator(
+    tmp_path: Path,
+) -> None:
     # the MQTT and in-memory transports are imported at their first use: a zenoh node
-    # holds neither's code (nor the MQTT client's) for as long as it runs
+    # holds neither's code (nor the MQTT client's) for as long as it runs, and builds no
+    # validator for the policy of a request to share until one comes
     from agents.keys import gen_keys, trust_keys
 
     federation = f"start-{uuid.uuid4().hex[:12]}"
@@ -233,12 +239,14 @@ def test_a_zenoh_node_runs_without_importing_the_other_transports(tmp_path: Path
     assert done.returncode == 0, done.stderr
     lines = done.stdout.splitlines()
     assert any(" ready in federation " in line for line in lines), done.stdout
-    imported = json.loads(next(line for line in lines if line.startswith("[")))
-    assert imported == [
+    found = json.loads(next(line for line in lines if line.startswith("{")))
+    assert found["imported"] == [
         "agents.transports._base",
         "agents.transports._mqtt_config",
         "agents.transports._zenoh",
     ]
+    # the policy of a request to share is validated when the first such request comes
+    assert found["policy_spec_built"] is False
 
 
 def test_the_transports_imported_at_first_use_are_still_where_they_were() -> None:
