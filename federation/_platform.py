@@ -197,6 +197,10 @@ class PlatformConfigError(ValueError):
 # every table of the file: a limit of inf (or nan) is a number TOML reads, and none of ours
 # means anything with it; refused here, naming file, table and key, not at start-up
 _SETTINGS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+# a table of PlatformConfig's: its checks are part of PlatformConfig's validator, and a table
+# left out is its defaults, constructed (what validating nothing gives); its own validator is
+# built only if something validates the table alone
+_TABLE = ConfigDict(**_SETTINGS, defer_build=True)
 
 
 class ZenohSettings(ZenohConfig):
@@ -225,7 +229,7 @@ _Limit = TypeVar("_Limit", RateLimit, KxLimit, DfEventLimit)
 class _LimitSettings(BaseModel):
     """A limit's table: ``enabled`` and the keyword arguments of the limit it builds."""
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     enabled: bool = True
 
@@ -233,7 +237,9 @@ class _LimitSettings(BaseModel):
         """The ``kind`` these settings describe, or None when disabled."""
         if not self.enabled:
             return None
-        return kind(**self.model_dump(exclude={"enabled"}))
+        # its fields as they are (numbers): a dump would build the table's serializer
+        fields = type(self).model_fields
+        return kind(**{name: getattr(self, name) for name in fields if name != "enabled"})
 
 
 class RateLimitSettings(_LimitSettings):
@@ -263,7 +269,7 @@ class ConsoleRoles(BaseModel):
     listed together.
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     positions: str | None = None
     areas: str | None = None
@@ -310,10 +316,10 @@ class ConsoleSettings(BaseModel):
     (of 128 in all; behind a shared proxy every client has the proxy's address).
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     streams: tuple[Annotated[str, Field(min_length=1)], ...] = ()
-    roles: ConsoleRoles = Field(default_factory=ConsoleRoles)
+    roles: ConsoleRoles = Field(default_factory=ConsoleRoles.model_construct)
     allow_hosts: tuple[str, ...] = ()
     token_file: Path | None = None
     idle_timeout: float = Field(default=15.0, gt=0.0, le=3600.0)
@@ -361,7 +367,7 @@ class FoxgloveSettings(BaseModel):
     and an Electron app's ``file://``); one without an ``Origin`` is no browser page.
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     streams: tuple[Annotated[str, Field(min_length=1)], ...] | None = None
     roles: ConsoleRoles | None = None
@@ -422,7 +428,7 @@ class SecuritySettings(BaseModel):
     published). ``watch``: the owner may watch what arrives (``dyknow watch``).
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     encrypt: bool = True
     require_encryption: bool | None = None
@@ -500,7 +506,7 @@ class FactSettings(BaseModel):
     ``FederationPlatform(rules=…)``.
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     predicate: str
     stream: str
@@ -557,17 +563,19 @@ class PlatformConfig(BaseModel):
     # an export whose receiver has not reported for this long ends ("lease-expired")
     # at least 4 of the receivers' report intervals (0.5 s): a shorter one ends live exports
     export_lease: float | None = Field(default=10.0, ge=2.0, le=86400)
-    rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings)
-    security: SecuritySettings = Field(default_factory=SecuritySettings)
-    kx_limit: KxLimitSettings = Field(default_factory=KxLimitSettings)
-    df_event_limit: DfEventLimitSettings = Field(default_factory=DfEventLimitSettings)
+    rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings.model_construct)
+    security: SecuritySettings = Field(default_factory=SecuritySettings.model_construct)
+    kx_limit: KxLimitSettings = Field(default_factory=KxLimitSettings.model_construct)
+    df_event_limit: DfEventLimitSettings = Field(
+        default_factory=DfEventLimitSettings.model_construct
+    )
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
     # a flood must not fill the disk: the audit file's bound, and the rotated files kept
     audit_max_bytes: int = Field(default=AuditLog.DEFAULT_MAX_BYTES, ge=4096)
     audit_backups: int = Field(default=AuditLog.DEFAULT_BACKUPS, ge=0, le=1000)
-    console: ConsoleSettings = Field(default_factory=ConsoleSettings)
-    foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
+    console: ConsoleSettings = Field(default_factory=ConsoleSettings.model_construct)
+    foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings.model_construct)
     facts: list[FactSettings] = Field(default_factory=_no_items)
 
     # -- the application on this node (docs/application.md): run by `dyknow node` --------
