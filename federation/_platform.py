@@ -559,7 +559,7 @@ class PlatformConfig(BaseModel):
     history_limit_per_platform: int = Field(default=200_000, ge=0)
     # streams one sender holds here by consent (another member, or itself, asked), started too
     consented_import_limit: int = Field(default=256, ge=0)
-    sharing: SharingSettings = Field(default_factory=SharingSettings)
+    sharing: SharingSettings = Field(default_factory=SharingSettings.model_construct)
     # an export whose receiver has not reported for this long ends ("lease-expired")
     # at least 4 of the receivers' report intervals (0.5 s): a shorter one ends live exports
     export_lease: float | None = Field(default=10.0, ge=2.0, le=86400)

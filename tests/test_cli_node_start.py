@@ -261,7 +261,6 @@ def test_a_zenoh_node_runs_without_the_other_transports_nor_rare_validators(
         "dyknow_core._policy.Change",
         "dyknow_core._policy.Policy",
         "federation._platform.PlatformConfig",  # its config
-        "federation._sharing.SharingSettings",
     ]
 
 
