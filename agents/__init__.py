@@ -1,5 +1,7 @@
 """Agents: FIPA-ACL speech acts, asyncio agents, protocols, Directory Facilitator, transports."""
 
+from typing import TYPE_CHECKING, Any
+
 from ._acl import (
     MAX_MESSAGE_BYTES,
     WIRE_VERSION,
@@ -108,7 +110,10 @@ from ._security import (
     watch_request,
     watch_time,
 )
-from .transports import MemoryHub, MemoryTransport, Transport
+from .transports import Transport
+
+if TYPE_CHECKING:
+    from .transports import MemoryHub, MemoryTransport
 
 __all__ = [
     "DEFAULT_TIMEOUT",
@@ -216,3 +221,14 @@ __all__ = [
     "watch_time",
     "wire_key",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """The in-memory transport, imported at its first use (a platform speaks another)."""
+    if name in ("MemoryHub", "MemoryTransport"):
+        from . import transports
+
+        value = getattr(transports, name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

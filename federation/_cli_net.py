@@ -29,7 +29,7 @@ from agents import (
     watch_time,
     wire_key,
 )
-from agents.transports import MqttConfig, MqttTransport, Transport, ZenohConfig, ZenohTransport
+from agents.transports import MqttConfig, Transport, ZenohConfig, ZenohTransport
 
 from ._cli_common import (
     NotAnsweredError,
@@ -787,6 +787,8 @@ def watcher_transport(config: PlatformConfig) -> Transport:
         mode = "client" if t.mode == "client" else "peer"
         return ZenohTransport(t.model_copy(update={"listen": (), "connect": connect, "mode": mode}))
     assert isinstance(t, MqttConfig)
+    from agents.transports import MqttTransport  # only a platform on MQTT imports it
+
     return MqttTransport(
         t.model_copy(update={"client_id": f"dyknow-watch-{uuid.uuid4().hex[:12]}"})
     )

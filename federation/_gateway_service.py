@@ -134,14 +134,16 @@ class CreateStream(_Content):
     action: Literal["create-stream"]
     label: str
     output: str
-    policy: PolicySpec = PolicySpec()
+    # constructed, not validated: the default is PolicySpec(), and its validator is built
+    # when the first request that carries a policy arrives, not at every platform's start
+    policy: PolicySpec = PolicySpec.model_construct()
 
 
 class Subscribe(_Content):
     """Content of a FIPA-Subscribe: the label and the policy its informs follow."""
 
     label: str
-    policy: PolicySpec = PolicySpec()
+    policy: PolicySpec = PolicySpec.model_construct()  # as CreateStream's
 
 
 _SCALARS = (str, int, float, bool, type(None))

@@ -120,7 +120,6 @@ from agents import (
 )
 from agents.transports import (
     MqttConfig,
-    MqttTransport,
     Presence,
     Subscription,
     Transport,
@@ -198,6 +197,10 @@ class PlatformConfigError(ValueError):
 # every table of the file: a limit of inf (or nan) is a number TOML reads, and none of ours
 # means anything with it; refused here, naming file, table and key, not at start-up
 _SETTINGS = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+# a table of PlatformConfig's: its checks are part of PlatformConfig's validator, and a table
+# left out is its defaults, constructed (what validating nothing gives); its own validator is
+# built only if something validates the table alone
+_TABLE = ConfigDict(**_SETTINGS, defer_build=True)
 
 
 class ZenohSettings(ZenohConfig):
@@ -226,7 +229,7 @@ _Limit = TypeVar("_Limit", RateLimit, KxLimit, DfEventLimit)
 class _LimitSettings(BaseModel):
     """A limit's table: ``enabled`` and the keyword arguments of the limit it builds."""
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     enabled: bool = True
 
@@ -234,7 +237,9 @@ class _LimitSettings(BaseModel):
         """The ``kind`` these settings describe, or None when disabled."""
         if not self.enabled:
             return None
-        return kind(**self.model_dump(exclude={"enabled"}))
+        # its fields as they are (numbers): a dump would build the table's serializer
+        fields = type(self).model_fields
+        return kind(**{name: getattr(self, name) for name in fields if name != "enabled"})
 
 
 class RateLimitSettings(_LimitSettings):
@@ -264,7 +269,7 @@ class ConsoleRoles(BaseModel):
     listed together.
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     positions: str | None = None
     areas: str | None = None
@@ -311,10 +316,10 @@ class ConsoleSettings(BaseModel):
     (of 128 in all; behind a shared proxy every client has the proxy's address).
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     streams: tuple[Annotated[str, Field(min_length=1)], ...] = ()
-    roles: ConsoleRoles = Field(default_factory=ConsoleRoles)
+    roles: ConsoleRoles = Field(default_factory=ConsoleRoles.model_construct)
     allow_hosts: tuple[str, ...] = ()
     token_file: Path | None = None
     idle_timeout: float = Field(default=15.0, gt=0.0, le=3600.0)
@@ -362,7 +367,7 @@ class FoxgloveSettings(BaseModel):
     and an Electron app's ``file://``); one without an ``Origin`` is no browser page.
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     streams: tuple[Annotated[str, Field(min_length=1)], ...] | None = None
     roles: ConsoleRoles | None = None
@@ -423,7 +428,7 @@ class SecuritySettings(BaseModel):
     published). ``watch``: the owner may watch what arrives (``dyknow watch``).
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     encrypt: bool = True
     require_encryption: bool | None = None
@@ -501,7 +506,7 @@ class FactSettings(BaseModel):
     ``FederationPlatform(rules=…)``.
     """
 
-    model_config = _SETTINGS
+    model_config = _TABLE
 
     predicate: str
     stream: str
@@ -554,21 +559,23 @@ class PlatformConfig(BaseModel):
     history_limit_per_platform: int = Field(default=200_000, ge=0)
     # streams one sender holds here by consent (another member, or itself, asked), started too
     consented_import_limit: int = Field(default=256, ge=0)
-    sharing: SharingSettings = Field(default_factory=SharingSettings)
+    sharing: SharingSettings = Field(default_factory=SharingSettings.model_construct)
     # an export whose receiver has not reported for this long ends ("lease-expired")
     # at least 4 of the receivers' report intervals (0.5 s): a shorter one ends live exports
     export_lease: float | None = Field(default=10.0, ge=2.0, le=86400)
-    rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings)
-    security: SecuritySettings = Field(default_factory=SecuritySettings)
-    kx_limit: KxLimitSettings = Field(default_factory=KxLimitSettings)
-    df_event_limit: DfEventLimitSettings = Field(default_factory=DfEventLimitSettings)
+    rate_limit: RateLimitSettings = Field(default_factory=RateLimitSettings.model_construct)
+    security: SecuritySettings = Field(default_factory=SecuritySettings.model_construct)
+    kx_limit: KxLimitSettings = Field(default_factory=KxLimitSettings.model_construct)
+    df_event_limit: DfEventLimitSettings = Field(
+        default_factory=DfEventLimitSettings.model_construct
+    )
     import_label: str = DEFAULT_IMPORT_LABEL
     audit: Path | None = None
     # a flood must not fill the disk: the audit file's bound, and the rotated files kept
     audit_max_bytes: int = Field(default=AuditLog.DEFAULT_MAX_BYTES, ge=4096)
     audit_backups: int = Field(default=AuditLog.DEFAULT_BACKUPS, ge=0, le=1000)
-    console: ConsoleSettings = Field(default_factory=ConsoleSettings)
-    foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings)
+    console: ConsoleSettings = Field(default_factory=ConsoleSettings.model_construct)
+    foxglove: FoxgloveSettings = Field(default_factory=FoxgloveSettings.model_construct)
     facts: list[FactSettings] = Field(default_factory=_no_items)
 
     # -- the application on this node (docs/application.md): run by `dyknow node` --------
@@ -649,6 +656,8 @@ class PlatformConfig(BaseModel):
         """A transport (not yet opened) as ``[transport]`` describes it."""
         if isinstance(self.transport, ZenohSettings):
             return ZenohTransport(self.transport)
+        from agents.transports import MqttTransport  # only a platform on MQTT imports it
+
         return MqttTransport(self.transport)
 
 

@@ -10,6 +10,7 @@ import json
 import os
 import subprocess
 import sys
+import uuid
 import zipfile
 from pathlib import Path
 
@@ -187,4 +188,110 @@ def test_the_node_generates_the_methods_of_few_dataclasses_at_its_start() -> Non
         "federation._gateway.GatewayStats",
         "federation._service.GlobalResult",
         "federation._service.StreamExport",
+    ]
+
+
+# a zenoh node run to ready; then which transports it imported and which of our models'
+# validators it built, and it stops as on SIGTERM
+_ZENOH_NODE = """
+import json, os, signal, sys
+import federation._cli_node as node
+def say(text):
+    print(text, flush=True)
+    if " ready in federation " in text:
+        mods = [m for m in sys.modules if m.startswith(("agents.transports.", "aiomqtt", "paho"))]
+        from pydantic import BaseModel
+        models, built = [BaseModel], []
+        while models:
+            model = models.pop()
+            models.extend(model.__subclasses__())
+            if model.__module__.split(".")[0] in ("agents", "dyknow_core", "federation"):
+                if model.__pydantic_complete__:
+                    built.append(f"{model.__module__}.{model.__qualname__}")
+        print(json.dumps({"imported": sorted(mods), "built": sorted(set(built))}), flush=True)
+        os.kill(os.getpid(), signal.SIGTERM)
+node.say = say
+from federation.cli import main
+sys.exit(main(["node", "-c", sys.argv[1]]))
+"""
+
+
+def test_a_zenoh_node_runs_without_the_other_transports_nor_rare_validators(
+    tmp_path: Path,
+) -> None:
+    # the MQTT and in-memory transports are imported at their first use: a zenoh node
+    # holds neither's code (nor the MQTT client's) for as long as it runs
+    from agents.keys import gen_keys, trust_keys
+
+    federation = f"start-{uuid.uuid4().hex[:12]}"
+    public = gen_keys("n", tmp_path / "keys")[2]
+    trust_keys(tmp_path / "trust.json", [public], federation=federation)
+    config = tmp_path / "node.toml"
+    config.write_text(
+        f'name = "n"\nfederation = "{federation}"\nkey = "keys/n.key"\ntrust = "trust.json"\n'
+        '[vocabulary]\nname = "start"\n[vocabulary.labels]\nspeed = "a speed"\n'
+        '[mapping.labels]\nspeed = "start/speed"\n'
+        '[transport]\nmode = "peer"\nlisten = ["tcp/127.0.0.1:0"]\n'
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", _ZENOH_NODE, str(config)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "XDG_RUNTIME_DIR": str(tmp_path / "run")},
+    )
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert any(" ready in federation " in line for line in lines), done.stdout
+    found = json.loads(next(line for line in lines if line.startswith("{")))
+    assert found["imported"] == [
+        "agents.transports._base",
+        "agents.transports._mqtt_config",
+        "agents.transports._zenoh",
+    ]
+    # validators are built for what a node validates at its start: a model of a rare
+    # request (the policy of a request to share), or a table of the config validated as
+    # part of PlatformConfig, builds its own when one comes; a new one here is either
+    # deferred or added with its reason
+    assert found["built"] == [
+        "agents._df.ServiceDescription",  # its own registration
+        "agents._df.ServiceQuery",
+        "dyknow_core._policy.CacheSpec",  # its streams
+        "dyknow_core._policy.Change",
+        "dyknow_core._policy.Policy",
+        "federation._platform.PlatformConfig",  # its config
+    ]
+
+
+def test_the_transports_imported_at_first_use_are_still_where_they_were() -> None:
+    # the public surface as before: each lazily imported name resolves, in a fresh
+    # interpreter (here the test run may have imported them already)
+    code = (
+        "import agents, agents.transports as t\n"
+        "from agents import MemoryHub, MemoryTransport\n"
+        "from agents.transports import MqttTransport\n"
+        "from agents.transports._memory import MemoryTransport as M\n"
+        "from agents.transports._mqtt import MqttTransport as Q\n"
+        "assert agents.MemoryTransport is t.MemoryTransport is MemoryTransport is M\n"
+        "assert agents.MemoryHub is t.MemoryHub is MemoryHub\n"
+        "assert t.MqttTransport is MqttTransport is Q\n"
+        "for module, name in ((agents, 'MqttTransport'), (t, 'Nothing')):\n"
+        "    try:\n"
+        "        getattr(module, name)\n"
+        "    except AttributeError as exc:\n"
+        "        print(exc)\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        check=True,
+    )
+    assert done.stdout.splitlines() == [
+        "module 'agents' has no attribute 'MqttTransport'",
+        "module 'agents.transports' has no attribute 'Nothing'",
     ]

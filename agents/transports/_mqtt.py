@@ -83,13 +83,8 @@ import json
 import logging
 import secrets
 import socket
-import ssl
-import uuid
 from collections.abc import Callable, Mapping
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
-
-from pydantic import BaseModel, ConfigDict, Field, SecretStr, model_validator
+from typing import TYPE_CHECKING, Any
 
 from .._exceptions import TransportClosed, TransportError
 from ._base import (
@@ -107,6 +102,7 @@ from ._base import (
     _Keeps,
     key_intersects,
 )
+from ._mqtt_config import MqttConfig
 
 log = logging.getLogger(__name__)
 
@@ -142,10 +138,6 @@ ALIVE = b'{"v":1,"alive":true}'
 _REPLY_SID = 1  # the subscription identifier of this client's reply topic
 
 
-def _new_client_id() -> str:
-    return f"dyknow-{uuid.uuid4().hex[:16]}"
-
-
 def _connection_id(prefix: str) -> str:
     """A client id for one connection: the configured prefix and 64 random bits.
 
@@ -153,106 +145,6 @@ def _connection_id(prefix: str) -> str:
     an id nobody can guess cannot be taken, and a new one is drawn on every reconnection.
     """
     return f"{prefix}-{secrets.token_hex(8)}"
-
-
-class MqttTls(BaseModel):
-    """TLS to the broker: the CA that signed it, and this client's certificate (mutual TLS).
-
-    With the generated broker config (``deploy/make_hub_configs.py``) the certificate's CN
-    is the platform's name and becomes its MQTT user name.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
-
-    root_ca_certificate: Path
-    certificate: Path | None = None
-    private_key: Path | None = None
-
-    @model_validator(mode="after")
-    def _pair(self) -> MqttTls:
-        if (self.certificate is None) != (self.private_key is None):
-            raise ValueError("give both certificate and private_key, or neither")
-        return self
-
-    def relative_to(self, base: Path) -> MqttTls:
-        """A copy with relative paths resolved against ``base``."""
-        update = {
-            name: base / value
-            for name in ("root_ca_certificate", "certificate", "private_key")
-            if isinstance(value := getattr(self, name), Path) and not value.is_absolute()
-        }
-        return self.model_copy(update=update)
-
-    def context(self) -> ssl.SSLContext:
-        """The client's SSL context; TransportError naming the file that cannot be read."""
-        try:
-            ctx = ssl.create_default_context(cafile=str(self.root_ca_certificate))
-        except (OSError, ssl.SSLError) as exc:
-            raise TransportError(
-                f"tls.root_ca_certificate: {self.root_ca_certificate}: {exc}"
-            ) from exc
-        if self.certificate is not None and self.private_key is not None:
-            try:
-                ctx.load_cert_chain(str(self.certificate), str(self.private_key))
-            except (OSError, ssl.SSLError) as exc:
-                raise TransportError(
-                    f"tls.certificate/private_key: {self.certificate}: {exc}"
-                ) from exc
-        return ctx
-
-
-class MqttConfig(BaseModel):
-    """Where the MQTT broker is and how to talk to it; validated once, errors name the field."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, defer_build=True)
-
-    host: str = Field(default="127.0.0.1", min_length=1)
-    port: int = Field(default=1883, ge=1, le=65535)
-    client_id: str = Field(
-        default_factory=_new_client_id,
-        pattern=r"^[A-Za-z0-9_.-]{1,40}$",
-        description=(
-            "The prefix of every connection's client id; each connection adds 64 random "
-            "bits, so no other client can take its id over (and evict it)."
-        ),
-    )
-    username: str | None = None
-    password: SecretStr | None = None
-    keepalive: int = Field(
-        default=60,
-        ge=1,
-        le=65535,
-        description="Seconds; the broker declares a silent client dead after 1.5 x this.",
-    )
-    qos: Literal[0, 1, 2] = Field(default=0, description="QoS of publications and queries.")
-    connect_timeout: float = Field(default=10.0, gt=0)
-    tls: MqttTls | None = None
-    serve_timeout: float = Field(
-        default=10.0,
-        gt=0,
-        description="Seconds a query handler may run before the query gets an error reply.",
-    )
-    retained_quiet: float = Field(
-        default=0.0,
-        ge=0,
-        le=10,
-        description=(
-            "Seconds without a retained message, after the round trip, that end a presence "
-            "history's replay; 0: the round trip alone (a broker sending retained first)."
-        ),
-    )
-
-    def relative_to(self, base: str | Path) -> MqttConfig:
-        """A copy whose TLS files are resolved against ``base`` (a config file's directory)."""
-        if self.tls is None:
-            return self
-        return self.model_copy(update={"tls": self.tls.relative_to(Path(base))})
-
-    @model_validator(mode="after")
-    def _credentials(self) -> MqttConfig:
-        if self.password is not None and self.username is None:
-            raise ValueError("password: given without a username")
-        return self
 
 
 def _chunks(key_expr: str) -> list[str]:
