@@ -1845,6 +1845,19 @@ class InterfaceAgent:
         if host is None:
             done.clear()
             return False
+        if len(done) == 1 and len(done[0]) == 4:
+            # one reply alone, nothing booked before it: an asker's round trip
+            peer, body, message, forgets = done[0]
+            self._lone.discard(peer)  # a turn of the loop after what went to it (`_sent`)
+            if self._lane_take_reply(host, peer, body, message, forgets):
+                return False
+            again: list[tuple[Any, ...]] = [(peer, body, forgets)]  # taken in full, as below
+            if current is not None:
+                again.append(current)
+            inbox = self._lane_inbox
+            if inbox is not None:
+                inbox.put_front(again)
+            return True
         stats = host.stats
         entries: list[tuple[Any, ...]] = []
         peers = set()
