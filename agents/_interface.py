@@ -1892,6 +1892,7 @@ class InterfaceAgent:
         if entries:
             self.audit.add_accepted(entries)
         for peer in peers:
+            self._lone.discard(peer)  # its request, answered on the lane, came after (`_sent`)
             self.renew_if_needed(peer)
         if not back:
             return False
