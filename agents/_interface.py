@@ -753,7 +753,7 @@ class InterfaceAgent:
         # whose next turn (however late) batches its first message too (one envelope a turn)
         self._bursting: set[str] = set()
         # the platforms a message asking an answer went to alone, opening no batch, since
-        # the last message taken from them or their last batch: the next one opens it
+        # the last envelope opened from them or their last batch: the next one opens it
         self._lone: set[str] = set()
         # each peer's ACL key (``host.key("acl", peer)``), made once: one per trusted peer
         self._acl_keys: dict[str, str] = {}
@@ -872,8 +872,8 @@ class InterfaceAgent:
         The first message for ``platform`` in a turn of the event loop goes at once, alone
         (errors raise here); with batching, those that follow it in the same turn wait for
         its end and go together in one envelope, after it (so in order). A message that
-        asks an answer (``reply_with``), the first to ``platform`` since the last message
-        taken from it or its last batch, opens no batch: the one after it goes alone too
+        asks an answer (``reply_with``), the first such to ``platform`` since the last envelope
+        opened from it or its last batch, opens no batch: the one after it goes alone too
         and opens it (a lone request costs no turn of the loop more). While a burst
         goes on (the last turn that sent to ``platform`` sent it two or more), the first
         waits in the batch too, once its session is there. A batch that cannot be sent
@@ -970,7 +970,7 @@ class InterfaceAgent:
 
         ``asks``: the message asks an answer (``reply_with``), so its sender most likely
         waits for it and sends nothing more this turn. The first such since the last
-        message taken from ``platform`` (or its last batch) opens no batch: no flush,
+        envelope opened from ``platform`` (or its last batch) opens no batch: no flush,
         no turn of the loop for it; whatever follows goes alone too and opens it.
         """
         self.renew_if_needed(platform)
