@@ -285,3 +285,36 @@ async def test_a_reply_booked_with_the_lanes_answers_is_taken_as_one_booked_alon
     assert together == alone
     assert together[2][0] == 1  # one answered on the lane
     assert together[-1] == int(closed)
+
+
+async def test_a_pipelined_asker_sends_every_request_once_in_order() -> None:
+    """Requests sent back to back without awaiting answers (with informs between, over
+    several turns): each arrives once, in order, and each is answered."""
+    async with federation("uav-a", "uav-b") as fed:
+        pa = await fed.start("uav-a")
+        # unlimited: uav-b's default rate limit refuses part of a burst this size
+        rec = await _recorder(await fed.start("uav-b", rate_limit=None))
+        asker = await pa.add(Agent("asker"))
+        interface = ia(pa)
+        with asker.conversation(peers=["rec@uav-b"], timeout=WAIT) as conv:
+            await conv.send(_request(asker, -1))
+            assert await _answers(conv, 1) == [-1]
+            rec.got.clear()
+            sent = []
+            for i in range(300):
+                if i % 7 == 3:
+                    await asker.send(_inform(asker, i))
+                    sent.append(("inform", i))
+                else:
+                    await conv.send(_request(asker, i))
+                    sent.append(("request", i))
+                if i % 50 == 49:
+                    await asyncio.sleep(0)  # a turn ends here and there
+            asked = [i for kind, i in sent if kind == "request"]
+            got = [await conv.receive(timeout=WAIT) for _ in asked]
+            odd = [(m.performative, m.content) for m in got if type(m.content) is not int]
+            assert not odd
+            assert sorted(m.content for m in got) == asked
+        await until(lambda: len(rec.got) == len(sent), "every message")
+        assert rec.got == sent
+        assert interface.batches_lost == 0 and not interface._outbox
