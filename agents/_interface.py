@@ -755,6 +755,9 @@ class InterfaceAgent:
         # the platforms the last turn that sent to them sent two messages or more: a burst,
         # whose next turn (however late) batches its first message too (one envelope a turn)
         self._bursting: set[str] = set()
+        # the platforms a message asking an answer went to alone, opening no batch, since
+        # the last envelope opened from them or their last batch: the next one opens it
+        self._lone: set[str] = set()
         # each peer's ACL key (``host.key("acl", peer)``), made once: one per trusted peer
         self._acl_keys: dict[str, str] = {}
         self.batches_lost = 0  # batched messages a failed flush did not send
@@ -875,7 +878,10 @@ class InterfaceAgent:
 
         The first message for ``platform`` in a turn of the event loop goes at once, alone
         (errors raise here); with batching, those that follow it in the same turn wait for
-        its end and go together in one envelope, after it (so in order). While a burst
+        its end and go together in one envelope, after it (so in order). A message that
+        asks an answer (``reply_with``), the first such to ``platform`` since the last envelope
+        opened from it or its last batch, opens no batch: the one after it goes alone too
+        and opens it (a lone request costs no turn of the loop more). While a burst
         goes on (the last turn that sent to ``platform`` sent it two or more), the first
         waits in the batch too, once its session is there. A batch that cannot be sent
         then is logged and counted in ``batches_lost``.
@@ -909,7 +915,7 @@ class InterfaceAgent:
                     return
                 raise
         await host.transport.publish(self._acl_key(host, platform), payload)
-        self._sent(platform)
+        self._sent(platform, message.reply_with is not None)
 
     def send_now(self, platform: str, message: ACLMessage) -> bool:
         """`send` when it waits for nothing (`sends_now`); else False, and nothing is sent.
@@ -966,10 +972,20 @@ class InterfaceAgent:
             key = self._acl_keys[platform] = host.key("acl", platform)
         return key
 
-    def _sent(self, platform: str) -> None:
-        """After a message went alone: renew the session if due, batch what follows in the turn."""
+    def _sent(self, platform: str, asks: bool = False) -> None:
+        """After a message went alone: renew the session if due, batch what follows in the turn.
+
+        ``asks``: the message asks an answer (``reply_with``), so its sender most likely
+        waits for it and sends nothing more this turn. The first such since the last
+        envelope opened from ``platform`` (or its last batch) opens no batch: no flush,
+        no turn of the loop for it; whatever follows goes alone too and opens it.
+        """
         self.renew_if_needed(platform)
         if self._batching and platform not in self._outbox:
+            if asks and platform not in self._lone:
+                self._lone.add(platform)
+                self._bursting.discard(platform)  # a turn of one message, as `_flush` ends it
+                return
             self._outbox[platform] = []
             self._outbox_bytes[platform] = 2
             (self._loop or asyncio.get_running_loop()).call_soon(self._flush, platform)
@@ -1017,6 +1033,7 @@ class InterfaceAgent:
         """
         pending = self._outbox.pop(platform, None)
         self._outbox_bytes.pop(platform, None)
+        self._lone.discard(platform)
         bursting = self._bursting
         if again:
             self._outbox[platform] = []
@@ -1096,6 +1113,7 @@ class InterfaceAgent:
         self.unsent_revoked += waiting  # as those its agents send it from now on
         self._outbox_bytes.pop(peer, None)
         self._bursting.discard(peer)
+        self._lone.discard(peer)
         self._acl_keys.pop(peer, None)
         # its directory subscriptions end too (it is told nothing): each change would be
         # one more message dropped for it, and one it held would count against its limit
@@ -1410,6 +1428,7 @@ class InterfaceAgent:
         open_envelope = self.sessions.open
         stats = host.stats
         lane = self._lane_on
+        lone = self._lone
         n = 0
         async for item in inbox:
             n += 1
@@ -1464,6 +1483,7 @@ class InterfaceAgent:
                         self._not_opened(stats, exc)
                         continue
                 what = "taking the message"
+                lone.discard(peer)  # a turn of the loop after what went to it (`_sent`)
                 state = self._senders.get(peer)
                 if state is None:
                     state = self._sender(host, peer)
@@ -1883,6 +1903,24 @@ class InterfaceAgent:
         if host is None:
             done.clear()
             return False
+        if len(done) == 1 and len(done[0]) == 4:
+            # one reply alone, nothing booked before it: an asker's round trip
+            peer, body, message, forgets = done[0]
+            self._lone.discard(peer)  # a turn of the loop after what went to it (`_sent`)
+            try:
+                if self._lane_take_reply(host, peer, body, message, forgets):
+                    return False
+            except Exception:
+                self._lane_failed("taking the reply handed over", peer, message)
+                self._lane_release(peer)
+                return False
+            again: list[tuple[Any, ...]] = [(peer, body, forgets)]  # taken in full, as below
+            if current is not None:
+                again.append(current)
+            inbox = self._lane_inbox
+            if inbox is not None:
+                inbox.put_front(again)
+            return True
         stats = host.stats
         entries: list[tuple[Any, ...]] = []
         peers = set()
@@ -1895,6 +1933,7 @@ class InterfaceAgent:
                     self._lane_records(entries)
                     entries = []
                 peer, body, message, forgets = item
+                self._lone.discard(peer)  # a turn of the loop after what went to it (`_sent`)
                 if peer in behind:
                     back.append((peer, body, forgets))
                     continue
@@ -1928,6 +1967,7 @@ class InterfaceAgent:
         if entries:
             self._lane_records(entries)
         for peer in peers:
+            self._lone.discard(peer)  # its request, answered on the lane, came after (`_sent`)
             try:
                 self.renew_if_needed(peer)
             except Exception:
