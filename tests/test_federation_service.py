@@ -980,8 +980,9 @@ async def test_global_request_selects_newest_or_fuses() -> None:
         content = {"action": "get-latest", "labels": ["heli-altitude"]}
         loop = asyncio.get_running_loop()
         started = loop.time()
-        newest = await op.global_request(content, deadline=WAIT, select="newest")
-        assert loop.time() - started < WAIT / 2  # everyone answered: no wait for the deadline
+        # a deadline far off: back well before it is no wait for it, however busy the machine
+        newest = await op.global_request(content, deadline=10 * WAIT, select="newest")
+        assert loop.time() - started < 5 * WAIT  # everyone answered: no wait for the deadline
         assert sorted(newest.answers) == ["uav-a", "uav-b"]
         assert newest.chosen == "uav-b"
         assert newest.value["heli-altitude"]["samples"][0][0] == 80.0  # type: ignore[index]

@@ -731,6 +731,7 @@ async def test_upgrades_at_once_are_held_to_the_relays_bound(tmp_path: Path) -> 
 @pytest.mark.timeout(120)
 async def test_a_token_holder_cannot_flood_the_log_through_the_sdk(tmp_path: Path) -> None:
     """One 1 MiB subscribe of unknown channels: a line or two in the log, not one per channel."""
+    from federation._foxglove_relay import SDK_LOG_INTERVAL
     from tests.test_console_access import write_operator
 
     n = 30_000  # ~1 MiB: what the relay lets a client send in one message
@@ -744,16 +745,21 @@ async def test_a_token_holder_cannot_flood_the_log_through_the_sdk(tmp_path: Pat
             aiohttp.ClientSession() as session,
             session.ws_connect(login, protocols=["foxglove.sdk.v1"]) as ws,
         ):
+            flooded = time.monotonic()
             await ws.send_str(flood)
             await ws.send_json(last)
             async with asyncio.timeout(30):  # until the SDK answered the last (or hung up)
                 async for msg in ws:
                     if msg.type == aiohttp.WSMsgType.TEXT and "999999" in msg.data:
                         break
+    took = time.monotonic() - flooded  # to the process's end: every line it logged in it
     text = served.stderr
     assert "Traceback" not in text, text[-3000:]
     lines = [ln for ln in text.splitlines() if "unknown channel" in ln]
-    assert 1 <= len(lines) <= 5, text[-3000:]
+    # a line per interval while the SDK works through the flood, which takes longer on a
+    # loaded machine (6 lines seen, over a bound of 5 it had before): never one per channel
+    assert 1 <= len(lines) <= took / SDK_LOG_INTERVAL + 1, (took, text[-3000:])
+    assert len(lines) <= 60, text[-3000:]
     held = sum(int(h) for h in re.findall(r"(\d+) more lines", text))
     assert len(lines) + held >= n, text[-3000:]  # every one counted, none lost unsaid
 

@@ -28,9 +28,9 @@ import pytest
 import zenoh
 from nacl.signing import SigningKey
 
-from agents import ReplyTimeout
+from agents import DirectoryEvent, ReplyTimeout
 from agents.keys import gen_keys, trust_keys
-from agents.transports import free_tcp_port
+from agents.transports import Subscription, free_tcp_port
 from federation import FederationPlatform, PlatformConfig
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -99,6 +99,19 @@ async def _until(what: str, check: Callable[[], Any]) -> Any:
         if time.monotonic() > deadline:
             raise AssertionError(f"not within {WAIT} s: {what}")
         await asyncio.sleep(0.05)
+
+
+async def _up(directory: Subscription[DirectoryEvent], member: str) -> None:
+    """Wait for ``member``'s ``platform-up``: its signed snapshot read, listed.
+
+    A member by its signed events before that, and in ``platforms`` while its snapshot is
+    asked; killed meanwhile, it is held unconfirmed, which rechecks do not take for gone
+    while a token holds its name: another case than the one attacked here.
+    """
+    async with asyncio.timeout(WAIT):
+        async for event in directory:
+            if event.op == "platform-up" and event.platform == member:
+                return
 
 
 def _audit(platform: FederationPlatform, stage: str, claimed: str) -> list[dict[str, Any]]:
@@ -376,13 +389,18 @@ async def test_a_forged_token_does_not_keep_a_dead_platform_listed_on_zenoh(
         gdf = a.agents.global_df
         assert gdf is not None
         gdf.recheck_interval = 1.0  # 30 s by default
+        directory = gdf.watch()
         proc = node("uav-b")
+        await _up(directory, "uav-b")
+        directory.close()
         await _until("uav-a sees uav-b", lambda: "uav-b" in a.members)
         outsider = _zenoh_outsider(port)
         try:
             await _reaches(outsider, f"dyknow/{fed}/v1", "uav-a")
             token = outsider.liveliness().declare_token(f"dyknow/{fed}/v1/alive/uav-b")
-            await asyncio.sleep(0.5)  # the token reached uav-a before uav-b dies
+            # the token reached uav-a before uav-b dies: a query sent after it on the same
+            # link answered by uav-a, not a fixed pause
+            await _reaches(outsider, f"dyknow/{fed}/v1", "uav-a")
             refused = gdf.refused
             proc.kill()
             killed = time.monotonic()

@@ -443,7 +443,7 @@ async def test_a_flooded_request_is_refused_with_the_reason() -> None:
         t0 = time.monotonic()
         with pytest.raises(Refused, match="rate limit exceeded"):
             await request(asker, ECHO, 3, ontology="demo", timeout=WAIT)
-        assert time.monotonic() - t0 < 1.0  # told, not left to time out
+        assert time.monotonic() - t0 < WAIT / 2  # told, not left to time out
         s = target.stats.senders[FLOOD]
         assert (s.accepted, s.limited, s.refused) == (2, 1, 1)
 
@@ -839,7 +839,8 @@ async def test_answers_to_a_silent_platform_neither_block_nor_pile_up() -> None:
             await until(lambda: target.stats.unknown_receiver == n, "every inform delivered")
             t0 = time.monotonic()
             assert await request(asker, ECHO, "still", ontology="demo") == {"echo": "still"}
-            assert time.monotonic() - t0 < 0.5, "the inbox waited for the silent platform"
+            # the key exchange with "silent" waits WAIT: half of it is no wait for it
+            assert time.monotonic() - t0 < WAIT / 2, "the inbox waited for the silent platform"
             assert target._answering == MAX_ANSWERING
             assert target.stats.answers_dropped == n - MAX_ANSWERING
         finally:
