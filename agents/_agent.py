@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 from ._acl import ACLMessage, Performative, agent_id, compose, new_id
-from ._aio import Mailbox
+from ._aio import Deadlines, Mailbox
 from ._exceptions import AgentError
 from ._records import Record
 
@@ -436,7 +436,8 @@ class Conversation:
         if not items and self.closed:
             raise ConversationError(f"conversation {self.id} is closed", self.last_sent)
         try:
-            item = await items.get(deadline, loop=self._agent._loop)
+            agent = self._agent
+            item = await items.get(deadline, loop=agent._loop, deadlines=agent._deadlines)
         except TimeoutError:
             raise ReplyTimeout(
                 f"no reply from {self._peers_text()} in conversation {self.id}", self.last_sent
@@ -587,6 +588,8 @@ class Agent:
         # the loop the agent runs on, from its start until it stops: looking it up costs
         # a system call (getpid) in Python 3.11, and conversations need it every time
         self._loop: asyncio.AbstractEventLoop | None = None
+        # the deadlines of its conversations' waits, on that loop (one timer for all)
+        self._deadlines: Deadlines | None = None
         for attr, spec in _class_specs(type(self)):
             bound = getattr(self, attr)
             handler = spec.make(self, bound) if spec.make is not None else bound
@@ -661,6 +664,7 @@ class Agent:
         self.aid = agent_id(self.name, platform.name)
         self._state = _STARTING
         loop = self._loop = asyncio.get_running_loop()
+        self._deadlines = Deadlines(loop)
         ready: asyncio.Future[None] = loop.create_future()
         self._stop_requested = loop.create_future()
         self._task = tg.create_task(self._run(ready), name=f"agent[{self.aid}]")
@@ -700,6 +704,8 @@ class Agent:
             self._state = _STOPPED
             self._tg = None
             self._loop = None
+            # waits still in it end by its timer, which keeps it as long as they need
+            self._deadlines = None
             err = ConversationError(f"{self} stopped")
             for conv in {*self._by_conv.values(), *self._by_reply.values()}:
                 conv.close(err)
