@@ -316,6 +316,10 @@ class _Ended:
         self.error = error
 
 
+_CLOSED_KEPT = 4096  # the ids of closed conversations an agent remembers (late replies)
+_CLOSED = _Ended(None)  # the end of every conversation closed without an error: one object
+
+
 class Conversation:
     """The initiator's end of one conversation: the replies matched to it, in order.
 
@@ -492,14 +496,18 @@ class Conversation:
             return
         self.closed = True
         agent = self._agent
+        # `Agent._remember_closed`, inline: every asker's conversation closes so
+        closed = agent._closed_keys
         if self.id is not None and agent._by_conv.get(self.id) is self:
             del agent._by_conv[self.id]
-            agent._remember_closed(self.id)
+            closed[self.id] = None
         for key in self._keys:
             if agent._by_reply.get(key) is self:
                 del agent._by_reply[key]
-                agent._remember_closed(key)
-        self._items.put(_Ended(error), force=True)
+                closed[key] = None
+        while len(closed) > _CLOSED_KEPT:
+            closed.popitem(last=False)
+        self._items.put(_CLOSED if error is None else _Ended(error), force=True)
         for _, done in self._gathers:
             _settle(done)
 
@@ -1009,7 +1017,7 @@ class Agent:
     def _remember_closed(self, key: str) -> None:
         closed = self._closed_keys
         closed[key] = None
-        if len(closed) > 4096:
+        if len(closed) > _CLOSED_KEPT:
             closed.popitem(last=False)
 
 
