@@ -74,7 +74,8 @@ def test_waits_whose_deadlines_passed_together_end_in_deadline_order(loop_name: 
 
         waits = [asyncio.create_task(wait(after)) for after in (0.03, 0.01, 0.02)]
         await asyncio.sleep(0)  # each waits now
-        time.sleep(0.05)  # a loop busy past all three deadlines: one timer ends them all
+        # the loop kept busy past all three deadlines (blocking on purpose): one timer ends all
+        time.sleep(0.05)  # noqa: ASYNC251
         await asyncio.wait_for(asyncio.gather(*waits), 5.0)
         assert ended == [0.01, 0.02, 0.03]
 
