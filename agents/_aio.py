@@ -16,7 +16,7 @@ import os
 import threading
 from collections import deque
 from collections.abc import Callable, Coroutine, Iterable
-from heapq import heapify, heappush
+from heapq import heapify, heappop, heappush
 from typing import Any, Generic, Self, TypeVar
 
 T = TypeVar("T")
@@ -126,13 +126,17 @@ class Deadlines:
         # the timer fired for `_at`: that deadline has come, whatever the loop's clock
         # rounding; so has any other up to now
         due = max(self._at, self._loop.time())
-        # one pass over all rather than a pop per entry: most are of waits that ended
-        ended = sorted(e for e in heap if e[0] <= due and not e[2].done())
-        heap[:] = [e for e in heap if e[0] > due and not e[2].done()]
-        heapify(heap)
+        # a pop per entry due, not a pass over all: the waits still far from their deadline
+        # may be many, and each timer would cost them all (each entry is popped only once)
+        while heap and heap[0][0] <= due:
+            waiter = heappop(heap)[2]
+            if not waiter.done():  # in deadline order, as their own timers would
+                waiter.set_result(_TIMED_OUT)
+        # the next wake for a wait still waiting, not for one that ended early
+        while heap and heap[0][2].done():
+            heappop(heap)
+        # what is left holds every wait still waiting: the next compaction at twice that
         self._limit = max(_COMPACT_AT, 2 * len(heap))
-        for e in ended:  # in deadline order, as their own timers would
-            _expire(e[2])
         if heap:
             self._at = heap[0][0]
             self._timer = self._loop.call_at(self._at, self._expire)

@@ -159,3 +159,33 @@ async def test_an_agents_conversations_time_out_at_their_deadlines_on_one_timer(
         assert not asker._by_conv and not asker._by_reply  # each conversation closed
         assert len(deadlines) == 0
     assert asker._deadlines is None  # stopped: it waits on no loop any more
+
+
+async def test_a_timeout_does_not_look_at_every_wait_still_far_from_its_deadline() -> None:
+    loop = asyncio.get_running_loop()
+    deadlines = Deadlines(loop)
+    looked = 0
+
+    class Far(asyncio.Future[None]):
+        def done(self) -> bool:
+            nonlocal looked
+            looked += 1
+            return super().done()
+
+    # many waits far from their deadlines (an agent asking with long timeouts)
+    far = [Far(loop=loop) for _ in range(2000)]
+    for i, waiter in enumerate(far):
+        deadlines.add(loop.time() + 3600.0 + i, waiter)
+    looked = 0  # adding them compacted the heap once: that looked at each, and is done
+    timeouts = 50
+    for _ in range(timeouts):
+        start = loop.time()
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(
+                Mailbox[int](4).get(start + 0.001, loop=loop, deadlines=deadlines), 5.0
+            )
+    # each timer looks at the next wait at most, not at all of them (a stalled loop)
+    assert looked <= 4 * timeouts
+    assert not any(waiter.done() for waiter in far)
+    for waiter in far:
+        waiter.cancel()
