@@ -99,6 +99,10 @@ class Deadlines:
 
     def add(self, deadline: float, waiter: asyncio.Future[Any]) -> None:
         """End ``waiter`` as timed out at ``deadline`` (loop time) if it is not done by then."""
+        # refused before it is in the heap: a NaN there (or what is no number) breaks its
+        # order, and no wait would end at its deadline any more
+        if not deadline <= math.inf:
+            raise ValueError(f"a deadline must be a number (loop time), got {deadline!r}")
         heap = self._heap
         if len(heap) >= self._limit:
             self._compact()
@@ -238,14 +242,14 @@ class Mailbox(Generic[T]):
             while not items:
                 self._waiter = w = loop.create_future()
                 timer = None
-                if deadline is None:
-                    pass
-                elif deadlines is not None:
-                    deadlines.add(deadline, w)
-                else:
-                    # a timer setting the future is cheaper than asyncio.timeout on a hot path
-                    timer = loop.call_at(deadline, _expire, w)
-                try:
+                try:  # a deadline refused leaves no waiter behind
+                    if deadline is None:
+                        pass
+                    elif deadlines is not None:
+                        deadlines.add(deadline, w)
+                    else:
+                        # a timer setting the future is cheaper than asyncio.timeout on a hot path
+                        timer = loop.call_at(deadline, _expire, w)
                     await w
                 finally:
                     self._waiter = None

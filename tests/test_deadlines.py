@@ -5,6 +5,7 @@ waits that ended do not pile up; and an agent's conversations wait that way."""
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import Callable, Coroutine
 from typing import Any
@@ -12,7 +13,7 @@ from typing import Any
 import pytest
 import uvloop
 
-from agents import Agent, Mailbox, MessageTemplate, ReplyTimeout
+from agents import Agent, Mailbox, MessageTemplate, ReplyTimeout, new_id
 from agents._aio import _COMPACT_AT, Deadlines
 from tests.test_agents import P, Recorder, _keep, msg, platforms
 
@@ -189,3 +190,20 @@ async def test_a_timeout_does_not_look_at_every_wait_still_far_from_its_deadline
     assert not any(waiter.done() for waiter in far)
     for waiter in far:
         waiter.cancel()
+
+
+async def test_a_deadline_that_is_no_number_is_refused_and_the_other_waits_still_end() -> None:
+    async with asyncio.timeout(10), platforms("p") as [p]:
+        asker = await p.add(Agent("asker"))
+        loop = asyncio.get_running_loop()
+        with asker.conversation(new_id("c")) as conv:
+            with pytest.raises(ValueError, match="a deadline must be a number"):
+                await asyncio.wait_for(conv.receive(timeout=math.nan), 5.0)
+            with pytest.raises(TypeError):
+                await asyncio.wait_for(conv.receive(deadline="soon"), 5.0)  # type: ignore[arg-type]
+            # the refused ones left nothing that keeps a later wait from its deadline
+            for _ in range(2):
+                start = loop.time()
+                with pytest.raises(ReplyTimeout, match="no reply from anyone"):
+                    await asyncio.wait_for(conv.receive(timeout=0.03), 5.0)
+                assert loop.time() >= start + 0.03 - SLACK
