@@ -712,11 +712,15 @@ class Agent:
             self._state = _STOPPED
             self._tg = None
             self._loop = None
-            # waits still in it end by its timer, which keeps it as long as they need
-            self._deadlines = None
+            deadlines, self._deadlines = self._deadlines, None
             err = ConversationError(f"{self} stopped")
             for conv in {*self._by_conv.values(), *self._by_reply.values()}:
                 conv.close(err)
+            if deadlines is not None:
+                # its timer would hold what ended until the last deadline (an hour's
+                # timeout: an hour); a wait still in it (a conversation of no id and no
+                # key is not closed here) still ends by it
+                deadlines.drop_ended()
             if self._platform is not None:
                 self._platform._forget(self)
 

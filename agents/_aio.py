@@ -117,6 +117,14 @@ class Deadlines:
     def __len__(self) -> int:
         return len(self._heap)
 
+    def drop_ended(self) -> None:
+        """Drop the waits that ended; disarm the timer when none waits any more (a stop)."""
+        self._compact()
+        if not self._heap and self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+            self._at = math.inf
+
     def _compact(self) -> None:
         """Drop the entries of waits that ended; the next compaction at twice what is left."""
         heap = self._heap

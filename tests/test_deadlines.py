@@ -13,7 +13,7 @@ from typing import Any
 import pytest
 import uvloop
 
-from agents import Agent, Mailbox, MessageTemplate, ReplyTimeout, new_id
+from agents import ACLMessage, Agent, Mailbox, MessageTemplate, ReplyTimeout, new_id
 from agents._aio import _COMPACT_AT, Deadlines
 from tests.test_agents import P, Recorder, _keep, msg, platforms
 
@@ -207,3 +207,29 @@ async def test_a_deadline_that_is_no_number_is_refused_and_the_other_waits_still
                 with pytest.raises(ReplyTimeout, match="no reply from anyone"):
                     await asyncio.wait_for(conv.receive(timeout=0.03), 5.0)
                 assert loop.time() >= start + 0.03 - SLACK
+
+
+async def test_a_stopped_agent_leaves_no_timer_for_the_waits_that_ended() -> None:
+    async with asyncio.timeout(10), platforms("p") as [p]:
+        answerer = await p.add(Agent("answerer"))
+
+        async def answer(message: ACLMessage) -> None:
+            await answerer.send(message.reply(P.INFORM, "ok", sender=answerer.aid))
+
+        answerer.add_handler(MessageTemplate(P.QUERY_REF), answer)
+        asker = await p.add(Agent("asker"))
+        deadlines = asker._deadlines
+        assert deadlines is not None
+        for _ in range(3):  # answered at once, asked with an hour to spare
+            await asker.ask(msg(asker, answerer.aid, P.QUERY_REF), timeout=3600.0)
+        # a wait of a conversation the stop does not close (no id, no key) still ends
+        unclosed = asker.conversation(None)
+        waiting = asyncio.create_task(unclosed.receive(timeout=0.05))
+        await asyncio.sleep(0)
+        await p.remove(asker)
+        assert len(deadlines) == 1  # the one still waiting
+        with pytest.raises(ReplyTimeout):
+            await asyncio.wait_for(waiting, 5.0)
+        # once it ended, the timer that ended it is not armed again for the others
+        assert len(deadlines) == 0
+        assert deadlines._timer is None
