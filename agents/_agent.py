@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 from ._acl import ACLMessage, Performative, agent_id, compose, new_id
-from ._aio import Mailbox
+from ._aio import Deadlines, Mailbox
 from ._exceptions import AgentError
 from ._records import Record
 
@@ -316,6 +316,10 @@ class _Ended:
         self.error = error
 
 
+_CLOSED_KEPT = 4096  # the ids of closed conversations an agent remembers (late replies)
+_CLOSED = _Ended(None)  # the end of every conversation closed without an error: one object
+
+
 class Conversation:
     """The initiator's end of one conversation: the replies matched to it, in order.
 
@@ -436,7 +440,8 @@ class Conversation:
         if not items and self.closed:
             raise ConversationError(f"conversation {self.id} is closed", self.last_sent)
         try:
-            item = await items.get(deadline, loop=self._agent._loop)
+            agent = self._agent
+            item = await items.get(deadline, loop=agent._loop, deadlines=agent._deadlines)
         except TimeoutError:
             raise ReplyTimeout(
                 f"no reply from {self._peers_text()} in conversation {self.id}", self.last_sent
@@ -491,14 +496,18 @@ class Conversation:
             return
         self.closed = True
         agent = self._agent
+        # `Agent._remember_closed`, inline: every asker's conversation closes so
+        closed = agent._closed_keys
         if self.id is not None and agent._by_conv.get(self.id) is self:
             del agent._by_conv[self.id]
-            agent._remember_closed(self.id)
+            closed[self.id] = None
         for key in self._keys:
             if agent._by_reply.get(key) is self:
                 del agent._by_reply[key]
-                agent._remember_closed(key)
-        self._items.put(_Ended(error), force=True)
+                closed[key] = None
+        while len(closed) > _CLOSED_KEPT:
+            closed.popitem(last=False)
+        self._items.put(_CLOSED if error is None else _Ended(error), force=True)
         for _, done in self._gathers:
             _settle(done)
 
@@ -587,6 +596,8 @@ class Agent:
         # the loop the agent runs on, from its start until it stops: looking it up costs
         # a system call (getpid) in Python 3.11, and conversations need it every time
         self._loop: asyncio.AbstractEventLoop | None = None
+        # the deadlines of its conversations' waits, on that loop (one timer for all)
+        self._deadlines: Deadlines | None = None
         for attr, spec in _class_specs(type(self)):
             bound = getattr(self, attr)
             handler = spec.make(self, bound) if spec.make is not None else bound
@@ -661,6 +672,7 @@ class Agent:
         self.aid = agent_id(self.name, platform.name)
         self._state = _STARTING
         loop = self._loop = asyncio.get_running_loop()
+        self._deadlines = Deadlines(loop)
         ready: asyncio.Future[None] = loop.create_future()
         self._stop_requested = loop.create_future()
         self._task = tg.create_task(self._run(ready), name=f"agent[{self.aid}]")
@@ -700,9 +712,15 @@ class Agent:
             self._state = _STOPPED
             self._tg = None
             self._loop = None
+            deadlines, self._deadlines = self._deadlines, None
             err = ConversationError(f"{self} stopped")
             for conv in {*self._by_conv.values(), *self._by_reply.values()}:
                 conv.close(err)
+            if deadlines is not None:
+                # its timer would hold what ended until the last deadline (an hour's
+                # timeout: an hour); a wait still in it (a conversation of no id and no
+                # key is not closed here) still ends by it
+                deadlines.drop_ended()
             if self._platform is not None:
                 self._platform._forget(self)
 
@@ -1003,7 +1021,7 @@ class Agent:
     def _remember_closed(self, key: str) -> None:
         closed = self._closed_keys
         closed[key] = None
-        if len(closed) > 4096:
+        if len(closed) > _CLOSED_KEPT:
             closed.popitem(last=False)
 
 

@@ -1,6 +1,7 @@
 """Small asyncio building blocks the agents and their users share.
 
 `Mailbox`: a bounded queue whose one consumer waits for the next item up to a deadline.
+`Deadlines`: the deadlines of a loop's waits, kept by one timer at the earliest.
 `Ticker`: the ticks of a periodic loop, on a fixed grid of loop time.
 `Pending`: a count other threads add to, taken by one task at most once per period.
 `run`: ``asyncio.run`` on uvloop when it is installed (what long-running processes use).
@@ -15,6 +16,7 @@ import os
 import threading
 from collections import deque
 from collections.abc import Callable, Coroutine, Iterable
+from heapq import heapify, heappop, heappush
 from typing import Any, Generic, Self, TypeVar
 
 T = TypeVar("T")
@@ -71,6 +73,88 @@ def call_in_loop(
 def _expire(waiter: asyncio.Future[Any]) -> None:
     if not waiter.done():
         waiter.set_result(_TIMED_OUT)
+
+
+_COMPACT_AT = 1024  # entries in a `Deadlines` heap before the ended waits are dropped
+
+
+class Deadlines:
+    """The deadlines of the waits of one event loop, kept by one timer at the earliest.
+
+    A timer per wait costs its creation and its cancel each time a wait ends early, the
+    common case (a reply comes well before its timeout). Here a wait adds an entry to a
+    heap and a wait that ends cancels nothing: its entry is dropped when its time comes,
+    or sooner once the heap holds many more entries than waits. One loop timer, at the
+    earliest deadline, ends the waits whose deadline passed, as their own timers would.
+    """
+
+    __slots__ = ("_at", "_heap", "_limit", "_loop", "_timer")
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._heap: list[tuple[float, int, asyncio.Future[Any]]] = []
+        self._timer: asyncio.TimerHandle | None = None
+        self._at = math.inf  # the timer's deadline (none armed: infinity)
+        self._limit = _COMPACT_AT
+
+    def add(self, deadline: float, waiter: asyncio.Future[Any]) -> None:
+        """End ``waiter`` as timed out at ``deadline`` (loop time) if it is not done by then."""
+        # refused before it is in the heap: a NaN there (or what is no number) breaks its
+        # order, and no wait would end at its deadline any more
+        if not deadline <= math.inf:
+            raise ValueError(f"a deadline must be a number (loop time), got {deadline!r}")
+        heap = self._heap
+        if len(heap) >= self._limit:
+            self._compact()
+        # id: entries of one deadline never compare their futures (each is in once)
+        heappush(heap, (deadline, id(waiter), waiter))
+        if deadline < self._at:
+            if self._timer is not None:
+                self._timer.cancel()
+            self._at = deadline
+            self._timer = self._loop.call_at(deadline, self._expire)
+
+    def __len__(self) -> int:
+        return len(self._heap)
+
+    def drop_ended(self) -> None:
+        """Drop the waits that ended; disarm the timer when none waits any more (a stop)."""
+        self._compact()
+        if not self._heap and self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+            self._at = math.inf
+
+    def _compact(self) -> None:
+        """Drop the entries of waits that ended; the next compaction at twice what is left."""
+        heap = self._heap
+        heap[:] = [e for e in heap if not e[2].done()]
+        heapify(heap)
+        self._limit = max(_COMPACT_AT, 2 * len(heap))
+
+    def _expire(self) -> None:
+        """The timer: end the waits whose deadline passed, arm it for the next one."""
+        heap = self._heap
+        # the timer fired for `_at`: that deadline has come, whatever the loop's clock
+        # rounding; so has any other up to now
+        due = max(self._at, self._loop.time())
+        # a pop per entry due, not a pass over all: the waits still far from their deadline
+        # may be many, and each timer would cost them all (each entry is popped only once)
+        while heap and heap[0][0] <= due:
+            waiter = heappop(heap)[2]
+            if not waiter.done():  # in deadline order, as their own timers would
+                waiter.set_result(_TIMED_OUT)
+        # the next wake for a wait still waiting, not for one that ended early
+        while heap and heap[0][2].done():
+            heappop(heap)
+        # what is left holds every wait still waiting: the next compaction at twice that
+        self._limit = max(_COMPACT_AT, 2 * len(heap))
+        if heap:
+            self._at = heap[0][0]
+            self._timer = self._loop.call_at(self._at, self._expire)
+        else:
+            self._at = math.inf
+            self._timer = None
 
 
 class Mailbox(Generic[T]):
@@ -147,12 +231,17 @@ class Mailbox(Generic[T]):
             w.set_result(None)
 
     async def get(
-        self, deadline: float | None = None, *, loop: asyncio.AbstractEventLoop | None = None
+        self,
+        deadline: float | None = None,
+        *,
+        loop: asyncio.AbstractEventLoop | None = None,
+        deadlines: Deadlines | None = None,
     ) -> T:
         """The next item; TimeoutError if none came by ``deadline`` (loop time; None: never).
 
         ``loop``: the running loop, when the caller has it at hand (Python 3.11 pays a
-        system call, getpid, for each ``asyncio.get_running_loop``).
+        system call, getpid, for each ``asyncio.get_running_loop``). ``deadlines``: that
+        loop's `Deadlines`, to keep the deadline with instead of a timer of its own.
         """
         items = self._items
         if not items:
@@ -160,9 +249,15 @@ class Mailbox(Generic[T]):
                 loop = asyncio.get_running_loop()
             while not items:
                 self._waiter = w = loop.create_future()
-                # a timer setting the future is cheaper than asyncio.timeout on a hot path
-                timer = None if deadline is None else loop.call_at(deadline, _expire, w)
-                try:
+                timer = None
+                try:  # a deadline refused leaves no waiter behind
+                    if deadline is None:
+                        pass
+                    elif deadlines is not None:
+                        deadlines.add(deadline, w)
+                    else:
+                        # a timer setting the future is cheaper than asyncio.timeout on a hot path
+                        timer = loop.call_at(deadline, _expire, w)
                     await w
                 finally:
                     self._waiter = None
