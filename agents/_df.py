@@ -702,13 +702,14 @@ class GlobalDirectory:
     want of that answer is asked again while it holds (``unconfirmed``: after
     `UNCONFIRMED_FIRST_WAIT` s, doubling up to `UNCONFIRMED_MAX_WAIT`, within its
     presence budget) and listed once it answers, its snapshot compared with the entries
-    watchers were told of; where presence can be forged (``Transport.forgeable_presence``:
-    MQTT's retained messages), a presence that goes without a signed leave is believed
-    only when the platform no longer answers a fresh signed query; and every
-    ``recheck_interval`` seconds the members are asked again (a member that answers none
-    twice in a row is gone: on zenoh a forged token would otherwise keep a dead platform
-    listed). What is refused is
-    counted (``refused``) and audited through the channel, within its budget. Each
+    watchers were told of, or taken for gone by the recheck below; where presence can be
+    forged (``Transport.forgeable_presence``: MQTT's retained messages), a presence that
+    goes without a signed leave is believed only when the platform no longer answers a
+    fresh signed query; and every
+    ``recheck_interval`` seconds the members, listed or unconfirmed, are asked again (one
+    that answers none twice in a row is gone: on zenoh a forged token would otherwise keep a
+    dead platform listed, or one that died before its first snapshot came a member). What is
+    refused is counted (``refused``) and audited through the channel, within its budget. Each
     platform's presence changes are taken on a task of its own, those that cost a signed
     query within a per-platform budget (`PRESENCE_BURST`, then `PRESENCE_RATE` per the
     channel's ``rehandshake_interval``); the rest are counted (``presence_limited``),
@@ -1633,8 +1634,10 @@ class GlobalDirectory:
 
         On zenoh a token stays while *any* session holds one on the key, so a token forged
         under a running platform's name would keep it listed after it dies. A member that
-        answers no signed query twice in a row is gone; one that answers while not listed
-        (it was taken for gone while it hung) is up again.
+        answers no signed query twice in a row is gone; so is one held unconfirmed (it died
+        while its first snapshot was asked, a token held under its name: else asked again,
+        and a member, for as long as the token holds). One that answers while not listed
+        (it was taken for gone while it hung, or is unconfirmed) is up again.
         """
         misses: dict[str, int] = {}
         last = time.monotonic()
@@ -1652,9 +1655,11 @@ class GlobalDirectory:
             last = began = time.monotonic()
             # generous: a busy member must not be taken for gone (nothing waits on this)
             answered = await self._query("*", max(self.query_timeout, 5.0))
-            for platform in sorted(self._alive):
-                if platform in self._joining:
-                    continue  # its first snapshot is asked by its own task meanwhile
+            for went in [p for p in misses if p not in self._alive and p not in self._unconfirmed]:
+                del misses[went]  # a silence before it went counts not against its return
+            for platform in sorted(self._alive | self._unconfirmed.keys()):
+                if platform in self._joining and platform not in self._unconfirmed:
+                    continue  # its first snapshot is asked by its own task meanwhile (bounded)
                 if (
                     platform == self._platform.name
                     or platform in answered
@@ -1665,10 +1670,12 @@ class GlobalDirectory:
                 misses[platform] = misses.get(platform, 0) + 1
                 if misses[platform] >= 2:
                     del misses[platform]
+                    never = " (never listed: its snapshot never came)"
                     self._refuse(
                         platform,
                         "presence still held, but the platform answered no signed directory "
-                        "query twice in a row: taken for gone",
+                        "query twice in a row: taken for gone"
+                        + (never if platform in self._unconfirmed else ""),
                         "presence",
                     )
                     self._gone(platform)
