@@ -866,7 +866,11 @@ class GlobalDirectory:
 
     @property
     def platforms(self) -> list[str]:
-        """The platforms known alive (an unconfirmed one only once its signed answer came)."""
+        """The platforms known alive: listed, or their first snapshot asked now (not yet up).
+
+        One whose presence just came is in it while its first snapshot is asked (three
+        queries at most); an unconfirmed one only once its signed answer came.
+        """
         return sorted(p for p in self._alive if p not in self._unconfirmed)
 
     def services(self, platform: str | None = None) -> list[ServiceDescription]:
