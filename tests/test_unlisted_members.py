@@ -172,6 +172,9 @@ async def test_a_member_not_listed_yet_is_unlisted_then_listed_once_it_answers(
     ):
         gdf = a.agents.global_df
         assert gdf is not None
+        # two rechecks unanswered (30-60 s: a loaded machine) would take uav-b for gone:
+        # its own asking again is what is tested here
+        gdf.recheck_interval = None
         refused = gdf.refused
         await _joined_unconfirmed(a, b)
         refused_at = time.monotonic()
@@ -302,6 +305,9 @@ async def test_a_forged_token_held_is_asked_again_at_a_bounded_rate(
     ):
         gdf = a.agents.global_df
         assert gdf is not None
+        # two rechecks unanswered (30-60 s: a loaded machine) would take the forged uav-b
+        # for gone, and end its asking again: that asking's rate is what is tested here
+        gdf.recheck_interval = None
         audit = a.interface.audit
         refused = gdf.refused
         seen: list[list[str]] = []
