@@ -790,6 +790,9 @@ class GlobalDirectory:
         # when (monotonic) each platform was last taken for gone or left: an answer to a
         # query begun before must not list it again
         self._went_at: dict[str, float] = {}
+        # when (monotonic) each trusted platform last answered a fresh signed query, any of
+        # them: the recheck counts no silence of one that answered since the last began
+        self._answered_at: dict[str, float] = {}
         # per platform followed: set when a raw presence change is queued for its task
         self._presence_changed: dict[str, asyncio.Event] = {}
         self._presence_ignored: dict[str, int] = {}  # counted, not yet in an audit record
@@ -1120,6 +1123,7 @@ class GlobalDirectory:
             return
         found[name] = [s for s in services if s.platform == name]
         self._answered_boot[name] = statement.boot
+        self._answered_at[name] = time.monotonic()
 
     def _replace(self, platform: str, services: Iterable[ServiceDescription]) -> None:
         old = self._entries.get(platform, {})
@@ -1640,11 +1644,13 @@ class GlobalDirectory:
         under a running platform's name would keep it listed after it dies. A member that
         answers no signed query twice in a row is gone; so is one held unconfirmed (it died
         while its first snapshot was asked, a token held under its name: else asked again,
-        and a member, for as long as the token holds). One that answers while not listed
+        and a member, for as long as the token holds). A signed answer to any query since
+        the previous recheck began counts as an answer. One that answers while not listed
         (it was taken for gone while it hung, or is unconfirmed) is up again.
         """
         misses: dict[str, int] = {}
         last = time.monotonic()
+        began = math.inf  # when the last recheck began (none yet)
         while True:
             # Sleep until the next recheck is due, or until the interval is changed: an idle
             # member has nothing to wake for in between.
@@ -1656,6 +1662,10 @@ class GlobalDirectory:
             if wait > 0:
                 await self._recheck_sleep(wait)
                 continue
+            # an answer to any fresh query since the last recheck began (its own re-asking,
+            # a resync) proves it runs as well: a slow member listed on its re-asking's
+            # answer is not taken for gone on the next recheck's silence alone
+            since = min(began, time.monotonic())
             last = began = time.monotonic()
             # generous: a busy member must not be taken for gone (nothing waits on this)
             answered = await self._query("*", max(self.query_timeout, 5.0))
@@ -1667,6 +1677,7 @@ class GlobalDirectory:
                 if (
                     platform == self._platform.name
                     or platform in answered
+                    or self._answered_at.get(platform, -math.inf) >= since
                     or self._heard_lately(platform, 2 * interval)
                 ):
                     misses.pop(platform, None)

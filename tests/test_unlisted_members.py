@@ -423,3 +423,79 @@ async def test_a_recheck_held_open_does_not_list_a_member_that_left_meanwhile(
                 assert not gdf.services("uav-b")
             queryable.undeclare()
             queries.clear()
+
+
+async def test_a_member_listed_on_its_re_asking_is_not_gone_on_one_more_silence(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """uav-b, held unconfirmed, misses one recheck; then it answers uav-a's re-asking of it
+    (listed) while its answers to the rechecks' queries of every directory are lost, as a
+    loaded one's. Its signed answer since is an answer: taken for gone only once two
+    rechecks that began after it found no answer (before: on the next recheck's end)."""
+    star_only = False  # uav-b: every query held unanswered; then only those of every directory
+    released = asyncio.Event()
+    real_serve = DirectoryFacilitator._serve_public
+
+    async def serve(df: DirectoryFacilitator, key: str, payload: bytes) -> bytes | None:
+        if df.platform.name == "uav-b" and (key.endswith("/*") or not star_only):
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(WAIT):
+                    await (asyncio.Event() if key.endswith("/*") else released).wait()
+            if key.endswith("/*"):
+                return None
+        return await real_serve(df, key, payload)
+
+    rechecks: list[tuple[float, float]] = []  # uav-a's queries of every directory: began, ended
+    real_query = GlobalDirectory._query
+
+    async def query(
+        self: GlobalDirectory, platform: str, *args: Any, **kwargs: Any
+    ) -> dict[str, Any]:
+        began = time.monotonic()
+        try:
+            return await real_query(self, platform, *args, **kwargs)
+        finally:
+            if platform == "*" and self._platform.name == "uav-a":
+                rechecks.append((began, time.monotonic()))
+
+    monkeypatch.setattr(DirectoryFacilitator, "_serve_public", serve)
+    monkeypatch.setattr(GlobalDirectory, "_query", query)
+    fed = f"unlisted{os.getpid()}f"
+    _federation(tmp_path, fed)
+    async with (
+        asyncio.timeout(6 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-b.toml"), join=False) as b,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        gdf.recheck_interval = 1.0  # each recheck takes its query's 5 s (8 s, below)
+        refused = gdf.refused
+        await _joined_unconfirmed(a, b)
+        unconfirmed = time.monotonic()
+        gdf.query_timeout = 8.0  # the rechecks from now on: uav-b listed well within one
+        await _until(
+            "a recheck ends with uav-b unconfirmed",
+            lambda: rechecks and rechecks[-1][1] > unconfirmed,
+            2 * WAIT,
+        )
+        assert "uav-b" in gdf.unconfirmed, "uav-b taken for gone already: nothing tested"
+        star_only = True
+        released.set()  # its re-asking answered (the one held now, or the next, within 4 s)
+        await _until("uav-a lists uav-b", lambda: "uav-b" in gdf.platforms)
+        listed = time.monotonic()
+        gdf.query_timeout = 1.0  # rechecks of 5 s again
+        await _until("uav-b taken for gone", lambda: "uav-b" not in gdf.platforms, 4 * WAIT)
+        gone = time.monotonic()
+        after = [r for r in rechecks if listed < r[0] and r[1] <= gone]
+        print(
+            f"uav-b listed {listed - unconfirmed:.1f} s after unconfirmed, gone after "
+            f"{len(after)} recheck(s) begun since ({gone - listed:.1f} s)"
+        )
+        assert len(after) >= 2, (listed, gone, rechecks)
+        # its presence refused, then its silence: each counted and audited once
+        assert gdf.refused == refused + 2
+        reasons = [r["reason"] for r in _presence_refusals(a)]
+        assert len(reasons) == 2, reasons
+        assert "answered no signed directory query twice" in reasons[1]
+        assert "never listed" not in reasons[1]  # it was listed
