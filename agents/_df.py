@@ -791,7 +791,7 @@ class GlobalDirectory:
         # query begun before must not list it again
         self._went_at: dict[str, float] = {}
         # when (monotonic) each trusted platform last answered a fresh signed query, any of
-        # them: the recheck counts no silence of one that answered since the last began
+        # them: the recheck counts no silence of one that answered since the last one
         self._answered_at: dict[str, float] = {}
         # per platform followed: set when a raw presence change is queued for its task
         self._presence_changed: dict[str, asyncio.Event] = {}
@@ -1645,12 +1645,12 @@ class GlobalDirectory:
         answers no signed query twice in a row is gone; so is one held unconfirmed (it died
         while its first snapshot was asked, a token held under its name: else asked again,
         and a member, for as long as the token holds). A signed answer to any query since
-        the previous recheck began counts as an answer. One that answers while not listed
-        (it was taken for gone while it hung, or is unconfirmed) is up again.
+        the previous recheck took its answers counts as an answer. One that answers while
+        not listed (it was taken for gone while it hung, or is unconfirmed) is up again.
         """
         misses: dict[str, int] = {}
         last = time.monotonic()
-        began = math.inf  # when the last recheck began (none yet)
+        checked = -math.inf  # when the last recheck took its answers (none yet)
         while True:
             # Sleep until the next recheck is due, or until the interval is changed: an idle
             # member has nothing to wake for in between.
@@ -1662,13 +1662,14 @@ class GlobalDirectory:
             if wait > 0:
                 await self._recheck_sleep(wait)
                 continue
-            # an answer to any fresh query since the last recheck began (its own re-asking,
-            # a resync) proves it runs as well: a slow member listed on its re-asking's
-            # answer is not taken for gone on the next recheck's silence alone
-            since = min(began, time.monotonic())
             last = began = time.monotonic()
             # generous: a busy member must not be taken for gone (nothing waits on this)
             answered = await self._query("*", max(self.query_timeout, 5.0))
+            # a signed answer to any other fresh query since the last recheck took its
+            # answers (its re-asking, a resync) proves it runs as well: a slow member listed
+            # on its re-asking's answer is not taken for gone on this recheck's silence.
+            # Each counts for one recheck: a dead member's last one keeps it an interval at most
+            after, checked = checked, time.monotonic()
             for went in [p for p in misses if p not in self._alive and p not in self._unconfirmed]:
                 del misses[went]  # a silence before it went counts not against its return
             for platform in sorted(self._alive | self._unconfirmed.keys()):
@@ -1677,7 +1678,7 @@ class GlobalDirectory:
                 if (
                     platform == self._platform.name
                     or platform in answered
-                    or self._answered_at.get(platform, -math.inf) >= since
+                    or self._answered_at.get(platform, -math.inf) > after
                     or self._heard_lately(platform, 2 * interval)
                 ):
                     misses.pop(platform, None)
