@@ -1387,11 +1387,16 @@ class GlobalDirectory:
 
     def _gone(self, platform: str) -> None:
         self._went_at[platform] = time.monotonic()
-        told = bool(self._unconfirmed.pop(platform, None))
+        held = self._unconfirmed.pop(platform, None)
+        told = bool(held)
         if platform in self._alive:
             self._set_alive(platform, False)
-            self._drop_entries(platform)
-            self._tell(DirectoryEvent("platform-gone", platform, None))
+            had = self._drop_entries(platform)
+            # one asked again (unconfirmed) is alive only while asked: told gone only if
+            # watchers were told of entries of its, else of a name never up (a token
+            # anyone holds under a trusted name)
+            if held is None or told or had:
+                self._tell(DirectoryEvent("platform-gone", platform, None))
         elif told:
             # watchers saw entries of its (signed) events before its snapshot was refused
             self._tell(DirectoryEvent("platform-gone", platform, None))

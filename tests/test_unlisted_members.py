@@ -499,3 +499,50 @@ async def test_a_member_listed_on_its_re_asking_is_not_gone_on_one_more_silence(
         assert len(reasons) == 2, reasons
         assert "answered no signed directory query twice" in reasons[1]
         assert "never listed" not in reasons[1]  # it was listed
+
+
+async def test_a_forged_name_taken_for_gone_while_asked_again_is_told_no_gone(
+    tmp_path: Path,
+) -> None:
+    """An outsider holds a token under trusted uav-b's name (uav-b never ran) and holds
+    uav-a's re-asking of it open; the rechecks take it for gone meanwhile. It was never
+    a member, nor were watchers told of any entry of its: no ``gone`` is told (before:
+    membership subscribers heard ``gone`` of a platform that never joined)."""
+    fed = f"unlisted{os.getpid()}g"
+    port = _federation(tmp_path, fed)
+    async with (
+        asyncio.timeout(6 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        gdf.recheck_interval = None
+        gdf.query_timeout = 0.5  # its first snapshot's three queries: 1.5 s
+        refused = gdf.refused
+        directory = gdf.watch()
+        async with a.membership() as events:
+            with _outsider(port) as session:
+                held: list[zenoh.Query] = []
+
+                def hold(query: zenoh.Query) -> None:
+                    if not str(query.key_expr).endswith("/*"):
+                        held.append(query)  # kept: the asking waits out its timeout
+
+                queryable = session.declare_queryable(wire_key(fed, "df", "uav-b"), hold)
+                token = session.liveliness().declare_token(wire_key(fed, "alive", "uav-b"))
+                await _until("uav-a refuses the forged presence", lambda: gdf.unconfirmed)
+                gdf.query_timeout = 6 * WAIT  # its re-asking held open from now on
+                await _until(
+                    "uav-b asked again", lambda: "uav-b" in gdf.unconfirmed and gdf._joining
+                )
+                gdf.recheck_interval = 0.5
+                await _until("uav-b taken for gone", lambda: not gdf.unconfirmed)
+                assert gdf.refused == refused + 2
+                token.undeclare()
+                queryable.undeclare()
+                held.clear()
+        kinds = [e.kind for e in events.inbox.drain() if e.platform == "uav-b"]
+        assert kinds == [], kinds
+        told = [e.op for e in directory.inbox.drain() if e.platform == "uav-b"]
+        assert told == [], told
+        directory.close()
