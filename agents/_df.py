@@ -702,13 +702,14 @@ class GlobalDirectory:
     want of that answer is asked again while it holds (``unconfirmed``: after
     `UNCONFIRMED_FIRST_WAIT` s, doubling up to `UNCONFIRMED_MAX_WAIT`, within its
     presence budget) and listed once it answers, its snapshot compared with the entries
-    watchers were told of; where presence can be forged (``Transport.forgeable_presence``:
-    MQTT's retained messages), a presence that goes without a signed leave is believed
-    only when the platform no longer answers a fresh signed query; and every
-    ``recheck_interval`` seconds the members are asked again (a member that answers none
-    twice in a row is gone: on zenoh a forged token would otherwise keep a dead platform
-    listed). What is refused is
-    counted (``refused``) and audited through the channel, within its budget. Each
+    watchers were told of, or taken for gone by the recheck below; where presence can be
+    forged (``Transport.forgeable_presence``: MQTT's retained messages), a presence that
+    goes without a signed leave is believed only when the platform no longer answers a
+    fresh signed query; and every
+    ``recheck_interval`` seconds the members, listed or unconfirmed, are asked again (one
+    that answers none twice in a row is gone: on zenoh a forged token would otherwise keep a
+    dead platform listed, or one that died before its first snapshot came a member). What is
+    refused is counted (``refused``) and audited through the channel, within its budget. Each
     platform's presence changes are taken on a task of its own, those that cost a signed
     query within a per-platform budget (`PRESENCE_BURST`, then `PRESENCE_RATE` per the
     channel's ``rehandshake_interval``); the rest are counted (``presence_limited``),
@@ -789,6 +790,9 @@ class GlobalDirectory:
         # when (monotonic) each platform was last taken for gone or left: an answer to a
         # query begun before must not list it again
         self._went_at: dict[str, float] = {}
+        # when (monotonic) each trusted platform last answered a fresh signed query, any of
+        # them: the recheck counts no silence of one that answered since the last one
+        self._answered_at: dict[str, float] = {}
         # per platform followed: set when a raw presence change is queued for its task
         self._presence_changed: dict[str, asyncio.Event] = {}
         self._presence_ignored: dict[str, int] = {}  # counted, not yet in an audit record
@@ -865,7 +869,11 @@ class GlobalDirectory:
 
     @property
     def platforms(self) -> list[str]:
-        """The platforms known alive (an unconfirmed one only once its signed answer came)."""
+        """The platforms known alive: listed, or their first snapshot asked now (not yet up).
+
+        One whose presence just came is in it while its first snapshot is asked (three
+        queries at most); an unconfirmed one only once its signed answer came.
+        """
         return sorted(p for p in self._alive if p not in self._unconfirmed)
 
     def services(self, platform: str | None = None) -> list[ServiceDescription]:
@@ -1115,6 +1123,7 @@ class GlobalDirectory:
             return
         found[name] = [s for s in services if s.platform == name]
         self._answered_boot[name] = statement.boot
+        self._answered_at[name] = time.monotonic()
 
     def _replace(self, platform: str, services: Iterable[ServiceDescription]) -> None:
         old = self._entries.get(platform, {})
@@ -1378,11 +1387,16 @@ class GlobalDirectory:
 
     def _gone(self, platform: str) -> None:
         self._went_at[platform] = time.monotonic()
-        told = bool(self._unconfirmed.pop(platform, None))
+        held = self._unconfirmed.pop(platform, None)
+        told = bool(held)
         if platform in self._alive:
             self._set_alive(platform, False)
-            self._drop_entries(platform)
-            self._tell(DirectoryEvent("platform-gone", platform, None))
+            had = self._drop_entries(platform)
+            # one asked again (unconfirmed) is alive only while asked: told gone only if
+            # watchers were told of entries of its, else of a name never up (a token
+            # anyone holds under a trusted name)
+            if held is None or told or had:
+                self._tell(DirectoryEvent("platform-gone", platform, None))
         elif told:
             # watchers saw entries of its (signed) events before its snapshot was refused
             self._tell(DirectoryEvent("platform-gone", platform, None))
@@ -1633,11 +1647,15 @@ class GlobalDirectory:
 
         On zenoh a token stays while *any* session holds one on the key, so a token forged
         under a running platform's name would keep it listed after it dies. A member that
-        answers no signed query twice in a row is gone; one that answers while not listed
-        (it was taken for gone while it hung) is up again.
+        answers no signed query twice in a row is gone; so is one held unconfirmed (it died
+        while its first snapshot was asked, a token held under its name: else asked again,
+        and a member, for as long as the token holds). A signed answer to any query since
+        the previous recheck took its answers counts as an answer. One that answers while
+        not listed (it was taken for gone while it hung, or is unconfirmed) is up again.
         """
         misses: dict[str, int] = {}
         last = time.monotonic()
+        checked = -math.inf  # when the last recheck took its answers (none yet)
         while True:
             # Sleep until the next recheck is due, or until the interval is changed: an idle
             # member has nothing to wake for in between.
@@ -1652,12 +1670,20 @@ class GlobalDirectory:
             last = began = time.monotonic()
             # generous: a busy member must not be taken for gone (nothing waits on this)
             answered = await self._query("*", max(self.query_timeout, 5.0))
-            for platform in sorted(self._alive):
-                if platform in self._joining:
-                    continue  # its first snapshot is asked by its own task meanwhile
+            # a signed answer to any other fresh query since the last recheck took its
+            # answers (its re-asking, a resync) proves it runs as well: a slow member listed
+            # on its re-asking's answer is not taken for gone on this recheck's silence.
+            # Each counts for one recheck: a dead member's last one keeps it an interval at most
+            after, checked = checked, time.monotonic()
+            for went in [p for p in misses if p not in self._alive and p not in self._unconfirmed]:
+                del misses[went]  # a silence before it went counts not against its return
+            for platform in sorted(self._alive | self._unconfirmed.keys()):
+                if platform in self._joining and platform not in self._unconfirmed:
+                    continue  # its first snapshot is asked by its own task meanwhile (bounded)
                 if (
                     platform == self._platform.name
                     or platform in answered
+                    or self._answered_at.get(platform, -math.inf) > after
                     or self._heard_lately(platform, 2 * interval)
                 ):
                     misses.pop(platform, None)
@@ -1665,10 +1691,12 @@ class GlobalDirectory:
                 misses[platform] = misses.get(platform, 0) + 1
                 if misses[platform] >= 2:
                     del misses[platform]
+                    never = " (never listed: its snapshot never came)"
                     self._refuse(
                         platform,
                         "presence still held, but the platform answered no signed directory "
-                        "query twice in a row: taken for gone",
+                        "query twice in a row: taken for gone"
+                        + (never if platform in self._unconfirmed else ""),
                         "presence",
                     )
                     self._gone(platform)

@@ -54,21 +54,47 @@ def _federation(tmp: Path, fed: str, names: list[str], transport: dict[str, str]
         )
 
 
+# ``dyknow node`` whose directory answers no query in time, as a loaded one's: each is held
+# longer than any asker waits (its signed events still go out); it joins once the file
+# ``<config>.join`` exists, so that its joining comes after its presence was taken
+_SLOW_DIRECTORY = """
+import asyncio, os, runpy, sys
+from agents import DirectoryFacilitator
+from federation._service import FederationAgent
+
+async def _held(self, key, payload):
+    await asyncio.sleep(3600)
+
+go = sys.argv[-1] + ".join"
+join = FederationAgent.join
+
+async def _join_later(self):
+    async def later():
+        while not os.path.exists(go):
+            await asyncio.sleep(0.05)
+        await join(self)
+    self.spawn(later(), "join-later")
+
+DirectoryFacilitator._serve_public = _held
+FederationAgent.join = _join_later
+sys.argv = ["dyknow", *sys.argv[1:]]
+runpy.run_module("federation.cli", run_name="__main__")
+"""
+
+
 @pytest.fixture
-def node(tmp_path: Path) -> Iterator[Callable[[str], subprocess.Popen[str]]]:
-    """Start ``dyknow node`` for a platform of tmp_path; killed at the end."""
+def node(tmp_path: Path) -> Iterator[Callable[..., subprocess.Popen[str]]]:
+    """Start ``dyknow node`` for a platform of tmp_path; killed at the end.
+
+    ``slow_directory``: its directory answers no query, and it joins once told
+    (`_SLOW_DIRECTORY`).
+    """
     procs: list[subprocess.Popen[str]] = []
 
-    def start(name: str) -> subprocess.Popen[str]:
+    def start(name: str, *, slow_directory: bool = False) -> subprocess.Popen[str]:
+        run = ["-c", _SLOW_DIRECTORY] if slow_directory else ["-m", "federation.cli"]
         proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "federation.cli",
-                "node",
-                "--config",
-                str(tmp_path / f"{name}.toml"),
-            ],
+            [sys.executable, *run, "node", "--config", str(tmp_path / f"{name}.toml")],
             stdout=subprocess.PIPE,
             stderr=(tmp_path / f"{name}.err").open("w"),
             text=True,
@@ -105,8 +131,8 @@ async def _up(directory: Subscription[DirectoryEvent], member: str) -> None:
     """Wait for ``member``'s ``platform-up``: its signed snapshot read, listed.
 
     A member by its signed events before that, and in ``platforms`` while its snapshot is
-    asked; killed meanwhile, it is held unconfirmed, which rechecks do not take for gone
-    while a token holds its name: another case than the one attacked here.
+    asked; killed meanwhile, it is held unconfirmed: another case than a listed one
+    (`test_a_forged_token_does_not_keep_a_member_never_listed_on_zenoh`).
     """
     async with asyncio.timeout(WAIT):
         async for event in directory:
@@ -173,7 +199,7 @@ def _statement(fed: str, frm: str, kind: str, body: Any, key: SigningKey | None)
 
 
 async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
-    tmp_path: Path, node: Callable[[str], subprocess.Popen[str]]
+    tmp_path: Path, node: Callable[..., subprocess.Popen[str]]
 ) -> None:
     fed = f"member{os.getpid()}z"
     port = free_tcp_port()
@@ -309,7 +335,7 @@ async def test_outsiders_cannot_deregister_or_add_members_on_zenoh(
 
 async def test_an_empty_retained_presence_does_not_drop_a_running_platform_on_mqtt(
     tmp_path: Path,
-    node: Callable[[str], subprocess.Popen[str]],
+    node: Callable[..., subprocess.Popen[str]],
     mosquitto: tuple[str, int],
 ) -> None:
     host, port = mosquitto
@@ -368,7 +394,7 @@ async def test_an_empty_retained_presence_does_not_drop_a_running_platform_on_mq
 
 
 async def test_a_forged_token_does_not_keep_a_dead_platform_listed_on_zenoh(
-    tmp_path: Path, node: Callable[[str], subprocess.Popen[str]]
+    tmp_path: Path, node: Callable[..., subprocess.Popen[str]]
 ) -> None:
     """zenoh keeps a key alive while any token holds it: the members are asked again."""
     fed = f"member{os.getpid()}k"
@@ -415,6 +441,83 @@ async def test_a_forged_token_does_not_keep_a_dead_platform_listed_on_zenoh(
             token.undeclare()
         finally:
             outsider.close()
+
+
+async def test_a_forged_token_does_not_keep_a_member_never_listed_on_zenoh(
+    tmp_path: Path, node: Callable[..., subprocess.Popen[str]]
+) -> None:
+    """uav-b joins (its signed events taken) while its directory answers no query, and is
+    SIGKILLed while uav-a still asks its first snapshot; an outsider holds a token under its
+    name. Held unconfirmed, it is asked again by the rechecks too: answering none of two in
+    a row, it is gone (counted, audited), its members told, the token held or not."""
+    fed = f"member{os.getpid()}u"
+    port = free_tcp_port()
+    _federation(
+        tmp_path,
+        fed,
+        ["uav-a", "uav-b"],
+        {
+            "uav-a": f'mode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]',
+            "uav-b": f'mode = "peer"\nconnect = ["tcp/127.0.0.1:{port}"]',
+        },
+    )
+    interval = 1.0  # the recheck's (30 s by default)
+    async with (
+        asyncio.timeout(4 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        gdf.recheck_interval = interval
+        # each of the first snapshot's three queries waits this long: uav-b is killed well
+        # within them, while uav-a holds it in `platforms`, not yet listed nor refused
+        gdf.query_timeout = WAIT / 3
+        outsider = _zenoh_outsider(port)
+        async with a.membership() as events:
+            try:
+                await _reaches(outsider, f"dyknow/{fed}/v1", "uav-a")
+                refused = gdf.refused
+                proc = node("uav-b", slow_directory=True)
+                await _until("uav-a asks uav-b's snapshot", lambda: "uav-b" in gdf.platforms)
+                (tmp_path / "uav-b.toml.join").touch()  # its signed joining taken meanwhile
+                await _until("uav-a takes uav-b's joining", lambda: "uav-b" in a.members)
+                token = outsider.liveliness().declare_token(f"dyknow/{fed}/v1/alive/uav-b")
+                # the token reached uav-a before uav-b dies: a query sent after it on the
+                # same link answered by uav-a
+                await _reaches(outsider, f"dyknow/{fed}/v1", "uav-a")
+                under_way = "uav-b" in gdf.platforms and "uav-b" not in gdf.unconfirmed
+                assert under_way, "uav-b's first snapshot no longer asked: nothing tested"
+                assert gdf.refused == refused
+                proc.kill()
+                killed = time.monotonic()
+                await _until("uav-b held unconfirmed", lambda: "uav-b" in gdf.unconfirmed)
+                held = time.monotonic() - killed
+                await _until("uav-a's members without uav-b", lambda: "uav-b" not in a.members)
+                gone = time.monotonic() - killed
+                print(
+                    f"uav-b held unconfirmed {held:.2f} s after SIGKILL, gone {gone:.2f} s "
+                    "after it (forged token held)"
+                )
+                # within the first snapshot's queries and two recheck intervals (each
+                # recheck's query up to 5 s), not the token's lifetime
+                assert gone - held < 3 * interval + 2 * 5.0, (held, gone)
+                assert gdf.unconfirmed == [] and "uav-b" not in gdf.platforms
+                assert gdf.services("uav-b") == [] and "uav-b" not in gdf._entries
+                kinds = [e.kind for e in events.inbox.drain() if e.platform == "uav-b"]
+                assert kinds == ["joined", "gone"], kinds
+                # refused twice: its presence without a signed answer, then its silence
+                assert gdf.refused == refused + 2
+                reasons = [r["reason"] for r in _audit(a, "presence", "uav-b")]
+                assert len(reasons) == 2, reasons
+                assert "presence without a signed directory answer" in reasons[0]
+                assert "answered no signed directory query twice" in reasons[1]
+                assert "never listed" in reasons[1]
+                # taken for gone, the token still held: its own task, asking it again, ends
+                await _until("uav-b asked no more", lambda: "uav-b" not in gdf._presence_queues)
+                assert "uav-b" not in a.members
+                token.undeclare()
+            finally:
+                outsider.close()
 
 
 async def test_a_forged_leave_on_mqtt_stops_no_stream(

@@ -172,6 +172,9 @@ async def test_a_member_not_listed_yet_is_unlisted_then_listed_once_it_answers(
     ):
         gdf = a.agents.global_df
         assert gdf is not None
+        # two rechecks unanswered (30-60 s: a loaded machine) would take uav-b for gone:
+        # its own asking again is what is tested here
+        gdf.recheck_interval = None
         refused = gdf.refused
         await _joined_unconfirmed(a, b)
         refused_at = time.monotonic()
@@ -302,6 +305,9 @@ async def test_a_forged_token_held_is_asked_again_at_a_bounded_rate(
     ):
         gdf = a.agents.global_df
         assert gdf is not None
+        # two rechecks unanswered (30-60 s: a loaded machine) would take the forged uav-b
+        # for gone, and end its asking again: that asking's rate is what is tested here
+        gdf.recheck_interval = None
         audit = a.interface.audit
         refused = gdf.refused
         seen: list[list[str]] = []
@@ -417,3 +423,126 @@ async def test_a_recheck_held_open_does_not_list_a_member_that_left_meanwhile(
                 assert not gdf.services("uav-b")
             queryable.undeclare()
             queries.clear()
+
+
+async def test_a_member_listed_on_its_re_asking_is_not_gone_on_one_more_silence(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """uav-b, held unconfirmed, misses one recheck; then it answers uav-a's re-asking of it
+    (listed) while its answers to the rechecks' queries of every directory are lost, as a
+    loaded one's. Its signed answer since is an answer: taken for gone only once two
+    rechecks that began after it found no answer (before: on the next recheck's end)."""
+    star_only = False  # uav-b: every query held unanswered; then only those of every directory
+    released = asyncio.Event()
+    real_serve = DirectoryFacilitator._serve_public
+
+    async def serve(df: DirectoryFacilitator, key: str, payload: bytes) -> bytes | None:
+        if df.platform.name == "uav-b" and (key.endswith("/*") or not star_only):
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(WAIT):
+                    await (asyncio.Event() if key.endswith("/*") else released).wait()
+            if key.endswith("/*"):
+                return None
+        return await real_serve(df, key, payload)
+
+    rechecks: list[tuple[float, float]] = []  # uav-a's queries of every directory: began, ended
+    real_query = GlobalDirectory._query
+
+    async def query(
+        self: GlobalDirectory, platform: str, *args: Any, **kwargs: Any
+    ) -> dict[str, Any]:
+        began = time.monotonic()
+        try:
+            return await real_query(self, platform, *args, **kwargs)
+        finally:
+            if platform == "*" and self._platform.name == "uav-a":
+                rechecks.append((began, time.monotonic()))
+
+    monkeypatch.setattr(DirectoryFacilitator, "_serve_public", serve)
+    monkeypatch.setattr(GlobalDirectory, "_query", query)
+    fed = f"unlisted{os.getpid()}f"
+    _federation(tmp_path, fed)
+    async with (
+        asyncio.timeout(6 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-b.toml"), join=False) as b,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        gdf.recheck_interval = 1.0  # each recheck takes its query's 5 s (8 s, below)
+        refused = gdf.refused
+        await _joined_unconfirmed(a, b)
+        unconfirmed = time.monotonic()
+        gdf.query_timeout = 8.0  # the rechecks from now on: uav-b listed well within one
+        await _until(
+            "a recheck ends with uav-b unconfirmed",
+            lambda: rechecks and rechecks[-1][1] > unconfirmed,
+            2 * WAIT,
+        )
+        assert "uav-b" in gdf.unconfirmed, "uav-b taken for gone already: nothing tested"
+        star_only = True
+        released.set()  # its re-asking answered (the one held now, or the next, within 4 s)
+        await _until("uav-a lists uav-b", lambda: "uav-b" in gdf.platforms)
+        listed = time.monotonic()
+        gdf.query_timeout = 1.0  # rechecks of 5 s again
+        await _until("uav-b taken for gone", lambda: "uav-b" not in gdf.platforms, 4 * WAIT)
+        gone = time.monotonic()
+        after = [r for r in rechecks if listed < r[0] and r[1] <= gone]
+        print(
+            f"uav-b listed {listed - unconfirmed:.1f} s after unconfirmed, gone after "
+            f"{len(after)} recheck(s) begun since ({gone - listed:.1f} s)"
+        )
+        assert len(after) >= 2, (listed, gone, rechecks)
+        # its presence refused, then its silence: each counted and audited once
+        assert gdf.refused == refused + 2
+        reasons = [r["reason"] for r in _presence_refusals(a)]
+        assert len(reasons) == 2, reasons
+        assert "answered no signed directory query twice" in reasons[1]
+        assert "never listed" not in reasons[1]  # it was listed
+
+
+async def test_a_forged_name_taken_for_gone_while_asked_again_is_told_no_gone(
+    tmp_path: Path,
+) -> None:
+    """An outsider holds a token under trusted uav-b's name (uav-b never ran) and holds
+    uav-a's re-asking of it open; the rechecks take it for gone meanwhile. It was never
+    a member, nor were watchers told of any entry of its: no ``gone`` is told (before:
+    membership subscribers heard ``gone`` of a platform that never joined)."""
+    fed = f"unlisted{os.getpid()}g"
+    port = _federation(tmp_path, fed)
+    async with (
+        asyncio.timeout(6 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        gdf.recheck_interval = None
+        gdf.query_timeout = 0.5  # its first snapshot's three queries: 1.5 s
+        refused = gdf.refused
+        directory = gdf.watch()
+        async with a.membership() as events:
+            with _outsider(port) as session:
+                held: list[zenoh.Query] = []
+
+                def hold(query: zenoh.Query) -> None:
+                    if not str(query.key_expr).endswith("/*"):
+                        held.append(query)  # kept: the asking waits out its timeout
+
+                queryable = session.declare_queryable(wire_key(fed, "df", "uav-b"), hold)
+                token = session.liveliness().declare_token(wire_key(fed, "alive", "uav-b"))
+                await _until("uav-a refuses the forged presence", lambda: gdf.unconfirmed)
+                gdf.query_timeout = 6 * WAIT  # its re-asking held open from now on
+                await _until(
+                    "uav-b asked again", lambda: "uav-b" in gdf.unconfirmed and gdf._joining
+                )
+                gdf.recheck_interval = 0.5
+                await _until("uav-b taken for gone", lambda: not gdf.unconfirmed)
+                assert gdf.refused == refused + 2
+                token.undeclare()
+                queryable.undeclare()
+                held.clear()
+        kinds = [e.kind for e in events.inbox.drain() if e.platform == "uav-b"]
+        assert kinds == [], kinds
+        told = [e.op for e in directory.inbox.drain() if e.platform == "uav-b"]
+        assert told == [], told
+        directory.close()
