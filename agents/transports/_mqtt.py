@@ -40,7 +40,8 @@ Presence
     ``declare_token`` opens one more connection per token, whose last will is an empty
     retained message on the key; it then publishes ``{"v":1,"alive":true}`` retained on the
     key, and announces again when someone else clears the key or its connection drops.
-    Closing the token publishes the empty retained message (which clears it); a process
+    Closing the token publishes the empty retained message (which clears it; QoS 0, its
+    acknowledgement not waited for: a close does not wait on a slow broker); a process
     that dies loses its connection and the broker publishes the will.
     ``watch_presence`` subscribes to the key expression: retained messages are the
     history, live ones the changes; a watcher reports only changes. ``tokens`` tells the
@@ -896,7 +897,11 @@ class _Token:
         if client is None or connection is None:
             return
         try:
-            await client.publish(self.key, b"", qos=1, retain=True)
+            # QoS 0: the broker's acknowledgement adds nothing. It reads the clear before
+            # the disconnect that follows on the same connection; a connection lost before
+            # either is read fires the last will, which clears the key too. Waiting for it
+            # made each close over a slow broker wait up to connect_timeout, one by one.
+            await client.publish(self.key, b"", qos=0, retain=True)
         except aiomqtt.MqttError as exc:
             log.warning("mqtt: could not clear the token on %r: %s", self.key, exc)
         finally:
