@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -766,6 +767,32 @@ async def test_mqtt_subscription_to_an_unmappable_key_fails_clearly(mosquitto: A
     async with MqttTransport(MqttConfig(host=host, port=port)) as t:
         with pytest.raises(TransportError, match="last chunk"):
             await t.subscribe("a/**/b")
+
+
+async def test_mqtt_a_subscribe_cancelled_before_the_broker_answered_does_not_block_the_next(
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+) -> None:
+    # a caller's timeout around a subscribe over a stalled broker: the next subscriber
+    # to the same key used to wait forever for the first one's answer
+    host, port, broker = own_mosquitto
+    key = f"stall/{uuid.uuid4().hex}"
+    async with (
+        MqttTransport(MqttConfig(host=host, port=port)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as sender,
+    ):
+        broker.send_signal(signal.SIGSTOP)
+        try:
+            with pytest.raises(TimeoutError):
+                async with asyncio.timeout(0.5):
+                    await t.subscribe(key)
+        finally:
+            broker.send_signal(signal.SIGCONT)
+        async with asyncio.timeout(5.0):  # the broker answers in ms once it runs
+            sub = await t.subscribe(key)
+        async with sub:
+            await sender.publish(key, b"after")
+            message = await sub.get(timeout=5.0)
+        assert message.payload == b"after"
 
 
 async def test_mqtt_unreachable_broker_is_a_transport_error() -> None:

@@ -544,10 +544,14 @@ class MqttTransport(_Keeps, Transport):
             add(f)
             try:
                 await client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
-            except aiomqtt.MqttError as exc:
+            except BaseException as exc:
+                # cancelled too (a caller's timeout): those waiting on ``ready`` would
+                # otherwise wait forever, and so would every later listener on the topic
                 f.ready.set_result(False)
                 self._forget(f)
-                raise self._error(f"subscribe to {topic!r}", exc) from exc
+                if isinstance(exc, aiomqtt.MqttError):
+                    raise self._error(f"subscribe to {topic!r}", exc) from exc
+                raise
             f.ready.set_result(True)
             return
         add(f)
