@@ -893,6 +893,9 @@ class _Token:
             connection = await _connect(client)
         except aiomqtt.MqttError as exc:
             raise t._error(f"connect for the token on {self.key!r}", exc) from exc
+        # kept before announcing: a reconnection cancelled by ``clear`` once the alive
+        # message may be out leaves ``clear`` the connection to clear and close
+        self.client, self.connection = client, connection
         try:
             await client.subscribe(self.key, qos=1)
             await client.publish(self.key, ALIVE, qos=1, retain=True)
@@ -900,7 +903,6 @@ class _Token:
             with contextlib.suppress(aiomqtt.MqttError):
                 await connection.aclose()
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
-        self.client, self.connection = client, connection
 
     async def keep(self) -> None:
         """Announce again when the key is cleared by another; reconnect when dropped."""
@@ -936,6 +938,12 @@ class _Token:
 
     async def clear(self) -> None:
         self.closing = True
+        task = self.task
+        if task is not None and task is not asyncio.current_task() and not task.done():
+            # a reconnection under way would otherwise announce again on a connection
+            # nobody clears or closes: alive for as long as this process runs
+            task.cancel()
+            await asyncio.wait([task], timeout=self.transport.config.connect_timeout)
         client, connection = self.client, self.connection
         if client is None or connection is None:
             return
@@ -950,9 +958,6 @@ class _Token:
         finally:
             with contextlib.suppress(aiomqtt.MqttError):
                 await connection.aclose()
-            task = self.task
-            if task is not None and task is not asyncio.current_task() and not task.done():
-                task.cancel()
 
 
 async def _closing(handle: Handle) -> None:
