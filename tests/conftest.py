@@ -15,6 +15,7 @@ settings.load_profile("ci" if os.environ.get("CI") else "dev")
 
 # --- mosquitto, for the MQTT transport's tests ----------------------------------------------
 
+import contextlib  # noqa: E402
 import multiprocessing  # noqa: E402
 import shutil  # noqa: E402
 import socket  # noqa: E402
@@ -52,12 +53,11 @@ def no_leftover_children() -> Iterator[None]:
         proc.join(timeout=5)
 
 
-@pytest.fixture(scope="session")
-def mosquitto(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, int]]:
-    """A mosquitto broker of our own on a free loopback port: (host, port)."""
+@contextlib.contextmanager
+def _running_mosquitto(workdir: Path) -> Iterator[tuple[str, int, subprocess.Popen[bytes]]]:
+    """A mosquitto broker on a free loopback port, accepting: (host, port, process)."""
     exe = _mosquitto_executable()
     host, port = "127.0.0.1", free_tcp_port()
-    workdir = tmp_path_factory.mktemp("mosquitto")
     conf = workdir / "mosquitto.conf"
     conf.write_text(
         f"listener {port} {host}\n"
@@ -88,7 +88,21 @@ def mosquitto(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, i
                         pytrace=False,
                     )
                 time.sleep(0.02)  # nothing to await: the port either accepts or not yet
-        yield host, port
+        yield host, port, proc
     finally:
-        proc.kill()
+        proc.kill()  # SIGKILL ends a stopped (SIGSTOP) broker too
         proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="session")
+def mosquitto(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, int]]:
+    """A mosquitto broker of our own on a free loopback port: (host, port)."""
+    with _running_mosquitto(tmp_path_factory.mktemp("mosquitto")) as (host, port, _):
+        yield host, port
+
+
+@pytest.fixture
+def own_mosquitto(tmp_path: Path) -> Iterator[tuple[str, int, subprocess.Popen[bytes]]]:
+    """A broker for this test alone, which it may stall (SIGSTOP): (host, port, process)."""
+    with _running_mosquitto(tmp_path) as running:
+        yield running

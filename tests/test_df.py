@@ -5,6 +5,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import re
+import secrets
+import signal
+import subprocess
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 from typing import Any
@@ -571,3 +574,39 @@ async def test_a_start_over_mqtt_does_not_wait_out_the_directory_query(
             assert sorted(s.provider for s in view.services()) == [f"cam@{p.name}" for p in started]
             await platform.df.register(svc(f"cam@{n}", "cam", V.PUBLIC))
             started.append(platform)
+
+
+async def test_platforms_closing_over_a_stalled_broker_do_not_wait_for_it_one_by_one(
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+) -> None:
+    """Closing platforms whose MQTT broker stopped answering takes no broker timeout each.
+
+    Their tokens are still cleared: once the broker runs again, none is left alive.
+    """
+    host, port, broker = own_mosquitto
+    federation = f"stall-{secrets.token_hex(4)}"
+    names = ["uav-a", "uav-b", "uav-c"]
+    config = MqttConfig(host=host, port=port)
+    loop = asyncio.get_running_loop()
+    stack = contextlib.AsyncExitStack()
+    try:
+        async with stack:
+            for n in names:
+                transport = MqttTransport(config.model_copy(update={"client_id": n}))
+                await stack.enter_async_context(transport)
+                await stack.enter_async_context(AgentPlatform(n, transport, federation=federation))
+            broker.send_signal(signal.SIGSTOP)
+            t0 = loop.time()
+        took = loop.time() - t0
+    finally:
+        broker.send_signal(signal.SIGCONT)
+    # each one used to wait for the broker to acknowledge its token's clearing: the
+    # connect timeout, one platform after another
+    assert took < config.connect_timeout / 2, f"{len(names)} platforms closed in {took:.1f} s"
+    async with MqttTransport(config) as watcher:
+        key = f"dyknow/{federation}/v1/alive/*"
+        deadline = loop.time() + config.connect_timeout
+        alive = await watcher.tokens(key, timeout=5.0)
+        while alive and loop.time() < deadline:  # each waits for a trip through the broker
+            alive = await watcher.tokens(key, timeout=5.0)
+        assert alive == [], f"still alive once the broker runs again: {alive}"

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -766,6 +767,91 @@ async def test_mqtt_subscription_to_an_unmappable_key_fails_clearly(mosquitto: A
     async with MqttTransport(MqttConfig(host=host, port=port)) as t:
         with pytest.raises(TransportError, match="last chunk"):
             await t.subscribe("a/**/b")
+
+
+async def test_mqtt_a_subscribe_cancelled_before_the_broker_answered_does_not_block_the_next(
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+) -> None:
+    # a caller's timeout around a subscribe over a stalled broker: the next subscriber
+    # to the same key used to wait forever for the first one's answer
+    host, port, broker = own_mosquitto
+    key = f"stall/{uuid.uuid4().hex}"
+    async with (
+        MqttTransport(MqttConfig(host=host, port=port)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as sender,
+    ):
+        broker.send_signal(signal.SIGSTOP)
+        try:
+            with pytest.raises(TimeoutError):
+                async with asyncio.timeout(0.5):
+                    await t.subscribe(key)
+        finally:
+            broker.send_signal(signal.SIGCONT)
+        async with asyncio.timeout(5.0):  # the broker answers in ms once it runs
+            sub = await t.subscribe(key)
+        async with sub:
+            await sender.publish(key, b"after")
+            message = await sub.get(timeout=5.0)
+        assert message.payload == b"after"
+
+
+async def test_mqtt_a_subscriber_waiting_on_one_that_gave_up_subscribes_itself(
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+) -> None:
+    # the first subscriber to a key times out over a stalled broker while a second waits
+    # on its answer: the second used to fail with an error the broker never gave
+    host, port, broker = own_mosquitto
+    key = f"stall/{uuid.uuid4().hex}"
+    async with (
+        MqttTransport(MqttConfig(host=host, port=port)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as sender,
+    ):
+
+        async def impatient() -> Subscription[Message]:
+            async with asyncio.timeout(0.5):
+                return await t.subscribe(key)
+
+        broker.send_signal(signal.SIGSTOP)
+        try:
+            first = asyncio.create_task(impatient())
+            second = asyncio.create_task(t.subscribe(key))
+            with pytest.raises(TimeoutError):
+                await first
+            assert not second.done()
+        finally:
+            broker.send_signal(signal.SIGCONT)
+        async with asyncio.timeout(5.0):  # the broker answers in ms once it runs
+            sub = await second
+        async with sub:
+            await sender.publish(key, b"after")
+            message = await sub.get(timeout=5.0)
+        assert message.payload == b"after"
+
+
+async def test_mqtt_a_subscriber_that_gave_up_waiting_on_another_is_not_left_listening(
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+) -> None:
+    # it would be fed (and keep the topic subscribed at the broker) for the transport's life
+    host, port, broker = own_mosquitto
+    key = f"stall/{uuid.uuid4().hex}"
+    async with MqttTransport(MqttConfig(host=host, port=port)) as t:
+
+        async def impatient() -> Subscription[Message]:
+            async with asyncio.timeout(0.5):
+                return await t.subscribe(key)
+
+        broker.send_signal(signal.SIGSTOP)
+        try:
+            first = asyncio.create_task(t.subscribe(key))  # tasks start in order: it subscribes
+            with pytest.raises(TimeoutError):
+                await asyncio.create_task(impatient())
+            assert not first.done()
+        finally:
+            broker.send_signal(signal.SIGCONT)
+        async with asyncio.timeout(5.0):
+            sub = await first
+        sub.close()
+        assert topic_filter(key) not in t._filters, "the topic is still listened to"
 
 
 async def test_mqtt_unreachable_broker_is_a_transport_error() -> None:

@@ -40,7 +40,8 @@ Presence
     ``declare_token`` opens one more connection per token, whose last will is an empty
     retained message on the key; it then publishes ``{"v":1,"alive":true}`` retained on the
     key, and announces again when someone else clears the key or its connection drops.
-    Closing the token publishes the empty retained message (which clears it); a process
+    Closing the token publishes the empty retained message (which clears it; QoS 0, its
+    acknowledgement not waited for: a close does not wait on a slow broker); a process
     that dies loses its connection and the broker publishes the will.
     ``watch_presence`` subscribes to the key expression: retained messages are the
     history, live ones the changes; a watcher reports only changes. ``tokens`` tells the
@@ -308,7 +309,7 @@ class _Filter:
     # node's start, each; nothing compares or prints these
     __slots__ = ("inboxes", "ready", "servers", "sid", "topic", "watchers")
 
-    def __init__(self, topic: str, sid: int, ready: asyncio.Future[bool]) -> None:
+    def __init__(self, topic: str, sid: int, ready: asyncio.Future[bool | None]) -> None:
         self.topic = topic
         self.sid = sid
         self.ready = ready
@@ -528,35 +529,63 @@ class MqttTransport(_Keeps, Transport):
     # --- subscriptions shared per topic filter -------------------------------------------
 
     async def _attach(
-        self, topic: str, add: Callable[[_Filter], None], *, resubscribe: bool = False
+        self,
+        topic: str,
+        add: Callable[[_Filter], None],
+        remove: Callable[[_Filter], None],
+        *,
+        resubscribe: bool = False,
     ) -> None:
-        """Listen through the broker subscription on ``topic``, subscribing if it is new."""
+        """Listen through the broker subscription on ``topic``, subscribing if it is new.
+
+        Fails (or is cancelled) having listened to nothing: ``remove`` undoes ``add``.
+        """
         client, loop = self._connected()
-        # An unsubscribe still on its way would cancel a subscribe sent now: wait for it.
-        while (pending := self._unsubscribing.get(topic)) is not None:
-            await asyncio.wait([pending])
-        f = self._filters.get(topic)
-        if f is None:
-            f = _Filter(topic, next(self._sids), loop.create_future())
-            self._filters[topic] = f
-            self._by_sid[f.sid] = f
+        while True:
+            # An unsubscribe still on its way would cancel a subscribe sent now: wait for it.
+            while (pending := self._unsubscribing.get(topic)) is not None:
+                await asyncio.wait([pending])
+            f = self._filters.get(topic)
+            if f is None:
+                break
             add(f)
             try:
-                await client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
-            except aiomqtt.MqttError as exc:
-                f.ready.set_result(False)
-                self._forget(f)
-                raise self._error(f"subscribe to {topic!r}", exc) from exc
-            f.ready.set_result(True)
+                ready = await asyncio.shield(f.ready)
+                if ready is None:  # its subscriber gave up before the broker answered
+                    self._leave(f, remove)
+                    continue
+                if not ready:
+                    raise self._error(f"subscribe to {topic!r}", RuntimeError("subscribe failed"))
+                if resubscribe:  # makes the broker send the retained messages again
+                    try:
+                        await client.subscribe(
+                            topic, options=self._options(), properties=_sid(f.sid)
+                        )
+                    except aiomqtt.MqttError as exc:
+                        raise self._error(f"subscribe to {topic!r}", exc) from exc
+            except BaseException:
+                # cancelled too: left in the filter, it would keep the topic subscribed
+                # and be fed forever
+                self._leave(f, remove)
+                raise
             return
+        f = _Filter(topic, next(self._sids), loop.create_future())
+        self._filters[topic] = f
+        self._by_sid[f.sid] = f
         add(f)
-        if not await asyncio.shield(f.ready):
-            raise self._error(f"subscribe to {topic!r}", RuntimeError("subscribe failed"))
-        if resubscribe:  # makes the broker send the retained messages again
-            try:
-                await client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
-            except aiomqtt.MqttError as exc:
-                raise self._error(f"subscribe to {topic!r}", exc) from exc
+        try:
+            await client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
+        except aiomqtt.MqttError as exc:
+            f.ready.set_result(False)
+            self._forget(f)
+            raise self._error(f"subscribe to {topic!r}", exc) from exc
+        except BaseException:
+            # cancelled (a caller's timeout): those waiting on ``ready`` subscribe anew,
+            # rather than wait forever or fail for a caller that gave up
+            f.ready.set_result(None)
+            self._forget(f)
+            raise
+        f.ready.set_result(True)
 
     def _detach(self, topic: str, remove: Callable[[_Filter], None]) -> None:
         """Stop listening through ``topic``; unsubscribe (in the background) when nobody does."""
@@ -566,6 +595,13 @@ class MqttTransport(_Keeps, Transport):
         with contextlib.suppress(ValueError):
             remove(f)
         if f.empty():
+            self._forget(f)
+
+    def _leave(self, f: _Filter, remove: Callable[[_Filter], None]) -> None:
+        """Stop listening through ``f`` itself (``topic`` may have a newer filter by now)."""
+        with contextlib.suppress(ValueError):
+            remove(f)
+        if self._filters.get(f.topic) is f and f.empty():
             self._forget(f)
 
     def _forget(self, f: _Filter) -> None:
@@ -614,10 +650,12 @@ class MqttTransport(_Keeps, Transport):
         topic = topic_filter(key_expr)
         inbox: Inbox[Message] = Inbox(loop, buffer_size)
         entry = inbox if admit is None else Screened(inbox, admit)
-        await self._attach(topic, lambda f: f.inboxes.append(entry))
-        return self._subscription(
-            inbox, lambda: self._detach(topic, lambda f: f.inboxes.remove(entry))
-        )
+
+        def remove(f: _Filter) -> None:
+            f.inboxes.remove(entry)
+
+        await self._attach(topic, lambda f: f.inboxes.append(entry), remove)
+        return self._subscription(inbox, lambda: self._detach(topic, remove))
 
     async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:
         """Ask every queryable intersecting ``key_expr``; replies as they come, for ``timeout``.
@@ -696,7 +734,11 @@ class MqttTransport(_Keeps, Transport):
         deadline = loop.time() + timeout
         topic = topic_filter(key_expr)
         seen = _Alive(loop, keep)
-        await self._attach(topic, lambda f: f.watchers.append(seen), resubscribe=True)
+
+        def remove(f: _Filter) -> None:
+            f.watchers.remove(seen)
+
+        await self._attach(topic, lambda f: f.watchers.append(seen), remove, resubscribe=True)
         try:
             await self._round_trip(max(0.0, deadline - loop.time()))
             # the quiet time runs from the echo, not from the start: a slow round trip
@@ -710,7 +752,7 @@ class MqttTransport(_Keeps, Transport):
                     async with asyncio.timeout(end - now):
                         await seen.came.wait()
         finally:
-            self._detach(topic, lambda f: f.watchers.remove(seen))
+            self._detach(topic, remove)
         return seen.alive()
 
     async def serve(
@@ -731,7 +773,7 @@ class MqttTransport(_Keeps, Transport):
         attached: list[str] = []
         try:
             for topic in filters:
-                await self._attach(topic, lambda f: f.servers.append(server))
+                await self._attach(topic, lambda f: f.servers.append(server), remove)
                 attached.append(topic)
         except BaseException:
             for topic in attached:
@@ -821,10 +863,12 @@ class MqttTransport(_Keeps, Transport):
         topic = topic_filter(key_expr)
         inbox: Inbox[Presence] = Inbox(loop, buffer_size)
         watcher = _Watcher(inbox, history)
-        await self._attach(topic, lambda f: f.watchers.append(watcher), resubscribe=history)
-        return self._subscription(
-            inbox, lambda: self._detach(topic, lambda f: f.watchers.remove(watcher))
-        )
+
+        def remove(f: _Filter) -> None:
+            f.watchers.remove(watcher)
+
+        await self._attach(topic, lambda f: f.watchers.append(watcher), remove, resubscribe=history)
+        return self._subscription(inbox, lambda: self._detach(topic, remove))
 
 
 class _Token:
@@ -849,6 +893,9 @@ class _Token:
             connection = await _connect(client)
         except aiomqtt.MqttError as exc:
             raise t._error(f"connect for the token on {self.key!r}", exc) from exc
+        # kept before announcing: a reconnection cancelled by ``clear`` once the alive
+        # message may be out leaves ``clear`` the connection to clear and close
+        self.client, self.connection = client, connection
         try:
             await client.subscribe(self.key, qos=1)
             await client.publish(self.key, ALIVE, qos=1, retain=True)
@@ -856,7 +903,6 @@ class _Token:
             with contextlib.suppress(aiomqtt.MqttError):
                 await connection.aclose()
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
-        self.client, self.connection = client, connection
 
     async def keep(self) -> None:
         """Announce again when the key is cleared by another; reconnect when dropped."""
@@ -892,19 +938,26 @@ class _Token:
 
     async def clear(self) -> None:
         self.closing = True
+        task = self.task
+        if task is not None and task is not asyncio.current_task() and not task.done():
+            # a reconnection under way would otherwise announce again on a connection
+            # nobody clears or closes: alive for as long as this process runs
+            task.cancel()
+            await asyncio.wait([task], timeout=self.transport.config.connect_timeout)
         client, connection = self.client, self.connection
         if client is None or connection is None:
             return
         try:
-            await client.publish(self.key, b"", qos=1, retain=True)
+            # QoS 0: the broker's acknowledgement adds nothing. It reads the clear before
+            # the disconnect that follows on the same connection; a connection lost before
+            # either is read fires the last will, which clears the key too. Waiting for it
+            # made each close over a slow broker wait up to connect_timeout, one by one.
+            await client.publish(self.key, b"", qos=0, retain=True)
         except aiomqtt.MqttError as exc:
             log.warning("mqtt: could not clear the token on %r: %s", self.key, exc)
         finally:
             with contextlib.suppress(aiomqtt.MqttError):
                 await connection.aclose()
-            task = self.task
-            if task is not None and task is not asyncio.current_task() and not task.done():
-                task.cancel()
 
 
 async def _closing(handle: Handle) -> None:
