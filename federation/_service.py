@@ -992,10 +992,15 @@ class FederationAgent(Agent):
         gdf = self.platform.global_df
         if gdf is None:
             return
-        alive = set(gdf.platforms)
-        unknown = [w for w in receivers if w not in alive and w != requester]
+        # listed only: one whose snapshot is still asked may be a forged presence token
+        listed = set(gdf.listed)
+        unknown = [w for w in receivers if w not in listed and w != requester]
         if unknown:
-            raise ContentError(f"unknown receiver {', '.join(unknown)}: not in the federation")
+            raise Denied(
+                "unlisted-receiver",
+                f"unknown receiver {', '.join(unknown)}: not in the federation (not listed: "
+                "no signed directory answer)",
+            )
 
     def _check_new(self, pairs: list[tuple[str, str]], receivers: list[str]) -> None:
         if self.platform.name in receivers:
