@@ -880,7 +880,7 @@ class GlobalDirectory:
     def listed(self) -> list[str]:
         """The platforms listed: alive, and their signed directory snapshot answered.
 
-        Who may receive or be told goes by this, never by `platforms`: a presence token
+        Who may receive a stream goes by this, never by `platforms`: a presence token
         is not authentication, and one whose first snapshot is still asked may be a
         forged token under a trusted name whose platform is not running.
         """

@@ -996,10 +996,19 @@ class FederationAgent(Agent):
         listed = set(gdf.listed)
         unknown = [w for w in receivers if w not in listed and w != requester]
         if unknown:
+            # one present whose snapshot has not answered may have just joined (it can be in
+            # `members` already, by its signed events): say so, the requester may ask again
+            present = set(gdf.platforms) | set(gdf.unconfirmed)
+            pending = [w for w in unknown if w in present]
+            later = (
+                f" ({', '.join(pending)} not listed here yet: present, its signed directory "
+                "snapshot not answered; ask again once it is listed)"
+                if pending
+                else ""
+            )
             raise Denied(
                 "unlisted-receiver",
-                f"unknown receiver {', '.join(unknown)}: not in the federation (not listed: "
-                "no signed directory answer)",
+                f"unknown receiver {', '.join(unknown)}: not in the federation{later}",
             )
 
     def _check_new(self, pairs: list[tuple[str, str]], receivers: list[str]) -> None:

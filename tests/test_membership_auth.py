@@ -576,6 +576,8 @@ async def test_a_forged_token_makes_no_stream_receiver_on_zenoh(
             assert refused.value.message is not None
             reason = refused.value.message.content
             assert isinstance(reason, str) and reason.startswith("unknown receiver uav-b"), reason
+            # present, its snapshot still asked: the requester is told it may ask again
+            assert "uav-b not listed here yet" in reason and "ask again" in reason, reason
             assert fed_a.refusals.get("unlisted-receiver") == 1, fed_a.refusals
             records = [
                 r for r in _audit(a, "federation", "uav-c") if r.get("code") == "unlisted-receiver"
