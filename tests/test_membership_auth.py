@@ -570,7 +570,10 @@ async def test_a_forged_token_makes_no_stream_receiver_on_zenoh(
             await _until("uav-a asks uav-b's snapshot", lambda: held and "uav-b" in gdf.platforms)
             assert "uav-b" not in gdf.listed and "uav-b" not in gdf.unconfirmed
             with pytest.raises(Refused) as refused:
-                await fed_c.create_stream("uav-a", ["heli-altitude"], to_units=["uav-b"])
+                # uav-a waits one query timeout for uav-b's listing before it refuses
+                await fed_c.create_stream(
+                    "uav-a", ["heli-altitude"], to_units=["uav-b"], timeout=WAIT
+                )
             under_way = "uav-b" in gdf.platforms and "uav-b" not in gdf.unconfirmed
             assert under_way, "uav-b's first snapshot no longer asked: nothing tested"
             assert refused.value.message is not None
