@@ -876,6 +876,18 @@ class GlobalDirectory:
         """
         return sorted(p for p in self._alive if p not in self._unconfirmed)
 
+    @property
+    def listed(self) -> list[str]:
+        """The platforms listed: alive, and their signed directory snapshot answered.
+
+        Who may receive a stream goes by this, never by `platforms`: a presence token
+        is not authentication, and one whose first snapshot is still asked may be a
+        forged token under a trusted name whose platform is not running.
+        """
+        return sorted(
+            p for p in self._alive if p not in self._joining and p not in self._unconfirmed
+        )
+
     def services(self, platform: str | None = None) -> list[ServiceDescription]:
         """Every public service known (of ``platform`` only, when given)."""
         # an unconfirmed platform's entries, restored while it is asked again, count only

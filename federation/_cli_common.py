@@ -105,7 +105,7 @@ async def wait_for_members(p: FederationPlatform, want: str | None, wait: float)
     gdf = p.agents.global_df
     deadline = time.monotonic() + wait
     while time.monotonic() < deadline:
-        alive = [x for x in (gdf.platforms if gdf else []) if x != p.name]
+        alive = [x for x in (gdf.listed if gdf else []) if x != p.name]
         if (want in alive) if want else alive:
             await asyncio.sleep(min(0.5, max(0.0, deadline - time.monotonic())))
             return True
@@ -141,12 +141,12 @@ async def reaching(p: FederationPlatform, want: str, wait: float) -> AsyncIterat
 
 
 def platforms_of(p: FederationPlatform) -> dict[str, list[dict[str, Any]]]:
-    """``{platform: [service, …]}`` of those alive, as ``p`` sees them (``p`` left out)."""
+    """``{platform: [service, …]}`` of those listed, as ``p`` sees them (``p`` left out)."""
     gdf = p.agents.global_df
     if gdf is None:
         return {}
     return {
         name: [{"name": s.name, "type": s.type, "provider": s.provider} for s in gdf.services(name)]
-        for name in gdf.platforms
+        for name in gdf.listed
         if name != p.name
     }

@@ -988,14 +988,49 @@ class FederationAgent(Agent):
             if not record.handles:
                 del self._exports[export_id]
 
+    async def _await_listed(self, receivers: list[str], requester: str) -> None:
+        """Wait (one directory query timeout at most) for receivers present but not listed.
+
+        One that just joined is in `members` by its signed events before its snapshot
+        answered: a requester that saw it there must not be refused in that gap. Bounded,
+        so a forged presence token under a trusted name costs a request no more than that.
+        """
+        gdf = self.platform.global_df
+        if gdf is None:
+            return
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + gdf.query_timeout
+        while True:
+            listed = set(gdf.listed)
+            present = set(gdf.platforms)  # its first snapshot asked now (not unconfirmed)
+            if not any(w in present and w not in listed for w in receivers if w != requester):
+                return
+            if loop.time() >= deadline:
+                return
+            await asyncio.sleep(0.02)  # the directory tells no event for a listing
+
     def _check_receivers(self, receivers: list[str], requester: str) -> None:
         gdf = self.platform.global_df
         if gdf is None:
             return
-        alive = set(gdf.platforms)
-        unknown = [w for w in receivers if w not in alive and w != requester]
+        # listed only: one whose snapshot is still asked may be a forged presence token
+        listed = set(gdf.listed)
+        unknown = [w for w in receivers if w not in listed and w != requester]
         if unknown:
-            raise ContentError(f"unknown receiver {', '.join(unknown)}: not in the federation")
+            # one present whose snapshot has not answered may have just joined (it can be in
+            # `members` already, by its signed events): say so, the requester may ask again
+            present = set(gdf.platforms) | set(gdf.unconfirmed)
+            pending = [w for w in unknown if w in present]
+            later = (
+                f" ({', '.join(pending)} not listed here yet: present, its signed directory "
+                "snapshot not answered; ask again once it is listed)"
+                if pending
+                else ""
+            )
+            raise Denied(
+                "unlisted-receiver",
+                f"unknown receiver {', '.join(unknown)}: not in the federation{later}",
+            )
 
     def _check_new(self, pairs: list[tuple[str, str]], receivers: list[str]) -> None:
         if self.platform.name in receivers:
@@ -1021,6 +1056,7 @@ class FederationAgent(Agent):
             for who in dict.fromkeys([requester, *receivers]):
                 self._check_sharing("stream", semantic, who)
         pairs = [(s, self._translate(s)) for s in dict.fromkeys(req.labels)]
+        await self._await_listed(receivers, requester)
         self._check_receivers(receivers, requester)
         self._check_new(pairs, receivers)
         try:

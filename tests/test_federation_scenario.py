@@ -1624,3 +1624,43 @@ async def test_the_commands_waiting_on_a_failed_create_stream_fail_with_it(
         assert all(isinstance(r, ReplyTimeout) for r in results), results
         assert time.monotonic() - start < 2.0  # one timeout for all three
         assert channel._pending == {}
+
+
+async def test_a_receiver_in_members_before_its_snapshot_answered_is_waited_for(
+    demo_keys: Path,
+) -> None:
+    """A member that just joined is in `members` (its signed events) before its directory
+    snapshot answered at the provider: a stream asked to it then is not refused in that
+    gap; the provider waits (one query timeout at most) for it to be listed."""
+    consent = {"sharing": {"accept_for": ["uav-b"]}}
+    async with memory_federation(demo_keys, **consent) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        gdf = a.agents.global_df
+        assert gdf is not None
+        gdf.query_timeout = WAIT  # the wait's bound: far beyond what the test takes
+        a.instance.add_source("cars/car5/state")
+        # the operator's snapshot, at uav-a, asked now (as right after it joined): in
+        # `platforms` (and `members`), not listed
+        gdf._joining.add("operator")
+        assert "operator" in gdf.platforms and "operator" not in gdf.listed
+        fed_a = a.federation_agent
+        waiting = asyncio.Event()
+        original = fed_a._await_listed
+
+        async def noted(receivers: list[str], requester: str) -> None:
+            waiting.set()
+            await original(receivers, requester)
+
+        fed_a._await_listed = noted  # type: ignore[method-assign]
+        asking = asyncio.ensure_future(
+            b.federation_agent.create_stream(
+                "uav-a", ["car5-state"], to_units=["operator"], timeout=WAIT
+            )
+        )
+        async with asyncio.timeout(WAIT):
+            await waiting.wait()
+        gdf._joining.discard("operator")  # its snapshot answered: listed
+        async with asyncio.timeout(WAIT):
+            export_id = await asking
+        assert a.federation_agent.exports[export_id].receivers == ["operator"]
+        assert a.federation_agent.refusals.get("unlisted-receiver") is None

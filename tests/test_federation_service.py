@@ -485,9 +485,11 @@ async def test_create_stream_refusals_name_the_reason() -> None:
         reason = await refusal(ask(labels=["car5-state", "car9-state"]))
         assert reason == "semantic label 'car9-state' has no mapping on this platform"
         assert "to itself" in await refusal(ask(labels=["car5-state"], **{"to-units": ["uav-a"]}))
-        assert "unknown receiver nowhere" in await refusal(
-            ask(labels=["car5-state"], **{"to-units": ["nowhere"]})
+        # no presence at all: not told to ask again
+        assert await refusal(ask(labels=["car5-state"], **{"to-units": ["nowhere"]})) == (
+            "unknown receiver nowhere: not in the federation"
         )
+        assert a.fed.refusals.get("unlisted-receiver") == 1, a.fed.refusals
         assert "sample-period" in await refusal(ask(labels=["car5-state"], **{"sample-period": -1}))
         assert "start" in await refusal(ask(labels=["car5-state"], **{"from": 20, "to": 10}))
         assert "history" in await refusal(ask(labels=["car5-state"], history=-1))

@@ -103,7 +103,7 @@ def _stats(p: FederationPlatform) -> dict[str, Any]:
         # of those stale, the ones the event gate shed before any signature check
         "df_stale_shed": gdf.event_gate.stale if gdf is not None and gdf.event_gate else 0,
         # the platforms whose signed snapshot came (none of theirs still asked)
-        "df_listed": sorted(set(gdf.platforms) - gdf._joining) if gdf is not None else [],
+        "df_listed": gdf.listed if gdf is not None else [],
         # the platforms its Federation Agent takes for members (from the directory)
         "members": p.members,
         # the directory's warnings, as logged (their number is bounded per signer)

@@ -28,7 +28,7 @@ import pytest
 import zenoh
 from nacl.signing import SigningKey
 
-from agents import DirectoryEvent, ReplyTimeout
+from agents import DirectoryEvent, Refused, ReplyTimeout
 from agents.keys import gen_keys, trust_keys
 from agents.transports import Subscription, free_tcp_port
 from federation import FederationPlatform, PlatformConfig
@@ -518,6 +518,94 @@ async def test_a_forged_token_does_not_keep_a_member_never_listed_on_zenoh(
                 token.undeclare()
             finally:
                 outsider.close()
+
+
+async def test_a_forged_token_makes_no_stream_receiver_on_zenoh(
+    tmp_path: Path, node: Callable[..., subprocess.Popen[str]]
+) -> None:
+    """An outsider holds a token under uav-b's name (uav-b not running) and a silent
+    ``df/uav-b`` queryable, so uav-a asks its first snapshot for three query timeouts. A
+    member, uav-c, asks uav-a to stream to uav-b meanwhile: refused as unlisted (counted,
+    audited), nothing exported. The real uav-b, once its snapshot answered, is accepted."""
+    fed = f"member{os.getpid()}r"
+    port, port_c = free_tcp_port(), free_tcp_port()
+    _federation(
+        tmp_path,
+        fed,
+        ["uav-a", "uav-b", "uav-c"],
+        {
+            "uav-a": f'mode = "peer"\nlisten = ["tcp/127.0.0.1:{port}"]',
+            # peers forward for no one: uav-b asks uav-c to confirm, so it reaches it too
+            "uav-b": (
+                f'mode = "peer"\nconnect = ["tcp/127.0.0.1:{port}", "tcp/127.0.0.1:{port_c}"]'
+            ),
+            "uav-c": (
+                f'mode = "peer"\nlisten = ["tcp/127.0.0.1:{port_c}"]\n'
+                f'connect = ["tcp/127.0.0.1:{port}"]'
+            ),
+        },
+    )
+    with (tmp_path / "uav-b.toml").open("a") as f:
+        f.write('\n[sharing]\naccept_for = ["uav-c"]\n')  # the real uav-b consents
+    async with (
+        asyncio.timeout(6 * WAIT),
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-a.toml")) as a,
+        FederationPlatform(PlatformConfig.load(tmp_path / "uav-c.toml")) as c,
+    ):
+        gdf = a.agents.global_df
+        assert gdf is not None
+        a.instance.add_source("uav-a/alt")  # what heli-altitude streams from
+        await _until("uav-a lists uav-c", lambda: "uav-c" in gdf.listed)
+        await _until("uav-c sees uav-a", lambda: "uav-a" in c.members)
+        # each of the first snapshot's three queries waits this long: the whole attack
+        # runs within them, while uav-b is in `platforms`, not yet listed nor refused
+        gdf.query_timeout = WAIT / 3
+        fed_a, fed_c = a.federation_agent, c.federation_agent
+        outsider = _zenoh_outsider(port)
+        try:
+            await _reaches(outsider, f"dyknow/{fed}/v1", "uav-a")
+            held: list[Any] = []  # a query dropped is ended: kept, it waits its timeout
+            silent = outsider.declare_queryable(f"dyknow/{fed}/v1/df/uav-b", held.append)
+            token = outsider.liveliness().declare_token(f"dyknow/{fed}/v1/alive/uav-b")
+            await _until("uav-a asks uav-b's snapshot", lambda: held and "uav-b" in gdf.platforms)
+            assert "uav-b" not in gdf.listed and "uav-b" not in gdf.unconfirmed
+            with pytest.raises(Refused) as refused:
+                # uav-a waits one query timeout for uav-b's listing before it refuses
+                await fed_c.create_stream(
+                    "uav-a", ["heli-altitude"], to_units=["uav-b"], timeout=WAIT
+                )
+            under_way = "uav-b" in gdf.platforms and "uav-b" not in gdf.unconfirmed
+            assert under_way, "uav-b's first snapshot no longer asked: nothing tested"
+            assert refused.value.message is not None
+            reason = refused.value.message.content
+            assert isinstance(reason, str) and reason.startswith("unknown receiver uav-b"), reason
+            # present, its snapshot still asked: the requester is told it may ask again
+            assert "uav-b not listed here yet" in reason and "ask again" in reason, reason
+            assert fed_a.refusals.get("unlisted-receiver") == 1, fed_a.refusals
+            records = [
+                r for r in _audit(a, "federation", "uav-c") if r.get("code") == "unlisted-receiver"
+            ]
+            assert len(records) == 1, records
+            assert records[0]["verdict"] == "refused"
+            assert records[0]["reason"].startswith("unlisted-receiver: unknown receiver uav-b")
+            assert fed_a.exports == {} and a.exporter.exports() == []
+            token.undeclare()
+            silent.undeclare()
+            held.clear()
+        finally:
+            outsider.close()
+
+        # the real uav-b: listed once its signed snapshot answered, then a receiver
+        node("uav-b")
+        await _until("uav-a lists the real uav-b", lambda: "uav-b" in gdf.listed)
+        export_id = await fed_c.create_stream(
+            "uav-a", ["heli-altitude"], to_units=["uav-b"], timeout=WAIT
+        )
+        assert fed_a.exports[export_id].receivers == ["uav-b"]
+        assert [(e.receiver, e.semantic_label) for e in a.exporter.exports()] == [
+            ("uav-b", "heli-altitude")
+        ]
+        assert fed_a.refusals.get("unlisted-receiver") == 1, fed_a.refusals
 
 
 async def test_a_forged_leave_on_mqtt_stops_no_stream(
