@@ -496,7 +496,7 @@ class Conversation:
             return
         self.closed = True
         agent = self._agent
-        # `Agent._remember_closed`, inline: every asker's conversation closes so
+        # the agent remembers the closed ids (the last `_CLOSED_KEPT`) for late replies
         closed = agent._closed_keys
         if self.id is not None and agent._by_conv.get(self.id) is self:
             del agent._by_conv[self.id]
@@ -1017,12 +1017,6 @@ class Agent:
             await self.send(message.reply(performative, reason, sender=self.aid))
         except Exception:
             log.exception("%s: could not send %s to %s", self, performative, message.sender)
-
-    def _remember_closed(self, key: str) -> None:
-        closed = self._closed_keys
-        closed[key] = None
-        if len(closed) > _CLOSED_KEPT:
-            closed.popitem(last=False)
 
 
 def _unwrap(exc: BaseException) -> BaseException:
