@@ -572,6 +572,8 @@ class _MqttRunner(InputRunner):
     async def _run(self, zenoh_session: Any | None) -> None:
         import aiomqtt
 
+        from agents.transports import mqtt_client
+
         s = self.settings
         password = None
         if s.password_file is not None:
@@ -580,7 +582,7 @@ class _MqttRunner(InputRunner):
         delay = 0.5
         while True:  # reconnects: a broker restart must not end the input
             try:
-                async with aiomqtt.Client(
+                async with mqtt_client(
                     s.host, s.port, username=s.username, password=password
                 ) as client:
                     await client.subscribe(s.topic, qos=s.qos)

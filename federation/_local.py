@@ -656,7 +656,8 @@ class LocalChannel:
         if self._server is not None:
             self._server.close()
             with contextlib.suppress(TimeoutError):  # a client still connected: do not wait
-                await asyncio.wait_for(self._server.wait_closed(), 2.0)
+                async with asyncio.timeout(2.0):
+                    await self._server.wait_closed()
         clients = set(self._clients)
         for task in clients:
             task.cancel()  # a command still connected (a stream it follows) ends with the node
@@ -698,7 +699,8 @@ class LocalChannel:
                 # its request is taken (never read) first: closing on a request still on
                 # its way would break the client's pipe before it could read the refusal
                 with contextlib.suppress(TimeoutError, ValueError):
-                    await asyncio.wait_for(reader.readline(), _REFUSE_WAIT)
+                    async with asyncio.timeout(_REFUSE_WAIT):
+                        await reader.readline()
                 await send({"error": "this node serves its own user only"})
                 return
             # who we are, before anything is asked: a command of another deployment's
@@ -744,7 +746,8 @@ class LocalChannel:
     ) -> dict[str, Any] | None:
         """The command's next line, a JSON object; None once a bad one was answered."""
         try:
-            line = await asyncio.wait_for(reader.readline(), _REQUEST_WAIT)
+            async with asyncio.timeout(_REQUEST_WAIT):
+                line = await reader.readline()
         except TimeoutError:
             await send({"error": f"bad request: none came within {_REQUEST_WAIT:g} s"})
             return None
@@ -1061,7 +1064,8 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
         if creds is None or creds[1] != os.getuid():
             raise ForeignNodeError(_not_ours_listener(path, None if creds is None else creds[1]))
         try:
-            first = await asyncio.wait_for(reader.readline(), _HELLO_WAIT)
+            async with asyncio.timeout(_HELLO_WAIT):
+                first = await reader.readline()
         except TimeoutError:
             raise ForeignNodeError(
                 f"the listener on {path} did not say which platform it is in {_HELLO_WAIT:g} s: "
@@ -1081,7 +1085,8 @@ async def via_node(config: PlatformConfig, request: dict[str, Any]) -> AsyncGene
         writer.write(b"\n")
         await writer.drain()
         try:
-            answer = json.loads(await asyncio.wait_for(reader.readline(), _HELLO_WAIT))
+            async with asyncio.timeout(_HELLO_WAIT):
+                answer = json.loads(await reader.readline())
             older = isinstance(answer, dict) and "error" in answer and "proof" not in answer
             if not older:
                 proof = base64.b64decode(answer["proof"], validate=True)

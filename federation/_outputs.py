@@ -166,10 +166,12 @@ class OutputRunner:
     async def _run_mqtt(self, s: MqttOutput) -> None:
         import aiomqtt
 
+        from agents.transports import mqtt_client
+
         async with self._scanning():
             while True:  # reconnects: the broker may restart
                 try:
-                    async with aiomqtt.Client(s.host, s.port) as client:
+                    async with mqtt_client(s.host, s.port) as client:
                         while True:
                             label, payload = await self._queue.get()
                             topic = s.topic.replace("{label}", label)

@@ -203,7 +203,10 @@ class _Ros2Runner(InputRunner):
                     payload, _, key = await q.queue.get()
                 else:
                     try:
-                        payload, _, key = await asyncio.wait_for(q.queue.get(), SILENT_WARN)
+                        # not wait_for: on Python 3.11 it may lose a cancellation that
+                        # comes with a sample, and this loop would outlive its node
+                        async with asyncio.timeout(SILENT_WARN):
+                            payload, _, key = await q.queue.get()
                     except TimeoutError:
                         heard = True  # said once: a topic may be quiet for a while
                         log.warning("%s", await self._silent(session))

@@ -106,3 +106,72 @@ def own_mosquitto(tmp_path: Path) -> Iterator[tuple[str, int, subprocess.Popen[b
     """A broker for this test alone, which it may stall (SIGSTOP): (host, port, process)."""
     with _running_mosquitto(tmp_path) as running:
         yield running
+
+
+# --- a test about to hit its timeout tells where its tasks wait ----------------------------
+
+_DUMP_BEFORE = 5.0  # s before pytest-timeout's limit
+
+
+def _dump_tasks(nodeid: str) -> None:
+    """Print every asyncio task's stack (a test about to time out: where does it wait?).
+
+    Runs on a timer thread while the test's loop is, as a rule, idle in its selector;
+    pytest-timeout shows only threads' stacks, and a hung test's loop thread is always
+    in ``select``: the tasks' own stacks are what tells a hang's cause.
+    """
+    import asyncio
+    import gc
+    import sys
+
+    tasks = [o for o in gc.get_objects() if isinstance(o, asyncio.Task) and not o.done()]
+    print(f"\n--- {nodeid}: {len(tasks)} pending asyncio task(s) ---", file=sys.stderr)
+    for task in tasks:
+        print(f"{task.get_name()}:", file=sys.stderr)
+        try:
+            # a task's own stack stops at its coroutine: the awaits below it tell the wait
+            awaited: object = task.get_coro()
+            for _ in range(40):
+                if type(awaited).__name__ == "async_generator_asend":
+                    # an ``async with`` over a generator: its frame is the generator's
+                    gens = [g for g in gc.get_referents(awaited) if hasattr(g, "ag_frame")]
+                    awaited = gens[0] if gens else awaited
+                frame = (
+                    getattr(awaited, "cr_frame", None)
+                    or getattr(awaited, "gi_frame", None)
+                    or getattr(awaited, "ag_frame", None)
+                )
+                if frame is None:
+                    break
+                code = frame.f_code
+                print(f"  {code.co_filename}:{frame.f_lineno} {code.co_name}", file=sys.stderr)
+                nxt = (
+                    getattr(awaited, "cr_await", None)
+                    or getattr(awaited, "gi_yieldfrom", None)
+                    or getattr(awaited, "ag_await", None)
+                )
+                if nxt is None:
+                    break
+                awaited = nxt
+            print(f"  waits on {repr(awaited)[:300]}", file=sys.stderr)
+        except Exception as exc:  # the task moved on under us: go on with the others
+            print(f"  (stack unreadable: {exc!r})", file=sys.stderr)
+
+
+@pytest.fixture(autouse=True)
+def _tasks_told_before_timeout(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Dump the pending asyncio tasks' stacks shortly before pytest-timeout fails the test."""
+    import threading
+
+    marker = request.node.get_closest_marker("timeout")
+    limit = float(marker.args[0]) if marker and marker.args else request.config.getini("timeout")
+    if not limit or float(limit) <= _DUMP_BEFORE:
+        yield
+        return
+    timer = threading.Timer(float(limit) - _DUMP_BEFORE, _dump_tasks, (request.node.nodeid,))
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()

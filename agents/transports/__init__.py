@@ -33,10 +33,15 @@ from ._zenoh import ZenohConfig, ZenohTls, ZenohTransport, ZenohUser
 
 if TYPE_CHECKING:
     from ._memory import MemoryHub, MemoryTransport
-    from ._mqtt import MqttTransport
+    from ._mqtt import MqttTransport, mqtt_client
 
 # what is imported at its first use: name -> its module
-_LAZY = {"MemoryHub": "_memory", "MemoryTransport": "_memory", "MqttTransport": "_mqtt"}
+_LAZY = {
+    "MemoryHub": "_memory",
+    "MemoryTransport": "_memory",
+    "MqttTransport": "_mqtt",
+    "mqtt_client": "_mqtt",
+}
 
 __all__ = [
     "Handle",
@@ -61,6 +66,7 @@ __all__ = [
     "free_tcp_port",
     "key_intersects",
     "key_matches",
+    "mqtt_client",
 ]
 
 

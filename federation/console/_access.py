@@ -422,7 +422,8 @@ class ConsoleAccess:
         try:
             while not closing.is_set():
                 with contextlib.suppress(TimeoutError):
-                    await asyncio.wait_for(closing.wait(), REPORT_INTERVAL)
+                    async with asyncio.timeout(REPORT_INTERVAL):
+                        await closing.wait()
                 self.report()
         finally:
             self.report()
