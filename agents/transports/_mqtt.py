@@ -148,6 +148,7 @@ QUERY_PREFIX = "@query"
 REPLY_PREFIX = "@reply"
 ALIVE = b'{"v":1,"alive":true}'
 _REPLY_SID = 1  # the subscription identifier of this client's reply topic
+_PENDING_CALLS_WARN = 64  # calls awaiting the broker before aiomqtt warns (`_new_client`)
 _DISCONNECT_WAIT = 1.0  # s: a DISCONNECT not out by then is not waited for (`_disconnect`)
 
 
@@ -367,7 +368,7 @@ class MqttTransport(_Keeps, Transport):
 
     def _new_client(self, identifier: str, will: aiomqtt.Will | None = None) -> aiomqtt.Client:
         c = self.config
-        return aiomqtt.Client(
+        client = aiomqtt.Client(
             c.host,
             c.port,
             identifier=identifier,
@@ -379,6 +380,11 @@ class MqttTransport(_Keeps, Transport):
             will=will,
             tls_context=None if c.tls is None else c.tls.context(),
         )
+        # aiomqtt warns of "pending publish calls" past 10 calls awaiting the broker's
+        # answer; a platform's start (and close) has one (un)subscribe per topic filter
+        # under way at once, ~15: no sign of a backlog
+        client.pending_calls_threshold = _PENDING_CALLS_WARN
+        return client
 
     async def open(self) -> None:
         """Connect to the broker, subscribe to this client's reply topic, start receiving."""
@@ -409,8 +415,7 @@ class MqttTransport(_Keeps, Transport):
                 )
             )
         except aiomqtt.MqttError as exc:
-            with contextlib.suppress(aiomqtt.MqttError):
-                await connection.aclose()
+            await _disconnect(client, connection)
             raise TransportError(f"mqtt: cannot subscribe to replies on {where}: {exc}") from exc
         return client, connection
 
@@ -966,8 +971,7 @@ class _Token:
             await t._acked(client.subscribe(self.key, qos=1))
             await client.publish(self.key, ALIVE, qos=1, retain=True)
         except aiomqtt.MqttError as exc:
-            with contextlib.suppress(aiomqtt.MqttError):
-                await connection.aclose()
+            await _disconnect(client, connection)
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
 
     async def keep(self) -> None:
@@ -985,9 +989,7 @@ class _Token:
                 if self.closing or self.transport._state != "opened":
                     return
                 log.warning("mqtt: the token's connection on %r was lost: %s", self.key, exc)
-            with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
-                async with asyncio.timeout(1.0):
-                    await connection.aclose()
+            await _disconnect(client, connection)
             # announced again only once this platform answers again (queries, DF)
             up = self.transport._up
             if up is not None:
