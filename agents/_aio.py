@@ -52,6 +52,24 @@ def run(main: Coroutine[Any, Any, T]) -> T:
     return asyncio.run(main)
 
 
+async def together(*steps: Coroutine[Any, Any, Any]) -> None:
+    """Run independent ``steps`` at once; the first failure is raised, the others cancelled.
+
+    For starts that wait on a remote peer at each step (an MQTT subscribe is a round trip
+    through the broker): the steps' waits overlap rather than add up. A step undoes
+    itself when cancelled or failing; what those that succeeded set up is the caller's
+    to undo, as after a failing sequence. The failure is raised as the step raised it,
+    not in an exception group, so callers catch what they caught before.
+    """
+    try:
+        async with asyncio.TaskGroup() as tg:
+            for step in steps:
+                tg.create_task(step)
+    except BaseExceptionGroup as group:
+        first = group.exceptions[0]
+        raise first from first.__cause__
+
+
 def call_in_loop(
     loop: asyncio.AbstractEventLoop | None, fn: Callable[..., object], *args: Any
 ) -> None:

@@ -41,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field, JsonValue, ValidationError
 
 from ._acl import WIRE_VERSION, ACLMessage, AgentIdStr, Performative, platform_of
 from ._agent import Agent
-from ._aio import Pending
+from ._aio import Pending, together
 from ._bucket import TokenBucket
 from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventGate, DfEventLimit
 from ._directory_auth import DirectoryAuth, DirectoryStatementError, Statement, make_nonce
@@ -810,12 +810,24 @@ class GlobalDirectory:
         gate = self.event_gate
         self._stale_tally.bind(asyncio.get_running_loop())
         self._retry_refused.bind(asyncio.get_running_loop())
-        # Subscribe before the snapshot: what changes meanwhile is queued, not lost.
-        events = await p.transport.subscribe(
-            p.key("df-events", "*"), admit=None if gate is None else gate.admit
-        )
-        presence = await p.transport.watch_presence(p.key("alive", "*"))
-        self._subs = [events, presence]
+        # Subscribe before the snapshot: what changes meanwhile is queued, not lost. Both
+        # at once (over MQTT each waits for the broker); each kept as it comes, for `close`.
+        subs: dict[str, Subscription[Any]] = {}
+
+        async def subscribe_events() -> None:
+            subs["events"] = sub = await p.transport.subscribe(
+                p.key("df-events", "*"), admit=None if gate is None else gate.admit
+            )
+            self._subs.append(sub)
+
+        async def watch_presence() -> None:
+            subs["presence"] = sub = await p.transport.watch_presence(p.key("alive", "*"))
+            self._subs.append(sub)
+
+        self._subs = []
+        await together(subscribe_events(), watch_presence())
+        events: Subscription[Message] = subs["events"]
+        presence: Subscription[Presence] = subs["presence"]
         # Those alive are whom to expect: a queryable that never answers (anyone may
         # declare one on dyknow/<fed>/v1/**) keeps even zenoh's query open to its
         # timeout, and MQTT's always is. One alive that answers later, or not in the

@@ -39,7 +39,7 @@ from ._acl import (
     platform_of,
 )
 from ._agent import _RUNNING, LATER, Agent, MessageTemplate, on
-from ._aio import Ticker, call_in_loop
+from ._aio import Ticker, call_in_loop, together
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
     AgentError,
@@ -836,27 +836,47 @@ class InterfaceAgent:
         if self._unhook_trust is None:
             self._unhook_trust = self.trust.on_remove(self._trust_removed)
         gate = self.kx_gate
-        self._kx = await transport.serve(
-            platform.key("kx"), self._on_key_exchange, admit=None if gate is None else gate.admit
-        )
-        if self.watchable:
-            self._watch_handle = await transport.serve(
-                platform.key("watch"), self._on_watch, admit=self._admit_watch
+        # Independent, so at once: over MQTT each waits for the broker's answer, and a
+        # start made of them one after another took a round trip through it for each.
+        # Each is kept as it comes, for `aclose` to undo when another fails.
+        got: dict[str, Subscription[Any]] = {}
+
+        async def serve_kx() -> None:
+            self._kx = await transport.serve(
+                platform.key("kx"),
+                self._on_key_exchange,
+                admit=None if gate is None else gate.admit,
             )
-        presence = await transport.watch_presence(platform.key("alive", "*"), history=False)
-        self._subs.append(presence)
-        inbox: Subscription[Any] | None = None
-        if self.lane:
-            inbox = await transport.subscribe_taking(
-                platform.key("acl"), self._lane_take, dropped=self._lane_dropped
+
+        async def serve_watch() -> None:
+            if self.watchable:
+                self._watch_handle = await transport.serve(
+                    platform.key("watch"), self._on_watch, admit=self._admit_watch
+                )
+
+        async def watch_presence() -> None:
+            got["presence"] = sub = await transport.watch_presence(
+                platform.key("alive", "*"), history=False
             )
-        self._lane_on = inbox is not None
-        if self._lane_on:
-            _LANES.change(1)
-        self._lane_inbox = None if inbox is None else inbox.inbox
-        if inbox is None:
-            inbox = await transport.subscribe(platform.key("acl"))
-        self._subs.append(inbox)
+            self._subs.append(sub)
+
+        async def subscribe_inbox() -> None:
+            inbox: Subscription[Any] | None = None
+            if self.lane:
+                inbox = await transport.subscribe_taking(
+                    platform.key("acl"), self._lane_take, dropped=self._lane_dropped
+                )
+            self._lane_on = inbox is not None
+            if self._lane_on:
+                _LANES.change(1)
+            self._lane_inbox = None if inbox is None else inbox.inbox
+            if inbox is None:
+                inbox = await transport.subscribe(platform.key("acl"))
+            got["inbox"] = inbox
+            self._subs.append(inbox)
+
+        await together(serve_kx(), serve_watch(), watch_presence(), subscribe_inbox())
+        presence, inbox = got["presence"], got["inbox"]
         platform.spawn(self._receive(inbox), "interface.inbox")
         platform.spawn(self._watch(presence), "interface.presence")
         if self.publish_audit:

@@ -13,6 +13,10 @@ Subscriptions
     by subscription identifier, to the matching subscriptions' ``Inbox``es. Subscriptions
     deliver live messages only: retained messages a broker replays on subscribing are
     presence history, not publications.
+    A call returns once the broker confirmed its subscription; the filters of one
+    ``serve`` are subscribed together (one round trip, not one per filter). A subscribe
+    its caller gave up on still takes the broker's answer, in the background: aiomqtt
+    logs an answer to a call it no longer waits for as an error.
 
 Query / serve (a topic convention on MQTT v5 request/response)
     A query on key expression ``Q`` is published on ``@query/<P>``, where ``<P>`` is ``Q``
@@ -53,6 +57,12 @@ Presence
     sends the replay first), no retained message came for that long after it (within
     its timeout).
 
+Closing
+    Tokens are cleared together, within ``connect_timeout``; then the connection is
+    closed with a DISCONNECT, or, when that cannot go out within a second (a broker
+    that stopped reading a full socket), by closing the socket: the broker sees the
+    connection lost. Only then are the transport's tasks and calls under way cancelled.
+
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
       hop (about twice zenoh's peer-to-peer latency on loopback).
@@ -85,9 +95,10 @@ import logging
 import math
 import secrets
 import socket
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Coroutine, Mapping
 from typing import TYPE_CHECKING, Any
 
+from .._aio import together
 from .._exceptions import TransportClosed, TransportError
 from ._base import (
     Handle,
@@ -175,6 +186,8 @@ QUERY_PREFIX = "@query"
 REPLY_PREFIX = "@reply"
 ALIVE = b'{"v":1,"alive":true}'
 _REPLY_SID = 1  # the subscription identifier of this client's reply topic
+_PENDING_CALLS_WARN = 64  # calls awaiting the broker before aiomqtt warns (`_new_client`)
+_DISCONNECT_WAIT = 1.0  # s: a DISCONNECT not out by then is not waited for (`_disconnect`)
 
 
 def _connection_id(prefix: str) -> str:
@@ -388,10 +401,12 @@ class MqttTransport(_Keeps, Transport):
         self._subs: set[Subscription[Any]] = set()
         self._handles: set[Handle] = set()
         self._lost: BaseException | None = None
+        # subscribes and unsubscribes waiting for the broker's answer, see `_acked`
+        self._acks: set[asyncio.Task[Any]] = set()
 
     def _new_client(self, identifier: str, will: aiomqtt.Will | None = None) -> aiomqtt.Client:
         c = self.config
-        return _Client(
+        client = _Client(
             c.host,
             c.port,
             identifier=identifier,
@@ -403,6 +418,11 @@ class MqttTransport(_Keeps, Transport):
             will=will,
             tls_context=None if c.tls is None else c.tls.context(),
         )
+        # aiomqtt warns of "pending publish calls" past 10 calls awaiting the broker's
+        # answer; a platform's start (and close) has one (un)subscribe per topic filter
+        # under way at once, ~15: no sign of a backlog
+        client.pending_calls_threshold = _PENDING_CALLS_WARN
+        return client
 
     async def open(self) -> None:
         """Connect to the broker, subscribe to this client's reply topic, start receiving."""
@@ -427,17 +447,22 @@ class MqttTransport(_Keeps, Transport):
         except aiomqtt.MqttError as exc:
             raise TransportError(f"mqtt: cannot connect to {where}: {exc}") from exc
         try:
-            await client.subscribe(
-                self._reply_topic, options=self._options(), properties=_sid(_REPLY_SID)
+            await self._acked(
+                client.subscribe(
+                    self._reply_topic, options=self._options(), properties=_sid(_REPLY_SID)
+                )
             )
         except aiomqtt.MqttError as exc:
-            with contextlib.suppress(aiomqtt.MqttError):
-                await connection.aclose()
+            await _disconnect(client, connection)
             raise TransportError(f"mqtt: cannot subscribe to replies on {where}: {exc}") from exc
         return client, connection
 
     async def aclose(self) -> None:
-        """Clear this transport's tokens, end every subscription and query, and disconnect."""
+        """Clear this transport's tokens, end every subscription and query, and disconnect.
+
+        Bounded however many tokens, subscriptions and calls are under way and however
+        stalled the broker: ``connect_timeout`` for the tokens together, then `_disconnect`.
+        """
         if self._state == "closed":
             return
         self._state = "closed"
@@ -452,12 +477,19 @@ class MqttTransport(_Keeps, Transport):
                         tg.create_task(_closing(h), name=name)
         for inbox in self._pending.values():
             inbox.close()
+        # Disconnected before the tasks and calls under way are cancelled: an
+        # (un)subscribe cancelled first made aiomqtt forget its packet id, and the
+        # broker's answer, still read until the disconnect, was logged as an error.
+        client, connection = self._client, self._connection
+        self._connection, self._client = None, None
+        if client is not None and connection is not None:
+            await _disconnect(client, connection)
         await self._end_tasks()
-        connection, self._connection, self._client = self._connection, None, None
-        if connection is not None:
-            with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
-                async with asyncio.timeout(self.config.connect_timeout):
-                    await connection.aclose()
+        acks = list(self._acks)
+        for task in acks:
+            task.cancel()
+        if acks:  # each ends at its cancel: they wait on nothing else
+            await asyncio.wait(acks, timeout=_DISCONNECT_WAIT)
 
     def _check_open(self) -> None:
         super()._check_open()
@@ -518,7 +550,9 @@ class MqttTransport(_Keeps, Transport):
         client, self._connection = await self._connect_main()
         self._client = client
         for f in list(self._filters.values()):
-            await client.subscribe(f.topic, options=self._options(), properties=_sid(f.sid))
+            await self._acked(
+                client.subscribe(f.topic, options=self._options(), properties=_sid(f.sid))
+            )
         self.reconnects += 1
         if self._up is not None:
             self._up.set()
@@ -596,8 +630,8 @@ class MqttTransport(_Keeps, Transport):
                     raise self._error(f"subscribe to {topic!r}", RuntimeError("subscribe failed"))
                 if resubscribe:  # makes the broker send the retained messages again
                     try:
-                        await client.subscribe(
-                            topic, options=self._options(), properties=_sid(f.sid)
+                        await self._acked(
+                            client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
                         )
                     except aiomqtt.MqttError as exc:
                         raise self._error(f"subscribe to {topic!r}", exc) from exc
@@ -612,7 +646,9 @@ class MqttTransport(_Keeps, Transport):
         self._by_sid[f.sid] = f
         add(f)
         try:
-            await client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
+            await self._acked(
+                client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
+            )
         except aiomqtt.MqttError as exc:
             f.ready.set_result(False)
             self._forget(f)
@@ -656,9 +692,29 @@ class MqttTransport(_Keeps, Transport):
         if self._client is None:
             return
         try:
-            await self._client.unsubscribe(topic)
+            await self._acked(self._client.unsubscribe(topic))
         except aiomqtt.MqttError as exc:
             log.debug("mqtt: unsubscribing from %r failed: %s", topic, exc)
+
+    async def _acked(self, call: Coroutine[Any, Any, Any]) -> None:
+        """Await an aiomqtt (un)subscribe, which waits for the broker's answer, shielded.
+
+        A caller that gives up (its timeout, its cancel) leaves the call waiting for the
+        answer rather than cancel it: cancelled, aiomqtt forgets the packet id, and the
+        SUBACK/UNSUBACK that still comes is logged at ERROR with a traceback ("Unexpected
+        message ID"), which reads as a failure. The call ends at the answer or at
+        aiomqtt's timeout (``connect_timeout``); `aclose` cancels those left once
+        disconnected, when no answer is read any more.
+        """
+        task = asyncio.ensure_future(call)
+        self._acks.add(task)
+        task.add_done_callback(self._settled)
+        await asyncio.shield(task)
+
+    def _settled(self, task: asyncio.Task[Any]) -> None:
+        self._acks.discard(task)
+        if not task.cancelled():
+            task.exception()  # retrieved: a caller that gave up no longer awaits it
 
     # --- the Transport interface ---------------------------------------------------------
 
@@ -776,7 +832,17 @@ class MqttTransport(_Keeps, Transport):
         def remove(f: _Filter) -> None:
             f.watchers.remove(seen)
 
-        await self._attach(topic, lambda f: f.watchers.append(seen), remove, resubscribe=True)
+        try:
+            # the call's own timeout, not aiomqtt's (connect_timeout) for its (re)subscribe
+            async with asyncio.timeout_at(deadline):
+                await self._attach(
+                    topic, lambda f: f.watchers.append(seen), remove, resubscribe=True
+                )
+        except TimeoutError as exc:
+            raise self._error(
+                f"tokens on {key_expr!r}",
+                RuntimeError(f"the broker did not take the subscription within {timeout} s"),
+            ) from exc
         try:
             await self._round_trip(max(0.0, deadline - loop.time()))
             # the quiet time runs from the echo, not from the start: a slow round trip
@@ -809,10 +875,15 @@ class MqttTransport(_Keeps, Transport):
             f.servers.remove(server)
 
         attached: list[str] = []
+
+        async def attach(topic: str) -> None:
+            await self._attach(topic, lambda f: f.servers.append(server), remove)
+            attached.append(topic)
+
         try:
-            for topic in filters:
-                await self._attach(topic, lambda f: f.servers.append(server), remove)
-                attached.append(topic)
+            # the filters' subscribes go out together: one round trip through the broker,
+            # not one per filter (a queryable has one per chunk of its key, ~6)
+            await together(*(attach(topic) for topic in filters))
         except BaseException:
             for topic in attached:
                 self._detach(topic, remove)
@@ -935,11 +1006,10 @@ class _Token:
         # message may be out leaves ``clear`` the connection to clear and close
         self.client, self.connection = client, connection
         try:
-            await client.subscribe(self.key, qos=1)
+            await t._acked(client.subscribe(self.key, qos=1))
             await client.publish(self.key, ALIVE, qos=1, retain=True)
         except aiomqtt.MqttError as exc:
-            with contextlib.suppress(aiomqtt.MqttError):
-                await connection.aclose()
+            await _disconnect(client, connection)
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
 
     async def keep(self) -> None:
@@ -957,9 +1027,7 @@ class _Token:
                 if self.closing or self.transport._state != "opened":
                     return
                 log.warning("mqtt: the token's connection on %r was lost: %s", self.key, exc)
-            with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
-                async with asyncio.timeout(1.0):
-                    await connection.aclose()
+            await _disconnect(client, connection)
             # announced again only once this platform answers again (queries, DF)
             up = self.transport._up
             if up is not None:
@@ -994,8 +1062,7 @@ class _Token:
         except aiomqtt.MqttError as exc:
             log.warning("mqtt: could not clear the token on %r: %s", self.key, exc)
         finally:
-            with contextlib.suppress(aiomqtt.MqttError):
-                await connection.aclose()
+            await _disconnect(client, connection)
 
 
 async def _closing(handle: Handle) -> None:
@@ -1023,6 +1090,29 @@ async def _connect(client: aiomqtt.Client) -> contextlib.AsyncExitStack:
         await stack.enter_async_context(client)
         _no_delay(client)
         return stack.pop_all()
+
+
+async def _disconnect(client: aiomqtt.Client, connection: contextlib.AsyncExitStack) -> None:
+    """Disconnect ``client`` (closing ``connection``): gracefully, or drop its socket.
+
+    The DISCONNECT goes out at once unless the socket's buffer is full: a broker that
+    stopped reading while this client had much to send (a flood, a stalled broker).
+    aiomqtt would then wait ``connect_timeout`` for it, one connection after another (a
+    close of several platforms: tens of seconds); past `_DISCONNECT_WAIT` the socket is
+    closed instead, which the broker sees as a lost connection (a token's last will
+    then clears its key, as the DISCONNECT's clear would have).
+    """
+    try:
+        async with asyncio.timeout(_DISCONNECT_WAIT):
+            await connection.aclose()
+        return
+    except (aiomqtt.MqttError, TimeoutError) as exc:
+        log.debug("mqtt: no graceful disconnect (%s): closing the socket", exc or "timed out")
+    # paho's own socket close: it also tells aiomqtt to stop watching the socket
+    sock_close = getattr(client._client, "_sock_close", None)
+    if sock_close is not None:
+        with contextlib.suppress(OSError):
+            sock_close()
 
 
 async def _reap_misc_task(client: aiomqtt.Client) -> None:
