@@ -45,7 +45,7 @@ class CancelOnAck(dict[int, asyncio.Event]):
 async def _publishing_loop_ends(
     client: Any, publish: Callable[[int], Awaitable[None]]
 ) -> tuple[int, int]:
-    """Publish in a loop, as the audit flush does, its acks cancelling it: (publishes done, acks)."""
+    """Publish in a loop as the audit flush does, each ack cancelling it: (publishes, acks)."""
     hook = CancelOnAck()
     client._pending_publishes = hook  # aiomqtt's own table of publishes awaiting a PUBACK
     done = 0
