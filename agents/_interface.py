@@ -1203,7 +1203,9 @@ class InterfaceAgent:
         return self._host
 
     async def agree(self, peer: str) -> None:
-        """Agree a session with ``peer`` (one key exchange; concurrent callers share it)."""
+        """Agree a session with ``peer`` (one key exchange; concurrent callers share it).
+
+        One that fails has suspended at least once before it raises (`docs/agents.md`)."""
         while (fut := self._handshakes.get(peer)) is not None and not fut.done():
             try:
                 await asyncio.shield(fut)
@@ -1225,6 +1227,11 @@ class InterfaceAgent:
                 fut.set_exception(exc)
                 # the waiters get the error; nobody else needs to retrieve it
                 fut.exception()
+            if isinstance(exc, Exception):
+                # A query nobody serves (the platform gone) ends inside zenoh's call: the
+                # caller would get the failure without ever suspending, and one retrying in
+                # a loop without a pause would starve every other task of its loop
+                await asyncio.sleep(0)
             raise
         else:
             if not fut.done():
