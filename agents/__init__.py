@@ -27,7 +27,7 @@ from ._agent import (
     on,
     reason_of,
 )
-from ._aio import Mailbox, Pending, Ticker, call_in_loop, event_loop_name, run
+from ._aio import Deadlines, Mailbox, Pending, Ticker, call_in_loop, event_loop_name, run
 from ._bucket import TokenBucket
 from ._df import (
     FIPA_AGENT_MANAGEMENT,
@@ -135,6 +135,7 @@ __all__ = [
     "ContractNetResult",
     "Conversation",
     "ConversationError",
+    "Deadlines",
     "DfEventLimit",
     "DirectoryEvent",
     "DirectoryFacilitator",

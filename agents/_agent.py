@@ -993,9 +993,11 @@ class Agent:
             # let it fill the log; counted, audited summed up, logged now and then
             self.stats.unsolicited += 1
             n = self.stats.unsolicited
-            what = f"unsolicited {message.performative} for {self.aid}: {message.content!r:.200}"
+            what = f"unsolicited {message.performative} for {self.aid}"
             if n == 1 or n % 1000 == 0:
+                # its content never: it came encrypted (the audit, sealed, keeps it)
                 log.warning("%s: %s, from %s (%d since start)", self, what, message.sender, n)
+            what = f"{what}: {message.content!r:.200}"
             if platform is not None:
                 platform.agent_dropped(message, "unsolicited", what)
             return

@@ -15,8 +15,10 @@ import contextlib
 import logging
 import math
 import os
+import sys
 import threading
 import time
+import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -1223,7 +1225,9 @@ class InterfaceAgent:
         return self._host
 
     async def agree(self, peer: str) -> None:
-        """Agree a session with ``peer`` (one key exchange; concurrent callers share it)."""
+        """Agree a session with ``peer`` (one key exchange; concurrent callers share it).
+
+        One that fails has suspended at least once before it raises (`docs/agents.md`)."""
         while (fut := self._handshakes.get(peer)) is not None and not fut.done():
             try:
                 await asyncio.shield(fut)
@@ -1245,6 +1249,11 @@ class InterfaceAgent:
                 fut.set_exception(exc)
                 # the waiters get the error; nobody else needs to retrieve it
                 fut.exception()
+            if isinstance(exc, Exception):
+                # A query nobody serves (the platform gone) ends inside zenoh's call: the
+                # caller would get the failure without ever suspending, and one retrying in
+                # a loop without a pause would starve every other task of its loop
+                await asyncio.sleep(0)
             raise
         else:
             if not fut.done():
@@ -1549,9 +1558,17 @@ class InterfaceAgent:
             return False
 
     def _inbox_failed(self, what: str, peer: str | None, item: Any) -> None:
-        """Taking one item of the inbox raised: logged once, counted, skipped."""
+        """Taking one item of the inbox raised: logged once (never what it holds), counted,
+        skipped."""
         self.inbox_failed += 1
-        log.exception("interface[%s]: %s from %s failed: %.200r", self._me, what, peer or "?", item)
+        log.error(
+            "interface[%s]: %s from %s failed (%s): %s",
+            self._me,
+            what,
+            peer or "?",
+            _shape(item),
+            _failure(),
+        )
 
     def _forgotten_since(self, peer: str) -> AuthenticationError:
         """What opening an envelope of ``peer`` says now that its sessions are forgotten."""
@@ -2009,9 +2026,17 @@ class InterfaceAgent:
             self._lane_failed(f"recording {len(entries)} answers", entries[0][1], entries[0])
 
     def _lane_failed(self, what: str, peer: str, item: Any) -> None:
-        """One booking or hand-over of `_lane_book` raised: logged once, counted, skipped."""
+        """One booking or hand-over of `_lane_book` raised: logged once (never what it
+        holds), counted, skipped."""
         self.lane_failed += 1
-        log.exception("interface[%s]: %s from %s failed: %.200r", self._me, what, peer, item)
+        log.error(
+            "interface[%s]: %s from %s failed (%s): %s",
+            self._me,
+            what,
+            peer,
+            _shape(item),
+            _failure(),
+        )
 
     async def _batch_items(self, host: AgentPlatform, peer: str, body: bytes) -> list[Any]:
         """The messages (decoded, not yet checked) of a batch; none when it is malformed."""
@@ -3077,6 +3102,43 @@ class _InterfaceQueries(Agent):
     @on(MessageTemplate(Performative.INFORM, ontology=INTERFACE_ONTOLOGY))
     async def _new_session(self, message: ACLMessage) -> None:
         """A peer's announcement of a new session: receiving it was the point."""
+
+
+def _shape(item: Any) -> str:
+    """What a failed item is, for a log: its size (or kind), never its content.
+
+    What the inbox holds was decrypted (another platform's confidential message): its
+    bytes, or a repr of them, in a log would leak them to whoever reads the logs."""
+    bytes_like = bytes | bytearray | memoryview
+    body = getattr(item, "payload", None)  # a transport's message: the sealed envelope
+    if isinstance(item, bytes_like):
+        body = item
+    elif body is None and isinstance(item, tuple):  # a lane's item: (peer, body, …)
+        body = next((x for x in item if isinstance(x, bytes_like)), None)
+    if isinstance(body, bytes_like):
+        return f"{len(body)} bytes"
+    if item is None:
+        return "nothing"
+    if isinstance(item, tuple | list | dict):
+        return f"{type(item).__name__} of {len(item)}"
+    return type(item).__name__
+
+
+def _failure() -> str:
+    """The exception being handled, for a log: its type and where it was raised, not its
+    text (an error may quote the decrypted message it failed on: a value, a key)."""
+    exc = sys.exc_info()[1]
+    if exc is None:
+        return "no exception"
+    kinds = [type(exc).__qualname__]
+    seen = {id(exc)}
+    cause = exc.__cause__ or exc.__context__
+    while cause is not None and id(cause) not in seen and len(kinds) < 4:
+        seen.add(id(cause))
+        kinds.append(f"from {type(cause).__qualname__}")
+        cause = cause.__cause__ or cause.__context__
+    frames = "".join(traceback.format_tb(exc.__traceback__)).rstrip()
+    return f"{' '.join(kinds)} (its text left out), raised at:\n{frames}"
 
 
 def _written(obj: Any) -> bytes:

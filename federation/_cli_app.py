@@ -445,7 +445,11 @@ def _run_query(coro: Any) -> Any:
 
 @app.command("platforms")
 def platforms(config: ConfigOpt, as_json: JsonOpt = False, wait: WaitOpt = 3.0) -> None:
-    """List the platforms alive in the federation and their public services."""
+    """List the platforms listed in the federation and their public services.
+
+    Listed: alive, and their signed directory snapshot answered (the platforms a stream may
+    go to); one that joined a moment ago may be a member already and not listed yet.
+    """
     from ._cli_net import dumps, list_platforms
 
     _load(config)
@@ -454,7 +458,9 @@ def platforms(config: ConfigOpt, as_json: JsonOpt = False, wait: WaitOpt = 3.0) 
         _say(dumps(found))
         return
     # a service name is what a user copies into the next command: one line, not folded
-    table = _table("platforms alive", "platform", "service", "type", "provider", whole=("service",))
+    table = _table(
+        "platforms listed", "platform", "service", "type", "provider", whole=("service",)
+    )
     for name, services in found.items():
         if not services:
             table.add_row(name, "-", "-", "-")

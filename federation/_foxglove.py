@@ -209,7 +209,14 @@ class _Topic:
                     if features is not None:
                         geo.log(_dumps({"geojson": _dumps(features).decode()}), log_time=valid)
             except Exception as exc:  # a malformed value is its platform's problem, not ours
-                log.warning("foxglove: %s: bad value %r: %s", self.topic, value, exc)
+                # its kind, never the value nor the error's text (which may quote it): it
+                # came encrypted from another platform
+                log.warning(
+                    "foxglove: %s: bad value (%s): %s",
+                    self.topic,
+                    type(value).__name__,
+                    type(exc).__name__,
+                )
 
     def location_fix(self, value: Any, valid: int) -> dict[str, Any] | None:
         """A position ``{"x", "y"[, "z"]}`` (metres) as a ``foxglove.LocationFix``."""

@@ -14,6 +14,7 @@ import asyncio
 import contextlib
 import inspect
 import logging
+import traceback
 from collections.abc import Awaitable, Callable
 from typing import Any, Self
 
@@ -497,8 +498,18 @@ class ImportProxy(ProxyBase):
         async for msg in sub:
             try:
                 handle(msg.key, msg.payload)
-            except Exception:  # never let one payload end the loop
-                log.exception("import[%s]: handling a payload on %s failed", self.platform, msg.key)
+            except Exception as exc:  # never let one payload end the loop
+                # its type and where, never its text: it may quote the samples, which came
+                # encrypted (another platform's, in a log)
+                log.error(
+                    "import[%s]: handling a payload of %d bytes on %s failed: %s (its text "
+                    "left out), raised at:\n%s",
+                    self.platform,
+                    len(msg.payload),
+                    msg.key,
+                    type(exc).__qualname__,
+                    "".join(traceback.format_tb(exc.__traceback__)).rstrip(),
+                )
             n += 1
             if n % _YIELD_EVERY == 0:
                 # the inbox hands out what is queued without suspending: let others run

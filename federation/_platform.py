@@ -1394,7 +1394,12 @@ class FederationPlatform:
 
     @property
     def members(self) -> list[str]:
-        """The platforms whose federation service is listed now (this one included if joined)."""
+        """The members now, by the signed directory events (this one included if joined).
+
+        One that just joined is a member before its signed snapshot answered here: the
+        platforms listed (`GlobalDirectory.listed`, ``agents.global_df.listed``) are what
+        a stream receiver must be and what a global request asks (`docs/federation.md`).
+        """
         return self.federation_agent.members
 
     def membership(self, maxlen: int = 1024) -> Subscription[MembershipEvent]:

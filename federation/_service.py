@@ -584,7 +584,8 @@ class FederationAgent(Agent):
 
     @property
     def members(self) -> list[str]:
-        """The platforms whose federation service is in the global directory now."""
+        """The members now: the platforms whose federation service the signed directory
+        events announced, one not yet listed (`GlobalDirectory.listed`) included."""
         return sorted(self._members)
 
     def membership(self, maxlen: int = 1024) -> Subscription[MembershipEvent]:

@@ -887,3 +887,14 @@ async def test_releases_cut_short_by_a_cancel_start_at_once_and_end_with_the_cha
             releasing = set(channel._releasing)
             assert len(releasing) == 3
         assert all(r.done() for r in releasing)  # cancelled by the channel's end
+
+
+def test_platforms_help_says_it_shows_the_platforms_listed() -> None:
+    """`dyknow platforms` shows the listed platforms (signed snapshot answered), not every
+    one alive or a member by its events: its help says so, in the words of the docs."""
+    r = runner.invoke(app, ["platforms", "--help"], env={"COLUMNS": "200"})
+    assert r.exit_code == 0, r.output
+    words = " ".join(r.output.split())
+    assert "List the platforms listed in the federation" in words
+    assert "signed directory snapshot answered" in words
+    assert "platforms alive" not in words

@@ -15,6 +15,7 @@ import asyncio
 import contextlib
 import json
 import math
+import os
 from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -886,3 +887,27 @@ async def test_a_refused_stream_a_policy_change_gets_is_said_as_agreed_once(
     assert warned[0].startswith("roadside refused s1-incident to tmc: label 's1-incident'")
     assert warned[1:] == ["roadside now streams s1-incident to tmc (refused before)"]
     assert stream.state == "active" and stream.export_id == "x-2"
+
+
+def test_a_value_that_does_not_fit_its_role_is_logged_without_what_it_says(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A sample the console cannot draw is logged by kind only: neither the value nor the
+    error's text (which quotes it) is in the log, as it came encrypted from its platform;
+    it is skipped and the next one drawn."""
+    from types import SimpleNamespace
+
+    from federation.console._server import _Platform, _Stream
+
+    secret = f"said-in-confidence-{os.urandom(8).hex()}"
+    console = SimpleNamespace(_changed=lambda: None)
+    console._apply = lambda *args: OperatorConsole._apply(console, *args)  # type: ignore[arg-type]
+    uav = _Platform("uav-a")
+    stream = _Stream("uav-a-position", role="positions")
+    batch = [({"x": secret, "y": 1.0}, 1, 1), ({"x": 2.0, "y": 3.0}, 2, 2)]
+    with caplog.at_level("DEBUG", logger="federation"):
+        OperatorConsole._take(console, uav, stream, batch)  # type: ignore[arg-type]
+    assert secret not in caplog.text
+    said = [r.getMessage() for r in caplog.records if "bad value" in r.getMessage()]
+    assert said == ["console: uav-a uav-a-position: bad value (dict): ValueError"]
+    assert uav.position == {"x": 2.0, "y": 3.0} and stream.samples == 2

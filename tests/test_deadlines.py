@@ -13,8 +13,9 @@ from typing import Any
 import pytest
 import uvloop
 
-from agents import ACLMessage, Agent, Mailbox, MessageTemplate, ReplyTimeout, new_id
-from agents._aio import _COMPACT_AT, Deadlines
+import agents
+from agents import ACLMessage, Agent, Deadlines, Mailbox, MessageTemplate, ReplyTimeout, new_id
+from agents._aio import _COMPACT_AT
 from tests.test_agents import P, Recorder, _keep, msg, platforms
 
 # uvloop rounds a timer's delay to the millisecond: a timer may fire up to that early
@@ -120,6 +121,28 @@ def test_a_cancelled_wait_leaves_the_others_to_their_deadlines(loop_name: str) -
         assert other._waiter is None
 
     _on(loop_name, main)
+
+
+async def test_code_around_the_agents_keeps_its_mailboxes_deadlines_on_one_timer() -> None:
+    """`Deadlines` is public with `Mailbox`: consumers of several mailboxes (as an agent's
+    conversations) share one loop timer, and each wait still ends at its own deadline."""
+    assert "Deadlines" in agents.__all__ and agents.Deadlines is Deadlines
+    loop = asyncio.get_running_loop()
+    deadlines = agents.Deadlines(loop)
+    boxes = [agents.Mailbox[int](4) for _ in range(3)]
+    afters = (0.06, 0.02, 0.04)
+    start = loop.time()
+
+    async def wait(box: Mailbox[int], after: float) -> float:
+        with pytest.raises(TimeoutError):
+            await box.get(start + after, deadlines=deadlines)
+        return loop.time() - start
+
+    async with asyncio.timeout(10):
+        took = await asyncio.gather(*map(wait, boxes, afters))
+    assert took[1] <= took[2] <= took[0]
+    assert all(after >= a - SLACK for after, a in zip(took, afters, strict=True))
+    assert len(deadlines) == 0  # each wait's entry dropped at its deadline
 
 
 async def test_waits_that_ended_early_do_not_pile_up() -> None:

@@ -385,11 +385,31 @@ async def test_the_leader_waits_until_its_own_directory_lists_the_uavs_the_opera
             return await stack.enter_async_context(FederationPlatform(config, transport=transport))
 
         a = await start("uav-a")
+        gdf = a.agents.global_df
+        assert gdf is not None
+        # uav-b's first signed snapshot answers uav-a only when let: meanwhile uav-b is a
+        # member (its signed events), not listed, as on a loaded machine
+        answer = asyncio.Event()
+        fetch = gdf._fetch
+
+        async def fetch_when_let(platform: str, *args: Any, **kwargs: Any) -> bool:
+            await answer.wait()
+            return await fetch(platform, *args, **kwargs)
+
+        gdf._fetch = fetch_when_let  # type: ignore[method-assign]
         waiting = asyncio.create_task(await_members(a, ["uav-a", "uav-b"], 10.0))
         await asyncio.sleep(0.2)
         assert not waiting.done() and "uav-b" not in a.members
         await start("uav-b")
         assert await waiting == set() and "uav-b" in a.members
+        # what the delegation relies on holds before the listing: a global request asks
+        # uav-b (it is no `unlisted` one) and the search finds its services
+        assert "uav-b" not in gdf.listed and "uav-b" in a.federation_agent.providers()
+        assert a.federation_agent._unlisted() == []
+        assert [s.platform for s in gdf.search(type="dyknow-federation")].count("uav-b") == 1
+        answer.set()
+        while "uav-b" not in gdf.listed:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)
         # listed already: no wait; one that never comes: the bound, then it is named
         assert await await_members(a, ["uav-b"], 10.0) == set()
         t0 = asyncio.get_running_loop().time()

@@ -545,6 +545,48 @@ async def test_history_recovers_a_gap_at_most_once_and_late_others_stay_in_order
         assert hist.recovered >= 3
 
 
+async def test_a_payload_whose_handling_raises_is_logged_without_its_samples(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A fault handling one imported batch is logged with its size, key and the error's
+    type and place, never its samples nor the error's text (which may quote them): they
+    came encrypted from another platform. The next batch is imported."""
+    hub = MemoryHub()
+    secret = f"said-in-confidence-{uuid.uuid4().hex}"
+    async with (
+        hub.transport() as ta,
+        hub.transport() as tb,
+        DyKnowInstance("a") as ia,
+        DyKnowInstance("b") as ib,
+        ExportProxy("a", "f", ta, ia, PlainSessions("a"), batch_size=1) as exporter,
+        ImportProxy("b", "f", tb, ib, PlainSessions("b"), lambda s, lab: f"in/{lab}") as importer,
+    ):
+        real = importer._inject
+        broke: list[int] = []
+
+        def inject(rec: Any, seq: int | None, samples: list[Any]) -> None:
+            if secret in repr(samples):
+                broke.append(len(samples))
+                raise ValueError(f"cannot inject {samples!r}")  # a fault quoting them
+            real(rec, seq, samples)
+
+        importer._inject = inject  # type: ignore[method-assign]
+        src = ia.add_source("x")
+        exporter.start_exporting("x", "x", "b")
+        with caplog.at_level("DEBUG", logger="federation"):
+            src.push(secret, valid_time=1)
+            await until(lambda: broke, "the batch that raises")
+            src.push("after", valid_time=2)
+            stream = await until(lambda: importer.get("a", "x"), "the stream")
+            await until(lambda: stream.injected == 1, "the batch after it")
+        assert [s.value for s in ib.between("in/x", 0, 10).samples] == ["after"]
+        assert secret not in caplog.text
+        failed = [r.getMessage() for r in caplog.records if "failed" in r.getMessage()]
+        assert len(failed) == 1
+        assert "handling a payload of " in failed[0] and "on dyknow/f/" in failed[0]
+        assert ": ValueError (its text left out), raised at:" in failed[0]
+
+
 async def test_lease_ends_the_export_to_a_silent_receiver_only() -> None:
     hub = MemoryHub()
     ended: list[tuple[str, str]] = []

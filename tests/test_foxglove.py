@@ -102,6 +102,44 @@ def _config(**foxglove: Any) -> PlatformConfig:
     )
 
 
+def test_a_value_the_bridge_cannot_draw_is_logged_without_what_it_says(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A sample whose drawing raises is logged by kind only: neither the value nor the
+    error's text (which may quote it) is in the log, as it came encrypted from its
+    platform; the samples after it are drawn."""
+    from federation._foxglove import _Topic
+
+    secret = f"said-in-confidence-{os.urandom(8).hex()}"
+    real = _Topic.scene_update
+
+    def scene_update(self: _Topic, value: Any, valid: int) -> dict[str, Any] | None:
+        if secret in repr(value):  # as a fault's error may quote what it failed on
+            raise ValueError(f"not a position: {value!r}")
+        return real(self, value, valid)
+
+    class Channel:
+        def __init__(self, sinks: bool) -> None:
+            self.sinks, self.logged = sinks, 0
+
+        def has_sinks(self) -> bool:
+            return self.sinks
+
+        def log(self, data: bytes, *, log_time: int) -> None:
+            self.logged += 1
+
+    monkeypatch.setattr(_Topic, "scene_update", scene_update)
+    topic = _Topic(None, "uav-a", "uav-a-position", "positions")  # type: ignore[arg-type]
+    topic.raw, topic.scene = Channel(False), Channel(True)
+    batch = [({"x": 1.0, "y": 2.0, "note": secret}, 1, 1), ({"x": 3.0, "y": 4.0}, 2, 2)]
+    with caplog.at_level("DEBUG", logger="federation"):
+        topic.publish(batch)
+    assert secret not in caplog.text
+    said = [r.getMessage() for r in caplog.records if "bad value" in r.getMessage()]
+    assert said == ["foxglove: /uav-a/uav-a-position: bad value (dict): ValueError"]
+    assert topic.scene.logged == 1
+
+
 def test_foxglove_settings_default_to_the_console() -> None:
     cfg = _config(origin=[58.3975, 15.5765])
     streams, roles = cfg.foxglove.resolve(cfg.console)

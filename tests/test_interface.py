@@ -1669,6 +1669,51 @@ async def test_request_inform_over_zenoh_between_two_sessions() -> None:
             assert time.monotonic() - started < 3.0
 
 
+async def test_a_retry_loop_against_a_platform_gone_lets_the_other_tasks_run() -> None:
+    """A request to a platform that has gone fails at once (zenoh ends the key exchange's
+    query nobody serves inside its call), yet only after it suspended: a caller retrying
+    it in a loop without a pause lets another task of its loop go on between tries."""
+    fed = f"gone-{os.urandom(6).hex()}"
+    keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
+    trust = {n: k.public_key for n, k in keys.items()}
+    seed = free_tcp_port()
+    ta = ZenohTransport(ZenohConfig.loopback(seed))
+    tb = ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed]))
+    ia_a = InterfaceAgent(keys["uav-a"], TrustStore(fed, trust))
+    ia_b = InterfaceAgent(keys["uav-b"], TrustStore(fed, trust))
+    async with (
+        asyncio.timeout(WAIT * 2),
+        ta,
+        AgentPlatform("uav-a", ta, federation=fed, channel=ia_a) as pa,
+    ):
+        asker = await pa.add(Agent("asker"))
+        async with tb, AgentPlatform("uav-b", tb, federation=fed, channel=ia_b) as pb:
+            await serve(pb, "echo")
+            answer = await request(asker, "echo@uav-b", 1, ontology="demo")
+            assert answer == {"echo": 1, "by": "echo@uav-b"}
+        await until(lambda: ia_a.sessions.session_for("uav-b") is None, "uav-b gone")
+        ticks = 0
+
+        async def other() -> None:
+            nonlocal ticks
+            while True:
+                ticks += 1
+                await asyncio.sleep(0)
+
+        ticking = asyncio.create_task(other())
+        await asyncio.sleep(0)  # it runs once before the tries start
+        per_try: list[int] = []
+        try:
+            for i in range(20):  # no pause between tries: what the caller forgot
+                before = ticks
+                with pytest.raises(TransportError, match="did not answer the key exchange"):
+                    await request(asker, "echo@uav-b", i, ontology="demo", timeout=WAIT)
+                per_try.append(ticks - before)
+        finally:
+            ticking.cancel()
+        assert min(per_try) >= 1, per_try
+
+
 async def test_over_zenoh_the_audit_is_sealed_only_while_someone_subscribes(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

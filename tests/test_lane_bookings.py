@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import uuid
 from typing import Any
 
 import pytest
@@ -83,7 +84,8 @@ def _break_reply(p: Pair, conv: str) -> None:
 
     def take(host: Any, peer: str, state: Any, message: ACLMessage, now: float) -> bool:
         if message.conversation_id == conv:
-            raise RuntimeError(f"delivery of {conv} broke")
+            # as a fault's error may quote what it failed on
+            raise RuntimeError(f"delivery of {conv} broke on {message.content!r}")
         return real(host, peer, state, message, now)
 
     ia._take_message = take  # type: ignore[method-assign]
@@ -136,11 +138,17 @@ async def test_a_reply_whose_hand_over_raises_alone_leaves_the_lane_working(
         await _warm(p)
         request, asked = await _asked(p, "broken-alone")
         _break_reply(p, "broken-alone")
-        with caplog.at_level(logging.ERROR, logger="agents._interface"):
-            _arrive(p, [_reply(p, request)])
+        secret = f"said-in-confidence-{uuid.uuid4().hex}"  # encrypted on the wire
+        with caplog.at_level(logging.DEBUG, logger="agents"):
+            _arrive(p, [_reply(p, request, {"secret": secret})])
             await _until(lambda: ia.lane_failed == 1)
             await _quiet(p)
-        assert sum("taking the reply handed over" in r.getMessage() for r in caplog.records) == 1
+        failed = [r for r in caplog.records if "taking the reply handed over" in r.getMessage()]
+        assert len(failed) == 1
+        assert "from uav-a failed (ACLMessage): RuntimeError" in failed[0].getMessage()
+        # neither the message's repr nor the error's text (which quotes it) is logged
+        assert secret not in caplog.text
+        assert not [r for r in caplog.records if secret in r.getMessage() + (r.exc_text or "")]
         asked.cancel()
         await _round_trip_on_thread(p)
 

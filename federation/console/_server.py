@@ -397,8 +397,14 @@ class OperatorConsole:
                     self._apply(p, role, value, valid)
                 except Exception as exc:
                     # A malformed value from a platform is its problem, never the console's.
+                    # Its kind is logged, never the value nor the error's text (which may
+                    # quote it): it came encrypted from that platform.
                     log.warning(
-                        "console: %s %s: bad value %r: %s", p.name, stream.label, value, exc
+                        "console: %s %s: bad value (%s): %s",
+                        p.name,
+                        stream.label,
+                        type(value).__name__,
+                        type(exc).__name__,
                     )
         self._changed()
 

@@ -936,14 +936,14 @@ class TrafficMonitor(Agent):
     async def delegate(self, uavs: Iterable[str] = ()) -> dict[str, Any]:
         """Global request for capabilities, then one Contract-Net per area.
 
-        ``uavs``: the platforms the operator saw join; the leader waits (bounded) until its
-        own directory lists them too, since each platform learns the members by itself and
-        a UAV not yet listed here would be neither asked nor given an area.
+        ``uavs``: the platforms the operator saw join; the leader waits (bounded) until they
+        are members here too (`await_members`), since each platform learns the members by
+        itself and a UAV not yet a member here would be neither asked nor given an area.
         """
         app = self.app
         fed = app.platform.federation_agent
         if missing := await await_members(app.platform, uavs, MEMBERS_WAIT):
-            log.warning("%s: delegating without %s (not listed here)", self, sorted(missing))
+            log.warning("%s: delegating without %s (not members here)", self, sorted(missing))
         # The request returns as soon as every member answered: the deadline only bounds
         # the wait for one that cannot (a first request to a member agrees a session first,
         # slow on a loaded machine)
@@ -1026,7 +1026,13 @@ class TrafficMonitor(Agent):
 async def await_members(
     platform: FederationPlatform, names: Iterable[str], timeout: float
 ) -> set[str]:
-    """Wait until ``platform`` lists every one of ``names`` (at most ``timeout`` s); the rest."""
+    """Wait until every one of ``names`` is a member of ``platform`` (at most ``timeout`` s);
+    the rest.
+
+    A member by its signed events, as `members` says: its services count from then on (a
+    global request asks it, a search finds it), even while its first signed snapshot is
+    asked and it is not listed yet (`GlobalDirectory.listed`, what a stream receiver must
+    be: none of the delegation's)."""
     expected = set(names) - {platform.name}
     if not expected <= set(platform.members):
         with contextlib.suppress(TimeoutError):
