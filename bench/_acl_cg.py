@@ -3,17 +3,21 @@
 Runs ``bench._acl_cpu``'s measurement (``N`` round trips, default 500) under
 ``valgrind --tool=callgrind --separate-threads=yes``, zeroing the counters when the timed
 round trips start and dumping them when they end, so the figure is of the measured
-window alone (no start-up, no warm-up, no shut-down). Instruction counts do not depend
+window alone (no start-up, no warm-up, no shut-down). Instruction counts hardly depend
 on the load of the machine, which makes them the figure to compare two states of the
-code with. Prints one JSON object: the loop thread's instructions (Ir) per round trip,
-and the files written (``--out DIR``, default a new temporary directory), for
-``callgrind_annotate`` to show per function.
+code with (what runs on timers, the audit flush's ticks and the like, counts per second
+of the window, not per round trip: a loaded run counts a few thousand more; alternate
+and compare medians). Prints one JSON object: the loop thread's instructions (Ir) per
+round trip, and the files written (``--out DIR``, default a new temporary directory),
+for ``callgrind_annotate`` to show per function.
 
-``--side replier`` measures the other side instead: the spawned node (the request
-opened, dispatched to the gateway's handler, its reply composed, sealed and put) runs
-under callgrind, the asker does not, over the same window; its loop thread's
-instructions per round trip are the figure, and its other threads' (zenoh's, where the
-request arrives) are printed beside them, summed (``other_threads_ir_per_round_trip``).
+``--side replier`` measures the other side instead: the spawned node runs under
+callgrind, the asker does not, over the same window. The gateway's plain read is
+answered on zenoh's callback thread (the lane: the request opened, checked, answered,
+sealed and put there), so the figure to compare there is that thread's,
+``lane_thread_ir_per_round_trip`` (the node's busiest thread but its loop); beside it
+the loop thread's (``ir_per_round_trip``: the lane's bookings at the audit flush's
+ticks, its idle polls) and all other threads' summed (zenoh's own included).
 
 ``python -m bench._acl_cg --ab TREE_A TREE_B [--side replier] [--pairs 3] [N]`` runs
 both trees in alternated pairs (A B, B A, ...) with ``PYTHONPATH`` set to each in turn
