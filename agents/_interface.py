@@ -1093,13 +1093,15 @@ class InterfaceAgent:
         """
         host = self._host
         if (
-            host is not None
+            # first: asked after every message sent, and most often False from what the
+            # table kept (the checks are reads, their order changes no answer)
+            self.sessions.needs_renewal(peer)
+            and host is not None
             and host.running  # agents stopping with the platform still send; nothing renews then
             # revoked since (the lane's answer booked at the flush's tick): no session is
             # what asks for one, and no exchange with it is wanted
             and peer in self.trust
             and peer not in self._handshakes
-            and self.sessions.needs_renewal(peer)
             and not self._peer_renewing(peer)
         ):
             host.spawn(self._renew(peer), f"interface.renew[{peer}]")

@@ -1233,6 +1233,11 @@ class SessionTable:
         self._forgets: dict[str, int] = {}
         # per peer that left (signed), when: its sessions made before are never trusted again
         self._left: dict[str, float] = {}
+        # per peer, what `needs_renewal` read when it said False: the newest session, its
+        # renewal limit and message budget, the trusted key. False again while the clock is
+        # before that limit, the key is the same and the budget holds; every change of the
+        # peer's sessions (`add`, `_drop`, `doubt`, `retire`, `_on_rx_switch`) drops it.
+        self._renew_due: dict[str, tuple[Session, float, int, VerifyKey | None]] = {}
         # Everything above, each session's counters and replay window included, under one
         # lock: envelopes are opened on the transport's thread (zenoh's, `InterfaceAgent`)
         # while the event loop seals, adds and drops. Reentrant: `seal` asks `session_for`.
@@ -1292,6 +1297,7 @@ class SessionTable:
 
                 self._drop(min(others, key=rank))
             self._tx.pop(session.peer, None)
+            self._renew_due.pop(session.peer, None)  # the new one may be the newest
             self.prune()
 
     def missing(self) -> dict[str, int]:
@@ -1315,6 +1321,7 @@ class SessionTable:
                 mine.remove(session)
             if not mine:
                 del self._by_peer[session.peer]
+        self._renew_due.pop(session.peer, None)
         if self._tx.get(session.peer) is session:
             del self._tx[session.peer]
         if self._rx_latest.get(session.peer) is session:
@@ -1343,7 +1350,11 @@ class SessionTable:
     def open_noting(self, envelope: bytes | str) -> tuple[str, bytes, int]:
         """`open`, and `forgotten` of its sender at that moment (read under the same lock)."""
         with self._lock:
-            frm, body = self.open(envelope)
+            if type(envelope) is bytes and envelope[:1] in _BINARY_HEADS:
+                # `open`'s first step, inline: every envelope the lane opens, a call less
+                frm, body = self._open_binary(envelope)
+            else:
+                frm, body = self.open(envelope)
             return frm, body, self._forgets.get(frm, 0)
 
     def doubt(self, peer: str) -> int:
@@ -1362,6 +1373,7 @@ class SessionTable:
                     session._confirmed = False
                     doubted += 1
             self._tx.pop(peer, None)
+            self._renew_due.pop(peer, None)
             # the next envelope from the peer, on whichever session, confirms that one again
             self._rx_latest.pop(peer, None)
             return doubted
@@ -1393,6 +1405,7 @@ class SessionTable:
                     session._retire_at = retire_at
             self._left[peer] = max(self._left.get(peer, cutoff), cutoff)
             self._tx.pop(peer, None)
+            self._renew_due.pop(peer, None)
             latest = self._rx_latest.get(peer)
             if latest is not None and latest.peer_time <= cutoff:
                 del self._rx_latest[peer]
@@ -1513,6 +1526,12 @@ class SessionTable:
         with self._lock:
             now = self._clock()
             trusted = self.trust._keys.get(peer)
+            due = self._renew_due.get(peer)
+            if due is not None:
+                # asked after every message sent: what was read last, while it holds
+                s, limit, budget, key = due
+                if now - s.established < limit and key is trusted and s._n + s._bn < budget:
+                    return False
             newest: Session | None = None
             for s in self._by_peer.get(peer, ()):
                 # local time, not the agreed order: "did I make a session lately?" is local
@@ -1530,7 +1549,18 @@ class SessionTable:
                     )
                 ):
                     newest = s
-            return newest is None or newest.needs_renewal()
+            if newest is None or newest.needs_renewal():
+                return True
+            if newest._retire_at is None and newest._clock is self._clock:
+                # kept while the clock is before the renewal time (`Session.needs_renewal`'s
+                # limit, below the session's lifetime): one retired, or read by another
+                # clock than the table's, is asked in full every time
+                policy = newest._policy
+                limit = policy.renew_after_seconds
+                if not newest.initiator:
+                    limit += policy.grace / 2
+                self._renew_due[peer] = (newest, limit, policy.renew_after_messages, trusted)
+            return False
 
     def _session_of(self, frm: str, to: str, sid: str, ts: Any, n: Any) -> Session:
         """The header checks both envelope kinds share, in order; the session they name."""
@@ -1716,6 +1746,7 @@ class SessionTable:
             return  # in flight when the peer left: opened, but its session is over
         session._confirmed = True
         self._tx.pop(session.peer, None)  # the choice of sending session may change
+        self._renew_due.pop(session.peer, None)
         latest = self._rx_latest.get(session.peer)
         if latest is None or session.order > latest.order:
             self._rx_latest[session.peer] = session

@@ -48,6 +48,7 @@ from agents import (
     ACLMessage,
     Agent,
     DirectoryEvent,
+    HandedOver,
     MessageTemplate,
     Performative,
     Refuse,
@@ -497,6 +498,9 @@ class GatewayAgent(Agent):
     def answer_on_thread(self, message: ACLMessage) -> Any:
         """`answer_at_once` on zenoh's thread: the label's latest sample as `Cache.extend` keeps
         it (`DyKnowInstance.latest_many_now`), or `LATER` (the loop's `answer_at_once` decides).
+
+        Handed over to its reply (`HandedOver`, no copy) when it is plain JSON: its dicts
+        and list are made here and kept nowhere else, the label is a str (`plain_latest`).
         """
         label = self._plain_latest_label(message)
         if label is None:
@@ -504,8 +508,9 @@ class GatewayAgent(Agent):
         read = self.instance.latest_many_now((label,))
         if read is None:
             return LATER
-        contents, _ = contents_plain(*read)
-        return {"label": label, **contents[0]}  # `answer_to_json`'s, made of the same row
+        contents, plain = contents_plain(*read)
+        answer = {"label": label, **contents[0]}  # `answer_to_json`'s, made of the same row
+        return HandedOver(answer) if plain else answer
 
     @on_request(ONTOLOGY)
     async def _on_request(self, message: ACLMessage) -> Any:

@@ -12,12 +12,15 @@ import pytest
 
 from agents import (
     MAX_MESSAGE_BYTES,
+    ACLMessage,
     Agent,
     AgentPlatform,
     Failed,
+    HandedOver,
     InterfaceAgent,
     KeyPair,
     MemoryHub,
+    Performative,
     Refused,
     ReplyTimeout,
     ServiceDescription,
@@ -609,6 +612,44 @@ async def test_a_query_for_the_latest_is_answered_at_once_as_the_handlers_answer
     assert quick[0][0][1]["samples"][0][:2] == [2.0, 1002.0]
     assert quick[2].reserved_refused == 2
     assert await outcomes(False) == (quick[0], 0, quick[2], quick[3])
+
+
+async def test_an_answer_on_zenohs_thread_is_handed_over_only_when_plain() -> None:
+    """The answer made on zenoh's thread goes to its reply without a copy when it is plain
+    JSON made afresh for that reply, and is copied (a plain dict) otherwise; either way the
+    reply's bytes are those of the answer the loop's handler gives."""
+    async with world() as w:
+        # a stream's first ask on the thread is the loop's (`Cache.latest_now`): watched since
+        for label in ("car/car5/speed", "car5-state"):
+            assert w.dk.latest_many_now((label,)) is None
+        w.speed.push(12.5, valid_time=T0)
+        w.state.push({"pos": (1.0, 2.0)}, valid_time=T0)  # a tuple: not plain JSON
+        for label, plain in (("car/car5/speed", True), ("car5-state", False)):
+            message = ACLMessage.build(
+                performative=Performative.REQUEST,
+                sender="asker@operator",
+                receivers=[GW],
+                content={"action": "query", "label": label},
+                ontology="dyknow",
+                protocol="fipa-request",
+                conversation_id=f"c-{label}",
+                reply_with="r1",
+            )
+            first = w.gateway.answer_on_thread(message)
+            second = w.gateway.answer_on_thread(message)
+            assert (type(first) is HandedOver) is plain, label
+            if plain:
+                # nothing of one answer is in another: each is its reply's alone
+                assert first.value is not second.value
+                assert first.value["samples"] is not second.value["samples"]
+                assert first.value["samples"][0] is not second.value["samples"][0]
+            answer = first.value if plain else first
+            assert answer == w.gateway.answer_at_once(message)
+            by_loop = message.reply(
+                Performative.INFORM, w.gateway.answer_at_once(message), sender=GW
+            )
+            by_lane = message.reply(Performative.INFORM, first, sender=GW)
+            assert by_lane.to_json() == by_loop.to_json()
 
 
 async def test_a_created_stream_needs_a_valid_output_label() -> None:
