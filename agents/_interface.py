@@ -18,7 +18,6 @@ import os
 import sys
 import threading
 import time
-import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -40,7 +39,7 @@ from ._acl import (
     nesting_bound,
     platform_of,
 )
-from ._agent import _RUNNING, LATER, Agent, MessageTemplate, on
+from ._agent import _RUNNING, LATER, Agent, MessageTemplate, failure_of, on
 from ._aio import Ticker, call_in_loop
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
@@ -3108,17 +3107,7 @@ def _failure() -> str:
     """The exception being handled, for a log: its type and where it was raised, not its
     text (an error may quote the decrypted message it failed on: a value, a key)."""
     exc = sys.exc_info()[1]
-    if exc is None:
-        return "no exception"
-    kinds = [type(exc).__qualname__]
-    seen = {id(exc)}
-    cause = exc.__cause__ or exc.__context__
-    while cause is not None and id(cause) not in seen and len(kinds) < 4:
-        seen.add(id(cause))
-        kinds.append(f"from {type(cause).__qualname__}")
-        cause = cause.__cause__ or cause.__context__
-    frames = "".join(traceback.format_tb(exc.__traceback__)).rstrip()
-    return f"{' '.join(kinds)} (its text left out), raised at:\n{frames}"
+    return "no exception" if exc is None else failure_of(exc)
 
 
 def _written(obj: Any) -> bytes:

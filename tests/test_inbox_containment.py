@@ -19,8 +19,20 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
+from pydantic import BaseModel
 
-from agents import ACLMessage, Agent, AgentPlatform, MessageTemplate, Performative, on
+from agents import (
+    ACLMessage,
+    Agent,
+    AgentPlatform,
+    Failed,
+    MessageTemplate,
+    Performative,
+    ServiceDescription,
+    on,
+    on_request,
+    request,
+)
 from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport
@@ -296,3 +308,63 @@ async def test_the_lanes_count_an_envelope_held_is_released_when_it_raises(raw: 
         assert raised == ["_take_now"] and ia.inbox_failed == 1
         assert POISON not in t.sink.got
         assert ia._lane_raw == 0 and ia._lane_queued == {}
+
+
+class Reading(BaseModel):
+    """What the checker expects: its validation error quotes the input it failed on."""
+
+    wind_m_s: float
+
+
+class Checker(Agent):
+    """Answers ``demo`` requests by validating them, in line and in a task of their own."""
+
+    @on_request("demo")
+    async def _check(self, message: ACLMessage) -> Any:
+        return Reading.model_validate(message.content).model_dump()
+
+    @on_request("demo-concurrent", concurrent=True)
+    async def _check_apart(self, message: ACLMessage) -> Any:
+        return Reading.model_validate(message.content).model_dump()
+
+    @on(MessageTemplate(Performative.INFORM, where=lambda m: int(m.content["n"]) > 0))
+    async def _count(self, message: ACLMessage) -> None:
+        """Never reached here: its template raises on what the test sends."""
+
+
+async def test_a_handler_raising_on_a_remote_message_logs_not_its_content(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A handler (or a template's predicate) that raises on another platform's message,
+    decrypted, logs what failed, its sender and the exception's type and place, never
+    the exception's text: pydantic's (and int()'s) quote the input they failed on. The
+    sender still gets its failure with the reason: the content was its own."""
+    async with trio(lane=False) as t:
+        checker = await t.hub.add(Checker("checker"))
+        assert t.hub.df is not None
+        await t.hub.df.register(
+            ServiceDescription(
+                name="checker-svc", type="demo", provider=checker.aid, visibility="protected"
+            )
+        )
+        asker = t.senders["uav-a"]
+        with caplog.at_level(logging.DEBUG, logger="agents"):
+            for ontology in ("demo", "demo-concurrent"):
+                with pytest.raises(Failed, match="validation error") as failed:
+                    await request(
+                        asker, "checker@hub", {"wind_m_s": POISON}, ontology=ontology, timeout=WAIT
+                    )
+                assert POISON in str(failed.value.message.content)  # its own, back to it
+            await asker.send(
+                asker.message(Performative.INFORM, "checker@hub", {"n": POISON}, ontology="n")
+            )
+            async with asyncio.timeout(WAIT):
+                while not [r for r in caplog.records if "choosing a handler" in r.getMessage()]:  # noqa: ASYNC110
+                    await asyncio.sleep(0.005)
+        failed_logs = [r for r in caplog.records if "failed on" in r.getMessage()]
+        assert len(failed_logs) == 3, [r.getMessage() for r in failed_logs]
+        assert POISON not in caplog.text
+        assert not [r for r in caplog.records if POISON in r.getMessage() + (r.exc_text or "")]
+        logged = [r.getMessage() for r in failed_logs]
+        assert sum("ValidationError" in m for m in logged) == 2
+        assert "ValueError" in logged[2] and "talker@uav-a" in logged[2]
