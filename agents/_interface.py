@@ -2074,7 +2074,8 @@ class InterfaceAgent:
             if not self._admit_now(host, peer, message):
                 await self._admit(host, peer, message)
         except Exception:
-            log.exception("interface[%s]: delivering from %s failed", self._me, peer)
+            # never the error's text: it may quote the message, decrypted
+            log.error("interface[%s]: delivering from %s failed: %s", self._me, peer, _failure())
 
     def _take_now(self, host: AgentPlatform, peer: str, state: _Sender, body: bytes) -> bool:
         """`_take` of one message (JSON bytes) in the common case, at once; else False.
@@ -2168,7 +2169,7 @@ class InterfaceAgent:
         try:
             agent._deliver(message)  # running, room in its mailbox: taken
         except Exception:
-            log.exception("interface[%s]: delivering from %s failed", self._me, peer)
+            log.error("interface[%s]: delivering from %s failed: %s", self._me, peer, _failure())
         else:
             stats.local += 1
         return True

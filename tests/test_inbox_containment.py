@@ -368,3 +368,57 @@ async def test_a_handler_raising_on_a_remote_message_logs_not_its_content(
         logged = [r.getMessage() for r in failed_logs]
         assert sum("ValidationError" in m for m in logged) == 2
         assert "ValueError" in logged[2] and "talker@uav-a" in logged[2]
+
+
+@pytest.mark.parametrize("step", ["deliver", "admit"])
+async def test_a_delivery_that_raises_logs_not_what_it_delivered(
+    step: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Handing a message of uav-a to hub's agent raises (a fault quoting what it failed
+    on): logged with what failed, its peer and the exception's type and place, never
+    the message; uav-a's next message is delivered."""
+    async with trio(lane=False) as t:
+        raised: list[str] = []
+        if step == "deliver":  # the common path: one receiver, taken at once
+            target: Any = t.sink
+            real = target._deliver
+
+            def broken(message: ACLMessage) -> Any:
+                if not raised and POISON in repr(message):
+                    raised.append(step)
+                    raise RuntimeError(f"cannot deliver {message!r}")
+                return real(message)
+
+            target._deliver = broken
+        else:  # the full path: a message to two agents here
+            target = t.ia
+            real_admit = target._admit
+
+            async def broken_admit(host: Any, peer: str, message: ACLMessage) -> Any:
+                if not raised and POISON in repr(message):
+                    raised.append(step)
+                    raise RuntimeError(f"cannot admit {message!r}")
+                return await real_admit(host, peer, message)
+
+            target._admit = broken_admit
+            target._admit_now = lambda *args: False
+        talker = t.senders["uav-a"]
+        with caplog.at_level(logging.DEBUG, logger="agents"):
+            await talker.send(
+                talker.message(
+                    Performative.INFORM,
+                    ["sink@hub", "nobody@hub"] if step == "admit" else "sink@hub",
+                    POISON,
+                    ontology="demo",
+                )
+            )
+            async with asyncio.timeout(WAIT):
+                while not raised:  # noqa: ASYNC110
+                    await asyncio.sleep(0.005)
+            await t.tell("uav-a", "a-after")
+            await t.until_got("a-after")
+        assert raised == [step]
+        failed = [r.getMessage() for r in caplog.records if "delivering from" in r.getMessage()]
+        assert len(failed) == 1 and "RuntimeError" in failed[0], failed
+        assert POISON not in caplog.text
+        assert not [r for r in caplog.records if POISON in r.getMessage() + (r.exc_text or "")]
