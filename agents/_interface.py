@@ -1625,7 +1625,13 @@ class InterfaceAgent:
             try:
                 answered = self._lane_answer(peer, body, forgets)
             except Exception:  # never into zenoh's thread: the loop decides it
-                log.exception("interface[%s]: answering %s on the receiving thread", self._me, peer)
+                # never the error's text: it may quote the body, decrypted
+                log.error(
+                    "interface[%s]: answering %s on the receiving thread: %s",
+                    self._me,
+                    peer,
+                    _failure(),
+                )
                 answered = _LEFT
             if answered is _ANSWERED:
                 self._lane_release(peer)

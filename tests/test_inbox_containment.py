@@ -422,3 +422,31 @@ async def test_a_delivery_that_raises_logs_not_what_it_delivered(
         assert len(failed) == 1 and "RuntimeError" in failed[0], failed
         assert POISON not in caplog.text
         assert not [r for r in caplog.records if POISON in r.getMessage() + (r.exc_text or "")]
+
+
+async def test_a_lane_answer_that_raises_on_its_thread_logs_not_what_it_opened(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The lane's answering on zenoh's thread raises (a fault quoting the body it opened):
+    logged with its peer and the exception's type and place, never the body; the loop
+    takes the message as usual."""
+    async with trio(lane=True) as t:
+        ia = t.ia
+        real = ia._lane_answer
+        raised: list[int] = []
+
+        def broken(*args: Any) -> Any:
+            if not raised and POISON in repr(args):
+                raised.append(1)
+                raise RuntimeError(f"cannot answer {args!r}")
+            return real(*args)
+
+        ia._lane_answer = broken  # type: ignore[method-assign]
+        with caplog.at_level(logging.DEBUG, logger="agents"):
+            await t.tell("uav-a", POISON)
+            await t.until_got(POISON)
+        assert raised == [1]
+        said = [r.getMessage() for r in caplog.records if "receiving thread" in r.getMessage()]
+        assert len(said) == 1 and "RuntimeError" in said[0], said
+        assert POISON not in caplog.text
+        assert not [r for r in caplog.records if POISON in r.getMessage() + (r.exc_text or "")]
