@@ -26,12 +26,13 @@ import asyncio
 import contextvars
 import logging
 import time
+import traceback
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
-from ._acl import ACLMessage, Performative, agent_id, compose, new_id
+from ._acl import ACLMessage, Performative, agent_id, compose, new_id, platform_of
 from ._aio import Deadlines, Mailbox
 from ._exceptions import AgentError
 from ._records import Record
@@ -102,6 +103,20 @@ def expects_reply(message: ACLMessage) -> bool:
     if message.performative in NEVER_ANSWERED:
         return False
     return message.performative in EXPECTS_REPLY or message.reply_with is not None
+
+
+def failure_of(exc: BaseException) -> str:
+    """An exception for a log: its type and where it was raised, not its text (an error may
+    quote the decrypted message it failed on: a value, a key)."""
+    kinds = [type(exc).__qualname__]
+    seen = {id(exc)}
+    cause = exc.__cause__ or exc.__context__
+    while cause is not None and id(cause) not in seen and len(kinds) < 4:
+        seen.add(id(cause))
+        kinds.append(f"from {type(cause).__qualname__}")
+        cause = cause.__cause__ or cause.__context__
+    frames = "".join(traceback.format_tb(exc.__traceback__)).rstrip()
+    return f"{' '.join(kinds)} (its text left out), raised at:\n{frames}"
 
 
 def reason_of(exc: BaseException) -> str:
@@ -968,14 +983,26 @@ class Agent:
 
     async def _failed(self, message: ACLMessage, exc: Exception, where: str) -> None:
         self.stats.handler_errors += 1
-        log.error(
-            "%s: %s failed on %s from %s",
-            self,
-            where,
-            message.performative,
-            message.sender,
-            exc_info=exc,
-        )
+        if platform_of(message.sender) != platform_of(self.aid):
+            # another platform's message came encrypted: the error's text may quote it
+            # (pydantic's quotes the input it failed on); its sender gets it in the failure
+            log.error(
+                "%s: %s failed on %s from %s: %s",
+                self,
+                where,
+                message.performative,
+                message.sender,
+                failure_of(exc),
+            )
+        else:
+            log.error(
+                "%s: %s failed on %s from %s",
+                self,
+                where,
+                message.performative,
+                message.sender,
+                exc_info=exc,
+            )
         if expects_reply(message):
             await self._answer(message, Performative.FAILURE, reason_of(exc))
 

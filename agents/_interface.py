@@ -18,7 +18,6 @@ import os
 import sys
 import threading
 import time
-import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -40,7 +39,7 @@ from ._acl import (
     nesting_bound,
     platform_of,
 )
-from ._agent import _RUNNING, LATER, Agent, MessageTemplate, on
+from ._agent import _RUNNING, LATER, Agent, MessageTemplate, failure_of, on
 from ._aio import Ticker, call_in_loop, together
 from ._bucket import TokenBucket, check_rates
 from ._exceptions import (
@@ -1648,7 +1647,13 @@ class InterfaceAgent:
             try:
                 answered = self._lane_answer(peer, body, forgets)
             except Exception:  # never into zenoh's thread: the loop decides it
-                log.exception("interface[%s]: answering %s on the receiving thread", self._me, peer)
+                # never the error's text: it may quote the body, decrypted
+                log.error(
+                    "interface[%s]: answering %s on the receiving thread: %s",
+                    self._me,
+                    peer,
+                    _failure(),
+                )
                 answered = _LEFT
             if answered is _ANSWERED:
                 self._lane_release(peer)
@@ -2097,7 +2102,8 @@ class InterfaceAgent:
             if not self._admit_now(host, peer, message):
                 await self._admit(host, peer, message)
         except Exception:
-            log.exception("interface[%s]: delivering from %s failed", self._me, peer)
+            # never the error's text: it may quote the message, decrypted
+            log.error("interface[%s]: delivering from %s failed: %s", self._me, peer, _failure())
 
     def _take_now(self, host: AgentPlatform, peer: str, state: _Sender, body: bytes) -> bool:
         """`_take` of one message (JSON bytes) in the common case, at once; else False.
@@ -2191,7 +2197,7 @@ class InterfaceAgent:
         try:
             agent._deliver(message)  # running, room in its mailbox: taken
         except Exception:
-            log.exception("interface[%s]: delivering from %s failed", self._me, peer)
+            log.error("interface[%s]: delivering from %s failed: %s", self._me, peer, _failure())
         else:
             stats.local += 1
         return True
@@ -3130,17 +3136,7 @@ def _failure() -> str:
     """The exception being handled, for a log: its type and where it was raised, not its
     text (an error may quote the decrypted message it failed on: a value, a key)."""
     exc = sys.exc_info()[1]
-    if exc is None:
-        return "no exception"
-    kinds = [type(exc).__qualname__]
-    seen = {id(exc)}
-    cause = exc.__cause__ or exc.__context__
-    while cause is not None and id(cause) not in seen and len(kinds) < 4:
-        seen.add(id(cause))
-        kinds.append(f"from {type(cause).__qualname__}")
-        cause = cause.__cause__ or cause.__context__
-    frames = "".join(traceback.format_tb(exc.__traceback__)).rstrip()
-    return f"{' '.join(kinds)} (its text left out), raised at:\n{frames}"
+    return "no exception" if exc is None else failure_of(exc)
 
 
 def _written(obj: Any) -> bytes:

@@ -1396,9 +1396,10 @@ class FederationPlatform:
     def members(self) -> list[str]:
         """The members now, by the signed directory events (this one included if joined).
 
-        One that just joined is a member before its signed snapshot answered here: the
-        platforms listed (`GlobalDirectory.listed`, ``agents.global_df.listed``) are what
-        a stream receiver must be and what a global request asks (`docs/federation.md`).
+        One that just joined is a member before its signed snapshot answered here (a
+        global request asks it already): the platforms listed (`GlobalDirectory.listed`,
+        ``agents.global_df.listed``) are what a stream receiver must be
+        (`docs/federation.md`).
         """
         return self.federation_agent.members
 

@@ -19,8 +19,20 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
+from pydantic import BaseModel
 
-from agents import ACLMessage, Agent, AgentPlatform, MessageTemplate, Performative, on
+from agents import (
+    ACLMessage,
+    Agent,
+    AgentPlatform,
+    Failed,
+    MessageTemplate,
+    Performative,
+    ServiceDescription,
+    on,
+    on_request,
+    request,
+)
 from agents._interface import InterfaceAgent
 from agents._security import KeyPair, TrustStore
 from agents.transports import ZenohConfig, ZenohTransport
@@ -296,3 +308,145 @@ async def test_the_lanes_count_an_envelope_held_is_released_when_it_raises(raw: 
         assert raised == ["_take_now"] and ia.inbox_failed == 1
         assert POISON not in t.sink.got
         assert ia._lane_raw == 0 and ia._lane_queued == {}
+
+
+class Reading(BaseModel):
+    """What the checker expects: its validation error quotes the input it failed on."""
+
+    wind_m_s: float
+
+
+class Checker(Agent):
+    """Answers ``demo`` requests by validating them, in line and in a task of their own."""
+
+    @on_request("demo")
+    async def _check(self, message: ACLMessage) -> Any:
+        return Reading.model_validate(message.content).model_dump()
+
+    @on_request("demo-concurrent", concurrent=True)
+    async def _check_apart(self, message: ACLMessage) -> Any:
+        return Reading.model_validate(message.content).model_dump()
+
+    @on(MessageTemplate(Performative.INFORM, where=lambda m: int(m.content["n"]) > 0))
+    async def _count(self, message: ACLMessage) -> None:
+        """Never reached here: its template raises on what the test sends."""
+
+
+async def test_a_handler_raising_on_a_remote_message_logs_not_its_content(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A handler (or a template's predicate) that raises on another platform's message,
+    decrypted, logs what failed, its sender and the exception's type and place, never
+    the exception's text: pydantic's (and int()'s) quote the input they failed on. The
+    sender still gets its failure with the reason: the content was its own."""
+    async with trio(lane=False) as t:
+        checker = await t.hub.add(Checker("checker"))
+        assert t.hub.df is not None
+        await t.hub.df.register(
+            ServiceDescription(
+                name="checker-svc", type="demo", provider=checker.aid, visibility="protected"
+            )
+        )
+        asker = t.senders["uav-a"]
+        with caplog.at_level(logging.DEBUG, logger="agents"):
+            for ontology in ("demo", "demo-concurrent"):
+                with pytest.raises(Failed, match="validation error") as failed:
+                    await request(
+                        asker, "checker@hub", {"wind_m_s": POISON}, ontology=ontology, timeout=WAIT
+                    )
+                assert POISON in str(failed.value.message.content)  # its own, back to it
+            await asker.send(
+                asker.message(Performative.INFORM, "checker@hub", {"n": POISON}, ontology="n")
+            )
+            async with asyncio.timeout(WAIT):
+                while not [r for r in caplog.records if "choosing a handler" in r.getMessage()]:  # noqa: ASYNC110
+                    await asyncio.sleep(0.005)
+        failed_logs = [r for r in caplog.records if "failed on" in r.getMessage()]
+        assert len(failed_logs) == 3, [r.getMessage() for r in failed_logs]
+        assert POISON not in caplog.text
+        assert not [r for r in caplog.records if POISON in r.getMessage() + (r.exc_text or "")]
+        logged = [r.getMessage() for r in failed_logs]
+        assert sum("ValidationError" in m for m in logged) == 2
+        assert "ValueError" in logged[2] and "talker@uav-a" in logged[2]
+
+
+@pytest.mark.parametrize("step", ["deliver", "admit"])
+async def test_a_delivery_that_raises_logs_not_what_it_delivered(
+    step: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Handing a message of uav-a to hub's agent raises (a fault quoting what it failed
+    on): logged with what failed, its peer and the exception's type and place, never
+    the message; uav-a's next message is delivered."""
+    async with trio(lane=False) as t:
+        raised: list[str] = []
+        if step == "deliver":  # the common path: one receiver, taken at once
+            target: Any = t.sink
+            real = target._deliver
+
+            def broken(message: ACLMessage) -> Any:
+                if not raised and POISON in repr(message):
+                    raised.append(step)
+                    raise RuntimeError(f"cannot deliver {message!r}")
+                return real(message)
+
+            target._deliver = broken
+        else:  # the full path: a message to two agents here
+            target = t.ia
+            real_admit = target._admit
+
+            async def broken_admit(host: Any, peer: str, message: ACLMessage) -> Any:
+                if not raised and POISON in repr(message):
+                    raised.append(step)
+                    raise RuntimeError(f"cannot admit {message!r}")
+                return await real_admit(host, peer, message)
+
+            target._admit = broken_admit
+            target._admit_now = lambda *args: False
+        talker = t.senders["uav-a"]
+        with caplog.at_level(logging.DEBUG, logger="agents"):
+            await talker.send(
+                talker.message(
+                    Performative.INFORM,
+                    ["sink@hub", "nobody@hub"] if step == "admit" else "sink@hub",
+                    POISON,
+                    ontology="demo",
+                )
+            )
+            async with asyncio.timeout(WAIT):
+                while not raised:  # noqa: ASYNC110
+                    await asyncio.sleep(0.005)
+            await t.tell("uav-a", "a-after")
+            await t.until_got("a-after")
+        assert raised == [step]
+        failed = [r.getMessage() for r in caplog.records if "delivering from" in r.getMessage()]
+        assert len(failed) == 1 and "RuntimeError" in failed[0], failed
+        assert POISON not in caplog.text
+        assert not [r for r in caplog.records if POISON in r.getMessage() + (r.exc_text or "")]
+
+
+async def test_a_lane_answer_that_raises_on_its_thread_logs_not_what_it_opened(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The lane's answering on zenoh's thread raises (a fault quoting the body it opened):
+    logged with its peer and the exception's type and place, never the body; the loop
+    takes the message as usual."""
+    async with trio(lane=True) as t:
+        ia = t.ia
+        real = ia._lane_answer
+        raised: list[int] = []
+
+        def broken(*args: Any) -> Any:
+            if not raised and POISON in repr(args):
+                raised.append(1)
+                raise RuntimeError(f"cannot answer {args!r}")
+            return real(*args)
+
+        ia._lane_answer = broken  # type: ignore[method-assign]
+        with caplog.at_level(logging.DEBUG, logger="agents"):
+            await t.tell("uav-a", POISON)
+            await t.until_got(POISON)
+        assert raised == [1]
+        said = [r.getMessage() for r in caplog.records if "receiving thread" in r.getMessage()]
+        assert len(said) == 1 and "RuntimeError" in said[0], said
+        assert POISON not in caplog.text
+        assert not [r for r in caplog.records if POISON in r.getMessage() + (r.exc_text or "")]
