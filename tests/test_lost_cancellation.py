@@ -16,6 +16,7 @@ import pytest
 
 from agents import Agent, AgentPlatform, MemoryHub
 from agents._aio import KeepCancelled
+from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
 
 AFTER = 0.2  # s: the re-cancel interval in these tests (the default, 5 s, is for cleanups)
 CLEANUP = 0.05  # s: a cancelled task's cleanup
@@ -92,3 +93,15 @@ async def test_a_task_given_time_for_its_cleanup_is_cancelled_again_only_after_i
             task = platform.spawn(cleans_up(), "cleaner")
             await asyncio.sleep(0)
         assert len(cleaned) == 1 and task.cancelled()
+
+
+async def test_a_transport_task_that_lost_its_cancellation_does_not_hold_its_close() -> None:
+    """A transport's own task (a reader, an unsubscribe) losing one cancellation: it closes."""
+    lost: list[str] = []
+    async with asyncio.timeout(WAIT):
+        t = ZenohTransport(ZenohConfig.loopback(free_tcp_port()))
+        async with t:
+            task = t._spawn(loses_one_cancellation(lost, "transport"), "loser")
+            await asyncio.sleep(0)
+        assert lost == ["transport"]
+        assert task.cancelled()
