@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 from ._acl import ACLMessage, Performative, agent_id, compose, new_id, platform_of
-from ._aio import Deadlines, Mailbox
+from ._aio import Deadlines, KeepCancelled, Mailbox
 from ._exceptions import AgentError
 from ._records import Record
 
@@ -696,6 +696,7 @@ class Agent:
     async def _run(self, ready: asyncio.Future[None]) -> None:
         _current_agent.set(self)
         assert self._stop_requested is not None
+        again: KeepCancelled | None = None
         try:
             async with asyncio.TaskGroup() as tg:
                 self._tg = tg
@@ -711,6 +712,8 @@ class Agent:
                 self._state = _STOPPING
                 for task in list(self._children):
                     task.cancel()
+                # one that lost its cancellation would hold the stop forever
+                again = KeepCancelled(lambda: self._children)
             await self._refuse_queued()
         except Exception as exc:
             # The platform's task group must survive one bad agent: report, do not raise.
@@ -724,6 +727,8 @@ class Agent:
                 ready.set_exception(AgentError(f"{self} was cancelled while starting"))
             raise
         finally:
+            if again is not None:
+                again.stop()
             self._state = _STOPPED
             self._tg = None
             self._loop = None

@@ -5,6 +5,7 @@
 `Ticker`: the ticks of a periodic loop, on a fixed grid of loop time.
 `Pending`: a count other threads add to, taken by one task at most once per period.
 `run`: ``asyncio.run`` on uvloop when it is installed (what long-running processes use).
+`KeepCancelled`: cancels again what outlived its cancellation, so that a close ends.
 """
 
 from __future__ import annotations
@@ -391,6 +392,44 @@ class Pending:
             n, self._n = self._n, 0
         self._next = loop.time() + self.period
         return n
+
+
+RECANCEL_AFTER = 5.0
+"""Seconds a cancelled task may run on (its cleanup) before it is cancelled again."""
+
+
+class KeepCancelled:
+    """Every ``after`` s, cancel again each of ``tasks()`` still running, until `stop`.
+
+    A cancellation can be lost: Python 3.11's ``asyncio.wait_for`` returns a result that
+    comes in the same turn as the cancellation and drops it, and code may swallow one by
+    mistake. A task that lost the one its owner's close sent ran on, and the task group
+    closing waited for it forever. Cancelled again, it ends (trio's and anyio's
+    cancellations likewise stay in force until the task ends), ``after`` s given to
+    its cleanup each time.
+    """
+
+    __slots__ = ("_after", "_handle", "_loop", "_tasks")
+
+    def __init__(
+        self, tasks: Callable[[], Iterable[asyncio.Task[Any]]], after: float = RECANCEL_AFTER
+    ) -> None:
+        self._tasks = tasks
+        self._after = after
+        self._loop = asyncio.get_running_loop()
+        self._handle: asyncio.TimerHandle | None = self._loop.call_later(after, self._again)
+
+    def _again(self) -> None:
+        for task in list(self._tasks()):
+            if not task.done():
+                task.cancel()
+        self._handle = self._loop.call_later(self._after, self._again)
+
+    def stop(self) -> None:
+        """Cancel nothing more."""
+        if self._handle is not None:
+            self._handle.cancel()
+            self._handle = None
 
 
 def _check_period(period: float) -> float:

@@ -24,6 +24,7 @@ import orjson
 
 from ._acl import MAX_MESSAGE_BYTES, WIRE_VERSION, ACLMessage, Performative, name_of, platform_of
 from ._agent import NEVER_ANSWERED, Agent
+from ._aio import KeepCancelled
 from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventLimit
 from ._directory_auth import DirectoryAuth
 from ._exceptions import AgentError, MessageError
@@ -462,7 +463,21 @@ class AgentPlatform:
             # passing the body's error on (aclose passes none) keeps it as it is: the
             # group would wrap it.
             self._cancel_everything()
-            await stack.aclose()
+            # a task that lost its cancellation would hold the group's close forever
+            again = KeepCancelled(self._outliving)
+            try:
+                await stack.aclose()
+            finally:
+                again.stop()
+
+    def _outliving(self) -> list[asyncio.Task[Any]]:
+        """The platform's tasks, its agents' and theirs: what its close cancels."""
+        tasks = list(self._tasks)
+        for agent in list(self._agents.values()):
+            if agent._task is not None:
+                tasks.append(agent._task)
+            tasks.extend(agent._children)
+        return tasks
 
     async def _shutdown(self) -> None:
         self._state = _CLOSING

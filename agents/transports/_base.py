@@ -18,6 +18,7 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any, Generic, NamedTuple, Self, TypeVar
 
+from .._aio import KeepCancelled
 from .._exceptions import TransportClosed, TransportError
 
 log = logging.getLogger(__name__)
@@ -421,7 +422,11 @@ class Transport(ABC):
             task.cancel()
         stack, self._stack, self._tg = self._stack, None, None
         if stack is not None:
-            await stack.aclose()
+            again = KeepCancelled(lambda: self._tasks)  # one that lost it: `KeepCancelled`
+            try:
+                await stack.aclose()
+            finally:
+                again.stop()
 
     @abstractmethod
     async def open(self) -> None:
