@@ -269,3 +269,25 @@ async def test_platforms_with_sends_under_way_close_in_bounded_time_over_a_stall
         while alive and loop.time() < deadline:  # each waits for a trip through the broker
             alive = await watcher.tokens(key, timeout=5.0)
         assert alive == [], f"still alive once the broker runs again: {alive}"
+
+
+async def test_a_subscribe_under_way_when_the_transport_closes_fails_as_closed(
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+) -> None:
+    # the close cancelled the subscribe's wait for the broker's answer, and the caller,
+    # which nobody cancelled, got that CancelledError: not caught as a TransportError,
+    # and taken for its own cancellation (by a TaskGroup, by asyncio.run)
+    host, port, broker = own_mosquitto
+    async with MqttTransport(MqttConfig(host=host, port=port)) as t:
+        broker.send_signal(signal.SIGSTOP)
+        try:
+            call = asyncio.create_task(t.subscribe(f"stall/{uuid.uuid4().hex}"))
+            done, _ = await asyncio.wait([call], timeout=0.2)
+            assert not done  # under way: the stopped broker does not answer
+            async with asyncio.timeout(WAIT):
+                await t.aclose()
+                with pytest.raises(TransportError, match="closed"):
+                    await call
+            assert not call.cancelled()
+        finally:
+            broker.send_signal(signal.SIGCONT)

@@ -666,12 +666,21 @@ class MqttTransport(_Keeps, Transport):
         SUBACK/UNSUBACK that still comes is logged at ERROR with a traceback ("Unexpected
         message ID"), which reads as a failure. The call ends at the answer or at
         aiomqtt's timeout (``connect_timeout``); `aclose` cancels those left once
-        disconnected, when no answer is read any more.
+        disconnected, when no answer is read any more: a caller still waiting gets an
+        ``MqttError``, as any call on a closed transport, not that cancel.
         """
         task = asyncio.ensure_future(call)
         self._acks.add(task)
         task.add_done_callback(self._settled)
-        await asyncio.shield(task)
+        try:
+            await asyncio.shield(task)
+        except asyncio.CancelledError:
+            current = asyncio.current_task()
+            if task.cancelled() and current is not None and not current.cancelling():
+                # `aclose` cancelled the wait, not the caller's own cancel: for the
+                # caller, a call that failed on a closed transport
+                raise aiomqtt.MqttError("the transport closed before the broker answered") from None
+            raise
 
     def _settled(self, task: asyncio.Task[Any]) -> None:
         self._acks.discard(task)
