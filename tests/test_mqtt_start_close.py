@@ -58,6 +58,11 @@ async def slow_link(host: str, port: int, delay: float) -> AsyncIterator[int]:
                 queued.put_nowait((loop.time() + hold, data))
         except ConnectionError:
             pass
+        except asyncio.CancelledError:  # the relay's close: the sender goes with it
+            sender.cancel()
+            await asyncio.gather(sender, return_exceptions=True)
+            writer.close()
+            raise
         queued.put_nowait((loop.time() + hold, b""))
         with contextlib.suppress(ConnectionError):
             await sender
