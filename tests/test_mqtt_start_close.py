@@ -229,7 +229,7 @@ async def test_starting_and_closing_platforms_logs_no_error(
 
 
 async def test_platforms_with_sends_under_way_close_in_bounded_time_over_a_stalled_broker(
-    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]], caplog: pytest.LogCaptureFixture
 ) -> None:
     """Each platform has publishes the stopped broker does not read: its socket is full.
 
@@ -238,6 +238,7 @@ async def test_platforms_with_sends_under_way_close_in_bounded_time_over_a_stall
     broker sees the connection lost and publishes the will).
     """
     host, port, broker = own_mosquitto
+    caplog.set_level(logging.DEBUG, logger="agents.transports._mqtt")
     federation = f"stall-{secrets.token_hex(4)}"
     names = ["uav-a", "uav-b", "uav-c"]
     config = MqttConfig(host=host, port=port)
@@ -267,6 +268,9 @@ async def test_platforms_with_sends_under_way_close_in_bounded_time_over_a_stall
         await asyncio.gather(*sends, return_exceptions=True)
     # each one waited connect_timeout for its DISCONNECT; now at most a second more
     assert took < config.connect_timeout, f"{len(names)} platforms closed in {took:.1f} s"
+    # by closing their sockets: the DISCONNECTs could not go out
+    hard = [r.getMessage() for r in caplog.records if "no graceful disconnect" in r.getMessage()]
+    assert hard.count("mqtt: no graceful disconnect (timed out): closing the socket") >= len(names)
     async with MqttTransport(config) as watcher:
         key = f"dyknow/{federation}/v1/alive/*"
         deadline = loop.time() + config.connect_timeout

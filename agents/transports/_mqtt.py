@@ -1078,7 +1078,7 @@ async def _disconnect(client: aiomqtt.Client, connection: contextlib.AsyncExitSt
             await connection.aclose()
         return
     except (aiomqtt.MqttError, TimeoutError) as exc:
-        log.debug("mqtt: no graceful disconnect (%s): closing the socket", exc or "timed out")
+        log.debug("mqtt: no graceful disconnect (%s): closing the socket", str(exc) or "timed out")
     # paho's own socket close: it also tells aiomqtt to stop watching the socket
     sock_close = getattr(client._client, "_sock_close", None)
     if sock_close is not None:
