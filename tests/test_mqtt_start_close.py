@@ -16,7 +16,7 @@ import signal
 import subprocess
 import time
 import uuid
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import pytest
@@ -29,11 +29,14 @@ WAIT = 10.0  # the bound on any single wait: generous for a loaded 2-core machin
 
 
 @contextlib.asynccontextmanager
-async def slow_link(host: str, port: int, delay: float) -> AsyncIterator[int]:
+async def slow_link(
+    host: str, port: int, delay: float, *, sent: Callable[[bytes], None] | None = None
+) -> AsyncIterator[int]:
     """A relay to the broker at ``host:port`` that holds what the broker sends ``delay`` s.
 
     Every round trip through it then takes at least ``delay`` s, whatever the machine's
-    load: a start's time counts its round trips. Yields the relay's port.
+    load: a start's time counts its round trips. ``sent`` is shown what a client sends,
+    as it goes to the broker. Yields the relay's port.
     """
     tasks: set[asyncio.Future[Any]] = set()
 
@@ -56,6 +59,8 @@ async def slow_link(host: str, port: int, delay: float) -> AsyncIterator[int]:
         try:
             while data := await reader.read(65536):
                 queued.put_nowait((loop.time() + hold, data))
+                if sent is not None and hold == 0.0:
+                    sent(data)
         except ConnectionError:
             pass
         except asyncio.CancelledError:  # the relay's close: the sender goes with it
@@ -300,3 +305,36 @@ async def test_a_subscribe_under_way_when_the_transport_closes_fails_as_closed(
             assert not call.cancelled()
         finally:
             broker.send_signal(signal.SIGCONT)
+
+
+async def test_a_token_whose_declaration_is_given_up_is_not_left_alive(
+    mosquitto: tuple[str, int],
+) -> None:
+    # cancelled once its alive message was out (a platform's start cut short), the
+    # token's connection was left open, unreferenced by anyone who could close it: the
+    # key stayed alive, a platform that never started seen as a member
+    host, port = mosquitto
+    u = uuid.uuid4().hex
+    out = asyncio.Event()
+
+    def sent(data: bytes) -> None:
+        if data[:1] == b"\x33":  # PUBLISH, QoS 1, retained: the token's alive message
+            out.set()
+
+    async with (
+        slow_link(host, port, 0.5, sent=sent) as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as watcher,
+    ):
+        declaring = asyncio.create_task(t.declare_token(f"alive/{u}/x"))
+        async with asyncio.timeout(WAIT):
+            await out.wait()
+        declaring.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await declaring
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + WAIT
+        alive = await watcher.tokens(f"alive/{u}/*", timeout=WAIT)
+        while alive and loop.time() < deadline:  # each waits for a trip through the broker
+            alive = await watcher.tokens(f"alive/{u}/*", timeout=WAIT)
+        assert alive == []

@@ -973,8 +973,8 @@ class _Token:
             connection = await _connect(client)
         except aiomqtt.MqttError as exc:
             raise t._error(f"connect for the token on {self.key!r}", exc) from exc
-        # kept before announcing: a reconnection cancelled by ``clear`` once the alive
-        # message may be out leaves ``clear`` the connection to clear and close
+        # kept before announcing: ``clear`` clears and closes it (a cancel while
+        # announcing, ``clear``'s of a reconnection too, clears and closes it below)
         self.client, self.connection = client, connection
         try:
             await t._acked(client.subscribe(self.key, qos=1))
@@ -982,6 +982,15 @@ class _Token:
         except aiomqtt.MqttError as exc:
             await _disconnect(client, connection)
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
+        except BaseException:
+            # cancelled (a start given up) with the alive message maybe out: cleared and
+            # closed here, as `clear` does, for nobody else holds this connection when
+            # it is a declaration's; a reconnection's is cleared here too, not by `clear`
+            self.client = self.connection = None
+            with contextlib.suppress(aiomqtt.MqttError):  # not out in time: the will clears
+                await client.publish(self.key, b"", qos=0, retain=True, timeout=_DISCONNECT_WAIT)
+            await _disconnect(client, connection)
+            raise
 
     async def keep(self) -> None:
         """Announce again when the key is cleared by another; reconnect when dropped."""
