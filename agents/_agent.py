@@ -703,7 +703,13 @@ class Agent:
                 await self.setup()
                 self._spawn(self._receive_loop(), "receive")
                 self._state = _RUNNING
-                ready.set_result(None)
+                if ready.cancelled():
+                    # its start was given up (the add cancelled) while setup ran: it
+                    # stops at once, its teardown undoing what the setup made
+                    if not self._stop_requested.done():
+                        self._stop_requested.set_result(None)
+                else:
+                    ready.set_result(None)
                 await self._stop_requested
                 try:
                     await self.teardown()

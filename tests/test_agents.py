@@ -924,3 +924,44 @@ async def test_a_shutdown_cut_short_by_cancellation_still_ends_every_task() -> N
             await task
         assert asyncio.all_tasks() == {asyncio.current_task()}
         assert not hub.tokens
+
+
+async def test_an_agent_whose_start_is_given_up_stops_undoing_its_setup() -> None:
+    # the add was cancelled while the agent's setup ran (a platform's start cut short
+    # while its directory agent started): the setup went on, its ready could not be
+    # told, the agent died there without its teardown, and what its setup served stayed
+    class Serving(Agent):
+        def __init__(self, name: str, go: asyncio.Event, served: asyncio.Event) -> None:
+            super().__init__(name)
+            self.go, self.served = go, served
+            self.torn_down = False
+
+        async def setup(self) -> None:
+            self.handle = await self.platform.transport.serve(
+                self.platform.key("extra"), self.answer
+            )
+            self.served.set()
+            await self.go.wait()
+
+        async def answer(self, key: str, payload: bytes) -> bytes:
+            return b"here"
+
+        async def teardown(self) -> None:
+            self.torn_down = True
+            self.handle.close()
+
+    async with platforms("p") as (p,):
+        go, served = asyncio.Event(), asyncio.Event()
+        agent = Serving("late", go, served)
+        adding = asyncio.create_task(p.add(agent))
+        async with asyncio.timeout(5):
+            await served.wait()
+        adding.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await adding
+        go.set()  # its setup ends after its start was given up
+        async with asyncio.timeout(5):
+            while agent._task is not None and not agent._task.done():
+                await asyncio.wait([agent._task])
+        assert agent.torn_down
+        assert "late" not in p._agents

@@ -16,7 +16,7 @@ import signal
 import subprocess
 import time
 import uuid
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import pytest
@@ -29,11 +29,14 @@ WAIT = 10.0  # the bound on any single wait: generous for a loaded 2-core machin
 
 
 @contextlib.asynccontextmanager
-async def slow_link(host: str, port: int, delay: float) -> AsyncIterator[int]:
+async def slow_link(
+    host: str, port: int, delay: float, *, sent: Callable[[bytes], None] | None = None
+) -> AsyncIterator[int]:
     """A relay to the broker at ``host:port`` that holds what the broker sends ``delay`` s.
 
     Every round trip through it then takes at least ``delay`` s, whatever the machine's
-    load: a start's time counts its round trips. Yields the relay's port.
+    load: a start's time counts its round trips. ``sent`` is shown what a client sends,
+    as it goes to the broker. Yields the relay's port.
     """
     tasks: set[asyncio.Future[Any]] = set()
 
@@ -56,8 +59,15 @@ async def slow_link(host: str, port: int, delay: float) -> AsyncIterator[int]:
         try:
             while data := await reader.read(65536):
                 queued.put_nowait((loop.time() + hold, data))
+                if sent is not None and hold == 0.0:
+                    sent(data)
         except ConnectionError:
             pass
+        except asyncio.CancelledError:  # the relay's close: the sender goes with it
+            sender.cancel()
+            await asyncio.gather(sender, return_exceptions=True)
+            writer.close()
+            raise
         queued.put_nowait((loop.time() + hold, b""))
         with contextlib.suppress(ConnectionError):
             await sender
@@ -224,7 +234,7 @@ async def test_starting_and_closing_platforms_logs_no_error(
 
 
 async def test_platforms_with_sends_under_way_close_in_bounded_time_over_a_stalled_broker(
-    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]], caplog: pytest.LogCaptureFixture
 ) -> None:
     """Each platform has publishes the stopped broker does not read: its socket is full.
 
@@ -233,6 +243,7 @@ async def test_platforms_with_sends_under_way_close_in_bounded_time_over_a_stall
     broker sees the connection lost and publishes the will).
     """
     host, port, broker = own_mosquitto
+    caplog.set_level(logging.DEBUG, logger="agents.transports._mqtt")
     federation = f"stall-{secrets.token_hex(4)}"
     names = ["uav-a", "uav-b", "uav-c"]
     config = MqttConfig(host=host, port=port)
@@ -262,6 +273,9 @@ async def test_platforms_with_sends_under_way_close_in_bounded_time_over_a_stall
         await asyncio.gather(*sends, return_exceptions=True)
     # each one waited connect_timeout for its DISCONNECT; now at most a second more
     assert took < config.connect_timeout, f"{len(names)} platforms closed in {took:.1f} s"
+    # by closing their sockets: the DISCONNECTs could not go out
+    hard = [r.getMessage() for r in caplog.records if "no graceful disconnect" in r.getMessage()]
+    assert hard.count("mqtt: no graceful disconnect (timed out): closing the socket") >= len(names)
     async with MqttTransport(config) as watcher:
         key = f"dyknow/{federation}/v1/alive/*"
         deadline = loop.time() + config.connect_timeout
@@ -269,3 +283,58 @@ async def test_platforms_with_sends_under_way_close_in_bounded_time_over_a_stall
         while alive and loop.time() < deadline:  # each waits for a trip through the broker
             alive = await watcher.tokens(key, timeout=5.0)
         assert alive == [], f"still alive once the broker runs again: {alive}"
+
+
+async def test_a_subscribe_under_way_when_the_transport_closes_fails_as_closed(
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]],
+) -> None:
+    # the close cancelled the subscribe's wait for the broker's answer, and the caller,
+    # which nobody cancelled, got that CancelledError: not caught as a TransportError,
+    # and taken for its own cancellation (by a TaskGroup, by asyncio.run)
+    host, port, broker = own_mosquitto
+    async with MqttTransport(MqttConfig(host=host, port=port)) as t:
+        broker.send_signal(signal.SIGSTOP)
+        try:
+            call = asyncio.create_task(t.subscribe(f"stall/{uuid.uuid4().hex}"))
+            done, _ = await asyncio.wait([call], timeout=0.2)
+            assert not done  # under way: the stopped broker does not answer
+            async with asyncio.timeout(WAIT):
+                await t.aclose()
+                with pytest.raises(TransportError, match="closed"):
+                    await call
+            assert not call.cancelled()
+        finally:
+            broker.send_signal(signal.SIGCONT)
+
+
+async def test_a_token_whose_declaration_is_given_up_is_not_left_alive(
+    mosquitto: tuple[str, int],
+) -> None:
+    # cancelled once its alive message was out (a platform's start cut short), the
+    # token's connection was left open, unreferenced by anyone who could close it: the
+    # key stayed alive, a platform that never started seen as a member
+    host, port = mosquitto
+    u = uuid.uuid4().hex
+    out = asyncio.Event()
+
+    def sent(data: bytes) -> None:
+        if data[:1] == b"\x33":  # PUBLISH, QoS 1, retained: the token's alive message
+            out.set()
+
+    async with (
+        slow_link(host, port, 0.5, sent=sent) as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as watcher,
+    ):
+        declaring = asyncio.create_task(t.declare_token(f"alive/{u}/x"))
+        async with asyncio.timeout(WAIT):
+            await out.wait()
+        declaring.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await declaring
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + WAIT
+        alive = await watcher.tokens(f"alive/{u}/*", timeout=WAIT)
+        while alive and loop.time() < deadline:  # each waits for a trip through the broker
+            alive = await watcher.tokens(f"alive/{u}/*", timeout=WAIT)
+        assert alive == []

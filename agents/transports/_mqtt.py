@@ -704,12 +704,21 @@ class MqttTransport(_Keeps, Transport):
         SUBACK/UNSUBACK that still comes is logged at ERROR with a traceback ("Unexpected
         message ID"), which reads as a failure. The call ends at the answer or at
         aiomqtt's timeout (``connect_timeout``); `aclose` cancels those left once
-        disconnected, when no answer is read any more.
+        disconnected, when no answer is read any more: a caller still waiting gets an
+        ``MqttError``, as any call on a closed transport, not that cancel.
         """
         task = asyncio.ensure_future(call)
         self._acks.add(task)
         task.add_done_callback(self._settled)
-        await asyncio.shield(task)
+        try:
+            await asyncio.shield(task)
+        except asyncio.CancelledError:
+            current = asyncio.current_task()
+            if task.cancelled() and current is not None and not current.cancelling():
+                # `aclose` cancelled the wait, not the caller's own cancel: for the
+                # caller, a call that failed on a closed transport
+                raise aiomqtt.MqttError("the transport closed before the broker answered") from None
+            raise
 
     def _settled(self, task: asyncio.Task[Any]) -> None:
         self._acks.discard(task)
@@ -1002,8 +1011,8 @@ class _Token:
             connection = await _connect(client)
         except aiomqtt.MqttError as exc:
             raise t._error(f"connect for the token on {self.key!r}", exc) from exc
-        # kept before announcing: a reconnection cancelled by ``clear`` once the alive
-        # message may be out leaves ``clear`` the connection to clear and close
+        # kept before announcing: ``clear`` clears and closes it (a cancel while
+        # announcing, ``clear``'s of a reconnection too, clears and closes it below)
         self.client, self.connection = client, connection
         try:
             await t._acked(client.subscribe(self.key, qos=1))
@@ -1011,6 +1020,15 @@ class _Token:
         except aiomqtt.MqttError as exc:
             await _disconnect(client, connection)
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
+        except BaseException:
+            # cancelled (a start given up) with the alive message maybe out: cleared and
+            # closed here, as `clear` does, for nobody else holds this connection when
+            # it is a declaration's; a reconnection's is cleared here too, not by `clear`
+            self.client = self.connection = None
+            with contextlib.suppress(aiomqtt.MqttError):  # not out in time: the will clears
+                await client.publish(self.key, b"", qos=0, retain=True, timeout=_DISCONNECT_WAIT)
+            await _disconnect(client, connection)
+            raise
 
     async def keep(self) -> None:
         """Announce again when the key is cleared by another; reconnect when dropped."""
@@ -1107,7 +1125,7 @@ async def _disconnect(client: aiomqtt.Client, connection: contextlib.AsyncExitSt
             await connection.aclose()
         return
     except (aiomqtt.MqttError, TimeoutError) as exc:
-        log.debug("mqtt: no graceful disconnect (%s): closing the socket", exc or "timed out")
+        log.debug("mqtt: no graceful disconnect (%s): closing the socket", str(exc) or "timed out")
     # paho's own socket close: it also tells aiomqtt to stop watching the socket
     sock_close = getattr(client._client, "_sock_close", None)
     if sock_close is not None:
