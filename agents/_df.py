@@ -828,6 +828,7 @@ class GlobalDirectory:
         await together(subscribe_events(), watch_presence())
         events: Subscription[Message] = subs["events"]
         presence: Subscription[Presence] = subs["presence"]
+        self._subs = [events, presence]  # in this order, whichever the broker took first
         # Those alive are whom to expect: a queryable that never answers (anyone may
         # declare one on dyknow/<fed>/v1/**) keeps even zenoh's query open to its
         # timeout, and MQTT's always is. One alive that answers later, or not in the
