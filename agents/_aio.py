@@ -60,14 +60,43 @@ async def together(*steps: Coroutine[Any, Any, Any]) -> None:
     through the broker): the steps' waits overlap rather than add up. A step undoes
     itself when cancelled or failing; what those that succeeded set up is the caller's
     to undo, as after a failing sequence. The failure is raised as the step raised it,
-    not in an exception group, so callers catch what they caught before.
+    not in an exception group, so callers catch what they caught before; but a caller
+    that is itself being cancelled gets its `CancelledError`, whatever the steps raised.
     """
+    # not a TaskGroup: on Python 3.11 it raises its steps' errors over its own task's
+    # cancellation, and a step failing while it waits for the others leaves that task
+    # counted as cancelling for good: the caller could not tell it was being cancelled
+    failed: list[BaseException] = []
+
+    def settled(task: asyncio.Task[Any]) -> None:
+        if not task.cancelled() and (exc := task.exception()) is not None:
+            failed.append(exc)
+
+    tasks = [asyncio.ensure_future(step) for step in steps]
+    for task in tasks:
+        task.add_done_callback(settled)
+    cancelled = False
     try:
-        async with asyncio.TaskGroup() as tg:
-            for step in steps:
-                tg.create_task(step)
-    except BaseExceptionGroup as group:
-        first = group.exceptions[0]
+        await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
+    except asyncio.CancelledError:
+        cancelled = True
+    running = [t for t in tasks if not t.done()]
+    if cancelled or failed:
+        for task in running:
+            task.cancel()
+    while running:  # each step undoes itself: waited for, even by a caller cancelled now
+        try:
+            await asyncio.wait(running)
+        except asyncio.CancelledError:
+            cancelled = True
+        running = [t for t in running if not t.done()]
+    current = asyncio.current_task()
+    if cancelled or (failed and current is not None and current.cancelling()):
+        # the caller's cancellation wins over a step's failure: it would otherwise take
+        # that failure for the outcome and go on, its cancellation lost
+        raise asyncio.CancelledError from (failed[0] if failed else None)
+    if failed:
+        first = failed[0]
         raise first from first.__cause__
 
 

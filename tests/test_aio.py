@@ -10,6 +10,7 @@ import threading
 import pytest
 
 from agents import Mailbox, Pending, Ticker, TransportClosed, call_in_loop
+from agents._aio import together
 from agents.transports import Inbox, Subscription
 from dyknow_core import Clock, ManualClock, RealClock
 from dyknow_core._aio import Ticker as CoreTicker
@@ -424,3 +425,62 @@ async def test_call_in_loop_calls_at_once_in_its_loop_and_later_from_another_thr
     assert calls[1] == ("from a thread", threading.get_ident())  # the loop's thread
     call_in_loop(None, calls.append, ("no loop", 0))
     assert calls[2] == ("no loop", 0)
+
+
+# -- together -----------------------------------------------------------------------------------
+
+
+async def test_together_raises_a_step_s_failure_as_the_step_raised_it() -> None:
+    async def fails() -> None:
+        await asyncio.sleep(0)
+        raise ValueError("step failed")
+
+    other = asyncio.Event()
+
+    async def waits() -> None:
+        await other.wait()
+
+    with pytest.raises(ValueError, match="step failed"):
+        async with asyncio.timeout(10.0):
+            await together(fails(), waits())
+
+
+async def test_together_in_a_task_being_cancelled_raises_the_cancellation_not_a_step_s_error() -> (
+    None
+):
+    # the TaskGroup under it raises its steps' errors over its own task's cancellation: a
+    # caller cancelled while a step failed took the step's error for the outcome, and a
+    # loop that catches it went on, its cancellation lost
+    go = asyncio.Event()
+    started = asyncio.Event()
+    cleaned: list[str] = []
+
+    async def fails_at_go() -> None:
+        started.set()
+        await go.wait()
+        raise ValueError("step failed")
+
+    async def waits() -> None:
+        try:
+            await asyncio.Event().wait()
+        finally:
+            cleaned.append("waits")
+
+    caught: list[BaseException] = []
+
+    async def caller() -> None:
+        try:
+            await together(fails_at_go(), waits())
+        except ValueError as exc:  # what a caller catches from a failing step
+            caught.append(exc)
+
+    task = asyncio.create_task(caller())
+    async with asyncio.timeout(10.0):
+        await started.wait()
+    go.set()  # the step fails in the same turn as its caller's cancellation
+    task.cancel()
+    async with asyncio.timeout(10.0):
+        await asyncio.wait([task])
+    assert caught == []
+    assert task.cancelled()
+    assert cleaned == ["waits"]

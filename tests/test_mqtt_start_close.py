@@ -338,3 +338,270 @@ async def test_a_token_whose_declaration_is_given_up_is_not_left_alive(
         while alive and loop.time() < deadline:  # each waits for a trip through the broker
             alive = await watcher.tokens(f"alive/{u}/*", timeout=WAIT)
         assert alive == []
+
+
+def _packets(buf: bytearray) -> list[bytes]:
+    """The whole MQTT packets at the front of ``buf``, taken out of it (the rest stays)."""
+    out = []
+    while len(buf) >= 2:
+        length, mult, i = 0, 1, 1
+        while True:
+            if i >= len(buf):
+                return out
+            byte = buf[i]
+            length += (byte & 0x7F) * mult
+            mult *= 128
+            i += 1
+            if not byte & 0x80:
+                break
+        if len(buf) < i + length:
+            return out
+        out.append(bytes(buf[: i + length]))
+        del buf[: i + length]
+    return out
+
+
+def _varint_end(packet: bytes, at: int) -> tuple[int, int]:
+    """The variable byte integer at ``at``: (its value, where it ends)."""
+    value, mult = 0, 1
+    while True:
+        byte = packet[at]
+        value += (byte & 0x7F) * mult
+        mult *= 128
+        at += 1
+        if not byte & 0x80:
+            return value, at
+
+
+class Relay:
+    """A relay to a broker that a test steers: refuse filters, drop or stall connections.
+
+    ``refuse[filter] = code`` rewrites the reason codes of the SUBACK answering a
+    SUBSCRIBE of that filter (a strict broker: mosquitto 2.0 grants what its ACL denies).
+    ``stall`` holds the connections made from then on: their CONNECT is never answered;
+    a SUBSCRIBE of a filter starting with one of ``hold`` is never answered either.
+    ``open`` counts the client connections not yet closed by the client, ``held`` what
+    was held (connections and SUBSCRIBEs).
+    """
+
+    def __init__(self, host: str, port: int) -> None:
+        self.host, self.port = host, port
+        self.refuse: dict[str, int] = {}
+        self.stall = False
+        self.hold: tuple[str, ...] = ()
+        self.open = 0
+        self.held = 0
+        self.changed = asyncio.Event()
+        self.writers: set[asyncio.StreamWriter] = set()
+        self._tasks: set[asyncio.Task[Any]] = set()
+
+    async def wait_for(self, ready: Callable[[], bool]) -> None:
+        """Until ``ready()`` holds after a change of connections (TimeoutError past WAIT)."""
+        async with asyncio.timeout(WAIT):
+            while not ready():
+                self.changed.clear()
+                await self.changed.wait()
+
+    def drop(self) -> None:
+        """Cut every client connection, as a broker or a network that went would."""
+        for writer in list(self.writers):
+            writer.transport.abort()
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._tasks.add(task := asyncio.current_task())  # type: ignore[arg-type]
+        self.open += 1
+        self.changed.set()
+        self.writers.add(writer)
+        try:
+            if self.stall:
+                self.held += 1
+                self.changed.set()
+                while await reader.read(65536):  # until the client closes
+                    pass
+                return
+            up_reader, up_writer = await asyncio.open_connection(self.host, self.port)
+            refused: dict[bytes, int] = {}  # packet id of a SUBSCRIBE -> the code to answer
+            held: set[bytes] = set()  # packet ids of SUBSCRIBEs never answered
+
+            def to_broker(packet: bytes) -> bytes:
+                if packet[0] == 0x82:  # SUBSCRIBE
+                    _, at = _varint_end(packet, 1)
+                    pid = packet[at : at + 2]
+                    props, at = _varint_end(packet, at + 2)
+                    at += props
+                    while at < len(packet):
+                        n = int.from_bytes(packet[at : at + 2], "big")
+                        topic = packet[at + 2 : at + 2 + n].decode()
+                        if topic.startswith(self.hold) and self.hold:
+                            held.add(pid)
+                            self.held += 1
+                            self.changed.set()
+                        code = self.refuse.get(topic)
+                        if code is not None:
+                            refused[pid] = code
+                        at += 2 + n + 1
+                return packet
+
+            def to_client(packet: bytes) -> bytes:
+                if packet[0] == 0x90:  # SUBACK
+                    _, at = _varint_end(packet, 1)
+                    if packet[at : at + 2] in held:
+                        return b""
+                    code = refused.pop(packet[at : at + 2], None)
+                    if code is not None:
+                        props, start = _varint_end(packet, at + 2)
+                        start += props
+                        packet = packet[:start] + bytes([code]) * (len(packet) - start)
+                return packet
+
+            async def pipe(
+                src: asyncio.StreamReader, dst: asyncio.StreamWriter, edit: Callable[[bytes], bytes]
+            ) -> None:
+                buf = bytearray()
+                with contextlib.suppress(ConnectionError):
+                    while data := await src.read(65536):
+                        buf += data
+                        dst.write(b"".join(edit(p) for p in _packets(buf)))
+                        await dst.drain()
+                dst.close()
+
+            await asyncio.gather(
+                pipe(reader, up_writer, to_broker), pipe(up_reader, writer, to_client)
+            )
+        except ConnectionError:
+            pass
+        finally:
+            self.writers.discard(writer)
+            writer.close()
+            self.open -= 1
+            self.changed.set()
+            self._tasks.discard(task)  # type: ignore[arg-type]
+
+    @contextlib.asynccontextmanager
+    async def running(self) -> AsyncIterator[int]:
+        """Serve on a free loopback port (yielded) until the block ends."""
+        server = await asyncio.start_server(self._serve, "127.0.0.1", 0)
+        try:
+            yield server.sockets[0].getsockname()[1]
+        finally:
+            server.close()
+            for task in list(self._tasks):
+                task.cancel()
+            await asyncio.gather(*self._tasks, return_exceptions=True)
+
+
+async def test_a_subscription_the_broker_refuses_raises_and_leaves_nothing_behind(
+    mosquitto: tuple[str, int],
+) -> None:
+    # the SUBACK's reason codes were not read: a refused subscription counted as
+    # confirmed, and its caller waited for messages that would never come
+    host, port = mosquitto
+    u = uuid.uuid4().hex
+    relay = Relay(host, port)
+    relay.refuse[f"refused/{u}"] = 0x87  # not authorized
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as sender,
+    ):
+        filters, sids = dict(t._filters), dict(t._by_sid)
+        async with asyncio.timeout(WAIT):
+            # two callers sharing the filter: the one waiting on the other's subscribe too
+            outcomes = await asyncio.gather(
+                t.subscribe(f"refused/{u}"), t.subscribe(f"refused/{u}"), return_exceptions=True
+            )
+        for outcome in outcomes:
+            assert isinstance(outcome, TransportError)
+            assert str(outcome) == (
+                f"mqtt: the broker refused the subscription to 'refused/{u}': Not authorized (0x87)"
+            )
+        assert (t._filters, t._by_sid) == (filters, sids)  # nothing of it left
+        assert not t._unsubscribing  # nor an unsubscribe of what the broker never held
+        # the connection serves on: another subscription works
+        async with asyncio.timeout(WAIT):
+            sub = await t.subscribe(f"granted/{u}")
+        async with sub:
+            await sender.publish(f"granted/{u}", b"heard")
+            assert (await sub.get(timeout=WAIT)).payload == b"heard"
+        # and the refused filter is asked anew, not taken from a filter left behind
+        relay.refuse[f"refused/{u}"] = 0x97  # quota exceeded
+        with pytest.raises(TransportError, match=r"'refused/.*': Quota exceeded \(0x97\)"):
+            async with asyncio.timeout(WAIT):
+                await t.watch_presence(f"refused/{u}")
+        assert (t._filters, t._by_sid) == (filters, sids)
+        # a watcher with history subscribes again to a filter others listen through:
+        # refused, it fails, the others keep theirs
+        async with asyncio.timeout(WAIT):
+            sub = await t.subscribe(f"shared/{u}")
+        relay.refuse[f"shared/{u}"] = 0x87
+        with pytest.raises(TransportError, match=r"'shared/.*': Not authorized \(0x87\)"):
+            async with asyncio.timeout(WAIT):
+                await t.watch_presence(f"shared/{u}")
+        assert t._filters[f"shared/{u}"].watchers == []
+        async with sub:
+            await sender.publish(f"shared/{u}", b"kept")
+            assert (await sub.get(timeout=WAIT)).payload == b"kept"
+
+
+async def test_a_subscription_refused_again_after_a_reconnection_ends(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # subscribed anew after a reconnection, a refused filter's subscribers waited in
+    # silence for messages that would never come
+    host, port = mosquitto
+    u = uuid.uuid4().hex
+    relay = Relay(host, port)
+    caplog.set_level(logging.WARNING, logger="agents.transports._mqtt")
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as sender,
+    ):
+        kept = await t.subscribe(f"kept/{u}")
+        ended = await t.subscribe(f"ended/{u}")
+        watcher = await t.watch_presence(f"ended/{u}")
+        relay.refuse[f"ended/{u}"] = 0x8F  # topic filter invalid
+        relay.drop()
+        async with asyncio.timeout(WAIT):  # the consumers see the end
+            assert [m async for m in ended] == []
+            assert [p async for p in watcher] == []
+        assert f"ended/{u}" not in t._filters
+        assert [f.topic for f in t._by_sid.values()] == [f"kept/{u}"]
+        said = [r.getMessage() for r in caplog.records]
+        assert any(f"'ended/{u}' again after reconnecting (Topic filter invalid" in m for m in said)
+        async with asyncio.timeout(WAIT):
+            await relay.wait_for(lambda: t.reconnects == 1)
+        await sender.publish(f"kept/{u}", b"still")
+        assert (await kept.get(timeout=WAIT)).payload == b"still"
+        kept.close()
+        ended.close()  # closing what ended already is harmless
+        watcher.close()
+
+
+def _aiomqtt_tasks() -> list[asyncio.Task[Any]]:
+    return [t for t in asyncio.all_tasks() if "_misc_loop" in repr(t.get_coro())]
+
+
+@pytest.mark.parametrize("stalled", ["connect", "reply subscribe"])
+async def test_a_close_while_reconnecting_leaves_no_connection_behind(
+    mosquitto: tuple[str, int], stalled: str
+) -> None:
+    # the close took the connection it knew (the lost one) and cancelled the
+    # reconnection: the new connection, its socket and aiomqtt's task, were left open
+    host, port = mosquitto
+    relay = Relay(host, port)
+    async with relay.running() as relayed:
+        t = MqttTransport(MqttConfig(host="127.0.0.1", port=relayed))
+        await t.__aenter__()
+        await t.subscribe(f"k/{uuid.uuid4().hex}")
+        assert len(_aiomqtt_tasks()) == 1
+        if stalled == "connect":
+            relay.stall = True  # the reconnection's CONNECT is never answered
+        else:  # connected, its subscription to its replies is never confirmed
+            relay.hold = ("@reply/",)
+        relay.drop()
+        await relay.wait_for(lambda: relay.held == 1 and relay.open == 1)
+        async with asyncio.timeout(WAIT):
+            await t.aclose()
+        await relay.wait_for(lambda: relay.open == 0)  # its socket closed
+        assert _aiomqtt_tasks() == []

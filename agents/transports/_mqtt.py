@@ -14,7 +14,12 @@ Subscriptions
     deliver live messages only: retained messages a broker replays on subscribing are
     presence history, not publications.
     A call returns once the broker confirmed its subscription; the filters of one
-    ``serve`` are subscribed together (one round trip, not one per filter). A subscribe
+    ``serve`` are subscribed together (one round trip, not one per filter). A
+    subscription the broker refuses (a SUBACK reason code of 0x80 or more: not
+    authorized, topic filter invalid, quota exceeded) raises TransportError naming the
+    filter and the broker's reason, and leaves nothing behind; refused again when
+    subscribing anew after a reconnection, it is logged and ends what listened through
+    it (its subscriptions' and watchers' iterators end). A subscribe
     its caller gave up on still takes the broker's answer, in the background: aiomqtt
     logs an answer to a call it no longer waits for as an error.
 
@@ -80,7 +85,8 @@ What MQTT cannot guarantee, compared to zenoh
     - QoS 0 (the default) is at most once; nothing is redelivered after a reconnection.
       A lost connection is reconnected once at once (a new client id, every subscription
       again; a token announces itself again); when that fails, every subscription ends
-      and later calls raise TransportClosed.
+      and later calls raise TransportClosed. A close during the reconnection ends the
+      new connection too.
     - Attachments travel base64-encoded in a user property.
 """
 
@@ -95,6 +101,7 @@ import logging
 import math
 import secrets
 import socket
+import threading
 from collections.abc import Callable, Coroutine, Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -142,8 +149,23 @@ def _load_client() -> None:
     class Client(aiomqtt.Client):
         """aiomqtt's client, whose waits for the broker never lose a cancellation."""
 
+        _connect_ended: threading.Event | None = None  # set when paho's connect returns
+
         async def _wait_for(self, fut: Any, timeout: float | None) -> Any:
             return await _wait_keeping_cancel(self, fut, timeout)
+
+        async def __aenter__(self) -> Any:
+            self._connect_ended = threading.Event()
+            return await super().__aenter__()
+
+        def _client_connect(self) -> None:
+            # in an executor thread, which a cancel does not stop: `_abandon` waits for
+            # it, for the socket it opens comes only then
+            try:
+                super()._client_connect()
+            finally:
+                if self._connect_ended is not None:
+                    self._connect_ended.set()
 
     globals().update(
         aiomqtt=aiomqtt,
@@ -358,12 +380,13 @@ class _Filter:
 
     # a plain class, not a dataclass: generating a dataclass's methods costs ~0.4 ms of a
     # node's start, each; nothing compares or prints these
-    __slots__ = ("inboxes", "ready", "servers", "sid", "topic", "watchers")
+    __slots__ = ("inboxes", "ready", "refused", "servers", "sid", "topic", "watchers")
 
     def __init__(self, topic: str, sid: int, ready: asyncio.Future[bool | None]) -> None:
         self.topic = topic
         self.sid = sid
         self.ready = ready
+        self.refused: str | None = None  # the broker's reason, when it refused the filter
         self.inboxes: list[Inbox[Message] | Screened] = []
         self.watchers: list[_Watcher | _Alive] = []
         self.servers: list[_Server] = []
@@ -447,14 +470,19 @@ class MqttTransport(_Keeps, Transport):
         except aiomqtt.MqttError as exc:
             raise TransportError(f"mqtt: cannot connect to {where}: {exc}") from exc
         try:
-            await self._acked(
-                client.subscribe(
-                    self._reply_topic, options=self._options(), properties=_sid(_REPLY_SID)
-                )
-            )
+            refused = await self._subscribe(client, self._reply_topic, _REPLY_SID)
         except aiomqtt.MqttError as exc:
             await _disconnect(client, connection)
             raise TransportError(f"mqtt: cannot subscribe to replies on {where}: {exc}") from exc
+        except BaseException:
+            # cancelled (a close while reconnecting): nobody else holds this connection
+            await _disconnect(client, connection)
+            raise
+        if refused is not None:
+            await _disconnect(client, connection)
+            raise TransportError(
+                f"mqtt: {where} refused the subscription to this client's replies: {refused}"
+            )
         return client, connection
 
     async def aclose(self) -> None:
@@ -533,6 +561,8 @@ class MqttTransport(_Keeps, Transport):
                 try:
                     client = await self._reconnect()
                 except (TransportError, aiomqtt.MqttError) as again:
+                    if self._state != "opened":  # closed meanwhile: its close ended it
+                        return
                     log.warning("mqtt: could not reconnect: %s", again)
                     self._lost = exc
                     for sub in list(self._subs):
@@ -547,12 +577,19 @@ class MqttTransport(_Keeps, Transport):
             with contextlib.suppress(aiomqtt.MqttError, TimeoutError):
                 async with asyncio.timeout(1.0):
                     await old.aclose()
+        # no await between the connection and keeping it: a close from then on ends it
         client, self._connection = await self._connect_main()
         self._client = client
         for f in list(self._filters.values()):
-            await self._acked(
-                client.subscribe(f.topic, options=self._options(), properties=_sid(f.sid))
-            )
+            refused = await self._subscribe(client, f.topic, f.sid)
+            if refused is not None:
+                log.warning(
+                    "mqtt: the broker refused the subscription to %r again after "
+                    "reconnecting (%s): what listened through it ends",
+                    f.topic,
+                    refused,
+                )
+                self._end(f)
         self.reconnects += 1
         if self._up is not None:
             self._up.set()
@@ -627,14 +664,16 @@ class MqttTransport(_Keeps, Transport):
                     self._leave(f, remove)
                     continue
                 if not ready:
+                    if f.refused is not None:
+                        raise _refusal(topic, f.refused)
                     raise self._error(f"subscribe to {topic!r}", RuntimeError("subscribe failed"))
                 if resubscribe:  # makes the broker send the retained messages again
                     try:
-                        await self._acked(
-                            client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
-                        )
+                        refused = await self._subscribe(client, topic, f.sid)
                     except aiomqtt.MqttError as exc:
                         raise self._error(f"subscribe to {topic!r}", exc) from exc
+                    if refused is not None:
+                        raise _refusal(topic, refused)
             except BaseException:
                 # cancelled too: left in the filter, it would keep the topic subscribed
                 # and be fed forever
@@ -646,9 +685,7 @@ class MqttTransport(_Keeps, Transport):
         self._by_sid[f.sid] = f
         add(f)
         try:
-            await self._acked(
-                client.subscribe(topic, options=self._options(), properties=_sid(f.sid))
-            )
+            refused = await self._subscribe(client, topic, f.sid)
         except aiomqtt.MqttError as exc:
             f.ready.set_result(False)
             self._forget(f)
@@ -659,6 +696,12 @@ class MqttTransport(_Keeps, Transport):
             f.ready.set_result(None)
             self._forget(f)
             raise
+        if refused is not None:
+            # the others waiting on ``ready`` fail with the same reason and leave it
+            f.refused = refused
+            f.ready.set_result(False)
+            self._forget(f, unsubscribe=False)  # the broker holds no such subscription
+            raise _refusal(topic, refused)
         f.ready.set_result(True)
 
     def _detach(self, topic: str, remove: Callable[[_Filter], None]) -> None:
@@ -678,15 +721,37 @@ class MqttTransport(_Keeps, Transport):
         if self._filters.get(f.topic) is f and f.empty():
             self._forget(f)
 
-    def _forget(self, f: _Filter) -> None:
+    def _forget(self, f: _Filter, *, unsubscribe: bool = True) -> None:
         if self._filters.get(f.topic) is f:
             del self._filters[f.topic]
         self._by_sid.pop(f.sid, None)
-        if self._state != "opened" or self._lost is not None or self._loop is None:
+        if not unsubscribe or self._state != "opened" or self._lost is not None:
+            return
+        if self._loop is None:
             return
         task = self._spawn(self._unsubscribe(f.topic), f"mqtt[{self.config.client_id}].unsubscribe")
         self._unsubscribing[f.topic] = task
         task.add_done_callback(lambda t: self._unsubscribing.pop(f.topic, None))
+
+    def _end(self, f: _Filter) -> None:
+        """Forget ``f``, which the broker no longer serves, and end what listened through it.
+
+        Its subscriptions' and watchers' iterators end rather than wait in silence; its
+        queryables (no iterator) hear no more queries on it, as the warning before says.
+        """
+        self._forget(f, unsubscribe=False)
+        for entry in f.inboxes:
+            (entry.inbox if isinstance(entry, Screened) else entry).close()
+        for watcher in f.watchers:
+            if isinstance(watcher, _Watcher):
+                watcher.inbox.close()
+
+    async def _subscribe(self, client: aiomqtt.Client, topic: str, sid: int) -> str | None:
+        """Subscribe ``client`` to ``topic`` as ``sid`` (`_acked`); the broker's refusal, if any."""
+        granted = await self._acked(
+            client.subscribe(topic, options=self._options(), properties=_sid(sid))
+        )
+        return _refused(granted)
 
     async def _unsubscribe(self, topic: str) -> None:
         if self._client is None:
@@ -696,7 +761,7 @@ class MqttTransport(_Keeps, Transport):
         except aiomqtt.MqttError as exc:
             log.debug("mqtt: unsubscribing from %r failed: %s", topic, exc)
 
-    async def _acked(self, call: Coroutine[Any, Any, Any]) -> None:
+    async def _acked(self, call: Coroutine[Any, Any, Any]) -> Any:
         """Await an aiomqtt (un)subscribe, which waits for the broker's answer, shielded.
 
         A caller that gives up (its timeout, its cancel) leaves the call waiting for the
@@ -711,7 +776,7 @@ class MqttTransport(_Keeps, Transport):
         self._acks.add(task)
         task.add_done_callback(self._settled)
         try:
-            await asyncio.shield(task)
+            return await asyncio.shield(task)
         except asyncio.CancelledError:
             current = asyncio.current_task()
             if task.cancelled() and current is not None and not current.cancelling():
@@ -1091,6 +1156,23 @@ async def _closing(handle: Handle) -> None:
         log.debug("mqtt: closing a token on the way out: %s", exc)
 
 
+def _refused(granted: Any) -> str | None:
+    """The broker's reason for refusing a subscription, from its SUBACK's codes; None: granted.
+
+    A reason code of 0x80 or more is a refusal (MQTT v5: 0x87 not authorized, 0x8F topic
+    filter invalid, 0x97 quota exceeded, ...); v3.1.1 has only 0x80.
+    """
+    for code in granted or ():
+        value = getattr(code, "value", code)
+        if isinstance(value, int) and value >= 0x80:
+            return f"{code} (0x{value:02X})"
+    return None
+
+
+def _refusal(topic: str, reason: str) -> TransportError:
+    return TransportError(f"mqtt: the broker refused the subscription to {topic!r}: {reason}")
+
+
 def _sid(sid: int) -> Properties:
     props = Properties(PacketTypes.SUBSCRIBE)
     props.SubscriptionIdentifier = sid
@@ -1103,11 +1185,32 @@ async def _connect(client: aiomqtt.Client) -> contextlib.AsyncExitStack:
     Disconnecting also waits for the client's socket task, so nothing outlives the
     transport; the stack outlives this call because a connection outlives any one task.
     """
-    async with contextlib.AsyncExitStack() as stack:
-        stack.push_async_callback(_reap_misc_task, client)  # runs after the client's exit
-        await stack.enter_async_context(client)
-        _no_delay(client)
-        return stack.pop_all()
+    try:
+        async with contextlib.AsyncExitStack() as stack:
+            stack.push_async_callback(_reap_misc_task, client)  # runs after the client's exit
+            await stack.enter_async_context(client)
+            _no_delay(client)
+            return stack.pop_all()
+    except BaseException:
+        # refused, timed out or cancelled (a close while reconnecting): aiomqtt leaves its
+        # socket open, watched by the loop, and its task running, for the process's life
+        await _abandon(client)
+        raise
+
+
+async def _abandon(client: aiomqtt.Client) -> None:
+    """Close the socket and end aiomqtt's task of a connection that did not come up."""
+    ended = getattr(client, "_connect_ended", None)
+    if isinstance(ended, threading.Event) and not ended.is_set():
+        # paho still connects in its thread (a cancel does not stop it): its socket comes then
+        wait = None if client.timeout == math.inf else client.timeout
+        await asyncio.to_thread(ended.wait, wait)
+    await asyncio.sleep(0)  # what the connect scheduled on the loop (its reader, task) runs
+    sock_close = getattr(client._client, "_sock_close", None)
+    if sock_close is not None:
+        with contextlib.suppress(OSError):
+            sock_close()
+    await _reap_misc_task(client)
 
 
 async def _disconnect(client: aiomqtt.Client, connection: contextlib.AsyncExitStack) -> None:
