@@ -13,6 +13,7 @@ import contextlib
 import logging
 import secrets
 import signal
+import socket
 import subprocess
 import time
 import uuid
@@ -605,3 +606,45 @@ async def test_a_close_while_reconnecting_leaves_no_connection_behind(
             await t.aclose()
         await relay.wait_for(lambda: relay.open == 0)  # its socket closed
         assert _aiomqtt_tasks() == []
+
+
+async def test_an_open_given_up_while_the_broker_is_slow_to_accept_leaves_no_connection() -> None:
+    # paho connects in a thread a cancel does not stop; the connection given up waited for
+    # it only ``connect_timeout``: a socket that came later (the broker slow to accept:
+    # its TCP handshake retried) stayed open, with aiomqtt's task, for the process's life
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(0)  # one connection waiting: the next's handshake is dropped, retried
+    listener.setblocking(False)
+    port = listener.getsockname()[1]
+    loop = asyncio.get_running_loop()
+    fillers = []
+    for _ in range(3):
+        filler = socket.socket()
+        filler.setblocking(False)
+        filler.connect_ex(("127.0.0.1", port))
+        fillers.append(filler)
+    accepted: list[socket.socket] = []
+    try:
+        t = MqttTransport(MqttConfig(host="127.0.0.1", port=port, connect_timeout=0.2))
+        with pytest.raises(TimeoutError):
+            async with asyncio.timeout(0.05):  # a caller giving up on the open
+                await t.__aenter__()
+        # room for the client: it connects at its handshake's retry (~1 s)
+        ours = {f.getsockname()[1] for f in fillers}
+        client = None
+        async with asyncio.timeout(WAIT):
+            while client is None:
+                conn, (_, peer) = await loop.sock_accept(listener)
+                accepted.append(conn)
+                conn.setblocking(False)
+                if peer not in ours:
+                    client = conn
+        async with asyncio.timeout(WAIT):  # closed by the client: nothing left of it
+            while await loop.sock_recv(client, 1024):
+                pass
+            if left := _aiomqtt_tasks():  # aiomqtt's task, cancelled with the socket
+                await asyncio.wait(left)
+    finally:
+        for s in [*fillers, *accepted, listener]:
+            s.close()

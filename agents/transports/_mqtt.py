@@ -158,6 +158,8 @@ def _load_client() -> None:
             self._connect_ended = threading.Event()
             return await super().__aenter__()
 
+        _given_up = False  # `_abandon` stopped waiting for paho's connect (see there)
+
         def _client_connect(self) -> None:
             # in an executor thread, which a cancel does not stop: `_abandon` waits for
             # it, for the socket it opens comes only then
@@ -166,6 +168,21 @@ def _load_client() -> None:
             finally:
                 if self._connect_ended is not None:
                     self._connect_ended.set()
+                if self._given_up:  # after what this connect scheduled on the loop
+                    with contextlib.suppress(RuntimeError):  # the loop closed: gone with it
+                        self._loop.call_soon_threadsafe(self._drop_socket)
+
+        def _give_up(self) -> None:
+            """Have the socket paho's connect may still open closed when it comes."""
+            self._given_up = True
+            if self._connect_ended is not None and self._connect_ended.is_set():
+                # ended meanwhile, perhaps before it saw ``_given_up``: dropped from here
+                self._loop.call_soon(self._drop_socket)
+
+        def _drop_socket(self) -> None:
+            # paho's own close: aiomqtt stops watching the socket and ends its task
+            with contextlib.suppress(OSError):
+                self._client._sock_close()
 
     globals().update(
         aiomqtt=aiomqtt,
@@ -1204,7 +1221,16 @@ async def _abandon(client: aiomqtt.Client) -> None:
     if isinstance(ended, threading.Event) and not ended.is_set():
         # paho still connects in its thread (a cancel does not stop it): its socket comes then
         wait = None if client.timeout == math.inf else client.timeout
-        await asyncio.to_thread(ended.wait, wait)
+        try:
+            await asyncio.to_thread(ended.wait, wait)
+        except BaseException:  # cancelled again (`KeepCancelled`): the loop closes it
+            getattr(client, "_give_up")()  # noqa: B009  our client's, not aiomqtt's
+            raise
+        if not ended.is_set():
+            # paho's connect outlasts ``timeout`` (a handshake retried, each address
+            # tried, TLS): its socket, when it comes, is closed on the loop
+            getattr(client, "_give_up")()  # noqa: B009  our client's, not aiomqtt's
+            return
     await asyncio.sleep(0)  # what the connect scheduled on the loop (its reader, task) runs
     sock_close = getattr(client._client, "_sock_close", None)
     if sock_close is not None:
