@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import logging
 import time
+import traceback
 from collections import deque
 from collections.abc import Callable
 from functools import partial
@@ -251,8 +252,11 @@ class Export:
         except asyncio.CancelledError:
             raise
         except Exception as exc:
-            log.exception("%s: failed", self.name)
-            self._end(f"failed: {type(exc).__name__}: {exc}")
+            log.exception("%s: failed", self.name)  # our own log: the text, samples and all
+            # told to the receiver: the error's type and where, never its text (it may
+            # quote a sample, which goes to the receiver sealed only)
+            self._end(f"failed: {_raised(exc)} (its text left out)")
+            await self._tell_ended()
         finally:
             self._disarm()
 
@@ -552,6 +556,16 @@ class Export:
         if self.subscription is not None:
             self.subscription.close()
         self._proxy._forget(self)
+
+
+def _raised(exc: BaseException) -> str:
+    """``exc``'s type and the place it was raised (file, line, function): not its text."""
+    frames = traceback.extract_tb(exc.__traceback__)
+    if not frames:
+        return type(exc).__qualname__
+    last = frames[-1]
+    file = last.filename.rsplit("/", 1)[-1]
+    return f"{type(exc).__qualname__} at {file}:{last.lineno} in {last.name}"
 
 
 class ExportProxy(ProxyBase):

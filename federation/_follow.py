@@ -4,13 +4,16 @@ A follower asks the member for a label (``create-stream``, again while refused),
 for the import to appear here, subscribes to it from where it last was and hands every
 batch to its owner; when the stream ends while the member is alive (its lease for us
 expired), it asks again. `FollowedStream` is what it keeps of one label of one member;
-`follow` runs it; `cancel_export` ends what was agreed.
+`follow` runs it; `cancel_export` ends what was agreed. `BadValues` counts the samples
+a follower could not take, their log lines bounded.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
@@ -21,9 +24,11 @@ if TYPE_CHECKING:
     from ._platform import FederationPlatform
 
 __all__ = [
+    "BAD_VALUE_LOG_INTERVAL",
     "REQUEST_TIMEOUT",
     "RETRY",
     "WAIT_IMPORT",
+    "BadValues",
     "FollowedStream",
     "StreamState",
     "cancel_export",
@@ -36,6 +41,7 @@ log = logging.getLogger("federation.follow")
 RETRY = 2.0  # s: between attempts at a stream a platform refused or ended
 WAIT_IMPORT = 5.0  # s: one wait for the first sample of a stream (then waits again)
 REQUEST_TIMEOUT = 5.0  # s: one request to another platform
+BAD_VALUE_LOG_INTERVAL = 1.0  # s: a stream's bad values after its first: one line per interval
 
 StreamState = Literal["requesting", "active", "refused", "ended"]
 
@@ -57,6 +63,63 @@ class FollowedStream:
     last_valid: int | None = None
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
     refused_before: bool = False  # since it last flowed: its agreement is then said too
+
+
+class BadValues:
+    """The samples of followed streams their follower could not take: counted, logged bounded.
+
+    A stream's first bad value is logged at once; those after it at most one line per
+    `BAD_VALUE_LOG_INTERVAL`, the next one let through saying how many were held back
+    before it, and `close` says what is still held: a member sending bad values at
+    1 kHz must not flood the operator's log. A line names the value's type and the
+    error's, never the value nor the error's text (which may quote it): the value came
+    encrypted from its platform. ``counts`` has every one, by stream.
+    """
+
+    def __init__(self, logger: logging.Logger, interval: float | None = None) -> None:
+        self.log = logger  # the follower's
+        self.interval = BAD_VALUE_LOG_INTERVAL if interval is None else interval
+        self.counts: dict[str, int] = {}  # stream ("<platform>/<label>"): bad values so far
+        self._next: dict[str, float] = {}  # stream: when its next line may be logged
+        self._held: dict[str, tuple[int, str, str]] = {}  # stream: held, where, latest kinds
+
+    def add(self, stream: str, where: str, value: Any, exc: BaseException) -> None:
+        """Count a bad value of ``stream``; log it (``where`` first) unless one was just."""
+        total = self.counts[stream] = self.counts.get(stream, 0) + 1
+        kinds = f"({type(value).__name__}): {type(exc).__name__}"
+        now = time.monotonic()
+        if now < self._next.get(stream, -math.inf):
+            held = self._held.get(stream, (0, "", ""))[0]
+            self._held[stream] = (held + 1, where, kinds)
+            return
+        self._next[stream] = now + self.interval
+        held = self._held.pop(stream, (0, "", ""))[0]
+        if held:
+            self.log.warning(
+                "%s: bad value %s (and %d more held back before it; %d in all)",
+                where,
+                kinds,
+                held,
+                total,
+            )
+        else:
+            self.log.warning("%s: bad value %s", where, kinds)
+
+    def close(self) -> None:
+        """Log what is still held back, one line per stream (its follower is closing)."""
+        for stream, (held, where, kinds) in self._held.items():
+            self.log.warning(
+                "%s: %d more bad values held back, the latest %s; %d in all",
+                where,
+                held,
+                kinds,
+                self.counts[stream],
+            )
+        self._held.clear()
+
+    def stats(self) -> dict[str, Any]:
+        """``bad_values`` by stream and their total, as the follower's stats say them."""
+        return {"bad_values": dict(self.counts), "bad_values_total": sum(self.counts.values())}
 
 
 def _always() -> bool:

@@ -40,7 +40,7 @@ import orjson
 from agents.transports import Subscription
 from dyknow_core import NS_PER_S, Policy, label_schema, sample_json
 
-from ._follow import REQUEST_TIMEOUT, FollowedStream, cancel_export, follow
+from ._follow import REQUEST_TIMEOUT, BadValues, FollowedStream, cancel_export, follow
 from ._geo import local_to_geo
 from ._platform import ConsoleRoles, FederationPlatform, FoxgloveSettings
 from ._proxy_base import OwnedTasks
@@ -209,14 +209,10 @@ class _Topic:
                     if features is not None:
                         geo.log(_dumps({"geojson": _dumps(features).decode()}), log_time=valid)
             except Exception as exc:  # a malformed value is its platform's problem, not ours
-                # its kind, never the value nor the error's text (which may quote it): it
-                # came encrypted from another platform
-                log.warning(
-                    "foxglove: %s: bad value (%s): %s",
-                    self.topic,
-                    type(value).__name__,
-                    type(exc).__name__,
-                )
+                # counted, its kind logged (bounded), never the value nor the error's text
+                # (which may quote it): it came encrypted from another platform
+                where = f"foxglove: {self.topic}"
+                b._bad.add(f"{self.platform}/{self.label}", where, value, exc)
 
     def location_fix(self, value: Any, valid: int) -> dict[str, Any] | None:
         """A position ``{"x", "y"[, "z"]}`` (metres) as a ``foxglove.LocationFix``."""
@@ -455,6 +451,7 @@ class FoxgloveBridge:
         self.url = ""
         self._members: dict[str, _Member] = {}
         self._topics: dict[tuple[str, str], _Topic] = {}
+        self._bad = BadValues(log)  # samples that could not be drawn
         self._tasks = OwnedTasks(f"foxglove of {self.name}")
         self._context: Any = None
         self._server: Any = None
@@ -473,10 +470,12 @@ class FoxgloveBridge:
         return f"{self.url}/?token={self.token}" if self.url else ""
 
     def stats(self) -> dict[str, Any]:
-        """The connections relayed and refused (by kind), as the console's ``/api/stats``."""
+        """The connections relayed and refused (by kind) and the samples not drawn."""
         if self._relay is None:
-            return {"relayed": 0, "open": 0, "declined": 0, **self.access.stats()}
-        return dict(self._relay.stats())
+            relay = {"relayed": 0, "open": 0, "declined": 0, **self.access.stats()}
+        else:
+            relay = dict(self._relay.stats())
+        return {**relay, **self._bad.stats()}
 
     def __repr__(self) -> str:
         return f"<FoxgloveBridge of {self.name} at {self.url or 'not started'}>"
@@ -553,7 +552,10 @@ class FoxgloveBridge:
         """Cancel the streams we asked for, end every task of ours, stop the server."""
         stack, self._stack = self._stack, None
         if stack is not None:
-            await stack.aclose()
+            try:
+                await stack.aclose()
+            finally:
+                self._bad.close()
 
     def _spawn(self, coro: Coroutine[Any, Any, None], name: str) -> asyncio.Task[None]:
         return self._tasks.spawn(coro, name)

@@ -73,6 +73,7 @@ from ._gateway_service import (
     plain_latest,
     samples_to_json,
 )
+from ._quote import quoted
 
 log = logging.getLogger(__name__)
 
@@ -597,12 +598,13 @@ class GatewayAgent(Agent):
         """An inform bounced (the subscriber is gone, or refused it): stop feeding it."""
         feed = self._feeds.get((message.sender, message.conversation_id or ""))
         if feed is not None:
+            # the subscriber's word on why: bounded, one line
             log.info(
                 "%s: subscription of %s to %r dropped: %s",
                 self,
                 message.sender,
                 feed.label,
-                message.content,
+                quoted(message.content),
             )
             self._drop(feed)
         else:

@@ -35,6 +35,7 @@ from dyknow_core import (
 from ._batch import BATCH_VERSION, check_semantic_label, read_batch
 from ._proxy_base import ProxyBase
 from ._proxy_stats import DropReason, ImportProxyStats, ImportStats, ImportTotals, tally
+from ._quote import quoted
 from ._sequence import SequenceTracker
 from ._sessions import SessionsProvider
 
@@ -569,7 +570,10 @@ class ImportProxy(ProxyBase):
         self._inject(rec, batch.seq, samples)
         if batch.ended is not None and not rec.ended:
             # the sender ended the export by itself (we did not report in time)
-            log.warning("import[%s]: %s ended %s: %s", self.platform, frm, semantic, batch.ended)
+            # its word, bounded: one line, however long and whatever it holds
+            log.warning(
+                "import[%s]: %s ended %s: %s", self.platform, frm, semantic, quoted(batch.ended)
+            )
             self._end(rec)
             if self.on_export_ended is not None:
                 self._tasks.spawn(

@@ -132,6 +132,7 @@ from ._gateway_service import (
     latest_contents_plain,
 )
 from ._gateway_service import Query as GatewayQuery
+from ._quote import quoted
 from ._service_content import (
     ONTOLOGY,
     QUERY_ACTIONS,
@@ -808,7 +809,8 @@ class FederationAgent(Agent):
     def _denied(self, message: ACLMessage, exc: Denied) -> None:
         """Count and audit a refusal by rule or limit (the Interface Agent admitted it)."""
         self.refusals[exc.code] = self.refusals.get(exc.code, 0) + 1
-        log.info("%s: refused %s: %s", self, message.sender, exc.reason)
+        # the reason may quote what the requester asked for (a label, a formula): bounded
+        log.info("%s: refused %s: %s", self, message.sender, quoted(exc.reason))
         self.platform.audit(
             verdict="refused",
             stage="federation",

@@ -14,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import logging
 import math
 import os
 from collections.abc import AsyncIterator, Callable
@@ -897,10 +898,12 @@ def test_a_value_that_does_not_fit_its_role_is_logged_without_what_it_says(
     it is skipped and the next one drawn."""
     from types import SimpleNamespace
 
+    from federation._follow import BadValues
     from federation.console._server import _Platform, _Stream
 
     secret = f"said-in-confidence-{os.urandom(8).hex()}"
-    console = SimpleNamespace(_changed=lambda: None)
+    bad = BadValues(logging.getLogger("federation.console"))
+    console = SimpleNamespace(_changed=lambda: None, _bad=bad)
     console._apply = lambda *args: OperatorConsole._apply(console, *args)  # type: ignore[arg-type]
     uav = _Platform("uav-a")
     stream = _Stream("uav-a-position", role="positions")
@@ -911,3 +914,58 @@ def test_a_value_that_does_not_fit_its_role_is_logged_without_what_it_says(
     said = [r.getMessage() for r in caplog.records if "bad value" in r.getMessage()]
     assert said == ["console: uav-a uav-a-position: bad value (dict): ValueError"]
     assert uav.position == {"x": 2.0, "y": 3.0} and stream.samples == 2
+
+
+async def test_a_member_sending_bad_values_fast_is_counted_and_logged_bounded(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A member whose violations stream sends 2000 values that are not objects at about
+    1 kHz, over its real export: each is counted (``/api/stats``), but the log has the
+    first and then at most one line per interval, each saying how many it stands for,
+    and the close says the rest: every one is accounted for, none quoted."""
+    import re
+    import time
+
+    from federation import _follow
+
+    interval = 0.25
+    monkeypatch.setattr(_follow, "BAD_VALUE_LOG_INTERVAL", interval)
+    n = 2000
+    secret = f"said-in-confidence-{os.urandom(8).hex()}"
+
+    def bad_lines() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "bad value" in r.getMessage()]
+
+    with caplog.at_level("WARNING", logger="federation.console"):
+        async with console_federation(demo_keys) as fed, client(fed) as http:
+            await until_state(http, fed.url, lambda s: filled(s, "uav-a"))
+            source = fed.uavs["uav-a"].sources["violation"]
+            began = time.monotonic()
+            for i in range(n):
+                source.push(f"{secret} {i}")  # not an object: no violation
+                if i % 10 == 9:
+                    await asyncio.sleep(0.01)  # paced as a 1 kHz sender, not one batch
+            await until_state(
+                http, fed.url, lambda s: stream(s, "uav-a", "violation")["samples"] >= n
+            )
+            took = time.monotonic() - began
+            async with http.get(fed.url + "api/stats") as r:
+                stats = await r.json()
+            assert stats["bad_values"] == {"uav-a/violation": n}
+            assert stats["bad_values_total"] == n
+            during = bad_lines()
+    said = bad_lines()
+    assert secret not in caplog.text
+    assert said[0] == "console: uav-a violation: bad value (str): TypeError"
+    assert 2 <= len(during) <= 2 + took / interval, (took, during)  # bounded, yet said on
+    assert len(said) == len(during) + 1  # the close: what was held since the last line
+    assert said[-1].startswith("console: uav-a violation: ")
+    assert said[-1].endswith(f"more bad values held back, the latest (str): TypeError; {n} in all")
+    stood_for = 0
+    for line in said:
+        before = re.search(r"\(and (\d+) more held back before it; (\d+) in all\)$", line)
+        held = re.search(r": (\d+) more bad values held back", line)
+        stood_for += int(before[1]) + 1 if before else int(held[1]) if held else 1
+        if before:
+            assert int(before[2]) == stood_for
+    assert stood_for == n

@@ -587,6 +587,88 @@ async def test_a_payload_whose_handling_raises_is_logged_without_its_samples(
         assert ": ValueError (its text left out), raised at:" in failed[0]
 
 
+async def test_a_reason_the_sender_ended_an_export_with_is_logged_as_one_capped_line(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The reason in a sender's end marker is its word: the receiver logs it on one line,
+    its newline and terminal escape escaped (no forged log line), cut to `QUOTE_MAX`
+    characters with how long it was; the import ends all the same."""
+    from federation._quote import QUOTE_MAX
+
+    hub = MemoryHub()
+    forged = "import[b]: a ended x: stopped\nCRITICAL federation: all keys leaked \x1b[2J"
+    why = forged + "x" * (1024 - len(forged))  # the most a marker may carry
+    async with (
+        hub.transport() as ta,
+        hub.transport() as tb,
+        DyKnowInstance("a") as ia,
+        DyKnowInstance("b") as ib,
+        ExportProxy("a", "f", ta, ia, PlainSessions("a"), batch_size=1) as exporter,
+        ImportProxy("b", "f", tb, ib, PlainSessions("b"), lambda s, lab: f"in/{lab}") as importer,
+    ):
+        src = ia.add_source("x")
+        export = exporter.start_exporting("x", "x", "b")
+        src.push("first", valid_time=1)
+        stream = await until(lambda: importer.get("a", "x"), "the stream")
+        await until(lambda: stream.injected == 1, "the first batch")
+        with caplog.at_level("DEBUG", logger="federation"):
+            await exporter.stop(export, why=why)
+            await until(lambda: stream.ended, "the end marker")
+    said = [r.getMessage() for r in caplog.records if " ended x: " in r.getMessage()]
+    assert len(said) == 1 and "\n" not in said[0] and "\x1b" not in said[0]
+    reason = said[0].split(" ended x: ", 1)[1]
+    assert reason.startswith("import[b]: a ended x: stopped\\x0aCRITICAL federation: all ")
+    assert "\\x1b[2J" in reason
+    kept = QUOTE_MAX - 2 * 3  # two characters escaped, four characters each
+    assert reason == f"{why[:kept]}… (1024 characters, {1024 - kept} left out)".replace(
+        "\n", "\\x0a"
+    ).replace("\x1b", "\\x1b")
+
+
+async def test_an_export_that_fails_on_a_sample_tells_its_end_without_the_sample(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """An export whose sending raises on a sample (a fault whose text quotes it) ends and
+    tells its receiver why: the error's type and where it was raised, never its text.
+    The receiver's import ends, and nothing of the sample reaches the receiver's log."""
+    from federation import _export
+
+    hub = MemoryHub()
+    secret = f"said-in-confidence-{uuid.uuid4().hex}"
+    real = _export.pack_batch
+
+    def pack_batch(label: str, samples: list[Any], *args: Any, **kwargs: Any) -> bytes:
+        if secret in repr(samples):
+            raise RuntimeError(f"cannot pack {samples!r}")  # a fault quoting the sample
+        return real(label, samples, *args, **kwargs)
+
+    monkeypatch.setattr(_export, "pack_batch", pack_batch)
+    async with (
+        hub.transport() as ta,
+        hub.transport() as tb,
+        DyKnowInstance("a") as ia,
+        DyKnowInstance("b") as ib,
+        ExportProxy("a", "f", ta, ia, PlainSessions("a"), batch_size=1) as exporter,
+        ImportProxy("b", "f", tb, ib, PlainSessions("b"), lambda s, lab: f"in/{lab}") as importer,
+    ):
+        src = ia.add_source("x")
+        export = exporter.start_exporting("x", "x", "b")
+        src.push("first", valid_time=1)
+        stream = await until(lambda: importer.get("a", "x"), "the stream")
+        await until(lambda: stream.injected == 1, "the first batch")
+        with caplog.at_level("DEBUG", logger="federation"):
+            src.push(secret, valid_time=2)
+            await until(lambda: stream.ended, "the end marker")
+        assert export.ended is not None and secret not in export.ended
+        assert export.ended.startswith("failed: RuntimeError at test_faults.py:")
+        assert export.ended.endswith(" in pack_batch (its text left out)")
+        assert secret not in json.dumps(exporter.stats(), default=str)
+    # the sender's own log has its fault's text (its own sample); the receiver's has none
+    said = [r.getMessage() for r in caplog.records if r.name == "federation._import"]
+    assert said and secret not in "\n".join(said)
+    assert [m for m in said if " ended x: " in m] == [f"import[b]: a ended x: {export.ended}"]
+
+
 async def test_lease_ends_the_export_to_a_silent_receiver_only() -> None:
     hub = MemoryHub()
     ended: list[tuple[str, str]] = []

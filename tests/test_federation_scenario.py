@@ -1664,3 +1664,36 @@ async def test_a_receiver_in_members_before_its_snapshot_answered_is_waited_for(
             export_id = await asking
         assert a.federation_agent.exports[export_id].receivers == ["operator"]
         assert a.federation_agent.refusals.get("unlisted-receiver") is None
+
+
+async def test_a_refusal_quoting_what_a_member_asked_is_logged_as_one_capped_line(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A member asks uav-a to confirm a stream of 64 labels of 200 characters each, which
+    uav-a never asked for: refused, counted and audited (the reason whole), and logged on
+    one line whose quote of the labels is cut to `QUOTE_MAX` characters, not 13 kB."""
+    from federation._quote import QUOTE_MAX
+
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        mallory = await b.agents.add(Agent("mallory"))
+        labels = [f"car{i}-state\nINFO federation: {'x' * 200}"[:200] for i in range(64)]
+        content = {"action": "confirm-stream", "provider": "operator", "labels": labels}
+        with (
+            caplog.at_level("INFO", logger="federation._service"),
+            pytest.raises(Refused) as refused,
+        ):
+            await request(mallory, "federation@uav-a", content, ontology=ONTOLOGY, timeout=WAIT)
+        assert refused.value.message is not None
+        told = str(refused.value.message.content)
+        assert told.startswith("uav-a asked operator for no stream of ['car0-state\\nINFO")
+        assert a.federation_agent.refusals.get("consent") == 1
+        [record] = [r for r in a.interface.audit.records if r.get("code") == "consent"]
+        assert record["sender"] == "mallory@uav-b" and len(record["reason"]) > 13_000
+        said = [r.getMessage() for r in caplog.records if "refused mallory@uav-b" in r.getMessage()]
+        assert len(said) == 1 and "\n" not in said[0]
+        reason = said[0].split("refused mallory@uav-b: ", 1)[1]
+        assert (
+            reason
+            == f"{told[:QUOTE_MAX]}… ({len(told)} characters, {len(told) - QUOTE_MAX} left out)"
+        )

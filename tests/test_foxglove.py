@@ -20,6 +20,7 @@ import contextlib
 import fcntl
 import hashlib
 import json
+import logging
 import math
 import os
 import re
@@ -108,6 +109,9 @@ def test_a_value_the_bridge_cannot_draw_is_logged_without_what_it_says(
     """A sample whose drawing raises is logged by kind only: neither the value nor the
     error's text (which may quote it) is in the log, as it came encrypted from its
     platform; the samples after it are drawn."""
+    from types import SimpleNamespace
+
+    from federation._follow import BadValues
     from federation._foxglove import _Topic
 
     secret = f"said-in-confidence-{os.urandom(8).hex()}"
@@ -129,7 +133,8 @@ def test_a_value_the_bridge_cannot_draw_is_logged_without_what_it_says(
             self.logged += 1
 
     monkeypatch.setattr(_Topic, "scene_update", scene_update)
-    topic = _Topic(None, "uav-a", "uav-a-position", "positions")  # type: ignore[arg-type]
+    bridge = SimpleNamespace(_bad=BadValues(logging.getLogger("federation.t")))
+    topic = _Topic(bridge, "uav-a", "uav-a-position", "positions")  # type: ignore[arg-type]
     topic.raw, topic.scene = Channel(False), Channel(True)
     batch = [({"x": 1.0, "y": 2.0, "note": secret}, 1, 1), ({"x": 3.0, "y": 4.0}, 2, 2)]
     with caplog.at_level("DEBUG", logger="federation"):
@@ -573,6 +578,117 @@ async def test_bridge_beside_the_console_serves_its_imports_and_local_labels(
         # the bridge asked for nothing (a second export of a label would be refused)
         exported = [e.semantic_label for e in uav.exporter.exports("operator")]
         assert exported == ["heli-position"]
+
+
+async def test_a_member_sending_undrawable_values_fast_is_counted_and_logged_bounded(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A member whose tracks stream sends 2000 values the bridge cannot draw (``cars`` not
+    a list) at about 1 kHz, over its real export, to a watched scene: each is counted
+    (`FoxgloveBridge.stats`), the log has the first and then at most one line per interval,
+    the close says the rest; the good value after them is drawn."""
+    from federation import _follow
+
+    interval = 0.25
+    monkeypatch.setattr(_follow, "BAD_VALUE_LOG_INTERVAL", interval)
+    n = 2000
+    pubs = [gen_keys(name, tmp_path / "keys")[2] for name in ("operator", "uav-a")]
+    trust_keys(tmp_path / "trust.json", pubs, federation="demo")
+
+    def config(name: str, **sections: Any) -> PlatformConfig:
+        return PlatformConfig.from_dict(
+            {
+                "name": name,
+                "federation": "demo",
+                "key": str(tmp_path / "keys" / f"{name}.key"),
+                "trust": str(tmp_path / "trust.json"),
+                "vocabulary": vocabulary(),
+                "mapping": local_mapping(),
+                **sections,
+            }
+        )
+
+    operator_config = config(
+        "operator",
+        console=console_config(),
+        foxglove={**foxglove_config(), "streams": ["tracked-cars"]},
+    )
+
+    def bad_lines() -> list[str]:
+        return [r.getMessage() for r in caplog.records if "bad value" in r.getMessage()]
+
+    hub = MemoryHub()
+    with caplog.at_level("WARNING", logger="federation.foxglove"):
+        async with contextlib.AsyncExitStack() as stack:
+            t = await stack.enter_async_context(hub.transport())
+            operator = await stack.enter_async_context(
+                FederationPlatform(operator_config, transport=t)
+            )
+            t = await stack.enter_async_context(hub.transport())
+            uav = await stack.enter_async_context(FederationPlatform(config("uav-a"), transport=t))
+            cars = uav.instance.add_source("tracker/cars")
+            bridge = await stack.enter_async_context(FoxgloveBridge(operator, port=0))
+            session = await stack.enter_async_context(aiohttp.ClientSession())
+            ws = await stack.enter_async_context(
+                session.ws_connect(bridge.login_url, protocols=SUBPROTOCOLS, origin=APP_ORIGIN)
+            )
+            scene = "/uav-a/tracked-cars/scene"
+            async with asyncio.timeout(20):  # the channels come with the first sample
+                while True:
+                    cars.push({"cars": [{"x": 1.0, "y": 2.0}]})
+                    try:
+                        msg = await asyncio.wait_for(ws.receive(), 0.5)
+                    except TimeoutError:
+                        continue
+                    assert msg.type == aiohttp.WSMsgType.TEXT, msg
+                    op = json.loads(msg.data)
+                    ids = {c["topic"]: c["id"] for c in op.get("channels", ())}
+                    if scene in ids:
+                        break
+            subscribe = [{"id": 1, "channelId": ids[scene]}]
+            await ws.send_json({"op": "subscribe", "subscriptions": subscribe})
+            async with asyncio.timeout(20):  # subscribed: a good one is drawn for us
+                while True:
+                    cars.push({"cars": [{"x": 1.0, "y": 2.0}]})
+                    try:
+                        msg = await asyncio.wait_for(ws.receive(), 0.5)
+                    except TimeoutError:
+                        continue
+                    if msg.type == aiohttp.WSMsgType.BINARY:
+                        break
+            began = time.monotonic()
+            for i in range(n):
+                cars.push({"cars": 1000 + i})  # not a list: cannot be drawn
+                if i % 10 == 9:
+                    await asyncio.sleep(0.01)  # paced as a 1 kHz sender, not one batch
+            cars.push({"cars": [{"x": 12345.5, "y": 2.0}]})  # after them all, in order
+            async with asyncio.timeout(20):
+                while True:
+                    msg = await ws.receive()
+                    if msg.type == aiohttp.WSMsgType.BINARY and b"12345.5" in msg.data:
+                        break
+            took = time.monotonic() - began
+            stats = bridge.stats()
+            assert stats["bad_values"] == {"uav-a/tracked-cars": n}
+            assert stats["bad_values_total"] == n
+            during = bad_lines()
+    said = bad_lines()
+    assert said[0] == "foxglove: /uav-a/tracked-cars: bad value (dict): TypeError"
+    assert 2 <= len(during) <= 2 + took / interval, (took, during)  # bounded, yet said on
+    assert len(said) == len(during) + 1  # the close: what was held since the last line
+    assert said[-1] == (
+        f"foxglove: /uav-a/tracked-cars: {said[-1].split(': ')[2].split()[0]} more bad "
+        f"values held back, the latest (dict): TypeError; {n} in all"
+    )
+    stood_for = 0
+    for line in said:
+        before = re.search(r"\(and (\d+) more held back before it; (\d+) in all\)$", line)
+        held = re.search(r": (\d+) more bad values held back", line)
+        stood_for += int(before[1]) + 1 if before else int(held[1]) if held else 1
+        if before:
+            assert int(before[2]) == stood_for
+    assert stood_for == n
+    assert "1000" not in " ".join(said)  # no value quoted
 
 
 # -- who may watch: attacks on the relay ---------------------------------------------------

@@ -486,6 +486,36 @@ async def test_informs_to_an_agent_that_left_end_its_subscription() -> None:
         await eventually(lambda: w.gateway.subscriptions == {})
 
 
+async def test_a_subscribers_bounce_reason_is_logged_as_one_capped_line(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A subscriber's failure is its word: the gateway drops the subscription and logs the
+    reason on one line, its newline escaped (no forged log line), cut to `QUOTE_MAX`
+    characters with how long it was, however long (10 kB) the subscriber made it."""
+    from federation._quote import QUOTE_MAX
+
+    async with world() as w:
+        stream = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        forged = "stopped\nERROR federation._gateway: gateway@uav-a: all subscriptions leaked"
+        why = forged + "x" * 10_000
+        bounce = w.asker.message(
+            Performative.FAILURE,
+            GW,
+            why,
+            ontology="dyknow",
+            conversation_id=stream.message.conversation_id,
+        )
+        with caplog.at_level("INFO", logger="federation._gateway"):
+            await w.asker.send(bounce)
+            await eventually(lambda: w.gateway.subscriptions == {})
+        said = [r.getMessage() for r in caplog.records if " dropped: " in r.getMessage()]
+        assert said == [
+            f"{w.gateway}: subscription of asker@operator to 'car/car5/speed' dropped: "
+            f"stopped\\x0a{why[8 : QUOTE_MAX - 3]}… ({len(why)} characters, "
+            f"{len(why) - QUOTE_MAX + 3} left out)"
+        ]
+
+
 # -- the directory -------------------------------------------------------------------------
 
 

@@ -41,7 +41,15 @@ from agents.transports import Subscription
 from dyknow_core import NS_PER_S, Source
 from ontology import OntologyError, parse
 
-from .._follow import REQUEST_TIMEOUT, FollowedStream, agreed, cancel_export, follow, reason
+from .._follow import (
+    REQUEST_TIMEOUT,
+    BadValues,
+    FollowedStream,
+    agreed,
+    cancel_export,
+    follow,
+    reason,
+)
 from .._platform import ConsoleSettings, FederationPlatform
 from .._proxy_base import OwnedTasks
 from .._service import MembershipEvent
@@ -182,6 +190,7 @@ class OperatorConsole:
         self._platforms: dict[str, _Platform] = {}
         self._violations: deque[dict[str, Any]] = deque(maxlen=MAX_VIOLATIONS)
         self._observations: deque[dict[str, Any]] = deque(maxlen=MAX_OBSERVATIONS)
+        self._bad = BadValues(log)  # samples that did not fit their role
         self._version = 0
         self._changed_event = asyncio.Event()
         self._closing = asyncio.Event()
@@ -234,7 +243,10 @@ class OperatorConsole:
         if stack is None:
             return
         self._closing.set()
-        await stack.aclose()
+        try:
+            await stack.aclose()
+        finally:
+            self._bad.close()
 
     async def _start_server(self, stack: contextlib.AsyncExitStack) -> None:
         app = web.Application(middlewares=[self.access.middleware, _errors_as_json])
@@ -396,16 +408,10 @@ class OperatorConsole:
                 try:
                     self._apply(p, role, value, valid)
                 except Exception as exc:
-                    # A malformed value from a platform is its problem, never the console's.
-                    # Its kind is logged, never the value nor the error's text (which may
-                    # quote it): it came encrypted from that platform.
-                    log.warning(
-                        "console: %s %s: bad value (%s): %s",
-                        p.name,
-                        stream.label,
-                        type(value).__name__,
-                        type(exc).__name__,
-                    )
+                    # A malformed value from a platform is its problem, never the console's:
+                    # counted, its kind logged (bounded), never the value nor the error's text
+                    where = f"console: {p.name} {stream.label}"
+                    self._bad.add(f"{p.name}/{stream.label}", where, value, exc)
         self._changed()
 
     def _apply(self, p: _Platform, role: Role, value: Any, valid: int) -> None:
@@ -480,7 +486,7 @@ class OperatorConsole:
         return _json(self.state())
 
     async def _get_stats(self, request: web.Request) -> web.Response:
-        return _json(self.access.stats())
+        return _json({**self.access.stats(), **self._bad.stats()})
 
     async def _get_events(self, request: web.Request) -> web.StreamResponse:
         response = web.StreamResponse(
