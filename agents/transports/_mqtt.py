@@ -141,6 +141,8 @@ def _load_client() -> None:
     Every platform imports this module (its config is one of the transports'), most never
     speak MQTT: aiomqtt and paho cost them ~11 MB and tens of ms of start-up.
     """
+    if "_Client" in globals():  # loaded: one client class for every transport
+        return
     import aiomqtt
     from paho.mqtt.packettypes import PacketTypes
     from paho.mqtt.properties import Properties
