@@ -106,6 +106,40 @@ def _hook_uav() -> None:
     gc.callbacks.append(on_gc)
 
 
+_ARRIVALS: list[tuple[Any, ...]] = []  # the operator's: `_hook_operator`
+
+
+def _hook_operator() -> None:
+    """Note when the operator's subscription got each answer its lane handed to the loop.
+
+    ``(ns the callback got the envelope, "reply", UAV)``; one the callback left unopened
+    for the loop (a burst: `InterfaceAgent._lane_take`) is noted ``(ns, "raw", None)``.
+    Noted in `_ARRIVALS`; for the rest of this process's life.
+    """
+    from agents._interface import _RAW, InterfaceAgent
+
+    notes = _ARRIVALS
+    take = InterfaceAgent._lane_take
+    hand = InterfaceAgent._lane_reply
+    entered = threading.local()
+
+    def lane_take(self: Any, payload: bytes) -> Any:
+        entered.t = _ns()
+        got = take(self, payload)
+        if got is not None and got[0] is _RAW:
+            notes.append((entered.t, "raw", None))
+        return got
+
+    def lane_reply(self: Any, peer: str, body: bytes, message: Any, forgets: int) -> bool:
+        handed = hand(self, peer, body, message, forgets)
+        if handed:
+            notes.append((entered.t, "reply", peer))
+        return handed
+
+    InterfaceAgent._lane_take = lane_take  # type: ignore[method-assign]
+    InterfaceAgent._lane_reply = lane_reply  # type: ignore[method-assign]
+
+
 def traced_uav_main(spec: dict[str, Any], quiet: Any, reports: Any, stop: Any) -> None:
     """`uav_main` with its steps noted (`_hook_uav`); the notes written to ``spec["trace"]``."""
     _hook_uav()
@@ -184,6 +218,7 @@ async def _trace(
     quiets: list[Any] = []
     rounds: list[_Round] = []
     traces = [os.path.join(tmp, f"trace-{i}.json") for i in range(len(plan.groups))]
+    _hook_operator()  # before the platform subscribes: its lane's callback is bound then
     async with FederationPlatform(config) as op:
         try:
             for i, group in enumerate(plan.groups):
@@ -282,6 +317,19 @@ def _print_wakeups(
             )
 
 
+class _Heard:
+    """The operator's callback times per UAV: the first at or after a time."""
+
+    def __init__(self, by_peer: dict[str, list[int]]) -> None:
+        self.by_peer = {k: sorted(v) for k, v in by_peer.items()}
+
+    def get(self, key: tuple[str, int]) -> int | None:
+        """The first callback time of UAV ``key[0]`` at or after ``key[1]`` ns."""
+        times = self.by_peer.get(key[0], [])
+        i = bisect.bisect_left(times, key[1])
+        return times[i] if i < len(times) else None
+
+
 def _q(xs: list[float], q: float) -> float:
     s = sorted(xs)
     return s[min(len(s) - 1, int(q * len(s)))] if s else float("nan")
@@ -291,7 +339,12 @@ def _dist(xs: list[float]) -> str:
     return f"p50 {_q(xs, 0.5):5.1f}  p90 {_q(xs, 0.9):5.1f}  max {max(xs, default=0.0):5.1f}"
 
 
-def _report(rounds: list[_Round], events: dict[str, list[Any]], host: dict[str, int]) -> None:
+def _report(
+    rounds: list[_Round],
+    events: dict[str, list[Any]],
+    host: dict[str, int],
+    arrivals: list[tuple[Any, ...]],
+) -> None:
     """The rounds' spread (ms from each round's start) and where the slow UAVs' time went."""
     for kind in ("ours", "raw"):
         xs = [(r.t1 - r.t0) / 1e6 for r in rounds if r.kind == kind]
@@ -306,6 +359,11 @@ def _report(rounds: list[_Round], events: dict[str, list[Any]], host: dict[str, 
     seen: list[Any] = []  # every request's lane note, in ours' rounds
     # round ms, the last UAV, its lane note, out, back (ns)
     slow: list[tuple[float, str, _Round, Any, int, int]] = []
+    by_peer: dict[str, list[int]] = {}
+    for t, kind, peer in arrivals:
+        if kind == "reply":
+            by_peer.setdefault(peer, []).append(t)
+    heard: _Heard = _Heard(by_peer)
     for r in rounds:
         if r.kind != "ours" or not r.arrived:
             continue
@@ -332,6 +390,17 @@ def _report(rounds: list[_Round], events: dict[str, list[Any]], host: dict[str, 
             xs = sorted(x / 1e6 for x in got)
             for at, x in (("first", xs[0]), ("median", xs[len(xs) // 2]), ("last", xs[-1])):
                 spread.setdefault(f"{name}, {at}", []).append(x)
+        # the way back, for the answers the operator's lane handed to the loop: from the
+        # UAV's put to the operator's callback, and from there to the conversation
+        for _, out, back, uav, _ in per:
+            heard_at = heard.get((uav, r.t0 + out))
+            if heard_at is not None and heard_at <= r.t0 + back:
+                spread.setdefault("back: out → the operator's callback", []).append(
+                    (heard_at - r.t0 - out) / 1e6
+                )
+                spread.setdefault("back: callback → the conversation", []).append(
+                    (r.t0 + back - heard_at) / 1e6
+                )
         last = max(per, key=lambda p: p[2])
         spread.setdefault("the last answer's UAV: in → out", []).append((last[1] - last[0]) / 1e6)
         slow.append(((r.t1 - r.t0) / 1e6, last[3], r, last[4], r.t0 + last[1], r.t0 + last[2]))
@@ -340,6 +409,11 @@ def _report(rounds: list[_Round], events: dict[str, list[Any]], host: dict[str, 
     print("per round, ms after its start (first / median / last of the UAVs), over the rounds:")
     for name, xs in spread.items():
         print(f"  {name:34s} {_dist(xs)}")
+    raws = sum(1 for a in arrivals if a[1] == "raw")
+    print(
+        f"at the operator: {sum(1 for a in arrivals if a[1] == 'reply')} answers handed to the"
+        f" loop by its lane, {raws} left unopened for the loop (in a burst)"
+    )
     on_lane = sum(1 for e in seen if e[4])
     print(f"answered on zenoh's thread (the lane): {on_lane} of {len(seen)}")
     seen.sort(key=lambda e: e[2] - e[0])
@@ -403,7 +477,7 @@ def main() -> None:
         with open(a.out, "w") as f:
             kept = [(r.kind, r.t0, r.t1, r.arrived) for r in rounds]
             json.dump({"rounds": kept, "events": events, "host": host}, f)
-    _report(rounds, events, host)
+    _report(rounds, events, host, _ARRIVALS)
 
 
 if __name__ == "__main__":
