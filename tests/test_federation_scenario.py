@@ -1697,3 +1697,50 @@ async def test_a_refusal_quoting_what_a_member_asked_is_logged_as_one_capped_lin
             reason
             == f"{told[:QUOTE_MAX]}… ({len(told)} characters, {len(told) - QUOTE_MAX} left out)"
         )
+
+
+async def test_a_members_refusal_of_a_followed_stream_is_logged_as_one_capped_line(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """uav-a, turned hostile, refuses the stream uav-b's console follows with 10 kB that
+    forge a log line and clear the operator's terminal: the follower logs it on one line,
+    the newline and the escape escaped, cut to `QUOTE_MAX` characters with how long it was;
+    the stream is refused (its whole reason kept for the page)."""
+    from agents import Refuse
+    from federation import _follow
+    from federation._follow import FollowedStream
+    from federation._quote import QUOTE_MAX
+
+    forged = "stopped\nCRITICAL federation: all keys leaked \x1b[2J"
+    why = forged + "x" * 10_000
+
+    async def hostile(*args: Any, **kwargs: Any) -> Any:
+        raise Refuse(why)
+
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        a.federation_agent._perform = hostile  # type: ignore[method-assign]
+        stream = FollowedStream("car5-state")
+        refused = asyncio.Event()
+        with caplog.at_level("INFO", logger="federation.follow"):
+            asking = asyncio.create_task(
+                _follow._ask_for(b, "uav-a", stream, lambda: True, refused.set)
+            )
+            try:
+                await asyncio.wait_for(refused.wait(), WAIT)
+            finally:
+                asking.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await asking
+        assert stream.state == "refused" and stream.error is not None and why in stream.error
+        said = [
+            r.getMessage() for r in caplog.records if " refused car5-state to " in r.getMessage()
+        ]
+        assert len(said) == 1 and "\n" not in said[0] and "\x1b" not in said[0]
+        told = f"federation@uav-a refused: {why}"
+        kept = QUOTE_MAX - 2 * 3  # two characters escaped, four characters each
+        shown = told[:kept].replace("\n", "\\x0a").replace("\x1b", "\\x1b")
+        assert said[0] == (
+            f"uav-a refused car5-state to uav-b: {shown}… ({len(told)} characters, "
+            f"{len(told) - kept} left out) (asked again every {_follow.RETRY:g} s)"
+        )
