@@ -531,6 +531,9 @@ class AgentPlatform:
             coro.close()
             raise AgentError(f"platform {self.name} is {self._state}")
         task = self._tg.create_task(self._guard(coro, name), name=f"platform[{self.name}].{name}")
+        # cancelled before its first step (a start given up), the guard never awaits
+        # ``coro``: close it then
+        task.add_done_callback(lambda _: coro.close())
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
         return task

@@ -926,6 +926,38 @@ async def test_a_shutdown_cut_short_by_cancellation_still_ends_every_task() -> N
         assert not hub.tokens
 
 
+async def test_a_platform_start_cancelled_at_any_step_ends_and_leaves_nothing_unawaited() -> None:
+    """A platform's start given up at each step of it in turn: every one ends (an agent
+    told ready just before the cancel once ran on unlisted, holding the close forever),
+    no task is left, and no coroutine an agent spawned is dropped never awaited (the
+    directory's shed report was, as a RuntimeWarning)."""
+    import gc
+    import warnings
+
+    steps = 40  # loop turns a start of a platform and its directory takes, and more
+
+    async def run(t: Any) -> None:
+        async with AgentPlatform("p", t):
+            await asyncio.Event().wait()
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        for step in range(steps):
+            hub = MemoryHub()
+            async with hub.transport() as t:
+                starting = asyncio.create_task(run(t))
+                for _ in range(step):
+                    await asyncio.sleep(0)
+                starting.cancel()
+                done, _ = await asyncio.wait({starting}, timeout=5)
+                assert done, f"a start cancelled after {step} loop turns never ended"
+                assert starting.cancelled()
+                assert asyncio.all_tasks() == {asyncio.current_task()}
+            gc.collect()  # a coroutine never awaited says so when collected
+    unawaited = [str(w.message) for w in caught if "never awaited" in str(w.message)]
+    assert unawaited == []
+
+
 async def test_an_agent_whose_start_is_given_up_stops_undoing_its_setup() -> None:
     # the add was cancelled while the agent's setup ran (a platform's start cut short
     # while its directory agent started): the setup went on, its ready could not be
