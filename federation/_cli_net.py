@@ -474,13 +474,18 @@ async def run_foxglove(
             settle_gc()
             await stop.wait()
         _say_stats("foxglove", application, say)
-        stats = bridge.stats()
-        refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())
-        say(
-            f"dyknow foxglove: connections: {stats['relayed']} relayed, "
-            f"{stats['refused_total']} refused ({refused}), {stats['declined']} declined"
-        )
+        say(_foxglove_closing(bridge.stats()))
     say(f"dyknow foxglove: {config.name} stopped")
+
+
+def _foxglove_closing(stats: dict[str, Any]) -> str:
+    """The bridge's count at its close: connections relayed and refused, samples not drawn."""
+    refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())
+    return (
+        f"dyknow foxglove: connections: {stats['relayed']} relayed, "
+        f"{stats['refused_total']} refused ({refused}), {stats['declined']} declined; "
+        f"{stats['bad_values_total']} bad values not drawn"
+    )
 
 
 async def run_router(listen: list[str], json5: str | None, say: Callable[[str], None]) -> None:
