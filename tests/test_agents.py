@@ -958,6 +958,28 @@ async def test_a_platform_start_cancelled_at_any_step_ends_and_leaves_nothing_un
     assert unawaited == []
 
 
+async def test_a_platform_closes_with_an_agent_given_up_in_a_setup_that_never_ends() -> None:
+    # the add was cancelled while the agent's setup waited for something that never
+    # came: the agent, no longer listed, was out of the close's reach, and the close
+    # waited for its setup forever
+    entered = asyncio.Event()
+
+    class Stuck(Agent):
+        async def setup(self) -> None:
+            entered.set()
+            await asyncio.Event().wait()
+
+    agent = Stuck("stuck")
+    async with asyncio.timeout(10), platforms("p") as (p,):
+        adding = asyncio.create_task(p.add(agent))
+        await entered.wait()
+        adding.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await adding
+        assert "stuck" not in p._agents
+    assert agent._task is not None and agent._task.done()
+
+
 async def test_an_agent_whose_start_is_given_up_stops_undoing_its_setup() -> None:
     # the add was cancelled while the agent's setup ran (a platform's start cut short
     # while its directory agent started): the setup went on, its ready could not be
