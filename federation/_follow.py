@@ -248,7 +248,8 @@ async def cancel_export(platform: FederationPlatform, member: str, stream: Follo
     try:
         await platform.federation_agent.cancel_stream(member, export_id, timeout=REQUEST_TIMEOUT)
     except Exception as exc:  # the export may be gone with its platform already
-        log.info("cancelling %s at %s: %s", export_id, member, reason(exc))
+        # the member's word on why: bounded, one line
+        log.info("cancelling %s at %s: %s", export_id, member, quoted(reason(exc)))
 
 
 def reason(exc: BaseException) -> str:

@@ -1744,3 +1744,38 @@ async def test_a_members_refusal_of_a_followed_stream_is_logged_as_one_capped_li
             f"uav-a refused car5-state to uav-b: {shown}… ({len(told)} characters, "
             f"{len(told) - kept} left out) (asked again every {_follow.RETRY:g} s)"
         )
+
+
+async def test_a_members_refusal_to_cancel_a_followed_stream_is_logged_as_one_capped_line(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """uav-a, turned hostile, refuses to cancel the export of a stream uav-b's console
+    stops following with 10 kB that forge a log line and clear the terminal: the follower
+    logs it on one line, escaped and cut to `QUOTE_MAX` characters with how long it was."""
+    from agents import Refuse
+    from federation import _follow
+    from federation._follow import FollowedStream
+    from federation._quote import QUOTE_MAX
+
+    forged = "gone\nCRITICAL federation: all keys leaked \x1b[2J"
+    why = forged + "x" * 10_000
+
+    async def hostile(*args: Any, **kwargs: Any) -> Any:
+        raise Refuse(why)
+
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        a.federation_agent._perform = hostile  # type: ignore[method-assign]
+        stream = FollowedStream("car5-state")
+        stream.export_id = "x-1"
+        with caplog.at_level("INFO", logger="federation.follow"):
+            await asyncio.wait_for(_follow.cancel_export(b, "uav-a", stream), WAIT)
+        said = [r.getMessage() for r in caplog.records if "cancelling x-1 at " in r.getMessage()]
+        assert len(said) == 1 and "\n" not in said[0] and "\x1b" not in said[0]
+        told = f"refused: {why}"
+        kept = QUOTE_MAX - 2 * 3  # two characters escaped, four characters each
+        shown = told[:kept].replace("\n", "\\x0a").replace("\x1b", "\\x1b")
+        assert said[0] == (
+            f"cancelling x-1 at uav-a: {shown}… ({len(told)} characters, "
+            f"{len(told) - kept} left out)"
+        )
