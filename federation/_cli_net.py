@@ -41,6 +41,7 @@ from ._cli_common import (
     wait_for_members,
 )
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
+from ._quote import quoted
 
 if TYPE_CHECKING:
     from ._application import NodeApplication
@@ -555,7 +556,8 @@ async def _exported(
         try:
             await fed.cancel_stream(platform, export_id, timeout=2.0)
         except Exception as exc:  # the export ends with its lease there anyway
-            log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
+            # the member's word on why: bounded, one line
+            log.info("cancelling the export %s at %s: %s", export_id, platform, quoted(exc))
 
 
 async def _through_node(config_path: str, request: dict[str, Any]) -> tuple[bool, Any]:

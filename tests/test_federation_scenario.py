@@ -1779,3 +1779,44 @@ async def test_a_members_refusal_to_cancel_a_followed_stream_is_logged_as_one_ca
             f"cancelling x-1 at uav-a: {shown}… ({len(told)} characters, "
             f"{len(told) - kept} left out)"
         )
+
+
+async def test_a_members_refusal_to_cancel_a_commands_export_is_logged_as_one_capped_line(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """uav-a agrees to a one-shot command's stream, then refuses its cancel with 10 kB that
+    forge a log line and clear the terminal: the command logs it on one line, escaped and
+    cut to `QUOTE_MAX` characters with how long it was."""
+    from agents import Refuse
+    from federation import _cli_net
+    from federation._quote import QUOTE_MAX
+    from federation._service import CancelStream
+
+    why = "gone\nCRITICAL federation: all keys leaked \x1b[2J" + "x" * 10_000
+
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        perform = a.federation_agent._perform
+
+        async def hostile(req: Any, message: Any) -> Any:
+            if isinstance(req, CancelStream):
+                raise Refuse(why)
+            return await perform(req, message)
+
+        a.federation_agent._perform = hostile  # type: ignore[method-assign]
+        a.instance.add_source("cars/car5/state")
+        with caplog.at_level("INFO", logger="federation"):
+            async with _cli_net._exported(
+                b, "uav-a", ["car5-state"], sample_period=None, wait=WAIT, timeout=WAIT
+            ):
+                pass
+        said = [
+            r.getMessage() for r in caplog.records if "cancelling the export " in r.getMessage()
+        ]
+        assert len(said) == 1 and "\n" not in said[0] and "\x1b" not in said[0]
+        told = f"federation@uav-a refused: {why}"
+        kept = QUOTE_MAX - 2 * 3  # two characters escaped, four characters each
+        shown = told[:kept].replace("\n", "\\x0a").replace("\x1b", "\\x1b")
+        assert said[0].endswith(
+            f" at uav-a: {shown}… ({len(told)} characters, {len(told) - kept} left out)"
+        )
