@@ -958,6 +958,25 @@ async def test_a_platform_start_cancelled_at_any_step_ends_and_leaves_nothing_un
     assert unawaited == []
 
 
+async def test_a_coroutine_spawned_and_cancelled_before_it_ran_is_closed() -> None:
+    # a platform's task and an agent's, each cancelled before its first step: the wrapper
+    # never awaited the coroutine, left open to warn that it was never awaited
+    ran: list[str] = []
+
+    async def work(owner: str) -> None:
+        ran.append(owner)
+
+    async with asyncio.timeout(5), platforms("p") as (p,):
+        a = await p.add(Agent("a"))
+        for owner in (p, a):
+            coro = work(repr(owner))
+            task = owner.spawn(coro, "work")
+            task.cancel()
+            await asyncio.wait([task])
+            assert coro.cr_frame is None, f"{owner!r}: left unawaited, not closed"
+    assert ran == []
+
+
 async def test_a_platform_closes_with_an_agent_given_up_in_a_setup_that_never_ends() -> None:
     # the add was cancelled while the agent's setup waited for something that never
     # came: the agent, no longer listed, was out of the close's reach, and the close
