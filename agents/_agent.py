@@ -805,7 +805,13 @@ class Agent:
         if self._tg is None or self._state in (_STOPPING, _STOPPED):
             coro.close()
             raise AgentError(f"{self} is {self._state}: it cannot start tasks")
-        task = self._tg.create_task(coro, name=f"agent[{self.aid}].{name}")
+        try:
+            task = self._tg.create_task(coro, name=f"agent[{self.aid}].{name}")
+        except RuntimeError as exc:
+            # its task group is shutting down: the agent's task was cancelled (a close cut
+            # short) while it still counts as running
+            coro.close()
+            raise AgentError(f"{self} is being cancelled: it cannot start tasks") from exc
         self._children.add(task)
         task.add_done_callback(self._children.discard)
         return task

@@ -977,6 +977,57 @@ async def test_a_coroutine_spawned_and_cancelled_before_it_ran_is_closed() -> No
     assert ran == []
 
 
+async def test_a_spawn_as_a_cut_short_close_cancels_its_agent_is_refused_and_closed() -> None:
+    # the platform's close, cancelled, cancels the agents' tasks at once: an agent's task
+    # that spawns a follow-up as it is cancelled (a give-up message) met its task group
+    # shutting down, a RuntimeError instead of the AgentError `spawn` refuses with, and
+    # the follow-up and its wrapper were left never awaited
+    entered, waiting = asyncio.Event(), asyncio.Event()
+    got: dict[str, Any] = {}
+
+    async def follow_up() -> None:
+        got["ran"] = True
+
+    class GivesUp(Agent):
+        async def setup(self) -> None:
+            self.spawn(self.wait(), "wait")
+
+        async def wait(self) -> None:
+            try:
+                waiting.set()
+                await asyncio.Event().wait()
+            except asyncio.CancelledError:
+                got["coro"] = coro = follow_up()
+                try:
+                    self.spawn(coro, "give-up")
+                except AgentError as exc:
+                    got["refused"] = exc
+                raise
+
+    class SlowToStop(Agent):
+        async def teardown(self) -> None:
+            entered.set()
+            await asyncio.Event().wait()  # would never finish on its own
+
+    hub = MemoryHub()
+    async with asyncio.timeout(5), hub.transport() as t:
+
+        async def run() -> None:
+            async with AgentPlatform("p", t) as p:
+                await p.add(GivesUp("gives-up"))
+                await waiting.wait()
+                await p.add(SlowToStop("slow"))  # stopped first: the close waits on it
+
+        task = asyncio.ensure_future(run())
+        await entered.wait()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert asyncio.all_tasks() == {asyncio.current_task()}
+    assert isinstance(got.get("refused"), AgentError)
+    assert got["coro"].cr_frame is None and "ran" not in got
+
+
 async def test_a_platform_closes_with_an_agent_given_up_in_a_setup_that_never_ends() -> None:
     # the add was cancelled while the agent's setup waited for something that never
     # came: the agent, no longer listed, was out of the close's reach, and the close
