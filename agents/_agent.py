@@ -691,7 +691,16 @@ class Agent:
         ready: asyncio.Future[None] = loop.create_future()
         self._stop_requested = loop.create_future()
         self._task = tg.create_task(self._run(ready), name=f"agent[{self.aid}]")
-        await ready
+        try:
+            await ready
+        except BaseException:
+            # given up just as it got ready (the cancel came after its ready was told):
+            # it stops, as one given up while its setup ran does; else it would run on
+            # unlisted, and hold its platform's close forever
+            told = ready.done() and not ready.cancelled() and ready.exception() is None
+            if told and not self._stop_requested.done():
+                self._stop_requested.set_result(None)
+            raise
 
     async def _run(self, ready: asyncio.Future[None]) -> None:
         _current_agent.set(self)
@@ -782,13 +791,27 @@ class Agent:
 
     def spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task[Any]:
         """Run ``coro`` as a task owned by the agent (``agent[aid].name``); errors are logged."""
-        return self._spawn(self._guard(coro, name), name)
+        try:
+            task = self._spawn(self._guard(coro, name), name)
+        except AgentError:
+            coro.close()  # refused: never to run, not left to warn that it was never awaited
+            raise
+        # cancelled before its first step (a start given up), the guard never awaits
+        # ``coro``: close it then
+        task.add_done_callback(lambda _: coro.close())
+        return task
 
     def _spawn(self, coro: Coroutine[Any, Any, Any], name: str) -> asyncio.Task[Any]:
         if self._tg is None or self._state in (_STOPPING, _STOPPED):
             coro.close()
             raise AgentError(f"{self} is {self._state}: it cannot start tasks")
-        task = self._tg.create_task(coro, name=f"agent[{self.aid}].{name}")
+        try:
+            task = self._tg.create_task(coro, name=f"agent[{self.aid}].{name}")
+        except RuntimeError as exc:
+            # its task group is shutting down: the agent's task was cancelled (a close cut
+            # short) while it still counts as running
+            coro.close()
+            raise AgentError(f"{self} is being cancelled: it cannot start tasks") from exc
         self._children.add(task)
         task.add_done_callback(self._children.discard)
         return task

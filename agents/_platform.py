@@ -387,6 +387,9 @@ class AgentPlatform:
         self._want_df = directory
         self._want_global = global_directory and directory
         self._agents: dict[str, Agent] = {}
+        # agents whose add was cancelled, unlisted but still in their setup or teardown:
+        # the close must reach them too (a setup waiting forever would hold it)
+        self._given_up: set[Agent] = set()
         self._state = _UNOPENED
         self._tg: asyncio.TaskGroup | None = None
         self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
@@ -473,7 +476,7 @@ class AgentPlatform:
     def _outliving(self) -> list[asyncio.Task[Any]]:
         """The platform's tasks, its agents' and theirs: what its close cancels."""
         tasks = list(self._tasks)
-        for agent in list(self._agents.values()):
+        for agent in [*self._agents.values(), *self._given_up]:
             if agent._task is not None:
                 tasks.append(agent._task)
             tasks.extend(agent._children)
@@ -494,6 +497,8 @@ class AgentPlatform:
                 log.debug("platform[%s]: undeclaring the token: %s", self.name, exc)
         # Users' agents first, newest first; the directory last: they deregister from it.
         agents = [a for a in reversed(self._agents.values()) if a is not self.df]
+        # one given up past its setup finishes its teardown; one still in it is cancelled
+        agents += [a for a in self._given_up if a.running]
         for agent in [*agents, *([self.df] if self.df is not None else [])]:
             await agent.stop()
         if self.global_df is not None:
@@ -511,7 +516,7 @@ class AgentPlatform:
         self._state = _CLOSED
 
     def _cancel_everything(self) -> None:
-        for agent in list(self._agents.values()):
+        for agent in [*self._agents.values(), *self._given_up]:
             if agent._task is not None:
                 agent._task.cancel()
         for task in list(self._tasks):
@@ -531,6 +536,9 @@ class AgentPlatform:
             coro.close()
             raise AgentError(f"platform {self.name} is {self._state}")
         task = self._tg.create_task(self._guard(coro, name), name=f"platform[{self.name}].{name}")
+        # cancelled before its first step (a start given up), the guard never awaits
+        # ``coro``: close it then
+        task.add_done_callback(lambda _: coro.close())
         self._tasks.add(task)
         task.add_done_callback(self._tasks.discard)
         return task
@@ -554,6 +562,8 @@ class AgentPlatform:
             await agent._start(self, self._tg)
         except BaseException:
             self._agents.pop(agent.name, None)
+            if agent._platform is self and agent._task is not None and not agent._task.done():
+                self._given_up.add(agent)  # it stops on its own; the close ends it if not
             raise
         return agent
 
@@ -567,6 +577,7 @@ class AgentPlatform:
         """Called by an agent as it stops."""
         if self._agents.get(agent.name) is agent:
             del self._agents[agent.name]
+        self._given_up.discard(agent)
         if self.df is not None and agent is not self.df and self.df.running:
             self.df.forget_agent(agent.aid)
 

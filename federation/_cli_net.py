@@ -41,6 +41,7 @@ from ._cli_common import (
     wait_for_members,
 )
 from ._platform import FederationPlatform, PlatformConfig, PlatformConfigError
+from ._quote import quoted
 
 if TYPE_CHECKING:
     from ._application import NodeApplication
@@ -474,13 +475,18 @@ async def run_foxglove(
             settle_gc()
             await stop.wait()
         _say_stats("foxglove", application, say)
-        stats = bridge.stats()
-        refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())
-        say(
-            f"dyknow foxglove: connections: {stats['relayed']} relayed, "
-            f"{stats['refused_total']} refused ({refused}), {stats['declined']} declined"
-        )
+        say(_foxglove_closing(bridge.stats()))
     say(f"dyknow foxglove: {config.name} stopped")
+
+
+def _foxglove_closing(stats: dict[str, Any]) -> str:
+    """The bridge's count at its close: connections relayed and refused, samples not drawn."""
+    refused = ", ".join(f"{kind} {n}" for kind, n in stats["refused"].items())
+    return (
+        f"dyknow foxglove: connections: {stats['relayed']} relayed, "
+        f"{stats['refused_total']} refused ({refused}), {stats['declined']} declined; "
+        f"{stats['bad_values_total']} bad values not drawn"
+    )
 
 
 async def run_router(listen: list[str], json5: str | None, say: Callable[[str], None]) -> None:
@@ -550,7 +556,8 @@ async def _exported(
         try:
             await fed.cancel_stream(platform, export_id, timeout=2.0)
         except Exception as exc:  # the export ends with its lease there anyway
-            log.info("cancelling the export %s at %s: %s", export_id, platform, exc)
+            # the member's word on why: bounded, one line
+            log.info("cancelling the export %s at %s: %s", export_id, platform, quoted(exc))
 
 
 async def _through_node(config_path: str, request: dict[str, Any]) -> tuple[bool, Any]:

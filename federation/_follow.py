@@ -20,6 +20,8 @@ from typing import TYPE_CHECKING, Any, Literal
 
 from dyknow_core import Policy
 
+from ._quote import quoted
+
 if TYPE_CHECKING:
     from ._platform import FederationPlatform
 
@@ -184,7 +186,8 @@ async def _ask_for(
                 except Exception as exc:
                     why = reason(exc)
                     # said once per refusal: a page shows it, but a log may be all one sees
-                    # (dyknow foxglove); asked again every RETRY s, each time at info
+                    # (dyknow foxglove); asked again every RETRY s, each time at info. The
+                    # member's word on why: bounded, one line
                     again = stream.state == "refused" and stream.error == why
                     stream.state, stream.error = "refused", why
                     stream.refused_before = True
@@ -193,7 +196,7 @@ async def _ask_for(
                         member,
                         stream.label,
                         platform.name,
-                        exc,
+                        quoted(exc),
                         RETRY,
                     )
                     changed()
@@ -245,7 +248,8 @@ async def cancel_export(platform: FederationPlatform, member: str, stream: Follo
     try:
         await platform.federation_agent.cancel_stream(member, export_id, timeout=REQUEST_TIMEOUT)
     except Exception as exc:  # the export may be gone with its platform already
-        log.info("cancelling %s at %s: %s", export_id, member, reason(exc))
+        # the member's word on why: bounded, one line
+        log.info("cancelling %s at %s: %s", export_id, member, quoted(reason(exc)))
 
 
 def reason(exc: BaseException) -> str:

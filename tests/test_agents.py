@@ -926,6 +926,130 @@ async def test_a_shutdown_cut_short_by_cancellation_still_ends_every_task() -> N
         assert not hub.tokens
 
 
+async def test_a_platform_start_cancelled_at_any_step_ends_and_leaves_nothing_unawaited() -> None:
+    """A platform's start given up at each step of it in turn: every one ends (an agent
+    told ready just before the cancel once ran on unlisted, holding the close forever),
+    no task is left, and no coroutine an agent spawned is dropped never awaited (the
+    directory's shed report was, as a RuntimeWarning)."""
+    import gc
+    import warnings
+
+    steps = 40  # loop turns a start of a platform and its directory takes, and more
+
+    async def run(t: Any) -> None:
+        async with AgentPlatform("p", t):
+            await asyncio.Event().wait()
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", RuntimeWarning)
+        for step in range(steps):
+            hub = MemoryHub()
+            async with hub.transport() as t:
+                starting = asyncio.create_task(run(t))
+                for _ in range(step):
+                    await asyncio.sleep(0)
+                starting.cancel()
+                done, _ = await asyncio.wait({starting}, timeout=5)
+                assert done, f"a start cancelled after {step} loop turns never ended"
+                assert starting.cancelled()
+                assert asyncio.all_tasks() == {asyncio.current_task()}
+            gc.collect()  # a coroutine never awaited says so when collected
+    unawaited = [str(w.message) for w in caught if "never awaited" in str(w.message)]
+    assert unawaited == []
+
+
+async def test_a_coroutine_spawned_and_cancelled_before_it_ran_is_closed() -> None:
+    # a platform's task and an agent's, each cancelled before its first step: the wrapper
+    # never awaited the coroutine, left open to warn that it was never awaited
+    ran: list[str] = []
+
+    async def work(owner: str) -> None:
+        ran.append(owner)
+
+    async with asyncio.timeout(5), platforms("p") as (p,):
+        a = await p.add(Agent("a"))
+        for owner in (p, a):
+            coro = work(repr(owner))
+            task = owner.spawn(coro, "work")
+            task.cancel()
+            await asyncio.wait([task])
+            assert coro.cr_frame is None, f"{owner!r}: left unawaited, not closed"
+    assert ran == []
+
+
+async def test_a_spawn_as_a_cut_short_close_cancels_its_agent_is_refused_and_closed() -> None:
+    # the platform's close, cancelled, cancels the agents' tasks at once: an agent's task
+    # that spawns a follow-up as it is cancelled (a give-up message) met its task group
+    # shutting down, a RuntimeError instead of the AgentError `spawn` refuses with, and
+    # the follow-up and its wrapper were left never awaited
+    entered, waiting = asyncio.Event(), asyncio.Event()
+    got: dict[str, Any] = {}
+
+    async def follow_up() -> None:
+        got["ran"] = True
+
+    class GivesUp(Agent):
+        async def setup(self) -> None:
+            self.spawn(self.wait(), "wait")
+
+        async def wait(self) -> None:
+            try:
+                waiting.set()
+                await asyncio.Event().wait()
+            except asyncio.CancelledError:
+                got["coro"] = coro = follow_up()
+                try:
+                    self.spawn(coro, "give-up")
+                except AgentError as exc:
+                    got["refused"] = exc
+                raise
+
+    class SlowToStop(Agent):
+        async def teardown(self) -> None:
+            entered.set()
+            await asyncio.Event().wait()  # would never finish on its own
+
+    hub = MemoryHub()
+    async with asyncio.timeout(5), hub.transport() as t:
+
+        async def run() -> None:
+            async with AgentPlatform("p", t) as p:
+                await p.add(GivesUp("gives-up"))
+                await waiting.wait()
+                await p.add(SlowToStop("slow"))  # stopped first: the close waits on it
+
+        task = asyncio.ensure_future(run())
+        await entered.wait()
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+        assert asyncio.all_tasks() == {asyncio.current_task()}
+    assert isinstance(got.get("refused"), AgentError)
+    assert got["coro"].cr_frame is None and "ran" not in got
+
+
+async def test_a_platform_closes_with_an_agent_given_up_in_a_setup_that_never_ends() -> None:
+    # the add was cancelled while the agent's setup waited for something that never
+    # came: the agent, no longer listed, was out of the close's reach, and the close
+    # waited for its setup forever
+    entered = asyncio.Event()
+
+    class Stuck(Agent):
+        async def setup(self) -> None:
+            entered.set()
+            await asyncio.Event().wait()
+
+    agent = Stuck("stuck")
+    async with asyncio.timeout(10), platforms("p") as (p,):
+        adding = asyncio.create_task(p.add(agent))
+        await entered.wait()
+        adding.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await adding
+        assert "stuck" not in p._agents
+    assert agent._task is not None and agent._task.done()
+
+
 async def test_an_agent_whose_start_is_given_up_stops_undoing_its_setup() -> None:
     # the add was cancelled while the agent's setup ran (a platform's start cut short
     # while its directory agent started): the setup went on, its ready could not be

@@ -758,6 +758,11 @@ async def test_a_rebinding_page_or_a_local_process_cannot_change_a_policy(
 
 async def test_a_non_finite_number_from_a_platform_does_not_break_the_page(demo_keys: Path) -> None:
     async with console_federation(demo_keys) as fed, client(fed) as http:
+        # a stream is followed from its agreement on: a violation pushed before uav-a
+        # exports it is never sent (on a loaded machine the console asks that late)
+        await until_state(
+            http, fed.url, lambda s: stream(s, "uav-a", "violation")["state"] == "active"
+        )
         fed.uavs["uav-a"].violations.append(
             {"kind": "turn", "car": "c", "other": None, "x": float("nan"), "y": float("inf")}
         )

@@ -1697,3 +1697,126 @@ async def test_a_refusal_quoting_what_a_member_asked_is_logged_as_one_capped_lin
             reason
             == f"{told[:QUOTE_MAX]}… ({len(told)} characters, {len(told) - QUOTE_MAX} left out)"
         )
+
+
+async def test_a_members_refusal_of_a_followed_stream_is_logged_as_one_capped_line(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """uav-a, turned hostile, refuses the stream uav-b's console follows with 10 kB that
+    forge a log line and clear the operator's terminal: the follower logs it on one line,
+    the newline and the escape escaped, cut to `QUOTE_MAX` characters with how long it was;
+    the stream is refused (its whole reason kept for the page)."""
+    from agents import Refuse
+    from federation import _follow
+    from federation._follow import FollowedStream
+    from federation._quote import QUOTE_MAX
+
+    forged = "stopped\nCRITICAL federation: all keys leaked \x1b[2J"
+    why = forged + "x" * 10_000
+
+    async def hostile(*args: Any, **kwargs: Any) -> Any:
+        raise Refuse(why)
+
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        a.federation_agent._perform = hostile  # type: ignore[method-assign]
+        stream = FollowedStream("car5-state")
+        refused = asyncio.Event()
+        with caplog.at_level("INFO", logger="federation.follow"):
+            asking = asyncio.create_task(
+                _follow._ask_for(b, "uav-a", stream, lambda: True, refused.set)
+            )
+            try:
+                await asyncio.wait_for(refused.wait(), WAIT)
+            finally:
+                asking.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await asking
+        assert stream.state == "refused" and stream.error is not None and why in stream.error
+        said = [
+            r.getMessage() for r in caplog.records if " refused car5-state to " in r.getMessage()
+        ]
+        assert len(said) == 1 and "\n" not in said[0] and "\x1b" not in said[0]
+        told = f"federation@uav-a refused: {why}"
+        kept = QUOTE_MAX - 2 * 3  # two characters escaped, four characters each
+        shown = told[:kept].replace("\n", "\\x0a").replace("\x1b", "\\x1b")
+        assert said[0] == (
+            f"uav-a refused car5-state to uav-b: {shown}… ({len(told)} characters, "
+            f"{len(told) - kept} left out) (asked again every {_follow.RETRY:g} s)"
+        )
+
+
+async def test_a_members_refusal_to_cancel_a_followed_stream_is_logged_as_one_capped_line(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """uav-a, turned hostile, refuses to cancel the export of a stream uav-b's console
+    stops following with 10 kB that forge a log line and clear the terminal: the follower
+    logs it on one line, escaped and cut to `QUOTE_MAX` characters with how long it was."""
+    from agents import Refuse
+    from federation import _follow
+    from federation._follow import FollowedStream
+    from federation._quote import QUOTE_MAX
+
+    forged = "gone\nCRITICAL federation: all keys leaked \x1b[2J"
+    why = forged + "x" * 10_000
+
+    async def hostile(*args: Any, **kwargs: Any) -> Any:
+        raise Refuse(why)
+
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        a.federation_agent._perform = hostile  # type: ignore[method-assign]
+        stream = FollowedStream("car5-state")
+        stream.export_id = "x-1"
+        with caplog.at_level("INFO", logger="federation.follow"):
+            await asyncio.wait_for(_follow.cancel_export(b, "uav-a", stream), WAIT)
+        said = [r.getMessage() for r in caplog.records if "cancelling x-1 at " in r.getMessage()]
+        assert len(said) == 1 and "\n" not in said[0] and "\x1b" not in said[0]
+        told = f"refused: {why}"
+        kept = QUOTE_MAX - 2 * 3  # two characters escaped, four characters each
+        shown = told[:kept].replace("\n", "\\x0a").replace("\x1b", "\\x1b")
+        assert said[0] == (
+            f"cancelling x-1 at uav-a: {shown}… ({len(told)} characters, "
+            f"{len(told) - kept} left out)"
+        )
+
+
+async def test_a_members_refusal_to_cancel_a_commands_export_is_logged_as_one_capped_line(
+    demo_keys: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """uav-a agrees to a one-shot command's stream, then refuses its cancel with 10 kB that
+    forge a log line and clear the terminal: the command logs it on one line, escaped and
+    cut to `QUOTE_MAX` characters with how long it was."""
+    from agents import Refuse
+    from federation import _cli_net
+    from federation._quote import QUOTE_MAX
+    from federation._service import CancelStream
+
+    why = "gone\nCRITICAL federation: all keys leaked \x1b[2J" + "x" * 10_000
+
+    async with memory_federation(demo_keys) as (ps, _):
+        a, b = ps["uav-a"], ps["uav-b"]
+        perform = a.federation_agent._perform
+
+        async def hostile(req: Any, message: Any) -> Any:
+            if isinstance(req, CancelStream):
+                raise Refuse(why)
+            return await perform(req, message)
+
+        a.federation_agent._perform = hostile  # type: ignore[method-assign]
+        a.instance.add_source("cars/car5/state")
+        with caplog.at_level("INFO", logger="federation"):
+            async with _cli_net._exported(
+                b, "uav-a", ["car5-state"], sample_period=None, wait=WAIT, timeout=WAIT
+            ):
+                pass
+        said = [
+            r.getMessage() for r in caplog.records if "cancelling the export " in r.getMessage()
+        ]
+        assert len(said) == 1 and "\n" not in said[0] and "\x1b" not in said[0]
+        told = f"federation@uav-a refused: {why}"
+        kept = QUOTE_MAX - 2 * 3  # two characters escaped, four characters each
+        shown = told[:kept].replace("\n", "\\x0a").replace("\x1b", "\\x1b")
+        assert said[0].endswith(
+            f" at uav-a: {shown}… ({len(told)} characters, {len(told) - kept} left out)"
+        )

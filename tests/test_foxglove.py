@@ -41,6 +41,7 @@ import pytest
 from agents.keys import gen_keys, trust_keys
 from agents.transports import MemoryHub, free_tcp_port
 from federation import FederationPlatform, FoxgloveBridge, PlatformConfig, PlatformConfigError
+from federation._cli_net import _foxglove_closing
 from federation._geo import EARTH_RADIUS, local_to_geo
 from federation.console import ConsoleRoles, ConsoleSettings, OperatorConsole
 from federation.demo._vocabulary import (
@@ -437,6 +438,7 @@ def test_foxglove_serves_a_uav_to_a_protocol_client(tmp_path: Path, foxglove_cli
         assert bridge.returncode == 0, err
         assert "operator stopped" in out and "Traceback" not in err
         assert "dyknow foxglove: connections: 1 relayed, 0 refused (host 0, " in out, out
+        assert "), 0 declined; 0 bad values not drawn\n" in out, out
     finally:
         for p in procs:
             _kill(p)
@@ -671,6 +673,10 @@ async def test_a_member_sending_undrawable_values_fast_is_counted_and_logged_bou
             stats = bridge.stats()
             assert stats["bad_values"] == {"uav-a/tracked-cars": n}
             assert stats["bad_values_total"] == n
+            # and `dyknow foxglove` says them as it stops, beside the connections
+            closing = _foxglove_closing(stats)
+            assert closing.startswith("dyknow foxglove: connections: 1 relayed, 0 refused (")
+            assert closing.endswith(f"), 0 declined; {n} bad values not drawn")
             during = bad_lines()
     said = bad_lines()
     assert said[0] == "foxglove: /uav-a/tracked-cars: bad value (dict): TypeError"

@@ -67,7 +67,7 @@ from agents.transports import (
     free_tcp_port,
 )
 
-FED = "demo"
+FED = "demo"  # on a MemoryHub of one test's own; over zenoh or a broker: `unique_federation`
 WAIT = 5.0  # the bound on any single wait; every test finishes far below it
 
 T = TypeVar("T")
@@ -1614,9 +1614,14 @@ async def test_a_watcher_told_of_up_to_the_audit_hold_late_gets_every_record() -
 # -- over zenoh --------------------------------------------------------------------------------
 
 
-async def _sees(t: Transport, platform: str) -> None:
+def unique_federation(kind: str) -> str:
+    """A federation name of this test alone: over a network two runs must not meet."""
+    return f"{kind}-{os.urandom(6).hex()}"
+
+
+async def _sees(t: Transport, fed: str, platform: str) -> None:
     """Wait until ``t`` sees ``platform``'s liveliness token (declared once it serves)."""
-    watch = await t.watch_presence(wire_key(FED, "alive", platform))
+    watch = await t.watch_presence(wire_key(fed, "alive", platform))
     try:
         async with asyncio.timeout(WAIT):
             while not (await watch.get()).alive:
@@ -1629,21 +1634,22 @@ async def test_request_inform_over_zenoh_between_two_sessions() -> None:
     """The same round trips over zenoh, between two sessions on loopback."""
     keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b", "uav-c")}
     trust = {n: k.public_key for n, k in keys.items()}
+    fed = unique_federation("zenoh")
     seed = free_tcp_port()
     ta = ZenohTransport(ZenohConfig.loopback(seed))
     tb = ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed]))
     async with asyncio.timeout(WAIT * 2), ta, tb:
-        feed = await ta.subscribe(wire_key(FED, "audit", "uav-b"))
+        feed = await ta.subscribe(wire_key(fed, "audit", "uav-b"))
         ia_a = InterfaceAgent(
-            keys["uav-a"], TrustStore(FED, trust), audit_interval=0.02, handshake_timeout=0.5
+            keys["uav-a"], TrustStore(fed, trust), audit_interval=0.02, handshake_timeout=0.5
         )
-        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(FED, trust), audit_interval=0.02)
+        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(fed, trust), audit_interval=0.02)
         async with (
-            AgentPlatform("uav-a", ta, federation=FED, channel=ia_a) as pa,
-            AgentPlatform("uav-b", tb, federation=FED, channel=ia_b) as pb,
+            AgentPlatform("uav-a", ta, federation=fed, channel=ia_a) as pa,
+            AgentPlatform("uav-b", tb, federation=fed, channel=ia_b) as pb,
         ):
-            await _sees(ta, "uav-b")
-            await _sees(tb, "uav-a")
+            await _sees(ta, fed, "uav-b")
+            await _sees(tb, fed, "uav-a")
             echo_a = await serve(pa, "echo")
             echo_b = await serve(pb, "echo")
             assert await request(echo_a, "echo@uav-b", {"z": 1}, ontology="demo") == {
@@ -1721,25 +1727,26 @@ async def test_over_zenoh_the_audit_is_sealed_only_while_someone_subscribes(
     seals = _count_seals(monkeypatch)
     keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
     trust = {n: k.public_key for n, k in keys.items()}
+    fed = unique_federation("zenoh")
     seed = free_tcp_port()
     ta = ZenohTransport(ZenohConfig.loopback(seed))
     tb = ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed]))
     async with asyncio.timeout(WAIT * 2), ta, tb:
-        ia_a = InterfaceAgent(keys["uav-a"], TrustStore(FED, trust), audit_interval=0.02)
-        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(FED, trust), audit_interval=0.02)
+        ia_a = InterfaceAgent(keys["uav-a"], TrustStore(fed, trust), audit_interval=0.02)
+        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(fed, trust), audit_interval=0.02)
         async with (
-            AgentPlatform("uav-a", ta, federation=FED, channel=ia_a) as pa,
-            AgentPlatform("uav-b", tb, federation=FED, channel=ia_b) as pb,
+            AgentPlatform("uav-a", ta, federation=fed, channel=ia_a) as pa,
+            AgentPlatform("uav-b", tb, federation=fed, channel=ia_b) as pb,
         ):
-            await _sees(ta, "uav-b")
+            await _sees(ta, fed, "uav-b")
             echo_a = await serve(pa, "echo")
             await serve(pb, "echo")
             await request(echo_a, "echo@uav-b", 1, ontology="demo")
             await until(lambda: ia_b.audit_unheard and ia_b._flush_idle, "an unheard batch")
             assert (seals[0], ia_b.audit_published) == (0, 0)
 
-            feed = await ta.subscribe(wire_key(FED, "audit", "uav-b"))
-            await until(lambda: tb.has_subscribers(wire_key(FED, "audit", "uav-b")), "matched")
+            feed = await ta.subscribe(wire_key(fed, "audit", "uav-b"))
+            await until(lambda: tb.has_subscribers(wire_key(fed, "audit", "uav-b")), "matched")
             await request(echo_a, "echo@uav-b", 2, ontology="demo")
             got = await _published_records(feed, keys["uav-b"])
             assert [(r["verdict"], r["sender"]) for r in got] == [("accepted", "echo@uav-a")]
@@ -1774,26 +1781,26 @@ class HeldKx(MqttTransport):
 
 @contextlib.asynccontextmanager
 async def mqtt_pair(
-    host: str, port: int, keys: dict[str, KeyPair], handshake_timeout: float
+    host: str, port: int, fed: str, keys: dict[str, KeyPair], handshake_timeout: float
 ) -> AsyncIterator[tuple[AgentPlatform, AgentPlatform, HeldKx]]:
-    """uav-a and uav-b on one broker, each seeing the other; uav-b's transport is a HeldKx."""
+    """uav-a and uav-b of ``fed`` on one broker, each seeing the other; uav-b's a HeldKx."""
     trust = {n: k.public_key for n, k in keys.items()}
     ta = MqttTransport(MqttConfig(host=host, port=port, client_id="uav-a"))
     tb = HeldKx(MqttConfig(host=host, port=port, client_id="uav-b"))
     async with ta, tb:
         ia_a = InterfaceAgent(
             keys["uav-a"],
-            TrustStore(FED, trust),
+            TrustStore(fed, trust),
             audit_interval=0.02,
             handshake_timeout=handshake_timeout,
         )
-        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(FED, trust), audit_interval=0.02)
+        ia_b = InterfaceAgent(keys["uav-b"], TrustStore(fed, trust), audit_interval=0.02)
         async with (
-            AgentPlatform("uav-a", ta, federation=FED, channel=ia_a) as pa,
-            AgentPlatform("uav-b", tb, federation=FED, channel=ia_b) as pb,
+            AgentPlatform("uav-a", ta, federation=fed, channel=ia_a) as pa,
+            AgentPlatform("uav-b", tb, federation=fed, channel=ia_b) as pb,
         ):
-            await _sees(ta, "uav-b")
-            await _sees(tb, "uav-a")
+            await _sees(ta, fed, "uav-b")
+            await _sees(tb, fed, "uav-a")
             yield pa, pb, tb
 
 
@@ -1808,9 +1815,10 @@ async def test_a_first_request_over_mqtt_does_not_wait_for_the_kx_timeout(
     """The key exchange ends at its first authenticated reply, not at the query's timeout."""
     host, port = mosquitto
     keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
+    fed = unique_federation("mqtt")
     async with (
         asyncio.timeout(WAIT * 3),
-        mqtt_pair(host, port, keys, MQTT_KX_TIMEOUT) as (pa, pb, _),
+        mqtt_pair(host, port, fed, keys, MQTT_KX_TIMEOUT) as (pa, pb, _),
     ):
         asker = await serve(pa, "asker", None)
         await serve(pb, "echo")
@@ -1830,9 +1838,10 @@ async def test_forged_mqtt_kx_replies_first_do_not_hide_the_real_one(
     reply still ends the exchange at once."""
     host, port = mosquitto
     keys = {n: KeyPair.generate(n) for n in ("uav-a", "uav-b")}
+    fed = unique_federation("mqtt")
     fake_b = KeyPair.generate("uav-b")  # uav-b's name, another key
     fake_hs = Handshake(
-        fake_b, TrustStore(FED, {"uav-b": fake_b.public_key, "uav-a": keys["uav-a"].public_key})
+        fake_b, TrustStore(fed, {"uav-b": fake_b.public_key, "uav-a": keys["uav-a"].public_key})
     )
     answered: list[bytes] = []
 
@@ -1850,14 +1859,14 @@ async def test_forged_mqtt_kx_replies_first_do_not_hide_the_real_one(
     subscribed = threading.Event()
     attacker.on_subscribe = lambda *_: subscribed.set()
     attacker.connect(host, port)
-    attacker.subscribe(f"@query/{wire_key(FED, 'kx', 'uav-b')}")
+    attacker.subscribe(f"@query/{wire_key(fed, 'kx', 'uav-b')}")
     attacker.loop_start()
     try:
         # the attacker listens before the query is asked (else it never answers first)
         assert await asyncio.to_thread(subscribed.wait, WAIT), "the attacker's subscription"
         async with (
             asyncio.timeout(WAIT * 3),
-            mqtt_pair(host, port, keys, MQTT_KX_TIMEOUT) as (pa, pb, tb),
+            mqtt_pair(host, port, fed, keys, MQTT_KX_TIMEOUT) as (pa, pb, tb),
         ):
             asker = await serve(pa, "asker", None)
             await serve(pb, "echo")

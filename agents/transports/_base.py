@@ -408,6 +408,7 @@ class Transport(ABC):
         task only: the others, and whoever opened the transport, go on.
         """
         if self._tg is None:
+            coro.close()  # never to run: not left to warn that it was never awaited
             raise TransportClosed(f"{self.name} transport is {self._state}")
         task = self._tg.create_task(_logged(coro, name), name=name)
         # cancelled before it ran, the wrapper never awaits ``coro``: close it then
