@@ -49,6 +49,9 @@ Presence
     ``declare_token`` opens one more connection per token, whose last will is an empty
     retained message on the key; it then publishes ``{"v":1,"alive":true}`` retained on the
     key, and announces again when someone else clears the key or its connection drops.
+    It hears the clearing through its own subscription to the key: one the broker
+    refuses fails the declaration (TransportError, as any refused subscription) before
+    anything is announced, its connection closed.
     Closing the token publishes the empty retained message (which clears it; QoS 0, its
     acknowledgement not waited for: a close does not wait on a slow broker); a process
     that dies loses its connection and the broker publishes the will.
@@ -1099,9 +1102,13 @@ class _Token:
         # announcing, ``clear``'s of a reconnection too, clears and closes it below)
         self.client, self.connection = client, connection
         try:
-            await t._acked(client.subscribe(self.key, qos=1))
-            await client.publish(self.key, ALIVE, qos=1, retain=True)
+            # its own key, to hear another client clear it: refused, nobody would
+            # announce it again, so the declaration fails before anything is announced
+            refused = _refused(await t._acked(client.subscribe(self.key, qos=1)))
+            if refused is None:
+                await client.publish(self.key, ALIVE, qos=1, retain=True)
         except aiomqtt.MqttError as exc:
+            self.client = self.connection = None
             await _disconnect(client, connection)
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
         except BaseException:
@@ -1113,6 +1120,12 @@ class _Token:
                 await client.publish(self.key, b"", qos=0, retain=True, timeout=_DISCONNECT_WAIT)
             await _disconnect(client, connection)
             raise
+        if refused is not None:
+            # a DISCONNECT, not a lost connection: the will (clearing a key never
+            # announced here) does not go out either
+            self.client = self.connection = None
+            await _disconnect(client, connection)
+            raise _refusal(self.key, refused)
 
     async def keep(self) -> None:
         """Announce again when the key is cleared by another; reconnect when dropped."""

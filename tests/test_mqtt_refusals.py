@@ -1,0 +1,49 @@
+"""What the MQTT transport does when the broker refuses a subscription, or answers late.
+
+Mosquitto 2.0 grants a subscription its ACL denies: the `Relay` of
+``tests/test_mqtt_start_close.py`` rewrites the SUBACK's reason codes as a strict broker
+would send them.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import uuid
+
+import pytest
+
+from agents._exceptions import TransportError
+from agents.transports import MqttConfig, MqttTransport
+from tests.test_mqtt_start_close import WAIT, Relay
+
+
+async def test_a_token_whose_own_subscription_is_refused_is_not_declared(
+    mosquitto: tuple[str, int],
+) -> None:
+    # the token subscribes to its key (to announce again when another client clears it):
+    # its SUBACK was not read, a refused one taken as granted, the token alive with
+    # nobody listening for its clearing
+    host, port = mosquitto
+    u = uuid.uuid4().hex
+    key = f"alive/{u}/x"
+    relay = Relay(host, port)
+    relay.refuse[key] = 0x87  # not authorized
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as watcher,
+    ):
+        handles = set(t._handles)
+        with pytest.raises(TransportError) as refused:
+            async with asyncio.timeout(WAIT):
+                await t.declare_token(key)
+        assert str(refused.value) == (
+            f"mqtt: the broker refused the subscription to {key!r}: Not authorized (0x87)"
+        )
+        assert t._handles == handles
+        await relay.wait_for(lambda: relay.open == 1)  # the token's connection closed
+        assert await watcher.tokens(f"alive/{u}/*", timeout=WAIT) == []  # never announced
+        # granted, the same key is declared and seen alive
+        del relay.refuse[key]
+        async with asyncio.timeout(WAIT), await t.declare_token(key):
+            assert await watcher.tokens(f"alive/{u}/*", timeout=WAIT) == [key]
