@@ -8,6 +8,9 @@ would send them.
 from __future__ import annotations
 
 import asyncio
+import logging
+import signal
+import subprocess
 import uuid
 
 import pytest
@@ -47,3 +50,38 @@ async def test_a_token_whose_own_subscription_is_refused_is_not_declared(
         del relay.refuse[key]
         async with asyncio.timeout(WAIT), await t.declare_token(key):
             assert await watcher.tokens(f"alive/{u}/*", timeout=WAIT) == [key]
+
+
+async def test_answers_later_than_connect_timeout_log_no_error(
+    own_mosquitto: tuple[str, int, subprocess.Popen[bytes]], caplog: pytest.LogCaptureFixture
+) -> None:
+    # a broker stalled past connect_timeout: the subscribe's wait (and then the
+    # unsubscribe's) timed out, aiomqtt forgot the packet ids, and the SUBACK and UNSUBACK
+    # that came once the broker ran again were logged at ERROR ("Unexpected message ID")
+    host, port, broker = own_mosquitto
+    key = f"late/{uuid.uuid4().hex}"
+    caplog.set_level(logging.DEBUG)
+    async with (
+        MqttTransport(MqttConfig(host=host, port=port, connect_timeout=0.3)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as sender,
+    ):
+        broker.send_signal(signal.SIGSTOP)
+        try:
+            with pytest.raises(TransportError, match="timed out"):
+                async with asyncio.timeout(WAIT):
+                    await t.subscribe(key)
+            unsubscribing = t._unsubscribing[key]  # the filter given up, in the background
+            async with asyncio.timeout(WAIT):
+                await asyncio.wait([unsubscribing])  # which times out too
+        finally:
+            broker.send_signal(signal.SIGCONT)
+        # the broker answers both late, then this subscribe, in order
+        async with asyncio.timeout(WAIT):
+            sub = await t.subscribe(key)
+        async with sub:
+            await sender.publish(key, b"after")
+            assert (await sub.get(timeout=WAIT)).payload == b"after"
+    errors = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+    assert errors == []
+    late = [r.getMessage() for r in caplog.records if "after it was given up" in r.getMessage()]
+    assert [m.split()[4] for m in late] == ["subscribe", "unsubscribe"]

@@ -21,7 +21,9 @@ Subscriptions
     subscribing anew after a reconnection, it is logged and ends what listened through
     it (its subscriptions' and watchers' iterators end). A subscribe
     its caller gave up on still takes the broker's answer, in the background: aiomqtt
-    logs an answer to a call it no longer waits for as an error.
+    logs an answer to a call it no longer waits for as an error. An answer later than
+    ``connect_timeout`` (a stalled broker: the background call gave up too) is logged
+    at DEBUG as late.
 
 Query / serve (a topic convention on MQTT v5 request/response)
     A query on key expression ``Q`` is published on ``@query/<P>``, where ``<P>`` is ``Q``
@@ -183,6 +185,21 @@ def _load_client() -> None:
             if self._connect_ended is not None and self._connect_ended.is_set():
                 # ended meanwhile, perhaps before it saw ``_given_up``: dropped from here
                 self._loop.call_soon(self._drop_socket)
+
+        # A SUBACK or UNSUBACK whose call aiomqtt stopped waiting for (its timeout,
+        # ``connect_timeout``, passed: a stalled broker) is late, not unexpected: aiomqtt
+        # logs it at ERROR with a traceback, which reads as a failure of ours.
+        def _on_subscribe(self, client: Any, userdata: Any, mid: int, *args: Any) -> None:
+            if mid not in self._pending_subscribes:
+                log.debug("mqtt: the broker answered subscribe %d after it was given up", mid)
+                return
+            super()._on_subscribe(client, userdata, mid, *args)
+
+        def _on_unsubscribe(self, client: Any, userdata: Any, mid: int, *args: Any) -> None:
+            if mid not in self._pending_unsubscribes:
+                log.debug("mqtt: the broker answered unsubscribe %d after it was given up", mid)
+                return
+            super()._on_unsubscribe(client, userdata, mid, *args)
 
         def _drop_socket(self) -> None:
             # paho's own close: aiomqtt stops watching the socket and ends its task
