@@ -15,7 +15,9 @@ import secrets
 import signal
 import socket
 import subprocess
+import sys
 import time
+import traceback
 import uuid
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -645,6 +647,67 @@ async def test_an_open_given_up_while_the_broker_is_slow_to_accept_leaves_no_con
                 pass
             if left := _aiomqtt_tasks():  # aiomqtt's task, cancelled with the socket
                 await asyncio.wait(left)
+    finally:
+        for s in [*fillers, *accepted, listener]:
+            s.close()
+
+
+def _connecting() -> list[int]:
+    """The threads still in paho's connect (`_client_connect`)."""
+    return [
+        ident
+        for ident, frame in sys._current_frames().items()
+        if any(f.f_code.co_name == "_client_connect" for f, _ in traceback.walk_stack(frame))
+    ]
+
+
+async def test_a_cancelled_open_returns_at_once_and_its_socket_closes_when_it_comes() -> None:
+    # the open given up waited for paho's connect thread, up to connect_timeout, holding a
+    # worker thread: now it returns at once, and the socket paho still opens is closed
+    # when it comes, its thread ended
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(0)  # one connection waiting: the next's handshake is dropped, retried
+    listener.setblocking(False)
+    port = listener.getsockname()[1]
+    loop = asyncio.get_running_loop()
+    fillers = []
+    for _ in range(3):
+        filler = socket.socket()
+        filler.setblocking(False)
+        filler.connect_ex(("127.0.0.1", port))
+        fillers.append(filler)
+    accepted: list[socket.socket] = []
+    try:
+        t = MqttTransport(MqttConfig(host="127.0.0.1", port=port, connect_timeout=5.0))
+        opening = asyncio.create_task(t.__aenter__())
+        done, _ = await asyncio.wait([opening], timeout=0.05)
+        assert not done  # paho's connect waits for the handshake's retry (~1 s)
+        t0 = time.monotonic()
+        opening.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await opening
+        took = time.monotonic() - t0
+        assert took < 0.5, f"the cancelled open took {took:.2f} s"
+        assert len(_connecting()) == 1  # paho's connect goes on in its thread
+        # room for the client: it connects at its handshake's retry
+        ours = {f.getsockname()[1] for f in fillers}
+        client = None
+        async with asyncio.timeout(WAIT):
+            while client is None:
+                conn, (_, peer) = await loop.sock_accept(listener)
+                accepted.append(conn)
+                conn.setblocking(False)
+                if peer not in ours:
+                    client = conn
+        async with asyncio.timeout(WAIT):  # closed by the client: nothing left of it
+            while await loop.sock_recv(client, 1024):
+                pass
+            if left := _aiomqtt_tasks():  # aiomqtt's task, cancelled with the socket
+                await asyncio.wait(left)
+            # and no thread: the connect's worker joins (it would block this otherwise)
+            await loop.shutdown_default_executor()
+        assert _connecting() == []
     finally:
         for s in [*fillers, *accepted, listener]:
             s.close()

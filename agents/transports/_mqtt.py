@@ -72,6 +72,9 @@ Closing
     closed with a DISCONNECT, or, when that cannot go out within a second (a broker
     that stopped reading a full socket), by closing the socket: the broker sees the
     connection lost. Only then are the transport's tasks and calls under way cancelled.
+    An open (or a reconnection) given up while paho still connects in its thread (a
+    cancel does not stop it) returns at once; the socket, when it comes, is closed on
+    the loop and aiomqtt's task ends with it.
 
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
@@ -165,11 +168,11 @@ def _load_client() -> None:
             self._connect_ended = threading.Event()
             return await super().__aenter__()
 
-        _given_up = False  # `_abandon` stopped waiting for paho's connect (see there)
+        _given_up = False  # `_abandon` did not wait for paho's connect (see there)
 
         def _client_connect(self) -> None:
-            # in an executor thread, which a cancel does not stop: `_abandon` waits for
-            # it, for the socket it opens comes only then
+            # in an executor thread, which a cancel does not stop: a connection given up
+            # meanwhile (`_abandon`) has the socket it opens closed on the loop from here
             try:
                 super()._client_connect()
             finally:
@@ -1248,21 +1251,17 @@ async def _connect(client: aiomqtt.Client) -> contextlib.AsyncExitStack:
 
 
 async def _abandon(client: aiomqtt.Client) -> None:
-    """Close the socket and end aiomqtt's task of a connection that did not come up."""
+    """Close the socket and end aiomqtt's task of a connection that did not come up.
+
+    When paho still connects in its thread (a cancel does not stop it: its own 5 s per
+    address, TCP retries, TLS), this returns at once: the socket is closed on the loop
+    when it comes, and aiomqtt's task ends with it. Waiting for it held the caller (a
+    cancelled open) up to ``connect_timeout``, and a worker thread meanwhile.
+    """
     ended = getattr(client, "_connect_ended", None)
     if isinstance(ended, threading.Event) and not ended.is_set():
-        # paho still connects in its thread (a cancel does not stop it): its socket comes then
-        wait = None if client.timeout == math.inf else client.timeout
-        try:
-            await asyncio.to_thread(ended.wait, wait)
-        except BaseException:  # cancelled again (`KeepCancelled`): the loop closes it
-            getattr(client, "_give_up")()  # noqa: B009  our client's, not aiomqtt's
-            raise
-        if not ended.is_set():
-            # paho's connect outlasts ``timeout`` (a handshake retried, each address
-            # tried, TLS): its socket, when it comes, is closed on the loop
-            getattr(client, "_give_up")()  # noqa: B009  our client's, not aiomqtt's
-            return
+        getattr(client, "_give_up")()  # noqa: B009  our client's, not aiomqtt's
+        return
     await asyncio.sleep(0)  # what the connect scheduled on the loop (its reader, task) runs
     sock_close = getattr(client._client, "_sock_close", None)
     if sock_close is not None:
