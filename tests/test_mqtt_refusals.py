@@ -85,3 +85,53 @@ async def test_answers_later_than_connect_timeout_log_no_error(
     assert errors == []
     late = [r.getMessage() for r in caplog.records if "after it was given up" in r.getMessage()]
     assert [m.split()[4] for m in late] == ["subscribe", "unsubscribe"]
+
+
+async def test_a_queryable_refused_after_a_reconnection_ends_and_its_owner_is_told(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # subscribed anew after a reconnection, a queryable's refused filter was only logged:
+    # its owner believed it served, and queries through that filter went unanswered
+    host, port = mosquitto
+    u = uuid.uuid4().hex
+    key = f"q/{u}/x"
+    relay = Relay(host, port)
+    caplog.set_level(logging.WARNING, logger="agents.transports._mqtt")
+
+    async def answer(key: str, payload: bytes) -> bytes:
+        return b"here"
+
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as asker,
+    ):
+        kept = await t.serve(f"kept/{u}", answer)
+        handle = await t.serve(key, answer)
+        told: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        handle.on_end(told.set_result)
+        assert (await asker.query(key, timeout=1.0))[0].payload == b"here"
+        relay.refuse[f"@query/q/{u}/x"] = 0x87  # not authorized
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            reason = await told
+        assert reason == (
+            f"mqtt: the broker refused the subscription to '@query/q/{u}/x': "
+            "Not authorized (0x87) (after reconnecting)"
+        )
+        assert handle.closed and handle.ended == reason
+        assert handle not in t._handles
+        # ended whole: none of its filters is left, the other queryable's are
+        assert not [topic for topic in t._filters if u in topic and "kept" not in topic]
+        assert f"@query/kept/{u}" in t._filters
+        late: list[str] = []
+        handle.on_end(late.append)  # told at once when it ended already
+        assert late == [reason]
+        assert t._up is not None
+        async with asyncio.timeout(WAIT):
+            await t._up.wait()  # reconnected, the other filters subscribed again
+            assert t.reconnects == 1
+            assert [r.payload for r in await asker.query(f"kept/{u}", timeout=1.0)] == [b"here"]
+            assert await asker.query(key, timeout=0.5) == []  # nobody serves it any more
+        handle.close()  # closing what ended already is harmless
+        await kept.aclose()

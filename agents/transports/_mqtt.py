@@ -19,7 +19,10 @@ Subscriptions
     authorized, topic filter invalid, quota exceeded) raises TransportError naming the
     filter and the broker's reason, and leaves nothing behind; refused again when
     subscribing anew after a reconnection, it is logged and ends what listened through
-    it (its subscriptions' and watchers' iterators end). A subscribe
+    it: its subscriptions' and watchers' iterators end, and its queryables end whole
+    (every filter of theirs unsubscribed), their `Handle` closed, its ``ended`` the
+    reason (the TransportError's text and "(after reconnecting)"), its ``on_end``
+    callbacks called with it. A subscribe
     its caller gave up on still takes the broker's answer, in the background: aiomqtt
     logs an answer to a call it no longer waits for as an error. An answer later than
     ``connect_timeout`` (a stalled broker: the background call gave up too) is logged
@@ -372,12 +375,14 @@ class _Server:
 
     # a plain class, not a dataclass: generating a dataclass's methods costs ~0.4 ms of a
     # node's start, each; nothing compares or prints these
-    __slots__ = ("admit", "handler", "key_expr")
+    __slots__ = ("admit", "end", "handler", "key_expr")
 
     def __init__(self, key_expr: str, handler: QueryHandler, admit: QueryFilter | None) -> None:
         self.key_expr = key_expr
         self.handler = handler
         self.admit = admit
+        # ends the queryable (all its filters) when the broker refuses one of them
+        self.end: Callable[[str], None] | None = None
 
 
 class _Alive:
@@ -623,6 +628,8 @@ class MqttTransport(_Keeps, Transport):
         client, self._connection = await self._connect_main()
         self._client = client
         for f in list(self._filters.values()):
+            if self._filters.get(f.topic) is not f:
+                continue  # a queryable ended by a refusal before took it with it
             refused = await self._subscribe(client, f.topic, f.sid)
             if refused is not None:
                 log.warning(
@@ -631,7 +638,7 @@ class MqttTransport(_Keeps, Transport):
                     f.topic,
                     refused,
                 )
-                self._end(f)
+                self._end(f, f"{_refusal(f.topic, refused)} (after reconnecting)")
         self.reconnects += 1
         if self._up is not None:
             self._up.set()
@@ -775,11 +782,12 @@ class MqttTransport(_Keeps, Transport):
         self._unsubscribing[f.topic] = task
         task.add_done_callback(lambda t: self._unsubscribing.pop(f.topic, None))
 
-    def _end(self, f: _Filter) -> None:
+    def _end(self, f: _Filter, reason: str) -> None:
         """Forget ``f``, which the broker no longer serves, and end what listened through it.
 
         Its subscriptions' and watchers' iterators end rather than wait in silence; its
-        queryables (no iterator) hear no more queries on it, as the warning before says.
+        queryables end whole (every filter of theirs), their handles closed with
+        ``ended`` = ``reason`` and their owners' ``on_end`` callbacks called.
         """
         self._forget(f, unsubscribe=False)
         for entry in f.inboxes:
@@ -787,6 +795,9 @@ class MqttTransport(_Keeps, Transport):
         for watcher in f.watchers:
             if isinstance(watcher, _Watcher):
                 watcher.inbox.close()
+        for server in list(f.servers):
+            if server.end is not None:
+                server.end(reason)
 
     async def _subscribe(self, client: aiomqtt.Client, topic: str, sid: int) -> str | None:
         """Subscribe ``client`` to ``topic`` as ``sid`` (`_acked`); the broker's refusal, if any."""
@@ -1009,7 +1020,9 @@ class MqttTransport(_Keeps, Transport):
             for topic in filters:
                 self._detach(topic, remove)
 
-        return self._handle(undeclare)
+        handle = self._handle(undeclare)
+        server.end = handle._end
+        return handle
 
     def _offer(self, server: _Server, payload: bytes, props: Properties | None) -> None:
         """A query heard through one of ``server``'s filters: answer it if it intersects."""
