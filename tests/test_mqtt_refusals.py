@@ -135,3 +135,33 @@ async def test_a_queryable_refused_after_a_reconnection_ends_and_its_owner_is_to
             assert await asker.query(key, timeout=0.5) == []  # nobody serves it any more
         handle.close()  # closing what ended already is harmless
         await kept.aclose()
+
+
+async def test_a_token_refused_after_a_reconnection_ends_and_its_owner_is_told(
+    mosquitto: tuple[str, int],
+) -> None:
+    # a token that could not announce itself again after its connection dropped was only
+    # logged: its owner believed it alive while nobody saw it
+    host, port = mosquitto
+    u = uuid.uuid4().hex
+    key = f"alive/{u}/x"
+    relay = Relay(host, port)
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+    ):
+        handle = await t.declare_token(key)
+        told: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        handle.on_end(told.set_result)
+        relay.refuse[key] = 0x87  # not authorized
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            reason = await told
+        assert reason == (
+            f"mqtt: the broker refused the subscription to {key!r}: Not authorized (0x87)"
+            " (after reconnecting)"
+        )
+        assert handle.closed and handle.ended == reason
+        assert handle not in t._handles
+        async with asyncio.timeout(WAIT):
+            await handle.aclose()  # closing what ended already is harmless

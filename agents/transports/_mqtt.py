@@ -56,7 +56,10 @@ Presence
     key, and announces again when someone else clears the key or its connection drops.
     It hears the clearing through its own subscription to the key: one the broker
     refuses fails the declaration (TransportError, as any refused subscription) before
-    anything is announced, its connection closed.
+    anything is announced, its connection closed. A token that cannot announce itself
+    again after its connection dropped (the reconnection failed, the subscription
+    refused) ends: its `Handle` closed, its ``ended`` the error's text and
+    "(after reconnecting)", its ``on_end`` callbacks called with it.
     Closing the token publishes the empty retained message (which clears it; QoS 0, its
     acknowledgement not waited for: a close does not wait on a slow broker); a process
     that dies loses its connection and the broker publishes the will.
@@ -1091,7 +1094,9 @@ class MqttTransport(_Keeps, Transport):
             if self._tg is not None:
                 self._spawn(token.clear(), f"mqtt.token[{key}].clear")
 
-        return self._handle(start_clearing, token.clear)
+        handle = self._handle(start_clearing, token.clear)
+        token.end = handle._end
+        return handle
 
     async def watch_presence(
         self, key_expr: str, *, history: bool = True, buffer_size: int = 4096
@@ -1120,6 +1125,7 @@ class _Token:
         self.task: asyncio.Task[None] | None = None
         self.closing = False
         self.reconnects = 0
+        self.end: Callable[[str], None] | None = None  # its handle's, when it cannot go on
 
     async def connect(self) -> None:
         t = self.transport
@@ -1187,6 +1193,8 @@ class _Token:
                 await self.connect()
             except TransportError as exc:
                 log.warning("mqtt: could not announce %r again: %s", self.key, exc)
+                if self.end is not None:  # its owner learns it is no longer announced
+                    self.end(f"{exc} (after reconnecting)")
                 return
             self.reconnects += 1
 
