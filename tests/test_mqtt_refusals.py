@@ -12,11 +12,14 @@ import logging
 import signal
 import subprocess
 import uuid
+from pathlib import Path
 
 import pytest
 
+from agents import AgentPlatform
 from agents._exceptions import TransportError
 from agents.transports import MqttConfig, MqttTransport
+from tests._node_example import Station
 from tests.test_mqtt_start_close import WAIT, Relay
 
 
@@ -165,3 +168,125 @@ async def test_a_token_refused_after_a_reconnection_ends_and_its_owner_is_told(
         assert handle not in t._handles
         async with asyncio.timeout(WAIT):
             await handle.aclose()  # closing what ended already is harmless
+
+
+async def test_a_platform_whose_directory_is_refused_after_a_reconnection_says_so_and_counts_it(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # the transport ended the directory's queryable, and nothing of the platform's heard:
+    # it ran on, believing its agents findable, while others' directory queries went
+    # unanswered, with not a line in its log
+    host, port = mosquitto
+    fed = f"lost-{uuid.uuid4().hex[:8]}"
+    relay = Relay(host, port)
+    caplog.set_level(logging.ERROR)
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as other,
+        AgentPlatform("uav-a", t, federation=fed) as p,
+    ):
+        key = p.key("df")
+        assert await other.query(key, timeout=WAIT)  # served: an answer, whatever it says
+        told: asyncio.Future[tuple[str, str]] = asyncio.get_running_loop().create_future()
+        p.on_lost(lambda what, why: told.done() or told.set_result((what, why)))
+        assert p.stats.declarations_lost == 0 and p.lost == {}
+        relay.refuse[f"@query/{key}"] = 0x87  # not authorized, from the reconnection on
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            what, reason = await told
+        assert what == f"directory queryable {key}"
+        assert reason == (
+            f"mqtt: the broker refused the subscription to '@query/{key}': "
+            "Not authorized (0x87) (after reconnecting)"
+        )
+        assert p.stats.declarations_lost == 1 and p.lost == {what: reason}
+        errors = [(r.name, r.getMessage()) for r in caplog.records if r.levelno >= logging.ERROR]
+        assert errors == [
+            (
+                "agents._platform",
+                f"platform[uav-a]: lost its {what} ({reason}): other platforms can no longer "
+                "find this platform's agents (their directory queries go unanswered)",
+            )
+        ]
+        late: list[tuple[str, str]] = []
+        p.on_lost(lambda what, why: late.append((what, why)))  # told at once of the past
+        assert late == [(what, reason)]
+        # what it means, seen from another platform: the platform is alive, its
+        # directory silent
+        assert t._up is not None
+        async with asyncio.timeout(WAIT):
+            await t._up.wait()
+        async with asyncio.timeout(WAIT):  # the token announced again, in its own time
+            while await other.tokens(p.key("alive", "*"), timeout=0.2) != [p.key("alive")]:
+                pass
+        assert await other.query(key, timeout=0.5) == []
+    # its close is clean, the ended queryable closed again harmlessly (the relay's own
+    # cancelled connections are asyncio's to log)
+    ours = [r for r in caplog.records if r.name.startswith(("agents", "federation"))]
+    assert [(r.name, r.getMessage()) for r in ours if r.levelno >= logging.ERROR] == errors
+
+
+async def test_a_node_whose_directory_is_refused_after_a_reconnection_stops_cleanly_and_exits_1(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    # a real `dyknow node` over MQTT: it ran on with its directory unserved, silent; now
+    # it says what it lost and what that means, closes cleanly (its presence cleared,
+    # its figures said) and exits 1, for its supervisor to start it again
+    host, port = mosquitto
+    relay = Relay(host, port)
+    station = Station(tmp_path)
+    conf = station.dir / "station-python.toml"
+    fed = station.federation
+    df = f"dyknow/{fed}/v1/df/station"
+    loop = asyncio.get_running_loop()
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host=host, port=port)) as other,
+    ):
+        text = conf.read_text()
+        start = text.index("[transport]")
+        end = text.index("\n[", start)  # its inputs follow
+        conf.write_text(
+            f'{text[:start]}[transport]\nkind = "mqtt"\nhost = "127.0.0.1"\nport = {relayed}\n'
+            f'client_id = "station-{uuid.uuid4().hex[:8]}"\n{text[end:]}'
+        )
+        node = station.spawn("node", "--config", conf.name)
+        station.node = node
+        try:
+            assert node.stdout is not None
+            async with asyncio.timeout(3 * WAIT):
+                ready = await loop.run_in_executor(None, node.stdout.readline)
+            assert f"station ready in federation {fed}" in ready, station.stop()
+            assert await other.query(df, timeout=WAIT)  # its directory answers
+            relay.refuse[f"@query/{df}"] = 0x87  # not authorized, from the reconnection on
+            relay.drop()
+            async with asyncio.timeout(3 * WAIT):
+                out, err = await loop.run_in_executor(None, node.communicate)
+        finally:
+            if node.poll() is None:
+                station.stop()
+            station.node = None
+        assert node.returncode == 1, (out, err)
+        reason = (
+            f"mqtt: the broker refused the subscription to '@query/{df}': "
+            "Not authorized (0x87) (after reconnecting)"
+        )
+        lines = err.splitlines()
+        assert "Traceback" not in err, err
+        # the log's line, the node's word that it stops, and the exit's reason, in order
+        ours = [line for line in lines if line.startswith(("platform[", "dyknow node:"))]
+        assert ours == [
+            f"platform[station]: lost its directory queryable {df} ({reason}): other "
+            "platforms can no longer find this platform's agents (their directory queries "
+            "go unanswered)",
+            "dyknow node: station stopping, to exit with code 1 for its supervisor to "
+            f"restart it: the transport ended its directory queryable {df}",
+            f"dyknow node: {conf.name}: platform 'station' stopped: the transport ended its "
+            f"directory queryable {df} ({reason}). Started again, it declares them anew",
+        ], err
+        said = out.splitlines()
+        assert f"dyknow node: declarations lost: 1 (directory queryable {df})" in said, out
+        assert said[-1] == "dyknow node: station stopped", out
+        # closed cleanly: its presence cleared (it left, not merely went silent)
+        assert await other.tokens(f"dyknow/{fed}/v1/alive/*", timeout=WAIT) == []
