@@ -118,6 +118,36 @@ async def test_an_answer_to_a_call_never_made_is_still_logged_as_unexpected(
     assert not [r for r in caplog.records if "after it was given up" in r.getMessage()]
 
 
+async def test_a_token_whose_reconnection_fails_ends_and_is_not_cleared_on_a_lost_connection(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # ended, its handle closed, it was "cleared" on the connection already lost: a
+    # warning that the token could not be cleared, which reads as a key left alive
+    host, port = mosquitto
+    key = f"alive/{uuid.uuid4().hex}/x"
+    relay = Relay(host, port)
+    caplog.set_level(logging.WARNING, logger="agents.transports._mqtt")
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed, connect_timeout=1.0)) as t,
+    ):
+        handle = await t.declare_token(key)
+        told: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        handle.on_end(told.set_result)
+        relay.stall = True  # the reconnections are never answered
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            reason = await told
+        assert reason.startswith(f"mqtt: connect for the token on {key!r}: ")
+        assert reason.endswith("(after reconnecting)")
+        assert handle.closed and handle.ended == reason
+        clearing = [x for x in asyncio.all_tasks() if x.get_name() == f"mqtt.token[{key}].clear"]
+        async with asyncio.timeout(WAIT):
+            await asyncio.gather(*clearing)
+            await relay.wait_for(lambda: relay.open == 0)  # every connection closed
+    assert not [r for r in caplog.records if "could not clear" in r.getMessage()]
+
+
 async def test_a_queryable_refused_after_a_reconnection_ends_and_its_owner_is_told(
     mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
 ) -> None:

@@ -1204,6 +1204,9 @@ class _Token:
                 if self.closing or self.transport._state != "opened":
                     return
                 log.warning("mqtt: the token's connection on %r was lost: %s", self.key, exc)
+            # gone (the broker's will clears the key): nothing for `clear` to clear on it,
+            # should the token end or close before it is connected again
+            self.client = self.connection = None
             await _disconnect(client, connection)
             # announced again only once this platform answers again (queries, DF)
             up = self.transport._up
