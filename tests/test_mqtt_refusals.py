@@ -90,6 +90,67 @@ async def test_answers_later_than_connect_timeout_log_no_error(
     assert [m.split()[4] for m in late] == ["subscribe", "unsubscribe"]
 
 
+async def test_an_answer_to_a_call_never_made_is_still_logged_as_unexpected(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # only an answer to a call given up is late: a SUBACK whose packet id no call of
+    # this client ever had (a broker's bug, a stream gone wrong) was logged at DEBUG as
+    # "given up", hiding what aiomqtt reports as an error
+    host, port = mosquitto
+    key = f"forged/{uuid.uuid4().hex}"
+    relay = Relay(host, port)
+    caplog.set_level(logging.DEBUG)
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as sender,
+    ):
+        relay.forge = b"\x90\x04\xbe\xef\x00\x00"  # a SUBACK for packet id 0xBEEF, granted
+        async with asyncio.timeout(WAIT):
+            sub = await t.subscribe(key)
+        async with sub:
+            # read after the forged SUBACK, which came right behind the real one
+            await sender.publish(key, b"after")
+            assert (await sub.get(timeout=WAIT)).payload == b"after"
+    unexpected = [
+        r for r in caplog.records if r.levelno >= logging.ERROR and "48879" in r.getMessage()
+    ]
+    assert [r.getMessage() for r in unexpected] == [
+        'Unexpected message ID "48879" in on_subscribe callback'
+    ]
+    assert not [r for r in caplog.records if "after it was given up" in r.getMessage()]
+
+
+async def test_a_token_whose_reconnection_fails_ends_and_is_not_cleared_on_a_lost_connection(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # ended, its handle closed, it was "cleared" on the connection already lost: a
+    # warning that the token could not be cleared, which reads as a key left alive
+    host, port = mosquitto
+    key = f"alive/{uuid.uuid4().hex}/x"
+    relay = Relay(host, port)
+    caplog.set_level(logging.WARNING, logger="agents.transports._mqtt")
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed, connect_timeout=1.0)) as t,
+    ):
+        handle = await t.declare_token(key)
+        told: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        handle.on_end(told.set_result)
+        relay.stall = True  # the reconnections are never answered
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            reason = await told
+        assert reason.startswith(f"mqtt: connect for the token on {key!r}: ")
+        assert reason.endswith("(after reconnecting)")
+        assert handle.closed and handle.ended == reason
+        clearing = [x for x in asyncio.all_tasks() if x.get_name() == f"mqtt.token[{key}].clear"]
+        async with asyncio.timeout(WAIT):
+            await asyncio.gather(*clearing)
+            await relay.wait_for(lambda: relay.open == 0)  # every connection closed
+    assert not [r for r in caplog.records if "could not clear" in r.getMessage()]
+
+
 async def test_a_queryable_refused_after_a_reconnection_ends_and_its_owner_is_told(
     mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
 ) -> None:

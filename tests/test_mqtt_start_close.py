@@ -384,7 +384,8 @@ class Relay:
     ``stall`` holds the connections made from then on: their CONNECT is never answered;
     a SUBSCRIBE of a filter starting with one of ``hold`` is never answered either.
     ``open`` counts the client connections not yet closed by the client, ``held`` what
-    was held (connections and SUBSCRIBEs).
+    was held (connections and SUBSCRIBEs). ``forge``, when set, goes to the client once,
+    right after the next SUBACK (a broker's packet the client never asked for).
     """
 
     def __init__(self, host: str, port: int) -> None:
@@ -394,6 +395,7 @@ class Relay:
         self.hold: tuple[str, ...] = ()
         self.open = 0
         self.held = 0
+        self.forge = b""
         self.changed = asyncio.Event()
         self.writers: set[asyncio.StreamWriter] = set()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -455,6 +457,7 @@ class Relay:
                         props, start = _varint_end(packet, at + 2)
                         start += props
                         packet = packet[:start] + bytes([code]) * (len(packet) - start)
+                    packet, self.forge = packet + self.forge, b""
                 return packet
 
             async def pipe(

@@ -296,8 +296,9 @@ class Handle:
     def on_end(self, callback: Callable[[str], None]) -> None:
         """Have ``callback(reason)`` called if the transport ends this itself, never at a close.
 
-        At once when it ended already. MQTT: a queryable whose topic filter the broker
-        refuses when subscribed anew after a reconnection.
+        At once when it ended already. Only MQTT ends one: a queryable whose topic filter
+        the broker refuses when subscribed anew after a reconnection, a liveliness token
+        that cannot announce itself again after its connection dropped.
         """
         if self.ended is not None:
             callback(self.ended)

@@ -26,7 +26,7 @@ Subscriptions
     its caller gave up on still takes the broker's answer, in the background: aiomqtt
     logs an answer to a call it no longer waits for as an error. An answer later than
     ``connect_timeout`` (a stalled broker: the background call gave up too) is logged
-    at DEBUG as late.
+    at DEBUG as late; one to no call of this client stays aiomqtt's error.
 
 Query / serve (a topic convention on MQTT v5 request/response)
     A query on key expression ``Q`` is published on ``@query/<P>``, where ``<P>`` is ``Q``
@@ -116,7 +116,7 @@ import math
 import secrets
 import socket
 import threading
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import Callable, Coroutine, Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
 from .._aio import together
@@ -167,6 +167,12 @@ def _load_client() -> None:
 
         _connect_ended: threading.Event | None = None  # set when paho's connect returns
 
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            # packet ids of (un)subscribes given up, whose answer is late (`_pending_call`)
+            self._late_subscribes: set[int] = set()
+            self._late_unsubscribes: set[int] = set()
+
         async def _wait_for(self, fut: Any, timeout: float | None) -> Any:
             return await _wait_keeping_cancel(self, fut, timeout)
 
@@ -197,15 +203,32 @@ def _load_client() -> None:
 
         # A SUBACK or UNSUBACK whose call aiomqtt stopped waiting for (its timeout,
         # ``connect_timeout``, passed: a stalled broker) is late, not unexpected: aiomqtt
-        # logs it at ERROR with a traceback, which reads as a failure of ours.
+        # logs it at ERROR with a traceback, which reads as a failure of ours. Only the
+        # packet ids of calls given up are late: any other stays aiomqtt's error.
+        @contextlib.contextmanager
+        def _pending_call(
+            self, mid: int, value: Any, pending_dict: dict[int, Any]
+        ) -> Iterator[None]:
+            with super()._pending_call(mid, value, pending_dict):
+                try:
+                    yield
+                except BaseException:  # timed out or cancelled: its answer may still come
+                    if pending_dict is self._pending_subscribes:
+                        self._late_subscribes.add(mid)
+                    elif pending_dict is self._pending_unsubscribes:
+                        self._late_unsubscribes.add(mid)
+                    raise
+
         def _on_subscribe(self, client: Any, userdata: Any, mid: int, *args: Any) -> None:
-            if mid not in self._pending_subscribes:
+            if mid not in self._pending_subscribes and mid in self._late_subscribes:
+                self._late_subscribes.discard(mid)
                 log.debug("mqtt: the broker answered subscribe %d after it was given up", mid)
                 return
             super()._on_subscribe(client, userdata, mid, *args)
 
         def _on_unsubscribe(self, client: Any, userdata: Any, mid: int, *args: Any) -> None:
-            if mid not in self._pending_unsubscribes:
+            if mid not in self._pending_unsubscribes and mid in self._late_unsubscribes:
+                self._late_unsubscribes.discard(mid)
                 log.debug("mqtt: the broker answered unsubscribe %d after it was given up", mid)
                 return
             super()._on_unsubscribe(client, userdata, mid, *args)
@@ -1181,6 +1204,9 @@ class _Token:
                 if self.closing or self.transport._state != "opened":
                     return
                 log.warning("mqtt: the token's connection on %r was lost: %s", self.key, exc)
+            # gone (the broker's will clears the key): nothing for `clear` to clear on it,
+            # should the token end or close before it is connected again
+            self.client = self.connection = None
             await _disconnect(client, connection)
             # announced again only once this platform answers again (queries, DF)
             up = self.transport._up
