@@ -144,8 +144,12 @@ async def test_a_token_whose_reconnection_fails_ends_and_is_not_cleared_on_a_los
         relay.drop()
         async with asyncio.timeout(WAIT):
             reason = await told
-        assert reason.startswith(f"mqtt: connect for the token on {key!r}: ")
-        assert reason.endswith("(after reconnecting)")
+        # ended by whichever fails first: the transport's reconnection (as a rule: the
+        # token's waits for it) or the token's own
+        lost = reason.startswith("mqtt: the connection to the broker was lost (")
+        lost = lost and "and could not be made again (" in reason
+        own = reason.startswith(f"mqtt: connect for the token on {key!r}: ")
+        assert lost or (own and reason.endswith("(after reconnecting)")), reason
         assert handle.closed and handle.ended == reason
         clearing = [x for x in asyncio.all_tasks() if x.get_name() == f"mqtt.token[{key}].clear"]
         async with asyncio.timeout(WAIT):
@@ -289,6 +293,42 @@ async def test_a_platform_whose_directory_is_refused_after_a_reconnection_says_s
     # cancelled connections are asyncio's to log)
     ours = [r for r in caplog.records if r.name.startswith(("agents", "federation"))]
     assert [(r.name, r.getMessage()) for r in ours if r.levelno >= logging.ERROR] == errors
+
+
+async def test_a_platform_whose_broker_cannot_be_reached_again_loses_every_declaration(
+    mosquitto: tuple[str, int],
+) -> None:
+    # a broker restarting: the one reconnection of the platform's connection failed, the
+    # transport was lost, nothing answered any more, but no declaration ended: the
+    # token's own connection, made once the broker was back, announced the platform
+    # alive again, and neither the platform nor a node running it heard of anything
+    host, port = mosquitto
+    fed = f"gone-{uuid.uuid4().hex[:8]}"
+    relay = Relay(host, port)
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed, connect_timeout=5.0)) as t,
+        MqttTransport(MqttConfig(host=host, port=port)) as other,
+        AgentPlatform("uav-a", t, federation=fed) as p,
+    ):
+        alive = p.key("alive")
+        assert await other.tokens(p.key("alive", "*"), timeout=WAIT) == [alive]
+        told: asyncio.Queue[str] = asyncio.Queue()
+        p.on_lost(lambda what, why: told.put_nowait(what))
+        relay.down = True  # the platform's reconnection refused at once; its token's comes
+        relay.drop()  # after connect_timeout, the broker back by then
+        async with asyncio.timeout(WAIT):
+            lost = {await told.get(), await told.get()}
+        assert lost == {f"liveliness token {alive}", f"directory queryable {p.key('df')}"}
+        assert p.stats.declarations_lost == 2
+        assert all(
+            why.startswith("mqtt: the connection to the broker was lost") for why in p.lost.values()
+        )
+        relay.down = False  # the broker back: nothing of the platform's comes back with it
+        clearing = [x for x in asyncio.all_tasks() if x.get_name() == f"mqtt.token[{alive}].clear"]
+        async with asyncio.timeout(WAIT):
+            await asyncio.gather(*clearing)
+        assert await other.tokens(p.key("alive", "*"), timeout=WAIT) == []
 
 
 async def test_a_node_whose_directory_is_refused_after_a_reconnection_stops_cleanly_and_exits_1(

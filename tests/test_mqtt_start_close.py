@@ -386,6 +386,7 @@ class Relay:
     ``open`` counts the client connections not yet closed by the client, ``held`` what
     was held (connections and SUBSCRIBEs). ``forge``, when set, goes to the client once,
     right after the next SUBACK (a broker's packet the client never asked for).
+    ``down`` closes the connections made from then on at once (a broker restarting).
     """
 
     def __init__(self, host: str, port: int) -> None:
@@ -396,6 +397,7 @@ class Relay:
         self.open = 0
         self.held = 0
         self.forge = b""
+        self.down = False
         self.changed = asyncio.Event()
         self.writers: set[asyncio.StreamWriter] = set()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -418,6 +420,8 @@ class Relay:
         self.changed.set()
         self.writers.add(writer)
         try:
+            if self.down:
+                return
             if self.stall:
                 self.held += 1
                 self.changed.set()

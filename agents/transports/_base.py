@@ -298,7 +298,8 @@ class Handle:
 
         At once when it ended already. Only MQTT ends one: a queryable whose topic filter
         the broker refuses when subscribed anew after a reconnection, a liveliness token
-        that cannot announce itself again after its connection dropped.
+        that cannot announce itself again after its connection dropped, and every one
+        when the transport's connection dropped and could not be made again.
         """
         if self.ended is not None:
             callback(self.ended)

@@ -98,9 +98,11 @@ What MQTT cannot guarantee, compared to zenoh
       counted, the first to go clears the key.
     - QoS 0 (the default) is at most once; nothing is redelivered after a reconnection.
       A lost connection is reconnected once at once (a new client id, every subscription
-      again; a token announces itself again); when that fails, every subscription ends
-      and later calls raise TransportClosed. A close during the reconnection ends the
-      new connection too.
+      again; a token announces itself again); when that fails, every subscription ends,
+      every queryable and token ends (`Handle.on_end`: nothing answers for them any
+      more, and a token's own connection would announce the platform alive again once
+      the broker is back) and later calls raise TransportClosed. A close during the
+      reconnection ends the new connection too.
     - Attachments travel base64-encoded in a user property.
 """
 
@@ -642,6 +644,15 @@ class MqttTransport(_Keeps, Transport):
                         sub.inbox.close()
                     for inbox in self._pending.values():
                         inbox.close()
+                    # nothing is served any more: each queryable and token ends, its owner
+                    # told (a token's own connection, made again once the broker is back,
+                    # would otherwise announce alive what no longer answers)
+                    reason = (
+                        f"mqtt: the connection to the broker was lost ({exc}) and could "
+                        f"not be made again ({again})"
+                    )
+                    for handle in list(self._handles):
+                        handle._end(reason)
                     return
 
     async def _reconnect(self) -> aiomqtt.Client:
