@@ -1555,6 +1555,7 @@ class InterfaceAgent:
                     self._lane_raw_release()
                 else:
                     self._lane_release(held)
+        host._inbox_ended(inbox)
 
     def _lane_book_before(self, item: tuple[Any, ...]) -> bool:
         """`_lane_book` before the inbox's consumer takes ``item``; one that raises (beyond

@@ -155,6 +155,7 @@ class PlainChannel:
                     "platform[%s]: delivering %s failed", platform.name, message.performative
                 )
         log.debug("platform[%s]: ACL inbox closed", platform.name)
+        platform._inbox_ended(sub)
 
 
 @dataclass(init=False, repr=False, eq=False)
@@ -437,6 +438,20 @@ class AgentPlatform:
         """
         handle.on_end(lambda reason: self._lose(what, meaning, reason))
         return handle
+
+    def _inbox_ended(self, sub: Subscription[Any]) -> None:
+        """The channel's inbox ``sub`` ended: lost (as `declared`) unless closed, or closing.
+
+        A subscription has no reason to give: the transport's own warning before says why
+        (MQTT: the broker refused its filter after a reconnection).
+        """
+        # (a test's inbox may be any async iterable: no transport ends it)
+        if isinstance(sub, Subscription) and not sub.closed and self._state == _OPENED:
+            self._lose(
+                f"inbox subscription {self.key('acl')}",
+                "other platforms' messages to this platform's agents are no longer received",
+                "the transport ended the subscription",
+            )
 
     def on_lost(self, callback: Callable[[str, str], None]) -> None:
         """Have ``callback(what, reason)`` called for each declaration the transport ends.

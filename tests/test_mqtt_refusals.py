@@ -295,6 +295,42 @@ async def test_a_platform_whose_directory_is_refused_after_a_reconnection_says_s
     assert [(r.name, r.getMessage()) for r in ours if r.levelno >= logging.ERROR] == errors
 
 
+async def test_a_platform_whose_inbox_is_refused_after_a_reconnection_says_so_and_counts_it(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # its inbox's subscription ended, its consumer with it: the platform ran on deaf to
+    # every other platform's messages, nothing counted, nothing at ERROR, a node up
+    host, port = mosquitto
+    fed = f"deaf-{uuid.uuid4().hex[:8]}"
+    relay = Relay(host, port)
+    caplog.set_level(logging.ERROR)
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        AgentPlatform("uav-a", t, federation=fed) as p,
+    ):
+        told: asyncio.Future[tuple[str, str]] = asyncio.get_running_loop().create_future()
+        p.on_lost(lambda what, why: told.done() or told.set_result((what, why)))
+        key = p.key("acl")
+        relay.refuse[key] = 0x87  # not authorized, from the reconnection on
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            what, reason = await told
+        assert (what, reason) == (
+            f"inbox subscription {key}",
+            "the transport ended the subscription",
+        )
+        assert p.stats.declarations_lost == 1 and p.lost == {what: reason}
+        errors = [(r.name, r.getMessage()) for r in caplog.records if r.levelno >= logging.ERROR]
+        assert (
+            "agents._platform",
+            f"platform[uav-a]: lost its {what} ({reason}): other platforms' messages to this "
+            "platform's agents are no longer received",
+        ) in errors
+    # closed, as every close closes it: no loss
+    assert p.stats.declarations_lost == 1
+
+
 async def test_a_platform_whose_broker_cannot_be_reached_again_loses_every_declaration(
     mosquitto: tuple[str, int],
 ) -> None:
@@ -318,9 +354,11 @@ async def test_a_platform_whose_broker_cannot_be_reached_again_loses_every_decla
         relay.down = True  # the platform's reconnection refused at once; its token's comes
         relay.drop()  # after connect_timeout, the broker back by then
         async with asyncio.timeout(WAIT):
-            lost = {await told.get(), await told.get()}
-        assert lost == {f"liveliness token {alive}", f"directory queryable {p.key('df')}"}
-        assert p.stats.declarations_lost == 2
+            lost = {await told.get(), await told.get(), await told.get()}
+        inbox = f"inbox subscription {p.key('acl')}"
+        assert lost == {f"liveliness token {alive}", f"directory queryable {p.key('df')}", inbox}
+        assert p.stats.declarations_lost == 3
+        assert p.lost.pop(inbox) == "the transport ended the subscription"
         assert all(
             why.startswith("mqtt: the connection to the broker was lost") for why in p.lost.values()
         )

@@ -230,6 +230,11 @@ class Subscription(Generic[T]):
         """Items lost because the consumer fell behind."""
         return self.inbox.dropped
 
+    @property
+    def closed(self) -> bool:
+        """Whether `close` closed it; an iterator that ended otherwise, the transport ended."""
+        return self._closed
+
     def close(self) -> None:
         """Stop receiving; the iterator ends after what is queued."""
         if self._closed:
