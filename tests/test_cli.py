@@ -938,3 +938,28 @@ async def test_each_declaration_of_a_node_tells_its_platform_when_the_transport_
         assert sorted(agents.lost) == sorted(expected)
         assert sorted(told) == sorted(f"{what}: gone" for what in expected)
         assert agents.stats.declarations_lost == 5
+
+
+async def test_a_node_platforms_inbox_ended_by_its_transport_is_a_loss(tmp_path: Path) -> None:
+    """Its Interface Agent's inbox ended by the transport (MQTT: refused after a
+    reconnection), the platform ran on deaf, nothing logged or counted; a close is no loss."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p:
+        agents = p.agents
+        told: asyncio.Future[tuple[str, str]] = asyncio.get_running_loop().create_future()
+        agents.on_lost(lambda what, why: told.done() or told.set_result((what, why)))
+        # the inbox its consumer reads (the platform's task runs it in a guard)
+        (task,) = [t for t in agents._tasks if t.get_name().endswith(".interface.inbox")]
+        receive = task.get_coro().cr_frame.f_locals["coro"]  # type: ignore[union-attr]
+        inbox = receive.cr_frame.f_locals["inbox"]
+        inbox.inbox.close()  # as MQTT's `_end` does: the iterator ends, not closed
+        async with asyncio.timeout(10):
+            what, reason = await told
+        assert what == "inbox subscription dyknow/traffic/v1/acl/uav-a"
+        assert reason == "the transport ended the subscription"
+        assert agents.stats.declarations_lost == 1
+    assert agents.stats.declarations_lost == 1  # the close ended the rest: no loss
