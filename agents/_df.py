@@ -272,8 +272,12 @@ class DirectoryFacilitator(Agent):
 
     async def setup(self) -> None:
         """Serve this platform's public services to the global directory."""
-        self._queryable = await self.platform.transport.serve(
-            self.platform.key("df"), self._serve_public, admit=self._admit_query
+        key = self.platform.key("df")
+        self._queryable = self.platform.declared(
+            await self.platform.transport.serve(key, self._serve_public, admit=self._admit_query),
+            f"directory queryable {key}",
+            "other platforms can no longer find this platform's agents (their directory "
+            "queries go unanswered)",
         )
         self.spawn(self._report_shed(), "df.shed-report")
 

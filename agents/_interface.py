@@ -843,16 +843,23 @@ class InterfaceAgent:
         got: dict[str, Subscription[Any]] = {}
 
         async def serve_kx() -> None:
-            self._kx = await transport.serve(
-                platform.key("kx"),
-                self._on_key_exchange,
-                admit=None if gate is None else gate.admit,
+            key = platform.key("kx")
+            self._kx = platform.declared(
+                await transport.serve(
+                    key, self._on_key_exchange, admit=None if gate is None else gate.admit
+                ),
+                f"key-exchange queryable {key}",
+                "no other platform can agree a new session with this one: one that "
+                "restarts, or meets it for the first time, can no longer talk to it",
             )
 
         async def serve_watch() -> None:
             if self.watchable:
-                self._watch_handle = await transport.serve(
-                    platform.key("watch"), self._on_watch, admit=self._admit_watch
+                key = platform.key("watch")
+                self._watch_handle = platform.declared(
+                    await transport.serve(key, self._on_watch, admit=self._admit_watch),
+                    f"watch queryable {key}",
+                    "this platform's owner can no longer watch it (dyknow watch)",
                 )
 
         async def watch_presence() -> None:
@@ -1548,6 +1555,7 @@ class InterfaceAgent:
                     self._lane_raw_release()
                 else:
                     self._lane_release(held)
+        host._inbox_ended(inbox)
 
     def _lane_book_before(self, item: tuple[Any, ...]) -> bool:
         """`_lane_book` before the inbox's consumer takes ``item``; one that raises (beyond

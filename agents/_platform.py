@@ -155,6 +155,7 @@ class PlainChannel:
                     "platform[%s]: delivering %s failed", platform.name, message.performative
                 )
         log.debug("platform[%s]: ACL inbox closed", platform.name)
+        platform._inbox_ended(sub)
 
 
 @dataclass(init=False, repr=False, eq=False)
@@ -204,7 +205,10 @@ class PlatformStats(Record):
     presence changes of trusted peers not acted on (over a peer's budget: presence is not
     authenticated, and each change acted on costs a key exchange); ``from_left``
     requests refused because their platform said, signed, that it left (also in
-    ``denied``; served again once its signed directory snapshot lists it); ``senders`` holds
+    ``denied``; served again once its signed directory snapshot lists it);
+    ``declarations_lost`` what the platform declared on its transport (its liveliness
+    token, its directory's queryable, …) that the transport ended by itself
+    (`AgentPlatform.lost`); ``senders`` holds
     per-platform figures (keyed by authenticated platform name, so bounded by the trust
     file).
     """
@@ -212,6 +216,7 @@ class PlatformStats(Record):
     __slots__ = (
         "agent_refused",
         "answers_dropped",
+        "declarations_lost",
         "denied",
         "forged",
         "from_left",
@@ -254,6 +259,7 @@ class PlatformStats(Record):
     rehandshakes_suppressed: int
     presence_suppressed: int
     from_left: int
+    declarations_lost: int
     senders: dict[str, SenderStats]
 
     def __init__(
@@ -279,6 +285,7 @@ class PlatformStats(Record):
         rehandshakes_suppressed: int = 0,
         presence_suppressed: int = 0,
         from_left: int = 0,
+        declarations_lost: int = 0,
         senders: dict[str, SenderStats] | None = None,
     ) -> None:
         self.local = local
@@ -302,6 +309,7 @@ class PlatformStats(Record):
         self.rehandshakes_suppressed = rehandshakes_suppressed
         self.presence_suppressed = presence_suppressed
         self.from_left = from_left
+        self.declarations_lost = declarations_lost
         self.senders = {} if senders is None else senders
 
 
@@ -395,6 +403,9 @@ class AgentPlatform:
         self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
         self._tasks: set[asyncio.Task[Any]] = set()
         self._token: Handle | None = None
+        # what the transport ended by itself, by what it was: why (`declared`)
+        self.lost: dict[str, str] = {}
+        self._on_lost: list[Callable[[str, str], None]] = []
         self._lock = asyncio.Lock()
         self._answering = 0  # answers of the platform's own being sent in the background
         # refusals of other platforms' messages past the channel (an agent's refuse, no
@@ -418,6 +429,52 @@ class AgentPlatform:
         log_ = getattr(self.channel, "audit", None)
         if log_ is not None:
             log_.record(**fields)
+
+    def declared(self, handle: Handle, what: str, meaning: str) -> Handle:
+        """``handle``, the platform told if the transport ends it by itself; returned.
+
+        ``what`` names it ("directory queryable dyknow/…/df/uav-a"), ``meaning`` says what
+        its loss means for others ("other platforms can no longer find this platform's
+        agents"). An end is logged at ERROR with both and the transport's reason,
+        counted (``stats.declarations_lost``), kept in `lost` and passed to the
+        `on_lost` callbacks. A close is no end.
+        """
+        handle.on_end(lambda reason: self._lose(what, meaning, reason))
+        return handle
+
+    def _inbox_ended(self, sub: Subscription[Any]) -> None:
+        """The channel's inbox ``sub`` ended: lost (as `declared`) unless closed, or closing.
+
+        A subscription has no reason to give: the transport's own warning before says why
+        (MQTT: the broker refused its filter after a reconnection).
+        """
+        # (a test's inbox may be any async iterable: no transport ends it)
+        if isinstance(sub, Subscription) and not sub.closed and self._state == _OPENED:
+            self._lose(
+                f"inbox subscription {self.key('acl')}",
+                "other platforms' messages to this platform's agents are no longer received",
+                "the transport ended the subscription",
+            )
+
+    def on_lost(self, callback: Callable[[str, str], None]) -> None:
+        """Have ``callback(what, reason)`` called for each declaration the transport ends.
+
+        At once for each lost already (`lost`), then as they are lost.
+        """
+        for what, reason in list(self.lost.items()):
+            callback(what, reason)
+        self._on_lost.append(callback)
+
+    def _lose(self, what: str, meaning: str, reason: str) -> None:
+        """The transport ended ``what`` by itself: logged, counted, the callbacks told."""
+        self.stats.declarations_lost += 1
+        self.lost[what] = reason
+        log.error("platform[%s]: lost its %s (%s): %s", self.name, what, reason, meaning)
+        for callback in list(self._on_lost):
+            try:
+                callback(what, reason)
+            except Exception:  # one listener's bug must not keep the others untold
+                log.exception("platform[%s]: a callback told of a lost %s raised", self.name, what)
 
     # -- lifecycle --------------------------------------------------------------------
 
@@ -451,7 +508,13 @@ class AgentPlatform:
             )
             await self.global_df.start()
         # Last: when others see us alive, our inbox and directory already answer.
-        self._token = await self.transport.declare_token(self.key("alive"))
+        key = self.key("alive")
+        self._token = self.declared(
+            await self.transport.declare_token(key),
+            f"liveliness token {key}",
+            "other platforms see this platform gone: they drop its agents from their "
+            "directories and can no longer reach them",
+        )
 
     async def __aexit__(self, et: Any, ev: Any, tb: Any) -> None:
         if self._state != _OPENED:

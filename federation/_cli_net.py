@@ -100,6 +100,53 @@ def _stop_event() -> asyncio.Event:
     return stop
 
 
+class PlatformLostError(TransportError):
+    """A node stopped because its transport ended one of its platform's declarations.
+
+    Raised once the node closed cleanly; its command exits 1, for a supervisor to start
+    it again (a new process declares everything anew, or fails to start naming why).
+    """
+
+
+def _stop_when_lost(p: FederationPlatform, stop: asyncio.Event, command: str) -> dict[str, str]:
+    """Set ``stop`` when the transport ends a declaration of ``p``'s; what it ended, why.
+
+    The platform logged the loss at ERROR already (`AgentPlatform.declared`); this says
+    once, on stderr, that the node stops for it.
+    """
+    lost: dict[str, str] = {}
+
+    def lose(what: str, reason: str) -> None:
+        if not lost:
+            complain(
+                f"dyknow {command}: {p.name} stopping, to exit with code 1 for its "
+                f"supervisor to restart it: the transport ended its {what}"
+            )
+            stop.set()
+        lost[what] = reason
+
+    p.agents.on_lost(lose)
+    return lost
+
+
+def _lost_error(name: str, lost: dict[str, str]) -> PlatformLostError:
+    """The error a node stopped for ``lost`` ends with."""
+    ended = "; ".join(f"its {what} ({reason})" for what, reason in lost.items())
+    return PlatformLostError(
+        f"platform {name!r} stopped: the transport ended {ended}. "
+        "Started again, it declares them anew"
+    )
+
+
+def _say_lost(command: str, p: FederationPlatform, say: Callable[[str], None]) -> None:
+    """The declarations the transport ended, when any: one line of the node's figures."""
+    if p.agents.lost:
+        say(
+            f"dyknow {command}: declarations lost: {p.agents.stats.declarations_lost} "
+            f"({', '.join(p.agents.lost)})"
+        )
+
+
 def endpoints(config: PlatformConfig) -> str:
     """The transport endpoints of a config, for the ready message."""
     t = config.transport
@@ -242,6 +289,10 @@ async def _platform(
 async def run_node(config: PlatformConfig, source: str, say: Callable[[str], None]) -> None:
     """Run one platform and its application until SIGINT/SIGTERM, then shut it down cleanly.
 
+    A declaration of the platform's that the transport ends by itself (MQTT: a filter
+    the broker refuses after a reconnection) stops it too, cleanly, then raises
+    `PlatformLostError`.
+
     SIGHUP re-reads the config file's ``[sharing]`` table (only that) and applies it
     (`reload_sharing`); a wrong one is said in one line and the policy in force stays.
     """
@@ -249,6 +300,7 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
+        lost = _stop_when_lost(p, stop, "node")
         async with _reloading_on_hup(p, source, say, "node"):
             say(
                 f"dyknow node: {p.name} ready in federation {config.federation} "
@@ -261,7 +313,10 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
             f"dyknow node: local channel: {channel.served} commands served, "
             f"{channel.refused} refused"
         )
+        _say_lost("node", p, say)
     say(f"dyknow node: {config.name} stopped")
+    if lost:
+        raise _lost_error(config.name, lost)
 
 
 @contextlib.asynccontextmanager
@@ -416,6 +471,7 @@ async def run_console(
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()
+        lost = _stop_when_lost(p, stop, "console")
         async with _reloading_on_hup(p, source, say, "console"):
             say(
                 f"dyknow console: {p.name} ready in federation {config.federation}: "
@@ -428,7 +484,10 @@ async def run_console(
             f"dyknow console: local channel: {channel.served} commands served, "
             f"{channel.refused} refused"
         )
+        _say_lost("console", p, say)
     say(f"dyknow console: {config.name} stopped")
+    if lost:
+        raise _lost_error(config.name, lost)
 
 
 async def run_foxglove(
@@ -464,6 +523,7 @@ async def run_foxglove(
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()
+        lost = _stop_when_lost(p, stop, "foxglove")
         async with _reloading_on_hup(p, source, say, "foxglove"):
             say(f"dyknow foxglove: serving {', '.join(bridge.served()) or 'no streams'}")
             if bridge.origin is None:
@@ -476,7 +536,10 @@ async def run_foxglove(
             await stop.wait()
         _say_stats("foxglove", application, say)
         say(_foxglove_closing(bridge.stats()))
+        _say_lost("foxglove", p, say)
     say(f"dyknow foxglove: {config.name} stopped")
+    if lost:
+        raise _lost_error(config.name, lost)
 
 
 def _foxglove_closing(stats: dict[str, Any]) -> str:

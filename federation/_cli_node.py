@@ -126,8 +126,9 @@ def run_node(config: Path) -> int:
     """Run one platform from its TOML config until SIGINT/SIGTERM; the exit code.
 
     2: the config is wrong, the platform runs already, or its local channel's place is
-    another user's; 1: the transport failed, or the host lacks what the local channel
-    takes (file descriptors).
+    another user's; 1: the transport failed, or ended one of the platform's declarations
+    (the node stopped cleanly first: `PlatformLostError`), or the host lacks what the
+    local channel takes (file descriptors).
     """
     # What the imports build lives as long as the node: the cyclic GC would walk it again
     # and again until ready (~15 ms of a node's start), so it is off while they run and

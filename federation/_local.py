@@ -602,8 +602,12 @@ class LocalChannel:
         async def who(_key: str, _payload: bytes) -> bytes:
             return info
 
-        self._handle = await self.platform.transport.serve(
-            identity_key(config), who, admit=self._admit_who
+        key = identity_key(config)
+        self._handle = self.platform.agents.declared(
+            await self.platform.transport.serve(key, who, admit=self._admit_who),
+            f"identity queryable {key}",
+            "a second process started as this platform is still refused while its "
+            "liveliness token holds, but no longer told where this one runs",
         )
         self._reports = asyncio.get_running_loop().create_task(
             self._report_shed(), name=f"local[{config.name}].identity-shed"

@@ -898,3 +898,68 @@ def test_platforms_help_says_it_shows_the_platforms_listed() -> None:
     assert "List the platforms listed in the federation" in words
     assert "signed directory snapshot answered" in words
     assert "platforms alive" not in words
+
+
+async def test_each_declaration_of_a_node_tells_its_platform_when_the_transport_ends_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ended by the transport (MQTT: refused after a reconnection), each of the node's own
+    declarations is logged, counted and kept as lost; before, none was heard of."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+    from federation._local import LocalChannel
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # a socket of this test's own
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    async with (
+        asyncio.timeout(30),
+        FederationPlatform(config, join=False) as p,
+        LocalChannel(p) as channel,
+    ):
+        agents = p.agents
+        assert agents.df is not None
+        handles = {
+            "liveliness token": agents._token,
+            "directory queryable": agents.df._queryable,
+            "key-exchange queryable": p.interface._kx,
+            "watch queryable": p.interface._watch_handle,
+            "identity queryable": channel._handle,
+        }
+        told: list[str] = []
+        agents.on_lost(lambda what, reason: told.append(f"{what}: {reason}"))
+        for handle in handles.values():
+            assert handle is not None
+            handle._end("gone")
+        kinds = {"liveliness token": "alive", "directory queryable": "df"}
+        kinds |= {"key-exchange queryable": "kx", "watch queryable": "watch"}
+        kinds |= {"identity queryable": "identity"}
+        expected = [f"{what} dyknow/traffic/v1/{kind}/uav-a" for what, kind in kinds.items()]
+        assert sorted(agents.lost) == sorted(expected)
+        assert sorted(told) == sorted(f"{what}: gone" for what in expected)
+        assert agents.stats.declarations_lost == 5
+
+
+async def test_a_node_platforms_inbox_ended_by_its_transport_is_a_loss(tmp_path: Path) -> None:
+    """Its Interface Agent's inbox ended by the transport (MQTT: refused after a
+    reconnection), the platform ran on deaf, nothing logged or counted; a close is no loss."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p:
+        agents = p.agents
+        told: asyncio.Future[tuple[str, str]] = asyncio.get_running_loop().create_future()
+        agents.on_lost(lambda what, why: told.done() or told.set_result((what, why)))
+        # the inbox its consumer reads (the platform's task runs it in a guard)
+        (task,) = [t for t in agents._tasks if t.get_name().endswith(".interface.inbox")]
+        receive = task.get_coro().cr_frame.f_locals["coro"]  # type: ignore[union-attr]
+        inbox = receive.cr_frame.f_locals["inbox"]
+        inbox.inbox.close()  # as MQTT's `_end` does: the iterator ends, not closed
+        async with asyncio.timeout(10):
+            what, reason = await told
+        assert what == "inbox subscription dyknow/traffic/v1/acl/uav-a"
+        assert reason == "the transport ended the subscription"
+        assert agents.stats.declarations_lost == 1
+    assert agents.stats.declarations_lost == 1  # the close ended the rest: no loss

@@ -15,7 +15,9 @@ import secrets
 import signal
 import socket
 import subprocess
+import sys
 import time
+import traceback
 import uuid
 from collections.abc import AsyncIterator, Callable
 from typing import Any
@@ -382,7 +384,9 @@ class Relay:
     ``stall`` holds the connections made from then on: their CONNECT is never answered;
     a SUBSCRIBE of a filter starting with one of ``hold`` is never answered either.
     ``open`` counts the client connections not yet closed by the client, ``held`` what
-    was held (connections and SUBSCRIBEs).
+    was held (connections and SUBSCRIBEs). ``forge``, when set, goes to the client once,
+    right after the next SUBACK (a broker's packet the client never asked for).
+    ``down`` closes the connections made from then on at once (a broker restarting).
     """
 
     def __init__(self, host: str, port: int) -> None:
@@ -392,6 +396,8 @@ class Relay:
         self.hold: tuple[str, ...] = ()
         self.open = 0
         self.held = 0
+        self.forge = b""
+        self.down = False
         self.changed = asyncio.Event()
         self.writers: set[asyncio.StreamWriter] = set()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -414,6 +420,8 @@ class Relay:
         self.changed.set()
         self.writers.add(writer)
         try:
+            if self.down:
+                return
             if self.stall:
                 self.held += 1
                 self.changed.set()
@@ -453,6 +461,7 @@ class Relay:
                         props, start = _varint_end(packet, at + 2)
                         start += props
                         packet = packet[:start] + bytes([code]) * (len(packet) - start)
+                    packet, self.forge = packet + self.forge, b""
                 return packet
 
             async def pipe(
@@ -645,6 +654,73 @@ async def test_an_open_given_up_while_the_broker_is_slow_to_accept_leaves_no_con
                 pass
             if left := _aiomqtt_tasks():  # aiomqtt's task, cancelled with the socket
                 await asyncio.wait(left)
+    finally:
+        for s in [*fillers, *accepted, listener]:
+            s.close()
+
+
+def _connecting() -> list[int]:
+    """The threads still in paho's connect (`_client_connect`)."""
+    return [
+        ident
+        for ident, frame in sys._current_frames().items()
+        if any(f.f_code.co_name == "_client_connect" for f, _ in traceback.walk_stack(frame))
+    ]
+
+
+async def test_a_cancelled_open_returns_at_once_and_its_socket_closes_when_it_comes() -> None:
+    # the open given up waited for paho's connect thread, up to connect_timeout, holding a
+    # worker thread: now it returns at once, and the socket paho still opens is closed
+    # when it comes, its thread ended
+    listener = socket.socket()
+    listener.bind(("127.0.0.1", 0))
+    listener.listen(0)  # one connection waiting: the next's handshake is dropped, retried
+    listener.setblocking(False)
+    port = listener.getsockname()[1]
+    loop = asyncio.get_running_loop()
+    fillers = []
+    for _ in range(3):
+        filler = socket.socket()
+        filler.setblocking(False)
+        filler.connect_ex(("127.0.0.1", port))
+        fillers.append(filler)
+    accepted: list[socket.socket] = []
+    try:
+        t = MqttTransport(MqttConfig(host="127.0.0.1", port=port, connect_timeout=5.0))
+        opening = asyncio.create_task(t.__aenter__())
+        # paho's thread in its connect, which waits for the handshake's retry (~1 s, then
+        # ~3 s): a loaded machine may take more than a moment to start it, and an open
+        # cancelled before never connects at all
+        async with asyncio.timeout(WAIT):
+            while not _connecting():  # noqa: ASYNC110 (a thread of paho's: no event)
+                await asyncio.sleep(0.01)
+        assert not opening.done()
+        t0 = time.monotonic()
+        opening.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await opening
+        took = time.monotonic() - t0
+        # waiting for paho's connect, as it did, takes connect_timeout: no retry gets in
+        assert took < t.config.connect_timeout / 2, f"the cancelled open took {took:.2f} s"
+        assert len(_connecting()) == 1  # paho's connect goes on in its thread
+        # room for the client: it connects at its handshake's retry
+        ours = {f.getsockname()[1] for f in fillers}
+        client = None
+        async with asyncio.timeout(WAIT):
+            while client is None:
+                conn, (_, peer) = await loop.sock_accept(listener)
+                accepted.append(conn)
+                conn.setblocking(False)
+                if peer not in ours:
+                    client = conn
+        async with asyncio.timeout(WAIT):  # closed by the client: nothing left of it
+            while await loop.sock_recv(client, 1024):
+                pass
+            if left := _aiomqtt_tasks():  # aiomqtt's task, cancelled with the socket
+                await asyncio.wait(left)
+            # and no thread: the connect's worker joins (it would block this otherwise)
+            await loop.shutdown_default_executor()
+        assert _connecting() == []
     finally:
         for s in [*fillers, *accepted, listener]:
             s.close()

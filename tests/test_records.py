@@ -52,7 +52,7 @@ CASES: list[tuple[type, tuple[Any, ...], frozenset[str]]] = [
     (SecurityPolicy, (10.0, 64, 1000, 60.0, 5.0, False, True, 2, 4096), frozenset()),
     (_Pending, ("peer", b"transcript", b"secret", 1.5, 7), frozenset()),
     (SenderStats, (1, 2, 3), frozenset()),
-    (PlatformStats, (*range(21), {"peer": SenderStats(1)}), frozenset()),
+    (PlatformStats, (*range(22), {"peer": SenderStats(1)}), frozenset()),
     (AgentStats, tuple(range(9)), frozenset()),
     (DfEventLimit, (1.0, 2.0, 3.0, 4.0, 5, 6.0), frozenset()),
     (KxLimit, (1.0, 2.0, 3.0, 4.0, 5, 6.0), frozenset()),

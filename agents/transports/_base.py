@@ -230,6 +230,11 @@ class Subscription(Generic[T]):
         """Items lost because the consumer fell behind."""
         return self.inbox.dropped
 
+    @property
+    def closed(self) -> bool:
+        """Whether `close` closed it; an iterator that ended otherwise, the transport ended."""
+        return self._closed
+
     def close(self) -> None:
         """Stop receiving; the iterator ends after what is queued."""
         if self._closed:
@@ -277,7 +282,9 @@ class Handle:
     """Something declared on a transport (a queryable, a liveliness token): close to undeclare.
 
     ``on_aclose``, when given, is the asynchronous way to undeclare (for transports whose
-    undeclaring needs I/O, like MQTT's); ``close`` then only starts it.
+    undeclaring needs I/O, like MQTT's); ``close`` then only starts it. A transport that
+    can no longer serve it ends it itself (`_end`): ``closed``, ``ended`` says why, and
+    the ``on_end`` callbacks are called.
     """
 
     def __init__(
@@ -288,6 +295,34 @@ class Handle:
         self._on_close = on_close
         self._on_aclose = on_aclose
         self.closed = False
+        self.ended: str | None = None  # why the transport ended it; None: it did not
+        self._on_end: list[Callable[[str], None]] = []
+
+    def on_end(self, callback: Callable[[str], None]) -> None:
+        """Have ``callback(reason)`` called if the transport ends this itself, never at a close.
+
+        At once when it ended already. Only MQTT ends one: a queryable whose topic filter
+        the broker refuses when subscribed anew after a reconnection, a liveliness token
+        that cannot announce itself again after its connection dropped, and every one
+        when the transport's connection dropped and could not be made again.
+        """
+        if self.ended is not None:
+            callback(self.ended)
+        elif not self.closed:
+            self._on_end.append(callback)
+
+    def _end(self, reason: str) -> None:
+        """Undeclared by the transport itself, for ``reason``: closed, its owner told."""
+        if self.closed:
+            return
+        self.close()
+        self.ended = reason
+        callbacks, self._on_end = self._on_end, []
+        for callback in callbacks:
+            try:
+                callback(reason)
+            except Exception:  # one owner's bug must not keep the others untold
+                log.warning("a callback told that a declaration ended raised", exc_info=True)
 
     def close(self) -> None:
         """Undeclare it."""

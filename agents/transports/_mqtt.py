@@ -19,9 +19,14 @@ Subscriptions
     authorized, topic filter invalid, quota exceeded) raises TransportError naming the
     filter and the broker's reason, and leaves nothing behind; refused again when
     subscribing anew after a reconnection, it is logged and ends what listened through
-    it (its subscriptions' and watchers' iterators end). A subscribe
+    it: its subscriptions' and watchers' iterators end, and its queryables end whole
+    (every filter of theirs unsubscribed), their `Handle` closed, its ``ended`` the
+    reason (the TransportError's text and "(after reconnecting)"), its ``on_end``
+    callbacks called with it. A subscribe
     its caller gave up on still takes the broker's answer, in the background: aiomqtt
-    logs an answer to a call it no longer waits for as an error.
+    logs an answer to a call it no longer waits for as an error. An answer later than
+    ``connect_timeout`` (a stalled broker: the background call gave up too) is logged
+    at DEBUG as late; one to no call of this client stays aiomqtt's error.
 
 Query / serve (a topic convention on MQTT v5 request/response)
     A query on key expression ``Q`` is published on ``@query/<P>``, where ``<P>`` is ``Q``
@@ -49,6 +54,12 @@ Presence
     ``declare_token`` opens one more connection per token, whose last will is an empty
     retained message on the key; it then publishes ``{"v":1,"alive":true}`` retained on the
     key, and announces again when someone else clears the key or its connection drops.
+    It hears the clearing through its own subscription to the key: one the broker
+    refuses fails the declaration (TransportError, as any refused subscription) before
+    anything is announced, its connection closed. A token that cannot announce itself
+    again after its connection dropped (the reconnection failed, the subscription
+    refused) ends: its `Handle` closed, its ``ended`` the error's text and
+    "(after reconnecting)", its ``on_end`` callbacks called with it.
     Closing the token publishes the empty retained message (which clears it; QoS 0, its
     acknowledgement not waited for: a close does not wait on a slow broker); a process
     that dies loses its connection and the broker publishes the will.
@@ -67,6 +78,9 @@ Closing
     closed with a DISCONNECT, or, when that cannot go out within a second (a broker
     that stopped reading a full socket), by closing the socket: the broker sees the
     connection lost. Only then are the transport's tasks and calls under way cancelled.
+    An open (or a reconnection) given up while paho still connects in its thread (a
+    cancel does not stop it) returns at once; the socket, when it comes, is closed on
+    the loop and aiomqtt's task ends with it.
 
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
@@ -84,9 +98,11 @@ What MQTT cannot guarantee, compared to zenoh
       counted, the first to go clears the key.
     - QoS 0 (the default) is at most once; nothing is redelivered after a reconnection.
       A lost connection is reconnected once at once (a new client id, every subscription
-      again; a token announces itself again); when that fails, every subscription ends
-      and later calls raise TransportClosed. A close during the reconnection ends the
-      new connection too.
+      again; a token announces itself again); when that fails, every subscription ends,
+      every queryable and token ends (`Handle.on_end`: nothing answers for them any
+      more, and a token's own connection would announce the platform alive again once
+      the broker is back) and later calls raise TransportClosed. A close during the
+      reconnection ends the new connection too.
     - Attachments travel base64-encoded in a user property.
 """
 
@@ -102,7 +118,7 @@ import math
 import secrets
 import socket
 import threading
-from collections.abc import Callable, Coroutine, Mapping
+from collections.abc import Callable, Coroutine, Iterator, Mapping
 from typing import TYPE_CHECKING, Any
 
 from .._aio import together
@@ -153,6 +169,12 @@ def _load_client() -> None:
 
         _connect_ended: threading.Event | None = None  # set when paho's connect returns
 
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            super().__init__(*args, **kwargs)
+            # packet ids of (un)subscribes given up, whose answer is late (`_pending_call`)
+            self._late_subscribes: set[int] = set()
+            self._late_unsubscribes: set[int] = set()
+
         async def _wait_for(self, fut: Any, timeout: float | None) -> Any:
             return await _wait_keeping_cancel(self, fut, timeout)
 
@@ -160,11 +182,11 @@ def _load_client() -> None:
             self._connect_ended = threading.Event()
             return await super().__aenter__()
 
-        _given_up = False  # `_abandon` stopped waiting for paho's connect (see there)
+        _given_up = False  # `_abandon` did not wait for paho's connect (see there)
 
         def _client_connect(self) -> None:
-            # in an executor thread, which a cancel does not stop: `_abandon` waits for
-            # it, for the socket it opens comes only then
+            # in an executor thread, which a cancel does not stop: a connection given up
+            # meanwhile (`_abandon`) has the socket it opens closed on the loop from here
             try:
                 super()._client_connect()
             finally:
@@ -180,6 +202,38 @@ def _load_client() -> None:
             if self._connect_ended is not None and self._connect_ended.is_set():
                 # ended meanwhile, perhaps before it saw ``_given_up``: dropped from here
                 self._loop.call_soon(self._drop_socket)
+
+        # A SUBACK or UNSUBACK whose call aiomqtt stopped waiting for (its timeout,
+        # ``connect_timeout``, passed: a stalled broker) is late, not unexpected: aiomqtt
+        # logs it at ERROR with a traceback, which reads as a failure of ours. Only the
+        # packet ids of calls given up are late: any other stays aiomqtt's error.
+        @contextlib.contextmanager
+        def _pending_call(
+            self, mid: int, value: Any, pending_dict: dict[int, Any]
+        ) -> Iterator[None]:
+            with super()._pending_call(mid, value, pending_dict):
+                try:
+                    yield
+                except BaseException:  # timed out or cancelled: its answer may still come
+                    if pending_dict is self._pending_subscribes:
+                        self._late_subscribes.add(mid)
+                    elif pending_dict is self._pending_unsubscribes:
+                        self._late_unsubscribes.add(mid)
+                    raise
+
+        def _on_subscribe(self, client: Any, userdata: Any, mid: int, *args: Any) -> None:
+            if mid not in self._pending_subscribes and mid in self._late_subscribes:
+                self._late_subscribes.discard(mid)
+                log.debug("mqtt: the broker answered subscribe %d after it was given up", mid)
+                return
+            super()._on_subscribe(client, userdata, mid, *args)
+
+        def _on_unsubscribe(self, client: Any, userdata: Any, mid: int, *args: Any) -> None:
+            if mid not in self._pending_unsubscribes and mid in self._late_unsubscribes:
+                self._late_unsubscribes.discard(mid)
+                log.debug("mqtt: the broker answered unsubscribe %d after it was given up", mid)
+                return
+            super()._on_unsubscribe(client, userdata, mid, *args)
 
         def _drop_socket(self) -> None:
             # paho's own close: aiomqtt stops watching the socket and ends its task
@@ -349,12 +403,14 @@ class _Server:
 
     # a plain class, not a dataclass: generating a dataclass's methods costs ~0.4 ms of a
     # node's start, each; nothing compares or prints these
-    __slots__ = ("admit", "handler", "key_expr")
+    __slots__ = ("admit", "end", "handler", "key_expr")
 
     def __init__(self, key_expr: str, handler: QueryHandler, admit: QueryFilter | None) -> None:
         self.key_expr = key_expr
         self.handler = handler
         self.admit = admit
+        # ends the queryable (all its filters) when the broker refuses one of them
+        self.end: Callable[[str], None] | None = None
 
 
 class _Alive:
@@ -588,6 +644,15 @@ class MqttTransport(_Keeps, Transport):
                         sub.inbox.close()
                     for inbox in self._pending.values():
                         inbox.close()
+                    # nothing is served any more: each queryable and token ends, its owner
+                    # told (a token's own connection, made again once the broker is back,
+                    # would otherwise announce alive what no longer answers)
+                    reason = (
+                        f"mqtt: the connection to the broker was lost ({exc}) and could "
+                        f"not be made again ({again})"
+                    )
+                    for handle in list(self._handles):
+                        handle._end(reason)
                     return
 
     async def _reconnect(self) -> aiomqtt.Client:
@@ -600,6 +665,8 @@ class MqttTransport(_Keeps, Transport):
         client, self._connection = await self._connect_main()
         self._client = client
         for f in list(self._filters.values()):
+            if self._filters.get(f.topic) is not f:
+                continue  # a queryable ended by a refusal before took it with it
             refused = await self._subscribe(client, f.topic, f.sid)
             if refused is not None:
                 log.warning(
@@ -608,7 +675,7 @@ class MqttTransport(_Keeps, Transport):
                     f.topic,
                     refused,
                 )
-                self._end(f)
+                self._end(f, f"{_refusal(f.topic, refused)} (after reconnecting)")
         self.reconnects += 1
         if self._up is not None:
             self._up.set()
@@ -752,11 +819,12 @@ class MqttTransport(_Keeps, Transport):
         self._unsubscribing[f.topic] = task
         task.add_done_callback(lambda t: self._unsubscribing.pop(f.topic, None))
 
-    def _end(self, f: _Filter) -> None:
+    def _end(self, f: _Filter, reason: str) -> None:
         """Forget ``f``, which the broker no longer serves, and end what listened through it.
 
         Its subscriptions' and watchers' iterators end rather than wait in silence; its
-        queryables (no iterator) hear no more queries on it, as the warning before says.
+        queryables end whole (every filter of theirs), their handles closed with
+        ``ended`` = ``reason`` and their owners' ``on_end`` callbacks called.
         """
         self._forget(f, unsubscribe=False)
         for entry in f.inboxes:
@@ -764,6 +832,9 @@ class MqttTransport(_Keeps, Transport):
         for watcher in f.watchers:
             if isinstance(watcher, _Watcher):
                 watcher.inbox.close()
+        for server in list(f.servers):
+            if server.end is not None:
+                server.end(reason)
 
     async def _subscribe(self, client: aiomqtt.Client, topic: str, sid: int) -> str | None:
         """Subscribe ``client`` to ``topic`` as ``sid`` (`_acked`); the broker's refusal, if any."""
@@ -986,7 +1057,9 @@ class MqttTransport(_Keeps, Transport):
             for topic in filters:
                 self._detach(topic, remove)
 
-        return self._handle(undeclare)
+        handle = self._handle(undeclare)
+        server.end = handle._end
+        return handle
 
     def _offer(self, server: _Server, payload: bytes, props: Properties | None) -> None:
         """A query heard through one of ``server``'s filters: answer it if it intersects."""
@@ -1055,7 +1128,9 @@ class MqttTransport(_Keeps, Transport):
             if self._tg is not None:
                 self._spawn(token.clear(), f"mqtt.token[{key}].clear")
 
-        return self._handle(start_clearing, token.clear)
+        handle = self._handle(start_clearing, token.clear)
+        token.end = handle._end
+        return handle
 
     async def watch_presence(
         self, key_expr: str, *, history: bool = True, buffer_size: int = 4096
@@ -1084,6 +1159,7 @@ class _Token:
         self.task: asyncio.Task[None] | None = None
         self.closing = False
         self.reconnects = 0
+        self.end: Callable[[str], None] | None = None  # its handle's, when it cannot go on
 
     async def connect(self) -> None:
         t = self.transport
@@ -1099,9 +1175,13 @@ class _Token:
         # announcing, ``clear``'s of a reconnection too, clears and closes it below)
         self.client, self.connection = client, connection
         try:
-            await t._acked(client.subscribe(self.key, qos=1))
-            await client.publish(self.key, ALIVE, qos=1, retain=True)
+            # its own key, to hear another client clear it: refused, nobody would
+            # announce it again, so the declaration fails before anything is announced
+            refused = _refused(await t._acked(client.subscribe(self.key, qos=1)))
+            if refused is None:
+                await client.publish(self.key, ALIVE, qos=1, retain=True)
         except aiomqtt.MqttError as exc:
+            self.client = self.connection = None
             await _disconnect(client, connection)
             raise t._error(f"declare the token on {self.key!r}", exc) from exc
         except BaseException:
@@ -1113,6 +1193,12 @@ class _Token:
                 await client.publish(self.key, b"", qos=0, retain=True, timeout=_DISCONNECT_WAIT)
             await _disconnect(client, connection)
             raise
+        if refused is not None:
+            # a DISCONNECT, not a lost connection: the will (clearing a key never
+            # announced here) does not go out either
+            self.client = self.connection = None
+            await _disconnect(client, connection)
+            raise _refusal(self.key, refused)
 
     async def keep(self) -> None:
         """Announce again when the key is cleared by another; reconnect when dropped."""
@@ -1129,6 +1215,9 @@ class _Token:
                 if self.closing or self.transport._state != "opened":
                     return
                 log.warning("mqtt: the token's connection on %r was lost: %s", self.key, exc)
+            # gone (the broker's will clears the key): nothing for `clear` to clear on it,
+            # should the token end or close before it is connected again
+            self.client = self.connection = None
             await _disconnect(client, connection)
             # announced again only once this platform answers again (queries, DF)
             up = self.transport._up
@@ -1141,6 +1230,8 @@ class _Token:
                 await self.connect()
             except TransportError as exc:
                 log.warning("mqtt: could not announce %r again: %s", self.key, exc)
+                if self.end is not None:  # its owner learns it is no longer announced
+                    self.end(f"{exc} (after reconnecting)")
                 return
             self.reconnects += 1
 
@@ -1218,21 +1309,17 @@ async def _connect(client: aiomqtt.Client) -> contextlib.AsyncExitStack:
 
 
 async def _abandon(client: aiomqtt.Client) -> None:
-    """Close the socket and end aiomqtt's task of a connection that did not come up."""
+    """Close the socket and end aiomqtt's task of a connection that did not come up.
+
+    When paho still connects in its thread (a cancel does not stop it: its own 5 s per
+    address, TCP retries, TLS), this returns at once: the socket is closed on the loop
+    when it comes, and aiomqtt's task ends with it. Waiting for it held the caller (a
+    cancelled open) up to ``connect_timeout``, and a worker thread meanwhile.
+    """
     ended = getattr(client, "_connect_ended", None)
     if isinstance(ended, threading.Event) and not ended.is_set():
-        # paho still connects in its thread (a cancel does not stop it): its socket comes then
-        wait = None if client.timeout == math.inf else client.timeout
-        try:
-            await asyncio.to_thread(ended.wait, wait)
-        except BaseException:  # cancelled again (`KeepCancelled`): the loop closes it
-            getattr(client, "_give_up")()  # noqa: B009  our client's, not aiomqtt's
-            raise
-        if not ended.is_set():
-            # paho's connect outlasts ``timeout`` (a handshake retried, each address
-            # tried, TLS): its socket, when it comes, is closed on the loop
-            getattr(client, "_give_up")()  # noqa: B009  our client's, not aiomqtt's
-            return
+        getattr(client, "_give_up")()  # noqa: B009  our client's, not aiomqtt's
+        return
     await asyncio.sleep(0)  # what the connect scheduled on the loop (its reader, task) runs
     sock_close = getattr(client._client, "_sock_close", None)
     if sock_close is not None:
