@@ -1549,13 +1549,23 @@ class InterfaceAgent:
             except Exception:
                 self._inbox_failed(what, peer, item)
             finally:
-                if held is None:
-                    pass
-                elif held is _RAW:
-                    self._lane_raw_release()
-                else:
-                    self._lane_release(held)
+                if held is not None:
+                    self._release_held(held, item)
         host._inbox_ended(inbox)
+
+    def _release_held(self, held: Any, item: Any) -> None:
+        """The lane's count ``item`` held, released; a release that raises (a fault of the
+        code: the count out of step) costs only itself, else it would end the inbox's
+        consumer and nothing of any peer would be taken any more."""
+        try:
+            if held is _RAW:
+                self._lane_raw_release()
+            else:
+                self._lane_release(held)
+        except Exception:
+            self._lane_failed(
+                "releasing the lane's count of a message", "?" if held is _RAW else held, item
+            )
 
     def _lane_book_before(self, item: tuple[Any, ...]) -> bool:
         """`_lane_book` before the inbox's consumer takes ``item``; one that raises (beyond

@@ -450,3 +450,35 @@ async def test_a_lane_answer_that_raises_on_its_thread_logs_not_what_it_opened(
         assert len(said) == 1 and "RuntimeError" in said[0], said
         assert POISON not in caplog.text
         assert not [r for r in caplog.records if POISON in r.getMessage() + (r.exc_text or "")]
+
+
+async def test_a_release_of_the_lanes_count_that_raises_leaves_the_consumer_taking(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The lane's count out of step (a fault of the code: a count released twice raises
+    KeyError) ends no consumer: the release that raises is logged and counted in
+    ``lane_failed``, and uav-a's and uav-b's next messages are still taken."""
+    async with trio(lane=True) as t:
+        ia = t.ia
+        real = ia._lane_release
+        broke: list[str] = []
+
+        def release(peer: str) -> None:
+            if not broke:
+                broke.append(peer)
+                raise KeyError(peer)
+            real(peer)
+
+        ia._lane_release = release  # type: ignore[method-assign]
+        with caplog.at_level(logging.ERROR, logger="agents._interface"):
+            await t.tell("uav-a", "a-first")
+            await t.until_got("a-first")
+            await t.tell("uav-a", "a-after")
+            await t.tell("uav-b", "b-after")
+            await t.until_got("a-after", "b-after")
+        assert broke == ["uav-a"]
+        assert ia.lane_failed == 1 and ia.inbox_failed == 0
+        logged = [r.getMessage() for r in caplog.records if r.levelno >= logging.ERROR]
+        assert len(logged) == 1
+        assert "releasing the lane's count of a message from uav-a failed (" in logged[0]
+        assert "KeyError" in logged[0]
