@@ -11,14 +11,27 @@ sealed on.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import random
 from collections.abc import Callable
 
+import msgpack
 import pytest
-from test_security_bytes import ACL, T0, Clock, MacPolicy, Platform, connect, edit, make_platform
+from test_security_bytes import (
+    ACL,
+    KEYS,
+    T0,
+    Clock,
+    MacPolicy,
+    Platform,
+    connect,
+    edit,
+    make_platform,
+)
 
 from agents._exceptions import AuthenticationError, UnknownSession
-from agents._security import KeyPair, SecurityPolicy
+from agents._security import KeyPair, SecurityPolicy, Session, SessionTable
 
 EncPolicy = SecurityPolicy  # encrypted, encryption required: the default
 
@@ -149,3 +162,78 @@ def test_a_chosen_session_of_a_key_no_longer_trusted_seals_nothing() -> None:
     assert a.table.trust.add("uav-b", KeyPair.generate("uav-b").public_key, replace=True)
     with pytest.raises(UnknownSession):
         a.table.seal_binary("uav-b", ACL)
+
+
+def _full_path_choice(table: SessionTable, peer: str) -> Session | None:
+    """What `session_for` (the full path) would choose now, the table left as it was."""
+    with table._lock:
+        kept = dict(table._tx)
+        chosen = SessionTable.session_for(table, peer)
+        table._tx.clear()
+        table._tx.update(kept)
+        return chosen
+
+
+def _random_run(seed: int) -> tuple[int, int]:
+    """One random sequence, every seal checked; how many seals found a choice kept that
+    still holds (the shortcut) and one that no longer does (the full path after it)."""
+    rnd = random.Random(seed)
+    clock = Clock()
+    policy = EncPolicy(renew_after_seconds=100, grace=10, max_sessions_per_peer=rnd.choice([2, 4]))
+    platforms = {name: make_platform(name, clock, policy) for name in ("uav-a", "uav-b")}
+    strangers = {name: KeyPair.generate(name).public_key for name in platforms}
+    sent: list[tuple[str, bytes]] = []
+    kept_choice = stale_choice = 0
+    for _ in range(250):
+        me, peer = rnd.sample(sorted(platforms), 2)
+        p, table = platforms[me], platforms[me].table
+        op = rnd.random()
+        if op < 0.15:
+            clock.t += rnd.choice([0.0, 0.5, 5, 10.0005, 30, 60, 100.001])
+        elif op < 0.25:
+            try:
+                connect(p, platforms[peer])
+            except AuthenticationError:
+                pass  # a key rotated away: no handshake
+            clock.t += 0.002  # no two sessions agreed at the same time
+        elif op < 0.6:
+            expected = _full_path_choice(table, peer)
+            before = table._tx.get(peer)
+            kept_choice += before is not None and before is expected
+            stale_choice += before is not None and before is not expected
+            if expected is None:
+                with pytest.raises(UnknownSession):
+                    table.seal_binary(peer, ACL)
+                continue
+            envelope = table.seal_binary(peer, ACL)
+            assert msgpack.unpackb(envelope)[3] == expected.sid
+            sent.append((peer, envelope))
+        elif op < 0.8 and sent:
+            i = rnd.randrange(len(sent))
+            to, envelope = sent[i] if rnd.random() < 0.2 else sent.pop(i)  # some twice
+            with contextlib.suppress(AuthenticationError):
+                platforms[to].table.open_noting(envelope)
+        elif op < 0.84:
+            table.doubt(peer)
+        elif op < 0.88:
+            table.retire(peer, None if rnd.random() < 0.5 else clock.t - rnd.choice([0, 50]))
+        elif op < 0.9:
+            table.forget(peer)
+        elif op < 0.95:
+            key = rnd.choice([strangers[peer], KEYS[peer].public_key, bytes(KEYS[peer].public_key)])
+            table.trust.add(peer, key, replace=True)
+        elif op < 0.97:
+            table.trust.remove(peer)
+        else:
+            table.prune()
+        if peer not in table.trust and rnd.random() < 0.5:
+            table.trust.add(peer, bytes(KEYS[peer].public_key))  # trusted again, by value
+    return kept_choice, stale_choice
+
+
+def test_seal_binary_seals_on_the_session_the_full_path_chooses() -> None:
+    # random sequences of renewals, time, opens (replays too), doubt, retire, forget,
+    # prune and trust changes (rotated, rotated back by value, removed): every seal is
+    # on the session `session_for` would choose, or refused where it chooses none
+    kept, stale = map(sum, zip(*(_random_run(seed) for seed in range(16)), strict=True))
+    assert kept > 50 and stale > 5  # both ways through `seal_binary` were taken
