@@ -1674,7 +1674,12 @@ class InterfaceAgent:
                 )
                 answered = _LEFT
             if answered is _ANSWERED:
-                self._lane_release(peer)
+                with self._lane_lock:  # `_lane_release`, inline: every answer the lane puts
+                    left = self._lane_queued[peer] - 1
+                    if left:
+                        self._lane_queued[peer] = left
+                    else:
+                        del self._lane_queued[peer]
                 return None
             if answered is _HANDED:  # a reply: its count stands until `_lane_book` takes it
                 return None

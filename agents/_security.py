@@ -1349,12 +1349,25 @@ class SessionTable:
 
     def open_noting(self, envelope: bytes | str) -> tuple[str, bytes, int]:
         """`open`, and `forgotten` of its sender at that moment (read under the same lock)."""
+        if type(envelope) is bytes and envelope[:1] in _BINARY_HEADS:
+            # `_open_binary`, inline: every envelope the lane opens, in one lock section
+            # (its unpacking reads nothing of the table: outside it)
+            frm, to, sid, ts, n, payload, mac = self._unpack(envelope, self._max_envelope, None)
+            with self._lock:
+                session = self._session_of(frm, to, sid, ts, n)
+                if mac is not None:
+                    if self.policy.require_encryption:
+                        raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
+                    if type(mac) is not bytes or len(mac) != _MAC_BYTES:
+                        raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
+                now = self._clock()
+                body = session._accept_binary(ts, n, payload, mac, now)
+                self._heard[frm] = now
+                if self._rx_latest.get(frm) is not session:
+                    self._on_rx_switch(session, now)
+                return frm, body, self._forgets.get(frm, 0)
         with self._lock:
-            if type(envelope) is bytes and envelope[:1] in _BINARY_HEADS:
-                # `open`'s first step, inline: every envelope the lane opens, a call less
-                frm, body = self._open_binary(envelope)
-            else:
-                frm, body = self.open(envelope)
+            frm, body = self.open(envelope)
             return frm, body, self._forgets.get(frm, 0)
 
     def doubt(self, peer: str) -> int:
@@ -1504,7 +1517,25 @@ class SessionTable:
     def seal_binary(self, peer: str, body: bytes | str) -> bytes:
         """`seal` in the binary (msgpack) form of an ACL envelope; `open` reads both forms."""
         with self._lock:
-            session = self.session_for(peer)
+            session = self._tx.get(peer)
+            if session is not None:
+                # `session_for`'s first answer, inline (the path of every ACL message
+                # sealed, the lane's answers too): the session it chose before, while it
+                # is within its lifetime, not retired past grace and of the trusted key
+                now = self._clock()
+                trusted = self.trust._keys.get(peer)
+                if (
+                    now - session.established > session._lifetime
+                    or (session._retire_at is not None and now > session._retire_at)
+                    or (
+                        (agreed := session.peer_key) is not trusted
+                        and agreed is not None
+                        and (trusted is None or agreed != trusted)
+                    )
+                ):
+                    session = self.session_for(peer)
+            else:
+                session = self.session_for(peer)
             if session is None:
                 raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
             return session.seal_binary(body)
