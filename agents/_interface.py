@@ -941,29 +941,28 @@ class InterfaceAgent:
     def send_now(self, platform: str, message: ACLMessage) -> bool:
         """`send` when it waits for nothing (`sends_now`); else False, and nothing is sent.
 
-        For an answer made as its question came (`Agent.answer_at_once`): no coroutine,
-        and a message that cannot go at once (no session yet, a transport that waits, a
-        session past its lifetime, whose seal fails) is left to `send`.
+        For an answer made as its question came (`Agent.answer_at_once`), and for the
+        platform's every message to one other platform (`AgentPlatform.send` tries it
+        first): no coroutine, and a message that cannot go at once (no session yet, a
+        transport that waits, a session past its lifetime, whose seal fails) is left to
+        `send`.
         """
         if self._outbox and self.join_batch(platform, message):
             return True
         host = self._host
-        if (
-            host is None
-            or not host.transport.publishes_nowait
-            or self.sessions.session_for(platform) is None
-        ):
+        if host is None or not host.transport.publishes_nowait:
             return False
         body = message.to_json()
         if self._burst_first(platform, body):
             return True
         try:
+            # no session (yet): UnknownSession, left to `send`, which agrees one
             payload = self._seal(platform, body)
             host.transport.publish_nowait(self._acl_key(host, platform), payload)
         except AgentError:  # `send` meets it again and raises it where it is awaited
             return False
         try:
-            self._sent(platform)
+            self._sent(platform, message.reply_with is not None)
         except Exception:  # it went: True, or the caller would send it a second time
             log.exception("interface[%s]: after sending to %s", self._me, platform)
         return True
