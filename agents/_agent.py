@@ -399,8 +399,9 @@ class Conversation:
 
         A plain call returning `Agent.send`'s coroutine, a coroutine less per message sent.
         """
-        if message.reply_with is not None:
-            self.expect(message.reply_with)
+        reply_with = message.reply_with
+        if reply_with is not None:
+            self.expect(reply_with)
         self.last_sent = message
         return self._agent.send(message)
 
@@ -882,15 +883,18 @@ class Agent:
 
     def _deliver(self, message: ACLMessage) -> bool:
         """Route an incoming message (sync); False when the mailbox is full."""
+        # its fields read in __dict__ (a dict lookup each, not pydantic's attribute hook):
+        # these have defaults, so every message holds them (model_construct's too)
+        fields = message.__dict__
         conv = None
-        if message.in_reply_to is not None:
-            conv = self._by_reply.get(message.in_reply_to)
-        if conv is None and message.conversation_id is not None:
-            conv = self._by_conv.get(message.conversation_id)
+        if (key := fields["in_reply_to"]) is not None:
+            conv = self._by_reply.get(key)
+        if conv is None and (key := fields["conversation_id"]) is not None:
+            conv = self._by_conv.get(key)
         if conv is not None:
             # `conv.accepts(message)`, inline: the path of every reply
             peers = conv.peers
-            rw = message.reply_with
+            rw = fields["reply_with"]
             if (
                 not conv.closed
                 and (peers is None or message.sender in peers)

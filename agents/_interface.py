@@ -2146,11 +2146,14 @@ class InterfaceAgent:
     ) -> bool:
         """`_take_now` of a message parsed already, its total limit found ready at ``now``."""
         total, requests = state.total, state.requests
-        receivers = message.receivers
-        if len(receivers) != 1 or message.reply_to:
+        # a parsed message holds every field in its __dict__: read there, each read is a
+        # dict lookup rather than a pass through pydantic's attribute hook
+        fields = message.__dict__
+        receivers = fields["receivers"]
+        if len(receivers) != 1 or fields["reply_to"]:
             return False
         receiver = receivers[0]
-        sender = message.sender
+        sender = fields["sender"]
         here = host.name
         at = receiver.rpartition("@")
         if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
@@ -2161,7 +2164,7 @@ class InterfaceAgent:
         mailbox = agent._mailbox
         if len(mailbox._items) >= mailbox.maxlen >> 1:
             return False
-        performative = message.performative
+        performative = fields["performative"]
         initiating = performative in INITIATING
         if initiating:
             if requests is not None and not requests.ready(now):
@@ -2176,7 +2179,8 @@ class InterfaceAgent:
         state.stats.accepted += 1
         audit = self.audit
         # accepted_entry, inline (one receiver, this sender)
-        entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
+        conversation_id = fields["conversation_id"]
+        entry = (time.time(), peer, sender, receiver, _NAMES[performative], conversation_id)
         audit.add_accepted((entry,))
         stats = host.stats
         stats.received_remote += 1
@@ -2187,8 +2191,8 @@ class InterfaceAgent:
             and mailbox._waiter is not None  # its receive loop is in no handler
             and not agent._handlers_starting  # nor will a concurrent handler's task
             and self.sends_now(peer)  # else the read would be made twice
-            and message.in_reply_to is None
-            and message.conversation_id not in agent._by_conv
+            and fields["in_reply_to"] is None
+            and conversation_id not in agent._by_conv
             and self._answer_at_once(host, peer, agent, message)
         ):
             stats.local += 1
