@@ -68,9 +68,10 @@ class Failure(Exception):
 
 def _outcome(reply: ACLMessage) -> JsonValue:
     """The content of an ``inform``; raise the matching error for anything else."""
-    p = reply.performative
+    fields = reply.__dict__  # a received message holds every field: no attribute hook
+    p = fields["performative"]
     if p is P.INFORM or p is P.INFORM_REF or p is P.INFORM_IF:
-        return reply.content
+        return fields["content"]
     who = reply.sender
     if p is P.REFUSE:
         raise Refused(f"{who} refused: {reply.content}", reply)
