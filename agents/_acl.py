@@ -601,7 +601,8 @@ def compose(
             if fields:
                 message.update(fields)
                 names.update(fields)
-            if type(receivers) is str:
+            # a reply_by (every request has its own) is never remembered: no call for it
+            if type(receivers) is str and fields.get("reply_by") is None:
                 _remember_header(performative, act, sender, receivers, fields, message, names)
             return _constructed(ACLMessage, message, names)
     return ACLMessage.build(

@@ -332,6 +332,7 @@ class _Ended:
 
 
 _CLOSED_KEPT = 4096  # the ids of closed conversations an agent remembers (late replies)
+_new = object.__new__  # an instance not yet initialized (see `Conversation.__init__`)
 _CLOSED = _Ended(None)  # the end of every conversation closed without an error: one object
 
 
@@ -373,7 +374,10 @@ class Conversation:
         self.deadline = deadline  # loop time
         self.maxlen = maxlen
         # overflow drops the oldest reply (counted and logged in _put)
-        self._items: Mailbox[ACLMessage | _Ended] = Mailbox(maxlen, drop_oldest=True)
+        # made and initialized in two calls: a class call with keywords takes the type's
+        # slow path (its arguments packed into a tuple and a dict), ~1 µs a request more
+        self._items: Mailbox[ACLMessage | _Ended] = _new(Mailbox)
+        self._items.__init__(maxlen, drop_oldest=True)  # type: ignore[misc]
         self._keys: list[str] = []
         self.closed = False
         self.last_sent: ACLMessage | None = None
@@ -399,8 +403,9 @@ class Conversation:
 
         A plain call returning `Agent.send`'s coroutine, a coroutine less per message sent.
         """
-        if message.reply_with is not None:
-            self.expect(message.reply_with)
+        reply_with = message.reply_with
+        if reply_with is not None:
+            self.expect(reply_with)
         self.last_sent = message
         return self._agent.send(message)
 
@@ -461,12 +466,14 @@ class Conversation:
             raise ReplyTimeout(
                 f"no reply from {self._peers_text()} in conversation {self.id}", self.last_sent
             ) from None
-        if isinstance(item, _Ended):
+        # not isinstance: for a message that is none, it reads the message's __class__
+        # through pydantic's attribute hook (_Ended has no subclass)
+        if type(item) is _Ended:
             items.put_front(item)  # stays ended for later calls
             raise item.error or ConversationError(
                 f"conversation {self.id} is closed", self.last_sent
             )
-        return item
+        return item  # type: ignore[return-value]  # a message: the end marker is raised above
 
     async def gather(self, senders: Iterable[str], *, deadline: float | None = None) -> None:
         """Wait until each of ``senders`` has answered (an agree is no answer yet), or ``deadline``.
@@ -879,7 +886,9 @@ class Agent:
         deadline = None
         if timeout is not None:
             deadline = (self._loop or asyncio.get_running_loop()).time() + timeout
-        return Conversation(self, conversation_id, peers=peers, deadline=deadline, maxlen=maxlen)
+        conv = _new(Conversation)  # as its box is made (`Conversation.__init__`)
+        conv.__init__(self, conversation_id, peers=peers, deadline=deadline, maxlen=maxlen)  # type: ignore[misc]
+        return conv
 
     async def ask(self, message: ACLMessage, *, timeout: float) -> ACLMessage:
         """Send ``message`` and return the first answer; ReplyTimeout after ``timeout`` s.
@@ -905,15 +914,18 @@ class Agent:
 
     def _deliver(self, message: ACLMessage) -> bool:
         """Route an incoming message (sync); False when the mailbox is full."""
+        # its fields read in __dict__ (a dict lookup each, not pydantic's attribute hook):
+        # these have defaults, so every message holds them (model_construct's too)
+        fields = message.__dict__
         conv = None
-        if message.in_reply_to is not None:
-            conv = self._by_reply.get(message.in_reply_to)
-        if conv is None and message.conversation_id is not None:
-            conv = self._by_conv.get(message.conversation_id)
+        if (key := fields["in_reply_to"]) is not None:
+            conv = self._by_reply.get(key)
+        if conv is None and (key := fields["conversation_id"]) is not None:
+            conv = self._by_conv.get(key)
         if conv is not None:
             # `conv.accepts(message)`, inline: the path of every reply
             peers = conv.peers
-            rw = message.reply_with
+            rw = fields["reply_with"]
             if (
                 not conv.closed
                 and (peers is None or message.sender in peers)

@@ -948,29 +948,28 @@ class InterfaceAgent:
     def send_now(self, platform: str, message: ACLMessage) -> bool:
         """`send` when it waits for nothing (`sends_now`); else False, and nothing is sent.
 
-        For an answer made as its question came (`Agent.answer_at_once`): no coroutine,
-        and a message that cannot go at once (no session yet, a transport that waits, a
-        session past its lifetime, whose seal fails) is left to `send`.
+        For an answer made as its question came (`Agent.answer_at_once`), and for the
+        platform's every message to one other platform (`AgentPlatform.send` tries it
+        first): no coroutine, and a message that cannot go at once (no session yet, a
+        transport that waits, a session past its lifetime, whose seal fails) is left to
+        `send`.
         """
         if self._outbox and self.join_batch(platform, message):
             return True
         host = self._host
-        if (
-            host is None
-            or not host.transport.publishes_nowait
-            or self.sessions.session_for(platform) is None
-        ):
+        if host is None or not host.transport.publishes_nowait:
             return False
         body = message.to_json()
         if self._burst_first(platform, body):
             return True
         try:
+            # no session (yet): UnknownSession, left to `send`, which agrees one
             payload = self._seal(platform, body)
             host.transport.publish_nowait(self._acl_key(host, platform), payload)
         except AgentError:  # `send` meets it again and raises it where it is awaited
             return False
         try:
-            self._sent(platform)
+            self._sent(platform, message.reply_with is not None)
         except Exception:  # it went: True, or the caller would send it a second time
             log.exception("interface[%s]: after sending to %s", self._me, platform)
         return True
@@ -2170,11 +2169,14 @@ class InterfaceAgent:
     ) -> bool:
         """`_take_now` of a message parsed already, its total limit found ready at ``now``."""
         total, requests = state.total, state.requests
-        receivers = message.receivers
-        if len(receivers) != 1 or message.reply_to:
+        # a parsed message holds every field in its __dict__: read there, each read is a
+        # dict lookup rather than a pass through pydantic's attribute hook
+        fields = message.__dict__
+        receivers = fields["receivers"]
+        if len(receivers) != 1 or fields["reply_to"]:
             return False
         receiver = receivers[0]
-        sender = message.sender
+        sender = fields["sender"]
         here = host.name
         at = receiver.rpartition("@")
         if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
@@ -2185,7 +2187,7 @@ class InterfaceAgent:
         mailbox = agent._mailbox
         if len(mailbox._items) >= mailbox.maxlen >> 1:
             return False
-        performative = message.performative
+        performative = fields["performative"]
         initiating = performative in INITIATING
         if initiating:
             if requests is not None and not requests.ready(now):
@@ -2200,7 +2202,8 @@ class InterfaceAgent:
         state.stats.accepted += 1
         audit = self.audit
         # accepted_entry, inline (one receiver, this sender)
-        entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
+        conversation_id = fields["conversation_id"]
+        entry = (time.time(), peer, sender, receiver, _NAMES[performative], conversation_id)
         audit.add_accepted((entry,))
         stats = host.stats
         stats.received_remote += 1
@@ -2211,8 +2214,8 @@ class InterfaceAgent:
             and mailbox._waiter is not None  # its receive loop is in no handler
             and not agent._handlers_starting  # nor will a concurrent handler's task
             and self.sends_now(peer)  # else the read would be made twice
-            and message.in_reply_to is None
-            and message.conversation_id not in agent._by_conv
+            and fields["in_reply_to"] is None
+            and conversation_id not in agent._by_conv
             and self._answer_at_once(host, peer, agent, message)
         ):
             stats.local += 1

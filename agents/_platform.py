@@ -75,7 +75,10 @@ class RemoteChannel(Protocol):
       A channel that batches what is sent in one turn of the loop may also have a plain
       method ``join_batch(platform_name, message) -> bool``, which the platform calls
       first for a message to one receiver: True when it took the message as ``send``
-      would have (no coroutine per message in a burst), False when ``send`` must. It
+      would have (no coroutine per message in a burst), False when ``send`` must;
+      likewise ``send_now(platform_name, message) -> bool``, called next: True when it
+      sent the message as ``send`` would have without waiting for anything, False (and
+      nothing sent) when ``send`` must. It
       may also have ``sends_now(platform_name) -> bool``: True when ``send`` would wait
       for nothing (no key exchange first, a transport that publishes at once), so a
       caller sending to many platforms can send to those in turn rather than each in a
@@ -380,6 +383,10 @@ class AgentPlatform:
         self._join_batch: Callable[[str, ACLMessage], bool] | None = getattr(
             self.channel, "join_batch", None
         )
+        # and send one that waits for nothing without one (`InterfaceAgent.send_now`)
+        self._send_now: Callable[[str, ACLMessage], bool] | None = getattr(
+            self.channel, "send_now", None
+        )
         # Signs this platform's directory statements and checks others' (with the
         # channel's key pair and trust file, when it has them: docs/security.md).
         policy = getattr(self.channel, "policy", None)
@@ -668,7 +675,9 @@ class AgentPlatform:
             # what _remote does, inline: a coroutine less per message sent in a burst
             join = self._join_batch
             if join is None or not join(target, message):
-                await self.channel.send(target, message)
+                now = self._send_now
+                if now is None or not now(target, message):
+                    await self.channel.send(target, message)
             stats = self.stats
             stats.sent_remote += 1
             if not stats.sent_remote & _YIELD_MASK:

@@ -18,7 +18,7 @@ import asyncio
 import inspect
 import logging
 import time
-from collections.abc import Awaitable, Callable, Iterable
+from collections.abc import Awaitable, Callable, Coroutine, Iterable
 from dataclasses import dataclass
 from typing import Any, Self
 
@@ -68,9 +68,10 @@ class Failure(Exception):
 
 def _outcome(reply: ACLMessage) -> JsonValue:
     """The content of an ``inform``; raise the matching error for anything else."""
-    p = reply.performative
+    fields = reply.__dict__  # a received message holds every field: no attribute hook
+    p = fields["performative"]
     if p is P.INFORM or p is P.INFORM_REF or p is P.INFORM_IF:
-        return reply.content
+        return fields["content"]
     who = reply.sender
     if p is P.REFUSE:
         raise Refused(f"{who} refused: {reply.content}", reply)
@@ -133,7 +134,8 @@ async def _ask(
         timeout=timeout,
         conversation_id=conversation_id,
     )
-    with agent.conversation(message.conversation_id, peers=(receiver,), timeout=timeout) as conv:
+    conv = agent.conversation(message.conversation_id, peers=(receiver,), timeout=timeout)
+    try:  # `with conv`, without its two calls: closed however this ends
         await conv.send(message)
         reply = await conv.receive()
         if reply.performative is P.AGREE:  # optional: the result follows
@@ -141,9 +143,11 @@ async def _ask(
                 on_agree(reply)
             reply = await conv.receive()
         return _outcome(reply)
+    finally:
+        conv.close()
 
 
-async def request(
+def request(
     agent: Agent,
     receiver: str,
     content: Any = None,
@@ -153,14 +157,16 @@ async def request(
     timeout: float = DEFAULT_TIMEOUT,
     on_agree: Callable[[ACLMessage], None] | None = None,
     conversation_id: str | None = None,
-) -> JsonValue:
-    """FIPA-Request: ask ``receiver`` to act; the content of its ``inform``.
+) -> Coroutine[Any, Any, JsonValue]:
+    """FIPA-Request: ask ``receiver`` to act; the content of its ``inform``: await it.
 
     An ``agree`` may come first (``on_agree`` sees it). ``timeout`` bounds the whole
     exchange and is sent as ``reply_by``. ``conversation_id`` (a new one by default)
     lets the caller send a FIPA ``cancel`` in the same conversation if it gives up.
+    A plain call returning the exchange's coroutine (nothing runs before it is
+    awaited), a coroutine less per request.
     """
-    return await _ask(
+    return _ask(
         agent,
         P.REQUEST,
         FIPA_REQUEST,

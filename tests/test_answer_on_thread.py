@@ -373,7 +373,8 @@ async def sealed_requests(
     """operator's requests to uav-a (content, conversation id), each sealed in an envelope of
     its own and captured rather than published; their futures (``kw``: `request_from`'s)."""
     sealed: list[bytes] = []
-    real_put = p.asker.transport.publish
+    transport = p.asker.transport
+    real_put, real_put_now = transport.publish, transport.publish_nowait
 
     async def capture(key: str, payload: bytes, **kw: Any) -> None:
         if key.endswith("/acl/uav-a"):
@@ -381,7 +382,15 @@ async def sealed_requests(
             return
         await real_put(key, payload, **kw)
 
-    p.asker.transport.publish = capture  # type: ignore[method-assign]
+    def capture_now(key: str, payload: bytes) -> None:
+        # a request that waits for nothing goes out this way (`InterfaceAgent.send_now`)
+        if key.endswith("/acl/uav-a"):
+            sealed.append(payload)
+            return
+        real_put_now(key, payload)
+
+    transport.publish = capture  # type: ignore[method-assign]
+    transport.publish_nowait = capture_now  # type: ignore[method-assign]
     p.ia_op._batching = False  # each message in an envelope of its own
     asked = [
         asyncio.ensure_future(p.fed_op.request_from("uav-a", content, conversation_id=conv, **kw))
@@ -390,7 +399,8 @@ async def sealed_requests(
     try:
         await _until(lambda: len(sealed) == len(asks))
     finally:
-        p.asker.transport.publish = real_put  # type: ignore[method-assign]
+        transport.publish = real_put  # type: ignore[method-assign]
+        transport.publish_nowait = real_put_now  # type: ignore[method-assign]
     return sealed, asked
 
 

@@ -805,7 +805,12 @@ async def test_a_console_stops_promptly_when_no_provider_answers(demo_keys: Path
         async def lost(*args: Any, **kwargs: Any) -> None:
             return None
 
+        def lost_now(*args: Any, **kwargs: Any) -> None:
+            return None
+
         fed.operator.transport.publish = lost  # type: ignore[method-assign]
+        # what waits for nothing goes out without `publish` (`InterfaceAgent.send_now`)
+        fed.operator.transport.publish_nowait = lost_now  # type: ignore[method-assign]
         assert fed.console is not None
         started = asyncio.get_running_loop().time()
         await fed.console.aclose()

@@ -190,3 +190,43 @@ async def test_lone_requests_renew_their_session_as_they_go() -> None:
         assert rec.got == [(kind, i) for i in range(12) for kind in ("request", "inform")]
         assert ta.kx_queries >= 2  # renewed by uav-a, over the requests that went alone
         assert interface.missing() == {} and ia(pa).batches_lost == 0
+
+
+async def test_a_message_that_waits_for_nothing_goes_without_the_channels_coroutine() -> None:
+    """With a session agreed, requests go through `InterfaceAgent.send_now` (no coroutine of
+    the channel's), alone and in order; with none (forgotten), through `send`, which agrees
+    one first."""
+    async with federation("uav-a", "uav-b") as fed:
+        ta = CountingTransport(fed.hub)
+        pa = await fed.start("uav-a", transport=ta)
+        rec = await _recorder(await fed.start("uav-b"))
+        asker = await pa.add(Agent("asker"))
+        interface = ia(pa)
+        awaited: list[str] = []
+        send = interface.send
+
+        async def counted(platform: str, message: ACLMessage) -> None:
+            awaited.append(platform)
+            await send(platform, message)
+
+        interface.send = counted  # type: ignore[method-assign]
+        with asker.conversation(peers=["rec@uav-b"], timeout=WAIT) as conv:
+            await conv.send(_request(asker, -1))  # no session yet: `send` agrees it
+            assert await _answers(conv, 1) == [-1]
+            assert awaited == ["uav-b"]
+            exchanges = ta.kx_queries
+            wire = await (await fed.raw()).subscribe(wire_key(FED, "acl", "uav-b"))
+            for i in range(3):
+                await conv.send(_request(asker, i))
+                assert "uav-b" not in interface._outbox  # alone, no batch opened
+                assert await _answers(conv, 1) == [i]
+            assert awaited == ["uav-b"]  # each sealed and put at once
+            assert ta.kx_queries == exchanges
+            interface.sessions.forget("uav-b")
+            await conv.send(_request(asker, 3))  # `send` again: a key exchange first
+            assert await _answers(conv, 1) == [3]
+            assert awaited == ["uav-b", "uav-b"]
+            assert ta.kx_queries == exchanges + 1
+        assert len(wire.inbox.drain()) == 4
+        assert rec.got == [("request", i) for i in range(-1, 4)]
+        assert interface.batches_lost == 0

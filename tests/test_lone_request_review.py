@@ -187,7 +187,8 @@ async def _sealed_ask_of_uav_a(p: Any, conv: str) -> tuple[bytes, Any]:
     """uav-a's request to operator in ``conv``, answered by operator and sealed for uav-a
     but not sent; the request's future."""
     sealed: list[bytes] = []
-    real_put = p.provider.transport.publish
+    transport = p.provider.transport
+    real_put, real_put_now = transport.publish, transport.publish_nowait
 
     async def capture(key: str, payload: bytes, **kw: Any) -> None:
         if key.endswith("/acl/operator"):
@@ -195,13 +196,22 @@ async def _sealed_ask_of_uav_a(p: Any, conv: str) -> tuple[bytes, Any]:
             return
         await real_put(key, payload, **kw)
 
-    p.provider.transport.publish = capture
+    def capture_now(key: str, payload: bytes) -> None:
+        # a request that waits for nothing goes out this way (`InterfaceAgent.send_now`)
+        if key.endswith("/acl/operator"):
+            sealed.append(payload)
+            return
+        real_put_now(key, payload)
+
+    transport.publish = capture
+    transport.publish_nowait = capture_now
     batching, p.ia_a._batching = p.ia_a._batching, False
     asked = asyncio.ensure_future(p.fed_a.request_from("operator", OP_LATEST, conversation_id=conv))
     try:
         await until(lambda: len(sealed) == 1, "uav-a's request sealed")
     finally:
-        p.provider.transport.publish = real_put
+        transport.publish = real_put
+        transport.publish_nowait = real_put_now
         p.ia_a._batching = batching
     _, body = p.ia_op.sessions.open(sealed[0])
     request = ACLMessage.from_json(body)

@@ -164,6 +164,22 @@ async def test_request_returns_the_inform_content() -> None:
         assert await request(a, "thermo@p", "nothing", ontology="weather") is None
 
 
+async def test_a_request_starts_when_awaited_and_a_dropped_one_sends_nothing() -> None:
+    """`request` is a plain call returning the exchange: nothing is composed, registered
+    or sent before it is awaited, and one closed unawaited leaves nothing behind."""
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        await p.add(Thermometer("thermo"))
+        a = await p.add(Agent("a"))
+        sent = p.stats.local
+        dropped = request(a, "thermo@p", "temperature", ontology="weather")
+        pending = request(a, "thermo@p", "temperature", ontology="weather")
+        assert asyncio.iscoroutine(pending)
+        dropped.close()
+        assert p.stats.local == sent and not a._by_conv and not a._by_reply
+        assert await pending == {"celsius": 21.5}
+        assert not a._by_conv and not a._by_reply  # closed once answered
+
+
 @pytest.mark.parametrize(
     ("what", "error", "says"),
     [

@@ -216,14 +216,22 @@ async def test_a_global_request_whose_send_fails_still_asks_the_others(in_turn: 
         channel = await altitudes_and_operator_sessions(w, "uav-a", "uav-b")
         if not in_turn:
             channel.sends_now = lambda platform: False  # type: ignore[method-assign]
-        send = channel.send
+        # the link to uav-a fails, both ways a message goes out (awaited, or at once)
+        transport = w["operator"].platform.transport
+        publish, publish_now = transport.publish, transport.publish_nowait
 
-        async def failing(platform: str, message: ACLMessage) -> None:
-            if platform == "uav-a":
+        async def failing(key: str, payload: bytes, **kw: Any) -> None:
+            if key.endswith("/acl/uav-a"):
                 raise TransportError("link down")
-            await send(platform, message)
+            await publish(key, payload, **kw)
 
-        channel.send = failing  # type: ignore[method-assign]
+        def failing_now(key: str, payload: bytes) -> None:
+            if key.endswith("/acl/uav-a"):
+                raise TransportError("link down")
+            publish_now(key, payload)
+
+        transport.publish = failing  # type: ignore[method-assign]
+        transport.publish_nowait = failing_now  # type: ignore[method-assign]
         content = {"action": "get-latest", "labels": ["heli-altitude"]}
         result = await op.global_request(content, deadline=WAIT, select="newest")
         assert result.refused == {"uav-a": "unreachable: TransportError: link down"}
