@@ -332,36 +332,3 @@ async def test_reestablish_relinks_existing_objects_and_removal_cleans_up(
     for _ in range(5):
         await asyncio.sleep(0)
     assert anch.steps == 6
-
-
-async def test_a_late_anchoring_judges_each_point_on_its_own_percepts(
-    world: tuple[DyKnowInstance, ManualClock],
-) -> None:
-    # A busy machine wakes the anchoring and the camera seconds late. The camera yields
-    # after each late frame; the anchoring stepped every missed point at once, so all but
-    # the first saw only the first frame: positions aged by the whole catch-up.
-    dk, clock = world
-    blobs = dk.add_source("blobs")
-    anch = add_anchoring(dk, [VISION, WORLD], [VO_WO])
-
-    async def camera() -> None:
-        due = 0
-        while True:
-            await clock.sleep_until(due)
-            clock.advance(1000)  # catching up takes time too: the frame is available later
-            blobs.push({"b7": {"pixel": (due / NS_PER_S, 8.0), "confidence": 0.9}}, due)
-            due += NS_PER_S
-            await asyncio.sleep(0)
-
-    task = asyncio.create_task(camera())
-    try:
-        await settle(anch, 0)
-        clock.set(5 * NS_PER_S)  # five points missed
-        await settle(anch, 5 * NS_PER_S)
-    finally:
-        task.cancel()
-    (wo,) = anch.members("WorldObject")
-    pos = dk.between(f"wo/{wo}/pos", 0, 6 * NS_PER_S).samples
-    assert [(s.valid_time // NS_PER_S, s.value[0]) for s in pos] == [
-        (k, k * 0.5) for k in range(1, 6)
-    ]

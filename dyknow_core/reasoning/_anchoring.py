@@ -40,7 +40,6 @@ Every change is published on the event stream (default ``events/anchoring``) as 
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 from collections.abc import Callable, Mapping, Sequence
 from enum import StrEnum
@@ -524,14 +523,7 @@ class Anchoring(Process):
         self.last_step = t
 
     async def _run(self) -> None:
-        """Step on every grid point ``k · period`` of the instance clock.
-
-        Late (a busy machine), it catches the missed points up one at a time, yielding
-        after each: the sensors' tasks, late too, push their percept of each point in
-        between, so each step judges its own point's percepts, not an older point's (the
-        objects' features then lag behind the clock by the whole catch-up), and nothing
-        else on the loop waits for the catch-up to end.
-        """
+        """Step on every grid point ``k · period`` of the instance clock."""
         clock = self.instance.clock
         p = self._period_ns
         due = -(-clock.now() // p) * p
@@ -539,10 +531,10 @@ class Anchoring(Process):
             await clock.sleep_until(due)
             if not self.running:
                 break
-            self.step(due)
-            due += p
-            if due <= clock.now():
-                await asyncio.sleep(0)
+            now = clock.now()
+            while due <= now and self.running:
+                self.step(due)
+                due += p
 
     def _stop(self) -> None:
         super()._stop()
