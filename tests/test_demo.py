@@ -194,6 +194,31 @@ def test_noise_in_aged_positions_never_ends_an_overtake_early(age: float) -> Non
     assert all(e is not None and abs(e) <= MATCH_TIME - 0.5 for e in ends), ends
 
 
+async def test_a_fused_state_is_moved_on_along_its_road_not_sideways() -> None:
+    # The neighbour's states are as noisy sideways as our own tracker's (±0.6 m/s) and
+    # come up to FUSED_FRESH old: moved on by their whole velocity, a handed-over car still
+    # beside another drifts towards its lane, as our own cars did before they were moved
+    # along their road. Where no road is followed (turning, off road) it goes straight on.
+    world = World.generate(1, 3, 60.0)
+    async with DyKnowInstance("uav-b", clock=ManualClock(BASE_NS)) as dk:
+        platform = types.SimpleNamespace(instance=dk, name=dk.name)
+        app = UavApplication(platform, None, world)  # type: ignore[arg-type]
+    lane = {"x": 100.0, "y": 201.75, "vx": 14.0, "vy": -0.6, "road": "r1"}
+    assert app._moved(lane, 2.0) == {**lane, "x": 128.0, "y": 201.75, "road": "r1"}
+    crossing = world.crossings[0]
+    north = {"x": crossing.x + 1.75, "y": 205.0, "vx": 0.5, "vy": 6.0, "road": "r2"}
+    moved = app._moved(north, 1.0)
+    assert (moved["x"], moved["y"]) == (round(crossing.x + 1.75, 2), 211.0), moved
+    turning = {"x": crossing.x - 3.0, "y": 197.0, "vx": 4.0, "vy": 4.0, "road": "r1"}
+    moved = app._moved(turning, 0.5)
+    assert (moved["x"], moved["y"]) == (round(crossing.x - 1.0, 2), 199.0), moved
+    (lot,) = world.parking
+    parked = {"x": lot[0] + 5.0, "y": lot[1] + 5.0, "vx": 0.3, "vy": -0.4, "road": None}
+    moved = app._moved(parked, 1.0)
+    assert (moved["x"], moved["y"]) == (round(lot[0] + 5.3, 2), round(lot[1] + 4.6, 2))
+    assert moved["road"] is None
+
+
 async def test_sim_clock_runs_at_its_speed() -> None:
     import time
 
