@@ -230,7 +230,7 @@ class _Track:
 
 
 _ALIGNED = math.cos(math.radians(30.0))
-"""A heading within 30° of a road's follows it (a lane change's is within 7°)."""
+"""A heading within 30° of a road's follows it (a lane change's is within 7.5°)."""
 
 
 def _road_direction(
