@@ -450,18 +450,23 @@ class AgentPlatform:
         return handle
 
     def _inbox_ended(self, sub: Subscription[Any]) -> None:
-        """The channel's inbox ``sub`` ended: lost (as `declared`) unless closed, or closing.
+        """The channel's inbox ``sub`` ended: lost (as `declared`) unless closed, or closing."""
+        self._ended(
+            sub,
+            f"inbox subscription {self.key('acl')}",
+            "other platforms' messages to this platform's agents are no longer received",
+        )
+
+    def _ended(self, sub: Subscription[Any], what: str, meaning: str) -> None:
+        """``sub``, which its consumer read to its end, lost (as `declared`) unless closed,
+        or the platform closing.
 
         A subscription has no reason to give: the transport's own warning before says why
         (MQTT: the broker refused its filter after a reconnection).
         """
         # (a test's inbox may be any async iterable: no transport ends it)
         if isinstance(sub, Subscription) and not sub.closed and self._state == _OPENED:
-            self._lose(
-                f"inbox subscription {self.key('acl')}",
-                "other platforms' messages to this platform's agents are no longer received",
-                "the transport ended the subscription",
-            )
+            self._lose(what, meaning, "the transport ended the subscription")
 
     def on_lost(self, callback: Callable[[str, str], None]) -> None:
         """Have ``callback(what, reason)`` called for each declaration the transport ends.

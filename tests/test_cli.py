@@ -963,3 +963,29 @@ async def test_a_node_platforms_inbox_ended_by_its_transport_is_a_loss(tmp_path:
         assert reason == "the transport ended the subscription"
         assert agents.stats.declarations_lost == 1
     assert agents.stats.declarations_lost == 1  # the close ended the rest: no loss
+
+
+async def test_a_node_platforms_session_presence_watch_ended_by_its_transport_is_a_loss(
+    tmp_path: Path,
+) -> None:
+    """Its Interface Agent's presence watch ended by the transport (MQTT: refused after a
+    reconnection), the platform no longer saw others restart, nothing logged or counted."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p:
+        agents = p.agents
+        told: asyncio.Future[tuple[str, str]] = asyncio.get_running_loop().create_future()
+        agents.on_lost(lambda what, why: told.done() or told.set_result((what, why)))
+        (task,) = [t for t in agents._tasks if t.get_name().endswith(".interface.presence")]
+        watch = task.get_coro().cr_frame.f_locals["coro"]  # type: ignore[union-attr]
+        presence = watch.cr_frame.f_locals["presence"]
+        presence.inbox.close()  # as MQTT's `_end` does: the iterator ends, not closed
+        async with asyncio.timeout(10):
+            what, reason = await told
+        assert what == "session presence watch dyknow/traffic/v1/alive/*"
+        assert reason == "the transport ended the subscription"
+        assert agents.stats.declarations_lost == 1
+    assert agents.stats.declarations_lost == 1  # the close ended the rest: no loss

@@ -435,3 +435,45 @@ async def test_a_node_whose_directory_is_refused_after_a_reconnection_stops_clea
         assert said[-1] == "dyknow node: station stopped", out
         # closed cleanly: its presence cleared (it left, not merely went silent)
         assert await other.tokens(f"dyknow/{fed}/v1/alive/*", timeout=WAIT) == []
+
+
+async def test_a_platform_whose_presence_and_events_are_refused_after_a_reconnection_says_so(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # its directory's presence watch and events subscription ended, their consumers with
+    # them: the platform ran on no longer seeing others come and go nor their directories
+    # change, with nothing at ERROR, nothing counted, a node up
+    host, port = mosquitto
+    fed = f"blind-{uuid.uuid4().hex[:8]}"
+    relay = Relay(host, port)
+    caplog.set_level(logging.ERROR)
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        AgentPlatform("uav-a", t, federation=fed) as p,
+    ):
+        told: asyncio.Queue[tuple[str, str]] = asyncio.Queue()
+        p.on_lost(lambda what, why: told.put_nowait((what, why)))
+        presence, events = p.key("alive", "*"), p.key("df-events", "*")
+        relay.refuse[presence.replace("*", "+")] = 0x87  # not authorized, from the
+        relay.refuse[events.replace("*", "+")] = 0x87  # reconnection on
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            lost = dict([await told.get(), await told.get()])
+        ended = "the transport ended the subscription"
+        assert lost == {
+            f"directory presence watch {presence}": ended,
+            f"directory events subscription {events}": ended,
+        }
+        assert p.stats.declarations_lost == 2 and p.lost == lost
+        errors = {r.getMessage() for r in caplog.records if r.name == "agents._platform"}
+        assert errors == {
+            f"platform[uav-a]: lost its directory presence watch {presence} ({ended}): other "
+            "platforms coming and going are no longer seen: one that goes stays in this "
+            "platform's directory, one that comes is not added to it",
+            f"platform[uav-a]: lost its directory events subscription {events} ({ended}): "
+            "other platforms' directory changes (services added, removed, a signed leave) "
+            "are no longer followed: this platform's directory of their services goes stale",
+        }
+    # closed, as every close closes them: no loss
+    assert p.stats.declarations_lost == 2
