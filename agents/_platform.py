@@ -444,7 +444,7 @@ class AgentPlatform:
         its loss means for others ("other platforms can no longer find this platform's
         agents"). An end is logged at ERROR with both and the transport's reason,
         counted (``stats.declarations_lost``), kept in `lost` and passed to the
-        `on_lost` callbacks. A close is no end.
+        `on_lost` callbacks. A close is no end, nor one once the platform closes.
         """
         handle.on_end(lambda reason: self._lose(what, meaning, reason))
         return handle
@@ -478,7 +478,13 @@ class AgentPlatform:
         self._on_lost.append(callback)
 
     def _lose(self, what: str, meaning: str, reason: str) -> None:
-        """The transport ended ``what`` by itself: logged, counted, the callbacks told."""
+        """The transport ended ``what`` by itself: logged, counted, the callbacks told.
+
+        Once the platform closes, no loss: its close undeclares everything anyway.
+        """
+        if self._state != _OPENED:
+            log.debug("platform[%s]: closing, its %s ended (%s)", self.name, what, reason)
+            return
         self.stats.declarations_lost += 1
         self.lost[what] = reason
         log.error("platform[%s]: lost its %s (%s): %s", self.name, what, reason, meaning)
