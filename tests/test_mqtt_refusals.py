@@ -357,11 +357,14 @@ async def test_a_platform_whose_broker_cannot_be_reached_again_loses_every_decla
         relay.drop()
         # the reconnection waits connect_timeout for its CONNACK before it fails
         async with asyncio.timeout(WAIT + t.config.connect_timeout):
-            lost = {await told.get(), await told.get(), await told.get()}
+            lost = {await told.get() for _ in range(5)}
         inbox, df = f"inbox subscription {p.key('acl')}", f"directory queryable {p.key('df')}"
-        assert lost == {f"liveliness token {alive}", df, inbox}
-        assert p.stats.declarations_lost == 3
-        assert p.lost[inbox] == "the transport ended the subscription"
+        presence = f"directory presence watch {p.key('alive', '*')}"
+        events = f"directory events subscription {p.key('df-events', '*')}"
+        assert lost == {f"liveliness token {alive}", df, inbox, presence, events}
+        assert p.stats.declarations_lost == 5
+        for ended in (inbox, presence, events):
+            assert p.lost[ended] == "the transport ended the subscription"
         assert p.lost[df].startswith("mqtt: the connection to the broker was lost (")
         # the token by the same loss, or by its own reconnection when that failed first
         # (each waits connect_timeout for a connection the relay closes at once)
