@@ -1468,9 +1468,10 @@ class GlobalDirectory:
         self._platform._ended(
             sub,
             f"directory presence watch {self._platform.key('alive', '*')}",
-            "other platforms coming and going are no longer seen but by the directory's "
-            "rechecks (where they run): till then one that goes stays in this platform's "
-            "directory, one that comes is not added to it",
+            "other platforms coming and going are no longer seen but by their signed leaves "
+            "and the directory's rechecks (where they run): till then one that goes without "
+            "its signed leave (a crash) stays in this platform's directory, one that comes is "
+            "not added to it",
         )
 
     async def _follow_platform(self, platform: str, queue: deque[bool]) -> None:

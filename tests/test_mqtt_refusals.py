@@ -475,9 +475,10 @@ async def test_a_platform_whose_presence_and_events_are_refused_after_a_reconnec
         errors = {r.getMessage() for r in caplog.records if r.name == "agents._platform"}
         assert errors == {
             f"platform[uav-a]: lost its directory presence watch {presence} ({ended}): other "
-            "platforms coming and going are no longer seen but by the directory's rechecks "
-            "(where they run): till then one that goes stays in this platform's directory, "
-            "one that comes is not added to it",
+            "platforms coming and going are no longer seen but by their signed leaves and the "
+            "directory's rechecks (where they run): till then one that goes without its signed "
+            "leave (a crash) stays in this platform's directory, one that comes is not added "
+            "to it",
             f"platform[uav-a]: lost its directory events subscription {events} ({ended}): "
             "other platforms' directory changes (services added, removed, a signed leave) "
             "are no longer followed: this platform's directory of their services goes stale",
