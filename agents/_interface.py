@@ -2787,8 +2787,9 @@ class InterfaceAgent:
         host._ended(
             presence,
             f"session presence watch {host.key('alive', '*')}",
-            "other platforms' restarts are no longer seen: messages to one that restarted "
-            "are sealed on its previous process's session, which the new process cannot open",
+            "other platforms' restarts without their signed leave (a crash) are no longer "
+            "seen: messages to one that restarted so are sealed on its previous process's "
+            "session, which the new process cannot open",
         )
 
     def peer_left(self, peer: str, at: float | None = None) -> None:
