@@ -1307,6 +1307,12 @@ class GlobalDirectory:
                 self._audit_invalid(platform, f"directory event: {exc}", "df-events")
                 continue
             self._apply(platform, op, service)
+        self._platform._ended(
+            sub,
+            f"directory events subscription {self._platform.key('df-events', '*')}",
+            "other platforms' directory changes (services added, removed, a signed leave) "
+            "are no longer followed: this platform's directory of their services goes stale",
+        )
 
     def _take_leave(self, platform: str, statement: Statement) -> None:
         """Take ``platform``'s signed leave: at once when it is the leave of the process read.
@@ -1459,6 +1465,14 @@ class GlobalDirectory:
             changed = self._presence_changed.get(platform)
             if changed is not None:
                 changed.set()  # its task may be waiting to ask an unconfirmed platform again
+        self._platform._ended(
+            sub,
+            f"directory presence watch {self._platform.key('alive', '*')}",
+            "other platforms coming and going are no longer seen but by their signed leaves "
+            "and the directory's rechecks (where they run): till then one that goes without "
+            "its signed leave (a crash) stays in this platform's directory, one that comes is "
+            "not added to it",
+        )
 
     async def _follow_platform(self, platform: str, queue: deque[bool]) -> None:
         """Act on ``platform``'s presence changes in order, those that cost a query within budget.

@@ -2784,6 +2784,13 @@ class InterfaceAgent:
             else:
                 self._alive.discard(peer)
             self._kx_priority()
+        host._ended(
+            presence,
+            f"session presence watch {host.key('alive', '*')}",
+            "other platforms' restarts without their signed leave (a crash) are no longer "
+            "seen: messages to one that restarted so are sealed on its previous process's "
+            "session, which the new process cannot open",
+        )
 
     def peer_left(self, peer: str, at: float | None = None) -> None:
         """``peer`` said, signed at ``at`` (POSIX s; now when None), that it leaves.

@@ -444,24 +444,29 @@ class AgentPlatform:
         its loss means for others ("other platforms can no longer find this platform's
         agents"). An end is logged at ERROR with both and the transport's reason,
         counted (``stats.declarations_lost``), kept in `lost` and passed to the
-        `on_lost` callbacks. A close is no end.
+        `on_lost` callbacks. A close is no end, nor one once the platform closes.
         """
         handle.on_end(lambda reason: self._lose(what, meaning, reason))
         return handle
 
     def _inbox_ended(self, sub: Subscription[Any]) -> None:
-        """The channel's inbox ``sub`` ended: lost (as `declared`) unless closed, or closing.
+        """The channel's inbox ``sub`` ended: lost (as `declared`) unless closed, or closing."""
+        self._ended(
+            sub,
+            f"inbox subscription {self.key('acl')}",
+            "other platforms' messages to this platform's agents are no longer received",
+        )
+
+    def _ended(self, sub: Subscription[Any], what: str, meaning: str) -> None:
+        """``sub``, which its consumer read to its end, lost (as `declared`) unless closed,
+        or the platform closing.
 
         A subscription has no reason to give: the transport's own warning before says why
         (MQTT: the broker refused its filter after a reconnection).
         """
         # (a test's inbox may be any async iterable: no transport ends it)
         if isinstance(sub, Subscription) and not sub.closed and self._state == _OPENED:
-            self._lose(
-                f"inbox subscription {self.key('acl')}",
-                "other platforms' messages to this platform's agents are no longer received",
-                "the transport ended the subscription",
-            )
+            self._lose(what, meaning, "the transport ended the subscription")
 
     def on_lost(self, callback: Callable[[str, str], None]) -> None:
         """Have ``callback(what, reason)`` called for each declaration the transport ends.
@@ -473,7 +478,13 @@ class AgentPlatform:
         self._on_lost.append(callback)
 
     def _lose(self, what: str, meaning: str, reason: str) -> None:
-        """The transport ended ``what`` by itself: logged, counted, the callbacks told."""
+        """The transport ended ``what`` by itself: logged, counted, the callbacks told.
+
+        Once the platform closes, no loss: its close undeclares everything anyway.
+        """
+        if self._state != _OPENED:
+            log.debug("platform[%s]: closing, its %s ended (%s)", self.name, what, reason)
+            return
         self.stats.declarations_lost += 1
         self.lost[what] = reason
         log.error("platform[%s]: lost its %s (%s): %s", self.name, what, reason, meaning)

@@ -29,7 +29,7 @@ from agents import TransportError
 from agents import run as run_loop
 
 from ._cli_common import complain, error_text
-from ._cli_node import CONFIG_FLAGS, CONFIG_HELP, run_node
+from ._cli_node import CONFIG_FLAGS, CONFIG_HELP, log_to_stderr, run_node
 from ._cli_node import say as _say
 from ._cli_reasoning import kpl_app, monitor
 from ._cli_time import asked, parse_time, when, when_ns
@@ -293,6 +293,7 @@ def console(
         hosts = allowed_names([*cfg.console.allow_hosts, *(allow_host or [])], os.environ)
     except ValueError as exc:
         raise _fail(f"dyknow console: {config}: {exc}") from None
+    log_to_stderr()
     try:
         run_loop(run_console(cfg, str(config), host, port, _say, token=token, allow_hosts=hosts))
     except PlatformConfigError as exc:
@@ -358,6 +359,7 @@ def foxglove(
         hosts = allowed_names([*configured, *(allow_host or [])], os.environ)
     except ValueError as exc:
         raise _fail(f"dyknow foxglove: {config}: {exc}") from None
+    log_to_stderr()
     try:
         run_loop(
             run_foxglove(

@@ -108,33 +108,53 @@ class PlatformLostError(TransportError):
     """
 
 
-def _stop_when_lost(p: FederationPlatform, stop: asyncio.Event, command: str) -> dict[str, str]:
-    """Set ``stop`` when the transport ends a declaration of ``p``'s; what it ended, why.
+class _Losses:
+    """What the transport ended of a node's platform's declarations, that stops the node.
 
-    The platform logged the loss at ERROR already (`AgentPlatform.declared`); this says
-    once, on stderr, that the node stops for it.
+    A loss before the node says it is ready is a start failure (`started` raises: no
+    ready line, exit 1); one after stops it (``stop`` set, said once on stderr); one
+    once a stop was asked (SIGINT/SIGTERM) stops nothing more and changes no exit code
+    (the platform logs and counts it: `AgentPlatform.declared`).
     """
-    lost: dict[str, str] = {}
 
-    def lose(what: str, reason: str) -> None:
-        if not lost:
-            complain(
-                f"dyknow {command}: {p.name} stopping, to exit with code 1 for its "
-                f"supervisor to restart it: the transport ended its {what}"
-            )
-            stop.set()
-        lost[what] = reason
+    def __init__(self, p: FederationPlatform, stop: asyncio.Event, command: str) -> None:
+        self.lost: dict[str, str] = {}  # what, why: the losses the node stops for
+        self._name, self._stop, self._command = p.name, stop, command
+        self._ready = False
+        p.agents.on_lost(self._lose)
 
-    p.agents.on_lost(lose)
-    return lost
+    def _lose(self, what: str, reason: str) -> None:
+        if not self.lost:
+            if self._stop.is_set():  # a stop asked before: it exits as asked
+                return
+            if self._ready:
+                complain(
+                    f"dyknow {self._command}: {self._name} stopping, to exit with code 1 for "
+                    f"its supervisor to restart it: the transport ended its {what}"
+                )
+            self._stop.set()
+        self.lost[what] = reason
+
+    def started(self) -> None:
+        """Ready from now on; `PlatformLostError` when something was lost before (a start
+        that failed: the node closes and exits 1 with it, never saying it is ready)."""
+        if self.lost:
+            raise _lost_error(self._name, self.lost, started=False)
+        self._ready = True
 
 
-def _lost_error(name: str, lost: dict[str, str]) -> PlatformLostError:
-    """The error a node stopped for ``lost`` ends with."""
-    ended = "; ".join(f"its {what} ({reason})" for what, reason in lost.items())
+def _lost_error(name: str, lost: dict[str, str], *, started: bool = True) -> PlatformLostError:
+    """The error a node stopped (or failed to start) for ``lost`` ends with: each
+    declaration named, each reason said once, after the declarations it ended."""
+    by_reason: dict[str, list[str]] = {}
+    for what, reason in lost.items():
+        by_reason.setdefault(reason, []).append(what)
+    ended = "; ".join(
+        f"its {', its '.join(whats)} ({reason})" for reason, whats in by_reason.items()
+    )
     return PlatformLostError(
-        f"platform {name!r} stopped: the transport ended {ended}. "
-        "Started again, it declares them anew"
+        f"platform {name!r} {'stopped' if started else 'could not start'}: the transport "
+        f"ended {ended}. Started again, it declares them anew"
     )
 
 
@@ -291,7 +311,7 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
 
     A declaration of the platform's that the transport ends by itself (MQTT: a filter
     the broker refuses after a reconnection) stops it too, cleanly, then raises
-    `PlatformLostError`.
+    `PlatformLostError`; one before it is ready fails its start (`_Losses`).
 
     SIGHUP re-reads the config file's ``[sharing]`` table (only that) and applies it
     (`reload_sharing`); a wrong one is said in one line and the policy in force stays.
@@ -300,8 +320,9 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()  # after opening: zenoh installs handlers of its own
-        lost = _stop_when_lost(p, stop, "node")
+        losses = _Losses(p, stop, "node")
         async with _reloading_on_hup(p, source, say, "node"):
+            losses.started()
             say(
                 f"dyknow node: {p.name} ready in federation {config.federation} "
                 f"({endpoints(config)})"
@@ -315,8 +336,8 @@ async def run_node(config: PlatformConfig, source: str, say: Callable[[str], Non
         )
         _say_lost("node", p, say)
     say(f"dyknow node: {config.name} stopped")
-    if lost:
-        raise _lost_error(config.name, lost)
+    if losses.lost:
+        raise _lost_error(config.name, losses.lost)
 
 
 @contextlib.asynccontextmanager
@@ -471,8 +492,9 @@ async def run_console(
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()
-        lost = _stop_when_lost(p, stop, "console")
+        losses = _Losses(p, stop, "console")
         async with _reloading_on_hup(p, source, say, "console"):
+            losses.started()
             say(
                 f"dyknow console: {p.name} ready in federation {config.federation}: "
                 f"{console.login_url}"
@@ -486,8 +508,8 @@ async def run_console(
         )
         _say_lost("console", p, say)
     say(f"dyknow console: {config.name} stopped")
-    if lost:
-        raise _lost_error(config.name, lost)
+    if losses.lost:
+        raise _lost_error(config.name, losses.lost)
 
 
 async def run_foxglove(
@@ -523,8 +545,9 @@ async def run_foxglove(
         _warn(unprovided(p, source))
         await p.join()
         stop = _stop_event()
-        lost = _stop_when_lost(p, stop, "foxglove")
+        losses = _Losses(p, stop, "foxglove")
         async with _reloading_on_hup(p, source, say, "foxglove"):
+            losses.started()
             say(f"dyknow foxglove: serving {', '.join(bridge.served()) or 'no streams'}")
             if bridge.origin is None:
                 say("dyknow foxglove: no [foxglove] origin: positions are not drawn on a map")
@@ -538,8 +561,8 @@ async def run_foxglove(
         say(_foxglove_closing(bridge.stats()))
         _say_lost("foxglove", p, say)
     say(f"dyknow foxglove: {config.name} stopped")
-    if lost:
-        raise _lost_error(config.name, lost)
+    if losses.lost:
+        raise _lost_error(config.name, losses.lost)
 
 
 def _foxglove_closing(stats: dict[str, Any]) -> str:

@@ -12,6 +12,7 @@ leaves the rest to typer, so the two cannot read one command line differently.
 from __future__ import annotations
 
 import gc
+import logging
 import os
 import sys
 import types
@@ -24,6 +25,27 @@ CONFIG_FLAGS = ("--config", "-c")
 CONFIG_HELP = "the platform's TOML config"
 # the variable by which a shell asks the ``dyknow`` command (click, under typer) to complete
 COMPLETE_VAR = "_DYKNOW_COMPLETE"
+
+
+# a log record on a long-running command's stderr: its level and logger say what it is,
+# apart from the command's own lines ("dyknow node: …")
+LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
+
+
+def log_to_stderr() -> None:
+    """Have the log's warnings and errors go to stderr as ``LEVEL logger: message``.
+
+    Without it Python's last resort printed the bare message: an ERROR looked like a
+    WARNING and like the command's own lines. Left alone when the process's logging is
+    configured already (a caller that embeds the command, a test).
+    """
+    root = logging.getLogger()
+    if root.handlers:
+        return
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setLevel(logging.WARNING)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    root.addHandler(handler)
 
 
 def say(text: str) -> None:
@@ -130,6 +152,7 @@ def run_node(config: Path) -> int:
     (the node stopped cleanly first: `PlatformLostError`), or the host lacks what the
     local channel takes (file descriptors).
     """
+    log_to_stderr()
     # What the imports build lives as long as the node: the cyclic GC would walk it again
     # and again until ready (~15 ms of a node's start), so it is off while they run and
     # what they built is frozen out of its sight; once ready, `settle_gc` collects it all

@@ -963,3 +963,116 @@ async def test_a_node_platforms_inbox_ended_by_its_transport_is_a_loss(tmp_path:
         assert reason == "the transport ended the subscription"
         assert agents.stats.declarations_lost == 1
     assert agents.stats.declarations_lost == 1  # the close ended the rest: no loss
+
+
+async def test_a_node_platforms_session_presence_watch_ended_by_its_transport_is_a_loss(
+    tmp_path: Path,
+) -> None:
+    """Its Interface Agent's presence watch ended by the transport (MQTT: refused after a
+    reconnection), the platform no longer saw others restart, nothing logged or counted."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p:
+        agents = p.agents
+        told: asyncio.Future[tuple[str, str]] = asyncio.get_running_loop().create_future()
+        agents.on_lost(lambda what, why: told.done() or told.set_result((what, why)))
+        (task,) = [t for t in agents._tasks if t.get_name().endswith(".interface.presence")]
+        watch = task.get_coro().cr_frame.f_locals["coro"]  # type: ignore[union-attr]
+        presence = watch.cr_frame.f_locals["presence"]
+        presence.inbox.close()  # as MQTT's `_end` does: the iterator ends, not closed
+        async with asyncio.timeout(10):
+            what, reason = await told
+        assert what == "session presence watch dyknow/traffic/v1/alive/*"
+        assert reason == "the transport ended the subscription"
+        assert agents.stats.declarations_lost == 1
+    assert agents.stats.declarations_lost == 1  # the close ended the rest: no loss
+
+
+async def test_a_declaration_ended_while_its_platform_closes_is_no_loss(tmp_path: Path) -> None:
+    """Ended by the transport once the platform's close began (a node's SIGTERM), a
+    declaration was counted lost, and the node that was asked to stop exited 1."""
+    import asyncio
+
+    from agents import Agent
+    from federation import FederationPlatform, PlatformConfig
+
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+
+    class EndsTheKeyExchange(Agent):
+        async def teardown(self) -> None:
+            # the close stops the users' agents before the channel: the key exchange is
+            # still declared, and the transport ends it now
+            assert p.interface._kx is not None
+            p.interface._kx._end("gone")
+
+    told: list[str] = []
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p:
+        await p.agents.add(EndsTheKeyExchange("ender"))
+        p.agents.on_lost(lambda what, why: told.append(what))
+    assert p.interface._kx is not None and p.interface._kx.ended == "gone"  # it ran
+    assert told == [] and p.agents.lost == {}
+    assert p.agents.stats.declarations_lost == 0
+
+
+async def test_a_node_asked_to_stop_before_a_loss_exits_as_asked(tmp_path: Path) -> None:
+    """A loss once SIGINT/SIGTERM asked the node to stop is logged and counted by the
+    platform, but the node neither says it stops for it nor exits 1."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+    from federation._cli_net import _Losses
+
+    config = PlatformConfig.load(_write_federation(tmp_path, _free_port())["uav-a"])
+    async with asyncio.timeout(30), FederationPlatform(config, join=False) as p:
+        stop = asyncio.Event()
+        losses = _Losses(p, stop, "node")
+        losses.started()
+        stop.set()  # as the signal handler does
+        assert p.agents.df is not None and p.agents.df._queryable is not None
+        p.agents.df._queryable._end("gone")
+        assert losses.lost == {}
+        assert p.agents.stats.declarations_lost == 1
+
+
+async def test_a_node_whose_declaration_is_lost_before_ready_fails_to_start(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A loss while the node starts said it ready, then stopped: it is a start failure,
+    no ready line, the node closed and the error naming what was lost, and why."""
+    import asyncio
+
+    from federation import FederationPlatform, PlatformConfig
+    from federation._cli_net import PlatformLostError, run_node
+
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))  # a socket of this test's own
+    path = _write_federation(tmp_path, _free_port())["uav-a"]
+    config = PlatformConfig.load(path)
+    join = FederationPlatform.join
+    opened: list[FederationPlatform] = []
+
+    async def join_and_lose(self: FederationPlatform) -> None:
+        await join(self)
+        opened.append(self)
+        assert self.agents.df is not None and self.agents.df._queryable is not None
+        self.agents.df._queryable._end("refused")
+        self.agents._token._end("refused")  # type: ignore[union-attr]
+        assert self.interface._kx is not None
+        self.interface._kx._end("gone")
+
+    monkeypatch.setattr(FederationPlatform, "join", join_and_lose)
+    said: list[str] = []
+    with pytest.raises(PlatformLostError) as failed:
+        async with asyncio.timeout(30):
+            await run_node(config, str(path), said.append)
+    assert not [line for line in said if "ready" in line], said
+    assert str(failed.value) == (
+        "platform 'uav-a' could not start: the transport ended its directory queryable "
+        "dyknow/traffic/v1/df/uav-a, its liveliness token dyknow/traffic/v1/alive/uav-a "
+        "(refused); its key-exchange queryable dyknow/traffic/v1/kx/uav-a (gone). "
+        "Started again, it declares them anew"
+    )
+    (p,) = opened
+    assert not p.agents.running  # closed

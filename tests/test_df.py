@@ -610,3 +610,36 @@ async def test_platforms_closing_over_a_stalled_broker_do_not_wait_for_it_one_by
         while alive and loop.time() < deadline:  # each waits for a trip through the broker
             alive = await watcher.tokens(key, timeout=5.0)
         assert alive == [], f"still alive once the broker runs again: {alive}"
+
+
+async def test_a_directory_whose_presence_watch_ended_still_takes_a_signed_leave(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # its presence watch ended by the transport (MQTT: refused after a reconnection), a
+    # platform still learns of one that leaves cleanly, by its signed leave on the
+    # directory's events: only one gone without it (a crash) stays listed, and the
+    # loss's meaning says no more than that
+    hub = MemoryHub()
+    async with asyncio.timeout(10), platforms("uav-a", hub=hub) as [pa]:
+        gdf = pa.global_df
+        assert gdf is not None
+        lost: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        pa.on_lost(lambda what, why: lost.done() or lost.set_result(what))
+        async with gdf.watch() as w:
+            async with hub.transport() as t, AgentPlatform("late", t, federation="t") as late:
+                assert late.df is not None
+                await late.df.register(svc("cam@late", "cam", V.PUBLIC))
+                await wait_for(w, lambda e: e.op == "register" and e.platform == "late")
+                _, presence = gdf._subs  # the events subscription first, the presence watch
+                presence.inbox.close()  # as MQTT's `_end` does: the iterator ends, not closed
+                assert await lost == f"directory presence watch {pa.key('alive', '*')}"
+            gone = await wait_for(w, lambda e: e.op == "platform-gone")
+        assert gone == DirectoryEvent("platform-gone", "late", None)
+        assert gdf.platforms == ["uav-a"] and gdf.services() == []
+    (said,) = [r.getMessage() for r in caplog.records if r.name == "agents._platform"]
+    assert said.endswith(
+        "other platforms coming and going are no longer seen but by their signed leaves "
+        "and the directory's rechecks (where they run): till then one that goes without "
+        "its signed leave (a crash) stays in this platform's directory, one that comes is "
+        "not added to it"
+    ), said

@@ -357,11 +357,14 @@ async def test_a_platform_whose_broker_cannot_be_reached_again_loses_every_decla
         relay.drop()
         # the reconnection waits connect_timeout for its CONNACK before it fails
         async with asyncio.timeout(WAIT + t.config.connect_timeout):
-            lost = {await told.get(), await told.get(), await told.get()}
+            lost = {await told.get() for _ in range(5)}
         inbox, df = f"inbox subscription {p.key('acl')}", f"directory queryable {p.key('df')}"
-        assert lost == {f"liveliness token {alive}", df, inbox}
-        assert p.stats.declarations_lost == 3
-        assert p.lost[inbox] == "the transport ended the subscription"
+        presence = f"directory presence watch {p.key('alive', '*')}"
+        events = f"directory events subscription {p.key('df-events', '*')}"
+        assert lost == {f"liveliness token {alive}", df, inbox, presence, events}
+        assert p.stats.declarations_lost == 5
+        for ended in (inbox, presence, events):
+            assert p.lost[ended] == "the transport ended the subscription"
         assert p.lost[df].startswith("mqtt: the connection to the broker was lost (")
         # the token by the same loss, or by its own reconnection when that failed first
         # (each waits connect_timeout for a connection the relay closes at once)
@@ -420,11 +423,14 @@ async def test_a_node_whose_directory_is_refused_after_a_reconnection_stops_clea
         lines = err.splitlines()
         assert "Traceback" not in err, err
         # the log's line, the node's word that it stops, and the exit's reason, in order
-        ours = [line for line in lines if line.startswith(("platform[", "dyknow node:"))]
+        # the log's records say their level and logger, apart from the node's own lines
+        drop = "WARNING agents.transports._mqtt: mqtt: connection to the broker lost ("
+        assert [line for line in lines if line.startswith(drop)], err
+        ours = [line for line in lines if line.startswith(("ERROR ", "dyknow node:"))]
         assert ours == [
-            f"platform[station]: lost its directory queryable {df} ({reason}): other "
-            "platforms can no longer find this platform's agents (their directory queries "
-            "go unanswered)",
+            f"ERROR agents._platform: platform[station]: lost its directory queryable {df} "
+            f"({reason}): other platforms can no longer find this platform's agents (their "
+            "directory queries go unanswered)",
             "dyknow node: station stopping, to exit with code 1 for its supervisor to "
             f"restart it: the transport ended its directory queryable {df}",
             f"dyknow node: {conf.name}: platform 'station' stopped: the transport ended its "
@@ -435,3 +441,47 @@ async def test_a_node_whose_directory_is_refused_after_a_reconnection_stops_clea
         assert said[-1] == "dyknow node: station stopped", out
         # closed cleanly: its presence cleared (it left, not merely went silent)
         assert await other.tokens(f"dyknow/{fed}/v1/alive/*", timeout=WAIT) == []
+
+
+async def test_a_platform_whose_presence_and_events_are_refused_after_a_reconnection_says_so(
+    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+) -> None:
+    # its directory's presence watch and events subscription ended, their consumers with
+    # them: the platform ran on no longer seeing others come and go nor their directories
+    # change, with nothing at ERROR, nothing counted, a node up
+    host, port = mosquitto
+    fed = f"blind-{uuid.uuid4().hex[:8]}"
+    relay = Relay(host, port)
+    caplog.set_level(logging.ERROR)
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        AgentPlatform("uav-a", t, federation=fed) as p,
+    ):
+        told: asyncio.Queue[tuple[str, str]] = asyncio.Queue()
+        p.on_lost(lambda what, why: told.put_nowait((what, why)))
+        presence, events = p.key("alive", "*"), p.key("df-events", "*")
+        relay.refuse[presence.replace("*", "+")] = 0x87  # not authorized, from the
+        relay.refuse[events.replace("*", "+")] = 0x87  # reconnection on
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            lost = dict([await told.get(), await told.get()])
+        ended = "the transport ended the subscription"
+        assert lost == {
+            f"directory presence watch {presence}": ended,
+            f"directory events subscription {events}": ended,
+        }
+        assert p.stats.declarations_lost == 2 and p.lost == lost
+        errors = {r.getMessage() for r in caplog.records if r.name == "agents._platform"}
+        assert errors == {
+            f"platform[uav-a]: lost its directory presence watch {presence} ({ended}): other "
+            "platforms coming and going are no longer seen but by their signed leaves and the "
+            "directory's rechecks (where they run): till then one that goes without its signed "
+            "leave (a crash) stays in this platform's directory, one that comes is not added "
+            "to it",
+            f"platform[uav-a]: lost its directory events subscription {events} ({ended}): "
+            "other platforms' directory changes (services added, removed, a signed leave) "
+            "are no longer followed: this platform's directory of their services goes stale",
+        }
+    # closed, as every close closes them: no loss
+    assert p.stats.declarations_lost == 2

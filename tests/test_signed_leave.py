@@ -16,7 +16,7 @@ import contextlib
 import json
 import threading
 import time
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -593,3 +593,55 @@ async def test_a_leave_replayed_while_a_flood_sheds_its_check_is_refused(
                     await asyncio.sleep(0.02)  # its snapshot, not abandoned (or the recheck)
                 assert not df.said_left("uav-b")
                 assert await request(asker, "echo@uav-a", 0, ontology="demo", timeout=TIMEOUT) == 0
+
+
+async def test_a_restart_with_its_signed_leave_is_seen_without_the_session_presence_watch(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """uav-a's session presence watch ended by its transport (MQTT: refused after a
+    reconnection): uav-b restarted after its signed leave is still asked on a session
+    its new process agreed; the loss's meaning says only a restart without one is unseen."""
+    federation = trusted(tmp_path, "leave", ["uav-a", "uav-b"])
+    fed, port = federation.fed, federation.port
+    channel = federation.channel
+
+    async def serve() -> AsyncIterator[None]:
+        """A process of uav-b serving echo until the caller goes on, then leaving, signed."""
+        config = ZenohConfig.loopback(free_tcp_port(), connect=[port])
+        async with (
+            ZenohTransport(config) as tb,
+            AgentPlatform("uav-b", tb, federation=fed, channel=channel("uav-b")) as pb,
+        ):
+            await pb.add(Echo())
+            yield
+
+    async with (
+        asyncio.timeout(60),
+        ZenohTransport(ZenohConfig.loopback(port)) as ta,
+        AgentPlatform("uav-a", ta, federation=fed, channel=channel("uav-a")) as pa,
+    ):
+        view, df = pa.global_df, pa.df
+        assert view is not None and df is not None
+        asker = await pa.add(Agent("asker"))
+        lost: asyncio.Future[str] = asyncio.get_running_loop().create_future()
+        pa.on_lost(lambda what, why: lost.done() or lost.set_result(what))
+        (task,) = [t for t in pa._tasks if t.get_name().endswith(".interface.presence")]
+        watch = task.get_coro().cr_frame.f_locals["coro"]  # type: ignore[union-attr]
+        watch.cr_frame.f_locals["presence"].inbox.close()  # as MQTT's `_end` does
+        assert await lost == f"session presence watch {pa.key('alive', '*')}"
+        for value in (1, 2):  # uav-b's first process, then its next one
+            async with contextlib.asynccontextmanager(serve)():
+                while "uav-b" not in view.platforms:  # noqa: ASYNC110
+                    await asyncio.sleep(0.02)
+                got = await request(asker, "echo@uav-b", value, ontology="demo", timeout=TIMEOUT)
+                assert got == value
+            while "uav-b" in view.platforms:  # noqa: ASYNC110
+                await asyncio.sleep(0.02)  # its signed leave taken
+    (said,) = [
+        r.getMessage() for r in caplog.records if r.name == "agents._platform" and "lost" in r.msg
+    ]
+    assert said.endswith(
+        "other platforms' restarts without their signed leave (a crash) are no longer seen: "
+        "messages to one that restarted so are sealed on its previous process's session, "
+        "which the new process cannot open"
+    ), said
