@@ -1350,21 +1350,11 @@ class SessionTable:
     def open_noting(self, envelope: bytes | str) -> tuple[str, bytes, int]:
         """`open`, and `forgotten` of its sender at that moment (read under the same lock)."""
         if type(envelope) is bytes and envelope[:1] in _BINARY_HEADS:
-            # `_open_binary`, inline: every envelope the lane opens, in one lock section
+            # `_open_binary` in one lock section with the count: every envelope the lane opens
             # (its unpacking reads nothing of the table: outside it)
             frm, to, sid, ts, n, payload, mac = self._unpack(envelope, self._max_envelope, None)
             with self._lock:
-                session = self._session_of(frm, to, sid, ts, n)
-                if mac is not None:
-                    if self.policy.require_encryption:
-                        raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
-                    if type(mac) is not bytes or len(mac) != _MAC_BYTES:
-                        raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
-                now = self._clock()
-                body = session._accept_binary(ts, n, payload, mac, now)
-                self._heard[frm] = now
-                if self._rx_latest.get(frm) is not session:
-                    self._on_rx_switch(session, now)
+                body = self._accept_binary(frm, to, sid, ts, n, payload, mac)
                 return frm, body, self._forgets.get(frm, 0)
         with self._lock:
             frm, body = self.open(envelope)
@@ -1692,18 +1682,25 @@ class SessionTable:
         """
         frm, to, sid, ts, n, payload, mac = self._unpack(envelope, self._max_envelope, None)
         with self._lock:
-            session = self._session_of(frm, to, sid, ts, n)
-            if mac is not None:
-                if self.policy.require_encryption:
-                    raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
-                if type(mac) is not bytes or len(mac) != _MAC_BYTES:
-                    raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
-            now = self._clock()
-            body = session._accept_binary(ts, n, payload, mac, now)
-            self._heard[frm] = now
-            if self._rx_latest.get(frm) is not session:
-                self._on_rx_switch(session, now)
-        return frm, body
+            return frm, self._accept_binary(frm, to, sid, ts, n, payload, mac)
+
+    def _accept_binary(
+        self, frm: str, to: Any, sid: Any, ts: Any, n: Any, payload: bytes, mac: Any
+    ) -> bytes:
+        """An unpacked binary ACL envelope's session checks and opening, under the table's
+        lock (the caller holds it): its body, or a refusal."""
+        session = self._session_of(frm, to, sid, ts, n)
+        if mac is not None:
+            if self.policy.require_encryption:
+                raise Unencrypted("this platform requires encrypted envelopes ('box')", frm)
+            if type(mac) is not bytes or len(mac) != _MAC_BYTES:
+                raise Malformed(f"field 'mac' must be {_MAC_BYTES} bytes", frm)
+        now = self._clock()
+        body: bytes = session._accept_binary(ts, n, payload, mac, now)
+        self._heard[frm] = now
+        if self._rx_latest.get(frm) is not session:
+            self._on_rx_switch(session, now)
+        return body
 
     def _unpack(
         self, envelope: bytes, max_envelope: int, max_body: int | None
