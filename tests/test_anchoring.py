@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import itertools
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
@@ -332,3 +334,36 @@ async def test_reestablish_relinks_existing_objects_and_removal_cleans_up(
     for _ in range(5):
         await asyncio.sleep(0)
     assert anch.steps == 6
+
+
+async def test_a_late_anchoring_catches_up_one_step_per_loop_turn(
+    world: tuple[DyKnowInstance, ManualClock],
+) -> None:
+    # After a jump of the clock the missed grid points are stepped one per turn of the
+    # event loop: a producer beside it (a camera feeding it) keeps its pace meanwhile
+    # instead of waiting for the whole catch-up.
+    dk, clock = world
+    wo = ObjectClass(name="WorldObject", features={"on_road": "wo/{id}/on_road"})
+    anch = add_anchoring(dk, [wo, ON_ROAD])
+    await run(clock, anch, 1)
+    turns: list[int] = []  # the anchoring's step count at each of the producer's turns
+
+    async def producer() -> None:
+        while True:
+            turns.append(anch.steps)
+            await asyncio.sleep(0)
+
+    task = asyncio.create_task(producer())
+    try:
+        await asyncio.sleep(0)  # the producer is running
+        before = anch.steps
+        clock.set(clock.now() + 20 * NS_PER_S)
+        await settle(anch, clock.now())
+        assert anch.steps == before + 20  # every missed grid point stepped, none twice
+        await asyncio.sleep(0)
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+    per_turn = [b - a for a, b in itertools.pairwise(turns)]
+    assert sum(per_turn) == 20 and max(per_turn) == 1, per_turn
