@@ -28,6 +28,7 @@ import msgpack
 import orjson
 
 from ._acl import (
+    _SHALLOW_JSON_BYTES,
     _TRUSTED_NESTING,
     MAX_MESSAGE_BYTES,
     WIRE_VERSION,
@@ -1710,7 +1711,7 @@ class InterfaceAgent:
         if (
             type(obj) is not dict
             or (fields := _quick_fields(obj)) is None
-            or nesting_bound(body) >= _TRUSTED_NESTING
+            or (len(body) >= _SHALLOW_JSON_BYTES and nesting_bound(body) >= _TRUSTED_NESTING)
         ):
             return _LEFT  # the full model's parse, on the loop
         message = _constructed(ACLMessage, fields, set(obj))
@@ -2154,7 +2155,7 @@ class InterfaceAgent:
         if (
             type(obj) is dict
             and (fields := _quick_fields(obj)) is not None
-            and nesting_bound(body) < _TRUSTED_NESTING
+            and (len(body) < _SHALLOW_JSON_BYTES or nesting_bound(body) < _TRUSTED_NESTING)
         ):
             message = _constructed(ACLMessage, fields, set(obj))
         else:
