@@ -447,6 +447,42 @@ async def test_zenoh_replies_and_tokens_come_whatever_the_switch_interval(
     assert not any(isinstance(t, threading._DummyThread) for t in putters[str]), putters
 
 
+async def test_zenoh_declared_publisher_puts_until_its_publisher_is_undeclared(
+    zenoh_net: Net, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A thread's put exists once the loop declared the publisher, and no longer once evicted.
+
+    An evicted publisher was undeclared: a put on it would raise, so there is none (the
+    lane leaves its answer to the loop, which declares anew); closing drops them all.
+    """
+    from agents.transports import _zenoh
+
+    monkeypatch.setattr(_zenoh, "_PUBLISHER_CACHE", 2)
+    net = zenoh_net
+    rx, tx = await net.open(), await net.open()
+    assert isinstance(tx, ZenohTransport)
+    first, second, third = (net.key(f"pub/{i}") for i in range(3))
+    sub = await rx.subscribe(net.key("pub/*"))
+    await ready(net, tx, rx)
+    assert tx.declared_publisher(first) is None  # never published: nothing declared
+    await tx.publish(first, b"declared")
+    put = tx.declared_publisher(first)
+    assert put is not None
+    await asyncio.to_thread(put, b"from a thread")
+    assert [m.payload for m in await take(sub, 2)] == [b"declared", b"from a thread"]
+    await tx.publish(second, b"2")
+    assert tx.declared_publisher(first) is not None  # two fit
+    await tx.publish(third, b"3")  # the first evicted, undeclared
+    assert tx.declared_publisher(first) is None
+    assert tx.declared_publisher(third) is not None
+    await tx.publish(first, b"again")  # declared anew: a put of its own again
+    assert tx.declared_publisher(first) is not None
+    assert tx.declared_publisher(second) is None
+    await tx.aclose()
+    assert tx.declared_publisher(first) is None
+    assert tx.declared_publisher(third) is None
+
+
 async def test_zenoh_tokens_come_all_when_more_than_zenoh_s_channel_holds(
     zenoh_net: Net,
 ) -> None:
