@@ -483,6 +483,54 @@ async def test_zenoh_declared_publisher_puts_until_its_publisher_is_undeclared(
     assert tx.declared_publisher(third) is None
 
 
+async def test_zenoh_evicts_and_closes_a_publisher_another_thread_is_putting_on(
+    zenoh_net: Net, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The loop's undeclare of a publisher a thread is putting on (the lane's answer) fails
+    neither the publish that evicts it nor ``aclose``, which still closes the session.
+
+    zenoh refuses to undeclare a publisher in the middle of a put ("Already borrowed", a
+    RuntimeError): it is left to undeclare itself when its last put lets go of it.
+    """
+    from agents.transports import _zenoh
+
+    monkeypatch.setattr(_zenoh, "_PUBLISHER_CACHE", 1)
+    net = zenoh_net
+    tx = await net.open()
+    assert isinstance(tx, ZenohTransport)
+    stop, putting = threading.Event(), threading.Event()
+
+    def hammer(put: Callable[[bytes], None]) -> None:
+        while not stop.is_set():
+            with contextlib.suppress(Exception):  # a put on an undeclared publisher raises
+                put(b"answer")
+            putting.set()
+
+    async def while_putting(key: str, step: Callable[[], Any]) -> None:
+        await tx.publish(key, b"declared")
+        put = tx.declared_publisher(key)
+        assert put is not None
+        stop.clear()
+        putting.clear()
+        thread = threading.Thread(target=hammer, args=(put,), daemon=True)
+        thread.start()
+        try:
+            assert await asyncio.to_thread(putting.wait, WAIT)
+            await step()  # the loop undeclares while the thread puts
+        finally:
+            stop.set()
+            await asyncio.to_thread(thread.join, WAIT)
+        assert not thread.is_alive()
+
+    for i in range(10):
+        busy = net.key(f"busy/{i}")
+        # a cache of one: publishing on another key evicts (undeclares) the busy one
+        await while_putting(busy, lambda i=i: tx.publish(net.key(f"other/{i}"), b"evicts"))
+        assert tx.declared_publisher(busy) is None
+    await while_putting(net.key("busy/closing"), tx.aclose)
+    assert tx._session is None  # closed all the same
+
+
 async def test_zenoh_tokens_come_all_when_more_than_zenoh_s_channel_holds(
     zenoh_net: Net,
 ) -> None:

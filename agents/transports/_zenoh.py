@@ -574,8 +574,7 @@ class ZenohTransport(_Keeps, Transport):
             self._blocking = None
         self._lone_puts.clear()
         for pub in self._publishers.values():
-            with contextlib.suppress(zenoh.ZError):
-                pub.undeclare()
+            _undeclare_publisher(pub)
         self._publishers.clear()
         session, self._session = self._session, None
         if session is not None:
@@ -686,8 +685,7 @@ class ZenohTransport(_Keeps, Transport):
         if len(self._publishers) > _PUBLISHER_CACHE:
             evicted, oldest = self._publishers.popitem(last=False)
             self._lone_puts.pop(evicted, None)
-            with contextlib.suppress(zenoh.ZError):
-                oldest.undeclare()
+            _undeclare_publisher(oldest)
         return pub
 
     def _lone_put(self, key: str, pub: zenoh.Publisher) -> Callable[[bytes], None]:
@@ -1006,6 +1004,20 @@ class ZenohTransport(_Keeps, Transport):
         # Undeclaring after the session closed is a no-op in zenoh, but it may still raise.
         with contextlib.suppress(zenoh.ZError):
             entity.undeclare()
+
+
+def _undeclare_publisher(pub: zenoh.Publisher) -> None:
+    """Undeclare ``pub``, unless another thread is putting on it now (then it undeclares
+    itself once the last reference to it goes, as zenoh drops it)."""
+    try:
+        pub.undeclare()
+    except zenoh.ZError:
+        pass  # the session closed already
+    except RuntimeError:
+        # "Already borrowed": a put of `declared_publisher`'s (the lane's answer) holds it
+        # in zenoh's thread; raising here would fail the publish that evicts it, or end
+        # `aclose` before its session is closed
+        pass
 
 
 def _close_opened(opening: asyncio.Future[zenoh.Session]) -> None:
