@@ -342,6 +342,9 @@ _setattr = object.__setattr__  # as pydantic's model_construct sets a frozen mod
 
 
 _TRUSTED_NESTING = 200  # below pydantic's limit of nesting (255): deeper goes to pydantic
+# JSON nesting n levels deep opens and closes n brackets: a shorter text nests less than
+# _TRUSTED_NESTING, whatever `nesting_bound` counts (brackets in strings count there too)
+_SHALLOW_JSON_BYTES = 2 * _TRUSTED_NESTING
 
 
 def nesting_bound(data: bytes | str) -> int:

@@ -28,6 +28,7 @@ import msgpack
 import orjson
 
 from ._acl import (
+    _SHALLOW_JSON_BYTES,
     _TRUSTED_NESTING,
     MAX_MESSAGE_BYTES,
     WIRE_VERSION,
@@ -1710,18 +1711,20 @@ class InterfaceAgent:
         if (
             type(obj) is not dict
             or (fields := _quick_fields(obj)) is None
-            or nesting_bound(body) >= _TRUSTED_NESTING
+            or (len(body) >= _SHALLOW_JSON_BYTES and nesting_bound(body) >= _TRUSTED_NESTING)
         ):
             return _LEFT  # the full model's parse, on the loop
         message = _constructed(ACLMessage, fields, set(obj))
-        performative = message.performative
+        # ``fields`` is the message's __dict__: each read a dict lookup, not a pass through
+        # pydantic's attribute hook
+        performative = fields["performative"]
         if performative not in INITIATING:
             return _HANDED if self._lane_reply(peer, body, message, forgets) else _LEFT
-        receivers = message.receivers
-        if len(receivers) != 1 or message.reply_to or message.in_reply_to is not None:
+        receivers = fields["receivers"]
+        if len(receivers) != 1 or fields["reply_to"] or fields["in_reply_to"] is not None:
             return _LEFT
         receiver = receivers[0]
-        sender = message.sender
+        sender = fields["sender"]
         here = host.name
         at = receiver.rpartition("@")
         if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
@@ -1737,7 +1740,7 @@ class InterfaceAgent:
             or mailbox._items
             or mailbox._waiter is None  # its receive loop is in a handler
             or agent._handlers_starting
-            or message.conversation_id in agent._by_conv
+            or fields["conversation_id"] in agent._by_conv
         ):
             return _LEFT
         df = host.df
@@ -1776,7 +1779,14 @@ class InterfaceAgent:
                 total.tokens -= 1.0
         finally:
             lock.release()
-        entry = (time.time(), peer, sender, receiver, _NAMES[performative], message.conversation_id)
+        entry = (
+            time.time(),
+            peer,
+            sender,
+            receiver,
+            _NAMES[performative],
+            fields["conversation_id"],
+        )
         try:
             sealed = self._seal(peer, reply)
         except Exception:  # no session, or one past its lifetime: the loop decides it
@@ -2154,7 +2164,7 @@ class InterfaceAgent:
         if (
             type(obj) is dict
             and (fields := _quick_fields(obj)) is not None
-            and nesting_bound(body) < _TRUSTED_NESTING
+            and (len(body) < _SHALLOW_JSON_BYTES or nesting_bound(body) < _TRUSTED_NESTING)
         ):
             message = _constructed(ACLMessage, fields, set(obj))
         else:

@@ -462,14 +462,17 @@ class GatewayAgent(Agent):
         None for a private gateway, another ontology or performative, any other action,
         or a reserved label: `_on_request` / `_on_query` decide, count and audit those.
         """
-        performative = message.performative
+        # a message holds every field in its __dict__: a dict lookup each, not a pass
+        # through pydantic's attribute hook (the lane's answers read here)
+        fields = message.__dict__
+        performative = fields["performative"]
         if (
             not self._at_once
-            or message.ontology != ONTOLOGY
+            or fields["ontology"] != ONTOLOGY
             or self.visibility is Visibility.PRIVATE
         ):
             return None
-        content = message.content
+        content = fields["content"]
         if performative is P.QUERY_REF:
             if type(content) is not dict:
                 return None

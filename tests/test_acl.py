@@ -548,6 +548,25 @@ def test_the_nesting_bound_counts_brackets_and_braces(data: bytes) -> None:
     assert nesting_bound(text) == text.count("[") + text.count("{")
 
 
+def _depth(value: Any) -> int:
+    """How many dicts and lists deep ``value`` nests (a scalar: 0)."""
+    if type(value) is dict:
+        return 1 + max(map(_depth, value.values()), default=0)
+    if type(value) is list:
+        return 1 + max(map(_depth, value), default=0)
+    return 0
+
+
+def test_json_shorter_than_the_shallow_length_nests_less_than_trusted() -> None:
+    """A body under _SHALLOW_JSON_BYTES, its brackets left uncounted, cannot nest too deep."""
+    half = _acl._SHALLOW_JSON_BYTES // 2
+    deepest_short = b"[" * (half - 1) + b"]" * (half - 1)  # the deepest JSON below the length
+    assert len(deepest_short) < _acl._SHALLOW_JSON_BYTES
+    assert _depth(orjson.loads(deepest_short)) < _acl._TRUSTED_NESTING
+    one_deeper = b"[" * half + b"]" * half  # the length itself: no longer surely shallow
+    assert _depth(orjson.loads(one_deeper)) >= _acl._TRUSTED_NESTING
+
+
 _python_content = st.recursive(
     _scalars | st.text(max_size=5) | st.sampled_from([Performative.INFORM, b"x", (1, 2)]),
     lambda inner: (

@@ -447,6 +447,90 @@ async def test_zenoh_replies_and_tokens_come_whatever_the_switch_interval(
     assert not any(isinstance(t, threading._DummyThread) for t in putters[str]), putters
 
 
+async def test_zenoh_declared_publisher_puts_until_its_publisher_is_undeclared(
+    zenoh_net: Net, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A thread's put exists once the loop declared the publisher, and no longer once evicted.
+
+    An evicted publisher was undeclared: a put on it would raise, so there is none (the
+    lane leaves its answer to the loop, which declares anew); closing drops them all.
+    """
+    from agents.transports import _zenoh
+
+    monkeypatch.setattr(_zenoh, "_PUBLISHER_CACHE", 2)
+    net = zenoh_net
+    rx, tx = await net.open(), await net.open()
+    assert isinstance(tx, ZenohTransport)
+    first, second, third = (net.key(f"pub/{i}") for i in range(3))
+    sub = await rx.subscribe(net.key("pub/*"))
+    await ready(net, tx, rx)
+    assert tx.declared_publisher(first) is None  # never published: nothing declared
+    await tx.publish(first, b"declared")
+    put = tx.declared_publisher(first)
+    assert put is not None
+    await asyncio.to_thread(put, b"from a thread")
+    assert [m.payload for m in await take(sub, 2)] == [b"declared", b"from a thread"]
+    await tx.publish(second, b"2")
+    assert tx.declared_publisher(first) is not None  # two fit
+    await tx.publish(third, b"3")  # the first evicted, undeclared
+    assert tx.declared_publisher(first) is None
+    assert tx.declared_publisher(third) is not None
+    await tx.publish(first, b"again")  # declared anew: a put of its own again
+    assert tx.declared_publisher(first) is not None
+    assert tx.declared_publisher(second) is None
+    await tx.aclose()
+    assert tx.declared_publisher(first) is None
+    assert tx.declared_publisher(third) is None
+
+
+async def test_zenoh_evicts_and_closes_a_publisher_another_thread_is_putting_on(
+    zenoh_net: Net, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The loop's undeclare of a publisher a thread is putting on (the lane's answer) fails
+    neither the publish that evicts it nor ``aclose``, which still closes the session.
+
+    zenoh refuses to undeclare a publisher in the middle of a put ("Already borrowed", a
+    RuntimeError): it is left to undeclare itself when its last put lets go of it.
+    """
+    from agents.transports import _zenoh
+
+    monkeypatch.setattr(_zenoh, "_PUBLISHER_CACHE", 1)
+    net = zenoh_net
+    tx = await net.open()
+    assert isinstance(tx, ZenohTransport)
+    stop, putting = threading.Event(), threading.Event()
+
+    def hammer(put: Callable[[bytes], None]) -> None:
+        while not stop.is_set():
+            with contextlib.suppress(Exception):  # a put on an undeclared publisher raises
+                put(b"answer")
+            putting.set()
+
+    async def while_putting(key: str, step: Callable[[], Any]) -> None:
+        await tx.publish(key, b"declared")
+        put = tx.declared_publisher(key)
+        assert put is not None
+        stop.clear()
+        putting.clear()
+        thread = threading.Thread(target=hammer, args=(put,), daemon=True)
+        thread.start()
+        try:
+            assert await asyncio.to_thread(putting.wait, WAIT)
+            await step()  # the loop undeclares while the thread puts
+        finally:
+            stop.set()
+            await asyncio.to_thread(thread.join, WAIT)
+        assert not thread.is_alive()
+
+    for i in range(10):
+        busy = net.key(f"busy/{i}")
+        # a cache of one: publishing on another key evicts (undeclares) the busy one
+        await while_putting(busy, lambda i=i: tx.publish(net.key(f"other/{i}"), b"evicts"))
+        assert tx.declared_publisher(busy) is None
+    await while_putting(net.key("busy/closing"), tx.aclose)
+    assert tx._session is None  # closed all the same
+
+
 async def test_zenoh_tokens_come_all_when_more_than_zenoh_s_channel_holds(
     zenoh_net: Net,
 ) -> None:

@@ -520,6 +520,9 @@ class ZenohTransport(_Keeps, Transport):
         self._seeks = False  # whether the session looks for peers or routers (see `tokens`)
         self._links_wanted = 0  # links its ``connect`` endpoints make, once up (see `tokens`)
         self._publishers: OrderedDict[str, zenoh.Publisher] = OrderedDict()
+        # each declared publisher's put for any thread (`declared_publisher`): made once by
+        # the loop when it declares, dropped when it undeclares
+        self._lone_puts: dict[str, Callable[[bytes], None]] = {}
         self._blocking: ThreadPoolExecutor | None = None  # publish_blocking's puts wait here
         self._slots = asyncio.Semaphore(_BLOCKING_PUTS)  # its threads free for a put
         self._subs: set[Subscription[Any]] = set()
@@ -569,9 +572,9 @@ class ZenohTransport(_Keeps, Transport):
             # a put still waiting ends with the session (or its own bound)
             self._blocking.shutdown(wait=False, cancel_futures=True)
             self._blocking = None
+        self._lone_puts.clear()
         for pub in self._publishers.values():
-            with contextlib.suppress(zenoh.ZError):
-                pub.undeclare()
+            _undeclare_publisher(pub)
         self._publishers.clear()
         session, self._session = self._session, None
         if session is not None:
@@ -678,11 +681,25 @@ class ZenohTransport(_Keeps, Transport):
                 reliability=zenoh.Reliability.RELIABLE,
             )
         self._publishers[key] = pub
+        self._lone_puts[key] = self._lone_put(key, pub)
         if len(self._publishers) > _PUBLISHER_CACHE:
-            _, oldest = self._publishers.popitem(last=False)
-            with contextlib.suppress(zenoh.ZError):
-                oldest.undeclare()
+            evicted, oldest = self._publishers.popitem(last=False)
+            self._lone_puts.pop(evicted, None)
+            _undeclare_publisher(oldest)
         return pub
+
+    def _lone_put(self, key: str, pub: zenoh.Publisher) -> Callable[[bytes], None]:
+        """A put on ``pub`` (declared on ``key``) that raises as `publish` does."""
+
+        def put(payload: bytes) -> None:
+            try:
+                pub.put(payload)
+            except zenoh.ZError as exc:
+                if self._state != "opened":
+                    raise TransportClosed(f"{self.name} transport is {self._state}") from exc
+                raise TransportError(f"zenoh: put on {key!r}: {exc}") from exc
+
+        return put
 
     async def subscribe(
         self, key_expr: str, *, buffer_size: int = 65536, admit: QueryFilter | None = None
@@ -755,24 +772,14 @@ class ZenohTransport(_Keeps, Transport):
     def declared_publisher(self, key: str) -> Callable[[bytes], None] | None:
         """A put on ``key`` for any thread when its publisher is declared already; else None.
 
-        Only reads the publishers' table (the event loop alone adds and evicts); a
-        publisher evicted meanwhile was undeclared, and its put raises as a closed one.
+        Only reads the puts the event loop made as it declared (it alone adds and evicts;
+        each is made once, not per call); a publisher evicted meanwhile was undeclared,
+        and its put raises as a closed one.
         """
         if not self.publishes_nowait:
             return None
-        pub = self._publishers.get(key)
-        if pub is None:
-            return None
-
-        def put(payload: bytes) -> None:
-            try:
-                pub.put(payload)
-            except zenoh.ZError as exc:
-                if self._state != "opened":
-                    raise TransportClosed(f"{self.name} transport is {self._state}") from exc
-                raise TransportError(f"zenoh: put on {key!r}: {exc}") from exc
-
-        return put
+        # made by the loop alone (a put made here could outlive its publisher's eviction)
+        return self._lone_puts.get(key)
 
     async def ask(self, key_expr: str, payload: bytes = b"", *, timeout: float) -> Replies:
         """Ask every queryable matching ``key_expr``; replies until all answered or ``timeout``."""
@@ -997,6 +1004,20 @@ class ZenohTransport(_Keeps, Transport):
         # Undeclaring after the session closed is a no-op in zenoh, but it may still raise.
         with contextlib.suppress(zenoh.ZError):
             entity.undeclare()
+
+
+def _undeclare_publisher(pub: zenoh.Publisher) -> None:
+    """Undeclare ``pub``, unless another thread is putting on it now (then it undeclares
+    itself once the last reference to it goes, as zenoh drops it)."""
+    try:
+        pub.undeclare()
+    except zenoh.ZError:
+        pass  # the session closed already
+    except RuntimeError:
+        # "Already borrowed": a put of `declared_publisher`'s (the lane's answer) holds it
+        # in zenoh's thread; raising here would fail the publish that evicts it, or end
+        # `aclose` before its session is closed
+        pass
 
 
 def _close_opened(opening: asyncio.Future[zenoh.Session]) -> None:
