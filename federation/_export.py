@@ -469,7 +469,8 @@ class Export:
     async def _send(self, samples: list[RawSample]) -> None:
         proxy = self._proxy
         packed = self._pack(samples)
-        first = self._seq - sum(count for _, count in packed)  # numbered as packed
+        # numbered as packed (one body, but for a batch over max_batch_bytes)
+        first = self._seq - (packed[0][1] if len(packed) == 1 else sum(c for _, c in packed))
         for body, count in packed:
             start, first = first, first + count
             try:
