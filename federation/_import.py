@@ -515,6 +515,13 @@ class ImportProxy(ProxyBase):
             if n % _YIELD_EVERY == 0:
                 # the inbox hands out what is queued without suspending: let others run
                 await asyncio.sleep(0)
+        self._ended(
+            sub,
+            f"streams subscription {self._prefix}*/**",
+            "other platforms' streams to this platform are no longer received: its imports "
+            "get no more samples and count none lost, while its loss reports still renew "
+            "their senders' leases (the senders go on exporting)",
+        )
 
     def _handle(self, key: str, payload: bytes) -> None:
         """One payload: open, check, decode, translate, inject; or drop and count why."""
