@@ -30,22 +30,25 @@ COMPLETE_VAR = "_DYKNOW_COMPLETE"
 # a log record on a long-running command's stderr: its level and logger say what it is,
 # apart from the command's own lines ("dyknow node: …")
 LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
+# Python's own last resort (bare messages to stderr), whatever the process made of it since
+_PYTHONS_LAST_RESORT = getattr(logging, "_defaultLastResort", logging.lastResort)
 
 
 def log_to_stderr() -> None:
     """Have the log's warnings and errors go to stderr as ``LEVEL logger: message``.
 
     Without it Python's last resort printed the bare message: an ERROR looked like a
-    WARNING and like the command's own lines. Left alone when the process's logging is
-    configured already (a caller that embeds the command, a test).
+    WARNING and like the command's own lines. It becomes that last resort, so it prints
+    only what no handler of the process takes: a caller that configured its logging (on
+    the root or only on a logger such as ``agents``) gets its records once, its own way.
+    A last resort the process chose already (None included) is left alone.
     """
-    root = logging.getLogger()
-    if root.handlers:
+    if logging.lastResort is not _PYTHONS_LAST_RESORT:
         return
     handler = logging.StreamHandler(sys.stderr)
     handler.setLevel(logging.WARNING)
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
-    root.addHandler(handler)
+    logging.lastResort = handler
 
 
 def say(text: str) -> None:
