@@ -879,3 +879,52 @@ async def test_a_resend_waits_for_room_on_a_link_that_drops_what_its_queue_canno
         await until(lambda: rec.recovered == 10, f"all 10 arrived ({overflowed} dropped)")
         # the bodies came back to back: without waiting, the queue would have dropped some
         assert overflowed == 0 and waited > 0 and rec.lost == 10
+
+
+async def test_a_proxy_whose_subscription_the_transport_ends_says_so(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # a proxy on its own (no platform to count the loss): its streams or loss reports
+    # ended by the transport (MQTT: refused after a reconnection), it logged nothing
+    async with network() as net:
+        t, a = await net.platform("uav-a")
+        subs: dict[str, Any] = {}
+        subscribe = t.subscribe
+
+        async def subscribed(key: str, **options: Any) -> Any:
+            subs[key] = sub = await subscribe(key, **options)
+            return sub
+
+        t.subscribe = subscribed  # type: ignore[method-assign]
+        a.add_source(LOCAL)
+        exporter = await net.exporter("uav-a")
+        importer = await net.importer("uav-a")
+        exporter.start_exporting(LOCAL, SEM, "uav-b")
+        streams, reports = (
+            f"dyknow/{FED}/v1/stream/uav-a/*/**",
+            f"dyknow/{FED}/v1/stream-report/uav-a/*",
+        )
+        await until(lambda: reports in subs, "the loss reports subscribed to")
+        told: list[tuple[str, str]] = []
+        importer.on_lost = lambda sub, what, meaning: told.append((what, meaning))
+        subs[streams].inbox.close()  # as a transport ends it
+        subs[reports].inbox.close()
+        await until(lambda: told, "the import told")
+        assert told == [
+            (
+                f"streams subscription {streams}",
+                "other platforms' streams to this platform are no longer received: its "
+                "imports get no more samples and count none lost, while its loss reports "
+                "still renew their senders' leases (the senders go on exporting)",
+            )
+        ]
+        errors = await until(
+            lambda: [r.getMessage() for r in caplog.records if r.name == "federation._proxy_base"],
+            "the export's loss logged",
+        )
+        assert errors == [
+            f"export[uav-a]: lost its loss reports subscription {reports} (the transport ended "
+            "the subscription): receivers' loss reports are no longer heard: this platform's "
+            "exports end at their lease (if any) as if their receivers were gone, their losses "
+            "in transit no longer counted nor resent"
+        ]
