@@ -691,6 +691,15 @@ class ImportProxy(ProxyBase):
                     labels.append(rec.semantic_label)
             if labels:
                 await self._tell("on_sender_gone", sender, labels)
+        if self._presence is None:  # its own watch (one it is given, its giver watches)
+            self._ended(
+                presence,
+                f"presence watch {wire_key(self.federation, 'alive', '*')}",
+                "senders coming and going are no longer seen: the streams of one that goes "
+                "are no longer ended here (on_sender_gone untold), and one seen gone before "
+                "that comes back has its samples dropped (sender-gone) and no loss reports "
+                "(its exports here end at their lease)",
+            )
 
     async def _tell(self, hook_name: str, *args: Any) -> None:
         """Call the user's hook (sync or async); its failure is logged, never ours."""

@@ -928,3 +928,49 @@ async def test_a_proxy_whose_subscription_the_transport_ends_says_so(
             "exports end at their lease (if any) as if their receivers were gone, their losses "
             "in transit no longer counted nor resent"
         ]
+
+
+async def test_an_import_proxy_whose_own_presence_watch_the_transport_ends_says_so(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # an import proxy on its own watches senders' presence itself: that watch ended by
+    # the transport (MQTT: refused after a reconnection), a sender that goes was no longer
+    # seen (its streams never ended here) and nothing said so
+    async with network() as net:
+        t, _ = await net.platform("uav-a")
+        watched: dict[str, Any] = {}
+        watch = t.watch_presence
+
+        async def watching(key: str, **options: Any) -> Any:
+            watched[key] = sub = await watch(key, **options)
+            return sub
+
+        t.watch_presence = watching  # type: ignore[method-assign]
+        importer = await net.importer("uav-a")
+        alive = f"dyknow/{FED}/v1/alive/*"
+        meaning = (
+            "senders coming and going are no longer seen: the streams of one that goes are "
+            "no longer ended here (on_sender_gone untold), and one seen gone before that "
+            "comes back has its samples dropped (sender-gone) and no loss reports (its "
+            "exports here end at their lease)"
+        )
+        watched[alive].inbox.close()  # as a transport ends it
+        errors = await until(
+            lambda: [r.getMessage() for r in caplog.records if r.name == "federation._proxy_base"],
+            "the import's loss logged",
+        )
+        errors_at = [r for r in caplog.records if r.name == "federation._proxy_base"]
+        assert errors == [
+            f"import[uav-a]: lost its presence watch {alive} (the transport ended the "
+            f"subscription): {meaning}"
+        ]
+        # with on_lost set (a platform's `ended`), it is told instead
+        importer = await net.importer("uav-a")
+        told: list[tuple[str, str]] = []
+        importer.on_lost = lambda sub, what, meaning: told.append((what, meaning))
+        watched[alive].inbox.close()
+        await until(lambda: told, "the import told")
+        assert told == [(f"presence watch {alive}", meaning)]
+    # closed by its proxy: no loss
+    assert len(told) == 1
+    assert [r for r in caplog.records if r.name == "federation._proxy_base"] == errors_at
