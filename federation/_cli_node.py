@@ -19,6 +19,7 @@ import types
 from collections.abc import Sequence
 from importlib.machinery import PathFinder
 from pathlib import Path
+from typing import TextIO
 
 # the --config/-c of every command (a platform's TOML config), `dyknow node`'s only option
 CONFIG_FLAGS = ("--config", "-c")
@@ -45,10 +46,25 @@ def log_to_stderr() -> None:
     """
     if logging.lastResort is not _PYTHONS_LAST_RESORT:
         return
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setLevel(logging.WARNING)
+    handler = _Stderr()
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
     logging.lastResort = handler
+
+
+class _Stderr(logging.StreamHandler):
+    """Warnings and errors to the ``sys.stderr`` of the moment, as Python's last resort.
+
+    Not the one when it was made: a caller that ran the command with its stderr captured
+    (a test runner) would lose every later record to a capture long gone.
+    """
+
+    def __init__(self) -> None:
+        logging.Handler.__init__(self, logging.WARNING)
+
+    @property
+    def stream(self) -> TextIO:
+        """The current ``sys.stderr``."""
+        return sys.stderr
 
 
 def say(text: str) -> None:

@@ -1130,3 +1130,25 @@ def test_the_log_goes_to_stderr_once_whichever_logger_the_process_configured(
     )
     assert done.returncode == 0, done.stderr
     assert done.stderr.splitlines() == expected
+
+
+def test_the_log_goes_to_the_stderr_of_the_moment_as_pythons_last_resort_does() -> None:
+    # a program that ran a command in-process with its stderr captured (a test runner's
+    # CliRunner, redirect_stderr) lost every later record no handler took: the last
+    # resort the command set wrote on to the capture, long gone
+    script = (
+        "import contextlib, io, logging\n"
+        "from federation._cli_node import log_to_stderr\n"
+        "with contextlib.redirect_stderr(io.StringIO()):\n"
+        "    log_to_stderr()\n"
+        "logging.getLogger('agents._platform').error('lost its inbox')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == ["ERROR agents._platform: lost its inbox"]
