@@ -1307,7 +1307,7 @@ class GlobalDirectory:
                 self._audit_invalid(platform, f"directory event: {exc}", "df-events")
                 continue
             self._apply(platform, op, service)
-        self._platform._ended(
+        self._platform.ended(
             sub,
             f"directory events subscription {self._platform.key('df-events', '*')}",
             "other platforms' directory changes (services added, removed, a signed leave) "
@@ -1465,7 +1465,7 @@ class GlobalDirectory:
             changed = self._presence_changed.get(platform)
             if changed is not None:
                 changed.set()  # its task may be waiting to ask an unconfirmed platform again
-        self._platform._ended(
+        self._platform.ended(
             sub,
             f"directory presence watch {self._platform.key('alive', '*')}",
             "other platforms coming and going are no longer seen but by their signed leaves "

@@ -2794,7 +2794,7 @@ class InterfaceAgent:
             else:
                 self._alive.discard(peer)
             self._kx_priority()
-        host._ended(
+        host.ended(
             presence,
             f"session presence watch {host.key('alive', '*')}",
             "other platforms' restarts without their signed leave (a crash) are no longer "

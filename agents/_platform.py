@@ -451,15 +451,15 @@ class AgentPlatform:
 
     def _inbox_ended(self, sub: Subscription[Any]) -> None:
         """The channel's inbox ``sub`` ended: lost (as `declared`) unless closed, or closing."""
-        self._ended(
+        self.ended(
             sub,
             f"inbox subscription {self.key('acl')}",
             "other platforms' messages to this platform's agents are no longer received",
         )
 
-    def _ended(self, sub: Subscription[Any], what: str, meaning: str) -> None:
+    def ended(self, sub: Subscription[Any], what: str, meaning: str) -> None:
         """``sub``, which its consumer read to its end, lost (as `declared`) unless closed,
-        or the platform closing.
+        or the platform closing: its consumer's call once its loop is over.
 
         A subscription has no reason to give: the transport's own warning before says why
         (MQTT: the broker refused its filter after a reconnection).

@@ -19,6 +19,7 @@ import types
 from collections.abc import Sequence
 from importlib.machinery import PathFinder
 from pathlib import Path
+from typing import TextIO
 
 # the --config/-c of every command (a platform's TOML config), `dyknow node`'s only option
 CONFIG_FLAGS = ("--config", "-c")
@@ -30,22 +31,40 @@ COMPLETE_VAR = "_DYKNOW_COMPLETE"
 # a log record on a long-running command's stderr: its level and logger say what it is,
 # apart from the command's own lines ("dyknow node: …")
 LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
+# Python's own last resort (bare messages to stderr), whatever the process made of it since
+_PYTHONS_LAST_RESORT = getattr(logging, "_defaultLastResort", logging.lastResort)
 
 
 def log_to_stderr() -> None:
     """Have the log's warnings and errors go to stderr as ``LEVEL logger: message``.
 
     Without it Python's last resort printed the bare message: an ERROR looked like a
-    WARNING and like the command's own lines. Left alone when the process's logging is
-    configured already (a caller that embeds the command, a test).
+    WARNING and like the command's own lines. It becomes that last resort, so it prints
+    only what no handler of the process takes: a caller that configured its logging (on
+    the root or only on a logger such as ``agents``) gets its records once, its own way.
+    A last resort the process chose already (None included) is left alone.
     """
-    root = logging.getLogger()
-    if root.handlers:
+    if logging.lastResort is not _PYTHONS_LAST_RESORT:
         return
-    handler = logging.StreamHandler(sys.stderr)
-    handler.setLevel(logging.WARNING)
+    handler = _Stderr()
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
-    root.addHandler(handler)
+    logging.lastResort = handler
+
+
+class _Stderr(logging.StreamHandler):
+    """Warnings and errors to the ``sys.stderr`` of the moment, as Python's last resort.
+
+    Not the one when it was made: a caller that ran the command with its stderr captured
+    (a test runner) would lose every later record to a capture long gone.
+    """
+
+    def __init__(self) -> None:
+        logging.Handler.__init__(self, logging.WARNING)
+
+    @property
+    def stream(self) -> TextIO:
+        """The current ``sys.stderr``."""
+        return sys.stderr
 
 
 def say(text: str) -> None:

@@ -718,6 +718,13 @@ class ExportProxy(ProxyBase):
                     else:
                         export._refuse_resend(ResendRefusal.NOT_A_GAP)
                     self._audit_resend_refusals(export, now)
+            self._ended(
+                sub,
+                f"loss reports subscription {key}",
+                "receivers' loss reports are no longer heard: this platform's exports end "
+                "at their lease (if any) as if their receivers were gone, their losses in "
+                "transit no longer counted nor resent",
+            )
         finally:
             sub.close()
 

@@ -515,6 +515,13 @@ class ImportProxy(ProxyBase):
             if n % _YIELD_EVERY == 0:
                 # the inbox hands out what is queued without suspending: let others run
                 await asyncio.sleep(0)
+        self._ended(
+            sub,
+            f"streams subscription {self._prefix}*/**",
+            "other platforms' streams to this platform are no longer received: its imports "
+            "get no more samples and count none lost, while its loss reports still renew "
+            "their senders' leases (the senders go on exporting)",
+        )
 
     def _handle(self, key: str, payload: bytes) -> None:
         """One payload: open, check, decode, translate, inject; or drop and count why."""
@@ -684,6 +691,15 @@ class ImportProxy(ProxyBase):
                     labels.append(rec.semantic_label)
             if labels:
                 await self._tell("on_sender_gone", sender, labels)
+        if self._presence is None:  # its own watch (one it is given, its giver watches)
+            self._ended(
+                presence,
+                f"presence watch {wire_key(self.federation, 'alive', '*')}",
+                "senders coming and going are no longer seen: the streams of one that goes "
+                "are no longer ended here (on_sender_gone untold), and one seen gone before "
+                "that comes back has its samples dropped (sender-gone) and no loss reports "
+                "(its exports here end at their lease)",
+            )
 
     async def _tell(self, hook_name: str, *args: Any) -> None:
         """Call the user's hook (sync or async); its failure is logged, never ours."""

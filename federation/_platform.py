@@ -1028,6 +1028,8 @@ class FederationPlatform:
             max_strays=64,
             presence=self._members_presence,
         )
+        # the proxies' subscriptions the transport ends are the platform's losses
+        self.exporter.on_lost = self.importer.on_lost = self.agents.ended
         sharing = config.sharing.sharing()
         self.federation_agent = FederationAgent(
             self.instance,

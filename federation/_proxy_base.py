@@ -4,18 +4,22 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Coroutine, Iterator
+from collections.abc import Callable, Coroutine, Iterator
 from typing import Any
 
 from agents import check_name
-from agents.transports import Transport
+from agents.transports import Subscription, Transport
 from dyknow_core import DyKnowInstance
 
 from ._sessions import SessionsProvider
 
-__all__ = ["OwnedTasks", "ProxyBase"]
+__all__ = ["OnLost", "OwnedTasks", "ProxyBase"]
 
 log = logging.getLogger(__name__)
+
+OnLost = Callable[[Subscription[Any], str, str], None]
+"""``on_lost(sub, what, meaning)``: a subscription of the proxy's, read to its end while not
+closed (the transport ended it), as `AgentPlatform.ended` takes it."""
 
 
 class OwnedTasks:
@@ -65,7 +69,11 @@ class OwnedTasks:
 
 
 class ProxyBase:
-    """The platform a proxy speaks for, its federation, transport, instance, sessions and tasks."""
+    """The platform a proxy speaks for, its federation, transport, instance, sessions and tasks.
+
+    ``on_lost``, when set, is told of each of its subscriptions the transport ends (its
+    platform's `AgentPlatform.ended`: a loss); unset, such an end is logged at ERROR.
+    """
 
     def __init__(
         self,
@@ -82,6 +90,23 @@ class ProxyBase:
         self.instance = instance
         self.sessions = sessions_provider
         self._tasks = OwnedTasks(f"{kind}[{self.platform}]")
+        self._kind = kind
+        self.on_lost: OnLost | None = None
+
+    def _ended(self, sub: Subscription[Any], what: str, meaning: str) -> None:
+        """``sub``, read to its end by its consumer: lost unless closed (`on_lost`)."""
+        if sub.closed:
+            return
+        if self.on_lost is not None:
+            self.on_lost(sub, what, meaning)
+        else:
+            log.error(
+                "%s[%s]: lost its %s (the transport ended the subscription): %s",
+                self._kind,
+                self.platform,
+                what,
+                meaning,
+            )
 
     @property
     def task_failures(self) -> int:

@@ -1076,3 +1076,79 @@ async def test_a_node_whose_declaration_is_lost_before_ready_fails_to_start(
     )
     (p,) = opened
     assert not p.agents.running  # closed
+
+
+_LOGS = """
+import logging, sys
+from federation._cli_node import log_to_stderr
+setup = sys.argv[1]
+mine = logging.StreamHandler(sys.stderr)
+mine.setFormatter(logging.Formatter("mine %(name)s: %(message)s"))
+if setup != "none":
+    logging.getLogger(None if setup == "root" else setup).addHandler(mine)
+log_to_stderr()
+log_to_stderr()  # a second command in the same process adds nothing
+logging.getLogger("agents._platform").error("lost its inbox")
+logging.getLogger("federation._import").warning("a sender gone")
+logging.getLogger("agents._platform").info("below WARNING")
+"""
+
+
+@pytest.mark.parametrize(
+    ("setup", "expected"),
+    [
+        (
+            "none",
+            ["ERROR agents._platform: lost its inbox", "WARNING federation._import: a sender gone"],
+        ),
+        (
+            "root",
+            ["mine agents._platform: lost its inbox", "mine federation._import: a sender gone"],
+        ),
+        # a program that configured only its own loggers: each record once
+        (
+            "agents",
+            ["mine agents._platform: lost its inbox", "WARNING federation._import: a sender gone"],
+        ),
+        (
+            "federation",
+            ["ERROR agents._platform: lost its inbox", "mine federation._import: a sender gone"],
+        ),
+    ],
+)
+def test_the_log_goes_to_stderr_once_whichever_logger_the_process_configured(
+    setup: str, expected: list[str]
+) -> None:
+    # a program that configured only the `agents` logger got its lines twice: its own
+    # way, and again through the root's handler the commands added
+    done = subprocess.run(
+        [sys.executable, "-c", _LOGS, setup],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == expected
+
+
+def test_the_log_goes_to_the_stderr_of_the_moment_as_pythons_last_resort_does() -> None:
+    # a program that ran a command in-process with its stderr captured (a test runner's
+    # CliRunner, redirect_stderr) lost every later record no handler took: the last
+    # resort the command set wrote on to the capture, long gone
+    script = (
+        "import contextlib, io, logging\n"
+        "from federation._cli_node import log_to_stderr\n"
+        "with contextlib.redirect_stderr(io.StringIO()):\n"
+        "    log_to_stderr()\n"
+        "logging.getLogger('agents._platform').error('lost its inbox')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        timeout=60,
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.splitlines() == ["ERROR agents._platform: lost its inbox"]

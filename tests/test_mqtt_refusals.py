@@ -13,12 +13,15 @@ import signal
 import subprocess
 import uuid
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from agents import AgentPlatform
 from agents._exceptions import TransportError
+from agents.keys import gen_keys, trust_keys
 from agents.transports import MqttConfig, MqttTransport
+from federation import FederationPlatform, PlatformConfig
 from tests._node_example import Station
 from tests.test_mqtt_start_close import WAIT, Relay
 
@@ -485,3 +488,77 @@ async def test_a_platform_whose_presence_and_events_are_refused_after_a_reconnec
         }
     # closed, as every close closes them: no loss
     assert p.stats.declarations_lost == 2
+
+
+async def test_a_platform_whose_streams_and_loss_reports_are_refused_says_so_and_counts_it(
+    tmp_path: Path,
+    mosquitto: tuple[str, int],
+    caplog: pytest.LogCaptureFixture,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the import proxy's streams subscription and the export proxy's loss reports ended,
+    # their consumers with them: the platform ran on receiving no other platform's
+    # streams, its exports deaf to their receivers, nothing at ERROR, a node up
+    host, port = mosquitto
+    fed = f"streamless-{uuid.uuid4().hex[:8]}"
+    pub = gen_keys("uav-a", tmp_path / "keys")[2]
+    trust_keys(tmp_path / "trust.json", [pub], federation=fed)
+    config = PlatformConfig(
+        name="uav-a",
+        federation=fed,
+        key=tmp_path / "keys" / "uav-a.key",
+        trust=tmp_path / "trust.json",
+        vocabulary={"name": "t", "labels": {"speed": "speed"}},
+        mapping={"vocabulary": "t", "labels": {"speed": "local/speed"}},
+    )
+    relay = Relay(host, port)
+    caplog.set_level(logging.ERROR)
+    async with (
+        relay.running() as relayed,
+        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
+        FederationPlatform(config, transport=t, join=False) as p,
+    ):
+        told: asyncio.Queue[tuple[str, str]] = asyncio.Queue()
+        p.agents.on_lost(lambda what, why: told.put_nowait((what, why)))
+        streams = p.agents.key("stream") + "/*/**"
+        reports = p.agents.key("stream-report") + "/*"
+        granted = asyncio.Event()
+        subscribe = t.subscribe
+
+        async def subscribed(key: str, **options: Any) -> Any:
+            sub = await subscribe(key, **options)
+            if key == reports:
+                granted.set()
+            return sub
+
+        monkeypatch.setattr(t, "subscribe", subscribed)
+        p.instance.add_source("local/speed")
+        # the loss reports are subscribed to with the first export
+        p.exporter.start_exporting("local/speed", "speed", "uav-b")
+        # granted before the connection drops (else its first subscribe fails instead)
+        async with asyncio.timeout(WAIT):
+            await granted.wait()
+        relay.refuse[streams.replace("/*/**", "/+/#")] = 0x87  # not authorized, from the
+        relay.refuse[reports.replace("*", "+")] = 0x87  # reconnection on
+        relay.drop()
+        async with asyncio.timeout(WAIT):
+            lost = dict([await told.get(), await told.get()])
+        ended = "the transport ended the subscription"
+        assert lost == {
+            f"streams subscription {streams}": ended,
+            f"loss reports subscription {reports}": ended,
+        }
+        assert p.agents.stats.declarations_lost == 2 and p.agents.lost == lost
+        errors = {r.getMessage() for r in caplog.records if r.name == "agents._platform"}
+        assert errors == {
+            f"platform[uav-a]: lost its streams subscription {streams} ({ended}): other "
+            "platforms' streams to this platform are no longer received: its imports get no "
+            "more samples and count none lost, while its loss reports still renew their "
+            "senders' leases (the senders go on exporting)",
+            f"platform[uav-a]: lost its loss reports subscription {reports} ({ended}): "
+            "receivers' loss reports are no longer heard: this platform's exports end at "
+            "their lease (if any) as if their receivers were gone, their losses in transit "
+            "no longer counted nor resent",
+        }
+    # closed, as every close closes them: no loss
+    assert p.agents.stats.declarations_lost == 2

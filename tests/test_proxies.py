@@ -879,3 +879,98 @@ async def test_a_resend_waits_for_room_on_a_link_that_drops_what_its_queue_canno
         await until(lambda: rec.recovered == 10, f"all 10 arrived ({overflowed} dropped)")
         # the bodies came back to back: without waiting, the queue would have dropped some
         assert overflowed == 0 and waited > 0 and rec.lost == 10
+
+
+async def test_a_proxy_whose_subscription_the_transport_ends_says_so(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # a proxy on its own (no platform to count the loss): its streams or loss reports
+    # ended by the transport (MQTT: refused after a reconnection), it logged nothing
+    async with network() as net:
+        t, a = await net.platform("uav-a")
+        subs: dict[str, Any] = {}
+        subscribe = t.subscribe
+
+        async def subscribed(key: str, **options: Any) -> Any:
+            subs[key] = sub = await subscribe(key, **options)
+            return sub
+
+        t.subscribe = subscribed  # type: ignore[method-assign]
+        a.add_source(LOCAL)
+        exporter = await net.exporter("uav-a")
+        importer = await net.importer("uav-a")
+        exporter.start_exporting(LOCAL, SEM, "uav-b")
+        streams, reports = (
+            f"dyknow/{FED}/v1/stream/uav-a/*/**",
+            f"dyknow/{FED}/v1/stream-report/uav-a/*",
+        )
+        await until(lambda: reports in subs, "the loss reports subscribed to")
+        told: list[tuple[str, str]] = []
+        importer.on_lost = lambda sub, what, meaning: told.append((what, meaning))
+        subs[streams].inbox.close()  # as a transport ends it
+        subs[reports].inbox.close()
+        await until(lambda: told, "the import told")
+        assert told == [
+            (
+                f"streams subscription {streams}",
+                "other platforms' streams to this platform are no longer received: its "
+                "imports get no more samples and count none lost, while its loss reports "
+                "still renew their senders' leases (the senders go on exporting)",
+            )
+        ]
+        errors = await until(
+            lambda: [r.getMessage() for r in caplog.records if r.name == "federation._proxy_base"],
+            "the export's loss logged",
+        )
+        assert errors == [
+            f"export[uav-a]: lost its loss reports subscription {reports} (the transport ended "
+            "the subscription): receivers' loss reports are no longer heard: this platform's "
+            "exports end at their lease (if any) as if their receivers were gone, their losses "
+            "in transit no longer counted nor resent"
+        ]
+
+
+async def test_an_import_proxy_whose_own_presence_watch_the_transport_ends_says_so(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # an import proxy on its own watches senders' presence itself: that watch ended by
+    # the transport (MQTT: refused after a reconnection), a sender that goes was no longer
+    # seen (its streams never ended here) and nothing said so
+    async with network() as net:
+        t, _ = await net.platform("uav-a")
+        watched: dict[str, Any] = {}
+        watch = t.watch_presence
+
+        async def watching(key: str, **options: Any) -> Any:
+            watched[key] = sub = await watch(key, **options)
+            return sub
+
+        t.watch_presence = watching  # type: ignore[method-assign]
+        importer = await net.importer("uav-a")
+        alive = f"dyknow/{FED}/v1/alive/*"
+        meaning = (
+            "senders coming and going are no longer seen: the streams of one that goes are "
+            "no longer ended here (on_sender_gone untold), and one seen gone before that "
+            "comes back has its samples dropped (sender-gone) and no loss reports (its "
+            "exports here end at their lease)"
+        )
+        watched[alive].inbox.close()  # as a transport ends it
+        errors = await until(
+            lambda: [r.getMessage() for r in caplog.records if r.name == "federation._proxy_base"],
+            "the import's loss logged",
+        )
+        errors_at = [r for r in caplog.records if r.name == "federation._proxy_base"]
+        assert errors == [
+            f"import[uav-a]: lost its presence watch {alive} (the transport ended the "
+            f"subscription): {meaning}"
+        ]
+        # with on_lost set (a platform's `ended`), it is told instead
+        importer = await net.importer("uav-a")
+        told: list[tuple[str, str]] = []
+        importer.on_lost = lambda sub, what, meaning: told.append((what, meaning))
+        watched[alive].inbox.close()
+        await until(lambda: told, "the import told")
+        assert told == [(f"presence watch {alive}", meaning)]
+    # closed by its proxy: no loss
+    assert len(told) == 1
+    assert [r for r in caplog.records if r.name == "federation._proxy_base"] == errors_at
