@@ -941,25 +941,33 @@ class ZenohTransport(_Keeps, Transport):
         it finishes at once with nothing. So while the session is younger than
         ``_LINK_SETTLE`` and has, or seeks, a peer or router, an empty answer is asked
         again; a session alone (no ``connect`` endpoints, no multicast) answers at once.
-        While fewer links are up than its ``connect`` endpoints make, any answer is asked
-        again, until ``timeout`` after opening: one peer answering first says nothing of
-        the tokens of another whose link is still coming up.
+        While fewer links were up, as the get was asked, than its ``connect`` endpoints
+        make, any answer is asked again, until ``timeout`` after opening: one peer
+        answering first says nothing of the tokens of another whose link was still coming
+        up (a link up only while the get ran was not asked).
         """
         session, loop = self._open_session()
-        keys = await self._tokens(session, loop, key_expr, timeout)
         info = session.info
+
+        def linked() -> int:
+            """The session's links up now (peers and routers)."""
+            return len(list(info.peers_zid())) + len(list(info.routers_zid()))
+
+        # the links up as a get was asked: one that came up while it ran did not answer it
+        links = linked()
+        keys = await self._tokens(session, loop, key_expr, timeout)
 
         def again() -> float:
             """Seconds left to ask again (none: the answer is complete)."""
             age = loop.time() - self._opened
-            links = len(list(info.peers_zid())) + len(list(info.routers_zid()))
             left = 0.0
-            if not keys and (self._seeks or links):
+            if not keys and (self._seeks or linked()):
                 left = _LINK_SETTLE - age
             if links < self._links_wanted:
-                # a connect endpoint not linked yet may be the one holding the token
-                # asked for (one peer's quick answer says nothing of another's): ask
-                # again while it may still come up, within the bound of an answer
+                # a connect endpoint not linked as the get was asked may be the one
+                # holding the token asked for (one peer's quick answer says nothing of
+                # another's): ask again while it may still come up, within the bound of
+                # an answer
                 left = max(left, timeout - age)
             return left
 
@@ -967,6 +975,7 @@ class ZenohTransport(_Keeps, Transport):
         while (left := again()) > 0:
             await asyncio.sleep(min(pause, left))
             pause = min(pause * 2, 0.05)
+            links = linked()
             keys = await self._tokens(session, loop, key_expr, timeout)
         # screened last: any key in the answer shows the peers were reached (above)
         return keys if keep is None else [k for k in keys if keep(k)]
