@@ -411,7 +411,19 @@ class Conversation:
         return self._agent.send(message)
 
     def _put(self, message: ACLMessage) -> None:
-        if not self._items.put(message):
+        # `self._items.put(message)`, inline (the path of every reply): a conversation's
+        # box drops its oldest when full (`__init__`)
+        box = self._items
+        items = box._items
+        full = len(items) >= box.maxlen
+        if full:
+            box.dropped += 1
+            items.popleft()
+        items.append(message)
+        w = box._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+        if full:
             self._agent.stats.conversation_overflow += 1
             log.warning(
                 "%s: conversation %s overflowed; oldest reply dropped", self._agent, self.id
@@ -552,7 +564,12 @@ class Conversation:
                 closed[key] = None
         while len(closed) > _CLOSED_KEPT:
             closed.popitem(last=False)
-        self._items.put(_CLOSED if error is None else _Ended(error), force=True)
+        # `self._items.put(..., force=True)`, inline: the end marker goes in even when full
+        box = self._items
+        box._items.append(_CLOSED if error is None else _Ended(error))
+        w = box._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
         for _, done in self._gathers:
             _settle(done)
 
