@@ -130,6 +130,8 @@ async def _ask(
     on_agree: Callable[[ACLMessage], None] | None = None,
     conversation_id: str | None = None,
 ) -> JsonValue:
+    if conversation_id is None:
+        conversation_id = new_id("c")
     message = _opening(
         agent,
         performative,
@@ -141,7 +143,9 @@ async def _ask(
         timeout=timeout,
         conversation_id=conversation_id,
     )
-    conv = agent.conversation(message.conversation_id, peers=(receiver,), timeout=timeout)
+    if type(agent).message is not _AGENT_MESSAGE:  # what an agent's own `message` made
+        conversation_id = message.conversation_id
+    conv = agent.conversation(conversation_id, peers=(receiver,), timeout=timeout)
     try:  # `with conv`, without its two calls: closed however this ends
         await conv.send(message)
         reply = await conv.receive()
