@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, NamedTuple, Self
 
 from ._acl import ACLMessage, Performative, agent_id, compose, new_id, platform_of
-from ._aio import Deadlines, KeepCancelled, Mailbox
+from ._aio import _TIMED_OUT, Deadlines, KeepCancelled, Mailbox, _expire
 from ._exceptions import AgentError
 from ._records import Record
 
@@ -404,13 +404,26 @@ class Conversation:
         A plain call returning `Agent.send`'s coroutine, a coroutine less per message sent.
         """
         reply_with = message.reply_with
-        if reply_with is not None:
-            self.expect(reply_with)
+        if reply_with is not None:  # `expect`, inline
+            self._keys.append(reply_with)
+            self._agent._by_reply[reply_with] = self
         self.last_sent = message
         return self._agent.send(message)
 
     def _put(self, message: ACLMessage) -> None:
-        if not self._items.put(message):
+        # `self._items.put(message)`, inline (the path of every reply): a conversation's
+        # box drops its oldest when full (`__init__`)
+        box = self._items
+        items = box._items
+        full = len(items) >= box.maxlen
+        if full:
+            box.dropped += 1
+            items.popleft()
+        items.append(message)
+        w = box._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
+        if full:
             self._agent.stats.conversation_overflow += 1
             log.warning(
                 "%s: conversation %s overflowed; oldest reply dropped", self._agent, self.id
@@ -457,15 +470,37 @@ class Conversation:
         elif deadline is None:
             deadline = self.deadline
         items = self._items
-        if not items and self.closed:
+        queued = items._items
+        # `closed` first: `not items` is a call of Mailbox.__len__
+        if self.closed and not queued:
             raise ConversationError(f"conversation {self.id} is closed", self.last_sent)
-        try:
+        if not queued:
+            # `items.get(deadline, loop=..., deadlines=...)`, inline: a coroutine less per
+            # reply awaited (each wake passes through every coroutine awaiting)
             agent = self._agent
-            item = await items.get(deadline, loop=agent._loop, deadlines=agent._deadlines)
-        except TimeoutError:
-            raise ReplyTimeout(
-                f"no reply from {self._peers_text()} in conversation {self.id}", self.last_sent
-            ) from None
+            loop = agent._loop or asyncio.get_running_loop()
+            deadlines = agent._deadlines
+            while not queued:
+                items._waiter = w = loop.create_future()
+                timer = None
+                try:  # a deadline refused leaves no waiter behind
+                    if deadline is None:
+                        pass
+                    elif deadlines is not None:
+                        deadlines.add(deadline, w)
+                    else:
+                        timer = loop.call_at(deadline, _expire, w)
+                    await w
+                finally:
+                    items._waiter = None
+                    if timer is not None:
+                        timer.cancel()
+                if w.result() is _TIMED_OUT and not queued:
+                    raise ReplyTimeout(
+                        f"no reply from {self._peers_text()} in conversation {self.id}",
+                        self.last_sent,
+                    )
+        item = queued.popleft()
         # not isinstance: for a message that is none, it reads the message's __class__
         # through pydantic's attribute hook (_Ended has no subclass)
         if type(item) is _Ended:
@@ -529,7 +564,12 @@ class Conversation:
                 closed[key] = None
         while len(closed) > _CLOSED_KEPT:
             closed.popitem(last=False)
-        self._items.put(_CLOSED if error is None else _Ended(error), force=True)
+        # `self._items.put(..., force=True)`, inline: the end marker goes in even when full
+        box = self._items
+        box._items.append(_CLOSED if error is None else _Ended(error))
+        w = box._waiter
+        if w is not None and not w.done():
+            w.set_result(None)
         for _, done in self._gathers:
             _settle(done)
 
@@ -928,7 +968,7 @@ class Agent:
             rw = fields["reply_with"]
             if (
                 not conv.closed
-                and (peers is None or message.sender in peers)
+                and (peers is None or fields["sender"] in peers)
                 and (rw is None or rw not in conv._keys)
             ):
                 self.stats.received += 1

@@ -192,8 +192,16 @@ class Deadlines:
             waiter = heappop(heap)[2]
             if not waiter.done():  # in deadline order, as their own timers would
                 waiter.set_result(_TIMED_OUT)
-        # the next wake for a wait still waiting, not for one that ended early
+        # the next wake for a wait still waiting, not for one that ended early: popped one
+        # by one (a pop compares ~2 log n entries), but once a share of the heap went so,
+        # the rest goes in one pass (`_compact`: a look an entry, ~20x cheaper than a pop),
+        # which costs at most about what the pops before it did
+        budget = max(16, len(heap) >> 5)
         while heap and heap[0][2].done():
+            if not budget:
+                self._compact()
+                break
+            budget -= 1
             heappop(heap)
         # what is left holds every wait still waiting: the next compaction at twice that
         self._limit = max(_COMPACT_AT, 2 * len(heap))

@@ -961,12 +961,16 @@ class InterfaceAgent:
         if host is None or not host.transport.publishes_nowait:
             return False
         body = message.to_json()
-        if self._burst_first(platform, body):
+        # `_burst_first`'s first check, inline: no burst goes on in a round trip's turn
+        if platform in self._bursting and self._burst_first(platform, body):
             return True
         try:
             # no session (yet): UnknownSession, left to `send`, which agrees one
             payload = self._seal(platform, body)
-            host.transport.publish_nowait(self._acl_key(host, platform), payload)
+            key = self._acl_keys.get(platform)  # `_acl_key`, inline but its first call
+            if key is None:
+                key = self._acl_key(host, platform)
+            host.transport.publish_nowait(key, payload)
         except AgentError:  # `send` meets it again and raises it where it is awaited
             return False
         try:
@@ -1008,7 +1012,9 @@ class InterfaceAgent:
         envelope opened from ``platform`` (or its last batch) opens no batch: no flush,
         no turn of the loop for it; whatever follows goes alone too and opens it.
         """
-        self.renew_if_needed(platform)
+        # `renew_if_needed`'s first check, inline (most often False): a call less a message
+        if self.sessions.needs_renewal(platform):
+            self.renew_if_needed(platform)
         if self._batching and platform not in self._outbox:
             if asks and platform not in self._lone:
                 self._lone.add(platform)

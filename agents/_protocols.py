@@ -24,7 +24,7 @@ from typing import Any, Self
 
 from pydantic import JsonValue
 
-from ._acl import ACLMessage, Performative, new_id
+from ._acl import ACLMessage, Performative, compose, new_id
 from ._agent import (
     Agent,
     ConversationError,
@@ -48,6 +48,7 @@ FIPA_SUBSCRIBE = "fipa-subscribe"
 FIPA_CONTRACT_NET = "fipa-contract-net"
 DEFAULT_TIMEOUT = 10.0
 """Seconds an initiator waits for an answer when it is not told otherwise."""
+_AGENT_MESSAGE = Agent.message
 
 
 class Refuse(Exception):
@@ -66,9 +67,13 @@ class Failure(Exception):
         super().__init__(content)
 
 
-def _outcome(reply: ACLMessage) -> JsonValue:
-    """The content of an ``inform``; raise the matching error for anything else."""
-    fields = reply.__dict__  # a received message holds every field: no attribute hook
+def _outcome(reply: ACLMessage, fields: dict[str, Any] | None = None) -> JsonValue:
+    """The content of an ``inform``; raise the matching error for anything else.
+
+    ``fields``: ``reply.__dict__`` when the caller read it already.
+    """
+    if fields is None:
+        fields = reply.__dict__  # a received message holds every field: no attribute hook
     p = fields["performative"]
     if p is P.INFORM or p is P.INFORM_REF or p is P.INFORM_IF:
         return fields["content"]
@@ -97,17 +102,19 @@ def _opening(
     """An initiator's first message: a new conversation unless given, due in ``timeout`` s."""
     if conversation_id is None:
         conversation_id = new_id("c")
-    return agent.message(
-        performative,
-        receivers,
-        content,
-        protocol=protocol,
-        ontology=ontology,
-        language=language,
-        conversation_id=conversation_id,
-        reply_with=new_id("r"),
-        reply_by=time.time() + timeout,
-    )
+    fields = {
+        "protocol": protocol,
+        "ontology": ontology,
+        "language": language,
+        "conversation_id": conversation_id,
+        "reply_with": new_id("r"),
+        "reply_by": time.time() + timeout,
+    }
+    if type(agent).message is _AGENT_MESSAGE:
+        # `agent.message`, inline: passed as keywords, each of these fields (none a
+        # parameter of it) is compared with each of its parameters first (~2.5 k Ir)
+        return compose(performative, agent.aid, receivers, content, fields)
+    return agent.message(performative, receivers, content, **fields)
 
 
 async def _ask(
@@ -123,6 +130,8 @@ async def _ask(
     on_agree: Callable[[ACLMessage], None] | None = None,
     conversation_id: str | None = None,
 ) -> JsonValue:
+    if conversation_id is None:
+        conversation_id = new_id("c")
     message = _opening(
         agent,
         performative,
@@ -134,15 +143,19 @@ async def _ask(
         timeout=timeout,
         conversation_id=conversation_id,
     )
-    conv = agent.conversation(message.conversation_id, peers=(receiver,), timeout=timeout)
+    if type(agent).message is not _AGENT_MESSAGE:  # what an agent's own `message` made
+        conversation_id = message.conversation_id
+    conv = agent.conversation(conversation_id, peers=(receiver,), timeout=timeout)
     try:  # `with conv`, without its two calls: closed however this ends
         await conv.send(message)
         reply = await conv.receive()
-        if reply.performative is P.AGREE:  # optional: the result follows
+        fields = reply.__dict__  # one pass through pydantic's attribute hook, not two
+        if fields["performative"] is P.AGREE:  # optional: the result follows
             if on_agree is not None:
                 on_agree(reply)
             reply = await conv.receive()
-        return _outcome(reply)
+            fields = reply.__dict__
+        return _outcome(reply, fields)
     finally:
         conv.close()
 

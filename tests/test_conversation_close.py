@@ -46,3 +46,23 @@ async def test_a_receive_after_the_close_raises_its_error() -> None:
                 await plain.receive()
             with pytest.raises(ConnectionError, match="gone"):
                 await failed.receive()
+
+
+async def test_a_full_conversation_drops_its_oldest_reply_counts_and_logs_it(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        asker = await p.add(Recorder("asker"))
+        answerer = await p.add(Recorder("answerer"))
+        conv = asker.conversation(new_id("c"), peers=[answerer.aid], maxlen=2)
+        with conv, caplog.at_level("WARNING", logger="agents._agent"):
+            for i in range(3):  # none read meanwhile: the third finds it full
+                reply = msg(answerer, asker.aid, P.INFORM, conversation_id=conv.id)
+                await answerer.send(reply.model_copy(update={"content": i}))
+            assert [(await conv.receive()).content for _ in range(2)] == [1, 2]
+            assert asker.stats.conversation_overflow == 1
+            assert conv._items.dropped == 1
+            assert conv.pending() == 0
+        assert sum("oldest reply dropped" in r.getMessage() for r in caplog.records) == 1
+        with pytest.raises(ConversationError):  # closed: the end marker went in
+            await conv.receive()

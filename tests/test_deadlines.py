@@ -161,6 +161,37 @@ async def test_waits_that_ended_early_do_not_pile_up() -> None:
     assert loop.time() >= start + 0.03 - SLACK
 
 
+async def test_a_timer_drops_the_many_waits_that_ended_before_it_and_the_rest_still_end() -> None:
+    """Past a share of the heap, the ended waits in front of the next wait still waiting go
+    in one pass (not a pop each): the waits still waiting keep their deadlines and order."""
+    loop = asyncio.get_running_loop()
+    deadlines = Deadlines(loop)
+    start = loop.time()
+    ended: list[tuple[int, float]] = []
+    afters = (0.09, 0.06, 0.03)
+
+    async def wait(k: int) -> None:
+        with pytest.raises(TimeoutError):
+            await Mailbox[int](4).get(start + afters[k], loop=loop, deadlines=deadlines)
+        ended.append((k, loop.time()))
+
+    waits = [asyncio.create_task(wait(k)) for k in range(3)]
+    await asyncio.sleep(0)  # each wait added its deadline
+    for i in range(300):  # answered at once: deadlines between the first wait's and the next
+        waiter: asyncio.Future[None] = loop.create_future()
+        deadlines.add(start + 0.04 + i * 1e-5, waiter)
+        waiter.set_result(None)
+    assert len(deadlines) == 303
+    await asyncio.wait_for(waits[2], 5.0)
+    assert ended == [(2, ended[0][1])]
+    assert len(deadlines) == 2  # the first timer dropped every ended wait before the next
+    await asyncio.wait_for(asyncio.gather(*waits), 5.0)
+    assert [k for k, _ in ended] == [2, 1, 0]
+    for k, at in ended:
+        assert at >= start + afters[k] - SLACK
+    assert len(deadlines) == 0
+
+
 async def test_an_agents_conversations_time_out_at_their_deadlines_on_one_timer() -> None:
     async with asyncio.timeout(10), platforms("p") as [p]:
         sleeper = await p.add(Recorder("sleeper"))
