@@ -749,11 +749,21 @@ class ExportProxy(ProxyBase):
 
     def _list(self, export: Export) -> None:
         """``export``'s idle task got samples: have the turn's flush send them."""
-        self._listed.append(export)
         if not self._flush_due:
+            if not self._puts_at_once():  # MQTT: its task sends, woken now as ever
+                export._listed = False
+                export._wake()
+                return
             assert self._loop is not None  # set by `start_exporting`, on the loop
             self._flush_due = True
             self._loop.call_soon(self._flush)
+        self._listed.append(export)
+
+    def _puts_at_once(self) -> bool:
+        """Whether the transport's put never waits (`Transport.publishes_nowait`)."""
+        transport = self.transport
+        # a `publish` set on the transport itself (a test's lossy link) must see every put
+        return transport.publishes_nowait and "publish" not in vars(transport)
 
     def _flush(self) -> None:
         """Send each listed export's next batch where its path is clear; else wake its task.
@@ -765,10 +775,7 @@ class ExportProxy(ProxyBase):
         """
         self._flush_due = False
         listed, self._listed = self._listed, []
-        transport = self.transport
-        # a `publish` set on the transport itself (a test's lossy link) must see every put
-        at_once = transport.publishes_nowait and "publish" not in vars(transport)
-        publish = transport.publish_nowait if at_once else None
+        publish = self.transport.publish_nowait if self._puts_at_once() else None
         seal = self.sessions.seal_bytes
         lease = self.lease
         now = time.monotonic() if lease is not None else 0.0
