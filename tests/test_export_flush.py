@@ -19,6 +19,7 @@ import msgpack
 import pytest
 
 from agents import Expired, TransportClosed, TransportError, UnknownSession
+from agents.transports import MemoryTransport
 from dyknow_core import Source
 from federation import ExportProxy, ImportProxy, _export
 from federation._batch import pack_batch
@@ -346,3 +347,43 @@ async def test_a_failure_while_packing_ends_that_export_and_tells_its_receiver(
         )
         assert [b["q"] for b in batches] == [0, 1, 2, 3] and batches[-1]["e"] == ended
         assert "sample 3" not in ended and list(proxy.ended) == [exports[0]]
+
+
+async def test_over_a_transport_whose_put_waits_each_export_sends_from_its_task() -> None:
+    # MQTT's put waits for its client: no flush may put past it, every batch goes
+    # through `publish`, in order, as before
+    class Waiting(MemoryTransport):
+        puts = 0
+
+        async def publish(self, key: str, payload: bytes, *, attachment: Any = None) -> None:
+            Waiting.puts += "/stream/" in key
+            await asyncio.sleep(0)  # as a client handing the put to its own loop would
+            await super().publish(key, payload, attachment=attachment)
+
+    async with contextlib.AsyncExitStack() as stack:
+        async with asyncio.timeout(WAIT * 3):
+            net = Net(stack)
+            fed = f"flush-{uuid.uuid4().hex}"
+            _, a = await net.platform("uav-a", transport=Waiting(net.hub))
+            sources = [a.add_source(f"l/{i}") for i in range(3)]
+            assert not net.transports["uav-a"].publishes_nowait
+            seen = await wire(net, stack, fed)
+            proxy = exporter(net, fed, batch_size=4, lease=None)
+            exports = [proxy.start_exporting(f"l/{i}", f"s/{i}", "uav-b") for i in range(3)]
+            for tick in range(20):
+                for source in sources:
+                    for k in range(1 + tick % 6):  # up to 6: some batches split in two
+                        source.push(10 * tick + k)
+                await asyncio.sleep(0)
+            pushed = [10 * t + k for t in range(20) for k in range(1 + t % 6)]
+            await until(lambda: all(e.sent == len(pushed) for e in exports), "every sample sent")
+            await until(
+                lambda: (
+                    sum(len(seen.get(key(fed, "uav-b", f"s/{i}"), [])) for i in range(3))
+                    == sum(e.batches for e in exports)
+                ),
+                "every batch seen",
+            )
+            for i in range(3):
+                check_stream(seen[key(fed, "uav-b", f"s/{i}")], pushed, 4)
+            assert Waiting.puts == sum(e.batches for e in exports)
