@@ -51,6 +51,8 @@ STAGES = {
         ("_fed_node.py", "op_flood"),
         ("_stream.py", "publish_batch"),
         ("_export.py", "_on_batch"),
+        ("_export.py", "_flush"),
+        ("_export.py", "_send_now"),
         ("_export.py", "_run"),
         ("_export.py", "_send"),
         ("_export.py", "_pack"),

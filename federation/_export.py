@@ -6,9 +6,14 @@ batches (`federation._batch`) on
 ``dyknow/<fed>/v1/stream/<receiver>/<sender>/<semantic-label>``.
 
 Isolation: every export has its own bounded queue and its own task. The local instance
-hands samples to the queue and returns at once; the task packs, seals and publishes.
-A receiver that is slow, frozen or gone costs its own queue's oldest samples (counted
-and reported), never the instance's time or another receiver's.
+hands samples to the queue and returns at once. When an export's path is clear (its task
+idle, a session to seal with, nothing to resend, not backing off, a transport whose put
+never waits), its batch goes out in one call per loop turn that packs, seals and
+publishes every such export's batch in turn (`ExportProxy._flush`): no task woken per
+stream and sample. Anything else (a session to agree, a resend, a backoff, a lease to
+end, a keepalive) is the export's task's, woken as the samples come. A receiver that is
+slow, frozen or gone costs its own queue's oldest samples (counted and reported), never
+the instance's time or another receiver's.
 
 Faults: a receiver reports on every stream it gets every 0.5 s, with what never arrived
 (gaps in the sender's numbering). The reports are the export's lease (an export not
@@ -152,6 +157,14 @@ class Export:
         self._refusals_pending: dict[str, int] = {}
         self._refusals_reported = -1e9
         self._keepalive_at = 0.0
+        # listed for the proxy's next flush (`ExportProxy._flush`)
+        self._listed = False
+        # numbered bodies the flush could not seal, from the first one's number, and why:
+        # the task sends them first, in order, the way `_send` goes on after that error
+        self._unsent: tuple[list[tuple[bytes, int]], int, Exception] | None = None
+        # what a flush met that ends the export (a closed transport, a failure): the task
+        # raises it, as if it had met it sending
+        self._crashed: Exception | None = None
 
     def __repr__(self) -> str:
         state = f"ended: {self.ended}" if self.ended else "active"
@@ -196,7 +209,12 @@ class Export:
         q.extend(batch)  # a full deque drops from its left: the oldest go first
         if over > 0:
             self._drop(DropReason.QUEUE_FULL, over)
-        self._wake()
+        w = self._waiter
+        # an idle task: the proxy's flush sends the batch, or wakes the task if it cannot;
+        # a busy one finds the samples when it is done
+        if w is not None and not self._listed and not w.done():
+            self._listed = True
+            self._proxy._list(self)
 
     def _wake(self) -> None:
         """Wake the export's task if it waits for samples or requests."""
@@ -230,6 +248,11 @@ class Export:
         idle = _IDLE_CHECK if lease is None else min(_IDLE_CHECK, lease / 3)
         try:
             while True:
+                if self._crashed is not None:
+                    raise self._crashed
+                if self._unsent is not None:
+                    (packed, first, error), self._unsent = self._unsent, None
+                    await self._send_packed(packed, first, error)
                 if lease is not None and self._lease_expired(lease):
                     await self._tell_ended()
                     return
@@ -467,14 +490,63 @@ class Export:
             self._timer = None
 
     async def _send(self, samples: list[RawSample]) -> None:
-        proxy = self._proxy
         packed = self._pack(samples)
         # numbered as packed (one body, but for a batch over max_batch_bytes)
         first = self._seq - (packed[0][1] if len(packed) == 1 else sum(c for _, c in packed))
+        await self._send_packed(packed, first)
+
+    def _send_now(
+        self,
+        samples: list[RawSample],
+        seal: Callable[[str, bytes], bytes],
+        publish: Callable[[str, bytes], None],
+    ) -> None:
+        """`_send` without waiting: pack, ``seal`` and ``publish`` (a put that never waits).
+
+        A body that cannot be sealed now (no session, one to renew: `_seal` waits for it)
+        is left, with those after it, to the task, which goes on from that error as
+        `_send` does; a closed transport ends the export from the task. Called by the
+        proxy's flush only while the task waits, with no backoff and nothing left unsent.
+        """
+        packed = self._pack(samples)
+        if not packed:
+            return
+        first = self._seq - (packed[0][1] if len(packed) == 1 else sum(c for _, c in packed))
+        receiver, key = self.receiver, self.key
+        for i, (body, count) in enumerate(packed):
+            try:
+                envelope = seal(receiver, body)
+            except Exception as exc:  # no session, or one to renew: `_seal` waits for one
+                self._unsent = (packed[i:], first, exc)
+                self._wake()
+                return
+            try:
+                publish(key, envelope)
+            except TransportClosed as exc:  # the task ends the export, as `_send` would
+                self._crashed = exc
+                self._wake()
+                return
+            except Exception as exc:
+                self._numbered_drop(DropReason.SEND_FAILED, first, count, exc)
+                first += count
+                continue
+            first += count
+            self.sent += count
+            self.batches += 1
+
+    async def _send_packed(
+        self, packed: list[tuple[bytes, int]], first: int, failed: Exception | None = None
+    ) -> None:
+        """Seal and publish ``packed`` (numbered from ``first``), as `_send` does.
+
+        ``failed``: what sealing the first body raised already (in the proxy's flush).
+        """
+        proxy = self._proxy
         for body, count in packed:
             start, first = first, first + count
+            error, failed = failed, None
             try:
-                envelope = await self._seal(body)
+                envelope = await self._seal(body, error)
             except (asyncio.CancelledError, TransportClosed):
                 raise
             except Exception as exc:  # no session: the receiver is gone, or refuses us
@@ -501,9 +573,12 @@ class Export:
         """Seal ``body`` for the receiver and publish it on the export's key."""
         await self._proxy.transport.publish(self.key, await self._seal(body))
 
-    async def _seal(self, body: bytes) -> bytes:
+    async def _seal(self, body: bytes, failed: Exception | None = None) -> bytes:
+        """Seal ``body``, agreeing a session if need be (``failed``: the first try's error)."""
         sessions = self._proxy.sessions
         try:
+            if failed is not None:
+                raise failed
             return sessions.seal_bytes(self.receiver, body)
         except (UnknownSession, Expired):
             async with asyncio.timeout(self._proxy.agree_timeout):
@@ -620,6 +695,10 @@ class ExportProxy(ProxyBase):
         self.reports_refused = 0
         self._resend_buckets: dict[str, TokenBucket] = {}  # per receiver (authenticated)
         self._resend_turns: dict[str, asyncio.Lock] = {}  # per receiver: its blocking puts
+        # exports whose idle task got samples this turn, and the one flush that sends them
+        self._listed: list[Export] = []
+        self._flush_due = False
+        self._loop: asyncio.AbstractEventLoop | None = None
 
     async def __aenter__(self) -> Self:
         return self
@@ -652,6 +731,7 @@ class ExportProxy(ProxyBase):
         if (receiver, semantic_label) in self._exports:
             raise ValueError(f"{semantic_label!r} is already exported to {receiver!r}")
         policy = policy or Policy()
+        self._loop = asyncio.get_running_loop()
         export = Export(
             self, local_label, semantic_label, receiver, policy, self.queue_size, history
         )
@@ -666,6 +746,71 @@ class ExportProxy(ProxyBase):
                 self._receive_reports(), f"export[{self.platform}].loss-reports"
             )
         return export
+
+    def _list(self, export: Export) -> None:
+        """``export``'s idle task got samples: have the turn's flush send them."""
+        if not self._flush_due:
+            if not self._puts_at_once():  # MQTT: its task sends, woken now as ever
+                export._listed = False
+                export._wake()
+                return
+            assert self._loop is not None  # set by `start_exporting`, on the loop
+            self._flush_due = True
+            self._loop.call_soon(self._flush)
+        self._listed.append(export)
+
+    def _puts_at_once(self) -> bool:
+        """Whether the transport's put never waits (`Transport.publishes_nowait`)."""
+        transport = self.transport
+        # a `publish` set on the transport itself (a test's lossy link) must see every put
+        return transport.publishes_nowait and "publish" not in vars(transport)
+
+    def _flush(self) -> None:
+        """Send each listed export's next batch where its path is clear; else wake its task.
+
+        Clear: its task still waits (not sending, resending, agreeing a session or
+        backing off), nothing is left unsent, nothing to resend, its lease holds, and the
+        transport's put never waits (`Transport.publishes_nowait`). One batch per export
+        and turn, as the task sends one per turn of the loop: a long queue goes on next turn.
+        """
+        self._flush_due = False
+        listed, self._listed = self._listed, []
+        publish = self.transport.publish_nowait if self._puts_at_once() else None
+        seal = self.sessions.seal_bytes
+        lease = self.lease
+        now = time.monotonic() if lease is not None else 0.0
+        batch_size = self.batch_size
+        for export in listed:
+            export._listed = False
+            w = export._waiter
+            if export.ended is not None or w is None or w.done():
+                continue  # ended, or its task is awake: it finds the samples queued
+            if (
+                publish is None
+                or export._backoff
+                or export._recover
+                or export._unsent is not None
+                or (lease is not None and now - export.last_heard > lease)
+            ):
+                w.set_result(None)
+                continue
+            q = export.queue
+            if not q:
+                continue
+            if len(q) <= batch_size:
+                samples = list(q)
+                q.clear()
+            else:
+                samples = [q.popleft() for _ in range(batch_size)]
+            try:
+                export._send_now(samples, seal, publish)
+            except Exception as exc:  # the task ends the export with it, as if it had sent
+                export._crashed = exc
+                export._wake()
+                continue
+            if q and not w.done():
+                export._listed = True
+                self._list(export)
 
     async def _receive_reports(self) -> None:
         """Read receivers' reports: their lease, what they lost, what they want resent.
