@@ -690,7 +690,9 @@ def watch(
     def emit(event: dict[str, Any]) -> None:
         _say(json.dumps(event, default=repr) if as_json else _watch_line(event))
 
-    _run_query(watch_platform(str(config), emit, duration=duration, timeout=timeout))
+    # its transport's warnings and its own loss (ERROR) said as a node says them
+    with log_to_stderr():
+        _run_query(watch_platform(str(config), emit, duration=duration, timeout=timeout))
 
 
 # -- record and replay --------------------------------------------------------------------------

@@ -562,3 +562,82 @@ async def test_a_platform_whose_streams_and_loss_reports_are_refused_says_so_and
         }
     # closed, as every close closes them: no loss
     assert p.agents.stats.declarations_lost == 2
+
+
+def _over_mqtt(conf: Path, port: int, to: Path | None = None) -> None:
+    """``conf``'s ``[transport]`` as MQTT on 127.0.0.1:``port`` (written to ``to``, else to it)."""
+    text = conf.read_text()
+    start = text.index("[transport]")
+    end = text.index("\n[", start)  # its inputs follow
+    (to or conf).write_text(
+        f'{text[:start]}[transport]\nkind = "mqtt"\nhost = "127.0.0.1"\nport = {port}\n'
+        f'client_id = "station-{uuid.uuid4().hex[:8]}"\n{text[end:]}'
+    )
+
+
+@pytest.mark.parametrize("ended", ["refused", "broker gone"])
+async def test_an_owners_watch_whose_subscriptions_the_transport_ends_says_so_and_exits_1(
+    tmp_path: Path, mosquitto: tuple[str, int], ended: str
+) -> None:
+    # a real `dyknow watch` over MQTT: its subscription refused after a reconnection, or
+    # its connection lost and not made again, its pumps ended and it exited 0 as after
+    # --duration, silent: an owner piping it saw a quiet platform, not a blind watch
+    host, port = mosquitto
+    relay = Relay(host, port)
+    station = Station(tmp_path)
+    conf = station.dir / "station-python.toml"
+    fed = station.federation
+    watch_key, audit_key = f"dyknow/{fed}/v1/watch/station", f"dyknow/{fed}/v1/audit/station"
+    loop = asyncio.get_running_loop()
+    async with relay.running() as relayed:
+        # the node straight to the broker, its owner's watch through the relay
+        _over_mqtt(conf, relayed, station.dir / "watch.toml")
+        _over_mqtt(conf, port)
+        station.start("python")
+        watch = station.spawn("watch", "--config", "watch.toml")
+        try:
+            assert watch.stdout is not None
+            async with asyncio.timeout(3 * WAIT):
+                first = await loop.run_in_executor(None, watch.stdout.readline)
+            assert first.startswith("watching station"), first
+            if ended == "refused":
+                relay.refuse[watch_key] = 0x87  # not authorized, from the reconnection on
+            else:
+                relay.down = True  # the connections made again are closed at once
+            relay.drop()
+            async with asyncio.timeout(3 * WAIT):
+                out, err = await loop.run_in_executor(None, watch.communicate)
+        finally:
+            if watch.poll() is None:
+                watch.kill()
+                watch.communicate()
+            node_out, _ = station.stop()
+    assert watch.returncode == 1, (out, err)
+    assert "Traceback" not in err, err
+    lines = err.splitlines()
+    drop = "WARNING agents.transports._mqtt: mqtt: connection to the broker lost ("
+    assert [line for line in lines if line.startswith(drop)], err
+    ended_sub = "the transport ended the subscription"
+    watching = (
+        f"watch subscription {watch_key}",
+        "the messages, batches and reports the platform opens are no longer shown",
+    )
+    auditing = (
+        f"audit subscription {audit_key}",
+        "the platform's audit records are no longer shown",
+    )
+    lost = [watching] if ended == "refused" else [watching, auditing]
+    # (paho's own ERROR on the cut socket aside)
+    ours = [line for line in lines if line.startswith(("ERROR federation", "dyknow:"))]
+    assert ours == [
+        *(
+            f"ERROR federation._cli_net: watch[station]: lost its {what} ({ended_sub}): {meaning}"
+            for what, meaning in lost
+        ),
+        f"dyknow: the watch of platform 'station' stopped: the transport ended its "
+        f"{', its '.join(what for what, _ in lost)} ({ended_sub}). Run again, it subscribes anew",
+    ], err
+    # a renewal asked while the transport reconnected is said once, and ends nothing
+    assert len([line for line in lines if "the watch not renewed" in line]) <= 1, err
+    # the node saw nothing of it: its owner's watch is no declaration of its
+    assert "declarations lost" not in node_out, node_out
