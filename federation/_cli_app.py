@@ -293,9 +293,11 @@ def console(
         hosts = allowed_names([*cfg.console.allow_hosts, *(allow_host or [])], os.environ)
     except ValueError as exc:
         raise _fail(f"dyknow console: {config}: {exc}") from None
-    log_to_stderr()
     try:
-        run_loop(run_console(cfg, str(config), host, port, _say, token=token, allow_hosts=hosts))
+        with log_to_stderr():
+            run_loop(
+                run_console(cfg, str(config), host, port, _say, token=token, allow_hosts=hosts)
+            )
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
     except PlatformAliveError as exc:
@@ -359,20 +361,20 @@ def foxglove(
         hosts = allowed_names([*configured, *(allow_host or [])], os.environ)
     except ValueError as exc:
         raise _fail(f"dyknow foxglove: {config}: {exc}") from None
-    log_to_stderr()
     try:
-        run_loop(
-            run_foxglove(
-                cfg,
-                str(config),
-                host,
-                port,
-                _say,
-                sample_period=sample_period,
-                token=token,
-                allow_hosts=hosts,
+        with log_to_stderr():
+            run_loop(
+                run_foxglove(
+                    cfg,
+                    str(config),
+                    host,
+                    port,
+                    _say,
+                    sample_period=sample_period,
+                    token=token,
+                    allow_hosts=hosts,
+                )
             )
-        )
     except PlatformConfigError as exc:
         raise _fail(str(exc)) from None
     except ValueError as exc:  # [foxglove] names what the federation does not have
@@ -688,7 +690,9 @@ def watch(
     def emit(event: dict[str, Any]) -> None:
         _say(json.dumps(event, default=repr) if as_json else _watch_line(event))
 
-    _run_query(watch_platform(str(config), emit, duration=duration, timeout=timeout))
+    # its transport's warnings and its own loss (ERROR) said as a node says them
+    with log_to_stderr():
+        _run_query(watch_platform(str(config), emit, duration=duration, timeout=timeout))
 
 
 # -- record and replay --------------------------------------------------------------------------

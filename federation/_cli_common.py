@@ -24,6 +24,7 @@ if TYPE_CHECKING:
 
 __all__ = [
     "NotAnsweredError",
+    "WatchLostError",
     "complain",
     "error_text",
     "failure_of",
@@ -70,6 +71,14 @@ class NotAnsweredError(Exception):
     """The asked platform did not answer; the message says the likely cause."""
 
 
+class WatchLostError(TransportError):
+    """The owner's watch stopped: the transport ended a subscription of its (exit 1).
+
+    Its message names each one; run again, the watch subscribes anew (or fails to start,
+    naming why).
+    """
+
+
 _IN_WORDS = (
     Refused,
     Failed,
@@ -78,6 +87,7 @@ _IN_WORDS = (
     UnknownSemanticLabel,
     ContentError,  # Denied among them
     NotAnsweredError,
+    WatchLostError,
 )
 """The errors that say what they are in words: their class is not printed."""
 

@@ -22,6 +22,7 @@ from agents import (
     OwnerBatches,
     SecurityError,
     SecurityPolicy,
+    TransportClosed,
     TransportError,
     TrustStore,
     UnknownPlatform,
@@ -33,6 +34,7 @@ from agents.transports import MqttConfig, Transport, ZenohConfig, ZenohTransport
 
 from ._cli_common import (
     NotAnsweredError,
+    WatchLostError,
     complain,
     failure_of,
     platforms_of,
@@ -941,7 +943,10 @@ async def watch_platform(
     shown too; a batch whose signature does not verify, seen before, or signed before the
     watch began on the platform's clock (`_WatchAnchor`) is shown as unreadable, counted.
     Runs until SIGINT or ``duration`` s; how many events were emitted. TransportError when
-    the platform does not answer within ``timeout`` s.
+    the platform does not answer within ``timeout`` s; `WatchLostError` when the transport
+    ends the watch's subscription or the audit's (MQTT: a filter the broker refuses after
+    a reconnection, a connection lost and not made again), each logged at ERROR first: a
+    watch that saw nothing more must not look like a quiet platform.
     """
     config = PlatformConfig.load(config_path)
     try:
@@ -973,8 +978,45 @@ async def watch_platform(
 
     async with watcher_transport(config) as transport:
         anchor = _WatchAnchor(batches, time.monotonic(), SecurityPolicy().skew)
-        watched = await transport.subscribe(wire_key(fed, "watch", me))
-        audit = await transport.subscribe(wire_key(fed, "audit", me))
+        watch_key, audit_key = wire_key(fed, "watch", me), wire_key(fed, "audit", me)
+        watched = await transport.subscribe(watch_key)
+        audit = await transport.subscribe(audit_key)
+        # what each subscription's end means for the owner
+        watching_through = {
+            f"watch subscription {watch_key}": (
+                watched,
+                "the messages, batches and reports the platform opens are no longer shown",
+            ),
+            f"audit subscription {audit_key}": (
+                audit,
+                "the platform's audit records are no longer shown",
+            ),
+        }
+
+        said: set[str] = set()  # the subscriptions whose end was logged
+
+        def transport_ended() -> WatchLostError:
+            # every one it ended by now: a lost connection ends both at once
+            lost = [
+                (what, meaning)
+                for what, (sub, meaning) in watching_through.items()
+                if sub.inbox.closed and not sub.closed
+            ]
+            for what, meaning in lost:
+                if what in said:  # each pump raises: each end is said once
+                    continue
+                said.add(what)
+                log.error(
+                    "watch[%s]: lost its %s (the transport ended the subscription): %s",
+                    me,
+                    what,
+                    meaning,
+                )
+            return WatchLostError(
+                f"the watch of platform {me!r} stopped: the transport ended its "
+                f"{', its '.join(what for what, _ in lost)} (the transport ended the "
+                "subscription). Run again, it subscribes anew"
+            )
 
         async def pump_watch() -> None:
             await anchored.wait()
@@ -987,6 +1029,8 @@ async def watch_platform(
                     continue
                 for event in events:
                     await queue.put(event)
+            if not watched.closed:  # ended by the transport, not by this watch's end
+                raise transport_ended()
 
         plain = config.security.audit == "plain"
 
@@ -1009,6 +1053,8 @@ async def watch_platform(
                     continue
                 for record in records:
                     await queue.put({"kind": "audit", "record": record})
+            if not audit.closed:  # ended by the transport, not by this watch's end
+                raise transport_ended()
 
         def unanswered(waited: float) -> TransportError:
             return TransportError(
@@ -1018,7 +1064,7 @@ async def watch_platform(
 
         async def lease() -> None:
             deadline = time.monotonic() + timeout
-            answered = False
+            answered = unrenewed = False
             while True:
                 # the first signed answer ends the query: a queryable that never answers
                 # (anyone may declare one) would hold each renewal to its timeout
@@ -1026,9 +1072,24 @@ async def watch_platform(
                 signed_at: float | None = None
                 request = watch_request(keys, fed)
                 asked = time.monotonic()
-                async with await transport.ask(
-                    wire_key(fed, "watch", me), request, timeout=_WATCH_ASK
-                ) as replies:
+                try:
+                    replies = await transport.ask(watch_key, request, timeout=_WATCH_ASK)
+                except TransportError as exc:
+                    if not answered or isinstance(exc, TransportClosed):
+                        raise
+                    # a renewal while the transport reconnects (MQTT): the lease holds
+                    # until the next one; a connection not made again ends the
+                    # subscriptions, which says so. Said once until one is renewed
+                    (log.debug if unrenewed else log.warning)(
+                        "watch[%s]: the watch not renewed (asked again every %g s): %s",
+                        me,
+                        renew,
+                        exc,
+                    )
+                    unrenewed = True
+                    await asyncio.sleep(renew)
+                    continue
+                async with replies:
                     async for reply in replies:
                         if not reply.ok:
                             continue
@@ -1044,6 +1105,7 @@ async def watch_platform(
                         # bare (an older release, or anyone answering first): a signed one
                         # may still come; the query ends when every queryable answered
                 if ok:
+                    unrenewed = False
                     was_signed = anchor.signed
                     anchor.answered(signed_at, asked, time.monotonic())
                     anchored.set()
@@ -1086,6 +1148,11 @@ async def watch_platform(
                                 # --duration ran out before the platform ever answered:
                                 # printing nothing and exiting 0 would look like a quiet one
                                 error = unanswered(duration or 0.0)
+                            if isinstance(error, WatchLostError):
+                                # what came before the end is shown, then the end
+                                while not queue.empty():
+                                    emit(queue.get_nowait())
+                                    seen += 1
                             break
                         event = getting.result()
                         watching = watching or event["kind"] == "watching"

@@ -11,12 +11,13 @@ leaves the rest to typer, so the two cannot read one command line differently.
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import logging
 import os
 import sys
 import types
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from importlib.machinery import PathFinder
 from pathlib import Path
 from typing import TextIO
@@ -35,20 +36,30 @@ LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
 _PYTHONS_LAST_RESORT = getattr(logging, "_defaultLastResort", logging.lastResort)
 
 
-def log_to_stderr() -> None:
-    """Have the log's warnings and errors go to stderr as ``LEVEL logger: message``.
+@contextlib.contextmanager
+def log_to_stderr() -> Iterator[None]:
+    """While in it, have the log's warnings and errors go to stderr as ``LEVEL logger: message``.
 
     Without it Python's last resort printed the bare message: an ERROR looked like a
     WARNING and like the command's own lines. It becomes that last resort, so it prints
     only what no handler of the process takes: a caller that configured its logging (on
     the root or only on a logger such as ``agents``) gets its records once, its own way.
-    A last resort the process chose already (None included) is left alone.
+    A last resort the process chose already (None included) is left alone; on leaving,
+    the one found is given back (a program embedding `run_node` goes on with its own),
+    unless the process chose another meanwhile.
     """
-    if logging.lastResort is not _PYTHONS_LAST_RESORT:
+    found = logging.lastResort
+    if found is not _PYTHONS_LAST_RESORT:
+        yield
         return
     handler = _Stderr()
     handler.setFormatter(logging.Formatter(LOG_FORMAT))
     logging.lastResort = handler
+    try:
+        yield
+    finally:
+        if logging.lastResort is handler:
+            logging.lastResort = found
 
 
 class _Stderr(logging.StreamHandler):
@@ -169,9 +180,15 @@ def run_node(config: Path) -> int:
     2: the config is wrong, the platform runs already, or its local channel's place is
     another user's; 1: the transport failed, or ended one of the platform's declarations
     (the node stopped cleanly first: `PlatformLostError`), or the host lacks what the
-    local channel takes (file descriptors).
+    local channel takes (file descriptors). The log goes to stderr while it runs
+    (`log_to_stderr`).
     """
-    log_to_stderr()
+    with log_to_stderr():
+        return _run_node(config)
+
+
+def _run_node(config: Path) -> int:
+    """`run_node`'s run, its log set up."""
     # What the imports build lives as long as the node: the cyclic GC would walk it again
     # and again until ready (~15 ms of a node's start), so it is off while they run and
     # what they built is frozen out of its sight; once ready, `settle_gc` collects it all

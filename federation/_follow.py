@@ -54,7 +54,8 @@ class FollowedStream:
 
     ``export_id`` is the provider's export for us (None: none agreed now); ``lock`` is
     held while it changes, so that a change of policy and a renewed request never ask
-    twice; ``last_valid`` (ns) is where a new subscription resumes.
+    twice; ``error`` is why the member refused it, as `quoted` bounds it; ``last_valid``
+    (ns) is where a new subscription resumes.
     """
 
     label: str
@@ -184,10 +185,11 @@ async def _ask_for(
                         timeout=REQUEST_TIMEOUT,
                     )
                 except Exception as exc:
-                    why = reason(exc)
+                    # the member's word on why: bounded, one line, in the log as on the
+                    # page and in /api/state (100 kB of it would be sent every refresh)
+                    why = quoted(reason(exc))
                     # said once per refusal: a page shows it, but a log may be all one sees
-                    # (dyknow foxglove); asked again every RETRY s, each time at info. The
-                    # member's word on why: bounded, one line
+                    # (dyknow foxglove); asked again every RETRY s, each time at info
                     again = stream.state == "refused" and stream.error == why
                     stream.state, stream.error = "refused", why
                     stream.refused_before = True

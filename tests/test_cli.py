@@ -1086,11 +1086,10 @@ mine = logging.StreamHandler(sys.stderr)
 mine.setFormatter(logging.Formatter("mine %(name)s: %(message)s"))
 if setup != "none":
     logging.getLogger(None if setup == "root" else setup).addHandler(mine)
-log_to_stderr()
-log_to_stderr()  # a second command in the same process adds nothing
-logging.getLogger("agents._platform").error("lost its inbox")
-logging.getLogger("federation._import").warning("a sender gone")
-logging.getLogger("agents._platform").info("below WARNING")
+with log_to_stderr(), log_to_stderr():  # a command in a command adds nothing
+    logging.getLogger("agents._platform").error("lost its inbox")
+    logging.getLogger("federation._import").warning("a sender gone")
+    logging.getLogger("agents._platform").info("below WARNING")
 """
 
 
@@ -1139,8 +1138,9 @@ def test_the_log_goes_to_the_stderr_of_the_moment_as_pythons_last_resort_does() 
     script = (
         "import contextlib, io, logging\n"
         "from federation._cli_node import log_to_stderr\n"
+        "running = contextlib.ExitStack()\n"
         "with contextlib.redirect_stderr(io.StringIO()):\n"
-        "    log_to_stderr()\n"
+        "    running.enter_context(log_to_stderr())\n"
         "logging.getLogger('agents._platform').error('lost its inbox')\n"
     )
     done = subprocess.run(
@@ -1152,3 +1152,27 @@ def test_the_log_goes_to_the_stderr_of_the_moment_as_pythons_last_resort_does() 
     )
     assert done.returncode == 0, done.stderr
     assert done.stderr.splitlines() == ["ERROR agents._platform: lost its inbox"]
+
+
+def test_an_embedded_node_gives_back_the_last_resort_it_found() -> None:
+    # a program embedding `run_node` kept the node's last resort after it returned: its
+    # own later records no handler takes came out in the node's format, not Python's
+    script = (
+        "import logging, sys\n"
+        "from pathlib import Path\n"
+        "from federation._cli_node import run_node\n"
+        "before = logging.lastResort\n"
+        "code = run_node(Path(sys.argv[1]))\n"
+        "print(code, logging.lastResort is before, flush=True)\n"
+        "logging.getLogger('app').error('after the node')\n"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", script, "missing-node.toml"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        timeout=60,
+    )
+    assert done.stdout.splitlines() == ["2 True"], done.stderr
+    # the config's error, then the program's record as Python's own last resort prints it
+    assert done.stderr.splitlines()[-1] == "after the node", done.stderr

@@ -979,3 +979,56 @@ async def test_a_member_sending_bad_values_fast_is_counted_and_logged_bounded(
         if before:
             assert int(before[2]) == stood_for
     assert stood_for == n
+
+
+async def test_a_members_long_refusal_is_kept_bounded_on_one_line(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The refusal the page and /api/state show is a member's word: on one line, capped as
+    a log line quotes it (`quoted`); refused alike again, it is not news."""
+    from types import SimpleNamespace
+
+    from agents._agent import Refused
+    from federation import _follow
+    from federation._quote import QUOTE_MAX
+    from federation.console._server import _Stream
+
+    # a member may write anything in its refusal: 100 kB, a forged line, a terminal escape
+    content = "no\nINFO forged line \x1b[2J" + "x" * 100_000
+    refusal = Refused("refused", SimpleNamespace(content=content))  # type: ignore[arg-type]
+    asked: list[str] = []
+
+    async def create_stream(member: str, labels: list[str], **_: Any) -> str:
+        asked.append(member)
+        if len(asked) < 3:
+            raise refusal
+        return "x-1"
+
+    platform = SimpleNamespace(
+        name="tmc", federation_agent=SimpleNamespace(create_stream=create_stream)
+    )
+    monkeypatch.setattr(_follow, "RETRY", 0.01)
+    stream = _Stream("s1-incident")
+    shown: list[Any] = []
+    with caplog.at_level("INFO", logger="federation.follow"):
+        await asyncio.wait_for(
+            _follow._ask_for(
+                platform,  # type: ignore[arg-type]
+                "roadside",
+                stream,
+                lambda: True,
+                lambda: shown.append(stream.to_json(0.0)["error"]),
+            ),
+            5,
+        )
+    whole = f"refused: {content}"
+    error = shown[0]
+    assert error == shown[1]
+    assert error.startswith("refused: no\\x0aINFO forged line \\x1b[2Jxxx")
+    # 200 characters shown, two of them escaped to four: 194 of the member's kept
+    assert error.endswith(f"… ({len(whole)} characters, {len(whole) - 194} left out)"), error
+    assert len(error.partition("…")[0]) == QUOTE_MAX and error.isprintable()
+    # the second refusal, the same, is said at info only: the kept text still compares
+    levels = [r.levelname for r in caplog.records if "refused s1-incident" in r.getMessage()]
+    assert levels == ["WARNING", "INFO"]
+    assert shown[2] is None and stream.state == "active"

@@ -12,6 +12,7 @@ import logging
 import signal
 import subprocess
 import uuid
+from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
 
@@ -26,22 +27,37 @@ from tests._node_example import Station
 from tests.test_mqtt_start_close import WAIT, Relay
 
 
-async def test_a_token_whose_own_subscription_is_refused_is_not_declared(
-    mosquitto: tuple[str, int],
-) -> None:
+class _Relay(Relay):
+    """A `Relay` serving on ``listening``, with the clients a test makes through and beside it."""
+
+    listening: int
+
+    def through(self, **options: Any) -> MqttTransport:
+        """A transport to the broker through the relay (``options``: its `MqttConfig`'s)."""
+        return MqttTransport(MqttConfig(host="127.0.0.1", port=self.listening, **options))
+
+    def beside(self) -> MqttTransport:
+        """A transport straight to the broker, which the relay's steering does not touch."""
+        return MqttTransport(MqttConfig(host=self.host, port=self.port))
+
+
+@pytest.fixture
+async def relay(mosquitto: tuple[str, int]) -> AsyncIterator[_Relay]:
+    """A running relay to the session's broker (`Relay`), closed after the test."""
+    relay = _Relay(*mosquitto)
+    async with relay.running() as listening:
+        relay.listening = listening
+        yield relay
+
+
+async def test_a_token_whose_own_subscription_is_refused_is_not_declared(relay: _Relay) -> None:
     # the token subscribes to its key (to announce again when another client clears it):
     # its SUBACK was not read, a refused one taken as granted, the token alive with
     # nobody listening for its clearing
-    host, port = mosquitto
     u = uuid.uuid4().hex
     key = f"alive/{u}/x"
-    relay = Relay(host, port)
     relay.refuse[key] = 0x87  # not authorized
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
-        MqttTransport(MqttConfig(host=host, port=port)) as watcher,
-    ):
+    async with relay.through() as t, relay.beside() as watcher:
         handles = set(t._handles)
         with pytest.raises(TransportError) as refused:
             async with asyncio.timeout(WAIT):
@@ -97,20 +113,14 @@ async def test_answers_later_than_connect_timeout_log_no_error(
 
 
 async def test_an_answer_to_a_call_never_made_is_still_logged_as_unexpected(
-    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+    relay: _Relay, caplog: pytest.LogCaptureFixture
 ) -> None:
     # only an answer to a call given up is late: a SUBACK whose packet id no call of
     # this client ever had (a broker's bug, a stream gone wrong) was logged at DEBUG as
     # "given up", hiding what aiomqtt reports as an error
-    host, port = mosquitto
     key = f"forged/{uuid.uuid4().hex}"
-    relay = Relay(host, port)
     caplog.set_level(logging.DEBUG)
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
-        MqttTransport(MqttConfig(host=host, port=port)) as sender,
-    ):
+    async with relay.through() as t, relay.beside() as sender:
         relay.forge = b"\x90\x04\xbe\xef\x00\x00"  # a SUBACK for packet id 0xBEEF, granted
         async with asyncio.timeout(WAIT):
             sub = await t.subscribe(key)
@@ -128,18 +138,13 @@ async def test_an_answer_to_a_call_never_made_is_still_logged_as_unexpected(
 
 
 async def test_a_token_whose_reconnection_fails_ends_and_is_not_cleared_on_a_lost_connection(
-    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+    relay: _Relay, caplog: pytest.LogCaptureFixture
 ) -> None:
     # ended, its handle closed, it was "cleared" on the connection already lost: a
     # warning that the token could not be cleared, which reads as a key left alive
-    host, port = mosquitto
     key = f"alive/{uuid.uuid4().hex}/x"
-    relay = Relay(host, port)
     caplog.set_level(logging.WARNING, logger="agents.transports._mqtt")
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed, connect_timeout=1.0)) as t,
-    ):
+    async with relay.through(connect_timeout=1.0) as t:
         handle = await t.declare_token(key)
         told: asyncio.Future[str] = asyncio.get_running_loop().create_future()
         handle.on_end(told.set_result)
@@ -162,24 +167,18 @@ async def test_a_token_whose_reconnection_fails_ends_and_is_not_cleared_on_a_los
 
 
 async def test_a_queryable_refused_after_a_reconnection_ends_and_its_owner_is_told(
-    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+    relay: _Relay, caplog: pytest.LogCaptureFixture
 ) -> None:
     # subscribed anew after a reconnection, a queryable's refused filter was only logged:
     # its owner believed it served, and queries through that filter went unanswered
-    host, port = mosquitto
     u = uuid.uuid4().hex
     key = f"q/{u}/x"
-    relay = Relay(host, port)
     caplog.set_level(logging.WARNING, logger="agents.transports._mqtt")
 
     async def answer(key: str, payload: bytes) -> bytes:
         return b"here"
 
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
-        MqttTransport(MqttConfig(host=host, port=port)) as asker,
-    ):
+    async with relay.through() as t, relay.beside() as asker:
         kept = await t.serve(f"kept/{u}", answer)
         handle = await t.serve(key, answer)
         told: asyncio.Future[str] = asyncio.get_running_loop().create_future()
@@ -212,18 +211,13 @@ async def test_a_queryable_refused_after_a_reconnection_ends_and_its_owner_is_to
 
 
 async def test_a_token_refused_after_a_reconnection_ends_and_its_owner_is_told(
-    mosquitto: tuple[str, int],
+    relay: _Relay,
 ) -> None:
     # a token that could not announce itself again after its connection dropped was only
     # logged: its owner believed it alive while nobody saw it
-    host, port = mosquitto
     u = uuid.uuid4().hex
     key = f"alive/{u}/x"
-    relay = Relay(host, port)
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
-    ):
+    async with relay.through() as t:
         handle = await t.declare_token(key)
         told: asyncio.Future[str] = asyncio.get_running_loop().create_future()
         handle.on_end(told.set_result)
@@ -242,19 +236,16 @@ async def test_a_token_refused_after_a_reconnection_ends_and_its_owner_is_told(
 
 
 async def test_a_platform_whose_directory_is_refused_after_a_reconnection_says_so_and_counts_it(
-    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+    relay: _Relay, caplog: pytest.LogCaptureFixture
 ) -> None:
     # the transport ended the directory's queryable, and nothing of the platform's heard:
     # it ran on, believing its agents findable, while others' directory queries went
     # unanswered, with not a line in its log
-    host, port = mosquitto
     fed = f"lost-{uuid.uuid4().hex[:8]}"
-    relay = Relay(host, port)
     caplog.set_level(logging.ERROR)
     async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
-        MqttTransport(MqttConfig(host=host, port=port)) as other,
+        relay.through() as t,
+        relay.beside() as other,
         AgentPlatform("uav-a", t, federation=fed) as p,
     ):
         key = p.key("df")
@@ -301,19 +292,13 @@ async def test_a_platform_whose_directory_is_refused_after_a_reconnection_says_s
 
 
 async def test_a_platform_whose_inbox_is_refused_after_a_reconnection_says_so_and_counts_it(
-    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+    relay: _Relay, caplog: pytest.LogCaptureFixture
 ) -> None:
     # its inbox's subscription ended, its consumer with it: the platform ran on deaf to
     # every other platform's messages, nothing counted, nothing at ERROR, a node up
-    host, port = mosquitto
     fed = f"deaf-{uuid.uuid4().hex[:8]}"
-    relay = Relay(host, port)
     caplog.set_level(logging.ERROR)
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
-        AgentPlatform("uav-a", t, federation=fed) as p,
-    ):
+    async with relay.through() as t, AgentPlatform("uav-a", t, federation=fed) as p:
         told: asyncio.Future[tuple[str, str]] = asyncio.get_running_loop().create_future()
         p.on_lost(lambda what, why: told.done() or told.set_result((what, why)))
         key = p.key("acl")
@@ -337,19 +322,16 @@ async def test_a_platform_whose_inbox_is_refused_after_a_reconnection_says_so_an
 
 
 async def test_a_platform_whose_broker_cannot_be_reached_again_loses_every_declaration(
-    mosquitto: tuple[str, int],
+    relay: _Relay,
 ) -> None:
     # a broker restarting: the one reconnection of the platform's connection failed, the
     # transport was lost, nothing answered any more, but no declaration ended: the
     # token's own connection, made once the broker was back, announced the platform
     # alive again, and neither the platform nor a node running it heard of anything
-    host, port = mosquitto
     fed = f"gone-{uuid.uuid4().hex[:8]}"
-    relay = Relay(host, port)
     async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed, connect_timeout=5.0)) as t,
-        MqttTransport(MqttConfig(host=host, port=port)) as other,
+        relay.through(connect_timeout=5.0) as t,
+        relay.beside() as other,
         AgentPlatform("uav-a", t, federation=fed) as p,
     ):
         alive = p.key("alive")
@@ -378,30 +360,30 @@ async def test_a_platform_whose_broker_cannot_be_reached_again_loses_every_decla
         assert await other.tokens(p.key("alive", "*"), timeout=WAIT) == []
 
 
+def _over_mqtt(conf: Path, port: int, to: Path | None = None) -> None:
+    """``conf``'s ``[transport]`` as MQTT on 127.0.0.1:``port`` (written to ``to``, else to it)."""
+    text = conf.read_text()
+    start = text.index("[transport]")
+    end = text.index("\n[", start)  # its inputs follow
+    (to or conf).write_text(
+        f'{text[:start]}[transport]\nkind = "mqtt"\nhost = "127.0.0.1"\nport = {port}\n'
+        f'client_id = "station-{uuid.uuid4().hex[:8]}"\n{text[end:]}'
+    )
+
+
 async def test_a_node_whose_directory_is_refused_after_a_reconnection_stops_cleanly_and_exits_1(
-    tmp_path: Path, mosquitto: tuple[str, int]
+    tmp_path: Path, relay: _Relay
 ) -> None:
     # a real `dyknow node` over MQTT: it ran on with its directory unserved, silent; now
     # it says what it lost and what that means, closes cleanly (its presence cleared,
     # its figures said) and exits 1, for its supervisor to start it again
-    host, port = mosquitto
-    relay = Relay(host, port)
     station = Station(tmp_path)
     conf = station.dir / "station-python.toml"
     fed = station.federation
     df = f"dyknow/{fed}/v1/df/station"
     loop = asyncio.get_running_loop()
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host=host, port=port)) as other,
-    ):
-        text = conf.read_text()
-        start = text.index("[transport]")
-        end = text.index("\n[", start)  # its inputs follow
-        conf.write_text(
-            f'{text[:start]}[transport]\nkind = "mqtt"\nhost = "127.0.0.1"\nport = {relayed}\n'
-            f'client_id = "station-{uuid.uuid4().hex[:8]}"\n{text[end:]}'
-        )
+    async with relay.beside() as other:
+        _over_mqtt(conf, relay.listening)
         node = station.spawn("node", "--config", conf.name)
         station.node = node
         try:
@@ -447,20 +429,14 @@ async def test_a_node_whose_directory_is_refused_after_a_reconnection_stops_clea
 
 
 async def test_a_platform_whose_presence_and_events_are_refused_after_a_reconnection_says_so(
-    mosquitto: tuple[str, int], caplog: pytest.LogCaptureFixture
+    relay: _Relay, caplog: pytest.LogCaptureFixture
 ) -> None:
     # its directory's presence watch and events subscription ended, their consumers with
     # them: the platform ran on no longer seeing others come and go nor their directories
     # change, with nothing at ERROR, nothing counted, a node up
-    host, port = mosquitto
     fed = f"blind-{uuid.uuid4().hex[:8]}"
-    relay = Relay(host, port)
     caplog.set_level(logging.ERROR)
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
-        AgentPlatform("uav-a", t, federation=fed) as p,
-    ):
+    async with relay.through() as t, AgentPlatform("uav-a", t, federation=fed) as p:
         told: asyncio.Queue[tuple[str, str]] = asyncio.Queue()
         p.on_lost(lambda what, why: told.put_nowait((what, why)))
         presence, events = p.key("alive", "*"), p.key("df-events", "*")
@@ -492,14 +468,13 @@ async def test_a_platform_whose_presence_and_events_are_refused_after_a_reconnec
 
 async def test_a_platform_whose_streams_and_loss_reports_are_refused_says_so_and_counts_it(
     tmp_path: Path,
-    mosquitto: tuple[str, int],
+    relay: _Relay,
     caplog: pytest.LogCaptureFixture,
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
     # the import proxy's streams subscription and the export proxy's loss reports ended,
     # their consumers with them: the platform ran on receiving no other platform's
     # streams, its exports deaf to their receivers, nothing at ERROR, a node up
-    host, port = mosquitto
     fed = f"streamless-{uuid.uuid4().hex[:8]}"
     pub = gen_keys("uav-a", tmp_path / "keys")[2]
     trust_keys(tmp_path / "trust.json", [pub], federation=fed)
@@ -511,13 +486,8 @@ async def test_a_platform_whose_streams_and_loss_reports_are_refused_says_so_and
         vocabulary={"name": "t", "labels": {"speed": "speed"}},
         mapping={"vocabulary": "t", "labels": {"speed": "local/speed"}},
     )
-    relay = Relay(host, port)
     caplog.set_level(logging.ERROR)
-    async with (
-        relay.running() as relayed,
-        MqttTransport(MqttConfig(host="127.0.0.1", port=relayed)) as t,
-        FederationPlatform(config, transport=t, join=False) as p,
-    ):
+    async with relay.through() as t, FederationPlatform(config, transport=t, join=False) as p:
         told: asyncio.Queue[tuple[str, str]] = asyncio.Queue()
         p.agents.on_lost(lambda what, why: told.put_nowait((what, why)))
         streams = p.agents.key("stream") + "/*/**"
@@ -562,3 +532,68 @@ async def test_a_platform_whose_streams_and_loss_reports_are_refused_says_so_and
         }
     # closed, as every close closes them: no loss
     assert p.agents.stats.declarations_lost == 2
+
+
+@pytest.mark.parametrize("ended", ["refused", "broker gone"])
+async def test_an_owners_watch_whose_subscriptions_the_transport_ends_says_so_and_exits_1(
+    tmp_path: Path, relay: _Relay, ended: str
+) -> None:
+    # a real `dyknow watch` over MQTT: its subscription refused after a reconnection, or
+    # its connection lost and not made again, its pumps ended and it exited 0 as after
+    # --duration, silent: an owner piping it saw a quiet platform, not a blind watch
+    station = Station(tmp_path)
+    conf = station.dir / "station-python.toml"
+    fed = station.federation
+    watch_key, audit_key = f"dyknow/{fed}/v1/watch/station", f"dyknow/{fed}/v1/audit/station"
+    loop = asyncio.get_running_loop()
+    # the node straight to the broker, its owner's watch through the relay
+    _over_mqtt(conf, relay.listening, station.dir / "watch.toml")
+    _over_mqtt(conf, relay.port)
+    station.start("python")
+    watch = station.spawn("watch", "--config", "watch.toml")
+    try:
+        assert watch.stdout is not None
+        async with asyncio.timeout(3 * WAIT):
+            first = await loop.run_in_executor(None, watch.stdout.readline)
+        assert first.startswith("watching station"), first
+        if ended == "refused":
+            relay.refuse[watch_key] = 0x87  # not authorized, from the reconnection on
+        else:
+            relay.down = True  # the connections made again are closed at once
+        relay.drop()
+        async with asyncio.timeout(3 * WAIT):
+            out, err = await loop.run_in_executor(None, watch.communicate)
+    finally:
+        if watch.poll() is None:
+            watch.kill()
+            watch.communicate()
+        node_out, _ = station.stop()
+    assert watch.returncode == 1, (out, err)
+    assert "Traceback" not in err, err
+    lines = err.splitlines()
+    drop = "WARNING agents.transports._mqtt: mqtt: connection to the broker lost ("
+    assert [line for line in lines if line.startswith(drop)], err
+    ended_sub = "the transport ended the subscription"
+    watching = (
+        f"watch subscription {watch_key}",
+        "the messages, batches and reports the platform opens are no longer shown",
+    )
+    auditing = (
+        f"audit subscription {audit_key}",
+        "the platform's audit records are no longer shown",
+    )
+    lost = [watching] if ended == "refused" else [watching, auditing]
+    # (paho's own ERROR on the cut socket aside)
+    ours = [line for line in lines if line.startswith(("ERROR federation", "dyknow:"))]
+    assert ours == [
+        *(
+            f"ERROR federation._cli_net: watch[station]: lost its {what} ({ended_sub}): {meaning}"
+            for what, meaning in lost
+        ),
+        f"dyknow: the watch of platform 'station' stopped: the transport ended its "
+        f"{', its '.join(what for what, _ in lost)} ({ended_sub}). Run again, it subscribes anew",
+    ], err
+    # a renewal asked while the transport reconnected is said once, and ends nothing
+    assert len([line for line in lines if "the watch not renewed" in line]) <= 1, err
+    # the node saw nothing of it: its owner's watch is no declaration of its
+    assert "declarations lost" not in node_out, node_out
