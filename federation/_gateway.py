@@ -69,7 +69,7 @@ from ._gateway_service import (
     GatewayRefusal,
     GatewayService,
     answer_to_json,
-    contents_plain,
+    latest_answer_plain,
     plain_latest,
     samples_to_json,
 )
@@ -501,7 +501,7 @@ class GatewayAgent(Agent):
 
     def answer_on_thread(self, message: ACLMessage) -> Any:
         """`answer_at_once` on zenoh's thread: the label's latest sample as `Cache.extend` keeps
-        it (`DyKnowInstance.latest_many_now`), or `LATER` (the loop's `answer_at_once` decides).
+        it (`DyKnowInstance.latest_now`), or `LATER` (the loop's `answer_at_once` decides).
 
         Handed over to its reply (`HandedOver`, no copy) when it is plain JSON: its dicts
         and list are made here and kept nowhere else, the label is a str (`plain_latest`).
@@ -509,11 +509,10 @@ class GatewayAgent(Agent):
         label = self._plain_latest_label(message)
         if label is None:
             return LATER
-        read = self.instance.latest_many_now((label,))
+        read = self.instance.latest_now(label)
         if read is None:
             return LATER
-        contents, plain = contents_plain(*read)
-        answer = {"label": label, **contents[0]}  # `answer_to_json`'s, made of the same row
+        answer, plain = latest_answer_plain(label, *read)  # `answer_to_json`'s, of that row
         return HandedOver(answer) if plain else answer
 
     @on_request(ONTOLOGY)
