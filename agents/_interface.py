@@ -39,6 +39,7 @@ from ._acl import (
     _quick_fields,
     nesting_bound,
     platform_of,
+    reply_json,
 )
 from ._agent import _RUNNING, LATER, Agent, MessageTemplate, failure_of, on
 from ._aio import Ticker, call_in_loop, together
@@ -1759,8 +1760,10 @@ class InterfaceAgent:
             content = answer(message)
             if content is LATER:
                 return _LEFT
-            answered = message.reply(Performative.INFORM, content, sender=agent.aid)
-            reply = answered.to_json()
+            # the reply's bytes alone: the message is made only if the put fails (resent)
+            reply = reply_json(message, Performative.INFORM, content, agent.aid)
+            if reply is None:
+                reply = message.reply(Performative.INFORM, content, sender=agent.aid).to_json()
         except Exception:  # the loop's `answer_at_once` and handler meet it again
             return _LEFT
         total, requests = state.total, state.requests
@@ -1847,6 +1850,9 @@ class InterfaceAgent:
                 try:
                     loop = self._loop
                     if loop is not None:
+                        # made as the bytes put were (`reply_json`, or `reply` where it
+                        # said None): ``content`` went nowhere else
+                        answered = message.reply(Performative.INFORM, content, sender=agent.aid)
                         loop.call_soon_threadsafe(self._lane_resend, peer, answered)
                 except RuntimeError:  # the loop is closed: nobody waits for the answer
                     pass
