@@ -78,6 +78,9 @@ from ._quote import quoted
 log = logging.getLogger(__name__)
 
 P = Performative
+# an enum member read from its class is a lookup through the enum's machinery (~0.3 µs in
+# 3.11, ~8x a global's): the members a plain read on zenoh's thread compares with, once
+_PRIVATE, _QUERY_REF, _REQUEST = Visibility.PRIVATE, P.QUERY_REF, P.REQUEST
 
 GATEWAY_SERVICE_TYPE = "dyknow-gateway"
 """The Directory Facilitator service type every Gateway Agent registers."""
@@ -466,18 +469,14 @@ class GatewayAgent(Agent):
         # through pydantic's attribute hook (the lane's answers read here)
         fields = message.__dict__
         performative = fields["performative"]
-        if (
-            not self._at_once
-            or fields["ontology"] != ONTOLOGY
-            or self.visibility is Visibility.PRIVATE
-        ):
+        if not self._at_once or fields["ontology"] != ONTOLOGY or self.visibility is _PRIVATE:
             return None
         content = fields["content"]
-        if performative is P.QUERY_REF:
+        if performative is _QUERY_REF:
             if type(content) is not dict:
                 return None
             content = {"action": "query", **content}
-        elif performative is not P.REQUEST:
+        elif performative is not _REQUEST:
             return None
         label = plain_latest(content)
         if label is None or label.startswith(self.reserved):
