@@ -414,6 +414,57 @@ def _constructed(cls: type[ACLMessage], fields: dict[str, Any], names: set[str])
     return message
 
 
+def reply_json(
+    message: ACLMessage, performative: Performative, content: Any, sender: str
+) -> bytes | None:
+    """``message.reply(performative, content, sender=sender).to_json()``, without the reply
+    made: its bytes where `ACLMessage.reply`'s quick checks hold; None otherwise (ask it).
+
+    For an answer sent at once and kept nowhere (the lane's): the same checks and copy of
+    ``content`` (none when `HandedOver`), the same JSON, without the message in between.
+    """
+    handed_over = type(content) is HandedOver
+    if handed_over:
+        content = content.value
+    if (
+        type(performative) is not Performative
+        or type(sender) is not str
+        or not sender
+        or (sender not in _known_aids and not _valid_aid(sender))
+    ):
+        return None
+    if not handed_over:
+        try:
+            content = _json_copy(content, 0)
+        except _NotPlain:
+            return None
+    fields = message.__dict__
+    # `reply`'s fields in `to_json`'s order, those None left out as it leaves them (reply_to,
+    # encoding, reply_with and reply_by are None in a reply)
+    wire = {
+        "v": WIRE_VERSION,
+        "performative": performative,
+        "sender": sender,
+        "receivers": list(fields["reply_to"] or [fields["sender"]]),
+    }
+    if content is not None:
+        wire["content"] = content
+    if (value := fields["language"]) is not None:
+        wire["language"] = value
+    if (value := fields["ontology"]) is not None:
+        wire["ontology"] = value
+    if (value := fields["protocol"]) is not None:
+        wire["protocol"] = value
+    if (value := fields["conversation_id"]) is not None:
+        wire["conversation_id"] = value
+    if (value := fields["reply_with"]) is not None:
+        wire["in_reply_to"] = value
+    try:
+        return orjson.dumps(wire)
+    except orjson.JSONEncodeError:  # `to_json` says what is wrong
+        return None
+
+
 class HandedOver:
     """A reply's content its maker gives up: plain JSON that nothing else refers to.
 

@@ -24,7 +24,9 @@ class TokenBucket:
 
     def _refill(self, now: float) -> float:
         if now > self.stamp:
-            self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+            # `min(burst, tokens)` spelled out: no call (3.11's min builds a tuple of its args)
+            tokens = self.tokens + (now - self.stamp) * self.rate
+            self.tokens = tokens if tokens < self.burst else self.burst
             self.stamp = now
         return self.tokens
 
@@ -32,14 +34,16 @@ class TokenBucket:
         """Whether ``n`` tokens are there at ``now``, taking none (check several, then take)."""
         # `_refill`, inline: asked for every message, a call less each
         if now > self.stamp:
-            self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+            tokens = self.tokens + (now - self.stamp) * self.rate
+            self.tokens = tokens if tokens < self.burst else self.burst  # min, as in `_refill`
             self.stamp = now
         return self.tokens >= n
 
     def take(self, now: float, n: float = 1.0) -> bool:
         """Take ``n`` tokens at time ``now`` (seconds, monotonic) if there are; else False."""
         if now > self.stamp:  # `_refill`, inline, as in `ready`
-            self.tokens = min(self.burst, self.tokens + (now - self.stamp) * self.rate)
+            tokens = self.tokens + (now - self.stamp) * self.rate
+            self.tokens = tokens if tokens < self.burst else self.burst  # min, as in `_refill`
             self.stamp = now
         if self.tokens >= n:
             self.tokens -= n

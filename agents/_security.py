@@ -980,11 +980,14 @@ class Session:
         ``[v, from, to, sid, ts_ms, n, box]``, or ``[v, from, to, sid, ts_ms, n, body, mac]``
         with encryption off; ``n`` is the JSON envelopes' counter (``docs/wire.md``).
         """
+        return self._seal_binary(body, self._clock())
+
+    def _seal_binary(self, body: bytes | str, now: float) -> bytes:
+        """`seal_binary` at ``now``, this session's clock read by the caller."""
         raw = body.encode() if isinstance(body, str) else body
         if len(raw) > self._max_body:
             raise MessageError(f"message of {len(raw)} bytes exceeds the limit of {self._max_body}")
         # `_stamp`, inline (the path of every message)
-        now = self._clock()
         if now - self.established > self._lifetime:
             raise Expired(f"session {self.sid} with {self.peer} is past its lifetime; renew")
         n = self._n + 1
@@ -1528,6 +1531,9 @@ class SessionTable:
                     )
                 ):
                     session = self.session_for(peer)
+                elif session._clock is self._clock:
+                    # the session's clock is the table's: sealed at the reading just checked
+                    return session._seal_binary(body, now)
             else:
                 session = self.session_for(peer)
             if session is None:
@@ -1726,7 +1732,7 @@ class SessionTable:
                 f"envelope of {len(envelope)} bytes exceeds the limit of {max_envelope}"
             )
         try:
-            env = _unpackb(envelope, raw=False, use_list=True)
+            env = _unpackb(envelope)  # raw=False, use_list=True: msgpack 1's defaults
         except Exception as exc:  # msgpack raises several kinds on bad input
             raise Malformed(f"not msgpack: {type(exc).__name__}: {exc}") from None
         if type(env) is not list or len(env) not in (7, 8):

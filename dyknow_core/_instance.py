@@ -442,6 +442,22 @@ class DyKnowInstance:
             raise UnknownLabelError(label, list(where)) from None
         return now, out
 
+    def latest_now(self, label: str) -> tuple[int, RawSample | None] | None:
+        """`latest_many_now` of one label: ``(now, sample or None)``, or None when it cannot tell.
+
+        The same reading without the lists (a plain read answered on another thread).
+        """
+        now = self.clock.now()
+        location = self._labels.get(label)
+        gen = None if location is None else location.generators.get(label)
+        if gen is None:
+            return None
+        made = gen.made_ta
+        known, sample = gen.cache.latest_now(now if now >= made else made)
+        if not known:
+            return None
+        return now, sample
+
     def latest_many_now(self, labels: Sequence[str]) -> tuple[int, list[RawSample | None]] | None:
         """`latest_many` from any thread, from what each stream's cache keeps (`Cache.latest_now`);
         None when that cannot tell (a label not here, a sample available later than now).

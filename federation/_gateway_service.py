@@ -242,6 +242,26 @@ def contents_plain(now: int, rows: Sequence[RawSample | None]) -> tuple[list[dic
     return out, plain
 
 
+def latest_answer_plain(label: str, now: int, s: RawSample | None) -> tuple[dict[str, Any], bool]:
+    """`answer_to_json` of ``label``'s latest sample ``s`` read at ``now``, and whether it is
+    plain JSON (`contents_plain` of that one row, with the label first)."""
+    query_time = now / NS_PER_S  # as ns_to_seconds, inline
+    if s is None:
+        return {"label": label, "query_time": query_time, "samples": []}, (
+            type(query_time) is float
+        )
+    scalar = _SCALAR_TYPES
+    value = s[0]
+    valid = s[1] / NS_PER_S
+    available = s[2] / NS_PER_S
+    if type(value) not in scalar:  # what jsonable makes of it
+        value = jsonable(value)
+        plain = False
+    else:
+        plain = type(query_time) is float and type(valid) in scalar and type(available) in scalar
+    return {"label": label, "query_time": query_time, "samples": [[value, valid, available]]}, plain
+
+
 def samples_to_json(batch: list[tuple[Any, int, int]]) -> list[list[Any]]:
     """Raw samples as content rows: [value, valid s, available s]."""
     return [[jsonable(v), ns_to_seconds(tv), ns_to_seconds(ta)] for v, tv, ta in batch]

@@ -33,7 +33,7 @@ from agents import (
     on,
     platform_of,
 )
-from agents._acl import compose, nesting_bound
+from agents._acl import compose, nesting_bound, reply_json
 
 P = Performative
 BASE: dict[str, Any] = {"performative": "inform", "sender": "a@uav-a", "receivers": ["b@uav-b"]}
@@ -837,3 +837,46 @@ def test_long_agent_identifiers_are_checked_each_time_not_remembered() -> None:
         assert compose(Performative.INFORM, aid, aid, None, {}).receivers == [aid]
     assert sum(len(a) for a in _acl._known_aids) < 4096 * 300
     assert not any(a.endswith(long) for a in _acl._known_aids)
+
+
+def test_a_reply_written_at_once_is_the_reply_made_and_written() -> None:
+    """`reply_json` writes the bytes `reply(...).to_json()` writes, or says None where
+    `reply` leaves its checks to pydantic (an answer the lane puts is the loop's answer)."""
+    asks = [
+        ACLMessage.build(
+            performative=P.REQUEST,
+            sender="asker@uav-a",
+            receivers=["gateway@uav-b"],
+            content={"action": "query", "label": "x"},
+            ontology="dyknow",
+            protocol="fipa-request",
+            conversation_id="c-1",
+            reply_with="r-1",
+        ),
+        ACLMessage.build(
+            performative=P.QUERY_REF,
+            sender="asker@uav-a",
+            receivers=["gateway@uav-b"],
+            reply_to=["other@uav-c", "more@uav-d"],
+            content=None,
+            language="json",
+        ),
+    ]
+    contents: list[Any] = [
+        {"label": "x", "samples": [[1.5, 2.0, 3.0]]},
+        None,
+        ["a", 1, None, {"deep": [True]}],
+        "text",
+    ]
+    for ask in asks:
+        for content in contents:
+            made = ask.reply(P.INFORM, content, sender="gateway@uav-b").to_json()
+            assert reply_json(ask, P.INFORM, content, "gateway@uav-b") == made
+            assert reply_json(ask, P.INFORM, HandedOver(content), "gateway@uav-b") == made
+        # what `reply` leaves to pydantic: not written here
+        assert reply_json(ask, P.INFORM, (1, 2), "gateway@uav-b") is None
+        assert reply_json(ask, P.INFORM, {1: "x"}, "gateway@uav-b") is None
+        assert reply_json(ask, P.INFORM, 1, "not an agent id") is None
+        assert reply_json(ask, P.INFORM, 1, "") is None
+        assert reply_json(ask, "inform", 1, "gateway@uav-b") is None  # type: ignore[arg-type]
+        assert reply_json(ask, P.INFORM, 2**70, "gateway@uav-b") is None  # no JSON number

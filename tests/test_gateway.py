@@ -651,7 +651,7 @@ async def test_an_answer_on_zenohs_thread_is_handed_over_only_when_plain() -> No
     async with world() as w:
         # a stream's first ask on the thread is the loop's (`Cache.latest_now`): watched since
         for label in ("car/car5/speed", "car5-state"):
-            assert w.dk.latest_many_now((label,)) is None
+            assert w.dk.latest_now(label) is None
         w.speed.push(12.5, valid_time=T0)
         w.state.push({"pos": (1.0, 2.0)}, valid_time=T0)  # a tuple: not plain JSON
         for label, plain in (("car/car5/speed", True), ("car5-state", False)):

@@ -829,3 +829,23 @@ def test_importing_the_core_loads_no_reasoning_and_no_kpl() -> None:
     assert out.stdout.strip() == "[]"
     assert not hasattr(dyknow_core, "add_monitor")
     assert not hasattr(DyKnowInstance, "add_monitor")
+
+
+async def test_latest_now_reads_one_label_as_latest_many_now_does(
+    dk: DyKnowInstance, clock: ManualClock
+) -> None:
+    """A plain read on another thread (`latest_now`) tells what `latest_many_now` tells of
+    that label: nothing for a label not here or asked the first time, then its latest."""
+    src = dk.add_source("uav/altitude")
+    assert dk.latest_now("uav/none") is None
+    assert dk.latest_many_now(("uav/none",)) is None
+    assert dk.latest_now("uav/altitude") is None  # the first ask: the loop's to answer
+    assert dk.latest_now("uav/altitude") == (BASE, None)  # watched since: none yet
+    src.push(120.0)
+    clock.advance(S)
+    src.push(121.0, valid_time=BASE - S)  # older in valid time: not the latest
+    read = dk.latest_now("uav/altitude")
+    assert read == (BASE + S, (120.0, BASE, BASE))
+    many = dk.latest_many_now(("uav/altitude",))
+    assert many is not None and read == (many[0], many[1][0])
+    assert dk.latest("uav/altitude").samples == [Sample(120.0, BASE, BASE)]
