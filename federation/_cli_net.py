@@ -943,7 +943,8 @@ async def watch_platform(
     shown too; a batch whose signature does not verify, seen before, or signed before the
     watch began on the platform's clock (`_WatchAnchor`) is shown as unreadable, counted.
     Runs until SIGINT or ``duration`` s; how many events were emitted. TransportError when
-    the platform does not answer within ``timeout`` s; `WatchLostError` when the transport
+    the platform does not answer within ``timeout`` s, or a renewal still cannot be sent
+    ``timeout`` s after its last answer; `WatchLostError` when the transport
     ends the watch's subscription or the audit's (MQTT: a filter the broker refuses after
     a reconnection, a connection lost and not made again), each logged at ERROR first: a
     watch that saw nothing more must not look like a quiet platform.
@@ -1065,6 +1066,7 @@ async def watch_platform(
         async def lease() -> None:
             deadline = time.monotonic() + timeout
             answered = unrenewed = False
+            renewed = 0.0  # when the platform last answered
             while True:
                 # the first signed answer ends the query: a queryable that never answers
                 # (anyone may declare one) would hold each renewal to its timeout
@@ -1077,6 +1079,15 @@ async def watch_platform(
                 except TransportError as exc:
                     if not answered or isinstance(exc, TransportClosed):
                         raise
+                    waited = time.monotonic() - renewed
+                    if waited > timeout:
+                        # not a reconnection (it ends, made again or not, within its
+                        # connect timeout): a broker that takes the renewal and never
+                        # acknowledges it, the platform's lease long run out
+                        raise TransportError(
+                            f"platform {me!r}: the watch was not renewed in {timeout:g} s "
+                            f"(the last time: {exc})"
+                        ) from exc
                     # a renewal while the transport reconnects (MQTT): the lease holds
                     # until the next one; a connection not made again ends the
                     # subscriptions, which says so. Said once until one is renewed
@@ -1106,6 +1117,7 @@ async def watch_platform(
                         # may still come; the query ends when every queryable answered
                 if ok:
                     unrenewed = False
+                    renewed = time.monotonic()
                     was_signed = anchor.signed
                     anchor.answered(signed_at, asked, time.monotonic())
                     anchored.set()

@@ -22,6 +22,7 @@ from agents import AgentPlatform
 from agents._exceptions import TransportError
 from agents.keys import gen_keys, trust_keys
 from agents.transports import MqttConfig, MqttTransport
+from agents.transports._mqtt import query_topic
 from federation import FederationPlatform, PlatformConfig
 from tests._node_example import Station
 from tests.test_mqtt_start_close import WAIT, Relay
@@ -597,3 +598,60 @@ async def test_an_owners_watch_whose_subscriptions_the_transport_ends_says_so_an
     assert len([line for line in lines if "the watch not renewed" in line]) <= 1, err
     # the node saw nothing of it: its owner's watch is no declaration of its
     assert "declarations lost" not in node_out, node_out
+
+
+async def test_an_owners_watch_whose_renewal_the_broker_takes_and_never_acknowledges_ends(
+    tmp_path: Path, relay: _Relay
+) -> None:
+    # a broker that takes the renewal's PUBLISH (QoS 1) and never acknowledges it, the
+    # connection up all along: each renewal failed ("Operation timed out"), said once,
+    # then asked again for ever, the platform's lease long run out: the watch ran on,
+    # blind, as a quiet platform looks
+    station = Station(tmp_path)
+    conf = station.dir / "station-python.toml"
+    fed = station.federation
+    watch_key = f"dyknow/{fed}/v1/watch/station"
+    loop = asyncio.get_running_loop()
+    _over_mqtt(conf, relay.listening, station.dir / "watch.toml")
+    watch_conf = station.dir / "watch.toml"
+    watch_conf.write_text(
+        watch_conf.read_text().replace(
+            "[transport]\n", "[transport]\nqos = 1\nconnect_timeout = 1.0\n", 1
+        )
+    )
+    _over_mqtt(conf, relay.port)
+    station.start("python")
+    watch = station.spawn("watch", "--config", "watch.toml")
+    try:
+        assert watch.stdout is not None
+        async with asyncio.timeout(3 * WAIT):
+            first = await loop.run_in_executor(None, watch.stdout.readline)
+        assert first.startswith("watching station"), first
+        relay.swallow = (query_topic(watch_key),)
+
+        def ended() -> tuple[str, str]:
+            # renewed every 3 s, the watch gives the platform 10 s (--timeout) as it
+            # does for the first answer
+            try:
+                return watch.communicate(timeout=10 + 3 * WAIT)
+            except subprocess.TimeoutExpired:
+                watch.kill()
+                out, err = watch.communicate()
+                return out, f"still running, killed\n{err}"
+
+        out, err = await loop.run_in_executor(None, ended)
+    finally:
+        if watch.poll() is None:
+            watch.kill()
+            watch.wait()
+        station.stop()
+    assert watch.returncode == 1, (out, err)
+    assert "Traceback" not in err, err
+    lines = err.splitlines()
+    assert len([line for line in lines if "the watch not renewed" in line]) == 1, err
+    assert lines[-1].startswith(
+        "dyknow: TransportError: platform 'station': the watch was not renewed in 10 s "
+        f"(the last time: mqtt: query {watch_key!r}: "
+    ), err
+    # its connection up all along: no reconnection, nothing the transport ended
+    assert "connection to the broker lost" not in err, err

@@ -387,6 +387,8 @@ class Relay:
     was held (connections and SUBSCRIBEs). ``forge``, when set, goes to the client once,
     right after the next SUBACK (a broker's packet the client never asked for).
     ``down`` closes the connections made from then on at once (a broker restarting).
+    A PUBLISH on a topic starting with one of ``swallow`` goes nowhere: never passed on,
+    never acknowledged (a broker that takes it and refuses it for good).
     """
 
     def __init__(self, host: str, port: int) -> None:
@@ -398,6 +400,7 @@ class Relay:
         self.held = 0
         self.forge = b""
         self.down = False
+        self.swallow: tuple[str, ...] = ()
         self.changed = asyncio.Event()
         self.writers: set[asyncio.StreamWriter] = set()
         self._tasks: set[asyncio.Task[Any]] = set()
@@ -433,6 +436,11 @@ class Relay:
             held: set[bytes] = set()  # packet ids of SUBSCRIBEs never answered
 
             def to_broker(packet: bytes) -> bytes:
+                if packet[0] & 0xF0 == 0x30 and self.swallow:  # PUBLISH
+                    _, at = _varint_end(packet, 1)
+                    n = int.from_bytes(packet[at : at + 2], "big")
+                    if packet[at + 2 : at + 2 + n].decode().startswith(self.swallow):
+                        return b""
                 if packet[0] == 0x82:  # SUBSCRIBE
                     _, at = _varint_end(packet, 1)
                     pid = packet[at : at + 2]
