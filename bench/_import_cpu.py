@@ -12,8 +12,9 @@ added to the instance, given to a subscriber per stream (a counter, as the bench
 Printed as one JSON object: thread CPU µs per batch (median of ``--runs`` runs of
 ``--rounds`` batches per stream each) and the batches imported. ``--ab TREE_A TREE_B
 [--pairs 5]`` runs it in a fresh process per run with ``PYTHONPATH`` set to each tree in
-turn, alternated, and prints each tree's median and B's over A's. Under callgrind run
-with ``--runs 1`` and compare the instruction counts of two trees.
+turn, alternated, and prints each tree's median and B's over A's. Under callgrind
+(``PYTHONHASHSEED=0``, ``--runs 1``) the instructions of the measured imports are a run's
+count less that of the same run with ``--seal-only`` (everything but those imports).
 """
 
 from __future__ import annotations
@@ -61,7 +62,7 @@ def _sessions(trust: TrustStore, keys: dict[str, KeyPair], senders: list[str]) -
     return rx, txs
 
 
-async def _run(rounds: int, runs: int) -> dict[str, float]:
+async def _run(rounds: int, runs: int, seal_only: bool = False) -> dict[str, float]:
     senders = [f"uav{i:02d}" for i in range(SENDERS)]
     keys = {n: KeyPair.generate(n) for n in [ME, *senders]}
     trust = TrustStore(FED, {n: k.public_key for n, k in keys.items()})
@@ -115,7 +116,11 @@ async def _run(rounds: int, runs: int) -> dict[str, float]:
     for _ in range(runs):
         raw = sealed(rounds)
         gc.collect()
+        if seal_only:  # what callgrind counts besides the import: subtracted from a full run
+            continue
         per.append(1e6 * await drain(raw) / len(raw))
+    if seal_only:
+        return {"us_per_batch": 0.0, "batches": 0.0}
     injected = sum(r.injected for r in proxy._imports.values())
     if injected != (3 + rounds * runs) * len(streams) or got[0] != (2 + rounds * runs) * len(
         streams
@@ -151,13 +156,14 @@ def main(argv: list[str]) -> None:
     p.add_argument("--runs", type=int, default=5)
     p.add_argument("--ab", nargs=2, metavar="TREE")
     p.add_argument("--pairs", type=int, default=5)
+    p.add_argument("--seal-only", action="store_true", help="all but the measured imports")
     a = p.parse_args(argv)
     if a.ab:
         med = ab(a.ab, a.pairs, ["--rounds", str(a.rounds), "--runs", str(a.runs)])
         ta, tb = a.ab
         print(f"A {ta}: {med[ta]:.2f} µs/batch; B {tb}: {med[tb]:.2f}; B/A {med[tb] / med[ta]:.3f}")
         return
-    print(json.dumps(asyncio.run(_run(a.rounds, a.runs))))
+    print(json.dumps(asyncio.run(_run(a.rounds, a.runs, a.seal_only))))
 
 
 if __name__ == "__main__":
