@@ -70,7 +70,7 @@ STAGES = {
         ("_security.py", "open_bytes"),
         ("_security.py", "_accept_bytes"),
         ("_batch.py", "unpack_batch"),
-        ("_import.py", "_inject"),
+        ("_import.py", "_add"),
         ("_process.py", "push_batch"),
         ("_stream.py", "publish_batch"),
         ("_filter.py", "__call__"),
@@ -171,7 +171,7 @@ def _stages(rows: list[list[Any]], n: int, keys: dict[str, KeyPair], trust: Trus
     _per_sample("unpack_batch (msgpack)", unpack_all, n)
     unpacked = [unpack_batch(b)[2] for b in bodies]
 
-    def inject_loop() -> None:  # the per-sample loop of ImportProxy._inject, as it is
+    def inject_loop() -> None:  # the per-sample loop of ImportProxy._add, as it is
         ta = 1
         for samples in unpacked:
             out: list[Any] = []
@@ -181,7 +181,7 @@ def _stages(rows: list[list[Any]], n: int, keys: dict[str, KeyPair], trust: Trus
                     append((s[0], s[1], ta))
                     ta += 1
 
-    _per_sample("ImportProxy._inject's per-sample check and rebuild", inject_loop, n)
+    _per_sample("ImportProxy._add's per-sample check and rebuild", inject_loop, n)
     unpacked.clear()
     asyncio.run(_whole_handle(bodies, table_pair, n))
     print("  alternative batch layout, columns {x: [values], t: [valid times]} (not in the stack)")

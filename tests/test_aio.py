@@ -484,3 +484,17 @@ async def test_together_in_a_task_being_cancelled_raises_the_cancellation_not_a_
     assert caught == []
     assert task.cancelled()
     assert cleaned == ["waits"]
+
+
+async def test_an_inbox_take_hands_out_up_to_its_limit_in_order_converted() -> None:
+    """`take` gives what is queued now, oldest first, at most ``limit`` (converted as `get`
+    would), leaves the rest for the next get, and never waits."""
+    inbox: Inbox[str] = Inbox(asyncio.get_running_loop(), convert=lambda i: f"#{i}")
+    assert inbox.take(5) == []  # nothing queued: nothing, at once
+    for i in range(5):
+        inbox.put(i)  # type: ignore[arg-type]  # the raw item; `convert` makes the str
+    assert inbox.take(3) == ["#0", "#1", "#2"]
+    assert inbox.take(0) == [] and len(inbox) == 2
+    assert await inbox.get() == "#3"
+    assert inbox.take(10) == ["#4"]
+    assert inbox.received == 5 and inbox.dropped == 0

@@ -561,16 +561,16 @@ async def test_a_payload_whose_handling_raises_is_logged_without_its_samples(
         ExportProxy("a", "f", ta, ia, PlainSessions("a"), batch_size=1) as exporter,
         ImportProxy("b", "f", tb, ib, PlainSessions("b"), lambda s, lab: f"in/{lab}") as importer,
     ):
-        real = importer._inject
+        real = importer._add
         broke: list[int] = []
 
-        def inject(rec: Any, seq: int | None, samples: list[Any]) -> None:
+        def add(rec: Any, samples: list[Any]) -> None:
             if secret in repr(samples):
                 broke.append(len(samples))
                 raise ValueError(f"cannot inject {samples!r}")  # a fault quoting them
-            real(rec, seq, samples)
+            real(rec, samples)
 
-        importer._inject = inject  # type: ignore[method-assign]
+        importer._add = add  # type: ignore[method-assign]
         src = ia.add_source("x")
         exporter.start_exporting("x", "x", "b")
         with caplog.at_level("DEBUG", logger="federation"):

@@ -516,6 +516,41 @@ async def test_expect_agrees_an_import_the_translation_does_not_know() -> None:
         assert [s.value for s in b.between("mine/car5", 0, 10).samples] == [3]
 
 
+async def test_an_import_works_through_a_backlog_in_order_letting_other_tasks_run() -> None:
+    """300 batches queued at once are all imported, in order, none counted lost, while the
+    loop's other tasks still get their turns every 64 batches (not only at the end)."""
+    async with network() as net:
+        ta, _ = await net.platform("uav-a")
+        _, b = await net.platform("uav-b")
+        importer = await net.importer("uav-b")
+        sealer = PlainSessions("uav-a")
+        key = stream_key("uav-b", "uav-a")
+        seen: list[int] = []  # how many batches the import had taken at each other turn
+
+        async def other_task() -> None:
+            while True:
+                rec = importer.get("uav-a", SEM)
+                seen.append(0 if rec is None else rec.batches)
+                await asyncio.sleep(0)
+
+        watcher = asyncio.create_task(other_task())
+        try:
+            await asyncio.sleep(0)
+            for i in range(300):  # queued in the import's inbox without a turn in between
+                body = pack_batch(SEM, [(i, i + 1, 0)], i)
+                ta.publish_nowait(key, sealer.seal_bytes("uav-b", body))
+            rec = await until(lambda: importer.get("uav-a", SEM), "the import")
+            await until(lambda: rec.injected == 300, "all the batches")
+        finally:
+            watcher.cancel()
+            await asyncio.wait([watcher])
+        got = b.between(imported("uav-a", SEM), 0, 10**6).samples
+        assert [s.value for s in got] == list(range(300))
+        assert (rec.batches, rec.lost, rec.gaps) == (300, 0, 0)
+        between = sorted({n for n in seen if 0 < n < 300})
+        assert between[:4] == [64, 128, 192, 256]
+
+
 # -- membership ---------------------------------------------------------------------------------
 
 

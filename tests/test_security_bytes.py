@@ -309,6 +309,39 @@ def test_expired_timestamp_and_session(clock: Clock) -> None:
         a.table.seal_bytes("uav-b", BODY)
 
 
+def test_a_new_counter_on_a_session_that_is_over_or_stamped_ahead_is_refused(
+    clock: Clock,
+) -> None:
+    """A binary envelope's counter being the newest yet admits nothing by itself: one stamped
+    beyond the skew ahead of this clock, one on a renewed session past its grace, and one on
+    a session past its lifetime are refused (Expired), each leaving the window as it was."""
+    policy = MacPolicy(skew=7, renew_after_seconds=100, grace=10)
+    a, b = make_platform("uav-a", clock, policy), make_platform("uav-b", clock, policy)
+    sa1, _ = connect(a, b)
+    clock.t += 8
+    ahead = a.table.seal_bytes("uav-b", BODY)
+    clock.t -= 8
+    with pytest.raises(Expired, match="from this clock"):
+        b.table.open_bytes(ahead)
+    assert b.table.open_bytes(a.table.seal_bytes("uav-b", BODY)) == ("uav-a", BODY)
+    clock.t += 1  # a later session: sessions agreed in the same ms are ordered by sid
+    sa2, _ = connect(a, b)
+    late = sa1.seal_bytes(BODY)
+    assert b.table.open_bytes(sa2.seal_bytes(BODY)) == ("uav-a", BODY)  # b retires sa1
+    clock.t += 5
+    assert b.table.open_bytes(late) == ("uav-a", BODY)  # in flight, within the grace
+    clock.t += 5.5
+    with pytest.raises(Expired, match="grace period is over"):
+        b.table.open_bytes(sa1.seal_bytes(BODY))  # stamped now, its counter the newest
+    clock.t += 94.5  # 105 s after sa2 was agreed: its renewal is due, it still seals
+    old = sa2.seal_bytes(BODY)
+    clock.t += 6
+    with pytest.raises(Expired, match="past its lifetime"):
+        b.table.open_bytes(old)
+    clock.t -= 6
+    assert b.table.open_bytes(sa2.seal_bytes(BODY)) == ("uav-a", BODY)
+
+
 def test_require_encryption_refuses_plain_binary(clock: Clock) -> None:
     a = make_platform("uav-a", clock)
     b = make_platform("uav-b", clock, MacPolicy(require_encryption=True))

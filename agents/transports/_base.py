@@ -176,6 +176,18 @@ class Inbox(Generic[T]):
             self._wake_pending = True
         self._wake_threadsafe()
 
+    def take(self, limit: int) -> list[T]:
+        """Up to ``limit`` of the items queued now, oldest first, without waiting.
+
+        For a consumer that handles what arrived in one go: one lock, not one per item.
+        """
+        with self._lock:
+            items = self._items
+            popleft = items.popleft
+            got = [popleft() for _ in range(min(limit, len(items)))]
+        convert = self._convert
+        return got if convert is None else [convert(i) for i in got]
+
     def drain(self) -> list[T]:
         """Everything queued now, without waiting."""
         with self._lock:
