@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
+import types
 import uuid
 from collections.abc import AsyncIterator
 from typing import Any
@@ -433,3 +435,36 @@ async def test_what_the_flush_cannot_send_goes_on_in_the_next_turns_not_at_the_i
         await within_turns(lambda: exports[0].ended, "the export ended")
         assert (exports[0].ended or "").startswith("the transport closed:")
         assert exports[0].sent == 13 and exports[0].dropped_total == 0
+
+
+def keeps(owner: object, target: object, beside: tuple[object, ...]) -> bool:
+    """Whether ``target`` is reachable from ``owner`` other than through ``beside`` (or code)."""
+    stop = (types.ModuleType, type, types.FunctionType, asyncio.AbstractEventLoop)
+    seen = {id(owner), *map(id, beside)}
+    todo = [owner]
+    while todo:
+        for ref in gc.get_referents(todo.pop()):
+            if ref is target:
+                return True
+            if id(ref) not in seen and not isinstance(ref, stop):
+                seen.add(id(ref))
+                todo.append(ref)
+    return False
+
+
+async def test_an_export_ended_by_what_its_flush_met_does_not_keep_its_last_batch() -> None:
+    # ended exports stay listed in `proxy.ended` (256 of them): what ended one must not
+    # hold on to its last batch (the flush's frames and the samples in them)
+    async with flow(1) as (net, sources, fed):
+        proxy = exporter(net, fed, lease=None)
+        export = proxy.start_exporting("l/0", "s/0", "uav-b")
+        sources[0].push("first")
+        await until(lambda: export.sent == 1, "the first sample sent")
+        await net.transports["uav-a"].aclose()
+        last = "the last sample, " + uuid.uuid4().hex
+        sources[0].push(last)  # the flush meets the closed transport
+        await until(lambda: export.ended, "the export to end")
+        assert list(proxy.ended) == [export]
+        # its local stream (whose cache holds the sample), its proxy and the test aside
+        beside = (export.subscription, export._proxy, export.task, net.instances["uav-a"])
+        assert not keeps(export, last, (*beside, asyncio.current_task()))
