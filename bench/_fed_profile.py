@@ -60,6 +60,7 @@ STAGES = {
         ("_export.py", "_seal"),
         ("_security.py", "seal_bytes"),
         ("_zenoh.py", "publish"),
+        ("_zenoh.py", "publish_nowait"),
         ("~", "'put' of"),
     ],
     "receiver": [

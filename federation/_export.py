@@ -249,7 +249,9 @@ class Export:
         try:
             while True:
                 if self._crashed is not None:
-                    raise self._crashed
+                    # let go of it: its traceback holds the flush's frames and last batch
+                    crashed, self._crashed = self._crashed, None
+                    raise crashed
                 if self._unsent is not None:
                     (packed, first, error), self._unsent = self._unsent, None
                     await self._send_packed(packed, first, error)

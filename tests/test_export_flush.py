@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
+import types
 import uuid
 from collections.abc import AsyncIterator
 from typing import Any
@@ -387,3 +389,82 @@ async def test_over_a_transport_whose_put_waits_each_export_sends_from_its_task(
             for i in range(3):
                 check_stream(seen[key(fed, "uav-b", f"s/{i}")], pushed, 4)
             assert Waiting.puts == sum(e.batches for e in exports)
+
+
+async def within_turns(predicate: Any, what: str, turns: int = 30) -> None:
+    """``predicate`` true within ``turns`` turns of the loop (no clock: a stall cannot hide)."""
+    for _ in range(turns):
+        if predicate():
+            return
+        await asyncio.sleep(0)
+    assert predicate(), f"{what}: not within {turns} turns of the loop"
+
+
+async def test_what_the_flush_cannot_send_goes_on_in_the_next_turns_not_at_the_idle_check(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # the tasks' idle check pushed out of reach: whatever the flush leaves (a burst's
+    # tail, a session to agree, a closed transport, a lease ended) must be taken up at
+    # once, as the woken task took it up, not when the export next looks by itself
+    monkeypatch.setattr(_export, "_IDLE_CHECK", 3600.0)
+    async with flow(2) as (net, sources, fed):
+        sessions = Renewing("uav-a", UnknownSession)
+        proxy = exporter(net, fed, sessions, batch_size=4, lease=3600.0)
+        exports = [proxy.start_exporting(f"l/{i}", f"s/{i}", "uav-b") for i in range(2)]
+        sources[0].push(0)
+        sources[1].push(0)
+        await within_turns(lambda: all(e.sent == 1 for e in exports), "the first samples")
+        # a burst of 11 over batches of 4: the rest goes on next turn, and the next
+        for v in range(1, 12):
+            sources[0].push(v)
+        await within_turns(lambda: exports[0].sent == 12, "a burst's tail")
+        # a lapsed session: the task agrees one at once, and sends once agreed
+        sessions.valid = False
+        sources[0].push(12)
+        await within_turns(lambda: sessions.asked == 1, "a session asked for")
+        sessions.agreed.set()
+        await within_turns(lambda: exports[0].sent == 13, "the batch once agreed")
+        # a receiver silent for longer than the lease: the export ends at its next sample
+        exports[1].last_heard -= 7200.0
+        sources[1].push(1)
+        await within_turns(lambda: exports[1].ended, "the lease ended")
+        assert exports[1].sent == 1 and exports[1].dropped == {DropReason.LEASE_EXPIRED: 1}
+        # a closed transport ends the export at its next sample
+        await net.transports["uav-a"].aclose()
+        sources[0].push(13)
+        await within_turns(lambda: exports[0].ended, "the export ended")
+        assert (exports[0].ended or "").startswith("the transport closed:")
+        assert exports[0].sent == 13 and exports[0].dropped_total == 0
+
+
+def keeps(owner: object, target: object, beside: tuple[object, ...]) -> bool:
+    """Whether ``target`` is reachable from ``owner`` other than through ``beside`` (or code)."""
+    stop = (types.ModuleType, type, types.FunctionType, asyncio.AbstractEventLoop)
+    seen = {id(owner), *map(id, beside)}
+    todo = [owner]
+    while todo:
+        for ref in gc.get_referents(todo.pop()):
+            if ref is target:
+                return True
+            if id(ref) not in seen and not isinstance(ref, stop):
+                seen.add(id(ref))
+                todo.append(ref)
+    return False
+
+
+async def test_an_export_ended_by_what_its_flush_met_does_not_keep_its_last_batch() -> None:
+    # ended exports stay listed in `proxy.ended` (256 of them): what ended one must not
+    # hold on to its last batch (the flush's frames and the samples in them)
+    async with flow(1) as (net, sources, fed):
+        proxy = exporter(net, fed, lease=None)
+        export = proxy.start_exporting("l/0", "s/0", "uav-b")
+        sources[0].push("first")
+        await until(lambda: export.sent == 1, "the first sample sent")
+        await net.transports["uav-a"].aclose()
+        last = "the last sample, " + uuid.uuid4().hex
+        sources[0].push(last)  # the flush meets the closed transport
+        await until(lambda: export.ended, "the export to end")
+        assert list(proxy.ended) == [export]
+        # its local stream (whose cache holds the sample), its proxy and the test aside
+        beside = (export.subscription, export._proxy, export.task, net.instances["uav-a"])
+        assert not keeps(export, last, (*beside, asyncio.current_task()))
