@@ -625,20 +625,31 @@ async def _gateway_refusals(lane: bool) -> list[Any]:
                     p.fed_op, "gateway@uav-a", {"action": "query", "label": label}, ontology=GATEWAY
                 )
             told.append(str(refused.value.message.content))
+        await p.gateway.set_visibility("private", "closed for the test")
+        for _ in range(2):  # a label any other platform could read before
+            with pytest.raises(Refused) as refused:
+                await request(p.fed_op, "gateway@uav-a", good, ontology=GATEWAY)
+            told.append(str(refused.value.message.content))
 
-        def gateway_records() -> list[tuple[Any, Any]]:
+        def refusals() -> list[tuple[Any, Any, Any, Any]]:
+            # the agent's refusals are summed up a record a second (their count below)
             return [
-                (r.get("code"), r.get("from"))
+                (r.get("stage"), r.get("code"), r.get("from"), r.get("reason"))
                 for r in p.ia_a.audit.records
-                if r.get("stage") == "gateway"
+                if r.get("verdict") == "refused" and r.get("stage") != "agent-refuse"
             ]
 
-        await _until(lambda: len(gateway_records()) >= 3)
+        await _until(lambda: len(refusals()) >= 5)
         stats = p.gateway.gateway_stats
         return [
             told,
-            (stats.reserved_refused, stats.bad_label_refused),
-            gateway_records(),
+            (
+                stats.reserved_refused,
+                stats.bad_label_refused,
+                p.provider.stats.denied,
+                p.provider.stats.agent_refused,
+            ),
+            refusals(),
             p.ia_a.answered_on_thread - answered,
         ]
 
@@ -649,5 +660,7 @@ async def test_a_gateway_read_the_gateway_refuses_is_refused_the_same_on_the_lan
     answered on zenoh's thread."""
     lane = await _gateway_refusals(True)
     assert lane == await _gateway_refusals(False)
-    assert lane[1][0] == 3 and lane[3] == 0
-    assert lane[2].count(("reserved-label", "operator")) == 3
+    assert lane[1] == (3, 0, 2, 6) and lane[3] == 0
+    assert [r[:3] for r in lane[2]] == [("gateway", "reserved-label", "operator")] * 3 + [
+        (None, None, "operator")  # the private gateway's, by the directory's check
+    ] * 2
