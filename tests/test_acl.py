@@ -861,12 +861,29 @@ def test_a_reply_written_at_once_is_the_reply_made_and_written() -> None:
             content=None,
             language="json",
         ),
+        # every field set (odd but valid values): each written in its place, or left out
+        ACLMessage.build(
+            performative=P.REQUEST,
+            sender="asker@uav-a",
+            receivers=["gateway@uav-b"],
+            reply_to=["other@uav-c"],
+            content={"k": "\u00e9"},
+            language="json",
+            encoding="utf-8",
+            ontology="dyknow-\u2028\u00e9",
+            protocol="fipa-query",
+            conversation_id="\U0001f600",
+            reply_with="",
+            in_reply_to="r-0",
+            reply_by=1.5e9,
+        ),
     ]
     contents: list[Any] = [
         {"label": "x", "samples": [[1.5, 2.0, 3.0]]},
         None,
         ["a", 1, None, {"deep": [True]}],
         "text",
+        [math.nan, math.inf, -0.0, 2**63 - 1, "\u2028\U0001f600"],
     ]
     for ask in asks:
         for content in contents:

@@ -601,3 +601,66 @@ async def test_with_two_lanes_in_one_process_envelopes_open_on_the_loop() -> Non
         assert p.fed_a.stats.answered_at_once >= 6  # the loop's own quick answer
         assert opened_on_thread == []  # each opened by the loop (`SessionTable.open`)
     assert _LANES.open == before
+
+
+async def _gateway_refusals(lane: bool) -> list[Any]:
+    """What operator's plain gateway queries the gateway refuses come to: the reasons
+    told, the counts, the audit records, and how many the lane answered."""
+    async with pair(lane=lane) as p:
+        p.dk.add_source("import/uav-b/altitude").push(1.0)  # reserved: readable here only
+        good = {"action": "query", "label": "a/state/altitude"}
+        # the first read of the stream warms it: the lane's from then on (asked until the
+        # lane answered one, so that the lane is shown to be on)
+        for _ in range(20):
+            await request(p.fed_op, "gateway@uav-a", good, ontology=GATEWAY)
+            if not lane or p.ia_a.answered_on_thread or p.ia_a._lane_done:
+                break
+        if lane:  # and every answer of the lane booked (counted) before the count is read
+            await _until(lambda: p.ia_a.answered_on_thread >= 1 and not p.ia_a._lane_done)
+        answered = p.ia_a.answered_on_thread
+        told: list[str] = []
+        for label in ("import/uav-b/altitude", "a/none") * 3:
+            with pytest.raises(Refused) as refused:
+                await request(
+                    p.fed_op, "gateway@uav-a", {"action": "query", "label": label}, ontology=GATEWAY
+                )
+            told.append(str(refused.value.message.content))
+        await p.gateway.set_visibility("private", "closed for the test")
+        for _ in range(2):  # a label any other platform could read before
+            with pytest.raises(Refused) as refused:
+                await request(p.fed_op, "gateway@uav-a", good, ontology=GATEWAY)
+            told.append(str(refused.value.message.content))
+
+        def refusals() -> list[tuple[Any, Any, Any, Any]]:
+            # the agent's refusals are summed up a record a second (their count below)
+            return [
+                (r.get("stage"), r.get("code"), r.get("from"), r.get("reason"))
+                for r in p.ia_a.audit.records
+                if r.get("verdict") == "refused" and r.get("stage") != "agent-refuse"
+            ]
+
+        await _until(lambda: len(refusals()) >= 5)
+        stats = p.gateway.gateway_stats
+        return [
+            told,
+            (
+                stats.reserved_refused,
+                stats.bad_label_refused,
+                p.provider.stats.denied,
+                p.provider.stats.agent_refused,
+            ),
+            refusals(),
+            p.ia_a.answered_on_thread - answered,
+        ]
+
+
+async def test_a_gateway_read_the_gateway_refuses_is_refused_the_same_on_the_lane() -> None:
+    """A reserved label (here, readable by this platform's agents) and a label not here,
+    asked by another platform: refused, counted and audited as the loop does, none of them
+    answered on zenoh's thread."""
+    lane = await _gateway_refusals(True)
+    assert lane == await _gateway_refusals(False)
+    assert lane[1] == (3, 0, 2, 6) and lane[3] == 0
+    assert [r[:3] for r in lane[2]] == [("gateway", "reserved-label", "operator")] * 3 + [
+        (None, None, "operator")  # the private gateway's, by the directory's check
+    ] * 2

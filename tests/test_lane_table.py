@@ -30,8 +30,8 @@ from test_security_bytes import (
     make_platform,
 )
 
-from agents._exceptions import AuthenticationError, UnknownSession
-from agents._security import KeyPair, SecurityPolicy, Session, SessionTable
+from agents._exceptions import AuthenticationError, Expired, UnknownSession
+from agents._security import Handshake, KeyPair, SecurityPolicy, Session, SessionTable
 
 EncPolicy = SecurityPolicy  # encrypted, encryption required: the default
 
@@ -237,3 +237,23 @@ def test_seal_binary_seals_on_the_session_the_full_path_chooses() -> None:
     # on the session `session_for` would choose, or refused where it chooses none
     kept, stale = map(sum, zip(*(_random_run(seed) for seed in range(16)), strict=True))
     assert kept > 50 and stale > 5  # both ways through `seal_binary` were taken
+
+
+def test_a_chosen_session_of_another_clock_seals_at_its_own_reading() -> None:
+    """A session whose clock is not its table's (its handshake's own) is sealed at its own
+    clock's reading, also when chosen before: its time stamp, and its lifetime told by it."""
+    clock, ahead = Clock(), Clock()
+    policy = EncPolicy(renew_after_seconds=100, grace=10)
+    trust = make_platform("uav-a", clock, policy).table.trust
+    a = Platform(
+        Handshake(KEYS["uav-a"], trust, policy=policy, clock=ahead),
+        SessionTable("uav-a", trust, policy=policy, clock=clock),
+    )
+    connect(a, make_platform("uav-b", ahead, policy))
+    a.table.seal_binary("uav-b", ACL)
+    assert a.table._tx.get("uav-b") is not None  # chosen: the next seal takes the shortcut
+    ahead.t += 5
+    assert msgpack.unpackb(a.table.seal_binary("uav-b", ACL))[4] == int(ahead.t * 1000)
+    ahead.t += 105.001  # past its lifetime by its clock, not by the table's
+    with pytest.raises(Expired):
+        a.table.seal_binary("uav-b", ACL)
