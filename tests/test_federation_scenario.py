@@ -1705,11 +1705,11 @@ async def test_a_members_refusal_of_a_followed_stream_is_logged_as_one_capped_li
     """uav-a, turned hostile, refuses the stream uav-b's console follows with 10 kB that
     forge a log line and clear the operator's terminal: the follower logs it on one line,
     the newline and the escape escaped, cut to `QUOTE_MAX` characters with how long it was;
-    the stream is refused (its whole reason kept for the page)."""
+    the stream is refused, its reason kept for the page as bounded as the log line."""
     from agents import Refuse
     from federation import _follow
     from federation._follow import FollowedStream
-    from federation._quote import QUOTE_MAX
+    from federation._quote import QUOTE_MAX, quoted
 
     forged = "stopped\nCRITICAL federation: all keys leaked \x1b[2J"
     why = forged + "x" * 10_000
@@ -1732,7 +1732,8 @@ async def test_a_members_refusal_of_a_followed_stream_is_logged_as_one_capped_li
                 asking.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await asking
-        assert stream.state == "refused" and stream.error is not None and why in stream.error
+        assert stream.state == "refused" and stream.error == quoted(f"refused: {why}")
+        assert "\n" not in stream.error and "\x1b" not in stream.error
         said = [
             r.getMessage() for r in caplog.records if " refused car5-state to " in r.getMessage()
         ]
