@@ -953,7 +953,10 @@ async def test_a_platform_start_cancelled_at_any_step_ends_and_leaves_nothing_un
                 assert done, f"a start cancelled after {step} loop turns never ended"
                 assert starting.cancelled()
                 assert asyncio.all_tasks() == {asyncio.current_task()}
-            gc.collect()  # a coroutine never awaited says so when collected
+        # a coroutine never awaited says so when collected: once, after every step (a
+        # full collection per step, in a worker that ran many tests, took most of a
+        # minute on a loaded machine)
+        gc.collect()
     unawaited = [str(w.message) for w in caught if "never awaited" in str(w.message)]
     assert unawaited == []
 
