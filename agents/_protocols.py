@@ -110,7 +110,8 @@ def _opening(
         "reply_with": new_id("r"),
         "reply_by": time.time() + timeout,
     }
-    if type(agent).message is _AGENT_MESSAGE:
+    # an agent's own `message` (its class's, or one set on it) makes it, as it always did
+    if type(agent).message is _AGENT_MESSAGE and "message" not in agent.__dict__:
         # `agent.message`, inline: passed as keywords, each of these fields (none a
         # parameter of it) is compared with each of its parameters first (~2.5 k Ir)
         return compose(performative, agent.aid, receivers, content, fields)
@@ -143,7 +144,8 @@ async def _ask(
         timeout=timeout,
         conversation_id=conversation_id,
     )
-    if type(agent).message is not _AGENT_MESSAGE:  # what an agent's own `message` made
+    if type(agent).message is not _AGENT_MESSAGE or "message" in agent.__dict__:
+        # what an agent's own `message` made (`_opening`)
         conversation_id = message.conversation_id
     conv = agent.conversation(conversation_id, peers=(receiver,), timeout=timeout)
     try:  # `with conv`, without its two calls: closed however this ends

@@ -180,6 +180,46 @@ async def test_a_request_starts_when_awaited_and_a_dropped_one_sends_nothing() -
         assert not a._by_conv and not a._by_reply  # closed once answered
 
 
+class Tagging(Agent):
+    """An agent whose own `message` files its messages under a conversation of its naming."""
+
+    def __init__(self, name: str) -> None:
+        super().__init__(name)
+        self.made: list[ACLMessage] = []
+
+    def message(
+        self, performative: Any, receivers: Any, content: Any = None, **fields: Any
+    ) -> ACLMessage:
+        fields["conversation_id"] = f"tag-{fields['conversation_id']}"
+        made = super().message(performative, receivers, content, **fields)
+        self.made.append(made)
+        return made
+
+
+async def test_a_request_is_made_by_the_agents_own_message_its_class_or_its_own() -> None:
+    """An agent's `message`, overridden in its class or set on the agent itself, makes the
+    request, and the answer is matched in the conversation that message names."""
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        await p.add(Thermometer("thermo"))
+        tagging = await p.add(Tagging("tagging"))
+        assert await request(tagging, "thermo@p", "temperature", ontology="weather") == {
+            "celsius": 21.5
+        }
+        assert [m.conversation_id[:6] for m in tagging.made] == ["tag-c-"]
+        plain = await p.add(Agent("plain"))
+        made: list[ACLMessage] = []
+        message = plain.message
+
+        def own(*args: Any, **fields: Any) -> ACLMessage:
+            made.append(message(*args, **fields))
+            return made[-1]
+
+        plain.message = own  # type: ignore[method-assign]
+        answer = request(plain, "thermo@p", "temperature", ontology="weather", conversation_id="q1")
+        assert await answer == {"celsius": 21.5}
+        assert [m.conversation_id for m in made] == ["q1"]
+
+
 @pytest.mark.parametrize(
     ("what", "error", "says"),
     [
