@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import json
 import logging
 from collections import Counter
 from multiprocessing.connection import Connection
@@ -18,6 +19,7 @@ from typing import Any
 
 import pytest
 import test_member_authz as authz
+import zenoh
 from test_faults import until
 from test_member_authz import WAIT, audited, in_file, mallory, world
 
@@ -187,3 +189,65 @@ async def test_a_member_streaming_after_its_leave_is_counted_and_audited(tmp_pat
         assert len(recs) <= 2 * 30, len(recs)  # one per report interval at most
         assert recs[-1]["stream"] == "car1-state"
         assert "left" in recs[-1]["reason"]
+
+
+def _plain_client(tmp: Path, name: str) -> zenoh.Session:
+    """A plain zenoh client of ``name``'s listener (from its config): no key, no trust file."""
+    listen = json.loads((tmp / f"{name}.json").read_text())["transport"]["listen"]
+    cfg = zenoh.Config()
+    cfg.insert_json5("mode", '"client"')
+    cfg.insert_json5("connect/endpoints", json.dumps(listen))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(cfg)
+
+
+async def test_a_batch_put_again_by_a_plain_client_is_refused_as_replayed_newest_or_not(
+    tmp_path: Path,
+) -> None:
+    """A member's sealed batch captured and put again by a plain zenoh client: while its
+    counter is still the newest uav-b has seen, and after a later one (inside the window).
+    Each copy is refused as replayed, counted and audited; only the originals open (their
+    stream unagreed here, so each is dropped as that, authentic)."""
+    async with asyncio.timeout(150), world(tmp_path, ["uav-b"]) as w:
+        m = w.here["uav-m"]
+        sessions = InterfaceSessions(m.interface)
+        await sessions.ensure("uav-b")
+        key = wire_key(w.federation, "stream", "uav-b") + "/uav-m/car1-state"
+        body = pack_batch("car1-state", [({"r": 1}, 1, 0)], 0)
+        # nothing else is sealed to uav-b in binary: no export of uav-m's runs to it
+        first, later = sessions.seal_bytes("uav-b", body), sessions.seal_bytes("uav-b", body)
+
+        def samples(s: dict[str, Any], reason: str) -> int:
+            return int(s["imports"]["totals"]["dropped_samples"].get(reason, 0))
+
+        def batches(s: dict[str, Any], reason: str) -> int:
+            return int(s["imports"]["totals"]["dropped_batches"].get(reason, 0))
+
+        def told(s: dict[str, Any]) -> int:
+            recs = audited(s, stage="import", code="replayed", **{"from": "uav-m"})
+            return sum(r["count"] for r in recs)
+
+        raw = _plain_client(tmp_path, "uav-b")
+        try:
+            put = raw.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+            put.put(first)
+            await w.until_stats("uav-b", lambda s: samples(s, "unagreed") == 1, "the original")
+            put.put(first)  # its counter the newest yet
+            s = await w.until_stats(
+                "uav-b", lambda s: batches(s, "replayed") + samples(s, "unagreed") >= 2, "a copy"
+            )
+            assert (batches(s, "replayed"), samples(s, "unagreed")) == (1, 1)
+            for payload in (later, first):  # a later original, then the copy again: older
+                put.put(payload)
+            s = await w.until_stats(
+                "uav-b",
+                lambda s: batches(s, "replayed") + samples(s, "unagreed") >= 4 and told(s) >= 2,
+                "the later one, the copy, and their audit",
+            )
+        finally:
+            raw.close()
+        assert (batches(s, "replayed"), samples(s, "unagreed")) == (2, 2)
+        assert s["imports"]["totals"]["injected"] == 0
+        recs = audited(s, verdict="dropped", stage="import", code="replayed")
+        assert sum(r["count"] for r in recs) == 2 and {r["from"] for r in recs} == {"uav-m"}
+        await until(lambda: in_file(tmp_path, "uav-b", recs[-1]), "the record in the audit file")
