@@ -131,8 +131,6 @@ async def _ask(
     on_agree: Callable[[ACLMessage], None] | None = None,
     conversation_id: str | None = None,
 ) -> JsonValue:
-    if conversation_id is None:
-        conversation_id = new_id("c")
     message = _opening(
         agent,
         performative,
@@ -144,10 +142,11 @@ async def _ask(
         timeout=timeout,
         conversation_id=conversation_id,
     )
-    if type(agent).message is not _AGENT_MESSAGE or "message" in agent.__dict__:
-        # what an agent's own `message` made (`_opening`)
-        conversation_id = message.conversation_id
-    conv = agent.conversation(conversation_id, peers=(receiver,), timeout=timeout)
+    # the id the message holds (an agent's own `message` may choose it), read without
+    # pydantic's attribute hook: a message holds every field
+    conv = agent.conversation(
+        message.__dict__["conversation_id"], peers=(receiver,), timeout=timeout
+    )
     try:  # `with conv`, without its two calls: closed however this ends
         await conv.send(message)
         reply = await conv.receive()
