@@ -266,6 +266,10 @@ class Export:
                         return
                     if lease is not None:
                         await self._keepalive(idle)
+                        # what came while it waited (a session, a backoff) woke nobody:
+                        # the task was not waiting then, so it goes out now, not at `idle`
+                        if q or self._recover:
+                            continue
                     await self._wait(idle)
                     continue
                 n = min(len(q), batch_size)
