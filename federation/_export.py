@@ -833,7 +833,7 @@ class ExportProxy(ProxyBase):
         broker that refused it after a reconnection, then takes it again): after
         `_BACKOFF_MIN` s, doubling to `_BACKOFF_MAX` s while it keeps failing, each
         failure counted in ``reports_subscription_failures`` and logged (a warning at the
-        first of a run and when the reports are heard again). A closed transport ends it.
+        first of a run and when it is made again). A closed transport ends it.
         """
         key = wire_key(self.federation, "stream-report", self.platform) + "/*"
         delay = 0.0
@@ -851,8 +851,8 @@ class ExportProxy(ProxyBase):
                 continue
             if failed:
                 log.warning(
-                    "export[%s]: receivers' loss reports heard again: subscribed to %s "
-                    "after %d failure(s)",
+                    "export[%s]: subscribed to receivers' loss reports again (%s) after "
+                    "%d failure(s)",
                     self.platform,
                     key,
                     failed,

@@ -1038,8 +1038,8 @@ async def test_loss_reports_whose_subscription_failed_once_are_heard_again(
             ),
             (
                 logging.WARNING,
-                "export[uav-a]: receivers' loss reports heard again: subscribed to "
-                f"{key} after 1 failure(s)",
+                f"export[uav-a]: subscribed to receivers' loss reports again ({key}) after "
+                "1 failure(s)",
             ),
         ]
         # a closed transport ends it: no subscribing again, no failure
