@@ -45,7 +45,7 @@ from agents import (
     check_name,
     wire_key,
 )
-from agents.transports import Transport
+from agents.transports import Message, Subscription, Transport
 from dyknow_core import DyKnowInstance, Policy, RawSample
 from dyknow_core import Subscription as StreamSubscription
 
@@ -266,6 +266,10 @@ class Export:
                         return
                     if lease is not None:
                         await self._keepalive(idle)
+                        # what came while it waited (a session, a backoff) woke nobody:
+                        # the task was not waiting then, so it goes out now, not at `idle`
+                        if q or self._recover:
+                            continue
                     await self._wait(idle)
                     continue
                 n = min(len(q), batch_size)
@@ -695,6 +699,8 @@ class ExportProxy(ProxyBase):
         self._reports: asyncio.Task[None] | None = None  # started with the first export
         # loss reports that did not open or parse (audited: `_refuse_report`)
         self.reports_refused = 0
+        # the loss reports' subscription failed to be made, or the transport ended it
+        self.reports_subscription_failures = 0
         self._resend_buckets: dict[str, TokenBucket] = {}  # per receiver (authenticated)
         self._resend_turns: dict[str, asyncio.Lock] = {}  # per receiver: its blocking puts
         # exports whose idle task got samples this turn, and the one flush that sends them
@@ -822,58 +828,111 @@ class ExportProxy(ProxyBase):
         the receiver's running total of samples missing from its numbering and not
         recovered: the change is counted on the export as ``lost-in-transit`` (and
         ``on_drop`` told), so the provider learns of losses only receivers see.
+
+        The subscription is made again when making it fails or the transport ends it (a
+        broker that refused it after a reconnection, then takes it again): after
+        `_BACKOFF_MIN` s, doubling to `_BACKOFF_MAX` s while it keeps failing, each
+        failure counted in ``reports_subscription_failures`` and logged (a warning at the
+        first of a run and when it is made again). A closed transport ends it.
         """
         key = wire_key(self.federation, "stream-report", self.platform) + "/*"
-        sub = await self.transport.subscribe(key, buffer_size=1024)
-        try:
-            async for item in sub:
-                sender = None  # until the envelope opens: then authenticated
-                try:
-                    sender, body = self.sessions.open_bytes(item.payload)
-                    report = msgpack.unpackb(body, raw=False)
-                    lost = report["lost"]
-                    resend = report.get("resend", {})
-                    if (
-                        item.key.rpartition("/")[2] != sender
-                        or report.get("v") != BATCH_VERSION
-                        or type(lost) is not dict
-                        or type(resend) is not dict
-                    ):
-                        raise ValueError("not a loss report from its sender")
-                except Exception as exc:
-                    self._refuse_report(sender, exc)
+        delay = 0.0
+        failed = 0  # failures in a row
+        while True:
+            if delay:
+                await asyncio.sleep(delay)
+            try:
+                sub = await self.transport.subscribe(key, buffer_size=1024)
+            except TransportClosed:
+                return  # every export ends with the transport
+            except Exception as exc:
+                delay = self._reports_failed(failed, delay, f"cannot subscribe to {key}: {exc}")
+                failed += 1
+                continue
+            if failed:
+                log.warning(
+                    "export[%s]: subscribed to receivers' loss reports again (%s) after "
+                    "%d failure(s)",
+                    self.platform,
+                    key,
+                    failed,
+                )
+                failed = 0
+            try:
+                if await self._read_reports(sub):
+                    delay = 0.0  # it served: a next failure starts the backoff over
+                self._ended(
+                    sub,
+                    f"loss reports subscription {key}",
+                    "receivers' loss reports are not heard until the subscription is made "
+                    "again (tried with backoff): meanwhile this platform's exports may end "
+                    "at their lease as if their receivers were gone, their losses in "
+                    "transit not counted nor resent",
+                )
+                if sub.closed:
+                    return  # closed with the transport
+            finally:
+                sub.close()
+            delay = self._reports_failed(failed, delay, f"the transport ended {key}")
+            failed += 1
+
+    def _reports_failed(self, failed: int, delay: float, why: str) -> float:
+        """Count a failure of the loss reports' subscription, log it; the next backoff."""
+        self.reports_subscription_failures += 1
+        delay = min(max(2 * delay, _BACKOFF_MIN), _BACKOFF_MAX)
+        log.log(
+            logging.DEBUG if failed else logging.WARNING,
+            "export[%s]: receivers' loss reports not heard: %s; subscribing again in %.2f s",
+            self.platform,
+            why,
+            delay,
+        )
+        return delay
+
+    async def _read_reports(self, sub: Subscription[Message]) -> bool:
+        """Handle the reports ``sub`` brings until it ends; whether one was a report."""
+        heard = False
+        async for item in sub:
+            sender = None  # until the envelope opens: then authenticated
+            try:
+                sender, body = self.sessions.open_bytes(item.payload)
+                report = msgpack.unpackb(body, raw=False)
+                lost = report["lost"]
+                resend = report.get("resend", {})
+                if (
+                    item.key.rpartition("/")[2] != sender
+                    or report.get("v") != BATCH_VERSION
+                    or type(lost) is not dict
+                    or type(resend) is not dict
+                ):
+                    raise ValueError("not a loss report from its sender")
+            except Exception as exc:
+                self._refuse_report(sender, exc)
+                continue
+            heard = True
+            now = time.monotonic()
+            for label, total in lost.items():
+                export = self._exports.get((sender, label))
+                if export is None or type(total) is not int:
                     continue
-                now = time.monotonic()
-                for label, total in lost.items():
-                    export = self._exports.get((sender, label))
-                    if export is None or type(total) is not int:
-                        continue
-                    export.last_heard = now
-                    export._reported_lost(total)
-                for label, wanted in resend.items():
-                    export = self._exports.get((sender, label))
-                    if export is None or not export.history:
-                        continue
-                    if not self._resend_bucket(sender, now).take(now):
-                        export._refuse_resend(ResendRefusal.RATE)
-                    elif (
-                        type(wanted) is list
-                        and len(wanted) == 2
-                        and all(type(x) is int for x in wanted)
-                    ):
-                        export._want_resent(wanted[0], wanted[1])
-                    else:
-                        export._refuse_resend(ResendRefusal.NOT_A_GAP)
-                    self._audit_resend_refusals(export, now)
-            self._ended(
-                sub,
-                f"loss reports subscription {key}",
-                "receivers' loss reports are no longer heard: this platform's exports end "
-                "at their lease (if any) as if their receivers were gone, their losses in "
-                "transit no longer counted nor resent",
-            )
-        finally:
-            sub.close()
+                export.last_heard = now
+                export._reported_lost(total)
+            for label, wanted in resend.items():
+                export = self._exports.get((sender, label))
+                if export is None or not export.history:
+                    continue
+                if not self._resend_bucket(sender, now).take(now):
+                    export._refuse_resend(ResendRefusal.RATE)
+                elif (
+                    type(wanted) is list
+                    and len(wanted) == 2
+                    and all(type(x) is int for x in wanted)
+                ):
+                    export._want_resent(wanted[0], wanted[1])
+                else:
+                    export._refuse_resend(ResendRefusal.NOT_A_GAP)
+                self._audit_resend_refusals(export, now)
+        return heard
 
     def _refuse_report(self, sender: str | None, exc: Exception) -> None:
         """Count a report refused; audit it within the budget of unauthenticated input.

@@ -27,7 +27,7 @@ from federation import ExportProxy, ImportProxy, _export
 from federation._batch import pack_batch
 from federation._proxy_stats import DropReason
 from federation._sessions import PlainSessions
-from tests.test_proxies import WAIT, Net, agreed, until
+from tests.test_proxies import LOCAL, SEM, WAIT, Net, agreed, network, until
 
 Wire = dict[str, list[dict[str, Any]]]
 
@@ -435,6 +435,33 @@ async def test_what_the_flush_cannot_send_goes_on_in_the_next_turns_not_at_the_i
         await within_turns(lambda: exports[0].ended, "the export ended")
         assert (exports[0].ended or "").startswith("the transport closed:")
         assert exports[0].sent == 13 and exports[0].dropped_total == 0
+
+
+async def test_a_sample_pushed_while_a_keepalive_agrees_a_session_goes_out_once_agreed() -> None:
+    # an idle export not reported on yet sends a keepalive, which waits for a session
+    # with its receiver: a sample pushed meanwhile woke nobody (the task was not
+    # waiting), and went out only at the export's next idle check, a second later
+    async with network() as net:
+        await net.platform("uav-a")
+        await net.platform("uav-b")
+        src = net.instances["uav-a"].add_source(LOCAL)
+        sessions = Renewing("uav-a", UnknownSession)
+        sessions.valid = False  # no session yet: the first seal agrees one
+        exporter = await net.exporter("uav-a", sessions, lease=30.0)  # idle check: 1 s
+        importer = await net.importer("uav-b")
+        export = exporter.start_exporting(LOCAL, SEM, "uav-b")
+        await until(lambda: sessions.asked == 1, "the keepalive agreeing a session")
+        assert export.sent == 0 and export.batches == 0
+        src.push("while agreeing")
+        assert list(export.queue) and export.sent == 0  # queued, nobody woken
+        sessions.agreed.set()
+
+        def arrived() -> bool:
+            rec = importer.get("uav-a", SEM)
+            return rec is not None and rec.injected == 1
+
+        await within_turns(arrived, "the sample at the receiver")
+        assert export.sent == 1 and export.dropped_total == 0 and sessions.asked == 1
 
 
 def keeps(owner: object, target: object, beside: tuple[object, ...]) -> bool:

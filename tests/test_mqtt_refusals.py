@@ -527,9 +527,9 @@ async def test_a_platform_whose_streams_and_loss_reports_are_refused_says_so_and
             "more samples and count none lost, while its loss reports still renew their "
             "senders' leases (the senders go on exporting)",
             f"platform[uav-a]: lost its loss reports subscription {reports} ({ended}): "
-            "receivers' loss reports are no longer heard: this platform's exports end at "
-            "their lease (if any) as if their receivers were gone, their losses in transit "
-            "no longer counted nor resent",
+            "receivers' loss reports are not heard until the subscription is made again "
+            "(tried with backoff): meanwhile this platform's exports may end at their lease "
+            "as if their receivers were gone, their losses in transit not counted nor resent",
         }
     # closed, as every close closes them: no loss
     assert p.agents.stats.declarations_lost == 2

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import datetime
 import logging
 import secrets
 import signal
@@ -19,14 +20,15 @@ import sys
 import time
 import traceback
 import uuid
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 
 from agents import AgentPlatform, InterfaceAgent, KeyPair, TrustStore
 from agents._exceptions import TransportError
-from agents.transports import MqttConfig, MqttTransport
+from agents.transports import MqttConfig, MqttTls, MqttTransport
 
 WAIT = 10.0  # the bound on any single wait: generous for a loaded 2-core machine
 
@@ -625,46 +627,44 @@ async def test_a_close_while_reconnecting_leaves_no_connection_behind(
         assert _aiomqtt_tasks() == []
 
 
-async def test_an_open_given_up_while_the_broker_is_slow_to_accept_leaves_no_connection() -> None:
-    # paho connects in a thread a cancel does not stop; the connection given up waited for
-    # it only ``connect_timeout``: a socket that came later (the broker slow to accept:
-    # its TCP handshake retried) stayed open, with aiomqtt's task, for the process's life
+@contextlib.contextmanager
+def _black_hole() -> Iterator[int]:
+    """A listening port whose backlog is full: a client's TCP handshake goes unanswered.
+
+    Its SYN is dropped and retried (after ~1 s, then ~3 s), never answered: paho's own
+    connect waits 5 s for it. Yields the port; `_handshaking` leaves out its fillers.
+    """
     listener = socket.socket()
-    listener.bind(("127.0.0.1", 0))
-    listener.listen(0)  # one connection waiting: the next's handshake is dropped, retried
-    listener.setblocking(False)
-    port = listener.getsockname()[1]
-    loop = asyncio.get_running_loop()
     fillers = []
-    for _ in range(3):
-        filler = socket.socket()
-        filler.setblocking(False)
-        filler.connect_ex(("127.0.0.1", port))
-        fillers.append(filler)
-    accepted: list[socket.socket] = []
     try:
-        t = MqttTransport(MqttConfig(host="127.0.0.1", port=port, connect_timeout=0.2))
-        with pytest.raises(TimeoutError):
-            async with asyncio.timeout(0.05):  # a caller giving up on the open
-                await t.__aenter__()
-        # room for the client: it connects at its handshake's retry (~1 s)
-        ours = {f.getsockname()[1] for f in fillers}
-        client = None
-        async with asyncio.timeout(WAIT):
-            while client is None:
-                conn, (_, peer) = await loop.sock_accept(listener)
-                accepted.append(conn)
-                conn.setblocking(False)
-                if peer not in ours:
-                    client = conn
-        async with asyncio.timeout(WAIT):  # closed by the client: nothing left of it
-            while await loop.sock_recv(client, 1024):
-                pass
-            if left := _aiomqtt_tasks():  # aiomqtt's task, cancelled with the socket
-                await asyncio.wait(left)
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(0)  # one connection waiting, never accepted: the next ones dropped
+        port = listener.getsockname()[1]
+        for _ in range(3):
+            filler = socket.socket()
+            fillers.append(filler)
+            filler.setblocking(False)
+            filler.connect_ex(("127.0.0.1", port))
+            _fillers.add(filler.getsockname()[1])
+        yield port
     finally:
-        for s in [*fillers, *accepted, listener]:
+        for s in [*fillers, listener]:
             s.close()
+
+
+_fillers: set[int] = set()  # the local ports of `_black_hole`'s own connections
+
+
+def _handshaking(port: int) -> int:
+    """How many sockets here, but the fillers, wait for the TCP handshake to ``port``."""
+    remote = f"0100007F:{port:04X}"
+    with open("/proc/net/tcp") as f:
+        rows = [line.split() for line in f.readlines()[1:]]
+    return sum(
+        1
+        for row in rows
+        if row[2] == remote and row[3] == "02" and int(row[1][-4:], 16) not in _fillers
+    )  # 02: SYN_SENT
 
 
 def _connecting() -> list[int]:
@@ -676,59 +676,115 @@ def _connecting() -> list[int]:
     ]
 
 
-async def test_a_cancelled_open_returns_at_once_and_its_socket_closes_when_it_comes() -> None:
-    # the open given up waited for paho's connect thread, up to connect_timeout, holding a
-    # worker thread: now it returns at once, and the socket paho still opens is closed
-    # when it comes, its thread ended
+async def _nothing_left_of(opening: asyncio.Task[Any], port: int, bound: float) -> None:
+    """Cancel ``opening`` (an open under way); fail unless nothing is left of it soon.
+
+    Nothing: no TCP handshake to ``port`` under way, no thread in paho's connect, every
+    worker thread of the loop's executor joined, no aiomqtt task: within ``bound`` s.
+    """
+    assert not opening.done()
+    loop = asyncio.get_running_loop()
+    t0 = time.monotonic()
+    opening.cancel()
+    with pytest.raises(asyncio.CancelledError):
+        await opening
+    returned = time.monotonic() - t0
+    assert returned < bound, f"the cancelled open took {returned:.2f} s"
+    try:
+        async with asyncio.timeout(bound):
+            # a thread of paho's and the kernel's handshake: no event to await
+            while _handshaking(port) or _connecting():  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+            if left := _aiomqtt_tasks():
+                await asyncio.wait(left)
+            await loop.shutdown_default_executor()  # its workers join, or this waits
+    except TimeoutError:
+        raise AssertionError(
+            f"{bound:g} s after the cancel: {_handshaking(port)} handshake(s) under way, "
+            f"{len(_connecting())} thread(s) in paho's connect"
+        ) from None
+
+
+async def test_an_open_cancelled_while_the_broker_does_not_accept_leaves_nothing() -> None:
+    # paho made the TCP connection in an executor thread, which a cancel does not stop:
+    # the cancelled open returned at once, but the thread went on in the connect, its
+    # handshake retried, up to paho's 5 s (a black-holed port), holding a worker thread,
+    # and the connection made at a retry stayed open until then
+    with _black_hole() as port:
+        t = MqttTransport(MqttConfig(host="127.0.0.1", port=port, connect_timeout=5.0))
+        opening = asyncio.create_task(t.__aenter__())
+        async with asyncio.timeout(WAIT):  # its handshake under way (a loaded machine: late)
+            while not _handshaking(port):  # noqa: ASYNC110 (the kernel's: no event)
+                await asyncio.sleep(0.01)
+        # within 1 s: before the handshake's first retry, far from paho's 5 s
+        await _nothing_left_of(opening, port, bound=1.0)
+
+
+async def test_an_open_timed_out_while_the_broker_does_not_accept_leaves_nothing() -> None:
+    # the same, for a caller whose own timeout gives up on the open
+    with _black_hole() as port:
+        t = MqttTransport(MqttConfig(host="127.0.0.1", port=port, connect_timeout=0.2))
+        with pytest.raises(TimeoutError):
+            async with asyncio.timeout(0.3):  # a caller giving up on the open
+                await t.__aenter__()
+        async with asyncio.timeout(1.0):
+            while _handshaking(port) or _connecting():  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+            await asyncio.get_running_loop().shutdown_default_executor()
+
+
+def _root_ca(path: Path) -> Path:
+    """A CA certificate at ``path``, for a client's TLS context (no server ever shows one)."""
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import NameOID
+
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "test ca")])
+    now = datetime.datetime.now(datetime.UTC)
+    cert = (
+        x509.CertificateBuilder()
+        .subject_name(name)
+        .issuer_name(name)
+        .public_key(key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(now)
+        .not_valid_after(now + datetime.timedelta(days=1))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=None), critical=True)
+        .sign(key, hashes.SHA256())
+    )
+    path.write_bytes(cert.public_bytes(serialization.Encoding.PEM))
+    return path
+
+
+async def test_an_open_cancelled_while_the_broker_never_answers_tls_leaves_nothing(
+    tmp_path: Path,
+) -> None:
+    # a listener that takes the connection and never answers: paho's TLS handshake, in
+    # its thread, waited for the server's hello up to 5 s after the open was cancelled
     listener = socket.socket()
     listener.bind(("127.0.0.1", 0))
-    listener.listen(0)  # one connection waiting: the next's handshake is dropped, retried
+    listener.listen(8)
     listener.setblocking(False)
     port = listener.getsockname()[1]
     loop = asyncio.get_running_loop()
-    fillers = []
-    for _ in range(3):
-        filler = socket.socket()
-        filler.setblocking(False)
-        filler.connect_ex(("127.0.0.1", port))
-        fillers.append(filler)
     accepted: list[socket.socket] = []
     try:
-        t = MqttTransport(MqttConfig(host="127.0.0.1", port=port, connect_timeout=5.0))
-        opening = asyncio.create_task(t.__aenter__())
-        # paho's thread in its connect, which waits for the handshake's retry (~1 s, then
-        # ~3 s): a loaded machine may take more than a moment to start it, and an open
-        # cancelled before never connects at all
+        tls = MqttTls(root_ca_certificate=_root_ca(tmp_path / "ca.crt"))
+        config = MqttConfig(host="127.0.0.1", port=port, connect_timeout=5.0, tls=tls)
+        opening = asyncio.create_task(MqttTransport(config).__aenter__())
         async with asyncio.timeout(WAIT):
+            conn, _ = await loop.sock_accept(listener)
+            accepted.append(conn)
+            conn.setblocking(False)
+            assert await loop.sock_recv(conn, 65536)  # its hello, never answered
             while not _connecting():  # noqa: ASYNC110 (a thread of paho's: no event)
                 await asyncio.sleep(0.01)
-        assert not opening.done()
-        t0 = time.monotonic()
-        opening.cancel()
-        with pytest.raises(asyncio.CancelledError):
-            await opening
-        took = time.monotonic() - t0
-        # waiting for paho's connect, as it did, takes connect_timeout: no retry gets in
-        assert took < t.config.connect_timeout / 2, f"the cancelled open took {took:.2f} s"
-        assert len(_connecting()) == 1  # paho's connect goes on in its thread
-        # room for the client: it connects at its handshake's retry
-        ours = {f.getsockname()[1] for f in fillers}
-        client = None
-        async with asyncio.timeout(WAIT):
-            while client is None:
-                conn, (_, peer) = await loop.sock_accept(listener)
-                accepted.append(conn)
-                conn.setblocking(False)
-                if peer not in ours:
-                    client = conn
-        async with asyncio.timeout(WAIT):  # closed by the client: nothing left of it
-            while await loop.sock_recv(client, 1024):
+        await _nothing_left_of(opening, port, bound=1.0)
+        async with asyncio.timeout(1.0):  # the client's end of it closed
+            while await loop.sock_recv(conn, 65536):
                 pass
-            if left := _aiomqtt_tasks():  # aiomqtt's task, cancelled with the socket
-                await asyncio.wait(left)
-            # and no thread: the connect's worker joins (it would block this otherwise)
-            await loop.shutdown_default_executor()
-        assert _connecting() == []
     finally:
-        for s in [*fillers, *accepted, listener]:
+        for s in [*accepted, listener]:
             s.close()

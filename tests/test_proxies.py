@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import multiprocessing
 import os
 import signal
@@ -20,7 +21,7 @@ from typing import Any, TypeVar
 import msgpack
 import pytest
 
-from agents import AgentPlatform
+from agents import AgentPlatform, TransportError
 from agents._interface import InterfaceAgent
 from agents._security import Handshake, KeyPair, SessionTable, TrustStore
 from agents.transports import (
@@ -959,10 +960,95 @@ async def test_a_proxy_whose_subscription_the_transport_ends_says_so(
         )
         assert errors == [
             f"export[uav-a]: lost its loss reports subscription {reports} (the transport ended "
-            "the subscription): receivers' loss reports are no longer heard: this platform's "
-            "exports end at their lease (if any) as if their receivers were gone, their losses "
-            "in transit no longer counted nor resent"
+            "the subscription): receivers' loss reports are not heard until the subscription "
+            "is made again (tried with backoff): meanwhile this platform's exports may end at "
+            "their lease as if their receivers were gone, their losses in transit not counted "
+            "nor resent"
         ]
+
+
+class FlakyReports(MemoryTransport):
+    """A memory transport on which the first subscription to loss reports fails, then works.
+
+    ``mode`` ``refused``: making it raises (a broker briefly unreachable, or refusing it);
+    ``ended``: it is made, and ended by the transport at once (MQTT: refused after a
+    reconnection).
+    """
+
+    def __init__(self, hub: MemoryHub, mode: str) -> None:
+        super().__init__(hub)
+        self.mode = mode
+        self.failed = 0
+
+    async def subscribe(self, key_expr: str, **options: Any) -> Any:
+        first = "/stream-report/" in key_expr and not self.failed
+        if first and self.mode == "refused":
+            self.failed += 1
+            raise TransportError(f"memory: the subscription to {key_expr!r} refused, this once")
+        sub = await super().subscribe(key_expr, **options)
+        if first:
+            self.failed += 1
+            sub.inbox.close()  # as a transport ends it: the iterator ends, not closed
+        return sub
+
+
+@pytest.mark.parametrize("mode", ["refused", "ended"])
+async def test_loss_reports_whose_subscription_failed_once_are_heard_again(
+    mode: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    # the subscription, failed once, was never made again: every export ended at its
+    # lease as if its receiver were gone, however alive and reporting the receiver was
+    caplog.set_level(logging.DEBUG, logger="federation._export")
+    lease = 1.0
+    async with network() as net:
+        t = FlakyReports(net.hub, mode)
+        _, a = await net.platform("uav-a", transport=t)
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exporter = await net.exporter("uav-a", lease=lease)
+        told: list[str] = []
+        exporter.on_lost = lambda sub, what, meaning: told.append(what)
+        importer = await net.importer("uav-b", report_interval=0.05)
+        export = exporter.start_exporting(LOCAL, SEM, "uav-b")
+        started = time.monotonic()
+        src.push(1.0)
+        rec = await until(lambda: importer.get("uav-a", SEM), "the import")
+        await until(lambda: rec.injected == 1, "the sample at the receiver")
+        # its receiver's reports keep it going past its lease, and half another
+        await until(lambda: export.last_heard - started > 1.5 * lease, "reports past its lease")
+        assert export.active and export.dropped_total == 0
+        assert t.failed == 1 and exporter.reports_subscription_failures == 1
+        assert exporter.task_failures == 0
+        key = f"dyknow/{FED}/v1/stream-report/uav-a/*"
+        # the transport's end is the platform's loss, as ever; a failure to make it is not
+        assert told == ([f"loss reports subscription {key}"] if mode == "ended" else [])
+        said = [
+            (r.levelno, r.getMessage()) for r in caplog.records if r.name == "federation._export"
+        ]
+        why = (
+            f"cannot subscribe to {key}: memory: the subscription to {key!r} refused, this once"
+            if mode == "refused"
+            else f"the transport ended {key}"
+        )
+        assert said == [
+            (
+                logging.WARNING,
+                f"export[uav-a]: receivers' loss reports not heard: {why}; subscribing again "
+                "in 0.05 s",
+            ),
+            (
+                logging.WARNING,
+                f"export[uav-a]: subscribed to receivers' loss reports again ({key}) after "
+                "1 failure(s)",
+            ),
+        ]
+        # a closed transport ends it: no subscribing again, no failure
+        reports = exporter._reports
+        assert reports is not None and not reports.done()
+        await t.aclose()
+        await until(reports.done, "the loss reports' task ended")
+        assert exporter.reports_subscription_failures == 1 and exporter.task_failures == 0
+        assert len(told) == (1 if mode == "ended" else 0)
 
 
 async def test_an_import_proxy_whose_own_presence_watch_the_transport_ends_says_so(

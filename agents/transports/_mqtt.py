@@ -78,9 +78,10 @@ Closing
     closed with a DISCONNECT, or, when that cannot go out within a second (a broker
     that stopped reading a full socket), by closing the socket: the broker sees the
     connection lost. Only then are the transport's tasks and calls under way cancelled.
-    An open (or a reconnection) given up while paho still connects in its thread (a
-    cancel does not stop it) returns at once; the socket, when it comes, is closed on
-    the loop and aiomqtt's task ends with it.
+    An open (or a reconnection) given up returns at once and holds no thread: its TCP
+    connection is made on the loop, where a cancel ends it; given up while paho's
+    thread does TLS's handshake, the connection is shut down, which ends it, and the
+    socket is closed on the loop as it returns, aiomqtt's task with it.
 
 What MQTT cannot guarantee, compared to zenoh
     - Everything goes through the broker: it is a single point of failure and one more
@@ -115,6 +116,7 @@ import itertools
 import json
 import logging
 import math
+import os
 import secrets
 import socket
 import threading
@@ -180,13 +182,43 @@ def _load_client() -> None:
 
         async def __aenter__(self) -> Any:
             self._connect_ended = threading.Event()
-            return await super().__aenter__()
+            paho = self._client
+            if paho._transport != "tcp" or paho._get_proxy() is not None:
+                return await super().__aenter__()  # paho connects, all in its thread
+            # TCP's handshake on the loop, where a cancel ends it at once: in paho's
+            # thread it went on after a cancel, up to 5 s per address (a black hole)
+            try:
+                sock = await _open_socket(
+                    self._hostname,
+                    self._port,
+                    paho._connect_timeout,
+                    (self._bind_address, self._bind_port),
+                )
+            except BaseException as exc:
+                self._connect_ended.set()  # no thread started: nothing to wait for
+                if isinstance(exc, OSError):
+                    raise aiomqtt.MqttError(str(exc)) from None  # as aiomqtt's own connect
+                raise
+            handed = _Handed(sock)
+            # paho's connect takes it: in its thread only TLS's handshake and the CONNECT
+            vars(paho)["_create_socket_connection"] = handed.take
+            try:
+                return await super().__aenter__()
+            except BaseException:
+                # given up with the thread perhaps still in TLS's handshake (a broker that
+                # never answers): the connection ends now, and the thread with it
+                handed.drop()
+                raise
+            finally:
+                handed.close()
+                vars(paho).pop("_create_socket_connection", None)
 
         _given_up = False  # `_abandon` did not wait for paho's connect (see there)
 
         def _client_connect(self) -> None:
-            # in an executor thread, which a cancel does not stop: a connection given up
-            # meanwhile (`_abandon`) has the socket it opens closed on the loop from here
+            # in an executor thread, which a cancel does not stop (`_Handed.drop` ends its
+            # TLS handshake): a connection given up meanwhile (`_abandon`) has the socket
+            # it opens closed on the loop from here
             try:
                 super()._client_connect()
             finally:
@@ -247,6 +279,82 @@ def _load_client() -> None:
         SubscribeOptions=SubscribeOptions,
         _Client=Client,
     )
+
+
+async def _open_socket(
+    host: str, port: int, timeout: float, bind: tuple[str, int]
+) -> socket.socket:
+    """A TCP connection to ``host``, as `socket.create_connection` makes it for paho.
+
+    Each address in turn, ``timeout`` s each; the last one's error, worded as that
+    function's (``[Errno 111] Connection refused``, ``timed out``). On the loop: a cancel
+    ends it at once, its socket closed.
+    """
+    loop = asyncio.get_running_loop()
+    infos = await loop.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    failure: OSError = OSError(f"no address for {host!r}")
+    for family, kind, proto, _, address in infos:
+        sock = socket.socket(family, kind, proto)
+        try:
+            sock.setblocking(False)
+            if any(bind):
+                sock.bind(bind)
+            async with asyncio.timeout(timeout):
+                await loop.sock_connect(sock, address)
+        except TimeoutError:
+            sock.close()
+            failure = TimeoutError("timed out")
+            continue
+        except OSError as exc:
+            sock.close()
+            # asyncio words it "Connect call failed (address)": the system's words here
+            failure = OSError(exc.errno, os.strerror(exc.errno)) if exc.errno else exc
+            continue
+        except BaseException:
+            sock.close()
+            raise
+        sock.settimeout(timeout)  # paho's TLS handshake is bounded by it, as before
+        return sock
+    raise failure
+
+
+class _Handed:
+    """A connected socket handed to paho's connect in its thread, or dropped on the loop.
+
+    `take` (paho's thread) and `drop` (the loop, when the open is given up) under one
+    lock: a socket never taken is closed here, one taken is shut down, which ends a TLS
+    handshake under way in the thread at once (paho closes its own socket later).
+    """
+
+    def __init__(self, sock: socket.socket) -> None:
+        self._sock = sock
+        self._lock = threading.Lock()
+        self._taken = False
+        self._dropped = False
+        # the same connection for the loop to shut down: paho's TLS takes the socket's own
+        self._twin = sock.dup()
+
+    def take(self) -> socket.socket:
+        """The socket, once (paho's `_create_socket_connection`, in its thread)."""
+        with self._lock:
+            if self._dropped:
+                raise OSError("the connection was given up")
+            self._taken = True
+        return self._sock
+
+    def drop(self) -> None:
+        """End the connection: the open was given up (the loop)."""
+        with self._lock:
+            self._dropped = True
+            taken = self._taken
+        with contextlib.suppress(OSError):
+            self._twin.shutdown(socket.SHUT_RDWR)
+        if not taken:
+            self._sock.close()
+
+    def close(self) -> None:
+        """Let go of the loop's handle on the connection (not of the connection)."""
+        self._twin.close()
 
 
 def mqtt_client(*args: Any, **kwargs: Any) -> aiomqtt.Client:
@@ -1311,10 +1419,10 @@ async def _connect(client: aiomqtt.Client) -> contextlib.AsyncExitStack:
 async def _abandon(client: aiomqtt.Client) -> None:
     """Close the socket and end aiomqtt's task of a connection that did not come up.
 
-    When paho still connects in its thread (a cancel does not stop it: its own 5 s per
-    address, TCP retries, TLS), this returns at once: the socket is closed on the loop
-    when it comes, and aiomqtt's task ends with it. Waiting for it held the caller (a
-    cancelled open) up to ``connect_timeout``, and a worker thread meanwhile.
+    When paho's connect is still in its thread (TLS's handshake: the open given up shut
+    its connection down, which ends it), this returns at once: the socket is closed on
+    the loop when the connect returns, and aiomqtt's task ends with it. Waiting for it
+    held the caller (a cancelled open) up to ``connect_timeout``.
     """
     ended = getattr(client, "_connect_ended", None)
     if isinstance(ended, threading.Event) and not ended.is_set():
