@@ -639,12 +639,13 @@ async def _gateway_refusals(lane: bool) -> list[Any]:
                 if r.get("verdict") == "refused" and r.get("stage") != "agent-refuse"
             ]
 
-        await _until(lambda: len(refusals()) >= 5)
+        await _until(lambda: len(refusals()) >= 8)
         stats = p.gateway.gateway_stats
         return [
             told,
             (
                 stats.reserved_refused,
+                stats.unknown_label_refused,
                 stats.bad_label_refused,
                 p.provider.stats.denied,
                 p.provider.stats.agent_refused,
@@ -660,7 +661,14 @@ async def test_a_gateway_read_the_gateway_refuses_is_refused_the_same_on_the_lan
     answered on zenoh's thread."""
     lane = await _gateway_refusals(True)
     assert lane == await _gateway_refusals(False)
-    assert lane[1] == (3, 0, 2, 6) and lane[3] == 0
-    assert [r[:3] for r in lane[2]] == [("gateway", "reserved-label", "operator")] * 3 + [
+    assert lane[1] == (3, 3, 0, 2, 6) and lane[3] == 0
+    assert [r[:3] for r in lane[2]] == [
+        ("gateway", "reserved-label", "operator"),
+        ("gateway", "unknown-label", "operator"),
+    ] * 3 + [
         (None, None, "operator")  # the private gateway's, by the directory's check
     ] * 2
+    # each audited with the reason its asker was told, by its code
+    unknown = lane[0][1]
+    assert unknown == "unknown label 'a/none' (known labels: a/state/altitude)"
+    assert [r[3] for r in lane[2][1:6:2]] == [f"unknown-label: {unknown}"] * 3
