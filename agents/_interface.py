@@ -22,7 +22,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, cast
 
 import msgpack
 import orjson
@@ -565,6 +565,22 @@ _RAW: Any = object()
 # `_lane_book`; neither (the loop decides it, queued as always)
 _ANSWERED, _HANDED, _LEFT = object(), object(), object()
 """Each performative's name, a plain str (cheaper to look up than ``.value``)."""
+
+
+class _Written:
+    """An answer's JSON bytes, written already, to send as its message (`send`, `send_now`
+    and `join_batch` ask a message for ``to_json()`` and ``reply_with`` only): a reply the
+    lane counted, resent as it was counted (`_lane_answer`)."""
+
+    __slots__ = ("body",)
+    reply_with = None  # a reply asks no answer
+
+    def __init__(self, body: bytes) -> None:
+        self.body = body
+
+    def to_json(self) -> bytes:
+        """The bytes, as written."""
+        return self.body
 
 
 _MAX_AUDIT_LINES = 4096
@@ -1859,9 +1875,10 @@ class InterfaceAgent:
                 try:
                     loop = self._loop
                     if loop is not None:
-                        # made as the bytes put were (`reply_json`, or `reply` where it
-                        # said None): ``content`` went nowhere else
-                        answered = message.reply(_INFORM, content, sender=agent.aid)
+                        # the very bytes counted and audited: ``content`` may have changed
+                        # since they were written (an agent's shared answer), a copy or a
+                        # message made of it now would send what was not counted
+                        answered = cast(ACLMessage, _Written(reply))
                         loop.call_soon_threadsafe(self._lane_resend, peer, answered)
                 except RuntimeError:  # the loop is closed: nobody waits for the answer
                     pass
@@ -1871,7 +1888,8 @@ class InterfaceAgent:
         return _ANSWERED
 
     def _lane_resend(self, peer: str, answer: ACLMessage) -> None:
-        """On the loop: send an answer the lane booked but could not put (`send`)."""
+        """On the loop: send an answer the lane booked but could not put (`send`; its bytes
+        as the lane wrote them, `_Written`)."""
         host = self._host
         if host is None or self.send_now(peer, answer):
             return

@@ -34,6 +34,10 @@ COMPLETE_VAR = "_DYKNOW_COMPLETE"
 LOG_FORMAT = "%(levelname)s %(name)s: %(message)s"
 # Python's own last resort (bare messages to stderr), whatever the process made of it since
 _PYTHONS_LAST_RESORT = getattr(logging, "_defaultLastResort", logging.lastResort)
+# paho's ERRORs (logger "mqtt", aiomqtt's) on a connection that failed under it: the MQTT
+# transport says that loss itself, once, at WARNING ("connection to the broker lost …"),
+# and ends or reconnects; printed too, they read as a second, rawer fault
+_PAHO_SOCKET_ERRORS = frozenset({"failed to receive on socket: %s", "timeout on socket: %s"})
 
 
 @contextlib.contextmanager
@@ -62,6 +66,13 @@ def log_to_stderr() -> Iterator[None]:
             logging.lastResort = found
 
 
+def _not_said_twice(record: logging.LogRecord) -> bool:
+    """False for a record whose news the command's own lines say already (paho's on a
+    connection lost: the transport's warning says it)."""
+    msg = record.msg
+    return not (record.name == "mqtt" and type(msg) is str and msg in _PAHO_SOCKET_ERRORS)
+
+
 class _Stderr(logging.StreamHandler):
     """Warnings and errors to the ``sys.stderr`` of the moment, as Python's last resort.
 
@@ -71,6 +82,7 @@ class _Stderr(logging.StreamHandler):
 
     def __init__(self) -> None:
         logging.Handler.__init__(self, logging.WARNING)
+        self.addFilter(_not_said_twice)
 
     @property
     def stream(self) -> TextIO:

@@ -17,8 +17,12 @@ Agent only (a `FederationPlatform` makes it private unless its config opens it: 
 labels never leave a platform). Labels under a ``reserved`` prefix (``import/``: what
 other platforms stream here) are for this platform's agents only: a request from another
 platform that would read, create or write one is refused, counted
-(``gateway_stats.reserved_refused``) and audited; so is a create-stream whose output is
-no valid semantic label (``gateway_stats.bad_label_refused``). Made private while a
+(``gateway_stats.reserved_refused``) and audited; so is its request naming a label not
+here (``unknown_label_refused``: a query of any kind, a create-stream's source, a
+subscribe; the lane's plain read leaves it to `_perform`), and, whoever asks, a
+create-stream whose output is no valid semantic label (``bad_label_refused``) or a
+request beyond the limits (``limit_refused``: ``max_streams``, ``max_subscriptions``).
+Made private while a
 request or subscribe of another platform waits in its mailbox (a sharing reload,
 `GatewayAgent.set_visibility`), it refuses that message as the Interface Agent would have
 ("access denied"; ``gateway_stats.access_refused``, the platform's ``stats.denied``,
@@ -92,7 +96,8 @@ _INFORM_BUDGET = MAX_MESSAGE_BYTES - 4096
 
 @dataclass(slots=True)
 class GatewayStats:
-    """What a Gateway Agent has sent to its subscribers."""
+    """What a Gateway Agent has sent to its subscribers, and what it refused (counted and
+    audited, ``stage: gateway``), by kind."""
 
     informs: int = 0
     samples: int = 0
@@ -101,6 +106,8 @@ class GatewayStats:
     reserved_refused: int = 0
     bad_label_refused: int = 0
     access_refused: int = 0
+    unknown_label_refused: int = 0
+    limit_refused: int = 0
     streams_removed: int = 0
 
 
@@ -372,10 +379,10 @@ class GatewayAgent(Agent):
         try:
             result = self.service.perform(content)
         except GatewayRefusal as exc:
-            if exc.code == "bad-label":
-                self.gateway_stats.bad_label_refused += 1
-                self._audit_refusal(message, exc.code, exc.reason)
-            raise Refuse(self._told(exc, message)) from exc
+            told = self._told(exc, message)
+            if exc.code is not None:
+                self._counted(message, exc.code, told)
+            raise Refuse(told) from exc
         if isinstance(content, dict):
             action = content.get("action")
             if action == "create-stream":
@@ -383,6 +390,23 @@ class GatewayAgent(Agent):
             elif remote and action == "list-labels":
                 result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
         return result
+
+    def _counted(self, message: ACLMessage, code: str, reason: str) -> None:
+        """Count and audit a refusal of the service's by its code: a bad label or a limit
+        whoever asks; a label not here when another platform asks (this platform's own
+        agents may look for one not published yet)."""
+        stats = self.gateway_stats
+        if code == "bad-label":
+            stats.bad_label_refused += 1
+        elif code == "unknown-label":
+            if platform_of(message.sender) == self.platform.name:
+                return
+            stats.unknown_label_refused += 1
+        elif code in ("stream-limit", "subscription-limit"):
+            stats.limit_refused += 1
+        else:
+            return
+        self._audit_refusal(message, code, reason)
 
     def _told(self, refusal: GatewayRefusal, message: ACLMessage) -> str:
         """The refusal's reason as ``message``'s sender may read it.
@@ -557,7 +581,10 @@ class GatewayAgent(Agent):
             label, policy = self.service.subscription_policy(message.content)
             sub = self.instance.subscribe(label, policy)
         except GatewayRefusal as exc:
-            await self.reply(message, P.REFUSE, self._told(exc, message))
+            told = self._told(exc, message)
+            if exc.code is not None:
+                self._counted(message, exc.code, told)
+            await self.reply(message, P.REFUSE, told)
             return
         except (DyKnowError, OverflowError) as exc:
             await self.reply(message, P.REFUSE, str(exc))
@@ -579,7 +606,9 @@ class GatewayAgent(Agent):
         if (message.sender, message.conversation_id) in self._feeds:
             return f"conversation {message.conversation_id} already has a subscription"
         if len(self._feeds) >= self.max_subscriptions:
-            return f"too many subscriptions (limit {self.max_subscriptions})"
+            reason = f"too many subscriptions (limit {self.max_subscriptions})"
+            self._counted(message, "subscription-limit", reason)
+            return reason
         return None
 
     @on(MessageTemplate(P.CANCEL, ontology=ONTOLOGY))

@@ -329,6 +329,8 @@ class GatewayService:
             # goes through `parse`, which says what is wrong
             try:
                 return answer_to_json(self.instance.latest(label))
+            except UnknownLabelError as exc:
+                raise GatewayRefusal(str(exc), code="unknown-label") from exc
             except DyKnowError as exc:
                 raise GatewayRefusal(str(exc)) from exc
         req = self.parse(content)
@@ -339,7 +341,7 @@ class GatewayService:
                 return answer_to_json(self.query(req))
             return self.create_stream(req)
         except UnknownLabelError as exc:
-            raise GatewayRefusal(str(exc)) from exc
+            raise GatewayRefusal(str(exc), code="unknown-label") from exc
         except DyKnowError as exc:
             raise GatewayRefusal(str(exc)) from exc
 
@@ -374,7 +376,9 @@ class GatewayService:
         dk = self.instance
         self._forget_removed()  # a stream removed by hand frees its slot
         if len(self.created) >= self.max_streams:
-            raise GatewayRefusal(f"too many created streams (limit {self.max_streams})")
+            raise GatewayRefusal(
+                f"too many created streams (limit {self.max_streams})", code="stream-limit"
+            )
         try:
             check_semantic_label(req.output)
         except ValueError as exc:
@@ -439,7 +443,7 @@ class GatewayService:
             policy = sub.policy.to_policy(self.instance.clock.now())
         if not self.instance.has_label(sub.label):
             unknown = UnknownLabelError(sub.label, self.instance.labels())
-            raise GatewayRefusal(str(unknown)) from unknown
+            raise GatewayRefusal(str(unknown), code="unknown-label") from unknown
         return sub.label, policy
 
 

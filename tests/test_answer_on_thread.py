@@ -18,6 +18,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
 
+import orjson
 import pytest
 
 from agents import LATER, AgentPlatform, RateLimit, Refused, TransportError, request
@@ -556,6 +557,72 @@ async def test_an_answer_the_thread_could_not_put_is_sent_and_counted_once(
             assert ia.answered_on_thread in (before[0], before[0] + 1)
 
 
+async def test_an_answer_resent_after_its_put_failed_is_the_one_counted() -> None:
+    """The lane's put fails after its answer was booked (counted, audited): the loop
+    resends the very bytes the lane wrote, not the answer's content as it is by then (an
+    agent's answer it keeps and changes, here changed as the put fails)."""
+    async with pair() as p:
+        ia = p.ia_a
+        good = {"action": "query", "label": "a/state/altitude"}
+        for _ in range(20):  # the first read of the stream warms it: the lane's from then on
+            await request(p.fed_op, "gateway@uav-a", good, ontology=GATEWAY)
+            if ia.answered_on_thread or ia._lane_done:
+                break
+        await _until(lambda: ia.answered_on_thread >= 1 and not ia._lane_done)
+        before = ia.answered_on_thread
+        kept = {"label": "a/state/altitude", "query_time": 5.0, "samples": [[120.0, 1.0, 2.0]]}
+        counted = {"label": "a/state/altitude", "query_time": 5.0, "samples": [[120.0, 1.0, 2.0]]}
+        # not handed over: an answer the agent keeps (copied into the reply's bytes)
+        p.gateway.answer_on_thread = lambda message: kept  # type: ignore[method-assign]
+        booked = threading.Event()
+        real_book = ia._lane_book
+
+        def book(*current: Any) -> bool:
+            back = real_book(*current)
+            booked.set()
+            return back
+
+        ia._lane_book = book  # type: ignore[method-assign]
+        sealed: list[bytes] = []
+        real_seal = ia._seal
+
+        def seal(peer: str, body: bytes) -> Any:
+            if peer == "operator":
+                sealed.append(body)
+            return real_seal(peer, body)
+
+        ia._seal = seal  # type: ignore[method-assign]
+        transport = p.provider.transport
+        real_declared = transport.declared_publisher
+        failed: list[str] = []
+
+        def declared(key: str) -> Any:
+            if real_declared(key) is None:
+                return None
+
+            def put(payload: bytes) -> None:
+                failed.append(key)
+                assert booked.wait(WAIT)  # counted before the put failed: the loop resends
+                kept["samples"][0][0] = -1.0  # the agent changes its answer meanwhile
+                kept["changed"] = True
+                raise TransportError("a put that fails")
+
+            return put
+
+        transport.declared_publisher = declared  # type: ignore[method-assign]
+        try:
+            got = await request(p.fed_op, "gateway@uav-a", good, ontology=GATEWAY)
+        finally:
+            transport.declared_publisher = real_declared  # type: ignore[method-assign]
+            ia._seal = real_seal  # type: ignore[method-assign]
+        assert len(failed) == 1
+        assert got == counted  # what was counted, not what the answer became
+        assert ia.answered_on_thread == before + 1  # counted once, as the lane's
+        # the lane's bytes, sealed again as they were
+        assert len(sealed) == 2 and sealed[1] == sealed[0], sealed
+        assert orjson.loads(sealed[0])["content"] == counted
+
+
 async def test_a_sharing_that_decides_in_its_own_check_all_is_asked_on_the_loop() -> None:
     """A `Sharing` subclass (here its `check_all` alone) may read the loop's state: never
     asked on zenoh's thread; the reads it allows are answered by the loop."""
@@ -639,12 +706,13 @@ async def _gateway_refusals(lane: bool) -> list[Any]:
                 if r.get("verdict") == "refused" and r.get("stage") != "agent-refuse"
             ]
 
-        await _until(lambda: len(refusals()) >= 5)
+        await _until(lambda: len(refusals()) >= 8)
         stats = p.gateway.gateway_stats
         return [
             told,
             (
                 stats.reserved_refused,
+                stats.unknown_label_refused,
                 stats.bad_label_refused,
                 p.provider.stats.denied,
                 p.provider.stats.agent_refused,
@@ -660,7 +728,14 @@ async def test_a_gateway_read_the_gateway_refuses_is_refused_the_same_on_the_lan
     answered on zenoh's thread."""
     lane = await _gateway_refusals(True)
     assert lane == await _gateway_refusals(False)
-    assert lane[1] == (3, 0, 2, 6) and lane[3] == 0
-    assert [r[:3] for r in lane[2]] == [("gateway", "reserved-label", "operator")] * 3 + [
+    assert lane[1] == (3, 3, 0, 2, 6) and lane[3] == 0
+    assert [r[:3] for r in lane[2]] == [
+        ("gateway", "reserved-label", "operator"),
+        ("gateway", "unknown-label", "operator"),
+    ] * 3 + [
         (None, None, "operator")  # the private gateway's, by the directory's check
     ] * 2
+    # each audited with the reason its asker was told, by its code
+    unknown = lane[0][1]
+    assert unknown == "unknown label 'a/none' (known labels: a/state/altitude)"
+    assert [r[3] for r in lane[2][1:6:2]] == [f"unknown-label: {unknown}"] * 3

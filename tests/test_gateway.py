@@ -698,6 +698,71 @@ async def test_a_created_stream_needs_a_valid_output_label() -> None:
         assert recs[0]["sender"] == "asker@operator" and recs[0]["reason"].startswith("bad-label")
 
 
+async def test_a_label_not_here_or_a_limit_is_refused_counted_and_audited() -> None:
+    """Another platform asking a label not here (each way it may name one) is refused,
+    counted and audited with the reason it is told; a limit is, whoever meets it; this
+    platform's own agent asking a label not here is refused alike, unaudited."""
+    async with world(max_streams=1, max_subscriptions=1) as w:
+        w.dk.add_source("import/uav-c/secret")  # reserved: never named to another platform
+        told = [
+            await refusal(w.ask({"action": "query", "label": "car/car9/speed"})),
+            await refusal(
+                query_ref(w.asker, GW, {"label": "car/car9/speed"}, ontology="dyknow", timeout=5)
+            ),
+            await refusal(
+                w.ask({"action": "query", "label": "car/car9/speed", "kind": "at", "t": 1})
+            ),
+            await refusal(
+                w.ask({"action": "create-stream", "label": "car/car9/speed", "output": "op/x"})
+            ),
+            await refusal(
+                subscribe(w.asker, GW, {"label": "car/car9/speed"}, ontology="dyknow", timeout=5)
+            ),
+        ]
+        unknown = "unknown label 'car/car9/speed' (known labels: car/car5/speed, car5-state)"
+        assert told == [unknown] * 5
+        local = await w.uav.add(Agent("local"))
+        mine = await refusal(
+            request(local, GW, {"action": "query", "label": "car/car9/speed"}, ontology="dyknow")
+        )
+        assert mine.startswith("unknown label 'car/car9/speed'") and "import/uav-c" in mine
+        # the limits: one created stream, one subscription
+        await _create(w.asker, "car/car5/speed", "op/t")
+        limits = [
+            await refusal(
+                w.ask({"action": "create-stream", "label": "car/car5/speed", "output": "op/u"})
+            ),
+        ]
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        limits.append(
+            await refusal(
+                subscribe(local, GW, {"label": "car5-state"}, ontology="dyknow", timeout=5)
+            )
+        )
+        assert limits == ["too many created streams (limit 1)", "too many subscriptions (limit 1)"]
+        stats = w.gateway.gateway_stats
+        assert (stats.unknown_label_refused, stats.limit_refused) == (5, 2)
+        assert (stats.reserved_refused, stats.bad_label_refused, stats.access_refused) == (0, 0, 0)
+        channel = w.uav.channel
+        assert isinstance(channel, InterfaceAgent)
+        recs = [r for r in channel.audit.records if r.get("stage") == "gateway"]
+        assert [(r["code"], r["sender"], r["reason"]) for r in recs] == [
+            ("unknown-label", "asker@operator", f"unknown-label: {unknown}")
+        ] * 5 + [
+            ("stream-limit", "asker@operator", f"stream-limit: {limits[0]}"),
+            ("subscription-limit", "local@uav-a", f"subscription-limit: {limits[1]}"),
+        ]
+        assert [r["performative"] for r in recs[:5]] == [
+            "request",
+            "query-ref",
+            "request",
+            "request",
+            "subscribe",
+        ]
+        assert all(r["verdict"] == "refused" and r["receivers"] == [GW] for r in recs)
+        await feed.cancel()
+
+
 # -- made private while it runs (a sharing reload) ------------------------------------------
 
 

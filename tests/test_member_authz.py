@@ -46,7 +46,9 @@ from agents import (
     Refused,
     new_id,
     on,
+    query_ref,
     request,
+    subscribe,
     wire_key,
 )
 from agents.keys import gen_keys, trust_keys
@@ -484,6 +486,66 @@ async def test_an_opened_gateway_keeps_import_labels_and_creates_none(tmp_path: 
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
         rec = next(i for i in s["imports"]["imports"] if i["sender"] == "uav-c")
         assert rec["injected"] >= 1 and "label-taken" not in rec["dropped_samples"]
+
+
+async def test_an_opened_gateway_counts_and_audits_a_member_asking_labels_not_there(
+    tmp_path: Path,
+) -> None:
+    """Probing which labels a platform has: each ask of a label not there, by a plain read,
+    a query-ref, another kind of query, a create-stream's source or a subscribe, is
+    refused, counted and audited with the reason the member was told (naming no reserved
+    label). The lane leaves such a read to the event loop: `test_answer_on_thread.py`."""
+    opened = {"sharing": {"gateway": "protected"}}
+    async with (
+        asyncio.timeout(120),
+        world(tmp_path, ["uav-a"], ["uav-c", "uav-m"], uav_a=opened) as w,
+    ):
+        assert (await w.ask("uav-a", "uav-c", ["car7-state"])).startswith("x-")
+        await w.until_stats(
+            "uav-a",
+            lambda s: "import/uav-c/car7-state" in s["labels"],
+            "uav-c's stream imported",
+        )
+        m = await mallory(w)
+        gw = "gateway@uav-a"
+        # a label it may read is answered
+        read = {"action": "query", "label": SECRET}
+        assert (await request(m, gw, read, ontology="dyknow"))["samples"]
+        before = await w.stats("uav-a")
+        probe = "mission/target"
+        plain = {"action": "query", "label": probe}
+        told = [await refusal(request(m, gw, plain, ontology="dyknow")) for _ in range(3)]
+        told.append(await refusal(query_ref(m, gw, {"label": probe}, ontology="dyknow")))
+        told.append(
+            await refusal(
+                request(m, gw, {**plain, "kind": "between", "from": 0.0}, ontology="dyknow")
+            )
+        )
+        create = {"action": "create-stream", "label": probe, "output": "op/probe"}
+        told.append(await refusal(request(m, gw, create, ontology="dyknow")))
+        told.append(await refusal(subscribe(m, gw, {"label": probe}, ontology="dyknow")))
+        seen = sorted(lb for lb in before["labels"] if not lb.startswith("import/"))
+        unknown = f"unknown label {probe!r} (known labels: {', '.join(seen[:8])}, …)"
+        assert told == [unknown] * 7
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: len(audited(s, stage="gateway", code="unknown-label")) >= 7,
+            "the refusals audited",
+        )
+        assert s["gateway"]["unknown_label_refused"] == 7
+        assert s["gateway"]["reserved_refused"] == 0
+        recs = audited(s, verdict="refused", stage="gateway", sender="mallory@uav-m")
+        assert [(r["code"], r["from"], r["reason"]) for r in recs] == [
+            ("unknown-label", "uav-m", f"unknown-label: {unknown}")
+        ] * 7
+        assert [r["performative"] for r in recs] == ["request"] * 3 + [
+            "query-ref",
+            "request",
+            "request",
+            "subscribe",
+        ]
+        assert all(r["receivers"] == [gw] for r in recs)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
 
 
 # -- 2. reply_to -----------------------------------------------------------------------------------
