@@ -17,6 +17,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 import traceback
 import uuid
@@ -788,3 +789,44 @@ async def test_an_open_cancelled_while_the_broker_never_answers_tls_leaves_nothi
     finally:
         for s in [*accepted, listener]:
             s.close()
+
+
+async def test_an_open_cancelled_as_paho_s_thread_starts_makes_no_connection_of_its_own(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # cancelled after paho's thread started but before it took the connection made on the
+    # loop (a loaded machine: the thread not scheduled yet), the open put paho's own
+    # connect back in place, and the thread made a connection of its own: a black hole's
+    # held the thread up to paho's 5 s
+    import aiomqtt
+
+    started, go = threading.Event(), threading.Event()
+    tls_params = aiomqtt.Client._set_tls_params
+
+    def late(self: Any) -> None:  # the first thing paho's thread does
+        started.set()
+        go.wait(WAIT)
+        tls_params(self)
+
+    monkeypatch.setattr(aiomqtt.Client, "_set_tls_params", late)
+    listener = socket.socket()
+    try:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(0)  # takes the open's own connection; any next one goes unanswered
+        port = listener.getsockname()[1]
+        t = MqttTransport(MqttConfig(host="127.0.0.1", port=port, connect_timeout=5.0))
+        opening = asyncio.create_task(t.__aenter__())
+        async with asyncio.timeout(WAIT):
+            while not started.is_set():  # noqa: ASYNC110 (a thread's: no event to await)
+                await asyncio.sleep(0.01)
+        opening.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await opening
+        go.set()  # the thread goes on, as its turn comes
+        async with asyncio.timeout(2.0):  # far below paho's 5 s
+            while _connecting():  # noqa: ASYNC110
+                await asyncio.sleep(0.01)
+        assert _handshaking(port) == 0
+    finally:
+        go.set()
+        listener.close()

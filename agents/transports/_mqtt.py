@@ -211,7 +211,10 @@ def _load_client() -> None:
                 raise
             finally:
                 handed.close()
-                vars(paho).pop("_create_socket_connection", None)
+                # paho's thread, started but not yet at the socket, finds `take` (which
+                # refuses a dropped one), not paho's own connect: that made one in the thread
+                if self._connect_ended.is_set():
+                    vars(paho).pop("_create_socket_connection", None)
 
         _given_up = False  # `_abandon` did not wait for paho's connect (see there)
 
@@ -222,6 +225,7 @@ def _load_client() -> None:
             try:
                 super()._client_connect()
             finally:
+                vars(self._client).pop("_create_socket_connection", None)  # `__aenter__`'s
                 if self._connect_ended is not None:
                     self._connect_ended.set()
                 if self._given_up:  # after what this connect scheduled on the loop
