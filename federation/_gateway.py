@@ -92,6 +92,17 @@ GATEWAY_SERVICE_TYPE = "dyknow-gateway"
 # What an inform's content may take: the message limit less room for the ACL fields
 # (identifiers, conversation id, ontology) around it.
 _INFORM_BUDGET = MAX_MESSAGE_BYTES - 4096
+# A label another platform names that is longer than any semantic label is named in a
+# refusal by its first 64 characters (as a bad output label is, `check_semantic_label`):
+# the refusal's audit record is kept in memory and written, and a whole label would make
+# each record as large as the request that brought it
+_NAMED_WHOLE, _NAMED_START = 256, 64
+
+
+def _named(label: str) -> str:
+    """``label`` as a refusal names it: whole, or its start and "…" if longer than any
+    semantic label."""
+    return label if len(label) <= _NAMED_WHOLE else label[:_NAMED_START] + "…"
 
 
 @dataclass(slots=True)
@@ -412,14 +423,15 @@ class GatewayAgent(Agent):
         """The refusal's reason as ``message``'s sender may read it.
 
         An unknown label's reason lists labels that exist: to another platform, only
-        those it may see (reserved ones are not even named, as in list-labels).
+        those it may see (reserved ones are not even named, as in list-labels), and the
+        asked label itself cut if it is longer than any semantic label (`_named`).
         """
         cause = refusal.__cause__
         if isinstance(cause, UnknownLabelError) and platform_of(message.sender) != (
             self.platform.name
         ):
             seen = [lb for lb in self.instance.labels() if not self._is_reserved(lb)]
-            return str(UnknownLabelError(cause.label, seen))
+            return str(UnknownLabelError(_named(cause.label), seen))
         return refusal.reason
 
     def _is_reserved(self, label: Any) -> bool:
@@ -436,7 +448,7 @@ class GatewayAgent(Agent):
             if isinstance(label, str) and label.startswith(reserved):
                 prefix = next(p for p in self.reserved if label.startswith(p))
                 reason = (
-                    f"label {label!r} is reserved (prefix {prefix!r}: streams other "
+                    f"label {_named(label)!r} is reserved (prefix {prefix!r}: streams other "
                     "platforms send here): only agents of this platform may read, create "
                     "or write it"
                 )

@@ -763,6 +763,37 @@ async def test_a_label_not_here_or_a_limit_is_refused_counted_and_audited() -> N
         await feed.cancel()
 
 
+async def test_a_refusal_audited_names_a_long_label_by_its_start_only() -> None:
+    """Another platform naming a label of a whole message's size (not here, or reserved)
+    is refused and audited with that label cut to its first 64 characters: each refusal's
+    record is kept in memory (`AuditLog.records`) and written, a flood of whole labels
+    would cost what the flooder sent, per request, there and on disk."""
+    async with world() as w:
+        long = "x" * 60_000
+        unknown = await refusal(w.ask({"action": "query", "label": long}))
+        reserved = await refusal(
+            subscribe(w.asker, GW, {"label": "import/" + long}, ontology="dyknow", timeout=5)
+        )
+        assert unknown == (
+            f"unknown label {'x' * 64 + '…'!r} (known labels: car/car5/speed, car5-state)"
+        )
+        assert reserved.startswith(f"label {'import/' + 'x' * 57 + '…'!r} is reserved")
+        stats = w.gateway.gateway_stats
+        assert (stats.unknown_label_refused, stats.reserved_refused) == (1, 1)
+        channel = w.uav.channel
+        assert isinstance(channel, InterfaceAgent)
+        recs = [r for r in channel.audit.records if r.get("stage") == "gateway"]
+        assert [(r["code"], r["reason"]) for r in recs] == [
+            ("unknown-label", f"unknown-label: {unknown}"),
+            ("reserved-label", f"reserved-label: {reserved}"),
+        ]
+        # a label as long as a semantic label may be is named whole
+        whole = "y/" * 127 + "yy"
+        assert len(whole) == 256
+        told = await refusal(w.ask({"action": "query", "label": whole}))
+        assert told.startswith(f"unknown label {whole!r} (known labels")
+
+
 # -- made private while it runs (a sharing reload) ------------------------------------------
 
 
