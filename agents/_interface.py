@@ -1729,7 +1729,7 @@ class InterfaceAgent:
         # pydantic's attribute hook
         performative = fields["performative"]
         if performative not in INITIATING:
-            return _HANDED if self._lane_reply(peer, body, message, forgets) else _LEFT
+            return _HANDED if self._lane_reply(peer, body, message, fields, forgets) else _LEFT
         receivers = fields["receivers"]
         if len(receivers) != 1 or fields["reply_to"] or fields["in_reply_to"] is not None:
             return _LEFT
@@ -1896,31 +1896,42 @@ class InterfaceAgent:
             if total is not None:
                 total.tokens = min(total.burst, total.tokens + 1.0)
 
-    def _lane_reply(self, peer: str, body: bytes, message: ACLMessage, forgets: int) -> bool:
+    def _lane_reply(
+        self, peer: str, body: bytes, message: ACLMessage, fields: dict[str, Any], forgets: int
+    ) -> bool:
         """On zenoh's thread: hand ``message``, a reply an open conversation waits for, to
         the loop's `_lane_book`, which takes it (`_lane_take_reply`); False: not such a one.
 
         Only read here (one dict lookup each); the loop decides everything again.
+        ``fields`` is the message's __dict__: each read a dict lookup, not a pass through
+        pydantic's attribute hook.
         """
-        if not self.lane_replies or message.reply_to:
+        if not self.lane_replies or fields["reply_to"]:
             return False
         host = self._host
-        receivers = message.receivers
+        receivers = fields["receivers"]
         if host is None or len(receivers) != 1:
             return False
         here = host.name
         at = receivers[0].rpartition("@")
-        if at[2] != here or message.sender.rpartition("@")[2] != peer or peer == here:
+        sender = fields["sender"]
+        if at[2] != here or sender.rpartition("@")[2] != peer or peer == here:
             return False
         agent = host._agents.get(at[0])
         if agent is None or agent._state != _RUNNING:
             return False
         conv = None
-        if message.in_reply_to is not None:
-            conv = agent._by_reply.get(message.in_reply_to)
-        if conv is None and message.conversation_id is not None:
-            conv = agent._by_conv.get(message.conversation_id)
-        if conv is None or not conv.accepts(message):
+        if (key := fields["in_reply_to"]) is not None:
+            conv = agent._by_reply.get(key)
+        if conv is None and (key := fields["conversation_id"]) is not None:
+            conv = agent._by_conv.get(key)
+        # `conv.accepts(message)`, inline, as `Agent._deliver` has it
+        if (
+            conv is None
+            or conv.closed
+            or ((peers := conv.peers) is not None and sender not in peers)
+            or ((rw := fields["reply_with"]) is not None and rw in conv._keys)
+        ):
             # a reply nobody waits for, or one its conversation refuses (not from one of
             # its peers): the loop's way, as any other message
             return False
@@ -1963,7 +1974,12 @@ class InterfaceAgent:
                     return False
             taken = self._take_message(host, peer, state, message, now)
         if taken:
-            self._lane_release(peer)
+            with self._lane_lock:  # `_lane_release`, inline: every reply the lane hands over
+                left = self._lane_queued[peer] - 1
+                if left:
+                    self._lane_queued[peer] = left
+                else:
+                    del self._lane_queued[peer]
             self.replies_on_thread += 1
         return taken
 
@@ -1989,14 +2005,21 @@ class InterfaceAgent:
                 # then in the conversation before its task runs, not late after it)
                 return False
             self._lane_posted = self._lane_reply_posted = self._lane_handed = False
-            done, self._lane_done = self._lane_done, deque()
+            done = self._lane_done
+            lone = None
+            if len(done) == 1 and len(done[0]) == 4:
+                # one reply alone, nothing booked before it (an asker's round trip): taken
+                # out of the queue the lane keeps, no new one made for it
+                lone = done.popleft()
+            else:
+                self._lane_done = deque()
         host = self._host
         if host is None:
-            done.clear()
+            if lone is None:  # the queue swapped out (the lane's own is not touched here)
+                done.clear()
             return False
-        if len(done) == 1 and len(done[0]) == 4:
-            # one reply alone, nothing booked before it: an asker's round trip
-            peer, body, message, forgets = done[0]
+        if lone is not None:
+            peer, body, message, forgets = lone
             self._lone.discard(peer)  # a turn of the loop after what went to it (`_sent`)
             try:
                 if self._lane_take_reply(host, peer, body, message, forgets):
