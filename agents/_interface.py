@@ -1667,10 +1667,17 @@ class InterfaceAgent:
             peer, body, forgets = self.sessions.open_noting(payload)
         except Exception as exc:  # the loop counts and audits it
             return None, exc, 0
-        with self._lane_lock:
+        # the lock taken and released by its methods, not by `with`: ~0.8 k instructions
+        # less a section on the path of every envelope the lane opens (and of a reply's
+        # hand-over to the loop: `_lane_reply`, `_lane_book`, `_lane_take_reply`)
+        lock = self._lane_lock
+        lock.acquire()
+        try:
             queued = self._lane_queued.get(peer, 0)
             self._lane_queued[peer] = queued + 1
             raw = self._lane_raw
+        finally:
+            lock.release()
         if queued == 0 and not raw:
             try:
                 answered = self._lane_answer(peer, body, forgets)
@@ -1938,10 +1945,14 @@ class InterfaceAgent:
         loop = self._loop
         if loop is None:
             return False
-        with self._lane_lock:
+        lock = self._lane_lock  # not `with`: see `_lane_take`
+        lock.acquire()
+        try:
             self._lane_done.append((peer, body, message, forgets))
             self._lane_handed = True
             posted, self._lane_reply_posted = self._lane_reply_posted, True
+        finally:
+            lock.release()
         if not posted:
             try:
                 loop.call_soon_threadsafe(self._lane_book)
@@ -1966,20 +1977,28 @@ class InterfaceAgent:
         if state is None:
             return False
         total = state.total
-        with state.lock:
+        lock = state.lock  # not `with`: see `_lane_take`
+        lock.acquire()
+        try:
             now = 0.0
             if total is not None:
                 now = self._monotonic()
                 if not total.ready(now):
                     return False
             taken = self._take_message(host, peer, state, message, now)
+        finally:
+            lock.release()
         if taken:
-            with self._lane_lock:  # `_lane_release`, inline: every reply the lane hands over
+            lock = self._lane_lock  # `_lane_release`, inline: every reply the lane hands over
+            lock.acquire()
+            try:
                 left = self._lane_queued[peer] - 1
                 if left:
                     self._lane_queued[peer] = left
                 else:
                     del self._lane_queued[peer]
+            finally:
+                lock.release()
             self.replies_on_thread += 1
         return taken
 
@@ -1991,7 +2010,9 @@ class InterfaceAgent:
         A booking or hand-over that raises costs only itself: logged with what failed,
         counted in ``lane_failed``, its peer's count released; the others are made."""
         inbox = self._lane_inbox
-        with self._lane_lock:
+        lock = self._lane_lock  # not `with`: see `_lane_take`
+        lock.acquire()
+        try:
             if (
                 current is None
                 and self._lane_handed
@@ -2013,6 +2034,8 @@ class InterfaceAgent:
                 lone = done.popleft()
             else:
                 self._lane_done = deque()
+        finally:
+            lock.release()
         host = self._host
         if host is None:
             if lone is None:  # the queue swapped out (the lane's own is not touched here)
