@@ -1668,8 +1668,9 @@ class InterfaceAgent:
         except Exception as exc:  # the loop counts and audits it
             return None, exc, 0
         # the lock taken and released by its methods, not by `with`: ~0.8 k instructions
-        # less a section on the path of every envelope the lane opens (and of a reply's
-        # hand-over to the loop: `_lane_reply`, `_lane_book`, `_lane_take_reply`)
+        # less a section on the path of every envelope the lane opens (and of what it
+        # answers, `_lane_answer`, or hands over to the loop: `_lane_reply`, `_lane_book`,
+        # `_lane_take_reply`)
         lock = self._lane_lock
         lock.acquire()
         try:
@@ -1691,12 +1692,15 @@ class InterfaceAgent:
                 )
                 answered = _LEFT
             if answered is _ANSWERED:
-                with self._lane_lock:  # `_lane_release`, inline: every answer the lane puts
+                lock.acquire()  # `_lane_release`, inline: every answer the lane puts
+                try:
                     left = self._lane_queued[peer] - 1
                     if left:
                         self._lane_queued[peer] = left
                     else:
                         del self._lane_queued[peer]
+                finally:
+                    lock.release()
                 return None
             if answered is _HANDED:  # a reply: its count stands until `_lane_book` takes it
                 return None
@@ -1815,9 +1819,13 @@ class InterfaceAgent:
         # reaches the loop behind this booking (`_receive`'s check, or the posted booking's
         # FIFO place when no audit flush runs).
         done = (peer, entry, agent)
-        with self._lane_lock:
+        lane_lock = self._lane_lock  # not `with`: see `_lane_take`
+        lane_lock.acquire()
+        try:
             self._lane_done.append(done)
             posted, self._lane_posted = self._lane_posted, True
+        finally:
+            lane_lock.release()
         if not posted:
             if self._flush_loop is not None:
                 # booked at the audit flush's next tick (it writes the record then anyway),
