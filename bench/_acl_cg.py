@@ -8,8 +8,10 @@ on the load of the machine, which makes them the figure to compare two states of
 code with (what runs on timers, the audit flush's ticks and the like, counts per second
 of the window, not per round trip: a loaded run counts a few thousand more; alternate
 and compare medians). Prints one JSON object: the loop thread's instructions (Ir) per
-round trip, and the files written (``--out DIR``, default a new temporary directory),
-for ``callgrind_annotate`` to show per function.
+round trip, beside it the busiest other thread's (``rx_thread_ir_per_round_trip``:
+zenoh's callback thread, where the reply is opened, parsed and handed to the loop) and
+all other threads' summed (zenoh's own included), and the files written (``--out DIR``,
+default a new temporary directory), for ``callgrind_annotate`` to show per function.
 
 ``--side replier`` measures the other side instead: the spawned node runs under
 callgrind, the asker does not, over the same window. The gateway's plain read is
@@ -141,11 +143,12 @@ def run(tree: str, n: int, out: Path, side: str = "asker") -> dict[str, Any]:
     if proc.returncode != 0:
         raise RuntimeError(f"callgrind run of {tree} failed: {proc.stderr[-2000:]}")
     got: dict[str, Any] = {"side": side, "ir_per_round_trip": _loop_thread_ir(out) / n}
-    if side == "replier":
-        others = _other_threads_ir(out)
-        # the busiest: zenoh's callback thread, where the lane opens and answers a request
-        got["lane_thread_ir_per_round_trip"] = others[0] / n if others else 0.0
-        got["other_threads_ir_per_round_trip"] = sum(others) / n
+    others = _other_threads_ir(out)
+    # the busiest: zenoh's callback thread, where the lane opens and answers a request
+    # (the replier) or opens the reply and hands it to the loop (the asker)
+    busiest = "lane_thread" if side == "replier" else "rx_thread"
+    got[f"{busiest}_ir_per_round_trip"] = others[0] / n if others else 0.0
+    got["other_threads_ir_per_round_trip"] = sum(others) / n
     return {**got, "n": n, "tree": tree, "out": str(out)}
 
 

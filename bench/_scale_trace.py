@@ -130,8 +130,10 @@ def _hook_operator() -> None:
             notes.append((entered.t, "raw", None))
         return got
 
-    def lane_reply(self: Any, peer: str, body: bytes, message: Any, forgets: int) -> bool:
-        handed = hand(self, peer, body, message, forgets)
+    def lane_reply(
+        self: Any, peer: str, body: bytes, message: Any, fields: Any, forgets: int
+    ) -> bool:
+        handed = hand(self, peer, body, message, fields, forgets)
         if handed:
             notes.append((entered.t, "reply", peer))
         return handed
