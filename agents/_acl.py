@@ -197,8 +197,9 @@ class ACLMessage(BaseModel):
         header = _last_header
         # the message `compose` made last of a remembered header: its fields read from the
         # header, not through pydantic's attribute hook
-        if self is header.message:
-            fields: dict[str, Any] = header.made  # type: ignore[assignment]  # set with it
+        made = header.made
+        if made[0] is self:
+            fields = made[1]
             receivers = fields["receivers"]
             content = fields["content"]
             # its list is its own to change: only an unchanged one is written as remembered
@@ -659,7 +660,8 @@ def compose(
                     _set_extra(made, None)
                     _set_private(made, None)
                     # for to_json: this message's header is written as remembered
-                    last.made, last.message = made_fields, made
+                    # (one store: another thread's to_json reads both as one)
+                    last.made = (made, made_fields)
                     return made
     listed = [receivers] if isinstance(receivers, str) else list(receivers)
     act = _PERFORMATIVES.get(performative) if type(performative) is str else performative
@@ -702,7 +704,6 @@ class _Header:
     __slots__ = (
         "fields",
         "made",
-        "message",
         "names",
         "performative",
         "prefix",
@@ -720,10 +721,10 @@ class _Header:
         self.fields: dict[str, Any] = {}
         self.template: dict[str, Any] = {}
         self.names: frozenset[str] = frozenset()
-        # the last message's fields put together from it (a dict no one else makes), and
-        # its JSON around the content: `to_json` writes that message with one dump
-        self.made: dict[str, Any] | None = None
-        self.message: ACLMessage | None = None  # the message of those fields (`made`)
+        # the last message put together from it and its fields (a dict no one else makes),
+        # one tuple (stored at once: another thread's to_json never sees one of another's
+        # fields), and its JSON around the content: `to_json` writes it with one dump
+        self.made: tuple[ACLMessage | None, dict[str, Any]] = (None, {})
         self.prefix = b""
         self.suffix = b""
 
@@ -755,8 +756,7 @@ def _remember_header(
     header.fields = fields.copy()  # the caller's dict is its own to change
     header.template = {**message, "receivers": None, "content": None}
     header.names = frozenset(names)
-    header.made = message
-    header.message = made
+    header.made = (made, message)
     # the JSON to_json writes, split around the content (between receivers and the
     # optional str fields, in the model's order; reply_to is a list: never remembered)
     head = {"v": message["v"], "performative": act, "sender": sender, "receivers": [receivers]}
