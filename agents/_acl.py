@@ -194,9 +194,12 @@ class ACLMessage(BaseModel):
 
     def to_json(self) -> bytes:
         """The message as compact JSON bytes, leaving out unset fields."""
-        fields = self.__dict__
         header = _last_header
-        if fields is header.made:  # the message `compose` made last, of a remembered header
+        # the message `compose` made last of a remembered header: its fields read from the
+        # header, not through pydantic's attribute hook
+        made = header.made
+        if made[0] is self:
+            fields = made[1]
             receivers = fields["receivers"]
             content = fields["content"]
             # its list is its own to change: only an unchanged one is written as remembered
@@ -205,6 +208,7 @@ class ACLMessage(BaseModel):
                     return header.prefix + orjson.dumps(content) + header.suffix
                 except orjson.JSONEncodeError as exc:
                     raise MessageError(f"content cannot be sent as JSON: {exc}") from exc
+        fields = self.__dict__
         try:
             # the fields are already valid JSON values (content is validated as JsonValue,
             # performative is a str enum): dumping __dict__ skips pydantic's serializer
@@ -622,22 +626,43 @@ def compose(
         receivers is last.receivers  # one identifier (only a str is remembered), unchanged
         and sender is last.sender
         and performative is last.performative
-        # exact str or None, as `_plain_message` took them, before comparing: an equal
-        # value of another type (a str subclass) is not taken for the remembered one
-        and _all_str_or_none(map(type, fields.values()))
-        and fields == last.fields
     ):
-        # a run of messages with the header of the last one (a burst): its checks hold
-        try:
-            copied = _json_copy(content, 0)
-        except _NotPlain:
-            pass
+        # exact str or None, as `_plain_message` took them, before comparing: an equal
+        # value of another type (a str subclass) is not taken for the remembered one (a
+        # loop: the few fields cost less so than a set of their types made by issuperset)
+        for value in fields.values():
+            if type(value) is not str and value is not None:
+                break
         else:
-            message = last.template.copy()
-            message["receivers"] = [receivers]
-            message["content"] = copied
-            last.made = message  # for to_json: its header is written as remembered
-            return _constructed(ACLMessage, message, set(last.names))
+            if fields == last.fields:
+                # a run of messages with the header of the last one (a burst): its checks
+                # hold; its content copied, a flat dict (the usual) here, without a call
+                copied: Any = _NOT_COPIED
+                if type(content) is dict:
+                    copied = content.copy()
+                    for key, item in copied.items():
+                        if type(key) is not str or type(item) not in _JSON_SCALARS:
+                            copied = _NOT_COPIED  # nested, or no JSON: the general copy
+                            break
+                if copied is _NOT_COPIED:
+                    try:
+                        copied = _json_copy(content, 0)
+                    except _NotPlain:
+                        pass
+                if copied is not _NOT_COPIED:
+                    made_fields = last.template.copy()
+                    made_fields["receivers"] = [receivers]
+                    made_fields["content"] = copied
+                    # `_constructed`, inline (the path of every message of a burst)
+                    made: ACLMessage = _new_message(ACLMessage)
+                    _set_dict(made, made_fields)
+                    _set_fields_set(made, set(last.names))
+                    _set_extra(made, None)
+                    _set_private(made, None)
+                    # for to_json: this message's header is written as remembered
+                    # (one store: another thread's to_json reads both as one)
+                    last.made = (made, made_fields)
+                    return made
     listed = [receivers] if isinstance(receivers, str) else list(receivers)
     act = _PERFORMATIVES.get(performative) if type(performative) is str else performative
     if _plain_message(act, sender, listed, fields):
@@ -655,10 +680,11 @@ def compose(
             if fields:
                 message.update(fields)
                 names.update(fields)
+            made = _constructed(ACLMessage, message, names)
             # a reply_by (every request has its own) is never remembered: no call for it
             if type(receivers) is str and fields.get("reply_by") is None:
-                _remember_header(performative, act, sender, receivers, fields, message, names)
-            return _constructed(ACLMessage, message, names)
+                _remember_header(performative, act, sender, receivers, fields, made)
+            return made
     return ACLMessage.build(
         performative=performative,
         sender=sender,
@@ -669,6 +695,7 @@ def compose(
 
 
 _NO_HEADER = object()
+_NOT_COPIED: Any = object()  # compose's content not copied (yet)
 
 
 class _Header:
@@ -694,9 +721,10 @@ class _Header:
         self.fields: dict[str, Any] = {}
         self.template: dict[str, Any] = {}
         self.names: frozenset[str] = frozenset()
-        # the last message's fields put together from it (a dict no one else makes), and
-        # its JSON around the content: `to_json` writes that message with one dump
-        self.made: dict[str, Any] | None = None
+        # the last message put together from it and its fields (a dict no one else makes),
+        # one tuple (stored at once: another thread's to_json never sees one of another's
+        # fields), and its JSON around the content: `to_json` writes it with one dump
+        self.made: tuple[ACLMessage | None, dict[str, Any]] = (None, {})
         self.prefix = b""
         self.suffix = b""
 
@@ -711,14 +739,16 @@ def _remember_header(
     sender: str,
     receivers: str,
     fields: dict[str, Any],
-    message: dict[str, Any],
-    names: set[str],
+    made: ACLMessage,
 ) -> None:
-    """Remember a checked header, for `compose` to take the next equal one without checks."""
+    """Remember a checked header (of ``made``, just put together from these fields), for
+    `compose` to take the next equal one without checks."""
     if not _all_str_or_none(map(type, fields.values())):
         # a reply_by: every request has its own, and an equal one of another type
         # (True, 1) is no float: `build` decides on it
         return
+    message = made.__dict__
+    names = made.__pydantic_fields_set__
     header = _Header()
     header.performative = performative
     header.sender = sender
@@ -726,7 +756,7 @@ def _remember_header(
     header.fields = fields.copy()  # the caller's dict is its own to change
     header.template = {**message, "receivers": None, "content": None}
     header.names = frozenset(names)
-    header.made = message
+    header.made = (made, message)
     # the JSON to_json writes, split around the content (between receivers and the
     # optional str fields, in the model's order; reply_to is a list: never remembered)
     head = {"v": message["v"], "performative": act, "sender": sender, "receivers": [receivers]}

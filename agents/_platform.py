@@ -383,6 +383,9 @@ class AgentPlatform:
         self._join_batch: Callable[[str, ACLMessage], bool] | None = getattr(
             self.channel, "join_batch", None
         )
+        # the last single receiver `send` met and its platform
+        self._last_receiver: str | None = None
+        self._last_target = ""
         # and send one that waits for nothing without one (`InterfaceAgent.send_now`)
         self._send_now: Callable[[str, ACLMessage], bool] | None = getattr(
             self.channel, "send_now", None
@@ -679,9 +682,16 @@ class AgentPlatform:
             raise AgentError(f"platform {self.name} is {self._state}")
         receivers = message.receivers
         if len(receivers) == 1:  # the common case, without building sets
-            target = receivers[0].rpartition("@")[2]  # platform_of, inline
+            receiver = receivers[0]
+            # platform_of, remembered for the last receiver: a burst repeats one (a str,
+            # immutable: the same object has the same platform)
+            if receiver is self._last_receiver:
+                target = self._last_target
+            else:
+                target = receiver.rpartition("@")[2]
+                self._last_receiver, self._last_target = receiver, target
             if target == self.name:
-                await self._local(receivers[0], message)
+                await self._local(receiver, message)
                 return
             # what _remote does, inline: a coroutine less per message sent in a burst
             join = self._join_batch

@@ -10,6 +10,11 @@ message (``time.thread_time``) is the two loop threads' of the zenoh flood toget
 without zenoh's own threads and without the machine's load in it: a figure to compare
 two states of the code on a loaded machine. Prints one JSON object per round.
 
+``--sender-only`` (first, or after ``--ab``'s trees and pairs): the sender's part alone.
+After a warm-up round of 2000 (the session agreed, the sink's count checked), the receiving
+platform's inbox leaves the hub: what the sender publishes then goes nowhere, and a round
+is the sender's build, to_json, batch, seal and publish only, its last batch flushed.
+
 ``python -m bench._acl_oneway_cpu --ab TREE_A TREE_B [--pairs 5] [N] [ROUNDS]`` runs this
 file in a fresh process per run with ``PYTHONPATH`` set to each tree in turn (a tree
 without it too), in alternated pairs (A B, B A, A B ...), and prints each tree's medians
@@ -27,10 +32,11 @@ from pathlib import Path
 N = 30_000
 ROUNDS = 5
 WAIT_S = 60.0  # for the sink to count the round's last message
+WARM_UP = 2_000  # messages of a --sender-only run's warm-up round
 KEYS = ("us_per_msg",)
 
 
-async def _rounds(n: int, rounds: int) -> list[dict[str, float]]:
+async def _rounds(n: int, rounds: int, sender_only: bool = False) -> list[dict[str, float]]:
     """``rounds`` floods of ``n`` informs, each one's loop-thread CPU per message (µs)."""
     from agents import (
         ACLMessage,
@@ -65,7 +71,14 @@ async def _rounds(n: int, rounds: int) -> list[dict[str, float]]:
     hub = MemoryHub()
 
     def channel(k: KeyPair) -> InterfaceAgent:
-        return InterfaceAgent(k, trust, policy=SecurityPolicy(encrypt=True), rate_limit=unlimited)
+        # a key exchange with room for a slow run (under valgrind on a loaded machine)
+        return InterfaceAgent(
+            k,
+            trust,
+            policy=SecurityPolicy(encrypt=True),
+            rate_limit=unlimited,
+            handshake_timeout=30.0,
+        )
 
     out: list[dict[str, float]] = []
     async with (
@@ -80,23 +93,34 @@ async def _rounds(n: int, rounds: int) -> list[dict[str, float]]:
         message, send = asker.message, asker.send
         inform = Performative.INFORM
         for r in range(rounds + 1):  # the first warms up
+            # sender alone: a warm-up of the same size whatever n (it delivers, the rounds
+            # do not), so that two runs' difference is the rounds' alone
+            size = WARM_UP if sender_only and not r else n
             sink.reset()
-            sink.target, sink.done = n, asyncio.Event()
+            sink.target, sink.done = size, asyncio.Event()
             t = time.thread_time()
-            for i in range(n):
+            for i in range(size):
                 await send(message(inform, acl.SINK, content(i), ontology=FLOOD_ONTOLOGY))
-            await asyncio.wait_for(sink.done.wait(), WAIT_S)
+            if r and sender_only:
+                for _ in range(3):  # the turn's last batch, flushed at its end
+                    await asyncio.sleep(0)
+            else:
+                await asyncio.wait_for(sink.done.wait(), WAIT_S)
             used = time.thread_time() - t
+            if not r and sender_only:
+                # the sink's platform stops hearing: the rounds measure the sender alone
+                inbox = pb.key("acl")
+                hub.subscribers[:] = [s for s in hub.subscribers if s[0] != inbox]
             if r:
-                out.append({"us_per_msg": used / n * 1e6})
+                out.append({"us_per_msg": used / size * 1e6})
     return out
 
 
-def measure(n: int = N, rounds: int = ROUNDS) -> list[dict[str, float]]:
+def measure(n: int = N, rounds: int = ROUNDS, sender_only: bool = False) -> list[dict[str, float]]:
     """Each round's figures."""
     from agents import run as run_loop
 
-    result: list[dict[str, float]] = run_loop(_rounds(n, rounds))
+    result: list[dict[str, float]] = run_loop(_rounds(n, rounds, sender_only))
     return result
 
 
@@ -108,9 +132,12 @@ def main(argv: list[str]) -> None:
         # this file, run against the tree's packages (a tree older than it lacks it)
         ab_main(argv, lambda rest: [sys.executable, __file__, *rest], KEYS)
         return
+    sender_only = argv[:1] == ["--sender-only"]
+    if sender_only:
+        argv = argv[1:]
     n = int(argv[0]) if argv else N
     rounds = int(argv[1]) if len(argv) > 1 else ROUNDS
-    for got in measure(n, rounds):
+    for got in measure(n, rounds, sender_only):
         print(json.dumps(got), flush=True)
 
 

@@ -571,11 +571,25 @@ _python_content = st.recursive(
     _scalars | st.text(max_size=5) | st.sampled_from([Performative.INFORM, b"x", (1, 2)]),
     lambda inner: (
         st.lists(inner, max_size=3)
-        | st.dictionaries(st.text(max_size=3) | st.integers(0, 3), inner, max_size=3)
+        | st.dictionaries(
+            # a str subclass as a key too: equal to a str, not one
+            st.text(max_size=3) | st.integers(0, 3) | st.just(Performative.INFORM),
+            inner,
+            max_size=3,
+        )
         | st.tuples(inner)
     ),
     max_leaves=8,
 )
+
+
+def _containers(value: Any) -> list[Any]:
+    """Every dict and list in ``value``, itself included."""
+    if type(value) is dict:
+        return [value, *(c for item in value.values() for c in _containers(item))]
+    if type(value) is list:
+        return [value, *(c for item in value for c in _containers(item))]
+    return []
 
 
 @st.composite
@@ -684,7 +698,8 @@ def _composed(draw: st.DrawFn) -> tuple[Any, ...]:
     )
     names = draw(st.sets(st.sampled_from(sorted(_agent_fields)), max_size=3))
     fields = {name: draw(_agent_fields[name]) for name in names}
-    return performative, sender, receivers, draw(_python_content), fields
+    content = draw(_python_content | st.dictionaries(st.text(max_size=3), _scalars, max_size=4))
+    return performative, sender, receivers, content, fields
 
 
 @settings(max_examples=500, deadline=None)
@@ -716,6 +731,11 @@ def test_an_agents_message_is_the_message_build_makes(args: tuple[Any, ...]) -> 
     assert again.receivers is not quick.receivers  # each message its own list
     if isinstance(content, list | dict):
         assert again.content is not quick.content
+    # a copy all through: no dict or list of the content is one of the message's
+    given = {id(c) for c in _containers(content)}
+    assert not any(
+        id(c) in given for c in (*_containers(quick.content), *_containers(again.content))
+    )
 
 
 class _Text(str):

@@ -766,6 +766,20 @@ async def test_malformed_acl_in_a_valid_envelope_is_answered_not_understood() ->
         assert len(listener.not_understood) == 1
 
 
+@pytest.mark.parametrize("n", [1, 2, 3, 256])
+def test_a_batch_body_is_the_array_of_its_messages(n: int) -> None:
+    """_batch_body: one message alone as it is; two or more as b"[" + b",".join + b"]"."""
+    from agents._interface import _batch_body
+
+    bodies = [orjson.dumps({"i": i, "pad": "x" * (i % 7)}) for i in range(n)]
+    expected = bodies[0] if n == 1 else b"[" + b",".join(bodies) + b"]"
+    got = _batch_body(list(bodies))
+    assert got == expected
+    assert orjson.loads(got) == (
+        orjson.loads(bodies[0]) if n == 1 else [orjson.loads(b) for b in bodies]
+    )
+
+
 async def test_a_burst_goes_in_batches_each_message_checked_and_audited() -> None:
     """Messages sent in one turn after the first share an envelope; each is admitted alone."""
     async with federation("uav-a", "uav-b") as fed:
