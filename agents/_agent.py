@@ -173,6 +173,13 @@ class MessageTemplate:
     def __delattr__(self, name: str) -> None:
         raise AttributeError(f"a MessageTemplate is fixed once made (cannot delete {name!r})")
 
+    def __reduce__(self) -> tuple[Any, ...]:
+        # copied and pickled as made anew: the default sets each slot, which it refuses
+        return (
+            _template,
+            (self.performatives, self.protocol, self.ontology, self.conversation_id, self.where),
+        )
+
     def matches(self, message: ACLMessage) -> bool:
         """Whether ``message`` has every field this template sets."""
         return (
@@ -193,6 +200,23 @@ class MessageTemplate:
         if self.where is not None:
             parts.append("where=…")
         return f"MessageTemplate({', '.join(parts)})"
+
+
+def _template(
+    performatives: frozenset[Performative] | None,
+    protocol: str | None,
+    ontology: str | None,
+    conversation_id: str | None,
+    where: Callable[[ACLMessage], bool] | None,
+) -> MessageTemplate:
+    """A template made anew of these fields (`MessageTemplate.__reduce__`)."""
+    return MessageTemplate(
+        performatives,
+        protocol=protocol,
+        ontology=ontology,
+        conversation_id=conversation_id,
+        where=where,
+    )
 
 
 class _Route(NamedTuple):

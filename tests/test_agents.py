@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import logging
 import os
+import pickle
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -231,6 +233,15 @@ def test_a_template_is_fixed_once_made() -> None:
     with pytest.raises(AttributeError, match="fixed once made"):
         del template.where
     assert template.ontology == "a" and template.performatives == frozenset({P.INFORM})
+    # copied and pickled as before, by its fields
+    for again in (
+        copy.copy(template),
+        copy.deepcopy(template),
+        pickle.loads(pickle.dumps(template)),
+    ):
+        assert repr(again) == repr(template) and again is not template
+    none = pickle.loads(pickle.dumps(MessageTemplate(protocol="p", conversation_id="c")))
+    assert (none.performatives, none.protocol, none.conversation_id) == (None, "p", "c")
 
 
 async def test_add_responder_needs_a_declared_handler() -> None:
