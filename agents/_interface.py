@@ -2341,6 +2341,7 @@ class InterfaceAgent:
         head_fields: dict[str, Any] = {}  # its fields
         head_entry: tuple[Any, ...] = ()  # its audit entry
         head_names: set[str] = set()  # its keys (`__pydantic_fields_set__`)
+        head_bare = False  # whether it has no content
         head_initiating = False
         reuse = True
         try:
@@ -2351,12 +2352,14 @@ class InterfaceAgent:
                 if head is not None and type(obj) is dict:
                     rest = obj.copy()
                     content = rest.pop("content", _ABSENT)
-                    # equal to a header taken (one with a content): valid, but for a number
-                    # equal to its ``v`` that is no int (1.0, true); `_nests_less`'s
-                    # common case (a dict of scalars) told here, without its call
+                    bare = content is _ABSENT  # no content (None, as the model's default)
+                    if bare:
+                        content = None
+                    # equal to a header taken: valid, but for a number equal to its ``v``
+                    # that is no int (1.0, true); `_nests_less`'s common case (a dict of
+                    # scalars) told here, without its call
                     if (
                         rest == head
-                        and content is not _ABSENT
                         and type(rest["v"]) is int
                         and (
                             (type(content) is dict and _all_scalars(map(type, content.values())))
@@ -2378,10 +2381,12 @@ class InterfaceAgent:
                         copied["content"] = content
                         add_entry(head_entry)
                         # `_constructed`, inline; its keys those of the header's message
-                        # (the same header, a content both): a copy of that one's set
+                        # when both have a content or neither has: a copy of that one's set
                         message = _new_message(ACLMessage)
                         _set_dict(message, copied)
-                        _set_fields_set(message, head_names.copy())
+                        _set_fields_set(
+                            message, head_names.copy() if bare is head_bare else set(obj)
+                        )
                         _set_extra(message, None)
                         _set_private(message, None)
                         run.append(message)
@@ -2457,16 +2462,12 @@ class InterfaceAgent:
                 room -= 1
                 i += 1
                 if reuse and quick:
-                    if (
-                        "v" in obj
-                        and "content" in obj
-                        and "reply_to" not in obj
-                        and "reply_by" not in obj
-                    ):
+                    if "v" in obj and "reply_to" not in obj and "reply_by" not in obj:
                         head = obj.copy()
-                        del head["content"]
+                        head.pop("content", None)
                         head_fields, head_entry, head_initiating = fields, entry, initiating
                         head_names = set(obj)  # its own: the message's is the message's
+                        head_bare = "content" not in obj
                     else:
                         reuse = False
         finally:

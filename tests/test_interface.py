@@ -911,6 +911,17 @@ async def test_a_batch_of_one_header_gives_the_messages_a_full_parse_gives() -> 
         assert len({id(m.__dict__) for m in echo.informs}) == len(items)
         assert ia(pb).audit.counts["accepted"] == accepted + len(items)
 
+        # a header without a content first, then the same with one, and without again
+        echo.informs.clear()
+        items = [dict(head), dict(head), {**head, "content": [1]}, dict(head)]
+        body = b"[" + b",".join(orjson.dumps(item) for item in items) + b"]"
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", body))
+        await until(lambda: len(echo.informs) == len(items), "every inform")
+        for got, item in zip(echo.informs, items, strict=True):
+            want = ACLMessage.from_obj(item)
+            assert (got, got.model_fields_set) == (want, want.model_fields_set)
+        assert len({id(m.model_fields_set) for m in echo.informs}) == len(items)
+
 
 async def test_each_message_of_a_batch_is_checked_for_depth_however_deep_the_batch() -> None:
     """A batch nesting deeper than any message may: the shallow ones taken, the deep one not.
