@@ -40,6 +40,8 @@ from ._records import Record
 if TYPE_CHECKING:
     from ._platform import AgentPlatform
 
+_setattr = object.__setattr__  # a fixed MessageTemplate's fields, set once in __init__
+
 log = logging.getLogger(__name__)
 
 Handler = Callable[[ACLMessage], Awaitable[None]]
@@ -130,7 +132,8 @@ class MessageTemplate:
     """Matches messages on any subset of performative(s), protocol, ontology, conversation id.
 
     ``where`` is an extra predicate for what the fields cannot say. A template with
-    nothing set matches every message.
+    nothing set matches every message. A template is fixed once made (an agent keeps
+    the route it chose for a header: `Agent._receive_loop`).
     """
 
     __slots__ = ("conversation_id", "ontology", "performatives", "protocol", "where")
@@ -144,16 +147,38 @@ class MessageTemplate:
         conversation_id: str | None = None,
         where: Callable[[ACLMessage], bool] | None = None,
     ) -> None:
+        performatives: frozenset[Performative] | None
         if performative is None:
-            self.performatives: frozenset[Performative] | None = None
+            performatives = None
         elif isinstance(performative, str):
-            self.performatives = frozenset({Performative(performative)})
+            performatives = frozenset({Performative(performative)})
         else:
-            self.performatives = frozenset(Performative(p) for p in performative)
-        self.protocol = protocol
-        self.ontology = ontology
-        self.conversation_id = conversation_id
-        self.where = where
+            performatives = frozenset(Performative(p) for p in performative)
+        _setattr(self, "performatives", performatives)
+        _setattr(self, "protocol", protocol)
+        _setattr(self, "ontology", ontology)
+        _setattr(self, "conversation_id", conversation_id)
+        _setattr(self, "where", where)
+
+    if TYPE_CHECKING:
+        performatives: frozenset[Performative] | None
+        protocol: str | None
+        ontology: str | None
+        conversation_id: str | None
+        where: Callable[[ACLMessage], bool] | None
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError(f"a MessageTemplate is fixed once made (set {name!r} in a new one)")
+
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError(f"a MessageTemplate is fixed once made (cannot delete {name!r})")
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # copied and pickled as made anew: the default sets each slot, which it refuses
+        return (
+            _template,
+            (self.performatives, self.protocol, self.ontology, self.conversation_id, self.where),
+        )
 
     def matches(self, message: ACLMessage) -> bool:
         """Whether ``message`` has every field this template sets."""
@@ -175,6 +200,23 @@ class MessageTemplate:
         if self.where is not None:
             parts.append("where=…")
         return f"MessageTemplate({', '.join(parts)})"
+
+
+def _template(
+    performatives: frozenset[Performative] | None,
+    protocol: str | None,
+    ontology: str | None,
+    conversation_id: str | None,
+    where: Callable[[ACLMessage], bool] | None,
+) -> MessageTemplate:
+    """A template made anew of these fields (`MessageTemplate.__reduce__`)."""
+    return MessageTemplate(
+        performatives,
+        protocol=protocol,
+        ontology=ontology,
+        conversation_id=conversation_id,
+        where=where,
+    )
 
 
 class _Route(NamedTuple):
@@ -665,6 +707,11 @@ class Agent:
             handler = spec.make(self, bound) if spec.make is not None else bound
             route = _Route(spec.template, handler, spec.concurrent)
             (self._fallbacks if spec.fallback else self._routes).append(route)
+        # which route a header chooses is remembered (`_receive_loop`) while this version
+        # of the routes holds and no template has a predicate (a header alone decides)
+        self._routes_version = 0
+        self._routes_memo = False
+        self._routes_changed()
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.aid} {self._state}>"
@@ -680,10 +727,12 @@ class Agent:
         """Handle messages matching ``template`` (after the class's handlers); returns a remover."""
         route = _Route(template, handler, concurrent)
         self._routes.append(route)
+        self._routes_changed()
 
         def remove() -> None:
             if route in self._routes:
                 self._routes.remove(route)
+                self._routes_changed()
 
         return remove
 
@@ -697,14 +746,23 @@ class Agent:
             removers.append(route)
         if not removers:
             raise AgentError(f"{fn!r} declares no handler (decorate it with on/on_request …)")
+        self._routes_changed()
 
         def remove() -> None:
             for route in removers:
                 for routes in (self._routes, self._fallbacks):
                     if route in routes:
                         routes.remove(route)
+            self._routes_changed()
 
         return remove
+
+    def _routes_changed(self) -> None:
+        """The routes changed: the receive loop chooses afresh (`_receive_loop`'s memo)."""
+        self._routes_version += 1
+        self._routes_memo = not any(
+            route.template.where is not None for route in (*self._routes, *self._fallbacks)
+        )
 
     # -- lifecycle --------------------------------------------------------------------
 
@@ -1018,14 +1076,35 @@ class Agent:
         items, get = mailbox._items, mailbox.get
         loop = asyncio.get_running_loop()
         stats = self.stats
+        # The route chosen last and the header it was chosen for: the same header objects
+        # again (a batch's messages share the first one's, `InterfaceAgent._take_batch`)
+        # choose the same route while the routes are unchanged and no template has a
+        # predicate: the header alone decides (`MessageTemplate.matches`), and templates
+        # are fixed. An identity test: an equal header in other objects chooses afresh.
+        version = -1
+        route: _Route | None = None
+        performative = protocol = ontology = conversation_id = None
         while True:
             # what is queued is taken without a coroutine call: a burst costs less
             message = items.popleft() if items else await get(loop=loop)
-            try:
-                route = self._route_for(message)
-            except Exception as exc:  # a template's `where` raised: the agent lives on
-                await self._failed(message, exc, "choosing a handler")
-                continue
+            fields = message.__dict__
+            if not (
+                version == self._routes_version
+                and fields["performative"] is performative
+                and fields["ontology"] is ontology
+                and fields["protocol"] is protocol
+                and fields["conversation_id"] is conversation_id
+            ):
+                version = -1
+                try:
+                    route = self._route_for(message)
+                except Exception as exc:  # a template's `where` raised: the agent lives on
+                    await self._failed(message, exc, "choosing a handler")
+                    continue
+                if self._routes_memo:
+                    version = self._routes_version
+                    performative, ontology = fields["performative"], fields["ontology"]
+                    protocol, conversation_id = fields["protocol"], fields["conversation_id"]
             if route is None:
                 await self._unhandled(message)
             elif route.concurrent:

@@ -34,9 +34,15 @@ from ._acl import (
     WIRE_VERSION,
     ACLMessage,
     Performative,
+    _all_scalars,
     _constructed,
     _nests_less,
+    _new_message,
     _quick_fields,
+    _set_dict,
+    _set_extra,
+    _set_fields_set,
+    _set_private,
     nesting_bound,
     platform_of,
     reply_json,
@@ -535,6 +541,7 @@ def accepted_entry(ts: float, peer: str, message: ACLMessage) -> tuple[Any, ...]
 
 
 _NAMES = {p: p.value for p in Performative}
+_ABSENT = object()  # a key a decoded message lacks (`dict.pop`'s default)
 
 
 class _Lanes:
@@ -2423,6 +2430,8 @@ class InterfaceAgent:
         head: dict[str, Any] | None = None  # the header of the message taken last
         head_fields: dict[str, Any] = {}  # its fields
         head_entry: tuple[Any, ...] = ()  # its audit entry
+        head_names: set[str] = set()  # its keys (`__pydantic_fields_set__`)
+        head_bare = False  # whether it has no content
         head_initiating = False
         reuse = True
         try:
@@ -2432,10 +2441,21 @@ class InterfaceAgent:
                 obj = items[i]
                 if head is not None and type(obj) is dict:
                     rest = obj.copy()
-                    content = rest.pop("content", None)
+                    content = rest.pop("content", _ABSENT)
+                    bare = content is _ABSENT  # no content (None, as the model's default)
+                    if bare:
+                        content = None
                     # equal to a header taken: valid, but for a number equal to its ``v``
-                    # that is no int (1.0, true)
-                    if rest == head and type(rest["v"]) is int and _nests_less(content):
+                    # that is no int (1.0, true); `_nests_less`'s common case (a dict of
+                    # scalars) told here, without its call
+                    if (
+                        rest == head
+                        and type(rest["v"]) is int
+                        and (
+                            (type(content) is dict and _all_scalars(map(type, content.values())))
+                            or _nests_less(content)
+                        )
+                    ):
                         if room <= 0:
                             break
                         if head_initiating and requests is not None:
@@ -2450,7 +2470,16 @@ class InterfaceAgent:
                         copied["receivers"] = rest["receivers"]
                         copied["content"] = content
                         add_entry(head_entry)
-                        run.append(_constructed(ACLMessage, copied, set(obj)))
+                        # `_constructed`, inline; its keys those of the header's message
+                        # when both have a content or neither has: a copy of that one's set
+                        message = _new_message(ACLMessage)
+                        _set_dict(message, copied)
+                        _set_fields_set(
+                            message, head_names.copy() if bare is head_bare else set(obj)
+                        )
+                        _set_extra(message, None)
+                        _set_private(message, None)
+                        run.append(message)
                         room -= 1
                         i += 1
                         continue
@@ -2527,6 +2556,8 @@ class InterfaceAgent:
                         head = obj.copy()
                         head.pop("content", None)
                         head_fields, head_entry, head_initiating = fields, entry, initiating
+                        head_names = set(obj)  # its own: the message's is the message's
+                        head_bare = "content" not in obj
                     else:
                         reuse = False
         finally:

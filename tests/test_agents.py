@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import logging
 import os
+import pickle
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -170,6 +172,76 @@ async def test_added_handlers_can_be_removed() -> None:
         await a.send(msg(a, r.aid))
         label, answer = await a.next()
         assert label == "nu" and "no handler for inform" in str(answer.content)
+
+
+async def test_a_header_chooses_its_route_afresh_once_the_handlers_change() -> None:
+    """The route a header chose is remembered only while the handlers stay as they were.
+
+    One message sent again and again (the same header, as a batch's messages share
+    one): a handler added, removed, a responder added and removed, each changes where
+    the next copy goes; a template with a predicate decides by the content too.
+    """
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        r = await p.add(Recorder("r"))
+        a = await p.add(Recorder("a"))
+        a.add_handler(MessageTemplate(P.NOT_UNDERSTOOD), _keep(a, "nu"))
+        m = msg(a, r.aid, ontology="memo", content=1)
+
+        async def unhandled() -> None:
+            await a.send(m)
+            label, answer = await a.next()
+            assert label == "nu" and "no handler for inform" in str(answer.content)
+
+        await unhandled()
+        await unhandled()  # chosen (none) as remembered
+        remove = r.add_handler(MessageTemplate(P.INFORM, ontology="memo"), _keep(r, "added"))
+        await a.send(m)
+        assert (await r.next()) == ("added", m)
+        remove()
+        await unhandled()
+
+        @on(MessageTemplate(P.INFORM, ontology="memo"))
+        async def responder(message: ACLMessage) -> None:
+            r.seen.put_nowait(("responder", message))
+
+        remove = r.add_responder(responder)
+        await a.send(m)
+        assert (await r.next()) == ("responder", m)
+        remove()
+        await unhandled()
+
+        # a predicate: the same header, another content, another route
+        remove = r.add_handler(
+            MessageTemplate(P.INFORM, where=lambda message: message.content == 2),
+            _keep(r, "two"),
+        )
+        await unhandled()
+        two = m.model_copy(update={"content": 2})  # the same header's objects
+        assert two.ontology is m.ontology and two.performative is m.performative
+        await a.send(two)
+        assert (await r.next()) == ("two", two)
+        await unhandled()
+        remove()
+        await unhandled()
+
+
+def test_a_template_is_fixed_once_made() -> None:
+    """Its fields cannot change (an agent remembers the route a header chose by them)."""
+    template = MessageTemplate(P.INFORM, ontology="a")
+    with pytest.raises(AttributeError, match="fixed once made"):
+        template.ontology = "b"  # type: ignore[misc]
+    with pytest.raises(AttributeError, match="fixed once made"):
+        del template.where
+    assert template.ontology == "a" and template.performatives == frozenset({P.INFORM})
+    # copied and pickled as before, by its fields
+    for again in (
+        copy.copy(template),
+        copy.deepcopy(template),
+        pickle.loads(pickle.dumps(template)),
+    ):
+        assert repr(again) == repr(template) and again is not template
+    none = pickle.loads(pickle.dumps(MessageTemplate(protocol="p", conversation_id="c")))
+    assert (none.performatives, none.protocol, none.conversation_id) == (None, "p", "c")
 
 
 async def test_add_responder_needs_a_declared_handler() -> None:

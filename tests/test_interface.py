@@ -875,6 +875,68 @@ async def test_a_batch_of_one_header_is_still_checked_message_by_message() -> No
         ]
 
 
+async def test_a_batch_of_one_header_gives_the_messages_a_full_parse_gives() -> None:
+    """The messages taken as copies of the header before them are those a full parse makes.
+
+    One header again and again (the path of a flood), with contents of every shape (a dict
+    of scalars, a nested one, a list, a scalar, null, none at all): each message delivered
+    equals, field by field, with the same fields set and the same JSON, what
+    `ACLMessage.from_obj` makes of its item, and holds its own set of fields.
+    """
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pa, pb, echo = pair.pa, pair.pb, pair.echo
+        raw = await fed.raw()
+        await pa.add(Listener("listener"))
+        head = orjson.loads(
+            acl(
+                "listener@uav-a",
+                "echo@uav-b",
+                performative=Performative.INFORM,
+                conversation_id="c-one",
+            ).to_json()
+        )
+        head.pop("content", None)
+        contents: list[Any] = [
+            {"i": 0},
+            {"i": 1, "nested": {"deep": [1, {"x": None}]}},
+            [2, "two", 2.5, True, None],
+            [{"i": 3}],
+            "four",
+            5,
+            None,
+            {"i": 7},
+        ]
+        items: list[dict[str, Any]] = [{**head, "content": c} for c in contents]
+        items.insert(7, dict(head))  # no content at all
+        items.append({**head, "content": {"i": 9}})
+        accepted = ia(pb).audit.counts["accepted"]
+        body = b"[" + b",".join(orjson.dumps(item) for item in items) + b"]"
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", body))
+        await until(lambda: len(echo.informs) == len(items), "every inform")
+        for got, item in zip(echo.informs, items, strict=True):
+            want = ACLMessage.from_obj(item)
+            assert (got, got.model_fields_set, got.to_json()) == (
+                want,
+                want.model_fields_set,
+                want.to_json(),
+            )
+        assert len({id(m.model_fields_set) for m in echo.informs}) == len(items)
+        assert len({id(m.__dict__) for m in echo.informs}) == len(items)
+        assert ia(pb).audit.counts["accepted"] == accepted + len(items)
+
+        # a header without a content first, then the same with one, and without again
+        echo.informs.clear()
+        items = [dict(head), dict(head), {**head, "content": [1]}, dict(head)]
+        body = b"[" + b",".join(orjson.dumps(item) for item in items) + b"]"
+        await raw.publish(wire_key(FED, "acl", "uav-b"), ia(pa).sessions.seal("uav-b", body))
+        await until(lambda: len(echo.informs) == len(items), "every inform")
+        for got, item in zip(echo.informs, items, strict=True):
+            want = ACLMessage.from_obj(item)
+            assert (got, got.model_fields_set) == (want, want.model_fields_set)
+        assert len({id(m.model_fields_set) for m in echo.informs}) == len(items)
+
+
 async def test_each_message_of_a_batch_is_checked_for_depth_however_deep_the_batch() -> None:
     """A batch nesting deeper than any message may: the shallow ones taken, the deep one not.
 
