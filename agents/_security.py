@@ -189,6 +189,23 @@ else:
 
 _compare = hmac.compare_digest
 _packb = msgpack.packb  # a fresh packer per call: a shared one would not be thread-safe
+_packers = threading.local()  # a packer per thread, for the binary envelopes (`_pack_own`)
+
+
+def _pack_own(items: list[Any]) -> bytes:
+    """``_packb(items)`` with this thread's packer: made once, not per envelope.
+
+    For lists of ints, strs and bytes only (no ``default`` runs Python code mid-pack, so
+    nothing else on this thread can use the packer before it is done).
+    """
+    try:
+        packer = _packers.envelope
+    except AttributeError:
+        packer = _packers.envelope = msgpack.Packer()
+    out: bytes = packer.pack(items)
+    return out
+
+
 _unpackb = msgpack.unpackb
 _MAC_BYTES = 32
 _TAG_BYTES = 16  # the ChaCha20-Poly1305 tag a box adds to its body
@@ -1155,11 +1172,11 @@ class Session:
             # the cipher's own method and the nonce in one pack (`_bin_nonce`), as the ACL
             # envelopes: this runs once per stream batch
             box = self._seal_tx(_NONCE.pack(1, n), body, self._bin_ad_tx + _U64X2.pack(ts, n))
-            return _packb([WIRE_VERSION, self.me, self.peer, self.sid, ts, n, box])
+            return _pack_own([WIRE_VERSION, self.me, self.peer, self.sid, ts, n, box])
         h = self._bin_tx.copy()
         h.update(_U64X2.pack(ts, n))
         h.update(body)
-        return _packb([WIRE_VERSION, self.me, self.peer, self.sid, ts, n, body, h.digest()])
+        return _pack_own([WIRE_VERSION, self.me, self.peer, self.sid, ts, n, body, h.digest()])
 
     def _accept_bytes(
         self, ts: int, n: int, payload: bytes, mac: bytes | None, now: float

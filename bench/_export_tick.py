@@ -5,6 +5,9 @@ Not a benchmark of its own (``make bench`` does not run it). One platform's side
 instance with ``--streams`` sources (10), each exported by an `ExportProxy` to one
 receiver over the in-memory transport, sealed with a real session (`Handshake`); a tick
 pushes one sample to every source and lets the loop run until every export sent it.
+``--watched``: each stream read once from another thread first
+(`DyKnowInstance.latest_many_now`), so that its cache keeps its latest sample up to date
+as a UAV's does (its lane answers the global get-latest from it).
 Printed as JSON: the event-loop thread's CPU per tick (``thread_time``, median of
 ``--rounds`` rounds of ``--ticks`` ticks), the batches sent and the samples dropped.
 
@@ -36,7 +39,7 @@ FED = "tickfed"
 ME, PEER = "uav-0", "operator"
 
 
-async def _run(streams: int, ticks: int, rounds: int) -> dict[str, Any]:
+async def _run(streams: int, ticks: int, rounds: int, watched: bool) -> dict[str, Any]:
     """The workload: ``rounds`` × ``ticks`` ticks of ``streams`` exports, timed per round."""
     from agents._security import Handshake, KeyPair, SessionTable, TrustStore
     from agents.transports import MemoryHub, MemoryTransport
@@ -60,6 +63,8 @@ async def _run(streams: int, ticks: int, rounds: int) -> dict[str, Any]:
             ]
             loop = asyncio.get_running_loop()
             await asyncio.sleep(0.05)  # every task started and waiting
+            if watched:  # as a UAV's lane reads them (`DyKnowInstance.latest_many_now`)
+                instance.latest_many_now([f"local/{j}" for j in range(streams)])
 
             async def tick(seq: int) -> None:
                 for source in sources:
@@ -129,12 +134,16 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=5)
     ap.add_argument("--ab", nargs=2, metavar=("TREE_A", "TREE_B"))
     ap.add_argument("--pairs", type=int, default=3)
+    ap.add_argument(
+        "--watched", action="store_true", help="the streams read from another thread, as a UAV's"
+    )
     a = ap.parse_args()
     if a.ab:
         rest = ["--streams", str(a.streams), "--ticks", str(a.ticks), "--rounds", str(a.rounds)]
+        rest += ["--watched"] if a.watched else []
         _ab(a.ab[0], a.ab[1], a.pairs, rest)
         return
-    print(json.dumps(asyncio.run(_run(a.streams, a.ticks, a.rounds))))
+    print(json.dumps(asyncio.run(_run(a.streams, a.ticks, a.rounds, a.watched))))
 
 
 if __name__ == "__main__":

@@ -10,7 +10,8 @@ one after another (a gap between them, so that each starts on a quiet machine):
 
 - CPU per query, load-independent: the operator's event-loop thread (``thread_time``) and
   its other threads (zenoh's: process CPU less the loop's), the UAV processes' CPU from
-  ``/proc`` over the queries less the same span measured without queries;
+  ``/proc`` over the queries less the same span measured without queries (that rate
+  printed too, per UAV: with ``--flow``, what a second of the flow costs);
 - the timeline of one query at the operator: when the last request was handed to zenoh,
   and when the first, median and last answer reached the conversation;
 - with ``--cprofile``: the operator loop's functions with the most own time per query
@@ -435,6 +436,11 @@ async def _measure(
         f"  UAV processes' CPU per query (less idle): {1e3 * uav_cpu / queries:.2f} ms in all, "
         f"{1e6 * uav_cpu / queries / n:.0f} µs per UAV (loop threads "
         f"{1e6 * uav_loop / queries / n:.0f}, other threads {1e6 * uav_rest / queries / n:.0f})"
+    )
+    print(
+        "  UAV processes' CPU per s without queries (with --flow: a second of the flow): "
+        f"{1e3 * idle_rate / n:.2f} ms per UAV (loop threads {1e3 * idle_threads[0] / n:.2f}, "
+        f"other threads {1e3 * idle_threads[1] / n:.2f})"
     )
     print(
         f"  timeline (median ms from the call): last request out {ms(last_sent)}; answers in: "

@@ -72,6 +72,13 @@ class Cache:
         best, best_at, start, _ = self._memo
         if start == appended and best is not None and best_at >= first:
             return  # nothing arrived since, and the best is still cached
+        if start == appended - 1 and best is not None and best_at >= first:
+            # one arrived since (a stream in flow): the loop below, without its iterators
+            s = buf[-1]
+            if s[1] >= best[1]:  # a later arrival wins a tie
+                best, best_at = s, start
+            self._memo = (best, best_at, appended, s[2])
+            return
         if best is None or best_at < first:  # none yet, or evicted since: read it all
             best, best_at, start = None, -1, first
         # newest first, so a later arrival wins a tie with an earlier one ("newest")

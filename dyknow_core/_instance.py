@@ -469,6 +469,7 @@ class DyKnowInstance:
         where = self._labels
         out: list[RawSample | None] = []
         add = out.append
+        known_all = True
         for label in labels:
             location = where.get(label)
             gen = None if location is None else location.generators.get(label)
@@ -476,10 +477,12 @@ class DyKnowInstance:
                 return None
             made = gen.made_ta
             known, sample = gen.cache.latest_now(now if now >= made else made)
-            if not known:
-                return None
+            # on past one it cannot tell: each stream asked is watched from now on
+            # (`Cache.latest_now`), so the next ask of these labels can tell, not only
+            # the one after each of them came first
+            known_all = known_all and known
             add(sample)
-        return now, out
+        return (now, out) if known_all else None
 
     def at(
         self,

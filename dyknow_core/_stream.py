@@ -91,9 +91,16 @@ class Subscription:
                 # callback gets its own, so what it does to it reaches no other subscriber
                 out = batch.copy()
             self._emit(out)
-        if self.filter.ended:
+        f = self.filter  # read again: a callback may have replaced the policy
+        if f.ended:
             self.close()
-        elif not self._armed and self._on_ticks is not None and self.filter.deadline() is not None:
+        elif (
+            not self._armed
+            and self._on_ticks is not None
+            # `PolicyFilter.deadline` is None without a sampler: no call per sample for it
+            and f.sampler is not None
+            and f.deadline() is not None
+        ):
             # the first sample set the grid: the owner's timer must now watch its deadline
             self._armed = True
             self._on_ticks(self)
@@ -293,7 +300,8 @@ class StreamGenerator:
             raise ProcessError(f"cycle: stream {self.label!r} published while publishing")
         if ordered:
             self.made_ta = batch[-1][2]  # a computational unit stamped these itself
-        else:
+        elif len(batch) != 1 or batch[0][2] <= self._last_ta:
+            # one sample later than the last (a source's push) is unique as it is
             batch = self._unique_available_times(batch)
         self._last_ta = batch[-1][2]
         self._record_delays(batch)

@@ -11,6 +11,7 @@ the export); ``docs/wire.md`` ("Sample batches") is the contract and
 # each string at every start. A name defined later or only for type checking is quoted.
 import dataclasses
 import re
+import threading
 from enum import Enum
 from typing import Any, NamedTuple
 
@@ -34,6 +35,9 @@ _LABEL = re.compile(r"^[^\s/*$?#+\x00-\x1f\x7f]+(?:/[^\s/*$?#+\x00-\x1f\x7f]+)*$
 _MAX_LABEL = 256
 _packb = msgpack.packb
 _unpackb = msgpack.unpackb
+# A packer per thread, made once: `msgpack.packb` makes one (and its buffer) per call, a
+# good part of packing a batch of one sample; a packer shared between threads is not safe.
+_packers = threading.local()
 
 
 def check_semantic_label(label: str) -> str:
@@ -84,7 +88,13 @@ def pack_batch(
         obj["r"] = True
     if ended is not None:
         obj["e"] = ended
-    body: bytes = _packb(obj, default=_encode_value)
+    try:
+        packer = _packers.batch
+    except AttributeError:
+        packer = _packers.batch = msgpack.Packer(default=_encode_value)
+    # the same bytes as ``_packb(obj, default=_encode_value)``; a pack that raises leaves
+    # the packer empty (msgpack resets it)
+    body: bytes = packer.pack(obj)
     return body
 
 

@@ -528,3 +528,22 @@ def test_latest_now_is_latest_once_asked_and_unknown_before(
             continue
         assert cache.latest_now(ta * S) == (True, cache.latest())
         assert cache.latest_now(ta * S - 1) == (False, None)  # the newest came after it
+
+
+def test_latest_now_follows_samples_arriving_one_at_a_time() -> None:
+    """A read stream in flow (one sample per batch): a later arrival of the same valid time
+    is the latest, an older valid time is not, and a latest evicted gives way to the best
+    of what is left."""
+    cache = Cache(CacheSpec(max_samples=3))
+    cache.extend([(0.0, 5 * S, 1 * S)])
+    assert cache.latest_now(1 * S) == (False, None)  # the first ask: watched from now on
+    cache.extend([(1.0, 5 * S, 2 * S)])
+    assert cache.latest_now(2 * S) == (True, (1.0, 5 * S, 2 * S))
+    cache.extend([(2.0, 5 * S, 3 * S)])  # the same valid time, arrived later: it wins
+    assert cache.latest_now(3 * S) == (True, (2.0, 5 * S, 3 * S))
+    cache.extend([(3.0, 4 * S, 4 * S)])  # an older valid time: not the latest
+    assert cache.latest_now(4 * S) == (True, (2.0, 5 * S, 3 * S))
+    cache.extend([(4.0, 3 * S, 5 * S)])
+    cache.extend([(5.0, 2 * S, 6 * S)])  # (2.0, 5 s) evicted: the best of the three left
+    assert cache.latest_now(6 * S) == (True, (3.0, 4 * S, 4 * S))
+    assert cache.latest_now(6 * S)[1] == cache.latest()

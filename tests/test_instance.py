@@ -831,6 +831,26 @@ def test_importing_the_core_loads_no_reasoning_and_no_kpl() -> None:
     assert not hasattr(DyKnowInstance, "add_monitor")
 
 
+async def test_latest_many_now_tells_at_the_second_ask_of_many_labels(
+    dk: DyKnowInstance, clock: ManualClock
+) -> None:
+    """Another thread's read of many labels (`latest_many_now`) cannot tell at their first
+    ask; once each stream has had a sample since, it tells every label's latest, not only
+    the first one's (a provider's get-latest of many streams in flow is answered on
+    zenoh's thread from its second ask on, not from its tenth)."""
+    sources = [dk.add_source(f"uav/s{j}") for j in range(4)]
+    labels = [f"uav/s{j}" for j in range(4)]
+    for j, src in enumerate(sources):
+        src.push(float(j))
+    assert dk.latest_many_now(labels) is None  # the first ask: the loop's to answer
+    clock.advance(S)
+    for j, src in enumerate(sources):
+        src.push(10.0 + j)
+    new = BASE + S
+    assert dk.latest_many_now(labels) == (new, [(10.0 + j, new, new) for j in range(4)])
+    assert dk.latest_many_now([*labels, "uav/none"]) is None  # a label not here
+
+
 async def test_latest_now_reads_one_label_as_latest_many_now_does(
     dk: DyKnowInstance, clock: ManualClock
 ) -> None:

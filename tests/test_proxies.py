@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import enum
 import logging
 import multiprocessing
 import os
 import signal
+import sys
+import threading
 import time
 import uuid
 from collections.abc import AsyncIterator, Callable
@@ -729,6 +732,49 @@ def test_batch_format() -> None:
     for bad in (b"\xc1", msgpack.packb([1, SEM, []]), msgpack.packb({"v": 2, "s": SEM, "b": []})):
         with pytest.raises(ValueError):
             unpack_batch(bad)
+
+
+class _Mode(enum.Enum):
+    HOVER = "hover"
+
+
+def test_batches_packed_on_many_threads_at_once_are_each_their_own() -> None:
+    """pack_batch from several threads at once (values its encoder turns, Python code run
+    mid-pack, while threads switch often): each body is what msgpack alone makes of it, and
+    a value it cannot encode raises without spoiling the next body."""
+
+    def expected(label: str, samples: list[Any], seq: int) -> bytes:
+        obj = {"v": 1, "s": label, "q": seq, "b": samples}
+        body: bytes = msgpack.packb(
+            obj, default=lambda v: v.value if isinstance(v, enum.Enum) else list(v)
+        )
+        return body
+
+    failures: list[str] = []
+
+    def packing(t: int) -> None:
+        label = f"stream-{t}"
+        for i in range(300):
+            # many values for the encoder: many points where another thread may run
+            samples = [(_Mode.HOVER, i, j) for j in range(20)] + [({t, i}, i, i + 1)]
+            if pack_batch(label, samples, i) != expected(label, samples, i):
+                failures.append(f"thread {t}, body {i}")
+            if i % 50 == 0:
+                with pytest.raises(TypeError):
+                    pack_batch(label, [(object(), i, i)], i)
+
+    switch = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        threads = [threading.Thread(target=packing, args=(t,)) for t in range(4)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=WAIT)
+    finally:
+        sys.setswitchinterval(switch)
+    assert not any(thread.is_alive() for thread in threads)
+    assert failures == []
 
 
 # -- over real Interface Agents -------------------------------------------------------------------
