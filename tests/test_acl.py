@@ -786,6 +786,31 @@ def test_a_burst_header_is_taken_again_only_as_it_was_checked() -> None:
         compose(Performative.INFORM, aid, "no-platform", None, {"ontology": "o"})
 
 
+@pytest.mark.parametrize("how", ["__dict__", "__init__", "__setstate__"])
+def test_the_last_composed_message_given_other_fields_is_written_as_it_holds_them(
+    how: str,
+) -> None:
+    """The last message compose made, its fields replaced in place (a frozen model lets
+    __dict__ be assigned, __init__ run again, __setstate__ restore): to_json writes what it
+    holds now, not the remembered header's JSON of the message it was."""
+    aid, sink = "replaced@p", "sink@q"
+    compose(Performative.INFORM, aid, sink, {"seq": 1}, {"ontology": "o"})
+    last = compose(Performative.INFORM, aid, sink, {"seq": 2}, {"ontology": "o"})
+    other = ACLMessage(
+        performative="request", sender="x@r", receivers=["y@r"], content={"other": True}
+    )
+    if how == "__dict__":
+        last.__dict__ = dict(other.__dict__)
+    elif how == "__init__":
+        last.__init__(  # type: ignore[misc]
+            performative="request", sender="x@r", receivers=["y@r"], content={"other": True}
+        )
+    else:
+        last.__setstate__(other.__getstate__())
+    assert last.receivers == ["y@r"]
+    assert last.to_json() == _old_to_json(other)
+
+
 async def test_an_agent_not_on_a_platform_cannot_make_a_message() -> None:
     agent = Agent("loose")  # its identifier is no name@platform yet
     with pytest.raises(ValidationError):
