@@ -195,11 +195,11 @@ class ACLMessage(BaseModel):
     def to_json(self) -> bytes:
         """The message as compact JSON bytes, leaving out unset fields."""
         header = _last_header
-        # the message `compose` made last of a remembered header: its fields read from the
-        # header, not through pydantic's attribute hook
-        made = header.made
-        if made[0] is self:
-            fields = made[1]
+        fields = self.__dict__
+        # the message `compose` made last of a remembered header, known by the dict of its
+        # fields (not by the message alone: __init__, __setstate__ or an assignment to a
+        # frozen model's __dict__ give it another, whose fields the header does not write)
+        if fields is header.made[1]:
             receivers = fields["receivers"]
             content = fields["content"]
             # its list is its own to change: only an unchanged one is written as remembered
@@ -208,7 +208,6 @@ class ACLMessage(BaseModel):
                     return header.prefix + orjson.dumps(content) + header.suffix
                 except orjson.JSONEncodeError as exc:
                     raise MessageError(f"content cannot be sent as JSON: {exc}") from exc
-        fields = self.__dict__
         try:
             # the fields are already valid JSON values (content is validated as JsonValue,
             # performative is a str enum): dumping __dict__ skips pydantic's serializer

@@ -786,6 +786,76 @@ def test_a_burst_header_is_taken_again_only_as_it_was_checked() -> None:
         compose(Performative.INFORM, aid, "no-platform", None, {"ontology": "o"})
 
 
+class _Key(dict):  # type: ignore[type-arg]
+    """A dict subclass whose items and copy say other than it holds."""
+
+    def items(self) -> Any:
+        return [("said", 1)]
+
+    def copy(self) -> Any:
+        return {"said": 1}
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        {1: "int key"},
+        {Performative.INFORM: "str-subclass key"},
+        {"k": _Text("str-subclass value")},
+        {"k": Performative.INFORM},
+        {"k": b"bytes"},
+        {"k": (1, 2)},
+        {"k": 2**70},
+        {"k": math.nan},
+        {"k": {"nested": [1, {"deeper": _Text("x")}]}},
+        _Key(held=1),
+    ],
+    ids=repr,
+)
+def test_a_bursts_content_is_taken_as_build_takes_it(content: Any) -> None:
+    """A content following a plain one of the same header (the burst's quick path): the
+    message, fields and bytes build gives it, or its error."""
+    aid, sink, fields = "content@p", "sink@q", {"ontology": "o"}
+    compose(Performative.INFORM, aid, sink, {"plain": 1}, dict(fields))  # the header remembered
+    got = _outcome(lambda: compose(Performative.INFORM, aid, sink, content, dict(fields)))
+    built = _outcome(lambda: _as_build_made_it(Performative.INFORM, aid, sink, content, fields))
+    assert got[0] == built[0]
+    if got[0] != "ok":
+        assert got == built
+        return
+    assert repr(got[1]) == repr(built[1])
+    # of the same types too (an equal str subclass is no str to the one who reads it)
+    assert [(type(k), type(v)) for k, v in got[1].content.items()] == [
+        (type(k), type(v)) for k, v in built[1].content.items()
+    ]
+    assert _outcome(got[1].to_json) == _outcome(lambda: _old_to_json(built[1]))
+
+
+@pytest.mark.parametrize("how", ["__dict__", "__init__", "__setstate__"])
+def test_the_last_composed_message_given_other_fields_is_written_as_it_holds_them(
+    how: str,
+) -> None:
+    """The last message compose made, its fields replaced in place (a frozen model lets
+    __dict__ be assigned, __init__ run again, __setstate__ restore): to_json writes what it
+    holds now, not the remembered header's JSON of the message it was."""
+    aid, sink = "replaced@p", "sink@q"
+    compose(Performative.INFORM, aid, sink, {"seq": 1}, {"ontology": "o"})
+    last = compose(Performative.INFORM, aid, sink, {"seq": 2}, {"ontology": "o"})
+    other = ACLMessage(
+        performative="request", sender="x@r", receivers=["y@r"], content={"other": True}
+    )
+    if how == "__dict__":
+        last.__dict__ = dict(other.__dict__)
+    elif how == "__init__":
+        last.__init__(  # type: ignore[misc]
+            performative="request", sender="x@r", receivers=["y@r"], content={"other": True}
+        )
+    else:
+        last.__setstate__(other.__getstate__())
+    assert last.receivers == ["y@r"]
+    assert last.to_json() == _old_to_json(other)
+
+
 async def test_an_agent_not_on_a_platform_cannot_make_a_message() -> None:
     agent = Agent("loose")  # its identifier is no name@platform yet
     with pytest.raises(ValidationError):
