@@ -760,8 +760,11 @@ class Agent:
     def _routes_changed(self) -> None:
         """The routes changed: the receive loop chooses afresh (`_receive_loop`'s memo)."""
         self._routes_version += 1
-        self._routes_memo = not any(
-            route.template.where is not None for route in (*self._routes, *self._fallbacks)
+        # a subclass's own `matches` may read any field (the sender, the content): only a
+        # plain template without a predicate is decided by the header alone
+        self._routes_memo = all(
+            type(route.template) is MessageTemplate and route.template.where is None
+            for route in (*self._routes, *self._fallbacks)
         )
 
     # -- lifecycle --------------------------------------------------------------------
