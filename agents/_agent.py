@@ -173,12 +173,12 @@ class MessageTemplate:
     def __delattr__(self, name: str) -> None:
         raise AttributeError(f"a MessageTemplate is fixed once made (cannot delete {name!r})")
 
-    def __reduce__(self) -> tuple[Any, ...]:
-        # copied and pickled as made anew: the default sets each slot, which it refuses
-        return (
-            _template,
-            (self.performatives, self.protocol, self.ontology, self.conversation_id, self.where),
-        )
+    def __setstate__(self, state: Any) -> None:
+        # copied and pickled as before (a subclass's as itself): the default sets each
+        # slot through __setattr__, which refuses
+        for fields in state if isinstance(state, tuple) else (state,):
+            for name, value in (fields or {}).items():
+                _setattr(self, name, value)
 
     def matches(self, message: ACLMessage) -> bool:
         """Whether ``message`` has every field this template sets."""
@@ -200,23 +200,6 @@ class MessageTemplate:
         if self.where is not None:
             parts.append("where=…")
         return f"MessageTemplate({', '.join(parts)})"
-
-
-def _template(
-    performatives: frozenset[Performative] | None,
-    protocol: str | None,
-    ontology: str | None,
-    conversation_id: str | None,
-    where: Callable[[ACLMessage], bool] | None,
-) -> MessageTemplate:
-    """A template made anew of these fields (`MessageTemplate.__reduce__`)."""
-    return MessageTemplate(
-        performatives,
-        protocol=protocol,
-        ontology=ontology,
-        conversation_id=conversation_id,
-        where=where,
-    )
 
 
 class _Route(NamedTuple):

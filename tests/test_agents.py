@@ -254,6 +254,22 @@ async def test_a_template_with_its_own_matches_decides_every_message() -> None:
         assert (await r.next()) == ("from-a", first)
 
 
+def test_a_template_subclass_is_copied_and_pickled_as_itself() -> None:
+    """A copy of a subclass's template still matches by its own `matches`."""
+    template = _FromA(P.INFORM, ontology="o")
+    m = ACLMessage(performative=P.INFORM, sender="b@p", receivers=["r@p"], ontology="o")
+    assert not template.matches(m)
+    for again in (
+        copy.copy(template),
+        copy.deepcopy(template),
+        pickle.loads(pickle.dumps(template)),
+    ):
+        assert type(again) is _FromA and not again.matches(m)
+        assert repr(again) == repr(template)
+        with pytest.raises(AttributeError, match="fixed once made"):
+            again.ontology = "b"  # type: ignore[misc]
+
+
 def test_a_template_is_fixed_once_made() -> None:
     """Its fields cannot change (an agent remembers the route a header chose by them)."""
     template = MessageTemplate(P.INFORM, ontology="a")
