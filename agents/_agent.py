@@ -1064,9 +1064,9 @@ class Agent:
         stats = self.stats
         # The route chosen last and the header it was chosen for: the same header objects
         # again (a batch's messages share the first one's, `InterfaceAgent._take_batch`)
-        # choose the same route while the routes are unchanged and no template has a
-        # predicate: the header alone decides (`MessageTemplate.matches`), and templates
-        # are fixed. An identity test: an equal header in other objects chooses afresh.
+        # choose the same route while the routes are unchanged and every template is a
+        # plain one without a predicate (`_routes_changed`): the header alone decides
+        # (`MessageTemplate.matches`), and templates are fixed. An identity test: an equal header in other objects chooses afresh.
         version = -1
         route: _Route | None = None
         performative = protocol = ontology = conversation_id = None
