@@ -173,12 +173,12 @@ class MessageTemplate:
     def __delattr__(self, name: str) -> None:
         raise AttributeError(f"a MessageTemplate is fixed once made (cannot delete {name!r})")
 
-    def __reduce__(self) -> tuple[Any, ...]:
-        # copied and pickled as made anew: the default sets each slot, which it refuses
-        return (
-            _template,
-            (self.performatives, self.protocol, self.ontology, self.conversation_id, self.where),
-        )
+    def __setstate__(self, state: Any) -> None:
+        # copied and pickled as before (a subclass's as itself): the default sets each
+        # slot through __setattr__, which refuses
+        for fields in state if isinstance(state, tuple) else (state,):
+            for name, value in (fields or {}).items():
+                _setattr(self, name, value)
 
     def matches(self, message: ACLMessage) -> bool:
         """Whether ``message`` has every field this template sets."""
@@ -200,23 +200,6 @@ class MessageTemplate:
         if self.where is not None:
             parts.append("where=…")
         return f"MessageTemplate({', '.join(parts)})"
-
-
-def _template(
-    performatives: frozenset[Performative] | None,
-    protocol: str | None,
-    ontology: str | None,
-    conversation_id: str | None,
-    where: Callable[[ACLMessage], bool] | None,
-) -> MessageTemplate:
-    """A template made anew of these fields (`MessageTemplate.__reduce__`)."""
-    return MessageTemplate(
-        performatives,
-        protocol=protocol,
-        ontology=ontology,
-        conversation_id=conversation_id,
-        where=where,
-    )
 
 
 class _Route(NamedTuple):
@@ -760,8 +743,11 @@ class Agent:
     def _routes_changed(self) -> None:
         """The routes changed: the receive loop chooses afresh (`_receive_loop`'s memo)."""
         self._routes_version += 1
-        self._routes_memo = not any(
-            route.template.where is not None for route in (*self._routes, *self._fallbacks)
+        # a subclass's own `matches` may read any field (the sender, the content): only a
+        # plain template without a predicate is decided by the header alone
+        self._routes_memo = all(
+            type(route.template) is MessageTemplate and route.template.where is None
+            for route in (*self._routes, *self._fallbacks)
         )
 
     # -- lifecycle --------------------------------------------------------------------
@@ -1078,9 +1064,9 @@ class Agent:
         stats = self.stats
         # The route chosen last and the header it was chosen for: the same header objects
         # again (a batch's messages share the first one's, `InterfaceAgent._take_batch`)
-        # choose the same route while the routes are unchanged and no template has a
-        # predicate: the header alone decides (`MessageTemplate.matches`), and templates
-        # are fixed. An identity test: an equal header in other objects chooses afresh.
+        # choose the same route while the routes are unchanged and every template is a
+        # plain one without a predicate (`_routes_changed`): the header alone decides
+        # (`MessageTemplate.matches`), and templates are fixed. An identity test: an equal header in other objects chooses afresh.
         version = -1
         route: _Route | None = None
         performative = protocol = ontology = conversation_id = None

@@ -225,6 +225,51 @@ async def test_a_header_chooses_its_route_afresh_once_the_handlers_change() -> N
         await unhandled()
 
 
+class _FromA(MessageTemplate):
+    """A template matching by sender, in its own `matches` (no predicate)."""
+
+    def matches(self, message: ACLMessage) -> bool:
+        return message.sender.startswith("a@") and super().matches(message)
+
+
+async def test_a_template_with_its_own_matches_decides_every_message() -> None:
+    """A subclass matching on a field outside the header: each sender routed by it.
+
+    Two senders' informs hold the very same header objects (an enum member, None): the
+    route chosen for the first must not be taken for the second.
+    """
+    async with asyncio.timeout(5), platforms("p") as [p]:
+        r = await p.add(Recorder("r"))
+        a = await p.add(Recorder("a"))
+        b = await p.add(Recorder("b"))
+        r.add_handler(_FromA(P.INFORM), _keep(r, "from-a"))
+        r.add_handler(MessageTemplate(P.INFORM), _keep(r, "other"))
+        first, second = msg(a, r.aid, content=1), msg(b, r.aid, content=2)
+        assert first.performative is second.performative and first.ontology is second.ontology
+        await a.send(first)
+        assert (await r.next()) == ("from-a", first)
+        await b.send(second)
+        assert (await r.next()) == ("other", second)
+        await a.send(first)
+        assert (await r.next()) == ("from-a", first)
+
+
+def test_a_template_subclass_is_copied_and_pickled_as_itself() -> None:
+    """A copy of a subclass's template still matches by its own `matches`."""
+    template = _FromA(P.INFORM, ontology="o")
+    m = ACLMessage(performative=P.INFORM, sender="b@p", receivers=["r@p"], ontology="o")
+    assert not template.matches(m)
+    for again in (
+        copy.copy(template),
+        copy.deepcopy(template),
+        pickle.loads(pickle.dumps(template)),
+    ):
+        assert type(again) is _FromA and not again.matches(m)
+        assert repr(again) == repr(template)
+        with pytest.raises(AttributeError, match="fixed once made"):
+            again.ontology = "b"  # type: ignore[misc]
+
+
 def test_a_template_is_fixed_once_made() -> None:
     """Its fields cannot change (an agent remembers the route a header chose by them)."""
     template = MessageTemplate(P.INFORM, ontology="a")
