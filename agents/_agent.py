@@ -168,10 +168,17 @@ class MessageTemplate:
         where: Callable[[ACLMessage], bool] | None
 
     def __setattr__(self, name: str, value: Any) -> None:
-        raise AttributeError(f"a MessageTemplate is fixed once made (set {name!r} in a new one)")
+        # only the template's own fields are fixed: a subclass keeps its attributes its own
+        if name in _TEMPLATE_FIELDS:
+            raise AttributeError(
+                f"a MessageTemplate is fixed once made (set {name!r} in a new one)"
+            )
+        _setattr(self, name, value)
 
     def __delattr__(self, name: str) -> None:
-        raise AttributeError(f"a MessageTemplate is fixed once made (cannot delete {name!r})")
+        if name in _TEMPLATE_FIELDS:
+            raise AttributeError(f"a MessageTemplate is fixed once made (cannot delete {name!r})")
+        object.__delattr__(self, name)
 
     def __setstate__(self, state: Any) -> None:
         # copied and pickled as before (a subclass's as itself): the default sets each
@@ -200,6 +207,9 @@ class MessageTemplate:
         if self.where is not None:
             parts.append("where=…")
         return f"MessageTemplate({', '.join(parts)})"
+
+
+_TEMPLATE_FIELDS = frozenset(MessageTemplate.__slots__)
 
 
 class _Route(NamedTuple):
@@ -1066,7 +1076,8 @@ class Agent:
         # again (a batch's messages share the first one's, `InterfaceAgent._take_batch`)
         # choose the same route while the routes are unchanged and every template is a
         # plain one without a predicate (`_routes_changed`): the header alone decides
-        # (`MessageTemplate.matches`), and templates are fixed. An identity test: an equal header in other objects chooses afresh.
+        # (`MessageTemplate.matches`), and templates are fixed. An identity test: an equal
+        # header in other objects chooses afresh.
         version = -1
         route: _Route | None = None
         performative = protocol = ontology = conversation_id = None

@@ -232,6 +232,31 @@ class _FromA(MessageTemplate):
         return message.sender.startswith("a@") and super().matches(message)
 
 
+class _FromSender(MessageTemplate):
+    """A subclass keeping an attribute of its own, set in its `__init__` and later."""
+
+    def __init__(self, sender: str, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.sender = sender
+
+    def matches(self, message: ACLMessage) -> bool:
+        return message.sender == self.sender and super().matches(message)
+
+
+def test_a_template_subclass_keeps_its_own_attributes_settable() -> None:
+    """Only the template's fields are fixed: a subclass's own state is its own, as before."""
+    template = _FromSender("a@p", P.INFORM)
+    m = ACLMessage(performative=P.INFORM, sender="b@p", receivers=["r@p"])
+    assert not template.matches(m)
+    template.sender = "b@p"
+    assert template.matches(m)
+    del template.sender
+    with pytest.raises(AttributeError, match="fixed once made"):
+        template.performatives = None  # type: ignore[misc]
+    again = copy.deepcopy(_FromSender("b@p", P.INFORM))
+    assert type(again) is _FromSender and again.matches(m)
+
+
 async def test_a_template_with_its_own_matches_decides_every_message() -> None:
     """A subclass matching on a field outside the header: each sender routed by it.
 
