@@ -1195,3 +1195,45 @@ async def test_zenoh_burst_behind_a_slow_receiver_waits_in_the_queue() -> None:
             gate.set()
             sub.undeclare()
     assert got[0] == n
+
+
+class _Recording(ZenohTransport):
+    """A zenoh transport with its own `publish`, noting each payload."""
+
+    def __init__(self, config: ZenohConfig) -> None:
+        super().__init__(config)
+        self.puts: list[bytes] = []
+
+    async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
+        self.puts.append(payload)
+        await super().publish(key, payload, attachment=attachment)
+
+
+async def test_a_zenoh_subclass_s_own_publish_sees_every_put_never_a_put_beside_it() -> None:
+    """`publish_nowait` of a subclass with its own `publish` refuses; nothing is put.
+
+    A subclass's `publish` (a test's lossy link, a recording wrapper) must see every put:
+    a caller told the transport cannot publish without waiting goes through `publish`.
+    """
+    seed = free_tcp_port()
+    made = iter(
+        [
+            lambda: _Recording(ZenohConfig.loopback(seed)),
+            lambda: ZenohTransport(ZenohConfig.loopback(free_tcp_port(), connect=[seed])),
+        ]
+    )
+    n = Net("zenoh", f"test/{uuid.uuid4().hex[:10]}", 5.0, lambda **_: next(made)())
+    try:
+        sender, seer = await n.open(), await n.open()
+        assert isinstance(sender, _Recording) and not sender.publishes_nowait
+        sub = await seer.subscribe(n.key("x"))
+        await ready(n, sender, seer)
+        with pytest.raises(TransportError, match="cannot publish without waiting"):
+            sender.publish_nowait(n.key("x"), b"beside")
+        await sender.publish(n.key("x"), b"through")
+        [got] = await take(sub, 1)
+        assert got.payload == b"through"  # the refused put never went out before it
+        assert sender.puts == [b"through"]
+    finally:
+        for t in reversed(n.opened):
+            await t.aclose()

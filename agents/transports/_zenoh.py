@@ -641,7 +641,9 @@ class ZenohTransport(_Keeps, Transport):
         """Publish ``payload`` on ``key`` now."""
         # `publishes_nowait`, inline: the path of every message sent alone
         if type(self).publish is not ZenohTransport.publish:
+            # a subclass's own `publish` must see every put: the base refuses
             super().publish_nowait(key, payload)
+            return
         # `_put`, inline (no attachment): a call less a message
         pub = self._publishers.get(key)
         if pub is None:
