@@ -61,12 +61,13 @@ async def test_an_interrupt_the_moment_a_lock_is_taken_on_the_loop_leaves_it_fre
             return local
 
         try:
+            previous = sys.gettrace()  # a coverage tool's, say: put back after
             sys.settrace(tracer)
             try:
                 with pytest.raises(KeyboardInterrupt):
                     ia._lane_book()
             finally:
-                sys.settrace(None)
+                sys.settrace(previous)
             assert taken[0] == nth
             left = [lock.locked() for lock in locks]
             assert left == [False, False], f"held after the interrupt (lane, sender): {left}"
