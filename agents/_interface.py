@@ -1710,8 +1710,10 @@ class InterfaceAgent:
             return None, exc, 0
         # the lock taken and released by its methods, not by `with`: ~0.8 k instructions
         # less a section on the path of every envelope the lane opens (and of what it
-        # answers, `_lane_answer`, or hands over to the loop: `_lane_reply`, `_lane_book`,
-        # `_lane_take_reply`)
+        # answers, `_lane_answer`, or hands over to the loop, `_lane_reply`). On zenoh's
+        # thread only: on the loop's (the main thread) a signal's handler runs right after
+        # a call returns, and an interrupt raised between `acquire()` and `try` would leave
+        # the lock held for ever; `with` leaves no such gap (`_lane_book`, `_lane_take_reply`)
         lock = self._lane_lock
         lock.acquire()
         try:
@@ -2028,28 +2030,20 @@ class InterfaceAgent:
         if state is None:
             return False
         total = state.total
-        lock = state.lock  # not `with`: see `_lane_take`
-        lock.acquire()
-        try:
+        with state.lock:  # `with` on the loop's thread: see `_lane_take`
             now = 0.0
             if total is not None:
                 now = self._monotonic()
                 if not total.ready(now):
                     return False
             taken = self._take_message(host, peer, state, message, now)
-        finally:
-            lock.release()
         if taken:
-            lock = self._lane_lock  # `_lane_release`, inline: every reply the lane hands over
-            lock.acquire()
-            try:
+            with self._lane_lock:  # `_lane_release`, inline: every reply the lane hands over
                 left = self._lane_queued[peer] - 1
                 if left:
                     self._lane_queued[peer] = left
                 else:
                     del self._lane_queued[peer]
-            finally:
-                lock.release()
             self.replies_on_thread += 1
         return taken
 
@@ -2061,9 +2055,7 @@ class InterfaceAgent:
         A booking or hand-over that raises costs only itself: logged with what failed,
         counted in ``lane_failed``, its peer's count released; the others are made."""
         inbox = self._lane_inbox
-        lock = self._lane_lock  # not `with`: see `_lane_take`
-        lock.acquire()
-        try:
+        with self._lane_lock:  # `with` on the loop's thread: see `_lane_take`
             if (
                 current is None
                 and self._lane_handed
@@ -2085,8 +2077,6 @@ class InterfaceAgent:
                 lone = done.popleft()
             else:
                 self._lane_done = deque()
-        finally:
-            lock.release()
         host = self._host
         if host is None:
             if lone is None:  # the queue swapped out (the lane's own is not touched here)
