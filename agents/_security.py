@@ -1548,11 +1548,10 @@ class SessionTable:
 
     def seal_binary(self, peer: str, body: bytes | str) -> bytes:
         """`seal` in the binary (msgpack) form of an ACL envelope; `open` reads both forms."""
-        # the lock taken and released by hand, not in `with`: its two special-method
-        # lookups cost ~1.1 k instructions (the path of every ACL message sealed)
-        lock = self._lock
-        lock.acquire()
-        try:
+        # in `with`, not taken by hand: the loop's thread seals too, and there an interrupt
+        # (Ctrl-C's handler) can come right after a bare `acquire()`, before its `try`,
+        # leaving the lock held for ever and zenoh's thread blocked at its next seal
+        with self._lock:
             session = self._tx.get(peer)
             if session is not None:
                 # `session_for`'s first answer, inline (the path of every ACL message
@@ -1578,8 +1577,6 @@ class SessionTable:
             if session is None:
                 raise UnknownSession(f"no session with {peer!r}: run a handshake first", peer)
             return session.seal_binary(body)
-        finally:
-            lock.release()
 
     def seal_bytes(self, peer: str, body: bytes) -> bytes:
         """Seal binary ``body`` for ``peer`` on its current session; UnknownSession when none."""
@@ -1595,9 +1592,7 @@ class SessionTable:
         The caller then starts a handshake unless ``Handshake.pending(peer)`` says one is
         already under way; it may keep sealing on the old session until the new one is made.
         """
-        lock = self._lock  # by hand, not in `with` (`seal_binary`): asked per message
-        lock.acquire()
-        try:
+        with self._lock:  # not by hand: asked on the loop's thread (`seal_binary`)
             now = self._clock()
             trusted = self.trust._keys.get(peer)
             due = self._renew_due.get(peer)
@@ -1635,8 +1630,6 @@ class SessionTable:
                     limit += policy.grace / 2
                 self._renew_due[peer] = (newest, limit, policy.renew_after_messages, trusted)
             return False
-        finally:
-            lock.release()
 
     def _session_of(self, frm: str, to: str, sid: str, ts: Any, n: Any) -> Session:
         """The header checks both envelope kinds share, in order; the session they name."""

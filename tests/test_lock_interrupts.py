@@ -1,5 +1,6 @@
-"""A review's probes of the lock sections a lone reply passes on the event loop's thread
-(`InterfaceAgent._lane_book`, `_lane_take_reply`): an interrupt there never leaves a lock held.
+"""The lock sections taken on the event loop's thread (a lone reply's: `InterfaceAgent._lane_book`,
+`_lane_take_reply`; every message's seal: `SessionTable.seal_binary`, `needs_renewal`): an
+interrupt there never leaves a lock held.
 
 The loop's thread is the main one, where CPython runs a signal's Python handler (Ctrl-C's
 KeyboardInterrupt, the demo's SIGTERM turned into one) at the check that follows a call's
@@ -13,14 +14,17 @@ a lock is taken, as that pending handler would; real zenoh sessions on loopback 
 from __future__ import annotations
 
 import sys
+import threading
 from types import FrameType
 from typing import Any
 
 import pytest
 
 import agents._interface as interface
+import agents._security as security
 from tests.test_answer_on_thread import pair
 from tests.test_reply_on_thread import _asked, _reply, _warm
+from tests.test_security import Clock, connect, make_platform
 
 _HERE = interface.__file__
 
@@ -76,3 +80,50 @@ async def test_an_interrupt_the_moment_a_lock_is_taken_on_the_loop_leaves_it_fre
                 if lock.locked():
                     lock.release()
             asked.cancel()
+
+
+@pytest.mark.parametrize("method", ["seal_binary", "needs_renewal"])
+def test_an_interrupt_the_moment_the_session_table_s_lock_is_taken_leaves_it_free(
+    method: str,
+) -> None:
+    """Every message sealed on the loop takes the table's lock; interrupted the moment it has
+    it, the lock is free again for zenoh's thread (whose lane seals its answers)."""
+    clock = Clock()
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    connect(a, b)
+    table = a.table
+    lock = table._lock
+
+    def call() -> object:
+        if method == "seal_binary":
+            return table.seal_binary("uav-b", b'{"x":1}')
+        return table.needs_renewal("uav-b")
+
+    call()  # the usual path, as every message after the first takes it
+    fired = [False]
+
+    def local(frame: FrameType, event: str, arg: Any) -> Any:
+        if event == "opcode" and not fired[0] and lock._is_owned():
+            fired[0] = True
+            raise KeyboardInterrupt  # as a signal's handler, pending meanwhile
+        return local
+
+    def tracer(frame: FrameType, event: str, arg: Any) -> Any:
+        if frame.f_code.co_filename != security.__file__:
+            return None
+        frame.f_trace_opcodes = True
+        return local
+
+    previous = sys.gettrace()
+    sys.settrace(tracer)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            call()
+    finally:
+        sys.settrace(previous)
+    assert fired[0]
+    got: list[bool] = []
+    other = threading.Thread(target=lambda: got.append(lock.acquire(timeout=5)))
+    other.start()
+    other.join(10)
+    assert got == [True], "the table's lock was left held by the interrupted thread"
