@@ -38,6 +38,9 @@ _unpackb = msgpack.unpackb
 # A packer per thread, made once: `msgpack.packb` makes one (and its buffer) per call, a
 # good part of packing a batch of one sample; a packer shared between threads is not safe.
 _packers = threading.local()
+# A packer's buffer starts at 256 KiB and keeps the size of its largest body: a packer
+# that packed more is dropped, so one large batch does not hold its memory for good.
+_PACKER_KEPT_BYTES = 256 * 1024
 
 
 def check_semantic_label(label: str) -> str:
@@ -95,6 +98,8 @@ def pack_batch(
     # the same bytes as ``_packb(obj, default=_encode_value)``; a pack that raises leaves
     # the packer empty (msgpack resets it)
     body: bytes = packer.pack(obj)
+    if len(body) > _PACKER_KEPT_BYTES:
+        del _packers.batch
     return body
 
 
