@@ -95,9 +95,13 @@ def pack_batch(
         packer = _packers.batch
     except AttributeError:
         packer = _packers.batch = msgpack.Packer(default=_encode_value)
-    # the same bytes as ``_packb(obj, default=_encode_value)``; a pack that raises leaves
-    # the packer empty (msgpack resets it)
-    body: bytes = packer.pack(obj)
+    # the same bytes as ``_packb(obj, default=_encode_value)``
+    try:
+        body: bytes = packer.pack(obj)
+    except BaseException:
+        # msgpack empties it, but its buffer stays as large as what it wrote before failing
+        del _packers.batch
+        raise
     if len(body) > _PACKER_KEPT_BYTES:
         del _packers.batch
     return body
