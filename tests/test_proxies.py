@@ -779,9 +779,10 @@ def test_batches_packed_on_many_threads_at_once_are_each_their_own() -> None:
 
 def test_a_large_batch_body_leaves_no_buffer_behind() -> None:
     """A body of many megabytes (a batch of large values, one later dropped as too large,
-    or one that fails past them) does not keep its memory once packed: the next small batch packs as before, and what
-    packing it held is freed (a packer kept per thread keeps the buffer of its largest
-    body for the thread's life, an event loop's: the process's)."""
+    or one that fails past them) does not keep its memory once packed: the next small
+    batch packs as before, and what packing it held is freed (a packer kept per thread
+    keeps the buffer of its largest body for the thread's life, an event loop's: the
+    process's)."""
     large = b"x" * (8 << 20)
     pack_batch("cam/frames", [(1.0, 1, 1)])  # this thread has packed before
     tracemalloc.start()
