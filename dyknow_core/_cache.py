@@ -51,11 +51,11 @@ class Cache:
         buf.extend(batch)
         if self._max_age is not None and buf:
             cutoff = buf[-1][2] - self._max_age
-            n = 0
             while buf and buf[0][2] <= cutoff:
+                # counted before it goes: evicted + len(buf) never dips to what a stale best
+                # had read, which `latest_now` (another thread) would take as up to date
+                self.evicted += 1
                 buf.popleft()
-                n += 1
-            self.evicted += n
         if self._watched:
             self._update()
 

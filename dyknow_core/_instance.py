@@ -473,8 +473,9 @@ class DyKnowInstance:
         for label in labels:
             location = where.get(label)
             gen = None if location is None else location.generators.get(label)
-            if gen is None:
-                return None
+            if gen is None:  # None, but the streams asked after it are watched too
+                known_all = False
+                continue
             made = gen.made_ta
             known, sample = gen.cache.latest_now(now if now >= made else made)
             # on past one it cannot tell: each stream asked is watched from now on

@@ -38,6 +38,9 @@ _unpackb = msgpack.unpackb
 # A packer per thread, made once: `msgpack.packb` makes one (and its buffer) per call, a
 # good part of packing a batch of one sample; a packer shared between threads is not safe.
 _packers = threading.local()
+# A packer's buffer starts at 256 KiB and keeps the size of its largest body: a packer
+# that packed more is dropped, so one large batch does not hold its memory for good.
+_PACKER_KEPT_BYTES = 256 * 1024
 
 
 def check_semantic_label(label: str) -> str:
@@ -92,9 +95,15 @@ def pack_batch(
         packer = _packers.batch
     except AttributeError:
         packer = _packers.batch = msgpack.Packer(default=_encode_value)
-    # the same bytes as ``_packb(obj, default=_encode_value)``; a pack that raises leaves
-    # the packer empty (msgpack resets it)
-    body: bytes = packer.pack(obj)
+    # the same bytes as ``_packb(obj, default=_encode_value)``
+    try:
+        body: bytes = packer.pack(obj)
+    except BaseException:
+        # msgpack empties it, but its buffer stays as large as what it wrote before failing
+        del _packers.batch
+        raise
+    if len(body) > _PACKER_KEPT_BYTES:
+        del _packers.batch
     return body
 
 

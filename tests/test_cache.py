@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import deque
 from typing import Any
 
 import pytest
@@ -547,3 +548,31 @@ def test_latest_now_follows_samples_arriving_one_at_a_time() -> None:
     cache.extend([(5.0, 2 * S, 6 * S)])  # (2.0, 5 s) evicted: the best of the three left
     assert cache.latest_now(6 * S) == (True, (3.0, 4 * S, 4 * S))
     assert cache.latest_now(6 * S)[1] == cache.latest()
+
+
+def test_latest_now_read_while_old_samples_are_evicted_is_never_older_than_the_read() -> None:
+    """Another thread's read that runs while `extend` evicts by age (a thread switch between
+    two evictions) gets the latest of some moment of the read or (False, None): never a
+    best kept before samples that had arrived before the read began."""
+    cache = Cache(CacheSpec(max_age=1.0))
+    reads: list[tuple[bool, Raw | None]] = []
+
+    class Switching(deque[Raw]):
+        """The cache's buffer, with the other thread's read at each eviction."""
+
+        def popleft(self) -> Raw:
+            s = super().popleft()
+            reads.append(cache.latest_now(20 * S))
+            return s
+
+    cache._buf = Switching(maxlen=None)
+    cache.extend([(1.0, 1 * S, 10 * STEP), (2.0, 2 * S, 11 * STEP), (3.0, 3 * S, 12 * STEP)])
+    assert cache.latest() == (3.0, 3 * S, 12 * STEP)  # the loop's own query
+    cache.extend([(4.0, 4 * S, 13 * STEP), (5.0, 5 * S, 14 * STEP)])  # nobody watched yet
+    assert cache.latest_now(20 * S) == (False, None)  # the first ask
+    cache.extend([(6.0, 6 * S, 10 * S)])  # the five before it are older than 1 s: evicted
+    assert len(reads) == 5
+    # before this extend the latest was (5.0, 5 s); after it, (6.0, 6 s)
+    told = [sample for known, sample in reads if known]
+    assert all(s in ((5.0, 5 * S, 14 * STEP), (6.0, 6 * S, 10 * S)) for s in told), told
+    assert cache.latest_now(20 * S) == (True, (6.0, 6 * S, 10 * S))

@@ -851,6 +851,20 @@ async def test_latest_many_now_tells_at_the_second_ask_of_many_labels(
     assert dk.latest_many_now([*labels, "uav/none"]) is None  # a label not here
 
 
+async def test_latest_many_now_watches_the_streams_asked_after_a_label_not_here(
+    dk: DyKnowInstance, clock: ManualClock
+) -> None:
+    """A label not here makes the read None, but every stream asked with it is watched
+    from then on, as docs/core.md says: the next ask of those streams alone tells."""
+    src = dk.add_source("uav/s0")
+    src.push(1.0)
+    assert dk.latest_many_now(["uav/none", "uav/s0"]) is None
+    clock.advance(S)
+    src.push(2.0)
+    new = BASE + S
+    assert dk.latest_many_now(["uav/s0"]) == (new, [(2.0, new, new)])
+
+
 async def test_latest_now_reads_one_label_as_latest_many_now_does(
     dk: DyKnowInstance, clock: ManualClock
 ) -> None:

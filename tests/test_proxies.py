@@ -17,6 +17,7 @@ import signal
 import sys
 import threading
 import time
+import tracemalloc
 import uuid
 from collections.abc import AsyncIterator, Callable
 from typing import Any, TypeVar
@@ -775,6 +776,33 @@ def test_batches_packed_on_many_threads_at_once_are_each_their_own() -> None:
         sys.setswitchinterval(switch)
     assert not any(thread.is_alive() for thread in threads)
     assert failures == []
+
+
+def test_a_large_batch_body_leaves_no_buffer_behind() -> None:
+    """A body of many megabytes (a batch of large values, one later dropped as too large,
+    or one that fails past them) does not keep its memory once packed: the next small
+    batch packs as before, and what packing it held is freed (a packer kept per thread
+    keeps the buffer of its largest body for the thread's life, an event loop's: the
+    process's)."""
+    large = b"x" * (8 << 20)
+    pack_batch("cam/frames", [(1.0, 1, 1)])  # this thread has packed before
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        body = pack_batch("cam/frames", [(large, 2, 2)])
+        assert len(body) > len(large)
+        del body
+        assert unpack_batch(pack_batch("cam/frames", [(3.0, 3, 3)]))[2] == [[3.0, 3, 3]]
+        kept = tracemalloc.get_traced_memory()[0] - before
+        # one that fails past its 8 MiB (a value it cannot encode after it): the same
+        with pytest.raises(TypeError):
+            pack_batch("cam/frames", [([large, object()], 4, 4)])
+        assert unpack_batch(pack_batch("cam/frames", [(5.0, 5, 5)]))[2] == [[5.0, 5, 5]]
+        kept_failed = tracemalloc.get_traced_memory()[0] - before
+    finally:
+        tracemalloc.stop()
+    assert kept < 1 << 20, f"{kept} bytes kept after packing an 8 MiB body"
+    assert kept_failed < 1 << 20, f"{kept_failed} bytes kept after a pack failed past 8 MiB"
 
 
 # -- over real Interface Agents -------------------------------------------------------------------
