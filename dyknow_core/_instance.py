@@ -460,7 +460,8 @@ class DyKnowInstance:
 
     def latest_many_now(self, labels: Sequence[str]) -> tuple[int, list[RawSample | None]] | None:
         """`latest_many` from any thread, from what each stream's cache keeps (`Cache.latest_now`);
-        None when that cannot tell (a label not here, a sample available later than now).
+        None when that cannot tell (a label not here, a sample available later than now, a
+        stream read here for the first time: every label's is watched from this ask on).
 
         Reads only references the event loop replaces whole, so a caller on another thread
         gets the answers of some moment while samples arrive, never a torn one.
