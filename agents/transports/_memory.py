@@ -96,7 +96,8 @@ class MemoryTransport(Transport):
     def publish_nowait(self, key: str, payload: bytes) -> None:
         """Publish ``payload`` on ``key`` now."""
         if not self.publishes_nowait:
-            super().publish_nowait(key, payload)
+            super().publish_nowait(key, payload)  # refuses: a subclass's `publish` sees all
+            return
         self._put(key, payload, None)
 
     def _put(self, key: str, payload: bytes, attachment: bytes | None) -> None:
