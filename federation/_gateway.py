@@ -19,7 +19,8 @@ other platforms stream here) are for this platform's agents only: a request from
 platform that would read, create or write one is refused, counted
 (``gateway_stats.reserved_refused``) and audited; so is its request naming a label not
 here (``unknown_label_refused``: a query of any kind, a create-stream's source, a
-subscribe; the lane's plain read leaves it to `_perform`), and, whoever asks, a
+subscribe; the lane's plain read leaves it to `_perform`) or a create-stream whose output
+is taken (``taken_label_refused``), and, whoever asks, a
 create-stream whose output is no valid semantic label (``bad_label_refused``) or a
 request beyond the limits (``limit_refused``: ``max_streams``, ``max_subscriptions``).
 Made private while a
@@ -118,6 +119,7 @@ class GatewayStats:
     bad_label_refused: int = 0
     access_refused: int = 0
     unknown_label_refused: int = 0
+    taken_label_refused: int = 0
     limit_refused: int = 0
     streams_removed: int = 0
 
@@ -404,15 +406,19 @@ class GatewayAgent(Agent):
 
     def _counted(self, message: ACLMessage, code: str, reason: str) -> None:
         """Count and audit a refusal of the service's by its code: a bad label or a limit
-        whoever asks; a label not here when another platform asks (this platform's own
-        agents may look for one not published yet)."""
+        whoever asks; a label not here, or a create-stream's output taken, when another
+        platform asks (both tell it which labels exist; this platform's own agents may
+        look for one not published yet)."""
         stats = self.gateway_stats
         if code == "bad-label":
             stats.bad_label_refused += 1
-        elif code == "unknown-label":
+        elif code in ("unknown-label", "label-taken"):
             if platform_of(message.sender) == self.platform.name:
                 return
-            stats.unknown_label_refused += 1
+            if code == "unknown-label":
+                stats.unknown_label_refused += 1
+            else:
+                stats.taken_label_refused += 1
         elif code in ("stream-limit", "subscription-limit"):
             stats.limit_refused += 1
         else:

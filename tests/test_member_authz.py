@@ -196,6 +196,10 @@ async def _victim(config: PlatformConfig, conn: Connection) -> None:
                 elif msg[0] == "stuck":  # an agent whose mailbox fills (see `_Stuck`)
                     await p.agents.add(_Stuck(msg[1]))
                     pipe.send("stuck")
+                elif msg[0] == "limits":  # the gateway's, low: an attack reaches them fast
+                    p.gateway.max_subscriptions = msg[1]
+                    p.gateway.service.max_streams = msg[2]
+                    pipe.send("limits")
                 elif msg[0] == "exit":
                     return
 
@@ -546,6 +550,60 @@ async def test_an_opened_gateway_counts_and_audits_a_member_asking_labels_not_th
         ]
         assert all(r["receivers"] == [gw] for r in recs)
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+
+
+async def test_a_member_exhausting_an_opened_gateways_limits_or_probing_outputs_is_refused(
+    tmp_path: Path,
+) -> None:
+    """A member creating streams and subscribing past the gateway's limits is refused,
+    counted and audited one by one; so is its create-stream whose output is taken (it would
+    tell which labels exist), with the reason it was told."""
+    opened = {"sharing": {"gateway": "protected"}}
+    async with (
+        asyncio.timeout(120),
+        world(tmp_path, ["uav-a"], ["uav-m"], uav_a=opened) as w,
+    ):
+        w.pipes["uav-a"].send("limits", 2, 2)  # subscriptions, created streams
+        await w.pipes["uav-a"].expect("limits", WAIT)
+        m = await mallory(w)
+        gw = "gateway@uav-a"
+
+        def create(output: str) -> dict[str, Any]:
+            return {"action": "create-stream", "label": SECRET, "output": output}
+
+        assert await request(m, gw, create("op/s0"), ontology="dyknow") == {
+            "label": "op/s0",
+            "source": SECRET,
+        }
+        taken = [
+            await refusal(request(m, gw, create(lb), ontology="dyknow")) for lb in ("op/s0", SECRET)
+        ]
+        assert taken == [f"label {lb!r} is already published" for lb in ("op/s0", SECRET)]
+        await request(m, gw, create("op/s1"), ontology="dyknow")
+        streams = await refusal(request(m, gw, create("op/s2"), ontology="dyknow"))
+        assert streams == "too many created streams (limit 2)"
+        held = [await subscribe(m, gw, {"label": SECRET}, ontology="dyknow") for _ in range(2)]
+        subs = await refusal(subscribe(m, gw, {"label": SECRET}, ontology="dyknow"))
+        assert subs == "too many subscriptions (limit 2)"
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: len(audited(s, stage="gateway", sender="mallory@uav-m")) >= 4,
+            "the refusals audited",
+        )
+        assert s["gateway"]["limit_refused"] == 2
+        assert s["gateway"]["taken_label_refused"] == 2
+        assert s["gateway"]["subscriptions"] == 2
+        recs = audited(s, verdict="refused", stage="gateway", sender="mallory@uav-m")
+        assert [(r["code"], r["from"], r["performative"], r["reason"]) for r in recs] == [
+            ("label-taken", "uav-m", "request", f"label-taken: {taken[0]}"),
+            ("label-taken", "uav-m", "request", f"label-taken: {taken[1]}"),
+            ("stream-limit", "uav-m", "request", f"stream-limit: {streams}"),
+            ("subscription-limit", "uav-m", "subscribe", f"subscription-limit: {subs}"),
+        ]
+        assert all(r["receivers"] == [gw] for r in recs)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        for h in held:
+            await h.cancel()
 
 
 # -- 2. reply_to -----------------------------------------------------------------------------------
