@@ -622,7 +622,9 @@ class GatewayAgent(Agent):
         if message.conversation_id is None:
             return "a subscribe needs a conversation_id"
         if (message.sender, message.conversation_id) in self._feeds:
-            return f"conversation {message.conversation_id} already has a subscription"
+            # the asker's id, echoed on one line and bounded (as `quoted` bounds any)
+            conv = quoted(message.conversation_id, _NAMED_START)
+            return f"conversation {conv} already has a subscription"
         if len(self._feeds) >= self.max_subscriptions:
             reason = f"too many subscriptions (limit {self.max_subscriptions})"
             self._counted(message, "subscription-limit", reason)
@@ -634,9 +636,8 @@ class GatewayAgent(Agent):
         """The initiator ends its subscription: close the core subscription, confirm."""
         feed = self._feeds.get((message.sender, message.conversation_id or ""))
         if feed is None:
-            await self.reply(
-                message, P.FAILURE, f"no subscription in conversation {message.conversation_id}"
-            )
+            conv = quoted(message.conversation_id, _NAMED_START)
+            await self.reply(message, P.FAILURE, f"no subscription in conversation {conv}")
             return
         self._drop(feed)
         await self.reply(message, P.INFORM, "cancelled")
