@@ -3,8 +3,8 @@
 A reason another platform wrote (why it ended an export, why it bounced an inform, what
 it asked for that we refused) is its word: logged, but bounded. `quoted` escapes what
 could break the line (a newline would forge a log line of ours; a terminal escape would
-rewrite what the operator sees) and caps its length, saying how long it was. An audit
-record's reason quotes it so too: one message makes a record of bounded size, on one line.
+rewrite what the operator sees) and caps its length, saying how long it was. A refusal
+or an audit record that echoes such words quotes them so too (docs/security.md).
 """
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ QUOTE_MAX = 200  # characters of another platform's text kept in one log line
 def quoted(text: object, limit: int = QUOTE_MAX) -> str:
     """``text`` on one line: control and format characters escaped, cut at ``limit``."""
     s = str(text)
+    if len(s) <= limit and s.isprintable():
+        return s  # the common case, at C speed: nothing to escape or cut
     out: list[str] = []
     size = 0
     for i, c in enumerate(s):
