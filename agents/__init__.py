@@ -99,6 +99,7 @@ from ._protocols import (
     request,
     subscribe,
 )
+from ._quote import QUOTE_MAX, quoted
 from ._security import (
     KeyPair,
     OwnerBatches,
@@ -124,6 +125,7 @@ __all__ = [
     "FIPA_SUBSCRIBE",
     "LATER",
     "MAX_MESSAGE_BYTES",
+    "QUOTE_MAX",
     "WIRE_VERSION",
     "ACLMessage",
     "Agent",
@@ -208,6 +210,7 @@ __all__ = [
     "platform_of",
     "query_if",
     "query_ref",
+    "quoted",
     "reason_of",
     "register_service",
     "request",

@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple, Self
 from ._acl import ACLMessage, Performative, agent_id, compose, new_id, platform_of
 from ._aio import _TIMED_OUT, Deadlines, KeepCancelled, Mailbox, _expire
 from ._exceptions import AgentError
+from ._quote import quoted
 from ._records import Record
 
 if TYPE_CHECKING:
@@ -69,6 +70,8 @@ EXPECTS_REPLY = frozenset(
 NEVER_ANSWERED = frozenset({_P.NOT_UNDERSTOOD, _P.FAILURE})
 
 _MAX_REASON = 1000
+# an ontology or protocol name another platform sent, as a not-understood names it
+_NAME_QUOTED = 64
 
 
 class ConversationError(AgentError):
@@ -1192,10 +1195,11 @@ class Agent:
             return
         self.stats.not_understood += 1
         what = f"{message.performative}"
+        # the sender's words, in the answer and the audit: on one line, bounded
         if message.protocol:
-            what += f" (protocol {message.protocol})"
+            what += f" (protocol {quoted(message.protocol, _NAME_QUOTED)})"
         if message.ontology:
-            what += f" (ontology {message.ontology})"
+            what += f" (ontology {quoted(message.ontology, _NAME_QUOTED)})"
         if platform is not None:
             platform.agent_dropped(message, "not-understood", f"{self.aid}: {what}"[:300])
         await self._answer(

@@ -30,7 +30,7 @@ from typing import Any
 import orjson
 from nacl.exceptions import CryptoError
 
-from ._security import Clock, KeyPair, TrustStore
+from ._security import Clock, KeyPair, TrustStore, _untrusted
 
 __all__ = ["DirectoryAuth", "DirectoryStatementError", "Statement", "make_nonce"]
 
@@ -242,7 +242,7 @@ class DirectoryAuth:
         elif self.keys is not None and frm == self.keys.platform:
             verify = None
         else:
-            raise DirectoryStatementError(f"platform {frm!r} is not in the trust file", frm)
+            raise DirectoryStatementError(_untrusted(frm).args[0], frm)
         if "sig" not in obj:
             raise DirectoryStatementError("unsigned statement", frm)
         sig = _unb64(obj["sig"], "sig")

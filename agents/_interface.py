@@ -64,6 +64,7 @@ from ._gate import shed_counts
 from ._kxgate import DEFAULT_KX_LIMIT, KxGate, KxLimit
 from ._presence import PRESENCE_BURST, PRESENCE_RATE, presence_bucket
 from ._protocols import Refuse, on_query
+from ._quote import quoted
 from ._records import Frozen
 from ._security import (
     Clock,
@@ -73,6 +74,7 @@ from ._security import (
     SessionTable,
     TrustStore,
     WatchGate,
+    _untrusted,
     fingerprint,
     seal_owner_batch,
     sign_owner_batch,
@@ -306,8 +308,14 @@ class AuditLog:
         """Add one decision (``verdict`` is accepted, refused or dropped).
 
         Every record has the fields of ``docs/wire.md`` (None when unknown), so readers
-        of the JSON lines need not guess which ones a kind of refusal leaves out.
+        of the JSON lines need not guess which ones a kind of refusal leaves out. A
+        ``reason`` holding characters that are not printable has them escaped (`quoted`).
         """
+        reason = fields.get("reason")
+        if type(reason) is str and not reason.isprintable():
+            # a reason may echo another platform's words: whatever a site failed to
+            # bound, a record's reason holds no raw newline or escape (each escaped, none cut)
+            fields["reason"] = quoted(reason, 10 * len(reason))
         rec = self._new_record(**{"verdict": "accepted", **fields})
         self._log.append(rec)
         first = not self._pending  # the first since the flush took them: it may sleep
@@ -1643,7 +1651,7 @@ class InterfaceAgent:
     def _forgotten_since(self, peer: str) -> AuthenticationError:
         """What opening an envelope of ``peer`` says now that its sessions are forgotten."""
         if peer not in self.trust:
-            return UnknownPlatform(f"platform {peer!r} is not in the trust file", peer)
+            return _untrusted(peer)
         return UnknownSession(f"the session with {peer!r} was forgotten since it opened", peer)
 
     def _not_opened(self, stats: Any, exc: Exception) -> None:
@@ -2708,6 +2716,11 @@ class InterfaceAgent:
         extra = {} if stage is None else {"stage": stage}
         bucket = self._unauth
         if bucket is None or bucket.take(self._monotonic()):
+            if type(claimed) is str and (
+                len(claimed) > _UNTRUSTED_NAME or not claimed.isprintable()
+            ):
+                # anyone's claim, not a name checked: on one line, bounded
+                claimed = quoted(claimed, _UNTRUSTED_NAME)
             self.audit.record(verdict="dropped", **{"from": claimed}, reason=reason, **extra)
             return
         # a flood of garbage must not become a flood of audit records: count, sum up later

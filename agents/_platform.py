@@ -28,6 +28,7 @@ from ._aio import KeepCancelled
 from ._dfgate import DEFAULT_DF_EVENT_LIMIT, DfEventLimit
 from ._directory_auth import DirectoryAuth
 from ._exceptions import AgentError, MessageError
+from ._quote import quoted
 from ._records import Record
 from ._tally import Tally, since
 from .transports import Handle, Message, Subscription, Transport
@@ -813,7 +814,9 @@ class AgentPlatform:
         self.stats.agent_refused += 1
         peer = platform_of(message.sender)
         if peer != self.name:
-            detail = f"{', '.join(message.receivers)}: {str(reason)[:200]}"
+            # the reason may echo what the asker sent (a conversation id, a label): on one
+            # line, bounded (`quoted`)
+            detail = f"{', '.join(message.receivers)}: {quoted(reason)}"
             self._refusals.add((peer, "refuse"), detail)
 
     def agent_dropped(self, message: ACLMessage, kind: str, detail: str) -> None:

@@ -322,9 +322,14 @@ def _file_json(obj: dict[str, Any]) -> bytes:
     return _dumps(obj, option=orjson.OPT_INDENT_2 | orjson.OPT_APPEND_NEWLINE)
 
 
+_CLAIMED_WHOLE, _CLAIMED_START = 256, 64
+
+
 def _untrusted(platform: str) -> UnknownPlatform:
     """The error for a platform the trust file does not name."""
-    return UnknownPlatform(f"platform {platform!r} is not in the trust file", platform)
+    # a claimed name, anyone's: named by its start if longer than any name (audited)
+    shown = platform if len(platform) <= _CLAIMED_WHOLE else platform[:_CLAIMED_START] + "…"
+    return UnknownPlatform(f"platform {shown!r} is not in the trust file", platform)
 
 
 MAX_KEY_FILE_BYTES = 4 << 20
@@ -1640,7 +1645,7 @@ class SessionTable:
         if to != self.me:
             raise Misdirected(f"envelope for {to!r} reached {self.me!r}", frm)
         if frm not in self.trust._keys:  # checked per message: removing a platform revokes it
-            raise UnknownPlatform(f"platform {frm!r} is not in the trust file", frm)
+            raise _untrusted(frm)
         session = self._by_sid.get(sid)
         if session is None:
             raise UnknownSession(

@@ -19,7 +19,8 @@ other platforms stream here) are for this platform's agents only: a request from
 platform that would read, create or write one is refused, counted
 (``gateway_stats.reserved_refused``) and audited; so is its request naming a label not
 here (``unknown_label_refused``: a query of any kind, a create-stream's source, a
-subscribe; the lane's plain read leaves it to `_perform`), and, whoever asks, a
+subscribe; the lane's plain read leaves it to `_perform`) or a create-stream whose output
+is taken (``taken_label_refused``), and, whoever asks, a
 create-stream whose output is no valid semantic label (``bad_label_refused``) or a
 request beyond the limits (``limit_refused``: ``max_streams``, ``max_subscriptions``).
 Made private while a
@@ -118,6 +119,7 @@ class GatewayStats:
     bad_label_refused: int = 0
     access_refused: int = 0
     unknown_label_refused: int = 0
+    taken_label_refused: int = 0
     limit_refused: int = 0
     streams_removed: int = 0
 
@@ -404,15 +406,19 @@ class GatewayAgent(Agent):
 
     def _counted(self, message: ACLMessage, code: str, reason: str) -> None:
         """Count and audit a refusal of the service's by its code: a bad label or a limit
-        whoever asks; a label not here when another platform asks (this platform's own
-        agents may look for one not published yet)."""
+        whoever asks; a label not here, or a create-stream's output taken, when another
+        platform asks (both tell it which labels exist; this platform's own agents may
+        look for one not published yet)."""
         stats = self.gateway_stats
         if code == "bad-label":
             stats.bad_label_refused += 1
-        elif code == "unknown-label":
+        elif code in ("unknown-label", "label-taken"):
             if platform_of(message.sender) == self.platform.name:
                 return
-            stats.unknown_label_refused += 1
+            if code == "unknown-label":
+                stats.unknown_label_refused += 1
+            else:
+                stats.taken_label_refused += 1
         elif code in ("stream-limit", "subscription-limit"):
             stats.limit_refused += 1
         else:
@@ -616,7 +622,9 @@ class GatewayAgent(Agent):
         if message.conversation_id is None:
             return "a subscribe needs a conversation_id"
         if (message.sender, message.conversation_id) in self._feeds:
-            return f"conversation {message.conversation_id} already has a subscription"
+            # the asker's id, echoed on one line and bounded (as `quoted` bounds any)
+            conv = quoted(message.conversation_id, _NAMED_START)
+            return f"conversation {conv} already has a subscription"
         if len(self._feeds) >= self.max_subscriptions:
             reason = f"too many subscriptions (limit {self.max_subscriptions})"
             self._counted(message, "subscription-limit", reason)
@@ -628,9 +636,8 @@ class GatewayAgent(Agent):
         """The initiator ends its subscription: close the core subscription, confirm."""
         feed = self._feeds.get((message.sender, message.conversation_id or ""))
         if feed is None:
-            await self.reply(
-                message, P.FAILURE, f"no subscription in conversation {message.conversation_id}"
-            )
+            conv = quoted(message.conversation_id, _NAMED_START)
+            await self.reply(message, P.FAILURE, f"no subscription in conversation {conv}")
             return
         self._drop(feed)
         await self.reply(message, P.INFORM, "cancelled")

@@ -384,7 +384,9 @@ class GatewayService:
         except ValueError as exc:
             raise GatewayRefusal(f"output: {exc}", code="bad-label") from exc
         if dk.has_label(req.output):
-            raise GatewayRefusal(f"label {req.output!r} is already published")
+            # another platform could learn this way which labels exist: counted and
+            # audited as asking a label not here is
+            raise GatewayRefusal(f"label {req.output!r} is already published", code="label-taken")
         policy = req.policy.to_policy(dk.clock.now())
         name = f"gateway:{req.output}"
         cu = dk.add_cu(name, _identity, [(req.label, policy)], req.output)

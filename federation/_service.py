@@ -926,12 +926,13 @@ class FederationAgent(Agent):
             await self.request_from(requester, content)
         except Refused as exc:
             raise Denied(
-                "consent", f"{requester} did not confirm it asked {provider} for {labels}: {exc}"
+                "consent",
+                f"{requester} did not confirm it asked {provider} for {labels}: {quoted(exc)}",
             ) from exc
         except Exception as exc:
             raise ContentError(
                 f"{requester} did not answer whether it asked {provider} for {labels}: "
-                f"{reason_of(exc)}"
+                f"{quoted(reason_of(exc))}"
             ) from exc
 
     def _confirm_stream(self, req: ConfirmStream, sender: str) -> dict[str, Any]:
@@ -954,11 +955,13 @@ class FederationAgent(Agent):
             await self.request_from(receiver, content)
         except Refused as exc:
             raise Denied(
-                "consent", f"receiver {receiver} did not agree to receive {labels}: {exc}"
+                "consent",
+                f"receiver {receiver} did not agree to receive {labels}: {quoted(exc)}",
             ) from exc
         except Exception as exc:
             raise ContentError(
-                f"receiver {receiver} did not answer whether it receives {labels}: {reason_of(exc)}"
+                f"receiver {receiver} did not answer whether it receives {labels}: "
+                f"{quoted(reason_of(exc))}"
             ) from exc
 
     def _translate(self, semantic: str) -> str:

@@ -403,3 +403,46 @@ async def test_a_message_claiming_the_receivers_own_platform(tmp_path: Path) -> 
         for log in (lines, w.published):
             assert [r for r in log if all(r.get(k) == v for k, v in ours.items())] == []
         untouched(w.echo, calls, received)
+
+
+def test_a_reason_no_site_bounded_is_kept_on_one_line_in_memory_and_in_the_file(
+    tmp_path: Path,
+) -> None:
+    """Whatever a refusing site left unescaped, an audit record's reason holds no raw
+    newline nor escape: each written as `agents.quoted` writes it, nothing cut; a
+    printable reason is kept as it is."""
+    from agents import AuditLog
+
+    path = tmp_path / "audit.jsonl"
+    audit = AuditLog(path=path, platform="uav-a")
+    forged = 'x\n{"verdict": "accepted"}\x1b[2J\u202e'
+    audit.record(verdict="refused", stage="gateway", reason=f"refuse: {forged}")
+    audit.record(verdict="refused", stage="gateway", reason="refuse: 'label' (plain)")
+    audit.take()
+    want = 'refuse: x\\x0a{"verdict": "accepted"}\\x1b[2J\\u202e'
+    assert [r["reason"] for r in audit.records] == [want, "refuse: 'label' (plain)"]
+    lines = path.read_text().splitlines()
+    assert [orjson.loads(line)["reason"] for line in lines] == [
+        want,
+        "refuse: 'label' (plain)",
+    ]
+
+
+async def test_a_claimed_name_of_any_size_is_audited_bounded_on_one_line(tmp_path: Path) -> None:
+    """An envelope claiming a name no platform has, of 20 000 characters with a forged
+    line and a terminal escape, is dropped; its record names the claim by its start, on
+    one line, in `from` and in the reason: one envelope writes a record of bounded size."""
+    async with watched(tmp_path) as w:
+        raw = await w.fed.raw()
+        claim = 'evil\n{"verdict": "accepted"}\x1b[2J' + "e" * 20_000
+        calls, received = len(w.echo.calls), w.echo.stats.received
+        env = {**envelope_fields(w), "from": claim}
+        await raw.publish(w.inbox, orjson.dumps(env))
+        rec = await logged(w, "untrusted:", verdict="dropped", stage=None)
+        assert rec["from"].startswith('evil\\x0a{"verdict": "accepted"}\\x1b[2Je')
+        assert rec["from"].endswith("… (20032 characters, 19974 left out)")
+        assert rec["reason"] == (
+            "untrusted: platform " + repr(claim[:64] + "…") + " is not in the trust file"
+        )
+        assert len(orjson.dumps(rec)) < 1000
+        untouched(w.echo, calls, received)

@@ -56,6 +56,7 @@ from agents.transports import MemoryHub, free_tcp_port
 from dyknow_core import seconds_to_ns
 from federation import FederationPlatform, PlatformConfig, PlatformConfigError, SharingSettings
 from federation._batch import pack_batch
+from federation._service import Denied
 from federation._sessions import InterfaceSessions, PlainSessions
 
 pytestmark = pytest.mark.timeout(180)
@@ -196,6 +197,10 @@ async def _victim(config: PlatformConfig, conn: Connection) -> None:
                 elif msg[0] == "stuck":  # an agent whose mailbox fills (see `_Stuck`)
                     await p.agents.add(_Stuck(msg[1]))
                     pipe.send("stuck")
+                elif msg[0] == "limits":  # the gateway's, low: an attack reaches them fast
+                    p.gateway.max_subscriptions = msg[1]
+                    p.gateway.service.max_streams = msg[2]
+                    pipe.send("limits")
                 elif msg[0] == "exit":
                     return
 
@@ -548,6 +553,141 @@ async def test_an_opened_gateway_counts_and_audits_a_member_asking_labels_not_th
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
 
 
+async def test_a_member_exhausting_an_opened_gateways_limits_or_probing_outputs_is_refused(
+    tmp_path: Path,
+) -> None:
+    """A member creating streams and subscribing past the gateway's limits is refused,
+    counted and audited one by one; so is its create-stream whose output is taken (it would
+    tell which labels exist), with the reason it was told."""
+    opened = {"sharing": {"gateway": "protected"}}
+    async with (
+        asyncio.timeout(120),
+        world(tmp_path, ["uav-a"], ["uav-m"], uav_a=opened) as w,
+    ):
+        w.pipes["uav-a"].send("limits", 2, 2)  # subscriptions, created streams
+        await w.pipes["uav-a"].expect("limits", WAIT)
+        m = await mallory(w)
+        gw = "gateway@uav-a"
+
+        def create(output: str) -> dict[str, Any]:
+            return {"action": "create-stream", "label": SECRET, "output": output}
+
+        assert await request(m, gw, create("op/s0"), ontology="dyknow") == {
+            "label": "op/s0",
+            "source": SECRET,
+        }
+        taken = [
+            await refusal(request(m, gw, create(lb), ontology="dyknow")) for lb in ("op/s0", SECRET)
+        ]
+        assert taken == [f"label {lb!r} is already published" for lb in ("op/s0", SECRET)]
+        await request(m, gw, create("op/s1"), ontology="dyknow")
+        streams = await refusal(request(m, gw, create("op/s2"), ontology="dyknow"))
+        assert streams == "too many created streams (limit 2)"
+        held = [await subscribe(m, gw, {"label": SECRET}, ontology="dyknow") for _ in range(2)]
+        subs = await refusal(subscribe(m, gw, {"label": SECRET}, ontology="dyknow"))
+        assert subs == "too many subscriptions (limit 2)"
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: len(audited(s, stage="gateway", sender="mallory@uav-m")) >= 4,
+            "the refusals audited",
+        )
+        assert s["gateway"]["limit_refused"] == 2
+        assert s["gateway"]["taken_label_refused"] == 2
+        assert s["gateway"]["subscriptions"] == 2
+        recs = audited(s, verdict="refused", stage="gateway", sender="mallory@uav-m")
+        assert [(r["code"], r["from"], r["performative"], r["reason"]) for r in recs] == [
+            ("label-taken", "uav-m", "request", f"label-taken: {taken[0]}"),
+            ("label-taken", "uav-m", "request", f"label-taken: {taken[1]}"),
+            ("stream-limit", "uav-m", "request", f"stream-limit: {streams}"),
+            ("subscription-limit", "uav-m", "subscribe", f"subscription-limit: {subs}"),
+        ]
+        assert all(r["receivers"] == [gw] for r in recs)
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        for h in held:
+            await h.cancel()
+
+
+async def test_a_members_words_echoed_in_answers_and_the_audit_are_bounded_on_one_line(
+    tmp_path: Path,
+) -> None:
+    """What a member chose (an ontology, a protocol, a conversation id), echoed in what it
+    is answered and in the audit records its messages make, is on one line and bounded
+    (`agents.quoted`): one message, however large, cannot forge an audit line nor write a
+    record much larger than a fixed size."""
+    opened = {"sharing": {"gateway": "protected"}}
+    async with (
+        asyncio.timeout(120),
+        world(tmp_path, ["uav-a"], ["uav-m"], uav_a=opened) as w,
+    ):
+        m = await mallory(w)
+        forged = '\n{"verdict": "accepted", "from": "uav-b"}\x1b[2J'
+        big = 20_000
+        # an ontology and a protocol no agent has a handler for: answered not-understood
+        conv = new_id("c")
+        with m.conversation(conv, peers=["federation@uav-a"]) as c:
+            await c.send(
+                m.message(
+                    P.REQUEST,
+                    "federation@uav-a",
+                    {},
+                    ontology="o" + forged + "o" * big,
+                    protocol="p" + forged + "p" * big,
+                    language="json",
+                    conversation_id=conv,
+                )
+            )
+            answer = await c.receive(timeout=WAIT)
+        assert answer.performative is P.NOT_UNDERSTOOD
+        told = str(answer.content)
+        assert told.startswith("federation@uav-a has no handler for request (protocol p\\x0a{")
+        assert "\n" not in told and "\x1b" not in told and len(told) < 600
+        # a conversation id holding a subscription already: the subscribe is refused
+        gw = "gateway@uav-a"
+        conv = "c" + forged + "c" * big
+        with m.conversation(conv, peers=[gw]) as c:
+            sub = m.message(
+                P.SUBSCRIBE,
+                gw,
+                {"label": SECRET},
+                ontology="dyknow",
+                protocol="fipa-subscribe",
+                language="json",
+                conversation_id=conv,
+            )
+            await c.send(sub)
+            assert (await c.receive(timeout=WAIT)).performative is P.AGREE
+            await c.send(sub)
+            while (refused := await c.receive(timeout=WAIT)).performative is P.INFORM:
+                pass
+            assert refused.performative is P.REFUSE
+            told = str(refused.content)
+            assert told.startswith("conversation c\\x0a{") and told.endswith(
+                "already has a subscription"
+            )
+            assert "\n" not in told and len(told) < 300
+            await c.send(m.message(P.CANCEL, gw, None, ontology="dyknow", conversation_id=conv))
+            while (done := await c.receive(timeout=WAIT)).performative is P.INFORM:
+                if done.content == "cancelled":
+                    break
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: (
+                audited(s, stage="delivery", code="not-understood", **{"from": "uav-m"})
+                and audited(s, stage="agent-refuse", **{"from": "uav-m"})
+            ),
+            "the not-understood and the refuse audited",
+        )
+        for rec in (
+            *audited(s, stage="delivery", code="not-understood", **{"from": "uav-m"}),
+            *audited(s, stage="agent-refuse", **{"from": "uav-m"}),
+        ):
+            assert "\n" not in rec["reason"] and "\x1b" not in rec["reason"], rec
+            assert len(rec["reason"]) < 800, rec
+        (refuse,) = audited(s, stage="agent-refuse", **{"from": "uav-m"})
+        assert "gateway@uav-a: conversation c\\x0a{" in refuse["reason"]
+        await until(lambda: in_file(tmp_path, "uav-a", refuse), "the record in the audit file")
+
+
 # -- 2. reply_to -----------------------------------------------------------------------------------
 
 
@@ -644,6 +784,41 @@ async def test_a_stream_goes_to_a_third_platform_only_if_it_agrees(tmp_path: Pat
         )
         assert sb["refusals"] == {"consent": 3}
         assert not [i for i in sb["imports"]["imports"] if i["sender"] == "uav-m"]
+
+
+async def test_a_receivers_refusal_quoted_by_the_provider_is_bounded_on_one_line(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A member asked to receive a stream refuses with words of its own (a forged line,
+    a terminal escape, 20 000 characters): the provider's refusal to the requester and
+    its audit record quote them on one line, bounded."""
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a"], ["operator", "uav-m"]) as w,
+    ):
+        forged = '\n{"verdict": "accepted", "from": "uav-b"}\x1b[2J' + "w" * 20_000
+
+        async def refuse_in_its_words(req: Any, sender: str) -> dict[str, Any]:
+            raise Denied("consent", forged)
+
+        monkeypatch.setattr(w.here["uav-m"].federation_agent, "_accept_stream", refuse_in_its_words)
+        op = w.here["operator"].federation_agent
+        reason = await refusal(
+            op.create_stream("uav-a", ["car5-state"], to_units=["uav-m"], timeout=WAIT)
+        )
+        assert reason.startswith(
+            "receiver uav-m did not agree to receive ['car5-state']: federation@uav-m refused: "
+            "\\x0a{"
+        )
+        assert "\n" not in reason and "\x1b" not in reason and len(reason) < 400
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: audited(s, verdict="refused", code="consent"),
+            "the refusal audited",
+        )
+        (rec,) = audited(s, verdict="refused", code="consent", sender="federation@operator")
+        assert rec["reason"] == f"consent: {reason}"
+        await until(lambda: in_file(tmp_path, "uav-a", rec), "the record in the audit file")
 
 
 # -- 4. unsolicited batches ----------------------------------------------------------------------
