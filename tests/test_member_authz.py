@@ -1128,3 +1128,33 @@ async def test_drops_under_invented_sender_names_are_audited_in_bounded_records(
         assert {t[1] for t in records} == {"untrusted"}
         assert ("*", "untrusted") in {(t[0], t[1]) for t in records}
         assert imp.stats()["totals"]["dropped_batches"] == {"untrusted": n}
+
+
+async def test_a_members_refusal_to_cancel_a_one_shot_commands_stream_is_logged_bounded(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The last local command following a member's stream ends; the member refuses the
+    cancel in words of its own (a forged line, a terminal escape, 20 000 characters): the
+    local channel's log line quotes them on one line, bounded (docs/security.md)."""
+    from types import SimpleNamespace
+
+    from federation._local import LocalChannel, _Shared
+
+    forged = 'no\n{"verdict": "accepted", "from": "uav-b"}\x1b[2J' + "w" * 20_000
+
+    async def cancel_stream(target: str, export_id: str, timeout: float) -> None:
+        raise Refused(f"federation@{target} refused: {forged}")
+
+    entry = _Shared("e1", ("uav-m", "car5-state"), None)
+    channel = SimpleNamespace(
+        _lock=asyncio.Lock(),
+        _exports={entry.key: entry},
+        _pending={},
+        platform=SimpleNamespace(federation_agent=SimpleNamespace(cancel_stream=cancel_stream)),
+    )
+    with caplog.at_level("INFO", logger="federation._local"):
+        await asyncio.wait_for(LocalChannel._release(channel, "uav-m", entry), WAIT)  # type: ignore[arg-type]
+    assert channel._exports == {} and channel._pending == {}
+    (line,) = [r.getMessage() for r in caplog.records if "cancelling the export" in r.getMessage()]
+    assert "\n" not in line and "\x1b" not in line and len(line) < 500, line[:300]
+    assert line.endswith("left out)"), line[-100:]
