@@ -66,6 +66,7 @@ from agents import (
     TokenBucket,
     TransportError,
     TrustStore,
+    quoted,
     runs_signed,
     wire_key,
 )
@@ -935,7 +936,10 @@ class LocalChannel:
             agent = self.platform.federation_agent
             await agent.cancel_stream(target, entry.export_id, timeout=2.0)
         except Exception as exc:  # the export ends with its lease there anyway
-            log.info("local: cancelling the export %s at %s: %s", entry.export_id, target, exc)
+            # the member's words: on one line, bounded
+            log.info(
+                "local: cancelling the export %s at %s: %s", entry.export_id, target, quoted(exc)
+            )
         finally:
             del self._pending[key]
             ending.done.set()

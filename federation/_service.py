@@ -689,10 +689,15 @@ class FederationAgent(Agent):
             except Refused as exc:
                 if "cancel it first" in str(exc):
                     return  # it still runs there (the provider only left and came back)
-                log.info("%s: asking %s again for %s: %s", self, provider, entry.content, exc)
+                # the provider's words: on one line, bounded
+                log.info(
+                    "%s: asking %s again for %s: %s", self, provider, entry.content, quoted(exc)
+                )
             except Exception as exc:
                 # its agents may still be starting (key exchange, directory)
-                log.info("%s: asking %s again for %s: %s", self, provider, entry.content, exc)
+                log.info(
+                    "%s: asking %s again for %s: %s", self, provider, entry.content, quoted(exc)
+                )
             else:
                 new_id = str(answer["id"])
                 if self._durable.get(provider, {}).get(first_id) is not entry:
@@ -700,7 +705,7 @@ class FederationAgent(Agent):
                     try:
                         await self.request_from(provider, {"action": "cancel-stream", "id": new_id})
                     except Exception as exc:  # it ends with its lease there
-                        log.info("%s: cancelling %s at %s: %s", self, new_id, provider, exc)
+                        log.info("%s: cancelling %s at %s: %s", self, new_id, provider, quoted(exc))
                     return
                 entry.current = new_id
                 log.info("%s: %s created again by %s", self, entry.content["labels"], provider)

@@ -1049,3 +1049,23 @@ async def test_a_re_registration_that_fails_leaves_the_gateway_and_its_entry_as_
         with pytest.raises(Failed):
             for _ in range(100):
                 await theirs.get(timeout=5)
+
+
+async def test_a_cancel_of_no_subscription_names_its_conversation_bounded_on_one_line() -> None:
+    """A cancel in a conversation holding no subscription fails naming the conversation
+    id the asker chose: on one line, cut at 64 characters (docs/security.md); a short
+    printable one as it is."""
+    async with world() as w:
+        forged = 'c\n{"verdict": "accepted"}\x1b[2J' + "c" * 20_000
+        told = []
+        for conv in (forged, "c-none"):
+            cancel = w.asker.message(
+                Performative.CANCEL, GW, None, ontology="dyknow", conversation_id=conv
+            )
+            answer = await w.asker.ask(cancel, timeout=5)
+            assert answer.performative is Performative.FAILURE
+            told.append(str(answer.content))
+        assert told[0].startswith('no subscription in conversation c\\x0a{"verdict"')
+        assert told[0].endswith("… (20029 characters, 19971 left out)")
+        assert "\n" not in told[0] and "\x1b" not in told[0] and len(told[0]) < 200
+        assert told[1] == "no subscription in conversation c-none"

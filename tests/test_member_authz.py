@@ -821,6 +821,40 @@ async def test_a_receivers_refusal_quoted_by_the_provider_is_bounded_on_one_line
         await until(lambda: in_file(tmp_path, "uav-a", rec), "the record in the audit file")
 
 
+async def test_a_providers_refusal_of_a_durable_stream_asked_again_is_logged_bounded(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A member asked again for a durable stream refuses in words of its own (a forged
+    line, a terminal escape, 20 000 characters): the requester's log line quotes them on
+    one line, bounded, as every other platform's words it logs."""
+    from types import SimpleNamespace
+
+    from federation._service import FederationAgent, _Durable
+
+    forged = 'no\n{"verdict": "accepted", "from": "uav-b"}\x1b[2J' + "w" * 20_000
+    answers: list[Any] = [Refused(f"federation@uav-m refused: {forged}"), {"id": "e2"}]
+
+    async def request_from(provider: str, content: Any) -> Any:
+        answer = answers.pop(0)
+        if isinstance(answer, Exception):
+            raise answer
+        return answer
+
+    entry = _Durable({"action": "create-stream", "labels": ["car5-state"]}, "e1")
+
+    class Requester(SimpleNamespace):  # the Federation Agent's state `_ask_one` reads
+        def __str__(self) -> str:
+            return "federation@operator"
+
+    fa = Requester(_members={"uav-m"}, _durable={"uav-m": {"e1": entry}}, request_from=request_from)
+    with caplog.at_level("INFO", logger="federation._service"):
+        await asyncio.wait_for(FederationAgent._ask_one(fa, "uav-m", "e1", entry), WAIT)  # type: ignore[arg-type]
+    assert entry.current == "e2"
+    (line,) = [r.getMessage() for r in caplog.records if "asking uav-m again" in r.getMessage()]
+    assert "\n" not in line and "\x1b" not in line and len(line) < 500, line[:300]
+    assert line.endswith("left out)"), line[-100:]
+
+
 # -- 4. unsolicited batches ----------------------------------------------------------------------
 
 
@@ -1094,3 +1128,33 @@ async def test_drops_under_invented_sender_names_are_audited_in_bounded_records(
         assert {t[1] for t in records} == {"untrusted"}
         assert ("*", "untrusted") in {(t[0], t[1]) for t in records}
         assert imp.stats()["totals"]["dropped_batches"] == {"untrusted": n}
+
+
+async def test_a_members_refusal_to_cancel_a_one_shot_commands_stream_is_logged_bounded(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """The last local command following a member's stream ends; the member refuses the
+    cancel in words of its own (a forged line, a terminal escape, 20 000 characters): the
+    local channel's log line quotes them on one line, bounded (docs/security.md)."""
+    from types import SimpleNamespace
+
+    from federation._local import LocalChannel, _Shared
+
+    forged = 'no\n{"verdict": "accepted", "from": "uav-b"}\x1b[2J' + "w" * 20_000
+
+    async def cancel_stream(target: str, export_id: str, timeout: float) -> None:
+        raise Refused(f"federation@{target} refused: {forged}")
+
+    entry = _Shared("e1", ("uav-m", "car5-state"), None)
+    channel = SimpleNamespace(
+        _lock=asyncio.Lock(),
+        _exports={entry.key: entry},
+        _pending={},
+        platform=SimpleNamespace(federation_agent=SimpleNamespace(cancel_stream=cancel_stream)),
+    )
+    with caplog.at_level("INFO", logger="federation._local"):
+        await asyncio.wait_for(LocalChannel._release(channel, "uav-m", entry), WAIT)  # type: ignore[arg-type]
+    assert channel._exports == {} and channel._pending == {}
+    (line,) = [r.getMessage() for r in caplog.records if "cancelling the export" in r.getMessage()]
+    assert "\n" not in line and "\x1b" not in line and len(line) < 500, line[:300]
+    assert line.endswith("left out)"), line[-100:]

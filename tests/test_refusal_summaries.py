@@ -81,6 +81,27 @@ async def test_an_agents_own_refusals_are_counted_and_audited_summed_up(tmp_path
         assert "unsupported function" in recs[-1]["reason"]
 
 
+async def test_an_agents_refusal_echoing_much_is_summed_up_cut_as_a_quoted_reason(
+    tmp_path: Path,
+) -> None:
+    """A refusal echoing what the member asked (a DF function name of 5 000 characters):
+    the agent-refuse summary's last reason is cut as a quoted reason is, saying how long
+    it was (docs/security.md, "Refusals summed up")."""
+    async with world(tmp_path, [VICTIM]) as w:
+        agent = await mallory(w)
+        ask = {"action": "f" * 5_000}
+        reason = await refusal(request(agent, f"df@{VICTIM}", ask, ontology=FIPA_AGENT_MANAGEMENT))
+        assert reason == f"unsupported function {ask['action']!r}"
+        match = {"verdict": "refused", "stage": "agent-refuse", "from": MEMBER}
+        s = await w.until_stats(VICTIM, lambda s: summed(s, **match)[0] >= 1, "summed up")
+        (rec,) = summed(s, **match)[1]
+        assert rec["reason"].endswith(
+            f"(last: df@{VICTIM}: unsupported function 'fff"
+            + "f" * (200 - len("unsupported function 'fff"))
+            + f"… ({len(reason)} characters, {len(reason) - 200} left out))"
+        ), rec["reason"][-300:]
+
+
 async def test_messages_for_no_agent_or_a_full_mailbox_are_audited_summed_up(
     tmp_path: Path,
 ) -> None:
