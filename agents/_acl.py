@@ -199,7 +199,7 @@ class ACLMessage(BaseModel):
         # the message `compose` made last of a remembered header, known by the dict of its
         # fields (not by the message alone: __init__, __setstate__ or an assignment to a
         # frozen model's __dict__ give it another, whose fields the header does not write)
-        if fields is header.made[1]:
+        if fields is header.made:
             receivers = fields["receivers"]
             content = fields["content"]
             # its list is its own to change: only an unchanged one is written as remembered
@@ -659,8 +659,7 @@ def compose(
                     _set_extra(made, None)
                     _set_private(made, None)
                     # for to_json: this message's header is written as remembered
-                    # (one store: another thread's to_json reads both as one)
-                    last.made = (made, made_fields)
+                    last.made = made_fields
                     return made
     listed = [receivers] if isinstance(receivers, str) else list(receivers)
     act = _PERFORMATIVES.get(performative) if type(performative) is str else performative
@@ -720,10 +719,10 @@ class _Header:
         self.fields: dict[str, Any] = {}
         self.template: dict[str, Any] = {}
         self.names: frozenset[str] = frozenset()
-        # the last message put together from it and its fields (a dict no one else makes),
-        # one tuple (stored at once: another thread's to_json never sees one of another's
-        # fields), and its JSON around the content: `to_json` writes it with one dump
-        self.made: tuple[ACLMessage | None, dict[str, Any]] = (None, {})
+        # the fields of the last message put together from it (a dict no one else makes:
+        # `to_json` knows that message by it), and its JSON around the content: `to_json`
+        # writes it with one dump
+        self.made: dict[str, Any] | None = None
         self.prefix = b""
         self.suffix = b""
 
@@ -755,7 +754,7 @@ def _remember_header(
     header.fields = fields.copy()  # the caller's dict is its own to change
     header.template = {**message, "receivers": None, "content": None}
     header.names = frozenset(names)
-    header.made = (made, message)
+    header.made = message
     # the JSON to_json writes, split around the content (between receivers and the
     # optional str fields, in the model's order; reply_to is a list: never remembered)
     head = {"v": message["v"], "performative": act, "sender": sender, "receivers": [receivers]}
