@@ -458,7 +458,11 @@ async def test_frozen_receiver_costs_nobody_and_its_lease_expires() -> None:
                     lambda: exports[frozen].ended, "the frozen one's lease", LEASE + WAIT
                 )
                 expired_after = expired[0] - stopped_at
-                assert LEASE - 0.5 < expired_after < LEASE + 1.5, expired_after
+                # the lease runs from the receiver's last report, which came up to a report
+                # interval (more on a busy machine) before the stop, or was in flight during it
+                heard = exports[frozen].last_heard
+                assert heard < stopped_at + 0.5, heard - stopped_at
+                assert LEASE <= expired[0] - heard < LEASE + 1.5, expired[0] - heard
                 assert ended.startswith("lease-expired"), ended
                 assert exports[frozen] in exporter.ended
                 assert any(r == frozen and why == "lease-expired" for r, why, _ in dropped)
