@@ -53,6 +53,7 @@ from federation._service import (
 from federation._service_content import ContentError, GetLatest, latest_labels, parse_request
 from federation._sharing import Sharing, SharingRule, SharingSettings
 from ontology import LabelMapping, PlatformLabels, Vocabulary
+from tests.test_proxies import until
 
 FED = "t"
 T0 = 1000 * NS_PER_S  # every instance's now when a test starts
@@ -1295,3 +1296,33 @@ def test_a_handed_over_latest_is_the_reply_the_copy_made(now: Any, drawn: list[A
         ]
     )
     assert isinstance(new, HandedOver) == plain
+
+
+async def test_a_durable_stream_created_again_is_cancelled_by_its_first_id() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        first = await b.fed.create_stream("uav-a", ["car5-state"], durable=True)
+        async with b.fed.membership() as seen:
+            await a.fed.leave()
+            assert await next_event(seen, MembershipEvent("left", "uav-a"))
+            await a.fed._end(a.fed.exports[first])  # as after a restart: its export is gone
+            await a.fed.join()
+            assert await next_event(seen, MembershipEvent("joined", "uav-a"))
+        await until(lambda: len(a.exporter.running) == 1, "created again by itself")
+        assert a.exporter.running[0] is not None and first not in a.fed.exports
+        await b.fed.cancel_stream("uav-a", first)  # the only id the user ever got
+        assert a.exporter.running == [] and b.fed._durable["uav-a"] == {}
+
+
+async def test_a_durable_stream_that_still_runs_is_not_asked_for_again() -> None:
+    # the provider only left and came back: its export still runs, nothing to re-create
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        first = await b.fed.create_stream("uav-a", ["car5-state"], durable=True)
+        async with b.fed.membership() as seen:
+            await a.fed.leave()
+            await next_event(seen, MembershipEvent("left", "uav-a"))
+            await a.fed.join()
+            await next_event(seen, MembershipEvent("joined", "uav-a"))
+        await asyncio.sleep(0.2)  # the re-ask ran (refused: it still runs) and gave up at once
+        assert len(a.exporter.running) == 1 and b.fed._durable["uav-a"][first].current == first
