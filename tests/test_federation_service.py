@@ -1326,3 +1326,19 @@ async def test_a_durable_stream_that_still_runs_is_not_asked_for_again() -> None
             await next_event(seen, MembershipEvent("joined", "uav-a"))
         await asyncio.sleep(0.2)  # the re-ask ran (refused: it still runs) and gave up at once
         assert len(a.exporter.running) == 1 and b.fed._durable["uav-a"][first].current == first
+
+
+def test_another_platform_cannot_ask_for_a_grid_finer_than_a_millisecond() -> None:
+    import pytest
+    from pydantic import ValidationError
+
+    from federation._gateway_service import PolicySpec
+    from federation._service_content import CreateStream
+
+    with pytest.raises(ValidationError, match="sample-period"):
+        CreateStream.model_validate(
+            {"action": "create-stream", "labels": ["car5-state"], "sample-period": 1e-9}
+        )
+    with pytest.raises(ValidationError, match="sample_period"):
+        PolicySpec(sample_period=1e-9)
+    assert PolicySpec(sample_period=0.001).to_policy(0).sample_period == 0.001
