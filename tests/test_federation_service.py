@@ -1342,3 +1342,38 @@ def test_another_platform_cannot_ask_for_a_grid_finer_than_a_millisecond() -> No
     with pytest.raises(ValidationError, match="sample_period"):
         PolicySpec(sample_period=1e-9)
     assert PolicySpec(sample_period=0.001).to_policy(0).sample_period == 0.001
+
+
+# -- global requests: a send that fails partway ---------------------------------------------
+
+
+@pytest.mark.parametrize("in_turn", [True, False])
+async def test_a_global_request_whose_send_fails_still_asks_the_others(in_turn: bool) -> None:
+    """In turn (a session held) or in a task: the failure is reported, the rest answer."""
+    from agents import TransportError
+
+    async with world() as w:
+        op = w["operator"].fed
+        channel = await altitudes_and_operator_sessions(w, "uav-a", "uav-b")
+        if not in_turn:
+            channel.sends_now = lambda platform: False  # type: ignore[method-assign]
+        # the link to uav-a fails, both ways a message goes out (awaited, or at once)
+        transport = w["operator"].platform.transport
+        publish, publish_now = transport.publish, transport.publish_nowait
+
+        async def failing(key: str, payload: bytes, **kw: Any) -> None:
+            if key.endswith("/acl/uav-a"):
+                raise TransportError("link down")
+            await publish(key, payload, **kw)
+
+        def failing_now(key: str, payload: bytes) -> None:
+            if key.endswith("/acl/uav-a"):
+                raise TransportError("link down")
+            publish_now(key, payload)
+
+        transport.publish = failing  # type: ignore[method-assign]
+        transport.publish_nowait = failing_now  # type: ignore[method-assign]
+        content = {"action": "get-latest", "labels": ["heli-altitude"]}
+        result = await op.global_request(content, deadline=WAIT, select="newest")
+        assert result.refused == {"uav-a": "unreachable: TransportError: link down"}
+        assert sorted(result.answers) == ["uav-b"] and result.no_answer == []

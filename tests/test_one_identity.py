@@ -4,6 +4,7 @@ commands run with a running node's config go through it and break none of its se
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import re
@@ -20,7 +21,7 @@ import pytest
 from _node_example import CLI, Station, _samples
 from _victim import station_channel
 
-from agents import KeyPair
+from agents import KeyPair, wire_key
 from federation import PlatformConfig
 from federation.cli import main as cli_main
 
@@ -1097,3 +1098,52 @@ def channel_path_in(config: object, env: dict[str, str]) -> Path:
 
     with mock.patch.dict(os.environ, {"XDG_RUNTIME_DIR": env["XDG_RUNTIME_DIR"]}):
         return channel_path(config)  # type: ignore[arg-type]
+
+
+# -- one platform, one process: the duplicate seen though its link comes up a little late ----
+
+
+async def _delaying_proxy(port: int, to: int, delay: float) -> asyncio.Server:
+    """A TCP forwarder on ``port`` to ``to`` that connects onward ``delay`` s late."""
+
+    async def pipe(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(Exception):
+            while data := await r.read(65536):
+                w.write(data)
+                await w.drain()
+        w.close()
+
+    async def serve(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        await asyncio.sleep(delay)
+        r2, w2 = await asyncio.open_connection("127.0.0.1", to)
+        await asyncio.gather(pipe(r, w2), pipe(r2, w))
+
+    return await asyncio.start_server(serve, "127.0.0.1", port)
+
+
+async def test_a_second_node_of_a_name_is_refused_though_its_link_to_the_first_is_late() -> None:
+    """A third platform answering first must not hide the running one still being connected."""
+    from types import SimpleNamespace
+
+    from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+    from federation._local import PlatformAliveError, refuse_duplicate
+
+    fed = "demo"
+    pa, pc, pb, proxy = (free_tcp_port() for _ in range(4))
+    async with contextlib.AsyncExitStack() as stack:
+        a = await stack.enter_async_context(ZenohTransport(ZenohConfig.loopback(pa)))
+        c = await stack.enter_async_context(ZenohTransport(ZenohConfig.loopback(pc)))
+        await a.declare_token(wire_key(fed, "alive", "x"))
+        await c.declare_token(wire_key(fed, "alive", "c"))
+        server = await _delaying_proxy(proxy, pa, 0.4)
+        stack.push_async_callback(server.wait_closed)
+        stack.callback(server.close)
+        b = await stack.enter_async_context(
+            ZenohTransport(ZenohConfig.loopback(pb, connect=[pc, proxy]))
+        )
+        with pytest.raises(PlatformAliveError):
+            # no key to read: no local channel to look at, only the network
+            config = SimpleNamespace(federation=fed, name="x", key=Path("no-such.key"))
+            # the answer's bound: 5 s, not the default 1 s, whose 0.6 s beyond the proxy's
+            # delay a loaded machine used up once before the late link was up
+            await refuse_duplicate(b, config, wait=5.0)  # type: ignore[arg-type]
