@@ -1,7 +1,8 @@
-"""Review probes of `Agent.answer_at_once`: what the hook answers that the handlers would not.
+"""`Agent.answer_at_once` at its limits: it never answers what the handlers would not.
 
-Each test asserts what the handler path gives (the behaviour before answering at once);
-on the reviewed commit they fail, showing the difference.
+Each test asserts what the handler path gives (a subclass's handler that refuses, a read
+behind a request being handled, a private agent, an answer that cannot go at once): an
+answer at once that differed would fail it.
 """
 
 from __future__ import annotations

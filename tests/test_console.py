@@ -691,7 +691,7 @@ def test_a_console_section_is_checked_against_the_vocabulary(demo_keys: Path) ->
         )
 
 
-# -- found in review ----------------------------------------------------------------------
+# -- what another site's page, a local process or a platform's numbers cannot do ----------
 
 
 async def test_a_page_of_another_site_cannot_post_to_the_console(demo_keys: Path) -> None:

@@ -329,9 +329,9 @@ async def _records(platform: AgentPlatform, stage: str) -> list[dict[str, Any]]:
 async def test_a_resync_its_member_does_not_answer_is_asked_again_until_it_does() -> None:
     """A member whose directory sheds the resync queries (a flood of them) is asked again.
 
-    Its events were shed and its answers did not come: the view asked once and gave up, so
-    the member's changes stayed hidden for good (found in review). Now it asks again after a
-    wait that doubles, while the member is alive, until an answer comes.
+    Its events were shed and its answers did not come: a view that asked once and gave up
+    would hide the member's changes for good, so it asks again after a wait that doubles,
+    while the member is alive, until an answer comes.
     """
     async with asyncio.timeout(20), members("t", "uav-a", "uav-b") as [pa, pb]:
         view = pa.global_df
