@@ -814,6 +814,12 @@ class FederationAgent(Agent):
     def _denied(self, message: ACLMessage, exc: Denied) -> None:
         """Count and audit a refusal by rule or limit (the Interface Agent admitted it)."""
         self.refusals[exc.code] = self.refusals.get(exc.code, 0) + 1
+        if exc.code == "sharing-rule":
+            # a member may ask labels a rule refuses at its rate limit: one by one within
+            # its platform's budget, the rest summed up (and not logged either)
+            if self.platform.audit_refused(message, "federation", exc.code, exc.reason):
+                log.info("%s: refused %s: %s", self, message.sender, quoted(exc.reason))
+            return
         # the reason may quote what the requester asked for (a label, a formula): bounded
         log.info("%s: refused %s: %s", self, message.sender, quoted(exc.reason))
         self.platform.audit(
