@@ -28,6 +28,11 @@ by what holds it (``/proc/<pid>/smaps``): the anonymous memory (Python's objects
 native heaps: zenoh's, pydantic-core's validators), and the pages of each large shared
 library that the process touched (zenoh's, the interpreter's, OpenSSL's, pydantic-core's,
 uvloop's), so what a change saves shows where it saved it.
+Most of a node's RSS is pages of shared libraries that every Python process of the host
+maps from the same files (zenoh's alone is ~15 MB of them), counted whole in each one's
+RSS. So each one's PSS (its private pages, plus its share of each shared page: what N
+nodes of one host sum to) and its private pages (what one more node on the host costs)
+are printed beside it.
 """
 
 from __future__ import annotations
@@ -204,10 +209,26 @@ def rss_parts(pid: int) -> dict[str, float]:
     return parts
 
 
+def pss_private(pid: int) -> tuple[float, float]:
+    """The PSS and the private memory (MB) of process ``pid``, from ``/proc/<pid>/smaps_rollup``.
+
+    PSS counts a page shared by n processes as 1/n of it; private is what the process
+    alone maps (clean or dirty), what it would give back on exit.
+    """
+    kb: dict[str, int] = {}
+    with open(f"/proc/{pid}/smaps_rollup") as f:
+        for line in f:
+            words = line.split()
+            if len(words) >= 2 and words[1].isdigit():
+                kb[words[0]] = int(words[1])
+    return kb["Pss:"] / 1024, (kb["Private_Clean:"] + kb["Private_Dirty:"]) / 1024
+
+
 def _spawn_ready(
     argv: list[str], env: dict[str, str] | None = None, cwd: Path | None = None
-) -> tuple[float, float, dict[str, float]]:
-    """Spawn ``argv``; seconds until it prints a line with "ready", its RSS (MB) idle, by part."""
+) -> tuple[float, float, dict[str, float], tuple[float, float]]:
+    """Spawn ``argv``; seconds until it prints a line with "ready", its RSS (MB) idle, by part,
+    and its PSS and private memory (MB, `pss_private`)."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(
         argv,
@@ -228,7 +249,7 @@ def _spawn_ready(
         time.sleep(NODE_IDLE_S)
         with open(f"/proc/{proc.pid}/status") as f:
             rss = next(int(x.split()[1]) / 1024 for x in f if x.startswith("VmRSS:"))
-        return ready, rss, rss_parts(proc.pid)
+        return ready, rss, rss_parts(proc.pid), pss_private(proc.pid)
     finally:
         proc.terminate()
         try:
@@ -238,12 +259,16 @@ def _spawn_ready(
             proc.wait()
 
 
+# a spawned process's start → ready (s), idle RSS (MB), RSS by part, (PSS, private) (MB)
+_Spawned = tuple[float, float, dict[str, float], tuple[float, float]]
+
+
 def node_ready() -> None:
     """``dyknow node`` start → ready and idle RSS, beside a bare zenoh node; the BENCH lines."""
-    ours: list[tuple[float, float, dict[str, float]]] = []
-    bare: list[tuple[float, float, dict[str, float]]] = []
-    imports: list[tuple[float, float, dict[str, float]]] = []
-    deps: list[tuple[float, float, dict[str, float]]] = []
+    ours: list[_Spawned] = []
+    bare: list[_Spawned] = []
+    imports: list[_Spawned] = []
+    deps: list[_Spawned] = []
     with tempfile.TemporaryDirectory(prefix="bench-node-") as tmp:
         config = _node_config(Path(tmp))
         site = Path(tmp) / "site"
@@ -259,7 +284,7 @@ def node_ready() -> None:
             imports.append(_spawn_ready([sys.executable, "-c", _IMPORTS_ONLY], env, site))
             deps.append(_spawn_ready([sys.executable, "-c", _DEPS_NODE]))
     print(f"node start to ready ({NODE_REPEAT} spawns each, s) and idle RSS (MB):")
-    for (r, m, _), (br, bm, _), (ir, im, _), (_, dm, _) in zip(
+    for (r, m, *_), (br, bm, *_), (ir, im, *_), (_, dm, *_) in zip(
         ours, bare, imports, deps, strict=True
     ):
         print(
@@ -272,10 +297,15 @@ def node_ready() -> None:
         "bare zenoh node with our dependencies | bare zenoh node"
     )
     for name in RSS_PARTS:
-        cells = (statistics.median(p[name] for *_, p in runs) for runs in columns)
+        cells = (statistics.median(p[name] for _, _, p, _ in runs) for runs in columns)
         print(f"  {name:<44}" + "".join(f"{c:8.1f}" for c in cells))
-    totals = (statistics.median(sum(p.values()) for *_, p in runs) for runs in columns)
+    totals = (statistics.median(sum(p.values()) for _, _, p, _ in runs) for runs in columns)
     print(f"  {'total':<44}" + "".join(f"{c:8.1f}" for c in totals))
+    # the shared pages' share depends on the host's other processes; the private pages do not
+    shared = ("PSS (shared pages split among their users)", "private (its own pages)")
+    for i, name in enumerate(shared):
+        cells = (statistics.median(shares[i] for *_, shares in runs) for runs in columns)
+        print(f"  {name:<44}" + "".join(f"{c:8.1f}" for c in cells))
     report(
         "federation-node-ready",
         statistics.median(r for r, *_ in ours),
@@ -286,9 +316,9 @@ def node_ready() -> None:
     )
     report(
         "federation-node-rss",
-        statistics.median(m for _, m, _ in ours),
+        statistics.median(m for _, m, *_ in ours),
         "zenoh-bare",
-        statistics.median(m for _, m, _ in bare),
+        statistics.median(m for _, m, *_ in bare),
         "MB",
         better="lower",
     )

@@ -49,7 +49,6 @@ import secrets
 import socket
 import stat
 import struct
-import tempfile
 import threading
 import time
 from collections.abc import AsyncGenerator, Callable
@@ -373,6 +372,10 @@ def channel_path(config: PlatformConfig, keys: KeyPair | None = None) -> Path:
 
 def _tmp_top() -> Path:
     """``<tmp>/dyknow-<uid>``: asked for only when needed (finding ``<tmp>`` may fail)."""
+    # imported here: with $XDG_RUNTIME_DIR set a node never needs it, and tempfile brings
+    # shutil and its compressors (bz2, lzma: ~0.6 MB of an idle node's memory)
+    import tempfile
+
     return Path(tempfile.gettempdir()) / f"dyknow-{os.getuid()}"
 
 

@@ -987,3 +987,112 @@ def test_a_reply_written_at_once_is_the_reply_made_and_written() -> None:
         assert reply_json(ask, P.INFORM, 1, "") is None
         assert reply_json(ask, "inform", 1, "gateway@uav-b") is None  # type: ignore[arg-type]
         assert reply_json(ask, P.INFORM, 2**70, "gateway@uav-b") is None  # no JSON number
+
+
+# -- ACLMessage.reply: what build would make, or build's error ------------------------------
+
+
+def _asked() -> ACLMessage:
+    return ACLMessage.build(
+        performative=P.REQUEST,
+        sender="a@p1",
+        receivers=["b@p2"],
+        content={"x": 1},
+        conversation_id="c-1",
+        reply_with="r-1",
+        protocol="fipa-request",
+        ontology="o",
+        language="json",
+    )
+
+
+class _Lying(str):
+    """A str that says it equals (and hashes as) an identifier it does not spell."""
+
+    def __eq__(self, other: object) -> bool:
+        return True
+
+    def __hash__(self) -> int:
+        return hash("b@p2")
+
+
+@pytest.mark.parametrize("sender", [["b@p2"], {"b": 1}, _Lying("not an aid")])
+def test_a_reply_from_a_sender_that_is_no_identifier_is_refused_as_build_refuses(
+    sender: object,
+) -> None:
+    asked = _asked()
+    ACLMessage.build(performative=P.INFORM, sender="b@p2", receivers=["a@p1"])  # known now
+    with pytest.raises((MessageError, ValueError)) as built:
+        ACLMessage.build(
+            performative=P.INFORM,
+            sender=sender,
+            receivers=["a@p1"],
+        )
+    with pytest.raises(type(built.value)):
+        asked.reply(P.INFORM, {"ok": True}, sender=sender)  # type: ignore[arg-type]
+
+
+def test_a_reply_is_the_message_build_makes() -> None:
+    asked = _asked()
+    for content in (None, 1, 1.5, "s", [1, [2, {"a": None}]], {"k": [True, {"z": "y"}]}):
+        got = asked.reply(P.INFORM, content)
+        want = ACLMessage.build(
+            performative=P.INFORM,
+            sender="b@p2",
+            receivers=["a@p1"],
+            content=content,
+            language="json",
+            ontology="o",
+            protocol="fipa-request",
+            conversation_id="c-1",
+            in_reply_to="r-1",
+        )
+        assert got == want
+        assert got.model_fields_set == want.model_fields_set
+        assert got.to_json() == want.to_json()
+
+
+_HOSTILE_AIDS = ["c@z\n", "c\n@z", "c@z\r", "c@z\n\n", "\nc@z", "c@z "]
+
+
+def _message() -> ACLMessage:
+    return ACLMessage(performative=P.INFORM, sender="a@x", receivers=["b@y"], content=1)
+
+
+@pytest.mark.parametrize("aid", _HOSTILE_AIDS)
+def test_a_receiver_pydantic_refuses_is_refused_by_readdressed(aid: str) -> None:
+    message = _message()
+    with pytest.raises(ValidationError):
+        ACLMessage.model_validate({**message.model_dump(), "receivers": [aid]})
+    with pytest.raises(MessageError):
+        message.readdressed(aid, "r1")
+
+
+@pytest.mark.parametrize("field", ["sender", "receivers"])
+@pytest.mark.parametrize("aid", _HOSTILE_AIDS)
+def test_an_identifier_pydantic_refuses_is_refused_by_the_quick_parse(field: str, aid: str) -> None:
+    obj = _message().model_dump(mode="json")
+    obj[field] = [aid] if field == "receivers" else aid
+    with pytest.raises(ValidationError):
+        ACLMessage.model_validate(obj)
+    with pytest.raises(MessageError):
+        ACLMessage.from_json(orjson.dumps(obj))
+    with pytest.raises(MessageError):
+        ACLMessage.from_parsed(obj, nesting=2)
+
+
+@pytest.mark.parametrize("tail", ["\n", "\n\n"])
+def test_a_name_label_or_endpoint_ending_in_a_newline_is_refused(tail: str) -> None:
+    # `$` also matches before a final newline: each check must take the whole text
+    from agents import check_name
+    from agents.transports import ZenohConfig
+    from federation._batch import check_semantic_label
+
+    with pytest.raises(ValueError, match="name"):
+        check_name("uav-a" + tail)
+    with pytest.raises(ValueError, match="semantic label"):
+        check_semantic_label("uav/pos" + tail)
+    with pytest.raises(ValueError, match="name"):
+        AgentPlatform("uav-a" + tail, MemoryHub().transport())
+    with pytest.raises(ValueError, match="endpoint"):
+        ZenohConfig(listen=["tcp/127.0.0.1:7447" + tail])

@@ -1234,3 +1234,34 @@ async def test_an_agent_whose_start_is_given_up_stops_undoing_its_setup() -> Non
                 await asyncio.wait([agent._task])
         assert agent.torn_down
         assert "late" not in p._agents
+
+
+async def test_two_gathers_of_one_conversation_each_wake_when_their_senders_answered() -> None:
+    async with (
+        asyncio.timeout(5),
+        MemoryHub().transport() as transport,
+        AgentPlatform("p", transport, federation="t") as p,
+    ):
+        a = await p.add(Agent("a"))
+
+        def answer(sender: str) -> ACLMessage:
+            return ACLMessage(
+                performative=P.INFORM, sender=sender, receivers=[a.aid], conversation_id="c1"
+            )
+
+        # no deadline: only the answers (or a close) can end either wait
+        with a.conversation("c1", peers=["x@p", "y@p"]) as conv:
+            first = asyncio.create_task(conv.gather(["x@p"]))
+            second = asyncio.create_task(conv.gather(["y@p"]))
+            await asyncio.sleep(0)
+            a._deliver(answer("y@p"))
+            await asyncio.wait_for(asyncio.shield(second), 1)
+            assert not first.done()
+            a._deliver(answer("x@p"))
+            await asyncio.wait_for(asyncio.shield(first), 1)
+            # a close ends every gather still waiting
+            third = asyncio.create_task(conv.gather(["z@p"]))
+            fourth = asyncio.create_task(conv.gather(["z@p"]))
+            await asyncio.sleep(0)
+            conv.close()
+            await asyncio.wait_for(asyncio.gather(third, fourth), 1)

@@ -27,6 +27,13 @@ def test_node_ready_spawns_both_and_prints_the_lines(
     ours_total = rows["total"][0]
     assert abs(sum(rows[name][0] for name in memory.RSS_PARTS) - ours_total) < 0.1 * len(rows)
     assert rows["zenoh's library"][0] > 1 and rows["zenoh's library"][3] > 1
+    # then each one's PSS and private memory: private <= PSS <= RSS, column by column
+    shares = out.partition("idle RSS by part")[2].splitlines()[len(memory.RSS_PARTS) + 2 :][:2]
+    pss, private = ([float(c) for c in line[46:].split()] for line in shares)
+    assert shares[0].split()[0] == "PSS" and shares[1].split()[0] == "private"
+    assert len(pss) == len(private) == 4
+    for rss_mb, pss_mb, private_mb in zip(rows["total"], pss, private, strict=True):
+        assert 1 < private_mb <= pss_mb + 0.1 and pss_mb <= rss_mb + 0.1
     for words in lines:
         fields = dict(w.split("=", 1) for w in words[2:])
         assert float(fields["ours"]) > 0 and float(fields["zenoh-bare"]) > 0
@@ -44,3 +51,12 @@ def test_rss_parts_split_a_live_process_whole() -> None:
     assert before - 1 <= sum(parts.values()) <= after + 1  # read between the two, ±1 MB
     assert parts[memory.RSS_ANONYMOUS] > 1  # this interpreter's objects
     assert parts["the interpreter (libpython)"] + parts[memory.RSS_OTHER] > 1
+
+
+def test_pss_private_of_a_live_process() -> None:
+    """A process's PSS lies between its private memory and its RSS."""
+    pss, private = memory.pss_private(os.getpid())
+    with open("/proc/self/status") as f:
+        rss = next(int(x.split()[1]) / 1024 for x in f if x.startswith("VmRSS:"))
+    assert 1 < private <= pss + 0.1  # this interpreter's objects are its own
+    assert pss <= rss + 1  # read around the same time, ±1 MB

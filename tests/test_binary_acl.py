@@ -15,6 +15,7 @@ import base64
 import contextlib
 import json
 import queue
+import re
 import uuid
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
@@ -275,3 +276,55 @@ async def test_a_pair_with_one_side_sealing_json_talks_both_ways(json_side: str)
         for platform in (p.pa, p.pb):
             assert _ia(platform).sessions.missing() == {}
             assert platform.stats.unauthenticated == 0
+
+
+async def test_a_sample_batch_put_on_a_real_nodes_acl_key_is_audited_forged() -> None:
+    async with pair() as p:
+        await _captured(p)  # a session is there
+        batch = _ia(p.pa).sessions.seal_bytes("uav-b", msgpack.packb({"v": 1}))
+        reason = await _attack(p, batch, "forged")
+        assert "uav-a" in reason
+
+
+def _masked(record: dict[str, Any]) -> dict[str, Any]:
+    """An audit record without what differs between two runs (times, ids, counters)."""
+    keep = {k: v for k, v in record.items() if k not in ("ts", "seq", "id")}
+    keep["reason"] = re.sub(r"[A-Za-z0-9_-]{22}|\d+", "#", str(keep.get("reason")))
+    return keep
+
+
+async def _replay_record(binary: bool) -> tuple[dict[str, Any], dict[str, int]]:
+    """A captured envelope of uav-a put again on uav-b's ACL key: its audit record."""
+    async with pair(a={"binary_acl": binary}) as p:
+        sent = await _captured(p)
+        assert (sent[:1] == b"{") is not binary
+        await _attack(p, sent, "replayed")
+        ib = _ia(p.pb)
+        rec = next(r for r in reversed(ib.audit.records) if r["verdict"] == "dropped")
+        return _masked(rec), ib.missing()
+
+
+async def test_a_replay_is_audited_alike_in_both_forms_on_a_real_node() -> None:
+    json_rec, json_missing = await _replay_record(False)
+    bin_rec, bin_missing = await _replay_record(True)
+    assert json_rec == bin_rec
+    assert json_missing == bin_missing
+    assert json_missing.get("uav-a", 0) == 0
+
+
+async def test_the_missing_count_of_a_real_node_spans_both_forms() -> None:
+    """uav-a switches form between envelopes; one of each form lost: two missing."""
+    from test_security_binacl import MSG
+
+    async with pair() as p:
+        await _captured(p)
+        ia, ib = _ia(p.pa), _ia(p.pb)
+        # two envelopes sealed, one per form, and never published: lost on the way
+        ia.sessions.seal("uav-b", MSG)
+        ia.sessions.seal_binary("uav-b", MSG)
+        ia._seal = ia.sessions.seal  # the JSON form from now on
+        assert await request(p.asker, "echo@uav-b", {"z": 3}, ontology="demo") == {
+            "echo": {"z": 3},
+            "by": "echo@uav-b",
+        }
+        assert ib.missing() == {"uav-a": 2}

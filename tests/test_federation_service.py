@@ -53,6 +53,7 @@ from federation._service import (
 from federation._service_content import ContentError, GetLatest, latest_labels, parse_request
 from federation._sharing import Sharing, SharingRule, SharingSettings
 from ontology import LabelMapping, PlatformLabels, Vocabulary
+from tests.test_proxies import until
 
 FED = "t"
 T0 = 1000 * NS_PER_S  # every instance's now when a test starts
@@ -1295,3 +1296,84 @@ def test_a_handed_over_latest_is_the_reply_the_copy_made(now: Any, drawn: list[A
         ]
     )
     assert isinstance(new, HandedOver) == plain
+
+
+async def test_a_durable_stream_created_again_is_cancelled_by_its_first_id() -> None:
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        first = await b.fed.create_stream("uav-a", ["car5-state"], durable=True)
+        async with b.fed.membership() as seen:
+            await a.fed.leave()
+            assert await next_event(seen, MembershipEvent("left", "uav-a"))
+            await a.fed._end(a.fed.exports[first])  # as after a restart: its export is gone
+            await a.fed.join()
+            assert await next_event(seen, MembershipEvent("joined", "uav-a"))
+        await until(lambda: len(a.exporter.running) == 1, "created again by itself")
+        assert a.exporter.running[0] is not None and first not in a.fed.exports
+        await b.fed.cancel_stream("uav-a", first)  # the only id the user ever got
+        assert a.exporter.running == [] and b.fed._durable["uav-a"] == {}
+
+
+async def test_a_durable_stream_that_still_runs_is_not_asked_for_again() -> None:
+    # the provider only left and came back: its export still runs, nothing to re-create
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        first = await b.fed.create_stream("uav-a", ["car5-state"], durable=True)
+        async with b.fed.membership() as seen:
+            await a.fed.leave()
+            await next_event(seen, MembershipEvent("left", "uav-a"))
+            await a.fed.join()
+            await next_event(seen, MembershipEvent("joined", "uav-a"))
+        await asyncio.sleep(0.2)  # the re-ask ran (refused: it still runs) and gave up at once
+        assert len(a.exporter.running) == 1 and b.fed._durable["uav-a"][first].current == first
+
+
+def test_another_platform_cannot_ask_for_a_grid_finer_than_a_millisecond() -> None:
+    import pytest
+    from pydantic import ValidationError
+
+    from federation._gateway_service import PolicySpec
+    from federation._service_content import CreateStream
+
+    with pytest.raises(ValidationError, match="sample-period"):
+        CreateStream.model_validate(
+            {"action": "create-stream", "labels": ["car5-state"], "sample-period": 1e-9}
+        )
+    with pytest.raises(ValidationError, match="sample_period"):
+        PolicySpec(sample_period=1e-9)
+    assert PolicySpec(sample_period=0.001).to_policy(0).sample_period == 0.001
+
+
+# -- global requests: a send that fails partway ---------------------------------------------
+
+
+@pytest.mark.parametrize("in_turn", [True, False])
+async def test_a_global_request_whose_send_fails_still_asks_the_others(in_turn: bool) -> None:
+    """In turn (a session held) or in a task: the failure is reported, the rest answer."""
+    from agents import TransportError
+
+    async with world() as w:
+        op = w["operator"].fed
+        channel = await altitudes_and_operator_sessions(w, "uav-a", "uav-b")
+        if not in_turn:
+            channel.sends_now = lambda platform: False  # type: ignore[method-assign]
+        # the link to uav-a fails, both ways a message goes out (awaited, or at once)
+        transport = w["operator"].platform.transport
+        publish, publish_now = transport.publish, transport.publish_nowait
+
+        async def failing(key: str, payload: bytes, **kw: Any) -> None:
+            if key.endswith("/acl/uav-a"):
+                raise TransportError("link down")
+            await publish(key, payload, **kw)
+
+        def failing_now(key: str, payload: bytes) -> None:
+            if key.endswith("/acl/uav-a"):
+                raise TransportError("link down")
+            publish_now(key, payload)
+
+        transport.publish = failing  # type: ignore[method-assign]
+        transport.publish_nowait = failing_now  # type: ignore[method-assign]
+        content = {"action": "get-latest", "labels": ["heli-altitude"]}
+        result = await op.global_request(content, deadline=WAIT, select="newest")
+        assert result.refused == {"uav-a": "unreachable: TransportError: link down"}
+        assert sorted(result.answers) == ["uav-b"] and result.no_answer == []

@@ -3,6 +3,7 @@ hypothesis properties of the emitted stream (order, delay, change, grid, bounds,
 
 from __future__ import annotations
 
+import asyncio
 from collections.abc import Sequence
 from itertools import pairwise
 from typing import Any
@@ -11,7 +12,16 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
-from dyknow_core import NS_PER_S, CacheSpec, Policy, PolicyFilter, Sample, seconds_to_ns
+from dyknow_core import (
+    NS_PER_S,
+    CacheSpec,
+    DyKnowInstance,
+    ManualClock,
+    Policy,
+    PolicyFilter,
+    Sample,
+    seconds_to_ns,
+)
 from dyknow_core._filter import MAX_GRID_BURST
 from dyknow_core._stream import StreamGenerator
 
@@ -1033,3 +1043,33 @@ def test_a_callback_clearing_its_batch_leaves_the_next_subscriber_its_samples() 
     gen.publish_batch(mine)
     assert got == [(1, 1, 1), (2, 2, 2)]
     assert mine == [(1, 1, 1), (2, 2, 2)]
+
+
+def test_a_gap_in_the_data_never_floods_a_fine_grid() -> None:
+    dk = DyKnowInstance(clock=ManualClock())
+    src = dk.add_source("x")
+    out: list = []
+    sub = dk.subscribe(
+        "x",
+        Policy(sample_period=1e-6, approximation="most_recent", buffer_size=100),
+        callback=out.extend,
+    )
+    src.push(1.0, 0, 0)
+    src.push(2.0, S, S)  # 1 s later: 999 999 grid points in between
+    # at most MAX_GRID_BURST of them (whatever the buffer), plus the two exact hits;
+    # the rest counted
+    assert len(out) == 1 + MAX_GRID_BURST + 1
+    assert sub.filter.stats.skipped == 999_999 - MAX_GRID_BURST
+    assert out[-1][0] == 2.0
+
+
+async def test_instance_loop_is_not_blocked_by_one_push_after_a_gap() -> None:
+    # the same fine grid inside a running instance: the event loop stays responsive
+    async with DyKnowInstance(clock=ManualClock()) as dk:
+        src = dk.add_source("x")
+        dk.subscribe("x", Policy(sample_period=1e-9, approximation="most_recent"))
+        src.push(1.0, 0, 0)
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        src.push(2.0, 10_000_000, 10_000_000)
+        assert loop.time() - t0 < 1.0

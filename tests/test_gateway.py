@@ -1069,3 +1069,76 @@ async def test_a_cancel_of_no_subscription_names_its_conversation_bounded_on_one
         assert told[0].endswith("… (20029 characters, 19971 left out)")
         assert "\n" not in told[0] and "\x1b" not in told[0] and len(told[0]) < 200
         assert told[1] == "no subscription in conversation c-none"
+
+
+# -- the Gateway: reserved labels are not even named to another platform --------------------
+
+
+@pytest.mark.parametrize(
+    "content",
+    [
+        {"action": "query", "label": "nope"},  # the quick query
+        {"action": "query", "label": "nope", "kind": "at", "t": 1.0},  # the models' path
+        {"action": "create-stream", "label": "nope", "output": "out"},
+    ],
+)
+async def test_an_unknown_label_refusal_names_no_reserved_label_to_another_platform(
+    content: dict[str, Any],
+) -> None:
+    from agents import Refused
+
+    async with world(visibility="protected") as w:
+        w.dk.add_source("import/uav-c/secret")
+        with pytest.raises(Refused) as refused:
+            await w.ask(content)
+        reason = str(refused.value)
+        assert "unknown label 'nope'" in reason
+        assert "car5-state" in reason  # what it may see is still listed
+        assert "import/" not in reason
+
+
+async def test_an_unknown_label_subscription_names_no_reserved_label_to_another_platform() -> None:
+    from agents import Refused, subscribe
+
+    async with world(visibility="protected") as w:
+        w.dk.add_source("import/uav-c/secret")
+        with pytest.raises(Refused) as refused:
+            await subscribe(w.asker, GW, {"label": "nope"}, ontology="dyknow", timeout=5)
+        assert "import/" not in str(refused.value)
+
+
+# -- get-latest of many labels: one clock reading, no Answer per label ----------------------
+
+
+async def test_latest_of_many_labels_answers_as_one_latest_per_label() -> None:
+    """`latest_contents` gives what `answer_content(latest(label))` gives, label by label."""
+    from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, UnknownLabelError
+    from federation._gateway_service import answer_content, latest_contents
+
+    t0 = 1_000 * NS_PER_S
+    clock = ManualClock(t0)
+    async with DyKnowInstance("u", clock=clock) as dk:
+        scalar, rich, _, bumped, future = (
+            dk.add_source(label) for label in ("s", "r", "e", "b", "f")
+        )
+        scalar.push(1.5, valid_time=t0 - 5)
+        scalar.push(2.5, valid_time=t0 - 9)  # older valid time: not the latest
+        rich.push({"pos": (1, 2)}, valid_time=t0 - 1)  # a tuple inside: made JSON
+        bumped.push("x")
+        bumped.push("y")  # the same clock reading: stamped 1 ns later, seen now
+        future.push(7, available_time=t0 + NS_PER_S)  # not known before the clock gets there
+        labels = ["s", "r", "e", "b", "f", "s"]
+        want = [answer_content(dk.latest(label)) for label in labels]
+        assert latest_contents(dk, labels) == want
+        # the cases above are what they say
+        assert [c["samples"][0][0] if c["samples"] else None for c in want] == [
+            1.5,
+            {"pos": [1, 2]},
+            None,
+            "y",
+            None,
+            1.5,
+        ]
+        with pytest.raises(UnknownLabelError) as info:
+            latest_contents(dk, ["s", "nope"])
+        assert info.value.label == "nope"

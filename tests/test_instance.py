@@ -883,3 +883,53 @@ async def test_latest_now_reads_one_label_as_latest_many_now_does(
     many = dk.latest_many_now(("uav/altitude",))
     assert many is not None and read == (many[0], many[1][0])
     assert dk.latest("uav/altitude").samples == [Sample(120.0, BASE, BASE)]
+
+
+async def test_periodic_subscription_with_end_and_max_delay_ends_on_the_clock() -> None:
+    clock = ManualClock()
+    async with DyKnowInstance(clock=clock) as dk:
+        src = dk.add_source("x")
+        sub = dk.subscribe(
+            "x",
+            Policy(sample_period=1.0, approximation="most_recent", max_delay=0.5, end=3 * S),
+        )
+        src.push(1.0, 0, 0)
+        clock.set(10 * S)  # no more data: time alone passes `end`
+        got = [s.valid_time async for s in sub]  # ends instead of waiting for ever
+        assert got == [0, 1 * S, 2 * S, 3 * S]
+        assert sub.closed and sub.deadline() is None
+
+
+def test_replacing_a_periodic_policy_keeps_the_sample_waiting_for_the_next_grid_point() -> None:
+    dk = DyKnowInstance(clock=ManualClock())
+    src = dk.add_source("x")
+    p = Policy(sample_period=1.0, approximation="most_recent")
+    unchanged, replaced = dk.subscribe("x", p), dk.subscribe("x", p)
+    src.push(0.0, 0, 0)
+    src.push(5.0, S // 2, S // 2)  # the newest before grid point 1 s
+    replaced.replace_policy(p)
+    src.push(9.0, 3 * S // 2, 3 * S // 2)  # decides grid point 1 s
+    assert [tuple(s[:2]) for s in replaced.buffer] == [(0.0, 0), (5.0, S)]
+    assert list(replaced.buffer) == list(unchanged.buffer)
+
+
+def test_a_failing_subscriber_does_not_starve_the_others() -> None:
+    dk = DyKnowInstance(clock=ManualClock())
+    src = dk.add_source("x")
+
+    def broken(batch: list) -> None:  # type: ignore[type-arg]
+        raise RuntimeError("subscriber bug")
+
+    dk.subscribe("x", callback=broken)
+    other = dk.subscribe("x")
+    src.push(1.0)  # the producer is not told of a consumer's bug
+    assert len(other.buffer) == 1
+    assert dk.failure_count == 1 and "subscriber bug" in dk.failures[-1].error
+
+
+def test_a_sentinel_valid_time_is_accepted_like_any_other() -> None:
+    dk = DyKnowInstance(clock=ManualClock())
+    src = dk.add_source("x")
+    sub = dk.subscribe("x")
+    src.push(1.0, -(2**63), 0)  # "no time" from another language: ta - tv >= 2**63
+    assert len(sub.buffer) == 1 and len(dk.stream("x").cache) == 1

@@ -33,6 +33,7 @@ from agents import (
     MessageError,
     MessageTemplate,
     Performative,
+    RateLimit,
     Refused,
     ReplyTimeout,
     SecurityError,
@@ -45,6 +46,7 @@ from agents import (
     search_services,
     wire_key,
 )
+from agents import Performative as P
 from agents import _interface as interface_module
 from agents._exceptions import Forged
 from agents._interface import AuditLog, InterfaceAgent, accepted_entry
@@ -2028,3 +2030,264 @@ def test_audit_lines_of_accepted_messages_are_the_records_as_json() -> None:
     assert lines == [orjson.dumps(r) for r in audit.records]
     assert audit.counts["accepted"] == 30 and len(lines) == 31
     assert audit.last(1)[0]["verdict"] == "dropped"
+
+
+# -- InterfaceAgent: a batch's messages decided as each alone -------------------------------
+
+
+async def _decisions(batched: bool, runs: bool = False) -> dict[str, Any]:
+    """What uav-b decides about one hostile mix of messages from uav-a, batched or one by one.
+
+    With ``runs``: runs of messages for two agents from two senders, interleaved, with a
+    forged sender or receiver in the middle of a run (the batch path caches both).
+    """
+    async with federation("uav-a", "uav-b") as fed:
+        limit = RateLimit(rate=1e-3, burst=4.0, total_rate=1e-3, total_burst=14.0, refusals=1e-3)
+        pair = await _captured_session(fed)
+        pa, pb = pair.pa, pair.pb
+        # a fresh sender state with these limits (the captured request used the default one)
+        ib = ia(pb)
+        ib.rate_limit = limit
+        ib._senders.clear()
+        await pa.add(Listener("l"))
+        await serve(pb, "private", None)
+        stopped = await serve(pb, "stopped")
+        await stopped.stop()
+        echo = pair.echo
+        echo.calls.clear()
+        echo.informs.clear()
+        inform, req = P.INFORM, P.REQUEST
+        items: list[Any] = [
+            _m("l@uav-a", "echo@uav-b", inform, {"i": 1}),
+            _m("l@uav-a", "echo@uav-b", req, {"i": 2}),
+            _m("l@uav-a", "private@uav-b", req, {"i": 3}),  # no service: refused
+            _m("victim@uav-c", "echo@uav-b", inform, {"i": 4}),  # forged sender
+            _m("l@uav-a", "echo@uav-b", req, {"i": 5}, reply_to=["x@uav-c"]),  # reflection
+            _m("l@uav-a", "echo@uav-b", inform, {"i": 6}, reply_to=["echo@uav-b"]),
+            _m("l@uav-a", "ghost@uav-b", inform, {"i": 7}),  # no such agent
+            _m("l@uav-a", "stopped@uav-b", inform, {"i": 8}),  # stopped
+            {"performative": "shout", "sender": "l@uav-a", "receivers": ["echo@uav-b"]},
+            _m("l@uav-a", "echo@uav-c", inform, {"i": 10}),  # for another platform
+            _m("l@uav-a", "echo@uav-b", req, {"i": 11}),
+            _m("l@uav-a", "echo@uav-b", req, {"i": 12}),  # over the request limit
+            _m("l@uav-b", "echo@uav-b", inform, {"i": 13}),  # claims the receiver's platform
+        ]
+        items += [_m("l@uav-a", "echo@uav-b", inform, {"i": i}) for i in range(14, 24)]
+        other = None
+        if runs:
+            ib.rate_limit = RateLimit(rate=1e-3, burst=6.0, total_rate=1e-3, total_burst=40.0)
+            other = await serve(pb, "echo2")
+            items = [
+                _m("l@uav-a", "echo@uav-b", inform, {"i": 1}),
+                _m("m@uav-a", "echo2@uav-b", inform, {"i": 2}),
+                _m("l@uav-a", "echo@uav-b", inform, {"i": 3}),
+                _m("l@uav-a", "echo@uav-b", req, {"i": 4}),
+                _m("victim@uav-c", "echo@uav-b", inform, {"i": 5}),  # forged, mid-run
+                _m("l@uav-a", "echo@uav-b", inform, {"i": 6}),
+                _m("l@uav-a", "echo2@uav-b", req, {"i": 7}),
+                _m("l@uav-a", "private@uav-b", req, {"i": 8}),  # no service, mid-run
+                _m("l@uav-a", "echo2@uav-b", req, {"i": 9}),
+                _m("m@uav-a", "echo@uav-b", inform, {"i": 10}),
+                _m("m@uav-a", "echo@uav-b", inform, {"i": 11}, reply_to=["m@uav-a"]),
+                _m("m@uav-a", "ghost@uav-b", inform, {"i": 12}),  # no such agent, mid-run
+                _m("m@uav-a", "echo@uav-b", inform, {"i": 13}),
+                _m("m@uav-a", "echo@uav-c", inform, {"i": 14}),  # another platform, mid-run
+                _m("m@uav-a", "echo2@uav-b", inform, {"i": 15}),
+                _m("l@uav-b", "echo2@uav-b", inform, {"i": 16}),  # claims uav-b, mid-run
+                _m("l@uav-a", "echo2@uav-b", inform, {"i": 17}),
+                _m("l@uav-a", "echo@uav-b", req, {"i": 18}),
+                _m("l@uav-a", "echo@uav-b", req, {"i": 19}),
+                _m("l@uav-a", "echo2@uav-b", req, {"i": 20}),  # over the request limit
+                _m("m@uav-a", "echo2@uav-b", inform, {"i": 21}),
+            ]
+        bodies = [orjson.dumps(i) if isinstance(i, dict) else i.to_json() for i in items]
+        key = wire_key(FED, "acl", "uav-b")
+        raw = await fed.raw()
+        seal = ia(pa).sessions.seal
+        before = len(ib.audit.last(10_000))
+        if batched:
+            await raw.publish(key, seal("uav-b", b"[" + b",".join(bodies) + b"]"))
+        else:
+            for body in bodies:
+                await raw.publish(key, seal("uav-b", body))
+        sender = pb.stats.senders["uav-a"]
+        await until(
+            lambda: sender.accepted + sender.limited >= len(items) - 1, "every message decided"
+        )
+        await asyncio.sleep(0.2)  # the refusals and not-understoods go out
+        records = [
+            {k: v for k, v in r.items() if k != "ts"} for r in ib.audit.last(10_000)[before:]
+        ]
+        stats = pb.stats
+        return {
+            "records": records,
+            "informs": [m.content for m in echo.informs],
+            "informs2": None if other is None else [m.content for m in other.informs],
+            "calls2": None if other is None else [m.content for m in other.calls],
+            "calls": [m.content for m in echo.calls],
+            "accepted": sender.accepted,
+            "limited": sender.limited,
+            "refused": sender.refused,
+            "counts": dict(ib.audit.counts),
+            "platform": (
+                stats.received_remote,
+                stats.local,
+                stats.forged,
+                stats.unknown_receiver,
+                stats.rate_limited,
+            ),
+        }
+
+
+def _m(sender: str, receiver: str, performative: P, content: Any, **fields: Any) -> ACLMessage:
+    return ACLMessage.build(
+        performative=performative,
+        sender=sender,
+        receivers=[receiver],
+        content=content,
+        ontology="demo",
+        protocol="fipa-request",
+        conversation_id=f"c-{content}",
+        reply_with=f"r-{content}",
+        **fields,
+    )
+
+
+async def test_a_hostile_batch_is_decided_as_its_messages_one_by_one() -> None:
+    """Limits, sender binding, reply_to, access, unknown agents, audit: batch == one by one."""
+    alone = await _decisions(batched=False)
+    together = await _decisions(batched=True)
+    assert together == alone
+    assert alone["limited"] >= 2  # both limits reached
+
+
+async def test_interleaved_runs_of_a_hostile_batch_are_decided_as_one_by_one() -> None:
+    """Two receivers, two senders, a bad one mid-run: batch == one by one, order kept."""
+    alone = await _decisions(batched=False, runs=True)
+    together = await _decisions(batched=True, runs=True)
+    assert together == alone
+    assert alone["informs"] == [{"i": 1}, {"i": 3}, {"i": 6}, {"i": 10}, {"i": 11}, {"i": 13}]
+    assert alone["informs2"] == [{"i": 2}, {"i": 15}, {"i": 17}, {"i": 21}]
+    assert alone["limited"] == 1
+
+
+# -- InterfaceAgent: a lone message's quick parse decides as the full one ------------------
+
+
+def _deep(levels: int) -> bytes:
+    return b"[" * levels + b"1" + b"]" * levels
+
+
+def _hostile_bodies() -> list[bytes]:
+    """Bodies that open (sealed by uav-a) but are no message `_take_now` may take."""
+    ok = (
+        b'{"performative":"inform","sender":"l@uav-a","receivers":["echo@uav-b"],'
+        b'"conversation_id":"c","content":%b}'
+    )
+    return [
+        ok % b"1",  # a good one, for reference
+        ok % _deep(198),
+        ok % _deep(199),
+        ok % _deep(200),
+        ok % _deep(260),  # deeper than pydantic takes
+        ok % _deep(1100),  # deeper than orjson reads
+        b"[1,2,3]",
+        b"42",
+        b'"inform"',
+        b"null",
+        ok % b"1" + b" trailing",
+        ok % b"1" * 2,
+        ok % b"123456789012345678901234567890",  # bigger than 64 bits
+        ok % b"1e400",
+        ok.replace(b'"sender":"l@uav-a"', b'"sender":"l@uav-a","sender":"x@uav-c"') % b"2",
+        ok.replace(b'"sender":"l@uav-a"', b'"sender":"x@uav-c","sender":"l@uav-a"') % b"3",
+        ok.replace(b'"l@uav-a"', b"7") % b"4",
+        ok.replace(b'["echo@uav-b"]', b'"echo@uav-b"') % b"5",
+        ok.replace(b'"l@uav-a"', b'"l@uav-a\\n"') % b"6",
+        ok.replace(b'["echo@uav-b"]', b'["echo@uav-b\\n"]') % b"7",
+        ok.replace(b'"inform"', b'"INFORM"') % b"8",
+        ok.replace(b'"conversation_id":"c"', b'"conversation_id":7') % b"9",
+        ok.replace(b'"conversation_id":"c"', b'"v":2') % b"10",
+        ok.replace(b'"conversation_id":"c"', b'"v":true') % b"11",
+        ok.replace(b'"conversation_id":"c"', b'"extra":1') % b"12",
+        ok.replace(b'"conversation_id":"c"', b'"reply_by":"soon"') % b"13",
+        ok % b'"\\ud800"',
+        ok.replace(b'"l@uav-a"', b'"l@uav-b"') % b"14",  # claims the receiver's platform
+        ok.replace(b'"inform"', b'"request"') % b"15",
+        ok.replace(b'"conversation_id":"c"', b'"reply_to":["x@uav-c"]') % b"16",
+        ok.replace(b'"echo@uav-b"', b'"ghost@uav-b"') % b"17",
+        ok % b"2",  # a good one at the end: everything before it was decided
+    ]
+
+
+async def _lone_decisions(
+    quick: bool, batchable: bool = False, batched: bool = False
+) -> dict[str, Any]:
+    """What uav-b decides about the hostile bodies, each alone; ``quick`` False: in full.
+
+    ``batchable``: only those a batch can hold (JSON within orjson's depth, no batch);
+    ``batched``: those, in one batch.
+    """
+    async with federation("uav-a", "uav-b") as fed:
+        pair = await _captured_session(fed)
+        pa, pb = pair.pa, pair.pb
+        ib = ia(pb)
+        ib._senders.clear()
+        if not quick:
+            # `_take_now` takes nothing while mirroring: every message goes through `_take`
+            ib.mirroring = True
+            ib._mirror_until = float("inf")
+        key = wire_key(FED, "acl", "uav-b")
+        raw = await fed.raw()
+        seal = ia(pa).sessions.seal
+        before = len(ib.audit.last(10_000))
+        bodies = _hostile_bodies()
+        if batchable or batched:
+            bodies = [b for b in bodies if _batchable(b)]
+        if batched:
+            await raw.publish(key, seal("uav-b", b"[" + b",".join(bodies) + b"]"))
+        else:
+            for body in bodies:
+                await raw.publish(key, seal("uav-b", body))
+        # one record each, three for the batch of three numbers
+        want = len(bodies) + (0 if batchable or batched else 2)
+        await until(lambda: len(ib.audit.last(10_000)) - before >= want, "every one decided")
+        await asyncio.sleep(0.2)  # the refusals and not-understoods go out
+        records = [
+            {k: v for k, v in r.items() if k != "ts"} for r in ib.audit.last(10_000)[before:]
+        ]
+        sender = pb.stats.senders["uav-a"]
+        stats = pb.stats
+        return {
+            "records": records,
+            "accepted": sender.accepted,
+            "refused": sender.refused,
+            "counts": dict(ib.audit.counts),
+            "platform": (
+                stats.received_remote,
+                stats.local,
+                stats.forged,
+                stats.unknown_receiver,
+            ),
+        }
+
+
+def _batchable(body: bytes) -> bool:
+    """Whether ``body`` is one JSON value a batch can hold, and no batch itself."""
+    try:
+        orjson.loads(body)
+    except orjson.JSONDecodeError:
+        return False
+    return not body.startswith(b"[")
+
+
+async def test_a_lone_hostile_message_is_decided_by_the_quick_parse_as_in_full() -> None:
+    quick = await _lone_decisions(quick=True)
+    full = await _lone_decisions(quick=False)
+    assert quick == full
+
+
+async def test_hostile_messages_in_a_batch_are_decided_as_each_alone() -> None:
+    alone = await _lone_decisions(quick=True, batchable=True)
+    together = await _lone_decisions(quick=True, batched=True)
+    assert together == alone

@@ -1,9 +1,11 @@
 """What a member can still make a platform accept, and limits a config gives as ``inf``.
 
 A member that said, signed, that it left is not served until its signed directory
-snapshot lists it again. A config's numeric limits are checked when the file is read
-(a limit of ``inf`` or ``nan`` is TOML, and none of ours means anything with it),
-naming file, table and key.
+snapshot lists it again. Its membership and directory subscriptions are bounded per
+platform, and the checks its requests make a platform ask of a third one are
+rate-limited, each refusal counted and audited. A config's numeric limits are checked
+when the file is read (a limit of ``inf`` or ``nan`` is TOML, and none of ours means
+anything with it), naming file, table and key.
 """
 
 from __future__ import annotations
@@ -11,13 +13,17 @@ from __future__ import annotations
 import asyncio
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
-from test_member_authz import WAIT, audited, world
+from test_member_authz import WAIT, audited, audited_in_file, mallory, refusal, world
 
-from agents import Refused
+from agents import FIPA_AGENT_MANAGEMENT, Refused, request
+from agents._df import MAX_DF_SUBSCRIPTIONS
+from agents._protocols import SubscriptionStream, subscribe
 from federation import PlatformConfig, PlatformConfigError
+from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
 
 _BASE = 'name = "uav-a"\nfederation = "f"\nkey = "k"\ntrust = "t"\nvocabulary = {}\nmapping = {}\n'
 
@@ -97,3 +103,189 @@ async def test_a_member_that_said_it_left_is_not_served_until_listed_again(
                 except Refused as exc:
                     assert "left: 'uav-m'" in str(exc)
                     await asyncio.sleep(0.2)
+
+
+FEDERATION_ONTOLOGY = "dyknow-federation"
+
+
+@pytest.mark.timeout(180)
+async def test_membership_subscriptions_are_bounded_per_platform(tmp_path: Path) -> None:
+    # Every membership event informs every subscriber: unbounded, one member's thousands
+    # of subscriptions cost the victim memory (~3 kB each) and turn each event into a flood.
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"], ["uav-m"]) as w:
+        m = await mallory(w)
+        ask = {"membership": True}
+        held: list[SubscriptionStream] = []
+        for _ in range(MAX_MEMBERSHIP_SUBSCRIPTIONS):
+            held.append(await subscribe(m, "federation@uav-a", ask, ontology=FEDERATION_ONTOLOGY))
+        extra = 5
+        for _ in range(extra):
+            reason = await refusal(
+                subscribe(m, "federation@uav-a", ask, ontology=FEDERATION_ONTOLOGY)
+            )
+            assert reason == (
+                "too many membership subscriptions for uav-m "
+                f"(limit {MAX_MEMBERSHIP_SUBSCRIPTIONS}: {MAX_MEMBERSHIP_SUBSCRIPTIONS} held)"
+            )
+        s = await w.stats("uav-a")
+        assert s["membership_subscribers"] == MAX_MEMBERSHIP_SUBSCRIPTIONS
+        assert s["refusals"].get("subscription-limit") == extra
+        await audited_in_file(
+            tmp_path,
+            s,
+            extra,
+            verdict="refused",
+            stage="federation",
+            code="subscription-limit",
+            sender="mallory@uav-m",
+            performative="subscribe",
+            reason="subscription-limit: too many membership subscriptions for uav-m",
+        )
+        # a cancelled subscription frees its place
+        await held.pop().cancel()
+        held.append(await subscribe(m, "federation@uav-a", ask, ontology=FEDERATION_ONTOLOGY))
+        with pytest.raises(Refused):
+            await subscribe(m, "federation@uav-a", ask, ontology=FEDERATION_ONTOLOGY)
+        s = await w.stats("uav-a")
+        assert s["membership_subscribers"] == MAX_MEMBERSHIP_SUBSCRIPTIONS
+        assert s["refusals"].get("subscription-limit") == extra + 1
+        for stream in held:
+            await stream.cancel()
+
+
+@pytest.mark.timeout(180)
+async def test_directory_subscriptions_are_bounded_per_platform(tmp_path: Path) -> None:
+    # Each directory subscription is kept and told of every change: unbounded, 2,000
+    # FIPA-Subscribes from uav-m to df@uav-a were all agreed (~7 MB). Bounded per platform.
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"], ["uav-m"]) as w:
+        m = await mallory(w)
+        held: list[SubscriptionStream] = []
+        for _ in range(MAX_DF_SUBSCRIPTIONS):
+            held.append(await subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
+        extra = 3
+        for _ in range(extra):
+            reason = await refusal(subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
+            assert reason == (
+                "subscription-limit: too many directory subscriptions for uav-m "
+                f"(limit {MAX_DF_SUBSCRIPTIONS}: {MAX_DF_SUBSCRIPTIONS} held)"
+            )
+        s = await w.stats("uav-a")
+        assert s["df_subscribers"] == MAX_DF_SUBSCRIPTIONS
+        assert s["df_subscriptions_refused"] == extra
+        await audited_in_file(
+            tmp_path,
+            s,
+            extra,
+            verdict="refused",
+            stage="df",
+            code="subscription-limit",
+            sender="mallory@uav-m",
+            performative="subscribe",
+            reason="subscription-limit: too many directory subscriptions for uav-m",
+        )
+        await held.pop().cancel()  # a cancelled subscription frees its place
+        held.append(await subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
+        for stream in held:
+            await stream.cancel()
+
+
+@pytest.mark.timeout(180)
+async def test_a_member_cannot_make_a_platform_ask_a_third_one_at_will(tmp_path: Path) -> None:
+    # accept-stream names a requester; the receiver checks with it (confirm-stream). Each
+    # such check is a request of the victim's to the requester: unbounded, 500
+    # accept-streams from uav-m made uav-a send 409 confirm-streams (64 labels each) to the
+    # operator, whose audit then showed uav-a asking. Bounded per provider, refused past it.
+    consent = {"sharing": {"accept_for": ["operator"]}}
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a"], ["operator", "uav-m"], uav_a=consent) as w,
+    ):
+        m = await mallory(w)
+        operator = w.here["operator"].federation_agent
+        content = {
+            "action": "accept-stream",
+            "requester": "operator",
+            "labels": [f"car{i}-state" for i in range(64)],
+        }
+        n, at_once = 100, 10
+        t0 = time.monotonic()
+        reasons: list[str] = []
+        # ten at a time: a hundred (~140 kB) in one turn overran zenoh's send queue on a
+        # busy machine, which drops what does not fit (congestion control DROP), and the
+        # requests it dropped were never answered
+        for _ in range(n // at_once):
+            reasons += await asyncio.gather(
+                *[
+                    refusal(request(m, "federation@uav-a", content, ontology=FEDERATION_ONTOLOGY))
+                    for _ in range(at_once)
+                ]
+            )
+        elapsed = time.monotonic() - t0
+        checked = [r for r in reasons if "did not confirm" in r]
+        limited = [r for r in reasons if r.startswith("too many accept-stream requests")]
+        assert len(checked) + len(limited) == n, reasons
+        allowed = ACCEPT_BURST + ACCEPT_RATE * elapsed + 1
+        assert 1 <= len(checked) <= allowed, (len(checked), elapsed)
+        assert limited[0] == (
+            f"too many accept-stream requests from uav-m (at most {ACCEPT_RATE:g}/s, bursts "
+            f"of {ACCEPT_BURST:g}): not checked with operator"
+        )
+        # the operator was asked only for those checked
+        assert operator.refusals.get("consent") == len(checked)
+        s = await w.stats("uav-a")
+        assert s["refusals"].get("consent-rate") == len(limited)
+        await audited_in_file(
+            tmp_path,
+            s,
+            len(limited),
+            verdict="refused",
+            stage="federation",
+            code="consent-rate",
+            sender="mallory@uav-m",
+            reason="consent-rate: too many accept-stream requests from uav-m",
+        )
+
+
+@pytest.mark.timeout(180)
+async def test_a_member_cannot_make_a_provider_ask_third_platforms_at_will(
+    tmp_path: Path,
+) -> None:
+    # create-stream with to-units naming uav-b makes the provider ask uav-b
+    # (accept-stream) before anything else: unbounded, a member repeating it made uav-a
+    # send uav-b as many requests, refused there in uav-a's name. Bounded per requester.
+    async with asyncio.timeout(150), world(tmp_path, ["uav-a"], ["uav-b", "uav-m"]) as w:
+        m = await mallory(w)
+        receiver = w.here["uav-b"].federation_agent
+        content = {"action": "create-stream", "labels": ["car1-state"], "to-units": ["uav-b"]}
+        n = 60
+        t0 = time.monotonic()
+        reasons = await asyncio.gather(
+            *[
+                refusal(request(m, "federation@uav-a", content, ontology=FEDERATION_ONTOLOGY))
+                for _ in range(n)
+            ]
+        )
+        elapsed = time.monotonic() - t0
+        asked = [r for r in reasons if r.startswith("receiver uav-b did not agree")]
+        limited = [r for r in reasons if r.startswith("too many create-streams")]
+        assert len(asked) + len(limited) == n, reasons
+        assert 1 <= len(asked) <= ACCEPT_BURST + ACCEPT_RATE * elapsed + 1, (asked, elapsed)
+        assert limited[0] == (
+            f"too many create-streams for other platforms from uav-m (at most "
+            f"{ACCEPT_RATE:g}/s, bursts of {ACCEPT_BURST:g}): uav-b not asked"
+        )
+        # uav-b was asked only for those
+        assert receiver.refusals.get("consent") == len(asked)
+        s = await w.stats("uav-a")
+        assert s["refusals"].get("consent-rate") == len(limited)
+        await audited_in_file(
+            tmp_path,
+            s,
+            len(limited),
+            verdict="refused",
+            stage="federation",
+            code="consent-rate",
+            sender="mallory@uav-m",
+            reason="consent-rate: too many create-streams for other platforms from uav-m",
+        )
+        assert not s["agreed"]  # nothing was exported

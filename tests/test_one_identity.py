@@ -4,11 +4,13 @@ commands run with a running node's config go through it and break none of its se
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import re
 import signal
 import subprocess
+import sys
 import time
 import urllib.request
 from concurrent.futures import ThreadPoolExecutor
@@ -19,7 +21,7 @@ import pytest
 from _node_example import CLI, Station, _samples
 from _victim import station_channel
 
-from agents import KeyPair
+from agents import KeyPair, wire_key
 from federation import PlatformConfig
 from federation.cli import main as cli_main
 
@@ -1023,3 +1025,125 @@ def test_a_platform_that_never_answers_holds_up_no_other_platforms_stream(
         station.stop()
         if session is not None:
             session.close()
+
+
+# A second start of the config, its descriptors exhausted just before it looks at the
+# local channel and left so (its teardown too), as on a host where they ran out.
+_TWIN_OUT_OF_FDS = """
+import os, resource, sys
+from federation import _local
+from federation.cli import main
+
+look = _local._node_here
+held = []
+
+async def starved(path):
+    _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (len(os.listdir("/proc/self/fd")) + 4, hard))
+    try:
+        while True:
+            held.append(os.open(os.devnull, os.O_RDONLY))
+    except OSError:
+        pass
+    return await look(path)
+
+_local._node_here = starved
+sys.exit(main(["node", "--config", sys.argv[1]]))
+"""
+
+
+@pytest.mark.timeout(150)
+def test_a_twin_out_of_file_descriptors_leaves_the_live_nodes_channel(tmp_path: Path) -> None:
+    """The same config started again in a process without a descriptor left: it stops with
+    exit status 1 and the cause in one line, never taking the live node's channel for
+    none listening (it would unlink its socket), and the live node answers through it."""
+    from federation import PlatformConfig
+
+    station = Station(tmp_path)
+    try:
+        station.start("python")
+        config = PlatformConfig.load(station.dir / "station-python.toml")
+        env = {**station.env, "PYTHONPATH": str(Path(__file__).parents[1])}
+        path = channel_path_in(config, env)
+        assert path.is_socket()
+        before = path.stat().st_ino
+        done = subprocess.run(
+            [sys.executable, "-c", _TWIN_OUT_OF_FDS, "station-python.toml"],
+            capture_output=True,
+            text=True,
+            cwd=station.dir,
+            env=env,
+            timeout=60,
+        )
+        assert done.returncode == 1, (done.stdout, done.stderr)
+        assert "Traceback" not in done.stderr and "ready" not in done.stdout
+        (line,) = done.stderr.splitlines()
+        assert line.startswith("dyknow node: station-python.toml: cannot tell whether a node")
+        assert "out of file descriptors" in line and "RLIMIT_NOFILE" in line
+        assert path.is_socket() and path.stat().st_ino == before  # the live node's, kept
+        answer = station.latest("temperature", until=lambda a: bool(_samples(a, "temperature")))
+        assert _samples(answer, "temperature")
+        assert station.node is not None and station.node.poll() is None
+    finally:
+        out, err = station.stop()
+    assert "station stopped" in out and "Traceback" not in err
+
+
+def channel_path_in(config: object, env: dict[str, str]) -> Path:
+    """The local channel of ``config`` under the station's runtime directory."""
+    import os
+    from unittest import mock
+
+    from federation._local import channel_path
+
+    with mock.patch.dict(os.environ, {"XDG_RUNTIME_DIR": env["XDG_RUNTIME_DIR"]}):
+        return channel_path(config)  # type: ignore[arg-type]
+
+
+# -- one platform, one process: the duplicate seen though its link comes up a little late ----
+
+
+async def _delaying_proxy(port: int, to: int, delay: float) -> asyncio.Server:
+    """A TCP forwarder on ``port`` to ``to`` that connects onward ``delay`` s late."""
+
+    async def pipe(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        with contextlib.suppress(Exception):
+            while data := await r.read(65536):
+                w.write(data)
+                await w.drain()
+        w.close()
+
+    async def serve(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
+        await asyncio.sleep(delay)
+        r2, w2 = await asyncio.open_connection("127.0.0.1", to)
+        await asyncio.gather(pipe(r, w2), pipe(r2, w))
+
+    return await asyncio.start_server(serve, "127.0.0.1", port)
+
+
+async def test_a_second_node_of_a_name_is_refused_though_its_link_to_the_first_is_late() -> None:
+    """A third platform answering first must not hide the running one still being connected."""
+    from types import SimpleNamespace
+
+    from agents.transports import ZenohConfig, ZenohTransport, free_tcp_port
+    from federation._local import PlatformAliveError, refuse_duplicate
+
+    fed = "demo"
+    pa, pc, pb, proxy = (free_tcp_port() for _ in range(4))
+    async with contextlib.AsyncExitStack() as stack:
+        a = await stack.enter_async_context(ZenohTransport(ZenohConfig.loopback(pa)))
+        c = await stack.enter_async_context(ZenohTransport(ZenohConfig.loopback(pc)))
+        await a.declare_token(wire_key(fed, "alive", "x"))
+        await c.declare_token(wire_key(fed, "alive", "c"))
+        server = await _delaying_proxy(proxy, pa, 0.4)
+        stack.push_async_callback(server.wait_closed)
+        stack.callback(server.close)
+        b = await stack.enter_async_context(
+            ZenohTransport(ZenohConfig.loopback(pb, connect=[pc, proxy]))
+        )
+        with pytest.raises(PlatformAliveError):
+            # no key to read: no local channel to look at, only the network
+            config = SimpleNamespace(federation=fed, name="x", key=Path("no-such.key"))
+            # the answer's bound: 5 s, not the default 1 s, whose 0.6 s beyond the proxy's
+            # delay a loaded machine used up once before the late link was up
+            await refuse_duplicate(b, config, wait=5.0)  # type: ignore[arg-type]

@@ -26,6 +26,7 @@ import msgpack
 import pytest
 
 from agents import AgentPlatform, TransportError
+from agents._exceptions import Expired
 from agents._interface import InterfaceAgent
 from agents._security import Handshake, KeyPair, SessionTable, TrustStore
 from agents.transports import (
@@ -48,6 +49,8 @@ from federation import (
     ExportProxy,
     ImportProxy,
     InterfaceSessions,
+    PlatformConfig,
+    PlatformConfigError,
     SessionsProvider,
     TableSessions,
     _export,
@@ -1169,3 +1172,277 @@ async def test_an_import_proxy_whose_own_presence_watch_the_transport_ends_says_
     # closed by its proxy: no loss
     assert len(told) == 1
     assert [r for r in caplog.records if r.name == "federation._proxy_base"] == errors_at
+
+
+async def test_the_receiver_is_told_when_its_exports_lease_expires() -> None:
+    ended: list[tuple[str, str]] = []
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        _, a = await net.platform("uav-a")
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exp = await net.exporter("uav-a", lease=1.0)
+        imp = await net.importer("uav-b", translate=agreed(SEM))
+        imp.on_export_ended = lambda sender, label: ended.append((sender, label))
+        export = exp.start_exporting(LOCAL, SEM, "uav-b")
+        src.push(0)
+        rec = await until(lambda: imp.get("uav-a", SEM), "the first sample")
+        real = imp._report
+
+        async def stalled(*_: Any, **__: Any) -> None:
+            """The receiver does not report (a long pause): its lease runs out."""
+
+        imp._report = stalled  # type: ignore[method-assign]
+        await until(lambda: export.ended, "the lease expired", 5.0)
+        imp._report = real  # type: ignore[method-assign]
+        await until(lambda: rec.ended, "the receiver told", 5.0)
+        assert ended == [("uav-a", SEM)] and export.ended.startswith("lease-expired")
+
+
+async def test_an_idle_stream_created_again_after_its_sender_was_gone_keeps_its_lease() -> None:
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        _, a = await net.platform("uav-a")
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exp = await net.exporter("uav-a", lease=1.0)
+        imp = await net.importer("uav-b", translate=agreed(SEM))
+        first = exp.start_exporting(LOCAL, SEM, "uav-b")
+        src.push(1)
+        rec = await until(lambda: imp.get("uav-a", SEM), "the first sample")
+        # what the importer does when uav-a's token goes (a router restart), then returns
+        imp._gone.add("uav-a")
+        imp._end(rec)
+        imp._gone.discard("uav-a")
+        await exp.stop(first)
+        again = exp.start_exporting(LOCAL, SEM, "uav-b")  # created again; the source is quiet
+        await asyncio.sleep(2.5)  # more than two leases
+        assert again.active, again.ended
+
+
+async def test_a_new_export_does_not_inherit_the_losses_of_the_old_one() -> None:
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        ta, a = await net.platform("uav-a")
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exp = await net.exporter("uav-a")
+        imp = await net.importer("uav-b", translate=agreed(SEM))
+        drop = False
+        publish = ta.publish
+
+        async def lossy(key: str, payload: bytes, *args: Any, **kwargs: Any) -> Any:
+            if drop and "/stream/" in key:
+                return None  # lost on the way
+            return await publish(key, payload, *args, **kwargs)
+
+        ta.publish = lossy  # type: ignore[method-assign]
+        old = exp.start_exporting(LOCAL, SEM, "uav-b")
+        for i in range(10):
+            src.push(i)
+        await until(lambda: (r := imp.get("uav-a", SEM)) is not None and r.injected == 10, "10")
+        drop = True
+        for i in range(10):
+            src.push(i)
+            await asyncio.sleep(0.01)
+        await asyncio.sleep(0.05)
+        drop = False
+        for i in range(10):
+            src.push(i)
+        await until(lambda: old.dropped.get("lost-in-transit") == 10, "the old one told of 10")
+        await exp.stop(old)
+        new = exp.start_exporting(LOCAL, SEM, "uav-b")
+        for i in range(10):
+            src.push(i)
+        rec = imp.get("uav-a", SEM)
+        assert rec is not None
+        await until(lambda: rec.injected == 30, "the new one delivered its 10")
+        await asyncio.sleep(1.2)  # two reports
+        assert new.dropped == {} and rec.lost == 10  # the receiver's total stays
+
+
+def test_an_export_lease_shorter_than_four_report_intervals_is_refused() -> None:
+    base = {"name": "a", "federation": "f", "key": "k", "trust": "t"}
+    base |= {"vocabulary": {}, "mapping": {}}
+    with pytest.raises(PlatformConfigError, match="export_lease"):
+        PlatformConfig.from_dict({**base, "export_lease": 0.3})
+    assert PlatformConfig.from_dict({**base, "export_lease": 2.0}).export_lease == 2.0
+
+
+async def test_send_failures_recovered_from_history_are_no_longer_counted_dropped() -> None:
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        ta, a = await net.platform("uav-a")
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exp = await net.exporter("uav-a")
+        imp = await net.importer("uav-b", translate=agreed(SEM), report_interval=0.05)
+        mode = "ok"
+        publish = ta.publish
+
+        async def flaky(key: str, payload: bytes, *args: Any, **kwargs: Any) -> Any:
+            if "/stream/" in key and mode == "raise":
+                raise RuntimeError("congested")  # a send failure: counted at the sender
+            if "/stream/" in key and mode == "drop":
+                return None  # lost on the way, silently: the receiver counts it
+            return await publish(key, payload, *args, **kwargs)
+
+        ta.publish = flaky  # type: ignore[method-assign]
+        export = exp.start_exporting(LOCAL, SEM, "uav-b", history=10)
+
+        def rec() -> Any:
+            return imp.get("uav-a", SEM)
+
+        async def push(n: int) -> None:
+            for i in range(n):
+                src.push(i)
+                await asyncio.sleep(0.005)
+            await asyncio.sleep(0.05)
+
+        await push(5)
+        mode = "raise"
+        await push(10)
+        mode = "ok"
+        await push(5)
+        await until(lambda: rec().recovered == 10 and rec().lost == 0, "the 10 failed resent")
+        assert "send-failed" not in export.dropped  # they arrived after all
+        mode = "drop"
+        await push(30)
+        mode = "ok"
+        await push(5)
+        await until(lambda: rec().recovered == 20, "10 of the 30 resent (history 10)")
+        await until(
+            lambda: export.dropped.get("lost-in-transit", 0) == rec().lost == 20,
+            "the sender counts what the receiver lost",
+        )
+
+
+# -- a resend waiting for room: sealed when it leaves, not when it begins to wait -----------
+
+_SKEW = 0.3  # the receiver's allowed age of an envelope, scaled down from 30 s
+
+
+_FROZEN = 0.8  # how long a put to a frozen receiver holds the worker
+
+
+class _Pooled(MemoryTransport):
+    """A memory transport whose blocking puts share one worker, as zenoh's share a few threads.
+
+    A put to a frozen receiver holds it (zenoh's BLOCK waits for room in that link's
+    queue); the others wait for it, as a task waits in zenoh's executor queue.
+    """
+
+    def __init__(self, hub: MemoryHub, workers: int = 1) -> None:
+        super().__init__(hub)
+        self.pool = asyncio.Semaphore(workers)
+        self.drop_streams = False
+        self.frozen_puts = 0  # puts to a frozen receiver holding a worker now
+
+    async def publish(self, key: str, payload: bytes, *, attachment: bytes | None = None) -> None:
+        """Lose stream batches while the link is down (the gap a resend fills)."""
+        if self.drop_streams and "/stream/" in key:
+            return
+        await super().publish(key, payload, attachment=attachment)
+
+    async def publish_blocking(self, key: str, payload: Any) -> None:
+        """One at a time; a frozen receiver's put holds the worker for a while."""
+        async with self.pool:
+            if callable(payload):
+                payload = await payload()
+            if "/frozen/" in key or "/stream/uav-f/" in key:
+                self.frozen_puts += 1
+                try:
+                    await asyncio.sleep(_FROZEN)
+                finally:
+                    self.frozen_puts -= 1
+                return
+            await super().publish(key, payload)
+
+
+_sealed: dict[bytes, float] = {}
+
+
+class _Stamped(PlainSessions):
+    """Plain envelopes that expire, as a real session's do past the allowed skew."""
+
+    def seal_bytes(self, peer: str, body: bytes) -> bytes:
+        """Seal, remembering when."""
+        envelope = super().seal_bytes(peer, body)
+        _sealed[envelope] = time.monotonic()
+        return envelope
+
+    def open_bytes(self, envelope: bytes) -> tuple[str, bytes]:
+        """Open, refusing an envelope sealed longer ago than the skew."""
+        frm, body = super().open_bytes(envelope)
+        if time.monotonic() - _sealed.get(envelope, time.monotonic()) > _SKEW:
+            raise Expired("sealed too long ago", frm)
+        return frm, body
+
+
+async def test_a_resend_waiting_behind_a_frozen_receivers_put_is_not_lost() -> None:
+    """A resend sealed, then kept waiting for the worker, would arrive expired: lost for good."""
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        ta = _Pooled(net.hub)
+        _, a = await net.platform("uav-a", transport=ta)
+        await net.platform("uav-b")
+        src = a.add_source(LOCAL)
+        exp = await net.exporter("uav-a", sessions=_Stamped("uav-a"), max_batch_bytes=1024)
+        imp = await net.importer("uav-b", sessions=_Stamped("uav-b"), translate=agreed(SEM))
+        export = exp.start_exporting(LOCAL, SEM, "uav-b", history=10)
+        for _ in range(3):
+            src.push(1)
+            await asyncio.sleep(0.02)
+        ta.drop_streams = True
+        for _ in range(5):
+            src.push(2)
+            await asyncio.sleep(0.02)
+        ta.drop_streams = False
+        # the attacker: a frozen receiver's resend holds the worker when ours is asked
+        frozen = asyncio.ensure_future(ta.publish_blocking("dyknow/x/frozen/uav-f", b"x"))
+        await asyncio.sleep(0)
+        src.push(3)  # the gap's end arrives: the 5 lost are asked back at once
+        rec = await until(lambda: imp.get("uav-a", SEM), "the import")
+        await until(lambda: export.recovered == 5, "the history resent")
+        await frozen
+        await asyncio.sleep(0.1)
+        assert rec.recovered == 5, "a resend arrived expired: its samples are lost"
+
+
+async def test_a_frozen_receiver_holds_one_worker_whatever_its_number_of_streams() -> None:
+    """Its resends take one worker at a time: another receiver's resend (and stream) goes on."""
+    async with contextlib.AsyncExitStack() as stack:
+        net = Net(stack)
+        ta = _Pooled(net.hub, workers=2)
+        _, a = await net.platform("uav-a", transport=ta)
+        await net.platform("uav-f")
+        await net.platform("uav-b")
+        sources = {s: a.add_source(f"car/{s}") for s in ("f1", "f2", "b")}
+        exp = await net.exporter("uav-a", max_batch_bytes=1024)
+        await net.importer("uav-f", translate=agreed("f1", "f2"))
+        await net.importer("uav-b", translate=agreed("b"))
+        exports = {
+            s: exp.start_exporting(f"car/{s}", s, "uav-b" if s == "b" else "uav-f", history=10)
+            for s in sources
+        }
+
+        async def push(names: str, value: int) -> None:
+            for name in names.split():
+                sources[name].push(value)
+            await asyncio.sleep(0.02)
+
+        for _ in range(3):
+            await push("f1 f2 b", 1)
+        ta.drop_streams = True
+        for _ in range(5):
+            await push("f1 f2 b", 2)
+        ta.drop_streams = False
+        # the frozen receiver's two streams ask their resends first, and hold workers
+        await push("f1 f2", 3)
+        await until(lambda: ta.frozen_puts >= 1, "the frozen receiver's resends")
+        await asyncio.sleep(0.05)  # both of its streams had their turn to take a worker
+        began = time.monotonic()
+        await push("b", 3)
+        await until(lambda: exports["b"].recovered == 5, "the other receiver's resend")
+        took = time.monotonic() - began
+        assert took < _FROZEN / 2, f"another receiver's resend waited {took:.2f} s"

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import pytest
 
-from agents._security import Handshake
+from agents._security import Handshake, KeyPair
 from tests.test_security import ACL, KEYS, Clock, MacPolicy, Platform, connect, make_platform
 
 
@@ -163,4 +163,24 @@ def test_a_session_on_another_clock_than_its_tables_is_asked_by_its_own(clock: C
     connect(a, b)
     assert not a.table.needs_renewal("uav-b")
     other.advance(100)
+    assert a.table.needs_renewal("uav-b")
+
+
+def test_a_session_of_a_key_no_longer_trusted_asks_for_renewal() -> None:
+    """`needs_renewal` is True when there is no session to seal with (its docstring),
+    as `session_for` says after a re-key: the renewal asked after each message sent must
+    not take the session of the old key for a fresh one."""
+    clock = Clock()
+    a, b = make_platform("uav-a", clock), make_platform("uav-b", clock)
+    connect(a, b)
+    b.table.open(a.table.seal("uav-b", ACL))
+    assert not a.table.needs_renewal("uav-b")  # fresh, of the key trusted
+    assert a.trust.add("uav-b", KeyPair.generate("uav-x").public_key, replace=True)
+    assert a.table.session_for("uav-b") is None
+    assert a.table.needs_renewal("uav-b")
+    # the agreed key back, in another key object (as another store holds it): by value
+    assert a.trust.add("uav-b", KEYS["uav-b"].public_key, replace=True)
+    assert a.table.session_for("uav-b") is not None
+    assert not a.table.needs_renewal("uav-b")
+    a.trust.remove("uav-b")
     assert a.table.needs_renewal("uav-b")

@@ -10,7 +10,15 @@ from typing import TYPE_CHECKING
 import pytest
 from _node_example import Station
 
-from agents import ACLMessage, Agent, Performative, ServiceDescription, Visibility
+from agents import (
+    ACLMessage,
+    Agent,
+    KeyPair,
+    Performative,
+    ServiceDescription,
+    TrustStore,
+    Visibility,
+)
 from tests.test_sharing_reload import _until
 
 if TYPE_CHECKING:
@@ -196,3 +204,44 @@ async def test_a_platform_rekeyed_from_another_thread_gets_nothing_sealed_on_its
         await _until("the revocation", lambda: s.interface.revoked == 1)
         (record,) = [r for r in s.interface.audit.records if r.get("verdict") == "revoked"]
         assert record["to"] == "operator"
+
+
+@pytest.mark.timeout(90)
+async def test_a_batch_waiting_as_its_platform_is_rekeyed_is_lost_and_counted(
+    tmp_path: Path,
+) -> None:
+    """A batch for the operator waits for its turn's end as a trust reload (SIGHUP's own
+    thread) gives the operator another key: it is not sealed on the old key's session,
+    and it is lost and counted in ``batches_lost`` (docs/security.md), not dropped
+    unsaid; the revocation that follows finds nothing more of it waiting."""
+    import threading
+
+    from federation._cli_common import wait_for_members
+
+    s, o = _pair(tmp_path)
+    async with asyncio.timeout(80), s, o:
+        assert await wait_for_members(o, "station", 30)
+        ia = s.interface
+        await ia.send("operator", _hello(s, "operator"))  # a session agreed
+        await _until("the turn's batch closed", lambda: "operator" not in ia._outbox)
+        await ia.send("operator", _hello(s, "operator"))  # alone: the turn's batch opens
+        assert ia.join_batch("operator", _hello(s, "operator"))  # waits for the turn's end
+        trust = ia.trust
+        new = TrustStore(
+            trust.federation,
+            {
+                "station": trust.public_key("station"),
+                "operator": KeyPair.generate("operator").public_key,
+            },
+        )
+        lost, unsent = ia.batches_lost, ia.unsent_revoked
+        worker = threading.Thread(target=s.reload_trust, args=(new,))
+        worker.start()
+        worker.join(10)  # the loop held meanwhile, as a busy one is
+        assert not worker.is_alive()
+        assert "operator" in ia._outbox and ia.revoked == 0
+        await _until("the batch's turn ended", lambda: "operator" not in ia._outbox)
+        assert ia.batches_lost == lost + 1
+        await _until("the revocation", lambda: ia.revoked == 1)
+        assert ia.unsent_revoked == unsent
+        assert ia.sessions.session_for("operator") is None

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import base64
+import binascii
 import functools
 import json
 import os
 import stat
+import string
 import subprocess
 import sys
 import time
@@ -15,7 +17,7 @@ from pathlib import Path
 
 import orjson
 import pytest
-from hypothesis import given
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from agents._exceptions import (
@@ -43,6 +45,9 @@ from agents._security import (
     SessionTable,
     TrustStore,
     WatchGate,
+    _box_bytes,
+    _box_bytes_std,
+    _box_text,
     key_paths,
     read_public_key,
     seal_for_owner,
@@ -1172,3 +1177,74 @@ def test_the_aead_gives_libsodiums_bytes_and_refusals() -> None:
     for short in (b"", b"x" * 15):  # shorter than a tag: refused as any forged box is
         with pytest.raises(CryptoError):
             _aead_decrypt(short, aad, nonce, key)
+
+
+# -- the envelope's box: canonical base64 only ------------------------------------------
+
+
+def _old_canonical(payload: str) -> bool:
+    """The plain check the fast one stands in for: decode leniently, re-encode it all, compare."""
+    try:
+        raw = binascii.a2b_base64(payload)
+    except ValueError:
+        raw = b""
+    return bool(raw) and binascii.b2a_base64(raw, newline=False) == payload.encode()
+
+
+def _new_canonical(payload: str) -> bool:
+    """The check `Session._accept` makes, both ways it is made: each must say the same.
+
+    binascii's (strict decoding, the length, the last quantum), and the one in use (SIMD
+    base64 where installed: its decoding, the whole box encoded again and compared).
+    """
+    std, used = _box_bytes_std(payload), _box_bytes(payload)
+    assert std == used, repr(payload)
+    return bool(used)
+
+
+_B64 = string.ascii_letters + string.digits + "+/"
+
+
+# the alphabet, padding, the url-safe letters, whitespace, and a few that are none of them
+_HOSTILE = _B64 + "=-_ \n\r\t.\x00é"
+
+
+def _spellings(raw: bytes) -> list[str]:
+    """The canonical spelling of ``raw`` and near ones: other tail bits, padding, spaces."""
+    good = binascii.b2a_base64(raw, newline=False).decode("ascii")
+    out = [good, good.rstrip("="), good + "=", good + "==", " " + good, good + "\n"]
+    out += [good[:i] + "\n" + good[i:] for i in range(0, len(good), 5)]
+    out.append(good.replace("+", "-").replace("/", "_"))
+    stripped = good.rstrip("=")
+    if stripped:
+        # every letter in the last position: the unused bits set in all ways
+        out += [stripped[:-1] + c + good[len(stripped) :] for c in _B64]
+    return out
+
+
+@settings(max_examples=400, deadline=None)
+@given(st.binary(max_size=40))
+def test_the_box_check_accepts_what_the_old_one_did_near_a_canonical_spelling(
+    raw: bytes,
+) -> None:
+    for text in _spellings(raw):
+        assert _new_canonical(text) == _old_canonical(text), repr(text)
+
+
+@settings(max_examples=2000, deadline=None)
+@given(st.text(alphabet=_HOSTILE, max_size=24))
+def test_the_box_check_accepts_what_the_old_one_did_for_any_text(text: str) -> None:
+    assert _new_canonical(text) == _old_canonical(text), repr(text)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.binary(max_size=3000))
+def test_the_box_is_spelled_as_binascii_spells_it(raw: bytes) -> None:
+    assert _box_text(raw) == binascii.b2a_base64(raw, newline=False)
+
+
+@pytest.mark.parametrize(
+    "text", ["", "=", "====", "QQ", "QQ=", "QR==", "QQ===", "QQ==QQ==", "QUI=", "QUJD", " QUJD"]
+)
+def test_the_box_check_on_the_known_edge_cases(text: str) -> None:
+    assert _new_canonical(text) == _old_canonical(text)
