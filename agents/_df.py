@@ -608,22 +608,14 @@ class DirectoryFacilitator(Agent):
             )
             if held >= MAX_DF_SUBSCRIPTIONS:
                 self.subscriptions_refused += 1
-                reason = (
-                    f"subscription-limit: too many directory subscriptions for {asker} "
+                why = (
+                    f"too many directory subscriptions for {asker} "
                     f"(limit {MAX_DF_SUBSCRIPTIONS}: {held} held)"
                 )
-                self.platform.audit(
-                    verdict="refused",
-                    stage="df",
-                    code="subscription-limit",
-                    **{"from": asker},
-                    sender=message.sender,
-                    receivers=message.receivers,
-                    performative=message.performative.value,
-                    conversation_id=message.conversation_id,
-                    reason=reason,
-                )
-                raise Refuse(reason)
+                # a member may repeat it at its rate limit: a record each within its
+                # platform's budget, the rest summed up
+                self.platform.audit_refused(message, "df", "subscription-limit", why)
+                raise Refuse(f"subscription-limit: {why}")
         return (query, asker, asker != self.platform.name)
 
     @on_request(FIPA_AGENT_MANAGEMENT)

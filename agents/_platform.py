@@ -325,6 +325,14 @@ MAX_ANSWERING = 256
 REFUSAL_AUDIT_INTERVAL = 1.0
 """Seconds between two audit records summing up one platform's refusals of one kind."""
 
+REFUSALS_ONE_BY_ONE = 10
+"""Refusals of what a platform asks (`AgentPlatform.audit_refused`) audited one by one per
+platform per `REFUSAL_AUDIT_INTERVAL`; the rest of that interval are summed up."""
+
+# platforms whose one-by-one budget is kept at once (members: the trust file bounds them);
+# past it, the budgets whose interval is over are forgotten
+_BUDGETS_KEPT = 1024
+
 # audit record (verdict, stage, what) per kind of refusal summed up by `_refusals`
 _REFUSAL_KINDS = {
     "refuse": ("refused", "agent-refuse", "request(s) answered with refuse by an agent"),
@@ -422,6 +430,8 @@ class AgentPlatform:
         # refusals of other platforms' messages past the channel (an agent's refuse, no
         # such receiver, a full mailbox): summed up per (platform, kind) per second
         self._refusals = Tally(self._audit_refusals, interval=REFUSAL_AUDIT_INTERVAL)
+        # per platform: [start of its budget's interval (loop time), records written in it]
+        self._one_by_one: dict[str, list[float]] = {}
 
     def __repr__(self) -> str:
         return f"<AgentPlatform {self.name} ({self.federation}) {self._state}>"
@@ -829,8 +839,65 @@ class AgentPlatform:
         if peer != self.name:
             self._refusals.add((peer, kind), detail)
 
+    def audit_refused(self, message: ACLMessage, stage: str, code: str, reason: str) -> bool:
+        """Audit a request another platform's agent made and an agent here refused for what
+        it asks (a label not here, a sharing rule, a limit): one by one within that
+        platform's budget (`REFUSALS_ONE_BY_ONE` per `REFUSAL_AUDIT_INTERVAL`), the rest
+        summed up per platform, stage and code. True when written one by one.
+
+        A member may repeat such a request at its rate limit: a record each would rotate
+        the audit file's history away in seconds. This platform's own agents' refusals
+        are always written one by one. On the event loop.
+        """
+        peer = platform_of(message.sender)
+        if peer != self.name and not self._within_budget(peer):
+            self._refusals.add((peer, stage, code), quoted(reason))
+            return False
+        self.audit(
+            verdict="refused",
+            stage=stage,
+            code=code,
+            **{"from": peer},
+            sender=message.sender,
+            receivers=message.receivers,
+            performative=message.performative.value,
+            conversation_id=message.conversation_id,
+            reason=f"{code}: {reason}",
+        )
+        return True
+
+    def _within_budget(self, peer: str) -> bool:
+        """Whether ``peer``'s refusal is written one by one (and counted in its budget)."""
+        now = asyncio.get_running_loop().time()
+        budgets = self._one_by_one
+        budget = budgets.get(peer)
+        if budget is None or now - budget[0] >= REFUSAL_AUDIT_INTERVAL:
+            if budget is None and len(budgets) >= _BUDGETS_KEPT:
+                for p in [p for p, b in budgets.items() if now - b[0] >= REFUSAL_AUDIT_INTERVAL]:
+                    del budgets[p]
+            budget = budgets[peer] = [now, 0]
+        if budget[1] >= REFUSALS_ONE_BY_ONE:
+            return False
+        budget[1] += 1
+        return True
+
     def _audit_refusals(self, key: object, count: int, detail: str, seconds: float | None) -> None:
         """One audit record for ``count`` refusals of one platform's messages, of one kind."""
+        if isinstance(key, tuple) and len(key) == 3:  # `audit_refused`'s, past the budget
+            peer, stage, code = key
+            self.audit(
+                verdict="refused",
+                stage=stage,
+                code=code,
+                count=count,
+                **{"from": peer},
+                reason=(
+                    f"{code}: {count} more request(s) refused without a record each (over "
+                    f"{REFUSALS_ONE_BY_ONE} per {REFUSAL_AUDIT_INTERVAL:g} s of one platform), "
+                    f"from {peer!r}{since(seconds)} (last: {detail})"
+                ),
+            )
+            return
         peer, kind = key if isinstance(key, tuple) else ("*", "*")
         verdict, stage, what = _REFUSAL_KINDS[kind]
         self.audit(

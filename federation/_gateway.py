@@ -488,18 +488,9 @@ class GatewayAgent(Agent):
         raise Refuse(reason)
 
     def _audit_refusal(self, message: ACLMessage, code: str, reason: str) -> None:
-        """Record a refused request in the platform's audit log."""
-        self.platform.audit(
-            verdict="refused",
-            stage="gateway",
-            code=code,
-            **{"from": platform_of(message.sender)},
-            sender=message.sender,
-            receivers=message.receivers,
-            performative=message.performative.value,
-            conversation_id=message.conversation_id,
-            reason=f"{code}: {reason}",
-        )
+        """Record a refused request in the platform's audit log: one by one within the
+        asking platform's budget, the rest summed up (`AgentPlatform.audit_refused`)."""
+        self.platform.audit_refused(message, "gateway", code, reason)
 
     def _plain_latest_label(self, message: ACLMessage) -> str | None:
         """The label a plain query for its latest sample asks, if answerable at once; else None.

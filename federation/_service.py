@@ -812,21 +812,15 @@ class FederationAgent(Agent):
             raise Refuse(exc.reason) from exc
 
     def _denied(self, message: ACLMessage, exc: Denied) -> None:
-        """Count and audit a refusal by rule or limit (the Interface Agent admitted it)."""
+        """Count and audit a refusal by rule or limit (the Interface Agent admitted it): one
+        by one within the asking platform's budget, the rest summed up."""
         self.refusals[exc.code] = self.refusals.get(exc.code, 0) + 1
-        # the reason may quote what the requester asked for (a label, a formula): bounded
-        log.info("%s: refused %s: %s", self, message.sender, quoted(exc.reason))
-        self.platform.audit(
-            verdict="refused",
-            stage="federation",
-            code=exc.code,
-            **{"from": platform_of(message.sender)},
-            sender=message.sender,
-            receivers=message.receivers,
-            performative=message.performative.value,
-            conversation_id=message.conversation_id,
-            reason=f"{exc.code}: {exc.reason}",
-        )
+        # a member may repeat a request a rule, consent or limit refuses at its rate limit
+        # (past the consent rate, each is refused at once): a record and a log line each
+        # would flood both, so only those within its budget get them
+        if self.platform.audit_refused(message, "federation", exc.code, exc.reason):
+            # the reason may quote what the requester asked for (a label, a formula): bounded
+            log.info("%s: refused %s: %s", self, message.sender, quoted(exc.reason))
 
     async def _perform(self, req: Request, message: ACLMessage) -> Any:
         if isinstance(req, CreateStream):

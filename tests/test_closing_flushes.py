@@ -7,6 +7,8 @@
   gate's summary due within the interval, are written at its close;
 - the import proxy tells ``on_refused`` what it refused since its last report;
 - a refusal for an agent that is stopping is counted (`PlatformStats.stopping`);
+- a member's refusals past its one-by-one budget (`AgentPlatform.audit_refused`) are
+  summed up, the last ones at the platform's close;
 - a snapshot that raises does not leave the name alive (nor exempt) for good;
 - ``runs_signed`` keeps a bounded number of the refused answers it hands back.
 """
@@ -26,6 +28,7 @@ from agents import Agent, AgentPlatform, InterfaceAgent, KeyPair, TrustStore, ru
 from agents._acl import ACLMessage, Performative
 from agents._agent import _STOPPING
 from agents._df import RUNS_REFUSED_KEPT
+from agents._platform import REFUSALS_ONE_BY_ONE
 from agents._tally import Tally
 from agents.transports import MemoryHub
 from dyknow_core import DyKnowInstance
@@ -87,6 +90,44 @@ async def test_a_message_for_an_agent_that_is_stopping_is_counted() -> None:
         )
         await pa._local("slow@uav-a", message)
         assert pa.stats.stopping == 1
+
+
+async def test_refusals_past_a_platforms_budget_are_summed_up_and_written_at_close(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A member's refusals past its one-by-one budget: summed up (the first at once, the
+    next at the interval's end or, as here, at the platform's close)."""
+    # an interval no stall of a loaded machine outlasts: the refusals below are all in one
+    monkeypatch.setattr("agents._platform.REFUSAL_AUDIT_INTERVAL", 3600.0)
+    async with asyncio.timeout(10), members(FED, "uav-a") as [pa]:
+        asked = ACLMessage(
+            performative=Performative.REQUEST, sender="m@uav-b", receivers=["gateway@uav-a"]
+        )
+        told = [f"unknown label 'probe/{i}'" for i in range(REFUSALS_ONE_BY_ONE + 2)]
+        written = [pa.audit_refused(asked, "gateway", "unknown-label", r) for r in told[:-1]]
+        assert written == [True] * REFUSALS_ONE_BY_ONE + [False]
+        while not [r for r in _records(pa, "gateway") if r.get("count")]:  # noqa: ASYNC110
+            await asyncio.sleep(0.01)  # the summary's first record after a quiet spell
+        # within the interval: for the summary's next record, due after the close
+        assert not pa.audit_refused(asked, "gateway", "unknown-label", told[-1])
+        # this platform's own agents' refusals are not budgeted
+        own = asked.model_copy(update={"sender": "a@uav-a"})
+        assert pa.audit_refused(own, "gateway", "stream-limit", "too many created streams")
+    recs = [r for r in _records(pa, "gateway") if r["from"] == "uav-b"]
+    one_by_one = [r for r in recs if r.get("count") is None]
+    assert [r["reason"] for r in one_by_one] == [
+        f"unknown-label: {r}" for r in told[:REFUSALS_ONE_BY_ONE]
+    ]
+    assert all(r["sender"] == "m@uav-b" and r["performative"] == "request" for r in one_by_one)
+    summed = [(r.get("count"), r["reason"]) for r in recs if r.get("count") is not None]
+    head = (
+        f"unknown-label: 1 more request(s) refused without a record each (over "
+        f"{REFUSALS_ONE_BY_ONE} per 3600 s of one platform), from 'uav-b'"
+    )
+    assert summed[0] == (1, f"{head} (last: {told[-2]})"), summed
+    assert summed[1][0] == 1 and summed[1][1].startswith(f"{head} in "), summed
+    assert summed[1][1].endswith(f" s (last: {told[-1]})"), summed
+    assert len(summed) == 2
 
 
 async def test_a_snapshot_that_raises_leaves_no_name_alive() -> None:

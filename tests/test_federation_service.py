@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 from collections.abc import AsyncIterator, Awaitable
 from dataclasses import dataclass, field
 from enum import IntEnum, StrEnum
@@ -39,6 +40,7 @@ from agents import (
     subscribe,
 )
 from agents._interface import InterfaceAgent
+from agents._platform import REFUSAL_AUDIT_INTERVAL, REFUSALS_ONE_BY_ONE
 from agents._security import KeyPair, TrustStore
 from agents.transports import MemoryHub, MemoryTransport
 from dyknow_core import NS_PER_S, DyKnowInstance, ManualClock, Policy, Source, UnknownLabelError
@@ -527,6 +529,49 @@ async def test_create_stream_refusals_name_the_reason() -> None:
         # What had started (to uav-b) was stopped again: nothing half-done is left.
         assert len(a.exporter.started) == 1 and a.exporter.running == []
         assert a.fed.exports == {}
+
+
+async def test_a_members_refusals_past_its_budget_are_neither_logged_nor_recorded_each(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A refusal by a limit (here: a receiver not in the federation), asked again and again:
+    each counted; a log line and a record each only within the asking platform's budget,
+    the rest summed up (`count`) and not logged, however many a member asks."""
+    n = REFUSALS_ONE_BY_ONE + 15
+    told = "unknown receiver nowhere: not in the federation"
+    content = {"action": "create-stream", "labels": ["car5-state"], "to-units": ["nowhere"]}
+    async with world() as w:
+        a, b = w["uav-a"], w["uav-b"]
+        loop = asyncio.get_running_loop()
+        with caplog.at_level(logging.INFO, logger="federation._service"):
+            t0 = loop.time()
+            reasons = await asyncio.gather(
+                *[refusal(b.fed.request_from("uav-a", content, timeout=WAIT)) for _ in range(n)]
+            )
+            elapsed = loop.time() - t0
+        assert reasons == [told] * n
+        assert a.fed.refusals == {"unlisted-receiver": n}
+
+        def recs() -> list[dict[str, Any]]:
+            return [
+                r
+                for r in a.platform.channel.audit.records
+                if r.get("stage") == "federation" and r.get("code") == "unlisted-receiver"
+            ]
+
+        await until(lambda: sum(r.get("count") or 1 for r in recs()) == n, "all audited", 5)
+        one_by_one = [r for r in recs() if r.get("count") is None]
+        intervals = int(elapsed // REFUSAL_AUDIT_INTERVAL) + 1
+        assert REFUSALS_ONE_BY_ONE <= len(one_by_one) <= REFUSALS_ONE_BY_ONE * intervals
+        assert all(r["reason"] == f"unlisted-receiver: {told}" for r in one_by_one)
+        logged = [
+            r
+            for r in caplog.records
+            if r.name == "federation._service" and "refused federation@uav-b" in r.getMessage()
+        ]
+        assert len(logged) == len(one_by_one)  # a line for each record one by one only
+        if n > REFUSALS_ONE_BY_ONE * intervals:
+            assert any(r.get("count") for r in recs())
 
 
 async def test_cancel_stream_by_action_and_by_fipa_cancel() -> None:

@@ -15,12 +15,24 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import pytest
-from test_member_authz import WAIT, audited, audited_in_file, mallory, refusal, world
+from test_member_authz import (
+    WAIT,
+    World,
+    audited,
+    audited_in_file,
+    in_file,
+    mallory,
+    refusal,
+    until,
+    world,
+)
 
 from agents import FIPA_AGENT_MANAGEMENT, Refused, request
 from agents._df import MAX_DF_SUBSCRIPTIONS
+from agents._platform import REFUSAL_AUDIT_INTERVAL, REFUSALS_ONE_BY_ONE
 from agents._protocols import SubscriptionStream, subscribe
 from federation import PlatformConfig, PlatformConfigError
 from federation._service import ACCEPT_BURST, ACCEPT_RATE, MAX_MEMBERSHIP_SUBSCRIPTIONS
@@ -162,27 +174,34 @@ async def test_directory_subscriptions_are_bounded_per_platform(tmp_path: Path) 
         held: list[SubscriptionStream] = []
         for _ in range(MAX_DF_SUBSCRIPTIONS):
             held.append(await subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
-        extra = 3
-        for _ in range(extra):
-            reason = await refusal(subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
-            assert reason == (
-                "subscription-limit: too many directory subscriptions for uav-m "
-                f"(limit {MAX_DF_SUBSCRIPTIONS}: {MAX_DF_SUBSCRIPTIONS} held)"
-            )
-        s = await w.stats("uav-a")
+        # the member repeats them at once: each refused and counted; audited one by one
+        # within its budget, the rest summed up (a record each would flood the audit)
+        extra = 40
+        told = (
+            "too many directory subscriptions for uav-m "
+            f"(limit {MAX_DF_SUBSCRIPTIONS}: {MAX_DF_SUBSCRIPTIONS} held)"
+        )
+        t0 = time.monotonic()
+        reasons = await asyncio.gather(
+            *[
+                refusal(subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
+                for _ in range(extra)
+            ]
+        )
+        elapsed = time.monotonic() - t0
+        assert reasons == [f"subscription-limit: {told}"] * extra
+        s = await _audited_within_budget(
+            w,
+            tmp_path,
+            elapsed,
+            "subscription-limit",
+            extra,
+            told,
+            stage="df",
+            performative="subscribe",
+        )
         assert s["df_subscribers"] == MAX_DF_SUBSCRIPTIONS
         assert s["df_subscriptions_refused"] == extra
-        await audited_in_file(
-            tmp_path,
-            s,
-            extra,
-            verdict="refused",
-            stage="df",
-            code="subscription-limit",
-            sender="mallory@uav-m",
-            performative="subscribe",
-            reason="subscription-limit: too many directory subscriptions for uav-m",
-        )
         await held.pop().cancel()  # a cancelled subscription frees its place
         held.append(await subscribe(m, "df@uav-a", {}, ontology=FIPA_AGENT_MANAGEMENT))
         for stream in held:
@@ -232,18 +251,10 @@ async def test_a_member_cannot_make_a_platform_ask_a_third_one_at_will(tmp_path:
         )
         # the operator was asked only for those checked
         assert operator.refusals.get("consent") == len(checked)
-        s = await w.stats("uav-a")
-        assert s["refusals"].get("consent-rate") == len(limited)
-        await audited_in_file(
-            tmp_path,
-            s,
-            len(limited),
-            verdict="refused",
-            stage="federation",
-            code="consent-rate",
-            sender="mallory@uav-m",
-            reason="consent-rate: too many accept-stream requests from uav-m",
+        s = await _audited_within_budget(
+            w, tmp_path, elapsed, "consent-rate", len(limited), limited[0]
         )
+        assert s["refusals"].get("consent-rate") == len(limited)
 
 
 @pytest.mark.timeout(180)
@@ -276,16 +287,67 @@ async def test_a_member_cannot_make_a_provider_ask_third_platforms_at_will(
         )
         # uav-b was asked only for those
         assert receiver.refusals.get("consent") == len(asked)
-        s = await w.stats("uav-a")
-        assert s["refusals"].get("consent-rate") == len(limited)
-        await audited_in_file(
-            tmp_path,
-            s,
-            len(limited),
-            verdict="refused",
-            stage="federation",
-            code="consent-rate",
-            sender="mallory@uav-m",
-            reason="consent-rate: too many create-streams for other platforms from uav-m",
+        s = await _audited_within_budget(
+            w, tmp_path, elapsed, "consent-rate", len(limited), limited[0]
         )
+        assert s["refusals"].get("consent-rate") == len(limited)
         assert not s["agreed"]  # nothing was exported
+
+
+async def _audited_within_budget(
+    w: World,
+    tmp_path: Path,
+    elapsed: float,
+    code: str,
+    total: int,
+    told: str,
+    *,
+    stage: str = "federation",
+    performative: str = "request",
+) -> dict[str, Any]:
+    """uav-a's stats once each of uav-m's ``total`` refusals of ``code`` (``told``: the
+    reason, the same each time) is audited: within the member's budget one by one (the
+    whole reason), the rest summed up per interval (``count``, the last reason); none
+    lost, and the audit a few records a second however many refusals, not one each."""
+
+    def mine(s: dict[str, Any]) -> list[dict[str, Any]]:
+        return [r for r in s["audit"] if r["from"] == "uav-m" and r.get("stage") == stage]
+
+    def of_code(s: dict[str, Any]) -> list[dict[str, Any]]:
+        return [r for r in mine(s) if r["code"] == code]
+
+    # what is summed up is written at the interval's end: until every refusal is
+    s = await w.until_stats(
+        "uav-a",
+        lambda s: sum(r.get("count") or 1 for r in of_code(s)) == total,
+        f"every {code} refusal audited, one by one or summed up",
+    )
+    # a budget's worth of uav-m's refusals one by one per interval at most (each interval
+    # starts at a refusal), and its first refusals are all within one
+    intervals = int(elapsed // REFUSAL_AUDIT_INTERVAL) + 1
+    one_by_one = [r for r in mine(s) if r.get("count") is None]
+    assert REFUSALS_ONE_BY_ONE <= len(one_by_one) <= REFUSALS_ONE_BY_ONE * intervals, (
+        len(one_by_one),
+        elapsed,
+    )
+    recs = of_code(s)
+    summed = [r for r in recs if r.get("count") is not None]
+    for r in recs:
+        assert r["verdict"] == "refused", r
+        if r.get("count") is None:
+            assert r["sender"] == "mallory@uav-m" and r["performative"] == performative, r
+            assert r["reason"] == f"{code}: {told}", r
+        else:
+            assert r["sender"] is None and r["performative"] is None, r
+            assert r["reason"].startswith(
+                f"{code}: {r['count']} more request(s) refused without a record each (over "
+                f"{REFUSALS_ONE_BY_ONE} per {REFUSAL_AUDIT_INTERVAL:g} s of one platform), "
+                "from 'uav-m'"
+            ), r
+            assert r["reason"].endswith(f" (last: {told})"), r
+    if total > REFUSALS_ONE_BY_ONE * intervals:  # more than could each have a record
+        assert summed, recs
+    # one summary per interval at most (and one at once)
+    assert len(summed) <= intervals + 1, (len(summed), elapsed)
+    await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+    return s

@@ -51,6 +51,7 @@ from agents import (
     subscribe,
     wire_key,
 )
+from agents._platform import REFUSAL_AUDIT_INTERVAL, REFUSALS_ONE_BY_ONE
 from agents.keys import gen_keys, trust_keys
 from agents.transports import MemoryHub, free_tcp_port
 from dyknow_core import seconds_to_ns
@@ -499,7 +500,9 @@ async def test_an_opened_gateway_counts_and_audits_a_member_asking_labels_not_th
     """Probing which labels a platform has: each ask of a label not there, by a plain read,
     a query-ref, another kind of query, a create-stream's source or a subscribe, is
     refused, counted and audited with the reason the member was told (naming no reserved
-    label). The lane leaves such a read to the event loop: `test_answer_on_thread.py`."""
+    label), one by one: a few are within the member's budget (a flood is summed up, the
+    test after next). The lane leaves such a read to the event loop:
+    `test_answer_on_thread.py`."""
     opened = {"sharing": {"gateway": "protected"}}
     async with (
         asyncio.timeout(120),
@@ -550,6 +553,9 @@ async def test_an_opened_gateway_counts_and_audits_a_member_asking_labels_not_th
             "subscribe",
         ]
         assert all(r["receivers"] == [gw] for r in recs)
+        # a member's few mistakes are all seen one by one, none summed up (within its budget)
+        assert len(recs) <= REFUSALS_ONE_BY_ONE
+        assert not [r for r in s["audit"] if r.get("stage") == "gateway" and r.get("count")]
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
 
 
@@ -605,6 +611,163 @@ async def test_a_member_exhausting_an_opened_gateways_limits_or_probing_outputs_
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
         for h in held:
             await h.cancel()
+
+
+async def test_a_member_flooding_an_opened_gateway_with_refused_requests_cannot_flush_the_audit(
+    tmp_path: Path,
+) -> None:
+    """A member asking, as fast as it is answered, for labels not there, for outputs
+    taken, past the gateway's limits and for what a sharing rule refuses: each refused and
+    counted exactly, the first `REFUSALS_ONE_BY_ONE` of an interval audited one by one
+    (full reason), the rest summed up per code in records with ``count`` and the last
+    reason. The audit grows by a few records a second, not by one per refusal: at its rate
+    limit a member could otherwise rotate the audit file's whole history away in seconds."""
+    # at the rate limit's rate, but a burst as large: a victim on a loaded machine takes a
+    # backlog of envelopes in at once, and the requests the limit drops are never answered
+    opened = {
+        "sharing": {"gateway": "protected", **RULES["sharing"]},
+        "rate_limit": {"burst": 5000},
+    }
+    async with (
+        asyncio.timeout(170),
+        world(tmp_path, ["uav-a"], ["uav-m"], uav_a=opened) as w,
+    ):
+        w.pipes["uav-a"].send("limits", 1, 256)  # one subscription
+        await w.pipes["uav-a"].expect("limits", WAIT)
+        m = await mallory(w)
+        fed = w.here["uav-m"].federation_agent
+        gw = "gateway@uav-a"
+        held = await subscribe(m, gw, {"label": SECRET}, ontology="dyknow")
+        before = await w.stats("uav-a")
+        seen = sorted(lb for lb in before["labels"] if not lb.startswith("import/"))
+        latest = {"action": "get-latest", "labels": ["car5-state"]}
+        ruled = (
+            "label 'car5-state' may not be queried by uav-m: sharing rule 'neighbours' "
+            "(sharing.rules[0]) (car*-state) lets uav-c, uav-b query it"
+        )
+
+        def create(output: str) -> dict[str, Any]:
+            return {"action": "create-stream", "label": SECRET, "output": output}
+
+        # (stage, code) -> (how many, the i-th request, the reason it is told)
+        attacks: dict[tuple[str, str], tuple[int, Any, Any]] = {
+            ("gateway", "unknown-label"): (
+                1200,
+                lambda i: request(
+                    m, gw, {"action": "query", "label": f"probe/{i}"}, ontology="dyknow"
+                ),
+                lambda i: f"unknown label 'probe/{i}' (known labels: {', '.join(seen[:8])}, …)",
+            ),
+            ("gateway", "label-taken"): (
+                300,
+                lambda i: request(m, gw, create(SECRET), ontology="dyknow"),
+                lambda i: f"label {SECRET!r} is already published",
+            ),
+            ("gateway", "subscription-limit"): (
+                300,
+                lambda i: subscribe(m, gw, {"label": SECRET}, ontology="dyknow"),
+                lambda i: "too many subscriptions (limit 1)",
+            ),
+            ("federation", "sharing-rule"): (
+                300,
+                lambda i: fed.request_from("uav-a", latest),
+                lambda i: ruled,
+            ),
+            ("gateway", "stream-limit"): (
+                300,
+                lambda i: request(m, gw, create(f"op/s{i}"), ontology="dyknow"),
+                lambda i: "too many created streams (limit 0)",
+            ),
+        }
+        wave = 50  # requests in flight at once: well under the rate limit's burst (200)
+        loop = asyncio.get_running_loop()
+        pace = 800  # requests/s: the flood spans 3 s, its records kept in memory (10,000)
+        sent = 0
+        t0 = loop.time()
+        for (_, code), (n, ask, told) in attacks.items():
+            if code == "stream-limit":
+                w.pipes["uav-a"].send("limits", 1, 0)  # no created stream: each refused so
+                await w.pipes["uav-a"].expect("limits", WAIT)
+            for start in range(0, n, wave):
+                sent += min(n, start + wave) - start
+                ahead = t0 + sent / pace - loop.time()
+                if ahead > 0:  # a rate, not an event: nothing to await but the time
+                    await asyncio.sleep(ahead)
+                got = await asyncio.gather(
+                    *[refusal(ask(i)) for i in range(start, min(n, start + wave))]
+                )
+                assert got == [told(i) for i in range(start, min(n, start + wave))]
+        flood = loop.time() - t0
+        total = sum(n for n, _, _ in attacks.values())
+
+        def mine(s: dict[str, Any]) -> list[dict[str, Any]]:
+            return [
+                r
+                for r in s["audit"]
+                if r["from"] == "uav-m" and (r.get("stage"), r.get("code")) in attacks
+            ]
+
+        def summed(s: dict[str, Any], key: tuple[str, str]) -> int:
+            return sum(r.get("count") or 1 for r in mine(s) if (r["stage"], r["code"]) == key)
+
+        # what is summed up is written at the interval's end: until every refusal is
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: all(summed(s, key) == n for key, (n, _, _) in attacks.items()),
+            "every refusal audited, one by one or summed up",
+        )
+        assert s["gateway"]["unknown_label_refused"] == 1200
+        assert s["gateway"]["taken_label_refused"] == 300
+        assert s["gateway"]["limit_refused"] == 600
+        assert s["refusals"] == {"sharing-rule": 300}
+        recs = mine(s)
+        one_by_one = [r for r in recs if r.get("count") is None]
+        sums = [r for r in recs if r.get("count") is not None]
+        for r in one_by_one:
+            assert r["verdict"] == "refused" and r["receivers"] is not None, r
+            assert r["sender"] in ("mallory@uav-m", "federation@uav-m"), r
+            assert r["reason"].startswith(f"{r['code']}: "), r
+        # the first of the flood: a budget's worth, each with the whole reason told
+        first = one_by_one[:REFUSALS_ONE_BY_ONE]
+        assert [r["code"] for r in first] == ["unknown-label"] * REFUSALS_ONE_BY_ONE
+        assert all(r["reason"].startswith("unknown-label: unknown label 'probe/") for r in first)
+        # at most a budget per platform per interval (each interval starts at a refusal);
+        # the flood spans intervals (3 s at least): more than one budget's worth in all
+        intervals = int(flood // REFUSAL_AUDIT_INTERVAL) + 1
+        assert REFUSALS_ONE_BY_ONE < len(one_by_one) <= REFUSALS_ONE_BY_ONE * intervals, (
+            len(one_by_one),
+            flood,
+        )
+        # the rest summed up: per code at most one record an interval (and one at once)
+        for (stage, code), (_, _, told) in attacks.items():
+            these = [r for r in sums if (r["stage"], r["code"]) == (stage, code)]
+            assert these, code
+            assert len(these) <= intervals + 1, (code, len(these), flood)
+            for r in these:
+                assert r["verdict"] == "refused" and r["sender"] is None, r
+                assert r["reason"].startswith(
+                    f"{code}: {r['count']} more request(s) refused without a record each "
+                    f"(over {REFUSALS_ONE_BY_ONE} per {REFUSAL_AUDIT_INTERVAL:g} s of one "
+                    "platform), from 'uav-m'"
+                ), r
+            last = these[-1]["reason"]
+            assert last.endswith(")") and "(last: " in last, last
+            if code != "unknown-label":  # the same reason each time: the last one's whole
+                assert last.endswith(f"(last: {told(0)})"), last
+        # a few records a second, whatever the flood's rate: a budget and a summary per
+        # code an interval (the first summary may come at once), not one per refusal
+        assert len(recs) <= (REFUSALS_ONE_BY_ONE + len(attacks)) * (intervals + 1), (
+            len(recs),
+            total,
+            flood,
+        )
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        lines = (tmp_path / "audit-uav-a.jsonl").read_text().splitlines()
+        written = [x for x in lines if json.loads(x) in recs]
+        assert len(written) == len(recs)
+        # and each under 1 kB (a summary's last reason is cut): a few kB a second in all
+        assert max(len(x) for x in written) < 1024, max(written, key=len)
+        await held.cancel()
 
 
 async def test_a_members_words_echoed_in_answers_and_the_audit_are_bounded_on_one_line(
