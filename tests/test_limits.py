@@ -81,6 +81,7 @@ def test_the_node_refuses_an_inf_limit_naming_file_table_and_key(tmp_path: Path)
     assert "Traceback" not in run.stderr
 
 
+@pytest.mark.timeout(180)  # as its siblings: its world's own bound is 150 s
 async def test_a_member_that_said_it_left_is_not_served_until_listed_again(
     tmp_path: Path,
 ) -> None:
