@@ -702,8 +702,9 @@ async def test_lease_ends_the_export_to_a_silent_receiver_only() -> None:
         assert silent.ended.startswith("lease-expired") and ("ghost", "lease-expired") in ended
         assert list(exporter.ended) == [silent] and exporter.exports() == [live]
         started = time.monotonic()
-        await asyncio.sleep(1.0)  # two leases more: the live one is still reported on
-        assert live.active and live.last_heard > started
+        # two leases more: the live one is still reported on, and kept
+        await until(lambda: live.last_heard > started + 1.0 or live.ended, "reports on", WAIT)
+        assert live.active, live.ended
 
 
 def stall(seconds: float) -> None:
