@@ -26,6 +26,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import time
 import traceback
 from collections import deque
@@ -128,6 +129,9 @@ class Export:
         self.history = history
         self.recovered = 0  # samples resent from the history because the receiver missed them
         self.last_heard = time.monotonic()
+        # the lease's previous look, and the report a look past due spared the export on
+        self._looked_at = self.last_heard
+        self._spared = -math.inf
         self.last_error: str | None = None
         self.ended: str | None = None
         self.started = time.time()
@@ -255,7 +259,7 @@ class Export:
                 if self._unsent is not None:
                     (packed, first, error), self._unsent = self._unsent, None
                     await self._send_packed(packed, first, error)
-                if lease is not None and self._lease_expired(lease):
+                if lease is not None and self._lease_expired(lease, idle):
                     await self._tell_ended()
                     return
                 if self._recover:
@@ -289,10 +293,22 @@ class Export:
         finally:
             self._disarm()
 
-    def _lease_expired(self, lease: float) -> bool:
-        """End the export when its receiver has not reported for ``lease`` s (frozen, gone)."""
-        silent = time.monotonic() - self.last_heard
+    def _lease_expired(self, lease: float, every: float) -> bool:
+        """End the export when its receiver has not reported for ``lease`` s (frozen, gone).
+
+        The lease is looked at every ``every`` s at most. A look that comes so late that
+        the lease ran out only while this process was not looking (it stalled: busy,
+        descheduled) spares the export once: the reports that came meanwhile are read
+        before the next look decides, rather than a live receiver's export ended.
+        """
+        now = time.monotonic()
+        silent = now - self.last_heard
+        late = now - self._looked_at - every
+        self._looked_at = now
         if silent <= lease:
+            return False
+        if silent - late <= lease and self._spared != self.last_heard:
+            self._spared = self.last_heard
             return False
         log.warning(
             "%s: lease expired: no report from %s for %.1f s; export stopped",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import hashlib
 import json
 import os
@@ -108,3 +110,39 @@ class CpuSlowdownMeter:
         cut = len(times) // 10
         kept = times[cut : len(times) - cut]
         return max(1.0, statistics.fmean(kept) / CPU_WORK_SECONDS)
+
+
+class LoopLag:
+    """How late this event loop ran its timers over a stretch: ``async with`` the stretch.
+
+    A timer is due at a loop time; a busy machine runs it later, by as much as the loop
+    waited for a CPU. A bound on when a timer-driven thing happened (a lease's expiry, a
+    wait's end) is the code's promise plus ``worst``: the latest any timer ran meanwhile.
+    """
+
+    def __init__(self, period: float = 0.02) -> None:
+        self.worst = 0.0
+        self._period = period
+        self._task: asyncio.Task[None] | None = None
+
+    async def _measure(self) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            due = loop.time() + self._period
+            await asyncio.sleep(self._period)
+            self.worst = max(self.worst, loop.time() - due)
+
+    async def __aenter__(self) -> LoopLag:
+        self._task = asyncio.create_task(self._measure())
+        return self
+
+    async def __aexit__(
+        self,
+        kind: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        assert self._task is not None
+        self._task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await self._task

@@ -333,8 +333,15 @@ async def test_a_forged_token_held_is_asked_again_at_a_bounded_rate(
                 await _until("uav-b asked again", lambda n=n: len(asked) > n, 4 * WAIT)
                 seen.append(gdf.platforms)
             token.undeclare()
-            queryable.undeclare()
             await _until("the forged presence's end taken", lambda: not gdf.unconfirmed)
+            # an asking counts from when it is sent: its answers (one junk, 50 invented) may
+            # still be on the way, on a busy machine not yet at the queryable; each taken
+            # and refused before the queryable goes (no asking comes after the presence)
+            await _until(
+                "every asking's answers refused",
+                lambda: gdf.refused >= refused + 3 + 1 + 51 * len(asked[first:]),
+            )
+            queryable.undeclare()
         again = asked[first:]
         gaps = [round(b - a, 2) for a, b in itertools.pairwise(again)]
         held = again[-1] - refused_at
