@@ -14,6 +14,7 @@ import time
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
+from unittest.mock import ANY
 
 import pytest
 from _node_example import Station
@@ -260,12 +261,52 @@ async def test_an_output_stopped_leaves_no_task_of_its_own() -> None:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(session.put_once.wait(), 0.01)
         assert session.puts[0][0] == "out/wx/temp"
-        names = {t.get_name() for t in asyncio.all_tasks()}
-        assert "output[zenoh out/{label}].scan" in names  # its rescan task, named
         running.cancel()
         await asyncio.wait([running])
         # (the instance's own timer tasks come and go: only the output's are compared)
         assert not [t for t in asyncio.all_tasks() if t.get_name().startswith("output")]
+
+
+async def test_a_pattern_output_publishes_a_new_streams_first_sample() -> None:
+    # docs/application.md, "Outputs": a glob pattern picks up streams that appear later,
+    # from their first sample (an input with create = true makes the stream as its first
+    # message comes and pushes that message at once)
+    class Session:
+        def __init__(self) -> None:
+            self.puts: asyncio.Queue[tuple[str, dict[str, Any]]] = asyncio.Queue()
+
+        def put(self, key: str, payload: bytes) -> None:
+            self.puts.put_nowait((key, json.loads(payload)))
+
+    async with DyKnowInstance("t") as inst:
+        moisture = inst.add_source("soil/moisture")
+        settings = ZenohOutput(kind="zenoh", key="out/{label}", labels=["leaf/*/temp"])
+        out = output_runner(settings, inst)
+        session = Session()
+        running = asyncio.create_task(out.run(session), name="output")
+        try:
+            await asyncio.sleep(0)  # the output starts following before the streams come
+            for sensor, temp in (("s1", 19.5), ("s2", 18.0)):
+                inst.add_source(f"leaf/{sensor}/temp").push(temp)
+            moisture.push(25)  # not the output's
+            async with asyncio.timeout(5):
+                got = [await session.puts.get() for _ in range(2)]
+            assert [(k, p["value"]) for k, p in got] == [
+                ("out/leaf/s1/temp", 19.5),
+                ("out/leaf/s2/temp", 18.0),
+            ]
+            # a stream removed and made anew under the same label is followed again
+            inst.remove_process("source:leaf/s1/temp")
+            inst.add_source("leaf/s1/temp").push(20.0)
+            async with asyncio.timeout(5):
+                assert await session.puts.get() == (
+                    "out/leaf/s1/temp",
+                    {"label": "leaf/s1/temp", "value": 20.0, "valid": ANY, "available": ANY},
+                )
+            assert session.puts.empty()  # the moisture, not matched, was not published
+        finally:
+            running.cancel()
+            await asyncio.wait([running])
 
 
 def test_a_zenoh_input_on_an_mqtt_node_needs_its_own_connect(
