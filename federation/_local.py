@@ -963,7 +963,10 @@ class LocalChannel:
                 # at the rate asked, as an export to another platform would have it
                 policy = Policy(sample_period=_sample_period(request.get("sample_period")))
             else:
-                label = await p.imported(target, semantic, timeout=timeout)
+                try:
+                    label = await p.imported(target, semantic, timeout=timeout)
+                except TimeoutError as exc:  # an answer not given, said in words
+                    raise NotAnsweredError(str(exc)) from None
             sub = p.instance.subscribe(label, policy)
             try:
                 async for s in sub:

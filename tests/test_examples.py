@@ -205,6 +205,21 @@ def test_node_example_python_input(station: Station) -> None:
     assert len(rows) == 2 and all(r["label"] == "wind-speed-kmh" for r in rows)
 
 
+@pytest.mark.timeout(90)
+def test_a_stream_with_no_reading_gives_up_after_its_timeout_saying_so(station: Station) -> None:
+    # docs/application.md: `stream` gives up after --timeout when no reading comes; the
+    # zenoh station has no publisher here, so none does
+    station.start("zenoh")
+    stream = station.spawn(
+        *("stream", "temperature", "-p", "station", "--count", "3"),
+        *("--timeout", "2", "--config", "operator.toml"),
+    )
+    out, err = stream.communicate(timeout=60)
+    assert stream.returncode == 1 and out == "", (out, err)
+    # in words, as a refusal or a silent platform is (the class is for unexpected errors)
+    assert err == "dyknow: no sample of 'temperature' from station arrived within 2.0 s\n"
+
+
 READINGS = 20  # put by publish_zenoh.py, 0.1 s apart
 
 
