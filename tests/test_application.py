@@ -101,6 +101,38 @@ def test_a_mapping_entry_of_no_stream_is_warned_about_at_start(tmp_path: Path) -
     ]
 
 
+@pytest.mark.timeout(90)
+def test_a_unit_of_the_application_that_raises_is_said_and_counted(tmp_path: Path) -> None:
+    # docs/application.md, "application": a CU that raises on a sample skips it, the node
+    # goes on, and the user, who wrote no Python of the node, is told which one and why
+    station = Station(tmp_path)
+    (station.dir / "calm.jsonl").write_text(
+        "".join(json.dumps({"wind": w}) + "\n" for w in (3, "calm", "calm", 5))
+    )
+    config = (station.dir / "station-python.toml").read_text().split("[[inputs]]")[0]
+    (station.dir / "station-calm.toml").write_text(
+        config + '[[inputs]]\nkind = "file"\npath = "calm.jsonl"\npace = "fast"\n'
+        'fields = {wind = "wx/wind"}\n'
+    )
+    try:
+        station.start("calm")
+        station.follow_stderr()
+        assert station.said("process 'kmh' failed (#2)", within=20.0)
+        # the readings around the bad ones still went through the unit
+        answer = station.dyknow("ask", "wind-speed-kmh", "-p", "station")
+        assert answer["wind-speed-kmh"]["samples"][0][0] == 18.0  # 5 m/s
+        out, err = station.stop()
+    finally:
+        station.stop()
+    assert err.splitlines() == [
+        "WARNING federation._application: application weather.kpl: process 'kmh' failed "
+        f"(#{n}): TypeError: can't multiply sequence by non-int of type 'float'; that "
+        "sample is skipped"
+        for n in (1, 2)
+    ]
+    assert 'dyknow node: {"application": "weather.kpl", "failed": {"kmh": 2}}' in out
+
+
 def _gusts(directory: Path, local: str) -> None:
     """A vocabulary pattern, its mapping to ``local``, an input making 'gusts/{station}/kmh'."""
     with (directory / "weather.toml").open("a") as f:
