@@ -218,6 +218,14 @@ def test_a_stream_with_no_reading_gives_up_after_its_timeout_saying_so(station: 
     assert stream.returncode == 1 and out == "", (out, err)
     # in words, as a refusal or a silent platform is (the class is for unexpected errors)
     assert err == "dyknow: no sample of 'temperature' from station arrived within 2.0 s\n"
+    # the station's own stream, through its node's local channel: bounded the same way
+    own = station.command(
+        *("stream", "temperature", "-p", "station", "--count", "3"),
+        *("--timeout", "2", "--config", "station-zenoh.toml"),
+        timeout=60,
+    )
+    assert own.returncode == 1 and own.stdout == "", own
+    assert own.stderr == "dyknow: no sample of 'temperature' from station arrived within 2.0 s\n"
 
 
 READINGS = 20  # put by publish_zenoh.py, 0.1 s apart
