@@ -200,7 +200,7 @@ class NodeApplication:
         async with contextlib.AsyncExitStack() as stack:
             self._tg = await stack.enter_async_context(asyncio.TaskGroup())
             for runner in self.inputs:
-                self._start(runner.stats.title, runner.run(session))
+                self._start(f"input {runner.stats.title}", runner.run(session))
             for out in self.outputs:
                 self._start(f"output {out.settings.title()}", out.run(session))
             self._stack = stack.pop_all()

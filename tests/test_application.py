@@ -133,6 +133,36 @@ def test_a_unit_of_the_application_that_raises_is_said_and_counted(tmp_path: Pat
     assert 'dyknow node: {"application": "weather.kpl", "failed": {"kmh": 2}}' in out
 
 
+@pytest.mark.timeout(90)
+def test_an_input_that_fails_for_good_is_named_as_an_input(tmp_path: Path) -> None:
+    # docs/application.md: `input python feed:readings stopped: <the reason in words>`,
+    # and the node goes on
+    station = Station(tmp_path)
+    (station.dir / "probe.py").write_text(
+        "async def soil():\n"
+        "    yield {'temperature': 12.5}\n"
+        "    raise ValueError(\"the reading 'x' is no number\")\n"
+    )
+    config = (station.dir / "station-python.toml").read_text().split("[[inputs]]")[0]
+    (station.dir / "station-probe.toml").write_text(
+        config + '[[inputs]]\nkind = "python"\nentry = "probe:soil"\n'
+        'fields = {temperature = "wx/temperature"}\n'
+    )
+    try:
+        station.start("probe")
+        station.follow_stderr()
+        assert station.said("stopped", within=20.0)
+        answer = station.dyknow("ask", "temperature", "-p", "station")  # the node goes on
+        assert answer["temperature"]["samples"][0][0] == 12.5
+        _, err = station.stop()
+    finally:
+        station.stop()
+    assert err.splitlines() == [
+        "ERROR federation._application: input python probe:soil stopped: the reading 'x' "
+        "is no number"
+    ]
+
+
 def _gusts(directory: Path, local: str) -> None:
     """A vocabulary pattern, its mapping to ``local``, an input making 'gusts/{station}/kmh'."""
     with (directory / "weather.toml").open("a") as f:
