@@ -203,6 +203,10 @@ def test_node_example_python_input(station: Station) -> None:
     assert set(state) == {"temperature", "wind"} and state["wind"] >= 3.0 * 3.6
     rows = station.dyknow("stream", "wind-speed-kmh", "-p", "station", "--count", "2")
     assert len(rows) == 2 and all(r["label"] == "wind-speed-kmh" for r in rows)
+    # docs/application.md: `ask --json` in seconds, `stream --json` in integer ns
+    assert isinstance(valid, float) and 1.7e9 < valid < 1e10
+    assert all(isinstance(r["valid"], int) and r["valid"] > 1.7e18 for r in rows)
+    assert abs(rows[0]["valid"] / NS_PER_S - valid) < 60
 
 
 @pytest.mark.timeout(90)
