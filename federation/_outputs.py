@@ -93,8 +93,7 @@ class OutputRunner:
         self.published = 0
         self.dropped = 0
         self._queue: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue(_QUEUE)
-        self._followed: set[str] = set()
-        self._subs: list[Any] = []
+        self._subs: dict[str, Any] = {}  # label -> the subscription following it
 
     def matching(self) -> list[str]:
         """The local labels this output publishes now."""
@@ -116,21 +115,24 @@ class OutputRunner:
         ]
 
     def _follow(self, label: str) -> None:
-        if label in self._followed:
+        if label in self._subs:
             return
-        self._followed.add(label)
 
         def deliver(batch: list[Any], label: str = label) -> None:
             for value, valid, available in batch:
                 self._enqueue(label, sample_json(label, value, valid, available))
 
         policy = Policy(sample_period=self.settings.sample_period)
-        self._subs.append(self.instance.subscribe(label, policy, callback=deliver))
+        self._subs[label] = self.instance.subscribe(label, policy, callback=deliver)
 
     def _label_changed(self, label: str, published: bool) -> None:
         # told as the stream is made, before its first sample is pushed: none is missed
         if not published:
-            self._followed.discard(label)  # its subscription ended with it; a new one may come
+            # its subscription ended with it (a new one may come): kept, it would hold the
+            # removed stream and its cache for as long as the output runs
+            sub = self._subs.pop(label, None)
+            if sub is not None:
+                sub.close()
         elif self.wants(label):
             self._follow(label)
 
@@ -148,7 +150,8 @@ class OutputRunner:
             else:
                 await self._run_zenoh(self.settings, zenoh_session)
         finally:
-            for sub in self._subs:
+            subs, self._subs = list(self._subs.values()), {}  # a second run follows anew
+            for sub in subs:
                 sub.close()
 
     @contextlib.asynccontextmanager

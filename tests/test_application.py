@@ -5,12 +5,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import csv
+import gc
 import io
 import itertools
 import json
 import logging
 import shutil
 import time
+import weakref
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
@@ -366,6 +368,38 @@ async def test_a_pattern_output_publishes_a_new_streams_first_sample() -> None:
                     {"label": "leaf/s1/temp", "value": 20.0, "valid": ANY, "available": ANY},
                 )
             assert session.puts.empty()  # the moisture, not matched, was not published
+        finally:
+            running.cancel()
+            await asyncio.wait([running])
+
+
+async def test_a_pattern_output_keeps_no_stream_that_was_removed() -> None:
+    # streams come and go on a running node (an import that ended and began again, an
+    # object a gateway removed): an output following them must not keep the removed ones,
+    # their caches with them, for as long as it runs
+    class Session:
+        def __init__(self) -> None:
+            self.puts: asyncio.Queue[str] = asyncio.Queue()
+
+        def put(self, key: str, payload: bytes) -> None:
+            self.puts.put_nowait(key)
+
+    async with DyKnowInstance("t") as inst:
+        out = output_runner(ZenohOutput(kind="zenoh", key="out/{label}", labels=["leaf/*"]), inst)
+        running = asyncio.create_task(out.run(session := Session()), name="output")
+        try:
+            await asyncio.sleep(0)  # the output starts following before the streams come
+            gone = []
+            for n in range(3):
+                src = inst.add_source("leaf/a")
+                src.push(n)
+                async with asyncio.timeout(5):
+                    assert await session.puts.get() == "out/leaf/a"
+                gone.append(weakref.ref(src.generator))
+                inst.remove_process(src.name)
+                del src
+            gc.collect()
+            assert [ref() for ref in gone] == [None, None, None]
         finally:
             running.cancel()
             await asyncio.wait([running])
