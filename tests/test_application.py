@@ -135,6 +135,31 @@ def test_a_unit_of_the_application_that_raises_is_said_and_counted(tmp_path: Pat
     assert 'dyknow node: {"application": "weather.kpl", "failed": {"kmh": 2}}' in out
 
 
+def test_a_unit_failing_on_every_reading_is_said_within_a_bound(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # docs/application.md, "application": the first 5 failures of each process, then one
+    # in 1000, all counted; a process that is not the application's is not its to tell
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+
+    platform = SimpleNamespace(config=SimpleNamespace(application=Path("weather.kpl")))
+    app = NodeApplication(platform, "station.toml")  # type: ignore[arg-type]
+    inst = DyKnowInstance("t")
+    wind = inst.add_source("wx/wind")
+    inst.add_cu("kmh", lambda w: w * 3.6, ["wx/wind"], "wx/kmh")
+    inst.add_cu("import[x]", lambda w: w * 1.0, ["wx/wind"], "wx/other")
+    app.kpl = SimpleNamespace(processes=["kmh"])  # type: ignore[assignment]
+    inst.on_failure(app._failed)
+    with caplog.at_level("WARNING", logger="federation._application"):
+        for _ in range(2500):
+            wind.push("calm")
+    told = [r.getMessage().split(" failed ")[1].split(":")[0] for r in caplog.records]
+    assert told == ["(#1)", "(#2)", "(#3)", "(#4)", "(#5)", "(#1000)", "(#2000)"]
+    assert app.stats() == [{"application": "weather.kpl", "failed": {"kmh": 2500}}]
+
+
 @pytest.mark.timeout(90)
 def test_an_input_that_fails_for_good_is_named_as_an_input(tmp_path: Path) -> None:
     # docs/application.md: `input python feed:readings stopped: <the reason in words>`,
