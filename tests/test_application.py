@@ -11,6 +11,7 @@ import itertools
 import json
 import logging
 import shutil
+import subprocess
 import time
 import weakref
 from multiprocessing.connection import Connection
@@ -19,7 +20,7 @@ from typing import Any
 from unittest.mock import ANY
 
 import pytest
-from _node_example import Station
+from _node_example import Station, _samples, _stats
 
 from dyknow_core import DyKnowInstance
 from federation._inputs import ZenohInput, input_runner
@@ -296,6 +297,9 @@ def test_config_keys_of_inputs_are_named(station: Path, capsys: pytest.CaptureFi
     code, err = _node(station, capsys)
     missing = station.parent / "observation.csv"
     assert code == 2 and f"inputs[1].path: {missing}: no such file" in err
+    station.write_text(text.replace('pace = "fast"', 'pace = "fast"\nmax_streams = 0'))
+    code, err = _node(station, capsys)
+    assert code == 2 and "inputs[1].max_streams: Input should be greater than or equal to 1" in err
     assert "Traceback" not in err
 
 
@@ -1126,3 +1130,77 @@ async def test_a_time_days_ahead_of_the_clock_is_a_good_time() -> None:
         mapper.handle({"time": ahead * 5, "kind": "a fast simulation"})
         assert mapper.stats.bad == {} and mapper.stats.samples == 2
         assert [s.value for s in inst.latest("forecast/s1").samples] == ["a fast simulation"]
+
+
+@pytest.mark.timeout(120)
+def test_an_input_creates_streams_only_for_label_chunks_and_a_bounded_number(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    # docs/application.md, "create": anyone who can publish to the broker names the objects;
+    # a placeholder's value must be one chunk of a label, and an input makes at most
+    # `max_streams` streams: past it, a new object's messages are bad ones, the others go on
+    import uuid
+
+    host, port = mosquitto
+    pub = shutil.which("mosquitto_pub")
+    assert pub, "mosquitto-clients is needed (make mosquitto installs it)"
+    station = Station(tmp_path, mqtt_port=port)
+    base = f"soil-{uuid.uuid4().hex[:8]}"  # the broker is the session's: topics of our own
+    with (station.dir / "weather.toml").open("a") as f:
+        f.write('"{object}-moisture" = "the soil moisture at a probe, %"\n')
+    with (station.dir / "station-labels.toml").open("a") as f:
+        f.write('"{object}-moisture" = "soil/{object}/moisture"\n')
+    config = (station.dir / "station-mqtt.toml").read_text().split("[[inputs]]")[0]
+    (station.dir / "station-soil.toml").write_text(
+        config + f'[[inputs]]\nkind = "mqtt"\nhost = "{host}"\nport = {port}\n'
+        f'topic = "{base}/+"\ncreate = true\nmax_streams = 2\n'
+        'fields = {moisture = "soil/{id}/moisture"}\n'
+    )
+    messages = [
+        {"id": "p1", "moisture": 20},
+        {"id": "p 2", "moisture": 1},
+        {"id": "", "moisture": 1},
+        {"id": "a/b", "moisture": 1},
+        {"id": "x" * 300, "moisture": 1},
+        {"id": "p2", "moisture": 30},
+        {"id": "p3", "moisture": 40},  # a third stream: one more than max_streams
+        {"id": "p1", "moisture": 21},  # an object it follows goes on
+    ]
+    publish = [pub, "-h", host, "-p", str(port), "-t", f"{base}/probes", "-q", "1"]
+    try:
+        station.start("soil")
+        station.follow_stderr()
+        # the first retained: read as the input subscribes, whenever that is; once it is
+        # in, the input is subscribed and the others come after it, in order
+        subprocess.run([*publish, "-r", "-m", json.dumps(messages[0])], check=True, timeout=20)
+        station.latest("p1-moisture", until=lambda a: bool(_samples(a, "p1-moisture")))
+        subprocess.run(
+            [*publish, "-l"],
+            input="".join(json.dumps(m) + "\n" for m in messages[1:]),
+            text=True,
+            check=True,
+            timeout=20,
+        )
+        answer = station.latest(
+            "p1-moisture",
+            "p2-moisture",
+            until=lambda a: [s[0] for s in _samples(a, "p1-moisture")] == [21],
+        )
+        assert [s[0] for s in _samples(answer, "p2-moisture")] == [30]
+        out, err = station.stop()
+    finally:
+        station.stop()
+        subprocess.run([*publish, "-r", "-n"], check=True, timeout=20)  # clears the retained
+    [row] = [r for r in _stats(out) if r.get("input") == f"mqtt {base}/+"]
+    assert row["received"] == 8 and row["samples"] == 3, row
+    assert row["bad"] == {"bad-label-field": 4, "too-many-streams": 1}, row
+    chunk = "is not one chunk of a label (1-200 characters, no whitespace, '/', braces or *?[])"
+    label = "label 'soil/{id}/moisture'"
+    assert f"(bad-label-field) on {base}/probes: {label}: id = 'p 2' {chunk}" in err
+    assert f"id = '' {chunk}" in err and f"id = 'a/b' {chunk}" in err
+    assert f"id = '{'x' * 40}…' {chunk}" in err and "x" * 41 not in err  # bounded
+    assert (
+        f"(too-many-streams) on {base}/probes: 'soil/p3/moisture' would be a new stream: "
+        "this input made max_streams = 2 already"
+    ) in err
+    assert "Traceback" not in err
