@@ -31,6 +31,7 @@ from ._inputs import (
 )
 from ._outputs import OutputRunner, output_runner
 from ._platform import PlatformConfig, PlatformConfigError
+from ._quote import quoted
 
 if TYPE_CHECKING:
     from dyknow_core.kpl import KPLApplication
@@ -242,7 +243,7 @@ class NodeApplication:
                 self.config.application,
                 failure.process,
                 n,
-                failure.error,
+                quoted(failure.error),  # it may quote a value from outside: one line, bounded
             )
 
     async def __aexit__(self, *exc: object) -> None:

@@ -161,6 +161,31 @@ def test_a_unit_failing_on_every_reading_is_said_within_a_bound(
     assert app.stats() == [{"application": "weather.kpl", "failed": {"kmh": 2500}}]
 
 
+def test_a_units_error_is_said_on_one_bounded_line(caplog: pytest.LogCaptureFixture) -> None:
+    # the error of a unit often quotes the value it could not take, and that value came
+    # from outside (an MQTT message may be megabytes, a line break may forge a log line):
+    # the warning shows its start, on one line
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+
+    def to_kmh(wind: Any) -> float:
+        raise ValueError(f"not a speed: {wind}")
+
+    platform = SimpleNamespace(config=SimpleNamespace(application=Path("weather.kpl")))
+    app = NodeApplication(platform, "station.toml")  # type: ignore[arg-type]
+    inst = DyKnowInstance("t")
+    wind = inst.add_source("wx/wind")
+    inst.add_cu("kmh", to_kmh, ["wx/wind"], "wx/kmh")
+    app.kpl = SimpleNamespace(processes=["kmh"])  # type: ignore[assignment]
+    inst.on_failure(app._failed)
+    with caplog.at_level("WARNING", logger="federation._application"):
+        wind.push("calm\nERROR forged" + "x" * 100_000)
+    [said] = [r.getMessage() for r in caplog.records]
+    assert "failed (#1): ValueError: not a speed: calm\\x0aERROR forgedxxx" in said, said[:300]
+    assert len(said) < 500 and said.endswith(" left out); that sample is skipped"), said[-100:]
+
+
 @pytest.mark.timeout(90)
 def test_an_input_that_fails_for_good_is_named_as_an_input(tmp_path: Path) -> None:
     # docs/application.md: `input python feed:readings stopped: <the reason in words>`,
