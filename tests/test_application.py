@@ -459,6 +459,32 @@ async def test_a_pattern_output_keeps_no_stream_that_was_removed() -> None:
             await asyncio.wait([running])
 
 
+async def test_an_output_run_again_follows_its_streams_again() -> None:
+    # an output's run ends (cancelled with its node's application) and may be run again:
+    # its subscriptions ended with the first run, so the second follows anew
+    class Session:
+        def __init__(self) -> None:
+            self.puts: asyncio.Queue[str] = asyncio.Queue()
+
+        def put(self, key: str, payload: bytes) -> None:
+            self.puts.put_nowait(key)
+
+    async with DyKnowInstance("t") as inst:
+        src = inst.add_source("leaf/a")
+        out = output_runner(ZenohOutput(kind="zenoh", key="out/{label}", labels=["leaf/*"]), inst)
+        session = Session()
+        for _ in range(2):
+            running = asyncio.create_task(out.run(session), name="output")
+            try:
+                await asyncio.sleep(0)  # the output follows the stream
+                src.push(1.0)
+                async with asyncio.timeout(5):
+                    assert await session.puts.get() == "out/leaf/a"
+            finally:
+                running.cancel()
+                await asyncio.wait([running])
+
+
 def test_a_zenoh_input_on_an_mqtt_node_needs_its_own_connect(
     station: Path, capsys: pytest.CaptureFixture[str], mosquitto: tuple[str, int]
 ) -> None:
