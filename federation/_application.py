@@ -18,7 +18,7 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from dyknow_core import DyKnowInstance
+from dyknow_core import DyKnowInstance, ProcessFailure
 
 from ._inputs import (
     FileInput,
@@ -31,6 +31,7 @@ from ._inputs import (
 )
 from ._outputs import OutputRunner, output_runner
 from ._platform import PlatformConfig, PlatformConfigError
+from ._quote import quoted
 
 if TYPE_CHECKING:
     from dyknow_core.kpl import KPLApplication
@@ -40,6 +41,9 @@ if TYPE_CHECKING:
 __all__ = ["NodeApplication", "check_application"]
 
 log = logging.getLogger(__name__)
+
+_LOGGED_PER_PROCESS = 5  # a failing unit's first failures logged, then one in _LOG_EVERY
+_LOG_EVERY = 1000
 
 
 def _input_runner(
@@ -140,6 +144,8 @@ class NodeApplication:
         self._tasks: list[asyncio.Task[None]] = []
         self._stack: contextlib.AsyncExitStack | None = None  # holds the entered task group
         self._tg: asyncio.TaskGroup | None = None
+        self.failures: dict[str, int] = {}  # the application's processes that raised: how often
+        self._stop_failures: Any = None
 
     @property
     def empty(self) -> bool:
@@ -166,6 +172,8 @@ class NodeApplication:
                         "application",
                         f"{where}:{exc.line}:{exc.column}: {exc.message}",
                     ) from None
+                if self.kpl.processes:
+                    self._stop_failures = instance.on_failure(self._failed)
             starts: dict[Path, tuple[int, int]] = {}  # one replay start per recording
             self.inputs = [_input_runner(s, instance, starts) for s in self.config.inputs]
             self.outputs = [output_runner(s, instance) for s in self.config.outputs]
@@ -193,7 +201,7 @@ class NodeApplication:
         async with contextlib.AsyncExitStack() as stack:
             self._tg = await stack.enter_async_context(asyncio.TaskGroup())
             for runner in self.inputs:
-                self._start(runner.stats.title, runner.run(session))
+                self._start(f"input {runner.stats.title}", runner.run(session))
             for out in self.outputs:
                 self._start(f"output {out.settings.title()}", out.run(session))
             self._stack = stack.pop_all()
@@ -222,7 +230,26 @@ class NodeApplication:
         else:
             log.info("%s ended", title)
 
+    def _failed(self, failure: ProcessFailure) -> None:
+        # a unit of the user's that raises skips that sample and goes on (docs/core.md):
+        # without a word here, a node whose CU fails on every sample would look healthy
+        assert self.kpl is not None
+        if failure.process not in self.kpl.processes:
+            return  # (the platform's own processes say their failures themselves)
+        n = self.failures[failure.process] = self.failures.get(failure.process, 0) + 1
+        if n <= _LOGGED_PER_PROCESS or n % _LOG_EVERY == 0:
+            log.warning(
+                "application %s: process %r failed (#%d): %s; that sample is skipped",
+                self.config.application,
+                failure.process,
+                n,
+                quoted(failure.error),  # it may quote a value from outside: one line, bounded
+            )
+
     async def __aexit__(self, *exc: object) -> None:
+        if self._stop_failures is not None:
+            self._stop_failures()
+            self._stop_failures = None
         for task in self._tasks:
             task.cancel()
         stack, self._stack, self._tg = self._stack, None, None
@@ -233,8 +260,11 @@ class NodeApplication:
             self._tasks.clear()
 
     def stats(self) -> list[dict[str, Any]]:
-        """What each input received and each output published."""
-        out = [r.stats.as_dict() for r in self.inputs]
+        """What each input received and each output published; the processes that failed."""
+        out: list[dict[str, Any]] = []
+        if self.failures:
+            out.append({"application": str(self.config.application), "failed": self.failures})
+        out += [r.stats.as_dict() for r in self.inputs]
         out += [
             {"output": o.settings.title(), "published": o.published, "dropped": o.dropped}
             for o in self.outputs

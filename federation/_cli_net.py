@@ -823,7 +823,10 @@ async def follow_stream(
         queue: asyncio.Queue[tuple[str, Any, int, int]] = asyncio.Queue()
 
         async def pump(semantic: str) -> None:
-            label = await p.imported(platform, semantic, timeout=timeout)
+            try:
+                label = await p.imported(platform, semantic, timeout=timeout)
+            except TimeoutError as exc:  # an answer not given, said in words (exit 1)
+                raise NotAnsweredError(str(exc)) from None
             sub = p.instance.subscribe(label)
             try:
                 async for s in sub:

@@ -57,6 +57,12 @@ _LOGGED_PER_REASON = 5  # then one log line every _LOG_EVERY messages of that re
 _LOG_EVERY = 1000
 _TOPIC_SHOWN = 120  # characters of a topic a warning names (an MQTT topic may be 64 KiB)
 _QUEUE = 10_000  # messages waiting between a transport's thread and the loop
+# what a placeholder may put in a label: one chunk as dyknow_core's object identifiers
+# are (no whitespace, '/', braces or glob characters), bounded; {topic} may hold '/'
+_CHUNK_MAX = 200
+_CHUNK = re.compile(rf"[^\s/{{}}*?\[\]]{{1,{_CHUNK_MAX}}}")
+_TOPIC_CHUNKS = re.compile(rf"[^\s{{}}*?\[\]]{{1,{_CHUNK_MAX}}}")
+_VALUE_SHOWN = 40  # characters of a refused placeholder value a warning shows
 
 
 # -- the config ------------------------------------------------------------------------------
@@ -79,6 +85,12 @@ class _InputBase(BaseModel):
     time_unit: Literal["s", "ms", "us", "ns"] = "s"
     create: bool = Field(
         default=False, description="Labels not declared as sources are created on first use."
+    )
+    max_streams: int = Field(
+        default=1024,
+        ge=1,
+        description="With create: at most this many streams made; a new object's message "
+        "past it is a bad message (too-many-streams).",
     )
 
     @field_validator("fields")
@@ -322,6 +334,8 @@ class _Mapper:
         self.unit = _UNITS[settings.time_unit]
         self.unit_name = settings.time_unit
         self.create = settings.create
+        self.max_streams = settings.max_streams
+        self.created = 0  # streams this input made: whoever publishes names the objects
         self.sources: dict[str, Source] = {}
 
     def source(self, label: str) -> "Source":
@@ -337,7 +351,14 @@ class _Mapper:
         elif self.instance.has_label(label):
             raise BadMessage("not-a-source", f"{label!r} is computed here, not a source")
         elif self.create:
+            if self.created >= self.max_streams:
+                why = (
+                    f"{label!r} would be a new stream: this input made "
+                    f"max_streams = {self.max_streams} already"
+                )
+                raise BadMessage("too-many-streams", why)
             src = self.instance.add_source(label)
+            self.created += 1
         else:
             why = f"no source {label!r} (declare it in the application, or create = true)"
             raise BadMessage("no-source", why)
@@ -408,7 +429,17 @@ class _Mapper:
                 part = _get(message, hole)
             if part is _MISSING or isinstance(part, Mapping | list):
                 raise BadMessage("no-label-field", f"label {label!r} needs field {hole!r}")
-            out = out.replace("{" + hole + "}", str(part))
+            text = str(part)
+            if not (_TOPIC_CHUNKS if hole == "topic" else _CHUNK).fullmatch(text):
+                # the sender names the stream: a label no pattern could reach, or a
+                # megabyte's, is refused here, never made
+                shown = text[:_VALUE_SHOWN] + "…" if len(text) > _VALUE_SHOWN else text
+                why = (
+                    f"label {label!r}: {hole} = {shown!r} is not one chunk of a label "
+                    f"(1-{_CHUNK_MAX} characters, no whitespace, '/', braces or *?[])"
+                )
+                raise BadMessage("bad-label-field", why)
+            out = out.replace("{" + hole + "}", text)
         return out
 
     def handle(

@@ -966,9 +966,23 @@ class LocalChannel:
                 # at the rate asked, as an export to another platform would have it
                 policy = Policy(sample_period=_sample_period(request.get("sample_period")))
             else:
-                label = await p.imported(target, semantic, timeout=timeout)
+                try:
+                    label = await p.imported(target, semantic, timeout=timeout)
+                except TimeoutError as exc:  # an answer not given, said in words
+                    raise NotAnsweredError(str(exc)) from None
             sub = p.instance.subscribe(label, policy)
             try:
+                if target == p.name:  # bounded as an import's first sample is (`imported`)
+                    try:
+                        async with asyncio.timeout(timeout):
+                            s = await anext(aiter(sub))
+                    except TimeoutError:
+                        raise NotAnsweredError(
+                            f"no sample of {semantic!r} from {target} arrived within {timeout} s"
+                        ) from None
+                    except StopAsyncIteration:
+                        return  # its stream ended first
+                    await queue.put([semantic, s.value, s.valid_time, s.available_time])
                 async for s in sub:
                     await queue.put([semantic, s.value, s.valid_time, s.available_time])
             finally:

@@ -1,8 +1,9 @@
 """Outputs of a node's application: chosen streams published as JSON for outside consumers.
 
 Each ``[[outputs]]`` table of a node's config (docs/application.md) names local labels
-(glob patterns allowed: streams appearing later are picked up) and where their samples
-go: an MQTT topic or a zenoh key, ``{label}`` in either replaced by the sample's label.
+(glob patterns allowed: a stream appearing later is followed from its first sample) and
+where their samples go: an MQTT topic or a zenoh key, ``{label}`` in either replaced by
+the sample's label.
 Each sample is one JSON object ``{"label", "value", "valid", "available"}`` (times in
 seconds since the epoch), so a dashboard needs no DyKnow library to read it.
 """
@@ -20,7 +21,6 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from agents import Ticker
 from dyknow_core import Policy
 
 if TYPE_CHECKING:
@@ -30,7 +30,6 @@ __all__ = ["MqttOutput", "OutputRunner", "OutputSettings", "ZenohOutput", "outpu
 
 log = logging.getLogger(__name__)
 
-_RESCAN = 1.0  # s between looks for new streams matching a pattern
 _NS = 1_000_000_000  # an int: int / int is correctly rounded, epoch times keep their fraction
 _QUEUE = 10_000  # samples waiting to be published; beyond, the oldest are dropped
 
@@ -94,18 +93,18 @@ class OutputRunner:
         self.published = 0
         self.dropped = 0
         self._queue: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue(_QUEUE)
-        self._followed: set[str] = set()
-        self._subs: list[Any] = []
+        self._subs: dict[str, Any] = {}  # label -> the subscription following it
 
     def matching(self) -> list[str]:
         """The local labels this output publishes now."""
-        found = []
-        for pattern in self.settings.labels:
-            if any(c in pattern for c in "*?["):
-                found += fnmatch.filter(self.instance.labels(), pattern)
-            elif self.instance.has_label(pattern):
-                found.append(pattern)
-        return found
+        return [label for label in self.instance.labels() if self.wants(label)]
+
+    def wants(self, label: str) -> bool:
+        """Whether ``label`` is one of this output's: a fixed label, or one a pattern matches."""
+        return any(
+            fnmatch.fnmatchcase(label, p) if any(c in p for c in "*?[") else label == p
+            for p in self.settings.labels
+        )
 
     def check(self) -> list[str]:
         """Fixed labels (not patterns) that are no stream here."""
@@ -115,18 +114,27 @@ class OutputRunner:
             if not any(c in label for c in "*?[") and not self.instance.has_label(label)
         ]
 
-    def _follow(self) -> None:
+    def _follow(self, label: str) -> None:
+        if label in self._subs:
+            return
+
+        def deliver(batch: list[Any], label: str = label) -> None:
+            for value, valid, available in batch:
+                self._enqueue(label, sample_json(label, value, valid, available))
+
         policy = Policy(sample_period=self.settings.sample_period)
-        for label in self.matching():
-            if label in self._followed:
-                continue
-            self._followed.add(label)
+        self._subs[label] = self.instance.subscribe(label, policy, callback=deliver)
 
-            def deliver(batch: list[Any], label: str = label) -> None:
-                for value, valid, available in batch:
-                    self._enqueue(label, sample_json(label, value, valid, available))
-
-            self._subs.append(self.instance.subscribe(label, policy, callback=deliver))
+    def _label_changed(self, label: str, published: bool) -> None:
+        # told as the stream is made, before its first sample is pushed: none is missed
+        if not published:
+            # its subscription ended with it (a new one may come): kept, it would hold the
+            # removed stream and its cache for as long as the output runs
+            sub = self._subs.pop(label, None)
+            if sub is not None:
+                sub.close()
+        elif self.wants(label):
+            self._follow(label)
 
     def _enqueue(self, label: str, payload: bytes) -> None:
         if self._queue.full():  # a slow broker: the newest samples matter most
@@ -142,26 +150,20 @@ class OutputRunner:
             else:
                 await self._run_zenoh(self.settings, zenoh_session)
         finally:
-            for sub in self._subs:
+            subs, self._subs = list(self._subs.values()), {}  # a second run follows anew
+            for sub in subs:
                 sub.close()
-
-    async def _scan(self) -> None:
-        self._follow()
-        async for _ in Ticker(_RESCAN):
-            self._follow()
 
     @contextlib.asynccontextmanager
     async def _scanning(self) -> AsyncIterator[None]:
-        """Follow the streams that come to match while the body publishes; ends with it."""
-        name = f"output[{self.settings.title()}].scan"
-        scan = asyncio.get_running_loop().create_task(self._scan(), name=name)
+        """Follow the streams that match now, and those that come to, while the body publishes."""
+        stop = self.instance.on_label_change(self._label_changed)
         try:
+            for label in self.matching():
+                self._follow(label)
             yield
         finally:
-            scan.cancel()
-            await asyncio.wait([scan])  # (a cancellation of this task is not swallowed)
-            if not scan.cancelled():
-                scan.result()  # a scan that failed fails the output
+            stop()
 
     async def _run_mqtt(self, s: MqttOutput) -> None:
         import aiomqtt

@@ -5,18 +5,22 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import csv
+import gc
 import io
 import itertools
 import json
 import logging
 import shutil
+import subprocess
 import time
+import weakref
 from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
+from unittest.mock import ANY
 
 import pytest
-from _node_example import Station
+from _node_example import Station, _samples, _stats
 
 from dyknow_core import DyKnowInstance
 from federation._inputs import ZenohInput, input_runner
@@ -97,6 +101,118 @@ def test_a_mapping_entry_of_no_stream_is_warned_about_at_start(tmp_path: Path) -
         "station-python.toml: mapping: station-labels.toml: labels.temperature: warning: "
         "no stream 'wx/temprature' here yet (a label the application lacks?): asking for "
         "'temperature' is refused until one appears"
+    ]
+
+
+@pytest.mark.timeout(90)
+def test_a_unit_of_the_application_that_raises_is_said_and_counted(tmp_path: Path) -> None:
+    # docs/application.md, "application": a CU that raises on a sample skips it, the node
+    # goes on, and the user, who wrote no Python of the node, is told which one and why
+    station = Station(tmp_path)
+    (station.dir / "calm.jsonl").write_text(
+        "".join(json.dumps({"wind": w}) + "\n" for w in (3, "calm", "calm", 5))
+    )
+    config = (station.dir / "station-python.toml").read_text().split("[[inputs]]")[0]
+    (station.dir / "station-calm.toml").write_text(
+        config + '[[inputs]]\nkind = "file"\npath = "calm.jsonl"\npace = "fast"\n'
+        'fields = {wind = "wx/wind"}\n'
+    )
+    try:
+        station.start("calm")
+        station.follow_stderr()
+        assert station.said("process 'kmh' failed (#2)", within=20.0)
+        # the readings around the bad ones still went through the unit
+        answer = station.dyknow("ask", "wind-speed-kmh", "-p", "station")
+        assert answer["wind-speed-kmh"]["samples"][0][0] == 18.0  # 5 m/s
+        out, err = station.stop()
+    finally:
+        station.stop()
+    assert err.splitlines() == [
+        "WARNING federation._application: application weather.kpl: process 'kmh' failed "
+        f"(#{n}): TypeError: can't multiply sequence by non-int of type 'float'; that "
+        "sample is skipped"
+        for n in (1, 2)
+    ]
+    assert 'dyknow node: {"application": "weather.kpl", "failed": {"kmh": 2}}' in out
+
+
+def test_a_unit_failing_on_every_reading_is_said_within_a_bound(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # docs/application.md, "application": the first 5 failures of each process, then one
+    # in 1000, all counted; a process that is not the application's is not its to tell
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+
+    platform = SimpleNamespace(config=SimpleNamespace(application=Path("weather.kpl")))
+    app = NodeApplication(platform, "station.toml")  # type: ignore[arg-type]
+    inst = DyKnowInstance("t")
+    wind = inst.add_source("wx/wind")
+    inst.add_cu("kmh", lambda w: w * 3.6, ["wx/wind"], "wx/kmh")
+    inst.add_cu("import[x]", lambda w: w * 1.0, ["wx/wind"], "wx/other")
+    app.kpl = SimpleNamespace(processes=["kmh"])  # type: ignore[assignment]
+    inst.on_failure(app._failed)
+    with caplog.at_level("WARNING", logger="federation._application"):
+        for _ in range(2500):
+            wind.push("calm")
+    told = [r.getMessage().split(" failed ")[1].split(":")[0] for r in caplog.records]
+    assert told == ["(#1)", "(#2)", "(#3)", "(#4)", "(#5)", "(#1000)", "(#2000)"]
+    assert app.stats() == [{"application": "weather.kpl", "failed": {"kmh": 2500}}]
+
+
+def test_a_units_error_is_said_on_one_bounded_line(caplog: pytest.LogCaptureFixture) -> None:
+    # the error of a unit often quotes the value it could not take, and that value came
+    # from outside (an MQTT message may be megabytes, a line break may forge a log line):
+    # the warning shows its start, on one line
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+
+    def to_kmh(wind: Any) -> float:
+        raise ValueError(f"not a speed: {wind}")
+
+    platform = SimpleNamespace(config=SimpleNamespace(application=Path("weather.kpl")))
+    app = NodeApplication(platform, "station.toml")  # type: ignore[arg-type]
+    inst = DyKnowInstance("t")
+    wind = inst.add_source("wx/wind")
+    inst.add_cu("kmh", to_kmh, ["wx/wind"], "wx/kmh")
+    app.kpl = SimpleNamespace(processes=["kmh"])  # type: ignore[assignment]
+    inst.on_failure(app._failed)
+    with caplog.at_level("WARNING", logger="federation._application"):
+        wind.push("calm\nERROR forged" + "x" * 100_000)
+    [said] = [r.getMessage() for r in caplog.records]
+    assert "failed (#1): ValueError: not a speed: calm\\x0aERROR forgedxxx" in said, said[:300]
+    assert len(said) < 500 and said.endswith(" left out); that sample is skipped"), said[-100:]
+
+
+@pytest.mark.timeout(90)
+def test_an_input_that_fails_for_good_is_named_as_an_input(tmp_path: Path) -> None:
+    # docs/application.md: `input python feed:readings stopped: <the reason in words>`,
+    # and the node goes on
+    station = Station(tmp_path)
+    (station.dir / "probe.py").write_text(
+        "async def soil():\n"
+        "    yield {'temperature': 12.5}\n"
+        "    raise ValueError(\"the reading 'x' is no number\")\n"
+    )
+    config = (station.dir / "station-python.toml").read_text().split("[[inputs]]")[0]
+    (station.dir / "station-probe.toml").write_text(
+        config + '[[inputs]]\nkind = "python"\nentry = "probe:soil"\n'
+        'fields = {temperature = "wx/temperature"}\n'
+    )
+    try:
+        station.start("probe")
+        station.follow_stderr()
+        assert station.said("stopped", within=20.0)
+        answer = station.dyknow("ask", "temperature", "-p", "station")  # the node goes on
+        assert answer["temperature"]["samples"][0][0] == 12.5
+        _, err = station.stop()
+    finally:
+        station.stop()
+    assert err.splitlines() == [
+        "ERROR federation._application: input python probe:soil stopped: the reading 'x' "
+        "is no number"
     ]
 
 
@@ -206,6 +322,9 @@ def test_config_keys_of_inputs_are_named(station: Path, capsys: pytest.CaptureFi
     code, err = _node(station, capsys)
     missing = station.parent / "observation.csv"
     assert code == 2 and f"inputs[1].path: {missing}: no such file" in err
+    station.write_text(text.replace('pace = "fast"', 'pace = "fast"\nmax_streams = 0'))
+    code, err = _node(station, capsys)
+    assert code == 2 and "inputs[1].max_streams: Input should be greater than or equal to 1" in err
     assert "Traceback" not in err
 
 
@@ -260,12 +379,110 @@ async def test_an_output_stopped_leaves_no_task_of_its_own() -> None:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(session.put_once.wait(), 0.01)
         assert session.puts[0][0] == "out/wx/temp"
-        names = {t.get_name() for t in asyncio.all_tasks()}
-        assert "output[zenoh out/{label}].scan" in names  # its rescan task, named
         running.cancel()
         await asyncio.wait([running])
         # (the instance's own timer tasks come and go: only the output's are compared)
         assert not [t for t in asyncio.all_tasks() if t.get_name().startswith("output")]
+
+
+async def test_a_pattern_output_publishes_a_new_streams_first_sample() -> None:
+    # docs/application.md, "Outputs": a glob pattern picks up streams that appear later,
+    # from their first sample (an input with create = true makes the stream as its first
+    # message comes and pushes that message at once)
+    class Session:
+        def __init__(self) -> None:
+            self.puts: asyncio.Queue[tuple[str, dict[str, Any]]] = asyncio.Queue()
+
+        def put(self, key: str, payload: bytes) -> None:
+            self.puts.put_nowait((key, json.loads(payload)))
+
+    async with DyKnowInstance("t") as inst:
+        moisture = inst.add_source("soil/moisture")
+        settings = ZenohOutput(kind="zenoh", key="out/{label}", labels=["leaf/*/temp"])
+        out = output_runner(settings, inst)
+        session = Session()
+        running = asyncio.create_task(out.run(session), name="output")
+        try:
+            await asyncio.sleep(0)  # the output starts following before the streams come
+            for sensor, temp in (("s1", 19.5), ("s2", 18.0)):
+                inst.add_source(f"leaf/{sensor}/temp").push(temp)
+            moisture.push(25)  # not the output's
+            async with asyncio.timeout(5):
+                got = [await session.puts.get() for _ in range(2)]
+            assert [(k, p["value"]) for k, p in got] == [
+                ("out/leaf/s1/temp", 19.5),
+                ("out/leaf/s2/temp", 18.0),
+            ]
+            # a stream removed and made anew under the same label is followed again
+            inst.remove_process("source:leaf/s1/temp")
+            inst.add_source("leaf/s1/temp").push(20.0)
+            async with asyncio.timeout(5):
+                assert await session.puts.get() == (
+                    "out/leaf/s1/temp",
+                    {"label": "leaf/s1/temp", "value": 20.0, "valid": ANY, "available": ANY},
+                )
+            assert session.puts.empty()  # the moisture, not matched, was not published
+        finally:
+            running.cancel()
+            await asyncio.wait([running])
+
+
+async def test_a_pattern_output_keeps_no_stream_that_was_removed() -> None:
+    # streams come and go on a running node (an import that ended and began again, an
+    # object a gateway removed): an output following them must not keep the removed ones,
+    # their caches with them, for as long as it runs
+    class Session:
+        def __init__(self) -> None:
+            self.puts: asyncio.Queue[str] = asyncio.Queue()
+
+        def put(self, key: str, payload: bytes) -> None:
+            self.puts.put_nowait(key)
+
+    async with DyKnowInstance("t") as inst:
+        out = output_runner(ZenohOutput(kind="zenoh", key="out/{label}", labels=["leaf/*"]), inst)
+        running = asyncio.create_task(out.run(session := Session()), name="output")
+        try:
+            await asyncio.sleep(0)  # the output starts following before the streams come
+            gone = []
+            for n in range(3):
+                src = inst.add_source("leaf/a")
+                src.push(n)
+                async with asyncio.timeout(5):
+                    assert await session.puts.get() == "out/leaf/a"
+                gone.append(weakref.ref(src.generator))
+                inst.remove_process(src.name)
+                del src
+            gc.collect()
+            assert [ref() for ref in gone] == [None, None, None]
+        finally:
+            running.cancel()
+            await asyncio.wait([running])
+
+
+async def test_an_output_run_again_follows_its_streams_again() -> None:
+    # an output's run ends (cancelled with its node's application) and may be run again:
+    # its subscriptions ended with the first run, so the second follows anew
+    class Session:
+        def __init__(self) -> None:
+            self.puts: asyncio.Queue[str] = asyncio.Queue()
+
+        def put(self, key: str, payload: bytes) -> None:
+            self.puts.put_nowait(key)
+
+    async with DyKnowInstance("t") as inst:
+        src = inst.add_source("leaf/a")
+        out = output_runner(ZenohOutput(kind="zenoh", key="out/{label}", labels=["leaf/*"]), inst)
+        session = Session()
+        for _ in range(2):
+            running = asyncio.create_task(out.run(session), name="output")
+            try:
+                await asyncio.sleep(0)  # the output follows the stream
+                src.push(1.0)
+                async with asyncio.timeout(5):
+                    assert await session.puts.get() == "out/leaf/a"
+            finally:
+                running.cancel()
+                await asyncio.wait([running])
 
 
 def test_a_zenoh_input_on_an_mqtt_node_needs_its_own_connect(
@@ -964,3 +1181,77 @@ async def test_a_time_days_ahead_of_the_clock_is_a_good_time() -> None:
         mapper.handle({"time": ahead * 5, "kind": "a fast simulation"})
         assert mapper.stats.bad == {} and mapper.stats.samples == 2
         assert [s.value for s in inst.latest("forecast/s1").samples] == ["a fast simulation"]
+
+
+@pytest.mark.timeout(120)
+def test_an_input_creates_streams_only_for_label_chunks_and_a_bounded_number(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    # docs/application.md, "create": anyone who can publish to the broker names the objects;
+    # a placeholder's value must be one chunk of a label, and an input makes at most
+    # `max_streams` streams: past it, a new object's messages are bad ones, the others go on
+    import uuid
+
+    host, port = mosquitto
+    pub = shutil.which("mosquitto_pub")
+    assert pub, "mosquitto-clients is needed (make mosquitto installs it)"
+    station = Station(tmp_path, mqtt_port=port)
+    base = f"soil-{uuid.uuid4().hex[:8]}"  # the broker is the session's: topics of our own
+    with (station.dir / "weather.toml").open("a") as f:
+        f.write('"{object}-moisture" = "the soil moisture at a probe, %"\n')
+    with (station.dir / "station-labels.toml").open("a") as f:
+        f.write('"{object}-moisture" = "soil/{object}/moisture"\n')
+    config = (station.dir / "station-mqtt.toml").read_text().split("[[inputs]]")[0]
+    (station.dir / "station-soil.toml").write_text(
+        config + f'[[inputs]]\nkind = "mqtt"\nhost = "{host}"\nport = {port}\n'
+        f'topic = "{base}/+"\ncreate = true\nmax_streams = 2\n'
+        'fields = {moisture = "soil/{id}/moisture"}\n'
+    )
+    messages = [
+        {"id": "p1", "moisture": 20},
+        {"id": "p 2", "moisture": 1},
+        {"id": "", "moisture": 1},
+        {"id": "a/b", "moisture": 1},
+        {"id": "x" * 300, "moisture": 1},
+        {"id": "p2", "moisture": 30},
+        {"id": "p3", "moisture": 40},  # a third stream: one more than max_streams
+        {"id": "p1", "moisture": 21},  # an object it follows goes on
+    ]
+    publish = [pub, "-h", host, "-p", str(port), "-t", f"{base}/probes", "-q", "1"]
+    try:
+        station.start("soil")
+        station.follow_stderr()
+        # the first retained: read as the input subscribes, whenever that is; once it is
+        # in, the input is subscribed and the others come after it, in order
+        subprocess.run([*publish, "-r", "-m", json.dumps(messages[0])], check=True, timeout=20)
+        station.latest("p1-moisture", until=lambda a: bool(_samples(a, "p1-moisture")))
+        subprocess.run(
+            [*publish, "-l"],
+            input="".join(json.dumps(m) + "\n" for m in messages[1:]),
+            text=True,
+            check=True,
+            timeout=20,
+        )
+        answer = station.latest(
+            "p1-moisture",
+            "p2-moisture",
+            until=lambda a: [s[0] for s in _samples(a, "p1-moisture")] == [21],
+        )
+        assert [s[0] for s in _samples(answer, "p2-moisture")] == [30]
+        out, err = station.stop()
+    finally:
+        station.stop()
+        subprocess.run([*publish, "-r", "-n"], check=True, timeout=20)  # clears the retained
+    [row] = [r for r in _stats(out) if r.get("input") == f"mqtt {base}/+"]
+    assert row["received"] == 8 and row["samples"] == 3, row
+    assert row["bad"] == {"bad-label-field": 4, "too-many-streams": 1}, row
+    chunk = "is not one chunk of a label (1-200 characters, no whitespace, '/', braces or *?[])"
+    label = "label 'soil/{id}/moisture'"
+    assert f"(bad-label-field) on {base}/probes: {label}: id = 'p 2' {chunk}" in err
+    assert f"id = '' {chunk}" in err and f"id = 'a/b' {chunk}" in err
+    assert f"id = '{'x' * 40}…' {chunk}" in err and "x" * 41 not in err  # bounded
+    assert (
+        f"(too-many-streams) on {base}/probes: 'soil/p3/moisture' would be a new stream: "
+        "this input made max_streams = 2 already"
+    ) in err
+    assert "Traceback" not in err

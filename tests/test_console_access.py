@@ -469,6 +469,21 @@ def test_malformed_requests_are_answered_400_without_a_traceback(console: Consol
     assert c.stats()["refused_total"] == 0
 
 
+def test_an_unknown_endpoint_or_method_of_the_api_is_answered_in_json(console: Console) -> None:
+    # docs/console.md, "HTTP API": every body is JSON, so a client reads one error shape
+    c = console
+    status, headers, answer = c.request("GET", "/api/nothing", c.bearer())
+    assert status == 404 and answer == {"error": "path: no endpoint /api/nothing"}, answer
+    assert headers["Content-Type"].startswith("application/json")
+    status, headers, answer = c.request("GET", "/api/query", c.bearer())
+    assert status == 405, answer
+    assert answer == {"error": "method: GET is not one of /api/query's (POST)"}, answer
+    assert headers["Allow"] == "POST"
+    # without the token the same path is refused as any other of the API, naming nothing
+    status, _, answer = c.request("GET", "/api/nothing")
+    assert status == 401 and answer["error"].startswith("token: missing"), answer
+
+
 @pytest.mark.timeout(60)
 def test_an_overlong_request_on_the_local_channel_is_answered_not_a_traceback(
     console: Console, tmp_path: Path

@@ -203,6 +203,33 @@ def test_node_example_python_input(station: Station) -> None:
     assert set(state) == {"temperature", "wind"} and state["wind"] >= 3.0 * 3.6
     rows = station.dyknow("stream", "wind-speed-kmh", "-p", "station", "--count", "2")
     assert len(rows) == 2 and all(r["label"] == "wind-speed-kmh" for r in rows)
+    # docs/application.md: `ask --json` in seconds, `stream --json` in integer ns
+    assert isinstance(valid, float) and 1.7e9 < valid < 1e10
+    assert all(isinstance(r["valid"], int) and r["valid"] > 1.7e18 for r in rows)
+    assert abs(rows[0]["valid"] / NS_PER_S - valid) < 60
+
+
+@pytest.mark.timeout(90)
+def test_a_stream_with_no_reading_gives_up_after_its_timeout_saying_so(station: Station) -> None:
+    # docs/application.md: `stream` gives up after --timeout when no reading comes; the
+    # zenoh station has no publisher here, so none does
+    station.start("zenoh")
+    stream = station.spawn(
+        *("stream", "temperature", "-p", "station", "--count", "3"),
+        *("--timeout", "2", "--config", "operator.toml"),
+    )
+    out, err = stream.communicate(timeout=60)
+    assert stream.returncode == 1 and out == "", (out, err)
+    # in words, as a refusal or a silent platform is (the class is for unexpected errors)
+    assert err == "dyknow: no sample of 'temperature' from station arrived within 2.0 s\n"
+    # the station's own stream, through its node's local channel: bounded the same way
+    own = station.command(
+        *("stream", "temperature", "-p", "station", "--count", "3"),
+        *("--timeout", "2", "--config", "station-zenoh.toml"),
+        timeout=60,
+    )
+    assert own.returncode == 1 and own.stdout == "", own
+    assert own.stderr == "dyknow: no sample of 'temperature' from station arrived within 2.0 s\n"
 
 
 READINGS = 20  # put by publish_zenoh.py, 0.1 s apart

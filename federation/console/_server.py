@@ -689,11 +689,27 @@ async def _errors_as_json(
         return _json({"error": str(exc)}, status=400)
     except _FederationError as exc:
         return _json({"error": str(exc)}, status=502)
-    except web.HTTPException:
-        raise
+    except web.HTTPException as exc:
+        if exc.status < 400 or not request.path.startswith("/api/"):
+            raise
+        # every answer of the API is JSON, its errors too: a client parses one shape
+        answer = _json({"error": _http_error(request, exc)}, status=exc.status)
+        if "Allow" in exc.headers:  # a 405 says which methods the endpoint takes
+            answer.headers["Allow"] = exc.headers["Allow"]
+        return answer
     except Exception as exc:
         log.exception("console: %s %s failed", request.method, request.path)
         return _json({"error": f"internal error: {type(exc).__name__}: {exc}"}, status=500)
+
+
+def _http_error(request: web.Request, exc: web.HTTPException) -> str:
+    """The API's words for an error of the router (no such endpoint, a wrong method)."""
+    if isinstance(exc, web.HTTPNotFound):
+        return f"path: no endpoint {request.path}"
+    if isinstance(exc, web.HTTPMethodNotAllowed):
+        allowed = ", ".join(sorted(exc.allowed_methods))
+        return f"method: {request.method} is not one of {request.path}'s ({allowed})"
+    return f"{exc.status}: {exc.reason}"
 
 
 async def _body(request: web.Request) -> dict[str, Any]:
