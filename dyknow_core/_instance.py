@@ -18,7 +18,7 @@ from ._filter import Mapper
 from ._location import Location
 from ._objects import ObjectManager
 from ._policy import Approximation, CacheSpec, Change, Policy
-from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source
+from ._process import ComputationalUnit, Input, Process, ProcessFailure, Source, error_text
 from ._sample import Answer, RawSample
 from ._state import StatePolicy, StateProcess
 from ._stream import BatchCallback, StreamGenerator, Subscription
@@ -383,7 +383,7 @@ class DyKnowInstance:
         self._report_error(f"subscriber[{label}]", exc)
 
     def _report_error(self, where: str, exc: BaseException) -> None:
-        self._record(ProcessFailure(where, f"{type(exc).__name__}: {exc}", self.clock.now()))
+        self._record(ProcessFailure(where, error_text(exc), self.clock.now()))
 
     def _record(self, failure: ProcessFailure) -> None:
         self.failures.append(failure)

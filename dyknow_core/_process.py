@@ -19,6 +19,15 @@ if TYPE_CHECKING:
     from ._instance import DyKnowInstance
 
 
+MAX_ERROR_TEXT = 1000  # characters of an error's text kept: it may quote a huge input
+
+
+def error_text(exc: BaseException) -> str:
+    """``<type>: <text>`` of ``exc``, cut to `MAX_ERROR_TEXT` characters (with ``…``)."""
+    text = f"{type(exc).__name__}: {exc}"
+    return text if len(text) <= MAX_ERROR_TEXT else text[: MAX_ERROR_TEXT - 1] + "…"
+
+
 class ProcessFailure(NamedTuple):
     """One error of a knowledge process, as reported on the instance."""
 
@@ -48,7 +57,7 @@ class Process:
 
     def _fail(self, exc: BaseException) -> None:
         self.errors += 1
-        self.last_error = f"{type(exc).__name__}: {exc}"
+        self.last_error = error_text(exc)
         self.instance._report(self, self.last_error)
 
     def _stop(self) -> None:

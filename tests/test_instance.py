@@ -31,6 +31,7 @@ from dyknow_core import (
     Subscription,
     seconds_to_ns,
 )
+from dyknow_core._process import error_text
 
 S = NS_PER_S
 MS = NS_PER_S // 1000
@@ -358,6 +359,30 @@ async def test_a_failing_cu_is_isolated_and_reported(dk: DyKnowInstance, is_asyn
     assert seen[0].time == dk.clock.now()
     assert list(dk.failures) == seen
     assert bad.running and "inverse" in dk.processes
+
+
+async def test_a_failures_text_is_kept_bounded_whatever_the_input_it_quotes(
+    dk: DyKnowInstance,
+) -> None:
+    # a unit's error often quotes the value it could not take: a huge one, failing on every
+    # sample, would otherwise hold max_failures copies of it
+    event, seen = failure_event(dk)
+    src = dk.add_source("x")
+
+    def parse(v: str) -> float:
+        return float(v)
+
+    cu = dk.add_cu("parse", parse, ["x"], "y")
+    huge = "w" * 1_000_000
+    src.push(huge)
+    async with asyncio.timeout(WAIT):
+        await event.wait()
+    text = seen[0].error
+    assert len(text) == 1000 and text.endswith("…"), len(text)
+    assert text.startswith("ValueError: could not convert string to float: 'www")
+    assert cu.last_error == text and cu.errors == 1
+    # a short one is kept whole
+    assert error_text(ValueError("x" * 988)) == "ValueError: " + "x" * 988
 
 
 async def test_process_names_and_labels_are_unique(dk: DyKnowInstance) -> None:
