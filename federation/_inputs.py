@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import msgpack
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from ._quote import quoted
+
 if TYPE_CHECKING:
     from dyknow_core import DyKnowInstance, Source
 
@@ -468,7 +470,11 @@ class _Mapper:
             if topic is not None:
                 cut = topic[:_TOPIC_SHOWN] + "…" if len(topic) > _TOPIC_SHOWN else topic
                 on = f" on {cut}"
-            log.warning("input %s: bad message #%d (%s)%s: %s", self.title, n, reason, on, detail)
+            # the detail may quote the message: one line, bounded (a sender's newline would
+            # forge a log line; a megabyte's value would be logged whole)
+            log.warning(
+                "input %s: bad message #%d (%s)%s: %s", self.title, n, reason, on, quoted(detail)
+            )
 
     def decode(self, payload: bytes, fmt: str) -> Any:
         """A JSON or msgpack payload as data; BadMessage naming why not."""

@@ -358,6 +358,27 @@ async def test_messages_map_to_samples_and_bad_ones_are_counted() -> None:
         assert runner.mapper.decode(b"\x81\xa1a\x01", "msgpack") == {"a": 1}
 
 
+async def test_a_bad_messages_warning_is_one_bounded_line_whatever_it_quotes(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # what was wrong often quotes the message (a time field's value, a stream's refusal of
+    # a value): a megabyte's value would be logged whole, a newline forge a log line
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/t")
+        runner = input_runner(
+            ZenohInput(kind="zenoh", key="k", fields={"v": "wx/t"}, time="stamp"), inst
+        )
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            runner.mapper.handle({"v": 1, "stamp": "z" * 100_000})
+            runner.mapper.bad("refused", "ValueError: no\nFAKE: a forged line")
+    lines = [r.getMessage() for r in caplog.records if r.name == "federation._inputs"]
+    assert len(lines) == 2 and all("\n" not in line for line in lines), lines
+    assert len(lines[0]) < 400 and "(100026 characters, 99826 left out)" in lines[0], lines[0]
+    assert lines[0].startswith("input zenoh k: bad message #1 (bad-time): stamp = 'zzz")
+    assert lines[1].endswith("ValueError: no\\x0aFAKE: a forged line"), lines[1]
+    assert runner.stats.as_dict()["bad"] == {"bad-time": 1, "refused": 1}
+
+
 async def test_an_output_stopped_leaves_no_task_of_its_own() -> None:
     class Session:  # the node's zenoh session, as the output uses it
         def __init__(self) -> None:
