@@ -214,22 +214,24 @@ def test_a_stream_with_no_reading_gives_up_after_its_timeout_saying_so(station: 
     # docs/application.md: `stream` gives up after --timeout when no reading comes; the
     # zenoh station has no publisher here, so none does
     station.start("zenoh")
+    # the stream's request (a key exchange first) waits for its answer up to --timeout too:
+    # 5 s leave a loaded machine room for it, so that the error is the one of no reading
     stream = station.spawn(
         *("stream", "temperature", "-p", "station", "--count", "3"),
-        *("--timeout", "2", "--config", "operator.toml"),
+        *("--timeout", "5", "--config", "operator.toml"),
     )
     out, err = stream.communicate(timeout=60)
     assert stream.returncode == 1 and out == "", (out, err)
     # in words, as a refusal or a silent platform is (the class is for unexpected errors)
-    assert err == "dyknow: no sample of 'temperature' from station arrived within 2.0 s\n"
+    assert err == "dyknow: no sample of 'temperature' from station arrived within 5.0 s\n"
     # the station's own stream, through its node's local channel: bounded the same way
     own = station.command(
         *("stream", "temperature", "-p", "station", "--count", "3"),
-        *("--timeout", "2", "--config", "station-zenoh.toml"),
+        *("--timeout", "3", "--config", "station-zenoh.toml"),
         timeout=60,
     )
     assert own.returncode == 1 and own.stdout == "", own
-    assert own.stderr == "dyknow: no sample of 'temperature' from station arrived within 2.0 s\n"
+    assert own.stderr == "dyknow: no sample of 'temperature' from station arrived within 3.0 s\n"
 
 
 READINGS = 20  # put by publish_zenoh.py, 0.1 s apart
