@@ -394,7 +394,12 @@ class _Mapper:
         topic: str | None = None,
         valid: int | None = None,
     ) -> None:
-        """Map one message to samples and push them; BadMessage when nothing can be used."""
+        """Map one message to samples and push them, each field on its own.
+
+        A field that cannot be used costs its own sample only: the others are pushed and
+        counted all the same, then BadMessage names the first field's reason (so does
+        a message none of whose fields is in it, or whose time is bad).
+        """
         if valid is None:  # still None after this: the source stamps the arrival
             valid = self.valid_time(message, stamp)
             now = time.time_ns()
@@ -406,20 +411,29 @@ class _Mapper:
                 )
                 raise BadMessage("bad-time", why)
         pushed = 0
+        failed: BadMessage | None = None
         for path, label, holes in self.fields:
             value = _get(message, path)
             if value is _MISSING:
                 continue
-            if holes:
-                label = self._fill(label, holes, message, topic)
-            self.source(label).push(value, valid)
-            pushed += 1
+            try:
+                if holes:
+                    label = self._fill(label, holes, message, topic)
+                self.source(label).push(value, valid)
+            except BadMessage as exc:
+                failed = failed or exc
+            except Exception as exc:  # a value the stream refuses
+                failed = failed or BadMessage("refused", f"{type(exc).__name__}: {exc}")
+            else:
+                pushed += 1
+        self.stats.samples += pushed
+        if failed is not None:
+            raise failed
         if not pushed:
             names = ", ".join(p for p, _, _ in self.fields)
             raise BadMessage(
                 "no-field", f"none of the fields {names} in the message ({_shape(message)})"
             )
-        self.stats.samples += pushed
 
     @staticmethod
     def _fill(label: str, holes: list[str], message: Any, topic: str | None) -> str:

@@ -1276,3 +1276,30 @@ def test_an_input_creates_streams_only_for_label_chunks_and_a_bounded_number(
         "this input made max_streams = 2 already"
     ) in err
     assert "Traceback" not in err
+
+
+async def test_each_field_of_a_message_counts_on_its_own() -> None:
+    # docs/application.md, "fields": a message's fields are used each on its own; one that
+    # cannot be (a bad label, no source) costs its own sample only, the message is counted
+    # once as bad, and every sample pushed is counted in `samples`
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/t")
+        inst.add_source("car/c1/speed")
+        settings = ZenohInput(
+            kind="zenoh", key="k", fields={"temp": "wx/t", "speed": "car/{id}/speed"}
+        )
+        mapper = input_runner(settings, inst).mapper
+        mapper.handle({"temp": 20, "id": "c 1", "speed": 3})  # the label's field is bad
+        mapper.handle({"temp": 21, "id": "c9", "speed": 4})  # no source car/c9/speed
+        mapper.handle({"temp": 22, "id": "c1", "speed": 5})  # both
+        mapper.handle({"id": "c1", "speed": 6})  # no temp: the speed alone
+        pushed = sum(inst.stream(label).stats()["samples_in"] for label in inst.labels())
+        assert pushed == 5
+        assert mapper.stats.as_dict() == {
+            "input": "zenoh k",
+            "received": 4,
+            "samples": 5,
+            "bad": {"bad-label-field": 1, "no-source": 1},
+        }
+        assert inst.latest("wx/t").samples[0].value == 22
+        assert inst.latest("car/c1/speed").samples[0].value == 6
