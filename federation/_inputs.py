@@ -65,6 +65,7 @@ _CHUNK_MAX = 200
 _CHUNK = re.compile(rf"[^\s/{{}}*?\[\]]{{1,{_CHUNK_MAX}}}")
 _TOPIC_CHUNKS = re.compile(rf"[^\s{{}}*?\[\]]{{1,{_CHUNK_MAX}}}")
 _VALUE_SHOWN = 40  # characters of a refused placeholder value a warning shows
+_INT_CHUNK = 10 ** (_CHUNK_MAX - 1)  # an integer below it in size is one chunk, sign and all
 
 
 # -- the config ------------------------------------------------------------------------------
@@ -443,9 +444,27 @@ class _Mapper:
                 part: Any = topic
             else:
                 part = _get(message, hole)
-            if part is _MISSING or isinstance(part, Mapping | list):
-                raise BadMessage("no-label-field", f"label {label!r} needs field {hole!r}")
-            text = str(part)
+            if part is _MISSING or part is None or isinstance(part, Mapping | list | tuple):
+                why = f"label {label!r} needs field {hole!r}"
+                raise BadMessage("no-label-field", why + (" (it is null)" if part is None else ""))
+            if isinstance(part, str):
+                text = part
+            elif isinstance(part, int) and not isinstance(part, bool):
+                # an id is often a number: 7 names "7"; str() of a huge one would raise
+                if not -_INT_CHUNK < part < _INT_CHUNK:
+                    why = (
+                        f"label {label!r}: {hole} is an integer of over {_CHUNK_MAX - 1} "
+                        "digits: not one chunk of a label"
+                    )
+                    raise BadMessage("bad-label-field", why)
+                text = str(part)
+            else:
+                # "True", "None" or "1.0" would name a stream the sender hardly meant
+                why = (
+                    f"label {label!r}: {hole} = {repr(part)[:_VALUE_SHOWN]} is a "
+                    f"{type(part).__name__}, not a string or an integer"
+                )
+                raise BadMessage("bad-label-field", why)
             if not (_TOPIC_CHUNKS if hole == "topic" else _CHUNK).fullmatch(text):
                 # the sender names the stream: a label no pattern could reach, or a
                 # megabyte's, is refused here, never made

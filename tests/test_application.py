@@ -1303,3 +1303,25 @@ async def test_each_field_of_a_message_counts_on_its_own() -> None:
         }
         assert inst.latest("wx/t").samples[0].value == 22
         assert inst.latest("car/c1/speed").samples[0].value == 6
+
+
+async def test_a_placeholder_takes_a_string_or_an_integer_only(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # docs/application.md, "fields": a string or an integer makes a label chunk; null is
+    # no value (as a missing field), a bool or a float no chunk ("None", "True", "1.0"
+    # used to name streams)
+    async with DyKnowInstance("t") as inst:
+        settings = ZenohInput(kind="zenoh", key="k", fields={"v": "car/{id}/v"}, create=True)
+        mapper = input_runner(settings, inst).mapper
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            for ident in ("c1", 7, -3, None, True, False, 1.0, 2.5, 10**250):
+                mapper.handle({"id": ident, "v": 1})
+        assert inst.labels() == ["car/-3/v", "car/7/v", "car/c1/v"]
+        assert mapper.stats.samples == 3
+        assert mapper.stats.bad == {"no-label-field": 1, "bad-label-field": 5}
+        text = caplog.text
+        assert "label 'car/{id}/v' needs field 'id' (it is null)" in text
+        assert "id = True is a bool, not a string or an integer" in text
+        assert "id = 2.5 is a float, not a string or an integer" in text
+        assert "id is an integer of over 199 digits: not one chunk of a label" in text
