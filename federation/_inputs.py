@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import msgpack
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from dyknow_core import ClosedError
+
 from ._quote import quoted
 
 if TYPE_CHECKING:
@@ -92,8 +94,9 @@ class _InputBase(BaseModel):
     max_streams: int = Field(
         default=1024,
         ge=1,
-        description="With create: at most this many streams made; a new object's message "
-        "past it is a bad message (too-many-streams).",
+        description="With create: at most this many of the streams it made at once (one "
+        "removed no longer counts); a new object's message past it is a bad message "
+        "(too-many-streams).",
     )
 
     @field_validator("fields")
@@ -338,8 +341,23 @@ class _Mapper:
         self.unit_name = settings.time_unit
         self.create = settings.create
         self.max_streams = settings.max_streams
-        self.created = 0  # streams this input made: whoever publishes names the objects
+        # the streams this input made that still exist: whoever publishes names the objects
+        self.made: set[str] = set()
         self.sources: dict[str, Source] = {}
+        # the fixed labels whose stream was removed while the input ran: their messages'
+        # warning says so (a set no larger than `fields`)
+        self.fixed = {label for _, label, holes in self.fields if not holes}
+        self.removed: set[str] = set()
+        # a stream removed while the input runs (an import that ended, an object removed)
+        # is forgotten at once: its closed source would refuse every later message
+        instance.on_label_change(self._label_changed)
+
+    def _label_changed(self, label: str, published: bool) -> None:
+        if not published:
+            self.sources.pop(label, None)
+            self.made.discard(label)
+            if label in self.fixed:
+                self.removed.add(label)
 
     def source(self, label: str) -> "Source":
         """The source publishing ``label`` (created when the input may create it)."""
@@ -354,17 +372,21 @@ class _Mapper:
         elif self.instance.has_label(label):
             raise BadMessage("not-a-source", f"{label!r} is computed here, not a source")
         elif self.create:
-            if self.created >= self.max_streams:
+            if len(self.made) >= self.max_streams:
                 why = (
                     f"{label!r} would be a new stream: this input made "
                     f"max_streams = {self.max_streams} already"
                 )
                 raise BadMessage("too-many-streams", why)
             src = self.instance.add_source(label)
-            self.created += 1
+            self.made.add(label)
+        elif label in self.removed:
+            why = f"the stream {label!r} was removed: no source here until one is made again"
+            raise BadMessage("no-source", why)
         else:
             why = f"no source {label!r} (declare it in the application, or create = true)"
             raise BadMessage("no-source", why)
+        self.removed.discard(label)
         self.sources[label] = src
         return src
 
@@ -423,6 +445,9 @@ class _Mapper:
                 self.source(label).push(value, valid)
             except BadMessage as exc:
                 failed = failed or exc
+            except ClosedError:  # a source that ended keeping its stream (an import's)
+                why = f"the stream {label!r} is closed: its source ended"
+                failed = failed or BadMessage("no-source", why)
             except Exception as exc:  # a value the stream refuses
                 failed = failed or BadMessage("refused", f"{type(exc).__name__}: {exc}")
             else:

@@ -1325,3 +1325,79 @@ async def test_a_placeholder_takes_a_string_or_an_integer_only(
         assert "id = True is a bool, not a string or an integer" in text
         assert "id = 2.5 is a float, not a string or an integer" in text
         assert "id is an integer of over 199 digits: not one chunk of a label" in text
+
+
+async def test_an_input_goes_on_after_its_stream_is_removed(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # docs/application.md, "create": a stream removed while the input runs (an import
+    # that ended, an object a gateway removed) is noticed: without create its messages
+    # are `no-source` bad ones until a source is there again, which they then feed; with
+    # create the stream is made again, no longer counted in max_streams once removed
+    import sys
+    import uuid
+
+    from federation._inputs import PythonInput
+
+    module = f"feed_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{module}.py").write_text(
+        "async def messages(queue):\n"
+        "    while (item := await queue.get()) is not None:\n"
+        "        yield item\n"
+        "        queue.task_done()  # the input handled it: it asks for the next\n"
+        "    queue.task_done()\n"
+    )
+    sys.path.insert(0, str(tmp_path))
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("wx/t")
+            runners, queues, tasks = [], [], []
+            for fields, create in (({"t": "wx/t"}, False), ({"v": "car/{id}/v"}, True)):
+                queue: asyncio.Queue[Any] = asyncio.Queue()
+                settings = PythonInput(
+                    kind="python",
+                    entry=f"{module}:messages",
+                    args={"queue": queue},
+                    fields=fields,
+                    create=create,
+                    max_streams=1,
+                )
+                runners.append(input_runner(settings, inst))
+                queues.append(queue)
+                tasks.append(asyncio.create_task(runners[-1].run(None)))
+
+            async def send(n: int, message: dict[str, Any]) -> None:
+                queues[n].put_nowait(message)
+                await asyncio.wait_for(queues[n].join(), 10)
+
+            await send(0, {"t": 1})
+            await send(1, {"id": "c1", "v": 1})
+            inst.remove_process("source:wx/t")  # removed: an import that ended
+            inst.remove_process("source:car/c1/v")  # an object removed
+            with caplog.at_level("WARNING", logger="federation._inputs"):
+                await send(0, {"t": 2})
+            assert "(no-source): the stream 'wx/t' was removed: no source here until" in (
+                caplog.text
+            )
+            await send(1, {"id": "c1", "v": 2})
+            assert inst.labels() == ["car/c1/v"]  # made again: the removed one counts no more
+            assert inst.latest("car/c1/v").samples[0].value == 2
+            inst.add_source("wx/t")  # the import began again
+            await send(0, {"t": 3})
+            assert inst.latest("wx/t").samples[0].value == 3
+            inst.stream("wx/t").close()  # an import that ended keeping its cache
+            with caplog.at_level("WARNING", logger="federation._inputs"):
+                await send(0, {"t": 4})
+            assert "(no-source): the stream 'wx/t' is closed: its source ended" in caplog.text
+            assert [s.value for s in inst.latest("wx/t").samples] == [3]
+            assert not any(task.done() for task in tasks)
+            assert [r.stats.as_dict() for r in runners] == [
+                {"input": ANY, "received": 4, "samples": 2, "bad": {"no-source": 2}},
+                {"input": ANY, "received": 2, "samples": 2, "bad": {}},
+            ]
+            for queue in queues:
+                queue.put_nowait(None)
+            await asyncio.wait_for(asyncio.gather(*tasks), 10)
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop(module, None)
