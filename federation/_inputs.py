@@ -27,6 +27,8 @@ from typing import TYPE_CHECKING, Annotated, Any, Literal
 import msgpack
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
+from dyknow_core import ClosedError
+
 from ._quote import quoted
 
 if TYPE_CHECKING:
@@ -65,6 +67,7 @@ _CHUNK_MAX = 200
 _CHUNK = re.compile(rf"[^\s/{{}}*?\[\]]{{1,{_CHUNK_MAX}}}")
 _TOPIC_CHUNKS = re.compile(rf"[^\s{{}}*?\[\]]{{1,{_CHUNK_MAX}}}")
 _VALUE_SHOWN = 40  # characters of a refused placeholder value a warning shows
+_INT_CHUNK = 10 ** (_CHUNK_MAX - 1)  # an integer below it in size is one chunk, sign and all
 
 
 # -- the config ------------------------------------------------------------------------------
@@ -91,8 +94,9 @@ class _InputBase(BaseModel):
     max_streams: int = Field(
         default=1024,
         ge=1,
-        description="With create: at most this many streams made; a new object's message "
-        "past it is a bad message (too-many-streams).",
+        description="With create: at most this many of the streams it made at once (one "
+        "removed no longer counts); a new object's message past it is a bad message "
+        "(too-many-streams).",
     )
 
     @field_validator("fields")
@@ -337,8 +341,23 @@ class _Mapper:
         self.unit_name = settings.time_unit
         self.create = settings.create
         self.max_streams = settings.max_streams
-        self.created = 0  # streams this input made: whoever publishes names the objects
+        # the streams this input made that still exist: whoever publishes names the objects
+        self.made: set[str] = set()
         self.sources: dict[str, Source] = {}
+        # the fixed labels whose stream was removed while the input ran: their messages'
+        # warning says so (a set no larger than `fields`)
+        self.fixed = {label for _, label, holes in self.fields if not holes}
+        self.removed: set[str] = set()
+        # a stream removed while the input runs (an import that ended, an object removed)
+        # is forgotten at once: its closed source would refuse every later message
+        instance.on_label_change(self._label_changed)
+
+    def _label_changed(self, label: str, published: bool) -> None:
+        if not published:
+            self.sources.pop(label, None)
+            self.made.discard(label)
+            if label in self.fixed:
+                self.removed.add(label)
 
     def source(self, label: str) -> "Source":
         """The source publishing ``label`` (created when the input may create it)."""
@@ -353,17 +372,21 @@ class _Mapper:
         elif self.instance.has_label(label):
             raise BadMessage("not-a-source", f"{label!r} is computed here, not a source")
         elif self.create:
-            if self.created >= self.max_streams:
+            if len(self.made) >= self.max_streams:
                 why = (
                     f"{label!r} would be a new stream: this input made "
                     f"max_streams = {self.max_streams} already"
                 )
                 raise BadMessage("too-many-streams", why)
             src = self.instance.add_source(label)
-            self.created += 1
+            self.made.add(label)
+        elif label in self.removed:
+            why = f"the stream {label!r} was removed: no source here until one is made again"
+            raise BadMessage("no-source", why)
         else:
             why = f"no source {label!r} (declare it in the application, or create = true)"
             raise BadMessage("no-source", why)
+        self.removed.discard(label)
         self.sources[label] = src
         return src
 
@@ -394,7 +417,12 @@ class _Mapper:
         topic: str | None = None,
         valid: int | None = None,
     ) -> None:
-        """Map one message to samples and push them; BadMessage when nothing can be used."""
+        """Map one message to samples and push them, each field on its own.
+
+        A field that cannot be used costs its own sample only: the others are pushed and
+        counted all the same, then BadMessage names the first field's reason (so does
+        a message none of whose fields is in it, or whose time is bad).
+        """
         if valid is None:  # still None after this: the source stamps the arrival
             valid = self.valid_time(message, stamp)
             now = time.time_ns()
@@ -406,20 +434,32 @@ class _Mapper:
                 )
                 raise BadMessage("bad-time", why)
         pushed = 0
+        failed: BadMessage | None = None
         for path, label, holes in self.fields:
             value = _get(message, path)
             if value is _MISSING:
                 continue
-            if holes:
-                label = self._fill(label, holes, message, topic)
-            self.source(label).push(value, valid)
-            pushed += 1
+            try:
+                if holes:
+                    label = self._fill(label, holes, message, topic)
+                self.source(label).push(value, valid)
+            except BadMessage as exc:
+                failed = failed or exc
+            except ClosedError:  # a source that ended keeping its stream (an import's)
+                why = f"the stream {label!r} is closed: its source ended"
+                failed = failed or BadMessage("no-source", why)
+            except Exception as exc:  # a value the stream refuses
+                failed = failed or BadMessage("refused", f"{type(exc).__name__}: {exc}")
+            else:
+                pushed += 1
+        self.stats.samples += pushed
+        if failed is not None:
+            raise failed
         if not pushed:
             names = ", ".join(p for p, _, _ in self.fields)
             raise BadMessage(
                 "no-field", f"none of the fields {names} in the message ({_shape(message)})"
             )
-        self.stats.samples += pushed
 
     @staticmethod
     def _fill(label: str, holes: list[str], message: Any, topic: str | None) -> str:
@@ -429,9 +469,27 @@ class _Mapper:
                 part: Any = topic
             else:
                 part = _get(message, hole)
-            if part is _MISSING or isinstance(part, Mapping | list):
-                raise BadMessage("no-label-field", f"label {label!r} needs field {hole!r}")
-            text = str(part)
+            if part is _MISSING or part is None or isinstance(part, Mapping | list | tuple):
+                why = f"label {label!r} needs field {hole!r}"
+                raise BadMessage("no-label-field", why + (" (it is null)" if part is None else ""))
+            if isinstance(part, str):
+                text = part
+            elif isinstance(part, int) and not isinstance(part, bool):
+                # an id is often a number: 7 names "7"; str() of a huge one would raise
+                if not -_INT_CHUNK < part < _INT_CHUNK:
+                    why = (
+                        f"label {label!r}: {hole} is an integer of over {_CHUNK_MAX - 1} "
+                        "digits: not one chunk of a label"
+                    )
+                    raise BadMessage("bad-label-field", why)
+                text = str(part)
+            else:
+                # "True", "None" or "1.0" would name a stream the sender hardly meant
+                why = (
+                    f"label {label!r}: {hole} = {repr(part)[:_VALUE_SHOWN]} is a "
+                    f"{type(part).__name__}, not a string or an integer"
+                )
+                raise BadMessage("bad-label-field", why)
             if not (_TOPIC_CHUNKS if hole == "topic" else _CHUNK).fullmatch(text):
                 # the sender names the stream: a label no pattern could reach, or a
                 # megabyte's, is refused here, never made

@@ -1276,3 +1276,128 @@ def test_an_input_creates_streams_only_for_label_chunks_and_a_bounded_number(
         "this input made max_streams = 2 already"
     ) in err
     assert "Traceback" not in err
+
+
+async def test_each_field_of_a_message_counts_on_its_own() -> None:
+    # docs/application.md, "fields": a message's fields are used each on its own; one that
+    # cannot be (a bad label, no source) costs its own sample only, the message is counted
+    # once as bad, and every sample pushed is counted in `samples`
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/t")
+        inst.add_source("car/c1/speed")
+        settings = ZenohInput(
+            kind="zenoh", key="k", fields={"temp": "wx/t", "speed": "car/{id}/speed"}
+        )
+        mapper = input_runner(settings, inst).mapper
+        mapper.handle({"temp": 20, "id": "c 1", "speed": 3})  # the label's field is bad
+        mapper.handle({"temp": 21, "id": "c9", "speed": 4})  # no source car/c9/speed
+        mapper.handle({"temp": 22, "id": "c1", "speed": 5})  # both
+        mapper.handle({"id": "c1", "speed": 6})  # no temp: the speed alone
+        pushed = sum(inst.stream(label).stats()["samples_in"] for label in inst.labels())
+        assert pushed == 5
+        assert mapper.stats.as_dict() == {
+            "input": "zenoh k",
+            "received": 4,
+            "samples": 5,
+            "bad": {"bad-label-field": 1, "no-source": 1},
+        }
+        assert inst.latest("wx/t").samples[0].value == 22
+        assert inst.latest("car/c1/speed").samples[0].value == 6
+
+
+async def test_a_placeholder_takes_a_string_or_an_integer_only(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # docs/application.md, "fields": a string or an integer makes a label chunk; null is
+    # no value (as a missing field), a bool or a float no chunk ("None", "True", "1.0"
+    # used to name streams)
+    async with DyKnowInstance("t") as inst:
+        settings = ZenohInput(kind="zenoh", key="k", fields={"v": "car/{id}/v"}, create=True)
+        mapper = input_runner(settings, inst).mapper
+        with caplog.at_level("WARNING", logger="federation._inputs"):
+            for ident in ("c1", 7, -3, None, True, False, 1.0, 2.5, 10**250):
+                mapper.handle({"id": ident, "v": 1})
+        assert inst.labels() == ["car/-3/v", "car/7/v", "car/c1/v"]
+        assert mapper.stats.samples == 3
+        assert mapper.stats.bad == {"no-label-field": 1, "bad-label-field": 5}
+        text = caplog.text
+        assert "label 'car/{id}/v' needs field 'id' (it is null)" in text
+        assert "id = True is a bool, not a string or an integer" in text
+        assert "id = 2.5 is a float, not a string or an integer" in text
+        assert "id is an integer of over 199 digits: not one chunk of a label" in text
+
+
+async def test_an_input_goes_on_after_its_stream_is_removed(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # docs/application.md, "create": a stream removed while the input runs (an import
+    # that ended, an object a gateway removed) is noticed: without create its messages
+    # are `no-source` bad ones until a source is there again, which they then feed; with
+    # create the stream is made again, no longer counted in max_streams once removed
+    import sys
+    import uuid
+
+    from federation._inputs import PythonInput
+
+    module = f"feed_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{module}.py").write_text(
+        "async def messages(queue):\n"
+        "    while (item := await queue.get()) is not None:\n"
+        "        yield item\n"
+        "        queue.task_done()  # the input handled it: it asks for the next\n"
+        "    queue.task_done()\n"
+    )
+    sys.path.insert(0, str(tmp_path))
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("wx/t")
+            runners, queues, tasks = [], [], []
+            for fields, create in (({"t": "wx/t"}, False), ({"v": "car/{id}/v"}, True)):
+                queue: asyncio.Queue[Any] = asyncio.Queue()
+                settings = PythonInput(
+                    kind="python",
+                    entry=f"{module}:messages",
+                    args={"queue": queue},
+                    fields=fields,
+                    create=create,
+                    max_streams=1,
+                )
+                runners.append(input_runner(settings, inst))
+                queues.append(queue)
+                tasks.append(asyncio.create_task(runners[-1].run(None)))
+
+            async def send(n: int, message: dict[str, Any]) -> None:
+                queues[n].put_nowait(message)
+                await asyncio.wait_for(queues[n].join(), 10)
+
+            await send(0, {"t": 1})
+            await send(1, {"id": "c1", "v": 1})
+            inst.remove_process("source:wx/t")  # removed: an import that ended
+            inst.remove_process("source:car/c1/v")  # an object removed
+            with caplog.at_level("WARNING", logger="federation._inputs"):
+                await send(0, {"t": 2})
+            assert "(no-source): the stream 'wx/t' was removed: no source here until" in (
+                caplog.text
+            )
+            await send(1, {"id": "c1", "v": 2})
+            assert inst.labels() == ["car/c1/v"]  # made again: the removed one counts no more
+            assert inst.latest("car/c1/v").samples[0].value == 2
+            inst.add_source("wx/t")  # the import began again
+            await send(0, {"t": 3})
+            assert inst.latest("wx/t").samples[0].value == 3
+            inst.stream("wx/t").close()  # an import that ended keeping its cache
+            with caplog.at_level("WARNING", logger="federation._inputs"):
+                await send(0, {"t": 4})
+            assert "(no-source): the stream 'wx/t' is closed: its source ended" in caplog.text
+            assert [s.value for s in inst.latest("wx/t").samples] == [3]
+            assert not any(task.done() for task in tasks)
+            assert [r.stats.as_dict() for r in runners] == [
+                {"input": ANY, "received": 4, "samples": 2, "bad": {"no-source": 2}},
+                {"input": ANY, "received": 2, "samples": 2, "bad": {}},
+            ]
+            for queue in queues:
+                queue.put_nowait(None)
+            await asyncio.wait_for(asyncio.gather(*tasks), 10)
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop(module, None)
