@@ -374,8 +374,8 @@ class _Mapper:
         elif self.create:
             if len(self.made) >= self.max_streams:
                 why = (
-                    f"{label!r} would be a new stream: this input made "
-                    f"max_streams = {self.max_streams} already"
+                    f"{label!r} would be a new stream: this input has "
+                    f"max_streams = {self.max_streams} of its own already"
                 )
                 raise BadMessage("too-many-streams", why)
             src = self.instance.add_source(label)

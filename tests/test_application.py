@@ -1273,7 +1273,7 @@ def test_an_input_creates_streams_only_for_label_chunks_and_a_bounded_number(
     assert f"id = '{'x' * 40}…' {chunk}" in err and "x" * 41 not in err  # bounded
     assert (
         f"(too-many-streams) on {base}/probes: 'soil/p3/moisture' would be a new stream: "
-        "this input made max_streams = 2 already"
+        "this input has max_streams = 2 of its own already"
     ) in err
     assert "Traceback" not in err
 
