@@ -448,6 +448,44 @@ async def test_a_pattern_output_publishes_a_new_streams_first_sample() -> None:
             await asyncio.wait([running])
 
 
+async def test_a_zenoh_output_publishes_no_stream_whose_key_would_be_a_wildcard_or_no_key(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # docs/application.md, "Outputs": a stream named from outside (create = true) whose
+    # key would hold `$*` (a put reaching other keys' subscribers) or another `$` (no zenoh
+    # key: the put raises, which stopped the output) is not published, counted and said
+    class Session:
+        def __init__(self) -> None:
+            self.puts: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
+
+        def put(self, key: str, payload: bytes) -> None:
+            self.puts.put_nowait((key, json.loads(payload)["value"]))
+
+    async with DyKnowInstance("t") as inst:
+        settings = ZenohOutput(kind="zenoh", key="out/{label}", labels=["soil/*/m"])
+        out = output_runner(settings, inst)
+        session = Session()
+        running = asyncio.create_task(out.run(session), name="output")
+        try:
+            await asyncio.sleep(0)  # the output starts following before the streams come
+            for probe, value in (("p$*", 1), ("p$x", 2), ("p1", 3)):
+                inst.add_source(f"soil/{probe}/m").push(value)
+            async with asyncio.timeout(5):
+                assert await session.puts.get() == ("out/soil/p1/m", 3)
+            assert session.puts.empty() and not running.done()
+        finally:
+            running.cancel()
+            await asyncio.wait([running])
+    assert (out.published, out.refused) == (1, 2)
+    said = [r.getMessage() for r in caplog.records if "not published" in r.getMessage()]
+    assert said == [
+        "output zenoh out/{label}: stream 'soil/p$*/m' not published: its key 'out/soil/p$*/m' "
+        "is a zenoh wildcard ($*, *): its put would reach other keys (#1)",
+        "output zenoh out/{label}: stream 'soil/p$x/m' not published: its key 'out/soil/p$x/m' "
+        "is no zenoh key (Invalid Key Expr `out/soil/p$x/m`: `$` is only allowed in `$*`) (#2)",
+    ]
+
+
 async def test_a_pattern_output_keeps_no_stream_that_was_removed() -> None:
     # streams come and go on a running node (an import that ended and began again, an
     # object a gateway removed): an output following them must not keep the removed ones,
@@ -1276,3 +1314,85 @@ def test_an_input_creates_streams_only_for_label_chunks_and_a_bounded_number(
         "this input made max_streams = 2 already"
     ) in err
     assert "Traceback" not in err
+
+
+@pytest.mark.timeout(120)
+def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_stops_the_output(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    # docs/application.md, "Outputs": whoever publishes to an input with create = true names
+    # the objects, and a glob output follows their streams at once; a name holding an MQTT
+    # wildcard (+, #) or a zenoh one ($) would make the output's publish fail (and stop it
+    # for good) or reach other keys' subscribers: such a stream is not published, counted
+    # and said, and the output goes on with the others
+    import uuid
+
+    host, port = mosquitto
+    pub, sub = shutil.which("mosquitto_pub"), shutil.which("mosquitto_sub")
+    assert pub and sub, "mosquitto-clients is needed (make mosquitto installs it)"
+    station = Station(tmp_path, mqtt_port=port)
+    base = f"soil-{uuid.uuid4().hex[:8]}"  # the broker is the session's: topics of our own
+    out = f"out-{base}"
+    with (station.dir / "weather.toml").open("a") as f:
+        f.write('"{object}-moisture" = "the soil moisture at a probe, %"\n')
+    with (station.dir / "station-labels.toml").open("a") as f:
+        f.write('"{object}-moisture" = "soil/{object}/moisture"\n')
+    config = (station.dir / "station-mqtt.toml").read_text().split("[[inputs]]")[0]
+    (station.dir / "station-soil.toml").write_text(
+        config + f'[[inputs]]\nkind = "mqtt"\nhost = "{host}"\nport = {port}\n'
+        f'topic = "{base}/+"\ncreate = true\n'
+        'fields = {moisture = "soil/{id}/moisture"}\n'
+        f'[[outputs]]\nkind = "mqtt"\nhost = "{host}"\nport = {port}\nretain = true\n'
+        f'topic = "{out}/{{label}}"\nlabels = ["soil/*/moisture"]\n'
+    )
+    messages = [
+        {"id": "p1", "moisture": 20},
+        {"id": "p#", "moisture": 1},  # its topic would be out-…/soil/p#/moisture
+        {"id": "p+", "moisture": 1},
+        {"id": "p\u0000", "moisture": 1},  # a NUL is no character of a topic either
+        {"id": "p2", "moisture": 30},
+    ]
+    publish = [pub, "-h", host, "-p", str(port), "-t", f"{base}/probes", "-q", "1"]
+    try:
+        station.start("soil")
+        station.follow_stderr()
+        # the first retained: read as the input subscribes, whenever that is; once it is
+        # in, the input is subscribed and the others come after it, in order
+        subprocess.run([*publish, "-r", "-m", json.dumps(messages[0])], check=True, timeout=20)
+        station.latest("p1-moisture", until=lambda a: bool(_samples(a, "p1-moisture")))
+        subprocess.run(
+            [*publish, "-l"],
+            input="".join(json.dumps(m) + "\n" for m in messages[1:]),
+            text=True,
+            check=True,
+            timeout=20,
+        )
+        # the output goes on: the stream made after the refused ones is published (retained,
+        # so read whenever this subscribes)
+        got = subprocess.run(
+            [sub, "-h", host, "-p", str(port), "-t", f"{out}/#", "-v", "-C", "2", "-W", "30"],
+            capture_output=True,
+            text=True,
+            timeout=40,
+        ).stdout.splitlines()
+        stdout, err = station.stop()
+        said = {line.split(" ", 1)[0]: json.loads(line.split(" ", 1)[1])["value"] for line in got}
+        assert said == {f"{out}/soil/p1/moisture": 20, f"{out}/soil/p2/moisture": 30}, err
+    finally:
+        station.stop()
+        subprocess.run([*publish, "-r", "-n"], check=True, timeout=20)  # clears the retained
+        for probe in ("p1", "p2"):
+            topic = f"{out}/soil/{probe}/moisture"
+            subprocess.run([pub, "-h", host, "-p", str(port), "-t", topic, "-r", "-n"], timeout=20)
+    [row] = [r for r in _stats(stdout) if r.get("output") == f"mqtt {out}/{{label}}"]
+    assert row == {"output": f"mqtt {out}/{{label}}", "published": 2, "dropped": 0, "refused": 3}
+    for shown, why in (
+        ("p#", "holds an MQTT wildcard (+ or #)"),
+        ("p+", "holds an MQTT wildcard (+ or #)"),
+        ("p\\x00", "holds a NUL character"),
+    ):
+        assert (
+            f"output mqtt {out}/{{label}}: stream 'soil/{shown}/moisture' not published: "
+            f"its topic '{out}/soil/{shown}/moisture' {why}"
+        ) in err, err
+    assert "stopped" not in err and "Traceback" not in err
