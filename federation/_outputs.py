@@ -126,30 +126,35 @@ class OutputRunner:
         An input with ``create = true`` lets whoever publishes to it name streams: a name
         holding an MQTT wildcard or a NUL makes a topic no broker takes (the client raises,
         and the output would stop for good); one holding ``$`` is no zenoh key, or a
-        wildcard one whose put would reach the subscribers of other keys.
+        wildcard one whose put would reach the subscribers of other keys; a lone surrogate
+        (JSON's ``\\ud800``) is no UTF-8 for either.
         """
         s = self.settings
+        where = s.topic if isinstance(s, MqttOutput) else s.key
+        where = where.replace("{label}", label)
+        try:
+            size = len(where.encode())
+        except UnicodeEncodeError:
+            return where, "is not UTF-8 (a lone surrogate)"
         if isinstance(s, MqttOutput):
-            topic = s.topic.replace("{label}", label)
-            if "+" in topic or "#" in topic:
-                return topic, "holds an MQTT wildcard (+ or #)"
-            if "\x00" in topic:
-                return topic, "holds a NUL character"
-            if topic.startswith("$"):
-                return topic, "starts with $ (the broker's own topics)"
-            if len(topic.encode("utf-8", "surrogatepass")) > _MQTT_TOPIC_MAX:
-                return topic, f"is longer than {_MQTT_TOPIC_MAX} bytes"
-            return topic, None
+            if "+" in where or "#" in where:
+                return where, "holds an MQTT wildcard (+ or #)"
+            if "\x00" in where:
+                return where, "holds a NUL character"
+            if where.startswith("$"):
+                return where, "starts with $ (the broker's own topics)"
+            if size > _MQTT_TOPIC_MAX:
+                return where, f"is longer than {_MQTT_TOPIC_MAX} bytes"
+            return where, None
         import zenoh
 
-        key = s.key.replace("{label}", label)
-        if "*" in key:
-            return key, "is a zenoh wildcard ($*, *): its put would reach other keys"
+        if "*" in where:
+            return where, "is a zenoh wildcard ($*, *): its put would reach other keys"
         try:
-            zenoh.KeyExpr(key)
+            zenoh.KeyExpr(where)
         except zenoh.ZError as exc:
-            return key, f"is no zenoh key ({str(exc).split(' at ', 1)[0]})"
-        return key, None
+            return where, f"is no zenoh key ({str(exc).split(' at ', 1)[0]})"
+        return where, None
 
     def _follow(self, label: str) -> None:
         if label in self._subs:

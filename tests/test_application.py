@@ -468,21 +468,23 @@ async def test_a_zenoh_output_publishes_no_stream_whose_key_would_be_a_wildcard_
         running = asyncio.create_task(out.run(session), name="output")
         try:
             await asyncio.sleep(0)  # the output starts following before the streams come
-            for probe, value in (("p$*", 1), ("p$x", 2), ("p1", 3)):
+            for probe, value in (("p$*", 1), ("p$x", 2), ("p\ud800", 3), ("p1", 4)):
                 inst.add_source(f"soil/{probe}/m").push(value)
             async with asyncio.timeout(5):
-                assert await session.puts.get() == ("out/soil/p1/m", 3)
+                assert await session.puts.get() == ("out/soil/p1/m", 4)
             assert session.puts.empty() and not running.done()
         finally:
             running.cancel()
             await asyncio.wait([running])
-    assert (out.published, out.refused) == (1, 2)
+    assert (out.published, out.refused) == (1, 3)
     said = [r.getMessage() for r in caplog.records if "not published" in r.getMessage()]
     assert said == [
         "output zenoh out/{label}: stream 'soil/p$*/m' not published: its key 'out/soil/p$*/m' "
         "is a zenoh wildcard ($*, *): its put would reach other keys (#1)",
         "output zenoh out/{label}: stream 'soil/p$x/m' not published: its key 'out/soil/p$x/m' "
         "is no zenoh key (Invalid Key Expr `out/soil/p$x/m`: `$` is only allowed in `$*`) (#2)",
+        "output zenoh out/{label}: stream 'soil/p\\ud800/m' not published: its key "
+        "'out/soil/p\\ud800/m' is not UTF-8 (a lone surrogate) (#3)",
     ]
 
 
@@ -1350,6 +1352,7 @@ def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_st
         {"id": "p#", "moisture": 1},  # its topic would be out-…/soil/p#/moisture
         {"id": "p+", "moisture": 1},
         {"id": "p\u0000", "moisture": 1},  # a NUL is no character of a topic either
+        {"id": "p\ud800", "moisture": 1},  # a lone surrogate (no UTF-8) makes no label at all
         {"id": "p2", "moisture": 30},
     ]
     publish = [pub, "-h", host, "-p", str(port), "-t", f"{base}/probes", "-q", "1"]
@@ -1395,4 +1398,7 @@ def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_st
             f"output mqtt {out}/{{label}}: stream 'soil/{shown}/moisture' not published: "
             f"its topic '{out}/soil/{shown}/moisture' {why}"
         ) in err, err
+    [row] = [r for r in _stats(stdout) if r.get("input") == f"mqtt {base}/+"]
+    assert row["received"] == 6 and row["bad"] == {"bad-label-field": 1}, row
+    assert "id = 'p\\ud800' is not one chunk of a label" in err, err
     assert "stopped" not in err and "Traceback" not in err
