@@ -471,7 +471,8 @@ class _Mapper:
             on = ""
             if topic is not None:
                 cut = topic[:_TOPIC_SHOWN] + "…" if len(topic) > _TOPIC_SHOWN else topic
-                on = f" on {cut}"
+                # escaped too: a zenoh key may hold a newline (whoever puts on it chooses)
+                on = f" on {quoted(cut)}"
             # the detail may quote the message: one line, bounded (a sender's newline would
             # forge a log line; a megabyte's value would be logged whole)
             log.warning(

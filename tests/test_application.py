@@ -1209,6 +1209,47 @@ async def test_a_bad_mqtt_message_names_the_topic_it_came_on(
     assert "x" * 121 not in caplog.text
 
 
+@pytest.mark.timeout(60)
+async def test_a_zenoh_key_holding_a_newline_forges_no_line_of_a_bad_messages_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # docs/application.md, "Bad messages": the warning names the key a bad message came on;
+    # whoever puts on zenoh chooses that key, and a zenoh key may hold a newline or a
+    # terminal's escape: written as it is, it forged a log line of the node's
+    import zenoh
+
+    from agents.transports import ZenohConfig
+
+    session = zenoh.open(ZenohConfig(mode="peer").to_zenoh())
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("lidar/range")
+            settings = ZenohInput(kind="zenoh", key="lidar/*", fields={"range": "lidar/range"})
+            runner = input_runner(settings, inst)
+            with caplog.at_level("WARNING", logger="federation._inputs"):
+                task = asyncio.create_task(runner.run(session))
+                try:
+                    forged = "x\nERROR federation: platform key leaked \x1b[2J"
+                    async with asyncio.timeout(10):
+                        # put until the input's subscriber is there (it says nothing when)
+                        while runner.stats.received < 1:
+                            session.put(f"lidar/{forged}", b'{"kind": "acc')
+                            await asyncio.sleep(0.05)
+                finally:
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+    finally:
+        session.close()
+    [line, *_] = [r.getMessage() for r in caplog.records if "bad message #1" in r.getMessage()]
+    assert line.startswith(
+        "input zenoh lidar/*: bad message #1 (not-json) on "
+        "lidar/x\\x0aERROR federation: platform key leaked \\x1b[2J: "
+    ), line
+    assert "\n" not in line and "\x1b" not in line
+    assert runner.stats.bad["not-json"] == runner.stats.received
+
+
 async def test_a_time_in_another_unit_is_a_bad_time_not_the_stream_s_latest(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
