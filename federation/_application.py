@@ -266,7 +266,12 @@ class NodeApplication:
             out.append({"application": str(self.config.application), "failed": self.failures})
         out += [r.stats.as_dict() for r in self.inputs]
         out += [
-            {"output": o.settings.title(), "published": o.published, "dropped": o.dropped}
+            {
+                "output": o.settings.title(),
+                "published": o.published,
+                "dropped": o.dropped,
+                "refused": o.refused,
+            }
             for o in self.outputs
         ]
         return out

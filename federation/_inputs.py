@@ -62,10 +62,12 @@ _LOG_EVERY = 1000
 _TOPIC_SHOWN = 120  # characters of a topic a warning names (an MQTT topic may be 64 KiB)
 _QUEUE = 10_000  # messages waiting between a transport's thread and the loop
 # what a placeholder may put in a label: one chunk as dyknow_core's object identifiers
-# are (no whitespace, '/', braces or glob characters), bounded; {topic} may hold '/'
+# are (no whitespace, '/', braces or glob characters), bounded; {topic} may hold '/'. No
+# lone surrogate either (JSON's "\ud800"): no UTF-8, such a label could go nowhere (a
+# topic, a key, a JSON or msgpack answer listing it would fail)
 _CHUNK_MAX = 200
-_CHUNK = re.compile(rf"[^\s/{{}}*?\[\]]{{1,{_CHUNK_MAX}}}")
-_TOPIC_CHUNKS = re.compile(rf"[^\s{{}}*?\[\]]{{1,{_CHUNK_MAX}}}")
+_CHUNK = re.compile(rf"[^\s/{{}}*?\[\]\ud800-\udfff]{{1,{_CHUNK_MAX}}}")
+_TOPIC_CHUNKS = re.compile(rf"[^\s{{}}*?\[\]\ud800-\udfff]{{1,{_CHUNK_MAX}}}")
 _VALUE_SHOWN = 40  # characters of a refused placeholder value a warning shows
 _INT_CHUNK = 10 ** (_CHUNK_MAX - 1)  # an integer below it in size is one chunk, sign and all
 
@@ -527,7 +529,8 @@ class _Mapper:
             on = ""
             if topic is not None:
                 cut = topic[:_TOPIC_SHOWN] + "…" if len(topic) > _TOPIC_SHOWN else topic
-                on = f" on {cut}"
+                # escaped too: a zenoh key may hold a newline (whoever puts on it chooses)
+                on = f" on {quoted(cut)}"
             # the detail may quote the message: one line, bounded (a sender's newline would
             # forge a log line; a megabyte's value would be logged whole)
             log.warning(

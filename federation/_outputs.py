@@ -23,6 +23,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from dyknow_core import Policy
 
+from ._quote import quoted
+
 if TYPE_CHECKING:
     from dyknow_core import DyKnowInstance
 
@@ -32,6 +34,9 @@ log = logging.getLogger(__name__)
 
 _NS = 1_000_000_000  # an int: int / int is correctly rounded, epoch times keep their fraction
 _QUEUE = 10_000  # samples waiting to be published; beyond, the oldest are dropped
+_MQTT_TOPIC_MAX = 65_535  # bytes of an MQTT topic (UTF-8)
+_LOGGED_REFUSED = 5  # streams not published said one by one, then one in _LOG_EVERY
+_LOG_EVERY = 1000
 
 
 class _OutputBase(BaseModel):
@@ -92,6 +97,7 @@ class OutputRunner:
         self.instance = instance
         self.published = 0
         self.dropped = 0
+        self.refused = 0  # streams matched but not published: no plain topic or key of their own
         self._queue: asyncio.Queue[tuple[str, bytes]] = asyncio.Queue(_QUEUE)
         self._subs: dict[str, Any] = {}  # label -> the subscription following it
 
@@ -114,8 +120,61 @@ class OutputRunner:
             if not any(c in label for c in "*?[") and not self.instance.has_label(label)
         ]
 
+    def destination(self, label: str) -> tuple[str, str | None]:
+        """The topic or key ``label``'s samples go to, and why it cannot be published, if so.
+
+        An input with ``create = true`` lets whoever publishes to it name streams: a name
+        holding an MQTT wildcard or a NUL makes a topic no broker takes (the client raises,
+        and the output would stop for good); one holding ``$`` is no zenoh key, or a
+        wildcard one whose put would reach the subscribers of other keys; a lone surrogate
+        (JSON's ``\\ud800``) is no UTF-8 for either.
+        """
+        s = self.settings
+        where = s.topic if isinstance(s, MqttOutput) else s.key
+        where = where.replace("{label}", label)
+        try:
+            size = len(where.encode())
+        except UnicodeEncodeError:
+            return where, "is not UTF-8 (a lone surrogate)"
+        if isinstance(s, MqttOutput):
+            if "+" in where or "#" in where:
+                return where, "holds an MQTT wildcard (+ or #)"
+            if "\x00" in where:
+                return where, "holds a NUL character"
+            if where.startswith("$"):
+                return where, "starts with $ (the broker's own topics)"
+            if size > _MQTT_TOPIC_MAX:
+                return where, f"is longer than {_MQTT_TOPIC_MAX} bytes"
+            return where, None
+        import zenoh
+
+        if "*" in where:
+            return where, "is a zenoh wildcard ($*, *): its put would reach other keys"
+        try:
+            zenoh.KeyExpr(where)
+        except zenoh.ZError as exc:
+            return where, f"is no zenoh key ({str(exc).split(' at ', 1)[0]})"
+        return where, None
+
     def _follow(self, label: str) -> None:
         if label in self._subs:
+            return
+        where, why = self.destination(label)
+        if why is not None:
+            # counted, never kept: the names come from outside, each one a new one
+            self.refused += 1
+            n = self.refused
+            if n <= _LOGGED_REFUSED or n % _LOG_EVERY == 0:
+                word = "topic" if isinstance(self.settings, MqttOutput) else "key"
+                log.warning(
+                    "output %s: stream %s not published: its %s %s %s (#%d)",
+                    self.settings.title(),
+                    quoted(repr(label)),
+                    word,
+                    quoted(repr(where)),
+                    why,
+                    n,
+                )
             return
 
         def deliver(batch: list[Any], label: str = label) -> None:

@@ -10,9 +10,11 @@ import io
 import itertools
 import json
 import logging
+import re
 import shutil
 import subprocess
 import time
+import uuid
 import weakref
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -35,11 +37,19 @@ EXAMPLE = ROOT / "examples" / "node"
 def station(tmp_path: Path) -> Path:
     """examples/node copied, with keys; the file-input station's config."""
     from agents.keys import gen_keys, trust_keys
+    from agents.transports import free_tcp_port
 
     d = tmp_path / "node"
     shutil.copytree(EXAMPLE, d)
+    # a port and a federation of its own: a node another test runs meanwhile (another
+    # worker) must not take the example's port, nor see this one
+    federation = f"weather-{uuid.uuid4().hex[:8]}"
+    port = free_tcp_port()
+    for conf in d.glob("*.toml"):
+        text = conf.read_text().replace("127.0.0.1:7450", f"127.0.0.1:{port}")
+        conf.write_text(text.replace('federation = "weather"', f'federation = "{federation}"'))
     pub = gen_keys("station", d / "keys")[2]
-    trust_keys(d / "keys" / "trust.json", [pub], federation="weather")
+    trust_keys(d / "keys" / "trust.json", [pub], federation=federation)
     return d / "station-file.toml"
 
 
@@ -448,6 +458,46 @@ async def test_a_pattern_output_publishes_a_new_streams_first_sample() -> None:
             await asyncio.wait([running])
 
 
+async def test_a_zenoh_output_publishes_no_stream_whose_key_would_be_a_wildcard_or_no_key(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # docs/application.md, "Outputs": a stream named from outside (create = true) whose
+    # key would hold `$*` (a put reaching other keys' subscribers) or another `$` (no zenoh
+    # key: the put raises, which stopped the output) is not published, counted and said
+    class Session:
+        def __init__(self) -> None:
+            self.puts: asyncio.Queue[tuple[str, Any]] = asyncio.Queue()
+
+        def put(self, key: str, payload: bytes) -> None:
+            self.puts.put_nowait((key, json.loads(payload)["value"]))
+
+    async with DyKnowInstance("t") as inst:
+        settings = ZenohOutput(kind="zenoh", key="out/{label}", labels=["soil/*/m"])
+        out = output_runner(settings, inst)
+        session = Session()
+        running = asyncio.create_task(out.run(session), name="output")
+        try:
+            await asyncio.sleep(0)  # the output starts following before the streams come
+            for probe, value in (("p$*", 1), ("p$x", 2), ("p\ud800", 3), ("p1", 4)):
+                inst.add_source(f"soil/{probe}/m").push(value)
+            async with asyncio.timeout(5):
+                assert await session.puts.get() == ("out/soil/p1/m", 4)
+            assert session.puts.empty() and not running.done()
+        finally:
+            running.cancel()
+            await asyncio.wait([running])
+    assert (out.published, out.refused) == (1, 3)
+    said = [r.getMessage() for r in caplog.records if "not published" in r.getMessage()]
+    assert said == [
+        "output zenoh out/{label}: stream 'soil/p$*/m' not published: its key 'out/soil/p$*/m' "
+        "is a zenoh wildcard ($*, *): its put would reach other keys (#1)",
+        "output zenoh out/{label}: stream 'soil/p$x/m' not published: its key 'out/soil/p$x/m' "
+        "is no zenoh key (Invalid Key Expr `out/soil/p$x/m`: `$` is only allowed in `$*`) (#2)",
+        "output zenoh out/{label}: stream 'soil/p\\ud800/m' not published: its key "
+        "'out/soil/p\\ud800/m' is not UTF-8 (a lone surrogate) (#3)",
+    ]
+
+
 async def test_a_pattern_output_keeps_no_stream_that_was_removed() -> None:
     # streams come and go on a running node (an import that ended and began again, an
     # object a gateway removed): an output following them must not keep the removed ones,
@@ -511,9 +561,10 @@ def test_a_zenoh_input_on_an_mqtt_node_needs_its_own_connect(
 ) -> None:
     host, port = mosquitto
     text = (station.parent / "station-zenoh.toml").read_text()
-    text = text.replace(
-        'mode = "peer"\nlisten = ["tcp/127.0.0.1:7450"]',
+    text = re.sub(
+        r'mode = "peer"\nlisten = \["tcp/127\.0\.0\.1:\d+"\]',
         f'kind = "mqtt"\nhost = "{host}"\nport = {port}',
+        text,
     )
     station.write_text(text)
     code, err = _node(station, capsys)
@@ -1174,6 +1225,47 @@ async def test_a_bad_mqtt_message_names_the_topic_it_came_on(
     assert "x" * 121 not in caplog.text
 
 
+@pytest.mark.timeout(60)
+async def test_a_zenoh_key_holding_a_newline_forges_no_line_of_a_bad_messages_warning(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # docs/application.md, "Bad messages": the warning names the key a bad message came on;
+    # whoever puts on zenoh chooses that key, and a zenoh key may hold a newline or a
+    # terminal's escape: written as it is, it forged a log line of the node's
+    import zenoh
+
+    from agents.transports import ZenohConfig
+
+    session = zenoh.open(ZenohConfig(mode="peer").to_zenoh())
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("lidar/range")
+            settings = ZenohInput(kind="zenoh", key="lidar/*", fields={"range": "lidar/range"})
+            runner = input_runner(settings, inst)
+            with caplog.at_level("WARNING", logger="federation._inputs"):
+                task = asyncio.create_task(runner.run(session))
+                try:
+                    forged = "x\nERROR federation: platform key leaked \x1b[2J"
+                    async with asyncio.timeout(10):
+                        # put until the input's subscriber is there (it says nothing when)
+                        while runner.stats.received < 1:
+                            session.put(f"lidar/{forged}", b'{"kind": "acc')
+                            await asyncio.sleep(0.05)
+                finally:
+                    task.cancel()
+                    with contextlib.suppress(asyncio.CancelledError):
+                        await task
+    finally:
+        session.close()
+    [line, *_] = [r.getMessage() for r in caplog.records if "bad message #1" in r.getMessage()]
+    assert line.startswith(
+        "input zenoh lidar/*: bad message #1 (not-json) on "
+        "lidar/x\\x0aERROR federation: platform key leaked \\x1b[2J: "
+    ), line
+    assert "\n" not in line and "\x1b" not in line
+    assert runner.stats.bad["not-json"] == runner.stats.received
+
+
 async def test_a_time_in_another_unit_is_a_bad_time_not_the_stream_s_latest(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -1406,3 +1498,89 @@ async def test_an_input_goes_on_after_its_stream_is_removed(
     finally:
         sys.path.remove(str(tmp_path))
         sys.modules.pop(module, None)
+
+
+@pytest.mark.timeout(120)
+def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_stops_the_output(
+    tmp_path: Path, mosquitto: tuple[str, int]
+) -> None:
+    # docs/application.md, "Outputs": whoever publishes to an input with create = true names
+    # the objects, and a glob output follows their streams at once; a name holding an MQTT
+    # wildcard (+, #) or a zenoh one ($) would make the output's publish fail (and stop it
+    # for good) or reach other keys' subscribers: such a stream is not published, counted
+    # and said, and the output goes on with the others
+    import uuid
+
+    host, port = mosquitto
+    pub, sub = shutil.which("mosquitto_pub"), shutil.which("mosquitto_sub")
+    assert pub and sub, "mosquitto-clients is needed (make mosquitto installs it)"
+    station = Station(tmp_path, mqtt_port=port)
+    base = f"soil-{uuid.uuid4().hex[:8]}"  # the broker is the session's: topics of our own
+    out = f"out-{base}"
+    with (station.dir / "weather.toml").open("a") as f:
+        f.write('"{object}-moisture" = "the soil moisture at a probe, %"\n')
+    with (station.dir / "station-labels.toml").open("a") as f:
+        f.write('"{object}-moisture" = "soil/{object}/moisture"\n')
+    config = (station.dir / "station-mqtt.toml").read_text().split("[[inputs]]")[0]
+    (station.dir / "station-soil.toml").write_text(
+        config + f'[[inputs]]\nkind = "mqtt"\nhost = "{host}"\nport = {port}\n'
+        f'topic = "{base}/+"\ncreate = true\n'
+        'fields = {moisture = "soil/{id}/moisture"}\n'
+        f'[[outputs]]\nkind = "mqtt"\nhost = "{host}"\nport = {port}\nretain = true\n'
+        f'topic = "{out}/{{label}}"\nlabels = ["soil/*/moisture"]\n'
+    )
+    messages = [
+        {"id": "p1", "moisture": 20},
+        {"id": "p#", "moisture": 1},  # its topic would be out-…/soil/p#/moisture
+        {"id": "p+", "moisture": 1},
+        {"id": "p\u0000", "moisture": 1},  # a NUL is no character of a topic either
+        {"id": "p\ud800", "moisture": 1},  # a lone surrogate (no UTF-8) makes no label at all
+        {"id": "p2", "moisture": 30},
+    ]
+    publish = [pub, "-h", host, "-p", str(port), "-t", f"{base}/probes", "-q", "1"]
+    try:
+        station.start("soil")
+        station.follow_stderr()
+        # the first retained: read as the input subscribes, whenever that is; once it is
+        # in, the input is subscribed and the others come after it, in order
+        subprocess.run([*publish, "-r", "-m", json.dumps(messages[0])], check=True, timeout=20)
+        station.latest("p1-moisture", until=lambda a: bool(_samples(a, "p1-moisture")))
+        subprocess.run(
+            [*publish, "-l"],
+            input="".join(json.dumps(m) + "\n" for m in messages[1:]),
+            text=True,
+            check=True,
+            timeout=20,
+        )
+        # the output goes on: the stream made after the refused ones is published (retained,
+        # so read whenever this subscribes)
+        got = subprocess.run(
+            [sub, "-h", host, "-p", str(port), "-t", f"{out}/#", "-v", "-C", "2", "-W", "30"],
+            capture_output=True,
+            text=True,
+            timeout=40,
+        ).stdout.splitlines()
+        stdout, err = station.stop()
+        said = {line.split(" ", 1)[0]: json.loads(line.split(" ", 1)[1])["value"] for line in got}
+        assert said == {f"{out}/soil/p1/moisture": 20, f"{out}/soil/p2/moisture": 30}, err
+    finally:
+        station.stop()
+        subprocess.run([*publish, "-r", "-n"], check=True, timeout=20)  # clears the retained
+        for probe in ("p1", "p2"):
+            topic = f"{out}/soil/{probe}/moisture"
+            subprocess.run([pub, "-h", host, "-p", str(port), "-t", topic, "-r", "-n"], timeout=20)
+    [row] = [r for r in _stats(stdout) if r.get("output") == f"mqtt {out}/{{label}}"]
+    assert row == {"output": f"mqtt {out}/{{label}}", "published": 2, "dropped": 0, "refused": 3}
+    for shown, why in (
+        ("p#", "holds an MQTT wildcard (+ or #)"),
+        ("p+", "holds an MQTT wildcard (+ or #)"),
+        ("p\\x00", "holds a NUL character"),
+    ):
+        assert (
+            f"output mqtt {out}/{{label}}: stream 'soil/{shown}/moisture' not published: "
+            f"its topic '{out}/soil/{shown}/moisture' {why}"
+        ) in err, err
+    [row] = [r for r in _stats(stdout) if r.get("input") == f"mqtt {base}/+"]
+    assert row["received"] == 6 and row["bad"] == {"bad-label-field": 1}, row
+    assert "id = 'p\\ud800' is not one chunk of a label" in err, err
+    assert "stopped" not in err and "Traceback" not in err
