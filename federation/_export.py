@@ -129,9 +129,11 @@ class Export:
         self.history = history
         self.recovered = 0  # samples resent from the history because the receiver missed them
         self.last_heard = time.monotonic()
-        # the lease's previous look, and the report a look past due spared the export on
+        # the lease's previous look; the report a look past due spared the export on, and
+        # until when (the reports that came in the stall are read meanwhile)
         self._looked_at = self.last_heard
         self._spared = -math.inf
+        self._spared_until = -math.inf
         self.last_error: str | None = None
         self.ended: str | None = None
         self.started = time.time()
@@ -298,17 +300,20 @@ class Export:
 
         The lease is looked at every ``every`` s at most. A look that comes so late that
         the lease ran out only while this process was not looking (it stalled: busy,
-        descheduled) spares the export once: the reports that came meanwhile are read
-        before the next look decides, rather than a live receiver's export ended.
+        descheduled) spares the export, once per report heard, for ``every / 2`` s: the
+        reports that came meanwhile are read before a look decides, rather than a live
+        receiver's export ended. A time, not a number of looks: with samples queued the
+        task looks again after each batch, before the loop has read any report.
         """
         now = time.monotonic()
         silent = now - self.last_heard
-        late = now - self._looked_at - every
+        due = self._looked_at + every  # when this look was due
         self._looked_at = now
-        if silent <= lease:
+        if silent <= lease or now < self._spared_until:
             return False
-        if silent - late <= lease and self._spared != self.last_heard:
+        if due - self.last_heard <= lease and self._spared != self.last_heard:
             self._spared = self.last_heard
+            self._spared_until = now + every / 2  # the next regular look decides
             return False
         log.warning(
             "%s: lease expired: no report from %s for %.1f s; export stopped",

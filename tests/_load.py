@@ -116,20 +116,23 @@ class LoopLag:
     """How late this event loop ran its timers over a stretch: ``async with`` the stretch.
 
     A timer is due at a loop time; a busy machine runs it later, by as much as the loop
-    waited for a CPU. A bound on when a timer-driven thing happened (a lease's expiry, a
-    wait's end) is the code's promise plus ``worst``: the latest any timer ran meanwhile.
+    waited for a CPU. ``worst``: the latest this one's own timers, one due every
+    ``period`` s, ran meanwhile. Another timer, due up to ``period`` s before one of them
+    in the same stall, ran up to ``period`` s later still: a bound on when a timer-driven
+    thing happened (a lease's expiry, a wait's end) is the code's promise plus ``worst``
+    plus ``period``.
     """
 
     def __init__(self, period: float = 0.02) -> None:
         self.worst = 0.0
-        self._period = period
+        self.period = period
         self._task: asyncio.Task[None] | None = None
 
     async def _measure(self) -> None:
         loop = asyncio.get_running_loop()
         while True:
-            due = loop.time() + self._period
-            await asyncio.sleep(self._period)
+            due = loop.time() + self.period
+            await asyncio.sleep(self.period)
             self.worst = max(self.worst, loop.time() - due)
 
     async def __aenter__(self) -> LoopLag:

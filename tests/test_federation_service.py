@@ -1369,7 +1369,11 @@ async def test_a_durable_stream_that_still_runs_is_not_asked_for_again() -> None
             await next_event(seen, MembershipEvent("left", "uav-a"))
             await a.fed.join()
             await next_event(seen, MembershipEvent("joined", "uav-a"))
-        await asyncio.sleep(0.2)  # the re-ask ran (refused: it still runs) and gave up at once
+        # the re-ask, started with the return's news: refused (it still runs), it gives up
+        asking = [t for t in asyncio.all_tasks() if t.get_name().endswith(".durable:uav-a")]
+        assert asking, "uav-a's return asked for nothing"
+        async with asyncio.timeout(WAIT):
+            await asyncio.wait(asking)
         assert len(a.exporter.running) == 1 and b.fed._durable["uav-a"][first].current == first
 
 

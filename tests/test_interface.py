@@ -2114,7 +2114,20 @@ async def _decisions(batched: bool, runs: bool = False) -> dict[str, Any]:
         await until(
             lambda: sender.accepted + sender.limited >= len(items) - 1, "every message decided"
         )
-        await asyncio.sleep(0.2)  # the refusals and not-understoods go out
+        # settled: the accepted delivered; uav-a's answers to the refusals and
+        # not-understoods that went out taken (over the limit without runs); every record
+        # written, the last summed up a second on (the answers limited, or, with runs, those
+        # in no conversation)
+        delivered = [echo.informs, echo.calls]
+        if other is not None:
+            delivered += [other.informs, other.calls]
+        due = ([6, 3, 4, 2], 28, 1, 30) if runs else ([2, 2], 13, 15, 16)
+
+        def now() -> tuple[list[int], int, int, int]:
+            audited = len(ib.audit.last(10_000)) - before
+            return [len(d) for d in delivered], sender.accepted, sender.limited, audited
+
+        await until(lambda: now() == due, f"deliveries, accepted, limited, records {due}")
         records = [
             {k: v for k, v in r.items() if k != "ts"} for r in ib.audit.last(10_000)[before:]
         ]
@@ -2251,8 +2264,9 @@ async def _lone_decisions(
                 await raw.publish(key, seal("uav-b", body))
         # one record each, three for the batch of three numbers
         want = len(bodies) + (0 if batchable or batched else 2)
-        await until(lambda: len(ib.audit.last(10_000)) - before >= want, "every one decided")
-        await asyncio.sleep(0.2)  # the refusals and not-understoods go out
+        # and the platform's tally of what its agents dropped: the unknown receiver and the
+        # first not-understoods at once, the last one summed up a second on
+        await until(lambda: len(ib.audit.last(10_000)) - before == want + 3, "every one decided")
         records = [
             {k: v for k, v in r.items() if k != "ts"} for r in ib.audit.last(10_000)[before:]
         ]

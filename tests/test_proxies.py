@@ -1216,7 +1216,9 @@ async def test_an_idle_stream_created_again_after_its_sender_was_gone_keeps_its_
         imp._gone.discard("uav-a")
         await exp.stop(first)
         again = exp.start_exporting(LOCAL, SEM, "uav-b")  # created again; the source is quiet
-        await asyncio.sleep(2.5)  # more than two leases
+        start = again.last_heard
+        # reported on past two leases (1 s each), or ended
+        await until(lambda: again.last_heard > start + 2.0 or again.ended, "two leases", 2 + WAIT)
         assert again.active, again.ended
 
 
@@ -1257,7 +1259,9 @@ async def test_a_new_export_does_not_inherit_the_losses_of_the_old_one() -> None
         rec = imp.get("uav-a", SEM)
         assert rec is not None
         await until(lambda: rec.injected == 30, "the new one delivered its 10")
-        await asyncio.sleep(1.2)  # two reports
+        for report in ("a report", "the next report"):  # each with the receiver's total
+            heard = new.last_heard
+            await until(lambda heard=heard: new.last_heard > heard, report)
         assert new.dropped == {} and rec.lost == 10  # the receiver's total stays
 
 
@@ -1322,7 +1326,7 @@ async def test_send_failures_recovered_from_history_are_no_longer_counted_droppe
 _SKEW = 0.3  # the receiver's allowed age of an envelope, scaled down from 30 s
 
 
-_FROZEN = 0.8  # how long a put to a frozen receiver holds the worker
+_FROZEN = 3.0  # how long a put to a frozen receiver holds the worker: far above any bound
 
 
 class _Pooled(MemoryTransport):
@@ -1403,7 +1407,7 @@ async def test_a_resend_waiting_behind_a_frozen_receivers_put_is_not_lost() -> N
         await asyncio.sleep(0)
         src.push(3)  # the gap's end arrives: the 5 lost are asked back at once
         rec = await until(lambda: imp.get("uav-a", SEM), "the import")
-        await until(lambda: export.recovered == 5, "the history resent")
+        await until(lambda: export.recovered == 5, "the history resent", _FROZEN + WAIT)
         await frozen
         await asyncio.sleep(0.1)
         assert rec.recovered == 5, "a resend arrived expired: its samples are lost"
@@ -1443,6 +1447,9 @@ async def test_a_frozen_receiver_holds_one_worker_whatever_its_number_of_streams
         await asyncio.sleep(0.05)  # both of its streams had their turn to take a worker
         began = time.monotonic()
         await push("b", 3)
-        await until(lambda: exports["b"].recovered == 5, "the other receiver's resend")
+        # bounded past both frozen puts: a resend queued behind them fails the bound below
+        await until(
+            lambda: exports["b"].recovered == 5, "the other receiver's resend", 2 * _FROZEN + WAIT
+        )
         took = time.monotonic() - began
         assert took < _FROZEN / 2, f"another receiver's resend waited {took:.2f} s"

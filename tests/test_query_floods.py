@@ -46,6 +46,7 @@ from bench.kxflood import (
     figures,
     go,
 )
+from federation._local import IDENTITY_RATE
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -218,7 +219,9 @@ def test_an_identity_query_flood_on_a_node_is_shed_before_the_event_loop(
         time.sleep(3.0)
         here.send("stop")
         sent, seconds = recv(here, "the attacker's count")
-        assert sent / seconds > 5000, "the attacker did not flood"
+        # a flood: far more than the node answers, however slow this machine ran the
+        # attacker (a throughput bound failed on a busy one, the shedding unchanged)
+        assert sent > 20 * IDENTITY_RATE * seconds, f"the attacker did not flood: {sent}"
         audit = station.dir / "audit.jsonl"
 
         def shed() -> list[dict[str, Any]]:
