@@ -59,7 +59,8 @@ def test_a_df_events_flood_is_shed_and_a_members_changes_are_still_seen(tmp_path
     slower = meter.slowdown()
     bound = SHED_CPU_US * slower
     print(f"\n{run.lines()}\n(CPU bound {bound:.1f} µs: {SHED_CPU_US:g} x {slower:.2f})")
-    assert run.sent / run.seconds > 5000, "the attacker did not flood"
+    # a flood however busy the machine: the attacker too gets less CPU on a loaded one
+    assert run.sent / run.seconds > 5000 / slower, "the attacker did not flood"
     assert len(run.seen) == 2 * CHANGES
     assert max(run.seen) <= SEEN_WITHIN, run.seen
     assert run.cpu_per_event <= bound

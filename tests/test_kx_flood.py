@@ -80,7 +80,8 @@ def test_kx_flood_is_shed_and_a_member_is_still_served(tmp_path: Path) -> None:
         f"\n{run.lines()}\nvictim CPU {cost:.1f} µs per request "
         f"(bound {bound:.1f}: {SHED_CPU_US:g} times this CPU's slowdown {slower:.2f})"
     )
-    assert sent / seconds > 5000, "the attacker did not flood"
+    # a flood however busy the machine: the attacker too gets less CPU on a loaded one
+    assert sent / seconds > 5000 / slower, "the attacker did not flood"
     # every one of the member's requests answered during the flood (pace asserts each)
     assert len(during) == PACE_N
     # all but the budget is shed before the event loop: per trusted name claimed (2/s,
