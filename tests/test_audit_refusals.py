@@ -41,7 +41,6 @@ from test_interface import (
 )
 
 from agents import AgentPlatform, Performative, Refused, request, wire_key
-from agents import _interface as interface_module
 from agents._security import Handshake, KeyPair, OwnerBatches, Session, TrustStore
 from agents.transports import Message, Subscription
 
@@ -267,7 +266,7 @@ async def test_an_untrusted_sender_is_logged_once_a_while_and_garbage_summed_up(
             name = f"x{n}"
             agent.audit_unauthenticated(name, f"untrusted: platform {name!r} is not in", "kx")
         assert len(lines("calling itself '")) == 8
-        monkeypatch.setattr(interface_module, "UNTRUSTED_LOG_INTERVAL", 0.0)
+        monkeypatch.setattr("agents._interface_admit.UNTRUSTED_LOG_INTERVAL", 0.0)
         agent.audit_unauthenticated("evil", "untrusted: platform 'evil' is not in", "kx")
         (summed,) = lines("more refusal")
         assert summed.startswith("interface[uav-b]: 93 more refusal(s) of senders not in the ")

@@ -1590,7 +1590,7 @@ def _count_seals(monkeypatch: pytest.MonkeyPatch) -> list[int]:
         seals[0] += 1
         return real(keys, key, data, **kw)
 
-    monkeypatch.setattr(interface_module, "seal_owner_batch", counting)
+    monkeypatch.setattr("agents._interface_owner.seal_owner_batch", counting)
     return seals
 
 
