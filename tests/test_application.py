@@ -1534,6 +1534,10 @@ def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_st
         {"id": "p#", "moisture": 1},  # its topic would be out-…/soil/p#/moisture
         {"id": "p+", "moisture": 1},
         {"id": "p\u0000", "moisture": 1},  # a NUL is no character of a topic either
+        # a control character or a non-character: the broker closes the connection on it
+        {"id": "p\u0001", "moisture": 1},
+        {"id": "p\u009f", "moisture": 1},
+        {"id": "p\ufffe", "moisture": 1},
         {"id": "p\ud800", "moisture": 1},  # a lone surrogate (no UTF-8) makes no label at all
         {"id": "p2", "moisture": 30},
     ]
@@ -1570,17 +1574,19 @@ def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_st
             topic = f"{out}/soil/{probe}/moisture"
             subprocess.run([pub, "-h", host, "-p", str(port), "-t", topic, "-r", "-n"], timeout=20)
     [row] = [r for r in _stats(stdout) if r.get("output") == f"mqtt {out}/{{label}}"]
-    assert row == {"output": f"mqtt {out}/{{label}}", "published": 2, "dropped": 0, "refused": 3}
+    assert row == {"output": f"mqtt {out}/{{label}}", "published": 2, "dropped": 0, "refused": 6}
     for shown, why in (
         ("p#", "holds an MQTT wildcard (+ or #)"),
         ("p+", "holds an MQTT wildcard (+ or #)"),
         ("p\\x00", "holds a NUL character"),
+        ("p\\x01", "holds a control character or a Unicode non-character"),
     ):
         assert (
             f"output mqtt {out}/{{label}}: stream 'soil/{shown}/moisture' not published: "
             f"its topic '{out}/soil/{shown}/moisture' {why}"
         ) in err, err
     [row] = [r for r in _stats(stdout) if r.get("input") == f"mqtt {base}/+"]
-    assert row["received"] == 6 and row["bad"] == {"bad-label-field": 1}, row
+    assert row["received"] == 9 and row["bad"] == {"bad-label-field": 1}, row
     assert "id = 'p\\ud800' is not one chunk of a label" in err, err
     assert "stopped" not in err and "Traceback" not in err
+    assert "reconnecting" not in err, err  # the broker never closed the output's connection
