@@ -1500,6 +1500,54 @@ async def test_an_input_goes_on_after_its_stream_is_removed(
         sys.modules.pop(module, None)
 
 
+async def test_an_application_stopped_or_refused_lets_go_of_the_instance(tmp_path: Path) -> None:
+    # each input follows the instance's label changes (docs/application.md, "create": a
+    # stream removed is noticed); the instance may outlive the application (a library's):
+    # once it stopped, or was refused at start, nothing of its inputs is kept alive by it
+    import sys
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+    from federation._inputs import PythonInput
+    from federation._platform import PlatformConfigError
+
+    module = f"idle_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{module}.py").write_text(
+        "import asyncio\n\nasync def messages():\n    await asyncio.Event().wait()\n    yield {}\n"
+    )
+    sys.path.insert(0, str(tmp_path))
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("wx/t")
+            for labels in (["wx/t", "car/{id}/v"], ["wx/t", "wx/nope"]):  # the last refused
+                inputs = [
+                    PythonInput(
+                        kind="python", entry=f"{module}:messages", fields={"t": label}, create=True
+                    )
+                    if "{" in label
+                    else PythonInput(kind="python", entry=f"{module}:messages", fields={"t": label})
+                    for label in labels
+                ]
+                config = SimpleNamespace(application=None, inputs=inputs, outputs=[])
+                platform = SimpleNamespace(instance=inst, config=config, transport=None)
+                app = NodeApplication(platform, "t.toml")  # type: ignore[arg-type]
+                if "wx/nope" in labels:
+                    with pytest.raises(PlatformConfigError, match="no source 'wx/nope'"):
+                        await app.__aenter__()
+                else:
+                    async with app:
+                        await asyncio.sleep(0)  # the inputs run
+                mappers = [weakref.ref(r.mapper) for r in app.inputs]
+                assert len(mappers) == 2
+                del app, inputs, config, platform
+                gc.collect()
+                assert [m() for m in mappers] == [None, None]
+            inst.remove_process("source:wx/t")  # told to no input left behind
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop(module, None)
+
+
 @pytest.mark.timeout(120)
 def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_stops_the_output(
     tmp_path: Path, mosquitto: tuple[str, int]
