@@ -29,7 +29,7 @@ from ._inputs import (
     RosbagInput,
     input_runner,
 )
-from ._outputs import OutputRunner, output_runner
+from ._outputs import MqttOutput, OutputRunner, output_runner
 from ._platform import PlatformConfig, PlatformConfigError
 from ._quote import quoted
 
@@ -203,6 +203,10 @@ class NodeApplication:
             problems = out.check()
             if problems:
                 raise PlatformConfigError(self.source, f"outputs[{n}].labels", problems[0])
+            problem = out.check_destination()
+            if problem is not None:
+                field = "topic" if isinstance(out.settings, MqttOutput) else "key"
+                raise PlatformConfigError(self.source, f"outputs[{n}].{field}", problem)
         if self._zenoh_session() is None:  # zenoh inputs/outputs need the node's or their own
             for kind, specs in (("inputs", self.config.inputs), ("outputs", self.config.outputs)):
                 for n, spec in enumerate(specs):

@@ -128,6 +128,16 @@ class OutputRunner:
             if not any(c in label for c in "*?[") and not self.instance.has_label(label)
         ]
 
+    def check_destination(self) -> str | None:
+        """Why the topic or key is no plain one whatever the label, if so (the operator's)."""
+        # a plain one-chunk label ("x") stands for any: what is wrong then is the template's
+        _, why = self.destination("x")
+        if why is None:
+            return None
+        s = self.settings
+        word, where = ("topic", s.topic) if isinstance(s, MqttOutput) else ("key", s.key)
+        return f"the {word} {where!r} {why}, whatever the label"
+
     def destination(self, label: str) -> tuple[str, str | None]:
         """The topic or key ``label``'s samples go to, and why it cannot be published, if so.
 

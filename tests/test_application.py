@@ -1500,6 +1500,49 @@ async def test_an_input_goes_on_after_its_stream_is_removed(
         sys.modules.pop(module, None)
 
 
+@pytest.mark.parametrize(
+    ("output", "said"),
+    [
+        (
+            {"kind": "mqtt", "topic": "out/+/{label}"},
+            "outputs[0].topic: the topic 'out/+/{label}' holds an MQTT wildcard (+ or #), "
+            "whatever the label",
+        ),
+        (
+            {"kind": "zenoh", "key": "out/**/{label}"},
+            "outputs[0].key: the key 'out/**/{label}' is a zenoh wildcard ($*, *): its put "
+            "would reach other keys, whatever the label",
+        ),
+        (
+            {"kind": "zenoh", "key": "out//{label}"},
+            "outputs[0].key: the key 'out//{label}' is no zenoh key (Invalid Key Expr "
+            "`out//x`: empty chunks are forbidden",
+        ),
+    ],
+)
+async def test_an_output_whose_topic_or_key_is_never_plain_stops_the_node_at_start(
+    output: dict[str, Any], said: str
+) -> None:
+    # docs/application.md, "Outputs": the operator's topic or key would refuse every
+    # stream; told at start, as a label that is no stream is, not stream by stream
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+    from federation._outputs import MqttOutput
+    from federation._platform import PlatformConfigError
+
+    kind = MqttOutput if output["kind"] == "mqtt" else ZenohOutput
+    settings = kind(labels=["wx/t"], **output)
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/t")
+        config = SimpleNamespace(application=None, inputs=[], outputs=[settings])
+        platform = SimpleNamespace(instance=inst, config=config, transport=None)
+        app = NodeApplication(platform, "t.toml")  # type: ignore[arg-type]
+        with pytest.raises(PlatformConfigError) as refused:
+            await app.__aenter__()
+    assert said in str(refused.value), str(refused.value)
+
+
 async def test_an_application_stopped_or_refused_lets_go_of_the_instance(tmp_path: Path) -> None:
     # each input follows the instance's label changes (docs/application.md, "create": a
     # stream removed is noticed); the instance may outlive the application (a library's):
