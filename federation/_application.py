@@ -29,7 +29,7 @@ from ._inputs import (
     RosbagInput,
     input_runner,
 )
-from ._outputs import OutputRunner, output_runner
+from ._outputs import MqttOutput, OutputRunner, output_runner
 from ._platform import PlatformConfig, PlatformConfigError
 from ._quote import quoted
 
@@ -175,18 +175,39 @@ class NodeApplication:
                 if self.kpl.processes:
                     self._stop_failures = instance.on_failure(self._failed)
             starts: dict[Path, tuple[int, int]] = {}  # one replay start per recording
-            self.inputs = [_input_runner(s, instance, starts) for s in self.config.inputs]
-            self.outputs = [output_runner(s, instance) for s in self.config.outputs]
-            for n, runner in enumerate(self.inputs):
-                problems = runner.check()
-                if problems:
-                    raise PlatformConfigError(self.source, f"inputs[{n}].fields", problems[0])
-            for n, out in enumerate(self.outputs):
-                problems = out.check()
-                if problems:
-                    raise PlatformConfigError(self.source, f"outputs[{n}].labels", problems[0])
+            try:
+                for spec in self.config.inputs:
+                    self.inputs.append(_input_runner(spec, instance, starts))
+                self._check(instance)
+            except BaseException:
+                self._close_inputs()
+                raise
         session = self._zenoh_session()
-        if session is None:  # zenoh inputs/outputs need the node's session or their own
+        async with contextlib.AsyncExitStack() as stack:
+            self._tg = await stack.enter_async_context(asyncio.TaskGroup())
+            for runner in self.inputs:
+                self._start(f"input {runner.stats.title}", runner.run(session))
+            for out in self.outputs:
+                self._start(f"output {out.settings.title()}", out.run(session))
+            self._stack = stack.pop_all()
+        return self
+
+    def _check(self, instance: Any) -> None:
+        """Make the outputs and check inputs and outputs; PlatformConfigError if one is wrong."""
+        self.outputs = [output_runner(s, instance) for s in self.config.outputs]
+        for n, runner in enumerate(self.inputs):
+            problems = runner.check()
+            if problems:
+                raise PlatformConfigError(self.source, f"inputs[{n}].fields", problems[0])
+        for n, out in enumerate(self.outputs):
+            problems = out.check()
+            if problems:
+                raise PlatformConfigError(self.source, f"outputs[{n}].labels", problems[0])
+            problem = out.check_destination()
+            if problem is not None:
+                field = "topic" if isinstance(out.settings, MqttOutput) else "key"
+                raise PlatformConfigError(self.source, f"outputs[{n}].{field}", problem)
+        if self._zenoh_session() is None:  # zenoh inputs/outputs need the node's or their own
             for kind, specs in (("inputs", self.config.inputs), ("outputs", self.config.outputs)):
                 for n, spec in enumerate(specs):
                     if getattr(spec, "kind", None) in ("zenoh", "ros2") and not getattr(
@@ -198,14 +219,12 @@ class NodeApplication:
                             "missing: the node's transport is not zenoh, so this "
                             f"{spec.kind} {kind[:-1]} needs connect = [...] of its own",
                         )
-        async with contextlib.AsyncExitStack() as stack:
-            self._tg = await stack.enter_async_context(asyncio.TaskGroup())
-            for runner in self.inputs:
-                self._start(f"input {runner.stats.title}", runner.run(session))
-            for out in self.outputs:
-                self._start(f"output {out.settings.title()}", out.run(session))
-            self._stack = stack.pop_all()
-        return self
+
+    def _close_inputs(self) -> None:
+        # each input follows the instance's label changes: an application refused or
+        # stopped lets go of the instance, which may live on (a library's, a test's)
+        for runner in self.inputs:
+            runner.close()
 
     def _zenoh_session(self) -> Any | None:
         from agents.transports import ZenohTransport
@@ -258,6 +277,7 @@ class NodeApplication:
                 await stack.aclose()  # the body's error is not the group's to wrap
         finally:
             self._tasks.clear()
+            self._close_inputs()
 
     def stats(self) -> list[dict[str, Any]]:
         """What each input received and each output published; the processes that failed."""

@@ -352,7 +352,13 @@ class _Mapper:
         self.removed: set[str] = set()
         # a stream removed while the input runs (an import that ended, an object removed)
         # is forgotten at once: its closed source would refuse every later message
-        instance.on_label_change(self._label_changed)
+        self._stop_listening = instance.on_label_change(self._label_changed)
+
+    def close(self) -> None:
+        """Stop following the instance's label changes: the input is done with it."""
+        # the instance outlives the input (an application stopped or refused): its
+        # listener kept the mapper and every source it knew for the instance's life
+        self._stop_listening()
 
     def _label_changed(self, label: str, published: bool) -> None:
         if not published:
@@ -578,7 +584,12 @@ class InputRunner:
         try:
             await self._run(zenoh_session)
         finally:
+            self.close()
             self.done.set()
+
+    def close(self) -> None:
+        """Let go of the instance (one that never ran too); calling it again does nothing."""
+        self.mapper.close()
 
     async def _run(self, zenoh_session: Any | None) -> None:
         raise NotImplementedError

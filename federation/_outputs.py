@@ -16,6 +16,7 @@ import contextlib
 import fnmatch
 import json
 import logging
+import re
 from collections.abc import AsyncIterator
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
@@ -35,6 +36,13 @@ log = logging.getLogger(__name__)
 _NS = 1_000_000_000  # an int: int / int is correctly rounded, epoch times keep their fraction
 _QUEUE = 10_000  # samples waiting to be published; beyond, the oldest are dropped
 _MQTT_TOPIC_MAX = 65_535  # bytes of an MQTT topic (UTF-8)
+# what a broker closes the connection on in a topic (MQTT 5, 1.5.4; mosquitto does): the
+# C0 and C1 controls and DEL, and the Unicode non-characters. NUL is said on its own
+_MQTT_UNSAFE = re.compile(
+    "[\x01-\x1f\x7f-\x9f\ufdd0-\ufdef"
+    + "".join(f"{chr(p * 0x10000 + 0xFFFE)}{chr(p * 0x10000 + 0xFFFF)}" for p in range(17))
+    + "]"
+)
 _LOGGED_REFUSED = 5  # streams not published said one by one, then one in _LOG_EVERY
 _LOG_EVERY = 1000
 
@@ -120,6 +128,16 @@ class OutputRunner:
             if not any(c in label for c in "*?[") and not self.instance.has_label(label)
         ]
 
+    def check_destination(self) -> str | None:
+        """Why the topic or key is no plain one whatever the label, if so (the operator's)."""
+        # a plain one-chunk label ("x") stands for any: what is wrong then is the template's
+        _, why = self.destination("x")
+        if why is None:
+            return None
+        s = self.settings
+        word, where = ("topic", s.topic) if isinstance(s, MqttOutput) else ("key", s.key)
+        return f"the {word} {where!r} {why}, whatever the label"
+
     def destination(self, label: str) -> tuple[str, str | None]:
         """The topic or key ``label``'s samples go to, and why it cannot be published, if so.
 
@@ -127,7 +145,8 @@ class OutputRunner:
         holding an MQTT wildcard or a NUL makes a topic no broker takes (the client raises,
         and the output would stop for good); one holding ``$`` is no zenoh key, or a
         wildcard one whose put would reach the subscribers of other keys; a lone surrogate
-        (JSON's ``\\ud800``) is no UTF-8 for either.
+        (JSON's ``\\ud800``) is no UTF-8 for either. A control character or a Unicode
+        non-character in a topic makes the broker close the connection (mosquitto does).
         """
         s = self.settings
         where = s.topic if isinstance(s, MqttOutput) else s.key
@@ -141,6 +160,8 @@ class OutputRunner:
                 return where, "holds an MQTT wildcard (+ or #)"
             if "\x00" in where:
                 return where, "holds a NUL character"
+            if _MQTT_UNSAFE.search(where):
+                return where, "holds a control character or a Unicode non-character"
             if where.startswith("$"):
                 return where, "starts with $ (the broker's own topics)"
             if size > _MQTT_TOPIC_MAX:

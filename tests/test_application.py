@@ -1500,6 +1500,97 @@ async def test_an_input_goes_on_after_its_stream_is_removed(
         sys.modules.pop(module, None)
 
 
+@pytest.mark.parametrize(
+    ("output", "said"),
+    [
+        (
+            {"kind": "mqtt", "topic": "out/+/{label}"},
+            "outputs[0].topic: the topic 'out/+/{label}' holds an MQTT wildcard (+ or #), "
+            "whatever the label",
+        ),
+        (
+            {"kind": "zenoh", "key": "out/**/{label}"},
+            "outputs[0].key: the key 'out/**/{label}' is a zenoh wildcard ($*, *): its put "
+            "would reach other keys, whatever the label",
+        ),
+        (
+            {"kind": "zenoh", "key": "out//{label}"},
+            "outputs[0].key: the key 'out//{label}' is no zenoh key (Invalid Key Expr "
+            "`out//x`: empty chunks are forbidden",
+        ),
+    ],
+)
+async def test_an_output_whose_topic_or_key_is_never_plain_stops_the_node_at_start(
+    output: dict[str, Any], said: str
+) -> None:
+    # docs/application.md, "Outputs": the operator's topic or key would refuse every
+    # stream; told at start, as a label that is no stream is, not stream by stream
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+    from federation._outputs import MqttOutput
+    from federation._platform import PlatformConfigError
+
+    kind = MqttOutput if output["kind"] == "mqtt" else ZenohOutput
+    settings = kind(labels=["wx/t"], **output)
+    async with DyKnowInstance("t") as inst:
+        inst.add_source("wx/t")
+        config = SimpleNamespace(application=None, inputs=[], outputs=[settings])
+        platform = SimpleNamespace(instance=inst, config=config, transport=None)
+        app = NodeApplication(platform, "t.toml")  # type: ignore[arg-type]
+        with pytest.raises(PlatformConfigError) as refused:
+            await app.__aenter__()
+    assert said in str(refused.value), str(refused.value)
+
+
+async def test_an_application_stopped_or_refused_lets_go_of_the_instance(tmp_path: Path) -> None:
+    # each input follows the instance's label changes (docs/application.md, "create": a
+    # stream removed is noticed); the instance may outlive the application (a library's):
+    # once it stopped, or was refused at start, nothing of its inputs is kept alive by it
+    import sys
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+    from federation._inputs import PythonInput
+    from federation._platform import PlatformConfigError
+
+    module = f"idle_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{module}.py").write_text(
+        "import asyncio\n\nasync def messages():\n    await asyncio.Event().wait()\n    yield {}\n"
+    )
+    sys.path.insert(0, str(tmp_path))
+    try:
+        async with DyKnowInstance("t") as inst:
+            inst.add_source("wx/t")
+            for labels in (["wx/t", "car/{id}/v"], ["wx/t", "wx/nope"]):  # the last refused
+                inputs = [
+                    PythonInput(
+                        kind="python", entry=f"{module}:messages", fields={"t": label}, create=True
+                    )
+                    if "{" in label
+                    else PythonInput(kind="python", entry=f"{module}:messages", fields={"t": label})
+                    for label in labels
+                ]
+                config = SimpleNamespace(application=None, inputs=inputs, outputs=[])
+                platform = SimpleNamespace(instance=inst, config=config, transport=None)
+                app = NodeApplication(platform, "t.toml")  # type: ignore[arg-type]
+                if "wx/nope" in labels:
+                    with pytest.raises(PlatformConfigError, match="no source 'wx/nope'"):
+                        await app.__aenter__()
+                else:
+                    async with app:
+                        await asyncio.sleep(0)  # the inputs run
+                mappers = [weakref.ref(r.mapper) for r in app.inputs]
+                assert len(mappers) == 2
+                del app, inputs, config, platform
+                gc.collect()
+                assert [m() for m in mappers] == [None, None]
+            inst.remove_process("source:wx/t")  # told to no input left behind
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop(module, None)
+
+
 @pytest.mark.timeout(120)
 def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_stops_the_output(
     tmp_path: Path, mosquitto: tuple[str, int]
@@ -1534,6 +1625,10 @@ def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_st
         {"id": "p#", "moisture": 1},  # its topic would be out-…/soil/p#/moisture
         {"id": "p+", "moisture": 1},
         {"id": "p\u0000", "moisture": 1},  # a NUL is no character of a topic either
+        # a control character or a non-character: the broker closes the connection on it
+        {"id": "p\u0001", "moisture": 1},
+        {"id": "p\u009f", "moisture": 1},
+        {"id": "p\ufffe", "moisture": 1},
         {"id": "p\ud800", "moisture": 1},  # a lone surrogate (no UTF-8) makes no label at all
         {"id": "p2", "moisture": 30},
     ]
@@ -1570,17 +1665,19 @@ def test_a_created_stream_whose_topic_would_not_be_plain_is_not_published_nor_st
             topic = f"{out}/soil/{probe}/moisture"
             subprocess.run([pub, "-h", host, "-p", str(port), "-t", topic, "-r", "-n"], timeout=20)
     [row] = [r for r in _stats(stdout) if r.get("output") == f"mqtt {out}/{{label}}"]
-    assert row == {"output": f"mqtt {out}/{{label}}", "published": 2, "dropped": 0, "refused": 3}
+    assert row == {"output": f"mqtt {out}/{{label}}", "published": 2, "dropped": 0, "refused": 6}
     for shown, why in (
         ("p#", "holds an MQTT wildcard (+ or #)"),
         ("p+", "holds an MQTT wildcard (+ or #)"),
         ("p\\x00", "holds a NUL character"),
+        ("p\\x01", "holds a control character or a Unicode non-character"),
     ):
         assert (
             f"output mqtt {out}/{{label}}: stream 'soil/{shown}/moisture' not published: "
             f"its topic '{out}/soil/{shown}/moisture' {why}"
         ) in err, err
     [row] = [r for r in _stats(stdout) if r.get("input") == f"mqtt {base}/+"]
-    assert row["received"] == 6 and row["bad"] == {"bad-label-field": 1}, row
+    assert row["received"] == 9 and row["bad"] == {"bad-label-field": 1}, row
     assert "id = 'p\\ud800' is not one chunk of a label" in err, err
     assert "stopped" not in err and "Traceback" not in err
+    assert "reconnecting" not in err, err  # the broker never closed the output's connection
