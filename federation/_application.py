@@ -180,7 +180,7 @@ class NodeApplication:
                     self.inputs.append(_input_runner(spec, instance, starts))
                 self._check(instance)
             except BaseException:
-                self._close_inputs()
+                self._let_go()
                 raise
         session = self._zenoh_session()
         async with contextlib.AsyncExitStack() as stack:
@@ -220,9 +220,13 @@ class NodeApplication:
                             f"{spec.kind} {kind[:-1]} needs connect = [...] of its own",
                         )
 
-    def _close_inputs(self) -> None:
-        # each input follows the instance's label changes: an application refused or
-        # stopped lets go of the instance, which may live on (a library's, a test's)
+    def _let_go(self) -> None:
+        # each input follows the instance's label changes, and the application its
+        # failures: one refused or stopped lets go of the instance, which may live on (a
+        # library's, a test's)
+        if self._stop_failures is not None:
+            self._stop_failures()
+            self._stop_failures = None
         for runner in self.inputs:
             runner.close()
 
@@ -266,9 +270,6 @@ class NodeApplication:
             )
 
     async def __aexit__(self, *exc: object) -> None:
-        if self._stop_failures is not None:
-            self._stop_failures()
-            self._stop_failures = None
         for task in self._tasks:
             task.cancel()
         stack, self._stack, self._tg = self._stack, None, None
@@ -277,7 +278,7 @@ class NodeApplication:
                 await stack.aclose()  # the body's error is not the group's to wrap
         finally:
             self._tasks.clear()
-            self._close_inputs()
+            self._let_go()
 
     def stats(self) -> list[dict[str, Any]]:
         """What each input received and each output published; the processes that failed."""

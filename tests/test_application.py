@@ -13,6 +13,7 @@ import logging
 import re
 import shutil
 import subprocess
+import sys
 import time
 import uuid
 import weakref
@@ -1588,6 +1589,35 @@ async def test_an_application_stopped_or_refused_lets_go_of_the_instance(tmp_pat
             inst.remove_process("source:wx/t")  # told to no input left behind
     finally:
         sys.path.remove(str(tmp_path))
+        sys.modules.pop(module, None)
+
+
+async def test_an_application_refused_at_start_is_told_of_no_failure_after(
+    tmp_path: Path,
+) -> None:
+    # its units' failures are said by the application while it runs; refused at start
+    # (an input naming no source), it no longer listens to the instance, which may live on
+    from types import SimpleNamespace
+
+    from federation._application import NodeApplication
+    from federation._inputs import PythonInput
+    from federation._platform import PlatformConfigError
+
+    module = f"units_{uuid.uuid4().hex[:8]}"
+    (tmp_path / f"{module}.py").write_text("def half(v):\n    return v / 2\n")
+    kpl = tmp_path / "app.kpl"
+    kpl.write_text(f"source wx/a\ncu half = {module}:half\n    inputs wx/a\n    output wx/b\n")
+    try:
+        async with DyKnowInstance("t") as inst:
+            before = list(inst._failure_listeners)
+            spec = PythonInput(kind="python", entry=f"{module}:half", fields={"t": "wx/nope"})
+            config = SimpleNamespace(application=kpl, inputs=[spec], outputs=[])
+            platform = SimpleNamespace(instance=inst, config=config, transport=None)
+            app = NodeApplication(platform, tmp_path / "t.toml")  # type: ignore[arg-type]
+            with pytest.raises(PlatformConfigError, match="no source 'wx/nope'"):
+                await app.__aenter__()
+            assert inst._failure_listeners == before
+    finally:
         sys.modules.pop(module, None)
 
 
