@@ -1020,6 +1020,94 @@ async def test_a_stream_removed_by_hand_frees_its_slot_and_its_name() -> None:
         assert w.gateway.service.created == {}
 
 
+async def test_one_platform_holds_at_most_its_share_and_each_freed_slot_is_its_own_again() -> None:
+    """Another platform holds at most ``max_*_per_platform`` created streams and
+    subscriptions (this platform's own agents are bound by the global limits only); a
+    slot freed any way (removed by hand, handed to this platform, cancelled, bounced,
+    revoked) counts no more against it."""
+    limits = {
+        "max_streams": 4,
+        "max_streams_per_platform": 1,
+        "max_subscriptions": 4,
+        "max_subscriptions_per_platform": 1,
+    }
+    async with world(**limits) as w:
+        local = await w.uav.add(Agent("local"))
+        gw = w.gateway
+        await _create(w.asker, "car/car5/speed", "op/a")
+        streams = await refusal(_create(w.asker, "car/car5/speed", "op/b"))
+        assert streams == "too many created streams for operator (limit 1 per platform)"
+        # the platform's own agents are not bound by it: only by max_streams, as the others
+        await _create(local, "car/car5/speed", "mine/a")
+        await _create(local, "car/car5/speed", "mine/b")
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        subs = await refusal(
+            subscribe(w.asker, GW, {"label": "car5-state"}, ontology="dyknow", timeout=5)
+        )
+        assert subs == "too many subscriptions for operator (limit 1 per platform)"
+        mine = [
+            await subscribe(local, GW, {"label": "car5-state"}, ontology="dyknow") for _ in range(2)
+        ]
+        assert (gw.service.held_by("operator"), gw.held_by("operator")) == (1, 1)
+        assert gw.gateway_stats.limit_refused == 2
+        channel = w.uav.channel
+        assert isinstance(channel, InterfaceAgent)
+        recs = [r for r in channel.audit.records if r.get("stage") == "gateway"]
+        assert [(r["code"], r["sender"], r["reason"]) for r in recs] == [
+            ("stream-limit", "asker@operator", f"stream-limit: {streams}"),
+            ("subscription-limit", "asker@operator", f"subscription-limit: {subs}"),
+        ]
+        # the global limits still bound every asker together: 3 streams, 3 subscriptions
+        await _create(local, "car/car5/speed", "mine/c")
+        full = await refusal(_create(local, "car/car5/speed", "mine/d"))
+        assert full == "too many created streams (limit 4)"
+        w.dk.remove_process("gateway:mine/c")
+        # a stream removed by hand frees its creator's slot
+        w.dk.remove_process("gateway:op/a")
+        assert gw.service.held_by("operator") == 0
+        await _create(w.asker, "car/car5/speed", "op/b")
+        assert gw.service.held_by("operator") == 1
+        # one handed to this platform (kept at a reload: a stream of this one reads it)
+        # is this platform's: its creator may create another
+        await _create(local, "op/b", "mine/on-b")
+        ended = await gw.set_visibility("private", "closed by the operator")
+        assert ended.kept == [("asker@operator", "op/b", ["gateway:mine/on-b"])]
+        with pytest.raises(Failed, match="closed by the operator"):
+            await feed.get(timeout=5)
+        assert (gw.service.held_by("operator"), gw.held_by("operator")) == (0, 0)
+        await gw.set_visibility("protected", "opened again")
+        w.dk.remove_process("gateway:mine/on-b")
+        w.dk.remove_process("gateway:mine/b")
+        await _create(w.asker, "car/car5/speed", "op/c")
+        # a cancelled subscription frees its slot; so does one whose informs bounce
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        await feed.cancel()
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        assert gw.held_by("operator") == 1
+        # revoked: what it held is freed (its streams removed, its subscriptions ended)
+        interface = w.uav.channel
+        assert isinstance(interface, InterfaceAgent)
+        assert interface.trust.remove("operator")
+        await eventually(lambda: gw.held_by("operator") == 0)
+        assert gw.service.held_by("operator") == 0 and "op/c" not in gw.service.created
+        for m in mine:
+            await m.cancel()
+
+
+def test_the_gateways_limits_are_counts_named_when_wrong() -> None:
+    dk = DyKnowInstance("uav-a")
+    for key in (
+        "max_streams",
+        "max_streams_per_platform",
+        "max_subscriptions",
+        "max_subscriptions_per_platform",
+    ):
+        with pytest.raises(ValueError, match=f"^{key}: must be a whole number of at least 0"):
+            GatewayAgent(dk, **{key: -1})
+    with pytest.raises(ValueError, match=r"max_streams_per_platform: .* not 2\.5"):
+        GatewayService(dk, max_streams_per_platform=2.5)  # type: ignore[arg-type]
+
+
 async def test_a_re_registration_that_fails_leaves_the_gateway_and_its_entry_as_they_were() -> None:
     async with world() as w:
         df = w.uav.df
