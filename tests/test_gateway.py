@@ -451,8 +451,10 @@ async def test_subscriptions_of_a_platform_that_leaves_are_dropped() -> None:
         await w.operator.__aexit__(None, None, None)
         await eventually(lambda: w.gateway.subscriptions == {})
         assert w.dk.stream("car/car5/speed").subscriptions == []
-        # the stream it created stays (it may come back; `max_streams` bounds them)
+        # the stream it created stays (it may come back; `max_streams` bounds them) and
+        # counts in its share of them; its subscriptions count no more in theirs
         assert w.gateway.service.created == {"op/t": "gateway:op/t"}
+        assert (w.gateway.service.held_by("operator"), w.gateway.held_by("operator")) == (1, 0)
         assert w.dk.has_label("op/t") and w.gateway.gateway_stats.streams_removed == 0
 
 
@@ -1082,6 +1084,17 @@ async def test_one_platform_holds_at_most_its_share_and_each_freed_slot_is_its_o
         # a cancelled subscription frees its slot; so does one whose informs bounce
         feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
         await feed.cancel()
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        assert gw.held_by("operator") == 1
+        bounce = w.asker.message(
+            Performative.FAILURE,
+            GW,
+            "gone",
+            ontology="dyknow",
+            conversation_id=feed.message.conversation_id,
+        )
+        await w.asker.send(bounce)
+        await eventually(lambda: gw.held_by("operator") == 0, timeout=10)
         feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
         assert gw.held_by("operator") == 1
         # revoked: what it held is freed (its streams removed, its subscriptions ended)
