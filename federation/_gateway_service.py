@@ -314,7 +314,9 @@ class GatewayService:
         self.max_streams_per_platform = max_streams_per_platform
         self.created: dict[str, str] = {}  # output label -> process name
         # output label -> the agent that asked for it: kept and freed with `created`, so
-        # what one platform holds is counted from it and cannot drift from the streams
+        # what one platform holds is counted from it and cannot drift from the streams; a
+        # stream the program created by calling the service (no asker) has none: a reload
+        # or a revocation leaves it, as one of this platform's own agents
         self.creators: dict[str, str] = {}
         # the unit each create-stream added: a process of that name that is another one
         # (this one removed by hand, the name reused) is not the gateway's to remove
@@ -340,7 +342,8 @@ class GatewayService:
     def perform(self, content: Any, asker: str = "", *, limited: bool = False) -> dict[str, Any]:
         """Do what the content asks; the inform's content, or GatewayRefusal.
 
-        ``asker`` is the agent asking (a stream it creates is recorded as its);
+        ``asker`` is the agent asking (a stream it creates is recorded as its; none:
+        the program itself, this platform's);
         ``limited``: its platform is bound by ``max_streams_per_platform`` (another one).
         """
         label = plain_latest(content)
@@ -424,7 +427,8 @@ class GatewayService:
         cu = dk.add_cu(name, _identity, [(req.label, policy)], req.output)
         self.created[req.output] = name
         self._units[req.output] = cu
-        self.creators[req.output] = asker
+        if asker:  # none: the program called the service itself, for its own platform
+            self.creators[req.output] = asker
         return {"label": req.output, "source": req.label}
 
     def held_by(self, platform: str) -> int:

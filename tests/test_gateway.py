@@ -984,6 +984,20 @@ async def _create(asker: Agent, label: str, output: str) -> Any:
     return await request(asker, GW, content, ontology="dyknow", timeout=5)
 
 
+async def test_a_stream_the_program_creates_through_the_service_is_its_platforms() -> None:
+    """One created by calling the service itself (no agent asked) is this platform's: a
+    reload closing the gateway or a revocation leaves it, and no member's share counts it."""
+    async with world(max_streams_per_platform=1) as w:
+        service = w.gateway.service
+        content = {"action": "create-stream", "label": "car/car5/speed", "output": "app/t"}
+        assert service.perform(content) == {"label": "app/t", "source": "car/car5/speed"}
+        await _create(w.asker, "car/car5/speed", "op/t")
+        ended = await w.gateway.set_visibility("private", "closed by the operator")
+        assert ended.streams == [("asker@operator", "op/t")]
+        assert service.created == {"app/t": "gateway:app/t"} and w.dk.has_label("app/t")
+        assert w.gateway.gateway_stats.streams_removed == 1
+
+
 async def test_going_private_keeps_a_stream_this_platforms_own_stream_reads() -> None:
     async with world() as w:
         local = await w.uav.add(Agent("local"))
