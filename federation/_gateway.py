@@ -22,7 +22,9 @@ here (``unknown_label_refused``: a query of any kind, a create-stream's source, 
 subscribe; the lane's plain read leaves it to `_perform`) or a create-stream whose output
 is taken (``taken_label_refused``), and, whoever asks, a
 create-stream whose output is no valid semantic label (``bad_label_refused``) or a
-request beyond the limits (``limit_refused``: ``max_streams``, ``max_subscriptions``).
+request beyond the limits (``limit_refused``: ``max_streams``, ``max_subscriptions``, all
+askers together; ``max_streams_per_platform``, ``max_subscriptions_per_platform``, what
+one other platform may hold of them, so that one member cannot take every slot).
 Made private while a
 request or subscribe of another platform waits in its mailbox (a sharing reload,
 `GatewayAgent.set_visibility`), it refuses that message as the Interface Agent would have
@@ -74,6 +76,7 @@ from ._gateway_service import (
     GatewayRefusal,
     GatewayService,
     answer_to_json,
+    check_limits,
     latest_answer_plain,
     plain_latest,
     samples_to_json,
@@ -211,6 +214,10 @@ class GatewayAgent(Agent):
     loses both: its subscriptions end, the streams it created here are removed (counted,
     audited, logged), as when the gateway goes private. Labels starting with one of
     ``reserved`` may be read, created or written by agents of this platform only.
+    At most ``max_streams`` created streams and ``max_subscriptions`` subscriptions at
+    once, whoever asked (this platform's agents too), and at most
+    ``max_streams_per_platform`` / ``max_subscriptions_per_platform`` of them held by one
+    other platform (this platform's own agents are not bound by these).
     """
 
     def __init__(
@@ -223,20 +230,30 @@ class GatewayAgent(Agent):
         register: bool = True,
         max_subscriptions: int = 1024,
         max_streams: int = 256,
+        max_subscriptions_per_platform: int = 256,
+        max_streams_per_platform: int = 64,
         reserved: Sequence[str] = ("import/",),
     ) -> None:
+        check_limits(
+            max_subscriptions=max_subscriptions,
+            max_subscriptions_per_platform=max_subscriptions_per_platform,
+        )
         super().__init__(name)
         self.reserved = tuple(p for p in reserved if p)
         self.instance = instance
-        self.service = GatewayService(instance, max_streams=max_streams)
+        # it keeps who created each stream (`GatewayService.creators`)
+        self.service = GatewayService(
+            instance, max_streams=max_streams, max_streams_per_platform=max_streams_per_platform
+        )
         self.service_name = service_name
         self.visibility = Visibility(visibility)
         self._register = register
         self.max_subscriptions = max_subscriptions
+        self.max_subscriptions_per_platform = max_subscriptions_per_platform
         self.gateway_stats = GatewayStats()
+        # every subscription served, by (subscriber, conversation): what one platform
+        # holds is counted from it, so a subscription dropped any way frees its slot
         self._feeds: dict[tuple[str, str], _Feed] = {}
-        # output label of each stream a create-stream made -> the agent that asked for it
-        self._creators: dict[str, str] = {}
         self._presence: TransportSubscription[DirectoryEvent] | None = None
         self._unhook_trust: Callable[[], None] | None = None
         self._trust: TrustStore | None = None  # the Interface Agent's: whom it let in
@@ -328,16 +345,17 @@ class GatewayAgent(Agent):
     def _remove_created(self, of: Callable[[str], bool], ended: GatewayEnded) -> None:
         """Remove the streams created here by the platforms ``of`` holds true for, but for
         one a staying process reads (kept, handed to this platform); into ``ended``."""
-        theirs = {o: a for o, a in self._creators.items() if of(platform_of(a))}
+        creators = self.service.creators
+        theirs = {o: a for o, a in creators.items() if of(platform_of(a))}
         # one a staying process reads (this platform's built on it) would leave that one
-        # without input: it is kept, handed to this platform (not considered again)
+        # without input: it is kept, handed to this platform (not considered again, and
+        # no longer counted in its creator's max_streams_per_platform)
         read_on = self.service.read_on(theirs)
         for output, asker in theirs.items():
             if output in read_on:
-                self._creators[output] = self.aid
+                creators[output] = self.aid
                 ended.kept.append((asker, output, read_on[output]))
                 continue
-            del self._creators[output]
             if self.service.remove(output):
                 self.gateway_stats.streams_removed += 1
                 ended.streams.append((asker, output))
@@ -390,18 +408,14 @@ class GatewayAgent(Agent):
             self._check_access(message)
             self._check_reserved(message, content)
         try:
-            result = self.service.perform(content)
+            result = self.service.perform(content, message.sender, limited=remote)
         except GatewayRefusal as exc:
             told = self._told(exc, message)
             if exc.code is not None:
                 self._counted(message, exc.code, told)
             raise Refuse(told) from exc
-        if isinstance(content, dict):
-            action = content.get("action")
-            if action == "create-stream":
-                self._creators[result["label"]] = message.sender
-            elif remote and action == "list-labels":
-                result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
+        if remote and isinstance(content, dict) and content.get("action") == "list-labels":
+            result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
         return result
 
     def _counted(self, message: ACLMessage, code: str, reason: str) -> None:
@@ -616,11 +630,22 @@ class GatewayAgent(Agent):
             # the asker's id, echoed on one line and bounded (as `quoted` bounds any)
             conv = quoted(message.conversation_id, _NAMED_START)
             return f"conversation {conv} already has a subscription"
+        platform = platform_of(message.sender)
+        if platform != self.platform.name:
+            limit = self.max_subscriptions_per_platform
+            if self.held_by(platform) >= limit:
+                reason = f"too many subscriptions for {platform} (limit {limit} per platform)"
+                self._counted(message, "subscription-limit", reason)
+                return reason
         if len(self._feeds) >= self.max_subscriptions:
             reason = f"too many subscriptions (limit {self.max_subscriptions})"
             self._counted(message, "subscription-limit", reason)
             return reason
         return None
+
+    def held_by(self, platform: str) -> int:
+        """How many of the subscriptions served now ``platform``'s agents hold."""
+        return sum(1 for key in self._feeds if platform_of(key[0]) == platform)
 
     @on(MessageTemplate(P.CANCEL, ontology=ONTOLOGY))
     async def _on_cancel(self, message: ACLMessage) -> None:

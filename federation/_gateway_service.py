@@ -19,6 +19,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from agents import platform_of
 from dyknow_core import (
     NS_PER_S,
     Answer,
@@ -293,12 +294,30 @@ def plain_latest(content: Any) -> str | None:
 
 
 class GatewayService:
-    """Performs gateway requests on one DyKnow instance; refusals carry a reason."""
+    """Performs gateway requests on one DyKnow instance; refusals carry a reason.
 
-    def __init__(self, instance: DyKnowInstance, *, max_streams: int = 256) -> None:
+    At most ``max_streams`` streams created at once, whoever asked, and at most
+    ``max_streams_per_platform`` of them asked by one other platform (a create-stream
+    that says it is ``limited``): one member cannot take every slot from the others.
+    """
+
+    def __init__(
+        self,
+        instance: DyKnowInstance,
+        *,
+        max_streams: int = 256,
+        max_streams_per_platform: int = 64,
+    ) -> None:
+        check_limits(max_streams=max_streams, max_streams_per_platform=max_streams_per_platform)
         self.instance = instance
         self.max_streams = max_streams
+        self.max_streams_per_platform = max_streams_per_platform
         self.created: dict[str, str] = {}  # output label -> process name
+        # output label -> the agent that asked for it: kept and freed with `created`, so
+        # what one platform holds is counted from it and cannot drift from the streams; a
+        # stream the program created by calling the service (no asker) has none: a reload
+        # or a revocation leaves it, as one of this platform's own agents
+        self.creators: dict[str, str] = {}
         # the unit each create-stream added: a process of that name that is another one
         # (this one removed by hand, the name reused) is not the gateway's to remove
         self._units: dict[str, ComputationalUnit] = {}
@@ -320,8 +339,13 @@ class GatewayService:
         with _refused_if_invalid():
             return model.model_validate(content)
 
-    def perform(self, content: Any) -> dict[str, Any]:
-        """Do what the content asks; the inform's content, or GatewayRefusal."""
+    def perform(self, content: Any, asker: str = "", *, limited: bool = False) -> dict[str, Any]:
+        """Do what the content asks; the inform's content, or GatewayRefusal.
+
+        ``asker`` is the agent asking (a stream it creates is recorded as its; none:
+        the program itself, this platform's);
+        ``limited``: its platform is bound by ``max_streams_per_platform`` (another one).
+        """
         label = plain_latest(content)
         if label is not None:
             # the common request, done as `query` does it without its model (pydantic's
@@ -339,7 +363,7 @@ class GatewayService:
                 return {"labels": self.instance.labels(req.pattern)}
             if isinstance(req, Query):
                 return answer_to_json(self.query(req))
-            return self.create_stream(req)
+            return self.create_stream(req, asker, limited=limited)
         except UnknownLabelError as exc:
             raise GatewayRefusal(str(exc), code="unknown-label") from exc
         except DyKnowError as exc:
@@ -371,10 +395,21 @@ class GatewayService:
             as_of=as_of,
         )
 
-    def create_stream(self, req: CreateStream) -> dict[str, Any]:
-        """Publish ``req.output`` as ``req.label`` filtered by the policy."""
+    def create_stream(
+        self, req: CreateStream, asker: str = "", *, limited: bool = False
+    ) -> dict[str, Any]:
+        """Publish ``req.output`` as ``req.label`` filtered by the policy, for ``asker``
+        (``limited``: within its platform's ``max_streams_per_platform`` too)."""
         dk = self.instance
         self._forget_removed()  # a stream removed by hand frees its slot
+        if limited:
+            platform = platform_of(asker)
+            if self.held_by(platform) >= self.max_streams_per_platform:
+                raise GatewayRefusal(
+                    f"too many created streams for {platform} "
+                    f"(limit {self.max_streams_per_platform} per platform)",
+                    code="stream-limit",
+                )
         if len(self.created) >= self.max_streams:
             raise GatewayRefusal(
                 f"too many created streams (limit {self.max_streams})", code="stream-limit"
@@ -392,7 +427,15 @@ class GatewayService:
         cu = dk.add_cu(name, _identity, [(req.label, policy)], req.output)
         self.created[req.output] = name
         self._units[req.output] = cu
+        if asker:  # none: the program called the service itself, for its own platform
+            self.creators[req.output] = asker
         return {"label": req.output, "source": req.label}
+
+    def held_by(self, platform: str) -> int:
+        """How many of the streams created here ``platform``'s agents asked for (one
+        removed by hand since no more)."""
+        self._forget_removed()
+        return sum(1 for a in self.creators.values() if platform_of(a) == platform)
 
     def _is_ours(self, output: str) -> bool:
         name = self.created.get(output)
@@ -403,6 +446,7 @@ class GatewayService:
         for output in [o for o in self.created if not self._is_ours(o)]:
             del self.created[output]
             self._units.pop(output, None)
+            self.creators.pop(output, None)
 
     def remove(self, output: str) -> bool:
         """Remove the stream created as ``output`` (its process, which closes the label);
@@ -411,6 +455,7 @@ class GatewayService:
         ours = self._is_ours(output)
         name = self.created.pop(output, None)
         self._units.pop(output, None)
+        self.creators.pop(output, None)
         if name is None or not ours:
             return False
         try:
@@ -447,6 +492,13 @@ class GatewayService:
             unknown = UnknownLabelError(sub.label, self.instance.labels())
             raise GatewayRefusal(str(unknown), code="unknown-label") from unknown
         return sub.label, policy
+
+
+def check_limits(**limits: int) -> None:
+    """Raise ValueError naming the first of ``limits`` that is no count (an int, at least 0)."""
+    for key, value in limits.items():
+        if type(value) is not int or value < 0:
+            raise ValueError(f"{key}: must be a whole number of at least 0, not {value!r}")
 
 
 @contextlib.contextmanager

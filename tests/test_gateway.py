@@ -451,8 +451,10 @@ async def test_subscriptions_of_a_platform_that_leaves_are_dropped() -> None:
         await w.operator.__aexit__(None, None, None)
         await eventually(lambda: w.gateway.subscriptions == {})
         assert w.dk.stream("car/car5/speed").subscriptions == []
-        # the stream it created stays (it may come back; `max_streams` bounds them)
+        # the stream it created stays (it may come back; `max_streams` bounds them) and
+        # counts in its share of them; its subscriptions count no more in theirs
         assert w.gateway.service.created == {"op/t": "gateway:op/t"}
+        assert (w.gateway.service.held_by("operator"), w.gateway.held_by("operator")) == (1, 0)
         assert w.dk.has_label("op/t") and w.gateway.gateway_stats.streams_removed == 0
 
 
@@ -982,6 +984,20 @@ async def _create(asker: Agent, label: str, output: str) -> Any:
     return await request(asker, GW, content, ontology="dyknow", timeout=5)
 
 
+async def test_a_stream_the_program_creates_through_the_service_is_its_platforms() -> None:
+    """One created by calling the service itself (no agent asked) is this platform's: a
+    reload closing the gateway or a revocation leaves it, and no member's share counts it."""
+    async with world(max_streams_per_platform=1) as w:
+        service = w.gateway.service
+        content = {"action": "create-stream", "label": "car/car5/speed", "output": "app/t"}
+        assert service.perform(content) == {"label": "app/t", "source": "car/car5/speed"}
+        await _create(w.asker, "car/car5/speed", "op/t")
+        ended = await w.gateway.set_visibility("private", "closed by the operator")
+        assert ended.streams == [("asker@operator", "op/t")]
+        assert service.created == {"app/t": "gateway:app/t"} and w.dk.has_label("app/t")
+        assert w.gateway.gateway_stats.streams_removed == 1
+
+
 async def test_going_private_keeps_a_stream_this_platforms_own_stream_reads() -> None:
     async with world() as w:
         local = await w.uav.add(Agent("local"))
@@ -1018,6 +1034,105 @@ async def test_a_stream_removed_by_hand_frees_its_slot_and_its_name() -> None:
         assert w.dk.processes["gateway:op/u"] is user and w.dk.has_label("op/u")
         assert w.gateway.gateway_stats.streams_removed == 0
         assert w.gateway.service.created == {}
+
+
+async def test_one_platform_holds_at_most_its_share_and_each_freed_slot_is_its_own_again() -> None:
+    """Another platform holds at most ``max_*_per_platform`` created streams and
+    subscriptions (this platform's own agents are bound by the global limits only); a
+    slot freed any way (removed by hand, handed to this platform, cancelled, bounced,
+    revoked) counts no more against it."""
+    limits = {
+        "max_streams": 4,
+        "max_streams_per_platform": 1,
+        "max_subscriptions": 4,
+        "max_subscriptions_per_platform": 1,
+    }
+    async with world(**limits) as w:
+        local = await w.uav.add(Agent("local"))
+        gw = w.gateway
+        await _create(w.asker, "car/car5/speed", "op/a")
+        streams = await refusal(_create(w.asker, "car/car5/speed", "op/b"))
+        assert streams == "too many created streams for operator (limit 1 per platform)"
+        # the platform's own agents are not bound by it: only by max_streams, as the others
+        await _create(local, "car/car5/speed", "mine/a")
+        await _create(local, "car/car5/speed", "mine/b")
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        subs = await refusal(
+            subscribe(w.asker, GW, {"label": "car5-state"}, ontology="dyknow", timeout=5)
+        )
+        assert subs == "too many subscriptions for operator (limit 1 per platform)"
+        mine = [
+            await subscribe(local, GW, {"label": "car5-state"}, ontology="dyknow") for _ in range(2)
+        ]
+        assert (gw.service.held_by("operator"), gw.held_by("operator")) == (1, 1)
+        assert gw.gateway_stats.limit_refused == 2
+        channel = w.uav.channel
+        assert isinstance(channel, InterfaceAgent)
+        recs = [r for r in channel.audit.records if r.get("stage") == "gateway"]
+        assert [(r["code"], r["sender"], r["reason"]) for r in recs] == [
+            ("stream-limit", "asker@operator", f"stream-limit: {streams}"),
+            ("subscription-limit", "asker@operator", f"subscription-limit: {subs}"),
+        ]
+        # the global limits still bound every asker together: 3 streams, 3 subscriptions
+        await _create(local, "car/car5/speed", "mine/c")
+        full = await refusal(_create(local, "car/car5/speed", "mine/d"))
+        assert full == "too many created streams (limit 4)"
+        w.dk.remove_process("gateway:mine/c")
+        # a stream removed by hand frees its creator's slot
+        w.dk.remove_process("gateway:op/a")
+        assert gw.service.held_by("operator") == 0
+        await _create(w.asker, "car/car5/speed", "op/b")
+        assert gw.service.held_by("operator") == 1
+        # one handed to this platform (kept at a reload: a stream of this one reads it)
+        # is this platform's: its creator may create another
+        await _create(local, "op/b", "mine/on-b")
+        ended = await gw.set_visibility("private", "closed by the operator")
+        assert ended.kept == [("asker@operator", "op/b", ["gateway:mine/on-b"])]
+        with pytest.raises(Failed, match="closed by the operator"):
+            await feed.get(timeout=5)
+        assert (gw.service.held_by("operator"), gw.held_by("operator")) == (0, 0)
+        await gw.set_visibility("protected", "opened again")
+        w.dk.remove_process("gateway:mine/on-b")
+        w.dk.remove_process("gateway:mine/b")
+        await _create(w.asker, "car/car5/speed", "op/c")
+        # a cancelled subscription frees its slot; so does one whose informs bounce
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        await feed.cancel()
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        assert gw.held_by("operator") == 1
+        bounce = w.asker.message(
+            Performative.FAILURE,
+            GW,
+            "gone",
+            ontology="dyknow",
+            conversation_id=feed.message.conversation_id,
+        )
+        await w.asker.send(bounce)
+        await eventually(lambda: gw.held_by("operator") == 0, timeout=10)
+        feed = await subscribe(w.asker, GW, {"label": "car/car5/speed"}, ontology="dyknow")
+        assert gw.held_by("operator") == 1
+        # revoked: what it held is freed (its streams removed, its subscriptions ended)
+        interface = w.uav.channel
+        assert isinstance(interface, InterfaceAgent)
+        assert interface.trust.remove("operator")
+        await eventually(lambda: gw.held_by("operator") == 0)
+        assert gw.service.held_by("operator") == 0 and "op/c" not in gw.service.created
+        for m in mine:
+            await m.cancel()
+
+
+def test_the_gateways_limits_are_counts_named_when_wrong() -> None:
+    dk = DyKnowInstance("uav-a")
+    for key in (
+        "max_streams",
+        "max_streams_per_platform",
+        "max_subscriptions",
+        "max_subscriptions_per_platform",
+    ):
+        with pytest.raises(ValueError, match=f"^{key}: must be a whole number of at least 0"):
+            GatewayAgent(dk, **{key: -1})
+    with pytest.raises(ValueError, match=r"max_streams_per_platform: .* not 2\.5"):
+        GatewayService(dk, max_streams_per_platform=2.5)  # type: ignore[arg-type]
 
 
 async def test_a_re_registration_that_fails_leaves_the_gateway_and_its_entry_as_they_were() -> None:

@@ -201,7 +201,13 @@ async def _victim(config: PlatformConfig, conn: Connection) -> None:
                 elif msg[0] == "limits":  # the gateway's, low: an attack reaches them fast
                     p.gateway.max_subscriptions = msg[1]
                     p.gateway.service.max_streams = msg[2]
+                    if len(msg) > 3:  # what one other platform may hold of them
+                        p.gateway.max_subscriptions_per_platform = msg[3]
+                        p.gateway.service.max_streams_per_platform = msg[4]
                     pipe.send("limits")
+                elif msg[0] == "unprocess":  # the operator removes a process by hand
+                    p.instance.remove_process(msg[1])
+                    pipe.send("unprocess")
                 elif msg[0] == "exit":
                     return
 
@@ -610,6 +616,74 @@ async def test_a_member_exhausting_an_opened_gateways_limits_or_probing_outputs_
         assert all(r["receivers"] == [gw] for r in recs)
         await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
         for h in held:
+            await h.cancel()
+
+
+async def test_one_member_cannot_take_every_slot_of_an_opened_gateway(tmp_path: Path) -> None:
+    """A member holds at most its share of an opened gateway's created streams and
+    subscriptions: past it refused (the reason, counted, audited), while another member
+    still creates and subscribes; a slot of its freed (its subscription cancelled, its
+    stream removed by the operator), it may again."""
+    opened = {"sharing": {"gateway": "protected"}}
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a"], ["uav-c", "uav-m"], uav_a=opened) as w,
+    ):
+        # subscriptions, created streams: all askers together, then one platform's share
+        w.pipes["uav-a"].send("limits", 4, 4, 2, 2)
+        await w.pipes["uav-a"].expect("limits", WAIT)
+        m = await mallory(w)
+        c = w.here["uav-c"].agents.agent("honest") or await w.here["uav-c"].agents.add(
+            Agent("honest")
+        )
+        gw = "gateway@uav-a"
+
+        def create(output: str) -> dict[str, Any]:
+            return {"action": "create-stream", "label": SECRET, "output": output}
+
+        for lb in ("op/s0", "op/s1"):
+            assert await request(m, gw, create(lb), ontology="dyknow") == {
+                "label": lb,
+                "source": SECRET,
+            }
+        streams = await refusal(request(m, gw, create("op/s2"), ontology="dyknow"))
+        assert streams == "too many created streams for uav-m (limit 2 per platform)"
+        held = [await subscribe(m, gw, {"label": SECRET}, ontology="dyknow") for _ in range(2)]
+        subs = await refusal(subscribe(m, gw, {"label": SECRET}, ontology="dyknow"))
+        assert subs == "too many subscriptions for uav-m (limit 2 per platform)"
+        # the other member is served: the attacker took its share, not every slot
+        got = await request(c, gw, create("c/s0"), ontology="dyknow")
+        assert got == {"label": "c/s0", "source": SECRET}
+        theirs = await subscribe(c, gw, {"label": SECRET}, ontology="dyknow")
+        sample = await theirs.get(timeout=WAIT)
+        assert sample["label"] == SECRET and sample["samples"], sample
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: len(audited(s, stage="gateway", sender="mallory@uav-m")) >= 2,
+            "the refusals audited",
+        )
+        assert s["gateway"]["limit_refused"] == 2
+        assert s["gateway"]["subscriptions"] == 3
+        recs = audited(s, verdict="refused", stage="gateway", sender="mallory@uav-m")
+        assert [(r["code"], r["from"], r["performative"], r["reason"]) for r in recs] == [
+            ("stream-limit", "uav-m", "request", f"stream-limit: {streams}"),
+            ("subscription-limit", "uav-m", "subscribe", f"subscription-limit: {subs}"),
+        ]
+        assert all(r["receivers"] == [gw] for r in recs)
+        assert not audited(s, stage="gateway", sender="honest@uav-c")
+        await until(lambda: in_file(tmp_path, "uav-a", recs[-1]), "the record in the audit file")
+        # its slots freed, the attacker may use them again: no count drifts
+        await held.pop().cancel()
+        held.append(await subscribe(m, gw, {"label": SECRET}, ontology="dyknow"))
+        w.pipes["uav-a"].send("unprocess", "gateway:op/s0")
+        await w.pipes["uav-a"].expect("unprocess", WAIT)
+        got = await request(m, gw, create("op/s2"), ontology="dyknow")
+        assert got == {"label": "op/s2", "source": SECRET}
+        again = await refusal(request(m, gw, create("op/s3"), ontology="dyknow"))
+        assert again == streams
+        s = await w.stats("uav-a")
+        assert s["gateway"]["limit_refused"] == 3
+        for h in [*held, theirs]:
             await h.cancel()
 
 
