@@ -912,8 +912,17 @@ class Recording:
             size = os.fstat(f.fileno()).st_size
             finished = _finished(f)
             messages: Iterator[tuple[Any, Any, Message]]
+            chunks: list[tuple[int, int]] = []  # (start, end) byte offsets, to name a bad one
             if finished:
-                messages = SeekingReader(f, validate_crcs=True).iter_messages(log_time_order=True)
+                reader = SeekingReader(f, validate_crcs=True)
+                with contextlib.suppress(Exception):  # a bad summary fails in iter_messages
+                    summary = reader.get_summary()
+                    if summary is not None:
+                        chunks = [
+                            (c.chunk_start_offset, c.chunk_start_offset + c.chunk_length)
+                            for c in summary.chunk_indexes
+                        ]
+                messages = reader.iter_messages(log_time_order=True)
             else:
                 f.seek(0)
                 messages = NonSeekingReader(f, validate_crcs=True).iter_messages(
@@ -929,9 +938,11 @@ class Recording:
                     if not finished and f.tell() >= size:
                         self.truncated = True  # the writer stopped mid-chunk
                         return
-                    raise self._fail(
-                        f"corrupt near byte {f.tell()}: {type(exc).__name__}: {exc}"
-                    ) from None
+                    where = f.tell()
+                    # the reader stops past the chunk it could not read: name where it starts
+                    bad = [a for a, b in chunks if a < where <= b]
+                    at = f"chunk at byte {bad[0]}" if bad else f"near byte {where}"
+                    raise self._fail(f"corrupt {at}: {type(exc).__name__}: {exc}") from None
                 decode = decoders.get(channel.id)
                 if decode is None:
                     decode = decoders[channel.id] = self._channel_decoder(schema, channel)

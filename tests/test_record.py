@@ -7,6 +7,7 @@ import contextlib
 import io
 import json
 import os
+import re
 import signal
 import struct
 import subprocess
@@ -236,10 +237,21 @@ def test_a_corrupt_chunk_is_an_error_after_the_good_ones(tmp_path: Path) -> None
     data[second.chunk_start_offset + second.chunk_length - 3] ^= 0xFF  # its compressed data
     path.write_bytes(bytes(data))
     got = []
-    with pytest.raises(RecordError, match=r"flip.mcap: corrupt near byte \d+"):
+    # the message names where the damaged chunk starts, as `mcap` lists it
+    where = rf"flip.mcap: corrupt chunk at byte {second.chunk_start_offset}: "
+    with pytest.raises(RecordError, match=where):
         for s in read_recording(path):
             got.append(s.value)
     assert got == [0, 1]
+    proc = subprocess.run(
+        [sys.executable, "-m", "federation.cli", "replay", str(path)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert re.search(where, proc.stderr) and "Traceback" not in proc.stderr
 
 
 def test_values_round_trip_through_json(tmp_path: Path) -> None:
