@@ -397,6 +397,32 @@ def test_cli_check_subprocess(tmp_path: Path) -> None:
     ]
 
 
+def test_cli_check_resolves_labels_only_once_the_file_parses(tmp_path: Path) -> None:
+    # a declaration the syntax error dropped may provide the label: no noise about it yet
+    exe = Path(sys.executable).parent / "dyknow"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "federation.cli"]
+    bad = tmp_path / "typo.kpl"
+    text = "source a\n{kw} b\nstream c = nowhere\nstream d = a with {{frob: 1}}\n"
+    bad.write_text(text.format(kw="sorce"))
+    res = subprocess.run(
+        [*cmd, "kpl", "check", str(bad)], capture_output=True, text=True, timeout=60
+    )
+    assert res.returncode == 2
+    assert [line.split(": ")[0] for line in res.stderr.splitlines()] == [
+        f"{bad}:2:1",
+        f"{bad}:4:20",
+    ]
+    assert "found 'sorce'" in res.stderr and "unknown policy field 'frob'" in res.stderr
+    bad.write_text(text.format(kw="source"))
+    res = subprocess.run(
+        [*cmd, "kpl", "check", str(bad)], capture_output=True, text=True, timeout=60
+    )
+    assert res.returncode == 2
+    assert res.stderr.splitlines()[0] == (
+        f"{bad}:3:12: unknown label 'nowhere': no declaration provides it"
+    )
+
+
 # -- classes and links ---------------------------------------------------------------------------
 
 
