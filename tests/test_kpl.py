@@ -397,6 +397,16 @@ def test_cli_check_subprocess(tmp_path: Path) -> None:
     ]
 
 
+def test_a_label_with_a_dash_is_asked_to_be_quoted() -> None:
+    # vocabularies spell labels `wind-speed`: a bare one is told how to write it
+    hint = "must be quoted: a bare label is letters, digits, '_', '.' and '/'"
+    assert errors("source wind-speed\nstate s = {w: heli-position} every 1\n") == [
+        (1, 8, f"label 'wind-speed' {hint} (write \"wind-speed\")"),
+        (2, 15, f"label 'heli-position' {hint} (write \"heli-position\")"),
+    ]
+    assert errors('source "wind-speed"\nstream w = "wind-speed"\n') == []
+
+
 def test_cli_check_resolves_labels_only_once_the_file_parses(tmp_path: Path) -> None:
     # a declaration the syntax error dropped may provide the label: no noise about it yet
     exe = Path(sys.executable).parent / "dyknow"

@@ -431,11 +431,33 @@ class _Parser:
         # declaration starts. Such a label can still be written "quoted".
         if t.kind == "name" and t.text not in _DECL_KEYWORDS:
             self.i += 1
+            if self._glued("-"):
+                # `wind-speed`, a vocabulary's usual spelling, is no bare label: say so
+                # rather than fail at the '-' as if a declaration were missing
+                word = t.text
+                while self._glued("-", "name", "num"):
+                    word += self.tok.text
+                    self.i += 1
+                raise _Fail(
+                    t.pos,
+                    f"label {word!r} must be quoted: a bare label is letters, digits, '_', "
+                    f"'.' and '/' (write \"{word}\")",
+                )
             return Ref(t.text, t.pos)
         if t.kind == "str":
             self.i += 1
             return Ref(_unquote(t.text), t.pos)
         raise self.fail(f"expected {what}")
+
+    def _glued(self, *kinds: str) -> bool:
+        """Whether the next token touches the previous one (no space) and is one of ``kinds``.
+
+        A kind is a token kind, or an operator's text.
+        """
+        prev, t = self.toks[self.i - 1], self.tok
+        if t.kind == "end" or t.pos != (prev.pos[0], prev.pos[1] + len(prev.text)):
+            return False
+        return t.kind in kinds or (t.kind == "op" and t.text in kinds)
 
     def number(self, what: str) -> tuple[float, Pos]:
         pos = self.tok.pos
