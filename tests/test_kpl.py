@@ -397,6 +397,25 @@ def test_cli_check_subprocess(tmp_path: Path) -> None:
     ]
 
 
+def test_text_the_tokenizer_drops_is_reported_once_not_echoed_by_the_parser() -> None:
+    # the string runs to the end of its line; what the declaration misses after it is
+    # the same mistake: one error, and the next declarations are still checked
+    assert errors('source "abc\nsource b\nstream c = b with {frob: 1}\n') == [
+        (1, 8, "unterminated string"),
+        (3, 20, "unknown policy field 'frob' (known: start, end, sample_period, approximation, "
+         "max_delay, late, order, change, lower, upper, buffer_size, overflow)"),
+    ]  # fmt: skip
+    assert errors('source a\nstream b = a with {x: "abc}\nsource c\n') == [
+        (2, 23, "unterminated string")
+    ]
+    assert errors("source a$b\nsource c\n") == [(1, 9, "unexpected character '$'")]
+    # an error before the dropped text is still its own
+    assert errors('stream = "abc\n') == [
+        (1, 8, "expected a label, found '='"),
+        (1, 10, "unterminated string"),
+    ]
+
+
 def test_a_label_with_a_dash_is_asked_to_be_quoted() -> None:
     # vocabularies spell labels `wind-speed`: a bare one is told how to write it
     hint = "must be quoted: a bare label is letters, digits, '_', '.' and '/'"

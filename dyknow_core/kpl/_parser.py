@@ -97,9 +97,11 @@ def _unquote(s: str) -> str:
     return re.sub(r"\\(.)", lambda m: {"n": "\n", "t": "\t"}.get(m.group(1), m.group(1)), s[1:-1])
 
 
-def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError]]:
+def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError], list[Pos]]:
+    """The tokens, the lexical errors, and where text was dropped (a bad string, character)."""
     toks: list[_Tok] = []
     errs: list[tuple[Pos, str]] = []
+    dropped: list[Pos] = []
     line, line_start, i = 1, 0, 0
     while i < len(text):
         m = _TOKEN.match(text, i)
@@ -108,6 +110,7 @@ def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError]]:
             ch = text[i]
             msg = "unterminated string" if ch == '"' else f"unexpected character {ch!r}"
             errs.append((pos, msg))
+            dropped.append(pos)
             i = text.find("\n", i) if ch == '"' else i + 1
             if i < 0:
                 i = len(text)
@@ -129,7 +132,7 @@ def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError]]:
         i = m.end()
     toks.append(_Tok("end", "", (line, i - line_start + 1)))
     lines = text.splitlines()
-    return toks, [KPLError(p[0], p[1], msg, _excerpt(lines, *p)) for p, msg in errs]
+    return toks, [KPLError(p[0], p[1], msg, _excerpt(lines, *p)) for p, msg in errs], dropped
 
 
 # -- AST ------------------------------------------------------------------------------------
@@ -385,8 +388,9 @@ _STATE_STRATEGIES = ("latest", "closest", "interpolate")
 
 
 class _Parser:
-    def __init__(self, toks: list[_Tok]) -> None:
+    def __init__(self, toks: list[_Tok], dropped: list[Pos]) -> None:
         self.toks = toks
+        self.dropped = dropped  # where the tokenizer dropped text, said already
         self.i = 0
         self.errors: list[tuple[Pos, str]] = []
 
@@ -521,13 +525,21 @@ class _Parser:
                 try:
                     decls.append(getattr(self, f"decl_{t.text}")())
                 except _Fail as exc:
-                    self.errors.append((exc.pos, exc.message))
+                    # text dropped in this declaration (an unterminated string) is the
+                    # cause, reported already: what fails after it is only its echo
+                    if not any(t.pos <= d <= exc.pos for d in self.dropped):
+                        self.errors.append((exc.pos, exc.message))
                     self.sync()
             else:
                 found = "end of file" if t.kind == "end" else repr(t.text)
-                self.errors.append(
-                    (t.pos, f"expected a declaration ({', '.join(_DECL_KEYWORDS)}), found {found}")
-                )
+                prev = self.toks[self.i - 1].pos if self.i else (0, 0)
+                if not any(prev <= d <= t.pos for d in self.dropped):  # `a$b`: 'b', an echo
+                    self.errors.append(
+                        (
+                            t.pos,
+                            f"expected a declaration ({', '.join(_DECL_KEYWORDS)}), found {found}",
+                        )
+                    )
                 self.take()
                 self.sync()
         return decls
@@ -838,8 +850,8 @@ class _Parser:
 
 
 def _parse(text: str) -> tuple[Program, list[KPLError]]:
-    toks, errors = _tokenize(text)
-    p = _Parser(toks)
+    toks, errors, dropped = _tokenize(text)
+    p = _Parser(toks, dropped)
     decls = p.program()
     lines = text.splitlines()
     errors += [KPLError(pos[0], pos[1], msg, _excerpt(lines, *pos)) for pos, msg in p.errors]
