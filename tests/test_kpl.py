@@ -295,7 +295,14 @@ def test_duplicates_cycles_and_chronicle_errors() -> None:
     assert (4, 1, "duplicate cu 'f' (first declared at line 3)") in got
     assert (5, 1, "cu 'g' depends on itself") in got
     assert any(e[:2] == (9, 13) and "lo 5.0 is greater than hi 1.0" in e[2] for e in got)
-    assert (10, 1, "chronicle 'n': no 'input e = LABEL' for event 'e'") in got
+    # at the event that needs the input, not at the chronicle
+    assert (10, 21, "chronicle 'n': no 'input e = LABEL' for event 'e'") in got
+    assert errors(
+        "chronicle c {\n  input a = x\n  event s = a\n  forbidden b between s and s\n}"
+    ) == [
+        (2, 13, "unknown label 'x': no declaration provides it"),
+        (4, 3, "chronicle 'c': no 'input b = LABEL' for event 'b'"),
+    ]
 
 
 # -- setup -------------------------------------------------------------------------------------

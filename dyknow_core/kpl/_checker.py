@@ -313,7 +313,15 @@ class _Checker:
             self.err(pos, f"chronicle {d.name!r}: {exc.field}: {exc.reason}")
             return
         for kind in sorted(compiled.kinds - set(d.inputs)):
-            self.err(d.pos, f"chronicle {d.name!r}: no 'input {kind} = LABEL' for event {kind!r}")
+            # at the first event (or forbidden pattern) of that kind, where it is written
+            uses = [
+                d.item_pos.get(f"{group}.{n}", d.pos)
+                for group, items in (("events", d.events), ("forbidden", d.forbidden))
+                for n, item in enumerate(items)
+                if item.get("event") == kind
+            ]
+            where = min(uses, default=d.pos)
+            self.err(where, f"chronicle {d.name!r}: no 'input {kind} = LABEL' for event {kind!r}")
 
     def cycles(self) -> None:
         try:
