@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import datetime
 import io
 import json
 import os
@@ -21,6 +22,7 @@ import msgpack
 import orjson
 import pytest
 from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
 from mcap.writer import Writer as McapWriter
 
 from dyknow_core import (
@@ -342,6 +344,19 @@ async def test_the_mcap_library_finds_every_sample(tmp_path: Path, start: int) -
         (meta,) = reader.iter_metadata()
         assert meta.name == "dyknow" and meta.metadata["time_offset"] == str(offset)
         assert meta.metadata["instance"] == "uav-a" and meta.metadata["version"] == "2"
+        # every field the format promises, as an outside tool reads them
+        md = meta.metadata
+        assert (md["format"], md["clock"], md["start"]) == (
+            "dyknow-record",
+            "ManualClock",
+            str(start),
+        )
+        assert json.loads(md["labels"]) == ["uav/altitude", "uav/position"]
+        assert json.loads(md["meta"]) == {} and md["time_unit"] == "ns"
+        created = datetime.datetime.fromisoformat(md["created"])
+        assert created.utcoffset() == datetime.timedelta(0)
+        header = reader.get_header()
+        assert header.profile == "" and header.library.startswith("dyknow; mcap-python/")
         got = []
         for _, channel, message in reader.iter_messages(log_time_order=True):
             body = orjson.loads(message.data)
@@ -351,6 +366,9 @@ async def test_the_mcap_library_finds_every_sample(tmp_path: Path, start: int) -
             got.append((channel.topic, body["value"], tv, ta))
     assert got == expected
     assert _samples(path) == expected  # and ours reads the same
+    with path.open("rb") as f:  # the metadata comes before any message
+        kinds = [type(r).__name__ for r in StreamReader(f).records]
+    assert kinds.index("Metadata") < kinds.index("Message")
 
 
 def test_replay_of_an_mcap_file_written_by_the_mcap_library(
