@@ -295,6 +295,13 @@ def test_duplicates_cycles_and_chronicle_errors() -> None:
     assert (4, 1, "duplicate cu 'f' (first declared at line 3)") in got
     assert (5, 1, "cu 'g' depends on itself") in got
     assert any(e[:2] == (9, 13) and "lo 5.0 is greater than hi 1.0" in e[2] for e in got)
+    # processes `m`, `monitor:m`, `chronicle:m` and their labels: no two alike
+    same_name = (
+        "source a\ncu m = mod:f inputs a output b\n"
+        'monitor m = "always a > 1" every 1\n'
+        "chronicle m { input k = a\n event e = k }\n"
+    )
+    assert errors(same_name) == []
     # at the event that needs the input, not at the chronicle
     assert (10, 21, "chronicle 'n': no 'input e = LABEL' for event 'e'") in got
     assert errors(

@@ -156,8 +156,8 @@ class _Checker:
         seen: dict[tuple[str, str], Pos] = {}
         providers: dict[str, Pos] = {}
         for d in self.prog.decls:
-            group = "process" if isinstance(d, CUDecl | MonitorDecl | ChronicleDecl) else d.kind
-            key = (group, _decl_name(d))
+            # a process name is `N` (cu), `monitor:N`, `chronicle:N`: each kind names its own
+            key = (d.kind, _decl_name(d))
             dup = key in seen and not isinstance(d, SourceDecl | StreamDecl | StateDecl)
             if dup:
                 self.err(d.pos, f"duplicate {d.kind} {key[1]!r} (first declared at line "
