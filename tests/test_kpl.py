@@ -423,6 +423,15 @@ def test_text_the_tokenizer_drops_is_reported_once_not_echoed_by_the_parser() ->
         (2, 23, "unterminated string")
     ]
     assert errors("source a$b\nsource c\n") == [(1, 9, "unexpected character '$'")]
+    # a stray character drops only itself: a later error of its declaration is its own
+    assert errors("source a\ncu f = m:g$ inputs a output\n") == [
+        (2, 11, "unexpected character '$'"),
+        (3, 1, "expected the output label, found end of file"),
+    ]
+    assert errors("chronicle c {\n input k = a$\n event e = k\n constraint e -> 1\n}\n") == [
+        (2, 13, "unexpected character '$'"),
+        (4, 18, "expected an event name, found '1'"),
+    ]
     # an error before the dropped text is still its own
     assert errors('stream = "abc\n') == [
         (1, 8, "expected a label, found '='"),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 import difflib
 import logging
 import math
@@ -97,11 +98,14 @@ def _unquote(s: str) -> str:
     return re.sub(r"\\(.)", lambda m: {"n": "\n", "t": "\t"}.get(m.group(1), m.group(1)), s[1:-1])
 
 
-def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError], list[Pos]]:
-    """The tokens, the lexical errors, and where text was dropped (a bad string, character)."""
+def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError], list[tuple[Pos, bool]]]:
+    """The tokens, the lexical errors, and where text was dropped (a bad string, character).
+
+    Each drop is its position and whether it ran to its line's end (an unterminated string).
+    """
     toks: list[_Tok] = []
     errs: list[tuple[Pos, str]] = []
-    dropped: list[Pos] = []
+    dropped: list[tuple[Pos, bool]] = []
     line, line_start, i = 1, 0, 0
     while i < len(text):
         m = _TOKEN.match(text, i)
@@ -110,7 +114,7 @@ def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError], list[Pos]]:
             ch = text[i]
             msg = "unterminated string" if ch == '"' else f"unexpected character {ch!r}"
             errs.append((pos, msg))
-            dropped.append(pos)
+            dropped.append((pos, ch == '"'))
             i = text.find("\n", i) if ch == '"' else i + 1
             if i < 0:
                 i = len(text)
@@ -388,9 +392,10 @@ _STATE_STRATEGIES = ("latest", "closest", "interpolate")
 
 
 class _Parser:
-    def __init__(self, toks: list[_Tok], dropped: list[Pos]) -> None:
+    def __init__(self, toks: list[_Tok], dropped: list[tuple[Pos, bool]]) -> None:
         self.toks = toks
         self.dropped = dropped  # where the tokenizer dropped text, said already
+        self.starts = [t.pos for t in toks]
         self.i = 0
         self.errors: list[tuple[Pos, str]] = []
 
@@ -452,6 +457,15 @@ class _Parser:
             self.i += 1
             return Ref(_unquote(t.text), t.pos)
         raise self.fail(f"expected {what}")
+
+    def _echo(self, start: Pos, at: Pos) -> bool:
+        """Whether a failure at ``at``, in a declaration from ``start``, repeats a lexical error."""
+        k = bisect.bisect_left(self.starts, at)
+        before = self.starts[k - 1] if k else (0, 0)  # the token before the failing one
+        # an unterminated string took the rest of its line: whatever its declaration then
+        # lacks is its echo; a stray character took only itself, so only the token right
+        # after it (`a$b`: 'b') can be its echo, a later failure is an error of its own
+        return any(start <= d <= at and (line_end or before < d) for d, line_end in self.dropped)
 
     def _glued(self, *kinds: str) -> bool:
         """Whether the next token touches the previous one (no space) and is one of ``kinds``.
@@ -525,15 +539,13 @@ class _Parser:
                 try:
                     decls.append(getattr(self, f"decl_{t.text}")())
                 except _Fail as exc:
-                    # text dropped in this declaration (an unterminated string) is the
-                    # cause, reported already: what fails after it is only its echo
-                    if not any(t.pos <= d <= exc.pos for d in self.dropped):
+                    if not self._echo(t.pos, exc.pos):
                         self.errors.append((exc.pos, exc.message))
                     self.sync()
             else:
                 found = "end of file" if t.kind == "end" else repr(t.text)
                 prev = self.toks[self.i - 1].pos if self.i else (0, 0)
-                if not any(prev <= d <= t.pos for d in self.dropped):  # `a$b`: 'b', an echo
+                if not any(prev <= d <= t.pos for d, _ in self.dropped):  # `a$b`: 'b', an echo
                     self.errors.append(
                         (
                             t.pos,
