@@ -940,8 +940,10 @@ class Recording:
                         return
                     where = f.tell()
                     # the reader stops past the chunk it could not read: name where it starts
-                    bad = [a for a, b in chunks if a < where <= b]
-                    at = f"chunk at byte {bad[0]}" if bad else f"near byte {where}"
+                    start = next((a for a, b in chunks if a < where <= b), None)
+                    if start is None:  # no chunk index: walk the records to it
+                        start = _chunk_at(f, where)
+                    at = f"chunk at byte {start}" if start is not None else f"near byte {where}"
                     raise self._fail(f"corrupt {at}: {type(exc).__name__}: {exc}") from None
                 decode = decoders.get(channel.id)
                 if decode is None:
@@ -1147,6 +1149,25 @@ def recording_info(rec: Any, file: str) -> dict[str, Any]:
         "undecodable": dict(sorted(getattr(rec, "undecodable", {}).items())),
         "problems": dict(sorted(getattr(rec, "problems", {}).items())),
     }
+
+
+def _chunk_at(f: IO[bytes], where: int) -> int | None:
+    """The byte the chunk record holding ``where`` (its end included) starts at, if any.
+
+    For a file without a chunk index: walks the records' framing (opcode, length) from the
+    magic; a damaged length leads nowhere and gives None.
+    """
+    pos = len(MCAP_MAGIC)
+    while pos < where:
+        f.seek(pos)
+        head = f.read(9)
+        if len(head) < 9:
+            return None
+        end = pos + 9 + int.from_bytes(head[1:], "little")
+        if head[0] == 0x06 and pos < where <= end:  # 0x06: a Chunk record
+            return pos
+        pos = end
+    return None
 
 
 def _finished(f: IO[bytes]) -> bool:

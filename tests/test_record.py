@@ -256,6 +256,26 @@ def test_a_corrupt_chunk_is_an_error_after_the_good_ones(tmp_path: Path) -> None
     assert re.search(where, proc.stderr) and "Traceback" not in proc.stderr
 
 
+def test_a_corrupt_chunk_without_a_chunk_index_is_named_by_its_start(tmp_path: Path) -> None:
+    # a killed writer's file has no index: the chunk is found by the records' framing
+    path = tmp_path / "killed.mcap"
+    w = RecordWriter(path, batch_size=2)
+    for k in range(6):
+        w.add("x", k, k, k)
+    w.close()
+    with path.open("rb") as f:
+        second = make_reader(f).get_summary().chunk_indexes[1]  # type: ignore[union-attr]
+    data = bytearray(path.read_bytes()[:-20])  # no footer: as if the writer was killed
+    data[second.chunk_start_offset + second.chunk_length - 3] ^= 0xFF
+    path.write_bytes(bytes(data))
+    got = []
+    where = rf"killed.mcap: corrupt chunk at byte {second.chunk_start_offset}: "
+    with pytest.raises(RecordError, match=where):
+        for s in read_recording(path):
+            got.append(s.value)
+    assert got == [0, 1]
+
+
 def test_values_round_trip_through_json(tmp_path: Path) -> None:
     path = tmp_path / "values.mcap"
     values: list[Any] = [
