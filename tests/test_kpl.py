@@ -423,6 +423,10 @@ def test_text_the_tokenizer_drops_is_reported_once_not_echoed_by_the_parser() ->
         (2, 23, "unterminated string")
     ]
     assert errors("source a$b\nsource c\n") == [(1, 9, "unexpected character '$'")]
+    # the declaration took the next line's word as the label the string was: not its error
+    assert errors('source a\nstream b = "abc\n  with {x: 1}\nsource c\n') == [
+        (2, 12, "unterminated string")
+    ]
     # a stray character drops only itself: a later error of its declaration is its own
     assert errors("source a\ncu f = m:g$ inputs a output\n") == [
         (2, 11, "unexpected character '$'"),

@@ -533,9 +533,11 @@ class _Parser:
 
     def program(self) -> list[Decl]:
         decls: list[Decl] = []
+        start: Pos = (0, 0)  # where the last declaration started
         while self.tok.kind != "end":
             t = self.tok
             if t.kind == "name" and t.text in _DECL_KEYWORDS:
+                start = t.pos
                 try:
                     decls.append(getattr(self, f"decl_{t.text}")())
                 except _Fail as exc:
@@ -544,8 +546,9 @@ class _Parser:
                     self.sync()
             else:
                 found = "end of file" if t.kind == "end" else repr(t.text)
-                prev = self.toks[self.i - 1].pos if self.i else (0, 0)
-                if not any(prev <= d <= t.pos for d, _ in self.dropped):  # `a$b`: 'b', an echo
+                # `a$b`: 'b'; `stream b = "abc` then `with {…}` on the next line: 'with'
+                # taken as its label, then '{': echoes of the drop
+                if not self._echo(start, t.pos):
                     self.errors.append(
                         (
                             t.pos,
