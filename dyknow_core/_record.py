@@ -912,8 +912,17 @@ class Recording:
             size = os.fstat(f.fileno()).st_size
             finished = _finished(f)
             messages: Iterator[tuple[Any, Any, Message]]
+            chunks: list[tuple[int, int]] = []  # (start, end) byte offsets, to name a bad one
             if finished:
-                messages = SeekingReader(f, validate_crcs=True).iter_messages(log_time_order=True)
+                reader = SeekingReader(f, validate_crcs=True)
+                with contextlib.suppress(Exception):  # a bad summary fails in iter_messages
+                    summary = reader.get_summary()
+                    if summary is not None:
+                        chunks = [
+                            (c.chunk_start_offset, c.chunk_start_offset + c.chunk_length)
+                            for c in summary.chunk_indexes
+                        ]
+                messages = reader.iter_messages(log_time_order=True)
             else:
                 f.seek(0)
                 messages = NonSeekingReader(f, validate_crcs=True).iter_messages(
@@ -929,9 +938,13 @@ class Recording:
                     if not finished and f.tell() >= size:
                         self.truncated = True  # the writer stopped mid-chunk
                         return
-                    raise self._fail(
-                        f"corrupt near byte {f.tell()}: {type(exc).__name__}: {exc}"
-                    ) from None
+                    where = f.tell()
+                    # the reader stops past the chunk it could not read: name where it starts
+                    start = next((a for a, b in chunks if a < where <= b), None)
+                    if start is None:  # no chunk index: walk the records to it
+                        start = _chunk_at(f, where)
+                    at = f"chunk at byte {start}" if start is not None else f"near byte {where}"
+                    raise self._fail(f"corrupt {at}: {type(exc).__name__}: {exc}") from None
                 decode = decoders.get(channel.id)
                 if decode is None:
                     decode = decoders[channel.id] = self._channel_decoder(schema, channel)
@@ -1136,6 +1149,25 @@ def recording_info(rec: Any, file: str) -> dict[str, Any]:
         "undecodable": dict(sorted(getattr(rec, "undecodable", {}).items())),
         "problems": dict(sorted(getattr(rec, "problems", {}).items())),
     }
+
+
+def _chunk_at(f: IO[bytes], where: int) -> int | None:
+    """The byte the chunk record holding ``where`` (its end included) starts at, if any.
+
+    For a file without a chunk index: walks the records' framing (opcode, length) from the
+    magic; a damaged length leads nowhere and gives None.
+    """
+    pos = len(MCAP_MAGIC)
+    while pos < where:
+        f.seek(pos)
+        head = f.read(9)
+        if len(head) < 9:
+            return None
+        end = pos + 9 + int.from_bytes(head[1:], "little")
+        if head[0] == 0x06 and pos < where <= end:  # 0x06: a Chunk record
+            return pos
+        pos = end
+    return None
 
 
 def _finished(f: IO[bytes]) -> bool:

@@ -968,3 +968,73 @@ async def test_what_a_client_makes_the_sdk_log_below_its_logger_is_held_too(
         for h in re.findall(r"\(and (\d+) more lines held back before it\)", ln)
     )
     assert len(server) + held_server >= 2 * n, text[-3000:]
+
+
+async def test_a_plain_websocket_client_reads_a_channel_as_the_doc_says(tmp_path: Path) -> None:
+    # docs/foxglove.md, "Reading a channel with a plain WebSocket client", step by step
+    pub = gen_keys("operator", tmp_path / "keys")[2]
+    trust_keys(tmp_path / "trust.json", [pub], federation="demo")
+    config = PlatformConfig.from_dict(
+        {
+            "name": "operator",
+            "federation": "demo",
+            "key": str(tmp_path / "keys" / "operator.key"),
+            "trust": str(tmp_path / "trust.json"),
+            "vocabulary": vocabulary(),
+            "mapping": local_mapping(),
+            "foxglove": {"streams": [], "local": ["operator/notes"]},
+        }
+    )
+    async with contextlib.AsyncExitStack() as stack:
+        t = await stack.enter_async_context(MemoryHub().transport())
+        operator = await stack.enter_async_context(FederationPlatform(config, transport=t))
+        notes = operator.instance.add_source("operator/notes")
+        notes.push({"text": "first", "n": 1})  # the channel is advertised with its first sample
+        bridge = await stack.enter_async_context(FoxgloveBridge(operator, port=0))
+        session = await stack.enter_async_context(aiohttp.ClientSession())
+        # 1. the ready line's URL, offering foxglove.sdk.v1
+        ws = await stack.enter_async_context(
+            session.ws_connect(bridge.login_url, protocols=["foxglove.sdk.v1"])
+        )
+        assert ws.protocol == "foxglove.sdk.v1"
+        async with asyncio.timeout(20):
+            # 2. serverInfo, then advertise
+            first = await ws.receive()
+            assert first.type == aiohttp.WSMsgType.TEXT
+            info = json.loads(first.data)
+            assert info["op"] == "serverInfo" and info["name"] == "dyknow operator (demo)"
+            assert info["capabilities"] == [] and isinstance(info["metadata"], dict)
+            assert isinstance(info["sessionId"], str)
+            channel = await _first_advertised(ws)
+        assert isinstance(channel["id"], int)
+        assert channel["topic"] == "/operator/operator/notes"
+        assert channel["encoding"] == "json" and channel["schemaEncoding"] == "jsonschema"
+        assert channel["schemaName"] == "operator/notes"
+        schema = json.loads(channel["schema"])  # a JSON schema, as a string
+        assert schema["type"] == "object"
+        assert set(schema["properties"]) == {"value", "valid_time", "available_time"}
+        # 3. a subscription with a number of our own
+        await ws.send_json(
+            {"op": "subscribe", "subscriptions": [{"id": 7, "channelId": channel["id"]}]}
+        )
+        # 4. each message one binary frame: 0x01, the subscription (u32 LE), the log time
+        # (u64 LE: the valid time), the JSON message
+        valid = time.time_ns() - 5 * 10**9  # not the available time: which one is seen
+        async with asyncio.timeout(20):
+            while True:
+                notes.push({"text": "seen", "n": 2}, valid_time=valid)
+                try:
+                    msg = await asyncio.wait_for(ws.receive(), 0.5)
+                except TimeoutError:
+                    continue
+                if msg.type == aiohttp.WSMsgType.BINARY:
+                    break
+        data = bytes(msg.data)
+        assert data[0] == 0x01
+        assert int.from_bytes(data[1:5], "little") == 7
+        assert int.from_bytes(data[5:13], "little") == valid
+        message = json.loads(data[13:])
+        assert message["value"] == {"text": "seen", "n": 2}
+        assert message["valid_time"] == {"sec": valid // 10**9, "nsec": valid % 10**9}
+        available = message["available_time"]
+        assert available["sec"] * 10**9 + available["nsec"] > valid

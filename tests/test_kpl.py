@@ -295,7 +295,21 @@ def test_duplicates_cycles_and_chronicle_errors() -> None:
     assert (4, 1, "duplicate cu 'f' (first declared at line 3)") in got
     assert (5, 1, "cu 'g' depends on itself") in got
     assert any(e[:2] == (9, 13) and "lo 5.0 is greater than hi 1.0" in e[2] for e in got)
-    assert (10, 1, "chronicle 'n': no 'input e = LABEL' for event 'e'") in got
+    # processes `m`, `monitor:m`, `chronicle:m` and their labels: no two alike
+    same_name = (
+        "source a\ncu m = mod:f inputs a output b\n"
+        'monitor m = "always a > 1" every 1\n'
+        "chronicle m { input k = a\n event e = k }\n"
+    )
+    assert errors(same_name) == []
+    # at the event that needs the input, not at the chronicle
+    assert (10, 21, "chronicle 'n': no 'input e = LABEL' for event 'e'") in got
+    assert errors(
+        "chronicle c {\n  input a = x\n  event s = a\n  forbidden b between s and s\n}"
+    ) == [
+        (2, 13, "unknown label 'x': no declaration provides it"),
+        (4, 3, "chronicle 'c': no 'input b = LABEL' for event 'b'"),
+    ]
 
 
 # -- setup -------------------------------------------------------------------------------------
@@ -395,6 +409,74 @@ def test_cli_check_subprocess(tmp_path: Path) -> None:
     assert res.stderr.splitlines() == [
         f"{bad}:2:17: formula: expected a constant, found end of formula"
     ]
+
+
+def test_text_the_tokenizer_drops_is_reported_once_not_echoed_by_the_parser() -> None:
+    # the string runs to the end of its line; what the declaration misses after it is
+    # the same mistake: one error, and the next declarations are still checked
+    assert errors('source "abc\nsource b\nstream c = b with {frob: 1}\n') == [
+        (1, 8, "unterminated string"),
+        (3, 20, "unknown policy field 'frob' (known: start, end, sample_period, approximation, "
+         "max_delay, late, order, change, lower, upper, buffer_size, overflow)"),
+    ]  # fmt: skip
+    assert errors('source a\nstream b = a with {x: "abc}\nsource c\n') == [
+        (2, 23, "unterminated string")
+    ]
+    assert errors("source a$b\nsource c\n") == [(1, 9, "unexpected character '$'")]
+    # the declaration took the next line's word as the label the string was: not its error
+    assert errors('source a\nstream b = "abc\n  with {x: 1}\nsource c\n') == [
+        (2, 12, "unterminated string")
+    ]
+    # a stray character drops only itself: a later error of its declaration is its own
+    assert errors("source a\ncu f = m:g$ inputs a output\n") == [
+        (2, 11, "unexpected character '$'"),
+        (3, 1, "expected the output label, found end of file"),
+    ]
+    assert errors("chronicle c {\n input k = a$\n event e = k\n constraint e -> 1\n}\n") == [
+        (2, 13, "unexpected character '$'"),
+        (4, 18, "expected an event name, found '1'"),
+    ]
+    # an error before the dropped text is still its own
+    assert errors('stream = "abc\n') == [
+        (1, 8, "expected a label, found '='"),
+        (1, 10, "unterminated string"),
+    ]
+
+
+def test_a_label_with_a_dash_is_asked_to_be_quoted() -> None:
+    # vocabularies spell labels `wind-speed`: a bare one is told how to write it
+    hint = "must be quoted: a bare label is letters, digits, '_', '.' and '/'"
+    assert errors("source wind-speed\nstate s = {w: heli-position} every 1\n") == [
+        (1, 8, f"label 'wind-speed' {hint} (write \"wind-speed\")"),
+        (2, 15, f"label 'heli-position' {hint} (write \"heli-position\")"),
+    ]
+    assert errors('source "wind-speed"\nstream w = "wind-speed"\n') == []
+
+
+def test_cli_check_resolves_labels_only_once_the_file_parses(tmp_path: Path) -> None:
+    # a declaration the syntax error dropped may provide the label: no noise about it yet
+    exe = Path(sys.executable).parent / "dyknow"
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "federation.cli"]
+    bad = tmp_path / "typo.kpl"
+    text = "source a\n{kw} b\nstream c = nowhere\nstream d = a with {{frob: 1}}\n"
+    bad.write_text(text.format(kw="sorce"))
+    res = subprocess.run(
+        [*cmd, "kpl", "check", str(bad)], capture_output=True, text=True, timeout=60
+    )
+    assert res.returncode == 2
+    assert [line.split(": ")[0] for line in res.stderr.splitlines()] == [
+        f"{bad}:2:1",
+        f"{bad}:4:20",
+    ]
+    assert "found 'sorce'" in res.stderr and "unknown policy field 'frob'" in res.stderr
+    bad.write_text(text.format(kw="source"))
+    res = subprocess.run(
+        [*cmd, "kpl", "check", str(bad)], capture_output=True, text=True, timeout=60
+    )
+    assert res.returncode == 2
+    assert res.stderr.splitlines()[0] == (
+        f"{bad}:3:12: unknown label 'nowhere': no declaration provides it"
+    )
 
 
 # -- classes and links ---------------------------------------------------------------------------

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import datetime
 import io
 import json
 import os
+import re
 import signal
 import struct
 import subprocess
@@ -20,6 +22,7 @@ import msgpack
 import orjson
 import pytest
 from mcap.reader import make_reader
+from mcap.stream_reader import StreamReader
 from mcap.writer import Writer as McapWriter
 
 from dyknow_core import (
@@ -236,7 +239,38 @@ def test_a_corrupt_chunk_is_an_error_after_the_good_ones(tmp_path: Path) -> None
     data[second.chunk_start_offset + second.chunk_length - 3] ^= 0xFF  # its compressed data
     path.write_bytes(bytes(data))
     got = []
-    with pytest.raises(RecordError, match=r"flip.mcap: corrupt near byte \d+"):
+    # the message names where the damaged chunk starts, as `mcap` lists it
+    where = rf"flip.mcap: corrupt chunk at byte {second.chunk_start_offset}: "
+    with pytest.raises(RecordError, match=where):
+        for s in read_recording(path):
+            got.append(s.value)
+    assert got == [0, 1]
+    proc = subprocess.run(
+        [sys.executable, "-m", "federation.cli", "replay", str(path)],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=60,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert re.search(where, proc.stderr) and "Traceback" not in proc.stderr
+
+
+def test_a_corrupt_chunk_without_a_chunk_index_is_named_by_its_start(tmp_path: Path) -> None:
+    # a killed writer's file has no index: the chunk is found by the records' framing
+    path = tmp_path / "killed.mcap"
+    w = RecordWriter(path, batch_size=2)
+    for k in range(6):
+        w.add("x", k, k, k)
+    w.close()
+    with path.open("rb") as f:
+        second = make_reader(f).get_summary().chunk_indexes[1]  # type: ignore[union-attr]
+    data = bytearray(path.read_bytes()[:-20])  # no footer: as if the writer was killed
+    data[second.chunk_start_offset + second.chunk_length - 3] ^= 0xFF
+    path.write_bytes(bytes(data))
+    got = []
+    where = rf"killed.mcap: corrupt chunk at byte {second.chunk_start_offset}: "
+    with pytest.raises(RecordError, match=where):
         for s in read_recording(path):
             got.append(s.value)
     assert got == [0, 1]
@@ -330,6 +364,19 @@ async def test_the_mcap_library_finds_every_sample(tmp_path: Path, start: int) -
         (meta,) = reader.iter_metadata()
         assert meta.name == "dyknow" and meta.metadata["time_offset"] == str(offset)
         assert meta.metadata["instance"] == "uav-a" and meta.metadata["version"] == "2"
+        # every field the format promises, as an outside tool reads them
+        md = meta.metadata
+        assert (md["format"], md["clock"], md["start"]) == (
+            "dyknow-record",
+            "ManualClock",
+            str(start),
+        )
+        assert json.loads(md["labels"]) == ["uav/altitude", "uav/position"]
+        assert json.loads(md["meta"]) == {} and md["time_unit"] == "ns"
+        created = datetime.datetime.fromisoformat(md["created"])
+        assert created.utcoffset() == datetime.timedelta(0)
+        header = reader.get_header()
+        assert header.profile == "" and header.library.startswith("dyknow; mcap-python/")
         got = []
         for _, channel, message in reader.iter_messages(log_time_order=True):
             body = orjson.loads(message.data)
@@ -339,6 +386,9 @@ async def test_the_mcap_library_finds_every_sample(tmp_path: Path, start: int) -
             got.append((channel.topic, body["value"], tv, ta))
     assert got == expected
     assert _samples(path) == expected  # and ours reads the same
+    with path.open("rb") as f:  # the metadata comes before any message
+        kinds = [type(r).__name__ for r in StreamReader(f).records]
+    assert kinds.index("Metadata") < kinds.index("Message")
 
 
 def test_replay_of_an_mcap_file_written_by_the_mcap_library(

@@ -716,6 +716,9 @@ def test_console_and_foxglove_reload_sharing_on_sighup_and_serve_on(
     try:
         assert node.ask("wind-speed").returncode != 0
         node.hup(EVERYTHING)
+        # as a node's: the trust file first, said in a line of its own, then [sharing]
+        line = node.out.wait_for("trust file reloaded", 30)
+        assert line.startswith(f"dyknow {command}: trust file reloaded from "), line
         line = node.out.wait_for("[sharing] reloaded", 30)
         assert line.startswith(f"dyknow {command}: [sharing] reloaded from {CONFIG}: "), line
         assert "sharing.default 'none' -> 'members'" in line, line

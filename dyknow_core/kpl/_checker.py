@@ -156,8 +156,8 @@ class _Checker:
         seen: dict[tuple[str, str], Pos] = {}
         providers: dict[str, Pos] = {}
         for d in self.prog.decls:
-            group = "process" if isinstance(d, CUDecl | MonitorDecl | ChronicleDecl) else d.kind
-            key = (group, _decl_name(d))
+            # a process name is `N` (cu), `monitor:N`, `chronicle:N`: each kind names its own
+            key = (d.kind, _decl_name(d))
             dup = key in seen and not isinstance(d, SourceDecl | StreamDecl | StateDecl)
             if dup:
                 self.err(d.pos, f"duplicate {d.kind} {key[1]!r} (first declared at line "
@@ -313,7 +313,15 @@ class _Checker:
             self.err(pos, f"chronicle {d.name!r}: {exc.field}: {exc.reason}")
             return
         for kind in sorted(compiled.kinds - set(d.inputs)):
-            self.err(d.pos, f"chronicle {d.name!r}: no 'input {kind} = LABEL' for event {kind!r}")
+            # at the first event (or forbidden pattern) of that kind, where it is written
+            uses = [
+                d.item_pos.get(f"{group}.{n}", d.pos)
+                for group, items in (("events", d.events), ("forbidden", d.forbidden))
+                for n, item in enumerate(items)
+                if item.get("event") == kind
+            ]
+            where = min(uses, default=d.pos)
+            self.err(where, f"chronicle {d.name!r}: no 'input {kind} = LABEL' for event {kind!r}")
 
     def cycles(self) -> None:
         try:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import bisect
 import difflib
 import logging
 import math
@@ -97,9 +98,14 @@ def _unquote(s: str) -> str:
     return re.sub(r"\\(.)", lambda m: {"n": "\n", "t": "\t"}.get(m.group(1), m.group(1)), s[1:-1])
 
 
-def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError]]:
+def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError], list[tuple[Pos, bool]]]:
+    """The tokens, the lexical errors, and where text was dropped (a bad string, character).
+
+    Each drop is its position and whether it ran to its line's end (an unterminated string).
+    """
     toks: list[_Tok] = []
     errs: list[tuple[Pos, str]] = []
+    dropped: list[tuple[Pos, bool]] = []
     line, line_start, i = 1, 0, 0
     while i < len(text):
         m = _TOKEN.match(text, i)
@@ -108,6 +114,7 @@ def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError]]:
             ch = text[i]
             msg = "unterminated string" if ch == '"' else f"unexpected character {ch!r}"
             errs.append((pos, msg))
+            dropped.append((pos, ch == '"'))
             i = text.find("\n", i) if ch == '"' else i + 1
             if i < 0:
                 i = len(text)
@@ -129,7 +136,7 @@ def _tokenize(text: str) -> tuple[list[_Tok], list[KPLError]]:
         i = m.end()
     toks.append(_Tok("end", "", (line, i - line_start + 1)))
     lines = text.splitlines()
-    return toks, [KPLError(p[0], p[1], msg, _excerpt(lines, *p)) for p, msg in errs]
+    return toks, [KPLError(p[0], p[1], msg, _excerpt(lines, *p)) for p, msg in errs], dropped
 
 
 # -- AST ------------------------------------------------------------------------------------
@@ -385,8 +392,10 @@ _STATE_STRATEGIES = ("latest", "closest", "interpolate")
 
 
 class _Parser:
-    def __init__(self, toks: list[_Tok]) -> None:
+    def __init__(self, toks: list[_Tok], dropped: list[tuple[Pos, bool]]) -> None:
         self.toks = toks
+        self.dropped = dropped  # where the tokenizer dropped text, said already
+        self.starts = [t.pos for t in toks]
         self.i = 0
         self.errors: list[tuple[Pos, str]] = []
 
@@ -431,11 +440,42 @@ class _Parser:
         # declaration starts. Such a label can still be written "quoted".
         if t.kind == "name" and t.text not in _DECL_KEYWORDS:
             self.i += 1
+            if self._glued("-"):
+                # `wind-speed`, a vocabulary's usual spelling, is no bare label: say so
+                # rather than fail at the '-' as if a declaration were missing
+                word = t.text
+                while self._glued("-", "name", "num"):
+                    word += self.tok.text
+                    self.i += 1
+                raise _Fail(
+                    t.pos,
+                    f"label {word!r} must be quoted: a bare label is letters, digits, '_', "
+                    f"'.' and '/' (write \"{word}\")",
+                )
             return Ref(t.text, t.pos)
         if t.kind == "str":
             self.i += 1
             return Ref(_unquote(t.text), t.pos)
         raise self.fail(f"expected {what}")
+
+    def _echo(self, start: Pos, at: Pos) -> bool:
+        """Whether a failure at ``at``, in a declaration from ``start``, repeats a lexical error."""
+        k = bisect.bisect_left(self.starts, at)
+        before = self.starts[k - 1] if k else (0, 0)  # the token before the failing one
+        # an unterminated string took the rest of its line: whatever its declaration then
+        # lacks is its echo; a stray character took only itself, so only the token right
+        # after it (`a$b`: 'b') can be its echo, a later failure is an error of its own
+        return any(start <= d <= at and (line_end or before < d) for d, line_end in self.dropped)
+
+    def _glued(self, *kinds: str) -> bool:
+        """Whether the next token touches the previous one (no space) and is one of ``kinds``.
+
+        A kind is a token kind, or an operator's text.
+        """
+        prev, t = self.toks[self.i - 1], self.tok
+        if t.kind == "end" or t.pos != (prev.pos[0], prev.pos[1] + len(prev.text)):
+            return False
+        return t.kind in kinds or (t.kind == "op" and t.text in kinds)
 
     def number(self, what: str) -> tuple[float, Pos]:
         pos = self.tok.pos
@@ -493,19 +533,28 @@ class _Parser:
 
     def program(self) -> list[Decl]:
         decls: list[Decl] = []
+        start: Pos = (0, 0)  # where the last declaration started
         while self.tok.kind != "end":
             t = self.tok
             if t.kind == "name" and t.text in _DECL_KEYWORDS:
+                start = t.pos
                 try:
                     decls.append(getattr(self, f"decl_{t.text}")())
                 except _Fail as exc:
-                    self.errors.append((exc.pos, exc.message))
+                    if not self._echo(t.pos, exc.pos):
+                        self.errors.append((exc.pos, exc.message))
                     self.sync()
             else:
                 found = "end of file" if t.kind == "end" else repr(t.text)
-                self.errors.append(
-                    (t.pos, f"expected a declaration ({', '.join(_DECL_KEYWORDS)}), found {found}")
-                )
+                # `a$b`: 'b'; `stream b = "abc` then `with {…}` on the next line: 'with'
+                # taken as its label, then '{': echoes of the drop
+                if not self._echo(start, t.pos):
+                    self.errors.append(
+                        (
+                            t.pos,
+                            f"expected a declaration ({', '.join(_DECL_KEYWORDS)}), found {found}",
+                        )
+                    )
                 self.take()
                 self.sync()
         return decls
@@ -816,8 +865,8 @@ class _Parser:
 
 
 def _parse(text: str) -> tuple[Program, list[KPLError]]:
-    toks, errors = _tokenize(text)
-    p = _Parser(toks)
+    toks, errors, dropped = _tokenize(text)
+    p = _Parser(toks, dropped)
     decls = p.program()
     lines = text.splitlines()
     errors += [KPLError(pos[0], pos[1], msg, _excerpt(lines, *pos)) for pos, msg in p.errors]
