@@ -309,4 +309,5 @@ def kpl_check_file(
         for e in errors:
             _complain(e.format(str(file)))
         raise typer.Exit(2)
-    _say(f"ok: {len(kpl_parse(text).decls)} declarations")
+    n = len(kpl_parse(text).decls)
+    _say(f"ok: {n} declaration{'' if n == 1 else 's'}")

@@ -886,7 +886,7 @@ def test_kpl_check_knows_the_labels_replay_feeds_from_a_recording(
     assert main([*check, "--recording", str(path)]) == 2
     assert "unknown label 'wx/wind'" in capsys.readouterr().err
     assert main([*check, "--recording", str(path), "--config", str(config)]) == 0
-    assert capsys.readouterr().out == "ok: 1 declarations\n"
+    assert capsys.readouterr().out == "ok: 1 declaration\n"
     assert main([*check, "--config", str(config)]) == 2
     assert "give --recording" in capsys.readouterr().err
     assert main([*check, "--recording", str(tmp_path / "none.mcap")]) == 2
