@@ -3,8 +3,9 @@
 One agent (``gateway@<platform>`` by default) answers, in ontology ``dyknow`` with JSON
 content (the mapping is `GatewayService`, ``federation/_gateway_service.py``):
 
-* FIPA-Request ``{"action": "list-labels" | "create-stream" | "query", …}`` → ``inform``
-  with the result, or ``refuse`` with the reason;
+* FIPA-Request ``{"action": "list-labels" | "create-stream" | "remove-stream" | "query",
+  …}`` → ``inform`` with the result, or ``refuse`` with the reason (a remove-stream of
+  another platform: only a stream one of its agents created, ``not_creator_refused``);
 * FIPA-Query (query-ref) for ``query`` and ``list-labels``;
 * FIPA-Subscribe ``{"label": …, "policy": {…}}`` → ``agree``, then one ``inform``
   ``{"label": …, "samples": [[value, valid s, available s], …]}`` per batch the core
@@ -124,6 +125,8 @@ class GatewayStats:
     unknown_label_refused: int = 0
     taken_label_refused: int = 0
     limit_refused: int = 0
+    not_created_refused: int = 0
+    not_creator_refused: int = 0
     streams_removed: int = 0
 
 
@@ -407,6 +410,10 @@ class GatewayAgent(Agent):
         if remote:
             self._check_access(message)
             self._check_reserved(message, content)
+        action = content.get("action") if isinstance(content, dict) else None
+        # who created the stream a remove-stream names: the service forgets it
+        label = content.get("label") if action == "remove-stream" else None
+        creator = self.service.creators.get(label, "") if isinstance(label, str) else ""
         try:
             result = self.service.perform(content, message.sender, limited=remote)
         except GatewayRefusal as exc:
@@ -414,9 +421,34 @@ class GatewayAgent(Agent):
             if exc.code is not None:
                 self._counted(message, exc.code, told)
             raise Refuse(told) from exc
-        if remote and isinstance(content, dict) and content.get("action") == "list-labels":
+        if remote and action == "list-labels":
             result = {"labels": [lb for lb in result["labels"] if not self._is_reserved(lb)]}
+        elif action == "remove-stream":
+            self._removed(message, creator or self.aid, result)
         return result
+
+    def _removed(self, message: ACLMessage, creator: str, result: dict[str, Any]) -> None:
+        """Count, audit and log a created stream ended (or kept, handed to this platform)
+        at ``message``'s asking: one record, as a reload's or a revocation's."""
+        asker = message.sender
+        if "removed" in result:
+            self.gateway_stats.streams_removed += 1
+            told = _gateway_told(GatewayEnded([], [(creator, result["removed"])], []))
+        else:
+            readers = self.service.read_on([result["kept"]]).get(result["kept"], [])
+            told = _gateway_told(GatewayEnded([], [], [(creator, result["kept"], readers)]))
+        for verdict, label, agent, role, what, more in told:
+            self.platform.audit(
+                verdict=verdict,
+                stage="gateway",
+                code="remove-stream",
+                stream=label,
+                to=platform_of(agent),
+                sender=asker,
+                **{"from": platform_of(asker), role: agent},
+                reason=f"{what}{more}: asked by {asker}",
+            )
+            log.info("%s: %s%s: asked by %s", self, what, more, asker)
 
     def _counted(self, message: ACLMessage, code: str, reason: str) -> None:
         """Count and audit a refusal of the service's by its code: a bad label or a limit
@@ -435,6 +467,12 @@ class GatewayAgent(Agent):
                 stats.taken_label_refused += 1
         elif code in ("stream-limit", "subscription-limit"):
             stats.limit_refused += 1
+        elif code == "not-creator":  # never this platform's own: they may remove any
+            stats.not_creator_refused += 1
+        elif code == "not-created":
+            if platform_of(message.sender) == self.platform.name:
+                return  # as a label not here: this platform's agents are not audited
+            stats.not_created_refused += 1
         else:
             return
         self._audit_refusal(message, code, reason)
@@ -563,7 +601,8 @@ class GatewayAgent(Agent):
 
     @on_request(ONTOLOGY)
     async def _on_request(self, message: ACLMessage) -> Any:
-        """list-labels, create-stream, query: the result, or refuse with the reason."""
+        """list-labels, create-stream, remove-stream, query: the result, or refuse with the
+        reason."""
         return self._perform(message.content, message)
 
     @on_query(ONTOLOGY)
@@ -574,8 +613,9 @@ class GatewayAgent(Agent):
         content = message.content
         if isinstance(content, dict):
             content = {"action": "query", **content}
-            if content["action"] == "create-stream":
-                raise Refuse("create-stream is an action: ask for it with FIPA-Request")
+            if content["action"] in ("create-stream", "remove-stream"):
+                action = content["action"]
+                raise Refuse(f"{action} is an action: ask for it with FIPA-Request")
         return self._perform(content, message)
 
     # -- FIPA-Subscribe -----------------------------------------------------------------

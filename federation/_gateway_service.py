@@ -140,6 +140,15 @@ class CreateStream(_Content):
     policy: PolicySpec = PolicySpec.model_construct()
 
 
+class RemoveStream(_Content):
+    """End the stream a create-stream published as ``label`` (its creator's platform or
+    this platform's agents only): ``{"removed": label}``, or ``{"kept": label}`` when a
+    process here reads it (handed to this platform, the slot freed all the same)."""
+
+    action: Literal["remove-stream"]
+    label: str
+
+
 class Subscribe(_Content):
     """Content of a FIPA-Subscribe: the label and the policy its informs follow."""
 
@@ -322,14 +331,15 @@ class GatewayService:
         # (this one removed by hand, the name reused) is not the gateway's to remove
         self._units: dict[str, ComputationalUnit] = {}
 
-    def parse(self, content: Any) -> ListLabels | Query | CreateStream:
+    def parse(self, content: Any) -> ListLabels | Query | CreateStream | RemoveStream:
         """Validate request content; GatewayRefusal names what is wrong."""
         if not isinstance(content, dict) or not isinstance(content.get("action"), str):
             raise GatewayRefusal("content must be a JSON object with an 'action'")
-        kinds: dict[str, type[ListLabels | Query | CreateStream]] = {
+        kinds: dict[str, type[ListLabels | Query | CreateStream | RemoveStream]] = {
             "list-labels": ListLabels,
             "query": Query,
             "create-stream": CreateStream,
+            "remove-stream": RemoveStream,
         }
         model = kinds.get(content["action"])
         if model is None:
@@ -363,6 +373,8 @@ class GatewayService:
                 return {"labels": self.instance.labels(req.pattern)}
             if isinstance(req, Query):
                 return answer_to_json(self.query(req))
+            if isinstance(req, RemoveStream):
+                return self.remove_stream(req, asker, limited=limited)
             return self.create_stream(req, asker, limited=limited)
         except UnknownLabelError as exc:
             raise GatewayRefusal(str(exc), code="unknown-label") from exc
@@ -430,6 +442,36 @@ class GatewayService:
         if asker:  # none: the program called the service itself, for its own platform
             self.creators[req.output] = asker
         return {"label": req.output, "source": req.label}
+
+    def remove_stream(
+        self, req: RemoveStream, asker: str = "", *, limited: bool = False
+    ) -> dict[str, Any]:
+        """End the stream created as ``req.label`` for ``asker`` (``limited``: another
+        platform's, which may end only those its own agents created), as its process
+        removed by hand; one a process staying here reads is kept, handed to this
+        platform. Either way its creator's slot is free at once."""
+        dk = self.instance
+        label = req.label
+        self._forget_removed()  # one removed by hand is no created stream any more
+        if label not in self.created:
+            if not dk.has_label(label):
+                raise UnknownLabelError(label, dk.labels())
+            raise GatewayRefusal(
+                f"stream {label!r} was not created by a create-stream", code="not-created"
+            )
+        creator = self.creators.get(label, "")
+        if limited:
+            platform = platform_of(asker)
+            if not creator or platform_of(creator) != platform:
+                raise GatewayRefusal(
+                    f"stream {label!r} was not created by {platform}", code="not-creator"
+                )
+        if self.read_on([label]):
+            # as a reload keeps it: what is built on it here keeps its input
+            self.creators.pop(label, None)
+            return {"kept": label}
+        self.remove(label)
+        return {"removed": label}
 
     def held_by(self, platform: str) -> int:
         """How many of the streams created here ``platform``'s agents asked for (one

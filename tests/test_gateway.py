@@ -11,6 +11,7 @@ from typing import Any
 import pytest
 
 from agents import (
+    LATER,
     MAX_MESSAGE_BYTES,
     ACLMessage,
     Agent,
@@ -249,7 +250,10 @@ async def test_refusals_carry_the_reason() -> None:
         assert "car/car5/speed" in reason  # the known labels are named
 
         reason = await refusal(w.ask({"action": "fly", "to": "home"}))
-        assert reason == "unknown action 'fly' (known: create-stream, list-labels, query)"
+        assert (
+            reason
+            == "unknown action 'fly' (known: create-stream, list-labels, query, remove-stream)"
+        )
 
         reason = await refusal(w.ask("list-labels"))
         assert reason == "content must be a JSON object with an 'action'"
@@ -1119,6 +1123,144 @@ async def test_one_platform_holds_at_most_its_share_and_each_freed_slot_is_its_o
         assert gw.service.held_by("operator") == 0 and "op/c" not in gw.service.created
         for m in mine:
             await m.cancel()
+
+
+def _remove(asker: Agent, label: Any) -> Any:
+    content = {"action": "remove-stream", "label": label}
+    return request(asker, GW, content, ontology="dyknow", timeout=5)
+
+
+async def test_a_member_removes_the_streams_it_created_and_no_other() -> None:
+    """Any agent of the platform that created a stream may remove it: its subscribers see
+    it end, its slot is free at once, one record audits it; another platform's stream, a
+    stream not created through the gateway and a label not here are refused (counted and
+    audited when another platform asks); this platform's own agents may remove any."""
+    async with world(max_streams_per_platform=1) as w:
+        local = await w.uav.add(Agent("local"))
+        other = await w.operator.add(Agent("other"))
+        gw = w.gateway
+        await _create(w.asker, "car/car5/speed", "op/t")
+        await _create(local, "car/car5/speed", "mine/t")
+        theirs = await subscribe(w.asker, GW, {"label": "op/t"}, ontology="dyknow")
+        here = await subscribe(local, GW, {"label": "op/t"}, ontology="dyknow")
+        told = [
+            await refusal(_remove(w.asker, "mine/t")),
+            await refusal(_remove(w.asker, "car/car5/speed")),
+            await refusal(_remove(w.asker, "car/car9/speed")),
+            await refusal(_remove(w.asker, ["op/t"])),
+        ]
+        assert told == [
+            "stream 'mine/t' was not created by operator",
+            "stream 'car/car5/speed' was not created by a create-stream",
+            "unknown label 'car/car9/speed' (known labels: car/car5/speed, car5-state, "
+            "mine/t, op/t)",
+            "field 'label': Input should be a valid string",
+        ]
+        # an action, not a query; never answered at once, on the loop or zenoh's thread
+        ref = query_ref(
+            w.asker, GW, {"action": "remove-stream", "label": "op/t"}, ontology="dyknow"
+        )
+        assert await refusal(ref) == "remove-stream is an action: ask for it with FIPA-Request"
+        message = w.asker.message(
+            Performative.REQUEST,
+            GW,
+            {"action": "remove-stream", "label": "op/t"},
+            ontology="dyknow",
+        )
+        assert gw.answer_at_once(message) is LATER and gw.answer_on_thread(message) is LATER
+        assert w.dk.has_label("op/t") and gw.gateway_stats.streams_removed == 0
+        # another agent of the creator's platform removes it
+        assert await _remove(other, "op/t") == {"removed": "op/t"}
+        for feed in (theirs, here):
+            with pytest.raises(SubscriptionEnded):  # the stream's end: a clean one
+                await feed.get(timeout=5)
+        assert not w.dk.has_label("op/t") and "gateway:op/t" not in w.dk.processes
+        assert gw.service.held_by("operator") == 0 and gw.gateway_stats.streams_removed == 1
+        await eventually(lambda: gw.subscriptions == {})
+        # its slot free at once: it creates again, and removing the one gone is refused
+        await _create(w.asker, "car/car5/speed", "op/u")
+        gone = await refusal(_remove(w.asker, "op/t"))
+        assert gone.startswith("unknown label 'op/t' (known labels: ")
+        # this platform's own agents remove another platform's stream; a source is refused
+        # them too, neither counted nor audited
+        assert await _remove(local, "op/u") == {"removed": "op/u"}
+        mine = await refusal(_remove(local, "car5-state"))
+        assert mine == "stream 'car5-state' was not created by a create-stream"
+        stats = gw.gateway_stats
+        assert (stats.not_creator_refused, stats.not_created_refused) == (1, 1)
+        assert (stats.unknown_label_refused, stats.streams_removed) == (2, 2)
+        channel = w.uav.channel
+        assert isinstance(channel, InterfaceAgent)
+        recs = [r for r in channel.audit.records if r.get("stage") == "gateway"]
+        assert [(r["verdict"], r["code"], r["sender"], r.get("stream")) for r in recs] == [
+            ("refused", "not-creator", "asker@operator", None),
+            ("refused", "not-created", "asker@operator", None),
+            ("refused", "unknown-label", "asker@operator", None),
+            ("ended", "remove-stream", "other@operator", "op/t"),
+            ("refused", "unknown-label", "asker@operator", None),
+            ("ended", "remove-stream", "local@uav-a", "op/u"),
+        ], recs
+        assert recs[0]["reason"] == f"not-creator: {told[0]}"
+        assert recs[1]["reason"] == f"not-created: {told[1]}"
+        ended = recs[3]
+        assert (ended["from"], ended["to"], ended["creator"]) == (
+            "operator",
+            "operator",
+            "asker@operator",
+        )
+        assert ended["reason"] == (
+            "gateway stream 'op/t' created by asker@operator removed: asked by other@operator"
+        )
+        assert (recs[5]["to"], recs[5]["creator"]) == ("operator", "asker@operator")
+
+
+async def test_a_stream_its_creator_removes_that_a_process_here_reads_is_kept() -> None:
+    """Removed by its creator, a stream a staying process reads is kept, handed to this
+    platform as at a reload: what is built on it keeps its input, the slot is free."""
+    async with world(max_streams_per_platform=1) as w:
+        local = await w.uav.add(Agent("local"))
+        await _create(w.asker, "car/car5/speed", "op/a")
+        await _create(local, "op/a", "station/b")
+        here = await subscribe(local, GW, {"label": "station/b"}, ontology="dyknow")
+        assert await _remove(w.asker, "op/a") == {"kept": "op/a"}
+        assert w.gateway.service.held_by("operator") == 0
+        assert w.gateway.gateway_stats.streams_removed == 0
+        w.speed.push(7.0, valid_time=T0)
+        sample = await here.get(timeout=5)
+        assert sample["label"] == "station/b" and sample["samples"][0][0] == 7.0, sample
+        # this platform's now: its first creator may not remove it, but create another
+        told = await refusal(_remove(w.asker, "op/a"))
+        assert told == "stream 'op/a' was not created by operator"
+        await _create(w.asker, "car/car5/speed", "op/c")
+        channel = w.uav.channel
+        assert isinstance(channel, InterfaceAgent)
+        recs = [r for r in channel.audit.records if r.get("stage") == "gateway"]
+        assert [(r["verdict"], r["code"], r.get("creator")) for r in recs] == [
+            ("kept", "remove-stream", "asker@operator"),
+            ("refused", "not-creator", None),
+        ]
+        assert recs[0]["reason"] == (
+            "gateway stream 'op/a' created by asker@operator kept: read by gateway:station/b"
+            " (now this platform's): asked by asker@operator"
+        )
+        await here.cancel()
+
+
+async def test_a_stream_handed_to_this_platform_at_going_private_is_not_its_creators() -> None:
+    async with world() as w:
+        local = await w.uav.add(Agent("local"))
+        await _create(w.asker, "car/car5/speed", "op/a")
+        await _create(local, "op/a", "station/b")
+        ended = await w.gateway.set_visibility("private", "closed by the operator")
+        assert ended.kept == [("asker@operator", "op/a", ["gateway:station/b"])]
+        await w.gateway.set_visibility("protected", "opened again")
+        told = await refusal(_remove(w.asker, "op/a"))
+        assert told == "stream 'op/a' was not created by operator"
+        assert w.dk.has_label("op/a") and w.gateway.gateway_stats.not_creator_refused == 1
+        # this platform's agents may: station/b, which read it, loses its input then
+        assert await _remove(local, "station/b") == {"removed": "station/b"}
+        assert await _remove(local, "op/a") == {"removed": "op/a"}
+        assert w.gateway.service.created == {}
 
 
 def test_the_gateways_limits_are_counts_named_when_wrong() -> None:

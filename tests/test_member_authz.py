@@ -44,6 +44,7 @@ from agents import (
     MessageTemplate,
     Performative,
     Refused,
+    SubscriptionEnded,
     new_id,
     on,
     query_ref,
@@ -685,6 +686,75 @@ async def test_one_member_cannot_take_every_slot_of_an_opened_gateway(tmp_path: 
         assert s["gateway"]["limit_refused"] == 3
         for h in [*held, theirs]:
             await h.cancel()
+
+
+async def test_a_member_cannot_remove_another_members_stream_at_an_opened_gateway(
+    tmp_path: Path,
+) -> None:
+    """A stream one member created at an opened gateway is removed by that member only:
+    another's remove-stream is refused (the reason, counted, audited) and the stream flows
+    on; its creator's ends it (its subscriber told, one record) and frees its slot at once."""
+    opened = {"sharing": {"gateway": "protected"}}
+    async with (
+        asyncio.timeout(150),
+        world(tmp_path, ["uav-a"], ["uav-c", "uav-m"], uav_a=opened) as w,
+    ):
+        w.pipes["uav-a"].send("limits", 4, 4, 2, 1)  # one created stream per member
+        await w.pipes["uav-a"].expect("limits", WAIT)
+        m = await mallory(w)
+        c = w.here["uav-c"].agents.agent("honest") or await w.here["uav-c"].agents.add(
+            Agent("honest")
+        )
+        gw = "gateway@uav-a"
+
+        def create(output: str) -> dict[str, Any]:
+            return {"action": "create-stream", "label": SECRET, "output": output}
+
+        remove = {"action": "remove-stream", "label": "c/s0"}
+        assert await request(c, gw, create("c/s0"), ontology="dyknow") == {
+            "label": "c/s0",
+            "source": SECRET,
+        }
+        full = await refusal(request(c, gw, create("c/s1"), ontology="dyknow"))
+        assert full == "too many created streams for uav-c (limit 1 per platform)"
+        feed = await subscribe(c, gw, {"label": "c/s0"}, ontology="dyknow")
+        assert (await feed.get(timeout=WAIT))["label"] == "c/s0"
+        told = await refusal(request(m, gw, remove, ontology="dyknow"))
+        assert told == "stream 'c/s0' was not created by uav-m"
+        s = await w.until_stats(
+            "uav-a",
+            lambda s: audited(s, stage="gateway", code="not-creator"),
+            "the refusal audited",
+        )
+        assert s["gateway"]["not_creator_refused"] == 1 and "c/s0" in s["labels"]
+        (rec,) = await audited_in_file(tmp_path, s, 1, stage="gateway", code="not-creator")
+        assert (rec["verdict"], rec["from"], rec["sender"], rec["performative"]) == (
+            "refused",
+            "uav-m",
+            "mallory@uav-m",
+            "request",
+        )
+        assert rec["reason"] == f"not-creator: {told}"
+        assert (await feed.get(timeout=WAIT))["label"] == "c/s0"  # it flows on
+        # its creator removes it: its subscriber is told, its slot is free at once
+        assert await request(c, gw, remove, ontology="dyknow") == {"removed": "c/s0"}
+        with pytest.raises(SubscriptionEnded):
+            async with asyncio.timeout(WAIT):
+                while True:  # the informs already sent, then the end
+                    await feed.get(timeout=WAIT)
+        assert await request(c, gw, create("c/s1"), ontology="dyknow") == {
+            "label": "c/s1",
+            "source": SECRET,
+        }
+        s = await w.stats("uav-a")
+        assert s["gateway"]["streams_removed"] == 1 and "c/s0" not in s["labels"]
+        (ended,) = await audited_in_file(tmp_path, s, 1, stage="gateway", code="remove-stream")
+        assert (ended["verdict"], ended["stream"], ended["creator"], ended["sender"]) == (
+            "ended",
+            "c/s0",
+            "honest@uav-c",
+            "honest@uav-c",
+        )
 
 
 async def test_a_member_flooding_an_opened_gateway_with_refused_requests_cannot_flush_the_audit(
